@@ -1,0 +1,54 @@
+"""The built-in plugins, registered through the same hooks as any other: the ``cdr`` codec and
+the ``none`` cipher."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .cipher import Cipher
+from .codec import Codec
+from .errors import CodecError
+from .hookspecs import hookimpl
+
+
+class CdrCodec(Codec):
+    """The ROS wire format itself, passed through untouched.
+
+    The subscription is raw (rclpy hands over the serialized CDR bytes) and the publisher
+    publishes those bytes: no Python-level (de)serialization at all. The receiving side checks
+    only the CDR encapsulation header; the middleware validates the rest when it deserializes.
+    """
+
+    name = "cdr"
+    raw = True
+
+    def encode(self, message: bytes) -> bytes:
+        return message
+
+    def decode(self, data: bytes) -> bytes:
+        # 4-byte encapsulation header: 0x00 0x00/0x01 (CDR big/little endian) + 2 option bytes
+        if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1):
+            raise CodecError("not a CDR-encapsulated message")
+        return data
+
+
+class NoCipher(Cipher):
+    """No encryption, no authentication: the payload travels as it is."""
+
+    name = "none"
+
+    def seal(self, header: bytes, payload: bytes) -> bytes:
+        return payload
+
+    def open(self, header: bytes, body: bytes) -> bytes:
+        return body
+
+
+@hookimpl
+def rosgate_codecs(register: Any) -> None:
+    register(CdrCodec)
+
+
+@hookimpl
+def rosgate_ciphers(register: Any) -> None:
+    register(NoCipher)

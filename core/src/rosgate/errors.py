@@ -1,0 +1,57 @@
+"""Errors a user sees. Each carries enough to say what is wrong and how to fix it, without a traceback."""
+
+from __future__ import annotations
+
+
+class RosgateError(Exception):
+    """Base of every error rosgate reports to a user (the CLI prints it and exits non-zero)."""
+
+
+class OptionError(RosgateError):
+    """A plugin's option is wrong. Raised by a plugin's constructor.
+
+    ``key`` is the option's name (``key_file``); the core adds the file and line where it was set.
+    """
+
+    def __init__(self, key: str | None, message: str, fix: str | None = None):
+        super().__init__(message)
+        self.key = key
+        self.message = message
+        self.fix = fix
+
+
+class ConfigError(RosgateError):
+    """A bringup.yaml problem: names the file, the line, the key and the fix."""
+
+    def __init__(self, message: str, *, file: str | None = None, line: int | None = None,
+                 key: str | None = None, fix: str | None = None):
+        self.message = message
+        self.file = file
+        self.line = line
+        self.key = key
+        self.fix = fix
+        super().__init__(str(self))
+
+    def __str__(self) -> str:
+        where = self.file or "<config>"
+        if self.line is not None:
+            where += f":{self.line}"
+        text = f"{where}: "
+        if self.key:
+            text += f"{self.key}: "
+        text += self.message
+        if self.fix:
+            text += f"\n  fix: {self.fix}"
+        return text
+
+
+class LinkError(RosgateError):
+    """A link could not be set up (address in use, unreachable, unsupported on this machine)."""
+
+
+class CodecError(Exception):
+    """Bytes or a message a codec cannot handle. Raised per message: the frame is dropped and counted."""
+
+
+class CipherError(Exception):
+    """A frame that fails authentication (tampered, foreign, wrong key). Dropped and counted."""
