@@ -1,0 +1,93 @@
+"""The envelope: a fixed 28-byte header in front of every frame rosgate sends.
+
+    offset size field
+    0      2    magic     b"RG"
+    2      1    version   1
+    3      1    flags     FLAG_* below
+    4      4    topic_id  which topic (or control channel 0) the frame belongs to
+    8      4    epoch     random per sender start: a restarted sender starts a new sequence
+    12     8    seq       per topic and epoch, starting at 1
+    20     8    stamp     sender's wall clock at send, nanoseconds since the Unix epoch
+    28          body      cipher.seal(header, payload)
+
+The header travels in clear (the receiver needs the topic id to pick the cipher) and every cipher
+authenticates it together with the payload. All integers are big-endian.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+MAGIC = b"RG"
+VERSION = 1
+HEADER = struct.Struct(">2sBBIIQQ")
+SIZE = HEADER.size
+
+FLAG_CONTROL = 0x01  # topic_id 0: a control message on the main line (JSON)
+FLAG_HELLO = 0x02    # a datagram that tells the server where a client's link is (topic_id = session)
+
+CONTROL_TOPIC = 0
+
+
+class EnvelopeError(ValueError):
+    """Bytes that do not start with a valid envelope header."""
+
+
+@dataclass(frozen=True, slots=True)
+class Header:
+    flags: int
+    topic_id: int
+    epoch: int
+    seq: int
+    stamp: int
+
+
+def pack(flags: int, topic_id: int, epoch: int, seq: int, stamp: int) -> bytes:
+    return HEADER.pack(MAGIC, VERSION, flags, topic_id, epoch, seq, stamp)
+
+
+def unpack(frame: bytes | memoryview) -> Header:
+    if len(frame) < SIZE:
+        raise EnvelopeError("truncated")
+    magic, version, flags, topic_id, epoch, seq, stamp = HEADER.unpack_from(frame)
+    if magic != MAGIC:
+        raise EnvelopeError("foreign")
+    if version != VERSION:
+        raise EnvelopeError("version")
+    return Header(flags, topic_id, epoch, seq, stamp)
+
+
+class ReplayWindow:
+    """Accepts each (epoch, seq) once: duplicates and frames older than the window are refused.
+
+    A 64-frame sliding window (as in IPsec) lets reordered datagrams through; a new epoch (the
+    sender restarted) starts the window afresh.
+    """
+
+    WIDTH = 64
+
+    __slots__ = ("epoch", "top", "seen")
+
+    def __init__(self) -> None:
+        self.epoch = -1
+        self.top = 0
+        self.seen = 0  # bit i set: seq (top - i) was accepted
+
+    def accept(self, epoch: int, seq: int) -> str | None:
+        """None when the frame is new, else the reason it is refused ("duplicate" or "stale")."""
+        if epoch != self.epoch:
+            self.epoch, self.top, self.seen = epoch, seq, 1
+            return None
+        if seq > self.top:
+            shift = seq - self.top
+            self.seen = ((self.seen << shift) | 1) & ((1 << self.WIDTH) - 1) if shift < self.WIDTH else 1
+            self.top = seq
+            return None
+        offset = self.top - seq
+        if offset >= self.WIDTH:
+            return "stale"
+        if self.seen >> offset & 1:
+            return "duplicate"
+        self.seen |= 1 << offset
+        return None

@@ -1,0 +1,248 @@
+"""Links: the core's side of a transport. Framing, fragmentation and threads live here, so a
+transport plugin only opens sockets.
+
+* :class:`DatagramLink` — one bound endpoint; sends whole frames or fragments, reassembles,
+  and hands every frame to ``on_frame``. In bare mode (``framing: none``) it hands over the
+  datagram untouched.
+* :class:`StreamLink` — one connection; frames carry a length prefix. Sending never blocks the
+  caller: frames wait in a bounded queue for a writer thread.
+* :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``.
+
+Every receive loop catches what a peer's bytes can cause and counts it; a link never dies of input.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+from collections import deque
+from typing import Any, Callable
+
+from . import framing
+from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport
+
+log = logging.getLogger("rosgate")
+
+FrameHandler = Callable[[bytes, "Link", Address], None]
+DropHandler = Callable[[int | None, str], None]  # topic id (None: unknown), reason
+
+POLL = 0.2  # seconds a receive waits before checking whether the link is closing
+
+
+class Link:
+    """What a route sends through and what frames are reported from."""
+
+    name: str
+    closed: threading.Event
+
+    def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+class DatagramLink(Link):
+    def __init__(self, transport: Transport, endpoint: DatagramEndpoint, name: str,
+                 on_frame: FrameHandler, on_drop: DropHandler, bare: bool = False,
+                 max_message: int = framing.DEFAULT_MAX_MESSAGE):
+        self.transport = transport
+        self.endpoint = endpoint
+        self.name = name
+        self.bare = bare
+        self.max_frame = transport.max_frame
+        self.on_frame = on_frame
+        self.on_drop = on_drop
+        self.closed = threading.Event()
+        self._frame_ids = itertools.count(1)
+        self.reassembler = framing.Reassembler(lambda topic, reason: on_drop(topic, reason),
+                                               max_message=max_message)
+        self._thread = threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True)
+        self._thread.start()
+
+    def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
+        assert to is not None, "a datagram link needs a destination"
+        try:
+            if len(frame) <= self.max_frame:
+                self.endpoint.send(frame, to)
+            elif self.bare:
+                self.on_drop(topic_id, "too_large_for_bare_framing")
+                return False
+            else:
+                for piece in framing.fragment(frame, self.max_frame, topic_id, next(self._frame_ids)):
+                    self.endpoint.send(piece, to)
+        except (OSError, framing.FramingError) as exc:
+            self.on_drop(topic_id, "send_error")
+            log.debug("%s: send to %s failed: %s", self.name, to, exc)
+            return False
+        return True
+
+    def _receive_loop(self) -> None:
+        while not self.closed.is_set():
+            try:
+                got = self.endpoint.receive(POLL)
+            except OSError:
+                if self.closed.is_set():
+                    return
+                continue
+            if got is None:
+                self.reassembler.expire()
+                continue
+            datagram, source = got
+            if not self.bare and framing.is_fragment(datagram):
+                try:
+                    frame = self.reassembler.add(source, datagram)
+                except framing.FramingError:
+                    self.on_drop(None, "bad_fragment")
+                    continue
+                if frame is None:
+                    continue
+                datagram = frame
+            self.on_frame(datagram, self, source)
+
+    def close(self) -> None:
+        self.closed.set()
+        self.endpoint.close()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout=2)
+
+
+class StreamLink(Link):
+    """One stream connection, framed with length prefixes."""
+
+    def __init__(self, connection: StreamConnection, name: str, peer: Address,
+                 on_frame: FrameHandler, on_drop: DropHandler,
+                 on_close: Callable[["StreamLink"], None] | None = None,
+                 queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
+                 max_message: int = framing.DEFAULT_MAX_MESSAGE):
+        self.connection = connection
+        self.name = name
+        self.peer = peer
+        self.on_frame = on_frame
+        self.on_drop = on_drop
+        self.on_close = on_close
+        self.closed = threading.Event()
+        self.queue_frames = queue_frames
+        self.queue_bytes = queue_bytes
+        self._queue: deque[tuple[bytes, int]] = deque()
+        self._queued_bytes = 0
+        self._wake = threading.Condition()
+        self._reader = framing.StreamReader(max_message)
+        self._threads = [
+            threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
+            threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
+        if self.closed.is_set():
+            self.on_drop(topic_id, "link_down")
+            return False
+        record = framing.length_prefixed(frame)
+        with self._wake:
+            if (len(self._queue) >= self.queue_frames
+                    or self._queued_bytes + len(record) > self.queue_bytes):
+                self.on_drop(topic_id, "queue_full")
+                return False
+            self._queue.append((record, topic_id))
+            self._queued_bytes += len(record)
+            self._wake.notify()
+        return True
+
+    def _send_loop(self) -> None:
+        while True:
+            with self._wake:
+                while not self._queue and not self.closed.is_set():
+                    self._wake.wait()
+                if self.closed.is_set():
+                    return
+                # one write for everything queued: fewer system calls under load
+                batch = list(self._queue)
+                self._queue.clear()
+                self._queued_bytes = 0
+            try:
+                self.connection.send(b"".join(record for record, _ in batch))
+            except OSError as exc:
+                for _, topic_id in batch:
+                    self.on_drop(topic_id, "link_down")
+                self._fail(f"send failed: {exc}")
+                return
+
+    def _receive_loop(self) -> None:
+        while not self.closed.is_set():
+            try:
+                data = self.connection.receive(1 << 20, POLL)
+            except OSError as exc:
+                self._fail(f"receive failed: {exc}")
+                return
+            if data is None:
+                continue
+            if not data:
+                self._fail("closed by peer")
+                return
+            try:
+                for frame in self._reader.feed(data):
+                    self.on_frame(frame, self, self.peer)
+            except framing.FramingError as exc:
+                # a corrupt length means we can no longer find frame boundaries: start afresh
+                self.on_drop(None, "bad_length")
+                self._fail(f"stream corrupt ({exc})")
+                return
+
+    def _fail(self, why: str) -> None:
+        if self.closed.is_set():
+            return
+        log.info("%s: connection to %s ended: %s", self.name, self.peer, why)
+        self.close()
+
+    def close(self) -> None:
+        if self.closed.is_set():
+            return
+        self.closed.set()
+        with self._wake:
+            self._wake.notify_all()
+        try:
+            self.connection.close()
+        except OSError:
+            pass
+        for thread in self._threads:
+            if thread is not threading.current_thread():
+                thread.join(timeout=2)
+        if self.on_close:
+            self.on_close(self)
+
+
+class Acceptor:
+    """Accepts connections on a listener until closed."""
+
+    def __init__(self, listener: StreamListener, name: str,
+                 on_connection: Callable[[StreamConnection, Address], None]):
+        self.listener = listener
+        self.name = name
+        self.on_connection = on_connection
+        self.closed = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name=f"accept-{name}", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self.closed.is_set():
+            try:
+                got = self.listener.accept(POLL)
+            except OSError as exc:
+                if self.closed.is_set():
+                    return
+                log.warning("%s: accept failed: %s", self.name, exc)
+                continue
+            if got is not None:
+                self.on_connection(*got)
+
+    def close(self) -> None:
+        self.closed.set()
+        self.listener.close()
+        self._thread.join(timeout=2)
+
+
+def describe(transport: Any, address: Address) -> str:
+    return f"{transport.name}://{address[0]}:{address[1]}"

@@ -1,0 +1,118 @@
+"""The ROS side: message types, QoS, and one rclpy context + node per engine.
+
+Each engine gets its own rclpy ``Context`` (and DDS domain when asked), so several engines can
+live in one process. The node is spun by ``rclpy.experimental.EventsExecutor`` in a thread of
+its own, with a loop of ``spin_once`` (its ``spin()`` was seen to deliver nothing and to hang at
+shutdown with the rclpy from the package index).
+"""
+
+from __future__ import annotations
+
+import importlib
+import re
+import threading
+from typing import Any, Callable
+
+TYPE_NAME = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Z][A-Za-z0-9]*)$")
+
+PROFILES = {
+    # bringup.yaml name -> rclpy.qos attribute
+    "default": "qos_profile_default",
+    "system_default": "qos_profile_system_default",
+    "sensor_data": "qos_profile_sensor_data",
+    "services_default": "qos_profile_services_default",
+    "parameters": "qos_profile_parameters",
+    "best_available": "qos_profile_best_available",
+}
+
+
+class TypeNotFound(LookupError):
+    """An interface that is not installed; the message says which package to install."""
+
+
+def resolve_type(name: str) -> type:
+    """``pkg/msg/Type`` (or ``pkg/srv/Type``) to its Python class."""
+    match = TYPE_NAME.match(name)
+    if not match:
+        raise TypeNotFound(f"{name!r} is not an interface name of the form pkg/msg/Type")
+    package, kind, type_name = match.groups()
+    try:
+        module = importlib.import_module(f"{package}.{kind}")
+    except ImportError:
+        dist = "ros-jazzy-" + package.replace("_", "-")
+        raise TypeNotFound(
+            f"interface package {package!r} is not installed (apt install ros-$ROS_DISTRO-"
+            f"{package.replace('_', '-')}, or pip install {dist})") from None
+    cls = getattr(module, type_name, None)
+    if not isinstance(cls, type):
+        known = sorted(n for n in dir(module) if n[:1].isupper() and not n.startswith("Metaclass"))
+        raise TypeNotFound(f"package {package!r} has no {kind} {type_name!r} "
+                           f"(it has: {', '.join(known)})")
+    return cls
+
+
+def qos_profile(spec: int | str | dict) -> Any:
+    """A QoS profile from a depth, a profile name or a mapping (already validated by config)."""
+    from rclpy import qos
+
+    if isinstance(spec, int):
+        return qos.QoSProfile(depth=spec)
+    if isinstance(spec, str):
+        return getattr(qos, PROFILES[spec])
+    profile = qos.QoSProfile(depth=spec.get("depth", 10))
+    if "reliability" in spec:
+        profile.reliability = getattr(qos.ReliabilityPolicy, spec["reliability"].upper())
+    if "durability" in spec:
+        profile.durability = getattr(qos.DurabilityPolicy, spec["durability"].upper())
+    if "history" in spec:
+        profile.history = getattr(qos.HistoryPolicy, spec["history"].upper())
+    return profile
+
+
+class RosNode:
+    """A node in a context of its own, spun in a background thread."""
+
+    def __init__(self, name: str, domain_id: int | None = None):
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.experimental import EventsExecutor
+
+        self._rclpy = rclpy
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        node_name = re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{name}")
+        self.node = rclpy.create_node(node_name, context=self.context,
+                                      start_parameter_services=False)
+        self.executor = EventsExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, name=f"ros-{name}", daemon=True)
+        self._thread.start()
+
+    @property
+    def logger(self) -> Any:
+        return self.node.get_logger()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set() and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.1)
+
+    def subscribe(self, msg_type: type, topic: str, qos: Any, callback: Callable[[Any], None],
+                  raw: bool) -> Any:
+        return self.node.create_subscription(msg_type, topic, callback, qos, raw=raw)
+
+    def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
+        return self.node.create_publisher(msg_type, topic, qos)
+
+    def destroy(self, entity: Any) -> None:
+        if hasattr(entity, "publish"):
+            self.node.destroy_publisher(entity)
+        else:
+            self.node.destroy_subscription(entity)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()

@@ -1,0 +1,101 @@
+"""rosgate transport ``udp``: UDP datagrams over IPv4 or IPv6.
+
+A datagram link: each frame is one datagram, delivered whole or not at all, in any order.
+Frames larger than :attr:`UdpTransport.max_frame` are fragmented by the rosgate core.
+
+Addresses: ``host:port`` (``[v6addr]:port`` for IPv6).
+
+Options (``plugins: {udp: {...}}`` in bringup.yaml):
+
+``receive_buffer``  bytes of kernel receive buffer to ask for (default 8 MiB). A burst larger
+                    than the buffer is lost, so large messages need a large one. As root the
+                    system limit ``net.core.rmem_max`` is bypassed; otherwise raise it.
+``send_buffer``     bytes of kernel send buffer (default 4 MiB).
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+from typing import Any, Mapping
+
+from rosgate import Address, LinkError, OptionError, Transport, hookimpl, parse_host_port
+
+log = logging.getLogger("rosgate.udp")
+
+# SO_RCVBUFFORCE / SO_SNDBUFFORCE: Linux, lets a privileged process exceed rmem_max/wmem_max
+_FORCE = {socket.SO_RCVBUF: getattr(socket, "SO_RCVBUFFORCE", None),
+          socket.SO_SNDBUF: getattr(socket, "SO_SNDBUFFORCE", None)}
+
+
+class UdpEndpoint:
+    def __init__(self, sock: socket.socket):
+        self.sock = sock
+
+    def send(self, frame: bytes, to: Address) -> None:
+        self.sock.sendto(frame, to)
+
+    def receive(self, timeout: float) -> tuple[bytes, Address] | None:
+        self.sock.settimeout(timeout)
+        try:
+            data, source = self.sock.recvfrom(65536)
+        except TimeoutError:
+            return None
+        return data, source[:2]
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class UdpTransport(Transport):
+    name = "udp"
+    stream = False
+    max_frame = 65_000  # below the IPv4 limit of 65,507 bytes of payload
+
+    def __init__(self, options: Mapping[str, Any]):
+        super().__init__(options)
+        unknown = set(options) - {"receive_buffer", "send_buffer"}
+        if unknown:
+            raise OptionError(sorted(unknown)[0], "unknown option of udp",
+                              "valid options are receive_buffer and send_buffer")
+        self.receive_buffer = _positive_int(options, "receive_buffer", 8 * 1024 * 1024)
+        self.send_buffer = _positive_int(options, "send_buffer", 4 * 1024 * 1024)
+
+    def parse_address(self, text: str) -> Address:
+        return parse_host_port(text)
+
+    def bind(self, address: Address) -> UdpEndpoint:
+        family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
+        sock = socket.socket(family, socket.SOCK_DGRAM)
+        _set_buffer(sock, socket.SO_RCVBUF, self.receive_buffer)
+        _set_buffer(sock, socket.SO_SNDBUF, self.send_buffer)
+        try:
+            sock.bind(address)
+        except OSError as exc:
+            sock.close()
+            raise LinkError(f"cannot bind UDP {address[0]}:{address[1]}: {exc.strerror}") from None
+        return UdpEndpoint(sock)
+
+
+def _set_buffer(sock: socket.socket, option: int, size: int) -> None:
+    forced = _FORCE[option]
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, forced if forced else option, size)
+    except PermissionError:
+        sock.setsockopt(socket.SOL_SOCKET, option, size)
+    got = sock.getsockopt(socket.SOL_SOCKET, option) // 2  # Linux reports twice what it grants
+    if got < size:
+        log.warning("udp: asked for a %d-byte socket buffer, got %d; large bursts may be lost "
+                    "(raise net.core.rmem_max / wmem_max)", size, got)
+
+
+def _positive_int(options: Mapping[str, Any], key: str, default: int) -> int:
+    value = options.get(key, default)
+    if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+        raise OptionError(key, f"must be a positive number of bytes, not {value!r}")
+    return value
+
+
+@hookimpl
+def rosgate_transports(register):
+    register(UdpTransport)
