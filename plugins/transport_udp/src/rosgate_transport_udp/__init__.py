@@ -7,7 +7,7 @@ Addresses: ``host:port`` (``[v6addr]:port`` for IPv6).
 
 Options (``plugins: {udp: {...}}`` in bringup.yaml):
 
-``receive_buffer``  bytes of kernel receive buffer to ask for (default 8 MiB). A burst larger
+``receive_buffer``  bytes of kernel receive buffer to ask for (default 4 MiB). A burst larger
                     than the buffer is lost, so large messages need a large one. As root the
                     system limit ``net.core.rmem_max`` is bypassed; otherwise raise it.
 ``send_buffer``     bytes of kernel send buffer (default 4 MiB).
@@ -58,7 +58,7 @@ class UdpTransport(Transport):
         if unknown:
             raise OptionError(sorted(unknown)[0], "unknown option of udp",
                               "valid options are receive_buffer and send_buffer")
-        self.receive_buffer = _positive_int(options, "receive_buffer", 8 * 1024 * 1024)
+        self.receive_buffer = _positive_int(options, "receive_buffer", 4 * 1024 * 1024)
         self.send_buffer = _positive_int(options, "send_buffer", 4 * 1024 * 1024)
 
     def parse_address(self, text: str) -> Address:
@@ -77,6 +77,9 @@ class UdpTransport(Transport):
         return UdpEndpoint(sock)
 
 
+_warned: dict[int, bool] = {}
+
+
 def _set_buffer(sock: socket.socket, option: int, size: int) -> None:
     forced = _FORCE[option]
     try:
@@ -84,7 +87,8 @@ def _set_buffer(sock: socket.socket, option: int, size: int) -> None:
     except PermissionError:
         sock.setsockopt(socket.SOL_SOCKET, option, size)
     got = sock.getsockopt(socket.SOL_SOCKET, option) // 2  # Linux reports twice what it grants
-    if got < size:
+    if got < size and not _warned.get(option):
+        _warned[option] = True
         log.warning("udp: asked for a %d-byte socket buffer, got %d; large bursts may be lost "
                     "(raise net.core.rmem_max / wmem_max)", size, got)
 

@@ -1,0 +1,135 @@
+"""The ``rosgate`` command: run, check, plugins, keygen.
+
+A problem the user can fix is printed as one message (file, line, key, fix) with exit status 2;
+tracebacks are kept for bugs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from . import __version__
+from .errors import ConfigError, RosgateError
+
+EXIT_USAGE = 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="rosgate", description="A pluggable ROS 2 network bridge.")
+    parser.add_argument("--version", action="version", version=f"rosgate {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = commands.add_parser("run", help="bridge the topics of a bringup.yaml until stopped")
+    run.add_argument("file", help="the bringup.yaml")
+    run.add_argument("--domain-id", type=int, default=None,
+                     help="ROS domain id (default: ROS_DOMAIN_ID, else 0)")
+    run.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+
+    check = commands.add_parser("check", help="validate a bringup.yaml and exit")
+    check.add_argument("file")
+
+    commands.add_parser("plugins", help="list installed plugins, and the ones that failed to load")
+
+    keygen = commands.add_parser("keygen", help="write a new key for a cipher (mode 0600)")
+    keygen.add_argument("cipher", help="the cipher's name, e.g. fernet")
+    keygen.add_argument("--out", help="the key file to write (default: CIPHER.key)")
+    keygen.add_argument("--force", action="store_true", help="replace an existing file")
+
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO,
+                        format="[rosgate] %(levelname)s %(message)s", stream=sys.stderr)
+    try:
+        return {"run": cmd_run, "check": cmd_check, "plugins": cmd_plugins,
+                "keygen": cmd_keygen}[args.command](args)
+    except RosgateError as exc:
+        print(f"rosgate: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+def _engine(path: str):
+    from .config import load
+    from .engine import Engine
+
+    return Engine(load(path)).prepare()
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    engine = _engine(args.file)
+    cfg = engine.config
+    print(f"{args.file}: ok ({cfg.role} {cfg.name!r}, {len(cfg.topics)} topic(s))")
+    for p in engine.topics:
+        t = p.config
+        arrow = "->" if t.direction == "transmit" else "<-"
+        port = f":{t.port}" if t.port else ""
+        print(f"  {t.topic} {arrow} {t.remote}  [{t.type}] {t.transport}{port} {t.codec} {t.cipher}")
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    engine = _engine(args.file)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        engine.start()
+    except ConfigError:
+        raise
+    try:
+        stop.wait()
+    finally:
+        logging.getLogger("rosgate").info("stopping")
+        engine.stop()
+    return 0
+
+
+def cmd_plugins(args: argparse.Namespace) -> int:
+    from .plugins import Plugins
+
+    plugins = Plugins.discover()
+    rows = sorted(plugins.registered.values(), key=lambda r: (r.kind, r.name))
+    print(f"{'KIND':<10} {'NAME':<10} {'DISTRIBUTION':<26} VERSION")
+    for r in rows:
+        print(f"{r.kind:<10} {r.name:<10} {r.distribution:<26} {r.version}")
+    for failure in plugins.failures:
+        print(f"failed to load plugin {failure.plugin!r} ({failure.distribution}): {failure.reason}")
+    for name in plugins.blocked:
+        print(f"blocked plugin {name!r} (ROSGATE_DISABLE_PLUGINS)")
+    return 0
+
+
+def cmd_keygen(args: argparse.Namespace) -> int:
+    from .plugins import Plugins
+
+    plugins = Plugins.discover()
+    registration = plugins.get("cipher", args.cipher)
+    if registration is None:
+        message, fix = plugins.explain_missing("cipher", args.cipher)
+        raise ConfigError(message, fix=fix, file="keygen")
+    key = registration.cls.generate_key()
+    if key is None:
+        raise ConfigError(f"cipher {args.cipher!r} takes no key", file="keygen")
+    path = Path(args.out or f"{args.cipher}.key")
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if args.force else os.O_EXCL)
+    try:
+        # created 0600 from the start: the key is never readable by others, not even briefly
+        fd = os.open(path, flags, 0o600)
+    except FileExistsError:
+        raise ConfigError(f"{path} exists; not replacing a key", file="keygen",
+                          fix="pass --force to replace it, or choose another --out") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot write {path}: {exc.strerror}", file="keygen") from None
+    with os.fdopen(fd, "wb") as out:
+        os.fchmod(out.fileno(), 0o600)
+        out.write(key + b"\n")
+    print(f"wrote a new {args.cipher} key to {path} (mode 0600)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
