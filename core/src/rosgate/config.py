@@ -1,0 +1,671 @@
+"""bringup.yaml: parse, validate, fill defaults. Every mistake becomes one ConfigError that names
+the file, the line, the key and the fix, never a traceback.
+
+The YAML is composed into nodes with the safe loader and turned into plain values here, so every
+key path ("topics[1].codec", "plugins.fernet.key_file") keeps the line it was written on; other
+modules locate their own errors through ``BridgeConfig.error``.
+
+Topic and service entries also arrive over the network from clients (no file, no lines):
+``topic_from_mapping`` / ``service_from_mapping`` run the same checks on them.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import ConfigError
+
+TRANSPORT_DEFAULT, CODEC_DEFAULT, CIPHER_DEFAULT = "udp", "cdr", "none"
+MAIN_LINE_DEFAULT = "tcp"
+LISTEN_DEFAULT = "0.0.0.0"
+FRAMING_DEFAULT = "rosgate"
+QOS_DEFAULT = 10
+TIMEOUT_DEFAULT = 5.0
+STALE_AFTER_DEFAULT = 15.0
+STALE_WARNINGS_DEFAULT = 5
+HEARTBEAT_DEFAULT = 1.0
+
+ROLES = ("client", "server", "peer")
+DIRECTIONS = ("transmit", "receive")
+FRAMINGS = ("rosgate", "none", "serial_datagram")
+QOS_PROFILES = ("default", "system_default", "sensor_data", "services_default", "parameters",
+                "best_available")
+QOS_POLICIES = {
+    "reliability": ("reliable", "best_effort"),
+    "durability": ("volatile", "transient_local"),
+    "history": ("keep_last", "keep_all"),
+}
+
+TOP_KEYS = ("bridge", "plugins", "topics", "services")
+BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
+               "stale_warnings", "heartbeat")
+DEFAULTS_KEYS = ("transport", "codec", "cipher")
+TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
+              "framing", "qos", "max_rate")
+SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
+                "framing", "timeout")
+QOS_KEYS = ("reliability", "durability", "history", "depth")
+
+# One example value per key for the fix of every error about it; "section.key" where it differs.
+_EXAMPLES = {
+    "bridge": "{name: robot1, role: client, server: 127.0.0.1:12000}",
+    "plugins": "{fernet: {key_file: secret.key}}",
+    "defaults": "{transport: udp, codec: cdr, cipher: none}",
+    "name": "robot1", "role": "client", "server": "127.0.0.1:12000", "main_line": "tcp",
+    "peer": "192.168.1.20", "listen": "0.0.0.0", "stale_after": "15", "stale_warnings": "5",
+    "heartbeat": "1.0", "transport": "udp", "codec": "cdr", "cipher": "none",
+    "topic": "/chatter", "service": "/mcu/ping", "type": "std_msgs/msg/String",
+    "services.type": "std_srvs/srv/Trigger", "services.remote": "/ping",
+    "direction": "transmit (this side to the peer) or receive (the peer to this side)",
+    "remote": "/robot1/chatter", "port": "12001", "framing": "rosgate", "qos": "sensor_data",
+    "max_rate": "20", "timeout": "5", "reliability": "reliable", "durability": "volatile",
+    "history": "keep_last", "depth": "10",
+}
+
+_BRIDGE_NAME = re.compile(r"[A-Za-z0-9_.-]+")
+_NAME_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+# pkg/Type or pkg/<kind>/Type; ROS package names are lower case, interface names CamelCase
+_INTERFACE = re.compile(r"([a-z][a-z0-9_]*)/(?:([a-z]+)/)?([A-Z][A-Za-z0-9]*)")
+_INDEX = re.compile(r"\[\d+\]$")
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+_START_FIX = "start with a bridge: section, as in the README's bringup.yaml walk-through"
+
+
+@dataclass
+class TopicConfig:
+    topic: str
+    type: str
+    direction: str
+    remote: str
+    transport: str = TRANSPORT_DEFAULT
+    codec: str = CODEC_DEFAULT
+    cipher: str = CIPHER_DEFAULT
+    port: int | None = None
+    framing: str = FRAMING_DEFAULT
+    qos: int | str | dict = QOS_DEFAULT
+    max_rate: float | None = None
+    line: int = 0
+    lines: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class ServiceConfig:
+    service: str
+    type: str
+    direction: str
+    remote: str
+    transport: str = TRANSPORT_DEFAULT
+    codec: str = CODEC_DEFAULT
+    cipher: str = CIPHER_DEFAULT
+    port: int | None = None
+    framing: str = FRAMING_DEFAULT
+    timeout: float = TIMEOUT_DEFAULT
+    line: int = 0
+    lines: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class BridgeConfig:
+    file: str
+    name: str
+    role: str
+    server: str | None = None
+    main_line: str = MAIN_LINE_DEFAULT
+    peer: str | None = None
+    listen: str | None = None
+    defaults: dict[str, str] = field(default_factory=lambda: {
+        "transport": TRANSPORT_DEFAULT, "codec": CODEC_DEFAULT, "cipher": CIPHER_DEFAULT})
+    stale_after: float = STALE_AFTER_DEFAULT
+    stale_warnings: int = STALE_WARNINGS_DEFAULT
+    heartbeat: float = HEARTBEAT_DEFAULT
+    plugins: dict[str, dict] = field(default_factory=dict)
+    topics: list[TopicConfig] = field(default_factory=list)
+    services: list[ServiceConfig] = field(default_factory=list)
+    lines: dict[str, int] = field(default_factory=dict)
+    base_dir: Path = field(default_factory=Path.cwd)
+
+    def error(self, key: str, message: str, fix: str | None = None) -> ConfigError:
+        """A ConfigError located at the line of dotted key `key` (falls back to the nearest
+        parent key's line)."""
+        return ConfigError(message, file=self.file, line=_line_of(self.lines, key), key=key, fix=fix)
+
+
+def load(path: str | Path) -> BridgeConfig:
+    file = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"not UTF-8 text (byte {exc.start}: {exc.reason})", file=file,
+                          fix="save the file as UTF-8") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read the file: {exc.strerror or exc}", file=file,
+                          fix="check the path and its permissions") from None
+    return loads(text, file=file, base_dir=Path(path).absolute().parent)
+
+
+def loads(text: str, file: str = "<string>", base_dir: Path | None = None) -> BridgeConfig:
+    data, src = _parse(text, file)
+    return _bridge_config(data, src, base_dir if base_dir is not None else Path.cwd())
+
+
+def topic_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
+                       index: int | None = None) -> TopicConfig:
+    """Validate one topic entry received from a client; `where` becomes the error's file and
+    `index` its position in the client's list (error keys read "topics[3].codec")."""
+    return _topic(_Source(where), data, _entry_path("topics", index), defaults)
+
+
+def service_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
+                         index: int | None = None) -> ServiceConfig:
+    """Like topic_from_mapping, for a service entry."""
+    return _service(_Source(where), data, _entry_path("services", index), defaults)
+
+
+def topic_to_mapping(t: TopicConfig) -> dict:
+    return _to_mapping(t, TOPIC_KEYS)
+
+
+def service_to_mapping(s: ServiceConfig) -> dict:
+    return _to_mapping(s, SERVICE_KEYS)
+
+
+# --- parsing -------------------------------------------------------------------------------------
+
+@dataclass
+class _Source:
+    """Where values came from: the file name, each key path's line, and the source text of
+    scalars YAML did not read as strings (for keys that want text, see _text)."""
+
+    file: str
+    lines: dict[str, int] = field(default_factory=dict)
+    texts: dict[str, str] = field(default_factory=dict)
+    root_line: int | None = None
+
+    def error(self, key: str, message: str, fix: str | None = None) -> ConfigError:
+        line = _line_of(self.lines, key) or self.root_line
+        return ConfigError(message, file=self.file, line=line, key=key or None, fix=fix)
+
+
+def _parse(text: str, file: str) -> tuple[Any, _Source]:
+    src = _Source(file)
+    loader = None
+    try:
+        loader = yaml.SafeLoader(text)
+        root = loader.get_single_node()
+        if root is None:
+            raise ConfigError("the file is empty", file=file, fix=_START_FIX)
+        src.root_line = root.start_mark.line + 1
+        data = _Builder(loader, src).build(root, "")
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        problem = exc.problem or exc.context or "invalid YAML"
+        raise ConfigError(f"YAML syntax error at column {mark.column + 1}: {problem}", file=file,
+                          line=mark.line + 1,
+                          fix="check the indentation (spaces, not tabs) and quote values that "
+                              "contain ': ' or ' #' or start with a special character") from None
+    except yaml.reader.ReaderError as exc:
+        raise ConfigError(f"unacceptable character #x{exc.character:04x} (YAML allows no control "
+                          "characters)", file=file, line=text.count("\n", 0, exc.position) + 1,
+                          fix="remove the control character") from None
+    finally:
+        if loader is not None:
+            loader.dispose()
+    return data, src
+
+
+class _Builder:
+    """Turns the node tree into plain values, recording each key path's line in the _Source."""
+
+    def __init__(self, loader: yaml.SafeLoader, src: _Source):
+        self.loader = loader
+        self.src = src
+        self.open: set[int] = set()  # collections being built: an alias to one is a cycle
+
+    def build(self, node: yaml.Node, path: str) -> Any:
+        if isinstance(node, yaml.ScalarNode):
+            value = self.loader.construct_object(node)
+            if value is not None and not isinstance(value, str):
+                self.src.texts[path] = node.value
+            return value
+        if id(node) in self.open:
+            raise self.src.error(path, "an alias refers to the mapping or list that contains it",
+                                 fix="remove the recursive alias (*name)")
+        self.open.add(id(node))
+        try:
+            if isinstance(node, yaml.SequenceNode):
+                items = []
+                for i, item in enumerate(node.value):
+                    self.src.lines[f"{path}[{i}]"] = item.start_mark.line + 1
+                    items.append(self.build(item, f"{path}[{i}]"))
+                return items
+            return self._mapping(node, path)
+        finally:
+            self.open.discard(id(node))
+
+    def _mapping(self, node: yaml.MappingNode, path: str) -> dict[str, Any]:
+        result: dict[str, Any] = {}
+        # "<<: *anchor" merges go in first so that the mapping's own keys override them; of several
+        # merged mappings the earlier wins
+        for key_node, value_node in node.value:
+            if key_node.tag == _MERGE_TAG:
+                merged = value_node.value if isinstance(value_node, yaml.SequenceNode) else [value_node]
+                for source in reversed(merged):
+                    if not isinstance(source, yaml.MappingNode):
+                        raise self.src.error(path, "'<<' must be followed by a mapping or a list of "
+                                                   "mappings", fix="merge anchored mappings: <<: *name")
+                    result.update(self.build(source, path))
+        own: set[str] = set()
+        for key_node, value_node in node.value:
+            if key_node.tag == _MERGE_TAG:
+                continue
+            if not isinstance(key_node, yaml.ScalarNode):
+                raise ConfigError("a key must be a plain name, not a list or mapping",
+                                  file=self.src.file, line=key_node.start_mark.line + 1,
+                                  key=path or None, fix="write the key as a name followed by ': '")
+            key = key_node.value  # the text as written: "yes:" stays "yes", not True
+            key_path = _join(path, key)
+            if key in own:
+                raise ConfigError(f"duplicate key '{key}' (first on line {self.src.lines[key_path]})",
+                                  file=self.src.file, line=key_node.start_mark.line + 1, key=key_path,
+                                  fix="keep only one of the two")
+            own.add(key)
+            self.src.lines[key_path] = key_node.start_mark.line + 1
+            result[key] = self.build(value_node, key_path)
+        return result
+
+
+# --- the file --------------------------------------------------------------------------------------
+
+def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
+    if not isinstance(data, dict):
+        raise src.error("", f"expected a mapping with bridge: at the top, got {_show(data)}",
+                        fix=_START_FIX)
+    _reject_legacy(src, data)
+    _check_keys(src, data, "", TOP_KEYS)
+    _require(src, data, "", ("bridge",))
+    bridge = _section(src, data, "", "bridge")
+    _check_keys(src, bridge, "bridge", BRIDGE_KEYS)
+    _require(src, bridge, "bridge", ("name", "role"))
+    name = _text(src, bridge, "bridge", "name")
+    if not _BRIDGE_NAME.fullmatch(name):
+        raise src.error("bridge.name", f"'{name}' is not a valid bridge name",
+                        fix="use only letters, digits, '_', '.' and '-', e.g. name: robot1")
+    role = _choice(src, bridge, "bridge", "role", ROLES)
+    _check_role(src, data, bridge, role)
+    defaults = _defaults(src, bridge)
+    return BridgeConfig(
+        file=src.file,
+        name=name,
+        role=role,
+        server=_text(src, bridge, "bridge", "server"),
+        main_line=_text(src, bridge, "bridge", "main_line", MAIN_LINE_DEFAULT),
+        peer=_text(src, bridge, "bridge", "peer"),
+        listen=_text(src, bridge, "bridge", "listen", LISTEN_DEFAULT if role == "peer" else None),
+        defaults=defaults,
+        stale_after=_number(src, bridge, "bridge", "stale_after", STALE_AFTER_DEFAULT, "a number > 0",
+                            _positive),
+        stale_warnings=_number(src, bridge, "bridge", "stale_warnings", STALE_WARNINGS_DEFAULT,
+                               "an integer >= 0", lambda v: v >= 0, integer=True),
+        heartbeat=_number(src, bridge, "bridge", "heartbeat", HEARTBEAT_DEFAULT, "a number > 0",
+                          _positive),
+        plugins=_plugins(src, data),
+        topics=_entries(src, data, "topics", role, defaults),
+        services=_entries(src, data, "services", role, defaults),
+        lines=src.lines,
+        base_dir=base_dir,
+    )
+
+
+def _reject_legacy(src: _Source, data: dict) -> None:
+    for key, value in data.items():
+        if isinstance(value, dict) and "ros__parameters" in value:
+            raise src.error(key, f"this is the old ros2_socket_bridge format ({key}: ros__parameters:); "
+                                 "rosgate uses bridge: + topics: instead",
+                            fix="rewrite it as in the README's bringup.yaml walk-through: a bridge: "
+                                "section (name, role: client, server: host:port) and one topics: entry "
+                                "per topic (topic, type: pkg/msg/Type, direction, port)")
+
+
+def _check_role(src: _Source, data: dict, bridge: dict, role: str) -> None:
+    if role == "peer":
+        for key in ("server", "main_line"):
+            if key in bridge:
+                raise src.error(f"bridge.{key}", f"role peer has no main line, so {key}: does not apply",
+                                fix="remove it; a peer sends to peer: (the far host) and binds listen:")
+        _require(src, bridge, "bridge", ("peer",),
+                 fix="add peer: <far host>, the address of the other side")
+        return
+    for key in ("peer", "listen"):
+        if key in bridge:
+            raise src.error(f"bridge.{key}", f"{key}: is for role peer only",
+                            fix=f"remove it; a {role} uses server: only")
+    if role == "client":
+        _require(src, bridge, "bridge", ("server",), fix="add server: host:port, the server's main line")
+        return
+    _require(src, bridge, "bridge", ("server",),
+             fix="add server: address:port, where to listen for clients")
+    for key in ("topics", "services"):
+        if data.get(key):
+            raise src.error(key, f"a server gets its {key} from its clients, so its file has no {key}:",
+                            fix=f"remove {key}: here and list them in each client's file")
+
+
+def _defaults(src: _Source, bridge: dict) -> dict[str, str]:
+    given = _section(src, bridge, "bridge", "defaults")
+    _check_keys(src, given, "bridge.defaults", DEFAULTS_KEYS)
+    return {
+        "transport": _text(src, given, "bridge.defaults", "transport", TRANSPORT_DEFAULT),
+        "codec": _text(src, given, "bridge.defaults", "codec", CODEC_DEFAULT),
+        "cipher": _text(src, given, "bridge.defaults", "cipher", CIPHER_DEFAULT),
+    }
+
+
+def _plugins(src: _Source, data: dict) -> dict[str, dict]:
+    given = _section(src, data, "", "plugins")
+    return {name: _section(src, given, "plugins", name,
+                           fix=f"write its options as {name}: {{option: value}}")
+            for name in given}
+
+
+def _entries(src: _Source, data: dict, key: str, role: str, defaults: dict[str, str]) -> list:
+    items = data.get(key)
+    if items is None:
+        return []
+    if not isinstance(items, list):
+        raise src.error(key, f"expected a list of entries, got {_show(items)}",
+                        fix=f"start each entry with '- {key[:-1]}: ' on its own line under {key}:")
+    build = _topic if key == "topics" else _service
+    entries = []
+    for i, item in enumerate(items):
+        entry = build(src, item, f"{key}[{i}]", defaults)
+        if role == "peer" and entry.port is None:
+            raise src.error(f"{key}[{i}].port", f"peer role: each {key[:-1]} needs its own port",
+                            fix="add port: <1..65535> to this entry")
+        entries.append(entry)
+    _check_duplicates(src, key, entries)
+    return entries
+
+
+def _check_duplicates(src: _Source, key: str, entries: list) -> None:
+    name_key = key[:-1]  # "topic" | "service"
+    by_name: dict[tuple[str, str], int] = {}
+    by_remote: dict[str, int] = {}
+    for j, entry in enumerate(entries):
+        name = getattr(entry, name_key)
+        first = by_name.setdefault((name, entry.direction), j)
+        if first != j:
+            raise src.error(f"{key}[{j}].{name_key}",
+                            f"{name} ({entry.direction}) is already listed as {key}[{first}] "
+                            f"on line {entries[first].line}", fix="remove one of the two entries")
+        if entry.direction == "receive":
+            # incoming frames are routed by remote name: two receivers of one name are ambiguous
+            first = by_remote.setdefault(entry.remote, j)
+            if first != j:
+                raise src.error(f"{key}[{j}].remote",
+                                f"remote {entry.remote} is already received by {key}[{first}] "
+                                f"on line {entries[first].line}",
+                                fix=f"give each receive {name_key} its own remote")
+
+
+# --- entries (file or network) -------------------------------------------------------------------
+
+def _topic(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> TopicConfig:
+    _expect_entry(src, data, path, "topic")
+    _check_keys(src, data, path, TOPIC_KEYS)
+    _require(src, data, path, ("topic", "type", "direction"))
+    common = _common(src, data, path, "topic", "msg", defaults)
+    if common["framing"] == "serial_datagram":
+        raise src.error(_join(path, "framing"), "framing serial_datagram is for services (request "
+                                                "and answer to a microcontroller), not topics",
+                        fix="use framing: none for bare payloads on a datagram link, "
+                            "or leave framing: out")
+    return TopicConfig(
+        **common,
+        qos=_qos(src, data, path),
+        max_rate=_number(src, data, path, "max_rate", None, "a number of Hz > 0", _positive),
+        **_entry_lines(src, path),
+    )
+
+
+def _service(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> ServiceConfig:
+    _expect_entry(src, data, path, "service")
+    _check_keys(src, data, path, SERVICE_KEYS)
+    _require(src, data, path, ("service", "type", "direction"))
+    return ServiceConfig(
+        **_common(src, data, path, "service", "srv", defaults),
+        timeout=_number(src, data, path, "timeout", TIMEOUT_DEFAULT, "a number of seconds > 0",
+                        _positive),
+        **_entry_lines(src, path),
+    )
+
+
+def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
+            defaults: dict[str, str]) -> dict[str, Any]:
+    """The keys topics and services share."""
+    name = _ros_name(src, data, path, name_key)
+    fields = {
+        name_key: name,
+        "type": _interface(src, data, path, kind),
+        "direction": _choice(src, data, path, "direction", DIRECTIONS),
+        "remote": _ros_name(src, data, path, "remote") if "remote" in data else name,
+        "transport": _text(src, data, path, "transport", defaults.get("transport", TRANSPORT_DEFAULT)),
+        "codec": _text(src, data, path, "codec", defaults.get("codec", CODEC_DEFAULT)),
+        "cipher": _text(src, data, path, "cipher", defaults.get("cipher", CIPHER_DEFAULT)),
+        "port": _number(src, data, path, "port", None, "an integer 1..65535", lambda v: 1 <= v <= 65535,
+                        integer=True),
+        "framing": _choice(src, data, path, "framing", FRAMINGS, FRAMING_DEFAULT),
+    }
+    if fields["framing"] == "none" and fields["cipher"] != "none":
+        raise src.error(_join(path, "framing"),
+                        f"framing none sends the bare payload, so there is no envelope to authenticate; "
+                        f"cipher must be none, not '{fields['cipher']}'",
+                        fix="set cipher: none on this entry, or use framing: rosgate to keep the cipher")
+    return fields
+
+
+def _qos(src: _Source, data: dict, path: str) -> int | str | dict:
+    if "qos" not in data:
+        return QOS_DEFAULT
+    value = data["qos"]
+    qos_path = _join(path, "qos")
+    expected = ("expected a depth (integer >= 1), a profile name or a mapping "
+                f"{{{', '.join(QOS_KEYS)}}}, got {_show(value)}")
+    fix = ("e.g. qos: 10, qos: sensor_data or qos: {reliability: reliable, depth: 10}; "
+           f"profiles: {', '.join(QOS_PROFILES)}")
+    if isinstance(value, str):
+        if value.isascii() and value.isdigit():  # legacy files wrote depths as strings: '10'
+            value = int(value)
+        else:
+            name = value.removeprefix("qos_profile_")  # legacy rclpy spelling
+            if name in QOS_PROFILES:
+                return name
+            hint = _did_you_mean(_closest(name, QOS_PROFILES))
+            raise src.error(qos_path, f"unknown QoS profile '{value}'{hint}", fix=fix)
+    if isinstance(value, int) and not isinstance(value, bool):
+        if value < 1:
+            raise src.error(qos_path, f"a QoS depth must be >= 1, got {value}", fix=fix)
+        return value
+    if not isinstance(value, dict):
+        raise src.error(qos_path, expected, fix=fix)
+    _check_keys(src, value, qos_path, QOS_KEYS)
+    policies = {key: _choice(src, value, qos_path, key, choices) for key, choices in QOS_POLICIES.items()
+                if key in value}
+    if "depth" in value:
+        policies["depth"] = _number(src, value, qos_path, "depth", None, "an integer >= 1",
+                                    lambda v: v >= 1, integer=True)
+    return policies
+
+
+def _ros_name(src: _Source, data: dict, path: str, key: str) -> str:
+    text = _text(src, data, path, key)
+    if text.startswith("~"):
+        raise src.error(_join(path, key), f"private names (~) are not supported: '{text}'",
+                        fix=f"write the full name, e.g. {key}: {_example(path, key)}")
+    tokens = text.removeprefix("/").split("/")
+    if not all(_NAME_TOKEN.fullmatch(token) for token in tokens):
+        raise src.error(_join(path, key), f"'{text}' is not a valid ROS name",
+                        fix="use letters, digits and '_' in parts separated by single '/', no part "
+                            f"starting with a digit, e.g. {key}: {_example(path, key)}")
+    return "/" + "/".join(tokens)  # relative names are taken from the root namespace
+
+
+def _interface(src: _Source, data: dict, path: str, kind: str) -> str:
+    text = _text(src, data, path, "type")
+    example = _example(path, "type")
+    what = "a topic" if kind == "msg" else "a service"
+    match = _INTERFACE.fullmatch(text)
+    if match is None:
+        raise src.error(_join(path, "type"), f"'{text}' is not an interface type name",
+                        fix=f"write it as package/{kind}/Type, e.g. type: {example}")
+    package, middle, name = match.groups()
+    if middle not in (None, kind):
+        raise src.error(_join(path, "type"),
+                        f"'{text}' is a '{middle}' type, but {what} needs package/{kind}/Type",
+                        fix=f"e.g. type: {example}")
+    return f"{package}/{kind}/{name}"
+
+
+# --- typed getters: each returns the value or raises a located ConfigError ------------------------
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _entry_path(key: str, index: int | None) -> str:
+    return f"{key}[{index if index is not None else '?'}]"
+
+
+def _parent(key: str) -> str:
+    match = _INDEX.search(key)
+    return key[:match.start()] if match else key.rpartition(".")[0]
+
+
+def _line_of(lines: dict[str, int], key: str) -> int | None:
+    while key:
+        if key in lines:
+            return lines[key]
+        key = _parent(key)
+    return None
+
+
+def _entry_lines(src: _Source, path: str) -> dict[str, Any]:
+    prefix = path + "."
+    lines = {key[len(prefix):]: line for key, line in src.lines.items() if key.startswith(prefix)}
+    return {"line": src.lines.get(path, 0), "lines": lines}
+
+
+def _show(value: Any) -> str:
+    if value is None:
+        return "nothing"
+    if isinstance(value, bool):
+        return f"{str(value).lower()} (a boolean)"
+    if isinstance(value, dict):
+        return "a mapping"
+    if isinstance(value, list):
+        return "a list"
+    return repr(value)
+
+
+def _closest(word: str, choices: tuple[str, ...]) -> str | None:
+    close = difflib.get_close_matches(word, choices, n=1)
+    return close[0] if close else None
+
+
+def _did_you_mean(close: str | None) -> str:
+    return f" (did you mean '{close}'?)" if close else ""
+
+
+def _example(path: str, key: str) -> str:
+    section = path.partition("[")[0]  # "services[2]" -> "services"
+    return _EXAMPLES.get(f"{section}.{key}", _EXAMPLES.get(key, "<value>"))
+
+
+def _positive(value: float) -> bool:
+    return value > 0
+
+
+def _check_keys(src: _Source, data: dict, path: str, valid: tuple[str, ...]) -> None:
+    for key in data:
+        if key not in valid:
+            hint = _did_you_mean(_closest(key, valid))
+            raise src.error(_join(path, key), f"unknown key '{key}'{hint}",
+                            fix=f"valid keys are {', '.join(valid)}")
+
+
+def _require(src: _Source, data: dict, path: str, keys: tuple[str, ...], fix: str | None = None) -> None:
+    for key in keys:
+        if key not in data:
+            where = f" under {path}:" if path else ""
+            raise src.error(_join(path, key), f"missing required key '{key}'",
+                            fix=fix or f"add {key}: {_example(path, key)}{where}")
+
+
+def _expect_entry(src: _Source, data: Any, path: str, name_key: str) -> None:
+    if not isinstance(data, dict):
+        raise src.error(path, f"expected a mapping ({name_key}:, type:, direction: ...), "
+                              f"got {_show(data)}",
+                        fix=f"write the entry as '- {name_key}: {_example(path, name_key)}' with its "
+                            "other keys indented under it")
+
+
+def _section(src: _Source, data: dict, path: str, key: str, fix: str | None = None) -> dict:
+    value = data.get(key)
+    if value is None:  # absent or written empty
+        return {}
+    if not isinstance(value, dict):
+        raise src.error(_join(path, key), f"expected a mapping, got {_show(value)}",
+                        fix=fix or f"write it as {key}: {_example(path, key)}")
+    return value
+
+
+def _text(src: _Source, data: dict, path: str, key: str, default: str | None = None) -> str | None:
+    if key not in data:
+        return default
+    key_path = _join(path, key)
+    value = data[key]
+    if value is not None and not isinstance(value, str) and key_path in src.texts:
+        # keep what was written: YAML 1.1 reads 10:11:22:33:44:55 (a Bluetooth address) as a number
+        value = src.texts[key_path]
+    if not isinstance(value, str) or not value.strip():
+        raise src.error(key_path, f"expected a non-empty string, got {_show(value)}",
+                        fix=f"e.g. {key}: {_example(path, key)}")
+    return value
+
+
+def _choice(src: _Source, data: dict, path: str, key: str, choices: tuple[str, ...],
+            default: str | None = None) -> str | None:
+    value = _text(src, data, path, key, default)
+    if value is not None and value not in choices:
+        close = _closest(value, choices)
+        raise src.error(_join(path, key),
+                        f"'{value}' is not one of {', '.join(choices)}{_did_you_mean(close)}",
+                        fix=f"e.g. {key}: {close or _example(path, key)}")
+    return value
+
+
+def _number(src: _Source, data: dict, path: str, key: str, default: Any, expected: str,
+            ok: Callable[[Any], bool], integer: bool = False) -> Any:
+    if key not in data:
+        return default
+    value = data[key]
+    kinds = int if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kinds) or not ok(value):
+        raise src.error(_join(path, key), f"expected {expected}, got {_show(value)}",
+                        fix=f"e.g. {key}: {_example(path, key)}")
+    return value if integer else float(value)
+
+
+def _to_mapping(entry: TopicConfig | ServiceConfig, keys: tuple[str, ...]) -> dict:
+    mapping = {}
+    for key in keys:
+        value = getattr(entry, key)
+        if value is not None:  # unset optional keys are left out, as a user would
+            mapping[key] = dict(value) if isinstance(value, dict) else value
+    return mapping
