@@ -593,6 +593,7 @@ class ClientRole(Role):
         self.token = b""
         self.server_name: str | None = None
         self.connected = threading.Event()
+        self.hello_to: set[tuple[DatagramLink, Address]] = set()  # every server port we use
         self._welcome: dict[str, Any] | None = None
         self._answer = threading.Event()
         main = engine.transports[self.cfg.main_line]
@@ -667,6 +668,7 @@ class ClientRole(Role):
                 to = (host, t.port or main_port)
                 link = self.datagram_link(p.transport, ("::" if ":" in host else "0.0.0.0", 0))
                 self.add(engine.make_route(p, topic_id, label, link, lambda to=to: to))
+                self.hello_to.add((link, to))
         self._say_hello()
 
     def _dedicated_stream(self, p: Prepared, address: Address) -> LinkSlot:
@@ -686,10 +688,8 @@ class ClientRole(Role):
         if self.session is None:
             return
         hello = hello_datagram(self.session, self.token)
-        for (_, local), link in list(self.datagram_links.items()):
-            for route in self.routes():
-                if getattr(route, "link", None) is link:
-                    link.send(hello, 0, route.destination())  # type: ignore[attr-defined]
+        for link, to in list(self.hello_to):
+            link.send(hello, 0, to)
 
     def _watch(self, link: StreamLink) -> None:
         link.closed.wait()
@@ -712,6 +712,7 @@ class ClientRole(Role):
         with self._lock:
             links = list(self.datagram_links.values())
             self.datagram_links.clear()
+            self.hello_to.clear()
         for link in links:
             link.close()
 

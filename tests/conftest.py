@@ -1,0 +1,186 @@
+"""Shared test harness: fresh ROS domains, free ports, bridge processes, ROS sides.
+
+Every test gets DDS domains of its own and keeps DDS on loopback, so tests never hear each
+other. Waiting is always on an event with a timeout, never a fixed sleep.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import pytest
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+ROSGATE = str(Path(sys.executable).with_name("rosgate"))
+# domains 20..119; the benchmark uses 150+, so a bench run does not disturb the tests
+_domains = itertools.count()
+
+
+def next_domain() -> int:
+    return 20 + next(_domains) % 100
+
+
+@pytest.fixture
+def domain() -> Callable[[], int]:
+    """Call it for each fresh DDS domain a test needs."""
+    return next_domain
+
+
+def free_port() -> int:
+    """A port free for both TCP and UDP on 127.0.0.1."""
+    while True:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
+            tcp.bind(("127.0.0.1", 0))
+            port = tcp.getsockname()[1]
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+                try:
+                    udp.bind(("127.0.0.1", port))
+                except OSError:
+                    continue
+            return port
+
+
+class Inbox:
+    """Collects what a subscription receives; wait for a count or a predicate."""
+
+    def __init__(self) -> None:
+        self.items: list[Any] = []
+        self._cond = threading.Condition()
+
+    def put(self, item: Any) -> None:
+        with self._cond:
+            self.items.append(item)
+            self._cond.notify_all()
+
+    def wait_for(self, predicate: Callable[[list[Any]], bool], timeout: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: predicate(self.items), timeout)
+
+    def wait_count(self, n: int, timeout: float) -> bool:
+        return self.wait_for(lambda items: len(items) >= n, timeout)
+
+
+class RosSide:
+    """A plain ROS node in one domain: the talker or the listener of a test."""
+
+    def __init__(self, domain_id: int, name: str):
+        from rosgate.ros import RosNode
+
+        self.ros = RosNode(name, domain_id)
+        self.domain_id = domain_id
+
+    def listen(self, topic: str, msg_type: type, qos: Any = 100) -> Inbox:
+        inbox = Inbox()
+        self.ros.subscribe(msg_type, topic, qos, inbox.put, raw=False)
+        return inbox
+
+    def publisher(self, topic: str, msg_type: type, qos: Any = 100) -> Any:
+        return self.ros.publisher(msg_type, topic, qos)
+
+    def close(self) -> None:
+        self.ros.close()
+
+
+@pytest.fixture
+def ros_side():
+    sides: list[RosSide] = []
+
+    def make(domain_id: int, name: str = "side") -> RosSide:
+        side = RosSide(domain_id, f"{name}_{domain_id}")
+        sides.append(side)
+        return side
+
+    yield make
+    for side in sides:
+        side.close()
+
+
+def cross(publisher: Any, inbox: Inbox, make: Callable[[int | None], Any],
+          is_warmup: Callable[[Any], bool], count: int, timeout: float = 20.0,
+          interval: float = 0.005) -> list[Any]:
+    """Publish warm-up messages (``make(None)``) until one crosses — discovery and handshakes
+    take a moment — then ``count`` numbered ones (``make(0)``...); return the numbered messages
+    that arrived, in arrival order, once all came or ``timeout`` passed."""
+    deadline = time.monotonic() + timeout
+    while not inbox.wait_count(1, 0.2):
+        assert time.monotonic() < deadline, "nothing crossed the bridge"
+        publisher.publish(make(None))
+    for n in range(count):
+        publisher.publish(make(n))
+        time.sleep(interval)  # paces the publisher; nothing waits on this
+    numbered = lambda items: [m for m in items if not is_warmup(m)]  # noqa: E731
+    inbox.wait_for(lambda items: len(numbered(items)) >= count,
+                   max(1.0, deadline - time.monotonic()))
+    return numbered(list(inbox.items))
+
+
+class Bridge:
+    """A ``rosgate run`` process."""
+
+    def __init__(self, config: Path, domain_id: int, ready: str = "running as"):
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
+        self.config = config
+        self.lines: list[str] = []
+        self._cond = threading.Condition()
+        self.proc = subprocess.Popen([ROSGATE, "run", str(config)], env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+        if not self.wait_log(ready, 20):
+            self.stop()
+            raise AssertionError(f"bridge {config.name} did not start:\n{self.log}")
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self._cond:
+                self.lines.append(line.rstrip("\n"))
+                self._cond.notify_all()
+
+    @property
+    def log(self) -> str:
+        with self._cond:
+            return "\n".join(self.lines)
+
+    def wait_log(self, text: str, timeout: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: any(text in line for line in self.lines)
+                                       or self.proc.poll() is not None and text not in self.log,
+                                       timeout) and any(text in line for line in self.lines)
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._reader.join(5)
+        return self.proc.returncode
+
+
+@pytest.fixture
+def bridge():
+    started: list[Bridge] = []
+
+    def start(config: Path, domain_id: int, **kwargs: Any) -> Bridge:
+        b = Bridge(config, domain_id, **kwargs)
+        started.append(b)
+        return b
+
+    yield start
+    for b in started:
+        code = b.stop()
+        assert "Traceback" not in b.log, b.log
+        assert code == 0, f"bridge {b.config.name} exited {code}:\n{b.log}"
