@@ -112,13 +112,14 @@ def cross(publisher: Any, inbox: Inbox, make: Callable[[int | None], Any],
     take a moment — then ``count`` numbered ones (``make(0)``...); return the numbered messages
     that arrived, in arrival order, once all came or ``timeout`` passed."""
     deadline = time.monotonic() + timeout
-    while not inbox.wait_count(1, 0.2):
+    start = len(inbox.items)
+    while not inbox.wait_count(start + 1, 0.2):
         assert time.monotonic() < deadline, "nothing crossed the bridge"
         publisher.publish(make(None))
     for n in range(count):
         publisher.publish(make(n))
         time.sleep(interval)  # paces the publisher; nothing waits on this
-    numbered = lambda items: [m for m in items if not is_warmup(m)]  # noqa: E731
+    numbered = lambda items: [m for m in items[start:] if not is_warmup(m)]  # noqa: E731
     inbox.wait_for(lambda items: len(numbered(items)) >= count,
                    max(1.0, deadline - time.monotonic()))
     return numbered(list(inbox.items))

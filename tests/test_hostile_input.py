@@ -1,0 +1,175 @@
+"""Bytes from the network never crash the bridge, never reach ROS as a message, and every drop is
+counted by reason. Two engines run in this process, each with its own rclpy context and DDS
+domain; garbage comes from plain sockets."""
+
+from __future__ import annotations
+
+import random
+import socket
+import time
+from pathlib import Path
+from typing import Callable
+
+import pytest
+from conftest import cross, free_port
+from rclpy.serialization import serialize_message
+from std_msgs.msg import String
+
+from rosgate import envelope
+from rosgate.config import loads
+from rosgate.engine import Engine
+from rosgate.framing import FRAGMENT
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
+    """Poll a counter the engine updates from its own threads (no event to wait on)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
+@pytest.fixture
+def engines():
+    started: list[Engine] = []
+
+    def start(text: str, domain_id: int, base_dir: Path | None = None) -> Engine:
+        engine = Engine(loads(text, file="test.yaml", base_dir=base_dir), domain_id=domain_id)
+        started.append(engine.prepare().start())
+        return engine
+
+    yield start
+    for engine in started:
+        engine.stop()
+
+
+def peer_pair(engines, domain, transport: str = "udp", cipher_a: str = "none",
+              cipher_b: str = "none", plugins_a: str = "{}", plugins_b: str = "{}",
+              base_dir: Path | None = None):
+    da, db, port = domain(), domain(), free_port()
+    common = f"transport: {transport}, port: {port}, type: std_msgs/msg/String, topic: /chatter"
+    a = engines(f"""
+bridge: {{name: a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+plugins: {plugins_a}
+topics: [{{{common}, direction: transmit, cipher: {cipher_a}}}]
+""", da, base_dir)
+    b = engines(f"""
+bridge: {{name: b, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+plugins: {plugins_b}
+topics: [{{{common}, direction: receive, cipher: {cipher_b}}}]
+""", db, base_dir)
+    return a, b, da, db, port
+
+
+def text(i: int | None) -> String:
+    return String(data="warmup" if i is None else f"real-{i}")
+
+
+def test_garbage_datagrams_counted_by_reason_and_never_published(engines, domain, ros_side):
+    a, b, da, db, port = peer_pair(engines, domain)
+    inbox = ros_side(db, "listener").listen("/chatter", String)
+    talker = ros_side(da, "talker").publisher("/chatter", String)
+    assert [m.data for m in cross(talker, inbox, text, lambda m: m.data == "warmup", 5)] == \
+        [f"real-{i}" for i in range(5)]
+    route = b.routes()[0]
+
+    rng = random.Random(7)
+    garbage: list[bytes] = [b""]
+    while len(garbage) < 101:
+        junk = rng.randbytes(rng.randint(envelope.SIZE, 300))
+        if junk[:2] not in (b"RG", b"RF"):
+            garbage.append(junk)  # foreign: 100
+    garbage += [b"RG" + rng.randbytes(rng.randint(0, 20)) for _ in range(10)]  # truncated: 10 (+ b"")
+    header = lambda topic, seq: envelope.pack(0, topic, 1, seq, 0)  # noqa: E731
+    garbage.append(envelope.HEADER.pack(b"RG", 99, 0, route.topic_id, 1, 1, 0) + b"x")  # version
+    garbage.append(header(route.topic_id ^ 0xFFFF, 1) + serialize_message(text(1)))  # unknown topic
+    garbage.append(header(route.topic_id, 1) + b"\x00\x01\x00\x00" + b"\xff" * 12)  # bad CDR
+    garbage.append(header(route.topic_id, 2) + b"not cdr at all")  # bad CDR
+    garbage += [b"RF" + rng.randbytes(3) for _ in range(5)]  # malformed fragments
+    lone = FRAGMENT.pack(b"RF", 0, 3, route.topic_id, 77) + b"part"  # its siblings never come
+    dup = header(route.topic_id, 3) + serialize_message(String(data="dup"))
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for datagram in garbage + [lone, dup, dup]:
+            s.sendto(datagram, ("127.0.0.1", port))
+
+    expected_link = {"foreign_frame": 100, "truncated_frame": 11, "version_frame": 1,
+                     "unknown_topic": 1, "bad_fragment": 5}
+    assert wait_until(lambda: b.stats()["link_drops"] == expected_link), b.stats()
+    assert wait_until(lambda: route.counters.drops == {"decode_error": 2, "duplicate": 1,
+                                                       "fragment_lost": 1}), route.counters
+    # the one well-formed frame among them was published once; nothing else was
+    assert inbox.wait_for(lambda items: any(m.data == "dup" for m in items), 5)
+
+    # and the link still carries real traffic
+    again = cross(talker, inbox, lambda i: text(None if i is None else 100 + i),
+                  lambda m: m.data == "warmup", 5)
+    published = {m.data for m in inbox.items}
+    assert published <= {"warmup", "dup"} | {f"real-{i}" for i in [*range(5), *range(100, 105)]}
+    assert [m.data for m in again if m.data != "dup"] == [f"real-{100 + i}" for i in range(5)]
+
+
+def test_wrong_key_is_rejected_and_counted(tmp_path, engines, domain, ros_side):
+    from cryptography.fernet import Fernet
+
+    (tmp_path / "a.key").write_bytes(Fernet.generate_key())
+    (tmp_path / "b.key").write_bytes(Fernet.generate_key())
+    a, b, da, db, port = peer_pair(engines, domain, cipher_a="fernet", cipher_b="fernet",
+                                   plugins_a="{fernet: {key_file: a.key}}",
+                                   plugins_b="{fernet: {key_file: b.key}}", base_dir=tmp_path)
+    inbox = ros_side(db, "listener").listen("/chatter", String)
+    talker = ros_side(da, "talker").publisher("/chatter", String)
+    route = b.routes()[0]
+    deadline = time.monotonic() + 20
+    while route.counters.drops["auth_failed"] < 10:
+        assert time.monotonic() < deadline, route.counters
+        talker.publish(String(data="secret"))
+        time.sleep(0.02)  # pacing the talker
+    assert route.counters.received == 0
+    assert inbox.items == []
+    assert a.routes()[0].counters.sent >= 10
+
+
+def test_garbage_on_a_tcp_link_closes_that_connection_only(engines, domain, ros_side):
+    a, b, da, db, port = peer_pair(engines, domain, transport="tcp")
+    inbox = ros_side(db, "listener").listen("/chatter", String)
+    talker = ros_side(da, "talker").publisher("/chatter", String)
+    cross(talker, inbox, text, lambda m: m.data == "warmup", 3)
+
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        s.sendall(b"\xff\xff\xff\xff" + b"junk")  # a length no frame can have
+        assert s.recv(10) == b""  # the bridge closed this connection
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        s.sendall(b"\x00\x00\x00\x05hello")  # well framed, but not an envelope
+    assert wait_until(lambda: b.stats()["link_drops"] == {"bad_length": 1, "truncated_frame": 1})
+
+    again = cross(talker, inbox, lambda i: text(None if i is None else 50 + i),
+                  lambda m: m.data == "warmup", 5)
+    assert [m.data for m in again][-5:] == [f"real-{50 + i}" for i in range(5)]
+
+
+def test_garbage_on_the_main_line_leaves_the_server_serving(engines, domain, ros_side):
+    ds, dc, port = domain(), domain(), free_port()
+    server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}", ds)
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        s.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")  # "GET " as a length: far too long
+        assert s.recv(10) == b""
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        frame = envelope.pack(envelope.FLAG_CONTROL, 0, 0, 0, 0) + b"{not json"
+        s.sendall(len(frame).to_bytes(4, "big") + frame)
+        data_frame = envelope.pack(0, 5, 1, 1, 0) + b"x"
+        s.sendall(len(data_frame).to_bytes(4, "big") + data_frame)
+        assert wait_until(lambda: server.stats()["link_drops"].get("before_handshake") == 1)
+    assert server.stats()["link_drops"] == {"bad_length": 1, "bad_control": 1,
+                                            "before_handshake": 1}
+
+    engines(f"""
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
+topics: [{{topic: /chatter, type: std_msgs/msg/String, direction: transmit}}]
+""", dc)
+    inbox = ros_side(ds, "listener").listen("/chatter", String)
+    got = cross(ros_side(dc, "talker").publisher("/chatter", String), inbox, text,
+                lambda m: m.data == "warmup", 5)
+    assert sorted(m.data for m in got) == [f"real-{i}" for i in range(5)]
