@@ -113,7 +113,7 @@ class Engine:
         try:
             codec_cls(msg_type, self.config.plugins.get(topic.codec) or {})
         except OptionError as exc:
-            raise self._option_error(topic.codec, exc) from None
+            raise self._option_error(topic.codec, exc, f"{key}.codec") from None
         if topic.framing == "none" and transport.stream:
             raise error(f"{key}.framing", "framing: none needs a datagram transport (udp, can, ...)",
                         "use framing: rosgate on stream links")
@@ -169,7 +169,7 @@ class Engine:
             try:
                 self.transports[name] = cls(self.config.plugins.get(name) or {})
             except OptionError as exc:
-                raise self._option_error(name, exc) from None
+                raise self._option_error(name, exc, key) from None
         return self.transports[name]
 
     def cipher(self, name: str, key: str, error: Callable[..., ConfigError] | None = None) -> Cipher:
@@ -178,7 +178,7 @@ class Engine:
             try:
                 self.ciphers[name] = cls(self.config.plugins.get(name) or {}, self.config.base_dir)
             except OptionError as exc:
-                raise self._option_error(name, exc) from None
+                raise self._option_error(name, exc, key) from None
         return self.ciphers[name]
 
     def address(self, transport: Transport, text: str | None, key: str) -> Address:
@@ -187,7 +187,11 @@ class Engine:
         except ValueError as exc:
             raise self.config.error(key, str(exc)) from None
 
-    def _option_error(self, plugin: str, exc: OptionError) -> ConfigError:
+    def _option_error(self, plugin: str, exc: OptionError, asked_by: str) -> ConfigError:
+        """Locate a plugin's complaint at its option, or, when the file has no options for the
+        plugin at all, at the key that asked for the plugin."""
+        if f"plugins.{plugin}" not in self.config.lines:
+            return self.config.error(asked_by, f"{plugin}: {exc.message}", exc.fix)
         key = f"plugins.{plugin}" + (f".{exc.key}" if exc.key else "")
         return self.config.error(key, exc.message, exc.fix)
 

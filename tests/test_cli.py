@@ -1,0 +1,172 @@
+"""The ``rosgate`` command as a user meets it: one clear message per mistake, naming file, line
+and key, exit status 2, never a traceback."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import stat
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import ROSGATE, free_port
+from cryptography.fernet import Fernet
+
+
+def rosgate(*args: str, env: dict[str, str] | None = None, cwd: Path | None = None,
+            timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run([ROSGATE, *args], capture_output=True, text=True, timeout=timeout,
+                          env=dict(os.environ, **(env or {})), cwd=cwd)
+
+
+def user_error(result: subprocess.CompletedProcess) -> str:
+    """Assert the shape of a user error and return its text."""
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    assert "Traceback" not in result.stderr
+    assert result.stderr.startswith("rosgate: error: "), result.stderr
+    return result.stderr
+
+
+GOOD = """\
+bridge:
+  name: robot1
+  role: peer
+  peer: 127.0.0.1
+  listen: 127.0.0.1
+topics:
+  - topic: /chatter
+    type: std_msgs/msg/String
+    direction: transmit
+    port: {port}
+"""
+
+
+@pytest.fixture
+def config(tmp_path: Path):
+    def write(text: str, name: str = "bringup.yaml") -> Path:
+        path = tmp_path / name
+        path.write_text(text)
+        return path
+    return write
+
+
+def test_check_accepts_a_good_file(config):
+    path = config(GOOD.format(port=12001))
+    result = rosgate("check", str(path))
+    assert result.returncode == 0, result.stderr
+    assert "ok (peer 'robot1', 1 topic(s))" in result.stdout
+    assert "/chatter -> /chatter  [std_msgs/msg/String] udp:12001 cdr none" in result.stdout
+
+
+@pytest.mark.parametrize("change, line, key, words", [
+    # YAML syntax
+    (("    port: 12001\n", "    port: [12001\n"), 11, None, "YAML"),
+    # unknown key, with a suggestion
+    (("    port:", "    prot:"), 10, "topics[0].prot", "did you mean 'port'"),
+    # missing required key
+    (("    direction: transmit\n", ""), 7, "topics[0].direction", "missing"),
+    # unknown plugin: names the installed ones and the distribution that would provide it
+    (("    port:", "    codec: cbor\n    port:"), 10, "topics[0].codec",
+     "pip install rosgate-codec-cbor"),
+    # message type that does not exist / package not installed
+    (("std_msgs/msg/String", "std_msgs/msg/Strin"), 8, "topics[0].type", "has no msg 'Strin'"),
+    (("std_msgs/msg/String", "robot_msgs/msg/Arm"), 8, "topics[0].type",
+     "'robot_msgs' is not installed"),
+    # a cipher whose key is missing
+    (("    port:", "    cipher: fernet\n    port:"), 10, "topics[0].cipher",
+     "fernet: fernet needs exactly one of key_file or key_env"),
+])
+def test_check_names_file_line_key_and_fix(config, change, line, key, words):
+    path = config(GOOD.format(port=12001).replace(*change))
+    text = user_error(rosgate("check", str(path)))
+    assert f"{path}:{line}: " in text
+    if key:
+        assert f": {key}: " in text
+    assert words in text
+
+
+def test_missing_key_file_is_named(config):
+    path = config("plugins:\n  fernet: {key_file: nowhere.key}\n" +
+                  GOOD.format(port=12001).replace("    port:", "    cipher: fernet\n    port:"))
+    text = user_error(rosgate("check", str(path)))
+    assert f"{path}:2: plugins.fernet.key_file: cannot read key file" in text
+    assert "rosgate keygen fernet" in text
+
+
+def test_legacy_ros2_socket_bridge_file_is_recognised():
+    legacy = Path(__file__).resolve().parents[2] / "shared" / "legacy" / "bringup.yaml"
+    if not legacy.exists():
+        legacy = Path(__file__).resolve().parents[1] / ".." / "shared" / "legacy" / "bringup.yaml"
+    text = user_error(rosgate("check", str(legacy)))
+    assert "ros2_socket_bridge" in text
+
+
+def test_port_in_use_is_a_clear_error(config):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        path = config(GOOD.format(port=port).replace("direction: transmit", "direction: receive"))
+        text = user_error(rosgate("run", str(path), env={"ROS_DOMAIN_ID": "3"}))
+    assert f"{path}:10: topics[0].port: cannot bind UDP 127.0.0.1:{port}" in text
+
+
+def test_run_stops_cleanly_on_sigterm(config):
+    path = config(GOOD.format(port=free_port()))
+    proc = subprocess.Popen([ROSGATE, "run", str(path)], stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, ROS_DOMAIN_ID="4"))
+    assert proc.stderr is not None
+    for line in proc.stderr:
+        if "running as peer" in line:
+            break
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(20) == 0
+    rest = proc.stderr.read()
+    assert "stopping" in rest and "Traceback" not in rest
+
+
+def test_plugins_lists_every_kind_with_its_distribution():
+    result = rosgate("plugins")
+    assert result.returncode == 0
+    rows = {tuple(line.split()[:3]) for line in result.stdout.splitlines()[1:]}
+    assert {("transport", "udp", "rosgate-transport-udp"), ("transport", "tcp", "rosgate-transport-tcp"),
+            ("codec", "cdr", "rosgate"), ("codec", "msgpack", "rosgate-codec-msgpack"),
+            ("cipher", "none", "rosgate"), ("cipher", "fernet", "rosgate-crypto-fernet")} <= rows
+
+
+def test_a_broken_plugin_is_reported_by_name_and_the_rest_work(tmp_path, config):
+    # a real entry point, as an installed distribution would declare it, whose module is missing
+    dist = tmp_path / "site" / "rosgate_broken-1.0.dist-info"
+    dist.mkdir(parents=True)
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: rosgate-broken\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text("[rosgate]\nbroken = rosgate_no_such_module\n")
+    env = {"PYTHONPATH": str(tmp_path / "site")}
+    result = rosgate("plugins", env=env)
+    assert result.returncode == 0
+    assert ("failed to load plugin 'broken' (rosgate-broken): ModuleNotFoundError: "
+            "No module named 'rosgate_no_such_module'") in result.stdout
+    assert "udp" in result.stdout
+    assert rosgate("check", str(config(GOOD.format(port=12001))), env=env).returncode == 0
+
+
+def test_blocked_plugin_is_named_when_asked_for(config):
+    env = {"ROSGATE_DISABLE_PLUGINS": "msgpack"}
+    assert "blocked plugin 'msgpack'" in rosgate("plugins", env=env).stdout
+    path = config(GOOD.format(port=12001).replace("    port:", "    codec: msgpack\n    port:"))
+    text = user_error(rosgate("check", str(path), env=env))
+    assert "blocked by ROSGATE_DISABLE_PLUGINS" in text
+
+
+def test_keygen_writes_a_private_key_and_never_overwrites(tmp_path):
+    key = tmp_path / "secret.key"
+    result = rosgate("keygen", "fernet", "--out", str(key))
+    assert result.returncode == 0, result.stderr
+    assert stat.S_IMODE(key.stat().st_mode) == 0o600
+    Fernet(key.read_bytes().strip())  # a usable key
+    first = key.read_bytes()
+    assert "exists" in user_error(rosgate("keygen", "fernet", "--out", str(key)))
+    assert key.read_bytes() == first
+    assert rosgate("keygen", "fernet", "--out", str(key), "--force").returncode == 0
+    assert key.read_bytes() != first
+    assert "takes no key" in user_error(rosgate("keygen", "none", "--out", str(tmp_path / "n")))
