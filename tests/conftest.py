@@ -19,6 +19,9 @@ from typing import Any, Callable
 
 import pytest
 
+from rosgate.config import loads
+from rosgate.engine import Engine
+
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 ROSGATE = str(Path(sys.executable).with_name("rosgate"))
@@ -169,6 +172,22 @@ class Bridge:
                 self.proc.wait()
         self._reader.join(5)
         return self.proc.returncode
+
+
+@pytest.fixture
+def engines():
+    started: list[Engine] = []
+
+    """Start engines in this process, each with its own rclpy context and DDS domain."""
+
+    def start(text: str, domain_id: int, base_dir: Path | None = None) -> Engine:
+        engine = Engine(loads(text, file="test.yaml", base_dir=base_dir), domain_id=domain_id)
+        started.append(engine.prepare().start())
+        return engine
+
+    yield start
+    for engine in started:
+        engine.stop()
 
 
 @pytest.fixture

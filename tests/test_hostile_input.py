@@ -10,14 +10,11 @@ import time
 from pathlib import Path
 from typing import Callable
 
-import pytest
 from conftest import cross, free_port
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String
 
 from rosgate import envelope
-from rosgate.config import loads
-from rosgate.engine import Engine
 from rosgate.framing import FRAGMENT
 
 
@@ -29,20 +26,6 @@ def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
             return True
         time.sleep(0.02)
     return predicate()
-
-
-@pytest.fixture
-def engines():
-    started: list[Engine] = []
-
-    def start(text: str, domain_id: int, base_dir: Path | None = None) -> Engine:
-        engine = Engine(loads(text, file="test.yaml", base_dir=base_dir), domain_id=domain_id)
-        started.append(engine.prepare().start())
-        return engine
-
-    yield start
-    for engine in started:
-        engine.stop()
 
 
 def peer_pair(engines, domain, transport: str = "udp", cipher_a: str = "none",

@@ -652,7 +652,7 @@ class ClientRole(Role):
         return True
 
     def _build(self, answer: dict[str, Any]) -> None:
-        engine, cfg = self.engine, self.cfg
+        engine = self.engine
         ids = [int(i) for i in answer["topic_ids"]]
         if len(ids) != len(engine.topics):
             raise ValueError("topic id count does not match")
