@@ -219,13 +219,14 @@ class Engine:
         if self.stopping.is_set():
             return
         self.stopping.set()
+        if self.ros is not None:
+            self.log_stats()  # before the routes and their counters go
         if self._role is not None:
             self._role.stop()
         for item in reversed(self._closables):
             item.close()
         self._closables.clear()
         if self.ros is not None:
-            self.log_stats()
             self.ros.close()
 
     def __enter__(self) -> "Engine":
