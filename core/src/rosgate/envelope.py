@@ -17,6 +17,7 @@ authenticates it together with the payload. All integers are big-endian.
 from __future__ import annotations
 
 import struct
+import zlib
 from dataclasses import dataclass
 
 MAGIC = b"RG"
@@ -28,6 +29,12 @@ FLAG_CONTROL = 0x01  # topic_id 0: a control message on the main line (JSON)
 FLAG_HELLO = 0x02    # a datagram that tells the server where a client's link is (topic_id = session)
 
 CONTROL_TOPIC = 0
+
+
+def topic_id_for(name: str) -> int:
+    """Peer role: a topic's id is derived from its link name, so both sides agree without a
+    handshake (CRC-32; 0 is kept for the control channel)."""
+    return zlib.crc32(name.encode()) or 1
 
 
 class EnvelopeError(ValueError):
