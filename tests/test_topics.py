@@ -1,0 +1,126 @@
+"""Per-topic behaviour: stale warnings, rate limits, QoS, dedicated ports."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from conftest import cross, free_port
+from std_msgs.msg import String
+
+from rosgate.ros import qos_profile
+
+
+def text(i: int | None) -> String:
+    return String(data="warmup" if i is None else f"m{i}")
+
+
+def is_warmup(m: String) -> bool:
+    return m.data == "warmup"
+
+
+def pair(engines, domain, extra_bridge: str = "", topic_extra: str = "", transport: str = "udp"):
+    da, db, port = domain(), domain(), free_port()
+    topic = (f"topic: /t, type: std_msgs/msg/String, port: {port}, transport: {transport}"
+             f"{topic_extra}")
+    a = engines(f"""
+bridge: {{name: a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+topics: [{{{topic}, direction: transmit}}]""", da)
+    b = engines(f"""
+bridge: {{name: b, role: peer, peer: 127.0.0.1, listen: 127.0.0.1{extra_bridge}}}
+topics: [{{{topic}, direction: receive}}]""", db)
+    return a, b, da, db
+
+
+class Recorder(logging.Handler):
+    """Collects stale warnings and lets a test wait for a number of them."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        import threading
+        self.messages: list[str] = []
+        self.cond = threading.Condition()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with self.cond:
+            self.messages.append(record.getMessage())
+            self.cond.notify_all()
+
+    def stale(self) -> list[str]:
+        return [m for m in self.messages if "no data for" in m]
+
+    def wait_stale(self, n: int, timeout: float) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: len(self.stale()) >= n, timeout)
+
+
+def test_stale_warnings_are_capped_and_reset_when_data_returns(engines, domain, ros_side):
+    recorder = Recorder()
+    logging.getLogger("rosgate").addHandler(recorder)
+    try:
+        a, b, da, db = pair(engines, domain, ", stale_after: 0.6, stale_warnings: 2")
+        inbox = ros_side(db, "listener").listen("/t", String)
+        talker = ros_side(da, "talker").publisher("/t", String)
+        cross(talker, inbox, text, is_warmup, 1)
+        # silence: exactly two warnings, then quiet for as long again as both took
+        assert recorder.wait_stale(2, 5)
+        assert not recorder.wait_stale(3, 2.0)
+        assert [m.split(": ", 1)[1].split(" (")[1] for m in recorder.stale()] == \
+            ["warning 1 of 2)", "warning 2 of 2)"]
+        # data returns: the count starts again
+        cross(talker, inbox, lambda i: text(None if i is None else 10 + i), is_warmup, 1)
+        assert recorder.wait_stale(3, 5)
+        assert recorder.stale()[-1].endswith("(warning 1 of 2)")
+    finally:
+        logging.getLogger("rosgate").removeHandler(recorder)
+
+
+def test_max_rate_drops_and_counts_the_excess(engines, domain, ros_side):
+    a, b, da, db = pair(engines, domain, topic_extra=", max_rate: 5")
+    inbox = ros_side(db, "listener").listen("/t", String)
+    talker = ros_side(da, "talker").publisher("/t", String)
+    cross(talker, inbox, text, is_warmup, 0)
+    route = a.routes()[0]
+    before_sent, before_limited = route.counters.sent, route.counters.drops["rate_limit"]
+    start = time.monotonic()
+    for i in range(60):
+        talker.publish(text(i))
+        time.sleep(0.01)  # pacing: 100 Hz offered against a 5 Hz limit
+    elapsed = time.monotonic() - start
+    deadline = time.monotonic() + 5
+    while route.counters.sent + route.counters.drops["rate_limit"] - before_sent - before_limited < 60:
+        assert time.monotonic() < deadline, route.counters
+        time.sleep(0.02)
+    sent = route.counters.sent - before_sent
+    assert 1 <= sent <= int(elapsed * 5) + 1
+    assert route.counters.drops["rate_limit"] - before_limited == 60 - sent
+
+
+def test_qos_forms_map_to_profiles():
+    from rclpy import qos
+
+    assert qos_profile(7).depth == 7
+    assert qos_profile("sensor_data") == qos.qos_profile_sensor_data
+    p = qos_profile({"reliability": "best_effort", "durability": "transient_local",
+                     "history": "keep_all", "depth": 3})
+    assert (p.reliability, p.durability, p.history, p.depth) == (
+        qos.ReliabilityPolicy.BEST_EFFORT, qos.DurabilityPolicy.TRANSIENT_LOCAL,
+        qos.HistoryPolicy.KEEP_ALL, 3)
+
+
+def test_client_server_tcp_topics_on_ports_of_their_own_both_ways(engines, domain, ros_side):
+    ds, dc = domain(), domain()
+    main, up, down = free_port(), free_port(), free_port()
+    engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{main}}}", ds)
+    client = engines(f"""
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{main}}}
+topics:
+  - {{topic: /up, type: std_msgs/msg/String, direction: transmit, transport: tcp, port: {up}}}
+  - {{topic: /down, type: std_msgs/msg/String, direction: receive, transport: tcp, port: {down}}}
+""", dc)
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    got = cross(robot.publisher("/up", String), base.listen("/up", String), text, is_warmup, 20)
+    assert [m.data for m in got] == [f"m{i}" for i in range(20)]
+    got = cross(base.publisher("/down", String), robot.listen("/down", String), text, is_warmup, 20)
+    assert [m.data for m in got] == [f"m{i}" for i in range(20)]
+    assert all(not r.counters.drops for r in client.routes())
