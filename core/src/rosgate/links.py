@@ -198,17 +198,19 @@ class StreamLink(Link):
         self.close()
 
     def close(self) -> None:
-        if self.closed.is_set():
-            return
-        self.closed.set()
-        with self._wake:
+        with self._wake:  # once only, whichever thread gets here first
+            if self.closed.is_set():
+                return
+            self.closed.set()
             self._wake.notify_all()
         try:
             self.connection.close()
         except OSError:
             pass
         for thread in self._threads:
-            if thread is not threading.current_thread():
+            # the receive thread may fail before the send thread has even started; an unstarted
+            # thread sees `closed` when it starts and returns
+            if thread is not threading.current_thread() and thread.ident is not None:
                 thread.join(timeout=2)
         if self.on_close:
             self.on_close(self)
