@@ -1,0 +1,316 @@
+"""Framing: length prefixes cut back into the same frames however the stream is chunked, and
+fragments reassembled exactly once within bounds on time, memory and header sanity."""
+
+from __future__ import annotations
+
+import random
+import time
+
+import pytest
+
+from rosgate.framing import (
+    DEFAULT_MAX_MESSAGE, FRAGMENT, LENGTH, FramingError, Reassembler, StreamReader, fragment,
+    is_fragment, length_prefixed,
+)
+
+
+def frames_of(rng: random.Random) -> list[bytes]:
+    return [b"", b"a", bytes(range(256)), b"\x00\x00\x00\x00", rng.randbytes(5000), b"",
+            b"\xff\xff\xff\xff", rng.randbytes(70_000), b"z"]
+
+
+def read_all(reader: StreamReader, chunks) -> list[bytes]:
+    out: list[bytes] = []
+    for chunk in chunks:
+        out += reader.feed(chunk)
+    return out
+
+
+class Lost:
+    """An on_lost callback that records its calls."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[int, str]] = []
+
+    def __call__(self, topic_id: int, reason: str) -> None:
+        self.calls.append((topic_id, reason))
+
+
+# --- streams -------------------------------------------------------------------------------------
+
+def test_length_prefix_is_a_big_endian_u32():
+    assert length_prefixed(b"abc") == b"\x00\x00\x00\x03abc"
+    assert length_prefixed(b"") == b"\x00\x00\x00\x00"
+    assert length_prefixed(b"x" * 0x010203) == b"\x00\x01\x02\x03" + b"x" * 0x010203
+
+
+def test_everything_at_once():
+    frames = frames_of(random.Random(1))
+    stream = b"".join(map(length_prefixed, frames))
+    assert read_all(StreamReader(), [stream]) == frames
+
+
+def test_one_byte_at_a_time():
+    frames = frames_of(random.Random(2))
+    stream = b"".join(map(length_prefixed, frames))
+    reader = StreamReader()
+    got = read_all(reader, (stream[i:i + 1] for i in range(len(stream))))
+    assert got == frames
+    # nothing was left over in the reader
+    assert read_all(reader, [length_prefixed(b"next")]) == [b"next"]
+
+
+def test_every_single_cut_point():
+    frames = [b"", b"hello", bytes(range(40)), b"", b"RG\x01"]
+    stream = b"".join(map(length_prefixed, frames))
+    for cut in range(len(stream) + 1):
+        assert read_all(StreamReader(), [stream[:cut], stream[cut:]]) == frames, cut
+
+
+def test_every_pair_of_cut_points():
+    frames = [b"ab", b"", b"cdef"]
+    stream = b"".join(map(length_prefixed, frames))
+    for i in range(len(stream) + 1):
+        for j in range(i, len(stream) + 1):
+            assert read_all(StreamReader(), [stream[:i], stream[i:j], stream[j:]]) == frames, (i, j)
+
+
+def test_random_chunkings():
+    rng = random.Random(3)
+    frames = frames_of(rng) + [rng.randbytes(rng.randint(0, 3000)) for _ in range(50)]
+    stream = b"".join(map(length_prefixed, frames))
+    for _ in range(40):
+        cuts = sorted(rng.sample(range(1, len(stream)), rng.randint(1, 200)))
+        bounds = [0, *cuts, len(stream)]
+        chunks = [stream[a:b] for a, b in zip(bounds, bounds[1:])]
+        assert read_all(StreamReader(), chunks) == frames
+
+
+def test_frames_are_yielded_as_soon_as_complete():
+    reader = StreamReader()
+    record = length_prefixed(b"12345")
+    assert read_all(reader, [record[:-1]]) == []
+    assert read_all(reader, [record[-1:] + length_prefixed(b"6")[:3]]) == [b"12345"]
+    assert read_all(reader, [b"\x01", b"6"]) == [b"6"]
+
+
+def test_empty_frames():
+    assert read_all(StreamReader(), [b"\x00\x00\x00\x00" * 3]) == [b"", b"", b""]
+    assert read_all(StreamReader(), [b"\x00", b"\x00\x00", b"\x00"]) == [b""]
+
+
+def test_length_at_the_limit_is_accepted():
+    assert read_all(StreamReader(max_frame=100), [length_prefixed(b"x" * 100)]) == [b"x" * 100]
+
+
+def test_length_over_the_limit_is_refused_before_the_body_arrives():
+    reader = StreamReader(max_frame=100)
+    with pytest.raises(FramingError, match="101 over the limit 100"):
+        read_all(reader, [LENGTH.pack(101)])
+
+
+def test_huge_length_refused_with_the_default_limit():
+    with pytest.raises(FramingError):
+        read_all(StreamReader(), [b"\xff\xff\xff\xff"])
+    with pytest.raises(FramingError):
+        read_all(StreamReader(), [LENGTH.pack(DEFAULT_MAX_MESSAGE + 1)])
+
+
+def test_frames_before_a_bad_length_are_still_delivered():
+    feed = StreamReader(max_frame=10).feed(length_prefixed(b"ok") + LENGTH.pack(11) + b"x" * 11)
+    assert next(feed) == b"ok"
+    with pytest.raises(FramingError):
+        next(feed)
+
+
+# --- fragment ------------------------------------------------------------------------------------
+
+def test_a_frame_that_fits_is_returned_as_is():
+    frame = b"x" * 100
+    pieces = fragment(frame, 100, topic_id=1, frame_id=1)
+    assert pieces == [frame] and pieces[0] is frame
+    assert fragment(b"", 100, 1, 1) == [b""]
+
+
+def test_fragment_layout_byte_exact():
+    frame = bytes(range(25))
+    # 24-byte datagrams: 14 bytes of header, 10 of chunk -> 3 fragments (10, 10, 5)
+    pieces = fragment(frame, 24, topic_id=7, frame_id=0x01020304)
+    assert pieces == [
+        b"RF\x00\x00\x00\x03\x00\x00\x00\x07\x01\x02\x03\x04" + bytes(range(0, 10)),
+        b"RF\x00\x01\x00\x03\x00\x00\x00\x07\x01\x02\x03\x04" + bytes(range(10, 20)),
+        b"RF\x00\x02\x00\x03\x00\x00\x00\x07\x01\x02\x03\x04" + bytes(range(20, 25)),
+    ]
+    assert all(is_fragment(p) for p in pieces)
+    assert not is_fragment(b"RG\x01" + bytes(25))
+
+
+def test_one_byte_over_makes_two_fragments():
+    pieces = fragment(b"y" * 101, 100, 1, 1)
+    # 86 bytes of frame in the first, the other 15 in the second
+    assert [len(p) for p in pieces] == [100, FRAGMENT.size + 15]
+
+
+def test_one_megabyte_splits_and_reassembles_once_from_shuffled_duplicates():
+    rng = random.Random(4)
+    frame = rng.randbytes(1_000_000)
+    pieces = fragment(frame, 65_000, topic_id=9, frame_id=77)
+    assert len(pieces) == -(-len(frame) // (65_000 - FRAGMENT.size)) == 16
+    assert all(len(p) <= 65_000 for p in pieces)
+    assert b"".join(p[FRAGMENT.size:] for p in pieces) == frame
+
+    datagrams = pieces + rng.sample(pieces, 8)
+    rng.shuffle(datagrams)
+    lost = Lost()
+    reassembler = Reassembler(lost)
+    results = [reassembler.add(("10.0.0.1", 5000), d) for d in datagrams]
+    done = [r for r in results if r is not None]
+    assert len(done) == 1 and done[0] == frame
+    assert lost.calls == []
+
+
+def test_the_completing_fragment_returns_the_frame():
+    rng = random.Random(5)
+    frame = rng.randbytes(1000)
+    pieces = fragment(frame, 114, topic_id=1, frame_id=1)  # chunks of 100: 10 fragments
+    reassembler = Reassembler(Lost())
+    order = list(reversed(pieces))
+    assert [reassembler.add("s", p) for p in order[:-1]] == [None] * 9
+    assert reassembler.add("s", order[-1]) == frame
+
+
+def test_a_lost_fragment_is_counted_once_after_the_timeout():
+    rng = random.Random(6)
+    frame = rng.randbytes(500)
+    pieces = fragment(frame, 114, topic_id=42, frame_id=3)
+    lost = Lost()
+    reassembler = Reassembler(lost, timeout=1.0)
+    t0 = time.monotonic()
+    for piece in pieces[:2] + pieces[3:]:  # piece 2 never comes
+        assert reassembler.add("s", piece) is None
+    reassembler.expire(now=t0 + 0.5)  # still within the timeout
+    assert lost.calls == []
+    reassembler.expire(now=time.monotonic() + 1.5)
+    assert lost.calls == [(42, "fragment_lost")]
+    reassembler.expire(now=time.monotonic() + 100)
+    assert lost.calls == [(42, "fragment_lost")]
+
+
+def test_expire_gives_up_a_frame_older_than_the_timeout():
+    lost = Lost()
+    reassembler = Reassembler(lost, timeout=0.001)
+    old = fragment(b"o" * 300, 114, topic_id=1, frame_id=1)
+    reassembler.add("s", old[0])
+    reassembler.expire(now=time.monotonic() + 1)
+    assert lost.calls == [(1, "fragment_lost")]
+    # the frame's remaining fragments start it afresh: it can never complete from them alone
+    assert [reassembler.add("s", p) for p in old[1:]] == [None, None]
+
+
+def test_interleaved_frames_from_two_sources_and_topics_reassemble_independently():
+    rng = random.Random(7)
+    # same frame_id everywhere: only (source, topic, frame_id) tells them apart
+    streams = {
+        ("a", 1): rng.randbytes(2000),
+        ("b", 1): rng.randbytes(2000),
+        ("a", 2): rng.randbytes(1500),
+        ("b", 2): rng.randbytes(2100),
+    }
+    datagrams = [(source, piece) for (source, topic), frame in streams.items()
+                 for piece in fragment(frame, 214, topic_id=topic, frame_id=5)]
+    rng.shuffle(datagrams)
+    reassembler = Reassembler(Lost())
+    done: list[tuple[str, bytes]] = []
+    for source, piece in datagrams:
+        frame = reassembler.add(source, piece)
+        if frame is not None:
+            done.append((source, frame))
+    assert sorted(done) == sorted((source, frame) for (source, _), frame in streams.items())
+
+
+def test_memory_bound_sheds_the_oldest_partial_frame():
+    lost = Lost()
+    reassembler = Reassembler(lost, max_pending_bytes=450)
+    frames = {topic: bytes([topic]) * 300 for topic in (1, 2, 3)}
+    pieces = {topic: fragment(frame, 114, topic_id=topic, frame_id=topic) for topic, frame in frames.items()}
+    for topic in (1, 2):
+        for piece in pieces[topic][:2]:
+            assert reassembler.add("s", piece) is None  # 200 + 200 bytes pending
+    assert lost.calls == []
+    assert reassembler.add("s", pieces[3][0]) is None     # 500 > 450: frame 1 goes
+    assert lost.calls == [(1, "reassembly_overflow")]
+    assert reassembler.add("s", pieces[2][2]) == frames[2]
+    assert [reassembler.add("s", p) for p in pieces[3][1:]] == [None, frames[3]]
+    assert lost.calls == [(1, "reassembly_overflow")]
+
+
+def test_shedding_keeps_going_until_under_the_bound():
+    lost = Lost()
+    reassembler = Reassembler(lost, max_pending_bytes=250)
+    for topic in (1, 2):
+        reassembler.add("s", fragment(b"x" * 300, 114, topic_id=topic, frame_id=1)[0])
+    # one 200-byte chunk: 400 pending, both older frames must go (100 + 200 = 300 > 250)
+    big = fragment(b"y" * 400, 214, topic_id=3, frame_id=1)
+    reassembler.add("s", big[0])
+    assert lost.calls == [(1, "reassembly_overflow"), (2, "reassembly_overflow")]
+    assert reassembler.add("s", big[1]) == b"y" * 400
+
+
+@pytest.mark.parametrize("datagram, message", [
+    (b"RF", "too short"),
+    (FRAGMENT.pack(b"RF", 0, 2, 1, 1), "too short"),                        # a header, no chunk
+    (FRAGMENT.pack(b"RF", 3, 3, 1, 1) + b"x", "out of range"),              # index == count
+    (FRAGMENT.pack(b"RF", 9, 3, 1, 1) + b"x", "out of range"),              # index > count
+    (FRAGMENT.pack(b"RF", 0, 1, 1, 1) + b"x", "out of range"),              # count 1
+    (FRAGMENT.pack(b"RF", 0, 0, 1, 1) + b"x", "out of range"),              # count 0
+    (FRAGMENT.pack(b"RF", 0, 100, 1, 1) + b"x" * 100, "out of range"),      # 10 kB claimed > 1000
+    (FRAGMENT.pack(b"RF", 0, 0xFFFF, 1, 1) + b"x" * 50, "out of range"),
+], ids=["magic-only", "no-chunk", "index=count", "index>count", "count1", "count0",
+        "claim-10k", "claim-65535"])
+def test_malformed_fragment_headers(datagram, message):
+    lost = Lost()
+    reassembler = Reassembler(lost, max_message=1000)
+    with pytest.raises(FramingError, match=message):
+        reassembler.add("s", datagram)
+    assert lost.calls == []
+
+
+def test_a_claim_within_max_message_is_accepted():
+    reassembler = Reassembler(Lost(), max_message=1000)
+    assert reassembler.add("s", FRAGMENT.pack(b"RF", 0, 10, 1, 1) + b"x" * 100) is None
+
+
+def test_count_changed_mid_frame():
+    reassembler = Reassembler(Lost())
+    assert reassembler.add("s", FRAGMENT.pack(b"RF", 0, 3, 1, 1) + b"a") is None
+    with pytest.raises(FramingError, match="count changed"):
+        reassembler.add("s", FRAGMENT.pack(b"RF", 1, 4, 1, 1) + b"b")
+    # the frame itself can still complete with the original count
+    assert reassembler.add("s", FRAGMENT.pack(b"RF", 1, 3, 1, 1) + b"b") is None
+    assert reassembler.add("s", FRAGMENT.pack(b"RF", 2, 3, 1, 1) + b"c") == b"abc"
+
+
+def test_a_frame_needing_more_than_65535_fragments_is_refused():
+    # 15-byte datagrams carry 1 byte each
+    assert len(fragment(bytes(65_535), 15, 1, 1)) == 65_535
+    with pytest.raises(FramingError, match="65535"):
+        fragment(bytes(65_536), 15, 1, 1)
+
+
+def test_a_datagram_too_small_for_the_fragment_header():
+    with pytest.raises(FramingError, match="cannot carry"):
+        fragment(b"x" * 100, FRAGMENT.size, 1, 1)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "framing.py Reassembler.add (line 126): a fragment arriving after its frame was completed "
+    "(a duplicated datagram) starts a new partial frame, which expire() later reports as "
+    "fragment_lost although the frame was delivered"))
+def test_a_late_duplicate_is_not_counted_as_a_lost_frame():
+    lost = Lost()
+    reassembler = Reassembler(lost, timeout=1.0)
+    pieces = fragment(b"q" * 300, 114, topic_id=8, frame_id=1)
+    assert [reassembler.add("s", p) for p in pieces] == [None, None, b"q" * 300]
+    assert reassembler.add("s", pieces[0]) is None   # the network duplicated a datagram
+    reassembler.expire(now=time.monotonic() + 10)
+    assert lost.calls == []

@@ -1,0 +1,274 @@
+"""Links over the real udp and tcp transports on loopback: frames of every size arrive byte-exact
+(fragmented on UDP, length-prefixed on TCP), a full send queue is counted, bad input is counted
+without killing the link, and a closed connection is noticed by the far end."""
+
+from __future__ import annotations
+
+import random
+import socket
+import threading
+import time
+from typing import Any
+
+import pytest
+from rosgate_transport_tcp import TcpTransport
+from rosgate_transport_udp import UdpTransport
+
+from rosgate import envelope
+from rosgate.framing import FRAGMENT, LENGTH, length_prefixed
+from rosgate.links import DatagramLink, StreamLink
+
+TOPIC = 5
+
+
+class Inbox:
+    """on_frame and on_drop callbacks that record what they are given; wait on them with a timeout."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple[bytes, Any, Any]] = []
+        self.drops: list[tuple[int | None, str]] = []
+        self.closed: list[Any] = []
+        self._changed = threading.Condition()
+
+    def on_frame(self, frame: bytes, link, source) -> None:
+        with self._changed:
+            self.frames.append((frame, link, source))
+            self._changed.notify_all()
+
+    def on_drop(self, topic_id: int | None, reason: str) -> None:
+        with self._changed:
+            self.drops.append((topic_id, reason))
+            self._changed.notify_all()
+
+    def on_close(self, link) -> None:
+        with self._changed:
+            self.closed.append(link)
+            self._changed.notify_all()
+
+    def wait(self, predicate, timeout: float = 10.0) -> bool:
+        with self._changed:
+            return self._changed.wait_for(predicate, timeout)
+
+    def payloads(self) -> list[bytes]:
+        with self._changed:
+            return [frame for frame, _, _ in self.frames]
+
+
+def frame_of(seq: int, size: int, rng: random.Random) -> bytes:
+    """A frame as routes make them: an envelope header, then the body."""
+    header = envelope.pack(0, TOPIC, 1, seq, 0)
+    return header + rng.randbytes(max(0, size - len(header)))
+
+
+@pytest.fixture
+def closing():
+    things = []
+    yield lambda thing: things.append(thing) or thing
+    for thing in reversed(things):
+        thing.close()
+
+
+# --- datagram links --------------------------------------------------------------------------------
+
+@pytest.fixture
+def udp_pair(closing):
+    transport = UdpTransport({})
+    ends = []
+    for name in ("a", "b"):
+        inbox = Inbox()
+        endpoint = transport.bind(("127.0.0.1", 0))
+        address = endpoint.sock.getsockname()
+        link = closing(DatagramLink(transport, endpoint, name, inbox.on_frame, inbox.on_drop))
+        ends.append((link, inbox, address))
+    return ends
+
+
+def test_datagram_frames_of_every_size_arrive_byte_exact(udp_pair):
+    (a, a_inbox, a_address), (b, b_inbox, b_address) = udp_pair
+    rng = random.Random(1)
+    frames = [b"\x01", frame_of(1, 10_000, rng), frame_of(2, 200_000, rng),
+              frame_of(3, UdpTransport.max_frame, rng), frame_of(4, UdpTransport.max_frame + 1, rng)]
+    for frame in frames:
+        assert a.send(frame, TOPIC, b_address) is True
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= len(frames)), b_inbox.drops
+    assert sorted(b_inbox.payloads()) == sorted(frames)
+    assert all(link is b and source == a_address for _, link, source in b_inbox.frames)
+    assert b_inbox.drops == [] and a_inbox.drops == [] and a_inbox.frames == []
+
+
+def test_datagram_frames_both_ways(udp_pair):
+    (a, a_inbox, a_address), (b, b_inbox, b_address) = udp_pair
+    rng = random.Random(2)
+    there, back = frame_of(1, 150_000, rng), frame_of(1, 70_000, rng)
+    a.send(there, TOPIC, b_address)
+    b.send(back, TOPIC, a_address)
+    assert b_inbox.wait(lambda: b_inbox.frames) and a_inbox.wait(lambda: a_inbox.frames)
+    assert b_inbox.payloads() == [there] and a_inbox.payloads() == [back]
+
+
+def test_a_bad_fragment_is_counted_and_the_link_keeps_working(udp_pair):
+    (_, _, _), (b, b_inbox, b_address) = udp_pair
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+        raw.sendto(b"RF" + b"\x00" * 5, b_address)                           # too short
+        raw.sendto(FRAGMENT.pack(b"RF", 5, 2, TOPIC, 1) + b"x", b_address)    # index over count
+        raw.sendto(b"\x02plain", b_address)
+    assert b_inbox.wait(lambda: b_inbox.frames)
+    assert b_inbox.payloads() == [b"\x02plain"]
+    assert b_inbox.drops == [(None, "bad_fragment"), (None, "bad_fragment")]
+
+
+def test_bare_mode_refuses_frames_that_do_not_fit(closing):
+    transport = UdpTransport({})
+    inbox = Inbox()
+    endpoint = transport.bind(("127.0.0.1", 0))
+    link = closing(DatagramLink(transport, endpoint, "bare", inbox.on_frame, inbox.on_drop, bare=True))
+    assert link.send(bytes(UdpTransport.max_frame + 1), 9, ("127.0.0.1", 9)) is False
+    assert inbox.drops == [(9, "too_large_for_bare_framing")]
+
+
+def test_bare_mode_hands_over_fragment_lookalikes_untouched(closing):
+    transport = UdpTransport({})
+    inbox = Inbox()
+    endpoint = transport.bind(("127.0.0.1", 0))
+    closing(DatagramLink(transport, endpoint, "bare", inbox.on_frame, inbox.on_drop, bare=True))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+        raw.sendto(b"RF not a fragment", endpoint.sock.getsockname())
+    assert inbox.wait(lambda: inbox.frames)
+    assert inbox.payloads() == [b"RF not a fragment"] and inbox.drops == []
+
+
+# --- stream links ----------------------------------------------------------------------------------
+
+@pytest.fixture
+def tcp_connections(closing):
+    """Make connected (client, server) TcpConnection pairs on 127.0.0.1."""
+    transport = TcpTransport({})
+    listener = closing(transport.listen(("127.0.0.1", 0)))
+
+    def connect():
+        client = transport.connect(listener.sock.getsockname(), 2.0)
+        accepted = listener.accept(2.0)
+        assert accepted is not None
+        return client, accepted[0]
+
+    return connect
+
+
+def stream_link(connection, name: str, inbox: Inbox, **kwargs) -> StreamLink:
+    peer = connection.sock.getpeername()[:2]
+    return StreamLink(connection, name, peer, inbox.on_frame, inbox.on_drop, inbox.on_close, **kwargs)
+
+
+@pytest.fixture
+def tcp_pair(closing, tcp_connections):
+    client, server = tcp_connections()
+    ends = []
+    for connection, name in ((client, "client"), (server, "server")):
+        inbox = Inbox()
+        ends.append((closing(stream_link(connection, name, inbox)), inbox))
+    return ends
+
+
+def test_stream_frames_of_every_size_arrive_byte_exact_and_in_order(tcp_pair):
+    (a, a_inbox), (b, b_inbox) = tcp_pair
+    rng = random.Random(3)
+    frames = [b"\x01", b"", frame_of(1, 10_000, rng), frame_of(2, 200_000, rng),
+              frame_of(3, 5_000_000, rng)]
+    frames += [frame_of(4 + i, rng.randint(1, 3000), rng) for i in range(200)]
+    for frame in frames:
+        assert a.send(frame, TOPIC) is True
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= len(frames), 20), len(b_inbox.frames)
+    assert b_inbox.payloads() == frames
+    assert all(link is b and source == b.peer for _, link, source in b_inbox.frames)
+    assert a_inbox.drops == [] and b_inbox.drops == []
+
+
+def test_stream_frames_both_ways_at_once(tcp_pair):
+    (a, a_inbox), (b, b_inbox) = tcp_pair
+    rng = random.Random(4)
+    there = [frame_of(i, rng.randint(1, 100_000), rng) for i in range(50)]
+    back = [frame_of(i, rng.randint(1, 100_000), rng) for i in range(50)]
+    for x, y in zip(there, back):
+        a.send(x, TOPIC)
+        b.send(y, TOPIC)
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 50) and a_inbox.wait(lambda: len(a_inbox.frames) >= 50)
+    assert b_inbox.payloads() == there and a_inbox.payloads() == back
+
+
+def blocked_writer(closing, tcp_connections, **kwargs) -> tuple[StreamLink, Inbox]:
+    """A StreamLink whose writer thread is stuck sending 8 MB to a far end that never reads."""
+    client, far_end = tcp_connections()
+    closing(far_end)  # never read from
+    # small kernel buffers: a few kB fill them
+    client.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+    far_end.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    inbox = Inbox()
+    link = closing(stream_link(client, "stuck", inbox, **kwargs))
+    assert link.send(bytes(8_000_000), 1) is True
+    # the writer has taken it off the queue (and cannot finish writing it)
+    deadline = time.monotonic() + 5
+    while link._queue and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert not link._queue, "the writer never took the frame"
+    return link, inbox
+
+
+def test_a_full_queue_counts_queue_full(closing, tcp_connections):
+    link, inbox = blocked_writer(closing, tcp_connections, queue_frames=2)
+    assert [link.send(b"small", 2) for _ in range(6)] == [True, True, False, False, False, False]
+    assert inbox.drops == [(2, "queue_full")] * 4
+    assert not link.closed.is_set()
+
+
+def test_a_queue_over_its_byte_bound_counts_queue_full(closing, tcp_connections):
+    link, inbox = blocked_writer(closing, tcp_connections, queue_bytes=8_000_004)
+    assert link.send(bytes(4_000_000), 3) is True   # 4,000,004 bytes with its length prefix
+    assert link.send(bytes(3_999_996), 3) is True   # exactly at the bound
+    assert link.send(b"x", 4) is False
+    assert inbox.drops == [(4, "queue_full")]
+
+
+def test_closing_one_end_fires_on_close_on_the_other(tcp_pair):
+    (a, a_inbox), (b, b_inbox) = tcp_pair
+    a.close()
+    assert b_inbox.wait(lambda: b_inbox.closed, 5.0), "the far end never noticed"
+    assert b_inbox.closed == [b] and a_inbox.closed == [a]
+    assert b.closed.is_set()
+    # a closed link refuses frames and counts them
+    assert b.send(b"late", 7) is False
+    assert b_inbox.drops == [(7, "link_down")]
+
+
+def test_close_is_idempotent_and_fires_on_close_once(tcp_pair):
+    (a, a_inbox), (b, b_inbox) = tcp_pair
+    a.close()
+    a.close()
+    assert b_inbox.wait(lambda: b_inbox.closed, 5.0)
+    b.close()
+    assert a_inbox.closed == [a] and b_inbox.closed == [b]
+
+
+def test_a_corrupt_length_is_counted_and_closes_the_link(closing, tcp_connections):
+    client, raw = tcp_connections()
+    closing(raw)
+    inbox = Inbox()
+    link = closing(stream_link(client, "victim", inbox, max_message=1000))
+    raw.send(length_prefixed(b"fine") + LENGTH.pack(1001) + b"x" * 1001)
+    assert inbox.wait(lambda: inbox.closed, 5.0)
+    assert inbox.payloads() == [b"fine"]
+    assert inbox.drops == [(None, "bad_length")]
+    assert link.closed.is_set()
+    assert raw.receive(100, 2.0) == b""  # and the connection is gone
+
+
+def test_a_frame_split_across_many_writes_arrives_whole(closing, tcp_connections):
+    client, raw = tcp_connections()
+    closing(raw)
+    inbox = Inbox()
+    closing(stream_link(client, "slow", inbox))
+    record = length_prefixed(b"in pieces") + length_prefixed(b"")
+    for i in range(len(record)):
+        raw.send(record[i:i + 1])
+    assert inbox.wait(lambda: len(inbox.frames) >= 2)
+    assert inbox.payloads() == [b"in pieces", b""]
+    assert inbox.drops == []

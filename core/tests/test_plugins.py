@@ -1,0 +1,307 @@
+"""The plugin manager: in-process plugins register classes by kind and name; every mistake a plugin
+can make is recorded as a Failure naming it, and never stops the other plugins."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+
+import rosgate
+from rosgate import Cipher, Codec, Transport, hookimpl
+from rosgate.builtin import CdrCodec, NoCipher
+from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration
+
+
+class Alpha(Transport):
+    name = "alpha"
+    stream = False
+
+
+class Beta(Codec):
+    name = "beta"
+
+
+class Zeta(Codec):
+    name = "zeta"
+
+
+class Gamma(Cipher):
+    name = "gamma"
+
+
+def plugin(**hooks) -> SimpleNamespace:
+    """A plugin object whose attributes are the given hook implementations."""
+    return SimpleNamespace(**{name: hookimpl(function) for name, function in hooks.items()})
+
+
+def registers(*classes):
+    def hook(register):
+        for cls in classes:
+            register(cls)
+    return hook
+
+
+def boom(register):
+    raise RuntimeError("boom")
+
+
+# --- registration ----------------------------------------------------------------------------------
+
+def test_each_kind_is_registered_with_its_origin():
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_transports=registers(Alpha), rosgate_codecs=registers(Beta, Zeta),
+                       rosgate_ciphers=registers(Gamma)), "greek", "rosgate-greek", "1.0")
+    assert plugins.failures == []
+    assert plugins.names("transport") == ["alpha"]
+    assert plugins.names("codec") == ["beta", "zeta"]
+    assert plugins.names("cipher") == ["gamma"]
+    assert plugins.get("codec", "zeta") == Registration("codec", "zeta", Zeta, "greek", "rosgate-greek", "1.0")
+    assert plugins.get("transport", "alpha").cls is Alpha
+    assert plugins.get("cipher", "gamma").cls is Gamma
+    assert plugins.get("codec", "alpha") is None  # names are per kind
+
+
+def test_a_class_instance_with_decorated_methods():
+    class Provider:
+        @hookimpl
+        def rosgate_codecs(self, register):
+            register(Beta)
+
+        @hookimpl
+        def rosgate_ciphers(self, register):
+            register(Gamma)
+
+    plugins = Plugins()
+    plugins.add(Provider(), "provider", "rosgate-provider", "2.0")
+    assert plugins.failures == []
+    assert plugins.names("codec") == ["beta"] and plugins.names("cipher") == ["gamma"]
+    assert plugins.get("codec", "beta").plugin == "provider"
+
+
+def test_the_builtin_module_registers_cdr_and_none():
+    plugins = Plugins()
+    plugins.add(rosgate.builtin, "builtin", "rosgate", rosgate.__version__)
+    assert plugins.get("codec", "cdr").cls is CdrCodec
+    assert plugins.get("cipher", "none").cls is NoCipher
+    assert plugins.names("transport") == []
+
+
+def test_an_implementation_without_the_register_argument_is_allowed():
+    calls: list[str] = []
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_transports=lambda: calls.append("transports"),
+                       rosgate_codecs=registers(Beta)), "lazy", "rosgate-lazy")
+    assert plugins.failures == []
+    assert calls == ["transports"]  # called once, with nothing
+    assert plugins.names("codec") == ["beta"]
+
+
+def test_a_hook_only_runs_for_the_plugin_being_added():
+    calls: list[str] = []
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=lambda register: calls.append("first")), "first")
+    plugins.add(plugin(rosgate_codecs=lambda register: calls.append("second")), "second")
+    assert calls == ["first", "second"]
+
+
+def test_a_hook_that_raises_is_a_failure_naming_the_plugin_and_the_others_still_register():
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_ciphers=registers(Gamma)), "before", "rosgate-before")
+    plugins.add(plugin(rosgate_codecs=boom, rosgate_transports=registers(Alpha)), "broken",
+                "rosgate-broken", "0.1")
+    plugins.add(plugin(rosgate_codecs=registers(Beta)), "after", "rosgate-after")
+    assert len(plugins.failures) == 1
+    failure = plugins.failures[0]
+    assert (failure.plugin, failure.distribution) == ("broken", "rosgate-broken")
+    assert failure.reason.startswith("rosgate_codecs: RuntimeError: boom (")
+    assert "test_plugins.py" in failure.reason  # where it raised
+    # the broken plugin's other hook and the other plugins worked
+    assert plugins.names("transport") == ["alpha"]
+    assert plugins.names("codec") == ["beta"]
+    assert plugins.names("cipher") == ["gamma"]
+
+
+def test_classes_registered_before_a_hook_raised_are_not_kept():
+    def half(register):
+        register(Beta)
+        raise ValueError("half way")
+
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=half), "half", "rosgate-half")
+    assert plugins.names("codec") == []
+    assert [f.reason.split(" (")[0] for f in plugins.failures] == ["rosgate_codecs: ValueError: half way"]
+
+
+class NotAPlugin:
+    name = "plain"
+
+
+class NoName(Codec):
+    pass
+
+
+class BadName(Codec):
+    name = "two words"
+
+
+class EmptyName(Codec):
+    name = ""
+
+
+class NumberName(Codec):
+    name = 3
+
+
+@pytest.mark.parametrize("hook, registered, problem", [
+    ("rosgate_codecs", NotAPlugin, "which is not a subclass of rosgate.Codec"),
+    ("rosgate_codecs", Alpha, "which is not a subclass of rosgate.Codec"),       # wrong kind
+    ("rosgate_transports", Beta, "which is not a subclass of rosgate.Transport"),
+    ("rosgate_ciphers", Gamma({}, "."), "which is not a subclass of rosgate.Cipher"),    # an instance
+    ("rosgate_ciphers", "fernet", "which is not a subclass of rosgate.Cipher"),
+    ("rosgate_codecs", NoName, "NoName has no valid 'name'"),
+    ("rosgate_codecs", BadName, "BadName has no valid 'name'"),
+    ("rosgate_codecs", EmptyName, "EmptyName has no valid 'name'"),
+    ("rosgate_codecs", NumberName, "NumberName has no valid 'name'"),
+], ids=["plain-class", "transport-as-codec", "codec-as-transport", "instance", "string", "no-name",
+        "two-words", "empty", "number"])
+def test_an_invalid_class_is_a_failure_and_valid_ones_beside_it_register(hook, registered, problem):
+    valid = {"rosgate_codecs": Zeta, "rosgate_transports": Alpha, "rosgate_ciphers": Gamma}[hook]
+    plugins = Plugins()
+    plugins.add(plugin(**{hook: registers(registered, valid)}), "sloppy", "rosgate-sloppy")
+    assert len(plugins.failures) == 1
+    failure = plugins.failures[0]
+    assert (failure.plugin, failure.distribution) == ("sloppy", "rosgate-sloppy")
+    assert problem in failure.reason
+    assert [r.cls for r in plugins.registered.values()] == [valid]
+
+
+def test_an_unknown_hook_argument_is_a_failure_at_registration():
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=lambda register, colour: None), "odd", "rosgate-odd")
+    plugins.add(plugin(rosgate_codecs=registers(Beta)), "fine", "rosgate-fine")
+    assert [(f.plugin, f.distribution) for f in plugins.failures] == [("odd", "rosgate-odd")]
+    assert "colour" in plugins.failures[0].reason
+    assert plugins.names("codec") == ["beta"]
+
+
+def test_the_same_name_twice_the_first_wins():
+    class OtherBeta(Codec):
+        name = "beta"
+
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=registers(Beta)), "one", "rosgate-codec-one", "1.0")
+    plugins.add(plugin(rosgate_codecs=registers(OtherBeta, Zeta)), "two", "rosgate-codec-two", "2.0")
+    assert plugins.get("codec", "beta").cls is Beta
+    assert plugins.get("codec", "zeta").plugin == "two"
+    assert plugins.failures == [Failure("two", "rosgate-codec-two",
+                                        "codec 'beta' is already provided by rosgate-codec-one; skipped")]
+
+
+def test_the_same_name_in_different_kinds_is_not_a_clash():
+    class BetaTransport(Transport):
+        name = "beta"
+        stream = True
+
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=registers(Beta), rosgate_transports=registers(BetaTransport)), "b")
+    assert plugins.failures == []
+    assert plugins.get("codec", "beta").cls is Beta
+    assert plugins.get("transport", "beta").cls is BetaTransport
+
+
+def test_a_plugin_name_added_twice_is_a_failure():
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=registers(Beta)), "dup", "rosgate-first")
+    plugins.add(plugin(rosgate_codecs=registers(Zeta)), "dup", "rosgate-second")
+    assert plugins.names("codec") == ["beta"]
+    assert plugins.failures == [Failure("dup", "rosgate-second", "a plugin of this name is already loaded")]
+
+
+def test_remove_forgets_a_plugins_registrations():
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=registers(Beta), rosgate_ciphers=registers(Gamma)), "gone")
+    plugins.add(plugin(rosgate_codecs=registers(Zeta)), "stays")
+    plugins.remove("gone")
+    assert plugins.names("codec") == ["zeta"]
+    assert plugins.names("cipher") == []
+    assert plugins.get("codec", "beta") is None
+    # the name and the class names are free again
+    plugins.add(plugin(rosgate_codecs=registers(Beta)), "gone", "rosgate-again")
+    assert plugins.get("codec", "beta").distribution == "rosgate-again"
+    assert plugins.failures == []
+
+
+# --- explaining a missing plugin --------------------------------------------------------------------
+
+def test_explain_missing_lists_installed_names_and_the_distribution_to_install():
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=registers(Zeta, Beta)), "greek")
+    message, fix = plugins.explain_missing("codec", "cbor")
+    assert message == "unknown codec 'cbor' (installed codecs: beta, zeta)"
+    assert fix == "pip install rosgate-codec-cbor, or pick an installed codec"
+
+
+@pytest.mark.parametrize("kind, name, distribution", [
+    ("cipher", "nacl", "rosgate-crypto-nacl"),
+    ("cipher", "aesgcm", "rosgate-crypto-aesgcm"),   # the crypto- prefix for ciphers
+    ("transport", "lora", "rosgate-transport-lora"),
+    ("transport", "bt", "rosgate-transport-bt"),
+    ("codec", "protobuf", "rosgate-codec-protobuf"),
+])
+def test_explain_missing_names_the_distribution(kind, name, distribution):
+    message, fix = Plugins().explain_missing(kind, name)
+    assert message == f"unknown {kind} {name!r} (installed {kind}s: none)"
+    assert fix == f"pip install {distribution}, or pick an installed {kind}"
+
+
+def test_explain_missing_gives_the_reason_a_plugin_failed():
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=boom), "cbor", "rosgate-codec-cbor")
+    message, _ = plugins.explain_missing("codec", "cbor")
+    assert message.startswith("unknown codec 'cbor' (installed codecs: none); plugin 'cbor' is installed "
+                              "but failed to load: rosgate_codecs: RuntimeError: boom")
+    assert "blocked" not in message
+
+
+def test_explain_missing_says_when_a_plugin_is_blocked():
+    plugins = Plugins(blocked=["nacl"])
+    message, fix = plugins.explain_missing("cipher", "nacl")
+    assert message == ("unknown cipher 'nacl' (installed ciphers: none); "
+                       f"plugin 'nacl' is blocked by {DISABLE_VARIABLE}")
+    assert DISABLE_VARIABLE == "ROSGATE_DISABLE_PLUGINS"
+
+
+# --- discovery through entry points -------------------------------------------------------------------
+
+def test_discover_finds_the_installed_plugins(monkeypatch):
+    monkeypatch.delenv(DISABLE_VARIABLE, raising=False)
+    plugins = Plugins.discover()
+    assert plugins.failures == [] and plugins.blocked == []
+    assert {"cdr", "msgpack"} <= set(plugins.names("codec"))
+    assert {"none", "fernet"} <= set(plugins.names("cipher"))
+    assert {"udp", "tcp"} <= set(plugins.names("transport"))
+    cdr = plugins.get("codec", "cdr")
+    assert (cdr.plugin, cdr.distribution, cdr.cls) == ("builtin", "rosgate", CdrCodec)
+    assert plugins.get("cipher", "fernet").distribution == "rosgate-crypto-fernet"
+
+
+def test_discover_honours_the_disable_variable(monkeypatch):
+    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet")
+    plugins = Plugins.discover()
+    assert sorted(plugins.blocked) == ["fernet", "msgpack"]
+    assert plugins.names("codec") == ["cdr"]
+    assert plugins.names("cipher") == ["none"]
+    assert {"udp", "tcp"} <= set(plugins.names("transport"))
+    message, fix = plugins.explain_missing("cipher", "fernet")
+    assert "blocked by ROSGATE_DISABLE_PLUGINS" in message
+    assert fix.startswith("pip install rosgate-crypto-fernet")
+
+
+def test_builtin_cannot_be_blocked(monkeypatch):
+    monkeypatch.setenv(DISABLE_VARIABLE, " builtin , msgpack ,, ")
+    plugins = Plugins.discover()
+    assert plugins.blocked == ["msgpack"]
+    assert plugins.names("codec") == ["cdr"]
+    assert plugins.names("cipher") == ["fernet", "none"]
+    assert plugins.get("cipher", "none").cls is NoCipher
