@@ -302,10 +302,6 @@ def test_a_datagram_too_small_for_the_fragment_header():
         fragment(b"x" * 100, FRAGMENT.size, 1, 1)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "framing.py Reassembler.add (line 126): a fragment arriving after its frame was completed "
-    "(a duplicated datagram) starts a new partial frame, which expire() later reports as "
-    "fragment_lost although the frame was delivered"))
 def test_a_late_duplicate_is_not_counted_as_a_lost_frame():
     lost = Lost()
     reassembler = Reassembler(lost, timeout=1.0)

@@ -62,7 +62,7 @@ class Engine:
         self.link_drops: dict[str, int] = {}
         self.ros: RosNode | None = None
         self.stopping = threading.Event()
-        self._closables: list[Any] = []
+        self._closables: dict[int, Any] = {}  # id -> object, in opening order
         self._lock = threading.RLock()
         self._role: Any = None
 
@@ -190,10 +190,9 @@ class Engine:
         try:
             self._role = role(self)
             self._role.start()
-        except LinkError as exc:
+        except ConfigError:
             self.stop()
-            raise self.config.error(getattr(exc, "key", None) or "bridge", str(exc),
-                                    "free the port, or pick another one") from None
+            raise
         self._housekeeper = threading.Thread(target=self._housekeeping, name="housekeeping",
                                              daemon=True)
         self._housekeeper.start()
@@ -209,7 +208,7 @@ class Engine:
             self.log_stats()  # before the routes and their counters go
         if self._role is not None:
             self._role.stop()
-        for item in reversed(self._closables):
+        for item in reversed(list(self._closables.values())):
             item.close()
         self._closables.clear()
         if self.ros is not None:
@@ -222,9 +221,17 @@ class Engine:
         self.stop()
 
     def closing(self, item: Any) -> Any:
-        """Close ``item`` when the engine stops."""
-        self._closables.append(item)
+        """Close ``item`` when the engine stops (unless it was :meth:`forget`-ten first)."""
+        self._closables[id(item)] = item
         return item
+
+    def forget(self, item: Any) -> None:
+        """``item`` closed by itself (a connection that ended): nothing to close at stop."""
+        self._closables.pop(id(item), None)
+
+    def bind_error(self, exc: LinkError, key: str) -> ConfigError:
+        """A port that cannot be opened, located at the key that named it."""
+        return self.config.error(key, str(exc), "free the port, or pick another one")
 
     # -- building routes ---------------------------------------------------------------------
     def make_route(self, p: Prepared, topic_id: int, label: str, link: Link,

@@ -68,22 +68,32 @@ def unpack(frame: bytes | memoryview) -> Header:
 class ReplayWindow:
     """Accepts each (epoch, seq) once: duplicates and frames older than the window are refused.
 
-    A 64-frame sliding window (as in IPsec) lets reordered datagrams through; a new epoch (the
-    sender restarted) starts the window afresh.
+    A 64-frame sliding window (as in IPsec) lets reordered datagrams through. A new epoch (the
+    sender restarted) starts the window afresh, and the epoch it replaces is retired: its frames
+    are refused from then on, so switching epochs cannot replay them. (The last
+    ``RETIRED`` epochs are remembered; older ones are a matter for an authenticated handshake.)
     """
 
     WIDTH = 64
+    RETIRED = 1024
 
-    __slots__ = ("epoch", "top", "seen")
+    __slots__ = ("epoch", "top", "seen", "retired")
 
     def __init__(self) -> None:
         self.epoch = -1
         self.top = 0
         self.seen = 0  # bit i set: seq (top - i) was accepted
+        self.retired: dict[int, None] = {}  # insertion-ordered set
 
     def accept(self, epoch: int, seq: int) -> str | None:
-        """None when the frame is new, else the reason it is refused ("duplicate" or "stale")."""
+        """None when the frame is new, else why it is refused ("duplicate" or "stale")."""
         if epoch != self.epoch:
+            if epoch in self.retired:
+                return "stale"
+            if self.epoch >= 0:
+                self.retired[self.epoch] = None
+                if len(self.retired) > self.RETIRED:
+                    del self.retired[next(iter(self.retired))]
             self.epoch, self.top, self.seen = epoch, seq, 1
             return None
         if seq > self.top:

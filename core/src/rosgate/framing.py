@@ -28,6 +28,7 @@ LENGTH = struct.Struct(">I")
 FRAGMENT = struct.Struct(">2sHHII")
 FRAGMENT_MAGIC = b"RF"
 DEFAULT_MAX_MESSAGE = 64 * 1024 * 1024
+FINISHED_REMEMBERED = 4096  # frames whose late fragments are recognised and ignored
 
 
 class FramingError(ValueError):
@@ -109,6 +110,9 @@ class Reassembler:
         self.max_message = max_message
         self._pending: dict[Hashable, _Partial] = {}
         self._pending_bytes = 0
+        # frames recently completed or given up: a late duplicate fragment of one of them is
+        # ignored instead of starting a partial frame that would later count as lost
+        self._finished: dict[Hashable, None] = {}
 
     def add(self, source: Hashable, datagram: bytes) -> bytes | None:
         """Take one fragment; return the whole frame when this fragment completes it."""
@@ -121,6 +125,8 @@ class Reassembler:
         now = time.monotonic()
         key = (source, topic_id, frame_id)
         partial = self._pending.get(key)
+        if partial is None and key in self._finished:
+            return None
         if partial is None:
             self.expire(now)
             partial = self._pending[key] = _Partial(topic_id, count, now)
@@ -136,7 +142,13 @@ class Reassembler:
             return None
         del self._pending[key]
         self._pending_bytes -= partial.size
+        self._finish(key)
         return b"".join(partial.parts[i] for i in range(count))
+
+    def _finish(self, key: Hashable) -> None:
+        self._finished[key] = None
+        if len(self._finished) > FINISHED_REMEMBERED:
+            del self._finished[next(iter(self._finished))]
 
     def expire(self, now: float | None = None) -> None:
         """Give up frames whose fragments stopped coming."""
@@ -152,4 +164,5 @@ class Reassembler:
     def _give_up(self, key: Hashable, reason: str) -> None:
         partial = self._pending.pop(key)
         self._pending_bytes -= partial.size
+        self._finish(key)
         self.on_lost(partial.topic_id, reason)

@@ -17,7 +17,7 @@ import itertools
 import logging
 import threading
 from collections import deque
-from typing import Any, Callable
+from typing import Callable
 
 from . import framing
 from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport
@@ -35,6 +35,8 @@ class Link:
 
     name: str
     closed: threading.Event
+    #: datagram links need a destination for every send; stream links are connected
+    datagram: bool = False
 
     def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
         raise NotImplementedError
@@ -44,6 +46,8 @@ class Link:
 
 
 class DatagramLink(Link):
+    datagram = True
+
     def __init__(self, transport: Transport, endpoint: DatagramEndpoint, name: str,
                  on_frame: FrameHandler, on_drop: DropHandler, bare: bool = False,
                  max_message: int = framing.DEFAULT_MAX_MESSAGE):
@@ -99,7 +103,7 @@ class DatagramLink(Link):
                 if frame is None:
                     continue
                 datagram = frame
-            self.on_frame(datagram, self, source)
+            deliver(self, datagram, source)
 
     def close(self) -> None:
         self.closed.set()
@@ -184,7 +188,7 @@ class StreamLink(Link):
                 return
             try:
                 for frame in self._reader.feed(data):
-                    self.on_frame(frame, self, self.peer)
+                    deliver(self, frame, self.peer)
             except framing.FramingError as exc:
                 # a corrupt length means we can no longer find frame boundaries: start afresh
                 self.on_drop(None, "bad_length")
@@ -246,5 +250,12 @@ class Acceptor:
         self._thread.join(timeout=2)
 
 
-def describe(transport: Any, address: Address) -> str:
-    return f"{transport.name}://{address[0]}:{address[1]}"
+def deliver(link: DatagramLink | StreamLink, frame: bytes, source: Address) -> None:
+    """Hand a frame to the link's handler. A handler that raises has a bug; it is logged with its
+    traceback and counted, and the link keeps receiving."""
+    try:
+        link.on_frame(frame, link, source)
+    except Exception:
+        log.exception("%s: error while handling a frame from %s (a bug: please report it)",
+                      link.name, source)
+        link.on_drop(None, "handler_error")

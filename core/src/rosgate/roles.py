@@ -37,6 +37,7 @@ class Role:
         self.engine = engine
         self.cfg = engine.config
         self.datagram_links: dict[tuple[str, Address], DatagramLink] = {}
+        self.listening: set[tuple[str, Address]] = set()
         self.bare_routes: dict[DatagramLink, dict[str | None, ReceiveRoute]] = {}
         self._routes: list[Route] = []
         self._lock = threading.RLock()
@@ -67,7 +68,7 @@ class Role:
         return route
 
     def datagram_link(self, transport: Transport, local: Address, bare: bool = False,
-                      key: str | None = None) -> DatagramLink:
+                      key: str = "bridge") -> DatagramLink:
         """The link bound at ``local`` (shared by every topic on that port)."""
         with self._lock:
             found = self.datagram_links.get((transport.name, local))
@@ -76,8 +77,7 @@ class Role:
             try:
                 endpoint = transport.bind(local)
             except LinkError as exc:
-                exc.key = key  # type: ignore[attr-defined]
-                raise
+                raise self.engine.bind_error(exc, key) from None
             name = f"{transport.name}:{local[1]}" if local[1] else f"{transport.name}"
             if bare:
                 link = DatagramLink(transport, endpoint, name,
@@ -89,6 +89,19 @@ class Role:
                                     self.engine.on_drop)
             self.datagram_links[(transport.name, local)] = self.engine.closing(link)
             return link
+
+
+    def accept_into(self, on_frame: Callable[[bytes, Link, Address], None], transport: Transport,
+                    port: int) -> Callable[[StreamConnection, Address], None]:
+        """What to do with each connection accepted on a port: a link that feeds ``on_frame``
+        and is forgotten by the engine when it ends."""
+        engine = self.engine
+
+        def accepted(connection: StreamConnection, peer: Address) -> None:
+            engine.closing(StreamLink(connection, f"{transport.name}:{port}<-{peer[0]}", peer,
+                                      on_frame, engine.on_drop, on_close=engine.forget))
+
+        return accepted
 
 
 class PeerRole(Role):
@@ -137,22 +150,15 @@ class PeerRole(Role):
                       self.engine.on_frame).start()
 
     def _listen(self, transport: Transport, local: Address, key: str) -> None:
-        if (transport.name, local) in self.datagram_links:
+        if (transport.name, local) in self.listening:
             return
         try:
             listener = transport.listen(local)
         except LinkError as exc:
-            exc.key = key  # type: ignore[attr-defined]
-            raise
-        engine = self.engine
-
-        def accepted(connection: StreamConnection, peer: Address) -> None:
-            engine.closing(StreamLink(connection, f"{transport.name}:{local[1]}<-{peer[0]}", peer,
-                                      engine.on_frame, engine.on_drop))
-
-        engine.closing(Acceptor(listener, f"{transport.name}:{local[1]}", accepted))
-        self.datagram_links[(transport.name, local)] = None  # type: ignore[assignment]
-
+            raise self.engine.bind_error(exc, key) from None
+        self.listening.add((transport.name, local))
+        self.engine.closing(Acceptor(listener, f"{transport.name}:{local[1]}",
+                                     self.accept_into(self.engine.on_frame, transport, local[1])))
 
 class LinkSlot(Link):
     """A stand-in for a stream link that comes and goes (connects, reconnects)."""
@@ -177,8 +183,9 @@ class LinkSlot(Link):
 class _NoLink(Link):
     """A receive route's link: frames come in through the engine, nothing goes out."""
 
-    name = "in"
-    closed = threading.Event()
+    def __init__(self) -> None:
+        self.name = "in"
+        self.closed = threading.Event()
 
     def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
         return False
@@ -218,7 +225,7 @@ class Connector:
                 delay = min(delay * 2, BACKOFF_MAX)
                 continue
             link = StreamLink(connection, self.slot.name, self.address, self.on_frame,
-                              self.engine.on_drop)
+                              self.engine.on_drop, on_close=self.engine.forget)
             if self.on_connected is not None and not self.on_connected(link):
                 link.close()
                 stopping.wait(delay)
@@ -235,4 +242,5 @@ class Connector:
 
     def close(self) -> None:
         self.slot.close()
-        self._thread.join(timeout=3) if self._thread.is_alive() else None
+        if self._thread.is_alive():
+            self._thread.join(timeout=3)

@@ -113,7 +113,7 @@ class TransmitRoute(Route):
             self.drop("rate_limit")
             return
         to = self.destination()
-        if to is None and not self.link_is_stream:
+        if to is None and self.link.datagram:
             self.drop("no_peer_yet", "the far side's address is not known yet")
             return
         try:
@@ -132,10 +132,6 @@ class TransmitRoute(Route):
             self.last_sent_ns = now
             self.counters.sent += 1
             self.counters.bytes_sent += len(frame)
-
-    @property
-    def link_is_stream(self) -> bool:
-        return not hasattr(self.link, "endpoint")
 
 
 class ReceiveRoute(Route):

@@ -43,15 +43,13 @@ class ServerRole(Role):
         super().__init__(engine)
         self.sessions: dict[int, Session] = {}
         self._ids = iter(range(1, 2**32))
-        self._listening: set[tuple[str, int]] = set()
 
     def start(self) -> None:
         main = self.engine.transports[self.cfg.main_line]
         try:
             listener = main.listen(self.engine.main_address)
         except LinkError as exc:
-            exc.key = "bridge.server"  # type: ignore[attr-defined]
-            raise
+            raise self.engine.bind_error(exc, "bridge.server") from None
         self.engine.closing(Acceptor(listener, f"main:{self.engine.main_address[1]}",
                                      self._accepted))
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
@@ -89,6 +87,7 @@ class ServerRole(Role):
             self.engine.on_frame(frame, link, source)
 
         def on_close(link: StreamLink) -> None:
+            self.engine.forget(link)
             session = holder.get("session")
             if session is not None and session.main is link:
                 log.info("client %r left", session.name)
@@ -161,12 +160,12 @@ class ServerRole(Role):
                                  lambda link=link: session.addresses.get(link))  # type: ignore[misc]
 
     def _listen(self, transport: Transport, local: Address) -> None:
+        """Listen on a dedicated stream port (LinkError goes back to the client that asked)."""
         with self._lock:
-            if (transport.name, local[1]) in self._listening:
+            if (transport.name, local) in self.listening:
                 return
             listener = transport.listen(local)
-            self._listening.add((transport.name, local[1]))
-
+            self.listening.add((transport.name, local))
         port = local[1]
 
         def on_frame(frame: bytes, link: Link, source: Address) -> None:
@@ -184,11 +183,8 @@ class ServerRole(Role):
                 return
             self.engine.on_frame(frame, link, source)
 
-        def accepted(connection: StreamConnection, peer: Address) -> None:
-            self.engine.closing(StreamLink(connection, f"{transport.name}:{port}<-{peer[0]}",
-                                           peer, on_frame, self.engine.on_drop))
-
-        self.engine.closing(Acceptor(listener, f"{transport.name}:{local[1]}", accepted))
+        self.engine.closing(Acceptor(listener, f"{transport.name}:{port}",
+                                     self.accept_into(on_frame, transport, port)))
 
     def on_hello(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
         session = self.sessions.get(header.topic_id)

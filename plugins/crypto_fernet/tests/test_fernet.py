@@ -232,11 +232,6 @@ def test_a_file_that_is_not_a_fernet_key(tmp_path, content):
         assert content.decode(errors="replace") not in f"{error.message} {error.fix}"
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "rosgate_crypto_fernet/__init__.py line 70: a key file (or variable) whose content is not a "
-    "Fernet key raises OptionError(None, ...) instead of naming key_file / key_env, so the error "
-    "is located at plugins.fernet instead of the key_file line, and the message names neither "
-    "the file nor the variable"))
 def test_a_bad_key_is_reported_at_the_option_that_named_it(tmp_path, monkeypatch):
     (tmp_path / "bad.key").write_bytes(b"hello")
     assert option_error({"key_file": "bad.key"}, tmp_path).key == "key_file"

@@ -135,12 +135,6 @@ def test_ipv6_loopback(endpoints):
     assert a_address[0] == "::1"
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "rosgate_transport_udp/__init__.py line 47: UdpEndpoint.close() only calls sock.close(); on "
-    "Linux closing a socket does not wake a thread blocked in recvfrom, so a receive(timeout) in "
-    "another thread returns only when its timeout ends (then with EBADF), against the "
-    "DatagramEndpoint.close contract in transport.py ('a receive running in another thread returns "
-    "soon after'). shutdown(SHUT_RDWR) before close (ignoring its ENOTCONN) wakes it"))
 def test_close_from_another_thread_ends_a_blocked_receive_promptly(endpoints):
     b, _ = endpoints()
     finished = threading.Event()

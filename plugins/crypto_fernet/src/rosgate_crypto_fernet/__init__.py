@@ -67,7 +67,10 @@ class FernetCipher(Cipher):
         try:
             self._fernet = Fernet(key)
         except (ValueError, TypeError):
-            raise OptionError(None, "the key is not a Fernet key (32 url-safe base64-encoded bytes)",
+            source = "key_file" if "key_file" in options else "key_env"
+            where = "file" if source == "key_file" else "variable"
+            raise OptionError(source, f"the key in {where} {options[source]!r} is not a Fernet key "
+                              "(32 url-safe base64-encoded bytes)",
                               "create one with 'rosgate keygen fernet --out secret.key'") from None
 
     def seal(self, header: bytes, payload: bytes) -> bytes:

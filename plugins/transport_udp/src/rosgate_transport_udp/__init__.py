@@ -44,6 +44,10 @@ class UdpEndpoint:
         return data, source[:2]
 
     def close(self) -> None:
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)  # wakes a receive blocked in another thread
+        except OSError:
+            pass  # ENOTCONN: an unconnected UDP socket still wakes on Linux
         self.sock.close()
 
 
