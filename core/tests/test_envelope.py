@@ -200,3 +200,22 @@ def test_a_frame_of_an_earlier_epoch_is_not_accepted_twice():
     # replays of frames already accepted: the class promises each (epoch, seq) once
     assert window.accept(old, 2) is not None
     assert window.accept(new, 1) is not None
+
+
+def test_a_forged_epoch_does_not_lock_out_the_real_sender():
+    # on an unauthenticated link anyone can send a frame with a new epoch; the real sender's
+    # following frames must still be accepted, and its earlier ones still refused
+    window = ReplayWindow()
+    real, forged = 0x1111, 0x2222
+    assert accept_all(window, [1, 2, 3], real) == [None] * 3
+    assert window.accept(forged, 1) is None
+    assert accept_all(window, [4, 5], real) == [None, None]
+    assert window.accept(real, 5) == "duplicate"
+
+
+def test_only_the_last_epochs_are_remembered():
+    window = ReplayWindow()
+    for epoch in range(ReplayWindow.EPOCHS + 1):
+        assert window.accept(epoch, 1) is None
+    assert window.accept(ReplayWindow.EPOCHS, 1) == "duplicate"
+    assert window.accept(0, 1) is None  # forgotten: a matter for an authenticated handshake

@@ -68,43 +68,41 @@ def unpack(frame: bytes | memoryview) -> Header:
 class ReplayWindow:
     """Accepts each (epoch, seq) once: duplicates and frames older than the window are refused.
 
-    A 64-frame sliding window (as in IPsec) lets reordered datagrams through. A new epoch (the
-    sender restarted) starts the window afresh, and the epoch it replaces is retired: its frames
-    are refused from then on, so switching epochs cannot replay them. (The last
-    ``RETIRED`` epochs are remembered; older ones are a matter for an authenticated handshake.)
+    Each sender epoch (a new one at every sender start) has a 64-frame sliding window, as in
+    IPsec, so reordered datagrams get through once. Windows of the last ``EPOCHS`` epochs are
+    kept, so switching back and forth between epochs cannot replay frames; no epoch is refused
+    outright, so a forged frame on an unauthenticated link cannot lock the real sender out.
+    Replaying frames of an epoch forgotten long ago is for an authenticated handshake to stop.
     """
 
     WIDTH = 64
-    RETIRED = 1024
+    EPOCHS = 8
 
-    __slots__ = ("epoch", "top", "seen", "retired")
+    __slots__ = ("_windows",)
 
     def __init__(self) -> None:
-        self.epoch = -1
-        self.top = 0
-        self.seen = 0  # bit i set: seq (top - i) was accepted
-        self.retired: dict[int, None] = {}  # insertion-ordered set
+        # epoch -> [top, seen]; bit i of seen set: seq (top - i) was accepted. Insertion order
+        # is age order, so the first entry is the one to forget.
+        self._windows: dict[int, list[int]] = {}
 
     def accept(self, epoch: int, seq: int) -> str | None:
         """None when the frame is new, else why it is refused ("duplicate" or "stale")."""
-        if epoch != self.epoch:
-            if epoch in self.retired:
-                return "stale"
-            if self.epoch >= 0:
-                self.retired[self.epoch] = None
-                if len(self.retired) > self.RETIRED:
-                    del self.retired[next(iter(self.retired))]
-            self.epoch, self.top, self.seen = epoch, seq, 1
+        window = self._windows.get(epoch)
+        if window is None:
+            if len(self._windows) >= self.EPOCHS:
+                del self._windows[next(iter(self._windows))]
+            self._windows[epoch] = [seq, 1]
             return None
-        if seq > self.top:
-            shift = seq - self.top
-            self.seen = ((self.seen << shift) | 1) & ((1 << self.WIDTH) - 1) if shift < self.WIDTH else 1
-            self.top = seq
+        top, seen = window
+        if seq > top:
+            shift = seq - top
+            window[0] = seq
+            window[1] = ((seen << shift) | 1) & ((1 << self.WIDTH) - 1) if shift < self.WIDTH else 1
             return None
-        offset = self.top - seq
+        offset = top - seq
         if offset >= self.WIDTH:
             return "stale"
-        if self.seen >> offset & 1:
+        if seen >> offset & 1:
             return "duplicate"
-        self.seen |= 1 << offset
+        window[1] = seen | 1 << offset
         return None
