@@ -25,12 +25,14 @@ from rosgate.engine import Engine
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 ROSGATE = str(Path(sys.executable).with_name("rosgate"))
-# domains 20..119; the benchmark uses 150+, so a bench run does not disturb the tests
+# ROSGATE_TEST_DOMAINS=FIRST-LAST gives a test run its own DDS domains, so two runs on one
+# machine never hear each other (default 20-119; the benchmark uses 150 and up)
+_FIRST, _LAST = (int(n) for n in os.environ.get("ROSGATE_TEST_DOMAINS", "20-119").split("-"))
 _domains = itertools.count()
 
 
 def next_domain() -> int:
-    return 20 + next(_domains) % 100
+    return _FIRST + next(_domains) % (_LAST - _FIRST + 1)
 
 
 @pytest.fixture
