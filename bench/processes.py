@@ -1,0 +1,227 @@
+"""The processes of one benchmark case, and the files they need.
+
+A case is a publisher, a subscriber and, when bridged, two ``rosgate run`` processes, each a
+process of its own so the bridge pays for its own CPU, as it would in use:
+
+    bare:     pub --DDS--> sub                                   (one domain)
+    bridged:  pub --DDS--> bridge A ==link==> bridge B --DDS--> sub
+              (pub and A in one domain, B and sub in another: the bridge is the only way across)
+
+DDS stays on loopback (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) and uses domains 150..169,
+away from the tests' 20..119, so a bench run and a test run do not hear each other.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+ROOT = Path(__file__).resolve().parent.parent
+ENDPOINTS = Path(__file__).resolve().with_name("endpoints.py")
+ROSGATE = str(Path(sys.executable).with_name("rosgate"))
+START_TIMEOUT = 30.0
+READY_LINE = "running as"
+
+_domain_pairs = itertools.cycle(range(150, 170, 2))
+
+
+def next_domains() -> tuple[int, int]:
+    """A fresh pair of DDS domains: (publisher side, subscriber side)."""
+    first = next(_domain_pairs)
+    return first, first + 1
+
+
+def free_port() -> int:
+    """A port free for both TCP and UDP on 127.0.0.1."""
+    while True:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
+            tcp.bind(("127.0.0.1", 0))
+            port = tcp.getsockname()[1]
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+                try:
+                    udp.bind(("127.0.0.1", port))
+                except OSError:
+                    continue
+            return port
+
+
+def ros_env(domain: int) -> dict[str, str]:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")
+    # The bridges run the workspace's code as checked out: its source folders go first, so an
+    # editable install made before a plugin's sources existed (no .pth for it) does not hide it.
+    # Entry points still come from the installed distributions.
+    sources = [ROOT / "core" / "src", *sorted((ROOT / "plugins").glob("*/src"))]
+    env["PYTHONPATH"] = os.pathsep.join([*map(str, sources), env.get("PYTHONPATH", "")]).rstrip(
+        os.pathsep)
+    # counters are logged when a bridge stops; no periodic lines in the middle of a trial
+    env["ROSGATE_STATS_EVERY"] = "3600"
+    return env
+
+
+class Lines:
+    """Lines a process writes, read by a thread so that waiting for one can time out."""
+
+    def __init__(self, stream: IO[str], name: str):
+        self.name = name
+        self.queue: queue.Queue[str | None] = queue.Queue()
+        self.seen: list[str] = []
+        self.ended = threading.Event()
+        threading.Thread(target=self._read, args=(stream,), daemon=True).start()
+
+    def _read(self, stream: IO[str]) -> None:
+        for line in stream:
+            self.seen.append(line.rstrip("\n"))
+            self.queue.put(self.seen[-1])
+        self.queue.put(None)
+        self.ended.set()
+
+    def next(self, timeout: float) -> str:
+        try:
+            line = self.queue.get(timeout=timeout)
+        except queue.Empty:
+            raise RuntimeError(f"{self.name}: no answer within {timeout:.0f} s") from None
+        if line is None:
+            raise RuntimeError(f"{self.name}: exited")
+        return line
+
+    def wait_for(self, text: str, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while text not in self.next(max(0.01, deadline - time.monotonic())):
+            pass
+
+
+class Process:
+    """A child process stopped with SIGINT (then SIGKILL) when the case ends."""
+
+    proc: subprocess.Popen
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+class Endpoint(Process):
+    """The publisher or the subscriber (bench/endpoints.py), driven over stdin/stdout."""
+
+    def __init__(self, role: str, kind: str, size: int, depth: int, domain: int, log: Path):
+        self.name = role
+        self.log = log.open("w")
+        self.proc = subprocess.Popen(
+            [sys.executable, str(ENDPOINTS), role, kind, str(size), str(depth)],
+            env=ros_env(domain), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.log,
+            text=True, bufsize=1)
+        self.lines = Lines(self.proc.stdout, role)
+
+    def ready(self) -> None:
+        self.lines.wait_for('"ready"', START_TIMEOUT)
+
+    def ask(self, command: str, timeout: float = 10.0) -> dict[str, Any]:
+        assert self.proc.stdin is not None
+        try:
+            self.proc.stdin.write(command + "\n")
+            self.proc.stdin.flush()
+            return json.loads(self.lines.next(timeout))
+        except (OSError, RuntimeError) as exc:
+            self.log.flush()
+            tail = Path(self.log.name).read_text().strip().splitlines()[-5:]
+            raise RuntimeError(f"{self.name}: {exc}; its log ends:\n" + "\n".join(tail)) from None
+
+    def stop(self) -> None:
+        try:
+            self.proc.stdin.write("quit\n")  # type: ignore[union-attr]
+            self.proc.stdin.close()  # type: ignore[union-attr]
+            self.proc.wait(5)
+        except (OSError, subprocess.TimeoutExpired):
+            pass
+        super().stop()
+        self.log.close()
+
+
+class Bridge(Process):
+    """A ``rosgate run FILE`` process; its log (stderr) is kept next to its file."""
+
+    def __init__(self, config: Path, domain: int):
+        self.name = config.stem
+        self.config = config
+        self.proc = subprocess.Popen([ROSGATE, "run", str(config)], env=ros_env(domain),
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        self.lines = Lines(self.proc.stderr, f"bridge {self.name}")
+
+    def ready(self) -> None:
+        try:
+            self.lines.wait_for(READY_LINE, START_TIMEOUT)
+        except RuntimeError as exc:
+            raise RuntimeError(f"{exc}; its log:\n" + "\n".join(self.lines.seen)) from None
+
+    def stop(self) -> None:
+        super().stop()
+        self.lines.ended.wait(5)  # the counters are the last lines it writes
+        self.config.with_suffix(".log").write_text("\n".join(self.lines.seen) + "\n")
+
+    def problems(self) -> list[str]:
+        """Log lines worth a look: warnings, errors, and counters that show drops."""
+        return [line for line in self.lines.seen
+                if " WARNING " in line or " ERROR " in line or "Traceback" in line
+                or ("drops:" in line and not line.endswith("drops: none"))]
+
+
+# -- bringup.yaml ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Route:
+    """How a bridged case crosses: link, codec, cipher, and which pair of roles."""
+
+    transport: str
+    codec: str = "cdr"
+    cipher: str = "none"
+    roles: str = "peer"  # "peer" (A transmit, B receive) or "client/server" (A client, B server)
+
+    @property
+    def label(self) -> str:
+        name = f"{self.transport}/{self.codec}/{self.cipher}"
+        return name if self.roles == "peer" else f"{name} client/server"
+
+
+def bringup_files(route: Route, msg_type: str, depth: int, folder: Path) -> tuple[Path, Path]:
+    """Write bridge A's and bridge B's bringup.yaml; return their paths."""
+    port = free_port()
+    plugins = ""
+    if route.cipher == "fernet":
+        key = folder / "fernet.key"
+        if not key.exists():
+            subprocess.run([ROSGATE, "keygen", "fernet", "--out", str(key)], check=True,
+                           capture_output=True)
+        plugins = f"plugins: {{fernet: {{key_file: {key}}}}}\n"
+    topic = (f"{{topic: /bench, type: {msg_type}, transport: {route.transport}, "
+             f"codec: {route.codec}, cipher: {route.cipher}, "
+             f"qos: {{reliability: reliable, history: keep_last, depth: {depth}}}")
+    if route.roles == "peer":
+        a = (f"bridge: {{name: bench_a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}\n{plugins}"
+             f"topics:\n  - {topic}, direction: transmit, port: {port}}}\n")
+        b = (f"bridge: {{name: bench_b, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}\n{plugins}"
+             f"topics:\n  - {topic}, direction: receive, port: {port}}}\n")
+    else:
+        # the client's file holds the topic list; its datagram topic uses the server's port
+        a = (f"bridge: {{name: bench_a, role: client, server: 127.0.0.1:{port}}}\n{plugins}"
+             f"topics:\n  - {topic}, direction: transmit}}\n")
+        b = f"bridge: {{name: bench_b, role: server, server: 127.0.0.1:{port}}}\n{plugins}"
+    paths = folder / "bench_a.yaml", folder / "bench_b.yaml"
+    for path, text in zip(paths, (a, b)):
+        path.write_text(text)
+    return paths
