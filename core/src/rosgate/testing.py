@@ -43,7 +43,7 @@ What each suite checks (every check uses real sockets, real message classes, rea
   refusal tests, saying so.
 * All three: the plugin is found through its entry point in the group ``rosgate``.
 
-The helpers (:func:`free_port`, :func:`wait_until_blocked`, :func:`receive_exactly`,
+The helpers (:func:`free_port`, :func:`has_ipv6_loopback`, :func:`wait_until_blocked`, :func:`receive_exactly`,
 :func:`write_key`, :func:`mutations`, :class:`Frames`) are what plugin tests kept writing for
 themselves. rosgate registers this module as a pytest plugin (entry point ``pytest11``), so
 pytest rewrites its asserts: a failing check shows the values. Importing it loads nothing from
@@ -73,7 +73,7 @@ from .transport import Address, StreamConnection, Transport
 
 __all__ = [
     "CipherConformance", "CodecConformance", "Frames", "TransportConformance",
-    "free_port", "mutations", "receive_exactly", "sample", "samples", "wait_until_blocked",
+    "free_port", "has_ipv6_loopback", "mutations", "receive_exactly", "sample", "samples", "wait_until_blocked",
     "write_key",
 ]
 
@@ -94,6 +94,18 @@ def free_port(host: str = "127.0.0.1") -> int:
                 except OSError:
                     continue
             return port
+
+
+def has_ipv6_loopback() -> bool:
+    """Whether this kernel has ``::1`` (containers often lack it): skip IPv6 tests otherwise."""
+    if not socket.has_ipv6:
+        return False
+    try:
+        with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
+            s.bind(("::1", 0))
+        return True
+    except OSError:
+        return False
 
 
 def wait_until_blocked(native_id: int, timeout: float = 2.0) -> None:
