@@ -164,7 +164,8 @@ class CodecConformance:
 
     def test_garbage_is_a_codec_error_and_nothing_else(self) -> None:
         """Seeded: random bytes and damaged valid encodings. Each either decodes to a value of
-        the right kind or raises CodecError; any other exception fails, showing the input."""
+        the right kind, which encodes again, or raises CodecError; any other exception fails,
+        showing the input."""
         rng = random.Random(20240601)
         for name in ("Twist", "JointState", "NavSatFix", "ParameterValue", "NodeEntitiesInfo",
                      "Float32MultiArray", "String"):
@@ -183,3 +184,4 @@ class CodecConformance:
                     pytest.fail(f"{name}: decode({data!r}) raised {type(exc).__name__}: {exc}")
                 expected = bytes if self.codec.raw else type(message)
                 assert isinstance(result, expected), f"{name}: decode({data!r}) -> {result!r}"
+                codec.encode(result)  # what decode accepts is a message the codec can send on
