@@ -19,12 +19,23 @@ from .helpers import (TIMEOUT, Closing, Frames, assert_registered, free_port, fr
 class TransportConformance:
     """The conformance suite of a transport. Set :attr:`transport` (and :attr:`options`);
     override the ``address`` fixture for links whose addresses are not ``127.0.0.1:port``.
-    Tests for the other kind of link (stream or datagram) are skipped, saying so."""
+    The tests of the other kind of link (``test_stream_*`` for a datagram link, and the other
+    way round) are left out of a subclass whose :attr:`transport` is a class; with a factory,
+    which kind it makes is known only when it runs, and they are skipped, saying so."""
 
     #: the Transport subclass under test, or a factory taking the options
     transport: ClassVar[Callable[[Mapping[str, Any]], Transport]]
     #: the plugin's options, as under ``plugins:`` in bringup.yaml
     options: ClassVar[Mapping[str, Any]] = {}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        transport = cls.__dict__.get("transport")
+        if isinstance(transport, type) and issubclass(transport, Transport):
+            other = "test_datagram_" if transport.stream else "test_stream_"
+            for name in dir(TransportConformance):
+                if name.startswith(other):
+                    setattr(cls, name, None)  # pytest collects functions only
 
     @pytest.fixture
     def address(self) -> Callable[[], Address]:
