@@ -1,7 +1,9 @@
 """rosgate cipher ``nacl``: NaCl SecretBox (XSalsa20-Poly1305), the fast authenticated cipher.
 
-About six times Fernet's speed on large frames and 32 bytes per frame instead of Fernet's 57
-plus a third: a sealed body is ``salt (16) | ciphertext | Poly1305 tag (16)``.
+Faster than Fernet (seal + open, measured by this plugin's tests on the 2-core development
+machine: 1 MiB ~230/s against ~90/s, 2.5 kB ~88k/s against ~28k/s) and smaller: 32 bytes per
+frame instead of Fernet's 57 plus a third. A sealed body is
+``salt (16) | ciphertext | Poly1305 tag (16)``.
 
 **The envelope header is authenticated through the nonce.** SecretBox has no associated data,
 so the 24-byte nonce is derived from the header: ``nonce = BLAKE2b-192(salt | header)`` with a
