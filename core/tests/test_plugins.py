@@ -287,9 +287,9 @@ def test_discover_finds_the_installed_plugins(monkeypatch):
 
 
 def test_discover_honours_the_disable_variable(monkeypatch):
-    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet")
+    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet,cbor,nacl")
     plugins = Plugins.discover()
-    assert sorted(plugins.blocked) == ["fernet", "msgpack"]
+    assert sorted(plugins.blocked) == ["cbor", "fernet", "msgpack", "nacl"]
     assert plugins.names("codec") == ["cdr"]
     assert plugins.names("cipher") == ["none"]
     assert {"udp", "tcp"} <= set(plugins.names("transport"))
@@ -302,6 +302,6 @@ def test_builtin_cannot_be_blocked(monkeypatch):
     monkeypatch.setenv(DISABLE_VARIABLE, " builtin , msgpack ,, ")
     plugins = Plugins.discover()
     assert plugins.blocked == ["msgpack"]
-    assert plugins.names("codec") == ["cdr"]
-    assert plugins.names("cipher") == ["fernet", "none"]
+    assert plugins.names("codec") == ["cbor", "cdr"]
+    assert plugins.names("cipher") == ["fernet", "nacl", "none"]
     assert plugins.get("cipher", "none").cls is NoCipher

@@ -1,5 +1,5 @@
-"""The msgpack codec: exact wire bytes, round trips, strict decoding of hostile input, bare
-(CVRA) framing, and discovery through the entry point. Message classes only, no DDS."""
+"""The msgpack codec: the plugin kit's conformance suite, then exact wire bytes, strict decoding
+of hostile input naming the field, bare (CVRA) framing. Message classes only, no DDS."""
 
 from __future__ import annotations
 
@@ -23,8 +23,12 @@ from std_msgs.msg import (Byte, ByteMultiArray, Empty, Float32, Float32MultiArra
 from std_srvs.srv import SetBool
 
 import rosgate
-from rosgate.plugins import Plugins
+from rosgate.testing import CodecConformance, mutations
 from rosgate_codec_msgpack import MsgpackCodec
+
+
+class TestMsgpackConformance(CodecConformance):
+    codec = MsgpackCodec
 
 packb = msgpack.packb
 
@@ -310,20 +314,7 @@ def test_fuzz_decode_raises_only_codec_errors():
         inputs.append(rng.randbytes(rng.randrange(40)))
         inputs.append(packb(random_value(0)))
     for _, valid in codecs:
-        for _ in range(150):
-            data = bytearray(valid)
-            for _ in range(rng.randrange(1, 4)):
-                position = rng.randrange(len(data))
-                operation = rng.randrange(3)
-                if operation == 0:
-                    data[position] = rng.randrange(256)
-                elif operation == 1:
-                    del data[position:position + rng.randrange(1, 8)]
-                else:
-                    data[position:position] = rng.randbytes(rng.randrange(1, 8))
-                if not data:
-                    break
-            inputs.append(bytes(data))
+        inputs.extend(mutations(valid, rng, 150))
     decoded = 0
     for data in inputs:
         for c, _ in codecs:
@@ -366,13 +357,6 @@ def test_unknown_option_is_an_option_error():
     with pytest.raises(rosgate.OptionError) as error:
         MsgpackCodec(Twist, {"use_single_float": True})
     assert error.value.key == "use_single_float"
-
-
-def test_plugin_is_found_through_its_entry_point():
-    registration = Plugins.discover().get("codec", "msgpack")
-    assert registration is not None
-    assert registration.cls is MsgpackCodec
-    assert registration.distribution == "rosgate-codec-msgpack"
 
 
 def test_rates(capsys):

@@ -1,51 +1,21 @@
-"""The udp transport alone, with real sockets on loopback: datagrams cross byte-exact, idle
-receives time out, and bad addresses, busy ports and bad options are refused with a clear error."""
+"""The udp transport alone, with real sockets on loopback: the plugin kit's conformance suite
+(frames cross byte-exact up to max_frame and beyond, boundaries, idle receive, close), then
+what is particular to UDP: the IPv4 size limit, IPv6, busy ports, kernel buffers, options."""
 
 from __future__ import annotations
 
 import os
-import random
 import socket
-import threading
-import time
 
 import pytest
 
-import rosgate_transport_udp
 from rosgate import LinkError, OptionError
-from rosgate.plugins import Plugins
+from rosgate.testing import TransportConformance, has_ipv6_loopback
 from rosgate_transport_udp import UdpTransport
 
 
-def free_port(family: socket.AddressFamily = socket.AF_INET, host: str = "127.0.0.1") -> int:
-    with socket.socket(family, socket.SOCK_DGRAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
-
-
-def has_ipv6_loopback() -> bool:
-    if not socket.has_ipv6:
-        return False
-    try:
-        with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
-            s.bind(("::1", 0))
-        return True
-    except OSError:
-        return False
-
-
-def wait_until_blocked(native_id: int, timeout: float = 2.0) -> None:
-    """Wait until a thread sleeps in poll() (a socket receive with a timeout), as Linux reports it."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            with open(f"/proc/self/task/{native_id}/wchan") as f:
-                if "poll" in f.read():
-                    return
-        except OSError:
-            pytest.skip("cannot see where a thread sleeps (/proc/self/task/*/wchan)")
-        time.sleep(0.01)
-    pytest.fail("the receive never blocked")
+class TestUdpConformance(TransportConformance):
+    transport = UdpTransport
 
 
 @pytest.fixture
@@ -69,43 +39,8 @@ def test_bind_on_port_0_picks_a_port(endpoints):
     assert host == "127.0.0.1" and 0 < port < 65536
 
 
-def test_a_datagram_crosses_byte_exact_with_its_source(endpoints):
-    a, a_address = endpoints()
-    b, b_address = endpoints()
-    frame = random.Random(1).randbytes(1200)
-    a.send(frame, b_address)
-    assert b.receive(2.0) == (frame, a_address)
-    b.send(b"\x00reply\xff", a_address)
-    assert a.receive(2.0) == (b"\x00reply\xff", b_address)
-
-
-def test_datagrams_keep_their_boundaries(endpoints):
-    a, _ = endpoints()
-    b, b_address = endpoints()
-    frames = [b"one", b"", b"three" * 100, b"4"]
-    for frame in frames:
-        a.send(frame, b_address)
-    assert [b.receive(2.0)[0] for _ in frames] == frames
-
-
-def test_receive_returns_none_when_idle(endpoints):
-    b, _ = endpoints()
-    started = time.monotonic()
-    assert b.receive(0.2) is None
-    assert 0.15 < time.monotonic() - started < 2.0
-
-
-def test_a_frame_of_max_frame_bytes_crosses(endpoints):
-    assert UdpTransport.max_frame == 65_000
-    a, _ = endpoints()
-    b, b_address = endpoints()
-    frame = random.Random(2).randbytes(UdpTransport.max_frame)
-    a.send(frame, b_address)
-    got = b.receive(2.0)
-    assert got is not None and got[0] == frame
-
-
 def test_a_datagram_over_the_ipv4_limit_cannot_be_sent(endpoints):
+    assert UdpTransport.max_frame == 65_000  # below the limit, with room to spare
     a, _ = endpoints()
     _, b_address = endpoints()
     with pytest.raises(OSError):
@@ -133,31 +68,6 @@ def test_ipv6_loopback(endpoints):
     a.send(b"over six", b_address)
     assert b.receive(2.0) == (b"over six", a_address)
     assert a_address[0] == "::1"
-
-
-def test_close_from_another_thread_ends_a_blocked_receive_promptly(endpoints):
-    b, _ = endpoints()
-    finished = threading.Event()
-    native_id: list[int] = []
-
-    def receive():
-        native_id.append(threading.get_native_id())
-        try:
-            b.receive(2.5)
-        except OSError:
-            pass
-        finished.set()
-
-    thread = threading.Thread(target=receive, daemon=True)
-    thread.start()
-    while not native_id:
-        time.sleep(0.001)
-    wait_until_blocked(native_id[0])
-    closed_at = time.monotonic()
-    b.close()
-    assert finished.wait(1.0), "receive still blocked 1 s after close"
-    assert time.monotonic() - closed_at < 1.0
-    thread.join()
 
 
 # --- options and addresses ----------------------------------------------------------------------------
@@ -214,11 +124,3 @@ def test_parse_address_accepts(text, address):
 def test_parse_address_rejects(text):
     with pytest.raises(ValueError, match="is not host:port"):
         UdpTransport({}).parse_address(text)
-
-
-def test_registered_through_its_hook():
-    plugins = Plugins()
-    plugins.add(rosgate_transport_udp, "udp", "rosgate-transport-udp", "0.1.0")
-    assert plugins.failures == []
-    registration = plugins.get("transport", "udp")
-    assert registration.cls is UdpTransport and registration.cls.stream is False

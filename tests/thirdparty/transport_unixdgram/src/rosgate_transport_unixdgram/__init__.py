@@ -31,9 +31,13 @@ class UnixDatagramEndpoint:
             data, source = self.sock.recvfrom(1 << 20)
         except TimeoutError:
             return None
-        return data, (source or "?", 0)
+        return data, _address(source)
 
     def close(self) -> None:
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)  # wakes a receive blocked in another thread
+        except OSError:
+            pass
         self.sock.close()
         if self.path:
             try:
@@ -71,6 +75,17 @@ class UnixDatagramTransport(Transport):
 
 def _path(address: Address) -> str:
     return os.path.join(address[0], f"{address[1]}.sock")
+
+
+def _address(path: str | bytes | None) -> Address:
+    """The address a datagram came from, in the form ``send`` takes, so it can be answered
+    (a server answers its clients there); ``("", 0)`` for an anonymous sender (Linux names it
+    ``b""`` or ``None``)."""
+    if not isinstance(path, str):
+        return "", 0
+    directory, name = os.path.split(path)
+    number = name.removesuffix(".sock")
+    return (directory, int(number)) if number.isdigit() and name.endswith(".sock") else ("", 0)
 
 
 @hookimpl

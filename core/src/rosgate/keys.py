@@ -1,0 +1,67 @@
+"""Where a cipher's key comes from: the convention every rosgate cipher shares.
+
+A keyed cipher takes exactly one of two options under ``plugins: {NAME: {...}}``:
+
+``key_file``  a file holding the key (relative to the bringup.yaml), as written by
+              ``rosgate keygen NAME --out FILE`` (mode 0600; a file others can read is warned about).
+``key_env``   the name of an environment variable holding the key.
+
+Never the key itself on the command line, where ``ps`` shows it to every user. What the key's
+bytes mean (base64, length) is the cipher's business: :func:`load_key` returns them stripped of
+surrounding blanks, and the cipher raises ``OptionError(key_source(options), ...)`` if they are
+not a key it can use.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import stat
+from pathlib import Path
+from typing import Any, Mapping
+
+from .errors import OptionError
+
+KEY_OPTIONS = ("key_file", "key_env")
+
+
+def load_key(options: Mapping[str, Any], base_dir: Path, plugin: str) -> bytes:
+    """The key named by ``key_file`` or ``key_env``; :class:`OptionError` at the option that is
+    missing, unknown or unreadable (the message never contains the key)."""
+    unknown = set(options) - set(KEY_OPTIONS)
+    if unknown:
+        raise OptionError(sorted(unknown)[0], f"unknown option of {plugin}",
+                          "valid options are key_file and key_env")
+    if ("key_file" in options) == ("key_env" in options):
+        raise OptionError(None, f"{plugin} needs exactly one of key_file or key_env",
+                          f"create a key with 'rosgate keygen {plugin} --out {plugin}.key' and set "
+                          f"plugins: {{{plugin}: {{key_file: {plugin}.key}}}}")
+    if "key_env" in options:
+        name = options["key_env"]
+        value = os.environ.get(str(name))
+        if not value:
+            raise OptionError("key_env", f"environment variable {name!r} is not set or empty",
+                              f"export {name}=<key made by 'rosgate keygen {plugin}'>")
+        return value.strip().encode()
+    path = base_dir / str(options["key_file"])
+    try:
+        mode = path.stat().st_mode
+        data = path.read_bytes().strip()
+    except OSError as exc:
+        raise OptionError("key_file", f"cannot read key file {str(path)!r}: {exc.strerror}",
+                          f"create it with 'rosgate keygen {plugin} --out {path}'") from None
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        logging.getLogger("rosgate").warning(
+            "key file %s is readable by other users; chmod 600 it", path)
+    return data
+
+
+def key_source(options: Mapping[str, Any]) -> str:
+    """The option the key came from, for an ``OptionError`` about the key's content."""
+    return "key_file" if "key_file" in options else "key_env"
+
+
+def describe_source(options: Mapping[str, Any]) -> str:
+    """``file 'secret.key'`` or ``variable 'NAME'``: where a bad key was found, for a message."""
+    source = key_source(options)
+    return f"{'file' if source == 'key_file' else 'variable'} {options[source]!r}"

@@ -1,0 +1,468 @@
+"""ROS messages as trees of maps, arrays and scalars: the mapping shared by the tree codecs
+(``msgpack``, ``cbor``, and any plugin that writes a self-describing format of the same kind).
+
+The mapping (ROS field type -> tree node):
+
+=================================  ===========================================================
+ROS                                tree node
+=================================  ===========================================================
+message (nested ones too)          map: field name as in the .msg -> value, in .msg order
+bool                               boolean
+int8 ... int64, uint8 ... uint64   integer (the format's smallest encoding)
+byte                               integer in [0, 255]
+float32                            float of 32 bits (the format's single-precision tag)
+float64                            float of 64 bits
+string, wstring                    text (UTF-8)
+uint8[], uint8[N], byte[], byte[N] byte string (the bytes as they are)
+any other T[], T[N], T[<=N]        array of T (float32 elements as 32-bit floats)
+builtin_interfaces/Time, Duration  nothing special: {"sec": ..., "nanosec": ...}
+=================================  ===========================================================
+
+A format plugs in with a :class:`WireFormat`: how it writes the few things the mapping writes
+itself (headers of maps, arrays and byte strings, the two float widths) and its packer for
+plain values. Writing goes straight to bytes, field by field, without building a tree first;
+reading takes the tree the format's own parser returns (dicts, lists, bytes, str, int, float,
+bool) and checks it strictly, because it comes from the network: an unknown field, a value of
+the wrong type, an integer out of its field's range, a fixed array of the wrong length, a
+bounded sequence or string over its bound are each a :class:`TreeError` naming the field by
+its dotted path (``pose.position.w``, ``points[3].x``). Fields left out keep the message's
+defaults. An integer is accepted where a float is expected (a microcontroller may send 0 for
+0.0); a boolean is never taken for a number.
+
+All per-type work happens once: walking the rosidl definition (``SLOT_TYPES``) builds an
+encoder and a decoder per field, cached per message class and format; encoding and decoding
+only run them. :class:`TreeCodec` is the codec base class that puts this behind
+:class:`rosgate.Codec`: a format's codec adds its name, its :class:`WireFormat` and its parser.
+
+This module needs the ROS Python packages (``rosidl_parser``, numpy), so the core imports it
+only when a tree codec is used.
+"""
+
+from __future__ import annotations
+
+import array
+import importlib
+import math
+import struct
+from dataclasses import dataclass
+from functools import partial
+from operator import attrgetter
+from typing import Any, Callable, ClassVar, Mapping
+
+import numpy
+from rosidl_parser import definition as idl
+
+from .codec import Codec
+from .errors import CodecError, OptionError
+
+Encoder = Callable[[Any], bytes]
+Decoder = Callable[[Any], Any]
+
+# rclpy's own bound for float32 fields (a hair under FLT_MAX): what passes here passes rclpy
+FLOAT32_MAX = 3.402823466e38
+
+_INTEGER_RANGES = {
+    "int8": (-(2**7), 2**7 - 1), "uint8": (0, 2**8 - 1),
+    "int16": (-(2**15), 2**15 - 1), "uint16": (0, 2**16 - 1),
+    "int32": (-(2**31), 2**31 - 1), "uint32": (0, 2**32 - 1),
+    "int64": (-(2**63), 2**63 - 1), "uint64": (0, 2**64 - 1),
+}
+# rclpy keeps numeric sequences in array.array and fixed numeric arrays in numpy arrays, with
+# these type codes (rosidl_generator_py's SPECIAL_NESTED_BASIC_TYPES; uint8 travels as bytes)
+_TYPECODES = {
+    "float": "f", "double": "d", "int8": "b", "int16": "h", "uint16": "H",
+    "int32": "i", "uint32": "I", "int64": "q", "uint64": "Q",
+}
+
+
+@dataclass(frozen=True)
+class WireFormat:
+    """What a tree format tells the mapping about itself."""
+
+    #: the format's name, for messages (``MessagePack``)
+    name: str
+    #: packs a bool, an int, a str, or a list of ints or of float64s, as the format does
+    pack: Encoder
+    #: one-byte tags before a big-endian IEEE float of 32 and of 64 bits (MessagePack 0xca and
+    #: 0xcb, CBOR 0xfa and 0xfb): a packer writes every Python float alike, so the mapping
+    #: writes floats itself to keep float32 fields 32 bits wide
+    float32_tag: int
+    float64_tag: int
+    #: headers of an array, a map, a byte string of n elements (bytes)
+    array_header: Callable[[int], bytes]
+    map_header: Callable[[int], bytes]
+    bytes_header: Callable[[int], bytes]
+    #: how the format's users call a byte string, a text string and nil, for error messages
+    bytes_word: str = "bin"
+    str_word: str = "str"
+    nil_word: str = "nil"
+
+
+@dataclass(frozen=True)
+class _Converter:
+    """How one field type travels: ROS value -> packed bytes, parsed value -> ROS value."""
+
+    encode: Encoder
+    decode: Decoder
+
+
+class TreeError(Exception):
+    """A received value that does not fit its field. The path is collected innermost first as
+    the exception unwinds through the decoders, so the path costs nothing until something fails."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+        self.path: list[str] = []
+
+    def where(self) -> str:
+        text = ""
+        for part in reversed(self.path):
+            text += part if part.startswith("[") or not text else "." + part
+        return text
+
+
+def describe(value: Any, wire: WireFormat) -> str:
+    """A received value as the peer's format would call it, short enough for a log line."""
+    if value is None:
+        return wire.nil_word
+    if isinstance(value, (bool, int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return f"{wire.str_word} {value[:32]!r}" + ("..." if len(value) > 32 else "")
+    if isinstance(value, bytes):
+        return f"{wire.bytes_word} of {len(value)} bytes"
+    if isinstance(value, list):
+        return f"an array of {len(value)}"
+    if isinstance(value, dict):
+        return "a map"
+    return type(value).__name__
+
+
+def type_name(t: idl.AbstractType) -> str:
+    """A rosidl type spelled as ``get_fields_and_field_types()`` spells it."""
+    if isinstance(t, idl.BasicType):
+        return t.typename
+    if isinstance(t, idl.NamespacedType):
+        return f"{t.namespaces[0]}/{t.name}"
+    if isinstance(t, idl.AbstractGenericString):
+        base = "wstring" if isinstance(t, idl.AbstractWString) else "string"
+        bound = getattr(t, "maximum_size", None)
+        return base if bound is None else f"{base}<{bound}>"
+    item = type_name(t.value_type)
+    if isinstance(t, idl.Array):
+        return f"{item}[{t.size}]"
+    if isinstance(t, idl.BoundedSequence):
+        return f"sequence<{item}, {t.maximum_size}>"
+    return f"sequence<{item}>"
+
+
+class _Builder:
+    """Builds the converters of one format."""
+
+    def __init__(self, wire: WireFormat):
+        self.wire = wire
+        self.pack = wire.pack
+        self.float32 = struct.Struct(">Bf")
+        self.float64 = struct.Struct(">Bd")
+
+    def invalid(self, expected: str, value: Any) -> TreeError:
+        return TreeError(f"{expected}, got {describe(value, self.wire)}")
+
+    # -- scalars ------------------------------------------------------------------------------
+
+    def scalar(self, typename: str) -> _Converter:
+        invalid = self.invalid
+        if typename == "boolean":
+            def decode_bool(value: Any) -> bool:
+                if type(value) is not bool:
+                    raise invalid("expected boolean", value)
+                return value
+            return _Converter(self.pack, decode_bool)
+        if typename == "octet":
+            pack = self.pack
+
+            def encode_octet(value: bytes) -> bytes:
+                return pack(value[0])  # rclpy holds a byte field as bytes of length 1
+
+            def decode_octet(value: Any) -> bytes:
+                if type(value) is not int or not 0 <= value <= 255:
+                    raise invalid("expected byte (an integer in [0, 255])", value)
+                return bytes((value,))
+            return _Converter(encode_octet, decode_octet)
+        if typename in ("float", "double"):
+            return self.floating(typename)
+        if typename in _INTEGER_RANGES:
+            low, high = _INTEGER_RANGES[typename]
+            expected = f"expected {typename} (an integer in [{low}, {high}])"
+
+            def decode_int(value: Any) -> int:
+                # type(), not isinstance(): True is an int to Python, but not a number on the wire
+                if type(value) is not int or not low <= value <= high:
+                    raise invalid(expected, value)
+                return value
+            return _Converter(self.pack, decode_int)
+        # char, wchar, long double, short, long ...: IDL-only types that no .msg can declare
+        raise CodecError(f"the {self.wire.name} mapping does not support the IDL type {typename!r}")
+
+    def floating(self, typename: str) -> _Converter:
+        invalid = self.invalid
+        single = typename == "float"
+        expected = f"expected {typename} (a number)"
+        encode: Encoder = partial(self.float32.pack, self.wire.float32_tag) if single else \
+            partial(self.float64.pack, self.wire.float64_tag)
+
+        def decode(value: Any) -> float:
+            kind = type(value)
+            if kind is float:
+                number = value
+            elif kind is int:
+                try:
+                    number = float(value)  # a format's bignum may be past any double
+                except OverflowError:
+                    raise invalid(expected, value) from None
+            else:
+                raise invalid(expected, value)
+            if single and FLOAT32_MAX < abs(number) < math.inf:
+                raise TreeError(f"expected float (within +-{FLOAT32_MAX:g}), got {value!r}")
+            return number
+        return _Converter(encode, decode)
+
+    def string(self, t: idl.AbstractGenericString) -> _Converter:
+        bound = getattr(t, "maximum_size", None)
+        expected = f"expected {type_name(t)}"
+        utf8 = not isinstance(t, idl.AbstractWString)
+        invalid = self.invalid
+
+        def decode(value: Any) -> str:
+            if type(value) is not str:
+                raise invalid(expected, value)
+            # the middleware bounds a string's UTF-8 bytes, which are never fewer than its
+            # characters: encode only when the characters fit and the text is not plain ASCII
+            if bound is not None and (len(value) > bound or (
+                    utf8 and not value.isascii() and len(value.encode()) > bound)):
+                raise TreeError(f"{expected}, got a {self.wire.str_word} of {len(value.encode())} bytes")
+            return value
+        return _Converter(self.pack, decode)
+
+    # -- arrays and sequences -----------------------------------------------------------------
+
+    def length_checker(self, t: idl.AbstractNestedType, wire_type: type,
+                       wire_name: str) -> Callable[[Any], None]:
+        """Check a received collection's type, and its length against the field's."""
+        size = t.size if isinstance(t, idl.Array) else None
+        bound = t.maximum_size if isinstance(t, idl.BoundedSequence) else None
+        expected = f"expected {type_name(t)} ({wire_name}"
+        expected += f" of exactly {size})" if size is not None else (
+            f" of at most {bound})" if bound is not None else ")")
+        invalid = self.invalid
+
+        def check(value: Any) -> None:
+            if type(value) is not wire_type or (size is not None and len(value) != size) or (
+                    bound is not None and len(value) > bound):
+                raise invalid(expected, value)
+        return check
+
+    def bytes(self, t: idl.AbstractNestedType) -> _Converter:
+        """uint8 and byte collections travel as a byte string: one copy, no per-element work."""
+        check = self.length_checker(t, bytes, self.wire.bytes_word)
+        header = self.wire.bytes_header
+
+        if t.value_type.typename == "octet":  # rclpy: a list of bytes objects of length 1
+            def encode(value: Any) -> bytes:
+                return header(len(value)) + b"".join(value)
+
+            def decode(value: Any) -> Any:
+                check(value)
+                return list(map(int.to_bytes, value))
+        else:
+            fixed = isinstance(t, idl.Array)
+
+            def encode(value: Any) -> bytes:
+                view = memoryview(value)  # no copy of an image's pixels before joining
+                return header(view.nbytes) + view
+
+            def decode(value: Any) -> Any:
+                check(value)
+                # rclpy: a numpy uint8 array for uint8[N] (copied: frombuffer alone is
+                # read-only), array.array('B') for uint8[]
+                return numpy.frombuffer(value, numpy.uint8).copy() if fixed else array.array("B", value)
+        return _Converter(encode, decode)
+
+    def numbers(self, t: idl.AbstractNestedType) -> _Converter:
+        """Numeric collections, decoded by array.array in C (which also enforces integer ranges)."""
+        typename = t.value_type.typename
+        typecode = _TYPECODES[typename]
+        check = self.length_checker(t, list, "an array")
+        allowed = {int, float} if typename in ("float", "double") else {int}  # bool is no number
+        fixed = isinstance(t, idl.Array)
+        single = typename == "float"
+        # the scalar rules applied element by element: slower, but names the first bad element
+        one_by_one = self.items(t, self.scalar(typename)).decode
+        pack, array_header, tag = self.pack, self.wire.array_header, self.wire.float32_tag
+
+        def encode_float32s(values: Any) -> bytes:
+            """Every element as a tagged 32-bit float, laid out by numpy in one pass."""
+            items = numpy.asarray(values, dtype=numpy.float32)
+            packed = numpy.empty(len(items), dtype=[("tag", "u1"), ("value", ">f4")])
+            packed["tag"] = tag
+            packed["value"] = items
+            return array_header(len(items)) + packed.tobytes()
+
+        def encode_tolist(value: Any) -> bytes:
+            return pack(value.tolist())  # array.array and numpy hand over Python numbers in C
+
+        def decode(value: Any) -> Any:
+            check(value)
+            if set(map(type, value)) <= allowed:
+                try:
+                    # array('f') would turn an out-of-range float32 into inf without a word
+                    if not (single and _beyond_float32(value)):
+                        items = array.array(typecode, value)
+                        return numpy.array(items) if fixed else items
+                except OverflowError:  # an integer outside the element type's range
+                    pass
+            return one_by_one(value)  # the same rules, so this raises, naming the element
+
+        return _Converter(encode_float32s if single else encode_tolist, decode)
+
+    def items(self, t: idl.AbstractNestedType, item: _Converter) -> _Converter:
+        """Collections of booleans, strings or messages: rclpy keeps them as lists."""
+        check = self.length_checker(t, list, "an array")
+        encode_item, decode_item = item.encode, item.decode
+        array_header = self.wire.array_header
+
+        def encode(value: Any) -> bytes:
+            return array_header(len(value)) + b"".join(map(encode_item, value))
+
+        def decode(value: Any) -> list[Any]:
+            check(value)
+            items: list[Any] = []
+            try:
+                for element in value:
+                    items.append(decode_item(element))
+            except TreeError as exc:
+                exc.path.append(f"[{len(items)}]")
+                raise
+            return items
+        return _Converter(encode, decode)
+
+    def collection(self, t: idl.AbstractNestedType) -> _Converter:
+        item = t.value_type
+        if isinstance(item, idl.BasicType) and item.typename in ("uint8", "octet"):
+            return self.bytes(t)
+        if isinstance(item, idl.BasicType) and item.typename in _TYPECODES:
+            return self.numbers(t)
+        return self.items(t, self.converter(item))
+
+    def converter(self, t: idl.AbstractType) -> _Converter:
+        if isinstance(t, idl.BasicType):
+            return self.scalar(t.typename)
+        if isinstance(t, idl.AbstractGenericString):
+            return self.string(t)
+        if isinstance(t, idl.NamespacedType):
+            nested = message_tree(getattr(importlib.import_module(".".join(t.namespaces)), t.name),
+                                  self.wire)
+            return _Converter(nested.encode, nested.decode)
+        if isinstance(t, idl.AbstractNestedType):
+            return self.collection(t)
+        raise CodecError(f"the {self.wire.name} mapping does not support {type(t).__name__}")
+
+
+def _beyond_float32(values: list[Any]) -> bool:
+    magnitudes = numpy.abs(numpy.array(values, dtype=numpy.float64))
+    return bool(((magnitudes > FLOAT32_MAX) & (magnitudes < numpy.inf)).any())
+
+
+# -- messages ---------------------------------------------------------------------------------
+
+class MessageTree:
+    """Encoder and decoder of one message class in one format: its fields' converters."""
+
+    def __init__(self, msg_type: type, wire: WireFormat):
+        self.msg_type = msg_type
+        self.name = f"{msg_type.__module__.split('.')[0]}/{msg_type.__name__}"
+        self.wire = wire
+        build = _Builder(wire)
+        names = list(msg_type.get_fields_and_field_types())
+        converters = [build.converter(slot_type) for slot_type in msg_type.SLOT_TYPES]
+        self.header = wire.map_header(len(names))
+        self.encoders = [(wire.pack(name), attrgetter(name), convert.encode)
+                         for name, convert in zip(names, converters)]
+        self.decoders = {name: convert.decode for name, convert in zip(names, converters)}
+
+    def encode(self, message: Any) -> bytes:
+        return self.header + b"".join(
+            [key + encode(get(message)) for key, get, encode in self.encoders])
+
+    def decode(self, value: Any) -> Any:
+        """The message a parsed tree describes; :class:`TreeError` when it describes none."""
+        if type(value) is not dict:
+            raise TreeError(f"expected a map of {self.name} fields, got {describe(value, self.wire)}")
+        fields = {}
+        for key, item in value.items():
+            decode = self.decoders.get(key)
+            if decode is None:
+                exc = TreeError(f"unknown field of {self.name} (it has: {', '.join(self.decoders)})")
+                exc.path.append(str(key))
+                raise exc
+            try:
+                fields[key] = decode(item)
+            except TreeError as exc:
+                exc.path.append(key)
+                raise
+        return self.msg_type(**fields)  # fields left out keep the constructor's defaults
+
+
+# One converter tree per message class and format, shared by every codec instance; a Header is
+# built once however many message types contain one.
+_TREES: dict[tuple[type, WireFormat], MessageTree] = {}
+
+
+def message_tree(msg_type: type, wire: WireFormat) -> MessageTree:
+    tree = _TREES.get((msg_type, wire))
+    if tree is None:
+        tree = _TREES[msg_type, wire] = MessageTree(msg_type, wire)
+    return tree
+
+
+# -- the codec base ---------------------------------------------------------------------------
+
+# What a field holding the wrong kind of value raises while packing; only a message filled with
+# rclpy's field checks off (the default) can hold one.
+_UNENCODABLE = (TypeError, ValueError, OverflowError, AttributeError, BufferError, struct.error)
+
+
+class TreeCodec(Codec):
+    """Base of codecs that write a message as a tree. A subclass sets ``name`` and ``wire`` and
+    implements :meth:`parse`; it takes no options."""
+
+    wire: ClassVar[WireFormat]
+
+    def __init__(self, msg_type: type, options: Mapping[str, Any]):
+        super().__init__(msg_type, options)
+        for key in self.options:
+            raise OptionError(key, f"the {self.name} codec has no option {key!r}",
+                              fix=f"remove it from plugins: {self.name}:")
+        self.tree = message_tree(msg_type, self.wire)
+
+    def parse(self, data: bytes) -> Any:
+        """``data`` as exactly one object of the format (dicts, lists, bytes, str, int, float,
+        bool, None); :class:`rosgate.CodecError` when it is not."""
+        raise NotImplementedError
+
+    def encode(self, message: Any) -> bytes:
+        if type(message) is not self.msg_type:
+            raise CodecError(f"expected a {self.tree.name} message, got {type(message).__name__}")
+        try:
+            return self.tree.encode(message)
+        except _UNENCODABLE as exc:
+            raise CodecError(f"cannot encode this {self.tree.name}: {exc}") from None
+
+    def decode(self, data: bytes) -> Any:
+        tree = self.parse(data)
+        try:
+            return self.tree.decode(tree)
+        except TreeError as exc:
+            where = f"{exc.where()}: " if exc.path else ""
+            raise CodecError(f"{self.tree.name}: {where}{exc.reason}") from None

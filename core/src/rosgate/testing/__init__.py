@@ -1,0 +1,64 @@
+"""The plugin kit: conformance suites and helpers for testing a rosgate plugin.
+
+A plugin's test file runs the suite of its kind by subclassing it (the class name must start
+with ``Test`` for pytest to collect it)::
+
+    from rosgate.testing import TransportConformance
+    from rosgate_transport_can import CanTransport
+
+    class TestCanConformance(TransportConformance):
+        transport = CanTransport               # a Transport subclass, or any factory(options)
+        options = {"interface": "virtual"}     # the plugin's table under plugins: (default {})
+
+        @pytest.fixture                        # only for links that do not take 127.0.0.1:port
+        def address(self):
+            channels = itertools.count(1)
+            return lambda: ("vcan0", next(channels))
+
+    class TestCborConformance(CodecConformance):
+        codec = CborCodec
+
+    class TestNaclConformance(CipherConformance):
+        cipher = NaclCipher                    # keys: generate_key() written to a key_file
+
+What each suite checks (every check uses real sockets, real message classes, real keys):
+
+* :class:`TransportConformance` — datagram links: frames of 1 byte up to ``max_frame`` cross
+  byte-exact, and the source a receive reports can be answered; boundaries are kept; an idle
+  receive returns ``None``; ``close`` ends a receive blocked in another thread; frames beyond
+  ``max_frame`` cross through the core's fragmentation (:class:`rosgate.links.DatagramLink`).
+  Stream links: bytes cross both ways byte-exact (up to 1 MiB, both at once); ``max_bytes``
+  is honoured; idle receive and accept return ``None``; when the far end closes, receive
+  returns ``b""`` and send raises ``OSError``; ``close`` ends a blocked receive; connecting to
+  nobody raises ``OSError``; frames cross whole and in order through
+  :class:`rosgate.links.StreamLink`, whose ``on_close`` fires when the far end vanishes.
+* :class:`CodecConformance` — a round trip of every ROS field kind the installed message
+  packages offer (:func:`samples`; raw codecs round-trip the serialized CDR byte for byte), and
+  seeded garbage answered by a message of the right type or :class:`rosgate.CodecError`, never
+  another exception.
+* :class:`CipherConformance` — round trips (empty to 1 MiB) between two instances sharing a
+  key; then, for ciphers that authenticate: every flipped bit of the body and of the header,
+  another key, every truncation and random bodies are refused with :class:`rosgate.CipherError`;
+  two seals of one payload differ. A cipher with ``authenticates = False`` (``none``) skips the
+  refusal tests, saying so.
+* All three: the plugin is found through its entry point in the group ``rosgate``.
+
+The helpers (:func:`free_port`, :func:`has_ipv6_loopback`, :func:`wait_until_blocked`,
+:func:`receive_exactly`, :func:`write_key`, :func:`mutations`, :class:`Frames`) are what plugin
+tests kept writing for themselves. rosgate registers this module as a pytest plugin (entry point ``pytest11``), so
+pytest rewrites its asserts: a failing check shows the values. Importing it loads nothing from
+ROS; the codec suite imports message packages when it runs. One module per suite:
+``transports.py``, ``codecs.py`` (with the sample messages), ``ciphers.py``, ``helpers.py``.
+"""
+
+from .ciphers import CipherConformance
+from .codecs import CodecConformance, sample, samples
+from .helpers import (Frames, free_port, has_ipv6_loopback, mutations, receive_exactly,
+                      wait_until_blocked, write_key)
+from .transports import TransportConformance
+
+__all__ = [
+    "CipherConformance", "CodecConformance", "Frames", "TransportConformance", "free_port",
+    "has_ipv6_loopback", "mutations", "receive_exactly", "sample", "samples",
+    "wait_until_blocked", "write_key",
+]

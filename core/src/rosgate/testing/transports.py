@@ -1,0 +1,235 @@
+"""The conformance suite of transports: datagram links and stream links, alone and under the
+core's links (fragmentation, stream framing)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any, Callable, ClassVar, Iterator, Mapping
+
+import pytest
+
+from ..framing import FRAGMENT
+from ..links import DatagramLink, StreamLink
+from ..transport import Address, StreamConnection, Transport
+from .helpers import (TIMEOUT, Closing, Frames, assert_registered, free_port, frame_of, in_thread,
+                      receive_exactly)
+
+
+class TransportConformance:
+    """The conformance suite of a transport. Set :attr:`transport` (and :attr:`options`);
+    override the ``address`` fixture for links whose addresses are not ``127.0.0.1:port``.
+    The tests of the other kind of link (``test_stream_*`` for a datagram link, and the other
+    way round) are left out of a subclass whose :attr:`transport` is a class; with a factory,
+    which kind it makes is known only when it runs, and they are skipped, saying so."""
+
+    #: the Transport subclass under test, or a factory taking the options
+    transport: ClassVar[Callable[[Mapping[str, Any]], Transport]]
+    #: the plugin's options, as under ``plugins:`` in bringup.yaml
+    options: ClassVar[Mapping[str, Any]] = {}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        transport = cls.__dict__.get("transport")
+        if isinstance(transport, type) and issubclass(transport, Transport):
+            other = "test_datagram_" if transport.stream else "test_stream_"
+            for name in dir(TransportConformance):
+                if name.startswith(other):
+                    setattr(cls, name, None)  # pytest collects functions only
+
+    @pytest.fixture
+    def address(self) -> Callable[[], Address]:
+        """A factory of fresh local addresses, each free to bind or listen on."""
+        return lambda: ("127.0.0.1", free_port())
+
+    @pytest.fixture
+    def plugin(self) -> Transport:
+        """The transport under test, made from :attr:`options` as the core makes it."""
+        return type(self).transport(dict(self.options))
+
+    @pytest.fixture
+    def closing(self) -> Iterator[Closing]:
+        closing = Closing()
+        yield closing
+        closing.close_all()
+
+    @staticmethod
+    def _kind(plugin: Transport, stream: bool) -> None:
+        if plugin.stream != stream:
+            kind = "a stream" if plugin.stream else "a datagram"
+            pytest.skip(f"{plugin.name} is {kind} link")
+
+    def test_found_through_its_entry_point(self, plugin: Transport) -> None:
+        assert_registered("transport", type(plugin))
+
+    # -- datagram links -----------------------------------------------------------------------
+
+    def _endpoints(self, plugin: Transport, address: Callable[[], Address], closing: Closing):
+        self._kind(plugin, stream=False)
+        assert plugin.max_frame > 0, "a datagram link declares its largest frame (max_frame)"
+        a_address, b_address = address(), address()
+        return closing(plugin.bind(a_address)), a_address, closing(plugin.bind(b_address)), b_address
+
+    @pytest.mark.parametrize("size", [lambda m: 1, lambda m: 2, lambda m: m - 1, lambda m: m],
+                             ids=["1 byte", "2 bytes", "max_frame-1", "max_frame"])
+    def test_datagram_crosses_byte_exact_and_can_be_answered(self, plugin, address, closing, size):
+        a, _, b, b_address = self._endpoints(plugin, address, closing)
+        frame = frame_of(size(plugin.max_frame), seed=size(plugin.max_frame))
+        a.send(frame, b_address)
+        got = b.receive(TIMEOUT)
+        assert got is not None, "nothing arrived"
+        assert got[0] == frame
+        # the server role answers a client at the source its datagram reported
+        b.send(b"RG answer", got[1])
+        answer = a.receive(TIMEOUT)
+        assert answer is not None and answer[0] == b"RG answer", \
+            f"an answer sent to the reported source {got[1]!r} did not arrive"
+
+    def test_datagram_boundaries_are_kept(self, plugin, address, closing):
+        a, _, b, b_address = self._endpoints(plugin, address, closing)
+        frames = [frame_of(size, seed) for seed, size in
+                  enumerate([1, plugin.max_frame, 3, 2, plugin.max_frame - 1, min(64, plugin.max_frame)])]
+        for frame in frames:
+            a.send(frame, b_address)
+        got = [b.receive(TIMEOUT) for _ in frames]
+        assert None not in got, f"{got.count(None)} of {len(frames)} datagrams never arrived"
+        assert sorted(g[0] for g in got) == sorted(frames)
+
+    def test_datagram_idle_receive_returns_none(self, plugin, address, closing):
+        _, _, b, _ = self._endpoints(plugin, address, closing)
+        started = time.monotonic()
+        assert b.receive(0.2) is None
+        assert 0.15 < time.monotonic() - started < 2.0
+
+    def test_datagram_close_ends_a_blocked_receive(self, plugin, address, closing):
+        _, _, b, _ = self._endpoints(plugin, address, closing)
+        thread, finished, result = in_thread(lambda: b.receive(30.0))
+        b.close()
+        assert finished.wait(1.0), "receive still blocked 1 s after close"
+        assert result[0] is None or isinstance(result[0], OSError), result
+        thread.join()
+
+    def test_datagram_frames_beyond_max_frame_cross_fragmented_by_the_core(
+            self, plugin, address, closing):
+        a, _, b, b_address = self._endpoints(plugin, address, closing)
+        m = plugin.max_frame
+        if m <= FRAGMENT.size:
+            pytest.skip(f"max_frame {m} leaves no room after the core's {FRAGMENT.size}-byte "
+                        "fragment header: this link carries only frames that fit whole")
+        sizes = [1, m, m + 1, 2 * m + 3, min(1 << 20, 200 * m)]
+        sent, received = Frames(), Frames()
+        tx = closing(DatagramLink(plugin, a, "conformance-tx", sent.on_frame, sent.on_drop))
+        closing(DatagramLink(plugin, b, "conformance-rx", received.on_frame, received.on_drop))
+        frames = [frame_of(size, seed) for seed, size in enumerate(sizes)]
+        for frame in frames:
+            assert tx.send(frame, topic_id=7, to=b_address), f"send of {len(frame)} bytes failed"
+        got = received.wait_count(len(frames))
+        assert sorted(got) == sorted(frames), \
+            f"sent sizes {sizes}, received {sorted(map(len, got))}"
+        assert sent.drops == received.drops == []
+
+    # -- stream links -------------------------------------------------------------------------
+
+    def _pair(self, plugin: Transport, address: Callable[[], Address], closing: Closing):
+        """A connected (client, server) pair of connections."""
+        self._kind(plugin, stream=True)
+        where = address()
+        listener = closing(plugin.listen(where))
+        client = closing(plugin.connect(where, TIMEOUT))
+        accepted = listener.accept(TIMEOUT)
+        assert accepted is not None, "the listener accepted nothing"
+        return client, closing(accepted[0])
+
+    def test_stream_bytes_cross_both_ways_byte_exact(self, plugin, address, closing):
+        client, server = self._pair(plugin, address, closing)
+        server.send(b"\x00")
+        assert receive_exactly(client, 1) == b"\x00"
+        up, down = frame_of(1 << 20, 1), frame_of(1 << 20, 2)
+        errors: list[BaseException] = []
+
+        def send(connection: StreamConnection, data: bytes) -> None:
+            try:
+                connection.send(data)
+            except BaseException as exc:  # reported by the test's thread
+                errors.append(exc)
+
+        # both ways at once: a link whose send waits for the far end's receive would deadlock
+        senders = [threading.Thread(target=send, args=(client, up), daemon=True),
+                   threading.Thread(target=send, args=(server, down), daemon=True)]
+        for thread in senders:
+            thread.start()
+        got_down = receive_exactly(client, len(down))
+        got_up = receive_exactly(server, len(up))
+        for thread in senders:
+            thread.join(TIMEOUT)
+        assert errors == []
+        assert got_up == up and got_down == down
+
+    def test_stream_receive_honours_max_bytes(self, plugin, address, closing):
+        client, server = self._pair(plugin, address, closing)
+        client.send(b"abcdefgh")
+        first = server.receive(3, TIMEOUT)
+        assert first and len(first) <= 3
+        assert first + receive_exactly(server, 8 - len(first)) == b"abcdefgh"
+
+    def test_stream_idle_receive_and_accept_return_none(self, plugin, address, closing):
+        self._kind(plugin, stream=True)
+        listener = closing(plugin.listen(address()))
+        started = time.monotonic()
+        assert listener.accept(0.2) is None
+        assert 0.15 < time.monotonic() - started < 2.0
+        _, server = self._pair(plugin, address, closing)
+        started = time.monotonic()
+        assert server.receive(1024, 0.2) is None
+        assert 0.15 < time.monotonic() - started < 2.0
+
+    def test_stream_far_end_closing_ends_receive_and_send(self, plugin, address, closing):
+        client, server = self._pair(plugin, address, closing)
+        client.send(b"last words")
+        client.close()
+        assert receive_exactly(server, 10) == b"last words"
+        assert server.receive(1024, TIMEOUT) == b""
+        assert server.receive(1024, TIMEOUT) == b""  # and stays so
+        with pytest.raises(OSError):
+            for _ in range(100):  # the first writes may still be accepted by the kernel
+                server.send(b"x" * 65536)
+
+    def test_stream_close_ends_a_blocked_receive(self, plugin, address, closing):
+        _, server = self._pair(plugin, address, closing)
+        thread, finished, result = in_thread(lambda: server.receive(1024, 30.0))
+        server.close()
+        assert finished.wait(1.0), "receive still blocked 1 s after close"
+        assert result[0] in (None, b"") or isinstance(result[0], OSError), result
+        thread.join()
+
+    def test_stream_connect_to_nobody_raises_oserror(self, plugin, address):
+        self._kind(plugin, stream=True)
+        with pytest.raises(OSError):
+            plugin.connect(address(), TIMEOUT)
+
+    def test_stream_frames_cross_whole_and_in_order_through_the_core(self, plugin, address, closing):
+        client, server = self._pair(plugin, address, closing)
+        sent, received = Frames(), Frames()
+        tx = closing(StreamLink(client, "conformance-tx", ("client", 0), sent.on_frame, sent.on_drop))
+        closing(StreamLink(server, "conformance-rx", ("server", 0), received.on_frame,
+                           received.on_drop))
+        frames = [frame_of(size, seed) for seed, size in
+                  enumerate([1, 2, 100, 65_536, 1 << 20, 3, 4096])]
+        for frame in frames:
+            assert tx.send(frame, topic_id=7)
+        got = received.wait_count(len(frames))
+        assert [len(f) for f in got] == [len(f) for f in frames]
+        assert got == frames
+        assert sent.drops == received.drops == []
+
+    def test_stream_link_reports_the_far_end_vanishing(self, plugin, address, closing):
+        client, server = self._pair(plugin, address, closing)
+        ended = threading.Event()
+        received = Frames()
+        rx = closing(StreamLink(server, "conformance-rx", ("server", 0), received.on_frame,
+                                received.on_drop, on_close=lambda _: ended.set()))
+        client.close()
+        assert ended.wait(TIMEOUT), "on_close did not fire after the far end closed"
+        assert rx.closed.is_set()
+        assert rx.send(b"RG too late", topic_id=7) is False
+        assert received.drops == [(7, "link_down")]

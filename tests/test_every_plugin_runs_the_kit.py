@@ -1,0 +1,46 @@
+"""Meta-test, in the manner of datasette's: every plugin in this repository runs the plugin
+kit's conformance suite of its kind in its own tests, so a new plugin cannot land without."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from rosgate.plugins import Plugins
+
+ROOT = Path(__file__).resolve().parent.parent
+SUITES = {"transport": "TransportConformance", "codec": "CodecConformance",
+          "cipher": "CipherConformance"}
+
+
+def folders_of_tests() -> dict[str, Path]:
+    """Distribution name -> its tests folder, for every distribution in the repository."""
+    folders = {}
+    for pyproject in [ROOT / "core" / "pyproject.toml", *ROOT.glob("plugins/*/pyproject.toml"),
+                      *ROOT.glob("tests/thirdparty/*/pyproject.toml")]:
+        name = tomllib.loads(pyproject.read_text())["project"]["name"]
+        folders[name] = pyproject.parent / "tests"
+    return folders
+
+
+IN_TREE = sorted((r.kind, r.name, r.cls.__name__, r.distribution)
+                 for r in Plugins.discover().registered.values()
+                 if r.distribution in folders_of_tests())
+
+
+def test_every_in_tree_plugin_is_found():
+    assert {(kind, name) for kind, name, _, _ in IN_TREE} >= {
+        ("transport", "udp"), ("transport", "tcp"), ("transport", "unixdgram"),
+        ("codec", "cdr"), ("codec", "msgpack"), ("codec", "cbor"),
+        ("cipher", "none"), ("cipher", "fernet"), ("cipher", "nacl")}
+
+
+@pytest.mark.parametrize("kind, name, cls, distribution", IN_TREE,
+                         ids=[f"{kind}-{name}" for kind, name, _, _ in IN_TREE])
+def test_runs_the_conformance_suite_of_its_kind(kind, name, cls, distribution):
+    sources = [path.read_text() for path in folders_of_tests()[distribution].glob("test_*.py")]
+    assert any(f"({SUITES[kind]}):" in text and f" = {cls}\n" in text for text in sources), (
+        f"no test class of {distribution} subclasses rosgate.testing.{SUITES[kind]} with "
+        f"{SUITES[kind].removesuffix('Conformance').lower()} = {cls}")
