@@ -90,6 +90,11 @@ class DatagramLink(Link):
                 if self.closed.is_set():
                     return
                 continue
+            except Exception:  # a transport plugin's bug must not silently end the link
+                log.exception("%s: the transport's receive failed (a bug in the plugin)", self.name)
+                self.on_drop(None, "transport_error")
+                self.closed.wait(POLL)  # do not spin on a receive that fails at once
+                continue
             if got is None:
                 self.reassembler.expire()
                 continue
@@ -180,6 +185,11 @@ class StreamLink(Link):
                 data = self.connection.receive(1 << 20, POLL)
             except OSError as exc:
                 self._fail(f"receive failed: {exc}")
+                return
+            except Exception as exc:  # a transport plugin's bug: drop this connection, loudly
+                log.exception("%s: the transport's receive failed (a bug in the plugin)", self.name)
+                self.on_drop(None, "transport_error")
+                self._fail(f"transport error: {type(exc).__name__}: {exc}")
                 return
             if data is None:
                 continue
