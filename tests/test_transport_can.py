@@ -205,14 +205,18 @@ def test_a_bus_python_can_cannot_open_is_a_clear_error_at_the_topic(domain):
     # here: "[Errno 97] Address family not supported by protocol" (no SocketCAN in this kernel)
     assert text.startswith("x.yaml:6: topics[0].port: python-can cannot open socketcan channel "
                            "rosgate-nope0: "), text
+    assert text.endswith("\n  fix: check the interface, its channel and its driver (SocketCAN: "
+                         "ip link set <channel> up type can bitrate <bits/s>)"), text
 
 
 def test_a_port_past_the_last_arbitration_id_is_refused(domain):
     text = side("a", bus(base_id="0x7f0"), [("/t", "geometry_msgs/msg/Twist", "receive", 16)])
     engine = Engine(loads(text, file="x.yaml"), domain_id=domain())
-    with pytest.raises(ConfigError, match=r"topics\[0\].port: port 16 is arbitration id 0x800, "
-                                          r"past the last standard id 0x7ff"):
+    with pytest.raises(ConfigError) as error:
         engine.prepare().start()
+    assert str(error.value) == ("x.yaml:6: topics[0].port: port 16 is arbitration id 0x800, past "
+                                "the last standard id 0x7ff\n"
+                                "  fix: use a smaller port or base_id, or extended: true")
 
 
 def test_listed_by_rosgate_plugins():

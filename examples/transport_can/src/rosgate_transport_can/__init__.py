@@ -101,19 +101,22 @@ class CanTransport(Transport):
         try:
             can_id = self.can_id(port)
         except ValueError as exc:
-            raise LinkError(str(exc)) from None
+            raise LinkError(str(exc), "use a smaller port or base_id, or extended: true") from None
         with self._lock:
             if self._bus is None:
                 try:
                     self._bus = can.ThreadSafeBus(**self.bus_options)
                 except (can.CanError, ValueError, TypeError, OSError) as exc:
                     raise LinkError(f"python-can cannot open {self.bus_options.get('interface')} "
-                                    f"channel {self.bus_options.get('channel')}: {exc}") from None
+                                    f"channel {self.bus_options.get('channel')}: {exc}",
+                                    "check the interface, its channel and its driver (SocketCAN: "
+                                    "ip link set <channel> up type can bitrate <bits/s>)") from None
                 self._closing = threading.Event()
                 threading.Thread(target=self._receive_loop, args=(self._bus, self._closing),
                                  name="rx-can", daemon=True).start()
             if port and can_id in self._inboxes:
-                raise LinkError(f"arbitration id {can_id:#x} (port {port}) is already bound")
+                raise LinkError(f"arbitration id {can_id:#x} (port {port}) is already bound",
+                                "give each receiving port of a bus to one topic list")
             inbox: queue.SimpleQueue[bytes] = queue.SimpleQueue()
             if port:  # port 0: a sender only
                 self._inboxes[can_id] = inbox
