@@ -21,7 +21,7 @@ bytes) cannot spend 14 bytes of every frame on that header, so they use the **co
 instead. Every frame of such a link, even one that would fit, travels as pieces::
 
     first piece:  1  head     0x80 | counter
-                  1-4 length   the frame's length, unsigned LEB128 (7 bits a byte, low first)
+                  1-5 length   the frame's length, unsigned LEB128 (7 bits a byte, low first)
                       chunk    as much of the frame as fits
     other pieces: 1  head     counter (high bit clear)
                       chunk
