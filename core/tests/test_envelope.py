@@ -219,3 +219,10 @@ def test_only_the_last_epochs_are_remembered():
         assert window.accept(epoch, 1) is None
     assert window.accept(ReplayWindow.EPOCHS, 1) == "duplicate"
     assert window.accept(0, 1) is None  # forgotten: a matter for an authenticated handshake
+
+
+def test_topic_of_reads_the_topic_from_the_first_8_bytes_only():
+    frame = envelope.pack(0, 0xDEADBEEF, 1, 2, 3) + b"body"
+    assert envelope.topic_of(frame[:8]) == 0xDEADBEEF
+    assert envelope.topic_of(frame[:7]) is None
+    assert envelope.topic_of(b"XX" + frame[2:8]) is None

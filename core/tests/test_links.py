@@ -14,7 +14,7 @@ import pytest
 from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
-from rosgate import envelope
+from rosgate import envelope, framing
 from rosgate.framing import FRAGMENT, LENGTH, length_prefixed
 from rosgate.links import DatagramLink, StreamLink
 
@@ -135,6 +135,104 @@ def test_bare_mode_hands_over_fragment_lookalikes_untouched(closing):
         raw.sendto(b"RF not a fragment", endpoint.sock.getsockname())
     assert inbox.wait(lambda: inbox.frames)
     assert inbox.payloads() == [b"RF not a fragment"] and inbox.drops == []
+
+
+# --- datagram links with small frames (CAN-sized): the compact scheme -----------------------------
+
+class Wire:
+    """An endpoint wrapper that records the size of every datagram sent, and can lose one."""
+
+    def __init__(self, endpoint, lose: int | None = None):
+        self.endpoint = endpoint
+        self.sizes: list[int] = []
+        self.lose = lose  # the index of the datagram that never leaves
+
+    def send(self, frame: bytes, to) -> None:
+        self.sizes.append(len(frame))
+        if len(self.sizes) - 1 != self.lose:
+            self.endpoint.send(frame, to)
+
+    def receive(self, timeout: float):
+        return self.endpoint.receive(timeout)
+
+    def close(self) -> None:
+        self.endpoint.close()
+
+
+def small_link_pair(closing, max_frame: int, lose: int | None = None):
+    """Two links over real UDP sockets whose transport declares CAN-sized frames."""
+    transport = UdpTransport({})
+    transport.max_frame = max_frame
+    ends = []
+    for name in ("a", "b"):
+        inbox = Inbox()
+        wire = Wire(transport.bind(("127.0.0.1", 0)), lose)
+        link = closing(DatagramLink(transport, wire, name, inbox.on_frame, inbox.on_drop))
+        ends.append((link, inbox, wire))
+    return ends
+
+
+@pytest.mark.parametrize("max_frame, compact", [(8, True), (255, True), (256, False),
+                                                (65_000, False)])
+def test_the_fragment_scheme_follows_max_frame(closing, max_frame, compact):
+    (a, _, _), _ = small_link_pair(closing, max_frame)
+    assert a.compact is compact
+
+
+def test_bare_links_never_use_the_compact_scheme(closing):
+    transport = UdpTransport({})
+    transport.max_frame = 8
+    inbox = Inbox()
+    link = closing(DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "bare",
+                                inbox.on_frame, inbox.on_drop, bare=True))
+    assert link.compact is False
+    assert link.send(bytes(9), 9, ("127.0.0.1", 9)) is False
+    assert inbox.drops == [(9, "too_large_for_bare_framing")]
+
+
+@pytest.mark.parametrize("max_frame", [8, 64])
+def test_small_frames_carry_frames_of_every_size_byte_exact(closing, max_frame):
+    (a, a_inbox, a_wire), (b, b_inbox, b_wire) = small_link_pair(closing, max_frame)
+    rng = random.Random(max_frame)
+    # an envelope alone is 28 bytes: more than a classic CAN frame
+    frames = [b"\x01", envelope.pack(0, TOPIC, 1, 1, 0), frame_of(2, 5_000, rng),
+              frame_of(3, max_frame, rng), frame_of(4, 300, rng)]
+    for frame in frames:
+        assert a.send(frame, TOPIC, b.endpoint.endpoint.sock.getsockname()) is True
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= len(frames)), b_inbox.drops
+    assert b_inbox.payloads() == frames
+    assert max(a_wire.sizes) == max_frame
+    assert b_inbox.drops == [] and a_inbox.drops == []
+
+
+def test_frames_sent_at_once_to_one_destination_do_not_interleave(closing):
+    (a, _, _), (b, b_inbox, _) = small_link_pair(closing, 8)
+    to = b.endpoint.endpoint.sock.getsockname()
+    rng = random.Random(5)
+    batches = [[frame_of(i, 400, rng) for i in range(20)] for _ in range(4)]
+    threads = [threading.Thread(target=lambda batch=batch: [a.send(f, TOPIC, to) for f in batch])
+               for batch in batches]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 80), b_inbox.drops
+    assert sorted(b_inbox.payloads()) == sorted(f for batch in batches for f in batch)
+    assert b_inbox.drops == []
+
+
+def test_a_lost_small_frame_drops_its_frame_only_and_counts_it_against_the_topic(closing):
+    # the third frame's pieces are datagrams 100-149 of 8 bytes: lose one in its middle
+    (a, _, _), (b, b_inbox, _) = small_link_pair(closing, 8, lose=120)
+    to = b.endpoint.endpoint.sock.getsockname()
+    rng = random.Random(6)
+    frames = [frame_of(i, 5 + 49 * 7, rng) for i in range(5)]  # 5 bytes in the first piece
+    assert all(len(framing.compact_fragment(f, 8, 0)) == 50 for f in frames)
+    for frame in frames:
+        a.send(frame, TOPIC, to)
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 4 and b_inbox.drops)
+    assert b_inbox.payloads() == frames[:2] + frames[3:]
+    assert b_inbox.drops == [(TOPIC, "fragment_lost")]
 
 
 # --- stream links ----------------------------------------------------------------------------------

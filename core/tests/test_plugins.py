@@ -8,8 +8,10 @@ from types import SimpleNamespace
 import pytest
 
 import rosgate
-from rosgate import Cipher, Codec, Transport, hookimpl
+from rosgate import Cipher, Codec, LinkError, Transport, hookimpl
 from rosgate.builtin import CdrCodec, NoCipher
+from rosgate.config import loads
+from rosgate.engine import Engine
 from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration
 
 
@@ -305,3 +307,20 @@ def test_builtin_cannot_be_blocked(monkeypatch):
     assert plugins.names("codec") == ["cbor", "cdr"]
     assert plugins.names("cipher") == ["fernet", "nacl", "none"]
     assert plugins.get("cipher", "none").cls is NoCipher
+
+
+# --- a transport's LinkError reaches the user at the key that opened the link ---------------------
+
+@pytest.mark.parametrize("error, fix", [
+    (LinkError("cannot bind UDP 0.0.0.0:5: Address already in use"),
+     "free the port, or pick another one"),
+    (LinkError("python-can cannot open socketcan channel can0: Network is down",
+               fix="bring the interface up: ip link set can0 up type can bitrate 500000"),
+     "bring the interface up: ip link set can0 up type can bitrate 500000"),
+], ids=["core-default", "transport-fix"])
+def test_a_link_error_is_located_with_the_transports_fix_or_the_default(error, fix):
+    config = loads("bridge: {name: a, role: peer, peer: h}\n"
+                   "topics:\n  - {topic: /t, type: std_msgs/msg/String, direction: receive, port: 5}\n",
+                   file="x.yaml")
+    located = Engine(config).bind_error(error, "topics[0].port")
+    assert str(located) == f"x.yaml:3: topics[0].port: {error}\n  fix: {fix}"

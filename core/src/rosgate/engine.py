@@ -230,8 +230,8 @@ class Engine:
         self._closables.pop(id(item), None)
 
     def bind_error(self, exc: LinkError, key: str) -> ConfigError:
-        """A port that cannot be opened, located at the key that named it."""
-        return self.config.error(key, str(exc), "free the port, or pick another one")
+        """A link that cannot be opened, located at the key that named it."""
+        return self.config.error(key, str(exc), exc.fix or "free the port, or pick another one")
 
     # -- building routes ---------------------------------------------------------------------
     def make_route(self, p: Prepared, topic_id: int, label: str, link: Link,

@@ -37,6 +37,12 @@ def topic_id_for(name: str) -> int:
     return zlib.crc32(name.encode()) or 1
 
 
+def topic_of(start: bytes) -> int | None:
+    """The topic id in a frame's first 8 bytes, or None when they do not begin an envelope
+    (lets a link count a lost frame against its topic before the frame is whole)."""
+    return int.from_bytes(start[4:8], "big") if start[:2] == MAGIC and len(start) >= 8 else None
+
+
 class EnvelopeError(ValueError):
     """Bytes that do not start with a valid envelope header."""
 

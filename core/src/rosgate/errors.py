@@ -46,7 +46,15 @@ class ConfigError(RosgateError):
 
 
 class LinkError(RosgateError):
-    """A link could not be set up (address in use, unreachable, unsupported on this machine)."""
+    """A link could not be set up (address in use, unreachable, unsupported on this machine).
+
+    ``fix`` says what to do about it when the transport knows better than the core's default
+    (free the port, or pick another one): a CAN interface that is down, a missing driver.
+    """
+
+    def __init__(self, message: str, fix: str | None = None):
+        super().__init__(message)
+        self.fix = fix
 
 
 class CodecError(Exception):

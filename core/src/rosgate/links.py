@@ -2,8 +2,9 @@
 transport plugin only opens sockets.
 
 * :class:`DatagramLink` — one bound endpoint; sends whole frames or fragments, reassembles,
-  and hands every frame to ``on_frame``. In bare mode (``framing: none``) it hands over the
-  datagram untouched.
+  and hands every frame to ``on_frame``. A transport with small frames (``max_frame`` below
+  ``framing.COMPACT_BELOW``, such as CAN) gets the compact fragment scheme instead. In bare
+  mode (``framing: none``) it hands over the datagram untouched.
 * :class:`StreamLink` — one connection; frames carry a length prefix. Sending never blocks the
   caller: frames wait in a bounded queue for a writer thread.
 * :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``.
@@ -19,7 +20,7 @@ import threading
 from collections import deque
 from typing import Callable
 
-from . import framing
+from . import envelope, framing
 from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport
 
 log = logging.getLogger("rosgate")
@@ -59,16 +60,27 @@ class DatagramLink(Link):
         self.on_frame = on_frame
         self.on_drop = on_drop
         self.closed = threading.Event()
+        # small frames cannot spare 14 bytes of fragment header: every frame goes as compact pieces
+        self.compact = not bare and self.max_frame < framing.COMPACT_BELOW
+        self.reassembler: framing.Reassembler | framing.CompactReassembler
+        if self.compact:
+            self.reassembler = framing.CompactReassembler(on_drop, envelope.topic_of,
+                                                          max_message=max_message)
+        else:
+            self.reassembler = framing.Reassembler(on_drop, max_message=max_message)
         self._frame_ids = itertools.count(1)
-        self.reassembler = framing.Reassembler(lambda topic, reason: on_drop(topic, reason),
-                                               max_message=max_message)
+        self._counters: dict[Address, int] = {}  # compact: the next piece's counter per destination
+        # compact pieces carry no frame id: one frame's pieces must not interleave with another's
+        self._send_lock = threading.Lock()
         self._thread = threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True)
         self._thread.start()
 
     def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
         assert to is not None, "a datagram link needs a destination"
         try:
-            if len(frame) <= self.max_frame:
+            if self.compact:
+                self._send_compact(frame, to)
+            elif len(frame) <= self.max_frame:
                 self.endpoint.send(frame, to)
             elif self.bare:
                 self.on_drop(topic_id, "too_large_for_bare_framing")
@@ -81,6 +93,14 @@ class DatagramLink(Link):
             log.debug("%s: send to %s failed: %s", self.name, to, exc)
             return False
         return True
+
+    def _send_compact(self, frame: bytes, to: Address) -> None:
+        with self._send_lock:
+            counter = self._counters.get(to, 0)
+            pieces = framing.compact_fragment(frame, self.max_frame, counter)
+            self._counters[to] = (counter + len(pieces)) & framing.COMPACT_COUNTER
+            for piece in pieces:
+                self.endpoint.send(piece, to)
 
     def _receive_loop(self) -> None:
         while not self.closed.is_set():
@@ -99,7 +119,7 @@ class DatagramLink(Link):
                 self.reassembler.expire()
                 continue
             datagram, source = got
-            if not self.bare and framing.is_fragment(datagram):
+            if self.compact or not self.bare and framing.is_fragment(datagram):
                 try:
                     frame = self.reassembler.add(source, datagram)
                 except framing.FramingError:

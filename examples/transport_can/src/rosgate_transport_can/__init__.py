@@ -1,0 +1,183 @@
+"""rosgate transport ``can``: topics over a CAN or CAN FD bus, through any python-can interface
+(socketcan, pcan, kvaser, slcan, virtual, ...). A complete transport plugin in one page.
+
+Options (``plugins: {can: {...}}``): ``base_id`` (default 0x100), ``extended`` (29-bit ids,
+default false) and ``fd`` (CAN FD, 64-byte frames, default false: classic 8-byte frames) are this
+plugin's; every option, ``fd`` included, goes to ``can.Bus(**options)``, so ``interface``,
+``channel``, ``bitrate``, ``data_bitrate`` and whatever else your interface takes are written
+as python-can documents them. Options bringup.yaml leaves out come from python-can's own
+configuration (``~/can.conf``, ``CAN_INTERFACE``...), as for any python-can program.
+
+Addressing: a topic's ``port`` is its arbitration id's offset, **arbitration id = base_id +
+port**, and a receiving topic's bus filters on that id. The ``host`` of an address means nothing
+on a bus (``peer:`` and ``listen:`` may say ``can0``, or anything). One node sends on an id: two
+senders on one id would garble each other's frames (the pieces of a frame carry no sender), so
+give every transmitting topic of every node its own port; topics of one node may share one.
+
+Frames: the rosgate core cuts every frame into pieces of 8 (or 64) bytes with a one-byte header
+(the compact scheme of ``rosgate.framing``), reassembles them per arbitration id, and drops and
+counts a frame one of whose pieces is lost. CAN FD pieces are padded to the next valid length
+(12, 16, 20, 24, 32, 48, 64). Each engine opens the bus once, however many topics use it, since
+pcan, kvaser and slcan channels open only once per process.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from typing import Any, Mapping
+
+from rosgate import Address, LinkError, OptionError, Transport, hookimpl
+
+log = logging.getLogger("rosgate")
+
+POLL = 0.2          # seconds a bus read waits before checking whether the bus is closing
+SEND_TIMEOUT = 1.0  # seconds a send may wait for room in the interface's transmit queue
+
+
+class CanEndpoint:
+    """One port of the shared bus: sends to any arbitration id, receives its own."""
+
+    def __init__(self, transport: CanTransport, port: int, inbox: queue.SimpleQueue[bytes]):
+        self.transport = transport
+        self.source = (str(transport.options.get("channel", "")), port)
+        self.inbox = inbox
+        self.closed = False
+
+    def send(self, frame: bytes, to: Address) -> None:
+        self.transport.send(frame, to[1])
+
+    def receive(self, timeout: float) -> tuple[bytes, Address] | None:
+        try:
+            return self.inbox.get(timeout=timeout), self.source
+        except queue.Empty:
+            return None
+
+    def close(self) -> None:
+        if not self.closed:  # the bus is shared: give up this endpoint's share once only
+            self.closed = True
+            self.transport.release(self.source[1])
+
+
+class CanTransport(Transport):
+    name = "can"
+    stream = False
+
+    def __init__(self, options: Mapping[str, Any]):
+        super().__init__(options)
+        import can  # behind the first use: listing plugins does not load python-can
+
+        self.bus_options = dict(options)
+        self.base_id = self.bus_options.pop("base_id", 0x100)
+        self.extended = self.bus_options.pop("extended", False)
+        self.fd = self.bus_options.get("fd", False)
+        for key in ("extended", "fd"):
+            if not isinstance(options.get(key, False), bool):
+                raise OptionError(key, "must be true or false")
+        for key in ("bitrate", "data_bitrate"):
+            value = options.get(key, 1)
+            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+                raise OptionError(key, f"must be a number of bits per second, not {value!r}",
+                                  f"e.g. {key}: {2000000 if key == 'data_bitrate' else 500000}")
+        interface = options.get("interface")
+        if interface is not None and interface not in can.interfaces.BACKENDS:
+            raise OptionError("interface", f"python-can has no interface {interface!r}",
+                              f"use one of {', '.join(sorted(can.interfaces.BACKENDS))}")
+        self.max_id = 0x1FFFFFFF if self.extended else 0x7FF
+        if not isinstance(self.base_id, int) or not 0 <= self.base_id < self.max_id:
+            raise OptionError("base_id", f"must be an arbitration id from 0 to {self.max_id - 1}")
+        self.max_frame = 64 if self.fd else 8
+        self._bus: Any = None
+        self._inboxes: dict[int, queue.SimpleQueue[bytes]] = {}  # arbitration id -> endpoint
+        self._users = 0
+        self._lock = threading.Lock()
+        self._closing = threading.Event()  # of the bus open now; each bus has its own
+
+    def bind(self, address: Address) -> CanEndpoint:
+        import can
+
+        port = address[1]
+        try:
+            can_id = self.can_id(port)
+        except ValueError as exc:
+            raise LinkError(str(exc), "use a smaller port or base_id, or extended: true") from None
+        with self._lock:
+            if self._bus is None:
+                try:
+                    self._bus = can.ThreadSafeBus(**self.bus_options)
+                except (can.CanError, ValueError, TypeError, OSError) as exc:
+                    raise LinkError(f"python-can cannot open {self.bus_options.get('interface')} "
+                                    f"channel {self.bus_options.get('channel')}: {exc}",
+                                    "check the interface, its channel and its driver (SocketCAN: "
+                                    "ip link set <channel> up type can bitrate <bits/s>)") from None
+                self._closing = threading.Event()
+                threading.Thread(target=self._receive_loop, args=(self._bus, self._closing),
+                                 name="rx-can", daemon=True).start()
+            if port and can_id in self._inboxes:
+                raise LinkError(f"arbitration id {can_id:#x} (port {port}) is already bound",
+                                "give each receiving port of a bus to one topic list")
+            inbox: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+            if port:  # port 0: a sender only
+                self._inboxes[can_id] = inbox
+                self._bus.set_filters([{"can_id": i, "can_mask": self.max_id,
+                                        "extended": self.extended} for i in self._inboxes])
+            self._users += 1
+        return CanEndpoint(self, port, inbox)
+
+    def send(self, frame: bytes, port: int) -> None:
+        import can
+        from can.util import dlc2len, len2dlc
+
+        bus = self._bus
+        if bus is None:  # a message still on its way while the engine stops
+            raise OSError("the CAN bus is closed")
+        if self.fd:
+            frame = frame.ljust(dlc2len(len2dlc(len(frame))), b"\0")
+        try:
+            message = can.Message(arbitration_id=self.can_id(port), data=frame, is_fd=self.fd,
+                                  bitrate_switch=self.fd, is_extended_id=self.extended)
+            bus.send(message, timeout=SEND_TIMEOUT)
+        except (can.CanError, ValueError) as exc:  # the link counts an OSError as send_error
+            raise OSError(f"CAN send to port {port} failed: {exc}") from None
+
+    def can_id(self, port: int) -> int:
+        """The arbitration id of a port; ``ValueError`` past the last id."""
+        if self.base_id + port > self.max_id:
+            raise ValueError(f"port {port} is arbitration id {self.base_id + port:#x}, past the "
+                             f"last {'extended' if self.extended else 'standard'} id "
+                             f"{self.max_id:#x}")
+        return self.base_id + port
+
+    def release(self, port: int) -> None:
+        with self._lock:
+            if port:
+                self._inboxes.pop(self.base_id + port, None)
+            self._users -= 1
+            if self._users == 0:
+                self._closing.set()
+                self._bus.shutdown()
+                self._bus = None
+
+    def _receive_loop(self, bus: Any, closing: threading.Event) -> None:
+        import can
+
+        while not closing.is_set():
+            try:
+                message = bus.recv(POLL)
+            except can.CanError as exc:  # a bus error is the bus's state, not the end of the link
+                if not closing.is_set():
+                    log.warning("can: receive failed: %s", exc)
+                    closing.wait(POLL)
+                continue
+            if (message is None or message.is_error_frame or message.is_remote_frame
+                    or message.is_extended_id != self.extended):
+                continue
+            inbox = self._inboxes.get(message.arbitration_id)
+            if inbox is not None:
+                inbox.put(bytes(message.data))
+
+
+@hookimpl
+def rosgate_transports(register):
+    register(CanTransport)
