@@ -69,6 +69,13 @@ def qos_profile(spec: int | str | dict) -> Any:
     return profile
 
 
+def is_reliable(spec: int | str | dict) -> bool:
+    """Whether a topic's QoS asks for reliable delivery (its frames then wait out a link loss)."""
+    from rclpy import qos
+
+    return qos_profile(spec).reliability == qos.ReliabilityPolicy.RELIABLE
+
+
 class RosNode:
     """A node in a context of its own, spun in a background thread."""
 
