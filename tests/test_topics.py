@@ -108,15 +108,21 @@ def test_qos_forms_map_to_profiles():
         qos.HistoryPolicy.KEEP_ALL, 3)
 
 
-def test_client_server_tcp_topics_on_ports_of_their_own_both_ways(engines, domain, ros_side):
+def test_client_server_stream_topics_on_ports_of_their_own_both_ways(engines, domain, ros_side,
+                                                                      stream_kind):
     ds, dc = domain(), domain()
-    main, up, down = free_port(), free_port(), free_port()
-    engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{main}}}", ds)
+    k = stream_kind
+    main, up, down = k.port(), k.port(), k.port()
+    engines(f"""
+bridge: {{name: base, role: server, server: '{k.address(main)}', main_line: {k.name}}}
+plugins: {k.plugins}""", ds)
     client = engines(f"""
-bridge: {{name: robot1, role: client, server: 127.0.0.1:{main}}}
+bridge: {{name: robot1, role: client, server: '{k.address(main)}', main_line: {k.name}}}
+plugins: {k.plugins}
 topics:
-  - {{topic: /up, type: std_msgs/msg/String, direction: transmit, transport: tcp, port: {up}}}
-  - {{topic: /down, type: std_msgs/msg/String, direction: receive, transport: tcp, port: {down}}}
+  - {{topic: /up, type: std_msgs/msg/String, direction: transmit, transport: {k.name}, port: {up}}}
+  - {{topic: /down, type: std_msgs/msg/String, direction: receive, transport: {k.name},
+      port: {down}}}
 """, dc)
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
     got = cross(robot.publisher("/up", String), base.listen("/up", String), text, is_warmup, 20)

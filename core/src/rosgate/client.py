@@ -77,8 +77,7 @@ class ClientRole(Role):
         self._welcome = None
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
                            "topics": [topic_to_mapping(p.config) for p in self.engine.topics]}), 0)
-        if not self._answer.wait(HANDSHAKE_TIMEOUT) or self._welcome is None:
-            log.warning("%s: no answer to the handshake from %s", self.cfg.name, self.cfg.server)
+        if not self._await_answer(link) or self._welcome is None:
             return False
         answer = self._welcome
         if answer["type"] == "refused":
@@ -106,6 +105,17 @@ class ClientRole(Role):
         self.connected.set()
         self._say_hello()
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
+        return True
+
+    def _await_answer(self, link: StreamLink) -> bool:
+        deadline = time.monotonic() + HANDSHAKE_TIMEOUT
+        while not self._answer.wait(0.1):
+            if link.closed.is_set() or self.engine.stopping.is_set():
+                return False
+            if time.monotonic() > deadline:
+                log.warning("%s: no answer to the handshake from %s", self.cfg.name,
+                            self.cfg.server)
+                return False
         return True
 
     def _lost(self, link: StreamLink) -> None:

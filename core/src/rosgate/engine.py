@@ -126,9 +126,8 @@ class Engine:
         try:
             return transport.check_address((host or "", port))
         except ValueError as exc:
-            raise error(f"{key}.port" if topic.port else where,
-                        f"{exc} (for {topic.transport}, from {where} and port {port})",
-                        f"give this topic a {topic.transport} address: fix {where} or the port") \
+            raise error(f"{key}.port" if topic.port else where, str(exc),
+                        f"this topic's {topic.transport} address is {where} with port {port}") \
                 from None
 
     def _check_shared_ports(self, topics: list[Prepared]) -> None:

@@ -331,6 +331,8 @@ class Acceptor:
                 self.on_connection(*got)
 
     def close(self) -> None:
+        if self.closed.is_set():
+            return
         self.closed.set()
         self.listener.close()
         self._thread.join(timeout=2)

@@ -66,11 +66,12 @@ class ServerRole(Role):
             listener = main.listen(self.engine.main_address)
         except LinkError as exc:
             raise self.engine.bind_error(exc, "bridge.server") from None
-        self.engine.closing(Acceptor(listener, f"main:{self.engine.main_address[1]}",
-                                     self._accepted))
+        self.acceptor = self.engine.closing(Acceptor(listener, f"main:{self.engine.main_address[1]}",
+                                                     self._accepted))
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
 
     def stop(self) -> None:
+        self.acceptor.close()  # first: no client may come back while its session is ended
         for session in list(self.sessions.values()):
             self._end(session)
         super().stop()

@@ -19,7 +19,8 @@ business (an IP address and a UDP port; a Bluetooth device address and an RFCOMM
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Mapping, Protocol
+import socket
+from typing import Any, Callable, ClassVar, Mapping, Protocol
 
 Address = tuple[str, int]
 
@@ -96,6 +97,55 @@ class Transport:
     def connect(self, address: Address, timeout: float) -> StreamConnection:
         """Connect within ``timeout`` seconds or raise ``OSError``."""
         raise NotImplementedError(f"transport {self.name!r} is not a stream link")
+
+
+class SocketConnection:
+    """A :class:`StreamConnection` over a connected stream socket of any family (TCP, RFCOMM,
+    Unix), for transports whose links are plain sockets."""
+
+    def __init__(self, sock: socket.socket):
+        self.sock = sock
+
+    def send(self, data: bytes) -> None:
+        self.sock.settimeout(None)
+        self.sock.sendall(data)
+
+    def receive(self, max_bytes: int, timeout: float) -> bytes | None:
+        self.sock.settimeout(timeout)
+        try:
+            return self.sock.recv(max_bytes)
+        except TimeoutError:
+            return None
+
+    def close(self) -> None:
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.sock.close()
+
+
+class SocketListener:
+    """A :class:`StreamListener` over a listening socket: ``wrap`` makes each accepted socket a
+    connection, ``address_of`` turns the socket's peer address into an :data:`Address`."""
+
+    def __init__(self, sock: socket.socket,
+                 wrap: Callable[[socket.socket], SocketConnection] = SocketConnection,
+                 address_of: Callable[[Any], Address] = lambda peer: peer[:2]):
+        self.sock = sock
+        self.wrap = wrap
+        self.address_of = address_of
+
+    def accept(self, timeout: float) -> tuple[SocketConnection, Address] | None:
+        self.sock.settimeout(timeout)
+        try:
+            sock, peer = self.sock.accept()
+        except TimeoutError:
+            return None
+        return self.wrap(sock), self.address_of(peer)
+
+    def close(self) -> None:
+        self.sock.close()
 
 
 def parse_host_port(text: str) -> Address:
