@@ -55,6 +55,16 @@ def free_port() -> int:
             return port
 
 
+def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
+    """Poll a counter the engine updates from its own threads (no event to wait on)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
 class Inbox:
     """Collects what a subscription receives; wait for a count or a predicate."""
 

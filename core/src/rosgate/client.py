@@ -65,7 +65,9 @@ class ClientRole(Role):
             message = parse_control(frame)
             if message is None:
                 self.engine.link_drop(link, "bad_control", "unreadable control message")
-            elif message["type"] in ("welcome", "refused"):
+                return
+            link.last_heard = time.monotonic()  # type: ignore[attr-defined]
+            if message["type"] in ("welcome", "refused"):
                 self._welcome = message
                 self._answer.set()
             return
@@ -101,7 +103,7 @@ class ClientRole(Role):
             for slot in self._dedicated:  # they must introduce themselves to the new session
                 if slot.current is not None:
                     slot.current.fail("the server started a new session")
-        link.last_received = time.monotonic()
+        link.last_heard = time.monotonic()
         self.connected.set()
         self._say_hello()
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
@@ -180,7 +182,7 @@ class ClientRole(Role):
         while not self.engine.stopping.wait(self.cfg.heartbeat):
             link = self.main.current
             if self.connected.is_set() and link is not None and not link.closed.is_set():
-                silence = time.monotonic() - link.last_received
+                silence = time.monotonic() - link.last_heard
                 if silence > self.cfg.peer_timeout:
                     link.fail(f"silent for {silence:.1f} s")
                     continue

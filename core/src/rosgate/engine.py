@@ -376,7 +376,8 @@ class Engine:
         for route in self.routes():
             c = route.counters
             drops = ", ".join(f"{k}={v}" for k, v in sorted(c.drops.items())) or "none"
-            log.info("%s: sent %d (%d B), received %d (%d B), drops: %s", route.label, c.sent,
-                     c.bytes_sent, c.received, c.bytes_received, drops)
+            lost = f", lost on the way {c.lost}" if c.lost else ""
+            log.info("%s: sent %d (%d B), received %d (%d B)%s, drops: %s", route.label, c.sent,
+                     c.bytes_sent, c.received, c.bytes_received, lost, drops)
         if self.link_drops:
             log.info("frames for no topic: %s", self.link_drops)

@@ -132,7 +132,9 @@ class StreamLink(Link):
         self.on_drop = on_drop
         self.on_close = on_close
         self.closed = threading.Event()
-        self.last_received = time.monotonic()  # for liveness: the heartbeat keeps it fresh
+        # for liveness: the main line's roles set it on every control message (a heartbeat), not
+        # on bytes, so a stream that lost its frame boundaries does not look alive
+        self.last_heard = time.monotonic()
         self.why = ""  # why the connection ended, once it has
         self.queue_frames = queue_frames
         self.queue_bytes = queue_bytes
@@ -193,7 +195,6 @@ class StreamLink(Link):
             if not data:
                 self.fail("closed by peer")
                 return
-            self.last_received = time.monotonic()
             try:
                 for frame in self._reader.feed(data):
                     deliver(self, frame, self.peer)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import random
 import threading
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from .envelope import topic_id_for
 from .errors import LinkError
@@ -42,6 +42,10 @@ class Role:
         self._lock = threading.RLock()
 
     def start(self) -> None: ...
+
+    def on_hello(self, header: Any, frame: bytes, link: Link, source: Address) -> None:
+        """Only a server takes hellos; elsewhere a hello is a damaged or foreign frame."""
+        self.engine.link_drop(link, "unexpected_hello", f"from {source}")
 
     def stop(self) -> None:
         for route in self._routes:

@@ -93,7 +93,9 @@ class ServerRole(Role):
                 message = parse_control(frame)
                 if message is None:
                     self.engine.link_drop(link, "bad_control", f"from {source}")
-                elif message["type"] == "hello" and session is None:
+                    return
+                link.last_heard = time.monotonic()  # type: ignore[attr-defined]
+                if message["type"] == "hello" and session is None:
                     session = self._welcome(message, link, peer)  # type: ignore[arg-type]
                     if session is not None:
                         holder["session"] = session
@@ -276,7 +278,7 @@ class ServerRole(Role):
                         log.warning("client %r gone for %g s: its session is dropped",
                                     session.name, cfg.session_timeout)
                         self._end(session)
-                elif link is not None and now - link.last_received > cfg.peer_timeout:
-                    link.fail(f"silent for {now - link.last_received:.1f} s")
+                elif link is not None and now - link.last_heard > cfg.peer_timeout:
+                    link.fail(f"silent for {now - link.last_heard:.1f} s")
                 elif link is not None:
                     link.send(control({"type": "ping"}), 0)

@@ -19,6 +19,7 @@ business (an IP address and a UDP port; a Bluetooth device address and an RFCOMM
 
 from __future__ import annotations
 
+import select
 import socket
 from typing import Any, Callable, ClassVar, Mapping, Protocol
 
@@ -101,21 +102,26 @@ class Transport:
 
 class SocketConnection:
     """A :class:`StreamConnection` over a connected stream socket of any family (TCP, RFCOMM,
-    Unix), for transports whose links are plain sockets."""
+    Unix), for transports whose links are plain sockets.
+
+    The socket stays blocking and a receive waits in poll(): one thread sends while another
+    receives, and switching the socket's timeout under a sender (settimeout makes the socket
+    non-blocking) fails its send or receive with EAGAIN at random.
+    """
 
     def __init__(self, sock: socket.socket):
+        sock.settimeout(None)
         self.sock = sock
+        self._readable = select.poll()
+        self._readable.register(sock, select.POLLIN)
 
     def send(self, data: bytes) -> None:
-        self.sock.settimeout(None)
         self.sock.sendall(data)
 
     def receive(self, max_bytes: int, timeout: float) -> bytes | None:
-        self.sock.settimeout(timeout)
-        try:
-            return self.sock.recv(max_bytes)
-        except TimeoutError:
+        if not self._readable.poll(timeout * 1000):
             return None
+        return self.sock.recv(max_bytes)  # data, b"" at the end, or OSError once closed
 
     def close(self) -> None:
         try:
