@@ -406,3 +406,71 @@ bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}
               f"{resources()}")
     finally:
         client.stop()
+
+
+# -- sessions -------------------------------------------------------------------------------
+TOPICS = """
+  - {topic: /up, type: std_msgs/msg/String, direction: transmit}
+  - {topic: /down, type: std_msgs/msg/String, direction: receive, transport: tcp}
+  - {topic: /rel, type: std_msgs/msg/String, direction: transmit, transport: tcp, qos: 100}"""
+
+
+def test_a_client_gone_past_session_timeout_is_forgotten_then_welcomed_anew(engines, domain,
+                                                                           ros_side):
+    ds, dc, port = domain(), domain(), free_port()
+    server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}, "
+                     f"session_timeout: 0.5}}", ds)
+    client_yaml = f"bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}\n" \
+                  f"topics: {TOPICS}"
+    first = engines(client_yaml, dc)
+    role = server._role
+    assert wait_until(lambda: len(role.sessions) == 1 and len(role.routes()) == 3, 5)
+    session = next(iter(role.sessions.values()))
+    first.stop()
+    assert wait_until(lambda: not role.sessions, 5)
+    assert role.routes() == [] and server.receivers == {}
+    assert session.main.closed.is_set() and session.main.current.closed.is_set()
+    assert wait_until(lambda: server.ros.node.count_publishers("/up") == 0, 5)  # ROS side gone
+
+    engines(client_yaml, dc)
+    assert wait_until(lambda: len(role.sessions) == 1, 5)
+    assert next(iter(role.sessions.values())).id != session.id
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    got = cross(robot.publisher("/up", String), base.listen("/up", String), text, is_warmup, 5)
+    assert sorted(m.data for m in got) == [f"m{i}" for i in range(5)]
+
+
+def test_a_restarted_server_that_numbers_topics_anew(engines, domain, ros_side, monkeypatch):
+    """The client re-keys its routes; frames that waited under the old ids are dropped and
+    counted, never sent under ids that now mean something else."""
+    from rosgate.server import ServerRole
+
+    ds, dc, port = domain(), domain(), free_port()
+    server_yaml = f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}}}"
+    old_server = engines(server_yaml, ds)
+    client = engines(f"bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}\n"
+                     f"topics: {TOPICS}", dc)
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    up, up_in = robot.publisher("/up", String), base.listen("/up", String)
+    rel, rel_in = robot.publisher("/rel", String, 100), base.listen("/rel", String, 100)
+    down, down_in = base.publisher("/down", String), robot.listen("/down", String)
+    cross(rel, rel_in, text, is_warmup, 0)
+    role = client._role
+    old_ids = list(role.topic_ids)
+
+    old_server.stop()
+    assert wait_until(lambda: not role.connected.is_set(), 5)
+    for i in range(3):
+        rel.publish(text(900 + i))
+    assert wait_until(lambda: role.main.waiting == 3, 5)
+    renumber = ServerRole._topic_id
+    monkeypatch.setattr(ServerRole, "_topic_id", lambda self, s, p: renumber(self, s, p) + 7)
+    engines(server_yaml, ds)
+    assert wait_until(lambda: role.connected.is_set(), 5)
+    assert role.topic_ids == [i + 7 for i in old_ids]
+    route = next(r for r in client.routes() if r.topic.topic == "/rel")
+    assert route.counters.drops == {"session_reset": 3} and role.main.waiting == 0
+    for publisher, inbox in ((up, up_in), (rel, rel_in), (down, down_in)):
+        got = cross(publisher, inbox, text, is_warmup, 5)
+        assert sorted(m.data for m in got) == [f"m{i}" for i in range(5)]
+    assert "m900" not in numbered(rel_in)

@@ -160,8 +160,10 @@ class ClientRole(Role):
         slot = self.engine.slot(f"{p.config.transport}->{address[0]}:{address[1]}")
 
         def introduce(link: StreamLink) -> bool:
-            if self.session is None or not self.connected.is_set():
-                return False  # wait for the main line's handshake
+            # a session the server kept takes the hello even while the main line is down; a
+            # new session makes the handshake recycle this connection
+            if self.session is None:
+                return False  # wait for the first handshake
             return link.send(hello_datagram(self.session, self.token), 0)
 
         Connector(self.engine, p.transport, address, slot, self.engine.on_frame, introduce).start()
