@@ -278,7 +278,7 @@ def test_corrupted_and_truncated_stream_resynchronizes_or_reconnects(engines, do
     plugins = f"plugins: {{fernet: {{key_file: {key}}}}}"
     server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}}}\n"
                      f"{plugins}", ds)
-    client = engines(f"""
+    engines(f"""
 bridge: {{name: robot1, role: client, server: 127.0.0.1:{p.port}, {FAST}}}
 {plugins}
 topics: [{{topic: /rel, type: std_msgs/msg/String, direction: transmit, transport: tcp,
@@ -474,3 +474,30 @@ def test_a_restarted_server_that_numbers_topics_anew(engines, domain, ros_side, 
         got = cross(publisher, inbox, text, is_warmup, 5)
         assert sorted(m.data for m in got) == [f"m{i}" for i in range(5)]
     assert "m900" not in numbered(rel_in)
+
+
+def test_a_handshake_that_fails_half_way_leaves_nothing_behind(engines, domain, ros_side,
+                                                               monkeypatch):
+    from rosgate.engine import Engine
+    from rosgate.errors import LinkError
+
+    make_route, failures = Engine.make_route, []
+
+    def fail_once(self, p, *args, **kwargs):
+        if self.config.role == "client" and p.config.topic == "/rel" and not failures:
+            failures.append(p.config.topic)
+            raise LinkError("cannot bind (made up by the test)")
+        return make_route(self, p, *args, **kwargs)
+
+    monkeypatch.setattr(Engine, "make_route", fail_once)
+    ds, dc, port = domain(), domain(), free_port()
+    engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}}}", ds)
+    client = engines(f"bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}\n"
+                     f"topics: {TOPICS}", dc)
+    assert wait_until(lambda: client._role.connected.is_set(), 5)
+    assert failures == ["/rel"]
+    assert sorted(r.topic.topic for r in client.routes()) == ["/down", "/rel", "/up"]
+    assert len(client._role.datagram_links) == 1 and len(client._role.hello_to) == 1
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    got = cross(robot.publisher("/up", String), base.listen("/up", String), text, is_warmup, 5)
+    assert sorted(m.data for m in got) == [f"m{i}" for i in range(5)]

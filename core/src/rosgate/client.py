@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from . import envelope
 from .config import topic_to_mapping
-from .errors import LinkError
+from .errors import RosgateError
 from .links import DatagramLink, Link, LinkSlot, StreamLink
 from .mainline import HANDSHAKE_TIMEOUT, PROTOCOL, control, hello_datagram, parse_control
 from .roles import Connector, Role
@@ -95,8 +95,10 @@ class ClientRole(Role):
                 self._build(ids)
             elif ids != self.topic_ids:
                 self._rekey(ids)
-        except (KeyError, TypeError, ValueError, LinkError) as exc:
+        except (KeyError, TypeError, ValueError, RosgateError) as exc:
             log.error("%s: cannot use the server's answer: %s", self.cfg.name, exc)
+            if self.topic_ids is None:
+                self._unbuild()  # half-built: the next handshake starts clean
             return False
         if session != self.session:
             self.session, self.token = session, token
@@ -145,6 +147,19 @@ class ClientRole(Role):
                 self.hello_to.add((link, p.address))
         self.main.reliable = main_reliable
         self.topic_ids = ids
+
+    def _unbuild(self) -> None:
+        super().stop()
+        for slot in self._dedicated:
+            slot.close()  # its connector ends with it
+        self._dedicated.clear()
+        with self._lock:
+            links = list(self.datagram_links.values())
+            self.datagram_links.clear()
+            self.hello_to.clear()
+        for link in links:
+            link.close()
+            self.engine.forget(link)
 
     def _rekey(self, ids: list[int]) -> None:
         """The server numbered our topics anew (it restarted): same routes, new ids."""
