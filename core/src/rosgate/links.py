@@ -235,8 +235,8 @@ class StreamLink(Link):
 class QueueLimits:
     """How much a :class:`LinkSlot` holds for reliable topics while it has no connection."""
 
-    frames: int = 1000
-    bytes: int = 8 * 1024 * 1024
+    frames: int
+    bytes: int
 
 
 class LinkSlot(Link):
@@ -250,7 +250,7 @@ class LinkSlot(Link):
     acknowledgements): a connection's loss can cost what was in flight.
     """
 
-    def __init__(self, name: str, on_drop: DropHandler, limits: QueueLimits = QueueLimits()):
+    def __init__(self, name: str, on_drop: DropHandler, limits: QueueLimits):
         self.name = name
         self.on_drop = on_drop
         self.limits = limits

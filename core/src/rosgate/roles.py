@@ -13,9 +13,9 @@ from __future__ import annotations
 import logging
 import random
 import threading
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Callable
 
-from .envelope import topic_id_for
+from .envelope import Header, topic_id_for
 from .errors import LinkError
 from .links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
 from .routes import ReceiveRoute, Route, TransmitRoute
@@ -43,7 +43,7 @@ class Role:
 
     def start(self) -> None: ...
 
-    def on_hello(self, header: Any, frame: bytes, link: Link, source: Address) -> None:
+    def on_hello(self, header: Header, frame: bytes, link: Link, source: Address) -> None:
         """Only a server takes hellos; elsewhere a hello is a damaged or foreign frame."""
         self.engine.link_drop(link, "unexpected_hello", f"from {source}")
 
