@@ -8,7 +8,7 @@ import time
 from conftest import cross, free_port
 from std_msgs.msg import String
 
-from rosgate.ros import qos_profile
+from rosgate.ros import is_reliable, qos_profile
 
 
 def text(i: int | None) -> String:
@@ -94,6 +94,12 @@ def test_max_rate_drops_and_counts_the_excess(engines, domain, ros_side):
     sent = route.counters.sent - before_sent
     assert 1 <= sent <= int(elapsed * 5) + 1
     assert route.counters.drops["rate_limit"] - before_limited == 60 - sent
+
+
+def test_which_qos_forms_are_reliable_and_so_queue_while_a_link_is_down():
+    assert [is_reliable(q) for q in (10, "default", "system_default", "best_available",
+                                     {"depth": 3}, {"reliability": "reliable"})] == [True] * 6
+    assert [is_reliable(q) for q in ("sensor_data", {"reliability": "best_effort"})] == [False] * 2
 
 
 def test_qos_forms_map_to_profiles():

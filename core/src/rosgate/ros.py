@@ -70,10 +70,11 @@ def qos_profile(spec: int | str | dict) -> Any:
 
 
 def is_reliable(spec: int | str | dict) -> bool:
-    """Whether a topic's QoS asks for reliable delivery (its frames then wait out a link loss)."""
+    """Whether a topic's frames wait out a link loss: unless its QoS says best effort (the
+    system default and best-available profiles are reliable with every shipped RMW)."""
     from rclpy import qos
 
-    return qos_profile(spec).reliability == qos.ReliabilityPolicy.RELIABLE
+    return qos_profile(spec).reliability != qos.ReliabilityPolicy.BEST_EFFORT
 
 
 class RosNode:
