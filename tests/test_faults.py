@@ -426,18 +426,25 @@ def test_a_client_gone_past_session_timeout_is_forgotten_then_welcomed_anew(engi
     role = server._role
     assert wait_until(lambda: len(role.sessions) == 1 and len(role.routes()) == 3, 5)
     session = next(iter(role.sessions.values()))
-    first.stop()
-    assert wait_until(lambda: not role.sessions, 5)
+    first._role.connector.close()  # the main line vanishes without a goodbye
+    assert wait_until(lambda: session.down_since is not None, 5)
+    assert role.sessions and wait_until(lambda: not role.sessions, 5)
     assert role.routes() == [] and server.receivers == {}
     assert session.main.closed.is_set() and session.main.current.closed.is_set()
     assert wait_until(lambda: server.ros.node.count_publishers("/up") == 0, 5)  # ROS side gone
 
-    engines(client_yaml, dc)
+    first.stop()
+    second = engines(client_yaml, dc)
     assert wait_until(lambda: len(role.sessions) == 1, 5)
     assert next(iter(role.sessions.values())).id != session.id
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
     got = cross(robot.publisher("/up", String), base.listen("/up", String), text, is_warmup, 5)
     assert sorted(m.data for m in got) == [f"m{i}" for i in range(5)]
+    # a client that stops cleanly says goodbye: its session goes at once, not after the timeout
+    role.engine.config.session_timeout = 60
+    second.stop()
+    assert wait_until(lambda: not role.sessions, 2)
+    assert role.routes() == [] and server.receivers == {}
 
 
 def test_a_restarted_server_that_numbers_topics_anew(engines, domain, ros_side, monkeypatch):

@@ -57,6 +57,12 @@ class ClientRole(Role):
         self._pinger.start()
 
     def stop(self) -> None:
+        link = self.main.current
+        if self.connected.is_set() and link is not None:
+            # a clean stop says goodbye, so the server drops our session now instead of keeping
+            # it for session_timeout in case we come back
+            link.send(control({"type": "bye"}), 0)
+            link.drain(1.0)
         self.connector.close()
         super().stop()
 

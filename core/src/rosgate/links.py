@@ -140,6 +140,7 @@ class StreamLink(Link):
         self.queue_bytes = queue_bytes
         self._queue: deque[tuple[bytes, int]] = deque()
         self._queued_bytes = 0
+        self._writing = False  # the writer holds a batch not yet written
         self._wake = threading.Condition()
         self._reader = framing.StreamReader(max_message)
         self._threads = [
@@ -167,6 +168,8 @@ class StreamLink(Link):
     def _send_loop(self) -> None:
         while True:
             with self._wake:
+                self._writing = False
+                self._wake.notify_all()  # for drain()
                 while not self._queue and not self.closed.is_set():
                     self._wake.wait()
                 if self.closed.is_set():
@@ -175,6 +178,7 @@ class StreamLink(Link):
                 batch = list(self._queue)
                 self._queue.clear()
                 self._queued_bytes = 0
+                self._writing = True
             try:
                 self.connection.send(b"".join(record for record, _ in batch))
             except OSError as exc:
@@ -182,6 +186,12 @@ class StreamLink(Link):
                     self.on_drop(topic_id, "link_down")
                 self.fail(f"send failed: {exc}")
                 return
+
+    def drain(self, timeout: float) -> bool:
+        """Wait until everything sent so far is written (a last word before closing)."""
+        with self._wake:
+            return self._wake.wait_for(
+                lambda: not self._queue and not self._writing or self.closed.is_set(), timeout)
 
     def _receive_loop(self) -> None:
         while not self.closed.is_set():

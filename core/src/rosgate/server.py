@@ -99,6 +99,9 @@ class ServerRole(Role):
                     session = self._welcome(message, link, peer)  # type: ignore[arg-type]
                     if session is not None:
                         holder["session"] = session
+                elif message["type"] == "bye" and session is not None:
+                    log.info("client %r left", session.name)
+                    self._end(session)
                 return
             if session is None:
                 self.engine.link_drop(link, "before_handshake", f"data from {source}")
