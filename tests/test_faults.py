@@ -180,6 +180,22 @@ def test_udp_keeps_flowing_while_the_main_line_is_down_and_a_stall_is_detected(
     assert len(logs.having("robot1: server 'base' up")) == 2  # the first connection, and now
 
 
+def test_a_slow_main_line_is_slow_not_down(engines, domain, ros_side, proxy, logs):
+    """Every chunk held 0.3 s each way (a congested radio link): under peer_timeout, so nobody
+    is declared down, and a reliable topic arrives complete and in order."""
+    server, client, p, ds, dc = through_proxy(
+        engines, domain, proxy,
+        "[{topic: /rel, type: std_msgs/msg/String, direction: transmit, transport: tcp}]")
+    inbox = ros_side(ds, "listener").listen("/rel", String)
+    talker = ros_side(dc, "talker").publisher("/rel", String)
+    cross(talker, inbox, text, is_warmup, 0)
+    p.tcp.delay = 0.3
+    got = cross(talker, inbox, text, is_warmup, 10)
+    assert [m.data for m in got] == [f"m{i}" for i in range(10)]
+    assert not logs.wait("down", timeout=1.0), logs.having("down")
+    assert p.tcp.accepted == 1
+
+
 def peer_through_proxy(engines, domain, proxy, rates: UdpRates, cipher: str = "none",
                        plugins: str = "{}"):
     """Peer bridges a -> b over UDP, through the proxy (rates off until the test turns them on)."""
