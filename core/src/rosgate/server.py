@@ -99,7 +99,8 @@ class ServerRole(Role):
                     session = self._welcome(message, link, peer)  # type: ignore[arg-type]
                     if session is not None:
                         holder["session"] = session
-                elif message["type"] == "bye" and session is not None:
+                elif (message["type"] == "bye" and session is not None
+                      and session.main.current is link):
                     log.info("client %r left", session.name)
                     self._end(session)
                 return
