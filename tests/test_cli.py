@@ -204,3 +204,13 @@ def test_check_bt_addresses(config, server, port, line, says):
     message = user_error(rosgate("check", str(config(BT_CLIENT.format(server=server,
                                                                      plugins=plugins, port=port)))))
     assert f"bringup.yaml:{line}: {says}" in message
+
+
+def test_check_refuses_an_ip_topic_addressed_by_a_bluetooth_main_line(config):
+    """udp and tcp topics go to the server's host: a device address is no IP host."""
+    text = BT_CLIENT.format(server="AA:BB:CC:DD:EE:FF/5", plugins="plugins:\n  bt: {emulate_dir: /tmp}\n",
+                            port=6).replace("transport: bt", "transport: udp")
+    message = user_error(rosgate("check", str(config(text))))
+    assert "bringup.yaml:9: topics[0].port: 'AA:BB:CC:DD:EE:FF' is not an IP address or host " \
+           "name" in message
+    assert "fix: this topic's udp address is bridge.server with port 6" in message

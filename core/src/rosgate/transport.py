@@ -154,6 +154,18 @@ class SocketListener:
         self.sock.close()
 
 
+def check_ip_address(address: Address) -> Address:
+    """For IP transports: the host must be an IPv4 or IPv6 address or a host name — not, say, the
+    Bluetooth device address of an RFCOMM main line. Raises ``ValueError`` saying so."""
+    host = address[0]
+    if ":" in host:  # host names have none; only IPv6 addresses do
+        try:
+            socket.inet_pton(socket.AF_INET6, host)
+        except OSError:
+            raise ValueError(f"{host!r} is not an IP address or host name") from None
+    return address
+
+
 def parse_host_port(text: str) -> Address:
     """``host:port`` or ``[v6addr]:port`` to ``(host, port)``, for IP transports.
 

@@ -18,7 +18,7 @@ import socket
 from typing import Any, Mapping
 
 from rosgate import (Address, LinkError, OptionError, SocketConnection, SocketListener, Transport,
-                     hookimpl, parse_host_port)
+                     check_ip_address, hookimpl, parse_host_port)
 
 
 class TcpConnection(SocketConnection):
@@ -43,6 +43,9 @@ class TcpTransport(Transport):
 
     def parse_address(self, text: str) -> Address:
         return parse_host_port(text)
+
+    def check_address(self, address: Address) -> Address:
+        return check_ip_address(address)
 
     def listen(self, address: Address) -> SocketListener:
         sock = socket.socket(_family(address), socket.SOCK_STREAM)
