@@ -41,6 +41,16 @@ def domain() -> Callable[[], int]:
     return next_domain
 
 
+def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
+    """Poll a counter the engine updates from its own threads (no event to wait on)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
 class Inbox:
     """Collects what a subscription receives; wait for a count or a predicate."""
 
@@ -192,3 +202,30 @@ def bridge():
         code = b.stop()
         assert "Traceback" not in b.log, b.log
         assert code == 0, f"bridge {b.config.name} exited {code}:\n{b.log}"
+
+
+class StreamKind:
+    """A stream transport as bringup.yaml spells it: tcp on 127.0.0.1, or bt over the bt
+    plugin's AF_UNIX stand-in for a radio (channels for ports, a device address for a host)."""
+
+    def __init__(self, name: str, directory: str):
+        self.name = name
+        self.host = "127.0.0.1" if name == "tcp" else "AA:BB:CC:DD:EE:01"
+        self.options = "{}" if name == "tcp" else f"{{emulate_dir: {directory}}}"
+        self.plugins = f"{{{name}: {self.options}}}"  # a whole plugins: section
+        self._channels = itertools.count(1)
+
+    def port(self) -> int:
+        return free_port() if self.name == "tcp" else next(self._channels)
+
+    def address(self, port: int) -> str:
+        return f"{self.host}:{port}" if self.name == "tcp" else f"{self.host}/{port}"
+
+
+@pytest.fixture(params=["tcp", "bt"])
+def stream_kind(request):
+    """Each stream-link test runs over tcp and over bt."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="bt", dir="/tmp") as directory:  # AF_UNIX: short paths
+        yield StreamKind(request.param, directory)

@@ -83,20 +83,23 @@ topics:
     assert_strings(back, 30, ordered=False)
 
 
-def test_peer_tcp_image_1mb_msgpack(tmp_path, domain, ros_side, bridge):
+def test_peer_stream_image_1mb_msgpack(tmp_path, domain, ros_side, bridge, stream_kind):
     da, db = domain(), domain()
-    port = free_port()
+    k = stream_kind
+    port = k.port()
     a = write(tmp_path / "a.yaml", f"""
-bridge: {{name: a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+bridge: {{name: a, role: peer, peer: '{k.host}', listen: '{k.host}'}}
+plugins: {k.plugins}
 topics:
   - {{topic: /camera, type: sensor_msgs/msg/Image, direction: transmit, port: {port},
-      transport: tcp, codec: msgpack}}
+      transport: {k.name}, codec: msgpack}}
 """)
     b = write(tmp_path / "b.yaml", f"""
-bridge: {{name: b, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+bridge: {{name: b, role: peer, peer: '{k.host}', listen: '{k.host}'}}
+plugins: {k.plugins}
 topics:
   - {{topic: /camera, type: sensor_msgs/msg/Image, direction: receive, port: {port},
-      transport: tcp, codec: msgpack}}
+      transport: {k.name}, codec: msgpack}}
 """)
     bridge(b, db), bridge(a, da)
     side_a, side_b = ros_side(da, "a"), ros_side(db, "b")
@@ -116,31 +119,39 @@ bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}
 {plugins}""")
 
 
-def test_client_server_tcp_twist_msgpack_fernet_both_ways(tmp_path, domain, ros_side, bridge,
-                                                           fernet_key):
+def test_client_server_stream_twist_msgpack_fernet_both_ways(tmp_path, domain, ros_side, bridge,
+                                                              fernet_key, stream_kind):
     dc, ds = domain(), domain()
-    port = free_port()
+    k = stream_kind
+    port = k.port()
     client = write(tmp_path / "client.yaml", f"""
 bridge:
   name: robot1
   role: client
-  server: 127.0.0.1:{port}
-  defaults: {{transport: tcp, codec: msgpack, cipher: fernet}}
+  server: '{k.address(port)}'
+  main_line: {k.name}
+  defaults: {{transport: {k.name}, codec: msgpack, cipher: fernet}}
 plugins:
   fernet: {{key_file: {fernet_key}}}
+  {k.name}: {k.options}
 topics:
   - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: receive, remote: /robot1/cmd_vel}}
   - {{topic: /odom_twist, type: geometry_msgs/msg/Twist, direction: transmit,
       remote: /robot1/odom_twist}}
 """)
-    bridge(server_file(tmp_path, port, fernet_key), ds)
+    bridge(write(tmp_path / "server.yaml", f"""
+bridge: {{name: base, role: server, server: '{k.address(port)}', main_line: {k.name}}}
+plugins:
+  fernet: {{key_file: {fernet_key}}}
+  {k.name}: {k.options}
+"""), ds)
     bridge(client, dc)
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
     warm = lambda m: m.linear.x == -1.0  # noqa: E731
 
     down = cross(base.publisher("/robot1/cmd_vel", Twist), robot.listen("/cmd_vel", Twist),
                  twist, warm, 40)
-    assert down == [twist(i) for i in range(40)]  # tcp: complete and in order
+    assert down == [twist(i) for i in range(40)]  # a stream: complete and in order
     up = cross(robot.publisher("/odom_twist", Twist), base.listen("/robot1/odom_twist", Twist),
                twist, warm, 40)
     assert up == [twist(i) for i in range(40)]

@@ -170,3 +170,47 @@ def test_keygen_writes_a_private_key_and_never_overwrites(tmp_path):
     assert rosgate("keygen", "fernet", "--out", str(key), "--force").returncode == 0
     assert key.read_bytes() != first
     assert "takes no key" in user_error(rosgate("keygen", "none", "--out", str(tmp_path / "n")))
+
+
+BT_CLIENT = """\
+bridge:
+  name: robot1
+  role: client
+  server: {server}
+  main_line: bt
+{plugins}topics:
+  - {{topic: /chatter, type: std_msgs/msg/String, direction: transmit, transport: bt, port: {port}}}
+"""
+
+
+@pytest.mark.skipif(hasattr(socket, "AF_BLUETOOTH"), reason="this Python has Bluetooth support")
+def test_check_on_a_python_without_bluetooth_names_the_key(config):
+    result = rosgate("check", str(config(BT_CLIENT.format(server="AA:BB:CC:DD:EE:FF/5", plugins="",
+                                                          port=6))))
+    message = user_error(result)
+    assert "bringup.yaml:5: bridge.main_line: bt: this Python was built without Bluetooth " \
+           "support (socket.AF_BLUETOOTH)" in message
+    assert "libbluetooth-dev" in message
+
+
+@pytest.mark.parametrize("server, port, line, says", [
+    ("127.0.0.1:12000", 6, "4: bridge.server", "'127.0.0.1:12000' is not a device address and an "
+                                               "RFCOMM channel, for example AA:BB:CC:DD:EE:FF/5"),
+    ("AA:BB:CC:DD:EE:FF/31", 6, "4: bridge.server", "RFCOMM channel 31 is out of range"),
+    ("AA:BB:CC:DD:EE:FF/5", 12001, "9: topics[0].port", "RFCOMM channel 12001 is out of range"),
+])
+def test_check_bt_addresses(config, server, port, line, says):
+    plugins = "plugins:\n  bt: {emulate_dir: /tmp}\n"
+    message = user_error(rosgate("check", str(config(BT_CLIENT.format(server=server,
+                                                                     plugins=plugins, port=port)))))
+    assert f"bringup.yaml:{line}: {says}" in message
+
+
+def test_check_refuses_an_ip_topic_addressed_by_a_bluetooth_main_line(config):
+    """udp and tcp topics go to the server's host: a device address is no IP host."""
+    text = BT_CLIENT.format(server="AA:BB:CC:DD:EE:FF/5", plugins="plugins:\n  bt: {emulate_dir: /tmp}\n",
+                            port=6).replace("transport: bt", "transport: udp")
+    message = user_error(rosgate("check", str(config(text))))
+    assert "bringup.yaml:9: topics[0].port: 'AA:BB:CC:DD:EE:FF' is not an IP address or host " \
+           "name" in message
+    assert "fix: this topic's udp address is bridge.server with port 6" in message

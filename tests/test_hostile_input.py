@@ -8,24 +8,13 @@ import random
 import socket
 import time
 from pathlib import Path
-from typing import Callable
 
-from conftest import cross, free_port
+from conftest import cross, free_port, wait_until
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String
 
 from rosgate import envelope
 from rosgate.framing import FRAGMENT
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
-    """Poll a counter the engine updates from its own threads (no event to wait on)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
 
 
 def peer_pair(engines, domain, transport: str = "udp", cipher_a: str = "none",

@@ -8,7 +8,7 @@ import time
 from conftest import cross, free_port
 from std_msgs.msg import String
 
-from rosgate.ros import qos_profile
+from rosgate.ros import is_reliable, qos_profile
 
 
 def text(i: int | None) -> String:
@@ -103,6 +103,12 @@ def test_max_rate_drops_and_counts_the_excess(engines, domain, ros_side):
     assert route.counters.drops["rate_limit"] - before_limited == 60 - sent
 
 
+def test_which_qos_forms_are_reliable_and_so_queue_while_a_link_is_down():
+    assert [is_reliable(q) for q in (10, "default", "system_default", "best_available",
+                                     {"depth": 3}, {"reliability": "reliable"})] == [True] * 6
+    assert [is_reliable(q) for q in ("sensor_data", {"reliability": "best_effort"})] == [False] * 2
+
+
 def test_qos_forms_map_to_profiles():
     from rclpy import qos
 
@@ -115,15 +121,21 @@ def test_qos_forms_map_to_profiles():
         qos.HistoryPolicy.KEEP_ALL, 3)
 
 
-def test_client_server_tcp_topics_on_ports_of_their_own_both_ways(engines, domain, ros_side):
+def test_client_server_stream_topics_on_ports_of_their_own_both_ways(engines, domain, ros_side,
+                                                                      stream_kind):
     ds, dc = domain(), domain()
-    main, up, down = free_port(), free_port(), free_port()
-    engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{main}}}", ds)
+    k = stream_kind
+    main, up, down = k.port(), k.port(), k.port()
+    engines(f"""
+bridge: {{name: base, role: server, server: '{k.address(main)}', main_line: {k.name}}}
+plugins: {k.plugins}""", ds)
     client = engines(f"""
-bridge: {{name: robot1, role: client, server: 127.0.0.1:{main}}}
+bridge: {{name: robot1, role: client, server: '{k.address(main)}', main_line: {k.name}}}
+plugins: {k.plugins}
 topics:
-  - {{topic: /up, type: std_msgs/msg/String, direction: transmit, transport: tcp, port: {up}}}
-  - {{topic: /down, type: std_msgs/msg/String, direction: receive, transport: tcp, port: {down}}}
+  - {{topic: /up, type: std_msgs/msg/String, direction: transmit, transport: {k.name}, port: {up}}}
+  - {{topic: /down, type: std_msgs/msg/String, direction: receive, transport: {k.name},
+      port: {down}}}
 """, dc)
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
     got = cross(robot.publisher("/up", String), base.listen("/up", String), text, is_warmup, 20)

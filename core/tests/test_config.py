@@ -135,6 +135,20 @@ def test_error_is_located_at_the_key_or_its_nearest_parent(tmp_path: Path) -> No
     assert config.error("nowhere.at.all", "x").line is None
 
 
+def test_link_keys_default_and_explicit() -> None:
+    config = loads(CLIENT_HEAD)
+    assert (config.peer_timeout, config.session_timeout) == (3.0, 60.0)
+    assert (config.reconnect_min, config.reconnect_max) == (0.1, 10.0)
+    assert (config.queue_frames, config.queue_bytes) == (1000, 8 * 1024 * 1024)
+    config = loads(CLIENT_HEAD + "  heartbeat: 0.5\n  session_timeout: 5\n"
+                   "  reconnect: {min: 0.5}\n  queue: {frames: 0, bytes: 100}\n")
+    assert (config.peer_timeout, config.session_timeout) == (1.5, 5.0)  # three heartbeats
+    assert (config.reconnect_min, config.reconnect_max) == (0.5, 10.0)
+    assert (config.queue_frames, config.queue_bytes) == (0, 100)
+    config = loads(CLIENT_HEAD + "  reconnect: {min: 20}\n")
+    assert (config.reconnect_min, config.reconnect_max) == (20.0, 20.0)  # max follows a big min
+
+
 def test_server_file(tmp_path: Path) -> None:
     config = load(write(tmp_path, """
         bridge:
@@ -345,6 +359,27 @@ ERRORS = {
     "heartbeat_zero": (
         CLIENT_HEAD + "  heartbeat: 0\n",
         5, "bridge.heartbeat", "expected a number > 0, got 0"),
+    "peer_timeout_not_over_heartbeat": (
+        CLIENT_HEAD + "  heartbeat: 2\n  peer_timeout: 2\n",
+        6, "bridge.peer_timeout", "2 s is not longer than the heartbeat (2 s)"),
+    "session_timeout_zero": (
+        CLIENT_HEAD + "  session_timeout: 0\n",
+        5, "bridge.session_timeout", "expected a number of seconds > 0, got 0"),
+    "reconnect_not_a_mapping": (
+        CLIENT_HEAD + "  reconnect: 5\n",
+        5, "bridge.reconnect", "expected a mapping, got 5"),
+    "reconnect_max_below_min": (
+        CLIENT_HEAD + "  reconnect:\n    min: 2\n    max: 1\n",
+        7, "bridge.reconnect.max", "max (1 s) is below min (2 s)"),
+    "reconnect_unknown_key": (
+        CLIENT_HEAD + "  reconnect: {min: 1, cap: 5}\n",
+        5, "bridge.reconnect.cap", "unknown key 'cap'"),
+    "queue_frames_negative": (
+        CLIENT_HEAD + "  queue:\n    frames: -1\n",
+        6, "bridge.queue.frames", "expected an integer >= 0, got -1"),
+    "queue_bytes_text": (
+        CLIENT_HEAD + "  queue: {bytes: 8 MiB}\n",
+        5, "bridge.queue.bytes", "expected an integer >= 0, got '8 MiB'"),
     "defaults_not_a_mapping": (
         CLIENT_HEAD + "  defaults: udp\n",
         5, "bridge.defaults", "expected a mapping"),

@@ -11,12 +11,13 @@ import time
 from typing import Any
 
 import pytest
+from rosgate_transport_bt import BluetoothTransport
 from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
 from rosgate import envelope, framing
 from rosgate.framing import FRAGMENT, LENGTH, length_prefixed
-from rosgate.links import DatagramLink, StreamLink
+from rosgate.links import DatagramLink, LinkSlot, QueueLimits, StreamLink
 
 TOPIC = 5
 
@@ -237,14 +238,21 @@ def test_a_lost_small_frame_drops_its_frame_only_and_counts_it_against_the_topic
 
 # --- stream links ----------------------------------------------------------------------------------
 
-@pytest.fixture
-def tcp_connections(closing):
-    """Make connected (client, server) TcpConnection pairs on 127.0.0.1."""
-    transport = TcpTransport({})
-    listener = closing(transport.listen(("127.0.0.1", 0)))
+@pytest.fixture(params=["tcp", "bt"])
+def tcp_connections(request, closing, tmp_path_factory):
+    """Make connected (client, server) stream connection pairs: TCP on 127.0.0.1, and the bt
+    transport's own stream path over its AF_UNIX stand-in for a radio."""
+    if request.param == "tcp":
+        transport, address = TcpTransport({}), ("127.0.0.1", 0)
+    else:
+        transport = BluetoothTransport({"emulate_dir": str(tmp_path_factory.mktemp("bt"))})
+        address = ("AA:BB:CC:DD:EE:01", 3)
+    listener = closing(transport.listen(address))
+    if request.param == "tcp":
+        address = listener.sock.getsockname()
 
     def connect():
-        client = transport.connect(listener.sock.getsockname(), 2.0)
+        client = transport.connect(address, 2.0)
         accepted = listener.accept(2.0)
         assert accepted is not None
         return client, accepted[0]
@@ -370,3 +378,47 @@ def test_a_frame_split_across_many_writes_arrives_whole(closing, tcp_connections
     assert inbox.wait(lambda: len(inbox.frames) >= 2)
     assert inbox.payloads() == [b"in pieces", b""]
     assert inbox.drops == []
+
+
+# --- a slot for a link that comes and goes ---------------------------------------------------------
+
+class Held:
+    """A route as a LinkSlot sees it: only its topic id matters."""
+
+    def __init__(self, topic_id: int):
+        self.topic_id = topic_id
+
+
+def test_a_slot_holds_reliable_frames_while_down_and_sends_them_first_in_order(closing,
+                                                                               tcp_connections):
+    drops = Inbox()
+    slot = closing(LinkSlot("slot", drops.on_drop, QueueLimits(frames=3, bytes=1000)))
+    slot.reliable = [Held(1)]
+    assert [slot.send(f"r{i}".encode(), 1) for i in range(5)] == [True] * 5
+    assert slot.send(b"best effort", 2) is False
+    # oldest first out: r0 and r1 over the 3-frame bound; the best-effort frame was never held
+    assert drops.drops == [(1, "queue_overflow"), (1, "queue_overflow"), (2, "link_down")]
+    assert slot.waiting == 3
+    client, server = tcp_connections()
+    inbox = Inbox()
+    closing(stream_link(server, "far", inbox))
+    slot.attach(closing(stream_link(client, "near", Inbox())))
+    assert slot.send(b"after", 2) is True
+    assert inbox.wait(lambda: len(inbox.frames) >= 4)
+    assert inbox.payloads() == [b"r2", b"r3", b"r4", b"after"]
+    assert slot.waiting == 0
+
+
+def test_a_slot_bounds_bytes_and_discards_on_request():
+    drops = Inbox()
+    slot = LinkSlot("slot", drops.on_drop, QueueLimits(frames=100, bytes=10))
+    slot.reliable = [Held(7)]
+    slot.send(b"123456", 7)
+    slot.send(b"7890", 7)   # exactly 10 bytes held
+    assert drops.drops == []
+    slot.send(b"x", 7)      # 11: the oldest goes
+    assert drops.drops == [(7, "queue_overflow")] and slot.waiting == 2
+    slot.discard("session_reset")
+    assert drops.drops[1:] == [(7, "session_reset")] * 2 and slot.waiting == 0
+    slot.close()
+    assert slot.send(b"late", 7) is False and drops.drops[-1] == (7, "link_down")

@@ -7,11 +7,14 @@ from .cipher import Cipher
 from .codec import Codec
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import hookimpl
-from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport, parse_host_port
+from .transport import (Address, DatagramEndpoint, SocketConnection, SocketListener,
+                        StreamConnection, StreamListener, Transport, check_ip_address,
+                        parse_host_port)
 
 __all__ = [
     "Address", "Cipher", "CipherError", "Codec", "CodecError", "ConfigError", "DatagramEndpoint",
-    "LinkError", "OptionError", "RosgateError", "StreamConnection", "StreamListener", "Transport",
-    "hookimpl", "parse_host_port",
+    "LinkError", "OptionError", "RosgateError", "SocketConnection", "SocketListener",
+    "StreamConnection", "StreamListener", "Transport",
+    "check_ip_address", "hookimpl", "parse_host_port",
 ]
 __version__ = "0.1.0"

@@ -1,23 +1,31 @@
 """The client role: connects its main line to the server, sends its topics, builds routes from
-the answer, and starts over when the main line is lost.
+the answer, and rides through the main line's losses.
 
 Stream topics without a port ride the main line; datagram topics without a port use the
 server's main port number on that transport. The client starts every connection, so it can sit
 behind NAT.
+
+Routes are built once, at the first welcome, and outlive the main line: datagram topics keep
+flowing while it is down (and the client keeps saying hello on them), and reliable topics on
+stream links wait in their :class:`LinkSlot`. After a reconnect the client sends its topic list
+again; a server that kept the session answers with the same topic ids and everything resumes.
+A server that restarted may answer with other ids: the routes are re-keyed, and frames that
+waited under the old ids are dropped (counted ``session_reset``), never sent under a wrong id.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import TYPE_CHECKING, Any
 
 from . import envelope
 from .config import topic_to_mapping
-from .errors import LinkError
-from .links import DatagramLink, Link, StreamLink
+from .errors import RosgateError
+from .links import DatagramLink, Link, LinkSlot, StreamLink
 from .mainline import HANDSHAKE_TIMEOUT, PROTOCOL, control, hello_datagram, parse_control
-from .roles import Connector, LinkSlot, Role
+from .roles import Connector, Role
 from .transport import Address
 
 if TYPE_CHECKING:
@@ -29,17 +37,19 @@ log = logging.getLogger("rosgate")
 class ClientRole(Role):
     def __init__(self, engine: Engine):
         super().__init__(engine)
-        self.main = LinkSlot(f"main->{self.cfg.server}")
+        self.main = engine.slot(f"main->{self.cfg.server}")
         self.session: int | None = None
         self.token = b""
         self.server_name: str | None = None
+        self.topic_ids: list[int] | None = None  # as the server numbered our topics
         self.connected = threading.Event()
         self.hello_to: set[tuple[DatagramLink, Address]] = set()  # every server port we use
+        self._dedicated: list[LinkSlot] = []
         self._welcome: dict[str, Any] | None = None
         self._answer = threading.Event()
         main = engine.transports[self.cfg.main_line]
         self.connector = Connector(engine, main, engine.main_address, self.main, self._on_main_frame,
-                                   self._handshake)
+                                   self._handshake, self._lost)
 
     def start(self) -> None:
         self.connector.start()
@@ -47,6 +57,12 @@ class ClientRole(Role):
         self._pinger.start()
 
     def stop(self) -> None:
+        link = self.main.current
+        if self.connected.is_set() and link is not None:
+            # a clean stop says goodbye, so the server drops our session now instead of keeping
+            # it for session_timeout in case we come back
+            link.send(control({"type": "bye"}), 0)
+            link.drain(1.0)
         self.connector.close()
         super().stop()
 
@@ -55,74 +71,124 @@ class ClientRole(Role):
             message = parse_control(frame)
             if message is None:
                 self.engine.link_drop(link, "bad_control", "unreadable control message")
-            elif message["type"] in ("welcome", "refused"):
+                return
+            link.last_heard = time.monotonic()  # type: ignore[attr-defined]
+            if message["type"] in ("welcome", "refused"):
                 self._welcome = message
                 self._answer.set()
             return
         self.engine.on_frame(frame, link, source)
 
     def _handshake(self, link: StreamLink) -> bool:
-        """Send our topics; build the routes from the server's answer."""
-        self._teardown()
+        """Send our topics; build (or re-key) the routes from the server's answer."""
         self._answer.clear()
         self._welcome = None
-        self.main.current = link
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
                            "topics": [topic_to_mapping(p.config) for p in self.engine.topics]}), 0)
-        if not self._answer.wait(HANDSHAKE_TIMEOUT) or self._welcome is None:
-            log.warning("%s: no answer to the handshake from %s", self.cfg.name, self.cfg.server)
+        if not self._await_answer(link) or self._welcome is None:
             return False
         answer = self._welcome
         if answer["type"] == "refused":
             log.error("%s: the server refused our topics: %s", self.cfg.name, answer.get("error"))
             return False
         try:
-            self._build(answer)
-        except (KeyError, TypeError, ValueError, LinkError) as exc:
+            ids = [int(i) for i in answer["topic_ids"]]
+            if len(ids) != len(self.engine.topics):
+                raise ValueError("topic id count does not match")
+            session, token = int(answer["session"]), bytes.fromhex(answer["token"])
+            self.server_name = str(answer["name"])
+            if self.topic_ids is None:
+                self._build(ids)
+            elif ids != self.topic_ids:
+                self._rekey(ids)
+        except (KeyError, TypeError, ValueError, RosgateError) as exc:
             log.error("%s: cannot use the server's answer: %s", self.cfg.name, exc)
-            self._teardown()
+            if self.topic_ids is None:
+                self._unbuild()  # half-built: the next handshake starts clean
             return False
-        log.info("%s: connected to server %r at %s", self.cfg.name, self.server_name, self.cfg.server)
+        if session != self.session:
+            self.session, self.token = session, token
+            for slot in self._dedicated:  # they must introduce themselves to the new session
+                if slot.current is not None:
+                    slot.current.fail("the server started a new session")
+        link.last_heard = time.monotonic()
         self.connected.set()
-        threading.Thread(target=self._watch, args=(link,), daemon=True).start()
+        self._say_hello()
+        log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
         return True
 
-    def _build(self, answer: dict[str, Any]) -> None:
+    def _await_answer(self, link: StreamLink) -> bool:
+        deadline = time.monotonic() + HANDSHAKE_TIMEOUT
+        while not self._answer.wait(0.1):
+            if link.closed.is_set() or self.engine.stopping.is_set():
+                return False
+            if time.monotonic() > deadline:
+                log.warning("%s: no answer to the handshake from %s", self.cfg.name,
+                            self.cfg.server)
+                return False
+        return True
+
+    def _lost(self, link: StreamLink) -> None:
+        self.connected.clear()
+        log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
+                    link.why or "main line closed")
+
+    def _build(self, ids: list[int]) -> None:
         engine = self.engine
-        ids = [int(i) for i in answer["topic_ids"]]
-        if len(ids) != len(engine.topics):
-            raise ValueError("topic id count does not match")
-        self.session = int(answer["session"])
-        self.token = bytes.fromhex(answer["token"])
-        self.server_name = str(answer["name"])
-        host, main_port = engine.main_address
+        main_reliable = []
         for p, topic_id in zip(engine.topics, ids):
             t = p.config
             label = f"{t.topic} ({'to' if t.direction == 'transmit' else 'from'} {self.server_name})"
             if p.transport.stream:
-                if t.port is None:
-                    link: Link = self.main
-                else:
-                    link = self._dedicated_stream(p, (host, t.port))
-                self.add(engine.make_route(p, topic_id, label, link))
+                slot = self.main if t.port is None else self._dedicated_stream(p)
+                route = self.add(engine.make_route(p, topic_id, label, slot))
+                if p.reliable and t.port is None:
+                    main_reliable.append(route)
+                elif p.reliable:
+                    slot.reliable = [route]
             else:
-                to = (host, t.port or main_port)
-                link = self.datagram_link(p.transport, ("::" if ":" in host else "0.0.0.0", 0))
-                self.add(engine.make_route(p, topic_id, label, link, lambda to=to: to))
-                self.hello_to.add((link, to))
-        self._say_hello()
+                link = self.datagram_link(p.transport, ("::" if ":" in p.address[0] else "0.0.0.0", 0))
+                self.add(engine.make_route(p, topic_id, label, link,
+                                           lambda to=p.address: to))  # type: ignore[misc]
+                self.hello_to.add((link, p.address))
+        self.main.reliable = main_reliable
+        self.topic_ids = ids
 
-    def _dedicated_stream(self, p: Prepared, address: Address) -> LinkSlot:
-        slot = LinkSlot(f"{p.config.transport}->{address[0]}:{address[1]}")
+    def _unbuild(self) -> None:
+        super().stop()
+        for slot in self._dedicated:
+            slot.close()  # its connector ends with it
+        self._dedicated.clear()
+        with self._lock:
+            links = list(self.datagram_links.values())
+            self.datagram_links.clear()
+            self.hello_to.clear()
+        for link in links:
+            link.close()
+            self.engine.forget(link)
+
+    def _rekey(self, ids: list[int]) -> None:
+        """The server numbered our topics anew (it restarted): same routes, new ids."""
+        renumber = dict(zip(self.topic_ids or [], ids))
+        for slot in [self.main, *self._dedicated]:
+            slot.discard("session_reset")
+        for route in self.routes():
+            self.engine.renumber(route, renumber[route.topic_id])
+        self.topic_ids = ids
+
+    def _dedicated_stream(self, p: Prepared) -> LinkSlot:
+        address = p.address
+        slot = self.engine.slot(f"{p.config.transport}->{address[0]}:{address[1]}")
 
         def introduce(link: StreamLink) -> bool:
-            assert self.session is not None
+            # a session the server kept takes the hello even while the main line is down; a
+            # new session makes the handshake recycle this connection
+            if self.session is None:
+                return False  # wait for the first handshake
             return link.send(hello_datagram(self.session, self.token), 0)
 
-        connector = Connector(self.engine, p.transport, address, slot, self.engine.on_frame,
-                              introduce)
-        connector.start()
-        self._extra.append(connector)
+        Connector(self.engine, p.transport, address, slot, self.engine.on_frame, introduce).start()
+        self._dedicated.append(slot)
         return slot
 
     def _say_hello(self) -> None:
@@ -132,27 +198,16 @@ class ClientRole(Role):
         for link, to in list(self.hello_to):
             link.send(hello, 0, to)
 
-    def _watch(self, link: StreamLink) -> None:
-        link.closed.wait()
-        if not self.engine.stopping.is_set():
-            log.warning("%s: main line to %s lost; reconnecting", self.cfg.name, self.cfg.server)
-        self.connected.clear()
-        self._teardown()
-
     def _ping_loop(self) -> None:
+        """Heartbeat on the main line, and liveness: a server silent for ``peer_timeout`` is
+        declared down and its connection recycled (a stalled TCP connection never ends alone).
+        Datagram hellos go on while the main line is down, so the server keeps our address."""
         while not self.engine.stopping.wait(self.cfg.heartbeat):
-            if self.connected.is_set():
-                self.main.send(control({"type": "ping"}), 0)
-                self._say_hello()
-
-    def _teardown(self) -> None:
-        for connector in getattr(self, "_extra", []):
-            connector.close()
-        self._extra: list[Connector] = []
-        super().stop()
-        with self._lock:
-            links = list(self.datagram_links.values())
-            self.datagram_links.clear()
-            self.hello_to.clear()
-        for link in links:
-            link.close()
+            link = self.main.current
+            if self.connected.is_set() and link is not None and not link.closed.is_set():
+                silence = time.monotonic() - link.last_heard
+                if silence > self.cfg.peer_timeout:
+                    link.fail(f"silent for {silence:.1f} s")
+                    continue
+                link.send(control({"type": "ping"}), 0)
+            self._say_hello()

@@ -31,6 +31,10 @@ TIMEOUT_DEFAULT = 5.0
 STALE_AFTER_DEFAULT = 15.0
 STALE_WARNINGS_DEFAULT = 5
 HEARTBEAT_DEFAULT = 1.0
+PEER_TIMEOUT_HEARTBEATS = 3       # default bridge.peer_timeout, in heartbeats
+SESSION_TIMEOUT_DEFAULT = 60.0
+RECONNECT_MIN_DEFAULT, RECONNECT_MAX_DEFAULT = 0.1, 10.0
+QUEUE_FRAMES_DEFAULT, QUEUE_BYTES_DEFAULT = 1000, 8 * 1024 * 1024
 
 ROLES = ("client", "server", "peer")
 DIRECTIONS = ("transmit", "receive")
@@ -45,8 +49,10 @@ QOS_POLICIES = {
 
 TOP_KEYS = ("bridge", "plugins", "topics", "services")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
-               "stale_warnings", "heartbeat")
+               "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue")
 DEFAULTS_KEYS = ("transport", "codec", "cipher")
+RECONNECT_KEYS = ("min", "max")
+QUEUE_KEYS = ("frames", "bytes")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
               "framing", "qos", "max_rate")
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
@@ -60,7 +66,10 @@ _EXAMPLES = {
     "defaults": "{transport: udp, codec: cdr, cipher: none}",
     "name": "robot1", "role": "client", "server": "127.0.0.1:12000", "main_line": "tcp",
     "peer": "192.168.1.20", "listen": "0.0.0.0", "stale_after": "15", "stale_warnings": "5",
-    "heartbeat": "1.0", "transport": "udp", "codec": "cdr", "cipher": "none",
+    "heartbeat": "1.0", "peer_timeout": "3.0", "session_timeout": "60",
+    "reconnect": "{min: 0.1, max: 10}", "queue": "{frames: 1000, bytes: 8388608}",
+    "bridge.reconnect.min": "0.1", "bridge.reconnect.max": "10", "bridge.queue.frames": "1000",
+    "bridge.queue.bytes": "8388608", "transport": "udp", "codec": "cdr", "cipher": "none",
     "topic": "/chatter", "service": "/mcu/ping", "type": "std_msgs/msg/String",
     "services.type": "std_srvs/srv/Trigger", "services.remote": "/ping",
     "direction": "transmit (this side to the peer) or receive (the peer to this side)",
@@ -125,6 +134,12 @@ class BridgeConfig:
     stale_after: float = STALE_AFTER_DEFAULT
     stale_warnings: int = STALE_WARNINGS_DEFAULT
     heartbeat: float = HEARTBEAT_DEFAULT
+    peer_timeout: float = HEARTBEAT_DEFAULT * PEER_TIMEOUT_HEARTBEATS
+    session_timeout: float = SESSION_TIMEOUT_DEFAULT
+    reconnect_min: float = RECONNECT_MIN_DEFAULT
+    reconnect_max: float = RECONNECT_MAX_DEFAULT
+    queue_frames: int = QUEUE_FRAMES_DEFAULT
+    queue_bytes: int = QUEUE_BYTES_DEFAULT
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
     services: list[ServiceConfig] = field(default_factory=list)
@@ -300,6 +315,16 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
     role = _choice(src, bridge, "bridge", "role", ROLES)
     _check_role(src, data, bridge, role)
     defaults = _defaults(src, bridge)
+    heartbeat = _number(src, bridge, "bridge", "heartbeat", HEARTBEAT_DEFAULT, "a number > 0", _positive)
+    peer_timeout = _number(src, bridge, "bridge", "peer_timeout",
+                           heartbeat * PEER_TIMEOUT_HEARTBEATS, "a number of seconds > 0", _positive)
+    if peer_timeout <= heartbeat:
+        raise src.error("bridge.peer_timeout", f"{peer_timeout:g} s is not longer than the heartbeat "
+                        f"({heartbeat:g} s): every peer would be declared down between two pings",
+                        fix=f"e.g. peer_timeout: {heartbeat * PEER_TIMEOUT_HEARTBEATS:g} "
+                            "(three heartbeats)")
+    reconnect_min, reconnect_max = _reconnect(src, bridge)
+    queue_frames, queue_bytes = _queue(src, bridge)
     return BridgeConfig(
         file=src.file,
         name=name,
@@ -313,8 +338,14 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
                             _positive),
         stale_warnings=_number(src, bridge, "bridge", "stale_warnings", STALE_WARNINGS_DEFAULT,
                                "an integer >= 0", lambda v: v >= 0, integer=True),
-        heartbeat=_number(src, bridge, "bridge", "heartbeat", HEARTBEAT_DEFAULT, "a number > 0",
-                          _positive),
+        heartbeat=heartbeat,
+        peer_timeout=peer_timeout,
+        session_timeout=_number(src, bridge, "bridge", "session_timeout", SESSION_TIMEOUT_DEFAULT,
+                                "a number of seconds > 0", _positive),
+        reconnect_min=reconnect_min,
+        reconnect_max=reconnect_max,
+        queue_frames=queue_frames,
+        queue_bytes=queue_bytes,
         plugins=_plugins(src, data),
         topics=_entries(src, data, "topics", role, defaults),
         services=_entries(src, data, "services", role, defaults),
@@ -365,6 +396,30 @@ def _defaults(src: _Source, bridge: dict) -> dict[str, str]:
         "codec": _text(src, given, "bridge.defaults", "codec", CODEC_DEFAULT),
         "cipher": _text(src, given, "bridge.defaults", "cipher", CIPHER_DEFAULT),
     }
+
+
+def _reconnect(src: _Source, bridge: dict) -> tuple[float, float]:
+    """Backoff between reconnection attempts: from min, doubling, capped at max (seconds)."""
+    given = _section(src, bridge, "bridge", "reconnect")
+    _check_keys(src, given, "bridge.reconnect", RECONNECT_KEYS)
+    low = _number(src, given, "bridge.reconnect", "min", RECONNECT_MIN_DEFAULT,
+                  "a number of seconds > 0", _positive)
+    high = _number(src, given, "bridge.reconnect", "max", max(low, RECONNECT_MAX_DEFAULT),
+                   "a number of seconds > 0", _positive)
+    if high < low:
+        raise src.error("bridge.reconnect.max", f"max ({high:g} s) is below min ({low:g} s)",
+                        fix="make max at least min, e.g. reconnect: {min: 0.1, max: 10}")
+    return low, high
+
+
+def _queue(src: _Source, bridge: dict) -> tuple[int, int]:
+    """What reliable topics on a stream link may hold while the link is down."""
+    given = _section(src, bridge, "bridge", "queue")
+    _check_keys(src, given, "bridge.queue", QUEUE_KEYS)
+    return (_number(src, given, "bridge.queue", "frames", QUEUE_FRAMES_DEFAULT, "an integer >= 0",
+                    lambda v: v >= 0, integer=True),
+            _number(src, given, "bridge.queue", "bytes", QUEUE_BYTES_DEFAULT, "an integer >= 0",
+                    lambda v: v >= 0, integer=True))
 
 
 def _plugins(src: _Source, data: dict) -> dict[str, dict]:

@@ -25,9 +25,9 @@ from .codec import Codec
 from .config import BridgeConfig, TopicConfig
 from .envelope import topic_id_for
 from .errors import ConfigError, LinkError, OptionError
-from .links import Link
+from .links import Link, LinkSlot, QueueLimits
 from .plugins import Plugins
-from .ros import RosNode, TypeNotFound, qos_profile, resolve_type
+from .ros import RosNode, TypeNotFound, is_reliable, qos_profile, resolve_type
 from .routes import ReceiveRoute, Route, TransmitRoute, Warner
 from .transport import Address, Transport
 
@@ -46,6 +46,8 @@ class Prepared:
     transport: Transport
     cipher: Cipher
     index: int  # position in the file (or in the client's list), for error messages
+    address: Address  # the far side; a peer's receiving topic: where to listen
+    reliable: bool  # frames wait out a stream link's loss (reliable QoS)
 
 
 class Engine:
@@ -62,6 +64,7 @@ class Engine:
         self.link_drops: dict[str, int] = {}
         self.ros: RosNode | None = None
         self.stopping = threading.Event()
+        self.queue_limits = QueueLimits(config.queue_frames, config.queue_bytes)
         self._closables: dict[int, Any] = {}  # id -> object, in opening order
         self._lock = threading.RLock()
         self._role: Any = None
@@ -104,7 +107,28 @@ class Engine:
             raise error(f"{key}.port", f"a topic on {topic.transport} needs a port of its own "
                         f"(only {self.config.main_line} topics ride the main line)",
                         "add port: <number>")
-        return Prepared(topic, msg_type, codec_cls, transport, cipher, index)
+        address = self.topic_address(transport, topic, key, error)
+        return Prepared(topic, msg_type, codec_cls, transport, cipher, index, address,
+                        is_reliable(topic.qos))
+
+    def topic_address(self, transport: Transport, topic: TopicConfig, key: str,
+                      error: Callable[..., ConfigError]) -> Address:
+        """The address a topic's link uses, from the bridge's hosts and the topic's port, as its
+        transport accepts it (an RFCOMM channel is not any port)."""
+        cfg = self.config
+        if cfg.role == "peer":
+            host = cfg.listen if topic.direction == "receive" else cfg.peer
+            where = "bridge.listen" if topic.direction == "receive" else "bridge.peer"
+        else:
+            host = self.main_address[0]
+            where = "bridge.server"
+        port = topic.port or self.main_address[1]
+        try:
+            return transport.check_address((host or "", port))
+        except ValueError as exc:
+            raise error(f"{key}.port" if topic.port else where, str(exc),
+                        f"this topic's {topic.transport} address is {where} with port {port}") \
+                from None
 
     def _check_shared_ports(self, topics: list[Prepared]) -> None:
         """Topics that share a receiving port must be told apart on it."""
@@ -165,9 +189,13 @@ class Engine:
 
     def address(self, transport: Transport, text: str | None, key: str) -> Address:
         try:
-            return transport.parse_address(text or "")
+            return transport.check_address(transport.parse_address(text or ""))
         except ValueError as exc:
             raise self.config.error(key, str(exc)) from None
+
+    def slot(self, name: str) -> LinkSlot:
+        """A place for a stream link that reconnects; reliable frames wait in it while it is down."""
+        return LinkSlot(name, self.on_drop, self.queue_limits)
 
     def _option_error(self, plugin: str, exc: OptionError, asked_by: str) -> ConfigError:
         """Locate a plugin's complaint at its option, or, when the file has no options for the
@@ -255,6 +283,15 @@ class Engine:
                     self.receivers[topic_id] = route
         return route
 
+    def renumber(self, route: Route, topic_id: int) -> None:
+        """Give a route the id a restarted server chose for it."""
+        with self._lock:
+            if self.receivers.get(route.topic_id) is route:
+                del self.receivers[route.topic_id]
+            route.topic_id = topic_id
+            if isinstance(route, ReceiveRoute) and route.topic.framing != "none":
+                self.receivers[topic_id] = route
+
     def remove_route(self, route: Route) -> None:
         with self._lock:
             if self.receivers.get(route.topic_id) is route:
@@ -339,7 +376,8 @@ class Engine:
         for route in self.routes():
             c = route.counters
             drops = ", ".join(f"{k}={v}" for k, v in sorted(c.drops.items())) or "none"
-            log.info("%s: sent %d (%d B), received %d (%d B), drops: %s", route.label, c.sent,
-                     c.bytes_sent, c.received, c.bytes_received, drops)
+            lost = f", lost on the way {c.lost}" if c.lost else ""
+            log.info("%s: sent %d (%d B), received %d (%d B)%s, drops: %s", route.label, c.sent,
+                     c.bytes_sent, c.received, c.bytes_received, lost, drops)
         if self.link_drops:
             log.info("frames for no topic: %s", self.link_drops)

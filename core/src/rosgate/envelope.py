@@ -91,6 +91,11 @@ class ReplayWindow:
         # is age order, so the first entry is the one to forget.
         self._windows: dict[int, list[int]] = {}
 
+    def top(self, epoch: int) -> int | None:
+        """The highest sequence number accepted in ``epoch`` (None: none yet)."""
+        window = self._windows.get(epoch)
+        return window[0] if window is not None else None
+
     def accept(self, epoch: int, seq: int) -> str | None:
         """None when the frame is new, else why it is refused ("duplicate" or "stale")."""
         window = self._windows.get(epoch)

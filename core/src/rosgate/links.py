@@ -7,6 +7,9 @@ transport plugin only opens sockets.
   mode (``framing: none``) it hands over the datagram untouched.
 * :class:`StreamLink` — one connection; frames carry a length prefix. Sending never blocks the
   caller: frames wait in a bounded queue for a writer thread.
+* :class:`LinkSlot` — a place for a stream link that comes and goes (reconnects). While it is
+  empty, frames of reliable topics wait in a bounded queue and leave in order when a connection
+  is attached; frames of other topics are dropped.
 * :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``.
 
 Every receive loop catches what a peer's bytes can cause and counts it; a link never dies of input.
@@ -17,8 +20,10 @@ from __future__ import annotations
 import itertools
 import logging
 import threading
+import time
 from collections import deque
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, Collection
 
 from . import envelope, framing
 from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport
@@ -152,10 +157,15 @@ class StreamLink(Link):
         self.on_drop = on_drop
         self.on_close = on_close
         self.closed = threading.Event()
+        # for liveness: the main line's roles set it on every control message (a heartbeat), not
+        # on bytes, so a stream that lost its frame boundaries does not look alive
+        self.last_heard = time.monotonic()
+        self.why = ""  # why the connection ended, once it has
         self.queue_frames = queue_frames
         self.queue_bytes = queue_bytes
         self._queue: deque[tuple[bytes, int]] = deque()
         self._queued_bytes = 0
+        self._writing = False  # the writer holds a batch not yet written
         self._wake = threading.Condition()
         self._reader = framing.StreamReader(max_message)
         self._threads = [
@@ -183,6 +193,8 @@ class StreamLink(Link):
     def _send_loop(self) -> None:
         while True:
             with self._wake:
+                self._writing = False
+                self._wake.notify_all()  # for drain()
                 while not self._queue and not self.closed.is_set():
                     self._wake.wait()
                 if self.closed.is_set():
@@ -191,20 +203,27 @@ class StreamLink(Link):
                 batch = list(self._queue)
                 self._queue.clear()
                 self._queued_bytes = 0
+                self._writing = True
             try:
                 self.connection.send(b"".join(record for record, _ in batch))
             except OSError as exc:
                 for _, topic_id in batch:
                     self.on_drop(topic_id, "link_down")
-                self._fail(f"send failed: {exc}")
+                self.fail(f"send failed: {exc}")
                 return
+
+    def drain(self, timeout: float) -> bool:
+        """Wait until everything sent so far is written (a last word before closing)."""
+        with self._wake:
+            return self._wake.wait_for(
+                lambda: not self._queue and not self._writing or self.closed.is_set(), timeout)
 
     def _receive_loop(self) -> None:
         while not self.closed.is_set():
             try:
                 data = self.connection.receive(1 << 20, POLL)
             except OSError as exc:
-                self._fail(f"receive failed: {exc}")
+                self.fail(f"receive failed: {exc}")
                 return
             except Exception as exc:  # a transport plugin's bug: drop this connection, loudly
                 log.exception("%s: the transport's receive failed (a bug in the plugin)", self.name)
@@ -214,7 +233,7 @@ class StreamLink(Link):
             if data is None:
                 continue
             if not data:
-                self._fail("closed by peer")
+                self.fail("closed by peer")
                 return
             try:
                 for frame in self._reader.feed(data):
@@ -222,12 +241,14 @@ class StreamLink(Link):
             except framing.FramingError as exc:
                 # a corrupt length means we can no longer find frame boundaries: start afresh
                 self.on_drop(None, "bad_length")
-                self._fail(f"stream corrupt ({exc})")
+                self.fail(f"stream corrupt ({exc})")
                 return
 
-    def _fail(self, why: str) -> None:
+    def fail(self, why: str) -> None:
+        """End the connection for a reason worth logging (lost, corrupt, silent)."""
         if self.closed.is_set():
             return
+        self.why = why
         log.info("%s: connection to %s ended: %s", self.name, self.peer, why)
         self.close()
 
@@ -248,6 +269,82 @@ class StreamLink(Link):
                 thread.join(timeout=2)
         if self.on_close:
             self.on_close(self)
+
+
+@dataclass(frozen=True)
+class QueueLimits:
+    """How much a :class:`LinkSlot` holds for reliable topics while it has no connection."""
+
+    frames: int
+    bytes: int
+
+
+class LinkSlot(Link):
+    """A stream link that comes and goes. A :class:`Connector` (or a server that accepted the
+    peer again) :meth:`attach`-es each new connection.
+
+    While there is no live connection, frames of the topics in :attr:`reliable` wait, oldest
+    dropped first when the limits are reached (counted ``queue_overflow``), and are handed to the
+    next connection in order, before anything sent later. Other frames are counted ``link_down``.
+    Frames already handed to a connection that then fails are not taken back (there are no
+    acknowledgements): a connection's loss can cost what was in flight.
+    """
+
+    def __init__(self, name: str, on_drop: DropHandler, limits: QueueLimits):
+        self.name = name
+        self.on_drop = on_drop
+        self.limits = limits
+        self.current: StreamLink | None = None
+        #: routes whose frames wait for the link (looked up by topic id when the link is down)
+        self.reliable: Collection = ()
+        self.closed = threading.Event()
+        self._waiting: deque[tuple[bytes, int]] = deque()
+        self._waiting_bytes = 0
+        self._lock = threading.Lock()  # keeps sends and the flush of the queue in order
+
+    def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
+        with self._lock:
+            link = self.current
+            if link is not None and not link.closed.is_set():
+                return link.send(frame, topic_id)
+            if self.closed.is_set() or not any(r.topic_id == topic_id for r in self.reliable):
+                self.on_drop(topic_id, "link_down")
+                return False
+            self._waiting.append((frame, topic_id))
+            self._waiting_bytes += len(frame)
+            while self._waiting and (len(self._waiting) > self.limits.frames
+                                     or self._waiting_bytes > self.limits.bytes):
+                old, old_topic = self._waiting.popleft()
+                self._waiting_bytes -= len(old)
+                self.on_drop(old_topic, "queue_overflow")
+            return True
+
+    def attach(self, link: StreamLink) -> None:
+        """Use ``link`` from now on; what waited goes first."""
+        with self._lock:
+            while self._waiting:
+                frame, topic_id = self._waiting.popleft()
+                link.send(frame, topic_id)
+            self._waiting_bytes = 0
+            self.current = link
+
+    def discard(self, reason: str) -> None:
+        """Drop what waits (its topic ids mean nothing to a new session), counted by ``reason``."""
+        with self._lock:
+            for _, topic_id in self._waiting:
+                self.on_drop(topic_id, reason)
+            self._waiting.clear()
+            self._waiting_bytes = 0
+
+    @property
+    def waiting(self) -> int:
+        return len(self._waiting)
+
+    def close(self) -> None:
+        self.closed.set()
+        self.discard("link_down")
+        if self.current is not None:
+            self.current.close()
 
 
 class Acceptor:
@@ -275,6 +372,8 @@ class Acceptor:
                 self.on_connection(*got)
 
     def close(self) -> None:
+        if self.closed.is_set():
+            return
         self.closed.set()
         self.listener.close()
         self._thread.join(timeout=2)

@@ -3,7 +3,8 @@
 Control messages are frames on topic 0 with the CONTROL flag and a JSON body — JSON, not
 pickle: a peer's bytes never become code. The client sends ``hello`` (its name and topics); the
 server answers ``welcome`` (its name, a session id and token, one topic id per topic) or
-``refused`` (why). Both sides send ``ping`` every ``heartbeat`` seconds.
+``refused`` (why). Both sides send ``ping`` every ``heartbeat`` seconds. A client that stops
+cleanly sends ``bye``: the server drops its session at once.
 
 A client also says hello on every datagram link and dedicated stream it uses (a HELLO-flagged
 envelope with its session id and token), so the server learns where to send, even through NAT.

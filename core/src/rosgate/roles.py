@@ -15,9 +15,9 @@ import random
 import threading
 from typing import TYPE_CHECKING, Callable
 
-from .envelope import topic_id_for
+from .envelope import Header, topic_id_for
 from .errors import LinkError
-from .links import Acceptor, DatagramLink, Link, StreamLink
+from .links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
 from .routes import ReceiveRoute, Route, TransmitRoute
 from .transport import Address, StreamConnection, Transport
 
@@ -27,7 +27,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("rosgate")
 
 CONNECT_TIMEOUT = 5.0
-BACKOFF_MAX = 10.0
 
 
 class Role:
@@ -43,6 +42,10 @@ class Role:
         self._lock = threading.RLock()
 
     def start(self) -> None: ...
+
+    def on_hello(self, header: Header, frame: bytes, link: Link, source: Address) -> None:
+        """Only a server takes hellos; elsewhere a hello is a damaged or foreign frame."""
+        self.engine.link_drop(link, "unexpected_hello", f"from {source}")
 
     def stop(self) -> None:
         for route in self._routes:
@@ -116,10 +119,10 @@ class PeerRole(Role):
             label = t.topic
             assert t.port is not None
             if p.transport.stream:
-                self._start_stream(p, listen, key)
+                self._start_stream(p, key)
                 continue
             if t.direction == "receive":
-                link = self.datagram_link(p.transport, (listen, t.port), t.framing == "none", key)
+                link = self.datagram_link(p.transport, p.address, t.framing == "none", key)
                 route = engine.make_route(p, topic_id_for(t.remote), label, link)
                 if t.framing == "none":
                     for name in {t.topic, t.remote}:
@@ -130,24 +133,23 @@ class PeerRole(Role):
                     engine.receivers[topic_id_for(t.topic)] = route  # type: ignore[assignment]
             else:
                 link = self.datagram_link(p.transport, (listen, 0), False, key)
-                to = (cfg.peer or "", t.port)
-                route = engine.make_route(p, topic_id_for(t.remote), label, link, lambda to=to: to)
+                route = engine.make_route(p, topic_id_for(t.remote), label, link,
+                                          lambda to=p.address: to)
             self.add(route)
 
-    def _start_stream(self, p: Prepared, listen: str, key: str) -> None:
+    def _start_stream(self, p: Prepared, key: str) -> None:
         t = p.config
-        assert t.port is not None
         if t.direction == "receive":
             route = self.engine.make_route(p, topic_id_for(t.remote), t.topic, _NoLink())
             if t.topic != t.remote:
                 self.engine.receivers[topic_id_for(t.topic)] = route  # type: ignore[assignment]
             self.add(route)
-            self._listen(p.transport, (listen, t.port), key)
+            self._listen(p.transport, p.address, key)
         else:
-            slot = LinkSlot(f"{t.transport}->{self.cfg.peer}:{t.port}")
-            self.add(self.engine.make_route(p, topic_id_for(t.remote), t.topic, slot))
-            Connector(self.engine, p.transport, (self.cfg.peer or "", t.port), slot,
-                      self.engine.on_frame).start()
+            slot = self.engine.slot(f"{t.transport}->{self.cfg.peer}:{t.port}")
+            route = self.add(self.engine.make_route(p, topic_id_for(t.remote), t.topic, slot))
+            slot.reliable = [route] if p.reliable else []
+            Connector(self.engine, p.transport, p.address, slot, self.engine.on_frame).start()
 
     def _listen(self, transport: Transport, local: Address, key: str) -> None:
         if (transport.name, local) in self.listening:
@@ -159,26 +161,6 @@ class PeerRole(Role):
         self.listening.add((transport.name, local))
         self.engine.closing(Acceptor(listener, f"{transport.name}:{local[1]}",
                                      self.accept_into(self.engine.on_frame, transport, local[1])))
-
-class LinkSlot(Link):
-    """A stand-in for a stream link that comes and goes (connects, reconnects)."""
-
-    def __init__(self, name: str):
-        self.name = name
-        self.current: StreamLink | None = None
-        self.closed = threading.Event()
-
-    def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
-        link = self.current
-        if link is None or link.closed.is_set():
-            return False
-        return link.send(frame, topic_id, to)
-
-    def close(self) -> None:
-        self.closed.set()
-        if self.current is not None:
-            self.current.close()
-
 
 class _NoLink(Link):
     """A receive route's link: frames come in through the engine, nothing goes out."""
@@ -195,17 +177,26 @@ class _NoLink(Link):
 
 
 class Connector:
-    """Keeps a stream connection up: connect, and after a loss reconnect with capped backoff."""
+    """Keeps a stream connection up: connects, and after every loss reconnects by itself.
+
+    Attempts are spaced by capped exponential backoff with jitter (``bridge.reconnect``: from
+    ``min`` seconds, doubling up to ``max``), so a fleet of clients does not hammer a server that
+    comes back. After a connection that worked is lost, the next attempt is immediate.
+    ``on_connected(link)`` may refuse a connection (a failed handshake), which counts as a failed
+    attempt; ``on_lost(link)`` hears of every accepted connection that ended.
+    """
 
     def __init__(self, engine: Engine, transport: Transport, address: Address, slot: LinkSlot,
                  on_frame: Callable[[bytes, Link, Address], None],
-                 on_connected: Callable[[StreamLink], bool] | None = None):
+                 on_connected: Callable[[StreamLink], bool] | None = None,
+                 on_lost: Callable[[StreamLink], None] | None = None):
         self.engine = engine
         self.transport = transport
         self.address = address
         self.slot = slot
         self.on_frame = on_frame
         self.on_connected = on_connected
+        self.on_lost = on_lost
         self.connected = threading.Event()
         self._thread = threading.Thread(target=self._loop, name=f"connect-{slot.name}", daemon=True)
         engine.closing(self)
@@ -214,33 +205,42 @@ class Connector:
         self._thread.start()
 
     def _loop(self) -> None:
-        delay = 0.1
+        cfg = self.engine.config
         stopping = self.engine.stopping
+        failures = 0
         while not stopping.is_set() and not self.slot.closed.is_set():
-            try:
-                connection = self.transport.connect(self.address, CONNECT_TIMEOUT)
-            except OSError as exc:
-                log.debug("%s: connect failed: %s", self.slot.name, exc)
+            link = self._connect()
+            if link is None:
+                failures += 1
+                delay = min(cfg.reconnect_min * 2 ** (failures - 1), cfg.reconnect_max)
                 stopping.wait(delay * random.uniform(0.5, 1.0))
-                delay = min(delay * 2, BACKOFF_MAX)
                 continue
-            link = StreamLink(connection, self.slot.name, self.address, self.on_frame,
-                              self.engine.on_drop, on_close=self.engine.forget)
-            if self.on_connected is not None and not self.on_connected(link):
-                link.close()
-                stopping.wait(delay)
-                delay = min(delay * 2, BACKOFF_MAX)
-                continue
-            self.slot.current = link
+            failures = 0
+            self.slot.attach(link)
             self.connected.set()
-            delay = 0.1
             while not link.closed.wait(0.5):
                 if stopping.is_set() or self.slot.closed.is_set():
                     break
             self.connected.clear()
             link.close()
+            if self.on_lost is not None and not stopping.is_set():
+                self.on_lost(link)
+
+    def _connect(self) -> StreamLink | None:
+        """One attempt: a connection its owner accepted, or None."""
+        try:
+            connection = self.transport.connect(self.address, CONNECT_TIMEOUT)
+        except (OSError, LinkError) as exc:
+            log.debug("%s: connect failed: %s", self.slot.name, exc)
+            return None
+        link = StreamLink(connection, self.slot.name, self.address, self.on_frame,
+                          self.engine.on_drop, on_close=self.engine.forget)
+        if self.on_connected is not None and not self.on_connected(link):
+            link.close()
+            return None
+        return link
 
     def close(self) -> None:
         self.slot.close()
-        if self._thread.is_alive():
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
             self._thread.join(timeout=3)

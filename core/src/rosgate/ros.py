@@ -69,6 +69,14 @@ def qos_profile(spec: int | str | dict) -> Any:
     return profile
 
 
+def is_reliable(spec: int | str | dict) -> bool:
+    """Whether a topic's frames wait out a link loss: unless its QoS says best effort (the
+    system default and best-available profiles are reliable with every shipped RMW)."""
+    from rclpy import qos
+
+    return qos_profile(spec).reliability != qos.ReliabilityPolicy.BEST_EFFORT
+
+
 class RosNode:
     """A node in a context of its own, spun in a background thread."""
 

@@ -41,11 +41,13 @@ class Counters:
     received: int = 0
     bytes_sent: int = 0
     bytes_received: int = 0
+    lost: int = 0  # sequence numbers skipped by the sender's frames and never filled in
     drops: Counter = field(default_factory=Counter)
 
     def snapshot(self) -> dict[str, Any]:
         return {"sent": self.sent, "received": self.received, "bytes_sent": self.bytes_sent,
-                "bytes_received": self.bytes_received, "drops": dict(self.drops)}
+                "bytes_received": self.bytes_received, "lost": self.lost,
+                "drops": dict(self.drops)}
 
 
 class Warner:
@@ -151,7 +153,12 @@ class ReceiveRoute(Route):
             self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
             return
         with self._lock:
+            top = self.window.top(header.epoch)
             refused = self.window.accept(header.epoch, header.seq)
+            if not refused and top is not None:
+                # losses on the way: a jump over sequence numbers counts them, and a late frame
+                # (reordered) that fills a gap takes one back
+                self.counters.lost += header.seq - top - 1 if header.seq > top else -1
         if refused:
             self.drop(refused)
             return

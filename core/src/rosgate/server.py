@@ -1,5 +1,13 @@
 """The server role: accepts many clients; each client's topics become a :class:`Session` of
-routes, removed when the client goes.
+routes.
+
+A session outlives its main line. When the connection is lost (or falls silent for
+``peer_timeout``) the session is kept, by the client's name, for ``session_timeout`` seconds:
+its datagram routes keep working and frames of reliable topics for the client wait. A client
+that says hello again under the same name with the same topics gets the same session back —
+same topic ids, its waiting frames first; with other topics, the old session is dropped and a
+new one made. Topic ids are derived from the client's name and the topic, so even a restarted
+server gives a returning client the ids it had.
 """
 
 from __future__ import annotations
@@ -7,13 +15,15 @@ from __future__ import annotations
 import logging
 import os
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from . import envelope
 from .config import topic_from_mapping
 from .errors import ConfigError, LinkError
-from .links import Acceptor, DatagramLink, Link, StreamLink
+from .envelope import topic_id_for
+from .links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
 from .mainline import PROTOCOL, control, flipped, parse_control
 from .roles import Role
 from .routes import Route, TransmitRoute
@@ -27,15 +37,21 @@ log = logging.getLogger("rosgate")
 
 @dataclass
 class Session:
-    """One connected client, as the server sees it."""
+    """One client, as the server sees it, connected or not."""
 
     id: int
     token: bytes
     name: str
-    main: StreamLink
+    topics: list[Any]  # the client's topic list, as it sent it
+    main: LinkSlot
     routes: list[Route] = field(default_factory=list)
     addresses: dict[DatagramLink, Address] = field(default_factory=dict)
-    streams: dict[int, StreamLink] = field(default_factory=dict)  # port -> dedicated connection
+    streams: dict[int, LinkSlot] = field(default_factory=dict)  # port -> dedicated connection
+    down_since: float | None = None  # monotonic time the main line was lost; None while up
+
+    def close(self) -> None:
+        for slot in [self.main, *self.streams.values()]:
+            slot.close()
 
 
 class ServerRole(Role):
@@ -50,11 +66,12 @@ class ServerRole(Role):
             listener = main.listen(self.engine.main_address)
         except LinkError as exc:
             raise self.engine.bind_error(exc, "bridge.server") from None
-        self.engine.closing(Acceptor(listener, f"main:{self.engine.main_address[1]}",
-                                     self._accepted))
+        self.acceptor = self.engine.closing(Acceptor(listener, f"main:{self.engine.main_address[1]}",
+                                                     self._accepted))
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
 
     def stop(self) -> None:
+        self.acceptor.close()  # first: no client may come back while its session is ended
         for session in list(self.sessions.values()):
             self._end(session)
         super().stop()
@@ -76,10 +93,16 @@ class ServerRole(Role):
                 message = parse_control(frame)
                 if message is None:
                     self.engine.link_drop(link, "bad_control", f"from {source}")
-                elif message["type"] == "hello" and session is None:
+                    return
+                link.last_heard = time.monotonic()  # type: ignore[attr-defined]
+                if message["type"] == "hello" and session is None:
                     session = self._welcome(message, link, peer)  # type: ignore[arg-type]
                     if session is not None:
                         holder["session"] = session
+                elif (message["type"] == "bye" and session is not None
+                      and session.main.current is link):
+                    log.info("client %r left", session.name)
+                    self._end(session)
                 return
             if session is None:
                 self.engine.link_drop(link, "before_handshake", f"data from {source}")
@@ -89,40 +112,66 @@ class ServerRole(Role):
         def on_close(link: StreamLink) -> None:
             self.engine.forget(link)
             session = holder.get("session")
-            if session is not None and session.main is link:
-                log.info("client %r left", session.name)
-                self._end(session)
+            if session is not None and session.main.current is link and session.id in self.sessions:
+                session.down_since = time.monotonic()
+                log.warning("client %r down (%s); keeping its session for %g s", session.name,
+                            link.why or "main line closed", self.cfg.session_timeout)
 
         self.engine.closing(StreamLink(connection, f"main<-{peer[0]}:{peer[1]}", peer, on_frame,
                                        self.engine.on_drop, on_close))
 
     def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address) -> Session | None:
         name = str(hello.get("name", "?"))
+        session = self._resume(hello, name)
         try:
-            if hello.get("protocol") != PROTOCOL:
-                raise ConfigError(f"protocol {hello.get('protocol')!r} is not {PROTOCOL}",
-                                  file=f"client {name}", fix="run the same rosgate version on both")
-            session = Session(next(self._ids), os.urandom(16), name, link)
-            prepared = self._prepare_client_topics(hello, name)
-            with self._lock:
-                self.sessions[session.id] = session
-            for p in prepared:
-                session.routes.append(self._route(session, p))
-        except ConfigError as exc:
+            if session is None:
+                session = self._new_session(hello, name)
+        except (ConfigError, LinkError) as exc:
             log.error("refused client %r from %s: %s", name, peer[0], exc)
             link.send(control({"type": "refused", "error": str(exc)}), 0)
-            if "session" in locals() and session.id in self.sessions:
-                self._end(session)
-            return None
-        except LinkError as exc:
-            log.error("refused client %r: %s", name, exc)
-            link.send(control({"type": "refused", "error": str(exc)}), 0)
-            self._end(session)
             return None
         link.send(control({"type": "welcome", "name": self.cfg.name, "session": session.id,
                            "token": session.token.hex(),
                            "topic_ids": [r.topic_id for r in session.routes]}), 0)
-        log.info("client %r connected from %s with %d topic(s)", name, peer[0], len(session.routes))
+        old = session.main.current
+        session.main.attach(link)  # after the welcome: what waited goes out under known ids
+        session.down_since = None
+        if old is not None and old is not link:
+            old.fail("the client connected again")
+        log.info("client %r up: connected from %s with %d topic(s)", name, peer[0],
+                 len(session.routes))
+        return session
+
+    def _resume(self, hello: dict[str, Any], name: str) -> Session | None:
+        """The session a returning client left, if it asks for the same topics; another
+        session under its name is ended."""
+        with self._lock:
+            found = next((s for s in self.sessions.values() if s.name == name), None)
+        if found is None:
+            return None
+        if found.topics == hello.get("topics") and hello.get("protocol") == PROTOCOL:
+            return found
+        log.info("client %r came back with other topics: its old session is dropped", name)
+        self._end(found)
+        return None
+
+    def _new_session(self, hello: dict[str, Any], name: str) -> Session:
+        if hello.get("protocol") != PROTOCOL:
+            raise ConfigError(f"protocol {hello.get('protocol')!r} is not {PROTOCOL}",
+                              file=f"client {name}", fix="run the same rosgate version on both")
+        prepared = self._prepare_client_topics(hello, name)
+        session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
+                          self.engine.slot(f"main of {name}"))
+        try:
+            for p in prepared:
+                session.routes.append(self._route(session, p))
+        except LinkError:
+            self._drop_routes(session)
+            raise
+        session.main.reliable = [r for r, p in zip(session.routes, prepared)
+                                 if p.reliable and p.transport.stream and p.config.port is None]
+        with self._lock:
+            self.sessions[session.id] = session
         return session
 
     def _prepare_client_topics(self, hello: dict[str, Any], name: str) -> list[Prepared]:
@@ -142,20 +191,30 @@ class ServerRole(Role):
             prepared.append(self.engine.prepare_topic(flipped(t), i, "topics", error))
         return prepared
 
+    def _topic_id(self, session: Session, p: Prepared) -> int:
+        """Derived from the client's name and the topic, so a returning client gets the ids it
+        had even from a restarted server; the next free one on a collision."""
+        t = p.config
+        used = {r.topic_id for r in self.routes()} | {r.topic_id for r in session.routes}
+        topic_id = topic_id_for(f"{session.name}\0{t.direction}\0{t.topic}")
+        while topic_id in used or topic_id == envelope.CONTROL_TOPIC:
+            topic_id = (topic_id + 1) & 0xFFFFFFFF
+        return topic_id
+
     def _route(self, session: Session, p: Prepared) -> Route:
         engine = self.engine
         t = p.config
-        topic_id = next(self._ids)
+        topic_id = self._topic_id(session, p)
         label = f"{t.topic} ({'to' if t.direction == 'transmit' else 'from'} {session.name})"
-        host, main_port = engine.main_address
         if p.transport.stream:
             if t.port is None:
-                link: Link = session.main
-            else:
-                self._listen(p.transport, (host, t.port))
-                link = _SessionStream(session, t.port)
-            return engine.make_route(p, topic_id, label, link)
-        link = self.datagram_link(p.transport, (host, t.port or main_port))
+                return engine.make_route(p, topic_id, label, session.main)
+            self._listen(p.transport, p.address)
+            slot = session.streams[t.port] = engine.slot(f"port {t.port} of {session.name}")
+            route = engine.make_route(p, topic_id, label, slot)
+            slot.reliable = [route] if p.reliable else []
+            return route
+        link = self.datagram_link(p.transport, p.address)
         return engine.make_route(p, topic_id, label, link,
                                  lambda link=link: session.addresses.get(link))  # type: ignore[misc]
 
@@ -176,8 +235,12 @@ class ServerRole(Role):
                 header = None
             if header is not None and header.flags & envelope.FLAG_HELLO:
                 session = self.sessions.get(header.topic_id)
-                if session is not None and frame[envelope.SIZE:] == session.token:
-                    session.streams[port] = link  # type: ignore[assignment]
+                slot = session.streams.get(port) if session is not None else None
+                if slot is not None and frame[envelope.SIZE:] == session.token:  # type: ignore[union-attr]
+                    old = slot.current
+                    slot.attach(link)  # type: ignore[arg-type]
+                    if old is not None and old is not link:
+                        old.fail("the client connected again")
                 else:
                     self.engine.link_drop(link, "bad_hello", f"from {source}")
                 return
@@ -199,30 +262,27 @@ class ServerRole(Role):
         with self._lock:
             if self.sessions.pop(session.id, None) is None:
                 return
+        self._drop_routes(session)
+
+    def _drop_routes(self, session: Session) -> None:
         for route in session.routes:
             self.engine.remove_route(route)
-        for stream in session.streams.values():
-            stream.close()
-        session.main.close()
+        session.close()
 
     def _ping_loop(self) -> None:
-        while not self.engine.stopping.wait(self.cfg.heartbeat):
+        """Heartbeat to every connected client; liveness: a client silent for ``peer_timeout``
+        is declared down (its connection recycled), one gone for ``session_timeout`` is dropped."""
+        cfg = self.cfg
+        while not self.engine.stopping.wait(cfg.heartbeat):
+            now = time.monotonic()
             for session in list(self.sessions.values()):
-                session.main.send(control({"type": "ping"}), 0)
-
-
-class _SessionStream(Link):
-    """A server route on a dedicated stream port: the client's connection there, once it came."""
-
-    def __init__(self, session: Session, port: int):
-        self.session = session
-        self.port = port
-        self.name = f"port {port} of {session.name}"
-        self.closed = threading.Event()
-
-    def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
-        link = self.session.streams.get(self.port)
-        return link.send(frame, topic_id) if link is not None else False
-
-    def close(self) -> None:
-        pass
+                link = session.main.current
+                if session.down_since is not None:
+                    if now - session.down_since > cfg.session_timeout:
+                        log.warning("client %r gone for %g s: its session is dropped",
+                                    session.name, cfg.session_timeout)
+                        self._end(session)
+                elif link is not None and now - link.last_heard > cfg.peer_timeout:
+                    link.fail(f"silent for {now - link.last_heard:.1f} s")
+                elif link is not None:
+                    link.send(control({"type": "ping"}), 0)

@@ -19,7 +19,9 @@ business (an IP address and a UDP port; a Bluetooth device address and an RFCOMM
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Mapping, Protocol
+import select
+import socket
+from typing import Any, Callable, ClassVar, Mapping, Protocol
 
 Address = tuple[str, int]
 
@@ -96,6 +98,72 @@ class Transport:
     def connect(self, address: Address, timeout: float) -> StreamConnection:
         """Connect within ``timeout`` seconds or raise ``OSError``."""
         raise NotImplementedError(f"transport {self.name!r} is not a stream link")
+
+
+class SocketConnection:
+    """A :class:`StreamConnection` over a connected stream socket of any family (TCP, RFCOMM,
+    Unix), for transports whose links are plain sockets.
+
+    The socket stays blocking and a receive waits in poll(): one thread sends while another
+    receives, and switching the socket's timeout under a sender (settimeout makes the socket
+    non-blocking) fails its send or receive with EAGAIN at random.
+    """
+
+    def __init__(self, sock: socket.socket):
+        sock.settimeout(None)
+        self.sock = sock
+        self._readable = select.poll()
+        self._readable.register(sock, select.POLLIN)
+
+    def send(self, data: bytes) -> None:
+        self.sock.sendall(data)
+
+    def receive(self, max_bytes: int, timeout: float) -> bytes | None:
+        if not self._readable.poll(timeout * 1000):
+            return None
+        return self.sock.recv(max_bytes)  # data, b"" at the end, or OSError once closed
+
+    def close(self) -> None:
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.sock.close()
+
+
+class SocketListener:
+    """A :class:`StreamListener` over a listening socket: ``wrap`` makes each accepted socket a
+    connection, ``address_of`` turns the socket's peer address into an :data:`Address`."""
+
+    def __init__(self, sock: socket.socket,
+                 wrap: Callable[[socket.socket], SocketConnection] = SocketConnection,
+                 address_of: Callable[[Any], Address] = lambda peer: peer[:2]):
+        self.sock = sock
+        self.wrap = wrap
+        self.address_of = address_of
+
+    def accept(self, timeout: float) -> tuple[SocketConnection, Address] | None:
+        self.sock.settimeout(timeout)
+        try:
+            sock, peer = self.sock.accept()
+        except TimeoutError:
+            return None
+        return self.wrap(sock), self.address_of(peer)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def check_ip_address(address: Address) -> Address:
+    """For IP transports: the host must be an IPv4 or IPv6 address or a host name — not, say, the
+    Bluetooth device address of an RFCOMM main line. Raises ``ValueError`` saying so."""
+    host = address[0]
+    if ":" in host:  # host names have none; only IPv6 addresses do
+        try:
+            socket.inet_pton(socket.AF_INET6, host)
+        except OSError:
+            raise ValueError(f"{host!r} is not an IP address or host name") from None
+    return address
 
 
 def parse_host_port(text: str) -> Address:

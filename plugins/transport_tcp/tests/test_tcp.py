@@ -122,3 +122,14 @@ def test_parse_address_accepts(text, address):
 def test_parse_address_rejects(text):
     with pytest.raises(ValueError, match="is not host:port"):
         TcpTransport({}).parse_address(text)
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "::1", "fe80::1", "server", "base.local"])
+def test_check_address_accepts_ip_hosts(host):
+    assert TcpTransport({}).check_address((host, 1)) == (host, 1)
+
+
+@pytest.mark.parametrize("host", ["AA:BB:CC:DD:EE:FF", "1:2:3", "::g"])
+def test_check_address_refuses_what_is_no_ip_host(host):
+    with pytest.raises(ValueError, match="is not an IP address or host name"):
+        TcpTransport({}).check_address((host, 1))

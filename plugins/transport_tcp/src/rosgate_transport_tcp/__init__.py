@@ -17,49 +17,15 @@ from __future__ import annotations
 import socket
 from typing import Any, Mapping
 
-from rosgate import Address, LinkError, OptionError, Transport, hookimpl, parse_host_port
+from rosgate import (Address, LinkError, OptionError, SocketConnection, SocketListener, Transport,
+                     check_ip_address, hookimpl, parse_host_port)
 
 
-class TcpConnection:
+class TcpConnection(SocketConnection):
     def __init__(self, sock: socket.socket, nodelay: bool):
         if nodelay:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self.sock = sock
-
-    def send(self, data: bytes) -> None:
-        self.sock.settimeout(None)
-        self.sock.sendall(data)
-
-    def receive(self, max_bytes: int, timeout: float) -> bytes | None:
-        self.sock.settimeout(timeout)
-        try:
-            return self.sock.recv(max_bytes)
-        except TimeoutError:
-            return None
-
-    def close(self) -> None:
-        try:
-            self.sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
-        self.sock.close()
-
-
-class TcpListener:
-    def __init__(self, sock: socket.socket, nodelay: bool):
-        self.sock = sock
-        self.nodelay = nodelay
-
-    def accept(self, timeout: float) -> tuple[TcpConnection, Address] | None:
-        self.sock.settimeout(timeout)
-        try:
-            sock, peer = self.sock.accept()
-        except TimeoutError:
-            return None
-        return TcpConnection(sock, self.nodelay), peer[:2]
-
-    def close(self) -> None:
-        self.sock.close()
+        super().__init__(sock)
 
 
 class TcpTransport(Transport):
@@ -78,7 +44,10 @@ class TcpTransport(Transport):
     def parse_address(self, text: str) -> Address:
         return parse_host_port(text)
 
-    def listen(self, address: Address) -> TcpListener:
+    def check_address(self, address: Address) -> Address:
+        return check_ip_address(address)
+
+    def listen(self, address: Address) -> SocketListener:
         sock = socket.socket(_family(address), socket.SOCK_STREAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -87,7 +56,7 @@ class TcpTransport(Transport):
         except OSError as exc:
             sock.close()
             raise LinkError(f"cannot listen on TCP {address[0]}:{address[1]}: {exc.strerror}") from None
-        return TcpListener(sock, self.nodelay)
+        return SocketListener(sock, lambda accepted: TcpConnection(accepted, self.nodelay))
 
     def connect(self, address: Address, timeout: float) -> TcpConnection:
         sock = socket.create_connection(address, timeout=timeout)

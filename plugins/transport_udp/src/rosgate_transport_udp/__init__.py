@@ -19,7 +19,8 @@ import logging
 import socket
 from typing import Any, Mapping
 
-from rosgate import Address, LinkError, OptionError, Transport, hookimpl, parse_host_port
+from rosgate import (Address, LinkError, OptionError, Transport, check_ip_address, hookimpl,
+                     parse_host_port)
 
 log = logging.getLogger("rosgate.udp")
 
@@ -67,6 +68,9 @@ class UdpTransport(Transport):
 
     def parse_address(self, text: str) -> Address:
         return parse_host_port(text)
+
+    def check_address(self, address: Address) -> Address:
+        return check_ip_address(address)
 
     def bind(self, address: Address) -> UdpEndpoint:
         family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
