@@ -27,7 +27,8 @@ class TransportConformance:
     ``far_plugin`` fixture when the far end must be another instance of the transport (a node
     that does not hear its own frames); set :attr:`answerable_source` to ``False`` when the
     source a receive reports is not where an answer reaches the sender; set :attr:`ordered`
-    when the link promises order, and the suite checks it."""
+    when the link promises order, and the suite checks it; set :attr:`padded_length` when
+    the link pads frames to certain lengths (CAN FD)."""
 
     #: the Transport subclass under test, or a factory taking the options
     transport: ClassVar[Callable[[Mapping[str, Any]], Transport]]
@@ -41,6 +42,11 @@ class TransportConformance:
     #: datagram links: whether frames from one sender arrive in the order sent (a CAN bus per
     #: arbitration id). ``True`` makes the suite check the order, not only the contents
     ordered: ClassVar[bool] = False
+    #: datagram links whose frames travel padded (CAN FD carries 0-8, 12, 16, 20, 24, 32, 48
+    #: or 64 data bytes): the length a frame of ``n`` bytes arrives with, zeros added. The
+    #: suite then expects exactly those zeros after the frame; the core's fragmentation must
+    #: still deliver frames at their own length. ``None``: every frame keeps its length
+    padded_length: ClassVar[Callable[[int], int] | None] = None
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -98,6 +104,15 @@ class TransportConformance:
         a, b = closing(plugin.bind(a_address)), closing(far_plugin.bind(b_address))
         return a, a_address, b, b_address
 
+    def _as_received(self, frame: bytes) -> bytes:
+        """What a bare datagram of ``frame`` arrives as: itself, or itself padded."""
+        pad = type(self).padded_length  # read off the class: a plain function is not bound
+        if pad is None:
+            return frame
+        padded = pad(len(frame))
+        assert padded >= len(frame), f"padded_length({len(frame)}) = {padded} is shorter"
+        return frame + bytes(padded - len(frame))
+
     @pytest.mark.parametrize("size", [lambda m: 1, lambda m: 2, lambda m: m - 1, lambda m: m],
                              ids=["1 byte", "2 bytes", "max_frame-1", "max_frame"])
     def test_datagram_crosses_byte_exact_and_can_be_answered(
@@ -107,7 +122,7 @@ class TransportConformance:
         a.send(frame, b_address)
         got = b.receive(TIMEOUT)
         assert got is not None, "nothing arrived"
-        assert got[0] == frame
+        assert got[0] == self._as_received(frame)
         hash(got[1])  # the core keys reassembly on the source: it must be hashable
         # the server role answers a client at the source its datagram reported; on a bus the
         # source names the receiving port, and an answer goes to the sender's known port
@@ -118,7 +133,7 @@ class TransportConformance:
         assert answer is not None, (
             f"an answer sent to the reported source {to!r} did not arrive"
             if self.answerable_source else f"an answer sent to {to!r} did not arrive")
-        assert answer[0] == answer_frame
+        assert answer[0] == self._as_received(answer_frame)
 
     def test_datagram_boundaries_are_kept(self, plugin, far_plugin, address, closing):
         a, _, b, b_address = self._endpoints(plugin, far_plugin, address, closing)
@@ -128,10 +143,11 @@ class TransportConformance:
             a.send(frame, b_address)
         got = [b.receive(TIMEOUT) for _ in frames]
         assert None not in got, f"{got.count(None)} of {len(frames)} datagrams never arrived"
+        expected = [self._as_received(frame) for frame in frames]
         if self.ordered:
-            assert [g[0] for g in got] == frames
+            assert [g[0] for g in got] == expected
         else:
-            assert sorted(g[0] for g in got) == sorted(frames)
+            assert sorted(g[0] for g in got) == sorted(expected)
 
     def test_datagram_idle_receive_returns_none(self, plugin, far_plugin, address, closing):
         _, _, b, _ = self._endpoints(plugin, far_plugin, address, closing)
