@@ -23,7 +23,7 @@ class TransportConformance:
     way round) are left out of a subclass whose :attr:`transport` is a class; with a factory,
     which kind it makes is known only when it runs, and they are skipped, saying so.
 
-    Bus links (CAN) differ from sockets in three ways a subclass declares: override the
+    Bus links (CAN) differ from sockets in ways a subclass declares: override the
     ``far_plugin`` fixture when the far end must be another instance of the transport (a node
     that does not hear its own frames); set :attr:`answerable_source` to ``False`` when the
     source a receive reports is not where an answer reaches the sender; set :attr:`ordered`
@@ -127,7 +127,7 @@ class TransportConformance:
         # the server role answers a client at the source its datagram reported; on a bus the
         # source names the receiving port, and an answer goes to the sender's known port
         to = got[1] if self.answerable_source else a_address
-        answer_frame = frame_of(min(9, plugin.max_frame), seed=99)
+        answer_frame = frame_of(min(9, plugin.max_frame), seed=99)  # fits classic CAN too
         b.send(answer_frame, to)
         answer = a.receive(TIMEOUT)
         assert answer is not None, (
