@@ -45,7 +45,8 @@ def test_samples_cover_every_field_kind_they_claim():
 
 
 def test_the_suites_fail_for_broken_plugins(tmp_path):
-    """Three plugins that each break one rule, run through the suites in a pytest of their own."""
+    """Plugins that each break one rule, or declare what they do not do, run through the
+    suites in a pytest of their own."""
     (tmp_path / "test_broken.py").write_text(textwrap.dedent('''
         from rosgate import Cipher
         from rosgate.builtin import CdrCodec
@@ -66,6 +67,22 @@ def test_the_suites_fail_for_broken_plugins(tmp_path):
         class SmallUdp(UdpTransport):      # claims more than it can carry
             max_frame = 70_000
 
+        class SwappingUdp(UdpTransport):   # hands over datagrams two by two, swapped
+            def bind(self, address):
+                endpoint = super().bind(address)
+                receive, held = endpoint.receive, []
+                def swapped(timeout):
+                    if held:
+                        return held.pop()
+                    first = receive(timeout)
+                    second = receive(1.0) if first else None
+                    if second is None:
+                        return first
+                    held.append(first)
+                    return second
+                endpoint.receive = swapped
+                return endpoint
+
         class TestLeaky(CodecConformance):
             codec = LeakyCodec
 
@@ -74,6 +91,14 @@ def test_the_suites_fail_for_broken_plugins(tmp_path):
 
         class TestSmallUdp(TransportConformance):
             transport = SmallUdp
+
+        class TestSwappingUdp(TransportConformance):
+            transport = SwappingUdp
+            ordered = True                 # declares an order it does not keep
+
+        class TestPaddedUdp(TransportConformance):
+            transport = UdpTransport
+            padded_length = staticmethod(lambda n: n + 1)  # declares padding UDP never adds
     '''))
     done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                            "-p", "no:warnings", str(tmp_path / "test_broken.py")],
@@ -86,6 +111,13 @@ def test_the_suites_fail_for_broken_plugins(tmp_path):
                      "TestMalleable::test_every_flipped_bit_of_the_header_is_refused",
                      "TestMalleable::test_another_key_is_refused",
                      "TestMalleable::test_two_seals_of_one_payload_differ",
-                     "TestSmallUdp::test_datagram_crosses_byte_exact_and_can_be_answered[max_frame]"]:
+                     "TestSmallUdp::test_datagram_crosses_byte_exact_and_can_be_answered[max_frame]",
+                     "TestSwappingUdp::test_datagram_boundaries_are_kept",
+                     "TestPaddedUdp::test_datagram_crosses_byte_exact_and_can_be_answered[max_frame-1]",
+                     "TestPaddedUdp::test_datagram_boundaries_are_kept"]:
         assert expected in failed, done.stdout[-3000:]
     assert "TestLeaky::test_round_trip[Twist]" not in failed  # what works still passes
+    # unordered, a swapping link passes; and padding is checked only where a frame goes bare
+    assert "TestSwappingUdp::test_datagram_idle_receive_returns_none" not in failed
+    assert "TestPaddedUdp::test_datagram_frames_beyond_max_frame_cross_fragmented_by_the_core" \
+        not in failed

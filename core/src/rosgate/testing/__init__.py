@@ -4,16 +4,20 @@ A plugin's test file runs the suite of its kind by subclassing it (the class nam
 with ``Test`` for pytest to collect it)::
 
     from rosgate.testing import TransportConformance
-    from rosgate_transport_can import CanTransport
+    from rosgate_transport_unixdgram import UnixDatagramTransport
 
-    class TestCanConformance(TransportConformance):
-        transport = CanTransport               # a Transport subclass, or any factory(options)
-        options = {"interface": "virtual"}     # the plugin's table under plugins: (default {})
+    class TestUnixDatagramConformance(TransportConformance):
+        transport = UnixDatagramTransport      # a Transport subclass, or any factory(options)
+        options = {"max_frame": 4096}          # the plugin's table under plugins: (default {})
 
         @pytest.fixture                        # only for links that do not take 127.0.0.1:port
-        def address(self):
-            channels = itertools.count(1)
-            return lambda: ("vcan0", next(channels))
+        def address(self, tmp_path):
+            numbers = itertools.count(1)
+            return lambda: (str(tmp_path), next(numbers))
+
+    # a bus link (examples/transport_can/tests/test_conformance.py) also overrides far_plugin
+    # (the far end as a second instance on the bus) and declares answerable_source = False,
+    # ordered = True and, on CAN FD, padded_length
 
     class TestCborConformance(CodecConformance):
         codec = CborCodec
@@ -24,9 +28,11 @@ with ``Test`` for pytest to collect it)::
 What each suite checks (every check uses real sockets, real message classes, real keys):
 
 * :class:`TransportConformance` — datagram links: frames of 1 byte up to ``max_frame`` cross
-  byte-exact, and the source a receive reports can be answered; boundaries are kept; an idle
-  receive returns ``None``; ``close`` ends a receive blocked in another thread; frames beyond
-  ``max_frame`` cross through the core's fragmentation (:class:`rosgate.links.DatagramLink`).
+  byte-exact, and the source a receive reports can be answered (or, declared unanswerable, the
+  sender's known address); boundaries are kept (and order, where declared); an idle receive
+  returns ``None``; ``close`` ends a receive blocked in another thread; frames beyond
+  ``max_frame`` cross through the core's fragmentation (:class:`rosgate.links.DatagramLink`,
+  compact pieces below a ``max_frame`` of 256).
   Stream links: bytes cross both ways byte-exact (up to 1 MiB, both at once); ``max_bytes``
   is honoured; idle receive and accept return ``None``; when the far end closes, receive
   returns ``b""`` and send raises ``OSError``; ``close`` ends a blocked receive; connecting to

@@ -39,7 +39,8 @@ SEND_TIMEOUT = 1.0  # seconds a send may wait for room in the interface's transm
 class CanEndpoint:
     """One port of the shared bus: sends to any arbitration id, receives its own."""
 
-    def __init__(self, transport: CanTransport, port: int, inbox: queue.SimpleQueue[bytes]):
+    def __init__(self, transport: CanTransport, port: int,
+                 inbox: queue.SimpleQueue[bytes | None]):
         self.transport = transport
         self.source = (str(transport.options.get("channel", "")), port)
         self.inbox = inbox
@@ -49,15 +50,22 @@ class CanEndpoint:
         self.transport.send(frame, to[1])
 
     def receive(self, timeout: float) -> tuple[bytes, Address] | None:
+        if self.closed:
+            raise OSError("the CAN endpoint is closed")
         try:
-            return self.inbox.get(timeout=timeout), self.source
+            data = self.inbox.get(timeout=timeout)
         except queue.Empty:
             return None
+        if data is None:  # close() woke this receive up
+            raise OSError("the CAN endpoint is closed")
+        return data, self.source
 
     def close(self) -> None:
         if not self.closed:  # the bus is shared: give up this endpoint's share once only
             self.closed = True
             self.transport.release(self.source[1])
+            # a receive blocked in another thread would otherwise wait out its whole timeout
+            self.inbox.put(None)
 
 
 class CanTransport(Transport):
@@ -89,7 +97,8 @@ class CanTransport(Transport):
             raise OptionError("base_id", f"must be an arbitration id from 0 to {self.max_id - 1}")
         self.max_frame = 64 if self.fd else 8
         self._bus: Any = None
-        self._inboxes: dict[int, queue.SimpleQueue[bytes]] = {}  # arbitration id -> endpoint
+        # arbitration id -> endpoint; None in an inbox wakes a receive when the endpoint closes
+        self._inboxes: dict[int, queue.SimpleQueue[bytes | None]] = {}
         self._users = 0
         self._lock = threading.Lock()
         self._closing = threading.Event()  # of the bus open now; each bus has its own
@@ -117,7 +126,7 @@ class CanTransport(Transport):
             if port and can_id in self._inboxes:
                 raise LinkError(f"arbitration id {can_id:#x} (port {port}) is already bound",
                                 "give each receiving port of a bus to one topic list")
-            inbox: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+            inbox: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
             if port:  # port 0: a sender only
                 self._inboxes[can_id] = inbox
                 self._bus.set_filters([{"can_id": i, "can_mask": self.max_id,
