@@ -5,6 +5,7 @@ stand-in cannot show — RFCOMM itself — is said in the README."""
 
 from __future__ import annotations
 
+import itertools
 import socket
 import tempfile
 
@@ -12,7 +13,7 @@ import pytest
 
 import rosgate_transport_bt
 from rosgate import LinkError, OptionError
-from rosgate.plugins import Plugins
+from rosgate.testing import TransportConformance
 from rosgate_transport_bt import BluetoothTransport
 
 NO_RADIO = not hasattr(socket, "AF_BLUETOOTH")
@@ -113,9 +114,17 @@ def test_connect_to_nobody_raises_oserror(bt):
         bt.connect(("AA:BB:CC:DD:EE:03", 1), 1.0)
 
 
-def test_registered_through_its_hook():
-    plugins = Plugins()
-    plugins.add(rosgate_transport_bt, "bt", "rosgate-transport-bt", "0.1.0")
-    assert plugins.failures == []
-    registration = plugins.get("transport", "bt")
-    assert registration.cls is BluetoothTransport and registration.cls.stream is True
+class TestBluetoothConformance(TransportConformance):
+    """The kit's stream-link contract, over the AF_UNIX stand-in for a radio."""
+
+    transport = BluetoothTransport
+
+    @pytest.fixture
+    def plugin(self, bt) -> BluetoothTransport:
+        return bt
+
+    @pytest.fixture
+    def address(self):
+        channels = itertools.count(1)
+        return lambda: ("AA:BB:CC:DD:EE:10", next(channels))
+
