@@ -13,7 +13,7 @@ import threading
 from typing import TYPE_CHECKING, Any
 
 from . import envelope
-from .config import topic_to_mapping
+from .config import service_to_mapping, topic_to_mapping
 from .errors import LinkError
 from .links import DatagramLink, Link, StreamLink
 from .mainline import HANDSHAKE_TIMEOUT, PROTOCOL, control, hello_datagram, parse_control
@@ -68,7 +68,9 @@ class ClientRole(Role):
         self._welcome = None
         self.main.current = link
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
-                           "topics": [topic_to_mapping(p.config) for p in self.engine.topics]}), 0)
+                           "topics": [topic_to_mapping(p.config) for p in self.engine.topics],
+                           "services": [service_to_mapping(p.config)
+                                        for p in self.engine.services]}), 0)
         if not self._answer.wait(HANDSHAKE_TIMEOUT) or self._welcome is None:
             log.warning("%s: no answer to the handshake from %s", self.cfg.name, self.cfg.server)
             return False
@@ -89,16 +91,16 @@ class ClientRole(Role):
 
     def _build(self, answer: dict[str, Any]) -> None:
         engine = self.engine
-        ids = [int(i) for i in answer["topic_ids"]]
-        if len(ids) != len(engine.topics):
+        ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
+        if len(ids) != len(engine.topics) + len(engine.services):
             raise ValueError("topic id count does not match")
         self.session = int(answer["session"])
         self.token = bytes.fromhex(answer["token"])
         self.server_name = str(answer["name"])
         host, main_port = engine.main_address
-        for p, topic_id in zip(engine.topics, ids):
+        for p, topic_id in zip([*engine.topics, *engine.services], ids):
             t = p.config
-            label = f"{t.topic} ({'to' if t.direction == 'transmit' else 'from'} {self.server_name})"
+            label = f"{p.name} ({'to' if t.direction == 'transmit' else 'from'} {self.server_name})"
             if p.transport.stream:
                 if t.port is None:
                     link: Link = self.main

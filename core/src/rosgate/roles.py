@@ -15,6 +15,7 @@ import random
 import threading
 from typing import TYPE_CHECKING, Callable
 
+from . import services
 from .envelope import topic_id_for
 from .errors import LinkError
 from .links import Acceptor, DatagramLink, Link, StreamLink
@@ -133,6 +134,7 @@ class PeerRole(Role):
                 to = (cfg.peer or "", t.port)
                 route = engine.make_route(p, topic_id_for(t.remote), label, link, lambda to=to: to)
             self.add(route)
+        services.start_peer(self)
 
     def _start_stream(self, p: Prepared, listen: str, key: str) -> None:
         t = p.config

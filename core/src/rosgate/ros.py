@@ -69,6 +69,15 @@ def qos_profile(spec: int | str | dict) -> Any:
     return profile
 
 
+class _Deferred:
+    """What a deferred service's callback returns: the answer comes later (see deferred_service)."""
+
+    __slots__ = ("request",)
+
+    def __init__(self, request: Any, response: Any = None):
+        self.request = request
+
+
 class RosNode:
     """A node in a context of its own, spun in a background thread."""
 
@@ -104,8 +113,45 @@ class RosNode:
     def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)
 
+    def deferred_service(self, srv_type: type, name: str, qos: Any,
+                         on_request: Callable[[Any, Callable[[Any], None]], None]) -> Any:
+        """A service server whose answers may come later, from any thread.
+
+        ``on_request(request, respond)`` runs on the executor thread and must not block; calling
+        ``respond(response)`` (once, from any thread) answers the caller. Why not an async
+        callback: EventsExecutor does not run coroutines (it hands the coroutine itself to
+        ``send_response``: TypeError), and rclpy's Python executors resume awaiting tasks by
+        polling them in a busy loop. Both executors answer by calling ``service.send_response
+        (result, header)`` on the service object, so the callback returns a marker and
+        ``send_response`` is replaced on this instance: given the marker it passes the request
+        and a ``respond`` bound to the request's header to ``on_request``.
+        """
+        from rclpy.service import Service
+
+        service = self.node.create_service(srv_type, name, _Deferred, qos_profile=qos)
+
+        def send_response(result: Any, header: Any) -> None:
+            if isinstance(result, _Deferred):
+                on_request(result.request,
+                           lambda response: Service.send_response(service, response, header))
+            else:
+                Service.send_response(service, result, header)
+
+        service.send_response = send_response
+        return service
+
+    def client(self, srv_type: type, name: str, qos: Any) -> Any:
+        return self.node.create_client(srv_type, name, qos_profile=qos)
+
     def destroy(self, entity: Any) -> None:
-        if hasattr(entity, "publish"):
+        from rclpy.client import Client
+        from rclpy.service import Service
+
+        if isinstance(entity, Service):
+            self.node.destroy_service(entity)
+        elif isinstance(entity, Client):
+            self.node.destroy_client(entity)
+        elif hasattr(entity, "publish"):
             self.node.destroy_publisher(entity)
         else:
             self.node.destroy_subscription(entity)

@@ -14,13 +14,13 @@ from . import envelope
 from .config import topic_from_mapping
 from .errors import ConfigError, LinkError
 from .links import Acceptor, DatagramLink, Link, StreamLink
-from .mainline import PROTOCOL, control, flipped, parse_control
+from .mainline import PROTOCOL, client_services, control, flipped, parse_control, where_error
 from .roles import Role
 from .routes import Route, TransmitRoute
 from .transport import Address, StreamConnection, Transport
 
 if TYPE_CHECKING:
-    from .engine import Engine, Prepared
+    from .engine import Engine, Prepared, PreparedService
 
 log = logging.getLogger("rosgate")
 
@@ -104,9 +104,10 @@ class ServerRole(Role):
                                   file=f"client {name}", fix="run the same rosgate version on both")
             session = Session(next(self._ids), os.urandom(16), name, link)
             prepared = self._prepare_client_topics(hello, name)
+            services = self._prepare_client_services(hello, name)
             with self._lock:
                 self.sessions[session.id] = session
-            for p in prepared:
+            for p in [*prepared, *services]:
                 session.routes.append(self._route(session, p))
         except ConfigError as exc:
             log.error("refused client %r from %s: %s", name, peer[0], exc)
@@ -121,7 +122,8 @@ class ServerRole(Role):
             return None
         link.send(control({"type": "welcome", "name": self.cfg.name, "session": session.id,
                            "token": session.token.hex(),
-                           "topic_ids": [r.topic_id for r in session.routes]}), 0)
+                           "topic_ids": [r.topic_id for r in session.routes[:len(prepared)]],
+                           "service_ids": [r.topic_id for r in session.routes[len(prepared):]]}), 0)
         log.info("client %r connected from %s with %d topic(s)", name, peer[0], len(session.routes))
         return session
 
@@ -142,11 +144,16 @@ class ServerRole(Role):
             prepared.append(self.engine.prepare_topic(flipped(t), i, "topics", error))
         return prepared
 
-    def _route(self, session: Session, p: Prepared) -> Route:
+    def _prepare_client_services(self, hello: dict[str, Any], name: str) -> list[PreparedService]:
+        where = f"client {name}"
+        return [self.engine.prepare_service(flipped(s), i, "services", where_error(where))
+                for i, s in enumerate(client_services(hello, self.cfg.defaults, where))]
+
+    def _route(self, session: Session, p: Prepared | PreparedService) -> Route:
         engine = self.engine
         t = p.config
         topic_id = next(self._ids)
-        label = f"{t.topic} ({'to' if t.direction == 'transmit' else 'from'} {session.name})"
+        label = f"{p.name} ({'to' if t.direction == 'transmit' else 'from'} {session.name})"
         host, main_port = engine.main_address
         if p.transport.stream:
             if t.port is None:
