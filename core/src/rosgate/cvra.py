@@ -205,10 +205,6 @@ class CvraCallerRoute(ServiceRoute):
                              f"{self.service.timeout:g} s"))
         self._pool.submit(self._call, request, call, time.monotonic() + self.service.timeout)
 
-    def fail(self, call: Call, reason: str, detail: str) -> None:
-        if call.fail(detail):
-            self.drop(reason, detail)
-
     def _call(self, request: Any, call: Call, deadline: float) -> None:
         codec = self.codec
         try:

@@ -84,8 +84,11 @@ class Call:
             return True
         return False
 
-    def fail(self, reason: str) -> bool:
+    def fail(self, reason: str, count: Callable[[], None] | None = None) -> bool:
+        """``count`` runs before the failure is answered, so whoever sees it sees it counted."""
         if self._settle():
+            if count is not None:
+                count()
             self._on_failure(reason)
             return True
         return False
@@ -169,6 +172,10 @@ class ServiceRoute(Route):
         self.srv_type = srv_type
         self.deadlines = deadlines
 
+    def fail(self, call: Call, reason: str, detail: str) -> None:
+        """Settle ``call`` with a failure, counted by ``reason`` (unless it is settled already)."""
+        call.fail(detail, lambda: self.drop(reason, detail))
+
 
 class CallerRoute(ServiceRoute):
     """``transmit``: a proxy ROS server here; each call crosses ``link`` (framing rosgate)."""
@@ -232,10 +239,6 @@ class CallerRoute(ServiceRoute):
             return
         call.answer(response)
 
-    def fail(self, call: Call, reason: str, detail: str) -> None:
-        if call.fail(detail):
-            self.drop(reason, detail)
-
     def _pop(self, seq: int) -> Call | None:
         with self._lock:
             return self.calls.pop(seq, None)
@@ -276,10 +279,6 @@ class ServerRoute(ServiceRoute):
             self.fail(call, "server_error", f"the ROS call failed: {future.exception()}")
         elif not call.answer(future.result()):
             self.drop("late_answer", f"{self.service.service} answered after the timeout")
-
-    def fail(self, call: Call, reason: str, detail: str) -> None:
-        if call.fail(detail):
-            self.drop(reason, detail)
 
     def on_request(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
         """A link's thread: a call from the far side (framing rosgate); the answer goes back on
