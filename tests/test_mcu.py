@@ -1,0 +1,138 @@
+"""The CVRA microcontroller profile end to end: a bridge (in this process) and the simulator in
+examples/mcu_simulator.py (a subprocess with its own sockets, nothing from rosgate) exchange
+topics both ways and call services both ways; then hostile bytes on both ports."""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import msgpack
+import pytest
+from conftest import free_port
+from geometry_msgs.msg import Pose2D, Twist
+from rclpy.qos import QoSProfile
+from std_srvs.srv import SetBool, Trigger
+from test_services import DEEP, Caller
+
+from rosgate import serial_datagram
+
+SIMULATOR = Path(__file__).parent.parent / "examples" / "mcu_simulator.py"
+
+
+class Mcu:
+    """The simulator as a subprocess; its JSON lines collected for the test to wait on."""
+
+    def __init__(self, *args: str):
+        self.lines: list[dict[str, Any]] = []
+        self._cond = threading.Condition()
+        self.proc = subprocess.Popen([sys.executable, str(SIMULATOR), *args],
+                                     stdout=subprocess.PIPE, text=True)
+        threading.Thread(target=self._read, daemon=True).start()
+        assert self.wait(lambda line: line["kind"] == "ready", 10), "the simulator did not start"
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for text in self.proc.stdout:
+            with self._cond:
+                self.lines.append(json.loads(text))
+                self._cond.notify_all()
+
+    def wait(self, predicate: Callable[[dict[str, Any]], bool], timeout: float) -> dict | None:
+        with self._cond:
+            self._cond.wait_for(lambda: any(map(predicate, self.lines)), timeout)
+            return next((line for line in self.lines if predicate(line)), None)
+
+    def close(self) -> None:
+        self.proc.terminate()
+        self.proc.wait(5)
+
+
+@pytest.fixture
+def mcu():
+    started: list[Mcu] = []
+
+    def start(*args: str) -> Mcu:
+        started.append(Mcu(*args))
+        return started[-1]
+
+    yield start
+    for m in started:
+        m.close()
+
+
+def bridge_yaml(ports: dict[str, int], extra: str = "") -> str:
+    return f"""
+bridge: {{name: robot, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, defaults: {{codec: msgpack}}}}
+topics:
+  - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: {ports['in']},
+     framing: none}}
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: {ports['out']},
+     framing: none}}
+services:
+  - {{service: /mcu/ping, type: std_srvs/srv/Trigger, direction: transmit, remote: ping,
+     transport: tcp, port: {ports['mcu']}, framing: serial_datagram}}
+  - {{service: /mcu/set_led, type: std_srvs/srv/SetBool, direction: transmit, remote: set_led,
+     transport: tcp, port: {ports['mcu']}, framing: serial_datagram}}
+  - {{service: /reset, type: std_srvs/srv/Trigger, direction: receive, transport: tcp,
+     port: {ports['bridge']}, framing: serial_datagram{extra}}}
+"""
+
+
+def ports() -> dict[str, int]:
+    return {"in": free_port(), "out": free_port(), "mcu": free_port(), "bridge": free_port()}
+
+
+def test_simulator_exchanges_topics_and_calls_services_both_ways(engines, domain, ros_side, mcu):
+    d, p = domain(), ports()
+    engine = engines(bridge_yaml(p), d)
+    side = ros_side(d, "ros")
+    resets: list[str] = []
+
+    def reset(request: Any, response: Any) -> Any:
+        resets.append("reset")
+        response.success, response.message = True, f"reset {len(resets)}"
+        return response
+
+    side.ros.node.create_service(Trigger, "/reset", reset, qos_profile=DEEP)
+    positions = side.listen("/position", Pose2D)
+    sim = mcu("--topic-port", str(p["out"]), "--bridge-topic-port", str(p["in"]),
+              "--service-port", str(p["mcu"]), "--bridge-service-port", str(p["bridge"]),
+              "--rate", "50", "--call", "reset", "--call-every", "0.2")
+    # microcontroller -> ROS: Pose2D-style maps, named "position" (remote left out: the ROS name
+    # without its slash)
+    assert positions.wait_count(3, 10)
+    first = positions.items[0]
+    assert (first.y, first.theta) == (0.5, math.pi / 4) and first.x == int(first.x)
+    # ROS -> microcontroller: a Twist as nested maps, named "cmd_vel"
+    talker = side.publisher("/cmd_vel", Twist)
+    twist = Twist()
+    twist.linear.x, twist.angular.z = 1.5, -0.25
+    deadline = time.monotonic() + 10
+    while not sim.wait(lambda line: line["kind"] == "topic", 0.2):
+        assert time.monotonic() < deadline, "no cmd_vel reached the simulator"
+        talker.publish(twist)
+    got = sim.wait(lambda line: line["kind"] == "topic", 0)
+    assert got == {"kind": "topic", "name": "cmd_vel", "fields": {
+        "linear": {"x": 1.5, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -0.25}}}
+    # microcontroller -> ROS service: the simulator's calls are served by /reset here
+    answer = sim.wait(lambda line: line["kind"] == "answer" and line["response"]["success"], 10)
+    assert answer is not None and answer["response"]["message"].startswith("reset ")
+    # ROS -> microcontroller services
+    assert Caller(side, Trigger, "/mcu/ping").call(Trigger.Request()) == \
+        Trigger.Response(success=True, message="pong")
+    led = Caller(side, SetBool, "/mcu/set_led")
+    assert led.call(SetBool.Request(data=True)) == SetBool.Response(success=True, message="led on")
+    assert led.call(SetBool.Request(data=False)) == SetBool.Response(success=True, message="led off")
+    assert [line["request"] for line in sim.lines if line["kind"] == "served"] == \
+        [{}, {"data": True}, {"data": False}]
+    stats = {label: s["drops"] for label, s in engine.stats()["routes"].items()}
+    assert stats["/position"] == stats["/cmd_vel"] == stats["/mcu/ping"] == {}
+    assert set(stats["/reset"]) <= {"no_server"}  # calls before the bridge saw the ROS server
