@@ -136,3 +136,117 @@ def test_simulator_exchanges_topics_and_calls_services_both_ways(engines, domain
     stats = {label: s["drops"] for label, s in engine.stats()["routes"].items()}
     assert stats["/position"] == stats["/cmd_vel"] == stats["/mcu/ping"] == {}
     assert set(stats["/reset"]) <= {"no_server"}  # calls before the bridge saw the ROS server
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
+    """Poll a counter the engine updates from its own threads (no event to wait on)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
+def call_raw(port: int, data: bytes, read: bool = True) -> bytes:
+    """Write ``data`` to the bridge's call port; return all it answers before it closes."""
+    with socket.create_connection(("127.0.0.1", port), 5) as s:
+        s.settimeout(5)
+        s.sendall(data)
+        answer = b""
+        while read and (chunk := s.recv(4096)):
+            answer += chunk
+        return answer
+
+
+def request(name: str, fields: dict) -> bytes:
+    return serial_datagram.encode(msgpack.packb(name) + msgpack.packb(fields))
+
+
+def test_bad_datagrams_are_dropped_and_counted_and_missing_fields_take_defaults(
+        engines, domain, ros_side):
+    d, p = domain(), ports()
+    engine = engines(bridge_yaml(p), d)
+    positions = ros_side(d, "ros").listen("/position", Pose2D)
+    pack = msgpack.packb
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for datagram in [pack("nope") + pack({"x": 1.0}),         # no topic of that name
+                         pack("position") + pack({"z": 1.0}),     # no field z
+                         pack("position") + pack({"x": "one"}),   # x is not a number
+                         pack("position") + b"\xc1",              # not MessagePack
+                         b"\xc1",                                 # no name at all
+                         pack(7) + pack({})]:                     # a name that is no str
+            s.sendto(datagram, ("127.0.0.1", p["in"]))
+        deadline = time.monotonic() + 10
+        while not positions.wait_count(1, 0.2):  # a good one, with fields left out
+            assert time.monotonic() < deadline
+            s.sendto(pack("position") + pack({"y": 2.0}), ("127.0.0.1", p["in"]))
+    assert positions.items[0] == Pose2D(x=0.0, y=2.0, theta=0.0)
+    route = next(r for r in engine.routes() if r.label == "/position")
+    assert dict(route.counters.drops) == {"decode_error": 3}
+    assert engine.link_drops == {"unknown_topic": 1, "unnamed_frame": 2}
+
+
+def test_bad_calls_are_dropped_and_counted_and_good_ones_still_answered(engines, domain, ros_side):
+    d, p = domain(), ports()
+    engine = engines(bridge_yaml(p, ", timeout: 0.5, max_request: 64"), d)
+    side = ros_side(d, "ros")
+
+    def reset(request: Any, response: Any) -> Any:
+        response.success, response.message = True, "done"
+        return response
+
+    side.ros.node.create_service(Trigger, "/reset", reset, qos_profile=DEEP)
+    port = p["bridge"]
+    good = request("reset", {})
+    bad_crc = bytearray(good)
+    bad_crc[2] ^= 0x01
+    assert call_raw(port, bytes(bad_crc)) == b""
+    assert call_raw(port, b"\x92\xdb\x41" + good) == b""                 # ESC then neither
+    assert call_raw(port, b"\x01\x02\xc0") == b""                        # shorter than a CRC
+    assert call_raw(port, request("reset", {"pad": "x" * 100})) == b""   # over max_request
+    assert call_raw(port, request("nope", {})) == b""                    # no such service
+    assert call_raw(port, request("reset", {"force": True})) == b""      # no such field
+    assert call_raw(port, serial_datagram.encode(b"\xc1")) == b""        # no name
+    start = time.monotonic()
+    assert call_raw(port, b"") == b""                                    # says nothing
+    assert 0.5 <= time.monotonic() - start < 1.5
+    assert call_raw(port, good[:5]) == b""                               # half a request
+    with socket.create_connection(("127.0.0.1", port), 5) as s:          # gives up early
+        s.sendall(good[:5])
+    assert wait_until(lambda: engine.link_drops.get("closed_early") == 1)
+    # a good call (until the bridge has seen the ROS server), from a caller that never closes:
+    # the bridge answers and closes
+    deadline = time.monotonic() + 10
+    while (answer := msgpack.unpackb(call_raw(port, good))) != {"success": True, "message": "done"}:
+        assert answer["message"] == "rosgate: no ROS server /reset is running on the serving side"
+        assert time.monotonic() < deadline
+    route = next(r for r in engine.routes() if r.label == "/reset")
+    assert {k: v for k, v in route.counters.drops.items() if k != "no_server"} == \
+        {"decode_error": 1}
+    assert engine.link_drops == {"bad_crc": 1, "bad_escape": 1, "too_short": 1, "too_long": 1,
+                                 "unknown_service": 1, "unnamed_request": 1, "request_timeout": 2,
+                                 "closed_early": 1}
+
+
+def test_microcontroller_that_never_answers_fails_the_call_within_timeout(
+        engines, domain, ros_side):
+    d, p = domain(), ports()
+    with socket.socket() as silent:  # accepts, reads, never answers, never closes
+        silent.bind(("127.0.0.1", p["mcu"]))
+        silent.listen(4)
+        yaml = bridge_yaml(p).replace("remote: ping,", "remote: ping, timeout: 0.4,")
+        engine = engines(yaml, d)
+        caller = Caller(ros_side(d, "ros"), Trigger, "/mcu/ping")
+        start = time.monotonic()
+        answer = caller.call(Trigger.Request(), timeout=5)
+        assert 0.4 <= time.monotonic() - start < 0.8
+        assert answer == Trigger.Response(
+            success=False, message=f"rosgate: no answer from 127.0.0.1:{p['mcu']} within 0.4 s")
+        conn, _ = silent.accept()
+        with conn:
+            # what it was sent: the name, then Trigger's request, an empty map
+            frames = serial_datagram.Decoder(lambda *e: None).feed(conn.recv(4096))
+            assert next(frames) == msgpack.packb("ping") + msgpack.packb({})
+    route = next(r for r in engine.routes() if r.label == "/mcu/ping")
+    assert dict(route.counters.drops) == {"timeout": 1}
