@@ -170,3 +170,39 @@ def test_keygen_writes_a_private_key_and_never_overwrites(tmp_path):
     assert rosgate("keygen", "fernet", "--out", str(key), "--force").returncode == 0
     assert key.read_bytes() != first
     assert "takes no key" in user_error(rosgate("keygen", "none", "--out", str(tmp_path / "n")))
+
+
+SERVICE = """\
+services:
+  - service: /mcu/ping
+    type: std_srvs/srv/Trigger
+    direction: transmit
+    remote: ping
+    transport: tcp
+    port: 20001
+    codec: msgpack
+    framing: serial_datagram
+"""
+
+
+def test_check_lists_services(config):
+    path = config(GOOD.format(port=12001) + SERVICE)
+    result = rosgate("check", str(path))
+    assert result.returncode == 0, result.stderr
+    assert "ok (peer 'robot1', 1 topic(s), 1 service(s))" in result.stdout
+    assert "/mcu/ping -> ping  [std_srvs/srv/Trigger] tcp:20001 msgpack none" in result.stdout
+
+
+@pytest.mark.parametrize("change, line, key, words", [
+    (("    transport: tcp\n", "    transport: udp\n"), 16, "services[0].transport",
+     "framing serial_datagram needs a stream transport"),
+    (("    codec: msgpack\n", "    codec: cdr\n"), 18, "services[0].codec",
+     "codec cdr does not put the service's name on the wire"),
+    (("std_srvs/srv/Trigger", "std_srvs/srv/Trigga"), 13, "services[0].type",
+     "has no srv 'Trigga'"),
+])
+def test_check_names_service_errors(config, change, line, key, words):
+    path = config((GOOD.format(port=12001) + SERVICE).replace(*change))
+    text = user_error(rosgate("check", str(path)))
+    assert f"{path}:{line}: {key}: " in text
+    assert words in text

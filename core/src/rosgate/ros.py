@@ -128,14 +128,21 @@ class RosNode:
         """
         from rclpy.service import Service
 
+        from rclpy.exceptions import InvalidHandle
+
         service = self.node.create_service(srv_type, name, _Deferred, qos_profile=qos)
+
+        def respond(response: Any, header: Any) -> None:
+            try:
+                Service.send_response(service, response, header)
+            except InvalidHandle:  # the service was destroyed (a client left) while it waited
+                pass
 
         def send_response(result: Any, header: Any) -> None:
             if isinstance(result, _Deferred):
-                on_request(result.request,
-                           lambda response: Service.send_response(service, response, header))
+                on_request(result.request, lambda response: respond(response, header))
             else:
-                Service.send_response(service, result, header)
+                respond(result, header)
 
         service.send_response = send_response
         return service

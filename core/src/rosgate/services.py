@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import logging
 import os
 import threading
 import time
@@ -44,6 +45,8 @@ from .transport import Address
 
 if TYPE_CHECKING:
     from .engine import Engine, PreparedService
+
+log = logging.getLogger("rosgate")
 
 # A proxy needs deep queues: with the default service QoS (depth 10) a server answered 11 of 50
 # concurrent calls; with depth 1000 on both ends, 50 of 50 (DESIGN.md, measured).
@@ -120,7 +123,10 @@ class Deadlines:
                 if self._closed:
                     return
                 _, _, action = heapq.heappop(self._heap)
-            action()
+            try:
+                action()
+            except Exception:  # one bad deadline must not stop the others
+                log.exception("a service call's deadline failed (a bug: please report it)")
 
     def close(self) -> None:
         with self._cond:
