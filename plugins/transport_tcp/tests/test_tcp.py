@@ -293,3 +293,28 @@ def test_registered_through_its_hook():
     assert plugins.failures == []
     registration = plugins.get("transport", "tcp")
     assert registration.cls is TcpTransport and registration.cls.stream is True
+
+
+def test_sending_while_a_receive_waits_does_not_break_the_receive(pair):
+    """Links send and receive on one connection from two threads (service calls and answers)."""
+    a, b = pair
+    errors: list[BaseException] = []
+    stop = threading.Event()
+
+    def receive_all() -> None:
+        try:
+            while not stop.is_set():
+                a.receive(65536, 0.0001)  # short waits: many chances to collide with a send
+        except BaseException as exc:  # noqa: BLE001 - any failure is the finding
+            errors.append(exc)
+
+    thread = threading.Thread(target=receive_all)
+    thread.start()
+    for _ in range(20000):
+        a.send(b"x" * 10)
+        if errors:
+            break
+    stop.set()
+    thread.join()
+    assert errors == []
+    assert receive_exactly(b, 200000) == b"x" * 200000

@@ -14,6 +14,7 @@ Options (``plugins: {tcp: {...}}``):
 
 from __future__ import annotations
 
+import select
 import socket
 from typing import Any, Mapping
 
@@ -21,21 +22,22 @@ from rosgate import Address, LinkError, OptionError, Transport, hookimpl, parse_
 
 
 class TcpConnection:
+    """Sending and receiving run in two threads at once: the socket stays blocking, and a receive
+    waits with select(). (A socket timeout is one per socket: a sender setting it while the
+    receiver waits made recv fail with EAGAIN and dropped the connection.)"""
+
     def __init__(self, sock: socket.socket, nodelay: bool):
         if nodelay:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.settimeout(None)
         self.sock = sock
 
     def send(self, data: bytes) -> None:
-        self.sock.settimeout(None)
         self.sock.sendall(data)
 
     def receive(self, max_bytes: int, timeout: float) -> bytes | None:
-        self.sock.settimeout(timeout)
-        try:
-            return self.sock.recv(max_bytes)
-        except TimeoutError:
-            return None
+        readable, _, _ = select.select([self.sock], [], [], timeout)
+        return self.sock.recv(max_bytes) if readable else None
 
     def close(self) -> None:
         try:
