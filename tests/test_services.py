@@ -3,8 +3,10 @@ this process, each in its own DDS domain, so the only way between them is the br
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
+from collections import Counter
 from typing import Any, Callable
 
 import pytest
@@ -48,24 +50,50 @@ class Caller:
     def call(self, request: Any, timeout: float = 10.0) -> Any:
         return self.call_many([request], timeout)[0]
 
-    def until_served(self, request: Any, timeout: float = 15.0) -> Any:
-        """Call until the far bridge has discovered its ROS server (until then it answers
-        "no ROS server"), and return the first real answer."""
+    def warm_up(self, request: Any, *engines: Any, timeout: float = 30.0) -> tuple[Any, Drops]:
+        """Call until the bridges are ready and return the first real answer, with the drop
+        counters of ``engines`` from then on (warm-up is not what a test counts).
+
+        Until a stream link has connected and the far bridge has discovered its ROS server, the
+        bridge answers with a failure at once. A call made just after discovery can be lost
+        inside ROS (Fast DDS drops an answer to a reader it has not discovered yet: "client will
+        not receive response"); the bridge answers it with a timeout, and a late answer may
+        follow, so then warm-up lasts one service timeout longer for it to land."""
         deadline = time.monotonic() + timeout
+        lost = False
         while True:
-            answer = self.call(request)
-            if "no ROS server" not in answer.message:
-                return answer
-            assert time.monotonic() < deadline, answer.message
-            time.sleep(0.1)  # pacing the retries; the result is waited on above
+            assert time.monotonic() < deadline, "the bridges never got ready"
+            future = self.client.call_async(request)
+            done = threading.Event()
+            future.add_done_callback(lambda _: done.set())
+            if not done.wait(10):  # lost between this caller and the bridge
+                self.client.remove_pending_request(future)
+                lost = True
+                continue
+            answer = future.result()
+            if not answer.message.startswith("rosgate: "):
+                break
+            lost = lost or "within" in answer.message
+            time.sleep(0.1)  # pacing the retries; each answer is waited on above
+        if lost:
+            time.sleep(max(r.service.timeout for e in engines for r in e.routes()) + 0.2)
+        return answer, Drops(engines)
 
 
-WARMUP = {"no_server", "remote_failure"}  # until_served: before the far bridge saw its server
+class Drops:
+    """Each route's drops counted since this was made, by engine name and route label."""
 
+    def __init__(self, engines: tuple[Any, ...]):
+        self.engines = engines
+        self.start = self._now()
 
-def drops_after_warmup(engine: Any) -> dict[str, dict[str, int]]:
-    return {r.label: {k: v for k, v in r.counters.drops.items() if k not in WARMUP}
-            for r in engine.routes()}
+    def _now(self) -> dict[str, Counter]:
+        return {f"{e.config.name} {r.label}": Counter(r.counters.drops)
+                for e in self.engines for r in e.routes()}
+
+    def since(self) -> dict[str, dict[str, int]]:
+        return {label: dict(now - self.start.get(label, Counter()))
+                for label, now in self._now().items()}
 
 
 def peer_yaml(name: str, entries: list[str]) -> str:
@@ -82,46 +110,49 @@ def test_peer_set_bool_and_trigger_cross_both_ways(engines, domain, ros_side, tr
     da, db = domain(), domain()
     p1, p2 = free_port(), free_port()
     a_entries = [f"service: /set, type: std_srvs/srv/SetBool, direction: transmit, port: {p1}, "
-                 f"transport: {transport}",
+                 f"transport: {transport}, timeout: 2",
                  f"service: /trig, type: std_srvs/srv/Trigger, direction: receive, port: {p2}, "
-                 f"transport: {transport}"]
+                 f"transport: {transport}, timeout: 2"]
     a = engines(peer_yaml("a", a_entries), da)
     b = engines(peer_yaml("b", [flip(e) for e in a_entries]), db)
     side_a, side_b = ros_side(da, "a"), ros_side(db, "b")
     side_b.ros.node.create_service(SetBool, "/set", echo_set_bool, qos_profile=DEEP)
     side_a.ros.node.create_service(Trigger, "/trig", pong, qos_profile=DEEP)
 
-    set_bool = Caller(side_a, SetBool, "/set")
-    assert set_bool.until_served(SetBool.Request(data=True)) == \
+    set_bool, trigger = Caller(side_a, SetBool, "/set"), Caller(side_b, Trigger, "/trig")
+    assert set_bool.warm_up(SetBool.Request(data=True))[0] == \
         SetBool.Response(success=True, message="data=True")
+    answer, drops = trigger.warm_up(Trigger.Request(), a, b)
+    assert answer == Trigger.Response(success=True, message="pong")
     assert set_bool.call(SetBool.Request(data=False)) == \
         SetBool.Response(success=True, message="data=False")
-    trigger = Caller(side_b, Trigger, "/trig")
-    assert trigger.until_served(Trigger.Request()) == Trigger.Response(success=True, message="pong")
-    assert drops_after_warmup(a) == drops_after_warmup(b) == {"/set": {}, "/trig": {}}
+    assert trigger.call(Trigger.Request()) == Trigger.Response(success=True, message="pong")
+    assert drops.since() == {"a /set": {}, "a /trig": {}, "b /set": {}, "b /trig": {}}
 
 
 def test_client_server_calls_cross_both_ways_on_the_main_line_and_udp(engines, domain, ros_side):
     ds, dc = domain(), domain()
     main = free_port()
-    engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{main}}}", ds)
+    server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{main}}}", ds)
     client = engines(f"""
 bridge: {{name: robot1, role: client, server: 127.0.0.1:{main}}}
 services:
   - {{service: /set, type: std_srvs/srv/SetBool, direction: transmit, remote: /base/set,
-     codec: msgpack}}
-  - {{service: /trig, type: std_srvs/srv/Trigger, direction: receive, transport: tcp}}
+     codec: msgpack, timeout: 2}}
+  - {{service: /trig, type: std_srvs/srv/Trigger, direction: receive, transport: tcp, timeout: 2}}
 """, dc)
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
     base.ros.node.create_service(SetBool, "/base/set", echo_set_bool, qos_profile=DEEP)
     robot.ros.node.create_service(Trigger, "/trig", pong, qos_profile=DEEP)
-    set_bool = Caller(robot, SetBool, "/set")
-    assert set_bool.until_served(SetBool.Request(data=True)).message == "data=True"
+    set_bool, trigger = Caller(robot, SetBool, "/set"), Caller(base, Trigger, "/trig")
+    assert set_bool.warm_up(SetBool.Request(data=True))[0].message == "data=True"
+    answer, drops = trigger.warm_up(Trigger.Request(), client, server)
+    assert answer == Trigger.Response(success=True, message="pong")
     assert set_bool.call(SetBool.Request(data=False)) == \
         SetBool.Response(success=True, message="data=False")
-    trigger = Caller(base, Trigger, "/trig")
-    assert trigger.until_served(Trigger.Request()) == Trigger.Response(success=True, message="pong")
-    assert drops_after_warmup(client) == {"/set (to base)": {}, "/trig (from base)": {}}
+    assert trigger.call(Trigger.Request()) == Trigger.Response(success=True, message="pong")
+    assert drops.since() == {"robot1 /set (to base)": {}, "robot1 /trig (from base)": {},
+                             "base /base/set (from robot1)": {}, "base /trig (to robot1)": {}}
 
 
 class HoldingServer:
@@ -153,13 +184,13 @@ class HoldingServer:
 def test_fifty_concurrent_calls_each_get_their_own_answer(engines, domain, ros_side, transport):
     da, db, port = domain(), domain(), free_port()
     entry = (f"service: /set, type: std_srvs/srv/SetBool, direction: transmit, port: {port}, "
-             f"transport: {transport}")
+             f"transport: {transport}, timeout: 3")
     a = engines(peer_yaml("a", [entry]), da)
-    engines(peer_yaml("b", [flip(entry)]), db)
+    b = engines(peer_yaml("b", [flip(entry)]), db)
     side_a, side_b = ros_side(da, "a"), ros_side(db, "b")
     server = HoldingServer(side_b, "/set", 50)
     caller = Caller(side_a, SetBool, "/set")
-    caller.until_served(SetBool.Request(data=True))
+    _, drops = caller.warm_up(SetBool.Request(data=True), a, b)
     latencies = []
     for _ in range(20):
         start = time.monotonic()
@@ -172,8 +203,7 @@ def test_fifty_concurrent_calls_each_get_their_own_answer(engines, domain, ros_s
     elapsed = time.monotonic() - start
     assert [a.message for a in answers] == [f"data={r.data}" for r in requests]
     assert all(a.success for a in answers)
-    route = a.routes()[0]
-    assert route.counters.drops.get("timeout") is None and not route.calls
+    assert drops.since() == {"a /set": {}, "b /set": {}} and not a.routes()[0].calls
     print(f"\n{transport}: one call {sorted(latencies)[10] * 1000:.1f} ms (median of 20), "
           f"50 concurrent calls {elapsed * 1000:.0f} ms")
 
@@ -188,26 +218,25 @@ def test_slow_server_answered_as_failure_within_timeout_and_the_late_answer_drop
     side_a, side_b = ros_side(da, "a"), ros_side(db, "b")
     server = HoldingServer(side_b, "/set", 2)  # holds the first call until a second comes
     caller = Caller(side_a, SetBool, "/set")
-    caller.until_served(SetBool.Request(data=True))
+    _, drops_a = caller.warm_up(SetBool.Request(data=True), a)
+    drops_b = Drops((b,))
     server.holding = True
     start = time.monotonic()
     answer = caller.call(SetBool.Request(data=True), timeout=5)
     elapsed = time.monotonic() - start
     assert answer == SetBool.Response(success=False, message="rosgate: no answer within 0.5 s")
     assert 0.5 <= elapsed < 0.8
-    caller_route, server_route = a.routes()[0], b.routes()[0]
     # the serving bridge gives up on its ROS server too, and says so: too late for the caller
     wait = time.monotonic() + 5
-    while caller_route.counters.drops["late_answer"] < 1 and time.monotonic() < wait:
+    while drops_a.since()["a /set"].get("late_answer") != 1 and time.monotonic() < wait:
         time.sleep(0.02)
-    assert caller_route.counters.drops["timeout"] == 1
-    assert caller_route.counters.drops["late_answer"] == 1
-    assert server_route.counters.drops["timeout"] == 1
+    assert drops_a.since() == {"a /set": {"timeout": 1, "late_answer": 1}}
+    assert drops_b.since() == {"b /set": {"timeout": 1}}
     # a second call releases both: its own answer crosses; the first one's, which the serving
     # bridge stopped waiting for, does not (rclpy drops it) and nothing more is counted
     assert caller.call(SetBool.Request(data=False), timeout=5).message == "data=False"
-    assert dict(caller_route.counters.drops) == {"timeout": 1, "late_answer": 1}
-    assert dict(server_route.counters.drops) == {"timeout": 1}
+    assert drops_a.since() == {"a /set": {"timeout": 1, "late_answer": 1}}
+    assert drops_b.since() == {"b /set": {"timeout": 1}}
 
 
 def test_missing_server_answered_as_failure_at_once(engines, domain, ros_side):
@@ -234,3 +263,60 @@ def test_peer_gone_answered_as_failure_within_timeout(engines, domain, ros_side)
     answer = caller.call(SetBool.Request(data=True), timeout=5)
     assert answer == SetBool.Response(success=False, message=f"rosgate: tcp->127.0.0.1:{port} is down")
     assert dict(a.routes()[0].counters.drops) == {"link_down": 1}
+
+
+def test_forged_duplicated_and_oversized_service_frames_are_dropped_and_counted(
+        engines, domain, ros_side):
+    from rosgate import envelope
+    from rosgate.envelope import topic_id_for
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    da, db, port = domain(), domain(), free_port()
+    entry = (f"service: /set, type: std_srvs/srv/SetBool, direction: transmit, port: {port}, "
+             "max_request: 100, timeout: 2")
+    a = engines(peer_yaml("a", [entry]), da)
+    b = engines(peer_yaml("b", [flip(entry)]), db)
+    side_a, side_b = ros_side(da, "a"), ros_side(db, "b")
+    calls: list[bool] = []
+
+    def counting(request: Any, response: Any) -> Any:
+        calls.append(request.data)
+        return echo_set_bool(request, response)
+
+    side_b.ros.node.create_service(SetBool, "/set", counting, qos_profile=DEEP)
+    caller = Caller(side_a, SetBool, "/set")
+    _, drops = caller.warm_up(SetBool.Request(data=True), a, b)
+    link_drops = dict(b.link_drops)
+    served = len(calls)
+    sid = topic_id_for("/set")
+    request = lambda seq, body: envelope.pack(envelope.FLAG_REQUEST, sid, 99, seq, 0) + body  # noqa: E731
+    cdr = serialize_message(SetBool.Request(data=False))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        s.settimeout(5)
+        for frame in [request(1, cdr), request(1, cdr),           # the second is a replay
+                      request(2, b"\x00\x01\x00\x00"),            # a SetBool request without data
+                      request(3, cdr + bytes(100)),               # over max_request
+                      envelope.pack(envelope.FLAG_REQUEST, sid ^ 1, 99, 4, 0) + cdr]:  # no such id
+            s.sendto(frame, ("127.0.0.1", port))
+        answer = s.recv(1000)  # the one served request is answered to where it came from
+    header = envelope.unpack(answer)
+    assert (header.flags, header.topic_id, header.epoch, header.seq) == \
+        (envelope.FLAG_REPLY, sid, 99, 1)
+    assert deserialize_message(answer[envelope.SIZE:], SetBool.Response) == \
+        SetBool.Response(success=True, message="data=False")
+    # an answer nobody asked for: the caller bridge drops it
+    route_a = a.routes()[0]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        reply = envelope.pack(envelope.FLAG_REPLY, sid, route_a.epoch, 10**6, 0)
+        s.sendto(reply + answer[envelope.SIZE:], route_a.link.endpoint.sock.getsockname())
+    # a and b count on their own receive threads
+    expected = {"a /set": {"late_answer": 1},
+                "b /set": {"duplicate": 1, "decode_error": 1, "too_large": 1}}
+    deadline = time.monotonic() + 5
+    while drops.since() != expected and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert drops.since() == expected
+    assert Counter(b.link_drops) - Counter(link_drops) == {"unknown_service": 1}
+    assert calls[served:] == [False]
+    assert caller.call(SetBool.Request(data=False)).message == "data=False"  # still working

@@ -44,10 +44,15 @@ CALLER_THREADS = 16    # connections a calling route has open at once; more call
 CHUNK = 4096
 
 
-def start_peer_service(role: Any, p: PreparedService, listen: str, key: str) -> None:
+def start_peer_service(role: Any, p: PreparedService, listen: str, key: str,
+                       servers: dict[Address, CallServer]) -> None:
+    """Route one entry; ``servers`` holds the call servers already listening, by address."""
     engine, s = role.engine, p.config
     if s.direction == "receive":
-        server = _call_server(role, p.transport, (listen, s.port), key)
+        local = (listen, s.port)
+        if local not in servers:
+            servers[local] = CallServer.listen(engine, p.transport, local, key)
+        server = servers[local]
         route = engine.make_route(p, 0, s.service, None)  # a ServerRoute, found by name: no id
         server.add(route)  # type: ignore[arg-type]
     else:
@@ -60,27 +65,25 @@ def start_peer_service(role: Any, p: PreparedService, listen: str, key: str) -> 
     role.add(route)
 
 
-def _call_server(role: Any, transport: Transport, local: Address, key: str) -> CallServer:
-    """The server on ``local``, shared by every service on that port."""
-    servers = role.__dict__.setdefault("cvra_servers", {})
-    if local not in servers:
-        try:
-            listener = transport.listen(local)
-        except LinkError as exc:
-            raise role.engine.bind_error(exc, key) from None
-        servers[local] = CallServer(role.engine, f"{transport.name}:{local[1]}")
-        role.engine.closing(Acceptor(listener, servers[local].name, servers[local].accepted))
-    return servers[local]
-
-
 class CallServer:
-    """Serves microcontrollers' calls on one port (direction receive)."""
+    """Serves microcontrollers' calls on one port (direction receive), for every service there.
+    The services' names are read with the codec of the first (only msgpack names requests)."""
 
     def __init__(self, engine: Engine, name: str):
         self.engine = engine
         self.name = name
         self.routes: dict[str, ServerRoute] = {}
         self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+
+    @classmethod
+    def listen(cls, engine: Engine, transport: Transport, local: Address, key: str) -> CallServer:
+        try:
+            listener = transport.listen(local)
+        except LinkError as exc:
+            raise engine.bind_error(exc, key) from None
+        server = cls(engine, f"{transport.name}:{local[1]}")
+        engine.closing(Acceptor(listener, server.name, server.accepted))
+        return server
 
     def add(self, route: ServerRoute) -> None:
         self.routes[route.service.remote] = route

@@ -9,9 +9,12 @@ shutdown with the rclpy from the package index).
 from __future__ import annotations
 
 import importlib
+import logging
 import re
 import threading
 from typing import Any, Callable
+
+_log = logging.getLogger("rosgate")
 
 TYPE_NAME = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Z][A-Za-z0-9]*)$")
 
@@ -129,6 +132,7 @@ class RosNode:
         from rclpy.service import Service
 
         from rclpy.exceptions import InvalidHandle
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
         service = self.node.create_service(srv_type, name, _Deferred, qos_profile=qos)
 
@@ -137,6 +141,10 @@ class RosNode:
                 Service.send_response(service, response, header)
             except InvalidHandle:  # the service was destroyed (a client left) while it waited
                 pass
+            except (_rclpy.RCLError, _rclpy.RMWError) as exc:
+                # Fast DDS drops an answer to a caller whose reader it has not discovered yet
+                # ("client will not receive response"): the caller's own timeout covers it
+                _log.warning("%s: an answer was lost in ROS: %s", name, str(exc).splitlines()[0])
 
         def send_response(result: Any, header: Any) -> None:
             if isinstance(result, _Deferred):

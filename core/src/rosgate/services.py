@@ -405,11 +405,12 @@ def start_peer(role: Any) -> None:
 
     engine, cfg = role.engine, role.cfg
     listen = cfg.listen or "0.0.0.0"
+    call_servers: dict[Address, cvra.CallServer] = {}
     for p in engine.services:
         s = p.config
         key = f"services[{p.index}].port"
         if s.framing == "serial_datagram":
-            cvra.start_peer_service(role, p, listen, key)
+            cvra.start_peer_service(role, p, listen, key, call_servers)
             continue
         link: Link
         to = (cfg.peer or "", s.port)
