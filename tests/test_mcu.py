@@ -18,7 +18,6 @@ import msgpack
 import pytest
 from conftest import free_port
 from geometry_msgs.msg import Pose2D, Twist
-from rclpy.qos import QoSProfile
 from std_srvs.srv import SetBool, Trigger
 from test_services import DEEP, Caller
 
@@ -251,3 +250,46 @@ def test_microcontroller_that_never_answers_fails_the_call_within_timeout(
             assert next(frames) == msgpack.packb("ping") + msgpack.packb({})
     route = next(r for r in engine.routes() if r.label == "/mcu/ping")
     assert dict(route.counters.drops) == {"timeout": 1}
+
+
+@pytest.mark.parametrize("answer, close, expected, reason", [
+    # answers, never closes: the bridge takes the answer and closes itself
+    (msgpack.packb({"success": True, "message": "pong"}), False,
+     Trigger.Response(success=True, message="pong"), None),
+    # not MessagePack, then closes
+    (b"\xc1", True, None, "decode_error"),
+    # a field Trigger's response does not have
+    (msgpack.packb({"succes": True}), True, None, "decode_error"),
+    # closes without a word
+    (b"", True, None, "no_answer"),
+])
+def test_what_a_microcontroller_answers_is_checked(engines, domain, ros_side, answer, close,
+                                                   expected, reason):
+    d, p = domain(), ports()
+    with socket.socket() as fake:
+        fake.bind(("127.0.0.1", p["mcu"]))
+        fake.listen(4)
+
+        closed_by_bridge: list[bool] = []
+
+        def serve() -> None:
+            conn, _ = fake.accept()
+            conn.recv(4096)
+            conn.sendall(answer)
+            if not close:  # keep it open until the bridge closes it
+                conn.settimeout(5)
+                closed_by_bridge.append(conn.recv(1) == b"")
+            conn.close()
+        server = threading.Thread(target=serve)
+        server.start()
+        engine = engines(bridge_yaml(p).replace("remote: ping,", "remote: ping, timeout: 2,"), d)
+        got = Caller(ros_side(d, "ros"), Trigger, "/mcu/ping").call(Trigger.Request(), timeout=5)
+        server.join(5)
+        assert not server.is_alive()
+    route = next(r for r in engine.routes() if r.label == "/mcu/ping")
+    assert closed_by_bridge == ([] if close else [True])
+    if expected is not None:
+        assert got == expected and not route.counters.drops
+    else:
+        assert not got.success and got.message.startswith("rosgate: ")
+        assert dict(route.counters.drops) == {reason: 1}
