@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 from . import serial_datagram
 from .errors import CodecError, LinkError
 from .links import POLL, Acceptor
-from .services import Call, ServerRoute, ServiceRoute, deep_qos, failure
+from .services import Call, ServerRoute, ServiceRoute, deep_qos
 from .transport import Address, StreamConnection, Transport
 
 if TYPE_CHECKING:
@@ -172,14 +172,14 @@ class CallServer:
         route.counters.bytes_received += len(payload)
         done = threading.Event()
         answer: list[Any] = []
-        response_type = route.srv_type.Response
 
         def settle(response: Any) -> None:
             answer.append(response)
             done.set()
 
-        route.serve(request, Call(settle, lambda reason: settle(failure(response_type, reason))))
-        done.wait()  # serve() settles within the service's timeout
+        route.serve(request, route.answering(settle))
+        if not done.wait(route.service.timeout + 5):  # serve() settles within the timeout
+            return None
         try:
             data = codec.encode(codec.response, answer[0])
         except Exception as exc:
@@ -201,8 +201,7 @@ class CvraCallerRoute(ServiceRoute):
 
     def on_request(self, request: Any, respond: Any) -> None:
         """The ROS executor's thread: hand the call to a connection thread and return."""
-        response_type = self.srv_type.Response
-        call = Call(respond, lambda reason: respond(failure(response_type, reason)))
+        call = self.answering(respond)
         self.deadlines.after(self.service.timeout, lambda: self.fail(
             call, "timeout", f"no answer from {self.address[0]}:{self.address[1]} within "
                              f"{self.service.timeout:g} s"))

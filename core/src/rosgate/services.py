@@ -182,6 +182,11 @@ class ServiceRoute(Route):
         """Settle ``call`` with a failure, counted by ``reason`` (unless it is settled already)."""
         call.fail(detail, lambda: self.drop(reason, detail))
 
+    def answering(self, respond: Callable[[Any], None]) -> Call:
+        """A call whose outcome goes to ``respond`` as a Response: a failure as :func:`failure`."""
+        response_type = self.srv_type.Response
+        return Call(respond, lambda reason: respond(failure(response_type, reason)))
+
 
 class CallerRoute(ServiceRoute):
     """``transmit``: a proxy ROS server here; each call crosses ``link`` (framing rosgate)."""
@@ -197,8 +202,7 @@ class CallerRoute(ServiceRoute):
 
     def on_request(self, request: Any, respond: Callable[[Any], None]) -> None:
         """The ROS executor's thread: send the call and return; the answer comes later."""
-        response_type = self.srv_type.Response
-        call = Call(respond, lambda reason: respond(failure(response_type, reason)))
+        call = self.answering(respond)
         to = self.destination()
         if to is None and self.link.datagram:
             self.fail(call, "no_peer_yet", "the far side's address is not known yet")
