@@ -124,7 +124,8 @@ class ServerRole(Role):
                            "token": session.token.hex(),
                            "topic_ids": [r.topic_id for r in session.routes[:len(prepared)]],
                            "service_ids": [r.topic_id for r in session.routes[len(prepared):]]}), 0)
-        log.info("client %r connected from %s with %d topic(s)", name, peer[0], len(session.routes))
+        log.info("client %r connected from %s with %d topic(s) and %d service(s)", name, peer[0],
+                 len(prepared), len(services))
         return session
 
     def _prepare_client_topics(self, hello: dict[str, Any], name: str) -> list[Prepared]:
