@@ -293,3 +293,28 @@ def test_what_a_microcontroller_answers_is_checked(engines, domain, ros_side, an
     else:
         assert not got.success and got.message.startswith("rosgate: ")
         assert dict(route.counters.drops) == {reason: 1}
+
+
+def test_random_bytes_on_both_ports_are_each_dropped_once(engines, domain, ros_side):
+    import random
+
+    d, p = domain(), ports()
+    engine = engines(bridge_yaml(p, ", max_request: 200"), d)
+    positions = ros_side(d, "ros").listen("/position", Pose2D)
+    rng = random.Random(4)
+    blobs = [rng.randbytes(rng.randint(0, 300)) + b"\xc0" for _ in range(40)]
+    for blob in blobs:  # each ends in END: one frame, never valid (its CRC would have to match)
+        assert call_raw(p["bridge"], blob) == b""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for blob in blobs:
+            s.sendto(blob, ("127.0.0.1", p["in"]))
+        deadline = time.monotonic() + 10
+        while not positions.wait_count(1, 0.2):  # still flowing
+            assert time.monotonic() < deadline
+            s.sendto(msgpack.packb("position") + msgpack.packb({"x": 1.0}), ("127.0.0.1", p["in"]))
+    calls = {"bad_crc", "bad_escape", "too_short", "too_long"}
+    assert wait_until(lambda: sum(engine.link_drops.get(k, 0) for k in calls) == 40)
+    topic_drops = sum(engine.link_drops.get(k, 0) for k in ("unknown_topic", "unnamed_frame"))
+    position = next(r for r in engine.routes() if r.label == "/position")
+    assert topic_drops + sum(position.counters.drops.values()) == 40
+    assert positions.items[0] == Pose2D(x=1.0)

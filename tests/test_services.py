@@ -130,7 +130,7 @@ def test_peer_set_bool_and_trigger_cross_both_ways(engines, domain, ros_side, tr
     assert drops.since() == {"a /set": {}, "a /trig": {}, "b /set": {}, "b /trig": {}}
 
 
-def test_client_server_calls_cross_both_ways_on_the_main_line_and_udp(engines, domain, ros_side):
+def test_client_server_calls_cross_both_ways_on_udp_and_a_tcp_port_of_their_own(engines, domain, ros_side):
     ds, dc = domain(), domain()
     main = free_port()
     server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{main}}}", ds)
@@ -139,7 +139,8 @@ bridge: {{name: robot1, role: client, server: 127.0.0.1:{main}}}
 services:
   - {{service: /set, type: std_srvs/srv/SetBool, direction: transmit, remote: /base/set,
      codec: msgpack, timeout: 2}}
-  - {{service: /trig, type: std_srvs/srv/Trigger, direction: receive, transport: tcp, timeout: 2}}
+  - {{service: /trig, type: std_srvs/srv/Trigger, direction: receive, transport: tcp, timeout: 2,
+     port: {free_port()}}}
 """, dc)
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
     base.ros.node.create_service(SetBool, "/base/set", echo_set_bool, qos_profile=DEEP)

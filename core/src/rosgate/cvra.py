@@ -117,6 +117,10 @@ class CallServer:
                     connection.send(answer)
         except OSError as exc:
             log.debug("%s: connection from %s: %s", self.name, peer[0], exc)
+        except Exception:  # a bug, not the peer's bytes: keep serving the others
+            log.exception("%s: error while serving a call from %s (a bug: please report it)",
+                          self.name, peer[0])
+            self.drop("handler_error", f"from {peer[0]}")
         finally:
             connection.close()
             self._slots.release()
