@@ -133,10 +133,7 @@ class ServerRole(Role):
         if not isinstance(topics, list):
             raise ConfigError("hello without a topic list", file=f"client {name}")
         where = f"client {name}"
-
-        def error(key: str, message: str, fix: str | None = None) -> ConfigError:
-            return ConfigError(message, file=where, key=key, fix=fix)
-
+        error = where_error(where)
         prepared = []
         for i, mapping in enumerate(topics):
             if not isinstance(mapping, dict):
