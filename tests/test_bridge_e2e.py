@@ -216,3 +216,32 @@ topics:
                     base.listen(f"/{name}/chatter", String), string,
                     lambda m: m.data == "warmup", 10)
         assert_strings(got, 10, ordered=False)
+
+
+def test_client_server_processes_serve_calls_both_ways_encrypted(tmp_path, domain, ros_side,
+                                                                 bridge, fernet_key):
+    from std_srvs.srv import SetBool, Trigger
+    from test_services import DEEP, Caller, echo_set_bool, pong
+
+    dc, ds = domain(), domain()
+    port = free_port()
+    client = write(tmp_path / "client.yaml", f"""
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
+plugins: {{fernet: {{key_file: {fernet_key}}}}}
+services:
+  - {{service: /set, type: std_srvs/srv/SetBool, direction: transmit, remote: /robot1/set,
+     cipher: fernet, timeout: 2}}
+  - {{service: /trig, type: std_srvs/srv/Trigger, direction: receive, transport: tcp,
+     codec: msgpack, cipher: fernet, timeout: 2}}
+""")
+    server = bridge(server_file(tmp_path, port, fernet_key), ds)
+    bridge(client, dc)
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    base.ros.node.create_service(SetBool, "/robot1/set", echo_set_bool, qos_profile=DEEP)
+    robot.ros.node.create_service(Trigger, "/trig", pong, qos_profile=DEEP)
+    set_bool, trigger = Caller(robot, SetBool, "/set"), Caller(base, Trigger, "/trig")
+    assert set_bool.warm_up(SetBool.Request(data=True))[0].message == "data=True"
+    assert trigger.warm_up(Trigger.Request())[0] == Trigger.Response(success=True, message="pong")
+    answers = set_bool.call_many([SetBool.Request(data=i % 2 == 0) for i in range(20)], 10)
+    assert [a.message for a in answers] == [f"data={i % 2 == 0}" for i in range(20)]
+    assert server.wait_log("client 'robot1' up: connected", 5)

@@ -214,3 +214,39 @@ def test_check_refuses_an_ip_topic_addressed_by_a_bluetooth_main_line(config):
     assert "bringup.yaml:9: topics[0].port: 'AA:BB:CC:DD:EE:FF' is not an IP address or host " \
            "name" in message
     assert "fix: this topic's udp address is bridge.server with port 6" in message
+
+
+SERVICE = """\
+services:
+  - service: /mcu/ping
+    type: std_srvs/srv/Trigger
+    direction: transmit
+    remote: ping
+    transport: tcp
+    port: 20001
+    codec: msgpack
+    framing: serial_datagram
+"""
+
+
+def test_check_lists_services(config):
+    path = config(GOOD.format(port=12001) + SERVICE)
+    result = rosgate("check", str(path))
+    assert result.returncode == 0, result.stderr
+    assert "ok (peer 'robot1', 1 topic(s), 1 service(s))" in result.stdout
+    assert "/mcu/ping -> ping  [std_srvs/srv/Trigger] tcp:20001 msgpack none" in result.stdout
+
+
+@pytest.mark.parametrize("change, line, key, words", [
+    (("    transport: tcp\n", "    transport: udp\n"), 16, "services[0].transport",
+     "framing serial_datagram needs a stream transport"),
+    (("    codec: msgpack\n", "    codec: cdr\n"), 18, "services[0].codec",
+     "codec cdr does not put the service's name on the wire"),
+    (("std_srvs/srv/Trigger", "std_srvs/srv/Trigga"), 13, "services[0].type",
+     "has no srv 'Trigga'"),
+])
+def test_check_names_service_errors(config, change, line, key, words):
+    path = config((GOOD.format(port=12001) + SERVICE).replace(*change))
+    text = user_error(rosgate("check", str(path)))
+    assert f"{path}:{line}: {key}: " in text
+    assert words in text

@@ -198,10 +198,26 @@ def test_peer_file(tmp_path: Path) -> None:
     assert config.defaults == {"transport": "udp", "codec": "msgpack", "cipher": "none"}
     (position,) = config.topics
     assert (position.remote, position.transport, position.codec, position.port, position.framing) == (
-        "/position", "udp", "msgpack", 20000, "none")
+        "position", "udp", "msgpack", 20000, "none")  # bare framing: the name as written
     (ping,) = config.services
-    assert (ping.remote, ping.transport, ping.port, ping.framing, ping.timeout) == (
-        "/ping", "tcp", 20001, "serial_datagram", 5.0)
+    assert (ping.remote, ping.transport, ping.port, ping.framing, ping.timeout, ping.max_request) == (
+        "ping", "tcp", 20001, "serial_datagram", 5.0, 65536)
+
+
+def test_bare_framing_keeps_remote_as_written_and_defaults_to_the_name_without_slash() -> None:
+    config = loads("""
+bridge: {name: cvra, role: peer, peer: 127.0.0.1}
+topics:
+  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 20000, framing: none}
+  - {topic: /pose, type: geometry_msgs/msg/Pose2D, direction: receive, port: 20000, framing: none,
+     remote: Robot/Pose-2D}
+  - {topic: /chatter, type: std_msgs/msg/String, direction: receive, port: 20002, remote: chatter}
+services:
+  - {service: /mcu/ping, type: std_srvs/srv/Trigger, direction: transmit, port: 20001,
+     transport: tcp, framing: serial_datagram, max_request: 100}
+""")
+    assert [t.remote for t in config.topics] == ["cmd_vel", "Robot/Pose-2D", "/chatter"]
+    assert (config.services[0].remote, config.services[0].max_request) == ("mcu/ping", 100)
 
 
 def test_peer_listen_and_scalars_yaml_would_not_read_as_strings(tmp_path: Path) -> None:
@@ -520,6 +536,14 @@ ERRORS = {
     "framing_none_with_default_cipher": (
         CLIENT_HEAD + "  defaults: {cipher: fernet}\n" + TOPIC + "    framing: none\n",
         10, "topics[0].framing", "cipher must be none, not 'fernet'"),
+    "framing_none_on_service": (
+        CLIENT_HEAD + "services:\n  - service: /s\n    type: std_srvs/srv/Trigger\n"
+                      "    direction: receive\n    framing: none\n",
+        9, "services[0].framing", "framing none is for topics"),
+    "max_request_too_small": (
+        CLIENT_HEAD + "services:\n  - service: /s\n    type: std_srvs/srv/Trigger\n"
+                      "    direction: receive\n    max_request: 8\n",
+        9, "services[0].max_request", "expected a number of bytes >= 16, got 8"),
     "serial_datagram_on_topic": (
         CLIENT_HEAD + TOPIC + "    framing: serial_datagram\n",
         9, "topics[0].framing", "framing serial_datagram is for services"),

@@ -62,12 +62,13 @@ def _engine(path: str):
 def cmd_check(args: argparse.Namespace) -> int:
     engine = _engine(args.file)
     cfg = engine.config
-    print(f"{args.file}: ok ({cfg.role} {cfg.name!r}, {len(cfg.topics)} topic(s))")
-    for p in engine.topics:
+    print(f"{args.file}: ok ({cfg.role} {cfg.name!r}, {len(cfg.topics)} topic(s)"
+          + (f", {len(cfg.services)} service(s))" if cfg.services else ")"))
+    for p in [*engine.topics, *engine.services]:
         t = p.config
         arrow = "->" if t.direction == "transmit" else "<-"
         port = f":{t.port}" if t.port else ""
-        print(f"  {t.topic} {arrow} {t.remote}  [{t.type}] {t.transport}{port} {t.codec} {t.cipher}")
+        print(f"  {p.name} {arrow} {t.remote}  [{t.type}] {t.transport}{port} {t.codec} {t.cipher}")
     return 0
 
 

@@ -21,7 +21,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from . import envelope
-from .config import topic_to_mapping
+from .config import service_to_mapping, topic_to_mapping
 from .errors import RosgateError
 from .links import DatagramLink, Link, LinkSlot, StreamLink
 from .mainline import HANDSHAKE_TIMEOUT, PROTOCOL, control, hello_datagram, parse_control
@@ -84,7 +84,9 @@ class ClientRole(Role):
         self._answer.clear()
         self._welcome = None
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
-                           "topics": [topic_to_mapping(p.config) for p in self.engine.topics]}), 0)
+                           "topics": [topic_to_mapping(p.config) for p in self.engine.topics],
+                           "services": [service_to_mapping(p.config)
+                                        for p in self.engine.services]}), 0)
         if not self._await_answer(link) or self._welcome is None:
             return False
         answer = self._welcome
@@ -92,9 +94,9 @@ class ClientRole(Role):
             log.error("%s: the server refused our topics: %s", self.cfg.name, answer.get("error"))
             return False
         try:
-            ids = [int(i) for i in answer["topic_ids"]]
-            if len(ids) != len(self.engine.topics):
-                raise ValueError("topic id count does not match")
+            ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
+            if len(ids) != len(self.engine.topics) + len(self.engine.services):
+                raise ValueError("topic and service id count does not match")
             session, token = int(answer["session"]), bytes.fromhex(answer["token"])
             self.server_name = str(answer["name"])
             if self.topic_ids is None:
@@ -136,9 +138,9 @@ class ClientRole(Role):
     def _build(self, ids: list[int]) -> None:
         engine = self.engine
         main_reliable = []
-        for p, topic_id in zip(engine.topics, ids):
+        for p, topic_id in zip([*engine.topics, *engine.services], ids):
             t = p.config
-            label = f"{t.topic} ({'to' if t.direction == 'transmit' else 'from'} {self.server_name})"
+            label = f"{p.name} ({'to' if t.direction == 'transmit' else 'from'} {self.server_name})"
             if p.transport.stream:
                 slot = self.main if t.port is None else self._dedicated_stream(p)
                 route = self.add(engine.make_route(p, topic_id, label, slot))

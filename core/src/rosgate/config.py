@@ -28,6 +28,7 @@ LISTEN_DEFAULT = "0.0.0.0"
 FRAMING_DEFAULT = "rosgate"
 QOS_DEFAULT = 10
 TIMEOUT_DEFAULT = 5.0
+MAX_REQUEST_DEFAULT = 64 * 1024
 STALE_AFTER_DEFAULT = 15.0
 STALE_WARNINGS_DEFAULT = 5
 HEARTBEAT_DEFAULT = 1.0
@@ -39,6 +40,9 @@ QUEUE_FRAMES_DEFAULT, QUEUE_BYTES_DEFAULT = 1000, 8 * 1024 * 1024
 ROLES = ("client", "server", "peer")
 DIRECTIONS = ("transmit", "receive")
 FRAMINGS = ("rosgate", "none", "serial_datagram")
+# framings without an envelope: the entry's name on the wire is `remote` exactly as written (a
+# microcontroller's names are bare strings such as "cmd_vel"), not a ROS name
+BARE_FRAMINGS = ("none", "serial_datagram")
 QOS_PROFILES = ("default", "system_default", "sensor_data", "services_default", "parameters",
                 "best_available")
 QOS_POLICIES = {
@@ -56,7 +60,7 @@ QUEUE_KEYS = ("frames", "bytes")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
               "framing", "qos", "max_rate")
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
-                "framing", "timeout")
+                "framing", "timeout", "max_request")
 QOS_KEYS = ("reliability", "durability", "history", "depth")
 
 # One example value per key for the fix of every error about it; "section.key" where it differs.
@@ -74,7 +78,7 @@ _EXAMPLES = {
     "services.type": "std_srvs/srv/Trigger", "services.remote": "/ping",
     "direction": "transmit (this side to the peer) or receive (the peer to this side)",
     "remote": "/robot1/chatter", "port": "12001", "framing": "rosgate", "qos": "sensor_data",
-    "max_rate": "20", "timeout": "5", "reliability": "reliable", "durability": "volatile",
+    "max_rate": "20", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
     "history": "keep_last", "depth": "10",
 }
 
@@ -116,6 +120,7 @@ class ServiceConfig:
     port: int | None = None
     framing: str = FRAMING_DEFAULT
     timeout: float = TIMEOUT_DEFAULT
+    max_request: int = MAX_REQUEST_DEFAULT  # bytes; a longer request is dropped and counted
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
 
@@ -493,10 +498,18 @@ def _service(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Se
     _expect_entry(src, data, path, "service")
     _check_keys(src, data, path, SERVICE_KEYS)
     _require(src, data, path, ("service", "type", "direction"))
+    common = _common(src, data, path, "service", "srv", defaults)
+    if common["framing"] == "none":
+        raise src.error(_join(path, "framing"), "framing none is for topics: a service call needs "
+                                                "its answer matched to it",
+                        fix="leave framing: out (rosgate), or use framing: serial_datagram with a "
+                            "microcontroller")
     return ServiceConfig(
-        **_common(src, data, path, "service", "srv", defaults),
+        **common,
         timeout=_number(src, data, path, "timeout", TIMEOUT_DEFAULT, "a number of seconds > 0",
                         _positive),
+        max_request=_number(src, data, path, "max_request", MAX_REQUEST_DEFAULT,
+                            "a number of bytes >= 16", lambda v: v >= 16, integer=True),
         **_entry_lines(src, path),
     )
 
@@ -505,21 +518,27 @@ def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
             defaults: dict[str, str]) -> dict[str, Any]:
     """The keys topics and services share."""
     name = _ros_name(src, data, path, name_key)
+    framing = _choice(src, data, path, "framing", FRAMINGS, FRAMING_DEFAULT)
+    if framing in BARE_FRAMINGS:
+        remote = _text(src, data, path, "remote", name.removeprefix("/"))
+    else:
+        remote = _ros_name(src, data, path, "remote") if "remote" in data else name
     fields = {
         name_key: name,
         "type": _interface(src, data, path, kind),
         "direction": _choice(src, data, path, "direction", DIRECTIONS),
-        "remote": _ros_name(src, data, path, "remote") if "remote" in data else name,
+        "remote": remote,
         "transport": _text(src, data, path, "transport", defaults.get("transport", TRANSPORT_DEFAULT)),
         "codec": _text(src, data, path, "codec", defaults.get("codec", CODEC_DEFAULT)),
         "cipher": _text(src, data, path, "cipher", defaults.get("cipher", CIPHER_DEFAULT)),
         "port": _number(src, data, path, "port", None, "an integer 1..65535", lambda v: 1 <= v <= 65535,
                         integer=True),
-        "framing": _choice(src, data, path, "framing", FRAMINGS, FRAMING_DEFAULT),
+        "framing": framing,
     }
-    if fields["framing"] == "none" and fields["cipher"] != "none":
+    if framing in BARE_FRAMINGS and fields["cipher"] != "none":
         raise src.error(_join(path, "framing"),
-                        f"framing none sends the bare payload, so there is no envelope to authenticate; "
+                        f"framing {framing} sends the bare payload, so there is no envelope to "
+                        "authenticate; "
                         f"cipher must be none, not '{fields['cipher']}'",
                         fix="set cipher: none on this entry, or use framing: rosgate to keep the cipher")
     return fields

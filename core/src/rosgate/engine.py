@@ -22,13 +22,14 @@ from typing import Any, Callable
 from . import envelope
 from .cipher import Cipher
 from .codec import Codec
-from .config import BridgeConfig, TopicConfig
+from .config import BridgeConfig, ServiceConfig, TopicConfig
 from .envelope import topic_id_for
 from .errors import ConfigError, LinkError, OptionError
 from .links import Link, LinkSlot, QueueLimits
 from .plugins import Plugins
 from .ros import RosNode, TypeNotFound, is_reliable, qos_profile, resolve_type
 from .routes import ReceiveRoute, Route, TransmitRoute, Warner
+from .services import ServiceCodec, ServiceRoute, ServiceTable
 from .transport import Address, Transport
 
 log = logging.getLogger("rosgate")
@@ -49,6 +50,32 @@ class Prepared:
     address: Address  # the far side; a peer's receiving topic: where to listen
     reliable: bool  # frames wait out a stream link's loss (reliable QoS)
 
+    @property
+    def name(self) -> str:
+        return self.config.topic
+
+
+@dataclass
+class PreparedService:
+    """A service with every plugin and type resolved."""
+
+    config: ServiceConfig
+    srv_type: type
+    codec_cls: type[Codec]
+    transport: Transport
+    cipher: Cipher
+    index: int
+    address: Address  # as for a topic: the far side, or where a peer listens
+    # calls are not held while a link is down: the caller's timeout answers them instead
+    reliable: bool = False
+
+    @property
+    def name(self) -> str:
+        return self.config.service
+
+    def codec(self, options: dict[str, dict]) -> ServiceCodec:
+        return ServiceCodec(self.codec_cls, self.srv_type, options.get(self.config.codec) or {})
+
 
 class Engine:
     def __init__(self, config: BridgeConfig, plugins: Plugins | None = None,
@@ -60,6 +87,7 @@ class Engine:
         self.transports: dict[str, Transport] = {}
         self.ciphers: dict[str, Cipher] = {}
         self.topics: list[Prepared] = []
+        self.services: list[PreparedService] = []
         self.receivers: dict[int, ReceiveRoute] = {}
         self.link_drops: dict[str, int] = {}
         self.ros: RosNode | None = None
@@ -68,6 +96,7 @@ class Engine:
         self._closables: dict[int, Any] = {}  # id -> object, in opening order
         self._lock = threading.RLock()
         self._role: Any = None
+        self.service_table: ServiceTable | None = None  # made with the ROS node, in start()
 
     # -- preparation: every error a file can contain, before anything opens ----------------
     def prepare(self) -> "Engine":
@@ -82,7 +111,42 @@ class Engine:
             self.plugin(key, cfg.defaults[key], f"bridge.defaults.{key}")
         self.topics = [self.prepare_topic(t, i, "topics") for i, t in enumerate(cfg.topics)]
         self._check_shared_ports(self.topics)
+        self.services = [self.prepare_service(s, i, "services") for i, s in enumerate(cfg.services)]
         return self
+
+    def prepare_service(self, service: ServiceConfig, index: int, section: str,
+                        error: Callable[..., ConfigError] | None = None) -> PreparedService:
+        error = error or self.config.error
+        key = f"{section}[{index}]"
+        transport = self.transport(service.transport, f"{key}.transport", error)
+        codec_cls = self.plugin("codec", service.codec, f"{key}.codec", error).cls
+        cipher = self.cipher(service.cipher, f"{key}.cipher", error)
+        try:
+            srv_type = resolve_type(service.type)
+        except TypeNotFound as exc:
+            raise error(f"{key}.type", str(exc)) from None
+        prepared = PreparedService(service, srv_type, codec_cls, transport, cipher, index,
+                                   self.topic_address(transport, service, key, error))
+        try:
+            prepared.codec(self.config.plugins)
+        except OptionError as exc:
+            raise self._option_error(service.codec, exc, f"{key}.codec") from None
+        if service.framing == "serial_datagram":
+            if self.config.role != "peer":
+                raise error(f"{key}.framing", "framing serial_datagram is for microcontroller "
+                            "peers, which have no main line", "use role: peer for this bridge")
+            if not transport.stream:
+                raise error(f"{key}.transport", "framing serial_datagram needs a stream transport "
+                            "(one connection per call)", "use transport: tcp")
+            if not codec_cls.names_bare_frames:
+                raise error(f"{key}.codec", f"codec {service.codec} does not put the service's "
+                            "name on the wire", "use codec: msgpack")
+        if (self.config.role == "client" and transport.stream and service.port is None
+                and service.transport != self.config.main_line):
+            raise error(f"{key}.port", f"a service on {service.transport} needs a port of its own "
+                        f"(only {self.config.main_line} services ride the main line)",
+                        "add port: <number>")
+        return prepared
 
     def prepare_topic(self, topic: TopicConfig, index: int, section: str,
                       error: Callable[..., ConfigError] | None = None) -> Prepared:
@@ -111,7 +175,7 @@ class Engine:
         return Prepared(topic, msg_type, codec_cls, transport, cipher, index, address,
                         is_reliable(topic.qos))
 
-    def topic_address(self, transport: Transport, topic: TopicConfig, key: str,
+    def topic_address(self, transport: Transport, topic: TopicConfig | ServiceConfig, key: str,
                       error: Callable[..., ConfigError]) -> Address:
         """The address a topic's link uses, from the bridge's hosts and the topic's port, as its
         transport accepts it (an RFCOMM channel is not any port)."""
@@ -210,6 +274,7 @@ class Engine:
         if not self.topics and self.config.topics:
             self.prepare()
         self.ros = RosNode(self.config.name, self.domain_id)
+        self.service_table = self.closing(ServiceTable(self))
         from .client import ClientRole
         from .roles import PeerRole
         from .server import ServerRole
@@ -224,8 +289,8 @@ class Engine:
         self._housekeeper = threading.Thread(target=self._housekeeping, name="housekeeping",
                                              daemon=True)
         self._housekeeper.start()
-        log.info("%s: running as %s with %d topic(s)", self.config.name, self.config.role,
-                 len(self.topics))
+        log.info("%s: running as %s with %d topic(s) and %d service(s)", self.config.name,
+                 self.config.role, len(self.topics), len(self.services))
         return self
 
     def stop(self) -> None:
@@ -262,9 +327,12 @@ class Engine:
         return self.config.error(key, str(exc), exc.fix or "free the port, or pick another one")
 
     # -- building routes ---------------------------------------------------------------------
-    def make_route(self, p: Prepared, topic_id: int, label: str, link: Link,
+    def make_route(self, p: Prepared | PreparedService, topic_id: int, label: str, link: Link,
                    destination: Callable[[], Address | None] = lambda: None) -> Route:
         """Create a route and its ROS entity; a receive route is registered for dispatch."""
+        if isinstance(p, PreparedService):
+            assert self.service_table is not None
+            return self.service_table.make_route(p, topic_id, label, link, destination)
         t = p.config
         codec = p.codec_cls(p.msg_type, self.config.plugins.get(t.codec) or {})
         codec.authenticated = p.cipher.authenticates and t.framing != "none"
@@ -293,6 +361,8 @@ class Engine:
                 self.receivers[topic_id] = route
 
     def remove_route(self, route: Route) -> None:
+        if isinstance(route, ServiceRoute) and self.service_table is not None:
+            self.service_table.remove(route)
         with self._lock:
             if self.receivers.get(route.topic_id) is route:
                 del self.receivers[route.topic_id]
@@ -309,6 +379,10 @@ class Engine:
             return
         if header.flags & envelope.FLAG_HELLO:
             self._role.on_hello(header, frame, link, source)
+            return
+        if header.flags & (envelope.FLAG_REQUEST | envelope.FLAG_REPLY):
+            assert self.service_table is not None
+            self.service_table.on_frame(header, frame, link, source)
             return
         route = self.receivers.get(header.topic_id)
         if route is None:

@@ -1,10 +1,12 @@
 """The main line: the stream a client opens to its server, and what travels on it.
 
 Control messages are frames on topic 0 with the CONTROL flag and a JSON body — JSON, not
-pickle: a peer's bytes never become code. The client sends ``hello`` (its name and topics); the
-server answers ``welcome`` (its name, a session id and token, one topic id per topic) or
-``refused`` (why). Both sides send ``ping`` every ``heartbeat`` seconds. A client that stops
-cleanly sends ``bye``: the server drops its session at once.
+pickle: a peer's bytes never become code. The client sends ``hello`` (its name, topics and
+services); the server answers ``welcome`` (its name, a session id and token, one id per topic in
+``topic_ids`` and one per service in ``service_ids``) or ``refused`` (why). Service calls then
+travel as envelopes with the REQUEST / REPLY flags on the service's id (services.py has the
+wire). Both sides send ``ping`` every ``heartbeat`` seconds. A client that stops cleanly sends
+``bye``: the server drops its session at once.
 
 A client also says hello on every datagram link and dedicated stream it uses (a HELLO-flagged
 envelope with its session id and token), so the server learns where to send, even through NAT.
@@ -18,7 +20,8 @@ from dataclasses import replace
 from typing import Any
 
 from . import envelope
-from .config import TopicConfig
+from .config import ServiceConfig, TopicConfig, service_from_mapping
+from .errors import ConfigError
 
 PROTOCOL = 1           # main-line control protocol version
 HANDSHAKE_TIMEOUT = 10.0
@@ -43,7 +46,26 @@ def hello_datagram(session: int, token: bytes) -> bytes:
     return envelope.pack(envelope.FLAG_HELLO, session, 0, 0, time.time_ns()) + token
 
 
-def flipped(t: TopicConfig) -> TopicConfig:
-    """The server's view of a client's topic: the other direction, names swapped."""
-    return replace(t, topic=t.remote, remote=t.topic,
+def flipped(t: TopicConfig | ServiceConfig) -> Any:
+    """The server's view of a client's topic or service: the other direction, names swapped."""
+    name_key = "topic" if isinstance(t, TopicConfig) else "service"
+    return replace(t, **{name_key: t.remote, "remote": getattr(t, name_key)},
                    direction="receive" if t.direction == "transmit" else "transmit")
+
+
+def where_error(where: str) -> Any:
+    """An error maker for entries that came from a client (no file, no lines)."""
+    def error(key: str, message: str, fix: str | None = None) -> ConfigError:
+        return ConfigError(message, file=where, key=key, fix=fix)
+    return error
+
+
+def client_services(hello: dict[str, Any], defaults: dict[str, str], where: str) -> list[ServiceConfig]:
+    """The service entries of a client's hello, checked like a file's (older clients send none)."""
+    services = hello.get("services", [])
+    if not isinstance(services, list):
+        raise ConfigError("hello with a service list that is not a list", file=where)
+    for i, mapping in enumerate(services):
+        if not isinstance(mapping, dict):
+            raise ConfigError("not a mapping", file=where, key=f"services[{i}]")
+    return [service_from_mapping(m, defaults, where, index=i) for i, m in enumerate(services)]

@@ -15,6 +15,7 @@ import random
 import threading
 from typing import TYPE_CHECKING, Callable
 
+from . import services
 from .envelope import Header, topic_id_for
 from .errors import LinkError
 from .links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
@@ -136,6 +137,7 @@ class PeerRole(Role):
                 route = engine.make_route(p, topic_id_for(t.remote), label, link,
                                           lambda to=p.address: to)
             self.add(route)
+        services.start_peer(self)
 
     def _start_stream(self, p: Prepared, key: str) -> None:
         t = p.config

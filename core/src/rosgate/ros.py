@@ -9,9 +9,12 @@ shutdown with the rclpy from the package index).
 from __future__ import annotations
 
 import importlib
+import logging
 import re
 import threading
 from typing import Any, Callable
+
+_log = logging.getLogger("rosgate")
 
 TYPE_NAME = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Z][A-Za-z0-9]*)$")
 
@@ -77,6 +80,15 @@ def is_reliable(spec: int | str | dict) -> bool:
     return qos_profile(spec).reliability != qos.ReliabilityPolicy.BEST_EFFORT
 
 
+class _Deferred:
+    """What a deferred service's callback returns: the answer comes later (see deferred_service)."""
+
+    __slots__ = ("request",)
+
+    def __init__(self, request: Any, response: Any = None):
+        self.request = request
+
+
 class RosNode:
     """A node in a context of its own, spun in a background thread."""
 
@@ -112,8 +124,57 @@ class RosNode:
     def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)
 
+    def deferred_service(self, srv_type: type, name: str, qos: Any,
+                         on_request: Callable[[Any, Callable[[Any], None]], None]) -> Any:
+        """A service server whose answers may come later, from any thread.
+
+        ``on_request(request, respond)`` runs on the executor thread and must not block; calling
+        ``respond(response)`` (once, from any thread) answers the caller. Why not an async
+        callback: EventsExecutor does not run coroutines (it hands the coroutine itself to
+        ``send_response``: TypeError), and rclpy's Python executors resume awaiting tasks by
+        polling them in a busy loop. Both executors answer by calling ``service.send_response
+        (result, header)`` on the service object, so the callback returns a marker and
+        ``send_response`` is replaced on this instance: given the marker it passes the request
+        and a ``respond`` bound to the request's header to ``on_request``.
+        """
+        from rclpy.service import Service
+
+        from rclpy.exceptions import InvalidHandle
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+        service = self.node.create_service(srv_type, name, _Deferred, qos_profile=qos)
+
+        def respond(response: Any, header: Any) -> None:
+            try:
+                Service.send_response(service, response, header)
+            except InvalidHandle:  # the service was destroyed (a client left) while it waited
+                pass
+            except (_rclpy.RCLError, _rclpy.RMWError) as exc:
+                # Fast DDS drops an answer to a caller whose reader it has not discovered yet
+                # ("client will not receive response"): the caller's own timeout covers it
+                _log.warning("%s: an answer was lost in ROS: %s", name, str(exc).splitlines()[0])
+
+        def send_response(result: Any, header: Any) -> None:
+            if isinstance(result, _Deferred):
+                on_request(result.request, lambda response: respond(response, header))
+            else:
+                respond(result, header)
+
+        service.send_response = send_response
+        return service
+
+    def client(self, srv_type: type, name: str, qos: Any) -> Any:
+        return self.node.create_client(srv_type, name, qos_profile=qos)
+
     def destroy(self, entity: Any) -> None:
-        if hasattr(entity, "publish"):
+        from rclpy.client import Client
+        from rclpy.service import Service
+
+        if isinstance(entity, Service):
+            self.node.destroy_service(entity)
+        elif isinstance(entity, Client):
+            self.node.destroy_client(entity)
+        elif hasattr(entity, "publish"):
             self.node.destroy_publisher(entity)
         else:
             self.node.destroy_subscription(entity)

@@ -24,13 +24,13 @@ from .config import topic_from_mapping
 from .errors import ConfigError, LinkError
 from .envelope import topic_id_for
 from .links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
-from .mainline import PROTOCOL, control, flipped, parse_control
+from .mainline import PROTOCOL, client_services, control, flipped, parse_control, where_error
 from .roles import Role
 from .routes import Route, TransmitRoute
 from .transport import Address, StreamConnection, Transport
 
 if TYPE_CHECKING:
-    from .engine import Engine, Prepared
+    from .engine import Engine, Prepared, PreparedService
 
 log = logging.getLogger("rosgate")
 
@@ -43,6 +43,7 @@ class Session:
     token: bytes
     name: str
     topics: list[Any]  # the client's topic list, as it sent it
+    services: list[Any]  # and its service list
     main: LinkSlot
     routes: list[Route] = field(default_factory=list)
     addresses: dict[DatagramLink, Address] = field(default_factory=dict)
@@ -132,14 +133,16 @@ class ServerRole(Role):
             return None
         link.send(control({"type": "welcome", "name": self.cfg.name, "session": session.id,
                            "token": session.token.hex(),
-                           "topic_ids": [r.topic_id for r in session.routes]}), 0)
+                           "topic_ids": [r.topic_id for r in session.routes[:len(session.topics)]],
+                           "service_ids": [r.topic_id
+                                           for r in session.routes[len(session.topics):]]}), 0)
         old = session.main.current
         session.main.attach(link)  # after the welcome: what waited goes out under known ids
         session.down_since = None
         if old is not None and old is not link:
             old.fail("the client connected again")
-        log.info("client %r up: connected from %s with %d topic(s)", name, peer[0],
-                 len(session.routes))
+        log.info("client %r up: connected from %s with %d topic(s) and %d service(s)", name,
+                 peer[0], len(session.topics), len(session.services))
         return session
 
     def _resume(self, hello: dict[str, Any], name: str) -> Session | None:
@@ -149,7 +152,8 @@ class ServerRole(Role):
             found = next((s for s in self.sessions.values() if s.name == name), None)
         if found is None:
             return None
-        if found.topics == hello.get("topics") and hello.get("protocol") == PROTOCOL:
+        if (found.topics == hello.get("topics") and found.services == hello.get("services", [])
+                and hello.get("protocol") == PROTOCOL):
             return found
         log.info("client %r came back with other topics: its old session is dropped", name)
         self._end(found)
@@ -160,10 +164,11 @@ class ServerRole(Role):
             raise ConfigError(f"protocol {hello.get('protocol')!r} is not {PROTOCOL}",
                               file=f"client {name}", fix="run the same rosgate version on both")
         prepared = self._prepare_client_topics(hello, name)
+        services = self._prepare_client_services(hello, name)
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
-                          self.engine.slot(f"main of {name}"))
+                          hello.get("services", []), self.engine.slot(f"main of {name}"))
         try:
-            for p in prepared:
+            for p in [*prepared, *services]:  # topics first: the welcome splits the ids so
                 session.routes.append(self._route(session, p))
         except LinkError:
             self._drop_routes(session)
@@ -179,10 +184,7 @@ class ServerRole(Role):
         if not isinstance(topics, list):
             raise ConfigError("hello without a topic list", file=f"client {name}")
         where = f"client {name}"
-
-        def error(key: str, message: str, fix: str | None = None) -> ConfigError:
-            return ConfigError(message, file=where, key=key, fix=fix)
-
+        error = where_error(where)
         prepared = []
         for i, mapping in enumerate(topics):
             if not isinstance(mapping, dict):
@@ -191,21 +193,26 @@ class ServerRole(Role):
             prepared.append(self.engine.prepare_topic(flipped(t), i, "topics", error))
         return prepared
 
-    def _topic_id(self, session: Session, p: Prepared) -> int:
-        """Derived from the client's name and the topic, so a returning client gets the ids it
-        had even from a restarted server; the next free one on a collision."""
+    def _prepare_client_services(self, hello: dict[str, Any], name: str) -> list[PreparedService]:
+        where = f"client {name}"
+        return [self.engine.prepare_service(flipped(s), i, "services", where_error(where))
+                for i, s in enumerate(client_services(hello, self.cfg.defaults, where))]
+
+    def _topic_id(self, session: Session, p: Prepared | PreparedService) -> int:
+        """Derived from the client's name and the topic or service, so a returning client gets
+        the ids it had even from a restarted server; the next free one on a collision."""
         t = p.config
         used = {r.topic_id for r in self.routes()} | {r.topic_id for r in session.routes}
-        topic_id = topic_id_for(f"{session.name}\0{t.direction}\0{t.topic}")
+        topic_id = topic_id_for(f"{session.name}\0{t.direction}\0{p.name}")
         while topic_id in used or topic_id == envelope.CONTROL_TOPIC:
             topic_id = (topic_id + 1) & 0xFFFFFFFF
         return topic_id
 
-    def _route(self, session: Session, p: Prepared) -> Route:
+    def _route(self, session: Session, p: Prepared | PreparedService) -> Route:
         engine = self.engine
         t = p.config
         topic_id = self._topic_id(session, p)
-        label = f"{t.topic} ({'to' if t.direction == 'transmit' else 'from'} {session.name})"
+        label = f"{p.name} ({'to' if t.direction == 'transmit' else 'from'} {session.name})"
         if p.transport.stream:
             if t.port is None:
                 return engine.make_route(p, topic_id, label, session.main)

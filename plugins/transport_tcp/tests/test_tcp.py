@@ -6,6 +6,7 @@ nodelay, options and addresses."""
 from __future__ import annotations
 
 import socket
+import threading
 
 import pytest
 
@@ -133,3 +134,42 @@ def test_check_address_accepts_ip_hosts(host):
 def test_check_address_refuses_what_is_no_ip_host(host):
     with pytest.raises(ValueError, match="is not an IP address or host name"):
         TcpTransport({}).check_address((host, 1))
+
+
+@pytest.fixture
+def pair():
+    """Two ends of one real TCP connection."""
+    transport = TcpTransport({})
+    address = ("127.0.0.1", free_port())
+    listener = transport.listen(address)
+    a = transport.connect(address, 5.0)
+    accepted = listener.accept(5.0)
+    assert accepted is not None
+    yield a, accepted[0]
+    for end in (a, accepted[0], listener):
+        end.close()
+
+
+def test_sending_while_a_receive_waits_does_not_break_the_receive(pair):
+    """Links send and receive on one connection from two threads (service calls and answers)."""
+    a, b = pair
+    errors: list[BaseException] = []
+    stop = threading.Event()
+
+    def receive_all() -> None:
+        try:
+            while not stop.is_set():
+                a.receive(65536, 0.0001)  # short waits: many chances to collide with a send
+        except BaseException as exc:  # noqa: BLE001 - any failure is the finding
+            errors.append(exc)
+
+    thread = threading.Thread(target=receive_all)
+    thread.start()
+    for _ in range(20000):
+        a.send(b"x" * 10)
+        if errors:
+            break
+    stop.set()
+    thread.join()
+    assert errors == []
+    assert receive_exactly(b, 200000) == b"x" * 200000

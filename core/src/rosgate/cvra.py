@@ -1,0 +1,268 @@
+"""Services with microcontrollers: the CVRA profile (``framing: serial_datagram``).
+
+One stream connection (TCP) per call. The caller writes one serial datagram (serial_datagram.py)
+whose payload is the service's ``remote`` name as a MessagePack str followed by the request as a
+MessagePack map (the codec's ``encode_bare``); the server writes the response as a plain
+MessagePack map and closes the connection.
+
+* ``direction: receive`` -> :class:`CallServer`: the bridge listens on ``listen:port`` and a
+  microcontroller calls ROS services here. Several services may share the port: the name tells
+  them apart. A connection must deliver its request within the longest ``timeout`` of the port's
+  services (else it is closed: ``request_timeout``); the answer, or a failure answer (see
+  services.py), is written within the service's ``timeout``, then the bridge closes.
+* ``direction: transmit`` -> :class:`CvraCallerRoute`: a proxy ROS server here; each call
+  connects to ``peer:port``, writes the request and reads until the answer decodes (or the peer
+  closes). A microcontroller that keeps the connection open after answering is closed by the
+  bridge; one that never answers fails the call at ``timeout``.
+
+Every bad request (bad CRC or escape, too short, over ``max_request``, an unknown name, a map
+that does not decode) is dropped, counted and warned about; the connection is closed without an
+answer, as a microcontroller's own server would.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any
+
+from . import serial_datagram
+from .errors import CodecError, LinkError
+from .links import POLL, Acceptor
+from .services import Call, ServerRoute, ServiceRoute, deep_qos
+from .transport import Address, StreamConnection, Transport
+
+if TYPE_CHECKING:
+    from .engine import Engine, PreparedService
+
+log = logging.getLogger("rosgate")
+
+MAX_CONNECTIONS = 64   # calls served at once on one port; more are closed at once and counted
+CALLER_THREADS = 16    # connections a calling route has open at once; more calls wait their turn
+CHUNK = 4096
+
+
+def start_peer_service(role: Any, p: PreparedService, listen: str, key: str,
+                       servers: dict[Address, CallServer]) -> None:
+    """Route one entry; ``servers`` holds the call servers already listening, by address."""
+    engine, s = role.engine, p.config
+    if s.direction == "receive":
+        local = (listen, s.port)
+        if local not in servers:
+            servers[local] = CallServer.listen(engine, p.transport, local, key)
+        server = servers[local]
+        route = engine.make_route(p, 0, s.service, None)  # a ServerRoute, found by name: no id
+        server.add(route)  # type: ignore[arg-type]
+    else:
+        route = CvraCallerRoute(s, 0, p.codec(engine.config.plugins), p.cipher, engine.warner,
+                                s.service, p.srv_type, engine.service_table.deadlines,
+                                transport=p.transport, address=(role.cfg.peer or "", s.port))
+        route.entity = engine.ros.deferred_service(p.srv_type, s.service, deep_qos(),
+                                                   route.on_request)
+        engine.closing(route)
+    role.add(route)
+
+
+class CallServer:
+    """Serves microcontrollers' calls on one port (direction receive), for every service there.
+    The services' names are read with the codec of the first (only msgpack names requests)."""
+
+    def __init__(self, engine: Engine, name: str):
+        self.engine = engine
+        self.name = name
+        self.routes: dict[str, ServerRoute] = {}
+        self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+
+    @classmethod
+    def listen(cls, engine: Engine, transport: Transport, local: Address, key: str) -> CallServer:
+        try:
+            listener = transport.listen(local)
+        except LinkError as exc:
+            raise engine.bind_error(exc, key) from None
+        server = cls(engine, f"{transport.name}:{local[1]}")
+        engine.closing(Acceptor(listener, server.name, server.accepted))
+        return server
+
+    def add(self, route: ServerRoute) -> None:
+        self.routes[route.service.remote] = route
+
+    @property
+    def wait(self) -> float:
+        return max(r.service.timeout for r in self.routes.values())
+
+    @property
+    def max_request(self) -> int:
+        return max(r.service.max_request for r in self.routes.values())
+
+    def accepted(self, connection: StreamConnection, peer: Address) -> None:
+        if not self._slots.acquire(blocking=False):
+            self.drop("too_many_connections", f"{MAX_CONNECTIONS} calls in progress; "
+                                              f"closed a connection from {peer[0]}")
+            connection.close()
+            return
+        threading.Thread(target=self._serve, args=(connection, peer), daemon=True,
+                         name=f"call-{self.name}").start()
+
+    def drop(self, reason: str, detail: str) -> None:
+        self.engine.link_drop(self, reason, detail)  # type: ignore[arg-type]
+
+    def _serve(self, connection: StreamConnection, peer: Address) -> None:
+        try:
+            payload = self._read_request(connection, peer)
+            if payload is not None:
+                answer = self._answer(payload, peer)
+                if answer is not None:
+                    connection.send(answer)
+        except OSError as exc:
+            log.debug("%s: connection from %s: %s", self.name, peer[0], exc)
+        except Exception:  # a bug, not the peer's bytes: keep serving the others
+            log.exception("%s: error while serving a call from %s (a bug: please report it)",
+                          self.name, peer[0])
+            self.drop("handler_error", f"from {peer[0]}")
+        finally:
+            connection.close()
+            self._slots.release()
+
+    def _read_request(self, connection: StreamConnection, peer: Address) -> bytes | None:
+        errors: list[tuple[str, str]] = []
+        decoder = serial_datagram.Decoder(lambda *error: errors.append(error), self.max_request)
+        deadline = time.monotonic() + self.wait
+        received = 0
+        while (left := deadline - time.monotonic()) > 0:
+            data = connection.receive(CHUNK, min(left, POLL))
+            if data is None:
+                continue
+            if not data:
+                self.drop("closed_early", f"{peer[0]} closed after {received} bytes, "
+                                          "before a whole request")
+                return None
+            received += len(data)
+            for payload in decoder.feed(data):
+                return payload  # one call per connection: anything after it is ignored
+            if errors:
+                reason, detail = errors[0]
+                self.drop(reason, f"request from {peer[0]}: {detail}")
+                return None
+        said = "said nothing" if not received else f"sent {received} bytes, no whole request"
+        self.drop("request_timeout", f"{peer[0]} {said} within {self.wait:g} s")
+        return None
+
+    def _answer(self, payload: bytes, peer: Address) -> bytes | None:
+        """Serve one request; the plain MessagePack answer, or None to close without one."""
+        codec_cls = type(next(iter(self.routes.values())).codec.request)
+        try:
+            name, rest = codec_cls.split_bare(payload)
+        except CodecError as exc:
+            self.drop("unnamed_request", f"from {peer[0]}: {exc}")
+            return None
+        route = self.routes.get(name)  # type: ignore[arg-type]
+        if route is None:
+            self.drop("unknown_service", f"{name!r} from {peer[0]} (served here: "
+                                         f"{', '.join(self.routes)})")
+            return None
+        if len(payload) > route.service.max_request:
+            route.drop("too_large", f"request of {len(payload)} bytes, max_request is "
+                                    f"{route.service.max_request}")
+            return None
+        codec = route.codec
+        try:
+            request = codec.decode(codec.request, rest, codec.request.decode_bare)
+        except CodecError as exc:
+            route.drop("decode_error", str(exc))
+            return None
+        route.counters.received += 1
+        route.counters.bytes_received += len(payload)
+        done = threading.Event()
+        answer: list[Any] = []
+
+        def settle(response: Any) -> None:
+            answer.append(response)
+            done.set()
+
+        route.serve(request, route.answering(settle))
+        if not done.wait(route.service.timeout + 5):  # serve() settles within the timeout
+            return None
+        try:
+            data = codec.encode(codec.response, answer[0])
+        except Exception as exc:
+            route.drop("encode_error", f"{type(exc).__name__}: {exc}")
+            return None
+        route.counters.sent += 1
+        route.counters.bytes_sent += len(data)
+        return data
+
+
+class CvraCallerRoute(ServiceRoute):
+    """``transmit``: a proxy ROS server here; each call is one connection to the microcontroller."""
+
+    def __init__(self, *args: Any, transport: Transport, address: Address):
+        super().__init__(*args)
+        self.transport = transport
+        self.address = address
+        self._pool = ThreadPoolExecutor(CALLER_THREADS, thread_name_prefix=f"call-{self.label}")
+
+    def on_request(self, request: Any, respond: Any) -> None:
+        """The ROS executor's thread: hand the call to a connection thread and return."""
+        call = self.answering(respond)
+        self.deadlines.after(self.service.timeout, lambda: self.fail(
+            call, "timeout", f"no answer from {self.address[0]}:{self.address[1]} within "
+                             f"{self.service.timeout:g} s"))
+        self._pool.submit(self._call, request, call, time.monotonic() + self.service.timeout)
+
+    def _call(self, request: Any, call: Call, deadline: float) -> None:
+        codec = self.codec
+        try:
+            # serial_datagram entries have a codec that names frames: never a raw one
+            frame = serial_datagram.encode(codec.request.encode_bare(self.service.remote, request))
+        except Exception as exc:
+            self.fail(call, "encode_error", f"{type(exc).__name__}: {exc}")
+            return
+        left = deadline - time.monotonic()
+        if call.done or left <= 0:
+            return  # timed out while waiting for a connection thread
+        try:
+            connection = self.transport.connect(self.address, left)
+        except OSError as exc:
+            self.fail(call, "connect_failed", f"{self.address[0]}:{self.address[1]}: {exc}")
+            return
+        try:
+            connection.send(frame)
+            self.counters.sent += 1
+            self.counters.bytes_sent += len(frame)
+            self._read_answer(connection, call, deadline)
+        except OSError as exc:
+            self.fail(call, "link_down", f"{self.address[0]}:{self.address[1]}: {exc}")
+        finally:
+            connection.close()
+
+    def _read_answer(self, connection: StreamConnection, call: Call, deadline: float) -> None:
+        """Read until the answer decodes; a peer may close right after it, or keep the
+        connection open (then the bridge closes it)."""
+        codec = self.codec
+        data = b""
+        while not call.done and (left := deadline - time.monotonic()) > 0:
+            chunk = connection.receive(CHUNK, min(left, POLL))
+            if chunk is None:
+                continue
+            if chunk and len(data) + len(chunk) > self.service.max_request:
+                self.fail(call, "too_large", f"answer over {self.service.max_request} bytes")
+                return
+            data += chunk
+            try:
+                response = codec.decode(codec.response, data)
+            except CodecError as exc:
+                if chunk:
+                    continue  # perhaps not all of it yet
+                self.fail(call, "decode_error" if data else "no_answer",
+                          str(exc) if data else "closed without an answer")
+                return
+            self.counters.received += 1
+            self.counters.bytes_received += len(data)
+            if not call.answer(response):
+                self.drop("late_answer", f"answer from {self.address[0]} after the timeout")
+            return
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)

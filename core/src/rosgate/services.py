@@ -1,0 +1,432 @@
+"""Services across the link: a ROS call made on one side, served by the real server on the other.
+
+An entry's direction picks the route:
+
+* ``transmit`` -> :class:`CallerRoute`: a proxy ROS service server here, named ``service``. Each
+  call crosses the link; the answer comes back and is returned to the ROS caller.
+* ``receive`` -> :class:`ServerRoute`: calls from the link are served by the ROS server here,
+  through a ROS client.
+
+Wire (``framing: rosgate``): a request is an envelope with ``FLAG_REQUEST``, topic id = the
+service's id, and the call's id in (epoch, seq): the caller's random epoch and a per-caller count
+from 1. The body is ``cipher.seal(header, codec(Request))``. The answer echoes epoch and seq with
+``FLAG_REPLY``; with ``FLAG_FAILED`` too when the serving side got no answer from its ROS server,
+and then the (sealed) body is the reason in UTF-8. Many calls are in flight at once; each answer
+finds its call by seq. An answer that finds no waiting call (timed out, answered already) is
+dropped as ``late_answer``. Requests pass the replay window: a replayed request is not served
+twice.
+
+Failure: ROS 2 services have no error channel. A call the bridge cannot complete (no answer
+within ``timeout``, no ROS server on the far side, link down, undecodable answer) is answered
+with the type's default Response, except ``success = False`` and ``message`` = the reason
+(starting "rosgate: ") when the type has those fields (std_srvs Trigger and SetBool do). It is
+counted by reason and warned about. The ROS caller never waits longer than ``timeout``.
+
+Codecs: the entry's codec is instantiated for ``Type.Request`` and ``Type.Response``. rclpy
+service servers and clients hand over message objects, so a raw codec (``cdr``) gets them
+serialized with ``rclpy.serialization`` first.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import logging
+import os
+import threading
+import time
+from typing import TYPE_CHECKING, Any, Callable
+
+from . import envelope
+from .errors import CipherError, CodecError
+from .links import Link
+from .routes import Route
+from .transport import Address
+
+if TYPE_CHECKING:
+    from .engine import Engine, PreparedService
+
+log = logging.getLogger("rosgate")
+
+# A proxy needs deep queues: with the default service QoS (depth 10) a server answered 11 of 50
+# concurrent calls; with depth 1000 on both ends, 50 of 50 (DESIGN.md, measured).
+QUEUE_DEPTH = 1000
+
+
+def failure(response_type: type, reason: str) -> Any:
+    """The answer a ROS caller gets when the bridge has none (see the module documentation)."""
+    response = response_type()
+    fields = response_type.get_fields_and_field_types()
+    if fields.get("success") == "boolean":
+        response.success = False
+    if fields.get("message") == "string":
+        response.message = f"rosgate: {reason}"
+    return response
+
+
+class Call:
+    """One call waiting for its outcome: answered exactly once, by an answer or a failure,
+    whichever comes first (the answer, the deadline and a link failure race)."""
+
+    __slots__ = ("_on_answer", "_on_failure", "_lock", "done")
+
+    def __init__(self, on_answer: Callable[[Any], None], on_failure: Callable[[str], None]):
+        self._on_answer = on_answer
+        self._on_failure = on_failure
+        self._lock = threading.Lock()
+        self.done = False
+
+    def _settle(self) -> bool:
+        with self._lock:
+            first, self.done = not self.done, True
+        return first
+
+    def answer(self, response: Any) -> bool:
+        if self._settle():
+            self._on_answer(response)
+            return True
+        return False
+
+    def fail(self, reason: str, count: Callable[[], None] | None = None) -> bool:
+        """``count`` runs before the failure is answered, so whoever sees it sees it counted."""
+        if self._settle():
+            if count is not None:
+                count()
+            self._on_failure(reason)
+            return True
+        return False
+
+
+class Deadlines:
+    """One thread runs every call's deadline, in time order. Entries are not cancelled: a call
+    answered in time makes its deadline a no-op (:class:`Call` settles once)."""
+
+    def __init__(self) -> None:
+        self._heap: list[tuple[float, int, Callable[[], None]]] = []
+        self._order = itertools.count()
+        self._cond = threading.Condition()
+        self._closed = False
+        self._thread = threading.Thread(target=self._loop, name="service-deadlines", daemon=True)
+        self._thread.start()
+
+    def after(self, seconds: float, action: Callable[[], None]) -> None:
+        with self._cond:
+            heapq.heappush(self._heap, (time.monotonic() + seconds, next(self._order), action))
+            self._cond.notify()
+
+    def _loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._closed and (
+                        not self._heap or self._heap[0][0] > time.monotonic()):
+                    self._cond.wait(self._heap[0][0] - time.monotonic() if self._heap else None)
+                if self._closed:
+                    return
+                _, _, action = heapq.heappop(self._heap)
+            try:
+                action()
+            except Exception:  # one bad deadline must not stop the others
+                log.exception("a service call's deadline failed (a bug: please report it)")
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+        self._thread.join(timeout=2)
+
+
+class ServiceCodec:
+    """The entry's codec for the Request and for the Response."""
+
+    def __init__(self, codec_cls: type, srv_type: type, options: dict[str, Any]):
+        self.request = codec_cls(srv_type.Request, options)
+        self.response = codec_cls(srv_type.Response, options)
+        self.name = self.request.name
+        for codec in (self.request, self.response):
+            # raw codecs get bytes we serialized, and their decode is checked by deserializing
+            # right below: the codec need not check it again
+            codec.authenticated = codec.raw
+
+    @staticmethod
+    def encode(codec: Any, message: Any) -> bytes:
+        if codec.raw:
+            from rclpy.serialization import serialize_message
+
+            message = serialize_message(message)
+        return codec.encode(message)
+
+    @staticmethod
+    def decode(codec: Any, data: bytes, decode: Callable[[bytes], Any] | None = None) -> Any:
+        value = (decode or codec.decode)(data)
+        if not codec.raw:
+            return value
+        from rclpy.serialization import deserialize_message
+
+        try:
+            return deserialize_message(value, codec.msg_type)
+        except Exception as exc:  # rclpy raises RMWError and others: any failure is unreadable
+            raise CodecError(f"not a valid {codec.msg_type.__name__}: {exc}") from None
+
+
+class ServiceRoute(Route):
+    """What both sides of a service share: the entry, its codecs, counters and warnings."""
+
+    def __init__(self, service: Any, service_id: int, codec: ServiceCodec, cipher: Any,
+                 warner: Any, label: str, srv_type: type, deadlines: Deadlines):
+        super().__init__(service, service_id, codec, cipher, warner, label)  # type: ignore[arg-type]
+        self.service = service
+        self.srv_type = srv_type
+        self.deadlines = deadlines
+
+    def fail(self, call: Call, reason: str, detail: str) -> None:
+        """Settle ``call`` with a failure, counted by ``reason`` (unless it is settled already)."""
+        call.fail(detail, lambda: self.drop(reason, detail))
+
+    def answering(self, respond: Callable[[Any], None]) -> Call:
+        """A call whose outcome goes to ``respond`` as a Response: a failure as :func:`failure`."""
+        response_type = self.srv_type.Response
+        return Call(respond, lambda reason: respond(failure(response_type, reason)))
+
+
+class CallerRoute(ServiceRoute):
+    """``transmit``: a proxy ROS server here; each call crosses ``link`` (framing rosgate)."""
+
+    def __init__(self, *args: Any, link: Link, destination: Callable[[], Address | None]):
+        super().__init__(*args)
+        self.link = link
+        self.destination = destination
+        self.epoch = int.from_bytes(os.urandom(4), "big")
+        self.calls: dict[int, Call] = {}
+        self._ids = itertools.count(1)
+        self._lock = threading.Lock()
+
+    def on_request(self, request: Any, respond: Callable[[Any], None]) -> None:
+        """The ROS executor's thread: send the call and return; the answer comes later."""
+        call = self.answering(respond)
+        to = self.destination()
+        if to is None and self.link.datagram:
+            self.fail(call, "no_peer_yet", "the far side's address is not known yet")
+            return
+        seq = next(self._ids)
+        try:
+            header = envelope.pack(envelope.FLAG_REQUEST, self.topic_id, self.epoch, seq,
+                                   time.time_ns())
+            frame = header + self.cipher.seal(header, self.codec.encode(self.codec.request, request))
+        except Exception as exc:  # a codec or cipher bug must not leave the ROS caller waiting
+            self.fail(call, "encode_error", f"{type(exc).__name__}: {exc}")
+            return
+        with self._lock:
+            self.calls[seq] = call
+        self.deadlines.after(self.service.timeout, lambda: self._expire(seq))
+        if not self.link.send(frame, self.topic_id, to):
+            self._pop(seq)
+            self.fail(call, "link_down", f"{self.link.name} is down")
+            return
+        self.counters.sent += 1
+        self.counters.bytes_sent += len(frame)
+
+    def on_reply(self, header: envelope.Header, frame: bytes) -> None:
+        """A link's thread: match the answer to its call (after checking it is authentic)."""
+        try:
+            body = self.cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
+        except CipherError as exc:
+            self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
+            return
+        call = self._pop(header.seq) if header.epoch == self.epoch else None
+        if call is None:
+            self.drop("late_answer", f"answer to call {header.seq}, which was answered already "
+                                     "or timed out")
+            return
+        self.counters.received += 1
+        self.counters.bytes_received += len(frame)
+        if header.flags & envelope.FLAG_FAILED:
+            self.fail(call, "remote_failure", body.decode("utf-8", "replace")[:500])
+            return
+        try:
+            response = self.codec.decode(self.codec.response, body)
+        except CodecError as exc:
+            self.fail(call, "decode_error", str(exc))
+            return
+        call.answer(response)
+
+    def _pop(self, seq: int) -> Call | None:
+        with self._lock:
+            return self.calls.pop(seq, None)
+
+    def _expire(self, seq: int) -> None:
+        call = self._pop(seq)
+        if call is not None:
+            self.fail(call, "timeout", f"no answer within {self.service.timeout:g} s")
+
+
+class ServerRoute(ServiceRoute):
+    """``receive``: calls from the far side, served by the ROS server here."""
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.window = envelope.ReplayWindow()
+        self._lock = threading.Lock()
+
+    def serve(self, request: Any, call: Call) -> None:
+        """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``."""
+        client = self.entity
+        if not client.service_is_ready():
+            self.fail(call, "no_server", f"no ROS server {self.service.service} is running "
+                                         "on the serving side")
+            return
+        future = client.call_async(request)
+        future.add_done_callback(lambda f: self._answered(f, call))
+
+        def expire() -> None:
+            if not future.done():
+                client.remove_pending_request(future)
+                self.fail(call, "timeout", f"the ROS server {self.service.service} did not answer "
+                                           f"within {self.service.timeout:g} s")
+        self.deadlines.after(self.service.timeout, expire)
+
+    def _answered(self, future: Any, call: Call) -> None:
+        if future.cancelled() or future.exception() is not None:
+            self.fail(call, "server_error", f"the ROS call failed: {future.exception()}")
+        elif not call.answer(future.result()):
+            self.drop("late_answer", f"{self.service.service} answered after the timeout")
+
+    def on_request(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
+        """A link's thread: a call from the far side (framing rosgate); the answer goes back on
+        the link and to the address it came from."""
+        if len(frame) > envelope.SIZE + self.service.max_request:
+            self.drop("too_large", f"request of {len(frame) - envelope.SIZE} bytes, "
+                                   f"max_request is {self.service.max_request}")
+            return
+        try:
+            payload = self.cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
+        except CipherError as exc:
+            self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
+            return
+        with self._lock:
+            refused = self.window.accept(header.epoch, header.seq)
+        if refused:
+            self.drop(refused)
+            return
+        try:
+            request = self.codec.decode(self.codec.request, payload)
+        except CodecError as exc:
+            self.drop("decode_error", str(exc))
+            return
+        self.counters.received += 1
+        self.counters.bytes_received += len(frame)
+
+        def reply(flags: int, body: bytes) -> None:
+            answer = envelope.pack(envelope.FLAG_REPLY | flags, self.topic_id, header.epoch,
+                                   header.seq, time.time_ns())
+            frame = answer + self.cipher.seal(answer, body)
+            if link.send(frame, self.topic_id, source):
+                self.counters.sent += 1
+                self.counters.bytes_sent += len(frame)
+
+        def answered(response: Any) -> None:
+            try:
+                body = self.codec.encode(self.codec.response, response)
+            except Exception as exc:
+                self.drop("encode_error", f"{type(exc).__name__}: {exc}")
+                reply(envelope.FLAG_FAILED, b"the serving bridge could not encode the answer")
+                return
+            reply(0, body)
+
+        self.serve(request, Call(answered, lambda reason: reply(envelope.FLAG_FAILED,
+                                                                reason.encode())))
+
+
+class ServiceTable:
+    """An engine's service routes by id, and the deadline thread they share. Requests and
+    answers have tables of their own, so a bridge may both call and serve one name."""
+
+    def __init__(self, engine: Engine):
+        self.engine = engine
+        self.deadlines = Deadlines()
+        self.callers: dict[int, CallerRoute] = {}
+        self.servers: dict[int, ServerRoute] = {}
+        self._lock = threading.Lock()
+
+    def make_route(self, p: PreparedService, service_id: int, label: str, link: Link,
+                   destination: Callable[[], Address | None]) -> ServiceRoute:
+        """A route and its ROS entity; with framing rosgate, registered for dispatch by id."""
+        s = p.config
+        args = (s, service_id, p.codec(self.engine.config.plugins), p.cipher, self.engine.warner,
+                label, p.srv_type, self.deadlines)
+        ros = self.engine.ros
+        assert ros is not None
+        qos = deep_qos()
+        route: ServiceRoute
+        if s.direction == "transmit":
+            route = CallerRoute(*args, link=link, destination=destination)
+            route.entity = ros.deferred_service(p.srv_type, s.service, qos, route.on_request)
+            table: dict = self.callers
+        else:
+            route = ServerRoute(*args)
+            route.entity = ros.client(p.srv_type, s.service, qos)
+            table = self.servers
+        if s.framing == "rosgate":
+            with self._lock:
+                table[service_id] = route
+        return route
+
+    def remove(self, route: ServiceRoute) -> None:
+        with self._lock:
+            for table in (self.callers, self.servers):
+                if table.get(route.topic_id) is route:
+                    del table[route.topic_id]
+
+    def on_frame(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
+        if header.flags & envelope.FLAG_REQUEST:
+            server = self.servers.get(header.topic_id)
+            if server is not None:
+                server.on_request(header, frame, link, source)
+                return
+        else:
+            caller = self.callers.get(header.topic_id)
+            if caller is not None:
+                caller.on_reply(header, frame)
+                return
+        self.engine.link_drop(link, "unknown_service", f"service id {header.topic_id} from {source}")
+
+    def close(self) -> None:
+        self.deadlines.close()
+
+
+def deep_qos() -> Any:
+    from rclpy.qos import QoSProfile
+
+    return QoSProfile(depth=QUEUE_DEPTH)
+
+
+def start_peer(role: Any) -> None:
+    """The peer role's services. Both sides know an entry by its ``remote`` name, so its id is
+    derived from it, as for topics. A serving side listens on ``listen:port`` and answers on the
+    link and to the address each call came from; a calling side sends to ``peer:port``."""
+    from . import cvra
+    from .envelope import topic_id_for
+    from .roles import Connector, _NoLink
+
+    engine, cfg = role.engine, role.cfg
+    listen = cfg.listen or "0.0.0.0"
+    call_servers: dict[Address, cvra.CallServer] = {}
+    for p in engine.services:
+        s = p.config
+        key = f"services[{p.index}].port"
+        if s.framing == "serial_datagram":
+            cvra.start_peer_service(role, p, listen, key, call_servers)
+            continue
+        link: Link
+        to = (cfg.peer or "", s.port)
+        if s.direction == "receive":
+            if p.transport.stream:
+                role._listen(p.transport, (listen, s.port), key)
+                link = _NoLink()  # answers go back on the connection each call came on
+            else:
+                link = role.datagram_link(p.transport, (listen, s.port), False, key)
+        elif p.transport.stream:
+            link = engine.slot(f"{s.transport}->{cfg.peer}:{s.port}")
+            Connector(engine, p.transport, to, link, engine.on_frame).start()
+        else:
+            link = role.datagram_link(p.transport, (listen, 0), False, key)
+        role.add(engine.make_route(p, topic_id_for(s.remote), s.service, link, lambda to=to: to))

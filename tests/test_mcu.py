@@ -1,0 +1,320 @@
+"""The CVRA microcontroller profile end to end: a bridge (in this process) and the simulator in
+examples/mcu_simulator.py (a subprocess with its own sockets, nothing from rosgate) exchange
+topics both ways and call services both ways; then hostile bytes on both ports."""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import msgpack
+import pytest
+from conftest import free_port
+from geometry_msgs.msg import Pose2D, Twist
+from std_srvs.srv import SetBool, Trigger
+from test_services import DEEP, Caller
+
+from rosgate import serial_datagram
+
+SIMULATOR = Path(__file__).parent.parent / "examples" / "mcu_simulator.py"
+
+
+class Mcu:
+    """The simulator as a subprocess; its JSON lines collected for the test to wait on."""
+
+    def __init__(self, *args: str):
+        self.lines: list[dict[str, Any]] = []
+        self._cond = threading.Condition()
+        self.proc = subprocess.Popen([sys.executable, str(SIMULATOR), *args],
+                                     stdout=subprocess.PIPE, text=True)
+        threading.Thread(target=self._read, daemon=True).start()
+        assert self.wait(lambda line: line["kind"] == "ready", 10), "the simulator did not start"
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for text in self.proc.stdout:
+            with self._cond:
+                self.lines.append(json.loads(text))
+                self._cond.notify_all()
+
+    def wait(self, predicate: Callable[[dict[str, Any]], bool], timeout: float) -> dict | None:
+        with self._cond:
+            self._cond.wait_for(lambda: any(map(predicate, self.lines)), timeout)
+            return next((line for line in self.lines if predicate(line)), None)
+
+    def close(self) -> None:
+        self.proc.terminate()
+        self.proc.wait(5)
+
+
+@pytest.fixture
+def mcu():
+    started: list[Mcu] = []
+
+    def start(*args: str) -> Mcu:
+        started.append(Mcu(*args))
+        return started[-1]
+
+    yield start
+    for m in started:
+        m.close()
+
+
+def bridge_yaml(ports: dict[str, int], extra: str = "") -> str:
+    return f"""
+bridge: {{name: robot, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, defaults: {{codec: msgpack}}}}
+topics:
+  - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: {ports['in']},
+     framing: none}}
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: {ports['out']},
+     framing: none}}
+services:
+  - {{service: /mcu/ping, type: std_srvs/srv/Trigger, direction: transmit, remote: ping,
+     transport: tcp, port: {ports['mcu']}, framing: serial_datagram}}
+  - {{service: /mcu/set_led, type: std_srvs/srv/SetBool, direction: transmit, remote: set_led,
+     transport: tcp, port: {ports['mcu']}, framing: serial_datagram}}
+  - {{service: /reset, type: std_srvs/srv/Trigger, direction: receive, transport: tcp,
+     port: {ports['bridge']}, framing: serial_datagram{extra}}}
+"""
+
+
+def ports() -> dict[str, int]:
+    return {"in": free_port(), "out": free_port(), "mcu": free_port(), "bridge": free_port()}
+
+
+def test_simulator_exchanges_topics_and_calls_services_both_ways(engines, domain, ros_side, mcu):
+    d, p = domain(), ports()
+    engine = engines(bridge_yaml(p), d)
+    side = ros_side(d, "ros")
+    resets: list[str] = []
+
+    def reset(request: Any, response: Any) -> Any:
+        resets.append("reset")
+        response.success, response.message = True, f"reset {len(resets)}"
+        return response
+
+    side.ros.node.create_service(Trigger, "/reset", reset, qos_profile=DEEP)
+    positions = side.listen("/position", Pose2D)
+    sim = mcu("--topic-port", str(p["out"]), "--bridge-topic-port", str(p["in"]),
+              "--service-port", str(p["mcu"]), "--bridge-service-port", str(p["bridge"]),
+              "--rate", "50", "--call", "reset", "--call-every", "0.2")
+    # microcontroller -> ROS: Pose2D-style maps, named "position" (remote left out: the ROS name
+    # without its slash)
+    assert positions.wait_count(3, 10)
+    first = positions.items[0]
+    assert (first.y, first.theta) == (0.5, math.pi / 4) and first.x == int(first.x)
+    # ROS -> microcontroller: a Twist as nested maps, named "cmd_vel"
+    talker = side.publisher("/cmd_vel", Twist)
+    twist = Twist()
+    twist.linear.x, twist.angular.z = 1.5, -0.25
+    deadline = time.monotonic() + 10
+    while not sim.wait(lambda line: line["kind"] == "topic", 0.2):
+        assert time.monotonic() < deadline, "no cmd_vel reached the simulator"
+        talker.publish(twist)
+    got = sim.wait(lambda line: line["kind"] == "topic", 0)
+    assert got == {"kind": "topic", "name": "cmd_vel", "fields": {
+        "linear": {"x": 1.5, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -0.25}}}
+    # microcontroller -> ROS service: the simulator's calls are served by /reset here
+    answer = sim.wait(lambda line: line["kind"] == "answer" and line["response"]["success"], 10)
+    assert answer is not None and answer["response"]["message"].startswith("reset ")
+    # ROS -> microcontroller services
+    assert Caller(side, Trigger, "/mcu/ping").call(Trigger.Request()) == \
+        Trigger.Response(success=True, message="pong")
+    led = Caller(side, SetBool, "/mcu/set_led")
+    assert led.call(SetBool.Request(data=True)) == SetBool.Response(success=True, message="led on")
+    assert led.call(SetBool.Request(data=False)) == SetBool.Response(success=True, message="led off")
+    served = lambda: [line["request"] for line in sim.lines if line["kind"] == "served"]  # noqa: E731
+    assert sim.wait(lambda line: len(served()) == 3, 5)  # it prints before it answers
+    assert served() == [{}, {"data": True}, {"data": False}]
+    stats = {label: s["drops"] for label, s in engine.stats()["routes"].items()}
+    assert stats["/position"] == stats["/cmd_vel"] == stats["/mcu/ping"] == {}
+    assert set(stats["/reset"]) <= {"no_server"}  # calls before the bridge saw the ROS server
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
+    """Poll a counter the engine updates from its own threads (no event to wait on)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
+def call_raw(port: int, data: bytes, read: bool = True) -> bytes:
+    """Write ``data`` to the bridge's call port; return all it answers before it closes."""
+    with socket.create_connection(("127.0.0.1", port), 5) as s:
+        s.settimeout(5)
+        s.sendall(data)
+        answer = b""
+        while read and (chunk := s.recv(4096)):
+            answer += chunk
+        return answer
+
+
+def request(name: str, fields: dict) -> bytes:
+    return serial_datagram.encode(msgpack.packb(name) + msgpack.packb(fields))
+
+
+def test_bad_datagrams_are_dropped_and_counted_and_missing_fields_take_defaults(
+        engines, domain, ros_side):
+    d, p = domain(), ports()
+    engine = engines(bridge_yaml(p), d)
+    positions = ros_side(d, "ros").listen("/position", Pose2D)
+    pack = msgpack.packb
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for datagram in [pack("nope") + pack({"x": 1.0}),         # no topic of that name
+                         pack("position") + pack({"z": 1.0}),     # no field z
+                         pack("position") + pack({"x": "one"}),   # x is not a number
+                         pack("position") + b"\xc1",              # not MessagePack
+                         b"\xc1",                                 # no name at all
+                         pack(7) + pack({})]:                     # a name that is no str
+            s.sendto(datagram, ("127.0.0.1", p["in"]))
+        deadline = time.monotonic() + 10
+        while not positions.wait_count(1, 0.2):  # a good one, with fields left out
+            assert time.monotonic() < deadline
+            s.sendto(pack("position") + pack({"y": 2.0}), ("127.0.0.1", p["in"]))
+    assert positions.items[0] == Pose2D(x=0.0, y=2.0, theta=0.0)
+    route = next(r for r in engine.routes() if r.label == "/position")
+    assert dict(route.counters.drops) == {"decode_error": 3}
+    assert engine.link_drops == {"unknown_topic": 1, "unnamed_frame": 2}
+
+
+def test_bad_calls_are_dropped_and_counted_and_good_ones_still_answered(engines, domain, ros_side):
+    d, p = domain(), ports()
+    engine = engines(bridge_yaml(p, ", timeout: 0.5, max_request: 64"), d)
+    side = ros_side(d, "ros")
+
+    def reset(request: Any, response: Any) -> Any:
+        response.success, response.message = True, "done"
+        return response
+
+    side.ros.node.create_service(Trigger, "/reset", reset, qos_profile=DEEP)
+    port = p["bridge"]
+    good = request("reset", {})
+    bad_crc = bytearray(good)
+    bad_crc[2] ^= 0x01
+    assert call_raw(port, bytes(bad_crc)) == b""
+    assert call_raw(port, b"\x92\xdb\x41" + good) == b""                 # ESC then neither
+    assert call_raw(port, b"\x01\x02\xc0") == b""                        # shorter than a CRC
+    assert call_raw(port, request("reset", {"pad": "x" * 100})) == b""   # over max_request
+    assert call_raw(port, request("nope", {})) == b""                    # no such service
+    assert call_raw(port, request("reset", {"force": True})) == b""      # no such field
+    assert call_raw(port, serial_datagram.encode(b"\xc1")) == b""        # no name
+    start = time.monotonic()
+    assert call_raw(port, b"") == b""                                    # says nothing
+    assert 0.5 <= time.monotonic() - start < 1.5
+    assert call_raw(port, good[:5]) == b""                               # half a request
+    with socket.create_connection(("127.0.0.1", port), 5) as s:          # gives up early
+        s.sendall(good[:5])
+    assert wait_until(lambda: engine.link_drops.get("closed_early") == 1)
+    # a good call (until the bridge has seen the ROS server), from a caller that never closes:
+    # the bridge answers and closes
+    deadline = time.monotonic() + 10
+    while (answer := msgpack.unpackb(call_raw(port, good))) != {"success": True, "message": "done"}:
+        assert answer["message"] == "rosgate: no ROS server /reset is running on the serving side"
+        assert time.monotonic() < deadline
+    route = next(r for r in engine.routes() if r.label == "/reset")
+    assert {k: v for k, v in route.counters.drops.items() if k != "no_server"} == \
+        {"decode_error": 1}
+    assert engine.link_drops == {"bad_crc": 1, "bad_escape": 1, "too_short": 1, "too_long": 1,
+                                 "unknown_service": 1, "unnamed_request": 1, "request_timeout": 2,
+                                 "closed_early": 1}
+
+
+def test_microcontroller_that_never_answers_fails_the_call_within_timeout(
+        engines, domain, ros_side):
+    d, p = domain(), ports()
+    with socket.socket() as silent:  # accepts, reads, never answers, never closes
+        silent.bind(("127.0.0.1", p["mcu"]))
+        silent.listen(4)
+        yaml = bridge_yaml(p).replace("remote: ping,", "remote: ping, timeout: 0.4,")
+        engine = engines(yaml, d)
+        caller = Caller(ros_side(d, "ros"), Trigger, "/mcu/ping")
+        start = time.monotonic()
+        answer = caller.call(Trigger.Request(), timeout=5)
+        assert 0.4 <= time.monotonic() - start < 0.8
+        assert answer == Trigger.Response(
+            success=False, message=f"rosgate: no answer from 127.0.0.1:{p['mcu']} within 0.4 s")
+        conn, _ = silent.accept()
+        with conn:
+            # what it was sent: the name, then Trigger's request, an empty map
+            frames = serial_datagram.Decoder(lambda *e: None).feed(conn.recv(4096))
+            assert next(frames) == msgpack.packb("ping") + msgpack.packb({})
+    route = next(r for r in engine.routes() if r.label == "/mcu/ping")
+    assert dict(route.counters.drops) == {"timeout": 1}
+
+
+@pytest.mark.parametrize("answer, close, expected, reason", [
+    # answers, never closes: the bridge takes the answer and closes itself
+    (msgpack.packb({"success": True, "message": "pong"}), False,
+     Trigger.Response(success=True, message="pong"), None),
+    # not MessagePack, then closes
+    (b"\xc1", True, None, "decode_error"),
+    # a field Trigger's response does not have
+    (msgpack.packb({"succes": True}), True, None, "decode_error"),
+    # closes without a word
+    (b"", True, None, "no_answer"),
+])
+def test_what_a_microcontroller_answers_is_checked(engines, domain, ros_side, answer, close,
+                                                   expected, reason):
+    d, p = domain(), ports()
+    with socket.socket() as fake:
+        fake.bind(("127.0.0.1", p["mcu"]))
+        fake.listen(4)
+
+        closed_by_bridge: list[bool] = []
+
+        def serve() -> None:
+            conn, _ = fake.accept()
+            conn.recv(4096)
+            conn.sendall(answer)
+            if not close:  # keep it open until the bridge closes it
+                conn.settimeout(5)
+                closed_by_bridge.append(conn.recv(1) == b"")
+            conn.close()
+        server = threading.Thread(target=serve)
+        server.start()
+        engine = engines(bridge_yaml(p).replace("remote: ping,", "remote: ping, timeout: 2,"), d)
+        got = Caller(ros_side(d, "ros"), Trigger, "/mcu/ping").call(Trigger.Request(), timeout=5)
+        server.join(5)
+        assert not server.is_alive()
+    route = next(r for r in engine.routes() if r.label == "/mcu/ping")
+    assert closed_by_bridge == ([] if close else [True])
+    if expected is not None:
+        assert got == expected and not route.counters.drops
+    else:
+        assert not got.success and got.message.startswith("rosgate: ")
+        assert dict(route.counters.drops) == {reason: 1}
+
+
+def test_random_bytes_on_both_ports_are_each_dropped_once(engines, domain, ros_side):
+    import random
+
+    d, p = domain(), ports()
+    engine = engines(bridge_yaml(p, ", max_request: 200"), d)
+    positions = ros_side(d, "ros").listen("/position", Pose2D)
+    rng = random.Random(4)
+    blobs = [rng.randbytes(rng.randint(0, 300)) + b"\xc0" for _ in range(40)]
+    for blob in blobs:  # each ends in END: one frame, never valid (its CRC would have to match)
+        assert call_raw(p["bridge"], blob) == b""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for blob in blobs:
+            s.sendto(blob, ("127.0.0.1", p["in"]))
+        deadline = time.monotonic() + 10
+        while not positions.wait_count(1, 0.2):  # still flowing
+            assert time.monotonic() < deadline
+            s.sendto(msgpack.packb("position") + msgpack.packb({"x": 1.0}), ("127.0.0.1", p["in"]))
+    calls = {"bad_crc", "bad_escape", "too_short", "too_long"}
+    assert wait_until(lambda: sum(engine.link_drops.get(k, 0) for k in calls) == 40)
+    topic_drops = sum(engine.link_drops.get(k, 0) for k in ("unknown_topic", "unnamed_frame"))
+    position = next(r for r in engine.routes() if r.label == "/position")
+    assert topic_drops + sum(position.counters.drops.values()) == 40
+    assert positions.items[0] == Pose2D(x=1.0)
