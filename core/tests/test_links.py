@@ -334,6 +334,13 @@ def test_a_queue_over_its_byte_bound_counts_queue_full(closing, tcp_connections)
     assert inbox.drops == [(4, "queue_full")]
 
 
+def test_frames_still_queued_at_close_are_counted_as_link_down(closing, tcp_connections):
+    link, inbox = blocked_writer(closing, tcp_connections, queue_frames=10)
+    assert [link.send(b"waiting", 5) for _ in range(3)] == [True, True, True]
+    link.close()
+    assert inbox.drops.count((5, "link_down")) == 3
+
+
 def test_closing_one_end_fires_on_close_on_the_other(tcp_pair):
     (a, a_inbox), (b, b_inbox) = tcp_pair
     a.close()

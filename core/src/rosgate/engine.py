@@ -446,12 +446,13 @@ class Engine:
         return {"routes": {r.label: r.counters.snapshot() for r in self.routes()},
                 "link_drops": dict(self.link_drops)}
 
-    def log_stats(self) -> None:
-        for route in self.routes():
+    def log_stats(self, routes: list[Route] | None = None) -> None:
+        """Log the counters of ``routes`` (default: every route, and the frames for no topic)."""
+        for route in self.routes() if routes is None else routes:
             c = route.counters
             drops = ", ".join(f"{k}={v}" for k, v in sorted(c.drops.items())) or "none"
             lost = f", lost on the way {c.lost}" if c.lost else ""
             log.info("%s: sent %d (%d B), received %d (%d B)%s, drops: %s", route.label, c.sent,
                      c.bytes_sent, c.received, c.bytes_received, lost, drops)
-        if self.link_drops:
+        if routes is None and self.link_drops:
             log.info("frames for no topic: %s", self.link_drops)

@@ -267,6 +267,12 @@ class StreamLink(Link):
             # thread sees `closed` when it starts and returns
             if thread is not threading.current_thread() and thread.ident is not None:
                 thread.join(timeout=2)
+        with self._wake:  # what never reached the connection is a drop, and counted as one
+            unsent = [topic_id for _, topic_id in self._queue]
+            self._queue.clear()
+            self._queued_bytes = 0
+        for topic_id in unsent:
+            self.on_drop(topic_id, "link_down")
         if self.on_close:
             self.on_close(self)
 

@@ -272,6 +272,8 @@ class ServerRole(Role):
         self._drop_routes(session)
 
     def _drop_routes(self, session: Session) -> None:
+        if not self.engine.stopping.is_set():  # at shutdown the engine logs every route itself
+            self.engine.log_stats(session.routes)  # what this client's topics carried, at the end
         for route in session.routes:
             self.engine.remove_route(route)
         session.close()
