@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import msgpack
 import pytest
-from conftest import free_port
+from conftest import free_port, wait_until
 from geometry_msgs.msg import Pose2D, Twist
 from std_srvs.srv import SetBool, Trigger
 from test_services import DEEP, Caller
@@ -136,16 +136,6 @@ def test_simulator_exchanges_topics_and_calls_services_both_ways(engines, domain
     stats = {label: s["drops"] for label, s in engine.stats()["routes"].items()}
     assert stats["/position"] == stats["/cmd_vel"] == stats["/mcu/ping"] == {}
     assert set(stats["/reset"]) <= {"no_server"}  # calls before the bridge saw the ROS server
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
-    """Poll a counter the engine updates from its own threads (no event to wait on)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
 
 
 def call_raw(port: int, data: bytes, read: bool = True) -> bytes:

@@ -92,6 +92,14 @@ class Route:
         if reason not in QUIET_REASONS:
             self.warner.warn(self.label, reason, detail or reason.replace("_", " "))
 
+    def open(self, frame: bytes) -> bytes | None:
+        """The frame's payload if the cipher accepts it; None (counted) when it does not."""
+        try:
+            return self.cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
+        except CipherError as exc:
+            self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
+            return None
+
 
 class TransmitRoute(Route):
     """ROS subscription -> link."""
@@ -147,10 +155,8 @@ class ReceiveRoute(Route):
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
 
     def on_frame(self, header: envelope.Header, frame: bytes) -> None:
-        try:
-            payload = self.cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
-        except CipherError as exc:
-            self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
+        payload = self.open(frame)
+        if payload is None:
             return
         with self._lock:
             top = self.window.top(header.epoch)

@@ -38,7 +38,7 @@ import time
 from typing import TYPE_CHECKING, Any, Callable
 
 from . import envelope
-from .errors import CipherError, CodecError
+from .errors import CodecError
 from .links import Link
 from .routes import Route
 from .transport import Address
@@ -227,10 +227,8 @@ class CallerRoute(ServiceRoute):
 
     def on_reply(self, header: envelope.Header, frame: bytes) -> None:
         """A link's thread: match the answer to its call (after checking it is authentic)."""
-        try:
-            body = self.cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
-        except CipherError as exc:
-            self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
+        body = self.open(frame)
+        if body is None:
             return
         call = self._pop(header.seq) if header.epoch == self.epoch else None
         if call is None:
@@ -297,10 +295,8 @@ class ServerRoute(ServiceRoute):
             self.drop("too_large", f"request of {len(frame) - envelope.SIZE} bytes, "
                                    f"max_request is {self.service.max_request}")
             return
-        try:
-            payload = self.cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
-        except CipherError as exc:
-            self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
+        payload = self.open(frame)
+        if payload is None:
             return
         with self._lock:
             refused = self.window.accept(header.epoch, header.seq)
