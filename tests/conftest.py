@@ -7,6 +7,7 @@ other. Waiting is always on an event with a timeout, never a fixed sleep.
 from __future__ import annotations
 
 import itertools
+import logging
 import os
 import signal
 import subprocess
@@ -186,6 +187,39 @@ def engines():
     yield start
     for engine in started:
         engine.stop()
+
+
+class LogRecorder(logging.Handler):
+    """Collects what the rosgate logger says; a test waits for a line to appear."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.messages: list[str] = []
+        self.cond = threading.Condition()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with self.cond:
+            self.messages.append(record.getMessage())
+            self.cond.notify_all()
+
+    def having(self, part: str) -> list[str]:
+        with self.cond:
+            return [m for m in self.messages if part in m]
+
+    def wait(self, part: str, count: int = 1, timeout: float = 10.0) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: len(self.having(part)) >= count, timeout)
+
+
+@pytest.fixture
+def logs():
+    logger = logging.getLogger("rosgate")
+    recorder, level = LogRecorder(), logger.level
+    logger.addHandler(recorder)
+    logger.setLevel(logging.INFO)  # "up" is news, not a warning
+    yield recorder
+    logger.removeHandler(recorder)
+    logger.setLevel(level)
 
 
 @pytest.fixture

@@ -8,9 +8,7 @@ Bridges run in this process (``engines``) when a test needs to look inside them,
 
 from __future__ import annotations
 
-import logging
 import os
-import threading
 import time
 from pathlib import Path
 
@@ -47,37 +45,6 @@ def proxy():
     yield make
     for p in made:
         p.close()
-
-
-class LogRecorder(logging.Handler):
-    def __init__(self) -> None:
-        super().__init__()
-        self.messages: list[str] = []
-        self.cond = threading.Condition()
-
-    def emit(self, record: logging.LogRecord) -> None:
-        with self.cond:
-            self.messages.append(record.getMessage())
-            self.cond.notify_all()
-
-    def having(self, part: str) -> list[str]:
-        with self.cond:
-            return [m for m in self.messages if part in m]
-
-    def wait(self, part: str, count: int = 1, timeout: float = 10.0) -> bool:
-        with self.cond:
-            return self.cond.wait_for(lambda: len(self.having(part)) >= count, timeout)
-
-
-@pytest.fixture
-def logs():
-    logger = logging.getLogger("rosgate")
-    recorder, level = LogRecorder(), logger.level
-    logger.addHandler(recorder)
-    logger.setLevel(logging.INFO)  # "up" is news, not a warning
-    yield recorder
-    logger.removeHandler(recorder)
-    logger.setLevel(level)
 
 
 def through_proxy(engines, domain, proxy, topics: str, server_extra: str = "",

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 import time
 
 from conftest import cross, free_port
@@ -32,47 +31,21 @@ topics: [{{{topic}, direction: receive}}]""", db)
     return a, b, da, db
 
 
-class Recorder(logging.Handler):
-    """Collects stale warnings and lets a test wait for a number of them."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        import threading
-        self.messages: list[str] = []
-        self.cond = threading.Condition()
-
-    def emit(self, record: logging.LogRecord) -> None:
-        with self.cond:
-            self.messages.append(record.getMessage())
-            self.cond.notify_all()
-
-    def stale(self) -> list[str]:
-        return [m for m in self.messages if "no data for" in m]
-
-    def wait_stale(self, n: int, timeout: float) -> bool:
-        with self.cond:
-            return self.cond.wait_for(lambda: len(self.stale()) >= n, timeout)
-
-
-def test_stale_warnings_are_capped_and_reset_when_data_returns(engines, domain, ros_side):
-    recorder = Recorder()
-    logging.getLogger("rosgate").addHandler(recorder)
-    try:
-        a, b, da, db = pair(engines, domain, ", stale_after: 0.6, stale_warnings: 2")
-        inbox = ros_side(db, "listener").listen("/t", String)
-        talker = ros_side(da, "talker").publisher("/t", String)
-        cross(talker, inbox, text, is_warmup, 1)
-        # silence: exactly two warnings, then quiet for as long again as both took
-        assert recorder.wait_stale(2, 5)
-        assert not recorder.wait_stale(3, 2.0)
-        assert [m.split(": ", 1)[1].split(" (")[1] for m in recorder.stale()] == \
-            ["warning 1 of 2)", "warning 2 of 2)"]
-        # data returns: the count starts again
-        cross(talker, inbox, lambda i: text(None if i is None else 10 + i), is_warmup, 1)
-        assert recorder.wait_stale(3, 5)
-        assert recorder.stale()[-1].endswith("(warning 1 of 2)")
-    finally:
-        logging.getLogger("rosgate").removeHandler(recorder)
+def test_stale_warnings_are_capped_and_reset_when_data_returns(engines, domain, ros_side, logs):
+    stale = "no data for"
+    a, b, da, db = pair(engines, domain, ", stale_after: 0.6, stale_warnings: 2")
+    inbox = ros_side(db, "listener").listen("/t", String)
+    talker = ros_side(da, "talker").publisher("/t", String)
+    cross(talker, inbox, text, is_warmup, 1)
+    # silence: exactly two warnings, then quiet for as long again as both took
+    assert logs.wait(stale, 2, 5)
+    assert not logs.wait(stale, 3, 2.0)
+    assert [m.split(": ", 1)[1].split(" (")[1] for m in logs.having(stale)] == \
+        ["warning 1 of 2)", "warning 2 of 2)"]
+    # data returns: the count starts again
+    cross(talker, inbox, lambda i: text(None if i is None else 10 + i), is_warmup, 1)
+    assert logs.wait(stale, 3, 5)
+    assert logs.having(stale)[-1].endswith("(warning 1 of 2)")
 
 
 def test_max_rate_drops_and_counts_the_excess(engines, domain, ros_side):
