@@ -15,7 +15,8 @@ from rosgate.config import (
 )
 from rosgate.errors import ConfigError
 
-LEGACY = sorted(Path("/work/shared/legacy").glob("*.yaml"))
+DATA = Path(__file__).resolve().parents[2] / "tests" / "data"
+LEGACY = sorted((DATA / "legacy").glob("*.yaml"))
 DEFAULTS = {"transport": "udp", "codec": "cdr", "cipher": "none"}
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from rosgate import serial_datagram as sd
 
-VECTORS = Path("/work/shared/vectors/serial_datagram.txt")
+VECTORS = Path(__file__).resolve().parents[2] / "tests" / "data" / "vectors" / "serial_datagram.txt"
 
 
 def vectors() -> list[tuple[bytes, bytes]]:
