@@ -796,6 +796,11 @@ class TcpRelay(_Relay):
     also stops when ``window`` bytes of one connection's direction are not yet delivered (the
     receiver's window). An end of stream (FIN) is passed on after the data before it; a reset
     or error on either side closes both.
+
+    Segments are cut from each read of the relay (at most ``mss`` bytes each, no Nagle), so
+    the TCP loss pattern depends on how reads cut the stream, not only on the seed. The queue
+    is checked before each read; the retransmitted copies of that read's lost segments, and
+    other connections reading at the same moment, may take it a few segments past ``queue``.
     """
 
     def __init__(self, profile: Profile, target: tuple[str, int],
