@@ -160,6 +160,9 @@ def test_datagrams_cross_byte_exact_both_ways_and_replies_reach_the_client(udp):
             assert echo.wait_for(i + 1)
             assert echo.data[i] == data
             assert reply == b"re:" + data[::-1][:65504]
+        # a scheduler counts a datagram just after sending it: wait for the count
+        assert relay.wait_until(lambda up, down: up.datagrams_delivered == len(sizes)
+                                and down.datagrams_delivered == len(sizes), TIMEOUT)
         up, down = relay.up, relay.down
         assert up.datagrams_in == up.datagrams_delivered == len(sizes)
         assert up.bytes_delivered == sum(sizes)
@@ -331,6 +334,11 @@ def receive_all(sock: socket.socket, out: bytearray, times: list[float]):
     times.append(time.monotonic())
 
 
+def send_and_end(sock: socket.socket, data: bytes):
+    sock.sendall(data)
+    sock.shutdown(socket.SHUT_WR)
+
+
 def test_tcp_crosses_intact_and_in_order_through_loss_at_the_rate(tcp_target):
     rate = 8e6
     profile = Profile(rate=rate, delay=0.005, jitter=0.001, loss=0.05, rto=0.05, seed=9)
@@ -345,23 +353,27 @@ def test_tcp_crosses_intact_and_in_order_through_loss_at_the_rate(tcp_target):
                    threading.Thread(target=receive_all, args=(client, got_down, []))]
         for r in readers:
             r.start()
-        writers = [threading.Thread(target=lambda s=s, d=d: (s.sendall(d), s.shutdown(socket.SHUT_WR)))
+        writers = [threading.Thread(target=send_and_end, args=(s, d))
                    for s, d in ((client, up_data), (server, down_data))]
         for w in writers:
             w.start()
         for t in readers + writers:
             t.join(TIMEOUT * 2)
-        up = relay.up
+        assert relay.wait_until(lambda up, down: up.bytes_delivered == len(up_data)
+                                and down.bytes_delivered == len(down_data), TIMEOUT)
+        up, down = relay.up, relay.down
         client.close()
         server.close()
     assert bytes(got_up) == up_data
     assert bytes(got_down) == down_data
-    assert up.retransmitted > 0 and relay.down.retransmitted > 0
+    assert up.retransmitted > 0 and down.retransmitted > 0
     assert up.bytes_in == up.bytes_delivered == len(up_data)
+    assert down.bytes_in == down.bytes_delivered == len(down_data)
     elapsed = up_times[-1] - up_times[0]
     throughput = len(up_data) * 8 / elapsed
     # the model's goodput: headers take 40 of every 1,500 bytes, each retransmission a slot
-    goodput = rate * profile.mss / profile.mtu * up.segments_in / (up.segments_in + up.retransmitted)
+    goodput = rate * profile.mss / profile.mtu * up.segments_in / (up.segments_in
+                                                                   + up.retransmitted)
     assert throughput == pytest.approx(goodput, rel=0.10)   # goodput is ~0.925 of the rate
     assert 0.8 * rate < throughput < rate
 

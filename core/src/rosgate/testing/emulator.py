@@ -244,8 +244,8 @@ class UdpCounters:
 
     datagrams_in: int       # received from the source
     bytes_in: int           # their payload bytes
-    datagrams_delivered: int
-    bytes_delivered: int
+    datagrams_delivered: int  # handed to the socket toward the destination (counted just
+    bytes_delivered: int      # before, so a receiver never has more than these say)
     dropped: dict[str, int]  # by reason: loss, queue_full (always present); no_client, unreachable
     queue_bytes: int        # wire bytes waiting to be sent onto the link now
     queue_max: int          # the most ever waiting
@@ -257,7 +257,7 @@ class TcpCounters:
 
     segments_in: int        # segments cut from what was read from the source
     bytes_in: int
-    bytes_delivered: int
+    bytes_delivered: int    # handed to the destination socket (counted just before)
     retransmitted: int      # retransmissions (a segment lost twice counts twice)
     queue_bytes: int
     queue_max: int
@@ -498,27 +498,29 @@ class _UdpDirection:
                 due = []
                 while heap and heap[0][0] <= now:
                     due.append(heapq.heappop(heap))
-            delivered = sent_bytes = unreachable = 0
+                # counted before it is handed over, so a receiver never sees more than the
+                # counters say; a datagram the socket refuses is moved to "unreachable"
+                self.datagrams_delivered += len(due)
+                self.bytes_delivered += sum(len(item[2]) for item in due)
+                relay._changed.notify_all()
+            refused = refused_bytes = 0
             for _, _, data, destination in due:
                 try:
                     if destination is _TARGET:
                         self.sock.send(data)
                     else:
                         self.sock.sendto(data, destination)
-                    delivered += 1
-                    sent_bytes += len(data)
-                except ConnectionRefusedError:
-                    unreachable += 1
                 except OSError:
                     if relay._closed:
                         return
-                    unreachable += 1
-            with self.wakeup:
-                self.datagrams_delivered += delivered
-                self.bytes_delivered += sent_bytes
-                if unreachable:
-                    self.dropped["unreachable"] += unreachable
-                relay._changed.notify_all()
+                    refused += 1                 # ICMP port unreachable from the target
+                    refused_bytes += len(data)
+            if refused:
+                with self.wakeup:
+                    self.datagrams_delivered -= refused
+                    self.bytes_delivered -= refused_bytes
+                    self.dropped["unreachable"] += refused
+                    relay._changed.notify_all()
 
 
 _TARGET = object()  # the destination of datagrams going up: the relay's connected socket
@@ -713,18 +715,21 @@ class _Pipe:
                             end = True
                             break
                         chunks.append(piece)
-                if chunks:
                     data = b"".join(chunks)
+                    # counted before it is handed over, so a receiver never sees more
+                    self.direction.bytes_delivered += len(data)
+                    relay._changed.notify_all()
+                if data:
                     try:
                         self.destination.sendall(data)
                     except OSError:
+                        with self.room:
+                            self.direction.bytes_delivered -= len(data)
                         self.connection.abort()
                         return
                     with self.room:
                         self.pending -= len(data)
-                        self.direction.bytes_delivered += len(data)
                         self.room.notify()
-                        relay._changed.notify_all()
                 if end:
                     try:
                         self.destination.shutdown(socket.SHUT_WR)
@@ -1078,7 +1083,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{args.kind} {host}:{port} -> {args.target[0]}:{args.target[1]} "
               f"{dataclasses.asdict(profile)}", flush=True)
         stop.wait()
-        counters = {"up": dataclasses.asdict(relay.up), "down": dataclasses.asdict(relay.down)}
+    counters = {"up": dataclasses.asdict(relay.up), "down": dataclasses.asdict(relay.down)}
     print(json.dumps(counters), flush=True)
     return 0
 
