@@ -225,7 +225,7 @@ def test_the_rate_caps_what_is_delivered(udp):
     client = udp()
     rate, size, seconds = 4e6, 1000, 2.0
     wire = udp_wire_bytes(size)
-    profile = Profile(rate=rate, queue=50_000, seed=4)
+    profile = Profile(rate=rate, queue=100_000, seed=4)   # 200 ms: absorbs a stalled sender
     per_tick = 10
     interval = per_tick * wire * 8 / (2 * rate)           # offers twice the rate
     with UdpRelay(profile, target.getsockname()) as relay:
@@ -243,7 +243,7 @@ def test_the_rate_caps_what_is_delivered(udp):
     times = [t for t, _, _ in sink.items]
     measured = (len(times) - 1) * wire * 8 / (times[-1] - times[0])
     assert measured == pytest.approx(rate, rel=0.10)
-    assert up.dropped["queue_full"] > 0.3 * i             # half the offer cannot fit
+    assert up.dropped["queue_full"] > 0.2 * i             # ~40 %: half, less what queued
     assert up.queue_max <= profile.queue
 
 
@@ -310,7 +310,7 @@ def test_the_target_answers_to_the_source_address_and_early_answers_are_dropped(
         client.settimeout(TIMEOUT)
         client.sendto(b"hello", relay.address)
         assert client.recvfrom(100) == (b"HELLO", relay.address)
-        assert echo.items[0][2] == fixed                   # the target saw the source address
+        assert echo.wait_for(1) and echo.items[0][2] == fixed  # seen from there
 
 
 # --- TCP --------------------------------------------------------------------------------
@@ -555,8 +555,9 @@ def test_netns_pair_echoes_udp_and_is_deleted_even_after_errors():
 
 @netns
 def test_netns_tbf_caps_a_bulk_udp_send():
-    rate, size, seconds = 8e6, 1000, 2.0
-    with NetnsPair(rate=rate) as pair:
+    rate, size, seconds = 8e6, 1400, 2.0
+    # tbf's queue holds 200 ms, so a sender stalled by a busy machine does not idle the link
+    with NetnsPair(rate=rate, latency=0.2) as pair:
         receiver = pair.socket("b")
         sender = pair.socket("a")
         try:
@@ -565,7 +566,7 @@ def test_netns_tbf_caps_a_bulk_udp_send():
             sink = Sink(receiver)
             per_tick = 10
             wire = size + 28 + 14                          # tbf counts the Ethernet header
-            interval = per_tick * wire * 8 / (1.5 * rate)  # offer 1.5 times the rate
+            interval = per_tick * wire * 8 / (2 * rate)    # offer twice the rate
             start = tick = time.monotonic()
             while tick - start < seconds:
                 for _ in range(per_tick):
