@@ -70,7 +70,11 @@ Use from a test
             assert link.up.dropped["loss"] > 0
 
 The relay answers the address it last heard from, so a bridge that replies to the source it
-saw works through it. ``close()`` (or leaving the ``with``) stops its threads and closes its
+saw works through it. Timing is faithful while the machine keeps up: a UDP datagram's time on
+the emulated link starts when the kernel stamped its arrival at the relay (so a relay thread
+that runs late does not add delay), and ``late_max`` in the counters says how much later than
+due the relay handed anything over; if that is not small beside ``jitter``, a busy machine,
+not the profile, shaped the latencies. ``close()`` (or leaving the ``with``) stops its threads and closes its
 sockets at once; datagrams still in flight are discarded. :meth:`UdpRelay.wait_until` and
 :meth:`TcpRelay.wait_until` wait on the counters without polling.
 
@@ -111,6 +115,7 @@ import selectors
 import shutil
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -249,6 +254,7 @@ class UdpCounters:
     dropped: dict[str, int]  # by reason: loss, queue_full (always present); no_client, unreachable
     queue_bytes: int        # wire bytes waiting to be sent onto the link now
     queue_max: int          # the most ever waiting
+    late_max: float         # seconds: the most a datagram was handed over after it was due
 
 
 @dataclass(frozen=True)
@@ -261,6 +267,7 @@ class TcpCounters:
     retransmitted: int      # retransmissions (a segment lost twice counts twice)
     queue_bytes: int
     queue_max: int
+    late_max: float         # seconds: the most bytes were handed over after they were due
 
 
 def _rng(seed: int | str | None, direction: str, purpose: str) -> random.Random:
@@ -454,6 +461,7 @@ class _UdpDirection:
         self.datagrams_in = self.bytes_in = 0
         self.datagrams_delivered = self.bytes_delivered = 0
         self.dropped: Counter[str] = Counter(loss=0, queue_full=0)
+        self.late_max = 0.0
 
     def submit(self, data: bytes, destination: Any, now: float) -> None:
         """A datagram came in (the relay's lock is held)."""
@@ -495,6 +503,7 @@ class _UdpDirection:
                     if heap and heap[0][0] <= now:
                         break
                     self.wakeup.wait(heap[0][0] - now if heap else None)
+                self.late_max = max(self.late_max, now - heap[0][0])
                 due = []
                 while heap and heap[0][0] <= now:
                     due.append(heapq.heappop(heap))
@@ -526,6 +535,25 @@ class _UdpDirection:
 _TARGET = object()  # the destination of datagrams going up: the relay's connected socket
 
 
+# Linux stamps each datagram as it reaches a socket (SO_TIMESTAMPNS, CLOCK_REALTIME): the
+# emulated link starts from that instant, so a relay thread that runs late (a busy machine)
+# does not add to the emulated delay; lateness then shows in the counters' late_max.
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS",
+                          35 if sys.platform.startswith("linux") else None)
+_TIMESPEC = struct.Struct("@qq")
+_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size) if _SO_TIMESTAMPNS else 0
+
+
+def _arrival(ancillary: list[tuple[int, int, bytes]]) -> float:
+    """When a datagram reached the relay's socket, on the ``time.monotonic()`` clock."""
+    now = time.monotonic()
+    for level, kind, value in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
+            seconds, nanoseconds = _TIMESPEC.unpack(value[:_TIMESPEC.size])
+            return min(now, seconds + nanoseconds * 1e-9 - (time.time() - now))
+    return now
+
+
 class UdpRelay(_Relay):
     """A UDP relay through an emulated link, both ways.
 
@@ -550,6 +578,8 @@ class UdpRelay(_Relay):
             for sock in (self._outer, self._inner):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER)
+                if _SO_TIMESTAMPNS:
+                    sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
             self._outer.bind(listen)
             if source is not None:
                 self._inner.bind(source)
@@ -584,14 +614,15 @@ class UdpRelay(_Relay):
                         return
                     for _ in range(256):     # drain, but let the other direction have its turn
                         try:
-                            data, source = key.fileobj.recvfrom(65535, socket.MSG_DONTWAIT)
+                            data, ancillary, _, source = key.fileobj.recvmsg(
+                                65535, _ANCILLARY, socket.MSG_DONTWAIT)
                         except (BlockingIOError, InterruptedError):
                             break
                         except OSError:      # ICMP port unreachable from the target, or closed
                             if self._closed:
                                 return
                             continue
-                        now = time.monotonic()
+                        now = _arrival(ancillary)
                         with self._lock:
                             if key.data == "up":
                                 self._client = source
@@ -603,7 +634,7 @@ class UdpRelay(_Relay):
     def _snapshot(self, d: _UdpDirection) -> UdpCounters:
         d.link.drain(time.monotonic())
         return UdpCounters(d.datagrams_in, d.bytes_in, d.datagrams_delivered, d.bytes_delivered,
-                           dict(d.dropped), d.link.queue_bytes, d.link.queue_max)
+                           dict(d.dropped), d.link.queue_bytes, d.link.queue_max, d.late_max)
 
     def _stop(self) -> None:
         with self._lock:
@@ -708,6 +739,8 @@ class _Pipe:
                         if items and items[0][0] <= now:
                             break
                         self.data_ready.wait(items[0][0] - now if items else None)
+                    direction = self.direction
+                    direction.late_max = max(direction.late_max, now - items[0][0])
                     chunks, end = [], False
                     while items and items[0][0] <= now:
                         piece = items.popleft()[1]
@@ -751,6 +784,7 @@ class _TcpDirection:
     def __init__(self, relay: TcpRelay, name: str):
         self.link = _Link(relay.profile, name)
         self.segments_in = self.bytes_in = self.bytes_delivered = self.retransmitted = 0
+        self.late_max = 0.0
 
 
 class _TcpConnection:
@@ -875,7 +909,7 @@ class TcpRelay(_Relay):
     def _snapshot(self, d: _TcpDirection) -> TcpCounters:
         d.link.drain(time.monotonic())
         return TcpCounters(d.segments_in, d.bytes_in, d.bytes_delivered, d.retransmitted,
-                           d.link.queue_bytes, d.link.queue_max)
+                           d.link.queue_bytes, d.link.queue_max, d.late_max)
 
     def _stop(self) -> None:
         with self._lock:
