@@ -25,7 +25,7 @@ Each direction of a relay is an independent link, described by a :class:`Profile
   one before it, it waits behind it) unless ``reorder=True`` (UDP only; TCP always keeps order).
 * **MTU and IPv4 fragments** — a UDP datagram of ``n`` bytes travels as
   :func:`ip_fragments` ``(n, mtu)`` IPv4 packets: one if ``n + 28 <= mtu``, else
-  ``ceil((n + 8) / floor((mtu - 20) / 8) * 8)`` fragments (each fragment has its own 20-byte IP
+  ``ceil((n + 8) / (8 * floor((mtu - 20) / 8)))`` fragments (each fragment has its own 20-byte IP
   header, the 8-byte UDP header rides in the first, fragment payloads are multiples of 8).
   E.g. at MTU 1500: 1,472 bytes is 1 packet, 1,473 is 2, 4,000 is 3 (1480 + 1480 + 1048).
   Wire bytes: :func:`udp_wire_bytes` ``= n + 8 + 20 * fragments``.
@@ -70,19 +70,23 @@ Use from a test
             assert link.up.dropped["loss"] > 0
 
 The relay answers the address it last heard from, so a bridge that replies to the source it
-saw works through it. Timing is faithful while the machine keeps up: a UDP datagram's time on
-the emulated link starts when the kernel stamped its arrival at the relay (so a relay thread
-that runs late does not add delay), and ``late_max`` in the counters says how much later than
-due the relay handed anything over; if that is not small beside ``jitter``, a busy machine,
-not the profile, shaped the latencies. ``close()`` (or leaving the ``with``) stops its threads and closes its
+saw works through it. ``close()`` (or leaving the ``with``) stops its threads and closes its
 sockets at once; datagrams still in flight are discarded. :meth:`UdpRelay.wait_until` and
-:meth:`TcpRelay.wait_until` wait on the counters without polling.
+:meth:`TcpRelay.wait_until` wait on the counters without polling. A delivery is counted just
+before it is handed to the socket, so a receiver never holds more than the counters say.
+
+Timing is faithful while the machine keeps up: a UDP datagram's time on the emulated link
+starts when the kernel stamped its arrival at the relay (so a relay thread that runs late does
+not add delay), and ``late_max`` in the counters says how much later than due the relay
+handed anything over. If that is not small beside ``jitter``, a busy machine, not the
+profile, shaped the latencies.
 
 Use from the benchmark
 ----------------------
 
-Put a relay between the two bridges, one per port the far bridge listens on, with the
-:data:`WIFI` preset (20 Mbit/s, 10 ms, 2 ms jitter, 1 % loss, MTU 1500)::
+Put a relay between the two bridges, one per port the far bridge listens on (a
+:class:`TcpRelay` for the main line, a :class:`UdpRelay` per UDP port), with the :data:`WIFI`
+preset (20 Mbit/s, 10 ms, 2 ms jitter, 1 % loss, MTU 1500)::
 
     with UdpRelay(WIFI, target=("127.0.0.1", port_b)) as link:
         ...   # bridge A's peer / server address = link.address
@@ -108,7 +112,6 @@ import dataclasses
 import heapq
 import itertools
 import json
-import math
 import os
 import random
 import selectors
@@ -126,7 +129,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Sequence
 
 __all__ = [
-    "IP_HEADER", "MAX_UDP_PAYLOAD", "NetnsPair", "Profile", "TCP_HEADER", "TcpCounters",
+    "IP_HEADER", "MAX_UDP_PAYLOAD", "NetnsPair", "PRESETS", "Profile", "TCP_HEADER", "TcpCounters",
     "TcpRelay", "UDP_HEADER", "UdpCounters", "UdpRelay", "WIFI", "ip_fragments",
     "udp_wire_bytes",
 ]
@@ -205,7 +208,8 @@ class Profile:
 
     seed: int | str | None = 0
     """Seed of the random streams (loss and jitter, per direction): the same seed and the same
-    input give the same losses. ``None``: fresh randomness from the OS on every relay."""
+    datagrams give the same UDP losses (TCP's also depend on how reads cut the stream).
+    ``None``: fresh randomness from the OS on every relay."""
 
     def __post_init__(self) -> None:
         if self.rate is not None and not self.rate > 0:
