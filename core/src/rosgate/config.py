@@ -16,8 +16,9 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import overload
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 import yaml
 
@@ -254,8 +255,9 @@ def _parse(text: str, file: str) -> tuple[Any, _Source]:
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         problem = exc.problem or exc.context or "invalid YAML"
-        raise ConfigError(f"YAML syntax error at column {mark.column + 1}: {problem}", file=file,
-                          line=mark.line + 1,
+        column = f" at column {mark.column + 1}" if mark is not None else ""
+        raise ConfigError(f"YAML syntax error{column}: {problem}", file=file,
+                          line=mark.line + 1 if mark is not None else None,
                           fix="check the indentation (spaces, not tabs) and quote values that "
                               "contain ': ' or ' #' or start with a special character") from None
     except yaml.reader.ReaderError as exc:
@@ -293,6 +295,7 @@ class _Builder:
                     self.src.lines[f"{path}[{i}]"] = item.start_mark.line + 1
                     items.append(self.build(item, f"{path}[{i}]"))
                 return items
+            assert isinstance(node, yaml.MappingNode)  # the third kind of node
             return self._mapping(node, path)
         finally:
             self.open.discard(id(node))
@@ -341,11 +344,11 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
     bridge = _section(src, data, "", "bridge")
     _check_keys(src, bridge, "bridge", BRIDGE_KEYS)
     _require(src, bridge, "bridge", ("name", "role"))
-    name = _text(src, bridge, "bridge", "name")
+    name = _required(src, bridge, "bridge", "name")
     if not _BRIDGE_NAME.fullmatch(name):
         raise src.error("bridge.name", f"'{name}' is not a valid bridge name",
                         fix="use only letters, digits, '_', '.' and '-', e.g. name: robot1")
-    role = Role(_choice(src, bridge, "bridge", "role", ROLES))
+    role = Role(_required(src, bridge, "bridge", "role", ROLES))
     _check_role(src, data, bridge, role)
     defaults = _defaults(src, bridge)
     heartbeat = _number(src, bridge, "bridge", "heartbeat", HEARTBEAT_DEFAULT, "a number > 0", _positive)
@@ -554,7 +557,7 @@ def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
     fields = {
         name_key: name,
         "type": _interface(src, data, path, kind),
-        "direction": Direction(_choice(src, data, path, "direction", DIRECTIONS)),
+        "direction": Direction(_required(src, data, path, "direction", DIRECTIONS)),
         "remote": remote,
         "transport": _text(src, data, path, "transport", defaults.get("transport", TRANSPORT_DEFAULT)),
         "codec": _text(src, data, path, "codec", defaults.get("codec", CODEC_DEFAULT)),
@@ -606,7 +609,7 @@ def _qos(src: _Source, data: dict, path: str) -> int | str | dict:
 
 
 def _ros_name(src: _Source, data: dict, path: str, key: str) -> str:
-    text = _text(src, data, path, key)
+    text = _required(src, data, path, key)
     if text.startswith("~"):
         raise src.error(_join(path, key), f"private names (~) are not supported: '{text}'",
                         fix=f"write the full name, e.g. {key}: {_example(path, key)}")
@@ -619,7 +622,7 @@ def _ros_name(src: _Source, data: dict, path: str, key: str) -> str:
 
 
 def _interface(src: _Source, data: dict, path: str, kind: str) -> str:
-    text = _text(src, data, path, "type")
+    text = _required(src, data, path, "type")
     example = _example(path, "type")
     what = "a topic" if kind == "msg" else "a service"
     match = _INTERFACE.fullmatch(text)
@@ -727,6 +730,12 @@ def _section(src: _Source, data: dict, path: str, key: str, fix: str | None = No
     return value
 
 
+@overload
+def _text(src: _Source, data: dict, path: str, key: str, default: str) -> str: ...
+@overload
+def _text(src: _Source, data: dict, path: str, key: str, default: None = None) -> str | None: ...
+
+
 def _text(src: _Source, data: dict, path: str, key: str, default: str | None = None) -> str | None:
     if key not in data:
         return default
@@ -739,6 +748,25 @@ def _text(src: _Source, data: dict, path: str, key: str, default: str | None = N
         raise src.error(key_path, f"expected a non-empty string, got {_show(value)}",
                         fix=f"e.g. {key}: {_example(path, key)}")
     return value
+
+
+def _required(src: _Source, data: dict, path: str, key: str,
+              choices: tuple[str, ...] | None = None) -> str:
+    """A key _require has checked is there (of ``choices``, when given)."""
+    value = _text(src, data, path, key) if choices is None else _choice(src, data, path, key,
+                                                                         choices)
+    if value is None:
+        raise src.error(_join(path, key), f"missing required key '{key}'",
+                        fix=f"add {key}: {_example(path, key)}")
+    return value
+
+
+@overload
+def _choice(src: _Source, data: dict, path: str, key: str, choices: tuple[str, ...],
+            default: str) -> str: ...
+@overload
+def _choice(src: _Source, data: dict, path: str, key: str, choices: tuple[str, ...],
+            default: None = None) -> str | None: ...
 
 
 def _choice(src: _Source, data: dict, path: str, key: str, choices: tuple[str, ...],

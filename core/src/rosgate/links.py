@@ -51,10 +51,13 @@ CONNECT_TIMEOUT = 5.0
 class Sender(Protocol):
     """What sends a frame: a route, or a role's control channel."""
 
-    #: the id fragments of its frames carry (so a receiver counts a lost one against it)
-    topic_id: int
-    #: its frames wait in a :class:`LinkSlot` while the link is down (reliable QoS)
-    reliable: bool
+    @property
+    def topic_id(self) -> int:
+        """The id fragments of its frames carry (so a receiver counts a lost one against it)."""
+
+    @property
+    def reliable(self) -> bool:
+        """Its frames wait in a :class:`LinkSlot` while the link is down (reliable QoS)."""
 
     def drop(self, reason: str, detail: str = "") -> None:
         """Count one of its frames as dropped on the way out."""

@@ -52,7 +52,7 @@ class PreparedService:
     """A service with every plugin and type resolved."""
 
     config: ServiceConfig
-    srv_type: type
+    srv_type: Any  # a ROS service class: Request and Response inside
     codec_cls: type[Codec]
     codec_options: Any
     transport: Transport
@@ -138,7 +138,7 @@ class Resolver:
         codec_cls, codec_options = self._codec(service.codec, f"{key}.codec", error)
         cipher = self.cipher(service.cipher, f"{key}.cipher", error)
         try:
-            srv_type = resolve_type(service.type)
+            srv_type: Any = resolve_type(service.type)
         except TypeNotFound as exc:
             raise error(f"{key}.type", str(exc)) from None
         try:

@@ -167,7 +167,8 @@ class RosNode:
             else:
                 respond(result, header)
 
-        service.send_response = send_response
+        # replacing a method on this instance is the point (see above); mypy forbids it in general
+        service.send_response = send_response  # type: ignore[method-assign,assignment]
         return service
 
     def client(self, srv_type: type, name: str, qos: Any) -> Any:

@@ -36,6 +36,11 @@ def _no_destination() -> Address | None:
     return None
 
 
+def fixed(address: Address) -> Destination:
+    """A destination that never changes (a configured peer, a server's port)."""
+    return lambda: address
+
+
 class Router:
     def __init__(self, ros: RosNode, warner: Warner | None = None):
         self.ros = ros
@@ -65,7 +70,7 @@ class Router:
                                   framing=framing, link=link, destination=destination)
             route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
         else:
-            decode = codec.decode
+            decode: Callable[[bytes], Any] = codec.decode
             trusted = p.cipher.authenticates and t.framing is Framing.ROSGATE
             if codec.raw and not trusted:
                 decode = _checked(decode, cdr_checker(p.msg_type))

@@ -51,7 +51,7 @@ log = logging.getLogger("rosgate")
 QUEUE_DEPTH = 1000
 
 
-def failure(response_type: type, reason: str) -> Any:
+def failure(response_type: Any, reason: str) -> Any:
     """The answer a ROS caller gets when the bridge has none (see the module documentation)."""
     response = response_type()
     fields = response_type.get_fields_and_field_types()
@@ -136,7 +136,7 @@ class Deadlines:
 class ServiceCodec:
     """The entry's codec for the Request and for the Response."""
 
-    def __init__(self, codec_cls: type, srv_type: type, options: Any):
+    def __init__(self, codec_cls: type, srv_type: Any, options: Any):
         self.request = codec_cls(srv_type.Request, options)
         self.response = codec_cls(srv_type.Response, options)
         self.name = self.request.name
@@ -166,7 +166,7 @@ class ServiceRoute(Route):
     """What both sides of a service share: the entry, its codecs, counters and warnings."""
 
     def __init__(self, service: ServiceConfig, service_id: int, codec: ServiceCodec, cipher: Any,
-                 warner: Any, label: str, srv_type: type, deadlines: Deadlines):
+                 warner: Any, label: str, srv_type: Any, deadlines: Deadlines):
         # calls are not held while a link is down: the caller's timeout answers them instead
         super().__init__(service, service_id, codec, cipher, warner, label, reliable=False)
         self.service = service

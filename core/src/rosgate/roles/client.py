@@ -24,6 +24,7 @@ from ..config import Direction, service_to_mapping, topic_to_mapping
 from ..errors import RosgateError
 from ..links import Connector, DatagramLink, Link, LinkSlot, StreamLink
 from ..resolver import PreparedService, PreparedTopic
+from ..router import fixed
 from ..transport import Address
 from . import Bridge, Role
 from .mainline import HANDSHAKE_TIMEOUT, PROTOCOL, control, hello_datagram, is_control, parse_control
@@ -144,7 +145,7 @@ class ClientRole(Role):
             way = "to" if t.direction is Direction.TRANSMIT else "from"
             label = f"{p.name} ({way} {self.server_name})"
             link: Link
-            destination = lambda to=p.address: to  # noqa: E731 (bound per entry)
+            destination = fixed(p.address)
             if p.transport.stream:
                 link = self.main if t.port is None else self._dedicated_stream(p)
             else:

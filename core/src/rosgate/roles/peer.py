@@ -18,6 +18,7 @@ from ..cvra import CallServer
 from ..errors import LinkError
 from ..links import Acceptor, Connector, Link
 from ..resolver import PreparedService, PreparedTopic
+from ..router import fixed
 from ..routes import ReceiveRoute
 from ..services import ServerRoute
 from ..transport import Address
@@ -43,7 +44,7 @@ class PeerRole(Role):
         t, key = p.config, f"topics[{p.index}].port"
         if t.direction is Direction.TRANSMIT:
             link = self.datagram_link(p.transport, p.local, key)
-            self.router.topic(p, topic_id_for(t.remote), t.topic, link, lambda to=p.address: to)
+            self.router.topic(p, topic_id_for(t.remote), t.topic, link, fixed(p.address))
             return
         if t.framing is Framing.NONE:
             named = p.codec_cls.messagepack
@@ -77,7 +78,7 @@ class PeerRole(Role):
     def _service(self, p: PreparedService) -> None:
         """A service with an envelope: found by the id of its remote name."""
         s, key = p.config, f"services[{p.index}].port"
-        service_id, to = topic_id_for(s.remote), p.address
+        service_id = topic_id_for(s.remote)
         link: Link
         if s.direction is Direction.RECEIVE:
             if p.transport.stream:
@@ -87,11 +88,11 @@ class PeerRole(Role):
                 link = self.datagram_link(p.transport, p.address, key)
         elif p.transport.stream:
             link = slot = self.bridge.slot(f"{s.transport}->{self.cfg.peer}:{s.port}")
-            Connector(p.transport, to, slot, self.router.on_frame, self.router.on_lost, self.life,
-                      self.bridge.backoff).start()
+            Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
+                      self.life, self.bridge.backoff).start()
         else:
             link = self.datagram_link(p.transport, p.local, key)
-        self.router.service(p, service_id, s.service, link, lambda: to)
+        self.router.service(p, service_id, s.service, link, fixed(p.address))
 
     def _microcontroller_service(self, p: PreparedService,
                                  servers: dict[Address, CallServer]) -> None:

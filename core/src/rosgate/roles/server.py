@@ -163,7 +163,8 @@ class ServerRole(Role):
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
                           hello.get("services", []), self.bridge.slot(f"main of {name}"))
         try:
-            for p in [*prepared, *services]:  # topics first: the welcome splits the ids so
+            entries: list[PreparedTopic | PreparedService] = [*prepared, *services]
+            for p in entries:  # topics first: the welcome splits the ids so
                 session.routes.append(self._route(session, p))
         except LinkError:
             self._drop_routes(session)
@@ -208,14 +209,18 @@ class ServerRole(Role):
         label = f"{p.name} ({way} {session.name})"
         link: Link
         destination = self._no_address
-        if p.transport.stream and t.port is None:
+        port = t.port
+        if p.transport.stream and port is None:
             link = session.main
-        elif p.transport.stream:
-            self.listen(p.transport, p.address, self._dedicated_frame(t.port))
-            link = session.streams[t.port] = self.bridge.slot(f"port {t.port} of {session.name}")
+        elif p.transport.stream and port is not None:
+            self.listen(p.transport, p.address, self._dedicated_frame(port))
+            link = session.streams[port] = self.bridge.slot(f"port {port} of {session.name}")
         else:
-            link = self.datagram_link(p.transport, p.address)
-            destination = lambda link=link: session.addresses.get(link)  # noqa: E731
+            datagrams = self.datagram_link(p.transport, p.address)
+            link = datagrams
+
+            def destination() -> Address | None:  # where the client said hello from, last
+                return session.addresses.get(datagrams)
         if isinstance(p, PreparedTopic):
             return self.router.topic(p, topic_id, label, link, destination)
         return self.router.service(p, topic_id, label, link, destination)
