@@ -82,7 +82,10 @@ def read_serial_datagram(conn: socket.socket) -> bytes | None:
 
 
 def say(kind: str, **fields: object) -> None:
-    print(json.dumps({"kind": kind, **fields}, default=repr), flush=True)
+    # one write per line: print() writes the text and the newline separately, so two threads
+    # printing at once could run their lines together
+    sys.stdout.write(json.dumps({"kind": kind, **fields}, default=repr) + "\n")
+    sys.stdout.flush()
 
 
 class Simulator:

@@ -96,9 +96,7 @@ def test_missing_key_file_is_named(config):
 
 
 def test_legacy_ros2_socket_bridge_file_is_recognised():
-    legacy = Path(__file__).resolve().parents[2] / "shared" / "legacy" / "bringup.yaml"
-    if not legacy.exists():
-        legacy = Path(__file__).resolve().parents[1] / ".." / "shared" / "legacy" / "bringup.yaml"
+    legacy = Path(__file__).resolve().parent / "data" / "legacy" / "bringup.yaml"
     text = user_error(rosgate("check", str(legacy)))
     assert "ros2_socket_bridge" in text
 

@@ -75,7 +75,7 @@ def test_ten_forced_disconnects_a_reliable_topic_arrives_complete_and_in_order(
     inbox = ros_side(ds, "listener").listen("/rel", String, 1000)
     talker = ros_side(dc, "talker").publisher("/rel", String, 1000)
     cross(talker, inbox, text, is_warmup, 0)
-    role, sent, back_in = client._role, [], []
+    role, sent, back_in = client.role, [], []
 
     def publish(n: int) -> None:
         for _ in range(n):
@@ -100,7 +100,7 @@ def test_ten_forced_disconnects_a_reliable_topic_arrives_complete_and_in_order(
     assert max(back_in) < 2.0, back_in
     assert numbered(inbox) == sent and len(sent) == 250
     assert client.routes()[0].counters.drops == {}  # nothing over the queue's bounds
-    assert len(server._role.sessions) == 1
+    assert len(server.role.sessions) == 1
 
 
 def test_udp_keeps_flowing_while_the_main_line_is_down_and_a_stall_is_detected(
@@ -124,7 +124,7 @@ def test_udp_keeps_flowing_while_the_main_line_is_down_and_a_stall_is_detected(
     assert logs.wait("robot1: server 'base' down (silent for", timeout=5)
     assert logs.wait("client 'robot1' down (silent for", timeout=5)
     p.tcp.stalled.clear()
-    assert not client._role.connected.is_set()
+    assert not client.role.connected.is_set()
 
     # the main line is down: the datagram topic still crosses, every message
     got = cross(fast, fast_in, text, is_warmup, 30)
@@ -364,7 +364,7 @@ bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
     up_in, down_in = base.listen("/up", String), robot.listen("/down", String)
     up, down = robot.publisher("/up", String), base.publisher("/down", String)
-    role = server._role
+    role = server.role
 
     def run_client() -> Bridge:
         b = Bridge(client_yaml, dc)
@@ -373,7 +373,7 @@ bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}
         return b
 
     client = run_client()
-    ids = [r.topic_id for r in role.routes()]
+    ids = [r.topic_id for r in server.routes()]
     baseline = resources()
     for _ in range(5):
         kill(client)
@@ -383,7 +383,7 @@ bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}
         assert [s.name for s in role.sessions.values()] == ["robot1"]
         session = next(iter(role.sessions.values()))
         assert session.down_since is None and not session.main.current.closed.is_set()
-        assert [r.topic_id for r in role.routes()] == ids  # the same session, resumed
+        assert [r.topic_id for r in server.routes()] == ids  # the same session, resumed
         assert wait_until(lambda: resources() == baseline, 5), (resources(), baseline)
         print(f"\nserver fds, threads after the first client: {baseline}; after 5 restarts: "
               f"{resources()}")
@@ -406,13 +406,13 @@ def test_a_client_gone_past_session_timeout_is_forgotten_then_welcomed_anew(engi
     client_yaml = f"bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}\n" \
                   f"topics: {TOPICS}"
     first = engines(client_yaml, dc)
-    role = server._role
-    assert wait_until(lambda: len(role.sessions) == 1 and len(role.routes()) == 3, 5)
+    role = server.role
+    assert wait_until(lambda: len(role.sessions) == 1 and len(server.routes()) == 3, 5)
     session = next(iter(role.sessions.values()))
-    first._role.connector.close()  # the main line vanishes without a goodbye
+    first.role.connector.close()  # the main line vanishes without a goodbye
     assert wait_until(lambda: session.down_since is not None, 5)
     assert role.sessions and wait_until(lambda: not role.sessions, 5)
-    assert role.routes() == [] and server.receivers == {}
+    assert server.routes() == [] and server.receivers == {}
     assert session.main.closed.is_set() and session.main.current.closed.is_set()
     assert wait_until(lambda: server.ros.node.count_publishers("/up") == 0, 5)  # ROS side gone
 
@@ -424,16 +424,16 @@ def test_a_client_gone_past_session_timeout_is_forgotten_then_welcomed_anew(engi
     got = cross(robot.publisher("/up", String), base.listen("/up", String), text, is_warmup, 5)
     assert sorted(m.data for m in got) == [f"m{i}" for i in range(5)]
     # a client that stops cleanly says goodbye: its session goes at once, not after the timeout
-    role.engine.config.session_timeout = 60
+    server.config.session_timeout = 60
     second.stop()
     assert wait_until(lambda: not role.sessions, 2)
-    assert role.routes() == [] and server.receivers == {}
+    assert server.routes() == [] and server.receivers == {}
 
 
 def test_a_restarted_server_that_numbers_topics_anew(engines, domain, ros_side, monkeypatch):
     """The client re-keys its routes; frames that waited under the old ids are dropped and
     counted, never sent under ids that now mean something else."""
-    from rosgate.server import ServerRole
+    from rosgate.roles.server import ServerRole
 
     ds, dc, port = domain(), domain(), free_port()
     server_yaml = f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}}}"
@@ -445,7 +445,7 @@ def test_a_restarted_server_that_numbers_topics_anew(engines, domain, ros_side, 
     rel, rel_in = robot.publisher("/rel", String, 100), base.listen("/rel", String, 100)
     down, down_in = base.publisher("/down", String), robot.listen("/down", String)
     cross(rel, rel_in, text, is_warmup, 0)
-    role = client._role
+    role = client.role
     old_ids = list(role.topic_ids)
 
     old_server.stop()
@@ -468,26 +468,27 @@ def test_a_restarted_server_that_numbers_topics_anew(engines, domain, ros_side, 
 
 def test_a_handshake_that_fails_half_way_leaves_nothing_behind(engines, domain, ros_side,
                                                                monkeypatch):
-    from rosgate.engine import Engine
     from rosgate.errors import LinkError
+    from rosgate.router import Router
 
-    make_route, failures = Engine.make_route, []
+    make_route, failures = Router.topic, []
 
     def fail_once(self, p, *args, **kwargs):
-        if self.config.role == "client" and p.config.topic == "/rel" and not failures:
+        # the client's /rel (the server's side of it receives)
+        if p.config.topic == "/rel" and p.config.direction == "transmit" and not failures:
             failures.append(p.config.topic)
             raise LinkError("cannot bind (made up by the test)")
         return make_route(self, p, *args, **kwargs)
 
-    monkeypatch.setattr(Engine, "make_route", fail_once)
+    monkeypatch.setattr(Router, "topic", fail_once)
     ds, dc, port = domain(), domain(), free_port()
     engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}}}", ds)
     client = engines(f"bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}\n"
                      f"topics: {TOPICS}", dc)
-    assert wait_until(lambda: client._role.connected.is_set(), 5)
+    assert wait_until(lambda: client.role.connected.is_set(), 5)
     assert failures == ["/rel"]
     assert sorted(r.topic.topic for r in client.routes()) == ["/down", "/rel", "/up"]
-    assert len(client._role.datagram_links) == 1 and len(client._role.hello_to) == 1
+    assert len(client.role.datagram_links) == 1 and len(client.role.hello_to) == 1
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
     got = cross(robot.publisher("/up", String), base.listen("/up", String), text, is_warmup, 5)
     assert sorted(m.data for m in got) == [f"m{i}" for i in range(5)]

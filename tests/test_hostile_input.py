@@ -13,8 +13,8 @@ from conftest import cross, free_port, wait_until
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String
 
-from rosgate import envelope
-from rosgate.framing import FRAGMENT
+from rosgate.wire import envelope
+from rosgate.wire.framing import FRAGMENT
 
 
 def peer_pair(engines, domain, transport: str = "udp", cipher_a: str = "none",

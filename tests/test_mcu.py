@@ -21,7 +21,7 @@ from geometry_msgs.msg import Pose2D, Twist
 from std_srvs.srv import SetBool, Trigger
 from test_services import DEEP, Caller
 
-from rosgate import serial_datagram
+from rosgate.wire import serial_datagram
 
 SIMULATOR = Path(__file__).parent.parent / "examples" / "mcu_simulator.py"
 

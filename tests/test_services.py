@@ -268,8 +268,8 @@ def test_peer_gone_answered_as_failure_within_timeout(engines, domain, ros_side)
 
 def test_forged_duplicated_and_oversized_service_frames_are_dropped_and_counted(
         engines, domain, ros_side):
-    from rosgate import envelope
-    from rosgate.envelope import topic_id_for
+    from rosgate.wire import envelope
+    from rosgate.wire.envelope import topic_id_for
     from rclpy.serialization import deserialize_message, serialize_message
 
     da, db, port = domain(), domain(), free_port()

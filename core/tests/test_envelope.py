@@ -6,8 +6,8 @@ import random
 
 import pytest
 
-from rosgate import envelope
-from rosgate.envelope import EnvelopeError, Header, ReplayWindow
+from rosgate.wire import envelope
+from rosgate.wire.envelope import EnvelopeError, Header, ReplayWindow
 
 # --- pack / unpack ---------------------------------------------------------------------------------
 

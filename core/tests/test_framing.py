@@ -8,8 +8,8 @@ import time
 
 import pytest
 
-from rosgate import envelope
-from rosgate.framing import (
+from rosgate.wire import envelope
+from rosgate.wire.framing import (
     DEFAULT_MAX_MESSAGE, FRAGMENT, LENGTH, CompactReassembler, FramingError, Reassembler,
     StreamReader, compact_fragment, fragment, is_fragment, length_prefixed,
 )

@@ -15,15 +15,16 @@ from rosgate_transport_bt import BluetoothTransport
 from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
-from rosgate import envelope, framing
-from rosgate.framing import FRAGMENT, LENGTH, length_prefixed
+from rosgate.wire import envelope, framing
+from rosgate.wire.framing import FRAGMENT, LENGTH, length_prefixed
 from rosgate.links import DatagramLink, LinkSlot, QueueLimits, StreamLink
 
 TOPIC = 5
 
 
 class Inbox:
-    """on_frame and on_drop callbacks that record what they are given; wait on them with a timeout."""
+    """on_frame, on_lost and on_close callbacks, and senders whose drops land here too, that
+    record what they are given; wait on them with a timeout."""
 
     def __init__(self) -> None:
         self.frames: list[tuple[bytes, Any, Any]] = []
@@ -36,10 +37,13 @@ class Inbox:
             self.frames.append((frame, link, source))
             self._changed.notify_all()
 
-    def on_drop(self, topic_id: int | None, reason: str) -> None:
+    def on_lost(self, topic_id: int | None, reason: str) -> None:
         with self._changed:
             self.drops.append((topic_id, reason))
             self._changed.notify_all()
+
+    def sender(self, topic_id: int, reliable: bool = False) -> Sent:
+        return Sent(topic_id, reliable, self)
 
     def on_close(self, link) -> None:
         with self._changed:
@@ -53,6 +57,19 @@ class Inbox:
     def payloads(self) -> list[bytes]:
         with self._changed:
             return [frame for frame, _, _ in self.frames]
+
+
+class Sent:
+    """A route as a link sees it: the topic id its fragments carry, whether a slot holds its
+    frames while down, and where its drops are counted."""
+
+    def __init__(self, topic_id: int, reliable: bool, inbox: Inbox):
+        self.topic_id = topic_id
+        self.reliable = reliable
+        self.inbox = inbox
+
+    def drop(self, reason: str, detail: str = "") -> None:
+        self.inbox.on_lost(self.topic_id, reason)
 
 
 def frame_of(seq: int, size: int, rng: random.Random) -> bytes:
@@ -79,7 +96,7 @@ def udp_pair(closing):
         inbox = Inbox()
         endpoint = transport.bind(("127.0.0.1", 0))
         address = endpoint.sock.getsockname()
-        link = closing(DatagramLink(transport, endpoint, name, inbox.on_frame, inbox.on_drop))
+        link = closing(DatagramLink(transport, endpoint, name, inbox.on_frame, inbox.on_lost))
         ends.append((link, inbox, address))
     return ends
 
@@ -90,7 +107,7 @@ def test_datagram_frames_of_every_size_arrive_byte_exact(udp_pair):
     frames = [b"\x01", frame_of(1, 10_000, rng), frame_of(2, 200_000, rng),
               frame_of(3, UdpTransport.max_frame, rng), frame_of(4, UdpTransport.max_frame + 1, rng)]
     for frame in frames:
-        assert a.send(frame, TOPIC, b_address) is True
+        assert a.send(frame, a_inbox.sender(TOPIC), b_address) is True
     assert b_inbox.wait(lambda: len(b_inbox.frames) >= len(frames)), b_inbox.drops
     assert sorted(b_inbox.payloads()) == sorted(frames)
     assert all(link is b and source == a_address for _, link, source in b_inbox.frames)
@@ -101,8 +118,8 @@ def test_datagram_frames_both_ways(udp_pair):
     (a, a_inbox, a_address), (b, b_inbox, b_address) = udp_pair
     rng = random.Random(2)
     there, back = frame_of(1, 150_000, rng), frame_of(1, 70_000, rng)
-    a.send(there, TOPIC, b_address)
-    b.send(back, TOPIC, a_address)
+    a.send(there, a_inbox.sender(TOPIC), b_address)
+    b.send(back, b_inbox.sender(TOPIC), a_address)
     assert b_inbox.wait(lambda: b_inbox.frames) and a_inbox.wait(lambda: a_inbox.frames)
     assert b_inbox.payloads() == [there] and a_inbox.payloads() == [back]
 
@@ -122,8 +139,8 @@ def test_bare_mode_refuses_frames_that_do_not_fit(closing):
     transport = UdpTransport({})
     inbox = Inbox()
     endpoint = transport.bind(("127.0.0.1", 0))
-    link = closing(DatagramLink(transport, endpoint, "bare", inbox.on_frame, inbox.on_drop, bare=True))
-    assert link.send(bytes(UdpTransport.max_frame + 1), 9, ("127.0.0.1", 9)) is False
+    link = closing(DatagramLink(transport, endpoint, "bare", inbox.on_frame, inbox.on_lost, bare=True))
+    assert link.send(bytes(UdpTransport.max_frame + 1), inbox.sender(9), ("127.0.0.1", 9)) is False
     assert inbox.drops == [(9, "too_large_for_bare_framing")]
 
 
@@ -131,7 +148,7 @@ def test_bare_mode_hands_over_fragment_lookalikes_untouched(closing):
     transport = UdpTransport({})
     inbox = Inbox()
     endpoint = transport.bind(("127.0.0.1", 0))
-    closing(DatagramLink(transport, endpoint, "bare", inbox.on_frame, inbox.on_drop, bare=True))
+    closing(DatagramLink(transport, endpoint, "bare", inbox.on_frame, inbox.on_lost, bare=True))
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
         raw.sendto(b"RF not a fragment", endpoint.sock.getsockname())
     assert inbox.wait(lambda: inbox.frames)
@@ -168,7 +185,7 @@ def small_link_pair(closing, max_frame: int, lose: int | None = None):
     for name in ("a", "b"):
         inbox = Inbox()
         wire = Wire(transport.bind(("127.0.0.1", 0)), lose)
-        link = closing(DatagramLink(transport, wire, name, inbox.on_frame, inbox.on_drop))
+        link = closing(DatagramLink(transport, wire, name, inbox.on_frame, inbox.on_lost))
         ends.append((link, inbox, wire))
     return ends
 
@@ -185,9 +202,9 @@ def test_bare_links_never_use_the_compact_scheme(closing):
     transport.max_frame = 8
     inbox = Inbox()
     link = closing(DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "bare",
-                                inbox.on_frame, inbox.on_drop, bare=True))
+                                inbox.on_frame, inbox.on_lost, bare=True))
     assert link.compact is False
-    assert link.send(bytes(9), 9, ("127.0.0.1", 9)) is False
+    assert link.send(bytes(9), inbox.sender(9), ("127.0.0.1", 9)) is False
     assert inbox.drops == [(9, "too_large_for_bare_framing")]
 
 
@@ -199,7 +216,7 @@ def test_small_frames_carry_frames_of_every_size_byte_exact(closing, max_frame):
     frames = [b"\x01", envelope.pack(0, TOPIC, 1, 1, 0), frame_of(2, 5_000, rng),
               frame_of(3, max_frame, rng), frame_of(4, 300, rng)]
     for frame in frames:
-        assert a.send(frame, TOPIC, b.endpoint.endpoint.sock.getsockname()) is True
+        assert a.send(frame, a_inbox.sender(TOPIC), b.endpoint.endpoint.sock.getsockname()) is True
     assert b_inbox.wait(lambda: len(b_inbox.frames) >= len(frames)), b_inbox.drops
     assert b_inbox.payloads() == frames
     assert max(a_wire.sizes) == max_frame
@@ -207,11 +224,11 @@ def test_small_frames_carry_frames_of_every_size_byte_exact(closing, max_frame):
 
 
 def test_frames_sent_at_once_to_one_destination_do_not_interleave(closing):
-    (a, _, _), (b, b_inbox, _) = small_link_pair(closing, 8)
+    (a, a_inbox, _), (b, b_inbox, _) = small_link_pair(closing, 8)
     to = b.endpoint.endpoint.sock.getsockname()
     rng = random.Random(5)
     batches = [[frame_of(i, 400, rng) for i in range(20)] for _ in range(4)]
-    threads = [threading.Thread(target=lambda batch=batch: [a.send(f, TOPIC, to) for f in batch])
+    threads = [threading.Thread(target=lambda batch=batch: [a.send(f, a_inbox.sender(TOPIC), to) for f in batch])
                for batch in batches]
     for thread in threads:
         thread.start()
@@ -224,13 +241,13 @@ def test_frames_sent_at_once_to_one_destination_do_not_interleave(closing):
 
 def test_a_lost_small_frame_drops_its_frame_only_and_counts_it_against_the_topic(closing):
     # the third frame's pieces are datagrams 100-149 of 8 bytes: lose one in its middle
-    (a, _, _), (b, b_inbox, _) = small_link_pair(closing, 8, lose=120)
+    (a, a_inbox, _), (b, b_inbox, _) = small_link_pair(closing, 8, lose=120)
     to = b.endpoint.endpoint.sock.getsockname()
     rng = random.Random(6)
     frames = [frame_of(i, 5 + 49 * 7, rng) for i in range(5)]  # 5 bytes in the first piece
     assert all(len(framing.compact_fragment(f, 8, 0)) == 50 for f in frames)
     for frame in frames:
-        a.send(frame, TOPIC, to)
+        a.send(frame, a_inbox.sender(TOPIC), to)
     assert b_inbox.wait(lambda: len(b_inbox.frames) >= 4 and b_inbox.drops)
     assert b_inbox.payloads() == frames[:2] + frames[3:]
     assert b_inbox.drops == [(TOPIC, "fragment_lost")]
@@ -262,7 +279,7 @@ def tcp_connections(request, closing, tmp_path_factory):
 
 def stream_link(connection, name: str, inbox: Inbox, **kwargs) -> StreamLink:
     peer = connection.sock.getpeername()[:2]
-    return StreamLink(connection, name, peer, inbox.on_frame, inbox.on_drop, inbox.on_close, **kwargs)
+    return StreamLink(connection, name, peer, inbox.on_frame, inbox.on_lost, inbox.on_close, **kwargs)
 
 
 @pytest.fixture
@@ -282,7 +299,7 @@ def test_stream_frames_of_every_size_arrive_byte_exact_and_in_order(tcp_pair):
               frame_of(3, 5_000_000, rng)]
     frames += [frame_of(4 + i, rng.randint(1, 3000), rng) for i in range(200)]
     for frame in frames:
-        assert a.send(frame, TOPIC) is True
+        assert a.send(frame, a_inbox.sender(TOPIC)) is True
     assert b_inbox.wait(lambda: len(b_inbox.frames) >= len(frames), 20), len(b_inbox.frames)
     assert b_inbox.payloads() == frames
     assert all(link is b and source == b.peer for _, link, source in b_inbox.frames)
@@ -295,8 +312,8 @@ def test_stream_frames_both_ways_at_once(tcp_pair):
     there = [frame_of(i, rng.randint(1, 100_000), rng) for i in range(50)]
     back = [frame_of(i, rng.randint(1, 100_000), rng) for i in range(50)]
     for x, y in zip(there, back):
-        a.send(x, TOPIC)
-        b.send(y, TOPIC)
+        a.send(x, a_inbox.sender(TOPIC))
+        b.send(y, b_inbox.sender(TOPIC))
     assert b_inbox.wait(lambda: len(b_inbox.frames) >= 50) and a_inbox.wait(lambda: len(a_inbox.frames) >= 50)
     assert b_inbox.payloads() == there and a_inbox.payloads() == back
 
@@ -310,7 +327,7 @@ def blocked_writer(closing, tcp_connections, **kwargs) -> tuple[StreamLink, Inbo
     far_end.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     inbox = Inbox()
     link = closing(stream_link(client, "stuck", inbox, **kwargs))
-    assert link.send(bytes(8_000_000), 1) is True
+    assert link.send(bytes(8_000_000), inbox.sender(1)) is True
     # the writer has taken it off the queue (and cannot finish writing it)
     deadline = time.monotonic() + 5
     while link._queue and time.monotonic() < deadline:
@@ -321,22 +338,22 @@ def blocked_writer(closing, tcp_connections, **kwargs) -> tuple[StreamLink, Inbo
 
 def test_a_full_queue_counts_queue_full(closing, tcp_connections):
     link, inbox = blocked_writer(closing, tcp_connections, queue_frames=2)
-    assert [link.send(b"small", 2) for _ in range(6)] == [True, True, False, False, False, False]
+    assert [link.send(b"small", inbox.sender(2)) for _ in range(6)] == [True, True, False, False, False, False]
     assert inbox.drops == [(2, "queue_full")] * 4
     assert not link.closed.is_set()
 
 
 def test_a_queue_over_its_byte_bound_counts_queue_full(closing, tcp_connections):
     link, inbox = blocked_writer(closing, tcp_connections, queue_bytes=8_000_004)
-    assert link.send(bytes(4_000_000), 3) is True   # 4,000,004 bytes with its length prefix
-    assert link.send(bytes(3_999_996), 3) is True   # exactly at the bound
-    assert link.send(b"x", 4) is False
+    assert link.send(bytes(4_000_000), inbox.sender(3)) is True   # 4,000,004 bytes with its length prefix
+    assert link.send(bytes(3_999_996), inbox.sender(3)) is True   # exactly at the bound
+    assert link.send(b"x", inbox.sender(4)) is False
     assert inbox.drops == [(4, "queue_full")]
 
 
 def test_frames_still_queued_at_close_are_counted_as_link_down(closing, tcp_connections):
     link, inbox = blocked_writer(closing, tcp_connections, queue_frames=10)
-    assert [link.send(b"waiting", 5) for _ in range(3)] == [True, True, True]
+    assert [link.send(b"waiting", inbox.sender(5)) for _ in range(3)] == [True, True, True]
     link.close()
     assert inbox.drops.count((5, "link_down")) == 3
 
@@ -348,7 +365,7 @@ def test_closing_one_end_fires_on_close_on_the_other(tcp_pair):
     assert b_inbox.closed == [b] and a_inbox.closed == [a]
     assert b.closed.is_set()
     # a closed link refuses frames and counts them
-    assert b.send(b"late", 7) is False
+    assert b.send(b"late", b_inbox.sender(7)) is False
     assert b_inbox.drops == [(7, "link_down")]
 
 
@@ -389,20 +406,13 @@ def test_a_frame_split_across_many_writes_arrives_whole(closing, tcp_connections
 
 # --- a slot for a link that comes and goes ---------------------------------------------------------
 
-class Held:
-    """A route as a LinkSlot sees it: only its topic id matters."""
-
-    def __init__(self, topic_id: int):
-        self.topic_id = topic_id
-
-
 def test_a_slot_holds_reliable_frames_while_down_and_sends_them_first_in_order(closing,
                                                                                tcp_connections):
     drops = Inbox()
-    slot = closing(LinkSlot("slot", drops.on_drop, QueueLimits(frames=3, bytes=1000)))
-    slot.reliable = [Held(1)]
-    assert [slot.send(f"r{i}".encode(), 1) for i in range(5)] == [True] * 5
-    assert slot.send(b"best effort", 2) is False
+    slot = closing(LinkSlot("slot", QueueLimits(frames=3, bytes=1000)))
+    reliable, best_effort = drops.sender(1, reliable=True), drops.sender(2)
+    assert [slot.send(f"r{i}".encode(), reliable) for i in range(5)] == [True] * 5
+    assert slot.send(b"best effort", best_effort) is False
     # oldest first out: r0 and r1 over the 3-frame bound; the best-effort frame was never held
     assert drops.drops == [(1, "queue_overflow"), (1, "queue_overflow"), (2, "link_down")]
     assert slot.waiting == 3
@@ -410,7 +420,7 @@ def test_a_slot_holds_reliable_frames_while_down_and_sends_them_first_in_order(c
     inbox = Inbox()
     closing(stream_link(server, "far", inbox))
     slot.attach(closing(stream_link(client, "near", Inbox())))
-    assert slot.send(b"after", 2) is True
+    assert slot.send(b"after", best_effort) is True
     assert inbox.wait(lambda: len(inbox.frames) >= 4)
     assert inbox.payloads() == [b"r2", b"r3", b"r4", b"after"]
     assert slot.waiting == 0
@@ -418,14 +428,14 @@ def test_a_slot_holds_reliable_frames_while_down_and_sends_them_first_in_order(c
 
 def test_a_slot_bounds_bytes_and_discards_on_request():
     drops = Inbox()
-    slot = LinkSlot("slot", drops.on_drop, QueueLimits(frames=100, bytes=10))
-    slot.reliable = [Held(7)]
-    slot.send(b"123456", 7)
-    slot.send(b"7890", 7)   # exactly 10 bytes held
+    slot = LinkSlot("slot", QueueLimits(frames=100, bytes=10))
+    held = drops.sender(7, reliable=True)
+    slot.send(b"123456", held)
+    slot.send(b"7890", held)   # exactly 10 bytes held
     assert drops.drops == []
-    slot.send(b"x", 7)      # 11: the oldest goes
+    slot.send(b"x", held)      # 11: the oldest goes
     assert drops.drops == [(7, "queue_overflow")] and slot.waiting == 2
     slot.discard("session_reset")
     assert drops.drops[1:] == [(7, "session_reset")] * 2 and slot.waiting == 0
     slot.close()
-    assert slot.send(b"late", 7) is False and drops.drops[-1] == (7, "link_down")
+    assert slot.send(b"late", held) is False and drops.drops[-1] == (7, "link_down")

@@ -12,6 +12,7 @@ from rosgate import Cipher, Codec, LinkError, Transport, hookimpl
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import loads
 from rosgate.engine import Engine
+from rosgate.roles import Bridge
 from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration
 
 
@@ -322,5 +323,7 @@ def test_a_link_error_is_located_with_the_transports_fix_or_the_default(error, f
     config = loads("bridge: {name: a, role: peer, peer: h}\n"
                    "topics:\n  - {topic: /t, type: std_msgs/msg/String, direction: receive, port: 5}\n",
                    file="x.yaml")
-    located = Engine(config).bind_error(error, "topics[0].port")
+    engine = Engine(config).prepare()
+    bridge = Bridge(config, engine.plan, engine.resolver, None, engine.life)  # type: ignore[arg-type]
+    located = bridge.link_error(error, "topics[0].port")
     assert str(located) == f"x.yaml:3: topics[0].port: {error}\n  fix: {fix}"

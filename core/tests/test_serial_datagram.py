@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from rosgate import serial_datagram as sd
+from rosgate.wire import serial_datagram as sd
 
 VECTORS = Path(__file__).resolve().parents[2] / "tests" / "data" / "vectors" / "serial_datagram.txt"
 

@@ -15,10 +15,9 @@ class CdrCodec(Codec):
     """The ROS wire format itself, passed through untouched.
 
     The subscription is raw (rclpy hands over the serialized CDR bytes) and the publisher
-    publishes those bytes: no Python-level (de)serialization at all. Frames that were not
-    authenticated (cipher ``none``) are checked by deserializing them once in C (about 4 us for a
-    2.5 kB String), so bytes from an unknown sender never reach a ROS subscriber as a message it
-    cannot read; authenticated frames pass straight through.
+    publishes those bytes: no Python-level (de)serialization at all. Frames no cipher
+    authenticated are checked by the core before they are published (:func:`rosgate.ros.cdr_checker`);
+    authenticated ones pass straight through.
     """
 
     name = "cdr"
@@ -31,13 +30,6 @@ class CdrCodec(Codec):
         # 4-byte encapsulation header: 0x00 0x00/0x01 (CDR big/little endian) + 2 option bytes
         if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1):
             raise CodecError("not a CDR-encapsulated message")
-        if not self.authenticated:
-            from rclpy.serialization import deserialize_message
-
-            try:
-                deserialize_message(data, self.msg_type)
-            except Exception as exc:  # rclpy raises RMWError; any failure means unreadable
-                raise CodecError(f"not a valid {self.msg_type.__name__}: {exc}") from None
         return data
 
 

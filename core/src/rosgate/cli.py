@@ -61,10 +61,11 @@ def _engine(path: str):
 
 def cmd_check(args: argparse.Namespace) -> int:
     engine = _engine(args.file)
-    cfg = engine.config
+    cfg, plan = engine.config, engine.plan
+    assert plan is not None
     print(f"{args.file}: ok ({cfg.role} {cfg.name!r}, {len(cfg.topics)} topic(s)"
           + (f", {len(cfg.services)} service(s))" if cfg.services else ")"))
-    for p in [*engine.topics, *engine.services]:
+    for p in [*plan.topics, *plan.services]:
         t = p.config
         arrow = "->" if t.direction == "transmit" else "<-"
         port = f":{t.port}" if t.port else ""

@@ -18,14 +18,11 @@ class Codec:
     #: True: ``encode`` receives and ``decode`` returns serialized CDR ``bytes`` (no Python message
     #: objects at all: raw subscription in, raw publish out). False: ROS message objects.
     raw: ClassVar[bool] = False
-    #: True when :meth:`encode_bare` puts the topic's name on the wire, so several topics with
-    #: ``framing: none`` can share one port.
-    names_bare_frames: ClassVar[bool] = False
-
-    #: set by the core after construction: True when every frame this instance decodes was
-    #: authenticated by the topic's cipher (it came from a key holder, unchanged), so the codec
-    #: may trust its input. False (the default) means the bytes may come from anyone.
-    authenticated: bool = False
+    #: True when ``encode`` writes exactly one MessagePack object. With ``framing: none`` the
+    #: entry's name then travels in front of it as a MessagePack str (the CVRA microcontroller
+    #: format), so several topics can share a port; other codecs' bare datagrams carry the
+    #: payload alone.
+    messagepack: ClassVar[bool] = False
 
     def __init__(self, msg_type: type, options: Mapping[str, Any]):
         """``msg_type`` is the ROS message class (``std_msgs.msg.String``, or a service's
@@ -37,19 +34,6 @@ class Codec:
         raise NotImplementedError
 
     def decode(self, data: bytes) -> Any:
-        """Raise :class:`rosgate.CodecError` for bytes that are not a valid message."""
+        """Raise :class:`rosgate.CodecError` for bytes that are not a valid message. A raw codec
+        need not check the CDR it returns: the core checks what no cipher authenticated."""
         raise NotImplementedError
-
-    # framing: none — the datagram is the codec's bytes alone, no envelope.
-    def encode_bare(self, name: str, message: Any) -> bytes:
-        """The datagram for ``framing: none``. Default: the encoded message alone."""
-        return self.encode(message)
-
-    @classmethod
-    def split_bare(cls, datagram: bytes) -> tuple[str | None, bytes]:
-        """Split a ``framing: none`` datagram into (topic name or None, rest for :meth:`decode_bare`).
-        Raise :class:`rosgate.CodecError` when it cannot be split."""
-        return None, datagram
-
-    def decode_bare(self, rest: bytes) -> Any:
-        return self.decode(rest)

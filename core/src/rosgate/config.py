@@ -15,17 +15,48 @@ import difflib
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import overload
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 import yaml
 
 from .errors import ConfigError
 
+
+
+class Role(StrEnum):
+    CLIENT = "client"
+    SERVER = "server"
+    PEER = "peer"
+
+
+class Direction(StrEnum):
+    TRANSMIT = "transmit"  # this side -> the far side
+    RECEIVE = "receive"    # the far side -> this side
+
+    @property
+    def flipped(self) -> Direction:
+        return Direction.RECEIVE if self is Direction.TRANSMIT else Direction.TRANSMIT
+
+
+class Framing(StrEnum):
+    ROSGATE = "rosgate"                  # the envelope, sealed by the entry's cipher
+    NONE = "none"                        # the bare payload on a datagram link (topics)
+    SERIAL_DATAGRAM = "serial_datagram"  # SLIP-style + CRC-32, one call per connection (services)
+
+    @property
+    def bare(self) -> bool:
+        """No envelope: the entry's name on the wire is ``remote`` exactly as written (a
+        microcontroller's names are bare strings such as "cmd_vel"), not a ROS name."""
+        return self is not Framing.ROSGATE
+
+
 TRANSPORT_DEFAULT, CODEC_DEFAULT, CIPHER_DEFAULT = "udp", "cdr", "none"
 MAIN_LINE_DEFAULT = "tcp"
 LISTEN_DEFAULT = "0.0.0.0"
-FRAMING_DEFAULT = "rosgate"
+FRAMING_DEFAULT = Framing.ROSGATE
 QOS_DEFAULT = 10
 TIMEOUT_DEFAULT = 5.0
 MAX_REQUEST_DEFAULT = 64 * 1024
@@ -37,12 +68,10 @@ SESSION_TIMEOUT_DEFAULT = 60.0
 RECONNECT_MIN_DEFAULT, RECONNECT_MAX_DEFAULT = 0.1, 10.0
 QUEUE_FRAMES_DEFAULT, QUEUE_BYTES_DEFAULT = 1000, 8 * 1024 * 1024
 
-ROLES = ("client", "server", "peer")
-DIRECTIONS = ("transmit", "receive")
-FRAMINGS = ("rosgate", "none", "serial_datagram")
-# framings without an envelope: the entry's name on the wire is `remote` exactly as written (a
-# microcontroller's names are bare strings such as "cmd_vel"), not a ROS name
-BARE_FRAMINGS = ("none", "serial_datagram")
+ROLES = tuple(Role)
+DIRECTIONS = tuple(Direction)
+FRAMINGS = tuple(Framing)
+# rclpy.qos.qos_profile_<name> for each
 QOS_PROFILES = ("default", "system_default", "sensor_data", "services_default", "parameters",
                 "best_available")
 QOS_POLICIES = {
@@ -95,13 +124,13 @@ _START_FIX = "start with a bridge: section, as in the README's bringup.yaml walk
 class TopicConfig:
     topic: str
     type: str
-    direction: str
+    direction: Direction
     remote: str
     transport: str = TRANSPORT_DEFAULT
     codec: str = CODEC_DEFAULT
     cipher: str = CIPHER_DEFAULT
     port: int | None = None
-    framing: str = FRAMING_DEFAULT
+    framing: Framing = FRAMING_DEFAULT
     qos: int | str | dict = QOS_DEFAULT
     max_rate: float | None = None
     line: int = 0
@@ -112,13 +141,13 @@ class TopicConfig:
 class ServiceConfig:
     service: str
     type: str
-    direction: str
+    direction: Direction
     remote: str
     transport: str = TRANSPORT_DEFAULT
     codec: str = CODEC_DEFAULT
     cipher: str = CIPHER_DEFAULT
     port: int | None = None
-    framing: str = FRAMING_DEFAULT
+    framing: Framing = FRAMING_DEFAULT
     timeout: float = TIMEOUT_DEFAULT
     max_request: int = MAX_REQUEST_DEFAULT  # bytes; a longer request is dropped and counted
     line: int = 0
@@ -129,7 +158,7 @@ class ServiceConfig:
 class BridgeConfig:
     file: str
     name: str
-    role: str
+    role: Role
     server: str | None = None
     main_line: str = MAIN_LINE_DEFAULT
     peer: str | None = None
@@ -226,8 +255,9 @@ def _parse(text: str, file: str) -> tuple[Any, _Source]:
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         problem = exc.problem or exc.context or "invalid YAML"
-        raise ConfigError(f"YAML syntax error at column {mark.column + 1}: {problem}", file=file,
-                          line=mark.line + 1,
+        column = f" at column {mark.column + 1}" if mark is not None else ""
+        raise ConfigError(f"YAML syntax error{column}: {problem}", file=file,
+                          line=mark.line + 1 if mark is not None else None,
                           fix="check the indentation (spaces, not tabs) and quote values that "
                               "contain ': ' or ' #' or start with a special character") from None
     except yaml.reader.ReaderError as exc:
@@ -265,6 +295,7 @@ class _Builder:
                     self.src.lines[f"{path}[{i}]"] = item.start_mark.line + 1
                     items.append(self.build(item, f"{path}[{i}]"))
                 return items
+            assert isinstance(node, yaml.MappingNode)  # the third kind of node
             return self._mapping(node, path)
         finally:
             self.open.discard(id(node))
@@ -313,11 +344,11 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
     bridge = _section(src, data, "", "bridge")
     _check_keys(src, bridge, "bridge", BRIDGE_KEYS)
     _require(src, bridge, "bridge", ("name", "role"))
-    name = _text(src, bridge, "bridge", "name")
+    name = _required(src, bridge, "bridge", "name")
     if not _BRIDGE_NAME.fullmatch(name):
         raise src.error("bridge.name", f"'{name}' is not a valid bridge name",
                         fix="use only letters, digits, '_', '.' and '-', e.g. name: robot1")
-    role = _choice(src, bridge, "bridge", "role", ROLES)
+    role = Role(_required(src, bridge, "bridge", "role", ROLES))
     _check_role(src, data, bridge, role)
     defaults = _defaults(src, bridge)
     heartbeat = _number(src, bridge, "bridge", "heartbeat", HEARTBEAT_DEFAULT, "a number > 0", _positive)
@@ -337,7 +368,7 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
         server=_text(src, bridge, "bridge", "server"),
         main_line=_text(src, bridge, "bridge", "main_line", MAIN_LINE_DEFAULT),
         peer=_text(src, bridge, "bridge", "peer"),
-        listen=_text(src, bridge, "bridge", "listen", LISTEN_DEFAULT if role == "peer" else None),
+        listen=_text(src, bridge, "bridge", "listen", LISTEN_DEFAULT if role is Role.PEER else None),
         defaults=defaults,
         stale_after=_number(src, bridge, "bridge", "stale_after", STALE_AFTER_DEFAULT, "a number > 0",
                             _positive),
@@ -369,8 +400,8 @@ def _reject_legacy(src: _Source, data: dict) -> None:
                                 "per topic (topic, type: pkg/msg/Type, direction, port)")
 
 
-def _check_role(src: _Source, data: dict, bridge: dict, role: str) -> None:
-    if role == "peer":
+def _check_role(src: _Source, data: dict, bridge: dict, role: Role) -> None:
+    if role is Role.PEER:
         for key in ("server", "main_line"):
             if key in bridge:
                 raise src.error(f"bridge.{key}", f"role peer has no main line, so {key}: does not apply",
@@ -382,7 +413,7 @@ def _check_role(src: _Source, data: dict, bridge: dict, role: str) -> None:
         if key in bridge:
             raise src.error(f"bridge.{key}", f"{key}: is for role peer only",
                             fix=f"remove it; a {role} uses server: only")
-    if role == "client":
+    if role is Role.CLIENT:
         _require(src, bridge, "bridge", ("server",), fix="add server: host:port, the server's main line")
         return
     _require(src, bridge, "bridge", ("server",),
@@ -434,7 +465,7 @@ def _plugins(src: _Source, data: dict) -> dict[str, dict]:
             for name in given}
 
 
-def _entries(src: _Source, data: dict, key: str, role: str, defaults: dict[str, str]) -> list:
+def _entries(src: _Source, data: dict, key: str, role: Role, defaults: dict[str, str]) -> list:
     items = data.get(key)
     if items is None:
         return []
@@ -445,7 +476,7 @@ def _entries(src: _Source, data: dict, key: str, role: str, defaults: dict[str, 
     entries = []
     for i, item in enumerate(items):
         entry = build(src, item, f"{key}[{i}]", defaults)
-        if role == "peer" and entry.port is None:
+        if role is Role.PEER and entry.port is None:
             raise src.error(f"{key}[{i}].port", f"peer role: each {key[:-1]} needs its own port",
                             fix="add port: <1..65535> to this entry")
         entries.append(entry)
@@ -464,7 +495,7 @@ def _check_duplicates(src: _Source, key: str, entries: list) -> None:
             raise src.error(f"{key}[{j}].{name_key}",
                             f"{name} ({entry.direction}) is already listed as {key}[{first}] "
                             f"on line {entries[first].line}", fix="remove one of the two entries")
-        if entry.direction == "receive":
+        if entry.direction is Direction.RECEIVE:
             # incoming frames are routed by remote name: two receivers of one name are ambiguous
             first = by_remote.setdefault(entry.remote, j)
             if first != j:
@@ -481,7 +512,7 @@ def _topic(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Topi
     _check_keys(src, data, path, TOPIC_KEYS)
     _require(src, data, path, ("topic", "type", "direction"))
     common = _common(src, data, path, "topic", "msg", defaults)
-    if common["framing"] == "serial_datagram":
+    if common["framing"] is Framing.SERIAL_DATAGRAM:
         raise src.error(_join(path, "framing"), "framing serial_datagram is for services (request "
                                                 "and answer to a microcontroller), not topics",
                         fix="use framing: none for bare payloads on a datagram link, "
@@ -499,7 +530,7 @@ def _service(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Se
     _check_keys(src, data, path, SERVICE_KEYS)
     _require(src, data, path, ("service", "type", "direction"))
     common = _common(src, data, path, "service", "srv", defaults)
-    if common["framing"] == "none":
+    if common["framing"] is Framing.NONE:
         raise src.error(_join(path, "framing"), "framing none is for topics: a service call needs "
                                                 "its answer matched to it",
                         fix="leave framing: out (rosgate), or use framing: serial_datagram with a "
@@ -518,15 +549,15 @@ def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
             defaults: dict[str, str]) -> dict[str, Any]:
     """The keys topics and services share."""
     name = _ros_name(src, data, path, name_key)
-    framing = _choice(src, data, path, "framing", FRAMINGS, FRAMING_DEFAULT)
-    if framing in BARE_FRAMINGS:
+    framing = Framing(_choice(src, data, path, "framing", FRAMINGS, FRAMING_DEFAULT))
+    if framing.bare:
         remote = _text(src, data, path, "remote", name.removeprefix("/"))
     else:
         remote = _ros_name(src, data, path, "remote") if "remote" in data else name
     fields = {
         name_key: name,
         "type": _interface(src, data, path, kind),
-        "direction": _choice(src, data, path, "direction", DIRECTIONS),
+        "direction": Direction(_required(src, data, path, "direction", DIRECTIONS)),
         "remote": remote,
         "transport": _text(src, data, path, "transport", defaults.get("transport", TRANSPORT_DEFAULT)),
         "codec": _text(src, data, path, "codec", defaults.get("codec", CODEC_DEFAULT)),
@@ -535,7 +566,7 @@ def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
                         integer=True),
         "framing": framing,
     }
-    if framing in BARE_FRAMINGS and fields["cipher"] != "none":
+    if framing.bare and fields["cipher"] != "none":
         raise src.error(_join(path, "framing"),
                         f"framing {framing} sends the bare payload, so there is no envelope to "
                         "authenticate; "
@@ -578,7 +609,7 @@ def _qos(src: _Source, data: dict, path: str) -> int | str | dict:
 
 
 def _ros_name(src: _Source, data: dict, path: str, key: str) -> str:
-    text = _text(src, data, path, key)
+    text = _required(src, data, path, key)
     if text.startswith("~"):
         raise src.error(_join(path, key), f"private names (~) are not supported: '{text}'",
                         fix=f"write the full name, e.g. {key}: {_example(path, key)}")
@@ -591,7 +622,7 @@ def _ros_name(src: _Source, data: dict, path: str, key: str) -> str:
 
 
 def _interface(src: _Source, data: dict, path: str, kind: str) -> str:
-    text = _text(src, data, path, "type")
+    text = _required(src, data, path, "type")
     example = _example(path, "type")
     what = "a topic" if kind == "msg" else "a service"
     match = _INTERFACE.fullmatch(text)
@@ -699,6 +730,12 @@ def _section(src: _Source, data: dict, path: str, key: str, fix: str | None = No
     return value
 
 
+@overload
+def _text(src: _Source, data: dict, path: str, key: str, default: str) -> str: ...
+@overload
+def _text(src: _Source, data: dict, path: str, key: str, default: None = None) -> str | None: ...
+
+
 def _text(src: _Source, data: dict, path: str, key: str, default: str | None = None) -> str | None:
     if key not in data:
         return default
@@ -711,6 +748,25 @@ def _text(src: _Source, data: dict, path: str, key: str, default: str | None = N
         raise src.error(key_path, f"expected a non-empty string, got {_show(value)}",
                         fix=f"e.g. {key}: {_example(path, key)}")
     return value
+
+
+def _required(src: _Source, data: dict, path: str, key: str,
+              choices: tuple[str, ...] | None = None) -> str:
+    """A key _require has checked is there (of ``choices``, when given)."""
+    value = _text(src, data, path, key) if choices is None else _choice(src, data, path, key,
+                                                                         choices)
+    if value is None:
+        raise src.error(_join(path, key), f"missing required key '{key}'",
+                        fix=f"add {key}: {_example(path, key)}")
+    return value
+
+
+@overload
+def _choice(src: _Source, data: dict, path: str, key: str, choices: tuple[str, ...],
+            default: str) -> str: ...
+@overload
+def _choice(src: _Source, data: dict, path: str, key: str, choices: tuple[str, ...],
+            default: None = None) -> str | None: ...
 
 
 def _choice(src: _Source, data: dict, path: str, key: str, choices: tuple[str, ...],

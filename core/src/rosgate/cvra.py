@@ -2,7 +2,7 @@
 
 One stream connection (TCP) per call. The caller writes one serial datagram (serial_datagram.py)
 whose payload is the service's ``remote`` name as a MessagePack str followed by the request as a
-MessagePack map (the codec's ``encode_bare``); the server writes the response as a plain
+MessagePack map (the codec's bytes; :mod:`rosgate.wire.names` writes the name); the server writes the response as a plain
 MessagePack map and closes the connection.
 
 * ``direction: receive`` -> :class:`CallServer`: the bridge listens on ``listen:port`` and a
@@ -26,16 +26,14 @@ import logging
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING, Any
+from typing import Any, Callable
 
-from . import serial_datagram
-from .errors import CodecError, LinkError
-from .links import POLL, Acceptor
-from .services import Call, ServerRoute, ServiceRoute, deep_qos
+from .errors import CodecError
+from .links import POLL
+from .services import Call, ServerRoute, ServiceRoute
 from .transport import Address, StreamConnection, Transport
-
-if TYPE_CHECKING:
-    from .engine import Engine, PreparedService
+from .wire import serial_datagram
+from .wire.names import NameMissing, pack_name, split_name
 
 log = logging.getLogger("rosgate")
 
@@ -44,46 +42,15 @@ CALLER_THREADS = 16    # connections a calling route has open at once; more call
 CHUNK = 4096
 
 
-def start_peer_service(role: Any, p: PreparedService, listen: str, key: str,
-                       servers: dict[Address, CallServer]) -> None:
-    """Route one entry; ``servers`` holds the call servers already listening, by address."""
-    engine, s = role.engine, p.config
-    if s.direction == "receive":
-        local = (listen, s.port)
-        if local not in servers:
-            servers[local] = CallServer.listen(engine, p.transport, local, key)
-        server = servers[local]
-        route = engine.make_route(p, 0, s.service, None)  # a ServerRoute, found by name: no id
-        server.add(route)  # type: ignore[arg-type]
-    else:
-        route = CvraCallerRoute(s, 0, p.codec(engine.config.plugins), p.cipher, engine.warner,
-                                s.service, p.srv_type, engine.service_table.deadlines,
-                                transport=p.transport, address=(role.cfg.peer or "", s.port))
-        route.entity = engine.ros.deferred_service(p.srv_type, s.service, deep_qos(),
-                                                   route.on_request)
-        engine.closing(route)
-    role.add(route)
-
-
 class CallServer:
     """Serves microcontrollers' calls on one port (direction receive), for every service there.
     The services' names are read with the codec of the first (only msgpack names requests)."""
 
-    def __init__(self, engine: Engine, name: str):
-        self.engine = engine
+    def __init__(self, name: str, link_drop: Callable[[Any, str, str], None]):
         self.name = name
+        self.link_drop = link_drop  # counts what belongs to no service (by port)
         self.routes: dict[str, ServerRoute] = {}
         self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
-
-    @classmethod
-    def listen(cls, engine: Engine, transport: Transport, local: Address, key: str) -> CallServer:
-        try:
-            listener = transport.listen(local)
-        except LinkError as exc:
-            raise engine.bind_error(exc, key) from None
-        server = cls(engine, f"{transport.name}:{local[1]}")
-        engine.closing(Acceptor(listener, server.name, server.accepted))
-        return server
 
     def add(self, route: ServerRoute) -> None:
         self.routes[route.service.remote] = route
@@ -106,7 +73,7 @@ class CallServer:
                          name=f"call-{self.name}").start()
 
     def drop(self, reason: str, detail: str) -> None:
-        self.engine.link_drop(self, reason, detail)  # type: ignore[arg-type]
+        self.link_drop(self, reason, detail)
 
     def _serve(self, connection: StreamConnection, peer: Address) -> None:
         try:
@@ -151,13 +118,12 @@ class CallServer:
 
     def _answer(self, payload: bytes, peer: Address) -> bytes | None:
         """Serve one request; the plain MessagePack answer, or None to close without one."""
-        codec_cls = type(next(iter(self.routes.values())).codec.request)
         try:
-            name, rest = codec_cls.split_bare(payload)
-        except CodecError as exc:
+            name, rest = split_name(payload)
+        except NameMissing as exc:
             self.drop("unnamed_request", f"from {peer[0]}: {exc}")
             return None
-        route = self.routes.get(name)  # type: ignore[arg-type]
+        route = self.routes.get(name)
         if route is None:
             self.drop("unknown_service", f"{name!r} from {peer[0]} (served here: "
                                          f"{', '.join(self.routes)})")
@@ -168,7 +134,7 @@ class CallServer:
             return None
         codec = route.codec
         try:
-            request = codec.decode(codec.request, rest, codec.request.decode_bare)
+            request = codec.decode(codec.request, rest)
         except CodecError as exc:
             route.drop("decode_error", str(exc))
             return None
@@ -214,8 +180,9 @@ class CvraCallerRoute(ServiceRoute):
     def _call(self, request: Any, call: Call, deadline: float) -> None:
         codec = self.codec
         try:
-            # serial_datagram entries have a codec that names frames: never a raw one
-            frame = serial_datagram.encode(codec.request.encode_bare(self.service.remote, request))
+            # serial_datagram entries have a MessagePack codec: never a raw one
+            frame = serial_datagram.encode(pack_name(self.service.remote)
+                                           + codec.encode(codec.request, request))
         except Exception as exc:
             self.fail(call, "encode_error", f"{type(exc).__name__}: {exc}")
             return

@@ -8,32 +8,59 @@ transport plugin only opens sockets.
 * :class:`StreamLink` — one connection; frames carry a length prefix. Sending never blocks the
   caller: frames wait in a bounded queue for a writer thread.
 * :class:`LinkSlot` — a place for a stream link that comes and goes (reconnects). While it is
-  empty, frames of reliable topics wait in a bounded queue and leave in order when a connection
-  is attached; frames of other topics are dropped.
+  empty, frames of reliable senders wait in a bounded queue and leave in order when a connection
+  is attached; frames of other senders are dropped.
+* :class:`Connector` — keeps a :class:`LinkSlot` filled: connects, and reconnects after every loss.
 * :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``.
 
-Every receive loop catches what a peer's bytes can cause and counts it; a link never dies of input.
+Who sent a frame travels with it: every ``send`` takes the :class:`Sender` (a route, or the
+control channel) so a frame dropped later — a queue that overflows, a connection that breaks
+with frames still queued — is counted against it, without a lookup. Losses on the receiving
+side (a fragment that never came) are reported with the topic id the fragments carried.
+
+Every receive loop catches what a peer's bytes can cause and counts it; a link never dies of
+input. :class:`Lifetime` is what a running bridge closes when it stops.
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
+import random
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Callable, Collection
+from typing import Any, Callable, Protocol
 
-from . import envelope, framing
-from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport
+from .errors import LinkError
+from .transport import (Address, DatagramEndpoint, StreamConnection, StreamListener,
+                        Transport)
+from .wire import envelope, framing
 
 log = logging.getLogger("rosgate")
 
 FrameHandler = Callable[[bytes, "Link", Address], None]
-DropHandler = Callable[[int | None, str], None]  # topic id (None: unknown), reason
+#: a loss on the receiving side: (topic id when known, reason)
+LostHandler = Callable[[int | None, str], None]
 
 POLL = 0.2  # seconds a receive waits before checking whether the link is closing
+CONNECT_TIMEOUT = 5.0
+
+
+class Sender(Protocol):
+    """What sends a frame: a route, or a role's control channel."""
+
+    @property
+    def topic_id(self) -> int:
+        """The id fragments of its frames carry (so a receiver counts a lost one against it)."""
+
+    @property
+    def reliable(self) -> bool:
+        """Its frames wait in a :class:`LinkSlot` while the link is down (reliable QoS)."""
+
+    def drop(self, reason: str, detail: str = "") -> None:
+        """Count one of its frames as dropped on the way out."""
 
 
 class Link:
@@ -44,18 +71,49 @@ class Link:
     #: datagram links need a destination for every send; stream links are connected
     datagram: bool = False
 
-    def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
+    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
+        """Hand ``frame`` to the link. False when it was dropped at once (counted against
+        ``sender``); True when it was sent or queued — a queued frame that is lost later is
+        counted against ``sender`` then."""
         raise NotImplementedError
 
     def close(self) -> None:
         raise NotImplementedError
 
 
+class Lifetime:
+    """What a running bridge closes when it stops, in reverse opening order, and the event that
+    says it is stopping. Links that end by themselves (a connection the peer closed) are
+    forgotten, so they are not held until the end."""
+
+    def __init__(self) -> None:
+        self.stopping = threading.Event()
+        self._items: dict[int, Any] = {}
+        self._lock = threading.Lock()
+
+    def closing(self, item: Any) -> Any:
+        with self._lock:
+            self._items[id(item)] = item
+        return item
+
+    def forget(self, item: Any) -> None:
+        with self._lock:
+            self._items.pop(id(item), None)
+
+    def close_all(self) -> None:
+        self.stopping.set()
+        with self._lock:
+            items = list(self._items.values())
+            self._items.clear()
+        for item in reversed(items):
+            item.close()
+
+
 class DatagramLink(Link):
     datagram = True
 
     def __init__(self, transport: Transport, endpoint: DatagramEndpoint, name: str,
-                 on_frame: FrameHandler, on_drop: DropHandler, bare: bool = False,
+                 on_frame: FrameHandler, on_lost: LostHandler, bare: bool = False,
                  max_message: int = framing.DEFAULT_MAX_MESSAGE):
         self.transport = transport
         self.endpoint = endpoint
@@ -63,16 +121,16 @@ class DatagramLink(Link):
         self.bare = bare
         self.max_frame = transport.max_frame
         self.on_frame = on_frame
-        self.on_drop = on_drop
+        self.on_lost = on_lost
         self.closed = threading.Event()
         # small frames cannot spare 14 bytes of fragment header: every frame goes as compact pieces
         self.compact = not bare and self.max_frame < framing.COMPACT_BELOW
         self.reassembler: framing.Reassembler | framing.CompactReassembler
         if self.compact:
-            self.reassembler = framing.CompactReassembler(on_drop, envelope.topic_of,
+            self.reassembler = framing.CompactReassembler(on_lost, envelope.topic_of,
                                                           max_message=max_message)
         else:
-            self.reassembler = framing.Reassembler(on_drop, max_message=max_message)
+            self.reassembler = framing.Reassembler(on_lost, max_message=max_message)
         self._frame_ids = itertools.count(1)
         self._counters: dict[Address, int] = {}  # compact: the next piece's counter per destination
         # compact pieces carry no frame id: one frame's pieces must not interleave with another's
@@ -80,7 +138,7 @@ class DatagramLink(Link):
         self._thread = threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True)
         self._thread.start()
 
-    def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
+    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         assert to is not None, "a datagram link needs a destination"
         try:
             if self.compact:
@@ -88,14 +146,15 @@ class DatagramLink(Link):
             elif len(frame) <= self.max_frame:
                 self.endpoint.send(frame, to)
             elif self.bare:
-                self.on_drop(topic_id, "too_large_for_bare_framing")
+                sender.drop("too_large_for_bare_framing",
+                            f"{len(frame)} bytes, {self.name} carries at most {self.max_frame}")
                 return False
             else:
-                for piece in framing.fragment(frame, self.max_frame, topic_id, next(self._frame_ids)):
+                for piece in framing.fragment(frame, self.max_frame, sender.topic_id,
+                                              next(self._frame_ids)):
                     self.endpoint.send(piece, to)
         except (OSError, framing.FramingError) as exc:
-            self.on_drop(topic_id, "send_error")
-            log.debug("%s: send to %s failed: %s", self.name, to, exc)
+            sender.drop("send_error", f"to {to} on {self.name}: {exc}")
             return False
         return True
 
@@ -117,7 +176,7 @@ class DatagramLink(Link):
                 continue
             except Exception:  # a transport plugin's bug must not silently end the link
                 log.exception("%s: the transport's receive failed (a bug in the plugin)", self.name)
-                self.on_drop(None, "transport_error")
+                self.on_lost(None, "transport_error")
                 self.closed.wait(POLL)  # do not spin on a receive that fails at once
                 continue
             if got is None:
@@ -128,7 +187,7 @@ class DatagramLink(Link):
                 try:
                     frame = self.reassembler.add(source, datagram)
                 except framing.FramingError:
-                    self.on_drop(None, "bad_fragment")
+                    self.on_lost(None, "bad_fragment")
                     continue
                 if frame is None:
                     continue
@@ -146,15 +205,15 @@ class StreamLink(Link):
     """One stream connection, framed with length prefixes."""
 
     def __init__(self, connection: StreamConnection, name: str, peer: Address,
-                 on_frame: FrameHandler, on_drop: DropHandler,
-                 on_close: Callable[["StreamLink"], None] | None = None,
+                 on_frame: FrameHandler, on_lost: LostHandler,
+                 on_close: Callable[[StreamLink], None] | None = None,
                  queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
                  max_message: int = framing.DEFAULT_MAX_MESSAGE):
         self.connection = connection
         self.name = name
         self.peer = peer
         self.on_frame = on_frame
-        self.on_drop = on_drop
+        self.on_lost = on_lost
         self.on_close = on_close
         self.closed = threading.Event()
         # for liveness: the main line's roles set it on every control message (a heartbeat), not
@@ -163,7 +222,7 @@ class StreamLink(Link):
         self.why = ""  # why the connection ended, once it has
         self.queue_frames = queue_frames
         self.queue_bytes = queue_bytes
-        self._queue: deque[tuple[bytes, int]] = deque()
+        self._queue: deque[tuple[bytes, Sender]] = deque()
         self._queued_bytes = 0
         self._writing = False  # the writer holds a batch not yet written
         self._wake = threading.Condition()
@@ -175,19 +234,24 @@ class StreamLink(Link):
         for thread in self._threads:
             thread.start()
 
-    def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
+    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         if self.closed.is_set():
-            self.on_drop(topic_id, "link_down")
+            sender.drop("link_down", f"{self.name} is closed")
             return False
         record = framing.length_prefixed(frame)
         with self._wake:
             if (len(self._queue) >= self.queue_frames
                     or self._queued_bytes + len(record) > self.queue_bytes):
-                self.on_drop(topic_id, "queue_full")
-                return False
-            self._queue.append((record, topic_id))
-            self._queued_bytes += len(record)
-            self._wake.notify()
+                full = True
+            else:
+                full = False
+                self._queue.append((record, sender))
+                self._queued_bytes += len(record)
+                self._wake.notify()
+        if full:
+            sender.drop("queue_full", f"{self.name} has {self.queue_frames} frames or "
+                                      f"{self.queue_bytes} bytes waiting")
+            return False
         return True
 
     def _send_loop(self) -> None:
@@ -207,8 +271,8 @@ class StreamLink(Link):
             try:
                 self.connection.send(b"".join(record for record, _ in batch))
             except OSError as exc:
-                for _, topic_id in batch:
-                    self.on_drop(topic_id, "link_down")
+                for _, sender in batch:
+                    sender.drop("link_down", f"{self.name}: send failed")
                 self.fail(f"send failed: {exc}")
                 return
 
@@ -227,8 +291,8 @@ class StreamLink(Link):
                 return
             except Exception as exc:  # a transport plugin's bug: drop this connection, loudly
                 log.exception("%s: the transport's receive failed (a bug in the plugin)", self.name)
-                self.on_drop(None, "transport_error")
-                self._fail(f"transport error: {type(exc).__name__}: {exc}")
+                self.on_lost(None, "transport_error")
+                self.fail(f"transport error: {type(exc).__name__}: {exc}")
                 return
             if data is None:
                 continue
@@ -240,7 +304,7 @@ class StreamLink(Link):
                     deliver(self, frame, self.peer)
             except framing.FramingError as exc:
                 # a corrupt length means we can no longer find frame boundaries: start afresh
-                self.on_drop(None, "bad_length")
+                self.on_lost(None, "bad_length")
                 self.fail(f"stream corrupt ({exc})")
                 return
 
@@ -268,11 +332,11 @@ class StreamLink(Link):
             if thread is not threading.current_thread() and thread.ident is not None:
                 thread.join(timeout=2)
         with self._wake:  # what never reached the connection is a drop, and counted as one
-            unsent = [topic_id for _, topic_id in self._queue]
+            unsent = [sender for _, sender in self._queue]
             self._queue.clear()
             self._queued_bytes = 0
-        for topic_id in unsent:
-            self.on_drop(topic_id, "link_down")
+        for sender in unsent:
+            sender.drop("link_down", f"{self.name} closed with the frame still queued")
         if self.on_close:
             self.on_close(self)
 
@@ -289,58 +353,63 @@ class LinkSlot(Link):
     """A stream link that comes and goes. A :class:`Connector` (or a server that accepted the
     peer again) :meth:`attach`-es each new connection.
 
-    While there is no live connection, frames of the topics in :attr:`reliable` wait, oldest
+    While there is no live connection, frames of :attr:`Sender.reliable` senders wait, oldest
     dropped first when the limits are reached (counted ``queue_overflow``), and are handed to the
     next connection in order, before anything sent later. Other frames are counted ``link_down``.
     Frames already handed to a connection that then fails are not taken back (there are no
     acknowledgements): a connection's loss can cost what was in flight.
     """
 
-    def __init__(self, name: str, on_drop: DropHandler, limits: QueueLimits):
+    def __init__(self, name: str, limits: QueueLimits):
         self.name = name
-        self.on_drop = on_drop
         self.limits = limits
         self.current: StreamLink | None = None
-        #: routes whose frames wait for the link (looked up by topic id when the link is down)
-        self.reliable: Collection = ()
         self.closed = threading.Event()
-        self._waiting: deque[tuple[bytes, int]] = deque()
+        self._waiting: deque[tuple[bytes, Sender]] = deque()
         self._waiting_bytes = 0
         self._lock = threading.Lock()  # keeps sends and the flush of the queue in order
 
-    def send(self, frame: bytes, topic_id: int, to: Address | None = None) -> bool:
+    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
+        overflow: list[Sender] = []
         with self._lock:
             link = self.current
             if link is not None and not link.closed.is_set():
-                return link.send(frame, topic_id)
-            if self.closed.is_set() or not any(r.topic_id == topic_id for r in self.reliable):
-                self.on_drop(topic_id, "link_down")
-                return False
-            self._waiting.append((frame, topic_id))
-            self._waiting_bytes += len(frame)
-            while self._waiting and (len(self._waiting) > self.limits.frames
-                                     or self._waiting_bytes > self.limits.bytes):
-                old, old_topic = self._waiting.popleft()
-                self._waiting_bytes -= len(old)
-                self.on_drop(old_topic, "queue_overflow")
-            return True
+                return link.send(frame, sender)
+            if self.closed.is_set() or not sender.reliable:
+                refused = True
+            else:
+                refused = False
+                self._waiting.append((frame, sender))
+                self._waiting_bytes += len(frame)
+                while self._waiting and (len(self._waiting) > self.limits.frames
+                                         or self._waiting_bytes > self.limits.bytes):
+                    old, old_sender = self._waiting.popleft()
+                    self._waiting_bytes -= len(old)
+                    overflow.append(old_sender)
+        for old_sender in overflow:
+            old_sender.drop("queue_overflow", f"{self.name} is down and its queue is full")
+        if refused:
+            sender.drop("link_down", f"{self.name} is down")
+            return False
+        return True
 
     def attach(self, link: StreamLink) -> None:
         """Use ``link`` from now on; what waited goes first."""
         with self._lock:
             while self._waiting:
-                frame, topic_id = self._waiting.popleft()
-                link.send(frame, topic_id)
+                frame, sender = self._waiting.popleft()
+                link.send(frame, sender)
             self._waiting_bytes = 0
             self.current = link
 
     def discard(self, reason: str) -> None:
         """Drop what waits (its topic ids mean nothing to a new session), counted by ``reason``."""
         with self._lock:
-            for _, topic_id in self._waiting:
-                self.on_drop(topic_id, reason)
+            senders = [sender for _, sender in self._waiting]
             self._waiting.clear()
             self._waiting_bytes = 0
+        for sender in senders:
+            sender.drop(reason)
 
     @property
     def waiting(self) -> int:
@@ -351,6 +420,89 @@ class LinkSlot(Link):
         self.discard("link_down")
         if self.current is not None:
             self.current.close()
+
+
+@dataclass(frozen=True)
+class Backoff:
+    """Seconds between reconnection attempts: from ``min``, doubling up to ``max``, jittered."""
+
+    min: float
+    max: float
+
+    def delay(self, failures: int) -> float:
+        return min(self.min * 2 ** (failures - 1), self.max) * random.uniform(0.5, 1.0)
+
+
+class Connector:
+    """Keeps a stream connection up: connects, and after every loss reconnects by itself.
+
+    Attempts are spaced by capped exponential backoff with jitter, so a fleet of clients does
+    not hammer a server that comes back. After a connection that worked is lost, the next
+    attempt is immediate. ``on_connected(link)`` may refuse a connection (a failed handshake),
+    which counts as a failed attempt; ``on_lost(link)`` hears of every accepted connection that
+    ended.
+    """
+
+    def __init__(self, transport: Transport, address: Address, slot: LinkSlot,
+                 on_frame: FrameHandler, on_frame_lost: LostHandler, life: Lifetime,
+                 backoff: Backoff,
+                 on_connected: Callable[[StreamLink], bool] | None = None,
+                 on_lost: Callable[[StreamLink], None] | None = None):
+        self.transport = transport
+        self.address = address
+        self.slot = slot
+        self.on_frame = on_frame
+        self.on_frame_lost = on_frame_lost
+        self.life = life
+        self.backoff = backoff
+        self.on_connected = on_connected
+        self.on_lost = on_lost
+        self.connected = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name=f"connect-{slot.name}", daemon=True)
+        life.closing(self)
+
+    def start(self) -> Connector:
+        self._thread.start()
+        return self
+
+    def _loop(self) -> None:
+        stopping = self.life.stopping
+        failures = 0
+        while not stopping.is_set() and not self.slot.closed.is_set():
+            link = self._connect()
+            if link is None:
+                failures += 1
+                stopping.wait(self.backoff.delay(failures))
+                continue
+            failures = 0
+            self.slot.attach(link)
+            self.connected.set()
+            while not link.closed.wait(0.5):
+                if stopping.is_set() or self.slot.closed.is_set():
+                    break
+            self.connected.clear()
+            link.close()
+            if self.on_lost is not None and not stopping.is_set():
+                self.on_lost(link)
+
+    def _connect(self) -> StreamLink | None:
+        """One attempt: a connection its owner accepted, or None."""
+        try:
+            connection = self.transport.connect(self.address, CONNECT_TIMEOUT)
+        except (OSError, LinkError) as exc:
+            log.debug("%s: connect failed: %s", self.slot.name, exc)
+            return None
+        link = StreamLink(connection, self.slot.name, self.address, self.on_frame,
+                          self.on_frame_lost, on_close=self.life.forget)
+        if self.on_connected is not None and not self.on_connected(link):
+            link.close()
+            return None
+        return link
+
+    def close(self) -> None:
+        self.slot.close()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(timeout=3)
 
 
 class Acceptor:
@@ -393,4 +545,4 @@ def deliver(link: DatagramLink | StreamLink, frame: bytes, source: Address) -> N
     except Exception:
         log.exception("%s: error while handling a frame from %s (a bug: please report it)",
                       link.name, source)
-        link.on_drop(None, "handler_error")
+        link.on_lost(None, "handler_error")

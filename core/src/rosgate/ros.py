@@ -14,19 +14,11 @@ import re
 import threading
 from typing import Any, Callable
 
+from .errors import CodecError
+
 _log = logging.getLogger("rosgate")
 
 TYPE_NAME = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Z][A-Za-z0-9]*)$")
-
-PROFILES = {
-    # bringup.yaml name -> rclpy.qos attribute
-    "default": "qos_profile_default",
-    "system_default": "qos_profile_system_default",
-    "sensor_data": "qos_profile_sensor_data",
-    "services_default": "qos_profile_services_default",
-    "parameters": "qos_profile_parameters",
-    "best_available": "qos_profile_best_available",
-}
 
 
 class TypeNotFound(LookupError):
@@ -60,8 +52,8 @@ def qos_profile(spec: int | str | dict) -> Any:
 
     if isinstance(spec, int):
         return qos.QoSProfile(depth=spec)
-    if isinstance(spec, str):
-        return getattr(qos, PROFILES[spec])
+    if isinstance(spec, str):  # a name config.QOS_PROFILES admits
+        return getattr(qos, f"qos_profile_{spec}")
     profile = qos.QoSProfile(depth=spec.get("depth", 10))
     if "reliability" in spec:
         profile.reliability = getattr(qos.ReliabilityPolicy, spec["reliability"].upper())
@@ -78,6 +70,21 @@ def is_reliable(spec: int | str | dict) -> bool:
     from rclpy import qos
 
     return qos_profile(spec).reliability != qos.ReliabilityPolicy.BEST_EFFORT
+
+
+def cdr_checker(msg_type: type) -> Callable[[bytes], None]:
+    """A check that serialized CDR bytes are a valid ``msg_type``: deserializing once, in C
+    (~4 us for a 2.5 kB String), so bytes from an unknown sender never reach a ROS subscriber as
+    a message it cannot read. Raises :class:`rosgate.CodecError` saying why."""
+    from rclpy.serialization import deserialize_message
+
+    def check(data: bytes) -> None:
+        try:
+            deserialize_message(data, msg_type)
+        except Exception as exc:  # rclpy raises RMWError; any failure means unreadable
+            raise CodecError(f"not a valid {msg_type.__name__}: {exc}") from None
+
+    return check
 
 
 class _Deferred:
@@ -160,7 +167,8 @@ class RosNode:
             else:
                 respond(result, header)
 
-        service.send_response = send_response
+        # replacing a method on this instance is the point (see above); mypy forbids it in general
+        service.send_response = send_response  # type: ignore[method-assign,assignment]
         return service
 
     def client(self, srv_type: type, name: str, qos: Any) -> Any:

@@ -1,12 +1,17 @@
 """Routes: one topic on one side of a link. The data path, top to bottom.
 
-transmit (a ROS subscription callback):
-    message -> codec.encode -> envelope header -> cipher.seal -> link.send (frames, fragments)
-receive (called by the link's receive thread with a frame whose header names this topic):
-    cipher.open -> replay window -> codec.decode -> ROS publish
+transmit (a ROS subscription callback)::
 
-Every drop is counted by reason in the route's :class:`Counters`, and warned about at most once
-per :data:`WARN_EVERY` seconds per reason.
+    message -> codec.encode -> framing.frame (envelope header, cipher.seal) -> link.send
+
+receive (a link's thread, with a frame whose header names this topic)::
+
+    cipher.open -> replay window -> decode (codec, CDR check) -> ROS publish
+
+The framing is a strategy chosen once per route from the entry's ``framing:``
+(:class:`EnvelopeFraming`, or :class:`BareFraming` for datagrams without an envelope, whose
+receiving topics share a :class:`BarePort`). Every drop is counted by reason in the route's
+:class:`Counters`, and warned about at most once per :data:`WARN_EVERY` seconds per reason.
 """
 
 from __future__ import annotations
@@ -17,15 +22,16 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
-from . import envelope
 from .cipher import Cipher
 from .codec import Codec
-from .config import TopicConfig
+from .config import ServiceConfig, TopicConfig
 from .errors import CipherError, CodecError
 from .links import Link
 from .transport import Address
+from .wire import envelope
+from .wire.names import NameMissing, pack_name, split_name
 
 log = logging.getLogger("rosgate")
 
@@ -74,26 +80,35 @@ class Warner:
 
 
 class Route:
-    """A topic's path through the bridge in one direction."""
+    """A topic's (or service's) path through the bridge in one direction; the
+    :class:`rosgate.links.Sender` of its frames."""
 
-    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, cipher: Cipher,
-                 warner: Warner, label: str):
-        self.topic = topic
+    def __init__(self, entry: TopicConfig | ServiceConfig, topic_id: int, codec: Any,
+                 cipher: Cipher, warner: Warner, label: str, reliable: bool = False):
+        self.entry = entry
         self.topic_id = topic_id
         self.codec = codec
         self.cipher = cipher
         self.warner = warner
         self.label = label  # how logs name this route: "/chatter (to robot1)"
+        self.reliable = reliable  # frames wait out a stream link's loss (reliable QoS)
         self.counters = Counters()
-        self.entity: Any = None  # the ROS subscription or publisher
+        self.entity: Any = None  # the ROS subscription, publisher, service or client
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.counters.drops[reason] += 1
         if reason not in QUIET_REASONS:
             self.warner.warn(self.label, reason, detail or reason.replace("_", " "))
 
+    def seal(self, flags: int, epoch: int, seq: int, payload: bytes,
+             stamp: int | None = None) -> bytes:
+        """An envelope frame of this route: the header, then the payload sealed with it."""
+        header = envelope.pack(flags, self.topic_id, epoch, seq,
+                               time.time_ns() if stamp is None else stamp)
+        return header + self.cipher.seal(header, payload)
+
     def open(self, frame: bytes) -> bytes | None:
-        """The frame's payload if the cipher accepts it; None (counted) when it does not."""
+        """An envelope frame's payload if the cipher accepts it; None (counted) when it does not."""
         try:
             return self.cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
         except CipherError as exc:
@@ -101,21 +116,61 @@ class Route:
             return None
 
 
+class TopicFraming:
+    """How a topic's payloads become frames, chosen once per route."""
+
+    #: True: datagrams carry the payload alone (no envelope, no fragments, no cipher)
+    bare: ClassVar[bool]
+
+    def frame(self, route: TransmitRoute, payload: bytes, stamp: int) -> bytes:
+        raise NotImplementedError
+
+
+class EnvelopeFraming(TopicFraming):
+    """``framing: rosgate``: the 28-byte envelope (topic id, the sender's epoch and sequence
+    number, the send time), then the payload sealed by the topic's cipher, which authenticates
+    the header too. Receivers are found by topic id (the router) and keep a replay window."""
+
+    bare = False
+
+    def frame(self, route: TransmitRoute, payload: bytes, stamp: int) -> bytes:
+        with route.lock:
+            route.seq += 1
+            seq = route.seq
+        return route.seal(0, route.epoch, seq, payload, stamp)
+
+
+class BareFraming(TopicFraming):
+    """``framing: none``: one datagram per message, the codec's bytes alone — after the topic's
+    ``remote`` name as a MessagePack str when the codec writes MessagePack (the CVRA format), so
+    several topics can share a port."""
+
+    bare = True
+
+    def __init__(self, name: str | None):
+        self.prefix = pack_name(name) if name is not None else b""
+
+    def frame(self, route: TransmitRoute, payload: bytes, stamp: int) -> bytes:
+        return self.prefix + payload
+
+
 class TransmitRoute(Route):
     """ROS subscription -> link."""
 
-    def __init__(self, *args: Any, link: Link, destination: Callable[[], Address | None],
-                 bare: bool = False, **kwargs: Any):
-        super().__init__(*args, **kwargs)
+    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, cipher: Cipher,
+                 warner: Warner, label: str, reliable: bool, *, framing: TopicFraming,
+                 link: Link, destination: Callable[[], Address | None]):
+        super().__init__(topic, topic_id, codec, cipher, warner, label, reliable)
+        self.topic = topic
+        self.framing = framing
         self.link = link
         self.destination = destination  # where to send, looked up per message (a server learns it)
-        self.bare = bare
         self.epoch = int.from_bytes(os.urandom(4), "big")
         self.seq = 0
-        rate = self.topic.max_rate
+        rate = topic.max_rate
         self.min_interval_ns = int(1e9 / rate) if rate else 0
         self.last_sent_ns = 0
-        self._lock = threading.Lock()  # a ROS callback group may call from several threads
+        self.lock = threading.Lock()  # a ROS callback group may call from several threads
 
     def on_message(self, message: Any) -> None:
         now = time.time_ns()
@@ -127,18 +182,11 @@ class TransmitRoute(Route):
             self.drop("no_peer_yet", "the far side's address is not known yet")
             return
         try:
-            if self.bare:
-                frame = self.codec.encode_bare(self.topic.remote, message)
-            else:
-                payload = self.codec.encode(message)
-                with self._lock:
-                    self.seq += 1
-                    header = envelope.pack(0, self.topic_id, self.epoch, self.seq, now)
-                frame = header + self.cipher.seal(header, payload)
+            frame = self.framing.frame(self, self.codec.encode(message), now)
         except Exception as exc:  # a codec or cipher bug must not stop the executor
             self.drop("encode_error", f"{type(exc).__name__}: {exc}")
             return
-        if self.link.send(frame, self.topic_id, to):
+        if self.link.send(frame, self, to):
             self.last_sent_ns = now
             self.counters.sent += 1
             self.counters.bytes_sent += len(frame)
@@ -147,14 +195,19 @@ class TransmitRoute(Route):
 class ReceiveRoute(Route):
     """Link -> ROS publisher."""
 
-    def __init__(self, *args: Any, **kwargs: Any):
-        super().__init__(*args, **kwargs)
+    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, cipher: Cipher,
+                 warner: Warner, label: str, reliable: bool, *,
+                 decode: Callable[[bytes], Any]):
+        super().__init__(topic, topic_id, codec, cipher, warner, label, reliable)
+        self.topic = topic
+        self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
         self.window = envelope.ReplayWindow()
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
 
     def on_frame(self, header: envelope.Header, frame: bytes) -> None:
+        """An envelope frame (framing rosgate), found by its topic id."""
         payload = self.open(frame)
         if payload is None:
             return
@@ -168,14 +221,12 @@ class ReceiveRoute(Route):
         if refused:
             self.drop(refused)
             return
-        self.deliver(payload, len(frame), self.codec.decode)
+        self.deliver(payload, len(frame))
 
-    def on_bare(self, rest: bytes, size: int) -> None:
-        self.deliver(rest, size, self.codec.decode_bare)
-
-    def deliver(self, payload: bytes, size: int, decode: Callable[[bytes], Any]) -> None:
+    def deliver(self, payload: bytes, size: int) -> None:
+        """Decode and publish; ``size`` is what arrived on the link, for the counters."""
         try:
-            message = decode(payload)
+            message = self.decode(payload)
         except CodecError as exc:
             self.drop("decode_error", str(exc))
             return
@@ -191,3 +242,43 @@ class ReceiveRoute(Route):
         self.counters.bytes_received += size
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
+
+
+class BarePort:
+    """The receiving topics of one port with ``framing: none``: told apart by the name in front
+    of each datagram when their codec writes MessagePack, else the port's only topic.
+    ``link_drop(link, reason, detail)`` counts a datagram that belongs to none of them."""
+
+    def __init__(self, named: bool, link_drop: Callable[[Link, str, str], None]):
+        self.named = named
+        self.link_drop = link_drop
+        self.routes: dict[str, ReceiveRoute] = {}
+        self.only: ReceiveRoute | None = None
+
+    def add(self, route: ReceiveRoute, names: set[str]) -> None:
+        if self.named:
+            for name in names:
+                self.routes[name] = route
+        else:
+            self.only = route
+
+    @property
+    def receivers(self) -> list[ReceiveRoute]:
+        return list({id(r): r for r in self.routes.values()}.values()) if self.named \
+            else [self.only] if self.only is not None else []
+
+    def on_frame(self, datagram: bytes, link: Link, source: Address) -> None:
+        if not self.named:
+            if self.only is not None:
+                self.only.deliver(datagram, len(datagram))
+            return
+        try:
+            name, rest = split_name(datagram)
+        except NameMissing as exc:
+            self.link_drop(link, "unnamed_frame", f"{len(datagram)} bytes from {source}: {exc}")
+            return
+        route = self.routes.get(name)
+        if route is None:
+            self.link_drop(link, "unknown_topic", f"name {name!r} from {source}")
+            return
+        route.deliver(rest, len(datagram))

@@ -35,16 +35,14 @@ import logging
 import os
 import threading
 import time
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
-from . import envelope
+from .config import ServiceConfig
 from .errors import CodecError
 from .links import Link
 from .routes import Route
 from .transport import Address
-
-if TYPE_CHECKING:
-    from .engine import Engine, PreparedService
+from .wire import envelope
 
 log = logging.getLogger("rosgate")
 
@@ -53,7 +51,7 @@ log = logging.getLogger("rosgate")
 QUEUE_DEPTH = 1000
 
 
-def failure(response_type: type, reason: str) -> Any:
+def failure(response_type: Any, reason: str) -> Any:
     """The answer a ROS caller gets when the bridge has none (see the module documentation)."""
     response = response_type()
     fields = response_type.get_fields_and_field_types()
@@ -138,14 +136,10 @@ class Deadlines:
 class ServiceCodec:
     """The entry's codec for the Request and for the Response."""
 
-    def __init__(self, codec_cls: type, srv_type: type, options: dict[str, Any]):
+    def __init__(self, codec_cls: type, srv_type: Any, options: Any):
         self.request = codec_cls(srv_type.Request, options)
         self.response = codec_cls(srv_type.Response, options)
         self.name = self.request.name
-        for codec in (self.request, self.response):
-            # raw codecs get bytes we serialized, and their decode is checked by deserializing
-            # right below: the codec need not check it again
-            codec.authenticated = codec.raw
 
     @staticmethod
     def encode(codec: Any, message: Any) -> bytes:
@@ -156,8 +150,8 @@ class ServiceCodec:
         return codec.encode(message)
 
     @staticmethod
-    def decode(codec: Any, data: bytes, decode: Callable[[bytes], Any] | None = None) -> Any:
-        value = (decode or codec.decode)(data)
+    def decode(codec: Any, data: bytes) -> Any:
+        value = codec.decode(data)
         if not codec.raw:
             return value
         from rclpy.serialization import deserialize_message
@@ -171,9 +165,10 @@ class ServiceCodec:
 class ServiceRoute(Route):
     """What both sides of a service share: the entry, its codecs, counters and warnings."""
 
-    def __init__(self, service: Any, service_id: int, codec: ServiceCodec, cipher: Any,
-                 warner: Any, label: str, srv_type: type, deadlines: Deadlines):
-        super().__init__(service, service_id, codec, cipher, warner, label)  # type: ignore[arg-type]
+    def __init__(self, service: ServiceConfig, service_id: int, codec: ServiceCodec, cipher: Any,
+                 warner: Any, label: str, srv_type: Any, deadlines: Deadlines):
+        # calls are not held while a link is down: the caller's timeout answers them instead
+        super().__init__(service, service_id, codec, cipher, warner, label, reliable=False)
         self.service = service
         self.srv_type = srv_type
         self.deadlines = deadlines
@@ -209,18 +204,16 @@ class CallerRoute(ServiceRoute):
             return
         seq = next(self._ids)
         try:
-            header = envelope.pack(envelope.FLAG_REQUEST, self.topic_id, self.epoch, seq,
-                                   time.time_ns())
-            frame = header + self.cipher.seal(header, self.codec.encode(self.codec.request, request))
+            frame = self.seal(envelope.FLAG_REQUEST, self.epoch, seq,
+                              self.codec.encode(self.codec.request, request))
         except Exception as exc:  # a codec or cipher bug must not leave the ROS caller waiting
             self.fail(call, "encode_error", f"{type(exc).__name__}: {exc}")
             return
         with self._lock:
             self.calls[seq] = call
         self.deadlines.after(self.service.timeout, lambda: self._expire(seq))
-        if not self.link.send(frame, self.topic_id, to):
-            self._pop(seq)
-            self.fail(call, "link_down", f"{self.link.name} is down")
+        if not self.link.send(frame, _CallSender(self, call), to):
+            self._pop(seq)  # the link counted the drop, and answered the caller with it
             return
         self.counters.sent += 1
         self.counters.bytes_sent += len(frame)
@@ -255,6 +248,24 @@ class CallerRoute(ServiceRoute):
         call = self._pop(seq)
         if call is not None:
             self.fail(call, "timeout", f"no answer within {self.service.timeout:g} s")
+
+
+class _CallSender:
+    """A call's request as the link's sender: a drop on the way out fails the call at once."""
+
+    __slots__ = ("route", "call")
+    reliable = False
+
+    def __init__(self, route: CallerRoute, call: Call):
+        self.route = route
+        self.call = call
+
+    @property
+    def topic_id(self) -> int:
+        return self.route.topic_id
+
+    def drop(self, reason: str, detail: str = "") -> None:
+        self.route.fail(self.call, reason, detail or f"{self.route.link.name}: {reason}")
 
 
 class ServerRoute(ServiceRoute):
@@ -312,10 +323,8 @@ class ServerRoute(ServiceRoute):
         self.counters.bytes_received += len(frame)
 
         def reply(flags: int, body: bytes) -> None:
-            answer = envelope.pack(envelope.FLAG_REPLY | flags, self.topic_id, header.epoch,
-                                   header.seq, time.time_ns())
-            frame = answer + self.cipher.seal(answer, body)
-            if link.send(frame, self.topic_id, source):
+            frame = self.seal(envelope.FLAG_REPLY | flags, header.epoch, header.seq, body)
+            if link.send(frame, self, source):
                 self.counters.sent += 1
                 self.counters.bytes_sent += len(frame)
 
@@ -332,97 +341,7 @@ class ServerRoute(ServiceRoute):
                                                                 reason.encode())))
 
 
-class ServiceTable:
-    """An engine's service routes by id, and the deadline thread they share. Requests and
-    answers have tables of their own, so a bridge may both call and serve one name."""
-
-    def __init__(self, engine: Engine):
-        self.engine = engine
-        self.deadlines = Deadlines()
-        self.callers: dict[int, CallerRoute] = {}
-        self.servers: dict[int, ServerRoute] = {}
-        self._lock = threading.Lock()
-
-    def make_route(self, p: PreparedService, service_id: int, label: str, link: Link,
-                   destination: Callable[[], Address | None]) -> ServiceRoute:
-        """A route and its ROS entity; with framing rosgate, registered for dispatch by id."""
-        s = p.config
-        args = (s, service_id, p.codec(self.engine.config.plugins), p.cipher, self.engine.warner,
-                label, p.srv_type, self.deadlines)
-        ros = self.engine.ros
-        assert ros is not None
-        qos = deep_qos()
-        route: ServiceRoute
-        if s.direction == "transmit":
-            route = CallerRoute(*args, link=link, destination=destination)
-            route.entity = ros.deferred_service(p.srv_type, s.service, qos, route.on_request)
-            table: dict = self.callers
-        else:
-            route = ServerRoute(*args)
-            route.entity = ros.client(p.srv_type, s.service, qos)
-            table = self.servers
-        if s.framing == "rosgate":
-            with self._lock:
-                table[service_id] = route
-        return route
-
-    def remove(self, route: ServiceRoute) -> None:
-        with self._lock:
-            for table in (self.callers, self.servers):
-                if table.get(route.topic_id) is route:
-                    del table[route.topic_id]
-
-    def on_frame(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
-        if header.flags & envelope.FLAG_REQUEST:
-            server = self.servers.get(header.topic_id)
-            if server is not None:
-                server.on_request(header, frame, link, source)
-                return
-        else:
-            caller = self.callers.get(header.topic_id)
-            if caller is not None:
-                caller.on_reply(header, frame)
-                return
-        self.engine.link_drop(link, "unknown_service", f"service id {header.topic_id} from {source}")
-
-    def close(self) -> None:
-        self.deadlines.close()
-
-
 def deep_qos() -> Any:
     from rclpy.qos import QoSProfile
 
     return QoSProfile(depth=QUEUE_DEPTH)
-
-
-def start_peer(role: Any) -> None:
-    """The peer role's services. Both sides know an entry by its ``remote`` name, so its id is
-    derived from it, as for topics. A serving side listens on ``listen:port`` and answers on the
-    link and to the address each call came from; a calling side sends to ``peer:port``."""
-    from . import cvra
-    from .envelope import topic_id_for
-    from .roles import Connector, _NoLink
-
-    engine, cfg = role.engine, role.cfg
-    listen = cfg.listen or "0.0.0.0"
-    call_servers: dict[Address, cvra.CallServer] = {}
-    for p in engine.services:
-        s = p.config
-        key = f"services[{p.index}].port"
-        if s.framing == "serial_datagram":
-            cvra.start_peer_service(role, p, listen, key, call_servers)
-            continue
-        link: Link
-        to = (cfg.peer or "", s.port)
-        if s.direction == "receive":
-            if p.transport.stream:
-                role._listen(p.transport, (listen, s.port), key)
-                link = _NoLink()  # answers go back on the connection each call came on
-            else:
-                link = role.datagram_link(p.transport, (listen, s.port), False, key)
-        elif p.transport.stream:
-            link = engine.slot(f"{s.transport}->{cfg.peer}:{s.port}")
-            Connector(engine, p.transport, to, link, engine.on_frame).start()
-        else:
-            link = role.datagram_link(p.transport, (listen, 0), False, key)
-        role.add(engine.make_route(p, topic_id_for(s.remote), s.service, link, lambda to=to: to))

@@ -24,6 +24,7 @@ from std_srvs.srv import SetBool
 
 import rosgate
 from rosgate.testing import CodecConformance, mutations
+from rosgate.wire.names import NameMissing, pack_name, split_name
 from rosgate_codec_msgpack import MsgpackCodec
 
 
@@ -185,25 +186,30 @@ def test_decoded_values_pass_rclpy_field_checks(monkeypatch):
 
 # -- bare framing (CVRA) ----------------------------------------------------------------------
 
-def test_encode_bare_is_name_then_map():
+# The core writes and reads the name (rosgate.wire.names); these tests hold it to what a
+# MessagePack library writes and reads, so a microcontroller's MessagePack library agrees.
+
+def test_bare_datagram_is_name_then_map():
     c = codec(Twist)
-    assert MsgpackCodec.names_bare_frames
-    assert c.encode_bare("cmd", twist()) == packb("cmd") + packb(TWIST_MAP)
+    assert MsgpackCodec.messagepack
+    assert pack_name("cmd") + c.encode(twist()) == packb("cmd") + packb(TWIST_MAP)
+    for size in (0, 31, 32, 255, 256, 65535, 65536):  # every str header width
+        assert pack_name("n" * size) == packb("n" * size)
 
 
-def test_split_bare_round_trip():
+def test_bare_name_round_trip():
     c = codec(Twist)
-    name, rest = MsgpackCodec.split_bare(c.encode_bare("cmd_vel", twist()))
+    name, rest = split_name(pack_name("cmd_vel") + c.encode(twist()))
     assert (name, rest) == ("cmd_vel", packb(TWIST_MAP))
-    assert c.decode_bare(rest) == twist()
+    assert c.decode(rest) == twist()
 
 
 @pytest.mark.parametrize("datagram", [
     packb(5) + packb(TWIST_MAP), packb(b"cmd") + packb(TWIST_MAP), packb(TWIST_MAP), b"",
-    b"\xc1", b"\xa5cmd", b"\xd4\x01\x00" + packb(TWIST_MAP)])
-def test_split_bare_rejects_a_datagram_not_starting_with_a_name(datagram):
-    with pytest.raises(rosgate.CodecError, match="bare datagram"):
-        MsgpackCodec.split_bare(datagram)
+    b"\xc1", b"\xa5cmd", b"\xd4\x01\x00" + packb(TWIST_MAP), b"\xd9", b"\xa2\xff\xfe"])
+def test_a_datagram_not_starting_with_a_name_is_refused(datagram):
+    with pytest.raises(NameMissing):
+        split_name(datagram)
 
 
 def test_microcontroller_payload_uses_defaults_for_missing_fields():
@@ -213,8 +219,8 @@ def test_microcontroller_payload_uses_defaults_for_missing_fields():
         "pose": {"pose": {"position": {"x": 2, "y": -1}, "orientation": {"w": 1}}},
     })
     c = codec(Odometry)
-    name, rest = MsgpackCodec.split_bare(datagram)
-    odom = c.decode_bare(rest)
+    name, rest = split_name(datagram)
+    odom = c.decode(rest)
     assert name == "odometry"
     expected = Odometry()
     expected.header.stamp.sec = 12
@@ -325,8 +331,8 @@ def test_fuzz_decode_raises_only_codec_errors():
             c.encode(message)
             decoded += 1
         try:
-            MsgpackCodec.split_bare(data)
-        except rosgate.CodecError:
+            split_name(data)
+        except NameMissing:
             pass
     assert decoded > 100  # the fuzz reached the field decoders, not only the parser
 

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 from cryptography.fernet import Fernet
 
-from rosgate import CipherError, OptionError, envelope
+from rosgate import CipherError, OptionError
+from rosgate.wire import envelope
 from rosgate.testing import CipherConformance, write_key
 from rosgate_crypto_fernet import FernetCipher
 

@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 from nacl.secret import SecretBox
 
-from rosgate import OptionError, envelope
+from rosgate import OptionError
+from rosgate.wire import envelope
 from rosgate.testing import CipherConformance, write_key
 from rosgate_crypto_fernet import FernetCipher
 from rosgate_crypto_nacl import NaclCipher

@@ -9,7 +9,7 @@ from typing import Any, Callable, ClassVar
 
 import pytest
 
-from .. import envelope
+from ..wire import envelope
 from ..cipher import Cipher
 from ..errors import CipherError
 from .helpers import assert_registered, write_key

@@ -6,6 +6,7 @@ import random
 import socket
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -98,7 +99,9 @@ def mutations(valid: bytes, rng: random.Random, count: int) -> Iterator[bytes]:
 
 
 class Frames:
-    """Collects what a link hands to ``on_frame`` (and ``on_drop``); wait for a number of them."""
+    """Collects what a link hands to ``on_frame``, and the drops it reports — on the receiving
+    side through ``on_lost``, on the sending side to a :meth:`sender` — as ``(topic id,
+    reason)``; wait for a number of frames."""
 
     def __init__(self) -> None:
         self.frames: list[bytes] = []
@@ -110,15 +113,31 @@ class Frames:
             self.frames.append(bytes(frame))
             self._cond.notify_all()
 
-    def on_drop(self, topic_id: int | None, reason: str) -> None:
+    def on_lost(self, topic_id: int | None, reason: str) -> None:
         with self._cond:
             self.drops.append((topic_id, reason))
+
+    def sender(self, topic_id: int, reliable: bool = False) -> Sender:
+        """What a route is to a link's ``send``: its drops are recorded here."""
+        return Sender(topic_id, reliable, self)
+
 
     def wait_count(self, count: int, timeout: float = TIMEOUT) -> list[bytes]:
         with self._cond:
             self._cond.wait_for(lambda: len(self.frames) >= count, timeout)
             return list(self.frames)
 
+
+@dataclass
+class Sender:
+    """A :class:`rosgate.links.Sender` for tests: its drops go to a :class:`Frames`."""
+
+    topic_id: int
+    reliable: bool
+    frames: Frames
+
+    def drop(self, reason: str, detail: str = "") -> None:
+        self.frames.on_lost(self.topic_id, reason)
 
 # -- used by the suites ------------------------------------------------------------------------
 

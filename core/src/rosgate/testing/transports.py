@@ -9,7 +9,7 @@ from typing import Any, Callable, ClassVar, Iterator, Mapping
 
 import pytest
 
-from ..framing import COMPACT_BELOW
+from ..wire.framing import COMPACT_BELOW
 from ..links import DatagramLink, StreamLink
 from ..transport import Address, StreamConnection, Transport
 from .helpers import (TIMEOUT, Closing, Frames, assert_registered, free_port, frame_of, in_thread,
@@ -172,13 +172,13 @@ class TransportConformance:
         # 128 and 16384 and whose 7-bit piece counter wraps past 128 pieces
         sizes = [1, m, m + 1, 2 * m + 3, 127, 128, 16_384, min(1 << 20, 200 * m)]
         sent, received = Frames(), Frames()
-        tx = closing(DatagramLink(plugin, a, "conformance-tx", sent.on_frame, sent.on_drop))
+        tx = closing(DatagramLink(plugin, a, "conformance-tx", sent.on_frame, sent.on_lost))
         rx = closing(DatagramLink(far_plugin, b, "conformance-rx", received.on_frame,
-                                  received.on_drop))
+                                  received.on_lost))
         assert tx.compact == rx.compact == (m < COMPACT_BELOW)
         frames = [frame_of(size, seed) for seed, size in enumerate(sizes)]
         for frame in frames:
-            assert tx.send(frame, topic_id=7, to=b_address), f"send of {len(frame)} bytes failed"
+            assert tx.send(frame, sent.sender(7), to=b_address), f"send of {len(frame)} bytes failed"
         got = received.wait_count(len(frames))
         if self.ordered:
             assert [len(f) for f in got] == sizes
@@ -274,13 +274,13 @@ class TransportConformance:
             self, plugin, far_plugin, address, closing):
         client, server = self._pair(plugin, far_plugin, address, closing)
         sent, received = Frames(), Frames()
-        tx = closing(StreamLink(client, "conformance-tx", ("client", 0), sent.on_frame, sent.on_drop))
+        tx = closing(StreamLink(client, "conformance-tx", ("client", 0), sent.on_frame, sent.on_lost))
         closing(StreamLink(server, "conformance-rx", ("server", 0), received.on_frame,
-                           received.on_drop))
+                           received.on_lost))
         frames = [frame_of(size, seed) for seed, size in
                   enumerate([1, 2, 100, 65_536, 1 << 20, 3, 4096])]
         for frame in frames:
-            assert tx.send(frame, topic_id=7)
+            assert tx.send(frame, sent.sender(7))
         got = received.wait_count(len(frames))
         assert [len(f) for f in got] == [len(f) for f in frames]
         assert got == frames
@@ -291,9 +291,9 @@ class TransportConformance:
         ended = threading.Event()
         received = Frames()
         rx = closing(StreamLink(server, "conformance-rx", ("server", 0), received.on_frame,
-                                received.on_drop, on_close=lambda _: ended.set()))
+                                received.on_lost, on_close=lambda _: ended.set()))
         client.close()
         assert ended.wait(TIMEOUT), "on_close did not fire after the far end closed"
         assert rx.closed.is_set()
-        assert rx.send(b"RG too late", topic_id=7) is False
+        assert rx.send(b"RG too late", received.sender(7)) is False
         assert received.drops == [(7, "link_down")]

@@ -28,6 +28,8 @@ naming the field by its dotted path (``pose.position.w``, ``points[3].x``).
 
 Framing ``none`` (one datagram per message, several topics on one port): the datagram is the
 topic's name as a MessagePack str immediately followed by the map, as the CVRA bridge sends it.
+The core writes and reads the name (``messagepack = True`` says it may); this codec only sees
+the map.
 
 Options: none.
 """
@@ -82,7 +84,7 @@ class MsgpackCodec(TreeCodec):
     """ROS messages as MessagePack maps; the module documentation has the mapping."""
 
     name = "msgpack"
-    names_bare_frames = True
+    messagepack = True
     wire = MESSAGEPACK
 
     def parse(self, data: bytes) -> Any:
@@ -92,26 +94,6 @@ class MsgpackCodec(TreeCodec):
             reason = str(exc) or type(exc).__name__
             raise rosgate.CodecError(
                 f"{self.tree.name}: not one MessagePack object: {reason}") from None
-
-    def encode_bare(self, name: str, message: Any) -> bytes:
-        return _packb(name) + self.encode(message)
-
-    @classmethod
-    def split_bare(cls, datagram: bytes) -> tuple[str | None, bytes]:
-        unpacker = msgpack.Unpacker(raw=False, strict_map_key=True,
-                                    max_buffer_size=max(len(datagram), 1),
-                                    **_unpack_limits(len(datagram)))
-        try:
-            unpacker.feed(datagram)
-            name = unpacker.unpack()
-        except _UNREADABLE as exc:
-            reason = str(exc) or type(exc).__name__
-            raise rosgate.CodecError(
-                f"bare datagram: no MessagePack object at its start: {reason}") from None
-        if type(name) is not str:
-            raise rosgate.CodecError("bare datagram: expected the topic's name (a str) first, "
-                                     f"got {describe(name, MESSAGEPACK)}")
-        return name, datagram[unpacker.tell():]
 
 
 @rosgate.hookimpl

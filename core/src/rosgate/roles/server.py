@@ -17,20 +17,19 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from . import envelope
-from .config import topic_from_mapping
-from .errors import ConfigError, LinkError
-from .envelope import topic_id_for
-from .links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
-from .mainline import PROTOCOL, client_services, control, flipped, parse_control, where_error
-from .roles import Role
-from .routes import Route, TransmitRoute
-from .transport import Address, StreamConnection, Transport
-
-if TYPE_CHECKING:
-    from .engine import Engine, Prepared, PreparedService
+from ..config import Direction, topic_from_mapping
+from ..errors import ConfigError, LinkError
+from ..links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
+from ..resolver import PreparedService, PreparedTopic
+from ..routes import Route
+from ..transport import Address, StreamConnection
+from ..wire import envelope
+from ..wire.envelope import topic_id_for
+from . import Bridge, Role
+from .mainline import (PROTOCOL, client_services, control, flipped, is_control, parse_control,
+                       where_error)
 
 log = logging.getLogger("rosgate")
 
@@ -56,19 +55,21 @@ class Session:
 
 
 class ServerRole(Role):
-    def __init__(self, engine: Engine):
-        super().__init__(engine)
+    def __init__(self, bridge: Bridge):
+        super().__init__(bridge)
         self.sessions: dict[int, Session] = {}
         self._ids = iter(range(1, 2**32))
+        self.router.on_hello = self.on_hello
 
     def start(self) -> None:
-        main = self.engine.transports[self.cfg.main_line]
+        plan = self.bridge.plan
+        assert plan.main_line is not None and plan.main_address is not None
         try:
-            listener = main.listen(self.engine.main_address)
+            listener = plan.main_line.listen(plan.main_address)
         except LinkError as exc:
-            raise self.engine.bind_error(exc, "bridge.server") from None
-        self.acceptor = self.engine.closing(Acceptor(listener, f"main:{self.engine.main_address[1]}",
-                                                     self._accepted))
+            raise self.bridge.link_error(exc, "bridge.server") from None
+        self.acceptor = self.life.closing(Acceptor(listener, f"main:{plan.main_address[1]}",
+                                                   self._accepted))
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
 
     def stop(self) -> None:
@@ -77,27 +78,20 @@ class ServerRole(Role):
             self._end(session)
         super().stop()
 
-    def routes(self) -> list[Route]:
-        with self._lock:
-            return [r for s in self.sessions.values() for r in s.routes]
-
-    def transmitter(self, topic_id: int) -> Route | None:
-        return next((r for r in self.routes()
-                     if r.topic_id == topic_id and isinstance(r, TransmitRoute)), None)
-
     def _accepted(self, connection: StreamConnection, peer: Address) -> None:
         holder: dict[str, Session] = {}
 
         def on_frame(frame: bytes, link: Link, source: Address) -> None:
             session = holder.get("session")
-            if frame[:2] == envelope.MAGIC and len(frame) > 3 and frame[3] & envelope.FLAG_CONTROL:
+            if is_control(frame):
                 message = parse_control(frame)
                 if message is None:
-                    self.engine.link_drop(link, "bad_control", f"from {source}")
+                    self.router.link_drop(link, "bad_control", f"from {source}")
                     return
-                link.last_heard = time.monotonic()  # type: ignore[attr-defined]
+                assert isinstance(link, StreamLink)
+                link.last_heard = time.monotonic()
                 if message["type"] == "hello" and session is None:
-                    session = self._welcome(message, link, peer)  # type: ignore[arg-type]
+                    session = self._welcome(message, link, peer)
                     if session is not None:
                         holder["session"] = session
                 elif (message["type"] == "bye" and session is not None
@@ -106,20 +100,20 @@ class ServerRole(Role):
                     self._end(session)
                 return
             if session is None:
-                self.engine.link_drop(link, "before_handshake", f"data from {source}")
+                self.router.link_drop(link, "before_handshake", f"data from {source}")
                 return
-            self.engine.on_frame(frame, link, source)
+            self.router.on_frame(frame, link, source)
 
         def on_close(link: StreamLink) -> None:
-            self.engine.forget(link)
+            self.life.forget(link)
             session = holder.get("session")
             if session is not None and session.main.current is link and session.id in self.sessions:
                 session.down_since = time.monotonic()
                 log.warning("client %r down (%s); keeping its session for %g s", session.name,
                             link.why or "main line closed", self.cfg.session_timeout)
 
-        self.engine.closing(StreamLink(connection, f"main<-{peer[0]}:{peer[1]}", peer, on_frame,
-                                       self.engine.on_drop, on_close))
+        self.life.closing(StreamLink(connection, f"main<-{peer[0]}:{peer[1]}", peer, on_frame,
+                                     self.router.on_lost, on_close))
 
     def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address) -> Session | None:
         name = str(hello.get("name", "?"))
@@ -129,13 +123,14 @@ class ServerRole(Role):
                 session = self._new_session(hello, name)
         except (ConfigError, LinkError) as exc:
             log.error("refused client %r from %s: %s", name, peer[0], exc)
-            link.send(control({"type": "refused", "error": str(exc)}), 0)
+            link.send(control({"type": "refused", "error": str(exc)}), self.control)
             return None
         link.send(control({"type": "welcome", "name": self.cfg.name, "session": session.id,
                            "token": session.token.hex(),
                            "topic_ids": [r.topic_id for r in session.routes[:len(session.topics)]],
                            "service_ids": [r.topic_id
-                                           for r in session.routes[len(session.topics):]]}), 0)
+                                           for r in session.routes[len(session.topics):]]}),
+                  self.control)
         old = session.main.current
         session.main.attach(link)  # after the welcome: what waited goes out under known ids
         session.down_since = None
@@ -166,20 +161,19 @@ class ServerRole(Role):
         prepared = self._prepare_client_topics(hello, name)
         services = self._prepare_client_services(hello, name)
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
-                          hello.get("services", []), self.engine.slot(f"main of {name}"))
+                          hello.get("services", []), self.bridge.slot(f"main of {name}"))
         try:
-            for p in [*prepared, *services]:  # topics first: the welcome splits the ids so
+            entries: list[PreparedTopic | PreparedService] = [*prepared, *services]
+            for p in entries:  # topics first: the welcome splits the ids so
                 session.routes.append(self._route(session, p))
         except LinkError:
             self._drop_routes(session)
             raise
-        session.main.reliable = [r for r, p in zip(session.routes, prepared)
-                                 if p.reliable and p.transport.stream and p.config.port is None]
         with self._lock:
             self.sessions[session.id] = session
         return session
 
-    def _prepare_client_topics(self, hello: dict[str, Any], name: str) -> list[Prepared]:
+    def _prepare_client_topics(self, hello: dict[str, Any], name: str) -> list[PreparedTopic]:
         topics = hello.get("topics")
         if not isinstance(topics, list):
             raise ConfigError("hello without a topic list", file=f"client {name}")
@@ -190,52 +184,54 @@ class ServerRole(Role):
             if not isinstance(mapping, dict):
                 raise error(f"topics[{i}]", "not a mapping")
             t = topic_from_mapping(mapping, self.cfg.defaults, where, index=i)
-            prepared.append(self.engine.prepare_topic(flipped(t), i, "topics", error))
+            prepared.append(self.bridge.resolver.topic(flipped(t), i, "topics", error))
         return prepared
 
     def _prepare_client_services(self, hello: dict[str, Any], name: str) -> list[PreparedService]:
         where = f"client {name}"
-        return [self.engine.prepare_service(flipped(s), i, "services", where_error(where))
+        return [self.bridge.resolver.service(flipped(s), i, "services", where_error(where))
                 for i, s in enumerate(client_services(hello, self.cfg.defaults, where))]
 
-    def _topic_id(self, session: Session, p: Prepared | PreparedService) -> int:
+    def _topic_id(self, session: Session, p: PreparedTopic | PreparedService) -> int:
         """Derived from the client's name and the topic or service, so a returning client gets
         the ids it had even from a restarted server; the next free one on a collision."""
         t = p.config
-        used = {r.topic_id for r in self.routes()} | {r.topic_id for r in session.routes}
+        used = {r.topic_id for r in self.router.snapshot()} | {r.topic_id for r in session.routes}
         topic_id = topic_id_for(f"{session.name}\0{t.direction}\0{p.name}")
         while topic_id in used or topic_id == envelope.CONTROL_TOPIC:
             topic_id = (topic_id + 1) & 0xFFFFFFFF
         return topic_id
 
-    def _route(self, session: Session, p: Prepared | PreparedService) -> Route:
-        engine = self.engine
+    def _route(self, session: Session, p: PreparedTopic | PreparedService) -> Route:
         t = p.config
         topic_id = self._topic_id(session, p)
-        label = f"{p.name} ({'to' if t.direction == 'transmit' else 'from'} {session.name})"
-        if p.transport.stream:
-            if t.port is None:
-                return engine.make_route(p, topic_id, label, session.main)
-            self._listen(p.transport, p.address)
-            slot = session.streams[t.port] = engine.slot(f"port {t.port} of {session.name}")
-            route = engine.make_route(p, topic_id, label, slot)
-            slot.reliable = [route] if p.reliable else []
-            return route
-        link = self.datagram_link(p.transport, p.address)
-        return engine.make_route(p, topic_id, label, link,
-                                 lambda link=link: session.addresses.get(link))  # type: ignore[misc]
+        way = "to" if t.direction is Direction.TRANSMIT else "from"
+        label = f"{p.name} ({way} {session.name})"
+        link: Link
+        destination = self._no_address
+        port = t.port
+        if p.transport.stream and port is None:
+            link = session.main
+        elif p.transport.stream and port is not None:
+            self.listen(p.transport, p.address, self._dedicated_frame(port))
+            link = session.streams[port] = self.bridge.slot(f"port {port} of {session.name}")
+        else:
+            datagrams = self.datagram_link(p.transport, p.address)
+            link = datagrams
 
-    def _listen(self, transport: Transport, local: Address) -> None:
-        """Listen on a dedicated stream port (LinkError goes back to the client that asked)."""
-        with self._lock:
-            if (transport.name, local) in self.listening:
-                return
-            listener = transport.listen(local)
-            self.listening.add((transport.name, local))
-        port = local[1]
+            def destination() -> Address | None:  # where the client said hello from, last
+                return session.addresses.get(datagrams)
+        if isinstance(p, PreparedTopic):
+            return self.router.topic(p, topic_id, label, link, destination)
+        return self.router.service(p, topic_id, label, link, destination)
 
+    @staticmethod
+    def _no_address() -> Address | None:
+        return None
+
+    def _dedicated_frame(self, port: int) -> Any:
+        """What frames on a dedicated stream port go to: the first says whose it is."""
         def on_frame(frame: bytes, link: Link, source: Address) -> None:
-            # the first frame on a dedicated connection says whose it is
             try:
                 header = envelope.unpack(frame)
             except envelope.EnvelopeError:
@@ -243,23 +239,23 @@ class ServerRole(Role):
             if header is not None and header.flags & envelope.FLAG_HELLO:
                 session = self.sessions.get(header.topic_id)
                 slot = session.streams.get(port) if session is not None else None
-                if slot is not None and frame[envelope.SIZE:] == session.token:  # type: ignore[union-attr]
+                if (session is not None and slot is not None and isinstance(link, StreamLink)
+                        and frame[envelope.SIZE:] == session.token):
                     old = slot.current
-                    slot.attach(link)  # type: ignore[arg-type]
+                    slot.attach(link)
                     if old is not None and old is not link:
                         old.fail("the client connected again")
                 else:
-                    self.engine.link_drop(link, "bad_hello", f"from {source}")
+                    self.router.link_drop(link, "bad_hello", f"from {source}")
                 return
-            self.engine.on_frame(frame, link, source)
+            self.router.on_frame(frame, link, source)
 
-        self.engine.closing(Acceptor(listener, f"{transport.name}:{port}",
-                                     self.accept_into(on_frame, transport, port)))
+        return on_frame
 
     def on_hello(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
         session = self.sessions.get(header.topic_id)
         if session is None or frame[envelope.SIZE:] != session.token:
-            self.engine.link_drop(link, "bad_hello", f"from {source}")
+            self.router.link_drop(link, "bad_hello", f"from {source}")
             return
         if isinstance(link, DatagramLink) and session.addresses.get(link) != source:
             session.addresses[link] = source
@@ -272,17 +268,17 @@ class ServerRole(Role):
         self._drop_routes(session)
 
     def _drop_routes(self, session: Session) -> None:
-        if not self.engine.stopping.is_set():  # at shutdown the engine logs every route itself
-            self.engine.log_stats(session.routes)  # what this client's topics carried, at the end
+        if not self.life.stopping.is_set():  # at shutdown the engine logs every route itself
+            self.router.log_stats(session.routes)  # what this client's topics carried, at the end
         for route in session.routes:
-            self.engine.remove_route(route)
+            self.router.remove(route)
         session.close()
 
     def _ping_loop(self) -> None:
         """Heartbeat to every connected client; liveness: a client silent for ``peer_timeout``
         is declared down (its connection recycled), one gone for ``session_timeout`` is dropped."""
         cfg = self.cfg
-        while not self.engine.stopping.wait(cfg.heartbeat):
+        while not self.life.stopping.wait(cfg.heartbeat):
             now = time.monotonic()
             for session in list(self.sessions.values()):
                 link = session.main.current
@@ -294,4 +290,4 @@ class ServerRole(Role):
                 elif link is not None and now - link.last_heard > cfg.peer_timeout:
                     link.fail(f"silent for {now - link.last_heard:.1f} s")
                 elif link is not None:
-                    link.send(control({"type": "ping"}), 0)
+                    link.send(control({"type": "ping"}), self.control)

@@ -19,9 +19,9 @@ import time
 from dataclasses import replace
 from typing import Any
 
-from . import envelope
-from .config import ServiceConfig, TopicConfig, service_from_mapping
-from .errors import ConfigError
+from ..config import ServiceConfig, TopicConfig, service_from_mapping
+from ..errors import ConfigError
+from ..wire import envelope
 
 PROTOCOL = 1           # main-line control protocol version
 HANDSHAKE_TIMEOUT = 10.0
@@ -31,6 +31,10 @@ def control(message: dict[str, Any]) -> bytes:
     """A control frame for the main line: an envelope on topic 0 and a JSON body."""
     header = envelope.pack(envelope.FLAG_CONTROL, envelope.CONTROL_TOPIC, 0, 0, time.time_ns())
     return header + json.dumps(message, separators=(",", ":")).encode()
+
+
+def is_control(frame: bytes) -> bool:
+    return len(frame) > 3 and frame[:2] == envelope.MAGIC and bool(frame[3] & envelope.FLAG_CONTROL)
 
 
 def parse_control(frame: bytes) -> dict[str, Any] | None:
@@ -50,7 +54,7 @@ def flipped(t: TopicConfig | ServiceConfig) -> Any:
     """The server's view of a client's topic or service: the other direction, names swapped."""
     name_key = "topic" if isinstance(t, TopicConfig) else "service"
     return replace(t, **{name_key: t.remote, "remote": getattr(t, name_key)},
-                   direction="receive" if t.direction == "transmit" else "transmit")
+                   direction=t.direction.flipped)
 
 
 def where_error(where: str) -> Any:

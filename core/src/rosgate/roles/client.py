@@ -18,26 +18,24 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from . import envelope
-from .config import service_to_mapping, topic_to_mapping
-from .errors import RosgateError
-from .links import DatagramLink, Link, LinkSlot, StreamLink
-from .mainline import HANDSHAKE_TIMEOUT, PROTOCOL, control, hello_datagram, parse_control
-from .roles import Connector, Role
-from .transport import Address
-
-if TYPE_CHECKING:
-    from .engine import Engine, Prepared
+from ..config import Direction, service_to_mapping, topic_to_mapping
+from ..errors import RosgateError
+from ..links import Connector, DatagramLink, Link, LinkSlot, StreamLink
+from ..resolver import PreparedService, PreparedTopic
+from ..router import fixed
+from ..transport import Address
+from . import Bridge, Role
+from .mainline import HANDSHAKE_TIMEOUT, PROTOCOL, control, hello_datagram, is_control, parse_control
 
 log = logging.getLogger("rosgate")
 
 
 class ClientRole(Role):
-    def __init__(self, engine: Engine):
-        super().__init__(engine)
-        self.main = engine.slot(f"main->{self.cfg.server}")
+    def __init__(self, bridge: Bridge):
+        super().__init__(bridge)
+        self.main = bridge.slot(f"main->{self.cfg.server}")
         self.session: int | None = None
         self.token = b""
         self.server_name: str | None = None
@@ -47,9 +45,11 @@ class ClientRole(Role):
         self._dedicated: list[LinkSlot] = []
         self._welcome: dict[str, Any] | None = None
         self._answer = threading.Event()
-        main = engine.transports[self.cfg.main_line]
-        self.connector = Connector(engine, main, engine.main_address, self.main, self._on_main_frame,
-                                   self._handshake, self._lost)
+        plan = bridge.plan
+        assert plan.main_line is not None and plan.main_address is not None
+        self.connector = Connector(plan.main_line, plan.main_address, self.main,
+                                   self._on_main_frame, self.router.on_lost, self.life,
+                                   bridge.backoff, self._handshake, self._lost)
 
     def start(self) -> None:
         self.connector.start()
@@ -61,32 +61,34 @@ class ClientRole(Role):
         if self.connected.is_set() and link is not None:
             # a clean stop says goodbye, so the server drops our session now instead of keeping
             # it for session_timeout in case we come back
-            link.send(control({"type": "bye"}), 0)
+            link.send(control({"type": "bye"}), self.control)
             link.drain(1.0)
         self.connector.close()
         super().stop()
 
     def _on_main_frame(self, frame: bytes, link: Link, source: Address) -> None:
-        if frame[3:4] and frame[3] & envelope.FLAG_CONTROL and frame[:2] == envelope.MAGIC:
+        if is_control(frame):
             message = parse_control(frame)
             if message is None:
-                self.engine.link_drop(link, "bad_control", "unreadable control message")
+                self.router.link_drop(link, "bad_control", "unreadable control message")
                 return
-            link.last_heard = time.monotonic()  # type: ignore[attr-defined]
+            assert isinstance(link, StreamLink)
+            link.last_heard = time.monotonic()
             if message["type"] in ("welcome", "refused"):
                 self._welcome = message
                 self._answer.set()
             return
-        self.engine.on_frame(frame, link, source)
+        self.router.on_frame(frame, link, source)
 
     def _handshake(self, link: StreamLink) -> bool:
         """Send our topics; build (or re-key) the routes from the server's answer."""
         self._answer.clear()
         self._welcome = None
+        plan = self.bridge.plan
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
-                           "topics": [topic_to_mapping(p.config) for p in self.engine.topics],
-                           "services": [service_to_mapping(p.config)
-                                        for p in self.engine.services]}), 0)
+                           "topics": [topic_to_mapping(p.config) for p in plan.topics],
+                           "services": [service_to_mapping(p.config) for p in plan.services]}),
+                  self.control)
         if not self._await_answer(link) or self._welcome is None:
             return False
         answer = self._welcome
@@ -95,7 +97,7 @@ class ClientRole(Role):
             return False
         try:
             ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
-            if len(ids) != len(self.engine.topics) + len(self.engine.services):
+            if len(ids) != len(plan.topics) + len(plan.services):
                 raise ValueError("topic and service id count does not match")
             session, token = int(answer["session"]), bytes.fromhex(answer["token"])
             self.server_name = str(answer["name"])
@@ -122,7 +124,7 @@ class ClientRole(Role):
     def _await_answer(self, link: StreamLink) -> bool:
         deadline = time.monotonic() + HANDSHAKE_TIMEOUT
         while not self._answer.wait(0.1):
-            if link.closed.is_set() or self.engine.stopping.is_set():
+            if link.closed.is_set() or self.life.stopping.is_set():
                 return False
             if time.monotonic() > deadline:
                 log.warning("%s: no answer to the handshake from %s", self.cfg.name,
@@ -136,24 +138,23 @@ class ClientRole(Role):
                     link.why or "main line closed")
 
     def _build(self, ids: list[int]) -> None:
-        engine = self.engine
-        main_reliable = []
-        for p, topic_id in zip([*engine.topics, *engine.services], ids):
+        plan = self.bridge.plan
+        entries: list[PreparedTopic | PreparedService] = [*plan.topics, *plan.services]
+        for p, topic_id in zip(entries, ids):
             t = p.config
-            label = f"{p.name} ({'to' if t.direction == 'transmit' else 'from'} {self.server_name})"
+            way = "to" if t.direction is Direction.TRANSMIT else "from"
+            label = f"{p.name} ({way} {self.server_name})"
+            link: Link
+            destination = fixed(p.address)
             if p.transport.stream:
-                slot = self.main if t.port is None else self._dedicated_stream(p)
-                route = self.add(engine.make_route(p, topic_id, label, slot))
-                if p.reliable and t.port is None:
-                    main_reliable.append(route)
-                elif p.reliable:
-                    slot.reliable = [route]
+                link = self.main if t.port is None else self._dedicated_stream(p)
             else:
-                link = self.datagram_link(p.transport, ("::" if ":" in p.address[0] else "0.0.0.0", 0))
-                self.add(engine.make_route(p, topic_id, label, link,
-                                           lambda to=p.address: to))  # type: ignore[misc]
+                link = self.datagram_link(p.transport, p.local)
                 self.hello_to.add((link, p.address))
-        self.main.reliable = main_reliable
+            if isinstance(p, PreparedTopic):
+                self.router.topic(p, topic_id, label, link, destination)
+            else:
+                self.router.service(p, topic_id, label, link, destination)
         self.topic_ids = ids
 
     def _unbuild(self) -> None:
@@ -167,29 +168,30 @@ class ClientRole(Role):
             self.hello_to.clear()
         for link in links:
             link.close()
-            self.engine.forget(link)
+            self.life.forget(link)
 
     def _rekey(self, ids: list[int]) -> None:
         """The server numbered our topics anew (it restarted): same routes, new ids."""
         renumber = dict(zip(self.topic_ids or [], ids))
         for slot in [self.main, *self._dedicated]:
             slot.discard("session_reset")
-        for route in self.routes():
-            self.engine.renumber(route, renumber[route.topic_id])
+        for route in self.router.snapshot():
+            self.router.renumber(route, renumber[route.topic_id])
         self.topic_ids = ids
 
-    def _dedicated_stream(self, p: Prepared) -> LinkSlot:
+    def _dedicated_stream(self, p: PreparedTopic | PreparedService) -> LinkSlot:
         address = p.address
-        slot = self.engine.slot(f"{p.config.transport}->{address[0]}:{address[1]}")
+        slot = self.bridge.slot(f"{p.config.transport}->{address[0]}:{address[1]}")
 
         def introduce(link: StreamLink) -> bool:
             # a session the server kept takes the hello even while the main line is down; a
             # new session makes the handshake recycle this connection
             if self.session is None:
                 return False  # wait for the first handshake
-            return link.send(hello_datagram(self.session, self.token), 0)
+            return link.send(hello_datagram(self.session, self.token), self.control)
 
-        Connector(self.engine, p.transport, address, slot, self.engine.on_frame, introduce).start()
+        Connector(p.transport, address, slot, self.router.on_frame, self.router.on_lost, self.life,
+                  self.bridge.backoff, introduce).start()
         self._dedicated.append(slot)
         return slot
 
@@ -198,18 +200,18 @@ class ClientRole(Role):
             return
         hello = hello_datagram(self.session, self.token)
         for link, to in list(self.hello_to):
-            link.send(hello, 0, to)
+            link.send(hello, self.control, to)
 
     def _ping_loop(self) -> None:
         """Heartbeat on the main line, and liveness: a server silent for ``peer_timeout`` is
         declared down and its connection recycled (a stalled TCP connection never ends alone).
         Datagram hellos go on while the main line is down, so the server keeps our address."""
-        while not self.engine.stopping.wait(self.cfg.heartbeat):
+        while not self.life.stopping.wait(self.cfg.heartbeat):
             link = self.main.current
             if self.connected.is_set() and link is not None and not link.closed.is_set():
                 silence = time.monotonic() - link.last_heard
                 if silence > self.cfg.peer_timeout:
                     link.fail(f"silent for {silence:.1f} s")
                     continue
-                link.send(control({"type": "ping"}), 0)
+                link.send(control({"type": "ping"}), self.control)
             self._say_hello()

@@ -1,0 +1,288 @@
+"""The resolver: a bringup.yaml's entries, checked against what is installed, become a
+:class:`Plan` of prepared topics and services — every plugin found and configured, every
+message type imported, every address built and accepted by its transport. Nothing opens: this
+is all ``rosgate check`` needs, and every mistake is a :class:`ConfigError` naming the file, the
+line, the key and the fix.
+
+A server resolves the entries a client sends in its hello the same way (``topic`` and
+``service``, with an error maker that names the client instead of a file).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from .cipher import Cipher
+from .codec import Codec
+from .config import (BridgeConfig, Direction, Framing, Role, ServiceConfig, TopicConfig)
+from .errors import ConfigError, OptionError
+from .plugins import Plugins, Registration
+from .ros import TypeNotFound, is_reliable, resolve_type
+from .transport import Address, Transport
+from .wire.envelope import topic_id_for
+
+ErrorMaker = Callable[..., ConfigError]
+
+ANY_IP = "0.0.0.0"
+
+
+@dataclass
+class PreparedTopic:
+    """A topic with every plugin and type resolved."""
+
+    config: TopicConfig
+    msg_type: type
+    codec_cls: type[Codec]
+    codec_options: Any
+    transport: Transport
+    cipher: Cipher
+    index: int  # position in the file (or in the client's list), for error messages
+    address: Address  # the far side; a peer's receiving topic: where to listen
+    local: Address  # peer role, datagram transmit: where to send from
+    reliable: bool  # frames wait out a stream link's loss (reliable QoS)
+
+    @property
+    def name(self) -> str:
+        return self.config.topic
+
+
+@dataclass
+class PreparedService:
+    """A service with every plugin and type resolved."""
+
+    config: ServiceConfig
+    srv_type: Any  # a ROS service class: Request and Response inside
+    codec_cls: type[Codec]
+    codec_options: Any
+    transport: Transport
+    cipher: Cipher
+    index: int
+    address: Address  # as for a topic: the far side, or where a peer listens
+    local: Address
+    # calls are not held while a link is down: the caller's timeout answers them instead
+    reliable: bool = False
+
+    @property
+    def name(self) -> str:
+        return self.config.service
+
+
+@dataclass
+class Plan:
+    """What a bridge will run: its prepared entries, and its main line (client and server)."""
+
+    config: BridgeConfig
+    topics: list[PreparedTopic]
+    services: list[PreparedService]
+    main_line: Transport | None = None
+    main_address: Address | None = None
+
+
+class Resolver:
+    """Resolves entries against the installed plugins; plugin instances are made once per name."""
+
+    def __init__(self, config: BridgeConfig, plugins: Plugins):
+        self.config = config
+        self.plugins = plugins
+        self.transports: dict[str, Transport] = {}
+        self.ciphers: dict[str, Cipher] = {}
+        self.main_line: Transport | None = None
+        self.main_address: Address | None = None
+
+    def plan(self) -> Plan:
+        cfg = self.config
+        if cfg.role is not Role.PEER:
+            main = self.transport(cfg.main_line, "bridge.main_line")
+            if not main.stream:
+                raise cfg.error("bridge.main_line", f"{cfg.main_line!r} is not a stream transport",
+                                "the main line needs a stream link such as tcp or bt")
+            self.main_line = main
+            self.main_address = self._parse_address(main, cfg.server, "bridge.server")
+        for key in ("transport", "codec", "cipher"):
+            self.plugin(key, cfg.defaults[key], f"bridge.defaults.{key}")
+        topics = [self.topic(t, i, "topics") for i, t in enumerate(cfg.topics)]
+        self._check_shared_ports(topics)
+        services = [self.service(s, i, "services") for i, s in enumerate(cfg.services)]
+        return Plan(cfg, topics, services, self.main_line, self.main_address)
+
+    # -- entries ---------------------------------------------------------------------------
+    def topic(self, topic: TopicConfig, index: int, section: str,
+              error: ErrorMaker | None = None) -> PreparedTopic:
+        error = error or self.config.error
+        key = f"{section}[{index}]"
+        transport = self.transport(topic.transport, f"{key}.transport", error)
+        codec_cls, codec_options = self._codec(topic.codec, f"{key}.codec", error)
+        cipher = self.cipher(topic.cipher, f"{key}.cipher", error)
+        try:
+            msg_type = resolve_type(topic.type)
+        except TypeNotFound as exc:
+            raise error(f"{key}.type", str(exc)) from None
+        try:
+            codec_cls(msg_type, codec_options)
+        except OptionError as exc:
+            raise self._option_error(topic.codec, exc, f"{key}.codec", error) from None
+        if topic.framing is Framing.NONE and transport.stream:
+            raise error(f"{key}.framing", "framing: none needs a datagram transport (udp, can, ...)",
+                        "use framing: rosgate on stream links")
+        self._check_main_line_port(topic, key, transport, error)
+        address, local = self._addresses(transport, topic, key, error)
+        return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher, index,
+                             address, local, is_reliable(topic.qos))
+
+    def service(self, service: ServiceConfig, index: int, section: str,
+                error: ErrorMaker | None = None) -> PreparedService:
+        error = error or self.config.error
+        key = f"{section}[{index}]"
+        transport = self.transport(service.transport, f"{key}.transport", error)
+        codec_cls, codec_options = self._codec(service.codec, f"{key}.codec", error)
+        cipher = self.cipher(service.cipher, f"{key}.cipher", error)
+        try:
+            srv_type: Any = resolve_type(service.type)
+        except TypeNotFound as exc:
+            raise error(f"{key}.type", str(exc)) from None
+        try:
+            codec_cls(srv_type.Request, codec_options)
+            codec_cls(srv_type.Response, codec_options)
+        except OptionError as exc:
+            raise self._option_error(service.codec, exc, f"{key}.codec", error) from None
+        if service.framing is Framing.SERIAL_DATAGRAM:
+            if self.config.role is not Role.PEER:
+                raise error(f"{key}.framing", "framing serial_datagram is for microcontroller "
+                            "peers, which have no main line", "use role: peer for this bridge")
+            if not transport.stream:
+                raise error(f"{key}.transport", "framing serial_datagram needs a stream transport "
+                            "(one connection per call)", "use transport: tcp")
+            if not codec_cls.messagepack:
+                raise error(f"{key}.codec", f"codec {service.codec} does not put the service's "
+                            "name on the wire (it does not write MessagePack)", "use codec: msgpack")
+        self._check_main_line_port(service, key, transport, error)
+        address, local = self._addresses(transport, service, key, error)
+        return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
+                               index, address, local)
+
+    def _check_main_line_port(self, entry: TopicConfig | ServiceConfig, key: str,
+                              transport: Transport, error: ErrorMaker) -> None:
+        cfg = self.config
+        if (cfg.role is Role.CLIENT and transport.stream and entry.port is None
+                and entry.transport != cfg.main_line):
+            kind = "topic" if isinstance(entry, TopicConfig) else "service"
+            raise error(f"{key}.port", f"a {kind} on {entry.transport} needs a port of its own "
+                        f"(only {cfg.main_line} {kind}s ride the main line)", "add port: <number>")
+
+    def _addresses(self, transport: Transport, entry: TopicConfig | ServiceConfig, key: str,
+                   error: ErrorMaker) -> tuple[Address, Address]:
+        """(the entry's address, the local address a peer sends from), from the bridge's hosts
+        and the entry's port, as its transport accepts them (an RFCOMM channel is not any port).
+
+        Client and server: the server's host and the entry's port (default: the main port).
+        Peer: a receiving entry listens at ``listen:port``, a transmitting one sends to
+        ``peer:port`` from ``listen`` (any port)."""
+        cfg = self.config
+        if cfg.role is Role.PEER:
+            listen = cfg.listen or ANY_IP
+            receive = entry.direction is Direction.RECEIVE
+            host = listen if receive else cfg.peer
+            where = "bridge.listen" if receive else "bridge.peer"
+            local = (listen, 0)
+            if not receive and not transport.stream:  # a datagram sender binds a socket too
+                local = self._check(transport, local, "bridge.listen", error,
+                                    f"set bridge.listen to this side's {entry.transport} address")
+        else:
+            assert self.main_address is not None
+            host, where = self.main_address[0], "bridge.server"
+            local = ("::" if ":" in host else ANY_IP, 0)
+        port = entry.port or (self.main_address[1] if self.main_address else 0)
+        kind = "topic" if isinstance(entry, TopicConfig) else "service"
+        fix = f"this {kind}'s {entry.transport} address is {where} with port {port}"
+        if where == "bridge.listen" and "bridge.listen" not in cfg.lines:  # 0.0.0.0: IP only
+            fix = f"set bridge.listen to this side's {entry.transport} address"
+        return self._check(transport, (host or "", port), f"{key}.port" if entry.port else where,
+                           error, fix), local
+
+    @staticmethod
+    def _check(transport: Transport, address: Address, key: str, error: ErrorMaker,
+               fix: str) -> Address:
+        try:
+            return transport.check_address(address)
+        except ValueError as exc:
+            raise error(key, str(exc), fix) from None
+
+    def _check_shared_ports(self, topics: list[PreparedTopic]) -> None:
+        """Topics that share a receiving port must be told apart on it."""
+        by_port: dict[tuple[str, int | None], list[PreparedTopic]] = {}
+        for p in topics:
+            if p.config.direction is Direction.RECEIVE:
+                by_port.setdefault((p.config.transport, p.config.port), []).append(p)
+        for group in by_port.values():
+            bare = [p for p in group if p.config.framing is Framing.NONE]
+            if bare and len(bare) != len(group):
+                p = bare[0]
+                raise self.config.error(f"topics[{p.index}].framing",
+                                        "topics on one port must all use the same framing")
+            if len(bare) > 1 and not all(p.codec_cls.messagepack for p in bare):
+                p = next(p for p in bare if not p.codec_cls.messagepack)
+                raise self.config.error(
+                    f"topics[{p.index}].port", f"codec {p.config.codec} does not name its frames, "
+                    "so with framing: none this topic needs a port of its own",
+                    "give each such topic its own port, or use codec msgpack")
+        if self.config.role is Role.PEER:
+            seen: dict[int, PreparedTopic] = {}
+            for p in topics:
+                t = p.config
+                for name in ({t.topic, t.remote} if t.direction is Direction.RECEIVE
+                             else {t.remote}):
+                    other = seen.setdefault(topic_id_for(name), p)
+                    if other is not p and other.config.direction == t.direction:
+                        raise self.config.error(
+                            f"topics[{p.index}].remote",
+                            f"link name {name!r} collides with topics[{other.index}]",
+                            "rename one of them (remote: ...)")
+
+    # -- plugins ---------------------------------------------------------------------------
+    def plugin(self, kind: str, name: str, key: str,
+               error: ErrorMaker | None = None) -> Registration:
+        registration = self.plugins.get(kind, name)
+        if registration is None:
+            message, fix = self.plugins.explain_missing(kind, name)
+            raise (error or self.config.error)(key, message, fix)
+        return registration
+
+    def transport(self, name: str, key: str, error: ErrorMaker | None = None) -> Transport:
+        if name not in self.transports:
+            cls = self.plugin("transport", name, key, error).cls
+            try:
+                self.transports[name] = cls(self._options(name))
+            except OptionError as exc:
+                raise self._option_error(name, exc, key, error) from None
+        return self.transports[name]
+
+    def cipher(self, name: str, key: str, error: ErrorMaker | None = None) -> Cipher:
+        if name not in self.ciphers:
+            cls = self.plugin("cipher", name, key, error).cls
+            try:
+                self.ciphers[name] = cls(self._options(name), self.config.base_dir)
+            except OptionError as exc:
+                raise self._option_error(name, exc, key, error) from None
+        return self.ciphers[name]
+
+    def _codec(self, name: str, key: str, error: ErrorMaker) -> tuple[type[Codec], Any]:
+        return self.plugin("codec", name, key, error).cls, self._options(name)
+
+    def _options(self, plugin: str) -> Any:
+        return self.config.plugins.get(plugin) or {}
+
+    def _parse_address(self, transport: Transport, text: str | None, key: str) -> Address:
+        try:
+            return transport.check_address(transport.parse_address(text or ""))
+        except ValueError as exc:
+            raise self.config.error(key, str(exc)) from None
+
+    def _option_error(self, plugin: str, exc: OptionError, asked_by: str,
+                      error: ErrorMaker | None) -> ConfigError:
+        """Locate a plugin's complaint at its option, or, when the file has no options for the
+        plugin at all, at the key that asked for the plugin."""
+        if f"plugins.{plugin}" not in self.config.lines:
+            return (error or self.config.error)(asked_by, f"{plugin}: {exc.message}", exc.fix)
+        key = f"plugins.{plugin}" + (f".{exc.key}" if exc.key else "")
+        return self.config.error(key, exc.message, exc.fix)

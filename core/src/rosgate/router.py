@@ -1,0 +1,244 @@
+"""The router: owns every route of a running bridge.
+
+It makes routes from prepared entries (with their ROS entities and their framing), finds the
+route of every frame that comes in — topics by topic id, service calls and answers by service
+id, in tables of their own — and counts what belongs to no route. Roles decide which links and
+ids a route gets; the router never opens a link.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from typing import Any, Callable
+
+from .config import BridgeConfig, Direction, Framing
+from .cvra import CvraCallerRoute
+from .links import Link
+from .resolver import PreparedService, PreparedTopic
+from .ros import RosNode, cdr_checker, qos_profile
+from .routes import (BareFraming, BarePort, EnvelopeFraming, ReceiveRoute, Route, TransmitRoute,
+                     Warner)
+from .services import (CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute,
+                       deep_qos)
+from .transport import Address
+from .wire import envelope
+
+log = logging.getLogger("rosgate")
+
+Destination = Callable[[], Address | None]
+HelloHandler = Callable[[envelope.Header, bytes, Link, Address], None]
+
+
+def _no_destination() -> Address | None:
+    return None
+
+
+def fixed(address: Address) -> Destination:
+    """A destination that never changes (a configured peer, a server's port)."""
+    return lambda: address
+
+
+class Router:
+    def __init__(self, ros: RosNode, warner: Warner | None = None):
+        self.ros = ros
+        self.warner = warner or Warner()
+        self.deadlines = Deadlines()
+        self.receivers: dict[int, ReceiveRoute] = {}
+        self.callers: dict[int, CallerRoute] = {}
+        self.servers: dict[int, ServerRoute] = {}
+        self.routes: list[Route] = []
+        self.link_drops: Counter = Counter()
+        #: a role that takes hellos (the server) sets this; elsewhere a hello is foreign
+        self.on_hello: HelloHandler | None = None
+        self._lock = threading.RLock()
+
+    # -- making routes -----------------------------------------------------------------------
+    def topic(self, p: PreparedTopic, topic_id: int, label: str, link: Link,
+              destination: Destination = _no_destination) -> TransmitRoute | ReceiveRoute:
+        """A topic's route and its ROS entity; a receiver with an envelope is found by its id."""
+        t = p.config
+        codec = p.codec_cls(p.msg_type, p.codec_options)
+        qos = qos_profile(t.qos)
+        route: TransmitRoute | ReceiveRoute
+        if t.direction is Direction.TRANSMIT:
+            framing = (BareFraming(t.remote if codec.messagepack else None)
+                       if t.framing is Framing.NONE else EnvelopeFraming())
+            route = TransmitRoute(t, topic_id, codec, p.cipher, self.warner, label, p.reliable,
+                                  framing=framing, link=link, destination=destination)
+            route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
+        else:
+            decode: Callable[[bytes], Any] = codec.decode
+            trusted = p.cipher.authenticates and t.framing is Framing.ROSGATE
+            if codec.raw and not trusted:
+                decode = _checked(decode, cdr_checker(p.msg_type))
+            route = ReceiveRoute(t, topic_id, codec, p.cipher, self.warner, label, p.reliable,
+                                 decode=decode)
+            route.entity = self.ros.publisher(p.msg_type, t.topic, qos)
+        with self._lock:
+            self.routes.append(route)
+            if isinstance(route, ReceiveRoute) and t.framing is Framing.ROSGATE:
+                self.receivers[topic_id] = route
+        return route
+
+    def service(self, p: PreparedService, service_id: int, label: str, link: Link | None,
+                destination: Destination = _no_destination) -> ServiceRoute:
+        """A service's route and its ROS entity. With an envelope, calls and answers find it by
+        its id; a microcontroller's calls (serial datagrams) find a serving route by name."""
+        s = p.config
+        args = (s, service_id, ServiceCodec(p.codec_cls, p.srv_type, p.codec_options), p.cipher,
+                self.warner, label, p.srv_type, self.deadlines)
+        qos = deep_qos()
+        route: ServiceRoute
+        if s.direction is Direction.RECEIVE:
+            route = ServerRoute(*args)
+            route.entity = self.ros.client(p.srv_type, s.service, qos)
+        elif s.framing is Framing.SERIAL_DATAGRAM:
+            route = CvraCallerRoute(*args, transport=p.transport, address=p.address)
+            route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, route.on_request)
+        else:
+            assert link is not None
+            route = CallerRoute(*args, link=link, destination=destination)
+            route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, route.on_request)
+        with self._lock:
+            self.routes.append(route)
+            if s.framing is Framing.ROSGATE:
+                table: dict[int, Any] = self.servers if isinstance(route, ServerRoute) \
+                    else self.callers
+                table[service_id] = route
+        return route
+
+    def bare_port(self, named: bool) -> BarePort:
+        """The receivers of one port with ``framing: none``."""
+        return BarePort(named, self.link_drop)
+
+    def alias(self, route: ReceiveRoute, topic_id: int) -> None:
+        """Find ``route`` under a second id too (peer role: its own name besides its remote)."""
+        with self._lock:
+            self.receivers[topic_id] = route
+
+    def renumber(self, route: Route, topic_id: int) -> None:
+        """Give a route the id a restarted server chose for it."""
+        with self._lock:
+            tables = self._forget(route)
+            route.topic_id = topic_id
+            for table in tables:
+                table[topic_id] = route
+
+    def remove(self, route: Route) -> None:
+        with self._lock:
+            self._forget(route)
+            if route in self.routes:
+                self.routes.remove(route)
+        if route.entity is not None:
+            self.ros.destroy(route.entity)
+            route.entity = None
+        close = getattr(route, "close", None)
+        if close is not None:
+            close()
+
+    def _forget(self, route: Route) -> list[dict[int, Any]]:
+        """Take ``route`` out of the dispatch tables (every id it has); the tables it was in."""
+        tables = []
+        for table in (self.receivers, self.callers, self.servers):
+            ids = [i for i, r in table.items() if r is route]
+            for i in ids:
+                del table[i]
+            if ids:
+                tables.append(table)
+        return tables
+
+    # -- receiving: every envelope frame from every link comes through here ----------------
+    def on_frame(self, frame: bytes, link: Link, source: Address) -> None:
+        try:
+            header = envelope.unpack(frame)
+        except envelope.EnvelopeError as exc:
+            self.link_drop(link, f"{exc}_frame", f"{len(frame)} bytes from {source}")
+            return
+        flags = header.flags
+        if flags & envelope.FLAG_HELLO:
+            if self.on_hello is None:
+                self.link_drop(link, "unexpected_hello", f"from {source}")
+            else:
+                self.on_hello(header, frame, link, source)
+        elif flags & envelope.FLAG_REQUEST:
+            server = self.servers.get(header.topic_id)
+            if server is None:
+                self.link_drop(link, "unknown_service", f"service id {header.topic_id} from {source}")
+            else:
+                server.on_request(header, frame, link, source)
+        elif flags & envelope.FLAG_REPLY:
+            caller = self.callers.get(header.topic_id)
+            if caller is None:
+                self.link_drop(link, "unknown_service", f"service id {header.topic_id} from {source}")
+            else:
+                caller.on_reply(header, frame)
+        else:
+            route = self.receivers.get(header.topic_id)
+            if route is None:
+                self.link_drop(link, "unknown_topic", f"topic id {header.topic_id} from {source}")
+            else:
+                route.on_frame(header, frame)
+
+    def on_lost(self, topic_id: int | None, reason: str) -> None:
+        """A receiving link lost a frame (a fragment that never came) or met bytes it could not
+        frame; counted against the topic when the link knows it."""
+        route = self.receivers.get(topic_id) if topic_id is not None else None
+        if route is not None:
+            route.drop(reason)
+        else:
+            self.link_drop(None, reason, "on a link")
+
+    def link_drop(self, link: Any, reason: str, detail: str) -> None:
+        """A frame that belongs to no route: counted per bridge, warned about per link."""
+        with self._lock:
+            self.link_drops[reason] += 1
+        self.warner.warn(link.name if link is not None else "link", reason, detail)
+
+    # -- housekeeping: stale topics and statistics -------------------------------------------
+    def warn_stale(self, config: BridgeConfig, now: float) -> None:
+        for route in self.snapshot():
+            if not isinstance(route, ReceiveRoute):
+                continue
+            silence = now - route.last_received
+            due = config.stale_after * (route.stale_warnings_given + 1)
+            if silence >= due and route.stale_warnings_given < config.stale_warnings:
+                route.stale_warnings_given += 1
+                log.warning("%s: no data for %.0f s (warning %d of %d)", route.label, silence,
+                            route.stale_warnings_given, config.stale_warnings)
+
+    def snapshot(self) -> list[Route]:
+        with self._lock:
+            return list(self.routes)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters per route, plus drops that belong to no topic."""
+        return {"routes": {r.label: r.counters.snapshot() for r in self.snapshot()},
+                "link_drops": dict(self.link_drops)}
+
+    def log_stats(self, routes: list[Route] | None = None) -> None:
+        """Log the counters of ``routes`` (default: every route, and the frames for no topic)."""
+        for route in self.snapshot() if routes is None else routes:
+            c = route.counters
+            drops = ", ".join(f"{k}={v}" for k, v in sorted(c.drops.items())) or "none"
+            lost = f", lost on the way {c.lost}" if c.lost else ""
+            log.info("%s: sent %d (%d B), received %d (%d B)%s, drops: %s", route.label, c.sent,
+                     c.bytes_sent, c.received, c.bytes_received, lost, drops)
+        if routes is None and self.link_drops:
+            log.info("frames for no topic: %s", dict(self.link_drops))
+
+    def close(self) -> None:
+        for route in self.snapshot():
+            self.remove(route)
+        self.deadlines.close()
+
+
+def _checked(decode: Callable[[bytes], Any], check: Callable[[bytes], None]) -> Callable[[bytes], Any]:
+    """``decode``, then ``check`` what it returned (raw CDR no cipher authenticated)."""
+    def checked(data: bytes) -> Any:
+        value = decode(data)
+        check(value)
+        return value
+    return checked
