@@ -14,10 +14,15 @@ cipher, :mod:`rosgate.keys`):
 ``key_env``   name of an environment variable holding the key.
 
 The key is never taken from the command line, where other users could read it in ``ps``.
+
+In an authenticated session the key is not read from a file: the session derives 32 bytes per
+direction, topic and key generation, and :meth:`FernetCipher.from_secret` makes them a Fernet
+key (16 for HMAC-SHA256, 16 for AES-128).
 """
 
 from __future__ import annotations
 
+import base64
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -29,6 +34,7 @@ from rosgate.keys import describe_source, key_source, load_key
 
 class FernetCipher(Cipher):
     name = "fernet"
+    session_key_size = 32
 
     def __init__(self, options: Mapping[str, Any], base_dir: Path):
         super().__init__(options, base_dir)
@@ -39,6 +45,13 @@ class FernetCipher(Cipher):
             raise OptionError(key_source(options), f"the key in {describe_source(options)} is not a "
                               "Fernet key (32 url-safe base64-encoded bytes)",
                               "create one with 'rosgate keygen fernet --out secret.key'") from None
+
+    @classmethod
+    def from_secret(cls, secret: bytes) -> FernetCipher:
+        cipher = cls.__new__(cls)
+        cipher.options = {}
+        cipher._fernet = Fernet(base64.urlsafe_b64encode(secret))
+        return cipher
 
     def seal(self, header: bytes, payload: bytes) -> bytes:
         return self._fernet.encrypt(header + payload)

@@ -22,6 +22,9 @@ cipher, :mod:`rosgate.keys`):
 
 A key that is not 32 bytes of base64 is an :class:`rosgate.OptionError` at the option that
 named it (the key is never shown).
+
+In an authenticated session the key is not read from a file: the session derives one per
+direction, topic and key generation (:meth:`NaclCipher.from_secret`); the body is the same.
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ def _nonce(salt: bytes, header: bytes) -> bytes:
 
 class NaclCipher(Cipher):
     name = "nacl"
+    session_key_size = SecretBox.KEY_SIZE
 
     def __init__(self, options: Mapping[str, Any], base_dir: Path):
         super().__init__(options, base_dir)
@@ -62,6 +66,13 @@ class NaclCipher(Cipher):
                               f"nacl key ({SecretBox.KEY_SIZE} bytes in base64)",
                               "create one with 'rosgate keygen nacl --out nacl.key'")
         self._box = SecretBox(key)
+
+    @classmethod
+    def from_secret(cls, secret: bytes) -> NaclCipher:
+        cipher = cls.__new__(cls)
+        cipher.options = {}
+        cipher._box = SecretBox(secret)
+        return cipher
 
     def seal(self, header: bytes, payload: bytes) -> bytes:
         salt = os.urandom(SALT)
