@@ -67,14 +67,13 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig,
          lambda r: "ciphers " + (", ".join(r.ciphers) if r.ciphers is not None
                                  else "keyed by the session (not none)")),
     )
-    for label, value, ok, says in checks:
-        if not any(ok(r) for r in by_name):
+    for label, value, allows, allowed in checks:
+        if not any(allows(r) for r in by_name):
             rule = by_name[0]
             return (f"{policy.name} may not {direction} {what} with {label} {value} (policy "
-                    f"for {policy.name} allows {says(rule)} for {rule.name})")
+                    f"for {policy.name} allows {allowed(rule)} for {rule.name})")
     for rule in by_name:
-        if all(ok(rule) for _, _, ok, _ in checks):
+        if all(check[2](rule) for check in checks):
             return None
-    rule = by_name[0]
     return (f"{policy.name} may not {direction} {what} as asked (no rule of policy for "
             f"{policy.name} allows its type, port and cipher together)")

@@ -36,11 +36,12 @@ class PreparedTopic:
     codec_cls: type[Codec]
     codec_options: Any
     transport: Transport
-    cipher: Cipher
+    cipher: Cipher | None  # built from the file's key; None in a session (keyed from it)
     index: int  # position in the file (or in the client's list), for error messages
     address: Address  # the far side; a peer's receiving topic: where to listen
     local: Address  # peer role, datagram transmit: where to send from
     reliable: bool  # frames wait out a stream link's loss (reliable QoS)
+    cipher_cls: type[Cipher] | None = None
 
     @property
     def name(self) -> str:
@@ -56,12 +57,13 @@ class PreparedService:
     codec_cls: type[Codec]
     codec_options: Any
     transport: Transport
-    cipher: Cipher
+    cipher: Cipher | None
     index: int
     address: Address  # as for a topic: the far side, or where a peer listens
     local: Address
     # calls are not held while a link is down: the caller's timeout answers them instead
     reliable: bool = False
+    cipher_cls: type[Cipher] | None = None
 
     @property
     def name(self) -> str:
@@ -101,6 +103,11 @@ class Resolver:
             self.main_address = self._parse_address(main, cfg.server, "bridge.server")
         for key in ("transport", "codec", "cipher"):
             self.plugin(key, cfg.defaults[key], f"bridge.defaults.{key}")
+        if cfg.secure and cfg.role is Role.SERVER:
+            for name, policy in cfg.clients.items():  # a cipher a rule names must exist
+                for i, rule in enumerate([*policy.topics, *policy.services]):
+                    for cipher in rule.ciphers or ():
+                        self.plugin("cipher", cipher, f"clients.{name}")
         topics = [self.topic(t, i, "topics") for i, t in enumerate(cfg.topics)]
         self._check_shared_ports(topics)
         services = [self.service(s, i, "services") for i, s in enumerate(cfg.services)]
@@ -113,7 +120,7 @@ class Resolver:
         key = f"{section}[{index}]"
         transport = self.transport(topic.transport, f"{key}.transport", error)
         codec_cls, codec_options = self._codec(topic.codec, f"{key}.codec", error)
-        cipher = self.cipher(topic.cipher, f"{key}.cipher", error)
+        cipher_cls, cipher = self._entry_cipher(topic.cipher, f"{key}.cipher", error)
         try:
             msg_type = resolve_type(topic.type)
         except TypeNotFound as exc:
@@ -128,7 +135,7 @@ class Resolver:
         self._check_main_line_port(topic, key, transport, error)
         address, local = self._addresses(transport, topic, key, error)
         return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher, index,
-                             address, local, is_reliable(topic.qos))
+                             address, local, is_reliable(topic.qos), cipher_cls)
 
     def service(self, service: ServiceConfig, index: int, section: str,
                 error: ErrorMaker | None = None) -> PreparedService:
@@ -136,7 +143,7 @@ class Resolver:
         key = f"{section}[{index}]"
         transport = self.transport(service.transport, f"{key}.transport", error)
         codec_cls, codec_options = self._codec(service.codec, f"{key}.codec", error)
-        cipher = self.cipher(service.cipher, f"{key}.cipher", error)
+        cipher_cls, cipher = self._entry_cipher(service.cipher, f"{key}.cipher", error)
         try:
             srv_type: Any = resolve_type(service.type)
         except TypeNotFound as exc:
@@ -159,7 +166,7 @@ class Resolver:
         self._check_main_line_port(service, key, transport, error)
         address, local = self._addresses(transport, service, key, error)
         return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
-                               index, address, local)
+                               index, address, local, cipher_cls=cipher_cls)
 
     def _check_main_line_port(self, entry: TopicConfig | ServiceConfig, key: str,
                               transport: Transport, error: ErrorMaker) -> None:
@@ -265,6 +272,18 @@ class Resolver:
             except OptionError as exc:
                 raise self._option_error(name, exc, key, error) from None
         return self.ciphers[name]
+
+    def _entry_cipher(self, name: str, key: str,
+                      error: ErrorMaker) -> tuple[type[Cipher], Cipher | None]:
+        """An entry's cipher class, and an instance keyed from the file (None in a session,
+        where the session keys it: its key options are not needed)."""
+        cls = self.plugin("cipher", name, key, error).cls
+        if not self.config.secure:
+            return cls, self.cipher(name, key, error)
+        if not cls.session_key_size and cls.authenticates:
+            raise error(key, f"cipher {name!r} cannot be keyed from a session",
+                        "pick a cipher that can (aead, nacl, fernet)")
+        return cls, None
 
     def _codec(self, name: str, key: str, error: ErrorMaker) -> tuple[type[Codec], Any]:
         return self.plugin("codec", name, key, error).cls, self._options(name)

@@ -63,7 +63,7 @@ class Router:
         """A topic's route and its ROS entity; a receiver with an envelope is found by its id.
         ``keys``: a session's; by default the entry's cipher as the file configured it."""
         t = p.config
-        keys = keys or StaticKeys(p.cipher)
+        keys = keys or StaticKeys(_static(p.cipher))
         codec = p.codec_cls(p.msg_type, p.codec_options)
         qos = qos_profile(t.qos)
         route: TransmitRoute | ReceiveRoute
@@ -94,7 +94,7 @@ class Router:
         its id; a microcontroller's calls (serial datagrams) find a serving route by name."""
         s = p.config
         args = (s, service_id, ServiceCodec(p.codec_cls, p.srv_type, p.codec_options),
-                keys or StaticKeys(p.cipher),
+                keys or StaticKeys(_static(p.cipher)),
                 self.warner, label, p.srv_type, self.deadlines)
         qos = deep_qos()
         route: ServiceRoute
@@ -239,6 +239,12 @@ class Router:
         for route in self.snapshot():
             self.remove(route)
         self.deadlines.close()
+
+
+def _static(cipher: Any) -> Any:
+    """An entry's cipher from the file: a session's entries always come with their keys."""
+    assert cipher is not None, "an entry of a session needs the session's keys"
+    return cipher
 
 
 def _checked(decode: Callable[[bytes], Any], check: Callable[[bytes], None]) -> Callable[[bytes], Any]:

@@ -177,7 +177,7 @@ class TransmitRoute(Route):
         self.framing = framing
         self.link = link
         self.destination = destination  # where to send, looked up per message (a server learns it)
-        self.epoch = keys.epoch()
+        self.epoch: int | None = None  # of the key in use, set by the first frame
         self.seq = 0
         rate = topic.max_rate
         self.min_interval_ns = int(1e9 / rate) if rate else 0

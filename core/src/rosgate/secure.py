@@ -49,6 +49,7 @@ from cryptography.hazmat.primitives.hashes import SHA256
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
 from .cipher import Cipher
+from .errors import LinkError
 from .keyring import Keys
 from .transport import StreamConnection
 from .wire import envelope
@@ -65,7 +66,7 @@ GENERATIONS = 1 << 24
 HELLO_LABEL = "hello c2s"
 
 
-class HandshakeError(Exception):
+class HandshakeError(LinkError):
     """A handshake that failed: not Noise, a wrong or unknown key, too slow, too big."""
 
 

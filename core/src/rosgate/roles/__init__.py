@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
+from collections import Counter
 from dataclasses import dataclass
 from typing import Callable
 
@@ -30,6 +32,8 @@ from ..wire import envelope
 log = logging.getLogger("rosgate")
 
 FrameHandler = Callable[[bytes, Link, Address], None]
+#: (connection, peer, then): authenticate an accepted connection, then hand it to ``then``
+Handshake = Callable[[StreamConnection, Address, Callable[[StreamConnection], None]], None]
 
 
 @dataclass
@@ -100,20 +104,26 @@ class Role:
             self.datagram_links[(transport.name, local)] = self.life.closing(link)
             return link
 
-    def accept_into(self, on_frame: FrameHandler, transport: Transport,
-                    port: int) -> Callable[[StreamConnection, Address], None]:
+    def accept_into(self, on_frame: FrameHandler, transport: Transport, port: int,
+                    handshake: Handshake | None = None
+                    ) -> Callable[[StreamConnection, Address], None]:
         """What to do with each connection accepted on a port: a link that feeds ``on_frame``
-        and is forgotten by the bridge when it ends."""
+        and is forgotten by the bridge when it ends (after ``handshake``, when given)."""
         life, on_lost = self.life, self.router.on_lost
 
         def accepted(connection: StreamConnection, peer: Address) -> None:
-            life.closing(StreamLink(connection, f"{transport.name}:{port}<-{peer[0]}", peer,
-                                    on_frame, on_lost, on_close=life.forget))
+            def link(ready: StreamConnection) -> None:
+                life.closing(StreamLink(ready, f"{transport.name}:{port}<-{peer[0]}", peer,
+                                        on_frame, on_lost, on_close=life.forget))
+            if handshake is None:
+                link(connection)
+            else:
+                handshake(connection, peer, link)
 
         return accepted
 
     def listen(self, transport: Transport, local: Address, on_frame: FrameHandler,
-               key: str | None = None) -> None:
+               key: str | None = None, handshake: Handshake | None = None) -> None:
         """Accept stream connections at ``local`` (once per address). A LinkError is located at
         ``key``; without one (a server listening for a client) it goes to the caller."""
         with self._lock:
@@ -127,7 +137,7 @@ class Role:
                 raise self.bridge.link_error(exc, key) from None
             self.listening.add((transport.name, local))
         self.life.closing(Acceptor(listener, f"{transport.name}:{local[1]}",
-                                   self.accept_into(on_frame, transport, local[1])))
+                                   self.accept_into(on_frame, transport, local[1], handshake)))
 
 
 class Control:
@@ -142,6 +152,30 @@ class Control:
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.router.link_drop(None, reason, detail or "a control frame on a link")
+
+
+REFUSAL_EVERY = 60.0  # seconds between two log lines about one refusal
+
+
+class Refusals:
+    """Refusals said once per :data:`REFUSAL_EVERY` seconds each (an attacker retrying must not
+    flood the log), with how many were held back."""
+
+    def __init__(self, every: float = REFUSAL_EVERY):
+        self.every = every
+        self._last: dict[str, float] = {}
+        self._held: Counter = Counter()
+        self._lock = threading.Lock()
+
+    def say(self, key: str, message: str, level: int = logging.WARNING) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(key, -self.every) < self.every:
+                self._held[key] += 1
+                return
+            self._last[key] = now
+            held = self._held.pop(key, 0)
+        log.log(level, "%s%s", message, f" ({held} more since)" if held else "")
 
 
 class NoLink(Link):
