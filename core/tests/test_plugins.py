@@ -290,9 +290,9 @@ def test_discover_finds_the_installed_plugins(monkeypatch):
 
 
 def test_discover_honours_the_disable_variable(monkeypatch):
-    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet,cbor,nacl")
+    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet,cbor,nacl,aead")
     plugins = Plugins.discover()
-    assert sorted(plugins.blocked) == ["cbor", "fernet", "msgpack", "nacl"]
+    assert sorted(plugins.blocked) == ["aead", "cbor", "fernet", "msgpack", "nacl"]
     assert plugins.names("codec") == ["cdr"]
     assert plugins.names("cipher") == ["none"]
     assert {"udp", "tcp"} <= set(plugins.names("transport"))
@@ -306,7 +306,7 @@ def test_builtin_cannot_be_blocked(monkeypatch):
     plugins = Plugins.discover()
     assert plugins.blocked == ["msgpack"]
     assert plugins.names("codec") == ["cbor", "cdr"]
-    assert plugins.names("cipher") == ["fernet", "nacl", "none"]
+    assert plugins.names("cipher") == ["aead", "fernet", "nacl", "none"]
     assert plugins.get("cipher", "none").cls is NoCipher
 
 

@@ -228,8 +228,8 @@ class BridgeConfig:
 
     @property
     def secure(self) -> bool:
-        """Client or server with a handshake: every link of a session is authenticated."""
-        return self.role is not Role.PEER and not self.insecure
+        """Client or server with identities: every link of a session is authenticated."""
+        return self.role is not Role.PEER and self.identity is not None
 
 
 def load(path: str | Path) -> BridgeConfig:
@@ -398,7 +398,7 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
     _check_role(src, data, bridge, role)
     insecure = _flag(src, bridge, "bridge", "insecure")
     identity, server_key = _identity(src, bridge, role, insecure, base_dir)
-    secure = role is not Role.PEER and not insecure
+    secure = identity is not None
     defaults = _defaults(src, bridge, SESSION_CIPHER_DEFAULT if secure else CIPHER_DEFAULT)
     heartbeat = _number(src, bridge, "bridge", "heartbeat", HEARTBEAT_DEFAULT, "a number > 0", _positive)
     peer_timeout = _number(src, bridge, "bridge", "peer_timeout",
@@ -522,12 +522,13 @@ def _identity(src: _Source, bridge: dict, role: Role, insecure: bool,
                                 "other", fix="remove insecure: true to authenticate (or the key "
                                              "to run without)")
         return None, None
-    fix = ("make one with 'rosgate keygen identity --out NAME.key' (README, Security: setting "
-           "up identities); or, on a network you trust entirely, insecure: true")
-    for key in wanted:
-        if key not in bridge:
-            raise src.error("bridge", f"a {role} needs bridge.{key}: to authenticate its "
-                            "sessions", fix=fix)
+    if "identity" not in bridge:
+        # a client or server without identities is refused when it is planned (Resolver.plan),
+        # so that this module still reads any file for what else it may say
+        return None, None
+    if role is Role.CLIENT and "server_key" not in bridge:
+        raise src.error("bridge.identity", "a client with an identity needs the server's "
+                        "public key too", fix="add server_key: <the server's public key>")
     path = base_dir / _required(src, bridge, "bridge", "identity")
     try:
         identity = load_private(path)

@@ -42,6 +42,7 @@ KNOWN_DISTRIBUTIONS = {
     ("codec", "cbor"): "rosgate-codec-cbor",
     ("cipher", "fernet"): "rosgate-crypto-fernet",
     ("cipher", "nacl"): "rosgate-crypto-nacl",
+    ("cipher", "aead"): "rosgate-crypto-aead",
 }
 
 

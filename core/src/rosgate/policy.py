@@ -52,7 +52,7 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig,
     by_name = [r for r in rules if _allows_direction(r, direction) and matches(r.name, name)]
     if not by_name:
         allowed = [r.name for r in rules if _allows_direction(r, direction)]
-        says = ", ".join(allowed) if allowed else f"no {kind}s in that direction"
+        says = ", ".join(allowed) if allowed else f"no {kind}s it {direction}s"
         return f"{policy.name} may not {direction} {what} (policy for {policy.name} allows {says})"
     checks = (
         ("type", entry.type, lambda r: r.types is None

@@ -111,6 +111,12 @@ class Resolver:
         topics = [self.topic(t, i, "topics") for i, t in enumerate(cfg.topics)]
         self._check_shared_ports(topics)
         services = [self.service(s, i, "services") for i, s in enumerate(cfg.services)]
+        if cfg.role is not Role.PEER and not cfg.secure and not cfg.insecure:
+            key = "identity, server_key" if cfg.role is Role.CLIENT else "identity"
+            raise cfg.error("bridge", f"a {cfg.role} needs bridge.{key} to authenticate its "
+                            "sessions", "make one with 'rosgate keygen identity --out NAME.key' "
+                            "(README, Security: setting up identities); or, on a network you "
+                            "trust entirely, insecure: true")
         return Plan(cfg, topics, services, self.main_line, self.main_address)
 
     # -- entries ---------------------------------------------------------------------------

@@ -38,6 +38,7 @@ datagram changes nothing.
 
 from __future__ import annotations
 
+import itertools
 import struct
 import threading
 import time
@@ -220,9 +221,10 @@ class KeySchedule:
         self.rekey = rekey
         self.clock = clock
         self._lock = threading.Lock()
-        # key id -> (root, generation 0 started at, erase at (None: current))
-        self._roots: dict[int, tuple[bytes, float, float | None]] = {}
+        # key id -> (root, generation 0 started at, erase at (None: current), serial)
+        self._roots: dict[int, tuple[bytes, float, float | None, int]] = {}
         self._sealing: int | None = None
+        self._serials = itertools.count(1)  # a server that restarted may reuse a key id
 
     def install(self, key_id: int, secret: bytes, handshake_hash: bytes,
                 seal_now: bool = True) -> None:
@@ -231,12 +233,12 @@ class KeySchedule:
         root = hkdf(secret, b"rosgate/1 session root", salt=handshake_hash)
         now = self.clock()
         with self._lock:
-            for old, (r, started, _) in list(self._roots.items()):
+            for old, (r, started, _, serial) in list(self._roots.items()):
                 if old == key_id:
                     del self._roots[old]
                 else:
-                    self._roots[old] = (r, started, now + GRACE)  # opens a while longer
-            self._roots[key_id] = (root, now, None)
+                    self._roots[old] = (r, started, now + GRACE, serial)  # opens a while longer
+            self._roots[key_id] = (root, now, None, next(self._serials))
             if seal_now or self._sealing not in self._roots:
                 self._sealing = key_id
 
@@ -256,38 +258,46 @@ class KeySchedule:
             key_id = self._sealing
             if key_id is None:
                 raise LookupError("no session key yet")
-            _, started, _ = self._roots[key_id]
+            started = self._roots[key_id][1]
         return key_id << 24 | self._generation(started)
 
     def _generation(self, started: float) -> int:
         return int((self.clock() - started) / self.rekey) % GENERATIONS
 
-    def _root(self, epoch: int, sealing: bool) -> bytes | None:
-        """The root of ``epoch`` while it may be used. Opening accepts the generation before
-        and after our own; sealing any of a known root (a reply seals under its request's)."""
+    def _root(self, epoch: int, sealing: bool) -> tuple[bytes, int] | None:
+        """The root of ``epoch`` (and its serial) while it may be used. Opening accepts the
+        generation before and after our own; sealing any of a known root (a reply seals under
+        its request's)."""
         key_id, generation = epoch >> 24, epoch % GENERATIONS
         now = self.clock()
         with self._lock:
             found = self._roots.get(key_id)
             if found is None:
                 return None
-            root, started, erase_at = found
+            root, started, erase_at, serial = found
             if erase_at is not None and now > erase_at:
                 del self._roots[key_id]
                 return None
         if not sealing and abs(generation - self._generation(started)) > 1:
             return None
-        return root
+        return root, serial
 
-    def usable(self, epoch: int, sealing: bool) -> bool:
-        return self._root(epoch, sealing) is not None
+    def serial(self, epoch: int, sealing: bool) -> int | None:
+        """Which root ``epoch`` means now (None: none usable): a cipher made for another serial
+        is stale even under the same epoch."""
+        found = self._root(epoch, sealing)
+        return found[1] if found is not None else None
 
-    def secret(self, epoch: int, label: str, size: int, sealing: bool) -> bytes | None:
-        """The key of ``label`` in ``epoch``; None when this side no longer (or never) has it."""
-        root = self._root(epoch, sealing)
-        if root is None:
+    def secret(self, epoch: int, label: str, size: int,
+               sealing: bool) -> tuple[bytes, int] | None:
+        """The key of ``label`` in ``epoch`` and its root's serial; None when this side no
+        longer (or never) has it."""
+        found = self._root(epoch, sealing)
+        if found is None:
             return None
-        return hkdf(root, f"rosgate/1 {label} {epoch % GENERATIONS}".encode(), length=size)
+        root, serial = found
+        info = f"rosgate/1 {label} {epoch % GENERATIONS}".encode()
+        return hkdf(root, info, length=size), serial
 
 
 class SessionKeys(Keys):
@@ -305,7 +315,7 @@ class SessionKeys(Keys):
         self.authenticates = cipher_cls.authenticates
         self._keyless = cipher_cls.session_key_size == 0
         self._plain = cipher_cls({}, None) if self._keyless else None  # type: ignore[arg-type]
-        self._cache: dict[tuple[int, bool], Cipher | None] = {}
+        self._cache: dict[tuple[int, bool], tuple[int, Cipher]] = {}  # -> (root serial, cipher)
         self._lock = threading.Lock()
 
     def epoch(self) -> int:
@@ -325,17 +335,18 @@ class SessionKeys(Keys):
             return self._plain
         key = (epoch, sealing)
         cached = self._cache.get(key)
-        if cached is not None:
-            return cached if self.schedule.usable(epoch, sealing) else None
+        if cached is not None and cached[0] == self.schedule.serial(epoch, sealing):
+            return cached[1]
         label = self.send_label if sealing else self.receive_label
-        secret = self.schedule.secret(epoch, label, self.cipher_cls.session_key_size, sealing)
-        if secret is None:
+        found = self.schedule.secret(epoch, label, self.cipher_cls.session_key_size, sealing)
+        if found is None:
             return None
+        secret, serial = found
         cipher = self.cipher_cls.from_secret(secret)
         with self._lock:
             if len(self._cache) >= self.CACHE:
                 del self._cache[next(iter(self._cache))]
-            self._cache[key] = cipher
+            self._cache[key] = (serial, cipher)
         return cipher
 
 
@@ -343,18 +354,18 @@ def seal_hello(schedule: KeySchedule, session: int, seq: int) -> bytes:
     """A datagram that tells the server where this client's link is, sealed in the session."""
     epoch = schedule.epoch()
     header = envelope.pack(envelope.FLAG_HELLO, session, epoch, seq, time.time_ns())
-    key = schedule.secret(epoch, HELLO_LABEL, 32, sealing=True)
-    assert key is not None
-    return header + ChaCha20Poly1305(key).encrypt(header[8:20], b"", header)
+    found = schedule.secret(epoch, HELLO_LABEL, 32, sealing=True)
+    assert found is not None
+    return header + ChaCha20Poly1305(found[0]).encrypt(header[8:20], b"", header)
 
 
 def open_hello(schedule: KeySchedule, header: envelope.Header, frame: bytes) -> bool:
     """Whether a hello datagram was sealed in this session (not whether it is new)."""
-    key = schedule.secret(header.epoch, HELLO_LABEL, 32, sealing=False)
-    if key is None:
+    found = schedule.secret(header.epoch, HELLO_LABEL, 32, sealing=False)
+    if found is None:
         return False
     try:
-        ChaCha20Poly1305(key).decrypt(frame[8:20], frame[envelope.SIZE:], frame[:envelope.SIZE])
+        ChaCha20Poly1305(found[0]).decrypt(frame[8:20], frame[envelope.SIZE:], frame[:envelope.SIZE])
     except InvalidTag:
         return False
     return True

@@ -28,7 +28,7 @@ from typing import Any
 import itertools
 
 from ..config import Direction, service_to_mapping, topic_to_mapping
-from ..errors import RosgateError
+from ..errors import LinkError, RosgateError
 from ..keyring import Keys
 from ..links import Connector, DatagramLink, Link, LinkSlot, StreamLink
 from ..resolver import PreparedService, PreparedTopic
@@ -172,6 +172,10 @@ class ClientRole(Role):
     def _await_answer(self, link: StreamLink) -> bool:
         deadline = time.monotonic() + HANDSHAKE_TIMEOUT
         while not self._answer.wait(0.1):
+            if link.closed.is_set() and not self.life.stopping.is_set():
+                self.connector.failed(LinkError(
+                    "the server closed the connection before answering our hello (does it "
+                    "require identities? then set bridge.identity and server_key)"))
             if link.closed.is_set() or self.life.stopping.is_set():
                 return False
             if time.monotonic() > deadline:

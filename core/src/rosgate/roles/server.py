@@ -70,7 +70,7 @@ class Session:
     down_since: float | None = None  # monotonic time the main line was lost; None while up
     policy: ClientPolicy | None = None  # authenticated: the client's entry in clients:
     schedule: KeySchedule | None = None
-    key_id: int = 0
+    key_id: int | None = None  # of the last handshake's secret
     hellos: envelope.ReplayWindow = field(default_factory=envelope.ReplayWindow)
 
     @property
@@ -240,12 +240,12 @@ class ServerRole(Role):
     def _new_keys(self, session: Session, connection: SecureConnection) -> dict[str, Any]:
         """A fresh secret for this handshake (sent inside it). The previous one still opens
         what was sealed under it for a while, and seals until the client says it is ready."""
-        first = session.schedule is None
+        first = session.key_id is None
         if session.schedule is None:
             session.schedule = KeySchedule(self.cfg.rekey)
-            session.key_id = os.urandom(1)[0]
-        else:
-            session.key_id = (session.key_id + 1) % 256
+        # a random first id: a restarted server rarely reuses its predecessor's (and when it
+        # does, the client's root serials keep the two apart)
+        session.key_id = os.urandom(1)[0] if session.key_id is None else (session.key_id + 1) % 256
         secret = os.urandom(32)
         session.schedule.install(session.key_id, secret, connection.handshake_hash,
                                  seal_now=first)
