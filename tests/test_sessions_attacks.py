@@ -140,6 +140,11 @@ topics: {topics}
 {services}""")
 
 
+# robot1's /status as its client sends it in the hello: what an eavesdropper copied
+ROBOT1_STATUS_AS_SENT = [{"topic": "/status", "type": "std_msgs/msg/String", "direction": "receive",
+                          "remote": "/robot1/status", "transport": "udp", "codec": "cdr",
+                          "cipher": "none", "framing": "rosgate", "qos": 10}]
+
 ROBOT1_TOPICS = """
   - {topic: /chatter, type: std_msgs/msg/String, direction: transmit, remote: /robot1/chatter}
   - {topic: /status, type: std_msgs/msg/String, direction: receive, remote: /robot1/status}"""
@@ -184,7 +189,10 @@ class Publishing:
     hostile client wanted to read)."""
 
     def __init__(self, side: Any, topic: str):
-        self.publisher = side.publisher(topic, String)
+        from rclpy.qos import DurabilityPolicy, QoSProfile
+
+        latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.publisher = side.publisher(topic, String, latched)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -218,8 +226,8 @@ def test_a_hello_without_a_key_is_refused_and_gets_nothing(base):
     """The issue's first attack: a hostile hello listing /cmd_vel (transmit) and /secret
     (receive, transient_local) with ``cipher: none``, three Twists sent on the main line.
 
-    Before: welcomed (session 2, topic ids for both); 3 of 3 Twists published on the server's
-    /cmd_vel; 101 frames of /secret received in clear within 2 s.
+    Before: welcomed (a session, a topic id for each); 3 of 3 Twists published on the
+    server's /cmd_vel; 42 frames of /secret (published every 20 ms) received in clear in 2 s.
     Now: no answer, the connection closed at its first bytes (not a Noise handshake); 0 Twists
     published; 0 frames received; one log line for five tries; robot1 unaffected."""
     b = base
@@ -290,9 +298,9 @@ def test_a_known_identity_claiming_another_clients_name_is_refused(base, domain,
     """The issue's second attack, by a client that holds a real key: robot2's identity with
     ``name: robot1`` and robot1's topics.
 
-    Before (anyone could claim a name): the second hello under robot1's name took its session
-    and token; 21 of 22 server-to-client datagrams went to the attacker. Now: refused, naming
-    the key's owner and the name; robot1 keeps its session and receives every datagram."""
+    Before, there were no keys: any hello could claim any name and take that client's session
+    (the hijack test below measures it). Now: refused, naming the key's owner and the name it
+    claimed; robot1 keeps its session, undisturbed."""
     b = base
     impostor = bridge(client_file(b.tmp_path, b.port, ROBOT1_TOPICS, name="robot1",
                                   key=AUTH.identity("robot2"), file="impostor.yaml"), domain())
@@ -306,31 +314,39 @@ def test_a_known_identity_claiming_another_clients_name_is_refused(base, domain,
 
 
 def test_the_name_hijack_of_a_session_gets_no_datagram(base):
-    """The issue's second attack, replayed as it was done: a plain hello under robot1's name
-    with its topics, then datagram hellos (every session id 1..50, with the token of a
-    welcome, or garbage) from the attacker's own UDP socket.
+    """The issue's second attack, as it was done: a plain hello under robot1's name with
+    robot1's topics exactly as its client sends them (the eavesdropped hello), then datagram
+    hellos every 10 ms from the attacker's own UDP socket while the server publishes 22
+    /robot1/status messages.
 
-    Before: welcomed with robot1's session and token; the server sent 21 of the next 22
-    /robot1/status datagrams to the attacker. Now: no welcome, every hello dropped as
-    bad_hello, 0 datagrams to the attacker, robot1 receives them all."""
+    Before: welcomed into robot1's very session (same session id, same token); 21 of the 22
+    datagrams went to the attacker, 1 to robot1. Now: no welcome; the hellos (with a zero
+    token, for every session id 1..50) are dropped as bad_hello; 0 datagrams to the attacker,
+    22 of 22 to robot1."""
     b = base
     attacker = PlainAttacker(b.port)
-    answer = attacker.hello("robot1", [
-        {"topic": "/chatter", "type": "std_msgs/msg/String", "direction": "transmit",
-         "remote": "/robot1/chatter"},
-        {"topic": "/status", "type": "std_msgs/msg/String", "direction": "receive",
-         "remote": "/robot1/status"}])
-    assert answer is None
+    chatter = {**ROBOT1_STATUS_AS_SENT[0], "topic": "/chatter", "direction": "transmit",
+               "remote": "/robot1/chatter"}
+    assert attacker.hello("robot1", [chatter, *ROBOT1_STATUS_AS_SENT]) is None
     attacker.close()
-    token = bytes(16)
+    stop = threading.Event()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
         udp.bind(("127.0.0.1", 0))
-        for session in range(1, 51):
-            for epoch in (0, 1 << 24):
-                udp.sendto(envelope.pack(envelope.FLAG_HELLO, session, epoch, 1, 0) + token,
-                           ("127.0.0.1", b.port))
-        got = cross(b.status, b.status_in, lambda i: text(None if i is None else 500 + i),
-                    is_warmup, 22)
+
+        def hellos() -> None:
+            while not stop.wait(0.01):
+                for session in range(1, 51):
+                    udp.sendto(envelope.pack(envelope.FLAG_HELLO, session, 0, 0, 0) + bytes(16),
+                               ("127.0.0.1", b.port))
+
+        thread = threading.Thread(target=hellos, daemon=True)
+        thread.start()
+        try:
+            got = cross(b.status, b.status_in, lambda i: text(None if i is None else 500 + i),
+                        is_warmup, 22, interval=0.02)
+        finally:
+            stop.set()
+            thread.join(2)
         udp.settimeout(0.5)
         stolen = 0
         try:
@@ -511,9 +527,11 @@ def assert_replay_publishes_nothing(c: Any) -> None:
 def test_a_captured_frame_replayed_after_a_reconnect_is_not_published(captured):
     """The issue's third attack, after forcing the client to reconnect.
 
-    Before: "drive to dock" published a second time (the reconnected client got a new session,
-    a new replay window, and the frame's key never changed). Now: 0 published (each handshake
-    brings a new session secret; the window of the old one refuses it while it lingers)."""
+    Before (nacl, one static key): published once, refused as a duplicate in the same
+    session, then published a second time after the attacker forced a reconnect (a hello under
+    robot1's name with other topics: a new session, a new replay window, the same key). Now: 0
+    published (each handshake brings a new session secret; the windows of the old one refuse it
+    while it lingers)."""
     c = captured
     c.replay()  # in the same session first: a duplicate
     c.proxy.tcp.cut()
@@ -523,8 +541,9 @@ def test_a_captured_frame_replayed_after_a_reconnect_is_not_published(captured):
 
 
 def test_a_captured_frame_replayed_after_a_server_restart_is_not_published(captured, bridge):
-    """Before: published again after the server restarted (ids derived from names, the window
-    in memory, the key the same). Now: 0 published: the restarted server never had that key."""
+    """Before: published a third time after the server restarted (ids derived from names, the
+    window in memory, the key the same). Now: 0 published: the restarted server never had that
+    key."""
     c = captured
     c.server.proc.kill()
     c.server.proc.wait()
