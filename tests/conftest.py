@@ -287,8 +287,8 @@ def bridge():
         return b
 
     yield start
-    for b in started:
-        code = b.stop()
+    codes = [b.stop() for b in started]  # every one, before any assertion can stop the loop
+    for b, code in zip(started, codes):
         assert "Traceback" not in b.log, b.log
         assert code == 0, f"bridge {b.config.name} exited {code}:\n{b.log}"
 

@@ -82,7 +82,7 @@ QOS_POLICIES = {
 TOP_KEYS = ("bridge", "plugins", "topics", "services", "clients")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
                "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue",
-               "identity", "server_key", "insecure", "rekey")
+               "identity", "server_key", "insecure", "rekey", "allow")
 CLIENT_KEYS = ("key", "topics", "services")
 RULE_KEYS = ("name", "direction", "types", "ports", "ciphers")
 RULE_DIRECTIONS = ("transmit", "receive", "both")
@@ -115,7 +115,7 @@ _EXAMPLES = {
     "max_rate": "20", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
     "history": "keep_last", "depth": "10",
     "identity": "robot1.key", "server_key": "<the server's public key, from rosgate keygen identity>",
-    "insecure": "true", "rekey": "120", "key": "<the client's public key>",
+    "insecure": "true", "rekey": "120", "allow": "[192.168.0.20, 10.1.0.0/24]", "key": "<the client's public key>",
     "clients": "{robot1: {key: <public key>, topics: [{name: /robot1/**, direction: both}]}}",
     "clients.name": "/robot1/**", "clients.direction": "transmit, receive or both",
     "clients.types": "[geometry_msgs/msg/*]", "clients.ports": "[12001, 12010-12019]",
@@ -214,6 +214,7 @@ class BridgeConfig:
     server_key: bytes | None = None    # client: the server's public key
     insecure: bool = False             # client/server without a handshake (loudly)
     rekey: float = REKEY_DEFAULT       # seconds between key generations in a session
+    allow: tuple[Any, ...] = ()        # peer: the only addresses frames are taken from (if any)
     clients: dict[str, ClientPolicy] = field(default_factory=dict)  # server: who may connect
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
@@ -437,6 +438,7 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
         rekey=_number(src, bridge, "bridge", "rekey", REKEY_DEFAULT, "a number of seconds >= 1",
                       lambda v: v >= 1),
         clients=_clients(src, data, role),
+        allow=_allow(src, bridge, role),
         plugins=_plugins(src, data),
         topics=_entries(src, data, "topics", role, defaults),
         services=_entries(src, data, "services", role, defaults),
@@ -504,7 +506,7 @@ def _identity(src: _Source, bridge: dict, role: Role, insecure: bool,
     from .identity import IdentityError, decode_public, load_private
 
     if role is Role.PEER:
-        for key in ("identity", "server_key", "insecure"):
+        for key in ("identity", "server_key", "insecure", "rekey"):
             if key in bridge:
                 raise src.error(f"bridge.{key}", f"role peer has no handshake, so {key}: does "
                                 "not apply (yet)",
@@ -541,6 +543,28 @@ def _identity(src: _Source, bridge: dict, role: Role, insecure: bool,
         except IdentityError as exc:
             raise src.error("bridge.server_key", f"the server_key {exc}", fix=exc.fix) from None
     return identity, server_key
+
+
+def _allow(src: _Source, bridge: dict, role: Role) -> tuple[Any, ...]:
+    """Peer role: the addresses (or networks) frames and connections are taken from — for links
+    without keys, such as a microcontroller's (the CVRA profile)."""
+    import ipaddress
+
+    if "allow" not in bridge:
+        return ()
+    if role is not Role.PEER:
+        raise src.error("bridge.allow", "allow: is for role peer (a client or server "
+                        "authenticates its peers by their keys)", fix="remove it")
+    value = bridge["allow"]
+    items = value if isinstance(value, list) else [value]
+    networks = []
+    for item in items:
+        try:
+            networks.append(ipaddress.ip_network(str(item), strict=False))
+        except ValueError:
+            raise src.error("bridge.allow", f"{item!r} is not an IP address or network",
+                            fix="e.g. allow: [192.168.0.20, 10.1.0.0/24]") from None
+    return tuple(networks)
 
 
 def _clients(src: _Source, data: dict, role: Role) -> dict[str, ClientPolicy]:

@@ -94,15 +94,53 @@ class Role:
                 raise self.bridge.link_error(exc, key) from None
             name = f"{transport.name}:{local[1]}" if local[1] else f"{transport.name}"
             if bare_named is None:
-                link = DatagramLink(transport, endpoint, name, self.router.on_frame,
+                link = DatagramLink(transport, endpoint, name, self.admit(self.router.on_frame),
                                     self.router.on_lost)
             else:
                 port = self.router.bare_port(bare_named)
-                link = DatagramLink(transport, endpoint, name, port.on_frame, self.router.on_lost,
-                                    bare=True)
+                link = DatagramLink(transport, endpoint, name, self.admit(port.on_frame),
+                                    self.router.on_lost, bare=True)
                 self.bare_ports[link] = port
             self.datagram_links[(transport.name, local)] = self.life.closing(link)
             return link
+
+    def allowed(self, host: str) -> bool:
+        """Whether ``bridge.allow`` (peer role) lets frames from ``host`` in; all without it."""
+        if not self.cfg.allow:
+            return True
+        import ipaddress
+
+        try:
+            address = ipaddress.ip_address(host)
+        except ValueError:
+            return False
+        return any(address in network for network in self.cfg.allow)
+
+    def admit(self, handler: FrameHandler) -> FrameHandler:
+        """``handler`` for frames from allowed addresses; the others dropped and counted."""
+        if not self.cfg.allow:
+            return handler
+
+        def admitted(frame: bytes, link: Link, source: Address) -> None:
+            if self.allowed(source[0]):
+                handler(frame, link, source)
+            else:
+                self.router.link_drop(link, "not_allowed", f"from {source[0]}")
+        return admitted
+
+    def admitting(self, on_connection: Callable[[StreamConnection, Address], None]
+                  ) -> Callable[[StreamConnection, Address], None]:
+        """``on_connection`` for connections from allowed addresses; the others closed."""
+        if not self.cfg.allow:
+            return on_connection
+
+        def admitted(connection: StreamConnection, peer: Address) -> None:
+            if self.allowed(peer[0]):
+                on_connection(connection, peer)
+            else:
+                connection.close()
+                self.router.link_drop(None, "not_allowed", f"a connection from {peer[0]}")
+        return admitted
 
     def accept_into(self, on_frame: FrameHandler, transport: Transport, port: int,
                     handshake: Handshake | None = None
@@ -136,8 +174,8 @@ class Role:
                     raise
                 raise self.bridge.link_error(exc, key) from None
             self.listening.add((transport.name, local))
-        self.life.closing(Acceptor(listener, f"{transport.name}:{local[1]}",
-                                   self.accept_into(on_frame, transport, local[1], handshake)))
+        self.life.closing(Acceptor(listener, f"{transport.name}:{local[1]}", self.admitting(
+            self.accept_into(on_frame, transport, local[1], handshake))))
 
 
 class Control:

@@ -109,7 +109,7 @@ class PeerRole(Role):
                 raise self.bridge.link_error(exc, f"services[{p.index}].port") from None
             server = servers[p.address] = CallServer(f"{p.transport.name}:{p.address[1]}",
                                                      self.router.link_drop)
-            self.life.closing(Acceptor(listener, server.name, server.accepted))
+            self.life.closing(Acceptor(listener, server.name, self.admitting(server.accepted)))
         route = self.router.service(p, 0, s.service, None)  # found by name: no id
         assert isinstance(route, ServerRoute)
         servers[p.address].add(route)
