@@ -26,6 +26,7 @@ from .config import BridgeConfig, ServiceConfig, TopicConfig
 from .envelope import topic_id_for
 from .errors import ConfigError, LinkError, OptionError
 from .links import Link, LinkSlot, QueueLimits
+from .options import parse
 from .plugins import Plugins
 from .ros import RosNode, TypeNotFound, is_reliable, qos_profile, resolve_type
 from .routes import ReceiveRoute, Route, TransmitRoute, Warner
@@ -74,7 +75,8 @@ class PreparedService:
         return self.config.service
 
     def codec(self, options: dict[str, dict]) -> ServiceCodec:
-        return ServiceCodec(self.codec_cls, self.srv_type, options.get(self.config.codec) or {})
+        return ServiceCodec(self.codec_cls, self.srv_type,
+                            parse(self.codec_cls, options.get(self.config.codec) or {}))
 
 
 class Engine:
@@ -160,7 +162,7 @@ class Engine:
         except TypeNotFound as exc:
             raise error(f"{key}.type", str(exc)) from None
         try:
-            codec_cls(msg_type, self.config.plugins.get(topic.codec) or {})
+            codec_cls(msg_type, parse(codec_cls, self.config.plugins.get(topic.codec) or {}))
         except OptionError as exc:
             raise self._option_error(topic.codec, exc, f"{key}.codec") from None
         if topic.framing == "none" and transport.stream:
@@ -237,7 +239,7 @@ class Engine:
         if name not in self.transports:
             cls = self.plugin("transport", name, key, error).cls
             try:
-                self.transports[name] = cls(self.config.plugins.get(name) or {})
+                self.transports[name] = cls(parse(cls, self.config.plugins.get(name) or {}))
             except OptionError as exc:
                 raise self._option_error(name, exc, key) from None
         return self.transports[name]
@@ -246,7 +248,8 @@ class Engine:
         if name not in self.ciphers:
             cls = self.plugin("cipher", name, key, error).cls
             try:
-                self.ciphers[name] = cls(self.config.plugins.get(name) or {}, self.config.base_dir)
+                self.ciphers[name] = cls(parse(cls, self.config.plugins.get(name) or {}),
+                                         self.config.base_dir)
             except OptionError as exc:
                 raise self._option_error(name, exc, key) from None
         return self.ciphers[name]
@@ -334,7 +337,8 @@ class Engine:
             assert self.service_table is not None
             return self.service_table.make_route(p, topic_id, label, link, destination)
         t = p.config
-        codec = p.codec_cls(p.msg_type, self.config.plugins.get(t.codec) or {})
+        codec = p.codec_cls(p.msg_type,
+                            parse(p.codec_cls, self.config.plugins.get(t.codec) or {}))
         codec.authenticated = p.cipher.authenticates and t.framing != "none"
         qos = qos_profile(t.qos)
         bare = t.framing == "none"

@@ -138,7 +138,7 @@ class Deadlines:
 class ServiceCodec:
     """The entry's codec for the Request and for the Response."""
 
-    def __init__(self, codec_cls: type, srv_type: type, options: dict[str, Any]):
+    def __init__(self, codec_cls: type, srv_type: type, options: Any):
         self.request = codec_cls(srv_type.Request, options)
         self.response = codec_cls(srv_type.Response, options)
         self.name = self.request.name

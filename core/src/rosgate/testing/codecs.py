@@ -11,6 +11,7 @@ import pytest
 
 from ..codec import Codec
 from ..errors import CodecError
+from ..options import parse
 from .helpers import assert_registered, mutations
 
 
@@ -113,7 +114,8 @@ class CodecConformance:
     fuzz_inputs: ClassVar[int] = 400
 
     def make(self, msg_type: type) -> Codec:
-        return self.codec(msg_type, dict(self.options))
+        """An instance for ``msg_type``, made from :attr:`options` as the core makes it."""
+        return self.codec(msg_type, parse(self.codec, self.options))
 
     def wire(self, message: Any) -> Any:
         """What ``encode`` takes: the message, or its serialized CDR for a raw codec."""
