@@ -3,38 +3,66 @@ can make is recorded as a Failure naming it, and never stops the other plugins."
 
 from __future__ import annotations
 
-from types import SimpleNamespace
+from dataclasses import dataclass
+from typing import Any
 
 import pytest
 
 import rosgate
-from rosgate import Cipher, Codec, LinkError, Transport, hookimpl
+from rosgate import (Cipher, Codec, DatagramTransport, LinkError, StreamTransport, Transport,
+                     hookimpl, option)
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import loads
 from rosgate.engine import Engine
-from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration
+from rosgate.message_tree import TreeCodec
+from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration, deprecations
 
 
-class Alpha(Transport):
+class FakeCodec(Codec):
+    """Implements what a codec must; the classes below add only a name."""
+
+    def encode(self, message: Any) -> bytes:
+        return b""
+
+    def decode(self, data: bytes) -> Any:
+        return None
+
+
+class Alpha(DatagramTransport):
     name = "alpha"
-    stream = False
+
+    def bind(self, address):
+        raise LinkError("alpha binds nothing")
 
 
-class Beta(Codec):
+class Beta(FakeCodec):
     name = "beta"
 
 
-class Zeta(Codec):
+class Zeta(FakeCodec):
     name = "zeta"
 
 
 class Gamma(Cipher):
     name = "gamma"
 
+    def seal(self, header: bytes, payload: bytes) -> bytes:
+        return payload
 
-def plugin(**hooks) -> SimpleNamespace:
+    def open(self, header: bytes, body: bytes) -> bytes:
+        return body
+
+
+class FakePlugin:
+    """A plugin object: attributes as a module has them (hashable, as pluggy needs plugins)."""
+
+    def __init__(self, **attributes: Any):
+        self.__dict__.update(attributes)
+
+
+def plugin(**hooks) -> FakePlugin:
     """A plugin object whose attributes are the given hook implementations."""
-    return SimpleNamespace(**{name: hookimpl(function) for name, function in hooks.items()})
+    return FakePlugin(**{name: hookimpl(function) for name, function in hooks.items()})
 
 
 def registers(*classes):
@@ -139,19 +167,19 @@ class NotAPlugin:
     name = "plain"
 
 
-class NoName(Codec):
+class NoName(FakeCodec):
     pass
 
 
-class BadName(Codec):
+class BadName(FakeCodec):
     name = "two words"
 
 
-class EmptyName(Codec):
+class EmptyName(FakeCodec):
     name = ""
 
 
-class NumberName(Codec):
+class NumberName(FakeCodec):
     name = 3
 
 
@@ -188,7 +216,7 @@ def test_an_unknown_hook_argument_is_a_failure_at_registration():
 
 
 def test_the_same_name_twice_the_first_wins():
-    class OtherBeta(Codec):
+    class OtherBeta(FakeCodec):
         name = "beta"
 
     plugins = Plugins()
@@ -201,9 +229,14 @@ def test_the_same_name_twice_the_first_wins():
 
 
 def test_the_same_name_in_different_kinds_is_not_a_clash():
-    class BetaTransport(Transport):
+    class BetaTransport(StreamTransport):
         name = "beta"
-        stream = True
+
+        def listen(self, address):
+            raise LinkError("no")
+
+        def connect(self, address, timeout):
+            raise OSError("no")
 
     plugins = Plugins()
     plugins.add(plugin(rosgate_codecs=registers(Beta), rosgate_transports=registers(BetaTransport)), "b")
@@ -241,7 +274,8 @@ def test_explain_missing_lists_installed_names_and_the_distribution_to_install()
     plugins.add(plugin(rosgate_codecs=registers(Zeta, Beta)), "greek")
     message, fix = plugins.explain_missing("codec", "cbor")
     assert message == "unknown codec 'cbor' (installed codecs: beta, zeta)"
-    assert fix == "pip install rosgate-codec-cbor, or pick an installed codec"
+    assert fix == ("pip install the distribution that provides it (by convention "
+                   "rosgate-codec-cbor), or pick an installed codec")
 
 
 @pytest.mark.parametrize("kind, name, distribution", [
@@ -254,16 +288,18 @@ def test_explain_missing_lists_installed_names_and_the_distribution_to_install()
 def test_explain_missing_names_the_distribution(kind, name, distribution):
     message, fix = Plugins().explain_missing(kind, name)
     assert message == f"unknown {kind} {name!r} (installed {kind}s: none)"
-    assert fix == f"pip install {distribution}, or pick an installed {kind}"
+    assert fix == (f"pip install the distribution that provides it (by convention {distribution}), "
+                   f"or pick an installed {kind}")
 
 
 def test_explain_missing_gives_the_reason_a_plugin_failed():
     plugins = Plugins()
     plugins.add(plugin(rosgate_codecs=boom), "cbor", "rosgate-codec-cbor")
-    message, _ = plugins.explain_missing("codec", "cbor")
+    message, fix = plugins.explain_missing("codec", "cbor")
     assert message.startswith("unknown codec 'cbor' (installed codecs: none); plugin 'cbor' is installed "
                               "but failed to load: rosgate_codecs: RuntimeError: boom")
     assert "blocked" not in message
+    assert fix == "repair or reinstall rosgate-codec-cbor, or pick an installed codec"
 
 
 def test_explain_missing_says_when_a_plugin_is_blocked():
@@ -272,6 +308,7 @@ def test_explain_missing_says_when_a_plugin_is_blocked():
     assert message == ("unknown cipher 'nacl' (installed ciphers: none); "
                        f"plugin 'nacl' is blocked by {DISABLE_VARIABLE}")
     assert DISABLE_VARIABLE == "ROSGATE_DISABLE_PLUGINS"
+    assert fix == "remove nacl from ROSGATE_DISABLE_PLUGINS, or pick an installed cipher"
 
 
 # --- discovery through entry points -------------------------------------------------------------------
@@ -289,22 +326,22 @@ def test_discover_finds_the_installed_plugins(monkeypatch):
 
 
 def test_discover_honours_the_disable_variable(monkeypatch):
-    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet,cbor,nacl")
+    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet,cbor,nacl,json")
     plugins = Plugins.discover()
-    assert sorted(plugins.blocked) == ["cbor", "fernet", "msgpack", "nacl"]
+    assert sorted(plugins.blocked) == ["cbor", "fernet", "json", "msgpack", "nacl"]
     assert plugins.names("codec") == ["cdr"]
     assert plugins.names("cipher") == ["none"]
     assert {"udp", "tcp"} <= set(plugins.names("transport"))
     message, fix = plugins.explain_missing("cipher", "fernet")
     assert "blocked by ROSGATE_DISABLE_PLUGINS" in message
-    assert fix.startswith("pip install rosgate-crypto-fernet")
+    assert fix.startswith("remove fernet from ROSGATE_DISABLE_PLUGINS")
 
 
 def test_builtin_cannot_be_blocked(monkeypatch):
     monkeypatch.setenv(DISABLE_VARIABLE, " builtin , msgpack ,, ")
     plugins = Plugins.discover()
     assert plugins.blocked == ["msgpack"]
-    assert plugins.names("codec") == ["cbor", "cdr"]
+    assert plugins.names("codec") == ["cbor", "cdr", "json"]
     assert plugins.names("cipher") == ["fernet", "nacl", "none"]
     assert plugins.get("cipher", "none").cls is NoCipher
 
