@@ -3,7 +3,12 @@ can make is recorded as a Failure naming it, and never stops the other plugins."
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import subprocess
+import sys
+import textwrap
+import types
+from importlib import metadata
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -14,8 +19,12 @@ from rosgate import (Cipher, Codec, DatagramTransport, LinkError, StreamTranspor
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import loads
 from rosgate.engine import Engine
+from rosgate import hookspecs
 from rosgate.message_tree import TreeCodec
+from rosgate.options import parse
 from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration, deprecations
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 class FakeCodec(Codec):
@@ -265,6 +274,211 @@ def test_remove_forgets_a_plugins_registrations():
     plugins.add(plugin(rosgate_codecs=registers(Beta)), "gone", "rosgate-again")
     assert plugins.get("codec", "beta").distribution == "rosgate-again"
     assert plugins.failures == []
+
+
+# --- pluggy finds the hooks: every rosgate_* function is one, a misspelt one is a failure -----------
+
+def module(name: str, source: str, **names: Any) -> types.ModuleType:
+    """A plugin module made from source, as an entry point imports it; ``names`` are in scope."""
+    made = types.ModuleType(name)
+    made.__dict__.update(names)
+    exec(textwrap.dedent(source), made.__dict__)
+    return made
+
+
+HOOKS = "the hooks are rosgate_ciphers, rosgate_codecs, rosgate_transports"
+
+
+def test_a_misspelt_hook_is_a_failure_naming_it_and_nothing_of_the_plugin_is_kept():
+    typo = module("rosgate_typo", """
+        from rosgate import hookimpl
+
+        @hookimpl
+        def rosgate_transport(register):
+            register(Alpha)
+
+        @hookimpl
+        def rosgate_codecs(register):
+            register(Beta)
+    """, Alpha=Alpha, Beta=Beta)
+    plugins = Plugins()
+    plugins.add(typo, "typo", "rosgate-typo", "1.0")
+    plugins.add(plugin(rosgate_ciphers=registers(Gamma)), "fine")
+    assert plugins.failures == [Failure(
+        "typo", "rosgate-typo",
+        f"unknown hook 'rosgate_transport' (did you mean 'rosgate_transports'?); {HOOKS}")]
+    assert plugins.names("transport") == [] and plugins.names("codec") == []
+    assert plugins.names("cipher") == ["gamma"]  # the next plugin is not taken down
+    assert not plugins.manager.has_plugin("typo")
+
+
+def test_an_unmarked_misspelt_hook_is_caught_too():
+    plugins = Plugins()
+    plugins.add(module("rosgate_typos", """
+        def rosgate_cipher(register):
+            pass
+
+        def rosgate_kodecs(register):
+            pass
+    """), "typos")
+    assert [f.reason for f in plugins.failures] == [
+        "unknown hook 'rosgate_cipher' (did you mean 'rosgate_ciphers'?), 'rosgate_kodecs' "
+        f"(did you mean 'rosgate_codecs'?); {HOOKS}"]
+
+
+def test_every_rosgate_function_is_a_hook_marked_or_not_and_nothing_else_is():
+    plain = module("rosgate_plain", """
+        rosgate_version = "1.0"           # not a function: not a hook
+
+        def helper(register):             # not named rosgate_*: not a hook
+            raise AssertionError("called")
+
+        def rosgate_codecs(register):     # a hook without the marker, as pytest_* are
+            register(Beta)
+    """, Beta=Beta)
+    plugins = Plugins()
+    plugins.add(plain, "plain")
+    assert plugins.failures == []
+    assert plugins.names("codec") == ["beta"]
+
+
+class JsonCodec(Codec):  # forgot decode
+    name = "json"
+
+    def encode(self, message: Any) -> bytes:
+        return b"{}"
+
+
+class Silent(Cipher):
+    name = "silent"
+
+
+class Deaf(DatagramTransport):
+    name = "deaf"
+
+
+class HalfStream(StreamTransport):
+    name = "half"
+
+    def listen(self, address):
+        raise LinkError("no")
+
+
+class Unparsed(TreeCodec):
+    name = "unparsed"
+
+
+@pytest.mark.parametrize("hook, cls, reason", [
+    ("rosgate_codecs", JsonCodec, "JsonCodec does not implement decode"),
+    ("rosgate_ciphers", Silent, "Silent does not implement open, seal"),
+    ("rosgate_transports", Deaf, "Deaf does not implement bind"),
+    ("rosgate_transports", HalfStream, "HalfStream does not implement connect"),
+    ("rosgate_codecs", Unparsed, "Unparsed does not implement parse"),
+], ids=["codec", "cipher", "datagram", "stream", "tree-codec"])
+def test_an_abstract_class_is_refused_naming_what_it_does_not_implement(hook, cls, reason):
+    plugins = Plugins()
+    plugins.add(plugin(**{hook: registers(cls)}), "abstract", "rosgate-abstract")
+    assert plugins.failures == [Failure("abstract", "rosgate-abstract", reason)]
+    assert plugins.registered == {}
+
+
+def test_a_transport_that_is_neither_stream_nor_datagram_is_refused():
+    with pytest.deprecated_call(match="subclass rosgate.DatagramTransport or rosgate.StreamTransport"):
+        class Undecided(Transport):
+            name = "undecided"
+
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_transports=registers(Undecided)), "undecided")
+    assert [f.reason for f in plugins.failures] == [
+        "Undecided says neither stream nor datagram (subclass DatagramTransport or StreamTransport)"]
+
+
+def test_options_that_are_not_a_frozen_dataclass_are_refused():
+    class Sloppy(FakeCodec):
+        name = "sloppy"
+
+        class Options:
+            level = 1
+
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=registers(Sloppy)), "sloppy")
+    assert [f.reason for f in plugins.failures] == [
+        "Sloppy.Options is not a frozen dataclass (decorate it with @dataclass(frozen=True))"]
+
+
+def test_a_legacy_transport_still_registers_and_works_with_warnings():
+    with pytest.deprecated_call(match="Old subclasses rosgate.Transport and sets stream itself"):
+        class Old(Transport):
+            name = "old"
+            stream = False
+
+            def __init__(self, options):
+                super().__init__(options)
+                self.max_frame = options.get("max_frame", 100)
+
+            def bind(self, address):
+                raise LinkError("not in this test")
+
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_transports=registers(Old)), "old", "rosgate-transport-old")
+    assert plugins.failures == [] and plugins.get("transport", "old").cls is Old
+    assert deprecations(Old) == [
+        "subclasses rosgate.Transport and sets stream itself (subclass DatagramTransport or "
+        "StreamTransport)", "declares no Options (its table reaches it unchecked, as a dict)"]
+    with pytest.deprecated_call(match="Old declares no Options"):
+        options = parse(Old, {"max_frame": 64})
+    old = Old(options)
+    assert (old.options, old.max_frame, old.stream) == ({"max_frame": 64}, 64, False)
+
+
+# --- lazy discovery ---------------------------------------------------------------------------------
+
+def test_asking_for_a_name_loads_its_entry_point_first_and_the_others_only_if_needed(monkeypatch):
+    loaded: list[str] = []
+
+    def entry_point(name: str, hook: str, cls: type) -> metadata.EntryPoint:
+        def register_it(register):
+            loaded.append(name)
+            register(cls)
+        made = module(f"rosgate_fake_{name}", "", **{hook: register_it})
+        monkeypatch.setitem(sys.modules, made.__name__, made)
+        return metadata.EntryPoint(name, made.__name__, "rosgate")
+
+    found = [entry_point("beta", "rosgate_codecs", Beta),
+             entry_point("greek", "rosgate_ciphers", Gamma),
+             entry_point("zeta", "rosgate_codecs", Zeta),
+             metadata.EntryPoint("builtin", "rosgate.builtin", "rosgate")]
+    monkeypatch.setattr(metadata, "entry_points", lambda group: found)
+    plugins = Plugins.discover()
+    assert loaded == []  # listing imports nothing; builtin is the core's own
+    assert plugins.get("codec", "cdr").cls is CdrCodec and loaded == []
+    assert plugins.get("codec", "beta").cls is Beta and loaded == ["beta"]
+    # no entry point named gamma: the others are loaded, each once
+    assert plugins.get("cipher", "gamma").cls is Gamma and loaded == ["beta", "greek", "zeta"]
+    assert plugins.get("codec", "nope") is None and loaded == ["beta", "greek", "zeta"]
+    assert plugins.names("codec") == ["beta", "cdr", "zeta"]
+
+
+def test_asking_for_udp_imports_no_other_plugin():
+    """In a fresh process: the real entry points, the real modules."""
+    code = ("import sys; from rosgate.plugins import Plugins; plugins = Plugins.discover(); "
+            "before = sorted(m for m in sys.modules if m.startswith('rosgate_')); "
+            "assert plugins.get('transport', 'udp') is not None; "
+            "print(before, sorted(m for m in sys.modules if m.startswith('rosgate_')))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=60, check=True)
+    assert result.stdout.split() == ["[]", "['rosgate_transport_udp']"], result.stdout
+
+
+# --- the hooks are documented where plugin authors read -------------------------------------------
+
+def test_every_hook_is_documented_in_its_spec_and_in_the_guide():
+    guide = (ROOT / "docs" / "plugins.md").read_text()
+    hooks = [name for name in dir(hookspecs) if name.startswith("rosgate_")]
+    assert hooks == ["rosgate_ciphers", "rosgate_codecs", "rosgate_transports"]
+    for name in hooks:
+        assert getattr(hookspecs, name).__doc__, f"{name} has no docstring"
+        assert name in guide, f"docs/plugins.md does not mention {name}"
 
 
 # --- explaining a missing plugin --------------------------------------------------------------------
