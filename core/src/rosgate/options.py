@@ -109,7 +109,8 @@ class Declared:
 
     def describe(self) -> str:
         """What the option is and takes, for the ``fix:`` of an error about it."""
-        details = [_words(self.type), self.limits(),
+        words, limits = _words(self.type), self.limits()
+        details = [words, "" if limits == words else limits,  # a Literal says its choices once
                    "required" if self.required else f"default {self.default_text()}"]
         return f"{self.name}: {self.doc} ({', '.join(d for d in details if d)})"
 
@@ -196,19 +197,18 @@ class _Wrong(Exception):
     """A value that does not fit a type; the caller words the error."""
 
 
-def _check(row: Declared, value: Any) -> Any:
-    """``value`` as the option holds it (an int taken for a float becomes one), or OptionError."""
+def _check(row: Declared, given: Any) -> Any:
+    """``given`` as the option holds it (an int taken for a float becomes one), or OptionError."""
     try:
-        value = _convert(row.type, value)
+        value = _convert(row.type, given)
     except _Wrong:
-        raise OptionError(row.name, f"must be {_words(row.type)}, not {_show(value)}",
+        raise OptionError(row.name, f"must be {_words(row.type)}, not {_show(given)}",
                           row.describe()) from None
-    if row.choices is not None and value not in row.choices:
-        raise OptionError(row.name, f"must be {row.limits()}, not {_show(value)}", row.describe())
-    if isinstance(value, (int, float)) and not isinstance(value, bool) and (
-            row.minimum is not None and value < row.minimum
-            or row.maximum is not None and value > row.maximum):
-        raise OptionError(row.name, f"must be {row.limits()}, not {_show(value)}", row.describe())
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    below = number and row.minimum is not None and value < row.minimum
+    above = number and row.maximum is not None and value > row.maximum
+    if below or above or row.choices is not None and value not in row.choices:
+        raise OptionError(row.name, f"must be {row.limits()}, not {_show(given)}", row.describe())
     return value
 
 
@@ -289,7 +289,7 @@ def spell(hint: Any) -> str:
         return " | ".join(spell(arm) for arm in args)
     if origin is Literal:
         return " | ".join(dict.fromkeys(type(a).__name__ for a in args))
-    if origin in (list, dict):
+    if origin is not None:
         return f"{origin.__name__}[{', '.join(spell(a) for a in args)}]"
     if hint is type(None):
         return "None"
