@@ -15,7 +15,7 @@ import pytest
 
 import rosgate
 from rosgate import (Cipher, Codec, DatagramTransport, LinkError, StreamTransport, Transport,
-                     hookimpl, option)
+                     hookimpl)
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import loads
 from rosgate.engine import Engine

@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import array
 import base64 as b64
-import binascii
 import dataclasses
 import importlib
 import math
