@@ -93,13 +93,13 @@ CLIENT_SERVER = Route("udp", roles="client/server")  # shown at 2.5 kB only
 class Settings:
     quick: bool
     trial_seconds: float    # each trial of the sustained-rate search, and the overload trial
-    latency_seconds: float
+    latency_seconds: float  # --quick: the latency trial is the CPU trial, at the CPU rate
     cpu_seconds: float      # the CPU trial
     max_trials: int         # of the search
 
 
 FULL = Settings(False, trial_seconds=2.0, latency_seconds=2.0, cpu_seconds=3.0, max_trials=6)
-QUICK = Settings(True, trial_seconds=1.0, latency_seconds=1.5, cpu_seconds=2.0, max_trials=6)
+QUICK = Settings(True, trial_seconds=1.0, latency_seconds=2.0, cpu_seconds=2.0, max_trials=5)
 
 
 @dataclass(frozen=True)
@@ -418,11 +418,13 @@ def measure(size: Size, route: Route | None, settings: Settings, folder: Path,
             case.warm_up()
             # latency first, on a quiet path: after an overload trial, queues deep in DDS can
             # take a while to settle, and their wait would be charged to this measurement
-            seconds = max(settings.latency_seconds, 100 / size.latency_rate)  # >= 100 samples
-            result.latency = case.trial(size.latency_rate, seconds)
-            log(f"  [{case.label}] latency: {describe(result.latency)}")
             cpu_rate = min(options.cpu_rate, size.cpu_rate_max)
-            if cpu_rate == size.latency_rate and seconds >= settings.cpu_seconds:
+            # --quick: one trial at the CPU rate gives both
+            latency_rate = cpu_rate if settings.quick else size.latency_rate
+            seconds = max(settings.latency_seconds, 100 / latency_rate)  # >= 100 samples
+            result.latency = case.trial(latency_rate, seconds)
+            log(f"  [{case.label}] latency: {describe(result.latency)}")
+            if cpu_rate == latency_rate and seconds >= settings.cpu_seconds:
                 result.cpu = result.latency
             else:
                 result.cpu = case.trial(cpu_rate, max(settings.cpu_seconds, 100 / cpu_rate))
@@ -441,7 +443,9 @@ def measure(size: Size, route: Route | None, settings: Settings, folder: Path,
         result.error = str(exc)
         log(f"  [{case.label}] FAILED: {exc}")
     result.problems += case.problems()
-    if result.overload and size.key in options.best_effort:
+    # --quick: the best-effort overload only where the issue's target is
+    quick_skip = settings.quick and (route is None or replace(route, rev="") != TARGET_ROUTE)
+    if result.overload and size.key in options.best_effort and not quick_skip:
         result.overload_be = best_effort_overload(size, route, checkout, folder / "best-effort",
                                                   result.overload.rate, settings, result.problems)
     result.others = load.others()
@@ -695,6 +699,7 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
                 if line.startswith("model name")), platform.processor())
     notes = [f"- {r.size.name} {r.path}: {line}" for r in results for line in r.problems[:6]]
     link = lambda p: os.path.relpath(p, out.parent)  # noqa: E731
+    be_sizes = [s.name for s in SIZES if s.key in options.best_effort]
     based = f"; base {base}" if base else ""
     parts = [
         "# rosgate benchmark: bridged vs bare rclpy",
@@ -708,7 +713,9 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
         "in any trial. Ratios: bridged / bare rclpy at the same size. µs/msg: CPU time "
         "(utime + stime, /proc/<pid>/stat) of bridge A and bridge B (bare row: publisher and "
         f"subscriber) per message delivered in a {settings.cpu_seconds:g} s trial at "
-        f"{options.cpu_rate:,.0f} msg/s (1 MB: 20 msg/s). {OVERLOAD:g}x sustained: a "
+        f"{options.cpu_rate:,.0f} msg/s (1 MB: 20 msg/s)"
+        + ("; --quick measures latency in that same trial" if settings.quick else "")
+        + f". {OVERLOAD:g}x sustained: a "
         f"{settings.trial_seconds:g} s trial at twice the sustained rate after the search; "
         "delivered: the share that arrived at all, however late; p99: of what arrived.",
         "",
@@ -722,8 +729,9 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
         "overloaded the path). A+B vs bare pub+sub: what the two bridges spend per message "
         "against what rclpy's publisher and subscriber spend in the bare case. "
         f"{OVERLOAD:g}x best effort: the same overload again with the publisher, both bridges' "
-        "topic QoS and the subscriber best effort (same depth), in fresh processes; run at "
-        f"{', '.join(sorted(options.best_effort)) or 'no size'} (--best-effort).",
+        "topic QoS and the subscriber best effort (same depth), in fresh processes; "
+        + (f"run at {', '.join(be_sizes)}" if be_sizes else "not run (--best-effort none)")
+        + (f", for {TARGET_ROUTE.label} only (--quick)" if settings.quick else "") + ".",
         "",
         detail_table(results),
     ]
