@@ -255,7 +255,7 @@ def summary(side: Side, title: str, messages: int, roots: list[Path], latency: s
         f"py-spy record --rate {RATE} --threads --function{' --native' if rec.native else ''} "
         f"for {rec.seconds:.1f} s (this bridge only): {profile.samples:,} busy thread-samples, "
         f"{profile.idle:,} idle ones left out (innermost named frame a wait: poll, a lock, a "
-        f"condition), {rec.errors:,} errors"
+        f"condition), errors: {rec.errors:,}"
         + (f", fell up to {rec.behind:.1f} s behind (µs/msg below are low)" if rec.behind > 0.5
            else "") + f"; {messages:,} messages delivered meanwhile.",
         f"CPU (utime+stime, /proc) per message: {fmt(side.cpu_us)} µs while profiled, "
