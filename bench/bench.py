@@ -919,6 +919,8 @@ def main() -> int:
             log(f"bench: drew {', '.join(str(p) for p in drawn)}")
         except ImportError as exc:
             log(f"bench: no plots ({exc}): run `make sync`")
+        except Exception as exc:  # a plotting bug must not cost the run's tables
+            log(f"bench: drawing the plots failed: {type(exc).__name__}: {exc}")
     text = report(results, settings, options, time.monotonic() - start, load.others(),
                   out or Path.cwd() / "-", drawn, base)
     print(text)

@@ -98,6 +98,12 @@ def draw(results: list["Result"], folder: Path) -> list[Path]:
             ax.margins(x=0.25)
             ax.set_yticks(range(len(rows)), labels, fontsize=8)
             ax.set_xscale("log")
+            shown = [v for r in rows for v in (r.latency.p50_us, r.latency.p99_us) if v]
+            narrow = max(shown) / min(shown) < 10  # no decade tick inside: label the minor ones
+            plain = FuncFormatter(lambda v, _: f"{v:g}")
+            ax.xaxis.set_major_formatter(plain)
+            ax.xaxis.set_minor_formatter(plain if narrow else FuncFormatter(lambda *_: ""))
+            ax.tick_params(axis="x", which="minor", labelsize=7)
             ax.set_xlabel("one-way latency, ms (log scale)", fontsize=8)
             rate = rows[0].latency.rate
             ax.set_title(f"{size.name} at {rate:,.0f} msg/s", fontsize=10)
