@@ -207,10 +207,20 @@ class Case:
         return {role: p for role, p in found.items() if p is not None}
 
     def __enter__(self) -> "Case":
-        with ExitStack() as stack:
-            self._start(stack)
-            self._stack = stack.pop_all()
-        return self
+        for attempt in (1, 2):
+            try:
+                with ExitStack() as stack:
+                    self._start(stack)
+                    self._stack = stack.pop_all()
+                return self
+            except RuntimeError as exc:
+                # a port picked free can be taken (by DDS, or another run's test) before the
+                # bridge binds it: start once more, with fresh ports and domains
+                if attempt == 2 or "already in use" not in str(exc):
+                    raise
+                why = next(line for line in str(exc).splitlines() if "already in use" in line)
+                log(f"  [{self.label}] could not start ({why.strip()}); again")
+        raise AssertionError("unreachable")
 
     def __exit__(self, *exc: object) -> None:
         self._stack.close()
