@@ -26,13 +26,13 @@ import base64
 import binascii
 import os
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Callable
 
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 
 from rosgate import Cipher, CipherError, OptionError, hookimpl
-from rosgate.keys import describe_source, key_source, load_key
+from rosgate.keys import KeyOptions, describe_source, key_source, load_key
 
 KEY_SIZE = 32
 NONCE = 12
@@ -42,17 +42,20 @@ NONCE_IN_HEADER = slice(8, 20)  # the envelope's epoch (u32) and sequence number
 
 class AeadCipher(Cipher):
     name = "aead"
+    Options = KeyOptions  # key_file or key_env: the convention of every rosgate cipher
+    options: KeyOptions
     session_key_size = KEY_SIZE
 
-    def __init__(self, options: Mapping[str, Any], base_dir: Path):
+    def __init__(self, options: KeyOptions, base_dir: Path):
         super().__init__(options, base_dir)
-        text = load_key(options, base_dir, self.name)
+        text = load_key(self.options, base_dir, self.name)
         try:
             key = base64.b64decode(text, validate=True)
         except (binascii.Error, ValueError):
             key = b""
         if len(key) != KEY_SIZE:
-            raise OptionError(key_source(options), f"the key in {describe_source(options)} is not an "
+            raise OptionError(key_source(self.options),
+                              f"the key in {describe_source(self.options)} is not an "
                               f"aead key ({KEY_SIZE} bytes in base64)",
                               "create one with 'rosgate keygen aead --out aead.key'")
         self._aead = ChaCha20Poly1305(key)
@@ -61,7 +64,7 @@ class AeadCipher(Cipher):
     @classmethod
     def from_secret(cls, secret: bytes) -> AeadCipher:
         cipher = cls.__new__(cls)
-        cipher.options = {}
+        cipher.options = KeyOptions()
         cipher._aead = ChaCha20Poly1305(secret)
         cipher._nonce_in_header = True
         return cipher

@@ -24,32 +24,34 @@ from __future__ import annotations
 
 import base64
 from pathlib import Path
-from typing import Any, Mapping
 
 from cryptography.fernet import Fernet, InvalidToken
 
 from rosgate import Cipher, CipherError, OptionError, hookimpl
-from rosgate.keys import describe_source, key_source, load_key
+from rosgate.keys import KeyOptions, describe_source, key_source, load_key
 
 
 class FernetCipher(Cipher):
     name = "fernet"
+    Options = KeyOptions  # key_file or key_env: the convention of every rosgate cipher
+    options: KeyOptions
     session_key_size = 32
 
-    def __init__(self, options: Mapping[str, Any], base_dir: Path):
+    def __init__(self, options: KeyOptions, base_dir: Path):
         super().__init__(options, base_dir)
-        key = load_key(options, base_dir, self.name)
+        key = load_key(self.options, base_dir, self.name)
         try:
             self._fernet = Fernet(key)
         except (ValueError, TypeError):
-            raise OptionError(key_source(options), f"the key in {describe_source(options)} is not a "
+            raise OptionError(key_source(self.options),
+                              f"the key in {describe_source(self.options)} is not a "
                               "Fernet key (32 url-safe base64-encoded bytes)",
                               "create one with 'rosgate keygen fernet --out secret.key'") from None
 
     @classmethod
     def from_secret(cls, secret: bytes) -> FernetCipher:
         cipher = cls.__new__(cls)
-        cipher.options = {}
+        cipher.options = KeyOptions()
         cipher._fernet = Fernet(base64.urlsafe_b64encode(secret))
         return cipher
 
