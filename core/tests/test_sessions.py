@@ -13,12 +13,21 @@ from pathlib import Path
 import pytest
 from rosgate_crypto_aead import AeadCipher
 
-from rosgate import identity
+from rosgate import CipherError, identity
 from rosgate.config import ClientPolicy, Rule, TopicConfig, service_from_mapping
 from rosgate.policy import matches, refusal
 from rosgate.ros import TypeNotFound, resolve_type
-from rosgate.secure import (GRACE, HandshakeError, KeySchedule, SessionKeys, UnknownKey,
-                            initiate, open_hello, respond, seal_hello)
+from rosgate.secure import (
+    GRACE,
+    HandshakeError,
+    KeySchedule,
+    SessionKeys,
+    UnknownKey,
+    initiate,
+    open_hello,
+    respond,
+    seal_hello,
+)
 from rosgate.transport import SocketConnection
 from rosgate.wire import envelope
 
@@ -174,13 +183,13 @@ def test_two_sides_derive_the_same_keys_per_direction_and_generation():
     assert receiver.opener(epoch).open(header, body) == b"payload"
     # the other direction's key does not open it
     backwards = SessionKeys(b, AeadCipher, "topic c2s /t", "topic s2c /t")
-    with pytest.raises(Exception):
+    with pytest.raises(CipherError):
         backwards.opener(epoch).open(header, body)
     clock.now += 10  # the next generation: a new key and epoch
     epoch2, header2, body2 = frame(sender, 1)
     assert epoch2 == 7 << 24 | 1
     assert receiver.opener(epoch2).open(header2, body2) == b"payload"
-    with pytest.raises(Exception):
+    with pytest.raises(CipherError):
         receiver.opener(epoch2).open(header, body)
 
 
@@ -219,7 +228,7 @@ def test_a_reused_key_id_is_a_new_root_not_a_cached_cipher():
     a.install(7, secret, digest)
     b.install(7, secret, digest)
     assert receiver.opener(epoch) is not None
-    with pytest.raises(Exception):
+    with pytest.raises(CipherError):
         receiver.opener(epoch).open(header, body)  # the old root's frame
     epoch2, header2, body2 = frame(sender, 2)
     assert epoch2 == epoch and receiver.opener(epoch2).open(header2, body2) == b"payload"

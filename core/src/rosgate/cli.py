@@ -105,7 +105,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     stop, reload = threading.Event(), threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    signal.signal(signal.SIGHUP, lambda *_: (reload.set(), stop.set()))
+
+    def hangup(*_: object) -> None:  # a server applies its file's clients: again
+        reload.set()
+        stop.set()
+    signal.signal(signal.SIGHUP, hangup)
     try:
         engine.start()
     except ConfigError:

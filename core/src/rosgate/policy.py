@@ -67,11 +67,11 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig,
          lambda r: "ciphers " + (", ".join(r.ciphers) if r.ciphers is not None
                                  else "keyed by the session (not none)")),
     )
-    for label, value, allows, allowed in checks:
+    for label, value, allows, describe in checks:
         if not any(allows(r) for r in by_name):
             rule = by_name[0]
             return (f"{policy.name} may not {direction} {what} with {label} {value} (policy "
-                    f"for {policy.name} allows {allowed(rule)} for {rule.name})")
+                    f"for {policy.name} allows {describe(rule)} for {rule.name})")
     for rule in by_name:
         if all(check[2](rule) for check in checks):
             return None

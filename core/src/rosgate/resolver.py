@@ -284,7 +284,7 @@ class Resolver:
                       error: ErrorMaker) -> tuple[type[Cipher], Cipher | None]:
         """An entry's cipher class, and an instance keyed from the file (None in a session,
         where the session keys it: its key options are not needed)."""
-        cls = self.plugin("cipher", name, key, error).cls
+        cls: type[Cipher] = self.plugin("cipher", name, key, error).cls
         if not self.config.secure:
             return cls, self.cipher(name, key, error)
         if not cls.session_key_size and cls.authenticates:

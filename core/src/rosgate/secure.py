@@ -42,7 +42,7 @@ import itertools
 import struct
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305

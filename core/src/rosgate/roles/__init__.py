@@ -16,13 +16,21 @@ import logging
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from ..config import BridgeConfig
 from ..errors import ConfigError, LinkError
-from ..links import (Acceptor, Backoff, DatagramLink, Lifetime, Link, LinkSlot, QueueLimits,
-                     StreamLink)
+from ..links import (
+    Acceptor,
+    Backoff,
+    DatagramLink,
+    Lifetime,
+    Link,
+    LinkSlot,
+    QueueLimits,
+    StreamLink,
+)
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort

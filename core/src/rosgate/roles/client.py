@@ -20,12 +20,11 @@ server's policy refuses is logged once and left out; the others run.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
 from typing import Any
-
-import itertools
 
 from ..config import Direction, service_to_mapping, topic_to_mapping
 from ..errors import LinkError, RosgateError
@@ -37,8 +36,15 @@ from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, initiate, seal_hello
 from ..transport import Address, StreamConnection
 from . import Bridge, Role
-from .mainline import (HANDSHAKE_TIMEOUT, PROTOCOL, control, hello_datagram, is_control,
-                       key_label, parse_control)
+from .mainline import (
+    HANDSHAKE_TIMEOUT,
+    PROTOCOL,
+    control,
+    hello_datagram,
+    is_control,
+    key_label,
+    parse_control,
+)
 
 log = logging.getLogger("rosgate")
 

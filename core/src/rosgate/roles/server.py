@@ -25,25 +25,38 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
-from ..config import (ClientPolicy, Direction, ServiceConfig, TopicConfig, service_from_mapping,
-                      topic_from_mapping)
+from ..config import (
+    ClientPolicy,
+    Direction,
+    ServiceConfig,
+    TopicConfig,
+    service_from_mapping,
+    topic_from_mapping,
+)
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys
 from ..links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
 from ..policy import refusal
 from ..resolver import PreparedService, PreparedTopic
 from ..routes import Route
-from ..secure import (HandshakeError, KeySchedule, SecureConnection, SessionKeys, UnknownKey,
-                      open_hello, respond)
+from ..secure import (
+    HandshakeError,
+    KeySchedule,
+    SecureConnection,
+    SessionKeys,
+    UnknownKey,
+    open_hello,
+    respond,
+)
 from ..transport import Address, StreamConnection
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
 from . import Bridge, Refusals, Role
-from .mainline import (PROTOCOL, control, flipped, is_control, key_label, parse_control,
-                       where_error)
+from .mainline import PROTOCOL, control, flipped, is_control, key_label, parse_control, where_error
 
 log = logging.getLogger("rosgate")
 
@@ -212,7 +225,7 @@ class ServerRole(Role):
                               f"{exc}", logging.ERROR)
             link.send(control({"type": "refused", "error": str(exc)}), self.control)
             return None
-        for index, why in session.refused.items():
+        for why in session.refused.values():
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
         count = len(session.topics)
         ids = [session.by_index[i].topic_id if i in session.by_index else 0
@@ -310,7 +323,7 @@ class ServerRole(Role):
         """Routes for the entries the policy allows (made in order: topics, then services),
         none for the others: a newly refused entry's route is torn down."""
         keyless = {name for (kind, name), r in self.bridge.resolver.plugins.registered.items()
-                   if kind == "cipher" and not r.cls.session_key_size}
+                   if kind == "cipher" and not getattr(r.cls, "session_key_size", 0)}
         where = f"client {session.name}"
         topics = len(session.topics)
         for index, entry in enumerate(session.entries):
