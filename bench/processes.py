@@ -273,7 +273,7 @@ def session_keys(folder: Path) -> tuple[str, str]:
                                       capture_output=True, text=True).stdout.strip()
     client = f", identity: {folder / 'bench_a.key'}, server_key: {public['bench_b']}"
     server = (f", identity: {folder / 'bench_b.key'}}}\nclients: {{bench_a: {{key: "
-              f"{public['bench_a']}, topics: [{{name: /bench, direction: transmit}}]")
+              f"{public['bench_a']}, topics: [{{name: /bench, direction: transmit}}]}}")
     return client, server
 
 

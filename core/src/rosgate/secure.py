@@ -38,7 +38,6 @@ datagram changes nothing.
 
 from __future__ import annotations
 
-import itertools
 import struct
 import threading
 import time
@@ -221,10 +220,21 @@ class KeySchedule:
         self.rekey = rekey
         self.clock = clock
         self._lock = threading.Lock()
-        # key id -> (root, generation 0 started at, erase at (None: current), serial)
-        self._roots: dict[int, tuple[bytes, float, float | None, int]] = {}
+        # key id -> (root, generation 0 started at, erase at (None: current))
+        self._roots: dict[int, tuple[bytes, float, float | None]] = {}
         self._sealing: int | None = None
-        self._serials = itertools.count(1)  # a server that restarted may reuse a key id
+        # read on every frame without the lock: (key id, its start) of the sealing root, and a
+        # count of changes that makes every cached key be looked up again (a server that
+        # restarted may reuse a key id: same epoch, another root)
+        self._seal_state: tuple[int, float] | None = None
+        self.version = 0
+
+    def _changed(self) -> None:
+        """Under the lock, after the roots or the sealing root changed."""
+        found = self._roots.get(self._sealing) if self._sealing is not None else None
+        self._seal_state = (self._sealing, found[1]) if found and self._sealing is not None \
+            else None
+        self.version += 1
 
     def install(self, key_id: int, secret: bytes, handshake_hash: bytes,
                 seal_now: bool = True) -> None:
@@ -233,71 +243,73 @@ class KeySchedule:
         root = hkdf(secret, b"rosgate/1 session root", salt=handshake_hash)
         now = self.clock()
         with self._lock:
-            for old, (r, started, _, serial) in list(self._roots.items()):
+            for old, (r, started, _) in list(self._roots.items()):
                 if old == key_id:
                     del self._roots[old]
                 else:
-                    self._roots[old] = (r, started, now + GRACE, serial)  # opens a while longer
-            self._roots[key_id] = (root, now, None, next(self._serials))
+                    self._roots[old] = (r, started, now + GRACE)  # opens a while longer
+            self._roots[key_id] = (root, now, None)
             if seal_now or self._sealing not in self._roots:
                 self._sealing = key_id
+            self._changed()
 
     def seal_with(self, key_id: int) -> None:
         with self._lock:
             if key_id in self._roots:
                 self._sealing = key_id
+                self._changed()
 
     def forget(self) -> None:
         """Erase every root (the session ends)."""
         with self._lock:
             self._roots.clear()
             self._sealing = None
+            self._changed()
 
     def epoch(self) -> int:
-        with self._lock:
-            key_id = self._sealing
-            if key_id is None:
-                raise LookupError("no session key yet")
-            started = self._roots[key_id][1]
-        return key_id << 24 | self._generation(started)
+        state = self._seal_state
+        if state is None:
+            raise LookupError("no session key yet")
+        return state[0] << 24 | self._generation(state[1])
 
     def _generation(self, started: float) -> int:
         return int((self.clock() - started) / self.rekey) % GENERATIONS
 
-    def _root(self, epoch: int, sealing: bool) -> tuple[bytes, int] | None:
-        """The root of ``epoch`` (and its serial) while it may be used. Opening accepts the
-        generation before and after our own; sealing any of a known root (a reply seals under
-        its request's)."""
+    def _root(self, epoch: int, sealing: bool) -> tuple[bytes, float] | None:
+        """The root of ``epoch``, and until when (monotonic) it may be used so.
+        Opening accepts the generation before and after our own; sealing any of a known root
+        (a reply seals under its request's)."""
         key_id, generation = epoch >> 24, epoch % GENERATIONS
         now = self.clock()
         with self._lock:
             found = self._roots.get(key_id)
             if found is None:
                 return None
-            root, started, erase_at, serial = found
+            root, started, erase_at = found
             if erase_at is not None and now > erase_at:
                 del self._roots[key_id]
+                self._changed()
                 return None
-        if not sealing and abs(generation - self._generation(started)) > 1:
-            return None
-        return root, serial
+        until = erase_at if erase_at is not None else float("inf")
+        if not sealing:
+            if abs(generation - self._generation(started)) > 1:
+                return None
+            until = min(until, started + (generation + 2) * self.rekey)
+        return root, until
 
-    def serial(self, epoch: int, sealing: bool) -> int | None:
-        """Which root ``epoch`` means now (None: none usable): a cipher made for another serial
-        is stale even under the same epoch."""
-        found = self._root(epoch, sealing)
-        return found[1] if found is not None else None
+    def usable(self, epoch: int, sealing: bool) -> bool:
+        return self._root(epoch, sealing) is not None
 
     def secret(self, epoch: int, label: str, size: int,
-               sealing: bool) -> tuple[bytes, int] | None:
-        """The key of ``label`` in ``epoch`` and its root's serial; None when this side no
-        longer (or never) has it."""
+               sealing: bool) -> tuple[bytes, float] | None:
+        """The key of ``label`` in ``epoch``, and until when it may be used without asking
+        again (while :attr:`version` stays); None when this side no longer (or never) has it."""
         found = self._root(epoch, sealing)
         if found is None:
             return None
-        root, serial = found
+        root, until = found
         info = f"rosgate/1 {label} {epoch % GENERATIONS}".encode()
-        return hkdf(root, info, length=size), serial
+        return hkdf(root, info, length=size), until
 
 
 class SessionKeys(Keys):
@@ -315,7 +327,8 @@ class SessionKeys(Keys):
         self.authenticates = cipher_cls.authenticates
         self._keyless = cipher_cls.session_key_size == 0
         self._plain = cipher_cls({}, None) if self._keyless else None  # type: ignore[arg-type]
-        self._cache: dict[tuple[int, bool], tuple[int, Cipher]] = {}  # -> (root serial, cipher)
+        # (epoch, sealing) -> (the schedule's version, usable until, cipher)
+        self._cache: dict[tuple[int, bool], tuple[int, float, Cipher]] = {}
         self._lock = threading.Lock()
 
     def epoch(self) -> int:
@@ -334,19 +347,22 @@ class SessionKeys(Keys):
         if self._plain is not None:  # `none`, where the policy allows it: nothing to key
             return self._plain
         key = (epoch, sealing)
+        schedule = self.schedule
         cached = self._cache.get(key)
-        if cached is not None and cached[0] == self.schedule.serial(epoch, sealing):
-            return cached[1]
+        if (cached is not None and cached[0] == schedule.version
+                and schedule.clock() < cached[1]):
+            return cached[2]
+        version = schedule.version
         label = self.send_label if sealing else self.receive_label
-        found = self.schedule.secret(epoch, label, self.cipher_cls.session_key_size, sealing)
+        found = schedule.secret(epoch, label, self.cipher_cls.session_key_size, sealing)
         if found is None:
             return None
-        secret, serial = found
+        secret, until = found
         cipher = self.cipher_cls.from_secret(secret)
         with self._lock:
             if len(self._cache) >= self.CACHE:
                 del self._cache[next(iter(self._cache))]
-            self._cache[key] = (serial, cipher)
+            self._cache[key] = (version, until, cipher)
         return cipher
 
 
