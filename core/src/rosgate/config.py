@@ -82,7 +82,8 @@ QOS_POLICIES = {
 TOP_KEYS = ("bridge", "plugins", "topics", "services", "clients")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
                "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue",
-               "identity", "server_key", "insecure", "rekey", "allow")
+               "identity", "server_key", "insecure", "rekey", "allow", "peer_key",
+               "handshake_port")
 CLIENT_KEYS = ("key", "topics", "services")
 RULE_KEYS = ("name", "direction", "types", "ports", "ciphers")
 RULE_DIRECTIONS = ("transmit", "receive", "both")
@@ -115,7 +116,8 @@ _EXAMPLES = {
     "max_rate": "20", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
     "history": "keep_last", "depth": "10",
     "identity": "robot1.key", "server_key": "<the server's public key, from rosgate keygen identity>",
-    "insecure": "true", "rekey": "120", "allow": "[192.168.0.20, 10.1.0.0/24]", "key": "<the client's public key>",
+    "insecure": "true", "rekey": "120", "peer_key": "<the other peer's public key>",
+    "handshake_port": "12100", "allow": "[192.168.0.20, 10.1.0.0/24]", "key": "<the client's public key>",
     "clients": "{robot1: {key: <public key>, topics: [{name: /robot1/**, direction: both}]}}",
     "clients.name": "/robot1/**", "clients.direction": "transmit, receive or both",
     "clients.types": "[geometry_msgs/msg/*]", "clients.ports": "[12001, 12010-12019]",
@@ -211,7 +213,8 @@ class BridgeConfig:
     queue_frames: int = QUEUE_FRAMES_DEFAULT
     queue_bytes: int = QUEUE_BYTES_DEFAULT
     identity: bytes | None = None      # this side's private key (read from bridge.identity)
-    server_key: bytes | None = None    # client: the server's public key
+    server_key: bytes | None = None    # client: the server's public key; peer: the peer's
+    handshake_port: int | None = None  # peer with identities: where the handshake line runs
     insecure: bool = False             # client/server without a handshake (loudly)
     rekey: float = REKEY_DEFAULT       # seconds between key generations in a session
     allow: tuple[Any, ...] = ()        # peer: the only addresses frames are taken from (if any)
@@ -229,8 +232,9 @@ class BridgeConfig:
 
     @property
     def secure(self) -> bool:
-        """Client or server with identities: every link of a session is authenticated."""
-        return self.role is not Role.PEER and self.identity is not None
+        """With identities: every link of a session is authenticated (client, server, and a
+        peer that names its peer's key)."""
+        return self.identity is not None
 
 
 def load(path: str | Path) -> BridgeConfig:
@@ -434,6 +438,8 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
         queue_bytes=queue_bytes,
         identity=identity,
         server_key=server_key,
+        handshake_port=_number(src, bridge, "bridge", "handshake_port", None,
+                               "an integer 1..65535", lambda v: 1 <= v <= 65535, integer=True),
         insecure=insecure,
         rekey=_number(src, bridge, "bridge", "rekey", REKEY_DEFAULT, "a number of seconds >= 1",
                       lambda v: v >= 1),
@@ -506,13 +512,37 @@ def _identity(src: _Source, bridge: dict, role: Role, insecure: bool,
     from .identity import IdentityError, decode_public, load_private
 
     if role is Role.PEER:
-        for key in ("identity", "server_key", "insecure", "rekey"):
+        for key in ("server_key", "insecure"):
             if key in bridge:
-                raise src.error(f"bridge.{key}", f"role peer has no handshake, so {key}: does "
-                                "not apply (yet)",
-                                fix="remove it; protect peer links with a cipher and a static "
-                                    "key (README, Security)")
-        return None, None
+                raise src.error(f"bridge.{key}", f"role peer has no {key}:",
+                                fix="a peer authenticates with identity:, peer_key: and "
+                                    "handshake_port: (README, Security), or not at all")
+        given = [k for k in ("identity", "peer_key", "handshake_port") if k in bridge]
+        if not given:
+            for key in ("rekey",):
+                if key in bridge:
+                    raise src.error(f"bridge.{key}", f"{key}: is for peers with identities",
+                                    fix="add identity:, peer_key: and handshake_port:, or "
+                                        "remove it")
+            return None, None
+        for key in ("identity", "peer_key", "handshake_port"):
+            if key not in bridge:
+                raise src.error(f"bridge.{given[0]}", f"a peer with a handshake needs "
+                                "identity:, peer_key: and handshake_port:",
+                                fix=f"add {key}: {_example('bridge', key)}")
+        try:
+            identity = load_private(base_dir / _required(src, bridge, "bridge", "identity"))
+        except IdentityError as exc:
+            raise src.error("bridge.identity", str(exc), fix=exc.fix) from None
+        try:
+            peer_key = decode_public(_required(src, bridge, "bridge", "peer_key"))
+        except IdentityError as exc:
+            raise src.error("bridge.peer_key", f"the peer_key {exc}", fix=exc.fix) from None
+        return identity, peer_key
+    if "peer_key" in bridge or "handshake_port" in bridge:
+        key = "peer_key" if "peer_key" in bridge else "handshake_port"
+        raise src.error(f"bridge.{key}", f"{key}: is for role peer",
+                        fix="a client names server_key:, a server its clients:")
     wanted = ("identity", "server_key") if role is Role.CLIENT else ("identity",)
     if role is Role.SERVER and "server_key" in bridge:
         raise src.error("bridge.server_key", "a server has no server_key: it names its clients' "

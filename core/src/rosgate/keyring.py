@@ -13,6 +13,10 @@ import os
 from .cipher import Cipher
 
 
+class NoKey(LookupError):
+    """There is no key to seal under yet (a session whose handshake has not happened)."""
+
+
 class Keys:
     """The ciphers of one route."""
 
@@ -20,7 +24,7 @@ class Keys:
     authenticates: bool = True
 
     def epoch(self) -> int:
-        """The epoch a frame sealed now carries."""
+        """The epoch a frame sealed now carries; :class:`NoKey` when there is none yet."""
         raise NotImplementedError
 
     def sealer(self, epoch: int) -> Cipher:

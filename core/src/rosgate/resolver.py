@@ -285,11 +285,11 @@ class Resolver:
         """An entry's cipher class, and an instance keyed from the file (None in a session,
         where the session keys it: its key options are not needed)."""
         cls: type[Cipher] = self.plugin("cipher", name, key, error).cls
-        if not self.config.secure:
-            return cls, self.cipher(name, key, error)
-        if not cls.session_key_size and cls.authenticates:
-            raise error(key, f"cipher {name!r} cannot be keyed from a session",
-                        "pick a cipher that can (aead, nacl, fernet)")
+        if not self.config.secure or not cls.session_key_size:
+            if self.config.secure and cls.authenticates:
+                raise error(key, f"cipher {name!r} cannot be keyed from a session",
+                            "pick a cipher that can (aead, nacl, fernet)")
+            return cls, self.cipher(name, key, error)  # static (or keyless: none)
         return cls, None
 
     def _codec(self, name: str, key: str, error: ErrorMaker) -> tuple[type[Codec], Any]:

@@ -30,7 +30,7 @@ from typing import Any, Callable, ClassVar
 from .codec import Codec
 from .config import ServiceConfig, TopicConfig
 from .errors import CipherError, CodecError
-from .keyring import Keys
+from .keyring import Keys, NoKey
 from .links import Link
 from .transport import Address
 from .wire import envelope
@@ -195,6 +195,9 @@ class TransmitRoute(Route):
             return
         try:
             frame = self.framing.frame(self, self.codec.encode(message), now)
+        except NoKey:
+            self.drop("no_session_key", "the session's handshake has not happened yet")
+            return
         except Exception as exc:  # a codec or cipher bug must not stop the executor
             self.drop("encode_error", f"{type(exc).__name__}: {exc}")
             return

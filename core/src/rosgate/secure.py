@@ -50,7 +50,7 @@ from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
 from .cipher import Cipher
 from .errors import LinkError
-from .keyring import Keys
+from .keyring import Keys, NoKey
 from .transport import StreamConnection
 from .wire import envelope
 
@@ -269,7 +269,7 @@ class KeySchedule:
     def epoch(self) -> int:
         state = self._seal_state
         if state is None:
-            raise LookupError("no session key yet")
+            raise NoKey("no session key yet")
         return state[0] << 24 | self._generation(state[1])
 
     def _generation(self, started: float) -> int:
@@ -337,7 +337,7 @@ class SessionKeys(Keys):
     def sealer(self, epoch: int) -> Cipher:
         cipher = self._cipher(epoch, True)
         if cipher is None:
-            raise LookupError(f"no session key for epoch {epoch:#x}")
+            raise NoKey(f"no session key for epoch {epoch:#x}")
         return cipher
 
     def opener(self, epoch: int) -> Cipher | None:

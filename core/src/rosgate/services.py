@@ -38,6 +38,7 @@ from typing import Any, Callable
 
 from .config import ServiceConfig
 from .errors import CodecError
+from .keyring import NoKey
 from .links import Link
 from .routes import Route
 from .transport import Address
@@ -203,10 +204,13 @@ class CallerRoute(ServiceRoute):
         # a call's id is (epoch, seq): the epoch of the key sealing it (a random one per start
         # with a static key), seq counting on across epochs, so no id repeats under one key
         seq = next(self._ids)
-        epoch = self.keys.epoch()
         try:
+            epoch = self.keys.epoch()
             frame = self.seal(envelope.FLAG_REQUEST, epoch, seq,
                               self.codec.encode(self.codec.request, request))
+        except NoKey:
+            self.fail(call, "no_session_key", "the session's handshake has not happened yet")
+            return
         except Exception as exc:  # a codec or cipher bug must not leave the ROS caller waiting
             self.fail(call, "encode_error", f"{type(exc).__name__}: {exc}")
             return
@@ -329,7 +333,11 @@ class ServerRoute(ServiceRoute):
         self.counters.bytes_received += len(frame)
 
         def reply(flags: int, body: bytes) -> None:
-            frame = self.seal(envelope.FLAG_REPLY | flags, header.epoch, header.seq, body)
+            try:
+                frame = self.seal(envelope.FLAG_REPLY | flags, header.epoch, header.seq, body)
+            except NoKey:  # the request's key expired while the ROS server took its time
+                self.drop("no_session_key", "the request's session key is gone")
+                return
             if link.send(frame, self, source):
                 self.counters.sent += 1
                 self.counters.bytes_sent += len(frame)
