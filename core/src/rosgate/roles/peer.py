@@ -255,7 +255,7 @@ class PeerHandshake:
                 connection.close()
                 why = "its key is not peer_key" if isinstance(exc, UnknownKey) else str(exc)
                 self.role.router.link_drop(None, "bad_handshake", f"from {peer[0]}")
-                self.refusals.say(f"{peer[0]} {why}", f"{self.cfg.name}: refused a handshake "
+                self.refusals.say(f"{peer[0]}", f"{self.cfg.name}: refused a handshake "
                                   f"from {peer[0]}: {why}")
                 return
             link = self.role.life.closing(StreamLink(
@@ -300,7 +300,9 @@ class PeerHandshake:
             self._answer = message
             self._answered.set()
         elif message["type"] == "ready" and not self.initiator:
-            self.schedule.seal_with(int(message.get("key_id", -1)))
+            key_id = message.get("key_id")
+            if isinstance(key_id, int):
+                self.schedule.seal_with(key_id)
 
     def _ping_loop(self) -> None:
         cfg = self.cfg

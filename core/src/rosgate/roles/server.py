@@ -144,15 +144,16 @@ class ServerRole(Role):
                 secure = respond(connection, self.cfg.identity, lambda key: key in self._by_key)
             except UnknownKey as exc:
                 connection.close()
-                self.router.link_drop(None, "unknown_key", f"from {peer[0]}")
+                self.router.link_drop(None, "unknown_client_key", f"from {peer[0]}")
                 shown = base64.b64encode(exc.key).decode()[:8]
-                self.refusals.say(f"key {exc.key!r}", f"refused a connection from {peer[0]}: "
-                                  f"its key {shown}... is not in clients:")
+                # said once per address and window: an attacker can make keys without end
+                self.refusals.say(f"unknown key {peer[0]}", f"refused a connection from "
+                                  f"{peer[0]}: its key {shown}... is not in clients:")
                 return
             except HandshakeError as exc:
                 connection.close()
                 self.router.link_drop(None, "bad_handshake", f"from {peer[0]}")
-                self.refusals.say(f"handshake {peer[0]} {exc}",
+                self.refusals.say(f"handshake {peer[0]}",
                                   f"refused a connection from {peer[0]}: {exc}")
                 return
             finally:
@@ -184,7 +185,9 @@ class ServerRole(Role):
                     if session is not None:
                         holder["session"] = session
                 elif kind == "ready" and session is not None and session.schedule is not None:
-                    session.schedule.seal_with(int(message.get("key_id", -1)))
+                    key_id = message.get("key_id")
+                    if isinstance(key_id, int):
+                        session.schedule.seal_with(key_id)
                 elif kind == "bye" and session is not None and session.main.current is link:
                     log.info("client %r left", session.name)
                     self._end(session)
