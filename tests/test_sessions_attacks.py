@@ -641,3 +641,29 @@ topics: {GOAL}"""), dc)
     got = cross(ros_side(dc, "robot").publisher("/goal", String),
                 ros_side(ds, "base").listen("/robot1/goal", String), text, is_warmup, 5)
     assert sorted(m.data for m in got) == [f"m{i}" for i in range(5)]
+
+
+def test_a_roaming_client_is_found_again_by_its_sealed_hellos(tmp_path, domain, ros_side,
+                                                             bridge):
+    """The client's datagrams reach the server through a NAT-like proxy; then the proxy gives
+    it a new source port (the robot moved to another access point). The server sends to the new
+    address as soon as a sealed hello comes from there: a server-to-client topic keeps
+    arriving."""
+    ds, dc, port = domain(), domain(), free_port()
+    proxy = FaultProxy(free_port(), port)
+    try:
+        bridge(server_file(tmp_path, port), ds)
+        bridge(client_file(tmp_path, proxy.port, ROBOT1_TOPICS), dc)
+        status = ros_side(ds, "base").publisher("/robot1/status", String)
+        status_in = ros_side(dc, "robot").listen("/status", String)
+        cross(status, status_in, text, is_warmup, 0)
+        with proxy.udp._lock:  # the next datagram leaves from a new port: the client roamed
+            old = list(proxy.udp._upstream.values())
+            proxy.udp._upstream.clear()
+        for sock in old:  # and nothing reaches it at the old one
+            sock.close()
+        got = cross(status, status_in, lambda i: text(None if i is None else 700 + i),
+                    is_warmup, 10)
+        assert sorted(m.data for m in got) == sorted(f"m{700 + i}" for i in range(10))
+    finally:
+        proxy.close()
