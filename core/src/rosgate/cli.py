@@ -18,6 +18,7 @@ from . import __version__
 from .errors import ConfigError, RosgateError
 
 EXIT_USAGE = 2
+ROUTER_LISTEN = "tcp/0.0.0.0:7447"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -36,6 +37,14 @@ def main(argv: list[str] | None = None) -> int:
 
     commands.add_parser("plugins", help="list installed plugins, and the ones that failed to load")
 
+    router = commands.add_parser("router", help="run a bus router for bridges to meet at (zenoh), "
+                                                "until stopped")
+    router.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                        help=f"where to listen, repeatable (default {ROUTER_LISTEN})")
+    router.add_argument("--config", metavar="FILE",
+                        help="the bus's own configuration file (zenoh: JSON5, as for zenohd -c)")
+    router.add_argument("--transport", default="zenoh", help="the bus transport (default zenoh)")
+
     keygen = commands.add_parser("keygen", help="write a new key for a cipher (mode 0600)")
     keygen.add_argument("cipher", help="the cipher's name, e.g. fernet")
     keygen.add_argument("--out", help="the key file to write (default: CIPHER.key)")
@@ -46,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="[rosgate] %(levelname)s %(message)s", stream=sys.stderr)
     try:
         return {"run": cmd_run, "check": cmd_check, "plugins": cmd_plugins,
-                "keygen": cmd_keygen}[args.command](args)
+                "router": cmd_router, "keygen": cmd_keygen}[args.command](args)
     except RosgateError as exc:
         print(f"rosgate: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -69,7 +78,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         t = p.config
         arrow = "->" if t.direction == "transmit" else "<-"
         port = f":{t.port}" if t.port else ""
-        print(f"  {p.name} {arrow} {t.remote}  [{t.type}] {t.transport}{port} {t.codec} {t.cipher}")
+        print(f"  {p.name} {arrow} {p.key or t.remote}  [{t.type}] {t.transport}{port} {t.codec} "
+              f"{t.cipher}")
     return 0
 
 
@@ -87,6 +97,35 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         logging.getLogger("rosgate").info("stopping")
         engine.stop()
+    return 0
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """A router of a bus transport (a zenoh session in router mode), until SIGINT/SIGTERM."""
+    from .bus import BusTransport
+    from .plugins import Plugins
+
+    plugins = Plugins.discover()
+    registration = plugins.get("transport", args.transport)
+    if registration is None:
+        message, fix = plugins.explain_missing("transport", args.transport)
+        raise ConfigError(message, fix=fix, file="router")
+    if not issubclass(registration.cls, BusTransport):
+        raise ConfigError(f"transport {args.transport!r} is not a bus: it has no router",
+                          file="router", fix="use --transport zenoh")
+    listen = args.listen or ([] if args.config else [ROUTER_LISTEN])
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    session = registration.cls({}).router(listen, args.config)
+    log = logging.getLogger("rosgate")
+    log.info("%s router running, listening on %s", args.transport,
+             ", ".join(listen) or f"what {args.config} says")
+    try:
+        stop.wait()
+    finally:
+        log.info("stopping")
+        session.close()
     return 0
 
 
