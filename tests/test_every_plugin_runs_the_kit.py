@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from rosgate.bus import BusTransport
 from rosgate.plugins import Plugins
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -27,23 +28,28 @@ def folders_of_tests() -> dict[str, Path]:
     return folders
 
 
-IN_TREE = sorted((r.kind, r.name, r.cls.__name__, r.distribution)
+def suite_of(kind: str, cls: type) -> str:
+    """A bus is a transport with a suite of its own."""
+    return "BusConformance" if issubclass(cls, BusTransport) else SUITES[kind]
+
+
+IN_TREE = sorted((r.kind, r.name, r.cls.__name__, r.distribution, suite_of(r.kind, r.cls))
                  for r in Plugins.discover().registered.values()
                  if r.distribution in folders_of_tests())
 
 
 def test_every_in_tree_plugin_is_found():
-    assert {(kind, name) for kind, name, _, _ in IN_TREE} >= {
+    assert {(kind, name) for kind, name, _, _, _ in IN_TREE} >= {
         ("transport", "udp"), ("transport", "tcp"), ("transport", "unixdgram"),
-        ("transport", "can"),
+        ("transport", "can"), ("transport", "zenoh"),
         ("codec", "cdr"), ("codec", "msgpack"), ("codec", "cbor"),
         ("cipher", "none"), ("cipher", "fernet"), ("cipher", "nacl")}
 
 
-@pytest.mark.parametrize("kind, name, cls, distribution", IN_TREE,
-                         ids=[f"{kind}-{name}" for kind, name, _, _ in IN_TREE])
-def test_runs_the_conformance_suite_of_its_kind(kind, name, cls, distribution):
+@pytest.mark.parametrize("kind, name, cls, distribution, suite", IN_TREE,
+                         ids=[f"{kind}-{name}" for kind, name, _, _, _ in IN_TREE])
+def test_runs_the_conformance_suite_of_its_kind(kind, name, cls, distribution, suite):
     sources = [path.read_text() for path in folders_of_tests()[distribution].glob("test_*.py")]
-    assert any(f"({SUITES[kind]}):" in text and f" = {cls}\n" in text for text in sources), (
-        f"no test class of {distribution} subclasses rosgate.testing.{SUITES[kind]} with "
-        f"{SUITES[kind].removesuffix('Conformance').lower()} = {cls}")
+    assert any(f"({suite}):" in text and f" = {cls}\n" in text for text in sources), (
+        f"no test class of {distribution} subclasses rosgate.testing.{suite} with "
+        f"{kind} = {cls}")

@@ -48,7 +48,7 @@ OWN_OPTIONS = ("prefix", "namespace")
 _PRIORITIES = (zenoh.Priority.REAL_TIME, zenoh.Priority.INTERACTIVE_HIGH,
                zenoh.Priority.INTERACTIVE_LOW, zenoh.Priority.DATA_HIGH, zenoh.Priority.DATA,
                zenoh.Priority.DATA_LOW, zenoh.Priority.BACKGROUND)
-_NO_CONSOLIDATION = zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)
+_NO_CONSOLIDATION = zenoh.ConsolidationMode.NONE  # every answer, not the "best" one
 _FIX = "see zenoh's DEFAULT_CONFIG.json5 for the options and their forms"
 
 
@@ -159,10 +159,13 @@ class ZenohTransport(BusTransport):
 class _Declared:
     """A subscription, queryable, token or watch: ``close`` undeclares it."""
 
-    def __init__(self, entity: Any):
+    def __init__(self, entity: Any, forget: Callable[[], None] | None = None):
         self.entity = entity
+        self.forget = forget
 
     def close(self) -> None:
+        if self.forget is not None:
+            self.forget()
         try:
             self.entity.undeclare()
         except zenoh.ZError:  # already gone with its session
@@ -218,6 +221,9 @@ class ZenohSession:
 
     def __init__(self, session: zenoh.Session):
         self.session = session
+        # zenoh undeclares a token whose last reference goes; the bus contract holds it until
+        # it is closed, so the session keeps it
+        self._tokens: set[_Declared] = set()
 
     def publisher(self, key: str, *, reliable: bool, priority: int) -> _Publisher:
         congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
@@ -255,7 +261,10 @@ class ZenohSession:
             raise OSError(zenoh_message(exc)) from None
 
     def token(self, key: str) -> _Declared:
-        return _Declared(self.session.liveliness().declare_token(key))
+        token = _Declared(self.session.liveliness().declare_token(key),
+                          lambda: self._tokens.discard(token))
+        self._tokens.add(token)
+        return token
 
     def watch(self, key_expr: str, on_change: Callable[[str, bool], None]) -> _Declared:
         put = zenoh.SampleKind.PUT
@@ -265,6 +274,7 @@ class ZenohSession:
 
     def close(self) -> None:
         self.session.close()
+        self._tokens.clear()
 
 
 @hookimpl
