@@ -35,7 +35,8 @@ from __future__ import annotations
 import json
 import logging
 import re
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import zenoh
 
@@ -152,8 +153,8 @@ class ZenohTransport(BusTransport):
                 config.insert_json5("scouting/multicast/enabled", "false")
             return ZenohSession(zenoh.open(config))
         except zenoh.ZError as exc:
-            raise LinkError(f"zenoh router: {zenoh_message(exc)}",
-                            "check --listen (tcp/<address>:<port>, the port free) and --config")
+            raise LinkError(f"zenoh router: {zenoh_message(exc)}", "check --listen "
+                            "(tcp/<address>:<port>, the port free) and --config") from None
 
 
 class _Declared:
