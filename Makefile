@@ -25,6 +25,7 @@ test: sync
 
 bench: sync
 	$(VENV)/bin/python bench/bench.py
+	$(VENV)/bin/python bench/fleet.py
 
 clean:
 	rm -rf $(VENV) .tools
