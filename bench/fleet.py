@@ -30,8 +30,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import bench
 from processes import ROSGATE, Lines, Route, free_port, next_domains, ros_env
+
+import bench
 
 HERE = Path(__file__).resolve().parent
 DELIVERED_TARGET = 0.99
