@@ -158,3 +158,15 @@ def test_a_wrong_zenoh_option_is_one_clear_message_from_the_cli(tmp_path):
                     + "transport: zenoh}\n")
     text = user_error(rosgate("check", str(path)))
     assert f"{path}:3: plugins.zenoh.mode: unknown variant `robot`, expected one of" in text
+
+
+def test_run_without_the_router_a_client_needs_is_one_clear_message(tmp_path):
+    from rosgate.testing import free_port
+
+    path = tmp_path / "robot.yaml"
+    path.write_text("bridge: {name: r1, role: peer}\nplugins:\n  zenoh: {mode: client, connect: "
+                    f"[tcp/127.0.0.1:{free_port()}]}}\n" + TOPIC + "transport: zenoh}\n")
+    text = user_error(rosgate("run", str(path)))
+    assert f"{path}:5: topics[0].transport: zenoh: cannot open a session: Unable to connect" \
+        in text
+    assert "mode: peer opens without one" in text
