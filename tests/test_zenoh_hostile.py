@@ -107,3 +107,36 @@ services:
     assert side.ros.node.count_publishers("/robot_9/scan") == 0
     assert not any("robot-9" in r.label for r in base.routes())
     assert replies == [] or all(r.ok is None for r in replies)
+
+
+def test_a_sealed_topic_crosses_and_a_frame_sealed_with_another_key_is_refused(
+        router, plain, engines, domain, ros_side, tmp_path):
+    from rosgate_crypto_nacl import NaclCipher
+
+    from rosgate.testing import write_key
+
+    write_key(tmp_path / "fleet.key", NaclCipher.generate_key())
+    write_key(tmp_path / "other.key", NaclCipher.generate_key())
+    def bridge_file(name: str, key: str, direction: str) -> str:
+        return (f"bridge: {{name: {name}, role: peer, defaults: {{transport: zenoh, "
+                f"cipher: nacl}}}}\nplugins: {{zenoh: {{mode: client, connect: "
+                f"[{router.endpoint}]}}, nacl: {{key_file: {key}}}}}\ntopics: [{{topic: /t, "
+                f"type: std_msgs/msg/String, direction: {direction}, remote: s/t}}]\n")
+
+    da, db, dc = domain(), domain(), domain()
+    engines(bridge_file("a", "fleet.key", "transmit"), da, tmp_path)
+    b = engines(bridge_file("b", "fleet.key", "receive"), db, tmp_path)
+    engines(bridge_file("c", "other.key", "transmit"), dc, tmp_path)
+    inbox = ros_side(db, "b").listen("/t", String)
+    good, bad = ros_side(da, "a").publisher("/t", String), ros_side(dc, "c").publisher("/t", String)
+    deadline = time.monotonic() + 20
+    while not inbox.wait_count(1, 0.2):
+        assert time.monotonic() < deadline
+        good.publish(String(data="sealed"))
+    route = b.routes()[0]
+    deadline = time.monotonic() + 20
+    while not route.counters.drops.get("auth_failed"):
+        assert time.monotonic() < deadline
+        bad.publish(String(data="forged"))
+        time.sleep(0.1)
+    assert {m.data for m in inbox.items} == {"sealed"}
