@@ -34,7 +34,8 @@ def plain(router):
     session.close()
 
 
-def frame(key: str, payload: bytes, flags: int = 0, seq: int = 1, topic: str | None = None) -> bytes:
+def frame(key: str, payload: bytes, flags: int = 0, seq: int = 1,
+          topic: str | None = None) -> bytes:
     header = envelope.pack(flags, topic_id_for(topic or key), 7, seq, time.time_ns())
     return header + payload
 
@@ -57,7 +58,7 @@ services:
     side = ros_side(d, "base")
     cmd, raw = side.listen("/r1/cmd", String), side.listen("/raw", String)
     good = serialize_message(String(data="good"))
-    put = lambda key, data: plain.put(key, data)  # noqa: E731
+    put = lambda key, data: plain.put(key, data)
     # the subscriptions take a moment to spread: until a good frame crosses
     deadline = time.monotonic() + 20
     seq = 0
