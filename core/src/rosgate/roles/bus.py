@@ -31,7 +31,7 @@ from ..errors import LinkError
 from ..links import Link
 from ..placeholders import Template, has_placeholders
 from ..resolver import PreparedService, PreparedTopic
-from ..routes import ReceiveRoute, Route
+from ..routes import ReceiveRoute, Route, TransmitRoute
 from ..services import ServerRoute
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
@@ -274,6 +274,8 @@ class Fleet:
             for route in member.routes.values():
                 self.bridge.router.log_stats([route])
                 self.bridge.router.remove(route)
+                if isinstance(route, TransmitRoute):
+                    route.link.close()  # its publisher on the robot's key
             log.warning("fleet: robot %s dropped (%s %.0f s ago): %d route(s) removed",
                         member.name, why, silent, len(member.routes))
 
