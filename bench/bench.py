@@ -1,12 +1,17 @@
 """rosgate benchmark: bare rclpy pub->sub against pub->bridge A->link->bridge B->sub, in one run.
 
     .venv/bin/python bench/bench.py [--quick] [--only SIZE ...] [--path PATH ...] [--keep]
+                                    [--cpu-rate MSG/S] [--base REV] [--profile [--profile-path P]]
 
 For every message size and path (bare, or a bridge with a given transport/codec/cipher) it
-measures latency (p50/p99) at a moderate fixed rate, then finds the *sustained* rate — the
-highest steady offered rate of which >= 95 % arrives by the end of the trial (plus 0.1 s) —
-by a short search of few-second trials. Progress goes to stderr; the table to stdout and to bench/results.md.
-See bench/README.md for how to read it.
+measures latency (p50/p90/p99) at a moderate fixed rate, then the CPU time each process spends per
+message at another fixed rate (utime + stime from /proc/<pid>/stat), then finds the *sustained*
+rate — the highest steady offered rate of which >= 95 % arrives by the end of the trial (plus
+0.1 s) — by a short search of few-second trials, then offers twice that (overload: how much is
+delivered, how late). With --base REV the bridged paths also run with the rosgate of git revision
+REV, side by side; with --profile py-spy samples both bridges of one path.
+Progress goes to stderr; the tables to stdout and to bench/results.md, plots to bench/plots/,
+profiles to bench/profiles/. See bench/README.md for how to read them.
 """
 
 from __future__ import annotations
@@ -15,17 +20,22 @@ import argparse
 import math
 import os
 import platform
+import shutil
+import signal
 import subprocess
 import sys
 import tempfile
 import time
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from processes import Bridge, Endpoint, Route, bringup_files, next_domains
+import profiling
+from processes import (HERE_CHECKOUT, Bridge, Checkout, Endpoint, Process, Route, bringup_files,
+                       next_domains, thread_cpu_seconds)
 
 HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
 DELIVERED = 0.95  # a trial passes when this share of what was offered arrives on time
 WARM_UP_TIMEOUT = 30.0
 GRACE = 0.1  # seconds after the last send (plus a few message intervals) a message may still arrive
@@ -34,8 +44,12 @@ DRAIN_QUIET = 0.5  # ... and how long nothing must arrive to call it cleared
 
 BUSY = 0.10  # warn when other processes took more than this share of the CPU during a case
 
+CPU_RATE = 2_000  # default fixed rate of the CPU trial (--cpu-rate)
+OVERLOAD = 2.0    # the overload trial offers this times the sustained rate
+
 TARGET_SIZE, TARGET_ROUTE, TARGET_RATE = "2.5 kB", Route("udp"), 10_000
 REPLACED_RATE = 3_300  # ros2_socket_bridge at 2.5 kB, the system rosgate replaces
+OVERLOAD_P99_MS = 50   # issue 11: at 2x sustained, p99 under this for non-reliable topics
 
 
 @dataclass(frozen=True)
@@ -46,6 +60,7 @@ class Size:
     start_rate: float    # the search's first offered rate
     ceiling: float       # never offer more than this
     latency_rate: float  # the fixed rate latency is measured at
+    cpu_rate_max: float = math.inf  # the CPU trial offers min(--cpu-rate, this)
 
     @property
     def key(self) -> str:
@@ -66,7 +81,8 @@ SIZES = [
     Size("100 B", "string", 100, 4_000, 200_000, 1_000),
     Size("2.5 kB", "string", 2_500, 4_000, 200_000, 1_000),
     Size("10 kB", "string", 10_000, 2_000, 100_000, 1_000),
-    Size("1 MB", "image", 1024 * 1024, 20, 2_000, 20),
+    # 2,000 images/s would be 2 GB/s: the CPU trial is the latency trial (20/s)
+    Size("1 MB", "image", 1024 * 1024, 20, 2_000, 20, cpu_rate_max=20),
 ]
 ROUTES = [Route("udp"), Route("udp", codec="msgpack"), Route("udp", cipher="fernet"), Route("tcp")]
 QUICK_ROUTES = [Route("udp"), Route("tcp")]
@@ -76,13 +92,30 @@ CLIENT_SERVER = Route("udp", roles="client/server")  # shown at 2.5 kB only
 @dataclass(frozen=True)
 class Settings:
     quick: bool
-    trial_seconds: float
-    latency_seconds: float
-    max_trials: int
+    trial_seconds: float    # each trial of the sustained-rate search, and the overload trial
+    latency_seconds: float  # --quick: the latency trial is the CPU trial, at the CPU rate
+    cpu_seconds: float      # the CPU trial
+    max_trials: int         # of the search
 
 
-FULL = Settings(False, trial_seconds=2.0, latency_seconds=3.0, max_trials=7)
-QUICK = Settings(True, trial_seconds=1.0, latency_seconds=1.5, max_trials=6)
+FULL = Settings(False, trial_seconds=2.0, latency_seconds=2.0, cpu_seconds=3.0, max_trials=6)
+QUICK = Settings(True, trial_seconds=1.0, latency_seconds=2.0, cpu_seconds=2.0, max_trials=5)
+
+
+@dataclass(frozen=True)
+class ProfileSpec:
+    path: str        # a route's label without revision, e.g. udp/cdr/none
+    size_key: str    # normalized size
+    seconds: float
+    folder: Path
+
+
+@dataclass
+class Options:
+    cpu_rate: float = CPU_RATE
+    checkouts: dict[str, Checkout] = field(default_factory=lambda: {"": HERE_CHECKOUT})
+    best_effort: frozenset[str] = frozenset({"2.5k"})  # size keys (--best-effort)
+    profile: ProfileSpec | None = None
 
 
 def normalize(size: str) -> str:
@@ -99,10 +132,14 @@ class Trial:
     rate: float      # asked of the publisher
     sent: int
     seconds: float
-    received: int
+    received: int    # everything of this trial that arrived (by the end of the drain)
     in_time: int     # received by the end of the trial plus a short grace
-    p50_us: float | None
+    p50_us: float | None  # latency percentiles over everything received
+    p90_us: float | None
     p99_us: float | None
+    cpu: dict[str, float] = field(default_factory=dict)  # role (pub, A, B, sub) -> CPU seconds
+    #: bridge (A, B) -> thread id -> (thread name, user CPU seconds, system CPU seconds)
+    threads: dict[str, dict[int, tuple[str, float, float]]] = field(default_factory=dict)
 
     @property
     def offered(self) -> float:
@@ -113,6 +150,11 @@ class Trial:
         return self.in_time / self.seconds
 
     @property
+    def arrived(self) -> float:
+        """The share of what was sent that arrived at all, however late."""
+        return self.received / self.sent if self.sent else 0.0
+
+    @property
     def ok(self) -> bool:
         return self.sent > 0 and self.in_time >= DELIVERED * self.sent
 
@@ -120,6 +162,12 @@ class Trial:
     def publisher_bound(self) -> bool:
         """The publisher could not offer what was asked (short of CPU, or DDS pushed back)."""
         return self.sent < 0.9 * self.rate * self.seconds
+
+    def us_per_msg(self, role: str) -> float | None:
+        """CPU µs the process spent per message delivered during this trial."""
+        if role not in self.cpu or not self.received:
+            return None
+        return self.cpu[role] / self.received * 1e6
 
 
 def grace(rate: float) -> float:
@@ -132,23 +180,47 @@ def grace(rate: float) -> float:
 class Case:
     """The processes of one (size, path) and the trials run through them."""
 
-    def __init__(self, size: Size, route: Route | None, folder: Path):
+    def __init__(self, size: Size, route: Route | None, folder: Path,
+                 checkout: Checkout = HERE_CHECKOUT, reliability: str = "reliable"):
         self.size = size
         self.route = route
         self.folder = folder
+        self.checkout = checkout
+        self.reliability = reliability
         self.trials = 0
-        self.bridges: list[Bridge] = []
+        self.a: Bridge | None = None
+        self.b: Bridge | None = None
         self._stack = ExitStack()
 
     @property
     def label(self) -> str:
-        return f"{self.size.name} {self.route.label if self.route else 'bare rclpy'}"
+        kind = "" if self.reliability == "reliable" else f" {self.reliability.replace('_', '-')}"
+        return f"{self.size.name} {self.route.label if self.route else 'bare rclpy'}{kind}"
+
+    @property
+    def bridges(self) -> list[Bridge]:
+        return [b for b in (self.a, self.b) if b]
+
+    def processes(self) -> dict[str, Process]:
+        """Every process of the case by its role: pub, A, B, sub (A and B when bridged)."""
+        found = {"pub": self.pub, "A": self.a, "B": self.b, "sub": self.sub}
+        return {role: p for role, p in found.items() if p is not None}
 
     def __enter__(self) -> "Case":
-        with ExitStack() as stack:
-            self._start(stack)
-            self._stack = stack.pop_all()
-        return self
+        for attempt in (1, 2):
+            try:
+                with ExitStack() as stack:
+                    self._start(stack)
+                    self._stack = stack.pop_all()
+                return self
+            except RuntimeError as exc:
+                # a port picked free can be taken (by DDS, or another run's test) before the
+                # bridge binds it: start once more, with fresh ports and domains
+                if attempt == 2 or "already in use" not in str(exc):
+                    raise
+                why = next(line for line in str(exc).splitlines() if "already in use" in line)
+                log(f"  [{self.label}] could not start ({why.strip()}); again")
+        raise AssertionError("unreachable")
 
     def __exit__(self, *exc: object) -> None:
         self._stack.close()
@@ -157,18 +229,21 @@ class Case:
         """Start everything at once (imports and DDS start-up overlap), then wait for each."""
         size, pub_domain = self.size, next_domains()[0]
         sub_domain = pub_domain + 1 if self.route else pub_domain
+        self.folder.mkdir(parents=True, exist_ok=True)
 
         def started(process):
             stack.callback(process.stop)  # stopped in reverse order: the publisher first
             return process
 
         self.sub = started(Endpoint("sub", size.kind, size.bytes, size.depth, sub_domain,
-                                    self.folder / "sub.log"))
+                                    self.folder / "sub.log", self.reliability))
         if self.route:
-            a, b = bringup_files(self.route, size.msg_type, size.depth, self.folder)
-            self.bridges = [started(Bridge(b, sub_domain)), started(Bridge(a, pub_domain))]
+            a, b = bringup_files(self.route, size.msg_type, size.depth, self.folder,
+                                 self.reliability)
+            self.b = started(Bridge(b, sub_domain, self.checkout))
+            self.a = started(Bridge(a, pub_domain, self.checkout))
         self.pub = started(Endpoint("pub", size.kind, size.bytes, size.depth, pub_domain,
-                                    self.folder / "pub.log"))
+                                    self.folder / "pub.log", self.reliability))
         for process in [self.sub, *self.bridges, self.pub]:
             process.ready()
 
@@ -185,13 +260,33 @@ class Case:
         raise RuntimeError(f"{self.label}: nothing arrived within {WARM_UP_TIMEOUT:.0f} s")
 
     def trial(self, rate: float, seconds: float) -> Trial:
+        """Offer ``rate`` for ``seconds``, wait for arrivals to stop, count. The CPU time of
+        every process is read before the first send and after the last arrival."""
         self.trials += 1
+        processes = self.processes()
+        cpu0, threads0 = self._cpu(processes)
         sent = self.pub.ask(f"run {self.trials} {rate} {seconds}", timeout=seconds * 3 + 30)
         self._drain()
+        cpu1, threads1 = self._cpu(processes)
         deadline = sent["end_ns"] + int(grace(rate) * 1e9)
         got = self.sub.ask(f"stats {self.trials} {deadline}")
+        threads = {side: {tid: (name, user - before[1], system - before[2])
+                          for tid, (name, user, system) in threads1[side].items()
+                          for before in [threads0[side].get(tid, (name, 0.0, 0.0))]}
+                   for side in threads1}
         return Trial(rate, sent["sent"], sent["seconds"], got["received"], got["in_time"],
-                     got["p50_us"], got["p99_us"])
+                     got["p50_us"], got["p90_us"], got["p99_us"],
+                     cpu={role: cpu1[role] - cpu0[role] for role in cpu1}, threads=threads)
+
+    @staticmethod
+    def _cpu(processes: dict[str, Process]):
+        try:
+            cpu = {role: p.cpu() for role, p in processes.items()}
+            threads = {role: thread_cpu_seconds(p.pid) for role, p in processes.items()
+                       if role in ("A", "B")}
+        except OSError as exc:
+            raise RuntimeError(f"a process of the case exited: {exc}") from None
+        return cpu, threads
 
     def _drain(self) -> None:
         """Wait until arrivals stop, so a backlog does not load the next trial's path."""
@@ -254,13 +349,20 @@ def describe(t: Trial) -> str:
     verdict = "ok" if t.ok else "FAIL"
     bound = " (publisher-bound)" if t.publisher_bound else ""
     late = f", {t.received - t.in_time} later" if t.received > t.in_time else ""
+    cpu = ", CPU µs/msg " + " ".join(f"{role} {us(t.us_per_msg(role))}" for role in t.cpu)
     return (f"asked {t.rate:,.0f}/s: offered {t.offered:,.0f}/s{bound}, delivered "
             f"{t.delivered:,.0f}/s ({t.in_time / max(t.sent, 1):.1%}{late}), "
-            f"p50 {ms(t.p50_us)} ms p99 {ms(t.p99_us)} ms -> {verdict}")
+            f"p50 {ms(t.p50_us)} ms p99 {ms(t.p99_us)} ms{cpu} -> {verdict}")
 
 
 def ms(us: float | None) -> str:
     return "-" if us is None else f"{us / 1000:.2f}"
+
+
+def us(value: float | None) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.1f}" if value < 100 else f"{value:,.0f}"
 
 
 # -- other work on the machine ----------------------------------------------------------------------
@@ -299,18 +401,26 @@ class Result:
     sustained: Trial | None = None
     peak: float = 0.0            # the most delivered per second in any trial
     latency: Trial | None = None
+    cpu: Trial | None = None     # the fixed-rate trial CPU per message is measured in
+    trials: list[Trial] = field(default_factory=list)  # the search's
+    overload: Trial | None = None      # at OVERLOAD x sustained, reliable (the case's QoS)
+    overload_be: Trial | None = None   # the same rate, every queue best effort
+    profiles: list[Path] = field(default_factory=list)
     error: str | None = None
     problems: list[str] = field(default_factory=list)
     others: float = 0.0          # share of the CPU other processes used meanwhile
+    seconds: float = 0.0
 
     @property
     def path(self) -> str:
         return self.route.label if self.route else "bare rclpy"
 
 
-def measure(size: Size, route: Route | None, settings: Settings, folder: Path) -> Result:
+def measure(size: Size, route: Route | None, settings: Settings, folder: Path,
+            options: Options) -> Result:
     result = Result(size, route)
-    case = Case(size, route, folder)
+    checkout = options.checkouts[route.rev] if route else HERE_CHECKOUT
+    case = Case(size, route, folder, checkout)
     log(f"[{case.label}] starting")
     start, load = time.monotonic(), Load()
     try:
@@ -318,51 +428,155 @@ def measure(size: Size, route: Route | None, settings: Settings, folder: Path) -
             case.warm_up()
             # latency first, on a quiet path: after an overload trial, queues deep in DDS can
             # take a while to settle, and their wait would be charged to this measurement
-            seconds = max(settings.latency_seconds, 100 / size.latency_rate)  # >= 100 samples
-            result.latency = case.trial(size.latency_rate, seconds)
+            cpu_rate = min(options.cpu_rate, size.cpu_rate_max)
+            # --quick: one trial at the CPU rate gives both
+            latency_rate = cpu_rate if settings.quick else size.latency_rate
+            seconds = max(settings.latency_seconds, 100 / latency_rate)  # >= 100 samples
+            result.latency = case.trial(latency_rate, seconds)
             log(f"  [{case.label}] latency: {describe(result.latency)}")
-            result.sustained, trials = find_sustained(case, settings)
-            result.peak = max(t.delivered for t in trials)
+            if cpu_rate == latency_rate and seconds >= settings.cpu_seconds:
+                result.cpu = result.latency
+            else:
+                result.cpu = case.trial(cpu_rate, max(settings.cpu_seconds, 100 / cpu_rate))
+                log(f"  [{case.label}] CPU: {describe(result.cpu)}")
+            spec = options.profile
+            if spec and route and route.path == spec.path and size.key == spec.size_key:
+                result.profiles = profile(case, cpu_rate, spec, result.cpu, result.problems)
+            result.sustained, result.trials = find_sustained(case, settings)
+            if result.sustained:
+                rate = min(OVERLOAD * result.sustained.offered, size.ceiling)
+                result.overload = case.trial(rate, settings.trial_seconds)
+                log(f"  [{case.label}] {OVERLOAD:g}x sustained: {describe(result.overload)}, "
+                    f"{result.overload.arrived:.1%} arrived at all")
+            result.peak = max(t.delivered for t in [*result.trials, result.overload] if t)
     except RuntimeError as exc:
         result.error = str(exc)
         log(f"  [{case.label}] FAILED: {exc}")
+    result.problems += case.problems()
+    # --quick: the best-effort overload only where the issue's target is
+    quick_skip = settings.quick and (route is None or replace(route, rev="") != TARGET_ROUTE)
+    if result.overload and size.key in options.best_effort and not quick_skip:
+        result.overload_be = best_effort_overload(size, route, checkout, folder / "best-effort",
+                                                  result.overload.rate, settings, result.problems)
     result.others = load.others()
-    result.problems = case.problems()
     if result.others > BUSY:
         result.problems.insert(0, f"other processes used {result.others:.0%} of the CPU meanwhile: "
                                   "these numbers are low")
     for line in result.problems:
         log(f"  [{case.label}] {line}")
-    log(f"  [{case.label}] done in {time.monotonic() - start:.0f} s")
+    result.seconds = time.monotonic() - start
+    log(f"  [{case.label}] done in {result.seconds:.0f} s")
     return result
 
 
-# -- the table --------------------------------------------------------------------------------------
+def best_effort_overload(size: Size, route: Route | None, checkout: Checkout, folder: Path,
+                         rate: float, settings: Settings, problems: list[str]) -> Trial | None:
+    """The overload trial again with every queue best effort (publisher, both bridges'
+    topic QoS, subscriber; same depth): a bridge may then drop rather than queue. Fresh
+    processes, since QoS is fixed when they start."""
+    case = Case(size, route, folder, checkout, reliability="best_effort")
+    try:
+        with case:
+            case.warm_up()
+            trial = case.trial(rate, settings.trial_seconds)
+            log(f"  [{case.label}] {OVERLOAD:g}x sustained: {describe(trial)}, "
+                f"{trial.arrived:.1%} arrived at all")
+    except RuntimeError as exc:
+        problems.append(f"best-effort overload trial failed: {exc}")
+        return None
+    finally:
+        problems += [f"best-effort: {line}" for line in case.problems()]
+    return trial
+
+
+# -- profiles ---------------------------------------------------------------------------------------
+SIDES = {"peer": ("bridge A, transmit: DDS subscription -> link",
+                  "bridge B, receive: link -> DDS publisher"),
+         "client/server": ("bridge A, the client, transmit: DDS subscription -> link",
+                           "bridge B, the server, receive: link -> DDS publisher")}
+
+
+def profile_stem(size: Size, route: Route) -> str:
+    name = route.path.replace("/", "-").replace(" ", "-")
+    return f"{name}{'@' + route.rev if route.rev else ''}-{size.name.replace(' ', '')}"
+
+
+def profile(case: Case, rate: float, spec: ProfileSpec, quiet: Trial,
+            problems: list[str]) -> list[Path]:
+    """py-spy on bridge A during one trial at ``rate``, then on bridge B during another (one
+    sampler at a time disturbs the path less); a summary per side."""
+    assert case.route and case.a and case.b
+    spec.folder.mkdir(parents=True, exist_ok=True)
+    stem = profile_stem(case.size, case.route)
+    title = (f"{case.label}, {rate:,.0f} msg/s for {spec.seconds:g} s, rosgate "
+             f"{case.route.rev or revision()}")
+    written = []
+    for side, bridge, role in zip("AB", (case.a, case.b), SIDES[case.route.roles]):
+        recording = profiling.Recording(bridge.pid, spec.folder / f"{stem}-{side}.raw")
+        try:
+            try:
+                recording.start()
+                trial = case.trial(rate, spec.seconds)
+            finally:
+                if recording.proc and recording.proc.poll() is None:
+                    recording.stop()
+        except profiling.ProfileError as exc:
+            problems.append(f"profile {side}: {exc}")
+            log(f"  [{case.label}] profile of {side} failed: {exc}")
+            continue
+        log(f"  [{case.label}] profiled {side}: {describe(trial)}")
+        summary = profiling.summary(
+            profiling.Side(side, role, recording, trial.us_per_msg(side), quiet.us_per_msg(side),
+                           quiet.threads.get(side, {}), quiet.received),
+            title, trial.received, roots=[case.checkout.root, ROOT],
+            latency=f"p50 {ms(trial.p50_us)} ms, p99 {ms(trial.p99_us)} ms, "
+                    f"{trial.in_time / max(trial.sent, 1):.1%} in time",
+            latency_quiet=f"p50 {ms(quiet.p50_us)} ms, p99 {ms(quiet.p99_us)} ms")
+        path = spec.folder / f"{stem}-{side}.txt"
+        path.write_text(summary)
+        written.append(path)
+        log(f"  [{case.label}] wrote {path}")
+    return written
+
+
+# -- the tables -------------------------------------------------------------------------------------
 COLUMNS = ["size", "path", "sustained msg/s", "vs bare", "MB/s", "peak delivered msg/s",
-           "latency at msg/s", "p50 ms", "p99 ms", "p50 vs bare"]
+           "latency at msg/s", "p50 ms", "p99 ms", "p50 vs bare", "A µs/msg", "B µs/msg",
+           f"{OVERLOAD:g}x sustained: delivered", f"{OVERLOAD:g}x sustained: p99 ms"]
+DETAIL = ["size", "path", "CPU trial msg/s", "pub µs/msg", "A µs/msg", "B µs/msg", "sub µs/msg",
+          "A+B vs bare pub+sub", f"{OVERLOAD:g}x: offered msg/s", "delivered", "p50 ms",
+          "p99 ms", f"{OVERLOAD:g}x best effort: offered msg/s", "delivered", "p50 ms", "p99 ms"]
 
 
-def table(results: list[Result]) -> str:
-    bare = {r.size.name: r for r in results if r.route is None}
-    lines = ["| " + " | ".join(COLUMNS) + " |", "|---|---|" + "--:|" * (len(COLUMNS) - 2)]
-    for r in results:
-        cells = [r.size.name, r.path, *row(r, bare.get(r.size.name))]
-        cells += [""] * (len(COLUMNS) - len(cells))
+def markdown(columns: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(columns) + " |", "|---|---|" + "--:|" * (len(columns) - 2)]
+    for cells in rows:
+        cells = cells + [""] * (len(columns) - len(cells))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
+def table(results: list[Result]) -> str:
+    bare = {r.size.name: r for r in results if r.route is None}
+    return markdown(COLUMNS, [[r.size.name, r.path, *row(r, bare.get(r.size.name))]
+                              for r in results])
+
+
 def row(r: Result, bare: Result | None) -> list[str]:
     """The cells after size and path."""
-    if r.error:
+    if r.error and not r.latency:
         return ["failed: " + r.error.splitlines()[0]]
-    return throughput_cells(r, bare) + latency_cells(r.latency, bare.latency if bare else None)
+    cells = (throughput_cells(r, bare) + latency_cells(r.latency, bare.latency if bare else None)
+             + cpu_cells(r) + overload_cells(r))
+    if r.error:
+        cells[-1] += " (failed: " + r.error.splitlines()[0] + ")"
+    return cells
 
 
 def throughput_cells(r: Result, bare: Result | None) -> list[str]:
     s = r.sustained
     if s is None:  # not even the search's lowest rate passed
-        return ["-", "-", "-", f"{r.peak:,.0f}"]
+        return ["-", "-", "-", f"{r.peak:,.0f}" if r.trials else "-"]
     at_least = "≥ " if s.publisher_bound or s.rate >= r.size.ceiling else ""
     return [f"{at_least}{s.offered:,.0f}",
             ratio(s.offered, bare.sustained.offered if bare and bare.sustained else None),
@@ -371,55 +585,182 @@ def throughput_cells(r: Result, bare: Result | None) -> list[str]:
 
 def latency_cells(lat: Trial | None, bare: Trial | None) -> list[str]:
     if lat is None:
-        return []
-    overloaded = "" if lat.ok else f" ({lat.in_time / max(lat.sent, 1):.0%} delivered)"
-    return [f"{lat.offered:,.0f}{overloaded}", ms(lat.p50_us), ms(lat.p99_us),
+        return ["-"] * 4
+    return [at_rate(lat), ms(lat.p50_us), ms(lat.p99_us),
             ratio(lat.p50_us, bare.p50_us if bare else None)]
+
+
+def at_rate(t: Trial) -> str:
+    """A fixed-rate trial's rate, and how much arrived if it overloaded the path."""
+    overloaded = "" if t.ok else f" ({t.in_time / max(t.sent, 1):.0%} delivered)"
+    return f"{t.offered:,.0f}{overloaded}"
+
+
+def cpu_cells(r: Result) -> list[str]:
+    """A and B µs/msg; on the bare row the publisher's and the subscriber's."""
+    if r.cpu is None:
+        return ["-", "-"]
+    if r.route is None:
+        return [f"pub {us(r.cpu.us_per_msg('pub'))}", f"sub {us(r.cpu.us_per_msg('sub'))}"]
+    return [us(r.cpu.us_per_msg("A")), us(r.cpu.us_per_msg("B"))]
+
+
+def overload_cells(r: Result) -> list[str]:
+    t = r.overload
+    if t is None or r.sustained is None:
+        return ["-", "-"]
+    factor = t.offered / r.sustained.offered
+    short = f" (at {factor:.1f}x)" if factor < 0.9 * OVERLOAD else ""
+    return [f"{t.arrived:.1%}{short}", ms(t.p99_us)]
+
+
+def detail_table(results: list[Result]) -> str:
+    bare = {r.size.name: r for r in results if r.route is None}
+    rows = []
+    for r in results:
+        cells = [r.size.name, r.path]
+        c = r.cpu
+        if c is None:
+            rows.append(cells + ["-"])
+            continue
+        cells += [at_rate(c), *(us(c.us_per_msg(role)) for role in ("pub", "A", "B", "sub"))]
+        b = bare.get(r.size.name)
+        rclpy = (sum(b.cpu.cpu.get(role, 0) for role in ("pub", "sub")) / b.cpu.received
+                 if b and b.cpu and b.cpu.received else None)
+        mine = (sum(c.cpu.get(role, 0) for role in ("A", "B")) / c.received
+                if r.route and c.received else None)
+        cells.append(ratio(mine, rclpy) if r.route else ratio(rclpy, rclpy))
+        for t in (r.overload, r.overload_be):
+            cells += ([f"{t.offered:,.0f}", f"{t.arrived:.1%}", ms(t.p50_us), ms(t.p99_us)]
+                      if t else ["-"] * 4)
+        rows.append(cells)
+    return markdown(DETAIL, rows)
+
+
+def compare_table(results: list[Result]) -> str | None:
+    """This checkout against the base revision, path by path."""
+    pairs = []
+    for r in results:
+        if r.route and r.route.rev:
+            mine = next((m for m in results if m.size == r.size
+                         and m.route == replace(r.route, rev="")), None)
+            if mine:
+                pairs.append((mine, r))
+    if not pairs:
+        return None
+    rev = pairs[0][1].route.rev
+
+    def vs(a: float | None, b: float | None, fmt) -> str:
+        return "-" if a is None or b is None else f"{fmt(a)} vs {fmt(b)} ({ratio(a, b)}x)"
+
+    number = lambda v: f"{v:,.0f}"  # noqa: E731
+    rows = []
+    for mine, base in pairs:
+        cpu = lambda r, side: r.cpu.us_per_msg(side) if r.cpu else None  # noqa: E731
+        rows.append([mine.size.name, mine.path,
+                     vs(mine.sustained and mine.sustained.offered,
+                        base.sustained and base.sustained.offered, number),
+                     vs(cpu(mine, "A"), cpu(base, "A"), us), vs(cpu(mine, "B"), cpu(base, "B"), us),
+                     vs(mine.latency and mine.latency.p50_us, base.latency and base.latency.p50_us,
+                        ms),
+                     vs(mine.overload and mine.overload.p99_us,
+                        base.overload and base.overload.p99_us, ms)])
+    return markdown(["size", "path", f"sustained msg/s: this vs @{rev}", "A µs/msg", "B µs/msg",
+                     "p50 ms", f"{OVERLOAD:g}x p99 ms"], rows)
 
 
 def ratio(value: float | None, base: float | None) -> str:
     return f"{value / base:.2f}" if value is not None and base else "-"
 
 
-def verdict(results: list[Result]) -> str:
-    found = [r for r in results if r.size.name == TARGET_SIZE and r.route == TARGET_ROUTE]
+def verdicts(results: list[Result]) -> list[str]:
+    lines = []
     goal = (f"target: {TARGET_SIZE} over {TARGET_ROUTE.label} sustained >= {TARGET_RATE:,} msg/s "
             f"end to end (ros2_socket_bridge, which rosgate replaces: ~{REPLACED_RATE:,})")
-    if not found or found[0].sustained is None:
-        return f"{goal}: NOT MEASURED in this run"
-    got = found[0].sustained.offered
-    met = "MET" if got >= TARGET_RATE else "NOT MET"
-    return f"{goal}: {met} ({got:,.0f} msg/s, {got / REPLACED_RATE:.1f}x the replaced bridge)"
+    found = [r for r in results if r.size.name == TARGET_SIZE and r.route
+             and replace(r.route, rev="") == TARGET_ROUTE]
+    if not found or all(r.sustained is None for r in found):
+        lines.append(f"{goal}: NOT MEASURED in this run")
+    for r in found:
+        if r.sustained is None:
+            continue
+        got = r.sustained.offered
+        met = "MET" if got >= TARGET_RATE else "NOT MET"
+        who = f" with rosgate @{r.route.rev}" if r.route.rev else ""
+        lines.append(f"{goal}{who}: {met} ({got:,.0f} msg/s, "
+                     f"{got / REPLACED_RATE:.1f}x the replaced bridge)")
+    goal = (f"target: at {OVERLOAD:g}x the sustained rate, p99 < {OVERLOAD_P99_MS} ms for a "
+            f"non-reliable topic ({TARGET_SIZE} {TARGET_ROUTE.label}, every queue best effort)")
+    measured = [r for r in found if r.overload_be]
+    if not measured:
+        lines.append(f"{goal}: NOT MEASURED in this run")
+    for r in measured:
+        t = r.overload_be
+        met = "MET" if t.p99_us is not None and t.p99_us < OVERLOAD_P99_MS * 1000 else "NOT MET"
+        who = f" with rosgate @{r.route.rev}" if r.route.rev else ""
+        lines.append(f"{goal}{who}: {met} (p99 {ms(t.p99_us)} ms, {t.arrived:.1%} delivered)")
+    return lines
 
 
-def report(results: list[Result], settings: Settings, elapsed: float, others: float) -> str:
+def report(results: list[Result], settings: Settings, options: Options, elapsed: float,
+           others: float, out: Path, plots: list[Path], base: str | None) -> str:
     mode = "quick" if settings.quick else "full"
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo")
                 if line.startswith("model name")), platform.processor())
     notes = [f"- {r.size.name} {r.path}: {line}" for r in results for line in r.problems[:6]]
+    link = lambda p: os.path.relpath(p, out.parent)  # noqa: E731
+    be_sizes = [s.name for s in SIZES if s.key in options.best_effort]
+    based = f"; base {base}" if base else ""
     parts = [
         "# rosgate benchmark: bridged vs bare rclpy",
         "",
-        f"{time.strftime('%Y-%m-%d %H:%M')}, rosgate {revision()}, {mode} run "
+        f"{time.strftime('%Y-%m-%d %H:%M')}, rosgate {revision()}{based}, {mode} run "
         f"({settings.trial_seconds:g} s trials), {os.cpu_count()} cores ({cpu}), "
         f"Python {platform.python_version()}, {elapsed / 60:.1f} min; other processes used "
         f"{others:.0%} of the CPU meanwhile. Sustained: highest steady offered rate with >= "
         f"{DELIVERED:.0%} delivered by the trial's end + {GRACE:g} s. '≥': the publisher (or "
         "the search's ceiling) was the limit, not the path. Peak: the most delivered per second "
-        "in any trial. Ratios: bridged / bare rclpy at the same size.",
+        "in any trial. Ratios: bridged / bare rclpy at the same size. µs/msg: CPU time "
+        "(utime + stime, /proc/<pid>/stat) of bridge A and bridge B (bare row: publisher and "
+        f"subscriber) per message delivered in a {settings.cpu_seconds:g} s trial at "
+        f"{options.cpu_rate:,.0f} msg/s (1 MB: 20 msg/s)"
+        + ("; --quick measures latency in that same trial" if settings.quick else "")
+        + f". {OVERLOAD:g}x sustained: a "
+        f"{settings.trial_seconds:g} s trial at twice the sustained rate after the search; "
+        "delivered: the share that arrived at all, however late; p99: of what arrived.",
         "",
         table(results),
         "",
-        f"**{verdict(results)}**",
+        *[f"**{line}**" for line in verdicts(results)],
+        "",
+        "## Where the time goes: CPU per message, and overload",
+        "",
+        "CPU trial: the fixed-rate trial the µs/msg are measured in ('(x % delivered)' if it "
+        "overloaded the path). A+B vs bare pub+sub: what the two bridges spend per message "
+        "against what rclpy's publisher and subscriber spend in the bare case. "
+        f"{OVERLOAD:g}x best effort: the same overload again with the publisher, both bridges' "
+        "topic QoS and the subscriber best effort (same depth), in fresh processes; "
+        + (f"run at {', '.join(be_sizes)}" if be_sizes else "not run (--best-effort none)")
+        + (f", for {TARGET_ROUTE.label} only (--quick)" if settings.quick else "") + ".",
+        "",
+        detail_table(results),
     ]
+    compared = compare_table(results)
+    if compared:
+        parts += ["", f"## This checkout against {base}", "", compared]
+    if plots:
+        parts += ["", "Plots: " + ", ".join(f"[{p.stem}]({link(p)})" for p in plots)]
+    profiles = [p for r in results for p in r.profiles]
+    if profiles:
+        parts += ["", "Profiles (py-spy): " + ", ".join(f"[{p.name}]({link(p)})" for p in profiles)]
     if notes:
         parts += ["", "Notes: other load, and the bridges' warnings and drop counters:", "", *notes]
     return "\n".join(parts) + "\n"
 
 
-def revision() -> str:
+def revision(root: Path = ROOT) -> str:
     """The commit measured, and whether the working tree differed from it."""
-    git = ["git", "-C", str(HERE)]
+    git = ["git", "-C", str(root)]
     head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
     dirty = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"],
                            capture_output=True, text=True)
@@ -428,14 +769,57 @@ def revision() -> str:
     return head.stdout.strip() + (" + uncommitted changes" if dirty.stdout.strip() else "")
 
 
+# -- another revision's rosgate (--base) ----------------------------------------------------------------
+def find_uv() -> str:
+    for candidate in (os.environ.get("UV"), shutil.which("uv"), ROOT / ".tools" / "bin" / "uv"):
+        if candidate and Path(candidate).exists():
+            return str(candidate)
+    sys.exit("bench: --base needs uv (on PATH, in .tools/bin/, or UV=/path/to/uv): run `make sync`")
+
+
+def base_checkout(rev: str, stack: ExitStack) -> Checkout:
+    """REV checked out in a temporary git worktree (outside this checkout's files) with a .venv
+    of its own (uv sync --inexact); removed when ``stack`` closes."""
+    git = ["git", "-C", str(ROOT)]
+    found = subprocess.run([*git, "rev-parse", "--verify", "--quiet", f"{rev}^{{commit}}"],
+                           capture_output=True, text=True)
+    if found.returncode:
+        sys.exit(f"bench: --base {rev}: no such commit here")
+    sha = found.stdout.strip()
+    short = subprocess.run([*git, "rev-parse", "--short", sha], capture_output=True, text=True,
+                           check=True).stdout.strip()
+    uv = find_uv()
+    folder = Path(tempfile.mkdtemp(prefix=f"rosgate-base-{short}-"))
+    tree = folder / "rosgate"
+
+    def remove() -> None:
+        subprocess.run([*git, "worktree", "remove", "--force", str(tree)], capture_output=True)
+        shutil.rmtree(folder, ignore_errors=True)
+        subprocess.run([*git, "worktree", "prune"], capture_output=True)
+        log(f"bench: removed the worktree of {short}")
+
+    stack.callback(remove)
+    start = time.monotonic()
+    log(f"bench: --base {rev} = {short}: checking it out in {tree}, syncing its .venv")
+    subprocess.run([*git, "worktree", "add", "--detach", "--quiet", str(tree), sha], check=True)
+    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "UV_PROJECT_ENVIRONMENT")}
+    synced = subprocess.run([uv, "sync", "--inexact", "--quiet"], cwd=tree, env=env,
+                            capture_output=True, text=True)
+    checkout = Checkout(short, tree)
+    if synced.returncode or not Path(checkout.rosgate).exists():
+        sys.exit(f"bench: uv sync of {short} failed:\n{synced.stderr.strip()[-2000:]}")
+    log(f"bench: {short} ready in {time.monotonic() - start:.0f} s")
+    return checkout
+
+
 # -- main ---------------------------------------------------------------------------------------------
-def plan(settings: Settings, only: list[str] | None,
-         paths: list[str] | None) -> list[tuple[Size, Route | None]]:
+def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
+         base: str | None = None,
+         profile_spec: ProfileSpec | None = None) -> list[tuple[Size, Route | None]]:
     wanted = {normalize(o) for o in only} if only else None
     unknown = (wanted or set()) - {s.key for s in SIZES}
     if unknown:
-        sys.exit(f"bench: unknown size {', '.join(sorted(unknown))}; sizes: "
-                 f"{', '.join(s.name.replace(' ', '') for s in SIZES)}")
+        sys.exit(f"bench: unknown size {', '.join(sorted(unknown))}; sizes: {size_names()}")
     cases: list[tuple[Size, Route | None]] = []
     for size in SIZES:
         if wanted and size.key not in wanted:
@@ -443,42 +827,117 @@ def plan(settings: Settings, only: list[str] | None,
         routes = QUICK_ROUTES if settings.quick else ROUTES
         if size.name == TARGET_SIZE:
             routes = [*routes, CLIENT_SERVER]
-        cases += [(size, None), *[(size, route) for route in routes]]
-    if paths:
-        cases = [(size, route) for size, route in cases
-                 if (route.label if route else "bare") in paths]
+        if paths:
+            routes = [route for route in routes if route.path in paths]
+        if not paths or "bare" in paths:
+            cases.append((size, None))
+        for route in routes:  # this checkout's and the base's side by side
+            cases += [(size, route)] + ([(size, replace(route, rev=base))] if base else [])
+    if profile_spec and not any(route and route.path == profile_spec.path
+                                and size.key == profile_spec.size_key for size, route in cases):
+        size = next(s for s in SIZES if s.key == profile_spec.size_key)
+        route = next(r for r in [*ROUTES, CLIENT_SERVER] if r.path == profile_spec.path)
+        cases += [(size, route)] + ([(size, replace(route, rev=base))] if base else [])
     return cases
+
+
+def size_names() -> str:
+    return ", ".join(s.name.replace(" ", "") for s in SIZES)
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer paths, shorter trials")
     parser.add_argument("--only", action="append", metavar="SIZE",
-                        help="only this size: 100B, 2.5kB, 10kB or 1MB (repeatable)")
+                        help=f"only this size: {size_names()} (repeatable)")
     parser.add_argument("--path", action="append", metavar="PATH",
                         help="only this path, e.g. bare or udp/cdr/fernet (repeatable)")
     parser.add_argument("--keep", action="store_true",
                         help="keep the bringup.yaml files and logs (their folder is printed)")
-    parser.add_argument("--out", type=Path, default=HERE / "results.md",
-                        help="where to write the table (default: bench/results.md)")
+    parser.add_argument("--out", default=str(HERE / "results.md"),
+                        help="where to write the tables (default: bench/results.md; '-': "
+                             "stdout only, and no plots unless --plots)")
+    parser.add_argument("--plots", type=Path, metavar="DIR",
+                        help="where to draw the plots (default: plots/ beside --out)")
+    parser.add_argument("--cpu-rate", type=float, default=CPU_RATE, metavar="MSG/S",
+                        help=f"the CPU trial's fixed rate (default {CPU_RATE:,}; 1 MB: at most 20)")
+    parser.add_argument("--best-effort", action="append", metavar="SIZE",
+                        help="sizes whose overload trial is repeated best effort (default "
+                             "2.5kB; repeatable; 'none': no size, 'all': every size)")
+    parser.add_argument("--base", metavar="REV",
+                        help="also run the bridged paths with the rosgate of git revision REV "
+                             "(a temporary worktree with its own .venv)")
+    parser.add_argument("--profile", action="store_true",
+                        help="py-spy on bridge A and B during a fixed-rate trial of one path "
+                             "(writes bench/profiles/)")
+    parser.add_argument("--profile-path", default="udp/cdr/none", metavar="PATH",
+                        help="the path --profile samples (default udp/cdr/none)")
+    parser.add_argument("--profile-size", default="2.5kB", metavar="SIZE",
+                        help="... at this size (default 2.5kB)")
+    parser.add_argument("--profile-seconds", type=float, default=8.0, metavar="S",
+                        help="how long each side's profiled trial offers --cpu-rate (default 8)")
     args = parser.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # clean up processes and worktree
     settings = QUICK if args.quick else FULL
-    cases = plan(settings, args.only, args.path)
-    log(f"bench: {len(cases)} cases, {'quick' if settings.quick else 'full'} run")
+
+    options = Options(cpu_rate=args.cpu_rate)
+    if args.best_effort:
+        chosen = {normalize(s) for s in args.best_effort}
+        if "all" in chosen:
+            chosen = {s.key for s in SIZES}
+        chosen.discard("none")
+        if chosen - {s.key for s in SIZES}:
+            sys.exit(f"bench: --best-effort: unknown size; sizes: {size_names()}, all, none")
+        options.best_effort = frozenset(chosen)
+    if args.profile:
+        if not profiling.PYSPY.exists():
+            sys.exit(f"bench: --profile needs py-spy ({profiling.PYSPY}): run `make sync`")
+        key = normalize(args.profile_size)
+        if key not in {s.key for s in SIZES}:
+            sys.exit(f"bench: --profile-size {args.profile_size}: sizes: {size_names()}")
+        if args.profile_path not in {r.path for r in [*ROUTES, CLIENT_SERVER]}:
+            sys.exit(f"bench: --profile-path {args.profile_path}: one of "
+                     f"{', '.join(r.path for r in [*ROUTES, CLIENT_SERVER])}")
+        options.profile = ProfileSpec(args.profile_path, key, args.profile_seconds,
+                                      HERE / "profiles")
     start, load = time.monotonic(), Load()
     results = []
-    with tempfile.TemporaryDirectory(prefix="rosgate-bench-") as tmp:
+    with ExitStack() as stack:
+        base = base_rev = None
+        if args.base:
+            checkout = base_checkout(args.base, stack)
+            options.checkouts[checkout.rev] = checkout
+            base_rev = checkout.rev
+            base = f"{args.base} = {base_rev}" if args.base != base_rev else base_rev
+        cases = plan(settings, args.only, args.path, base_rev, options.profile)
+        log(f"bench: {len(cases)} cases, {'quick' if settings.quick else 'full'} run")
+        tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="rosgate-bench-"))
         if args.keep:
             tmp = tempfile.mkdtemp(prefix="rosgate-bench-")
             log(f"bench: keeping files and logs in {tmp}")
         for i, (size, route) in enumerate(cases):
             folder = Path(tmp) / f"case{i:02d}"
-            folder.mkdir()
-            results.append(measure(size, route, settings, folder))
-    text = report(results, settings, time.monotonic() - start, load.others())
+            results.append(measure(size, route, settings, folder, options))
+    out = None if args.out == "-" else Path(args.out)
+    plots_dir = args.plots or (out.parent / "plots" if out else None)
+    drawn = []
+    if plots_dir:
+        try:
+            import plots
+
+            drawn = plots.draw(results, plots_dir)
+            log(f"bench: drew {', '.join(str(p) for p in drawn)}")
+        except ImportError as exc:
+            log(f"bench: no plots ({exc}): run `make sync`")
+        except Exception as exc:  # a plotting bug must not cost the run's tables
+            log(f"bench: drawing the plots failed: {type(exc).__name__}: {exc}")
+    text = report(results, settings, options, time.monotonic() - start, load.others(),
+                  out or Path.cwd() / "-", drawn, base)
     print(text)
-    args.out.write_text(text)
-    log(f"bench: wrote {args.out} in {(time.monotonic() - start) / 60:.1f} min")
+    if out:
+        out.write_text(text)
+    log(f"bench: {'wrote ' + str(out) if out else 'done'} in "
+        f"{(time.monotonic() - start) / 60:.1f} min")
     return 1 if any(r.error for r in results) else 0
 
 

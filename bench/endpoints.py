@@ -1,12 +1,13 @@
 """The two ROS ends of a benchmark: a paced publisher and a counting subscriber.
 
-Each runs as a process of its own (``python endpoints.py pub|sub KIND``), in the DDS domain
-given by ``ROS_DOMAIN_ID``, and takes one command per line on stdin, answering one JSON line
-on stdout:
+Each runs as a process of its own (``python endpoints.py pub|sub KIND SIZE DEPTH [RELIABILITY]``),
+in the DDS domain given by ``ROS_DOMAIN_ID``, and takes one command per line on stdin, answering
+one JSON line on stdout:
 
     pub: ``run TRIAL RATE SECONDS``  -> {"sent": n, "seconds": s, "end_ns": t}   publish at a
                                         steady rate; end_ns: wall clock after the last one
-    sub: ``stats TRIAL [DEADLINE_NS]`` -> {"received": n, "in_time": n, "p50_us": .., "p99_us": ..}
+    sub: ``stats TRIAL [DEADLINE_NS]`` -> {"received": n, "in_time": n, "p50_us": .., "p90_us": ..,
+                                          "p99_us": ..}
                                         in_time: how many arrived by the deadline
          ``total``                   -> {"received": n}   everything so far (for draining)
     both: ``quit``
@@ -101,12 +102,13 @@ def payload(kind: str, size: int) -> StringPayload:
     return {"string": StringPayload, "image": ImagePayload}[kind](size)
 
 
-def qos(depth: int):
+def qos(depth: int, reliability: str = "reliable"):
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    # deep and reliable: a shallow queue (e.g. sensor_data, depth 5) drops most of a burst
+    # deep: a shallow queue (e.g. sensor_data, depth 5) drops most of a burst; reliable unless
+    # a best-effort trial asks otherwise (a reliable reader does not match a best-effort writer)
     return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
-                      reliability=ReliabilityPolicy.RELIABLE)
+                      reliability=getattr(ReliabilityPolicy, reliability.upper()))
 
 
 def node(name: str):
@@ -122,8 +124,8 @@ def answer(obj: dict) -> None:
 
 
 # -- publisher ------------------------------------------------------------------------------
-def run_publisher(p: StringPayload, depth: int) -> None:
-    publisher = node("bench_pub").create_publisher(p.msg_type, TOPIC, qos(depth))
+def run_publisher(p: StringPayload, depth: int, reliability: str) -> None:
+    publisher = node("bench_pub").create_publisher(p.msg_type, TOPIC, qos(depth, reliability))
     answer({"ready": True})
     for line in sys.stdin:
         words = line.split()
@@ -183,15 +185,16 @@ class Tally:
         pick = lambda q: latencies[min(n - 1, int(q * n))] / 1000 if n else None  # noqa: E731
         # arrivals are appended in time order, one callback after the other
         return {"received": len(arrivals), "in_time": bisect.bisect_right(arrivals, deadline_ns),
-                "p50_us": pick(0.50), "p99_us": pick(0.99)}
+                "p50_us": pick(0.50), "p90_us": pick(0.90), "p99_us": pick(0.99)}
 
 
-def run_subscriber(p: StringPayload, depth: int) -> None:
+def run_subscriber(p: StringPayload, depth: int, reliability: str) -> None:
     from rclpy.experimental import EventsExecutor
 
     tally = Tally(p)
     sub_node = node("bench_sub")
-    sub_node.create_subscription(p.msg_type, TOPIC, tally.on_message, qos(depth), raw=True)
+    sub_node.create_subscription(p.msg_type, TOPIC, tally.on_message, qos(depth, reliability),
+                                 raw=True)
     executor = EventsExecutor()
     executor.add_node(sub_node)
     done = threading.Event()
@@ -217,8 +220,9 @@ def serve_commands(tally: Tally, done: threading.Event) -> None:
 
 def main() -> None:
     role, kind, size, depth = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+    reliability = sys.argv[5] if len(sys.argv) > 5 else "reliable"
     p = payload(kind, size)
-    {"pub": run_publisher, "sub": run_subscriber}[role](p, depth)
+    {"pub": run_publisher, "sub": run_subscriber}[role](p, depth, reliability)
 
 
 if __name__ == "__main__":

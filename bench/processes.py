@@ -30,6 +30,7 @@ from typing import IO, Any
 ROOT = Path(__file__).resolve().parent.parent
 ENDPOINTS = Path(__file__).resolve().with_name("endpoints.py")
 ROSGATE = str(Path(sys.executable).with_name("rosgate"))
+CLOCK_TICK = os.sysconf("SC_CLK_TCK")  # /proc/<pid>/stat counts CPU time in these per second
 START_TIMEOUT = 30.0
 READY_LINE = "running as"
 
@@ -56,13 +57,53 @@ def free_port() -> int:
             return port
 
 
-def ros_env(domain: int) -> dict[str, str]:
+@dataclass(frozen=True)
+class Checkout:
+    """Whose ``rosgate`` a bridge runs: this checkout's (rev "") or another revision's, checked
+    out in a worktree of its own with its own .venv (see bench.py --base)."""
+
+    rev: str = ""          # short commit, "" for this checkout
+    root: Path = ROOT
+
+    @property
+    def rosgate(self) -> str:
+        return ROSGATE if not self.rev else str(self.root / ".venv" / "bin" / "rosgate")
+
+
+HERE_CHECKOUT = Checkout()
+
+
+def cpu_seconds(pid: int) -> float:
+    """CPU time (user + system) a process has used so far, all its threads together
+    (/proc/<pid>/stat fields 14 and 15, in clock ticks)."""
+    with open(f"/proc/{pid}/stat") as stat:
+        fields = stat.read().rsplit(")", 1)[1].split()  # the name (field 2) may hold spaces
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICK
+
+
+def thread_cpu_seconds(pid: int) -> dict[int, tuple[str, float, float]]:
+    """CPU time per thread of a process: thread id -> (its name, user seconds, system seconds).
+    Threads that ended meanwhile are missing; Python's own threads are all named after the
+    program (Python 3.11 does not name them), DDS's are named by Fast DDS."""
+    threads = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            stat = (task / "stat").read_text()
+        except OSError:
+            continue
+        name = stat[stat.index("(") + 1:stat.rindex(")")]
+        fields = stat.rsplit(")", 1)[1].split()
+        threads[int(task.name)] = (name, int(fields[11]) / CLOCK_TICK, int(fields[12]) / CLOCK_TICK)
+    return threads
+
+
+def ros_env(domain: int, root: Path = ROOT) -> dict[str, str]:
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
     # The bridges run the workspace's code as checked out: its source folders go first, so an
     # editable install made before a plugin's sources existed (no .pth for it) does not hide it.
     # Entry points still come from the installed distributions.
-    sources = [ROOT / "core" / "src", *sorted((ROOT / "plugins").glob("*/src"))]
+    sources = [root / "core" / "src", *sorted((root / "plugins").glob("*/src"))]
     env["PYTHONPATH"] = os.pathsep.join([*map(str, sources), env.get("PYTHONPATH", "")]).rstrip(
         os.pathsep)
     # counters are logged when a bridge stops; no periodic lines in the middle of a trial
@@ -107,6 +148,14 @@ class Process:
 
     proc: subprocess.Popen
 
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def cpu(self) -> float:
+        """CPU seconds it has used so far."""
+        return cpu_seconds(self.proc.pid)
+
     def stop(self) -> None:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
@@ -120,11 +169,12 @@ class Process:
 class Endpoint(Process):
     """The publisher or the subscriber (bench/endpoints.py), driven over stdin/stdout."""
 
-    def __init__(self, role: str, kind: str, size: int, depth: int, domain: int, log: Path):
+    def __init__(self, role: str, kind: str, size: int, depth: int, domain: int, log: Path,
+                 reliability: str = "reliable"):
         self.name = role
         self.log = log.open("w")
         self.proc = subprocess.Popen(
-            [sys.executable, str(ENDPOINTS), role, kind, str(size), str(depth)],
+            [sys.executable, str(ENDPOINTS), role, kind, str(size), str(depth), reliability],
             env=ros_env(domain), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.log,
             text=True, bufsize=1)
         self.lines = Lines(self.proc.stdout, role)
@@ -157,10 +207,12 @@ class Endpoint(Process):
 class Bridge(Process):
     """A ``rosgate run FILE`` process; its log (stderr) is kept next to its file."""
 
-    def __init__(self, config: Path, domain: int):
+    def __init__(self, config: Path, domain: int, checkout: Checkout = HERE_CHECKOUT):
         self.name = config.stem
         self.config = config
-        self.proc = subprocess.Popen([ROSGATE, "run", str(config)], env=ros_env(domain),
+        # the entry script's interpreter is the process itself: its pid is the bridge's
+        self.proc = subprocess.Popen([checkout.rosgate, "run", str(config)],
+                                     env=ros_env(domain, checkout.root),
                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         self.lines = Lines(self.proc.stderr, f"bridge {self.name}")
 
@@ -191,14 +243,21 @@ class Route:
     codec: str = "cdr"
     cipher: str = "none"
     roles: str = "peer"  # "peer" (A transmit, B receive) or "client/server" (A client, B server)
+    rev: str = ""        # whose rosgate: "" this checkout's, else a short commit (--base)
 
     @property
-    def label(self) -> str:
+    def path(self) -> str:
+        """The label without the revision: what --path and --profile-path match."""
         name = f"{self.transport}/{self.codec}/{self.cipher}"
         return name if self.roles == "peer" else f"{name} client/server"
 
+    @property
+    def label(self) -> str:
+        return f"{self.path} @{self.rev}" if self.rev else self.path
 
-def bringup_files(route: Route, msg_type: str, depth: int, folder: Path) -> tuple[Path, Path]:
+
+def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
+                  reliability: str = "reliable") -> tuple[Path, Path]:
     """Write bridge A's and bridge B's bringup.yaml; return their paths."""
     port = free_port()
     plugins = ""
@@ -210,7 +269,7 @@ def bringup_files(route: Route, msg_type: str, depth: int, folder: Path) -> tupl
         plugins = f"plugins: {{fernet: {{key_file: {key}}}}}\n"
     topic = (f"{{topic: /bench, type: {msg_type}, transport: {route.transport}, "
              f"codec: {route.codec}, cipher: {route.cipher}, "
-             f"qos: {{reliability: reliable, history: keep_last, depth: {depth}}}")
+             f"qos: {{reliability: {reliability}, history: keep_last, depth: {depth}}}")
     if route.roles == "peer":
         a = (f"bridge: {{name: bench_a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}\n{plugins}"
              f"topics:\n  - {topic}, direction: transmit, port: {port}}}\n")

@@ -127,13 +127,21 @@ ERRORS = {
     "priority_name": (
         BUS_PEER + TOPIC + "transport: zenoh, priority: urgent}\n", 5, "topics[0].priority",
         "expected a priority, 1 (real_time) to 7 (background)"),
-    # the plugin's options: zenoh's own, in zenoh's words, at the option's line
+    # the plugin's options, at the option's line: those it declares checked by rosgate, inside
+    # zenoh's sections by zenoh, in its words
     "zenoh_unknown_option": (
         "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    mdoe: client\n" + TOPIC
-        + "transport: zenoh}\n", 4, "plugins.zenoh.mdoe", "unknown zenoh option 'mdoe'"),
+        + "transport: zenoh}\n", 4, "plugins.zenoh.mdoe",
+        "unknown option of zenoh (did you mean 'mode'?)"),
     "zenoh_bad_mode": (
         "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    mode: robot\n" + TOPIC
-        + "transport: zenoh}\n", 4, "plugins.zenoh.mode", "unknown variant `robot`"),
+        + "transport: zenoh}\n", 4, "plugins.zenoh.mode",
+        "must be one of: peer, client, router, not 'robot'"),
+    "zenoh_unknown_nested_option": (
+        "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    transport:\n      link:\n"
+        "        tx: {leese: 1}\n" + TOPIC + "transport: zenoh}\n", 6,
+        "plugins.zenoh.transport.link.tx.leese",
+        "unknown zenoh option 'leese' under transport.link.tx"),
     "zenoh_nested_bad_value": (
         "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    scouting:\n      multicast:\n"
         "        enabled: 'no'\n" + TOPIC + "transport: zenoh}\n", 6,
@@ -157,7 +165,7 @@ def test_a_wrong_zenoh_option_is_one_clear_message_from_the_cli(tmp_path):
     path.write_text("bridge: {name: r1, role: peer}\nplugins:\n  zenoh: {mode: robot}\n" + TOPIC
                     + "transport: zenoh}\n")
     text = user_error(rosgate("check", str(path)))
-    assert f"{path}:3: plugins.zenoh.mode: unknown variant `robot`, expected one of" in text
+    assert f"{path}:3: plugins.zenoh.mode: must be one of: peer, client, router" in text
 
 
 def test_run_without_the_router_a_client_needs_is_one_clear_message(tmp_path):

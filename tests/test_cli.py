@@ -68,8 +68,8 @@ def test_check_accepts_a_good_file(config):
     # missing required key
     (("    direction: transmit\n", ""), 7, "topics[0].direction", "missing"),
     # unknown plugin: names the installed ones and the distribution that would provide it
-    (("    port:", "    codec: json\n    port:"), 10, "topics[0].codec",
-     "pip install rosgate-codec-json"),
+    (("    port:", "    codec: yaml\n    port:"), 10, "topics[0].codec",
+     "pip install the distribution that provides it (by convention rosgate-codec-yaml)"),
     # message type that does not exist / package not installed
     (("std_msgs/msg/String", "std_msgs/msg/Strin"), 8, "topics[0].type", "has no msg 'Strin'"),
     (("std_msgs/msg/String", "robot_msgs/msg/Arm"), 8, "topics[0].type",

@@ -1,5 +1,6 @@
-"""Meta-test, in the manner of datasette's: every plugin in this repository runs the plugin
-kit's conformance suite of its kind in its own tests, so a new plugin cannot land without."""
+"""Meta-tests, in the manner of datasette's: every plugin in this repository runs the plugin
+kit's conformance suite of its kind in its own tests, and declares its options, each with a doc,
+so a new plugin cannot land without."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from rosgate.bus import BusTransport
-from rosgate.plugins import Plugins
+from rosgate.options import declaration_problem, declared
+from rosgate.plugins import Plugins, deprecations
 
 ROOT = Path(__file__).resolve().parent.parent
 SUITES = {"transport": "TransportConformance", "codec": "CodecConformance",
@@ -33,16 +35,16 @@ def suite_of(kind: str, cls: type) -> str:
     return "BusConformance" if issubclass(cls, BusTransport) else SUITES[kind]
 
 
+REGISTRATIONS = [r for r in Plugins.discover().all() if r.distribution in folders_of_tests()]
 IN_TREE = sorted((r.kind, r.name, r.cls.__name__, r.distribution, suite_of(r.kind, r.cls))
-                 for r in Plugins.discover().registered.values()
-                 if r.distribution in folders_of_tests())
+                 for r in REGISTRATIONS)
 
 
 def test_every_in_tree_plugin_is_found():
     assert {(kind, name) for kind, name, _, _, _ in IN_TREE} >= {
         ("transport", "udp"), ("transport", "tcp"), ("transport", "unixdgram"),
-        ("transport", "can"), ("transport", "zenoh"),
-        ("codec", "cdr"), ("codec", "msgpack"), ("codec", "cbor"),
+        ("transport", "can"), ("transport", "bt"), ("transport", "zenoh"),
+        ("codec", "cdr"), ("codec", "msgpack"), ("codec", "cbor"), ("codec", "json"),
         ("cipher", "none"), ("cipher", "fernet"), ("cipher", "nacl")}
 
 
@@ -53,3 +55,17 @@ def test_runs_the_conformance_suite_of_its_kind(kind, name, cls, distribution, s
     assert any(f"({suite}):" in text and f" = {cls}\n" in text for text in sources), (
         f"no test class of {distribution} subclasses rosgate.testing.{suite} with "
         f"{kind} = {cls}")
+
+
+@pytest.mark.parametrize("registration", REGISTRATIONS,
+                         ids=[f"{r.kind}-{r.name}" for r in REGISTRATIONS])
+def test_declares_its_options_each_with_a_doc(registration):
+    cls = registration.cls
+    options = declared(cls)
+    assert options is not None, (
+        f"{cls.__name__} declares no Options (a frozen dataclass; an empty one if it takes none)")
+    assert declaration_problem(cls) is None
+    for o in options:
+        assert o.doc, (f"{cls.__name__}.Options.{o.name} has no doc: make it with "
+                       "rosgate.option(default, doc)")
+    assert deprecations(cls) == []  # no in-tree plugin leans on what only works with a warning

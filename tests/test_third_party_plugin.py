@@ -1,18 +1,28 @@
 """A plugin from another distribution works by installation alone: the ``unixdgram`` transport
 in tests/thirdparty/ is found through its entry point and carries topics, including messages
-that the core must fragment to fit its 16000-byte datagrams."""
+that the core must fragment to fit its 16000-byte datagrams; the ``json`` codec there, written
+from the docs on rosgate.message_tree's to_tree/from_tree, carries topics as JSON text. A plugin
+written for the first plugin API (a Transport subclass setting stream, a dict of options)
+still carries topics, with DeprecationWarnings."""
 
 from __future__ import annotations
 
+import base64
+import json
+import socket
+import types
+
 import pytest
-from conftest import cross
+from conftest import cross, free_port
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
+from rosgate import Transport
 from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.errors import ConfigError
 from rosgate.plugins import Plugins
+from rosgate_transport_udp import UdpEndpoint
 
 
 def peer(name: str, directory: str, direction: str, port: int, msg: str, extra: str = "") -> str:
@@ -60,3 +70,114 @@ def test_its_options_are_checked_with_file_and_line(tmp_path):
     with pytest.raises(ConfigError) as error:
         Engine(loads(text, file="x.yaml")).prepare()
     assert str(error.value).startswith("x.yaml:4: plugins.unixdgram.max_frame: must be")
+
+
+# --- json: a codec written by a third party on the tree mapping --------------------------------------
+
+def udp_peer(name: str, direction: str, port: int, msg: str, extra: str = "",
+             topic: str = "codec: json") -> str:
+    return f"""
+bridge: {{name: {name}, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+{extra}
+topics:
+  - {{topic: /data, type: {msg}, direction: {direction}, port: {port}, {topic}}}
+"""
+
+
+def image(i: int | None) -> Image:
+    picture = Image(encoding="mono8", height=10, width=100, step=100)
+    picture.header.frame_id = "warmup" if i is None else f"caméra {i}"
+    picture.data = bytes([(i or 0) % 256, 255, 0]) * 333 + b"\x01"
+    return picture
+
+
+def test_json_is_found_through_its_entry_point():
+    registration = Plugins.discover().get("codec", "json")
+    assert registration is not None
+    assert (registration.distribution, registration.plugin) == ("rosgate-codec-json", "json")
+
+
+@pytest.mark.parametrize("extra", ["", "plugins:\n  json: {indent: 2, ascii: false}"],
+                         ids=["defaults", "options"])
+def test_json_carries_a_topic_end_to_end(engines, domain, ros_side, extra):
+    da, db, port = domain(), domain(), free_port()
+    engines(udp_peer("a", "transmit", port, "sensor_msgs/msg/Image", extra), da)
+    b = engines(udp_peer("b", "receive", port, "sensor_msgs/msg/Image", extra), db)
+    got = cross(ros_side(da, "a").publisher("/data", Image), ros_side(db, "b").listen("/data", Image),
+                image, lambda m: m.header.frame_id == "warmup", 5, interval=0.02)
+    assert got == [image(i) for i in range(5)]
+    assert b.routes()[0].counters.drops == {}
+
+
+def test_json_on_the_wire_is_what_a_web_page_reads(engines, domain, ros_side):
+    """framing: none, cipher none: each datagram is the JSON text alone, bytes in base64."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as far:
+        far.bind(("127.0.0.1", 0))
+        far.settimeout(0.05)
+        da = domain()
+        engines(udp_peer("a", "transmit", far.getsockname()[1], "sensor_msgs/msg/Image",
+                         topic="codec: json, framing: none"), da)
+        publisher = ros_side(da, "a").publisher("/data", Image)
+        datagram = None
+        for _ in range(400):  # until discovery has matched the bridge's subscription
+            publisher.publish(image(7))
+            try:
+                datagram = far.recv(65536)
+                break
+            except TimeoutError:
+                continue
+    assert datagram is not None, "nothing arrived"
+    tree = json.loads(datagram.decode("ascii"))  # non-ASCII escaped by default (\u00e9)
+    assert tree["header"]["frame_id"] == "caméra 7"
+    assert base64.b64decode(tree["data"], validate=True) == bytes([7, 255, 0]) * 333 + b"\x01"
+    assert (tree["height"], tree["width"], tree["encoding"]) == (10, 100, "mono8")
+
+
+# --- a plugin written for the first plugin API -------------------------------------------------------
+
+def legacy_module() -> types.ModuleType:
+    """A transport as plugins were written before DatagramTransport and declared Options."""
+    with pytest.deprecated_call(match="subclass rosgate.DatagramTransport"):
+        class LegacyUdp(Transport):
+            name = "legacyudp"
+            stream = False
+
+            def __init__(self, options):
+                super().__init__(options)
+                self.max_frame = options.get("max_frame", 1400)  # its options: a dict
+
+            def bind(self, address):
+                sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                sock.bind(address)
+                return UdpEndpoint(sock)
+
+    module = types.ModuleType("rosgate_transport_legacyudp")
+    module.rosgate_transports = lambda register: register(LegacyUdp)
+    return module
+
+
+def test_a_plugin_written_for_the_old_api_still_carries_topics(domain, ros_side):
+    plugins = Plugins.discover()
+    plugins.add(legacy_module(), "legacyudp", "rosgate-transport-legacyudp")
+    assert plugins.failures == []
+    extra = "plugins:\n  legacyudp: {max_frame: 500}"
+    da, db, port = domain(), domain(), free_port()
+    started = []
+    try:
+        for name, direction, domain_id in (("a", "transmit", da), ("b", "receive", db)):
+            text = udp_peer(name, direction, port, "std_msgs/msg/String", extra,
+                            topic="transport: legacyudp")
+            engine = Engine(loads(text, file="x.yaml"), plugins, domain_id=domain_id)
+            with pytest.deprecated_call(match="LegacyUdp declares no Options"):
+                engine.prepare()
+            assert engine.resolver.transports["legacyudp"].options == {"max_frame": 500}
+            started.append(engine.start())
+        make = lambda i: String(data="warmup" if i is None else f"{i}" * 2000)  # noqa: E731
+        got = cross(ros_side(da, "a").publisher("/data", String),
+                    ros_side(db, "b").listen("/data", String), make,
+                    lambda m: m.data == "warmup", 5, interval=0.02)
+        assert got == [make(i) for i in range(5)]  # 2 kB each: fragmented to 500-byte frames
+        assert started[1].routes()[0].counters.drops == {}
+    finally:
+        for engine in started:
+            engine.stop()

@@ -182,7 +182,7 @@ def test_several_receivers_and_senders_share_one_bus_by_port(engines, domain, ro
 
 
 @pytest.mark.parametrize("option, value, message", [
-    ("bitrate", "500k", "plugins.can.bitrate: must be a number of bits per second, not '500k'"),
+    ("bitrate", "500k", "plugins.can.bitrate: must be an integer or null, not '500k'"),
     ("interface", "socketcann", "plugins.can.interface: python-can has no interface 'socketcann'"),
     ("fd", "maybe", "plugins.can.fd: must be true or false"),
     ("base_id", "0x800", "plugins.can.base_id: must be an arbitration id from 0 to 2046"),
@@ -227,7 +227,7 @@ def test_listed_by_rosgate_plugins():
                for line in listing.stdout.splitlines()), listing.stdout
 
 
-def test_without_the_plugin_the_user_is_told_what_to_install(tmp_path):
+def test_with_the_plugin_blocked_the_user_is_told_how_to_get_it_back(tmp_path):
     path = tmp_path / "bringup.yaml"
     path.write_text(side("a", bus(), [("/t", "geometry_msgs/msg/Twist", "receive", 1)]))
     result = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
@@ -235,4 +235,6 @@ def test_without_the_plugin_the_user_is_told_what_to_install(tmp_path):
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert "topics[0].transport: unknown transport 'can'" in result.stderr
     assert "blocked by ROSGATE_DISABLE_PLUGINS" in result.stderr
-    assert "fix: pip install rosgate-transport-can" in result.stderr
+    # blocked, so installed: the fix is to unblock it, not to install it again
+    assert "fix: remove can from ROSGATE_DISABLE_PLUGINS, or pick an installed transport" \
+        in result.stderr

@@ -1,5 +1,6 @@
 """rosgate.keys: the key_file / key_env convention every cipher shares. One OptionError naming
-the option for every way the key can be missing or unreadable; the key never in a message."""
+the option for every way the key can be missing or unreadable; the key never in a message.
+Tables go through rosgate.options.parse, as the core reads a cipher's table, into KeyOptions."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from rosgate import OptionError
-from rosgate.keys import describe_source, key_source, load_key
+from rosgate.keys import KeyOptions, describe_source, key_source, load_key
+from rosgate.options import parse
 
 KEY = b"c2VjcmV0LWtleS1ieXRlcy1mb3ItdGVzdHMtb25seSE="
 
@@ -20,22 +22,33 @@ def write_key(path: Path, key: bytes = KEY, mode: int = 0o600) -> Path:
     return path
 
 
-def option_error(options, base_dir: Path) -> OptionError:
+class Demo:
+    """A cipher's declaration, as far as keys go."""
+
+    name = "demo"
+    Options = KeyOptions
+
+
+def key(table: dict, base_dir: Path) -> bytes:
+    return load_key(parse(Demo, table), base_dir, "demo")
+
+
+def option_error(table: dict, base_dir: Path) -> OptionError:
     with pytest.raises(OptionError) as info:
-        load_key(options, base_dir, "demo")
+        key(table, base_dir)
     return info.value
 
 
 def test_key_file_is_read_stripped_relative_to_the_base_dir_or_absolute(tmp_path):
     (tmp_path / "keys").mkdir()
     path = write_key(tmp_path / "keys" / "a.key")
-    assert load_key({"key_file": "keys/a.key"}, tmp_path, "demo") == KEY
-    assert load_key({"key_file": str(path)}, Path("/nonexistent"), "demo") == KEY
+    assert key({"key_file": "keys/a.key"}, tmp_path) == KEY
+    assert key({"key_file": str(path)}, Path("/nonexistent")) == KEY
 
 
 def test_key_env_is_read_stripped(tmp_path, monkeypatch):
     monkeypatch.setenv("ROSGATE_TEST_KEY", f"  {KEY.decode()}\n")
-    assert load_key({"key_env": "ROSGATE_TEST_KEY"}, tmp_path, "demo") == KEY
+    assert key({"key_env": "ROSGATE_TEST_KEY"}, tmp_path) == KEY
 
 
 @pytest.mark.parametrize("options", [{}, {"key_file": "a", "key_env": "B"}], ids=["neither", "both"])
@@ -48,8 +61,15 @@ def test_exactly_one_source(tmp_path, options):
 
 def test_unknown_option_is_named(tmp_path):
     error = option_error({"key_file": "a", "keyfile": "a", "mode": 1}, tmp_path)
-    assert (error.key, error.message) == ("keyfile", "unknown option of demo")
-    assert error.fix == "valid options are key_file and key_env"
+    assert (error.key, error.message) == ("keyfile", "unknown option of demo (did you mean 'key_file'?)")
+    assert error.fix == "the options of demo are key_file, key_env"
+
+
+@pytest.mark.parametrize("table, name", [({"key_file": 5}, "key_file"), ({"key_env": ["K"]}, "key_env")])
+def test_a_source_must_be_a_string(tmp_path, table, name):
+    error = option_error(table, tmp_path)
+    assert error.key == name
+    assert error.message.startswith("must be a string or null, not ")
 
 
 @pytest.mark.parametrize("make", [lambda d: None, lambda d: (d / "nope.key").mkdir()],
@@ -78,13 +98,13 @@ def test_key_env_unset_or_empty(tmp_path, monkeypatch, value):
 def test_a_key_file_others_can_read_is_warned_about(tmp_path, caplog, mode, warned):
     path = write_key(tmp_path / "k.key", mode=mode)
     with caplog.at_level(logging.DEBUG, logger="rosgate"):
-        assert load_key({"key_file": "k.key"}, tmp_path, "demo") == KEY
+        assert key({"key_file": "k.key"}, tmp_path) == KEY
     messages = [r.getMessage() for r in caplog.records if r.name == "rosgate"]
     assert messages == ([f"key file {path} is readable by other users; chmod 600 it"] if warned else [])
     assert all(KEY.decode() not in m for m in messages)
 
 
 def test_where_a_key_came_from():
-    assert (key_source({"key_file": "a.key"}), describe_source({"key_file": "a.key"})) == \
-        ("key_file", "file 'a.key'")
-    assert (key_source({"key_env": "K"}), describe_source({"key_env": "K"})) == ("key_env", "variable 'K'")
+    in_file, in_env = KeyOptions(key_file="a.key"), KeyOptions(key_env="K")
+    assert (key_source(in_file), describe_source(in_file)) == ("key_file", "file 'a.key'")
+    assert (key_source(in_env), describe_source(in_env)) == ("key_env", "variable 'K'")

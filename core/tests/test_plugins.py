@@ -3,39 +3,76 @@ can make is recorded as a Failure naming it, and never stops the other plugins."
 
 from __future__ import annotations
 
-from types import SimpleNamespace
+import subprocess
+import sys
+import textwrap
+import types
+from importlib import metadata
+from pathlib import Path
+from typing import Any
 
 import pytest
 
 import rosgate
-from rosgate import Cipher, Codec, LinkError, Transport, hookimpl
+from rosgate import (Cipher, Codec, DatagramTransport, LinkError, StreamTransport, Transport,
+                     hookimpl)
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.roles import Bridge
-from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration
+from rosgate import hookspecs
+from rosgate.message_tree import TreeCodec
+from rosgate.options import parse
+from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration, deprecations
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
-class Alpha(Transport):
+class FakeCodec(Codec):
+    """Implements what a codec must; the classes below add only a name."""
+
+    def encode(self, message: Any) -> bytes:
+        return b""
+
+    def decode(self, data: bytes) -> Any:
+        return None
+
+
+class Alpha(DatagramTransport):
     name = "alpha"
-    stream = False
+
+    def bind(self, address):
+        raise LinkError("alpha binds nothing")
 
 
-class Beta(Codec):
+class Beta(FakeCodec):
     name = "beta"
 
 
-class Zeta(Codec):
+class Zeta(FakeCodec):
     name = "zeta"
 
 
 class Gamma(Cipher):
     name = "gamma"
 
+    def seal(self, header: bytes, payload: bytes) -> bytes:
+        return payload
 
-def plugin(**hooks) -> SimpleNamespace:
+    def open(self, header: bytes, body: bytes) -> bytes:
+        return body
+
+
+class FakePlugin:
+    """A plugin object: attributes as a module has them (hashable, as pluggy needs plugins)."""
+
+    def __init__(self, **attributes: Any):
+        self.__dict__.update(attributes)
+
+
+def plugin(**hooks) -> FakePlugin:
     """A plugin object whose attributes are the given hook implementations."""
-    return SimpleNamespace(**{name: hookimpl(function) for name, function in hooks.items()})
+    return FakePlugin(**{name: hookimpl(function) for name, function in hooks.items()})
 
 
 def registers(*classes):
@@ -140,19 +177,19 @@ class NotAPlugin:
     name = "plain"
 
 
-class NoName(Codec):
+class NoName(FakeCodec):
     pass
 
 
-class BadName(Codec):
+class BadName(FakeCodec):
     name = "two words"
 
 
-class EmptyName(Codec):
+class EmptyName(FakeCodec):
     name = ""
 
 
-class NumberName(Codec):
+class NumberName(FakeCodec):
     name = 3
 
 
@@ -189,7 +226,7 @@ def test_an_unknown_hook_argument_is_a_failure_at_registration():
 
 
 def test_the_same_name_twice_the_first_wins():
-    class OtherBeta(Codec):
+    class OtherBeta(FakeCodec):
         name = "beta"
 
     plugins = Plugins()
@@ -202,9 +239,14 @@ def test_the_same_name_twice_the_first_wins():
 
 
 def test_the_same_name_in_different_kinds_is_not_a_clash():
-    class BetaTransport(Transport):
+    class BetaTransport(StreamTransport):
         name = "beta"
-        stream = True
+
+        def listen(self, address):
+            raise LinkError("no")
+
+        def connect(self, address, timeout):
+            raise OSError("no")
 
     plugins = Plugins()
     plugins.add(plugin(rosgate_codecs=registers(Beta), rosgate_transports=registers(BetaTransport)), "b")
@@ -235,6 +277,211 @@ def test_remove_forgets_a_plugins_registrations():
     assert plugins.failures == []
 
 
+# --- pluggy finds the hooks: every rosgate_* function is one, a misspelt one is a failure -----------
+
+def module(name: str, source: str, **names: Any) -> types.ModuleType:
+    """A plugin module made from source, as an entry point imports it; ``names`` are in scope."""
+    made = types.ModuleType(name)
+    made.__dict__.update(names)
+    exec(textwrap.dedent(source), made.__dict__)
+    return made
+
+
+HOOKS = "the hooks are rosgate_ciphers, rosgate_codecs, rosgate_transports"
+
+
+def test_a_misspelt_hook_is_a_failure_naming_it_and_nothing_of_the_plugin_is_kept():
+    typo = module("rosgate_typo", """
+        from rosgate import hookimpl
+
+        @hookimpl
+        def rosgate_transport(register):
+            register(Alpha)
+
+        @hookimpl
+        def rosgate_codecs(register):
+            register(Beta)
+    """, Alpha=Alpha, Beta=Beta)
+    plugins = Plugins()
+    plugins.add(typo, "typo", "rosgate-typo", "1.0")
+    plugins.add(plugin(rosgate_ciphers=registers(Gamma)), "fine")
+    assert plugins.failures == [Failure(
+        "typo", "rosgate-typo",
+        f"unknown hook 'rosgate_transport' (did you mean 'rosgate_transports'?); {HOOKS}")]
+    assert plugins.names("transport") == [] and plugins.names("codec") == []
+    assert plugins.names("cipher") == ["gamma"]  # the next plugin is not taken down
+    assert not plugins.manager.has_plugin("typo")
+
+
+def test_an_unmarked_misspelt_hook_is_caught_too():
+    plugins = Plugins()
+    plugins.add(module("rosgate_typos", """
+        def rosgate_cipher(register):
+            pass
+
+        def rosgate_kodecs(register):
+            pass
+    """), "typos")
+    assert [f.reason for f in plugins.failures] == [
+        "unknown hook 'rosgate_cipher' (did you mean 'rosgate_ciphers'?), 'rosgate_kodecs' "
+        f"(did you mean 'rosgate_codecs'?); {HOOKS}"]
+
+
+def test_every_rosgate_function_is_a_hook_marked_or_not_and_nothing_else_is():
+    plain = module("rosgate_plain", """
+        rosgate_version = "1.0"           # not a function: not a hook
+
+        def helper(register):             # not named rosgate_*: not a hook
+            raise AssertionError("called")
+
+        def rosgate_codecs(register):     # a hook without the marker, as pytest_* are
+            register(Beta)
+    """, Beta=Beta)
+    plugins = Plugins()
+    plugins.add(plain, "plain")
+    assert plugins.failures == []
+    assert plugins.names("codec") == ["beta"]
+
+
+class JsonCodec(Codec):  # forgot decode
+    name = "json"
+
+    def encode(self, message: Any) -> bytes:
+        return b"{}"
+
+
+class Silent(Cipher):
+    name = "silent"
+
+
+class Deaf(DatagramTransport):
+    name = "deaf"
+
+
+class HalfStream(StreamTransport):
+    name = "half"
+
+    def listen(self, address):
+        raise LinkError("no")
+
+
+class Unparsed(TreeCodec):
+    name = "unparsed"
+
+
+@pytest.mark.parametrize("hook, cls, reason", [
+    ("rosgate_codecs", JsonCodec, "JsonCodec does not implement decode"),
+    ("rosgate_ciphers", Silent, "Silent does not implement open, seal"),
+    ("rosgate_transports", Deaf, "Deaf does not implement bind"),
+    ("rosgate_transports", HalfStream, "HalfStream does not implement connect"),
+    ("rosgate_codecs", Unparsed, "Unparsed does not implement parse"),
+], ids=["codec", "cipher", "datagram", "stream", "tree-codec"])
+def test_an_abstract_class_is_refused_naming_what_it_does_not_implement(hook, cls, reason):
+    plugins = Plugins()
+    plugins.add(plugin(**{hook: registers(cls)}), "abstract", "rosgate-abstract")
+    assert plugins.failures == [Failure("abstract", "rosgate-abstract", reason)]
+    assert plugins.registered == {}
+
+
+def test_a_transport_that_is_neither_stream_nor_datagram_is_refused():
+    with pytest.deprecated_call(match="subclass rosgate.DatagramTransport or rosgate.StreamTransport"):
+        class Undecided(Transport):
+            name = "undecided"
+
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_transports=registers(Undecided)), "undecided")
+    assert [f.reason for f in plugins.failures] == [
+        "Undecided says neither stream nor datagram (subclass DatagramTransport or StreamTransport)"]
+
+
+def test_options_that_are_not_a_frozen_dataclass_are_refused():
+    class Sloppy(FakeCodec):
+        name = "sloppy"
+
+        class Options:
+            level = 1
+
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_codecs=registers(Sloppy)), "sloppy")
+    assert [f.reason for f in plugins.failures] == [
+        "Sloppy.Options is not a frozen dataclass (decorate it with @dataclass(frozen=True))"]
+
+
+def test_a_legacy_transport_still_registers_and_works_with_warnings():
+    with pytest.deprecated_call(match="Old subclasses rosgate.Transport and sets stream itself"):
+        class Old(Transport):
+            name = "old"
+            stream = False
+
+            def __init__(self, options):
+                super().__init__(options)
+                self.max_frame = options.get("max_frame", 100)
+
+            def bind(self, address):
+                raise LinkError("not in this test")
+
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_transports=registers(Old)), "old", "rosgate-transport-old")
+    assert plugins.failures == [] and plugins.get("transport", "old").cls is Old
+    assert deprecations(Old) == [
+        "subclasses rosgate.Transport and sets stream itself (subclass DatagramTransport or "
+        "StreamTransport)", "declares no Options (its table reaches it unchecked, as a dict)"]
+    with pytest.deprecated_call(match="Old declares no Options"):
+        options = parse(Old, {"max_frame": 64})
+    old = Old(options)
+    assert (old.options, old.max_frame, old.stream) == ({"max_frame": 64}, 64, False)
+
+
+# --- lazy discovery ---------------------------------------------------------------------------------
+
+def test_asking_for_a_name_loads_its_entry_point_first_and_the_others_only_if_needed(monkeypatch):
+    loaded: list[str] = []
+
+    def entry_point(name: str, hook: str, cls: type) -> metadata.EntryPoint:
+        def register_it(register):
+            loaded.append(name)
+            register(cls)
+        made = module(f"rosgate_fake_{name}", "", **{hook: register_it})
+        monkeypatch.setitem(sys.modules, made.__name__, made)
+        return metadata.EntryPoint(name, made.__name__, "rosgate")
+
+    found = [entry_point("beta", "rosgate_codecs", Beta),
+             entry_point("greek", "rosgate_ciphers", Gamma),
+             entry_point("zeta", "rosgate_codecs", Zeta),
+             metadata.EntryPoint("builtin", "rosgate.builtin", "rosgate")]
+    monkeypatch.setattr(metadata, "entry_points", lambda group: found)
+    plugins = Plugins.discover()
+    assert loaded == []  # listing imports nothing; builtin is the core's own
+    assert plugins.get("codec", "cdr").cls is CdrCodec and loaded == []
+    assert plugins.get("codec", "beta").cls is Beta and loaded == ["beta"]
+    # no entry point named gamma: the others are loaded, each once
+    assert plugins.get("cipher", "gamma").cls is Gamma and loaded == ["beta", "greek", "zeta"]
+    assert plugins.get("codec", "nope") is None and loaded == ["beta", "greek", "zeta"]
+    assert plugins.names("codec") == ["beta", "cdr", "zeta"]
+
+
+def test_asking_for_udp_imports_no_other_plugin():
+    """In a fresh process: the real entry points, the real modules."""
+    code = ("import sys; from rosgate.plugins import Plugins; plugins = Plugins.discover(); "
+            "before = sorted(m for m in sys.modules if m.startswith('rosgate_')); "
+            "assert plugins.get('transport', 'udp') is not None; "
+            "print(before, sorted(m for m in sys.modules if m.startswith('rosgate_')))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=60, check=True)
+    assert result.stdout.split() == ["[]", "['rosgate_transport_udp']"], result.stdout
+
+
+# --- the hooks are documented where plugin authors read -------------------------------------------
+
+def test_every_hook_is_documented_in_its_spec_and_in_the_guide():
+    guide = (ROOT / "docs" / "plugins.md").read_text()
+    hooks = [name for name in dir(hookspecs) if name.startswith("rosgate_")]
+    assert hooks == ["rosgate_ciphers", "rosgate_codecs", "rosgate_transports"]
+    for name in hooks:
+        assert getattr(hookspecs, name).__doc__, f"{name} has no docstring"
+        assert name in guide, f"docs/plugins.md does not mention {name}"
+
+
 # --- explaining a missing plugin --------------------------------------------------------------------
 
 def test_explain_missing_lists_installed_names_and_the_distribution_to_install():
@@ -242,7 +489,8 @@ def test_explain_missing_lists_installed_names_and_the_distribution_to_install()
     plugins.add(plugin(rosgate_codecs=registers(Zeta, Beta)), "greek")
     message, fix = plugins.explain_missing("codec", "cbor")
     assert message == "unknown codec 'cbor' (installed codecs: beta, zeta)"
-    assert fix == "pip install rosgate-codec-cbor, or pick an installed codec"
+    assert fix == ("pip install the distribution that provides it (by convention "
+                   "rosgate-codec-cbor), or pick an installed codec")
 
 
 @pytest.mark.parametrize("kind, name, distribution", [
@@ -255,16 +503,18 @@ def test_explain_missing_lists_installed_names_and_the_distribution_to_install()
 def test_explain_missing_names_the_distribution(kind, name, distribution):
     message, fix = Plugins().explain_missing(kind, name)
     assert message == f"unknown {kind} {name!r} (installed {kind}s: none)"
-    assert fix == f"pip install {distribution}, or pick an installed {kind}"
+    assert fix == (f"pip install the distribution that provides it (by convention {distribution}), "
+                   f"or pick an installed {kind}")
 
 
 def test_explain_missing_gives_the_reason_a_plugin_failed():
     plugins = Plugins()
     plugins.add(plugin(rosgate_codecs=boom), "cbor", "rosgate-codec-cbor")
-    message, _ = plugins.explain_missing("codec", "cbor")
+    message, fix = plugins.explain_missing("codec", "cbor")
     assert message.startswith("unknown codec 'cbor' (installed codecs: none); plugin 'cbor' is installed "
                               "but failed to load: rosgate_codecs: RuntimeError: boom")
     assert "blocked" not in message
+    assert fix == "repair or reinstall rosgate-codec-cbor, or pick an installed codec"
 
 
 def test_explain_missing_says_when_a_plugin_is_blocked():
@@ -273,6 +523,7 @@ def test_explain_missing_says_when_a_plugin_is_blocked():
     assert message == ("unknown cipher 'nacl' (installed ciphers: none); "
                        f"plugin 'nacl' is blocked by {DISABLE_VARIABLE}")
     assert DISABLE_VARIABLE == "ROSGATE_DISABLE_PLUGINS"
+    assert fix == "remove nacl from ROSGATE_DISABLE_PLUGINS, or pick an installed cipher"
 
 
 # --- discovery through entry points -------------------------------------------------------------------
@@ -290,22 +541,22 @@ def test_discover_finds_the_installed_plugins(monkeypatch):
 
 
 def test_discover_honours_the_disable_variable(monkeypatch):
-    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet,cbor,nacl")
+    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet,cbor,nacl,json")
     plugins = Plugins.discover()
-    assert sorted(plugins.blocked) == ["cbor", "fernet", "msgpack", "nacl"]
+    assert sorted(plugins.blocked) == ["cbor", "fernet", "json", "msgpack", "nacl"]
     assert plugins.names("codec") == ["cdr"]
     assert plugins.names("cipher") == ["none"]
     assert {"udp", "tcp"} <= set(plugins.names("transport"))
     message, fix = plugins.explain_missing("cipher", "fernet")
     assert "blocked by ROSGATE_DISABLE_PLUGINS" in message
-    assert fix.startswith("pip install rosgate-crypto-fernet")
+    assert fix.startswith("remove fernet from ROSGATE_DISABLE_PLUGINS")
 
 
 def test_builtin_cannot_be_blocked(monkeypatch):
     monkeypatch.setenv(DISABLE_VARIABLE, " builtin , msgpack ,, ")
     plugins = Plugins.discover()
     assert plugins.blocked == ["msgpack"]
-    assert plugins.names("codec") == ["cbor", "cdr"]
+    assert plugins.names("codec") == ["cbor", "cdr", "json"]
     assert plugins.names("cipher") == ["fernet", "nacl", "none"]
     assert plugins.get("cipher", "none").cls is NoCipher
 

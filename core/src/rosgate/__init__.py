@@ -1,20 +1,23 @@
 """rosgate: a pluggable ROS 2 network bridge.
 
-The public API for plugin authors is what this module exports.
+The public API for plugin authors is what this module exports, with :mod:`rosgate.hookspecs`
+(the hooks), :mod:`rosgate.options` (declared options), :mod:`rosgate.keys` (the key convention),
+:mod:`rosgate.message_tree` (messages as trees) and :mod:`rosgate.testing` (the plugin kit).
 """
 
 from .cipher import Cipher
 from .codec import Codec
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import hookimpl
-from .transport import (Address, DatagramEndpoint, SocketConnection, SocketListener,
-                        StreamConnection, StreamListener, Transport, check_ip_address,
-                        parse_host_port)
+from .options import option
+from .transport import (Address, DatagramEndpoint, DatagramTransport, SocketConnection,
+                        SocketListener, StreamConnection, StreamListener, StreamTransport,
+                        Transport, check_ip_address, parse_host_port)
 
 __all__ = [
     "Address", "Cipher", "CipherError", "Codec", "CodecError", "ConfigError", "DatagramEndpoint",
-    "LinkError", "OptionError", "RosgateError", "SocketConnection", "SocketListener",
-    "StreamConnection", "StreamListener", "Transport",
-    "check_ip_address", "hookimpl", "parse_host_port",
+    "DatagramTransport", "LinkError", "OptionError", "RosgateError", "SocketConnection",
+    "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transport",
+    "check_ip_address", "hookimpl", "option", "parse_host_port",
 ]
 __version__ = "0.1.0"

@@ -3,6 +3,7 @@ the ``none`` cipher."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from .cipher import Cipher
@@ -23,6 +24,10 @@ class CdrCodec(Codec):
     name = "cdr"
     raw = True
 
+    @dataclass(frozen=True)
+    class Options:
+        """None: the bytes are ROS's own."""
+
     def encode(self, message: bytes) -> bytes:
         return message
 
@@ -38,6 +43,10 @@ class NoCipher(Cipher):
 
     name = "none"
     authenticates = False
+
+    @dataclass(frozen=True)
+    class Options:
+        """None: there is no key."""
 
     def seal(self, header: bytes, payload: bytes) -> bytes:
         return payload

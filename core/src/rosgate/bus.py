@@ -2,10 +2,10 @@
 
 A datagram link moves frames to an address and a stream link moves bytes over a connection; a
 bus moves whole frames by **key**: publish on a key, subscribe to a key expression
-(``fleet/*/scan``) and receive each frame with the concrete key it was published on, serve and issue queries
-(services), and declare and watch liveliness tokens (who is there). A bus discovers and
-reconnects by itself and fragments what it carries, so the core does neither on it: no length
-prefixes, no fragments, no reconnection. It keeps the envelope and the cipher (``framing:
+(``fleet/*/scan``) and receive each frame with the concrete key it was published on, serve and
+issue queries (services), and declare and watch liveliness tokens (who is there). A bus
+discovers and reconnects by itself and fragments what it carries, so the core does neither on
+it: no length prefixes, no fragments, no reconnection. It keeps the envelope and the cipher (``framing:
 rosgate``) or sends the codec's bytes bare (``framing: none``).
 
 A bus plugin subclasses :class:`BusTransport`, registered through the ``rosgate_transports``
@@ -112,6 +112,7 @@ class BusTransport(Transport):
     and :attr:`namespace` from your options if you take them (the core's key conventions)."""
 
     stream = False
+    link_kind = "bus"
     #: rosgate's own keys start with it: ``<prefix>/<bridge name>/<topic>`` and the liveliness
     #: token ``<prefix>/<bridge name>/@alive``
     prefix: str = "rosgate"
@@ -131,13 +132,7 @@ class BusTransport(Transport):
     def check_key(self, key: str) -> str:
         """Validate a key (or key expression) written in bringup.yaml; ``ValueError`` with a
         sentence saying what is wrong. The default checks the chunk rules above."""
-        if not key or key.startswith("/") or key.endswith("/"):
-            raise ValueError(f"{key!r} is not a key: no leading or trailing '/', not empty")
-        for chunk in key.split("/"):
-            if not _CHUNK.fullmatch(chunk):
-                raise ValueError(f"{key!r} is not a key: chunk {chunk!r} is empty or holds "
-                                 "'*', '$', '?' or '#' (a wildcard is '*' or '**' alone)")
-        return key
+        return check_key(key)
 
     def default_key(self, bridge: str, ros_name: str, bare: bool) -> str:
         """The key of an entry without ``remote``: ``<namespace>/<name>`` for bare frames (the
@@ -151,6 +146,17 @@ class BusTransport(Transport):
     def alive_key(self, bridge: str) -> str:
         """The liveliness token a bridge declares for itself."""
         return f"{self.prefix}/{bridge}/@alive"
+
+
+def check_key(key: str) -> str:
+    """The chunk rules of keys (module docstring); ``ValueError`` saying which is broken."""
+    if not key or key.startswith("/") or key.endswith("/"):
+        raise ValueError(f"{key!r} is not a key: no leading or trailing '/', not empty")
+    for chunk in key.split("/"):
+        if not _CHUNK.fullmatch(chunk):
+            raise ValueError(f"{key!r} is not a key: chunk {chunk!r} is empty or holds "
+                             "'*', '$', '?' or '#' (a wildcard is '*' or '**' alone)")
+    return key
 
 
 def is_bus(transport: Transport) -> bool:

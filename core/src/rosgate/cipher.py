@@ -1,19 +1,29 @@
 """Ciphers: seal a frame so that only a holder of the key can read it and nobody can alter it.
 
-A cipher plugin is a subclass of :class:`Cipher` registered through the ``rosgate_ciphers``
-hook. The core makes one instance per bridge (keys are read once). ``seal`` must authenticate the
-plaintext envelope ``header`` together with the payload: the receiver passes the header it read
-back to ``open``, which must raise :class:`rosgate.CipherError` if either was changed, or if the
-frame was sealed under another key.
+A cipher plugin subclasses :class:`Cipher`, implements :meth:`~Cipher.seal` and
+:meth:`~Cipher.open`, and is registered through the ``rosgate_ciphers`` hook. The core makes one
+instance per bridge (keys are read once) and shares it between topics. ``seal`` must
+authenticate the plaintext envelope ``header`` together with the payload: the receiver passes
+the header it read back to ``open``, which must raise :class:`rosgate.CipherError` if either was
+changed, or if the frame was sealed under another key.
+
+Threads: ``seal`` and ``open`` are called from many threads at once (every topic's), so they
+must be safe to call concurrently.
+
+Keys follow one convention: declare ``Options = rosgate.keys.KeyOptions`` (``key_file`` or
+``key_env``) and read the key with :func:`rosgate.keys.load_key`.
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar
+
+from .options import as_options
 
 
-class Cipher:
+class Cipher(ABC):
     """Base class of cipher plugins."""
 
     #: the name users write in bringup.yaml (``cipher: fernet``)
@@ -22,17 +32,23 @@ class Cipher:
     #: checks on what they decode (the built-in cdr codec does).
     authenticates: ClassVar[bool] = True
 
-    def __init__(self, options: Mapping[str, Any], base_dir: Path):
-        """``options`` is the plugin's table under ``plugins:``; relative paths in it are relative to
-        ``base_dir``, the folder of the bringup.yaml. Raise :class:`rosgate.OptionError` when a key is
-        missing or unreadable (never print the key)."""
-        self.options = dict(options)
+    def __init__(self, options: Any, base_dir: Path):
+        """``options`` is the plugin's ``Options`` instance, parsed by the core from its table
+        under ``plugins:`` (a plain mapping is parsed here the same way), kept as
+        :attr:`options`; relative paths in it are relative to ``base_dir``, the folder of the
+        bringup.yaml. Raise :class:`rosgate.OptionError` when a key is missing or unreadable
+        (never show the key)."""
+        self.options = as_options(type(self), options)
 
+    @abstractmethod
     def seal(self, header: bytes, payload: bytes) -> bytes:
-        raise NotImplementedError
+        """The body that travels after ``header`` (28 bytes, sent in clear): ``payload``
+        encrypted and, together with ``header``, authenticated."""
 
+    @abstractmethod
     def open(self, header: bytes, body: bytes) -> bytes:
-        raise NotImplementedError
+        """The payload sealed in ``body`` under ``header``; :class:`rosgate.CipherError` if the
+        header, the body or the key differ, and nothing else (``body`` comes from the network)."""
 
     @classmethod
     def generate_key(cls) -> bytes | None:

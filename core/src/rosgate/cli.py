@@ -13,9 +13,14 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 from . import __version__
 from .errors import ConfigError, RosgateError
+
+if TYPE_CHECKING:
+    from .cipher import Cipher
 
 EXIT_USAGE = 2
 ROUTER_LISTEN = "tcp/0.0.0.0:7447"
@@ -35,7 +40,10 @@ def main(argv: list[str] | None = None) -> int:
     check = commands.add_parser("check", help="validate a bringup.yaml and exit")
     check.add_argument("file")
 
-    commands.add_parser("plugins", help="list installed plugins, and the ones that failed to load")
+    plugins = commands.add_parser("plugins",
+                                  help="list installed plugins, and the ones that failed to load")
+    plugins.add_argument("--options", metavar="NAME",
+                         help="print the options a plugin takes under plugins: NAME:")
 
     router = commands.add_parser("router", help="run a bus router for bridges to meet at (zenoh), "
                                                 "until stopped")
@@ -61,15 +69,22 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
 
 
-def _engine(path: str):
+def _engine(path: str, plugins: Any = None):
     from .config import load
     from .engine import Engine
 
-    return Engine(load(path)).prepare()
+    return Engine(load(path), plugins).prepare()
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    engine = _engine(args.file)
+    from .plugins import Plugins
+
+    plugins = Plugins.discover()
+    plugins.load_all()  # a plugin this file does not use may still be one the next file needs
+    for f in plugins.failures:
+        print(f"rosgate: warning: plugin {f.plugin!r} ({f.distribution}) failed to load: {f.reason}",
+              file=sys.stderr)
+    engine = _engine(args.file, plugins)
     cfg, plan = engine.config, engine.plan
     assert plan is not None
     print(f"{args.file}: ok ({cfg.role} {cfg.name!r}, {len(cfg.topics)} topic(s)"
@@ -130,18 +145,54 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
-    from .plugins import Plugins
+    from .plugins import Plugins, deprecations
 
     plugins = Plugins.discover()
-    rows = sorted(plugins.registered.values(), key=lambda r: (r.kind, r.name))
-    print(f"{'KIND':<10} {'NAME':<10} {'DISTRIBUTION':<26} VERSION")
-    for r in rows:
-        print(f"{r.kind:<10} {r.name:<10} {r.distribution:<26} {r.version}")
+    if args.options:
+        return _print_options(plugins, args.options)
+    registrations = plugins.all()
+    for line in _columns([("KIND", "NAME", "DISTRIBUTION", "VERSION")] +
+                         [(r.kind, r.name, r.distribution, r.version) for r in registrations]):
+        print(line)
     for failure in plugins.failures:
         print(f"failed to load plugin {failure.plugin!r} ({failure.distribution}): {failure.reason}")
     for name in plugins.blocked:
         print(f"blocked plugin {name!r} (ROSGATE_DISABLE_PLUGINS)")
+    for r in registrations:
+        for note in deprecations(r.cls):
+            print(f"deprecated: {r.kind} {r.name} ({r.distribution}) {note}")
     return 0
+
+
+def _print_options(plugins: Any, name: str) -> int:
+    from .options import declared, spell
+
+    found = [r for r in plugins.all() if r.name == name]
+    if not found:
+        installed = ", ".join(sorted({r.name for r in plugins.all()}))
+        raise ConfigError(f"no plugin is named {name!r} (installed: {installed})", file="plugins")
+    for r in found:
+        print(f"{r.kind} {r.name} ({r.distribution} {r.version}), under plugins: {r.name}:")
+        options = declared(r.cls)
+        if options is None:
+            print("  declares no Options: its table reaches it unchecked")
+        elif not options:
+            print("  no options")
+        else:
+            rows = [("OPTION", "TYPE", "DEFAULT", "DESCRIPTION")]
+            for o in options:
+                limits = f" ({o.limits()})" if o.limits() else ""
+                rows.append((o.name, spell(o.type), o.default_text(), o.doc + limits))
+            for line in _columns(rows):
+                print("  " + line)
+    return 0
+
+
+def _columns(rows: Sequence[tuple[str, ...]]) -> list[str]:
+    """Rows as lines, each column as wide as its widest cell (the last one as it is)."""
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]) - 1)]
+    return ["  ".join([cell.ljust(width) for cell, width in zip(row, widths)] + [row[-1]])
+            for row in rows]
 
 
 def cmd_keygen(args: argparse.Namespace) -> int:
@@ -152,7 +203,8 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     if registration is None:
         message, fix = plugins.explain_missing("cipher", args.cipher)
         raise ConfigError(message, fix=fix, file="keygen")
-    key = registration.cls.generate_key()
+    cipher: type[Cipher] = registration.cls
+    key = cipher.generate_key()
     if key is None:
         raise ConfigError(f"cipher {args.cipher!r} takes no key", file="keygen")
     path = Path(args.out or f"{args.cipher}.key")

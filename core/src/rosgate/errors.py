@@ -8,9 +8,13 @@ class RosgateError(Exception):
 
 
 class OptionError(RosgateError):
-    """A plugin's option is wrong. Raised by a plugin's constructor.
+    """A plugin's option is wrong. Raised by :func:`rosgate.options.parse` for what the plugin's
+    ``Options`` declare, by an ``Options.__post_init__`` for rules that tie options together, and
+    by a plugin's constructor for what only it can tell (a key file that cannot be read).
 
-    ``key`` is the option's name (``key_file``); the core adds the file and line where it was set.
+    ``key`` is the option's name (``key_file``), or ``None`` for the table as a whole (a required
+    option missing); the core adds the file and line where it was set. ``fix`` says what to do.
+    The message never contains a key.
     """
 
     def __init__(self, key: str | None, message: str, fix: str | None = None):
@@ -47,6 +51,8 @@ class ConfigError(RosgateError):
 
 class LinkError(RosgateError):
     """A link could not be set up (address in use, unreachable, unsupported on this machine).
+    Raised by a transport's ``bind`` or ``listen``; the core shows it at the key that named the
+    address, without a traceback.
 
     ``fix`` says what to do about it when the transport knows better than the core's default
     (free the port, or pick another one): a CAN interface that is down, a missing driver.

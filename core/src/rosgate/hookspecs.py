@@ -5,11 +5,18 @@ A plugin is a module registered in the entry-point group ``rosgate``::
     [project.entry-points.rosgate]
     can = "rosgate_transport_can"
 
-that defines one or more of the functions below, decorated with :data:`rosgate.hookimpl`.
+that defines one or more of the functions below. Every function of the module whose name starts
+with ``rosgate_`` is taken for a hook implementation (mark it with :data:`rosgate.hookimpl`, or
+not, as you like): a name that matches no hook here — ``rosgate_transport`` for
+``rosgate_transports`` — makes the plugin fail to load, and ``rosgate plugins`` says why.
+
 Each hook hands the plugin a ``register`` callback: call it once per class you provide. The core
 owns the names: two plugins registering the same name is reported, and the second is skipped.
-Hooks are always called with keyword arguments, so an implementation may omit parameters it
-does not use, and new parameters can be added without breaking existing plugins.
+Each hook is called once per plugin, when the plugin is loaded (on first use of one of its names,
+or by ``rosgate plugins``); an exception it raises makes that plugin fail to load, and nothing it
+registered in that hook is kept. Hooks are always called with keyword arguments, so an
+implementation may omit parameters it does not use, and new parameters can be added without
+breaking existing plugins. Results are not used.
 """
 
 from __future__ import annotations
@@ -28,14 +35,15 @@ hookimpl = pluggy.HookimplMarker("rosgate")
 
 @hookspec
 def rosgate_transports(register: Callable[[type[Transport]], None]) -> None:
-    """Register transport classes (links). Called once, when plugins are loaded."""
+    """Register transport classes (links): subclasses of :class:`rosgate.DatagramTransport` or
+    :class:`rosgate.StreamTransport`."""
 
 
 @hookspec
 def rosgate_codecs(register: Callable[[type[Codec]], None]) -> None:
-    """Register codec classes (message <-> bytes). Called once, when plugins are loaded."""
+    """Register codec classes (message <-> bytes): subclasses of :class:`rosgate.Codec`."""
 
 
 @hookspec
 def rosgate_ciphers(register: Callable[[type[Cipher]], None]) -> None:
-    """Register cipher classes (seal/open frames). Called once, when plugins are loaded."""
+    """Register cipher classes (seal/open frames): subclasses of :class:`rosgate.Cipher`."""

@@ -1,6 +1,7 @@
 """Where a cipher's key comes from: the convention every rosgate cipher shares.
 
-A keyed cipher takes exactly one of two options under ``plugins: {NAME: {...}}``:
+A keyed cipher declares ``Options = KeyOptions`` and so takes exactly one of two options under
+``plugins: {NAME: {...}}``:
 
 ``key_file``  a file holding the key (relative to the bringup.yaml), as written by
               ``rosgate keygen NAME --out FILE`` (mode 0600; a file others can read is warned about).
@@ -17,33 +18,39 @@ from __future__ import annotations
 import logging
 import os
 import stat
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
 
 from .errors import OptionError
+from .options import option
 
-KEY_OPTIONS = ("key_file", "key_env")
+
+@dataclass(frozen=True)
+class KeyOptions:
+    """The options of a keyed cipher. Exactly one is set; :func:`load_key` says so when not,
+    naming the cipher (a dataclass does not know which cipher it belongs to)."""
+
+    key_file: str | None = option(
+        None, "file holding the key, relative to the bringup.yaml (rosgate keygen NAME --out FILE); "
+        "or key_env")
+    key_env: str | None = option(None, "environment variable holding the key; or key_file")
 
 
-def load_key(options: Mapping[str, Any], base_dir: Path, plugin: str) -> bytes:
+def load_key(options: KeyOptions, base_dir: Path, plugin: str) -> bytes:
     """The key named by ``key_file`` or ``key_env``; :class:`OptionError` at the option that is
-    missing, unknown or unreadable (the message never contains the key)."""
-    unknown = set(options) - set(KEY_OPTIONS)
-    if unknown:
-        raise OptionError(sorted(unknown)[0], f"unknown option of {plugin}",
-                          "valid options are key_file and key_env")
-    if ("key_file" in options) == ("key_env" in options):
+    missing or unreadable (the message never contains the key)."""
+    if (options.key_file is None) == (options.key_env is None):
         raise OptionError(None, f"{plugin} needs exactly one of key_file or key_env",
                           f"create a key with 'rosgate keygen {plugin} --out {plugin}.key' and set "
                           f"plugins: {{{plugin}: {{key_file: {plugin}.key}}}}")
-    if "key_env" in options:
-        name = options["key_env"]
-        value = os.environ.get(str(name))
+    if options.key_env is not None:
+        name = options.key_env
+        value = os.environ.get(name)
         if not value:
             raise OptionError("key_env", f"environment variable {name!r} is not set or empty",
                               f"export {name}=<key made by 'rosgate keygen {plugin}'>")
         return value.strip().encode()
-    path = base_dir / str(options["key_file"])
+    path = base_dir / str(options.key_file)
     try:
         mode = path.stat().st_mode
         data = path.read_bytes().strip()
@@ -56,12 +63,13 @@ def load_key(options: Mapping[str, Any], base_dir: Path, plugin: str) -> bytes:
     return data
 
 
-def key_source(options: Mapping[str, Any]) -> str:
+def key_source(options: KeyOptions) -> str:
     """The option the key came from, for an ``OptionError`` about the key's content."""
-    return "key_file" if "key_file" in options else "key_env"
+    return "key_file" if options.key_file is not None else "key_env"
 
 
-def describe_source(options: Mapping[str, Any]) -> str:
+def describe_source(options: KeyOptions) -> str:
     """``file 'secret.key'`` or ``variable 'NAME'``: where a bad key was found, for a message."""
-    source = key_source(options)
-    return f"{'file' if source == 'key_file' else 'variable'} {options[source]!r}"
+    if options.key_file is not None:
+        return f"file {options.key_file!r}"
+    return f"variable {options.key_env!r}"

@@ -34,6 +34,19 @@ encoder and a decoder per field, cached per message class and format; encoding a
 only run them. :class:`TreeCodec` is the codec base class that puts this behind
 :class:`rosgate.Codec`: a format's codec adds its name, its :class:`WireFormat` and its parser.
 
+A format that has a library turning plain Python values into text and back (JSON, YAML, TOML)
+uses the mapping through two functions instead, with the same strict checks:
+
+* :func:`to_tree` ``(message)``: the message as plain Python — ``dict`` (field name -> value, in
+  .msg order), ``list``, ``str``, ``int``, ``float``, ``bool`` and ``bytes`` (for ``uint8[]`` and
+  ``byte[]`` fields) — following the table above.
+* :func:`from_tree` ``(msg_type, tree)``: the message a tree of the same kind describes, or
+  :class:`rosgate.CodecError` naming the field by its dotted path.
+
+Both take ``base64=True`` for a format without byte strings: ``uint8[]`` and ``byte[]`` fields are
+then base64 text (RFC 4648, standard alphabet, padded), and ``from_tree`` refuses text that is
+not. ``tests/thirdparty/codec_json/`` is a JSON codec written with them.
+
 This module needs the ROS Python packages (``rosidl_parser``, numpy), so the core imports it
 only when a tree codec is used.
 """
@@ -41,22 +54,26 @@ only when a tree codec is used.
 from __future__ import annotations
 
 import array
+import base64 as b64
+import dataclasses
 import importlib
 import math
 import struct
 from dataclasses import dataclass
-from functools import partial
+from functools import cached_property, partial
 from operator import attrgetter
-from typing import Any, Callable, ClassVar, Mapping
+from abc import abstractmethod
+from typing import Any, Callable, ClassVar
 
 import numpy
 from rosidl_parser import definition as idl
 
 from .codec import Codec
-from .errors import CodecError, OptionError
+from .errors import CodecError
 
 Encoder = Callable[[Any], bytes]
 Decoder = Callable[[Any], Any]
+ToTree = Callable[[Any], Any]
 
 # rclpy's own bound for float32 fields (a hair under FLT_MAX): what passes here passes rclpy
 FLOAT32_MAX = 3.402823466e38
@@ -96,14 +113,18 @@ class WireFormat:
     bytes_word: str = "bin"
     str_word: str = "str"
     nil_word: str = "nil"
+    #: True for a format without byte strings: ``uint8[]`` and ``byte[]`` fields are base64 text
+    base64: bool = False
 
 
 @dataclass(frozen=True)
 class _Converter:
-    """How one field type travels: ROS value -> packed bytes, parsed value -> ROS value."""
+    """How one field type travels: ROS value -> packed bytes, parsed value -> ROS value, and
+    ROS value -> plain Python value (:func:`to_tree`)."""
 
     encode: Encoder
     decode: Decoder
+    tree: ToTree
 
 
 class TreeError(Exception):
@@ -178,7 +199,7 @@ class _Builder:
                 if type(value) is not bool:
                     raise invalid("expected boolean", value)
                 return value
-            return _Converter(self.pack, decode_bool)
+            return _Converter(self.pack, decode_bool, _same)
         if typename == "octet":
             pack = self.pack
 
@@ -189,7 +210,7 @@ class _Builder:
                 if type(value) is not int or not 0 <= value <= 255:
                     raise invalid("expected byte (an integer in [0, 255])", value)
                 return bytes((value,))
-            return _Converter(encode_octet, decode_octet)
+            return _Converter(encode_octet, decode_octet, _first_byte)
         if typename in ("float", "double"):
             return self.floating(typename)
         if typename in _INTEGER_RANGES:
@@ -201,7 +222,7 @@ class _Builder:
                 if type(value) is not int or not low <= value <= high:
                     raise invalid(expected, value)
                 return value
-            return _Converter(self.pack, decode_int)
+            return _Converter(self.pack, decode_int, _same)
         # char, wchar, long double, short, long ...: IDL-only types that no .msg can declare
         raise CodecError(f"the {self.wire.name} mapping does not support the IDL type {typename!r}")
 
@@ -226,7 +247,7 @@ class _Builder:
             if single and FLOAT32_MAX < abs(number) < math.inf:
                 raise TreeError(f"expected float (within +-{FLOAT32_MAX:g}), got {value!r}")
             return number
-        return _Converter(encode, decode)
+        return _Converter(encode, decode, _same)
 
     def string(self, t: idl.AbstractGenericString) -> _Converter:
         bound = getattr(t, "maximum_size", None)
@@ -237,17 +258,22 @@ class _Builder:
         def decode(value: Any) -> str:
             if type(value) is not str:
                 raise invalid(expected, value)
-            # the middleware bounds a string's UTF-8 bytes, which are never fewer than its
-            # characters: encode only when the characters fit and the text is not plain ASCII
-            if bound is not None and (len(value) > bound or (
-                    utf8 and not value.isascii() and len(value.encode()) > bound)):
-                raise TreeError(f"{expected}, got a {self.wire.str_word} of {len(value.encode())} bytes")
+            if value.isascii():
+                size = length = len(value)
+            else:
+                try:
+                    size = len(value.encode())
+                except UnicodeEncodeError:  # JSON's "\ud800": a str no middleware can carry
+                    raise TreeError(f"{expected}, got text with an unpaired surrogate") from None
+                length = size if utf8 else len(value)  # the middleware bounds a string's bytes
+            if bound is not None and length > bound:
+                raise TreeError(f"{expected}, got a {self.wire.str_word} of {size} bytes")
             return value
-        return _Converter(self.pack, decode)
+        return _Converter(self.pack, decode, _same)
 
     # -- arrays and sequences -----------------------------------------------------------------
 
-    def length_checker(self, t: idl.AbstractNestedType, wire_type: type,
+    def length_checker(self, t: idl.AbstractNestedType, wire_type: Any,
                        wire_name: str) -> Callable[[Any], None]:
         """Check a received collection's type, and its length against the field's."""
         size = t.size if isinstance(t, idl.Array) else None
@@ -258,36 +284,59 @@ class _Builder:
         invalid = self.invalid
 
         def check(value: Any) -> None:
-            if type(value) is not wire_type or (size is not None and len(value) != size) or (
-                    bound is not None and len(value) > bound):
+            if type(value) is not wire_type:
+                raise invalid(expected, value)
+            length = len(value)  # a sized type: bytes, str, list, array
+            if size is not None and length != size or bound is not None and length > bound:
                 raise invalid(expected, value)
         return check
 
     def bytes(self, t: idl.AbstractNestedType) -> _Converter:
-        """uint8 and byte collections travel as a byte string: one copy, no per-element work."""
+        """uint8 and byte collections travel as a byte string: one copy, no per-element work
+        (as base64 text in a format without byte strings)."""
         check = self.length_checker(t, bytes, self.wire.bytes_word)
-        header = self.wire.bytes_header
+        header, pack, invalid = self.wire.bytes_header, self.pack, self.invalid
+        raw: Callable[[Any], Any]
 
         if t.value_type.typename == "octet":  # rclpy: a list of bytes objects of length 1
-            def encode(value: Any) -> bytes:
-                return header(len(value)) + b"".join(value)
+            raw = b"".join
 
-            def decode(value: Any) -> Any:
-                check(value)
-                return list(map(int.to_bytes, value))
+            def build(data: bytes) -> Any:
+                return list(map(int.to_bytes, data))
         else:
             fixed = isinstance(t, idl.Array)
+            raw = memoryview  # no copy of an image's pixels before writing them
 
+            def build(data: bytes) -> Any:
+                # rclpy: a numpy uint8 array for uint8[N] (copied: frombuffer alone is
+                # read-only), array.array('B') for uint8[]
+                return numpy.frombuffer(data, numpy.uint8).copy() if fixed else array.array("B", data)
+
+        if not self.wire.base64:
             def encode(value: Any) -> bytes:
-                view = memoryview(value)  # no copy of an image's pixels before joining
-                return header(view.nbytes) + view
+                data = raw(value)
+                return header(len(data)) + data
 
             def decode(value: Any) -> Any:
                 check(value)
-                # rclpy: a numpy uint8 array for uint8[N] (copied: frombuffer alone is
-                # read-only), array.array('B') for uint8[]
-                return numpy.frombuffer(value, numpy.uint8).copy() if fixed else array.array("B", value)
-        return _Converter(encode, decode)
+                return build(value)
+            return _Converter(encode, decode, lambda value: bytes(raw(value)))
+
+        expected = f"expected {type_name(t)} (base64 text)"
+
+        def text(value: Any) -> str:
+            return b64.b64encode(raw(value)).decode("ascii")
+
+        def decode_text(value: Any) -> Any:
+            if type(value) is not str:
+                raise invalid(expected, value)
+            try:
+                data = b64.b64decode(value, validate=True)
+            except ValueError:  # binascii.Error, or characters that are not ASCII
+                raise invalid(expected, value) from None
+            check(data)
+            return build(data)
+        return _Converter(lambda value: pack(text(value)), decode_text, text)
 
     def numbers(self, t: idl.AbstractNestedType) -> _Converter:
         """Numeric collections, decoded by array.array in C (which also enforces integer ranges)."""
@@ -324,12 +373,12 @@ class _Builder:
                     pass
             return one_by_one(value)  # the same rules, so this raises, naming the element
 
-        return _Converter(encode_float32s if single else encode_tolist, decode)
+        return _Converter(encode_float32s if single else encode_tolist, decode, _tolist)
 
     def items(self, t: idl.AbstractNestedType, item: _Converter) -> _Converter:
         """Collections of booleans, strings or messages: rclpy keeps them as lists."""
         check = self.length_checker(t, list, "an array")
-        encode_item, decode_item = item.encode, item.decode
+        encode_item, decode_item, item_tree = item.encode, item.decode, item.tree
         array_header = self.wire.array_header
 
         def encode(value: Any) -> bytes:
@@ -345,7 +394,10 @@ class _Builder:
                 exc.path.append(f"[{len(items)}]")
                 raise
             return items
-        return _Converter(encode, decode)
+
+        def tree(value: Any) -> list[Any]:
+            return list(map(item_tree, value))
+        return _Converter(encode, decode, tree)
 
     def collection(self, t: idl.AbstractNestedType) -> _Converter:
         item = t.value_type
@@ -363,10 +415,22 @@ class _Builder:
         if isinstance(t, idl.NamespacedType):
             nested = message_tree(getattr(importlib.import_module(".".join(t.namespaces)), t.name),
                                   self.wire)
-            return _Converter(nested.encode, nested.decode)
+            return _Converter(nested.encode, nested.decode, nested.to_tree)
         if isinstance(t, idl.AbstractNestedType):
             return self.collection(t)
         raise CodecError(f"the {self.wire.name} mapping does not support {type(t).__name__}")
+
+
+def _same(value: Any) -> Any:
+    return value
+
+
+def _first_byte(value: bytes) -> int:
+    return value[0]  # rclpy holds a byte field as bytes of length 1
+
+
+def _tolist(value: Any) -> list[Any]:
+    return value.tolist()  # array.array and numpy hand over Python numbers in C
 
 
 def _beyond_float32(values: list[Any]) -> bool:
@@ -379,21 +443,31 @@ def _beyond_float32(values: list[Any]) -> bool:
 class MessageTree:
     """Encoder and decoder of one message class in one format: its fields' converters."""
 
-    def __init__(self, msg_type: type, wire: WireFormat):
+    def __init__(self, msg_type: Any, wire: WireFormat):
         self.msg_type = msg_type
         self.name = f"{msg_type.__module__.split('.')[0]}/{msg_type.__name__}"
         self.wire = wire
         build = _Builder(wire)
-        names = list(msg_type.get_fields_and_field_types())
-        converters = [build.converter(slot_type) for slot_type in msg_type.SLOT_TYPES]
-        self.header = wire.map_header(len(names))
-        self.encoders = [(wire.pack(name), attrgetter(name), convert.encode)
-                         for name, convert in zip(names, converters)]
-        self.decoders = {name: convert.decode for name, convert in zip(names, converters)}
+        self.names = list(msg_type.get_fields_and_field_types())
+        self.converters = [build.converter(slot_type) for slot_type in msg_type.SLOT_TYPES]
+        self.decoders = {name: convert.decode for name, convert in zip(self.names, self.converters)}
+        self.trees = [(name, attrgetter(name), convert.tree)
+                      for name, convert in zip(self.names, self.converters)]
+
+    @cached_property
+    def writers(self) -> tuple[bytes, list[tuple[bytes, Callable[[Any], Any], Encoder]]]:
+        """The map's header and each field's packed key, getter and encoder: made on the first
+        encode, since a plain tree (:func:`to_tree`) is never written as bytes."""
+        return self.wire.map_header(len(self.names)), [
+            (self.wire.pack(name), attrgetter(name), convert.encode)
+            for name, convert in zip(self.names, self.converters)]
 
     def encode(self, message: Any) -> bytes:
-        return self.header + b"".join(
-            [key + encode(get(message)) for key, get, encode in self.encoders])
+        header, writers = self.writers
+        return header + b"".join([key + encode(get(message)) for key, get, encode in writers])
+
+    def to_tree(self, message: Any) -> dict[str, Any]:
+        return {name: tree(get(message)) for name, get, tree in self.trees}
 
     def decode(self, value: Any) -> Any:
         """The message a parsed tree describes; :class:`TreeError` when it describes none."""
@@ -413,6 +487,15 @@ class MessageTree:
                 raise
         return self.msg_type(**fields)  # fields left out keep the constructor's defaults
 
+    def from_tree(self, value: Any) -> Any:
+        """:meth:`decode`, its :class:`TreeError` told as a :class:`rosgate.CodecError` naming
+        the field by its dotted path."""
+        try:
+            return self.decode(value)
+        except TreeError as exc:
+            where = f"{exc.where()}: " if exc.path else ""
+            raise CodecError(f"{self.name}: {where}{exc.reason}") from None
+
 
 # One converter tree per message class and format, shared by every codec instance; a Header is
 # built once however many message types contain one.
@@ -426,30 +509,70 @@ def message_tree(msg_type: type, wire: WireFormat) -> MessageTree:
     return tree
 
 
-# -- the codec base ---------------------------------------------------------------------------
+# -- plain Python trees, for formats with a library of their own (JSON) --------------------------
 
 # What a field holding the wrong kind of value raises while packing; only a message filled with
 # rclpy's field checks off (the default) can hold one.
 _UNENCODABLE = (TypeError, ValueError, OverflowError, AttributeError, BufferError, struct.error)
 
 
+def _never_written(value: Any) -> bytes:
+    raise TypeError("a plain Python tree is not written as bytes")
+
+
+# The plain values of to_tree and from_tree, described as a format that is never written: only
+# its converters' tree and decode sides run, and its words name what a text parser returns.
+_PLAIN = WireFormat(name="Python", pack=_never_written, float32_tag=0, float64_tag=0,
+                    array_header=_never_written, map_header=_never_written,
+                    bytes_header=_never_written, bytes_word="bytes", str_word="str",
+                    nil_word="null")
+_PLAIN_BASE64 = dataclasses.replace(_PLAIN, base64=True)
+
+
+def to_tree(message: Any, *, base64: bool = False) -> dict[str, Any]:
+    """``message`` as plain Python: a ``dict`` of its fields in .msg order, nested messages as
+    dicts, arrays as lists, ``uint8[]``/``byte[]`` as ``bytes`` (``base64=True``: base64 text),
+    numbers, strings and booleans as they are. :class:`rosgate.CodecError` for a field holding
+    a value of the wrong kind, which only a message built with rclpy's field checks off can hold
+    (``ROS_PYTHON_CHECK_FIELDS=1`` turns them on)."""
+    tree = message_tree(type(message), _PLAIN_BASE64 if base64 else _PLAIN)
+    try:
+        return tree.to_tree(message)
+    except _UNENCODABLE as exc:
+        raise CodecError(f"cannot convert this {tree.name}: {exc}") from None
+
+
+def from_tree(msg_type: type, tree: Any, *, base64: bool = False) -> Any:
+    """The ``msg_type`` message that ``tree`` (plain Python, as :func:`to_tree` makes it and a
+    text parser returns it) describes. Strict, because the tree comes from the network: an
+    unknown field, a value of the wrong type, an integer out of range, a fixed array of the wrong
+    length, a bounded sequence or string over its bound (and with ``base64=True``, byte fields
+    that are not base64 text) raise :class:`rosgate.CodecError` naming the field by its dotted
+    path (``pose.position.w``). Fields left out keep their defaults; an integer is taken for a
+    float, a boolean never for a number."""
+    return message_tree(msg_type, _PLAIN_BASE64 if base64 else _PLAIN).from_tree(tree)
+
+
+# -- the codec base ---------------------------------------------------------------------------
+
 class TreeCodec(Codec):
     """Base of codecs that write a message as a tree. A subclass sets ``name`` and ``wire`` and
-    implements :meth:`parse`; it takes no options."""
+    implements :meth:`parse`; it takes no options, unless it declares ``Options`` of its own."""
 
     wire: ClassVar[WireFormat]
 
-    def __init__(self, msg_type: type, options: Mapping[str, Any]):
+    @dataclass(frozen=True)
+    class Options:
+        """None."""
+
+    def __init__(self, msg_type: type, options: Any):
         super().__init__(msg_type, options)
-        for key in self.options:
-            raise OptionError(key, f"the {self.name} codec has no option {key!r}",
-                              fix=f"remove it from plugins: {self.name}:")
         self.tree = message_tree(msg_type, self.wire)
 
+    @abstractmethod
     def parse(self, data: bytes) -> Any:
         """``data`` as exactly one object of the format (dicts, lists, bytes, str, int, float,
         bool, None); :class:`rosgate.CodecError` when it is not."""
-        raise NotImplementedError
 
     def encode(self, message: Any) -> bytes:
         if type(message) is not self.msg_type:
@@ -460,9 +583,4 @@ class TreeCodec(Codec):
             raise CodecError(f"cannot encode this {self.tree.name}: {exc}") from None
 
     def decode(self, data: bytes) -> Any:
-        tree = self.parse(data)
-        try:
-            return self.tree.decode(tree)
-        except TreeError as exc:
-            where = f"{exc.where()}: " if exc.path else ""
-            raise CodecError(f"{self.tree.name}: {where}{exc.reason}") from None
+        return self.tree.from_tree(self.parse(data))

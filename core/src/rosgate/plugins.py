@@ -1,17 +1,32 @@
-"""Finding plugins: entry points in the group ``rosgate``, loaded one by one.
+"""Finding plugins: entry points in the group ``rosgate``, loaded when first asked for.
 
-A plugin that fails to import, or whose hook raises, is recorded by name with the reason and
-skipped; the others keep working. ``ROSGATE_DISABLE_PLUGINS=name,name`` blocks entry points by
-name (``builtin`` cannot be blocked: the core needs ``cdr`` and ``none``).
+Listing the entry points imports nothing. Asking for a plugin (``get("transport", "udp")``)
+loads the entry point of that name first — a plugin's entry point is named like the class it
+registers, by convention — and the remaining ones only if the class is not there (python-can's
+model); ``rosgate plugins`` and ``rosgate check`` load them all. The built-in plugins (``cdr``,
+``none``: the core's own module) load at once, through the same hooks as any other.
+
+pluggy does the plugin work. As pytest does with ``pytest_``, every function of a plugin module
+whose name starts with ``rosgate_`` is a hook implementation, marked with ``rosgate.hookimpl``
+or not, so ``check_pending`` catches a misspelt hook instead of ignoring it; and pluggy calls the
+hooks, one plugin at a time, so whatever a hook raises is the failure of the plugin that raised it.
+
+A plugin that fails — it does not import, names a hook that does not exist, a hook raises, it
+registers a class that is not a valid plugin class — is recorded as a :class:`Failure` naming it,
+with the reason, and skipped; the others keep working. ``ROSGATE_DISABLE_PLUGINS=name,name``
+blocks entry points by name (``builtin`` cannot be blocked: the core needs ``cdr`` and ``none``).
 """
 
 from __future__ import annotations
 
+import difflib
+import inspect
 import os
+import threading
 import traceback
-from dataclasses import dataclass, field
+import types
+from dataclasses import dataclass
 from importlib import metadata
-from types import ModuleType
 from typing import Any
 
 import pluggy
@@ -19,10 +34,13 @@ import pluggy
 from . import hookspecs
 from .cipher import Cipher
 from .codec import Codec
+from .options import declaration_problem
 from .transport import Transport
 
 ENTRY_POINT_GROUP = "rosgate"
 DISABLE_VARIABLE = "ROSGATE_DISABLE_PLUGINS"
+BUILTIN = "builtin"
+HOOK_PREFIX = "rosgate_"
 
 KINDS: dict[str, tuple[str, type]] = {
     # kind: (hook name, base class)
@@ -31,23 +49,11 @@ KINDS: dict[str, tuple[str, type]] = {
     "cipher": ("rosgate_ciphers", Cipher),
 }
 
-# Names of in-tree plugins and the distribution that provides each; any other name is guessed by
-# the naming convention rosgate-<kind>-<name>.
-KNOWN_DISTRIBUTIONS = {
-    ("transport", "udp"): "rosgate-transport-udp",
-    ("transport", "tcp"): "rosgate-transport-tcp",
-    ("transport", "bt"): "rosgate-transport-bt",
-    ("transport", "can"): "rosgate-transport-can",
-    ("codec", "msgpack"): "rosgate-codec-msgpack",
-    ("codec", "cbor"): "rosgate-codec-cbor",
-    ("cipher", "fernet"): "rosgate-crypto-fernet",
-    ("cipher", "nacl"): "rosgate-crypto-nacl",
-}
 
-
-def distribution_for(kind: str, name: str) -> str:
-    prefix = {"transport": "transport", "codec": "codec", "cipher": "crypto"}[kind]
-    return KNOWN_DISTRIBUTIONS.get((kind, name), f"rosgate-{prefix}-{name}")
+def conventional_distribution(kind: str, name: str) -> str:
+    """The distribution that provides a plugin by the naming convention: ``rosgate-<kind>-<name>``,
+    ``crypto`` for ciphers. A convention only: one distribution may hold several plugins."""
+    return f"rosgate-{'crypto' if kind == 'cipher' else kind}-{name}"
 
 
 @dataclass(frozen=True)
@@ -67,90 +73,157 @@ class Failure:
     reason: str
 
 
-@dataclass
+class PluginManager(pluggy.PluginManager):
+    """pluggy's manager for the hooks of :mod:`rosgate.hookspecs`, with pytest's rule: every
+    function named ``rosgate_*`` is a hook implementation, so a misspelt one is never ignored."""
+
+    def __init__(self) -> None:
+        super().__init__("rosgate")
+        self.add_hookspecs(hookspecs)
+
+    def parse_hookimpl_opts(self, plugin: Any, name: str) -> pluggy.HookimplOpts | None:
+        if not name.startswith(HOOK_PREFIX):
+            return None  # and nothing else is looked at, as pytest does
+        opts = super().parse_hookimpl_opts(plugin, name)
+        if opts is None and _is_function(inspect.getattr_static(plugin, name, None)):
+            opts = pluggy.HookimplOpts(wrapper=False, hookwrapper=False, optionalhook=False,
+                                       tryfirst=False, trylast=False, specname=None)
+        return opts
+
+    def unknown_hooks(self, plugin: Any) -> list[str]:
+        """The names of ``plugin``'s implementations that match no hook."""
+        return sorted(caller.name for caller in self.get_hookcallers(plugin) or []
+                      if not caller.has_spec())
+
+    def call_for(self, plugin: Any, hook_name: str, **kwargs: Any) -> None:
+        """Call ``plugin``'s implementation of a hook, and nobody else's."""
+        others = [p for p in self.get_plugins() if p is not plugin]
+        self.subset_hook_caller(hook_name, remove_plugins=others)(**kwargs)
+
+
+def _is_function(value: Any) -> bool:
+    return inspect.isfunction(value) or isinstance(value, (staticmethod, classmethod,
+                                                           types.MethodType))
+
+
 class Plugins:
-    """Every plugin class known to this process, by kind and name."""
+    """Every plugin class this process knows of, by kind and name, loaded as asked for."""
 
-    registered: dict[tuple[str, str], Registration] = field(default_factory=dict)
-    failures: list[Failure] = field(default_factory=list)
-    blocked: list[str] = field(default_factory=list)
-
-    def __post_init__(self) -> None:
-        self._manager = pluggy.PluginManager("rosgate")
-        self._manager.add_hookspecs(hookspecs)
+    def __init__(self, blocked: list[str] | None = None) -> None:
+        self.manager = PluginManager()
+        self.registered: dict[tuple[str, str], Registration] = {}
+        self.failures: list[Failure] = []
+        self.blocked: list[str] = list(blocked or [])
+        self._waiting: list[metadata.EntryPoint] = []  # found, not loaded yet
+        self._lock = threading.RLock()  # a server prepares its clients' topics in their threads
 
     # -- loading ---------------------------------------------------------------------------
     @classmethod
     def discover(cls) -> "Plugins":
-        """Load every entry point in the group ``rosgate`` that is not blocked."""
+        """List the entry points in the group ``rosgate`` (importing none of them but the
+        core's own); the others load when asked for."""
         plugins = cls()
         blocked = {n.strip() for n in os.environ.get(DISABLE_VARIABLE, "").split(",") if n.strip()}
-        blocked.discard("builtin")
+        blocked.discard(BUILTIN)
         for ep in sorted(metadata.entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
-            dist = ep.dist.name if ep.dist else "?"
-            version = ep.dist.version if ep.dist else "?"
             if ep.name in blocked:
                 plugins.blocked.append(ep.name)
-                continue
-            try:
-                module = ep.load()
-            except Exception as exc:  # a broken plugin must not take the others down
-                plugins.failures.append(Failure(ep.name, dist, _reason(exc)))
-                continue
-            plugins.add(module, ep.name, dist, version)
+            else:
+                plugins._waiting.append(ep)
+        plugins._load_named(BUILTIN)
         return plugins
 
-    def add(self, module: ModuleType | Any, plugin: str, distribution: str = "?",
-            version: str = "?") -> None:
-        """Register one plugin module (or object with hook implementations) and collect what it
-        registers. Tests use this to add a plugin in-process."""
-        if self._manager.has_plugin(plugin):
-            self.failures.append(Failure(plugin, distribution, "a plugin of this name is already loaded"))
-            return
+    def load_all(self) -> None:
+        """Load every entry point not loaded yet."""
+        with self._lock:
+            while self._waiting:
+                self._load(self._waiting[0])
+
+    def _load_named(self, name: str) -> None:
+        with self._lock:
+            for ep in [ep for ep in self._waiting if ep.name == name]:
+                self._load(ep)
+
+    def _load(self, ep: metadata.EntryPoint) -> None:
+        self._waiting.remove(ep)
+        distribution = ep.dist.name if ep.dist else "?"
+        version = ep.dist.version if ep.dist else "?"
         try:
-            self._manager.register(module, name=plugin)
-        except Exception as exc:
-            self.failures.append(Failure(plugin, distribution, _reason(exc)))
+            module = ep.load()
+        except Exception as exc:  # a broken plugin must not take the others down
+            self.failures.append(Failure(ep.name, distribution, _reason(exc)))
             return
+        self.add(module, ep.name, distribution, version)
+
+    def add(self, module: types.ModuleType | Any, plugin: str, distribution: str = "?",
+            version: str = "?") -> None:
+        """Register one plugin module (or hashable object with hook implementations) and collect
+        what it registers. Tests use this to add a plugin in-process."""
+        with self._lock:
+            self._add(module, plugin, distribution, version)
+
+    def _add(self, module: Any, plugin: str, distribution: str, version: str) -> None:
+        def fail(reason: str) -> None:
+            self.failures.append(Failure(plugin, distribution, reason))
+
+        if self.manager.has_plugin(plugin):
+            return fail("a plugin of this name is already loaded")
+        try:
+            self.manager.register(module, name=plugin)
+        except Exception as exc:  # pluggy refuses a hook taking arguments the hook does not give
+            return fail(_reason(exc))
+        try:
+            self.manager.check_pending()
+        except pluggy.PluginValidationError as exc:
+            unknown = self.manager.unknown_hooks(exc.plugin)
+            self.manager.unregister(exc.plugin)
+            return fail(_misspelt(unknown) if unknown else str(exc))
         for kind, (hook_name, base) in KINDS.items():
-            hook = getattr(self._manager.hook, hook_name)
-            found: list[type] = []
+            found: list[Any] = []
             try:
-                # call this plugin's implementation only, so an error is attributed to it;
-                # like pluggy, pass only the arguments the implementation asks for
-                arguments = {"register": found.append}
-                for impl in hook.get_hookimpls():
-                    if impl.plugin_name == plugin:
-                        impl.function(*(arguments[a] for a in impl.argnames))
+                self.manager.call_for(module, hook_name, register=found.append)
             except Exception as exc:
-                self.failures.append(Failure(plugin, distribution, f"{hook_name}: {_reason(exc)}"))
-                continue
+                fail(f"{hook_name}: {_reason(exc)}")
+                continue  # what it registered before it raised is not kept
             for cls in found:
                 problem = _check_class(cls, base)
                 if problem:
-                    self.failures.append(Failure(plugin, distribution, problem))
+                    fail(problem)
                     continue
                 key = (kind, cls.name)
                 if key in self.registered:
                     first = self.registered[key]
-                    self.failures.append(Failure(
-                        plugin, distribution,
-                        f"{kind} {cls.name!r} is already provided by {first.distribution}; skipped"))
+                    fail(f"{kind} {cls.name!r} is already provided by {first.distribution}; "
+                         "skipped")
                     continue
-                self.registered[key] = Registration(kind, cls.name, cls, plugin, distribution, version)
+                self.registered[key] = Registration(kind, cls.name, cls, plugin, distribution,
+                                                    version)
 
     def remove(self, plugin: str) -> None:
         """Forget a plugin added with :meth:`add` (tests)."""
-        self._manager.unregister(name=plugin)
-        for key in [k for k, r in self.registered.items() if r.plugin == plugin]:
-            del self.registered[key]
+        with self._lock:
+            self.manager.unregister(name=plugin)
+            for key in [k for k, r in self.registered.items() if r.plugin == plugin]:
+                del self.registered[key]
 
     # -- lookup ----------------------------------------------------------------------------
-    def names(self, kind: str) -> list[str]:
-        return sorted(n for (k, n) in self.registered if k == kind)
-
     def get(self, kind: str, name: str) -> Registration | None:
-        return self.registered.get((kind, name))
+        """The plugin class of that kind and name, loading what it takes to find it: the entry
+        point named ``name``, then, if the class is not there, every other one."""
+        with self._lock:
+            if (kind, name) not in self.registered:
+                self._load_named(name)
+            if (kind, name) not in self.registered:
+                self.load_all()
+            return self.registered.get((kind, name))
+
+    def all(self) -> list[Registration]:
+        """Every plugin class, everything loaded; by kind, then name."""
+        self.load_all()
+        return sorted(self.registered.values(), key=lambda r: (r.kind, r.name))
+
+    def names(self, kind: str) -> list[str]:
+        return [r.name for r in self.all() if r.kind == kind]
 
     def explain_missing(self, kind: str, name: str) -> tuple[str, str]:
         """(message, fix) for a bringup.yaml that asks for a plugin that is not here."""
@@ -159,9 +232,25 @@ class Plugins:
         failed = [f for f in self.failures if f.plugin == name]
         if failed:
             message += f"; plugin {name!r} is installed but failed to load: {failed[0].reason}"
+            return message, (f"repair or reinstall {failed[0].distribution}, or pick an installed "
+                             f"{kind}")
         if name in self.blocked:
             message += f"; plugin {name!r} is blocked by {DISABLE_VARIABLE}"
-        return message, f"pip install {distribution_for(kind, name)}, or pick an installed {kind}"
+            return message, f"remove {name} from {DISABLE_VARIABLE}, or pick an installed {kind}"
+        return message, (f"pip install the distribution that provides it (by convention "
+                         f"{conventional_distribution(kind, name)}), or pick an installed {kind}")
+
+
+def deprecations(cls: type) -> list[str]:
+    """What a registered class does that still works but will not for long, for
+    ``rosgate plugins`` (its author sees a ``DeprecationWarning`` too)."""
+    notes = []
+    if issubclass(cls, Transport) and cls.link_kind is None:
+        notes.append("subclasses rosgate.Transport and sets stream itself (subclass "
+                     "DatagramTransport or StreamTransport)")
+    if not hasattr(cls, "Options"):
+        notes.append("declares no Options (its table reaches it unchecked, as a dict)")
+    return notes
 
 
 def _check_class(cls: Any, base: type) -> str | None:
@@ -170,10 +259,26 @@ def _check_class(cls: Any, base: type) -> str | None:
     name = getattr(cls, "name", None)
     if not isinstance(name, str) or not name.isidentifier():
         return f"{cls.__name__} has no valid 'name' (a short identifier such as 'udp')"
-    return None
+    if inspect.isabstract(cls):
+        missing = sorted(getattr(cls, "__abstractmethods__", ()))
+        return f"{cls.__name__} does not implement {', '.join(missing)}"
+    if base is Transport and not isinstance(getattr(cls, "stream", None), bool):
+        return f"{cls.__name__} says neither stream nor datagram (subclass DatagramTransport or " \
+               "StreamTransport)"
+    return declaration_problem(cls)
+
+
+def _misspelt(names: list[str]) -> str:
+    hooks = sorted(h for h in dir(hookspecs) if h.startswith(HOOK_PREFIX))
+    parts = []
+    for name in names:
+        close = difflib.get_close_matches(name, hooks, n=1)
+        parts.append(f"{name!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    return f"unknown hook {', '.join(parts)}; the hooks are {', '.join(hooks)}"
 
 
 def _reason(exc: BaseException) -> str:
     last = traceback.extract_tb(exc.__traceback__)[-1:] if exc.__traceback__ else []
     where = f" ({last[0].filename}:{last[0].lineno})" if last else ""
-    return f"{type(exc).__name__}: {exc}{where}"
+    text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+    return f"{type(exc).__name__}: {text}{where}"

@@ -18,6 +18,7 @@ from .cipher import Cipher
 from .codec import Codec
 from .config import (BridgeConfig, Direction, Framing, Role, ServiceConfig, TopicConfig)
 from .errors import ConfigError, OptionError
+from .options import parse
 from .placeholders import Template, has_placeholders
 from .plugins import Plugins, Registration
 from .ros import TypeNotFound, is_reliable, resolve_type
@@ -324,7 +325,7 @@ class Resolver:
         if name not in self.transports:
             cls = self.plugin("transport", name, key, error).cls
             try:
-                self.transports[name] = cls(self._options(name))
+                self.transports[name] = cls(parse(cls, self._options(name)))
             except OptionError as exc:
                 raise self._option_error(name, exc, key, error) from None
         return self.transports[name]
@@ -333,13 +334,19 @@ class Resolver:
         if name not in self.ciphers:
             cls = self.plugin("cipher", name, key, error).cls
             try:
-                self.ciphers[name] = cls(self._options(name), self.config.base_dir)
+                self.ciphers[name] = cls(parse(cls, self._options(name)), self.config.base_dir)
             except OptionError as exc:
                 raise self._option_error(name, exc, key, error) from None
         return self.ciphers[name]
 
     def _codec(self, name: str, key: str, error: ErrorMaker) -> tuple[type[Codec], Any]:
-        return self.plugin("codec", name, key, error).cls, self._options(name)
+        """The codec's class and its options, parsed once (the router makes an instance per
+        route)."""
+        cls = self.plugin("codec", name, key, error).cls
+        try:
+            return cls, parse(cls, self._options(name))
+        except OptionError as exc:
+            raise self._option_error(name, exc, key, error) from None
 
     def _options(self, plugin: str) -> Any:
         return self.config.plugins.get(plugin) or {}

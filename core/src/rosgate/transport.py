@@ -1,103 +1,199 @@
 """Transports: the links that move opaque frames between two machines.
 
-A transport plugin is a subclass of :class:`Transport` registered through the
-``rosgate_transports`` hook. It only opens sockets (or socket-like objects): the core does
-everything above them — envelope, cipher, stream framing (length prefix), fragmentation and
-reassembly for frames larger than :attr:`Transport.max_frame`, reconnection, counting.
+A transport plugin subclasses :class:`DatagramTransport` or :class:`StreamTransport` and is
+registered through the ``rosgate_transports`` hook. It only opens sockets (or socket-like objects):
+the core does everything above them — envelope, cipher, stream framing (length prefix),
+fragmentation and reassembly for frames larger than :attr:`Transport.max_frame`, reconnection,
+counting.
 
-There are two kinds of link:
-
-* **datagram** (``stream = False``): every ``send`` is delivered whole or not at all (UDP, CAN).
-  Implement :meth:`Transport.bind`, returning a :class:`DatagramEndpoint`.
-* **stream** (``stream = True``): an ordered byte stream with no boundaries (TCP, RFCOMM).
-  Implement :meth:`Transport.listen` and :meth:`Transport.connect`, returning
+* **datagram** (:class:`DatagramTransport`): every ``send`` is delivered whole or not at all (UDP,
+  CAN). Implement :meth:`~DatagramTransport.bind`, returning a :class:`DatagramEndpoint`.
+* **stream** (:class:`StreamTransport`): an ordered byte stream with no boundaries (TCP, RFCOMM).
+  Implement :meth:`~StreamTransport.listen` and :meth:`~StreamTransport.connect`, returning a
   :class:`StreamListener` and :class:`StreamConnection`.
 
 Addresses are ``(host, port)`` pairs; what ``host`` and ``port`` mean is the transport's own
-business (an IP address and a UDP port; a Bluetooth device address and an RFCOMM channel).
+business (an IP address and a UDP port; a Bluetooth device address and an RFCOMM channel; a CAN
+interface and an arbitration id). Which addresses reach a transport, per role:
+
+* the main line (roles ``client`` and ``server``): ``bridge.server`` as written goes through
+  :meth:`Transport.parse_address`, then :meth:`Transport.check_address`. The server listens
+  there, the client connects there.
+* a topic or service: :meth:`Transport.check_address` gets ``(host, port)`` built by the core.
+  ``port`` is the entry's ``port:`` (in a client or server without one: the main line's port).
+  ``host`` is the host of ``bridge.server`` for a client and a server, and for a peer
+  ``bridge.listen`` (receiving entries) or ``bridge.peer`` (transmitting ones).
+* then, on a datagram link: a server and a receiving peer ``bind`` that address; a transmitting
+  peer binds ``(bridge.listen, 0)`` and a client ``("0.0.0.0", 0)`` (``"::"`` for an IPv6
+  server) — port 0: any port, an unnamed socket — and they send to the checked address. A
+  server answers each client at the source its frames came from.
+* on a stream link: a server and a receiving peer ``listen`` at that address; a client and a
+  transmitting peer ``connect`` to it, again after every loss.
+
+A ``ValueError`` from ``parse_address`` or ``check_address`` is shown to the user at the key the
+address came from (``bridge.server``, ``topics[2].port``), so say in it what is expected.
 """
 
 from __future__ import annotations
 
 import select
 import socket
-from typing import Any, Callable, ClassVar, Mapping, Protocol
+import warnings
+from abc import ABC, abstractmethod
+from typing import Any, Callable, ClassVar, Protocol
+
+from .options import as_options
 
 Address = tuple[str, int]
 
 
 class DatagramEndpoint(Protocol):
-    """A bound datagram socket (or a look-alike)."""
+    """A bound datagram socket (or a look-alike).
+
+    Threads: ``send`` may be called from several threads at once (ROS executor threads that
+    transmit, link threads that answer), so it must be safe to call concurrently, as a socket's
+    ``sendto`` is. ``receive`` is called from one thread, the link's receiving thread; ``close``
+    from another.
+    """
 
     def send(self, frame: bytes, to: Address) -> None:
-        """Send one frame of at most ``max_frame`` bytes. May drop silently when the link is full."""
+        """Hand one frame of at most ``max_frame`` bytes to the link, addressed to ``to``.
+
+        Never wait for the far side (no acknowledgements, no retries): a full kernel buffer may
+        block briefly, nothing longer. When the frame could not be handed over, raise
+        ``OSError``: the core counts it against the topic (``send_error``) and goes on. Never drop
+        a frame without raising. Any other exception is a bug in the plugin and reaches the
+        caller's thread.
+        """
 
     def receive(self, timeout: float) -> tuple[bytes, Address] | None:
-        """Wait up to ``timeout`` seconds for one frame; ``None`` when none came."""
+        """Wait up to ``timeout`` seconds for one frame: ``(frame, source)``, or ``None`` when
+        none came. ``source`` should be an address ``send`` can answer (a server answers its
+        clients there); on a bus, where a frame names no sender, where it arrived. It must be
+        hashable: the core reassembles fragments per source. ``OSError`` is taken as a passing
+        failure (the core calls again) until the endpoint is closed; any other exception is a
+        bug, logged and counted (``transport_error``)."""
 
     def close(self) -> None:
-        """Release the endpoint; a ``receive`` running in another thread returns soon after."""
+        """Release the endpoint; a ``receive`` blocked in another thread returns soon after
+        (``None`` or ``OSError``)."""
 
 
 class StreamConnection(Protocol):
-    """One connected byte stream."""
+    """One connected byte stream.
+
+    Threads: ``send`` is called from one thread (the link's writer) and ``receive`` from
+    another (the link's reader), at the same time; ``close`` from any thread.
+    """
 
     def send(self, data: bytes) -> None:
-        """Send all of ``data``; raise ``OSError`` when the connection is gone."""
+        """Send all of ``data``, or raise ``OSError`` when the connection is gone: the core
+        counts the frames in it (``link_down``), closes the connection and connects again."""
 
     def receive(self, max_bytes: int, timeout: float) -> bytes | None:
-        """Up to ``max_bytes``; ``b""`` when the far end closed; ``None`` after ``timeout`` with none."""
+        """Up to ``max_bytes``; ``b""`` when the far end closed; ``None`` after ``timeout`` with
+        none; ``OSError`` when the connection failed (the core connects again)."""
 
     def close(self) -> None:
-        """Close; a ``receive`` running in another thread returns soon after."""
+        """Close; a ``receive`` blocked in another thread returns soon after."""
 
 
 class StreamListener(Protocol):
+    """Accepts connections; ``accept`` is called from one thread, ``close`` from another."""
+
     def accept(self, timeout: float) -> tuple[StreamConnection, Address] | None:
-        """Wait up to ``timeout`` seconds for a connection; ``None`` when none came."""
+        """Wait up to ``timeout`` seconds for a connection: ``(connection, peer)``, or ``None``
+        when none came."""
 
     def close(self) -> None: ...
 
 
-class Transport:
-    """Base class of transport plugins. Subclass it and set the class attributes."""
+class Transport(ABC):
+    """The common base of :class:`DatagramTransport` and :class:`StreamTransport`; subclass one
+    of those. (Subclassing ``Transport`` directly and setting :attr:`stream` yourself still
+    works, with a ``DeprecationWarning``.)
+
+    The core makes one instance per bridge, from the plugin's declared ``Options`` (see
+    :mod:`rosgate.options`), and shares it between every link of that transport.
+    """
 
     #: the name users write in bringup.yaml (``transport: udp``)
     name: ClassVar[str]
-    #: True for byte streams (the core frames them), False for datagram links
+    #: True for byte streams (the core frames them), False for datagram links; set by the
+    #: two subclasses, read by the core
     stream: ClassVar[bool]
-    #: the largest frame one ``send`` carries on a datagram link; the core fragments above it
+    #: the largest frame one ``send`` carries on a datagram link; the core fragments above it.
+    #: A class attribute, or an instance attribute set in ``__init__`` from an option.
     max_frame: ClassVar[int] = 0
+    #: which kind of link: set by DatagramTransport, StreamTransport and rosgate.bus.BusTransport
+    link_kind: ClassVar[str | None] = None
 
-    def __init__(self, options: Mapping[str, Any]):
-        """``options`` is this plugin's table under ``plugins:`` in bringup.yaml (may be empty).
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if cls.__module__ != __name__ and cls.link_kind is None:
+            warnings.warn(f"{cls.__qualname__} subclasses rosgate.Transport and sets stream itself; "
+                          "subclass rosgate.DatagramTransport or rosgate.StreamTransport instead",
+                          DeprecationWarning, stacklevel=3)  # past ABCMeta.__new__: the class
 
-        Raise :class:`rosgate.OptionError` for an option that is unknown or wrong.
+    def __init__(self, options: Any):
+        """``options``: the plugin's ``Options`` instance, parsed by the core from its table under
+        ``plugins:`` (a plain mapping is parsed here the same way: handy in tests). Kept as
+        :attr:`options`. A subclass that overrides ``__init__`` calls this first, then reads
+        ``self.options``; a problem only found here is raised as :class:`rosgate.OptionError`.
         """
-        self.options = dict(options)
+        self.options = as_options(type(self), options)
 
     def parse_address(self, text: str) -> Address:
-        """Turn the user's notation (``host:port`` for IP links) into an address, or raise
-        ``ValueError`` with a sentence saying what is expected."""
+        """Turn the user's notation of ``bridge.server`` (``host:port`` for IP links) into an
+        address, or raise ``ValueError`` with a sentence saying what is expected."""
         raise NotImplementedError(f"transport {self.name!r} does not take addresses in bringup.yaml")
 
     def check_address(self, address: Address) -> Address:
-        """Validate an address built by the core from a host and a ``port:`` value."""
+        """Validate (and normalise) an address built by the core from a host and a ``port:``
+        value; ``ValueError`` with a sentence saying what is expected."""
         return address
 
-    # datagram links
+    # the link calls: a DatagramTransport implements bind, a StreamTransport listen and connect
     def bind(self, address: Address) -> DatagramEndpoint:
-        """Bind a datagram endpoint (port 0: any free port). Raise ``LinkError`` when impossible."""
         raise NotImplementedError(f"transport {self.name!r} is not a datagram link")
 
-    # stream links
     def listen(self, address: Address) -> StreamListener:
-        """Listen for stream connections. Raise ``LinkError`` when impossible (port in use...)."""
         raise NotImplementedError(f"transport {self.name!r} is not a stream link")
 
     def connect(self, address: Address, timeout: float) -> StreamConnection:
-        """Connect within ``timeout`` seconds or raise ``OSError``."""
         raise NotImplementedError(f"transport {self.name!r} is not a stream link")
+
+
+class DatagramTransport(Transport):
+    """A link that keeps message boundaries (UDP, CAN). Set :attr:`max_frame`; the core
+    fragments larger frames (compact pieces below 256 bytes, see ``rosgate.framing``)."""
+
+    stream = False
+    link_kind = "datagram"
+
+    @abstractmethod
+    def bind(self, address: Address) -> DatagramEndpoint:
+        """Bind a datagram endpoint at ``address`` (port 0: any free port). Raise
+        :class:`rosgate.LinkError` when it cannot be done (address in use, no such interface),
+        with a ``fix`` when you know better than "free the port, or pick another one"."""
+
+
+class StreamTransport(Transport):
+    """An ordered byte stream (TCP, RFCOMM). The core puts a length prefix on every frame."""
+
+    stream = True
+    link_kind = "stream"
+
+    @abstractmethod
+    def listen(self, address: Address) -> StreamListener:
+        """Listen for connections at ``address``. Raise :class:`rosgate.LinkError` when it cannot
+        be done (port in use...)."""
+
+    @abstractmethod
+    def connect(self, address: Address, timeout: float) -> StreamConnection:
+        """Connect within ``timeout`` seconds, or raise ``OSError`` (``TimeoutError`` included):
+        the core tries again later, with backoff. Called from a connecting thread, never from a
+        ROS callback."""
 
 
 class SocketConnection:

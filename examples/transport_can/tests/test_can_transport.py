@@ -139,21 +139,38 @@ def test_python_can_errors_become_link_errors():
 
 
 @pytest.mark.parametrize("options, key, message", [
-    ({"bitrate": "500k"}, "bitrate", "must be a number of bits per second, not '500k'"),
-    ({"bitrate": True}, "bitrate", "must be a number of bits per second"),
-    ({"data_bitrate": 0}, "data_bitrate", "must be a number of bits per second, not 0"),
+    ({"bitrate": "500k"}, "bitrate", "must be an integer or null, not '500k'"),
+    ({"bitrate": True}, "bitrate", "must be an integer or null, not true"),
+    ({"data_bitrate": 0}, "data_bitrate", "must be at least 1, not 0"),
     ({"fd": 1}, "fd", "must be true or false"),
     ({"extended": "yes"}, "extended", "must be true or false"),
     ({"interface": "vcan"}, "interface", "python-can has no interface 'vcan'"),
     ({"base_id": -1}, "base_id", "must be an arbitration id from 0 to 2046"),
     ({"base_id": 0x7FF}, "base_id", "must be an arbitration id from 0 to 2046"),
-    ({"base_id": "0x100"}, "base_id", "must be an arbitration id"),
+    ({"base_id": "0x100"}, "base_id", "must be an integer, not '0x100'"),
+    ({"bus": {"bitrate": 500000}}, "bus", "bitrate is an option of its own"),
+    ({"bus": []}, "bus", "must be a mapping"),
+    ({"bitrates": 1}, "bitrates", "unknown option of can (did you mean 'bitrate'?)"),
 ], ids=["bitrate-text", "bitrate-bool", "data_bitrate-0", "fd-int", "extended-text",
-        "interface", "base_id-negative", "base_id-last", "base_id-text"])
+        "interface", "base_id-negative", "base_id-last", "base_id-text",
+        "bus-named", "bus-list", "unknown"])
 def test_wrong_options(options, key, message):
     with pytest.raises(OptionError) as error:
         CanTransport({"interface": "virtual", **options})
     assert (error.value.key, error.value.message[:len(message)]) == (key, message)
+
+
+def test_extended_ids_take_a_base_id_past_the_standard_ones():
+    t = CanTransport({"interface": "virtual", "base_id": 0x7FF, "extended": True})
+    assert (t.options.base_id, t.max_id) == (0x7FF, 0x1FFFFFFF)
+
+
+def test_bus_arguments_reach_can_bus_beside_the_named_ones():
+    t = CanTransport({"interface": "virtual", "channel": "c", "fd": True,
+                      "bus": {"receive_own_messages": True}})
+    assert t.bus_options == {"interface": "virtual", "channel": "c", "fd": True,
+                             "receive_own_messages": True}
+    assert CanTransport({"interface": "virtual"}).bus_options == {"interface": "virtual"}
 
 
 def test_an_unknown_interface_lists_the_known_ones():

@@ -3,6 +3,7 @@ queries, liveliness, closing, and the core's :class:`rosgate.buslink.BusLink` ov
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -233,8 +234,10 @@ class BusConformance:
                   f"s.serve('{space}/q', lambda k, p, q: None)\n"
                   f"s.watch('{space}/*/@alive', lambda k, a: None)\n"
                   f"s.token('{space}/me/@alive')\nprint('open', flush=True)\n")
-        process = subprocess.run([sys.executable, "-c", script,
-                                  json.dumps(dict(plugin.options))],
+        options = plugin.options
+        table = (dataclasses.asdict(options) if dataclasses.is_dataclass(options)
+                 and not isinstance(options, type) else options)
+        process = subprocess.run([sys.executable, "-c", script, json.dumps(dict(table))],
                                  capture_output=True, text=True, timeout=30)
         assert process.stdout.strip() == "open", process.stderr
         assert process.returncode == 0, process.stderr

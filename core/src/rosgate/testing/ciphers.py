@@ -12,6 +12,7 @@ import pytest
 from ..wire import envelope
 from ..cipher import Cipher
 from ..errors import CipherError
+from ..options import parse
 from .helpers import assert_registered, write_key
 
 
@@ -36,9 +37,9 @@ class CipherConformance:
 
         def make(key: bytes | None) -> Cipher:
             if key is None:
-                return self.cipher({}, tmp_path)
+                return self.cipher(parse(self.cipher, {}), tmp_path)
             path = write_key(tmp_path / f"{self.cipher.name}-{next(files)}.key", key)
-            return self.cipher(self.options_for(path), tmp_path)
+            return self.cipher(parse(self.cipher, self.options_for(path)), tmp_path)
         return make
 
     @pytest.fixture

@@ -11,6 +11,7 @@ import pytest
 
 from ..wire.framing import COMPACT_BELOW
 from ..links import DatagramLink, StreamLink
+from ..options import parse
 from ..transport import Address, StreamConnection, Transport
 from .helpers import (TIMEOUT, Closing, Frames, assert_registered, free_port, frame_of, in_thread,
                       receive_exactly)
@@ -64,8 +65,10 @@ class TransportConformance:
 
     @pytest.fixture
     def plugin(self) -> Transport:
-        """The transport under test, made from :attr:`options` as the core makes it."""
-        return type(self).transport(dict(self.options))
+        """The transport under test, made from :attr:`options` as the core makes it (a factory
+        gets the options as a dict)."""
+        make = type(self).transport
+        return make(parse(make, self.options) if isinstance(make, type) else dict(self.options))
 
     @pytest.fixture
     def far_plugin(self, plugin: Transport) -> Transport:

@@ -1,12 +1,12 @@
 """rosgate transport ``can``: topics over a CAN or CAN FD bus, through any python-can interface
 (socketcan, pcan, kvaser, slcan, virtual, ...). A complete transport plugin in one page.
 
-Options (``plugins: {can: {...}}``): ``base_id`` (default 0x100), ``extended`` (29-bit ids,
-default false) and ``fd`` (CAN FD, 64-byte frames, default false: classic 8-byte frames) are this
-plugin's; every option, ``fd`` included, goes to ``can.Bus(**options)``, so ``interface``,
-``channel``, ``bitrate``, ``data_bitrate`` and whatever else your interface takes are written
-as python-can documents them. Options bringup.yaml leaves out come from python-can's own
-configuration (``~/can.conf``, ``CAN_INTERFACE``...), as for any python-can program.
+Options (``plugins: {can: {...}}``): :class:`CanTransport.Options`. ``base_id`` and ``extended``
+are this plugin's; ``interface``, ``channel``, ``bitrate``, ``data_bitrate`` and ``fd`` go to
+``can.Bus``, and so does everything in ``bus:``, the table for whatever else an interface takes
+(``receive_own_messages``, ``serial_port``, vendor options), written as python-can documents it.
+What bringup.yaml leaves out comes from python-can's own configuration (``~/can.conf``,
+``CAN_INTERFACE``...), as for any python-can program.
 
 Addressing: a topic's ``port`` is its arbitration id's offset, **arbitration id = base_id +
 port**, and a receiving topic's bus filters on that id. The ``host`` of an address means nothing
@@ -26,9 +26,10 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from typing import Any, Mapping
+from dataclasses import dataclass, fields
+from typing import Any
 
-from rosgate import Address, LinkError, OptionError, Transport, hookimpl
+from rosgate import Address, DatagramTransport, LinkError, OptionError, hookimpl, option
 
 log = logging.getLogger("rosgate")
 
@@ -42,7 +43,7 @@ class CanEndpoint:
     def __init__(self, transport: CanTransport, port: int,
                  inbox: queue.SimpleQueue[bytes | None]):
         self.transport = transport
-        self.source = (str(transport.options.get("channel", "")), port)
+        self.source = (str(transport.bus_options.get("channel", "")), port)
         self.inbox = inbox
         self.closed = False
 
@@ -68,34 +69,53 @@ class CanEndpoint:
             self.inbox.put(None)
 
 
-class CanTransport(Transport):
+class CanTransport(DatagramTransport):
     name = "can"
-    stream = False
 
-    def __init__(self, options: Mapping[str, Any]):
+    @dataclass(frozen=True)
+    class Options:
+        interface: str | None = option(
+            None, "python-can interface: socketcan, pcan, kvaser, slcan, virtual, ...")
+        channel: str | int | None = option(
+            None, "the interface's channel: can0, PCAN_USBBUS1, /dev/ttyACM0, ...")
+        bitrate: int | None = option(
+            None, "nominal bit rate, bit/s; SocketCAN ignores it: set it with ip link", minimum=1)
+        data_bitrate: int | None = option(None, "CAN FD data-phase bit rate, bit/s", minimum=1)
+        fd: bool = option(False, "CAN FD: 64-byte frames with bit-rate switching (else 8 bytes)")
+        base_id: int = option(0x100, "arbitration id of port 0: a port's id is base_id + port")
+        extended: bool = option(False, "29-bit arbitration ids (else 11-bit)")
+        bus: dict[str, Any] = option(
+            {}, "more can.Bus arguments, as python-can documents them (receive_own_messages, ...)")
+
+        def __post_init__(self) -> None:
+            last = 0x1FFFFFFF if self.extended else 0x7FF
+            if not 0 <= self.base_id < last:
+                raise OptionError("base_id", f"must be an arbitration id from 0 to {last - 1}")
+            if self.interface is not None:
+                import can  # behind the first use: listing plugins does not load python-can
+
+                known = can.interfaces.BACKENDS
+                if self.interface not in known:
+                    raise OptionError("interface", f"python-can has no interface {self.interface!r}",
+                                      f"use one of {', '.join(sorted(known))}")
+            named = set(self.bus) & {f.name for f in fields(self)}
+            if named:
+                key = sorted(named)[0]
+                raise OptionError("bus", f"{key} is an option of its own, not a bus: argument",
+                                  f"write {key}: beside bus:, not in it")
+
+    options: Options
+
+    def __init__(self, options: Options):
         super().__init__(options)
-        import can  # behind the first use: listing plugins does not load python-can
-
-        self.bus_options = dict(options)
-        self.base_id = self.bus_options.pop("base_id", 0x100)
-        self.extended = self.bus_options.pop("extended", False)
-        self.fd = self.bus_options.get("fd", False)
-        for key in ("extended", "fd"):
-            if not isinstance(options.get(key, False), bool):
-                raise OptionError(key, "must be true or false")
-        for key in ("bitrate", "data_bitrate"):
-            value = options.get(key, 1)
-            if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-                raise OptionError(key, f"must be a number of bits per second, not {value!r}",
-                                  f"e.g. {key}: {2000000 if key == 'data_bitrate' else 500000}")
-        interface = options.get("interface")
-        if interface is not None and interface not in can.interfaces.BACKENDS:
-            raise OptionError("interface", f"python-can has no interface {interface!r}",
-                              f"use one of {', '.join(sorted(can.interfaces.BACKENDS))}")
-        self.max_id = 0x1FFFFFFF if self.extended else 0x7FF
-        if not isinstance(self.base_id, int) or not 0 <= self.base_id < self.max_id:
-            raise OptionError("base_id", f"must be an arbitration id from 0 to {self.max_id - 1}")
-        self.max_frame = 64 if self.fd else 8
+        o = self.options
+        # what bringup.yaml leaves out, python-can's own configuration decides (fd only when
+        # true: classic CAN is every interface's default)
+        named = {"interface": o.interface, "channel": o.channel, "bitrate": o.bitrate,
+                 "data_bitrate": o.data_bitrate, "fd": o.fd or None}
+        self.bus_options = {k: v for k, v in named.items() if v is not None} | o.bus
+        self.max_id = 0x1FFFFFFF if o.extended else 0x7FF
+        self.max_frame = 64 if o.fd else 8
         self._bus: Any = None
         # arbitration id -> endpoint; None in an inbox wakes a receive when the endpoint closes
         self._inboxes: dict[int, queue.SimpleQueue[bytes | None]] = {}
@@ -130,7 +150,7 @@ class CanTransport(Transport):
             if port:  # port 0: a sender only
                 self._inboxes[can_id] = inbox
                 self._bus.set_filters([{"can_id": i, "can_mask": self.max_id,
-                                        "extended": self.extended} for i in self._inboxes])
+                                        "extended": self.options.extended} for i in self._inboxes])
             self._users += 1
         return CanEndpoint(self, port, inbox)
 
@@ -141,27 +161,27 @@ class CanTransport(Transport):
         bus = self._bus
         if bus is None:  # a message still on its way while the engine stops
             raise OSError("the CAN bus is closed")
-        if self.fd:
+        if self.options.fd:
             frame = frame.ljust(dlc2len(len2dlc(len(frame))), b"\0")
         try:
-            message = can.Message(arbitration_id=self.can_id(port), data=frame, is_fd=self.fd,
-                                  bitrate_switch=self.fd, is_extended_id=self.extended)
+            message = can.Message(arbitration_id=self.can_id(port), data=frame, is_fd=self.options.fd,
+                                  bitrate_switch=self.options.fd, is_extended_id=self.options.extended)
             bus.send(message, timeout=SEND_TIMEOUT)
         except (can.CanError, ValueError) as exc:  # the link counts an OSError as send_error
             raise OSError(f"CAN send to port {port} failed: {exc}") from None
 
     def can_id(self, port: int) -> int:
         """The arbitration id of a port; ``ValueError`` past the last id."""
-        if self.base_id + port > self.max_id:
-            raise ValueError(f"port {port} is arbitration id {self.base_id + port:#x}, past the "
-                             f"last {'extended' if self.extended else 'standard'} id "
+        if self.options.base_id + port > self.max_id:
+            raise ValueError(f"port {port} is arbitration id {self.options.base_id + port:#x}, past the "
+                             f"last {'extended' if self.options.extended else 'standard'} id "
                              f"{self.max_id:#x}")
-        return self.base_id + port
+        return self.options.base_id + port
 
     def release(self, port: int) -> None:
         with self._lock:
             if port:
-                self._inboxes.pop(self.base_id + port, None)
+                self._inboxes.pop(self.options.base_id + port, None)
             self._users -= 1
             if self._users == 0:
                 self._closing.set()
@@ -180,7 +200,7 @@ class CanTransport(Transport):
                     closing.wait(POLL)
                 continue
             if (message is None or message.is_error_frame or message.is_remote_frame
-                    or message.is_extended_id != self.extended):
+                    or message.is_extended_id != self.options.extended):
                 continue
             inbox = self._inboxes.get(message.arbitration_id)
             if inbox is not None:

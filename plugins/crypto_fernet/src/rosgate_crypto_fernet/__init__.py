@@ -19,24 +19,26 @@ The key is never taken from the command line, where other users could read it in
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Mapping
 
 from cryptography.fernet import Fernet, InvalidToken
 
 from rosgate import Cipher, CipherError, OptionError, hookimpl
-from rosgate.keys import describe_source, key_source, load_key
+from rosgate.keys import KeyOptions, describe_source, key_source, load_key
 
 
 class FernetCipher(Cipher):
     name = "fernet"
+    Options = KeyOptions  # key_file or key_env: the convention of every rosgate cipher
+    options: KeyOptions
 
-    def __init__(self, options: Mapping[str, Any], base_dir: Path):
+    def __init__(self, options: KeyOptions, base_dir: Path):
         super().__init__(options, base_dir)
-        key = load_key(options, base_dir, self.name)
+        key = load_key(self.options, base_dir, self.name)
         try:
             self._fernet = Fernet(key)
         except (ValueError, TypeError):
-            raise OptionError(key_source(options), f"the key in {describe_source(options)} is not a "
+            raise OptionError(key_source(self.options),
+                              f"the key in {describe_source(self.options)} is not a "
                               "Fernet key (32 url-safe base64-encoded bytes)",
                               "create one with 'rosgate keygen fernet --out secret.key'") from None
 

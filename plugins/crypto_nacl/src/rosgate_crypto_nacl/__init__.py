@@ -31,13 +31,13 @@ import binascii
 import hashlib
 import os
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Callable
 
 from nacl.exceptions import CryptoError
 from nacl.secret import SecretBox
 
 from rosgate import Cipher, CipherError, OptionError, hookimpl
-from rosgate.keys import describe_source, key_source, load_key
+from rosgate.keys import KeyOptions, describe_source, key_source, load_key
 
 SALT = 16
 OVERHEAD = SALT + SecretBox.MACBYTES
@@ -49,16 +49,19 @@ def _nonce(salt: bytes, header: bytes) -> bytes:
 
 class NaclCipher(Cipher):
     name = "nacl"
+    Options = KeyOptions  # key_file or key_env: the convention of every rosgate cipher
+    options: KeyOptions
 
-    def __init__(self, options: Mapping[str, Any], base_dir: Path):
+    def __init__(self, options: KeyOptions, base_dir: Path):
         super().__init__(options, base_dir)
-        text = load_key(options, base_dir, self.name)
+        text = load_key(self.options, base_dir, self.name)
         try:
             key = base64.b64decode(text, validate=True)
         except (binascii.Error, ValueError):
             key = b""
         if len(key) != SecretBox.KEY_SIZE:
-            raise OptionError(key_source(options), f"the key in {describe_source(options)} is not a "
+            raise OptionError(key_source(self.options),
+                              f"the key in {describe_source(self.options)} is not a "
                               f"nacl key ({SecretBox.KEY_SIZE} bytes in base64)",
                               "create one with 'rosgate keygen nacl --out nacl.key'")
         self._box = SecretBox(key)

@@ -12,12 +12,10 @@ with ``port:``, the port is the channel and the host is the server's (or peer's)
 Pairing and trust are the operating system's job (``bluetoothctl``); this plugin neither pairs
 nor advertises an SDP record, so both sides must agree on the channel.
 
-Options (``plugins: {bt: {...}}``):
-
-``emulate_dir``  for tests on machines without a radio: carry each "RFCOMM" stream over an
-                 AF_UNIX stream socket named ``<dir>/AA_BB_CC_DD_EE_FF-<channel>`` instead.
-                 Everything above the socket (addresses, listen, accept, connect, framing,
-                 reconnection) is the same code. Not for robots.
+Options (``plugins: {bt: {...}}``): ``emulate_dir``, for tests on machines without a radio:
+each "RFCOMM" stream is carried over an AF_UNIX stream socket named
+``<dir>/AA_BB_CC_DD_EE_FF-<channel>`` instead. Everything above the socket (addresses, listen,
+accept, connect, framing, reconnection) is the same code. Not for robots.
 """
 
 from __future__ import annotations
@@ -25,10 +23,12 @@ from __future__ import annotations
 import os
 import re
 import socket
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
-from rosgate import Address, LinkError, OptionError, SocketConnection, SocketListener, Transport, hookimpl
+from rosgate import (Address, LinkError, OptionError, SocketConnection, SocketListener,
+                     StreamTransport, hookimpl, option)
 
 CHANNELS = range(1, 31)
 ANY = "00:00:00:00:00:00"
@@ -53,22 +53,25 @@ def rfcomm_socket() -> socket.socket:
                         "adapter, and is bluetoothd running?)") from None
 
 
-class BluetoothTransport(Transport):
+class BluetoothTransport(StreamTransport):
     name = "bt"
-    stream = True
 
-    def __init__(self, options: Mapping[str, Any]):
+    @dataclass(frozen=True)
+    class Options:
+        emulate_dir: str | None = option(
+            None, "tests only: a directory where AF_UNIX sockets stand in for RFCOMM")
+
+        def __post_init__(self) -> None:
+            if self.emulate_dir == "":
+                raise OptionError("emulate_dir", "must be a directory path, not ''")
+            if self.emulate_dir is None and not hasattr(socket, "AF_BLUETOOTH"):
+                raise OptionError(None, NO_BLUETOOTH, NO_BLUETOOTH_FIX)
+
+    options: Options
+
+    def __init__(self, options: Options):
         super().__init__(options)
-        unknown = set(options) - {"emulate_dir"}
-        if unknown:
-            raise OptionError(sorted(unknown)[0], "unknown option of bt",
-                              "the valid option is emulate_dir (for tests only)")
-        emulate = options.get("emulate_dir")
-        if emulate is not None and (not isinstance(emulate, str) or not emulate):
-            raise OptionError("emulate_dir", f"must be a directory path, not {emulate!r}")
-        self.emulate_dir = Path(emulate) if emulate else None
-        if self.emulate_dir is None and not hasattr(socket, "AF_BLUETOOTH"):
-            raise OptionError(None, NO_BLUETOOTH, NO_BLUETOOTH_FIX)
+        self.emulate_dir = Path(self.options.emulate_dir) if self.options.emulate_dir else None
 
     # -- addresses -------------------------------------------------------------------------
     def parse_address(self, text: str) -> Address:

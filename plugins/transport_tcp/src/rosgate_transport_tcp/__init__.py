@@ -6,19 +6,17 @@ topics that must arrive complete and in order.
 
 Addresses: ``host:port`` (``[v6addr]:port`` for IPv6).
 
-Options (``plugins: {tcp: {...}}``):
-
-``nodelay``  disable Nagle's algorithm (default true: frames leave at once; the core already
-             batches what is queued into one write).
+Options (``plugins: {tcp: {...}}``): ``nodelay``, see :class:`TcpTransport.Options`. Frames
+leave at once by default; the core already batches what is queued into one write.
 """
 
 from __future__ import annotations
 
 import socket
-from typing import Any, Mapping
+from dataclasses import dataclass
 
-from rosgate import (Address, LinkError, OptionError, SocketConnection, SocketListener, Transport,
-                     check_ip_address, hookimpl, parse_host_port)
+from rosgate import (Address, LinkError, SocketConnection, SocketListener, StreamTransport,
+                     check_ip_address, hookimpl, option, parse_host_port)
 
 
 class TcpConnection(SocketConnection):
@@ -28,18 +26,14 @@ class TcpConnection(SocketConnection):
         super().__init__(sock)
 
 
-class TcpTransport(Transport):
+class TcpTransport(StreamTransport):
     name = "tcp"
-    stream = True
 
-    def __init__(self, options: Mapping[str, Any]):
-        super().__init__(options)
-        unknown = set(options) - {"nodelay"}
-        if unknown:
-            raise OptionError(sorted(unknown)[0], "unknown option of tcp", "the valid option is nodelay")
-        self.nodelay = options.get("nodelay", True)
-        if not isinstance(self.nodelay, bool):
-            raise OptionError("nodelay", f"must be true or false, not {self.nodelay!r}")
+    @dataclass(frozen=True)
+    class Options:
+        nodelay: bool = option(True, "disable Nagle's algorithm: frames leave at once")
+
+    options: Options
 
     def parse_address(self, text: str) -> Address:
         return parse_host_port(text)
@@ -56,11 +50,11 @@ class TcpTransport(Transport):
         except OSError as exc:
             sock.close()
             raise LinkError(f"cannot listen on TCP {address[0]}:{address[1]}: {exc.strerror}") from None
-        return SocketListener(sock, lambda accepted: TcpConnection(accepted, self.nodelay))
+        return SocketListener(sock, lambda accepted: TcpConnection(accepted, self.options.nodelay))
 
     def connect(self, address: Address, timeout: float) -> TcpConnection:
         sock = socket.create_connection(address, timeout=timeout)
-        return TcpConnection(sock, self.nodelay)
+        return TcpConnection(sock, self.options.nodelay)
 
 
 def _family(address: Address) -> socket.AddressFamily:

@@ -5,21 +5,22 @@ Frames larger than :attr:`UdpTransport.max_frame` are fragmented by the rosgate 
 
 Addresses: ``host:port`` (``[v6addr]:port`` for IPv6).
 
-Options (``plugins: {udp: {...}}`` in bringup.yaml):
+Options (``plugins: {udp: {...}}`` in bringup.yaml): see :class:`UdpTransport.Options`, or
+``rosgate plugins --options udp``. A burst larger than the receive buffer is lost, so large
+messages need a large one. As root the system limit ``net.core.rmem_max`` is bypassed; otherwise
+raise it.
 
-``receive_buffer``  bytes of kernel receive buffer to ask for (default 4 MiB). A burst larger
-                    than the buffer is lost, so large messages need a large one. As root the
-                    system limit ``net.core.rmem_max`` is bypassed; otherwise raise it.
-``send_buffer``     bytes of kernel send buffer (default 4 MiB).
+``send`` never waits for the far side: a frame the kernel refuses (``ENOBUFS``, no route) is an
+``OSError``, which the core counts as ``send_error``.
 """
 
 from __future__ import annotations
 
 import logging
 import socket
-from typing import Any, Mapping
+from dataclasses import dataclass
 
-from rosgate import (Address, LinkError, OptionError, Transport, check_ip_address, hookimpl,
+from rosgate import (Address, DatagramTransport, LinkError, check_ip_address, hookimpl, option,
                      parse_host_port)
 
 log = logging.getLogger("rosgate.udp")
@@ -52,19 +53,18 @@ class UdpEndpoint:
         self.sock.close()
 
 
-class UdpTransport(Transport):
+class UdpTransport(DatagramTransport):
     name = "udp"
-    stream = False
     max_frame = 65_000  # below the IPv4 limit of 65,507 bytes of payload
 
-    def __init__(self, options: Mapping[str, Any]):
-        super().__init__(options)
-        unknown = set(options) - {"receive_buffer", "send_buffer"}
-        if unknown:
-            raise OptionError(sorted(unknown)[0], "unknown option of udp",
-                              "valid options are receive_buffer and send_buffer")
-        self.receive_buffer = _positive_int(options, "receive_buffer", 4 * 1024 * 1024)
-        self.send_buffer = _positive_int(options, "send_buffer", 4 * 1024 * 1024)
+    @dataclass(frozen=True)
+    class Options:
+        receive_buffer: int = option(4 * 1024 * 1024, "bytes of kernel receive buffer to ask for",
+                                     minimum=1)
+        send_buffer: int = option(4 * 1024 * 1024, "bytes of kernel send buffer to ask for",
+                                  minimum=1)
+
+    options: Options
 
     def parse_address(self, text: str) -> Address:
         return parse_host_port(text)
@@ -75,8 +75,8 @@ class UdpTransport(Transport):
     def bind(self, address: Address) -> UdpEndpoint:
         family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
         sock = socket.socket(family, socket.SOCK_DGRAM)
-        _set_buffer(sock, socket.SO_RCVBUF, self.receive_buffer)
-        _set_buffer(sock, socket.SO_SNDBUF, self.send_buffer)
+        _set_buffer(sock, socket.SO_RCVBUF, self.options.receive_buffer)
+        _set_buffer(sock, socket.SO_SNDBUF, self.options.send_buffer)
         try:
             sock.bind(address)
         except OSError as exc:
@@ -99,13 +99,6 @@ def _set_buffer(sock: socket.socket, option: int, size: int) -> None:
         _warned[option] = True
         log.warning("udp: asked for a %d-byte socket buffer, got %d; large bursts may be lost "
                     "(raise net.core.rmem_max / wmem_max)", size, got)
-
-
-def _positive_int(options: Mapping[str, Any], key: str, default: int) -> int:
-    value = options.get(key, default)
-    if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
-        raise OptionError(key, f"must be a positive number of bytes, not {value!r}")
-    return value
 
 
 @hookimpl

@@ -32,20 +32,24 @@ process from exiting. Sessions are closed explicitly when the bridge stops.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import re
 from collections.abc import Callable, Mapping
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import zenoh
 
-from rosgate import LinkError, OptionError, hookimpl
+from rosgate import LinkError, OptionError, hookimpl, option
 from rosgate.bus import BusTransport
+from rosgate.bus import check_key as check_chunks
 
 log = logging.getLogger("rosgate.zenoh")
 
 OWN_OPTIONS = ("prefix", "namespace")
+_ZENOH = "zenoh's own, passed through (see zenoh's DEFAULT_CONFIG.json5)"
 _PRIORITIES = (zenoh.Priority.REAL_TIME, zenoh.Priority.INTERACTIVE_HIGH,
                zenoh.Priority.INTERACTIVE_LOW, zenoh.Priority.DATA_HIGH, zenoh.Priority.DATA,
                zenoh.Priority.DATA_LOW, zenoh.Priority.BACKGROUND)
@@ -65,7 +69,7 @@ def zenoh_message(exc: BaseException) -> str:
 def zenoh_config(options: Mapping[str, Any]) -> zenoh.Config:
     """The zenoh part of the options as a ``zenoh.Config``; :class:`OptionError` naming the
     option (its dotted path) for anything zenoh refuses."""
-    given = {k: v for k, v in options.items() if k not in OWN_OPTIONS}
+    given = {k: v for k, v in options.items() if k not in OWN_OPTIONS and v is not None}
     for key in ("connect", "listen"):
         if isinstance(given.get(key), list):
             given[key] = {"endpoints": given[key]}
@@ -98,49 +102,83 @@ def _insert(config: zenoh.Config, path: str, value: Any) -> None:
                           _FIX) from None
 
 
+def check_key(key: str) -> str:
+    """A key as rosgate and zenoh both take it; ``ValueError`` saying why not."""
+    check_chunks(key)
+    try:
+        zenoh.KeyExpr(key)
+    except zenoh.ZError as exc:
+        raise ValueError(f"{key!r} is not a zenoh key expression: {zenoh_message(exc)}") from None
+    return key
+
+
 class ZenohTransport(BusTransport):
     name = "zenoh"
 
-    def __init__(self, options: Mapping[str, Any]):
-        super().__init__(options)
-        prefix = self.options.get("prefix", "rosgate")
-        if not isinstance(prefix, str):
-            raise OptionError("prefix", f"expected text, got {prefix!r}", "e.g. prefix: fleet")
-        try:
-            self.prefix = self.check_key(prefix)
-        except ValueError as exc:
-            raise OptionError("prefix", str(exc), "e.g. prefix: fleet") from None
-        namespace = self.options.get("namespace", "/")
-        fix = "e.g. namespace: /bot1 (as zenoh-bridge-ros2dds writes it)"
-        if not isinstance(namespace, str):
-            raise OptionError("namespace", f"expected a ROS namespace, got {namespace!r}", fix)
-        self.namespace = namespace.strip("/")
-        if self.namespace:
+    @dataclass(frozen=True)
+    class Options:
+        """rosgate's two options, then zenoh's own configuration sections, passed through."""
+
+        prefix: str = option("rosgate", "first part of rosgate's keys (<prefix>/<bridge>/<topic>) "
+                             "and liveliness tokens; the same across a fleet")
+        namespace: str = option("/", "framing: none keys are <namespace>/<ROS name>, as "
+                                "zenoh-bridge-ros2dds' namespace (shadows zenoh's own)")
+        mode: Literal["peer", "client", "router"] = option(
+            "peer", "zenoh's mode: peer opens without a router, client needs one at start")
+        connect: dict[str, Any] | list[str] | None = option(
+            None, "zenoh's connect: {endpoints: [...], retry: {...}}, or the endpoints alone")
+        listen: dict[str, Any] | list[str] | None = option(
+            None, "zenoh's listen: {endpoints: [...]}, or the endpoints alone")
+        scouting: dict[str, Any] | None = option(
+            None, "zenoh's scouting; multicast is off unless enabled here")
+        transport: dict[str, Any] | None = option(
+            None, "zenoh's transport: link (tls, tx.lease...), unicast, shared_memory...")
+        id: str | None = option(None, _ZENOH)
+        metadata: dict[str, Any] | None = option(None, _ZENOH)
+        open: dict[str, Any] | None = option(None, _ZENOH)
+        timestamping: dict[str, Any] | None = option(None, _ZENOH)
+        queries_default_timeout: int | None = option(None, _ZENOH + "; milliseconds")
+        routing: dict[str, Any] | None = option(None, _ZENOH)
+        aggregation: dict[str, Any] | None = option(None, _ZENOH)
+        qos: dict[str, Any] | None = option(None, _ZENOH)
+        adminspace: dict[str, Any] | None = option(None, _ZENOH)
+        downsampling: list[Any] | None = option(None, _ZENOH)
+        low_pass_filter: list[Any] | None = option(None, _ZENOH)
+        access_control: dict[str, Any] | None = option(None, _ZENOH)
+
+        def __post_init__(self) -> None:
             try:
-                self.check_key(self.namespace)
+                check_key(self.prefix)
             except ValueError as exc:
-                raise OptionError("namespace", str(exc), fix) from None
-        zenoh_config(self.options)  # refuse wrong options now: `rosgate check` shows them
+                raise OptionError("prefix", str(exc), "e.g. prefix: fleet") from None
+            if self.namespace.strip("/"):
+                try:
+                    check_key(self.namespace.strip("/"))
+                except ValueError as exc:
+                    raise OptionError("namespace", str(exc), "e.g. namespace: /bot1 (as "
+                                      "zenoh-bridge-ros2dds writes it)") from None
+            zenoh_config(dataclasses.asdict(self))  # zenoh refuses now: `rosgate check` shows it
+
+    options: Options
+
+    def __init__(self, options: Any):
+        super().__init__(options)
+        self.prefix = self.options.prefix
+        self.namespace = self.options.namespace.strip("/")
 
     def check_key(self, key: str) -> str:
-        super().check_key(key)
-        try:
-            zenoh.KeyExpr(key)
-        except zenoh.ZError as exc:
-            raise ValueError(f"{key!r} is not a zenoh key expression: "
-                             f"{zenoh_message(exc)}") from None
-        return key
+        return check_key(key)
 
     def open(self, name: str) -> ZenohSession:
         try:
-            session = zenoh.open(zenoh_config(self.options))
+            session = zenoh.open(zenoh_config(dataclasses.asdict(self.options)))
         except zenoh.ZError as exc:
             raise LinkError(f"zenoh: cannot open a session: {zenoh_message(exc)}",
                             "check plugins.zenoh: with mode: client a router must answer at one "
                             "of connect.endpoints; mode: peer opens without one") from None
         info = session.info
-        log.info("%s: zenoh session %s (%s), routers %s", name, session.zid(),
-                 self.options.get("mode", "peer"), [str(z) for z in info.routers_zid()] or "none")
+        log.info("%s: zenoh session %s (%s), routers %s", name, session.zid(), self.options.mode,
+                 [str(z) for z in info.routers_zid()] or "none")
         return ZenohSession(session)
 
     def router(self, listen: list[str], config_file: str | None) -> ZenohSession:

@@ -4,17 +4,17 @@ sockets. A complete transport plugin in one page.
 Addresses: ``host`` is a directory and ``port`` a number; the socket is ``<dir>/<port>.sock``.
 In a peer-role bringup.yaml, ``peer:`` and ``listen:`` name the directory.
 
-Options (``plugins: {unixdgram: {...}}``): ``max_frame`` — the largest datagram (default 16000);
-the rosgate core fragments larger frames, so this link carries messages of any size.
+Options (``plugins: {unixdgram: {...}}``): ``max_frame`` — the largest datagram; the rosgate
+core fragments larger frames, so this link carries messages of any size.
 """
 
 from __future__ import annotations
 
 import os
 import socket
-from typing import Any, Mapping
+from dataclasses import dataclass
 
-from rosgate import Address, LinkError, OptionError, Transport, hookimpl
+from rosgate import Address, DatagramTransport, LinkError, hookimpl, option
 
 
 class UnixDatagramEndpoint:
@@ -46,19 +46,19 @@ class UnixDatagramEndpoint:
                 pass
 
 
-class UnixDatagramTransport(Transport):
+class UnixDatagramTransport(DatagramTransport):
     name = "unixdgram"
-    stream = False
 
-    def __init__(self, options: Mapping[str, Any]):
+    @dataclass(frozen=True)
+    class Options:
+        max_frame: int = option(16000, "the largest datagram, in bytes", minimum=64,
+                                maximum=200_000)
+
+    options: Options
+
+    def __init__(self, options: Options):
         super().__init__(options)
-        unknown = set(options) - {"max_frame"}
-        if unknown:
-            raise OptionError(sorted(unknown)[0], "unknown option of unixdgram",
-                              "the valid option is max_frame")
-        self.max_frame = options.get("max_frame", 16000)
-        if not isinstance(self.max_frame, int) or not 64 <= self.max_frame <= 200_000:
-            raise OptionError("max_frame", "must be a number of bytes from 64 to 200000")
+        self.max_frame = self.options.max_frame
 
     def bind(self, address: Address) -> UnixDatagramEndpoint:
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

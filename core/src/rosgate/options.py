@@ -1,0 +1,348 @@
+"""A plugin's options: declared once, as a frozen dataclass; checked by the core.
+
+A plugin class declares the table it takes under ``plugins: {NAME: {...}}`` in bringup.yaml as a
+nested ``Options`` dataclass whose fields are made with :func:`option`::
+
+    from dataclasses import dataclass
+    from rosgate import DatagramTransport, option
+
+    class UdpTransport(DatagramTransport):
+        name = "udp"
+
+        @dataclass(frozen=True)
+        class Options:
+            receive_buffer: int = option(4 * 1024 * 1024, "bytes of kernel receive buffer",
+                                         minimum=1)
+
+The core parses the table with :func:`parse` and constructs the plugin with the ``Options``
+instance, which the plugin reads as ``self.options.receive_buffer``. Everything a user can get wrong
+in the table is an :class:`rosgate.OptionError` before the plugin sees it, which the core locates
+at the file's line of that option: an unknown key (with the closest valid one), a missing required
+key, a value of the wrong type, out of range or not among the choices. Rules that tie fields
+together go in the dataclass's ``__post_init__``, raising ``OptionError`` too.
+
+The types an option may have (YAML gives nothing else):
+
+=====================  ========================================================================
+``str``                text
+``int``                an integer (``true`` is not one)
+``float``              a number (an integer is taken, as ``float``)
+``bool``               ``true`` or ``false``
+``Literal["a", "b"]``  one of the values listed
+``list[T]``            a list whose elements are each a ``T``
+``dict[str, T]``       a mapping of names to ``T`` (``dict[str, Any]``: a table passed through)
+``T | None``           ``T``, or ``null`` (unions of the other types work alike)
+``Any``                anything
+=====================  ========================================================================
+
+``rosgate plugins --options NAME`` prints the declaration: each option's name, type, default and
+doc. A plugin class without ``Options`` still gets its table as a ``dict``, unchecked, with a
+``DeprecationWarning``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import inspect
+import types
+import typing
+import warnings
+from dataclasses import MISSING
+from typing import Any, Literal, Mapping, Union
+
+from .errors import OptionError
+
+__all__ = ["MISSING", "Declared", "as_options", "declaration_problem", "declared", "option",
+           "parse", "spell"]
+
+
+def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = None,
+           maximum: float | None = None, choices: typing.Sequence[Any] | None = None) -> Any:
+    """One option of a plugin's ``Options``: its default (none: the option is required), a
+    one-line ``doc`` for ``rosgate plugins --options`` and error messages, and optionally the
+    range (``minimum``, ``maximum``, inclusive) or the ``choices`` its value must be in.
+
+    A thin wrapper over :func:`dataclasses.field`; list and dict defaults are copied per instance.
+    """
+    if not doc:
+        raise TypeError("option() needs a doc: one line saying what the option does")
+    metadata = {"doc": doc, "minimum": minimum, "maximum": maximum,
+                "choices": tuple(choices) if choices is not None else None}
+    if isinstance(default, (list, dict)):
+        return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+@dataclasses.dataclass(frozen=True)
+class Declared:
+    """One declared option, as ``rosgate plugins --options`` shows it."""
+
+    name: str
+    type: Any
+    default: Any  # MISSING when required
+    doc: str
+    minimum: float | None
+    maximum: float | None
+    choices: tuple[Any, ...] | None
+
+    @property
+    def required(self) -> bool:
+        return self.default is MISSING
+
+    def limits(self) -> str:
+        """The range or choices in words ("at least 1", "one of: a, b"), or ``""``."""
+        choices = self.choices or _literal_choices(self.type)
+        if choices:
+            return "one of: " + ", ".join(_yaml(c) for c in choices)
+        if self.minimum is not None and self.maximum is not None:
+            return f"{_yaml(self.minimum)} to {_yaml(self.maximum)}"
+        if self.minimum is not None:
+            return f"at least {_yaml(self.minimum)}"
+        if self.maximum is not None:
+            return f"at most {_yaml(self.maximum)}"
+        return ""
+
+    def default_text(self) -> str:
+        """The default as bringup.yaml would spell it, or ``required``."""
+        return "required" if self.required else _yaml(self.default)
+
+    def describe(self) -> str:
+        """What the option is and takes, for the ``fix:`` of an error about it."""
+        words, limits = _words(self.type), self.limits()
+        details = [words, "" if limits == words else limits,  # a Literal says its choices once
+                   "required" if self.required else f"default {self.default_text()}"]
+        return f"{self.name}: {self.doc} ({', '.join(d for d in details if d)})"
+
+
+def declared(cls: type) -> list[Declared] | None:
+    """The options ``cls`` declares, in declaration order; ``None`` without ``Options``."""
+    options = getattr(cls, "Options", None)
+    if options is None:
+        return None
+    hints = typing.get_type_hints(options)
+    rows = []
+    for f in dataclasses.fields(options):
+        if not f.init:
+            continue
+        default = f.default if f.default_factory is MISSING else f.default_factory()
+        rows.append(Declared(f.name, hints[f.name], default, f.metadata.get("doc", ""),
+                             f.metadata.get("minimum"), f.metadata.get("maximum"),
+                             f.metadata.get("choices")))
+    return rows
+
+
+def declaration_problem(cls: type) -> str | None:
+    """What is wrong with ``cls.Options`` as a declaration, or ``None``: the registry refuses a
+    plugin class whose options could not be parsed (a bug of the plugin, not of a user's file)."""
+    options = getattr(cls, "Options", None)
+    if options is None:
+        return None
+    where = f"{cls.__name__}.Options"
+    if not (isinstance(options, type) and dataclasses.is_dataclass(options)
+            # __dataclass_params__ is what @dataclass sets; typeshed does not declare it
+            and options.__dataclass_params__.frozen):  # type: ignore[attr-defined]
+        return f"{where} is not a frozen dataclass (decorate it with @dataclass(frozen=True))"
+    try:
+        rows = declared(cls)
+    except Exception as exc:  # an annotation that does not evaluate, a default factory that fails
+        return f"{where}: {type(exc).__name__}: {exc}"
+    assert rows is not None
+    for row in rows:
+        unsupported = _unsupported(row.type)
+        if unsupported is not None:
+            return (f"{where}.{row.name}: the type {spell(unsupported)} is not an option type "
+                    "(str, int, float, bool, Literal[...], list[T], dict[str, T], T | None, Any)")
+        if not row.required:
+            try:
+                _check(row, row.default)
+            except OptionError as exc:
+                return f"{where}.{row.name}: its default does not fit: {exc.message}"
+    return None
+
+
+def parse(cls: Any, table: Mapping[str, Any]) -> Any:
+    """``table`` (a plugin's table under ``plugins:``) checked against ``cls.Options``: the
+    ``Options`` instance, or :class:`rosgate.OptionError` naming the key that is wrong and how to
+    fix it. A class without ``Options`` gets ``dict(table)``, unchecked (deprecated)."""
+    rows = declared(cls)
+    if rows is None:
+        _warn_undeclared(cls)
+        return dict(table)
+    name = getattr(cls, "name", cls.__name__)
+    by_name = {row.name: row for row in rows}
+    for key in table:
+        if key not in by_name:
+            raise _unknown(name, str(key), list(by_name))
+    values = {}
+    for row in rows:
+        if row.name in table:
+            values[row.name] = _check(row, table[row.name])
+        elif row.required:
+            raise OptionError(None, f"{name} needs the option {row.name!r} ({row.doc})",
+                              f"add {row.name}: <{_words(row.type)}> under plugins: {name}:")
+    return cls.Options(**values)  # __post_init__ checks what ties fields together
+
+
+def as_options(cls: type, options: Any) -> Any:
+    """What a plugin's constructor keeps as ``self.options``: the parsed ``Options`` the core
+    passes, or a plain mapping (a test, a script) parsed here the same way."""
+    if isinstance(options, Mapping):
+        return parse(cls, options) if hasattr(cls, "Options") else dict(options)
+    return options
+
+
+# -- checking one value --------------------------------------------------------------------------
+
+class _Wrong(Exception):
+    """A value that does not fit a type; the caller words the error."""
+
+
+def _check(row: Declared, given: Any) -> Any:
+    """``given`` as the option holds it (an int taken for a float becomes one), or OptionError."""
+    try:
+        value = _convert(row.type, given)
+    except _Wrong:
+        raise OptionError(row.name, f"must be {_words(row.type)}, not {_show(given)}",
+                          row.describe()) from None
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    below = number and row.minimum is not None and value < row.minimum
+    above = number and row.maximum is not None and value > row.maximum
+    if below or above or row.choices is not None and value not in row.choices:
+        raise OptionError(row.name, f"must be {row.limits()}, not {_show(given)}", row.describe())
+    return value
+
+
+def _convert(hint: Any, value: Any) -> Any:
+    if hint is Any:
+        return value
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        for arm in args:
+            try:
+                return _convert(arm, value)
+            except _Wrong:
+                pass
+        raise _Wrong
+    if origin is Literal:
+        # type() as well as ==: true is not 1, 1.0 is not 1
+        if any(type(value) is type(choice) and value == choice for choice in args):
+            return value
+        raise _Wrong
+    if origin is list:
+        if type(value) is not list:
+            raise _Wrong
+        return [_convert(args[0], item) for item in value]
+    if origin is dict:
+        if type(value) is not dict or not all(type(key) is str for key in value):
+            raise _Wrong
+        return {key: _convert(args[1], item) for key, item in value.items()}
+    if hint is type(None):
+        if value is None:
+            return None
+        raise _Wrong
+    if hint is float and type(value) is int:
+        return float(value)
+    # type(), not isinstance(): YAML's true is an int to Python, but not a number to a user
+    if hint in (str, int, float, bool) and type(value) is hint:
+        return value
+    raise _Wrong
+
+
+def _unsupported(hint: Any) -> Any:
+    """The part of ``hint`` that is not an option type, or ``None``."""
+    if hint in (Any, str, int, float, bool, type(None)):
+        return None
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is Literal and all(type(a) in (str, int, float, bool) for a in args):
+        return None
+    if origin in (Union, types.UnionType, list) or origin is dict and args[0] is str:
+        parts = args if origin is not dict else args[1:]
+        return next((bad for bad in map(_unsupported, parts) if bad is not None), None)
+    return hint
+
+
+# -- words ---------------------------------------------------------------------------------------
+
+_WORDS = {str: "a string", int: "an integer", float: "a number", bool: "true or false",
+          type(None): "null", Any: "anything"}
+
+
+def _words(hint: Any) -> str:
+    """A type as a user reads it in an error: ``an integer or null``."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        return " or ".join(_words(arm) for arm in args)
+    if origin is Literal:
+        return "one of: " + ", ".join(_yaml(a) for a in args)
+    if origin is list:
+        return f"a list ({_words(args[0])} each)"
+    if origin is dict:
+        return "a mapping" if args[1] is Any else f"a mapping ({_words(args[1])} each)"
+    return _WORDS.get(hint, spell(hint))
+
+
+def spell(hint: Any) -> str:
+    """A type as a plugin author writes it: ``int | None``, ``list[str]``; a ``Literal`` as the
+    type of its values (its values are listed as choices)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        return " | ".join(spell(arm) for arm in args)
+    if origin is Literal:
+        return " | ".join(dict.fromkeys(type(a).__name__ for a in args))
+    if origin is not None:
+        return f"{origin.__name__}[{', '.join(spell(a) for a in args)}]"
+    if hint is type(None):
+        return "None"
+    if hint is Any:
+        return "Any"
+    return getattr(hint, "__name__", str(hint))
+
+
+def _literal_choices(hint: Any) -> tuple[Any, ...]:
+    return typing.get_args(hint) if typing.get_origin(hint) is Literal else ()
+
+
+def _yaml(value: Any) -> str:
+    """A value as it is written in bringup.yaml."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, dict)):
+        return "[]" if value == [] else "{}" if value == {} else repr(value)
+    return str(value)
+
+
+def _show(value: Any) -> str:
+    """A value a user wrote, for an error message."""
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, dict):
+        return "a mapping"
+    if isinstance(value, list):
+        return f"a list {value!r}" if len(repr(value)) < 40 else "a list"
+    return _yaml(value)
+
+
+def _unknown(name: str, key: str, valid: list[str]) -> OptionError:
+    if not valid:
+        return OptionError(key, f"{name} takes no options", f"remove it from plugins: {name}:")
+    close = difflib.get_close_matches(key, valid, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return OptionError(key, f"unknown option of {name}{hint}",
+                       f"the options of {name} are {', '.join(valid)}")
+
+
+def _warn_undeclared(cls: type) -> None:
+    """Point the warning at the plugin's class, where the fix goes."""
+    message = DeprecationWarning(
+        f"{cls.__name__} declares no Options, so its table under plugins: reaches it unchecked, "
+        "as a dict; declare a frozen dataclass Options whose fields are made with rosgate.option()")
+    try:
+        filename, lineno = inspect.getsourcefile(cls), inspect.getsourcelines(cls)[1]
+    except (OSError, TypeError):
+        warnings.warn(message, stacklevel=3)
+        return
+    warnings.warn_explicit(message, DeprecationWarning, filename or "?", lineno,
+                           module=cls.__module__)

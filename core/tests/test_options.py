@@ -1,0 +1,209 @@
+"""rosgate.options: a plugin's options declared once (a frozen dataclass of rosgate.option
+fields) and every way a table can be wrong raised as an OptionError at its key, with a fix."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import pytest
+
+from rosgate import OptionError, option
+from rosgate.options import as_options, declaration_problem, declared, parse, spell
+
+
+class Demo:
+    """A plugin class as far as options go."""
+
+    name = "demo"
+
+    @dataclass(frozen=True)
+    class Options:
+        host: str = option(doc="the far host")
+        level: int = option(3, "how hard to try", minimum=1, maximum=9)
+        ratio: float = option(0.5, "share of the link to use", minimum=0, maximum=1)
+        fast: bool = option(False, "skip the checks")
+        mode: Literal["push", "pull"] = option("push", "who starts")
+        colour: str = option("red", "the colour of the log lines", choices=("red", "green"))
+        names: list[str] = option([], "topics to leave out")
+        extra: dict[str, Any] = option({}, "passed to the library as it is")
+        timeout: float | None = option(None, "seconds to wait; null: forever", minimum=0)
+        low: int = option(0, "first port")
+        high: int = option(10, "last port")
+
+        def __post_init__(self) -> None:
+            if self.low > self.high:
+                raise OptionError("high", f"must not be below low ({self.low})",
+                                  "swap low and high")
+
+
+def error(table: dict) -> OptionError:
+    with pytest.raises(OptionError) as info:
+        parse(Demo, table)
+    return info.value
+
+
+def test_a_table_becomes_the_options_instance_with_defaults_filled_in():
+    options = parse(Demo, {"host": "a", "ratio": 1, "names": ["/x"], "extra": {"k": [1]}})
+    assert options == Demo.Options(host="a", ratio=1.0, names=["/x"], extra={"k": [1]})
+    assert type(options.ratio) is float  # an int is taken for a float, and becomes one
+    assert (options.level, options.mode, options.timeout) == (3, "push", None)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        options.level = 4  # type: ignore[misc]
+
+
+def test_list_and_dict_defaults_are_not_shared():
+    a, b = parse(Demo, {"host": "a"}), parse(Demo, {"host": "b"})
+    a.names.append("/x")
+    assert b.names == [] and a.extra is not b.extra
+
+
+def test_an_unknown_key_suggests_the_closest_and_lists_them_all():
+    e = error({"host": "a", "levle": 2})
+    assert (e.key, e.message) == ("levle", "unknown option of demo (did you mean 'level'?)")
+    assert e.fix == ("the options of demo are host, level, ratio, fast, mode, colour, names, "
+                     "extra, timeout, low, high")
+    assert error({"host": "a", "zzz": 1}).message == "unknown option of demo"
+
+
+def test_a_class_without_options_takes_none():
+    class Bare:
+        name = "bare"
+
+        @dataclass(frozen=True)
+        class Options:
+            pass
+
+    with pytest.raises(OptionError) as info:
+        parse(Bare, {"fast": True})
+    assert (info.value.key, info.value.message, info.value.fix) == (
+        "fast", "bare takes no options", "remove it from plugins: bare:")
+
+
+def test_a_missing_required_key_is_the_tables_problem():
+    e = error({})
+    assert (e.key, e.message, e.fix) == (None, "demo needs the option 'host' (the far host)",
+                                         "add host: <a string> under plugins: demo:")
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("host", 5, "must be a string, not 5"),
+    ("level", True, "must be an integer, not true"),            # a boolean is never a number
+    ("level", 2.0, "must be an integer, not 2.0"),
+    ("level", "3", "must be an integer, not '3'"),
+    ("ratio", False, "must be a number, not false"),
+    ("ratio", "half", "must be a number, not 'half'"),
+    ("fast", 1, "must be true or false, not 1"),
+    ("fast", "yes", "must be true or false, not 'yes'"),
+    ("mode", "both", "must be one of: push, pull, not 'both'"),
+    ("mode", 1, "must be one of: push, pull, not 1"),
+    ("names", "/x", "must be a list (a string each), not '/x'"),
+    ("names", ["/x", 2], "must be a list (a string each), not a list ['/x', 2]"),
+    ("extra", ["k"], "must be a mapping, not a list ['k']"),
+    ("extra", {1: "v"}, "must be a mapping, not a mapping"),     # keys are names
+    ("timeout", "soon", "must be a number or null, not 'soon'"),
+    ("level", None, "must be an integer, not null"),
+], ids=lambda v: str(v))
+def test_a_value_of_the_wrong_type(key, value, message):
+    e = error({"host": "a", key: value})
+    assert (e.key, e.message) == (key, message)
+
+
+def test_the_fix_says_what_the_option_is_and_takes():
+    assert error({"host": "a", "level": "x"}).fix == (
+        "level: how hard to try (an integer, 1 to 9, default 3)")
+    assert error({"host": "a", "mode": 1}).fix == (
+        "mode: who starts (one of: push, pull, default push)")
+    assert error({"host": 1}).fix == "host: the far host (a string, required)"
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("level", 0, "must be 1 to 9, not 0"),
+    ("level", 10, "must be 1 to 9, not 10"),
+    ("ratio", 1.5, "must be 0 to 1, not 1.5"),
+    ("timeout", -1, "must be at least 0, not -1"),          # as written, not as converted
+    ("colour", "blue", "must be one of: red, green, not 'blue'"),
+])
+def test_a_value_out_of_range_or_not_among_the_choices(key, value, message):
+    e = error({"host": "a", key: value})
+    assert (e.key, e.message) == (key, message)
+
+
+def test_the_ends_of_a_range_are_in_it():
+    assert parse(Demo, {"host": "a", "level": 9, "ratio": 0}).level == 9
+    assert parse(Demo, {"host": "a", "timeout": 0}).timeout == 0.0
+
+
+def test_rules_across_fields_live_in_post_init():
+    e = error({"host": "a", "low": 5, "high": 4})
+    assert (e.key, e.message, e.fix) == ("high", "must not be below low (5)", "swap low and high")
+
+
+def test_a_class_without_options_gets_its_table_as_a_dict_and_a_warning():
+    class Legacy:
+        name = "legacy"
+
+    with pytest.warns(DeprecationWarning, match="Legacy declares no Options") as caught:
+        assert parse(Legacy, {"anything": 1}) == {"anything": 1}
+    assert caught[0].filename == __file__  # pointed at the class, where the fix goes
+
+
+def test_as_options_keeps_what_the_core_parsed_and_parses_a_plain_mapping():
+    parsed = parse(Demo, {"host": "a"})
+    assert as_options(Demo, parsed) is parsed
+    assert as_options(Demo, {"host": "a"}) == parsed
+    with pytest.raises(OptionError):
+        as_options(Demo, {})
+
+    class Legacy:
+        name = "legacy"
+
+    assert as_options(Legacy, {"x": 1}) == {"x": 1}
+
+
+def test_declared_lists_each_option_for_the_listing():
+    rows = {row.name: row for row in declared(Demo)}
+    assert list(rows) == [f.name for f in dataclasses.fields(Demo.Options)]
+    assert (rows["host"].required, rows["host"].default_text()) == (True, "required")
+    assert (rows["timeout"].default_text(), rows["fast"].default_text()) == ("null", "false")
+    assert (rows["names"].default_text(), rows["extra"].default_text()) == ("[]", "{}")
+    assert rows["level"].limits() == "1 to 9"
+    assert rows["timeout"].limits() == "at least 0"
+    assert rows["mode"].limits() == rows["colour"].limits().replace("red, green", "push, pull")
+    assert [spell(rows[n].type) for n in ("mode", "names", "extra", "timeout")] == [
+        "str", "list[str]", "dict[str, Any]", "float | None"]
+    assert declared(type("Legacy", (), {})) is None
+
+
+def test_option_needs_a_doc():
+    with pytest.raises(TypeError, match="option\\(\\) needs a doc"):
+        option(1)
+
+
+def test_a_malformed_declaration_is_named():
+    def problem(body: type) -> str | None:
+        return declaration_problem(type("Plugin", (), {"Options": body}))
+
+    class Plain:
+        level: int = 1
+
+    assert problem(Plain) == ("Plugin.Options is not a frozen dataclass (decorate it with "
+                              "@dataclass(frozen=True))")
+    assert problem(dataclass(Plain)).startswith("Plugin.Options is not a frozen dataclass")
+
+    @dataclass(frozen=True)
+    class Unsupported:
+        ports: set[int] = option(frozenset(), "ports")
+
+    assert problem(Unsupported) == ("Plugin.Options.ports: the type set[int] is not an option "
+                                    "type (str, int, float, bool, Literal[...], list[T], "
+                                    "dict[str, T], T | None, Any)")
+
+    @dataclass(frozen=True)
+    class BadDefault:
+        level: int = option(0, "how hard", minimum=1)
+
+    assert problem(BadDefault) == ("Plugin.Options.level: its default does not fit: must be at "
+                                   "least 1, not 0")
+    assert problem(Demo.Options) is None

@@ -1,0 +1,228 @@
+"""``rosgate plugins`` and ``rosgate check`` as plugin authors and users meet them, with real
+installed-style plugins (a distribution's metadata, its entry point and its module on
+PYTHONPATH): a misspelt hook reported by name, every mistake in a plugin's options located at
+file:line:key with the fix, a plugin's options listed, columns aligned."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+ROSGATE = str(Path(sys.executable).with_name("rosgate"))
+HOOKS = "the hooks are rosgate_ciphers, rosgate_codecs, rosgate_transports"
+
+TYPO = """
+    from rosgate import hookimpl
+    from rosgate_transport_udp import UdpTransport
+
+    @hookimpl
+    def rosgate_transport(register):  # the hook is rosgate_transports
+        register(UdpTransport)
+"""
+
+KNOBS = """
+    from dataclasses import dataclass
+    from typing import Literal
+
+    from rosgate import Codec, OptionError, option
+
+
+    class KnobsCodec(Codec):
+        name = "knobs"
+        raw = True
+
+        @dataclass(frozen=True)
+        class Options:
+            host: str = option(doc="where the knobs are")
+            level: int = option(3, "how hard to try", minimum=1, maximum=9)
+            mode: Literal["push", "pull"] = option("push", "who starts")
+            colour: str = option("red", "colour of the log lines", choices=["red", "green"])
+            names: list[str] = option([], "names to leave out")
+            low: int = option(0, "first port")
+            high: int = option(10, "last port")
+
+            def __post_init__(self):
+                if self.low > self.high:
+                    raise OptionError("high", f"must not be below low ({self.low})",
+                                      "swap low and high")
+
+        def encode(self, message):
+            return message
+
+        def decode(self, data):
+            return data
+
+
+    def rosgate_codecs(register):
+        register(KnobsCodec)
+"""
+
+LEGACY = """
+    from rosgate import Transport, hookimpl
+
+
+    class OldTransport(Transport):
+        name = "old"
+        stream = False
+
+        def bind(self, address):
+            raise OSError("not in this test")
+
+
+    @hookimpl
+    def rosgate_transports(register):
+        register(OldTransport)
+"""
+
+
+def install(site: Path, distribution: str, entry_point: str, source: str) -> None:
+    """A one-module distribution laid out in ``site`` as pip lays it out."""
+    module = distribution.replace("-", "_")
+    info = site / f"{module}-1.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {distribution}\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(f"[rosgate]\n{entry_point} = {module}\n")
+    (site / f"{module}.py").write_text(textwrap.dedent(source))
+
+
+@pytest.fixture
+def site(tmp_path: Path) -> Path:
+    site = tmp_path / "site"
+    site.mkdir()
+    return site
+
+
+def rosgate(site: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([ROSGATE, *args], capture_output=True, text=True, timeout=60,
+                          env=dict(os.environ, PYTHONPATH=str(site)))
+
+
+BRINGUP = """\
+bridge: {name: a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}
+plugins:
+  knobs:
+    host: h
+    OPTION
+topics:
+  - {topic: /t, type: std_msgs/msg/String, direction: transmit, port: 12001, codec: knobs}
+"""
+
+
+# --- a misspelt hook ------------------------------------------------------------------------------
+
+def test_a_misspelt_hook_is_reported_by_plugins_and_check(site, tmp_path):
+    install(site, "rosgate-transport-typo", "typo", TYPO)
+    reason = f"unknown hook 'rosgate_transport' (did you mean 'rosgate_transports'?); {HOOKS}"
+
+    listing = rosgate(site, "plugins")
+    assert listing.returncode == 0, listing.stderr
+    assert f"failed to load plugin 'typo' (rosgate-transport-typo): {reason}" in listing.stdout
+    assert any(line.split()[:2] == ["transport", "udp"] for line in listing.stdout.splitlines())
+
+    good = tmp_path / "good.yaml"
+    good.write_text(BRINGUP.replace("knobs", "cdr").replace("    host: h\n    OPTION\n", ""))
+    check = rosgate(site, "check", str(good))
+    assert check.returncode == 0, check.stderr
+    assert check.stderr == (f"rosgate: warning: plugin 'typo' (rosgate-transport-typo) failed to "
+                            f"load: {reason}\n")
+
+    uses_it = tmp_path / "typo.yaml"
+    uses_it.write_text(good.read_text().replace("port: 12001", "port: 12001, transport: typo"))
+    check = rosgate(site, "check", str(uses_it))
+    assert check.returncode == 2
+    assert (f"{uses_it}:5: topics[0].transport: unknown transport 'typo' (installed transports: "
+            in check.stderr)
+    assert f"plugin 'typo' is installed but failed to load: {reason}" in check.stderr
+    assert "fix: repair or reinstall rosgate-transport-typo, or pick an installed transport" \
+        in check.stderr
+
+
+# --- every mistake in a plugin's options, located -------------------------------------------------
+
+@pytest.mark.parametrize("option, line, key, message, fix", [
+    ("levle: 2", 5, "plugins.knobs.levle", "unknown option of knobs (did you mean 'level'?)",
+     "the options of knobs are host, level, mode, colour, names, low, high"),
+    ("", 3, "plugins.knobs", "knobs needs the option 'host' (where the knobs are)",
+     "add host: <a string> under plugins: knobs:"),
+    ("level: true", 5, "plugins.knobs.level", "must be an integer, not true",
+     "level: how hard to try (an integer, 1 to 9, default 3)"),
+    ("level: 12", 5, "plugins.knobs.level", "must be 1 to 9, not 12",
+     "level: how hard to try (an integer, 1 to 9, default 3)"),
+    ("mode: both", 5, "plugins.knobs.mode", "must be one of: push, pull, not 'both'",
+     "mode: who starts (one of: push, pull, default push)"),
+    ("colour: blue", 5, "plugins.knobs.colour", "must be one of: red, green, not 'blue'",
+     "colour: colour of the log lines (a string, one of: red, green, default red)"),
+    ("names: [a, 1]", 5, "plugins.knobs.names",
+     "must be a list (a string each), not a list ['a', 1]",
+     "names: names to leave out (a list (a string each), default [])"),
+    ("low: 5\n    high: 4", 6, "plugins.knobs.high", "must not be below low (5)",
+     "swap low and high"),
+], ids=["unknown", "missing", "type", "range", "literal", "choices", "list", "cross-field"])
+def test_check_locates_every_option_error_at_file_line_key(site, tmp_path, option, line, key,
+                                                           message, fix):
+    install(site, "rosgate-codec-knobs", "knobs", KNOBS)
+    path = tmp_path / "bringup.yaml"
+    text = BRINGUP.replace("OPTION", option)
+    path.write_text(text.replace("    host: h\n", "") if key == "plugins.knobs" else text)
+    result = rosgate(site, "check", str(path))
+    assert result.returncode == 2
+    assert result.stderr == f"rosgate: error: {path}:{line}: {key}: {message}\n  fix: {fix}\n"
+
+
+def test_check_accepts_the_options_when_they_are_right(site, tmp_path):
+    install(site, "rosgate-codec-knobs", "knobs", KNOBS)
+    path = tmp_path / "bringup.yaml"
+    path.write_text(BRINGUP.replace("OPTION", "names: [a, b]\n    mode: pull\n    level: 9"))
+    result = rosgate(site, "check", str(path))
+    assert (result.returncode, result.stderr) == (0, "")
+    assert "/t -> /t  [std_msgs/msg/String] udp:12001 knobs none" in result.stdout
+
+
+# --- listing --------------------------------------------------------------------------------------
+
+def test_plugins_options_prints_each_option_in_columns():
+    result = rosgate(Path("/nonexistent"), "plugins", "--options", "udp")
+    assert (result.returncode, result.stderr) == (0, "")
+    assert result.stdout == (
+        "transport udp (rosgate-transport-udp 0.1.0), under plugins: udp:\n"
+        "  OPTION          TYPE  DEFAULT  DESCRIPTION\n"
+        "  receive_buffer  int   4194304  bytes of kernel receive buffer to ask for (at least 1)\n"
+        "  send_buffer     int   4194304  bytes of kernel send buffer to ask for (at least 1)\n")
+
+
+def test_plugins_options_shows_required_options_choices_and_option_less_plugins(site):
+    install(site, "rosgate-codec-knobs", "knobs", KNOBS)
+    lines = rosgate(site, "plugins", "--options", "knobs").stdout.splitlines()
+    assert lines[0] == "codec knobs (rosgate-codec-knobs 1.0), under plugins: knobs:"
+    rows = {line.split()[0]: line.split(None, 3) for line in lines[2:]}
+    assert rows["host"] == ["host", "str", "required", "where the knobs are"]
+    assert rows["mode"] == ["mode", "str", "push", "who starts (one of: push, pull)"]
+    assert rows["names"] == ["names", "list[str]", "[]", "names to leave out"]
+    assert rosgate(site, "plugins", "--options", "cdr").stdout.splitlines()[1:] == ["  no options"]
+
+
+def test_plugins_options_of_an_unknown_name_is_an_error():
+    result = rosgate(Path("/nonexistent"), "plugins", "--options", "nope")
+    assert result.returncode == 2
+    assert result.stderr.startswith("rosgate: error: plugins: no plugin is named 'nope' "
+                                    "(installed: bt, can, cbor, cdr, ")
+
+
+def test_plugins_aligns_columns_to_the_longest_name_and_names_deprecated_plugins(site):
+    install(site, "rosgate-transport-old-and-rather-long-name", "old", LEGACY)
+    lines = rosgate(site, "plugins").stdout.splitlines()
+    table = [line for line in lines if line.split()[0] in ("KIND", "transport", "codec", "cipher")]
+    assert len(table) > 10
+    # every cell starts where its column's header does
+    assert len({tuple(cell.start() for cell in re.finditer(r"\S+", line)) for line in table}) == 1
+    assert ("deprecated: transport old (rosgate-transport-old-and-rather-long-name) subclasses "
+            "rosgate.Transport and sets stream itself (subclass DatagramTransport or "
+            "StreamTransport)") in lines
+    assert ("deprecated: transport old (rosgate-transport-old-and-rather-long-name) declares no "
+            "Options (its table reaches it unchecked, as a dict)") in lines
