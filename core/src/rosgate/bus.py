@@ -5,8 +5,8 @@ bus moves whole frames by **key**: publish on a key, subscribe to a key expressi
 (``fleet/*/scan``) and receive each frame with the concrete key it was published on, serve and
 issue queries (services), and declare and watch liveliness tokens (who is there). A bus
 discovers and reconnects by itself and fragments what it carries, so the core does neither on
-it: no length prefixes, no fragments, no reconnection. It keeps the envelope and the cipher (``framing:
-rosgate``) or sends the codec's bytes bare (``framing: none``).
+it: no length prefixes, no fragments, no reconnection. It keeps the envelope and the cipher
+(``framing: rosgate``) or sends the codec's bytes bare (``framing: none``).
 
 A bus plugin subclasses :class:`BusTransport`, registered through the ``rosgate_transports``
 hook like any transport, and implements :meth:`BusTransport.open`, returning a
