@@ -58,6 +58,7 @@ class BusLink:
         self.queue_limit = queue_limit
         self.closed = threading.Event()
         self.answerer = BusAnswerer(self)
+        # (action, arguments), or None: stop
         self._inbox: queue.SimpleQueue[tuple[Callable[..., None], tuple] | None] = \
             queue.SimpleQueue()
         self._handles: list[Handle] = []
@@ -137,10 +138,10 @@ class BusLink:
             try:
                 item = self._inbox.get(timeout=POLL)
             except queue.Empty:
-                item = ()  # type: ignore[assignment]  # nothing came: look after the queries
-            if item is None:
-                return
-            if item:
+                pass  # nothing came: look after the queries
+            else:
+                if item is None:
+                    return
                 action, args = item
                 try:
                     action(*args)
@@ -149,7 +150,7 @@ class BusLink:
                                   "report it)", self.name)
                     self.link_drop(self, "handler_error", "see the traceback above")
             now = time.monotonic()
-            if now >= next_sweep:
+            if now >= next_sweep:  # under load too: a held query must not wait for a quiet moment
                 next_sweep = now + POLL
                 self._expire(now)
 
