@@ -214,12 +214,13 @@ def throughput(settings: bench.Settings, folder: Path) -> list[bench.Result]:
     router = Router(folder / "router-throughput.log")
     plain = bench.bringup_files
 
-    def bringup_files(route: Route, msg_type: str, depth: int, where: Path):
+    def bringup_files(route: Route, msg_type: str, depth: int, where: Path,
+                      reliability: str = "reliable"):
         if route.transport != "zenoh":
-            return plain(route, msg_type, depth, where)
+            return plain(route, msg_type, depth, where, reliability)
         topic = (f"{{topic: /bench, type: {msg_type}, transport: zenoh, codec: {route.codec}, "
                  f"cipher: {route.cipher}, remote: bench/2k5, "
-                 f"qos: {{reliability: reliable, history: keep_last, depth: {depth}}}")
+                 f"qos: {{reliability: {reliability}, history: keep_last, depth: {depth}}}")
         plugin = f"plugins: {{zenoh: {{mode: client, connect: [{router.endpoint}]}}}}\n"
         paths = where / "bench_a.yaml", where / "bench_b.yaml"
         for path, name, direction in zip(paths, ("bench_a", "bench_b"), ("transmit", "receive"),
@@ -230,12 +231,13 @@ def throughput(settings: bench.Settings, folder: Path) -> list[bench.Result]:
 
     bench.bringup_files = bringup_files  # type: ignore[assignment]
     size = next(s for s in bench.SIZES if s.name == "2.5 kB")
+    options = bench.Options(best_effort=frozenset())  # bench.py's reliable trials only
     results = []
     try:
         for i, route in enumerate([Route("udp"), Route("zenoh")]):
             case = folder / f"throughput{i}"
             case.mkdir()
-            results.append(bench.measure(size, route, settings, case))
+            results.append(bench.measure(size, route, settings, case, options))
     finally:
         bench.bringup_files = plain  # type: ignore[assignment]
         router.stop()
