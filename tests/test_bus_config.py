@@ -178,3 +178,34 @@ def test_run_without_the_router_a_client_needs_is_one_clear_message(tmp_path):
     assert f"{path}:5: topics[0].transport: zenoh: cannot open a session: Unable to connect" \
         in text
     assert "mode: peer opens without one" in text
+
+
+def test_router_takes_zenoh_s_own_config_file_and_refuses_a_bad_endpoint(tmp_path):
+    import json
+    import signal
+    import subprocess
+
+    import zenoh
+    from conftest import ROSGATE
+
+    from rosgate.testing import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = tmp_path / "router.json5"
+    config.write_text(json.dumps({"listen": {"endpoints": [endpoint]},
+                                  "scouting": {"multicast": {"enabled": False}}}))
+    router = subprocess.Popen([ROSGATE, "router", "--config", str(config)],
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        assert router.stderr is not None
+        assert f"listening on what {config} says" in router.stderr.readline()
+        client = zenoh.open(zenoh.Config.from_json5(json.dumps({
+            "mode": "client", "connect": {"endpoints": [endpoint]},
+            "scouting": {"multicast": {"enabled": False}}})))
+        assert [str(z) for z in client.info.routers_zid()]  # a client opens only with a router
+        client.close()
+    finally:
+        router.send_signal(signal.SIGINT)
+        assert router.wait(10) == 0
+    text = user_error(rosgate("router", "--listen", "tcp/127.0.0.1"))
+    assert "zenoh router: " in text
