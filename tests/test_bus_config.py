@@ -35,13 +35,15 @@ topics:
      remote: 'fleet/{robot}/odom', priority: 2}
 services:
   - {service: /reset, type: std_srvs/srv/Trigger, direction: receive}
+  - {service: '/{robot}/reset', type: std_srvs/srv/Trigger, direction: transmit,
+     remote: 'fleet/{robot}/reset'}
 """)
     assert [(t.key, t.priority, t.reliable) for t in p.topics] == [
         ("rosgate/robot-1/scan", 5, False),  # <prefix>/<bridge name>/<topic>
         ("fleet/robot-1/cmd", 5, True),      # remote: a key, as written
         ("camera/image", 7, True),           # framing none: the ROS name, as ros2dds keys it
         ("fleet/{robot}/odom", 2, True)]     # a template
-    assert p.services[0].key == "rosgate/robot-1/reset"
+    assert [s.key for s in p.services] == ["rosgate/robot-1/reset", "fleet/{robot}/reset"]
 
 
 def test_prefix_and_namespace_options_make_the_default_keys():
@@ -124,6 +126,10 @@ ERRORS = {
         BUS_PEER + "topics:\n  - {topic: /x, remote: 'fleet/{robot}/x', transport: zenoh, "
         "type: std_msgs/msg/String, direction: receive}\n", 5, "topics[0].remote",
         "must hold the same placeholders"),
+    "fleet_service_served_here": (
+        BUS_PEER + "services:\n  - {service: '/{robot}/s', remote: 'f/{robot}/s', "
+        "transport: zenoh, type: std_srvs/srv/Trigger, direction: receive}\n", 5,
+        "services[0].direction", "a fleet service (with {robot}) is called here"),
     "priority_name": (
         BUS_PEER + TOPIC + "transport: zenoh, priority: urgent}\n", 5, "topics[0].priority",
         "expected a priority, 1 (real_time) to 7 (background)"),

@@ -75,10 +75,8 @@ services:
     return path
 
 
-def base_file(tmp: Path, router: Router, robots: list[str], fleet_timeout: float = 30) -> Path:
+def base_file(tmp: Path, router: Router, fleet_timeout: float = 30) -> Path:
     path = tmp / "base.yaml"
-    calls = "".join(f"  - {{service: /{r}/reset, type: std_srvs/srv/Trigger, direction: transmit, "
-                    f"remote: fleet/{r}/reset, timeout: 3}}\n" for r in robots)
     path.write_text(f"""\
 bridge: {{name: base, role: peer, defaults: {{transport: zenoh}}, fleet_timeout: {fleet_timeout}}}
 {zenoh_plugin(router)}topics:
@@ -87,7 +85,9 @@ bridge: {{name: base, role: peer, defaults: {{transport: zenoh}}, fleet_timeout:
   - {{topic: '/{{robot}}/cmd', type: std_msgs/msg/String, direction: transmit,
       remote: 'fleet/{{robot}}/cmd'}}
 services:
-{calls}  - {{service: /base/ping, type: std_srvs/srv/Trigger, direction: receive,
+  - {{service: '/{{robot}}/reset', type: std_srvs/srv/Trigger, direction: transmit,
+      remote: 'fleet/{{robot}}/reset', timeout: 3}}
+  - {{service: /base/ping, type: std_srvs/srv/Trigger, direction: receive,
       remote: fleet/base/ping, timeout: 3}}
 """)
     return path
@@ -113,7 +113,7 @@ def test_two_robots_and_a_base_through_one_router_both_ways_and_a_router_restart
     robots = ["robot1", "robot2"]
     d = {name: domain() for name in [*robots, "base"]}
     sides = {name: ros_side(d[name], name) for name in d}
-    base = bridge(base_file(tmp_path, router, robots), d["base"])
+    base = bridge(base_file(tmp_path, router), d["base"])
     for name in robots:
         bridge(robot_file(tmp_path, name, router), d[name])
         sides[name].ros.node.create_service(Trigger, "/reset", answering(f"{name} reset"),
@@ -155,12 +155,13 @@ def test_two_robots_and_a_base_through_one_router_both_ways_and_a_router_restart
     for name in robots:
         assert base.log.count(f"fleet: publishing /{name}/odom for robot {name}") == 1
         assert base.log.count(f"fleet: sending /{name}/cmd to robot {name}") == 1
+        assert base.log.count(f"fleet: offering /{name}/reset, served by robot {name}") == 1
 
 
 def test_a_robot_that_leaves_is_logged_once_and_its_routes_dropped_after_the_timeout(
         tmp_path, router, bridge, domain, ros_side):
     d_robot, d_base = domain(), domain()
-    base = bridge(base_file(tmp_path, router, [], fleet_timeout=2), d_base)
+    base = bridge(base_file(tmp_path, router, fleet_timeout=2), d_base)
     robot = bridge(robot_file(tmp_path, "robot7", router), d_robot)
     base_side = ros_side(d_base, "base")
     cross(ros_side(d_robot, "robot7").publisher("/odom", String),
@@ -175,5 +176,6 @@ def test_a_robot_that_leaves_is_logged_once_and_its_routes_dropped_after_the_tim
     assert time.monotonic() - started >= 2
     assert wait_until(lambda: node.count_publishers("/robot7/odom") == 0)
     assert wait_until(lambda: node.count_subscribers("/robot7/cmd") == 0)
+    assert "/robot7/reset" not in dict(node.get_service_names_and_types())
     assert base.log.count("fleet: robot robot7 left") == 1
     assert base.log.count("fleet: robot robot7 dropped") == 1

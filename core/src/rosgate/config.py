@@ -558,7 +558,7 @@ def _service(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Se
 def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
             defaults: dict[str, str]) -> dict[str, Any]:
     """The keys topics and services share."""
-    name = _ros_name(src, data, path, name_key, placeholders=name_key == "topic")
+    name = _ros_name(src, data, path, name_key, placeholders=True)
     framing = Framing(_choice(src, data, path, "framing", FRAMINGS, FRAMING_DEFAULT))
     if framing.bare:
         remote = _text(src, data, path, "remote", name.removeprefix("/"))

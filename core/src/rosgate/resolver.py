@@ -193,6 +193,11 @@ class Resolver:
         if entry.port is not None:
             raise error(f"{key}.port", f"port: does not apply to a {entry.transport} {kind}: "
                         "it is published on a key (remote:)", "remove port: from this entry")
+        if (kind == "service" and has_placeholders(entry.remote)
+                and entry.direction is Direction.RECEIVE):
+            raise error(f"{key}.direction", "a fleet service (with {robot}) is called here and "
+                        "served by each robot, so its direction is transmit",
+                        "use direction: transmit, or name the service without placeholders")
         name = entry.topic if isinstance(entry, TopicConfig) else entry.service
         bare = entry.framing is Framing.NONE
         given = "remote" in entry.lines

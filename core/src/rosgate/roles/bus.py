@@ -4,6 +4,7 @@ the others, so there is no main line, no ``peer:`` and no ``port:``.
 * A topic is published on its key; a receiving topic subscribes to its key and is found by it
   (the envelope's topic id must be the key's: a frame moved to another key is refused).
 * A service is a queryable on its key (``receive``) or one query per call (``transmit``).
+  A fleet service (``/{robot}/reset``, transmit only) is offered for each robot known.
 * Each bridge holds a liveliness token, ``<prefix>/<name>/@alive``.
 * **Fleet entries** (placeholders, :mod:`rosgate.placeholders`) belong to a :class:`Fleet`: a
   receiving one is one wildcard subscription, and the first frame from a robot makes its route
@@ -93,6 +94,9 @@ class BusWiring:
     def service(self, p: PreparedService) -> None:
         link, s = self.link(p), p.config
         assert p.key is not None
+        if has_placeholders(s.service):
+            self.fleet(link).add(p)
+            return
         service_id = topic_id_for(p.key)
         if s.direction is Direction.RECEIVE:
             route = self.router.service(p, service_id, s.service, None)
@@ -100,9 +104,7 @@ class BusWiring:
             link.serve(p.key, lambda frame, answerer, source: self._request(
                 route, link, frame, answerer, source), s.timeout + 1.0)
             return
-        caller = link.caller(p.key, s.timeout)
-        caller.on_answer = self.router.on_frame
-        self.router.service(p, service_id, s.service, caller)
+        caller(self.bridge, link, p)
 
     def _request(self, route: ServerRoute, link: BusLink, frame: bytes, answerer: Link,
                  source: tuple[str, int]) -> None:
@@ -122,6 +124,14 @@ def transmitter(bridge: Bridge, link: BusLink, p: PreparedTopic, label: str) -> 
     assert p.key is not None
     outlet = link.outlet(p.key, p.reliable, p.priority)
     return bridge.router.topic(p, topic_id_for(p.key), label, outlet, bare_names=False)
+
+
+def caller(bridge: Bridge, link: BusLink, p: PreparedService) -> Route:
+    """A service called here and served on the bus: each call one query on its key."""
+    assert p.key is not None
+    outlet = link.caller(p.key, p.config.timeout)
+    outlet.on_answer = bridge.router.on_frame
+    return bridge.router.service(p, topic_id_for(p.key), p.name, outlet)
 
 
 def receiver(bridge: Bridge, p: PreparedTopic, label: str) -> ReceiveRoute:
@@ -157,7 +167,7 @@ class Member:
     had_token: bool = False
     last_seen: float = field(default_factory=time.monotonic)
     gone_since: float | None = None
-    routes: dict[int, Route] = field(default_factory=dict)  # entry index -> its route
+    routes: dict[tuple[str, int], Route] = field(default_factory=dict)  # (section, index) ->
 
 
 class Fleet:
@@ -170,7 +180,7 @@ class Fleet:
         self.timeout = bridge.config.fleet_timeout
         assert isinstance(link.transport, BusTransport)
         self.alive = Template(link.transport.alive_key("{robot}"))
-        self.transmit: list[tuple[PreparedTopic, Template, Template]] = []
+        self.transmit: list[tuple[PreparedTopic | PreparedService, Template, Template]] = []
         self.members: dict[str, Member] = {}
         self._stop = bridge.life.stopping
         self._thread = threading.Thread(target=self._sweeper, name=f"fleet-{link.name}",
@@ -180,14 +190,17 @@ class Fleet:
         self.link.watch(self.alive.wildcard(), self._token)
         self._thread.start()
 
-    def add(self, p: PreparedTopic) -> None:
+    def add(self, p: PreparedTopic | PreparedService) -> None:
+        """A fleet entry: a receiving topic subscribes now; a transmitting topic or a service
+        (which the base calls) gets a route per robot, now and as robots come."""
         assert p.key is not None
-        names, keys = Template(p.config.topic), Template(p.key)
-        if p.config.direction is Direction.TRANSMIT:
+        names, keys = Template(p.name), Template(p.key)
+        if p.config.direction is Direction.TRANSMIT or isinstance(p, PreparedService):
             self.transmit.append((p, names, keys))
             for member in list(self.members.values()):
                 self.link.call_later(self._transmit_for, member, p, names, keys)
             return
+        assert isinstance(p, PreparedTopic)
         self.link.subscribe(keys.wildcard(), lambda key, frame: self._frame(p, names, keys, key,
                                                                             frame),
                             lambda key, reason: self.link.link_drop(self.link, reason,
@@ -202,11 +215,12 @@ class Fleet:
             return
         member = self._member(values["robot"], f"a frame on {key}")
         member.last_seen = time.monotonic()
-        route = member.routes.get(p.index)
+        route = member.routes.get(("topics", p.index))
         if route is None:
             filled = self._filled(p, names, keys, values)
+            assert isinstance(filled, PreparedTopic)
             route = receiver(self.bridge, filled, filled.config.topic)
-            member.routes[p.index] = route
+            member.routes[("topics", p.index)] = route
             log.info("fleet: publishing %s for robot %s (frames on %s)", filled.config.topic,
                      member.name, filled.key)
         assert isinstance(route, ReceiveRoute)
@@ -242,22 +256,30 @@ class Fleet:
             log.info("fleet: robot %s is back (%s)", robot, how)
         return member
 
-    def _transmit_for(self, member: Member, p: PreparedTopic, names: Template,
+    def _transmit_for(self, member: Member, p: PreparedTopic | PreparedService, names: Template,
                       keys: Template) -> None:
-        if p.index in member.routes or member.name not in self.members:
+        """A transmitting topic's route, or a service's caller, for one robot."""
+        slot = ("topics" if isinstance(p, PreparedTopic) else "services", p.index)
+        if slot in member.routes or member.name not in self.members:
             return
         filled = self._filled(p, names, keys, {"robot": member.name})
-        member.routes[p.index] = transmitter(self.bridge, self.link, filled, filled.config.topic)
-        log.info("fleet: sending %s to robot %s on %s", filled.config.topic, member.name,
+        if isinstance(filled, PreparedTopic):
+            member.routes[slot] = transmitter(self.bridge, self.link, filled, filled.name)
+            log.info("fleet: sending %s to robot %s on %s", filled.name, member.name, filled.key)
+            return
+        member.routes[slot] = caller(self.bridge, self.link, filled)
+        log.info("fleet: offering %s, served by robot %s on %s", filled.name, member.name,
                  filled.key)
 
     @staticmethod
-    def _filled(p: PreparedTopic, names: Template, keys: Template,
-                values: dict[str, str]) -> PreparedTopic:
-        topic = names.fill(values)
-        key = keys.fill(values)
-        config = dataclasses.replace(p.config, topic=topic, remote=key)
-        return dataclasses.replace(p, config=config, key=key)
+    def _filled(p: PreparedTopic | PreparedService, names: Template, keys: Template,
+                values: dict[str, str]) -> PreparedTopic | PreparedService:
+        name, key = names.fill(values), keys.fill(values)
+        if isinstance(p, PreparedTopic):
+            return dataclasses.replace(p, key=key, config=dataclasses.replace(
+                p.config, topic=name, remote=key))
+        return dataclasses.replace(p, key=key, config=dataclasses.replace(
+            p.config, service=name, remote=key))
 
     def _sweep(self) -> None:
         now = time.monotonic()
