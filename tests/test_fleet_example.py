@@ -7,6 +7,7 @@ import os
 import shutil
 import signal
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -54,7 +55,17 @@ def test_run_sh_brings_up_the_fleet(tmp_path, domain, ros_side):
         assert odom.items[0].child_frame_id == "robot1_base"
     finally:
         os.killpg(fleet.pid, signal.SIGINT)
-        assert fleet.wait(30) is not None
+        try:
+            fleet.wait(30)
+        except subprocess.TimeoutExpired:
+            left = subprocess.run(["ps", "-ww", "-o", "pid,stat,etime,args", "-g",
+                                   str(fleet.pid)], capture_output=True, text=True).stdout
+            for pid in [row.split()[0] for row in left.splitlines()[1:] if "python" in row]:
+                left += subprocess.run([str(Path(sys.executable).with_name("py-spy")), "dump",
+                                        "--pid", pid], capture_output=True, text=True).stdout
+            os.killpg(fleet.pid, signal.SIGKILL)
+            raise AssertionError(f"still running 30 s after SIGINT:\n{left}\n"
+                                 + "\n".join(lines[-40:])) from None
     text = "\n".join(lines)
     assert "Traceback" not in text
     assert text.count("fleet: publishing /robot1/odom for robot robot1") == 1

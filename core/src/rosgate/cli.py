@@ -76,6 +76,15 @@ def _engine(path: str, plugins: Any = None):
     return Engine(load(path), plugins).prepare()
 
 
+def wait_for_signal(stop: threading.Event) -> None:
+    """Wait until a signal handler sets ``stop``. In slices: Python runs handlers in the main
+    thread, and a process-directed signal that the kernel hands to another thread (zenoh's and
+    DDS's native threads are candidates) does not interrupt a wait without a timeout, so the
+    main thread would never run the handler."""
+    while not stop.wait(0.2):
+        pass
+
+
 def cmd_check(args: argparse.Namespace) -> int:
     from .plugins import Plugins
 
@@ -108,7 +117,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     except ConfigError:
         raise
     try:
-        stop.wait()
+        wait_for_signal(stop)
     finally:
         logging.getLogger("rosgate").info("stopping")
         engine.stop()
@@ -137,7 +146,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     log.info("%s router running, listening on %s", args.transport,
              ", ".join(listen) or f"what {args.config} says")
     try:
-        stop.wait()
+        wait_for_signal(stop)
     finally:
         log.info("stopping")
         session.close()
