@@ -46,6 +46,23 @@ services:
     assert [s.key for s in p.services] == ["rosgate/robot-1/reset", "fleet/{robot}/reset"]
 
 
+def test_priority_and_latest_only_reach_point_to_point_entries():
+    """priority: was a bus-only key (zenoh's priorities); since real links it orders what waits
+    in a link's scheduler, with the same names. latest_only defaults to the QoS: best effort
+    replaces an unsent message, reliable queues it."""
+    p = plan(PEER + """\
+topics:
+  - {topic: /a, type: std_msgs/msg/String, direction: transmit, port: 9, priority: 3}
+  - {topic: /b, type: std_msgs/msg/String, direction: transmit, port: 9, qos: sensor_data}
+  - {topic: /c, type: std_msgs/msg/String, direction: transmit, port: 9, qos: sensor_data,
+     latest_only: false, priority: interactive_high}
+  - {topic: /d, type: std_msgs/msg/String, direction: transmit, port: 9, latest_only: true,
+     transport: tcp}
+""")
+    assert [(t.priority, t.latest_only) for t in p.topics] == [
+        (3, False), (5, True), (2, False), (5, True)]
+
+
 def test_prefix_and_namespace_options_make_the_default_keys():
     p = plan("bridge: {name: r1, role: peer, defaults: {transport: zenoh}}\n"
              "plugins: {zenoh: {prefix: fleet/a, namespace: /bot1}}\n"
@@ -102,9 +119,22 @@ ERRORS = {
     "key_on_udp": (
         PEER + TOPIC + "port: 9, remote: fleet/robot-1/x}\n", 5, "topics[0].remote",
         "'fleet/robot-1/x' is not a valid ROS name"),
-    "priority_on_udp": (
-        PEER + TOPIC + "port: 9, priority: 3}\n", 5, "topics[0].priority",
-        "priority: applies to bus transports"),
+    # what a point-to-point link takes and a bus does not (README, "Real links")
+    "recovery_on_zenoh": (
+        BUS_PEER + TOPIC + "transport: zenoh, recovery: fec}\n", 5, "topics[0].recovery",
+        "recovery: fec is for datagram links (udp): zenoh is a bus"),
+    "recovery_on_tcp": (
+        PEER + TOPIC + "transport: tcp, port: 9, recovery: retransmit}\n", 5,
+        "topics[0].recovery", "tcp is a stream, which delivers whole and in order"),
+    "latest_only_on_zenoh": (
+        BUS_PEER + TOPIC + "transport: zenoh, latest_only: true}\n", 5, "topics[0].latest_only",
+        "zenoh is a bus, which drops best-effort samples itself"),
+    "budget_for_zenoh": (
+        "bridge: {name: r1, role: peer, links: {zenoh: {bandwidth: 1mbit}}}\n" + ZENOH + TOPIC
+        + "transport: zenoh}\n", 1, "bridge.links.zenoh", "zenoh is a bus"),
+    "budget_for_an_unknown_transport": (
+        "bridge: {name: r1, role: peer, peer: 127.0.0.1, links: {udpp: {bandwidth: 1mbit}}}\n"
+        + TOPIC + "port: 9}\n", 1, "bridge.links.udpp", "udpp"),
     # placeholders (config)
     "unknown_placeholder": (
         BUS_PEER + "topics:\n  - {topic: '/{robt}/x', remote: 'f/{robt}/x', transport: zenoh, "

@@ -40,6 +40,19 @@ class Direction(StrEnum):
         return Direction.RECEIVE if self is Direction.TRANSMIT else Direction.TRANSMIT
 
 
+class Recovery(StrEnum):
+    """How a topic's messages ride out losses on a datagram link."""
+
+    NONE = "none"              # a message with a lost fragment is lost (counted)
+    FEC = "fec"                # repair fragments per message: any k of k + m rebuild it
+    RETRANSMIT = "retransmit"  # the receiver asks again for what is missing, within a deadline
+
+
+class Compression(StrEnum):
+    NONE = "none"
+    ZSTD = "zstd"
+
+
 class Framing(StrEnum):
     ROSGATE = "rosgate"                  # the envelope, sealed by the entry's cipher
     NONE = "none"                        # the bare payload on a datagram link (topics)
@@ -67,9 +80,15 @@ SESSION_TIMEOUT_DEFAULT = 60.0
 RECONNECT_MIN_DEFAULT, RECONNECT_MAX_DEFAULT = 0.1, 10.0
 QUEUE_FRAMES_DEFAULT, QUEUE_BYTES_DEFAULT = 1000, 8 * 1024 * 1024
 FLEET_TIMEOUT_DEFAULT = 30.0
-#: a bus topic's priority (zenoh's numbering): 1 the most urgent, 7 the least; default data (5)
+#: a topic's priority (zenoh's numbering): 1 the most urgent, 7 the least; default data (5). On a
+#: bus zenoh's own; on datagram and stream links the classes of the link's scheduler
 PRIORITIES = {"real_time": 1, "interactive_high": 2, "interactive_low": 3, "data_high": 4,
               "data": 5, "data_low": 6, "background": 7}
+
+RECOVERY_OVERHEAD_DEFAULT = 0.1   # fec: repair fragments per data fragment
+COMPRESSION_LEVEL_DEFAULT = 3     # zstd's own default: fast, and most of the gain
+COMPRESSION_LEVELS = (-7, 22)     # zstd's fast levels, then 1 (fastest) to 22 (smallest)
+MAX_DELAY_DEFAULT = 1.0           # seconds a best-effort message may wait in a link's queue
 
 ROLES = tuple(Role)
 DIRECTIONS = tuple(Direction)
@@ -87,7 +106,8 @@ TOP_KEYS = ("bridge", "plugins", "topics", "services", "clients")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
                "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue",
                "identity", "server_key", "insecure", "rekey", "allow", "peer_key",
-               "handshake_port", "fleet_timeout")
+               "handshake_port", "fleet_timeout", "links")
+LINK_KEYS = ("bandwidth", "max_delay")
 CLIENT_KEYS = ("key", "topics", "services")
 RULE_KEYS = ("name", "direction", "types", "ports", "ciphers")
 RULE_DIRECTIONS = ("transmit", "receive", "both")
@@ -97,7 +117,8 @@ DEFAULTS_KEYS = ("transport", "codec", "cipher")
 RECONNECT_KEYS = ("min", "max")
 QUEUE_KEYS = ("frames", "bytes")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
-              "framing", "qos", "max_rate", "priority")
+              "framing", "qos", "max_rate", "priority", "latest_only", "recovery",
+              "recovery_overhead", "compression", "compression_level", "typical_size")
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
                 "framing", "timeout", "max_request")
 QOS_KEYS = ("reliability", "durability", "history", "depth")
@@ -117,7 +138,10 @@ _EXAMPLES = {
     "services.type": "std_srvs/srv/Trigger", "services.remote": "/ping",
     "direction": "transmit (this side to the peer) or receive (the peer to this side)",
     "remote": "/robot1/chatter", "port": "12001", "framing": "rosgate", "qos": "sensor_data",
-    "max_rate": "20", "priority": "data", "fleet_timeout": "30", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
+    "max_rate": "20", "priority": "data", "latest_only": "true", "recovery": "fec",
+    "recovery_overhead": "0.1", "compression": "zstd", "compression_level": "3",
+    "typical_size": "921600", "links": "{udp: {bandwidth: 20mbit}}", "bandwidth": "20mbit",
+    "max_delay": "1.0", "fleet_timeout": "30", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
     "history": "keep_last", "depth": "10",
     "identity": "robot1.key", "server_key": "<the server's public key, from rosgate keygen identity>",
     "insecure": "true", "rekey": "120", "peer_key": "<the other peer's public key>",
@@ -153,7 +177,13 @@ class TopicConfig:
     framing: Framing = FRAMING_DEFAULT
     qos: int | str | dict = QOS_DEFAULT
     max_rate: float | None = None
-    priority: int | None = None  # bus topics: 1 (real time) .. 7 (background)
+    priority: int | None = None  # 1 (real time) .. 7 (background); None: data (5)
+    latest_only: bool | None = None  # None: as the QoS says (best effort: true)
+    recovery: Recovery = Recovery.NONE
+    recovery_overhead: float = RECOVERY_OVERHEAD_DEFAULT
+    compression: Compression = Compression.NONE
+    compression_level: int = COMPRESSION_LEVEL_DEFAULT
+    typical_size: int | None = None  # bytes, for rosgate check's budget arithmetic
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
 
@@ -173,6 +203,16 @@ class ServiceConfig:
     max_request: int = MAX_REQUEST_DEFAULT  # bytes; a longer request is dropped and counted
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """``bridge.links.<transport>``: what this side may put on each link of that transport."""
+
+    transport: str
+    bandwidth: float | None = None  # bit/s, per peer; None: as fast as the link takes
+    max_delay: float = MAX_DELAY_DEFAULT  # seconds a best-effort message may wait to start
+    line: int = 0
 
 
 @dataclass(frozen=True)
@@ -228,6 +268,7 @@ class BridgeConfig:
     allow: tuple[Any, ...] = ()        # peer: the only addresses frames are taken from (if any)
     clients: dict[str, ClientPolicy] = field(default_factory=dict)  # server: who may connect
     fleet_timeout: float = FLEET_TIMEOUT_DEFAULT
+    links: dict[str, LinkConfig] = field(default_factory=dict)  # by transport name
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
     services: list[ServiceConfig] = field(default_factory=list)
@@ -278,7 +319,16 @@ def service_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
 
 
 def topic_to_mapping(t: TopicConfig) -> dict:
-    return _to_mapping(t, TOPIC_KEYS)
+    """As the user would write it: the keys of real links only when they are not the defaults
+    (so a server that predates them still reads a client's hello that does not use them)."""
+    mapping = _to_mapping(t, TOPIC_KEYS)
+    if t.recovery is Recovery.NONE:
+        del mapping["recovery"]
+    if t.recovery is not Recovery.FEC:
+        del mapping["recovery_overhead"]
+    if t.compression is Compression.NONE:
+        del mapping["compression"], mapping["compression_level"]
+    return mapping
 
 
 def service_to_mapping(s: ServiceConfig) -> dict:
@@ -456,6 +506,7 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
         allow=_allow(src, bridge, role),
         fleet_timeout=_number(src, bridge, "bridge", "fleet_timeout", FLEET_TIMEOUT_DEFAULT,
                               "a number of seconds > 0", _positive),
+        links=_links(src, bridge),
         plugins=_plugins(src, data),
         topics=_entries(src, data, "topics", role, defaults),
         services=_entries(src, data, "services", role, defaults),
@@ -718,6 +769,51 @@ def _queue(src: _Source, bridge: dict) -> tuple[int, int]:
                     lambda v: v >= 0, integer=True))
 
 
+_BANDWIDTH = re.compile(r"(\d+(?:\.\d*)?|\.\d+)\s*([kmg]?)(?:bit)?(?:/s)?", re.IGNORECASE)
+_BANDWIDTH_UNITS = {"": 1, "k": 1e3, "m": 1e6, "g": 1e9}
+
+
+def parse_bandwidth(value: Any) -> float:
+    """Bits per second from ``20mbit``, ``20 Mbit/s``, ``500kbit``, ``1.5gbit``, ``20M`` or a plain
+    number; ValueError for anything else. Bytes are refused, and so is ``mbps``, which tc reads
+    as megabytes and most people as megabits."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        bits = float(value)
+    else:
+        match = _BANDWIDTH.fullmatch(value.strip()) if isinstance(value, str) else None
+        if match is None:
+            raise ValueError(f"expected a bandwidth in bits per second, got {_show(value)}")
+        bits = float(match.group(1)) * _BANDWIDTH_UNITS[match.group(2).lower()]
+    if not bits > 0:
+        raise ValueError(f"a bandwidth must be > 0, got {_show(value)}")
+    return bits
+
+
+def _links(src: _Source, bridge: dict) -> dict[str, LinkConfig]:
+    """``bridge.links``: per transport, the budget and queueing of each of its links."""
+    given = _section(src, bridge, "bridge", "links")
+    links = {}
+    for name in given:
+        path = f"bridge.links.{name}"
+        entry = _section(src, given, "bridge.links", name,
+                         fix=f"write it as {name}: {{bandwidth: 20mbit}}")
+        _check_keys(src, entry, path, LINK_KEYS)
+        bandwidth = None
+        if "bandwidth" in entry:
+            try:
+                bandwidth = parse_bandwidth(entry["bandwidth"])
+            except ValueError as exc:
+                raise src.error(f"{path}.bandwidth", str(exc),
+                                fix="bits per second: 20mbit, 500kbit, 1.5gbit or 20000000 "
+                                    "(2.5 megabytes per second is 20mbit)") from None
+        links[name] = LinkConfig(
+            transport=name, bandwidth=bandwidth,
+            max_delay=_number(src, entry, path, "max_delay", MAX_DELAY_DEFAULT,
+                              "a number of seconds > 0", _positive),
+            line=src.lines.get(path, 0))
+    return links
+
+
 def _plugins(src: _Source, data: dict) -> dict[str, dict]:
     given = _section(src, data, "", "plugins")
     return {name: _section(src, given, "plugins", name,
@@ -779,6 +875,7 @@ def _topic(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Topi
         qos=_qos(src, data, path),
         max_rate=_number(src, data, path, "max_rate", None, "a number of Hz > 0", _positive),
         priority=_priority(src, data, path),
+        **_real_link(src, data, path, common["framing"]),
         **_entry_lines(src, path),
     )
 
@@ -930,6 +1027,42 @@ def _priority(src: _Source, data: dict, path: str) -> int | None:
     raise src.error(_join(path, "priority"), f"expected a priority, 1 (real_time) to 7 "
                     f"(background), got {_show(value)}{_did_you_mean(close)}",
                     fix=f"one of {', '.join(PRIORITIES)} (or 1..7)")
+
+
+def _real_link(src: _Source, data: dict, path: str, framing: Framing) -> dict[str, Any]:
+    """The keys of a topic on a constrained link: latest_only, recovery, compression."""
+    recovery = Recovery(_choice(src, data, path, "recovery", tuple(Recovery), Recovery.NONE))
+    compression = Compression(_choice(src, data, path, "compression", tuple(Compression),
+                                      Compression.NONE))
+    if "recovery_overhead" in data and recovery is not Recovery.FEC:
+        raise src.error(_join(path, "recovery_overhead"), "recovery_overhead is the share of "
+                        "repair fragments of recovery: fec", fix="set recovery: fec, or remove it")
+    if "compression_level" in data and compression is Compression.NONE:
+        raise src.error(_join(path, "compression_level"), "compression_level without "
+                        "compression", fix="add compression: zstd, or remove it")
+    if framing is not Framing.ROSGATE:
+        for key in ("recovery", "compression"):
+            if key in data and data[key] != "none":
+                raise src.error(_join(path, key), f"{key} needs the envelope (framing: rosgate): "
+                                f"with framing {framing} a datagram is the bare payload",
+                                fix=f"remove {key}:, or use framing: rosgate")
+    low, high = COMPRESSION_LEVELS
+    latest_only = None
+    if "latest_only" in data:
+        latest_only = _flag(src, data, path, "latest_only")
+    return {
+        "latest_only": latest_only,
+        "recovery": recovery,
+        "recovery_overhead": _number(src, data, path, "recovery_overhead",
+                                     RECOVERY_OVERHEAD_DEFAULT, "a share > 0 and <= 1 (0.1: one "
+                                     "repair fragment per ten)", lambda v: 0 < v <= 1),
+        "compression": compression,
+        "compression_level": _number(src, data, path, "compression_level",
+                                     COMPRESSION_LEVEL_DEFAULT, f"an integer {low}..{high}, not 0",
+                                     lambda v: low <= v <= high and v != 0, integer=True),
+        "typical_size": _number(src, data, path, "typical_size", None, "a number of bytes >= 1",
+                                lambda v: v >= 1, integer=True),
+    }
 
 
 def _interface(src: _Source, data: dict, path: str, kind: str) -> str:

@@ -16,7 +16,8 @@ from typing import Any, Callable
 from .bus import PRIORITY_DEFAULT, BusTransport
 from .cipher import Cipher
 from .codec import Codec
-from .config import (BridgeConfig, Direction, Framing, Role, ServiceConfig, TopicConfig)
+from .config import (BridgeConfig, Direction, Framing, Recovery, Role, ServiceConfig,
+                     TopicConfig)
 from .errors import ConfigError, OptionError
 from .options import parse
 from .placeholders import Template, has_placeholders
@@ -46,8 +47,10 @@ class PreparedTopic:
     local: Address  # peer role, datagram transmit: where to send from
     reliable: bool  # frames wait out a stream link's loss (reliable QoS)
     key: str | None = None  # on a bus: the key (a template with placeholders), else None
-    priority: int = PRIORITY_DEFAULT  # on a bus
+    priority: int = PRIORITY_DEFAULT  # 1 (real time) .. 7 (background)
     cipher_cls: type[Cipher] | None = None
+    #: an unsent message is replaced by a newer one (default: for best-effort QoS)
+    latest_only: bool = False
 
     @property
     def name(self) -> str:
@@ -110,6 +113,11 @@ class Resolver:
             self.main_address = self._parse_address(main, cfg.server, "bridge.server")
         for key in ("transport", "codec", "cipher"):
             self.plugin(key, cfg.defaults[key], f"bridge.defaults.{key}")
+        for name in cfg.links:
+            transport = self.transport(name, f"bridge.links.{name}")
+            if isinstance(transport, BusTransport):
+                raise cfg.error(f"bridge.links.{name}", f"{name} is a bus: it paces and orders "
+                                "what it sends itself", f"remove {name} from bridge.links")
         if cfg.secure and cfg.role is Role.SERVER:
             for name, policy in cfg.clients.items():  # a cipher a rule names must exist
                 for i, rule in enumerate([*policy.topics, *policy.services]):
@@ -147,16 +155,35 @@ class Resolver:
             raise error(f"{key}.framing", "framing: none needs a datagram transport (udp, can, ...)",
                         "use framing: rosgate on stream links")
         reliable = is_reliable(topic.qos)
+        priority = topic.priority or PRIORITY_DEFAULT
+        self._real_link(topic, key, transport, error)
         if isinstance(transport, BusTransport):
             return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher,
                                  index, NO_ADDRESS, NO_ADDRESS, reliable,
-                                 self._bus_key(transport, topic, key, error),
-                                 topic.priority or PRIORITY_DEFAULT, cipher_cls)
+                                 self._bus_key(transport, topic, key, error), priority,
+                                 cipher_cls)
         self._point_to_point(topic, key, transport, error)
         self._check_main_line_port(topic, key, transport, error)
         address, local = self._addresses(transport, topic, key, error)
+        latest_only = not reliable if topic.latest_only is None else topic.latest_only
         return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher, index,
-                             address, local, reliable, cipher_cls=cipher_cls)
+                             address, local, reliable, priority=priority, cipher_cls=cipher_cls,
+                             latest_only=latest_only)
+
+    @staticmethod
+    def _real_link(topic: TopicConfig, key: str, transport: Transport,
+                   error: ErrorMaker) -> None:
+        """Recovery is for datagram links, latest_only for the links rosgate schedules."""
+        bus = isinstance(transport, BusTransport)
+        if topic.recovery is not Recovery.NONE and (transport.stream or bus):
+            what = "a bus" if bus else "a stream"
+            raise error(f"{key}.recovery", f"recovery: {topic.recovery} is for datagram links "
+                        f"(udp): {topic.transport} is {what}, which delivers whole and in order "
+                        "by itself", "remove recovery: from this entry")
+        if topic.latest_only is not None and bus:
+            raise error(f"{key}.latest_only", f"latest_only applies to links rosgate schedules; "
+                        f"{topic.transport} is a bus, which drops best-effort samples itself "
+                        "when it is congested", "remove latest_only: from this entry")
 
     def service(self, service: ServiceConfig, index: int, section: str,
                 error: ErrorMaker | None = None) -> PreparedService:
@@ -229,7 +256,7 @@ class Resolver:
 
     def _point_to_point(self, entry: TopicConfig | ServiceConfig, key: str, transport: Transport,
                         error: ErrorMaker) -> None:
-        """What only a bus takes: placeholders, a key for remote, a priority; and what a peer's
+        """What only a bus takes: placeholders, a key for remote; and what a peer's
         point-to-point entries need: a port, and peer: for the far host."""
         kind = "topic" if isinstance(entry, TopicConfig) else "service"
         name = entry.topic if isinstance(entry, TopicConfig) else entry.service
@@ -241,9 +268,6 @@ class Resolver:
             raise error(f"{key}.remote", f"'{entry.remote}' is not a valid ROS name (keys are "
                         f"for bus transports; {entry.transport} is not one)",
                         "use letters, digits and '_' in parts separated by single '/'")
-        if isinstance(entry, TopicConfig) and entry.priority is not None:
-            raise error(f"{key}.priority", f"priority: applies to bus transports (zenoh), not "
-                        f"{entry.transport}", "remove priority: from this entry")
         if self.config.role is Role.PEER:
             if entry.port is None:
                 raise error(f"{key}.port", f"peer role: each {kind} needs its own port",

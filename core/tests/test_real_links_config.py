@@ -1,0 +1,127 @@
+"""bringup.yaml's keys for real links: bridge.links (a budget per transport) and, per topic,
+latest_only, recovery, compression and typical_size — parsed values, and one located error per
+mistake (file, line, key, fix)."""
+
+from __future__ import annotations
+
+import pytest
+
+from rosgate.config import (Compression, Recovery, loads, parse_bandwidth, topic_from_mapping,
+                            topic_to_mapping)
+from rosgate.errors import ConfigError
+
+HEAD = "bridge:\n  name: robot1\n  role: peer\n  peer: 127.0.0.2\n"
+TOPIC = "topics:\n  - topic: /camera\n    type: sensor_msgs/msg/Image\n    direction: transmit\n"
+
+
+def error(text: str) -> ConfigError:
+    with pytest.raises(ConfigError) as info:
+        loads(text, file="bringup.yaml")
+    return info.value
+
+
+def test_a_budget_per_transport_and_the_keys_of_a_topic():
+    cfg = loads(HEAD + """\
+  links:
+    udp: {bandwidth: 20mbit, max_delay: 0.5}
+    tcp: {bandwidth: 2500000}
+""" + TOPIC + """\
+    port: 9
+    priority: data_low
+    latest_only: true
+    recovery: fec
+    recovery_overhead: 0.2
+    compression: zstd
+    compression_level: -3
+    typical_size: 921600
+  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 9}
+""")
+    udp, tcp = cfg.links["udp"], cfg.links["tcp"]
+    assert (udp.bandwidth, udp.max_delay, udp.line) == (20e6, 0.5, 6)
+    assert (tcp.bandwidth, tcp.max_delay) == (2.5e6, 1.0)
+    camera, twist = cfg.topics
+    assert (camera.priority, camera.latest_only, camera.recovery, camera.recovery_overhead,
+            camera.compression, camera.compression_level, camera.typical_size) == (
+        6, True, Recovery.FEC, 0.2, Compression.ZSTD, -3, 921600)
+    # defaults: nothing changes what rosgate did before real links
+    assert (twist.priority, twist.latest_only, twist.recovery, twist.compression,
+            twist.typical_size) == (None, None, Recovery.NONE, Compression.NONE, None)
+
+
+def test_a_client_s_entry_crosses_to_the_server_with_its_keys():
+    cfg = loads(HEAD + TOPIC + "    recovery: retransmit\n    compression: zstd\n"
+                "    latest_only: false\n")
+    mapping = topic_to_mapping(cfg.topics[0])
+    assert mapping["recovery"] == "retransmit" and mapping["compression"] == "zstd"
+    assert "recovery_overhead" not in mapping  # a key of fec only
+    again = topic_from_mapping(mapping, {}, "client robot1", index=0)
+    assert (again.recovery, again.compression, again.compression_level, again.latest_only) == (
+        Recovery.RETRANSMIT, Compression.ZSTD, 3, False)
+
+
+@pytest.mark.parametrize("text, bits", [
+    ("20mbit", 20e6), ("20 Mbit/s", 20e6), ("500kbit", 5e5), ("1.5gbit", 1.5e9), ("20M", 20e6),
+    ("64000", 64e3), (2e7, 2e7), ("300bit/s", 300)])
+def test_bandwidths(text, bits):
+    assert parse_bandwidth(text) == bits
+
+
+@pytest.mark.parametrize("text", ["20mbps", "20MB", "2.5 MB/s", "fast", "0", "-1mbit", True])
+def test_what_is_not_a_bandwidth(text):
+    with pytest.raises(ValueError):
+        parse_bandwidth(text)
+
+
+ERRORS = {
+    "bytes_per_second": (
+        HEAD + "  links: {udp: {bandwidth: 2MB/s}}\n", 5, "bridge.links.udp.bandwidth",
+        "expected a bandwidth in bits per second, got '2MB/s'", "2.5 megabytes per second"),
+    "unknown_link_key": (
+        HEAD + "  links:\n    udp: {bandwith: 1mbit}\n", 6, "bridge.links.udp.bandwith",
+        "unknown key 'bandwith' (did you mean 'bandwidth'?)", "valid keys are bandwidth"),
+    "link_not_a_mapping": (
+        HEAD + "  links:\n    udp: 20mbit\n", 6, "bridge.links.udp", "expected a mapping",
+        "udp: {bandwidth: 20mbit}"),
+    "max_delay": (
+        HEAD + "  links:\n    udp:\n      max_delay: 0\n", 7, "bridge.links.udp.max_delay",
+        "expected a number of seconds > 0", "max_delay: 1.0"),
+    "latest_only_not_a_flag": (
+        HEAD + TOPIC + "    latest_only: yes please\n", 9, "topics[0].latest_only",
+        "expected true or false", "latest_only: true"),
+    "unknown_recovery": (
+        HEAD + TOPIC + "    recovery: arq\n", 9, "topics[0].recovery",
+        "'arq' is not one of none, fec, retransmit", "recovery: fec"),
+    "overhead_without_fec": (
+        HEAD + TOPIC + "    recovery: retransmit\n    recovery_overhead: 0.1\n", 10,
+        "topics[0].recovery_overhead", "the share of repair fragments of recovery: fec",
+        "set recovery: fec"),
+    "overhead_out_of_range": (
+        HEAD + TOPIC + "    recovery: fec\n    recovery_overhead: 1.5\n", 10,
+        "topics[0].recovery_overhead", "expected a share > 0 and <= 1", "recovery_overhead: 0.1"),
+    "unknown_compression": (
+        HEAD + TOPIC + "    compression: zstandard\n", 9, "topics[0].compression",
+        "'zstandard' is not one of none, zstd", "compression: zstd"),
+    "level_without_compression": (
+        HEAD + TOPIC + "    compression_level: 9\n", 9, "topics[0].compression_level",
+        "compression_level without compression", "add compression: zstd"),
+    "level_zero": (
+        HEAD + TOPIC + "    compression: zstd\n    compression_level: 0\n", 10,
+        "topics[0].compression_level", "expected an integer -7..22, not 0", "compression_level: 3"),
+    "compression_on_bare_framing": (
+        HEAD + TOPIC + "    framing: none\n    compression: zstd\n", 10, "topics[0].compression",
+        "compression needs the envelope (framing: rosgate)", "use framing: rosgate"),
+    "recovery_on_bare_framing": (
+        HEAD + TOPIC + "    framing: none\n    recovery: fec\n", 10, "topics[0].recovery",
+        "recovery needs the envelope", "remove recovery:"),
+    "typical_size": (
+        HEAD + TOPIC + "    typical_size: 1.5\n", 9, "topics[0].typical_size",
+        "expected a number of bytes >= 1", "typical_size: 921600"),
+}
+
+
+@pytest.mark.parametrize("text, line, key, message, fix", ERRORS.values(), ids=ERRORS.keys())
+def test_error(text, line, key, message, fix):
+    e = error(text)
+    assert (e.file, e.line, e.key) == ("bringup.yaml", line, key), str(e)
+    assert message in e.message, str(e)
+    assert fix in e.fix, str(e)
