@@ -6,8 +6,14 @@ from __future__ import annotations
 
 import pytest
 
-from rosgate.config import (Compression, Recovery, loads, parse_bandwidth, topic_from_mapping,
-                            topic_to_mapping)
+from rosgate.config import (
+    Compression,
+    Recovery,
+    loads,
+    parse_bandwidth,
+    topic_from_mapping,
+    topic_to_mapping,
+)
 from rosgate.errors import ConfigError
 
 HEAD = "bridge:\n  name: robot1\n  role: peer\n  peer: 127.0.0.2\n"
