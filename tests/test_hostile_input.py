@@ -156,3 +156,30 @@ topics: [{{topic: /chatter, type: std_msgs/msg/String, direction: transmit}}]
     got = cross(ros_side(dc, "talker").publisher("/chatter", String), inbox, text,
                 lambda m: m.data == "warmup", 5)
     assert sorted(m.data for m in got) == [f"real-{i}" for i in range(5)]
+
+
+def test_compressed_frames_that_lie_are_counted_and_never_published(engines, domain, ros_side):
+    """FLAG_COMPRESSED on a link without a cipher: anyone can send such a frame. A bomb (64 MiB of
+    zeros in a few kB, over the 64 MiB a frame may hold once the message's CDR is around it) is
+    refused before anything is allocated; garbage and damaged zstd frames are counted."""
+    import zstandard
+
+    a, b, da, db, port = peer_pair(engines, domain)
+    inbox = ros_side(db, "listener").listen("/chatter", String)
+    talker = ros_side(da, "talker").publisher("/chatter", String)
+    cross(talker, inbox, text, lambda m: m.data == "warmup", 1)
+    route = b.routes()[0]
+    header = lambda seq: envelope.pack(envelope.FLAG_COMPRESSED, route.topic_id, 5, seq, 0)  # noqa: E731
+    bomb = zstandard.ZstdCompressor(level=19).compress(bytes((64 << 20) + 1))
+    unsized = zstandard.ZstdCompressor(write_content_size=False).compress(b"a" * 100)
+    good = zstandard.ZstdCompressor().compress(serialize_message(String(data="squeezed " * 20)))
+    damaged = bytearray(good)
+    damaged[-5] ^= 0xFF
+    frames = [header(1) + bomb, header(2) + unsized, header(3) + b"not zstd",
+              header(4) + bytes(damaged), header(5) + good]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for frame in frames:
+            s.sendto(frame, ("127.0.0.1", port))
+    assert wait_until(lambda: route.counters.drops == {"decompression_error": 4}), route.counters
+    assert inbox.wait_for(lambda items: any(m.data.startswith("squeezed") for m in items), 5)
+    assert {m.data for m in inbox.items} <= {"warmup", "real-0", "squeezed " * 20}

@@ -2,11 +2,13 @@
 
 transmit (a ROS subscription callback)::
 
-    message -> codec.encode -> framing.frame (envelope header, cipher.seal) -> link.send
+    message -> codec.encode -> compress (optional) -> framing.frame (envelope header,
+    cipher.seal) -> link.send
 
 receive (a link's thread, with a frame whose header names this topic)::
 
-    cipher.open -> replay window -> decode (codec, CDR check) -> ROS publish
+    cipher.open -> replay window -> decompress (when the header says so) -> decode (codec, CDR
+    check) -> ROS publish
 
 The cipher of each frame comes from the route's :class:`~rosgate.keyring.Keys` by the
 envelope's epoch: one static cipher, or a session's keys, which change with each key
@@ -28,12 +30,14 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
 from .codec import Codec
-from .config import ServiceConfig, TopicConfig
+from .config import Compression, ServiceConfig, TopicConfig
 from .errors import CipherError, CodecError
 from .keyring import Keys, NoKey
 from .links import Link
 from .transport import Address
 from .wire import envelope
+from .wire.compression import CompressionError, Compressor, Decompressor
+from .wire.framing import DEFAULT_MAX_MESSAGE
 from .wire.names import NameMissing, pack_name, split_name
 
 log = logging.getLogger("rosgate")
@@ -52,11 +56,19 @@ class Counters:
     bytes_received: int = 0
     lost: int = 0  # sequence numbers skipped by the sender's frames and never filled in
     drops: Counter = field(default_factory=Counter)
+    # compression (sender): payload bytes before and after, and payloads sent as they were
+    # because compressing did not make them smaller
+    bytes_before_compression: int = 0
+    bytes_after_compression: int = 0
+    not_compressed: int = 0
 
     def snapshot(self) -> dict[str, Any]:
         return {"sent": self.sent, "received": self.received, "bytes_sent": self.bytes_sent,
                 "bytes_received": self.bytes_received, "lost": self.lost,
-                "drops": dict(self.drops)}
+                "drops": dict(self.drops),
+                "bytes_before_compression": self.bytes_before_compression,
+                "bytes_after_compression": self.bytes_after_compression,
+                "not_compressed": self.not_compressed}
 
 
 class Warner:
@@ -131,7 +143,8 @@ class TopicFraming:
     #: True: datagrams carry the payload alone (no envelope, no fragments, no cipher)
     bare: ClassVar[bool]
 
-    def frame(self, route: TransmitRoute, payload: bytes, stamp: int) -> bytes:
+    def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
+        """``flags``: the envelope's (FLAG_COMPRESSED); a bare frame has none."""
         raise NotImplementedError
 
 
@@ -142,14 +155,14 @@ class EnvelopeFraming(TopicFraming):
 
     bare = False
 
-    def frame(self, route: TransmitRoute, payload: bytes, stamp: int) -> bytes:
+    def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
         with route.lock:
             epoch = route.keys.epoch()
             if epoch != route.epoch:  # a new key: a new sequence under it
                 route.epoch, route.seq = epoch, 0
             route.seq += 1
             seq = route.seq
-        return route.seal(0, epoch, seq, payload, stamp)
+        return route.seal(flags, epoch, seq, payload, stamp)
 
 
 class BareFraming(TopicFraming):
@@ -162,7 +175,7 @@ class BareFraming(TopicFraming):
     def __init__(self, name: str | None):
         self.prefix = pack_name(name) if name is not None else b""
 
-    def frame(self, route: TransmitRoute, payload: bytes, stamp: int) -> bytes:
+    def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
         return self.prefix + payload
 
 
@@ -183,6 +196,24 @@ class TransmitRoute(Route):
         self.min_interval_ns = int(1e9 / rate) if rate else 0
         self.last_sent_ns = 0
         self.lock = threading.Lock()  # a ROS callback group may call from several threads
+        self.compressor = (Compressor(topic.compression_level)
+                           if topic.compression is Compression.ZSTD else None)
+
+    def encode(self, message: Any) -> tuple[bytes, int]:
+        """The message's payload, compressed when that makes it smaller; and the envelope flags
+        that say so."""
+        payload = self.codec.encode(message)
+        if self.compressor is None:
+            return payload, 0
+        packed = self.compressor.compress(payload)
+        counters = self.counters
+        counters.bytes_before_compression += len(payload)
+        if packed is None:
+            counters.bytes_after_compression += len(payload)
+            counters.not_compressed += 1
+            return payload, 0
+        counters.bytes_after_compression += len(packed)
+        return packed, envelope.FLAG_COMPRESSED
 
     def on_message(self, message: Any) -> None:
         now = time.time_ns()
@@ -194,7 +225,8 @@ class TransmitRoute(Route):
             self.drop("no_peer_yet", "the far side's address is not known yet")
             return
         try:
-            frame = self.framing.frame(self, self.codec.encode(message), now)
+            payload, flags = self.encode(message)
+            frame = self.framing.frame(self, payload, now, flags)
         except NoKey:
             self.drop("no_session_key", "the session's handshake has not happened yet")
             return
@@ -220,6 +252,8 @@ class ReceiveRoute(Route):
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
+        #: whatever this side's file says: the sender's envelope says what it compressed
+        self.decompressor = Decompressor(DEFAULT_MAX_MESSAGE)
 
     def on_frame(self, header: envelope.Header, frame: bytes) -> None:
         """An envelope frame (framing rosgate), found by its topic id."""
@@ -236,6 +270,12 @@ class ReceiveRoute(Route):
         if refused:
             self.drop(refused)
             return
+        if header.flags & envelope.FLAG_COMPRESSED:
+            try:
+                payload = self.decompressor.decompress(payload)
+            except CompressionError as exc:
+                self.drop("decompression_error", str(exc))
+                return
         self.deliver(payload, len(frame))
 
     def deliver(self, payload: bytes, size: int) -> None:

@@ -30,6 +30,7 @@ FLAG_HELLO = 0x02    # a datagram that tells the server where a client's link is
 FLAG_REQUEST = 0x04  # a service call: topic_id = service id, epoch + seq = the call's id
 FLAG_REPLY = 0x08    # its answer: epoch and seq echoed from the request
 FLAG_FAILED = 0x10   # with FLAG_REPLY: the serving side had no answer; the body is the reason
+FLAG_COMPRESSED = 0x20  # the payload under the cipher is a zstd frame (rosgate.wire.compression)
 
 CONTROL_TOPIC = 0
 
