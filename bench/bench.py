@@ -242,7 +242,7 @@ class Case:
                                     self.folder / "sub.log", self.reliability))
         if self.route:
             a, b = bringup_files(self.route, size.msg_type, size.depth, self.folder,
-                                 self.reliability)
+                                 self.reliability, self.checkout.root)
             self.b = started(Bridge(b, sub_domain, self.checkout))
             self.a = started(Bridge(a, pub_domain, self.checkout))
         self.pub = started(Endpoint("pub", size.kind, size.bytes, size.depth, pub_domain,

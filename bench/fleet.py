@@ -215,9 +215,9 @@ def throughput(settings: bench.Settings, folder: Path) -> list[bench.Result]:
     plain = bench.bringup_files
 
     def bringup_files(route: Route, msg_type: str, depth: int, where: Path,
-                      reliability: str = "reliable"):
+                      reliability: str = "reliable", root: Path = bench.ROOT):
         if route.transport != "zenoh":
-            return plain(route, msg_type, depth, where, reliability)
+            return plain(route, msg_type, depth, where, reliability, root)
         topic = (f"{{topic: /bench, type: {msg_type}, transport: zenoh, codec: {route.codec}, "
                  f"cipher: {route.cipher}, remote: bench/2k5, "
                  f"qos: {{reliability: {reliability}, history: keep_last, depth: {depth}}}")

@@ -277,17 +277,35 @@ def session_keys(folder: Path) -> tuple[str, str]:
     return client, server
 
 
+LOOPBACK_MAX_FRAME = 65_000
+
+
+def knows_max_frame(root: Path) -> bool:
+    """Whether a checkout's udp plugin takes the max_frame option (real links: its default is a
+    safe size for real networks, 1,200 bytes)."""
+    module = root / "plugins" / "transport_udp" / "src" / "rosgate_transport_udp" / "__init__.py"
+    return "max_frame: int = option(" in module.read_text()
+
+
 def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
-                  reliability: str = "reliable") -> tuple[Path, Path]:
-    """Write bridge A's and bridge B's bringup.yaml; return their paths."""
+                  reliability: str = "reliable", root: Path = ROOT) -> tuple[Path, Path]:
+    """Write bridge A's and bridge B's bringup.yaml; return their paths.
+
+    UDP datagrams are up to 65,000 bytes here, as before real links (see "The link emulator" in
+    bench/README.md): loopback has no MTU and loses nothing, and what these rows measure is the
+    bridge's cost per message, not the cost of fragments — bench/constrained.py measures that."""
     port = free_port()
-    plugins = ""
+    options = {}
     if route.cipher == "fernet":
         key = folder / "fernet.key"
         if not key.exists():
             subprocess.run([ROSGATE, "keygen", "fernet", "--out", str(key)], check=True,
                            capture_output=True)
-        plugins = f"plugins: {{fernet: {{key_file: {key}}}}}\n"
+        options["fernet"] = f"{{key_file: {key}}}"
+    if route.transport == "udp" and knows_max_frame(root):
+        options["udp"] = f"{{max_frame: {LOOPBACK_MAX_FRAME}}}"
+    plugins = ("plugins: {" + ", ".join(f"{k}: {v}" for k, v in options.items()) + "}\n"
+               if options else "")
     topic = (f"{{topic: /bench, type: {msg_type}, transport: {route.transport}, "
              f"codec: {route.codec}, cipher: {route.cipher}, "
              f"qos: {{reliability: {reliability}, history: keep_last, depth: {depth}}}")

@@ -127,6 +127,9 @@ class Transport(ABC):
     max_frame: ClassVar[int] = 0
     #: which kind of link: set by DatagramTransport, StreamTransport and rosgate.bus.BusTransport
     link_kind: ClassVar[str | None] = None
+    #: bytes the layers below add to every frame a datagram link sends (UDP over IPv4: 28), so
+    #: that a bandwidth budget (``bridge.links``) counts what the link carries
+    packet_overhead: ClassVar[int] = 0
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

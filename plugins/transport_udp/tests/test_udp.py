@@ -40,7 +40,10 @@ def test_bind_on_port_0_picks_a_port(endpoints):
 
 
 def test_a_datagram_over_the_ipv4_limit_cannot_be_sent(endpoints):
-    assert UdpTransport.max_frame == 65_000  # below the limit, with room to spare
+    # the largest max_frame the option takes is below the limit, with room to spare
+    assert UdpTransport({"max_frame": 65_000}).max_frame == 65_000
+    with pytest.raises(OptionError, match="must be 256 to 65000, not 65001"):
+        UdpTransport({"max_frame": 65_001})
     a, _ = endpoints()
     _, b_address = endpoints()
     with pytest.raises(OSError):
@@ -77,7 +80,16 @@ def test_unknown_option():
         UdpTransport({"receive_buffer": 1 << 20, "recv_buffer": 1, "zz": 2})
     assert info.value.key == "recv_buffer"
     assert info.value.message == "unknown option of udp (did you mean 'receive_buffer'?)"
-    assert info.value.fix == "the options of udp are receive_buffer, send_buffer"
+    assert info.value.fix == "the options of udp are receive_buffer, send_buffer, max_frame"
+
+
+def test_max_frame_defaults_to_a_size_every_path_carries():
+    """1,200 bytes: IPv6's minimum MTU (1,280) less its headers leaves 1,232; a datagram over the
+    path's MTU travels as IP fragments and is lost with any one of them."""
+    assert UdpTransport({}).max_frame == UdpTransport.max_frame == 1_200
+    assert UdpTransport({"max_frame": 1472}).max_frame == 1472
+    with pytest.raises(OptionError, match="must be 256 to 65000, not 100"):
+        UdpTransport({"max_frame": 100})
 
 
 @pytest.mark.parametrize("key", ["receive_buffer", "send_buffer"])
