@@ -124,7 +124,7 @@ class Transport(ABC):
     stream: ClassVar[bool]
     #: the largest frame one ``send`` carries on a datagram link; the core fragments above it.
     #: A class attribute, or an instance attribute set in ``__init__`` from an option.
-    max_frame: ClassVar[int] = 0
+    max_frame: int = 0
     #: which kind of link: set by DatagramTransport, StreamTransport and rosgate.bus.BusTransport
     link_kind: ClassVar[str | None] = None
     #: bytes the layers below add to every frame a datagram link sends (UDP over IPv4: 28), so
