@@ -39,7 +39,8 @@ def mostly_unknown_map(width: int, height: int, seed: int) -> OccupancyGrid:
     noise = os.urandom(side * side)
     for row in range(side):
         start = (height // 3 + row) * width + width // 3
-        cells[start:start + side] = bytes(100 if n < 8 else 0 for n in noise[row * side:(row + 1) * side])
+        row_noise = noise[row * side:(row + 1) * side]
+        cells[start:start + side] = bytes(100 if n < 8 else 0 for n in row_noise)
     grid.data = memoryview(cells).cast("b").tolist()
     grid.header.frame_id = f"map{seed}"
     return grid

@@ -1,0 +1,290 @@
+"""Loss recovery, the wire parts: FEC fragments rebuilt from any k of each block, and selective
+repeat (NACKs, ACKs, probes) between a sender's store and a receiver, over a simulated lossy
+channel with a seeded RNG and a simulated clock (nothing here waits)."""
+
+from __future__ import annotations
+
+import heapq
+import random
+
+import pytest
+
+from rosgate.wire import recovery
+from rosgate.wire.framing import FramingError
+from rosgate.wire.recovery import (
+    FEC,
+    FecReassembler,
+    RepeatReassembler,
+    RetransmitStore,
+    block_limit,
+    fec_fragments,
+    repeat_fragments,
+)
+
+TOPIC = 7
+
+
+class Log:
+    def __init__(self) -> None:
+        self.lost: list[tuple[int | None, str]] = []
+        self.recovered: list[int] = []
+
+    def on_lost(self, topic_id, reason):
+        self.lost.append((topic_id, reason))
+
+    def on_recovered(self, topic_id):
+        self.recovered.append(topic_id)
+
+
+def frame_of(size: int, seed: int) -> bytes:
+    return random.Random(seed).randbytes(size)
+
+
+# -- FEC ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("overhead, limit", [(0.1, 232), (0.05, 243), (1.0, 128), (0.5, 170)])
+def test_blocks_fit_gf256(overhead, limit):
+    assert block_limit(overhead) == limit
+    assert limit + -(-int(limit * overhead * 1000) // 1000) <= 256
+
+
+@pytest.mark.parametrize("size", [1, 28, 1179, 1180, 5000, 921_600, 1_000_000])
+def test_fec_fragments_fit_and_every_block_has_its_repair(size):
+    frame = frame_of(size, size)
+    fragments = fec_fragments(frame, 1200, TOPIC, 42, 0.1)
+    assert all(len(f) <= 1200 for f in fragments)
+    headers = [FEC.unpack_from(f) for f in fragments]
+    blocks = headers[0][5]
+    assert {h[4] for h in headers} == set(range(blocks))
+    for block in range(blocks):
+        k, m = next((h[7], h[8]) for h in headers if h[4] == block)
+        assert m == -(-k // 10)  # ceil(k * 0.1): one repair per ten, at least one
+        assert sorted(h[6] for h in headers if h[4] == block) == list(range(k + m))
+    # interleaved: the first fragment of every block comes before any block's second
+    assert [h[4] for h in headers[:blocks]] == list(range(blocks))
+    # whole, from the data fragments alone
+    log = Log()
+    rx = FecReassembler(log.on_lost, log.on_recovered)
+    out = [rx.add("a", f, 0.0) for f in fragments if FEC.unpack_from(f)[6] < FEC.unpack_from(f)[7]]
+    assert [o for o in out if o is not None] == [frame]
+    assert log.lost == [] and log.recovered == []
+
+
+def test_fec_rebuilds_from_any_k_of_each_block():
+    frame = frame_of(921_600, 1)
+    fragments = fec_fragments(frame, 1200, TOPIC, 42, 0.1)
+    rng = random.Random(3)
+    by_block: dict[int, list[bytes]] = {}
+    for f in fragments:
+        by_block.setdefault(FEC.unpack_from(f)[4], []).append(f)
+    kept = []
+    for block_fragments in by_block.values():
+        m = FEC.unpack_from(block_fragments[0])[8]
+        lose = set(rng.sample(range(len(block_fragments)), m))  # as many as there are repairs
+        kept += [f for i, f in enumerate(block_fragments) if i not in lose]
+    rng.shuffle(kept)  # in any order
+    log = Log()
+    rx = FecReassembler(log.on_lost, log.on_recovered)
+    assert [o for o in (rx.add("a", f, 0.0) for f in kept) if o is not None] == [frame]
+    assert log.recovered == [TOPIC] and log.lost == []
+    # late fragments of the finished frame start nothing
+    assert all(rx.add("a", f, 0.1) is None for f in fragments[:5])
+    rx.expire(10.0)
+    assert log.lost == []
+
+
+def test_fec_frame_with_one_loss_too_many_is_lost_once_at_the_deadline():
+    fragments = fec_fragments(frame_of(20_000, 2), 1200, TOPIC, 9, 0.1)  # one block, m = 2
+    log = Log()
+    rx = FecReassembler(log.on_lost, log.on_recovered, timeout=2.0)
+    assert all(rx.add("a", f, 0.0) is None for f in fragments[3:])
+    rx.expire(1.9)
+    assert log.lost == []
+    rx.expire(2.1)
+    assert log.lost == [(TOPIC, "fragment_lost")] and log.recovered == []
+
+
+def test_fec_of_a_small_frame_is_a_copy():
+    frame = b"RG" + bytes(50)
+    fragments = fec_fragments(frame, 1200, TOPIC, 1, 0.1)
+    assert len(fragments) == 2  # k = 1, m = ceil(0.1) = 1
+    log = Log()
+    rx = FecReassembler(log.on_lost, log.on_recovered)
+    assert rx.add("a", fragments[1], 0.0) == frame  # the repair alone
+    assert log.recovered == [TOPIC]
+
+
+@pytest.mark.parametrize("mangle", [
+    lambda f: f[:FEC.size],                                        # no chunk
+    lambda f: f[:18] + bytes([9, 1, 0]) + f[21:],                  # index over k + m
+    lambda f: f[:19] + bytes([0, 0]) + f[21:],                     # k = 0
+    lambda f: f[:19] + bytes([200, 100]) + f[21:],                 # k + m over 256
+    lambda f: f[:10] + (1 << 30).to_bytes(4, "big") + f[14:],      # longer than a message
+    lambda f: f[:14] + (5).to_bytes(2, "big") + f[16:],            # block over blocks
+])
+def test_fec_headers_out_of_range_are_refused(mangle):
+    good = fec_fragments(frame_of(3000, 5), 1200, TOPIC, 1, 0.1)[0]
+    with pytest.raises(FramingError):
+        FecReassembler(Log().on_lost, Log().on_recovered).add("a", mangle(good), 0.0)
+
+
+def test_fec_memory_is_bounded():
+    log = Log()
+    rx = FecReassembler(log.on_lost, log.on_recovered, max_pending_bytes=50_000)
+    for fid in range(20):
+        for f in fec_fragments(frame_of(20_000, fid), 1200, TOPIC, fid, 0.1)[:10]:
+            rx.add("a", f, 0.0)
+    assert 0 < len(log.lost) < 20 and {r for _, r in log.lost} == {"reassembly_overflow"}
+
+
+# -- selective repeat --------------------------------------------------------------------------
+def test_nack_and_ack_round_trip():
+    assert recovery.parse_nack(recovery.nack(5, [1, 2, 3, 7, 9, 10])) == (5, [1, 2, 3, 7, 9, 10])
+    assert recovery.parse_ack(recovery.ack([1, 2**32 - 1])) == [1, 2**32 - 1]
+    for bad in (b"RN", recovery.nack(5, [1])[:-1], b"RA\x00\x02" + bytes(4)):
+        with pytest.raises(FramingError):
+            (recovery.parse_nack if bad[:2] == b"RN" else recovery.parse_ack)(bad)
+
+
+class Channel:
+    """Two ends, one lossy link each way with a fixed delay: a discrete-event simulation."""
+
+    def __init__(self, loss: float, delay: float, seed: int, gap: float = 0.0005):
+        self.rng = random.Random(seed)
+        self.loss, self.delay, self.gap = loss, delay, gap
+        self.now = 0.0
+        self.events: list[tuple[float, int, str, bytes]] = []
+        self._n = 0
+        self.sent = {"a": 0, "b": 0}
+        self.busy_until = 0.0
+
+    def send(self, side: str, datagram: bytes, again: bool = False) -> None:
+        """``side`` sends; it arrives at the other side unless lost. Side a's first sends are
+        paced (one per ``gap``); what it sends again goes first, as a link's scheduler sends a
+        topic's repairs before the rest of its queue."""
+        self.sent[side] += 1
+        start = max(self.now, self.busy_until) if side == "a" and not again else self.now
+        if side == "a" and not again:
+            self.busy_until = start + self.gap
+        if self.rng.random() >= self.loss:
+            self._n += 1
+            heapq.heappush(self.events, (start + self.delay, self._n, side, datagram))
+
+
+def run_repeat(frames: list[bytes], loss: float, seed: int, delay: float = 0.01):
+    log = Log()
+    ch = Channel(loss, delay, seed)
+    store = RetransmitStore()
+    got: list[bytes] = []
+    rx = RepeatReassembler(log.on_lost, log.on_recovered,
+                           send=lambda d, source: ch.send("b", d))
+    resent = 0
+    for fid, frame in enumerate(frames):
+        packets = repeat_fragments(frame, 1200, TOPIC, fid)
+        store.keep("b", fid, packets, "route", ch.now)
+        for p in packets:
+            ch.send("a", p)
+        store.sent("b", fid, ch.busy_until)
+    end = ch.now + 5.0
+    while ch.now < end:
+        times = [t for t in (store.next_probe(), rx.next_poll()) if t is not None]
+        if ch.events:
+            times.append(ch.events[0][0])
+        if not times:
+            break
+        ch.now = max(ch.now, min(times))
+        while ch.events and ch.events[0][0] <= ch.now:
+            _, _, side, d = heapq.heappop(ch.events)
+            if side == "a":
+                frame = rx.add("a", d, ch.now)
+                if frame is not None:
+                    got.append(frame)
+            elif d[:2] == b"RN":
+                again = store.on_nack("b", d)
+                if again:
+                    resent += len(again[1])
+                    for p in again[1]:
+                        ch.send("a", p, again=True)
+            else:
+                store.on_ack("b", d, ch.now)
+        rx.poll(ch.now)
+        for _, _, p in store.probes(ch.now):
+            resent += 1
+            ch.send("a", p, again=True)
+    return got, log, store, resent
+
+
+def test_selective_repeat_delivers_everything_at_5_percent_loss():
+    frames = [frame_of(size, size) for size in (10, 1100, 1180, 5000, 100_000, 921_600)] * 3
+    got, log, store, resent = run_repeat(frames, 0.05, seed=1)
+    assert sorted(got) == sorted(frames)
+    assert log.lost == []
+    assert len(log.recovered) >= 6  # the large frames lost something and got it back
+    assert len(store) == 0  # every frame acknowledged
+    total = sum(len(repeat_fragments(f, 1200, TOPIC, 0)) for f in frames)
+    assert 0.03 * total < resent < 0.2 * total  # about what was lost, not everything again
+
+
+def test_selective_repeat_recovers_a_frame_whose_every_fragment_was_lost():
+    """Nothing reaches the receiver: only the sender's probe (its last fragment again, after
+    the probe timeout) lets the receiver ask for the rest."""
+    frames = [frame_of(6000, 1)]
+    got, log, store, resent = run_repeat(frames, 0.0, seed=1)
+    assert got == frames and resent == 0
+    log = Log()
+    store = RetransmitStore()
+    sent: list[bytes] = []
+    rx = RepeatReassembler(log.on_lost, log.on_recovered, send=lambda d, s: sent.append(d))
+    packets = repeat_fragments(frames[0], 1200, TOPIC, 3)
+    store.keep("b", 3, packets, "route", 0.0)
+    store.sent("b", 3, 0.001)   # ... and all of them lost
+    assert store.probes(0.1) == []
+    probe = store.probes(0.3)   # 2 x the initial RTT (0.1 s) + 10 ms after the last one left
+    assert [p for _, _, p in probe] == [packets[-1]]
+    assert rx.add("a", probe[0][2], 0.31) is None  # asks at once for 0..2, three places behind
+    rx.poll(0.4)                                   # and, when nothing more came, for the rest
+    answers = [store.on_nack("b", d) for d in sent]
+    assert {owner for owner, _ in answers} == {"route"}
+    again = [p for _, ps in answers for p in ps]
+    assert sorted(again) == sorted(packets[:-1])
+    out = [rx.add("a", p, 0.45) for p in again]
+    assert out[-1] == frames[0] and log.recovered == [TOPIC]
+    store.on_ack("b", sent[-1], 0.46)  # the ACK the last fragment brought
+    assert len(store) == 0
+
+
+def test_a_nack_is_answered_only_for_the_address_the_frame_went_to():
+    store = RetransmitStore()
+    store.keep(("10.0.0.2", 1), 5, [b"p0", b"p1"], "route", 0.0)
+    assert store.on_nack(("10.0.0.3", 1), recovery.nack(5, [0])) is None
+    assert store.on_nack(("10.0.0.2", 1), recovery.nack(6, [0])) is None  # another frame id
+    assert store.on_nack(("10.0.0.2", 1), recovery.nack(5, [0, 1, 99])) == ("route", [b"p0", b"p1"])
+
+
+def test_every_fragment_is_sent_a_bounded_number_of_times():
+    store = RetransmitStore()
+    store.keep("b", 1, [b"p0"], "route", 0.0)
+    answers = [store.on_nack("b", recovery.nack(1, [0])) for _ in range(20)]
+    assert sum(a is not None for a in answers) == recovery.MAX_SENDS - 1
+
+
+def test_the_store_forgets_after_the_deadline_and_beyond_its_memory():
+    store = RetransmitStore(deadline=2.0, max_bytes=10_000)
+    store.keep("b", 1, [bytes(4000)], "r", 0.0)
+    store.keep("b", 2, [bytes(4000)], "r", 0.0)
+    store.keep("b", 3, [bytes(4000)], "r", 0.0)  # over 10,000 bytes: the oldest goes
+    assert store.on_nack("b", recovery.nack(1, [0])) is None
+    assert store.on_nack("b", recovery.nack(2, [0])) is not None
+    store.probes(2.5)
+    assert len(store) == 0
+
+
+def test_the_receiver_gives_up_at_the_deadline_once():
+    log = Log()
+    rx = RepeatReassembler(log.on_lost, log.on_recovered, send=lambda d, s: None, timeout=2.0)
+    packets = repeat_fragments(frame_of(5000, 1), 1200, TOPIC, 1)
+    rx.add("a", packets[0], 0.0)
+    rx.poll(1.0)
+    rx.poll(2.5)
+    rx.poll(3.0)
+    assert log.lost == [(TOPIC, "fragment_lost")]
+    assert rx.next_poll() is None
