@@ -1,0 +1,287 @@
+"""The scheduler: in which order, and how fast, frames leave a link.
+
+Every link has one. Frames are queued per topic (per :class:`~rosgate.links.Sender`), the
+topics grouped in priority classes — zenoh's seven, ``real_time`` (1) to ``background`` (7),
+and class 0 above them for the control channel (hellos, pings, handshakes) — and a frame leaves
+as *packets*: a datagram, a fragment, a chunk of a stream. Then:
+
+* **strict priority** between classes: nothing of a class leaves while a higher class has a
+  packet that may go;
+* **round robin** between the topics of one class, a packet each: the fragments of two topics'
+  messages interleave, so a small message waits at most one packet of every other topic of its
+  class, never a whole image;
+* **one message at a time per topic**: a message partly sent is finished before the topic's next
+  one starts (a topic's fragments never interleave with each other; a stream's chunks must not);
+  a topic's packets sent again (retransmissions) go before its other packets;
+* **latest only**: a ``latest_only`` topic's message not yet started is replaced by a newer
+  one (counted ``superseded``): what waits is never older than one message;
+* **late**: a best-effort topic's message that waited ``max_delay`` seconds without starting is
+  dropped (counted ``late``) rather than sent stale; a reliable topic's waits, within the
+  link's limits (``frames``, ``bytes``: beyond them a new message is refused, ``queue_full``);
+* **budget**: with a ``bandwidth``, a token bucket per destination (per peer: a server's
+  clients each have their own) refilled at that many bits per second, counting every packet
+  with the transport's ``packet_overhead`` (IP and UDP headers). A packet leaves only when its
+  destination has the tokens; another destination's packet may go meanwhile. The bucket holds
+  :func:`burst` bytes, enough to keep the rate while the send thread wakes late, small enough
+  not to fill the link's own queue.
+
+Nothing here sends or waits: the link's send thread asks :meth:`Scheduler.next` for the next
+packet, sends it, and sleeps until the time it is told when there is none yet.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+CLASSES = 8  # 0: control; 1 (real_time) .. 7 (background)
+CONTROL = 0
+
+
+def burst(rate_bytes: float, packet: int) -> int:
+    """The bucket's size: 10 ms at the rate, and at least four of the link's largest packets."""
+    return int(max(rate_bytes * 0.01, 4 * packet))
+
+
+class Bucket:
+    """A token bucket: ``rate`` bytes per second, at most ``capacity`` bytes in it."""
+
+    def __init__(self, rate: float, capacity: int, now: float):
+        self.rate = rate
+        self.capacity = capacity
+        self.tokens = float(capacity)
+        self.at = now
+
+    def _fill(self, now: float) -> None:
+        if now > self.at:
+            self.tokens = min(self.capacity, self.tokens + (now - self.at) * self.rate)
+            self.at = now
+
+    def take(self, size: int, now: float) -> float:
+        """0 and take ``size`` bytes' tokens when they are there; else the seconds until they
+        will be (taking nothing)."""
+        self._fill(now)
+        need = min(size, self.capacity)  # a packet larger than the bucket waits for a full one
+        if self.tokens + 1e-6 >= need:  # (not a rounding error away from it, forever)
+            self.tokens -= size
+            return 0.0
+        return (need - self.tokens) / self.rate
+
+    def charge(self, size: int, now: float) -> None:
+        """Count bytes sent outside the queue (acknowledgements): the bucket may go into debt."""
+        self._fill(now)
+        self.tokens -= size
+
+
+@dataclass(eq=False)
+class Outgoing:
+    """One frame on its way: cut into packets when it starts (fragments, repair fragments), and
+    told when its last packet left (``done``, e.g. to start a retransmission timer)."""
+
+    sender: Any
+    to: Any
+    size: int
+    cut: Callable[[], list[bytes]]
+    queued: float = 0.0
+    done: Callable[[float], None] | None = None
+
+
+@dataclass
+class Due:
+    """The next packet to send: where, whose, and whether it ends a message or repeats one."""
+
+    packet: bytes
+    to: Any
+    sender: Any
+    ends: Outgoing | None = None
+    again: bool = False
+
+
+@dataclass(eq=False)
+class _Topic:
+    sender: Any
+    priority: int
+    waiting: deque[Outgoing] = field(default_factory=deque)
+    current: Outgoing | None = None
+    packets: deque[bytes] = field(default_factory=deque)
+    repairs: deque[tuple[bytes, Any]] = field(default_factory=deque)
+
+    @property
+    def busy(self) -> bool:
+        return bool(self.repairs or self.packets or self.waiting)
+
+
+class Scheduler:
+    """The send queue of one link (see the module's docstring). Not thread-safe: the link holds
+    its lock around every call. ``drop(sender, reason, detail)`` counts a message that will not
+    be sent."""
+
+    def __init__(self, *, bandwidth: float | None = None, overhead: int = 0,
+                 max_delay: float = 1.0, frames: int = 10_000, bytes: int = 64 * 1024 * 1024,
+                 packet: int = 65_536, clock: Callable[[], float] = time.monotonic):
+        self.rate = bandwidth / 8 if bandwidth else None  # bytes per second
+        self.overhead = overhead
+        self.max_delay = max_delay
+        self.limit_frames = frames
+        self.limit_bytes = bytes
+        self.capacity = burst(self.rate, packet + overhead) if self.rate else 0
+        self.clock = clock
+        self._classes: list[OrderedDict[int, _Topic]] = [OrderedDict() for _ in range(CLASSES)]
+        self._topics: dict[int, _Topic] = {}
+        self._buckets: dict[Any, Bucket] = {}
+        self._frames = 0  # messages waiting (not started)
+        self._bytes = 0
+        self.dropped: list[tuple[Any, str, str]] = []  # for the link to count outside its lock
+
+    # -- in ------------------------------------------------------------------------------------
+    def _topic(self, sender: Any) -> _Topic:
+        topic = self._topics.get(id(sender))
+        if topic is None:
+            priority = min(max(int(getattr(sender, "priority", CONTROL)), 0), CLASSES - 1)
+            topic = self._topics[id(sender)] = _Topic(sender, priority)
+        return topic
+
+    def _activate(self, topic: _Topic) -> None:
+        self._classes[topic.priority].setdefault(id(topic.sender), topic)
+
+    def put(self, message: Outgoing) -> bool:
+        """Queue a frame; False when the link's limits refuse it (counted ``queue_full``)."""
+        topic = self._topic(message.sender)
+        if getattr(message.sender, "latest_only", False):
+            while topic.waiting:
+                old = topic.waiting.popleft()
+                self._frames -= 1
+                self._bytes -= old.size
+                self.dropped.append((old.sender, "superseded", "a newer message replaced it"))
+        if self._frames >= self.limit_frames or self._bytes + message.size > self.limit_bytes:
+            self.dropped.append((message.sender, "queue_full",
+                                 f"{self._frames} frames, {self._bytes} bytes waiting"))
+            return False
+        topic.waiting.append(message)
+        self._frames += 1
+        self._bytes += message.size
+        self._activate(topic)
+        return True
+
+    def repair(self, sender: Any, to: Any, packets: list[bytes]) -> None:
+        """Packets to send again (what a receiver asked for): first in their topic's turn."""
+        topic = self._topic(sender)
+        topic.repairs.extend((p, to) for p in packets)
+        self._activate(topic)
+
+    def charge(self, to: Any, size: int) -> None:
+        """Count a packet sent without the queue (an acknowledgement) against ``to``'s budget."""
+        bucket = self._bucket(to, self.clock())
+        if bucket is not None:
+            bucket.charge(size + self.overhead, self.clock())
+
+    # -- out -----------------------------------------------------------------------------------
+    def _bucket(self, to: Any, now: float) -> Bucket | None:
+        if self.rate is None:
+            return None
+        bucket = self._buckets.get(to)
+        if bucket is None:
+            bucket = self._buckets[to] = Bucket(self.rate, self.capacity, now)
+        return bucket
+
+    def may_send_now(self, to: Any, size: int) -> bool:
+        """Whether a packet for ``to`` may leave at once, nothing being queued (then its tokens
+        are taken): the caller's fast path."""
+        if self._frames or any(self._classes):
+            return False
+        bucket = self._bucket(to, self.clock())
+        return bucket is None or bucket.take(size + self.overhead, self.clock()) == 0.0
+
+    def _head(self, topic: _Topic, now: float) -> tuple[bytes, Any, bool] | None:
+        """The topic's next packet (starting its next message if need be), without taking it."""
+        if topic.repairs:
+            packet, to = topic.repairs[0]
+            return packet, to, True
+        while not topic.packets:
+            if not topic.waiting:
+                return None
+            message = topic.waiting.popleft()
+            self._frames -= 1
+            self._bytes -= message.size
+            reliable = getattr(message.sender, "reliable", True)
+            if not reliable and now - message.queued > self.max_delay:
+                self.dropped.append((message.sender, "late", f"waited {now - message.queued:.2f} s "
+                                     f"to be sent (max_delay {self.max_delay:g} s)"))
+                continue
+            try:
+                packets = message.cut()
+            except Exception as exc:  # a frame that cannot be cut (too large): counted
+                self.dropped.append((message.sender, "send_error", str(exc)))
+                continue
+            topic.current = message
+            topic.packets.extend(packets)
+        assert topic.current is not None
+        return topic.packets[0], topic.current.to, False
+
+    def next(self, now: float | None = None) -> Due | float | None:
+        """The packet to send now; or when to ask again (a budget is short); or None when
+        nothing waits."""
+        now = self.clock() if now is None else now
+        soonest: float | None = None
+        waiting: set[Any] = set()  # destinations whose budget keeps a packet back
+        for topics in self._classes:
+            if not topics:
+                continue
+            for key, topic in list(topics.items()):
+                head = self._head(topic, now)
+                if head is None:
+                    del topics[key]
+                    continue
+                packet, to, again = head
+                if to in waiting:  # a packet before it in line waits for the same budget
+                    continue
+                bucket = self._bucket(to, now)
+                wait = bucket.take(len(packet) + self.overhead, now) if bucket else 0.0
+                if wait:
+                    waiting.add(to)
+                    soonest = now + wait if soonest is None else min(soonest, now + wait)
+                    continue
+                ends = None
+                if again:
+                    topic.repairs.popleft()
+                else:
+                    topic.packets.popleft()
+                    if not topic.packets:
+                        ends, topic.current = topic.current, None
+                topics.move_to_end(key)  # round robin: its turn is over
+                if not topic.busy:
+                    del topics[key]
+                return Due(packet, to, topic.sender, ends, again)
+        return soonest
+
+    def depth(self, sender: Any) -> int:
+        """Messages of ``sender`` not fully sent: waiting, plus the one in progress."""
+        topic = self._topics.get(id(sender))
+        if topic is None:
+            return 0
+        return len(topic.waiting) + (topic.current is not None)
+
+    @property
+    def idle(self) -> bool:
+        return not any(self._classes)
+
+    def forget(self, sender: Any) -> None:
+        """A sender that is gone (a removed route): what it queued goes too."""
+        topic = self._topics.pop(id(sender), None)
+        if topic is not None:
+            self._classes[topic.priority].pop(id(sender), None)
+            self._frames -= len(topic.waiting)
+            self._bytes -= sum(m.size for m in topic.waiting)
+
+    def clear(self) -> list[Any]:
+        """Empty the queue (the link closes): the senders of every message that never left."""
+        unsent = [m.sender for t in self._topics.values() for m in t.waiting]
+        unsent += [t.sender for t in self._topics.values() if t.current is not None]
+        for topics in self._classes:
+            topics.clear()
+        self._topics.clear()
+        self._frames = self._bytes = 0
+        return unsent

@@ -1,0 +1,215 @@
+"""The scheduler alone, on a simulated clock: the order packets leave in (strict priority,
+round robin, one message at a time per topic, repairs first), latest-only replacement, late
+best-effort messages, the link's limits, and budgets per destination within 10 % over a few
+seconds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import pytest
+
+from rosgate.scheduler import Bucket, Due, Outgoing, Scheduler, burst
+
+
+@dataclass(eq=False)
+class Topic:
+    name: str
+    priority: int = 5
+    latest_only: bool = False
+    reliable: bool = True
+    drops: list[str] = field(default_factory=list)
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def message(topic: Topic, name: str, packets: int = 1, size: int = 100, to="b",
+            queued: float = 0.0) -> Outgoing:
+    return Outgoing(topic, to, packets * size,
+                    lambda: [f"{name}.{i}".encode().ljust(size, b".") for i in range(packets)],
+                    queued)
+
+
+def drain(scheduler: Scheduler, clock: Clock | None = None, limit: int = 10_000) -> list[str]:
+    """Every packet in the order it leaves (advancing the clock when a budget says wait)."""
+    out = []
+    for _ in range(limit):
+        due = scheduler.next(clock() if clock else 0.0)
+        if due is None:
+            break
+        if isinstance(due, float):
+            assert clock is not None
+            clock.now = due
+            continue
+        out.append(due.packet.decode().rstrip("."))
+    for sender, reason, _ in scheduler.dropped:
+        sender.drops.append(reason)
+    scheduler.dropped.clear()
+    return out
+
+
+def test_strict_priority_between_classes():
+    s = Scheduler()
+    image, twist, status = Topic("image", 6), Topic("twist", 2), Topic("status", 5)
+    s.put(message(image, "img", packets=3))
+    s.put(message(status, "st"))
+    s.put(message(twist, "tw"))
+    s.put(message(Topic("hello", 0), "ctl"))
+    assert drain(s) == ["ctl.0", "tw.0", "st.0", "img.0", "img.1", "img.2"]
+
+
+def test_round_robin_between_the_topics_of_a_class_packet_by_packet():
+    s = Scheduler()
+    a, b, c = Topic("a"), Topic("b"), Topic("c")
+    s.put(message(a, "a1", packets=4))
+    s.put(message(b, "b1", packets=2))
+    s.put(message(c, "c1"))
+    s.put(message(c, "c2"))
+    assert drain(s) == ["a1.0", "b1.0", "c1.0", "a1.1", "b1.1", "c2.0", "a1.2", "a1.3"]
+
+
+def test_a_control_topic_waits_at_most_one_packet_of_a_large_message():
+    s = Scheduler()
+    image, twist = Topic("image", 5), Topic("twist", 2)
+    s.put(message(image, "img", packets=700))
+    out = []
+    for i in range(50):  # a Twist arrives after every ten image fragments
+        out += [s.next(0.0).packet.decode().rstrip(".") for _ in range(10)]
+        s.put(message(twist, f"tw{i}"))
+        out.append(s.next(0.0).packet.decode().rstrip("."))
+    assert out[10::11] == [f"tw{i}.0" for i in range(50)]
+
+
+def test_a_topic_s_messages_never_interleave_and_repairs_go_first():
+    s = Scheduler()
+    t = Topic("t")
+    s.put(message(t, "m1", packets=3))
+    s.put(message(t, "m2", packets=2))
+    first = s.next(0.0)
+    assert first.packet.startswith(b"m1.0")
+    s.repair(t, "b", [b"m0.5"])  # a receiver asked for a fragment of an earlier message
+    out = [first.packet.decode().rstrip(".")] + drain(s)
+    assert out == ["m1.0", "m0.5", "m1.1", "m1.2", "m2.0", "m2.1"]
+
+
+def test_the_last_packet_of_a_message_says_so():
+    s = Scheduler()
+    t = Topic("t")
+    m = message(t, "m", packets=2)
+    s.put(m)
+    dues = [s.next(0.0), s.next(0.0)]
+    assert [d.ends for d in dues] == [None, m]
+
+
+def test_latest_only_replaces_the_message_not_yet_started():
+    s = Scheduler()
+    cam = Topic("cam", latest_only=True)
+    s.put(message(cam, "f1", packets=3))
+    assert s.next(0.0).packet.startswith(b"f1.0")   # f1 started: it is finished
+    for n in range(2, 6):
+        s.put(message(cam, f"f{n}", packets=3))      # f2..f4 replaced in turn by f5
+    assert s.depth(cam) == 2  # f1 in progress, f5 waiting
+    assert drain(s) == ["f1.1", "f1.2", "f5.0", "f5.1", "f5.2"]
+    assert cam.drops == ["superseded"] * 3
+    assert s.depth(cam) == 0
+
+
+def test_reliable_topics_queue_everything():
+    s = Scheduler()
+    t = Topic("t")
+    for n in range(5):
+        s.put(message(t, f"m{n}"))
+    assert s.depth(t) == 5
+    assert drain(s) == [f"m{n}.0" for n in range(5)]
+
+
+def test_a_best_effort_message_that_waited_too_long_is_dropped_as_late():
+    clock = Clock()
+    s = Scheduler(max_delay=0.5, clock=clock)
+    be, rel = Topic("be", reliable=False), Topic("rel")
+    s.put(message(be, "old", queued=0.0))
+    s.put(message(rel, "old-reliable", queued=0.0))
+    s.put(message(be, "new", queued=0.4))
+    clock.now = 0.6
+    assert drain(s, clock) == ["new.0", "old-reliable.0"]  # be's turn first, its old one late
+    assert be.drops == ["late"] and rel.drops == []
+
+
+def test_the_link_s_limits_refuse_new_messages():
+    s = Scheduler(frames=3, bytes=250)
+    t = Topic("t")
+    assert [s.put(message(t, f"m{n}")) for n in range(3)] == [True, True, False]  # bytes
+    assert t.drops == [] and [r for _, r, _ in s.dropped] == ["queue_full"]
+    s2 = Scheduler(frames=2)
+    assert [s2.put(message(t, f"m{n}")) for n in range(3)] == [True, True, False]  # frames
+
+
+def test_clear_names_what_never_left():
+    s = Scheduler()
+    a, b = Topic("a"), Topic("b")
+    s.put(message(a, "a1", packets=2))
+    s.put(message(b, "b1"))
+    s.next(0.0)
+    assert sorted(t.name for t in s.clear()) == ["a", "b"]
+    assert s.idle and s.next(0.0) is None
+
+
+# -- budgets -----------------------------------------------------------------------------------
+def test_bucket():
+    b = Bucket(rate=1000.0, capacity=500, now=0.0)
+    assert b.take(400, 0.0) == 0.0
+    assert b.take(400, 0.0) == pytest.approx(0.3)   # 100 left, 300 to come at 1000 B/s
+    assert b.take(400, 0.3) == 0.0
+    b.charge(1000, 0.3)                             # an acknowledgement: into debt
+    assert b.take(100, 0.3) == pytest.approx(1.1)
+
+
+@pytest.mark.parametrize("bandwidth, packet", [(20e6, 1200), (2e6, 1200), (500e3, 300)])
+def test_a_budget_holds_within_10_percent_over_a_few_seconds(bandwidth, packet):
+    clock = Clock()
+    s = Scheduler(bandwidth=bandwidth, overhead=28, clock=clock, packet=packet)
+    image, twist = Topic("image"), Topic("twist", 2)
+    sent = 0
+    t = 0.0
+    while clock.now < 3.0:
+        # offered: far more than the budget (an image every 0.1 s, twists at 50 Hz)
+        while t <= clock.now:
+            s.put(message(image, f"i{t:.2f}", packets=int(bandwidth / 8 / packet / 2),
+                          size=packet, queued=t))
+            s.put(message(twist, f"t{t:.2f}", size=60, queued=t))
+            t += 0.02
+        due = s.next()
+        if isinstance(due, float):
+            clock.now = due
+        elif isinstance(due, Due):
+            if clock.now >= 0.5:  # after the first burst
+                sent += len(due.packet) + 28
+    rate = sent * 8 / 2.5
+    assert bandwidth * 0.9 <= rate <= bandwidth * 1.1, rate / bandwidth
+
+
+def test_every_destination_has_a_budget_of_its_own():
+    clock = Clock()
+    s = Scheduler(bandwidth=80_000, clock=clock, packet=1000)  # 10 kB/s per destination
+    a, b = Topic("a"), Topic("b")
+    s.put(message(a, "to-x", packets=30, size=1000, to="x"))
+    s.put(message(b, "to-y", packets=30, size=1000, to="y"))
+    out = drain(s, clock)
+    assert len(out) == 60
+    assert clock.now == pytest.approx((30_000 - burst(10_000, 1000)) / 10_000, rel=0.01)
+
+
+def test_a_budget_keeps_strict_priority_for_its_destination():
+    """A large high-priority packet waiting for tokens is not overtaken by a small lower one."""
+    clock = Clock()
+    s = Scheduler(bandwidth=8000, clock=clock, packet=1000)  # 1 kB/s, a 4 kB bucket
+    high, low = Topic("high", 1), Topic("low", 7)
+    s.put(message(high, "h", packets=6, size=1000))
+    s.put(message(low, "l", size=10))
+    assert drain(s, clock) == [f"h.{i}" for i in range(6)] + ["l.0"]
