@@ -12,6 +12,7 @@ from rosgate.wire import envelope
 from rosgate.wire.framing import (
     DEFAULT_MAX_MESSAGE, FRAGMENT, LENGTH, CompactReassembler, FramingError, Reassembler,
     StreamReader, compact_fragment, fragment, is_fragment, length_prefixed,
+    CHUNK, CHUNK_HEAD, CHUNKED, LAST, MAX_OPEN_MESSAGES, stream_records,
 )
 
 
@@ -496,3 +497,45 @@ def test_compact_malformed_first_pieces(piece, message):
     with pytest.raises(FramingError, match=message):
         CompactReassembler(lost, max_message=1000).add("s", piece)
     assert lost.calls == []
+
+
+# -- chunks on streams ---------------------------------------------------------------------------
+def test_a_frame_up_to_a_chunk_is_one_plain_record():
+    assert stream_records(b"x" * CHUNK, 7) == [length_prefixed(b"x" * CHUNK)]
+
+
+def test_long_frames_travel_in_chunks_and_come_back_whole_between_others():
+    big = random.Random(1).randbytes(3 * CHUNK + 5)
+    other = random.Random(2).randbytes(CHUNK * 2)
+    records = stream_records(big, 1)
+    assert len(records) == 4 and all(len(r) <= 8 + CHUNK for r in records)
+    heads = [CHUNK_HEAD.unpack_from(r) for r in records]
+    assert [h[0] & (CHUNKED | LAST) for h in heads] == [CHUNKED] * 3 + [CHUNKED | LAST]
+    # another topic's chunks and a small frame between them, as the scheduler interleaves
+    others = stream_records(other, 2)
+    stream = [records[0], others[0], length_prefixed(b"twist"), records[1], others[1],
+              records[2], records[3]]
+    data = b"".join(stream)
+    assert read_all(StreamReader(), [data]) == [b"twist", other, big]
+    for cut in (1, 5, 9, CHUNK + 3, len(data) - 1):  # however the connection cuts it
+        assert read_all(StreamReader(), [data[:cut], data[cut:]]) == [b"twist", other, big]
+
+
+@pytest.mark.parametrize("record, why", [
+    (LENGTH.pack(CHUNKED | 2) + b"ab", "a chunk without its head"),
+    (CHUNK_HEAD.pack(CHUNKED | 1004, 1) + bytes(1000), "over the limit"),   # one chunk too long
+])
+def test_impossible_chunks_end_the_stream(record, why):
+    with pytest.raises(FramingError, match=why):
+        read_all(StreamReader(max_frame=100), [record])
+
+
+def test_chunked_frames_are_bounded_in_size_and_number():
+    # one message growing past the limit
+    chunks = [CHUNK_HEAD.pack(CHUNKED | 64, 1) + bytes(60)] * 3
+    with pytest.raises(FramingError, match="chunked frames over the limit 100"):
+        read_all(StreamReader(max_frame=100), [b"".join(chunks)])
+    # too many open at once
+    opens = b"".join(CHUNK_HEAD.pack(CHUNKED | 5, n) + b"x" for n in range(MAX_OPEN_MESSAGES + 1))
+    with pytest.raises(FramingError, match="chunked frames open at once"):
+        read_all(StreamReader(), [opens])

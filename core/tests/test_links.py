@@ -330,9 +330,9 @@ def blocked_writer(closing, tcp_connections, **kwargs) -> tuple[StreamLink, Inbo
     assert link.send(bytes(8_000_000), inbox.sender(1)) is True
     # the writer has taken it off the queue (and cannot finish writing it)
     deadline = time.monotonic() + 5
-    while link._queue and time.monotonic() < deadline:
+    while link.queued() and time.monotonic() < deadline:
         time.sleep(0.005)
-    assert not link._queue, "the writer never took the frame"
+    assert not link.queued(), "the writer never took the frame"
     return link, inbox
 
 

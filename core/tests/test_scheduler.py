@@ -5,17 +5,21 @@ seconds."""
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import pytest
 
 from rosgate.scheduler import Bucket, Due, Outgoing, Scheduler, burst
 
+IDS = itertools.count(1)
+
 
 @dataclass(eq=False)
 class Topic:
     name: str
     priority: int = 5
+    topic_id: int = field(default_factory=lambda: next(IDS))
     latest_only: bool = False
     reliable: bool = True
     drops: list[str] = field(default_factory=list)
@@ -60,7 +64,7 @@ def test_strict_priority_between_classes():
     s.put(message(image, "img", packets=3))
     s.put(message(status, "st"))
     s.put(message(twist, "tw"))
-    s.put(message(Topic("hello", 0), "ctl"))
+    s.put(message(Topic("hello", 0), "ctl"))  # the control channel's class
     assert drain(s) == ["ctl.0", "tw.0", "st.0", "img.0", "img.1", "img.2"]
 
 
@@ -137,7 +141,7 @@ def test_a_best_effort_message_that_waited_too_long_is_dropped_as_late():
     s.put(message(rel, "old-reliable", queued=0.0))
     s.put(message(be, "new", queued=0.4))
     clock.now = 0.6
-    assert drain(s, clock) == ["new.0", "old-reliable.0"]  # be's turn first, its old one late
+    assert drain(s, clock) == ["old-reliable.0", "new.0"]  # first come, first served
     assert be.drops == ["late"] and rel.drops == []
 
 

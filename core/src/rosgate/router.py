@@ -73,7 +73,8 @@ class Router:
             framing = (BareFraming(t.remote if codec.messagepack and bare_names else None)
                        if t.framing is Framing.NONE else EnvelopeFraming())
             route = TransmitRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
-                                  framing=framing, link=link, destination=destination)
+                                  framing=framing, link=link, destination=destination,
+                                  priority=p.priority, latest_only=p.latest_only)
             route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
         else:
             decode: Callable[[bytes], Any] = codec.decode
@@ -199,6 +200,12 @@ class Router:
         else:
             self.link_drop(None, reason, "on a link")
 
+    def on_recovered(self, topic_id: int) -> None:
+        """A receiving link rebuilt a frame from repair fragments or retransmissions."""
+        route = self.receivers.get(topic_id)
+        if route is not None:
+            route.counters.recovered += 1
+
     def link_drop(self, link: Any, reason: str, detail: str) -> None:
         """A frame that belongs to no route: counted per bridge, warned about per link."""
         with self._lock:
@@ -223,8 +230,12 @@ class Router:
 
     def stats(self) -> dict[str, Any]:
         """Counters per route, plus drops that belong to no topic."""
-        return {"routes": {r.label: r.counters.snapshot() for r in self.snapshot()},
-                "link_drops": dict(self.link_drops)}
+        routes = {}
+        for r in self.snapshot():
+            routes[r.label] = r.counters.snapshot()
+            if isinstance(r, TransmitRoute):
+                routes[r.label]["queue_depth"] = r.queue_depth
+        return {"routes": routes, "link_drops": dict(self.link_drops)}
 
     def log_stats(self, routes: list[Route] | None = None) -> None:
         """Log the counters of ``routes`` (default: every route, and the frames for no topic)."""
@@ -232,8 +243,9 @@ class Router:
             c = route.counters
             drops = ", ".join(f"{k}={v}" for k, v in sorted(c.drops.items())) or "none"
             lost = f", lost on the way {c.lost}" if c.lost else ""
-            log.info("%s: sent %d (%d B), received %d (%d B)%s, drops: %s", route.label, c.sent,
-                     c.bytes_sent, c.received, c.bytes_received, lost, drops)
+            log.info("%s: sent %d (%d B), received %d (%d B)%s%s, drops: %s", route.label,
+                     c.sent, c.bytes_sent, c.received, c.bytes_received, lost,
+                     _real_link_counters(route), drops)
         if routes is None and self.link_drops:
             log.info("frames for no topic: %s", dict(self.link_drops))
 
@@ -241,6 +253,25 @@ class Router:
         for route in self.snapshot():
             self.remove(route)
         self.deadlines.close()
+
+
+def _real_link_counters(route: Route) -> str:
+    """The counters of real links, where they say something: what went on the wire, what was
+    sent again or rebuilt, what compression saved, what waits."""
+    c, parts = route.counters, []
+    if c.bytes_on_wire and c.bytes_on_wire != c.bytes_sent:
+        parts.append(f"on the wire {c.bytes_on_wire} B")
+    if c.retransmitted:
+        parts.append(f"retransmitted {c.retransmitted}")
+    if c.recovered:
+        parts.append(f"recovered {c.recovered}")
+    if c.bytes_before_compression:
+        parts.append(f"compressed {c.bytes_before_compression} B -> {c.bytes_after_compression}"
+                     f" B ({c.not_compressed} sent as they were)")
+    depth = route.queue_depth if isinstance(route, TransmitRoute) else 0
+    if depth:
+        parts.append(f"queued {depth}")
+    return "".join(f", {p}" for p in parts)
 
 
 def _static(cipher: Any) -> Any:

@@ -30,7 +30,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
 from .codec import Codec
-from .config import Compression, ServiceConfig, TopicConfig
+from .config import (PRIORITIES, RECOVERY_OVERHEAD_DEFAULT, Compression, Recovery,
+                     ServiceConfig, TopicConfig)
 from .errors import CipherError, CodecError
 from .keyring import Keys, NoKey
 from .links import Link
@@ -45,7 +46,7 @@ log = logging.getLogger("rosgate")
 WARN_EVERY = 5.0  # seconds between two warnings of one kind for one topic
 
 # reasons that say something is wrong (a warning); the others are routine and only counted
-QUIET_REASONS = {"rate_limit", "duplicate"}
+QUIET_REASONS = {"rate_limit", "duplicate", "superseded"}
 
 
 @dataclass
@@ -56,6 +57,13 @@ class Counters:
     bytes_received: int = 0
     lost: int = 0  # sequence numbers skipped by the sender's frames and never filled in
     drops: Counter = field(default_factory=Counter)
+    # the link's view (sender): every byte of every packet put on it for this topic — after
+    # compression, with fragment headers, repair fragments and retransmissions; and how many
+    # packets were sent again because a receiver asked (recovery: retransmit)
+    bytes_on_wire: int = 0
+    retransmitted: int = 0
+    # receiver: frames that arrived whole only thanks to their recovery (fec, retransmit)
+    recovered: int = 0
     # compression (sender): payload bytes before and after, and payloads sent as they were
     # because compressing did not make them smaller
     bytes_before_compression: int = 0
@@ -68,7 +76,8 @@ class Counters:
                 "drops": dict(self.drops),
                 "bytes_before_compression": self.bytes_before_compression,
                 "bytes_after_compression": self.bytes_after_compression,
-                "not_compressed": self.not_compressed}
+                "not_compressed": self.not_compressed, "bytes_on_wire": self.bytes_on_wire,
+                "retransmitted": self.retransmitted, "recovered": self.recovered}
 
 
 class Warner:
@@ -98,6 +107,13 @@ class Route:
     """A topic's (or service's) path through the bridge in one direction; the
     :class:`rosgate.links.Sender` of its frames."""
 
+    #: what the link's scheduler and fragmentation read (a transmitting topic sets its own)
+    priority: int = PRIORITIES["data"]
+    latest_only = False
+    recovery = Recovery.NONE.value
+    recovery_overhead = RECOVERY_OVERHEAD_DEFAULT
+    bare = False
+
     def __init__(self, entry: TopicConfig | ServiceConfig, topic_id: int, codec: Any,
                  keys: Keys, warner: Warner, label: str, reliable: bool = False):
         self.entry = entry
@@ -109,6 +125,12 @@ class Route:
         self.reliable = reliable  # frames wait out a stream link's loss (reliable QoS)
         self.counters = Counters()
         self.entity: Any = None  # the ROS subscription, publisher, service or client
+
+    def on_wire(self, size: int, again: bool) -> None:
+        """A packet of ``size`` bytes left on the link for this route (``again``: re-sent)."""
+        self.counters.bytes_on_wire += size
+        if again:
+            self.counters.retransmitted += 1
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.counters.drops[reason] += 1
@@ -184,11 +206,17 @@ class TransmitRoute(Route):
 
     def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
                  warner: Warner, label: str, reliable: bool, *, framing: TopicFraming,
-                 link: Link, destination: Callable[[], Address | None]):
+                 link: Link, destination: Callable[[], Address | None],
+                 priority: int = PRIORITIES["data"], latest_only: bool = False):
         super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
         self.framing = framing
         self.link = link
+        self.priority = priority
+        self.latest_only = latest_only
+        self.recovery = topic.recovery.value
+        self.recovery_overhead = topic.recovery_overhead
+        self.bare = framing.bare
         self.destination = destination  # where to send, looked up per message (a server learns it)
         self.epoch: int | None = None  # of the key in use, set by the first frame
         self.seq = 0
@@ -237,6 +265,18 @@ class TransmitRoute(Route):
             self.last_sent_ns = now
             self.counters.sent += 1
             self.counters.bytes_sent += len(frame)
+
+    @property
+    def queue_depth(self) -> int:
+        """Its messages waiting in the link, or being sent, now."""
+        depth = getattr(self.link, "queue_depth", None)
+        return depth(self) if depth is not None else 0
+
+    def close(self) -> None:
+        """The route is removed: what it queued goes (a message half sent is not finished)."""
+        forget = getattr(self.link, "forget", None)
+        if forget is not None:
+            forget(self)
 
 
 class ReceiveRoute(Route):

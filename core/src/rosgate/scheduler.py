@@ -1,15 +1,18 @@
 """The scheduler: in which order, and how fast, frames leave a link.
 
-Every link has one. Frames are queued per topic (per :class:`~rosgate.links.Sender`), the
+Every link has one. Frames are queued per topic (by the topic id of their
+:class:`~rosgate.links.Sender`), the
 topics grouped in priority classes — zenoh's seven, ``real_time`` (1) to ``background`` (7),
 and class 0 above them for the control channel (hellos, pings, handshakes) — and a frame leaves
 as *packets*: a datagram, a fragment, a chunk of a stream. Then:
 
 * **strict priority** between classes: nothing of a class leaves while a higher class has a
   packet that may go;
-* **round robin** between the topics of one class, a packet each: the fragments of two topics'
-  messages interleave, so a small message waits at most one packet of every other topic of its
-  class, never a whole image;
+* **first come, first served, a packet at a time** between the topics of one class: messages
+  leave in the order they came, but a long one's packets take turns with the others' (each
+  waits from when the packet before it left), so the fragments of two topics' messages
+  interleave and a small message waits at most one packet of every other topic of its class,
+  never a whole image;
 * **one message at a time per topic**: a message partly sent is finished before the topic's next
   one starts (a topic's fragments never interleave with each other; a stream's chunks must not);
   a topic's packets sent again (retransmissions) go before its other packets;
@@ -39,6 +42,7 @@ from typing import Any
 
 CLASSES = 8  # 0: control; 1 (real_time) .. 7 (background)
 CONTROL = 0
+DATA = 5     # a sender that names no priority
 
 
 def burst(rate_bytes: float, packet: int) -> int:
@@ -108,6 +112,8 @@ class _Topic:
     current: Outgoing | None = None
     packets: deque[bytes] = field(default_factory=deque)
     repairs: deque[tuple[bytes, Any]] = field(default_factory=deque)
+    since: float = 0.0     # when its next packet (of the message in progress) became due
+    repaired: float = 0.0  # when its repairs were asked for
 
     @property
     def busy(self) -> bool:
@@ -138,14 +144,15 @@ class Scheduler:
 
     # -- in ------------------------------------------------------------------------------------
     def _topic(self, sender: Any) -> _Topic:
-        topic = self._topics.get(id(sender))
+        """The queue of the sender's topic (by topic id: what its fragments carry)."""
+        topic = self._topics.get(sender.topic_id)
         if topic is None:
-            priority = min(max(int(getattr(sender, "priority", CONTROL)), 0), CLASSES - 1)
-            topic = self._topics[id(sender)] = _Topic(sender, priority)
+            priority = min(max(int(getattr(sender, "priority", DATA)), 0), CLASSES - 1)
+            topic = self._topics[sender.topic_id] = _Topic(sender, priority)
         return topic
 
     def _activate(self, topic: _Topic) -> None:
-        self._classes[topic.priority].setdefault(id(topic.sender), topic)
+        self._classes[topic.priority].setdefault(topic.sender.topic_id, topic)
 
     def put(self, message: Outgoing) -> bool:
         """Queue a frame; False when the link's limits refuse it (counted ``queue_full``)."""
@@ -169,6 +176,8 @@ class Scheduler:
     def repair(self, sender: Any, to: Any, packets: list[bytes]) -> None:
         """Packets to send again (what a receiver asked for): first in their topic's turn."""
         topic = self._topic(sender)
+        if not topic.repairs:
+            topic.repaired = self.clock()
         topic.repairs.extend((p, to) for p in packets)
         self._activate(topic)
 
@@ -195,71 +204,92 @@ class Scheduler:
         bucket = self._bucket(to, self.clock())
         return bucket is None or bucket.take(size + self.overhead, self.clock()) == 0.0
 
-    def _head(self, topic: _Topic, now: float) -> tuple[bytes, Any, bool] | None:
-        """The topic's next packet (starting its next message if need be), without taking it."""
+    @staticmethod
+    def _since(topic: _Topic) -> float | None:
+        """Since when the topic's next packet has been waiting (None: it has none)."""
         if topic.repairs:
-            packet, to = topic.repairs[0]
-            return packet, to, True
-        while not topic.packets:
-            if not topic.waiting:
-                return None
-            message = topic.waiting.popleft()
-            self._frames -= 1
-            self._bytes -= message.size
-            reliable = getattr(message.sender, "reliable", True)
-            if not reliable and now - message.queued > self.max_delay:
-                self.dropped.append((message.sender, "late", f"waited {now - message.queued:.2f} s "
-                                     f"to be sent (max_delay {self.max_delay:g} s)"))
-                continue
-            try:
-                packets = message.cut()
-            except Exception as exc:  # a frame that cannot be cut (too large): counted
-                self.dropped.append((message.sender, "send_error", str(exc)))
-                continue
-            topic.current = message
-            topic.packets.extend(packets)
-        assert topic.current is not None
-        return topic.packets[0], topic.current.to, False
+            return topic.repaired
+        if topic.packets:
+            return topic.since
+        if topic.waiting:
+            return topic.waiting[0].queued
+        return None
+
+    def _start(self, topic: _Topic, now: float) -> bool:
+        """Cut the topic's next message into packets; False when it was dropped instead."""
+        message = topic.waiting.popleft()
+        self._frames -= 1
+        self._bytes -= message.size
+        if not getattr(message.sender, "reliable", True) and now - message.queued > self.max_delay:
+            self.dropped.append((message.sender, "late", f"waited {now - message.queued:.2f} s "
+                                 f"to be sent (max_delay {self.max_delay:g} s)"))
+            return False
+        try:
+            packets = message.cut()
+        except Exception as exc:  # a frame that cannot be cut (too large): counted
+            self.dropped.append((message.sender, "send_error", str(exc)))
+            return False
+        topic.current, topic.since = message, message.queued
+        topic.packets.extend(packets)
+        return bool(packets)
 
     def next(self, now: float | None = None) -> Due | float | None:
         """The packet to send now; or when to ask again (a budget is short); or None when
-        nothing waits."""
+        nothing waits.
+
+        Within a class, the topic whose next packet has waited longest goes: a message waits
+        from when it was queued, the next packet of a message in progress from when the one
+        before it left. So whole messages leave in the order they came, and the packets of
+        long ones take turns with everything else (round robin when they tie)."""
         now = self.clock() if now is None else now
         soonest: float | None = None
-        waiting: set[Any] = set()  # destinations whose budget keeps a packet back
+        blocked: set[Any] = set()  # destinations whose budget keeps a packet back
         for topics in self._classes:
-            if not topics:
-                continue
-            for key, topic in list(topics.items()):
-                head = self._head(topic, now)
-                if head is None:
-                    del topics[key]
-                    continue
-                packet, to, again = head
-                if to in waiting:  # a packet before it in line waits for the same budget
-                    continue
-                bucket = self._bucket(to, now)
-                wait = bucket.take(len(packet) + self.overhead, now) if bucket else 0.0
-                if wait:
-                    waiting.add(to)
-                    soonest = now + wait if soonest is None else min(soonest, now + wait)
-                    continue
-                ends = None
-                if again:
-                    topic.repairs.popleft()
-                else:
-                    topic.packets.popleft()
-                    if not topic.packets:
-                        ends, topic.current = topic.current, None
-                topics.move_to_end(key)  # round robin: its turn is over
-                if not topic.busy:
-                    del topics[key]
-                return Due(packet, to, topic.sender, ends, again)
+            while topics:
+                line = []
+                for key, topic in list(topics.items()):
+                    since = self._since(topic)
+                    if since is None:
+                        del topics[key]
+                    else:
+                        line.append((since, key, topic))
+                line.sort(key=lambda entry: entry[0])  # stable: ties keep the round robin
+                restart = False
+                for _, key, topic in line:
+                    if not topic.repairs and not topic.packets:
+                        if not self._start(topic, now):
+                            restart = True  # dropped (late): look at the line again
+                            break
+                    again = bool(topic.repairs)
+                    packet, to = topic.repairs[0] if again else (
+                        topic.packets[0], topic.current.to if topic.current else None)
+                    if to in blocked:
+                        continue
+                    bucket = self._bucket(to, now)
+                    wait = bucket.take(len(packet) + self.overhead, now) if bucket else 0.0
+                    if wait:
+                        blocked.add(to)
+                        soonest = now + wait if soonest is None else min(soonest, now + wait)
+                        continue
+                    ends = None
+                    if again:
+                        topic.repairs.popleft()
+                    else:
+                        topic.packets.popleft()
+                        topic.since = now
+                        if not topic.packets:
+                            ends, topic.current = topic.current, None
+                    topics.move_to_end(key)  # its turn is over
+                    if not topic.busy:
+                        del topics[key]
+                    return Due(packet, to, topic.sender, ends, again)
+                if not restart:
+                    break
         return soonest
 
     def depth(self, sender: Any) -> int:
         """Messages of ``sender`` not fully sent: waiting, plus the one in progress."""
-        topic = self._topics.get(id(sender))
+        topic = self._topics.get(sender.topic_id)
         if topic is None:
             return 0
         return len(topic.waiting) + (topic.current is not None)
@@ -268,11 +298,16 @@ class Scheduler:
     def idle(self) -> bool:
         return not any(self._classes)
 
+    @property
+    def waiting(self) -> int:
+        """Messages waiting to start, all senders."""
+        return self._frames
+
     def forget(self, sender: Any) -> None:
         """A sender that is gone (a removed route): what it queued goes too."""
-        topic = self._topics.pop(id(sender), None)
+        topic = self._topics.pop(sender.topic_id, None)
         if topic is not None:
-            self._classes[topic.priority].pop(id(sender), None)
+            self._classes[topic.priority].pop(sender.topic_id, None)
             self._frames -= len(topic.waiting)
             self._bytes -= sum(m.size for m in topic.waiting)
 

@@ -19,7 +19,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ..config import BridgeConfig
+from ..config import BridgeConfig, LinkConfig
 from ..errors import ConfigError, LinkError
 from ..links import (
     Acceptor,
@@ -62,6 +62,10 @@ class Bridge:
     def backoff(self) -> Backoff:
         return Backoff(self.config.reconnect_min, self.config.reconnect_max)
 
+    def budget(self, transport: Transport) -> LinkConfig | None:
+        """What this side may put on each link of ``transport`` (bridge.links)."""
+        return self.config.links.get(transport.name)
+
     def link_error(self, exc: LinkError, key: str) -> ConfigError:
         """A link that cannot be opened, located at the key that named it."""
         return self.config.error(key, str(exc), exc.fix or "free the port, or pick another one")
@@ -101,13 +105,15 @@ class Role:
             except LinkError as exc:
                 raise self.bridge.link_error(exc, key) from None
             name = f"{transport.name}:{local[1]}" if local[1] else f"{transport.name}"
+            budget = self.bridge.budget(transport)
             if bare_named is None:
                 link = DatagramLink(transport, endpoint, name, self.admit(self.router.on_frame),
-                                    self.router.on_lost)
+                                    self.router.on_lost, budget=budget,
+                                    on_recovered=self.router.on_recovered)
             else:
                 port = self.router.bare_port(bare_named)
                 link = DatagramLink(transport, endpoint, name, self.admit(port.on_frame),
-                                    self.router.on_lost, bare=True)
+                                    self.router.on_lost, bare=True, budget=budget)
                 self.bare_ports[link] = port
             self.datagram_links[(transport.name, local)] = self.life.closing(link)
             return link
@@ -156,11 +162,13 @@ class Role:
         """What to do with each connection accepted on a port: a link that feeds ``on_frame``
         and is forgotten by the bridge when it ends (after ``handshake``, when given)."""
         life, on_lost = self.life, self.router.on_lost
+        budget = self.bridge.budget(transport)
 
         def accepted(connection: StreamConnection, peer: Address) -> None:
             def link(ready: StreamConnection) -> None:
                 life.closing(StreamLink(ready, f"{transport.name}:{port}<-{peer[0]}", peer,
-                                        on_frame, on_lost, on_close=life.forget))
+                                        on_frame, on_lost, on_close=life.forget,
+                                        budget=budget))
             if handshake is None:
                 link(connection)
             else:
@@ -192,6 +200,7 @@ class Control:
 
     topic_id = envelope.CONTROL_TOPIC
     reliable = False
+    priority = 0  # the scheduler's class above every topic's: hellos and pings keep flowing
 
     def __init__(self, router: Router):
         self.router = router

@@ -71,7 +71,8 @@ class ClientRole(Role):
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
                                    bridge.backoff, self._handshake, self._lost,
-                                   secure=self._secure if self.cfg.secure else None)
+                                   secure=self._secure if self.cfg.secure else None,
+                                   budget=bridge.budget(plan.main_line))
 
     def _secure(self, connection: StreamConnection) -> StreamConnection:
         assert self.cfg.identity is not None and self.cfg.server_key is not None
@@ -273,7 +274,8 @@ class ClientRole(Role):
 
         Connector(p.transport, address, slot, self.router.on_frame, self.router.on_lost, self.life,
                   self.bridge.backoff, introduce,
-                  secure=self._secure if self.cfg.secure else None).start()
+                  secure=self._secure if self.cfg.secure else None,
+                  budget=self.bridge.budget(p.transport)).start()
         self._dedicated[port] = slot
         return slot
 

@@ -116,7 +116,7 @@ class PeerRole(Role):
         slot = self.bridge.slot(f"{t.transport}->{self.cfg.peer}:{t.port}")
         self.router.topic(p, topic_id_for(t.remote), t.topic, slot, keys=self._keys(p))
         Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
-                  self.life, self.bridge.backoff).start()
+                  self.life, self.bridge.backoff, budget=self.bridge.budget(p.transport)).start()
 
     def _receiver(self, p: PreparedTopic, link: Link) -> None:
         """A receiving topic is found by its remote name's id, and by its own name's."""
@@ -140,7 +140,8 @@ class PeerRole(Role):
         elif p.transport.stream:
             link = slot = self.bridge.slot(f"{s.transport}->{self.cfg.peer}:{s.port}")
             Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
-                      self.life, self.bridge.backoff).start()
+                      self.life, self.bridge.backoff,
+                      budget=self.bridge.budget(p.transport)).start()
         else:
             link = self.datagram_link(p.transport, p.local, key)
         self.router.service(p, service_id, s.service, link, fixed(p.address), self._keys(p))

@@ -205,8 +205,10 @@ class ServerRole(Role):
                 log.warning("client %r down (%s); keeping its session for %g s", session.name,
                             link.why or "main line closed", self.cfg.session_timeout)
 
+        assert self.bridge.plan.main_line is not None
         self.life.closing(StreamLink(connection, f"main<-{peer[0]}:{peer[1]}", peer, on_frame,
-                                     self.router.on_lost, on_close))
+                                     self.router.on_lost, on_close,
+                                     budget=self.bridge.budget(self.bridge.plan.main_line)))
 
     # -- sessions ----------------------------------------------------------------------------
     def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address,

@@ -4,6 +4,19 @@ Stream links (TCP, RFCOMM) carry ``u32 length | frame`` records. A length above 
 means the stream is not ours or is corrupt: the reader refuses it and the connection is closed
 (never a delimiter searched for in the payload).
 
+A frame longer than :data:`CHUNK` goes as **chunks** instead, so that another topic's frame
+can go between them and waits at most one chunk (the link's scheduler interleaves the chunks of
+different topics' frames; one topic's frames go one after the other)::
+
+    u32 CHUNKED | LAST? | n    the top bit says "a chunk"; the next one "the frame's last"
+    u32 message              which frame it continues: a number the sender gives each frame
+    n - 4 bytes              the next part of that frame
+
+A reader gathers each message's chunks and hands over the frame with its last chunk; it holds
+at most :data:`MAX_OPEN_MESSAGES` unfinished frames and, all together, at most twice the largest
+frame it takes. A length of a whole frame is below 2^31, so the two kinds never mix up; a reader
+that predates chunks refuses a chunk as a length over its limit, and reconnects.
+
 Datagram links carry a frame whole when it fits ``max_frame``; otherwise fragments::
 
     offset size field
@@ -52,6 +65,12 @@ from dataclasses import dataclass, field
 from typing import Callable, Hashable, Iterator
 
 LENGTH = struct.Struct(">I")
+CHUNK_HEAD = struct.Struct(">II")
+CHUNK = 16 * 1024        # frames longer than this travel in chunks of this many bytes
+CHUNKED = 0x80000000     # in a record's length: a chunk
+LAST = 0x40000000        # ... the last of its frame
+CHUNK_LENGTH = 0x3FFFFFFF
+MAX_OPEN_MESSAGES = 256  # unfinished chunked frames a stream reader holds
 FRAGMENT = struct.Struct(">2sHHII")
 FRAGMENT_MAGIC = b"RF"
 DEFAULT_MAX_MESSAGE = 64 * 1024 * 1024
@@ -71,12 +90,28 @@ def length_prefixed(frame: bytes) -> bytes:
     return LENGTH.pack(len(frame)) + frame
 
 
+def stream_records(frame: bytes, message: int, chunk: int = CHUNK) -> list[bytes]:
+    """``frame`` as the records of a stream: one, or chunks of ``message`` when it is longer
+    than ``chunk``."""
+    if len(frame) <= chunk:
+        return [length_prefixed(frame)]
+    view = memoryview(frame)
+    starts = range(0, len(frame), chunk)
+    last = starts[-1]
+    return [CHUNK_HEAD.pack(CHUNKED | (LAST if start == last else 0)
+                            | (min(chunk, len(frame) - start) + 4), message & 0xFFFFFFFF)
+            + view[start:start + chunk] for start in starts]
+
+
 class StreamReader:
-    """Cuts a byte stream into frames. Feed it what the connection gives."""
+    """Cuts a byte stream into frames, chunked ones put back together. Feed it what the
+    connection gives."""
 
     def __init__(self, max_frame: int = DEFAULT_MAX_MESSAGE):
         self.max_frame = max_frame
         self._buffer = bytearray()
+        self._open: dict[int, bytearray] = {}  # message -> what came of it
+        self._open_bytes = 0
 
     def feed(self, data: bytes) -> Iterator[bytes]:
         """Yield every complete frame; raise FramingError when a length is impossible."""
@@ -86,15 +121,40 @@ class StreamReader:
         try:
             while len(buffer) - start >= 4:
                 (length,) = LENGTH.unpack_from(buffer, start)
-                if length > self.max_frame:
-                    raise FramingError(f"frame length {length} over the limit {self.max_frame}")
-                end = start + 4 + length
+                chunked = length & CHUNKED
+                size = length & CHUNK_LENGTH if chunked else length
+                if size > self.max_frame or chunked and size < 4:
+                    raise FramingError(f"frame length {size} over the limit {self.max_frame}"
+                                       if size > self.max_frame else "a chunk without its head")
+                end = start + 4 + size
                 if end > len(buffer):
                     break
-                yield bytes(buffer[start + 4:end])
+                if not chunked:
+                    yield bytes(buffer[start + 4:end])
+                else:
+                    frame = self._chunk(buffer, start + 4, end, bool(length & LAST))
+                    if frame is not None:
+                        yield frame
                 start = end
         finally:
             del buffer[:start]
+
+    def _chunk(self, buffer: bytearray, start: int, end: int, last: bool) -> bytes | None:
+        (message,) = LENGTH.unpack_from(buffer, start)
+        part = self._open.get(message)
+        if part is None:
+            if len(self._open) >= MAX_OPEN_MESSAGES:
+                raise FramingError(f"more than {MAX_OPEN_MESSAGES} chunked frames open at once")
+            part = self._open[message] = bytearray()
+        part += buffer[start + 4:end]
+        self._open_bytes += end - start - 4
+        if len(part) > self.max_frame or self._open_bytes > 2 * self.max_frame:
+            raise FramingError(f"chunked frames over the limit {self.max_frame}")
+        if not last:
+            return None
+        del self._open[message]
+        self._open_bytes -= len(part)
+        return bytes(part)
 
 
 # -- datagrams ----------------------------------------------------------------------------
