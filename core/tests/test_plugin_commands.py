@@ -193,7 +193,9 @@ def test_plugins_options_prints_each_option_in_columns():
         "transport udp (rosgate-transport-udp 0.1.0), under plugins: udp:\n"
         "  OPTION          TYPE  DEFAULT  DESCRIPTION\n"
         "  receive_buffer  int   4194304  bytes of kernel receive buffer to ask for (at least 1)\n"
-        "  send_buffer     int   4194304  bytes of kernel send buffer to ask for (at least 1)\n")
+        "  send_buffer     int   4194304  bytes of kernel send buffer to ask for (at least 1)\n"
+        "  max_frame       int   1200     the largest datagram to send, in bytes; longer frames "
+        "go in fragments (1472 fills Ethernet over IPv4; 65000 on loopback) (256 to 65000)\n")
 
 
 def test_plugins_options_shows_required_options_choices_and_option_less_plugins(site):

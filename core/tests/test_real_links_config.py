@@ -35,6 +35,7 @@ def test_a_budget_per_transport_and_the_keys_of_a_topic():
     port: 9
     priority: data_low
     latest_only: true
+    max_delay: 0.05
     recovery: fec
     recovery_overhead: 0.2
     compression: zstd
@@ -46,12 +47,14 @@ def test_a_budget_per_transport_and_the_keys_of_a_topic():
     assert (udp.bandwidth, udp.max_delay, udp.line) == (20e6, 0.5, 6)
     assert (tcp.bandwidth, tcp.max_delay) == (2.5e6, 1.0)
     camera, twist = cfg.topics
-    assert (camera.priority, camera.latest_only, camera.recovery, camera.recovery_overhead,
-            camera.compression, camera.compression_level, camera.typical_size) == (
-        6, True, Recovery.FEC, 0.2, Compression.ZSTD, -3, 921600)
+    assert (camera.priority, camera.latest_only, camera.max_delay, camera.recovery,
+            camera.recovery_overhead, camera.compression, camera.compression_level,
+            camera.typical_size) == (6, True, 0.05, Recovery.FEC, 0.2, Compression.ZSTD, -3,
+                                     921600)
     # defaults: nothing changes what rosgate did before real links
-    assert (twist.priority, twist.latest_only, twist.recovery, twist.compression,
-            twist.typical_size) == (None, None, Recovery.NONE, Compression.NONE, None)
+    assert (twist.priority, twist.latest_only, twist.max_delay, twist.recovery,
+            twist.compression, twist.typical_size) == (None, None, None, Recovery.NONE,
+                                                       Compression.NONE, None)
 
 
 def test_a_client_s_entry_crosses_to_the_server_with_its_keys():
@@ -119,6 +122,9 @@ ERRORS = {
     "recovery_on_bare_framing": (
         HEAD + TOPIC + "    framing: none\n    recovery: fec\n", 10, "topics[0].recovery",
         "recovery needs the envelope", "remove recovery:"),
+    "topic_max_delay": (
+        HEAD + TOPIC + "    max_delay: -1\n", 9, "topics[0].max_delay",
+        "expected a number of seconds > 0", "max_delay: 0.05"),
     "typical_size": (
         HEAD + TOPIC + "    typical_size: 1.5\n", 9, "topics[0].typical_size",
         "expected a number of bytes >= 1", "typical_size: 921600"),

@@ -145,6 +145,19 @@ def test_a_best_effort_message_that_waited_too_long_is_dropped_as_late():
     assert be.drops == ["late"] and rel.drops == []
 
 
+def test_a_topic_s_own_max_delay_applies_to_reliable_topics_too():
+    """A camera that would rather skip a frame than send one that waited: its max_delay."""
+    clock = Clock()
+    s = Scheduler(max_delay=5.0, clock=clock)
+    cam = Topic("cam")
+    cam.max_delay = 0.05  # type: ignore[attr-defined]
+    s.put(message(cam, "waited", queued=0.0))
+    s.put(message(cam, "fresh", queued=0.08))
+    clock.now = 0.1
+    assert drain(s, clock) == ["fresh.0"]
+    assert cam.drops == ["late"]
+
+
 def test_the_link_s_limits_refuse_new_messages():
     s = Scheduler(frames=3, bytes=250)
     t = Topic("t")

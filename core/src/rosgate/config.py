@@ -117,7 +117,7 @@ DEFAULTS_KEYS = ("transport", "codec", "cipher")
 RECONNECT_KEYS = ("min", "max")
 QUEUE_KEYS = ("frames", "bytes")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
-              "framing", "qos", "max_rate", "priority", "latest_only", "recovery",
+              "framing", "qos", "max_rate", "priority", "latest_only", "max_delay", "recovery",
               "recovery_overhead", "compression", "compression_level", "typical_size")
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
                 "framing", "timeout", "max_request")
@@ -141,7 +141,7 @@ _EXAMPLES = {
     "max_rate": "20", "priority": "data", "latest_only": "true", "recovery": "fec",
     "recovery_overhead": "0.1", "compression": "zstd", "compression_level": "3",
     "typical_size": "921600", "links": "{udp: {bandwidth: 20mbit}}", "bandwidth": "20mbit",
-    "max_delay": "1.0", "fleet_timeout": "30", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
+    "max_delay": "1.0", "topics.max_delay": "0.05", "fleet_timeout": "30", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
     "history": "keep_last", "depth": "10",
     "identity": "robot1.key", "server_key": "<the server's public key, from rosgate keygen identity>",
     "insecure": "true", "rekey": "120", "peer_key": "<the other peer's public key>",
@@ -179,6 +179,8 @@ class TopicConfig:
     max_rate: float | None = None
     priority: int | None = None  # 1 (real time) .. 7 (background); None: data (5)
     latest_only: bool | None = None  # None: as the QoS says (best effort: true)
+    max_delay: float | None = None  # seconds a message may wait to start; None: the link's (best
+    #                                 effort) or none (reliable)
     recovery: Recovery = Recovery.NONE
     recovery_overhead: float = RECOVERY_OVERHEAD_DEFAULT
     compression: Compression = Compression.NONE
@@ -1052,6 +1054,8 @@ def _real_link(src: _Source, data: dict, path: str, framing: Framing) -> dict[st
         latest_only = _flag(src, data, path, "latest_only")
     return {
         "latest_only": latest_only,
+        "max_delay": _number(src, data, path, "max_delay", None, "a number of seconds > 0",
+                             _positive),
         "recovery": recovery,
         "recovery_overhead": _number(src, data, path, "recovery_overhead",
                                      RECOVERY_OVERHEAD_DEFAULT, "a share > 0 and <= 1 (0.1: one "

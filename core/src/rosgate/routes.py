@@ -110,6 +110,7 @@ class Route:
     #: what the link's scheduler and fragmentation read (a transmitting topic sets its own)
     priority: int = PRIORITIES["data"]
     latest_only = False
+    max_delay: float | None = None  # None: the link's, for best effort
     recovery = Recovery.NONE.value
     recovery_overhead = RECOVERY_OVERHEAD_DEFAULT
     bare = False
@@ -214,6 +215,7 @@ class TransmitRoute(Route):
         self.link = link
         self.priority = priority
         self.latest_only = latest_only
+        self.max_delay = topic.max_delay
         self.recovery = topic.recovery.value
         self.recovery_overhead = topic.recovery_overhead
         self.bare = framing.bare

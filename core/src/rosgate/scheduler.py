@@ -21,6 +21,8 @@ as *packets*: a datagram, a fragment, a chunk of a stream. Then:
 * **late**: a best-effort topic's message that waited ``max_delay`` seconds without starting is
   dropped (counted ``late``) rather than sent stale; a reliable topic's waits, within the
   link's limits (``frames``, ``bytes``: beyond them a new message is refused, ``queue_full``);
+  a topic's own ``max_delay`` (its sender's) applies to it whatever its reliability: a camera
+  that would rather skip a frame than send one that waited (the link then idles for the next);
 * **budget**: with a ``bandwidth``, a token bucket per destination (per peer: a server's
   clients each have their own) refilled at that many bits per second, counting every packet
   with the transport's ``packet_overhead`` (IP and UDP headers). A packet leaves only when its
@@ -220,9 +222,12 @@ class Scheduler:
         message = topic.waiting.popleft()
         self._frames -= 1
         self._bytes -= message.size
-        if not getattr(message.sender, "reliable", True) and now - message.queued > self.max_delay:
-            self.dropped.append((message.sender, "late", f"waited {now - message.queued:.2f} s "
-                                 f"to be sent (max_delay {self.max_delay:g} s)"))
+        limit = getattr(message.sender, "max_delay", None)
+        if limit is None and not getattr(message.sender, "reliable", True):
+            limit = self.max_delay
+        if limit is not None and now - message.queued > limit:
+            self.dropped.append((message.sender, "late", f"waited {now - message.queued:.3f} s "
+                                 f"to be sent (max_delay {limit:g} s)"))
             return False
         try:
             packets = message.cut()

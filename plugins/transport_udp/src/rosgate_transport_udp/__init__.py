@@ -74,10 +74,8 @@ class UdpTransport(DatagramTransport):
         send_buffer: int = option(4 * 1024 * 1024, "bytes of kernel send buffer to ask for",
                                   minimum=1)
         max_frame: int = option(
-            1_200, "the largest datagram rosgate sends, in bytes; larger frames go in fragments. "
-            "1200 fits every IPv6 path and common tunnels; 1472 fills Ethernet over IPv4; up to "
-            "65000 on loopback or jumbo frames (fewer datagrams, but one IP fragment lost loses "
-            "all of it)", minimum=256, maximum=65_000)
+            1_200, "the largest datagram to send, in bytes; longer frames go in fragments "
+            "(1472 fills Ethernet over IPv4; 65000 on loopback)", minimum=256, maximum=65_000)
 
     options: Options
 
