@@ -137,3 +137,34 @@ def test_error(text, line, key, message, fix):
     assert (e.file, e.line, e.key) == ("bringup.yaml", line, key), str(e)
     assert message in e.message, str(e)
     assert fix in e.fix, str(e)
+
+
+def test_check_shows_the_budget_arithmetic(tmp_path, capsys):
+    """rosgate check, with a bandwidth and max_rates in the file: each topic's rate x its size
+    on the wire (envelope, fragment headers, repair fragments, IP and UDP headers) against the
+    bandwidth, and what it cannot count."""
+    from rosgate.cli import main
+
+    path = tmp_path / "robot.yaml"
+    path.write_text(HEAD + """\
+  links: {udp: {bandwidth: 20mbit}}
+plugins: {udp: {max_frame: 1472}}
+topics:
+  - {topic: /camera, type: sensor_msgs/msg/Image, direction: transmit, port: 9, max_rate: 2.5,
+     typical_size: 921655, recovery: fec, recovery_overhead: 0.05}
+  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 9, max_rate: 50}
+  - {topic: /odom, type: nav_msgs/msg/Odometry, direction: transmit, port: 9, max_rate: 20}
+  - {topic: /map, type: nav_msgs/msg/OccupancyGrid, direction: receive, port: 9}
+""")
+    assert main(["check", str(path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    budget = out[out.index("budget of udp: 20.0 Mbit/s per peer"):]
+    assert budget == [
+        "budget of udp: 20.0 Mbit/s per peer",
+        # 921,683 B frames in 655 chunks of 1,408 B + 33 repair fragments, 21 + 28 B each
+        "  /camera   2.5 Hz x 921,655 B = 1,002,831 B on the wire (669 packets) -> 20.1 Mbit/s",
+        # 52 B of CDR, the 28-byte envelope, 28 bytes of IP and UDP
+        "  /cmd_vel  50 Hz x 52 B = 108 B on the wire (1 packet) -> 43.2 kbit/s",
+        "  /odom     not counted (nav_msgs/msg/Odometry varies in size: give typical_size)",
+        "  total 20.1 Mbit/s of 20.0 Mbit/s (100.5 %): over budget: latest_only topics send less "
+        "often, others wait in the queue (reliable) or are dropped late (best effort)"]

@@ -117,6 +117,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         port = f":{t.port}" if t.port else ""
         print(f"  {p.name} {arrow} {p.key or t.remote}  [{t.type}] {t.transport}{port} {t.codec} "
               f"{t.cipher}")
+    from .budget import report
+
+    for line in report(plan):
+        print(line)
     return 0
 
 

@@ -1,0 +1,155 @@
+"""The budget arithmetic ``rosgate check`` shows: for each link with a ``bandwidth``
+(``bridge.links``), what this side's topics with a ``max_rate`` would put on it — each message's
+size on the wire (envelope, cipher, fragment headers, FEC repair fragments, the transport's
+packet headers) times its rate — against the bandwidth.
+
+A message's size is ``typical_size`` when the entry gives one, else the CDR size of a default
+message when its type has no field of variable length (a Twist: exact), else unknown (an
+Image: give ``typical_size``). Compression is not counted (what it saves depends on the
+data); nor are retransmissions (they depend on the losses).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from .config import Direction, Framing, Recovery
+from .resolver import Plan, PreparedTopic
+from .ros import resolve_type
+from .wire import envelope, framing, recovery
+
+#: tc-style: the bits of a link in the units people write them in
+UNITS = ((1e9, "Gbit/s"), (1e6, "Mbit/s"), (1e3, "kbit/s"), (1, "bit/s"))
+
+
+def rate_text(bits: float) -> str:
+    for scale, unit in UNITS:
+        if bits >= scale or scale == 1:
+            return f"{bits / scale:,.3g} {unit}" if bits < 10 * scale else \
+                f"{bits / scale:,.1f} {unit}"
+    return f"{bits:g} bit/s"
+
+
+def fixed_size(msg_type: Any) -> int | None:
+    """The CDR size of every message of ``msg_type`` when no field varies in length, else
+    None."""
+    if not _fixed(msg_type):
+        return None
+    from rclpy.serialization import serialize_message
+
+    return len(serialize_message(msg_type()))
+
+
+def _fixed(msg_type: Any) -> bool:
+    for kind in msg_type.get_fields_and_field_types().values():
+        if "sequence<" in kind or kind.startswith("string") or kind.startswith("wstring"):
+            return False
+        base = kind.split("[")[0]
+        if "/" in base:  # a nested message: pkg/Type
+            package, _, name = base.partition("/")
+            if not _fixed(resolve_type(f"{package}/msg/{name}")):
+                return False
+    return True
+
+
+@dataclass
+class Cost:
+    """One topic's share of a budget."""
+
+    topic: str
+    rate: float | None
+    size: int | None            # the message (CDR)
+    wire: int | None = None     # one message on the wire
+    packets: int = 0
+    note: str = ""
+
+    @property
+    def bits(self) -> float | None:
+        return None if self.rate is None or self.wire is None else self.rate * self.wire * 8
+
+
+def cipher_overhead(p: PreparedTopic) -> int:
+    """Bytes a topic's cipher adds to a frame (its session's cipher when there is no static
+    one)."""
+    cipher = p.cipher
+    if cipher is None and p.cipher_cls is not None and p.cipher_cls.session_key_size:
+        cipher = p.cipher_cls.from_secret(bytes(p.cipher_cls.session_key_size))
+    if cipher is None:
+        return 0
+    header = envelope.pack(0, 1, 1, 1, 0)
+    return len(cipher.seal(header, bytes(100))) - 100
+
+
+def on_the_wire(frame: int, p: PreparedTopic) -> tuple[int, int]:
+    """(bytes, packets) of one frame of ``frame`` bytes on the topic's link."""
+    transport, t = p.transport, p.config
+    if transport.stream:
+        chunks = 1 if frame <= framing.CHUNK else math.ceil(frame / framing.CHUNK)
+        return frame + (4 if chunks == 1 else 8 * chunks), chunks
+    limit, overhead = transport.max_frame, getattr(transport, "packet_overhead", 0)
+    if t.recovery is Recovery.FEC:
+        room = limit - recovery.FEC.size
+        total = max(1, math.ceil(frame / room))
+        size = max(1, math.ceil(frame / total))
+        per_block = recovery.block_limit(t.recovery_overhead)
+        blocks = math.ceil(total / per_block)
+        packets = sum(k + math.ceil(k * t.recovery_overhead)
+                      for k in (total // blocks + (b < total % blocks) for b in range(blocks)))
+        return packets * (size + recovery.FEC.size + overhead), packets
+    if t.recovery is Recovery.RETRANSMIT or frame > limit:
+        packets = max(1, math.ceil(frame / (limit - framing.FRAGMENT.size)))
+        return frame + packets * (framing.FRAGMENT.size + overhead), packets
+    return frame + overhead, 1
+
+
+def costs(plan: Plan, transport: str) -> list[Cost]:
+    """What this side's topics put on the links of ``transport``."""
+    out = []
+    for p in plan.topics:
+        t = p.config
+        if t.transport != transport or t.direction is not Direction.TRANSMIT:
+            continue
+        size = t.typical_size or fixed_size(p.msg_type)
+        cost = Cost(t.topic, t.max_rate, size)
+        if size is None:
+            cost.note = f"{t.type} varies in size: give typical_size"
+        elif t.max_rate is None:
+            cost.note = "no max_rate: as often as it is published"
+        if size is not None:
+            frame = size if t.framing is not Framing.ROSGATE else \
+                envelope.SIZE + cipher_overhead(p) + size
+            cost.wire, cost.packets = on_the_wire(frame, p)
+        out.append(cost)
+    return out
+
+
+def report(plan: Plan) -> list[str]:
+    """The lines ``rosgate check`` prints: one block per budgeted transport this side uses."""
+    lines: list[str] = []
+    for name, link in plan.config.links.items():
+        if link.bandwidth is None:
+            continue
+        topics = costs(plan, name)
+        if not topics:
+            continue
+        lines.append(f"budget of {name}: {rate_text(link.bandwidth)} per peer")
+        width = max(len(c.topic) for c in topics)
+        total = 0.0
+        for c in topics:
+            head = f"  {c.topic:<{width}}  "
+            if c.bits is None or c.size is None or c.wire is None or c.rate is None:
+                size = f"{c.size:,} B a message, {c.wire:,} B on the wire; " if c.wire else ""
+                lines.append(f"{head}{size}not counted ({c.note})")
+                continue
+            total += c.bits
+            lines.append(f"{head}{c.rate:g} Hz x {c.size:,} B = {c.wire:,} B on the wire "
+                         f"({c.packets:,} packet{'s' if c.packets != 1 else ''}) -> "
+                         f"{rate_text(c.bits)}")
+        share = total / link.bandwidth
+        verdict = "fits" if share <= 1 else "over budget: latest_only topics send less often, " \
+            "others wait in the queue (reliable) or are dropped late (best effort)"
+        lines.append(f"  total {rate_text(total)} of {rate_text(link.bandwidth)} "
+                     f"({100 * share:.1f} %): {verdict}")
+    return lines
