@@ -15,15 +15,15 @@ import difflib
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
+import ipaddress
+import math
 from enum import StrEnum
-from typing import overload
 from pathlib import Path
 from typing import Any, overload
 
 import yaml
 
 from .errors import ConfigError
-
 
 
 class Role(StrEnum):
@@ -67,6 +67,10 @@ PEER_TIMEOUT_HEARTBEATS = 3       # default bridge.peer_timeout, in heartbeats
 SESSION_TIMEOUT_DEFAULT = 60.0
 RECONNECT_MIN_DEFAULT, RECONNECT_MAX_DEFAULT = 0.1, 10.0
 QUEUE_FRAMES_DEFAULT, QUEUE_BYTES_DEFAULT = 1000, 8 * 1024 * 1024
+QOS_DEPTH_MAX = 100_000  # far past any real queue; rclpy fails on depths past 64 bits
+MAX_RATE_RANGE = (1e-6, 1e6)  # Hz: from once in eleven days to faster than any link
+TIMEOUT_MAX = 3600.0  # seconds a service call may take
+MAX_REQUEST_MAX = 64 * 1024 * 1024  # bytes, the largest message a link carries
 
 ROLES = tuple(Role)
 DIRECTIONS = tuple(Direction)
@@ -82,10 +86,13 @@ QOS_POLICIES = {
 
 TOP_KEYS = ("bridge", "plugins", "topics", "services")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
-               "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue")
+               "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue",
+               "limits", "allow")
 DEFAULTS_KEYS = ("transport", "codec", "cipher")
 RECONNECT_KEYS = ("min", "max")
 QUEUE_KEYS = ("frames", "bytes")
+LIMITS_KEYS = ("connections", "connections_per_source", "handshake_timeout",
+               "max_frame_before_auth", "idle_timeout")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
               "framing", "qos", "max_rate")
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
@@ -101,6 +108,11 @@ _EXAMPLES = {
     "peer": "192.168.1.20", "listen": "0.0.0.0", "stale_after": "15", "stale_warnings": "5",
     "heartbeat": "1.0", "peer_timeout": "3.0", "session_timeout": "60",
     "reconnect": "{min: 0.1, max: 10}", "queue": "{frames: 1000, bytes: 8388608}",
+    "limits": "{connections: 256, connections_per_source: 16, handshake_timeout: 5}",
+    "allow": "[192.168.1.20, 10.0.0.0/24]",
+    "bridge.limits.connections": "256", "bridge.limits.connections_per_source": "16",
+    "bridge.limits.handshake_timeout": "5", "bridge.limits.max_frame_before_auth": "65536",
+    "bridge.limits.idle_timeout": "2",
     "bridge.reconnect.min": "0.1", "bridge.reconnect.max": "10", "bridge.queue.frames": "1000",
     "bridge.queue.bytes": "8388608", "transport": "udp", "codec": "cdr", "cipher": "none",
     "topic": "/chatter", "service": "/mcu/ping", "type": "std_msgs/msg/String",
@@ -154,6 +166,24 @@ class ServiceConfig:
     lines: dict[str, int] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class Limits:
+    """``bridge.limits``: what a peer may cost this bridge before it is trusted (a client before
+    its handshake, a stranger on a port), so that strangers cannot exhaust it."""
+
+    #: stream connections accepted at once, over every listening port of the bridge
+    connections: int = 256
+    #: of those, from one source address
+    connections_per_source: int = 16
+    #: seconds an accepted connection has to complete its handshake (main line) or introduce
+    #: itself (a dedicated stream port) before it is closed
+    handshake_timeout: float = 5.0
+    #: bytes a frame may have on such a connection until then
+    max_frame_before_auth: int = 64 * 1024
+    #: seconds a connection to a microcontroller service port may stay silent
+    idle_timeout: float = 2.0
+
+
 @dataclass
 class BridgeConfig:
     file: str
@@ -174,6 +204,9 @@ class BridgeConfig:
     reconnect_max: float = RECONNECT_MAX_DEFAULT
     queue_frames: int = QUEUE_FRAMES_DEFAULT
     queue_bytes: int = QUEUE_BYTES_DEFAULT
+    limits: Limits = field(default_factory=Limits)
+    #: peer role: addresses (or networks) frames and connections are taken from besides the peer
+    allow: tuple[str, ...] = ()
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
     services: list[ServiceConfig] = field(default_factory=list)
@@ -382,6 +415,8 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
         reconnect_max=reconnect_max,
         queue_frames=queue_frames,
         queue_bytes=queue_bytes,
+        limits=_limits(src, bridge),
+        allow=_allow(src, bridge),
         plugins=_plugins(src, data),
         topics=_entries(src, data, "topics", role, defaults),
         services=_entries(src, data, "services", role, defaults),
@@ -458,6 +493,63 @@ def _queue(src: _Source, bridge: dict) -> tuple[int, int]:
                     lambda v: v >= 0, integer=True))
 
 
+def _limits(src: _Source, bridge: dict) -> Limits:
+    """What a peer may cost before it is trusted (see :class:`Limits`)."""
+    given = _section(src, bridge, "bridge", "limits")
+    path = "bridge.limits"
+    _check_keys(src, given, path, LIMITS_KEYS)
+    default = Limits()
+    limits = Limits(
+        connections=_number(src, given, path, "connections", default.connections,
+                            "an integer >= 1", lambda v: v >= 1, integer=True),
+        connections_per_source=_number(src, given, path, "connections_per_source",
+                                       default.connections_per_source, "an integer >= 1",
+                                       lambda v: v >= 1, integer=True),
+        handshake_timeout=_number(src, given, path, "handshake_timeout",
+                                  default.handshake_timeout, "a number of seconds > 0", _positive),
+        max_frame_before_auth=_number(src, given, path, "max_frame_before_auth",
+                                      default.max_frame_before_auth,
+                                      "a number of bytes >= 1024", lambda v: v >= 1024,
+                                      integer=True),
+        idle_timeout=_number(src, given, path, "idle_timeout", default.idle_timeout,
+                             "a number of seconds > 0", _positive),
+    )
+    if limits.connections_per_source > limits.connections:
+        raise src.error(f"{path}.connections_per_source",
+                        f"{limits.connections_per_source} per source is more than the "
+                        f"{limits.connections} connections allowed in total",
+                        fix="make connections at least connections_per_source")
+    return limits
+
+
+def _allow(src: _Source, bridge: dict) -> tuple[str, ...]:
+    """Peer role: addresses or networks (``10.0.0.0/24``) taken from besides ``peer``; a host
+    that is not an IP address (a Bluetooth device) is compared as written."""
+    if "allow" not in bridge:
+        return ()
+    given = bridge["allow"]
+    items = given if isinstance(given, list) else [given]
+    allowed = []
+    for i, item in enumerate(items):
+        key = f"bridge.allow[{i}]" if isinstance(given, list) else "bridge.allow"
+        if not isinstance(item, str) or not item.strip():
+            raise src.error(key, f"expected an address or a network, got {_show(item)}",
+                            fix="e.g. allow: [192.168.1.20, 10.0.0.0/24]")
+        if "/" in item and not _is_network(item):
+            raise src.error(key, f"'{item}' is not a network",
+                            fix="write a network as address/prefix, e.g. 10.0.0.0/24")
+        allowed.append(item.strip())
+    return tuple(allowed)
+
+
+def _is_network(text: str) -> bool:
+    try:
+        ipaddress.ip_network(text, strict=False)
+    except ValueError:
+        return False
+    return True
+
+
 def _plugins(src: _Source, data: dict) -> dict[str, dict]:
     given = _section(src, data, "", "plugins")
     return {name: _section(src, given, "plugins", name,
@@ -520,7 +612,9 @@ def _topic(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Topi
     return TopicConfig(
         **common,
         qos=_qos(src, data, path),
-        max_rate=_number(src, data, path, "max_rate", None, "a number of Hz > 0", _positive),
+        max_rate=_number(src, data, path, "max_rate", None,
+                         f"a number of Hz > 0 ({MAX_RATE_RANGE[0]:g}..{MAX_RATE_RANGE[1]:g})",
+                         lambda v: MAX_RATE_RANGE[0] <= v <= MAX_RATE_RANGE[1]),
         **_entry_lines(src, path),
     )
 
@@ -537,10 +631,12 @@ def _service(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Se
                             "microcontroller")
     return ServiceConfig(
         **common,
-        timeout=_number(src, data, path, "timeout", TIMEOUT_DEFAULT, "a number of seconds > 0",
-                        _positive),
+        timeout=_number(src, data, path, "timeout", TIMEOUT_DEFAULT,
+                        f"a number of seconds > 0, at most {TIMEOUT_MAX:g}",
+                        lambda v: 0 < v <= TIMEOUT_MAX),
         max_request=_number(src, data, path, "max_request", MAX_REQUEST_DEFAULT,
-                            "a number of bytes >= 16", lambda v: v >= 16, integer=True),
+                            f"a number of bytes >= 16 (at most {MAX_REQUEST_MAX})",
+                            lambda v: 16 <= v <= MAX_REQUEST_MAX, integer=True),
         **_entry_lines(src, path),
     )
 
@@ -596,16 +692,23 @@ def _qos(src: _Source, data: dict, path: str) -> int | str | dict:
     if isinstance(value, int) and not isinstance(value, bool):
         if value < 1:
             raise src.error(qos_path, f"a QoS depth must be >= 1, got {value}", fix=fix)
-        return value
+        return _depth_bound(src, qos_path, value)
     if not isinstance(value, dict):
         raise src.error(qos_path, expected, fix=fix)
     _check_keys(src, value, qos_path, QOS_KEYS)
     policies = {key: _choice(src, value, qos_path, key, choices) for key, choices in QOS_POLICIES.items()
                 if key in value}
     if "depth" in value:
-        policies["depth"] = _number(src, value, qos_path, "depth", None, "an integer >= 1",
-                                    lambda v: v >= 1, integer=True)
+        policies["depth"] = _depth_bound(src, _join(qos_path, "depth"), _number(
+            src, value, qos_path, "depth", None, "an integer >= 1", lambda v: v >= 1, integer=True))
     return policies
+
+
+def _depth_bound(src: _Source, key: str, depth: int) -> int:
+    if depth > QOS_DEPTH_MAX:
+        raise src.error(key, f"a QoS depth must be at most {QOS_DEPTH_MAX}, got {depth}",
+                        fix="keep_all, or a depth that a subscriber can hold, e.g. 1000")
+    return depth
 
 
 def _ros_name(src: _Source, data: dict, path: str, key: str) -> str:
@@ -786,7 +889,8 @@ def _number(src: _Source, data: dict, path: str, key: str, default: Any, expecte
         return default
     value = data[key]
     kinds = int if integer else (int, float)
-    if isinstance(value, bool) or not isinstance(value, kinds) or not ok(value):
+    if (isinstance(value, bool) or not isinstance(value, kinds)
+            or isinstance(value, float) and not math.isfinite(value) or not ok(value)):
         raise src.error(_join(path, key), f"expected {expected}, got {_show(value)}",
                         fix=f"e.g. {key}: {_example(path, key)}")
     return value if integer else float(value)
