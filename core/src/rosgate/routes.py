@@ -11,7 +11,8 @@ receive (a link's thread, with a frame whose header names this topic)::
 The framing is a strategy chosen once per route from the entry's ``framing:``
 (:class:`EnvelopeFraming`, or :class:`BareFraming` for datagrams without an envelope, whose
 receiving topics share a :class:`BarePort`). Every drop is counted by reason in the route's
-:class:`Counters`, and warned about at most once per :data:`WARN_EVERY` seconds per reason.
+:class:`Counters`, and warned about at most once per :data:`rosgate.warn.WARN_EVERY` seconds per
+reason.
 """
 
 from __future__ import annotations
@@ -30,12 +31,11 @@ from .config import ServiceConfig, TopicConfig
 from .errors import CipherError, CodecError
 from .links import Link
 from .transport import Address
+from .warn import Warner
 from .wire import envelope
 from .wire.names import NameMissing, pack_name, split_name
 
 log = logging.getLogger("rosgate")
-
-WARN_EVERY = 5.0  # seconds between two warnings of one kind for one topic
 
 # reasons that say something is wrong (a warning); the others are routine and only counted
 QUIET_REASONS = {"rate_limit", "duplicate"}
@@ -54,29 +54,6 @@ class Counters:
         return {"sent": self.sent, "received": self.received, "bytes_sent": self.bytes_sent,
                 "bytes_received": self.bytes_received, "lost": self.lost,
                 "drops": dict(self.drops)}
-
-
-class Warner:
-    """Rate-limited warnings: the first at once, then at most one per ``every`` seconds, saying
-    how many were held back."""
-
-    def __init__(self, every: float = WARN_EVERY):
-        self.every = every
-        self._last: dict[tuple[str, str], float] = {}
-        self._held: Counter = Counter()
-        self._lock = threading.Lock()
-
-    def warn(self, subject: str, reason: str, detail: str) -> None:
-        key = (subject, reason)
-        now = time.monotonic()
-        with self._lock:
-            if now - self._last.get(key, -self.every) < self.every:
-                self._held[key] += 1
-                return
-            self._last[key] = now
-            held = self._held.pop(key, 0)
-        more = f" ({held} more since the last warning)" if held else ""
-        log.warning("%s: dropped (%s): %s%s", subject, reason, detail, more)
 
 
 class Route:
@@ -201,7 +178,8 @@ class ReceiveRoute(Route):
         super().__init__(topic, topic_id, codec, cipher, warner, label, reliable)
         self.topic = topic
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
-        self.window = envelope.ReplayWindow()
+        # without a cipher that vouches for the header, one forged frame may not move it
+        self.window = envelope.ReplayWindow(authenticated=cipher.authenticates)
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
@@ -212,12 +190,11 @@ class ReceiveRoute(Route):
         if payload is None:
             return
         with self._lock:
-            top = self.window.top(header.epoch)
+            # losses on the way: a jump over sequence numbers counts them, and a late frame
+            # (reordered) that fills a gap takes one back
+            lost = self.window.lost
             refused = self.window.accept(header.epoch, header.seq)
-            if not refused and top is not None:
-                # losses on the way: a jump over sequence numbers counts them, and a late frame
-                # (reordered) that fills a gap takes one back
-                self.counters.lost += header.seq - top - 1 if header.seq > top else -1
+            self.counters.lost += self.window.lost - lost
         if refused:
             self.drop(refused)
             return

@@ -42,6 +42,7 @@ from .errors import CodecError
 from .links import Link
 from .routes import Route
 from .transport import Address
+from .warn import BUGS
 from .wire import envelope
 
 log = logging.getLogger("rosgate")
@@ -124,7 +125,8 @@ class Deadlines:
             try:
                 action()
             except Exception:  # one bad deadline must not stop the others
-                log.exception("a service call's deadline failed (a bug: please report it)")
+                BUGS.bug("deadline_error", "a service call's deadline failed (a bug: please "
+                                           "report it)")
 
     def close(self) -> None:
         with self._cond:
@@ -273,7 +275,7 @@ class ServerRoute(ServiceRoute):
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
-        self.window = envelope.ReplayWindow()
+        self.window = envelope.ReplayWindow(authenticated=self.cipher.authenticates)
         self._lock = threading.Lock()
 
     def serve(self, request: Any, call: Call) -> None:

@@ -82,36 +82,78 @@ class ReplayWindow:
     kept, so switching back and forth between epochs cannot replay frames; no epoch is refused
     outright, so a forged frame on an unauthenticated link cannot lock the real sender out.
     Replaying frames of an epoch forgotten long ago is for an authenticated handshake to stop.
+
+    On an unauthenticated route (``authenticated=False``: no cipher vouches for the header)
+    one forged frame must not move the sequence either: a frame more than ``WIDTH`` ahead of
+    (or ``JUMP`` behind) every window the epoch has does not move them, it opens a window of its
+    own, one of ``TRACKS`` per epoch (the least recently used is forgotten). The real sender's
+    next frames still land in its own window; a sender that really jumped (many frames lost)
+    carries on in the new one; windows that come within ``WIDTH`` of each other merge. What is
+    refused stays as before: a duplicate within a window, and a frame up to ``JUMP`` behind one
+    (``stale``).
+
+    :attr:`lost` counts the sequence numbers skipped and never filled in (losses on the way):
+    a jump within a window adds the gap, a late frame that fills one takes one back.
     """
 
     WIDTH = 64
     EPOCHS = 8
+    JUMP = 4096
+    TRACKS = 4
+    _MASK = (1 << WIDTH) - 1
 
-    __slots__ = ("_windows",)
+    __slots__ = ("_windows", "authenticated", "lost")
 
-    def __init__(self) -> None:
-        # epoch -> [top, seen]; bit i of seen set: seq (top - i) was accepted. Insertion order
-        # is age order, so the first entry is the one to forget.
-        self._windows: dict[int, list[int]] = {}
+    def __init__(self, authenticated: bool = True) -> None:
+        self.authenticated = authenticated
+        self.lost = 0
+        # epoch -> its windows [top, seen], least recently used first; bit i of seen set: seq
+        # (top - i) was accepted. Insertion order is age order, so the first epoch is the one to
+        # forget.
+        self._windows: dict[int, list[list[int]]] = {}
 
     def top(self, epoch: int) -> int | None:
-        """The highest sequence number accepted in ``epoch`` (None: none yet)."""
-        window = self._windows.get(epoch)
-        return window[0] if window is not None else None
+        """The highest sequence number accepted in ``epoch``'s most recently used window."""
+        tracks = self._windows.get(epoch)
+        return tracks[-1][0] if tracks else None
 
     def accept(self, epoch: int, seq: int) -> str | None:
         """None when the frame is new, else why it is refused ("duplicate" or "stale")."""
-        window = self._windows.get(epoch)
-        if window is None:
+        tracks = self._windows.get(epoch)
+        if tracks is None:
             if len(self._windows) >= self.EPOCHS:
                 del self._windows[next(iter(self._windows))]
-            self._windows[epoch] = [seq, 1]
+            self._windows[epoch] = [[seq, 1]]
             return None
+        if self.authenticated:
+            return self._slide(tracks[0], seq)
+        width = self.WIDTH
+        for track in reversed(tracks):
+            top = track[0]
+            if top - width < seq <= top + width:
+                refused = self._slide(track, seq)
+                tracks.remove(track)
+                tracks.append(track)
+                self._merge(tracks)
+                return refused
+        highest = max(track[0] for track in tracks)
+        if any(track[0] - self.JUMP <= seq <= track[0] - width for track in tracks):
+            return "stale"
+        if highest < seq <= highest + self.JUMP:
+            self.lost += seq - highest - 1  # a real jump over lost frames, most likely
+        tracks.append([seq, 1])
+        if len(tracks) > self.TRACKS:
+            del tracks[0]
+        return None
+
+    def _slide(self, window: list[int], seq: int) -> str | None:
+        """``seq`` in one window: accepted (the window moves on) or refused."""
         top, seen = window
         if seq > top:
             shift = seq - top
             window[0] = seq
-            window[1] = ((seen << shift) | 1) & ((1 << self.WIDTH) - 1) if shift < self.WIDTH else 1
+            window[1] = ((seen << shift) | 1) & self._MASK if shift < self.WIDTH else 1
+            self.lost += shift - 1
             return None
         offset = top - seq
         if offset >= self.WIDTH:
@@ -119,4 +161,18 @@ class ReplayWindow:
         if seen >> offset & 1:
             return "duplicate"
         window[1] = seen | 1 << offset
+        self.lost -= 1
         return None
+
+    def _merge(self, tracks: list[list[int]]) -> None:
+        """Fold windows that have come within ``WIDTH`` of the most recent one into it."""
+        current = tracks[-1]
+        for other in tracks[:-1]:
+            distance = current[0] - other[0]
+            if abs(distance) >= self.WIDTH:
+                continue
+            if distance >= 0:
+                current[1] = (current[1] | other[1] << distance) & self._MASK
+            else:
+                current[0], current[1] = other[0], (other[1] | current[1] << -distance) & self._MASK
+            tracks.remove(other)
