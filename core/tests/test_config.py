@@ -592,6 +592,10 @@ ERRORS = {
         CLIENT_HEAD + "services:\n  - service: /s\n    type: std_srvs/srv/Trigger\n"
                       "    direction: receive\n    timeout: .inf\n",
         9, "services[0].timeout", "at most 3600, got inf"),
+    "topic_name_too_long": (
+        CLIENT_HEAD + "topics:\n  - topic: /" + "a" * 300 + "\n    type: std_msgs/msg/String\n"
+                      "    direction: transmit\n",
+        6, "topics[0].topic", "a name of 301 characters is longer than ROS takes (200)"),
     "serial_datagram_on_topic": (
         CLIENT_HEAD + TOPIC + "    framing: serial_datagram\n",
         9, "topics[0].framing", "framing serial_datagram is for services"),

@@ -70,6 +70,7 @@ QUEUE_FRAMES_DEFAULT, QUEUE_BYTES_DEFAULT = 1000, 8 * 1024 * 1024
 QOS_DEPTH_MAX = 100_000  # far past any real queue; rclpy fails on depths past 64 bits
 MAX_RATE_RANGE = (1e-6, 1e6)  # Hz: from once in eleven days to faster than any link
 TIMEOUT_MAX = 3600.0  # seconds a service call may take
+ROS_NAME_MAX = 200  # characters: rclpy refuses topic names past 247, service names sooner
 MAX_REQUEST_MAX = 64 * 1024 * 1024  # bytes, the largest message a link carries
 
 ROLES = tuple(Role)
@@ -707,7 +708,7 @@ def _qos(src: _Source, data: dict, path: str) -> int | str | dict:
 def _depth_bound(src: _Source, key: str, depth: int) -> int:
     if depth > QOS_DEPTH_MAX:
         raise src.error(key, f"a QoS depth must be at most {QOS_DEPTH_MAX}, got {depth}",
-                        fix="keep_all, or a depth that a subscriber can hold, e.g. 1000")
+                        fix="a depth a subscriber can hold, e.g. qos: 1000")
     return depth
 
 
@@ -716,6 +717,10 @@ def _ros_name(src: _Source, data: dict, path: str, key: str) -> str:
     if text.startswith("~"):
         raise src.error(_join(path, key), f"private names (~) are not supported: '{text}'",
                         fix=f"write the full name, e.g. {key}: {_example(path, key)}")
+    if len(text) > ROS_NAME_MAX:
+        raise src.error(_join(path, key), f"a name of {len(text)} characters is longer than ROS "
+                                          f"takes ({ROS_NAME_MAX})",
+                        fix=f"use a shorter name, e.g. {key}: {_example(path, key)}")
     tokens = text.removeprefix("/").split("/")
     if not all(_NAME_TOKEN.fullmatch(token) for token in tokens):
         raise src.error(_join(path, key), f"'{text}' is not a valid ROS name",

@@ -11,7 +11,9 @@ transport plugin only opens sockets.
   empty, frames of reliable senders wait in a bounded queue and leave in order when a connection
   is attached; frames of other senders are dropped.
 * :class:`Connector` — keeps a :class:`LinkSlot` filled: connects, and reconnects after every loss.
-* :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``.
+* :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``, within
+  :class:`ConnectionLimits` and from admitted :class:`Sources` only; it backs off when accepting
+  fails (out of file descriptors), never spinning.
 
 Who sent a frame travels with it: every ``send`` takes the :class:`Sender` (a route, or the
 control channel) so a frame dropped later — a queue that overflows, a connection that breaks
@@ -19,23 +21,28 @@ with frames still queued — is counted against it, without a lookup. Losses on 
 side (a fragment that never came) are reported with the topic id the fragments carried.
 
 Every receive loop catches what a peer's bytes can cause and counts it; a link never dies of
-input. :class:`Lifetime` is what a running bridge closes when it stops.
+input, and an unexpected error's traceback is logged once per reason per minute
+(:data:`rosgate.warn.BUGS`). A stream connection the bridge accepted is untrusted until its
+owner calls :meth:`StreamLink.trust` (a handshake, a hello): until then its frames are small
+and it has a deadline (:class:`Untrusted`). :class:`Lifetime` is what a running bridge closes
+when it stops.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import itertools
 import logging
 import random
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Iterable, Protocol
 
 from .errors import LinkError
-from .transport import (Address, DatagramEndpoint, StreamConnection, StreamListener,
-                        Transport)
+from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport
+from .warn import BUGS
 from .wire import envelope, framing
 
 log = logging.getLogger("rosgate")
@@ -46,6 +53,7 @@ LostHandler = Callable[[int | None, str], None]
 
 POLL = 0.2  # seconds a receive waits before checking whether the link is closing
 CONNECT_TIMEOUT = 5.0
+ACCEPT_BACKOFF = (0.1, 1.0)  # seconds between failed accepts: the first, doubling up to the second
 
 
 class Sender(Protocol):
@@ -114,8 +122,10 @@ class DatagramLink(Link):
 
     def __init__(self, transport: Transport, endpoint: DatagramEndpoint, name: str,
                  on_frame: FrameHandler, on_lost: LostHandler, bare: bool = False,
-                 max_message: int = framing.DEFAULT_MAX_MESSAGE):
+                 max_message: int = framing.DEFAULT_MAX_MESSAGE, sources: Sources | None = None):
         self.transport = transport
+        #: who frames are taken from (None: anyone); others are counted ``foreign_source``
+        self.sources = sources
         self.endpoint = endpoint
         self.name = name
         self.bare = bare
@@ -175,7 +185,8 @@ class DatagramLink(Link):
                     return
                 continue
             except Exception:  # a transport plugin's bug must not silently end the link
-                log.exception("%s: the transport's receive failed (a bug in the plugin)", self.name)
+                BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
+                                            "(a bug in the plugin)")
                 self.on_lost(None, "transport_error")
                 self.closed.wait(POLL)  # do not spin on a receive that fails at once
                 continue
@@ -183,6 +194,9 @@ class DatagramLink(Link):
                 self.reassembler.expire()
                 continue
             datagram, source = got
+            if self.sources is not None and not self.sources.admits(source):
+                self.on_lost(None, "foreign_source")
+                continue
             if self.compact or not self.bare and framing.is_fragment(datagram):
                 try:
                     frame = self.reassembler.add(source, datagram)
@@ -201,14 +215,26 @@ class DatagramLink(Link):
             self._thread.join(timeout=2)
 
 
+@dataclass(frozen=True)
+class Untrusted:
+    """What a connection may do before its owner trusts it (``bridge.limits``): frames of at most
+    ``max_frame`` bytes, and ``deadline`` seconds to earn trust before it is closed."""
+
+    max_frame: int
+    deadline: float
+
+
 class StreamLink(Link):
-    """One stream connection, framed with length prefixes."""
+    """One stream connection, framed with length prefixes. With ``untrusted``, it is held to
+    those limits until :meth:`trust` (a frame too long is a corrupt stream; the deadline passing
+    ends the connection, counted ``handshake_timeout``)."""
 
     def __init__(self, connection: StreamConnection, name: str, peer: Address,
                  on_frame: FrameHandler, on_lost: LostHandler,
                  on_close: Callable[[StreamLink], None] | None = None,
                  queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
-                 max_message: int = framing.DEFAULT_MAX_MESSAGE):
+                 max_message: int = framing.DEFAULT_MAX_MESSAGE,
+                 untrusted: Untrusted | None = None):
         self.connection = connection
         self.name = name
         self.peer = peer
@@ -226,7 +252,9 @@ class StreamLink(Link):
         self._queued_bytes = 0
         self._writing = False  # the writer holds a batch not yet written
         self._wake = threading.Condition()
-        self._reader = framing.StreamReader(max_message)
+        self.max_message = max_message
+        self._reader = framing.StreamReader(untrusted.max_frame if untrusted else max_message)
+        self._trust_by = time.monotonic() + untrusted.deadline if untrusted else None
         self._threads = [
             threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
             threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
@@ -282,6 +310,15 @@ class StreamLink(Link):
             return self._wake.wait_for(
                 lambda: not self._queue and not self._writing or self.closed.is_set(), timeout)
 
+    def trust(self) -> None:
+        """The connection proved itself: the full frame size, no deadline."""
+        self._reader.max_frame = self.max_message
+        self._trust_by = None
+
+    @property
+    def trusted(self) -> bool:
+        return self._trust_by is None
+
     def _receive_loop(self) -> None:
         while not self.closed.is_set():
             try:
@@ -290,9 +327,15 @@ class StreamLink(Link):
                 self.fail(f"receive failed: {exc}")
                 return
             except Exception as exc:  # a transport plugin's bug: drop this connection, loudly
-                log.exception("%s: the transport's receive failed (a bug in the plugin)", self.name)
+                BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
+                                            "(a bug in the plugin)")
                 self.on_lost(None, "transport_error")
                 self.fail(f"transport error: {type(exc).__name__}: {exc}")
+                return
+            trust_by = self._trust_by
+            if trust_by is not None and time.monotonic() > trust_by:
+                self.on_lost(None, "handshake_timeout")
+                self.fail("no handshake in time")
                 return
             if data is None:
                 continue
@@ -313,7 +356,10 @@ class StreamLink(Link):
         if self.closed.is_set():
             return
         self.why = why
-        log.info("%s: connection to %s ended: %s", self.name, self.peer, why)
+        # a stranger's connection (never trusted) is counted by its reason, not logged: a
+        # flood of them must not flood the log
+        log.log(logging.INFO if self.trusted else logging.DEBUG,
+                "%s: connection to %s ended: %s", self.name, self.peer, why)
         self.close()
 
     def close(self) -> None:
@@ -481,6 +527,9 @@ class Connector:
                 if stopping.is_set() or self.slot.closed.is_set():
                     break
             self.connected.clear()
+            if stopping.is_set() and not self.slot.closed.is_set():
+                return  # the bridge is stopping: its role may have a last word (bye), then
+                # closing the slot closes the link
             link.close()
             if self.on_lost is not None and not stopping.is_set():
                 self.on_lost(link)
@@ -505,29 +554,173 @@ class Connector:
             self._thread.join(timeout=3)
 
 
+class Sources:
+    """Who a link takes frames or connections from: hosts as they appear in a source address,
+    and IP networks (``10.0.0.0/24``)."""
+
+    def __init__(self, hosts: Iterable[str], networks: Iterable[str] = ()):
+        self.hosts = set(hosts)
+        self.networks = []
+        for text in networks:
+            try:
+                self.networks.append(ipaddress.ip_network(text, strict=False))
+            except ValueError:
+                self.hosts.add(text)  # not an IP network: a host as written (a device address)
+
+    def admits(self, source: Address) -> bool:
+        host = source[0]
+        if host in self.hosts:
+            return True
+        if host.startswith("::ffff:"):  # an IPv4 peer on a dual-stack socket
+            host = host[7:]
+            if host in self.hosts:
+                return True
+        if not self.networks:
+            return False
+        try:
+            address = ipaddress.ip_address(host.partition("%")[0])
+        except ValueError:
+            return False
+        return any(address in network for network in self.networks)
+
+    def __repr__(self) -> str:
+        return ", ".join([*sorted(self.hosts), *map(str, self.networks)]) or "nobody"
+
+
+class ConnectionLimits:
+    """How many accepted stream connections a bridge holds at once: in total, and from one
+    source address (``bridge.limits``). Shared by every :class:`Acceptor` of a bridge."""
+
+    def __init__(self, total: int, per_source: int):
+        self.total = total
+        self.per_source = per_source
+        self._by_source: Counter[str] = Counter()
+        self._count = 0
+        self._lock = threading.Lock()
+
+    def admit(self, host: str) -> str | None:
+        """Take a place for a connection from ``host``; None when taken, else why not."""
+        with self._lock:
+            if self._count >= self.total:
+                return "too_many_connections"
+            if self._by_source[host] >= self.per_source:
+                return "too_many_per_source"
+            self._count += 1
+            self._by_source[host] += 1
+            return None
+
+    def release(self, host: str) -> None:
+        with self._lock:
+            self._count -= 1
+            self._by_source[host] -= 1
+            if not self._by_source[host]:
+                del self._by_source[host]
+
+    @property
+    def held(self) -> int:
+        return self._count
+
+
+class _Counted:
+    """An accepted connection that gives its place back to the limits when it is closed."""
+
+    def __init__(self, connection: StreamConnection, release: Callable[[], None]):
+        self._connection = connection
+        self._release: Callable[[], None] | None = release
+        self._lock = threading.Lock()
+
+    def send(self, data: bytes) -> None:
+        self._connection.send(data)
+
+    def receive(self, max_bytes: int, timeout: float) -> bytes | None:
+        return self._connection.receive(max_bytes, timeout)
+
+    def close(self) -> None:
+        try:
+            self._connection.close()
+        finally:
+            with self._lock:
+                release, self._release = self._release, None
+            if release is not None:
+                release()
+
+    def __getattr__(self, name: str) -> Any:  # what else the transport's connection offers
+        return getattr(self._connection, name)
+
+
+RefusedHandler = Callable[["Acceptor", str, str], None]
+
+
 class Acceptor:
-    """Accepts connections on a listener until closed."""
+    """Accepts connections on a listener until closed, and hands each to ``on_connection``.
+
+    A connection from a source ``sources`` does not admit, or past ``limits``, is closed at once
+    and reported to ``on_refused(acceptor, reason, detail)`` (``foreign_source``,
+    ``too_many_connections``, ``too_many_per_source``). When accepting fails (out of file
+    descriptors: EMFILE, ENFILE) the loop waits, from 0.1 s doubling to 1 s, and reports
+    ``accept_failed``: a listener whose backlog cannot be taken never spins.
+    """
 
     def __init__(self, listener: StreamListener, name: str,
-                 on_connection: Callable[[StreamConnection, Address], None]):
+                 on_connection: Callable[[StreamConnection, Address], None],
+                 limits: ConnectionLimits | None = None, sources: Sources | None = None,
+                 on_refused: RefusedHandler | None = None):
         self.listener = listener
         self.name = name
         self.on_connection = on_connection
+        self.limits = limits
+        self.sources = sources
+        self.on_refused = on_refused
         self.closed = threading.Event()
         self._thread = threading.Thread(target=self._loop, name=f"accept-{name}", daemon=True)
         self._thread.start()
 
     def _loop(self) -> None:
+        failures = 0
         while not self.closed.is_set():
             try:
                 got = self.listener.accept(POLL)
             except OSError as exc:
                 if self.closed.is_set():
                     return
-                log.warning("%s: accept failed: %s", self.name, exc)
+                failures += 1
+                pause = min(ACCEPT_BACKOFF[0] * 2 ** (failures - 1), ACCEPT_BACKOFF[1])
+                self._refused("accept_failed", f"{exc}; trying again in {pause:g} s")
+                self.closed.wait(pause)
                 continue
+            failures = 0
             if got is not None:
-                self.on_connection(*got)
+                self._take(*got)
+
+    def _take(self, connection: StreamConnection, peer: Address) -> None:
+        host = peer[0]
+        if self.sources is not None and not self.sources.admits(peer):
+            connection.close()
+            self._refused("foreign_source", f"a connection from {host} (taken from: "
+                                            f"{self.sources})")
+            return
+        limits = self.limits
+        if limits is not None:
+            refused = limits.admit(host)
+            if refused is not None:
+                connection.close()
+                self._refused(refused, f"closed a connection from {host} ({limits.held} held, "
+                                       f"at most {limits.total}, {limits.per_source} per source)")
+                return
+            connection = _Counted(connection, lambda: limits.release(host))
+        try:
+            self.on_connection(connection, peer)
+        except Exception:  # a bug, or no thread to be had: this connection only
+            BUGS.bug("accept_handler", f"{self.name}: error while taking a connection from "
+                                       f"{host}")
+            connection.close()
+            self._refused("handler_error", f"a connection from {host}")
+
+    def _refused(self, reason: str, detail: str) -> None:
+        if self.on_refused is not None:
+            self.on_refused(self, reason, detail)
+        else:
+            log.warning("%s: %s: %s", self.name, reason, detail)
 
     def close(self) -> None:
         if self.closed.is_set():
@@ -538,11 +731,11 @@ class Acceptor:
 
 
 def deliver(link: DatagramLink | StreamLink, frame: bytes, source: Address) -> None:
-    """Hand a frame to the link's handler. A handler that raises has a bug; it is logged with its
-    traceback and counted, and the link keeps receiving."""
+    """Hand a frame to the link's handler. A handler that raises has a bug; it is counted, its
+    traceback logged once per minute, and the link keeps receiving."""
     try:
         link.on_frame(frame, link, source)
     except Exception:
-        log.exception("%s: error while handling a frame from %s (a bug: please report it)",
-                      link.name, source)
+        BUGS.bug("handler_error", f"{link.name}: error while handling a frame from {source} "
+                                  "(a bug: please report it)")
         link.on_lost(None, "handler_error")

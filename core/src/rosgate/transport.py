@@ -151,6 +151,14 @@ class Transport(ABC):
         value; ``ValueError`` with a sentence saying what is expected."""
         return address
 
+    def source_hosts(self, host: str) -> frozenset[str] | None:
+        """The hosts that frames and connections from ``host`` (``bridge.peer``, or a client's
+        server) show in their source address, so that a link takes them from there only; None
+        when this transport cannot tell who sent a frame (a bus), and then nothing is filtered.
+        Called once per host when a bridge starts. IP transports resolve a name to its
+        addresses (:func:`ip_source_hosts`)."""
+        return None
+
     # the link calls: a DatagramTransport implements bind, a StreamTransport listen and connect
     def bind(self, address: Address) -> DatagramEndpoint:
         raise NotImplementedError(f"transport {self.name!r} is not a datagram link")
@@ -256,6 +264,16 @@ def check_ip_address(address: Address) -> Address:
         except OSError:
             raise ValueError(f"{host!r} is not an IP address or host name") from None
     return address
+
+
+def ip_source_hosts(host: str) -> frozenset[str]:
+    """For IP transports' :meth:`Transport.source_hosts`: every address ``host`` resolves to
+    (itself when it does not resolve)."""
+    try:
+        found = {info[4][0] for info in socket.getaddrinfo(host, None)}
+    except (OSError, UnicodeError):
+        found = set()
+    return frozenset({host} | {str(address).partition("%")[0] for address in found})
 
 
 def parse_host_port(text: str) -> Address:

@@ -19,8 +19,8 @@ from typing import Callable
 
 from ..config import BridgeConfig
 from ..errors import ConfigError, LinkError
-from ..links import (Acceptor, Backoff, DatagramLink, Lifetime, Link, LinkSlot, QueueLimits,
-                     StreamLink)
+from ..links import (Acceptor, Backoff, ConnectionLimits, DatagramLink, Lifetime, Link, LinkSlot,
+                     QueueLimits, Sources, StreamLink, Untrusted)
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort
@@ -56,8 +56,9 @@ class Bridge:
 
 
 class Role:
-    """What the three roles share: datagram links by local address, listening ports, and the
-    control channel's drops."""
+    """What the three roles share: datagram links by local address, listening ports within the
+    bridge's connection limits, the sources links take frames from, and the control channel's
+    drops."""
 
     def __init__(self, bridge: Bridge):
         self.bridge = bridge
@@ -66,8 +67,14 @@ class Role:
         self.life = bridge.life
         self.datagram_links: dict[tuple[str, Address], DatagramLink] = {}
         self.bare_ports: dict[DatagramLink, BarePort] = {}
-        self.listening: set[tuple[str, Address]] = set()
+        self.listening: dict[tuple[str, Address], Acceptor] = {}
+        #: who holds each datagram link and listener (a server's sessions): released together
+        self._holders: dict[tuple[str, str, Address], set[int]] = {}
         self.control = Control(self.router)
+        limits = self.cfg.limits
+        self.limits = ConnectionLimits(limits.connections, limits.connections_per_source)
+        #: what a connection a client opened may do before it is trusted
+        self.untrusted = Untrusted(limits.max_frame_before_auth, limits.handshake_timeout)
         self._lock = threading.RLock()
 
     def start(self) -> None: ...
@@ -76,11 +83,54 @@ class Role:
         for route in self.router.snapshot():
             self.router.remove(route)
 
-    def datagram_link(self, transport: Transport, local: Address, key: str = "bridge",
-                      bare_named: bool | None = None) -> DatagramLink:
-        """The link bound at ``local`` (shared by every entry on that port). ``bare_named`` is
-        not None for a port of ``framing: none`` topics: whether their datagrams carry names."""
+    def sources(self, transport: Transport, host: str | None) -> Sources | None:
+        """Who links of ``transport`` take frames from: ``host`` (the peer, the server) as its
+        frames show it, and ``bridge.allow``; None (anyone) when the transport cannot tell."""
+        hosts = transport.source_hosts(host or "")
+        if hosts is None:
+            return None
+        return Sources(hosts, self.cfg.allow)
+
+    def refused(self, acceptor: Acceptor, reason: str, detail: str) -> None:
+        """A connection an acceptor closed at once, counted like a frame for no topic."""
+        self.router.link_drop(acceptor, reason, detail)
+
+    def _hold(self, kind: str, transport: Transport, local: Address, owner: object) -> None:
+        if owner is not None:
+            self._holders.setdefault((kind, transport.name, local), set()).add(id(owner))
+
+    def release(self, owner: object) -> None:
+        """Close every datagram link and listener that no one but ``owner`` holds (a session
+        that ended): its port is free again, its threads gone."""
+        closing: list[DatagramLink | Acceptor] = []
         with self._lock:
+            for (kind, name, local), owners in list(self._holders.items()):
+                owners.discard(id(owner))
+                if owners:
+                    continue
+                del self._holders[(kind, name, local)]
+                if kind == "datagram":
+                    link = self.datagram_links.pop((name, local), None)
+                    if link is not None:
+                        self.bare_ports.pop(link, None)
+                        closing.append(link)
+                else:
+                    acceptor = self.listening.pop((name, local), None)
+                    if acceptor is not None:
+                        closing.append(acceptor)
+        for item in closing:
+            item.close()
+            self.life.forget(item)
+
+    def datagram_link(self, transport: Transport, local: Address, key: str = "bridge",
+                      bare_named: bool | None = None, sources: Sources | None = None,
+                      owner: object = None) -> DatagramLink:
+        """The link bound at ``local`` (shared by every entry on that port). ``bare_named`` is
+        not None for a port of ``framing: none`` topics: whether their datagrams carry names.
+        ``sources``: who it takes frames from (the first entry on the port decides). An
+        ``owner`` holds it until :meth:`release`; without one it lasts as long as the bridge."""
+        with self._lock:
+            self._hold("datagram", transport, local, owner)
             found = self.datagram_links.get((transport.name, local))
             if found is not None:
                 return found
@@ -91,43 +141,54 @@ class Role:
             name = f"{transport.name}:{local[1]}" if local[1] else f"{transport.name}"
             if bare_named is None:
                 link = DatagramLink(transport, endpoint, name, self.router.on_frame,
-                                    self.router.on_lost)
+                                    self.router.on_lost, sources=sources)
             else:
                 port = self.router.bare_port(bare_named)
                 link = DatagramLink(transport, endpoint, name, port.on_frame, self.router.on_lost,
-                                    bare=True)
+                                    bare=True, sources=sources)
                 self.bare_ports[link] = port
             self.datagram_links[(transport.name, local)] = self.life.closing(link)
             return link
 
-    def accept_into(self, on_frame: FrameHandler, transport: Transport,
-                    port: int) -> Callable[[StreamConnection, Address], None]:
+    def accept_into(self, on_frame: FrameHandler, transport: Transport, port: int,
+                    untrusted: Untrusted | None = None,
+                    ) -> Callable[[StreamConnection, Address], None]:
         """What to do with each connection accepted on a port: a link that feeds ``on_frame``
-        and is forgotten by the bridge when it ends."""
+        (held to ``untrusted`` until ``on_frame`` trusts it) and is forgotten by the bridge when
+        it ends."""
         life, on_lost = self.life, self.router.on_lost
 
         def accepted(connection: StreamConnection, peer: Address) -> None:
             life.closing(StreamLink(connection, f"{transport.name}:{port}<-{peer[0]}", peer,
-                                    on_frame, on_lost, on_close=life.forget))
+                                    on_frame, on_lost, on_close=life.forget,
+                                    untrusted=untrusted))
 
         return accepted
 
     def listen(self, transport: Transport, local: Address, on_frame: FrameHandler,
-               key: str | None = None) -> None:
-        """Accept stream connections at ``local`` (once per address). A LinkError is located at
-        ``key``; without one (a server listening for a client) it goes to the caller."""
+               key: str | None = None, sources: Sources | None = None,
+               untrusted: Untrusted | None = None, owner: object = None) -> Acceptor:
+        """Accept stream connections at ``local`` (once per address), from ``sources`` only
+        when given, within the bridge's connection limits. A LinkError is located at ``key``;
+        without one (a server listening for a client) it goes to the caller. An ``owner``
+        holds the listener until :meth:`release`."""
         with self._lock:
-            if (transport.name, local) in self.listening:
-                return
+            found = self.listening.get((transport.name, local))
+            if found is not None:
+                self._hold("listen", transport, local, owner)
+                return found
             try:
                 listener = transport.listen(local)
             except LinkError as exc:
                 if key is None:
                     raise
                 raise self.bridge.link_error(exc, key) from None
-            self.listening.add((transport.name, local))
-        self.life.closing(Acceptor(listener, f"{transport.name}:{local[1]}",
-                                   self.accept_into(on_frame, transport, local[1])))
+            acceptor = self.listening[(transport.name, local)] = Acceptor(
+                listener, f"{transport.name}:{local[1]}",
+                self.accept_into(on_frame, transport, local[1], untrusted),
+                self.limits, sources, self.refused)
+            self._hold("listen", transport, local, owner)
+        return self.life.closing(acceptor)
 
 
 class Control:

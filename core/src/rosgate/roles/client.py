@@ -148,8 +148,9 @@ class ClientRole(Role):
             destination = fixed(p.address)
             if p.transport.stream:
                 link = self.main if t.port is None else self._dedicated_stream(p)
-            else:
-                link = self.datagram_link(p.transport, p.local)
+            else:  # frames from the server only (and bridge.allow)
+                link = self.datagram_link(p.transport, p.local,
+                                          sources=self.sources(p.transport, p.address[0]))
                 self.hello_to.add((link, p.address))
             if isinstance(p, PreparedTopic):
                 self.router.topic(p, topic_id, label, link, destination)

@@ -9,6 +9,12 @@ Microcontrollers (the CVRA profile) are peers too: ``framing: none`` topics shar
 :class:`~rosgate.routes.BarePort` per port, told apart by name, and ``framing:
 serial_datagram`` services get a :class:`~rosgate.cvra.CallServer` per port (receive) or a
 connection per call (transmit).
+
+Sources: every datagram link and listening stream port takes frames and connections only from
+``bridge.peer`` (resolved once, at start) and ``bridge.allow``; the others are counted
+``foreign_source``. A microcontroller service port takes calls from anyone unless
+``bridge.allow`` is given (then from the peer and those). Transports that cannot tell who sent a
+frame (a CAN bus) filter nothing.
 """
 
 from __future__ import annotations
@@ -16,7 +22,7 @@ from __future__ import annotations
 from ..config import Direction, Framing
 from ..cvra import CallServer
 from ..errors import LinkError
-from ..links import Acceptor, Connector, Link
+from ..links import Acceptor, Connector, Link, Sources
 from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
 from ..routes import ReceiveRoute
@@ -27,6 +33,9 @@ from . import NoLink, Role
 
 
 class PeerRole(Role):
+    def _sources(self, p: PreparedTopic | PreparedService) -> Sources | None:
+        return self.sources(p.transport, self.cfg.peer)
+
     def start(self) -> None:
         for p in self.bridge.plan.topics:
             if p.transport.stream:
@@ -42,25 +51,27 @@ class PeerRole(Role):
 
     def _datagram_topic(self, p: PreparedTopic) -> None:
         t, key = p.config, f"topics[{p.index}].port"
+        sources = self._sources(p)
         if t.direction is Direction.TRANSMIT:
-            link = self.datagram_link(p.transport, p.local, key)
+            link = self.datagram_link(p.transport, p.local, key, sources=sources)
             self.router.topic(p, topic_id_for(t.remote), t.topic, link, fixed(p.address))
             return
         if t.framing is Framing.NONE:
             named = p.codec_cls.messagepack
-            link = self.datagram_link(p.transport, p.address, key, bare_named=named)
+            link = self.datagram_link(p.transport, p.address, key, bare_named=named,
+                                      sources=sources)
             route = self.router.topic(p, topic_id_for(t.remote), t.topic, link)
             assert isinstance(route, ReceiveRoute)
             self.bare_ports[link].add(route, {t.topic, t.remote})
             return
-        link = self.datagram_link(p.transport, p.address, key)
+        link = self.datagram_link(p.transport, p.address, key, sources=sources)
         self._receiver(p, link)
 
     def _stream_topic(self, p: PreparedTopic) -> None:
         t, key = p.config, f"topics[{p.index}].port"
         if t.direction is Direction.RECEIVE:
             self._receiver(p, NoLink())
-            self.listen(p.transport, p.address, self.router.on_frame, key)
+            self.listen(p.transport, p.address, self.router.on_frame, key, self._sources(p))
             return
         slot = self.bridge.slot(f"{t.transport}->{self.cfg.peer}:{t.port}")
         self.router.topic(p, topic_id_for(t.remote), t.topic, slot)
@@ -82,16 +93,16 @@ class PeerRole(Role):
         link: Link
         if s.direction is Direction.RECEIVE:
             if p.transport.stream:
-                self.listen(p.transport, p.address, self.router.on_frame, key)
+                self.listen(p.transport, p.address, self.router.on_frame, key, self._sources(p))
                 link = NoLink()  # answers go back on the connection each call came on
             else:
-                link = self.datagram_link(p.transport, p.address, key)
+                link = self.datagram_link(p.transport, p.address, key, sources=self._sources(p))
         elif p.transport.stream:
             link = slot = self.bridge.slot(f"{s.transport}->{self.cfg.peer}:{s.port}")
             Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
                       self.life, self.bridge.backoff).start()
         else:
-            link = self.datagram_link(p.transport, p.local, key)
+            link = self.datagram_link(p.transport, p.local, key, sources=self._sources(p))
         self.router.service(p, service_id, s.service, link, fixed(p.address))
 
     def _microcontroller_service(self, p: PreparedService,
@@ -108,8 +119,11 @@ class PeerRole(Role):
             except LinkError as exc:
                 raise self.bridge.link_error(exc, f"services[{p.index}].port") from None
             server = servers[p.address] = CallServer(f"{p.transport.name}:{p.address[1]}",
-                                                     self.router.link_drop)
-            self.life.closing(Acceptor(listener, server.name, server.accepted))
+                                                     self.router.link_drop,
+                                                     self.cfg.limits.idle_timeout)
+            sources = self._sources(p) if self.cfg.allow else None
+            self.life.closing(Acceptor(listener, server.name, server.accepted, self.limits,
+                                       sources, self.refused))
         route = self.router.service(p, 0, s.service, None)  # found by name: no id
         assert isinstance(route, ServerRoute)
         servers[p.address].add(route)

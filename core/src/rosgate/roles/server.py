@@ -25,6 +25,7 @@ from ..links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
 from ..resolver import PreparedService, PreparedTopic
 from ..routes import Route
 from ..transport import Address, StreamConnection
+from ..warn import BUGS
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
 from . import Bridge, Role
@@ -69,7 +70,8 @@ class ServerRole(Role):
         except LinkError as exc:
             raise self.bridge.link_error(exc, "bridge.server") from None
         self.acceptor = self.life.closing(Acceptor(listener, f"main:{plan.main_address[1]}",
-                                                   self._accepted))
+                                                   self._accepted, self.limits,
+                                                   on_refused=self.refused))
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
 
     def stop(self) -> None:
@@ -94,6 +96,7 @@ class ServerRole(Role):
                     session = self._welcome(message, link, peer)
                     if session is not None:
                         holder["session"] = session
+                        link.trust()
                 elif (message["type"] == "bye" and session is not None
                       and session.main.current is link):
                     log.info("client %r left", session.name)
@@ -113,10 +116,10 @@ class ServerRole(Role):
                             link.why or "main line closed", self.cfg.session_timeout)
 
         self.life.closing(StreamLink(connection, f"main<-{peer[0]}:{peer[1]}", peer, on_frame,
-                                     self.router.on_lost, on_close))
+                                     self.router.on_lost, on_close, untrusted=self.untrusted))
 
     def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address) -> Session | None:
-        name = str(hello.get("name", "?"))
+        name = str(hello.get("name", "?"))[:100]
         session = self._resume(hello, name)
         try:
             if session is None:
@@ -124,6 +127,13 @@ class ServerRole(Role):
         except (ConfigError, LinkError) as exc:
             log.error("refused client %r from %s: %s", name, peer[0], exc)
             link.send(control({"type": "refused", "error": str(exc)}), self.control)
+            return None
+        except Exception:  # a bug, or ROS refusing what the checks let through
+            BUGS.bug("session_error", f"could not build the session of client {name!r} from "
+                                      f"{peer[0]} (a bug: please report it)")
+            self.router.link_drop(link, "session_error", f"client {name!r} from {peer[0]}")
+            link.send(control({"type": "refused", "error": "the server could not build this "
+                               "session (see its log)"}), self.control)
             return None
         link.send(control({"type": "welcome", "name": self.cfg.name, "session": session.id,
                            "token": session.token.hex(),
@@ -166,7 +176,7 @@ class ServerRole(Role):
             entries: list[PreparedTopic | PreparedService] = [*prepared, *services]
             for p in entries:  # topics first: the welcome splits the ids so
                 session.routes.append(self._route(session, p))
-        except LinkError:
+        except BaseException:  # whatever failed, nothing half-built stays behind
             self._drop_routes(session)
             raise
         with self._lock:
@@ -213,10 +223,11 @@ class ServerRole(Role):
         if p.transport.stream and port is None:
             link = session.main
         elif p.transport.stream and port is not None:
-            self.listen(p.transport, p.address, self._dedicated_frame(port))
+            self.listen(p.transport, p.address, self._dedicated_frame(port),
+                        untrusted=self.untrusted, owner=session)
             link = session.streams[port] = self.bridge.slot(f"port {port} of {session.name}")
         else:
-            datagrams = self.datagram_link(p.transport, p.address)
+            datagrams = self.datagram_link(p.transport, p.address, owner=session)
             link = datagrams
 
             def destination() -> Address | None:  # where the client said hello from, last
@@ -242,6 +253,7 @@ class ServerRole(Role):
                 if (session is not None and slot is not None and isinstance(link, StreamLink)
                         and frame[envelope.SIZE:] == session.token):
                     old = slot.current
+                    link.trust()
                     slot.attach(link)
                     if old is not None and old is not link:
                         old.fail("the client connected again")
@@ -273,6 +285,7 @@ class ServerRole(Role):
         for route in session.routes:
             self.router.remove(route)
         session.close()
+        self.release(session)  # its ports, unless another session uses them
 
     def _ping_loop(self) -> None:
         """Heartbeat to every connected client; liveness: a client silent for ``peer_timeout``

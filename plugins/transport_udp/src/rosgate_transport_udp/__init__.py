@@ -20,8 +20,8 @@ import logging
 import socket
 from dataclasses import dataclass
 
-from rosgate import (Address, DatagramTransport, LinkError, check_ip_address, hookimpl, option,
-                     parse_host_port)
+from rosgate import (Address, DatagramTransport, LinkError, check_ip_address, hookimpl,
+                     ip_source_hosts, option, parse_host_port)
 
 log = logging.getLogger("rosgate.udp")
 
@@ -71,6 +71,9 @@ class UdpTransport(DatagramTransport):
 
     def check_address(self, address: Address) -> Address:
         return check_ip_address(address)
+
+    def source_hosts(self, host: str) -> frozenset[str]:
+        return ip_source_hosts(host)
 
     def bind(self, address: Address) -> UdpEndpoint:
         family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
