@@ -13,10 +13,14 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 from . import __version__
 from .errors import ConfigError, RosgateError
+
+if TYPE_CHECKING:
+    from .cipher import Cipher
 
 EXIT_USAGE = 2
 
@@ -145,7 +149,7 @@ def _print_options(plugins: Any, name: str) -> int:
     return 0
 
 
-def _columns(rows: list[tuple[str, ...]]) -> list[str]:
+def _columns(rows: Sequence[tuple[str, ...]]) -> list[str]:
     """Rows as lines, each column as wide as its widest cell (the last one as it is)."""
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]) - 1)]
     return ["  ".join([cell.ljust(width) for cell, width in zip(row, widths)] + [row[-1]])
@@ -160,7 +164,8 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     if registration is None:
         message, fix = plugins.explain_missing("cipher", args.cipher)
         raise ConfigError(message, fix=fix, file="keygen")
-    key = registration.cls.generate_key()
+    cipher: type[Cipher] = registration.cls
+    key = cipher.generate_key()
     if key is None:
         raise ConfigError(f"cipher {args.cipher!r} takes no key", file="keygen")
     path = Path(args.out or f"{args.cipher}.key")

@@ -55,6 +55,13 @@ tests kept writing for themselves. rosgate registers this module as a pytest plu
 pytest rewrites its asserts: a failing check shows the values. Importing it loads nothing from
 ROS; the codec suite imports message packages when it runs. One module per suite:
 ``transports.py``, ``codecs.py`` (with the sample messages), ``ciphers.py``, ``helpers.py``.
+
+A bad link for tests, in user space (this kind of machine has no netem):
+:mod:`rosgate.testing.emulator` — ``UdpRelay`` and ``TcpRelay`` with a token-bucket rate,
+delay and jitter, loss per IP packet, a bounded queue, seeded (``Profile``, the ``WIFI`` preset),
+and ``NetnsPair``, two network namespaces on a veth pair with a kernel rate limit (root only).
+Import it from there: it is not loaded with the kit, and it also runs as
+``python -m rosgate.testing.emulator`` for a benchmark.
 """
 
 from .ciphers import CipherConformance
