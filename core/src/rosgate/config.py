@@ -697,7 +697,8 @@ def _qos(src: _Source, data: dict, path: str) -> int | str | dict:
     if not isinstance(value, dict):
         raise src.error(qos_path, expected, fix=fix)
     _check_keys(src, value, qos_path, QOS_KEYS)
-    policies = {key: _choice(src, value, qos_path, key, choices) for key, choices in QOS_POLICIES.items()
+    policies: dict[str, Any] = {key: _choice(src, value, qos_path, key, choices)
+                                for key, choices in QOS_POLICIES.items()
                 if key in value}
     if "depth" in value:
         policies["depth"] = _depth_bound(src, _join(qos_path, "depth"), _number(
