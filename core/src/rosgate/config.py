@@ -698,8 +698,7 @@ def _qos(src: _Source, data: dict, path: str) -> int | str | dict:
         raise src.error(qos_path, expected, fix=fix)
     _check_keys(src, value, qos_path, QOS_KEYS)
     policies: dict[str, Any] = {key: _choice(src, value, qos_path, key, choices)
-                                for key, choices in QOS_POLICIES.items()
-                if key in value}
+                                for key, choices in QOS_POLICIES.items() if key in value}
     if "depth" in value:
         policies["depth"] = _depth_bound(src, _join(qos_path, "depth"), _number(
             src, value, qos_path, "depth", None, "an integer >= 1", lambda v: v >= 1, integer=True))
