@@ -44,5 +44,10 @@ bench-profile: sync
 fuzz: sync
 	$(VENV)/bin/python tests/fuzz/campaign.py $(FUZZ_ARGS)
 
+# a client/server pair at 1,000 msg/s on four topics for 30 minutes under a garbage flood,
+# reconnect churn and an idle-connection flood (tests/soak/); SOAK_ARGS="--minutes 5" shortens it
+soak: sync
+	$(VENV)/bin/python tests/soak/soak.py $(SOAK_ARGS)
+
 clean:
 	rm -rf $(VENV) .tools
