@@ -196,14 +196,15 @@ def main() -> int:
     parser.add_argument("--out", default=str(HERE / "last.md"))
     args = parser.parse_args()
 
-    first = int(os.environ.get("ROSGATE_SOAK_DOMAIN", "140"))
+    # two DDS domains of its own (the benchmark uses 150 and up, tests 20-119 unless told)
+    first, second = (int(d) for d in os.environ.get("ROSGATE_SOAK_DOMAINS", "140,141").split(","))
     port, udp_port = free_port(), free_port()
     counts = Counts()
     with tempfile.TemporaryDirectory(prefix="rosgate-soak-") as tmp:
         server_file, client_file = write_files(Path(tmp), port, udp_port)
         server = Bridge(server_file, first)
-        client = Bridge(client_file, first + 1)
-        here, there = RosSide(first + 1, "soak_client_side"), RosSide(first, "soak_server_side")
+        client = Bridge(client_file, second)
+        here, there = RosSide(second, "soak_client_side"), RosSide(first, "soak_server_side")
         try:
             return run(args, server, client, here, there, counts, port, udp_port)
         finally:

@@ -4,6 +4,7 @@ judged by ``make soak`` (30 minutes), not by a run this short."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -14,10 +15,11 @@ HERE = Path(__file__).parent
 
 
 @pytest.mark.timeout(300)
-def test_a_short_soak_passes(tmp_path):
+def test_a_short_soak_passes(tmp_path, domain):
     out = tmp_path / "soak.md"
+    env = dict(os.environ, ROSGATE_SOAK_DOMAINS=f"{domain()},{domain()}")
     done = subprocess.run([sys.executable, str(HERE / "soak.py"), "--minutes", "0.5",
                            "--warmup", "0.2", "--every", "5", "--rss-limit", "1",
-                           "--out", str(out)], capture_output=True, text=True)
+                           "--out", str(out)], capture_output=True, text=True, env=env)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert out.read_text().rstrip().endswith("PASS")
