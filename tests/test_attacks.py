@@ -483,3 +483,33 @@ def test_a_session_that_fails_half_built_is_taken_down_whatever_failed(
     time.sleep(1)  # the graph settles: nothing to wait on when nothing should come
     assert graph.count_publishers("/t0") == graph.count_publishers("/t1") == 0
     assert len(logs.having("could not build the session")) == 1
+
+
+# -- a flood of service calls -------------------------------------------------------------------
+
+def test_calls_in_progress_are_bounded(engines, domain, ros_side, monkeypatch):
+    """A flood of requests on a service link (cipher none: anyone who can reach the port)
+    cannot pile up pending ROS calls and deadlines: past QUEUE_DEPTH in progress, a request is
+    answered as a failure at once and counted ``too_many_calls``."""
+    from std_srvs.srv import SetBool
+    from test_services import Caller, Drops, HoldingServer, flip, peer_yaml
+
+    from rosgate import services
+
+    da, db, port = domain(), domain(), free_port()
+    entry = (f"service: /set, type: std_srvs/srv/SetBool, direction: transmit, port: {port}, "
+             "timeout: 1")
+    a = engines(peer_yaml("a", [entry]), da)
+    b = engines(peer_yaml("b", [flip(entry)]), db)
+    server = HoldingServer(ros_side(db, "b"), "/set", 100)
+    caller = Caller(ros_side(da, "a"), SetBool, "/set")
+    caller.warm_up(SetBool.Request(data=True), a)
+    drops = Drops((b,))
+    monkeypatch.setattr(services, "QUEUE_DEPTH", 3)
+    server.holding = True
+    answers = caller.call_many([SetBool.Request(data=True)] * 5, timeout=5)
+    messages = sorted(a.message for a in answers)
+    assert messages[3:] == ["rosgate: the serving bridge has 3 calls of /set in progress"] * 2
+    assert all(m.endswith("within 1 s") for m in messages[:3]), messages  # held, timed out
+    assert drops.since()["b /set"] == {"too_many_calls": 2, "timeout": 3}
+    assert wait_until(lambda: b.routes()[0].in_flight == 0, 5)
