@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import free_port, wait_until
+from conftest import Bridge, free_port, wait_until
 from resources import Resources
 
 from rosgate.roles.mainline import control
@@ -225,26 +225,35 @@ topics:
     return path
 
 
+@pytest.mark.parametrize("ending", ["bye", "expiry"])
 def test_a_session_that_ends_releases_its_ports_threads_and_ros_entities(
-        tmp_path, bridge, domain, ros_side):
+        tmp_path, bridge, domain, ros_side, ending):
     """Before: ports named in a hello stayed bound after ``bye`` (the issue counted 25 threads
     left behind; measured here after one client: its dedicated udp and tcp ports and the udp
     main port still bound, +3 threads, +3 fds). Now: when the last session using a port ends,
     its link is closed; fds, threads, ports and the session's publishers are as before."""
     ds, dc = domain(), domain()
     port, udp_port, tcp_port = free_port(), free_port(), free_port()
-    server = bridge(server_file(tmp_path, port), ds)
+    server = bridge(server_file(tmp_path, port, ", session_timeout: 1"), ds)
     res = Resources(server.proc.pid)
     graph = ros_side(ds, "graph").ros.node
     before = res.snapshot()
-    client = bridge(client_file(tmp_path, port, udp_port, tcp_port), dc)
-    assert server.wait_log("client 'robot1' up", 20), server.log
-    assert client.wait_log("server 'base' up", 10), client.log
-    assert wait_until(lambda: graph.count_publishers("/up") == 1, 10)
-    during = res.snapshot()
-    assert {("udp", udp_port), ("tcp", tcp_port)} <= during.ports, during
-    assert client.stop() == 0, client.log  # a clean stop says bye
-    assert server.wait_log("client 'robot1' left", 10), server.log
+    client = Bridge(client_file(tmp_path, port, udp_port, tcp_port), dc)  # stopped here
+    try:
+        assert server.wait_log("client 'robot1' up", 20), server.log
+        assert client.wait_log("server 'base' up", 10), client.log
+        assert wait_until(lambda: graph.count_publishers("/up") == 1, 10)
+        during = res.snapshot()
+        assert {("udp", udp_port), ("tcp", tcp_port)} <= during.ports, during
+        if ending == "bye":
+            assert client.stop() == 0, client.log  # a clean stop says bye
+            assert server.wait_log("client 'robot1' left", 10), server.log
+        else:
+            client.proc.kill()  # no goodbye: the session is kept for session_timeout, then dropped
+            client.proc.wait(5)
+            assert server.wait_log("its session is dropped", 10), server.log
+    finally:
+        client.stop()
     assert wait_until(lambda: res.ports() == before.ports, 5), (res.ports(), before.ports)
     assert settled(res, lambda s: s.threads, before.threads, 0, 5), (res.snapshot(), before)
     assert settled(res, lambda s: s.fds, before.fds, 0, 5), (res.snapshot(), before)

@@ -42,7 +42,7 @@ from typing import Any, Callable, Iterable, Protocol
 
 from .errors import LinkError
 from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport
-from .warn import BUGS
+from .warn import BUGS, Warner
 from .wire import envelope, framing
 
 log = logging.getLogger("rosgate")
@@ -53,6 +53,7 @@ LostHandler = Callable[[int | None, str], None]
 
 POLL = 0.2  # seconds a receive waits before checking whether the link is closing
 CONNECT_TIMEOUT = 5.0
+_WARNER = Warner()  # for an acceptor whose owner does not count its refusals
 ACCEPT_BACKOFF = (0.1, 1.0)  # seconds between failed accepts: the first, doubling up to the second
 
 
@@ -720,7 +721,7 @@ class Acceptor:
         if self.on_refused is not None:
             self.on_refused(self, reason, detail)
         else:
-            log.warning("%s: %s: %s", self.name, reason, detail)
+            _WARNER.warn(self.name, reason, detail)
 
     def close(self) -> None:
         if self.closed.is_set():
