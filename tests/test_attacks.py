@@ -187,11 +187,10 @@ def test_one_forged_frame_cannot_lock_out_the_real_sender(engines, domain, ros_s
     """Before: with ``cipher: none``, one forged frame with seq 2^63 in the sender's epoch made
     every later real frame "stale" (measured: nothing crossed after it). Now: the forged frame
     opens a window of its own; the real sender keeps delivering."""
+    from conftest import cross
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
     from test_hostile_input import peer_pair, text
-
-    from conftest import cross
 
     a, b, da, db, port = peer_pair(engines, domain)
     inbox = ros_side(db, "listener").listen("/chatter", String)
@@ -412,11 +411,10 @@ def test_a_peer_takes_datagrams_from_its_peer_only(engines, domain, ros_side):
     """Before: peer-role (and client) UDP sockets took frames from any source address (measured:
     all 10 frames from 127.0.0.2 went to the route). Now: only from ``bridge.peer`` (and
     ``bridge.allow``); others are counted ``foreign_source``."""
+    from conftest import cross
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
     from test_hostile_input import peer_pair, text
-
-    from conftest import cross
 
     a, b, da, db, port = peer_pair(engines, domain)
     inbox = ros_side(db, "listener").listen("/chatter", String)

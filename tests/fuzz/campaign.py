@@ -85,7 +85,7 @@ def main() -> int:
         results = list(pool.map(lambda n: run_target(n, args.runs, args.seed, Path(scratch)),
                                 names))
     wall = time.monotonic() - start
-    print(f"| target | inputs | seconds | inputs/s | coverage | findings |")
+    print("| target | inputs | seconds | inputs/s | coverage | findings |")
     print("|---|--:|--:|--:|---|---|")
     for r in results:
         rate = r.runs / r.seconds if r.seconds else 0

@@ -23,14 +23,13 @@ with atheris.instrument_imports(include=["rosgate", "rosgate_codec_msgpack",
                                          "rosgate_codec_cbor", "targets"]):
     import rosgate_codec_cbor  # noqa: F401
     import rosgate_codec_msgpack  # noqa: F401
+    import targets
 
-    import rosgate.config  # noqa: F401
-    import rosgate.message_tree  # noqa: F401
-    import rosgate.roles.mainline  # noqa: F401
+    import rosgate.config
+    import rosgate.message_tree
+    import rosgate.roles.mainline
     import rosgate.ros  # noqa: F401
     from rosgate.wire import control, envelope, framing, names, serial_datagram  # noqa: F401
-
-    import targets
 
 LIMIT = float(os.environ.get("ROSGATE_FUZZ_LIMIT_MS", "100")) / 1000
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-import targets  # noqa: E402
+import targets
 
 CORPUS = Path(__file__).parent / "corpus"
 VECTORS = Path(__file__).parent.parent / "data" / "vectors" / "serial_datagram.txt"
@@ -29,7 +29,8 @@ def messages() -> list[tuple[int, object]]:
     """(index in targets.message_types(), a message) for every codec target's type."""
     import numpy
     from geometry_msgs.msg import Point32, PoseStamped, Twist, Vector3
-    from nav_msgs.msg import OccupancyGrid, Odometry, Path as NavPath
+    from nav_msgs.msg import OccupancyGrid, Odometry
+    from nav_msgs.msg import Path as NavPath
     from sensor_msgs.msg import LaserEcho, LaserScan, MultiEchoLaserScan, PointCloud2, PointField
     from std_msgs.msg import Header
 

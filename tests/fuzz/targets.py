@@ -13,7 +13,8 @@ a plain function call.
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 Target = Callable[[bytes], None]
 TARGETS: dict[str, Target] = {}
