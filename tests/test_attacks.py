@@ -520,3 +520,20 @@ def test_calls_in_progress_are_bounded(engines, domain, ros_side, monkeypatch):
     assert all(m.endswith("within 1 s") for m in messages[:3]), messages  # held, timed out
     assert drops.since()["b /set"] == {"too_many_calls": 2, "timeout": 3}
     assert wait_until(lambda: b.routes()[0].in_flight == 0, 5)
+
+
+def test_sessions_are_limited(engines, domain):
+    """A server keeps at most ``limits.sessions`` client sessions; one more is refused and
+    answered, and nothing is built for it."""
+    ds, port = domain(), free_port()
+    server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, "
+                     "limits: {sessions: 2}}", ds)
+    answers = []
+    for name in ("a", "b", "c"):
+        with socket.create_connection(("127.0.0.1", port), 5) as s:
+            s.sendall(framed(control({"type": "hello", "protocol": 1, "name": name,
+                                      "topics": [], "services": []})))
+            answers.append(read_control(s))
+    assert [a["type"] for a in answers] == ["welcome", "welcome", "refused"], answers
+    assert "keeps 2 sessions already" in answers[2]["error"]
+    assert len(server.role.sessions) == 2

@@ -156,12 +156,13 @@ def test_limits_and_allow_default_and_explicit() -> None:
     config = loads(CLIENT_HEAD)
     assert config.limits == Limits(connections=256, connections_per_source=16,
                                    handshake_timeout=5.0, max_frame_before_auth=65536,
-                                   idle_timeout=2.0)
+                                   idle_timeout=2.0, sessions=256)
     assert config.allow == ()
     config = loads(CLIENT_HEAD + "  limits: {connections: 10, connections_per_source: 2, "
-                   "handshake_timeout: 1, idle_timeout: 0.5, max_frame_before_auth: 4096}\n"
+                   "handshake_timeout: 1, idle_timeout: 0.5, max_frame_before_auth: 4096, "
+                   "sessions: 3}\n"
                    "  allow: [10.0.0.7, 192.168.1.0/24, 'AA:BB:CC:DD:EE:01']\n")
-    assert config.limits == Limits(10, 2, 1.0, 4096, 0.5)
+    assert config.limits == Limits(10, 2, 1.0, 4096, 0.5, 3)
     assert config.allow == ("10.0.0.7", "192.168.1.0/24", "AA:BB:CC:DD:EE:01")
     assert loads(CLIENT_HEAD + "  allow: 10.0.0.7\n").allow == ("10.0.0.7",)
 

@@ -93,7 +93,7 @@ DEFAULTS_KEYS = ("transport", "codec", "cipher")
 RECONNECT_KEYS = ("min", "max")
 QUEUE_KEYS = ("frames", "bytes")
 LIMITS_KEYS = ("connections", "connections_per_source", "handshake_timeout",
-               "max_frame_before_auth", "idle_timeout")
+               "max_frame_before_auth", "idle_timeout", "sessions")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
               "framing", "qos", "max_rate")
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
@@ -113,7 +113,7 @@ _EXAMPLES = {
     "allow": "[192.168.1.20, 10.0.0.0/24]",
     "bridge.limits.connections": "256", "bridge.limits.connections_per_source": "16",
     "bridge.limits.handshake_timeout": "5", "bridge.limits.max_frame_before_auth": "65536",
-    "bridge.limits.idle_timeout": "2",
+    "bridge.limits.idle_timeout": "2", "bridge.limits.sessions": "256",
     "bridge.reconnect.min": "0.1", "bridge.reconnect.max": "10", "bridge.queue.frames": "1000",
     "bridge.queue.bytes": "8388608", "transport": "udp", "codec": "cdr", "cipher": "none",
     "topic": "/chatter", "service": "/mcu/ping", "type": "std_msgs/msg/String",
@@ -183,6 +183,8 @@ class Limits:
     max_frame_before_auth: int = 64 * 1024
     #: seconds a connection to a microcontroller service port may stay silent
     idle_timeout: float = 2.0
+    #: server: client sessions kept at once (connected, or waiting out session_timeout)
+    sessions: int = 256
 
 
 @dataclass
@@ -514,6 +516,8 @@ def _limits(src: _Source, bridge: dict) -> Limits:
                                       integer=True),
         idle_timeout=_number(src, given, path, "idle_timeout", default.idle_timeout,
                              "a number of seconds > 0", _positive),
+        sessions=_number(src, given, path, "sessions", default.sessions, "an integer >= 1",
+                         lambda v: v >= 1, integer=True),
     )
     if limits.connections_per_source > limits.connections:
         raise src.error(f"{path}.connections_per_source",

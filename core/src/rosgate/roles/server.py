@@ -168,6 +168,10 @@ class ServerRole(Role):
         if hello.get("protocol") != PROTOCOL:
             raise ConfigError(f"protocol {hello.get('protocol')!r} is not {PROTOCOL}",
                               file=f"client {name}", fix="run the same rosgate version on both")
+        if len(self.sessions) >= self.cfg.limits.sessions:
+            raise ConfigError(f"the server keeps {len(self.sessions)} sessions already, its "
+                              "limit", file=f"client {name}",
+                              fix="try again later (bridge.limits.sessions on the server)")
         prepared = self._prepare_client_topics(hello, name)
         services = self._prepare_client_services(hello, name)
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
