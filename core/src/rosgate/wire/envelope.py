@@ -128,14 +128,13 @@ class ReplayWindow:
         if self.authenticated:
             return self._slide(tracks[0], seq)
         width = self.WIDTH
+        track = tracks[-1]  # the sender's own window, nearly always
+        if track[0] - width < seq <= track[0] + width:
+            return self._slide(track, seq) if len(tracks) == 1 else self._in(tracks, track, seq)
         for track in reversed(tracks):
             top = track[0]
             if top - width < seq <= top + width:
-                refused = self._slide(track, seq)
-                tracks.remove(track)
-                tracks.append(track)
-                self._merge(tracks)
-                return refused
+                return self._in(tracks, track, seq)
         highest = max(track[0] for track in tracks)
         if any(track[0] - self.JUMP <= seq <= track[0] - width for track in tracks):
             return "stale"
@@ -145,6 +144,15 @@ class ReplayWindow:
         if len(tracks) > self.TRACKS:
             del tracks[0]
         return None
+
+    def _in(self, tracks: list[list[int]], track: list[int], seq: int) -> str | None:
+        """``seq`` in ``track``, which becomes the most recently used, merged with any window
+        it has come close to."""
+        refused = self._slide(track, seq)
+        tracks.remove(track)
+        tracks.append(track)
+        self._merge(tracks)
+        return refused
 
     def _slide(self, window: list[int], seq: int) -> str | None:
         """``seq`` in one window: accepted (the window moves on) or refused."""
