@@ -32,6 +32,7 @@ lint: sync
 # the rosgate of git revision REV (a temporary worktree with its own .venv), row beside row.
 bench: sync
 	UV=$(abspath $(UV)) $(VENV)/bin/python bench/bench.py $(if $(BASE),--base $(BASE)) $(BENCH_ARGS)
+	$(VENV)/bin/python bench/fleet.py
 
 # py-spy profiles of bridge A and bridge B (udp/cdr/none, 2.5 kB) into bench/profiles/; the table
 # goes to stdout only. Another path: BENCH_ARGS="--profile-path tcp/cdr/none".

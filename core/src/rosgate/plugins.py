@@ -35,7 +35,7 @@ from . import hookspecs
 from .cipher import Cipher
 from .codec import Codec
 from .options import declaration_problem
-from .transport import DatagramTransport, StreamTransport, Transport
+from .transport import Transport
 
 ENTRY_POINT_GROUP = "rosgate"
 DISABLE_VARIABLE = "ROSGATE_DISABLE_PLUGINS"
@@ -245,7 +245,7 @@ def deprecations(cls: type) -> list[str]:
     """What a registered class does that still works but will not for long, for
     ``rosgate plugins`` (its author sees a ``DeprecationWarning`` too)."""
     notes = []
-    if issubclass(cls, Transport) and not issubclass(cls, (DatagramTransport, StreamTransport)):
+    if issubclass(cls, Transport) and cls.link_kind is None:
         notes.append("subclasses rosgate.Transport and sets stream itself (subclass "
                      "DatagramTransport or StreamTransport)")
     if not hasattr(cls, "Options"):
