@@ -41,15 +41,17 @@ class TooSlow(Exception):
 def main() -> None:
     name = sys.argv.pop(1)
     run = targets.TARGETS[name]
-    targets.warm(run)
+    # no warm-up: code run before atheris.Fuzz() is not seen as coverage (measured: the cdr
+    # target's 93 edges became 20). What the first inputs build (a message type's converters,
+    # its type support) is exempt from the time limit instead.
     gc.collect()
     gc.freeze()  # what setup made is never collected: a collection stays short
 
     def one(data: bytes) -> None:
-        start = time.thread_time()
+        built, start = targets.caches(), time.thread_time()
         run(data)
         spent = time.thread_time() - start
-        if spent > LIMIT:
+        if spent > LIMIT and targets.caches() == built:
             raise TooSlow(f"{name}: {spent * 1000:.0f} ms of CPU for {len(data)} bytes")
 
     atheris.Setup(sys.argv, one)

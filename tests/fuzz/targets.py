@@ -97,6 +97,14 @@ def _codec(name: str, msg_type: type) -> Any:
     return cdr_checker(msg_type)
 
 
+def caches() -> tuple[int, ...]:
+    """How much the targets' caches hold (message types, codecs, converter trees): an input
+    during which they grew paid for building them, which a time limit must not count."""
+    from rosgate.message_tree import _TREES
+
+    return message_types.cache_info().misses, _codec.cache_info().misses, len(_TREES)
+
+
 def warm(run: Target) -> None:
     """What a target builds once (codecs' converters, lazy imports), built before timing it."""
     for msg_type in message_types():
