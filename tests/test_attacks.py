@@ -539,3 +539,41 @@ def test_sessions_are_limited(engines, domain):
     assert [a["type"] for a in answers] == ["welcome", "welcome", "refused"], answers
     assert "keeps 2 sessions already" in answers[2]["error"]
     assert len(server.role.sessions) == 2
+
+
+def test_a_server_takes_datagrams_from_its_clients_only(engines, domain, ros_side):
+    """The server's datagram ports take frames only from the addresses its clients' genuine
+    hellos came from; a stranger's frames are ``foreign_source`` before anything else looks at
+    them, and a stranger's hello is checked (``bad_hello``) and teaches the server nothing."""
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import String
+
+    from conftest import cross
+
+    ds, dc, port = domain(), domain(), free_port()
+    server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}", ds)
+    client = engines(f"""
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
+topics: [{{topic: /up, type: std_msgs/msg/String, direction: transmit}}]
+""", dc)
+    inbox = ros_side(ds, "listener").listen("/up", String)
+    talker = ros_side(dc, "talker").publisher("/up", String)
+    cross(talker, inbox, lambda i: String(data="warmup" if i is None else f"m{i}"),
+          lambda m: m.data == "warmup", 3)
+    route = server.routes()[0]
+    session = next(iter(server.role.sessions.values()))
+    frame = envelope.pack(0, route.topic_id, 99, 1, 0) + serialize_message(String(data="x"))
+    hello = envelope.pack(envelope.FLAG_HELLO, session.id, 0, 0, 0) + b"not the token"
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.2", 0))
+        for _ in range(5):
+            s.sendto(frame, ("127.0.0.1", port))
+        s.sendto(hello, ("127.0.0.1", port))
+        for _ in range(5):
+            s.sendto(frame, ("127.0.0.1", port))
+    assert wait_until(lambda: server.link_drops.get("foreign_source") == 10
+                      and server.link_drops.get("bad_hello") == 1), server.link_drops
+    assert all(m.data != "x" for m in inbox.items)
+    got = cross(talker, inbox, lambda i: String(data="warmup" if i is None else f"n{i}"),
+                lambda m: m.data == "warmup", 3)
+    assert [m.data for m in got] == ["n0", "n1", "n2"]

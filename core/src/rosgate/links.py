@@ -195,7 +195,7 @@ class DatagramLink(Link):
                 self.reassembler.expire()
                 continue
             datagram, source = got
-            if self.sources is not None and not self.sources.admits(source):
+            if self.sources is not None and not self.sources.admits(source, datagram):
                 self.on_lost(None, "foreign_source")
                 continue
             if self.compact or not self.bare and framing.is_fragment(datagram):
@@ -568,7 +568,7 @@ class Sources:
             except ValueError:
                 self.hosts.add(text)  # not an IP network: a host as written (a device address)
 
-    def admits(self, source: Address) -> bool:
+    def admits(self, source: Address, datagram: bytes = b"") -> bool:
         host = source[0]
         if host in self.hosts:
             return True
@@ -586,6 +586,33 @@ class Sources:
 
     def __repr__(self) -> str:
         return ", ".join([*sorted(self.hosts), *map(str, self.networks)]) or "nobody"
+
+
+class KnownSources(Sources):
+    """Sources learnt while running: a server's clients, at the addresses their genuine hellos
+    came from. A datagram from anywhere else is taken only when it is a hello (which the server
+    then checks); everything else from there is ``foreign_source``, before any reassembly."""
+
+    def __init__(self) -> None:
+        super().__init__(())
+        self._known: Counter[Address] = Counter()
+        self._lock = threading.Lock()
+
+    def learn(self, source: Address) -> None:
+        with self._lock:
+            self._known[source] += 1
+
+    def forget(self, source: Address) -> None:
+        with self._lock:
+            self._known[source] -= 1
+            if self._known[source] <= 0:
+                del self._known[source]
+
+    def admits(self, source: Address, datagram: bytes = b"") -> bool:
+        return source in self._known or envelope.is_hello(datagram)
+
+    def __repr__(self) -> str:
+        return f"{len(self._known)} client address(es)"
 
 
 class ConnectionLimits:

@@ -110,7 +110,7 @@ class ClientRole(Role):
             if self.topic_ids is None:
                 self._unbuild()  # half-built: the next handshake starts clean
             return False
-        if session != self.session:
+        if (session, token) != (self.session, self.token):  # a restarted server reuses ids
             self.session, self.token = session, token
             for slot in self._dedicated:  # they must introduce themselves to the new session
                 if slot.current is not None:

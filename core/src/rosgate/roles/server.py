@@ -21,7 +21,7 @@ from typing import Any
 
 from ..config import Direction, topic_from_mapping
 from ..errors import ConfigError, LinkError
-from ..links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
+from ..links import Acceptor, DatagramLink, KnownSources, Link, LinkSlot, StreamLink
 from ..resolver import PreparedService, PreparedTopic
 from ..routes import Route
 from ..transport import Address, StreamConnection
@@ -61,6 +61,8 @@ class ServerRole(Role):
         self.sessions: dict[int, Session] = {}
         self._ids = iter(range(1, 2**32))
         self.router.on_hello = self.on_hello
+        #: datagram ports take frames only from where clients' genuine hellos came from
+        self.clients = KnownSources()
 
     def start(self) -> None:
         plan = self.bridge.plan
@@ -231,7 +233,8 @@ class ServerRole(Role):
                         untrusted=self.untrusted, owner=session)
             link = session.streams[port] = self.bridge.slot(f"port {port} of {session.name}")
         else:
-            datagrams = self.datagram_link(p.transport, p.address, owner=session)
+            datagrams = self.datagram_link(p.transport, p.address, owner=session,
+                                           sources=self.clients)
             link = datagrams
 
             def destination() -> Address | None:  # where the client said hello from, last
@@ -274,6 +277,10 @@ class ServerRole(Role):
             self.router.link_drop(link, "bad_hello", f"from {source}")
             return
         if isinstance(link, DatagramLink) and session.addresses.get(link) != source:
+            old = session.addresses.get(link)
+            if old is not None:
+                self.clients.forget(old)
+            self.clients.learn(source)
             session.addresses[link] = source
             log.debug("client %r is at %s on %s", session.name, source, link.name)
 
@@ -289,6 +296,9 @@ class ServerRole(Role):
         for route in session.routes:
             self.router.remove(route)
         session.close()
+        for address in session.addresses.values():
+            self.clients.forget(address)
+        session.addresses.clear()
         self.release(session)  # its ports, unless another session uses them
 
     def _ping_loop(self) -> None:

@@ -46,6 +46,11 @@ def topic_of(start: bytes) -> int | None:
     return int.from_bytes(start[4:8], "big") if start[:2] == MAGIC and len(start) >= 8 else None
 
 
+def is_hello(datagram: bytes) -> bool:
+    """Whether ``datagram`` is a whole envelope with the HELLO flag (not yet checked)."""
+    return len(datagram) >= SIZE and datagram[:2] == MAGIC and bool(datagram[3] & FLAG_HELLO)
+
+
 class EnvelopeError(ValueError):
     """Bytes that do not start with a valid envelope header."""
 
