@@ -99,6 +99,8 @@ class ClientRole(Role):
             ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
             if len(ids) != len(plan.topics) + len(plan.services):
                 raise ValueError("topic and service id count does not match")
+            if not all(0 < i < 2**32 for i in ids):
+                raise ValueError("a topic or service id out of range")
             session, token = int(answer["session"]), bytes.fromhex(answer["token"])
             self.server_name = str(answer["name"])
             if self.topic_ids is None:
