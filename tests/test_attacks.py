@@ -409,8 +409,8 @@ def test_decoder_bombs_cost_little_and_are_counted(tmp_path, bridge, domain, cod
 
 def test_a_peer_takes_datagrams_from_its_peer_only(engines, domain, ros_side):
     """Before: peer-role (and client) UDP sockets took frames from any source address (measured:
-    all 10 frames from 127.0.0.2 went to the route). Now: only from ``bridge.peer`` (and
-    ``bridge.allow``); others are counted ``foreign_source``."""
+    all 10 frames from 127.0.0.2 went to the route). Now: only from ``bridge.peer`` (or
+    ``bridge.allow``, when given); others are counted ``not_allowed``."""
     from conftest import cross
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
@@ -426,7 +426,7 @@ def test_a_peer_takes_datagrams_from_its_peer_only(engines, domain, ros_side):
         s.bind(("127.0.0.2", 0))
         for _ in range(10):
             s.sendto(frame, ("127.0.0.1", port))
-    assert wait_until(lambda: b.link_drops.get("foreign_source") == 10), b.link_drops
+    assert wait_until(lambda: b.link_drops.get("not_allowed") == 10), b.link_drops
     got = cross(talker, inbox, lambda i: text(None if i is None else 10 + i),
                 lambda m: m.data == "warmup", 5)
     assert [m.data for m in got] == [f"real-{10 + i}" for i in range(5)]
@@ -454,7 +454,7 @@ topics: [{{topic: /down, type: std_msgs/msg/String, direction: receive}}]
         s.bind(("127.0.0.2", 0))
         for _ in range(5):
             s.sendto(frame, ("127.0.0.1", local[1]))
-    assert wait_until(lambda: client.link_drops.get("foreign_source") == 5), client.link_drops
+    assert wait_until(lambda: client.link_drops.get("not_allowed") == 5), client.link_drops
     assert inbox.items == []
 
 
@@ -543,7 +543,7 @@ def test_sessions_are_limited(engines, domain):
 
 def test_a_server_takes_datagrams_from_its_clients_only(engines, domain, ros_side):
     """The server's datagram ports take frames only from the addresses its clients' genuine
-    hellos came from; a stranger's frames are ``foreign_source`` before anything else looks at
+    hellos came from; a stranger's frames are ``not_allowed`` before anything else looks at
     them, and a stranger's hello is checked (``bad_hello``) and teaches the server nothing."""
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
@@ -571,7 +571,7 @@ topics: [{{topic: /up, type: std_msgs/msg/String, direction: transmit}}]
         s.sendto(hello, ("127.0.0.1", port))
         for _ in range(5):
             s.sendto(frame, ("127.0.0.1", port))
-    assert wait_until(lambda: server.link_drops.get("foreign_source") == 10
+    assert wait_until(lambda: server.link_drops.get("not_allowed") == 10
                       and server.link_drops.get("bad_hello") == 1), server.link_drops
     assert all(m.data != "x" for m in inbox.items)
     got = cross(talker, inbox, lambda i: String(data="warmup" if i is None else f"n{i}"),

@@ -125,7 +125,7 @@ class DatagramLink(Link):
                  on_frame: FrameHandler, on_lost: LostHandler, bare: bool = False,
                  max_message: int = framing.DEFAULT_MAX_MESSAGE, sources: Sources | None = None):
         self.transport = transport
-        #: who frames are taken from (None: anyone); others are counted ``foreign_source``
+        #: who frames are taken from (None: anyone); others are counted ``not_allowed``
         self.sources = sources
         self.endpoint = endpoint
         self.name = name
@@ -196,7 +196,7 @@ class DatagramLink(Link):
                 continue
             datagram, source = got
             if self.sources is not None and not self.sources.admits(source, datagram):
-                self.on_lost(None, "foreign_source")
+                self.on_lost(None, "not_allowed")
                 continue
             if self.compact or not self.bare and framing.is_fragment(datagram):
                 try:
@@ -494,8 +494,10 @@ class Connector:
                  on_frame: FrameHandler, on_frame_lost: LostHandler, life: Lifetime,
                  backoff: Backoff,
                  on_connected: Callable[[StreamLink], bool] | None = None,
-                 on_lost: Callable[[StreamLink], None] | None = None):
+                 on_lost: Callable[[StreamLink], None] | None = None,
+                 secure: Callable[[StreamConnection], StreamConnection] | None = None):
         self.transport = transport
+        self.secure = secure
         self.address = address
         self.slot = slot
         self.on_frame = on_frame
@@ -505,6 +507,7 @@ class Connector:
         self.on_connected = on_connected
         self.on_lost = on_lost
         self.connected = threading.Event()
+        self._last_failure = ""
         self._thread = threading.Thread(target=self._loop, name=f"connect-{slot.name}", daemon=True)
         life.closing(self)
 
@@ -522,6 +525,7 @@ class Connector:
                 stopping.wait(self.backoff.delay(failures))
                 continue
             failures = 0
+            self._last_failure = ""
             self.slot.attach(link)
             self.connected.set()
             while not link.closed.wait(0.5):
@@ -542,12 +546,26 @@ class Connector:
         except (OSError, LinkError) as exc:
             log.debug("%s: connect failed: %s", self.slot.name, exc)
             return None
+        if self.secure is not None:
+            try:
+                connection = self.secure(connection)
+            except LinkError as exc:
+                connection.close()
+                self.failed(exc)
+                return None
         link = StreamLink(connection, self.slot.name, self.address, self.on_frame,
                           self.on_frame_lost, on_close=self.life.forget)
         if self.on_connected is not None and not self.on_connected(link):
             link.close()
             return None
         return link
+
+    def failed(self, exc: LinkError) -> None:
+        """A connection that opened but was refused (its handshake failed): said once, until a
+        connection works again."""
+        if str(exc) != self._last_failure:
+            self._last_failure = str(exc)
+            log.warning("%s: %s", self.slot.name, exc)
 
     def close(self) -> None:
         self.slot.close()
@@ -591,7 +609,7 @@ class Sources:
 class KnownSources(Sources):
     """Sources learnt while running: a server's clients, at the addresses their genuine hellos
     came from. A datagram from anywhere else is taken only when it is a hello (which the server
-    then checks); everything else from there is ``foreign_source``, before any reassembly."""
+    then checks); everything else from there is ``not_allowed``, before any reassembly."""
 
     def __init__(self) -> None:
         super().__init__(())
@@ -683,7 +701,7 @@ class Acceptor:
     """Accepts connections on a listener until closed, and hands each to ``on_connection``.
 
     A connection from a source ``sources`` does not admit, or past ``limits``, is closed at once
-    and reported to ``on_refused(acceptor, reason, detail)`` (``foreign_source``,
+    and reported to ``on_refused(acceptor, reason, detail)`` (``not_allowed``,
     ``too_many_connections``, ``too_many_per_source``). When accepting fails (out of file
     descriptors: EMFILE, ENFILE) the loop waits, from 0.1 s doubling to 1 s, and reports
     ``accept_failed``: a listener whose backlog cannot be taken never spins.
@@ -724,7 +742,7 @@ class Acceptor:
         host = peer[0]
         if self.sources is not None and not self.sources.admits(peer):
             connection.close()
-            self._refused("foreign_source", f"a connection from {host} (taken from: "
+            self._refused("not_allowed", f"a connection from {host} (taken from: "
                                             f"{self.sources})")
             return
         limits = self.limits

@@ -8,6 +8,10 @@ receive (a link's thread, with a frame whose header names this topic)::
 
     cipher.open -> replay window -> decode (codec, CDR check) -> ROS publish
 
+The cipher of each frame comes from the route's :class:`~rosgate.keyring.Keys` by the
+envelope's epoch: one static cipher, or a session's keys, which change with each key
+generation and handshake (then a new epoch starts a new sequence).
+
 The framing is a strategy chosen once per route from the entry's ``framing:``
 (:class:`EnvelopeFraming`, or :class:`BareFraming` for datagrams without an envelope, whose
 receiving topics share a :class:`BarePort`). Every drop is counted by reason in the route's
@@ -18,17 +22,16 @@ reason.
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
-from .cipher import Cipher
 from .codec import Codec
 from .config import ServiceConfig, TopicConfig
 from .errors import CipherError, CodecError
+from .keyring import Keys, NoKey
 from .links import Link
 from .transport import Address
 from .warn import Warner
@@ -61,11 +64,11 @@ class Route:
     :class:`rosgate.links.Sender` of its frames."""
 
     def __init__(self, entry: TopicConfig | ServiceConfig, topic_id: int, codec: Any,
-                 cipher: Cipher, warner: Warner, label: str, reliable: bool = False):
+                 keys: Keys, warner: Warner, label: str, reliable: bool = False):
         self.entry = entry
         self.topic_id = topic_id
         self.codec = codec
-        self.cipher = cipher
+        self.keys = keys
         self.warner = warner
         self.label = label  # how logs name this route: "/chatter (to robot1)"
         self.reliable = reliable  # frames wait out a stream link's loss (reliable QoS)
@@ -82,12 +85,18 @@ class Route:
         """An envelope frame of this route: the header, then the payload sealed with it."""
         header = envelope.pack(flags, self.topic_id, epoch, seq,
                                time.time_ns() if stamp is None else stamp)
-        return header + self.cipher.seal(header, payload)
+        return header + self.keys.sealer(epoch).seal(header, payload)
 
-    def open(self, frame: bytes) -> bytes | None:
-        """An envelope frame's payload if the cipher accepts it; None (counted) when it does not."""
+    def open(self, frame: bytes, epoch: int) -> bytes | None:
+        """An envelope frame's payload if the cipher of its epoch accepts it; None (counted)
+        when it does not."""
+        cipher = self.keys.opener(epoch)
+        if cipher is None:
+            self.drop("unknown_key", "sealed under a key this side does not hold (an earlier "
+                                     "session, a restart, or an expired key generation)")
+            return None
         try:
-            return self.cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
+            return cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
         except CipherError as exc:
             self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
             return None
@@ -112,9 +121,12 @@ class EnvelopeFraming(TopicFraming):
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int) -> bytes:
         with route.lock:
+            epoch = route.keys.epoch()
+            if epoch != route.epoch:  # a new key: a new sequence under it
+                route.epoch, route.seq = epoch, 0
             route.seq += 1
             seq = route.seq
-        return route.seal(0, route.epoch, seq, payload, stamp)
+        return route.seal(0, epoch, seq, payload, stamp)
 
 
 class BareFraming(TopicFraming):
@@ -134,15 +146,15 @@ class BareFraming(TopicFraming):
 class TransmitRoute(Route):
     """ROS subscription -> link."""
 
-    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, cipher: Cipher,
+    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
                  warner: Warner, label: str, reliable: bool, *, framing: TopicFraming,
                  link: Link, destination: Callable[[], Address | None]):
-        super().__init__(topic, topic_id, codec, cipher, warner, label, reliable)
+        super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
         self.framing = framing
         self.link = link
         self.destination = destination  # where to send, looked up per message (a server learns it)
-        self.epoch = int.from_bytes(os.urandom(4), "big")
+        self.epoch: int | None = None  # of the key in use, set by the first frame
         self.seq = 0
         rate = topic.max_rate
         self.min_interval_ns = int(1e9 / rate) if rate else 0
@@ -160,6 +172,9 @@ class TransmitRoute(Route):
             return
         try:
             frame = self.framing.frame(self, self.codec.encode(message), now)
+        except NoKey:
+            self.drop("no_session_key", "the session's handshake has not happened yet")
+            return
         except Exception as exc:  # a codec or cipher bug must not stop the executor
             self.drop("encode_error", f"{type(exc).__name__}: {exc}")
             return
@@ -172,10 +187,10 @@ class TransmitRoute(Route):
 class ReceiveRoute(Route):
     """Link -> ROS publisher."""
 
-    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, cipher: Cipher,
+    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
                  warner: Warner, label: str, reliable: bool, *,
                  decode: Callable[[bytes], Any]):
-        super().__init__(topic, topic_id, codec, cipher, warner, label, reliable)
+        super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
         # without a cipher that vouches for the header, one forged frame may not move it
@@ -186,7 +201,7 @@ class ReceiveRoute(Route):
 
     def on_frame(self, header: envelope.Header, frame: bytes) -> None:
         """An envelope frame (framing rosgate), found by its topic id."""
-        payload = self.open(frame)
+        payload = self.open(frame, header.epoch)
         if payload is None:
             return
         with self._lock:

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
+from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from ..config import BridgeConfig
 from ..errors import ConfigError, LinkError
@@ -30,6 +32,8 @@ from ..wire import envelope
 log = logging.getLogger("rosgate")
 
 FrameHandler = Callable[[bytes, Link, Address], None]
+#: (connection, peer, then): authenticate an accepted connection, then hand it to ``then``
+Handshake = Callable[[StreamConnection, Address, Callable[[StreamConnection], None]], None]
 
 
 @dataclass
@@ -84,12 +88,17 @@ class Role:
             self.router.remove(route)
 
     def sources(self, transport: Transport, host: str | None) -> Sources | None:
-        """Who links of ``transport`` take frames from: ``host`` (the peer, the server) as its
-        frames show it, and ``bridge.allow``; None (anyone) when the transport cannot tell."""
+        """Who links of ``transport`` take frames from: the addresses of ``bridge.allow`` when
+        it is given (peer role), else ``host`` (the peer, the server) as its frames show it;
+        None (anyone) when the transport cannot tell who sent a frame."""
+        if self.cfg.allow:
+            return self.allow_list()
         hosts = transport.source_hosts(host or "")
-        if hosts is None:
-            return None
-        return Sources(hosts, self.cfg.allow)
+        return None if hosts is None else Sources(hosts)
+
+    def allow_list(self) -> Sources | None:
+        """``bridge.allow`` as sources (None: anyone, when it is not given)."""
+        return Sources((), map(str, self.cfg.allow)) if self.cfg.allow else None
 
     def refused(self, acceptor: Acceptor, reason: str, detail: str) -> None:
         """A connection an acceptor closed at once, counted like a frame for no topic."""
@@ -151,27 +160,33 @@ class Role:
             return link
 
     def accept_into(self, on_frame: FrameHandler, transport: Transport, port: int,
-                    untrusted: Untrusted | None = None,
+                    handshake: Handshake | None = None, untrusted: Untrusted | None = None,
                     ) -> Callable[[StreamConnection, Address], None]:
         """What to do with each connection accepted on a port: a link that feeds ``on_frame``
-        (held to ``untrusted`` until ``on_frame`` trusts it) and is forgotten by the bridge when
-        it ends."""
+        (after ``handshake``, when given; held to ``untrusted`` until ``on_frame`` trusts it)
+        and is forgotten by the bridge when it ends."""
         life, on_lost = self.life, self.router.on_lost
 
         def accepted(connection: StreamConnection, peer: Address) -> None:
-            life.closing(StreamLink(connection, f"{transport.name}:{port}<-{peer[0]}", peer,
-                                    on_frame, on_lost, on_close=life.forget,
-                                    untrusted=untrusted))
+            def link(ready: StreamConnection) -> None:
+                life.closing(StreamLink(ready, f"{transport.name}:{port}<-{peer[0]}", peer,
+                                        on_frame, on_lost, on_close=life.forget,
+                                        untrusted=untrusted))
+            if handshake is None:
+                link(connection)
+            else:
+                handshake(connection, peer, link)
 
         return accepted
 
     def listen(self, transport: Transport, local: Address, on_frame: FrameHandler,
-               key: str | None = None, sources: Sources | None = None,
-               untrusted: Untrusted | None = None, owner: object = None) -> Acceptor:
+               key: str | None = None, handshake: Handshake | None = None,
+               sources: Sources | None = None, untrusted: Untrusted | None = None,
+               owner: object = None) -> Acceptor:
         """Accept stream connections at ``local`` (once per address), from ``sources`` only
-        when given, within the bridge's connection limits. A LinkError is located at ``key``;
-        without one (a server listening for a client) it goes to the caller. An ``owner``
-        holds the listener until :meth:`release`."""
+        when given, within the bridge's connection limits, each through ``handshake`` when
+        given. A LinkError is located at ``key``; without one (a server listening for a client)
+        it goes to the caller. An ``owner`` holds the listener until :meth:`release`."""
         with self._lock:
             found = self.listening.get((transport.name, local))
             if found is not None:
@@ -185,7 +200,7 @@ class Role:
                 raise self.bridge.link_error(exc, key) from None
             acceptor = self.listening[(transport.name, local)] = Acceptor(
                 listener, f"{transport.name}:{local[1]}",
-                self.accept_into(on_frame, transport, local[1], untrusted),
+                self.accept_into(on_frame, transport, local[1], handshake, untrusted),
                 self.limits, sources, self.refused)
             self._hold("listen", transport, local, owner)
         return self.life.closing(acceptor)
@@ -203,6 +218,30 @@ class Control:
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.router.link_drop(None, reason, detail or "a control frame on a link")
+
+
+REFUSAL_EVERY = 60.0  # seconds between two log lines about one refusal
+
+
+class Refusals:
+    """Refusals said once per :data:`REFUSAL_EVERY` seconds each (an attacker retrying must not
+    flood the log), with how many were held back."""
+
+    def __init__(self, every: float = REFUSAL_EVERY):
+        self.every = every
+        self._last: dict[str, float] = {}
+        self._held: Counter = Counter()
+        self._lock = threading.Lock()
+
+    def say(self, key: str, message: str, level: int = logging.WARNING) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(key, -self.every) < self.every:
+                self._held[key] += 1
+                return
+            self._last[key] = now
+            held = self._held.pop(key, 0)
+        log.log(level, "%s%s", message, f" ({held} more since)" if held else "")
 
 
 class NoLink(Link):
