@@ -194,7 +194,7 @@ class ReceiveRoute(Route):
         self.topic = topic
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
         # without a cipher that vouches for the header, one forged frame may not move it
-        self.window = envelope.ReplayWindow(authenticated=cipher.authenticates)
+        self.window = envelope.ReplayWindow(authenticated=keys.authenticates)
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
         self._lock = threading.Lock()  # frames may come from several links (reconnects)

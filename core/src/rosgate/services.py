@@ -288,7 +288,7 @@ class ServerRoute(ServiceRoute):
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
-        self.window = envelope.ReplayWindow(authenticated=self.cipher.authenticates)
+        self.window = envelope.ReplayWindow(authenticated=self.keys.authenticates)
         self.in_flight = 0
         self._lock = threading.Lock()
 

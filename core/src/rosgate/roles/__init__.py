@@ -100,7 +100,7 @@ class Role:
         """``bridge.allow`` as sources (None: anyone, when it is not given)."""
         return Sources((), map(str, self.cfg.allow)) if self.cfg.allow else None
 
-    def refused(self, acceptor: Acceptor, reason: str, detail: str) -> None:
+    def refuse_connection(self, acceptor: Acceptor, reason: str, detail: str) -> None:
         """A connection an acceptor closed at once, counted like a frame for no topic."""
         self.router.link_drop(acceptor, reason, detail)
 
@@ -201,7 +201,7 @@ class Role:
             acceptor = self.listening[(transport.name, local)] = Acceptor(
                 listener, f"{transport.name}:{local[1]}",
                 self.accept_into(on_frame, transport, local[1], handshake, untrusted),
-                self.limits, sources, self.refused)
+                self.limits, sources, self.refuse_connection)
             self._hold("listen", transport, local, owner)
         return self.life.closing(acceptor)
 

@@ -122,7 +122,8 @@ class PeerRole(Role):
         t, key = p.config, f"topics[{p.index}].port"
         if t.direction is Direction.RECEIVE:
             self._receiver(p, NoLink())
-            self.listen(p.transport, p.address, self.router.on_frame, key, self._sources(p))
+            self.listen(p.transport, p.address, self.router.on_frame, key,
+                        sources=self._sources(p))
             return
         slot = self.bridge.slot(f"{t.transport}->{self.cfg.peer}:{t.port}")
         self.router.topic(p, topic_id_for(t.remote), t.topic, slot, keys=self._keys(p))
@@ -144,7 +145,8 @@ class PeerRole(Role):
         link: Link
         if s.direction is Direction.RECEIVE:
             if p.transport.stream:
-                self.listen(p.transport, p.address, self.router.on_frame, key, self._sources(p))
+                self.listen(p.transport, p.address, self.router.on_frame, key,
+                        sources=self._sources(p))
                 link = NoLink()  # answers go back on the connection each call came on
             else:
                 link = self.datagram_link(p.transport, p.address, key, sources=self._sources(p))
@@ -173,7 +175,7 @@ class PeerRole(Role):
                                                      self.router.link_drop,
                                                      self.cfg.limits.idle_timeout)
             self.life.closing(Acceptor(listener, server.name, server.accepted, self.limits,
-                                       self.allow_list(), self.refused))
+                                       self.allow_list(), self.refuse_connection))
         route = self.router.service(p, 0, s.service, None)  # found by name: no id
         assert isinstance(route, ServerRoute)
         servers[p.address].add(route)
@@ -231,7 +233,7 @@ class PeerHandshake:
             role = self.role
             life.closing(Acceptor(listener, f"handshake:{address[1]}", self._accepted,
                                   role.limits, role.sources(self.transport, self.cfg.peer),
-                                  role.refused))
+                                  role.refuse_connection))
         threading.Thread(target=self._ping_loop, name="peer-ping", daemon=True).start()
 
     # -- the initiator -------------------------------------------------------------------------

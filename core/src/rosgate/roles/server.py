@@ -119,7 +119,7 @@ class ServerRole(Role):
             raise self.bridge.link_error(exc, "bridge.server") from None
         self.acceptor = self.life.closing(Acceptor(listener, f"main:{plan.main_address[1]}",
                                                    self._accepted, self.limits,
-                                                   on_refused=self.refused))
+                                                   on_refused=self.refuse_connection))
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
 
     def stop(self) -> None:
