@@ -102,7 +102,10 @@ def caches() -> tuple[int, ...]:
     during which they grew paid for building them, which a time limit must not count."""
     from rosgate.message_tree import _TREES
 
-    return message_types.cache_info().misses, _codec.cache_info().misses, len(_TREES)
+    import sys
+
+    return (message_types.cache_info().misses, _codec.cache_info().misses, len(_TREES),
+            len(sys.modules))
 
 
 def warm(run: Target) -> None:
@@ -264,11 +267,29 @@ def control_message(data: bytes) -> None:
         pass
     for entry in entries:
         flipped(entry)
+        _resolve_safely(entry.type)
         if isinstance(entry, TopicConfig):
             qos_profile(entry.qos).get_c_qos_profile()  # what rclpy would be handed
             is_reliable(entry.qos)
             if entry.max_rate:
                 int(1e9 / entry.max_rate)  # a transmitting route's interval
+
+
+def _resolve_safely(name: str) -> None:
+    """A type name from a peer resolves, or is refused, without importing its package unless
+    that is a ROS interface package (issue 10, attack 10: ``this/msg/Foo`` imported ``this``)."""
+    import sys
+
+    from rosgate.ros import TypeNotFound, is_interface_package, resolve_type
+
+    package, _, rest = name.partition("/")
+    known = package in sys.modules
+    try:
+        resolve_type(name)
+    except TypeNotFound:
+        pass
+    if not known and package in sys.modules:
+        assert is_interface_package(package, rest.partition("/")[0]), f"{name!r} imported it"
 
 
 @target(max_len=4096)
