@@ -588,3 +588,26 @@ topics: [{{topic: /up, type: std_msgs/msg/String, direction: transmit}}]
     got = cross(talker, inbox, lambda i: String(data="warmup" if i is None else f"n{i}"),
                 lambda m: m.data == "warmup", 3)
     assert [m.data for m in got] == ["n0", "n1", "n2"]
+
+
+# -- 10. a type name that imports a package ------------------------------------------------------
+
+def test_a_type_name_from_a_client_never_imports_its_package(tmp_path, engines, domain,
+                                                             monkeypatch):
+    """Before: a type name ``this/msg/Foo`` in a hello made the server import ``this``, any
+    top-level package on its path (the sessions' fix, issue 9). Now: refused, never imported."""
+    import sys
+
+    evil = tmp_path / "rosgate_evil"
+    evil.mkdir()
+    marker = tmp_path / "imported"
+    (evil / "__init__.py").write_text(f"open({str(marker)!r}, 'w').write('ran')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    ds, port = domain(), free_port()
+    engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, insecure: true}}", ds)
+    with socket.create_connection(("127.0.0.1", port), 5) as s:
+        s.sendall(hello([{"topic": "/x", "type": "rosgate_evil/msg/Foo",
+                          "direction": "transmit"}]))
+        answer = read_control(s)
+    assert answer is not None and answer["type"] == "refused", answer
+    assert not marker.exists() and "rosgate_evil" not in sys.modules
