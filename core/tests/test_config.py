@@ -150,21 +150,17 @@ def test_link_keys_default_and_explicit() -> None:
     assert (config.reconnect_min, config.reconnect_max) == (20.0, 20.0)  # max follows a big min
 
 
-def test_limits_and_allow_default_and_explicit() -> None:
+def test_limits_default_and_explicit() -> None:
     from rosgate.config import Limits
 
     config = loads(CLIENT_HEAD)
     assert config.limits == Limits(connections=256, connections_per_source=16,
                                    handshake_timeout=5.0, max_frame_before_auth=65536,
                                    idle_timeout=2.0, sessions=256)
-    assert config.allow == ()
     config = loads(CLIENT_HEAD + "  limits: {connections: 10, connections_per_source: 2, "
                    "handshake_timeout: 1, idle_timeout: 0.5, max_frame_before_auth: 4096, "
-                   "sessions: 3}\n"
-                   "  allow: [10.0.0.7, 192.168.1.0/24, 'AA:BB:CC:DD:EE:01']\n")
+                   "sessions: 3}\n")
     assert config.limits == Limits(10, 2, 1.0, 4096, 0.5, 3)
-    assert config.allow == ("10.0.0.7", "192.168.1.0/24", "AA:BB:CC:DD:EE:01")
-    assert loads(CLIENT_HEAD + "  allow: 10.0.0.7\n").allow == ("10.0.0.7",)
 
 
 def test_server_file(tmp_path: Path) -> None:
@@ -566,12 +562,6 @@ ERRORS = {
     "limits_handshake_infinite": (
         CLIENT_HEAD + "  limits: {handshake_timeout: .inf}\n",
         5, "bridge.limits.handshake_timeout", "expected a number of seconds > 0, got inf"),
-    "allow_not_a_network": (
-        CLIENT_HEAD + "  allow: [10.0.0.1, 10.0.0.0/99]\n",
-        5, "bridge.allow[1]", "'10.0.0.0/99' is not a network"),
-    "allow_a_number": (
-        CLIENT_HEAD + "  allow:\n    - 12\n",
-        6, "bridge.allow[0]", "expected an address or a network, got 12"),
     "qos_depth_huge": (
         CLIENT_HEAD + TOPIC + f"    qos: {2**64}\n",
         9, "topics[0].qos", "a QoS depth must be at most 100000, got 18446744073709551616"),

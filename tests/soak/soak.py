@@ -222,12 +222,24 @@ def run(args, server: Bridge, client: Bridge, here: RosSide, there: RosSide, cou
 
     assert client.wait_log("server 'base' up", 30), client.log
     publishers = {}
+    probed: dict[str, threading.Event] = {name: threading.Event() for name in TOPICS}
+
+    def received(name: str, message: String) -> None:
+        if message.data == "probe":
+            probed[name].set()
+        else:
+            counts.receive(name, int(message.data.split(":")[1]))
+
     for name, (way, _) in TOPICS.items():
         publish_side, listen_side = (here, there) if way == "transmit" else (there, here)
         publishers[name] = publish_side.publisher(name, String, 1000)
-        listen_side.ros.subscribe(String, name, 1000,
-                                  lambda m, n=name: counts.receive(n, int(m.data.split(":")[1])),
-                                  raw=False)
+        listen_side.ros.subscribe(String, name, 1000, lambda m, n=name: received(n, m), raw=False)
+    # discovery, both ROS sides and both bridges: probes until one has crossed on every topic
+    deadline = time.monotonic() + 60
+    for name, done in probed.items():
+        while not done.wait(0.2):
+            assert time.monotonic() < deadline, f"nothing crossed on {name}"
+            publishers[name].publish(String(data="probe"))
     resources = {"server": Resources(server.proc.pid), "client": Resources(client.proc.pid)}
     samples: list[tuple[float, str, dict[str, Snapshot]]] = []
     stop_publishing = threading.Event()
@@ -247,7 +259,6 @@ def run(args, server: Bridge, client: Bridge, here: RosSide, there: RosSide, cou
             if delay > 0:
                 time.sleep(delay)
 
-    time.sleep(3)  # discovery between the bridges and the ROS sides (nothing to wait on)
     publisher = threading.Thread(target=publish, daemon=True)
     start = time.monotonic()
     publisher.start()
@@ -305,8 +316,11 @@ def report(args, samples, base, counts: Counts, attacks: dict[str, int], server:
     lines.append("|---|--:|--:|--:|--:|")
     for name in TOPICS:
         sent, got = counts.sent[name], counts.got[name]
-        missing = sent - len(got & set(range(sent)))
-        lines.append(f"| {name} | {sent:,} | {len(got):,} | {missing} | {counts.twice[name]} |")
+        gone = sorted(set(range(sent)) - got)
+        missing = len(gone)
+        where = f" (seq {gone[0]}..{gone[-1]})" if gone else ""
+        lines.append(f"| {name} | {sent:,} | {len(got):,} | {missing}{where} | "
+                     f"{counts.twice[name]} |")
         if missing or counts.twice[name] or len(got) != sent:
             failures.append(f"{name}: {missing} missing, {counts.twice[name]} twice")
     lines.append("")

@@ -120,20 +120,20 @@ def test_shared_references_are_refused_at_once():
 
     bomb = cbor2.dumps({"ranges": [{"echoes": [0] * 6000}] * 6000}, value_sharing=True)
     assert len(bomb) == 24_027
-    start = time.perf_counter()
+    start = time.thread_time()
     with pytest.raises(rosgate.CodecError, match="tag"):
         codec(MultiEchoLaserScan).decode(bomb)
-    assert time.perf_counter() - start < 0.1
+    assert time.thread_time() - start < 0.1
 
 
 @pytest.mark.parametrize("item", [b"\x80", b"\xa0", b"\x81\x80"])
 def test_many_empty_containers_are_over_budget(item):
     count = 4_000_000 // len(item)
     data = b"\x9a" + count.to_bytes(4, "big") + item * count
-    start = time.perf_counter()
+    start = time.thread_time()
     with pytest.raises(rosgate.CodecError, match="arrays and maps in"):
         codec(String).decode(data)
-    assert time.perf_counter() - start < 1.0
+    assert time.thread_time() - start < 1.0
 
 
 def test_big_messages_within_budget_still_decode():

@@ -391,10 +391,10 @@ def test_many_empty_containers_are_over_budget(item):
     Now: refused once the parser has built one map per 8 bytes of input."""
     count = 4_000_000 // len(item)
     data = b"\xdd" + count.to_bytes(4, "big") + item * count
-    before, start = _rss_mb(), time.perf_counter()
+    before, start = _rss_mb(), time.thread_time()  # CPU time: the machine may be busy
     with pytest.raises(rosgate.CodecError, match="arrays and maps in"):
         codec(PolygonStamped).decode(data)
-    assert time.perf_counter() - start < 1.0
+    assert time.thread_time() - start < 1.0
     assert _rss_mb() - before < 100
 
 
