@@ -579,6 +579,7 @@ class Sources:
 
     def __init__(self, hosts: Iterable[str], networks: Iterable[str] = ()):
         self.hosts = set(hosts)
+        self._seen: dict[str, bool] = {}
         self.networks = []
         for text in networks:
             try:
@@ -596,11 +597,17 @@ class Sources:
                 return True
         if not self.networks:
             return False
-        try:
-            address = ipaddress.ip_address(host.partition("%")[0])
-        except ValueError:
-            return False
-        return any(address in network for network in self.networks)
+        known = self._seen.get(host)
+        if known is None:  # parsed once per host: a datagram path's cost stays a dict lookup
+            try:
+                address = ipaddress.ip_address(host.partition("%")[0])
+                known = any(address in network for network in self.networks)
+            except ValueError:
+                known = False
+            if len(self._seen) >= 4096:  # hosts come from the network: bounded
+                self._seen.clear()
+            self._seen[host] = known
+        return known
 
     def __repr__(self) -> str:
         return ", ".join([*sorted(self.hosts), *map(str, self.networks)]) or "nobody"
