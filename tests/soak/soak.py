@@ -22,6 +22,7 @@ import argparse
 import json
 import os
 import random
+import signal
 import socket
 import sys
 import tempfile
@@ -186,6 +187,9 @@ class Attacks:
 # -- the run ---------------------------------------------------------------------------------
 
 def main() -> int:
+    # SIGTERM ends the run through its finally: blocks, so the bridges it started stop with it
+    # (an earlier run killed that way left its bridges running, in the DDS domains of the next)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=30, help="the attack phase")
     parser.add_argument("--warmup", type=float, default=2, help="minutes of traffic only first")
