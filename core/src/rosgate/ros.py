@@ -8,6 +8,7 @@ shutdown with the rclpy from the package index).
 
 from __future__ import annotations
 
+import ctypes
 import importlib
 import logging
 import re
@@ -73,9 +74,17 @@ def is_reliable(spec: int | str | dict) -> bool:
 
 
 def cdr_checker(msg_type: type) -> Callable[[bytes], None]:
-    """A check that serialized CDR bytes are a valid ``msg_type``: deserializing once, in C
-    (~4 us for a 2.5 kB String), so bytes from an unknown sender never reach a ROS subscriber as
-    a message it cannot read. Raises :class:`rosgate.CodecError` saying why."""
+    """A check that serialized CDR bytes are a valid ``msg_type``, so bytes from an unknown sender
+    never reach a ROS subscriber as a message it cannot read. Raises :class:`rosgate.CodecError`
+    saying why.
+
+    The check is the middleware's own deserializer (``rmw_deserialize``, C) into one C message
+    kept for the purpose, called through ctypes: ~3 us for a 2.5 kB String and ~40 us for a
+    1 MiB Image. rclpy's ``deserialize_message`` (the fallback, where the middleware library
+    cannot be found) also builds the Python message: ~6-16 us and ~1.7 ms."""
+    checker = _RmwChecker.make(msg_type)
+    if checker is not None:
+        return checker.check
     from rclpy.serialization import deserialize_message
 
     def check(data: bytes) -> None:
@@ -85,6 +94,102 @@ def cdr_checker(msg_type: type) -> Callable[[bytes], None]:
             raise CodecError(f"not a valid {msg_type.__name__}: {exc}") from None
 
     return check
+
+
+class _SerializedMessage(ctypes.Structure):
+    """rmw_serialized_message_t (rcutils_uint8_array_t): the bytes, their length, the capacity,
+    and an allocator that deserializing never uses."""
+
+    _fields_ = [("buffer", ctypes.c_char_p), ("buffer_length", ctypes.c_size_t),
+                ("buffer_capacity", ctypes.c_size_t), ("allocator", ctypes.c_void_p * 5)]
+
+
+class _RmwChecker:
+    """``rmw_deserialize`` into a C message of one type, reused (under a lock: frames of one
+    topic may come from several links at once). Deserializing into a used message is what the
+    generated type support does anyway: it finalizes strings and sequences before filling them."""
+
+    _library: Any = None  # the middleware's C library, found once per process
+
+    def __init__(self, msg_type: type, rmw: Any, reset_error: Any):
+        capsule = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
+            ("PyCapsule_GetPointer", ctypes.pythonapi))
+        meta: Any = type(msg_type)  # rosidl's metaclass holds the C type support
+        meta.__import_type_support__()
+        self.name = msg_type.__name__
+        self.type_support = capsule(meta._TYPE_SUPPORT, None)
+        create = ctypes.CFUNCTYPE(ctypes.c_void_p)(capsule(meta._CREATE_ROS_MESSAGE, None))
+        self._destroy = ctypes.CFUNCTYPE(None, ctypes.c_void_p)(
+            capsule(meta._DESTROY_ROS_MESSAGE, None))
+        self.message = create()
+        if not self.message:
+            raise MemoryError(f"cannot create a {self.name}")
+        self.serialized = _SerializedMessage()
+        self.address = ctypes.addressof(self.serialized)
+        pointer = ctypes.c_void_p
+        signature = ctypes.CFUNCTYPE(ctypes.c_int, pointer, pointer, pointer)
+        self.deserialize = signature(("rmw_deserialize", rmw))
+        self.reset_error = reset_error
+        self.lock = threading.Lock()
+
+    @classmethod
+    def make(cls, msg_type: type) -> _RmwChecker | None:
+        """A checker, or None where the middleware's library or the type's C support is not
+        found (then rclpy's deserializer does the check)."""
+        if cls._library is None:
+            cls._library = _find_rmw() or False
+        if not cls._library:
+            return None
+        rmw, reset_error = cls._library
+        try:
+            return cls(msg_type, rmw, reset_error)
+        except (AttributeError, OSError, MemoryError) as exc:
+            _log.debug("CDR check of %s through rclpy: %s", msg_type.__name__, exc)
+            return None
+
+    def check(self, data: bytes) -> None:
+        serialized = self.serialized
+        with self.lock:
+            serialized.buffer = data
+            serialized.buffer_length = serialized.buffer_capacity = len(data)
+            failed = self.deserialize(self.address, self.type_support, self.message)
+            serialized.buffer = None  # do not keep the frame alive
+        if failed:
+            self.reset_error()  # else rcutils complains to stderr about the next error
+            raise CodecError(f"not a valid {self.name} (its CDR does not deserialize)")
+
+    def __del__(self) -> None:
+        if self.message:
+            self._destroy(self.message)
+            self.message = None
+
+
+def _find_rmw() -> tuple[Any, Any] | None:
+    """The library with ``rmw_deserialize``, and ``rcutils_reset_error``, among those rclpy loaded:
+    ``librmw_implementation`` (ROS from apt: it dispatches to the middleware in use) or else the
+    one middleware library linked in (the wheels from the package index)."""
+    import rclpy.serialization  # noqa: F401  (loads the middleware)
+
+    try:
+        with open("/proc/self/maps") as maps:
+            loaded = {line.split()[-1] for line in maps if ".so" in line}
+    except OSError:
+        return None
+    rmw = reset = None
+    for path in sorted(loaded, key=lambda path: "librmw_implementation." not in path):
+        name = path.rsplit("/", 1)[-1]
+        try:
+            if rmw is None and name.startswith("librmw_") and "dds_common" not in name:
+                library = ctypes.CDLL(path)
+                rmw = library if hasattr(library, "rmw_deserialize") else None
+            if reset is None and name.startswith("librcutils."):
+                reset = ctypes.CDLL(path).rcutils_reset_error
+        except OSError:
+            continue
+    if rmw is None or reset is None:
+        return None
+    reset.restype, reset.argtypes = None, []
+    return rmw, reset
 
 
 class _Deferred:
