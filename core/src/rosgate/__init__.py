@@ -10,13 +10,13 @@ from .codec import Codec
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import hookimpl
 from .options import option
-from .transport import (Address, DatagramEndpoint, DatagramTransport, SocketConnection,
-                        SocketListener, StreamConnection, StreamListener, StreamTransport,
-                        Transport, check_ip_address, parse_host_port)
+from .transport import (Address, DatagramEndpoint, DatagramTransport, FastDatagramEndpoint,
+                        SocketConnection, SocketListener, StreamConnection, StreamListener,
+                        StreamTransport, Transport, check_ip_address, parse_host_port)
 
 __all__ = [
     "Address", "Cipher", "CipherError", "Codec", "CodecError", "ConfigError", "DatagramEndpoint",
-    "DatagramTransport", "LinkError", "OptionError", "RosgateError", "SocketConnection",
+    "DatagramTransport", "FastDatagramEndpoint", "LinkError", "OptionError", "RosgateError", "SocketConnection",
     "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transport",
     "check_ip_address", "hookimpl", "option", "parse_host_port",
 ]

@@ -167,32 +167,55 @@ class DatagramLink(Link):
                 self.endpoint.send(piece, to)
 
     def _receive_loop(self) -> None:
-        while not self.closed.is_set():
+        receive_into = getattr(self.endpoint, "receive_into", None)
+        if receive_into is None:
+            receive: Callable[[], tuple[bytes | memoryview, Address] | None] = \
+                lambda: self.endpoint.receive(POLL)
+        else:
+            # one buffer for every datagram: longer than any frame this link accepts, so a
+            # datagram that fills it is one too long
+            buffer = memoryview(bytearray(max(self.max_frame, 65_535) + 1))
+
+            def receive() -> tuple[bytes | memoryview, Address] | None:
+                got = receive_into(buffer, POLL)
+                if got is None:
+                    return None
+                size, source = got
+                if size >= len(buffer):
+                    self.on_lost(None, "oversized_datagram")
+                    return None
+                return buffer[:size], source
+
+        closed = self.closed
+        while not closed.is_set():
             try:
-                got = self.endpoint.receive(POLL)
+                got = receive()
             except OSError:
-                if self.closed.is_set():
+                if closed.is_set():
                     return
                 continue
             except Exception:  # a transport plugin's bug must not silently end the link
                 log.exception("%s: the transport's receive failed (a bug in the plugin)", self.name)
                 self.on_lost(None, "transport_error")
-                self.closed.wait(POLL)  # do not spin on a receive that fails at once
+                closed.wait(POLL)  # do not spin on a receive that fails at once
                 continue
             if got is None:
                 self.reassembler.expire()
                 continue
-            datagram, source = got
-            if self.compact or not self.bare and framing.is_fragment(datagram):
-                try:
-                    frame = self.reassembler.add(source, datagram)
-                except framing.FramingError:
-                    self.on_lost(None, "bad_fragment")
-                    continue
-                if frame is None:
-                    continue
-                datagram = frame
-            deliver(self, datagram, source)
+            self._datagram(*got)
+
+    def _datagram(self, datagram: bytes | memoryview, source: Address) -> None:
+        """One datagram as it came (a view of the receive buffer, valid until the next one)."""
+        if self.compact or not self.bare and datagram[:2] == framing.FRAGMENT_MAGIC:
+            try:
+                frame = self.reassembler.add(source, datagram)
+            except framing.FramingError:
+                self.on_lost(None, "bad_fragment")
+                return
+            if frame is not None:
+                deliver(self, frame, source)
+            return
+        deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
 
     def close(self) -> None:
         self.closed.set()

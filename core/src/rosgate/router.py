@@ -158,7 +158,13 @@ class Router:
             self.link_drop(link, f"{exc}_frame", f"{len(frame)} bytes from {source}")
             return
         flags = header.flags
-        if flags & envelope.FLAG_HELLO:
+        if not flags:  # a topic's frame: the common case first
+            route = self.receivers.get(header.topic_id)
+            if route is None:
+                self.link_drop(link, "unknown_topic", f"topic id {header.topic_id} from {source}")
+            else:
+                route.on_frame(header, frame)
+        elif flags & envelope.FLAG_HELLO:
             if self.on_hello is None:
                 self.link_drop(link, "unexpected_hello", f"from {source}")
             else:

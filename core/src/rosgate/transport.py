@@ -79,6 +79,25 @@ class DatagramEndpoint(Protocol):
         (``None`` or ``OSError``)."""
 
 
+class FastDatagramEndpoint(DatagramEndpoint, Protocol):
+    """A :class:`DatagramEndpoint` that also offers the core's fast path. Both methods are
+    optional, each on its own: the core looks for them once per link and uses ``send`` and
+    ``receive`` where they are missing (the kit's conformance suite tests whichever a transport
+    has). They save an allocation and a copy per frame on busy links.
+    """
+
+    def receive_into(self, buffer: memoryview, timeout: float) -> tuple[int, Address] | None:
+        """As :meth:`~DatagramEndpoint.receive`, but write the frame into ``buffer`` from its
+        start and return ``(length, source)``. ``buffer`` is longer than any frame the link
+        accepts (more than ``max_frame`` and than 65,535 bytes): the core counts a frame that
+        fills it as too long. Called from one thread; ``buffer`` is the core's and reused."""
+
+    def send_parts(self, parts: list[bytes | memoryview], to: Address) -> None:
+        """As :meth:`~DatagramEndpoint.send`, for the one frame that ``parts`` make in order
+        (a header and a view of a payload; several frames coalesced): scatter-gather
+        (``sendmsg``) instead of joining them. Their total is at most ``max_frame``."""
+
+
 class StreamConnection(Protocol):
     """One connected byte stream.
 

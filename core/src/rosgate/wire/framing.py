@@ -113,7 +113,7 @@ def fragment(frame: bytes, max_frame: int, topic_id: int, frame_id: int) -> list
             for i in range(count)]
 
 
-def is_fragment(datagram: bytes) -> bool:
+def is_fragment(datagram: bytes | memoryview) -> bool:
     return datagram[:2] == FRAGMENT_MAGIC
 
 
@@ -145,12 +145,13 @@ class Reassembler:
         # ignored instead of starting a partial frame that would later count as lost
         self._finished: dict[Hashable, None] = {}
 
-    def add(self, source: Hashable, datagram: bytes) -> bytes | None:
-        """Take one fragment; return the whole frame when this fragment completes it."""
+    def add(self, source: Hashable, datagram: bytes | memoryview) -> bytes | None:
+        """Take one fragment (copied: it may be a view of a receive buffer); return the whole
+        frame when this fragment completes it."""
         if len(datagram) <= FRAGMENT.size:
             raise FramingError("fragment too short")
         _, index, count, topic_id, frame_id = FRAGMENT.unpack_from(datagram)
-        chunk = datagram[FRAGMENT.size:]
+        chunk = bytes(datagram[FRAGMENT.size:])
         if index >= count or count < 2 or count * len(chunk) > self.max_message + len(chunk):
             raise FramingError("fragment header out of range")
         now = time.monotonic()
@@ -225,7 +226,7 @@ def _leb128(value: int) -> bytes:
     return bytes(out)
 
 
-def _read_leb128(data: bytes, start: int) -> tuple[int, int]:
+def _read_leb128(data: bytes | memoryview, start: int) -> tuple[int, int]:
     """(value, offset after it); at most 5 bytes, enough for any frame this side accepts."""
     value = 0
     for i, byte in enumerate(data[start:start + 5]):
@@ -263,8 +264,9 @@ class CompactReassembler:
         self._senders: dict[Hashable, _Sender] = {}
         self._pending_bytes = 0
 
-    def add(self, source: Hashable, piece: bytes) -> bytes | None:
-        """Take one piece; return the whole frame when this piece completes it."""
+    def add(self, source: Hashable, piece: bytes | memoryview) -> bytes | None:
+        """Take one piece (copied: it may be a view of a receive buffer); return the whole frame
+        when this piece completes it."""
         if not piece:
             raise FramingError("empty piece")
         head, now = piece[0], time.monotonic()

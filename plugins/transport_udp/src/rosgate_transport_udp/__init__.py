@@ -17,6 +17,7 @@ raise it.
 from __future__ import annotations
 
 import logging
+import select
 import socket
 from dataclasses import dataclass
 
@@ -31,19 +32,38 @@ _FORCE = {socket.SO_RCVBUF: getattr(socket, "SO_RCVBUFFORCE", None),
 
 
 class UdpEndpoint:
+    """A bound UDP socket. The socket stays blocking, with no timeout: a receive waits in
+    ``poll`` instead, so neither side pays for a timeout mode (``settimeout`` is an ``ioctl``, and
+    CPython polls before every send on a socket that has one)."""
+
     def __init__(self, sock: socket.socket):
         self.sock = sock
+        self._readable = select.poll()
+        self._readable.register(sock, select.POLLIN)
 
     def send(self, frame: bytes, to: Address) -> None:
         self.sock.sendto(frame, to)
 
+    def send_parts(self, parts: list[bytes | memoryview], to: Address) -> None:
+        self.sock.sendmsg(parts, (), 0, to)
+
     def receive(self, timeout: float) -> tuple[bytes, Address] | None:
-        self.sock.settimeout(timeout)
-        try:
-            data, source = self.sock.recvfrom(65536)
-        except TimeoutError:
+        if not self._readable.poll(timeout * 1000):
             return None
-        return data, source[:2]
+        try:
+            data, source = self.sock.recvfrom(65536, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            return None
+        return data, source if len(source) == 2 else source[:2]
+
+    def receive_into(self, buffer: memoryview, timeout: float) -> tuple[int, Address] | None:
+        if not self._readable.poll(timeout * 1000):
+            return None
+        try:
+            size, source = self.sock.recvfrom_into(buffer, 0, socket.MSG_DONTWAIT)
+        except BlockingIOError:  # poll said readable, and someone was faster (or a bad checksum)
+            return None
+        return size, source if len(source) == 2 else source[:2]
 
     def close(self) -> None:
         try:
