@@ -155,6 +155,155 @@ def test_bare_mode_hands_over_fragment_lookalikes_untouched(closing):
     assert inbox.payloads() == [b"RF not a fragment"] and inbox.drops == []
 
 
+# --- coalescing, the send thread, scatter-gather ---------------------------------------------------
+
+class Recorder:
+    """An endpoint wrapper that records every datagram sent (its parts when sent as parts, and
+    the sending thread), and can hold sends until released."""
+
+    def __init__(self, endpoint, parts: bool = True):
+        self.endpoint = endpoint
+        self.sent: list[bytes] = []
+        self.parts: list[list] = []
+        self.threads: list[str] = []
+        self.released = threading.Event()
+        self.released.set()
+        self.entered = threading.Event()
+        if parts:
+            self.send_parts = self._send_parts
+
+    def _record(self, datagram: bytes) -> None:
+        self.entered.set()
+        self.released.wait(10)
+        self.sent.append(datagram)
+        self.threads.append(threading.current_thread().name)
+
+    def send(self, frame, to) -> None:
+        self._record(bytes(frame))
+        self.endpoint.send(frame, to)
+
+    def _send_parts(self, parts, to) -> None:
+        self.parts.append(list(parts))
+        self._record(b"".join(parts))
+        self.endpoint.send_parts(parts, to)
+
+    def receive_into(self, buffer, timeout):
+        return self.endpoint.receive_into(buffer, timeout)
+
+    def close(self) -> None:
+        self.released.set()
+        self.endpoint.close()
+
+
+def recorded_pair(closing, parts: bool = True, max_frame: int | None = None):
+    transport = UdpTransport({})
+    if max_frame is not None:
+        transport.max_frame = max_frame
+    a_wire = Recorder(transport.bind(("127.0.0.1", 0)), parts)
+    b_inbox, a_inbox = Inbox(), Inbox()
+    a = closing(DatagramLink(transport, a_wire, "a", a_inbox.on_frame, a_inbox.on_lost))
+    b_endpoint = transport.bind(("127.0.0.1", 0))
+    b = closing(DatagramLink(transport, b_endpoint, "b", b_inbox.on_frame, b_inbox.on_lost))
+    return a, a_wire, a_inbox, b, b_endpoint.sock.getsockname(), b_inbox
+
+
+@pytest.mark.parametrize("parts", [True, False], ids=["send_parts", "send"])
+def test_frames_handed_over_together_share_a_datagram(closing, parts):
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing, parts)
+    rng = random.Random(20)
+    frames = [frame_of(i, rng.randint(28, 2500), rng) for i in range(20)]
+    assert a.send_all(frames, a_inbox.sender(TOPIC), to) == 20
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 20), b_inbox.drops
+    assert b_inbox.payloads() == frames  # in order, byte-exact
+    assert len(wire.sent) == 1 and wire.sent[0][:2] == b"RB"
+    assert a.counters.frames_out == a.counters.coalesced_out == 20 and a.counters.packets_out == 1
+    assert b.counters.frames_in == b.counters.coalesced_in == 20 and b.counters.packets_in == 1
+    assert a_inbox.drops == b_inbox.drops == []
+
+
+def test_a_batch_never_exceeds_max_frame(closing):
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing, max_frame=1000)
+    rng = random.Random(21)
+    frames = [frame_of(i, 300, rng) for i in range(10)]
+    assert a.send_all(frames, a_inbox.sender(TOPIC), to) == 10
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 10), b_inbox.drops
+    assert b_inbox.payloads() == frames
+    # 2 + 3 * (4 + 300) = 914 bytes: three frames to a datagram, the tenth alone and plain
+    assert [len(d) for d in wire.sent] == [914, 914, 914, 300]
+    assert wire.sent[-1] == frames[-1]
+
+
+def test_a_frame_alone_is_a_plain_datagram(closing):
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing)
+    frame = frame_of(1, 100, random.Random(22))
+    assert a.send(frame, a_inbox.sender(TOPIC), to) is True
+    assert b_inbox.wait(lambda: b_inbox.frames)
+    assert wire.sent == [frame] and wire.parts == []  # what any earlier rosgate reads
+    assert wire.threads == [threading.current_thread().name]  # no hand-off to the send thread
+
+
+def test_bare_links_never_coalesce(closing):
+    transport = UdpTransport({})
+    wire = Recorder(transport.bind(("127.0.0.1", 0)))
+    inbox = Inbox()
+    link = closing(DatagramLink(transport, wire, "bare", inbox.on_frame, inbox.on_lost, bare=True))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as far:
+        far.bind(("127.0.0.1", 0))
+        far.settimeout(5)
+        messages = [b"\xa3one", b"\xa3two", b"\xa5three"]
+        assert link.send_all(messages, inbox.sender(9), far.getsockname()) == 3
+        assert [far.recv(100) for _ in messages] == messages  # one message per datagram
+    assert wire.parts == []
+
+
+def test_a_malformed_batch_is_counted_after_the_frames_before_it(udp_pair):
+    (_, _, _), (b, b_inbox, b_address) = udp_pair
+    good = frame_of(1, 50, random.Random(23))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+        raw.sendto(b"RB" + LENGTH.pack(len(good)) + good + LENGTH.pack(1000) + b"short", b_address)
+        raw.sendto(b"RB" + LENGTH.pack(len(good)) + good + b"\x00\x00", b_address)
+    assert b_inbox.wait(lambda: len(b_inbox.drops) >= 2)
+    assert b_inbox.payloads() == [good, good]
+    assert b_inbox.drops == [(None, "bad_batch"), (None, "bad_batch")]
+
+
+def test_a_large_frame_leaves_from_the_send_thread_in_scatter_gather_fragments(closing):
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing)
+    frame = frame_of(1, 200_000, random.Random(24))
+    wire.released.clear()  # the wire stalls: the caller must not wait for it
+    assert a.send(frame, a_inbox.sender(TOPIC), to) is True
+    assert wire.entered.wait(5)
+    small = frame_of(2, 100, random.Random(25))
+    assert a.send(small, a_inbox.sender(TOPIC), to) is True  # queued behind it, not sent inline
+    wire.released.set()
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 2), b_inbox.drops
+    assert b_inbox.payloads() == [frame, small]
+    assert set(wire.threads) == {"tx-a"}
+    fragments = wire.parts
+    assert len(fragments) == 4 and all(len(p) == 2 for p in fragments)
+    # each fragment: its 14-byte header and a view of the frame itself (nothing joined)
+    assert all(len(header) == FRAGMENT.size and chunk.obj is frame for header, chunk in fragments)
+
+
+def test_a_full_send_queue_counts_queue_full_and_close_counts_what_waited(closing):
+    transport = UdpTransport({})
+    wire = Recorder(transport.bind(("127.0.0.1", 0)))
+    inbox = Inbox()
+    link = DatagramLink(transport, wire, "stuck", inbox.on_frame, inbox.on_lost, queue_frames=3)
+    to = ("127.0.0.1", 9)
+    wire.released.clear()
+    assert link.send(bytes(100_000), inbox.sender(1), to) is True  # the send thread is stuck on it
+    assert wire.entered.wait(5)
+    assert [link.send(b"small", inbox.sender(2), to) for _ in range(5)] == [True] * 3 + [False] * 2
+    assert inbox.drops == [(2, "queue_full")] * 2
+    link.close()
+    assert [drop for drop in inbox.drops[2:] if drop[0] == 2] == [(2, "link_down")] * 3
+    # the frame whose fragments were going out: sent, or cut short by the close (counted once)
+    assert [drop for drop in inbox.drops if drop[0] == 1] in ([], [(1, "send_error")])
+    assert link.send(b"late", inbox.sender(3), to) is False
+    assert inbox.drops[-1] == (3, "link_down")
+
+
 # --- datagram links with small frames (CAN-sized): the compact scheme -----------------------------
 
 class Wire:

@@ -250,6 +250,20 @@ class RosNode:
                   raw: bool) -> Any:
         return self.node.create_subscription(msg_type, topic, callback, qos, raw=raw)
 
+    @staticmethod
+    def taker(subscription: Any) -> Callable[[], Any]:
+        """For a subscription's callback (on the executor's thread, the only one that takes from
+        it): the next message already waiting in the middleware, or None, without waiting. The
+        executor calls back once per message announced; a callback that takes the rest itself
+        handles a backlog in one go, and the executor's own takes then find nothing."""
+        take, msg_type, raw = subscription.handle.take_message, subscription.msg_type, subscription.raw
+
+        def next_waiting() -> Any:
+            got = take(msg_type, raw)
+            return None if got is None else got[0]
+
+        return next_waiting
+
     def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)
 

@@ -69,6 +69,7 @@ class Router:
             route = TransmitRoute(t, topic_id, codec, p.cipher, self.warner, label, p.reliable,
                                   framing=framing, link=link, destination=destination)
             route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
+            route.take = self.ros.taker(route.entity)
         else:
             decode: Callable[[bytes], Any] = codec.decode
             trusted = p.cipher.authenticates and t.framing is Framing.ROSGATE

@@ -166,6 +166,43 @@ class TransportConformance:
         assert result[0] is None or isinstance(result[0], OSError), result
         thread.join()
 
+    def test_datagram_receive_into_if_offered(self, plugin, far_plugin, address, closing):
+        """The optional fast path (:class:`rosgate.FastDatagramEndpoint`): a frame written into
+        the core's buffer, its length and an answerable source; None when idle."""
+        a, a_address, b, b_address = self._endpoints(plugin, far_plugin, address, closing)
+        if not hasattr(b, "receive_into"):
+            pytest.skip(f"{plugin.name} does not offer receive_into (optional)")
+        buffer = memoryview(bytearray(max(plugin.max_frame, 65_535) + 1))
+        buffer[:] = b"\xee" * len(buffer)
+        frames = [frame_of(size, seed) for seed, size in enumerate([plugin.max_frame, 1, 3])]
+        for frame in frames:
+            a.send(frame, b_address)
+            got = b.receive_into(buffer, TIMEOUT)
+            assert got is not None, "nothing arrived"
+            size, source = got
+            assert bytes(buffer[:size]) == self._as_received(frame)
+            hash(source)
+        answer = frame_of(min(9, plugin.max_frame), seed=7)
+        b.send(answer, source if self.answerable_source else a_address)
+        got = a.receive(TIMEOUT)
+        assert got is not None and got[0] == self._as_received(answer)
+        started = time.monotonic()
+        assert b.receive_into(buffer, 0.2) is None
+        assert 0.15 < time.monotonic() - started < 2.0
+
+    def test_datagram_send_parts_if_offered(self, plugin, far_plugin, address, closing):
+        """The optional fast path: the parts (bytes and views) leave as one frame, in order."""
+        a, _, b, b_address = self._endpoints(plugin, far_plugin, address, closing)
+        if not hasattr(a, "send_parts"):
+            pytest.skip(f"{plugin.name} does not offer send_parts (optional)")
+        whole = frame_of(plugin.max_frame, seed=11)
+        cut = min(14, plugin.max_frame // 2)
+        for parts in ([whole[:cut], memoryview(whole)[cut:]], [whole], [b"", whole, b""]):
+            a.send_parts(parts, b_address)
+            got = b.receive(TIMEOUT)
+            assert got is not None, "nothing arrived"
+            assert got[0] == self._as_received(whole)
+
     def test_datagram_frames_beyond_max_frame_cross_fragmented_by_the_core(
             self, plugin, far_plugin, address, closing):
         a, _, b, b_address = self._endpoints(plugin, far_plugin, address, closing)

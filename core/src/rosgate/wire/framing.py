@@ -4,17 +4,34 @@ Stream links (TCP, RFCOMM) carry ``u32 length | frame`` records. A length above 
 means the stream is not ours or is corrupt: the reader refuses it and the connection is closed
 (never a delimiter searched for in the payload).
 
-Datagram links carry a frame whole when it fits ``max_frame``; otherwise fragments::
+Datagram links carry three kinds of datagram, told apart by their first two bytes:
 
-    offset size field
-    0      2    magic     b"RF"
-    2      2    index     0-based fragment number
-    4      2    count     number of fragments of this frame
-    6      4    topic_id  for counting a lost message against its topic
-    10     4    frame_id  per sending link
-    14          chunk
+* a frame, whole (an envelope: ``"RG"``), when it fits ``max_frame`` and leaves alone;
+* a **batch** of frames that left together for one destination, as many as fit
+  ``max_frame``::
 
-A frame whose fragments do not all arrive within ``timeout`` is dropped and counted once.
+      offset size field
+      0      2    magic     b"RB"
+      2      4    length    u32, of the first frame
+      6           frame
+                  length, frame, ... to the end of the datagram (the records of a stream link)
+
+  A receiver splits it; a length that runs past the end is counted (``bad_batch``) and ends
+  the batch, the frames before it delivered. A frame alone never travels as a batch, so a
+  receiver that predates batches reads a quiet link's datagrams (not a busy one's);
+* a **fragment** of a frame longer than ``max_frame``::
+
+      offset size field
+      0      2    magic     b"RF"
+      2      2    index     0-based fragment number
+      4      2    count     number of fragments of this frame
+      6      4    topic_id  for counting a lost message against its topic
+      10     4    frame_id  random per frame (see Reassembler)
+      14          chunk
+
+  A frame whose fragments do not all arrive within ``timeout`` is dropped and counted once.
+
+On a bare link (``framing: none``) every datagram is one message, never batched.
 
 Links with small frames (``max_frame`` below :data:`COMPACT_BELOW`: CAN's 8 and CAN FD's 64
 bytes) cannot spend 14 bytes of every frame on that header, so they use the **compact** scheme
@@ -54,6 +71,7 @@ from typing import Callable, Hashable, Iterator
 LENGTH = struct.Struct(">I")
 FRAGMENT = struct.Struct(">2sHHII")
 FRAGMENT_MAGIC = b"RF"
+BATCH_MAGIC = b"RB"
 DEFAULT_MAX_MESSAGE = 64 * 1024 * 1024
 FINISHED_REMEMBERED = 4096  # frames whose late fragments are recognised and ignored
 COMPACT_BELOW = 256  # links whose max_frame is below this use the compact scheme
@@ -98,10 +116,10 @@ class StreamReader:
 
 
 # -- datagrams ----------------------------------------------------------------------------
-def fragment(frame: bytes, max_frame: int, topic_id: int, frame_id: int) -> list[bytes]:
-    """Split ``frame`` into datagrams of at most ``max_frame`` bytes (one when it fits)."""
-    if len(frame) <= max_frame:
-        return [frame]
+def fragments(frame: bytes | bytearray, max_frame: int, topic_id: int,
+              frame_id: int) -> list[tuple[bytes, memoryview]]:
+    """The fragments of ``frame`` (longer than ``max_frame``) as (header, chunk) pairs: each
+    chunk a view of ``frame``, for scatter-gather sending without joining them."""
     chunk = max_frame - FRAGMENT.size
     if chunk <= 0:
         raise FramingError(f"a datagram of {max_frame} bytes cannot carry a fragment header")
@@ -109,8 +127,47 @@ def fragment(frame: bytes, max_frame: int, topic_id: int, frame_id: int) -> list
     if count > 0xFFFF:
         raise FramingError(f"a frame of {len(frame)} bytes needs more than 65535 fragments")
     view = memoryview(frame)
-    return [FRAGMENT.pack(FRAGMENT_MAGIC, i, count, topic_id, frame_id) + view[i * chunk:(i + 1) * chunk]
+    pack = FRAGMENT.pack
+    return [(pack(FRAGMENT_MAGIC, i, count, topic_id, frame_id), view[i * chunk:(i + 1) * chunk])
             for i in range(count)]
+
+
+def fragment(frame: bytes, max_frame: int, topic_id: int, frame_id: int) -> list[bytes]:
+    """Split ``frame`` into datagrams of at most ``max_frame`` bytes (one when it fits)."""
+    if len(frame) <= max_frame:
+        return [frame]
+    return [header + chunk for header, chunk in fragments(frame, max_frame, topic_id, frame_id)]
+
+
+def batch(frames: list[bytes]) -> list[bytes | memoryview]:
+    """The parts of one datagram carrying ``frames``: ``"RB"``, then ``u32 length | frame`` for
+    each (the records of a stream link). Its size is :func:`batch_size`."""
+    parts: list[bytes | memoryview] = [BATCH_MAGIC]
+    pack = LENGTH.pack
+    for frame in frames:
+        parts += (pack(len(frame)), frame)
+    return parts
+
+
+def batch_size(sizes: int, count: int) -> int:
+    """The size of a batch of ``count`` frames of ``sizes`` bytes in all."""
+    return len(BATCH_MAGIC) + count * LENGTH.size + sizes
+
+
+def unbatch(datagram: bytes | memoryview) -> Iterator[bytes | memoryview]:
+    """The frames of a batch, as slices of ``datagram``; FramingError at a length that runs past
+    its end (after yielding the frames before it)."""
+    end, offset = len(datagram), len(BATCH_MAGIC)
+    unpack = LENGTH.unpack_from
+    while offset < end:
+        if offset + LENGTH.size > end:
+            raise FramingError("a batch ends inside a length")
+        (length,) = unpack(datagram, offset)
+        offset += LENGTH.size
+        if offset + length > end:
+            raise FramingError(f"a batch's frame of {length} bytes runs past its end")
+        yield datagram[offset:offset + length]
+        offset += length
 
 
 def is_fragment(datagram: bytes | memoryview) -> bool:

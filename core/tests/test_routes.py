@@ -1,0 +1,73 @@
+"""A transmitting route takes what waits in its subscription and hands it to the link at once,
+within a datagram's worth; every frame keeps its own envelope and sequence number."""
+
+from __future__ import annotations
+
+import inspect
+from collections import deque
+
+from rosgate.builtin import CdrCodec, NoCipher
+from rosgate.config import TopicConfig
+from rosgate.routes import DRAIN_BYTES, DRAIN_FRAMES, EnvelopeFraming, TransmitRoute, Warner
+from rosgate.wire import envelope
+
+
+class Link:
+    datagram = True
+
+    def __init__(self) -> None:
+        self.calls: list[list[bytes]] = []
+
+    def send_all(self, frames, sender, to=None) -> int:
+        self.calls.append(list(frames))
+        return len(frames)
+
+
+def route(waiting: deque, max_rate: float | None = None) -> tuple[TransmitRoute, Link]:
+    fields = inspect.signature(TopicConfig).parameters
+    topic = TopicConfig(**{name: None for name, p in fields.items() if p.default is p.empty})
+    topic.max_rate = max_rate
+    link = Link()
+    r = TransmitRoute(topic, 7, CdrCodec(None, {}), NoCipher({}, "."), Warner(), "/t", False,
+                      framing=EnvelopeFraming(), link=link,  # type: ignore[arg-type]
+                      destination=lambda: ("127.0.0.1", 9))
+    r.take = lambda: waiting.popleft() if waiting else None
+    return r, link
+
+
+def test_a_message_alone_is_one_frame():
+    r, link = route(deque())
+    r.on_message(b"\x00\x01\x00\x00alone")
+    assert len(link.calls) == 1 and len(link.calls[0]) == 1
+    header = envelope.unpack(link.calls[0][0])
+    assert (header.topic_id, header.seq) == (7, 1)
+    assert r.counters.sent == 1 and r.counters.bytes_sent == envelope.SIZE + 9
+
+
+def test_what_waits_goes_with_it_in_order():
+    waiting = deque(b"\x00\x01\x00\x00%d" % i for i in range(1, 10))
+    r, link = route(waiting)
+    r.on_message(b"\x00\x01\x00\x000")
+    assert [len(call) for call in link.calls] == [10]
+    assert [envelope.unpack(f).seq for f in link.calls[0]] == list(range(1, 11))
+    assert [f[envelope.SIZE:] for f in link.calls[0]] == [b"\x00\x01\x00\x00%d" % i
+                                                          for i in range(10)]
+    assert not waiting and r.counters.sent == 10
+
+
+def test_taking_stops_at_a_datagrams_worth():
+    waiting = deque(bytes(1000) for _ in range(500))
+    r, link = route(waiting)
+    r.on_message(bytes(1000))
+    assert len(link.calls[0]) == min(DRAIN_FRAMES, -(-DRAIN_BYTES // 1028))
+    left = len(waiting)
+    r.on_message(bytes(1000))  # the executor calls again for the next one: the rest follow
+    assert len(waiting) < left
+
+
+def test_the_rate_limit_applies_to_what_is_taken():
+    waiting = deque(bytes(10) for _ in range(5))
+    r, link = route(waiting, max_rate=1)
+    r.on_message(bytes(10))
+    assert [len(call) for call in link.calls] == [1]
+    assert r.counters.drops == {"rate_limit": 5} and not waiting
