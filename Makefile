@@ -6,7 +6,7 @@ UV := $(shell command -v uv 2>/dev/null || echo .tools/bin/uv)
 VENV := .venv
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
-.PHONY: demo test bench bench-profile sync clean
+.PHONY: demo test lint bench bench-profile sync clean
 
 # --inexact: the ROS wheels ship colcon *.egg-info folders that an exact sync would delete
 # (taking std_msgs/ and friends with them).
@@ -20,13 +20,19 @@ sync: $(UV)
 demo: sync
 	$(VENV)/bin/python examples/demo.py
 
-test: sync
+test: sync lint
 	$(VENV)/bin/pytest
+
+# the core's layers (import-linter contracts in pyproject.toml) and types (mypy: core and plugins)
+lint: sync
+	$(VENV)/bin/lint-imports --no-cache
+	$(VENV)/bin/mypy
 
 # make bench [BASE=REV] [BENCH_ARGS="--quick --only 2.5kB"]: BASE also runs the bridged paths with
 # the rosgate of git revision REV (a temporary worktree with its own .venv), row beside row.
 bench: sync
 	UV=$(abspath $(UV)) $(VENV)/bin/python bench/bench.py $(if $(BASE),--base $(BASE)) $(BENCH_ARGS)
+	$(VENV)/bin/python bench/fleet.py
 
 # py-spy profiles of bridge A and bridge B (udp/cdr/none, 2.5 kB) into bench/profiles/; the table
 # goes to stdout only. Another path: BENCH_ARGS="--profile-path tcp/cdr/none".

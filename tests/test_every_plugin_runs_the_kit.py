@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from rosgate.bus import BusTransport
 from rosgate.options import declaration_problem, declared
 from rosgate.plugins import Plugins, deprecations
 
@@ -29,25 +30,31 @@ def folders_of_tests() -> dict[str, Path]:
     return folders
 
 
+def suite_of(kind: str, cls: type) -> str:
+    """A bus is a transport with a suite of its own."""
+    return "BusConformance" if issubclass(cls, BusTransport) else SUITES[kind]
+
+
 REGISTRATIONS = [r for r in Plugins.discover().all() if r.distribution in folders_of_tests()]
-IN_TREE = sorted((r.kind, r.name, r.cls.__name__, r.distribution) for r in REGISTRATIONS)
+IN_TREE = sorted((r.kind, r.name, r.cls.__name__, r.distribution, suite_of(r.kind, r.cls))
+                 for r in REGISTRATIONS)
 
 
 def test_every_in_tree_plugin_is_found():
-    assert {(kind, name) for kind, name, _, _ in IN_TREE} >= {
+    assert {(kind, name) for kind, name, _, _, _ in IN_TREE} >= {
         ("transport", "udp"), ("transport", "tcp"), ("transport", "unixdgram"),
-        ("transport", "can"), ("transport", "bt"),
+        ("transport", "can"), ("transport", "bt"), ("transport", "zenoh"),
         ("codec", "cdr"), ("codec", "msgpack"), ("codec", "cbor"), ("codec", "json"),
         ("cipher", "none"), ("cipher", "fernet"), ("cipher", "nacl")}
 
 
-@pytest.mark.parametrize("kind, name, cls, distribution", IN_TREE,
-                         ids=[f"{kind}-{name}" for kind, name, _, _ in IN_TREE])
-def test_runs_the_conformance_suite_of_its_kind(kind, name, cls, distribution):
+@pytest.mark.parametrize("kind, name, cls, distribution, suite", IN_TREE,
+                         ids=[f"{kind}-{name}" for kind, name, _, _, _ in IN_TREE])
+def test_runs_the_conformance_suite_of_its_kind(kind, name, cls, distribution, suite):
     sources = [path.read_text() for path in folders_of_tests()[distribution].glob("test_*.py")]
-    assert any(f"({SUITES[kind]}):" in text and f" = {cls}\n" in text for text in sources), (
-        f"no test class of {distribution} subclasses rosgate.testing.{SUITES[kind]} with "
-        f"{SUITES[kind].removesuffix('Conformance').lower()} = {cls}")
+    assert any(f"({suite}):" in text and f" = {cls}\n" in text for text in sources), (
+        f"no test class of {distribution} subclasses rosgate.testing.{suite} with "
+        f"{kind} = {cls}")
 
 
 @pytest.mark.parametrize("registration", REGISTRATIONS,

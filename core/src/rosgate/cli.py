@@ -13,12 +13,17 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 from . import __version__
 from .errors import ConfigError, RosgateError
 
+if TYPE_CHECKING:
+    from .cipher import Cipher
+
 EXIT_USAGE = 2
+ROUTER_LISTEN = "tcp/0.0.0.0:7447"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -40,6 +45,14 @@ def main(argv: list[str] | None = None) -> int:
     plugins.add_argument("--options", metavar="NAME",
                          help="print the options a plugin takes under plugins: NAME:")
 
+    router = commands.add_parser("router", help="run a bus router for bridges to meet at (zenoh), "
+                                                "until stopped")
+    router.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                        help=f"where to listen, repeatable (default {ROUTER_LISTEN})")
+    router.add_argument("--config", metavar="FILE",
+                        help="the bus's own configuration file (zenoh: JSON5, as for zenohd -c)")
+    router.add_argument("--transport", default="zenoh", help="the bus transport (default zenoh)")
+
     keygen = commands.add_parser("keygen", help="write a new key for a cipher (mode 0600)")
     keygen.add_argument("cipher", help="the cipher's name, e.g. fernet")
     keygen.add_argument("--out", help="the key file to write (default: CIPHER.key)")
@@ -50,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="[rosgate] %(levelname)s %(message)s", stream=sys.stderr)
     try:
         return {"run": cmd_run, "check": cmd_check, "plugins": cmd_plugins,
-                "keygen": cmd_keygen}[args.command](args)
+                "router": cmd_router, "keygen": cmd_keygen}[args.command](args)
     except RosgateError as exc:
         print(f"rosgate: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -61,6 +74,15 @@ def _engine(path: str, plugins: Any = None):
     from .engine import Engine
 
     return Engine(load(path), plugins).prepare()
+
+
+def wait_for_signal(stop: threading.Event) -> None:
+    """Wait until a signal handler sets ``stop``. In slices: Python runs handlers in the main
+    thread, and a process-directed signal that the kernel hands to another thread (zenoh's and
+    DDS's native threads are candidates) does not interrupt a wait without a timeout, so the
+    main thread would never run the handler."""
+    while not stop.wait(0.2):
+        pass
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -80,7 +102,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         t = p.config
         arrow = "->" if t.direction == "transmit" else "<-"
         port = f":{t.port}" if t.port else ""
-        print(f"  {p.name} {arrow} {t.remote}  [{t.type}] {t.transport}{port} {t.codec} {t.cipher}")
+        print(f"  {p.name} {arrow} {p.key or t.remote}  [{t.type}] {t.transport}{port} {t.codec} "
+              f"{t.cipher}")
     return 0
 
 
@@ -94,10 +117,39 @@ def cmd_run(args: argparse.Namespace) -> int:
     except ConfigError:
         raise
     try:
-        stop.wait()
+        wait_for_signal(stop)
     finally:
         logging.getLogger("rosgate").info("stopping")
         engine.stop()
+    return 0
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """A router of a bus transport (a zenoh session in router mode), until SIGINT/SIGTERM."""
+    from .bus import BusTransport
+    from .plugins import Plugins
+
+    plugins = Plugins.discover()
+    registration = plugins.get("transport", args.transport)
+    if registration is None:
+        message, fix = plugins.explain_missing("transport", args.transport)
+        raise ConfigError(message, fix=fix, file="router")
+    if not issubclass(registration.cls, BusTransport):
+        raise ConfigError(f"transport {args.transport!r} is not a bus: it has no router",
+                          file="router", fix="use --transport zenoh")
+    listen = args.listen or ([] if args.config else [ROUTER_LISTEN])
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    session = registration.cls({}).router(listen, args.config)
+    log = logging.getLogger("rosgate")
+    log.info("%s router running, listening on %s", args.transport,
+             ", ".join(listen) or f"what {args.config} says")
+    try:
+        wait_for_signal(stop)
+    finally:
+        log.info("stopping")
+        session.close()
     return 0
 
 
@@ -145,7 +197,7 @@ def _print_options(plugins: Any, name: str) -> int:
     return 0
 
 
-def _columns(rows: list[tuple[str, ...]]) -> list[str]:
+def _columns(rows: Sequence[tuple[str, ...]]) -> list[str]:
     """Rows as lines, each column as wide as its widest cell (the last one as it is)."""
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]) - 1)]
     return ["  ".join([cell.ljust(width) for cell, width in zip(row, widths)] + [row[-1]])
@@ -160,7 +212,8 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     if registration is None:
         message, fix = plugins.explain_missing("cipher", args.cipher)
         raise ConfigError(message, fix=fix, file="keygen")
-    key = registration.cls.generate_key()
+    cipher: type[Cipher] = registration.cls
+    key = cipher.generate_key()
     if key is None:
         raise ConfigError(f"cipher {args.cipher!r} takes no key", file="keygen")
     path = Path(args.out or f"{args.cipher}.key")

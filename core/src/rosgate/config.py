@@ -23,7 +23,7 @@ from typing import Any, overload
 import yaml
 
 from .errors import ConfigError
-
+from .placeholders import check as check_placeholders
 
 
 class Role(StrEnum):
@@ -67,6 +67,10 @@ PEER_TIMEOUT_HEARTBEATS = 3       # default bridge.peer_timeout, in heartbeats
 SESSION_TIMEOUT_DEFAULT = 60.0
 RECONNECT_MIN_DEFAULT, RECONNECT_MAX_DEFAULT = 0.1, 10.0
 QUEUE_FRAMES_DEFAULT, QUEUE_BYTES_DEFAULT = 1000, 8 * 1024 * 1024
+FLEET_TIMEOUT_DEFAULT = 30.0
+#: a bus topic's priority (zenoh's numbering): 1 the most urgent, 7 the least; default data (5)
+PRIORITIES = {"real_time": 1, "interactive_high": 2, "interactive_low": 3, "data_high": 4,
+              "data": 5, "data_low": 6, "background": 7}
 
 ROLES = tuple(Role)
 DIRECTIONS = tuple(Direction)
@@ -82,12 +86,13 @@ QOS_POLICIES = {
 
 TOP_KEYS = ("bridge", "plugins", "topics", "services")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
-               "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue")
+               "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue",
+               "fleet_timeout")
 DEFAULTS_KEYS = ("transport", "codec", "cipher")
 RECONNECT_KEYS = ("min", "max")
 QUEUE_KEYS = ("frames", "bytes")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
-              "framing", "qos", "max_rate")
+              "framing", "qos", "max_rate", "priority")
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
                 "framing", "timeout", "max_request")
 QOS_KEYS = ("reliability", "durability", "history", "depth")
@@ -107,12 +112,15 @@ _EXAMPLES = {
     "services.type": "std_srvs/srv/Trigger", "services.remote": "/ping",
     "direction": "transmit (this side to the peer) or receive (the peer to this side)",
     "remote": "/robot1/chatter", "port": "12001", "framing": "rosgate", "qos": "sensor_data",
-    "max_rate": "20", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
+    "max_rate": "20", "priority": "data", "fleet_timeout": "30", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
     "history": "keep_last", "depth": "10",
 }
 
 _BRIDGE_NAME = re.compile(r"[A-Za-z0-9_.-]+")
 _NAME_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_PLACEHOLDER = re.compile(r"\{[^{}/]*\}")
+# a bus key as written for remote: chunks without wildcards or a leading slash (bus.py says more)
+_KEY = re.compile(r"[^/*$?#\s]+(?:/[^/*$?#\s]+)*")
 # pkg/Type or pkg/<kind>/Type; ROS package names are lower case, interface names CamelCase
 _INTERFACE = re.compile(r"([a-z][a-z0-9_]*)/(?:([a-z]+)/)?([A-Z][A-Za-z0-9]*)")
 _INDEX = re.compile(r"\[\d+\]$")
@@ -133,6 +141,7 @@ class TopicConfig:
     framing: Framing = FRAMING_DEFAULT
     qos: int | str | dict = QOS_DEFAULT
     max_rate: float | None = None
+    priority: int | None = None  # bus topics: 1 (real time) .. 7 (background)
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
 
@@ -174,6 +183,7 @@ class BridgeConfig:
     reconnect_max: float = RECONNECT_MAX_DEFAULT
     queue_frames: int = QUEUE_FRAMES_DEFAULT
     queue_bytes: int = QUEUE_BYTES_DEFAULT
+    fleet_timeout: float = FLEET_TIMEOUT_DEFAULT
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
     services: list[ServiceConfig] = field(default_factory=list)
@@ -382,6 +392,8 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
         reconnect_max=reconnect_max,
         queue_frames=queue_frames,
         queue_bytes=queue_bytes,
+        fleet_timeout=_number(src, bridge, "bridge", "fleet_timeout", FLEET_TIMEOUT_DEFAULT,
+                              "a number of seconds > 0", _positive),
         plugins=_plugins(src, data),
         topics=_entries(src, data, "topics", role, defaults),
         services=_entries(src, data, "services", role, defaults),
@@ -406,8 +418,8 @@ def _check_role(src: _Source, data: dict, bridge: dict, role: Role) -> None:
             if key in bridge:
                 raise src.error(f"bridge.{key}", f"role peer has no main line, so {key}: does not apply",
                                 fix="remove it; a peer sends to peer: (the far host) and binds listen:")
-        _require(src, bridge, "bridge", ("peer",),
-                 fix="add peer: <far host>, the address of the other side")
+        # peer: is needed by entries on point-to-point links, not by those on a bus: the
+        # resolver, which knows which transport is which, requires it
         return
     for key in ("peer", "listen"):
         if key in bridge:
@@ -475,11 +487,8 @@ def _entries(src: _Source, data: dict, key: str, role: Role, defaults: dict[str,
     build = _topic if key == "topics" else _service
     entries = []
     for i, item in enumerate(items):
-        entry = build(src, item, f"{key}[{i}]", defaults)
-        if role is Role.PEER and entry.port is None:
-            raise src.error(f"{key}[{i}].port", f"peer role: each {key[:-1]} needs its own port",
-                            fix="add port: <1..65535> to this entry")
-        entries.append(entry)
+        # a peer's port: is checked by the resolver: entries on a bus have none
+        entries.append(build(src, item, f"{key}[{i}]", defaults))
     _check_duplicates(src, key, entries)
     return entries
 
@@ -521,6 +530,7 @@ def _topic(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Topi
         **common,
         qos=_qos(src, data, path),
         max_rate=_number(src, data, path, "max_rate", None, "a number of Hz > 0", _positive),
+        priority=_priority(src, data, path),
         **_entry_lines(src, path),
     )
 
@@ -548,12 +558,13 @@ def _service(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Se
 def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
             defaults: dict[str, str]) -> dict[str, Any]:
     """The keys topics and services share."""
-    name = _ros_name(src, data, path, name_key)
+    name = _ros_name(src, data, path, name_key, placeholders=True)
     framing = Framing(_choice(src, data, path, "framing", FRAMINGS, FRAMING_DEFAULT))
     if framing.bare:
         remote = _text(src, data, path, "remote", name.removeprefix("/"))
     else:
-        remote = _ros_name(src, data, path, "remote") if "remote" in data else name
+        remote = _remote(src, data, path) if "remote" in data else name
+    _check_placeholders(src, data, path, name_key, name, remote)
     fields = {
         name_key: name,
         "type": _interface(src, data, path, kind),
@@ -608,17 +619,69 @@ def _qos(src: _Source, data: dict, path: str) -> int | str | dict:
     return policies
 
 
-def _ros_name(src: _Source, data: dict, path: str, key: str) -> str:
+def _ros_name(src: _Source, data: dict, path: str, key: str, placeholders: bool = False) -> str:
     text = _required(src, data, path, key)
     if text.startswith("~"):
         raise src.error(_join(path, key), f"private names (~) are not supported: '{text}'",
                         fix=f"write the full name, e.g. {key}: {_example(path, key)}")
     tokens = text.removeprefix("/").split("/")
-    if not all(_NAME_TOKEN.fullmatch(token) for token in tokens):
+    if not all(_NAME_TOKEN.fullmatch(token) or placeholders and _PLACEHOLDER.fullmatch(token)
+               for token in tokens):
         raise src.error(_join(path, key), f"'{text}' is not a valid ROS name",
                         fix="use letters, digits and '_' in parts separated by single '/', no part "
                             f"starting with a digit, e.g. {key}: {_example(path, key)}")
     return "/" + "/".join(tokens)  # relative names are taken from the root namespace
+
+
+def _remote(src: _Source, data: dict, path: str) -> str:
+    """A ROS name ("/robot1/scan", normalised), or else a bus key as written ("fleet/robot-1/scan",
+    no leading slash): only the resolver knows which transport the entry is on, and says so when
+    a key is given to a point-to-point link."""
+    text = _required(src, data, path, "remote")
+    tokens = text.removeprefix("/").split("/")
+    if all(_NAME_TOKEN.fullmatch(t) or _PLACEHOLDER.fullmatch(t) for t in tokens):
+        return "/" + "/".join(tokens)
+    if _KEY.fullmatch(text):
+        return text
+    return _ros_name(src, data, path, "remote", placeholders=True)  # raises, saying why
+
+
+def _check_placeholders(src: _Source, data: dict, path: str, name_key: str, name: str,
+                        remote: str) -> None:
+    """Fleet entries: the same known placeholders in the ROS name and in remote."""
+    try:
+        found = check_placeholders(name)
+    except ValueError as exc:
+        raise src.error(_join(path, name_key), str(exc), fix="e.g. topic: /{robot}/scan") from None
+    if found and "remote" not in data:
+        raise src.error(_join(path, name_key), "an entry with placeholders needs remote: with the "
+                        "same placeholders (the key every robot uses)",
+                        fix="add e.g. remote: fleet/{robot}/scan")
+    try:
+        in_remote = check_placeholders(remote)
+    except ValueError as exc:
+        raise src.error(_join(path, "remote"), str(exc), fix="e.g. remote: fleet/{robot}/scan") \
+            from None
+    if sorted(found) != sorted(in_remote):
+        raise src.error(_join(path, "remote"),
+                        f"{name_key} and remote must hold the same placeholders "
+                        f"({', '.join('{' + n + '}' for n in found) or 'none'} in {name_key}, "
+                        f"{', '.join('{' + n + '}' for n in in_remote) or 'none'} in remote)",
+                        fix="e.g. topic: /{robot}/scan with remote: fleet/{robot}/scan")
+
+
+def _priority(src: _Source, data: dict, path: str) -> int | None:
+    if "priority" not in data:
+        return None
+    value = data["priority"]
+    if isinstance(value, str) and value in PRIORITIES:
+        return PRIORITIES[value]
+    if isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 7:
+        return value
+    close = _closest(str(value), tuple(PRIORITIES))
+    raise src.error(_join(path, "priority"), f"expected a priority, 1 (real_time) to 7 "
+                    f"(background), got {_show(value)}{_did_you_mean(close)}",
+                    fix=f"one of {', '.join(PRIORITIES)} (or 1..7)")
 
 
 def _interface(src: _Source, data: dict, path: str, kind: str) -> str:

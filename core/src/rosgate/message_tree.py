@@ -273,7 +273,7 @@ class _Builder:
 
     # -- arrays and sequences -----------------------------------------------------------------
 
-    def length_checker(self, t: idl.AbstractNestedType, wire_type: type,
+    def length_checker(self, t: idl.AbstractNestedType, wire_type: Any,
                        wire_name: str) -> Callable[[Any], None]:
         """Check a received collection's type, and its length against the field's."""
         size = t.size if isinstance(t, idl.Array) else None
@@ -284,8 +284,10 @@ class _Builder:
         invalid = self.invalid
 
         def check(value: Any) -> None:
-            if type(value) is not wire_type or (size is not None and len(value) != size) or (
-                    bound is not None and len(value) > bound):
+            if type(value) is not wire_type:
+                raise invalid(expected, value)
+            length = len(value)  # a sized type: bytes, str, list, array
+            if size is not None and length != size or bound is not None and length > bound:
                 raise invalid(expected, value)
         return check
 
@@ -441,7 +443,7 @@ def _beyond_float32(values: list[Any]) -> bool:
 class MessageTree:
     """Encoder and decoder of one message class in one format: its fields' converters."""
 
-    def __init__(self, msg_type: type, wire: WireFormat):
+    def __init__(self, msg_type: Any, wire: WireFormat):
         self.msg_type = msg_type
         self.name = f"{msg_type.__module__.split('.')[0]}/{msg_type.__name__}"
         self.wire = wire

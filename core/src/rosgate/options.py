@@ -140,6 +140,7 @@ def declaration_problem(cls: type) -> str | None:
         return None
     where = f"{cls.__name__}.Options"
     if not (isinstance(options, type) and dataclasses.is_dataclass(options)
+            # __dataclass_params__ is what @dataclass sets; typeshed does not declare it
             and options.__dataclass_params__.frozen):  # type: ignore[attr-defined]
         return f"{where} is not a frozen dataclass (decorate it with @dataclass(frozen=True))"
     try:
@@ -160,7 +161,7 @@ def declaration_problem(cls: type) -> str | None:
     return None
 
 
-def parse(cls: type, table: Mapping[str, Any]) -> Any:
+def parse(cls: Any, table: Mapping[str, Any]) -> Any:
     """``table`` (a plugin's table under ``plugins:``) checked against ``cls.Options``: the
     ``Options`` instance, or :class:`rosgate.OptionError` naming the key that is wrong and how to
     fix it. A class without ``Options`` gets ``dict(table)``, unchecked (deprecated)."""

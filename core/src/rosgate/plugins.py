@@ -35,7 +35,7 @@ from . import hookspecs
 from .cipher import Cipher
 from .codec import Codec
 from .options import declaration_problem
-from .transport import DatagramTransport, StreamTransport, Transport
+from .transport import Transport
 
 ENTRY_POINT_GROUP = "rosgate"
 DISABLE_VARIABLE = "ROSGATE_DISABLE_PLUGINS"
@@ -245,7 +245,7 @@ def deprecations(cls: type) -> list[str]:
     """What a registered class does that still works but will not for long, for
     ``rosgate plugins`` (its author sees a ``DeprecationWarning`` too)."""
     notes = []
-    if issubclass(cls, Transport) and not issubclass(cls, (DatagramTransport, StreamTransport)):
+    if issubclass(cls, Transport) and cls.link_kind is None:
         notes.append("subclasses rosgate.Transport and sets stream itself (subclass "
                      "DatagramTransport or StreamTransport)")
     if not hasattr(cls, "Options"):
@@ -260,7 +260,8 @@ def _check_class(cls: Any, base: type) -> str | None:
     if not isinstance(name, str) or not name.isidentifier():
         return f"{cls.__name__} has no valid 'name' (a short identifier such as 'udp')"
     if inspect.isabstract(cls):
-        return f"{cls.__name__} does not implement {', '.join(sorted(cls.__abstractmethods__))}"
+        missing = sorted(getattr(cls, "__abstractmethods__", ()))
+        return f"{cls.__name__} does not implement {', '.join(missing)}"
     if base is Transport and not isinstance(getattr(cls, "stream", None), bool):
         return f"{cls.__name__} says neither stream nor datagram (subclass DatagramTransport or " \
                "StreamTransport)"

@@ -13,11 +13,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
+from .bus import PRIORITY_DEFAULT, BusTransport
 from .cipher import Cipher
 from .codec import Codec
 from .config import (BridgeConfig, Direction, Framing, Role, ServiceConfig, TopicConfig)
 from .errors import ConfigError, OptionError
 from .options import parse
+from .placeholders import Template, has_placeholders
 from .plugins import Plugins, Registration
 from .ros import TypeNotFound, is_reliable, resolve_type
 from .transport import Address, Transport
@@ -26,6 +28,7 @@ from .wire.envelope import topic_id_for
 ErrorMaker = Callable[..., ConfigError]
 
 ANY_IP = "0.0.0.0"
+NO_ADDRESS: Address = ("", 0)  # bus entries have a key instead
 
 
 @dataclass
@@ -42,6 +45,8 @@ class PreparedTopic:
     address: Address  # the far side; a peer's receiving topic: where to listen
     local: Address  # peer role, datagram transmit: where to send from
     reliable: bool  # frames wait out a stream link's loss (reliable QoS)
+    key: str | None = None  # on a bus: the key (a template with placeholders), else None
+    priority: int = PRIORITY_DEFAULT  # on a bus
 
     @property
     def name(self) -> str:
@@ -63,6 +68,7 @@ class PreparedService:
     local: Address
     # calls are not held while a link is down: the caller's timeout answers them instead
     reliable: bool = False
+    key: str | None = None  # on a bus: the key its queries go to
 
     @property
     def name(self) -> str:
@@ -126,10 +132,17 @@ class Resolver:
         if topic.framing is Framing.NONE and transport.stream:
             raise error(f"{key}.framing", "framing: none needs a datagram transport (udp, can, ...)",
                         "use framing: rosgate on stream links")
+        reliable = is_reliable(topic.qos)
+        if isinstance(transport, BusTransport):
+            return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher,
+                                 index, NO_ADDRESS, NO_ADDRESS, reliable,
+                                 self._bus_key(transport, topic, key, error),
+                                 topic.priority or PRIORITY_DEFAULT)
+        self._point_to_point(topic, key, transport, error)
         self._check_main_line_port(topic, key, transport, error)
         address, local = self._addresses(transport, topic, key, error)
         return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher, index,
-                             address, local, is_reliable(topic.qos))
+                             address, local, reliable)
 
     def service(self, service: ServiceConfig, index: int, section: str,
                 error: ErrorMaker | None = None) -> PreparedService:
@@ -157,10 +170,73 @@ class Resolver:
             if not codec_cls.messagepack:
                 raise error(f"{key}.codec", f"codec {service.codec} does not put the service's "
                             "name on the wire (it does not write MessagePack)", "use codec: msgpack")
+        if isinstance(transport, BusTransport):
+            return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
+                                   index, NO_ADDRESS, NO_ADDRESS,
+                                   key=self._bus_key(transport, service, key, error))
+        self._point_to_point(service, key, transport, error)
         self._check_main_line_port(service, key, transport, error)
         address, local = self._addresses(transport, service, key, error)
         return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
                                index, address, local)
+
+    def _bus_key(self, transport: BusTransport, entry: TopicConfig | ServiceConfig, key: str,
+                 error: ErrorMaker) -> str:
+        """A bus entry's key: its remote, or the transport's default key. Bus entries live in
+        peer-role files (no main line: the bus finds the others) and have no port."""
+        kind = "topic" if isinstance(entry, TopicConfig) else "service"
+        cfg = self.config
+        if cfg.role is not Role.PEER:
+            raise error(f"{key}.transport", f"{entry.transport} is a bus: its {kind}s belong in a "
+                        f"file of role peer (no main line: {entry.transport} finds the others)",
+                        f"use role: peer for this bridge, or another transport for this {kind}")
+        if entry.port is not None:
+            raise error(f"{key}.port", f"port: does not apply to a {entry.transport} {kind}: "
+                        "it is published on a key (remote:)", "remove port: from this entry")
+        if (kind == "service" and has_placeholders(entry.remote)
+                and entry.direction is Direction.RECEIVE):
+            raise error(f"{key}.direction", "a fleet service (with {robot}) is called here and "
+                        "served by each robot, so its direction is transmit",
+                        "use direction: transmit, or name the service without placeholders")
+        name = entry.topic if isinstance(entry, TopicConfig) else entry.service
+        bare = entry.framing is Framing.NONE
+        given = "remote" in entry.lines
+        bus_key = (entry.remote.removeprefix("/") if given
+                   else transport.default_key(cfg.name, name, bare))
+        try:
+            transport.check_key(Template(bus_key).wildcard())
+        except ValueError as exc:
+            where = f"{key}.remote" if given else f"{key}.{kind}"
+            raise error(where, str(exc), "write remote: as parts separated by single '/', "
+                        "e.g. remote: fleet/robot1/scan") from None
+        return bus_key
+
+    def _point_to_point(self, entry: TopicConfig | ServiceConfig, key: str, transport: Transport,
+                        error: ErrorMaker) -> None:
+        """What only a bus takes: placeholders, a key for remote, a priority; and what a peer's
+        point-to-point entries need: a port, and peer: for the far host."""
+        kind = "topic" if isinstance(entry, TopicConfig) else "service"
+        name = entry.topic if isinstance(entry, TopicConfig) else entry.service
+        if has_placeholders(name):
+            raise error(f"{key}.{kind}", f"placeholders such as {{robot}} need a bus transport "
+                        f"(zenoh); {entry.transport} links one peer to another",
+                        "set transport: zenoh on this entry, or write the robot's name")
+        if entry.framing is Framing.ROSGATE and not entry.remote.startswith("/"):
+            raise error(f"{key}.remote", f"'{entry.remote}' is not a valid ROS name (keys are "
+                        f"for bus transports; {entry.transport} is not one)",
+                        "use letters, digits and '_' in parts separated by single '/'")
+        if isinstance(entry, TopicConfig) and entry.priority is not None:
+            raise error(f"{key}.priority", f"priority: applies to bus transports (zenoh), not "
+                        f"{entry.transport}", "remove priority: from this entry")
+        if self.config.role is Role.PEER:
+            if entry.port is None:
+                raise error(f"{key}.port", f"peer role: each {kind} needs its own port",
+                            f"add port: <1..65535> to this entry (only bus {kind}s, such as "
+                            "zenoh's, have none)")
+            if self.config.peer is None:
+                raise self.config.error("bridge.peer", "missing required key 'peer'",
+                                        f"add peer: <far host>, the address of the other side "
+                                        f"({key} is on {entry.transport}, a point-to-point link)")
 
     def _check_main_line_port(self, entry: TopicConfig | ServiceConfig, key: str,
                               transport: Transport, error: ErrorMaker) -> None:
@@ -212,6 +288,7 @@ class Resolver:
     def _check_shared_ports(self, topics: list[PreparedTopic]) -> None:
         """Topics that share a receiving port must be told apart on it."""
         by_port: dict[tuple[str, int | None], list[PreparedTopic]] = {}
+        topics = [p for p in topics if p.key is None]  # a bus tells topics apart by key
         for p in topics:
             if p.config.direction is Direction.RECEIVE:
                 by_port.setdefault((p.config.transport, p.config.port), []).append(p)

@@ -57,14 +57,16 @@ class Router:
 
     # -- making routes -----------------------------------------------------------------------
     def topic(self, p: PreparedTopic, topic_id: int, label: str, link: Link,
-              destination: Destination = _no_destination) -> TransmitRoute | ReceiveRoute:
-        """A topic's route and its ROS entity; a receiver with an envelope is found by its id."""
+              destination: Destination = _no_destination,
+              bare_names: bool = True) -> TransmitRoute | ReceiveRoute:
+        """A topic's route and its ROS entity; a receiver with an envelope is found by its id.
+        ``bare_names=False``: bare frames never carry the topic's name (a bus names them by key)."""
         t = p.config
         codec = p.codec_cls(p.msg_type, p.codec_options)
         qos = qos_profile(t.qos)
         route: TransmitRoute | ReceiveRoute
         if t.direction is Direction.TRANSMIT:
-            framing = (BareFraming(t.remote if codec.messagepack else None)
+            framing = (BareFraming(t.remote if codec.messagepack and bare_names else None)
                        if t.framing is Framing.NONE else EnvelopeFraming())
             route = TransmitRoute(t, topic_id, codec, p.cipher, self.warner, label, p.reliable,
                                   framing=framing, link=link, destination=destination)

@@ -144,10 +144,12 @@ class Transport(ABC):
     #: the largest frame one ``send`` carries on a datagram link; the core fragments above it.
     #: A class attribute, or an instance attribute set in ``__init__`` from an option.
     max_frame: ClassVar[int] = 0
+    #: which kind of link: set by DatagramTransport, StreamTransport and rosgate.bus.BusTransport
+    link_kind: ClassVar[str | None] = None
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        if cls.__module__ != __name__ and not issubclass(cls, (DatagramTransport, StreamTransport)):
+        if cls.__module__ != __name__ and cls.link_kind is None:
             warnings.warn(f"{cls.__qualname__} subclasses rosgate.Transport and sets stream itself; "
                           "subclass rosgate.DatagramTransport or rosgate.StreamTransport instead",
                           DeprecationWarning, stacklevel=3)  # past ABCMeta.__new__: the class
@@ -186,6 +188,7 @@ class DatagramTransport(Transport):
     fragments larger frames (compact pieces below 256 bytes, see ``rosgate.framing``)."""
 
     stream = False
+    link_kind = "datagram"
 
     @abstractmethod
     def bind(self, address: Address) -> DatagramEndpoint:
@@ -198,6 +201,7 @@ class StreamTransport(Transport):
     """An ordered byte stream (TCP, RFCOMM). The core puts a length prefix on every frame."""
 
     stream = True
+    link_kind = "stream"
 
     @abstractmethod
     def listen(self, address: Address) -> StreamListener:

@@ -5,6 +5,9 @@ talking. Receiving entries bind (or listen at) ``listen:port``; transmitting ent
 connect) to ``peer:port``. Services likewise: a serving side answers on the link and to the
 address each call came from.
 
+Entries on a bus (zenoh) are wired by :class:`~rosgate.roles.bus.BusWiring`: by key, without
+ports or a far host.
+
 Microcontrollers (the CVRA profile) are peers too: ``framing: none`` topics share a
 :class:`~rosgate.routes.BarePort` per port, told apart by name, and ``framing:
 serial_datagram`` services get a :class:`~rosgate.cvra.CallServer` per port (receive) or a
@@ -24,18 +27,24 @@ from ..services import ServerRoute
 from ..transport import Address
 from ..wire.envelope import topic_id_for
 from . import NoLink, Role
+from .bus import BusWiring
 
 
 class PeerRole(Role):
     def start(self) -> None:
+        bus = BusWiring(self.bridge)
         for p in self.bridge.plan.topics:
-            if p.transport.stream:
+            if p.key is not None:
+                bus.topic(p)
+            elif p.transport.stream:
                 self._stream_topic(p)
             else:
                 self._datagram_topic(p)
         call_servers: dict[Address, CallServer] = {}
         for s in self.bridge.plan.services:
-            if s.config.framing is Framing.SERIAL_DATAGRAM:
+            if s.key is not None:
+                bus.service(s)
+            elif s.config.framing is Framing.SERIAL_DATAGRAM:
                 self._microcontroller_service(s, call_servers)
             else:
                 self._service(s)

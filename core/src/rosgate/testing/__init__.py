@@ -47,7 +47,15 @@ What each suite checks (every check uses real sockets, real message classes, rea
   another key, every truncation and random bodies are refused with :class:`rosgate.CipherError`;
   two seals of one payload differ. A cipher with ``authenticates = False`` (``none``) skips the
   refusal tests, saying so.
-* All three: the plugin is found through its entry point in the group ``rosgate``.
+* :class:`BusConformance` — bus links (:mod:`rosgate.bus`): frames of 1 byte to 1 MiB cross
+  byte-exact with the concrete key they were published on; ``*`` matches one chunk and ``**``
+  any; a reliable publisher keeps order; a closed subscription delivers nothing more; a query is
+  answered byte-exact from another thread, one nobody serves is over at once without answers,
+  one closed unanswered likewise, one held is over after its timeout; liveliness tokens are
+  reported present, arriving and leaving (with their holder too); ``close`` is prompt and leaves
+  no thread, and a process that exits without closing does not hang; frames and calls cross
+  through :class:`rosgate.buslink.BusLink`, whose full queue is counted.
+* All four: the plugin is found through its entry point in the group ``rosgate``.
 
 The helpers (:func:`free_port`, :func:`has_ipv6_loopback`, :func:`wait_until_blocked`,
 :func:`receive_exactly`, :func:`write_key`, :func:`mutations`, :class:`Frames`) are what plugin
@@ -55,8 +63,16 @@ tests kept writing for themselves. rosgate registers this module as a pytest plu
 pytest rewrites its asserts: a failing check shows the values. Importing it loads nothing from
 ROS; the codec suite imports message packages when it runs. One module per suite:
 ``transports.py``, ``codecs.py`` (with the sample messages), ``ciphers.py``, ``helpers.py``.
+
+A bad link for tests, in user space (this kind of machine has no netem):
+:mod:`rosgate.testing.emulator` — ``UdpRelay`` and ``TcpRelay`` with a token-bucket rate,
+delay and jitter, loss per IP packet, a bounded queue, seeded (``Profile``, the ``WIFI`` preset),
+and ``NetnsPair``, two network namespaces on a veth pair with a kernel rate limit (root only).
+Import it from there: it is not loaded with the kit, and it also runs as
+``python -m rosgate.testing.emulator`` for a benchmark.
 """
 
+from .buses import BusConformance
 from .ciphers import CipherConformance
 from .codecs import CodecConformance, sample, samples
 from .helpers import (Frames, free_port, has_ipv6_loopback, mutations, receive_exactly,
@@ -64,7 +80,7 @@ from .helpers import (Frames, free_port, has_ipv6_loopback, mutations, receive_e
 from .transports import TransportConformance
 
 __all__ = [
-    "CipherConformance", "CodecConformance", "Frames", "TransportConformance", "free_port",
+    "BusConformance", "CipherConformance", "CodecConformance", "Frames", "TransportConformance", "free_port",
     "has_ipv6_loopback", "mutations", "receive_exactly", "sample", "samples",
     "wait_until_blocked", "write_key",
 ]

@@ -375,6 +375,9 @@ class _Relay:
     """What both relays share: the lock, the change condition, threads, close()."""
 
     _threads: list[threading.Thread]
+    _up: Any  # the two directions, made by each relay
+    _down: Any
+    _listen_address: tuple[str, int]
 
     def __init__(self, profile: Profile, target: tuple[str, int]):
         self.profile = profile
@@ -575,7 +578,8 @@ class UdpRelay(_Relay):
                  source: tuple[str, int] | None = None):
         super().__init__(profile, target)
         self._client: Any = None
-        self._outer = self._inner = None
+        self._outer: socket.socket | None = None
+        self._inner: socket.socket | None = None
         try:
             self._outer = socket.socket(_family(listen[0]), socket.SOCK_DGRAM)
             self._inner = socket.socket(_family(self.target[0]), socket.SOCK_DGRAM)
@@ -608,6 +612,7 @@ class UdpRelay(_Relay):
 
     def _read(self) -> None:
         """One thread reads both sockets (and the wake-up pipe that close() writes to)."""
+        assert self._outer is not None and self._inner is not None
         with selectors.DefaultSelector() as selector:
             selector.register(self._outer, selectors.EVENT_READ, "up")
             selector.register(self._inner, selectors.EVENT_READ, "down")
@@ -618,7 +623,9 @@ class UdpRelay(_Relay):
                         return
                     for _ in range(256):     # drain, but let the other direction have its turn
                         try:
-                            data, ancillary, _, source = key.fileobj.recvmsg(
+                            sock = key.fileobj
+                            assert isinstance(sock, socket.socket)
+                            data, ancillary, _, source = sock.recvmsg(
                                 65535, _ANCILLARY, socket.MSG_DONTWAIT)
                         except (BlockingIOError, InterruptedError):
                             break
@@ -974,7 +981,8 @@ class NetnsPair:
         global _netns_unavailable
         if _netns_unavailable is False:
             _netns_unavailable = NetnsPair._check()
-        return _netns_unavailable  # type: ignore[return-value]
+        assert not isinstance(_netns_unavailable, bool)  # checked: a reason or None
+        return _netns_unavailable
 
     @staticmethod
     def _check() -> str | None:

@@ -168,7 +168,7 @@ def in_thread(call: Callable[[], Any]) -> tuple[threading.Thread, threading.Even
     return thread, finished, result
 
 
-def assert_registered(kind: str, cls: type) -> None:
+def assert_registered(kind: str, cls: Any) -> None:
     registration = Plugins.discover().get(kind, cls.name)
     assert registration is not None, (
         f"no {kind} {cls.name!r} among the installed plugins: is the distribution installed, "

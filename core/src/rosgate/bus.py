@@ -1,0 +1,163 @@
+"""Buses: the third kind of link, for pub/sub and query networks addressed by key (Eclipse Zenoh).
+
+A datagram link moves frames to an address and a stream link moves bytes over a connection; a
+bus moves whole frames by **key**: publish on a key, subscribe to a key expression
+(``fleet/*/scan``) and receive each frame with the concrete key it was published on, serve and
+issue queries (services), and declare and watch liveliness tokens (who is there). A bus
+discovers and reconnects by itself and fragments what it carries, so the core does neither on
+it: no length prefixes, no fragments, no reconnection. It keeps the envelope and the cipher
+(``framing: rosgate``) or sends the codec's bytes bare (``framing: none``).
+
+A bus plugin subclasses :class:`BusTransport`, registered through the ``rosgate_transports``
+hook like any transport, and implements :meth:`BusTransport.open`, returning a
+:class:`BusSession`. Bus entries need no ``port:`` and no ``peer:``: an entry's ``remote`` is its
+key (default :meth:`BusTransport.default_key`).
+
+Keys are ``/``-separated chunks without a leading or trailing ``/``; in a key expression ``*``
+matches one chunk and ``**`` any number. Chunks that start with ``@`` are matched only by a
+pattern that names them (``rosgate/*/@alive`` matches ``rosgate/robot1/@alive``; ``**`` does not).
+
+Threads: the ``on_*`` callbacks a session is given may be called from the bus library's own
+threads, several at once. The core's callbacks only queue what they get and return at once (a
+slow callback can stall a bus library's whole session), so a plugin may call them from its
+receive thread directly. A plugin must not leave threads that keep the process from exiting:
+:meth:`BusSession.close` ends everything it started.
+"""
+
+from __future__ import annotations
+
+import re
+from abc import abstractmethod
+from collections.abc import Callable
+from typing import Protocol
+
+from .transport import Transport
+
+#: priorities as zenoh numbers them: 1 (most urgent) to 7; topics default to DATA
+PRIORITIES = {"real_time": 1, "interactive_high": 2, "interactive_low": 3, "data_high": 4,
+              "data": 5, "data_low": 6, "background": 7}
+PRIORITY_DEFAULT = PRIORITIES["data"]
+
+_CHUNK = re.compile(r"[^/*$?#]+|\*|\*\*")
+
+
+class Handle(Protocol):
+    """A declaration (subscription, queryable, token, watch); ``close`` withdraws it."""
+
+    def close(self) -> None: ...
+
+
+class BusPublisher(Protocol):
+    """Publishes on one key."""
+
+    def put(self, frame: bytes) -> None:
+        """Hand one frame to the bus. Raise ``OSError`` when it cannot be handed over (the core
+        counts it as ``send_error``). A reliable publisher may wait while the bus is congested;
+        a best-effort one drops instead, silently, as the bus does."""
+
+    def close(self) -> None: ...
+
+
+class BusQuery(Protocol):
+    """One query received by a queryable: answer it once, or close it without an answer."""
+
+    def reply(self, payload: bytes) -> None:
+        """Answer with ``payload``; raise ``OSError`` when the answer cannot be sent."""
+
+    def close(self) -> None:
+        """Finish the query (after a reply, or instead of one: the caller then gets none)."""
+
+
+#: a frame arrived: (the concrete key it was published on, the frame)
+SampleHandler = Callable[[str, bytes], None]
+#: a query arrived: (the concrete key, its payload, the query to answer)
+QueryHandler = Callable[[str, bytes, BusQuery], None]
+#: liveliness: (a token's key, True when it appeared, False when it went)
+ChangeHandler = Callable[[str, bool], None]
+
+
+class BusSession(Protocol):
+    """An open session on the bus. Every method but ``close`` may be called from any thread."""
+
+    def publisher(self, key: str, *, reliable: bool, priority: int) -> BusPublisher:
+        """A publisher on ``key``. ``reliable``: the topic's QoS is reliable, so the bus should
+        push back when congested rather than drop (zenoh: ``CongestionControl.BLOCK``), else
+        drop (``DROP``). ``priority``: 1 (real time) to 7 (background), see :data:`PRIORITIES`."""
+
+    def subscribe(self, key_expr: str, on_sample: SampleHandler) -> Handle:
+        """Deliver every frame published on a key matching ``key_expr`` to ``on_sample``."""
+
+    def serve(self, key: str, on_query: QueryHandler) -> Handle:
+        """Answer queries on ``key``: each is handed to ``on_query`` with a :class:`BusQuery`."""
+
+    def query(self, key: str, payload: bytes, timeout: float,
+              on_reply: Callable[[bytes], None], on_done: Callable[[int], None]) -> None:
+        """Send one query and return at once. ``on_reply(payload)`` for each answer;
+        ``on_done(answers)`` once when the query is over (all servers answered, none serves the
+        key, or ``timeout`` seconds passed). Raise ``OSError`` when it cannot be sent."""
+
+    def token(self, key: str) -> Handle:
+        """Declare a liveliness token on ``key``, held until closed or the session ends."""
+
+    def watch(self, key_expr: str, on_change: ChangeHandler) -> Handle:
+        """Report tokens matching ``key_expr``: those already declared at once (``True``), then
+        each that appears (``True``) or goes (``False``: withdrawn, or its holder is gone)."""
+
+    def close(self) -> None:
+        """Close the session and everything declared on it, promptly."""
+
+
+class BusTransport(Transport):
+    """Base class of bus plugins. Set :attr:`name`; implement :meth:`open`. Set :attr:`prefix`
+    and :attr:`namespace` from your options if you take them (the core's key conventions)."""
+
+    stream = False
+    link_kind = "bus"
+    #: rosgate's own keys start with it: ``<prefix>/<bridge name>/<topic>`` and the liveliness
+    #: token ``<prefix>/<bridge name>/@alive``
+    prefix: str = "rosgate"
+    #: keys of ``framing: none`` entries: ``<namespace>/<ROS name without its leading slash>``,
+    #: as zenoh-bridge-ros2dds names them ("" for none)
+    namespace: str = ""
+
+    @abstractmethod
+    def open(self, name: str) -> BusSession:
+        """Open a session for the bridge called ``name``. Raise :class:`rosgate.LinkError` when it
+        cannot be opened (no router where one is required, a port in use)."""
+
+    def router(self, listen: list[str], config_file: str | None) -> BusSession:
+        """Open a session that routes for others (``rosgate router``), if the bus has routers."""
+        raise NotImplementedError(f"transport {self.name!r} has no router")
+
+    def check_key(self, key: str) -> str:
+        """Validate a key (or key expression) written in bringup.yaml; ``ValueError`` with a
+        sentence saying what is wrong. The default checks the chunk rules above."""
+        return check_key(key)
+
+    def default_key(self, bridge: str, ros_name: str, bare: bool) -> str:
+        """The key of an entry without ``remote``: ``<namespace>/<name>`` for bare frames (the
+        zenoh-bridge-ros2dds convention), else ``<prefix>/<bridge>/<name>``."""
+        name = ros_name.removeprefix("/")
+        if bare:
+            namespace = self.namespace.strip("/")
+            return f"{namespace}/{name}" if namespace else name
+        return f"{self.prefix}/{bridge}/{name}"
+
+    def alive_key(self, bridge: str) -> str:
+        """The liveliness token a bridge declares for itself."""
+        return f"{self.prefix}/{bridge}/@alive"
+
+
+def check_key(key: str) -> str:
+    """The chunk rules of keys (module docstring); ``ValueError`` saying which is broken."""
+    if not key or key.startswith("/") or key.endswith("/"):
+        raise ValueError(f"{key!r} is not a key: no leading or trailing '/', not empty")
+    for chunk in key.split("/"):
+        if not _CHUNK.fullmatch(chunk):
+            raise ValueError(f"{key!r} is not a key: chunk {chunk!r} is empty or holds "
+                             "'*', '$', '?' or '#' (a wildcard is '*' or '**' alone)")
+    return key
+
+
+def is_bus(transport: Transport) -> bool:
+    return isinstance(transport, BusTransport)

@@ -1,0 +1,217 @@
+"""bringup.yaml with bus entries (zenoh): what a peer file on a bus may leave out, the keys it
+gets, and one located error per mistake, through the resolver (which knows which transport is a
+bus) exactly as ``rosgate check`` and ``rosgate run`` see them."""
+
+from __future__ import annotations
+
+import pytest
+from test_cli import rosgate, user_error
+
+from rosgate.config import loads
+from rosgate.engine import Engine
+from rosgate.errors import ConfigError
+
+ZENOH = "plugins:\n  zenoh: {mode: client, connect: [tcp/127.0.0.1:7447]}\n"
+
+
+def plan(text: str):
+    return Engine(loads(text, file="bringup.yaml")).prepare().plan
+
+
+def error(text: str) -> ConfigError:
+    with pytest.raises(ConfigError) as info:
+        plan(text)
+    return info.value
+
+
+def test_a_peer_file_on_a_bus_needs_no_peer_listen_or_port():
+    p = plan("bridge: {name: robot-1, role: peer, defaults: {transport: zenoh}}\n" + ZENOH + """\
+topics:
+  - {topic: /scan, type: sensor_msgs/msg/LaserScan, direction: transmit, qos: sensor_data}
+  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: receive, remote: fleet/robot-1/cmd}
+  - {topic: /camera/image, type: sensor_msgs/msg/Image, direction: transmit, framing: none,
+     priority: background}
+  - {topic: '/{robot}/odom', type: nav_msgs/msg/Odometry, direction: receive,
+     remote: 'fleet/{robot}/odom', priority: 2}
+services:
+  - {service: /reset, type: std_srvs/srv/Trigger, direction: receive}
+  - {service: '/{robot}/reset', type: std_srvs/srv/Trigger, direction: transmit,
+     remote: 'fleet/{robot}/reset'}
+""")
+    assert [(t.key, t.priority, t.reliable) for t in p.topics] == [
+        ("rosgate/robot-1/scan", 5, False),  # <prefix>/<bridge name>/<topic>
+        ("fleet/robot-1/cmd", 5, True),      # remote: a key, as written
+        ("camera/image", 7, True),           # framing none: the ROS name, as ros2dds keys it
+        ("fleet/{robot}/odom", 2, True)]     # a template
+    assert [s.key for s in p.services] == ["rosgate/robot-1/reset", "fleet/{robot}/reset"]
+
+
+def test_prefix_and_namespace_options_make_the_default_keys():
+    p = plan("bridge: {name: r1, role: peer, defaults: {transport: zenoh}}\n"
+             "plugins: {zenoh: {prefix: fleet/a, namespace: /bot1}}\n"
+             "topics:\n  - {topic: /x, type: std_msgs/msg/String, direction: transmit}\n"
+             "  - {topic: /y, type: std_msgs/msg/String, direction: transmit, framing: none}\n")
+    assert [t.key for t in p.topics] == ["fleet/a/r1/x", "bot1/y"]
+
+
+def test_check_prints_each_entry_s_key(tmp_path):
+    path = tmp_path / "robot.yaml"
+    path.write_text("bridge: {name: r1, role: peer}\n" + ZENOH + "topics:\n"
+                    "  - {topic: /x, type: std_msgs/msg/String, direction: transmit, "
+                    "transport: zenoh}\n")
+    result = rosgate("check", str(path))
+    assert result.returncode == 0, result.stderr
+    assert "/x -> rosgate/r1/x  [std_msgs/msg/String] zenoh cdr none" in result.stdout
+
+
+PEER = "bridge: {name: r1, role: peer, peer: 127.0.0.1}\n" + ZENOH
+BUS_PEER = "bridge: {name: r1, role: peer}\n" + ZENOH
+TOPIC = "topics:\n  - {topic: /x, type: std_msgs/msg/String, direction: transmit, "
+SERVICE = "services:\n  - {service: /s, type: std_srvs/srv/Trigger, direction: receive, "
+
+ERRORS = {
+    # what point-to-point entries of a peer need (moved here from config: only the resolver
+    # knows whether a transport is a bus)
+    "peer_without_peer": (
+        BUS_PEER + TOPIC + "port: 9}\n", 1, "bridge.peer", "missing required key 'peer'"),
+    "peer_topic_without_port": (
+        PEER + TOPIC + "transport: udp}\n", 5, "topics[0].port",
+        "peer role: each topic needs its own port"),
+    "peer_service_without_port": (
+        PEER + SERVICE + "transport: tcp}\n", 5, "services[0].port",
+        "peer role: each service needs its own port"),
+    # what a bus entry does not take
+    "port_on_zenoh": (
+        BUS_PEER + TOPIC + "transport: zenoh, port: 9}\n", 5, "topics[0].port",
+        "port: does not apply to a zenoh topic"),
+    "port_on_zenoh_service": (
+        BUS_PEER + SERVICE + "transport: zenoh, port: 9}\n", 5, "services[0].port",
+        "port: does not apply to a zenoh service"),
+    "zenoh_in_client": (
+        "bridge: {name: r1, role: client, server: 127.0.0.1:9}\n" + ZENOH + TOPIC
+        + "transport: zenoh}\n", 5, "topics[0].transport",
+        "zenoh is a bus: its topics belong in a file of role peer"),
+    "serial_datagram_on_zenoh": (
+        BUS_PEER + SERVICE + "transport: zenoh, framing: serial_datagram, codec: msgpack}\n",
+        5, "services[0].transport", "framing serial_datagram needs a stream transport"),
+    # what only a bus takes
+    "placeholder_on_udp": (
+        PEER + "topics:\n  - {topic: '/{robot}/x', remote: 'f/{robot}/x', port: 9, "
+        "type: std_msgs/msg/String, direction: receive}\n", 5, "topics[0].topic",
+        "placeholders such as {robot} need a bus transport"),
+    "key_on_udp": (
+        PEER + TOPIC + "port: 9, remote: fleet/robot-1/x}\n", 5, "topics[0].remote",
+        "'fleet/robot-1/x' is not a valid ROS name"),
+    "priority_on_udp": (
+        PEER + TOPIC + "port: 9, priority: 3}\n", 5, "topics[0].priority",
+        "priority: applies to bus transports"),
+    # placeholders (config)
+    "unknown_placeholder": (
+        BUS_PEER + "topics:\n  - {topic: '/{robt}/x', remote: 'f/{robt}/x', transport: zenoh, "
+        "type: std_msgs/msg/String, direction: receive}\n", 5, "topics[0].topic",
+        "unknown placeholder {robt}"),
+    "placeholder_in_a_part": (
+        BUS_PEER + "topics:\n  - {topic: '/r_{robot}/x', remote: 'f/{robot}/x', "
+        "transport: zenoh, type: std_msgs/msg/String, direction: receive}\n", 5,
+        "topics[0].topic", "not a valid ROS name"),
+    "placeholder_without_remote": (
+        BUS_PEER + "topics:\n  - {topic: '/{robot}/x', transport: zenoh, "
+        "type: std_msgs/msg/String, direction: receive}\n", 5, "topics[0].topic",
+        "needs remote: with the same placeholders"),
+    "placeholder_missing_in_remote": (
+        BUS_PEER + "topics:\n  - {topic: '/{robot}/x', remote: fleet/x, transport: zenoh, "
+        "type: std_msgs/msg/String, direction: receive}\n", 5, "topics[0].remote",
+        "must hold the same placeholders"),
+    "placeholder_only_in_remote": (
+        BUS_PEER + "topics:\n  - {topic: /x, remote: 'fleet/{robot}/x', transport: zenoh, "
+        "type: std_msgs/msg/String, direction: receive}\n", 5, "topics[0].remote",
+        "must hold the same placeholders"),
+    "fleet_service_served_here": (
+        BUS_PEER + "services:\n  - {service: '/{robot}/s', remote: 'f/{robot}/s', "
+        "transport: zenoh, type: std_srvs/srv/Trigger, direction: receive}\n", 5,
+        "services[0].direction", "a fleet service (with {robot}) is called here"),
+    "priority_name": (
+        BUS_PEER + TOPIC + "transport: zenoh, priority: urgent}\n", 5, "topics[0].priority",
+        "expected a priority, 1 (real_time) to 7 (background)"),
+    # the plugin's options, at the option's line: those it declares checked by rosgate, inside
+    # zenoh's sections by zenoh, in its words
+    "zenoh_unknown_option": (
+        "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    mdoe: client\n" + TOPIC
+        + "transport: zenoh}\n", 4, "plugins.zenoh.mdoe",
+        "unknown option of zenoh (did you mean 'mode'?)"),
+    "zenoh_bad_mode": (
+        "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    mode: robot\n" + TOPIC
+        + "transport: zenoh}\n", 4, "plugins.zenoh.mode",
+        "must be one of: peer, client, router, not 'robot'"),
+    "zenoh_unknown_nested_option": (
+        "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    transport:\n      link:\n"
+        "        tx: {leese: 1}\n" + TOPIC + "transport: zenoh}\n", 6,
+        "plugins.zenoh.transport.link.tx.leese",
+        "unknown zenoh option 'leese' under transport.link.tx"),
+    "zenoh_nested_bad_value": (
+        "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    scouting:\n      multicast:\n"
+        "        enabled: 'no'\n" + TOPIC + "transport: zenoh}\n", 6,
+        "plugins.zenoh.scouting.multicast.enabled", "expected a boolean"),
+    "zenoh_bad_prefix": (
+        "bridge: {name: r1, role: peer}\nplugins:\n  zenoh: {prefix: /fleet}\n" + TOPIC
+        + "transport: zenoh}\n", 3, "plugins.zenoh.prefix", "no leading or trailing '/'"),
+}
+
+
+@pytest.mark.parametrize("text, line, key, message", ERRORS.values(), ids=ERRORS.keys())
+def test_error(text, line, key, message):
+    e = error(text)
+    assert (e.file, e.line, e.key) == ("bringup.yaml", line, key), str(e)
+    assert message in e.message, str(e)
+    assert e.fix
+
+
+def test_a_wrong_zenoh_option_is_one_clear_message_from_the_cli(tmp_path):
+    path = tmp_path / "robot.yaml"
+    path.write_text("bridge: {name: r1, role: peer}\nplugins:\n  zenoh: {mode: robot}\n" + TOPIC
+                    + "transport: zenoh}\n")
+    text = user_error(rosgate("check", str(path)))
+    assert f"{path}:3: plugins.zenoh.mode: must be one of: peer, client, router" in text
+
+
+def test_run_without_the_router_a_client_needs_is_one_clear_message(tmp_path):
+    from rosgate.testing import free_port
+
+    path = tmp_path / "robot.yaml"
+    path.write_text("bridge: {name: r1, role: peer}\nplugins:\n  zenoh: {mode: client, connect: "
+                    f"[tcp/127.0.0.1:{free_port()}]}}\n" + TOPIC + "transport: zenoh}\n")
+    text = user_error(rosgate("run", str(path)))
+    assert f"{path}:5: topics[0].transport: zenoh: cannot open a session: Unable to connect" \
+        in text
+    assert "mode: peer opens without one" in text
+
+
+def test_router_takes_zenoh_s_own_config_file_and_refuses_a_bad_endpoint(tmp_path):
+    import json
+    import signal
+    import subprocess
+
+    import zenoh
+    from conftest import ROSGATE
+
+    from rosgate.testing import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = tmp_path / "router.json5"
+    config.write_text(json.dumps({"listen": {"endpoints": [endpoint]},
+                                  "scouting": {"multicast": {"enabled": False}}}))
+    router = subprocess.Popen([ROSGATE, "router", "--config", str(config)],
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        assert router.stderr is not None
+        assert f"listening on what {config} says" in router.stderr.readline()
+        client = zenoh.open(zenoh.Config.from_json5(json.dumps({
+            "mode": "client", "connect": {"endpoints": [endpoint]},
+            "scouting": {"multicast": {"enabled": False}}})))
+        assert [str(z) for z in client.info.routers_zid()]  # a client opens only with a router
+        client.close()
+    finally:
+        router.send_signal(signal.SIGINT)
+        assert router.wait(10) == 0
+    text = user_error(rosgate("router", "--listen", "tcp/127.0.0.1"))
+    assert "zenoh router: " in text
