@@ -304,6 +304,95 @@ def test_a_full_send_queue_counts_queue_full_and_close_counts_what_waited(closin
     assert inbox.drops[-1] == (3, "link_down")
 
 
+# --- reassembly under attack (issue 10) ------------------------------------------------------
+
+def test_a_flood_of_one_byte_fragments_is_bounded_and_counted(closing):
+    """15-byte fragments (a 1-byte chunk, count 2, a new frame id each) from one source: each
+    starts a partial frame that never completes. The link keeps at most its per-source number of
+    them, accounted at what they really cost, gives up the oldest first and counts each once;
+    a fragmented frame from another source completes meanwhile."""
+    transport = UdpTransport({})
+    inbox = Inbox()
+    endpoint = transport.bind(("127.0.0.1", 0))
+    victim = closing(DatagramLink(transport, endpoint, "victim", inbox.on_frame, inbox.on_lost))
+    to = endpoint.sock.getsockname()
+    reassembler = victim.reassembler
+    assert isinstance(reassembler, framing.Reassembler)
+    flood = 3000
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as attacker:
+        for i in range(flood):
+            attacker.sendto(FRAGMENT.pack(b"RF", 0, 2, TOPIC, i) + b"x", to)
+        held = reassembler.source_partials
+        assert inbox.wait(lambda: len(inbox.drops) >= flood - held), len(inbox.drops)
+        assert inbox.drops == [(TOPIC, "reassembly_overflow")] * (flood - held)
+        assert reassembler.pending == held
+        # each: its bookkeeping, a byte per fragment slot, its buffer (2 x 1 byte, earned at once)
+        assert reassembler.pending_bytes == held * (framing.PARTIAL_COST + 2 + 2)
+        # a real sender is not crowded out
+        sender = closing(DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "sender",
+                                      Inbox().on_frame, Inbox().on_lost))
+        frame = frame_of(1, 200_000, random.Random(30))
+        assert sender.send(frame, inbox.sender(TOPIC), to) is True
+        assert inbox.wait(lambda: inbox.frames), inbox.drops[-3:]
+        assert inbox.payloads() == [frame]
+        assert len(inbox.drops) == flood - held  # nothing of it given up
+        # the flood's partial frames expire in time order, each counted once
+        assert inbox.wait(lambda: reassembler.pending == 0, 10)
+        assert inbox.drops[flood - held:] == [(TOPIC, "fragment_lost")] * held
+        assert reassembler.pending_bytes == 0
+
+
+def spoofed_udp(source, destination, payload: bytes) -> bytes:
+    """An IPv4 + UDP packet from ``source`` to ``destination`` (host, port), no UDP checksum."""
+    import struct
+    udp = struct.pack("!HHHH", source[1], destination[1], 8 + len(payload), 0) + payload
+    return struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), 0, 0, 64, socket.IPPROTO_UDP, 0,
+                       socket.inet_aton(source[0]), socket.inet_aton(destination[0])) + udp
+
+
+def raw_socket():
+    try:
+        return socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_RAW)
+    except PermissionError:
+        pytest.skip("spoofing a source address needs a raw socket (root)")
+
+
+def test_a_spoofed_fragment_cannot_poison_a_frame_in_progress(closing):
+    """An attacker who saw one fragmented frame go by guesses the next one's frame id and slips a
+    fragment of its own into it, sent from the sender's address. Frame ids are random: the guess
+    misses, the real frame arrives intact, and the forged fragment expires as a lost frame."""
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing)
+    rng = random.Random(31)
+    first, second = frame_of(1, 150_000, rng), frame_of(2, 150_000, rng)
+    assert a.send(first, a_inbox.sender(TOPIC), to) is True
+    assert b_inbox.wait(lambda: b_inbox.frames)
+    _, index, count, topic_id, frame_id = FRAGMENT.unpack(wire.parts[0][0])
+    with raw_socket() as raw:
+        for guess in (frame_id + 1, frame_id - 1, frame_id + 2):  # what a counter would give
+            forged = FRAGMENT.pack(b"RF", 1, count, topic_id, guess & 0xFFFFFFFF) + \
+                bytes(len(wire.parts[1][1]))
+            raw.sendto(spoofed_udp(a.endpoint.endpoint.sock.getsockname(), to, forged), (to[0], 0))
+    assert b_inbox.wait(lambda: b.counters.packets_in >= count + 3)
+    assert a.send(second, a_inbox.sender(TOPIC), to) is True
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 2), b_inbox.drops
+    assert b_inbox.payloads() == [first, second]  # byte-exact: nothing forged got in
+    ids = [FRAGMENT.unpack(parts[0])[4] for parts in wire.parts]
+    assert len(set(ids)) == 2 and abs(ids[-1] - ids[0]) > 2
+    assert b_inbox.wait(lambda: len(b_inbox.drops) >= 3, 10)
+    assert b_inbox.drops == [(TOPIC, "fragment_lost")] * 3
+
+
+def test_fragment_frame_ids_are_unpredictable(closing):
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing)
+    for i in range(20):
+        a.send(frame_of(i, 70_000, random.Random(i)), a_inbox.sender(TOPIC), to)
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 20), b_inbox.drops
+    ids = [FRAGMENT.unpack(parts[0])[4] for parts in wire.parts[::2]]
+    assert len(set(ids)) == 20
+    steps = {(later - earlier) & 0xFFFFFFFF for earlier, later in zip(ids, ids[1:], strict=False)}
+    assert len(steps) > 15  # no counter, no fixed stride
+
+
 # --- datagram links with small frames (CAN-sized): the compact scheme -----------------------------
 
 class Wire:

@@ -8,7 +8,8 @@ from collections import deque
 
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import TopicConfig
-from rosgate.routes import DRAIN_BYTES, DRAIN_FRAMES, EnvelopeFraming, TransmitRoute, Warner
+from rosgate.routes import (DRAIN_BYTES, DRAIN_FRAMES, EnvelopeFraming, ReceiveRoute,
+                            TransmitRoute, Warner)
 from rosgate.wire import envelope
 
 
@@ -71,3 +72,42 @@ def test_the_rate_limit_applies_to_what_is_taken():
     r.on_message(bytes(10))
     assert [len(call) for call in link.calls] == [1]
     assert r.counters.drops == {"rate_limit": 5} and not waiting
+
+
+# --- receiving: a reassembled frame reaches the publisher without a copy ---------------------
+
+class RecordingCipher(NoCipher):
+    """A cipher (it is not the none cipher) that records the types it is given."""
+
+    name = "recording"
+    got: list[type] = []
+
+    def open(self, header, body):
+        self.got += [type(header), type(body)]
+        return body
+
+
+def receiver(codec, cipher) -> ReceiveRoute:
+    fields = inspect.signature(TopicConfig).parameters
+    topic = TopicConfig(**{name: None for name, p in fields.items() if p.default is p.empty})
+    return ReceiveRoute(topic, 7, codec, cipher, Warner(), "/t", False, decode=codec.decode)
+
+
+def test_a_reassembled_frame_is_the_payload_it_carries():
+    route = receiver(CdrCodec(None, {}), NoCipher({}, "."))
+    published = []
+    route.publish = published.append
+    frame = bytearray(envelope.pack(0, 7, 1, 1, 0) + b"\x00\x01\x00\x00cdr")
+    route.on_frame(envelope.unpack(frame), frame)  # type: ignore[arg-type]
+    assert published == [b"\x00\x01\x00\x00cdr"] and published[0] is frame
+    assert route.counters.bytes_received == envelope.SIZE + 7
+
+
+def test_ciphers_get_bytes_whatever_the_frame():
+    cipher = RecordingCipher({}, ".")
+    route = receiver(CdrCodec(None, {}), cipher)
+    published = []
+    route.publish = published.append
+    frame = bytearray(envelope.pack(0, 7, 1, 1, 0) + b"\x00\x01\x00\x00cdr")
+    route.on_frame(envelope.unpack(frame), frame)  # type: ignore[arg-type]
+    assert cipher.got == [bytes, bytes] and published == [b"\x00\x01\x00\x00cdr"]

@@ -32,7 +32,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Protocol
+from typing import Any, Callable, Iterable, Protocol, cast
 
 from .errors import LinkError
 from .transport import (Address, DatagramEndpoint, StreamConnection, StreamListener,
@@ -73,6 +73,8 @@ class Link:
     #: datagram links need a destination for every send; stream links are connected
     datagram: bool = False
 
+    # a link implements send or send_all (or both): each defaults to the other
+
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         """Hand ``frame`` to the link. False when it was dropped at once (counted against
         ``sender``); True when it was sent or queued — a queued frame that is lost later is
@@ -82,7 +84,7 @@ class Link:
     def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
         """Hand several frames of one sender to the link at once (they may share a datagram or a
         write); how many were sent or queued, as :meth:`send` says for one."""
-        raise NotImplementedError
+        return sum(self.send(frame, sender, to) for frame in frames)
 
     def close(self) -> None:
         raise NotImplementedError
@@ -108,9 +110,11 @@ class Lifetime:
             self._items.pop(id(item), None)
 
     def links(self) -> list[Link]:
-        """The links open now (for their counters)."""
+        """The links open now that count what they carry."""
         with self._lock:
-            return [item for item in self._items.values() if isinstance(item, Link)]
+            return [item for item in self._items.values()
+                    if isinstance(item, Link) and isinstance(getattr(item, "counters", None),
+                                                             LinkCounters)]
 
     def close_all(self) -> None:
         self.stopping.set()
@@ -424,7 +428,9 @@ class DatagramLink(Link):
                 return
             if frame is not None:
                 counters.frames_in += 1
-                deliver(self, frame, source)
+                # the buffer it was reassembled in, the handler's to keep: a route hands it to
+                # rclpy without a copy (typed bytes: handlers take any bytes-like frame)
+                deliver(self, cast(bytes, frame), source)
         elif kind == 0x42:  # "RB": several frames
             try:
                 for record in framing.unbatch(datagram):

@@ -148,16 +148,26 @@ class _RmwChecker:
             _log.debug("CDR check of %s through rclpy: %s", msg_type.__name__, exc)
             return None
 
-    def check(self, data: bytes) -> None:
+    def check(self, data: bytes | bytearray) -> None:
         serialized = self.serialized
         with self.lock:
-            serialized.buffer = data
-            serialized.buffer_length = serialized.buffer_capacity = len(data)
-            failed = self.deserialize(self.address, self.type_support, self.message)
+            if type(data) is bytes:
+                serialized.buffer = data
+                failed = self._check(len(data))
+            else:  # a reassembled frame: its buffer, exported for the call only
+                view = (ctypes.c_char * len(data)).from_buffer(data)
+                serialized.buffer = ctypes.cast(view, ctypes.c_char_p)
+                failed = self._check(len(data))
+                del view
             serialized.buffer = None  # do not keep the frame alive
         if failed:
             self.reset_error()  # else rcutils complains to stderr about the next error
             raise CodecError(f"not a valid {self.name} (its CDR does not deserialize)")
+
+    def _check(self, length: int) -> int:
+        serialized = self.serialized
+        serialized.buffer_length = serialized.buffer_capacity = length
+        return self.deserialize(self.address, self.type_support, self.message)
 
     def __del__(self) -> None:
         if self.message:
@@ -256,7 +266,8 @@ class RosNode:
         it): the next message already waiting in the middleware, or None, without waiting. The
         executor calls back once per message announced; a callback that takes the rest itself
         handles a backlog in one go, and the executor's own takes then find nothing."""
-        take, msg_type, raw = subscription.handle.take_message, subscription.msg_type, subscription.raw
+        take = subscription.handle.take_message
+        msg_type, raw = subscription.msg_type, subscription.raw
 
         def next_waiting() -> Any:
             got = take(msg_type, raw)
@@ -266,6 +277,19 @@ class RosNode:
 
     def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)
+
+    @staticmethod
+    def raw_publisher(publisher: Any) -> Callable[[bytes | bytearray], None]:
+        """Publish serialized CDR through ``publisher``: ``bytes`` or a ``bytearray`` (a
+        reassembled frame, handed over without a copy; ``Publisher.publish`` takes bytes only)."""
+        handle = publisher.handle
+        publish_raw = handle.publish_raw
+
+        def publish(data: bytes | bytearray) -> None:
+            with handle:  # as Publisher.publish: the publisher is not destroyed meanwhile
+                publish_raw(data)
+
+        return publish
 
     def deferred_service(self, srv_type: type, name: str, qos: Any,
                          on_request: Callable[[Any, Callable[[Any], None]], None]) -> Any:

@@ -80,6 +80,8 @@ class Router:
             route = ReceiveRoute(t, topic_id, codec, p.cipher, self.warner, label, p.reliable,
                                  decode=decode)
             route.entity = self.ros.publisher(p.msg_type, t.topic, qos)
+            if codec.raw:
+                route.publish = self.ros.raw_publisher(route.entity)
         with self._lock:
             self.routes.append(route)
             if isinstance(route, ReceiveRoute) and t.framing is Framing.ROSGATE:

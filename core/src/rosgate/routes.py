@@ -23,8 +23,9 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, cast
 
+from .builtin import NoCipher
 from .cipher import Cipher
 from .codec import Codec
 from .config import ServiceConfig, TopicConfig
@@ -98,6 +99,10 @@ class Route:
         self.reliable = reliable  # frames wait out a stream link's loss (reliable QoS)
         self.counters = Counters()
         self.entity: Any = None  # the ROS subscription, publisher, service or client
+        #: the none cipher: a frame's body is its payload (decided once, not per frame)
+        self.plain = type(cipher).open is NoCipher.open
+        #: a reassembled frame's bytearray may go on as the payload (see open)
+        self.zero_copy = False
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.counters.drops[reason] += 1
@@ -112,9 +117,20 @@ class Route:
         return header + self.cipher.seal(header, payload)
 
     def open(self, frame: bytes) -> bytes | None:
-        """An envelope frame's payload if the cipher accepts it; None (counted) when it does not."""
+        """An envelope frame's payload if the cipher accepts it; None (counted) when it does not.
+        A reassembled frame comes as the bytearray it was reassembled in, the route's to keep:
+        with the ``none`` cipher on a receiving route of a raw codec (cdr: the core's own decode,
+        CDR check and publisher take a bytearray) its header is cut off in place and the rest
+        goes to rclpy without a copy.
+        Ciphers and other codecs get bytes, as their contracts say."""
+        if self.plain:
+            if type(frame) is bytearray and self.zero_copy:
+                del frame[:envelope.SIZE]  # O(1): CPython moves the start, copies nothing
+                return cast(bytes, frame)
+            return bytes(frame[envelope.SIZE:])
+        header, body = bytes(frame[:envelope.SIZE]), bytes(frame[envelope.SIZE:])
         try:
-            return self.cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
+            return self.cipher.open(header, body)
         except CipherError as exc:
             self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
             return None
@@ -228,6 +244,9 @@ class ReceiveRoute(Route):
         super().__init__(topic, topic_id, codec, cipher, warner, label, reliable)
         self.topic = topic
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
+        #: publishes what decode returned (set with the publisher: raw CDR as bytes or bytearray)
+        self.publish: Callable[[Any], None] = lambda message: self.entity.publish(message)
+        self.zero_copy = codec.raw  # the core's raw decode, CDR check and publisher take one
         self.window = envelope.ReplayWindow()
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
@@ -235,6 +254,7 @@ class ReceiveRoute(Route):
 
     def on_frame(self, header: envelope.Header, frame: bytes) -> None:
         """An envelope frame (framing rosgate), found by its topic id."""
+        size = len(frame)
         payload = self.open(frame)
         if payload is None:
             return
@@ -248,7 +268,7 @@ class ReceiveRoute(Route):
         if refused:
             self.drop(refused)
             return
-        self.deliver(payload, len(frame))
+        self.deliver(payload, size)
 
     def deliver(self, payload: bytes, size: int) -> None:
         """Decode and publish; ``size`` is what arrived on the link, for the counters."""
@@ -261,7 +281,7 @@ class ReceiveRoute(Route):
             self.drop("decode_error", f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
             return
         try:
-            self.entity.publish(message)
+            self.publish(message)
         except Exception as exc:
             self.drop("publish_error", f"{type(exc).__name__}: {exc}")
             return
