@@ -8,7 +8,7 @@ Addresses: ``host:port`` (``[v6addr]:port`` for IPv6).
 Options (``plugins: {udp: {...}}`` in bringup.yaml): see :class:`UdpTransport.Options`, or
 ``rosgate plugins --options udp``. A burst larger than the receive buffer is lost, so large
 messages need a large one. As root the system limit ``net.core.rmem_max`` is bypassed; otherwise
-raise it.
+the kernel caps the buffer there, and the log says so once, with the ``sysctl`` that lifts it.
 
 ``send`` never waits for the far side: a frame the kernel refuses (``ENOBUFS``, no route) is an
 ``OSError``, which the core counts as ``send_error``.
@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import select
 import socket
+import sys
 from dataclasses import dataclass
 
 from rosgate import (Address, DatagramTransport, LinkError, check_ip_address, hookimpl, option,
@@ -26,9 +27,13 @@ from rosgate import (Address, DatagramTransport, LinkError, check_ip_address, ho
 
 log = logging.getLogger("rosgate.udp")
 
-# SO_RCVBUFFORCE / SO_SNDBUFFORCE: Linux, lets a privileged process exceed rmem_max/wmem_max
-_FORCE = {socket.SO_RCVBUF: getattr(socket, "SO_RCVBUFFORCE", None),
-          socket.SO_SNDBUF: getattr(socket, "SO_SNDBUFFORCE", None)}
+# SO_RCVBUFFORCE / SO_SNDBUFFORCE (Linux): let a privileged process exceed rmem_max / wmem_max.
+# Python's socket module does not name them; their numbers are Linux's ABI.
+_LINUX = sys.platform.startswith("linux")
+_FORCE = {socket.SO_RCVBUF: getattr(socket, "SO_RCVBUFFORCE", 33 if _LINUX else None),
+          socket.SO_SNDBUF: getattr(socket, "SO_SNDBUFFORCE", 32 if _LINUX else None)}
+_LIMIT = {socket.SO_RCVBUF: ("receive", "net.core.rmem_max"),
+          socket.SO_SNDBUF: ("send", "net.core.wmem_max")}
 
 
 class UdpEndpoint:
@@ -105,20 +110,26 @@ class UdpTransport(DatagramTransport):
         return UdpEndpoint(sock)
 
 
-_warned: dict[int, bool] = {}
+_warned: set[int] = set()
 
 
 def _set_buffer(sock: socket.socket, option: int, size: int) -> None:
+    """Ask for ``size`` bytes of kernel buffer: forced past the system's limit where the process
+    may (root, CAP_NET_ADMIN), else up to it, with a warning (once per process) that says what
+    the cap costs and how to lift it."""
     forced = _FORCE[option]
     try:
         sock.setsockopt(socket.SOL_SOCKET, forced if forced else option, size)
     except PermissionError:
         sock.setsockopt(socket.SOL_SOCKET, option, size)
     got = sock.getsockopt(socket.SOL_SOCKET, option) // 2  # Linux reports twice what it grants
-    if got < size and not _warned.get(option):
-        _warned[option] = True
-        log.warning("udp: asked for a %d-byte socket buffer, got %d; large bursts may be lost "
-                    "(raise net.core.rmem_max / wmem_max)", size, got)
+    if got < size and option not in _warned:
+        _warned.add(option)
+        kind, limit = _LIMIT[option]
+        log.warning("udp: the kernel gave a %s buffer of %d bytes, not the %d asked for (%s "
+                    "caps it): a burst of more than that (a few large images at once) is lost "
+                    "on the way in. Raise the cap: sysctl -w %s=%d, or run as root", kind, got,
+                    size, limit, limit, 2 * size)
 
 
 @hookimpl
