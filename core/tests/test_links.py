@@ -304,6 +304,24 @@ def test_a_full_send_queue_counts_queue_full_and_close_counts_what_waited(closin
     assert inbox.drops[-1] == (3, "link_down")
 
 
+def test_a_best_effort_frame_that_waited_too_long_to_be_sent_is_dropped(closing):
+    transport = UdpTransport({})
+    wire = Recorder(transport.bind(("127.0.0.1", 0)))
+    inbox = Inbox()
+    link = closing(DatagramLink(transport, wire, "slow", inbox.on_frame, inbox.on_lost))
+    to = ("127.0.0.1", 9)
+    wire.released.clear()
+    assert link.send(bytes(100_000), inbox.sender(1), to) is True  # the send thread is stuck
+    assert wire.entered.wait(5)
+    hasty, patient = inbox.sender(2), inbox.sender(3)
+    hasty.max_wait_ns = 1  # best effort, with no time to lose
+    assert link.send(b"hasty", hasty, to) and link.send(b"patient", patient, to)
+    wire.released.set()
+    assert inbox.wait(lambda: inbox.drops)
+    assert inbox.wait(lambda: b"patient" in wire.sent)
+    assert inbox.drops == [(2, "too_late")] and b"hasty" not in wire.sent
+
+
 # --- reassembly under attack (issue 10) ------------------------------------------------------
 
 def test_a_flood_of_one_byte_fragments_is_bounded_and_counted(closing):

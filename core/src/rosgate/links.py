@@ -63,6 +63,13 @@ class Sender(Protocol):
     def drop(self, reason: str, detail: str = "") -> None:
         """Count one of its frames as dropped on the way out."""
 
+    # optional: ``max_wait_ns``, nanoseconds a frame of it may wait in a link's send queue
+    # before it is dropped (``too_late``); missing or 0: it waits (reliable topics, control)
+
+
+def max_wait_ns(sender: Sender) -> int:
+    return getattr(sender, "max_wait_ns", 0)
+
 
 class Link:
     """What a route sends through and what frames are reported from."""
@@ -72,6 +79,9 @@ class Link:
     counters: LinkCounters
     #: datagram links need a destination for every send; stream links are connected
     datagram: bool = False
+    #: while a frame is handed to its handler: when the datagram that carried it arrived (ns,
+    #: the clock of time.time_ns, as the transport's receive_into says), or 0: unknown
+    arrived: int = 0
 
     # a link implements send or send_all (or both): each defaults to the other
 
@@ -191,7 +201,7 @@ class DatagramLink(Link):
         self._counters: dict[Address, int] = {}  # compact: the next piece's counter per destination
         self._send_parts = getattr(endpoint, "send_parts", None)
         # the queue, and whether a thread is sending (inline or the send thread): one at a time
-        self._queue: deque[tuple[bytes, Sender, Address]] = deque()
+        self._queue: deque[tuple[bytes, Sender, Address, int]] = deque()  # ... queued at (ns)
         self._queued_bytes = 0
         self._busy = False
         # entered as the plain lock on the way out (a Condition's own with-statement costs a
@@ -229,7 +239,8 @@ class DatagramLink(Link):
                   or self._queued_bytes + total > self.queue_bytes):
                 verdict = "full"
             else:
-                self._queue.extend([(frame, sender, to) for frame in frames])
+                now = time.monotonic_ns()
+                self._queue.extend([(frame, sender, to, now) for frame in frames])
                 self._queued_bytes += total
                 if not self._busy:
                     wake.notify()
@@ -239,7 +250,7 @@ class DatagramLink(Link):
                 if count == 1:
                     failed = 0 if self._send_one(frames[0], sender, to) else 1
                 else:
-                    failed = self._transmit([(frame, sender, to) for frame in frames])
+                    failed = self._transmit([(frame, sender, to, 0) for frame in frames])
             finally:
                 with lock:
                     self._busy = False
@@ -295,13 +306,21 @@ class DatagramLink(Link):
             except Exception:  # a bug; the link must keep sending
                 log.exception("%s: error while sending (a bug: please report it)", self.name)
 
-    def _transmit(self, queued: Iterable[tuple[bytes, Sender, Address]]) -> int:
+    def _transmit(self, queued: Iterable[tuple[bytes, Sender, Address, int]]) -> int:
         """Send frames in order per destination: frames that fit together share a datagram
         (not on bare links, whose receivers take one message per datagram); a large frame goes
-        in fragments (or compact pieces). How many could not be sent (counted)."""
+        in fragments (or compact pieces). A frame queued (at a time other than 0) longer than
+        its sender's ``max_wait_ns`` is dropped instead (``too_late``). How many could not be
+        sent (counted)."""
         groups: dict[Address, list] = {}  # destination -> [total frame bytes, (frame, sender)...]
         limit, coalesce, failed = self.max_frame, not self.bare, 0
-        for frame, sender, to in queued:
+        now = time.monotonic_ns()
+        for frame, sender, to, queued_at in queued:
+            if queued_at and now - queued_at > max_wait_ns(sender) > 0:
+                sender.drop("too_late", f"waited {(now - queued_at) / 1e6:.0f} ms to be sent "
+                                        f"on {self.name}")
+                failed += 1
+                continue
             size = len(frame)
             if self.compact or size > limit:
                 group = groups.pop(to, None)
@@ -386,7 +405,7 @@ class DatagramLink(Link):
                 got = receive_into(buffer, POLL)
                 if got is None:
                     return None
-                size, source = got
+                size, source, self.arrived = got
                 if size >= len(buffer):
                     self.on_lost(None, "oversized_datagram")
                     return None
@@ -446,7 +465,7 @@ class DatagramLink(Link):
     def close(self) -> None:
         with self._wake:
             self.closed.set()
-            unsent = [sender for _, sender, _ in self._queue]
+            unsent = [sender for _, sender, _, _ in self._queue]
             self._queue.clear()
             self._queued_bytes = 0
             self._wake.notify_all()
@@ -480,7 +499,7 @@ class StreamLink(Link):
         self.queue_frames = queue_frames
         self.queue_bytes = queue_bytes
         self.counters = LinkCounters()
-        self._queue: deque[tuple[bytes, Sender]] = deque()
+        self._queue: deque[tuple[bytes, Sender, int]] = deque()  # record, sender, queued at (ns)
         self._queued_bytes = 0
         self._writing = False  # the writer holds a batch not yet written
         self._wake = threading.Condition()
@@ -505,7 +524,8 @@ class StreamLink(Link):
                 full = True
             else:
                 full = False
-                self._queue.extend([(record, sender) for record in records])
+                now = time.monotonic_ns()
+                self._queue.extend([(record, sender, now) for record in records])
                 self._queued_bytes += size
                 self._wake.notify()
         if full:
@@ -529,11 +549,20 @@ class StreamLink(Link):
                 self._queue.clear()
                 self._queued_bytes = 0
                 self._writing = True
-            data = b"".join(record for record, _ in batch)
+            now = time.monotonic_ns()
+            late = [entry for entry in batch if now - entry[2] > max_wait_ns(entry[1]) > 0]
+            if late:
+                for _, sender, queued_at in late:
+                    sender.drop("too_late", f"waited {(now - queued_at) / 1e6:.0f} ms to be sent "
+                                            f"on {self.name}")
+                batch = [entry for entry in batch if not now - entry[2] > max_wait_ns(entry[1]) > 0]
+                if not batch:
+                    continue
+            data = b"".join(record for record, _, _ in batch)
             try:
                 self.connection.send(data)
             except OSError as exc:
-                for _, sender in batch:
+                for _, sender, _ in batch:
                     sender.drop("link_down", f"{self.name}: send failed")
                 self.fail(f"send failed: {exc}")
                 return
@@ -609,7 +638,7 @@ class StreamLink(Link):
             if thread is not threading.current_thread() and thread.ident is not None:
                 thread.join(timeout=2)
         with self._wake:  # what never reached the connection is a drop, and counted as one
-            unsent = [sender for _, sender in self._queue]
+            unsent = [sender for _, sender, _ in self._queue]
             self._queue.clear()
             self._queued_bytes = 0
         for sender in unsent:

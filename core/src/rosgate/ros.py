@@ -261,17 +261,20 @@ class RosNode:
         return self.node.create_subscription(msg_type, topic, callback, qos, raw=raw)
 
     @staticmethod
-    def taker(subscription: Any) -> Callable[[], Any]:
+    def taker(subscription: Any) -> Callable[[], tuple[Any, int] | None]:
         """For a subscription's callback (on the executor's thread, the only one that takes from
-        it): the next message already waiting in the middleware, or None, without waiting. The
-        executor calls back once per message announced; a callback that takes the rest itself
-        handles a backlog in one go, and the executor's own takes then find nothing."""
+        it): the next message already waiting in the middleware and when it arrived there
+        (``time.time_ns()`` nanoseconds: the middleware's reception stamp), or None, without
+        waiting. The executor calls back once per message announced; a callback that takes the
+        rest itself handles a backlog in one go, and the executor's own takes then find
+        nothing. (The executor's callback gets no stamp: this rclpy's EventsExecutor fails on
+        callbacks that ask for the message info.)"""
         take = subscription.handle.take_message
         msg_type, raw = subscription.msg_type, subscription.raw
 
-        def next_waiting() -> Any:
+        def next_waiting() -> tuple[Any, int] | None:
             got = take(msg_type, raw)
-            return None if got is None else got[0]
+            return None if got is None else (got[0], got[1]["received_timestamp"])
 
         return next_waiting
 

@@ -168,7 +168,7 @@ class Router:
             if route is None:
                 self.link_drop(link, "unknown_topic", f"topic id {header.topic_id} from {source}")
             else:
-                route.on_frame(header, frame)
+                route.on_frame(header, frame, link.arrived)
         elif flags & envelope.FLAG_HELLO:
             if self.on_hello is None:
                 self.link_drop(link, "unexpected_hello", f"from {source}")

@@ -38,6 +38,8 @@ from .wire.names import NameMissing, pack_name, split_name
 log = logging.getLogger("rosgate")
 
 WARN_EVERY = 5.0  # seconds between two warnings of one kind for one topic
+# seconds a message of a best-effort topic may wait in the bridge's queues (max_wait's default)
+MAX_WAIT = 0.02
 # a transmitting route takes what waits in its subscription up to this much at a time
 DRAIN_FRAMES = 32
 DRAIN_BYTES = 60_000
@@ -103,6 +105,10 @@ class Route:
         self.plain = type(cipher).open is NoCipher.open
         #: a reassembled frame's bytearray may go on as the payload (see open)
         self.zero_copy = False
+        #: best-effort topics: how long (ns) a message may wait in a queue of the bridge before
+        #: it is dropped (too_late) rather than delivered late; 0: never (reliable topics,
+        #: services: they have their own deadlines)
+        self.max_wait_ns = 0
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.counters.drops[reason] += 1
@@ -174,6 +180,12 @@ class BareFraming(TopicFraming):
         return self.prefix + payload
 
 
+def max_wait_ns(topic: TopicConfig, reliable: bool) -> int:
+    if reliable:
+        return 0
+    return int(1e9 * (MAX_WAIT if topic.max_wait is None else topic.max_wait))
+
+
 class TransmitRoute(Route):
     """ROS subscription -> link."""
 
@@ -182,11 +194,13 @@ class TransmitRoute(Route):
                  link: Link, destination: Callable[[], Address | None]):
         super().__init__(topic, topic_id, codec, cipher, warner, label, reliable)
         self.topic = topic
+        self.max_wait_ns = max_wait_ns(topic, reliable)
         self.framing = framing
         self.link = link
         self.destination = destination  # where to send, looked up per message (a server learns it)
         self.epoch = int.from_bytes(os.urandom(4), "big")
         self.seqs = itertools.count(1)  # this epoch's sequence numbers
+        self._size = 1  # of a frame, lately: how many messages a datagram's worth is
         rate = topic.max_rate
         self.min_interval_ns = int(1e9 / rate) if rate else 0
         self.last_sent_ns = 0
@@ -201,19 +215,34 @@ class TransmitRoute(Route):
         if to is None and self.link.datagram:
             self.drop("no_peer_yet", "the far side's address is not known yet")
             return
-        frame = self._frame(message)
-        frames = [frame] if frame is not None else []
-        size = len(frame) if frame is not None else 0
+        messages = [message]
         take = self.take
         if take is not None:
-            while size < DRAIN_BYTES and len(frames) < DRAIN_FRAMES:
-                more = take()
-                if more is None:
+            max_wait, now = self.max_wait_ns, time.time_ns()
+            while len(messages) < DRAIN_FRAMES:
+                got = take()
+                if got is None:
                     break
-                frame = self._frame(more)
-                if frame is not None:
-                    frames.append(frame)
-                    size += len(frame)
+                more, received = got
+                if max_wait and now - received > max_wait:
+                    # waited too long in the subscription's queue, and so did every message
+                    # before it: overloaded, drop them to catch up (reliable topics never do)
+                    for _ in range(len(messages) + 1):
+                        self.drop("too_late", f"waited over {max_wait / 1e6:.0f} ms to be taken")
+                    messages.clear()
+                    continue
+                messages.append(more)
+                if len(messages) * self._size >= DRAIN_BYTES:
+                    break
+        frames: list[bytes] = []
+        size = 0
+        for one in messages:
+            frame = self._frame(one)
+            if frame is not None:
+                frames.append(frame)
+                size += len(frame)
+        if size:
+            self._size = size // len(frames)
         if frames:
             sent = self.link.send_all(frames, self, to)
             counters = self.counters
@@ -243,6 +272,7 @@ class ReceiveRoute(Route):
                  decode: Callable[[bytes], Any]):
         super().__init__(topic, topic_id, codec, cipher, warner, label, reliable)
         self.topic = topic
+        self.max_wait_ns = max_wait_ns(topic, reliable)
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
         #: publishes what decode returned (set with the publisher: raw CDR as bytes or bytearray)
         self.publish: Callable[[Any], None] = lambda message: self.entity.publish(message)
@@ -252,8 +282,9 @@ class ReceiveRoute(Route):
         self.stale_warnings_given = 0
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
 
-    def on_frame(self, header: envelope.Header, frame: bytes) -> None:
-        """An envelope frame (framing rosgate), found by its topic id."""
+    def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> None:
+        """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
+        datagram that carried it reached this machine (time.time_ns(); 0: unknown)."""
         size = len(frame)
         payload = self.open(frame)
         if payload is None:
@@ -268,6 +299,11 @@ class ReceiveRoute(Route):
         if refused:
             self.drop(refused)
             return
+        if arrived and self.max_wait_ns:
+            waited = time.time_ns() - arrived
+            if waited > self.max_wait_ns:  # overloaded: drop what waited, to catch up
+                self.drop("too_late", f"waited {waited / 1e6:.0f} ms in the receive buffer")
+                return
         self.deliver(payload, size)
 
     def deliver(self, payload: bytes, size: int) -> None:

@@ -86,11 +86,16 @@ class FastDatagramEndpoint(DatagramEndpoint, Protocol):
     has). They save an allocation and a copy per frame on busy links.
     """
 
-    def receive_into(self, buffer: memoryview, timeout: float) -> tuple[int, Address] | None:
+    def receive_into(self, buffer: memoryview,
+                     timeout: float) -> tuple[int, Address, int] | None:
         """As :meth:`~DatagramEndpoint.receive`, but write the frame into ``buffer`` from its
-        start and return ``(length, source)``. ``buffer`` is longer than any frame the link
-        accepts (more than ``max_frame`` and than 65,535 bytes): the core counts a frame that
-        fills it as too long. Called from one thread; ``buffer`` is the core's and reused."""
+        start and return ``(length, source, arrived)``: ``arrived`` is when the frame reached
+        this machine, in nanoseconds of ``time.time_ns()``'s clock (UDP asks the kernel:
+        ``SO_TIMESTAMPNS``), or 0 when the link cannot tell. With it, a receiving route drops a
+        best-effort message that waited too long in the receive buffer (``max_wait``). ``buffer``
+        is longer than any frame the link accepts (more than ``max_frame`` and than 65,535
+        bytes): the core counts a frame that fills it as too long. Called from one thread;
+        ``buffer`` is the core's and reused."""
 
     def send_parts(self, parts: list[bytes | memoryview], to: Address) -> None:
         """As :meth:`~DatagramEndpoint.send`, for the one frame that ``parts`` make in order

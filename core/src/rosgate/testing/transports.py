@@ -168,7 +168,8 @@ class TransportConformance:
 
     def test_datagram_receive_into_if_offered(self, plugin, far_plugin, address, closing):
         """The optional fast path (:class:`rosgate.FastDatagramEndpoint`): a frame written into
-        the core's buffer, its length and an answerable source; None when idle."""
+        the core's buffer, its length, an answerable source and when it arrived (0, or a time
+        on time.time_ns()'s clock, not in the future); None when idle."""
         a, a_address, b, b_address = self._endpoints(plugin, far_plugin, address, closing)
         if not hasattr(b, "receive_into"):
             pytest.skip(f"{plugin.name} does not offer receive_into (optional)")
@@ -176,12 +177,15 @@ class TransportConformance:
         buffer[:] = b"\xee" * len(buffer)
         frames = [frame_of(size, seed) for seed, size in enumerate([plugin.max_frame, 1, 3])]
         for frame in frames:
+            sent = time.time_ns()
             a.send(frame, b_address)
             got = b.receive_into(buffer, TIMEOUT)
             assert got is not None, "nothing arrived"
-            size, source = got
+            size, source, arrived = got
             assert bytes(buffer[:size]) == self._as_received(frame)
             hash(source)
+            assert arrived == 0 or sent - 1_000_000_000 < arrived <= time.time_ns(), \
+                "arrival times are time.time_ns() nanoseconds, or 0"
         answer = frame_of(min(9, plugin.max_frame), seed=7)
         b.send(answer, source if self.answerable_source else a_address)
         got = a.receive(TIMEOUT)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import select
 import socket
+import struct
 import sys
 from dataclasses import dataclass
 
@@ -34,6 +35,10 @@ _FORCE = {socket.SO_RCVBUF: getattr(socket, "SO_RCVBUFFORCE", 33 if _LINUX else 
           socket.SO_SNDBUF: getattr(socket, "SO_SNDBUFFORCE", 32 if _LINUX else None)}
 _LIMIT = {socket.SO_RCVBUF: ("receive", "net.core.rmem_max"),
           socket.SO_SNDBUF: ("send", "net.core.wmem_max")}
+# SO_TIMESTAMPNS (also the control message's type): not named by Python either; on other
+# systems the option fails and arrival times are unknown (0)
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if _LINUX else -1)
+_TIMESPEC = struct.Struct("@qq")
 
 
 class UdpEndpoint:
@@ -45,6 +50,11 @@ class UdpEndpoint:
         self.sock = sock
         self._readable = select.poll()
         self._readable.register(sock, select.POLLIN)
+        try:  # the kernel stamps every datagram with its arrival (receive_into reports it)
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+            self._stamps = _TIMESPEC.size * 2
+        except OSError:
+            self._stamps = 0
 
     def send(self, frame: bytes, to: Address) -> None:
         self.sock.sendto(frame, to)
@@ -61,14 +71,20 @@ class UdpEndpoint:
             return None
         return data, source if len(source) == 2 else source[:2]
 
-    def receive_into(self, buffer: memoryview, timeout: float) -> tuple[int, Address] | None:
+    def receive_into(self, buffer: memoryview, timeout: float) -> tuple[int, Address, int] | None:
         if not self._readable.poll(timeout * 1000):
             return None
         try:
-            size, source = self.sock.recvfrom_into(buffer, 0, socket.MSG_DONTWAIT)
+            size, stamps, _, source = self.sock.recvmsg_into((buffer,), self._stamps,
+                                                             socket.MSG_DONTWAIT)
         except BlockingIOError:  # poll said readable, and someone was faster (or a bad checksum)
             return None
-        return size, source if len(source) == 2 else source[:2]
+        arrived = 0
+        for level, kind, data in stamps:
+            if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
+                seconds, nanoseconds = _TIMESPEC.unpack_from(data)
+                arrived = seconds * 1_000_000_000 + nanoseconds
+        return size, source if len(source) == 2 else source[:2], arrived
 
     def close(self) -> None:
         try:
