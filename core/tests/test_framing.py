@@ -124,6 +124,44 @@ def test_frames_before_a_bad_length_are_still_delivered():
         next(feed)
 
 
+def read_in_place(reader: StreamReader, stream: bytes, chunk: int) -> list[bytes]:
+    """Read ``stream`` as a link with receive_into does: into the reader's target while it has
+    one, else ``chunk`` bytes at a time through feed."""
+    out: list[bytes] = []
+    position = 0
+    while position < len(stream):
+        target = reader.target()
+        if target is not None:
+            n = min(len(target), chunk, len(stream) - position)
+            target[:n] = stream[position:position + n]
+            position += n
+            frame = reader.filled(n)
+            if frame is not None:
+                out.append(frame)
+        else:
+            out += reader.feed(stream[position:position + chunk])
+            position += chunk
+    return out
+
+
+def test_large_frames_are_read_into_place():
+    rng = random.Random(50)
+    frames = [b"small", rng.randbytes(200_000), b"", rng.randbytes(1_000_000), b"after"]
+    stream = b"".join(map(length_prefixed, frames))
+    reader = StreamReader(direct=True)
+    got = read_in_place(reader, stream, 65_536)
+    assert got == frames
+    assert [type(f) for f in got] == [bytes, bytearray, bytes, bytearray, bytes]
+    assert reader.target() is None
+
+
+def test_a_length_alone_earns_no_buffer():
+    reader = StreamReader(direct=True)
+    assert list(reader.feed(LENGTH.pack(60_000_000) + b"x" * 100)) == []
+    assert reader.target() is None  # 100 bytes of 60 MB: kept, not a 60 MB buffer
+    assert list(StreamReader().feed(LENGTH.pack(200_000) + bytes(100_000))) == []
+
+
 # --- fragment ------------------------------------------------------------------------------------
 
 def test_a_frame_that_fits_is_returned_as_is():

@@ -660,6 +660,82 @@ def test_a_frame_split_across_many_writes_arrives_whole(closing, tcp_connections
     assert inbox.drops == []
 
 
+class Writes:
+    """A stream connection wrapper that records who writes, and can take only part of a write
+    without waiting."""
+
+    def __init__(self, connection, take: int | None = None):
+        self.connection = connection
+        self.sock = connection.sock
+        self.take = take  # send_nowait writes at most this much
+        self.calls: list[tuple[str, str, int]] = []
+
+    def send_nowait(self, data: bytes) -> int:
+        part = data if self.take is None else data[:self.take]
+        self.calls.append(("nowait", threading.current_thread().name, len(part)))
+        return self.connection.send_nowait(part)
+
+    def send(self, data: bytes) -> None:
+        self.calls.append(("send", threading.current_thread().name, len(data)))
+        self.connection.send(data)
+
+    def receive_into(self, buffer, timeout):
+        return self.connection.receive_into(buffer, timeout)
+
+    def close(self) -> None:
+        self.connection.close()
+
+
+def test_a_large_stream_frame_is_the_handlers_to_cut(closing, tcp_connections):
+    """Read into place, a large frame is a bytearray nobody else holds: a route cuts its header
+    off in place (del frame[:28]) before handing it to rclpy."""
+    client, server = tcp_connections()
+    inbox = Inbox()
+
+    def on_frame(frame, link, source) -> None:
+        if type(frame) is bytearray:
+            del frame[:envelope.SIZE]
+        inbox.on_frame(bytes(frame), link, source)
+
+    closing(StreamLink(server, "far", ("client", 0), on_frame, inbox.on_lost))
+    link = closing(stream_link(client, "near", Inbox()))
+    frames = [frame_of(i, size, random.Random(i)) for i, size in enumerate([1_000_000, 300_000])]
+    assert link.send_all(frames, Inbox().sender(TOPIC)) == 2
+    assert inbox.wait(lambda: len(inbox.frames) >= 2), inbox.drops
+    assert inbox.payloads() == [frame[envelope.SIZE:] for frame in frames]
+
+
+def test_a_stream_frame_alone_is_written_from_the_callers_thread(closing, tcp_connections):
+    client, server = tcp_connections()
+    writes = Writes(client)
+    inbox = Inbox()
+    link = closing(stream_link(writes, "near", Inbox()))
+    closing(stream_link(server, "far", inbox))
+    frame = frame_of(1, 2500, random.Random(60))
+    assert link.send(frame, inbox.sender(TOPIC)) is True
+    assert inbox.wait(lambda: inbox.frames)
+    assert inbox.payloads() == [frame]
+    assert writes.calls == [("nowait", threading.current_thread().name, 2504)]
+
+
+def test_what_a_write_without_waiting_left_goes_first_from_the_writer(closing, tcp_connections):
+    client, server = tcp_connections()
+    writes = Writes(client, take=1000)
+    inbox = Inbox()
+    link = closing(stream_link(writes, "near", Inbox()))
+    closing(stream_link(server, "far", inbox))
+    rng = random.Random(61)
+    frames = [frame_of(i, 700, rng) for i in range(3)]  # 3 x 704 bytes, 1000 written at once
+    assert link.send_all(frames, inbox.sender(TOPIC)) == 3
+    later = [frame_of(3 + i, 300, rng) for i in range(3)]
+    for frame in later:
+        link.send(frame, inbox.sender(TOPIC))
+    assert inbox.wait(lambda: len(inbox.frames) >= 6), inbox.drops
+    assert inbox.payloads() == frames + later  # the stream was never interleaved
+    assert writes.calls[0] == ("nowait", threading.current_thread().name, 1000)
+    assert {name for kind, name, _ in writes.calls[1:] if kind == "send"} == {"tx-near"}
+
+
 # --- a slot for a link that comes and goes ---------------------------------------------------------
 
 def test_a_slot_holds_reliable_frames_while_down_and_sends_them_first_in_order(closing,

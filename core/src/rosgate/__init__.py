@@ -11,12 +11,13 @@ from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError
 from .hookspecs import hookimpl
 from .options import option
 from .transport import (Address, DatagramEndpoint, DatagramTransport, FastDatagramEndpoint,
-                        SocketConnection, SocketListener, StreamConnection, StreamListener,
-                        StreamTransport, Transport, check_ip_address, parse_host_port)
+                        FastStreamConnection, SocketConnection, SocketListener, StreamConnection,
+                        StreamListener, StreamTransport, Transport, check_ip_address,
+                        parse_host_port)
 
 __all__ = [
     "Address", "Cipher", "CipherError", "Codec", "CodecError", "ConfigError", "DatagramEndpoint",
-    "DatagramTransport", "FastDatagramEndpoint", "LinkError", "OptionError", "RosgateError", "SocketConnection",
+    "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError", "RosgateError", "SocketConnection",
     "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transport",
     "check_ip_address", "hookimpl", "option", "parse_host_port",
 ]

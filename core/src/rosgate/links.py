@@ -478,7 +478,12 @@ class DatagramLink(Link):
 
 
 class StreamLink(Link):
-    """One stream connection, framed with length prefixes."""
+    """One stream connection, framed with length prefixes.
+
+    Sending never blocks the caller: when nothing is being written, frames are written from the
+    caller's thread as far as the connection takes them without waiting (``send_nowait``: no
+    thread hand-off for a message alone); everything else waits in a bounded queue for the
+    link's writer thread, which writes what is queued in one go."""
 
     def __init__(self, connection: StreamConnection, name: str, peer: Address,
                  on_frame: FrameHandler, on_lost: LostHandler,
@@ -499,11 +504,14 @@ class StreamLink(Link):
         self.queue_frames = queue_frames
         self.queue_bytes = queue_bytes
         self.counters = LinkCounters()
+        self._send_nowait = getattr(connection, "send_nowait", None)
         self._queue: deque[tuple[bytes, Sender, int]] = deque()  # record, sender, queued at (ns)
         self._queued_bytes = 0
-        self._writing = False  # the writer holds a batch not yet written
-        self._wake = threading.Condition()
-        self._reader = framing.StreamReader(max_message)
+        self._busy = False  # a thread is writing (the caller's, or the writer with a batch)
+        self._lock = threading.Lock()  # the plain lock on the way in (see DatagramLink)
+        self._wake = threading.Condition(self._lock)
+        self._reader = framing.StreamReader(max_message,
+                                            direct=hasattr(connection, "receive_into"))
         self._threads = [
             threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
             threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
@@ -518,44 +526,96 @@ class StreamLink(Link):
             return 0
         records = [framing.length_prefixed(frame) for frame in frames]
         size = sum(map(len, records))
-        with self._wake:
+        with self._lock:
             if (len(self._queue) + len(records) > self.queue_frames
                     or self._queued_bytes + size > self.queue_bytes):
-                full = True
+                verdict = "full"
+            elif self._send_nowait is not None and not self._busy and not self._queue:
+                self._busy = True  # this thread writes; anyone else queues meanwhile
+                verdict = "inline"
             else:
-                full = False
+                verdict = "queued"
                 now = time.monotonic_ns()
                 self._queue.extend([(record, sender, now) for record in records])
                 self._queued_bytes += size
-                self._wake.notify()
-        if full:
+                if not self._busy:
+                    self._wake.notify()
+        if verdict == "full":
             for _ in frames:
                 sender.drop("queue_full", f"{self.name} has {self.queue_frames} frames or "
                                           f"{self.queue_bytes} bytes waiting")
             return 0
+        if verdict == "inline":
+            self._write_now(records, sender)
         return len(frames)
 
+    def _write_now(self, records: list[bytes], sender: Sender) -> None:
+        """Write from the caller's thread what goes without waiting; the rest goes first in the
+        writer's queue (nothing can come between: this thread is the only one writing)."""
+        assert self._send_nowait is not None
+        data = records[0] if len(records) == 1 else b"".join(records)
+        try:
+            written = self._send_nowait(data)
+        except OSError as exc:
+            with self._lock:
+                self._busy = False
+            for _ in records:
+                sender.drop("link_down", f"{self.name}: send failed")
+            self.fail(f"send failed: {exc}")
+            return
+        self._count_out(records, written, len(data))
+        with self._lock:
+            if written < len(data):
+                now, rest, offset = time.monotonic_ns(), [], 0
+                for record in records:  # the frames not wholly written, the first of them cut
+                    end = offset + len(record)
+                    if end > written:
+                        rest.append((record[max(0, written - offset):], sender, now))
+                    offset = end
+                self._queue.extendleft(reversed(rest))
+                self._queued_bytes += len(data) - written
+            self._busy = False
+            if self._queue:
+                self._wake.notify()
+
+    def _count_out(self, records: list[bytes], written: int, size: int) -> None:
+        if not written:
+            return
+        counters = self.counters
+        counters.packets_out += 1
+        counters.bytes_out += written
+        if written == size:
+            counters.frames_out += len(records)
+            if len(records) > 1:
+                counters.coalesced_out += len(records)
+
     def _send_loop(self) -> None:
+        wake = self._wake
         while True:
-            with self._wake:
-                self._writing = False
-                self._wake.notify_all()  # for drain()
-                while not self._queue and not self.closed.is_set():
-                    self._wake.wait()
+            with wake:
+                if self._busy:  # this thread's own, from the turn before
+                    self._busy = False
+                    wake.notify_all()  # for drain()
+                while (not self._queue or self._busy) and not self.closed.is_set():
+                    wake.wait()
                 if self.closed.is_set():
                     return
                 # one write for everything queued: fewer system calls under load
                 batch = list(self._queue)
                 self._queue.clear()
                 self._queued_bytes = 0
-                self._writing = True
+                self._busy = True
             now = time.monotonic_ns()
-            late = [entry for entry in batch if now - entry[2] > max_wait_ns(entry[1]) > 0]
-            if late:
-                for _, sender, queued_at in late:
-                    sender.drop("too_late", f"waited {(now - queued_at) / 1e6:.0f} ms to be sent "
-                                            f"on {self.name}")
-                batch = [entry for entry in batch if not now - entry[2] > max_wait_ns(entry[1]) > 0]
+            if any(max_wait_ns(sender) for _, sender, _ in batch):
+                kept = []
+                for entry in batch:
+                    _, sender, queued_at = entry
+                    if now - queued_at > max_wait_ns(sender) > 0:
+                        sender.drop("too_late", f"waited {(now - queued_at) / 1e6:.0f} ms to be "
+                                                f"sent on {self.name}")
+                    else:
+                        kept.append(entry)
+                batch = kept
                 if not batch:
                     continue
             data = b"".join(record for record, _, _ in batch)
@@ -566,23 +626,27 @@ class StreamLink(Link):
                     sender.drop("link_down", f"{self.name}: send failed")
                 self.fail(f"send failed: {exc}")
                 return
-            counters = self.counters
-            counters.frames_out += len(batch)
-            counters.packets_out += 1
-            counters.bytes_out += len(data)
-            if len(batch) > 1:
-                counters.coalesced_out += len(batch)
+            self._count_out([record for record, _, _ in batch], len(data), len(data))
 
     def drain(self, timeout: float) -> bool:
         """Wait until everything sent so far is written (a last word before closing)."""
         with self._wake:
             return self._wake.wait_for(
-                lambda: not self._queue and not self._writing or self.closed.is_set(), timeout)
+                lambda: not self._queue and not self._busy or self.closed.is_set(), timeout)
 
     def _receive_loop(self) -> None:
-        while not self.closed.is_set():
+        receive_into = getattr(self.connection, "receive_into", None)
+        buffer = memoryview(bytearray(256 * 1024))
+        reader, closed = self._reader, self.closed
+        while not closed.is_set():
+            target = reader.target() if receive_into is not None else None
             try:
-                data = self.connection.receive(1 << 20, POLL)
+                if receive_into is not None and target is not None:  # a large frame, in place
+                    got: int | bytes | None = receive_into(target, POLL)
+                elif receive_into is not None:
+                    got = receive_into(buffer, POLL)
+                else:
+                    got = self.connection.receive(len(buffer), POLL)
             except OSError as exc:
                 self.fail(f"receive failed: {exc}")
                 return
@@ -591,17 +655,28 @@ class StreamLink(Link):
                 self.on_lost(None, "transport_error")
                 self.fail(f"transport error: {type(exc).__name__}: {exc}")
                 return
-            if data is None:
+            if got is None:
                 continue
-            if not data:
+            if not got:
                 self.fail("closed by peer")
                 return
             counters = self.counters
             counters.packets_in += 1
+            if target is not None:
+                assert isinstance(got, int)
+                target.release()  # the frame is the handler's: it may cut it (routes do)
+                counters.bytes_in += got
+                whole = reader.filled(got)
+                if whole is not None:
+                    counters.frames_in += 1
+                    # its own buffer, the handler's to keep (typed bytes: see DatagramLink)
+                    deliver(self, cast(bytes, whole), self.peer)
+                continue
+            data = buffer[:got] if isinstance(got, int) else got
             counters.bytes_in += len(data)
             count = 0
             try:
-                for frame in self._reader.feed(data):
+                for frame in reader.feed(data):
                     count += 1
                     deliver(self, frame, self.peer)
             except framing.FramingError as exc:

@@ -122,6 +122,23 @@ class StreamConnection(Protocol):
         """Close; a ``receive`` blocked in another thread returns soon after."""
 
 
+class FastStreamConnection(StreamConnection, Protocol):
+    """A :class:`StreamConnection` that also offers the core's fast path; as for datagrams
+    (:class:`FastDatagramEndpoint`), each method is optional and the core looks for it once per
+    connection. :class:`SocketConnection` has both."""
+
+    def receive_into(self, buffer: memoryview, timeout: float) -> int | None:
+        """As :meth:`~StreamConnection.receive`, writing up to ``len(buffer)`` bytes into
+        ``buffer``: how many (0 when the far end closed), or ``None`` after ``timeout``. The core
+        reads a large frame straight into the buffer it will hand on, and everything else into
+        one buffer of its own, instead of a new bytes object per read."""
+
+    def send_nowait(self, data: bytes) -> int:
+        """Write what of ``data`` goes without waiting (0 when nothing does): the core writes a
+        frame from the caller's thread when nothing else is being written, and leaves the rest,
+        if any, to the link's writer thread. ``OSError`` as for ``send``."""
+
+
 class StreamListener(Protocol):
     """Accepts connections; ``accept`` is called from one thread, ``close`` from another."""
 
@@ -238,10 +255,21 @@ class SocketConnection:
     def send(self, data: bytes) -> None:
         self.sock.sendall(data)
 
+    def send_nowait(self, data: bytes) -> int:
+        try:
+            return self.sock.send(data, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            return 0
+
     def receive(self, max_bytes: int, timeout: float) -> bytes | None:
         if not self._readable.poll(timeout * 1000):
             return None
         return self.sock.recv(max_bytes)  # data, b"" at the end, or OSError once closed
+
+    def receive_into(self, buffer: memoryview, timeout: float) -> int | None:
+        if not self._readable.poll(timeout * 1000):
+            return None
+        return self.sock.recv_into(buffer)  # 0 at the end, or OSError once closed
 
     def close(self) -> None:
         try:

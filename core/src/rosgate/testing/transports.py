@@ -309,6 +309,39 @@ class TransportConformance:
         assert result[0] in (None, b"") or isinstance(result[0], OSError), result
         thread.join()
 
+    def test_stream_receive_into_if_offered(self, plugin, far_plugin, address, closing):
+        """The optional fast path (:class:`rosgate.FastStreamConnection`): bytes written into
+        the core's buffer, at most its length; None when idle; 0 once the far end closed."""
+        client, server = self._pair(plugin, far_plugin, address, closing)
+        if not hasattr(server, "receive_into"):
+            pytest.skip(f"{plugin.name} does not offer receive_into on streams (optional)")
+        data = frame_of(100_000, 3)
+        client.send(data)
+        buffer, got = memoryview(bytearray(4096)), bytearray()
+        while len(got) < len(data):
+            n = server.receive_into(buffer, TIMEOUT)
+            assert n, f"only {len(got)} of {len(data)} bytes came"
+            assert n <= len(buffer)
+            got += buffer[:n]
+        assert got == data
+        assert server.receive_into(buffer, 0.2) is None
+        client.close()
+        assert server.receive_into(buffer, TIMEOUT) == 0
+
+    def test_stream_send_nowait_if_offered(self, plugin, far_plugin, address, closing):
+        """The optional fast path: what goes without waiting is written and counted, never more
+        than was given, and the rest can follow with send."""
+        client, server = self._pair(plugin, far_plugin, address, closing)
+        if not hasattr(client, "send_nowait"):
+            pytest.skip(f"{plugin.name} does not offer send_nowait (optional)")
+        data = frame_of(4 << 20, 4)  # more than a socket buffer takes at once
+        written = client.send_nowait(data)
+        assert 0 <= written <= len(data)
+        senders = [threading.Thread(target=client.send, args=(data[written:],), daemon=True)]
+        senders[0].start()
+        assert receive_exactly(server, len(data), TIMEOUT * 4) == data
+        senders[0].join(TIMEOUT)
+
     def test_stream_connect_to_nobody_raises_oserror(self, plugin, address):
         self._kind(plugin, stream=True)
         with pytest.raises(OSError):

@@ -78,6 +78,7 @@ COMPACT_BELOW = 256  # links whose max_frame is below this use the compact schem
 COMPACT_START = 0x80
 COMPACT_COUNTER = 0x7F
 COMPACT_SOURCES = 4096  # sources remembered by a compact reassembler (oldest forgotten first)
+DIRECT_ABOVE = 64 * 1024  # stream frames longer than this are read into place
 
 
 class FramingError(ValueError):
@@ -90,13 +91,38 @@ def length_prefixed(frame: bytes) -> bytes:
 
 
 class StreamReader:
-    """Cuts a byte stream into frames. Feed it what the connection gives."""
+    """Cuts a byte stream into frames. Feed it what the connection gives (:meth:`feed`); or,
+    to save a copy of large frames, ask it where the next bytes should go (:meth:`target`),
+    read them there and say how many (:meth:`filled`).
 
-    def __init__(self, max_frame: int = DEFAULT_MAX_MESSAGE):
+    With ``direct``, a frame longer than :data:`DIRECT_ABOVE` whose length is known is read
+    straight into a buffer of its own, once 1/:data:`EARN_BUFFER` of it has come (so a length
+    prefix alone does not make the reader zero 64 MiB), and handed on as that bytearray: the
+    caller must then read into :meth:`target` while it is not None."""
+
+    def __init__(self, max_frame: int = DEFAULT_MAX_MESSAGE, direct: bool = False):
         self.max_frame = max_frame
+        self.direct = direct
         self._buffer = bytearray()
+        self._frame: bytearray | None = None  # a large frame being read into place
+        self._filled = 0
 
-    def feed(self, data: bytes) -> Iterator[bytes]:
+    def target(self) -> memoryview | None:
+        """Where the next bytes go when a large frame is being read in place, else None."""
+        if self._frame is None:
+            return None
+        return memoryview(self._frame)[self._filled:]
+
+    def filled(self, count: int) -> bytearray | None:
+        """``count`` bytes were read into :meth:`target`; the frame once it is whole."""
+        self._filled += count
+        frame = self._frame
+        if frame is None or self._filled < len(frame):
+            return None
+        self._frame = None
+        return frame
+
+    def feed(self, data: bytes | memoryview) -> Iterator[bytes]:
         """Yield every complete frame; raise FramingError when a length is impossible."""
         buffer = self._buffer
         buffer += data
@@ -108,6 +134,13 @@ class StreamReader:
                     raise FramingError(f"frame length {length} over the limit {self.max_frame}")
                 end = start + 4 + length
                 if end > len(buffer):
+                    have = len(buffer) - start - 4
+                    if self.direct and length > DIRECT_ABOVE and have * EARN_BUFFER >= length:
+                        # the rest is read straight into the frame's own buffer
+                        self._frame = frame = bytearray(length)
+                        frame[:have] = memoryview(buffer)[start + 4:]
+                        self._filled = have
+                        start = len(buffer)
                     break
                 yield bytes(buffer[start + 4:end])
                 start = end
