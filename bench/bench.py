@@ -87,6 +87,9 @@ SIZES = [
 ROUTES = [Route("udp"), Route("udp", codec="msgpack"), Route("udp", cipher="fernet"), Route("tcp")]
 QUICK_ROUTES = [Route("udp"), Route("tcp")]
 CLIENT_SERVER = Route("udp", roles="client/server")  # shown at 2.5 kB only
+# an authenticated session with its default cipher, beside the unauthenticated rows (2.5 kB)
+SESSION = Route("udp", cipher="aead", roles="session")
+SESSION_RATIO = 0.85  # target: the session sustains >= this much of udp/cdr/none (same run)
 
 
 @dataclass(frozen=True)
@@ -673,6 +676,32 @@ def ratio(value: float | None, base: float | None) -> str:
     return f"{value / base:.2f}" if value is not None and base else "-"
 
 
+def session_verdicts(results: list[Result]) -> list[str]:
+    """The authenticated session against the unauthenticated rows of the same run."""
+    def sustained(route: Route, rev: str) -> float | None:
+        found = [r for r in results if r.size.name == TARGET_SIZE and r.route
+                 and r.route == replace(route, rev=rev) and r.sustained is not None]
+        return found[0].sustained.offered if found else None
+
+    goal = (f"target: {TARGET_SIZE} over an authenticated client/server session "
+            f"({SESSION.label}) sustained >= {SESSION_RATIO}x {TARGET_ROUTE.label} of the same run")
+    lines = []
+    revs = sorted({r.route.rev for r in results if r.route and r.route.roles == "session"})
+    for rev in revs or [""]:
+        session, plain = sustained(SESSION, rev), sustained(TARGET_ROUTE, rev)
+        unauthenticated = sustained(CLIENT_SERVER, rev)
+        who = f" with rosgate @{rev}" if rev else ""
+        if session is None or not plain:
+            lines.append(f"{goal}{who}: NOT MEASURED in this run")
+            continue
+        met = "MET" if session >= SESSION_RATIO * plain else "NOT MET"
+        against = (f"; {session / unauthenticated:.2f}x the unauthenticated client/server row "
+                   f"({unauthenticated:,.0f})" if unauthenticated else "")
+        lines.append(f"{goal}{who}: {met} ({session:,.0f} msg/s, {session / plain:.2f}x "
+                     f"{TARGET_ROUTE.label}'s {plain:,.0f}{against})")
+    return lines
+
+
 def verdicts(results: list[Result]) -> list[str]:
     lines = []
     goal = (f"target: {TARGET_SIZE} over {TARGET_ROUTE.label} sustained >= {TARGET_RATE:,} msg/s "
@@ -689,6 +718,7 @@ def verdicts(results: list[Result]) -> list[str]:
         who = f" with rosgate @{r.route.rev}" if r.route.rev else ""
         lines.append(f"{goal}{who}: {met} ({got:,.0f} msg/s, "
                      f"{got / REPLACED_RATE:.1f}x the replaced bridge)")
+    lines += session_verdicts(results)
     goal = (f"target: at {OVERLOAD:g}x the sustained rate, p99 < {OVERLOAD_P99_MS} ms for a "
             f"non-reliable topic ({TARGET_SIZE} {TARGET_ROUTE.label}, every queue best effort)")
     measured = [r for r in found if r.overload_be]
@@ -826,7 +856,7 @@ def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
             continue
         routes = QUICK_ROUTES if settings.quick else ROUTES
         if size.name == TARGET_SIZE:
-            routes = [*routes, CLIENT_SERVER]
+            routes = [*routes, CLIENT_SERVER, SESSION]
         if paths:
             routes = [route for route in routes if route.path in paths]
         if not paths or "bare" in paths:
@@ -836,7 +866,7 @@ def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
     if profile_spec and not any(route and route.path == profile_spec.path
                                 and size.key == profile_spec.size_key for size, route in cases):
         size = next(s for s in SIZES if s.key == profile_spec.size_key)
-        route = next(r for r in [*ROUTES, CLIENT_SERVER] if r.path == profile_spec.path)
+        route = next(r for r in [*ROUTES, CLIENT_SERVER, SESSION] if r.path == profile_spec.path)
         cases += [(size, route)] + ([(size, replace(route, rev=base))] if base else [])
     return cases
 
@@ -895,9 +925,9 @@ def main() -> int:
         key = normalize(args.profile_size)
         if key not in {s.key for s in SIZES}:
             sys.exit(f"bench: --profile-size {args.profile_size}: sizes: {size_names()}")
-        if args.profile_path not in {r.path for r in [*ROUTES, CLIENT_SERVER]}:
+        if args.profile_path not in {r.path for r in [*ROUTES, CLIENT_SERVER, SESSION]}:
             sys.exit(f"bench: --profile-path {args.profile_path}: one of "
-                     f"{', '.join(r.path for r in [*ROUTES, CLIENT_SERVER])}")
+                     f"{', '.join(r.path for r in [*ROUTES, CLIENT_SERVER, SESSION])}")
         options.profile = ProfileSpec(args.profile_path, key, args.profile_seconds,
                                       HERE / "profiles")
     start, load = time.monotonic(), Load()

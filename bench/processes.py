@@ -246,18 +246,39 @@ class Route:
     transport: str
     codec: str = "cdr"
     cipher: str = "none"
-    roles: str = "peer"  # "peer" (A transmit, B receive) or "client/server" (A client, B server)
+    # "peer" (A transmit, B receive); "client/server" (A client, B server, insecure: true, no
+    # handshake); "session" (the same, authenticated: identities, the session's keys)
+    roles: str = "peer"
     rev: str = ""        # whose rosgate: "" this checkout's, else a short commit (--base)
 
     @property
     def path(self) -> str:
         """The label without the revision: what --path and --profile-path match."""
         name = f"{self.transport}/{self.codec}/{self.cipher}"
+        if self.roles == "session":
+            return f"{name} client/server authenticated"
         return name if self.roles == "peer" else f"{name} client/server"
 
     @property
     def label(self) -> str:
         return f"{self.path} @{self.rev}" if self.rev else self.path
+
+
+def session_keys(folder: Path) -> tuple[str, str]:
+    """Identities for an authenticated client/server pair, made once in ``folder``: what each
+    file's bridge: mapping adds, and the server's clients: with a policy for /bench."""
+    public = {}
+    for name in ("bench_a", "bench_b"):
+        key = folder / f"{name}.key"
+        if not key.exists():
+            subprocess.run([ROSGATE, "keygen", "identity", "--out", str(key)], check=True,
+                           capture_output=True)
+        public[name] = subprocess.run([ROSGATE, "pubkey", str(key)], check=True,
+                                      capture_output=True, text=True).stdout.strip()
+    client = f", identity: {folder / 'bench_a.key'}, server_key: {public['bench_b']}"
+    server = (f", identity: {folder / 'bench_b.key'}}}\nclients: {{bench_a: {{key: "
+              f"{public['bench_a']}, topics: [{{name: /bench, direction: transmit}}]}}")
+    return client, server
 
 
 def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
@@ -281,9 +302,12 @@ def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
              f"topics:\n  - {topic}, direction: receive, port: {port}}}\n")
     else:
         # the client's file holds the topic list; its datagram topic uses the server's port
-        a = (f"bridge: {{name: bench_a, role: client, server: 127.0.0.1:{port}}}\n{plugins}"
-             f"topics:\n  - {topic}, direction: transmit}}\n")
-        b = f"bridge: {{name: bench_b, role: server, server: 127.0.0.1:{port}}}\n{plugins}"
+        a_keys, b_keys = session_keys(folder) if route.roles == "session" else (
+            # a revision from before sessions knows no insecure: (and needs none)
+            ("", "") if route.rev else (", insecure: true", ", insecure: true"))
+        a = (f"bridge: {{name: bench_a, role: client, server: 127.0.0.1:{port}{a_keys}}}\n"
+             f"{plugins}topics:\n  - {topic}, direction: transmit}}\n")
+        b = f"bridge: {{name: bench_b, role: server, server: 127.0.0.1:{port}{b_keys}}}\n{plugins}"
     paths = folder / "bench_a.yaml", folder / "bench_b.yaml"
     for path, text in zip(paths, (a, b)):
         path.write_text(text)

@@ -2,7 +2,10 @@
 
 The robot side (ROS domain 201) and the base-station side (domain 202) cannot see each other
 over DDS; everything the listener prints came through the bridge: /chatter as msgpack over UDP,
-/cmd_vel as Fernet-encrypted CDR over the TCP main line the other way. Exits by itself.
+/cmd_vel as CDR over the TCP main line the other way. The session is authenticated: the demo
+makes an identity for each side in a temporary folder (``rosgate keygen identity``), the server
+lists the robot's public key with a policy, and every frame is sealed with the session's keys
+(the default cipher, aead). Exits by itself.
 """
 
 from __future__ import annotations
@@ -27,8 +30,12 @@ bridge:
   name: base
   role: server
   server: 127.0.0.1:{PORT}
-plugins:
-  fernet: {{key_file: secret.key}}
+  identity: base.key                # this side's private key (0600)
+clients:                            # who may connect (by public key), and what each may do
+  robot1:
+    key: {{robot1_key}}
+    topics:
+      - {{{{name: /robot1/**, direction: both}}}}
 """
 
 CLIENT = f"""\
@@ -36,8 +43,8 @@ bridge:
   name: robot1
   role: client
   server: 127.0.0.1:{PORT}
-plugins:
-  fernet: {{key_file: secret.key}}
+  identity: robot1.key
+  server_key: {{base_key}}           # the server's public key
 topics:
   - topic: /chatter                 # robot -> base, MessagePack over UDP
     type: std_msgs/msg/String
@@ -45,12 +52,11 @@ topics:
     remote: /robot1/chatter
     transport: udp
     codec: msgpack
-  - topic: /cmd_vel                 # base -> robot, encrypted, on the TCP main line
+  - topic: /cmd_vel                 # base -> robot, on the TCP main line
     type: geometry_msgs/msg/Twist
     direction: receive
     remote: /robot1/cmd_vel
     transport: tcp
-    cipher: fernet
 """
 
 
@@ -80,10 +86,17 @@ def main() -> int:
     from rosgate.ros import RosNode
 
     work = Path(tempfile.mkdtemp(prefix="rosgate-demo-"))
-    subprocess.run([ROSGATE, "keygen", "fernet", "--out", str(work / "secret.key")], check=True)
-    (work / "server.yaml").write_text(SERVER)
-    (work / "client.yaml").write_text(CLIENT)
-    print(f"configs in {work}\n--- client.yaml ---\n{CLIENT}")
+    public = {}
+    for name in ("base", "robot1"):  # prints each public key; the private key stays in the file
+        public[name] = subprocess.run(
+            [ROSGATE, "keygen", "identity", "--out", str(work / f"{name}.key")], check=True,
+            capture_output=True, text=True).stdout.strip()
+    server, client = SERVER.format(robot1_key=public["robot1"]), CLIENT.format(
+        base_key=public["base"])
+    (work / "server.yaml").write_text(server)
+    (work / "client.yaml").write_text(client)
+    print(f"configs and keys in {work}\n--- server.yaml ---\n{server}--- client.yaml ---\n"
+          f"{client}")
     bridges = [start(work / "server.yaml", BASE), start(work / "client.yaml", ROBOT)]
 
     robot, base = RosNode("demo_robot", ROBOT), RosNode("demo_base", BASE)

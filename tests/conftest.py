@@ -18,7 +18,9 @@ from pathlib import Path
 from typing import Any, Callable
 
 import pytest
+import yaml
 
+from rosgate import identity
 from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.testing import free_port  # noqa: F401  (tests import it from here)
@@ -50,6 +52,57 @@ def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> bool:
             return True
         time.sleep(0.02)
     return predicate()
+
+
+ALLOW_ALL = [{"name": "/**", "direction": "both", "ports": ["1-65535"],
+              "ciphers": ["none", "aead", "nacl", "fernet"]}]
+
+
+class Auth:
+    """Identities for the bridges of the test run, made in a folder of their own: every client
+    and server file runs authenticated unless it says ``insecure: true`` or names its own
+    ``identity``. Servers list the clients below with a policy that allows everything (the
+    policy tests write their own)."""
+
+    CLIENTS = ("robot1", "robot2", "robot3", "bench_a")
+
+    def __init__(self) -> None:
+        import atexit
+        import shutil
+        import tempfile
+
+        self.folder = Path(tempfile.mkdtemp(prefix="rosgate-keys-"))
+        atexit.register(shutil.rmtree, self.folder, True)
+        self.public: dict[str, str] = {}
+        for name in ("server", *self.CLIENTS):
+            self.identity(name)
+
+    def identity(self, name: str) -> Path:
+        """``name``'s private key file (made on first use); its public key in ``public``."""
+        path = self.folder / f"{name}.key"
+        if not path.exists():
+            key = identity.generate()
+            identity.write_private(path, key)
+            self.public[name] = identity.encode(identity.public_of(key))
+        return path
+
+    def secure(self, text: str) -> str:
+        data = yaml.safe_load(text)
+        bridge = data.get("bridge") if isinstance(data, dict) else None
+        if (not isinstance(bridge, dict) or bridge.get("role") not in ("client", "server")
+                or "insecure" in bridge or "identity" in bridge):
+            return text
+        if bridge["role"] == "server":
+            bridge["identity"] = str(self.identity("server"))
+            data["clients"] = {name: {"key": self.public[name], "topics": ALLOW_ALL,
+                                      "services": ALLOW_ALL} for name in self.CLIENTS}
+        else:
+            bridge["identity"] = str(self.identity(bridge["name"]))
+            bridge["server_key"] = self.public["server"]
+        return yaml.safe_dump(data, sort_keys=False)
+
+
+AUTH = Auth()
 
 
 class Inbox:
@@ -132,6 +185,7 @@ class Bridge:
 
     def __init__(self, config: Path, domain_id: int, ready: str = "running as"):
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
+        config.write_text(AUTH.secure(config.read_text()))
         self.config = config
         self.lines: list[str] = []
         self._cond = threading.Condition()
@@ -180,7 +234,8 @@ def engines():
     """Start engines in this process, each with its own rclpy context and DDS domain."""
 
     def start(text: str, domain_id: int, base_dir: Path | None = None) -> Engine:
-        engine = Engine(loads(text, file="test.yaml", base_dir=base_dir), domain_id=domain_id)
+        engine = Engine(loads(AUTH.secure(text), file="test.yaml", base_dir=base_dir),
+                        domain_id=domain_id)
         started.append(engine.prepare().start())
         return engine
 
@@ -232,8 +287,8 @@ def bridge():
         return b
 
     yield start
-    for b in started:
-        code = b.stop()
+    codes = [b.stop() for b in started]  # every one, before any assertion can stop the loop
+    for b, code in zip(started, codes):
         assert "Traceback" not in b.log, b.log
         assert code == 0, f"bridge {b.config.name} exited {code}:\n{b.log}"
 

@@ -34,6 +34,7 @@ class TcpFaults:
         self.delay = 0.0                    # seconds added before forwarding each chunk
         self.mangle: Callable[[bytes], bytes] | None = None  # once, on the next upstream chunk
         self.accepted = 0
+        self.captured: list[tuple[bool, bytes]] = []  # (upstream, chunk): what an eavesdropper saw
         self._pairs: list[tuple[socket.socket, socket.socket]] = []
         self._lock = threading.Lock()
         self._closed = threading.Event()
@@ -100,6 +101,7 @@ class TcpFaults:
                 break
             if self.delay:
                 time.sleep(self.delay)
+            self.captured.append((upstream, data))
             if upstream and self.mangle is not None:
                 mangle, self.mangle = self.mangle, None
                 data = mangle(data)
@@ -141,6 +143,7 @@ class UdpFaults:
         self.rates = rates or UdpRates()
         self.rng = random.Random(seed)
         self.counts: Counter = Counter()
+        self.captured: list[tuple[bool, bytes]] = []  # (upstream, datagram) as they came in
         self._lock = threading.Lock()
         self._closed = threading.Event()
         self._front = _udp_socket((HOST, port))
@@ -161,6 +164,7 @@ class UdpFaults:
                 continue
             except OSError:
                 return
+            self.captured.append((True, data))
             with self._lock:
                 upstream = self._upstream.get(sender)
                 if upstream is None:
@@ -179,6 +183,7 @@ class UdpFaults:
                 continue
             except OSError:
                 return
+            self.captured.append((False, data))
             self._forward(self._front, data, sender)
 
     def _forward(self, sock: socket.socket, data: bytes, to: tuple[str, int]) -> None:

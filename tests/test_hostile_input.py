@@ -9,6 +9,7 @@ import socket
 import time
 from pathlib import Path
 
+import pytest
 from conftest import cross, free_port, wait_until
 from rclpy.serialization import serialize_message
 from std_msgs.msg import String
@@ -122,9 +123,13 @@ def test_garbage_on_a_tcp_link_closes_that_connection_only(engines, domain, ros_
     assert [m.data for m in again][-5:] == [f"real-{50 + i}" for i in range(5)]
 
 
-def test_garbage_on_the_main_line_leaves_the_server_serving(engines, domain, ros_side):
+@pytest.mark.parametrize("insecure", [False, True], ids=["authenticated", "insecure"])
+def test_garbage_on_the_main_line_leaves_the_server_serving(engines, domain, ros_side, insecure):
+    """Authenticated, the server parses nothing but a Noise handshake: both connections fail it
+    at their first bytes. Insecure, the main line's own framing and control checks catch them."""
     ds, dc, port = domain(), domain(), free_port()
-    server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}", ds)
+    mode = ", insecure: true" if insecure else ""
+    server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}{mode}}}", ds)
     with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
         s.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")  # "GET " as a length: far too long
         assert s.recv(10) == b""
@@ -133,12 +138,18 @@ def test_garbage_on_the_main_line_leaves_the_server_serving(engines, domain, ros
         s.sendall(len(frame).to_bytes(4, "big") + frame)
         data_frame = envelope.pack(0, 5, 1, 1, 0) + b"x"
         s.sendall(len(data_frame).to_bytes(4, "big") + data_frame)
-        assert wait_until(lambda: server.stats()["link_drops"].get("before_handshake") == 1)
-    assert server.stats()["link_drops"] == {"bad_length": 1, "bad_control": 1,
-                                            "before_handshake": 1}
+        if insecure:
+            assert wait_until(lambda: server.stats()["link_drops"].get("before_handshake") == 1)
+        else:
+            assert s.recv(10) == b""
+    if insecure:
+        assert server.stats()["link_drops"] == {"bad_length": 1, "bad_control": 1,
+                                                "before_handshake": 1}
+    else:
+        assert wait_until(lambda: server.stats()["link_drops"] == {"bad_handshake": 2})
 
     engines(f"""
-bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}{mode}}}
 topics: [{{topic: /chatter, type: std_msgs/msg/String, direction: transmit}}]
 """, dc)
     inbox = ros_side(ds, "listener").listen("/chatter", String)

@@ -308,3 +308,41 @@ def test_random_bytes_on_both_ports_are_each_dropped_once(engines, domain, ros_s
     position = next(r for r in engine.routes() if r.label == "/position")
     assert topic_drops + sum(position.counters.drops.values()) == 40
     assert positions.items[0] == Pose2D(x=1.0)
+
+
+@pytest.mark.parametrize("allow, crosses", [("[10.9.9.9, 192.168.0.0/16]", False),
+                                            ("[10.9.9.9, 127.0.0.0/8]", True)],
+                         ids=["elsewhere", "allowed"])
+def test_an_address_allow_list_guards_a_keyless_microcontroller_port(engines, domain, ros_side,
+                                                                    allow, crosses):
+    """The CVRA profile has no keys; ``bridge.allow`` takes datagrams and calls only from the
+    listed addresses: the others are dropped, counted ``not_allowed``, never published."""
+    d, port, call_port = domain(), free_port(), free_port()
+    bridge = engines(f"""
+bridge: {{name: robot, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, allow: {allow},
+          defaults: {{codec: msgpack}}}}
+topics:
+  - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: {port},
+     framing: none}}
+services:
+  - {{service: /reset, type: std_srvs/srv/Trigger, direction: receive, transport: tcp,
+     port: {call_port}, framing: serial_datagram}}
+""", d)
+    inbox = ros_side(d, "listener").listen("/position", Pose2D)
+    datagram = msgpack.packb("position") + msgpack.packb({"x": 1.0, "y": 2.0, "theta": 0.5})
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for _ in range(20):
+            s.sendto(datagram, ("127.0.0.1", port))
+            if inbox.wait_count(1, 0.1):
+                break
+    with socket.create_connection(("127.0.0.1", call_port), timeout=5) as call:
+        call.sendall(serial_datagram.encode(msgpack.packb("reset") + msgpack.packb({})))
+        call.settimeout(10)
+        answer = call.recv(1000)
+    assert bool(inbox.items) is crosses
+    if crosses:
+        assert answer  # answered (a failure: no ROS server /reset runs here)
+        assert "not_allowed" not in bridge.link_drops
+    else:
+        assert answer == b""  # closed at once
+        assert wait_until(lambda: bridge.link_drops.get("not_allowed") == 21)

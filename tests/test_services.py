@@ -309,7 +309,7 @@ def test_forged_duplicated_and_oversized_service_frames_are_dropped_and_counted(
     # an answer nobody asked for: the caller bridge drops it
     route_a = a.routes()[0]
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        reply = envelope.pack(envelope.FLAG_REPLY, sid, route_a.epoch, 10**6, 0)
+        reply = envelope.pack(envelope.FLAG_REPLY, sid, route_a.keys.epoch(), 10**6, 0)
         s.sendto(reply + answer[envelope.SIZE:], route_a.link.endpoint.sock.getsockname())
     # a and b count on their own receive threads
     expected = {"a /set": {"late_answer": 1},

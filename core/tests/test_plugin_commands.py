@@ -211,7 +211,7 @@ def test_plugins_options_of_an_unknown_name_is_an_error():
     result = rosgate(Path("/nonexistent"), "plugins", "--options", "nope")
     assert result.returncode == 2
     assert result.stderr.startswith("rosgate: error: plugins: no plugin is named 'nope' "
-                                    "(installed: bt, can, cbor, cdr, ")
+                                    "(installed: aead, bt, can, cbor, cdr, ")
 
 
 def test_plugins_aligns_columns_to_the_longest_name_and_names_deprecated_plugins(site):

@@ -541,9 +541,9 @@ def test_discover_finds_the_installed_plugins(monkeypatch):
 
 
 def test_discover_honours_the_disable_variable(monkeypatch):
-    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet,cbor,nacl,json")
+    monkeypatch.setenv(DISABLE_VARIABLE, "msgpack,fernet,cbor,nacl,json,aead")
     plugins = Plugins.discover()
-    assert sorted(plugins.blocked) == ["cbor", "fernet", "json", "msgpack", "nacl"]
+    assert sorted(plugins.blocked) == ["aead", "cbor", "fernet", "json", "msgpack", "nacl"]
     assert plugins.names("codec") == ["cdr"]
     assert plugins.names("cipher") == ["none"]
     assert {"udp", "tcp"} <= set(plugins.names("transport"))
@@ -557,7 +557,7 @@ def test_builtin_cannot_be_blocked(monkeypatch):
     plugins = Plugins.discover()
     assert plugins.blocked == ["msgpack"]
     assert plugins.names("codec") == ["cbor", "cdr", "json"]
-    assert plugins.names("cipher") == ["fernet", "nacl", "none"]
+    assert plugins.names("cipher") == ["aead", "fernet", "nacl", "none"]
     assert plugins.get("cipher", "none").cls is NoCipher
 
 

@@ -9,6 +9,7 @@ from collections import deque
 
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import TopicConfig
+from rosgate.keyring import StaticKeys
 from rosgate.routes import (DRAIN_BYTES, DRAIN_FRAMES, EnvelopeFraming, ReceiveRoute,
                             TransmitRoute, Warner)
 from rosgate.wire import envelope
@@ -33,7 +34,8 @@ def route(waiting: deque, max_rate: float | None = None,
     topic = TopicConfig(**{name: None for name, p in fields.items() if p.default is p.empty})
     topic.max_rate = max_rate
     link = Link()
-    r = TransmitRoute(topic, 7, CdrCodec(None, {}), NoCipher({}, "."), Warner(), "/t", reliable,
+    r = TransmitRoute(topic, 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")), Warner(), "/t",
+                      reliable,
                       framing=EnvelopeFraming(), link=link,  # type: ignore[arg-type]
                       destination=lambda: ("127.0.0.1", 9))
 
@@ -121,7 +123,8 @@ class RecordingCipher(NoCipher):
 def receiver(codec, cipher) -> ReceiveRoute:
     fields = inspect.signature(TopicConfig).parameters
     topic = TopicConfig(**{name: None for name, p in fields.items() if p.default is p.empty})
-    return ReceiveRoute(topic, 7, codec, cipher, Warner(), "/t", False, decode=codec.decode)
+    return ReceiveRoute(topic, 7, codec, StaticKeys(cipher), Warner(), "/t", False,
+                        decode=codec.decode)
 
 
 def test_a_reassembled_frame_is_the_payload_it_carries():

@@ -12,6 +12,12 @@ must be safe to call concurrently.
 
 Keys follow one convention: declare ``Options = rosgate.keys.KeyOptions`` (``key_file`` or
 ``key_env``) and read the key with :func:`rosgate.keys.load_key`.
+
+In an authenticated session (client/server with identities) a cipher is not built from a key
+file: the session derives a fresh secret per direction, topic and key generation (HKDF from the
+handshake) and calls :meth:`Cipher.from_secret`. A cipher that declares
+:attr:`Cipher.session_key_size` can be used in sessions; one that leaves it at 0 (``none``)
+cannot be keyed and is refused unless the server's policy names it.
 """
 
 from __future__ import annotations
@@ -49,6 +55,19 @@ class Cipher(ABC):
     def open(self, header: bytes, body: bytes) -> bytes:
         """The payload sealed in ``body`` under ``header``; :class:`rosgate.CipherError` if the
         header, the body or the key differ, and nothing else (``body`` comes from the network)."""
+
+    #: bytes of secret a session derives for this cipher; 0: it cannot be keyed from a session
+    session_key_size: ClassVar[int] = 0
+
+    @classmethod
+    def from_secret(cls, secret: bytes) -> Cipher:
+        """This cipher keyed from ``secret`` (``session_key_size`` bytes, derived for one
+        direction of one topic in one key generation, never used for anything else).
+
+        Under one secret the envelope header's epoch and sequence number (bytes 8..20, exactly
+        12 bytes) never repeat, so a cipher may take them as its nonce instead of sending one.
+        Implement it when you set :attr:`session_key_size`."""
+        raise NotImplementedError(f"cipher {cls.name!r} cannot be keyed from a session")
 
     @classmethod
     def generate_key(cls) -> bytes | None:

@@ -53,27 +53,40 @@ def main(argv: list[str] | None = None) -> int:
                         help="the bus's own configuration file (zenoh: JSON5, as for zenohd -c)")
     router.add_argument("--transport", default="zenoh", help="the bus transport (default zenoh)")
 
-    keygen = commands.add_parser("keygen", help="write a new key for a cipher (mode 0600)")
-    keygen.add_argument("cipher", help="the cipher's name, e.g. fernet")
+    keygen = commands.add_parser("keygen", help="write a new key (mode 0600): 'identity' for a "
+                                                "bridge's identity, or a cipher's name")
+    keygen.add_argument("cipher", help="identity, or the cipher's name, e.g. fernet")
     keygen.add_argument("--out", help="the key file to write (default: CIPHER.key)")
     keygen.add_argument("--force", action="store_true", help="replace an existing file")
+
+    pubkey = commands.add_parser("pubkey", help="print the public key of an identity file")
+    pubkey.add_argument("file")
 
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO,
                         format="[rosgate] %(levelname)s %(message)s", stream=sys.stderr)
     try:
         return {"run": cmd_run, "check": cmd_check, "plugins": cmd_plugins,
-                "router": cmd_router, "keygen": cmd_keygen}[args.command](args)
+                "router": cmd_router, "keygen": cmd_keygen,
+                "pubkey": cmd_pubkey}[args.command](args)
     except RosgateError as exc:
         print(f"rosgate: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+
+
+INSECURE = ("INSECURE: %s runs without authentication (bridge.insecure: true): anyone who can "
+            "reach it can read and send its topics and call its services. Set up identities: "
+            "README, Security")
 
 
 def _engine(path: str, plugins: Any = None):
     from .config import load
     from .engine import Engine
 
-    return Engine(load(path), plugins).prepare()
+    engine = Engine(load(path), plugins).prepare()
+    if engine.config.insecure:
+        logging.getLogger("rosgate").warning(INSECURE, path)
+    return engine
 
 
 def wait_for_signal(stop: threading.Event) -> None:
@@ -109,15 +122,26 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     engine = _engine(args.file)
-    stop = threading.Event()
+    stop, reload = threading.Event(), threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+
+    def hangup(*_: object) -> None:  # a server applies its file's clients: again
+        reload.set()
+        stop.set()
+    signal.signal(signal.SIGHUP, hangup)
     try:
         engine.start()
     except ConfigError:
         raise
     try:
-        wait_for_signal(stop)
+        while True:
+            wait_for_signal(stop)
+            if not reload.is_set():
+                break
+            reload.clear()
+            stop.clear()
+            engine.reload(args.file)  # SIGHUP: the server's policy, from the file as it is now
     finally:
         logging.getLogger("rosgate").info("stopping")
         engine.stop()
@@ -207,6 +231,8 @@ def _columns(rows: Sequence[tuple[str, ...]]) -> list[str]:
 def cmd_keygen(args: argparse.Namespace) -> int:
     from .plugins import Plugins
 
+    if args.cipher == "identity":
+        return _keygen_identity(Path(args.out or "identity.key"), args.force)
     plugins = Plugins.discover()
     registration = plugins.get("cipher", args.cipher)
     if registration is None:
@@ -230,6 +256,35 @@ def cmd_keygen(args: argparse.Namespace) -> int:
         os.fchmod(out.fileno(), 0o600)
         out.write(key + b"\n")
     print(f"wrote a new {args.cipher} key to {path} (mode 0600)")
+    return 0
+
+
+def _keygen_identity(path: Path, force: bool) -> int:
+    from . import identity
+
+    key = identity.generate()
+    try:
+        identity.write_private(path, key, force)
+    except FileExistsError:
+        raise ConfigError(f"{path} exists; not replacing a key", file="keygen",
+                          fix="pass --force to replace it, or choose another --out") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot write {path}: {exc.strerror}", file="keygen") from None
+    print(f"wrote a new identity to {path} (mode 0600); its public key, for the other side's "
+          "file (server_key: on a client, clients: NAME: key: on a server):", file=sys.stderr)
+    print(identity.encode(identity.public_of(key)))
+    return 0
+
+
+def cmd_pubkey(args: argparse.Namespace) -> int:
+    from . import identity
+
+    path = Path(args.file)
+    try:
+        key = identity.load_private(path)
+    except identity.IdentityError as exc:
+        raise ConfigError(str(exc), file=str(path), fix=exc.fix) from None
+    print(identity.encode(identity.public_of(key)))
     return 0
 
 

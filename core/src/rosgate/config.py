@@ -16,7 +16,6 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import overload
 from pathlib import Path
 from typing import Any, overload
 
@@ -84,10 +83,16 @@ QOS_POLICIES = {
     "history": ("keep_last", "keep_all"),
 }
 
-TOP_KEYS = ("bridge", "plugins", "topics", "services")
+TOP_KEYS = ("bridge", "plugins", "topics", "services", "clients")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
                "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue",
-               "fleet_timeout")
+               "identity", "server_key", "insecure", "rekey", "allow", "peer_key",
+               "handshake_port", "fleet_timeout")
+CLIENT_KEYS = ("key", "topics", "services")
+RULE_KEYS = ("name", "direction", "types", "ports", "ciphers")
+RULE_DIRECTIONS = ("transmit", "receive", "both")
+SESSION_CIPHER_DEFAULT = "aead"   # the default cipher inside an authenticated session
+REKEY_DEFAULT = 120.0
 DEFAULTS_KEYS = ("transport", "codec", "cipher")
 RECONNECT_KEYS = ("min", "max")
 QUEUE_KEYS = ("frames", "bytes")
@@ -114,6 +119,13 @@ _EXAMPLES = {
     "remote": "/robot1/chatter", "port": "12001", "framing": "rosgate", "qos": "sensor_data",
     "max_rate": "20", "max_wait": "0.02", "priority": "data", "fleet_timeout": "30", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
     "history": "keep_last", "depth": "10",
+    "identity": "robot1.key", "server_key": "<the server's public key, from rosgate keygen identity>",
+    "insecure": "true", "rekey": "120", "peer_key": "<the other peer's public key>",
+    "handshake_port": "12100", "allow": "[192.168.0.20, 10.1.0.0/24]", "key": "<the client's public key>",
+    "clients": "{robot1: {key: <public key>, topics: [{name: /robot1/**, direction: both}]}}",
+    "clients.name": "/robot1/**", "clients.direction": "transmit, receive or both",
+    "clients.types": "[geometry_msgs/msg/*]", "clients.ports": "[12001, 12010-12019]",
+    "clients.ciphers": "[aead]",
 }
 
 _BRIDGE_NAME = re.compile(r"[A-Za-z0-9_.-]+")
@@ -165,6 +177,31 @@ class ServiceConfig:
     lines: dict[str, int] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class Rule:
+    """One rule of a client's policy (``clients.NAME.topics[i]`` / ``services[i]``): what it
+    allows. ``None`` means any; names and types are globs (``*`` within a segment, ``**``
+    across segments)."""
+
+    name: str
+    direction: str                               # the client's: transmit, receive or both
+    types: tuple[str, ...] | None = None
+    ports: tuple[tuple[int, int], ...] = ()      # ranges; none: the main port only
+    ciphers: tuple[str, ...] | None = None       # None: any cipher a session can key
+    line: int = 0
+
+
+@dataclass(frozen=True)
+class ClientPolicy:
+    """A client a server accepts: its public key and what it may ask for (default deny)."""
+
+    name: str
+    key: bytes
+    topics: tuple[Rule, ...] = ()
+    services: tuple[Rule, ...] = ()
+    line: int = 0
+
+
 @dataclass
 class BridgeConfig:
     file: str
@@ -185,6 +222,13 @@ class BridgeConfig:
     reconnect_max: float = RECONNECT_MAX_DEFAULT
     queue_frames: int = QUEUE_FRAMES_DEFAULT
     queue_bytes: int = QUEUE_BYTES_DEFAULT
+    identity: bytes | None = None      # this side's private key (read from bridge.identity)
+    server_key: bytes | None = None    # client: the server's public key; peer: the peer's
+    handshake_port: int | None = None  # peer with identities: where the handshake line runs
+    insecure: bool = False             # client/server without a handshake (loudly)
+    rekey: float = REKEY_DEFAULT       # seconds between key generations in a session
+    allow: tuple[Any, ...] = ()        # peer: the only addresses frames are taken from (if any)
+    clients: dict[str, ClientPolicy] = field(default_factory=dict)  # server: who may connect
     fleet_timeout: float = FLEET_TIMEOUT_DEFAULT
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
@@ -196,6 +240,12 @@ class BridgeConfig:
         """A ConfigError located at the line of dotted key `key` (falls back to the nearest
         parent key's line)."""
         return ConfigError(message, file=self.file, line=_line_of(self.lines, key), key=key, fix=fix)
+
+    @property
+    def secure(self) -> bool:
+        """With identities: every link of a session is authenticated (client, server, and a
+        peer that names its peer's key)."""
+        return self.identity is not None
 
 
 def load(path: str | Path) -> BridgeConfig:
@@ -362,7 +412,10 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
                         fix="use only letters, digits, '_', '.' and '-', e.g. name: robot1")
     role = Role(_required(src, bridge, "bridge", "role", ROLES))
     _check_role(src, data, bridge, role)
-    defaults = _defaults(src, bridge)
+    insecure = _flag(src, bridge, "bridge", "insecure")
+    identity, server_key = _identity(src, bridge, role, insecure, base_dir)
+    secure = identity is not None
+    defaults = _defaults(src, bridge, SESSION_CIPHER_DEFAULT if secure else CIPHER_DEFAULT)
     heartbeat = _number(src, bridge, "bridge", "heartbeat", HEARTBEAT_DEFAULT, "a number > 0", _positive)
     peer_timeout = _number(src, bridge, "bridge", "peer_timeout",
                            heartbeat * PEER_TIMEOUT_HEARTBEATS, "a number of seconds > 0", _positive)
@@ -394,6 +447,15 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
         reconnect_max=reconnect_max,
         queue_frames=queue_frames,
         queue_bytes=queue_bytes,
+        identity=identity,
+        server_key=server_key,
+        handshake_port=_number(src, bridge, "bridge", "handshake_port", None,
+                               "an integer 1..65535", lambda v: 1 <= v <= 65535, integer=True),
+        insecure=insecure,
+        rekey=_number(src, bridge, "bridge", "rekey", REKEY_DEFAULT, "a number of seconds >= 1",
+                      lambda v: v >= 1),
+        clients=_clients(src, data, role),
+        allow=_allow(src, bridge, role),
         fleet_timeout=_number(src, bridge, "bridge", "fleet_timeout", FLEET_TIMEOUT_DEFAULT,
                               "a number of seconds > 0", _positive),
         plugins=_plugins(src, data),
@@ -438,14 +500,200 @@ def _check_role(src: _Source, data: dict, bridge: dict, role: Role) -> None:
                             fix=f"remove {key}: here and list them in each client's file")
 
 
-def _defaults(src: _Source, bridge: dict) -> dict[str, str]:
+def _defaults(src: _Source, bridge: dict, cipher: str) -> dict[str, str]:
     given = _section(src, bridge, "bridge", "defaults")
     _check_keys(src, given, "bridge.defaults", DEFAULTS_KEYS)
     return {
         "transport": _text(src, given, "bridge.defaults", "transport", TRANSPORT_DEFAULT),
         "codec": _text(src, given, "bridge.defaults", "codec", CODEC_DEFAULT),
-        "cipher": _text(src, given, "bridge.defaults", "cipher", CIPHER_DEFAULT),
+        "cipher": _text(src, given, "bridge.defaults", "cipher", cipher),
     }
+
+
+def _flag(src: _Source, data: dict, path: str, key: str) -> bool:
+    value = data.get(key, False)
+    if not isinstance(value, bool):
+        raise src.error(_join(path, key), f"expected true or false, got {_show(value)}",
+                        fix=f"e.g. {key}: {_example(path, key)}")
+    return value
+
+
+def _identity(src: _Source, bridge: dict, role: Role, insecure: bool,
+              base_dir: Path) -> tuple[bytes | None, bytes | None]:
+    """This side's private key and (client) the server's public key. Client and server refuse
+    to go without them unless ``insecure: true`` says so."""
+    from .identity import IdentityError, decode_public, load_private
+
+    if role is Role.PEER:
+        for key in ("server_key", "insecure"):
+            if key in bridge:
+                raise src.error(f"bridge.{key}", f"role peer has no {key}:",
+                                fix="a peer authenticates with identity:, peer_key: and "
+                                    "handshake_port: (README, Security), or not at all")
+        given = [k for k in ("identity", "peer_key", "handshake_port") if k in bridge]
+        if not given:
+            for key in ("rekey",):
+                if key in bridge:
+                    raise src.error(f"bridge.{key}", f"{key}: is for peers with identities",
+                                    fix="add identity:, peer_key: and handshake_port:, or "
+                                        "remove it")
+            return None, None
+        for key in ("identity", "peer_key", "handshake_port"):
+            if key not in bridge:
+                raise src.error(f"bridge.{given[0]}", f"a peer with a handshake needs "
+                                "identity:, peer_key: and handshake_port:",
+                                fix=f"add {key}: {_example('bridge', key)}")
+        try:
+            identity = load_private(base_dir / _required(src, bridge, "bridge", "identity"))
+        except IdentityError as exc:
+            raise src.error("bridge.identity", str(exc), fix=exc.fix) from None
+        try:
+            peer_key = decode_public(_required(src, bridge, "bridge", "peer_key"))
+        except IdentityError as exc:
+            raise src.error("bridge.peer_key", f"the peer_key {exc}", fix=exc.fix) from None
+        return identity, peer_key
+    if "peer_key" in bridge or "handshake_port" in bridge:
+        key = "peer_key" if "peer_key" in bridge else "handshake_port"
+        raise src.error(f"bridge.{key}", f"{key}: is for role peer",
+                        fix="a client names server_key:, a server its clients:")
+    wanted = ("identity", "server_key") if role is Role.CLIENT else ("identity",)
+    if role is Role.SERVER and "server_key" in bridge:
+        raise src.error("bridge.server_key", "a server has no server_key: it names its clients' "
+                        "keys under clients:", fix="remove it")
+    if insecure:
+        for key in wanted:
+            if key in bridge:
+                raise src.error(f"bridge.{key}", f"insecure: true and {key}: contradict each "
+                                "other", fix="remove insecure: true to authenticate (or the key "
+                                             "to run without)")
+        return None, None
+    if "identity" not in bridge:
+        # a client or server without identities is refused when it is planned (Resolver.plan),
+        # so that this module still reads any file for what else it may say
+        return None, None
+    if role is Role.CLIENT and "server_key" not in bridge:
+        raise src.error("bridge.identity", "a client with an identity needs the server's "
+                        "public key too", fix="add server_key: <the server's public key>")
+    path = base_dir / _required(src, bridge, "bridge", "identity")
+    try:
+        identity = load_private(path)
+    except IdentityError as exc:
+        raise src.error("bridge.identity", str(exc), fix=exc.fix) from None
+    server_key = None
+    if role is Role.CLIENT:
+        try:
+            server_key = decode_public(_required(src, bridge, "bridge", "server_key"))
+        except IdentityError as exc:
+            raise src.error("bridge.server_key", f"the server_key {exc}", fix=exc.fix) from None
+    return identity, server_key
+
+
+def _allow(src: _Source, bridge: dict, role: Role) -> tuple[Any, ...]:
+    """Peer role: the addresses (or networks) frames and connections are taken from — for links
+    without keys, such as a microcontroller's (the CVRA profile)."""
+    import ipaddress
+
+    if "allow" not in bridge:
+        return ()
+    if role is not Role.PEER:
+        raise src.error("bridge.allow", "allow: is for role peer (a client or server "
+                        "authenticates its peers by their keys)", fix="remove it")
+    value = bridge["allow"]
+    items = value if isinstance(value, list) else [value]
+    networks = []
+    for item in items:
+        try:
+            networks.append(ipaddress.ip_network(str(item), strict=False))
+        except ValueError:
+            raise src.error("bridge.allow", f"{item!r} is not an IP address or network",
+                            fix="e.g. allow: [192.168.0.20, 10.1.0.0/24]") from None
+    return tuple(networks)
+
+
+def _clients(src: _Source, data: dict, role: Role) -> dict[str, ClientPolicy]:
+    """A server's ``clients:``: each client's public key and its policy (default deny)."""
+    from .identity import IdentityError, decode_public
+
+    given = _section(src, data, "", "clients")
+    if given and role is not Role.SERVER:
+        raise src.error("clients", "only a server lists clients", fix="remove clients: here")
+    policies: dict[str, ClientPolicy] = {}
+    seen: dict[bytes, str] = {}
+    for name, entry in given.items():
+        path = f"clients.{name}"
+        if not _BRIDGE_NAME.fullmatch(name):
+            raise src.error(path, f"'{name}' is not a valid client name",
+                            fix="use the client's bridge.name: letters, digits, '_', '.', '-'")
+        entry = _section(src, given, "clients", name)
+        _check_keys(src, entry, path, CLIENT_KEYS)
+        _require(src, entry, path, ("key",))
+        try:
+            key = decode_public(entry["key"])
+        except IdentityError as exc:
+            raise src.error(f"{path}.key", f"the key {exc}", fix=exc.fix) from None
+        if key in seen:
+            raise src.error(f"{path}.key", f"the same key as clients.{seen[key]}",
+                            fix="give every client an identity of its own")
+        seen[key] = name
+        policies[name] = ClientPolicy(name, key, _rules(src, entry, f"{path}.topics"),
+                                      _rules(src, entry, f"{path}.services"),
+                                      src.lines.get(path, 0))
+    return policies
+
+
+def _rules(src: _Source, entry: dict, path: str) -> tuple[Rule, ...]:
+    key = path.rpartition(".")[2]
+    items = entry.get(key)
+    if items is None:
+        return ()
+    if not isinstance(items, list):
+        raise src.error(path, f"expected a list of rules, got {_show(items)}",
+                        fix="e.g. - {name: /robot1/**, direction: both}")
+    rules = []
+    for i, item in enumerate(items):
+        rule_path = f"{path}[{i}]"
+        if not isinstance(item, dict):
+            raise src.error(rule_path, f"expected a rule (name:, direction: ...), got {_show(item)}",
+                            fix="e.g. - {name: /robot1/**, direction: both}")
+        _check_keys(src, item, rule_path, RULE_KEYS)
+        _require(src, item, rule_path, ("name", "direction"))
+        rules.append(Rule(
+            name=_required(src, item, rule_path, "name"),
+            direction=_required(src, item, rule_path, "direction", RULE_DIRECTIONS),
+            types=_words(src, item, rule_path, "types"),
+            ports=_port_ranges(src, item, rule_path),
+            ciphers=_words(src, item, rule_path, "ciphers"),
+            line=src.lines.get(rule_path, 0)))
+    return tuple(rules)
+
+
+def _words(src: _Source, data: dict, path: str, key: str) -> tuple[str, ...] | None:
+    if key not in data:
+        return None
+    value = data[key]
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise src.error(_join(path, key), f"expected a list of names, got {_show(value)}",
+                        fix=f"e.g. {key}: {_example('clients', key)}")
+    return tuple(value)
+
+
+def _port_ranges(src: _Source, data: dict, path: str) -> tuple[tuple[int, int], ...]:
+    value = data.get("ports", [])
+    items = value if isinstance(value, list) else [value]
+    ranges = []
+    for item in items:
+        low, _, high = str(item).partition("-")
+        try:
+            first, last = int(low), int(high or low)
+        except ValueError:
+            first, last = 0, -1
+        if isinstance(item, bool) or not 1 <= first <= last <= 65535:
+            raise src.error(_join(path, "ports"), f"{item!r} is not a port or a range of ports",
+                            fix="e.g. ports: [12001, 12010-12019]")
+        ranges.append((first, last))
+    return tuple(ranges)
 
 
 def _reconnect(src: _Source, bridge: dict) -> tuple[float, float]:

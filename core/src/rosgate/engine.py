@@ -89,6 +89,23 @@ class Engine:
         if self.ros is not None:
             self.ros.close()
 
+    def reload(self, path: str) -> None:
+        """SIGHUP: a server applies the ``clients:`` of its file as it is now (a file that no
+        longer loads is reported and the running policy kept). Other roles have nothing to
+        reload."""
+        from .config import load
+        from .roles.server import ServerRole
+
+        if not isinstance(self.role, ServerRole):
+            log.info("SIGHUP: nothing to reload for a %s", self.config.role)
+            return
+        try:
+            fresh = load(path)
+        except ConfigError as exc:
+            log.error("SIGHUP: %s; the running policy stays", exc)
+            return
+        self.role.reload(fresh.clients)
+
     def __enter__(self) -> Engine:
         return self.start()
 

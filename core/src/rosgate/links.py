@@ -835,8 +835,10 @@ class Connector:
                  on_frame: FrameHandler, on_frame_lost: LostHandler, life: Lifetime,
                  backoff: Backoff,
                  on_connected: Callable[[StreamLink], bool] | None = None,
-                 on_lost: Callable[[StreamLink], None] | None = None):
+                 on_lost: Callable[[StreamLink], None] | None = None,
+                 secure: Callable[[StreamConnection], StreamConnection] | None = None):
         self.transport = transport
+        self.secure = secure
         self.address = address
         self.slot = slot
         self.on_frame = on_frame
@@ -846,6 +848,7 @@ class Connector:
         self.on_connected = on_connected
         self.on_lost = on_lost
         self.connected = threading.Event()
+        self._last_failure = ""
         self._thread = threading.Thread(target=self._loop, name=f"connect-{slot.name}", daemon=True)
         life.closing(self)
 
@@ -863,6 +866,7 @@ class Connector:
                 stopping.wait(self.backoff.delay(failures))
                 continue
             failures = 0
+            self._last_failure = ""
             self.slot.attach(link)
             self.connected.set()
             while not link.closed.wait(0.5):
@@ -880,6 +884,13 @@ class Connector:
         except (OSError, LinkError) as exc:
             log.debug("%s: connect failed: %s", self.slot.name, exc)
             return None
+        if self.secure is not None:
+            try:
+                connection = self.secure(connection)
+            except LinkError as exc:
+                connection.close()
+                self.failed(exc)
+                return None
         link = self.life.closing(StreamLink(connection, self.slot.name, self.address,
                                             self.on_frame, self.on_frame_lost,
                                             on_close=self.life.forget))
@@ -887,6 +898,13 @@ class Connector:
             link.close()
             return None
         return link
+
+    def failed(self, exc: LinkError) -> None:
+        """A connection that opened but was refused (its handshake failed): said once, until a
+        connection works again."""
+        if str(exc) != self._last_failure:
+            self._last_failure = str(exc)
+            log.warning("%s: %s", self.slot.name, exc)
 
     def close(self) -> None:
         self.slot.close()

@@ -40,13 +40,14 @@ class PreparedTopic:
     codec_cls: type[Codec]
     codec_options: Any
     transport: Transport
-    cipher: Cipher
+    cipher: Cipher | None  # built from the file's key; None in a session (keyed from it)
     index: int  # position in the file (or in the client's list), for error messages
     address: Address  # the far side; a peer's receiving topic: where to listen
     local: Address  # peer role, datagram transmit: where to send from
     reliable: bool  # frames wait out a stream link's loss (reliable QoS)
     key: str | None = None  # on a bus: the key (a template with placeholders), else None
     priority: int = PRIORITY_DEFAULT  # on a bus
+    cipher_cls: type[Cipher] | None = None
 
     @property
     def name(self) -> str:
@@ -62,13 +63,14 @@ class PreparedService:
     codec_cls: type[Codec]
     codec_options: Any
     transport: Transport
-    cipher: Cipher
+    cipher: Cipher | None
     index: int
     address: Address  # as for a topic: the far side, or where a peer listens
     local: Address
     # calls are not held while a link is down: the caller's timeout answers them instead
     reliable: bool = False
     key: str | None = None  # on a bus: the key its queries go to
+    cipher_cls: type[Cipher] | None = None
 
     @property
     def name(self) -> str:
@@ -108,9 +110,20 @@ class Resolver:
             self.main_address = self._parse_address(main, cfg.server, "bridge.server")
         for key in ("transport", "codec", "cipher"):
             self.plugin(key, cfg.defaults[key], f"bridge.defaults.{key}")
+        if cfg.secure and cfg.role is Role.SERVER:
+            for name, policy in cfg.clients.items():  # a cipher a rule names must exist
+                for i, rule in enumerate([*policy.topics, *policy.services]):
+                    for cipher in rule.ciphers or ():
+                        self.plugin("cipher", cipher, f"clients.{name}")
         topics = [self.topic(t, i, "topics") for i, t in enumerate(cfg.topics)]
         self._check_shared_ports(topics)
         services = [self.service(s, i, "services") for i, s in enumerate(cfg.services)]
+        if cfg.role is not Role.PEER and not cfg.secure and not cfg.insecure:
+            key = "identity, server_key" if cfg.role is Role.CLIENT else "identity"
+            raise cfg.error("bridge", f"a {cfg.role} needs bridge.{key} to authenticate its "
+                            "sessions", "make one with 'rosgate keygen identity --out NAME.key' "
+                            "(README, Security: setting up identities); or, on a network you "
+                            "trust entirely, insecure: true")
         return Plan(cfg, topics, services, self.main_line, self.main_address)
 
     # -- entries ---------------------------------------------------------------------------
@@ -120,7 +133,8 @@ class Resolver:
         key = f"{section}[{index}]"
         transport = self.transport(topic.transport, f"{key}.transport", error)
         codec_cls, codec_options = self._codec(topic.codec, f"{key}.codec", error)
-        cipher = self.cipher(topic.cipher, f"{key}.cipher", error)
+        cipher_cls, cipher = self._entry_cipher(topic.cipher, f"{key}.cipher", error,
+                                                isinstance(transport, BusTransport))
         try:
             msg_type = resolve_type(topic.type)
         except TypeNotFound as exc:
@@ -137,12 +151,12 @@ class Resolver:
             return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher,
                                  index, NO_ADDRESS, NO_ADDRESS, reliable,
                                  self._bus_key(transport, topic, key, error),
-                                 topic.priority or PRIORITY_DEFAULT)
+                                 topic.priority or PRIORITY_DEFAULT, cipher_cls)
         self._point_to_point(topic, key, transport, error)
         self._check_main_line_port(topic, key, transport, error)
         address, local = self._addresses(transport, topic, key, error)
         return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher, index,
-                             address, local, reliable)
+                             address, local, reliable, cipher_cls=cipher_cls)
 
     def service(self, service: ServiceConfig, index: int, section: str,
                 error: ErrorMaker | None = None) -> PreparedService:
@@ -150,7 +164,8 @@ class Resolver:
         key = f"{section}[{index}]"
         transport = self.transport(service.transport, f"{key}.transport", error)
         codec_cls, codec_options = self._codec(service.codec, f"{key}.codec", error)
-        cipher = self.cipher(service.cipher, f"{key}.cipher", error)
+        cipher_cls, cipher = self._entry_cipher(service.cipher, f"{key}.cipher", error,
+                                                isinstance(transport, BusTransport))
         try:
             srv_type: Any = resolve_type(service.type)
         except TypeNotFound as exc:
@@ -173,12 +188,13 @@ class Resolver:
         if isinstance(transport, BusTransport):
             return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
                                    index, NO_ADDRESS, NO_ADDRESS,
-                                   key=self._bus_key(transport, service, key, error))
+                                   key=self._bus_key(transport, service, key, error),
+                                   cipher_cls=cipher_cls)
         self._point_to_point(service, key, transport, error)
         self._check_main_line_port(service, key, transport, error)
         address, local = self._addresses(transport, service, key, error)
         return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
-                               index, address, local)
+                               index, address, local, cipher_cls=cipher_cls)
 
     def _bus_key(self, transport: BusTransport, entry: TopicConfig | ServiceConfig, key: str,
                  error: ErrorMaker) -> str:
@@ -343,6 +359,20 @@ class Resolver:
             except OptionError as exc:
                 raise self._option_error(name, exc, key, error) from None
         return self.ciphers[name]
+
+    def _entry_cipher(self, name: str, key: str, error: ErrorMaker,
+                      on_bus: bool = False) -> tuple[type[Cipher], Cipher | None]:
+        """An entry's cipher class, and an instance keyed from the file (None in a session,
+        where the session keys it: its key options are not needed). A bus has no peer to
+        handshake with: its entries keep the file's keys."""
+        cls: type[Cipher] = self.plugin("cipher", name, key, error).cls
+        session = self.config.secure and not on_bus
+        if not session or not cls.session_key_size:
+            if session and cls.authenticates:
+                raise error(key, f"cipher {name!r} cannot be keyed from a session",
+                            "pick a cipher that can (aead, nacl, fernet)")
+            return cls, self.cipher(name, key, error)  # static (or keyless: none)
+        return cls, None
 
     def _codec(self, name: str, key: str, error: ErrorMaker) -> tuple[type[Codec], Any]:
         """The codec's class and its options, parsed once (the router makes an instance per

@@ -28,24 +28,57 @@ class TypeNotFound(LookupError):
 
 
 def resolve_type(name: str) -> type:
-    """``pkg/msg/Type`` (or ``pkg/srv/Type``) to its Python class."""
+    """``pkg/msg/Type`` (or ``pkg/srv/Type``) to its Python class.
+
+    Names come from peers too, so nothing is imported before ``pkg`` is known to be a ROS
+    interface package (:func:`is_interface_package`): ``this/msg/Foo`` must not import ``this``."""
     match = TYPE_NAME.match(name)
     if not match:
         raise TypeNotFound(f"{name!r} is not an interface name of the form pkg/msg/Type")
     package, kind, type_name = match.groups()
+    dist = "ros-jazzy-" + package.replace("_", "-")
+    missing = TypeNotFound(
+        f"interface package {package!r} is not installed (apt install ros-$ROS_DISTRO-"
+        f"{package.replace('_', '-')}, or pip install {dist})")
+    if not is_interface_package(package, kind):
+        raise missing
     try:
         module = importlib.import_module(f"{package}.{kind}")
     except ImportError:
-        dist = "ros-jazzy-" + package.replace("_", "-")
-        raise TypeNotFound(
-            f"interface package {package!r} is not installed (apt install ros-$ROS_DISTRO-"
-            f"{package.replace('_', '-')}, or pip install {dist})") from None
+        raise missing from None
     cls = getattr(module, type_name, None)
     if not isinstance(cls, type):
         known = sorted(n for n in dir(module) if n[:1].isupper() and not n.startswith("Metaclass"))
         raise TypeNotFound(f"package {package!r} has no {kind} {type_name!r} "
                            f"(it has: {', '.join(known)})")
     return cls
+
+
+def is_interface_package(package: str, kind: str) -> bool:
+    """Whether ``package`` is an installed ROS interface package with ``kind`` (msg, srv)
+    interfaces — decided without importing it: the ament resource index lists it, or its
+    folder holds the C type support rosidl generates and a ``kind`` subpackage."""
+    import importlib.util
+    import os
+    import sys
+    from pathlib import Path
+
+    prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    prefixes.append(sys.prefix)
+    listed = any((Path(prefix) / "share" / "ament_index" / "resource_index" / "rosidl_interfaces"
+                  / package).is_file() for prefix in prefixes)
+    try:
+        spec = importlib.util.find_spec(package)  # a top-level name: finds, does not import
+    except (ImportError, ValueError):
+        return False
+    if spec is None or not spec.submodule_search_locations:
+        return False
+    for location in spec.submodule_search_locations:
+        folder = Path(location)
+        generated = any(folder.glob(f"{package}_s__rosidl_typesupport_c*"))
+        if (folder / kind / "__init__.py").is_file() and (listed or generated):
+            return True
+    return False
 
 
 def qos_profile(spec: int | str | dict) -> Any:

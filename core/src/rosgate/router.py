@@ -16,6 +16,7 @@ from typing import Any, Callable
 
 from .config import BridgeConfig, Direction, Framing
 from .cvra import CvraCallerRoute
+from .keyring import Keys, StaticKeys
 from .links import Link
 from .resolver import PreparedService, PreparedTopic
 from .ros import RosNode, cdr_checker, qos_profile
@@ -58,26 +59,29 @@ class Router:
     # -- making routes -----------------------------------------------------------------------
     def topic(self, p: PreparedTopic, topic_id: int, label: str, link: Link,
               destination: Destination = _no_destination,
+              keys: Keys | None = None,
               bare_names: bool = True) -> TransmitRoute | ReceiveRoute:
         """A topic's route and its ROS entity; a receiver with an envelope is found by its id.
+        ``keys``: a session's; by default the entry's cipher as the file configured it.
         ``bare_names=False``: bare frames never carry the topic's name (a bus names them by key)."""
         t = p.config
+        keys = keys or StaticKeys(_static(p.cipher))
         codec = p.codec_cls(p.msg_type, p.codec_options)
         qos = qos_profile(t.qos)
         route: TransmitRoute | ReceiveRoute
         if t.direction is Direction.TRANSMIT:
             framing = (BareFraming(t.remote if codec.messagepack and bare_names else None)
                        if t.framing is Framing.NONE else EnvelopeFraming())
-            route = TransmitRoute(t, topic_id, codec, p.cipher, self.warner, label, p.reliable,
+            route = TransmitRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
                                   framing=framing, link=link, destination=destination)
             route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
             route.take = self.ros.taker(route.entity)
         else:
             decode: Callable[[bytes], Any] = codec.decode
-            trusted = p.cipher.authenticates and t.framing is Framing.ROSGATE
+            trusted = keys.authenticates and t.framing is Framing.ROSGATE
             if codec.raw and not trusted:
                 decode = _checked(decode, cdr_checker(p.msg_type))
-            route = ReceiveRoute(t, topic_id, codec, p.cipher, self.warner, label, p.reliable,
+            route = ReceiveRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
                                  decode=decode)
             route.entity = self.ros.publisher(p.msg_type, t.topic, qos)
             if codec.raw:
@@ -89,11 +93,13 @@ class Router:
         return route
 
     def service(self, p: PreparedService, service_id: int, label: str, link: Link | None,
-                destination: Destination = _no_destination) -> ServiceRoute:
+                destination: Destination = _no_destination,
+                keys: Keys | None = None) -> ServiceRoute:
         """A service's route and its ROS entity. With an envelope, calls and answers find it by
         its id; a microcontroller's calls (serial datagrams) find a serving route by name."""
         s = p.config
-        args = (s, service_id, ServiceCodec(p.codec_cls, p.srv_type, p.codec_options), p.cipher,
+        args = (s, service_id, ServiceCodec(p.codec_cls, p.srv_type, p.codec_options),
+                keys or StaticKeys(_static(p.cipher)),
                 self.warner, label, p.srv_type, self.deadlines)
         qos = deep_qos()
         route: ServiceRoute
@@ -244,6 +250,12 @@ class Router:
         for route in self.snapshot():
             self.remove(route)
         self.deadlines.close()
+
+
+def _static(cipher: Any) -> Any:
+    """An entry's cipher from the file: a session's entries always come with their keys."""
+    assert cipher is not None, "an entry of a session needs the session's keys"
+    return cipher
 
 
 def _checked(decode: Callable[[bytes], Any], check: Callable[[bytes], None]) -> Callable[[bytes], Any]:

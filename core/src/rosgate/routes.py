@@ -8,6 +8,10 @@ receive (a link's thread, with a frame whose header names this topic)::
 
     cipher.open -> replay window -> decode (codec, CDR check) -> ROS publish
 
+The cipher of each frame comes from the route's :class:`~rosgate.keyring.Keys` by the
+envelope's epoch: one static cipher, or a session's keys, which change with each key
+generation and handshake (then a new epoch starts a new sequence).
+
 The framing is a strategy chosen once per route from the entry's ``framing:``
 (:class:`EnvelopeFraming`, or :class:`BareFraming` for datagrams without an envelope, whose
 receiving topics share a :class:`BarePort`). Every drop is counted by reason in the route's
@@ -18,7 +22,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import os
 import threading
 import time
 from collections import Counter
@@ -26,10 +29,10 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar, cast
 
 from .builtin import NoCipher
-from .cipher import Cipher
 from .codec import Codec
 from .config import ServiceConfig, TopicConfig
 from .errors import CipherError, CodecError
+from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .transport import Address
 from .wire import envelope
@@ -91,18 +94,18 @@ class Route:
     :class:`rosgate.links.Sender` of its frames."""
 
     def __init__(self, entry: TopicConfig | ServiceConfig, topic_id: int, codec: Any,
-                 cipher: Cipher, warner: Warner, label: str, reliable: bool = False):
+                 keys: Keys, warner: Warner, label: str, reliable: bool = False):
         self.entry = entry
         self.topic_id = topic_id
         self.codec = codec
-        self.cipher = cipher
+        self.keys = keys
         self.warner = warner
         self.label = label  # how logs name this route: "/chatter (to robot1)"
         self.reliable = reliable  # frames wait out a stream link's loss (reliable QoS)
         self.counters = Counters()
         self.entity: Any = None  # the ROS subscription, publisher, service or client
         #: the none cipher: a frame's body is its payload (decided once, not per frame)
-        self.plain = type(cipher).open is NoCipher.open
+        self.plain = isinstance(keys, StaticKeys) and type(keys.cipher).open is NoCipher.open
         #: a reassembled frame's bytearray may go on as the payload (see open)
         self.zero_copy = False
         #: best-effort topics: how long (ns) a message may wait in a queue of the bridge before
@@ -120,10 +123,11 @@ class Route:
         """An envelope frame of this route: the header, then the payload sealed with it."""
         header = envelope.pack(flags, self.topic_id, epoch, seq,
                                time.time_ns() if stamp is None else stamp)
-        return header + self.cipher.seal(header, payload)
+        return header + self.keys.sealer(epoch).seal(header, payload)
 
-    def open(self, frame: bytes) -> bytes | None:
-        """An envelope frame's payload if the cipher accepts it; None (counted) when it does not.
+    def open(self, frame: bytes, epoch: int) -> bytes | None:
+        """An envelope frame's payload if the cipher of its epoch accepts it; None (counted)
+        when it does not.
         A reassembled frame comes as the bytearray it was reassembled in, the route's to keep:
         with the ``none`` cipher on a receiving route of a raw codec (cdr: the core's own decode,
         CDR check and publisher take a bytearray) its header is cut off in place and the rest
@@ -134,9 +138,14 @@ class Route:
                 del frame[:envelope.SIZE]  # O(1): CPython moves the start, copies nothing
                 return cast(bytes, frame)
             return bytes(frame[envelope.SIZE:])
+        cipher = self.keys.opener(epoch)
+        if cipher is None:
+            self.drop("unknown_key", "sealed under a key this side does not hold (an earlier "
+                                     "session, a restart, or an expired key generation)")
+            return None
         header, body = bytes(frame[:envelope.SIZE]), bytes(frame[envelope.SIZE:])
         try:
-            return self.cipher.open(header, body)
+            return cipher.open(header, body)
         except CipherError as exc:
             self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
             return None
@@ -160,10 +169,13 @@ class EnvelopeFraming(TopicFraming):
     bare = False
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int) -> bytes:
-        # next() on a count is atomic: no lock, whichever thread a callback group calls from
+        # no lock: a route's messages come from the one executor thread (RosNode)
+        epoch = route.keys.epoch()
+        if epoch != route.epoch:  # a new key: a new sequence under it
+            route.epoch, route.seqs = epoch, itertools.count(1)
         header = envelope.HEADER.pack(envelope.MAGIC, envelope.VERSION, 0, route.topic_id,
-                                      route.epoch, next(route.seqs), stamp)
-        return header + route.cipher.seal(header, payload)
+                                      epoch, next(route.seqs), stamp)
+        return header + route.keys.sealer(epoch).seal(header, payload)
 
 
 class BareFraming(TopicFraming):
@@ -189,17 +201,17 @@ def max_wait_ns(topic: TopicConfig, reliable: bool) -> int:
 class TransmitRoute(Route):
     """ROS subscription -> link."""
 
-    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, cipher: Cipher,
+    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
                  warner: Warner, label: str, reliable: bool, *, framing: TopicFraming,
                  link: Link, destination: Callable[[], Address | None]):
-        super().__init__(topic, topic_id, codec, cipher, warner, label, reliable)
+        super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
         self.max_wait_ns = max_wait_ns(topic, reliable)
         self.framing = framing
         self.link = link
         self.destination = destination  # where to send, looked up per message (a server learns it)
-        self.epoch = int.from_bytes(os.urandom(4), "big")
-        self.seqs = itertools.count(1)  # this epoch's sequence numbers
+        self.epoch: int | None = None  # of the key in use, set by the first frame
+        self.seqs = itertools.count(1)  # its sequence numbers
         self._size = 1  # of a frame, lately: how many messages a datagram's worth is
         rate = topic.max_rate
         self.min_interval_ns = int(1e9 / rate) if rate else 0
@@ -259,6 +271,9 @@ class TransmitRoute(Route):
             self.last_sent_ns = now
         try:
             return self.framing.frame(self, self.codec.encode(message), now)
+        except NoKey:
+            self.drop("no_session_key", "the session's handshake has not happened yet")
+            return None
         except Exception as exc:  # a codec or cipher bug must not stop the executor
             self.drop("encode_error", f"{type(exc).__name__}: {exc}")
             return None
@@ -267,10 +282,10 @@ class TransmitRoute(Route):
 class ReceiveRoute(Route):
     """Link -> ROS publisher."""
 
-    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, cipher: Cipher,
+    def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
                  warner: Warner, label: str, reliable: bool, *,
                  decode: Callable[[bytes], Any]):
-        super().__init__(topic, topic_id, codec, cipher, warner, label, reliable)
+        super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
         self.max_wait_ns = max_wait_ns(topic, reliable)
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
@@ -286,7 +301,7 @@ class ReceiveRoute(Route):
         """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
         datagram that carried it reached this machine (time.time_ns(); 0: unknown)."""
         size = len(frame)
-        payload = self.open(frame)
+        payload = self.open(frame, header.epoch)
         if payload is None:
             return
         with self._lock:

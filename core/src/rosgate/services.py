@@ -32,13 +32,13 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
-import os
 import threading
 import time
 from typing import Any, Callable
 
 from .config import ServiceConfig
 from .errors import CodecError
+from .keyring import NoKey
 from .links import Link
 from .routes import Route
 from .transport import Address
@@ -165,10 +165,10 @@ class ServiceCodec:
 class ServiceRoute(Route):
     """What both sides of a service share: the entry, its codecs, counters and warnings."""
 
-    def __init__(self, service: ServiceConfig, service_id: int, codec: ServiceCodec, cipher: Any,
+    def __init__(self, service: ServiceConfig, service_id: int, codec: ServiceCodec, keys: Any,
                  warner: Any, label: str, srv_type: Any, deadlines: Deadlines):
         # calls are not held while a link is down: the caller's timeout answers them instead
-        super().__init__(service, service_id, codec, cipher, warner, label, reliable=False)
+        super().__init__(service, service_id, codec, keys, warner, label, reliable=False)
         self.service = service
         self.srv_type = srv_type
         self.deadlines = deadlines
@@ -190,8 +190,7 @@ class CallerRoute(ServiceRoute):
         super().__init__(*args)
         self.link = link
         self.destination = destination
-        self.epoch = int.from_bytes(os.urandom(4), "big")
-        self.calls: dict[int, Call] = {}
+        self.calls: dict[int, tuple[int, Call]] = {}  # seq -> (epoch, call)
         self._ids = itertools.count(1)
         self._lock = threading.Lock()
 
@@ -202,15 +201,21 @@ class CallerRoute(ServiceRoute):
         if to is None and self.link.datagram:
             self.fail(call, "no_peer_yet", "the far side's address is not known yet")
             return
+        # a call's id is (epoch, seq): the epoch of the key sealing it (a random one per start
+        # with a static key), seq counting on across epochs, so no id repeats under one key
         seq = next(self._ids)
         try:
-            frame = self.seal(envelope.FLAG_REQUEST, self.epoch, seq,
+            epoch = self.keys.epoch()
+            frame = self.seal(envelope.FLAG_REQUEST, epoch, seq,
                               self.codec.encode(self.codec.request, request))
+        except NoKey:
+            self.fail(call, "no_session_key", "the session's handshake has not happened yet")
+            return
         except Exception as exc:  # a codec or cipher bug must not leave the ROS caller waiting
             self.fail(call, "encode_error", f"{type(exc).__name__}: {exc}")
             return
         with self._lock:
-            self.calls[seq] = call
+            self.calls[seq] = (epoch, call)
         self.deadlines.after(self.service.timeout, lambda: self._expire(seq))
         if not self.link.send(frame, _CallSender(self, call), to):
             self._pop(seq)  # the link counted the drop, and answered the caller with it
@@ -220,10 +225,10 @@ class CallerRoute(ServiceRoute):
 
     def on_reply(self, header: envelope.Header, frame: bytes) -> None:
         """A link's thread: match the answer to its call (after checking it is authentic)."""
-        body = self.open(frame)
+        body = self.open(frame, header.epoch)
         if body is None:
             return
-        call = self._pop(header.seq) if header.epoch == self.epoch else None
+        call = self._pop(header.seq, header.epoch)
         if call is None:
             self.drop("late_answer", f"answer to call {header.seq}, which was answered already "
                                      "or timed out")
@@ -240,9 +245,14 @@ class CallerRoute(ServiceRoute):
             return
         call.answer(response)
 
-    def _pop(self, seq: int) -> Call | None:
+    def _pop(self, seq: int, epoch: int | None = None) -> Call | None:
+        """The call waiting under ``seq`` (and ``epoch``, when given), taken out."""
         with self._lock:
-            return self.calls.pop(seq, None)
+            waiting = self.calls.get(seq)
+            if waiting is None or epoch is not None and waiting[0] != epoch:
+                return None
+            del self.calls[seq]
+            return waiting[1]
 
     def _expire(self, seq: int) -> None:
         call = self._pop(seq)
@@ -306,7 +316,7 @@ class ServerRoute(ServiceRoute):
             self.drop("too_large", f"request of {len(frame) - envelope.SIZE} bytes, "
                                    f"max_request is {self.service.max_request}")
             return
-        payload = self.open(frame)
+        payload = self.open(frame, header.epoch)
         if payload is None:
             return
         with self._lock:
@@ -323,7 +333,11 @@ class ServerRoute(ServiceRoute):
         self.counters.bytes_received += len(frame)
 
         def reply(flags: int, body: bytes) -> None:
-            frame = self.seal(envelope.FLAG_REPLY | flags, header.epoch, header.seq, body)
+            try:
+                frame = self.seal(envelope.FLAG_REPLY | flags, header.epoch, header.seq, body)
+            except NoKey:  # the request's key expired while the ROS server took its time
+                self.drop("no_session_key", "the request's session key is gone")
+                return
             if link.send(frame, self, source):
                 self.counters.sent += 1
                 self.counters.bytes_sent += len(frame)

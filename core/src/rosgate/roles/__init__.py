@@ -14,13 +14,24 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
+from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from ..config import BridgeConfig
 from ..errors import ConfigError, LinkError
-from ..links import (Acceptor, Backoff, DatagramLink, Lifetime, Link, LinkCounters, LinkSlot,
-                     QueueLimits, StreamLink)
+from ..links import (
+    Acceptor,
+    Backoff,
+    DatagramLink,
+    Lifetime,
+    Link,
+    LinkCounters,
+    LinkSlot,
+    QueueLimits,
+    StreamLink,
+)
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort
@@ -30,6 +41,8 @@ from ..wire import envelope
 log = logging.getLogger("rosgate")
 
 FrameHandler = Callable[[bytes, Link, Address], None]
+#: (connection, peer, then): authenticate an accepted connection, then hand it to ``then``
+Handshake = Callable[[StreamConnection, Address, Callable[[StreamConnection], None]], None]
 
 
 @dataclass
@@ -90,30 +103,74 @@ class Role:
                 raise self.bridge.link_error(exc, key) from None
             name = f"{transport.name}:{local[1]}" if local[1] else f"{transport.name}"
             if bare_named is None:
-                link = DatagramLink(transport, endpoint, name, self.router.on_frame,
+                link = DatagramLink(transport, endpoint, name, self.admit(self.router.on_frame),
                                     self.router.on_lost)
             else:
                 port = self.router.bare_port(bare_named)
-                link = DatagramLink(transport, endpoint, name, port.on_frame, self.router.on_lost,
-                                    bare=True)
+                link = DatagramLink(transport, endpoint, name, self.admit(port.on_frame),
+                                    self.router.on_lost, bare=True)
                 self.bare_ports[link] = port
             self.datagram_links[(transport.name, local)] = self.life.closing(link)
             return link
 
-    def accept_into(self, on_frame: FrameHandler, transport: Transport,
-                    port: int) -> Callable[[StreamConnection, Address], None]:
+    def allowed(self, host: str) -> bool:
+        """Whether ``bridge.allow`` (peer role) lets frames from ``host`` in; all without it."""
+        if not self.cfg.allow:
+            return True
+        import ipaddress
+
+        try:
+            address = ipaddress.ip_address(host)
+        except ValueError:
+            return False
+        return any(address in network for network in self.cfg.allow)
+
+    def admit(self, handler: FrameHandler) -> FrameHandler:
+        """``handler`` for frames from allowed addresses; the others dropped and counted."""
+        if not self.cfg.allow:
+            return handler
+
+        def admitted(frame: bytes, link: Link, source: Address) -> None:
+            if self.allowed(source[0]):
+                handler(frame, link, source)
+            else:
+                self.router.link_drop(link, "not_allowed", f"from {source[0]}")
+        return admitted
+
+    def admitting(self, on_connection: Callable[[StreamConnection, Address], None]
+                  ) -> Callable[[StreamConnection, Address], None]:
+        """``on_connection`` for connections from allowed addresses; the others closed."""
+        if not self.cfg.allow:
+            return on_connection
+
+        def admitted(connection: StreamConnection, peer: Address) -> None:
+            if self.allowed(peer[0]):
+                on_connection(connection, peer)
+            else:
+                connection.close()
+                self.router.link_drop(None, "not_allowed", f"a connection from {peer[0]}")
+        return admitted
+
+    def accept_into(self, on_frame: FrameHandler, transport: Transport, port: int,
+                    handshake: Handshake | None = None
+                    ) -> Callable[[StreamConnection, Address], None]:
         """What to do with each connection accepted on a port: a link that feeds ``on_frame``
-        and is forgotten by the bridge when it ends."""
+        and is forgotten by the bridge when it ends (after ``handshake``, when given)."""
         life, on_lost = self.life, self.router.on_lost
 
         def accepted(connection: StreamConnection, peer: Address) -> None:
-            life.closing(StreamLink(connection, f"{transport.name}:{port}<-{peer[0]}", peer,
-                                    on_frame, on_lost, on_close=life.forget))
+            def link(ready: StreamConnection) -> None:
+                life.closing(StreamLink(ready, f"{transport.name}:{port}<-{peer[0]}", peer,
+                                        on_frame, on_lost, on_close=life.forget))
+            if handshake is None:
+                link(connection)
+            else:
+                handshake(connection, peer, link)
 
         return accepted
 
     def listen(self, transport: Transport, local: Address, on_frame: FrameHandler,
-               key: str | None = None) -> None:
+               key: str | None = None, handshake: Handshake | None = None) -> None:
         """Accept stream connections at ``local`` (once per address). A LinkError is located at
         ``key``; without one (a server listening for a client) it goes to the caller."""
         with self._lock:
@@ -126,8 +183,8 @@ class Role:
                     raise
                 raise self.bridge.link_error(exc, key) from None
             self.listening.add((transport.name, local))
-        self.life.closing(Acceptor(listener, f"{transport.name}:{local[1]}",
-                                   self.accept_into(on_frame, transport, local[1])))
+        self.life.closing(Acceptor(listener, f"{transport.name}:{local[1]}", self.admitting(
+            self.accept_into(on_frame, transport, local[1], handshake))))
 
 
 class Control:
@@ -142,6 +199,30 @@ class Control:
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.router.link_drop(None, reason, detail or "a control frame on a link")
+
+
+REFUSAL_EVERY = 60.0  # seconds between two log lines about one refusal
+
+
+class Refusals:
+    """Refusals said once per :data:`REFUSAL_EVERY` seconds each (an attacker retrying must not
+    flood the log), with how many were held back."""
+
+    def __init__(self, every: float = REFUSAL_EVERY):
+        self.every = every
+        self._last: dict[str, float] = {}
+        self._held: Counter = Counter()
+        self._lock = threading.Lock()
+
+    def say(self, key: str, message: str, level: int = logging.WARNING) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(key, -self.every) < self.every:
+                self._held[key] += 1
+                return
+            self._last[key] = now
+            held = self._held.pop(key, 0)
+        log.log(level, "%s%s", message, f" ({held} more since)" if held else "")
 
 
 class NoLink(Link):

@@ -11,23 +11,40 @@ stream links wait in their :class:`LinkSlot`. After a reconnect the client sends
 again; a server that kept the session answers with the same topic ids and everything resumes.
 A server that restarted may answer with other ids: the routes are re-keyed, and frames that
 waited under the old ids are dropped (counted ``session_reset``), never sent under a wrong id.
+
+Authenticated (``bridge.identity`` and ``server_key``): every connection starts with the Noise
+handshake (:mod:`rosgate.secure`), the hello travels inside it, and the welcome brings the
+session's secret; routes take their keys from the session's :class:`KeySchedule`. An entry the
+server's policy refuses is logged once and left out; the others run.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
 from typing import Any
 
 from ..config import Direction, service_to_mapping, topic_to_mapping
-from ..errors import RosgateError
+from ..errors import LinkError, RosgateError
+from ..keyring import Keys
 from ..links import Connector, DatagramLink, Link, LinkSlot, StreamLink
 from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
-from ..transport import Address
+from ..routes import Route
+from ..secure import KeySchedule, SecureConnection, SessionKeys, initiate, seal_hello
+from ..transport import Address, StreamConnection
 from . import Bridge, Role
-from .mainline import HANDSHAKE_TIMEOUT, PROTOCOL, control, hello_datagram, is_control, parse_control
+from .mainline import (
+    HANDSHAKE_TIMEOUT,
+    PROTOCOL,
+    control,
+    hello_datagram,
+    is_control,
+    key_label,
+    parse_control,
+)
 
 log = logging.getLogger("rosgate")
 
@@ -39,17 +56,26 @@ class ClientRole(Role):
         self.session: int | None = None
         self.token = b""
         self.server_name: str | None = None
-        self.topic_ids: list[int] | None = None  # as the server numbered our topics
+        self.topic_ids: list[int] | None = None  # as the server numbered our entries (0: refused)
+        self.routes: dict[int, Route] = {}  # entry index (topics, then services) -> its route
+        self.refused: dict[str, str] = {}  # entry -> why, as the server last said
         self.connected = threading.Event()
         self.hello_to: set[tuple[DatagramLink, Address]] = set()  # every server port we use
-        self._dedicated: list[LinkSlot] = []
+        self.schedule: KeySchedule | None = None  # the session's keys (authenticated)
+        self._hello_seq = itertools.count(1)
+        self._dedicated: dict[int, LinkSlot] = {}
         self._welcome: dict[str, Any] | None = None
         self._answer = threading.Event()
         plan = bridge.plan
         assert plan.main_line is not None and plan.main_address is not None
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
-                                   bridge.backoff, self._handshake, self._lost)
+                                   bridge.backoff, self._handshake, self._lost,
+                                   secure=self._secure if self.cfg.secure else None)
+
+    def _secure(self, connection: StreamConnection) -> StreamConnection:
+        assert self.cfg.identity is not None and self.cfg.server_key is not None
+        return initiate(connection, self.cfg.identity, self.cfg.server_key)
 
     def start(self) -> None:
         self.connector.start()
@@ -65,6 +91,8 @@ class ClientRole(Role):
             link.drain(1.0)
         self.connector.close()
         super().stop()
+        if self.schedule is not None:
+            self.schedule.forget()
 
     def _on_main_frame(self, frame: bytes, link: Link, source: Address) -> None:
         if is_control(frame):
@@ -81,7 +109,7 @@ class ClientRole(Role):
         self.router.on_frame(frame, link, source)
 
     def _handshake(self, link: StreamLink) -> bool:
-        """Send our topics; build (or re-key) the routes from the server's answer."""
+        """Send our entries; build, re-key or drop their routes from the server's answer."""
         self._answer.clear()
         self._welcome = None
         plan = self.bridge.plan
@@ -93,18 +121,18 @@ class ClientRole(Role):
             return False
         answer = self._welcome
         if answer["type"] == "refused":
-            log.error("%s: the server refused our topics: %s", self.cfg.name, answer.get("error"))
+            log.error("%s: the server refused us: %s", self.cfg.name, answer.get("error"))
             return False
         try:
             ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
             if len(ids) != len(plan.topics) + len(plan.services):
                 raise ValueError("topic and service id count does not match")
-            session, token = int(answer["session"]), bytes.fromhex(answer["token"])
+            session, token = int(answer["session"]), bytes.fromhex(answer.get("token", ""))
             self.server_name = str(answer["name"])
-            if self.topic_ids is None:
-                self._build(ids)
-            elif ids != self.topic_ids:
-                self._rekey(ids)
+            if self.cfg.secure:
+                self._install_keys(answer, link)
+            self._note_refusals(answer.get("refused", []))
+            self._apply(ids)
         except (KeyError, TypeError, ValueError, RosgateError) as exc:
             log.error("%s: cannot use the server's answer: %s", self.cfg.name, exc)
             if self.topic_ids is None:
@@ -112,7 +140,7 @@ class ClientRole(Role):
             return False
         if session != self.session:
             self.session, self.token = session, token
-            for slot in self._dedicated:  # they must introduce themselves to the new session
+            for slot in self._dedicated.values():  # they must introduce themselves anew
                 if slot.current is not None:
                     slot.current.fail("the server started a new session")
         link.last_heard = time.monotonic()
@@ -121,9 +149,39 @@ class ClientRole(Role):
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
         return True
 
+    def _install_keys(self, answer: dict[str, Any], link: StreamLink) -> None:
+        """The session's secret from the welcome (inside the Noise channel); then say we hold
+        it, so the server seals under it too."""
+        connection = link.connection
+        assert isinstance(connection, SecureConnection)
+        secret, key_id = bytes.fromhex(answer["secret"]), int(answer["key_id"])
+        if len(secret) != 32 or not 0 <= key_id < 256:
+            raise ValueError("not a session secret")
+        rekey = float(answer.get("rekey", self.cfg.rekey))
+        if self.schedule is None or self.schedule.rekey != rekey:
+            old = self.schedule
+            self.schedule = KeySchedule(rekey)
+            if old is not None:  # routes follow the schedule they were given: give them this
+                for route in self.routes.values():
+                    if isinstance(route.keys, SessionKeys):
+                        route.keys.schedule = self.schedule
+        self.schedule.install(key_id, secret, connection.handshake_hash)
+        link.send(control({"type": "ready", "key_id": key_id}), self.control)
+
+    def _note_refusals(self, refused: list[Any]) -> None:
+        now = {str(r["entry"]): str(r["error"]) for r in refused}
+        for entry, why in now.items():
+            if self.refused.get(entry) != why:
+                log.error("%s: the server refused %s: %s", self.cfg.name, entry, why)
+        self.refused = now
+
     def _await_answer(self, link: StreamLink) -> bool:
         deadline = time.monotonic() + HANDSHAKE_TIMEOUT
         while not self._answer.wait(0.1):
+            if link.closed.is_set() and not self.life.stopping.is_set():
+                self.connector.failed(LinkError(
+                    "the server closed the connection before answering our hello (does it "
+                    "require identities? then set bridge.identity and server_key)"))
             if link.closed.is_set() or self.life.stopping.is_set():
                 return False
             if time.monotonic() > deadline:
@@ -137,29 +195,58 @@ class ClientRole(Role):
         log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
                     link.why or "main line closed")
 
-    def _build(self, ids: list[int]) -> None:
+    def _entries(self) -> list[PreparedTopic | PreparedService]:
         plan = self.bridge.plan
-        entries: list[PreparedTopic | PreparedService] = [*plan.topics, *plan.services]
-        for p, topic_id in zip(entries, ids):
-            t = p.config
-            way = "to" if t.direction is Direction.TRANSMIT else "from"
-            label = f"{p.name} ({way} {self.server_name})"
-            link: Link
-            destination = fixed(p.address)
-            if p.transport.stream:
-                link = self.main if t.port is None else self._dedicated_stream(p)
-            else:
-                link = self.datagram_link(p.transport, p.local)
-                self.hello_to.add((link, p.address))
-            if isinstance(p, PreparedTopic):
-                self.router.topic(p, topic_id, label, link, destination)
-            else:
-                self.router.service(p, topic_id, label, link, destination)
+        return [*plan.topics, *plan.services]
+
+    def _apply(self, ids: list[int]) -> None:
+        """Make the routes match the server's answer: one per entry it accepted (id > 0),
+        renumbered when a restarted server numbered them anew; none for a refused entry."""
+        renumbered = self.topic_ids is not None and any(
+            old and new and old != new for old, new in zip(self.topic_ids, ids))
+        if renumbered:
+            for slot in [self.main, *self._dedicated.values()]:
+                slot.discard("session_reset")
+        for index, (p, topic_id) in enumerate(zip(self._entries(), ids)):
+            route = self.routes.get(index)
+            if topic_id == 0:
+                if route is not None:
+                    self.router.remove(self.routes.pop(index))
+            elif route is None:
+                self.routes[index] = self._route(p, topic_id)
+            elif route.topic_id != topic_id:
+                self.router.renumber(route, topic_id)
         self.topic_ids = ids
+
+    def _route(self, p: PreparedTopic | PreparedService, topic_id: int) -> Route:
+        t = p.config
+        way = "to" if t.direction is Direction.TRANSMIT else "from"
+        label = f"{p.name} ({way} {self.server_name})"
+        link: Link
+        destination = fixed(p.address)
+        if p.transport.stream:
+            link = self.main if t.port is None else self._dedicated_stream(p)
+        else:
+            link = self.datagram_link(p.transport, p.local)
+            self.hello_to.add((link, p.address))
+        keys = self._keys(p)
+        if isinstance(p, PreparedTopic):
+            return self.router.topic(p, topic_id, label, link, destination, keys)
+        return self.router.service(p, topic_id, label, link, destination, keys)
+
+    def _keys(self, p: PreparedTopic | PreparedService) -> Keys | None:
+        if self.schedule is None:
+            return None  # insecure: the file's cipher
+        assert p.cipher_cls is not None
+        kind = "topic" if isinstance(p, PreparedTopic) else "service"
+        name = p.config.remote  # the server's name for it: both sides derive the same keys
+        return SessionKeys(self.schedule, p.cipher_cls, key_label(kind, "c2s", name),
+                           key_label(kind, "s2c", name))
 
     def _unbuild(self) -> None:
         super().stop()
-        for slot in self._dedicated:
+        self.routes.clear()
+        for slot in self._dedicated.values():
             slot.close()  # its connector ends with it
         self._dedicated.clear()
         with self._lock:
@@ -170,37 +257,37 @@ class ClientRole(Role):
             link.close()
             self.life.forget(link)
 
-    def _rekey(self, ids: list[int]) -> None:
-        """The server numbered our topics anew (it restarted): same routes, new ids."""
-        renumber = dict(zip(self.topic_ids or [], ids))
-        for slot in [self.main, *self._dedicated]:
-            slot.discard("session_reset")
-        for route in self.router.snapshot():
-            self.router.renumber(route, renumber[route.topic_id])
-        self.topic_ids = ids
-
     def _dedicated_stream(self, p: PreparedTopic | PreparedService) -> LinkSlot:
         address = p.address
-        slot = self.bridge.slot(f"{p.config.transport}->{address[0]}:{address[1]}")
+        port = address[1]
+        if port in self._dedicated:
+            return self._dedicated[port]
+        slot = self.bridge.slot(f"{p.config.transport}->{address[0]}:{port}")
 
         def introduce(link: StreamLink) -> bool:
             # a session the server kept takes the hello even while the main line is down; a
             # new session makes the handshake recycle this connection
             if self.session is None:
                 return False  # wait for the first handshake
-            return link.send(hello_datagram(self.session, self.token), self.control)
+            return link.send(self._hello(), self.control)
 
         Connector(p.transport, address, slot, self.router.on_frame, self.router.on_lost, self.life,
-                  self.bridge.backoff, introduce).start()
-        self._dedicated.append(slot)
+                  self.bridge.backoff, introduce,
+                  secure=self._secure if self.cfg.secure else None).start()
+        self._dedicated[port] = slot
         return slot
+
+    def _hello(self) -> bytes:
+        assert self.session is not None
+        if self.schedule is not None:
+            return seal_hello(self.schedule, self.session, next(self._hello_seq))
+        return hello_datagram(self.session, self.token)
 
     def _say_hello(self) -> None:
         if self.session is None:
             return
-        hello = hello_datagram(self.session, self.token)
         for link, to in list(self.hello_to):
-            link.send(hello, self.control, to)
+            link.send(self._hello(), self.control, to)
 
     def _ping_loop(self) -> None:
         """Heartbeat on the main line, and liveness: a server silent for ``peer_timeout`` is

@@ -10,6 +10,14 @@ wire). Both sides send ``ping`` every ``heartbeat`` seconds. A client that stops
 
 A client also says hello on every datagram link and dedicated stream it uses (a HELLO-flagged
 envelope with its session id and token), so the server learns where to send, even through NAT.
+
+Authenticated sessions (:mod:`rosgate.secure`): every connection starts with the Noise handshake
+and everything above travels inside it. The welcome then carries the session's secret
+(``secret``, ``key_id``, ``rekey``) instead of a token, and ``refused``: the entries the
+server's policy refused, each with the sentence both logs show (their ids are 0). The client
+answers ``ready`` once it holds the new keys. Hellos on datagram links are sealed under the
+session's keys (:func:`rosgate.secure.seal_hello`); on a dedicated stream the connection's own
+handshake says whose it is.
 """
 
 from __future__ import annotations
@@ -48,6 +56,12 @@ def parse_control(frame: bytes) -> dict[str, Any] | None:
 def hello_datagram(session: int, token: bytes) -> bytes:
     """Sent by a client on each datagram link so the server learns the client's address there."""
     return envelope.pack(envelope.FLAG_HELLO, session, 0, 0, time.time_ns()) + token
+
+
+def key_label(kind: str, way: str, name: str) -> str:
+    """What a session's key of one entry and direction is derived for: ``topic c2s /robot1/scan``
+    (``way``: c2s, client to server, or s2c; ``name``: the server's name of the entry)."""
+    return f"{kind} {way} {name}"
 
 
 def flipped(t: TopicConfig | ServiceConfig) -> Any:

@@ -6,32 +6,73 @@ connect) to ``peer:port``. Services likewise: a serving side answers on the link
 address each call came from.
 
 Entries on a bus (zenoh) are wired by :class:`~rosgate.roles.bus.BusWiring`: by key, without
-ports or a far host.
+ports or a far host (and with the file's static ciphers: a bus has no peer to handshake with).
 
 Microcontrollers (the CVRA profile) are peers too: ``framing: none`` topics share a
 :class:`~rosgate.routes.BarePort` per port, told apart by name, and ``framing:
 serial_datagram`` services get a :class:`~rosgate.cvra.CallServer` per port (receive) or a
 connection per call (transmit).
+
+Peers with identities (``identity``, ``peer_key``, ``handshake_port``) run the client/server
+handshake between them (:mod:`rosgate.secure`, Noise IK) on a TCP line of its own: the side
+whose public key sorts first initiates (connects to ``peer:handshake_port``), the other
+responds (listens on ``listen:handshake_port``) and sends the session's secret inside it.
+Every ``framing: rosgate`` entry is then keyed from the session by its link name (``remote``,
+which both files must spell alike), per direction and key generation; the line carries
+heartbeats and is made again after a loss or a restart, with a new secret each time. Bare and
+serial-datagram entries (microcontrollers) stay keyless.
 """
 
 from __future__ import annotations
 
+import logging
+import os
+import threading
+import time
+from typing import Any
+
 from ..config import Direction, Framing
 from ..cvra import CallServer
 from ..errors import LinkError
-from ..links import Acceptor, Connector, Link
+from ..keyring import Keys
+from ..links import Acceptor, Connector, Link, StreamLink
 from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
 from ..routes import ReceiveRoute
+from ..secure import (HandshakeError, KeySchedule, SecureConnection, SessionKeys, UnknownKey,
+                      initiate, respond)
 from ..services import ServerRoute
-from ..transport import Address
+from ..transport import Address, StreamConnection
 from ..wire.envelope import topic_id_for
-from . import NoLink, Role
+from . import NoLink, Refusals, Role
 from .bus import BusWiring
+from .mainline import control, is_control, key_label, parse_control
+
+log = logging.getLogger("rosgate")
 
 
 class PeerRole(Role):
+    def __init__(self, bridge: Any):
+        super().__init__(bridge)
+        self.handshake: PeerHandshake | None = PeerHandshake(self) if self.cfg.secure else None
+
+    def _keys(self, p: PreparedTopic | PreparedService) -> Keys | None:
+        """A session's keys for an entry with an envelope (None: the file's cipher)."""
+        if self.handshake is None or p.config.framing is not Framing.ROSGATE:
+            return None
+        return self.handshake.keys(p)
+
     def start(self) -> None:
+        if self.handshake is not None:
+            self.handshake.start()
+        self._start_entries()
+
+    def stop(self) -> None:
+        super().stop()
+        if self.handshake is not None:
+            self.handshake.schedule.forget()
+
+    def _start_entries(self) -> None:
         bus = BusWiring(self.bridge)
         for p in self.bridge.plan.topics:
             if p.key is not None:
@@ -53,7 +94,8 @@ class PeerRole(Role):
         t, key = p.config, f"topics[{p.index}].port"
         if t.direction is Direction.TRANSMIT:
             link = self.datagram_link(p.transport, p.local, key)
-            self.router.topic(p, topic_id_for(t.remote), t.topic, link, fixed(p.address))
+            self.router.topic(p, topic_id_for(t.remote), t.topic, link, fixed(p.address),
+                              self._keys(p))
             return
         if t.framing is Framing.NONE:
             named = p.codec_cls.messagepack
@@ -72,14 +114,14 @@ class PeerRole(Role):
             self.listen(p.transport, p.address, self.router.on_frame, key)
             return
         slot = self.bridge.slot(f"{t.transport}->{self.cfg.peer}:{t.port}")
-        self.router.topic(p, topic_id_for(t.remote), t.topic, slot)
+        self.router.topic(p, topic_id_for(t.remote), t.topic, slot, keys=self._keys(p))
         Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
                   self.life, self.bridge.backoff).start()
 
     def _receiver(self, p: PreparedTopic, link: Link) -> None:
         """A receiving topic is found by its remote name's id, and by its own name's."""
         t = p.config
-        route = self.router.topic(p, topic_id_for(t.remote), t.topic, link)
+        route = self.router.topic(p, topic_id_for(t.remote), t.topic, link, keys=self._keys(p))
         assert isinstance(route, ReceiveRoute)
         if t.topic != t.remote:
             self.router.alias(route, topic_id_for(t.topic))
@@ -101,7 +143,7 @@ class PeerRole(Role):
                       self.life, self.bridge.backoff).start()
         else:
             link = self.datagram_link(p.transport, p.local, key)
-        self.router.service(p, service_id, s.service, link, fixed(p.address))
+        self.router.service(p, service_id, s.service, link, fixed(p.address), self._keys(p))
 
     def _microcontroller_service(self, p: PreparedService,
                                  servers: dict[Address, CallServer]) -> None:
@@ -118,7 +160,167 @@ class PeerRole(Role):
                 raise self.bridge.link_error(exc, f"services[{p.index}].port") from None
             server = servers[p.address] = CallServer(f"{p.transport.name}:{p.address[1]}",
                                                      self.router.link_drop)
-            self.life.closing(Acceptor(listener, server.name, server.accepted))
+            self.life.closing(Acceptor(listener, server.name, self.admitting(server.accepted)))
         route = self.router.service(p, 0, s.service, None)  # found by name: no id
         assert isinstance(route, ServerRoute)
         servers[p.address].add(route)
+
+
+class PeerHandshake:
+    """The handshake line between two peers with identities, and the session's keys."""
+
+    def __init__(self, role: PeerRole):
+        cfg = role.cfg
+        assert cfg.identity is not None and cfg.server_key is not None
+        assert cfg.handshake_port is not None
+        from ..identity import public_of
+
+        self.role = role
+        self.cfg = cfg
+        self.identity, self.peer_key = cfg.identity, cfg.server_key
+        self.initiator = public_of(cfg.identity) < cfg.server_key
+        self.mine, self.theirs = ("i2r", "r2i") if self.initiator else ("r2i", "i2r")
+        self.schedule = KeySchedule(cfg.rekey)
+        self.refusals = Refusals()
+        self.transport = role.bridge.resolver.transport("tcp", "bridge.handshake_port")
+        self.key_id: int | None = None
+        self.up = threading.Event()
+        self.link: StreamLink | None = None
+        self._answer: dict[str, Any] | None = None
+        self._answered = threading.Event()
+
+    def keys(self, p: PreparedTopic | PreparedService) -> Keys:
+        assert p.cipher_cls is not None
+        kind = "topic" if isinstance(p, PreparedTopic) else "service"
+        name = p.config.remote
+        return SessionKeys(self.schedule, p.cipher_cls, key_label(kind, self.mine, name),
+                           key_label(kind, self.theirs, name))
+
+    def _address(self, host: str | None) -> Address:
+        try:
+            return self.transport.check_address((host or "", self.cfg.handshake_port or 0))
+        except ValueError as exc:
+            raise self.cfg.error("bridge.handshake_port", str(exc)) from None
+
+    def start(self) -> None:
+        life = self.role.life
+        if self.initiator:
+            slot = self.role.bridge.slot(f"handshake->{self.cfg.peer}")
+            Connector(self.transport, self._address(self.cfg.peer), slot, self._on_frame,
+                      self.role.router.on_lost, life, self.role.bridge.backoff,
+                      self._initiated, self._lost, secure=self._initiate).start()
+        else:
+            address = self._address(self.cfg.listen)
+            try:
+                listener = self.transport.listen(address)
+            except LinkError as exc:
+                raise self.role.bridge.link_error(exc, "bridge.handshake_port") from None
+            life.closing(Acceptor(listener, f"handshake:{address[1]}", self._accepted))
+        threading.Thread(target=self._ping_loop, name="peer-ping", daemon=True).start()
+
+    # -- the initiator -------------------------------------------------------------------------
+    def _initiate(self, connection: StreamConnection) -> StreamConnection:
+        return initiate(connection, self.identity, self.peer_key)
+
+    def _initiated(self, link: StreamLink) -> bool:
+        """Wait for the responder's keys inside the new channel; install them."""
+        self._answered.clear()
+        self._answer = None
+        deadline = time.monotonic() + 5.0
+        while not self._answered.wait(0.1):
+            if link.closed.is_set() or self.role.life.stopping.is_set():
+                return False
+            if time.monotonic() > deadline:
+                log.warning("%s: no keys from peer %s", self.cfg.name, self.cfg.peer)
+                return False
+        answer = self._answer
+        connection = link.connection
+        try:
+            assert answer is not None and isinstance(connection, SecureConnection)
+            secret, key_id = bytes.fromhex(answer["secret"]), int(answer["key_id"])
+            if len(secret) != 32 or not 0 <= key_id < 256:
+                raise ValueError("not a session secret")
+            if float(answer["rekey"]) != self.schedule.rekey:
+                self.schedule.rekey = float(answer["rekey"])  # the responder's, as a server's
+        except (AssertionError, KeyError, TypeError, ValueError) as exc:
+            log.error("%s: cannot use the peer's keys: %s", self.cfg.name, exc)
+            return False
+        self.schedule.install(key_id, secret, connection.handshake_hash)
+        link.send(control({"type": "ready", "key_id": key_id}), self.role.control)
+        self._up(link)
+        return True
+
+    def _lost(self, link: StreamLink) -> None:
+        self.up.clear()
+        log.warning("%s: peer %s down (%s); handshaking again", self.cfg.name, self.cfg.peer,
+                    link.why or "handshake line closed")
+
+    # -- the responder --------------------------------------------------------------------------
+    def _accepted(self, connection: StreamConnection, peer: Address) -> None:
+        def run() -> None:
+            try:
+                secure = respond(connection, self.identity, lambda key: key == self.peer_key)
+            except HandshakeError as exc:
+                connection.close()
+                why = "its key is not peer_key" if isinstance(exc, UnknownKey) else str(exc)
+                self.role.router.link_drop(None, "bad_handshake", f"from {peer[0]}")
+                self.refusals.say(f"{peer[0]}", f"{self.cfg.name}: refused a handshake "
+                                  f"from {peer[0]}: {why}")
+                return
+            link = self.role.life.closing(StreamLink(
+                secure, f"handshake<-{peer[0]}", peer, self._on_frame, self.role.router.on_lost,
+                on_close=self._closed))
+            first = self.key_id is None
+            self.key_id = os.urandom(1)[0] if first else (self.key_id + 1) % 256  # type: ignore[operator]
+            secret = os.urandom(32)
+            self.schedule.install(self.key_id, secret, secure.handshake_hash, seal_now=first)
+            link.send(control({"type": "keys", "secret": secret.hex(), "key_id": self.key_id,
+                               "rekey": self.schedule.rekey}), self.role.control)
+            old, self.link = self.link, link
+            if old is not None and old is not link:
+                old.fail("the peer made a new handshake")
+            self._up(link)
+
+        threading.Thread(target=run, name=f"handshake-{peer[0]}", daemon=True).start()
+
+    def _closed(self, link: StreamLink) -> None:
+        self.role.life.forget(link)
+        if link is self.link:
+            self._lost(link)
+
+    # -- both --------------------------------------------------------------------------------------
+    def _up(self, link: StreamLink) -> None:
+        self.link = link
+        link.last_heard = time.monotonic()
+        self.up.set()
+        log.info("%s: peer %s up (authenticated)", self.cfg.name, self.cfg.peer)
+
+    def _on_frame(self, frame: bytes, link: Link, source: Address) -> None:
+        if not is_control(frame):
+            self.role.router.link_drop(link, "not_control", f"on the handshake line from {source}")
+            return
+        message = parse_control(frame)
+        if message is None:
+            self.role.router.link_drop(link, "bad_control", f"from {source}")
+            return
+        assert isinstance(link, StreamLink)
+        link.last_heard = time.monotonic()
+        if message["type"] == "keys" and self.initiator:
+            self._answer = message
+            self._answered.set()
+        elif message["type"] == "ready" and not self.initiator:
+            key_id = message.get("key_id")
+            if isinstance(key_id, int):
+                self.schedule.seal_with(key_id)
+
+    def _ping_loop(self) -> None:
+        cfg = self.cfg
+        while not self.role.life.stopping.wait(cfg.heartbeat):
+            link = self.link
+            if not self.up.is_set() or link is None or link.closed.is_set():
+                continue
+            silence = time.monotonic() - link.last_heard
+            if silence > cfg.peer_timeout:
+                link.fail(f"silent for {silence:.1f} s")
+            else:
+                link.send(control({"type": "ping"}), self.role.control)

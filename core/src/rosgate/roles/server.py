@@ -8,30 +8,61 @@ that says hello again under the same name with the same topics gets the same ses
 same topic ids, its waiting frames first; with other topics, the old session is dropped and a
 new one made. Topic ids are derived from the client's name and the topic, so even a restarted
 server gives a returning client the ids it had.
+
+Authenticated (``bridge.identity`` and ``clients:``): a connection is nothing until its Noise
+handshake proves a client key listed under ``clients:`` — the handshake runs in a thread of its
+own, with a deadline and a small maximum message, and no other byte is parsed before it. The
+key decides the client's name (a hello under another name is refused) and its policy
+(:mod:`rosgate.policy`): each entry outside it is refused on its own, with one sentence in both
+logs, and the rest of the session runs. Each handshake brings a new session secret; datagram
+hellos must be sealed under it; :meth:`ServerRole.reload` applies a changed policy (SIGHUP).
 """
 
 from __future__ import annotations
 
+import base64
 import logging
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..config import Direction, topic_from_mapping
+from ..config import (
+    ClientPolicy,
+    Direction,
+    ServiceConfig,
+    TopicConfig,
+    service_from_mapping,
+    topic_from_mapping,
+)
 from ..errors import ConfigError, LinkError
+from ..keyring import Keys
 from ..links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
+from ..policy import refusal
 from ..resolver import PreparedService, PreparedTopic
 from ..routes import Route
+from ..secure import (
+    HandshakeError,
+    KeySchedule,
+    SecureConnection,
+    SessionKeys,
+    UnknownKey,
+    open_hello,
+    respond,
+)
 from ..transport import Address, StreamConnection
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
-from . import Bridge, Role
-from .mainline import (PROTOCOL, client_services, control, flipped, is_control, parse_control,
-                       where_error)
+from . import Bridge, Refusals, Role
+from .mainline import PROTOCOL, control, flipped, is_control, key_label, parse_control, where_error
 
 log = logging.getLogger("rosgate")
+
+MAX_HANDSHAKES = 32  # connections in their handshake at once; more are closed at once
+
+Entry = TopicConfig | ServiceConfig
 
 
 @dataclass
@@ -44,14 +75,26 @@ class Session:
     topics: list[Any]  # the client's topic list, as it sent it
     services: list[Any]  # and its service list
     main: LinkSlot
-    routes: list[Route] = field(default_factory=list)
+    entries: list[Entry] = field(default_factory=list)  # checked, in the client's words
+    by_index: dict[int, Route] = field(default_factory=dict)  # entry -> its route
+    refused: dict[int, str] = field(default_factory=dict)  # entry -> why (the policy)
     addresses: dict[DatagramLink, Address] = field(default_factory=dict)
     streams: dict[int, LinkSlot] = field(default_factory=dict)  # port -> dedicated connection
     down_since: float | None = None  # monotonic time the main line was lost; None while up
+    policy: ClientPolicy | None = None  # authenticated: the client's entry in clients:
+    schedule: KeySchedule | None = None
+    key_id: int | None = None  # of the last handshake's secret
+    hellos: envelope.ReplayWindow = field(default_factory=envelope.ReplayWindow)
+
+    @property
+    def routes(self) -> list[Route]:
+        return [self.by_index[i] for i in sorted(self.by_index)]
 
     def close(self) -> None:
         for slot in [self.main, *self.streams.values()]:
             slot.close()
+        if self.schedule is not None:
+            self.schedule.forget()
 
 
 class ServerRole(Role):
@@ -60,6 +103,9 @@ class ServerRole(Role):
         self.sessions: dict[int, Session] = {}
         self._ids = iter(range(1, 2**32))
         self.router.on_hello = self.on_hello
+        self.refusals = Refusals()
+        self._by_key = {p.key: p for p in self.cfg.clients.values()}
+        self._handshakes = threading.BoundedSemaphore(MAX_HANDSHAKES)
 
     def start(self) -> None:
         plan = self.bridge.plan
@@ -78,8 +124,51 @@ class ServerRole(Role):
             self._end(session)
         super().stop()
 
+    # -- the handshake: before it, nothing a connection sends is parsed --------------------
+    def handshake(self, connection: StreamConnection, peer: Address,
+                  then: Callable[[StreamConnection], None]) -> None:
+        """Run the Noise handshake of an accepted connection in a thread of its own, then hand
+        the secure connection to ``then``; a connection that fails it is closed, said once per
+        :data:`~rosgate.roles.REFUSAL_EVERY` and counted."""
+        if not self.cfg.secure:
+            then(connection)
+            return
+        if not self._handshakes.acquire(blocking=False):
+            connection.close()
+            self.router.link_drop(None, "too_many_handshakes", f"from {peer[0]}")
+            return
+
+        def run() -> None:
+            try:
+                assert self.cfg.identity is not None
+                secure = respond(connection, self.cfg.identity, lambda key: key in self._by_key)
+            except UnknownKey as exc:
+                connection.close()
+                self.router.link_drop(None, "unknown_client_key", f"from {peer[0]}")
+                shown = base64.b64encode(exc.key).decode()[:8]
+                # said once per address and window: an attacker can make keys without end
+                self.refusals.say(f"unknown key {peer[0]}", f"refused a connection from "
+                                  f"{peer[0]}: its key {shown}... is not in clients:")
+                return
+            except HandshakeError as exc:
+                connection.close()
+                self.router.link_drop(None, "bad_handshake", f"from {peer[0]}")
+                self.refusals.say(f"handshake {peer[0]}",
+                                  f"refused a connection from {peer[0]}: {exc}")
+                return
+            finally:
+                self._handshakes.release()
+            then(secure)
+
+        threading.Thread(target=run, name=f"handshake-{peer[0]}", daemon=True).start()
+
     def _accepted(self, connection: StreamConnection, peer: Address) -> None:
+        self.handshake(connection, peer, lambda secure: self._main_line(secure, peer))
+
+    def _main_line(self, connection: StreamConnection, peer: Address) -> None:
         holder: dict[str, Session] = {}
+        policy = (self._by_key.get(connection.peer_key)
+                  if isinstance(connection, SecureConnection) else None)
 
         def on_frame(frame: bytes, link: Link, source: Address) -> None:
             session = holder.get("session")
@@ -90,12 +179,16 @@ class ServerRole(Role):
                     return
                 assert isinstance(link, StreamLink)
                 link.last_heard = time.monotonic()
-                if message["type"] == "hello" and session is None:
-                    session = self._welcome(message, link, peer)
+                kind = message["type"]
+                if kind == "hello" and session is None:
+                    session = self._welcome(message, link, peer, policy)
                     if session is not None:
                         holder["session"] = session
-                elif (message["type"] == "bye" and session is not None
-                      and session.main.current is link):
+                elif kind == "ready" and session is not None and session.schedule is not None:
+                    key_id = message.get("key_id")
+                    if isinstance(key_id, int):
+                        session.schedule.seal_with(key_id)
+                elif kind == "bye" and session is not None and session.main.current is link:
                     log.info("client %r left", session.name)
                     self._end(session)
                 return
@@ -115,30 +208,71 @@ class ServerRole(Role):
         self.life.closing(StreamLink(connection, f"main<-{peer[0]}:{peer[1]}", peer, on_frame,
                                      self.router.on_lost, on_close))
 
-    def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address) -> Session | None:
+    # -- sessions ----------------------------------------------------------------------------
+    def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address,
+                 policy: ClientPolicy | None) -> Session | None:
         name = str(hello.get("name", "?"))
-        session = self._resume(hello, name)
         try:
+            if policy is not None and name != policy.name:
+                raise ConfigError(f"the key of client {policy.name!r} says hello as {name!r}",
+                                  file=f"client {policy.name}",
+                                  fix="each client uses its own identity and bridge.name")
+            session = self._resume(hello, name)
             if session is None:
-                session = self._new_session(hello, name)
+                session = self._new_session(hello, name, policy)
+            else:
+                session.policy = policy or session.policy
+                self._sync(session)
         except (ConfigError, LinkError) as exc:
-            log.error("refused client %r from %s: %s", name, peer[0], exc)
+            self.refusals.say(f"refused {name} {exc}", f"refused client {name!r} from {peer[0]}: "
+                              f"{exc}", logging.ERROR)
             link.send(control({"type": "refused", "error": str(exc)}), self.control)
             return None
-        link.send(control({"type": "welcome", "name": self.cfg.name, "session": session.id,
-                           "token": session.token.hex(),
-                           "topic_ids": [r.topic_id for r in session.routes[:len(session.topics)]],
-                           "service_ids": [r.topic_id
-                                           for r in session.routes[len(session.topics):]]}),
-                  self.control)
+        for why in session.refused.values():
+            self.refusals.say(f"{name} {why}", why, logging.ERROR)
+        count = len(session.topics)
+        ids = [session.by_index[i].topic_id if i in session.by_index else 0
+               for i in range(len(session.entries))]
+        welcome: dict[str, Any] = {
+            "type": "welcome", "name": self.cfg.name, "session": session.id,
+            "topic_ids": ids[:count], "service_ids": ids[count:],
+            "refused": [{"entry": self._entry_name(session, i), "error": why}
+                        for i, why in sorted(session.refused.items())]}
+        if isinstance(link.connection, SecureConnection):
+            welcome.update(self._new_keys(session, link.connection))
+        else:
+            welcome["token"] = session.token.hex()
+        link.send(control(welcome), self.control)
         old = session.main.current
         session.main.attach(link)  # after the welcome: what waited goes out under known ids
         session.down_since = None
         if old is not None and old is not link:
             old.fail("the client connected again")
-        log.info("client %r up: connected from %s with %d topic(s) and %d service(s)", name,
-                 peer[0], len(session.topics), len(session.services))
+        log.info("client %r up: connected from %s with %d topic(s) and %d service(s)%s", name,
+                 peer[0], len(session.topics), len(session.services),
+                 f", {len(session.refused)} refused" if session.refused else "")
         return session
+
+    def _new_keys(self, session: Session, connection: SecureConnection) -> dict[str, Any]:
+        """A fresh secret for this handshake (sent inside it). The previous one still opens
+        what was sealed under it for a while, and seals until the client says it is ready."""
+        first = session.key_id is None
+        if session.schedule is None:
+            session.schedule = KeySchedule(self.cfg.rekey)
+        # a random first id: a restarted server rarely reuses its predecessor's (and when it
+        # does, the client's root serials keep the two apart)
+        session.key_id = os.urandom(1)[0] if session.key_id is None else (session.key_id + 1) % 256
+        secret = os.urandom(32)
+        session.schedule.install(session.key_id, secret, connection.handshake_hash,
+                                 seal_now=first)
+        return {"secret": secret.hex(), "key_id": session.key_id, "rekey": self.cfg.rekey}
+
+    @staticmethod
+    def _entry_name(session: Session, index: int) -> str:
+        entry = session.entries[index]
+        if isinstance(entry, TopicConfig):
+            return f"topics[{index}] ({entry.topic})"
+        return f"services[{index - len(session.topics)}] ({entry.service})"
 
     def _resume(self, hello: dict[str, Any], name: str) -> Session | None:
         """The session a returning client left, if it asks for the same topics; another
@@ -154,43 +288,65 @@ class ServerRole(Role):
         self._end(found)
         return None
 
-    def _new_session(self, hello: dict[str, Any], name: str) -> Session:
+    def _new_session(self, hello: dict[str, Any], name: str,
+                     policy: ClientPolicy | None) -> Session:
         if hello.get("protocol") != PROTOCOL:
             raise ConfigError(f"protocol {hello.get('protocol')!r} is not {PROTOCOL}",
                               file=f"client {name}", fix="run the same rosgate version on both")
-        prepared = self._prepare_client_topics(hello, name)
-        services = self._prepare_client_services(hello, name)
+        entries = self._client_entries(hello, name)
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
-                          hello.get("services", []), self.bridge.slot(f"main of {name}"))
+                          hello.get("services", []), self.bridge.slot(f"main of {name}"),
+                          entries=entries, policy=policy)
         try:
-            entries: list[PreparedTopic | PreparedService] = [*prepared, *services]
-            for p in entries:  # topics first: the welcome splits the ids so
-                session.routes.append(self._route(session, p))
-        except LinkError:
+            self._sync(session)
+        except (ConfigError, LinkError):
             self._drop_routes(session)
             raise
         with self._lock:
             self.sessions[session.id] = session
         return session
 
-    def _prepare_client_topics(self, hello: dict[str, Any], name: str) -> list[PreparedTopic]:
-        topics = hello.get("topics")
-        if not isinstance(topics, list):
-            raise ConfigError("hello without a topic list", file=f"client {name}")
+    def _client_entries(self, hello: dict[str, Any], name: str) -> list[Entry]:
+        """The hello's entries, checked like a file's (no type is imported here)."""
         where = f"client {name}"
         error = where_error(where)
-        prepared = []
-        for i, mapping in enumerate(topics):
-            if not isinstance(mapping, dict):
-                raise error(f"topics[{i}]", "not a mapping")
-            t = topic_from_mapping(mapping, self.cfg.defaults, where, index=i)
-            prepared.append(self.bridge.resolver.topic(flipped(t), i, "topics", error))
-        return prepared
+        topics, services = hello.get("topics"), hello.get("services", [])
+        if not isinstance(topics, list) or not isinstance(services, list):
+            raise ConfigError("hello without a topic and a service list", file=where)
+        entries: list[Entry] = []
+        for key, items, parse in (("topics", topics, topic_from_mapping),
+                                  ("services", services, service_from_mapping)):
+            for i, mapping in enumerate(items):
+                if not isinstance(mapping, dict):
+                    raise error(f"{key}[{i}]", "not a mapping")
+                entries.append(parse(mapping, self.cfg.defaults, where, index=i))
+        return entries
 
-    def _prepare_client_services(self, hello: dict[str, Any], name: str) -> list[PreparedService]:
-        where = f"client {name}"
-        return [self.bridge.resolver.service(flipped(s), i, "services", where_error(where))
-                for i, s in enumerate(client_services(hello, self.cfg.defaults, where))]
+    def _sync(self, session: Session) -> None:
+        """Routes for the entries the policy allows (made in order: topics, then services),
+        none for the others: a newly refused entry's route is torn down."""
+        keyless = {name for (kind, name), r in self.bridge.resolver.plugins.registered.items()
+                   if kind == "cipher" and not getattr(r.cls, "session_key_size", 0)}
+        where = f"client {session.name}"
+        topics = len(session.topics)
+        for index, entry in enumerate(session.entries):
+            why = refusal(session.policy, entry, keyless) if session.policy is not None else None
+            if why is not None:
+                session.refused[index] = why
+                route = session.by_index.pop(index, None)
+                if route is not None:
+                    self.router.remove(route)
+                continue
+            session.refused.pop(index, None)
+            if index in session.by_index:
+                continue
+            resolver, server_view = self.bridge.resolver, flipped(entry)
+            if index < topics:
+                p: PreparedTopic | PreparedService = resolver.topic(
+                    server_view, index, "topics", where_error(where))
+            else:
+                p = resolver.service(server_view, index - topics, "services", where_error(where))
+            session.by_index[index] = self._route(session, p)
 
     def _topic_id(self, session: Session, p: PreparedTopic | PreparedService) -> int:
         """Derived from the client's name and the topic or service, so a returning client gets
@@ -213,17 +369,31 @@ class ServerRole(Role):
         if p.transport.stream and port is None:
             link = session.main
         elif p.transport.stream and port is not None:
-            self.listen(p.transport, p.address, self._dedicated_frame(port))
-            link = session.streams[port] = self.bridge.slot(f"port {port} of {session.name}")
+            self.listen(p.transport, p.address, self._dedicated_frame(port),
+                        handshake=self.handshake)
+            if port not in session.streams:
+                session.streams[port] = self.bridge.slot(f"port {port} of {session.name}")
+            link = session.streams[port]
         else:
             datagrams = self.datagram_link(p.transport, p.address)
             link = datagrams
 
             def destination() -> Address | None:  # where the client said hello from, last
                 return session.addresses.get(datagrams)
+        keys = self._keys(session, p)
         if isinstance(p, PreparedTopic):
-            return self.router.topic(p, topic_id, label, link, destination)
-        return self.router.service(p, topic_id, label, link, destination)
+            return self.router.topic(p, topic_id, label, link, destination, keys)
+        return self.router.service(p, topic_id, label, link, destination, keys)
+
+    def _keys(self, session: Session, p: PreparedTopic | PreparedService) -> Keys | None:
+        if not self.cfg.secure:
+            return None
+        if session.schedule is None:
+            session.schedule = KeySchedule(self.cfg.rekey)
+        assert p.cipher_cls is not None
+        kind = "topic" if isinstance(p, PreparedTopic) else "service"
+        return SessionKeys(session.schedule, p.cipher_cls, key_label(kind, "s2c", p.name),
+                           key_label(kind, "c2s", p.name))
 
     @staticmethod
     def _no_address() -> Address | None:
@@ -240,7 +410,7 @@ class ServerRole(Role):
                 session = self.sessions.get(header.topic_id)
                 slot = session.streams.get(port) if session is not None else None
                 if (session is not None and slot is not None and isinstance(link, StreamLink)
-                        and frame[envelope.SIZE:] == session.token):
+                        and self._hello_is_genuine(session, header, frame, link)):
                     old = slot.current
                     slot.attach(link)
                     if old is not None and old is not link:
@@ -252,9 +422,25 @@ class ServerRole(Role):
 
         return on_frame
 
+    def _hello_is_genuine(self, session: Session, header: envelope.Header, frame: bytes,
+                          link: Link) -> bool:
+        """A hello sealed in the session (and, on a stream, over a handshake with the
+        session's client key), or, without identities, carrying the session's token."""
+        if session.schedule is None:
+            return frame[envelope.SIZE:] == session.token
+        if isinstance(link, StreamLink):
+            connection = link.connection
+            if (not isinstance(connection, SecureConnection) or session.policy is None
+                    or connection.peer_key != session.policy.key):
+                return False
+        if not open_hello(session.schedule, header, frame):
+            return False
+        return session.hellos.accept(header.epoch, header.seq) is None
+
     def on_hello(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
+        """A datagram hello: the client's address on this link, learnt only from a genuine one."""
         session = self.sessions.get(header.topic_id)
-        if session is None or frame[envelope.SIZE:] != session.token:
+        if session is None or not self._hello_is_genuine(session, header, frame, link):
             self.router.link_drop(link, "bad_hello", f"from {source}")
             return
         if isinstance(link, DatagramLink) and session.addresses.get(link) != source:
@@ -272,7 +458,46 @@ class ServerRole(Role):
             self.router.log_stats(session.routes)  # what this client's topics carried, at the end
         for route in session.routes:
             self.router.remove(route)
+        session.by_index.clear()
         session.close()
+
+    # -- a new policy (SIGHUP) ---------------------------------------------------------------
+    def reload(self, clients: dict[str, ClientPolicy]) -> None:
+        """Apply a new ``clients:`` to new and existing sessions. A client no longer listed (or
+        with another key) is disconnected; one whose entries the new policy judges otherwise has
+        them torn down or added and its main line recycled, so it hears which now run. Every
+        other client goes on untouched."""
+        self.cfg.clients = clients
+        self._by_key = {p.key: p for p in clients.values()}
+        for session in list(self.sessions.values()):
+            policy = clients.get(session.name)
+            link = session.main.current
+            if policy is None or session.policy is None or policy.key != session.policy.key:
+                log.warning("client %r: no longer accepted with its key; its session ends",
+                            session.name)
+                self._end(session)
+                if link is not None:
+                    link.fail("the server's policy no longer accepts this client")
+                continue
+            before = (dict(session.refused), set(session.by_index))
+            session.policy = policy
+            try:
+                self._sync(session)
+            except (ConfigError, LinkError) as exc:
+                log.error("client %r: cannot apply the new policy (%s); its session ends",
+                          session.name, exc)
+                self._end(session)
+                if link is not None:
+                    link.fail("the server's policy changed")
+                continue
+            if (dict(session.refused), set(session.by_index)) != before:
+                for why in session.refused.values():
+                    self.refusals.say(f"{session.name} {why}", why, logging.ERROR)
+                log.info("client %r: the new policy changed its entries; reconnecting it",
+                         session.name)
+                if link is not None:
+                    link.fail("the server's policy changed")
+        log.info("applied the policy of %d client(s)", len(clients))
 
     def _ping_loop(self) -> None:
         """Heartbeat to every connected client; liveness: a client silent for ``peer_timeout``

@@ -147,6 +147,28 @@ class CipherConformance:
                 pytest.fail(f"open({body!r}) raised {type(exc).__name__}: {exc}")
             pytest.fail(f"open accepted random bytes {body!r}")
 
+    def test_keyed_from_a_session_secret(self) -> None:
+        """A cipher that declares ``session_key_size`` is keyed by :meth:`Cipher.from_secret`:
+        two instances of one secret talk, another secret or a changed header is refused, and
+        sealing under the sequence numbers of a session (unique per key) round-trips."""
+        import os
+
+        size = self.cipher.session_key_size
+        if not size:
+            return  # cannot be keyed from a session (refused there unless a policy allows it)
+        secret = os.urandom(size)
+        sealer, opener = self.cipher.from_secret(secret), self.cipher.from_secret(secret)
+        for seq in (1, 2, 2**40):
+            header = envelope.pack(0, 7, 3 << 24 | 5, seq, 0)
+            assert opener.open(header, sealer.seal(header, b"payload %d" % seq)) \
+                == b"payload %d" % seq
+        header = envelope.pack(0, 7, 1, 1, 0)
+        body = sealer.seal(header, b"x")
+        with pytest.raises(CipherError):
+            self.cipher.from_secret(os.urandom(size)).open(header, body)
+        with pytest.raises(CipherError):
+            opener.open(envelope.pack(0, 7, 1, 2, 0), body)
+
     def test_two_seals_of_one_payload_differ(self, pair) -> None:
         """A fresh nonce (or IV) per frame: equal payloads must not be seen to be equal."""
         sealer, _ = pair

@@ -14,10 +14,15 @@ cipher, :mod:`rosgate.keys`):
 ``key_env``   name of an environment variable holding the key.
 
 The key is never taken from the command line, where other users could read it in ``ps``.
+
+In an authenticated session the key is not read from a file: the session derives 32 bytes per
+direction, topic and key generation, and :meth:`FernetCipher.from_secret` makes them a Fernet
+key (16 for HMAC-SHA256, 16 for AES-128).
 """
 
 from __future__ import annotations
 
+import base64
 from pathlib import Path
 
 from cryptography.fernet import Fernet, InvalidToken
@@ -30,6 +35,7 @@ class FernetCipher(Cipher):
     name = "fernet"
     Options = KeyOptions  # key_file or key_env: the convention of every rosgate cipher
     options: KeyOptions
+    session_key_size = 32
 
     def __init__(self, options: KeyOptions, base_dir: Path):
         super().__init__(options, base_dir)
@@ -41,6 +47,13 @@ class FernetCipher(Cipher):
                               f"the key in {describe_source(self.options)} is not a "
                               "Fernet key (32 url-safe base64-encoded bytes)",
                               "create one with 'rosgate keygen fernet --out secret.key'") from None
+
+    @classmethod
+    def from_secret(cls, secret: bytes) -> FernetCipher:
+        cipher = cls.__new__(cls)
+        cipher.options = KeyOptions()
+        cipher._fernet = Fernet(base64.urlsafe_b64encode(secret))
+        return cipher
 
     def seal(self, header: bytes, payload: bytes) -> bytes:
         return self._fernet.encrypt(header + payload)

@@ -22,6 +22,9 @@ cipher, :mod:`rosgate.keys`):
 
 A key that is not 32 bytes of base64 is an :class:`rosgate.OptionError` at the option that
 named it (the key is never shown).
+
+In an authenticated session the key is not read from a file: the session derives one per
+direction, topic and key generation (:meth:`NaclCipher.from_secret`); the body is the same.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ class NaclCipher(Cipher):
     name = "nacl"
     Options = KeyOptions  # key_file or key_env: the convention of every rosgate cipher
     options: KeyOptions
+    session_key_size = SecretBox.KEY_SIZE
 
     def __init__(self, options: KeyOptions, base_dir: Path):
         super().__init__(options, base_dir)
@@ -65,6 +69,13 @@ class NaclCipher(Cipher):
                               f"nacl key ({SecretBox.KEY_SIZE} bytes in base64)",
                               "create one with 'rosgate keygen nacl --out nacl.key'")
         self._box = SecretBox(key)
+
+    @classmethod
+    def from_secret(cls, secret: bytes) -> NaclCipher:
+        cipher = cls.__new__(cls)
+        cipher.options = KeyOptions()
+        cipher._box = SecretBox(secret)
+        return cipher
 
     def seal(self, header: bytes, payload: bytes) -> bytes:
         salt = os.urandom(SALT)

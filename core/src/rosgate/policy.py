@@ -1,0 +1,79 @@
+"""A server's policy: what each client may ask for, default deny.
+
+Each entry a client sends in its hello (a topic or a service, in the client's words) is checked
+against the rules of its ``clients.NAME`` entry in the server's file, on the server-side name
+(the client's ``remote``). An entry is allowed when one rule of its kind matches all of:
+
+* ``name``: a glob on the server-side name — ``*`` and ``?`` within one segment, ``**`` across
+  segments (``/robot1/**`` matches ``/robot1/scan`` and ``/robot1/arm/joint``);
+* ``direction``: the client's — ``transmit`` (client to server: it publishes on the server's
+  ROS graph, or calls the server's services), ``receive`` (server to client), or ``both``;
+* ``types``: globs on ``pkg/msg/Type`` (any type when left out);
+* ``ports``: the dedicated ports it may use (none when left out: only the main port);
+* ``ciphers``: the ciphers it may use (when left out: any cipher a session keys, never ``none``).
+
+:func:`refusal` gives the one sentence logged on both sides when an entry is refused, naming
+the client, the entry and the rule: ``robot1 may not transmit /cmd_vel (policy for robot1
+allows /robot1/**)``.
+"""
+
+from __future__ import annotations
+
+import re
+from functools import lru_cache
+
+from .config import ClientPolicy, Rule, ServiceConfig, TopicConfig
+
+
+@lru_cache(maxsize=1024)
+def _glob(pattern: str) -> re.Pattern[str]:
+    parts = re.split(r"(\*\*|\*|\?)", pattern)
+    table = {"**": ".*", "*": "[^/]*", "?": "[^/]"}
+    return re.compile("".join(table.get(p, re.escape(p)) for p in parts))
+
+
+def matches(pattern: str, text: str) -> bool:
+    return _glob(pattern).fullmatch(text) is not None
+
+
+def _allows_direction(rule: Rule, direction: str) -> bool:
+    return rule.direction in ("both", direction)
+
+
+def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig,
+            keyless: set[str]) -> str | None:
+    """Why ``entry`` (as the client sent it) is refused, or None when a rule allows it.
+    ``keyless`` are the ciphers a session cannot key (``none``): allowed only when named."""
+    is_topic = isinstance(entry, TopicConfig)
+    kind = "topic" if is_topic else "service"
+    rules = policy.topics if is_topic else policy.services
+    name, direction = entry.remote, str(entry.direction)
+    what = name if is_topic else f"service {name}"
+    by_name = [r for r in rules if _allows_direction(r, direction) and matches(r.name, name)]
+    if not by_name:
+        allowed = [r.name for r in rules if _allows_direction(r, direction)]
+        says = ", ".join(allowed) if allowed else f"no {kind}s it {direction}s"
+        return f"{policy.name} may not {direction} {what} (policy for {policy.name} allows {says})"
+    checks = (
+        ("type", entry.type, lambda r: r.types is None
+         or any(matches(t, entry.type) for t in r.types),
+         lambda r: f"types {', '.join(r.types or ())}"),
+        ("port", entry.port, lambda r: entry.port is None
+         or any(low <= entry.port <= high for low, high in r.ports),
+         lambda r: "ports " + (", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in r.ports)
+                               or "none but the main port")),
+        ("cipher", entry.cipher, lambda r: entry.cipher in r.ciphers if r.ciphers is not None
+         else entry.cipher not in keyless,
+         lambda r: "ciphers " + (", ".join(r.ciphers) if r.ciphers is not None
+                                 else "keyed by the session (not none)")),
+    )
+    for label, value, allows, describe in checks:
+        if not any(allows(r) for r in by_name):
+            rule = by_name[0]
+            return (f"{policy.name} may not {direction} {what} with {label} {value} (policy "
+                    f"for {policy.name} allows {describe(rule)} for {rule.name})")
+    for rule in by_name:
+        if all(check[2](rule) for check in checks):
+            return None
+    return (f"{policy.name} may not {direction} {what} as asked (no rule of policy for "
+            f"{policy.name} allows its type, port and cipher together)")
