@@ -440,6 +440,9 @@ ERRORS = {
     "max_rate_zero": (
         CLIENT_HEAD + TOPIC + "    max_rate: 0\n",
         9, "topics[0].max_rate", "expected a number of Hz > 0 (1e-06..1e+06), got 0"),
+    "max_wait_negative": (
+        CLIENT_HEAD + TOPIC + "    max_wait: -0.1\n",
+        9, "topics[0].max_wait", "expected a number of seconds >= 0 (0: never drop), got -0.1"),
     "timeout_zero": (
         CLIENT_HEAD + SERVICE + "    timeout: 0\n",
         9, "services[0].timeout", "expected a number of seconds > 0"),
@@ -603,7 +606,14 @@ def test_error_reads_file_line_key_and_fix(tmp_path: Path) -> None:
     assert str(error) == (
         f"{path}:12: topics[1].codek: unknown key 'codek' (did you mean 'codec'?)\n"
         "  fix: valid keys are topic, type, direction, remote, transport, codec, cipher, port, framing, "
-        "qos, max_rate, priority")
+        "qos, max_rate, max_wait, priority")
+
+
+def test_max_wait_in_seconds(tmp_path: Path) -> None:
+    config = load(write(tmp_path, CLIENT_HEAD + TOPIC + "    max_wait: 0.05\n"))
+    assert config.topics[0].max_wait == 0.05
+    assert load(write(tmp_path, CLIENT_HEAD + TOPIC)).topics[0].max_wait is None
+    assert load(write(tmp_path, CLIENT_HEAD + TOPIC + "    max_wait: 0\n")).topics[0].max_wait == 0
 
 
 def test_missing_key_fix_says_what_to_add(tmp_path: Path) -> None:

@@ -104,7 +104,7 @@ QUEUE_KEYS = ("frames", "bytes")
 LIMITS_KEYS = ("connections", "connections_per_source", "handshake_timeout",
                "max_frame_before_auth", "idle_timeout", "sessions")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
-              "framing", "qos", "max_rate", "priority")
+              "framing", "qos", "max_rate", "max_wait", "priority")
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
                 "framing", "timeout", "max_request")
 QOS_KEYS = ("reliability", "durability", "history", "depth")
@@ -128,7 +128,7 @@ _EXAMPLES = {
     "services.type": "std_srvs/srv/Trigger", "services.remote": "/ping",
     "direction": "transmit (this side to the peer) or receive (the peer to this side)",
     "remote": "/robot1/chatter", "port": "12001", "framing": "rosgate", "qos": "sensor_data",
-    "max_rate": "20", "priority": "data", "fleet_timeout": "30", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
+    "max_rate": "20", "max_wait": "0.02", "priority": "data", "fleet_timeout": "30", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
     "history": "keep_last", "depth": "10",
     "identity": "robot1.key", "server_key": "<the server's public key, from rosgate keygen identity>",
     "insecure": "true", "rekey": "120", "peer_key": "<the other peer's public key>",
@@ -164,6 +164,8 @@ class TopicConfig:
     framing: Framing = FRAMING_DEFAULT
     qos: int | str | dict = QOS_DEFAULT
     max_rate: float | None = None
+    #: best-effort topics: seconds a message may wait in the bridge's queues (None: the default)
+    max_wait: float | None = None
     priority: int | None = None  # bus topics: 1 (real time) .. 7 (background)
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
@@ -844,6 +846,8 @@ def _topic(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Topi
         max_rate=_number(src, data, path, "max_rate", None,
                          f"a number of Hz > 0 ({MAX_RATE_RANGE[0]:g}..{MAX_RATE_RANGE[1]:g})",
                          lambda v: MAX_RATE_RANGE[0] <= v <= MAX_RATE_RANGE[1]),
+        max_wait=_number(src, data, path, "max_wait", None, "a number of seconds >= 0 (0: never "
+                         "drop)", lambda value: value >= 0),
         priority=_priority(src, data, path),
         **_entry_lines(src, path),
     )

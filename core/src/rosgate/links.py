@@ -1,10 +1,11 @@
 """Links: the core's side of a transport. Framing, fragmentation and threads live here, so a
 transport plugin only opens sockets.
 
-* :class:`DatagramLink` — one bound endpoint; sends whole frames or fragments, reassembles,
-  and hands every frame to ``on_frame``. A transport with small frames (``max_frame`` below
-  ``framing.COMPACT_BELOW``, such as CAN) gets the compact fragment scheme instead. In bare
-  mode (``framing: none``) it hands over the datagram untouched.
+* :class:`DatagramLink` — one bound endpoint; sends whole frames, several frames coalesced in
+  one datagram, or fragments, from a send thread of its own when the caller should not wait;
+  reassembles, splits, and hands every frame to ``on_frame``. A transport with small frames
+  (``max_frame`` below ``framing.COMPACT_BELOW``, such as CAN) gets the compact fragment scheme
+  instead. In bare mode (``framing: none``) it hands over the datagram untouched.
 * :class:`StreamLink` — one connection; frames carry a length prefix. Sending never blocks the
   caller: frames wait in a bounded queue for a writer thread.
 * :class:`LinkSlot` — a place for a stream link that comes and goes (reconnects). While it is
@@ -31,14 +32,14 @@ when it stops.
 from __future__ import annotations
 
 import ipaddress
-import itertools
 import logging
+import os
 import random
 import threading
 import time
 from collections import Counter, deque
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Protocol
+from typing import Any, Callable, Iterable, Protocol, cast
 
 from .errors import LinkError
 from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport
@@ -71,20 +72,38 @@ class Sender(Protocol):
     def drop(self, reason: str, detail: str = "") -> None:
         """Count one of its frames as dropped on the way out."""
 
+    # optional: ``max_wait_ns``, nanoseconds a frame of it may wait in a link's send queue
+    # before it is dropped (``too_late``); missing or 0: it waits (reliable topics, control)
+
+
+def max_wait_ns(sender: Sender) -> int:
+    return getattr(sender, "max_wait_ns", 0)
+
 
 class Link:
     """What a route sends through and what frames are reported from."""
 
     name: str
     closed: threading.Event
+    counters: LinkCounters
     #: datagram links need a destination for every send; stream links are connected
     datagram: bool = False
+    #: while a frame is handed to its handler: when the datagram that carried it arrived (ns,
+    #: the clock of time.time_ns, as the transport's receive_into says), or 0: unknown
+    arrived: int = 0
+
+    # a link implements send or send_all (or both): each defaults to the other
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         """Hand ``frame`` to the link. False when it was dropped at once (counted against
         ``sender``); True when it was sent or queued — a queued frame that is lost later is
         counted against ``sender`` then."""
-        raise NotImplementedError
+        return self.send_all([frame], sender, to) == 1
+
+    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
+        """Hand several frames of one sender to the link at once (they may share a datagram or a
+        write); how many were sent or queued, as :meth:`send` says for one."""
+        return sum(self.send(frame, sender, to) for frame in frames)
 
     def close(self) -> None:
         raise NotImplementedError
@@ -109,6 +128,13 @@ class Lifetime:
         with self._lock:
             self._items.pop(id(item), None)
 
+    def links(self) -> list[Link]:
+        """The links open now that count what they carry."""
+        with self._lock:
+            return [item for item in self._items.values()
+                    if isinstance(item, Link) and isinstance(getattr(item, "counters", None),
+                                                             LinkCounters)]
+
     def close_all(self) -> None:
         self.stopping.set()
         with self._lock:
@@ -118,12 +144,50 @@ class Lifetime:
             item.close()
 
 
+@dataclass
+class LinkCounters:
+    """What a link carried, per direction: frames, the datagrams (or stream writes and reads)
+    that carried them, and how many frames shared one with others (coalesced)."""
+
+    frames_out: int = 0
+    packets_out: int = 0
+    coalesced_out: int = 0
+    bytes_out: int = 0
+    frames_in: int = 0
+    packets_in: int = 0
+    coalesced_in: int = 0
+    bytes_in: int = 0
+
+    def snapshot(self) -> dict[str, int]:
+        return dict(vars(self))
+
+    def line(self) -> str:
+        return (f"out {self.frames_out} frames in {self.packets_out} packets "
+                f"({self.coalesced_out} coalesced, {self.bytes_out} B), "
+                f"in {self.frames_in} frames in {self.packets_in} packets "
+                f"({self.coalesced_in} coalesced, {self.bytes_in} B)")
+
+
 class DatagramLink(Link):
+    """A bound datagram endpoint: frames out (whole, coalesced, in fragments or compact pieces),
+    datagrams in (reassembled, split), each frame to ``on_frame``.
+
+    Sending: frames that each fit a datagram go out on the caller's thread when the link is
+    idle, so a message that comes alone costs no thread hand-off; frames handed over together
+    (:meth:`send_all`: a route that found several messages waiting) share datagrams, as many to
+    one as ``max_frame`` allows (a batch, see :mod:`rosgate.wire.framing`). A frame that needs
+    fragments or compact pieces, and frames sent while another thread is sending, join a
+    bounded queue instead, which the link's send thread drains, coalescing what waits for each
+    destination the same way. Nothing waits for frames that are not there yet, so coalescing
+    adds no latency, and a large frame never holds up the ROS executor.
+    """
+
     datagram = True
 
     def __init__(self, transport: Transport, endpoint: DatagramEndpoint, name: str,
                  on_frame: FrameHandler, on_lost: LostHandler, bare: bool = False,
-                 max_message: int = framing.DEFAULT_MAX_MESSAGE, sources: Sources | None = None):
+                 max_message: int = framing.DEFAULT_MAX_MESSAGE, sources: Sources | None = None,
+                 queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024):
         self.transport = transport
         #: who frames are taken from (None: anyone); others are counted ``not_allowed``
         self.sources = sources
@@ -134,6 +198,9 @@ class DatagramLink(Link):
         self.on_frame = on_frame
         self.on_lost = on_lost
         self.closed = threading.Event()
+        self.counters = LinkCounters()
+        self.queue_frames = queue_frames
+        self.queue_bytes = queue_bytes
         # small frames cannot spare 14 bytes of fragment header: every frame goes as compact pieces
         self.compact = not bare and self.max_frame < framing.COMPACT_BELOW
         self.reassembler: framing.Reassembler | framing.CompactReassembler
@@ -142,78 +209,287 @@ class DatagramLink(Link):
                                                           max_message=max_message)
         else:
             self.reassembler = framing.Reassembler(on_lost, max_message=max_message)
-        self._frame_ids = itertools.count(1)
         self._counters: dict[Address, int] = {}  # compact: the next piece's counter per destination
-        # compact pieces carry no frame id: one frame's pieces must not interleave with another's
-        self._send_lock = threading.Lock()
-        self._thread = threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True)
-        self._thread.start()
+        self._send_parts = getattr(endpoint, "send_parts", None)
+        # the queue, and whether a thread is sending (inline or the send thread): one at a time
+        self._queue: deque[tuple[bytes, Sender, Address, int]] = deque()  # ... queued at (ns)
+        self._queued_bytes = 0
+        self._busy = False
+        # entered as the plain lock on the way out (a Condition's own with-statement costs a
+        # Python call each way, ~0.3 us); the send thread waits on the condition
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._threads = [
+            threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
+            threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
 
-    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
+    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
         assert to is not None, "a datagram link needs a destination"
-        try:
-            if self.compact:
-                self._send_compact(frame, to)
-            elif len(frame) <= self.max_frame:
-                self.endpoint.send(frame, to)
-            elif self.bare:
+        count = len(frames)
+        if count == 1:
+            total = biggest = len(frames[0])
+        elif count:
+            sizes = [len(frame) for frame in frames]
+            total, biggest = sum(sizes), max(sizes)
+        else:
+            return 0
+        limit = self.max_frame
+        if biggest > limit and self.bare:
+            return self._too_large_for_bare(frames, sender, to)
+        lock, wake = self._lock, self._wake
+        with lock:
+            if self.closed.is_set():
+                verdict = "closed"
+            elif biggest <= limit and not self._busy and not self._queue and not self.compact:
+                self._busy = True  # this thread sends them; anyone else queues meanwhile
+                verdict = "inline"
+            elif (len(self._queue) + count > self.queue_frames
+                  or self._queued_bytes + total > self.queue_bytes):
+                verdict = "full"
+            else:
+                now = time.monotonic_ns()
+                self._queue.extend([(frame, sender, to, now) for frame in frames])
+                self._queued_bytes += total
+                if not self._busy:
+                    wake.notify()
+                return count
+        if verdict == "inline":
+            try:
+                if count == 1:
+                    failed = 0 if self._send_one(frames[0], sender, to) else 1
+                else:
+                    failed = self._transmit([(frame, sender, to, 0) for frame in frames])
+            finally:
+                with lock:
+                    self._busy = False
+                    if self._queue:
+                        wake.notify()
+            return count - failed
+        for _ in frames:
+            if verdict == "closed":
+                sender.drop("link_down", f"{self.name} is closed")
+            else:
+                sender.drop("queue_full", f"{self.name} has {self.queue_frames} frames or "
+                                          f"{self.queue_bytes} bytes waiting to be sent")
+        return 0
+
+    def _too_large_for_bare(self, frames: list[bytes], sender: Sender, to: Address) -> int:
+        """A bare link's receiver takes one message per datagram: a longer one is dropped."""
+        fitting = []
+        for frame in frames:
+            if len(frame) > self.max_frame:
                 sender.drop("too_large_for_bare_framing",
                             f"{len(frame)} bytes, {self.name} carries at most {self.max_frame}")
-                return False
             else:
-                for piece in framing.fragment(frame, self.max_frame, sender.topic_id,
-                                              next(self._frame_ids)):
+                fitting.append(frame)
+        return self.send_all(fitting, sender, to) if fitting else 0
+
+    def _send_one(self, frame: bytes, sender: Sender, to: Address) -> bool:
+        try:
+            self.endpoint.send(frame, to)
+        except OSError as exc:
+            sender.drop("send_error", f"to {to} on {self.name}: {exc}")
+            return False
+        counters = self.counters
+        counters.frames_out += 1
+        counters.packets_out += 1
+        counters.bytes_out += len(frame)
+        return True
+
+    def _send_loop(self) -> None:
+        wake, closed = self._wake, self.closed
+        while True:
+            with wake:
+                if self._busy:  # this thread's own, from the turn before
+                    self._busy = False
+                while not self._queue or self._busy:
+                    if closed.is_set():
+                        return
+                    wake.wait()
+                queued, self._queue = self._queue, deque()
+                self._queued_bytes = 0
+                self._busy = True
+            try:
+                self._transmit(queued)
+            except Exception:  # a bug; the link must keep sending
+                log.exception("%s: error while sending (a bug: please report it)", self.name)
+
+    def _transmit(self, queued: Iterable[tuple[bytes, Sender, Address, int]]) -> int:
+        """Send frames in order per destination: frames that fit together share a datagram
+        (not on bare links, whose receivers take one message per datagram); a large frame goes
+        in fragments (or compact pieces). A frame queued (at a time other than 0) longer than
+        its sender's ``max_wait_ns`` is dropped instead (``too_late``). How many could not be
+        sent (counted)."""
+        groups: dict[Address, list] = {}  # destination -> [total frame bytes, (frame, sender)...]
+        limit, coalesce, failed = self.max_frame, not self.bare, 0
+        now = time.monotonic_ns()
+        for frame, sender, to, queued_at in queued:
+            if queued_at and now - queued_at > max_wait_ns(sender) > 0:
+                sender.drop("too_late", f"waited {(now - queued_at) / 1e6:.0f} ms to be sent "
+                                        f"on {self.name}")
+                failed += 1
+                continue
+            size = len(frame)
+            if self.compact or size > limit:
+                group = groups.pop(to, None)
+                if group is not None:
+                    failed += self._send_group(to, group)
+                failed += not self._send_large(frame, sender, to)
+                continue
+            group = groups.get(to)
+            if group is None:
+                groups[to] = [size, (frame, sender)]
+            elif not coalesce or framing.batch_size(group[0] + size, len(group)) > limit:
+                failed += self._send_group(to, group)
+                groups[to] = [size, (frame, sender)]
+            else:
+                group[0] += size
+                group.append((frame, sender))
+        for to, group in groups.items():
+            failed += self._send_group(to, group)
+        return failed
+
+    def _send_group(self, to: Address, group: list) -> int:
+        frames = group[1:]
+        if len(frames) == 1:
+            return 0 if self._send_one(frames[0][0], frames[0][1], to) else 1
+        try:
+            parts = framing.batch([frame for frame, _ in frames])
+            if self._send_parts is not None:
+                self._send_parts(parts, to)
+            else:
+                self.endpoint.send(b"".join(parts), to)
+        except OSError as exc:
+            for _, sender in frames:
+                sender.drop("send_error", f"to {to} on {self.name}: {exc}")
+            return len(frames)
+        counters = self.counters
+        counters.frames_out += len(frames)
+        counters.packets_out += 1
+        counters.bytes_out += group[0]
+        counters.coalesced_out += len(frames)
+        return 0
+
+    def _send_large(self, frame: bytes, sender: Sender, to: Address) -> bool:
+        """A frame in fragments, or in compact pieces (on a link of small frames, every frame)."""
+        try:
+            if self.compact:
+                counter = self._counters.get(to, 0)  # only this thread sends compact pieces
+                pieces = framing.compact_fragment(frame, self.max_frame, counter)
+                self._counters[to] = (counter + len(pieces)) & framing.COMPACT_COUNTER
+                for piece in pieces:
                     self.endpoint.send(piece, to)
+                sent = len(pieces)
+            else:
+                frame_id = int.from_bytes(os.urandom(4), "big")  # unpredictable: see Reassembler
+                parts = framing.fragments(frame, self.max_frame, sender.topic_id, frame_id)
+                send_parts = self._send_parts
+                for header, chunk in parts:
+                    if send_parts is not None:
+                        send_parts([header, chunk], to)
+                    else:
+                        self.endpoint.send(header + chunk, to)
+                sent = len(parts)
         except (OSError, framing.FramingError) as exc:
             sender.drop("send_error", f"to {to} on {self.name}: {exc}")
             return False
+        counters = self.counters
+        counters.frames_out += 1
+        counters.packets_out += sent
+        counters.bytes_out += len(frame)
         return True
 
-    def _send_compact(self, frame: bytes, to: Address) -> None:
-        with self._send_lock:
-            counter = self._counters.get(to, 0)
-            pieces = framing.compact_fragment(frame, self.max_frame, counter)
-            self._counters[to] = (counter + len(pieces)) & framing.COMPACT_COUNTER
-            for piece in pieces:
-                self.endpoint.send(piece, to)
-
     def _receive_loop(self) -> None:
-        while not self.closed.is_set():
+        receive_into = getattr(self.endpoint, "receive_into", None)
+        if receive_into is None:
+            receive: Callable[[], tuple[bytes | memoryview, Address] | None] = \
+                lambda: self.endpoint.receive(POLL)
+        else:
+            # one buffer for every datagram: longer than any frame this link accepts, so a
+            # datagram that fills it is one too long
+            buffer = memoryview(bytearray(max(self.max_frame, 65_535) + 1))
+
+            def receive() -> tuple[bytes | memoryview, Address] | None:
+                got = receive_into(buffer, POLL)
+                if got is None:
+                    return None
+                size, source, self.arrived = got
+                if size >= len(buffer):
+                    self.on_lost(None, "oversized_datagram")
+                    return None
+                return buffer[:size], source
+
+        closed = self.closed
+        while not closed.is_set():
             try:
-                got = self.endpoint.receive(POLL)
+                got = receive()
             except OSError:
-                if self.closed.is_set():
+                if closed.is_set():
                     return
                 continue
             except Exception:  # a transport plugin's bug must not silently end the link
                 BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
                                             "(a bug in the plugin)")
                 self.on_lost(None, "transport_error")
-                self.closed.wait(POLL)  # do not spin on a receive that fails at once
+                closed.wait(POLL)  # do not spin on a receive that fails at once
                 continue
             if got is None:
                 self.reassembler.expire()
                 continue
-            datagram, source = got
-            if self.sources is not None and not self.sources.admits(source, datagram):
-                self.on_lost(None, "not_allowed")
-                continue
-            if self.compact or not self.bare and framing.is_fragment(datagram):
-                try:
-                    frame = self.reassembler.add(source, datagram)
-                except framing.FramingError:
-                    self.on_lost(None, "bad_fragment")
-                    continue
-                if frame is None:
-                    continue
-                datagram = frame
-            deliver(self, datagram, source)
+            self._datagram(*got)
+
+    def _datagram(self, datagram: bytes | memoryview, source: Address) -> None:
+        """One datagram as it came (a view of the receive buffer, valid until the next one)."""
+        if self.sources is not None and not self.sources.admits(source, datagram):
+            self.on_lost(None, "not_allowed")
+            return
+        counters = self.counters
+        counters.packets_in += 1
+        counters.bytes_in += len(datagram)
+        if self.bare:
+            counters.frames_in += 1
+            deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
+            return
+        kind = datagram[1] if len(datagram) > 1 and datagram[0] == 0x52 else 0  # "R?"
+        if self.compact or kind == 0x46:  # "RF": a fragment
+            try:
+                frame = self.reassembler.add(source, datagram)
+            except framing.FramingError:
+                self.on_lost(None, "bad_fragment")
+                return
+            if frame is not None:
+                counters.frames_in += 1
+                # the buffer it was reassembled in, the handler's to keep: a route hands it to
+                # rclpy without a copy (typed bytes: handlers take any bytes-like frame)
+                deliver(self, cast(bytes, frame), source)
+        elif kind == 0x42:  # "RB": several frames
+            try:
+                for record in framing.unbatch(datagram):
+                    counters.frames_in += 1
+                    counters.coalesced_in += 1
+                    deliver(self, bytes(record), source)
+            except framing.FramingError:
+                self.on_lost(None, "bad_batch")
+        else:
+            counters.frames_in += 1
+            deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
 
     def close(self) -> None:
-        self.closed.set()
+        with self._wake:
+            self.closed.set()
+            unsent = [sender for _, sender, _, _ in self._queue]
+            self._queue.clear()
+            self._queued_bytes = 0
+            self._wake.notify_all()
+        for sender in unsent:
+            sender.drop("link_down", f"{self.name} closed with the frame still queued")
         self.endpoint.close()
-        if threading.current_thread() is not self._thread:
-            self._thread.join(timeout=2)
+        for thread in self._threads:
+            if thread is not threading.current_thread():
+                thread.join(timeout=2)
 
 
 @dataclass(frozen=True)
@@ -228,7 +504,12 @@ class Untrusted:
 class StreamLink(Link):
     """One stream connection, framed with length prefixes. With ``untrusted``, it is held to
     those limits until :meth:`trust` (a frame too long is a corrupt stream; the deadline passing
-    ends the connection, counted ``handshake_timeout``)."""
+    ends the connection, counted ``handshake_timeout``).
+
+    Sending never blocks the caller: when nothing is being written, frames are written from the
+    caller's thread as far as the connection takes them without waiting (``send_nowait``: no
+    thread hand-off for a message alone); everything else waits in a bounded queue for the
+    link's writer thread, which writes what is queued in one go."""
 
     def __init__(self, connection: StreamConnection, name: str, peer: Address,
                  on_frame: FrameHandler, on_lost: LostHandler,
@@ -249,12 +530,16 @@ class StreamLink(Link):
         self.why = ""  # why the connection ended, once it has
         self.queue_frames = queue_frames
         self.queue_bytes = queue_bytes
-        self._queue: deque[tuple[bytes, Sender]] = deque()
+        self.counters = LinkCounters()
+        self._send_nowait = getattr(connection, "send_nowait", None)
+        self._queue: deque[tuple[bytes, Sender, int]] = deque()  # record, sender, queued at (ns)
         self._queued_bytes = 0
-        self._writing = False  # the writer holds a batch not yet written
-        self._wake = threading.Condition()
+        self._busy = False  # a thread is writing (the caller's, or the writer with a batch)
+        self._lock = threading.Lock()  # the plain lock on the way in (see DatagramLink)
+        self._wake = threading.Condition(self._lock)
+        self._reader = framing.StreamReader(untrusted.max_frame if untrusted else max_message,
+                                            direct=hasattr(connection, "receive_into"))
         self.max_message = max_message
-        self._reader = framing.StreamReader(untrusted.max_frame if untrusted else max_message)
         self._trust_by = time.monotonic() + untrusted.deadline if untrusted else None
         self._threads = [
             threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
@@ -263,53 +548,120 @@ class StreamLink(Link):
         for thread in self._threads:
             thread.start()
 
-    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
+    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
         if self.closed.is_set():
-            sender.drop("link_down", f"{self.name} is closed")
-            return False
-        record = framing.length_prefixed(frame)
-        with self._wake:
-            if (len(self._queue) >= self.queue_frames
-                    or self._queued_bytes + len(record) > self.queue_bytes):
-                full = True
+            for _ in frames:
+                sender.drop("link_down", f"{self.name} is closed")
+            return 0
+        records = [framing.length_prefixed(frame) for frame in frames]
+        size = sum(map(len, records))
+        with self._lock:
+            if (len(self._queue) + len(records) > self.queue_frames
+                    or self._queued_bytes + size > self.queue_bytes):
+                verdict = "full"
+            elif self._send_nowait is not None and not self._busy and not self._queue:
+                self._busy = True  # this thread writes; anyone else queues meanwhile
+                verdict = "inline"
             else:
-                full = False
-                self._queue.append((record, sender))
-                self._queued_bytes += len(record)
+                verdict = "queued"
+                now = time.monotonic_ns()
+                self._queue.extend([(record, sender, now) for record in records])
+                self._queued_bytes += size
+                if not self._busy:
+                    self._wake.notify()
+        if verdict == "full":
+            for _ in frames:
+                sender.drop("queue_full", f"{self.name} has {self.queue_frames} frames or "
+                                          f"{self.queue_bytes} bytes waiting")
+            return 0
+        if verdict == "inline":
+            self._write_now(records, sender)
+        return len(frames)
+
+    def _write_now(self, records: list[bytes], sender: Sender) -> None:
+        """Write from the caller's thread what goes without waiting; the rest goes first in the
+        writer's queue (nothing can come between: this thread is the only one writing)."""
+        assert self._send_nowait is not None
+        data = records[0] if len(records) == 1 else b"".join(records)
+        try:
+            written = self._send_nowait(data)
+        except OSError as exc:
+            with self._lock:
+                self._busy = False
+            for _ in records:
+                sender.drop("link_down", f"{self.name}: send failed")
+            self.fail(f"send failed: {exc}")
+            return
+        self._count_out(records, written, len(data))
+        with self._lock:
+            if written < len(data):
+                now, rest, offset = time.monotonic_ns(), [], 0
+                for record in records:  # the frames not wholly written, the first of them cut
+                    end = offset + len(record)
+                    if end > written:
+                        rest.append((record[max(0, written - offset):], sender, now))
+                    offset = end
+                self._queue.extendleft(reversed(rest))
+                self._queued_bytes += len(data) - written
+            self._busy = False
+            if self._queue:
                 self._wake.notify()
-        if full:
-            sender.drop("queue_full", f"{self.name} has {self.queue_frames} frames or "
-                                      f"{self.queue_bytes} bytes waiting")
-            return False
-        return True
+
+    def _count_out(self, records: list[bytes], written: int, size: int) -> None:
+        if not written:
+            return
+        counters = self.counters
+        counters.packets_out += 1
+        counters.bytes_out += written
+        if written == size:
+            counters.frames_out += len(records)
+            if len(records) > 1:
+                counters.coalesced_out += len(records)
 
     def _send_loop(self) -> None:
+        wake = self._wake
         while True:
-            with self._wake:
-                self._writing = False
-                self._wake.notify_all()  # for drain()
-                while not self._queue and not self.closed.is_set():
-                    self._wake.wait()
+            with wake:
+                if self._busy:  # this thread's own, from the turn before
+                    self._busy = False
+                    wake.notify_all()  # for drain()
+                while (not self._queue or self._busy) and not self.closed.is_set():
+                    wake.wait()
                 if self.closed.is_set():
                     return
                 # one write for everything queued: fewer system calls under load
                 batch = list(self._queue)
                 self._queue.clear()
                 self._queued_bytes = 0
-                self._writing = True
+                self._busy = True
+            now = time.monotonic_ns()
+            if any(max_wait_ns(sender) for _, sender, _ in batch):
+                kept = []
+                for entry in batch:
+                    _, sender, queued_at = entry
+                    if now - queued_at > max_wait_ns(sender) > 0:
+                        sender.drop("too_late", f"waited {(now - queued_at) / 1e6:.0f} ms to be "
+                                                f"sent on {self.name}")
+                    else:
+                        kept.append(entry)
+                batch = kept
+                if not batch:
+                    continue
+            data = b"".join(record for record, _, _ in batch)
             try:
-                self.connection.send(b"".join(record for record, _ in batch))
+                self.connection.send(data)
             except OSError as exc:
-                for _, sender in batch:
+                for _, sender, _ in batch:
                     sender.drop("link_down", f"{self.name}: send failed")
                 self.fail(f"send failed: {exc}")
                 return
+            self._count_out([record for record, _, _ in batch], len(data), len(data))
 
     def drain(self, timeout: float) -> bool:
         """Wait until everything sent so far is written (a last word before closing)."""
         with self._wake:
             return self._wake.wait_for(
-                lambda: not self._queue and not self._writing or self.closed.is_set(), timeout)
+                lambda: not self._queue and not self._busy or self.closed.is_set(), timeout)
 
     def trust(self) -> None:
         """The connection proved itself: the full frame size, no deadline."""
@@ -321,9 +673,18 @@ class StreamLink(Link):
         return self._trust_by is None
 
     def _receive_loop(self) -> None:
-        while not self.closed.is_set():
+        receive_into = getattr(self.connection, "receive_into", None)
+        buffer = memoryview(bytearray(256 * 1024))
+        reader, closed = self._reader, self.closed
+        while not closed.is_set():
+            target = reader.target() if receive_into is not None else None
             try:
-                data = self.connection.receive(1 << 20, POLL)
+                if receive_into is not None and target is not None:  # a large frame, in place
+                    got: int | bytes | None = receive_into(target, POLL)
+                elif receive_into is not None:
+                    got = receive_into(buffer, POLL)
+                else:
+                    got = self.connection.receive(len(buffer), POLL)
             except OSError as exc:
                 self.fail(f"receive failed: {exc}")
                 return
@@ -338,19 +699,39 @@ class StreamLink(Link):
                 self.on_lost(None, "handshake_timeout")
                 self.fail("no handshake in time")
                 return
-            if data is None:
+            if got is None:
                 continue
-            if not data:
+            if not got:
                 self.fail("closed by peer")
                 return
+            counters = self.counters
+            counters.packets_in += 1
+            if target is not None:
+                assert isinstance(got, int)
+                target.release()  # the frame is the handler's: it may cut it (routes do)
+                counters.bytes_in += got
+                whole = reader.filled(got)
+                if whole is not None:
+                    counters.frames_in += 1
+                    # its own buffer, the handler's to keep (typed bytes: see DatagramLink)
+                    deliver(self, cast(bytes, whole), self.peer)
+                continue
+            data = buffer[:got] if isinstance(got, int) else got
+            counters.bytes_in += len(data)
+            count = 0
             try:
-                for frame in self._reader.feed(data):
+                for frame in reader.feed(data):
+                    count += 1
                     deliver(self, frame, self.peer)
             except framing.FramingError as exc:
                 # a corrupt length means we can no longer find frame boundaries: start afresh
                 self.on_lost(None, "bad_length")
                 self.fail(f"stream corrupt ({exc})")
                 return
+            finally:
+                counters.frames_in += count
+                if count > 1:
+                    counters.coalesced_in += count
 
     def fail(self, why: str) -> None:
         """End the connection for a reason worth logging (lost, corrupt, silent)."""
@@ -379,7 +760,7 @@ class StreamLink(Link):
             if thread is not threading.current_thread() and thread.ident is not None:
                 thread.join(timeout=2)
         with self._wake:  # what never reached the connection is a drop, and counted as one
-            unsent = [sender for _, sender in self._queue]
+            unsent = [sender for _, sender, _ in self._queue]
             self._queue.clear()
             self._queued_bytes = 0
         for sender in unsent:
@@ -416,18 +797,19 @@ class LinkSlot(Link):
         self._waiting_bytes = 0
         self._lock = threading.Lock()  # keeps sends and the flush of the queue in order
 
-    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
+    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
         overflow: list[Sender] = []
         with self._lock:
             link = self.current
             if link is not None and not link.closed.is_set():
-                return link.send(frame, sender)
+                return link.send_all(frames, sender)
             if self.closed.is_set() or not sender.reliable:
                 refused = True
             else:
                 refused = False
-                self._waiting.append((frame, sender))
-                self._waiting_bytes += len(frame)
+                for frame in frames:
+                    self._waiting.append((frame, sender))
+                    self._waiting_bytes += len(frame)
                 while self._waiting and (len(self._waiting) > self.limits.frames
                                          or self._waiting_bytes > self.limits.bytes):
                     old, old_sender = self._waiting.popleft()
@@ -436,9 +818,10 @@ class LinkSlot(Link):
         for old_sender in overflow:
             old_sender.drop("queue_overflow", f"{self.name} is down and its queue is full")
         if refused:
-            sender.drop("link_down", f"{self.name} is down")
-            return False
-        return True
+            for _ in frames:
+                sender.drop("link_down", f"{self.name} is down")
+            return 0
+        return len(frames)
 
     def attach(self, link: StreamLink) -> None:
         """Use ``link`` from now on; what waited goes first."""
@@ -461,6 +844,11 @@ class LinkSlot(Link):
     @property
     def waiting(self) -> int:
         return len(self._waiting)
+
+    @property
+    def counters(self) -> LinkCounters:  # type: ignore[override]  # the connection's, read-only
+        link = self.current
+        return link.counters if link is not None else LinkCounters()
 
     def close(self) -> None:
         self.closed.set()
@@ -553,8 +941,9 @@ class Connector:
                 connection.close()
                 self.failed(exc)
                 return None
-        link = StreamLink(connection, self.slot.name, self.address, self.on_frame,
-                          self.on_frame_lost, on_close=self.life.forget)
+        link = self.life.closing(StreamLink(connection, self.slot.name, self.address,
+                                            self.on_frame, self.on_frame_lost,
+                                            on_close=self.life.forget))
         if self.on_connected is not None and not self.on_connected(link):
             link.close()
             return None
@@ -587,7 +976,7 @@ class Sources:
             except ValueError:
                 self.hosts.add(text)  # not an IP network: a host as written (a device address)
 
-    def admits(self, source: Address, datagram: bytes = b"") -> bool:
+    def admits(self, source: Address, datagram: bytes | memoryview = b"") -> bool:
         host = source[0]
         if host in self.hosts:
             return True
@@ -633,7 +1022,7 @@ class KnownSources(Sources):
             if self._known[source] <= 0:
                 del self._known[source]
 
-    def admits(self, source: Address, datagram: bytes = b"") -> bool:
+    def admits(self, source: Address, datagram: bytes | memoryview = b"") -> bool:
         return source in self._known or envelope.is_hello(datagram)
 
     def __repr__(self) -> str:

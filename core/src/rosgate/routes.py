@@ -21,17 +21,19 @@ reason.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, cast
 
+from .builtin import NoCipher
 from .codec import Codec
 from .config import ServiceConfig, TopicConfig
 from .errors import CipherError, CodecError
-from .keyring import Keys, NoKey
+from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .transport import Address
 from .warn import Warner
@@ -39,6 +41,12 @@ from .wire import envelope
 from .wire.names import NameMissing, pack_name, split_name
 
 log = logging.getLogger("rosgate")
+
+# seconds a message of a best-effort topic may wait in the bridge's queues (max_wait's default)
+MAX_WAIT = 0.02
+# a transmitting route takes what waits in its subscription up to this much at a time
+DRAIN_FRAMES = 32
+DRAIN_BYTES = 60_000
 
 # reasons that say something is wrong (a warning); the others are routine and only counted
 QUIET_REASONS = {"rate_limit", "duplicate"}
@@ -74,6 +82,14 @@ class Route:
         self.reliable = reliable  # frames wait out a stream link's loss (reliable QoS)
         self.counters = Counters()
         self.entity: Any = None  # the ROS subscription, publisher, service or client
+        #: the none cipher: a frame's body is its payload (decided once, not per frame)
+        self.plain = isinstance(keys, StaticKeys) and type(keys.cipher).open is NoCipher.open
+        #: a reassembled frame's bytearray may go on as the payload (see open)
+        self.zero_copy = False
+        #: best-effort topics: how long (ns) a message may wait in a queue of the bridge before
+        #: it is dropped (too_late) rather than delivered late; 0: never (reliable topics,
+        #: services: they have their own deadlines)
+        self.max_wait_ns = 0
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.counters.drops[reason] += 1
@@ -89,14 +105,25 @@ class Route:
 
     def open(self, frame: bytes, epoch: int) -> bytes | None:
         """An envelope frame's payload if the cipher of its epoch accepts it; None (counted)
-        when it does not."""
+        when it does not.
+        A reassembled frame comes as the bytearray it was reassembled in, the route's to keep:
+        with the ``none`` cipher on a receiving route of a raw codec (cdr: the core's own decode,
+        CDR check and publisher take a bytearray) its header is cut off in place and the rest
+        goes to rclpy without a copy.
+        Ciphers and other codecs get bytes, as their contracts say."""
+        if self.plain:
+            if type(frame) is bytearray and self.zero_copy:
+                del frame[:envelope.SIZE]  # O(1): CPython moves the start, copies nothing
+                return cast(bytes, frame)
+            return bytes(frame[envelope.SIZE:])
         cipher = self.keys.opener(epoch)
         if cipher is None:
             self.drop("unknown_key", "sealed under a key this side does not hold (an earlier "
                                      "session, a restart, or an expired key generation)")
             return None
+        header, body = bytes(frame[:envelope.SIZE]), bytes(frame[envelope.SIZE:])
         try:
-            return cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
+            return cipher.open(header, body)
         except CipherError as exc:
             self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
             return None
@@ -120,13 +147,13 @@ class EnvelopeFraming(TopicFraming):
     bare = False
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int) -> bytes:
-        with route.lock:
-            epoch = route.keys.epoch()
-            if epoch != route.epoch:  # a new key: a new sequence under it
-                route.epoch, route.seq = epoch, 0
-            route.seq += 1
-            seq = route.seq
-        return route.seal(0, epoch, seq, payload, stamp)
+        # no lock: a route's messages come from the one executor thread (RosNode)
+        epoch = route.keys.epoch()
+        if epoch != route.epoch:  # a new key: a new sequence under it
+            route.epoch, route.seqs = epoch, itertools.count(1)
+        header = envelope.HEADER.pack(envelope.MAGIC, envelope.VERSION, 0, route.topic_id,
+                                      epoch, next(route.seqs), stamp)
+        return header + route.keys.sealer(epoch).seal(header, payload)
 
 
 class BareFraming(TopicFraming):
@@ -143,6 +170,12 @@ class BareFraming(TopicFraming):
         return self.prefix + payload
 
 
+def max_wait_ns(topic: TopicConfig, reliable: bool) -> int:
+    if reliable:
+        return 0
+    return int(1e9 * (MAX_WAIT if topic.max_wait is None else topic.max_wait))
+
+
 class TransmitRoute(Route):
     """ROS subscription -> link."""
 
@@ -151,37 +184,77 @@ class TransmitRoute(Route):
                  link: Link, destination: Callable[[], Address | None]):
         super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
+        self.max_wait_ns = max_wait_ns(topic, reliable)
         self.framing = framing
         self.link = link
         self.destination = destination  # where to send, looked up per message (a server learns it)
         self.epoch: int | None = None  # of the key in use, set by the first frame
-        self.seq = 0
+        self.seqs = itertools.count(1)  # its sequence numbers
+        self._size = 1  # of a frame, lately: how many messages a datagram's worth is
         rate = topic.max_rate
         self.min_interval_ns = int(1e9 / rate) if rate else 0
         self.last_sent_ns = 0
-        self.lock = threading.Lock()  # a ROS callback group may call from several threads
+        #: takes the next message already waiting, or None (set with the subscription)
+        self.take: Callable[[], Any] | None = None
 
     def on_message(self, message: Any) -> None:
-        now = time.time_ns()
-        if self.min_interval_ns and now - self.last_sent_ns < self.min_interval_ns:
-            self.drop("rate_limit")
-            return
+        """A message from the subscription, and every other one already waiting in it (up to a
+        datagram's worth): framed, then handed to the link together, so a backlog leaves in
+        few datagrams (one executor wake-up, one system call) instead of one per message."""
         to = self.destination()
         if to is None and self.link.datagram:
             self.drop("no_peer_yet", "the far side's address is not known yet")
             return
+        messages = [message]
+        take = self.take
+        if take is not None:
+            max_wait, now = self.max_wait_ns, time.time_ns()
+            while len(messages) < DRAIN_FRAMES:
+                got = take()
+                if got is None:
+                    break
+                more, received = got
+                if max_wait and now - received > max_wait:
+                    # waited too long in the subscription's queue, and so did every message
+                    # before it: overloaded, drop them to catch up (reliable topics never do)
+                    for _ in range(len(messages) + 1):
+                        self.drop("too_late", f"waited over {max_wait / 1e6:.0f} ms to be taken")
+                    messages.clear()
+                    continue
+                messages.append(more)
+                if len(messages) * self._size >= DRAIN_BYTES:
+                    break
+        frames: list[bytes] = []
+        size = 0
+        for one in messages:
+            frame = self._frame(one)
+            if frame is not None:
+                frames.append(frame)
+                size += len(frame)
+        if size:
+            self._size = size // len(frames)
+        if frames:
+            sent = self.link.send_all(frames, self, to)
+            counters = self.counters
+            counters.sent += sent
+            counters.bytes_sent += size if sent == len(frames) else sum(map(len, frames[:sent]))
+
+    def _frame(self, message: Any) -> bytes | None:
+        """One message framed, or None when it was dropped (counted)."""
+        now = time.time_ns()
+        if self.min_interval_ns:
+            if now - self.last_sent_ns < self.min_interval_ns:
+                self.drop("rate_limit")
+                return None
+            self.last_sent_ns = now
         try:
-            frame = self.framing.frame(self, self.codec.encode(message), now)
+            return self.framing.frame(self, self.codec.encode(message), now)
         except NoKey:
             self.drop("no_session_key", "the session's handshake has not happened yet")
-            return
+            return None
         except Exception as exc:  # a codec or cipher bug must not stop the executor
             self.drop("encode_error", f"{type(exc).__name__}: {exc}")
-            return
-        if self.link.send(frame, self, to):
-            self.last_sent_ns = now
-            self.counters.sent += 1
-            self.counters.bytes_sent += len(frame)
+            return None
 
 
 class ReceiveRoute(Route):
@@ -192,15 +265,21 @@ class ReceiveRoute(Route):
                  decode: Callable[[bytes], Any]):
         super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
+        self.max_wait_ns = max_wait_ns(topic, reliable)
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
+        #: publishes what decode returned (set with the publisher: raw CDR as bytes or bytearray)
+        self.publish: Callable[[Any], None] = lambda message: self.entity.publish(message)
+        self.zero_copy = codec.raw  # the core's raw decode, CDR check and publisher take one
         # without a cipher that vouches for the header, one forged frame may not move it
         self.window = envelope.ReplayWindow(authenticated=keys.authenticates)
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
 
-    def on_frame(self, header: envelope.Header, frame: bytes) -> None:
-        """An envelope frame (framing rosgate), found by its topic id."""
+    def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> None:
+        """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
+        datagram that carried it reached this machine (time.time_ns(); 0: unknown)."""
+        size = len(frame)
         payload = self.open(frame, header.epoch)
         if payload is None:
             return
@@ -213,7 +292,12 @@ class ReceiveRoute(Route):
         if refused:
             self.drop(refused)
             return
-        self.deliver(payload, len(frame))
+        if arrived and self.max_wait_ns:
+            waited = time.time_ns() - arrived
+            if waited > self.max_wait_ns:  # overloaded: drop what waited, to catch up
+                self.drop("too_late", f"waited {waited / 1e6:.0f} ms in the receive buffer")
+                return
+        self.deliver(payload, size)
 
     def deliver(self, payload: bytes, size: int) -> None:
         """Decode and publish; ``size`` is what arrived on the link, for the counters."""
@@ -226,7 +310,7 @@ class ReceiveRoute(Route):
             self.drop("decode_error", f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
             return
         try:
-            self.entity.publish(message)
+            self.publish(message)
         except Exception as exc:
             self.drop("publish_error", f"{type(exc).__name__}: {exc}")
             return

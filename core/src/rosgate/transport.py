@@ -79,6 +79,30 @@ class DatagramEndpoint(Protocol):
         (``None`` or ``OSError``)."""
 
 
+class FastDatagramEndpoint(DatagramEndpoint, Protocol):
+    """A :class:`DatagramEndpoint` that also offers the core's fast path. Both methods are
+    optional, each on its own: the core looks for them once per link and uses ``send`` and
+    ``receive`` where they are missing (the kit's conformance suite tests whichever a transport
+    has). They save an allocation and a copy per frame on busy links.
+    """
+
+    def receive_into(self, buffer: memoryview,
+                     timeout: float) -> tuple[int, Address, int] | None:
+        """As :meth:`~DatagramEndpoint.receive`, but write the frame into ``buffer`` from its
+        start and return ``(length, source, arrived)``: ``arrived`` is when the frame reached
+        this machine, in nanoseconds of ``time.time_ns()``'s clock (UDP asks the kernel:
+        ``SO_TIMESTAMPNS``), or 0 when the link cannot tell. With it, a receiving route drops a
+        best-effort message that waited too long in the receive buffer (``max_wait``). ``buffer``
+        is longer than any frame the link accepts (more than ``max_frame`` and than 65,535
+        bytes): the core counts a frame that fills it as too long. Called from one thread;
+        ``buffer`` is the core's and reused."""
+
+    def send_parts(self, parts: list[bytes | memoryview], to: Address) -> None:
+        """As :meth:`~DatagramEndpoint.send`, for the one frame that ``parts`` make in order
+        (a header and a view of a payload; several frames coalesced): scatter-gather
+        (``sendmsg``) instead of joining them. Their total is at most ``max_frame``."""
+
+
 class StreamConnection(Protocol):
     """One connected byte stream.
 
@@ -96,6 +120,23 @@ class StreamConnection(Protocol):
 
     def close(self) -> None:
         """Close; a ``receive`` blocked in another thread returns soon after."""
+
+
+class FastStreamConnection(StreamConnection, Protocol):
+    """A :class:`StreamConnection` that also offers the core's fast path; as for datagrams
+    (:class:`FastDatagramEndpoint`), each method is optional and the core looks for it once per
+    connection. :class:`SocketConnection` has both."""
+
+    def receive_into(self, buffer: memoryview, timeout: float) -> int | None:
+        """As :meth:`~StreamConnection.receive`, writing up to ``len(buffer)`` bytes into
+        ``buffer``: how many (0 when the far end closed), or ``None`` after ``timeout``. The core
+        reads a large frame straight into the buffer it will hand on, and everything else into
+        one buffer of its own, instead of a new bytes object per read."""
+
+    def send_nowait(self, data: bytes) -> int:
+        """Write what of ``data`` goes without waiting (0 when nothing does): the core writes a
+        frame from the caller's thread when nothing else is being written, and leaves the rest,
+        if any, to the link's writer thread. ``OSError`` as for ``send``."""
 
 
 class StreamListener(Protocol):
@@ -222,10 +263,21 @@ class SocketConnection:
     def send(self, data: bytes) -> None:
         self.sock.sendall(data)
 
+    def send_nowait(self, data: bytes) -> int:
+        try:
+            return self.sock.send(data, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            return 0
+
     def receive(self, max_bytes: int, timeout: float) -> bytes | None:
         if not self._readable.poll(timeout * 1000):
             return None
         return self.sock.recv(max_bytes)  # data, b"" at the end, or OSError once closed
+
+    def receive_into(self, buffer: memoryview, timeout: float) -> int | None:
+        if not self._readable.poll(timeout * 1000):
+            return None
+        return self.sock.recv_into(buffer)  # 0 at the end, or OSError once closed
 
     def close(self) -> None:
         try:

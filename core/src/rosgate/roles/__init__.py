@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 from ..config import BridgeConfig
 from ..errors import ConfigError, LinkError
-from ..links import (Acceptor, Backoff, ConnectionLimits, DatagramLink, Lifetime, Link, LinkSlot,
-                     QueueLimits, Sources, StreamLink, Untrusted)
+from ..links import (Acceptor, Backoff, ConnectionLimits, DatagramLink, Lifetime, Link, LinkCounters,
+                     LinkSlot, QueueLimits, Sources, StreamLink, Untrusted)
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort
@@ -250,9 +250,10 @@ class NoLink(Link):
     def __init__(self) -> None:
         self.name = "in"
         self.closed = threading.Event()
+        self.counters = LinkCounters()
 
-    def send(self, frame: bytes, sender: object, to: Address | None = None) -> bool:
-        return False
+    def send_all(self, frames: list[bytes], sender: object, to: Address | None = None) -> int:
+        return 0
 
     def close(self) -> None:
         pass

@@ -18,12 +18,15 @@ from __future__ import annotations
 
 import struct
 import zlib
-from dataclasses import dataclass
+from typing import NamedTuple
 
 MAGIC = b"RG"
 VERSION = 1
 HEADER = struct.Struct(">2sBBIIQQ")
 SIZE = HEADER.size
+# the same 28 bytes read in one call: magic, version and flags as one word
+_WORDS = struct.Struct(">IIIQQ")
+_MAGIC_VERSION = int.from_bytes(MAGIC, "big") << 16 | VERSION << 8
 
 FLAG_CONTROL = 0x01  # topic_id 0: a control message on the main line (JSON)
 FLAG_HELLO = 0x02    # a datagram that tells the server where a client's link is (topic_id = session)
@@ -46,7 +49,7 @@ def topic_of(start: bytes) -> int | None:
     return int.from_bytes(start[4:8], "big") if start[:2] == MAGIC and len(start) >= 8 else None
 
 
-def is_hello(datagram: bytes) -> bool:
+def is_hello(datagram: bytes | memoryview) -> bool:
     """Whether ``datagram`` is a whole envelope with the HELLO flag (not yet checked)."""
     return len(datagram) >= SIZE and datagram[:2] == MAGIC and bool(datagram[3] & FLAG_HELLO)
 
@@ -55,8 +58,7 @@ class EnvelopeError(ValueError):
     """Bytes that do not start with a valid envelope header."""
 
 
-@dataclass(frozen=True, slots=True)
-class Header:
+class Header(NamedTuple):
     flags: int
     topic_id: int
     epoch: int
@@ -68,15 +70,14 @@ def pack(flags: int, topic_id: int, epoch: int, seq: int, stamp: int) -> bytes:
     return HEADER.pack(MAGIC, VERSION, flags, topic_id, epoch, seq, stamp)
 
 
-def unpack(frame: bytes | memoryview) -> Header:
-    if len(frame) < SIZE:
-        raise EnvelopeError("truncated")
-    magic, version, flags, topic_id, epoch, seq, stamp = HEADER.unpack_from(frame)
-    if magic != MAGIC:
-        raise EnvelopeError("foreign")
-    if version != VERSION:
-        raise EnvelopeError("version")
-    return Header(flags, topic_id, epoch, seq, stamp)
+def unpack(frame: bytes | bytearray | memoryview) -> Header:
+    try:
+        word, topic_id, epoch, seq, stamp = _WORDS.unpack_from(frame)
+    except struct.error:
+        raise EnvelopeError("truncated") from None
+    if word & 0xFFFFFF00 != _MAGIC_VERSION:
+        raise EnvelopeError("foreign" if word >> 16 != _MAGIC_VERSION >> 16 else "version")
+    return Header(word & 0xFF, topic_id, epoch, seq, stamp)
 
 
 class ReplayWindow:
