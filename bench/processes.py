@@ -9,6 +9,9 @@ process of its own so the bridge pays for its own CPU, as it would in use:
 
 DDS stays on loopback (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) and uses domains 150..169,
 away from the tests' 20..119, so a bench run and a test run do not hear each other.
+``ROSGATE_BENCH_DOMAINS=FIRST-LAST`` gives a run other domains, so two benchmarks on one machine
+do not hear each other either (a subscriber that counts another run's messages reports more
+delivered than offered).
 """
 
 from __future__ import annotations
@@ -34,7 +37,8 @@ CLOCK_TICK = os.sysconf("SC_CLK_TCK")  # /proc/<pid>/stat counts CPU time in the
 START_TIMEOUT = 30.0
 READY_LINE = "running as"
 
-_domain_pairs = itertools.cycle(range(150, 170, 2))
+_FIRST, _LAST = (int(n) for n in os.environ.get("ROSGATE_BENCH_DOMAINS", "150-169").split("-"))
+_domain_pairs = itertools.cycle(range(_FIRST, _LAST, 2))
 
 
 def next_domains() -> tuple[int, int]:

@@ -150,6 +150,19 @@ def test_link_keys_default_and_explicit() -> None:
     assert (config.reconnect_min, config.reconnect_max) == (20.0, 20.0)  # max follows a big min
 
 
+def test_limits_default_and_explicit() -> None:
+    from rosgate.config import Limits
+
+    config = loads(CLIENT_HEAD)
+    assert config.limits == Limits(connections=256, connections_per_source=16,
+                                   handshake_timeout=5.0, max_frame_before_auth=65536,
+                                   idle_timeout=2.0, sessions=256)
+    config = loads(CLIENT_HEAD + "  limits: {connections: 10, connections_per_source: 2, "
+                   "handshake_timeout: 1, idle_timeout: 0.5, max_frame_before_auth: 4096, "
+                   "sessions: 3}\n")
+    assert config.limits == Limits(10, 2, 1.0, 4096, 0.5, 3)
+
+
 def test_server_file(tmp_path: Path) -> None:
     config = load(write(tmp_path, """
         bridge:
@@ -426,7 +439,7 @@ ERRORS = {
         9, "topics[0].codec", "expected a non-empty string, got a list"),
     "max_rate_zero": (
         CLIENT_HEAD + TOPIC + "    max_rate: 0\n",
-        9, "topics[0].max_rate", "expected a number of Hz > 0, got 0"),
+        9, "topics[0].max_rate", "expected a number of Hz > 0 (1e-06..1e+06), got 0"),
     "timeout_zero": (
         CLIENT_HEAD + SERVICE + "    timeout: 0\n",
         9, "services[0].timeout", "expected a number of seconds > 0"),
@@ -536,7 +549,36 @@ ERRORS = {
     "max_request_too_small": (
         CLIENT_HEAD + "services:\n  - service: /s\n    type: std_srvs/srv/Trigger\n"
                       "    direction: receive\n    max_request: 8\n",
-        9, "services[0].max_request", "expected a number of bytes >= 16, got 8"),
+        9, "services[0].max_request", "expected a number of bytes >= 16 (at most 67108864), got 8"),
+    "limits_unknown_key": (
+        CLIENT_HEAD + "  limits: {connexions: 5}\n",
+        5, "bridge.limits.connexions", "unknown key 'connexions' (did you mean 'connections'?)"),
+    "limits_per_source_over_total": (
+        CLIENT_HEAD + "  limits:\n    connections: 4\n    connections_per_source: 8\n",
+        7, "bridge.limits.connections_per_source", "8 per source is more than the 4 connections"),
+    "limits_small_frame": (
+        CLIENT_HEAD + "  limits: {max_frame_before_auth: 10}\n",
+        5, "bridge.limits.max_frame_before_auth", "expected a number of bytes >= 1024, got 10"),
+    "limits_handshake_infinite": (
+        CLIENT_HEAD + "  limits: {handshake_timeout: .inf}\n",
+        5, "bridge.limits.handshake_timeout", "expected a number of seconds > 0, got inf"),
+    "qos_depth_huge": (
+        CLIENT_HEAD + TOPIC + f"    qos: {2**64}\n",
+        9, "topics[0].qos", "a QoS depth must be at most 100000, got 18446744073709551616"),
+    "qos_mapping_depth_huge": (
+        CLIENT_HEAD + TOPIC + "    qos: {depth: 1000000}\n",
+        9, "topics[0].qos.depth", "a QoS depth must be at most 100000"),
+    "max_rate_tiny": (
+        CLIENT_HEAD + TOPIC + "    max_rate: 1.0e-320\n",
+        9, "topics[0].max_rate", "expected a number of Hz > 0 (1e-06..1e+06), got 1e-320"),
+    "timeout_not_finite": (
+        CLIENT_HEAD + "services:\n  - service: /s\n    type: std_srvs/srv/Trigger\n"
+                      "    direction: receive\n    timeout: .inf\n",
+        9, "services[0].timeout", "at most 3600, got inf"),
+    "topic_name_too_long": (
+        CLIENT_HEAD + "topics:\n  - topic: /" + "a" * 300 + "\n    type: std_msgs/msg/String\n"
+                      "    direction: transmit\n",
+        6, "topics[0].topic", "a name of 301 characters is longer than ROS takes (200)"),
     "serial_datagram_on_topic": (
         CLIENT_HEAD + TOPIC + "    framing: serial_datagram\n",
         9, "topics[0].framing", "framing serial_datagram is for services"),

@@ -226,3 +226,59 @@ def test_topic_of_reads_the_topic_from_the_first_8_bytes_only():
     assert envelope.topic_of(frame[:8]) == 0xDEADBEEF
     assert envelope.topic_of(frame[:7]) is None
     assert envelope.topic_of(b"XX" + frame[2:8]) is None
+
+
+# --- replay window on an unauthenticated route (cipher none): issue 10, attack 9 ---------------
+
+def open_window() -> ReplayWindow:
+    return ReplayWindow(authenticated=False)
+
+
+def test_unauthenticated_in_order_duplicates_and_stale_as_before():
+    window = open_window()
+    assert accept_all(window, range(1, 1001)) == [None] * 1000
+    assert window.accept(EPOCH, 1000) == "duplicate"
+    assert window.accept(EPOCH, 937) == "duplicate"   # 63 behind
+    assert window.accept(EPOCH, 936) == "stale"       # 64 behind
+    assert window.accept(EPOCH, 1) == "stale"
+    assert window.lost == 0
+
+
+def test_one_forged_frame_far_ahead_does_not_lock_out_the_real_sender():
+    window = open_window()
+    assert accept_all(window, range(1, 101)) == [None] * 100
+    assert window.accept(EPOCH, 2**63) is None        # forged: a window of its own
+    assert accept_all(window, range(101, 201)) == [None] * 100
+    assert window.accept(EPOCH, 150) == "duplicate"
+    assert window.accept(EPOCH, 2**63) == "duplicate"
+    assert window.lost == 0
+
+
+def test_a_forged_frame_a_little_ahead_merges_when_the_sender_catches_up():
+    window = open_window()
+    assert accept_all(window, range(1, 11)) == [None] * 10
+    assert window.accept(EPOCH, 110) is None          # 100 ahead: its own window
+    assert accept_all(window, range(11, 110)) == [None] * 99  # the sender carries on, merged
+    assert window.accept(EPOCH, 110) == "duplicate"
+    assert accept_all(window, range(111, 121)) == [None] * 10
+    assert window.accept(EPOCH, 50) == "stale"  # 70 behind the merged window
+
+
+def test_a_real_jump_over_lost_frames_carries_on_in_the_new_window():
+    window = open_window()
+    assert accept_all(window, range(1, 11)) == [None] * 10
+    assert accept_all(window, range(1011, 1111)) == [None] * 100  # 1000 frames lost on the way
+    assert window.lost == 1000
+    assert window.accept(EPOCH, 1100) == "duplicate"
+    assert window.accept(EPOCH, 5) == "duplicate"  # the old window is still remembered
+    assert accept_all(window, range(10_000_000, 10_000_010)) == [None] * 10  # a very long outage
+    assert window.lost == 1000  # a jump past JUMP is not counted: it may have been forged
+
+
+def test_forged_frames_everywhere_cost_at_most_the_tracks():
+    window = open_window()
+    assert accept_all(window, range(1, 11)) == [None] * 10
+    for i in range(1, 100):
+        assert window.accept(EPOCH, i * 10**9) is None
+        assert window.accept(EPOCH, 10 + i) is None    # the real sender, between the forgeries
+    assert len(window._windows[EPOCH]) <= ReplayWindow.TRACKS

@@ -10,9 +10,9 @@ import pytest
 
 from rosgate.wire import envelope
 from rosgate.wire.framing import (
-    DEFAULT_MAX_MESSAGE, FRAGMENT, LENGTH, CompactReassembler, FramingError, Reassembler,
-    StreamReader, compact_fragment, fragment, is_fragment, length_prefixed,
-    CHUNK, CHUNK_HEAD, CHUNKED, LAST, MAX_OPEN_MESSAGES, stream_records,
+    CHUNK, CHUNK_HEAD, CHUNKED, DEFAULT_MAX_MESSAGE, FRAGMENT, LAST, LENGTH, MAX_OPEN_MESSAGES,
+    PARTIAL_COST, CompactReassembler, FramingError, Reassembler, StreamReader, compact_fragment,
+    fragment, is_fragment, length_prefixed, stream_records,
 )
 
 
@@ -125,6 +125,44 @@ def test_frames_before_a_bad_length_are_still_delivered():
         next(feed)
 
 
+def read_in_place(reader: StreamReader, stream: bytes, chunk: int) -> list[bytes]:
+    """Read ``stream`` as a link with receive_into does: into the reader's target while it has
+    one, else ``chunk`` bytes at a time through feed."""
+    out: list[bytes] = []
+    position = 0
+    while position < len(stream):
+        target = reader.target()
+        if target is not None:
+            n = min(len(target), chunk, len(stream) - position)
+            target[:n] = stream[position:position + n]
+            position += n
+            frame = reader.filled(n)
+            if frame is not None:
+                out.append(frame)
+        else:
+            out += reader.feed(stream[position:position + chunk])
+            position += chunk
+    return out
+
+
+def test_large_frames_are_read_into_place():
+    rng = random.Random(50)
+    frames = [b"small", rng.randbytes(200_000), b"", rng.randbytes(1_000_000), b"after"]
+    stream = b"".join(map(length_prefixed, frames))
+    reader = StreamReader(direct=True)
+    got = read_in_place(reader, stream, 65_536)
+    assert got == frames
+    assert [type(f) for f in got] == [bytes, bytearray, bytes, bytearray, bytes]
+    assert reader.target() is None
+
+
+def test_a_length_alone_earns_no_buffer():
+    reader = StreamReader(direct=True)
+    assert list(reader.feed(LENGTH.pack(60_000_000) + b"x" * 100)) == []
+    assert reader.target() is None  # 100 bytes of 60 MB: kept, not a 60 MB buffer
+    assert list(StreamReader().feed(LENGTH.pack(200_000) + bytes(100_000))) == []
+
+
 # --- fragment ------------------------------------------------------------------------------------
 
 def test_a_frame_that_fits_is_returned_as_is():
@@ -230,28 +268,36 @@ def test_interleaved_frames_from_two_sources_and_topics_reassemble_independently
     assert sorted(done) == sorted((source, frame) for (source, _), frame in streams.items())
 
 
+def cost(count: int, frame: int) -> int:
+    """What a partial frame of ``count`` fragments and ``frame`` bytes is accounted for once it
+    has its buffer (fragments of 100 bytes earn it at once)."""
+    return PARTIAL_COST + count + frame
+
+
 def test_memory_bound_sheds_the_oldest_partial_frame():
     lost = Lost()
-    reassembler = Reassembler(lost, max_pending_bytes=450)
+    # room for two partial 300-byte frames, not three
+    reassembler = Reassembler(lost, max_pending_bytes=2 * cost(3, 300) + 100)
     frames = {topic: bytes([topic]) * 300 for topic in (1, 2, 3)}
     pieces = {topic: fragment(frame, 114, topic_id=topic, frame_id=topic) for topic, frame in frames.items()}
     for topic in (1, 2):
         for piece in pieces[topic][:2]:
-            assert reassembler.add("s", piece) is None  # 200 + 200 bytes pending
-    assert lost.calls == []
-    assert reassembler.add("s", pieces[3][0]) is None     # 500 > 450: frame 1 goes
+            assert reassembler.add("s", piece) is None
+    assert lost.calls == [] and reassembler.pending_bytes == 2 * cost(3, 300)
+    assert reassembler.add("s", pieces[3][0]) is None     # a third: frame 1 goes
     assert lost.calls == [(1, "reassembly_overflow")]
     assert reassembler.add("s", pieces[2][2]) == frames[2]
     assert [reassembler.add("s", p) for p in pieces[3][1:]] == [None, frames[3]]
     assert lost.calls == [(1, "reassembly_overflow")]
+    assert reassembler.pending == reassembler.pending_bytes == 0
 
 
 def test_shedding_keeps_going_until_under_the_bound():
     lost = Lost()
-    reassembler = Reassembler(lost, max_pending_bytes=250)
+    reassembler = Reassembler(lost, max_pending_bytes=cost(2, 400) + 10)
     for topic in (1, 2):
         reassembler.add("s", fragment(b"x" * 300, 114, topic_id=topic, frame_id=1)[0])
-    # one 200-byte chunk: 400 pending, both older frames must go (100 + 200 = 300 > 250)
+    # the two older frames go, the one that pushed past the bound stays
     big = fragment(b"y" * 400, 214, topic_id=3, frame_id=1)
     reassembler.add("s", big[0])
     assert lost.calls == [(1, "reassembly_overflow"), (2, "reassembly_overflow")]
@@ -312,6 +358,112 @@ def test_a_late_duplicate_is_not_counted_as_a_lost_frame():
     assert reassembler.add("s", pieces[0]) is None   # the network duplicated a datagram
     reassembler.expire(now=time.monotonic() + 10)
     assert lost.calls == []
+
+
+# --- bounds that hold under attack (issue 10) ---------------------------------------------------
+
+class Clock:
+    """time.monotonic for the framing module, moved by hand."""
+
+    def __init__(self, monkeypatch, now: float = 1000.0):
+        self.now = now
+        monkeypatch.setattr("rosgate.wire.framing.time.monotonic", lambda: self.now)
+
+
+def lone(index: int, count: int, topic: int, frame_id: int, chunk: bytes = b"x") -> bytes:
+    return FRAGMENT.pack(b"RF", index, count, topic, frame_id) + chunk
+
+
+def test_the_accounting_covers_what_a_partial_frame_really_costs():
+    import tracemalloc
+
+    reassembler = Reassembler(Lost(), max_partials=10_000, source_partials=10_000)
+    datagrams = [lone(0, 2, 5, i) for i in range(2000)]
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        for i, datagram in enumerate(datagrams):
+            # a source address as recvfrom makes it: a new tuple and string each time
+            reassembler.add((f"10.0.{i // 250}.{i % 250}", 40_000 + i), memoryview(datagram))
+        used = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert reassembler.pending == 2000
+    assert used <= reassembler.pending_bytes, f"{used / 2000:.0f} B each, accounted " \
+        f"{reassembler.pending_bytes / 2000:.0f}"
+
+
+def test_partial_frames_expire_in_the_order_they_started(monkeypatch):
+    clock = Clock(monkeypatch)
+    lost = Lost()
+    reassembler = Reassembler(lost, timeout=2.0)
+    for i in range(10):
+        reassembler.add("s", lone(0, 3, i, i))
+        clock.now += 0.5
+    reassembler.expire(now=clock.now)  # 5 s after the first: those older than 2 s go
+    assert lost.calls == [(i, "fragment_lost") for i in range(6)]
+    assert reassembler.pending == 4
+    clock.now += 10
+    reassembler.add("s", lone(0, 3, 99, 99))  # a new fragment expires the old ones first
+    assert lost.calls[6:] == [(i, "fragment_lost") for i in range(6, 10)]
+    assert reassembler.pending == 1
+
+
+def test_one_source_cannot_crowd_out_another():
+    lost = Lost()
+    reassembler = Reassembler(lost, source_partials=4)
+    frame = b"q" * 300
+    legit = fragment(frame, 114, topic_id=1, frame_id=77)
+    assert reassembler.add("legit", legit[0]) is None
+    for i in range(100):
+        reassembler.add("flood", lone(0, 2, 2, i))
+    assert lost.calls == [(2, "reassembly_overflow")] * 96
+    assert [reassembler.add("legit", p) for p in legit[1:]] == [None, frame]
+
+
+def test_a_source_is_bounded_in_bytes_too():
+    lost = Lost()
+    per_frame = PARTIAL_COST + 2 + 2 * 1000
+    reassembler = Reassembler(lost, source_bytes=3 * per_frame)
+    for i in range(5):
+        reassembler.add("s", lone(0, 2, i, i, bytes(1000)))
+    assert lost.calls == [(0, "reassembly_overflow"), (1, "reassembly_overflow")]
+    assert reassembler.pending_bytes == 3 * per_frame
+
+
+def test_a_fragment_earns_no_buffer_for_a_frame_it_cannot_fill():
+    # one fragment claiming 65,535 x 1,000 bytes: kept aside, not a 65 MB zeroed buffer
+    reassembler = Reassembler(Lost(), max_message=100_000_000)
+    reassembler.add("s", lone(0, 0xFFFF, 1, 1, bytes(1000)))
+    assert reassembler.pending_bytes < PARTIAL_COST + 0xFFFF + 2000
+    # a frame of 16 fragments earns its buffer with the first
+    reassembler.add("s", lone(0, 16, 2, 2, bytes(1000)))
+    assert reassembler.pending_bytes > 16_000
+
+
+def test_the_frame_is_the_buffer_at_its_exact_length_whatever_the_order():
+    rng = random.Random(40)
+    for count_and_order in range(20):
+        frame = rng.randbytes(rng.randint(201, 5000))
+        pieces = fragment(frame, 114, topic_id=1, frame_id=count_and_order)
+        rng.shuffle(pieces)
+        reassembler = Reassembler(Lost())
+        done = [f for f in (reassembler.add("s", p) for p in pieces) if f is not None]
+        assert done == [frame] and type(done[0]) is bytearray
+        assert reassembler.pending == reassembler.pending_bytes == 0
+
+
+@pytest.mark.parametrize("second, message", [
+    (lone(1, 3, 1, 1, b"yy"), "size changed"),            # a middle fragment of another size
+    (lone(2, 3, 1, 1, b"zzzz"), "out of range"),          # a last fragment longer than the others
+], ids=["middle", "last"])
+def test_fragments_of_one_frame_agree_on_their_size(second, message):
+    reassembler = Reassembler(Lost())
+    reassembler.add("s", lone(0, 3, 1, 1, b"abc"))
+    with pytest.raises(FramingError, match=message):
+        reassembler.add("s", second)
+    assert reassembler.add("s", lone(1, 3, 1, 1, b"def")) is None
+    assert reassembler.add("s", lone(2, 3, 1, 1, b"g")) == b"abcdefg"
 
 
 # --- compact pieces (links with small frames: CAN) -----------------------------------------------
@@ -475,7 +627,9 @@ def test_compact_sources_reassemble_independently():
 def test_compact_memory_bound_sheds_a_frame_in_progress():
     rng = random.Random(17)
     lost = Lost()
-    reassembler = CompactReassembler(lost, envelope.topic_of, max_pending_bytes=600)
+    # each frame in progress: its bytes and its bookkeeping
+    reassembler = CompactReassembler(lost, envelope.topic_of,
+                                     max_pending_bytes=2 * PARTIAL_COST + 600)
     frames = {topic: frame_on(topic, 500, rng) for topic in (1, 2)}
     pieces = {topic: compact_fragment(frame, 64, 0) for topic, frame in frames.items()}
     assemble(reassembler, pieces[1][:4], source=1)   # 60 + 3 * 63 = 249 bytes pending
@@ -497,6 +651,27 @@ def test_compact_malformed_first_pieces(piece, message):
     with pytest.raises(FramingError, match=message):
         CompactReassembler(lost, max_message=1000).add("s", piece)
     assert lost.calls == []
+
+
+def test_compact_frames_expire_in_the_order_their_sources_went_quiet(monkeypatch):
+    clock = Clock(monkeypatch)
+    lost = Lost()
+    reassembler = CompactReassembler(lost, envelope.topic_of, timeout=2.0)
+    rng = random.Random(18)
+    pieces = {source: compact_fragment(frame_on(topic, 200, rng), 8, 0)
+              for topic, source in ((1, "a"), (2, "b"), (3, "c"))}
+    start = clock.now
+    for source, at in (("a", 0.0), ("b", 0.5), ("c", 1.0)):
+        clock.now = start + at
+        assemble(reassembler, pieces[source][:2], source=source)
+    clock.now = start + 1.5
+    assemble(reassembler, pieces["a"][2:3], source="a")  # a keeps sending
+    reassembler.expire(now=start + 2.8)
+    assert lost.calls == [(2, "fragment_lost")]
+    reassembler.expire(now=start + 3.2)
+    assert lost.calls == [(2, "fragment_lost"), (3, "fragment_lost")]
+    clock.now = start + 3.3
+    assert assemble(reassembler, pieces["a"][3:], source="a") != []
 
 
 # -- chunks on streams ---------------------------------------------------------------------------

@@ -155,6 +155,263 @@ def test_bare_mode_hands_over_fragment_lookalikes_untouched(closing):
     assert inbox.payloads() == [b"RF not a fragment"] and inbox.drops == []
 
 
+# --- coalescing, the send thread, scatter-gather ---------------------------------------------------
+
+class Recorder:
+    """An endpoint wrapper that records every datagram sent (its parts when sent as parts, and
+    the sending thread), and can hold sends until released."""
+
+    def __init__(self, endpoint, parts: bool = True):
+        self.endpoint = endpoint
+        self.sent: list[bytes] = []
+        self.parts: list[list] = []
+        self.threads: list[str] = []
+        self.released = threading.Event()
+        self.released.set()
+        self.entered = threading.Event()
+        if parts:
+            self.send_parts = self._send_parts
+
+    def _record(self, datagram: bytes) -> None:
+        self.entered.set()
+        self.released.wait(10)
+        self.sent.append(datagram)
+        self.threads.append(threading.current_thread().name)
+
+    def send(self, frame, to) -> None:
+        self._record(bytes(frame))
+        self.endpoint.send(frame, to)
+
+    def _send_parts(self, parts, to) -> None:
+        self.parts.append(list(parts))
+        self._record(b"".join(parts))
+        self.endpoint.send_parts(parts, to)
+
+    def receive_into(self, buffer, timeout):
+        return self.endpoint.receive_into(buffer, timeout)
+
+    def close(self) -> None:
+        self.released.set()
+        self.endpoint.close()
+
+
+def recorded_pair(closing, parts: bool = True, max_frame: int | None = 65_000):
+    transport = UdpTransport({})
+    if max_frame is not None:
+        transport.max_frame = max_frame
+    a_wire = Recorder(transport.bind(("127.0.0.1", 0)), parts)
+    b_inbox, a_inbox = Inbox(), Inbox()
+    a = closing(DatagramLink(transport, a_wire, "a", a_inbox.on_frame, a_inbox.on_lost))
+    b_endpoint = transport.bind(("127.0.0.1", 0))
+    b = closing(DatagramLink(transport, b_endpoint, "b", b_inbox.on_frame, b_inbox.on_lost))
+    return a, a_wire, a_inbox, b, b_endpoint.sock.getsockname(), b_inbox
+
+
+@pytest.mark.parametrize("parts", [True, False], ids=["send_parts", "send"])
+def test_frames_handed_over_together_share_a_datagram(closing, parts):
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing, parts)
+    rng = random.Random(20)
+    frames = [frame_of(i, rng.randint(28, 2500), rng) for i in range(20)]
+    assert a.send_all(frames, a_inbox.sender(TOPIC), to) == 20
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 20), b_inbox.drops
+    assert b_inbox.payloads() == frames  # in order, byte-exact
+    assert len(wire.sent) == 1 and wire.sent[0][:2] == b"RB"
+    assert a.counters.frames_out == a.counters.coalesced_out == 20 and a.counters.packets_out == 1
+    assert b.counters.frames_in == b.counters.coalesced_in == 20 and b.counters.packets_in == 1
+    assert a_inbox.drops == b_inbox.drops == []
+
+
+def test_a_batch_never_exceeds_max_frame(closing):
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing, max_frame=1000)
+    rng = random.Random(21)
+    frames = [frame_of(i, 300, rng) for i in range(10)]
+    assert a.send_all(frames, a_inbox.sender(TOPIC), to) == 10
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 10), b_inbox.drops
+    assert b_inbox.payloads() == frames
+    # 2 + 3 * (4 + 300) = 914 bytes: three frames to a datagram, the tenth alone and plain
+    assert [len(d) for d in wire.sent] == [914, 914, 914, 300]
+    assert wire.sent[-1] == frames[-1]
+
+
+def test_a_frame_alone_is_a_plain_datagram(closing):
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing)
+    frame = frame_of(1, 100, random.Random(22))
+    assert a.send(frame, a_inbox.sender(TOPIC), to) is True
+    assert b_inbox.wait(lambda: b_inbox.frames)
+    assert wire.sent == [frame] and wire.parts == []  # what any earlier rosgate reads
+    assert wire.threads == [threading.current_thread().name]  # no hand-off to the send thread
+
+
+def test_bare_links_never_coalesce(closing):
+    transport = UdpTransport({})
+    wire = Recorder(transport.bind(("127.0.0.1", 0)))
+    inbox = Inbox()
+    link = closing(DatagramLink(transport, wire, "bare", inbox.on_frame, inbox.on_lost, bare=True))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as far:
+        far.bind(("127.0.0.1", 0))
+        far.settimeout(5)
+        messages = [b"\xa3one", b"\xa3two", b"\xa5three"]
+        assert link.send_all(messages, inbox.sender(9), far.getsockname()) == 3
+        assert [far.recv(100) for _ in messages] == messages  # one message per datagram
+    assert wire.parts == []
+
+
+def test_a_malformed_batch_is_counted_after_the_frames_before_it(udp_pair):
+    (_, _, _), (b, b_inbox, b_address) = udp_pair
+    good = frame_of(1, 50, random.Random(23))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+        raw.sendto(b"RB" + LENGTH.pack(len(good)) + good + LENGTH.pack(1000) + b"short", b_address)
+        raw.sendto(b"RB" + LENGTH.pack(len(good)) + good + b"\x00\x00", b_address)
+    assert b_inbox.wait(lambda: len(b_inbox.drops) >= 2)
+    assert b_inbox.payloads() == [good, good]
+    assert b_inbox.drops == [(None, "bad_batch"), (None, "bad_batch")]
+
+
+def test_a_large_frame_leaves_from_the_send_thread_in_scatter_gather_fragments(closing):
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing)
+    frame = frame_of(1, 200_000, random.Random(24))
+    wire.released.clear()  # the wire stalls: the caller must not wait for it
+    assert a.send(frame, a_inbox.sender(TOPIC), to) is True
+    assert wire.entered.wait(5)
+    small = frame_of(2, 100, random.Random(25))
+    assert a.send(small, a_inbox.sender(TOPIC), to) is True  # queued behind it, not sent inline
+    wire.released.set()
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 2), b_inbox.drops
+    assert b_inbox.payloads() == [frame, small]
+    assert set(wire.threads) == {"tx-a"}
+    fragments = wire.parts
+    assert len(fragments) == 4 and all(len(p) == 2 for p in fragments)
+    # each fragment: its 14-byte header and a view of the frame itself (nothing joined)
+    assert all(len(header) == FRAGMENT.size and chunk.obj is frame for header, chunk in fragments)
+
+
+def test_a_full_send_queue_counts_queue_full_and_close_counts_what_waited(closing):
+    transport = UdpTransport({})
+    wire = Recorder(transport.bind(("127.0.0.1", 0)))
+    inbox = Inbox()
+    link = DatagramLink(transport, wire, "stuck", inbox.on_frame, inbox.on_lost, queue_frames=3)
+    to = ("127.0.0.1", 9)
+    wire.released.clear()
+    assert link.send(bytes(100_000), inbox.sender(1), to) is True  # the send thread is stuck on it
+    assert wire.entered.wait(5)
+    assert [link.send(b"small", inbox.sender(2), to) for _ in range(5)] == [True] * 3 + [False] * 2
+    assert inbox.drops == [(2, "queue_full")] * 2
+    link.close()
+    assert [drop for drop in inbox.drops[2:] if drop[0] == 2] == [(2, "link_down")] * 3
+    # the frame whose fragments were going out: sent, or cut short by the close (counted once)
+    assert [drop for drop in inbox.drops if drop[0] == 1] in ([], [(1, "send_error")],
+                                                              [(1, "link_down")])
+    assert link.send(b"late", inbox.sender(3), to) is False
+    assert inbox.drops[-1] == (3, "link_down")
+
+
+def test_a_best_effort_frame_that_waited_too_long_to_be_sent_is_dropped(closing):
+    transport = UdpTransport({})
+    wire = Recorder(transport.bind(("127.0.0.1", 0)))
+    inbox = Inbox()
+    link = closing(DatagramLink(transport, wire, "slow", inbox.on_frame, inbox.on_lost))
+    to = ("127.0.0.1", 9)
+    wire.released.clear()
+    assert link.send(bytes(100_000), inbox.sender(1), to) is True  # the send thread is stuck
+    assert wire.entered.wait(5)
+    hasty, patient = inbox.sender(2), inbox.sender(3)
+    hasty.max_delay = 1e-9  # with no time to lose
+    assert link.send(b"hasty", hasty, to) and link.send(b"patient", patient, to)
+    wire.released.set()
+    assert inbox.wait(lambda: inbox.drops)
+    assert inbox.wait(lambda: b"patient" in wire.sent)
+    assert inbox.drops == [(2, "too_late")] and b"hasty" not in wire.sent
+
+
+# --- reassembly under attack (issue 10) ------------------------------------------------------
+
+def test_a_flood_of_one_byte_fragments_is_bounded_and_counted(closing):
+    """15-byte fragments (a 1-byte chunk, count 2, a new frame id each) from one source: each
+    starts a partial frame that never completes. The link keeps at most its per-source number of
+    them, accounted at what they really cost, gives up the oldest first and counts each once;
+    a fragmented frame from another source completes meanwhile."""
+    transport = UdpTransport({})
+    inbox = Inbox()
+    endpoint = transport.bind(("127.0.0.1", 0))
+    victim = closing(DatagramLink(transport, endpoint, "victim", inbox.on_frame, inbox.on_lost))
+    to = endpoint.sock.getsockname()
+    reassembler = victim.reassembler
+    assert isinstance(reassembler, framing.Reassembler)
+    flood = 3000
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as attacker:
+        for i in range(flood):
+            attacker.sendto(FRAGMENT.pack(b"RF", 0, 2, TOPIC, i) + b"x", to)
+        held = reassembler.source_partials
+        assert inbox.wait(lambda: len(inbox.drops) >= flood - held), len(inbox.drops)
+        assert inbox.drops == [(TOPIC, "reassembly_overflow")] * (flood - held)
+        assert reassembler.pending == held
+        # each: its bookkeeping, a byte per fragment slot, its buffer (2 x 1 byte, earned at once)
+        assert reassembler.pending_bytes == held * (framing.PARTIAL_COST + 2 + 2)
+        # a real sender is not crowded out
+        sender = closing(DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "sender",
+                                      Inbox().on_frame, Inbox().on_lost))
+        frame = frame_of(1, 200_000, random.Random(30))
+        assert sender.send(frame, inbox.sender(TOPIC), to) is True
+        assert inbox.wait(lambda: inbox.frames), inbox.drops[-3:]
+        assert inbox.payloads() == [frame]
+        assert len(inbox.drops) == flood - held  # nothing of it given up
+        # the flood's partial frames expire in time order, each counted once
+        assert inbox.wait(lambda: reassembler.pending == 0, 10)
+        assert inbox.drops[flood - held:] == [(TOPIC, "fragment_lost")] * held
+        assert reassembler.pending_bytes == 0
+
+
+def spoofed_udp(source, destination, payload: bytes) -> bytes:
+    """An IPv4 + UDP packet from ``source`` to ``destination`` (host, port), no UDP checksum."""
+    import struct
+    udp = struct.pack("!HHHH", source[1], destination[1], 8 + len(payload), 0) + payload
+    return struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + len(udp), 0, 0, 64, socket.IPPROTO_UDP, 0,
+                       socket.inet_aton(source[0]), socket.inet_aton(destination[0])) + udp
+
+
+def raw_socket():
+    try:
+        return socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_RAW)
+    except PermissionError:
+        pytest.skip("spoofing a source address needs a raw socket (root)")
+
+
+def test_a_spoofed_fragment_cannot_poison_a_frame_in_progress(closing):
+    """An attacker who saw one fragmented frame go by guesses the next one's frame id and slips a
+    fragment of its own into it, sent from the sender's address. Frame ids are random: the guess
+    misses, the real frame arrives intact, and the forged fragment expires as a lost frame."""
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing)
+    rng = random.Random(31)
+    first, second = frame_of(1, 150_000, rng), frame_of(2, 150_000, rng)
+    assert a.send(first, a_inbox.sender(TOPIC), to) is True
+    assert b_inbox.wait(lambda: b_inbox.frames)
+    _, index, count, topic_id, frame_id = FRAGMENT.unpack(wire.parts[0][0])
+    with raw_socket() as raw:
+        for guess in (frame_id + 1, frame_id - 1, frame_id + 2):  # what a counter would give
+            forged = FRAGMENT.pack(b"RF", 1, count, topic_id, guess & 0xFFFFFFFF) + \
+                bytes(len(wire.parts[1][1]))
+            raw.sendto(spoofed_udp(a.endpoint.endpoint.sock.getsockname(), to, forged), (to[0], 0))
+    assert b_inbox.wait(lambda: b.counters.packets_in >= count + 3)
+    assert a.send(second, a_inbox.sender(TOPIC), to) is True
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 2), b_inbox.drops
+    assert b_inbox.payloads() == [first, second]  # byte-exact: nothing forged got in
+    ids = [FRAGMENT.unpack(parts[0])[4] for parts in wire.parts]
+    assert len(set(ids)) == 2 and abs(ids[-1] - ids[0]) > 2
+    assert b_inbox.wait(lambda: len(b_inbox.drops) >= 3, 10)
+    assert b_inbox.drops == [(TOPIC, "fragment_lost")] * 3
+
+
+def test_fragment_frame_ids_are_unpredictable(closing):
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing)
+    for i in range(20):
+        a.send(frame_of(i, 70_000, random.Random(i)), a_inbox.sender(TOPIC), to)
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 20), b_inbox.drops
+    ids = [FRAGMENT.unpack(parts[0])[4] for parts in wire.parts[::2]]
+    assert len(set(ids)) == 20
+    steps = {(later - earlier) & 0xFFFFFFFF for earlier, later in zip(ids, ids[1:], strict=False)}
+    assert len(steps) > 15  # no counter, no fixed stride
+
+
 # --- datagram links with small frames (CAN-sized): the compact scheme -----------------------------
 
 class Wire:
@@ -402,6 +659,82 @@ def test_a_frame_split_across_many_writes_arrives_whole(closing, tcp_connections
     assert inbox.wait(lambda: len(inbox.frames) >= 2)
     assert inbox.payloads() == [b"in pieces", b""]
     assert inbox.drops == []
+
+
+class Writes:
+    """A stream connection wrapper that records who writes, and can take only part of a write
+    without waiting."""
+
+    def __init__(self, connection, take: int | None = None):
+        self.connection = connection
+        self.sock = connection.sock
+        self.take = take  # send_nowait writes at most this much
+        self.calls: list[tuple[str, str, int]] = []
+
+    def send_nowait(self, data: bytes) -> int:
+        part = data if self.take is None else data[:self.take]
+        self.calls.append(("nowait", threading.current_thread().name, len(part)))
+        return self.connection.send_nowait(part)
+
+    def send(self, data: bytes) -> None:
+        self.calls.append(("send", threading.current_thread().name, len(data)))
+        self.connection.send(data)
+
+    def receive_into(self, buffer, timeout):
+        return self.connection.receive_into(buffer, timeout)
+
+    def close(self) -> None:
+        self.connection.close()
+
+
+def test_a_large_stream_frame_is_the_handlers_to_cut(closing, tcp_connections):
+    """Read into place, a large frame is a bytearray nobody else holds: a route cuts its header
+    off in place (del frame[:28]) before handing it to rclpy."""
+    client, server = tcp_connections()
+    inbox = Inbox()
+
+    def on_frame(frame, link, source) -> None:
+        if type(frame) is bytearray:
+            del frame[:envelope.SIZE]
+        inbox.on_frame(bytes(frame), link, source)
+
+    closing(StreamLink(server, "far", ("client", 0), on_frame, inbox.on_lost))
+    link = closing(stream_link(client, "near", Inbox()))
+    frames = [frame_of(i, size, random.Random(i)) for i, size in enumerate([1_000_000, 300_000])]
+    assert link.send_all(frames, Inbox().sender(TOPIC)) == 2
+    assert inbox.wait(lambda: len(inbox.frames) >= 2), inbox.drops
+    assert inbox.payloads() == [frame[envelope.SIZE:] for frame in frames]
+
+
+def test_a_stream_frame_alone_is_written_from_the_callers_thread(closing, tcp_connections):
+    client, server = tcp_connections()
+    writes = Writes(client)
+    inbox = Inbox()
+    link = closing(stream_link(writes, "near", Inbox()))
+    closing(stream_link(server, "far", inbox))
+    frame = frame_of(1, 2500, random.Random(60))
+    assert link.send(frame, inbox.sender(TOPIC)) is True
+    assert inbox.wait(lambda: inbox.frames)
+    assert inbox.payloads() == [frame]
+    assert writes.calls == [("nowait", threading.current_thread().name, 2504)]
+
+
+def test_what_a_write_without_waiting_left_goes_first_from_the_writer(closing, tcp_connections):
+    client, server = tcp_connections()
+    writes = Writes(client, take=1000)
+    inbox = Inbox()
+    link = closing(stream_link(writes, "near", Inbox()))
+    closing(stream_link(server, "far", inbox))
+    rng = random.Random(61)
+    frames = [frame_of(i, 700, rng) for i in range(3)]  # 3 x 704 bytes, 1000 written at once
+    assert link.send_all(frames, inbox.sender(TOPIC)) == 3
+    later = [frame_of(3 + i, 300, rng) for i in range(3)]
+    for frame in later:
+        link.send(frame, inbox.sender(TOPIC))
+    assert inbox.wait(lambda: len(inbox.frames) >= 6), inbox.drops
+    assert inbox.payloads() == frames + later  # the stream was never interleaved
+    assert writes.calls[0] == ("nowait", threading.current_thread().name, 1000)
+    assert {name for kind, name, _ in writes.calls[1:] if kind == "send"} == {"tx-near"}
 
 
 # --- a slot for a link that comes and goes ---------------------------------------------------------

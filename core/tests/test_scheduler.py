@@ -142,7 +142,7 @@ def test_a_best_effort_message_that_waited_too_long_is_dropped_as_late():
     s.put(message(be, "new", queued=0.4))
     clock.now = 0.6
     assert drain(s, clock) == ["old-reliable.0", "new.0"]  # first come, first served
-    assert be.drops == ["late"] and rel.drops == []
+    assert be.drops == ["too_late"] and rel.drops == []
 
 
 def test_a_topic_s_own_max_delay_applies_to_reliable_topics_too():
@@ -155,7 +155,7 @@ def test_a_topic_s_own_max_delay_applies_to_reliable_topics_too():
     s.put(message(cam, "fresh", queued=0.08))
     clock.now = 0.1
     assert drain(s, clock) == ["fresh.0"]
-    assert cam.drops == ["late"]
+    assert cam.drops == ["too_late"]
 
 
 def test_the_link_s_limits_refuse_new_messages():

@@ -31,6 +31,7 @@ from typing import Any
 from .bus import BusPublisher, BusQuery, BusSession, BusTransport, Handle
 from .links import FrameHandler, Link, Sender
 from .transport import Address
+from .warn import BUGS
 
 log = logging.getLogger("rosgate")
 
@@ -146,9 +147,9 @@ class BusLink:
                 try:
                     action(*args)
                 except Exception:
-                    log.exception("%s: error while handling what the bus delivered (a bug: please "
-                                  "report it)", self.name)
-                    self.link_drop(self, "handler_error", "see the traceback above")
+                    BUGS.bug("handler_error", f"{self.name}: error while handling what the bus "
+                                              "delivered (a bug: please report it)")
+                    self.link_drop(self, "handler_error", "see the traceback logged once a minute")
             now = time.monotonic()
             if now >= next_sweep:  # under load too: a held query must not wait for a quiet moment
                 next_sweep = now + POLL

@@ -15,6 +15,7 @@ import difflib
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
+import math
 from enum import StrEnum
 from pathlib import Path
 from typing import Any, overload
@@ -23,7 +24,6 @@ import yaml
 
 from .errors import ConfigError
 from .placeholders import check as check_placeholders
-
 
 class Role(StrEnum):
     CLIENT = "client"
@@ -79,6 +79,11 @@ PEER_TIMEOUT_HEARTBEATS = 3       # default bridge.peer_timeout, in heartbeats
 SESSION_TIMEOUT_DEFAULT = 60.0
 RECONNECT_MIN_DEFAULT, RECONNECT_MAX_DEFAULT = 0.1, 10.0
 QUEUE_FRAMES_DEFAULT, QUEUE_BYTES_DEFAULT = 1000, 8 * 1024 * 1024
+QOS_DEPTH_MAX = 100_000  # far past any real queue; rclpy fails on depths past 64 bits
+MAX_RATE_RANGE = (1e-6, 1e6)  # Hz: from once in eleven days to faster than any link
+TIMEOUT_MAX = 3600.0  # seconds a service call may take
+ROS_NAME_MAX = 200  # characters: rclpy refuses topic names past 247, service names sooner
+MAX_REQUEST_MAX = 64 * 1024 * 1024  # bytes, the largest message a link carries
 FLEET_TIMEOUT_DEFAULT = 30.0
 #: a topic's priority (zenoh's numbering): 1 the most urgent, 7 the least; default data (5). On a
 #: bus zenoh's own; on datagram and stream links the classes of the link's scheduler
@@ -106,7 +111,7 @@ TOP_KEYS = ("bridge", "plugins", "topics", "services", "clients")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
                "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue",
                "identity", "server_key", "insecure", "rekey", "allow", "peer_key",
-               "handshake_port", "fleet_timeout", "links")
+               "handshake_port", "fleet_timeout", "links", "limits")
 LINK_KEYS = ("bandwidth", "max_delay")
 CLIENT_KEYS = ("key", "topics", "services")
 RULE_KEYS = ("name", "direction", "types", "ports", "ciphers")
@@ -116,6 +121,8 @@ REKEY_DEFAULT = 120.0
 DEFAULTS_KEYS = ("transport", "codec", "cipher")
 RECONNECT_KEYS = ("min", "max")
 QUEUE_KEYS = ("frames", "bytes")
+LIMITS_KEYS = ("connections", "connections_per_source", "handshake_timeout",
+               "max_frame_before_auth", "idle_timeout", "sessions")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
               "framing", "qos", "max_rate", "priority", "latest_only", "max_delay", "recovery",
               "recovery_overhead", "compression", "compression_level", "typical_size")
@@ -132,6 +139,10 @@ _EXAMPLES = {
     "peer": "192.168.1.20", "listen": "0.0.0.0", "stale_after": "15", "stale_warnings": "5",
     "heartbeat": "1.0", "peer_timeout": "3.0", "session_timeout": "60",
     "reconnect": "{min: 0.1, max: 10}", "queue": "{frames: 1000, bytes: 8388608}",
+    "limits": "{connections: 256, connections_per_source: 16, handshake_timeout: 5}",
+    "bridge.limits.connections": "256", "bridge.limits.connections_per_source": "16",
+    "bridge.limits.handshake_timeout": "5", "bridge.limits.max_frame_before_auth": "65536",
+    "bridge.limits.idle_timeout": "2", "bridge.limits.sessions": "256",
     "bridge.reconnect.min": "0.1", "bridge.reconnect.max": "10", "bridge.queue.frames": "1000",
     "bridge.queue.bytes": "8388608", "transport": "udp", "codec": "cdr", "cipher": "none",
     "topic": "/chatter", "service": "/mcu/ping", "type": "std_msgs/msg/String",
@@ -218,6 +229,26 @@ class LinkConfig:
 
 
 @dataclass(frozen=True)
+class Limits:
+    """``bridge.limits``: what a peer may cost this bridge before it is trusted (a client before
+    its handshake, a stranger on a port), so that strangers cannot exhaust it."""
+
+    #: stream connections accepted at once, over every listening port of the bridge
+    connections: int = 256
+    #: of those, from one source address
+    connections_per_source: int = 16
+    #: seconds an accepted connection has to complete its handshake (main line) or introduce
+    #: itself (a dedicated stream port) before it is closed
+    handshake_timeout: float = 5.0
+    #: bytes a frame may have on such a connection until then
+    max_frame_before_auth: int = 64 * 1024
+    #: seconds a connection to a microcontroller service port may stay silent
+    idle_timeout: float = 2.0
+    #: server: client sessions kept at once (connected, or waiting out session_timeout)
+    sessions: int = 256
+
+
+@dataclass(frozen=True)
 class Rule:
     """One rule of a client's policy (``clients.NAME.topics[i]`` / ``services[i]``): what it
     allows. ``None`` means any; names and types are globs (``*`` within a segment, ``**``
@@ -262,6 +293,7 @@ class BridgeConfig:
     reconnect_max: float = RECONNECT_MAX_DEFAULT
     queue_frames: int = QUEUE_FRAMES_DEFAULT
     queue_bytes: int = QUEUE_BYTES_DEFAULT
+    limits: Limits = field(default_factory=Limits)
     identity: bytes | None = None      # this side's private key (read from bridge.identity)
     server_key: bytes | None = None    # client: the server's public key; peer: the peer's
     handshake_port: int | None = None  # peer with identities: where the handshake line runs
@@ -497,6 +529,7 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
         reconnect_max=reconnect_max,
         queue_frames=queue_frames,
         queue_bytes=queue_bytes,
+        limits=_limits(src, bridge),
         identity=identity,
         server_key=server_key,
         handshake_port=_number(src, bridge, "bridge", "handshake_port", None,
@@ -816,6 +849,37 @@ def _links(src: _Source, bridge: dict) -> dict[str, LinkConfig]:
     return links
 
 
+def _limits(src: _Source, bridge: dict) -> Limits:
+    """What a peer may cost before it is trusted (see :class:`Limits`)."""
+    given = _section(src, bridge, "bridge", "limits")
+    path = "bridge.limits"
+    _check_keys(src, given, path, LIMITS_KEYS)
+    default = Limits()
+    limits = Limits(
+        connections=_number(src, given, path, "connections", default.connections,
+                            "an integer >= 1", lambda v: v >= 1, integer=True),
+        connections_per_source=_number(src, given, path, "connections_per_source",
+                                       default.connections_per_source, "an integer >= 1",
+                                       lambda v: v >= 1, integer=True),
+        handshake_timeout=_number(src, given, path, "handshake_timeout",
+                                  default.handshake_timeout, "a number of seconds > 0", _positive),
+        max_frame_before_auth=_number(src, given, path, "max_frame_before_auth",
+                                      default.max_frame_before_auth,
+                                      "a number of bytes >= 1024", lambda v: v >= 1024,
+                                      integer=True),
+        idle_timeout=_number(src, given, path, "idle_timeout", default.idle_timeout,
+                             "a number of seconds > 0", _positive),
+        sessions=_number(src, given, path, "sessions", default.sessions, "an integer >= 1",
+                         lambda v: v >= 1, integer=True),
+    )
+    if limits.connections_per_source > limits.connections:
+        raise src.error(f"{path}.connections_per_source",
+                        f"{limits.connections_per_source} per source is more than the "
+                        f"{limits.connections} connections allowed in total",
+                        fix="make connections at least connections_per_source")
+    return limits
+
+
 def _plugins(src: _Source, data: dict) -> dict[str, dict]:
     given = _section(src, data, "", "plugins")
     return {name: _section(src, given, "plugins", name,
@@ -875,7 +939,9 @@ def _topic(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Topi
     return TopicConfig(
         **common,
         qos=_qos(src, data, path),
-        max_rate=_number(src, data, path, "max_rate", None, "a number of Hz > 0", _positive),
+        max_rate=_number(src, data, path, "max_rate", None,
+                         f"a number of Hz > 0 ({MAX_RATE_RANGE[0]:g}..{MAX_RATE_RANGE[1]:g})",
+                         lambda v: MAX_RATE_RANGE[0] <= v <= MAX_RATE_RANGE[1]),
         priority=_priority(src, data, path),
         **_real_link(src, data, path, common["framing"]),
         **_entry_lines(src, path),
@@ -894,10 +960,12 @@ def _service(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Se
                             "microcontroller")
     return ServiceConfig(
         **common,
-        timeout=_number(src, data, path, "timeout", TIMEOUT_DEFAULT, "a number of seconds > 0",
-                        _positive),
+        timeout=_number(src, data, path, "timeout", TIMEOUT_DEFAULT,
+                        f"a number of seconds > 0, at most {TIMEOUT_MAX:g}",
+                        lambda v: 0 < v <= TIMEOUT_MAX),
         max_request=_number(src, data, path, "max_request", MAX_REQUEST_DEFAULT,
-                            "a number of bytes >= 16", lambda v: v >= 16, integer=True),
+                            f"a number of bytes >= 16 (at most {MAX_REQUEST_MAX})",
+                            lambda v: 16 <= v <= MAX_REQUEST_MAX, integer=True),
         **_entry_lines(src, path),
     )
 
@@ -954,16 +1022,23 @@ def _qos(src: _Source, data: dict, path: str) -> int | str | dict:
     if isinstance(value, int) and not isinstance(value, bool):
         if value < 1:
             raise src.error(qos_path, f"a QoS depth must be >= 1, got {value}", fix=fix)
-        return value
+        return _depth_bound(src, qos_path, value)
     if not isinstance(value, dict):
         raise src.error(qos_path, expected, fix=fix)
     _check_keys(src, value, qos_path, QOS_KEYS)
-    policies = {key: _choice(src, value, qos_path, key, choices) for key, choices in QOS_POLICIES.items()
-                if key in value}
+    policies: dict[str, Any] = {key: _choice(src, value, qos_path, key, choices)
+                                for key, choices in QOS_POLICIES.items() if key in value}
     if "depth" in value:
-        policies["depth"] = _number(src, value, qos_path, "depth", None, "an integer >= 1",
-                                    lambda v: v >= 1, integer=True)
+        policies["depth"] = _depth_bound(src, _join(qos_path, "depth"), _number(
+            src, value, qos_path, "depth", None, "an integer >= 1", lambda v: v >= 1, integer=True))
     return policies
+
+
+def _depth_bound(src: _Source, key: str, depth: int) -> int:
+    if depth > QOS_DEPTH_MAX:
+        raise src.error(key, f"a QoS depth must be at most {QOS_DEPTH_MAX}, got {depth}",
+                        fix="a depth a subscriber can hold, e.g. qos: 1000")
+    return depth
 
 
 def _ros_name(src: _Source, data: dict, path: str, key: str, placeholders: bool = False) -> str:
@@ -971,6 +1046,10 @@ def _ros_name(src: _Source, data: dict, path: str, key: str, placeholders: bool 
     if text.startswith("~"):
         raise src.error(_join(path, key), f"private names (~) are not supported: '{text}'",
                         fix=f"write the full name, e.g. {key}: {_example(path, key)}")
+    if len(text) > ROS_NAME_MAX:
+        raise src.error(_join(path, key), f"a name of {len(text)} characters is longer than ROS "
+                                          f"takes ({ROS_NAME_MAX})",
+                        fix=f"use a shorter name, e.g. {key}: {_example(path, key)}")
     tokens = text.removeprefix("/").split("/")
     if not all(_NAME_TOKEN.fullmatch(token) or placeholders and _PLACEHOLDER.fullmatch(token)
                for token in tokens):
@@ -1234,7 +1313,8 @@ def _number(src: _Source, data: dict, path: str, key: str, default: Any, expecte
         return default
     value = data[key]
     kinds = int if integer else (int, float)
-    if isinstance(value, bool) or not isinstance(value, kinds) or not ok(value):
+    if (isinstance(value, bool) or not isinstance(value, kinds)
+            or isinstance(value, float) and not math.isfinite(value) or not ok(value)):
         raise src.error(_join(path, key), f"expected {expected}, got {_show(value)}",
                         fix=f"e.g. {key}: {_example(path, key)}")
     return value if integer else float(value)

@@ -8,8 +8,11 @@ MessagePack map and closes the connection.
 * ``direction: receive`` -> :class:`CallServer`: the bridge listens on ``listen:port`` and a
   microcontroller calls ROS services here. Several services may share the port: the name tells
   them apart. A connection must deliver its request within the longest ``timeout`` of the port's
-  services (else it is closed: ``request_timeout``); the answer, or a failure answer (see
-  services.py), is written within the service's ``timeout``, then the bridge closes.
+  services (else it is closed: ``request_timeout``), and may not fall silent for
+  ``bridge.limits.idle_timeout`` meanwhile (``idle_timeout``); with the bridge's limits on
+  connections per source, idle sockets cannot hold the port's places against a
+  microcontroller. The answer, or a failure answer (see services.py), is written within the
+  service's ``timeout``, then the bridge closes.
 * ``direction: transmit`` -> :class:`CvraCallerRoute`: a proxy ROS server here; each call
   connects to ``peer:port``, writes the request and reads until the answer decodes (or the peer
   closes). A microcontroller that keeps the connection open after answering is closed by the
@@ -32,6 +35,7 @@ from .errors import CodecError
 from .links import POLL
 from .services import Call, ServerRoute, ServiceRoute
 from .transport import Address, StreamConnection, Transport
+from .warn import BUGS
 from .wire import serial_datagram
 from .wire.names import NameMissing, pack_name, split_name
 
@@ -46,9 +50,11 @@ class CallServer:
     """Serves microcontrollers' calls on one port (direction receive), for every service there.
     The services' names are read with the codec of the first (only msgpack names requests)."""
 
-    def __init__(self, name: str, link_drop: Callable[[Any, str, str], None]):
+    def __init__(self, name: str, link_drop: Callable[[Any, str, str], None],
+                 idle_timeout: float = 2.0):
         self.name = name
         self.link_drop = link_drop  # counts what belongs to no service (by port)
+        self.idle_timeout = idle_timeout
         self.routes: dict[str, ServerRoute] = {}
         self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
 
@@ -85,8 +91,8 @@ class CallServer:
         except OSError as exc:
             log.debug("%s: connection from %s: %s", self.name, peer[0], exc)
         except Exception:  # a bug, not the peer's bytes: keep serving the others
-            log.exception("%s: error while serving a call from %s (a bug: please report it)",
-                          self.name, peer[0])
+            BUGS.bug("call_error", f"{self.name}: error while serving a call from {peer[0]} "
+                                   "(a bug: please report it)")
             self.drop("handler_error", f"from {peer[0]}")
         finally:
             connection.close()
@@ -96,11 +102,17 @@ class CallServer:
         errors: list[tuple[str, str]] = []
         decoder = serial_datagram.Decoder(lambda *error: errors.append(error), self.max_request)
         deadline = time.monotonic() + self.wait
+        heard = time.monotonic()
         received = 0
         while (left := deadline - time.monotonic()) > 0:
             data = connection.receive(CHUNK, min(left, POLL))
             if data is None:
+                if time.monotonic() - heard > self.idle_timeout:
+                    self.drop("idle_timeout", f"{peer[0]} silent for {self.idle_timeout:g} s "
+                                              f"after {received} bytes")
+                    return None
                 continue
+            heard = time.monotonic()
             if not data:
                 self.drop("closed_early", f"{peer[0]} closed after {received} bytes, "
                                           "before a whole request")

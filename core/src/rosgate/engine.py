@@ -80,6 +80,7 @@ class Engine:
         self.life.stopping.set()
         if self.router is not None:
             self.router.log_stats()  # before the routes and their counters go
+            self._log_links()
         if self.role is not None:
             self.role.stop()
         self.life.close_all()
@@ -120,14 +121,23 @@ class Engine:
             if now >= next_stats:
                 next_stats = now + STATS_EVERY
                 self.router.log_stats()
+                self._log_links()
+
+    def _log_links(self) -> None:
+        for link in self.life.links():
+            if link.counters.frames_out or link.counters.frames_in:
+                log.info("link %s: %s", link.name, link.counters.line())
 
     # -- what a running bridge carried ----------------------------------------------------------
     def routes(self) -> list[Route]:
         return self.router.snapshot() if self.router is not None else []
 
     def stats(self) -> dict[str, Any]:
-        """Counters per route, plus drops that belong to no topic."""
-        return self.router.stats() if self.router is not None else {"routes": {}, "link_drops": {}}
+        """Counters per route, drops that belong to no topic, and what each open link carried
+        (frames, datagrams or writes, how many frames were coalesced)."""
+        stats = self.router.stats() if self.router is not None else {"routes": {}, "link_drops": {}}
+        stats["links"] = {link.name: link.counters.snapshot() for link in self.life.links()}
+        return stats
 
     @property
     def link_drops(self) -> dict[str, int]:

@@ -1,23 +1,29 @@
 """Links: the core's side of a transport. Framing, fragmentation and threads live here, so a
 transport plugin only opens sockets.
 
-* :class:`DatagramLink` — one bound endpoint; sends whole frames, fragments, FEC fragments or
-  fragments it can send again (``recovery``), reassembles, and hands every frame to
-  ``on_frame``. A transport with small frames (``max_frame`` below ``framing.COMPACT_BELOW``,
-  such as CAN) gets the compact fragment scheme instead. In bare mode (``framing: none``) it
-  hands over the datagram untouched.
+* :class:`DatagramLink` — one bound endpoint; sends whole frames, several frames coalesced in
+  one datagram, fragments, FEC fragments or fragments it can send again (``recovery``);
+  reassembles, splits, answers NACKs and ACKs, and hands every frame to ``on_frame``. A
+  transport with small frames (``max_frame`` below ``framing.COMPACT_BELOW``, such as CAN) gets
+  the compact fragment scheme instead. In bare mode (``framing: none``) it hands over the
+  datagram untouched.
 * :class:`StreamLink` — one connection; frames carry a length prefix, long ones go in chunks.
 
 Both send through a :class:`~rosgate.scheduler.Scheduler` — the one place a link's frames wait:
-per-topic queues in priority classes, latest-only replacement, a bandwidth budget per peer
-(``bridge.links``) — drained by a send thread of the link's own, so sending never blocks the
-caller (a ROS executor). A frame that fits one packet goes out on the caller's thread when
-nothing waits and the budget allows: no thread hand-off for a quiet link.
+per-topic queues in priority classes, latest-only replacement, late best-effort frames dropped,
+a bandwidth budget per peer (``bridge.links``) — drained by a send thread of the link's own, so
+sending never blocks the caller (a ROS executor). A frame that fits one packet goes out on the
+caller's thread when nothing waits and the budget allows: no thread hand-off for a quiet link.
+Frames that wait for the same destination leave together (one datagram up to ``max_frame``,
+one stream write up to :data:`WRITE` bytes), so a backlog costs few system calls.
+
 * :class:`LinkSlot` — a place for a stream link that comes and goes (reconnects). While it is
   empty, frames of reliable senders wait in a bounded queue and leave in order when a connection
   is attached; frames of other senders are dropped.
 * :class:`Connector` — keeps a :class:`LinkSlot` filled: connects, and reconnects after every loss.
-* :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``.
+* :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``, within
+  :class:`ConnectionLimits` and from admitted :class:`Sources` only; it backs off when accepting
+  fails (out of file descriptors), never spinning.
 
 Who sent a frame travels with it: every ``send`` takes the :class:`Sender` (a route, or the
 control channel) so a frame dropped later — a queue that overflows, a connection that breaks
@@ -25,25 +31,32 @@ with frames still queued — is counted against it, without a lookup. Losses on 
 side (a fragment that never came) are reported with the topic id the fragments carried.
 
 Every receive loop catches what a peer's bytes can cause and counts it; a link never dies of
-input. :class:`Lifetime` is what a running bridge closes when it stops.
+input, and an unexpected error's traceback is logged once per reason per minute
+(:data:`rosgate.warn.BUGS`). A stream connection the bridge accepted is untrusted until its
+owner calls :meth:`StreamLink.trust` (a handshake, a hello): until then its frames are small
+and it has a deadline (:class:`Untrusted`). :class:`Lifetime` is what a running bridge closes
+when it stops.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import itertools
 import logging
+import os
 import random
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Iterable, Protocol, cast
 
+from .config import MAX_DELAY_DEFAULT as MAX_DELAY
 from .config import LinkConfig
 from .errors import LinkError
 from .scheduler import Due, Outgoing, Scheduler
-from .transport import (Address, DatagramEndpoint, StreamConnection, StreamListener,
-                        Transport)
+from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport
+from .warn import BUGS, Warner
 from .wire import envelope, framing, recovery
 
 log = logging.getLogger("rosgate")
@@ -56,6 +69,8 @@ RecoveredHandler = Callable[[int], None]
 
 POLL = 0.2  # seconds a receive waits before checking whether the link is closing
 CONNECT_TIMEOUT = 5.0
+_WARNER = Warner()  # for an acceptor whose owner does not count its refusals
+ACCEPT_BACKOFF = (0.1, 1.0)  # seconds between failed accepts: the first, doubling up to the second
 
 
 class Sender(Protocol):
@@ -63,9 +78,11 @@ class Sender(Protocol):
 
     Links read these too, each optional (a sender without it gets the default):
     ``priority`` (0 control .. 7 background, default 5, data), ``latest_only`` (False),
-    ``recovery`` ("none", "fec", "retransmit") and ``recovery_overhead`` (0.1), ``bare`` (its
-    frames are whole datagrams, never cut: ``framing: none``), and ``on_wire(size, again)``,
-    told of every packet put on the link for it (``again``: a retransmission).
+    ``max_delay`` (seconds a frame may wait to start; None: the link's, for best-effort
+    senders), ``recovery`` ("none", "fec", "retransmit") and ``recovery_overhead`` (0.1),
+    ``bare`` (its frames are whole datagrams, never cut: ``framing: none``), and
+    ``on_wire(size, again)``, told of every packet put on the link for it (``again``: a
+    retransmission).
     """
 
     @property
@@ -85,14 +102,25 @@ class Link:
 
     name: str
     closed: threading.Event
+    counters: LinkCounters
     #: datagram links need a destination for every send; stream links are connected
     datagram: bool = False
+    #: while a frame is handed to its handler: when the datagram that carried it arrived (ns,
+    #: the clock of time.time_ns, as the transport's receive_into says), or 0: unknown
+    arrived: int = 0
+
+    # a link implements send or send_all (or both): each defaults to the other
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         """Hand ``frame`` to the link. False when it was dropped at once (counted against
         ``sender``); True when it was sent or queued — a queued frame that is lost later is
         counted against ``sender`` then."""
-        raise NotImplementedError
+        return self.send_all([frame], sender, to) == 1
+
+    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
+        """Hand several frames of one sender to the link at once (they may share a datagram or a
+        write); how many were sent or queued, as :meth:`send` says for one."""
+        return sum(self.send(frame, sender, to) for frame in frames)
 
     def close(self) -> None:
         raise NotImplementedError
@@ -117,6 +145,13 @@ class Lifetime:
         with self._lock:
             self._items.pop(id(item), None)
 
+    def links(self) -> list[Link]:
+        """The links open now that count what they carry."""
+        with self._lock:
+            return [item for item in self._items.values()
+                    if isinstance(item, Link) and isinstance(getattr(item, "counters", None),
+                                                             LinkCounters)]
+
     def close_all(self) -> None:
         self.stopping.set()
         with self._lock:
@@ -126,12 +161,37 @@ class Lifetime:
             item.close()
 
 
+@dataclass
+class LinkCounters:
+    """What a link carried, per direction: frames, the datagrams (or stream writes and reads)
+    that carried them, and how many frames shared one with others (coalesced)."""
+
+    frames_out: int = 0
+    packets_out: int = 0
+    coalesced_out: int = 0
+    bytes_out: int = 0
+    frames_in: int = 0
+    packets_in: int = 0
+    coalesced_in: int = 0
+    bytes_in: int = 0
+
+    def snapshot(self) -> dict[str, int]:
+        return dict(vars(self))
+
+    def line(self) -> str:
+        return (f"out {self.frames_out} frames in {self.packets_out} packets "
+                f"({self.coalesced_out} coalesced, {self.bytes_out} B), "
+                f"in {self.frames_in} frames in {self.packets_in} packets "
+                f"({self.coalesced_in} coalesced, {self.bytes_in} B)")
+
+
 class _Sending:
     """What both kinds of link share on the way out: the scheduler, its lock, and the send
-    thread's bookkeeping. ``_send_due`` is the kind's own."""
+    thread's bookkeeping. ``_send_due`` and ``_send_loop``'s gathering are the kind's own."""
 
     name: str
     closed: threading.Event
+    counters: LinkCounters
     scheduler: Scheduler
 
     def _init_sending(self, budget: LinkConfig | None, overhead: int, packet: int,
@@ -139,11 +199,15 @@ class _Sending:
         self.budget = budget
         self.scheduler = Scheduler(
             bandwidth=budget.bandwidth if budget else None, overhead=overhead,
-            max_delay=budget.max_delay if budget else 1.0, frames=frames, bytes=bytes_,
+            max_delay=budget.max_delay if budget else MAX_DELAY, frames=frames, bytes=bytes_,
             packet=packet)
+        # entered as the plain lock on the way out (a Condition's own with-statement costs a
+        # Python call each way, ~0.3 us); the send thread waits on the condition
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._busy = False  # a thread is sending (inline or the send thread): one at a time
+        #: what a stream's inline write left unwritten: it goes before anything else
+        self._rest: Due | None = None
 
     def queue_depth(self, sender: Any) -> int:
         """Messages of ``sender`` waiting or being sent."""
@@ -163,30 +227,33 @@ class _Sending:
     def _put(self, message: Outgoing, inline: bytes | None = None) -> bool:
         """Queue ``message`` — or, when ``inline`` (its one packet) may leave at once, send it
         here. False when it was dropped (counted)."""
-        with self._lock:
+        lock = self._lock
+        with lock:
             if self.closed.is_set():
-                queued, go = False, False
-            elif (inline is not None and not self._busy
+                queued = go = False
+            elif (inline is not None and not self._busy and self._rest is None
                   and self.scheduler.may_send_now(message.to, len(inline))):
-                self._busy, queued, go = True, True, True
+                self._busy = queued = go = True
             else:
                 go = False
                 queued = self.scheduler.put(message)
-                if queued:
+                if queued and not self._busy:
                     self._wake.notify()
-        self._count_drops()
-        if self.closed.is_set() and not queued:
-            message.sender.drop("link_down", f"{self.name} is closed")
+        if self.scheduler.dropped:
+            self._count_drops()
+        if not queued:
+            if self.closed.is_set():
+                message.sender.drop("link_down", f"{self.name} is closed")
             return False
         if not go:
-            return queued
+            return True
         try:
             assert inline is not None
             return self._send_due(Due(inline, message.to, message.sender, message))
         finally:
-            with self._lock:
+            with lock:
                 self._busy = False
-                if not self.scheduler.idle:
+                if not self.scheduler.idle or self._rest is not None:
                     self._wake.notify()
 
     def _count_drops(self) -> None:
@@ -203,30 +270,6 @@ class _Sending:
     def _timers(self, now: float) -> None:
         """The kind's timers, under the lock."""
 
-    def _send_loop(self) -> None:
-        wake, closed, scheduler = self._wake, self.closed, self.scheduler
-        while True:
-            with wake:
-                while True:
-                    if closed.is_set():
-                        return
-                    now = time.monotonic()
-                    self._timers(now)
-                    due = None if self._busy else scheduler.next(now)
-                    if isinstance(due, Due):
-                        self._busy = True
-                        break
-                    until = [t for t in (due, self._next_timer()) if t is not None]
-                    wake.wait(max(0.0, min(until) - now) if until else None)
-            self._count_drops()
-            try:
-                self._send_due(due)
-            except Exception:  # a bug; the link must keep sending
-                log.exception("%s: error while sending (a bug: please report it)", self.name)
-            finally:
-                with wake:
-                    self._busy = False
-
     def _send_due(self, due: Due) -> bool:
         raise NotImplementedError
 
@@ -237,23 +280,52 @@ def _on_wire(sender: Any, size: int, again: bool) -> None:
         counted(size, again)
 
 
+class _Gather:
+    """A fragment as its parts — its header and a view of the frame — for scatter-gather
+    sending (``send_parts``: no copy of the frame); the scheduler takes it for a packet of
+    ``len()`` bytes."""
+
+    __slots__ = ("parts", "size")
+
+    def __init__(self, header: bytes, chunk: memoryview):
+        self.parts = [header, chunk]
+        self.size = len(header) + len(chunk)
+
+    def __len__(self) -> int:
+        return self.size
+
+
+def _one(packet: bytes) -> Callable[[], list[bytes]]:
+    return lambda: [packet]
+
+
+def _batchable(due: Due) -> bool:
+    """A whole frame in one packet, which may share a datagram with others."""
+    return due.ends is not None and due.ends.batchable and not due.again
+
+
 class DatagramLink(_Sending, Link):
     """A bound datagram endpoint. Frames out: whole when they fit ``max_frame``, else
     fragments; a topic with ``recovery: fec`` always as FEC fragments (repair included), one
     with ``recovery: retransmit`` always as fragments a receiver can ask for again (kept until
     acknowledged); compact pieces on links of small frames; a bare sender's frames whole,
-    whatever their size. Datagrams in: fragments of every kind reassembled, NACKs and ACKs
-    answered, each frame to ``on_frame``."""
+    whatever their size. Whole frames that leave one after the other for the same destination
+    share a datagram (a batch, see :mod:`rosgate.wire.framing`; not on bare links, whose
+    receivers take one message per datagram). Datagrams in: from admitted ``sources`` only,
+    batches split, fragments of every kind reassembled, NACKs and ACKs answered, each frame to
+    ``on_frame``."""
 
     datagram = True
 
     def __init__(self, transport: Transport, endpoint: DatagramEndpoint, name: str,
                  on_frame: FrameHandler, on_lost: LostHandler, bare: bool = False,
-                 max_message: int = framing.DEFAULT_MAX_MESSAGE,
+                 max_message: int = framing.DEFAULT_MAX_MESSAGE, sources: Sources | None = None,
                  budget: LinkConfig | None = None,
                  on_recovered: RecoveredHandler | None = None,
                  queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024):
         self.transport = transport
+        #: who frames are taken from (None: anyone); others are counted ``not_allowed``
+        self.sources = sources
         self.endpoint = endpoint
         self.name = name
         self.bare = bare
@@ -263,6 +335,7 @@ class DatagramLink(_Sending, Link):
         self.on_recovered = on_recovered or (lambda topic_id: None)
         self.max_message = max_message
         self.closed = threading.Event()
+        self.counters = LinkCounters()
         # small frames cannot spare 14 bytes of fragment header: every frame goes as compact pieces
         self.compact = not bare and self.max_frame < framing.COMPACT_BELOW
         self.reassembler: framing.Reassembler | framing.CompactReassembler
@@ -274,8 +347,8 @@ class DatagramLink(_Sending, Link):
         self._fec: recovery.FecReassembler | None = None        # made with the first of each
         self._repeat: recovery.RepeatReassembler | None = None
         self.store = recovery.RetransmitStore()  # what this side may be asked to send again
-        self._frame_ids = itertools.count(1)
         self._counters: dict[Address, int] = {}  # compact: the next piece's counter per destination
+        self._send_parts = getattr(endpoint, "send_parts", None)
         self._init_sending(budget, getattr(transport, "packet_overhead", 0), self.max_frame,
                            queue_frames, queue_bytes)
         self._threads = [
@@ -288,21 +361,59 @@ class DatagramLink(_Sending, Link):
     # -- out -----------------------------------------------------------------------------------
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         assert to is not None, "a datagram link needs a destination"
-        whole = getattr(sender, "bare", False) or self.bare
-        if self.bare and len(frame) > self.max_frame:
+        size = len(frame)
+        if self.bare and size > self.max_frame:
             sender.drop("too_large_for_bare_framing",
-                        f"{len(frame)} bytes, {self.name} carries at most {self.max_frame}")
+                        f"{size} bytes, {self.name} carries at most {self.max_frame}")
             return False
+        whole = self.bare or getattr(sender, "bare", False)
         kind = getattr(sender, "recovery", "none")
-        one = whole or kind == "none" and not self.compact and len(frame) <= self.max_frame
-        message = Outgoing(sender, to, len(frame),
-                           lambda: self._cut(frame, sender, to, whole, kind), time.monotonic())
+        one = whole or kind == "none" and not self.compact and size <= self.max_frame
+        message = Outgoing(sender, to, size, lambda: self._cut(frame, sender, to, whole, kind),
+                           time.monotonic(), batchable=one and not whole)
         return self._put(message, frame if one else None)
+
+    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
+        """Frames of one sender together (a route's backlog): when the link is idle, those that
+        fit share datagrams sent from here; otherwise each is queued (and coalesced again by
+        the send thread)."""
+        assert to is not None, "a datagram link needs a destination"
+        if len(frames) < 2 or self.bare or self.compact or getattr(sender, "bare", False) \
+                or getattr(sender, "recovery", "none") != "none":
+            return sum(self.send(frame, sender, to) for frame in frames)
+        limit, sent, start = self.max_frame, 0, 0
+        while start < len(frames):  # groups of consecutive frames that fit one datagram
+            total, end = 0, start
+            while end < len(frames) and len(frames[end]) <= limit \
+                    and framing.batch_size(total + len(frames[end]), end - start + 1) <= limit:
+                total += len(frames[end])
+                end += 1
+            if end - start < 2:
+                sent += self.send(frames[start], sender, to)
+                start += 1
+                continue
+            group, start = frames[start:end], end
+            with self._lock:
+                go = (not self.closed.is_set() and not self._busy
+                      and self.scheduler.may_send_now(to, framing.batch_size(total, len(group))))
+                if go:
+                    self._busy = True
+            if not go:
+                sent += sum(self.send(frame, sender, to) for frame in group)
+                continue
+            try:
+                sent += self._send_batch([Due(frame, to, sender) for frame in group], to)
+            finally:
+                with self._lock:
+                    self._busy = False
+                    if not self.scheduler.idle:
+                        self._wake.notify()
+        return sent
 
     def _cut(self, frame: bytes, sender: Any, to: Address, whole: bool, kind: str) -> list[bytes]:
         """A frame's packets, made when it starts (on the send thread, in the order frames
         leave: compact counters and FEC coding happen here, not on the caller's thread)."""
-        if whole:
+        if whole or kind == "none" and not self.compact and len(frame) <= self.max_frame:
             return [frame]
         if self.compact:
             counter = self._counters.get(to, 0)
@@ -317,29 +428,119 @@ class DatagramLink(_Sending, Link):
             fid = recovery.frame_id()
             packets = recovery.repeat_fragments(frame, self.max_frame, sender.topic_id, fid)
             self.store.keep(to, fid, packets, sender, time.monotonic())
-            self._kept = (to, fid)  # told when its last packet has left (see _send_due)
             return packets
-        return framing.fragment(frame, self.max_frame, sender.topic_id, next(self._frame_ids))
+        # frame ids unpredictable: a spoofed source cannot poison a reassembly (see Reassembler)
+        parts = framing.fragments(frame, self.max_frame, sender.topic_id, recovery.frame_id())
+        if self._send_parts is None:
+            return [header + chunk for header, chunk in parts]
+        # a _Gather stands for its packet: the scheduler only takes its len()
+        return cast(list[bytes], [_Gather(header, chunk) for header, chunk in parts])
 
     def _send_due(self, due: Due) -> bool:
         packet, to, sender = due.packet, due.to, due.sender
+        count = 1
         try:
-            if self.compact and not getattr(sender, "bare", False):
-                pieces = [packet[i:i + self.max_frame]
-                          for i in range(0, len(packet), self.max_frame)]
-                for piece in pieces:
-                    self.endpoint.send(piece, to)
+            if type(packet) is _Gather:
+                assert self._send_parts is not None
+                self._send_parts(cast(_Gather, packet).parts, to)
+            elif self.compact and not getattr(sender, "bare", False):
+                step = self.max_frame
+                count = 0
+                for i in range(0, len(packet), step):
+                    self.endpoint.send(packet[i:i + step], to)
+                    count += 1
             else:
                 self.endpoint.send(packet, to)
         except OSError as exc:
-            sender.drop("send_error", f"to {to} on {self.name}: {exc}")
+            # a message cut short by close() was counted there (link_down), unless this was
+            # its last packet
+            if due.ends is not None or not self.closed.is_set():
+                sender.drop("send_error", f"to {to} on {self.name}: {exc}")
             return False
+        counters = self.counters
+        counters.packets_out += count
+        counters.bytes_out += len(packet)
+        if due.ends is not None:
+            counters.frames_out += 1
         _on_wire(sender, len(packet), due.again)
-        if due.ends is not None and packet[:2] == recovery.REPEAT_MAGIC:
+        if due.ends is not None and type(packet) is bytes and packet[:2] == recovery.REPEAT_MAGIC:
             fid = int.from_bytes(packet[10:14], "big")  # RS: magic, index, count, topic, frame
             with self._lock:
                 self.store.sent(to, fid, time.monotonic())
         return True
+
+    def _send_batch(self, dues: list[Due], to: Address) -> int:
+        """Whole frames in one datagram; how many were sent (a failure is counted for each)."""
+        frames = [due.packet for due in dues]
+        try:
+            parts = framing.batch(frames)
+            if self._send_parts is not None:
+                self._send_parts(parts, to)
+            else:
+                self.endpoint.send(b"".join(parts), to)
+        except OSError as exc:
+            for due in dues:
+                due.sender.drop("send_error", f"to {to} on {self.name}: {exc}")
+            return 0
+        counters = self.counters
+        counters.frames_out += len(frames)
+        counters.packets_out += 1
+        counters.coalesced_out += len(frames)
+        counters.bytes_out += framing.batch_size(sum(map(len, frames)), len(frames))
+        for due in dues:
+            _on_wire(due.sender, len(due.packet) + framing.LENGTH.size, False)
+        return len(frames)
+
+    def _send_loop(self) -> None:
+        """Send what the scheduler lets go; whole frames that come one after the other for the
+        same destination share a datagram (the one that does not fit is sent next)."""
+        wake, closed, scheduler = self._wake, self.closed, self.scheduler
+        limit, coalesce = self.max_frame, not self.bare
+        carry: Due | None = None  # taken from the scheduler, not sent yet: it goes next
+        while True:
+            with wake:
+                while True:
+                    if closed.is_set():
+                        return
+                    now = time.monotonic()
+                    self._timers(now)
+                    if carry is not None:
+                        due, carry = carry, None
+                        break
+                    got = None if self._busy else scheduler.next(now)
+                    if isinstance(got, Due):
+                        due = got
+                        break
+                    until = [t for t in (got, self._next_timer()) if t is not None]
+                    wake.wait(max(0.0, min(until) - now) if until else None)
+                self._busy = True
+                batch = [due]
+                if coalesce and _batchable(due):
+                    total = len(due.packet)
+                    while True:
+                        more = scheduler.next(now)
+                        if not isinstance(more, Due):
+                            break
+                        if (_batchable(more) and more.to == due.to and framing.batch_size(
+                                total + len(more.packet), len(batch) + 1) <= limit):
+                            batch.append(more)
+                            total += len(more.packet)
+                        else:
+                            carry = more
+                            break
+            if scheduler.dropped:
+                self._count_drops()
+            try:
+                if len(batch) == 1:
+                    self._send_due(due)
+                else:
+                    self._send_batch(batch, due.to)
+            except Exception:  # a bug; the link must keep sending
+                BUGS.bug("send_error", f"{self.name}: error while sending (a bug: please "
+                                       "report it)")
+            finally:
+                with wake:
+                    self._busy = carry is not None  # a carried frame keeps its turn
 
     def _timers(self, now: float) -> None:
         for owner, to, packet in self.store.probes(now):
@@ -347,9 +548,30 @@ class DatagramLink(_Sending, Link):
 
     def _next_timer(self) -> float | None:
         return self.store.next_probe()
+
     # -- in ------------------------------------------------------------------------------------
     def _receive_loop(self) -> None:
-        while not self.closed.is_set():
+        receive_into = getattr(self.endpoint, "receive_into", None)
+        if receive_into is None:
+            receive: Callable[[float], tuple[bytes | memoryview, Address] | None] = \
+                lambda timeout: self.endpoint.receive(timeout)
+        else:
+            # one buffer for every datagram: longer than any frame this link accepts, so a
+            # datagram that fills it is one too long
+            buffer = memoryview(bytearray(max(self.max_frame, 65_535) + 1))
+
+            def receive(timeout: float) -> tuple[bytes | memoryview, Address] | None:
+                got = receive_into(buffer, timeout)
+                if got is None:
+                    return None
+                size, source, self.arrived = got
+                if size >= len(buffer):
+                    self.on_lost(None, "oversized_datagram")
+                    return None
+                return buffer[:size], source
+
+        closed = self.closed
+        while not closed.is_set():
             timeout = POLL
             repeat = self._repeat
             if repeat is not None:
@@ -357,44 +579,75 @@ class DatagramLink(_Sending, Link):
                 if soon is not None:
                     timeout = min(POLL, max(0.001, soon - time.monotonic()))
             try:
-                got = self.endpoint.receive(timeout)
+                got = receive(timeout)
             except OSError:
-                if self.closed.is_set():
+                if closed.is_set():
                     return
                 continue
             except Exception:  # a transport plugin's bug must not silently end the link
-                log.exception("%s: the transport's receive failed (a bug in the plugin)", self.name)
+                BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
+                                            "(a bug in the plugin)")
                 self.on_lost(None, "transport_error")
-                self.closed.wait(POLL)  # do not spin on a receive that fails at once
+                closed.wait(POLL)  # do not spin on a receive that fails at once
                 continue
-            now = time.monotonic()
             if repeat is not None:
-                repeat.poll(now)
+                repeat.poll(time.monotonic())
             if got is None:
                 self.reassembler.expire()
                 if self._fec is not None:
-                    self._fec.expire(now)
+                    self._fec.expire(time.monotonic())
                 continue
-            datagram, source = got
-            if self.bare:
-                deliver(self, datagram, source)
-                continue
+            self._datagram(*got)
+
+    def _datagram(self, datagram: bytes | memoryview, source: Address) -> None:
+        """One datagram as it came (a view of the receive buffer, valid until the next one)."""
+        if self.sources is not None and not self.sources.admits(source, datagram):
+            self.on_lost(None, "not_allowed")
+            return
+        counters = self.counters
+        counters.packets_in += 1
+        counters.bytes_in += len(datagram)
+        if self.bare:
+            counters.frames_in += 1
+            deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
+            return
+        kind = datagram[1] if len(datagram) > 1 and datagram[0] == 0x52 else 0  # "R?"
+        if self.compact or kind == 0x46:  # "RF": a fragment
             try:
-                frame = self._take(datagram, source, now)
+                frame = self.reassembler.add(source, datagram)
             except framing.FramingError:
                 self.on_lost(None, "bad_fragment")
-                continue
+                return
             if frame is not None:
+                counters.frames_in += 1
+                # the buffer it was reassembled in, the handler's to keep: a route hands it to
+                # rclpy without a copy (typed bytes: handlers take any bytes-like frame)
+                deliver(self, cast(bytes, frame), source)
+        elif kind == 0x42:  # "RB": several frames
+            try:
+                for record in framing.unbatch(datagram):
+                    counters.frames_in += 1
+                    counters.coalesced_in += 1
+                    deliver(self, bytes(record), source)
+            except framing.FramingError:
+                self.on_lost(None, "bad_batch")
+        elif kind in _RECOVERY_KINDS:
+            try:
+                frame = self._recovery(bytes(datagram), source, time.monotonic())
+            except framing.FramingError:
+                self.on_lost(None, "bad_fragment")
+                return
+            if frame is not None:
+                counters.frames_in += 1
                 deliver(self, frame, source)
+        else:
+            counters.frames_in += 1
+            deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
 
-    def _take(self, datagram: bytes, source: Address, now: float) -> bytes | None:
-        """A frame, when this datagram is one or completes one; the link's own datagrams
-        (fragments of every kind, NACKs, ACKs) are taken care of here."""
-        if self.compact:
-            return self.reassembler.add(source, datagram)
+    def _recovery(self, datagram: bytes, source: Address, now: float) -> bytes | None:
+        """The link's own datagrams of loss recovery: FEC and numbered fragments (a frame when
+        one completes it), NACKs and ACKs (answered here)."""
         kind = datagram[:2]
-        if kind == framing.FRAGMENT_MAGIC:
-            return self.reassembler.add(source, datagram)
         if kind == recovery.FEC_MAGIC:
             if self._fec is None:
                 self._fec = recovery.FecReassembler(self.on_lost, self.on_recovered,
@@ -413,11 +666,9 @@ class DatagramLink(_Sending, Link):
                     self.scheduler.repair(again[0], source, again[1])
                     self._wake.notify()
             return None
-        if kind == recovery.ACK_MAGIC:
-            with self._lock:
-                self.store.on_ack(source, datagram, now)
-            return None
-        return datagram
+        with self._lock:  # ACK_MAGIC
+            self.store.on_ack(source, datagram, now)
+        return None
 
     def _answer(self, datagram: bytes, to: Address) -> None:
         """A NACK or an ACK, sent at once from the receiving thread (a few bytes, counted
@@ -444,7 +695,19 @@ class DatagramLink(_Sending, Link):
                 thread.join(timeout=2)
 
 
+# the second byte of the loss recovery's datagrams: FEC, numbered fragments, NACK, ACK ("R?")
+_RECOVERY_KINDS = frozenset(magic[1] for magic in (recovery.FEC_MAGIC, recovery.REPEAT_MAGIC,
+                                                   recovery.NACK_MAGIC, recovery.ACK_MAGIC))
 WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
+
+
+@dataclass(frozen=True)
+class Untrusted:
+    """What a connection may do before its owner trusts it (``bridge.limits``): frames of at most
+    ``max_frame`` bytes, and ``deadline`` seconds to earn trust before it is closed."""
+
+    max_frame: int
+    deadline: float
 
 
 class StreamLink(_Sending, Link):
@@ -452,14 +715,22 @@ class StreamLink(_Sending, Link):
     :data:`rosgate.wire.framing.CHUNK` go in chunks, and the writer takes at most
     :data:`WRITE` bytes at a time from the scheduler, so a frame of a higher class (a Twist
     behind a camera's backlog) waits for one write, not for the whole backlog. (The kernel's
-    send buffer still holds what was written: a budget below the link's rate keeps it short.)"""
+    send buffer still holds what was written: a budget below the link's rate keeps it short.)
+
+    Sending never blocks the caller: when nothing waits, a frame of one record is written from
+    the caller's thread as far as the connection takes it without waiting (``send_nowait``: no
+    thread hand-off for a message alone; the rest goes first when the writer next writes).
+
+    With ``untrusted``, the connection is held to those limits until :meth:`trust` (a frame too
+    long is a corrupt stream; the deadline passing ends the connection, counted
+    ``handshake_timeout``)."""
 
     def __init__(self, connection: StreamConnection, name: str, peer: Address,
                  on_frame: FrameHandler, on_lost: LostHandler,
                  on_close: Callable[[StreamLink], None] | None = None,
                  queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
                  max_message: int = framing.DEFAULT_MAX_MESSAGE,
-                 budget: LinkConfig | None = None):
+                 untrusted: Untrusted | None = None, budget: LinkConfig | None = None):
         self.connection = connection
         self.name = name
         self.peer = peer
@@ -473,10 +744,15 @@ class StreamLink(_Sending, Link):
         self.why = ""  # why the connection ended, once it has
         self.queue_frames = queue_frames
         self.queue_bytes = queue_bytes
+        self.counters = LinkCounters()
+        self._send_nowait = getattr(connection, "send_nowait", None)
         self._messages = itertools.count(1)  # numbers of chunked frames
         self._init_sending(budget, 0, framing.CHUNK + framing.CHUNK_HEAD.size, queue_frames,
                            queue_bytes)
-        self._reader = framing.StreamReader(max_message)
+        self._reader = framing.StreamReader(untrusted.max_frame if untrusted else max_message,
+                                            direct=hasattr(connection, "receive_into"))
+        self.max_message = max_message
+        self._trust_by = time.monotonic() + untrusted.deadline if untrusted else None
         self._threads = [
             threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
             threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
@@ -486,9 +762,79 @@ class StreamLink(_Sending, Link):
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         # the limits count a frame with its length prefix, as it is written
+        if len(frame) <= framing.CHUNK:
+            record = framing.length_prefixed(frame)
+            return self._put(Outgoing(sender, None, len(record), lambda: [record],
+                                      time.monotonic()),
+                             record if self._send_nowait is not None else None)
         return self._put(Outgoing(sender, None, len(frame) + framing.LENGTH.size,
                                   lambda: framing.stream_records(frame, next(self._messages)),
                                   time.monotonic()))
+
+    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
+        """Frames of one sender together (a route's backlog): one write from the caller's
+        thread when nothing waits; otherwise each is queued."""
+        if len(frames) < 2 or self._send_nowait is None \
+                or any(len(frame) > framing.CHUNK for frame in frames):
+            return sum(self.send(frame, sender) for frame in frames)
+        records = [framing.length_prefixed(frame) for frame in frames]
+        data = b"".join(records)
+        with self._lock:
+            go = (not self.closed.is_set() and not self._busy and self._rest is None
+                  and self.scheduler.may_send_now(None, len(data)))
+            if go:
+                self._busy = True
+        if not go:
+            now = time.monotonic()
+            return sum(self._put(Outgoing(sender, None, len(record), _one(record), now))
+                       for record in records)
+        try:
+            self._write_now(data, sender, [len(record) for record in records], None)
+        finally:
+            with self._lock:
+                self._busy = False
+                if not self.scheduler.idle or self._rest is not None:
+                    self._wake.notify()
+        return len(records)
+
+    def _send_due(self, due: Due) -> bool:
+        """One record from the caller's thread (see :meth:`_write_now`)."""
+        return self._write_now(due.packet, due.sender, [len(due.packet)], due.ends)
+
+    def _write_now(self, data: bytes, sender: Sender, sizes: list[int],
+                   ends: Outgoing | None) -> bool:
+        """Write records as far as the connection takes them now; what it does not take goes
+        first when the writer next writes (nothing can come between: this thread is the only
+        one writing)."""
+        assert self._send_nowait is not None
+        try:
+            written = self._send_nowait(data)
+        except OSError as exc:
+            for _ in sizes:
+                sender.drop("link_down", f"{self.name}: send failed")
+            self.fail(f"send failed: {exc}")
+            return False
+        counters = self.counters
+        whole, offset = 0, 0
+        for size in sizes:  # the records wholly written
+            offset += size
+            if offset > written:
+                break
+            whole += 1
+        if written:
+            counters.packets_out += 1
+            counters.bytes_out += written
+            counters.frames_out += whole
+            if whole > 1:
+                counters.coalesced_out += whole
+        if written < len(data):
+            rest = Due(data[written:], None, sender,
+                       ends or Outgoing(sender, None, len(data) - written, list, 0.0))
+            rest.frames = len(sizes) - whole
+            with self._lock:
+                self._rest = rest
+        _on_wire(sender, written, False)
+        return True
 
     def _send_loop(self) -> None:
         """Gather what the scheduler lets go, up to :data:`WRITE` bytes, into one write."""
@@ -497,11 +843,15 @@ class StreamLink(_Sending, Link):
             batch: list[Due] = []
             size = 0
             with wake:
-                self._busy = False
-                wake.notify_all()  # for drain()
                 while not batch:
                     if closed.is_set():
                         return
+                    if self._busy:  # a caller is writing: its rest, if any, comes first
+                        wake.wait()
+                        continue
+                    if self._rest is not None:
+                        batch.append(self._rest)
+                        size, self._rest = len(self._rest.packet), None
                     due = scheduler.next()
                     while isinstance(due, Due):
                         batch.append(due)
@@ -513,56 +863,117 @@ class StreamLink(_Sending, Link):
                         wake.wait(max(0.0, due - time.monotonic())
                                   if isinstance(due, float) else None)
                 self._busy = True
-            self._count_drops()
+            if scheduler.dropped:
+                self._count_drops()
             try:
-                self.connection.send(b"".join(d.packet for d in batch))
+                self.connection.send(b"".join([d.packet for d in batch]))
             except OSError as exc:
                 for due in batch:
                     if due.ends is not None:
                         due.sender.drop("link_down", f"{self.name}: send failed")
                 self.fail(f"send failed: {exc}")
                 return
+            counters = self.counters
+            counters.packets_out += 1
+            counters.bytes_out += size
+            frames = 0
             for due in batch:
+                if due.ends is not None:
+                    frames += due.frames
                 _on_wire(due.sender, len(due.packet), False)
+            counters.frames_out += frames
+            if frames > 1:
+                counters.coalesced_out += frames
+            with wake:
+                self._busy = False
+                wake.notify_all()  # for drain()
 
     def drain(self, timeout: float) -> bool:
         """Wait until everything sent so far is written (a last word before closing)."""
         with self._wake:
             return self._wake.wait_for(
-                lambda: self.scheduler.idle and not self._busy or self.closed.is_set(), timeout)
+                lambda: (self.scheduler.idle and not self._busy and self._rest is None
+                         or self.closed.is_set()), timeout)
+
+    def trust(self) -> None:
+        """The connection proved itself: the full frame size, no deadline."""
+        self._reader.max_frame = self.max_message
+        self._trust_by = None
+
+    @property
+    def trusted(self) -> bool:
+        return self._trust_by is None
 
     def _receive_loop(self) -> None:
-        while not self.closed.is_set():
+        receive_into = getattr(self.connection, "receive_into", None)
+        buffer = memoryview(bytearray(256 * 1024))
+        reader, closed = self._reader, self.closed
+        while not closed.is_set():
+            target = reader.target() if receive_into is not None else None
             try:
-                data = self.connection.receive(1 << 20, POLL)
+                if receive_into is not None and target is not None:  # a large frame, in place
+                    got: int | bytes | None = receive_into(target, POLL)
+                elif receive_into is not None:
+                    got = receive_into(buffer, POLL)
+                else:
+                    got = self.connection.receive(len(buffer), POLL)
             except OSError as exc:
                 self.fail(f"receive failed: {exc}")
                 return
             except Exception as exc:  # a transport plugin's bug: drop this connection, loudly
-                log.exception("%s: the transport's receive failed (a bug in the plugin)", self.name)
+                BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
+                                            "(a bug in the plugin)")
                 self.on_lost(None, "transport_error")
                 self.fail(f"transport error: {type(exc).__name__}: {exc}")
                 return
-            if data is None:
+            trust_by = self._trust_by
+            if trust_by is not None and time.monotonic() > trust_by:
+                self.on_lost(None, "handshake_timeout")
+                self.fail("no handshake in time")
+                return
+            if got is None:
                 continue
-            if not data:
+            if not got:
                 self.fail("closed by peer")
                 return
+            counters = self.counters
+            counters.packets_in += 1
+            if target is not None:
+                assert isinstance(got, int)
+                target.release()  # the frame is the handler's: it may cut it (routes do)
+                counters.bytes_in += got
+                whole = reader.filled(got)
+                if whole is not None:
+                    counters.frames_in += 1
+                    # its own buffer, the handler's to keep (typed bytes: see DatagramLink)
+                    deliver(self, cast(bytes, whole), self.peer)
+                continue
+            data = buffer[:got] if isinstance(got, int) else got
+            counters.bytes_in += len(data)
+            count = 0
             try:
-                for frame in self._reader.feed(data):
+                for frame in reader.feed(data):
+                    count += 1
                     deliver(self, frame, self.peer)
             except framing.FramingError as exc:
                 # a corrupt length means we can no longer find frame boundaries: start afresh
                 self.on_lost(None, "bad_length")
                 self.fail(f"stream corrupt ({exc})")
                 return
+            finally:
+                counters.frames_in += count
+                if count > 1:
+                    counters.coalesced_in += count
 
     def fail(self, why: str) -> None:
         """End the connection for a reason worth logging (lost, corrupt, silent)."""
         if self.closed.is_set():
             return
         self.why = why
-        log.info("%s: connection to %s ended: %s", self.name, self.peer, why)
+        # a stranger's connection (never trusted) is counted by its reason, not logged: a
+        # flood of them must not flood the log
+        log.log(logging.INFO if self.trusted else logging.DEBUG,
+                "%s: connection to %s ended: %s", self.name, self.peer, why)
         self.close()
 
     def close(self) -> None:
@@ -582,6 +993,9 @@ class StreamLink(_Sending, Link):
                 thread.join(timeout=2)
         with self._wake:  # what never reached the connection is a drop, and counted as one
             unsent = self.scheduler.clear()
+            if self._rest is not None:
+                unsent.append(self._rest.sender)
+                self._rest = None
         for sender in unsent:
             sender.drop("link_down", f"{self.name} closed with the frame still queued")
         if self.on_close:
@@ -616,18 +1030,19 @@ class LinkSlot(Link):
         self._waiting_bytes = 0
         self._lock = threading.Lock()  # keeps sends and the flush of the queue in order
 
-    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
+    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
         overflow: list[Sender] = []
         with self._lock:
             link = self.current
             if link is not None and not link.closed.is_set():
-                return link.send(frame, sender)
+                return link.send_all(frames, sender)
             if self.closed.is_set() or not sender.reliable:
                 refused = True
             else:
                 refused = False
-                self._waiting.append((frame, sender))
-                self._waiting_bytes += len(frame)
+                for frame in frames:
+                    self._waiting.append((frame, sender))
+                    self._waiting_bytes += len(frame)
                 while self._waiting and (len(self._waiting) > self.limits.frames
                                          or self._waiting_bytes > self.limits.bytes):
                     old, old_sender = self._waiting.popleft()
@@ -636,9 +1051,10 @@ class LinkSlot(Link):
         for old_sender in overflow:
             old_sender.drop("queue_overflow", f"{self.name} is down and its queue is full")
         if refused:
-            sender.drop("link_down", f"{self.name} is down")
-            return False
-        return True
+            for _ in frames:
+                sender.drop("link_down", f"{self.name} is down")
+            return 0
+        return len(frames)
 
     def attach(self, link: StreamLink) -> None:
         """Use ``link`` from now on; what waited goes first."""
@@ -673,6 +1089,11 @@ class LinkSlot(Link):
             held = sum(1 for _, s in self._waiting if s is sender)
             link = self.current
         return held + (link.queue_depth(sender) if link is not None else 0)
+
+    @property
+    def counters(self) -> LinkCounters:  # type: ignore[override]  # the connection's, read-only
+        link = self.current
+        return link.counters if link is not None else LinkCounters()
 
     def close(self) -> None:
         self.closed.set()
@@ -746,6 +1167,9 @@ class Connector:
                 if stopping.is_set() or self.slot.closed.is_set():
                     break
             self.connected.clear()
+            if stopping.is_set() and not self.slot.closed.is_set():
+                return  # the bridge is stopping: its role may have a last word (bye), then
+                # closing the slot closes the link
             link.close()
             if self.on_lost is not None and not stopping.is_set():
                 self.on_lost(link)
@@ -764,8 +1188,9 @@ class Connector:
                 connection.close()
                 self.failed(exc)
                 return None
-        link = StreamLink(connection, self.slot.name, self.address, self.on_frame,
-                          self.on_frame_lost, on_close=self.life.forget, budget=self.budget)
+        link = self.life.closing(StreamLink(connection, self.slot.name, self.address,
+                                            self.on_frame, self.on_frame_lost,
+                                            on_close=self.life.forget, budget=self.budget))
         if self.on_connected is not None and not self.on_connected(link):
             link.close()
             return None
@@ -784,29 +1209,207 @@ class Connector:
             self._thread.join(timeout=3)
 
 
+class Sources:
+    """Who a link takes frames or connections from: hosts as they appear in a source address,
+    and IP networks (``10.0.0.0/24``)."""
+
+    def __init__(self, hosts: Iterable[str], networks: Iterable[str] = ()):
+        self.hosts = set(hosts)
+        self._seen: dict[str, bool] = {}
+        self.networks = []
+        for text in networks:
+            try:
+                self.networks.append(ipaddress.ip_network(text, strict=False))
+            except ValueError:
+                self.hosts.add(text)  # not an IP network: a host as written (a device address)
+
+    def admits(self, source: Address, datagram: bytes | memoryview = b"") -> bool:
+        host = source[0]
+        if host in self.hosts:
+            return True
+        if host.startswith("::ffff:"):  # an IPv4 peer on a dual-stack socket
+            host = host[7:]
+            if host in self.hosts:
+                return True
+        if not self.networks:
+            return False
+        known = self._seen.get(host)
+        if known is None:  # parsed once per host: a datagram path's cost stays a dict lookup
+            try:
+                address = ipaddress.ip_address(host.partition("%")[0])
+                known = any(address in network for network in self.networks)
+            except ValueError:
+                known = False
+            if len(self._seen) >= 4096:  # hosts come from the network: bounded
+                self._seen.clear()
+            self._seen[host] = known
+        return known
+
+    def __repr__(self) -> str:
+        return ", ".join([*sorted(self.hosts), *map(str, self.networks)]) or "nobody"
+
+
+class KnownSources(Sources):
+    """Sources learnt while running: a server's clients, at the addresses their genuine hellos
+    came from. A datagram from anywhere else is taken only when it is a hello (which the server
+    then checks); everything else from there is ``not_allowed``, before any reassembly."""
+
+    def __init__(self) -> None:
+        super().__init__(())
+        self._known: Counter[Address] = Counter()
+        self._lock = threading.Lock()
+
+    def learn(self, source: Address) -> None:
+        with self._lock:
+            self._known[source] += 1
+
+    def forget(self, source: Address) -> None:
+        with self._lock:
+            self._known[source] -= 1
+            if self._known[source] <= 0:
+                del self._known[source]
+
+    def admits(self, source: Address, datagram: bytes | memoryview = b"") -> bool:
+        return source in self._known or envelope.is_hello(datagram)
+
+    def __repr__(self) -> str:
+        return f"{len(self._known)} client address(es)"
+
+
+class ConnectionLimits:
+    """How many accepted stream connections a bridge holds at once: in total, and from one
+    source address (``bridge.limits``). Shared by every :class:`Acceptor` of a bridge."""
+
+    def __init__(self, total: int, per_source: int):
+        self.total = total
+        self.per_source = per_source
+        self._by_source: Counter[str] = Counter()
+        self._count = 0
+        self._lock = threading.Lock()
+
+    def admit(self, host: str) -> str | None:
+        """Take a place for a connection from ``host``; None when taken, else why not."""
+        with self._lock:
+            if self._count >= self.total:
+                return "too_many_connections"
+            if self._by_source[host] >= self.per_source:
+                return "too_many_per_source"
+            self._count += 1
+            self._by_source[host] += 1
+            return None
+
+    def release(self, host: str) -> None:
+        with self._lock:
+            self._count -= 1
+            self._by_source[host] -= 1
+            if not self._by_source[host]:
+                del self._by_source[host]
+
+    @property
+    def held(self) -> int:
+        return self._count
+
+
+class _Counted:
+    """An accepted connection that gives its place back to the limits when it is closed."""
+
+    def __init__(self, connection: StreamConnection, release: Callable[[], None]):
+        self._connection = connection
+        self._release: Callable[[], None] | None = release
+        self._lock = threading.Lock()
+
+    def send(self, data: bytes) -> None:
+        self._connection.send(data)
+
+    def receive(self, max_bytes: int, timeout: float) -> bytes | None:
+        return self._connection.receive(max_bytes, timeout)
+
+    def close(self) -> None:
+        try:
+            self._connection.close()
+        finally:
+            with self._lock:
+                release, self._release = self._release, None
+            if release is not None:
+                release()
+
+    def __getattr__(self, name: str) -> Any:  # what else the transport's connection offers
+        return getattr(self._connection, name)
+
+
+RefusedHandler = Callable[["Acceptor", str, str], None]
+
+
 class Acceptor:
-    """Accepts connections on a listener until closed."""
+    """Accepts connections on a listener until closed, and hands each to ``on_connection``.
+
+    A connection from a source ``sources`` does not admit, or past ``limits``, is closed at once
+    and reported to ``on_refused(acceptor, reason, detail)`` (``not_allowed``,
+    ``too_many_connections``, ``too_many_per_source``). When accepting fails (out of file
+    descriptors: EMFILE, ENFILE) the loop waits, from 0.1 s doubling to 1 s, and reports
+    ``accept_failed``: a listener whose backlog cannot be taken never spins.
+    """
 
     def __init__(self, listener: StreamListener, name: str,
-                 on_connection: Callable[[StreamConnection, Address], None]):
+                 on_connection: Callable[[StreamConnection, Address], None],
+                 limits: ConnectionLimits | None = None, sources: Sources | None = None,
+                 on_refused: RefusedHandler | None = None):
         self.listener = listener
         self.name = name
         self.on_connection = on_connection
+        self.limits = limits
+        self.sources = sources
+        self.on_refused = on_refused
         self.closed = threading.Event()
         self._thread = threading.Thread(target=self._loop, name=f"accept-{name}", daemon=True)
         self._thread.start()
 
     def _loop(self) -> None:
+        failures = 0
         while not self.closed.is_set():
             try:
                 got = self.listener.accept(POLL)
             except OSError as exc:
                 if self.closed.is_set():
                     return
-                log.warning("%s: accept failed: %s", self.name, exc)
+                failures += 1
+                pause = min(ACCEPT_BACKOFF[0] * 2 ** (failures - 1), ACCEPT_BACKOFF[1])
+                self._refused("accept_failed", f"{exc}; trying again in {pause:g} s")
+                self.closed.wait(pause)
                 continue
+            failures = 0
             if got is not None:
-                self.on_connection(*got)
+                self._take(*got)
+
+    def _take(self, connection: StreamConnection, peer: Address) -> None:
+        host = peer[0]
+        if self.sources is not None and not self.sources.admits(peer):
+            connection.close()
+            self._refused("not_allowed", f"a connection from {host} (taken from: "
+                                            f"{self.sources})")
+            return
+        limits = self.limits
+        if limits is not None:
+            refused = limits.admit(host)
+            if refused is not None:
+                connection.close()
+                self._refused(refused, f"closed a connection from {host} ({limits.held} held, "
+                                       f"at most {limits.total}, {limits.per_source} per source)")
+                return
+            connection = _Counted(connection, lambda: limits.release(host))
+        try:
+            self.on_connection(connection, peer)
+        except Exception:  # a bug, or no thread to be had: this connection only
+            BUGS.bug("accept_handler", f"{self.name}: error while taking a connection from "
+                                       f"{host}")
+            connection.close()
+            self._refused("handler_error", f"a connection from {host}")
+
+    def _refused(self, reason: str, detail: str) -> None:
+        if self.on_refused is not None:
+            self.on_refused(self, reason, detail)
+        else:
+            _WARNER.warn(self.name, reason, detail)
 
     def close(self) -> None:
         if self.closed.is_set():
@@ -817,11 +1420,11 @@ class Acceptor:
 
 
 def deliver(link: DatagramLink | StreamLink, frame: bytes, source: Address) -> None:
-    """Hand a frame to the link's handler. A handler that raises has a bug; it is logged with its
-    traceback and counted, and the link keeps receiving."""
+    """Hand a frame to the link's handler. A handler that raises has a bug; it is counted, its
+    traceback logged once per minute, and the link keeps receiving."""
     try:
         link.on_frame(frame, link, source)
     except Exception:
-        log.exception("%s: error while handling a frame from %s (a bug: please report it)",
-                      link.name, source)
+        BUGS.bug("handler_error", f"{link.name}: error while handling a frame from {source} "
+                                  "(a bug: please report it)")
         link.on_lost(None, "handler_error")

@@ -34,6 +34,12 @@ encoder and a decoder per field, cached per message class and format; encoding a
 only run them. :class:`TreeCodec` is the codec base class that puts this behind
 :class:`rosgate.Codec`: a format's codec adds its name, its :class:`WireFormat` and its parser.
 
+A format's parser has a budget (:class:`ContainerBudget`): it may build at most
+:func:`container_budget` arrays and maps for an input of a given size (one per 8 bytes, plus
+64). An empty map is one byte on the wire and some 64 in Python, so without it 4 MB of empty
+maps became 277 MB; with it, memory stays within a few times the input's size. Formats with
+references or tags that expand (CBOR's shared values) refuse them outright.
+
 A format that has a library turning plain Python values into text and back (JSON, YAML, TOML)
 uses the mapping through two functions instead, with the same strict checks:
 
@@ -551,6 +557,39 @@ def from_tree(msg_type: type, tree: Any, *, base64: bool = False) -> Any:
     path (``pose.position.w``). Fields left out keep their defaults; an integer is taken for a
     float, a boolean never for a number."""
     return message_tree(msg_type, _PLAIN_BASE64 if base64 else _PLAIN).from_tree(tree)
+
+
+# -- budgets for parsers -----------------------------------------------------------------------
+
+#: below this many bytes a parser needs no budget: the most it can build is small
+BUDGET_FROM = 1024
+
+
+def container_budget(size: int) -> int:
+    """The arrays and maps a parser may build from ``size`` bytes."""
+    return size // 8 + 64
+
+
+class OverBudget(ValueError):
+    """A parser built more arrays and maps than its input's size allows."""
+
+
+class ContainerBudget:
+    """Counts the arrays and maps a parser builds (pass it as the parser's hook for each, it
+    returns the value unchanged); :class:`OverBudget` past :func:`container_budget`."""
+
+    __slots__ = ("left", "size")
+
+    def __init__(self, size: int):
+        self.size = size
+        self.left = container_budget(size)
+
+    def __call__(self, value: Any) -> Any:
+        self.left -= 1
+        if self.left < 0:
+            raise OverBudget(f"more than {container_budget(self.size)} arrays and maps in "
+                             f"{self.size} bytes")
+        return value
 
 
 # -- the codec base ---------------------------------------------------------------------------

@@ -76,6 +76,7 @@ class Router:
                                   framing=framing, link=link, destination=destination,
                                   priority=p.priority, latest_only=p.latest_only)
             route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
+            route.take = self.ros.taker(route.entity)
         else:
             decode: Callable[[bytes], Any] = codec.decode
             trusted = keys.authenticates and t.framing is Framing.ROSGATE
@@ -84,6 +85,8 @@ class Router:
             route = ReceiveRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
                                  decode=decode)
             route.entity = self.ros.publisher(p.msg_type, t.topic, qos)
+            if codec.raw:
+                route.publish = self.ros.raw_publisher(route.entity)
         with self._lock:
             self.routes.append(route)
             if isinstance(route, ReceiveRoute) and t.framing is Framing.ROSGATE:
@@ -167,7 +170,13 @@ class Router:
             self.link_drop(link, f"{exc}_frame", f"{len(frame)} bytes from {source}")
             return
         flags = header.flags
-        if flags & envelope.FLAG_HELLO:
+        if not flags:  # a topic's frame: the common case first
+            route = self.receivers.get(header.topic_id)
+            if route is None:
+                self.link_drop(link, "unknown_topic", f"topic id {header.topic_id} from {source}")
+            else:
+                route.on_frame(header, frame, link.arrived)
+        elif flags & envelope.FLAG_HELLO:
             if self.on_hello is None:
                 self.link_drop(link, "unexpected_hello", f"from {source}")
             else:

@@ -17,25 +17,29 @@ generation and handshake (then a new epoch starts a new sequence).
 The framing is a strategy chosen once per route from the entry's ``framing:``
 (:class:`EnvelopeFraming`, or :class:`BareFraming` for datagrams without an envelope, whose
 receiving topics share a :class:`BarePort`). Every drop is counted by reason in the route's
-:class:`Counters`, and warned about at most once per :data:`WARN_EVERY` seconds per reason.
+:class:`Counters`, and warned about at most once per :data:`rosgate.warn.WARN_EVERY` seconds per
+reason.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, cast
 
+from .builtin import NoCipher
 from .codec import Codec
 from .config import (PRIORITIES, RECOVERY_OVERHEAD_DEFAULT, Compression, Recovery,
                      ServiceConfig, TopicConfig)
 from .errors import CipherError, CodecError
-from .keyring import Keys, NoKey
+from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .transport import Address
+from .warn import Warner
 from .wire import envelope
 from .wire.compression import CompressionError, Compressor, Decompressor
 from .wire.framing import DEFAULT_MAX_MESSAGE
@@ -43,7 +47,11 @@ from .wire.names import NameMissing, pack_name, split_name
 
 log = logging.getLogger("rosgate")
 
-WARN_EVERY = 5.0  # seconds between two warnings of one kind for one topic
+# seconds a best-effort message may wait in the subscription's queue or the receive buffer
+MAX_WAIT = 0.02
+# a transmitting route takes what waits in its subscription up to this much at a time
+DRAIN_FRAMES = 32
+DRAIN_BYTES = 60_000
 
 # reasons that say something is wrong (a warning); the others are routine and only counted
 QUIET_REASONS = {"rate_limit", "duplicate", "superseded"}
@@ -80,29 +88,6 @@ class Counters:
                 "retransmitted": self.retransmitted, "recovered": self.recovered}
 
 
-class Warner:
-    """Rate-limited warnings: the first at once, then at most one per ``every`` seconds, saying
-    how many were held back."""
-
-    def __init__(self, every: float = WARN_EVERY):
-        self.every = every
-        self._last: dict[tuple[str, str], float] = {}
-        self._held: Counter = Counter()
-        self._lock = threading.Lock()
-
-    def warn(self, subject: str, reason: str, detail: str) -> None:
-        key = (subject, reason)
-        now = time.monotonic()
-        with self._lock:
-            if now - self._last.get(key, -self.every) < self.every:
-                self._held[key] += 1
-                return
-            self._last[key] = now
-            held = self._held.pop(key, 0)
-        more = f" ({held} more since the last warning)" if held else ""
-        log.warning("%s: dropped (%s): %s%s", subject, reason, detail, more)
-
-
 class Route:
     """A topic's (or service's) path through the bridge in one direction; the
     :class:`rosgate.links.Sender` of its frames."""
@@ -126,6 +111,14 @@ class Route:
         self.reliable = reliable  # frames wait out a stream link's loss (reliable QoS)
         self.counters = Counters()
         self.entity: Any = None  # the ROS subscription, publisher, service or client
+        #: the none cipher: a frame's body is its payload (decided once, not per frame)
+        self.plain = isinstance(keys, StaticKeys) and type(keys.cipher).open is NoCipher.open
+        #: a reassembled frame's bytearray may go on as the payload (see open)
+        self.zero_copy = False
+        #: best-effort topics: how long (ns) a message may wait in a queue of the bridge before
+        #: it is dropped (too_late) rather than delivered late; 0: never (reliable topics,
+        #: services: they have their own deadlines)
+        self.max_wait_ns = 0
 
     def on_wire(self, size: int, again: bool) -> None:
         """A packet of ``size`` bytes left on the link for this route (``again``: re-sent)."""
@@ -147,14 +140,25 @@ class Route:
 
     def open(self, frame: bytes, epoch: int) -> bytes | None:
         """An envelope frame's payload if the cipher of its epoch accepts it; None (counted)
-        when it does not."""
+        when it does not.
+        A reassembled frame comes as the bytearray it was reassembled in, the route's to keep:
+        with the ``none`` cipher on a receiving route of a raw codec (cdr: the core's own decode,
+        CDR check and publisher take a bytearray) its header is cut off in place and the rest
+        goes to rclpy without a copy.
+        Ciphers and other codecs get bytes, as their contracts say."""
+        if self.plain:
+            if type(frame) is bytearray and self.zero_copy:
+                del frame[:envelope.SIZE]  # O(1): CPython moves the start, copies nothing
+                return cast(bytes, frame)
+            return bytes(frame[envelope.SIZE:])
         cipher = self.keys.opener(epoch)
         if cipher is None:
             self.drop("unknown_key", "sealed under a key this side does not hold (an earlier "
                                      "session, a restart, or an expired key generation)")
             return None
+        header, body = bytes(frame[:envelope.SIZE]), bytes(frame[envelope.SIZE:])
         try:
-            return cipher.open(frame[:envelope.SIZE], frame[envelope.SIZE:])
+            return cipher.open(header, body)
         except CipherError as exc:
             self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
             return None
@@ -179,13 +183,13 @@ class EnvelopeFraming(TopicFraming):
     bare = False
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
-        with route.lock:
-            epoch = route.keys.epoch()
-            if epoch != route.epoch:  # a new key: a new sequence under it
-                route.epoch, route.seq = epoch, 0
-            route.seq += 1
-            seq = route.seq
-        return route.seal(flags, epoch, seq, payload, stamp)
+        # no lock: a route's messages come from the one executor thread (RosNode)
+        epoch = route.keys.epoch()
+        if epoch != route.epoch:  # a new key: a new sequence under it
+            route.epoch, route.seqs = epoch, itertools.count(1)
+        header = envelope.HEADER.pack(envelope.MAGIC, envelope.VERSION, flags, route.topic_id,
+                                      epoch, next(route.seqs), stamp)
+        return header + route.keys.sealer(epoch).seal(header, payload)
 
 
 class BareFraming(TopicFraming):
@@ -202,6 +206,16 @@ class BareFraming(TopicFraming):
         return self.prefix + payload
 
 
+def max_wait_ns(topic: TopicConfig, reliable: bool) -> int:
+    """How long (ns) a message may wait in the bridge's own buffers — the subscription's
+    queue, the receive buffer — before it is dropped (``too_late``) rather than delivered late:
+    the topic's ``max_delay``; without one, :data:`MAX_WAIT` for best effort (there a wait means
+    the bridge is behind, not the link) and forever for reliable topics."""
+    if topic.max_delay is not None:
+        return int(1e9 * topic.max_delay)
+    return 0 if reliable else int(1e9 * MAX_WAIT)
+
+
 class TransmitRoute(Route):
     """ROS subscription -> link."""
 
@@ -211,6 +225,7 @@ class TransmitRoute(Route):
                  priority: int = PRIORITIES["data"], latest_only: bool = False):
         super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
+        self.max_wait_ns = max_wait_ns(topic, reliable)
         self.framing = framing
         self.link = link
         self.priority = priority
@@ -221,11 +236,13 @@ class TransmitRoute(Route):
         self.bare = framing.bare
         self.destination = destination  # where to send, looked up per message (a server learns it)
         self.epoch: int | None = None  # of the key in use, set by the first frame
-        self.seq = 0
+        self.seqs = itertools.count(1)  # its sequence numbers
+        self._size = 1  # of a frame, lately: how many messages a datagram's worth is
         rate = topic.max_rate
         self.min_interval_ns = int(1e9 / rate) if rate else 0
         self.last_sent_ns = 0
-        self.lock = threading.Lock()  # a ROS callback group may call from several threads
+        #: takes the next message already waiting, or None (set with the subscription)
+        self.take: Callable[[], Any] | None = None
         self.compressor = (Compressor(topic.compression_level)
                            if topic.compression is Compression.ZSTD else None)
 
@@ -246,27 +263,64 @@ class TransmitRoute(Route):
         return packed, envelope.FLAG_COMPRESSED
 
     def on_message(self, message: Any) -> None:
-        now = time.time_ns()
-        if self.min_interval_ns and now - self.last_sent_ns < self.min_interval_ns:
-            self.drop("rate_limit")
-            return
+        """A message from the subscription, and every other one already waiting in it (up to a
+        datagram's worth): framed, then handed to the link together, so a backlog leaves in
+        few datagrams (one executor wake-up, one system call) instead of one per message."""
         to = self.destination()
         if to is None and self.link.datagram:
             self.drop("no_peer_yet", "the far side's address is not known yet")
             return
+        messages = [message]
+        take = self.take
+        if take is not None:
+            max_wait, now = self.max_wait_ns, time.time_ns()
+            while len(messages) < DRAIN_FRAMES:
+                got = take()
+                if got is None:
+                    break
+                more, received = got
+                if max_wait and now - received > max_wait:
+                    # waited too long in the subscription's queue, and so did every message
+                    # before it: overloaded, drop them to catch up (reliable topics never do)
+                    for _ in range(len(messages) + 1):
+                        self.drop("too_late", f"waited over {max_wait / 1e6:.0f} ms to be taken")
+                    messages.clear()
+                    continue
+                messages.append(more)
+                if len(messages) * self._size >= DRAIN_BYTES:
+                    break
+        frames: list[bytes] = []
+        size = 0
+        for one in messages:
+            frame = self._frame(one)
+            if frame is not None:
+                frames.append(frame)
+                size += len(frame)
+        if size:
+            self._size = size // len(frames)
+        if frames:
+            sent = self.link.send_all(frames, self, to)
+            counters = self.counters
+            counters.sent += sent
+            counters.bytes_sent += size if sent == len(frames) else sum(map(len, frames[:sent]))
+
+    def _frame(self, message: Any) -> bytes | None:
+        """One message framed, or None when it was dropped (counted)."""
+        now = time.time_ns()
+        if self.min_interval_ns:
+            if now - self.last_sent_ns < self.min_interval_ns:
+                self.drop("rate_limit")
+                return None
+            self.last_sent_ns = now
         try:
             payload, flags = self.encode(message)
-            frame = self.framing.frame(self, payload, now, flags)
+            return self.framing.frame(self, payload, now, flags)
         except NoKey:
             self.drop("no_session_key", "the session's handshake has not happened yet")
-            return
+            return None
         except Exception as exc:  # a codec or cipher bug must not stop the executor
             self.drop("encode_error", f"{type(exc).__name__}: {exc}")
-            return
-        if self.link.send(frame, self, to):
-            self.last_sent_ns = now
-            self.counters.sent += 1
-            self.counters.bytes_sent += len(frame)
+            return None
 
     @property
     def queue_depth(self) -> int:
@@ -289,36 +343,47 @@ class ReceiveRoute(Route):
                  decode: Callable[[bytes], Any]):
         super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
+        self.max_wait_ns = max_wait_ns(topic, reliable)
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
-        self.window = envelope.ReplayWindow()
+        #: publishes what decode returned (set with the publisher: raw CDR as bytes or bytearray)
+        self.publish: Callable[[Any], None] = lambda message: self.entity.publish(message)
+        self.zero_copy = codec.raw  # the core's raw decode, CDR check and publisher take one
+        # without a cipher that vouches for the header, one forged frame may not move it
+        self.window = envelope.ReplayWindow(authenticated=keys.authenticates)
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
         #: whatever this side's file says: the sender's envelope says what it compressed
         self.decompressor = Decompressor(DEFAULT_MAX_MESSAGE)
 
-    def on_frame(self, header: envelope.Header, frame: bytes) -> None:
-        """An envelope frame (framing rosgate), found by its topic id."""
+    def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> None:
+        """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
+        datagram that carried it reached this machine (time.time_ns(); 0: unknown)."""
+        size = len(frame)
         payload = self.open(frame, header.epoch)
         if payload is None:
             return
         with self._lock:
-            top = self.window.top(header.epoch)
+            # losses on the way: a jump over sequence numbers counts them, and a late frame
+            # (reordered) that fills a gap takes one back
+            lost = self.window.lost
             refused = self.window.accept(header.epoch, header.seq)
-            if not refused and top is not None:
-                # losses on the way: a jump over sequence numbers counts them, and a late frame
-                # (reordered) that fills a gap takes one back
-                self.counters.lost += header.seq - top - 1 if header.seq > top else -1
+            self.counters.lost += self.window.lost - lost
         if refused:
             self.drop(refused)
             return
+        if arrived and self.max_wait_ns:
+            waited = time.time_ns() - arrived
+            if waited > self.max_wait_ns:  # overloaded: drop what waited, to catch up
+                self.drop("too_late", f"waited {waited / 1e6:.0f} ms in the receive buffer")
+                return
         if header.flags & envelope.FLAG_COMPRESSED:
             try:
                 payload = self.decompressor.decompress(payload)
             except CompressionError as exc:
                 self.drop("decompression_error", str(exc))
                 return
-        self.deliver(payload, len(frame))
+        self.deliver(payload, size)
 
     def deliver(self, payload: bytes, size: int) -> None:
         """Decode and publish; ``size`` is what arrived on the link, for the counters."""
@@ -331,7 +396,7 @@ class ReceiveRoute(Route):
             self.drop("decode_error", f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
             return
         try:
-            self.entity.publish(message)
+            self.publish(message)
         except Exception as exc:
             self.drop("publish_error", f"{type(exc).__name__}: {exc}")
             return

@@ -18,8 +18,8 @@ as *packets*: a datagram, a fragment, a chunk of a stream. Then:
   a topic's packets sent again (retransmissions) go before its other packets;
 * **latest only**: a ``latest_only`` topic's message not yet started is replaced by a newer
   one (counted ``superseded``): what waits is never older than one message;
-* **late**: a best-effort topic's message that waited ``max_delay`` seconds without starting is
-  dropped (counted ``late``) rather than sent stale; a reliable topic's waits, within the
+* **too late**: a best-effort topic's message that waited ``max_delay`` seconds without starting is
+  dropped (counted ``too_late``) rather than sent stale; a reliable topic's waits, within the
   link's limits (``frames``, ``bytes``: beyond them a new message is refused, ``queue_full``);
   a topic's own ``max_delay`` (its sender's) applies to it whatever its reliability: a camera
   that would rather skip a frame than send one that waited (the link then idles for the next);
@@ -93,6 +93,8 @@ class Outgoing:
     cut: Callable[[], list[bytes]]
     queued: float = 0.0
     done: Callable[[float], None] | None = None
+    #: a whole frame in one packet, which a datagram link may put in a datagram with others
+    batchable: bool = False
 
 
 @dataclass
@@ -104,6 +106,8 @@ class Due:
     sender: Any
     ends: Outgoing | None = None
     again: bool = False
+    #: frames it ends (a stream's unwritten rest may end several)
+    frames: int = 1
 
 
 @dataclass(eq=False)
@@ -226,7 +230,7 @@ class Scheduler:
         if limit is None and not getattr(message.sender, "reliable", True):
             limit = self.max_delay
         if limit is not None and now - message.queued > limit:
-            self.dropped.append((message.sender, "late", f"waited {now - message.queued:.3f} s "
+            self.dropped.append((message.sender, "too_late", f"waited {now - message.queued:.3f} s "
                                  f"to be sent (max_delay {limit:g} s)"))
             return False
         try:
@@ -276,10 +280,12 @@ class Scheduler:
                         blocked.add(to)
                         soonest = now + wait if soonest is None else min(soonest, now + wait)
                         continue
-                    ends = None
+                    ends, sender = None, topic.sender
                     if again:
                         topic.repairs.popleft()
                     else:
+                        if topic.current is not None:  # the message's own (a service call's)
+                            sender = topic.current.sender
                         topic.packets.popleft()
                         topic.since = now
                         if not topic.packets:
@@ -287,7 +293,7 @@ class Scheduler:
                     topics.move_to_end(key)  # its turn is over
                     if not topic.busy:
                         del topics[key]
-                    return Due(packet, to, topic.sender, ends, again)
+                    return Due(packet, to, sender, ends, again)
                 if not restart:
                     break
         return soonest

@@ -42,6 +42,7 @@ from .keyring import NoKey
 from .links import Link
 from .routes import Route
 from .transport import Address
+from .warn import BUGS
 from .wire import envelope
 
 log = logging.getLogger("rosgate")
@@ -124,7 +125,8 @@ class Deadlines:
             try:
                 action()
             except Exception:  # one bad deadline must not stop the others
-                log.exception("a service call's deadline failed (a bug: please report it)")
+                BUGS.bug("deadline_error", "a service call's deadline failed (a bug: please "
+                                           "report it)")
 
     def close(self) -> None:
         with self._cond:
@@ -279,11 +281,15 @@ class _CallSender:
 
 
 class ServerRoute(ServiceRoute):
-    """``receive``: calls from the far side, served by the ROS server here."""
+    """``receive``: calls from the far side, served by the ROS server here. At most
+    :data:`QUEUE_DEPTH` calls from the link are in progress at once (the ROS client's queue);
+    one more is answered as a failure at once (``too_many_calls``), so a flood of requests
+    cannot pile up pending calls and deadlines."""
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
-        self.window = envelope.ReplayWindow()
+        self.window = envelope.ReplayWindow(authenticated=self.keys.authenticates)
+        self.in_flight = 0
         self._lock = threading.Lock()
 
     def serve(self, request: Any, call: Call) -> None:
@@ -331,8 +337,15 @@ class ServerRoute(ServiceRoute):
             return
         self.counters.received += 1
         self.counters.bytes_received += len(frame)
+        with self._lock:
+            busy = self.in_flight >= QUEUE_DEPTH
+            if not busy:
+                self.in_flight += 1
 
         def reply(flags: int, body: bytes) -> None:
+            if not busy:
+                with self._lock:
+                    self.in_flight -= 1
             try:
                 frame = self.seal(envelope.FLAG_REPLY | flags, header.epoch, header.seq, body)
             except NoKey:  # the request's key expired while the ROS server took its time
@@ -351,6 +364,11 @@ class ServerRoute(ServiceRoute):
                 return
             reply(0, body)
 
+        if busy:
+            self.drop("too_many_calls", f"{QUEUE_DEPTH} calls in progress")
+            reply(envelope.FLAG_FAILED, f"the serving bridge has {QUEUE_DEPTH} calls of "
+                                        f"{self.service.service} in progress".encode())
+            return
         self.serve(request, Call(answered, lambda reason: reply(envelope.FLAG_FAILED,
                                                                 reason.encode())))
 

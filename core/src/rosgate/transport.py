@@ -79,6 +79,30 @@ class DatagramEndpoint(Protocol):
         (``None`` or ``OSError``)."""
 
 
+class FastDatagramEndpoint(DatagramEndpoint, Protocol):
+    """A :class:`DatagramEndpoint` that also offers the core's fast path. Both methods are
+    optional, each on its own: the core looks for them once per link and uses ``send`` and
+    ``receive`` where they are missing (the kit's conformance suite tests whichever a transport
+    has). They save an allocation and a copy per frame on busy links.
+    """
+
+    def receive_into(self, buffer: memoryview,
+                     timeout: float) -> tuple[int, Address, int] | None:
+        """As :meth:`~DatagramEndpoint.receive`, but write the frame into ``buffer`` from its
+        start and return ``(length, source, arrived)``: ``arrived`` is when the frame reached
+        this machine, in nanoseconds of ``time.time_ns()``'s clock (UDP asks the kernel:
+        ``SO_TIMESTAMPNS``), or 0 when the link cannot tell. With it, a receiving route drops a
+        best-effort message that waited too long in the receive buffer (the topic's ``max_delay``). ``buffer``
+        is longer than any frame the link accepts (more than ``max_frame`` and than 65,535
+        bytes): the core counts a frame that fills it as too long. Called from one thread;
+        ``buffer`` is the core's and reused."""
+
+    def send_parts(self, parts: list[bytes | memoryview], to: Address) -> None:
+        """As :meth:`~DatagramEndpoint.send`, for the one frame that ``parts`` make in order
+        (a header and a view of a payload; several frames coalesced): scatter-gather
+        (``sendmsg``) instead of joining them. Their total is at most ``max_frame``."""
+
+
 class StreamConnection(Protocol):
     """One connected byte stream.
 
@@ -96,6 +120,23 @@ class StreamConnection(Protocol):
 
     def close(self) -> None:
         """Close; a ``receive`` blocked in another thread returns soon after."""
+
+
+class FastStreamConnection(StreamConnection, Protocol):
+    """A :class:`StreamConnection` that also offers the core's fast path; as for datagrams
+    (:class:`FastDatagramEndpoint`), each method is optional and the core looks for it once per
+    connection. :class:`SocketConnection` has both."""
+
+    def receive_into(self, buffer: memoryview, timeout: float) -> int | None:
+        """As :meth:`~StreamConnection.receive`, writing up to ``len(buffer)`` bytes into
+        ``buffer``: how many (0 when the far end closed), or ``None`` after ``timeout``. The core
+        reads a large frame straight into the buffer it will hand on, and everything else into
+        one buffer of its own, instead of a new bytes object per read."""
+
+    def send_nowait(self, data: bytes) -> int:
+        """Write what of ``data`` goes without waiting (0 when nothing does): the core writes a
+        frame from the caller's thread when nothing else is being written, and leaves the rest,
+        if any, to the link's writer thread. ``OSError`` as for ``send``."""
 
 
 class StreamListener(Protocol):
@@ -155,6 +196,14 @@ class Transport(ABC):
         """Validate (and normalise) an address built by the core from a host and a ``port:``
         value; ``ValueError`` with a sentence saying what is expected."""
         return address
+
+    def source_hosts(self, host: str) -> frozenset[str] | None:
+        """The hosts that frames and connections from ``host`` (``bridge.peer``, or a client's
+        server) show in their source address, so that a link takes them from there only; None
+        when this transport cannot tell who sent a frame (a bus), and then nothing is filtered.
+        Called once per host when a bridge starts. IP transports resolve a name to its
+        addresses (:func:`ip_source_hosts`)."""
+        return None
 
     # the link calls: a DatagramTransport implements bind, a StreamTransport listen and connect
     def bind(self, address: Address) -> DatagramEndpoint:
@@ -217,10 +266,21 @@ class SocketConnection:
     def send(self, data: bytes) -> None:
         self.sock.sendall(data)
 
+    def send_nowait(self, data: bytes) -> int:
+        try:
+            return self.sock.send(data, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            return 0
+
     def receive(self, max_bytes: int, timeout: float) -> bytes | None:
         if not self._readable.poll(timeout * 1000):
             return None
         return self.sock.recv(max_bytes)  # data, b"" at the end, or OSError once closed
+
+    def receive_into(self, buffer: memoryview, timeout: float) -> int | None:
+        if not self._readable.poll(timeout * 1000):
+            return None
+        return self.sock.recv_into(buffer)  # 0 at the end, or OSError once closed
 
     def close(self) -> None:
         try:
@@ -263,6 +323,16 @@ def check_ip_address(address: Address) -> Address:
         except OSError:
             raise ValueError(f"{host!r} is not an IP address or host name") from None
     return address
+
+
+def ip_source_hosts(host: str) -> frozenset[str]:
+    """For IP transports' :meth:`Transport.source_hosts`: every address ``host`` resolves to
+    (itself when it does not resolve)."""
+    try:
+        found = {info[4][0] for info in socket.getaddrinfo(host, None)}
+    except (OSError, UnicodeError):
+        found = set()
+    return frozenset({host} | {str(address).partition("%")[0] for address in found})
 
 
 def parse_host_port(text: str) -> Address:

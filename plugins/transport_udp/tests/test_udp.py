@@ -120,6 +120,33 @@ def test_buffer_sizes_are_asked_of_the_kernel(endpoints):
         assert endpoint.sock.getsockopt(socket.SOL_SOCKET, option) // 2 >= size
 
 
+def test_as_root_a_buffer_beyond_the_system_limit_is_granted(endpoints):
+    if not _privileged():
+        pytest.skip("forcing a buffer past rmem_max needs root (CAP_NET_ADMIN)")
+    with open("/proc/sys/net/core/rmem_max") as f:
+        size = 2 * int(f.read()) + 4096
+    endpoint, _ = endpoints(transport=UdpTransport({"receive_buffer": size}))
+    assert endpoint.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) // 2 >= size
+
+
+def test_a_capped_buffer_is_warned_about_once_with_the_fix(endpoints, monkeypatch, caplog):
+    import rosgate_transport_udp as udp
+
+    monkeypatch.setattr(udp, "_warned", set())
+    monkeypatch.setitem(udp._FORCE, socket.SO_RCVBUF, None)  # as a process without privilege
+    with open("/proc/sys/net/core/rmem_max") as f:
+        cap = int(f.read())
+    size = 2 * cap + 4096
+    transport = UdpTransport({"receive_buffer": size})
+    with caplog.at_level("WARNING", logger="rosgate.udp"):
+        endpoints(transport=transport)
+        endpoints(transport=transport)
+    warnings = [r.getMessage() for r in caplog.records if "receive buffer" in r.getMessage()]
+    assert len(warnings) == 1
+    assert f"not the {size} asked for (net.core.rmem_max caps it)" in warnings[0]
+    assert f"sysctl -w net.core.rmem_max={2 * size}" in warnings[0]
+
+
 def _privileged() -> bool:
     return hasattr(os, "geteuid") and os.geteuid() == 0
 

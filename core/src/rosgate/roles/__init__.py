@@ -21,16 +21,8 @@ from dataclasses import dataclass
 
 from ..config import BridgeConfig, LinkConfig
 from ..errors import ConfigError, LinkError
-from ..links import (
-    Acceptor,
-    Backoff,
-    DatagramLink,
-    Lifetime,
-    Link,
-    LinkSlot,
-    QueueLimits,
-    StreamLink,
-)
+from ..links import (Acceptor, Backoff, ConnectionLimits, DatagramLink, Lifetime, Link, LinkCounters,
+                     LinkSlot, QueueLimits, Sources, StreamLink, Untrusted)
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort
@@ -72,8 +64,9 @@ class Bridge:
 
 
 class Role:
-    """What the three roles share: datagram links by local address, listening ports, and the
-    control channel's drops."""
+    """What the three roles share: datagram links by local address, listening ports within the
+    bridge's connection limits, the sources links take frames from, and the control channel's
+    drops."""
 
     def __init__(self, bridge: Bridge):
         self.bridge = bridge
@@ -82,8 +75,14 @@ class Role:
         self.life = bridge.life
         self.datagram_links: dict[tuple[str, Address], DatagramLink] = {}
         self.bare_ports: dict[DatagramLink, BarePort] = {}
-        self.listening: set[tuple[str, Address]] = set()
+        self.listening: dict[tuple[str, Address], Acceptor] = {}
+        #: who holds each datagram link and listener (a server's sessions): released together
+        self._holders: dict[tuple[str, str, Address], set[int]] = {}
         self.control = Control(self.router)
+        limits = self.cfg.limits
+        self.limits = ConnectionLimits(limits.connections, limits.connections_per_source)
+        #: what a connection a client opened may do before it is trusted
+        self.untrusted = Untrusted(limits.max_frame_before_auth, limits.handshake_timeout)
         self._lock = threading.RLock()
 
     def start(self) -> None: ...
@@ -92,11 +91,59 @@ class Role:
         for route in self.router.snapshot():
             self.router.remove(route)
 
-    def datagram_link(self, transport: Transport, local: Address, key: str = "bridge",
-                      bare_named: bool | None = None) -> DatagramLink:
-        """The link bound at ``local`` (shared by every entry on that port). ``bare_named`` is
-        not None for a port of ``framing: none`` topics: whether their datagrams carry names."""
+    def sources(self, transport: Transport, host: str | None) -> Sources | None:
+        """Who links of ``transport`` take frames from: the addresses of ``bridge.allow`` when
+        it is given (peer role), else ``host`` (the peer, the server) as its frames show it;
+        None (anyone) when the transport cannot tell who sent a frame."""
+        if self.cfg.allow:
+            return self.allow_list()
+        hosts = transport.source_hosts(host or "")
+        return None if hosts is None else Sources(hosts)
+
+    def allow_list(self) -> Sources | None:
+        """``bridge.allow`` as sources (None: anyone, when it is not given)."""
+        return Sources((), map(str, self.cfg.allow)) if self.cfg.allow else None
+
+    def refuse_connection(self, acceptor: Acceptor, reason: str, detail: str) -> None:
+        """A connection an acceptor closed at once, counted like a frame for no topic."""
+        self.router.link_drop(acceptor, reason, detail)
+
+    def _hold(self, kind: str, transport: Transport, local: Address, owner: object) -> None:
+        if owner is not None:
+            self._holders.setdefault((kind, transport.name, local), set()).add(id(owner))
+
+    def release(self, owner: object) -> None:
+        """Close every datagram link and listener that no one but ``owner`` holds (a session
+        that ended): its port is free again, its threads gone."""
+        closing: list[DatagramLink | Acceptor] = []
         with self._lock:
+            for (kind, name, local), owners in list(self._holders.items()):
+                owners.discard(id(owner))
+                if owners:
+                    continue
+                del self._holders[(kind, name, local)]
+                if kind == "datagram":
+                    link = self.datagram_links.pop((name, local), None)
+                    if link is not None:
+                        self.bare_ports.pop(link, None)
+                        closing.append(link)
+                else:
+                    acceptor = self.listening.pop((name, local), None)
+                    if acceptor is not None:
+                        closing.append(acceptor)
+        for item in closing:
+            item.close()
+            self.life.forget(item)
+
+    def datagram_link(self, transport: Transport, local: Address, key: str = "bridge",
+                      bare_named: bool | None = None, sources: Sources | None = None,
+                      owner: object = None) -> DatagramLink:
+        """The link bound at ``local`` (shared by every entry on that port). ``bare_named`` is
+        not None for a port of ``framing: none`` topics: whether their datagrams carry names.
+        ``sources``: who it takes frames from (the first entry on the port decides). An
+        ``owner`` holds it until :meth:`release`; without one it lasts as long as the bridge."""
+        with self._lock:
+            self._hold("datagram", transport, local, owner)
             found = self.datagram_links.get((transport.name, local))
             if found is not None:
                 return found
@@ -107,60 +154,23 @@ class Role:
             name = f"{transport.name}:{local[1]}" if local[1] else f"{transport.name}"
             budget = self.bridge.budget(transport)
             if bare_named is None:
-                link = DatagramLink(transport, endpoint, name, self.admit(self.router.on_frame),
-                                    self.router.on_lost, budget=budget,
+                link = DatagramLink(transport, endpoint, name, self.router.on_frame,
+                                    self.router.on_lost, sources=sources, budget=budget,
                                     on_recovered=self.router.on_recovered)
             else:
                 port = self.router.bare_port(bare_named)
-                link = DatagramLink(transport, endpoint, name, self.admit(port.on_frame),
-                                    self.router.on_lost, bare=True, budget=budget)
+                link = DatagramLink(transport, endpoint, name, port.on_frame,
+                                    self.router.on_lost, bare=True, sources=sources, budget=budget)
                 self.bare_ports[link] = port
             self.datagram_links[(transport.name, local)] = self.life.closing(link)
             return link
 
-    def allowed(self, host: str) -> bool:
-        """Whether ``bridge.allow`` (peer role) lets frames from ``host`` in; all without it."""
-        if not self.cfg.allow:
-            return True
-        import ipaddress
-
-        try:
-            address = ipaddress.ip_address(host)
-        except ValueError:
-            return False
-        return any(address in network for network in self.cfg.allow)
-
-    def admit(self, handler: FrameHandler) -> FrameHandler:
-        """``handler`` for frames from allowed addresses; the others dropped and counted."""
-        if not self.cfg.allow:
-            return handler
-
-        def admitted(frame: bytes, link: Link, source: Address) -> None:
-            if self.allowed(source[0]):
-                handler(frame, link, source)
-            else:
-                self.router.link_drop(link, "not_allowed", f"from {source[0]}")
-        return admitted
-
-    def admitting(self, on_connection: Callable[[StreamConnection, Address], None]
-                  ) -> Callable[[StreamConnection, Address], None]:
-        """``on_connection`` for connections from allowed addresses; the others closed."""
-        if not self.cfg.allow:
-            return on_connection
-
-        def admitted(connection: StreamConnection, peer: Address) -> None:
-            if self.allowed(peer[0]):
-                on_connection(connection, peer)
-            else:
-                connection.close()
-                self.router.link_drop(None, "not_allowed", f"a connection from {peer[0]}")
-        return admitted
-
     def accept_into(self, on_frame: FrameHandler, transport: Transport, port: int,
-                    handshake: Handshake | None = None
+                    handshake: Handshake | None = None, untrusted: Untrusted | None = None,
                     ) -> Callable[[StreamConnection, Address], None]:
         """What to do with each connection accepted on a port: a link that feeds ``on_frame``
-        and is forgotten by the bridge when it ends (after ``handshake``, when given)."""
+        (after ``handshake``, when given; held to ``untrusted`` until ``on_frame`` trusts it)
+        and is forgotten by the bridge when it ends."""
         life, on_lost = self.life, self.router.on_lost
         budget = self.bridge.budget(transport)
 
@@ -168,7 +178,7 @@ class Role:
             def link(ready: StreamConnection) -> None:
                 life.closing(StreamLink(ready, f"{transport.name}:{port}<-{peer[0]}", peer,
                                         on_frame, on_lost, on_close=life.forget,
-                                        budget=budget))
+                                        untrusted=untrusted, budget=budget))
             if handshake is None:
                 link(connection)
             else:
@@ -177,21 +187,30 @@ class Role:
         return accepted
 
     def listen(self, transport: Transport, local: Address, on_frame: FrameHandler,
-               key: str | None = None, handshake: Handshake | None = None) -> None:
-        """Accept stream connections at ``local`` (once per address). A LinkError is located at
-        ``key``; without one (a server listening for a client) it goes to the caller."""
+               key: str | None = None, handshake: Handshake | None = None,
+               sources: Sources | None = None, untrusted: Untrusted | None = None,
+               owner: object = None) -> Acceptor:
+        """Accept stream connections at ``local`` (once per address), from ``sources`` only
+        when given, within the bridge's connection limits, each through ``handshake`` when
+        given. A LinkError is located at ``key``; without one (a server listening for a client)
+        it goes to the caller. An ``owner`` holds the listener until :meth:`release`."""
         with self._lock:
-            if (transport.name, local) in self.listening:
-                return
+            found = self.listening.get((transport.name, local))
+            if found is not None:
+                self._hold("listen", transport, local, owner)
+                return found
             try:
                 listener = transport.listen(local)
             except LinkError as exc:
                 if key is None:
                     raise
                 raise self.bridge.link_error(exc, key) from None
-            self.listening.add((transport.name, local))
-        self.life.closing(Acceptor(listener, f"{transport.name}:{local[1]}", self.admitting(
-            self.accept_into(on_frame, transport, local[1], handshake))))
+            acceptor = self.listening[(transport.name, local)] = Acceptor(
+                listener, f"{transport.name}:{local[1]}",
+                self.accept_into(on_frame, transport, local[1], handshake, untrusted),
+                self.limits, sources, self.refuse_connection)
+            self._hold("listen", transport, local, owner)
+        return self.life.closing(acceptor)
 
 
 class Control:
@@ -239,9 +258,10 @@ class NoLink(Link):
     def __init__(self) -> None:
         self.name = "in"
         self.closed = threading.Event()
+        self.counters = LinkCounters()
 
-    def send(self, frame: bytes, sender: object, to: Address | None = None) -> bool:
-        return False
+    def send_all(self, frames: list[bytes], sender: object, to: Address | None = None) -> int:
+        return 0
 
     def close(self) -> None:
         pass

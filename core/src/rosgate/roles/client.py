@@ -128,6 +128,8 @@ class ClientRole(Role):
             ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
             if len(ids) != len(plan.topics) + len(plan.services):
                 raise ValueError("topic and service id count does not match")
+            if not all(0 <= i < 2**32 for i in ids):  # 0: an entry the server refused
+                raise ValueError("a topic or service id out of range")
             session, token = int(answer["session"]), bytes.fromhex(answer.get("token", ""))
             self.server_name = str(answer["name"])
             if self.cfg.secure:
@@ -139,7 +141,7 @@ class ClientRole(Role):
             if self.topic_ids is None:
                 self._unbuild()  # half-built: the next handshake starts clean
             return False
-        if session != self.session:
+        if (session, token) != (self.session, self.token):  # a restarted server reuses ids
             self.session, self.token = session, token
             for slot in self._dedicated.values():  # they must introduce themselves anew
                 if slot.current is not None:
@@ -227,8 +229,9 @@ class ClientRole(Role):
         destination = fixed(p.address)
         if p.transport.stream:
             link = self.main if t.port is None else self._dedicated_stream(p)
-        else:
-            link = self.datagram_link(p.transport, p.local)
+        else:  # frames from the server only
+            link = self.datagram_link(p.transport, p.local,
+                                      sources=self.sources(p.transport, p.address[0]))
             self.hello_to.add((link, p.address))
         keys = self._keys(p)
         if isinstance(p, PreparedTopic):

@@ -29,6 +29,7 @@ from typing import Any
 
 from ..config import ServiceConfig, TopicConfig, service_from_mapping
 from ..errors import ConfigError
+from ..wire import control as wire_control
 from ..wire import envelope
 
 PROTOCOL = 1           # main-line control protocol version
@@ -46,11 +47,12 @@ def is_control(frame: bytes) -> bool:
 
 
 def parse_control(frame: bytes) -> dict[str, Any] | None:
+    """A control frame's message, or None when it is none (bounded: :mod:`rosgate.wire.control`)."""
     try:
-        message = json.loads(frame[envelope.SIZE:])
-    except (ValueError, UnicodeDecodeError):
+        message = wire_control.parse(frame[envelope.SIZE:])
+    except wire_control.ControlError:
         return None
-    return message if isinstance(message, dict) and isinstance(message.get("type"), str) else None
+    return message if isinstance(message.get("type"), str) else None
 
 
 def hello_datagram(session: int, token: bytes) -> bytes:

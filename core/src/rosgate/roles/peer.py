@@ -21,6 +21,12 @@ Every ``framing: rosgate`` entry is then keyed from the session by its link name
 which both files must spell alike), per direction and key generation; the line carries
 heartbeats and is made again after a loss or a restart, with a new secret each time. Bare and
 serial-datagram entries (microcontrollers) stay keyless.
+
+Sources: every datagram link and listening stream port (the handshake line's too) takes frames
+and connections only from ``bridge.peer`` (resolved once, at start), or, when it is given, from
+the addresses of ``bridge.allow``; the others are counted ``not_allowed``, before any
+reassembly. A microcontroller service port takes calls from anyone unless ``bridge.allow`` is
+given. Transports that cannot tell who sent a frame (a CAN bus) filter nothing.
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ from ..config import Direction, Framing
 from ..cvra import CallServer
 from ..errors import LinkError
 from ..keyring import Keys
-from ..links import Acceptor, Connector, Link, StreamLink
+from ..links import Acceptor, Connector, Link, Sources, StreamLink
 from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
 from ..routes import ReceiveRoute
@@ -61,6 +67,9 @@ class PeerRole(Role):
         if self.handshake is None or p.config.framing is not Framing.ROSGATE:
             return None
         return self.handshake.keys(p)
+
+    def _sources(self, p: PreparedTopic | PreparedService) -> Sources | None:
+        return self.sources(p.transport, self.cfg.peer)
 
     def start(self) -> None:
         if self.handshake is not None:
@@ -92,26 +101,29 @@ class PeerRole(Role):
 
     def _datagram_topic(self, p: PreparedTopic) -> None:
         t, key = p.config, f"topics[{p.index}].port"
+        sources = self._sources(p)
         if t.direction is Direction.TRANSMIT:
-            link = self.datagram_link(p.transport, p.local, key)
+            link = self.datagram_link(p.transport, p.local, key, sources=sources)
             self.router.topic(p, topic_id_for(t.remote), t.topic, link, fixed(p.address),
                               self._keys(p))
             return
         if t.framing is Framing.NONE:
             named = p.codec_cls.messagepack
-            link = self.datagram_link(p.transport, p.address, key, bare_named=named)
+            link = self.datagram_link(p.transport, p.address, key, bare_named=named,
+                                      sources=sources)
             route = self.router.topic(p, topic_id_for(t.remote), t.topic, link)
             assert isinstance(route, ReceiveRoute)
             self.bare_ports[link].add(route, {t.topic, t.remote})
             return
-        link = self.datagram_link(p.transport, p.address, key)
+        link = self.datagram_link(p.transport, p.address, key, sources=sources)
         self._receiver(p, link)
 
     def _stream_topic(self, p: PreparedTopic) -> None:
         t, key = p.config, f"topics[{p.index}].port"
         if t.direction is Direction.RECEIVE:
             self._receiver(p, NoLink())
-            self.listen(p.transport, p.address, self.router.on_frame, key)
+            self.listen(p.transport, p.address, self.router.on_frame, key,
+                        sources=self._sources(p))
             return
         slot = self.bridge.slot(f"{t.transport}->{self.cfg.peer}:{t.port}")
         self.router.topic(p, topic_id_for(t.remote), t.topic, slot, keys=self._keys(p))
@@ -133,17 +145,18 @@ class PeerRole(Role):
         link: Link
         if s.direction is Direction.RECEIVE:
             if p.transport.stream:
-                self.listen(p.transport, p.address, self.router.on_frame, key)
+                self.listen(p.transport, p.address, self.router.on_frame, key,
+                        sources=self._sources(p))
                 link = NoLink()  # answers go back on the connection each call came on
             else:
-                link = self.datagram_link(p.transport, p.address, key)
+                link = self.datagram_link(p.transport, p.address, key, sources=self._sources(p))
         elif p.transport.stream:
             link = slot = self.bridge.slot(f"{s.transport}->{self.cfg.peer}:{s.port}")
             Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
                       self.life, self.bridge.backoff,
                       budget=self.bridge.budget(p.transport)).start()
         else:
-            link = self.datagram_link(p.transport, p.local, key)
+            link = self.datagram_link(p.transport, p.local, key, sources=self._sources(p))
         self.router.service(p, service_id, s.service, link, fixed(p.address), self._keys(p))
 
     def _microcontroller_service(self, p: PreparedService,
@@ -160,8 +173,10 @@ class PeerRole(Role):
             except LinkError as exc:
                 raise self.bridge.link_error(exc, f"services[{p.index}].port") from None
             server = servers[p.address] = CallServer(f"{p.transport.name}:{p.address[1]}",
-                                                     self.router.link_drop)
-            self.life.closing(Acceptor(listener, server.name, self.admitting(server.accepted)))
+                                                     self.router.link_drop,
+                                                     self.cfg.limits.idle_timeout)
+            self.life.closing(Acceptor(listener, server.name, server.accepted, self.limits,
+                                       self.allow_list(), self.refuse_connection))
         route = self.router.service(p, 0, s.service, None)  # found by name: no id
         assert isinstance(route, ServerRoute)
         servers[p.address].add(route)
@@ -216,7 +231,10 @@ class PeerHandshake:
                 listener = self.transport.listen(address)
             except LinkError as exc:
                 raise self.role.bridge.link_error(exc, "bridge.handshake_port") from None
-            life.closing(Acceptor(listener, f"handshake:{address[1]}", self._accepted))
+            role = self.role
+            life.closing(Acceptor(listener, f"handshake:{address[1]}", self._accepted,
+                                  role.limits, role.sources(self.transport, self.cfg.peer),
+                                  role.refuse_connection))
         threading.Thread(target=self._ping_loop, name="peer-ping", daemon=True).start()
 
     # -- the initiator -------------------------------------------------------------------------

@@ -39,7 +39,7 @@ from ..config import (
 )
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys
-from ..links import Acceptor, DatagramLink, Link, LinkSlot, StreamLink
+from ..links import Acceptor, DatagramLink, KnownSources, Link, LinkSlot, StreamLink
 from ..policy import refusal
 from ..resolver import PreparedService, PreparedTopic
 from ..routes import Route
@@ -53,6 +53,7 @@ from ..secure import (
     respond,
 )
 from ..transport import Address, StreamConnection
+from ..warn import BUGS
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
 from . import Bridge, Refusals, Role
@@ -103,6 +104,8 @@ class ServerRole(Role):
         self.sessions: dict[int, Session] = {}
         self._ids = iter(range(1, 2**32))
         self.router.on_hello = self.on_hello
+        #: datagram ports take frames only from where clients' genuine hellos came from
+        self.clients = KnownSources()
         self.refusals = Refusals()
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
         self._handshakes = threading.BoundedSemaphore(MAX_HANDSHAKES)
@@ -115,7 +118,8 @@ class ServerRole(Role):
         except LinkError as exc:
             raise self.bridge.link_error(exc, "bridge.server") from None
         self.acceptor = self.life.closing(Acceptor(listener, f"main:{plan.main_address[1]}",
-                                                   self._accepted))
+                                                   self._accepted, self.limits,
+                                                   on_refused=self.refuse_connection))
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
 
     def stop(self) -> None:
@@ -184,6 +188,7 @@ class ServerRole(Role):
                     session = self._welcome(message, link, peer, policy)
                     if session is not None:
                         holder["session"] = session
+                        link.trust()
                 elif kind == "ready" and session is not None and session.schedule is not None:
                     key_id = message.get("key_id")
                     if isinstance(key_id, int):
@@ -207,13 +212,13 @@ class ServerRole(Role):
 
         assert self.bridge.plan.main_line is not None
         self.life.closing(StreamLink(connection, f"main<-{peer[0]}:{peer[1]}", peer, on_frame,
-                                     self.router.on_lost, on_close,
+                                     self.router.on_lost, on_close, untrusted=self.untrusted,
                                      budget=self.bridge.budget(self.bridge.plan.main_line)))
 
     # -- sessions ----------------------------------------------------------------------------
     def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address,
                  policy: ClientPolicy | None) -> Session | None:
-        name = str(hello.get("name", "?"))
+        name = str(hello.get("name", "?"))[:100]
         try:
             if policy is not None and name != policy.name:
                 raise ConfigError(f"the key of client {policy.name!r} says hello as {name!r}",
@@ -229,6 +234,13 @@ class ServerRole(Role):
             self.refusals.say(f"refused {name} {exc}", f"refused client {name!r} from {peer[0]}: "
                               f"{exc}", logging.ERROR)
             link.send(control({"type": "refused", "error": str(exc)}), self.control)
+            return None
+        except Exception:  # a bug, or ROS refusing what the checks let through
+            BUGS.bug("session_error", f"could not build the session of client {name!r} from "
+                                      f"{peer[0]} (a bug: please report it)")
+            self.router.link_drop(link, "session_error", f"client {name!r} from {peer[0]}")
+            link.send(control({"type": "refused", "error": "the server could not build this "
+                               "session (see its log)"}), self.control)
             return None
         for why in session.refused.values():
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
@@ -295,13 +307,17 @@ class ServerRole(Role):
         if hello.get("protocol") != PROTOCOL:
             raise ConfigError(f"protocol {hello.get('protocol')!r} is not {PROTOCOL}",
                               file=f"client {name}", fix="run the same rosgate version on both")
+        if len(self.sessions) >= self.cfg.limits.sessions:
+            raise ConfigError(f"the server keeps {len(self.sessions)} sessions already, its "
+                              "limit", file=f"client {name}",
+                              fix="try again later (bridge.limits.sessions on the server)")
         entries = self._client_entries(hello, name)
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
                           hello.get("services", []), self.bridge.slot(f"main of {name}"),
                           entries=entries, policy=policy)
         try:
             self._sync(session)
-        except (ConfigError, LinkError):
+        except BaseException:  # whatever failed, nothing half-built stays behind
             self._drop_routes(session)
             raise
         with self._lock:
@@ -372,12 +388,13 @@ class ServerRole(Role):
             link = session.main
         elif p.transport.stream and port is not None:
             self.listen(p.transport, p.address, self._dedicated_frame(port),
-                        handshake=self.handshake)
+                        handshake=self.handshake, untrusted=self.untrusted, owner=session)
             if port not in session.streams:
                 session.streams[port] = self.bridge.slot(f"port {port} of {session.name}")
             link = session.streams[port]
         else:
-            datagrams = self.datagram_link(p.transport, p.address)
+            datagrams = self.datagram_link(p.transport, p.address, owner=session,
+                                           sources=self.clients)
             link = datagrams
 
             def destination() -> Address | None:  # where the client said hello from, last
@@ -414,6 +431,7 @@ class ServerRole(Role):
                 if (session is not None and slot is not None and isinstance(link, StreamLink)
                         and self._hello_is_genuine(session, header, frame, link)):
                     old = slot.current
+                    link.trust()
                     slot.attach(link)
                     if old is not None and old is not link:
                         old.fail("the client connected again")
@@ -446,6 +464,10 @@ class ServerRole(Role):
             self.router.link_drop(link, "bad_hello", f"from {source}")
             return
         if isinstance(link, DatagramLink) and session.addresses.get(link) != source:
+            old = session.addresses.get(link)
+            if old is not None:
+                self.clients.forget(old)
+            self.clients.learn(source)
             session.addresses[link] = source
             log.debug("client %r is at %s on %s", session.name, source, link.name)
 
@@ -462,6 +484,10 @@ class ServerRole(Role):
             self.router.remove(route)
         session.by_index.clear()
         session.close()
+        for address in session.addresses.values():
+            self.clients.forget(address)
+        session.addresses.clear()
+        self.release(session)  # its ports, unless another session uses them
 
     # -- a new policy (SIGHUP) ---------------------------------------------------------------
     def reload(self, clients: dict[str, ClientPolicy]) -> None:

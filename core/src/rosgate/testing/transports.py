@@ -166,6 +166,47 @@ class TransportConformance:
         assert result[0] is None or isinstance(result[0], OSError), result
         thread.join()
 
+    def test_datagram_receive_into_if_offered(self, plugin, far_plugin, address, closing):
+        """The optional fast path (:class:`rosgate.FastDatagramEndpoint`): a frame written into
+        the core's buffer, its length, an answerable source and when it arrived (0, or a time
+        on time.time_ns()'s clock, not in the future); None when idle."""
+        a, a_address, b, b_address = self._endpoints(plugin, far_plugin, address, closing)
+        if not hasattr(b, "receive_into"):
+            pytest.skip(f"{plugin.name} does not offer receive_into (optional)")
+        buffer = memoryview(bytearray(max(plugin.max_frame, 65_535) + 1))
+        buffer[:] = b"\xee" * len(buffer)
+        frames = [frame_of(size, seed) for seed, size in enumerate([plugin.max_frame, 1, 3])]
+        for frame in frames:
+            sent = time.time_ns()
+            a.send(frame, b_address)
+            got = b.receive_into(buffer, TIMEOUT)
+            assert got is not None, "nothing arrived"
+            size, source, arrived = got
+            assert bytes(buffer[:size]) == self._as_received(frame)
+            hash(source)
+            assert arrived == 0 or sent - 1_000_000_000 < arrived <= time.time_ns(), \
+                "arrival times are time.time_ns() nanoseconds, or 0"
+        answer = frame_of(min(9, plugin.max_frame), seed=7)
+        b.send(answer, source if self.answerable_source else a_address)
+        got = a.receive(TIMEOUT)
+        assert got is not None and got[0] == self._as_received(answer)
+        started = time.monotonic()
+        assert b.receive_into(buffer, 0.2) is None
+        assert 0.15 < time.monotonic() - started < 2.0
+
+    def test_datagram_send_parts_if_offered(self, plugin, far_plugin, address, closing):
+        """The optional fast path: the parts (bytes and views) leave as one frame, in order."""
+        a, _, b, b_address = self._endpoints(plugin, far_plugin, address, closing)
+        if not hasattr(a, "send_parts"):
+            pytest.skip(f"{plugin.name} does not offer send_parts (optional)")
+        whole = frame_of(plugin.max_frame, seed=11)
+        cut = min(14, plugin.max_frame // 2)
+        for parts in ([whole[:cut], memoryview(whole)[cut:]], [whole], [b"", whole, b""]):
+            a.send_parts(parts, b_address)
+            got = b.receive(TIMEOUT)
+            assert got is not None, "nothing arrived"
+            assert got[0] == self._as_received(whole)
+
     def test_datagram_frames_beyond_max_frame_cross_fragmented_by_the_core(
             self, plugin, far_plugin, address, closing):
         a, _, b, b_address = self._endpoints(plugin, far_plugin, address, closing)
@@ -267,6 +308,39 @@ class TransportConformance:
         assert finished.wait(1.0), "receive still blocked 1 s after close"
         assert result[0] in (None, b"") or isinstance(result[0], OSError), result
         thread.join()
+
+    def test_stream_receive_into_if_offered(self, plugin, far_plugin, address, closing):
+        """The optional fast path (:class:`rosgate.FastStreamConnection`): bytes written into
+        the core's buffer, at most its length; None when idle; 0 once the far end closed."""
+        client, server = self._pair(plugin, far_plugin, address, closing)
+        if not hasattr(server, "receive_into"):
+            pytest.skip(f"{plugin.name} does not offer receive_into on streams (optional)")
+        data = frame_of(100_000, 3)
+        client.send(data)
+        buffer, got = memoryview(bytearray(4096)), bytearray()
+        while len(got) < len(data):
+            n = server.receive_into(buffer, TIMEOUT)
+            assert n, f"only {len(got)} of {len(data)} bytes came"
+            assert n <= len(buffer)
+            got += buffer[:n]
+        assert got == data
+        assert server.receive_into(buffer, 0.2) is None
+        client.close()
+        assert server.receive_into(buffer, TIMEOUT) == 0
+
+    def test_stream_send_nowait_if_offered(self, plugin, far_plugin, address, closing):
+        """The optional fast path: what goes without waiting is written and counted, never more
+        than was given, and the rest can follow with send."""
+        client, server = self._pair(plugin, far_plugin, address, closing)
+        if not hasattr(client, "send_nowait"):
+            pytest.skip(f"{plugin.name} does not offer send_nowait (optional)")
+        data = frame_of(4 << 20, 4)  # more than a socket buffer takes at once
+        written = client.send_nowait(data)
+        assert 0 <= written <= len(data)
+        senders = [threading.Thread(target=client.send, args=(data[written:],), daemon=True)]
+        senders[0].start()
+        assert receive_exactly(server, len(data), TIMEOUT * 4) == data
+        senders[0].join(TIMEOUT)
 
     def test_stream_connect_to_nobody_raises_oserror(self, plugin, address):
         self._kind(plugin, stream=True)

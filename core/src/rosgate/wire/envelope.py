@@ -18,12 +18,15 @@ from __future__ import annotations
 
 import struct
 import zlib
-from dataclasses import dataclass
+from typing import NamedTuple
 
 MAGIC = b"RG"
 VERSION = 1
 HEADER = struct.Struct(">2sBBIIQQ")
 SIZE = HEADER.size
+# the same 28 bytes read in one call: magic, version and flags as one word
+_WORDS = struct.Struct(">IIIQQ")
+_MAGIC_VERSION = int.from_bytes(MAGIC, "big") << 16 | VERSION << 8
 
 FLAG_CONTROL = 0x01  # topic_id 0: a control message on the main line (JSON)
 FLAG_HELLO = 0x02    # a datagram that tells the server where a client's link is (topic_id = session)
@@ -47,12 +50,16 @@ def topic_of(start: bytes) -> int | None:
     return int.from_bytes(start[4:8], "big") if start[:2] == MAGIC and len(start) >= 8 else None
 
 
+def is_hello(datagram: bytes | memoryview) -> bool:
+    """Whether ``datagram`` is a whole envelope with the HELLO flag (not yet checked)."""
+    return len(datagram) >= SIZE and datagram[:2] == MAGIC and bool(datagram[3] & FLAG_HELLO)
+
+
 class EnvelopeError(ValueError):
     """Bytes that do not start with a valid envelope header."""
 
 
-@dataclass(frozen=True, slots=True)
-class Header:
+class Header(NamedTuple):
     flags: int
     topic_id: int
     epoch: int
@@ -64,15 +71,14 @@ def pack(flags: int, topic_id: int, epoch: int, seq: int, stamp: int) -> bytes:
     return HEADER.pack(MAGIC, VERSION, flags, topic_id, epoch, seq, stamp)
 
 
-def unpack(frame: bytes | memoryview) -> Header:
-    if len(frame) < SIZE:
-        raise EnvelopeError("truncated")
-    magic, version, flags, topic_id, epoch, seq, stamp = HEADER.unpack_from(frame)
-    if magic != MAGIC:
-        raise EnvelopeError("foreign")
-    if version != VERSION:
-        raise EnvelopeError("version")
-    return Header(flags, topic_id, epoch, seq, stamp)
+def unpack(frame: bytes | bytearray | memoryview) -> Header:
+    try:
+        word, topic_id, epoch, seq, stamp = _WORDS.unpack_from(frame)
+    except struct.error:
+        raise EnvelopeError("truncated") from None
+    if word & 0xFFFFFF00 != _MAGIC_VERSION:
+        raise EnvelopeError("foreign" if word >> 16 != _MAGIC_VERSION >> 16 else "version")
+    return Header(word & 0xFF, topic_id, epoch, seq, stamp)
 
 
 class ReplayWindow:
@@ -83,36 +89,86 @@ class ReplayWindow:
     kept, so switching back and forth between epochs cannot replay frames; no epoch is refused
     outright, so a forged frame on an unauthenticated link cannot lock the real sender out.
     Replaying frames of an epoch forgotten long ago is for an authenticated handshake to stop.
+
+    On an unauthenticated route (``authenticated=False``: no cipher vouches for the header)
+    one forged frame must not move the sequence either: a frame more than ``WIDTH`` ahead of
+    (or ``JUMP`` behind) every window the epoch has does not move them, it opens a window of its
+    own, one of ``TRACKS`` per epoch (the least recently used is forgotten). The real sender's
+    next frames still land in its own window; a sender that really jumped (many frames lost)
+    carries on in the new one; windows that come within ``WIDTH`` of each other merge. What is
+    refused stays as before: a duplicate within a window, and a frame up to ``JUMP`` behind one
+    (``stale``).
+
+    :attr:`lost` counts the sequence numbers skipped and never filled in (losses on the way):
+    a jump within a window adds the gap, a late frame that fills one takes one back.
     """
 
     WIDTH = 64
     EPOCHS = 8
+    JUMP = 4096
+    TRACKS = 4
+    _MASK = (1 << WIDTH) - 1
 
-    __slots__ = ("_windows",)
+    __slots__ = ("_windows", "authenticated", "lost")
 
-    def __init__(self) -> None:
-        # epoch -> [top, seen]; bit i of seen set: seq (top - i) was accepted. Insertion order
-        # is age order, so the first entry is the one to forget.
-        self._windows: dict[int, list[int]] = {}
+    def __init__(self, authenticated: bool = True) -> None:
+        self.authenticated = authenticated
+        self.lost = 0
+        # epoch -> its windows [top, seen], least recently used first; bit i of seen set: seq
+        # (top - i) was accepted. Insertion order is age order, so the first epoch is the one to
+        # forget.
+        self._windows: dict[int, list[list[int]]] = {}
 
     def top(self, epoch: int) -> int | None:
-        """The highest sequence number accepted in ``epoch`` (None: none yet)."""
-        window = self._windows.get(epoch)
-        return window[0] if window is not None else None
+        """The highest sequence number accepted in ``epoch``'s most recently used window."""
+        tracks = self._windows.get(epoch)
+        return tracks[-1][0] if tracks else None
 
     def accept(self, epoch: int, seq: int) -> str | None:
         """None when the frame is new, else why it is refused ("duplicate" or "stale")."""
-        window = self._windows.get(epoch)
-        if window is None:
+        tracks = self._windows.get(epoch)
+        if tracks is None:
             if len(self._windows) >= self.EPOCHS:
                 del self._windows[next(iter(self._windows))]
-            self._windows[epoch] = [seq, 1]
+            self._windows[epoch] = [[seq, 1]]
             return None
+        if self.authenticated:
+            return self._slide(tracks[0], seq)
+        width = self.WIDTH
+        track = tracks[-1]  # the sender's own window, nearly always
+        if track[0] - width < seq <= track[0] + width:
+            return self._slide(track, seq) if len(tracks) == 1 else self._in(tracks, track, seq)
+        for track in reversed(tracks):
+            top = track[0]
+            if top - width < seq <= top + width:
+                return self._in(tracks, track, seq)
+        highest = max(track[0] for track in tracks)
+        if any(track[0] - self.JUMP <= seq <= track[0] - width for track in tracks):
+            return "stale"
+        if highest < seq <= highest + self.JUMP:
+            self.lost += seq - highest - 1  # a real jump over lost frames, most likely
+        tracks.append([seq, 1])
+        if len(tracks) > self.TRACKS:
+            del tracks[0]
+        return None
+
+    def _in(self, tracks: list[list[int]], track: list[int], seq: int) -> str | None:
+        """``seq`` in ``track``, which becomes the most recently used, merged with any window
+        it has come close to."""
+        refused = self._slide(track, seq)
+        tracks.remove(track)
+        tracks.append(track)
+        self._merge(tracks)
+        return refused
+
+    def _slide(self, window: list[int], seq: int) -> str | None:
+        """``seq`` in one window: accepted (the window moves on) or refused."""
         top, seen = window
         if seq > top:
             shift = seq - top
             window[0] = seq
-            window[1] = ((seen << shift) | 1) & ((1 << self.WIDTH) - 1) if shift < self.WIDTH else 1
+            window[1] = ((seen << shift) | 1) & self._MASK if shift < self.WIDTH else 1
+            self.lost += shift - 1
             return None
         offset = top - seq
         if offset >= self.WIDTH:
@@ -120,4 +176,18 @@ class ReplayWindow:
         if seen >> offset & 1:
             return "duplicate"
         window[1] = seen | 1 << offset
+        self.lost -= 1
         return None
+
+    def _merge(self, tracks: list[list[int]]) -> None:
+        """Fold windows that have come within ``WIDTH`` of the most recent one into it."""
+        current = tracks[-1]
+        for other in tracks[:-1]:
+            distance = current[0] - other[0]
+            if abs(distance) >= self.WIDTH:
+                continue
+            if distance >= 0:
+                current[1] = (current[1] | other[1] << distance) & self._MASK
+            else:
+                current[0], current[1] = other[0], (other[1] | current[1] << -distance) & self._MASK
+            tracks.remove(other)

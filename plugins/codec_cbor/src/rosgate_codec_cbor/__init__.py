@@ -19,14 +19,17 @@ any other T[], T[N], T[<=N]        array of T (float32 elements as single-precis
 builtin_interfaces/Time, Duration  nothing special: {"sec": ..., "nanosec": ...}
 =================================  ===========================================================
 
-Writing uses definite lengths only. Reading is strict, because the bytes come from the network:
-anything but exactly one CBOR data item is refused (trailing bytes too), as are map keys that
-are not text or byte strings, duplicate keys, nesting deeper than 64, and any tree that does
-not fit the message (an unknown field, a value of the wrong type or range, a fixed array of
-the wrong length, a bounded sequence or string over its bound, a tagged value such as a
-date where a number belongs) — each a :class:`rosgate.CodecError` naming the field by its
-dotted path (``pose.position.w``). Fields left out keep the message's defaults; an integer
-is accepted where a float is expected (half-precision floats too); a boolean is never a number.
+Writing uses definite lengths only, and no tags. Reading is strict, because the bytes come from
+the network: anything but exactly one CBOR data item is refused (trailing bytes too), as are
+map keys that are not text or byte strings, duplicate keys, nesting deeper than 64, every tag
+(this codec writes none: dates, bignums, and above all cbor2's shared values, tags 28 and 29,
+with which 24 kB became 36 million floats), more arrays and maps than one per 8 bytes of input
+(:func:`rosgate.message_tree.container_budget`; checked by a walk over the items before they
+are built, for inputs over 1 kB), and any tree that does not fit the message (an unknown field,
+a value of the wrong type or range, a fixed array of the wrong length, a bounded sequence or
+string over its bound) — each a :class:`rosgate.CodecError` naming the field by its dotted path
+(``pose.position.w``). Fields left out keep the message's defaults; an integer is accepted where
+a float is expected (half-precision floats too); a boolean is never a number.
 
 Options: none. Framing ``none`` carries the map alone (one topic per port).
 """
@@ -39,7 +42,8 @@ from typing import Any, Callable
 import cbor2
 
 import rosgate
-from rosgate.message_tree import TreeCodec, WireFormat
+from rosgate.message_tree import (BUDGET_FROM, OverBudget, TreeCodec, WireFormat,
+                                  container_budget)
 
 
 def _header(major: int) -> Callable[[int], bytes]:
@@ -65,6 +69,67 @@ CBOR = WireFormat(
 MAX_DEPTH = 64  # far deeper than any ROS message; bounds what a hostile peer can make us recurse
 
 
+def _refuse_tag(*args: Any) -> Any:
+    raise cbor2.CBORDecodeError("a tag (this codec writes none)")
+
+
+def _refuse_unknown_tag(tag: Any, immutable: bool) -> Any:
+    raise cbor2.CBORDecodeError(f"tag {tag.tag} (this codec writes none)")
+
+
+# cbor2 decodes these tags itself, before any tag hook sees them: each is refused here (a test
+# checks that every tag up to 70,000 is, so a cbor2 that learns a new one is noticed)
+_KNOWN_TAGS = {tag: _refuse_tag for tag in (*range(300), 1004, 1040, 43000, 55799, 55800, 55801)}
+
+
+def check_items(data: bytes) -> None:
+    """Walk the CBOR items of ``data`` without building them: :class:`OverBudget` for more
+    arrays and maps than its size allows, ValueError for a tag, an indefinite length, or a
+    length longer than what is left. Linear in the input; strings and runs of floats are
+    stepped over whole."""
+    budget = container_budget(len(data))
+    end, pos, pending = len(data), 0, 1
+    while pending:
+        if pos >= end:
+            raise ValueError("truncated")
+        head = data[pos]
+        major, info = head >> 5, head & 0x1F
+        pos += 1
+        if info < 24:
+            argument = info
+        elif info < 28:
+            width = 1 << (info - 24)
+            argument = int.from_bytes(data[pos:pos + width], "big")
+            pos += width
+        else:
+            raise ValueError("an indefinite length or a reserved head")
+        pending -= 1
+        if major in (2, 3):  # a byte or text string
+            pos += argument
+        elif major in (4, 5):  # an array or a map
+            budget -= 1
+            if budget < 0:
+                raise OverBudget(f"more than {container_budget(end)} arrays and maps in "
+                                 f"{end} bytes")
+            items = argument if major == 4 else 2 * argument
+            if items > end - pos:
+                raise ValueError("more items than bytes left")
+            pending += items
+            if major == 4 and items and data[pos] in _FLOAT_STRIDES:
+                stride = _FLOAT_STRIDES[data[pos]]
+                if data[pos:pos + stride * items:stride] == bytes((data[pos],)) * items:
+                    pos += stride * items  # a run of floats of one width: stepped over at once
+                    pending -= items
+        elif major == 6:
+            raise ValueError("a tag (this codec writes none)")
+        # 0, 1: integers; 7: simple values and floats, their bytes already stepped over
+    if pos > end:
+        raise ValueError("truncated")
+
+
+_FLOAT_STRIDES = {0xF9: 3, 0xFA: 5, 0xFB: 9}
+
+
 class CborCodec(TreeCodec):
     """ROS messages as CBOR maps; the module documentation has the mapping."""
 
@@ -72,10 +137,16 @@ class CborCodec(TreeCodec):
     wire = CBOR
 
     def parse(self, data: bytes) -> Any:
+        try:
+            if len(data) > BUDGET_FROM:
+                check_items(data)
+        except ValueError as exc:  # OverBudget too
+            raise rosgate.CodecError(f"{self.tree.name}: not one CBOR data item: {exc}") from None
         stream = io.BytesIO(data)
         try:
             tree = cbor2.CBORDecoder(stream, max_depth=MAX_DEPTH, allow_duplicate_keys=False,
-                                     strict_hashable_types=True).decode()
+                                     strict_hashable_types=True, tag_hook=_refuse_unknown_tag,
+                                     semantic_decoders=_KNOWN_TAGS).decode()
         except cbor2.CBORDecodeError as exc:  # every unreadable input, tags' contents included
             raise rosgate.CodecError(f"{self.tree.name}: not one CBOR data item: {exc}") from None
         if stream.tell() != len(data):

@@ -24,7 +24,9 @@ builtin_interfaces/Time, Duration  nothing special: {"sec": ..., "nanosec": ...}
 Decoding is strict, because the bytes come from the network: anything but exactly one
 MessagePack object, a map key that is not a str, an ext type (timestamps included), or a tree
 that does not fit the message (see :mod:`rosgate.message_tree`) is a :class:`rosgate.CodecError`
-naming the field by its dotted path (``pose.position.w``, ``points[3].x``).
+naming the field by its dotted path (``pose.position.w``, ``points[3].x``). Nothing is longer
+than the input, and the parser builds at most one array or map per 8 bytes of it
+(:func:`rosgate.message_tree.container_budget`): 4 MB of empty maps is refused, not 277 MB.
 
 Framing ``none`` (one datagram per message, several topics on one port): the datagram is the
 topic's name as a MessagePack str immediately followed by the map, as the CVRA bridge sends it.
@@ -41,7 +43,7 @@ from typing import Any, Callable
 import msgpack
 
 import rosgate
-from rosgate.message_tree import TreeCodec, WireFormat, describe
+from rosgate.message_tree import BUDGET_FROM, ContainerBudget, TreeCodec, WireFormat, describe
 
 _packb = msgpack.packb
 
@@ -88,8 +90,14 @@ class MsgpackCodec(TreeCodec):
     wire = MESSAGEPACK
 
     def parse(self, data: bytes) -> Any:
+        size = len(data)
+        hooks: dict[str, Any] = {}
+        if size > BUDGET_FROM:
+            budget = ContainerBudget(size)
+            hooks = {"object_hook": budget, "list_hook": budget}
         try:
-            return msgpack.unpackb(data, raw=False, strict_map_key=True, **_unpack_limits(len(data)))
+            return msgpack.unpackb(data, raw=False, strict_map_key=True, **_unpack_limits(size),
+                                   **hooks)
         except _UNREADABLE as exc:
             reason = str(exc) or type(exc).__name__
             raise rosgate.CodecError(

@@ -16,7 +16,7 @@ import socket
 from dataclasses import dataclass
 
 from rosgate import (Address, LinkError, SocketConnection, SocketListener, StreamTransport,
-                     check_ip_address, hookimpl, option, parse_host_port)
+                     check_ip_address, hookimpl, ip_source_hosts, option, parse_host_port)
 
 
 class TcpConnection(SocketConnection):
@@ -40,6 +40,9 @@ class TcpTransport(StreamTransport):
 
     def check_address(self, address: Address) -> Address:
         return check_ip_address(address)
+
+    def source_hosts(self, host: str) -> frozenset[str]:
+        return ip_source_hosts(host)
 
     def listen(self, address: Address) -> SocketListener:
         sock = socket.socket(_family(address), socket.SOCK_STREAM)
