@@ -274,8 +274,39 @@ def test_the_store_forgets_after_the_deadline_and_beyond_its_memory():
     store.keep("b", 3, [bytes(4000)], "r", 0.0)  # over 10,000 bytes: the oldest goes
     assert store.on_nack("b", recovery.nack(1, [0])) is None
     assert store.on_nack("b", recovery.nack(2, [0])) is not None
-    store.probes(2.5)
+    store.sent("b", 2, 0.5)  # the last fragment of each left
+    store.sent("b", 3, 1.0)
+    store.probes(2.6)
+    assert len(store) == 1  # the deadline runs from there
+    store.probes(3.1)
     assert len(store) == 0
+
+
+def test_a_frame_still_going_out_is_kept_past_the_deadline():
+    """A 16 MB map on a 20 Mbit/s link takes 6.4 s to leave: its fragments stay askable for
+    until DEADLINE after its last one left, not after it started."""
+    store = RetransmitStore(deadline=2.0)
+    store.keep("b", 1, [bytes(100)] * 3, "r", 0.0)
+    store.probes(6.0)
+    assert store.on_nack("b", recovery.nack(1, [0])) is not None
+    store.sent("b", 1, 6.4)
+    store.probes(8.0)
+    assert len(store) == 1
+    store.probes(8.5)
+    assert len(store) == 0
+
+
+def test_the_receiver_waits_for_a_frame_while_its_fragments_keep_coming():
+    log = Log()
+    rx = RepeatReassembler(log.on_lost, log.on_recovered, send=lambda d, s: None, timeout=2.0)
+    packets = repeat_fragments(frame_of(5000, 1), 1200, TOPIC, 1)
+    at = 0.0
+    for packet in packets[:-1]:  # one fragment every 1.5 s: 6 s in all, never 2 s silent
+        assert rx.add("a", packet, at) is None
+        rx.poll(at + 1.0)
+        at += 1.5
+    assert rx.add("a", packets[-1], at) == frame_of(5000, 1)
+    assert log.lost == []
 
 
 def test_the_receiver_gives_up_at_the_deadline_once():
@@ -288,3 +319,16 @@ def test_the_receiver_gives_up_at_the_deadline_once():
     rx.poll(3.0)
     assert log.lost == [(TOPIC, "fragment_lost")]
     assert rx.next_poll() is None
+
+
+def test_an_fec_frame_is_waited_for_while_its_fragments_keep_coming():
+    log = Log()
+    rx = FecReassembler(log.on_lost, log.on_recovered, timeout=2.0)
+    frame = frame_of(20_000, 2)
+    packets = fec_fragments(frame, 1200, TOPIC, 1, 0.1)
+    at, got = 0.0, None
+    for packet in packets:  # one every 0.5 s: far longer than the timeout in all
+        got = rx.add("a", packet, at) or got
+        rx.expire(at)
+        at += 0.5
+    assert got == frame and log.lost == []

@@ -26,7 +26,8 @@ every block, then the second...) so that a burst of losses is shared among them:
 ``retransmit``: selective repeat. Every frame of such a topic — whole or not — travels as
 numbered fragments (the layout of plain fragments, ``b"RF"``, with the magic ``b"RS"``, so the
 receiver knows it may ask again; a frame that fits is one fragment of one). The sender keeps
-each frame's fragments until it is acknowledged or :data:`DEADLINE` passes; the receiver asks
+each frame's fragments until it is acknowledged or :data:`DEADLINE` passes after its last
+fragment left; the receiver asks
 for what is missing (NACK) — a fragment three places behind one that came, or everything
 still missing once a frame's fragments have stopped coming for a while — and acknowledges each
 frame it completes (ACK), again for every fragment of it that comes after. A frame whose last
@@ -68,7 +69,7 @@ ACK_MAGIC = b"RA"
 RANGE = struct.Struct(">HH")
 FRAME_ID = struct.Struct(">I")
 
-DEADLINE = 2.0          # seconds a sender keeps a frame for re-sending, and a receiver waits
+DEADLINE = 2.0          # seconds a sender keeps a sent frame for re-sending, and a receiver waits
 MAX_SENDS = 8           # times one fragment is sent at most (the first time included)
 REORDER = 3             # a fragment this many places behind one that came is taken as lost
 NACK_AFTER = 0.02       # seconds without a new fragment before the rest is asked for (at least)
@@ -198,6 +199,8 @@ class FecReassembler:
             raise FramingError("FEC block header changed within a frame")
         if state.data is not None or index in state.chunks:
             return None  # a block already rebuilt, or a duplicate
+        frame.started = now  # still coming: its time runs from its newest fragment
+        self._pending.move_to_end(key)
         state.chunks[index] = chunk
         frame.held += size
         self._pending_bytes += size
@@ -234,7 +237,8 @@ class FecReassembler:
             self._finished.popitem(last=False)
 
     def expire(self, now: float) -> None:
-        """Give up frames older than the timeout (oldest first: the dict is in arrival order)."""
+        """Give up frames whose fragments stopped coming for the timeout, the longest silent
+        first (the dict is in the order they were last heard of)."""
         while self._pending:
             key, frame = next(iter(self._pending.items()))
             if now - frame.started <= self.timeout:
@@ -374,6 +378,7 @@ class RepeatReassembler:
         frame.size += len(chunk)
         self._pending_bytes += len(chunk)
         frame.last = now
+        self._pending.move_to_end(key)  # in the order they were last heard of (see expire)
         frame.check_at = now + max(NACK_AFTER, 4 * frame.gap)
         if len(frame.parts) == count:
             del self._pending[key]
@@ -423,7 +428,7 @@ class RepeatReassembler:
         if not self._pending:
             return None
         soonest = min(frame.check_at for frame in self._pending.values())
-        oldest = next(iter(self._pending.values())).started + self.timeout
+        oldest = next(iter(self._pending.values())).last + self.timeout
         return min(soonest, oldest)
 
     def _remember(self, key: Hashable) -> None:
@@ -432,10 +437,12 @@ class RepeatReassembler:
             self._finished.popitem(last=False)
 
     def expire(self, now: float) -> None:
-        """Give up frames past the deadline, oldest first."""
+        """Give up frames whose fragments stopped coming for the deadline (a large frame on a
+        slow link takes longer than that to arrive, and is not given up while it comes), the
+        longest silent first."""
         while self._pending:
             key, frame = next(iter(self._pending.items()))
-            if now - frame.started <= self.timeout:
+            if now - frame.last <= self.timeout:
                 return
             self._give_up(key, "fragment_lost")
 
@@ -463,7 +470,8 @@ class _Kept:
 
 class RetransmitStore:
     """The sending side of selective repeat: the fragments of each frame until it is
-    acknowledged or :data:`DEADLINE` passes, within ``max_bytes`` (oldest forgotten first).
+    acknowledged or :data:`DEADLINE` passes after its last fragment left, within ``max_bytes``
+    (oldest forgotten first).
     Keyed by destination and frame id; ``owner`` is whoever re-sends (the route)."""
 
     def __init__(self, deadline: float = DEADLINE, max_bytes: int = 32 * 1024 * 1024):
@@ -524,7 +532,9 @@ class RetransmitStore:
         fragment again, so the receiver learns what it lacks. Frames past the deadline go."""
         out = []
         for key, kept in list(self._kept.items()):
-            if now - kept.kept > self.deadline:
+            # the deadline runs from when its last fragment left: a frame still going out (a
+            # large one on a slow link) is kept
+            if kept.last_sent is not None and now - kept.last_sent > self.deadline:
                 self._forget(key)
                 continue
             if kept.probe_at is None or now < kept.probe_at:
