@@ -33,6 +33,7 @@ lint: sync
 bench: sync
 	UV=$(abspath $(UV)) $(VENV)/bin/python bench/bench.py $(if $(BASE),--base $(BASE)) $(BENCH_ARGS)
 	$(VENV)/bin/python bench/fleet.py
+	UV=$(abspath $(UV)) $(VENV)/bin/python bench/constrained.py $(if $(BASE),--base $(BASE))
 
 # py-spy profiles of bridge A and bridge B (udp/cdr/none, 2.5 kB) into bench/profiles/; the table
 # goes to stdout only. Another path: BENCH_ARGS="--profile-path tcp/cdr/none".
