@@ -159,6 +159,7 @@ class Case:
     relay: dict[str, Any] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
     error: str = ""
+    note: str = ""  # said beside its results
 
 
 def files(case: Case, folder: Path, relay_port: int, port_b: int) -> tuple[Path, Path]:
@@ -221,11 +222,17 @@ def run(case: Case, folder: Path) -> Case:
                 bridge.ready()
             pub = started(Ends("pub", case.spec, pub_domain, folder / "pub.log"))
             # warm-up: one message of each topic until one crosses (discovery, first frames)
-            deadline = time.monotonic() + 60
+            deadline, probes = time.monotonic() + 60, 0
             while not any(sub.ask("count").values()):
                 if time.monotonic() > deadline:
-                    raise RuntimeError("nothing crossed in 60 s")
+                    if case.section != "big":
+                        raise RuntimeError("nothing crossed in 60 s")
+                    # a 1 MB message without recovery over 1 % loss crosses 0.02 % of the time:
+                    # that is the result; measure the run all the same
+                    case.note = f"none of {probes} warm-up messages crossed either"
+                    break
                 pub.ask("once", timeout=30)
+                probes += 1
                 time.sleep(1.0)
             time.sleep(case.drain)
             sub.ask(f"dump {folder / 'warmup.json'}")
@@ -378,7 +385,7 @@ def report(mixed: list[Case], big: list[Case], grids: list[Case], plots: list[Pa
               "1024x1024 mono8 images (1 MiB of pixels, reliable), one every 0.5 s (8.4 Mbit/s "
               "of the 20). Without recovery a 1 MB message in 1,200-byte datagrams is 874 IP "
               "packets, all of which must arrive (0.99^874 = 0.02 %); in today's 65,000-byte "
-              "datagrams it is 17 datagrams of 45 IP fragments, the same odds.", "",
+              "datagrams it is 17 datagrams of 44 IP fragments, the same odds.", "",
               "| case | sent | delivered | share | p50 ms | p99 ms | A: on the wire per message | "
               "retransmitted |", "|---|--:|--:|--:|--:|--:|--:|--:|"]
     for case in big:
@@ -391,6 +398,8 @@ def report(mixed: list[Case], big: list[Case], grids: list[Case], plots: list[Pa
         if r:
             lines[-1] += (f"{fmt(r.p50_ms)} | {fmt(r.p99_ms)} | {per:,.0f} B | "
                           f"{c.get('retransmitted', 0)} |")
+            if case.note:
+                lines[-1] += f" {case.note}"
         else:
             lines[-1] += f"— | — | — | {case.error} |"
     lines += ["", "## A 4000x4000 map, 95 % unknown", "",
