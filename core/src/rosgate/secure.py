@@ -42,6 +42,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
@@ -326,7 +327,8 @@ class SessionKeys(Keys):
         self.receive_label = receive
         self.authenticates = cipher_cls.authenticates
         self._keyless = cipher_cls.session_key_size == 0
-        self._plain = cipher_cls({}, None) if self._keyless else None  # type: ignore[arg-type]
+        # a keyless cipher (none) reads no file: any folder will do
+        self._plain = cipher_cls({}, Path(".")) if self._keyless else None
         # (epoch, sealing) -> (the schedule's version, usable until, cipher)
         self._cache: dict[tuple[int, bool], tuple[int, float, Cipher]] = {}
         self._lock = threading.Lock()

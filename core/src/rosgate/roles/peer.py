@@ -290,7 +290,7 @@ class PeerHandshake:
                 secure, f"handshake<-{peer[0]}", peer, self._on_frame, self.role.router.on_lost,
                 on_close=self._closed))
             first = self.key_id is None
-            self.key_id = os.urandom(1)[0] if first else (self.key_id + 1) % 256  # type: ignore[operator]
+            self.key_id = os.urandom(1)[0] if self.key_id is None else (self.key_id + 1) % 256
             secret = os.urandom(32)
             self.schedule.install(self.key_id, secret, secure.handshake_hash, seal_now=first)
             link.send(control({"type": "keys", "secret": secret.hex(), "key_id": self.key_id,
