@@ -31,8 +31,17 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import profiling
-from processes import (HERE_CHECKOUT, Bridge, Checkout, Endpoint, Process, Route, bringup_files,
-                       next_domains, thread_cpu_seconds)
+from processes import (
+    HERE_CHECKOUT,
+    Bridge,
+    Checkout,
+    Endpoint,
+    Process,
+    Route,
+    bringup_files,
+    next_domains,
+    thread_cpu_seconds,
+)
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -209,7 +218,7 @@ class Case:
         found = {"pub": self.pub, "A": self.a, "B": self.b, "sub": self.sub}
         return {role: p for role, p in found.items() if p is not None}
 
-    def __enter__(self) -> "Case":
+    def __enter__(self) -> Case:
         for attempt in (1, 2):
             try:
                 with ExitStack() as stack:
@@ -656,10 +665,10 @@ def compare_table(results: list[Result]) -> str | None:
     def vs(a: float | None, b: float | None, fmt) -> str:
         return "-" if a is None or b is None else f"{fmt(a)} vs {fmt(b)} ({ratio(a, b)}x)"
 
-    number = lambda v: f"{v:,.0f}"  # noqa: E731
+    number = lambda v: f"{v:,.0f}"
     rows = []
     for mine, base in pairs:
-        cpu = lambda r, side: r.cpu.us_per_msg(side) if r.cpu else None  # noqa: E731
+        cpu = lambda r, side: r.cpu.us_per_msg(side) if r.cpu else None
         rows.append([mine.size.name, mine.path,
                      vs(mine.sustained and mine.sustained.offered,
                         base.sustained and base.sustained.offered, number),
@@ -738,7 +747,7 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo")
                 if line.startswith("model name")), platform.processor())
     notes = [f"- {r.size.name} {r.path}: {line}" for r in results for line in r.problems[:6]]
-    link = lambda p: os.path.relpath(p, out.parent)  # noqa: E731
+    link = lambda p: os.path.relpath(p, out.parent)
     be_sizes = [s.name for s in SIZES if s.key in options.best_effort]
     based = f"; base {base}" if base else ""
     parts = [

@@ -182,7 +182,7 @@ class Tally:
         arrivals = self.arrivals.get(trial, array("q"))
         latencies = sorted(self.latencies.get(trial, ()))
         n = len(latencies)
-        pick = lambda q: latencies[min(n - 1, int(q * n))] / 1000 if n else None  # noqa: E731
+        pick = lambda q: latencies[min(n - 1, int(q * n))] / 1000 if n else None
         # arrivals are appended in time order, one callback after the other
         return {"received": len(arrivals), "in_time": bisect.bisect_right(arrivals, deadline_ns),
                 "p50_us": pick(0.50), "p90_us": pick(0.90), "p99_us": pick(0.99)}

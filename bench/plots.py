@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from bench import Result
 
 
-def draw(results: list["Result"], folder: Path) -> list[Path]:
+def draw(results: list[Result], folder: Path) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")

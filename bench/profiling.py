@@ -186,7 +186,7 @@ class Profile:
     idle_threads: Counter  # (tid, python thread name) -> idle samples
 
     @classmethod
-    def of(cls, stacks: list[tuple[list[str], int]], roots: list[Path]) -> "Profile":
+    def of(cls, stacks: list[tuple[list[str], int]], roots: list[Path]) -> Profile:
         threads: Counter = Counter()
         own: Counter = Counter()
         total: Counter = Counter()

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 from conftest import ROSGATE, cross, free_port
-
 from geometry_msgs.msg import Twist
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
@@ -147,7 +146,7 @@ plugins:
 """), ds)
     bridge(client, dc)
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
-    warm = lambda m: m.linear.x == -1.0  # noqa: E731
+    warm = lambda m: m.linear.x == -1.0
 
     down = cross(base.publisher("/robot1/cmd_vel", Twist), robot.listen("/cmd_vel", Twist),
                  twist, warm, 40)

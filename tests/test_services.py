@@ -7,7 +7,8 @@ import socket
 import threading
 import time
 from collections import Counter
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import pytest
 from conftest import free_port
@@ -268,9 +269,10 @@ def test_peer_gone_answered_as_failure_within_timeout(engines, domain, ros_side)
 
 def test_forged_duplicated_and_oversized_service_frames_are_dropped_and_counted(
         engines, domain, ros_side):
+    from rclpy.serialization import deserialize_message, serialize_message
+
     from rosgate.wire import envelope
     from rosgate.wire.envelope import topic_id_for
-    from rclpy.serialization import deserialize_message, serialize_message
 
     da, db, port = domain(), domain(), free_port()
     entry = (f"service: /set, type: std_srvs/srv/SetBool, direction: transmit, port: {port}, "
@@ -290,7 +292,7 @@ def test_forged_duplicated_and_oversized_service_frames_are_dropped_and_counted(
     link_drops = dict(b.link_drops)
     served = len(calls)
     sid = topic_id_for("/set")
-    request = lambda seq, body: envelope.pack(envelope.FLAG_REQUEST, sid, 99, seq, 0) + body  # noqa: E731
+    request = lambda seq, body: envelope.pack(envelope.FLAG_REQUEST, sid, 99, seq, 0) + body
     cdr = serialize_message(SetBool.Request(data=False))
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))

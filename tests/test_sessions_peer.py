@@ -16,7 +16,6 @@ from test_services import DEEP, Caller, echo_set_bool
 
 from rosgate import identity
 
-
 FAST = "heartbeat: 0.2, peer_timeout: 0.8, reconnect: {min: 0.05, max: 0.5}"
 
 

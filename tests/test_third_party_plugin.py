@@ -14,6 +14,7 @@ import types
 
 import pytest
 from conftest import cross, free_port
+from rosgate_transport_udp import UdpEndpoint
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
@@ -22,7 +23,6 @@ from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.errors import ConfigError
 from rosgate.plugins import Plugins
-from rosgate_transport_udp import UdpEndpoint
 
 
 def peer(name: str, directory: str, direction: str, port: int, msg: str, extra: str = "") -> str:
@@ -172,7 +172,7 @@ def test_a_plugin_written_for_the_old_api_still_carries_topics(domain, ros_side)
                 engine.prepare()
             assert engine.resolver.transports["legacyudp"].options == {"max_frame": 500}
             started.append(engine.start())
-        make = lambda i: String(data="warmup" if i is None else f"{i}" * 2000)  # noqa: E731
+        make = lambda i: String(data="warmup" if i is None else f"{i}" * 2000)
         got = cross(ros_side(da, "a").publisher("/data", String),
                     ros_side(db, "b").listen("/data", String), make,
                     lambda m: m.data == "warmup", 5, interval=0.02)

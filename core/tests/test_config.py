@@ -10,8 +10,15 @@ from pathlib import Path
 import pytest
 
 from rosgate.config import (
-    BridgeConfig, ServiceConfig, TopicConfig, load, loads, service_from_mapping, service_to_mapping,
-    topic_from_mapping, topic_to_mapping,
+    BridgeConfig,
+    ServiceConfig,
+    TopicConfig,
+    load,
+    loads,
+    service_from_mapping,
+    service_to_mapping,
+    topic_from_mapping,
+    topic_to_mapping,
 )
 from rosgate.errors import ConfigError
 

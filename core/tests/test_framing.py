@@ -10,9 +10,24 @@ import pytest
 
 from rosgate.wire import envelope
 from rosgate.wire.framing import (
-    CHUNK, CHUNK_HEAD, CHUNKED, DEFAULT_MAX_MESSAGE, FRAGMENT, LAST, LENGTH, MAX_OPEN_MESSAGES,
-    PARTIAL_COST, CompactReassembler, FramingError, Reassembler, StreamReader, compact_fragment,
-    fragment, is_fragment, length_prefixed, stream_records,
+    CHUNK,
+    CHUNK_HEAD,
+    CHUNKED,
+    DEFAULT_MAX_MESSAGE,
+    FRAGMENT,
+    LAST,
+    LENGTH,
+    MAX_OPEN_MESSAGES,
+    PARTIAL_COST,
+    CompactReassembler,
+    FramingError,
+    Reassembler,
+    StreamReader,
+    compact_fragment,
+    fragment,
+    is_fragment,
+    length_prefixed,
+    stream_records,
 )
 
 

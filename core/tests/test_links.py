@@ -15,9 +15,9 @@ from rosgate_transport_bt import BluetoothTransport
 from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
+from rosgate.links import DatagramLink, LinkSlot, QueueLimits, StreamLink
 from rosgate.wire import envelope, framing
 from rosgate.wire.framing import FRAGMENT, LENGTH, length_prefixed
-from rosgate.links import DatagramLink, LinkSlot, QueueLimits, StreamLink
 
 TOPIC = 5
 

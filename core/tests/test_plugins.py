@@ -14,16 +14,23 @@ from typing import Any
 import pytest
 
 import rosgate
-from rosgate import (Cipher, Codec, DatagramTransport, LinkError, StreamTransport, Transport,
-                     hookimpl)
+from rosgate import (
+    Cipher,
+    Codec,
+    DatagramTransport,
+    LinkError,
+    StreamTransport,
+    Transport,
+    hookimpl,
+    hookspecs,
+)
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import loads
 from rosgate.engine import Engine
-from rosgate.roles import Bridge
-from rosgate import hookspecs
 from rosgate.message_tree import TreeCodec
 from rosgate.options import parse
 from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration, deprecations
+from rosgate.roles import Bridge
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -12,10 +12,10 @@ Topic and service entries also arrive over the network from clients (no file, no
 from __future__ import annotations
 
 import difflib
+import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
-import math
 from enum import StrEnum
 from pathlib import Path
 from typing import Any, overload
@@ -24,6 +24,7 @@ import yaml
 
 from .errors import ConfigError
 from .placeholders import check as check_placeholders
+
 
 class Role(StrEnum):
     CLIENT = "client"
@@ -624,7 +625,7 @@ def _identity(src: _Source, bridge: dict, role: Role, insecure: bool,
             return None, None
         for key in ("identity", "peer_key", "handshake_port"):
             if key not in bridge:
-                raise src.error(f"bridge.{given[0]}", f"a peer with a handshake needs "
+                raise src.error(f"bridge.{given[0]}", "a peer with a handshake needs "
                                 "identity:, peer_key: and handshake_port:",
                                 fix=f"add {key}: {_example('bridge', key)}")
         try:

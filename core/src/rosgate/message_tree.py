@@ -65,11 +65,12 @@ import dataclasses
 import importlib
 import math
 import struct
+from abc import abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property, partial
 from operator import attrgetter
-from abc import abstractmethod
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import numpy
 from rosidl_parser import definition as idl

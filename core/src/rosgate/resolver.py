@@ -10,14 +10,14 @@ A server resolves the entries a client sends in its hello the same way (``topic`
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from .bus import PRIORITY_DEFAULT, BusTransport
 from .cipher import Cipher
 from .codec import Codec
-from .config import (BridgeConfig, Direction, Framing, Recovery, Role, ServiceConfig,
-                     TopicConfig)
+from .config import BridgeConfig, Direction, Framing, Recovery, Role, ServiceConfig, TopicConfig
 from .errors import ConfigError, OptionError
 from .options import parse
 from .placeholders import Template, has_placeholders

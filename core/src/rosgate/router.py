@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections import Counter
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from .config import BridgeConfig, Direction, Framing
 from .cvra import CvraCallerRoute
@@ -20,10 +20,16 @@ from .keyring import Keys, StaticKeys
 from .links import Link
 from .resolver import PreparedService, PreparedTopic
 from .ros import RosNode, cdr_checker, qos_profile
-from .routes import (BareFraming, BarePort, EnvelopeFraming, ReceiveRoute, Route, TransmitRoute,
-                     Warner)
-from .services import (CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute,
-                       deep_qos)
+from .routes import (
+    BareFraming,
+    BarePort,
+    EnvelopeFraming,
+    ReceiveRoute,
+    Route,
+    TransmitRoute,
+    Warner,
+)
+from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
 from .transport import Address
 from .wire import envelope
 

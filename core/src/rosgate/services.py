@@ -34,7 +34,8 @@ import itertools
 import logging
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from .config import ServiceConfig
 from .errors import CodecError

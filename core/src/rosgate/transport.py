@@ -40,7 +40,8 @@ import select
 import socket
 import warnings
 from abc import ABC, abstractmethod
-from typing import Any, Callable, ClassVar, Protocol
+from collections.abc import Callable
+from typing import Any, ClassVar, Protocol
 
 from .options import as_options
 

@@ -10,13 +10,13 @@ import cbor2
 import msgpack
 import pytest
 from geometry_msgs.msg import Point32, Twist, Vector3
+from rosgate_codec_cbor import CborCodec
+from rosgate_codec_msgpack import MsgpackCodec
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32, Float32MultiArray, String, UInt64
 
 import rosgate
 from rosgate.testing import CodecConformance, sample, samples
-from rosgate_codec_cbor import CborCodec
-from rosgate_codec_msgpack import MsgpackCodec
 
 
 class TestCborConformance(CodecConformance):

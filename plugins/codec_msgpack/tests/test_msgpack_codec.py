@@ -17,15 +17,26 @@ from geometry_msgs.msg import Point32, Polygon, PolygonStamped, Twist, Vector3
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rmw_dds_common.msg import Gid, NodeEntitiesInfo
+from rosgate_codec_msgpack import MsgpackCodec
 from sensor_msgs.msg import Image, JointState, PointCloud2, PointField
-from std_msgs.msg import (Byte, ByteMultiArray, Empty, Float32, Float32MultiArray, Header, Int8,
-                          Int64, String, UInt32, UInt64)
+from std_msgs.msg import (
+    Byte,
+    ByteMultiArray,
+    Empty,
+    Float32,
+    Float32MultiArray,
+    Header,
+    Int8,
+    Int64,
+    String,
+    UInt32,
+    UInt64,
+)
 from std_srvs.srv import SetBool
 
 import rosgate
 from rosgate.testing import CodecConformance, mutations
 from rosgate.wire.names import NameMissing, pack_name, split_name
-from rosgate_codec_msgpack import MsgpackCodec
 
 
 class TestMsgpackConformance(CodecConformance):

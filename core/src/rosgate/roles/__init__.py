@@ -21,8 +21,20 @@ from dataclasses import dataclass
 
 from ..config import BridgeConfig, LinkConfig
 from ..errors import ConfigError, LinkError
-from ..links import (Acceptor, Backoff, ConnectionLimits, DatagramLink, Lifetime, Link, LinkCounters,
-                     LinkSlot, QueueLimits, Sources, StreamLink, Untrusted)
+from ..links import (
+    Acceptor,
+    Backoff,
+    ConnectionLimits,
+    DatagramLink,
+    Lifetime,
+    Link,
+    LinkCounters,
+    LinkSlot,
+    QueueLimits,
+    Sources,
+    StreamLink,
+    Untrusted,
+)
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort

@@ -75,8 +75,15 @@ Import it from there: it is not loaded with the kit, and it also runs as
 from .buses import BusConformance
 from .ciphers import CipherConformance
 from .codecs import CodecConformance, sample, samples
-from .helpers import (Frames, free_port, has_ipv6_loopback, mutations, receive_exactly,
-                      wait_until_blocked, write_key)
+from .helpers import (
+    Frames,
+    free_port,
+    has_ipv6_loopback,
+    mutations,
+    receive_exactly,
+    wait_until_blocked,
+    write_key,
+)
 from .transports import TransportConformance
 
 __all__ = [

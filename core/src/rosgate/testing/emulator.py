@@ -124,9 +124,10 @@ import sys
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any
 
 __all__ = [
     "IP_HEADER", "MAX_UDP_PAYLOAD", "NetnsPair", "PRESETS", "Profile", "TCP_HEADER", "TcpCounters",

@@ -5,16 +5,25 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any, Callable, ClassVar, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any, ClassVar
 
 import pytest
 
-from ..wire.framing import COMPACT_BELOW
 from ..links import DatagramLink, StreamLink
 from ..options import parse
 from ..transport import Address, StreamConnection, Transport
-from .helpers import (TIMEOUT, Closing, Frames, assert_registered, free_port, frame_of, in_thread,
-                      receive_exactly)
+from ..wire.framing import COMPACT_BELOW
+from .helpers import (
+    TIMEOUT,
+    Closing,
+    Frames,
+    assert_registered,
+    frame_of,
+    free_port,
+    in_thread,
+    receive_exactly,
+)
 
 
 class TransportConformance:

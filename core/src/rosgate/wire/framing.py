@@ -79,8 +79,9 @@ from __future__ import annotations
 
 import struct
 import time
+from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, field
-from typing import Callable, Hashable, Iterator, cast
+from typing import cast
 
 LENGTH = struct.Struct(">I")
 CHUNK_HEAD = struct.Struct(">II")

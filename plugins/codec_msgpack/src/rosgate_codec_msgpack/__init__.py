@@ -38,12 +38,13 @@ Options: none.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import msgpack
 
 import rosgate
-from rosgate.message_tree import BUDGET_FROM, ContainerBudget, TreeCodec, WireFormat, describe
+from rosgate.message_tree import BUDGET_FROM, ContainerBudget, TreeCodec, WireFormat
 
 _packb = msgpack.packb
 

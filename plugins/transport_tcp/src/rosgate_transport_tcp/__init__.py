@@ -15,8 +15,18 @@ from __future__ import annotations
 import socket
 from dataclasses import dataclass
 
-from rosgate import (Address, LinkError, SocketConnection, SocketListener, StreamTransport,
-                     check_ip_address, hookimpl, ip_source_hosts, option, parse_host_port)
+from rosgate import (
+    Address,
+    LinkError,
+    SocketConnection,
+    SocketListener,
+    StreamTransport,
+    check_ip_address,
+    hookimpl,
+    ip_source_hosts,
+    option,
+    parse_host_port,
+)
 
 
 class TcpConnection(SocketConnection):

@@ -32,8 +32,16 @@ import struct
 import sys
 from dataclasses import dataclass
 
-from rosgate import (Address, DatagramTransport, LinkError, check_ip_address, hookimpl,
-                     ip_source_hosts, option, parse_host_port)
+from rosgate import (
+    Address,
+    DatagramTransport,
+    LinkError,
+    check_ip_address,
+    hookimpl,
+    ip_source_hosts,
+    option,
+    parse_host_port,
+)
 
 log = logging.getLogger("rosgate.udp")
 
