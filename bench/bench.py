@@ -523,7 +523,7 @@ def profile(case: Case, rate: float, spec: ProfileSpec, quiet: Trial,
     title = (f"{case.label}, {rate:,.0f} msg/s for {spec.seconds:g} s, rosgate "
              f"{case.route.rev or revision()}")
     written = []
-    for side, bridge, role in zip("AB", (case.a, case.b), SIDES[case.route.roles]):
+    for side, bridge, role in zip("AB", (case.a, case.b), SIDES[case.route.roles], strict=True):
         recording = profiling.Recording(bridge.pid, spec.folder / f"{stem}-{side}.raw")
         try:
             try:

@@ -289,7 +289,7 @@ def bridge():
 
     yield start
     codes = [b.stop() for b in started]  # every one, before any assertion can stop the loop
-    for b, code in zip(started, codes):
+    for b, code in zip(started, codes, strict=True):
         assert "Traceback" not in b.log, b.log
         assert code == 0, f"bridge {b.config.name} exited {code}:\n{b.log}"
 

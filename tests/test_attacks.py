@@ -562,7 +562,7 @@ def test_a_server_takes_datagrams_from_its_clients_only(engines, domain, ros_sid
 
     ds, dc, port = domain(), domain(), free_port()
     server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}", ds)
-    client = engines(f"""
+    engines(f"""
 bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
 topics: [{{topic: /up, type: std_msgs/msg/String, direction: transmit}}]
 """, dc)

@@ -66,7 +66,7 @@ class Caller:
             assert time.monotonic() < deadline, "the bridges never got ready"
             future = self.client.call_async(request)
             done = threading.Event()
-            future.add_done_callback(lambda _: done.set())
+            future.add_done_callback(lambda _, done=done: done.set())  # this attempt's event
             if not done.wait(10):  # lost between this caller and the bridge
                 self.client.remove_pending_request(future)
                 lost = True

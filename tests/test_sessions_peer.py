@@ -33,7 +33,7 @@ def identities(folder: Path, a_initiates: bool) -> dict[str, tuple[Path, str]]:
     if not a_initiates:
         keys.reverse()
     made = {}
-    for name, key in zip("ab", keys):
+    for name, key in zip("ab", keys, strict=True):
         path = folder / f"{name}.key"
         identity.write_private(path, key)
         made[name] = (path, identity.encode(identity.public_of(key)))

@@ -121,7 +121,8 @@ def send_all(relay: UdpRelay, sock: socket.socket, datagrams, batch: int = 500):
         for d in datagrams[start:start + batch]:
             sock.sendto(d, relay.address)
         sent += len(datagrams[start:start + batch])
-        assert relay.wait_until(lambda up, down: up.datagrams_in >= sent, TIMEOUT)
+        assert relay.wait_until(lambda up, down: up.datagrams_in >= sent,  # noqa: B023 - polled here
+                                TIMEOUT)
 
 
 def settled(up) -> bool:

@@ -568,7 +568,7 @@ def test_stream_frames_both_ways_at_once(tcp_pair):
     rng = random.Random(4)
     there = [frame_of(i, rng.randint(1, 100_000), rng) for i in range(50)]
     back = [frame_of(i, rng.randint(1, 100_000), rng) for i in range(50)]
-    for x, y in zip(there, back):
+    for x, y in zip(there, back, strict=True):
         a.send(x, a_inbox.sender(TOPIC))
         b.send(y, b_inbox.sender(TOPIC))
     assert b_inbox.wait(lambda: len(b_inbox.frames) >= 50) and a_inbox.wait(lambda: len(a_inbox.frames) >= 50)

@@ -228,7 +228,9 @@ def _print_options(plugins: Any, name: str) -> int:
 def _columns(rows: Sequence[tuple[str, ...]]) -> list[str]:
     """Rows as lines, each column as wide as its widest cell (the last one as it is)."""
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]) - 1)]
-    return ["  ".join([cell.ljust(width) for cell, width in zip(row, widths)] + [row[-1]])
+    # widths has no entry for the last cell: zip stops one short of the row
+    return ["  ".join([cell.ljust(width) for cell, width in zip(row, widths, strict=False)]
+                      + [row[-1]])
             for row in rows]
 
 

@@ -457,9 +457,10 @@ class MessageTree:
         build = _Builder(wire)
         self.names = list(msg_type.get_fields_and_field_types())
         self.converters = [build.converter(slot_type) for slot_type in msg_type.SLOT_TYPES]
-        self.decoders = {name: convert.decode for name, convert in zip(self.names, self.converters)}
+        self.decoders = {name: convert.decode
+                         for name, convert in zip(self.names, self.converters, strict=True)}
         self.trees = [(name, attrgetter(name), convert.tree)
-                      for name, convert in zip(self.names, self.converters)]
+                      for name, convert in zip(self.names, self.converters, strict=True)]
 
     @cached_property
     def writers(self) -> tuple[bytes, list[tuple[bytes, Callable[[Any], Any], Encoder]]]:
@@ -467,7 +468,7 @@ class MessageTree:
         encode, since a plain tree (:func:`to_tree`) is never written as bytes."""
         return self.wire.map_header(len(self.names)), [
             (self.wire.pack(name), attrgetter(name), convert.encode)
-            for name, convert in zip(self.names, self.converters)]
+            for name, convert in zip(self.names, self.converters, strict=True)]
 
     def encode(self, message: Any) -> bytes:
         header, writers = self.writers

@@ -120,7 +120,7 @@ class Resolver:
                                 "what it sends itself", f"remove {name} from bridge.links")
         if cfg.secure and cfg.role is Role.SERVER:
             for name, policy in cfg.clients.items():  # a cipher a rule names must exist
-                for i, rule in enumerate([*policy.topics, *policy.services]):
+                for _i, rule in enumerate([*policy.topics, *policy.services]):
                     for cipher in rule.ciphers or ():
                         self.plugin("cipher", cipher, f"clients.{name}")
         topics = [self.topic(t, i, "topics") for i, t in enumerate(cfg.topics)]

@@ -810,7 +810,7 @@ class _TcpConnection:
 
     def start(self) -> None:
         """Start the four threads (the relay's lock is held)."""
-        for pipe, name in zip(self.pipes, ("up", "down")):
+        for pipe, name in zip(self.pipes, ("up", "down"), strict=True):
             self.relay._start(pipe.read, f"tcp-read-{name}")
             self.relay._start(pipe.deliver, f"tcp-deliver-{name}")
 
