@@ -377,7 +377,7 @@ def us(value: float | None) -> str:
     return f"{value:.1f}" if value < 100 else f"{value:,.0f}"
 
 
-# -- other work on the machine ----------------------------------------------------------------------
+# -- other work on the machine --------------------------------------------------------------------
 class Load:
     """The share of the machine's CPU that processes outside this benchmark used since
     creation: other work (a test run, a build) takes cores from the paths measured."""
@@ -394,7 +394,8 @@ class Load:
 def system_busy() -> float:
     """CPU seconds the whole machine spent busy since boot (/proc/stat)."""
     with open("/proc/stat") as stat:
-        user, nice, system, idle, iowait, irq, softirq, steal = map(int, stat.readline().split()[1:9])
+        (user, nice, system, idle, iowait, irq, softirq,
+         steal) = map(int, stat.readline().split()[1:9])
     return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
 
 
@@ -501,7 +502,7 @@ def best_effort_overload(size: Size, route: Route | None, checkout: Checkout, fo
     return trial
 
 
-# -- profiles ---------------------------------------------------------------------------------------
+# -- profiles -------------------------------------------------------------------------------------
 SIDES = {"peer": ("bridge A, transmit: DDS subscription -> link",
                   "bridge B, receive: link -> DDS publisher"),
          "client/server": ("bridge A, the client, transmit: DDS subscription -> link",
@@ -551,7 +552,7 @@ def profile(case: Case, rate: float, spec: ProfileSpec, quiet: Trial,
     return written
 
 
-# -- the tables -------------------------------------------------------------------------------------
+# -- the tables -----------------------------------------------------------------------------------
 COLUMNS = ["size", "path", "sustained msg/s", "vs bare", "MB/s", "peak delivered msg/s",
            "latency at msg/s", "p50 ms", "p99 ms", "p50 vs bare", "A µs/msg", "B µs/msg",
            f"{OVERLOAD:g}x sustained: delivered", f"{OVERLOAD:g}x sustained: p99 ms"]
@@ -808,7 +809,7 @@ def revision(root: Path = ROOT) -> str:
     return head.stdout.strip() + (" + uncommitted changes" if dirty.stdout.strip() else "")
 
 
-# -- another revision's rosgate (--base) ----------------------------------------------------------------
+# -- another revision's rosgate (--base) ----------------------------------------------------------
 def find_uv() -> str:
     for candidate in (os.environ.get("UV"), shutil.which("uv"), ROOT / ".tools" / "bin" / "uv"):
         if candidate and Path(candidate).exists():
@@ -841,7 +842,8 @@ def base_checkout(rev: str, stack: ExitStack) -> Checkout:
     start = time.monotonic()
     log(f"bench: --base {rev} = {short}: checking it out in {tree}, syncing its .venv")
     subprocess.run([*git, "worktree", "add", "--detach", "--quiet", str(tree), sha], check=True)
-    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "UV_PROJECT_ENVIRONMENT")}
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("VIRTUAL_ENV", "UV_PROJECT_ENVIRONMENT")}
     synced = subprocess.run([uv, "sync", "--inexact", "--quiet"], cwd=tree, env=env,
                             capture_output=True, text=True)
     checkout = Checkout(short, tree)
@@ -851,7 +853,7 @@ def base_checkout(rev: str, stack: ExitStack) -> Checkout:
     return checkout
 
 
-# -- main ---------------------------------------------------------------------------------------------
+# -- main -----------------------------------------------------------------------------------------
 def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
          base: str | None = None,
          profile_spec: ProfileSpec | None = None) -> list[tuple[Size, Route | None]]:

@@ -84,7 +84,8 @@ class ImagePayload(StringPayload):
         side = int(size ** 0.5)
         image = Image(height=size // side, width=side, encoding="mono8", step=side)
         image.header.frame_id = "0" * 8
-        image.data = bytes(range(256)) * (image.height * side // 256) + bytes(image.height * side % 256)
+        image.data = (bytes(range(256)) * (image.height * side // 256)
+                      + bytes(image.height * side % 256))
         self.template = self._serialize(image)
 
     def stamp(self, buf: bytearray, ns: int) -> None:

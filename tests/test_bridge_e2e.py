@@ -45,7 +45,8 @@ def image(i: int | None) -> Image:
     img.header.frame_id = "warmup" if i is None else f"camera-{i}"
     img.height, img.width, img.encoding, img.step = 1024, 1024, "mono8", 1024
     seed = 0 if i is None else i + 1
-    img.data = bytes((b * 7 + seed) & 0xFF for b in range(251)) * 4177 + bytes(1024 * 1024 - 251 * 4177)
+    img.data = (bytes((b * 7 + seed) & 0xFF for b in range(251)) * 4177
+                + bytes(1024 * 1024 - 251 * 4177))
     return img
 
 

@@ -71,7 +71,8 @@ def test_ten_forced_disconnects_a_reliable_topic_arrives_complete_and_in_order(
         engines, domain, ros_side, proxy):
     server, client, p, ds, dc = through_proxy(
         engines, domain, proxy,
-        "[{topic: /rel, type: std_msgs/msg/String, direction: transmit, transport: tcp, qos: 1000}]")
+        "[{topic: /rel, type: std_msgs/msg/String, direction: transmit, transport: tcp, "
+        "qos: 1000}]")
     inbox = ros_side(ds, "listener").listen("/rel", String, 1000)
     talker = ros_side(dc, "talker").publisher("/rel", String, 1000)
     cross(talker, inbox, text, is_warmup, 0)

@@ -54,7 +54,8 @@ def test_garbage_datagrams_counted_by_reason_and_never_published(engines, domain
         junk = rng.randbytes(rng.randint(envelope.SIZE, 300))
         if junk[:2] not in (b"RG", b"RF"):
             garbage.append(junk)  # foreign: 100
-    garbage += [b"RG" + rng.randbytes(rng.randint(0, 20)) for _ in range(10)]  # truncated: 10 (+ b"")
+    # truncated: 10 (+ b"")
+    garbage += [b"RG" + rng.randbytes(rng.randint(0, 20)) for _ in range(10)]
     header = lambda topic, seq: envelope.pack(0, topic, 1, seq, 0)
     garbage.append(envelope.HEADER.pack(b"RG", 99, 0, route.topic_id, 1, 1, 0) + b"x")  # version
     garbage.append(header(route.topic_id ^ 0xFFFF, 1) + serialize_message(text(1)))  # unknown topic

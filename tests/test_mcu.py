@@ -70,7 +70,8 @@ def mcu():
 
 def bridge_yaml(ports: dict[str, int], extra: str = "") -> str:
     return f"""
-bridge: {{name: robot, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, defaults: {{codec: msgpack}}}}
+bridge: {{name: robot, role: peer, peer: 127.0.0.1, listen: 127.0.0.1,
+          defaults: {{codec: msgpack}}}}
 topics:
   - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: {ports['in']},
      framing: none}}
@@ -130,7 +131,8 @@ def test_simulator_exchanges_topics_and_calls_services_both_ways(engines, domain
         Trigger.Response(success=True, message="pong")
     led = Caller(side, SetBool, "/mcu/set_led")
     assert led.call(SetBool.Request(data=True)) == SetBool.Response(success=True, message="led on")
-    assert led.call(SetBool.Request(data=False)) == SetBool.Response(success=True, message="led off")
+    assert led.call(SetBool.Request(data=False)) == SetBool.Response(success=True,
+                                                                     message="led off")
     served = lambda: [line["request"] for line in sim.lines if line["kind"] == "served"]
     assert sim.wait(lambda line: len(served()) == 3, 5)  # it prints before it answers
     assert served() == [{}, {"data": True}, {"data": False}]

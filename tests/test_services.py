@@ -131,7 +131,8 @@ def test_peer_set_bool_and_trigger_cross_both_ways(engines, domain, ros_side, tr
     assert drops.since() == {"a /set": {}, "a /trig": {}, "b /set": {}, "b /trig": {}}
 
 
-def test_client_server_calls_cross_both_ways_on_udp_and_a_tcp_port_of_their_own(engines, domain, ros_side):
+def test_client_server_calls_cross_both_ways_on_udp_and_a_tcp_port_of_their_own(
+        engines, domain, ros_side):
     ds, dc = domain(), domain()
     main = free_port()
     server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{main}}}", ds)
@@ -263,7 +264,8 @@ def test_peer_gone_answered_as_failure_within_timeout(engines, domain, ros_side)
     a = engines(peer_yaml("a", [entry]), da)  # nobody listens on the port
     caller = Caller(ros_side(da, "a"), SetBool, "/set")
     answer = caller.call(SetBool.Request(data=True), timeout=5)
-    assert answer == SetBool.Response(success=False, message=f"rosgate: tcp->127.0.0.1:{port} is down")
+    assert answer == SetBool.Response(success=False,
+                                      message=f"rosgate: tcp->127.0.0.1:{port} is down")
     assert dict(a.routes()[0].counters.drops) == {"link_down": 1}
 
 

@@ -57,7 +57,8 @@ def test_carries_topics_and_fragmented_messages(tmp_path, engines, domain, ros_s
             img.header.frame_id = "warmup" if i is None else f"f{i}"
             img.data = bytes([(i or 0) % 256]) * size
             return img
-    warm = (lambda m: m.data == "warmup") if size == 0 else (lambda m: m.header.frame_id == "warmup")
+    warm = ((lambda m: m.data == "warmup") if size == 0
+            else (lambda m: m.header.frame_id == "warmup"))
     got = cross(ros_side(da, "a").publisher("/data", cls), ros_side(db, "b").listen("/data", cls),
                 make, warm, 5, interval=0.02)
     assert got == [make(i) for i in range(5)]
@@ -72,7 +73,7 @@ def test_its_options_are_checked_with_file_and_line(tmp_path):
     assert str(error.value).startswith("x.yaml:4: plugins.unixdgram.max_frame: must be")
 
 
-# --- json: a codec written by a third party on the tree mapping --------------------------------------
+# --- json: a codec written by a third party on the tree mapping ----------------------------------
 
 def udp_peer(name: str, direction: str, port: int, msg: str, extra: str = "",
              topic: str = "codec: json") -> str:
@@ -103,8 +104,9 @@ def test_json_carries_a_topic_end_to_end(engines, domain, ros_side, extra):
     da, db, port = domain(), domain(), free_port()
     engines(udp_peer("a", "transmit", port, "sensor_msgs/msg/Image", extra), da)
     b = engines(udp_peer("b", "receive", port, "sensor_msgs/msg/Image", extra), db)
-    got = cross(ros_side(da, "a").publisher("/data", Image), ros_side(db, "b").listen("/data", Image),
-                image, lambda m: m.header.frame_id == "warmup", 5, interval=0.02)
+    got = cross(ros_side(da, "a").publisher("/data", Image),
+                ros_side(db, "b").listen("/data", Image), image,
+                lambda m: m.header.frame_id == "warmup", 5, interval=0.02)
     assert got == [image(i) for i in range(5)]
     assert b.routes()[0].counters.drops == {}
 
@@ -133,7 +135,7 @@ def test_json_on_the_wire_is_what_a_web_page_reads(engines, domain, ros_side):
     assert (tree["height"], tree["width"], tree["encoding"]) == (10, 100, "mono8")
 
 
-# --- a plugin written for the first plugin API -------------------------------------------------------
+# --- a plugin written for the first plugin API ---------------------------------------------------
 
 def legacy_module() -> types.ModuleType:
     """A transport as plugins were written before DatagramTransport and declared Options."""

@@ -29,7 +29,8 @@ from .transport import (
 
 __all__ = [
     "Address", "Cipher", "CipherError", "Codec", "CodecError", "ConfigError", "DatagramEndpoint",
-    "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError", "RosgateError", "SocketConnection",
+    "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError",
+    "RosgateError", "SocketConnection",
     "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transport",
     "check_ip_address", "hookimpl", "ip_source_hosts", "option", "parse_host_port",
 ]

@@ -2,8 +2,8 @@
 
 One stream connection (TCP) per call. The caller writes one serial datagram (serial_datagram.py)
 whose payload is the service's ``remote`` name as a MessagePack str followed by the request as a
-MessagePack map (the codec's bytes; :mod:`rosgate.wire.names` writes the name); the server writes the response as a plain
-MessagePack map and closes the connection.
+MessagePack map (the codec's bytes; :mod:`rosgate.wire.names` writes the name); the server writes
+the response as a plain MessagePack map and closes the connection.
 
 * ``direction: receive`` -> :class:`CallServer`: the bridge listens on ``listen:port`` and a
   microcontroller calls ROS services here. Several services may share the port: the name tells

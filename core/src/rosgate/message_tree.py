@@ -317,7 +317,8 @@ class _Builder:
             def build(data: bytes) -> Any:
                 # rclpy: a numpy uint8 array for uint8[N] (copied: frombuffer alone is
                 # read-only), array.array('B') for uint8[]
-                return numpy.frombuffer(data, numpy.uint8).copy() if fixed else array.array("B", data)
+                return (numpy.frombuffer(data, numpy.uint8).copy() if fixed
+                        else array.array("B", data))
 
         if not self.wire.base64:
             def encode(value: Any) -> bytes:
@@ -480,12 +481,14 @@ class MessageTree:
     def decode(self, value: Any) -> Any:
         """The message a parsed tree describes; :class:`TreeError` when it describes none."""
         if type(value) is not dict:
-            raise TreeError(f"expected a map of {self.name} fields, got {describe(value, self.wire)}")
+            raise TreeError(f"expected a map of {self.name} fields, "
+                            f"got {describe(value, self.wire)}")
         fields = {}
         for key, item in value.items():
             decode = self.decoders.get(key)
             if decode is None:
-                exc = TreeError(f"unknown field of {self.name} (it has: {', '.join(self.decoders)})")
+                exc = TreeError(f"unknown field of {self.name} "
+                                f"(it has: {', '.join(self.decoders)})")
                 exc.path.append(str(key))
                 raise exc
             try:

@@ -152,7 +152,8 @@ class Resolver:
         except OptionError as exc:
             raise self._option_error(topic.codec, exc, f"{key}.codec", error) from None
         if topic.framing is Framing.NONE and transport.stream:
-            raise error(f"{key}.framing", "framing: none needs a datagram transport (udp, can, ...)",
+            raise error(f"{key}.framing",
+                        "framing: none needs a datagram transport (udp, can, ...)",
                         "use framing: rosgate on stream links")
         reliable = is_reliable(topic.qos)
         priority = topic.priority or PRIORITY_DEFAULT
@@ -211,7 +212,8 @@ class Resolver:
                             "(one connection per call)", "use transport: tcp")
             if not codec_cls.messagepack:
                 raise error(f"{key}.codec", f"codec {service.codec} does not put the service's "
-                            "name on the wire (it does not write MessagePack)", "use codec: msgpack")
+                            "name on the wire (it does not write MessagePack)",
+                            "use codec: msgpack")
         if isinstance(transport, BusTransport):
             return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
                                    index, NO_ADDRESS, NO_ADDRESS,

@@ -190,13 +190,15 @@ class Router:
         elif flags & envelope.FLAG_REQUEST:
             server = self.servers.get(header.topic_id)
             if server is None:
-                self.link_drop(link, "unknown_service", f"service id {header.topic_id} from {source}")
+                self.link_drop(link, "unknown_service",
+                               f"service id {header.topic_id} from {source}")
             else:
                 server.on_request(header, frame, link, source)
         elif flags & envelope.FLAG_REPLY:
             caller = self.callers.get(header.topic_id)
             if caller is None:
-                self.link_drop(link, "unknown_service", f"service id {header.topic_id} from {source}")
+                self.link_drop(link, "unknown_service",
+                               f"service id {header.topic_id} from {source}")
             else:
                 caller.on_reply(header, frame)
         else:
@@ -295,7 +297,8 @@ def _static(cipher: Any) -> Any:
     return cipher
 
 
-def _checked(decode: Callable[[bytes], Any], check: Callable[[bytes], None]) -> Callable[[bytes], Any]:
+def _checked(decode: Callable[[bytes], Any],
+             check: Callable[[bytes], None]) -> Callable[[bytes], Any]:
     """``decode``, then ``check`` what it returned (raw CDR no cipher authenticated)."""
     def checked(data: bytes) -> Any:
         value = decode(data)

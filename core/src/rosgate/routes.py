@@ -400,7 +400,8 @@ class ReceiveRoute(Route):
             self.drop("decode_error", str(exc))
             return
         except Exception as exc:  # a codec must raise CodecError; anything else is its bug
-            self.drop("decode_error", f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
+            self.drop("decode_error",
+                      f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
             return
         try:
             self.publish(message)

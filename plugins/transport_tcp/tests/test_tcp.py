@@ -76,7 +76,7 @@ def test_ipv6_loopback(closing):
     assert receive_exactly(server, 3) == b"six"
 
 
-# --- options and addresses ----------------------------------------------------------------------------
+# --- options and addresses -----------------------------------------------------------------------
 
 def nodelay(connection: TcpConnection) -> bool:
     return connection.sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0
@@ -120,7 +120,8 @@ def test_parse_address_accepts(text, address):
     assert TcpTransport({}).parse_address(text) == address
 
 
-@pytest.mark.parametrize("text", ["127.0.0.1", "host:0", "host:70000", ":12000", "host:", "host:port"])
+@pytest.mark.parametrize("text", ["127.0.0.1", "host:0", "host:70000", ":12000", "host:",
+                                  "host:port"])
 def test_parse_address_rejects(text):
     with pytest.raises(ValueError, match="is not host:port"):
         TcpTransport({}).parse_address(text)

@@ -59,7 +59,8 @@ class Bridge:
     life: Lifetime
 
     def slot(self, name: str) -> LinkSlot:
-        """A place for a stream link that reconnects; reliable frames wait in it while it is down."""
+        """A place for a stream link that reconnects; reliable frames wait in it while it is
+        down."""
         return LinkSlot(name, QueueLimits(self.config.queue_frames, self.config.queue_bytes))
 
     @property

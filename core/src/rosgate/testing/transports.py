@@ -150,7 +150,8 @@ class TransportConformance:
     def test_datagram_boundaries_are_kept(self, plugin, far_plugin, address, closing):
         a, _, b, b_address = self._endpoints(plugin, far_plugin, address, closing)
         frames = [frame_of(size, seed) for seed, size in
-                  enumerate([1, plugin.max_frame, 3, 2, plugin.max_frame - 1, min(64, plugin.max_frame)])]
+                  enumerate([1, plugin.max_frame, 3, 2, plugin.max_frame - 1,
+                             min(64, plugin.max_frame)])]
         for frame in frames:
             a.send(frame, b_address)
         got = [b.receive(TIMEOUT) for _ in frames]
@@ -231,7 +232,8 @@ class TransportConformance:
         assert tx.compact == rx.compact == (m < COMPACT_BELOW)
         frames = [frame_of(size, seed) for seed, size in enumerate(sizes)]
         for frame in frames:
-            assert tx.send(frame, sent.sender(7), to=b_address), f"send of {len(frame)} bytes failed"
+            assert tx.send(frame, sent.sender(7), to=b_address), (
+                f"send of {len(frame)} bytes failed")
         got = received.wait_count(len(frames))
         if self.ordered:
             assert [len(f) for f in got] == sizes
@@ -360,7 +362,8 @@ class TransportConformance:
             self, plugin, far_plugin, address, closing):
         client, server = self._pair(plugin, far_plugin, address, closing)
         sent, received = Frames(), Frames()
-        tx = closing(StreamLink(client, "conformance-tx", ("client", 0), sent.on_frame, sent.on_lost))
+        tx = closing(StreamLink(client, "conformance-tx", ("client", 0), sent.on_frame,
+                                sent.on_lost))
         closing(StreamLink(server, "conformance-rx", ("server", 0), received.on_frame,
                            received.on_lost))
         frames = [frame_of(size, seed) for seed, size in

@@ -62,7 +62,8 @@ class TcpTransport(StreamTransport):
             sock.listen(64)
         except OSError as exc:
             sock.close()
-            raise LinkError(f"cannot listen on TCP {address[0]}:{address[1]}: {exc.strerror}") from None
+            raise LinkError(f"cannot listen on TCP {address[0]}:{address[1]}: "
+                            f"{exc.strerror}") from None
         return SocketListener(sock, lambda accepted: TcpConnection(accepted, self.options.nodelay))
 
     def connect(self, address: Address, timeout: float) -> TcpConnection:
