@@ -23,8 +23,10 @@ demo: sync
 test: sync lint
 	$(VENV)/bin/pytest
 
-# the core's layers (import-linter contracts in pyproject.toml) and types (mypy: core and plugins)
+# lint findings (ruff check), the core's layers (import-linter contracts) and types (mypy: core
+# and plugins); the rules of all three are in pyproject.toml
 lint: sync
+	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports --no-cache
 	$(VENV)/bin/mypy
 

@@ -31,8 +31,17 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import profiling
-from processes import (HERE_CHECKOUT, Bridge, Checkout, Endpoint, Process, Route, bringup_files,
-                       next_domains, thread_cpu_seconds)
+from processes import (
+    HERE_CHECKOUT,
+    Bridge,
+    Checkout,
+    Endpoint,
+    Process,
+    Route,
+    bringup_files,
+    next_domains,
+    thread_cpu_seconds,
+)
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -209,7 +218,7 @@ class Case:
         found = {"pub": self.pub, "A": self.a, "B": self.b, "sub": self.sub}
         return {role: p for role, p in found.items() if p is not None}
 
-    def __enter__(self) -> "Case":
+    def __enter__(self) -> Case:
         for attempt in (1, 2):
             try:
                 with ExitStack() as stack:
@@ -368,7 +377,7 @@ def us(value: float | None) -> str:
     return f"{value:.1f}" if value < 100 else f"{value:,.0f}"
 
 
-# -- other work on the machine ----------------------------------------------------------------------
+# -- other work on the machine --------------------------------------------------------------------
 class Load:
     """The share of the machine's CPU that processes outside this benchmark used since
     creation: other work (a test run, a build) takes cores from the paths measured."""
@@ -385,7 +394,8 @@ class Load:
 def system_busy() -> float:
     """CPU seconds the whole machine spent busy since boot (/proc/stat)."""
     with open("/proc/stat") as stat:
-        user, nice, system, idle, iowait, irq, softirq, steal = map(int, stat.readline().split()[1:9])
+        (user, nice, system, idle, iowait, irq, softirq,
+         steal) = map(int, stat.readline().split()[1:9])
     return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
 
 
@@ -492,7 +502,7 @@ def best_effort_overload(size: Size, route: Route | None, checkout: Checkout, fo
     return trial
 
 
-# -- profiles ---------------------------------------------------------------------------------------
+# -- profiles -------------------------------------------------------------------------------------
 SIDES = {"peer": ("bridge A, transmit: DDS subscription -> link",
                   "bridge B, receive: link -> DDS publisher"),
          "client/server": ("bridge A, the client, transmit: DDS subscription -> link",
@@ -514,7 +524,7 @@ def profile(case: Case, rate: float, spec: ProfileSpec, quiet: Trial,
     title = (f"{case.label}, {rate:,.0f} msg/s for {spec.seconds:g} s, rosgate "
              f"{case.route.rev or revision()}")
     written = []
-    for side, bridge, role in zip("AB", (case.a, case.b), SIDES[case.route.roles]):
+    for side, bridge, role in zip("AB", (case.a, case.b), SIDES[case.route.roles], strict=True):
         recording = profiling.Recording(bridge.pid, spec.folder / f"{stem}-{side}.raw")
         try:
             try:
@@ -542,7 +552,7 @@ def profile(case: Case, rate: float, spec: ProfileSpec, quiet: Trial,
     return written
 
 
-# -- the tables -------------------------------------------------------------------------------------
+# -- the tables -----------------------------------------------------------------------------------
 COLUMNS = ["size", "path", "sustained msg/s", "vs bare", "MB/s", "peak delivered msg/s",
            "latency at msg/s", "p50 ms", "p99 ms", "p50 vs bare", "A µs/msg", "B µs/msg",
            f"{OVERLOAD:g}x sustained: delivered", f"{OVERLOAD:g}x sustained: p99 ms"]
@@ -656,10 +666,10 @@ def compare_table(results: list[Result]) -> str | None:
     def vs(a: float | None, b: float | None, fmt) -> str:
         return "-" if a is None or b is None else f"{fmt(a)} vs {fmt(b)} ({ratio(a, b)}x)"
 
-    number = lambda v: f"{v:,.0f}"  # noqa: E731
+    number = lambda v: f"{v:,.0f}"
     rows = []
     for mine, base in pairs:
-        cpu = lambda r, side: r.cpu.us_per_msg(side) if r.cpu else None  # noqa: E731
+        cpu = lambda r, side: r.cpu.us_per_msg(side) if r.cpu else None
         rows.append([mine.size.name, mine.path,
                      vs(mine.sustained and mine.sustained.offered,
                         base.sustained and base.sustained.offered, number),
@@ -738,7 +748,7 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo")
                 if line.startswith("model name")), platform.processor())
     notes = [f"- {r.size.name} {r.path}: {line}" for r in results for line in r.problems[:6]]
-    link = lambda p: os.path.relpath(p, out.parent)  # noqa: E731
+    link = lambda p: os.path.relpath(p, out.parent)
     be_sizes = [s.name for s in SIZES if s.key in options.best_effort]
     based = f"; base {base}" if base else ""
     parts = [
@@ -799,7 +809,7 @@ def revision(root: Path = ROOT) -> str:
     return head.stdout.strip() + (" + uncommitted changes" if dirty.stdout.strip() else "")
 
 
-# -- another revision's rosgate (--base) ----------------------------------------------------------------
+# -- another revision's rosgate (--base) ----------------------------------------------------------
 def find_uv() -> str:
     for candidate in (os.environ.get("UV"), shutil.which("uv"), ROOT / ".tools" / "bin" / "uv"):
         if candidate and Path(candidate).exists():
@@ -832,7 +842,8 @@ def base_checkout(rev: str, stack: ExitStack) -> Checkout:
     start = time.monotonic()
     log(f"bench: --base {rev} = {short}: checking it out in {tree}, syncing its .venv")
     subprocess.run([*git, "worktree", "add", "--detach", "--quiet", str(tree), sha], check=True)
-    env = {k: v for k, v in os.environ.items() if k not in ("VIRTUAL_ENV", "UV_PROJECT_ENVIRONMENT")}
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("VIRTUAL_ENV", "UV_PROJECT_ENVIRONMENT")}
     synced = subprocess.run([uv, "sync", "--inexact", "--quiet"], cwd=tree, env=env,
                             capture_output=True, text=True)
     checkout = Checkout(short, tree)
@@ -842,7 +853,7 @@ def base_checkout(rev: str, stack: ExitStack) -> Checkout:
     return checkout
 
 
-# -- main ---------------------------------------------------------------------------------------------
+# -- main -----------------------------------------------------------------------------------------
 def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
          base: str | None = None,
          profile_spec: ProfileSpec | None = None) -> list[tuple[Size, Route | None]]:

@@ -142,7 +142,7 @@ def run_publisher(spec: list[dict]) -> None:
         if words[:1] == ["run"]:
             answer({"sent": publish(topics, float(words[1]))})
         elif words[:1] == ["once"]:  # one message of every topic, numbered past any run's
-            for t, stamped, publisher in topics:
+            for _t, stamped, publisher in topics:
                 publisher.publish(stamped.make(99_999_999, time.time_ns()))
             answer({"sent": {t["topic"]: 1 for t, _, _ in topics}})
         elif words[:1] == ["quit"]:

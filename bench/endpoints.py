@@ -84,7 +84,8 @@ class ImagePayload(StringPayload):
         side = int(size ** 0.5)
         image = Image(height=size // side, width=side, encoding="mono8", step=side)
         image.header.frame_id = "0" * 8
-        image.data = bytes(range(256)) * (image.height * side // 256) + bytes(image.height * side % 256)
+        image.data = (bytes(range(256)) * (image.height * side // 256)
+                      + bytes(image.height * side % 256))
         self.template = self._serialize(image)
 
     def stamp(self, buf: bytearray, ns: int) -> None:
@@ -182,7 +183,7 @@ class Tally:
         arrivals = self.arrivals.get(trial, array("q"))
         latencies = sorted(self.latencies.get(trial, ()))
         n = len(latencies)
-        pick = lambda q: latencies[min(n - 1, int(q * n))] / 1000 if n else None  # noqa: E731
+        pick = lambda q: latencies[min(n - 1, int(q * n))] / 1000 if n else None
         # arrivals are appended in time order, one callback after the other
         return {"received": len(arrivals), "in_time": bisect.bisect_right(arrivals, deadline_ns),
                 "p50_us": pick(0.50), "p90_us": pick(0.90), "p99_us": pick(0.99)}

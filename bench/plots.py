@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from bench import Result
 
 
-def draw(results: list["Result"], folder: Path) -> list[Path]:
+def draw(results: list[Result], folder: Path) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -43,7 +43,7 @@ def draw(results: list["Result"], folder: Path) -> list[Path]:
         for r in rows:
             color = colors[r.path]
             points = sorted((t.offered, t.delivered) for t in r.trials if t.sent)
-            xs, ys = zip(*points)
+            xs, ys = zip(*points, strict=True)
             ax.plot(xs, ys, "o-", color=color, label=r.path, markersize=5, linewidth=0.8,
                     alpha=0.85)
             if r.sustained:
@@ -85,7 +85,7 @@ def draw(results: list["Result"], folder: Path) -> list[Path]:
     if panels:
         height = sum(1.2 + 0.45 * len(rows) for _, rows in panels)
         fig, axes = plt.subplots(len(panels), 1, figsize=(8, height), squeeze=False)
-        for ax, (size, rows) in zip(axes[:, 0], panels):
+        for ax, (size, rows) in zip(axes[:, 0], panels, strict=True):
             labels = [r.path for r in rows][::-1]
             rows = rows[::-1]
             for i, (q, shade) in enumerate((("p50_us", 1.0), ("p90_us", 0.65), ("p99_us", 0.35))):
@@ -93,7 +93,7 @@ def draw(results: list["Result"], folder: Path) -> list[Path]:
                 ys = [y + (1 - i) * 0.27 for y in range(len(rows))]
                 ax.barh(ys, values, height=0.27, color=[colors[r.path] for r in rows],
                         alpha=shade)
-                for y, value in zip(ys, values):
+                for y, value in zip(ys, values, strict=True):
                     ax.text(value, y, f" {q[:3]} {value:.2f}", va="center", fontsize=7)
             ax.margins(x=0.25)
             ax.set_yticks(range(len(rows)), labels, fontsize=8)

@@ -327,6 +327,6 @@ def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
              f"{plugins}topics:\n  - {topic}, direction: transmit}}\n")
         b = f"bridge: {{name: bench_b, role: server, server: 127.0.0.1:{port}{b_keys}}}\n{plugins}"
     paths = folder / "bench_a.yaml", folder / "bench_b.yaml"
-    for path, text in zip(paths, (a, b)):
+    for path, text in zip(paths, (a, b), strict=True):
         path.write_text(text)
     return paths

@@ -109,7 +109,7 @@ class Recording:
                           default=0.0)
 
 
-# -- reading the raw stacks -------------------------------------------------------------------------
+# -- reading the raw stacks -----------------------------------------------------------------------
 def read_stacks(raw: Path) -> list[tuple[list[str], int]]:
     stacks = []
     for line in raw.read_text().splitlines():
@@ -186,7 +186,7 @@ class Profile:
     idle_threads: Counter  # (tid, python thread name) -> idle samples
 
     @classmethod
-    def of(cls, stacks: list[tuple[list[str], int]], roots: list[Path]) -> "Profile":
+    def of(cls, stacks: list[tuple[list[str], int]], roots: list[Path]) -> Profile:
         threads: Counter = Counter()
         own: Counter = Counter()
         total: Counter = Counter()
@@ -223,7 +223,7 @@ class Profile:
         return cls(threads, own, total, samples, idle, waits, idle_threads)
 
 
-# -- the summary --------------------------------------------------------------------------------------
+# -- the summary ----------------------------------------------------------------------------------
 @dataclass
 class Side:
     """One bridge's part of a profile run."""

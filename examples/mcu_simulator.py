@@ -132,7 +132,7 @@ class Simulator:
         while not self.stop.is_set():
             try:
                 datagram, _ = self.udp.recvfrom(65535)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             unpacker = msgpack.Unpacker(raw=False)
             unpacker.feed(datagram)
@@ -147,7 +147,7 @@ class Simulator:
         while not self.stop.is_set():
             try:
                 conn, _ = self.tcp.accept()
-            except socket.timeout:
+            except TimeoutError:
                 continue
             threading.Thread(target=self.serve_one, args=(conn,), daemon=True).start()
 

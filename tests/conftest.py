@@ -14,8 +14,9 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import pytest
 import yaml
@@ -23,7 +24,7 @@ import yaml
 from rosgate import identity
 from rosgate.config import loads
 from rosgate.engine import Engine
-from rosgate.testing import free_port  # noqa: F401  (tests import it from here)
+from rosgate.testing import free_port  # tests also import it from here
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
@@ -174,7 +175,7 @@ def cross(publisher: Any, inbox: Inbox, make: Callable[[int | None], Any],
     for n in range(count):
         publisher.publish(make(n))
         time.sleep(interval)  # paces the publisher; nothing waits on this
-    numbered = lambda items: [m for m in items[start:] if not is_warmup(m)]  # noqa: E731
+    numbered = lambda items: [m for m in items[start:] if not is_warmup(m)]
     inbox.wait_for(lambda items: len(numbered(items)) >= count,
                    max(1.0, deadline - time.monotonic()))
     return numbered(list(inbox.items))
@@ -288,7 +289,7 @@ def bridge():
 
     yield start
     codes = [b.stop() for b in started]  # every one, before any assertion can stop the loop
-    for b, code in zip(started, codes):
+    for b, code in zip(started, codes, strict=True):
         assert "Traceback" not in b.log, b.log
         assert code == 0, f"bridge {b.config.name} exited {code}:\n{b.log}"
 

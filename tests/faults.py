@@ -17,8 +17,8 @@ import socket
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 HOST = "127.0.0.1"
 POLL = 0.1

@@ -556,14 +556,13 @@ def test_a_server_takes_datagrams_from_its_clients_only(engines, domain, ros_sid
     """The server's datagram ports take frames only from the addresses its clients' genuine
     hellos came from; a stranger's frames are ``not_allowed`` before anything else looks at
     them, and a stranger's hello is checked (``bad_hello``) and teaches the server nothing."""
+    from conftest import cross
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
 
-    from conftest import cross
-
     ds, dc, port = domain(), domain(), free_port()
     server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}", ds)
-    client = engines(f"""
+    engines(f"""
 bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
 topics: [{{topic: /up, type: std_msgs/msg/String, direction: transmit}}]
 """, dc)

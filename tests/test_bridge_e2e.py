@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 from conftest import ROSGATE, cross, free_port
-
 from geometry_msgs.msg import Twist
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
@@ -46,7 +45,8 @@ def image(i: int | None) -> Image:
     img.header.frame_id = "warmup" if i is None else f"camera-{i}"
     img.height, img.width, img.encoding, img.step = 1024, 1024, "mono8", 1024
     seed = 0 if i is None else i + 1
-    img.data = bytes((b * 7 + seed) & 0xFF for b in range(251)) * 4177 + bytes(1024 * 1024 - 251 * 4177)
+    img.data = (bytes((b * 7 + seed) & 0xFF for b in range(251)) * 4177
+                + bytes(1024 * 1024 - 251 * 4177))
     return img
 
 
@@ -147,7 +147,7 @@ plugins:
 """), ds)
     bridge(client, dc)
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
-    warm = lambda m: m.linear.x == -1.0  # noqa: E731
+    warm = lambda m: m.linear.x == -1.0
 
     down = cross(base.publisher("/robot1/cmd_vel", Twist), robot.listen("/cmd_vel", Twist),
                  twist, warm, 40)

@@ -7,10 +7,10 @@ from __future__ import annotations
 import time
 
 from conftest import cross, free_port
+from rosgate_crypto_nacl import NaclCipher
 from sensor_msgs.msg import NavSatFix, NavSatStatus
 
 from rosgate.testing import write_key
-from rosgate_crypto_nacl import NaclCipher
 
 
 def fix(i: int | None) -> NavSatFix:

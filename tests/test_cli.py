@@ -128,9 +128,10 @@ def test_plugins_lists_every_kind_with_its_distribution():
     result = rosgate("plugins")
     assert result.returncode == 0
     rows = {tuple(line.split()[:3]) for line in result.stdout.splitlines()[1:]}
-    assert {("transport", "udp", "rosgate-transport-udp"), ("transport", "tcp", "rosgate-transport-tcp"),
-            ("codec", "cdr", "rosgate"), ("codec", "msgpack", "rosgate-codec-msgpack"),
-            ("cipher", "none", "rosgate"), ("cipher", "fernet", "rosgate-crypto-fernet")} <= rows
+    assert {("transport", "udp", "rosgate-transport-udp"),
+            ("transport", "tcp", "rosgate-transport-tcp"), ("codec", "cdr", "rosgate"),
+            ("codec", "msgpack", "rosgate-codec-msgpack"), ("cipher", "none", "rosgate"),
+            ("cipher", "fernet", "rosgate-crypto-fernet")} <= rows
 
 
 def test_a_broken_plugin_is_reported_by_name_and_the_rest_work(tmp_path, config):
@@ -206,7 +207,8 @@ def test_check_bt_addresses(config, server, port, line, says):
 
 def test_check_refuses_an_ip_topic_addressed_by_a_bluetooth_main_line(config):
     """udp and tcp topics go to the server's host: a device address is no IP host."""
-    text = BT_CLIENT.format(server="AA:BB:CC:DD:EE:FF/5", plugins="plugins:\n  bt: {emulate_dir: /tmp}\n",
+    text = BT_CLIENT.format(server="AA:BB:CC:DD:EE:FF/5",
+                            plugins="plugins:\n  bt: {emulate_dir: /tmp}\n",
                             port=6).replace("transport: bt", "transport: udp")
     message = user_error(rosgate("check", str(config(text))))
     assert "bringup.yaml:9: topics[0].port: 'AA:BB:CC:DD:EE:FF' is not an IP address or host " \

@@ -71,7 +71,8 @@ def test_ten_forced_disconnects_a_reliable_topic_arrives_complete_and_in_order(
         engines, domain, ros_side, proxy):
     server, client, p, ds, dc = through_proxy(
         engines, domain, proxy,
-        "[{topic: /rel, type: std_msgs/msg/String, direction: transmit, transport: tcp, qos: 1000}]")
+        "[{topic: /rel, type: std_msgs/msg/String, direction: transmit, transport: tcp, "
+        "qos: 1000}]")
     inbox = ros_side(ds, "listener").listen("/rel", String, 1000)
     talker = ros_side(dc, "talker").publisher("/rel", String, 1000)
     cross(talker, inbox, text, is_warmup, 0)
@@ -90,7 +91,8 @@ def test_ten_forced_disconnects_a_reliable_topic_arrives_complete_and_in_order(
         assert wait_until(lambda: role.main.waiting == 20, 5), role.main.waiting
         started = time.monotonic()
         p.tcp.refusing.clear()
-        assert wait_until(lambda: role.connected.is_set() and role.main.current is not link, 5)
+        assert wait_until(lambda: role.connected.is_set()
+                          and role.main.current is not link, 5)  # noqa: B023 - polled here
         back_in.append(time.monotonic() - started)
         publish(5)  # and with the link back
         assert inbox.wait_for(lambda _: numbered(inbox) == sent, 5), (
@@ -287,10 +289,12 @@ topics: [{{topic: /rel, type: std_msgs/msg/String, direction: transmit, transpor
             sent.append(f"m{n}-{i}")
             talker.publish(String(data=sent[-1]))
             time.sleep(0.003)  # pacing the talker
-        assert wait_until(lambda: counted() > before, 5), "the damage went unnoticed"
+        assert wait_until(lambda: counted() > before, 5), (  # noqa: B023 - polled here
+            "the damage went unnoticed")
         # the stream is usable again: a batch sent now arrives whole and in order (late
-        # arrivals of the damaged batch are not part of it)
-        got = cross(talker, inbox, lambda i: text(None if i is None else 100 * (n + 1) + i),
+        # arrivals of the damaged batch are not part of it; cross calls make before it returns)
+        got = cross(talker, inbox,
+                    lambda i: text(None if i is None else 100 * (n + 1) + i),  # noqa: B023
                     lambda m: is_warmup(m) or "-" in m.data, 10)
         assert [m.data for m in got] == [f"m{100 * (n + 1) + i}" for i in range(10)]
     arrived = [m for m in numbered(inbox) if "-" in m]

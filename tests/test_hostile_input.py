@@ -54,8 +54,9 @@ def test_garbage_datagrams_counted_by_reason_and_never_published(engines, domain
         junk = rng.randbytes(rng.randint(envelope.SIZE, 300))
         if junk[:2] not in (b"RG", b"RF"):
             garbage.append(junk)  # foreign: 100
-    garbage += [b"RG" + rng.randbytes(rng.randint(0, 20)) for _ in range(10)]  # truncated: 10 (+ b"")
-    header = lambda topic, seq: envelope.pack(0, topic, 1, seq, 0)  # noqa: E731
+    # truncated: 10 (+ b"")
+    garbage += [b"RG" + rng.randbytes(rng.randint(0, 20)) for _ in range(10)]
+    header = lambda topic, seq: envelope.pack(0, topic, 1, seq, 0)
     garbage.append(envelope.HEADER.pack(b"RG", 99, 0, route.topic_id, 1, 1, 0) + b"x")  # version
     garbage.append(header(route.topic_id ^ 0xFFFF, 1) + serialize_message(text(1)))  # unknown topic
     garbage.append(header(route.topic_id, 1) + b"\x00\x01\x00\x00" + b"\xff" * 12)  # bad CDR
@@ -169,7 +170,7 @@ def test_compressed_frames_that_lie_are_counted_and_never_published(engines, dom
     talker = ros_side(da, "talker").publisher("/chatter", String)
     cross(talker, inbox, text, lambda m: m.data == "warmup", 1)
     route = b.routes()[0]
-    header = lambda seq: envelope.pack(envelope.FLAG_COMPRESSED, route.topic_id, 5, seq, 0)  # noqa: E731
+    header = lambda seq: envelope.pack(envelope.FLAG_COMPRESSED, route.topic_id, 5, seq, 0)
     bomb = zstandard.ZstdCompressor(level=19).compress(bytes((64 << 20) + 1))
     unsized = zstandard.ZstdCompressor(write_content_size=False).compress(b"a" * 100)
     good = zstandard.ZstdCompressor().compress(serialize_message(String(data="squeezed " * 20)))

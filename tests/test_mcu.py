@@ -11,8 +11,9 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import msgpack
 import pytest
@@ -69,7 +70,8 @@ def mcu():
 
 def bridge_yaml(ports: dict[str, int], extra: str = "") -> str:
     return f"""
-bridge: {{name: robot, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, defaults: {{codec: msgpack}}}}
+bridge: {{name: robot, role: peer, peer: 127.0.0.1, listen: 127.0.0.1,
+          defaults: {{codec: msgpack}}}}
 topics:
   - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: {ports['in']},
      framing: none}}
@@ -129,8 +131,9 @@ def test_simulator_exchanges_topics_and_calls_services_both_ways(engines, domain
         Trigger.Response(success=True, message="pong")
     led = Caller(side, SetBool, "/mcu/set_led")
     assert led.call(SetBool.Request(data=True)) == SetBool.Response(success=True, message="led on")
-    assert led.call(SetBool.Request(data=False)) == SetBool.Response(success=True, message="led off")
-    served = lambda: [line["request"] for line in sim.lines if line["kind"] == "served"]  # noqa: E731
+    assert led.call(SetBool.Request(data=False)) == SetBool.Response(success=True,
+                                                                     message="led off")
+    served = lambda: [line["request"] for line in sim.lines if line["kind"] == "served"]
     assert sim.wait(lambda line: len(served()) == 3, 5)  # it prints before it answers
     assert served() == [{}, {"data": True}, {"data": False}]
     stats = {label: s["drops"] for label, s in engine.stats()["routes"].items()}

@@ -7,7 +7,8 @@ import socket
 import threading
 import time
 from collections import Counter
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import pytest
 from conftest import free_port
@@ -65,7 +66,7 @@ class Caller:
             assert time.monotonic() < deadline, "the bridges never got ready"
             future = self.client.call_async(request)
             done = threading.Event()
-            future.add_done_callback(lambda _: done.set())
+            future.add_done_callback(lambda _, done=done: done.set())  # this attempt's event
             if not done.wait(10):  # lost between this caller and the bridge
                 self.client.remove_pending_request(future)
                 lost = True
@@ -130,7 +131,8 @@ def test_peer_set_bool_and_trigger_cross_both_ways(engines, domain, ros_side, tr
     assert drops.since() == {"a /set": {}, "a /trig": {}, "b /set": {}, "b /trig": {}}
 
 
-def test_client_server_calls_cross_both_ways_on_udp_and_a_tcp_port_of_their_own(engines, domain, ros_side):
+def test_client_server_calls_cross_both_ways_on_udp_and_a_tcp_port_of_their_own(
+        engines, domain, ros_side):
     ds, dc = domain(), domain()
     main = free_port()
     server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{main}}}", ds)
@@ -262,15 +264,17 @@ def test_peer_gone_answered_as_failure_within_timeout(engines, domain, ros_side)
     a = engines(peer_yaml("a", [entry]), da)  # nobody listens on the port
     caller = Caller(ros_side(da, "a"), SetBool, "/set")
     answer = caller.call(SetBool.Request(data=True), timeout=5)
-    assert answer == SetBool.Response(success=False, message=f"rosgate: tcp->127.0.0.1:{port} is down")
+    assert answer == SetBool.Response(success=False,
+                                      message=f"rosgate: tcp->127.0.0.1:{port} is down")
     assert dict(a.routes()[0].counters.drops) == {"link_down": 1}
 
 
 def test_forged_duplicated_and_oversized_service_frames_are_dropped_and_counted(
         engines, domain, ros_side):
+    from rclpy.serialization import deserialize_message, serialize_message
+
     from rosgate.wire import envelope
     from rosgate.wire.envelope import topic_id_for
-    from rclpy.serialization import deserialize_message, serialize_message
 
     da, db, port = domain(), domain(), free_port()
     entry = (f"service: /set, type: std_srvs/srv/SetBool, direction: transmit, port: {port}, "
@@ -290,7 +294,7 @@ def test_forged_duplicated_and_oversized_service_frames_are_dropped_and_counted(
     link_drops = dict(b.link_drops)
     served = len(calls)
     sid = topic_id_for("/set")
-    request = lambda seq, body: envelope.pack(envelope.FLAG_REQUEST, sid, 99, seq, 0) + body  # noqa: E731
+    request = lambda seq, body: envelope.pack(envelope.FLAG_REQUEST, sid, 99, seq, 0) + body
     cdr = serialize_message(SetBool.Request(data=False))
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))

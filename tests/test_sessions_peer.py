@@ -16,7 +16,6 @@ from test_services import DEEP, Caller, echo_set_bool
 
 from rosgate import identity
 
-
 FAST = "heartbeat: 0.2, peer_timeout: 0.8, reconnect: {min: 0.05, max: 0.5}"
 
 
@@ -34,7 +33,7 @@ def identities(folder: Path, a_initiates: bool) -> dict[str, tuple[Path, str]]:
     if not a_initiates:
         keys.reverse()
     made = {}
-    for name, key in zip("ab", keys):
+    for name, key in zip("ab", keys, strict=True):
         path = folder / f"{name}.key"
         identity.write_private(path, key)
         made[name] = (path, identity.encode(identity.public_of(key)))

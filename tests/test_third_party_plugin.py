@@ -14,6 +14,7 @@ import types
 
 import pytest
 from conftest import cross, free_port
+from rosgate_transport_udp import UdpEndpoint
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
@@ -22,7 +23,6 @@ from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.errors import ConfigError
 from rosgate.plugins import Plugins
-from rosgate_transport_udp import UdpEndpoint
 
 
 def peer(name: str, directory: str, direction: str, port: int, msg: str, extra: str = "") -> str:
@@ -57,7 +57,8 @@ def test_carries_topics_and_fragmented_messages(tmp_path, engines, domain, ros_s
             img.header.frame_id = "warmup" if i is None else f"f{i}"
             img.data = bytes([(i or 0) % 256]) * size
             return img
-    warm = (lambda m: m.data == "warmup") if size == 0 else (lambda m: m.header.frame_id == "warmup")
+    warm = ((lambda m: m.data == "warmup") if size == 0
+            else (lambda m: m.header.frame_id == "warmup"))
     got = cross(ros_side(da, "a").publisher("/data", cls), ros_side(db, "b").listen("/data", cls),
                 make, warm, 5, interval=0.02)
     assert got == [make(i) for i in range(5)]
@@ -72,7 +73,7 @@ def test_its_options_are_checked_with_file_and_line(tmp_path):
     assert str(error.value).startswith("x.yaml:4: plugins.unixdgram.max_frame: must be")
 
 
-# --- json: a codec written by a third party on the tree mapping --------------------------------------
+# --- json: a codec written by a third party on the tree mapping ----------------------------------
 
 def udp_peer(name: str, direction: str, port: int, msg: str, extra: str = "",
              topic: str = "codec: json") -> str:
@@ -103,8 +104,9 @@ def test_json_carries_a_topic_end_to_end(engines, domain, ros_side, extra):
     da, db, port = domain(), domain(), free_port()
     engines(udp_peer("a", "transmit", port, "sensor_msgs/msg/Image", extra), da)
     b = engines(udp_peer("b", "receive", port, "sensor_msgs/msg/Image", extra), db)
-    got = cross(ros_side(da, "a").publisher("/data", Image), ros_side(db, "b").listen("/data", Image),
-                image, lambda m: m.header.frame_id == "warmup", 5, interval=0.02)
+    got = cross(ros_side(da, "a").publisher("/data", Image),
+                ros_side(db, "b").listen("/data", Image), image,
+                lambda m: m.header.frame_id == "warmup", 5, interval=0.02)
     assert got == [image(i) for i in range(5)]
     assert b.routes()[0].counters.drops == {}
 
@@ -133,7 +135,7 @@ def test_json_on_the_wire_is_what_a_web_page_reads(engines, domain, ros_side):
     assert (tree["height"], tree["width"], tree["encoding"]) == (10, 100, "mono8")
 
 
-# --- a plugin written for the first plugin API -------------------------------------------------------
+# --- a plugin written for the first plugin API ---------------------------------------------------
 
 def legacy_module() -> types.ModuleType:
     """A transport as plugins were written before DatagramTransport and declared Options."""
@@ -172,7 +174,7 @@ def test_a_plugin_written_for_the_old_api_still_carries_topics(domain, ros_side)
                 engine.prepare()
             assert engine.resolver.transports["legacyudp"].options == {"max_frame": 500}
             started.append(engine.start())
-        make = lambda i: String(data="warmup" if i is None else f"{i}" * 2000)  # noqa: E731
+        make = lambda i: String(data="warmup" if i is None else f"{i}" * 2000)
         got = cross(ros_side(da, "a").publisher("/data", String),
                     ros_side(db, "b").listen("/data", String), make,
                     lambda m: m.data == "warmup", 5, interval=0.02)

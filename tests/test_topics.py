@@ -55,7 +55,7 @@ def test_max_rate_drops_and_counts_the_excess(engines, domain, ros_side):
     cross(talker, inbox, text, is_warmup, 0)
     route = a.routes()[0]
     # warm-up messages still on their way would land after the snapshot: let them settle first
-    settled = lambda: route.counters.sent + route.counters.drops["rate_limit"]  # noqa: E731
+    settled = lambda: route.counters.sent + route.counters.drops["rate_limit"]
     last, quiet_since = settled(), time.monotonic()
     while time.monotonic() - quiet_since < 0.5:
         time.sleep(0.05)
@@ -68,7 +68,8 @@ def test_max_rate_drops_and_counts_the_excess(engines, domain, ros_side):
         time.sleep(0.01)  # pacing: 100 Hz offered against a 5 Hz limit
     elapsed = time.monotonic() - start
     deadline = time.monotonic() + 5
-    while route.counters.sent + route.counters.drops["rate_limit"] - before_sent - before_limited < 60:
+    while (route.counters.sent + route.counters.drops["rate_limit"]
+           - before_sent - before_limited) < 60:
         assert time.monotonic() < deadline, route.counters
         time.sleep(0.02)
     sent = route.counters.sent - before_sent

@@ -106,7 +106,7 @@ def test_twist_and_100_kB_images_cross_both_ways_with_every_codec_and_cipher(
     # every endpoint first, so that DDS discovers them all at once
     ends = [(ros[way][0].publisher(topic, cls), ros[way][1].listen(topic, cls))
             for topic, cls, _, _, _, way, _, _ in plan]
-    for (publisher, inbox), (topic, _, make, warm, count, _, _, _) in zip(ends, plan):
+    for (publisher, inbox), (topic, _, make, warm, count, _, _, _) in zip(ends, plan, strict=True):
         got = cross(publisher, inbox, make, warm, count, interval=0.02)
         assert got == [make(i) for i in range(count)], topic
     for engine in (a, b):

@@ -1,4 +1,5 @@
-"""bringup.yaml: parsed values, defaults and normalisation, and one located ConfigError per mistake."""
+"""bringup.yaml: parsed values, defaults and normalisation, and one located ConfigError per
+mistake."""
 
 from __future__ import annotations
 
@@ -10,8 +11,15 @@ from pathlib import Path
 import pytest
 
 from rosgate.config import (
-    BridgeConfig, ServiceConfig, TopicConfig, load, loads, service_from_mapping, service_to_mapping,
-    topic_from_mapping, topic_to_mapping,
+    BridgeConfig,
+    ServiceConfig,
+    TopicConfig,
+    load,
+    loads,
+    service_from_mapping,
+    service_to_mapping,
+    topic_from_mapping,
+    topic_to_mapping,
 )
 from rosgate.errors import ConfigError
 
@@ -33,7 +41,7 @@ def load_error(tmp_path: Path, text: str) -> tuple[ConfigError, Path]:
     return info.value, path
 
 
-# --- valid files -----------------------------------------------------------------------------------
+# --- valid files ---------------------------------------------------------------------------------
 
 CLIENT = """
 bridge:
@@ -96,9 +104,10 @@ def test_client_file(tmp_path: Path) -> None:
     assert config.plugins == {"fernet": {"key_file": "secret.key"}, "nacl": {}}
 
     chatter, cmd_vel, scan, map_, chatter_in = config.topics
-    assert chatter == TopicConfig(topic="/chatter", type="std_msgs/msg/String", direction="transmit",
-                                  remote="/chatter", transport="tcp", codec="msgpack", cipher="none",
-                                  port=None, framing="rosgate", qos=10, max_rate=None, line=13,
+    assert chatter == TopicConfig(topic="/chatter", type="std_msgs/msg/String",
+                                  direction="transmit", remote="/chatter", transport="tcp",
+                                  codec="msgpack", cipher="none", port=None, framing="rosgate",
+                                  qos=10, max_rate=None, line=13,
                                   lines={"topic": 13, "type": 14, "direction": 15})
     assert (cmd_vel.remote, cmd_vel.transport, cmd_vel.codec, cmd_vel.cipher) == (
         "/cmd_vel", "udp", "cdr", "fernet")
@@ -211,18 +220,20 @@ def test_peer_file(tmp_path: Path) -> None:
         "peer", "192.168.0.20", "0.0.0.0", None)
     assert config.defaults == {"transport": "udp", "codec": "msgpack", "cipher": "none"}
     (position,) = config.topics
-    assert (position.remote, position.transport, position.codec, position.port, position.framing) == (
-        "position", "udp", "msgpack", 20000, "none")  # bare framing: the name as written
+    # bare framing: the name as written
+    assert (position.remote, position.transport, position.codec, position.port,
+            position.framing) == ("position", "udp", "msgpack", 20000, "none")
     (ping,) = config.services
-    assert (ping.remote, ping.transport, ping.port, ping.framing, ping.timeout, ping.max_request) == (
-        "ping", "tcp", 20001, "serial_datagram", 5.0, 65536)
+    assert (ping.remote, ping.transport, ping.port, ping.framing, ping.timeout,
+            ping.max_request) == ("ping", "tcp", 20001, "serial_datagram", 5.0, 65536)
 
 
 def test_bare_framing_keeps_remote_as_written_and_defaults_to_the_name_without_slash() -> None:
     config = loads("""
 bridge: {name: cvra, role: peer, peer: 127.0.0.1}
 topics:
-  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 20000, framing: none}
+  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 20000,
+     framing: none}
   - {topic: /pose, type: geometry_msgs/msg/Pose2D, direction: receive, port: 20000, framing: none,
      remote: Robot/Pose-2D}
   - {topic: /chatter, type: std_msgs/msg/String, direction: receive, port: 20002, remote: chatter}
@@ -235,7 +246,8 @@ services:
 
 
 def test_peer_listen_and_scalars_yaml_would_not_read_as_strings(tmp_path: Path) -> None:
-    # 10:11:22:33:44:55 is a base-60 integer to YAML 1.1 and `yes` a boolean: keep the text as written
+    # 10:11:22:33:44:55 is a base-60 integer to YAML 1.1 and `yes` a boolean: keep the text as
+    # written
     config = load(write(tmp_path, """
         bridge:
           name: yes
@@ -272,7 +284,7 @@ def test_loads_uses_the_given_name_and_folder(tmp_path: Path) -> None:
     assert (config.file, config.base_dir, config.server) == ("inline.yaml", tmp_path, ":12000")
 
 
-# --- one located error per mistake -----------------------------------------------------------------
+# --- one located error per mistake ---------------------------------------------------------------
 
 CLIENT_HEAD = """\
 bridge:
@@ -299,7 +311,8 @@ topics:
     type: std_msgs/msg/String
     direction: transmit
 """
-ENTRY = "    type: std_msgs/msg/String\n    direction: transmit\n"  # the rest of an entry after its name
+# the rest of an entry after its name
+ENTRY = "    type: std_msgs/msg/String\n    direction: transmit\n"
 SERVICE = """\
 services:
   - service: /ping
@@ -512,14 +525,18 @@ ERRORS = {
         CLIENT_HEAD + "topics:\n  - topic: /a\n    type: String\n    direction: transmit\n",
         7, "topics[0].type", "'String' is not an interface type name"),
     "topic_with_service_type": (
-        CLIENT_HEAD + "topics:\n  - topic: /a\n    type: std_srvs/srv/Trigger\n    direction: transmit\n",
-        7, "topics[0].type", "'std_srvs/srv/Trigger' is a 'srv' type, but a topic needs package/msg/Type"),
+        CLIENT_HEAD + "topics:\n  - topic: /a\n    type: std_srvs/srv/Trigger\n"
+                      "    direction: transmit\n",
+        7, "topics[0].type",
+        "'std_srvs/srv/Trigger' is a 'srv' type, but a topic needs package/msg/Type"),
     "service_with_message_type": (
-        CLIENT_HEAD + "services:\n  - service: /a\n    type: std_msgs/msg/Empty\n    direction: transmit\n",
+        CLIENT_HEAD + "services:\n  - service: /a\n    type: std_msgs/msg/Empty\n"
+                      "    direction: transmit\n",
         7, "services[0].type", "a service needs package/srv/Type"),
     # duplicates: at the second entry, naming the first
     "duplicate_topic": (
-        CLIENT_HEAD + TOPIC + "  - topic: chatter\n    type: std_msgs/msg/String\n    direction: transmit\n",
+        CLIENT_HEAD + TOPIC + "  - topic: chatter\n    type: std_msgs/msg/String\n"
+                              "    direction: transmit\n",
         9, "topics[1].topic", "/chatter (transmit) is already listed as topics[0] on line 6"),
     "duplicate_receive_remote": (
         CLIENT_HEAD + "topics:\n"
@@ -602,8 +619,8 @@ def test_error_reads_file_line_key_and_fix(tmp_path: Path) -> None:
 """)
     assert str(error) == (
         f"{path}:12: topics[1].codek: unknown key 'codek' (did you mean 'codec'?)\n"
-        "  fix: valid keys are topic, type, direction, remote, transport, codec, cipher, port, framing, "
-        "qos, max_rate, priority, latest_only, max_delay, recovery, recovery_overhead, "
+        "  fix: valid keys are topic, type, direction, remote, transport, codec, cipher, port, "
+        "framing, qos, max_rate, priority, latest_only, max_delay, recovery, recovery_overhead, "
         "compression, compression_level, typical_size")
 
 
@@ -626,7 +643,8 @@ def test_legacy_file_is_named_as_such(path: Path) -> None:
 
 
 def test_legacy_files_exist() -> None:
-    assert len(LEGACY) >= 3  # guards the parametrized test above against silently running zero cases
+    # guards the parametrized test above against silently running zero cases
+    assert len(LEGACY) >= 3
 
 
 def test_unreadable_file(tmp_path: Path) -> None:
@@ -646,7 +664,7 @@ def test_not_utf8(tmp_path: Path) -> None:
         str(path), "not UTF-8 text (byte 17: invalid continuation byte)")
 
 
-# --- entries over the network ----------------------------------------------------------------------
+# --- entries over the network --------------------------------------------------------------------
 
 def test_entries_round_trip_through_plain_mappings(tmp_path: Path) -> None:
     config = load(write(tmp_path, CLIENT))
@@ -669,19 +687,21 @@ def test_topic_to_mapping_leaves_unset_keys_out() -> None:
 
 
 def test_entry_from_mapping_fills_defaults_and_normalises() -> None:
-    topic = topic_from_mapping({"topic": "odom", "type": "nav_msgs/Odometry", "direction": "receive"},
-                               {"transport": "tcp", "codec": "msgpack", "cipher": "fernet"}, "client robot1")
+    topic = topic_from_mapping({"topic": "odom", "type": "nav_msgs/Odometry",
+                                "direction": "receive"},
+                               {"transport": "tcp", "codec": "msgpack", "cipher": "fernet"},
+                               "client robot1")
     assert (topic.topic, topic.remote, topic.type) == ("/odom", "/odom", "nav_msgs/msg/Odometry")
     assert (topic.transport, topic.codec, topic.cipher, topic.line, topic.lines) == (
         "tcp", "msgpack", "fernet", 0, {})
-    service = service_from_mapping({"service": "/s", "type": "std_srvs/Empty", "direction": "transmit"},
-                                   {}, "x")
+    service = service_from_mapping({"service": "/s", "type": "std_srvs/Empty",
+                                    "direction": "transmit"}, {}, "x")
     assert (service.type, service.transport, service.timeout) == ("std_srvs/srv/Empty", "udp", 5.0)
 
 
 @pytest.mark.parametrize("data, key, message", [
-    ({"topic": "/a", "type": "std_msgs/msg/Empty", "direction": "transmit", "codec": 5}, "topics[3].codec",
-     "expected a non-empty string, got 5"),
+    ({"topic": "/a", "type": "std_msgs/msg/Empty", "direction": "transmit", "codec": 5},
+     "topics[3].codec", "expected a non-empty string, got 5"),
     ({"topic": "/a", "type": "std_msgs/msg/Empty", "direction": "transmit", "codek": "cdr"},
      "topics[3].codek", "did you mean 'codec'"),
     ({"topic": "/a", "direction": "transmit"}, "topics[3].type", "missing required key 'type'"),
@@ -696,8 +716,9 @@ def test_topic_from_mapping_errors(data: object, key: str, message: str) -> None
 
 def test_service_from_mapping_errors() -> None:
     with pytest.raises(ConfigError) as info:
-        service_from_mapping({"service": "/a", "type": "std_srvs/srv/Empty", "direction": "transmit",
-                              "timeout": -2}, DEFAULTS, "client robot1", index=1)
+        service_from_mapping({"service": "/a", "type": "std_srvs/srv/Empty",
+                              "direction": "transmit", "timeout": -2},
+                             DEFAULTS, "client robot1", index=1)
     assert (info.value.file, info.value.line, info.value.key) == (
         "client robot1", None, "services[1].timeout")
     with pytest.raises(ConfigError) as info:

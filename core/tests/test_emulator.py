@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import random
 import signal
 import socket
@@ -18,8 +17,15 @@ import time
 
 import pytest
 
-from rosgate.testing.emulator import (WIFI, NetnsPair, Profile, TcpRelay, UdpRelay,
-                                      ip_fragments, udp_wire_bytes)
+from rosgate.testing.emulator import (
+    WIFI,
+    NetnsPair,
+    Profile,
+    TcpRelay,
+    UdpRelay,
+    ip_fragments,
+    udp_wire_bytes,
+)
 
 TIMEOUT = 10.0
 BUFFER = 8 << 20
@@ -49,7 +55,7 @@ class Sink:
         while not self.stopping.is_set():
             try:
                 data, ancillary, _, source = self.sock.recvmsg(65535, 64)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return
@@ -115,7 +121,8 @@ def send_all(relay: UdpRelay, sock: socket.socket, datagrams, batch: int = 500):
         for d in datagrams[start:start + batch]:
             sock.sendto(d, relay.address)
         sent += len(datagrams[start:start + batch])
-        assert relay.wait_until(lambda up, down: up.datagrams_in >= sent, TIMEOUT)
+        assert relay.wait_until(lambda up, down: up.datagrams_in >= sent,  # noqa: B023 - polled here
+                                TIMEOUT)
 
 
 def settled(up) -> bool:

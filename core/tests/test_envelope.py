@@ -1,4 +1,5 @@
-"""The envelope header, byte for byte, and the replay window that refuses duplicated and stale frames."""
+"""The envelope header, byte for byte, and the replay window that refuses duplicated and stale
+frames."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 from rosgate.wire import envelope
 from rosgate.wire.envelope import EnvelopeError, Header, ReplayWindow
 
-# --- pack / unpack ---------------------------------------------------------------------------------
+# --- pack / unpack -------------------------------------------------------------------------------
 
 # flags 0x03, topic 0x01020304, epoch 0xA0B0C0D0, seq 0x1122334455667788, stamp 0x0102030405060708
 PACKED = (b"RG"                                  # magic
@@ -29,7 +30,8 @@ def test_pack_is_the_documented_28_byte_big_endian_layout():
 
 def test_pack_of_small_values_puts_them_in_the_low_bytes():
     assert envelope.pack(envelope.FLAG_CONTROL, 0, 1, 2, 3) == (
-        b"RG\x01\x01" + b"\x00" * 4 + b"\x00\x00\x00\x01" + b"\x00" * 7 + b"\x02" + b"\x00" * 7 + b"\x03")
+        b"RG\x01\x01" + b"\x00" * 4 + b"\x00\x00\x00\x01" + b"\x00" * 7 + b"\x02" + b"\x00" * 7
+        + b"\x03")
     assert envelope.pack(envelope.FLAG_HELLO, 7, 0, 0, 0)[3] == 0x02
 
 
@@ -83,7 +85,7 @@ def test_envelope_error_is_a_value_error():
     assert issubclass(EnvelopeError, ValueError)
 
 
-# --- replay window ---------------------------------------------------------------------------------
+# --- replay window -------------------------------------------------------------------------------
 
 EPOCH = 0x5EED
 

@@ -10,9 +10,24 @@ import pytest
 
 from rosgate.wire import envelope
 from rosgate.wire.framing import (
-    CHUNK, CHUNK_HEAD, CHUNKED, DEFAULT_MAX_MESSAGE, FRAGMENT, LAST, LENGTH, MAX_OPEN_MESSAGES,
-    PARTIAL_COST, CompactReassembler, FramingError, Reassembler, StreamReader, compact_fragment,
-    fragment, is_fragment, length_prefixed, stream_records,
+    CHUNK,
+    CHUNK_HEAD,
+    CHUNKED,
+    DEFAULT_MAX_MESSAGE,
+    FRAGMENT,
+    LAST,
+    LENGTH,
+    MAX_OPEN_MESSAGES,
+    PARTIAL_COST,
+    CompactReassembler,
+    FramingError,
+    Reassembler,
+    StreamReader,
+    compact_fragment,
+    fragment,
+    is_fragment,
+    length_prefixed,
+    stream_records,
 )
 
 
@@ -84,7 +99,7 @@ def test_random_chunkings():
     for _ in range(40):
         cuts = sorted(rng.sample(range(1, len(stream)), rng.randint(1, 200)))
         bounds = [0, *cuts, len(stream)]
-        chunks = [stream[a:b] for a, b in zip(bounds, bounds[1:])]
+        chunks = [stream[a:b] for a, b in zip(bounds, bounds[1:], strict=False)]
         assert read_all(StreamReader(), chunks) == frames
 
 
@@ -279,7 +294,8 @@ def test_memory_bound_sheds_the_oldest_partial_frame():
     # room for two partial 300-byte frames, not three
     reassembler = Reassembler(lost, max_pending_bytes=2 * cost(3, 300) + 100)
     frames = {topic: bytes([topic]) * 300 for topic in (1, 2, 3)}
-    pieces = {topic: fragment(frame, 114, topic_id=topic, frame_id=topic) for topic, frame in frames.items()}
+    pieces = {topic: fragment(frame, 114, topic_id=topic, frame_id=topic)
+              for topic, frame in frames.items()}
     for topic in (1, 2):
         for piece in pieces[topic][:2]:
             assert reassembler.add("s", piece) is None
@@ -542,8 +558,8 @@ def test_compact_lost_piece_drops_that_frame_only_and_counts_it_against_its_topi
         pieces.append(mine)
     del pieces[1][40]  # in the middle of the second frame
     lost = Lost()
-    assert assemble(CompactReassembler(lost, envelope.topic_of), [p for mine in pieces for p in mine]) == \
-        [frames[0], frames[2]]
+    assert assemble(CompactReassembler(lost, envelope.topic_of),
+                    [p for mine in pieces for p in mine]) == [frames[0], frames[2]]
     assert lost.calls == [(7, "fragment_lost")]
 
 
@@ -591,7 +607,8 @@ def test_compact_a_new_first_piece_abandons_the_frame_in_progress():
     whole = frame_on(6, 100, rng)
     lost = Lost()
     # the counter runs on (no gap), yet a first piece arrives: the sender gave up the frame
-    assert assemble(CompactReassembler(lost, envelope.topic_of), half + compact_fragment(whole, 8, 5)) == [whole]
+    assert assemble(CompactReassembler(lost, envelope.topic_of),
+                    half + compact_fragment(whole, 8, 5)) == [whole]
     assert lost.calls == [(6, "fragment_lost")]
 
 

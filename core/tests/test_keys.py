@@ -51,7 +51,8 @@ def test_key_env_is_read_stripped(tmp_path, monkeypatch):
     assert key({"key_env": "ROSGATE_TEST_KEY"}, tmp_path) == KEY
 
 
-@pytest.mark.parametrize("options", [{}, {"key_file": "a", "key_env": "B"}], ids=["neither", "both"])
+@pytest.mark.parametrize("options", [{}, {"key_file": "a", "key_env": "B"}],
+                         ids=["neither", "both"])
 def test_exactly_one_source(tmp_path, options):
     error = option_error(options, tmp_path)
     assert error.key is None
@@ -61,11 +62,13 @@ def test_exactly_one_source(tmp_path, options):
 
 def test_unknown_option_is_named(tmp_path):
     error = option_error({"key_file": "a", "keyfile": "a", "mode": 1}, tmp_path)
-    assert (error.key, error.message) == ("keyfile", "unknown option of demo (did you mean 'key_file'?)")
+    assert (error.key, error.message) == ("keyfile",
+                                          "unknown option of demo (did you mean 'key_file'?)")
     assert error.fix == "the options of demo are key_file, key_env"
 
 
-@pytest.mark.parametrize("table, name", [({"key_file": 5}, "key_file"), ({"key_env": ["K"]}, "key_env")])
+@pytest.mark.parametrize("table, name", [({"key_file": 5}, "key_file"),
+                                         ({"key_env": ["K"]}, "key_env")])
 def test_a_source_must_be_a_string(tmp_path, table, name):
     error = option_error(table, tmp_path)
     assert error.key == name
@@ -100,7 +103,8 @@ def test_a_key_file_others_can_read_is_warned_about(tmp_path, caplog, mode, warn
     with caplog.at_level(logging.DEBUG, logger="rosgate"):
         assert key({"key_file": "k.key"}, tmp_path) == KEY
     messages = [r.getMessage() for r in caplog.records if r.name == "rosgate"]
-    assert messages == ([f"key file {path} is readable by other users; chmod 600 it"] if warned else [])
+    assert messages == ([f"key file {path} is readable by other users; chmod 600 it"]
+                        if warned else [])
     assert all(KEY.decode() not in m for m in messages)
 
 

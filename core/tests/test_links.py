@@ -15,9 +15,9 @@ from rosgate_transport_bt import BluetoothTransport
 from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
+from rosgate.links import DatagramLink, LinkSlot, QueueLimits, StreamLink
 from rosgate.wire import envelope, framing
 from rosgate.wire.framing import FRAGMENT, LENGTH, length_prefixed
-from rosgate.links import DatagramLink, LinkSlot, QueueLimits, StreamLink
 
 TOPIC = 5
 
@@ -86,7 +86,7 @@ def closing():
         thing.close()
 
 
-# --- datagram links --------------------------------------------------------------------------------
+# --- datagram links ------------------------------------------------------------------------------
 
 @pytest.fixture
 def udp_pair(closing):
@@ -105,7 +105,8 @@ def test_datagram_frames_of_every_size_arrive_byte_exact(udp_pair):
     (a, a_inbox, a_address), (b, b_inbox, b_address) = udp_pair
     rng = random.Random(1)
     frames = [b"\x01", frame_of(1, 10_000, rng), frame_of(2, 200_000, rng),
-              frame_of(3, UdpTransport.max_frame, rng), frame_of(4, UdpTransport.max_frame + 1, rng)]
+              frame_of(3, UdpTransport.max_frame, rng),
+              frame_of(4, UdpTransport.max_frame + 1, rng)]
     for frame in frames:
         assert a.send(frame, a_inbox.sender(TOPIC), b_address) is True
     assert b_inbox.wait(lambda: len(b_inbox.frames) >= len(frames)), b_inbox.drops
@@ -139,7 +140,8 @@ def test_bare_mode_refuses_frames_that_do_not_fit(closing):
     transport = UdpTransport({})
     inbox = Inbox()
     endpoint = transport.bind(("127.0.0.1", 0))
-    link = closing(DatagramLink(transport, endpoint, "bare", inbox.on_frame, inbox.on_lost, bare=True))
+    link = closing(DatagramLink(transport, endpoint, "bare", inbox.on_frame, inbox.on_lost,
+                                bare=True))
     assert link.send(bytes(UdpTransport.max_frame + 1), inbox.sender(9), ("127.0.0.1", 9)) is False
     assert inbox.drops == [(9, "too_large_for_bare_framing")]
 
@@ -155,7 +157,7 @@ def test_bare_mode_hands_over_fragment_lookalikes_untouched(closing):
     assert inbox.payloads() == [b"RF not a fragment"] and inbox.drops == []
 
 
-# --- coalescing, the send thread, scatter-gather ---------------------------------------------------
+# --- coalescing, the send thread, scatter-gather -------------------------------------------------
 
 class Recorder:
     """An endpoint wrapper that records every datagram sent (its parts when sent as parts, and
@@ -485,7 +487,8 @@ def test_frames_sent_at_once_to_one_destination_do_not_interleave(closing):
     to = b.endpoint.endpoint.sock.getsockname()
     rng = random.Random(5)
     batches = [[frame_of(i, 400, rng) for i in range(20)] for _ in range(4)]
-    threads = [threading.Thread(target=lambda batch=batch: [a.send(f, a_inbox.sender(TOPIC), to) for f in batch])
+    threads = [threading.Thread(target=lambda batch=batch: [a.send(f, a_inbox.sender(TOPIC), to)
+                                                            for f in batch])
                for batch in batches]
     for thread in threads:
         thread.start()
@@ -510,7 +513,7 @@ def test_a_lost_small_frame_drops_its_frame_only_and_counts_it_against_the_topic
     assert b_inbox.drops == [(TOPIC, "fragment_lost")]
 
 
-# --- stream links ----------------------------------------------------------------------------------
+# --- stream links --------------------------------------------------------------------------------
 
 @pytest.fixture(params=["tcp", "bt"])
 def tcp_connections(request, closing, tmp_path_factory):
@@ -536,7 +539,8 @@ def tcp_connections(request, closing, tmp_path_factory):
 
 def stream_link(connection, name: str, inbox: Inbox, **kwargs) -> StreamLink:
     peer = connection.sock.getpeername()[:2]
-    return StreamLink(connection, name, peer, inbox.on_frame, inbox.on_lost, inbox.on_close, **kwargs)
+    return StreamLink(connection, name, peer, inbox.on_frame, inbox.on_lost, inbox.on_close,
+                      **kwargs)
 
 
 @pytest.fixture
@@ -568,10 +572,11 @@ def test_stream_frames_both_ways_at_once(tcp_pair):
     rng = random.Random(4)
     there = [frame_of(i, rng.randint(1, 100_000), rng) for i in range(50)]
     back = [frame_of(i, rng.randint(1, 100_000), rng) for i in range(50)]
-    for x, y in zip(there, back):
+    for x, y in zip(there, back, strict=True):
         a.send(x, a_inbox.sender(TOPIC))
         b.send(y, b_inbox.sender(TOPIC))
-    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 50) and a_inbox.wait(lambda: len(a_inbox.frames) >= 50)
+    assert (b_inbox.wait(lambda: len(b_inbox.frames) >= 50)
+            and a_inbox.wait(lambda: len(a_inbox.frames) >= 50))
     assert b_inbox.payloads() == there and a_inbox.payloads() == back
 
 
@@ -595,14 +600,16 @@ def blocked_writer(closing, tcp_connections, **kwargs) -> tuple[StreamLink, Inbo
 
 def test_a_full_queue_counts_queue_full(closing, tcp_connections):
     link, inbox = blocked_writer(closing, tcp_connections, queue_frames=2)
-    assert [link.send(b"small", inbox.sender(2)) for _ in range(6)] == [True, True, False, False, False, False]
+    assert [link.send(b"small", inbox.sender(2)) for _ in range(6)] == [True, True, False, False,
+                                                                         False, False]
     assert inbox.drops == [(2, "queue_full")] * 4
     assert not link.closed.is_set()
 
 
 def test_a_queue_over_its_byte_bound_counts_queue_full(closing, tcp_connections):
     link, inbox = blocked_writer(closing, tcp_connections, queue_bytes=8_000_004)
-    assert link.send(bytes(4_000_000), inbox.sender(3)) is True   # 4,000,004 bytes with its length prefix
+    # 4,000,004 bytes with its length prefix
+    assert link.send(bytes(4_000_000), inbox.sender(3)) is True
     assert link.send(bytes(3_999_996), inbox.sender(3)) is True   # exactly at the bound
     assert link.send(b"x", inbox.sender(4)) is False
     assert inbox.drops == [(4, "queue_full")]
@@ -737,7 +744,7 @@ def test_what_a_write_without_waiting_left_goes_first_from_the_writer(closing, t
     assert {name for kind, name, _ in writes.calls[1:] if kind == "send"} == {"tx-near"}
 
 
-# --- a slot for a link that comes and goes ---------------------------------------------------------
+# --- a slot for a link that comes and goes -------------------------------------------------------
 
 def test_a_slot_holds_reliable_frames_while_down_and_sends_them_first_in_order(closing,
                                                                                tcp_connections):

@@ -92,8 +92,8 @@ def lossy_pair(closing, profile: Profile, budget: LinkConfig | None = None,
     transport = UdpTransport({"max_frame": max_frame})
     rx = Receiver()
     b_end = transport.bind(("127.0.0.1", 0))
-    b = closing(DatagramLink(transport, b_end, "b", rx.on_frame, rx.on_lost,
-                             on_recovered=rx.on_recovered))
+    closing(DatagramLink(transport, b_end, "b", rx.on_frame, rx.on_lost,
+                         on_recovered=rx.on_recovered))
     relay = closing(UdpRelay(profile, target=b_end.sock.getsockname()))
     a = closing(DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "a",
                              Receiver().on_frame, Receiver().on_lost, budget=budget))

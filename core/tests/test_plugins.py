@@ -14,16 +14,23 @@ from typing import Any
 import pytest
 
 import rosgate
-from rosgate import (Cipher, Codec, DatagramTransport, LinkError, StreamTransport, Transport,
-                     hookimpl)
+from rosgate import (
+    Cipher,
+    Codec,
+    DatagramTransport,
+    LinkError,
+    StreamTransport,
+    Transport,
+    hookimpl,
+    hookspecs,
+)
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import loads
 from rosgate.engine import Engine
-from rosgate.roles import Bridge
-from rosgate import hookspecs
 from rosgate.message_tree import TreeCodec
 from rosgate.options import parse
 from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration, deprecations
+from rosgate.roles import Bridge
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -86,7 +93,7 @@ def boom(register):
     raise RuntimeError("boom")
 
 
-# --- registration ----------------------------------------------------------------------------------
+# --- registration --------------------------------------------------------------------------------
 
 def test_each_kind_is_registered_with_its_origin():
     plugins = Plugins()
@@ -96,7 +103,8 @@ def test_each_kind_is_registered_with_its_origin():
     assert plugins.names("transport") == ["alpha"]
     assert plugins.names("codec") == ["beta", "zeta"]
     assert plugins.names("cipher") == ["gamma"]
-    assert plugins.get("codec", "zeta") == Registration("codec", "zeta", Zeta, "greek", "rosgate-greek", "1.0")
+    assert plugins.get("codec", "zeta") == Registration("codec", "zeta", Zeta, "greek",
+                                                        "rosgate-greek", "1.0")
     assert plugins.get("transport", "alpha").cls is Alpha
     assert plugins.get("cipher", "gamma").cls is Gamma
     assert plugins.get("codec", "alpha") is None  # names are per kind
@@ -170,7 +178,8 @@ def test_classes_registered_before_a_hook_raised_are_not_kept():
     plugins = Plugins()
     plugins.add(plugin(rosgate_codecs=half), "half", "rosgate-half")
     assert plugins.names("codec") == []
-    assert [f.reason.split(" (")[0] for f in plugins.failures] == ["rosgate_codecs: ValueError: half way"]
+    assert [f.reason.split(" (")[0] for f in plugins.failures] == [
+        "rosgate_codecs: ValueError: half way"]
 
 
 class NotAPlugin:
@@ -197,7 +206,7 @@ class NumberName(FakeCodec):
     ("rosgate_codecs", NotAPlugin, "which is not a subclass of rosgate.Codec"),
     ("rosgate_codecs", Alpha, "which is not a subclass of rosgate.Codec"),       # wrong kind
     ("rosgate_transports", Beta, "which is not a subclass of rosgate.Transport"),
-    ("rosgate_ciphers", Gamma({}, "."), "which is not a subclass of rosgate.Cipher"),    # an instance
+    ("rosgate_ciphers", Gamma({}, "."), "which is not a subclass of rosgate.Cipher"),  # an instance
     ("rosgate_ciphers", "fernet", "which is not a subclass of rosgate.Cipher"),
     ("rosgate_codecs", NoName, "NoName has no valid 'name'"),
     ("rosgate_codecs", BadName, "BadName has no valid 'name'"),
@@ -231,11 +240,13 @@ def test_the_same_name_twice_the_first_wins():
 
     plugins = Plugins()
     plugins.add(plugin(rosgate_codecs=registers(Beta)), "one", "rosgate-codec-one", "1.0")
-    plugins.add(plugin(rosgate_codecs=registers(OtherBeta, Zeta)), "two", "rosgate-codec-two", "2.0")
+    plugins.add(plugin(rosgate_codecs=registers(OtherBeta, Zeta)), "two", "rosgate-codec-two",
+                "2.0")
     assert plugins.get("codec", "beta").cls is Beta
     assert plugins.get("codec", "zeta").plugin == "two"
     assert plugins.failures == [Failure("two", "rosgate-codec-two",
-                                        "codec 'beta' is already provided by rosgate-codec-one; skipped")]
+                                        "codec 'beta' is already provided by rosgate-codec-one; "
+                                        "skipped")]
 
 
 def test_the_same_name_in_different_kinds_is_not_a_clash():
@@ -249,7 +260,8 @@ def test_the_same_name_in_different_kinds_is_not_a_clash():
             raise OSError("no")
 
     plugins = Plugins()
-    plugins.add(plugin(rosgate_codecs=registers(Beta), rosgate_transports=registers(BetaTransport)), "b")
+    plugins.add(plugin(rosgate_codecs=registers(Beta),
+                       rosgate_transports=registers(BetaTransport)), "b")
     assert plugins.failures == []
     assert plugins.get("codec", "beta").cls is Beta
     assert plugins.get("transport", "beta").cls is BetaTransport
@@ -260,7 +272,8 @@ def test_a_plugin_name_added_twice_is_a_failure():
     plugins.add(plugin(rosgate_codecs=registers(Beta)), "dup", "rosgate-first")
     plugins.add(plugin(rosgate_codecs=registers(Zeta)), "dup", "rosgate-second")
     assert plugins.names("codec") == ["beta"]
-    assert plugins.failures == [Failure("dup", "rosgate-second", "a plugin of this name is already loaded")]
+    assert plugins.failures == [Failure("dup", "rosgate-second",
+                                        "a plugin of this name is already loaded")]
 
 
 def test_remove_forgets_a_plugins_registrations():
@@ -277,7 +290,7 @@ def test_remove_forgets_a_plugins_registrations():
     assert plugins.failures == []
 
 
-# --- pluggy finds the hooks: every rosgate_* function is one, a misspelt one is a failure -----------
+# --- pluggy finds the hooks: every rosgate_* function is one, a misspelt one is a failure --------
 
 def module(name: str, source: str, **names: Any) -> types.ModuleType:
     """A plugin module made from source, as an entry point imports it; ``names`` are in scope."""
@@ -384,14 +397,16 @@ def test_an_abstract_class_is_refused_naming_what_it_does_not_implement(hook, cl
 
 
 def test_a_transport_that_is_neither_stream_nor_datagram_is_refused():
-    with pytest.deprecated_call(match="subclass rosgate.DatagramTransport or rosgate.StreamTransport"):
+    with pytest.deprecated_call(match="subclass rosgate.DatagramTransport or "
+                                      "rosgate.StreamTransport"):
         class Undecided(Transport):
             name = "undecided"
 
     plugins = Plugins()
     plugins.add(plugin(rosgate_transports=registers(Undecided)), "undecided")
     assert [f.reason for f in plugins.failures] == [
-        "Undecided says neither stream nor datagram (subclass DatagramTransport or StreamTransport)"]
+        "Undecided says neither stream nor datagram "
+        "(subclass DatagramTransport or StreamTransport)"]
 
 
 def test_options_that_are_not_a_frozen_dataclass_are_refused():
@@ -432,7 +447,7 @@ def test_a_legacy_transport_still_registers_and_works_with_warnings():
     assert (old.options, old.max_frame, old.stream) == ({"max_frame": 64}, 64, False)
 
 
-# --- lazy discovery ---------------------------------------------------------------------------------
+# --- lazy discovery ------------------------------------------------------------------------------
 
 def test_asking_for_a_name_loads_its_entry_point_first_and_the_others_only_if_needed(monkeypatch):
     loaded: list[str] = []
@@ -482,7 +497,7 @@ def test_every_hook_is_documented_in_its_spec_and_in_the_guide():
         assert name in guide, f"docs/plugins.md does not mention {name}"
 
 
-# --- explaining a missing plugin --------------------------------------------------------------------
+# --- explaining a missing plugin -----------------------------------------------------------------
 
 def test_explain_missing_lists_installed_names_and_the_distribution_to_install():
     plugins = Plugins()
@@ -511,8 +526,8 @@ def test_explain_missing_gives_the_reason_a_plugin_failed():
     plugins = Plugins()
     plugins.add(plugin(rosgate_codecs=boom), "cbor", "rosgate-codec-cbor")
     message, fix = plugins.explain_missing("codec", "cbor")
-    assert message.startswith("unknown codec 'cbor' (installed codecs: none); plugin 'cbor' is installed "
-                              "but failed to load: rosgate_codecs: RuntimeError: boom")
+    assert message.startswith("unknown codec 'cbor' (installed codecs: none); plugin 'cbor' is "
+                              "installed but failed to load: rosgate_codecs: RuntimeError: boom")
     assert "blocked" not in message
     assert fix == "repair or reinstall rosgate-codec-cbor, or pick an installed codec"
 
@@ -526,7 +541,7 @@ def test_explain_missing_says_when_a_plugin_is_blocked():
     assert fix == "remove nacl from ROSGATE_DISABLE_PLUGINS, or pick an installed cipher"
 
 
-# --- discovery through entry points -------------------------------------------------------------------
+# --- discovery through entry points --------------------------------------------------------------
 
 def test_discover_finds_the_installed_plugins(monkeypatch):
     monkeypatch.delenv(DISABLE_VARIABLE, raising=False)
@@ -572,7 +587,8 @@ def test_builtin_cannot_be_blocked(monkeypatch):
 ], ids=["core-default", "transport-fix"])
 def test_a_link_error_is_located_with_the_transports_fix_or_the_default(error, fix):
     config = loads("bridge: {name: a, role: peer, peer: h}\n"
-                   "topics:\n  - {topic: /t, type: std_msgs/msg/String, direction: receive, port: 5}\n",
+                   "topics:\n  - {topic: /t, type: std_msgs/msg/String, direction: receive, "
+                   "port: 5}\n",
                    file="x.yaml")
     engine = Engine(config).prepare()
     bridge = Bridge(config, engine.plan, engine.resolver, None, engine.life)  # type: ignore[arg-type]

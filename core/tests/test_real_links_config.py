@@ -161,7 +161,7 @@ topics:
     budget = out[out.index("budget of udp: 20.0 Mbit/s per peer"):]
     assert budget == [
         "budget of udp: 20.0 Mbit/s per peer",
-        # 921,683 B frames in 655 chunks of 1,408 B + 33 repair fragments, 21 + 28 B each
+        # 921,683 B frames in 636 chunks of 1,450 B + 33 repair fragments, 21 + 28 B each
         "  /camera   2.5 Hz x 921,655 B = 1,002,831 B on the wire (669 packets) -> 20.1 Mbit/s",
         # 52 B of CDR, the 28-byte envelope, 28 bytes of IP and UDP
         "  /cmd_vel  50 Hz x 52 B = 108 B on the wire (1 packet) -> 43.2 kbit/s",

@@ -10,8 +10,14 @@ from collections import deque
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import TopicConfig
 from rosgate.keyring import StaticKeys
-from rosgate.routes import (DRAIN_BYTES, DRAIN_FRAMES, EnvelopeFraming, ReceiveRoute,
-                            TransmitRoute, Warner)
+from rosgate.routes import (
+    DRAIN_BYTES,
+    DRAIN_FRAMES,
+    EnvelopeFraming,
+    ReceiveRoute,
+    TransmitRoute,
+    Warner,
+)
 from rosgate.wire import envelope
 
 

@@ -18,7 +18,8 @@ def vectors() -> list[tuple[bytes, bytes]]:
         if line.startswith("#") or "->" not in line:
             continue
         payload, frame = (part.strip() for part in line.split("->"))
-        pairs.append((b"" if payload == "(empty)" else bytes.fromhex(payload), bytes.fromhex(frame)))
+        pairs.append((b"" if payload == "(empty)" else bytes.fromhex(payload),
+                      bytes.fromhex(frame)))
     return pairs
 
 

@@ -56,7 +56,7 @@ def test_a_public_key_that_is_not_one_is_refused(text):
         identity.decode_public(text)
 
 
-# -- the handshake, over real sockets ---------------------------------------------------------------
+# -- the handshake, over real sockets -------------------------------------------------------------
 def pair() -> tuple[SocketConnection, SocketConnection]:
     a, b = socket.socketpair()
     return SocketConnection(a), SocketConnection(b)
@@ -145,7 +145,7 @@ def test_a_tampered_record_ends_the_secure_stream(keys):
         s.receive(100, 2)
 
 
-# -- the key schedule -------------------------------------------------------------------------------
+# -- the key schedule -----------------------------------------------------------------------------
 class Clock:
     def __init__(self) -> None:
         self.now = 1000.0
@@ -265,7 +265,7 @@ def test_hellos_are_sealed_in_the_session():
     assert not open_hello(other, header, hello)
 
 
-# -- policy -----------------------------------------------------------------------------------------
+# -- policy ---------------------------------------------------------------------------------------
 @pytest.mark.parametrize("pattern, name, expected", [
     ("/robot1/**", "/robot1/scan", True), ("/robot1/**", "/robot1/arm/joint", True),
     ("/robot1/*", "/robot1/arm/joint", False), ("/robot1/*", "/robot1/scan", True),

@@ -74,8 +74,15 @@ def message_types() -> list[type]:
     from geometry_msgs.msg import PolygonStamped, PoseStamped, Twist
     from nav_msgs.msg import OccupancyGrid, Odometry, Path
     from rcl_interfaces.msg import ParameterValue
-    from sensor_msgs.msg import (CameraInfo, Image, JointState, LaserScan, MultiEchoLaserScan,
-                                 NavSatFix, PointCloud2)
+    from sensor_msgs.msg import (
+        CameraInfo,
+        Image,
+        JointState,
+        LaserScan,
+        MultiEchoLaserScan,
+        NavSatFix,
+        PointCloud2,
+    )
     from std_msgs.msg import Empty, Float64MultiArray, Header, String
     from std_srvs.srv import SetBool
 
@@ -100,9 +107,9 @@ def _codec(name: str, msg_type: type) -> Any:
 def caches() -> tuple[int, ...]:
     """How much the targets' caches hold (message types, codecs, converter trees): an input
     during which they grew paid for building them, which a time limit must not count."""
-    from rosgate.message_tree import _TREES
-
     import sys
+
+    from rosgate.message_tree import _TREES
 
     return (message_types.cache_info().misses, _codec.cache_info().misses, len(_TREES),
             len(sys.modules))

@@ -10,14 +10,27 @@ from .codec import Codec
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import hookimpl
 from .options import option
-from .transport import (Address, DatagramEndpoint, DatagramTransport, FastDatagramEndpoint,
-                        FastStreamConnection, SocketConnection, SocketListener, StreamConnection,
-                        StreamListener, StreamTransport, Transport, check_ip_address,
-                        ip_source_hosts, parse_host_port)
+from .transport import (
+    Address,
+    DatagramEndpoint,
+    DatagramTransport,
+    FastDatagramEndpoint,
+    FastStreamConnection,
+    SocketConnection,
+    SocketListener,
+    StreamConnection,
+    StreamListener,
+    StreamTransport,
+    Transport,
+    check_ip_address,
+    ip_source_hosts,
+    parse_host_port,
+)
 
 __all__ = [
     "Address", "Cipher", "CipherError", "Codec", "CodecError", "ConfigError", "DatagramEndpoint",
-    "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError", "RosgateError", "SocketConnection",
+    "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError",
+    "RosgateError", "SocketConnection",
     "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transport",
     "check_ip_address", "hookimpl", "ip_source_hosts", "option", "parse_host_port",
 ]

@@ -17,8 +17,8 @@ class CdrCodec(Codec):
 
     The subscription is raw (rclpy hands over the serialized CDR bytes) and the publisher
     publishes those bytes: no Python-level (de)serialization at all. Frames no cipher
-    authenticated are checked by the core before they are published (:func:`rosgate.ros.cdr_checker`);
-    authenticated ones pass straight through.
+    authenticated are checked by the core before they are published
+    (:func:`rosgate.ros.cdr_checker`); authenticated ones pass straight through.
     """
 
     name = "cdr"

@@ -71,5 +71,6 @@ class Cipher(ABC):
 
     @classmethod
     def generate_key(cls) -> bytes | None:
-        """A new key in the form the key file holds, for ``rosgate keygen NAME``; None if keyless."""
+        """A new key in the form the key file holds, for ``rosgate keygen NAME``; None if
+        keyless."""
         return None

@@ -12,8 +12,8 @@ import os
 import signal
 import sys
 import threading
-from pathlib import Path
 from collections.abc import Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from . import __version__
@@ -27,7 +27,8 @@ ROUTER_LISTEN = "tcp/0.0.0.0:7447"
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="rosgate", description="A pluggable ROS 2 network bridge.")
+    parser = argparse.ArgumentParser(prog="rosgate",
+                                     description="A pluggable ROS 2 network bridge.")
     parser.add_argument("--version", action="version", version=f"rosgate {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -104,8 +105,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     plugins = Plugins.discover()
     plugins.load_all()  # a plugin this file does not use may still be one the next file needs
     for f in plugins.failures:
-        print(f"rosgate: warning: plugin {f.plugin!r} ({f.distribution}) failed to load: {f.reason}",
-              file=sys.stderr)
+        print(f"rosgate: warning: plugin {f.plugin!r} ({f.distribution}) failed to load: "
+              f"{f.reason}", file=sys.stderr)
     engine = _engine(args.file, plugins)
     cfg, plan = engine.config, engine.plan
     assert plan is not None
@@ -192,7 +193,8 @@ def cmd_plugins(args: argparse.Namespace) -> int:
                          [(r.kind, r.name, r.distribution, r.version) for r in registrations]):
         print(line)
     for failure in plugins.failures:
-        print(f"failed to load plugin {failure.plugin!r} ({failure.distribution}): {failure.reason}")
+        print(f"failed to load plugin {failure.plugin!r} ({failure.distribution}): "
+              f"{failure.reason}")
     for name in plugins.blocked:
         print(f"blocked plugin {name!r} (ROSGATE_DISABLE_PLUGINS)")
     for r in registrations:
@@ -228,7 +230,9 @@ def _print_options(plugins: Any, name: str) -> int:
 def _columns(rows: Sequence[tuple[str, ...]]) -> list[str]:
     """Rows as lines, each column as wide as its widest cell (the last one as it is)."""
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]) - 1)]
-    return ["  ".join([cell.ljust(width) for cell, width in zip(row, widths)] + [row[-1]])
+    # widths has no entry for the last cell: zip stops one short of the row
+    return ["  ".join([cell.ljust(width) for cell, width in zip(row, widths, strict=False)]
+                      + [row[-1]])
             for row in rows]
 
 

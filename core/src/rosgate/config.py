@@ -12,10 +12,10 @@ Topic and service entries also arrive over the network from clients (no file, no
 from __future__ import annotations
 
 import difflib
+import math
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
-import math
 from enum import StrEnum
 from pathlib import Path
 from typing import Any, overload
@@ -24,6 +24,7 @@ import yaml
 
 from .errors import ConfigError
 from .placeholders import check as check_placeholders
+
 
 class Role(StrEnum):
     CLIENT = "client"
@@ -109,8 +110,8 @@ QOS_POLICIES = {
 
 TOP_KEYS = ("bridge", "plugins", "topics", "services", "clients")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
-               "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect", "queue",
-               "identity", "server_key", "insecure", "rekey", "allow", "peer_key",
+               "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect",
+               "queue", "identity", "server_key", "insecure", "rekey", "allow", "peer_key",
                "handshake_port", "fleet_timeout", "links", "limits")
 LINK_KEYS = ("bandwidth", "max_delay")
 CLIENT_KEYS = ("key", "topics", "services")
@@ -152,11 +153,14 @@ _EXAMPLES = {
     "max_rate": "20", "priority": "data", "latest_only": "true", "recovery": "fec",
     "recovery_overhead": "0.1", "compression": "zstd", "compression_level": "3",
     "typical_size": "921600", "links": "{udp: {bandwidth: 20mbit}}", "bandwidth": "20mbit",
-    "max_delay": "1.0", "topics.max_delay": "0.05", "fleet_timeout": "30", "timeout": "5", "max_request": "65536", "reliability": "reliable", "durability": "volatile",
+    "max_delay": "1.0", "topics.max_delay": "0.05", "fleet_timeout": "30", "timeout": "5",
+    "max_request": "65536", "reliability": "reliable", "durability": "volatile",
     "history": "keep_last", "depth": "10",
-    "identity": "robot1.key", "server_key": "<the server's public key, from rosgate keygen identity>",
+    "identity": "robot1.key",
+    "server_key": "<the server's public key, from rosgate keygen identity>",
     "insecure": "true", "rekey": "120", "peer_key": "<the other peer's public key>",
-    "handshake_port": "12100", "allow": "[192.168.0.20, 10.1.0.0/24]", "key": "<the client's public key>",
+    "handshake_port": "12100", "allow": "[192.168.0.20, 10.1.0.0/24]",
+    "key": "<the client's public key>",
     "clients": "{robot1: {key: <public key>, topics: [{name: /robot1/**, direction: both}]}}",
     "clients.name": "/robot1/**", "clients.direction": "transmit, receive or both",
     "clients.types": "[geometry_msgs/msg/*]", "clients.ports": "[12001, 12010-12019]",
@@ -312,7 +316,8 @@ class BridgeConfig:
     def error(self, key: str, message: str, fix: str | None = None) -> ConfigError:
         """A ConfigError located at the line of dotted key `key` (falls back to the nearest
         parent key's line)."""
-        return ConfigError(message, file=self.file, line=_line_of(self.lines, key), key=key, fix=fix)
+        return ConfigError(message, file=self.file, line=_line_of(self.lines, key), key=key,
+                           fix=fix)
 
     @property
     def secure(self) -> bool:
@@ -450,11 +455,13 @@ class _Builder:
         # merged mappings the earlier wins
         for key_node, value_node in node.value:
             if key_node.tag == _MERGE_TAG:
-                merged = value_node.value if isinstance(value_node, yaml.SequenceNode) else [value_node]
+                merged = (value_node.value if isinstance(value_node, yaml.SequenceNode)
+                          else [value_node])
                 for source in reversed(merged):
                     if not isinstance(source, yaml.MappingNode):
-                        raise self.src.error(path, "'<<' must be followed by a mapping or a list of "
-                                                   "mappings", fix="merge anchored mappings: <<: *name")
+                        raise self.src.error(path, "'<<' must be followed by a mapping or a list "
+                                                   "of mappings",
+                                             fix="merge anchored mappings: <<: *name")
                     result.update(self.build(source, path))
         own: set[str] = set()
         for key_node, value_node in node.value:
@@ -467,16 +474,17 @@ class _Builder:
             key = key_node.value  # the text as written: "yes:" stays "yes", not True
             key_path = _join(path, key)
             if key in own:
-                raise ConfigError(f"duplicate key '{key}' (first on line {self.src.lines[key_path]})",
-                                  file=self.src.file, line=key_node.start_mark.line + 1, key=key_path,
-                                  fix="keep only one of the two")
+                raise ConfigError(f"duplicate key '{key}' "
+                                  f"(first on line {self.src.lines[key_path]})",
+                                  file=self.src.file, line=key_node.start_mark.line + 1,
+                                  key=key_path, fix="keep only one of the two")
             own.add(key)
             self.src.lines[key_path] = key_node.start_mark.line + 1
             result[key] = self.build(value_node, key_path)
         return result
 
 
-# --- the file --------------------------------------------------------------------------------------
+# --- the file ------------------------------------------------------------------------------------
 
 def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
     if not isinstance(data, dict):
@@ -498,12 +506,15 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
     identity, server_key = _identity(src, bridge, role, insecure, base_dir)
     secure = identity is not None
     defaults = _defaults(src, bridge, SESSION_CIPHER_DEFAULT if secure else CIPHER_DEFAULT)
-    heartbeat = _number(src, bridge, "bridge", "heartbeat", HEARTBEAT_DEFAULT, "a number > 0", _positive)
+    heartbeat = _number(src, bridge, "bridge", "heartbeat", HEARTBEAT_DEFAULT, "a number > 0",
+                        _positive)
     peer_timeout = _number(src, bridge, "bridge", "peer_timeout",
-                           heartbeat * PEER_TIMEOUT_HEARTBEATS, "a number of seconds > 0", _positive)
+                           heartbeat * PEER_TIMEOUT_HEARTBEATS, "a number of seconds > 0",
+                           _positive)
     if peer_timeout <= heartbeat:
-        raise src.error("bridge.peer_timeout", f"{peer_timeout:g} s is not longer than the heartbeat "
-                        f"({heartbeat:g} s): every peer would be declared down between two pings",
+        raise src.error("bridge.peer_timeout", f"{peer_timeout:g} s is not longer than the "
+                        f"heartbeat ({heartbeat:g} s): every peer would be declared down between "
+                        "two pings",
                         fix=f"e.g. peer_timeout: {heartbeat * PEER_TIMEOUT_HEARTBEATS:g} "
                             "(three heartbeats)")
     reconnect_min, reconnect_max = _reconnect(src, bridge)
@@ -515,10 +526,11 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
         server=_text(src, bridge, "bridge", "server"),
         main_line=_text(src, bridge, "bridge", "main_line", MAIN_LINE_DEFAULT),
         peer=_text(src, bridge, "bridge", "peer"),
-        listen=_text(src, bridge, "bridge", "listen", LISTEN_DEFAULT if role is Role.PEER else None),
+        listen=_text(src, bridge, "bridge", "listen",
+                     LISTEN_DEFAULT if role is Role.PEER else None),
         defaults=defaults,
-        stale_after=_number(src, bridge, "bridge", "stale_after", STALE_AFTER_DEFAULT, "a number > 0",
-                            _positive),
+        stale_after=_number(src, bridge, "bridge", "stale_after", STALE_AFTER_DEFAULT,
+                            "a number > 0", _positive),
         stale_warnings=_number(src, bridge, "bridge", "stale_warnings", STALE_WARNINGS_DEFAULT,
                                "an integer >= 0", lambda v: v >= 0, integer=True),
         heartbeat=heartbeat,
@@ -553,19 +565,23 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
 def _reject_legacy(src: _Source, data: dict) -> None:
     for key, value in data.items():
         if isinstance(value, dict) and "ros__parameters" in value:
-            raise src.error(key, f"this is the old ros2_socket_bridge format ({key}: ros__parameters:); "
-                                 "rosgate uses bridge: + topics: instead",
-                            fix="rewrite it as in the README's bringup.yaml walk-through: a bridge: "
-                                "section (name, role: client, server: host:port) and one topics: entry "
-                                "per topic (topic, type: pkg/msg/Type, direction, port)")
+            raise src.error(key, f"this is the old ros2_socket_bridge format "
+                                 f"({key}: ros__parameters:); rosgate uses bridge: + topics: "
+                                 "instead",
+                            fix="rewrite it as in the README's bringup.yaml walk-through: a "
+                                "bridge: section (name, role: client, server: host:port) and one "
+                                "topics: entry per topic (topic, type: pkg/msg/Type, direction, "
+                                "port)")
 
 
 def _check_role(src: _Source, data: dict, bridge: dict, role: Role) -> None:
     if role is Role.PEER:
         for key in ("server", "main_line"):
             if key in bridge:
-                raise src.error(f"bridge.{key}", f"role peer has no main line, so {key}: does not apply",
-                                fix="remove it; a peer sends to peer: (the far host) and binds listen:")
+                raise src.error(f"bridge.{key}",
+                                f"role peer has no main line, so {key}: does not apply",
+                                fix="remove it; a peer sends to peer: (the far host) and binds "
+                                    "listen:")
         # peer: is needed by entries on point-to-point links, not by those on a bus: the
         # resolver, which knows which transport is which, requires it
         return
@@ -574,13 +590,15 @@ def _check_role(src: _Source, data: dict, bridge: dict, role: Role) -> None:
             raise src.error(f"bridge.{key}", f"{key}: is for role peer only",
                             fix=f"remove it; a {role} uses server: only")
     if role is Role.CLIENT:
-        _require(src, bridge, "bridge", ("server",), fix="add server: host:port, the server's main line")
+        _require(src, bridge, "bridge", ("server",),
+                 fix="add server: host:port, the server's main line")
         return
     _require(src, bridge, "bridge", ("server",),
              fix="add server: address:port, where to listen for clients")
     for key in ("topics", "services"):
         if data.get(key):
-            raise src.error(key, f"a server gets its {key} from its clients, so its file has no {key}:",
+            raise src.error(key, f"a server gets its {key} from its clients, so its file has "
+                                 f"no {key}:",
                             fix=f"remove {key}: here and list them in each client's file")
 
 
@@ -624,7 +642,7 @@ def _identity(src: _Source, bridge: dict, role: Role, insecure: bool,
             return None, None
         for key in ("identity", "peer_key", "handshake_port"):
             if key not in bridge:
-                raise src.error(f"bridge.{given[0]}", f"a peer with a handshake needs "
+                raise src.error(f"bridge.{given[0]}", "a peer with a handshake needs "
                                 "identity:, peer_key: and handshake_port:",
                                 fix=f"add {key}: {_example('bridge', key)}")
         try:
@@ -737,7 +755,8 @@ def _rules(src: _Source, entry: dict, path: str) -> tuple[Rule, ...]:
     for i, item in enumerate(items):
         rule_path = f"{path}[{i}]"
         if not isinstance(item, dict):
-            raise src.error(rule_path, f"expected a rule (name:, direction: ...), got {_show(item)}",
+            raise src.error(rule_path,
+                            f"expected a rule (name:, direction: ...), got {_show(item)}",
                             fix="e.g. - {name: /robot1/**, direction: both}")
         _check_keys(src, item, rule_path, RULE_KEYS)
         _require(src, item, rule_path, ("name", "direction"))
@@ -985,11 +1004,12 @@ def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
         "type": _interface(src, data, path, kind),
         "direction": Direction(_required(src, data, path, "direction", DIRECTIONS)),
         "remote": remote,
-        "transport": _text(src, data, path, "transport", defaults.get("transport", TRANSPORT_DEFAULT)),
+        "transport": _text(src, data, path, "transport",
+                           defaults.get("transport", TRANSPORT_DEFAULT)),
         "codec": _text(src, data, path, "codec", defaults.get("codec", CODEC_DEFAULT)),
         "cipher": _text(src, data, path, "cipher", defaults.get("cipher", CIPHER_DEFAULT)),
-        "port": _number(src, data, path, "port", None, "an integer 1..65535", lambda v: 1 <= v <= 65535,
-                        integer=True),
+        "port": _number(src, data, path, "port", None, "an integer 1..65535",
+                        lambda v: 1 <= v <= 65535, integer=True),
         "framing": framing,
     }
     if framing.bare and fields["cipher"] != "none":
@@ -997,7 +1017,8 @@ def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
                         f"framing {framing} sends the bare payload, so there is no envelope to "
                         "authenticate; "
                         f"cipher must be none, not '{fields['cipher']}'",
-                        fix="set cipher: none on this entry, or use framing: rosgate to keep the cipher")
+                        fix="set cipher: none on this entry, or use framing: rosgate to keep "
+                            "the cipher")
     return fields
 
 
@@ -1231,7 +1252,8 @@ def _check_keys(src: _Source, data: dict, path: str, valid: tuple[str, ...]) -> 
                             fix=f"valid keys are {', '.join(valid)}")
 
 
-def _require(src: _Source, data: dict, path: str, keys: tuple[str, ...], fix: str | None = None) -> None:
+def _require(src: _Source, data: dict, path: str, keys: tuple[str, ...],
+             fix: str | None = None) -> None:
     for key in keys:
         if key not in data:
             where = f" under {path}:" if path else ""
@@ -1243,8 +1265,8 @@ def _expect_entry(src: _Source, data: Any, path: str, name_key: str) -> None:
     if not isinstance(data, dict):
         raise src.error(path, f"expected a mapping ({name_key}:, type:, direction: ...), "
                               f"got {_show(data)}",
-                        fix=f"write the entry as '- {name_key}: {_example(path, name_key)}' with its "
-                            "other keys indented under it")
+                        fix=f"write the entry as '- {name_key}: {_example(path, name_key)}' "
+                            "with its other keys indented under it")
 
 
 def _section(src: _Source, data: dict, path: str, key: str, fix: str | None = None) -> dict:

@@ -2,8 +2,8 @@
 
 One stream connection (TCP) per call. The caller writes one serial datagram (serial_datagram.py)
 whose payload is the service's ``remote`` name as a MessagePack str followed by the request as a
-MessagePack map (the codec's bytes; :mod:`rosgate.wire.names` writes the name); the server writes the response as a plain
-MessagePack map and closes the connection.
+MessagePack map (the codec's bytes; :mod:`rosgate.wire.names` writes the name); the server writes
+the response as a plain MessagePack map and closes the connection.
 
 * ``direction: receive`` -> :class:`CallServer`: the bridge listens on ``listen:port`` and a
   microcontroller calls ROS services here. Several services may share the port: the name tells
@@ -28,8 +28,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Callable
+from typing import Any
 
 from .errors import CodecError
 from .links import POLL

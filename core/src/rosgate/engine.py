@@ -26,9 +26,9 @@ from .roles import Role as BridgeRole
 from .roles.client import ClientRole
 from .roles.peer import PeerRole
 from .roles.server import ServerRole
+from .ros import RosNode
 from .router import Router
 from .routes import ReceiveRoute, Route
-from .ros import RosNode
 
 log = logging.getLogger("rosgate")
 

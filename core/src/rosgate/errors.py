@@ -1,4 +1,5 @@
-"""Errors a user sees. Each carries enough to say what is wrong and how to fix it, without a traceback."""
+"""Errors a user sees. Each carries enough to say what is wrong and how to fix it, without a
+traceback."""
 
 from __future__ import annotations
 
@@ -64,7 +65,8 @@ class LinkError(RosgateError):
 
 
 class CodecError(Exception):
-    """Bytes or a message a codec cannot handle. Raised per message: the frame is dropped and counted."""
+    """Bytes or a message a codec cannot handle. Raised per message: the frame is dropped and
+    counted."""
 
 
 class CipherError(Exception):

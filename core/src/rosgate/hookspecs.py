@@ -21,7 +21,7 @@ breaking existing plugins. Results are not used.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import pluggy
 

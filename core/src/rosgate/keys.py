@@ -4,7 +4,8 @@ A keyed cipher declares ``Options = KeyOptions`` and so takes exactly one of two
 ``plugins: {NAME: {...}}``:
 
 ``key_file``  a file holding the key (relative to the bringup.yaml), as written by
-              ``rosgate keygen NAME --out FILE`` (mode 0600; a file others can read is warned about).
+              ``rosgate keygen NAME --out FILE`` (mode 0600; a file others can read is warned
+              about).
 ``key_env``   the name of an environment variable holding the key.
 
 Never the key itself on the command line, where ``ps`` shows it to every user. What the key's
@@ -31,8 +32,8 @@ class KeyOptions:
     naming the cipher (a dataclass does not know which cipher it belongs to)."""
 
     key_file: str | None = option(
-        None, "file holding the key, relative to the bringup.yaml (rosgate keygen NAME --out FILE); "
-        "or key_env")
+        None, "file holding the key, relative to the bringup.yaml (rosgate keygen NAME --out "
+        "FILE); or key_env")
     key_env: str | None = option(None, "environment variable holding the key; or key_file")
 
 

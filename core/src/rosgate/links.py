@@ -43,13 +43,13 @@ from __future__ import annotations
 import ipaddress
 import itertools
 import logging
-import os
 import random
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Protocol, cast
+from typing import Any, Protocol, cast
 
 from .config import MAX_DELAY_DEFAULT as MAX_DELAY
 from .config import LinkConfig

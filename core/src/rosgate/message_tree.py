@@ -65,11 +65,12 @@ import dataclasses
 import importlib
 import math
 import struct
+from abc import abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property, partial
 from operator import attrgetter
-from abc import abstractmethod
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import numpy
 from rosidl_parser import definition as idl
@@ -316,7 +317,8 @@ class _Builder:
             def build(data: bytes) -> Any:
                 # rclpy: a numpy uint8 array for uint8[N] (copied: frombuffer alone is
                 # read-only), array.array('B') for uint8[]
-                return numpy.frombuffer(data, numpy.uint8).copy() if fixed else array.array("B", data)
+                return (numpy.frombuffer(data, numpy.uint8).copy() if fixed
+                        else array.array("B", data))
 
         if not self.wire.base64:
             def encode(value: Any) -> bytes:
@@ -456,9 +458,10 @@ class MessageTree:
         build = _Builder(wire)
         self.names = list(msg_type.get_fields_and_field_types())
         self.converters = [build.converter(slot_type) for slot_type in msg_type.SLOT_TYPES]
-        self.decoders = {name: convert.decode for name, convert in zip(self.names, self.converters)}
+        self.decoders = {name: convert.decode
+                         for name, convert in zip(self.names, self.converters, strict=True)}
         self.trees = [(name, attrgetter(name), convert.tree)
-                      for name, convert in zip(self.names, self.converters)]
+                      for name, convert in zip(self.names, self.converters, strict=True)]
 
     @cached_property
     def writers(self) -> tuple[bytes, list[tuple[bytes, Callable[[Any], Any], Encoder]]]:
@@ -466,7 +469,7 @@ class MessageTree:
         encode, since a plain tree (:func:`to_tree`) is never written as bytes."""
         return self.wire.map_header(len(self.names)), [
             (self.wire.pack(name), attrgetter(name), convert.encode)
-            for name, convert in zip(self.names, self.converters)]
+            for name, convert in zip(self.names, self.converters, strict=True)]
 
     def encode(self, message: Any) -> bytes:
         header, writers = self.writers
@@ -478,12 +481,14 @@ class MessageTree:
     def decode(self, value: Any) -> Any:
         """The message a parsed tree describes; :class:`TreeError` when it describes none."""
         if type(value) is not dict:
-            raise TreeError(f"expected a map of {self.name} fields, got {describe(value, self.wire)}")
+            raise TreeError(f"expected a map of {self.name} fields, "
+                            f"got {describe(value, self.wire)}")
         fields = {}
         for key, item in value.items():
             decode = self.decoders.get(key)
             if decode is None:
-                exc = TreeError(f"unknown field of {self.name} (it has: {', '.join(self.decoders)})")
+                exc = TreeError(f"unknown field of {self.name} "
+                                f"(it has: {', '.join(self.decoders)})")
                 exc.path.append(str(key))
                 raise exc
             try:

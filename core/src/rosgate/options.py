@@ -48,8 +48,9 @@ import inspect
 import types
 import typing
 import warnings
+from collections.abc import Mapping
 from dataclasses import MISSING
-from typing import Any, Literal, Mapping, Union
+from typing import Any, Literal, Union
 
 from .errors import OptionError
 

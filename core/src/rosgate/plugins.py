@@ -119,7 +119,7 @@ class Plugins:
 
     # -- loading ---------------------------------------------------------------------------
     @classmethod
-    def discover(cls) -> "Plugins":
+    def discover(cls) -> Plugins:
         """List the entry points in the group ``rosgate`` (importing none of them but the
         core's own); the others load when asked for."""
         plugins = cls()

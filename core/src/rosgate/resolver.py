@@ -10,14 +10,14 @@ A server resolves the entries a client sends in its hello the same way (``topic`
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from .bus import PRIORITY_DEFAULT, BusTransport
 from .cipher import Cipher
 from .codec import Codec
-from .config import (BridgeConfig, Direction, Framing, Recovery, Role, ServiceConfig,
-                     TopicConfig)
+from .config import BridgeConfig, Direction, Framing, Recovery, Role, ServiceConfig, TopicConfig
 from .errors import ConfigError, OptionError
 from .options import parse
 from .placeholders import Template, has_placeholders
@@ -120,7 +120,7 @@ class Resolver:
                                 "what it sends itself", f"remove {name} from bridge.links")
         if cfg.secure and cfg.role is Role.SERVER:
             for name, policy in cfg.clients.items():  # a cipher a rule names must exist
-                for i, rule in enumerate([*policy.topics, *policy.services]):
+                for _i, rule in enumerate([*policy.topics, *policy.services]):
                     for cipher in rule.ciphers or ():
                         self.plugin("cipher", cipher, f"clients.{name}")
         topics = [self.topic(t, i, "topics") for i, t in enumerate(cfg.topics)]
@@ -152,7 +152,8 @@ class Resolver:
         except OptionError as exc:
             raise self._option_error(topic.codec, exc, f"{key}.codec", error) from None
         if topic.framing is Framing.NONE and transport.stream:
-            raise error(f"{key}.framing", "framing: none needs a datagram transport (udp, can, ...)",
+            raise error(f"{key}.framing",
+                        "framing: none needs a datagram transport (udp, can, ...)",
                         "use framing: rosgate on stream links")
         reliable = is_reliable(topic.qos)
         priority = topic.priority or PRIORITY_DEFAULT
@@ -211,7 +212,8 @@ class Resolver:
                             "(one connection per call)", "use transport: tcp")
             if not codec_cls.messagepack:
                 raise error(f"{key}.codec", f"codec {service.codec} does not put the service's "
-                            "name on the wire (it does not write MessagePack)", "use codec: msgpack")
+                            "name on the wire (it does not write MessagePack)",
+                            "use codec: msgpack")
         if isinstance(transport, BusTransport):
             return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
                                    index, NO_ADDRESS, NO_ADDRESS,

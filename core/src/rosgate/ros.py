@@ -14,7 +14,8 @@ import logging
 import re
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from .errors import CodecError
 
@@ -340,10 +341,9 @@ class RosNode:
         ``send_response`` is replaced on this instance: given the marker it passes the request
         and a ``respond`` bound to the request's header to ``on_request``.
         """
-        from rclpy.service import Service
-
         from rclpy.exceptions import InvalidHandle
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+        from rclpy.service import Service
 
         service = self.node.create_service(srv_type, name, _Deferred, qos_profile=qos)
 

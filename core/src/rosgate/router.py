@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections import Counter
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from .config import BridgeConfig, Direction, Framing
 from .cvra import CvraCallerRoute
@@ -20,10 +20,16 @@ from .keyring import Keys, StaticKeys
 from .links import Link
 from .resolver import PreparedService, PreparedTopic
 from .ros import RosNode, cdr_checker, qos_profile
-from .routes import (BareFraming, BarePort, EnvelopeFraming, ReceiveRoute, Route, TransmitRoute,
-                     Warner)
-from .services import (CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute,
-                       deep_qos)
+from .routes import (
+    BareFraming,
+    BarePort,
+    EnvelopeFraming,
+    ReceiveRoute,
+    Route,
+    TransmitRoute,
+    Warner,
+)
+from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
 from .transport import Address
 from .wire import envelope
 
@@ -184,13 +190,15 @@ class Router:
         elif flags & envelope.FLAG_REQUEST:
             server = self.servers.get(header.topic_id)
             if server is None:
-                self.link_drop(link, "unknown_service", f"service id {header.topic_id} from {source}")
+                self.link_drop(link, "unknown_service",
+                               f"service id {header.topic_id} from {source}")
             else:
                 server.on_request(header, frame, link, source)
         elif flags & envelope.FLAG_REPLY:
             caller = self.callers.get(header.topic_id)
             if caller is None:
-                self.link_drop(link, "unknown_service", f"service id {header.topic_id} from {source}")
+                self.link_drop(link, "unknown_service",
+                               f"service id {header.topic_id} from {source}")
             else:
                 caller.on_reply(header, frame)
         else:
@@ -289,7 +297,8 @@ def _static(cipher: Any) -> Any:
     return cipher
 
 
-def _checked(decode: Callable[[bytes], Any], check: Callable[[bytes], None]) -> Callable[[bytes], Any]:
+def _checked(decode: Callable[[bytes], Any],
+             check: Callable[[bytes], None]) -> Callable[[bytes], Any]:
     """``decode``, then ``check`` what it returned (raw CDR no cipher authenticated)."""
     def checked(data: bytes) -> Any:
         value = decode(data)

@@ -28,13 +28,20 @@ import logging
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar, cast
+from typing import Any, ClassVar, cast
 
 from .builtin import NoCipher
 from .codec import Codec
-from .config import (PRIORITIES, RECOVERY_OVERHEAD_DEFAULT, Compression, Recovery,
-                     ServiceConfig, TopicConfig)
+from .config import (
+    PRIORITIES,
+    RECOVERY_OVERHEAD_DEFAULT,
+    Compression,
+    Recovery,
+    ServiceConfig,
+    TopicConfig,
+)
 from .errors import CipherError, CodecError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
@@ -393,7 +400,8 @@ class ReceiveRoute(Route):
             self.drop("decode_error", str(exc))
             return
         except Exception as exc:  # a codec must raise CodecError; anything else is its bug
-            self.drop("decode_error", f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
+            self.drop("decode_error",
+                      f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
             return
         try:
             self.publish(message)

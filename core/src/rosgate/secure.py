@@ -383,7 +383,8 @@ def open_hello(schedule: KeySchedule, header: envelope.Header, frame: bytes) -> 
     if found is None:
         return False
     try:
-        ChaCha20Poly1305(found[0]).decrypt(frame[8:20], frame[envelope.SIZE:], frame[:envelope.SIZE])
+        ChaCha20Poly1305(found[0]).decrypt(frame[8:20], frame[envelope.SIZE:],
+                                           frame[:envelope.SIZE])
     except InvalidTag:
         return False
     return True

@@ -34,7 +34,8 @@ import itertools
 import logging
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from .config import ServiceConfig
 from .errors import CodecError
@@ -315,7 +316,8 @@ class ServerRoute(ServiceRoute):
         elif not call.answer(future.result()):
             self.drop("late_answer", f"{self.service.service} answered after the timeout")
 
-    def on_request(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
+    def on_request(self, header: envelope.Header, frame: bytes, link: Link,
+                   source: Address) -> None:
         """A link's thread: a call from the far side (framing rosgate); the answer goes back on
         the link and to the address it came from."""
         if len(frame) > envelope.SIZE + self.service.max_request:

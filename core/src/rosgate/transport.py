@@ -40,7 +40,8 @@ import select
 import socket
 import warnings
 from abc import ABC, abstractmethod
-from typing import Any, Callable, ClassVar, Protocol
+from collections.abc import Callable
+from typing import Any, ClassVar, Protocol
 
 from .options import as_options
 
@@ -92,9 +93,9 @@ class FastDatagramEndpoint(DatagramEndpoint, Protocol):
         start and return ``(length, source, arrived)``: ``arrived`` is when the frame reached
         this machine, in nanoseconds of ``time.time_ns()``'s clock (UDP asks the kernel:
         ``SO_TIMESTAMPNS``), or 0 when the link cannot tell. With it, a receiving route drops a
-        best-effort message that waited too long in the receive buffer (the topic's ``max_delay``). ``buffer``
-        is longer than any frame the link accepts (more than ``max_frame`` and than 65,535
-        bytes): the core counts a frame that fills it as too long. Called from one thread;
+        best-effort message that waited too long in the receive buffer (the topic's ``max_delay``).
+        ``buffer`` is longer than any frame the link accepts (more than ``max_frame`` and than
+        65,535 bytes): the core counts a frame that fills it as too long. Called from one thread;
         ``buffer`` is the core's and reused."""
 
     def send_parts(self, parts: list[bytes | memoryview], to: Address) -> None:
@@ -175,8 +176,9 @@ class Transport(ABC):
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         if cls.__module__ != __name__ and cls.link_kind is None:
-            warnings.warn(f"{cls.__qualname__} subclasses rosgate.Transport and sets stream itself; "
-                          "subclass rosgate.DatagramTransport or rosgate.StreamTransport instead",
+            warnings.warn(f"{cls.__qualname__} subclasses rosgate.Transport and sets stream "
+                          "itself; subclass rosgate.DatagramTransport or rosgate.StreamTransport "
+                          "instead",
                           DeprecationWarning, stacklevel=3)  # past ABCMeta.__new__: the class
 
     def __init__(self, options: Any):
@@ -190,7 +192,8 @@ class Transport(ABC):
     def parse_address(self, text: str) -> Address:
         """Turn the user's notation of ``bridge.server`` (``host:port`` for IP links) into an
         address, or raise ``ValueError`` with a sentence saying what is expected."""
-        raise NotImplementedError(f"transport {self.name!r} does not take addresses in bringup.yaml")
+        raise NotImplementedError(f"transport {self.name!r} does not take addresses in "
+                                  "bringup.yaml")
 
     def check_address(self, address: Address) -> Address:
         """Validate (and normalise) an address built by the core from a host and a ``port:``

@@ -52,7 +52,8 @@ def test_registers_through_the_rosgate_hook():
 
 def test_python_can_is_imported_only_when_a_bus_is_asked_for():
     code = "import sys, rosgate_transport_can; print('can' in sys.modules)"
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=60)
     assert result.stdout.strip() == "False", result.stderr
 
 

@@ -10,13 +10,13 @@ import cbor2
 import msgpack
 import pytest
 from geometry_msgs.msg import Point32, Twist, Vector3
+from rosgate_codec_cbor import CborCodec
+from rosgate_codec_msgpack import MsgpackCodec
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32, Float32MultiArray, String, UInt64
 
 import rosgate
 from rosgate.testing import CodecConformance, sample, samples
-from rosgate_codec_cbor import CborCodec
-from rosgate_codec_msgpack import MsgpackCodec
 
 
 class TestCborConformance(CodecConformance):
@@ -41,7 +41,8 @@ def test_float32_fields_are_single_precision_and_float64_double():
     assert codec(Twist).encode(twist) == cbor2.dumps({"linear": {"x": 1.0, "y": 0.0, "z": 0.0},
                                                       "angular": {"x": 0.0, "y": 0.0, "z": 0.0}})
     data = codec(Float32MultiArray).encode(Float32MultiArray(data=[0.5, -2.0]))
-    assert data.endswith(b"\x64data\x82\xfa" + struct.pack(">f", 0.5) + b"\xfa" + struct.pack(">f", -2.0))
+    assert data.endswith(b"\x64data\x82\xfa" + struct.pack(">f", 0.5)
+                         + b"\xfa" + struct.pack(">f", -2.0))
 
 
 def test_integers_take_their_smallest_encoding():

@@ -17,15 +17,26 @@ from geometry_msgs.msg import Point32, Polygon, PolygonStamped, Twist, Vector3
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rmw_dds_common.msg import Gid, NodeEntitiesInfo
+from rosgate_codec_msgpack import MsgpackCodec
 from sensor_msgs.msg import Image, JointState, PointCloud2, PointField
-from std_msgs.msg import (Byte, ByteMultiArray, Empty, Float32, Float32MultiArray, Header, Int8,
-                          Int64, String, UInt32, UInt64)
+from std_msgs.msg import (
+    Byte,
+    ByteMultiArray,
+    Empty,
+    Float32,
+    Float32MultiArray,
+    Header,
+    Int8,
+    Int64,
+    String,
+    UInt32,
+    UInt64,
+)
 from std_srvs.srv import SetBool
 
 import rosgate
 from rosgate.testing import CodecConformance, mutations
 from rosgate.wire.names import NameMissing, pack_name, split_name
-from rosgate_codec_msgpack import MsgpackCodec
 
 
 class TestMsgpackConformance(CodecConformance):
@@ -133,7 +144,8 @@ def test_odometry_round_trip():
     data = codec(Odometry).encode(odometry())
     tree = msgpack.unpackb(data)
     assert list(tree) == ["header", "child_frame_id", "pose", "twist"]  # .msg order
-    assert tree["header"] == {"stamp": {"sec": 1700000000, "nanosec": 123456789}, "frame_id": "odom"}
+    assert tree["header"] == {"stamp": {"sec": 1700000000, "nanosec": 123456789},
+                              "frame_id": "odom"}
     assert tree["pose"]["covariance"] == [i / 7 for i in range(36)]
     decoded = round_trip(odometry())
     assert decoded.pose.covariance.dtype == numpy.float64
@@ -238,7 +250,8 @@ VALID_TWIST = packb(TWIST_MAP)
 
 @pytest.mark.parametrize("msg_type, payload, match", [
     (Twist, packb({"linear": {"w": 1.0}}), r"linear\.w: unknown field"),
-    (Odometry, packb({"pose": {"pose": {"position": {"w": 1}}}}), r"pose\.pose\.position\.w: unknown"),
+    (Odometry, packb({"pose": {"pose": {"position": {"w": 1}}}}),
+     r"pose\.pose\.position\.w: unknown"),
     (Twist, packb({"spin": 1}), "spin: unknown field"),
     (Twist, packb({"check_fields": False}), "check_fields: unknown field"),
     (Twist, packb({b"linear": {}}), "unknown field"),
@@ -375,7 +388,8 @@ def test_rates(capsys):
                 c.decode(c.encode(message))
             count += 1000
         with capsys.disabled():
-            print(f"\nmsgpack encode+decode {label}: {count / (time.perf_counter() - start):,.0f}/s")
+            print(f"\nmsgpack encode+decode {label}: "
+                  f"{count / (time.perf_counter() - start):,.0f}/s")
 
 
 # -- decoder bombs (issue 10, attack 7) -----------------------------------------------------------

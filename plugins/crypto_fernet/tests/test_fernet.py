@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 from cryptography.fernet import Fernet
+from rosgate_crypto_fernet import FernetCipher
 
 from rosgate import CipherError, OptionError
-from rosgate.wire import envelope
 from rosgate.testing import CipherConformance, write_key
-from rosgate_crypto_fernet import FernetCipher
+from rosgate.wire import envelope
 
 HEADER = envelope.pack(0, 7, 0xCAFE, 1, 1_700_000_000_000_000_000)
 
@@ -40,7 +40,7 @@ def option_error(options, base_dir: Path) -> OptionError:
     return info.value
 
 
-# --- tokens -------------------------------------------------------------------------------------------
+# --- tokens --------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("size", [16, 1000])
 def test_the_payload_is_not_sent_in_clear(cipher, size):
@@ -61,7 +61,7 @@ def test_the_token_is_a_standard_fernet_token_of_header_and_payload(cipher, key)
     assert Fernet(key).decrypt(token) == HEADER + b"payload"
 
 
-# --- tampering ---------------------------------------------------------------------------------------
+# --- tampering -----------------------------------------------------------------------------------
 
 def test_every_flipped_bit_is_refused(cipher):
     # 28 + 4 bytes of plaintext: a 105-byte token, a multiple of 3, so its base64 has no padding
@@ -130,8 +130,10 @@ def test_garbage_is_always_a_cipher_error(cipher):
     for _ in range(300):
         bodies.append(rng.randbytes(rng.randint(0, 300)))
         bodies.append(bytes(rng.choice(alphabet) for _ in range(rng.randint(0, 300))))
-        bodies.append(b"gAAAAA" + bytes(rng.choice(alphabet) for _ in range(rng.choice([114, 134, 200]))))
-        bodies.append(base64.urlsafe_b64encode(b"\x80" + rng.randbytes(rng.choice([56, 72, 88, 100]))))
+        bodies.append(b"gAAAAA" + bytes(rng.choice(alphabet)
+                                        for _ in range(rng.choice([114, 134, 200]))))
+        bodies.append(base64.urlsafe_b64encode(b"\x80"
+                                               + rng.randbytes(rng.choice([56, 72, 88, 100]))))
     for body in bodies:
         try:
             cipher.open(HEADER, body)
@@ -142,7 +144,8 @@ def test_garbage_is_always_a_cipher_error(cipher):
 
 def test_key_env_of_blanks_is_refused(tmp_path, monkeypatch):
     monkeypatch.setenv("ROSGATE_TEST_FERNET_KEY", "  \n")
-    assert "not a Fernet key" in option_error({"key_env": "ROSGATE_TEST_FERNET_KEY"}, tmp_path).message
+    assert "not a Fernet key" in option_error({"key_env": "ROSGATE_TEST_FERNET_KEY"},
+                                              tmp_path).message
 
 
 @pytest.mark.parametrize("content", [b"hello", b"", Fernet.generate_key()[:-2], b"\xff" * 44,
@@ -165,7 +168,7 @@ def test_a_bad_key_is_reported_at_the_option_that_named_it(tmp_path, monkeypatch
     assert option_error({"key_env": "ROSGATE_TEST_FERNET_KEY"}, tmp_path).key == "key_env"
 
 
-# --- keys -----------------------------------------------------------------------------------------------
+# --- keys ----------------------------------------------------------------------------------------
 
 def test_generate_key_makes_a_key_fernet_accepts(tmp_path):
     first, second = FernetCipher.generate_key(), FernetCipher.generate_key()

@@ -13,12 +13,12 @@ from pathlib import Path
 
 import pytest
 from nacl.secret import SecretBox
-
-from rosgate import OptionError
-from rosgate.wire import envelope
-from rosgate.testing import CipherConformance, write_key
 from rosgate_crypto_fernet import FernetCipher
 from rosgate_crypto_nacl import NaclCipher
+
+from rosgate import OptionError
+from rosgate.testing import CipherConformance, write_key
+from rosgate.wire import envelope
 
 HEADER = envelope.pack(0, 7, 0xCAFE, 1, 1_700_000_000_000_000_000)
 

@@ -9,10 +9,10 @@ import socket
 import threading
 
 import pytest
+from rosgate_transport_tcp import TcpConnection, TcpTransport
 
 from rosgate import LinkError, OptionError
 from rosgate.testing import TransportConformance, free_port, has_ipv6_loopback, receive_exactly
-from rosgate_transport_tcp import TcpConnection, TcpTransport
 
 
 class TestTcpConformance(TransportConformance):
@@ -76,7 +76,7 @@ def test_ipv6_loopback(closing):
     assert receive_exactly(server, 3) == b"six"
 
 
-# --- options and addresses ----------------------------------------------------------------------------
+# --- options and addresses -----------------------------------------------------------------------
 
 def nodelay(connection: TcpConnection) -> bool:
     return connection.sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0
@@ -120,7 +120,8 @@ def test_parse_address_accepts(text, address):
     assert TcpTransport({}).parse_address(text) == address
 
 
-@pytest.mark.parametrize("text", ["127.0.0.1", "host:0", "host:70000", ":12000", "host:", "host:port"])
+@pytest.mark.parametrize("text", ["127.0.0.1", "host:0", "host:70000", ":12000", "host:",
+                                  "host:port"])
 def test_parse_address_rejects(text):
     with pytest.raises(ValueError, match="is not host:port"):
         TcpTransport({}).parse_address(text)
@@ -161,7 +162,7 @@ def test_sending_while_a_receive_waits_does_not_break_the_receive(pair):
         try:
             while not stop.is_set():
                 a.receive(65536, 0.0001)  # short waits: many chances to collide with a send
-        except BaseException as exc:  # noqa: BLE001 - any failure is the finding
+        except BaseException as exc:  # any failure is the finding
             errors.append(exc)
 
     thread = threading.Thread(target=receive_all)

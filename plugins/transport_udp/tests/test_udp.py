@@ -8,10 +8,10 @@ import os
 import socket
 
 import pytest
+from rosgate_transport_udp import UdpTransport
 
 from rosgate import LinkError, OptionError
 from rosgate.testing import TransportConformance, has_ipv6_loopback
-from rosgate_transport_udp import UdpTransport
 
 
 class TestUdpConformance(TransportConformance):
@@ -73,7 +73,7 @@ def test_ipv6_loopback(endpoints):
     assert a_address[0] == "::1"
 
 
-# --- options and addresses ----------------------------------------------------------------------------
+# --- options and addresses -----------------------------------------------------------------------
 
 def test_unknown_option():
     with pytest.raises(OptionError) as info:
@@ -161,8 +161,8 @@ def test_parse_address_accepts(text, address):
     assert UdpTransport({}).parse_address(text) == address
 
 
-@pytest.mark.parametrize("text", ["127.0.0.1", "host:0", "host:70000", "host:65536", ":12000", "host:",
-                                  "host:12a", "host:-1", "", "[::1]", "[]:12000"])
+@pytest.mark.parametrize("text", ["127.0.0.1", "host:0", "host:70000", "host:65536", ":12000",
+                                  "host:", "host:12a", "host:-1", "", "[::1]", "[]:12000"])
 def test_parse_address_rejects(text):
     with pytest.raises(ValueError, match="is not host:port"):
         UdpTransport({}).parse_address(text)

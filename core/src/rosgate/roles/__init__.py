@@ -21,8 +21,20 @@ from dataclasses import dataclass
 
 from ..config import BridgeConfig, LinkConfig
 from ..errors import ConfigError, LinkError
-from ..links import (Acceptor, Backoff, ConnectionLimits, DatagramLink, Lifetime, Link, LinkCounters,
-                     LinkSlot, QueueLimits, Sources, StreamLink, Untrusted)
+from ..links import (
+    Acceptor,
+    Backoff,
+    ConnectionLimits,
+    DatagramLink,
+    Lifetime,
+    Link,
+    LinkCounters,
+    LinkSlot,
+    QueueLimits,
+    Sources,
+    StreamLink,
+    Untrusted,
+)
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort
@@ -47,7 +59,8 @@ class Bridge:
     life: Lifetime
 
     def slot(self, name: str) -> LinkSlot:
-        """A place for a stream link that reconnects; reliable frames wait in it while it is down."""
+        """A place for a stream link that reconnects; reliable frames wait in it while it is
+        down."""
         return LinkSlot(name, QueueLimits(self.config.queue_frames, self.config.queue_bytes))
 
     @property

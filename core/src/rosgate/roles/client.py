@@ -206,11 +206,11 @@ class ClientRole(Role):
         """Make the routes match the server's answer: one per entry it accepted (id > 0),
         renumbered when a restarted server numbered them anew; none for a refused entry."""
         renumbered = self.topic_ids is not None and any(
-            old and new and old != new for old, new in zip(self.topic_ids, ids))
+            old and new and old != new for old, new in zip(self.topic_ids, ids, strict=True))
         if renumbered:
             for slot in [self.main, *self._dedicated.values()]:
                 slot.discard("session_reset")
-        for index, (p, topic_id) in enumerate(zip(self._entries(), ids)):
+        for index, (p, topic_id) in enumerate(zip(self._entries(), ids, strict=True)):
             route = self.routes.get(index)
             if topic_id == 0:
                 if route is not None:

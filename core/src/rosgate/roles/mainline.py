@@ -80,7 +80,8 @@ def where_error(where: str) -> Any:
     return error
 
 
-def client_services(hello: dict[str, Any], defaults: dict[str, str], where: str) -> list[ServiceConfig]:
+def client_services(hello: dict[str, Any], defaults: dict[str, str],
+                    where: str) -> list[ServiceConfig]:
     """The service entries of a client's hello, checked like a file's (older clients send none)."""
     services = hello.get("services", [])
     if not isinstance(services, list):

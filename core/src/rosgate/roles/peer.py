@@ -45,8 +45,15 @@ from ..links import Acceptor, Connector, Link, Sources, StreamLink
 from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
 from ..routes import ReceiveRoute
-from ..secure import (HandshakeError, KeySchedule, SecureConnection, SessionKeys, UnknownKey,
-                      initiate, respond)
+from ..secure import (
+    HandshakeError,
+    KeySchedule,
+    SecureConnection,
+    SessionKeys,
+    UnknownKey,
+    initiate,
+    respond,
+)
 from ..services import ServerRoute
 from ..transport import Address, StreamConnection
 from ..wire.envelope import topic_id_for

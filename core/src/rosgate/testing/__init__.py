@@ -59,9 +59,9 @@ What each suite checks (every check uses real sockets, real message classes, rea
 
 The helpers (:func:`free_port`, :func:`has_ipv6_loopback`, :func:`wait_until_blocked`,
 :func:`receive_exactly`, :func:`write_key`, :func:`mutations`, :class:`Frames`) are what plugin
-tests kept writing for themselves. rosgate registers this module as a pytest plugin (entry point ``pytest11``), so
-pytest rewrites its asserts: a failing check shows the values. Importing it loads nothing from
-ROS; the codec suite imports message packages when it runs. One module per suite:
+tests kept writing for themselves. rosgate registers this module as a pytest plugin (entry point
+``pytest11``), so pytest rewrites its asserts: a failing check shows the values. Importing it loads
+nothing from ROS; the codec suite imports message packages when it runs. One module per suite:
 ``transports.py``, ``codecs.py`` (with the sample messages), ``ciphers.py``, ``helpers.py``.
 
 A bad link for tests, in user space (this kind of machine has no netem):
@@ -75,12 +75,19 @@ Import it from there: it is not loaded with the kit, and it also runs as
 from .buses import BusConformance
 from .ciphers import CipherConformance
 from .codecs import CodecConformance, sample, samples
-from .helpers import (Frames, free_port, has_ipv6_loopback, mutations, receive_exactly,
-                      wait_until_blocked, write_key)
+from .helpers import (
+    Frames,
+    free_port,
+    has_ipv6_loopback,
+    mutations,
+    receive_exactly,
+    wait_until_blocked,
+    write_key,
+)
 from .transports import TransportConformance
 
 __all__ = [
-    "BusConformance", "CipherConformance", "CodecConformance", "Frames", "TransportConformance", "free_port",
-    "has_ipv6_loopback", "mutations", "receive_exactly", "sample", "samples",
+    "BusConformance", "CipherConformance", "CodecConformance", "Frames", "TransportConformance",
+    "free_port", "has_ipv6_loopback", "mutations", "receive_exactly", "sample", "samples",
     "wait_until_blocked", "write_key",
 ]

@@ -4,17 +4,17 @@ from __future__ import annotations
 
 import itertools
 import random
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import pytest
 
-from ..wire import envelope
 from ..cipher import Cipher
 from ..errors import CipherError
 from ..options import parse
+from ..wire import envelope
 from .helpers import assert_registered, write_key
-
 
 HEADER = envelope.pack(0, 7, 0xCAFE, 1, 1_700_000_000_000_000_000)
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import functools
 import itertools
 import random
-from typing import Any, Callable, ClassVar, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any, ClassVar
 
 import pytest
 
@@ -35,8 +36,14 @@ def samples() -> dict[str, Callable[[], Any]]:
     from geometry_msgs.msg import PoseWithCovariance, Twist, Vector3
     from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, ParameterValue
     from rmw_dds_common.msg import Gid, NodeEntitiesInfo
-    from sensor_msgs.msg import (CameraInfo, Image, JointState, NavSatFix, NavSatStatus,
-                                 RegionOfInterest)
+    from sensor_msgs.msg import (
+        CameraInfo,
+        Image,
+        JointState,
+        NavSatFix,
+        NavSatStatus,
+        RegionOfInterest,
+    )
     from std_msgs import msg as std
 
     def layout() -> Any:
@@ -61,7 +68,8 @@ def samples() -> dict[str, Callable[[], Any]]:
         "Empty": lambda: std.Empty(),
         "Time": lambda: stamp,
         "Duration": lambda: Duration(sec=2**31 - 1, nanosec=1),
-        "ByteMultiArray": lambda: std.ByteMultiArray(layout=layout(), data=[b"\x00", b"\xff", b"\x7f"]),
+        "ByteMultiArray": lambda: std.ByteMultiArray(layout=layout(),
+                                                     data=[b"\x00", b"\xff", b"\x7f"]),
         "UInt8MultiArray": lambda: std.UInt8MultiArray(data=bytes(range(256))),
         "Int8MultiArray": lambda: std.Int8MultiArray(data=[-128, 0, 127]),
         "UInt16MultiArray": lambda: std.UInt16MultiArray(data=[0, 65535]),

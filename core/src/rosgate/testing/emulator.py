@@ -124,9 +124,10 @@ import sys
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any
 
 __all__ = [
     "IP_HEADER", "MAX_UDP_PAYLOAD", "NetnsPair", "PRESETS", "Profile", "TCP_HEADER", "TcpCounters",
@@ -809,7 +810,7 @@ class _TcpConnection:
 
     def start(self) -> None:
         """Start the four threads (the relay's lock is held)."""
-        for pipe, name in zip(self.pipes, ("up", "down")):
+        for pipe, name in zip(self.pipes, ("up", "down"), strict=True):
             self.relay._start(pipe.read, f"tcp-read-{name}")
             self.relay._start(pipe.deliver, f"tcp-deliver-{name}")
 

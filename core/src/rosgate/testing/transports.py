@@ -5,16 +5,25 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any, Callable, ClassVar, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any, ClassVar
 
 import pytest
 
-from ..wire.framing import COMPACT_BELOW
 from ..links import DatagramLink, StreamLink
 from ..options import parse
 from ..transport import Address, StreamConnection, Transport
-from .helpers import (TIMEOUT, Closing, Frames, assert_registered, free_port, frame_of, in_thread,
-                      receive_exactly)
+from ..wire.framing import COMPACT_BELOW
+from .helpers import (
+    TIMEOUT,
+    Closing,
+    Frames,
+    assert_registered,
+    frame_of,
+    free_port,
+    in_thread,
+    receive_exactly,
+)
 
 
 class TransportConformance:
@@ -141,7 +150,8 @@ class TransportConformance:
     def test_datagram_boundaries_are_kept(self, plugin, far_plugin, address, closing):
         a, _, b, b_address = self._endpoints(plugin, far_plugin, address, closing)
         frames = [frame_of(size, seed) for seed, size in
-                  enumerate([1, plugin.max_frame, 3, 2, plugin.max_frame - 1, min(64, plugin.max_frame)])]
+                  enumerate([1, plugin.max_frame, 3, 2, plugin.max_frame - 1,
+                             min(64, plugin.max_frame)])]
         for frame in frames:
             a.send(frame, b_address)
         got = [b.receive(TIMEOUT) for _ in frames]
@@ -222,7 +232,8 @@ class TransportConformance:
         assert tx.compact == rx.compact == (m < COMPACT_BELOW)
         frames = [frame_of(size, seed) for seed, size in enumerate(sizes)]
         for frame in frames:
-            assert tx.send(frame, sent.sender(7), to=b_address), f"send of {len(frame)} bytes failed"
+            assert tx.send(frame, sent.sender(7), to=b_address), (
+                f"send of {len(frame)} bytes failed")
         got = received.wait_count(len(frames))
         if self.ordered:
             assert [len(f) for f in got] == sizes
@@ -351,7 +362,8 @@ class TransportConformance:
             self, plugin, far_plugin, address, closing):
         client, server = self._pair(plugin, far_plugin, address, closing)
         sent, received = Frames(), Frames()
-        tx = closing(StreamLink(client, "conformance-tx", ("client", 0), sent.on_frame, sent.on_lost))
+        tx = closing(StreamLink(client, "conformance-tx", ("client", 0), sent.on_frame,
+                                sent.on_lost))
         closing(StreamLink(server, "conformance-rx", ("server", 0), received.on_frame,
                            received.on_lost))
         frames = [frame_of(size, seed) for seed, size in

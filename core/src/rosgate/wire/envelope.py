@@ -29,7 +29,7 @@ _WORDS = struct.Struct(">IIIQQ")
 _MAGIC_VERSION = int.from_bytes(MAGIC, "big") << 16 | VERSION << 8
 
 FLAG_CONTROL = 0x01  # topic_id 0: a control message on the main line (JSON)
-FLAG_HELLO = 0x02    # a datagram that tells the server where a client's link is (topic_id = session)
+FLAG_HELLO = 0x02    # a datagram telling the server where a client's link is (topic_id = session)
 FLAG_REQUEST = 0x04  # a service call: topic_id = service id, epoch + seq = the call's id
 FLAG_REPLY = 0x08    # its answer: epoch and seq echoed from the request
 FLAG_FAILED = 0x10   # with FLAG_REPLY: the serving side had no answer; the body is the reason

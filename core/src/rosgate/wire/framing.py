@@ -79,8 +79,9 @@ from __future__ import annotations
 
 import struct
 import time
+from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, field
-from typing import Callable, Hashable, Iterator, cast
+from typing import cast
 
 LENGTH = struct.Struct(">I")
 CHUNK_HEAD = struct.Struct(">II")
@@ -590,7 +591,8 @@ class CompactReassembler:
                 self.expire(now)  # a stalled source is noticed even while others keep sending
             length, offset = _read_leb128(piece, 1)
             if length > self.max_message:
-                raise FramingError(f"a frame of {length} bytes is over the limit {self.max_message}")
+                raise FramingError(f"a frame of {length} bytes is over the limit "
+                                   f"{self.max_message}")
             sender.frame, sender.length = bytearray(), length
             self._pending_bytes += PARTIAL_COST
         elif sender.frame is None:

@@ -14,7 +14,7 @@ to ``on_error``; it never raises on input.
 from __future__ import annotations
 
 import zlib
-from typing import Callable, Iterator
+from collections.abc import Callable, Iterator
 
 END, ESC, ESC_END, ESC_ESC = 0xC0, 0xDB, 0xDC, 0xDD
 CRC_SIZE = 4

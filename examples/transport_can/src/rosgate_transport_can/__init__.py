@@ -96,7 +96,8 @@ class CanTransport(DatagramTransport):
 
                 known = can.interfaces.BACKENDS
                 if self.interface not in known:
-                    raise OptionError("interface", f"python-can has no interface {self.interface!r}",
+                    raise OptionError("interface",
+                                      f"python-can has no interface {self.interface!r}",
                                       f"use one of {', '.join(sorted(known))}")
             named = set(self.bus) & {f.name for f in fields(self)}
             if named:
@@ -164,8 +165,9 @@ class CanTransport(DatagramTransport):
         if self.options.fd:
             frame = frame.ljust(dlc2len(len2dlc(len(frame))), b"\0")
         try:
-            message = can.Message(arbitration_id=self.can_id(port), data=frame, is_fd=self.options.fd,
-                                  bitrate_switch=self.options.fd, is_extended_id=self.options.extended)
+            message = can.Message(arbitration_id=self.can_id(port), data=frame,
+                                  is_fd=self.options.fd, bitrate_switch=self.options.fd,
+                                  is_extended_id=self.options.extended)
             bus.send(message, timeout=SEND_TIMEOUT)
         except (can.CanError, ValueError) as exc:  # the link counts an OSError as send_error
             raise OSError(f"CAN send to port {port} failed: {exc}") from None
@@ -173,8 +175,9 @@ class CanTransport(DatagramTransport):
     def can_id(self, port: int) -> int:
         """The arbitration id of a port; ``ValueError`` past the last id."""
         if self.options.base_id + port > self.max_id:
-            raise ValueError(f"port {port} is arbitration id {self.options.base_id + port:#x}, past the "
-                             f"last {'extended' if self.options.extended else 'standard'} id "
+            raise ValueError(f"port {port} is arbitration id {self.options.base_id + port:#x}, "
+                             "past the last "
+                             f"{'extended' if self.options.extended else 'standard'} id "
                              f"{self.max_id:#x}")
         return self.options.base_id + port
 

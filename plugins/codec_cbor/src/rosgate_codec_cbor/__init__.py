@@ -37,13 +37,13 @@ Options: none. Framing ``none`` carries the map alone (one topic per port).
 from __future__ import annotations
 
 import io
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import cbor2
 
 import rosgate
-from rosgate.message_tree import (BUDGET_FROM, OverBudget, TreeCodec, WireFormat,
-                                  container_budget)
+from rosgate.message_tree import BUDGET_FROM, OverBudget, TreeCodec, WireFormat, container_budget
 
 
 def _header(major: int) -> Callable[[int], bytes]:

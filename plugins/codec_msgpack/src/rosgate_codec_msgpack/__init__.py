@@ -38,12 +38,13 @@ Options: none.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import msgpack
 
 import rosgate
-from rosgate.message_tree import BUDGET_FROM, ContainerBudget, TreeCodec, WireFormat, describe
+from rosgate.message_tree import BUDGET_FROM, ContainerBudget, TreeCodec, WireFormat
 
 _packb = msgpack.packb
 
@@ -54,7 +55,7 @@ def _header(small: int, small_count: int, codes: tuple[int, ...]) -> Callable[[i
     def header(length: int) -> bytes:
         if length < small_count:
             return bytes((small | length,))
-        for code, width in zip(codes, (1, 2, 4)):
+        for code, width in zip(codes, (1, 2, 4), strict=True):
             if code and length < 1 << (8 * width):
                 return bytes((code,)) + length.to_bytes(width, "big")
         raise ValueError(f"{length} elements do not fit a MessagePack header")

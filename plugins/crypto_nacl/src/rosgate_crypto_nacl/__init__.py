@@ -33,8 +33,8 @@ import base64
 import binascii
 import hashlib
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from nacl.exceptions import CryptoError
 from nacl.secret import SecretBox

@@ -27,8 +27,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rosgate import (Address, LinkError, OptionError, SocketConnection, SocketListener,
-                     StreamTransport, hookimpl, option)
+from rosgate import (
+    Address,
+    LinkError,
+    OptionError,
+    SocketConnection,
+    SocketListener,
+    StreamTransport,
+    hookimpl,
+    option,
+)
 
 CHANNELS = range(1, 31)
 ANY = "00:00:00:00:00:00"

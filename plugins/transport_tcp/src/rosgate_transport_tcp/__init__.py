@@ -15,8 +15,18 @@ from __future__ import annotations
 import socket
 from dataclasses import dataclass
 
-from rosgate import (Address, LinkError, SocketConnection, SocketListener, StreamTransport,
-                     check_ip_address, hookimpl, ip_source_hosts, option, parse_host_port)
+from rosgate import (
+    Address,
+    LinkError,
+    SocketConnection,
+    SocketListener,
+    StreamTransport,
+    check_ip_address,
+    hookimpl,
+    ip_source_hosts,
+    option,
+    parse_host_port,
+)
 
 
 class TcpConnection(SocketConnection):
@@ -52,7 +62,8 @@ class TcpTransport(StreamTransport):
             sock.listen(64)
         except OSError as exc:
             sock.close()
-            raise LinkError(f"cannot listen on TCP {address[0]}:{address[1]}: {exc.strerror}") from None
+            raise LinkError(f"cannot listen on TCP {address[0]}:{address[1]}: "
+                            f"{exc.strerror}") from None
         return SocketListener(sock, lambda accepted: TcpConnection(accepted, self.options.nodelay))
 
     def connect(self, address: Address, timeout: float) -> TcpConnection:

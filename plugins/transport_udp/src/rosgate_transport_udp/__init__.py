@@ -5,7 +5,7 @@ Frames larger than ``max_frame`` are fragmented by the rosgate core.
 
 ``max_frame`` (default 1,200 bytes) is the largest datagram rosgate sends. A datagram larger
 than the path's MTU leaves as IP fragments, and is lost when any one of them is: at 1 % packet
-loss a 65,000-byte datagram (45 fragments over Ethernet's 1,500) is lost 36 % of the time, and a
+loss a 65,000-byte datagram (44 fragments over Ethernet's 1,500) is lost 36 % of the time, and a
 1 MB message of sixteen of them almost always. 1,200 bytes fit every IPv6 path (whose minimum
 MTU, 1,280, less 48 bytes of headers, leaves 1,232) and the usual tunnels (WireGuard,
 Tailscale's 1,280), as QUIC reasons. On a network you know: 1,472 fills an Ethernet frame over
@@ -32,8 +32,16 @@ import struct
 import sys
 from dataclasses import dataclass
 
-from rosgate import (Address, DatagramTransport, LinkError, check_ip_address, hookimpl,
-                     ip_source_hosts, option, parse_host_port)
+from rosgate import (
+    Address,
+    DatagramTransport,
+    LinkError,
+    check_ip_address,
+    hookimpl,
+    ip_source_hosts,
+    option,
+    parse_host_port,
+)
 
 log = logging.getLogger("rosgate.udp")
 

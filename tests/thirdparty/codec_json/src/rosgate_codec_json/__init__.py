@@ -20,8 +20,9 @@ Options (``plugins: {json: {...}}``): see :class:`JsonCodec.Options`, or
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from rosgate import Codec, CodecError, hookimpl, option
 from rosgate.message_tree import from_tree, to_tree

@@ -69,7 +69,8 @@ class UnixDatagramTransport(DatagramTransport):
             sock.bind(path)
         except OSError as exc:
             sock.close()
-            raise LinkError(f"cannot bind {path or 'an anonymous socket'}: {exc.strerror}") from None
+            raise LinkError(f"cannot bind {path or 'an anonymous socket'}: "
+                            f"{exc.strerror}") from None
         return UnixDatagramEndpoint(sock, path)
 
 
