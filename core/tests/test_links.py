@@ -269,6 +269,29 @@ def test_a_malformed_batch_is_counted_after_the_frames_before_it(udp_pair):
     assert b_inbox.drops == [(None, "bad_batch"), (None, "bad_batch")]
 
 
+def test_frames_that_waited_leave_together_from_the_send_thread(closing):
+    """While the send thread is busy (a large frame on a stalled wire), small frames of several
+    topics queue in the scheduler; when it is free they leave in one batch datagram, in the
+    order they came, and the one that does not fit goes next."""
+    a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing, max_frame=1200)
+    wire.released.clear()
+    big = frame_of(1, 5000, random.Random(40))
+    assert a.send(big, a_inbox.sender(1), to) is True
+    assert wire.entered.wait(5)  # its first fragment is on its way: the thread is held
+    rng = random.Random(41)
+    small = [frame_of(2 + i % 3, 200, rng) for i in range(6)]  # 6 x 228 B: five fit 1,200
+    for i, frame in enumerate(small):
+        assert a.send(frame, a_inbox.sender(2 + i % 3), to) is True
+    wire.released.set()
+    assert b_inbox.wait(lambda: len(b_inbox.frames) >= 7), b_inbox.drops
+    assert sorted(b_inbox.payloads(), key=len) == sorted([big, *small], key=len)
+    smalls = [p for p in b_inbox.payloads() if len(p) == len(small[0])]
+    assert smalls == small  # in the order they came
+    batches = [d for d in wire.sent if d[:2] == b"RB"]
+    assert len(batches) == 1 and len(batches[0]) <= 1200
+    assert a.counters.coalesced_out == 5 and a.counters.frames_out == 7
+
+
 def test_a_large_frame_leaves_from_the_send_thread_in_scatter_gather_fragments(closing):
     a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing)
     frame = frame_of(1, 200_000, random.Random(24))
