@@ -41,7 +41,17 @@ from typing import Any
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from processes import HERE_CHECKOUT, ROOT, Bridge, Checkout, Lines, Process, free_port, ros_env  # noqa: E402
+from processes import (  # noqa: E402
+    HERE_CHECKOUT,
+    ROOT,
+    Bridge,
+    Checkout,
+    Endpoint,
+    Lines,
+    Process,
+    free_port,
+    ros_env,
+)
 
 from bench import Load, base_checkout, revision  # noqa: E402
 
@@ -87,8 +97,8 @@ def domains() -> tuple[int, int]:
     return first, first + 1
 
 
-class Ends(Process):
-    """The publisher or the subscriber (constrained_ends.py)."""
+class Ends(Endpoint):
+    """The publisher or the subscriber (constrained_ends.py), driven as bench's endpoints are."""
 
     def __init__(self, role: str, spec: list[dict], domain: int, log_file: Path):
         self.name = role
@@ -101,20 +111,7 @@ class Ends(Process):
         self.lines.wait_for('"ready"', 60)
 
     def ask(self, command: str, timeout: float = 30.0) -> dict[str, Any]:
-        assert self.proc.stdin is not None
-        self.proc.stdin.write(command + "\n")
-        self.proc.stdin.flush()
-        return json.loads(self.lines.next(timeout))
-
-    def stop(self) -> None:
-        try:
-            self.proc.stdin.write("quit\n")  # type: ignore[union-attr]
-            self.proc.stdin.close()  # type: ignore[union-attr]
-            self.proc.wait(5)
-        except (OSError, subprocess.TimeoutExpired):
-            pass
-        super().stop()
-        self.log.close()
+        return super().ask(command, timeout)
 
 
 class Relay(Process):

@@ -29,6 +29,8 @@ import threading
 import time
 from array import array
 
+from endpoints import answer, node  # bench/ is this script's folder, first on sys.path
+
 STAMP = struct.Struct("<iI")  # header.stamp after the 4-byte CDR encapsulation
 
 
@@ -116,18 +118,6 @@ class Stamped:
         else:
             buf[8:32] = b"%016x%08x" % (ns, n)
         return bytes(buf)
-
-
-def node(name: str):
-    import rclpy
-
-    rclpy.init()
-    return rclpy.create_node(name, start_parameter_services=False)
-
-
-def answer(obj: dict) -> None:
-    sys.stdout.write(json.dumps(obj) + "\n")
-    sys.stdout.flush()
 
 
 def run_publisher(spec: list[dict]) -> None:

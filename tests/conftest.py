@@ -222,6 +222,10 @@ class Bridge:
             try:
                 self.proc.wait(15)
             except subprocess.TimeoutExpired:
+                # it did not stop: its threads' stacks into its log (rosgate run's SIGUSR1), so
+                # the failure says where it hangs
+                self.proc.send_signal(signal.SIGUSR1)
+                time.sleep(1)
                 self.proc.kill()
                 self.proc.wait()
         self._reader.join(5)

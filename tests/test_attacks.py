@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import resource
 import select
+import signal
 import socket
 import time
 from pathlib import Path
@@ -610,3 +611,14 @@ def test_a_type_name_from_a_client_never_imports_its_package(tmp_path, engines, 
         answer = read_control(s)
     assert answer is not None and answer["type"] == "refused", answer
     assert not marker.exists() and "rosgate_evil" not in sys.modules
+
+
+def test_sigusr1_writes_every_threads_stack_and_the_bridge_carries_on(tmp_path, bridge, domain):
+    """A bridge that hangs can be asked where: ``kill -USR1`` dumps its threads (the harness
+    does it before killing one that did not stop), and the bridge goes on and stops cleanly."""
+    server = bridge(server_file(tmp_path, free_port()), domain())
+    server.proc.send_signal(signal.SIGUSR1)
+    # the main thread, waiting for a signal, is the last one written
+    assert server.wait_log("in wait_for_signal", 10), server.log
+    assert "(most recent call first)" in server.log
+    assert server.stop() == 0

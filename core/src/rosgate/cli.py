@@ -7,6 +7,7 @@ tracebacks are kept for bugs.
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import os
 import signal
@@ -135,6 +136,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         reload.set()
         stop.set()
     signal.signal(signal.SIGHUP, hangup)
+    # kill -USR1 <pid>: every thread's stack to stderr, from C, even when a thread holds the GIL
+    # (for a bridge that does not stop or does not answer)
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         engine.start()
     except ConfigError:
