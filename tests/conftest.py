@@ -225,7 +225,7 @@ class Bridge:
                 # it did not stop: its threads' stacks into its log (rosgate run's SIGUSR1), so
                 # the failure says where it hangs
                 self.proc.send_signal(signal.SIGUSR1)
-                time.sleep(1)
+                self.wait_log("(most recent call first)", 5)
                 self.proc.kill()
                 self.proc.wait()
         self._reader.join(5)

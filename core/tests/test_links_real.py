@@ -208,7 +208,7 @@ def test_a_small_frame_of_a_higher_class_overtakes_a_large_frame_in_progress(clo
     image, twist = Topic(1, priority=6), Topic(2, priority=2)
     big = frame(1, 1, 300_000)
     a.send(big, image, relay.address)
-    assert wait_until(lambda: relay.up.datagrams_in >= 5)  # the image has started
+    assert relay.wait_until(lambda up, _: up.datagrams_in >= 5, TIMEOUT)  # the image started
     small = [frame(2, i, 60) for i in range(5)]
     for f in small:
         assert a.send(f, twist, relay.address)
@@ -221,7 +221,7 @@ def test_latest_only_keeps_one_waiting_message_and_counts_the_rest(closing):
     camera = Topic(5, latest_only=True, reliable=False)
     frames = [frame(5, i, 50_000) for i in range(10)]  # 200 ms each on the link
     a.send(frames[0], camera, relay.address)
-    assert wait_until(lambda: relay.up.datagrams_in >= 1)  # the first has started
+    assert relay.wait_until(lambda up, _: up.datagrams_in >= 1, TIMEOUT)  # the first started
     for f in frames[1:]:
         a.send(f, camera, relay.address)  # at once: they wait behind it
     assert rx.wait(lambda: frames[-1] in rx.frames)
@@ -246,7 +246,7 @@ def test_streams_interleave_large_frames_with_small_ones_of_a_higher_class(closi
     image, twist = Topic(1, priority=6), Topic(2, priority=2)
     big = frame(1, 1, 2_000_000)
     a.send(big, image)
-    assert wait_until(lambda: relay.up.bytes_in > 100_000)
+    assert relay.wait_until(lambda up, _: up.bytes_in > 100_000, TIMEOUT)
     small = [frame(2, i, 60) for i in range(3)]
     for f in small:
         a.send(f, twist)
@@ -255,6 +255,8 @@ def test_streams_interleave_large_frames_with_small_ones_of_a_higher_class(closi
 
 
 def wait_until(predicate, timeout: float = TIMEOUT) -> bool:
+    """Polls: for state nothing signals (a link's retransmit store); the relay's counters have
+    their own event (UdpRelay.wait_until)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if predicate():

@@ -9,6 +9,7 @@ change with every key generation and every handshake, and the epoch says which.
 from __future__ import annotations
 
 import os
+from abc import ABC, abstractmethod
 
 from .cipher import Cipher
 
@@ -17,24 +18,24 @@ class NoKey(LookupError):
     """There is no key to seal under yet (a session whose handshake has not happened)."""
 
 
-class Keys:
+class Keys(ABC):
     """The ciphers of one route."""
 
     #: True when ``open`` proves a frame came from a key holder unchanged
     authenticates: bool = True
 
+    @abstractmethod
     def epoch(self) -> int:
         """The epoch a frame sealed now carries; :class:`NoKey` when there is none yet."""
-        raise NotImplementedError
 
+    @abstractmethod
     def sealer(self, epoch: int) -> Cipher:
         """The cipher that seals frames of ``epoch`` (a reply seals under its request's)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def opener(self, epoch: int) -> Cipher | None:
         """The cipher that opens frames of ``epoch``; None when no key of this route has it
         (an earlier session, a server restart, a generation long expired)."""
-        raise NotImplementedError
 
 
 class StaticKeys(Keys):

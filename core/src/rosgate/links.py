@@ -46,13 +46,13 @@ import logging
 import random
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections import Counter, deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
-from .config import MAX_DELAY_DEFAULT as MAX_DELAY
-from .config import LinkConfig
+from .config import MAX_DELAY_DEFAULT, LinkConfig
 from .errors import LinkError
 from .scheduler import Due, Outgoing, Scheduler
 from .transport import Address, DatagramEndpoint, StreamConnection, StreamListener, Transport
@@ -185,7 +185,7 @@ class LinkCounters:
                 f"({self.coalesced_in} coalesced, {self.bytes_in} B)")
 
 
-class _Sending:
+class _Sending(ABC):
     """What both kinds of link share on the way out: the scheduler, its lock, and the send
     thread's bookkeeping. ``_send_due`` and ``_send_loop``'s gathering are the kind's own."""
 
@@ -199,8 +199,8 @@ class _Sending:
         self.budget = budget
         self.scheduler = Scheduler(
             bandwidth=budget.bandwidth if budget else None, overhead=overhead,
-            max_delay=budget.max_delay if budget else MAX_DELAY, frames=frames, bytes=bytes_,
-            packet=packet)
+            max_delay=budget.max_delay if budget else MAX_DELAY_DEFAULT, frames=frames,
+            bytes=bytes_, packet=packet)
         # entered as the plain lock on the way out (a Condition's own with-statement costs a
         # Python call each way, ~0.3 us); the send thread waits on the condition
         self._lock = threading.Lock()
@@ -224,37 +224,46 @@ class _Sending:
         with self._lock:
             self.scheduler.forget(sender)
 
-    def _put(self, message: Outgoing, inline: bytes | None = None) -> bool:
-        """Queue ``message`` — or, when ``inline`` (its one packet) may leave at once, send it
-        here. False when it was dropped (counted)."""
-        lock = self._lock
-        with lock:
-            if self.closed.is_set():
-                queued = go = False
-            elif (inline is not None and not self._busy and self._rest is None
-                  and self.scheduler.may_send_now(message.to, len(inline))):
-                self._busy = queued = go = True
-            else:
-                go = False
-                queued = self.scheduler.put(message)
-                if queued and not self._busy:
-                    self._wake.notify()
+    def _claim(self, to: Any, size: int) -> bool:
+        """Under the lock: whether the calling thread may send ``size`` bytes to ``to`` itself,
+        now — open, nobody sending, nothing left over from a write, nothing queued, the budget
+        has the tokens. When True it is this thread's turn until :meth:`_release`."""
+        if (self.closed.is_set() or self._busy or self._rest is not None
+                or not self.scheduler.may_send_now(to, size)):
+            return False
+        self._busy = True
+        return True
+
+    def _release(self) -> None:
+        """The caller's turn is over: the send thread takes what waits."""
+        with self._lock:
+            self._busy = False
+            if not self.scheduler.idle or self._rest is not None:
+                self._wake.notify()
+
+    def _send_now(self, packet: bytes, sender: Any, to: Any) -> bool | None:
+        """Send ``packet`` (a whole frame) from the caller's thread when it may leave at once
+        (see :meth:`_claim`): whether it went (False: dropped, counted); None when it must be
+        queued instead. The common case of a quiet link: no message object, no hand-off."""
+        with self._lock:
+            if not self._claim(to, len(packet)):
+                return None
+        try:
+            return self._send_due(Due(packet, to, sender, _INLINE))
+        finally:
+            self._release()
+
+    def _put(self, message: Outgoing) -> bool:
+        """Queue ``message`` for the send thread. False when it was dropped (counted)."""
+        with self._lock:
+            queued = not self.closed.is_set() and self.scheduler.put(message)
+            if queued and not self._busy:
+                self._wake.notify()
         if self.scheduler.dropped:
             self._count_drops()
-        if not queued:
-            if self.closed.is_set():
-                message.sender.drop("link_down", f"{self.name} is closed")
-            return False
-        if not go:
-            return True
-        try:
-            assert inline is not None
-            return self._send_due(Due(inline, message.to, message.sender, message))
-        finally:
-            with lock:
-                self._busy = False
-                if not self.scheduler.idle or self._rest is not None:
-                    self._wake.notify()
+        if not queued and self.closed.is_set():
+            message.sender.drop("link_down", f"{self.name} is closed")
+        return queued
 
     def _count_drops(self) -> None:
         """Count what the scheduler dropped (outside the lock: counting may log)."""
@@ -263,15 +272,10 @@ class _Sending:
             sender, reason, detail = dropped.pop(0)
             sender.drop(reason, f"{self.name}: {detail}")
 
-    def _next_timer(self) -> float | None:
-        """When the send thread must wake with nothing queued (a retransmission probe)."""
-        return None
-
-    def _timers(self, now: float) -> None:
-        """The kind's timers, under the lock."""
-
+    @abstractmethod
     def _send_due(self, due: Due) -> bool:
-        raise NotImplementedError
+        """Send one packet from the caller's thread (its turn, see :meth:`_claim`); False when
+        it was dropped (counted). Each kind of link has its own."""
 
 
 def _on_wire(sender: Any, size: int, again: bool) -> None:
@@ -297,6 +301,10 @@ class _Gather:
 
 def _one(packet: bytes) -> Callable[[], list[bytes]]:
     return lambda: [packet]
+
+
+#: what a Due sent from the caller's thread ends: its one frame (see _Sending._send_now)
+_INLINE = Outgoing(None, None, 0, list)
 
 
 def _batchable(due: Due) -> bool:
@@ -369,9 +377,13 @@ class DatagramLink(_Sending, Link):
         whole = self.bare or getattr(sender, "bare", False)
         kind = getattr(sender, "recovery", "none")
         one = whole or kind == "none" and not self.compact and size <= self.max_frame
-        message = Outgoing(sender, to, size, lambda: self._cut(frame, sender, to, whole, kind),
-                           time.monotonic(), batchable=one and not whole)
-        return self._put(message, frame if one else None)
+        if one:
+            sent = self._send_now(frame, sender, to)
+            if sent is not None:
+                return sent
+        return self._put(Outgoing(sender, to, size,
+                                  lambda: self._cut(frame, sender, to, whole, kind),
+                                  time.monotonic(), batchable=one and not whole))
 
     def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
         """Frames of one sender together (a route's backlog): when the link is idle, those that
@@ -394,20 +406,14 @@ class DatagramLink(_Sending, Link):
                 continue
             group, start = frames[start:end], end
             with self._lock:
-                go = (not self.closed.is_set() and not self._busy
-                      and self.scheduler.may_send_now(to, framing.batch_size(total, len(group))))
-                if go:
-                    self._busy = True
+                go = self._claim(to, framing.batch_size(total, len(group)))
             if not go:
                 sent += sum(self.send(frame, sender, to) for frame in group)
                 continue
             try:
                 sent += self._send_batch([Due(frame, to, sender) for frame in group], to)
             finally:
-                with self._lock:
-                    self._busy = False
-                    if not self.scheduler.idle:
-                        self._wake.notify()
+                self._release()
         return sent
 
     def _cut(self, frame: bytes, sender: Any, to: Address, whole: bool, kind: str) -> list[bytes]:
@@ -543,10 +549,12 @@ class DatagramLink(_Sending, Link):
                     self._busy = carry is not None  # a carried frame keeps its turn
 
     def _timers(self, now: float) -> None:
+        """Under the lock: the retransmission probes that are due, queued."""
         for owner, to, packet in self.store.probes(now):
             self.scheduler.repair(owner, to, [packet])
 
     def _next_timer(self) -> float | None:
+        """When the send thread must wake with nothing queued (a retransmission probe)."""
         return self.store.next_probe()
 
     # -- in ------------------------------------------------------------------------------------
@@ -764,9 +772,11 @@ class StreamLink(_Sending, Link):
         # the limits count a frame with its length prefix, as it is written
         if len(frame) <= framing.CHUNK:
             record = framing.length_prefixed(frame)
-            return self._put(Outgoing(sender, None, len(record), lambda: [record],
-                                      time.monotonic()),
-                             record if self._send_nowait is not None else None)
+            if self._send_nowait is not None:
+                sent = self._send_now(record, sender, None)
+                if sent is not None:
+                    return sent
+            return self._put(Outgoing(sender, None, len(record), _one(record), time.monotonic()))
         return self._put(Outgoing(sender, None, len(frame) + framing.LENGTH.size,
                                   lambda: framing.stream_records(frame, next(self._messages)),
                                   time.monotonic()))
@@ -780,29 +790,22 @@ class StreamLink(_Sending, Link):
         records = [framing.length_prefixed(frame) for frame in frames]
         data = b"".join(records)
         with self._lock:
-            go = (not self.closed.is_set() and not self._busy and self._rest is None
-                  and self.scheduler.may_send_now(None, len(data)))
-            if go:
-                self._busy = True
+            go = self._claim(None, len(data))
         if not go:
             now = time.monotonic()
             return sum(self._put(Outgoing(sender, None, len(record), _one(record), now))
                        for record in records)
         try:
-            self._write_now(data, sender, [len(record) for record in records], None)
+            self._write_now(data, sender, [len(record) for record in records])
         finally:
-            with self._lock:
-                self._busy = False
-                if not self.scheduler.idle or self._rest is not None:
-                    self._wake.notify()
+            self._release()
         return len(records)
 
     def _send_due(self, due: Due) -> bool:
         """One record from the caller's thread (see :meth:`_write_now`)."""
-        return self._write_now(due.packet, due.sender, [len(due.packet)], due.ends)
+        return self._write_now(due.packet, due.sender, [len(due.packet)])
 
-    def _write_now(self, data: bytes, sender: Sender, sizes: list[int],
-                   ends: Outgoing | None) -> bool:
+    def _write_now(self, data: bytes, sender: Sender, sizes: list[int]) -> bool:
         """Write records as far as the connection takes them now; what it does not take goes
         first when the writer next writes (nothing can come between: this thread is the only
         one writing)."""
@@ -828,9 +831,7 @@ class StreamLink(_Sending, Link):
             if whole > 1:
                 counters.coalesced_out += whole
         if written < len(data):
-            rest = Due(data[written:], None, sender,
-                       ends or Outgoing(sender, None, len(data) - written, list, 0.0))
-            rest.frames = len(sizes) - whole
+            rest = Due(data[written:], None, sender, _INLINE, frames=len(sizes) - whole)
             with self._lock:
                 self._rest = rest
         _on_wire(sender, written, False)

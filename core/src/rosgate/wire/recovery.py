@@ -147,14 +147,60 @@ class _FecFrame:
     topic_id: int
     length: int
     size: int  # chunk size
-    started: float
+    last: float  # when a fragment of it last came
     blocks: list[_Block | None]
     done: int = 0
     held: int = 0  # bytes
     recovered: bool = False
 
 
-class FecReassembler:
+class _Pending:
+    """What both receivers of loss recovery keep: frames in progress in the order they were last
+    heard of (a frame is given up ``timeout`` seconds after its newest fragment, so a large one
+    on a slow link is waited for while it comes; expiry looks at the longest silent only), within
+    ``max_pending_bytes``, and the frames lately finished (their late fragments are ignored).
+    A frame has ``topic_id``, ``last`` and ``held`` (bytes)."""
+
+    def __init__(self, on_lost: Lost, on_recovered: Recovered, timeout: float,
+                 max_pending_bytes: int, max_message: int):
+        self.on_lost = on_lost
+        self.on_recovered = on_recovered
+        self.timeout = timeout
+        self.max_pending_bytes = max_pending_bytes
+        self.max_message = max_message
+        self._pending: OrderedDict[Any, Any] = OrderedDict()  # longest silent first
+        self._pending_bytes = 0
+        self._finished: OrderedDict[Hashable, None] = OrderedDict()
+
+    def _heard(self, key: Hashable, frame: Any, now: float) -> None:
+        frame.last = now
+        self._pending.move_to_end(key)
+
+    def _remember(self, key: Hashable) -> None:
+        self._finished[key] = None
+        if len(self._finished) > FINISHED_REMEMBERED:
+            self._finished.popitem(last=False)
+
+    def expire(self, now: float) -> None:
+        """Give up frames whose fragments stopped coming for the timeout, longest silent first."""
+        while self._pending:
+            key, frame = next(iter(self._pending.items()))
+            if now - frame.last <= self.timeout:
+                return
+            self._give_up(key, "fragment_lost")
+
+    def _shed(self) -> None:
+        while self._pending_bytes > self.max_pending_bytes and self._pending:
+            self._give_up(next(iter(self._pending)), "reassembly_overflow")
+
+    def _give_up(self, key: Hashable, reason: str) -> None:
+        frame = self._pending.pop(key)
+        self._pending_bytes -= frame.held
+        self._remember(key)
+        self.on_lost(frame.topic_id, reason)
+
+
+class FecReassembler(_Pending):
     """Rebuilds FEC frames from any ``k`` fragments of each block. ``on_lost(topic_id, reason)``
     once per frame given up; ``on_recovered(topic_id)`` once per frame that needed its repair
     fragments."""
@@ -162,14 +208,7 @@ class FecReassembler:
     def __init__(self, on_lost: Lost, on_recovered: Recovered, timeout: float = DEADLINE,
                  max_pending_bytes: int = 4 * DEFAULT_MAX_MESSAGE,
                  max_message: int = DEFAULT_MAX_MESSAGE):
-        self.on_lost = on_lost
-        self.on_recovered = on_recovered
-        self.timeout = timeout
-        self.max_pending_bytes = max_pending_bytes
-        self.max_message = max_message
-        self._pending: OrderedDict[Hashable, _FecFrame] = OrderedDict()  # oldest first
-        self._pending_bytes = 0
-        self._finished: OrderedDict[Hashable, None] = OrderedDict()
+        super().__init__(on_lost, on_recovered, timeout, max_pending_bytes, max_message)
 
     def add(self, source: Hashable, datagram: bytes | memoryview, now: float) -> bytes | None:
         """Take one fragment; the frame when it completes one."""
@@ -199,8 +238,7 @@ class FecReassembler:
             raise FramingError("FEC block header changed within a frame")
         if state.data is not None or index in state.chunks:
             return None  # a block already rebuilt, or a duplicate
-        frame.started = now  # still coming: its time runs from its newest fragment
-        self._pending.move_to_end(key)
+        self._heard(key, frame, now)
         state.chunks[index] = chunk
         frame.held += size
         self._pending_bytes += size
@@ -230,30 +268,6 @@ class FecReassembler:
         if frame.recovered:
             self.on_recovered(topic_id)
         return whole[:length]
-
-    def _remember(self, key: Hashable) -> None:
-        self._finished[key] = None
-        if len(self._finished) > FINISHED_REMEMBERED:
-            self._finished.popitem(last=False)
-
-    def expire(self, now: float) -> None:
-        """Give up frames whose fragments stopped coming for the timeout, the longest silent
-        first (the dict is in the order they were last heard of)."""
-        while self._pending:
-            key, frame = next(iter(self._pending.items()))
-            if now - frame.started <= self.timeout:
-                return
-            self._give_up(key, "fragment_lost")
-
-    def _shed(self) -> None:
-        while self._pending_bytes > self.max_pending_bytes and self._pending:
-            self._give_up(next(iter(self._pending)), "reassembly_overflow")
-
-    def _give_up(self, key: Hashable, reason: str) -> None:
-        frame = self._pending.pop(key)
-        self._pending_bytes -= frame.held
-        self._remember(key)
-        self.on_lost(frame.topic_id, reason)
 
 
 # -- selective repeat ------------------------------------------------------------------------
@@ -314,10 +328,9 @@ def parse_ack(datagram: bytes | memoryview) -> list[int]:
 class _RepeatFrame:
     topic_id: int
     count: int
-    started: float
     last: float                       # when a new fragment last came
     parts: dict[int, bytes] = field(default_factory=dict)
-    size: int = 0
+    held: int = 0                     # bytes
     highest: int = -1
     gap: float = NACK_AFTER           # mean time between its fragments (smoothed)
     asked: dict[int, float] = field(default_factory=dict)  # index -> when it was last asked for
@@ -325,7 +338,7 @@ class _RepeatFrame:
     check_at: float = 0.0             # when poll looks at it next
 
 
-class RepeatReassembler:
+class RepeatReassembler(_Pending):
     """The receiving side of selective repeat: reassembles ``b"RS"`` fragments, asks for the
     missing ones and acknowledges whole frames through ``send(datagram, source)``.
 
@@ -336,16 +349,8 @@ class RepeatReassembler:
     def __init__(self, on_lost: Lost, on_recovered: Recovered, send: Send,
                  timeout: float = DEADLINE, max_pending_bytes: int = 4 * DEFAULT_MAX_MESSAGE,
                  max_message: int = DEFAULT_MAX_MESSAGE):
-        self.on_lost = on_lost
-        self.on_recovered = on_recovered
-        self.send = send
-        self.timeout = timeout
-        self.max_pending_bytes = max_pending_bytes
-        self.max_message = max_message
-        # (source, topic id, frame id) -> the frame, oldest first
-        self._pending: OrderedDict[tuple[Hashable, int, int], _RepeatFrame] = OrderedDict()
-        self._pending_bytes = 0
-        self._finished: OrderedDict[Hashable, None] = OrderedDict()
+        super().__init__(on_lost, on_recovered, timeout, max_pending_bytes, max_message)
+        self.send = send  # pending: (source, topic id, frame id) -> the frame
         self._rtt: dict[Hashable, float] = {}  # per source: NACK to the first fragment it brought
 
     def add(self, source: Hashable, datagram: bytes | memoryview, now: float) -> bytes | None:
@@ -362,7 +367,7 @@ class RepeatReassembler:
                 self.send(ack([fid]), source)  # our ACK was lost: the sender is still asking
                 return None
             self.expire(now)
-            frame = self._pending[key] = _RepeatFrame(topic_id, count, now, now)
+            frame = self._pending[key] = _RepeatFrame(topic_id, count, now)
         elif frame.count != count:
             raise FramingError("fragment count changed within a frame")
         if index in frame.parts:
@@ -375,14 +380,13 @@ class RepeatReassembler:
         else:
             frame.gap = 0.8 * frame.gap + 0.2 * (now - frame.last)
         frame.parts[index] = chunk
-        frame.size += len(chunk)
+        frame.held += len(chunk)
         self._pending_bytes += len(chunk)
-        frame.last = now
-        self._pending.move_to_end(key)  # in the order they were last heard of (see expire)
+        self._heard(key, frame, now)
         frame.check_at = now + max(NACK_AFTER, 4 * frame.gap)
         if len(frame.parts) == count:
             del self._pending[key]
-            self._pending_bytes -= frame.size
+            self._pending_bytes -= frame.held
             self._remember(key)
             self.send(ack([fid]), source)
             if frame.recovered:
@@ -431,30 +435,6 @@ class RepeatReassembler:
         oldest = next(iter(self._pending.values())).last + self.timeout
         return min(soonest, oldest)
 
-    def _remember(self, key: Hashable) -> None:
-        self._finished[key] = None
-        if len(self._finished) > FINISHED_REMEMBERED:
-            self._finished.popitem(last=False)
-
-    def expire(self, now: float) -> None:
-        """Give up frames whose fragments stopped coming for the deadline (a large frame on a
-        slow link takes longer than that to arrive, and is not given up while it comes), the
-        longest silent first."""
-        while self._pending:
-            key, frame = next(iter(self._pending.items()))
-            if now - frame.last <= self.timeout:
-                return
-            self._give_up(key, "fragment_lost")
-
-    def _shed(self) -> None:
-        while self._pending_bytes > self.max_pending_bytes and self._pending:
-            self._give_up(next(iter(self._pending)), "reassembly_overflow")
-
-    def _give_up(self, key: tuple[Hashable, int, int], reason: str) -> None:
-        frame = self._pending.pop(key)
-        self._pending_bytes -= frame.size
-        self._remember(key)
-        self.on_lost(frame.topic_id, reason)
 
 
 @dataclass
