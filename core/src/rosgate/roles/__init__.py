@@ -19,19 +19,17 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from ..admission import Acceptor, ConnectionLimits, Sources
 from ..config import BridgeConfig, LinkConfig
 from ..errors import ConfigError, LinkError
 from ..links import (
-    Acceptor,
     Backoff,
-    ConnectionLimits,
     DatagramLink,
     Lifetime,
     Link,
     LinkCounters,
     LinkSlot,
     QueueLimits,
-    Sources,
     StreamLink,
     Untrusted,
 )

@@ -37,11 +37,12 @@ import threading
 import time
 from typing import Any
 
+from ..admission import Acceptor, Sources
 from ..config import Direction, Framing
 from ..cvra import CallServer
 from ..errors import LinkError
 from ..keyring import Keys
-from ..links import Acceptor, Connector, Link, Sources, StreamLink
+from ..links import Connector, Link, StreamLink
 from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
 from ..routes import ReceiveRoute

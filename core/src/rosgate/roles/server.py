@@ -29,6 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..admission import Acceptor, KnownSources
 from ..config import (
     ClientPolicy,
     Direction,
@@ -39,7 +40,7 @@ from ..config import (
 )
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys
-from ..links import Acceptor, DatagramLink, KnownSources, Link, LinkSlot, StreamLink
+from ..links import DatagramLink, Link, LinkSlot, StreamLink
 from ..policy import refusal
 from ..resolver import PreparedService, PreparedTopic
 from ..routes import Route

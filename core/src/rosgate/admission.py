@@ -1,0 +1,244 @@
+"""Admission: who a bridge takes frames and connections from, and how many connections it
+holds. Roles choose it; datagram links and acceptors apply it.
+
+* :class:`Sources` — the hosts and IP networks a link takes datagrams (and an acceptor
+  connections) from; a :class:`~rosgate.links.DatagramLink` counts the others ``not_allowed``,
+  before any reassembly. :class:`KnownSources` — a server's: the addresses its clients' genuine
+  hellos came from, learnt while running; from anywhere else only a hello is taken.
+* :class:`ConnectionLimits` — how many accepted stream connections a bridge holds at once, in
+  total and per source address (``bridge.limits``); a connection gives its place back when it
+  is closed.
+* :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``, within
+  :class:`ConnectionLimits` and from admitted :class:`Sources` only, reporting every refusal;
+  it backs off when accepting fails (out of file descriptors: EMFILE, ENFILE), never spinning.
+
+It sits below :mod:`rosgate.links` (which takes :class:`Sources`) and above the transports:
+nothing here frames, queues or sends. What an accepted connection may do before it is trusted
+is the link's (:class:`~rosgate.links.Untrusted`).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import threading
+from collections import Counter
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from .transport import Address, StreamConnection, StreamListener
+from .warn import BUGS, Warner
+from .wire import envelope
+
+_WARNER = Warner()  # for an acceptor whose owner does not count its refusals
+ACCEPT_POLL = 0.2  # seconds an accept waits before checking whether the acceptor is closing
+ACCEPT_BACKOFF = (0.1, 1.0)  # seconds between failed accepts: the first, doubling up to the second
+
+
+class Sources:
+    """Who a link takes frames or connections from: hosts as they appear in a source address,
+    and IP networks (``10.0.0.0/24``)."""
+
+    def __init__(self, hosts: Iterable[str], networks: Iterable[str] = ()):
+        self.hosts = set(hosts)
+        self._seen: dict[str, bool] = {}
+        self.networks = []
+        for text in networks:
+            try:
+                self.networks.append(ipaddress.ip_network(text, strict=False))
+            except ValueError:
+                self.hosts.add(text)  # not an IP network: a host as written (a device address)
+
+    def admits(self, source: Address, datagram: bytes | memoryview = b"") -> bool:
+        host = source[0]
+        if host in self.hosts:
+            return True
+        if host.startswith("::ffff:"):  # an IPv4 peer on a dual-stack socket
+            host = host[7:]
+            if host in self.hosts:
+                return True
+        if not self.networks:
+            return False
+        known = self._seen.get(host)
+        if known is None:  # parsed once per host: a datagram path's cost stays a dict lookup
+            try:
+                address = ipaddress.ip_address(host.partition("%")[0])
+                known = any(address in network for network in self.networks)
+            except ValueError:
+                known = False
+            if len(self._seen) >= 4096:  # hosts come from the network: bounded
+                self._seen.clear()
+            self._seen[host] = known
+        return known
+
+    def __repr__(self) -> str:
+        return ", ".join([*sorted(self.hosts), *map(str, self.networks)]) or "nobody"
+
+
+class KnownSources(Sources):
+    """Sources learnt while running: a server's clients, at the addresses their genuine hellos
+    came from. A datagram from anywhere else is taken only when it is a hello (which the server
+    then checks); everything else from there is ``not_allowed``, before any reassembly."""
+
+    def __init__(self) -> None:
+        super().__init__(())
+        self._known: Counter[Address] = Counter()
+        self._lock = threading.Lock()
+
+    def learn(self, source: Address) -> None:
+        with self._lock:
+            self._known[source] += 1
+
+    def forget(self, source: Address) -> None:
+        with self._lock:
+            self._known[source] -= 1
+            if self._known[source] <= 0:
+                del self._known[source]
+
+    def admits(self, source: Address, datagram: bytes | memoryview = b"") -> bool:
+        return source in self._known or envelope.is_hello(datagram)
+
+    def __repr__(self) -> str:
+        return f"{len(self._known)} client address(es)"
+
+
+class ConnectionLimits:
+    """How many accepted stream connections a bridge holds at once: in total, and from one
+    source address (``bridge.limits``). Shared by every :class:`Acceptor` of a bridge."""
+
+    def __init__(self, total: int, per_source: int):
+        self.total = total
+        self.per_source = per_source
+        self._by_source: Counter[str] = Counter()
+        self._count = 0
+        self._lock = threading.Lock()
+
+    def admit(self, host: str) -> str | None:
+        """Take a place for a connection from ``host``; None when taken, else why not."""
+        with self._lock:
+            if self._count >= self.total:
+                return "too_many_connections"
+            if self._by_source[host] >= self.per_source:
+                return "too_many_per_source"
+            self._count += 1
+            self._by_source[host] += 1
+            return None
+
+    def release(self, host: str) -> None:
+        with self._lock:
+            self._count -= 1
+            self._by_source[host] -= 1
+            if not self._by_source[host]:
+                del self._by_source[host]
+
+    @property
+    def held(self) -> int:
+        return self._count
+
+
+class _Counted:
+    """An accepted connection that gives its place back to the limits when it is closed."""
+
+    def __init__(self, connection: StreamConnection, release: Callable[[], None]):
+        self._connection = connection
+        self._release: Callable[[], None] | None = release
+        self._lock = threading.Lock()
+
+    def send(self, data: bytes) -> None:
+        self._connection.send(data)
+
+    def receive(self, max_bytes: int, timeout: float) -> bytes | None:
+        return self._connection.receive(max_bytes, timeout)
+
+    def close(self) -> None:
+        try:
+            self._connection.close()
+        finally:
+            with self._lock:
+                release, self._release = self._release, None
+            if release is not None:
+                release()
+
+    def __getattr__(self, name: str) -> Any:  # what else the transport's connection offers
+        return getattr(self._connection, name)
+
+
+RefusedHandler = Callable[["Acceptor", str, str], None]
+
+
+class Acceptor:
+    """Accepts connections on a listener until closed, and hands each to ``on_connection``.
+
+    A connection from a source ``sources`` does not admit, or past ``limits``, is closed at once
+    and reported to ``on_refused(acceptor, reason, detail)`` (``not_allowed``,
+    ``too_many_connections``, ``too_many_per_source``). When accepting fails (out of file
+    descriptors: EMFILE, ENFILE) the loop waits, from 0.1 s doubling to 1 s, and reports
+    ``accept_failed``: a listener whose backlog cannot be taken never spins.
+    """
+
+    def __init__(self, listener: StreamListener, name: str,
+                 on_connection: Callable[[StreamConnection, Address], None],
+                 limits: ConnectionLimits | None = None, sources: Sources | None = None,
+                 on_refused: RefusedHandler | None = None):
+        self.listener = listener
+        self.name = name
+        self.on_connection = on_connection
+        self.limits = limits
+        self.sources = sources
+        self.on_refused = on_refused
+        self.closed = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name=f"accept-{name}", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        failures = 0
+        while not self.closed.is_set():
+            try:
+                got = self.listener.accept(ACCEPT_POLL)
+            except OSError as exc:
+                if self.closed.is_set():
+                    return
+                failures += 1
+                pause = min(ACCEPT_BACKOFF[0] * 2 ** (failures - 1), ACCEPT_BACKOFF[1])
+                self._refused("accept_failed", f"{exc}; trying again in {pause:g} s")
+                self.closed.wait(pause)
+                continue
+            failures = 0
+            if got is not None:
+                self._take(*got)
+
+    def _take(self, connection: StreamConnection, peer: Address) -> None:
+        host = peer[0]
+        if self.sources is not None and not self.sources.admits(peer):
+            connection.close()
+            self._refused("not_allowed", f"a connection from {host} (taken from: "
+                                            f"{self.sources})")
+            return
+        limits = self.limits
+        if limits is not None:
+            refused = limits.admit(host)
+            if refused is not None:
+                connection.close()
+                self._refused(refused, f"closed a connection from {host} ({limits.held} held, "
+                                       f"at most {limits.total}, {limits.per_source} per source)")
+                return
+            connection = _Counted(connection, lambda: limits.release(host))
+        try:
+            self.on_connection(connection, peer)
+        except Exception:  # a bug, or no thread to be had: this connection only
+            BUGS.bug("accept_handler", f"{self.name}: error while taking a connection from "
+                                       f"{host}")
+            connection.close()
+            self._refused("handler_error", f"a connection from {host}")
+
+    def _refused(self, reason: str, detail: str) -> None:
+        if self.on_refused is not None:
+            self.on_refused(self, reason, detail)
+        else:
+            _WARNER.warn(self.name, reason, detail)
+
+    def close(self) -> None:
+        if self.closed.is_set():
+            return
+        self.closed.set()
+        self.listener.close()
+        self._thread.join(timeout=2)
