@@ -32,6 +32,7 @@ from typing import IO, Any
 
 ROOT = Path(__file__).resolve().parent.parent
 ENDPOINTS = Path(__file__).resolve().with_name("endpoints.py")
+FLOOR = Path(__file__).resolve().with_name("floor.py")
 ROSGATE = str(Path(sys.executable).with_name("rosgate"))
 CLOCK_TICK = os.sysconf("SC_CLK_TCK")  # /proc/<pid>/stat counts CPU time in these per second
 START_TIMEOUT = 30.0
@@ -238,6 +239,20 @@ class Bridge(Process):
                 or ("drops:" in line and not line.endswith("drops: none"))]
 
 
+class Floor(Bridge):
+    """One side of the floor (bench/floor.py): where bridge A or B stands, no rosgate in it."""
+
+    def __init__(self, side: str, route: Route, msg_type: str, port: int, depth: int,
+                 reliability: str, folder: Path, domain: int):
+        self.name = f"floor_{side}"
+        self.config = folder / f"{self.name}.yaml"  # not written: its log goes beside it
+        self.proc = subprocess.Popen(
+            [sys.executable, str(FLOOR), side, route.transport, msg_type, str(port), str(depth),
+             reliability],
+            env=ros_env(domain), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        self.lines = Lines(self.proc.stderr, self.name)
+
+
 # -- bringup.yaml ---------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Route:
@@ -247,7 +262,8 @@ class Route:
     codec: str = "cdr"
     cipher: str = "none"
     # "peer" (A transmit, B receive); "client/server" (A client, B server, insecure: true, no
-    # handshake); "session" (the same, authenticated: identities, the session's keys)
+    # handshake); "session" (the same, authenticated: identities, the session's keys); "floor":
+    # no rosgate, bench/floor.py's two processes (the least a Python bridge on rclpy does)
     roles: str = "peer"
     rev: str = ""        # whose rosgate: "" this checkout's, else a short commit (--base)
 
@@ -257,6 +273,8 @@ class Route:
         name = f"{self.transport}/{self.codec}/{self.cipher}"
         if self.roles == "session":
             return f"{name} client/server authenticated"
+        if self.roles == "floor":
+            return f"{self.transport} floor (no rosgate)"
         return name if self.roles == "peer" else f"{name} client/server"
 
     @property
