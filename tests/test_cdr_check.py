@@ -49,8 +49,12 @@ def samples() -> list[tuple[type, bytes]]:
     return out
 
 
-def test_the_fast_check_is_the_middlewares_deserializer():
-    assert isinstance(cdr_checker(String).__self__, _RmwChecker)
+def test_the_slow_check_is_the_middlewares_deserializer():
+    assert _RmwChecker.make(String) is not None
+    # a type with fields the quick look (rosgate.cdr) does not judge goes to it directly
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    assert isinstance(cdr_checker(ParameterDescriptor).__self__, _RmwChecker)
 
 
 @pytest.mark.parametrize("msg_type, data", samples())

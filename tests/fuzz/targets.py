@@ -371,9 +371,10 @@ def cbor_codec(data: bytes) -> None:
 
 @target()
 def cdr_check(data: bytes) -> None:
-    """Raw CDR that no cipher authenticated, checked by deserializing it (in C); what passes
-    is a message every field of which can be read (walked as a tree: which also gives the
-    fuzzer coverage to follow, the check itself being C)."""
+    """Raw CDR that no cipher authenticated, checked by the quick look (rosgate.cdr) and, for
+    what that is not sure of, by deserializing it (in C); what passes is a message every field
+    of which can be read (walked as a tree: which also gives the fuzzer coverage to follow).
+    A frame the quick look passes and rclpy cannot read is a finding."""
     from rclpy.serialization import deserialize_message
 
     from rosgate.errors import CodecError
