@@ -442,6 +442,8 @@ class Result:
     trials: list[Trial] = field(default_factory=list)  # the search's
     overload: Trial | None = None      # at OVERLOAD x sustained, reliable (the case's QoS)
     overload_be: Trial | None = None   # the same rate, every queue best effort
+    #: the session only: a trial at SESSION_RATIO x udp/cdr/none's sustained rate (issue 9)
+    session_check: Trial | None = None
     profiles: list[Path] = field(default_factory=list)
     error: str | None = None
     problems: list[str] = field(default_factory=list)
@@ -524,6 +526,33 @@ def best_effort_overload(size: Size, route: Route | None, checkout: Checkout, fo
     finally:
         problems += [f"best-effort: {line}" for line in case.problems()]
     return trial
+
+
+def confirm_session(results: list[Result], settings: Settings, options: Options,
+                    folder: Path) -> None:
+    """Issue 9's target asks whether the session sustains SESSION_RATIO x what udp/cdr/none
+    sustained in the same run. Two searches each stop within 10 % of their path's limit, so
+    their ratio alone is ±10 %; this asks the question directly: fresh session processes, one
+    trial at exactly that rate, passing as a search trial passes (>= 95 % in time)."""
+    for session in results:
+        route = session.route
+        if route is None or replace(route, rev="") != SESSION or session.size.name != TARGET_SIZE:
+            continue
+        plain = next((r for r in results if r.size is session.size
+                      and r.route == replace(TARGET_ROUTE, rev=route.rev) and r.sustained), None)
+        if plain is None or plain.sustained is None:
+            continue
+        rate = SESSION_RATIO * plain.sustained.offered
+        case = Case(session.size, route, folder / f"session-check{route.rev}",
+                    options.checkouts[route.rev])
+        try:
+            with case:
+                case.warm_up()
+                session.session_check = case.trial(rate, settings.trial_seconds)
+                log(f"  [{case.label}] at {SESSION_RATIO}x {TARGET_ROUTE.label}'s sustained "
+                    f"rate: {describe(session.session_check)}")
+        except RuntimeError as exc:
+            session.problems.append(f"the session's check trial failed: {exc}")
 
 
 # -- profiles -------------------------------------------------------------------------------------
@@ -712,10 +741,13 @@ def ratio(value: float | None, base: float | None) -> str:
 
 def session_verdicts(results: list[Result]) -> list[str]:
     """The authenticated session against the unauthenticated rows of the same run."""
+    def found(route: Route, rev: str) -> Result | None:
+        return next((r for r in results if r.size.name == TARGET_SIZE and r.route
+                     and r.route == replace(route, rev=rev) and r.sustained is not None), None)
+
     def sustained(route: Route, rev: str) -> float | None:
-        found = [r for r in results if r.size.name == TARGET_SIZE and r.route
-                 and r.route == replace(route, rev=rev) and r.sustained is not None]
-        return found[0].sustained.offered if found else None
+        r = found(route, rev)
+        return r.sustained.offered if r and r.sustained else None
 
     goal = (f"target: {TARGET_SIZE} over an authenticated client/server session "
             f"({SESSION.label}) sustained >= {SESSION_RATIO}x {TARGET_ROUTE.label} of the same run")
@@ -728,11 +760,20 @@ def session_verdicts(results: list[Result]) -> list[str]:
         if session is None or not plain:
             lines.append(f"{goal}{who}: NOT MEASURED in this run")
             continue
-        met = "MET" if session >= SESSION_RATIO * plain else "NOT MET"
+        mine, theirs = found(SESSION, rev), found(TARGET_ROUTE, rev)
+        check = mine.session_check if mine else None
+        confirmed = check is not None and check.ok
+        met = "MET" if session >= SESSION_RATIO * plain or confirmed else "NOT MET"
         against = (f"; {session / unauthenticated:.2f}x the unauthenticated client/server row "
                    f"({unauthenticated:,.0f})" if unauthenticated else "")
-        lines.append(f"{goal}{who}: {met} ({session:,.0f} msg/s, {session / plain:.2f}x "
-                     f"{TARGET_ROUTE.label}'s {plain:,.0f}{against})")
+        peaks = (f"; peak delivered {mine.peak / theirs.peak:.2f}x ({mine.peak:,.0f} against "
+                 f"{theirs.peak:,.0f})" if mine and theirs and theirs.peak else "")
+        checked = (f"; a trial of the session at {SESSION_RATIO}x {TARGET_ROUTE.label}'s "
+                   f"sustained rate ({check.offered:,.0f} msg/s) delivered "
+                   f"{check.in_time / max(check.sent, 1):.1%} in time: "
+                   f"{'passed' if check.ok else 'failed'}" if check else "")
+        lines.append(f"{goal}{who}: {met} (sustained {session:,.0f} msg/s, {session / plain:.2f}x "
+                     f"{TARGET_ROUTE.label}'s {plain:,.0f}{against}{peaks}{checked})")
     return lines
 
 
@@ -1079,6 +1120,7 @@ def main() -> int:
         for i, (size, route) in enumerate(cases):
             folder = Path(tmp) / f"case{i:02d}"
             results.append(measure(size, route, settings, folder, options))
+        confirm_session(results, settings, options, Path(tmp))
     out = None if args.out == "-" else Path(args.out)
     plots_dir = args.plots or (out.parent / "plots" if out else None)
     drawn = []
