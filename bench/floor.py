@@ -28,7 +28,8 @@ import struct
 import sys
 import time
 
-TOPIC = "/bench"
+from endpoints import TOPIC, node, qos  # the publisher's and subscriber's own: the same QoS
+
 LENGTH = struct.Struct("<I")
 CONNECT_TIMEOUT = 30.0
 
@@ -36,20 +37,6 @@ CONNECT_TIMEOUT = 30.0
 def message_type(name: str) -> type:
     package, _, kind = name.split("/")
     return getattr(importlib.import_module(f"{package}.msg"), kind)
-
-
-def ros(name: str):
-    import rclpy
-
-    rclpy.init()
-    return rclpy.create_node(name, start_parameter_services=False)
-
-
-def qos(depth: int, reliability: str):
-    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-
-    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
-                      reliability=getattr(ReliabilityPolicy, reliability.upper()))
 
 
 def connect(port: int) -> socket.socket:
@@ -86,18 +73,18 @@ def transmit(transport: str, msg_type: type, port: int, depth: int, reliability:
             if sent < total:  # rare: the rest, however the first call cut it
                 sock.sendall((parts[0] + data)[sent:])
 
-    node = ros("floor_a")
-    node.create_subscription(msg_type, TOPIC, send, qos(depth, reliability), raw=True)
+    floor = node("floor_a")
+    floor.create_subscription(msg_type, TOPIC, send, qos(depth, reliability), raw=True)
     executor = EventsExecutor()
-    executor.add_node(node)
+    executor.add_node(floor)
     print("running as floor a", file=sys.stderr, flush=True)
     while True:
         executor.spin_once(timeout_sec=0.1)
 
 
 def receive(transport: str, msg_type: type, port: int, depth: int, reliability: str) -> None:
-    node = ros("floor_b")
-    publish_raw = node.create_publisher(msg_type, TOPIC, qos(depth, reliability)).handle.publish_raw
+    publisher = node("floor_b").create_publisher(msg_type, TOPIC, qos(depth, reliability))
+    publish_raw = publisher.handle.publish_raw
     if transport == "udp":
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)  # as rosgate's default

@@ -153,7 +153,7 @@ class _Walker:
                 end = at + n * size
                 if end > len(data):
                     raise _Bad
-                if boolean and bytes(data[at:end]).translate(None, _BOOLS):
+                if boolean and data[at:end].translate(None, _BOOLS):
                     raise _Bad
                 return end
             if n > len(data) - at:  # every element takes a byte at least
@@ -183,7 +183,7 @@ class _Skip:
 def _bools_fixed(count: int) -> Step:
     def bools(data: bytes, at: int) -> int:
         end = at + count
-        if end > len(data) or bytes(data[at:end]).translate(None, _BOOLS):
+        if end > len(data) or data[at:end].translate(None, _BOOLS):
             raise _Bad
         return end
     return bools
