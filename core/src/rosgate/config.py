@@ -95,6 +95,12 @@ RECOVERY_OVERHEAD_DEFAULT = 0.1   # fec: repair fragments per data fragment
 COMPRESSION_LEVEL_DEFAULT = 3     # zstd's own default: fast, and most of the gain
 COMPRESSION_LEVELS = (-7, 22)     # zstd's fast levels, then 1 (fastest) to 22 (smallest)
 MAX_DELAY_DEFAULT = 1.0           # seconds a best-effort message may wait in a link's queue
+# microcontroller entries (framing none or serial_datagram): how what this side sends is laid out
+LAYOUTS = ("array", "pair")       # [name, args] (CVRA's firmware) | name then args (its README)
+ARGS = ("map", "array", "value")  # the arguments: fields by name | in .msg order | first alone
+FLOATS = ("float32", "float64")   # the width of every float field on the wire
+NO_ANSWERS = ("fail", "nil")      # a call's connection closed without a byte: a failure | nil
+MCU_KEYS = ("layout", "args", "floats")
 
 ROLES = tuple(Role)
 DIRECTIONS = tuple(Direction)
@@ -126,9 +132,10 @@ LIMITS_KEYS = ("connections", "connections_per_source", "handshake_timeout",
                "max_frame_before_auth", "idle_timeout", "sessions")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
               "framing", "qos", "max_rate", "priority", "latest_only", "max_delay", "recovery",
-              "recovery_overhead", "compression", "compression_level", "typical_size")
+              "recovery_overhead", "compression", "compression_level", "typical_size",
+              *MCU_KEYS)
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
-                "framing", "timeout", "max_request")
+                "framing", "timeout", "max_request", *MCU_KEYS, "no_answer")
 QOS_KEYS = ("reliability", "durability", "history", "depth")
 
 # One example value per key for the fix of every error about it; "section.key" where it differs.
@@ -156,6 +163,7 @@ _EXAMPLES = {
     "max_delay": "1.0", "topics.max_delay": "0.05", "fleet_timeout": "30", "timeout": "5",
     "max_request": "65536", "reliability": "reliable", "durability": "volatile",
     "history": "keep_last", "depth": "10",
+    "layout": "array", "args": "map", "floats": "float32", "no_answer": "fail",
     "identity": "robot1.key",
     "server_key": "<the server's public key, from rosgate keygen identity>",
     "insecure": "true", "rekey": "120", "peer_key": "<the other peer's public key>",
@@ -201,6 +209,9 @@ class TopicConfig:
     compression: Compression = Compression.NONE
     compression_level: int = COMPRESSION_LEVEL_DEFAULT
     typical_size: int | None = None  # bytes, for rosgate check's budget arithmetic
+    layout: str = LAYOUTS[0]  # microcontroller entries: see LAYOUTS, ARGS and FLOATS
+    args: str = ARGS[0]
+    floats: str = FLOATS[0]
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
 
@@ -218,6 +229,10 @@ class ServiceConfig:
     framing: Framing = FRAMING_DEFAULT
     timeout: float = TIMEOUT_DEFAULT
     max_request: int = MAX_REQUEST_DEFAULT  # bytes; a longer request is dropped and counted
+    layout: str = LAYOUTS[0]  # microcontroller entries: see LAYOUTS, ARGS, FLOATS, NO_ANSWERS
+    args: str = ARGS[0]
+    floats: str = FLOATS[0]
+    no_answer: str = NO_ANSWERS[0]
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
 
@@ -963,6 +978,7 @@ def _topic(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Topi
                          lambda v: MAX_RATE_RANGE[0] <= v <= MAX_RATE_RANGE[1]),
         priority=_priority(src, data, path),
         **_real_link(src, data, path, common["framing"]),
+        **_microcontroller(src, data, path, common["framing"]),
         **_entry_lines(src, path),
     )
 
@@ -985,6 +1001,8 @@ def _service(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Se
         max_request=_number(src, data, path, "max_request", MAX_REQUEST_DEFAULT,
                             f"a number of bytes >= 16 (at most {MAX_REQUEST_MAX})",
                             lambda v: 16 <= v <= MAX_REQUEST_MAX, integer=True),
+        **_microcontroller(src, data, path, common["framing"]),
+        **_no_answer(src, data, path, common["framing"], common["direction"]),
         **_entry_lines(src, path),
     )
 
@@ -1020,6 +1038,29 @@ def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
                         fix="set cipher: none on this entry, or use framing: rosgate to keep "
                             "the cipher")
     return fields
+
+
+def _microcontroller(src: _Source, data: dict, path: str, framing: Framing) -> dict[str, str]:
+    """``layout``, ``args`` and ``floats``: how a microcontroller entry writes what it sends."""
+    for key in MCU_KEYS:
+        if key in data and not framing.bare:
+            raise src.error(_join(path, key), f"{key} is for microcontroller entries (framing none "
+                            "or serial_datagram); this entry has an envelope",
+                            fix=f"remove {key}:, or set framing: none (topics) or "
+                                "serial_datagram (services)")
+    return {"layout": _choice(src, data, path, "layout", LAYOUTS, LAYOUTS[0]),
+            "args": _choice(src, data, path, "args", ARGS, ARGS[0]),
+            "floats": _choice(src, data, path, "floats", FLOATS, FLOATS[0])}
+
+
+def _no_answer(src: _Source, data: dict, path: str, framing: Framing,
+               direction: Direction) -> dict[str, str]:
+    if "no_answer" in data and (framing is not Framing.SERIAL_DATAGRAM
+                                or direction is not Direction.TRANSMIT):
+        raise src.error(_join(path, "no_answer"), "no_answer is for calls this bridge makes to a "
+                        "microcontroller (direction: transmit, framing: serial_datagram)",
+                        fix="remove no_answer: from this entry")
+    return {"no_answer": _choice(src, data, path, "no_answer", NO_ANSWERS, NO_ANSWERS[0])}
 
 
 def _qos(src: _Source, data: dict, path: str) -> int | str | dict:

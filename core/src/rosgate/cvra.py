@@ -1,9 +1,10 @@
 """Services with microcontrollers: the CVRA profile (``framing: serial_datagram``).
 
 One stream connection (TCP) per call. The caller writes one serial datagram (serial_datagram.py)
-whose payload is the service's ``remote`` name as a MessagePack str followed by the request as a
-MessagePack map (the codec's bytes; :mod:`rosgate.wire.names` writes the name); the server writes
-the response as a plain MessagePack map and closes the connection.
+whose payload is the service's ``remote`` name and the request, laid out as ``[name, args]`` or
+as ``name`` then ``args`` (:mod:`rosgate.wire.names`; the entry's ``layout`` picks what this side
+writes, and either is read); the server writes its answer as one plain MessagePack value (any
+value: the codec maps it onto the response) and closes the connection.
 
 * ``direction: receive`` -> :class:`CallServer`: the bridge listens on ``listen:port`` and a
   microcontroller calls ROS services here. Several services may share the port: the name tells
@@ -16,7 +17,10 @@ the response as a plain MessagePack map and closes the connection.
 * ``direction: transmit`` -> :class:`CvraCallerRoute`: a proxy ROS server here; each call
   connects to ``peer:port``, writes the request and reads until the answer decodes (or the peer
   closes). A microcontroller that keeps the connection open after answering is closed by the
-  bridge; one that never answers fails the call at ``timeout``.
+  bridge; one that never answers fails the call at ``timeout``. One that closes without a byte
+fails the call (``no_answer``), unless the entry says ``no_answer: nil``: then the call is
+answered as if it had answered nil (CVRA's Python server sends nothing when its handler returns
+None).
 
 Every bad request (bad CRC or escape, too short, over ``max_request``, an unknown name, a map
 that does not decode) is dropped, counted and warned about; the connection is closed without an
@@ -38,13 +42,14 @@ from .services import Call, ServerRoute, ServiceRoute
 from .transport import Address, StreamConnection, Transport
 from .warn import BUGS
 from .wire import serial_datagram
-from .wire.names import NameMissing, pack_name, split_name
+from .wire.names import Layout, NameMissing, pack_name, split_name
 
 log = logging.getLogger("rosgate")
 
 MAX_CONNECTIONS = 64   # calls served at once on one port; more are closed at once and counted
 CALLER_THREADS = 16    # connections a calling route has open at once; more calls wait their turn
 CHUNK = 4096
+NIL = b"\xc0"  # MessagePack's nil
 
 
 class CallServer:
@@ -194,7 +199,8 @@ class CvraCallerRoute(ServiceRoute):
         codec = self.codec
         try:
             # serial_datagram entries have a MessagePack codec: never a raw one
-            frame = serial_datagram.encode(pack_name(self.service.remote)
+            frame = serial_datagram.encode(pack_name(self.service.remote,
+                                                     Layout(self.service.layout))
                                            + codec.encode(codec.request, request))
         except Exception as exc:
             self.fail(call, "encode_error", f"{type(exc).__name__}: {exc}")
@@ -230,8 +236,9 @@ class CvraCallerRoute(ServiceRoute):
                 self.fail(call, "too_large", f"answer over {self.service.max_request} bytes")
                 return
             data += chunk
+            silent = not data and self.service.no_answer == "nil"
             try:
-                response = codec.decode(codec.response, data)
+                response = codec.decode(codec.response, NIL if silent else data)
             except CodecError as exc:
                 if chunk:
                     continue  # perhaps not all of it yet
@@ -240,6 +247,9 @@ class CvraCallerRoute(ServiceRoute):
                 return
             self.counters.received += 1
             self.counters.bytes_received += len(data)
+            if silent:
+                log.debug("%s: %s closed without a byte: answered as nil (no_answer: nil)",
+                          self.label, self.address[0])
             if not call.answer(response):
                 self.drop("late_answer", f"answer from {self.address[0]} after the timeout")
             return

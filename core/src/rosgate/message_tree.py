@@ -122,6 +122,9 @@ class WireFormat:
     nil_word: str = "nil"
     #: True for a format without byte strings: ``uint8[]`` and ``byte[]`` fields are base64 text
     base64: bool = False
+    #: True: float64 fields are written as 32-bit floats too (a microcontroller's single
+    #: precision); reading takes either width for either field
+    float64_as_float32: bool = False
 
 
 @dataclass(frozen=True)
@@ -237,7 +240,8 @@ class _Builder:
         invalid = self.invalid
         single = typename == "float"
         expected = f"expected {typename} (a number)"
-        encode: Encoder = partial(self.float32.pack, self.wire.float32_tag) if single else \
+        encode: Encoder = partial(self.float32.pack, self.wire.float32_tag) \
+            if single or self.wire.float64_as_float32 else \
             partial(self.float64.pack, self.wire.float64_tag)
 
         def decode(value: Any) -> float:
@@ -381,7 +385,8 @@ class _Builder:
                     pass
             return one_by_one(value)  # the same rules, so this raises, naming the element
 
-        return _Converter(encode_float32s if single else encode_tolist, decode, _tolist)
+        as_float32 = single or typename == "double" and self.wire.float64_as_float32
+        return _Converter(encode_float32s if as_float32 else encode_tolist, decode, _tolist)
 
     def items(self, t: idl.AbstractNestedType, item: _Converter) -> _Converter:
         """Collections of booleans, strings or messages: rclpy keeps them as lists."""

@@ -11,6 +11,7 @@ A server resolves the entries a client sends in its hello the same way (``topic`
 from __future__ import annotations
 
 from collections.abc import Callable
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -141,6 +142,7 @@ class Resolver:
         key = f"{section}[{index}]"
         transport = self.transport(topic.transport, f"{key}.transport", error)
         codec_cls, codec_options = self._codec(topic.codec, f"{key}.codec", error)
+        codec_options = _microcontroller(codec_cls, codec_options, topic)
         cipher_cls, cipher = self._entry_cipher(topic.cipher, f"{key}.cipher", error,
                                                 isinstance(transport, BusTransport))
         try:
@@ -192,6 +194,7 @@ class Resolver:
         key = f"{section}[{index}]"
         transport = self.transport(service.transport, f"{key}.transport", error)
         codec_cls, codec_options = self._codec(service.codec, f"{key}.codec", error)
+        codec_options = _microcontroller(codec_cls, codec_options, service)
         cipher_cls, cipher = self._entry_cipher(service.cipher, f"{key}.cipher", error,
                                                 isinstance(transport, BusTransport))
         try:
@@ -426,3 +429,14 @@ class Resolver:
             return (error or self.config.error)(asked_by, f"{plugin}: {exc.message}", exc.fix)
         key = f"plugins.{plugin}" + (f".{exc.key}" if exc.key else "")
         return self.config.error(key, exc.message, exc.fix)
+
+
+def _microcontroller(codec_cls: type[Codec], options: Any,
+                     entry: TopicConfig | ServiceConfig) -> Any:
+    """A MessagePack codec on a microcontroller entry writes as the entry's ``args`` and
+    ``floats`` say, where its options declare them (the msgpack codec's do)."""
+    if not (entry.framing.bare and codec_cls.messagepack and dataclasses.is_dataclass(options)):
+        return options
+    declared = {f.name for f in dataclasses.fields(options)}
+    wanted = {"args": entry.args, "floats": entry.floats}
+    return dataclasses.replace(options, **{k: v for k, v in wanted.items() if k in declared})

@@ -32,6 +32,7 @@ from .routes import (
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
 from .transport import Address
 from .wire import envelope
+from .wire.names import Layout
 
 log = logging.getLogger("rosgate")
 
@@ -76,7 +77,8 @@ class Router:
         qos = qos_profile(t.qos)
         route: TransmitRoute | ReceiveRoute
         if t.direction is Direction.TRANSMIT:
-            framing = (BareFraming(t.remote if codec.messagepack and bare_names else None)
+            framing = (BareFraming(t.remote if codec.messagepack and bare_names else None,
+                                   Layout(t.layout))
                        if t.framing is Framing.NONE else EnvelopeFraming())
             route = TransmitRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
                                   framing=framing, link=link, destination=destination,

@@ -50,7 +50,7 @@ from .warn import Warner
 from .wire import envelope
 from .wire.compression import CompressionError, Compressor, Decompressor
 from .wire.framing import DEFAULT_MAX_MESSAGE
-from .wire.names import NameMissing, pack_name, split_name
+from .wire.names import LAYOUT_DEFAULT, Layout, NameMissing, pack_name, split_name
 
 log = logging.getLogger("rosgate")
 
@@ -200,14 +200,14 @@ class EnvelopeFraming(TopicFraming):
 
 
 class BareFraming(TopicFraming):
-    """``framing: none``: one datagram per message, the codec's bytes alone — after the topic's
-    ``remote`` name as a MessagePack str when the codec writes MessagePack (the CVRA format), so
-    several topics can share a port."""
+    """``framing: none``: one datagram per message, the codec's bytes alone — laid out with the
+    topic's ``remote`` name (:mod:`rosgate.wire.names`) when the codec writes MessagePack (the
+    microcontroller format), so several topics can share a port."""
 
     bare = True
 
-    def __init__(self, name: str | None):
-        self.prefix = pack_name(name) if name is not None else b""
+    def __init__(self, name: str | None, layout: Layout = LAYOUT_DEFAULT):
+        self.prefix = pack_name(name, layout) if name is not None else b""
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
         return self.prefix + payload

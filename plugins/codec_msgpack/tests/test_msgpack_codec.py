@@ -13,7 +13,7 @@ import msgpack
 import numpy
 import pytest
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point32, Polygon, PolygonStamped, Twist, Vector3
+from geometry_msgs.msg import Point32, Polygon, PolygonStamped, Pose2D, Twist, Vector3
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rmw_dds_common.msg import Gid, NodeEntitiesInfo
@@ -32,11 +32,11 @@ from std_msgs.msg import (
     UInt32,
     UInt64,
 )
-from std_srvs.srv import SetBool
+from std_srvs.srv import SetBool, Trigger
 
 import rosgate
 from rosgate.testing import CodecConformance, mutations
-from rosgate.wire.names import NameMissing, pack_name, split_name
+from rosgate.wire.names import Layout, NameMissing, pack_name, split_name
 
 
 class TestMsgpackConformance(CodecConformance):
@@ -285,8 +285,18 @@ VALID_TWIST = packb(TWIST_MAP)
     (NodeEntitiesInfo, packb({"node_name": "é" * 200}), "node_name: .* 400 bytes"),
     (NodeEntitiesInfo, packb({"reader_gid_seq": [{"data": bytes(16)}, {"data": 1}]}),
      r"reader_gid_seq\[1\]\.data: expected uint8\[16\]"),
-    (Twist, packb([1, 2]), "expected a map of geometry_msgs/Twist fields"),
-    (Twist, packb("linear"), "expected a map"),
+    # an array fills fields in order, a single value the first field that can hold it
+    (Twist, packb([1, 2]), r"Twist: linear: expected a map of geometry_msgs/Vector3 fields, got 1"),
+    (Twist, packb("linear"), r"Twist: no field takes str 'linear' \(it has: linear, angular\)"),
+    (Twist, packb([{}, {}, {}]), r"\[2\]: an array of 3 values for 2 fields \(linear, angular\)"),
+    (Float32, packb([1.0, 2.0]), r"\[1\]: an array of 2 values for 1 fields \(data\)"),
+    (Float32, packb("1.5"), "no field takes str '1.5'"),
+    (Float32, packb(True), "no field takes True"),
+    (Empty, packb(1), r"no field takes 1 \(it has: no fields\)"),
+    (SetBool.Request, packb(1), "no field takes 1"),
+    (SetBool.Response, packb(1.5), "no field takes 1.5"),
+    (Int8, packb(1.5), r"data: expected int8"),
+    (Int8, packb([300]), r"data: expected int8"),
     (Twist, b"\xc1\x00\x01", "not one MessagePack object"),
     (Twist, VALID_TWIST[:-1], "not one MessagePack object"),
     (Twist, VALID_TWIST + b"\x00", "not one MessagePack object"),
@@ -420,3 +430,139 @@ def test_a_big_message_within_the_budget_still_decodes():
     cloud = PointCloud2(fields=[PointField(name="x", datatype=7, count=1)] * 500,
                         data=bytes(1 << 20))
     assert len(codec(PointCloud2).decode(codec(PointCloud2).encode(cloud)).fields) == 500
+
+
+# -- any value for a message, as a microcontroller's firmware sends it -------------------------
+
+def single(value) -> bytes:
+    return msgpack.packb(value, use_single_float=True)  # as CVRA's firmware and cvra_rpc write
+
+
+@pytest.mark.parametrize("msg_type, value, expected", [
+    # an array: fields in .msg order, the rest at their defaults
+    (Pose2D, [1.5, -2.0, 0.25], Pose2D(x=1.5, y=-2.0, theta=0.25)),
+    (Pose2D, [3, 4], Pose2D(x=3.0, y=4.0, theta=0.0)),
+    (Pose2D, [], Pose2D()),
+    (Twist, [{"x": 1.0}, {"z": -0.5}], Twist(linear=Vector3(x=1.0), angular=Vector3(z=-0.5))),
+    # nil: every field at its default
+    (Pose2D, None, Pose2D()),
+    (Trigger.Request, None, Trigger.Request()),
+    (SetBool.Request, None, SetBool.Request(data=False)),
+    # a single value: the first field that can hold it
+    (Float32, 1.25, Float32(data=1.25)),
+    (Float32, 2, Float32(data=2.0)),
+    (Pose2D, 0.5, Pose2D(x=0.5)),
+    (String, "hello", String(data="hello")),
+    (SetBool.Request, True, SetBool.Request(data=True)),
+    (UInt32, 7, UInt32(data=7)),
+    (Image, b"\x01\x02", Image(data=[1, 2])),
+    # answers: a bare value other than a bool also says the call succeeded
+    (Trigger.Response, "pong", Trigger.Response(success=True, message="pong")),
+    (Trigger.Response, None, Trigger.Response(success=True, message="")),
+    (SetBool.Response, "led on", SetBool.Response(success=True, message="led on")),
+    (SetBool.Response, False, SetBool.Response(success=False, message="")),
+    (SetBool.Response, [False, "no"], SetBool.Response(success=False, message="no")),
+    (SetBool.Response, {"message": "kept"}, SetBool.Response(success=False, message="kept")),
+])
+def test_any_value_maps_onto_the_message(msg_type, value, expected):
+    decoded = codec(msg_type).decode(single(value))
+    assert type(decoded) is msg_type
+    assert decoded == expected
+
+
+def test_floats_of_either_width_and_integers_fill_float_fields():
+    c = codec(Pose2D)
+    assert c.decode(single([0.1, 1, -7])) == Pose2D(x=float(numpy.float32(0.1)), y=1.0, theta=-7.0)
+    assert c.decode(packb([0.1, 2**40, 1e300])) == Pose2D(x=0.1, y=float(2**40), theta=1e300)
+    assert codec(Float32).decode(packb(0.5)) == Float32(data=0.5)  # float 64 for a float32 field
+
+
+def twist_of(x: float, z: float) -> Twist:
+    return Twist(linear=Vector3(x=x), angular=Vector3(z=z))
+
+
+@pytest.mark.parametrize("args, floats, expected", [
+    ("map", "float64", packb(TWIST_MAP)),
+    ("map", "float32", single(TWIST_MAP)),
+    ("array", "float32", single([TWIST_MAP["linear"], TWIST_MAP["angular"]])),
+    ("array", "float64", packb([TWIST_MAP["linear"], TWIST_MAP["angular"]])),
+    ("value", "float32", single(TWIST_MAP["linear"])),
+])
+def test_args_and_floats_options_write_what_a_microcontroller_reads(args, floats, expected):
+    c = MsgpackCodec(Twist, {"args": args, "floats": floats})
+    data = c.encode(twist())
+    assert data == expected
+    if args != "value":  # a nested first field alone reads back as a map of Twist's fields
+        assert c.decode(data) == twist()
+
+
+def test_value_writes_the_first_field_or_nil():
+    value = lambda msg_type, options=None: MsgpackCodec(msg_type, {"args": "value", **(options or {})})
+    assert value(Float32, {"floats": "float32"}).encode(Float32(data=1.5)) == b"\xca\x3f\xc0\x00\x00"
+    assert value(Pose2D, {"floats": "float32"}).encode(Pose2D(x=1.5, y=9.0)) == b"\xca\x3f\xc0\x00\x00"
+    assert value(SetBool.Request).encode(SetBool.Request(data=True)) == b"\xc3"
+    assert value(Trigger.Request).encode(Trigger.Request()) == b"\xc0"  # no fields: nil
+    assert MsgpackCodec(Trigger.Request, {"args": "array"}).encode(Trigger.Request()) == b"\x90"
+
+
+def test_float32_writes_float64_arrays_and_nested_fields_32_bits_wide():
+    wide = codec(Odometry).encode(odometry())
+    narrow = MsgpackCodec(Odometry, {"floats": "float32"}).encode(odometry())
+    # byte for byte what msgpack writes for the same tree with use_single_float=True
+    assert narrow == single(msgpack.unpackb(wide))
+    assert b"\xcb" in wide and len(narrow) < len(wide)
+    tree = msgpack.unpackb(narrow)
+    assert tree["pose"]["pose"]["position"]["x"] == 3.5
+    assert tree["pose"]["covariance"] == [float(numpy.float32(v))
+                                          for v in odometry().pose.covariance]
+
+
+def test_float64_past_float32_range_is_a_codec_error_when_written_as_float32():
+    with pytest.raises(rosgate.CodecError, match="cannot encode"):
+        MsgpackCodec(Pose2D, {"floats": "float32", "args": "array"}).encode(Pose2D(x=1e300))
+    with pytest.raises(rosgate.CodecError, match="cannot encode"):
+        MsgpackCodec(Pose2D, {"floats": "float32"}).encode(Pose2D(x=1e300))
+
+
+def test_args_and_floats_options_are_checked():
+    with pytest.raises(rosgate.OptionError) as error:
+        MsgpackCodec(Twist, {"args": "list"})
+    assert error.value.key == "args"
+    with pytest.raises(rosgate.OptionError) as error:
+        MsgpackCodec(Twist, {"floats": 32})
+    assert error.value.key == "floats"
+
+
+# -- the two layouts of a name and its arguments ---------------------------------------------
+
+def test_array_layout_is_what_cvra_rpc_writes():
+    # cvra_rpc.message.encode(name, args) is msgpack.packb([name, args], use_single_float=True)
+    pose = {"x": 1.0, "y": 0.5, "theta": 0.25}
+    assert pack_name("position", Layout.ARRAY) + single(pose) == single(["position", pose])
+    assert pack_name("ping", Layout.ARRAY) + packb(None) == bytes.fromhex("92a470696e67c0")
+    for size in (0, 31, 32, 255, 256, 65535, 65536):
+        assert pack_name("n" * size, Layout.ARRAY) + b"\xc0" == packb(["n" * size, None])
+
+
+@pytest.mark.parametrize("datagram", [
+    single(["position", [1.0, 2.0, 3.0]]),          # the firmware's layout
+    packb("position") + single([1.0, 2.0, 3.0]),    # the README's
+    b"\xdc\x00\x02" + packb("position") + single([1.0, 2.0, 3.0]),  # array 16 of two
+])
+def test_both_layouts_split_alike(datagram):
+    name, rest = split_name(datagram)
+    assert name == "position"
+    assert codec(Pose2D).decode(rest) == Pose2D(x=1.0, y=2.0, theta=3.0)
+
+
+@pytest.mark.parametrize("datagram, match", [
+    (packb(["position"]), "neither layout: an array that is not"),
+    (packb(["position", 1, 2]), "3 elements"),
+    (packb([7, 1.0]), "whose name is not a MessagePack str"),
+    (b"\x92", "ends before its name"),
+    (packb({"position": 1.0}), "neither layout: expected"),
+    (b"\xdc\x00\x03", "neither layout"),
+])
+def test_a_datagram_in_neither_layout_is_refused(datagram, match):
+    with pytest.raises(NameMissing, match=match):
+        split_name(datagram)

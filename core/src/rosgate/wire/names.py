@@ -1,49 +1,98 @@
-"""A name in front of a bare datagram: the CVRA profile's ``framing: none`` and its service
-requests write the topic's (or service's) name as a MessagePack str, followed by the payload.
+"""A name in front of a bare datagram: the microcontroller (CVRA) profile's ``framing: none`` and
+its service requests carry the topic's (or service's) name, then its arguments, in one of two
+layouts, told apart on receipt by their first byte:
 
-Only the str forms of MessagePack are written and read (fixstr, str 8, str 16, str 32), so the
-core needs no MessagePack library for them; what follows the name is the codec's business.
+* ``array`` (what CVRA's firmware and its ``cvra_rpc`` package write): one MessagePack array of
+  two elements, ``[name, args]`` — the byte ``0x92``, the name as a str, then the arguments;
+* ``pair`` (what the CVRA bridge's README describes): the name as a str, then the arguments.
+
+So the array layout is the pair layout behind one header byte. Only array headers of two
+elements and the str forms of MessagePack (fixstr, str 8, str 16, str 32) are written and read
+here, so the core needs no MessagePack library for them; the arguments are the codec's business.
 """
 
 from __future__ import annotations
 
 import struct
+from enum import StrEnum
+
+
+class Layout(StrEnum):
+    """How a bare datagram (or a serial-datagram request) lays out its name and arguments."""
+
+    #: ``[name, args]``: one MessagePack array of two elements (CVRA's firmware and cvra_rpc)
+    ARRAY = "array"
+    #: ``name`` then ``args``: two MessagePack objects one after the other (the CVRA README)
+    PAIR = "pair"
+
+
+LAYOUTS = tuple(Layout)
+LAYOUT_DEFAULT = Layout.ARRAY
 
 _STR8, _STR16, _STR32 = 0xD9, 0xDA, 0xDB
 _LENGTH = {_STR8: struct.Struct(">B"), _STR16: struct.Struct(">H"), _STR32: struct.Struct(">I")}
+# an array of exactly two elements: fixarray, and the array 16 / array 32 forms some packers use
+_PAIR_ARRAYS = (b"\x92", b"\xdc\x00\x02", b"\xdd\x00\x00\x00\x02")
 
 
 class NameMissing(ValueError):
-    """A bare datagram that does not start with a name."""
+    """A bare datagram in neither layout."""
 
 
-def pack_name(name: str) -> bytes:
+def pack_name(name: str, layout: Layout = Layout.PAIR) -> bytes:
+    """What goes in front of the arguments: the name as a MessagePack str, behind the header of
+    an array of two for the array layout."""
     data = name.encode()
     size = len(data)
+    head = b"\x92" if layout is Layout.ARRAY else b""
     if size < 32:
-        return bytes((0xA0 | size,)) + data
+        return head + bytes((0xA0 | size,)) + data
     for code in (_STR8, _STR16, _STR32):
         length = _LENGTH[code]
         if size < 1 << (8 * length.size):
-            return bytes((code,)) + length.pack(size) + data
+            return head + bytes((code,)) + length.pack(size) + data
     raise ValueError(f"a name of {size} bytes is too long")
 
 
 def split_name(datagram: bytes | memoryview) -> tuple[str, bytes]:
-    """(name, the bytes after it); :class:`NameMissing` when the datagram does not start with
-    a MessagePack str."""
+    """(name, the bytes of the arguments), whichever layout the datagram has;
+    :class:`NameMissing` when it has neither."""
     if not datagram:
         raise NameMissing("empty datagram")
+    start = 0
     head = datagram[0]
+    if head & 0xF0 == 0x90 or head in (0xDC, 0xDD):
+        start = next((len(a) for a in _PAIR_ARRAYS if bytes(datagram[:len(a)]) == a), 0)
+        if not start:
+            raise NameMissing(f"neither layout: an array that is not [name, args] (first byte "
+                              f"0x{head:02x}: {_elements(datagram)})")
+    return _read_str(datagram, start)
+
+
+def _elements(datagram: bytes | memoryview) -> str:
+    head = datagram[0]
+    if head & 0xF0 == 0x90:
+        return f"{head & 0x0F} elements"
+    return "array 16 or 32 of another length, or truncated"
+
+
+def _read_str(datagram: bytes | memoryview, at: int) -> tuple[str, bytes]:
+    if at >= len(datagram):
+        raise NameMissing("an array [name, args] that ends before its name")
+    head = datagram[at]
     if head & 0xE0 == 0xA0:
-        start, size = 1, head & 0x1F
+        start, size = at + 1, head & 0x1F
     elif head in _LENGTH:
         length = _LENGTH[head]
-        if len(datagram) < 1 + length.size:
+        if len(datagram) < at + 1 + length.size:
             raise NameMissing("truncated name length")
-        start, (size,) = 1 + length.size, length.unpack_from(datagram, 1)
+        start, (size,) = at + 1 + length.size, length.unpack_from(datagram, at + 1)
+    elif at:
+        raise NameMissing(f"an array [name, args] whose name is not a MessagePack str "
+                          f"(byte 0x{head:02x})")
     else:
-        raise NameMissing(f"expected the name (a MessagePack str) first, got a byte 0x{head:02x}")
+        raise NameMissing(f"neither layout: expected [name, args] (a MessagePack array of two, "
+                          f"0x92) or a name (a MessagePack str) first, got a byte 0x{head:02x}")
     end = start + size
     if end > len(datagram):
         raise NameMissing(f"a name of {size} bytes in a datagram of {len(datagram)}")
