@@ -19,6 +19,7 @@ import msgpack
 import pytest
 from conftest import free_port, wait_until
 from geometry_msgs.msg import Pose2D, Twist
+from std_msgs.msg import Float32
 from std_srvs.srv import SetBool, Trigger
 from test_services import DEEP, Caller
 
@@ -68,20 +69,24 @@ def mcu():
         m.close()
 
 
-def bridge_yaml(ports: dict[str, int], extra: str = "") -> str:
+def bridge_yaml(ports: dict[str, int], extra: str = "", layout: str = "") -> str:
     return f"""
 bridge: {{name: robot, role: peer, peer: 127.0.0.1, listen: 127.0.0.1,
           defaults: {{codec: msgpack}}}}
 topics:
   - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: {ports['in']},
      framing: none}}
+  - {{topic: /distance, type: std_msgs/msg/Float32, direction: receive, port: {ports['in']},
+     remote: base/distance/measured, framing: none}}
   - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: {ports['out']},
-     framing: none}}
+     framing: none{layout}}}
 services:
   - {{service: /mcu/ping, type: std_srvs/srv/Trigger, direction: transmit, remote: ping,
-     transport: tcp, port: {ports['mcu']}, framing: serial_datagram}}
+     transport: tcp, port: {ports['mcu']}, framing: serial_datagram, args: value}}
   - {{service: /mcu/set_led, type: std_srvs/srv/SetBool, direction: transmit, remote: set_led,
-     transport: tcp, port: {ports['mcu']}, framing: serial_datagram}}
+     transport: tcp, port: {ports['mcu']}, framing: serial_datagram, args: value}}
+  - {{service: /mcu/silent, type: std_srvs/srv/Trigger, direction: transmit, remote: silent,
+     transport: tcp, port: {ports['mcu']}, framing: serial_datagram, no_answer: nil}}
   - {{service: /reset, type: std_srvs/srv/Trigger, direction: receive, transport: tcp,
      port: {ports['bridge']}, framing: serial_datagram{extra}}}
 """
@@ -91,7 +96,13 @@ def ports() -> dict[str, int]:
     return {"in": free_port(), "out": free_port(), "mcu": free_port(), "bridge": free_port()}
 
 
-def test_simulator_exchanges_topics_and_calls_services_both_ways(engines, domain, ros_side, mcu):
+def single(value: Any) -> bytes:
+    """What CVRA's firmware and cvra_rpc write: msgpack.packb(..., use_single_float=True)."""
+    return msgpack.packb(value, use_single_float=True)
+
+
+def test_a_board_as_cvra_rpc_writes_exchanges_topics_and_calls_both_ways(
+        engines, domain, ros_side, mcu):
     d, p = domain(), ports()
     engine = engines(bridge_yaml(p), d)
     side = ros_side(d, "ros")
@@ -104,41 +115,152 @@ def test_simulator_exchanges_topics_and_calls_services_both_ways(engines, domain
 
     side.ros.node.create_service(Trigger, "/reset", reset, qos_profile=DEEP)
     positions = side.listen("/position", Pose2D)
+    distances = side.listen("/distance", Float32)
     sim = mcu("--topic-port", str(p["out"]), "--bridge-topic-port", str(p["in"]),
               "--service-port", str(p["mcu"]), "--bridge-service-port", str(p["bridge"]),
               "--rate", "50", "--call", "reset", "--call-every", "0.2")
-    # microcontroller -> ROS: Pose2D-style maps, named "position" (remote left out: the ROS name
-    # without its slash)
-    assert positions.wait_count(3, 10)
-    first = positions.items[0]
-    assert (first.y, first.theta) == (0.5, math.pi / 4) and first.x == int(first.x)
-    # ROS -> microcontroller: a Twist as nested maps, named "cmd_vel"
+    # board -> ROS: ["position", [x, y, theta]] onto a Pose2D by field order, and
+    # ["base/distance/measured", 0.125 * n] (a bare float 32) onto a Float32
+    assert positions.wait_count(3, 10) and distances.wait_count(3, 10)
+    for pose in positions.items:
+        assert (pose.y, pose.theta) == (0.5, 0.25) and pose.x == int(pose.x) >= 0
+    assert [pose.x for pose in positions.items] == sorted(pose.x for pose in positions.items)
+    for distance in distances.items:
+        assert distance.data / 0.125 == int(distance.data / 0.125) >= 0
+    assert len({d.data for d in distances.items}) == len(distances.items)
+    # ROS -> board: a Twist as [name, {fields}], every float a float 32, as the board packs it
     talker = side.publisher("/cmd_vel", Twist)
     twist = Twist()
     twist.linear.x, twist.angular.z = 1.5, -0.25
     deadline = time.monotonic() + 10
     while not sim.wait(lambda line: line["kind"] == "topic", 0.2):
-        assert time.monotonic() < deadline, "no cmd_vel reached the simulator"
+        assert time.monotonic() < deadline, "no cmd_vel reached the board"
         talker.publish(twist)
     got = sim.wait(lambda line: line["kind"] == "topic", 0)
-    assert got == {"kind": "topic", "name": "cmd_vel", "fields": {
-        "linear": {"x": 1.5, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -0.25}}}
-    # microcontroller -> ROS service: the simulator's calls are served by /reset here
-    answer = sim.wait(lambda line: line["kind"] == "answer" and line["response"]["success"], 10)
-    assert answer is not None and answer["response"]["message"].startswith("reset ")
-    # ROS -> microcontroller services
+    fields = {"linear": {"x": 1.5, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -0.25}}
+    assert got is not None and (got["name"], got["args"]) == ("cmd_vel", fields)
+    assert bytes.fromhex(got["hex"]) == single(["cmd_vel", fields])
+    assert not [line for line in sim.lines if line["kind"] == "ignored"]
+    # board -> ROS service: ["reset", nil] onto an empty Trigger request; the answer a map
+    answer = sim.wait(lambda line: line["kind"] == "answer" and line["answer"]
+                      and line["answer"]["success"], 10)
+    assert answer is not None and answer["answer"]["message"].startswith("reset ")
+    assert set(answer["answer"]) == {"success", "message"}
+    assert bytes.fromhex(answer["hex"]) == msgpack.packb(answer["answer"])
+    # ROS -> board services: "pong" reaches ROS as a successful Trigger; SetBool's request goes
+    # as the bare bool the board reads, its [true, "led on"] answer fills the response in order
     assert Caller(side, Trigger, "/mcu/ping").call(Trigger.Request()) == \
         Trigger.Response(success=True, message="pong")
     led = Caller(side, SetBool, "/mcu/set_led")
     assert led.call(SetBool.Request(data=True)) == SetBool.Response(success=True, message="led on")
     assert led.call(SetBool.Request(data=False)) == SetBool.Response(success=True,
                                                                      message="led off")
-    served = lambda: [line["request"] for line in sim.lines if line["kind"] == "served"]
-    assert sim.wait(lambda line: len(served()) == 3, 5)  # it prints before it answers
-    assert served() == [{}, {"data": True}, {"data": False}]
+    # a handler that returns None answers no byte at all: no_answer: nil takes that for success
+    assert Caller(side, Trigger, "/mcu/silent").call(Trigger.Request()) == \
+        Trigger.Response(success=True, message="")
+    served = lambda: [line for line in sim.lines if line["kind"] == "served"]
+    assert sim.wait(lambda line: len(served()) == 4, 5)  # it prints before it answers
+    assert [(line["name"], line["args"]) for line in served()] == \
+        [("ping", None), ("set_led", True), ("set_led", False), ("silent", {})]
+    assert bytes.fromhex(served()[0]["hex"]) == bytes.fromhex("92a470696e67c0")  # ["ping", nil]
+    assert bytes.fromhex(served()[1]["hex"]) == single(["set_led", True])
+    assert bytes.fromhex(served()[3]["hex"]) == single(["silent", {}])
     stats = {label: s["drops"] for label, s in engine.stats()["routes"].items()}
-    assert stats["/position"] == stats["/cmd_vel"] == stats["/mcu/ping"] == {}
+    assert stats["/position"] == stats["/distance"] == stats["/cmd_vel"] == {}
+    assert stats["/mcu/ping"] == stats["/mcu/set_led"] == stats["/mcu/silent"] == {}
     assert set(stats["/reset"]) <= {"no_server"}  # calls before the bridge saw the ROS server
+    assert not engine.link_drops
+
+
+def test_the_readme_layout_name_then_args_still_works(engines, domain, ros_side):
+    """name then args, two MessagePack objects: read without a setting, written on request."""
+    d, p = domain(), ports()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as board:
+        board.bind(("127.0.0.1", p["out"]))
+        board.settimeout(0.2)
+        engine = engines(bridge_yaml(p, layout=", layout: pair"), d)
+        side = ros_side(d, "ros")
+
+        def reset(request: Any, response: Any) -> Any:
+            response.success, response.message = True, "done"
+            return response
+
+        side.ros.node.create_service(Trigger, "/reset", reset, qos_profile=DEEP)
+        positions = side.listen("/position", Pose2D)
+        deadline = time.monotonic() + 10
+        while not positions.wait_count(1, 0.2):
+            assert time.monotonic() < deadline
+            board.sendto(msgpack.packb("position") + msgpack.packb({"x": 1.0, "theta": -0.5}),
+                         ("127.0.0.1", p["in"]))
+        assert positions.items[0] == Pose2D(x=1.0, y=0.0, theta=-0.5)
+        talker = side.publisher("/cmd_vel", Twist)
+        twist = Twist()
+        twist.angular.z = 0.75
+        deadline = time.monotonic() + 10
+        while True:
+            talker.publish(twist)
+            try:
+                datagram = board.recv(65535)
+                break
+            except TimeoutError:
+                assert time.monotonic() < deadline, "no cmd_vel reached the board"
+    assert datagram == single("cmd_vel") + single(
+        {"linear": {"x": 0.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": 0.75}})
+    deadline = time.monotonic() + 10
+    pair = serial_datagram.encode(msgpack.packb("reset") + msgpack.packb({}))
+    while (answer := msgpack.unpackb(call_raw(p["bridge"], pair))) != \
+            {"success": True, "message": "done"}:
+        assert answer["message"].startswith("rosgate: no ROS server")
+        assert time.monotonic() < deadline
+    assert not engine.link_drops
+
+
+def test_a_datagram_in_neither_layout_is_dropped_and_counted(engines, domain, ros_side):
+    d, p = domain(), ports()
+    engine = engines(bridge_yaml(p), d)
+    positions = ros_side(d, "ros").listen("/position", Pose2D)
+    neither = [single(["position"]),                      # an array of one
+               single(["position", [1.0, 2.0], "x"]),      # an array of three
+               single([7, [1.0]]),                         # [name, args] whose name is no str
+               single({"position": [1.0]})]                # a map
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for datagram in neither:
+            s.sendto(datagram, ("127.0.0.1", p["in"]))
+        deadline = time.monotonic() + 10
+        while not positions.wait_count(1, 0.2):  # the port still takes the real layout
+            assert time.monotonic() < deadline
+            s.sendto(single(["position", [2.0, 3.0, 0.5]]), ("127.0.0.1", p["in"]))
+    assert positions.items[0] == Pose2D(x=2.0, y=3.0, theta=0.5)
+    assert wait_until(lambda: engine.link_drops.get("unnamed_frame") == len(neither))
+    assert engine.link_drops == {"unnamed_frame": len(neither)}
+    for payload in neither:  # and as a call
+        assert call_raw(p["bridge"], serial_datagram.encode(payload)) == b""
+    assert wait_until(lambda: engine.link_drops.get("unnamed_request") == len(neither))
+    route = next(r for r in engine.routes() if r.label == "/position")
+    assert not route.counters.drops
+
+
+@pytest.mark.parametrize("datagram, reason", [
+    (single(["position", [1.0, 2.0, 3.0, 4.0]]), r"\[3\]: an array of 4 values for 3 fields"),
+    (single(["position", "fast"]), "no field takes str 'fast'"),
+    (single(["position", [1.0, "north"]]), "y: expected double"),
+    (single(["base/distance/measured", True]), "no field takes True"),
+    (msgpack.packb(["base/distance/measured", 1e39]), "data: expected float"),
+])
+def test_args_that_fit_no_field_are_dropped_naming_the_field(engines, domain, ros_side, caplog,
+                                                             datagram, reason):
+    d, p = domain(), ports()
+    engine = engines(bridge_yaml(p), d)
+    ros_side(d, "ros")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.sendto(datagram, ("127.0.0.1", p["in"]))
+    label = "/distance" if b"distance" in datagram else "/position"
+    route = next(r for r in engine.routes() if r.label == label)
+    assert wait_until(lambda: route.counters.drops.get("decode_error") == 1)
+    assert dict(route.counters.drops) == {"decode_error": 1} and not engine.link_drops
+    import re
+    assert [r for r in caplog.records if re.search(reason, r.getMessage())], \
+        [r.getMessage() for r in caplog.records]
 
 
 def call_raw(port: int, data: bytes, read: bool = True) -> bytes:
@@ -238,9 +360,9 @@ def test_microcontroller_that_never_answers_fails_the_call_within_timeout(
             success=False, message=f"rosgate: no answer from 127.0.0.1:{p['mcu']} within 0.4 s")
         conn, _ = silent.accept()
         with conn:
-            # what it was sent: the name, then Trigger's request, an empty map
+            # what it was sent: ["ping", nil] (args: value, and Trigger's request has no field)
             frames = serial_datagram.Decoder(lambda *e: None).feed(conn.recv(4096))
-            assert next(frames) == msgpack.packb("ping") + msgpack.packb({})
+            assert next(frames) == msgpack.packb(["ping", None]) == bytes.fromhex("92a470696e67c0")
     route = next(r for r in engine.routes() if r.label == "/mcu/ping")
     assert dict(route.counters.drops) == {"timeout": 1}
 
@@ -255,6 +377,12 @@ def test_microcontroller_that_never_answers_fails_the_call_within_timeout(
     (msgpack.packb({"succes": True}), True, None, "decode_error"),
     # closes without a word
     (b"", True, None, "no_answer"),
+    # what the firmware answers: a bare str, or nil when its handler wrote nothing
+    (msgpack.packb("pong"), True, Trigger.Response(success=True, message="pong"), None),
+    (msgpack.packb(None), True, Trigger.Response(success=True, message=""), None),
+    (msgpack.packb([False, "busy"]), True, Trigger.Response(success=False, message="busy"), None),
+    # a value no field of Trigger's response takes
+    (msgpack.packb(1.5), True, None, "decode_error"),
 ])
 def test_what_a_microcontroller_answers_is_checked(engines, domain, ros_side, answer, close,
                                                    expected, reason):
