@@ -5,7 +5,6 @@ topics both ways and call services both ways; then hostile bytes on both ports."
 from __future__ import annotations
 
 import json
-import math
 import socket
 import subprocess
 import sys
@@ -23,6 +22,8 @@ from std_msgs.msg import Float32
 from std_srvs.srv import SetBool, Trigger
 from test_services import DEEP, Caller
 
+from rosgate.config import load, loads, service_to_mapping, topic_to_mapping
+from rosgate.errors import ConfigError
 from rosgate.wire import serial_datagram
 
 SIMULATOR = Path(__file__).parent.parent / "examples" / "mcu_simulator.py"
@@ -477,3 +478,53 @@ services:
     else:
         assert answer == b""  # closed at once
         assert wait_until(lambda: bridge.link_drops.get("not_allowed") == 21)
+
+
+# -- configuration ------------------------------------------------------------------------------
+
+MCU_TOPIC = """
+bridge: {name: robot, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}
+topics:
+  - topic: /cmd_vel
+    type: geometry_msgs/msg/Twist
+    direction: transmit
+    port: 20000
+    codec: msgpack
+"""
+
+
+@pytest.mark.parametrize("entry, key, message", [
+    ("    layout: pair\n", "topics[0].layout", "layout is for microcontroller entries"),
+    ("    framing: none\n    layout: list\n", "topics[0].layout",
+     "'list' is not one of array, pair"),
+    ("    framing: none\n    args: dict\n", "topics[0].args", "'dict' is not one of map, array"),
+    ("    framing: none\n    floats: 32\n", "topics[0].floats",
+     "'32' is not one of float32, float64"),
+    ("    floats: float32\n", "topics[0].floats", "floats is for microcontroller entries"),
+])
+def test_microcontroller_keys_are_checked_where_they_are_written(tmp_path, entry, key, message):
+    path = tmp_path / "bringup.yaml"
+    path.write_text(MCU_TOPIC.lstrip() + entry)
+    with pytest.raises(ConfigError) as error:
+        load(path)
+    assert error.value.key == key and message in error.value.message
+    assert error.value.line == len(MCU_TOPIC.lstrip().splitlines()) + entry.count("\n")
+    assert error.value.fix
+
+
+def test_no_answer_belongs_to_calls_made_to_a_board():
+    services = """
+services:
+  - {service: /reset, type: std_srvs/srv/Trigger, direction: receive, transport: tcp,
+     port: 20001, framing: serial_datagram, codec: msgpack, no_answer: nil}
+"""
+    with pytest.raises(ConfigError, match="no_answer is for calls this bridge makes"):
+        loads(MCU_TOPIC + services)
+    config = loads(MCU_TOPIC + "    framing: none\n" + services.replace(
+        "direction: receive", "direction: transmit"))
+    (topic,), (service,) = config.topics, config.services
+    assert (topic.layout, topic.args, topic.floats) == ("array", "map", "float32")
+    assert (service.layout, service.no_answer) == ("array", "nil")
+    assert "layout" in topic_to_mapping(topic) and service_to_mapping(service)["no_answer"] == "nil"
+    envelope = loads(MCU_TOPIC).topics[0]
+    assert not {"layout", "args", "floats"} & set(topic_to_mapping(envelope))

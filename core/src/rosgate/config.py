@@ -382,11 +382,22 @@ def topic_to_mapping(t: TopicConfig) -> dict:
         del mapping["recovery_overhead"]
     if t.compression is Compression.NONE:
         del mapping["compression"], mapping["compression_level"]
-    return mapping
+    return _without_microcontroller_keys(t, mapping)
 
 
 def service_to_mapping(s: ServiceConfig) -> dict:
-    return _to_mapping(s, SERVICE_KEYS)
+    mapping = _without_microcontroller_keys(s, _to_mapping(s, SERVICE_KEYS))
+    if s.framing is not Framing.SERIAL_DATAGRAM or s.direction is not Direction.TRANSMIT:
+        del mapping["no_answer"]
+    return mapping
+
+
+def _without_microcontroller_keys(entry: TopicConfig | ServiceConfig, mapping: dict) -> dict:
+    """Only microcontroller entries take them (an entry with an envelope refuses them)."""
+    if not entry.framing.bare:
+        for key in MCU_KEYS:
+            del mapping[key]
+    return mapping
 
 
 # --- parsing -------------------------------------------------------------------------------------
@@ -1040,7 +1051,7 @@ def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
     return fields
 
 
-def _microcontroller(src: _Source, data: dict, path: str, framing: Framing) -> dict[str, str]:
+def _microcontroller(src: _Source, data: dict, path: str, framing: Framing) -> dict[str, Any]:
     """``layout``, ``args`` and ``floats``: how a microcontroller entry writes what it sends."""
     for key in MCU_KEYS:
         if key in data and not framing.bare:
@@ -1054,7 +1065,7 @@ def _microcontroller(src: _Source, data: dict, path: str, framing: Framing) -> d
 
 
 def _no_answer(src: _Source, data: dict, path: str, framing: Framing,
-               direction: Direction) -> dict[str, str]:
+               direction: Direction) -> dict[str, Any]:
     if "no_answer" in data and (framing is not Framing.SERIAL_DATAGRAM
                                 or direction is not Direction.TRANSMIT):
         raise src.error(_join(path, "no_answer"), "no_answer is for calls this bridge makes to a "

@@ -10,8 +10,8 @@ A server resolves the entries a client sends in its hello the same way (``topic`
 
 from __future__ import annotations
 
-from collections.abc import Callable
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -435,7 +435,8 @@ def _microcontroller(codec_cls: type[Codec], options: Any,
                      entry: TopicConfig | ServiceConfig) -> Any:
     """A MessagePack codec on a microcontroller entry writes as the entry's ``args`` and
     ``floats`` say, where its options declare them (the msgpack codec's do)."""
-    if not (entry.framing.bare and codec_cls.messagepack and dataclasses.is_dataclass(options)):
+    if not (entry.framing.bare and codec_cls.messagepack and dataclasses.is_dataclass(options)
+            and not isinstance(options, type)):
         return options
     declared = {f.name for f in dataclasses.fields(options)}
     wanted = {"args": entry.args, "floats": entry.floats}

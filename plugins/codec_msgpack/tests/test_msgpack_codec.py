@@ -497,9 +497,12 @@ def test_args_and_floats_options_write_what_a_microcontroller_reads(args, floats
 
 
 def test_value_writes_the_first_field_or_nil():
-    value = lambda msg_type, options=None: MsgpackCodec(msg_type, {"args": "value", **(options or {})})
-    assert value(Float32, {"floats": "float32"}).encode(Float32(data=1.5)) == b"\xca\x3f\xc0\x00\x00"
-    assert value(Pose2D, {"floats": "float32"}).encode(Pose2D(x=1.5, y=9.0)) == b"\xca\x3f\xc0\x00\x00"
+    def value(msg_type: type, options: dict | None = None) -> MsgpackCodec:
+        return MsgpackCodec(msg_type, {"args": "value", **(options or {})})
+
+    float32 = {"floats": "float32"}
+    assert value(Float32, float32).encode(Float32(data=1.5)) == b"\xca\x3f\xc0\x00\x00"
+    assert value(Pose2D, float32).encode(Pose2D(x=1.5, y=9.0)) == b"\xca\x3f\xc0\x00\x00"
     assert value(SetBool.Request).encode(SetBool.Request(data=True)) == b"\xc3"
     assert value(Trigger.Request).encode(Trigger.Request()) == b"\xc0"  # no fields: nil
     assert MsgpackCodec(Trigger.Request, {"args": "array"}).encode(Trigger.Request()) == b"\x90"
