@@ -33,9 +33,11 @@ class Codec(ABC):
     #: objects at all: raw subscription in, raw publish out). False: ROS message objects.
     raw: ClassVar[bool] = False
     #: True when ``encode`` writes exactly one MessagePack object. With ``framing: none`` the
-    #: entry's name then travels in front of it as a MessagePack str (the CVRA microcontroller
-    #: format), so several topics can share a port; other codecs' bare datagrams carry the
-    #: payload alone.
+    #: entry's name then travels with it (the microcontroller format: ``[name, args]``, or the
+    #: name then the args; see rosgate.wire.names), so several topics can share a port; other
+    #: codecs' bare datagrams carry the payload alone. On such entries the core sets the
+    #: ``args`` and ``floats`` fields of the codec's ``Options``, when it declares them, from the
+    #: entry's keys of those names.
     messagepack: ClassVar[bool] = False
 
     def __init__(self, msg_type: type, options: Any):
