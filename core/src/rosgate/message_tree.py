@@ -82,8 +82,9 @@ Encoder = Callable[[Any], bytes]
 Decoder = Callable[[Any], Any]
 ToTree = Callable[[Any], Any]
 
-# rclpy's own bound for float32 fields (a hair under FLT_MAX): what passes here passes rclpy
-FLOAT32_MAX = 3.402823466e38
+# the largest finite float32 (FLT_MAX, 0x7f7fffff), which rclpy's own deserializer hands over;
+# rclpy's field check (ROS_PYTHON_CHECK_FIELDS=1) rounds it to 3.402823466e38 and would refuse it
+FLOAT32_MAX = float(numpy.finfo(numpy.float32).max)
 
 _INTEGER_RANGES = {
     "int8": (-(2**7), 2**7 - 1), "uint8": (0, 2**8 - 1),
@@ -269,16 +270,16 @@ class _Builder:
         def decode(value: Any) -> str:
             if type(value) is not str:
                 raise invalid(expected, value)
-            if value.isascii():
-                size = length = len(value)
-            else:
+            if not value.isascii():
                 try:
-                    size = len(value.encode())
+                    value.encode("utf-8" if utf8 else "utf-16-le")
                 except UnicodeEncodeError:  # JSON's "\ud800": a str no middleware can carry
                     raise TreeError(f"{expected}, got text with an unpaired surrogate") from None
-                length = size if utf8 else len(value)  # the middleware bounds a string's bytes
-            if bound is not None and length > bound:
-                raise TreeError(f"{expected}, got a {self.wire.str_word} of {size} bytes")
+            # a bound counts characters, as rclpy's own field check does (and what rclpy
+            # deserializes from CDR may be up to the bound in characters, more in bytes)
+            if bound is not None and len(value) > bound:
+                raise TreeError(f"{expected}, got a {self.wire.str_word} of {len(value)} "
+                                "characters")
             return value
         return _Converter(self.pack, decode, _same)
 

@@ -282,7 +282,7 @@ VALID_TWIST = packb(TWIST_MAP)
     (ParameterDescriptor, packb({"floating_point_range": [{}, {}]}),
      r"floating_point_range: expected sequence<rcl_interfaces/FloatingPointRange, 1>"),
     (NodeEntitiesInfo, packb({"node_name": "n" * 257}), "node_name: expected string<256>"),
-    (NodeEntitiesInfo, packb({"node_name": "é" * 200}), "node_name: .* 400 bytes"),
+    (NodeEntitiesInfo, packb({"node_name": "é" * 257}), "node_name: .* 257 characters"),
     (NodeEntitiesInfo, packb({"reader_gid_seq": [{"data": bytes(16)}, {"data": 1}]}),
      r"reader_gid_seq\[1\]\.data: expected uint8\[16\]"),
     # an array fills fields in order, a single value the first field that can hold it
