@@ -38,21 +38,22 @@ def blocks(path: Path) -> list[tuple[str, int, int, str]]:
     return found
 
 
-def prose(path: Path) -> list[tuple[int, str]]:
-    """The lines outside fenced blocks, with inline code taken out: what links live in."""
+def prose(path: Path, code: bool = False) -> list[tuple[int, str]]:
+    """The lines outside fenced blocks, with inline code taken out (what links live in) or, with
+    ``code``, only its backticks (what headings' anchors are made of)."""
     inside, lines = False, []
     for number, line in enumerate(path.read_text().splitlines(), 1):
         if line.startswith("```"):
             inside = not inside
         elif not inside:
-            lines.append((number, INLINE_CODE.sub("", line)))
+            lines.append((number, line.replace("`", "") if code else INLINE_CODE.sub("", line)))
     return lines
 
 
 def anchors(path: Path) -> set[str]:
     """GitHub's anchors for a page's headings: lower case, punctuation dropped, spaces to -."""
     seen: dict[str, int] = {}
-    for _, line in prose(path) if path.suffix == ".md" else []:
+    for _, line in prose(path, code=True):
         heading = re.match(r"#{1,6}\s+(.*?)\s*#*\s*$", line)
         if heading:
             slug = re.sub(r"[^\w\- ]", "", heading.group(1).lower()).replace(" ", "-")
@@ -74,7 +75,8 @@ def quickstart() -> tuple[list[tuple[str, int, int, str]], list[tuple[str, int, 
     found = blocks(README)
     shells = [block for block in found if block[0] == "sh"][:2]
     files = [block for block in found if block[0] == "yaml"][:2]
-    assert len(shells) == 2 and len(files) == 2, "the README's quickstart has two sh and two yaml blocks"
+    assert len(shells) == 2 and len(files) == 2, (
+        "the README's quickstart has two sh blocks (keys; check and run) and two yaml blocks")
     return shells, files
 
 
@@ -152,10 +154,10 @@ def test_pages_speak_of_features_not_issues(page):
 def test_the_link_checker_sees_links_and_anchors(tmp_path):
     """The checks above would pass on anything if they found no links: they do find them."""
     page = tmp_path / "page.md"
-    page.write_text("# A server's clients\n\n## Wi-Fi and radio links\n\n"
+    page.write_text("# A server's clients\n\n## Wi-Fi and radio links\n\n## The `bt` link\n\n"
                     "[x](other.md#top) `[not](a-link.md)` ![p](../img.png)\n"
                     "```\n[inside](code.md)\n```\n")
-    assert anchors(page) == {"a-servers-clients", "wi-fi-and-radio-links"}
+    assert anchors(page) == {"a-servers-clients", "wi-fi-and-radio-links", "the-bt-link"}
     links = [target for _, line in prose(page) for target in LINK.findall(line)]
     assert links == ["other.md#top", "../img.png"]
     assert HISTORY.search("the attacks of issue 10") and HISTORY.search("Issue #9")
