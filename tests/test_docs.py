@@ -1,0 +1,164 @@
+"""The documentation a newcomer reads: a short README whose quickstart comes first and works,
+links that lead somewhere, and pages that speak of features, not of how they were developed."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import ROSGATE
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+PAGES = [README, *sorted((ROOT / "docs").glob("*.md"))]
+README_MAX_LINES = 300
+QUICKSTART_WITHIN = 60
+
+FENCE = re.compile(r"^```(\w*)\s*$")
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+INLINE_CODE = re.compile(r"`[^`\n]*`")
+HISTORY = re.compile(r"\bissues?\s*#?\s*\d+|\bwave\s+\d+", re.IGNORECASE)
+
+
+def blocks(path: Path) -> list[tuple[str, int, int, str]]:
+    """The fenced blocks of a page: (language, first line, last line, text), lines from 1."""
+    found, language, start, body = [], None, 0, []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        fence = FENCE.match(line)
+        if fence and language is None:
+            language, start, body = fence.group(1), number, []
+        elif line.strip() == "```" and language is not None:
+            found.append((language, start, number, "\n".join(body)))
+            language = None
+        elif language is not None:
+            body.append(line)
+    assert language is None, f"{path.name}:{start}: a code block is never closed"
+    return found
+
+
+def prose(path: Path, code: bool = False) -> list[tuple[int, str]]:
+    """The lines outside fenced blocks, with inline code taken out (what links live in) or, with
+    ``code``, only its backticks (what headings' anchors are made of)."""
+    inside, lines = False, []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        if line.startswith("```"):
+            inside = not inside
+        elif not inside:
+            lines.append((number, line.replace("`", "") if code else INLINE_CODE.sub("", line)))
+    return lines
+
+
+def anchors(path: Path) -> set[str]:
+    """GitHub's anchors for a page's headings: lower case, punctuation dropped, spaces to -."""
+    seen: dict[str, int] = {}
+    for _, line in prose(path, code=True):
+        heading = re.match(r"#{1,6}\s+(.*?)\s*#*\s*$", line)
+        if heading:
+            slug = re.sub(r"[^\w\- ]", "", heading.group(1).lower()).replace(" ", "-")
+            seen[slug] = seen.get(slug, -1) + 1
+            if seen[slug]:
+                seen[f"{slug}-{seen[slug]}"] = 0
+    return set(seen)
+
+
+def test_the_readme_is_short():
+    lines = len(README.read_text().splitlines())
+    assert lines <= README_MAX_LINES, (
+        f"README.md has {lines} lines; keep it to {README_MAX_LINES} and move reference to docs/")
+
+
+def quickstart() -> tuple[list[tuple[str, int, int, str]], list[tuple[str, int, int, str]]]:
+    """The quickstart: the first two sh blocks (keys, then check and run) and the first two yaml
+    blocks (the client's file and the server's) of the README."""
+    found = blocks(README)
+    shells = [block for block in found if block[0] == "sh"][:2]
+    files = [block for block in found if block[0] == "yaml"][:2]
+    assert len(shells) == 2 and len(files) == 2, (
+        "the README's quickstart has two sh blocks (keys; check and run) and two yaml blocks")
+    return shells, files
+
+
+def test_the_quickstart_comes_first():
+    shells, files = quickstart()
+    for language, first, last, _ in [*shells, *files]:
+        assert last <= QUICKSTART_WITHIN, (
+            f"README.md:{first}: the quickstart's {language} block ends at line {last}; "
+            f"it belongs within the first {QUICKSTART_WITHIN} lines")
+    keys, run = shells[0][3], shells[1][3]
+    assert keys.count("rosgate keygen identity") == 2, keys
+    assert "rosgate check" in run and "rosgate run" in run, run
+    client, server = files[0][3], files[1][3]
+    assert "role: client" in client and "topics:" in client, client
+    assert "role: server" in server and "clients:" in server, server
+
+
+def test_the_quickstart_works(tmp_path):
+    """The quickstart's own commands and files, as written, with the keys its keygen prints."""
+    shells, files = quickstart()
+    keys: dict[str, str] = {}
+    for line in shells[0][3].splitlines():
+        made = re.match(r"rosgate (keygen identity .*?)\s*#.*\bprints (\w+)", line)
+        if made:
+            result = subprocess.run([ROSGATE, *made.group(1).split()], cwd=tmp_path,
+                                    capture_output=True, text=True, timeout=60)
+            assert result.returncode == 0, result.stderr
+            keys[made.group(2)] = result.stdout.strip()
+    assert len(keys) == 2, f"the keygen lines say which key each prints: {shells[0][3]}"
+    for _, _, _, text in files:
+        for placeholder, key in keys.items():
+            text = text.replace(placeholder, key)
+        name = re.search(r"name: (\w+)", text)
+        assert name, text
+        (tmp_path / f"{name.group(1)}.yaml").write_text(text + "\n")
+    checks = re.findall(r"rosgate check (\S+)", shells[1][3])
+    assert len(checks) == 2, shells[1][3]
+    outputs = []
+    for file in checks:
+        assert (tmp_path / file).exists(), f"{file} is checked, but no quickstart file is named so"
+        result = subprocess.run([ROSGATE, "check", file], cwd=tmp_path, capture_output=True,
+                                text=True, timeout=60)
+        assert result.returncode == 0, (file, result.stdout, result.stderr)
+        assert "Traceback" not in result.stderr
+        outputs.append(result.stdout)
+    assert "ok (server 'base', 0 topic(s))" in "".join(outputs)
+    assert "ok (client 'robot1', 1 topic(s))" in "".join(outputs)
+    assert "/chatter -> /chatter  [std_msgs/msg/String] udp cdr aead" in "".join(outputs)
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda page: page.relative_to(ROOT).as_posix())
+def test_relative_links_lead_somewhere(page):
+    broken = []
+    for number, line in prose(page):
+        for target in LINK.findall(line):
+            if re.match(r"[a-z][a-z0-9+.-]*:", target):  # https:, mailto:
+                continue
+            file, _, anchor = target.partition("#")
+            resolved = (page.parent / file).resolve() if file else page
+            if not resolved.exists():
+                broken.append(f"{page.name}:{number}: {target}: no file {file}")
+            elif anchor and resolved.suffix == ".md" and anchor not in anchors(resolved):
+                broken.append(f"{page.name}:{number}: {target}: no heading #{anchor} there")
+    assert not broken, "\n".join(broken)
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda page: page.relative_to(ROOT).as_posix())
+def test_pages_speak_of_features_not_issues(page):
+    found = [f"{page.name}:{number}: {match.group(0)!r}"
+             for number, line in enumerate(page.read_text().splitlines(), 1)
+             for match in HISTORY.finditer(line)]
+    assert not found, "say what the feature is, not which issue brought it:\n" + "\n".join(found)
+
+
+def test_the_link_checker_sees_links_and_anchors(tmp_path):
+    """The checks above would pass on anything if they found no links: they do find them."""
+    page = tmp_path / "page.md"
+    page.write_text("# A server's clients\n\n## Wi-Fi and radio links\n\n## The `bt` link\n\n"
+                    "[x](other.md#top) `[not](a-link.md)` ![p](../img.png)\n"
+                    "```\n[inside](code.md)\n```\n")
+    assert anchors(page) == {"a-servers-clients", "wi-fi-and-radio-links", "the-bt-link"}
+    links = [target for _, line in prose(page) for target in LINK.findall(line)]
+    assert links == ["other.md#top", "../img.png"]
+    assert HISTORY.search("the attacks of issue 10") and HISTORY.search("Issue #9")
+    assert not HISTORY.search("see the issue tracker")
