@@ -8,6 +8,7 @@ import signal
 import socket
 import stat
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -108,6 +109,51 @@ def test_port_in_use_is_a_clear_error(config):
         path = config(GOOD.format(port=port).replace("direction: transmit", "direction: receive"))
         text = user_error(rosgate("run", str(path), env={"ROS_DOMAIN_ID": "3"}))
     assert f"{path}:10: topics[0].port: cannot bind UDP 127.0.0.1:{port}" in text
+
+
+def test_a_server_whose_main_line_port_is_in_use_says_so_and_exits_cleanly(config, tmp_path):
+    from rosgate import identity
+
+    key = tmp_path / "base.key"
+    identity.write_private(key, identity.generate())
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        path = config(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, "
+                      f"identity: {key}}}\nclients: {{}}\n")
+        result = rosgate("run", str(path), env={"ROS_DOMAIN_ID": "3"})
+    text = user_error(result)
+    assert f"bridge.server: cannot listen on TCP 127.0.0.1:{port}" in text, text
+    assert "Fatal Python error" not in text and "Error:" not in text.split("error:", 1)[1]
+
+
+def test_run_takes_the_domain_id_from_the_command_line(config, domain, ros_side):
+    """--domain-id puts the bridge in that ROS domain, whatever ROS_DOMAIN_ID says."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as far:
+        far.bind(("127.0.0.1", 0))
+        far.settimeout(0.2)
+        path = config(GOOD.format(port=far.getsockname()[1]))
+        wanted = domain()
+        proc = subprocess.Popen([ROSGATE, "run", str(path), "--domain-id", str(wanted)],
+                                stderr=subprocess.DEVNULL, env=dict(os.environ, ROS_DOMAIN_ID="0"))
+        try:
+            from std_msgs.msg import String
+
+            talker = ros_side(wanted, "talker").publisher("/chatter", String)
+            deadline = time.monotonic() + 20
+            while True:
+                assert time.monotonic() < deadline, "nothing arrived from the bridge"
+                talker.publish(String(data="in the asked-for domain"))
+                try:
+                    frame, _ = far.recvfrom(65536)
+                except TimeoutError:
+                    continue
+                break
+            assert b"in the asked-for domain" in frame
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(20) == 0
 
 
 def test_run_stops_cleanly_on_sigterm(config):

@@ -78,14 +78,14 @@ def main(argv: list[str] | None = None) -> int:
 
 INSECURE = ("INSECURE: %s runs without authentication (bridge.insecure: true): anyone who can "
             "reach it can read and send its topics and call its services. Set up identities: "
-            "README, Security")
+            "docs/security.md")
 
 
-def _engine(path: str, plugins: Any = None):
+def _engine(path: str, plugins: Any = None, domain_id: int | None = None):
     from .config import load
     from .engine import Engine
 
-    engine = Engine(load(path), plugins).prepare()
+    engine = Engine(load(path), plugins, domain_id=domain_id).prepare()
     if engine.config.insecure:
         logging.getLogger("rosgate").warning(INSECURE, path)
     return engine
@@ -127,7 +127,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    engine = _engine(args.file)
+    engine = _engine(args.file, domain_id=args.domain_id)
     stop, reload = threading.Event(), threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

@@ -110,6 +110,7 @@ class ServerRole(Role):
         self.refusals = Refusals()
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
         self._handshakes = threading.BoundedSemaphore(MAX_HANDSHAKES)
+        self.acceptor: Acceptor | None = None  # until start() has its main line
 
     def start(self) -> None:
         plan = self.bridge.plan
@@ -124,7 +125,8 @@ class ServerRole(Role):
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
 
     def stop(self) -> None:
-        self.acceptor.close()  # first: no client may come back while its session is ended
+        if self.acceptor is not None:  # first: no client may come back while its session ends
+            self.acceptor.close()
         for session in list(self.sessions.values()):
             self._end(session)
         super().stop()
