@@ -53,7 +53,7 @@ def test_every_in_tree_plugin_is_found():
 def test_runs_the_conformance_suite_of_its_kind(kind, name, cls, distribution, suite):
     sources = [path.read_text() for path in folders_of_tests()[distribution].glob("test_*.py")]
     assert any(f"({suite}):" in text and f" = {cls}\n" in text for text in sources), (
-        f"no test class of {distribution} subclasses rosgate.testing.{suite} with "
+        f"no test class of {distribution} subclasses rosgate_testing.{suite} with "
         f"{kind} = {cls}")
 
 

@@ -10,10 +10,11 @@ from typing import Any, ClassVar
 
 import pytest
 
-from ..links import DatagramLink, StreamLink
-from ..options import parse
-from ..transport import Address, StreamConnection, Transport
-from ..wire.framing import COMPACT_BELOW
+from rosgate.links import DatagramLink, StreamLink
+from rosgate.options import parse
+from rosgate.transport import Address, StreamConnection, Transport
+from rosgate.wire.framing import COMPACT_BELOW
+
 from .helpers import (
     TIMEOUT,
     Closing,
