@@ -1,7 +1,7 @@
 """The constrained-link benchmark: two bridges through the link emulator set to issue 12's
 Wi-Fi (20 Mbit/s, 10 ms, 2 ms jitter, 1 % loss per IP packet, MTU 1500), everything in one run.
 
-    publisher --DDS--> bridge A --udp--> relay (python -m rosgate.testing.emulator) --udp-->
+    publisher --DDS--> bridge A --udp--> relay (python -m rosgate_emulator) --udp-->
     bridge B --DDS--> subscriber          (and back: NACKs and ACKs)
 
 Sections, each a few cases of fresh processes:
@@ -115,15 +115,15 @@ class Ends(Endpoint):
 
 
 class Relay(Process):
-    """``python -m rosgate.testing.emulator udp --preset wifi``, a process of its own."""
+    """``python -m rosgate_emulator udp --preset wifi``, a process of its own."""
 
     def __init__(self, listen: int, target: int, **overrides: Any):
         extra = [a for k, v in overrides.items() for a in (f"--{k}", str(v))]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "rosgate.testing.emulator", "udp", "--preset", PRESET,
+            [sys.executable, "-m", "rosgate_emulator", "udp", "--preset", PRESET,
              "--listen", f"127.0.0.1:{listen}", "--target", f"127.0.0.1:{target}", *extra],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-            env=dict(os.environ, PYTHONPATH=str(ROOT / "core" / "src")))
+            env=dict(os.environ, PYTHONPATH=str(ROOT / "tools" / "emulator" / "src")))
         self.lines = Lines(self.proc.stdout, "relay")
         self.lines.wait_for("->", 20)
         self.counters: dict[str, Any] = {}

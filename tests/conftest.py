@@ -20,11 +20,11 @@ from typing import Any
 
 import pytest
 import yaml
+from rosgate_testing import free_port  # tests also import it from here
 
 from rosgate import identity
 from rosgate.config import loads
 from rosgate.engine import Engine
-from rosgate.testing import free_port  # tests also import it from here
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 

@@ -205,7 +205,7 @@ def test_a_wrong_zenoh_option_is_one_clear_message_from_the_cli(tmp_path):
 
 
 def test_run_without_the_router_a_client_needs_is_one_clear_message(tmp_path):
-    from rosgate.testing import free_port
+    from rosgate_testing import free_port
 
     path = tmp_path / "robot.yaml"
     path.write_text("bridge: {name: r1, role: peer}\nplugins:\n  zenoh: {mode: client, connect: "
@@ -223,8 +223,7 @@ def test_router_takes_zenoh_s_own_config_file_and_refuses_a_bad_endpoint(tmp_pat
 
     import zenoh
     from conftest import ROSGATE
-
-    from rosgate.testing import free_port
+    from rosgate_testing import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     config = tmp_path / "router.json5"

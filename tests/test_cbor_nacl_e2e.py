@@ -8,9 +8,8 @@ import time
 
 from conftest import cross, free_port
 from rosgate_crypto_nacl import NaclCipher
+from rosgate_testing import write_key
 from sensor_msgs.msg import NavSatFix, NavSatStatus
-
-from rosgate.testing import write_key
 
 
 def fix(i: int | None) -> NavSatFix:

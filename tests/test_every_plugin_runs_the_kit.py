@@ -4,14 +4,16 @@ so a new plugin cannot land without."""
 
 from __future__ import annotations
 
+import importlib.util
 import tomllib
+from importlib import metadata
 from pathlib import Path
 
 import pytest
 
 from rosgate.bus import BusTransport
 from rosgate.options import declaration_problem, declared
-from rosgate.plugins import Plugins, deprecations
+from rosgate.plugins import Plugins
 
 ROOT = Path(__file__).resolve().parent.parent
 SUITES = {"transport": "TransportConformance", "codec": "CodecConformance",
@@ -53,7 +55,7 @@ def test_every_in_tree_plugin_is_found():
 def test_runs_the_conformance_suite_of_its_kind(kind, name, cls, distribution, suite):
     sources = [path.read_text() for path in folders_of_tests()[distribution].glob("test_*.py")]
     assert any(f"({suite}):" in text and f" = {cls}\n" in text for text in sources), (
-        f"no test class of {distribution} subclasses rosgate.testing.{suite} with "
+        f"no test class of {distribution} subclasses rosgate_testing.{suite} with "
         f"{kind} = {cls}")
 
 
@@ -68,4 +70,10 @@ def test_declares_its_options_each_with_a_doc(registration):
     for o in options:
         assert o.doc, (f"{cls.__name__}.Options.{o.name} has no doc: make it with "
                        "rosgate.option(default, doc)")
-    assert deprecations(cls) == []  # no in-tree plugin leans on what only works with a warning
+
+
+def test_the_kit_is_a_distribution_of_its_own_and_no_plugin():
+    """Plugin authors' tests install rosgate-testing; a bridge installs rosgate without it."""
+    assert importlib.util.find_spec("rosgate.testing") is None
+    kit = metadata.distribution("rosgate-testing")
+    assert [ep.group for ep in kit.entry_points] == ["pytest11"]  # not in the group rosgate

@@ -97,7 +97,7 @@ def image(pixels: bytes) -> Image:
 def through_relay(engines, domain, profile, topics: str, bridge_a: str = ""):
     """Bridge a (transmitting) sends every topic to a relay of the link emulator, which passes
     it on to bridge b through ``profile`` — and b's NACKs and ACKs back."""
-    from rosgate.testing.emulator import UdpRelay
+    from rosgate_emulator import UdpRelay
 
     da, db, port = domain(), domain(), free_port()
     b = engines(f"""
@@ -125,7 +125,7 @@ def megabyte(i: int | None) -> Image:
 def test_a_megabyte_image_crosses_2_percent_loss_with_recovery(engines, domain, ros_side,
                                                               recovery):
     """870 datagrams of 1,200 bytes: without recovery it would arrive 0.00002 % of the time."""
-    from rosgate.testing.emulator import Profile
+    from rosgate_emulator import Profile
 
     a, b, da, db, relay = through_relay(
         engines, domain, Profile(delay=0.005, loss=0.02, seed=7),
@@ -158,9 +158,9 @@ def test_latest_only_and_priorities_on_a_budget_count_what_they_replaced(engines
     every Twist arrives, in order; the camera's unsent frames are replaced, counted, and its
     queue never holds more than the frame in progress and one waiting."""
     from geometry_msgs.msg import Twist
+    from rosgate_emulator import Profile
 
     from rosgate.ros import qos_profile
-    from rosgate.testing.emulator import Profile
 
     a, b, da, db, relay = through_relay(
         engines, domain, Profile(delay=0.002),

@@ -2,8 +2,7 @@
 in tests/thirdparty/ is found through its entry point and carries topics, including messages
 that the core must fragment to fit its 16000-byte datagrams; the ``json`` codec there, written
 from the docs on rosgate.message_tree's to_tree/from_tree, carries topics as JSON text. A plugin
-written for the first plugin API (a Transport subclass setting stream, a dict of options)
-still carries topics, with DeprecationWarnings."""
+that declares no Options (it reads a dict) still carries topics, with a DeprecationWarning."""
 
 from __future__ import annotations
 
@@ -18,7 +17,7 @@ from rosgate_transport_udp import UdpEndpoint
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
-from rosgate import Transport
+from rosgate import DatagramTransport
 from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.errors import ConfigError
@@ -135,30 +134,28 @@ def test_json_on_the_wire_is_what_a_web_page_reads(engines, domain, ros_side):
     assert (tree["height"], tree["width"], tree["encoding"]) == (10, 100, "mono8")
 
 
-# --- a plugin written for the first plugin API ---------------------------------------------------
+# --- a plugin that declares no options ----------------------------------------------------------
 
 def legacy_module() -> types.ModuleType:
-    """A transport as plugins were written before DatagramTransport and declared Options."""
-    with pytest.deprecated_call(match="subclass rosgate.DatagramTransport"):
-        class LegacyUdp(Transport):
-            name = "legacyudp"
-            stream = False
+    """A transport as plugins were written before they declared Options."""
+    class LegacyUdp(DatagramTransport):
+        name = "legacyudp"
 
-            def __init__(self, options):
-                super().__init__(options)
-                self.max_frame = options.get("max_frame", 1400)  # its options: a dict
+        def __init__(self, options):
+            super().__init__(options)
+            self.max_frame = options.get("max_frame", 1400)  # its options: a dict
 
-            def bind(self, address):
-                sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                sock.bind(address)
-                return UdpEndpoint(sock)
+        def bind(self, address):
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            sock.bind(address)
+            return UdpEndpoint(sock)
 
     module = types.ModuleType("rosgate_transport_legacyudp")
     module.rosgate_transports = lambda register: register(LegacyUdp)
     return module
 
 
-def test_a_plugin_written_for_the_old_api_still_carries_topics(domain, ros_side):
+def test_a_plugin_without_declared_options_still_carries_topics(domain, ros_side):
     plugins = Plugins.discover()
     plugins.add(legacy_module(), "legacyudp", "rosgate-transport-legacyudp")
     assert plugins.failures == []

@@ -113,8 +113,7 @@ services:
 def test_a_sealed_topic_crosses_and_a_frame_sealed_with_another_key_is_refused(
         router, plain, engines, domain, ros_side, tmp_path):
     from rosgate_crypto_nacl import NaclCipher
-
-    from rosgate.testing import write_key
+    from rosgate_testing import write_key
 
     write_key(tmp_path / "fleet.key", NaclCipher.generate_key())
     write_key(tmp_path / "other.key", NaclCipher.generate_key())

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from rosgate_testing import CipherConformance, CodecConformance
+
 from rosgate.builtin import CdrCodec, NoCipher
-from rosgate.testing import CipherConformance, CodecConformance
 
 
 class TestCdrConformance(CodecConformance):

@@ -14,12 +14,12 @@ import time
 from dataclasses import dataclass, field
 
 import pytest
+from rosgate_emulator import Profile, TcpRelay, UdpRelay
 from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
 from rosgate.config import LinkConfig
 from rosgate.links import DatagramLink, StreamLink
-from rosgate.testing.emulator import Profile, TcpRelay, UdpRelay
 from rosgate.wire import envelope
 
 TIMEOUT = 20.0

@@ -63,11 +63,26 @@ KNOBS = """
         register(KnobsCodec)
 """
 
-LEGACY = """
-    from rosgate import Transport, hookimpl
+LONG = """
+    from rosgate import DatagramTransport
 
 
-    class OldTransport(Transport):
+    class LongTransport(DatagramTransport):
+        name = "long"
+
+        def bind(self, address):
+            raise OSError("not in this test")
+
+
+    def rosgate_transports(register):
+        register(LongTransport)
+"""
+
+KINDLESS = """
+    from rosgate import Transport
+
+
+    class OldTransport(Transport):  # says its kind with an attribute, not with its base
         name = "old"
         stream = False
 
@@ -75,7 +90,6 @@ LEGACY = """
             raise OSError("not in this test")
 
 
-    @hookimpl
     def rosgate_transports(register):
         register(OldTransport)
 """
@@ -216,15 +230,15 @@ def test_plugins_options_of_an_unknown_name_is_an_error():
                                     "(installed: aead, bt, can, cbor, cdr, ")
 
 
-def test_plugins_aligns_columns_to_the_longest_name_and_names_deprecated_plugins(site):
-    install(site, "rosgate-transport-old-and-rather-long-name", "old", LEGACY)
+def test_plugins_aligns_columns_to_the_longest_name_and_names_a_transport_of_no_kind(site):
+    install(site, "rosgate-transport-long-and-rather-long-name", "long", LONG)
+    install(site, "rosgate-transport-old", "old", KINDLESS)
     lines = rosgate(site, "plugins").stdout.splitlines()
     table = [line for line in lines if line.split()[0] in ("KIND", "transport", "codec", "cipher")]
     assert len(table) > 10
     # every cell starts where its column's header does
     assert len({tuple(cell.start() for cell in re.finditer(r"\S+", line)) for line in table}) == 1
-    assert ("deprecated: transport old (rosgate-transport-old-and-rather-long-name) subclasses "
-            "rosgate.Transport and sets stream itself (subclass DatagramTransport or "
-            "StreamTransport)") in lines
-    assert ("deprecated: transport old (rosgate-transport-old-and-rather-long-name) declares no "
-            "Options (its table reaches it unchecked, as a dict)") in lines
+    assert ["transport", "long", "rosgate-transport-long-and-rather-long-name", "1.0"] in [
+        line.split() for line in table]
+    assert ("failed to load plugin 'old' (rosgate-transport-old): OldTransport is no kind of "
+            "link (subclass DatagramTransport, StreamTransport or BusTransport)") in lines

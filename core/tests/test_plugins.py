@@ -29,7 +29,7 @@ from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.message_tree import TreeCodec
 from rosgate.options import parse
-from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration, deprecations
+from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration
 from rosgate.roles import Bridge
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -396,17 +396,15 @@ def test_an_abstract_class_is_refused_naming_what_it_does_not_implement(hook, cl
     assert plugins.registered == {}
 
 
-def test_a_transport_that_is_neither_stream_nor_datagram_is_refused():
-    with pytest.deprecated_call(match="subclass rosgate.DatagramTransport or "
-                                      "rosgate.StreamTransport"):
-        class Undecided(Transport):
-            name = "undecided"
+def test_a_transport_of_no_kind_is_refused():
+    class Undecided(Transport):
+        name = "undecided"
 
     plugins = Plugins()
     plugins.add(plugin(rosgate_transports=registers(Undecided)), "undecided")
     assert [f.reason for f in plugins.failures] == [
-        "Undecided says neither stream nor datagram "
-        "(subclass DatagramTransport or StreamTransport)"]
+        "Undecided is no kind of link (subclass DatagramTransport, StreamTransport or "
+        "BusTransport)"]
 
 
 def test_options_that_are_not_a_frozen_dataclass_are_refused():
@@ -422,29 +420,42 @@ def test_options_that_are_not_a_frozen_dataclass_are_refused():
         "Sloppy.Options is not a frozen dataclass (decorate it with @dataclass(frozen=True))"]
 
 
-def test_a_legacy_transport_still_registers_and_works_with_warnings():
-    with pytest.deprecated_call(match="Old subclasses rosgate.Transport and sets stream itself"):
-        class Old(Transport):
-            name = "old"
-            stream = False
+def test_a_transport_that_says_its_kind_by_an_attribute_is_refused():
+    """The kind is the base class, and nothing else: ``stream = False`` on a plain Transport
+    makes no datagram link."""
+    class Old(Transport):
+        name = "old"
+        stream = False
 
-            def __init__(self, options):
-                super().__init__(options)
-                self.max_frame = options.get("max_frame", 100)
-
-            def bind(self, address):
-                raise LinkError("not in this test")
+        def bind(self, address):
+            raise LinkError("not in this test")
 
     plugins = Plugins()
     plugins.add(plugin(rosgate_transports=registers(Old)), "old", "rosgate-transport-old")
-    assert plugins.failures == [] and plugins.get("transport", "old").cls is Old
-    assert deprecations(Old) == [
-        "subclasses rosgate.Transport and sets stream itself (subclass DatagramTransport or "
-        "StreamTransport)", "declares no Options (its table reaches it unchecked, as a dict)"]
-    with pytest.deprecated_call(match="Old declares no Options"):
-        options = parse(Old, {"max_frame": 64})
-    old = Old(options)
-    assert (old.options, old.max_frame, old.stream) == ({"max_frame": 64}, 64, False)
+    assert plugins.get("transport", "old") is None
+    assert plugins.failures == [Failure("old", "rosgate-transport-old", "Old is no kind of link "
+                                        "(subclass DatagramTransport, StreamTransport or "
+                                        "BusTransport)")]
+
+
+def test_a_transport_without_options_registers_and_gets_its_table_as_a_dict():
+    class Plain(DatagramTransport):
+        name = "plain"
+
+        def __init__(self, options):
+            super().__init__(options)
+            self.max_frame = options.get("max_frame", 100)
+
+        def bind(self, address):
+            raise LinkError("not in this test")
+
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_transports=registers(Plain)), "plain", "rosgate-transport-plain")
+    assert plugins.failures == [] and plugins.get("transport", "plain").cls is Plain
+    with pytest.deprecated_call(match="Plain declares no Options"):
+        options = parse(Plain, {"max_frame": 64})
+    plain = Plain(options)
+    assert (plain.options, plain.max_frame) == ({"max_frame": 64}, 64)
 
 
 # --- lazy discovery ------------------------------------------------------------------------------

@@ -31,10 +31,9 @@ def messages() -> list[tuple[int, object]]:
     from geometry_msgs.msg import Point32, PoseStamped, Twist, Vector3
     from nav_msgs.msg import OccupancyGrid, Odometry
     from nav_msgs.msg import Path as NavPath
+    from rosgate_testing import sample
     from sensor_msgs.msg import LaserEcho, LaserScan, MultiEchoLaserScan, PointCloud2, PointField
     from std_msgs.msg import Header
-
-    from rosgate.testing import sample
 
     types = targets.message_types()
     made = [cls() for cls in types]  # every type with its defaults

@@ -2,7 +2,8 @@
 
 The public API for plugin authors is what this module exports, with :mod:`rosgate.hookspecs`
 (the hooks), :mod:`rosgate.options` (declared options), :mod:`rosgate.keys` (the key convention),
-:mod:`rosgate.message_tree` (messages as trees) and :mod:`rosgate.testing` (the plugin kit).
+:mod:`rosgate.message_tree` (messages as trees). A plugin's tests run the plugin kit, the
+distribution ``rosgate-testing`` (import ``rosgate_testing``).
 """
 
 from .cipher import Cipher

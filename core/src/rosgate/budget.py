@@ -18,6 +18,7 @@ from typing import Any
 from .config import Direction, Framing, Recovery
 from .resolver import Plan, PreparedTopic
 from .ros import resolve_type
+from .transport import DatagramTransport
 from .wire import envelope, framing, recovery
 
 #: tc-style: the bits of a link in the units people write them in
@@ -85,10 +86,10 @@ def cipher_overhead(p: PreparedTopic) -> int:
 def on_the_wire(frame: int, p: PreparedTopic) -> tuple[int, int]:
     """(bytes, packets) of one frame of ``frame`` bytes on the topic's link."""
     transport, t = p.transport, p.config
-    if transport.stream:
+    if not isinstance(transport, DatagramTransport):  # a stream: budgets refuse buses
         chunks = 1 if frame <= framing.CHUNK else math.ceil(frame / framing.CHUNK)
         return frame + (4 if chunks == 1 else 8 * chunks), chunks
-    limit, overhead = transport.max_frame, getattr(transport, "packet_overhead", 0)
+    limit, overhead = transport.max_frame, transport.packet_overhead
     if t.recovery is Recovery.FEC:
         room = limit - recovery.FEC.size
         total = max(1, math.ceil(frame / room))

@@ -111,8 +111,6 @@ class BusTransport(Transport):
     """Base class of bus plugins. Set :attr:`name`; implement :meth:`open`. Set :attr:`prefix`
     and :attr:`namespace` from your options if you take them (the core's key conventions)."""
 
-    stream = False
-    link_kind = "bus"
     #: rosgate's own keys start with it: ``<prefix>/<bridge name>/<topic>`` and the liveliness
     #: token ``<prefix>/<bridge name>/@alive``
     prefix: str = "rosgate"
@@ -157,7 +155,3 @@ def check_key(key: str) -> str:
             raise ValueError(f"{key!r} is not a key: chunk {chunk!r} is empty or holds "
                              "'*', '$', '?' or '#' (a wildcard is '*' or '**' alone)")
     return key
-
-
-def is_bus(transport: Transport) -> bool:
-    return isinstance(transport, BusTransport)

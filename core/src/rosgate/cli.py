@@ -187,7 +187,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
-    from .plugins import Plugins, deprecations
+    from .plugins import Plugins
 
     plugins = Plugins.discover()
     if args.options:
@@ -201,9 +201,6 @@ def cmd_plugins(args: argparse.Namespace) -> int:
               f"{failure.reason}")
     for name in plugins.blocked:
         print(f"blocked plugin {name!r} (ROSGATE_DISABLE_PLUGINS)")
-    for r in registrations:
-        for note in deprecations(r.cls):
-            print(f"deprecated: {r.kind} {r.name} ({r.distribution}) {note}")
     return 0
 
 

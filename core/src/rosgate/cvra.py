@@ -39,7 +39,7 @@ from typing import Any
 from .errors import CodecError
 from .links import POLL
 from .services import Call, ServerRoute, ServiceRoute
-from .transport import Address, StreamConnection, Transport
+from .transport import Address, StreamConnection, StreamTransport, Transport
 from .warn import BUGS
 from .wire import serial_datagram
 from .wire.names import Layout, NameMissing, pack_name, split_name
@@ -183,6 +183,7 @@ class CvraCallerRoute(ServiceRoute):
 
     def __init__(self, *args: Any, transport: Transport, address: Address):
         super().__init__(*args)
+        assert isinstance(transport, StreamTransport)
         self.transport = transport
         self.address = address
         self._pool = ThreadPoolExecutor(CALLER_THREADS, thread_name_prefix=f"call-{self.label}")

@@ -35,8 +35,8 @@ hookimpl = pluggy.HookimplMarker("rosgate")
 
 @hookspec
 def rosgate_transports(register: Callable[[type[Transport]], None]) -> None:
-    """Register transport classes (links): subclasses of :class:`rosgate.DatagramTransport` or
-    :class:`rosgate.StreamTransport`."""
+    """Register transport classes (links): subclasses of :class:`rosgate.DatagramTransport`,
+    :class:`rosgate.StreamTransport` or :class:`rosgate.bus.BusTransport`."""
 
 
 @hookspec

@@ -55,7 +55,14 @@ from .admission import Sources
 from .config import MAX_DELAY_DEFAULT, LinkConfig
 from .errors import LinkError
 from .scheduler import Due, Outgoing, Scheduler
-from .transport import Address, DatagramEndpoint, StreamConnection, Transport
+from .transport import (
+    Address,
+    DatagramEndpoint,
+    DatagramTransport,
+    StreamConnection,
+    StreamTransport,
+    Transport,
+)
 from .warn import BUGS
 from .wire import envelope, framing, recovery
 
@@ -323,7 +330,7 @@ class DatagramLink(_Sending, Link):
 
     datagram = True
 
-    def __init__(self, transport: Transport, endpoint: DatagramEndpoint, name: str,
+    def __init__(self, transport: DatagramTransport, endpoint: DatagramEndpoint, name: str,
                  on_frame: FrameHandler, on_lost: LostHandler, bare: bool = False,
                  max_message: int = framing.DEFAULT_MAX_MESSAGE, sources: Sources | None = None,
                  budget: LinkConfig | None = None,
@@ -1129,6 +1136,7 @@ class Connector:
                  on_lost: Callable[[StreamLink], None] | None = None,
                  secure: Callable[[StreamConnection], StreamConnection] | None = None,
                  budget: LinkConfig | None = None):
+        assert isinstance(transport, StreamTransport)
         self.transport = transport
         self.budget = budget
         self.secure = secure

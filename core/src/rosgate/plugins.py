@@ -32,10 +32,11 @@ from typing import Any
 import pluggy
 
 from . import hookspecs
+from .bus import BusTransport
 from .cipher import Cipher
 from .codec import Codec
 from .options import declaration_problem
-from .transport import Transport
+from .transport import DatagramTransport, StreamTransport, Transport
 
 ENTRY_POINT_GROUP = "rosgate"
 DISABLE_VARIABLE = "ROSGATE_DISABLE_PLUGINS"
@@ -241,18 +242,6 @@ class Plugins:
                          f"{conventional_distribution(kind, name)}), or pick an installed {kind}")
 
 
-def deprecations(cls: type) -> list[str]:
-    """What a registered class does that still works but will not for long, for
-    ``rosgate plugins`` (its author sees a ``DeprecationWarning`` too)."""
-    notes = []
-    if issubclass(cls, Transport) and cls.link_kind is None:
-        notes.append("subclasses rosgate.Transport and sets stream itself (subclass "
-                     "DatagramTransport or StreamTransport)")
-    if not hasattr(cls, "Options"):
-        notes.append("declares no Options (its table reaches it unchecked, as a dict)")
-    return notes
-
-
 def _check_class(cls: Any, base: type) -> str | None:
     if not (isinstance(cls, type) and issubclass(cls, base)):
         return f"registered {cls!r}, which is not a subclass of rosgate.{base.__name__}"
@@ -262,9 +251,10 @@ def _check_class(cls: Any, base: type) -> str | None:
     if inspect.isabstract(cls):
         missing = sorted(getattr(cls, "__abstractmethods__", ()))
         return f"{cls.__name__} does not implement {', '.join(missing)}"
-    if base is Transport and not isinstance(getattr(cls, "stream", None), bool):
-        return f"{cls.__name__} says neither stream nor datagram (subclass DatagramTransport or " \
-               "StreamTransport)"
+    if base is Transport and not issubclass(cls, (DatagramTransport, StreamTransport,
+                                                  BusTransport)):
+        return f"{cls.__name__} is no kind of link (subclass DatagramTransport, StreamTransport " \
+               "or BusTransport)"
     return declaration_problem(cls)
 
 

@@ -24,7 +24,7 @@ from .options import parse
 from .placeholders import Template, has_placeholders
 from .plugins import Plugins, Registration
 from .ros import TypeNotFound, is_reliable, resolve_type
-from .transport import Address, Transport
+from .transport import Address, DatagramTransport, StreamTransport, Transport
 from .wire.envelope import topic_id_for
 
 ErrorMaker = Callable[..., ConfigError]
@@ -88,7 +88,7 @@ class Plan:
     config: BridgeConfig
     topics: list[PreparedTopic]
     services: list[PreparedService]
-    main_line: Transport | None = None
+    main_line: StreamTransport | None = None
     main_address: Address | None = None
 
 
@@ -100,14 +100,14 @@ class Resolver:
         self.plugins = plugins
         self.transports: dict[str, Transport] = {}
         self.ciphers: dict[str, Cipher] = {}
-        self.main_line: Transport | None = None
+        self.main_line: StreamTransport | None = None
         self.main_address: Address | None = None
 
     def plan(self) -> Plan:
         cfg = self.config
         if cfg.role is not Role.PEER:
             main = self.transport(cfg.main_line, "bridge.main_line")
-            if not main.stream:
+            if not isinstance(main, StreamTransport):
                 raise cfg.error("bridge.main_line", f"{cfg.main_line!r} is not a stream transport",
                                 "the main line needs a stream link such as tcp or bt")
             self.main_line = main
@@ -153,7 +153,7 @@ class Resolver:
             codec_cls(msg_type, codec_options)
         except OptionError as exc:
             raise self._option_error(topic.codec, exc, f"{key}.codec", error) from None
-        if topic.framing is Framing.NONE and transport.stream:
+        if topic.framing is Framing.NONE and isinstance(transport, StreamTransport):
             raise error(f"{key}.framing",
                         "framing: none needs a datagram transport (udp, can, ...)",
                         "use framing: rosgate on stream links")
@@ -178,7 +178,7 @@ class Resolver:
                    error: ErrorMaker) -> None:
         """Recovery is for datagram links, latest_only for the links rosgate schedules."""
         bus = isinstance(transport, BusTransport)
-        if topic.recovery is not Recovery.NONE and (transport.stream or bus):
+        if topic.recovery is not Recovery.NONE and (isinstance(transport, StreamTransport) or bus):
             what = "a bus" if bus else "a stream"
             raise error(f"{key}.recovery", f"recovery: {topic.recovery} is for datagram links "
                         f"(udp): {topic.transport} is {what}, which delivers whole and in order "
@@ -210,7 +210,7 @@ class Resolver:
             if self.config.role is not Role.PEER:
                 raise error(f"{key}.framing", "framing serial_datagram is for microcontroller "
                             "peers, which have no main line", "use role: peer for this bridge")
-            if not transport.stream:
+            if not isinstance(transport, StreamTransport):
                 raise error(f"{key}.transport", "framing serial_datagram needs a stream transport "
                             "(one connection per call)", "use transport: tcp")
             if not codec_cls.messagepack:
@@ -286,8 +286,8 @@ class Resolver:
     def _check_main_line_port(self, entry: TopicConfig | ServiceConfig, key: str,
                               transport: Transport, error: ErrorMaker) -> None:
         cfg = self.config
-        if (cfg.role is Role.CLIENT and transport.stream and entry.port is None
-                and entry.transport != cfg.main_line):
+        if (cfg.role is Role.CLIENT and isinstance(transport, StreamTransport)
+                and entry.port is None and entry.transport != cfg.main_line):
             kind = "topic" if isinstance(entry, TopicConfig) else "service"
             raise error(f"{key}.port", f"a {kind} on {entry.transport} needs a port of its own "
                         f"(only {cfg.main_line} {kind}s ride the main line)", "add port: <number>")
@@ -307,7 +307,7 @@ class Resolver:
             host = listen if receive else cfg.peer
             where = "bridge.listen" if receive else "bridge.peer"
             local = (listen, 0)
-            if not receive and not transport.stream:  # a datagram sender binds a socket too
+            if not receive and isinstance(transport, DatagramTransport):  # a sender binds too
                 local = self._check(transport, local, "bridge.listen", error,
                                     f"set bridge.listen to this side's {entry.transport} address")
         else:

@@ -1,10 +1,11 @@
 """Transports: the links that move opaque frames between two machines.
 
-A transport plugin subclasses :class:`DatagramTransport` or :class:`StreamTransport` and is
-registered through the ``rosgate_transports`` hook. It only opens sockets (or socket-like objects):
-the core does everything above them — envelope, cipher, stream framing (length prefix),
-fragmentation and reassembly for frames larger than :attr:`Transport.max_frame`, reconnection,
-counting.
+A transport plugin subclasses one kind — :class:`DatagramTransport`, :class:`StreamTransport`
+or :class:`rosgate.bus.BusTransport` — and is registered through the ``rosgate_transports`` hook.
+The class it subclasses is its kind, and the only statement of it: the core asks ``isinstance``.
+It only opens sockets (or socket-like objects): the core does everything above them — envelope,
+cipher, stream framing (length prefix), fragmentation and reassembly for frames larger than
+:attr:`DatagramTransport.max_frame`, reconnection, counting.
 
 * **datagram** (:class:`DatagramTransport`): every ``send`` is delivered whole or not at all (UDP,
   CAN). Implement :meth:`~DatagramTransport.bind`, returning a :class:`DatagramEndpoint`.
@@ -38,7 +39,6 @@ from __future__ import annotations
 
 import select
 import socket
-import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any, ClassVar, Protocol
@@ -151,9 +151,9 @@ class StreamListener(Protocol):
 
 
 class Transport(ABC):
-    """The common base of :class:`DatagramTransport` and :class:`StreamTransport`; subclass one
-    of those. (Subclassing ``Transport`` directly and setting :attr:`stream` yourself still
-    works, with a ``DeprecationWarning``.)
+    """What the three kinds have in common: a name, options and addresses. Subclass
+    :class:`DatagramTransport`, :class:`StreamTransport` or :class:`rosgate.bus.BusTransport`;
+    a class that subclasses this one alone is refused when it registers.
 
     The core makes one instance per bridge, from the plugin's declared ``Options`` (see
     :mod:`rosgate.options`), and shares it between every link of that transport.
@@ -161,25 +161,6 @@ class Transport(ABC):
 
     #: the name users write in bringup.yaml (``transport: udp``)
     name: ClassVar[str]
-    #: True for byte streams (the core frames them), False for datagram links; set by the
-    #: two subclasses, read by the core
-    stream: ClassVar[bool]
-    #: the largest frame one ``send`` carries on a datagram link; the core fragments above it.
-    #: A class attribute, or an instance attribute set in ``__init__`` from an option.
-    max_frame: int = 0
-    #: which kind of link: set by DatagramTransport, StreamTransport and rosgate.bus.BusTransport
-    link_kind: ClassVar[str | None] = None
-    #: bytes the layers below add to every frame a datagram link sends (UDP over IPv4: 28), so
-    #: that a bandwidth budget (``bridge.links``) counts what the link carries
-    packet_overhead: ClassVar[int] = 0
-
-    def __init_subclass__(cls, **kwargs: Any) -> None:
-        super().__init_subclass__(**kwargs)
-        if cls.__module__ != __name__ and cls.link_kind is None:
-            warnings.warn(f"{cls.__qualname__} subclasses rosgate.Transport and sets stream "
-                          "itself; subclass rosgate.DatagramTransport or rosgate.StreamTransport "
-                          "instead",
-                          DeprecationWarning, stacklevel=3)  # past ABCMeta.__new__: the class
 
     def __init__(self, options: Any):
         """``options``: the plugin's ``Options`` instance, parsed by the core from its table under
@@ -208,23 +189,17 @@ class Transport(ABC):
         addresses (:func:`ip_source_hosts`)."""
         return None
 
-    # the link calls: a DatagramTransport implements bind, a StreamTransport listen and connect
-    def bind(self, address: Address) -> DatagramEndpoint:
-        raise NotImplementedError(f"transport {self.name!r} is not a datagram link")
-
-    def listen(self, address: Address) -> StreamListener:
-        raise NotImplementedError(f"transport {self.name!r} is not a stream link")
-
-    def connect(self, address: Address, timeout: float) -> StreamConnection:
-        raise NotImplementedError(f"transport {self.name!r} is not a stream link")
-
 
 class DatagramTransport(Transport):
     """A link that keeps message boundaries (UDP, CAN). Set :attr:`max_frame`; the core
     fragments larger frames (compact pieces below 256 bytes, see ``rosgate.framing``)."""
 
-    stream = False
-    link_kind = "datagram"
+    #: the largest frame one ``send`` carries; the core fragments above it. A class attribute,
+    #: or an instance attribute set in ``__init__`` from an option.
+    max_frame: int = 0
+    #: bytes the layers below add to every frame sent (UDP over IPv4: 28), so that a bandwidth
+    #: budget (``bridge.links``) counts what the link carries
+    packet_overhead: ClassVar[int] = 0
 
     @abstractmethod
     def bind(self, address: Address) -> DatagramEndpoint:
@@ -235,9 +210,6 @@ class DatagramTransport(Transport):
 
 class StreamTransport(Transport):
     """An ordered byte stream (TCP, RFCOMM). The core puts a length prefix on every frame."""
-
-    stream = True
-    link_kind = "stream"
 
     @abstractmethod
     def listen(self, address: Address) -> StreamListener:

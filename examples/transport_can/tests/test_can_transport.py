@@ -15,7 +15,7 @@ import can
 import pytest
 from rosgate_transport_can import CanTransport, rosgate_transports
 
-from rosgate import LinkError, OptionError
+from rosgate import DatagramTransport, LinkError, OptionError
 
 _channels = itertools.count()
 
@@ -47,7 +47,7 @@ def test_registers_through_the_rosgate_hook():
     registered = []
     rosgate_transports(register=registered.append)
     assert registered == [CanTransport]
-    assert (CanTransport.name, CanTransport.stream) == ("can", False)
+    assert (CanTransport.name, issubclass(CanTransport, DatagramTransport)) == ("can", True)
 
 
 def test_python_can_is_imported_only_when_a_bus_is_asked_for():

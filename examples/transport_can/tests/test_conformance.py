@@ -14,9 +14,8 @@ import uuid
 
 import pytest
 from can.util import dlc2len, len2dlc
+from rosgate_testing import TransportConformance
 from rosgate_transport_can import CanTransport
-
-from rosgate.testing import TransportConformance
 
 
 class TestCanConformance(TransportConformance):

@@ -12,11 +12,11 @@ import pytest
 from geometry_msgs.msg import Point32, Twist, Vector3
 from rosgate_codec_cbor import CborCodec
 from rosgate_codec_msgpack import MsgpackCodec
+from rosgate_testing import CodecConformance, sample, samples
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32, Float32MultiArray, String, UInt64
 
 import rosgate
-from rosgate.testing import CodecConformance, sample, samples
 
 
 class TestCborConformance(CodecConformance):

@@ -18,6 +18,7 @@ from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rmw_dds_common.msg import Gid, NodeEntitiesInfo
 from rosgate_codec_msgpack import MsgpackCodec
+from rosgate_testing import CodecConformance, mutations
 from sensor_msgs.msg import Image, JointState, PointCloud2, PointField
 from std_msgs.msg import (
     Byte,
@@ -35,7 +36,6 @@ from std_msgs.msg import (
 from std_srvs.srv import SetBool, Trigger
 
 import rosgate
-from rosgate.testing import CodecConformance, mutations
 from rosgate.wire.names import Layout, NameMissing, pack_name, split_name
 
 

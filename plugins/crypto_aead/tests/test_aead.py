@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from rosgate_crypto_aead import AeadCipher
+from rosgate_testing import CipherConformance, write_key
 
 from rosgate import OptionError
-from rosgate.testing import CipherConformance, write_key
 from rosgate.wire import envelope
 
 HEADER = envelope.pack(0, 7, 0xCAFE, 1, 1_700_000_000_000_000_000)

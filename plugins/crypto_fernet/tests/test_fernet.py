@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 from cryptography.fernet import Fernet
 from rosgate_crypto_fernet import FernetCipher
+from rosgate_testing import CipherConformance, write_key
 
 from rosgate import CipherError, OptionError
-from rosgate.testing import CipherConformance, write_key
 from rosgate.wire import envelope
 
 HEADER = envelope.pack(0, 7, 0xCAFE, 1, 1_700_000_000_000_000_000)

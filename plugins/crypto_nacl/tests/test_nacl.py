@@ -15,9 +15,9 @@ import pytest
 from nacl.secret import SecretBox
 from rosgate_crypto_fernet import FernetCipher
 from rosgate_crypto_nacl import NaclCipher
+from rosgate_testing import CipherConformance, write_key
 
 from rosgate import OptionError
-from rosgate.testing import CipherConformance, write_key
 from rosgate.wire import envelope
 
 HEADER = envelope.pack(0, 7, 0xCAFE, 1, 1_700_000_000_000_000_000)

@@ -11,10 +11,10 @@ import tempfile
 
 import pytest
 import rosgate_transport_bt
+from rosgate_testing import TransportConformance
 from rosgate_transport_bt import BluetoothTransport
 
 from rosgate import LinkError, OptionError
-from rosgate.testing import TransportConformance
 
 NO_RADIO = not hasattr(socket, "AF_BLUETOOTH")
 

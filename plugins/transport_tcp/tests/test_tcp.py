@@ -9,10 +9,10 @@ import socket
 import threading
 
 import pytest
+from rosgate_testing import TransportConformance, free_port, has_ipv6_loopback, receive_exactly
 from rosgate_transport_tcp import TcpConnection, TcpTransport
 
 from rosgate import LinkError, OptionError
-from rosgate.testing import TransportConformance, free_port, has_ipv6_loopback, receive_exactly
 
 
 class TestTcpConformance(TransportConformance):

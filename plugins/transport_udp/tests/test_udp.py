@@ -8,10 +8,10 @@ import os
 import socket
 
 import pytest
+from rosgate_testing import TransportConformance, has_ipv6_loopback
 from rosgate_transport_udp import UdpTransport
 
 from rosgate import LinkError, OptionError
-from rosgate.testing import TransportConformance, has_ipv6_loopback
 
 
 class TestUdpConformance(TransportConformance):

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import pytest
 import zenoh
+from rosgate_testing import BusConformance, free_port
 from rosgate_transport_zenoh import ZenohTransport, zenoh_config
 
 from rosgate import LinkError, OptionError
-from rosgate.testing import BusConformance, free_port
 
 ROUTERS: list = []
 

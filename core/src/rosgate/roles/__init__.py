@@ -36,7 +36,7 @@ from ..links import (
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort
-from ..transport import Address, StreamConnection, Transport
+from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from ..wire import envelope
 
 log = logging.getLogger("rosgate")
@@ -153,6 +153,7 @@ class Role:
         not None for a port of ``framing: none`` topics: whether their datagrams carry names.
         ``sources``: who it takes frames from (the first entry on the port decides). An
         ``owner`` holds it until :meth:`release`; without one it lasts as long as the bridge."""
+        assert isinstance(transport, DatagramTransport)
         with self._lock:
             self._hold("datagram", transport, local, owner)
             found = self.datagram_links.get((transport.name, local))
@@ -205,6 +206,7 @@ class Role:
         when given, within the bridge's connection limits, each through ``handshake`` when
         given. A LinkError is located at ``key``; without one (a server listening for a client)
         it goes to the caller. An ``owner`` holds the listener until :meth:`release`."""
+        assert isinstance(transport, StreamTransport)
         with self._lock:
             found = self.listening.get((transport.name, local))
             if found is not None:

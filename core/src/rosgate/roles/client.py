@@ -34,7 +34,7 @@ from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
 from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, initiate, seal_hello
-from ..transport import Address, StreamConnection
+from ..transport import Address, StreamConnection, StreamTransport
 from . import Bridge, Role
 from .mainline import (
     HANDSHAKE_TIMEOUT,
@@ -227,7 +227,7 @@ class ClientRole(Role):
         label = f"{p.name} ({way} {self.server_name})"
         link: Link
         destination = fixed(p.address)
-        if p.transport.stream:
+        if isinstance(p.transport, StreamTransport):
             link = self.main if t.port is None else self._dedicated_stream(p)
         else:  # frames from the server only
             link = self.datagram_link(p.transport, p.local,

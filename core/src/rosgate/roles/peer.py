@@ -56,7 +56,7 @@ from ..secure import (
     respond,
 )
 from ..services import ServerRoute
-from ..transport import Address, StreamConnection
+from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
 from . import NoLink, Refusals, Role
 from .bus import BusWiring
@@ -94,7 +94,7 @@ class PeerRole(Role):
         for p in self.bridge.plan.topics:
             if p.key is not None:
                 bus.topic(p)
-            elif p.transport.stream:
+            elif isinstance(p.transport, StreamTransport):
                 self._stream_topic(p)
             else:
                 self._datagram_topic(p)
@@ -152,13 +152,13 @@ class PeerRole(Role):
         service_id = topic_id_for(s.remote)
         link: Link
         if s.direction is Direction.RECEIVE:
-            if p.transport.stream:
+            if isinstance(p.transport, StreamTransport):
                 self.listen(p.transport, p.address, self.router.on_frame, key,
                         sources=self._sources(p))
                 link = NoLink()  # answers go back on the connection each call came on
             else:
                 link = self.datagram_link(p.transport, p.address, key, sources=self._sources(p))
-        elif p.transport.stream:
+        elif isinstance(p.transport, StreamTransport):
             link = slot = self.bridge.slot(f"{s.transport}->{self.cfg.peer}:{s.port}")
             Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
                       self.life, self.bridge.backoff,
@@ -176,6 +176,7 @@ class PeerRole(Role):
             self.router.service(p, 0, s.service, None)  # connects to the peer per call
             return
         if p.address not in servers:
+            assert isinstance(p.transport, StreamTransport)  # the resolver checked
             try:
                 listener = p.transport.listen(p.address)
             except LinkError as exc:
@@ -206,7 +207,9 @@ class PeerHandshake:
         self.mine, self.theirs = ("i2r", "r2i") if self.initiator else ("r2i", "i2r")
         self.schedule = KeySchedule(cfg.rekey)
         self.refusals = Refusals()
-        self.transport = role.bridge.resolver.transport("tcp", "bridge.handshake_port")
+        transport = role.bridge.resolver.transport("tcp", "bridge.handshake_port")
+        assert isinstance(transport, StreamTransport)
+        self.transport = transport
         self.key_id: int | None = None
         self.up = threading.Event()
         self.link: StreamLink | None = None

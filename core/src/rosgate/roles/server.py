@@ -53,7 +53,7 @@ from ..secure import (
     open_hello,
     respond,
 )
-from ..transport import Address, StreamConnection
+from ..transport import Address, StreamConnection, StreamTransport
 from ..warn import BUGS
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
@@ -387,9 +387,9 @@ class ServerRole(Role):
         link: Link
         destination = self._no_address
         port = t.port
-        if p.transport.stream and port is None:
+        if isinstance(p.transport, StreamTransport) and port is None:
             link = session.main
-        elif p.transport.stream and port is not None:
+        elif isinstance(p.transport, StreamTransport) and port is not None:
             self.listen(p.transport, p.address, self._dedicated_frame(port),
                         handshake=self.handshake, untrusted=self.untrusted, owner=session)
             if port not in session.streams:

@@ -8,11 +8,11 @@ import json
 import pytest
 from geometry_msgs.msg import Twist, Vector3
 from rosgate_codec_json import JsonCodec
+from rosgate_testing import CodecConformance
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from rosgate import CodecError, OptionError
-from rosgate.testing import CodecConformance
 
 
 class TestJsonConformance(CodecConformance):

@@ -7,10 +7,10 @@ import itertools
 import os
 
 import pytest
+from rosgate_testing import TransportConformance
 from rosgate_transport_unixdgram import UnixDatagramTransport
 
 from rosgate import OptionError
-from rosgate.testing import TransportConformance
 
 
 class TestUnixDatagramConformance(TransportConformance):

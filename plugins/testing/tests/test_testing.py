@@ -8,10 +8,10 @@ import subprocess
 import sys
 import textwrap
 
+from rosgate_testing import samples
 from rosidl_parser import definition as idl
 
 from rosgate.message_tree import type_name
-from rosgate.testing import samples
 
 
 def kinds(t: idl.AbstractType, found: set[str]) -> set[str]:
@@ -50,7 +50,7 @@ def test_the_suites_fail_for_broken_plugins(tmp_path):
     (tmp_path / "test_broken.py").write_text(textwrap.dedent('''
         from rosgate import Cipher
         from rosgate.builtin import CdrCodec
-        from rosgate.testing import CipherConformance, CodecConformance, TransportConformance
+        from rosgate_testing import CipherConformance, CodecConformance, TransportConformance
         from rosgate_transport_udp import UdpTransport
 
         class LeakyCodec(CdrCodec):        # lets garbage through as another exception

@@ -15,8 +15,9 @@ from typing import Any, ClassVar
 
 import pytest
 
-from ..bus import PRIORITY_DEFAULT, BusSession, BusTransport
-from ..buslink import BusLink
+from rosgate.bus import PRIORITY_DEFAULT, BusSession, BusTransport
+from rosgate.buslink import BusLink
+
 from .helpers import TIMEOUT, Closing, Frames, assert_registered, frame_of
 
 

@@ -10,9 +10,10 @@ from typing import Any, ClassVar
 
 import pytest
 
-from ..codec import Codec
-from ..errors import CodecError
-from ..options import parse
+from rosgate.codec import Codec
+from rosgate.errors import CodecError
+from rosgate.options import parse
+
 from .helpers import assert_registered, mutations
 
 

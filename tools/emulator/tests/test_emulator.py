@@ -16,8 +16,7 @@ import threading
 import time
 
 import pytest
-
-from rosgate.testing.emulator import (
+from rosgate_emulator import (
     WIFI,
     NetnsPair,
     Profile,
@@ -517,7 +516,7 @@ def test_the_command_line_relays_and_reports_its_counters(udp):
     client = udp()
     port = target.getsockname()[1]
     process = subprocess.Popen(
-        [sys.executable, "-m", "rosgate.testing.emulator", "udp", "--preset", "wifi",
+        [sys.executable, "-m", "rosgate_emulator", "udp", "--preset", "wifi",
          "--loss", "0", "--target", f"127.0.0.1:{port}"],
         stdout=subprocess.PIPE, text=True)
     try:

@@ -10,10 +10,17 @@ from typing import Any, ClassVar
 
 import pytest
 
-from ..links import DatagramLink, StreamLink
-from ..options import parse
-from ..transport import Address, StreamConnection, Transport
-from ..wire.framing import COMPACT_BELOW
+from rosgate.links import DatagramLink, StreamLink
+from rosgate.options import parse
+from rosgate.transport import (
+    Address,
+    DatagramTransport,
+    StreamConnection,
+    StreamTransport,
+    Transport,
+)
+from rosgate.wire.framing import COMPACT_BELOW
+
 from .helpers import (
     TIMEOUT,
     Closing,
@@ -62,7 +69,7 @@ class TransportConformance:
         super().__init_subclass__(**kwargs)
         transport = cls.__dict__.get("transport")
         if isinstance(transport, type) and issubclass(transport, Transport):
-            other = "test_datagram_" if transport.stream else "test_stream_"
+            other = "test_datagram_" if issubclass(transport, StreamTransport) else "test_stream_"
             for name in dir(TransportConformance):
                 if name.startswith(other):
                     setattr(cls, name, None)  # pytest collects functions only
@@ -94,8 +101,8 @@ class TransportConformance:
 
     @staticmethod
     def _kind(plugin: Transport, stream: bool) -> None:
-        if plugin.stream != stream:
-            kind = "a stream" if plugin.stream else "a datagram"
+        if isinstance(plugin, StreamTransport) != stream:
+            kind = "a stream" if isinstance(plugin, StreamTransport) else "a datagram"
             pytest.skip(f"{plugin.name} is {kind} link")
 
     def test_found_through_its_entry_point(self, plugin: Transport) -> None:
@@ -108,6 +115,8 @@ class TransportConformance:
         """(a, a's address, b, b's address): ``a`` bound with ``plugin``, ``b`` with
         ``far_plugin``."""
         self._kind(plugin, stream=False)
+        assert isinstance(plugin, DatagramTransport), "a datagram link subclasses DatagramTransport"
+        assert isinstance(far_plugin, DatagramTransport), "far_plugin must make a datagram link too"
         assert plugin.max_frame > 0, "a datagram link declares its largest frame (max_frame)"
         assert far_plugin.max_frame == plugin.max_frame, \
             "the far_plugin fixture must make the same link (its max_frame differs)"
@@ -250,6 +259,8 @@ class TransportConformance:
         """A connected (client, server) pair of connections: the client connects with
         ``plugin``, the server listens with ``far_plugin``."""
         self._kind(plugin, stream=True)
+        assert isinstance(plugin, StreamTransport)  # for the type checker: _kind skipped others
+        assert isinstance(far_plugin, StreamTransport), "far_plugin must make a stream link too"
         where = address()
         listener = closing(far_plugin.listen(where))
         client = closing(plugin.connect(where, TIMEOUT))

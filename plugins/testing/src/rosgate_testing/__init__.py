@@ -1,9 +1,12 @@
 """The plugin kit: conformance suites and helpers for testing a rosgate plugin.
 
+A distribution of its own (``pip install rosgate-testing``, import ``rosgate_testing``), for a
+plugin's tests: a bridge does not need it.
+
 A plugin's test file runs the suite of its kind by subclassing it (the class name must start
 with ``Test`` for pytest to collect it)::
 
-    from rosgate.testing import TransportConformance
+    from rosgate_testing import TransportConformance
     from rosgate_transport_unixdgram import UnixDatagramTransport
 
     class TestUnixDatagramConformance(TransportConformance):
@@ -59,17 +62,11 @@ What each suite checks (every check uses real sockets, real message classes, rea
 
 The helpers (:func:`free_port`, :func:`has_ipv6_loopback`, :func:`wait_until_blocked`,
 :func:`receive_exactly`, :func:`write_key`, :func:`mutations`, :class:`Frames`) are what plugin
-tests kept writing for themselves. rosgate registers this module as a pytest plugin (entry point
-``pytest11``), so pytest rewrites its asserts: a failing check shows the values. Importing it loads
-nothing from ROS; the codec suite imports message packages when it runs. One module per suite:
-``transports.py``, ``codecs.py`` (with the sample messages), ``ciphers.py``, ``helpers.py``.
-
-A bad link for tests, in user space (this kind of machine has no netem):
-:mod:`rosgate.testing.emulator` — ``UdpRelay`` and ``TcpRelay`` with a token-bucket rate,
-delay and jitter, loss per IP packet, a bounded queue, seeded (``Profile``, the ``WIFI`` preset),
-and ``NetnsPair``, two network namespaces on a veth pair with a kernel rate limit (root only).
-Import it from there: it is not loaded with the kit, and it also runs as
-``python -m rosgate.testing.emulator`` for a benchmark.
+tests kept writing for themselves. This distribution registers this module as a pytest plugin
+(entry point ``pytest11``), so pytest rewrites its asserts: a failing check shows the values.
+Importing it loads nothing from ROS; the codec suite imports message packages when it runs. One
+module per suite: ``transports.py``, ``codecs.py`` (with the sample messages), ``ciphers.py``,
+``buses.py``, and ``helpers.py``.
 """
 
 from .buses import BusConformance

@@ -13,8 +13,8 @@ from typing import Any
 
 import pytest
 
-from ..plugins import Plugins
-from ..transport import Address, StreamConnection
+from rosgate.plugins import Plugins
+from rosgate.transport import Address, StreamConnection
 
 TIMEOUT = 5.0  # seconds any single wait in the suites may take before the check fails
 

@@ -10,10 +10,11 @@ from typing import Any, ClassVar
 
 import pytest
 
-from ..cipher import Cipher
-from ..errors import CipherError
-from ..options import parse
-from ..wire import envelope
+from rosgate.cipher import Cipher
+from rosgate.errors import CipherError
+from rosgate.options import parse
+from rosgate.wire import envelope
+
 from .helpers import assert_registered, write_key
 
 HEADER = envelope.pack(0, 7, 0xCAFE, 1, 1_700_000_000_000_000_000)

@@ -60,7 +60,7 @@ Use from a test
 
 ::
 
-    from rosgate.testing.emulator import WIFI, Profile, UdpRelay, TcpRelay
+    from rosgate_emulator import WIFI, Profile, UdpRelay, TcpRelay
 
     def test_my_link_on_wifi(bridge_b_port):
         lossy = Profile(rate=2e6, delay=0.01, jitter=0.002, loss=0.1, seed=7)
@@ -94,7 +94,7 @@ preset (20 Mbit/s, 10 ms, 2 ms jitter, 1 % loss, MTU 1500)::
 To keep the relay's threads away from the measured processes' GIL, run it as a process of
 its own; it prints its address, runs until SIGINT/SIGTERM, then prints its counters as JSON::
 
-    python -m rosgate.testing.emulator udp --target 127.0.0.1:13001 --listen 127.0.0.1:12001 \\
+    python -m rosgate_emulator udp --target 127.0.0.1:13001 --listen 127.0.0.1:12001 \\
         --preset wifi [--rate 1e7] [--loss 0.05] [--seed 3]
 
 Real kernel links: :class:`NetnsPair` (root only) makes two network namespaces joined by a
@@ -1092,7 +1092,7 @@ def _command(*argv: str) -> None:
         raise RuntimeError(f"{' '.join(argv)}: {result.stderr.strip() or result.returncode}")
 
 
-# --- a relay as a process of its own: python -m rosgate.testing.emulator ------------------
+# --- a relay as a process of its own: python -m rosgate_emulator ---------------------------
 
 def _host_port(text: str) -> tuple[str, int]:
     host, _, port = text.rpartition(":")
@@ -1101,7 +1101,7 @@ def _host_port(text: str) -> tuple[str, int]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m rosgate.testing.emulator",
+        prog="python -m rosgate_emulator",
         description="Relay UDP datagrams or TCP connections through an emulated link until "
                     "SIGINT/SIGTERM, then print the counters as JSON.")
     parser.add_argument("kind", choices=("udp", "tcp"))
@@ -1133,7 +1133,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     counters = {"up": dataclasses.asdict(relay.up), "down": dataclasses.asdict(relay.down)}
     print(json.dumps(counters), flush=True)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

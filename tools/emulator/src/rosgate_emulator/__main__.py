@@ -1,0 +1,7 @@
+"""``python -m rosgate_emulator udp|tcp ...``: a relay as a process of its own."""
+
+import sys
+
+from . import main
+
+sys.exit(main())
