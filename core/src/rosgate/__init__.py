@@ -7,6 +7,7 @@ The public API for plugin authors is what this module exports, with :mod:`rosgat
 
 from .cipher import Cipher
 from .codec import Codec
+from .commands import Command
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import hookimpl
 from .options import option
@@ -28,7 +29,8 @@ from .transport import (
 )
 
 __all__ = [
-    "Address", "Cipher", "CipherError", "Codec", "CodecError", "ConfigError", "DatagramEndpoint",
+    "Address", "Cipher", "CipherError", "Codec", "CodecError", "Command", "ConfigError",
+    "DatagramEndpoint",
     "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError",
     "RosgateError", "SocketConnection",
     "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transport",
