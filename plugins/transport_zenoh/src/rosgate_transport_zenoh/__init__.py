@@ -25,6 +25,11 @@ publisher while the link is congested, up to its ``wait_before_close``), best ef
 ``DROP``; ``priority:`` 1..7 is zenoh's ``Priority`` (``REAL_TIME`` .. ``BACKGROUND``, default
 ``DATA``). A service call is one ``get`` (consolidation ``NONE``, its first answer wins).
 
+Fleets (:mod:`.fleet`): an entry may name its robot by placeholder, ``topic: /{robot}/scan``
+with ``remote: fleet/{robot}/scan`` (:mod:`.placeholders`): one wildcard subscription, a route
+per robot found by its frames or its liveliness token. ``rosgate router`` (:mod:`.router`) runs
+a zenoh router for bridges to meet at.
+
 Threads: zenoh calls rosgate directly from its own receive threads (``Callback(...,
 indirect=False)``): rosgate only queues there, and no Python thread is left behind to keep a
 process from exiting. Sessions are closed explicitly when the bridge stops.

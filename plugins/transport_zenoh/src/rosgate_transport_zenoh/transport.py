@@ -137,9 +137,18 @@ class ZenohTransport(BusTransport):
         super().__init__(options)
         self.prefix = self.options.prefix
         self.namespace = self.options.namespace.strip("/")
+        # the fleet code works with the core's routes: imported for a bridge, not for a router
+        from .fleet import Fleets
+
+        self.templates = Fleets(self)
 
     def check_key(self, key: str) -> str:
         return check_key(key)
+
+    def default_key(self, bridge: str, ros_name: str, bare: bool) -> str:
+        """Bare frames: ``<namespace>/<ROS name>``, as zenoh-bridge-ros2dds keys them."""
+        key = super().default_key(bridge, ros_name, bare)
+        return f"{self.namespace}/{key}" if bare and self.namespace else key
 
     def open(self, name: str) -> ZenohSession:
         try:
