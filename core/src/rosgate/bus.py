@@ -124,7 +124,7 @@ class NameTemplates(Protocol):
 
 def is_template(text: str) -> bool:
     """Whether an entry's name or key holds a placeholder (``{robot}``)."""
-    return "{" in text
+    return "{" in text or "}" in text
 
 
 class BusTransport(Transport):
