@@ -8,6 +8,7 @@ distribution ``rosgate-testing`` (import ``rosgate_testing``).
 
 from .cipher import Cipher
 from .codec import Codec
+from .commands import Command
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import hookimpl
 from .options import option
@@ -29,7 +30,8 @@ from .transport import (
 )
 
 __all__ = [
-    "Address", "Cipher", "CipherError", "Codec", "CodecError", "ConfigError", "DatagramEndpoint",
+    "Address", "Cipher", "CipherError", "Codec", "CodecError", "Command", "ConfigError",
+    "DatagramEndpoint",
     "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError",
     "RosgateError", "SocketConnection",
     "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transport",

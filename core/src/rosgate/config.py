@@ -23,7 +23,6 @@ from typing import Any, overload
 import yaml
 
 from .errors import ConfigError
-from .placeholders import check as check_placeholders
 
 
 class Role(StrEnum):
@@ -177,6 +176,7 @@ _EXAMPLES = {
 
 _BRIDGE_NAME = re.compile(r"[A-Za-z0-9_.-]+")
 _NAME_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+# a part of a name that a bus fills in ({robot}): which ones there are is the bus's to say
 _PLACEHOLDER = re.compile(r"\{[^{}/]*\}")
 # a bus key as written for remote: chunks without wildcards or a leading slash (bus.py says more)
 _KEY = re.compile(r"[^/*$?#\s]+(?:/[^/*$?#\s]+)*")
@@ -1027,7 +1027,6 @@ def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
         remote = _text(src, data, path, "remote", name.removeprefix("/"))
     else:
         remote = _remote(src, data, path) if "remote" in data else name
-    _check_placeholders(src, data, path, name_key, name, remote)
     fields = {
         name_key: name,
         "type": _interface(src, data, path, kind),
@@ -1143,30 +1142,6 @@ def _remote(src: _Source, data: dict, path: str) -> str:
     if _KEY.fullmatch(text):
         return text
     return _ros_name(src, data, path, "remote", placeholders=True)  # raises, saying why
-
-
-def _check_placeholders(src: _Source, data: dict, path: str, name_key: str, name: str,
-                        remote: str) -> None:
-    """Fleet entries: the same known placeholders in the ROS name and in remote."""
-    try:
-        found = check_placeholders(name)
-    except ValueError as exc:
-        raise src.error(_join(path, name_key), str(exc), fix="e.g. topic: /{robot}/scan") from None
-    if found and "remote" not in data:
-        raise src.error(_join(path, name_key), "an entry with placeholders needs remote: with the "
-                        "same placeholders (the key every robot uses)",
-                        fix="add e.g. remote: fleet/{robot}/scan")
-    try:
-        in_remote = check_placeholders(remote)
-    except ValueError as exc:
-        raise src.error(_join(path, "remote"), str(exc), fix="e.g. remote: fleet/{robot}/scan") \
-            from None
-    if sorted(found) != sorted(in_remote):
-        raise src.error(_join(path, "remote"),
-                        f"{name_key} and remote must hold the same placeholders "
-                        f"({', '.join('{' + n + '}' for n in found) or 'none'} in {name_key}, "
-                        f"{', '.join('{' + n + '}' for n in in_remote) or 'none'} in remote)",
-                        fix="e.g. topic: /{robot}/scan with remote: fleet/{robot}/scan")
 
 
 def _priority(src: _Source, data: dict, path: str) -> int | None:

@@ -3,8 +3,10 @@
 Listing the entry points imports nothing. Asking for a plugin (``get("transport", "udp")``)
 loads the entry point of that name first — a plugin's entry point is named like the class it
 registers, by convention — and the remaining ones only if the class is not there (python-can's
-model); ``rosgate plugins`` and ``rosgate check`` load them all. The built-in plugins (``cdr``,
-``none``: the core's own module) load at once, through the same hooks as any other.
+model); ``rosgate plugins`` and ``rosgate check`` load them all, and so does ``rosgate`` when
+asked for a verb that is not its own: plugins add commands (:attr:`Plugins.commands`). The
+built-in plugins (``cdr``, ``none``: the core's own module) load at once, through the same hooks
+as any other.
 
 pluggy does the plugin work. As pytest does with ``pytest_``, every function of a plugin module
 whose name starts with ``rosgate_`` is a hook implementation, marked with ``rosgate.hookimpl``
@@ -25,6 +27,7 @@ import os
 import threading
 import traceback
 import types
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata
 from typing import Any
@@ -35,6 +38,7 @@ from . import hookspecs
 from .bus import BusTransport
 from .cipher import Cipher
 from .codec import Codec
+from .commands import Command, command_problem
 from .options import declaration_problem
 from .transport import DatagramTransport, StreamTransport, Transport
 
@@ -63,6 +67,14 @@ class Registration:
     name: str
     cls: type
     plugin: str  # entry-point name (or the name given to Plugins.add)
+    distribution: str
+    version: str
+
+
+@dataclass(frozen=True)
+class CommandRegistration:
+    command: Command
+    plugin: str
     distribution: str
     version: str
 
@@ -113,6 +125,7 @@ class Plugins:
     def __init__(self, blocked: list[str] | None = None) -> None:
         self.manager = PluginManager()
         self.registered: dict[tuple[str, str], Registration] = {}
+        self.commands: dict[str, CommandRegistration] = {}  # rosgate <name>, from plugins
         self.failures: list[Failure] = []
         self.blocked: list[str] = list(blocked or [])
         self._waiting: list[metadata.EntryPoint] = []  # found, not loaded yet
@@ -199,6 +212,25 @@ class Plugins:
                     continue
                 self.registered[key] = Registration(kind, cls.name, cls, plugin, distribution,
                                                     version)
+        self._add_commands(module, plugin, distribution, version, fail)
+
+    def _add_commands(self, module: Any, plugin: str, distribution: str, version: str,
+                      fail: Callable[[str], None]) -> None:
+        found: list[Any] = []
+        try:
+            self.manager.call_for(module, "rosgate_commands", register=found.append)
+        except Exception as exc:
+            return fail(f"rosgate_commands: {_reason(exc)}")  # its other kinds are kept
+        for command in found:
+            problem = command_problem(command)
+            if problem is None and command.name in self.commands:
+                problem = (f"command {command.name!r} is already provided by "
+                           f"{self.commands[command.name].distribution}; skipped")
+            if problem:
+                fail(problem)
+                continue
+            self.commands[command.name] = CommandRegistration(command, plugin, distribution,
+                                                              version)
 
     def remove(self, plugin: str) -> None:
         """Forget a plugin added with :meth:`add` (tests)."""
@@ -206,6 +238,8 @@ class Plugins:
             self.manager.unregister(name=plugin)
             for key in [k for k, r in self.registered.items() if r.plugin == plugin]:
                 del self.registered[key]
+            for name in [n for n, c in self.commands.items() if c.plugin == plugin]:
+                del self.commands[name]
 
     # -- lookup ----------------------------------------------------------------------------
     def get(self, kind: str, name: str) -> Registration | None:

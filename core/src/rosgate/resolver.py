@@ -15,13 +15,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from .bus import PRIORITY_DEFAULT, BusTransport
+from .bus import PRIORITY_DEFAULT, BusTransport, is_template
 from .cipher import Cipher
 from .codec import Codec
 from .config import BridgeConfig, Direction, Framing, Recovery, Role, ServiceConfig, TopicConfig
 from .errors import ConfigError, OptionError
 from .options import parse
-from .placeholders import Template, has_placeholders
 from .plugins import Plugins, Registration
 from .ros import TypeNotFound, is_reliable, resolve_type
 from .transport import Address, DatagramTransport, StreamTransport, Transport
@@ -241,18 +240,22 @@ class Resolver:
         if entry.port is not None:
             raise error(f"{key}.port", f"port: does not apply to a {entry.transport} {kind}: "
                         "it is published on a key (remote:)", "remove port: from this entry")
-        if (kind == "service" and has_placeholders(entry.remote)
-                and entry.direction is Direction.RECEIVE):
-            raise error(f"{key}.direction", "a fleet service (with {robot}) is called here and "
-                        "served by each robot, so its direction is transmit",
-                        "use direction: transmit, or name the service without placeholders")
         name = entry.topic if isinstance(entry, TopicConfig) else entry.service
         bare = entry.framing is Framing.NONE
         given = "remote" in entry.lines
         bus_key = (entry.remote.removeprefix("/") if given
                    else transport.default_key(cfg.name, name, bare))
+        if is_template(name) or is_template(bus_key):
+            if transport.templates is None:
+                raise error(f"{key}.{kind}", f"{entry.transport} takes no placeholders such as "
+                            "{robot}", "write the robot's name, or use a bus that takes them")
+            try:
+                transport.templates.check(entry, bus_key)
+            except ConfigError as exc:
+                raise error(f"{key}.{exc.key}", exc.message, exc.fix) from None
+            return bus_key
         try:
-            transport.check_key(Template(bus_key).wildcard())
+            transport.check_key(bus_key)
         except ValueError as exc:
             where = f"{key}.remote" if given else f"{key}.{kind}"
             raise error(where, str(exc), "write remote: as parts separated by single '/', "
@@ -265,7 +268,7 @@ class Resolver:
         point-to-point entries need: a port, and peer: for the far host."""
         kind = "topic" if isinstance(entry, TopicConfig) else "service"
         name = entry.topic if isinstance(entry, TopicConfig) else entry.service
-        if has_placeholders(name):
+        if is_template(name):
             raise error(f"{key}.{kind}", f"placeholders such as {{robot}} need a bus transport "
                         f"(zenoh); {entry.transport} links one peer to another",
                         "set transport: zenoh on this entry, or write the robot's name")
