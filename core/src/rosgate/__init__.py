@@ -10,6 +10,8 @@ from .codec import Codec
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import hookimpl
 from .options import option
+from .packetizer import Packetizer, PacketLink
+from .transform import Transform, TransformError
 from .transport import (
     Address,
     DatagramEndpoint,
@@ -30,8 +32,9 @@ from .transport import (
 __all__ = [
     "Address", "Cipher", "CipherError", "Codec", "CodecError", "ConfigError", "DatagramEndpoint",
     "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError",
-    "RosgateError", "SocketConnection",
-    "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transport",
-    "check_ip_address", "hookimpl", "ip_source_hosts", "option", "parse_host_port",
+    "PacketLink", "Packetizer", "RosgateError", "SocketConnection",
+    "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transform",
+    "TransformError", "Transport", "check_ip_address", "hookimpl", "ip_source_hosts", "option",
+    "parse_host_port",
 ]
 __version__ = "0.1.0"
