@@ -1161,7 +1161,7 @@ def _plugin_choice(src: _Source, data: dict, path: str, key: str) -> tuple[str, 
             options = {}
         if not isinstance(name, str) or not isinstance(options, dict):
             raise src.error(_join(path, key), f"expected a name and a mapping of its options, got "
-                            f"{_show(value)}", fix=fix)
+                            f"{_show(name)}: {_show(options)}", fix=fix)
         return name, options
     if not isinstance(value, str) or not _NAME_TOKEN.fullmatch(value):
         raise src.error(_join(path, key), f"expected a plugin's name, got {_show(value)}", fix=fix)
