@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from rosgate.builtin import CdrCodec, NoCipher
-from rosgate.testing import CipherConformance, CodecConformance
+from rosgate.builtin import CdrCodec, Fragments, NoCipher
+from rosgate.testing import CipherConformance, CodecConformance, PacketizerConformance
 
 
 class TestCdrConformance(CodecConformance):
@@ -12,3 +12,8 @@ class TestCdrConformance(CodecConformance):
 
 class TestNoneConformance(CipherConformance):
     cipher = NoCipher
+
+
+class TestFragmentsConformance(PacketizerConformance):
+    packetizer = Fragments
+    cuts_every_frame = False  # the link sends a frame that fits whole
