@@ -11,7 +11,8 @@ Two instances, a sender and a receiver, each with a link of its own (:class:`Sim
 packets, acknowledgements and packets sent again cross a simulated path with a delay, seeded
 losses, and a simulated clock that drives the timers (nothing waits). It checks: the class is
 found through its entry point; frames from one byte (or, with ``cuts_every_frame = False``, from
-``max_frame + 1``) to 100 kB cross byte for byte and exactly once, in packets no longer than
+``max_frame + 1``; or the sizes its ``frame_sizes`` says) to 100 kB cross byte for byte and
+exactly once, in packets no longer than
 ``max_frame`` that start with one of its magics; :meth:`~rosgate.Packetizer.cost` is what
 ``cut`` makes; reordered and duplicated packets still give each frame once; with losses, a
 packetizer that ``recovers`` brings every frame through (and reports it recovered), any other
@@ -147,12 +148,15 @@ class PacketizerConformance:
     def topic_options(self) -> Any:
         return parse(self.packetizer, self.options)
 
+    def frame_sizes(self, max_frame: int) -> list[int]:
+        """The sizes of the frames the tests send; override it for a packetizer that carries
+        only some (one that refuses frames longer than a packet)."""
+        sizes = [1, 100, max_frame - 30, max_frame, max_frame + 1, 3 * max_frame + 7, 100_000]
+        return sizes if self.cuts_every_frame else [s for s in sizes if s > max_frame]
+
     def frames(self, max_frame: int) -> list[bytes]:
         rng = random.Random(max_frame)
-        sizes = [1, 100, max_frame - 30, max_frame, max_frame + 1, 3 * max_frame + 7, 100_000]
-        if not self.cuts_every_frame:
-            sizes = [s for s in sizes if s > max_frame]
-        return [rng.randbytes(size) for size in sizes]
+        return [rng.randbytes(size) for size in self.frame_sizes(max_frame)]
 
     def test_found_through_its_entry_point(self) -> None:
         assert_registered("packetizer", self.packetizer)
@@ -192,7 +196,8 @@ class PacketizerConformance:
     def test_losses(self) -> None:
         path = Path(self.packetizer, self.max_frame, loss=self.loss, seed=3)
         rng = random.Random(4)
-        frames = [rng.randbytes(rng.choice([3000, 20_000, 50_000])) for _ in range(20)]
+        sizes = self.frame_sizes(self.max_frame)
+        frames = [rng.randbytes(rng.choice(sizes)) for _ in range(20)]
         path.send(frames, self.topic_options())
         path.run(self.patience)
         lost = path.links["b"].lost_frames
