@@ -11,6 +11,7 @@ import base64
 import json
 import socket
 import types
+from pathlib import Path
 
 import pytest
 from conftest import cross, free_port
@@ -160,6 +161,17 @@ def test_deflate_and_twice_carry_a_topic_end_to_end(engines, domain, ros_side):
         "rosgate-packetizer-twice"
     link = b.stats()["links"][f"udp:{port}"]
     assert link["frames_in"] >= 5 and link["packets_in"] == 2 * link["frames_in"]
+
+
+@pytest.mark.parametrize("source", [
+    "compress_deflate/src/rosgate_compress_deflate/__init__.py",
+    "packetizer_twice/src/rosgate_packetizer_twice/__init__.py"])
+def test_the_guide_shows_each_example_whole_and_as_it_is(source):
+    """docs/plugins.md prints both examples in full: what it shows is what runs here."""
+    root = Path(__file__).resolve().parent
+    code = (root / "thirdparty" / source).read_text()
+    assert len(code.splitlines()) <= 60
+    assert f"```python\n{code}```" in (root.parent / "docs" / "plugins.md").read_text()
 
 
 def test_a_topic_s_options_for_deflate_are_checked_where_they_are_written():
