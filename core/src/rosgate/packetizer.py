@@ -17,8 +17,9 @@ the packetizer of its magic, so the receiver needs no setting. ``RG`` (the envel
 A link makes one instance of each packetizer it meets and keeps it for its life: the sending
 and the receiving side of every topic that uses it, on every peer of the link. Threads:
 :meth:`cut` and :meth:`sent` run on the link's send thread (``cut`` under the link's lock),
-:meth:`feed` on its receive thread, :meth:`timer` on either; lock what they share, and call the
-link's :class:`PacketLink` methods outside that lock.
+:meth:`feed` and :meth:`timer` on its receive thread — and, for a packetizer that implements
+``sent``, :meth:`timer` on the send thread too: such a one locks what both threads touch, and
+calls the link's :class:`PacketLink` methods outside that lock.
 """
 
 from __future__ import annotations
@@ -82,7 +83,8 @@ class Packetizer(ABC):
 
     def sent(self, packet: bytes, to: Address, now: float) -> None:
         """The last packet of a frame it cut has left the link (``now``: time.monotonic()), e.g.
-        to start a retransmission timer. By default nothing."""
+        to start a retransmission timer. Not implemented (the default): the link does not call
+        it, nor :meth:`timer` from its send thread."""
         return None
 
     @abstractmethod
@@ -96,8 +98,8 @@ class Packetizer(ABC):
     def timer(self, now: float) -> float | None:
         """Do what is due at ``now`` (ask again for what is missing, give up what is late);
         return when to be called next (None: whenever the link is idle, at least every 0.2 s).
-        The link calls it after every packet fed and every frame sent, and at the time it
-        returned."""
+        The link calls it after every packet fed (and, if it implements :meth:`sent`, every frame
+        sent), and at the time it returned."""
         return None
 
     @classmethod
