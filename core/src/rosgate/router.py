@@ -82,7 +82,8 @@ class Router:
                        if t.framing is Framing.NONE else EnvelopeFraming())
             route = TransmitRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
                                   framing=framing, link=link, destination=destination,
-                                  priority=p.priority, latest_only=p.latest_only)
+                                  priority=p.priority, latest_only=p.latest_only,
+                                  recovery=p.recovery, compression=p.compression)
             route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
             route.take = self.ros.taker(route.entity)
         else:
@@ -91,7 +92,7 @@ class Router:
             if codec.raw and not trusted:
                 decode = _checked(decode, cdr_checker(p.msg_type))
             route = ReceiveRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
-                                 decode=decode)
+                                 decode=decode, transforms=p.transforms)
             route.entity = self.ros.publisher(p.msg_type, t.topic, qos)
             if codec.raw:
                 route.publish = self.ros.raw_publisher(route.entity)
