@@ -106,7 +106,8 @@ ERRORS = {
         "set recovery: fec"),
     "overhead_out_of_range": (
         HEAD + TOPIC + "    recovery: fec\n    recovery_overhead: 1.5\n", 10,
-        "topics[0].recovery_overhead", "expected a share > 0 and <= 1", "recovery_overhead: 0.1"),
+        "topics[0].recovery_overhead", "expected a number > 0, at most 1",
+        "recovery_overhead: 0.1"),
     "unknown_compression": (
         HEAD + TOPIC + "    compression: zstandard\n", 9, "topics[0].compression",
         "'zstandard' is not one of none, zstd", "compression: zstd"),
