@@ -328,7 +328,7 @@ _links.section = LinkConfig  # type: ignore[attr-defined]
 
 @dataclass
 class BridgeConfig:
-    """The keys under ``bridge:`` (all optional but name and role); see [Links that
+    """The keys under `bridge:`, all optional but name and role; see [Links that
     fail](real-links.md#links-that-fail) and [Real links](real-links.md):"""
 
     file: str
