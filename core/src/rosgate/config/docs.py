@@ -36,7 +36,8 @@ naming the file, the line, the key and the fix, and the exit status is 2:
 
 ```
 rosgate: error: {unknown_key}
-rosgate: error: bringup.yaml:9: topics[0].codec: unknown codec 'cbor' (installed codecs: cdr, msgpack)
+rosgate: error: bringup.yaml:9: topics[0].codec: unknown codec 'cbor' (installed codecs: cdr, \
+msgpack)
   fix: pip install rosgate-codec-cbor, or pick an installed codec
 ```
 """
