@@ -54,22 +54,35 @@ from typing import Any, Literal, Union
 
 from .errors import OptionError
 
-__all__ = ["MISSING", "Declared", "as_options", "declaration_problem", "declared", "option",
-           "parse", "spell"]
+__all__ = ["MISSING", "Declared", "as_options", "declaration_problem", "declared", "fields_of",
+           "option", "parse", "spell"]
 
 
 def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = None,
-           maximum: float | None = None, choices: typing.Sequence[Any] | None = None) -> Any:
-    """One option of a plugin's ``Options``: its default (none: the option is required), a
-    one-line ``doc`` for ``rosgate plugins --options`` and error messages, and optionally the
-    range (``minimum``, ``maximum``, inclusive) or the ``choices`` its value must be in.
+           maximum: float | None = None, choices: typing.Sequence[Any] | None = None,
+           above: float | None = None, excluded: typing.Sequence[Any] = (), unit: str = "",
+           example: str | None = None, unset: str | None = None, key: str | None = None,
+           parse: typing.Callable[..., Any] | None = None) -> Any:
+    """One option of a plugin's ``Options``, or one key of bringup.yaml's own schema: its default
+    (none: the option is required), a one-line ``doc`` for ``rosgate plugins --options``, the
+    generated reference and error messages, and optionally the range (``minimum``, ``maximum``,
+    inclusive; ``above``, exclusive), the values it may not take (``excluded``) or the ``choices``
+    its value must be in.
+
+    The rest serves the core's schema (rosgate.config): the ``unit`` a number is in ("seconds"),
+    an ``example`` value for the fix of an error, what an absent key means when that is not a
+    plain default (``unset``, which also makes a key without a default optional), the ``key``
+    path when it is not the field's name ("reconnect.min"), and a ``parse`` function for a value
+    no type says (a ROS name, a QoS).
 
     A thin wrapper over :func:`dataclasses.field`; list and dict defaults are copied per instance.
     """
     if not doc:
         raise TypeError("option() needs a doc: one line saying what the option does")
     metadata = {"doc": doc, "minimum": minimum, "maximum": maximum,
-                "choices": tuple(choices) if choices is not None else None}
+                "choices": tuple(choices) if choices is not None else None, "above": above,
+                "excluded": tuple(excluded), "unit": unit, "example": example, "unset": unset,
+                "key": key, "parse": parse}
     if isinstance(default, (list, dict)):
         return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
@@ -86,16 +99,26 @@ class Declared:
     minimum: float | None
     maximum: float | None
     choices: tuple[Any, ...] | None
+    above: float | None = None
+    excluded: tuple[Any, ...] = ()
+    unit: str = ""
+    example: str | None = None
+    unset: str | None = None
+    key: str = ""  # the path under its table or section: the name, unless option(key=) says
+    parse: typing.Callable[..., Any] | None = None
 
     @property
     def required(self) -> bool:
-        return self.default is MISSING
+        return self.default is MISSING and self.unset is None
 
     def limits(self) -> str:
         """The range or choices in words ("at least 1", "one of: a, b"), or ``""``."""
         choices = self.choices or _literal_choices(self.type)
         if choices:
             return "one of: " + ", ".join(_yaml(c) for c in choices)
+        if self.above is not None:
+            return f"more than {_yaml(self.above)}" + (
+                f", at most {_yaml(self.maximum)}" if self.maximum is not None else "")
         if self.minimum is not None and self.maximum is not None:
             return f"{_yaml(self.minimum)} to {_yaml(self.maximum)}"
         if self.minimum is not None:
@@ -106,6 +129,8 @@ class Declared:
 
     def default_text(self) -> str:
         """The default as bringup.yaml would spell it, or ``required``."""
+        if self.unset is not None:
+            return self.unset
         return "required" if self.required else _yaml(self.default)
 
     def describe(self) -> str:
@@ -119,17 +144,24 @@ class Declared:
 def declared(cls: type) -> list[Declared] | None:
     """The options ``cls`` declares, in declaration order; ``None`` without ``Options``."""
     options = getattr(cls, "Options", None)
-    if options is None:
-        return None
+    return None if options is None else fields_of(options)
+
+
+def fields_of(options: type) -> list[Declared]:
+    """The fields of a dataclass, as options, in declaration order (a field not made with
+    :func:`option` has an empty ``doc``)."""
     hints = typing.get_type_hints(options)
     rows = []
     for f in dataclasses.fields(options):
         if not f.init:
             continue
         default = f.default if f.default_factory is MISSING else f.default_factory()
-        rows.append(Declared(f.name, hints[f.name], default, f.metadata.get("doc", ""),
-                             f.metadata.get("minimum"), f.metadata.get("maximum"),
-                             f.metadata.get("choices")))
+        meta = f.metadata
+        rows.append(Declared(f.name, hints[f.name], default, meta.get("doc", ""),
+                             meta.get("minimum"), meta.get("maximum"), meta.get("choices"),
+                             meta.get("above"),
+                             meta.get("excluded", ()), meta.get("unit", ""), meta.get("example"),
+                             meta.get("unset"), meta.get("key") or f.name, meta.get("parse")))
     return rows
 
 
@@ -207,9 +239,11 @@ def _check(row: Declared, given: Any) -> Any:
         raise OptionError(row.name, f"must be {_words(row.type)}, not {_show(given)}",
                           row.describe()) from None
     number = isinstance(value, (int, float)) and not isinstance(value, bool)
-    below = number and row.minimum is not None and value < row.minimum
+    below = number and (row.minimum is not None and value < row.minimum
+                        or row.above is not None and value <= row.above)
     above = number and row.maximum is not None and value > row.maximum
-    if below or above or row.choices is not None and value not in row.choices:
+    if (below or above or row.choices is not None and value not in row.choices
+            or value in row.excluded):
         raise OptionError(row.name, f"must be {row.limits()}, not {_show(given)}", row.describe())
     return value
 

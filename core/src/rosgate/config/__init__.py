@@ -1,0 +1,37 @@
+"""bringup.yaml: its keys declared once (``schema``), read with every mistake located at its file,
+line and key (``load``), and its reference generated for docs/configuration.md (``docs``)."""
+
+from .kinds import PRIORITIES, QOS_PROFILES, parse_bandwidth
+from .load import (
+    load,
+    loads,
+    service_from_mapping,
+    service_to_mapping,
+    topic_from_mapping,
+    topic_to_mapping,
+)
+from .schema import (
+    CIPHER_DEFAULT,
+    CODEC_DEFAULT,
+    MAX_DELAY_DEFAULT,
+    NO_PLUGIN,
+    TRANSPORT_DEFAULT,
+    BridgeConfig,
+    ClientPolicy,
+    Direction,
+    Framing,
+    Limits,
+    LinkConfig,
+    Role,
+    Rule,
+    ServiceConfig,
+    TopicConfig,
+)
+
+__all__ = [
+    "CIPHER_DEFAULT", "CODEC_DEFAULT", "MAX_DELAY_DEFAULT", "PRIORITIES", "QOS_PROFILES",
+    "NO_PLUGIN", "TRANSPORT_DEFAULT", "BridgeConfig", "ClientPolicy",
+    "Direction", "Framing", "LinkConfig", "Limits", "Role", "Rule",
+    "ServiceConfig", "TopicConfig", "load", "loads", "parse_bandwidth", "service_from_mapping",
+    "service_to_mapping", "topic_from_mapping", "topic_to_mapping",
+]

@@ -1,0 +1,366 @@
+"""The kinds of value a key of bringup.yaml may hold, each read from what YAML gave and checked,
+or refused with a ConfigError located at the key: the plain kinds a declared type names (text,
+one of some choices, a number in bounds, true or false), and those a schema field names with
+``option(parse=...)`` (a ROS name, a QoS, a bandwidth...). A parse function's docstring is its
+"values" column in docs/configuration.md."""
+
+from __future__ import annotations
+
+import ipaddress
+import math
+import re
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any
+
+from ..errors import ConfigError
+from ..options import Declared
+from .source import Source, did_you_mean, join, show
+
+QOS_DEPTH_MAX = 100_000  # far past any real queue; rclpy fails on depths past 64 bits
+ROS_NAME_MAX = 200  # characters: rclpy refuses topic names past 247, service names sooner
+# rclpy.qos.qos_profile_<name> for each
+QOS_PROFILES = ("default", "system_default", "sensor_data", "services_default", "parameters",
+                "best_available")
+QOS_POLICIES = {
+    "reliability": ("reliable", "best_effort"),
+    "durability": ("volatile", "transient_local"),
+    "history": ("keep_last", "keep_all"),
+}
+QOS_KEYS = (*QOS_POLICIES, "depth")
+#: a topic's priority (zenoh's numbering): 1 the most urgent, 7 the least; default data (5). On a
+#: bus zenoh's own; on datagram and stream links the classes of the link's scheduler
+PRIORITIES = {"real_time": 1, "interactive_high": 2, "interactive_low": 3, "data_high": 4,
+              "data": 5, "data_low": 6, "background": 7}
+
+_NAME_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_PLACEHOLDER = re.compile(r"\{[^{}/]*\}")
+# a bus key as written for remote: chunks without wildcards or a leading slash (bus.py says more)
+_BUS_KEY = re.compile(r"[^/*$?#\s]+(?:/[^/*$?#\s]+)*")
+# pkg/Type or pkg/<kind>/Type; ROS package names are lower case, interface names CamelCase
+_INTERFACE = re.compile(r"([a-z][a-z0-9_]*)/(?:([a-z]+)/)?([A-Z][A-Za-z0-9]*)")
+_BANDWIDTH = re.compile(r"(\d+(?:\.\d*)?|\.\d+)\s*([kmg]?)(?:bit)?(?:/s)?", re.IGNORECASE)
+_BANDWIDTH_UNITS = {"": 1, "k": 1e3, "m": 1e6, "g": 1e9}
+
+
+@dataclass(frozen=True)
+class Key:
+    """One key being read: where (its section's path in the file), and its declaration."""
+
+    src: Source
+    section: str
+    row: Declared
+
+    @property
+    def name(self) -> str:
+        return self.row.key.rpartition(".")[2]
+
+    @property
+    def path(self) -> str:
+        return join(self.section, self.name)
+
+    @property
+    def example(self) -> str:
+        return self.row.example or "<value>"
+
+    def error(self, message: str, fix: str | None = None) -> ConfigError:
+        return self.src.error(self.path, message, fix=fix or f"e.g. {self.name}: {self.example}")
+
+
+# -- the plain kinds -----------------------------------------------------------------------------
+
+def text(key: Key, value: Any) -> str:
+    """text"""
+    if value is not None and not isinstance(value, str) and key.path in key.src.texts:
+        # keep what was written: YAML 1.1 reads 10:11:22:33:44:55 (a Bluetooth address) as a number
+        value = key.src.texts[key.path]
+    if not isinstance(value, str) or not value.strip():
+        raise key.error(f"expected a non-empty string, got {show(value)}")
+    return value
+
+
+def choice(key: Key, value: Any, choices: tuple[str, ...]) -> str:
+    value = text(key, value)
+    if value not in choices:
+        close, hint = did_you_mean(value, choices)
+        raise key.error(f"'{value}' is not one of {', '.join(choices)}{hint}",
+                        fix=f"e.g. {key.name}: {close or key.example}")
+    return value
+
+
+def flag(key: Key, value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise key.error(f"expected true or false, got {show(value)}")
+    return value
+
+
+def number(key: Key, value: Any, integer: bool) -> int | float:
+    row = key.row
+    if (isinstance(value, bool) or not isinstance(value, int if integer else (int, float))
+            or isinstance(value, float) and not math.isfinite(value)
+            or row.above is not None and value <= row.above
+            or row.minimum is not None and value < row.minimum
+            or row.maximum is not None and value > row.maximum or value in row.excluded):
+        raise key.error(f"expected {expected(row, integer)}, got {show(value)}")
+    return value if integer else float(value)
+
+
+def expected(row: Declared, integer: bool) -> str:
+    """A number's kind and bounds in words: "an integer 1..65535", "a number of seconds > 0"."""
+    what = f"a number of {row.unit}" if row.unit else "an integer" if integer else "a number"
+    low = f"> {_num(row.above)}" if row.above is not None else (
+        f">= {_num(row.minimum)}" if row.minimum is not None else "")
+    if row.maximum is None:
+        bounds = low
+    elif row.minimum is not None:
+        bounds = f"{_num(row.minimum)}..{_num(row.maximum)}"
+    else:
+        bounds = f"{low}, at most {_num(row.maximum)}"
+    excluded = "".join(f", not {_num(v)}" for v in row.excluded)
+    return " ".join(part for part in (what, bounds) if part) + excluded
+
+
+def _num(value: float) -> str:
+    return str(value) if isinstance(value, int) else f"{value:g}"
+
+
+def plain(key: Key, value: Any) -> Any:
+    """The value of a key whose declared type says how to read it."""
+    hint = key.row.type
+    arms = [arm for arm in getattr(hint, "__args__", (hint,)) if arm is not type(None)]
+    kind = arms[0]
+    if kind is bool:
+        return flag(key, value)
+    if kind in (int, float):
+        return number(key, value, integer=kind is int)
+    if isinstance(kind, type) and issubclass(kind, Enum):
+        return kind(choice(key, value, tuple(kind)))
+    if kind is str:
+        return text(key, value) if key.row.choices is None else choice(key, value,
+                                                                         key.row.choices)
+    raise TypeError(f"{key.path}: declare a parse function for {hint}")  # a bug of the schema
+
+
+# -- the kinds a field names with option(parse=...) ---------------------------------------------
+
+def ros_name(key: Key, value: Any) -> str:
+    """a ROS name (`/robot1/scan`); `{placeholders}` in fleet entries"""
+    name = text(key, value)
+    if name.startswith("~"):
+        raise key.error(f"private names (~) are not supported: '{name}'",
+                        fix=f"write the full name, e.g. {key.name}: {key.example}")
+    if len(name) > ROS_NAME_MAX:
+        raise key.error(f"a name of {len(name)} characters is longer than ROS takes "
+                        f"({ROS_NAME_MAX})", fix=f"use a shorter name, e.g. {key.name}: "
+                                                  f"{key.example}")
+    tokens = name.removeprefix("/").split("/")
+    if not all(_NAME_TOKEN.fullmatch(token) or _PLACEHOLDER.fullmatch(token) for token in tokens):
+        raise key.error(f"'{name}' is not a valid ROS name",
+                        fix="use letters, digits and '_' in parts separated by single '/', no part "
+                            f"starting with a digit, e.g. {key.name}: {key.example}")
+    return "/" + "/".join(tokens)  # relative names are taken from the root namespace
+
+
+def remote(key: Key, value: Any) -> str:
+    """a ROS name, or a bus key (`fleet/robot-1/scan`); with bare framing, the name as written"""
+    name = text(key, value)
+    tokens = name.removeprefix("/").split("/")
+    if all(_NAME_TOKEN.fullmatch(t) or _PLACEHOLDER.fullmatch(t) for t in tokens):
+        return "/" + "/".join(tokens)
+    # only the resolver knows which transport the entry is on, and says so when a key is given to
+    # a point-to-point link
+    return name if _BUS_KEY.fullmatch(name) else ros_name(key, name)  # ros_name raises, saying why
+
+
+def interface(kind: str) -> Any:
+    """The parse function of a ``type:`` key of entries of ``kind`` (msg, srv)."""
+    what = "a topic" if kind == "msg" else "a service"
+
+    def parse(key: Key, value: Any) -> str:
+        name = text(key, value)
+        match = _INTERFACE.fullmatch(name)
+        if match is None:
+            raise key.error(f"'{name}' is not an interface type name",
+                            fix=f"write it as package/{kind}/Type, e.g. type: {key.example}")
+        package, middle, last = match.groups()
+        if middle not in (None, kind):
+            raise key.error(f"'{name}' is a '{middle}' type, but {what} needs package/{kind}/Type")
+        return f"{package}/{kind}/{last}"
+
+    parse.__doc__ = f"`pkg/{kind}/Type` (`pkg/Type` is read so too)"
+    return parse
+
+
+def qos(key: Key, value: Any) -> int | str | dict:
+    """a depth; a profile: `sensor_data`, `system_default`, `default`, `services_default`,
+    `parameters`, `best_available`; or `{reliability: reliable | best_effort, durability: volatile
+    | transient_local, history: keep_last | keep_all, depth}`"""
+    fix = ("e.g. qos: 10, qos: sensor_data or qos: {reliability: reliable, depth: 10}; "
+           f"profiles: {', '.join(QOS_PROFILES)}")
+    if isinstance(value, str):
+        if value.isascii() and value.isdigit():  # legacy files wrote depths as strings: '10'
+            value = int(value)
+        else:
+            name = value.removeprefix("qos_profile_")  # legacy rclpy spelling
+            if name in QOS_PROFILES:
+                return name
+            raise key.error(f"unknown QoS profile '{value}'"
+                            f"{did_you_mean(name, QOS_PROFILES)[1]}", fix=fix)
+    if isinstance(value, int) and not isinstance(value, bool):
+        if value < 1:
+            raise key.error(f"a QoS depth must be >= 1, got {value}", fix=fix)
+        return _depth_bound(key.src, key.path, value)
+    if not isinstance(value, dict):
+        raise key.error("expected a depth (integer >= 1), a profile name or a mapping "
+                        f"{{{', '.join(QOS_KEYS)}}}, got {show(value)}", fix=fix)
+    for name in value:
+        if name not in QOS_KEYS:
+            raise key.src.error(join(key.path, name), f"unknown key '{name}'"
+                                f"{did_you_mean(name, QOS_KEYS)[1]}",
+                                fix=f"valid keys are {', '.join(QOS_KEYS)}")
+    policies: dict[str, Any] = {}
+    for name, choices in QOS_POLICIES.items():
+        if name in value:
+            policies[name] = choice(_inner(key, name, choices[0]), value[name], choices)
+    if "depth" in value:
+        depth = value["depth"]
+        if isinstance(depth, bool) or not isinstance(depth, int) or depth < 1:
+            raise _inner(key, "depth", "10").error(f"expected an integer >= 1, got {show(depth)}")
+        policies["depth"] = _depth_bound(key.src, join(key.path, "depth"), depth)
+    return policies
+
+
+def _inner(key: Key, name: str, example: str) -> Key:
+    """A key inside ``key``'s own mapping (qos: {depth: ...})."""
+    row = Declared(name, str, None, "", None, None, None, example=example, key=name)
+    return Key(key.src, key.path, row)
+
+
+def _depth_bound(src: Source, path: str, depth: int) -> int:
+    if depth > QOS_DEPTH_MAX:
+        raise src.error(path, f"a QoS depth must be at most {QOS_DEPTH_MAX}, got {depth}",
+                        fix="a depth a subscriber can hold, e.g. qos: 1000")
+    return depth
+
+
+def plugin_choice(key: Key, value: Any) -> tuple[str, dict[str, Any]]:
+    """`none`, a plugin's name, or `{name: {option: value}}`: the entry's own options over the
+    plugin's `plugins:` table (the resolver checks them against the plugin's declaration)"""
+    fix = f"write it as {key.name}: {key.row.example}"
+    if isinstance(value, dict):
+        if len(value) != 1:
+            raise key.error(f"expected one {key.name} plugin with its options, got "
+                            f"{len(value)} names", fix=fix)
+        ((name, options),) = value.items()
+        options = {} if options is None else options
+        if not isinstance(name, str) or not isinstance(options, dict):
+            raise key.error(f"expected a name and a mapping of its options, got "
+                            f"{show(name)}: {show(options)}", fix=fix)
+        return name, options
+    if not isinstance(value, str) or not _NAME_TOKEN.fullmatch(value):
+        raise key.error(f"expected a plugin's name, got {show(value)}", fix=fix)
+    return value, {}
+
+
+def priority(key: Key, value: Any) -> int:
+    """`real_time` (1), `interactive_high`, `interactive_low`, `data_high`, `data`, `data_low`,
+    `background` (7), or 1..7"""
+    if isinstance(value, str) and value in PRIORITIES:
+        return PRIORITIES[value]
+    if isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= 7:
+        return value
+    raise key.error(f"expected a priority, 1 (real_time) to 7 (background), got {show(value)}"
+                    f"{did_you_mean(str(value), tuple(PRIORITIES))[1]}",
+                    fix=f"one of {', '.join(PRIORITIES)} (or 1..7)")
+
+
+def parse_bandwidth(value: Any) -> float:
+    """Bits per second from ``20mbit``, ``20 Mbit/s``, ``500kbit``, ``1.5gbit``, ``20M`` or a plain
+    number; ValueError for anything else. Bytes are refused, and so is ``mbps``, which tc reads
+    as megabytes and most people as megabits."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        bits = float(value)
+    else:
+        match = _BANDWIDTH.fullmatch(value.strip()) if isinstance(value, str) else None
+        if match is None:
+            raise ValueError(f"expected a bandwidth in bits per second, got {show(value)}")
+        bits = float(match.group(1)) * _BANDWIDTH_UNITS[match.group(2).lower()]
+    if not bits > 0:
+        raise ValueError(f"a bandwidth must be > 0, got {show(value)}")
+    return bits
+
+
+def bandwidth(key: Key, value: Any) -> float:
+    """bits per second: `20mbit`, `500kbit`, `1.5gbit`, `20000000`"""
+    try:
+        return parse_bandwidth(value)
+    except ValueError as exc:
+        raise key.error(str(exc), fix="bits per second: 20mbit, 500kbit, 1.5gbit or 20000000 "
+                                      "(2.5 megabytes per second is 20mbit)") from None
+
+
+def networks(key: Key, value: Any) -> tuple[Any, ...]:
+    """IP addresses or networks: `[192.168.0.20, 10.1.0.0/24]`"""
+    found = []
+    for item in value if isinstance(value, list) else [value]:
+        try:
+            found.append(ipaddress.ip_network(str(item), strict=False))
+        except ValueError:
+            raise key.error(f"{item!r} is not an IP address or network") from None
+    return tuple(found)
+
+
+def port_ranges(key: Key, value: Any) -> tuple[tuple[int, int], ...]:
+    """ports and ranges: `[12001, 12010-12019]`"""
+    ranges = []
+    for item in value if isinstance(value, list) else [value]:
+        low, _, high = str(item).partition("-")
+        try:
+            first, last = int(low), int(high or low)
+        except ValueError:
+            first, last = 0, -1
+        if isinstance(item, bool) or not 1 <= first <= last <= 65535:
+            raise key.error(f"{item!r} is not a port or a range of ports")
+        ranges.append((first, last))
+    return tuple(ranges)
+
+
+def names(key: Key, value: Any) -> tuple[str, ...]:
+    """a list of names (globs)"""
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise key.error(f"expected a list of names, got {show(value)}")
+    return tuple(value)
+
+
+def mapping(key: Key, value: Any) -> dict:
+    """a mapping"""
+    if value is None:  # written empty
+        return {}
+    if not isinstance(value, dict):
+        raise key.error(f"expected a mapping, got {show(value)}",
+                        fix=f"write it as {key.name}: {key.example}")
+    return value
+
+
+def public_key(key: Key, value: Any) -> bytes:
+    """a public key, base64 (44 characters, printed by `rosgate keygen identity`)"""
+    from ..identity import IdentityError, decode_public
+
+    try:
+        return decode_public(text(key, value))
+    except IdentityError as exc:
+        raise key.error(f"the {key.name} {exc}", fix=exc.fix) from None
+
+
+def bridge_name(key: Key, value: Any) -> str:
+    """letters, digits, `_`, `.` and `-`"""
+    name = text(key, value)
+    if not BRIDGE_NAME.fullmatch(name):
+        raise key.error(f"'{name}' is not a valid bridge name",
+                        fix=f"use only letters, digits, '_', '.' and '-', e.g. name: {key.example}")
+    return name
+
+
+BRIDGE_NAME = re.compile(r"[A-Za-z0-9_.-]+")

@@ -1,0 +1,397 @@
+"""bringup.yaml: parse, validate, fill defaults. Every mistake becomes one ConfigError that names
+the file, the line, the key and the fix, never a traceback.
+
+Each key is read against its declaration (rosgate.config.schema); this module adds what ties keys
+together: which keys a role takes, an entry's framing, defaults that follow other keys, names
+listed twice. Topic and service entries also arrive over the network from clients (no file, no
+lines): ``topic_from_mapping`` / ``service_from_mapping`` run the same checks on them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigError
+from . import kinds
+from .kinds import Key
+from .read import check_keys, keys, names, read, require
+from .schema import (
+    CIPHER_DEFAULT,
+    LISTEN_DEFAULT,
+    MCU_KEYS,
+    NO_PLUGIN,
+    PEER_TIMEOUT_HEARTBEATS,
+    RECONNECT_MAX_DEFAULT,
+    SESSION_CIPHER_DEFAULT,
+    BridgeConfig,
+    ClientPolicy,
+    Defaults,
+    Direction,
+    File,
+    Framing,
+    Role,
+    ServiceConfig,
+    TopicConfig,
+)
+from .source import START_FIX, Source, join, parse, show
+
+
+def load(path: str | Path) -> BridgeConfig:
+    file = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"not UTF-8 text (byte {exc.start}: {exc.reason})", file=file,
+                          fix="save the file as UTF-8") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read the file: {exc.strerror or exc}", file=file,
+                          fix="check the path and its permissions") from None
+    return loads(text, file=file, base_dir=Path(path).absolute().parent)
+
+
+def loads(text: str, file: str = "<string>", base_dir: Path | None = None) -> BridgeConfig:
+    data, src = parse(text, file)
+    return _bridge_config(data, src, base_dir if base_dir is not None else Path.cwd())
+
+
+def topic_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
+                       index: int | None = None) -> TopicConfig:
+    """Validate one topic entry received from a client; `where` becomes the error's file and
+    `index` its position in the client's list (error keys read "topics[3].codec")."""
+    return _topic(Source(where), data, _entry_path("topics", index), defaults)
+
+
+def service_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
+                         index: int | None = None) -> ServiceConfig:
+    """Like topic_from_mapping, for a service entry."""
+    return _service(Source(where), data, _entry_path("services", index), defaults)
+
+
+def topic_to_mapping(t: TopicConfig) -> dict:
+    """As the user would write it: the keys of real links only when they are not the defaults
+    (so a server that predates them still reads a client's hello that does not use them)."""
+    mapping = _to_mapping(t, TopicConfig)
+    for key, options in (("recovery", t.recovery_options), ("compression", t.compression_options)):
+        if mapping[key] == NO_PLUGIN:
+            del mapping[key]
+        elif options:
+            mapping[key] = {mapping[key]: dict(options)}
+    return mapping
+
+
+def service_to_mapping(s: ServiceConfig) -> dict:
+    mapping = _to_mapping(s, ServiceConfig)
+    if s.framing is not Framing.SERIAL_DATAGRAM or s.direction is not Direction.TRANSMIT:
+        del mapping["no_answer"]
+    return mapping
+
+
+def _to_mapping(entry: TopicConfig | ServiceConfig, section: type) -> dict:
+    mapping = {}
+    for key in names(section):
+        value = getattr(entry, key)
+        # unset optional keys are left out, as a user would; microcontroller keys are only for
+        # microcontroller entries (an entry with an envelope refuses them)
+        if value is not None and (entry.framing.bare or key not in MCU_KEYS):
+            mapping[key] = dict(value) if isinstance(value, dict) else value
+    return mapping
+
+
+def _entry_path(key: str, index: int | None) -> str:
+    return f"{key}[{index if index is not None else '?'}]"
+
+
+def _top(src: Source, data: dict, key: str) -> Any:
+    """A section of the file: its mapping, or {} when absent."""
+    row = next(row for row in keys(File) if row.key == key)
+    return kinds.mapping(Key(src, "", row), data.get(key))
+
+
+# --- the file ------------------------------------------------------------------------------------
+
+def _bridge_config(data: Any, src: Source, base_dir: Path) -> BridgeConfig:
+    if not isinstance(data, dict):
+        raise src.error("", f"expected a mapping with bridge: at the top, got {show(data)}",
+                        fix=START_FIX)
+    _reject_legacy(src, data)
+    check_keys(src, data, "", names(File))
+    require(src, data, "", File)
+    bridge = _top(src, data, "bridge")
+    given = read(src, bridge, "bridge", BridgeConfig)
+    role = given["role"]
+    _check_role(src, data, bridge, role)
+    identity, server_key = _identity(src, bridge, given, role, base_dir)
+    defaults = {"transport": Defaults.transport, "codec": Defaults.codec,
+                "cipher": CIPHER_DEFAULT if identity is None else SESSION_CIPHER_DEFAULT,
+                **given.get("defaults", {})}
+    heartbeat = given.get("heartbeat", BridgeConfig.heartbeat)
+    peer_timeout = given.setdefault("peer_timeout", heartbeat * PEER_TIMEOUT_HEARTBEATS)
+    if peer_timeout <= heartbeat:
+        raise src.error("bridge.peer_timeout", f"{peer_timeout:g} s is not longer than the "
+                        f"heartbeat ({heartbeat:g} s): every peer would be declared down between "
+                        "two pings",
+                        fix=f"e.g. peer_timeout: {heartbeat * PEER_TIMEOUT_HEARTBEATS:g} "
+                            "(three heartbeats)")
+    low = given.get("reconnect_min", BridgeConfig.reconnect_min)
+    high = given.setdefault("reconnect_max", max(low, RECONNECT_MAX_DEFAULT))
+    if high < low:
+        raise src.error("bridge.reconnect.max", f"max ({high:g} s) is below min ({low:g} s)",
+                        fix="make max at least min, e.g. reconnect: {min: 0.1, max: 10}")
+    limits = given.get("limits")
+    if limits is not None and limits.connections_per_source > limits.connections:
+        raise src.error("bridge.limits.connections_per_source",
+                        f"{limits.connections_per_source} per source is more than the "
+                        f"{limits.connections} connections allowed in total",
+                        fix="make connections at least connections_per_source")
+    if "allow" in given and role is not Role.PEER:
+        raise src.error("bridge.allow", "allow: is for role peer (a client or server "
+                        "authenticates its peers by their keys)", fix="remove it")
+    if role is Role.PEER:
+        given.setdefault("listen", LISTEN_DEFAULT)
+    return BridgeConfig(
+        file=src.file, **{**given, "defaults": defaults, "identity": identity,
+                          "server_key": server_key},
+        clients=_clients(src, data, role), plugins=_plugins(src, data),
+        topics=_entries(src, data, "topics", defaults),
+        services=_entries(src, data, "services", defaults),
+        lines=src.lines, base_dir=base_dir)
+
+
+def _reject_legacy(src: Source, data: dict) -> None:
+    for key, value in data.items():
+        if isinstance(value, dict) and "ros__parameters" in value:
+            raise src.error(key, f"this is the old ros2_socket_bridge format "
+                                 f"({key}: ros__parameters:); rosgate uses bridge: + topics: "
+                                 "instead",
+                            fix="rewrite it as in the README's bringup.yaml walk-through: a "
+                                "bridge: section (name, role: client, server: host:port) and one "
+                                "topics: entry per topic (topic, type: pkg/msg/Type, direction, "
+                                "port)")
+
+
+def _check_role(src: Source, data: dict, bridge: dict, role: Role) -> None:
+    if role is Role.PEER:
+        for key in ("server", "main_line"):
+            if key in bridge:
+                raise src.error(f"bridge.{key}",
+                                f"role peer has no main line, so {key}: does not apply",
+                                fix="remove it; a peer sends to peer: (the far host) and binds "
+                                    "listen:")
+        # peer: is needed by entries on point-to-point links, not by those on a bus: the
+        # resolver, which knows which transport is which, requires it
+        return
+    for key in ("peer", "listen"):
+        if key in bridge:
+            raise src.error(f"bridge.{key}", f"{key}: is for role peer only",
+                            fix=f"remove it; a {role} uses server: only")
+    if "server" not in bridge:
+        where = ("host:port, the server's main line" if role is Role.CLIENT
+                 else "address:port, where to listen for clients")
+        raise src.error("bridge.server", "missing required key 'server'",
+                        fix=f"add server: {where}")
+    if role is Role.SERVER:
+        for key in ("topics", "services"):
+            if data.get(key):
+                raise src.error(key, f"a server gets its {key} from its clients, so its file has "
+                                     f"no {key}:",
+                                fix=f"remove {key}: here and list them in each client's file")
+
+
+def _identity(src: Source, bridge: dict, given: dict, role: Role,
+              base_dir: Path) -> tuple[bytes | None, bytes | None]:
+    """This side's private key and (client) the server's public key (a peer's: the other peer's).
+    Client and server refuse to go without them unless ``insecure: true`` says so."""
+    from ..identity import IdentityError, load_private
+
+    if role is Role.PEER:
+        for key in ("server_key", "insecure"):
+            if key in bridge:
+                raise src.error(f"bridge.{key}", f"role peer has no {key}:",
+                                fix="a peer authenticates with identity:, peer_key: and "
+                                    "handshake_port: (README, Security), or not at all")
+        found = [k for k in ("identity", "peer_key", "handshake_port") if k in bridge]
+        if not found:
+            if "rekey" in bridge:
+                raise src.error("bridge.rekey", "rekey: is for peers with identities",
+                                fix="add identity:, peer_key: and handshake_port:, or remove it")
+            return None, None
+        for key in ("identity", "peer_key", "handshake_port"):
+            if key not in bridge:
+                row = next(row for row in keys(BridgeConfig) if row.key == key)
+                raise src.error(f"bridge.{found[0]}", "a peer with a handshake needs "
+                                "identity:, peer_key: and handshake_port:",
+                                fix=f"add {key}: {row.example}")
+        wanted = "peer_key"
+    else:
+        if "peer_key" in bridge or "handshake_port" in bridge:
+            key = "peer_key" if "peer_key" in bridge else "handshake_port"
+            raise src.error(f"bridge.{key}", f"{key}: is for role peer",
+                            fix="a client names server_key:, a server its clients:")
+        if role is Role.SERVER and "server_key" in bridge:
+            raise src.error("bridge.server_key", "a server has no server_key: it names its "
+                            "clients' keys under clients:", fix="remove it")
+        if given.get("insecure"):
+            for key in ("identity", "server_key"):
+                if key in bridge:
+                    raise src.error(f"bridge.{key}", f"insecure: true and {key}: contradict "
+                                    "each other", fix="remove insecure: true to authenticate (or "
+                                                      "the key to run without)")
+            return None, None
+        if "identity" not in bridge:
+            # a client or server without identities is refused when it is planned
+            # (Resolver.plan), so that this module still reads any file for what else it may say
+            return None, None
+        if role is Role.CLIENT and "server_key" not in bridge:
+            raise src.error("bridge.identity", "a client with an identity needs the server's "
+                            "public key too", fix="add server_key: <the server's public key>")
+        wanted = "server_key" if role is Role.CLIENT else ""
+    try:
+        identity = load_private(base_dir / given["identity"])
+    except IdentityError as exc:
+        raise src.error("bridge.identity", str(exc), fix=exc.fix) from None
+    if not wanted:
+        return identity, None
+    row = next(row for row in keys(BridgeConfig) if row.key == wanted)
+    return identity, kinds.public_key(Key(src, "bridge", row), given[wanted])
+
+
+def _clients(src: Source, data: dict, role: Role) -> dict[str, ClientPolicy]:
+    """A server's ``clients:``: each client's public key and its policy (default deny)."""
+    given = _top(src, data, "clients")
+    if given and role is not Role.SERVER:
+        raise src.error("clients", "only a server lists clients", fix="remove clients: here")
+    policies: dict[str, ClientPolicy] = {}
+    seen: dict[bytes, str] = {}
+    for name, entry in given.items():
+        path = f"clients.{name}"
+        if not kinds.BRIDGE_NAME.fullmatch(name):
+            raise src.error(path, f"'{name}' is not a valid client name",
+                            fix="use the client's bridge.name: letters, digits, '_', '.', '-'")
+        if entry is not None and not isinstance(entry, dict):
+            raise src.error(path, f"expected a mapping, got {show(entry)}",
+                            fix=f"write it as {name}: {{key: <the client's public key>}}")
+        policy = ClientPolicy(name, **read(src, entry or {}, path, ClientPolicy),
+                              line=src.lines.get(path, 0))
+        if policy.key in seen:
+            raise src.error(f"{path}.key", f"the same key as clients.{seen[policy.key]}",
+                            fix="give every client an identity of its own")
+        seen[policy.key] = name
+        policies[name] = policy
+    return policies
+
+
+def _plugins(src: Source, data: dict) -> dict[str, dict]:
+    given = _top(src, data, "plugins")
+    for name, options in given.items():
+        if options is not None and not isinstance(options, dict):
+            raise src.error(f"plugins.{name}", f"expected a mapping, got {show(options)}",
+                            fix=f"write its options as {name}: {{option: value}}")
+    return {name: options or {} for name, options in given.items()}
+
+
+def _entries(src: Source, data: dict, key: str, defaults: dict[str, str]) -> list:
+    items = data.get(key)
+    if items is None:
+        return []
+    if not isinstance(items, list):
+        raise src.error(key, f"expected a list of entries, got {show(items)}",
+                        fix=f"start each entry with '- {key[:-1]}: ' on its own line under {key}:")
+    build = _topic if key == "topics" else _service
+    # a peer's port: is checked by the resolver: entries on a bus have none
+    entries = [build(src, item, f"{key}[{i}]", defaults) for i, item in enumerate(items)]
+    _check_duplicates(src, key, entries)
+    return entries
+
+
+def _check_duplicates(src: Source, key: str, entries: list) -> None:
+    name_key = key[:-1]  # "topic" | "service"
+    by_name: dict[tuple[str, str], int] = {}
+    by_remote: dict[str, int] = {}
+    for j, entry in enumerate(entries):
+        name = getattr(entry, name_key)
+        first = by_name.setdefault((name, entry.direction), j)
+        if first != j:
+            raise src.error(f"{key}[{j}].{name_key}",
+                            f"{name} ({entry.direction}) is already listed as {key}[{first}] "
+                            f"on line {entries[first].line}", fix="remove one of the two entries")
+        if entry.direction is Direction.RECEIVE:
+            # incoming frames are routed by remote name: two receivers of one name are ambiguous
+            first = by_remote.setdefault(entry.remote, j)
+            if first != j:
+                raise src.error(f"{key}[{j}].remote",
+                                f"remote {entry.remote} is already received by {key}[{first}] "
+                                f"on line {entries[first].line}",
+                                fix=f"give each receive {name_key} its own remote")
+
+
+# --- entries (file or network) -------------------------------------------------------------------
+
+def _topic(src: Source, data: Any, path: str, defaults: dict[str, str]) -> TopicConfig:
+    given = _entry(src, data, path, "topic", TopicConfig, defaults)
+    framing = given["framing"]
+    if framing is Framing.SERIAL_DATAGRAM:
+        raise src.error(join(path, "framing"), "framing serial_datagram is for services (request "
+                                               "and answer to a microcontroller), not topics",
+                        fix="use framing: none for bare payloads on a datagram link, "
+                            "or leave framing: out")
+    for key in ("recovery", "compression"):  # a plugin's name and the entry's options for it
+        given[key], given[f"{key}_options"] = given.get(key, (NO_PLUGIN, {}))
+    if framing.bare:
+        for key in ("recovery", "compression"):
+            if key in data and data[key] != NO_PLUGIN:
+                raise src.error(join(path, key), f"{key} needs the envelope (framing: rosgate): "
+                                f"with framing {framing} a datagram is the bare payload",
+                                fix=f"remove {key}:, or use framing: rosgate")
+    return TopicConfig(**given, **src.entry_lines(path))
+
+
+def _service(src: Source, data: Any, path: str, defaults: dict[str, str]) -> ServiceConfig:
+    given = _entry(src, data, path, "service", ServiceConfig, defaults)
+    framing = given["framing"]
+    if framing is Framing.NONE:
+        raise src.error(join(path, "framing"), "framing none is for topics: a service call needs "
+                                               "its answer matched to it",
+                        fix="leave framing: out (rosgate), or use framing: serial_datagram with a "
+                            "microcontroller")
+    if "no_answer" in data and (framing is not Framing.SERIAL_DATAGRAM
+                                or given["direction"] is not Direction.TRANSMIT):
+        raise src.error(join(path, "no_answer"), "no_answer is for calls this bridge makes to a "
+                        "microcontroller (direction: transmit, framing: serial_datagram)",
+                        fix="remove no_answer: from this entry")
+    return ServiceConfig(**given, **src.entry_lines(path))
+
+
+def _entry(src: Source, data: Any, path: str, name_key: str, section: type,
+           defaults: dict[str, str]) -> dict[str, Any]:
+    """The keys topics and services share, and the rules that tie them together."""
+    if not isinstance(data, dict):
+        raise src.error(path, f"expected a mapping ({name_key}:, type:, direction: ...), "
+                              f"got {show(data)}",
+                        fix=f"write the entry as '- {name_key}: {keys(section)[0].example}' "
+                            "with its other keys indented under it")
+    given = read(src, data, path, section)
+    name = given[name_key]
+    framing = given.setdefault("framing", Framing.ROSGATE)
+    if framing.bare:  # the name on the wire as written
+        given.setdefault("remote", name.removeprefix("/"))
+    elif "remote" in given:
+        remote = next(row for row in keys(section) if row.key == "remote")
+        given["remote"] = kinds.remote(Key(src, path, remote), given["remote"])
+    else:
+        given["remote"] = name
+    for key in ("transport", "codec", "cipher"):
+        given.setdefault(key, defaults.get(key, getattr(Defaults, key)))
+    if framing.bare and given["cipher"] != "none":
+        raise src.error(join(path, "framing"),
+                        f"framing {framing} sends the bare payload, so there is no envelope to "
+                        f"authenticate; cipher must be none, not '{given['cipher']}'",
+                        fix="set cipher: none on this entry, or use framing: rosgate to keep "
+                            "the cipher")
+    for key in MCU_KEYS:
+        if key in data and not framing.bare:
+            raise src.error(join(path, key), f"{key} is for microcontroller entries (framing none "
+                            "or serial_datagram); this entry has an envelope",
+                            fix=f"remove {key}:, or set framing: none (topics) or "
+                                "serial_datagram (services)")
+    return given

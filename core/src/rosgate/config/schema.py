@@ -1,0 +1,430 @@
+"""bringup.yaml's keys, each declared once: its type, default, bounds or choices, one line of doc
+and an example for the fix of an error about it. The loader (rosgate.config.load) reads a file
+against these declarations, and docs/configuration.md's reference is generated from them
+(rosgate.config.docs). The rules that tie keys together (a role's keys, an entry's framing) are in
+the loader."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigError
+from ..options import option
+from . import kinds
+from .kinds import Key
+from .read import read
+from .source import line_of, show
+
+
+class Role(StrEnum):
+    CLIENT = "client"
+    SERVER = "server"
+    PEER = "peer"
+
+
+class Direction(StrEnum):
+    TRANSMIT = "transmit"  # this side -> the far side
+    RECEIVE = "receive"    # the far side -> this side
+
+    @property
+    def flipped(self) -> Direction:
+        return Direction.RECEIVE if self is Direction.TRANSMIT else Direction.TRANSMIT
+
+
+class Framing(StrEnum):
+    ROSGATE = "rosgate"                  # the envelope, sealed by the entry's cipher
+    NONE = "none"                        # the bare payload on a datagram link (topics)
+    SERIAL_DATAGRAM = "serial_datagram"  # SLIP-style + CRC-32, one call per connection (services)
+
+    @property
+    def bare(self) -> bool:
+        """No envelope: the entry's name on the wire is ``remote`` exactly as written (a
+        microcontroller's names are bare strings such as "cmd_vel"), not a ROS name."""
+        return self is not Framing.ROSGATE
+
+
+TRANSPORT_DEFAULT, CODEC_DEFAULT, CIPHER_DEFAULT = "udp", "cdr", "none"
+SESSION_CIPHER_DEFAULT = "aead"   # the default cipher inside an authenticated session
+LISTEN_DEFAULT = "0.0.0.0"
+PEER_TIMEOUT_HEARTBEATS = 3       # default bridge.peer_timeout, in heartbeats
+RECONNECT_MAX_DEFAULT = 10.0
+MAX_DELAY_DEFAULT = 1.0           # seconds a best-effort message may wait in a link's queue
+#: recovery: and compression: without a plugin (a topic's own fragments, its payload as it is)
+NO_PLUGIN = "none"
+PRIORITIES = kinds.PRIORITIES
+# microcontroller entries (framing none or serial_datagram): how what this side sends is laid out
+LAYOUTS = ("array", "pair")       # [name, args] (CVRA's firmware) | name then args (its README)
+ARGS = ("map", "array", "value")  # the arguments: fields by name | in .msg order | first alone
+FLOATS = ("float32", "float64")   # the width of every float field on the wire
+NO_ANSWERS = ("fail", "nil")      # a call's connection closed without a byte: a failure | nil
+MCU_KEYS = ("layout", "args", "floats")
+RULE_DIRECTIONS = ("transmit", "receive", "both")
+
+# the keys topics and services share, declared once for both
+_ENTRY: dict[str, dict[str, Any]] = {
+    "transport": dict(default=TRANSPORT_DEFAULT, doc="the link: `udp`, `tcp`, or any installed "
+                      "transport plugin", unset="`bridge.defaults.transport` (`udp`)",
+                      example="udp"),
+    "codec": dict(default=CODEC_DEFAULT, doc="how messages are written: `cdr` (ROS's own, passed "
+                  "through), `msgpack` (nested maps, for peers without ROS), ...",
+                  unset="`bridge.defaults.codec` (`cdr`)", example="cdr"),
+    "cipher": dict(default=CIPHER_DEFAULT, doc="`aead`, `nacl`, `fernet`, `none`, ...",
+                   unset="`bridge.defaults.cipher`: `aead` in a client/server session, else "
+                         "`none`", example="none"),
+    "port": dict(default=None, doc="a port of its own; required in peer role (not on a bus)",
+                 minimum=1, maximum=65535, unset="the main port", example="12001"),
+    "layout": dict(default=LAYOUTS[0], doc="microcontroller entries: `[name, args]` (array) or "
+                   "the name then the arguments (pair)", choices=LAYOUTS, example="array"),
+    "args": dict(default=ARGS[0], doc="microcontroller entries: the arguments as fields by name, "
+                 "in `.msg` order, or the first alone", choices=ARGS, example="map"),
+    "floats": dict(default=FLOATS[0], doc="microcontroller entries: the width of every float "
+                   "field on the wire", choices=FLOATS, example="float32"),
+}
+
+
+def _entry(key: str) -> Any:
+    return option(**_ENTRY[key])
+
+
+@dataclass
+class TopicConfig:
+    """Per topic you choose:"""
+
+    topic: str = option(doc="the ROS name on this side", example="/chatter",
+                        parse=kinds.ros_name)
+    type: str = option(doc="the message type", example="std_msgs/msg/String",
+                       parse=kinds.interface("msg"))
+    direction: Direction = option(doc="`transmit`: to the far side (client to server, or to the "
+                                      "peer); `receive`: from it",
+                                  example="transmit (this side to the peer) or receive (the peer "
+                                          "to this side)")
+    remote: str = option(doc="the name on the far side (server, peer's link name, or a bus key)",
+                         unset="the same as `topic`", example="/robot1/chatter",
+                         parse=kinds.text)  # a ROS name, a bus key or a bare name: see load
+    transport: str = _entry("transport")
+    codec: str = _entry("codec")
+    cipher: str = _entry("cipher")
+    port: int | None = _entry("port")
+    framing: Framing = option(Framing.ROSGATE, "`rosgate`: the envelope; `none`: the bare payload "
+                              "on a datagram link (a microcontroller's)", example="rosgate")
+    qos: int | str | dict = option(10, "the QoS of this side's publisher or subscription",
+                                   example="sensor_data", parse=kinds.qos)
+    max_rate: float | None = option(None, "faster messages are dropped (`rate_limit`)",
+                                    minimum=1e-6, maximum=1e6, unit="Hz", unset="unlimited",
+                                    example="20")
+    priority: int | None = option(None, "what leaves a link first (on a bus: zenoh's priority)",
+                                  unset="`data` (5)", example="data", parse=kinds.priority)
+    latest_only: bool | None = option(None, "a message still waiting to leave is replaced by a "
+                                      "newer one (`superseded`); not on a bus",
+                                      unset="`true` for best-effort QoS, else `false`",
+                                      example="true")
+    max_delay: float | None = option(None, "seconds a message may wait anywhere in the bridge "
+                                     "before it is dropped (`too_late`), whatever its QoS",
+                                     above=0, unit="seconds", example="0.05",
+                                     unset="best effort: the link's `max_delay` in its send "
+                                           "queue; reliable: no limit")
+    recovery: str = option(NO_PLUGIN, "loss recovery by a packetizer plugin (`fec`, `retransmit`), "
+                           "on datagram links with `framing: rosgate`; its options over its "
+                           "`plugins:` table as `{fec: {overhead: 0.25}}`",
+                           example="fec (or with options: {fec: {overhead: 0.25}})",
+                           parse=kinds.plugin_choice)
+    #: the topic's options for its recovery plugin, over its plugins: table
+    recovery_options: dict[str, Any] = field(default_factory=dict)
+    compression: str = option(NO_PLUGIN, "a payload transform plugin (`zstd`), with `framing: "
+                              "rosgate`; the receiver needs no setting; its options as "
+                              "`{zstd: {level: 19}}`",
+                              example="zstd (or with options: {zstd: {level: 19}})",
+                              parse=kinds.plugin_choice)
+    compression_options: dict[str, Any] = field(default_factory=dict)
+    typical_size: int | None = option(None, "bytes of a message, for `rosgate check`'s budget "
+                                      "arithmetic", minimum=1, unit="bytes", example="921600",
+                                      unset="a fixed-size type's own size; others are not counted")
+    layout: str = _entry("layout")
+    args: str = _entry("args")
+    floats: str = _entry("floats")
+    line: int = 0
+    lines: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class ServiceConfig:
+    """`services:` entries carry ROS 2 services across the link; [services.md](services.md)
+    says how calls, answers and failures behave."""
+
+    service: str = option(doc="the ROS name on this side", example="/mcu/ping",
+                          parse=kinds.ros_name)
+    type: str = option(doc="the service type", example="std_srvs/srv/Trigger",
+                       parse=kinds.interface("srv"))
+    direction: Direction = option(doc="`transmit`: calls made here are served on the far side; "
+                                      "`receive`: the far side's calls are served here",
+                                  example="transmit (this side to the peer) or receive (the peer "
+                                          "to this side)")
+    remote: str = option(doc="the name on the far side", unset="the same as `service`",
+                         example="/ping", parse=kinds.text)
+    transport: str = _entry("transport")
+    codec: str = _entry("codec")
+    cipher: str = _entry("cipher")
+    port: int | None = _entry("port")
+    framing: Framing = option(Framing.ROSGATE, "`rosgate`: the envelope; `serial_datagram`: a "
+                              "microcontroller's calls", example="rosgate")
+    timeout: float = option(5.0, "the ROS caller is answered within this, whatever happens",
+                            above=0, maximum=3600, unit="seconds", example="5")
+    max_request: int = option(64 * 1024, "a longer request is dropped and counted", minimum=16,
+                              maximum=64 * 1024 * 1024, unit="bytes", example="65536")
+    layout: str = _entry("layout")
+    args: str = _entry("args")
+    floats: str = _entry("floats")
+    no_answer: str = option(NO_ANSWERS[0], "calls to a microcontroller: what a connection closed "
+                            "without a byte means", choices=NO_ANSWERS, example="fail")
+    line: int = 0
+    lines: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """``bridge.links.<transport>``: what this side may put on each link of that transport."""
+
+    transport: str
+    bandwidth: float | None = option(None, "bits per second this side sends at most to each "
+                                     "destination, packet headers counted; not for a bus",
+                                     unset="unlimited", example="20mbit",
+                                     parse=kinds.bandwidth)
+    max_delay: float = option(MAX_DELAY_DEFAULT, "seconds a best-effort message without a "
+                              "`max_delay` of its own may wait in the send queue (`too_late`)",
+                              above=0, unit="seconds", example="1.0")
+    line: int = 0
+
+
+@dataclass(frozen=True)
+class Limits:
+    """``bridge.limits``: what a peer may cost this bridge before it is trusted (a client before
+    its handshake, a stranger on a port), so that strangers cannot exhaust it."""
+
+    connections: int = option(256, "stream connections held at once, over every listening port "
+                              "(each costs two threads); more are closed (`too_many_connections`)",
+                              minimum=1, example="256")
+    connections_per_source: int = option(16, "of those, from one source address "
+                                         "(`too_many_per_source`): a client's main line, its "
+                                         "ports and a reconnect fit", minimum=1, example="16")
+    handshake_timeout: float = option(5.0, "seconds an accepted connection has to complete its "
+                                      "handshake or introduce itself (`handshake_timeout`)",
+                                      above=0, unit="seconds", example="5")
+    max_frame_before_auth: int = option(64 * 1024, "bytes a frame may have on such a connection "
+                                        "until then (`bad_length`)", minimum=1024, unit="bytes",
+                                        example="65536")
+    idle_timeout: float = option(2.0, "seconds a connection to a microcontroller service port "
+                                 "may stay silent (`idle_timeout`)", above=0, unit="seconds",
+                                 example="2")
+    sessions: int = option(256, "server: client sessions kept at once (connected, or waiting out "
+                           "`session_timeout`); a new client past it is refused", minimum=1,
+                           example="256")
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One rule of a client's policy (``clients.NAME.topics[i]`` / ``services[i]``): what it
+    allows. ``None`` means any; names and types are globs (``*`` within a segment, ``**``
+    across segments)."""
+
+    name: str = option(doc="a glob on the server-side name: `*` and `?` within a segment, `**` "
+                           "across", example="/robot1/**")
+    direction: str = option(doc="the client's: `transmit` (it publishes or calls on the "
+                                "server), `receive`, `both`", choices=RULE_DIRECTIONS,
+                            example="transmit, receive or both")
+    types: tuple[str, ...] | None = option(None, "globs on `pkg/msg/Type`", unset="any",
+                                           example="[geometry_msgs/msg/*]", parse=kinds.names)
+    ports: tuple[tuple[int, int], ...] = option((), "ports of their own it may ask for",
+                                                unset="none: the main port only",
+                                                example="[12001, 12010-12019]",
+                                                parse=kinds.port_ranges)
+    ciphers: tuple[str, ...] | None = option(None, "ciphers it may use (`none` only when listed)",
+                                             unset="any cipher a session keys", example="[aead]",
+                                             parse=kinds.names)
+    line: int = 0
+
+
+def _rules(key: Key, value: Any) -> tuple[Rule, ...]:
+    """a list of rules: `- {name: /robot1/**, direction: both}`"""
+    fix = "e.g. - {name: /robot1/**, direction: both}"
+    if value is None:  # written empty
+        return ()
+    if not isinstance(value, list):
+        raise key.error(f"expected a list of rules, got {show(value)}", fix=fix)
+    rules = []
+    for i, item in enumerate(value):
+        path = f"{key.path}[{i}]"
+        if not isinstance(item, dict):
+            raise key.src.error(path, f"expected a rule (name:, direction: ...), got {show(item)}",
+                                fix=fix)
+        rules.append(Rule(**read(key.src, item, path, Rule), line=key.src.lines.get(path, 0)))
+    return tuple(rules)
+
+
+@dataclass(frozen=True)
+class ClientPolicy:
+    """A client a server accepts: its public key and what it may ask for (default deny)."""
+
+    name: str
+    key: bytes = option(doc="the client's public key; `NAME` is its `bridge.name`",
+                        example="<the client's public key>", parse=kinds.public_key)
+    topics: tuple[Rule, ...] = option((), "rules: topics the client may bridge; an entry must "
+                                      "match one", unset="none: every topic refused",
+                                      parse=_rules)
+    services: tuple[Rule, ...] = option((), "rules: services the client may bridge",
+                                        unset="none", parse=_rules)
+    line: int = 0
+
+
+@dataclass
+class Defaults:
+    """``bridge.defaults``: for entries that do not say."""
+
+    transport: str = option(TRANSPORT_DEFAULT, "the transport of entries", example="udp")
+    codec: str = option(CODEC_DEFAULT, "the codec of entries", example="cdr")
+    cipher: str = option(CIPHER_DEFAULT, "the cipher of entries", example="none",
+                         unset="`aead` in a client/server session, else `none`")
+
+
+def _section(section: type, build: bool = True) -> Any:
+    """The parse function of a key holding a fixed mapping (``bridge.limits``): the ``section``
+    made of it, or (``build`` false) the keys given, for the loader to complete."""
+
+    def parse(key: Key, value: Any) -> Any:
+        given = read(key.src, kinds.mapping(key, value), key.path, section)
+        return section(**given) if build else given
+
+    parse.section = section  # type: ignore[attr-defined]  # the docs list its keys
+    parse.__doc__ = "a mapping"
+    return parse
+
+
+def _links(key: Key, value: Any) -> dict[str, LinkConfig]:
+    """per transport: `{udp: {bandwidth: 20mbit}}`"""
+    links = {}
+    for name, given in kinds.mapping(key, value).items():
+        path = f"{key.path}.{name}"
+        if not isinstance(given, dict):
+            raise key.src.error(path, f"expected a mapping, got {show(given)}",
+                                fix=f"write it as {name}: {{bandwidth: 20mbit}}")
+        links[name] = LinkConfig(name, **read(key.src, given, path, LinkConfig),
+                                 line=key.src.lines.get(path, 0))
+    return links
+
+
+_links.section = LinkConfig  # type: ignore[attr-defined]
+
+
+@dataclass
+class BridgeConfig:
+    """The keys under `bridge:`, all optional but name and role; see [Links that
+    fail](real-links.md#links-that-fail) and [Real links](real-links.md):"""
+
+    file: str
+    name: str = option(doc="this side's name; a server knows a client by it (`clients:`)",
+                       example="robot1", parse=kinds.bridge_name)
+    role: Role = option(doc="what this side is", example="client")
+    server: str | None = option(None, "client: the server's main line, `host:port` or "
+                                "`[v6]:port` (Bluetooth: `AA:BB:CC:DD:EE:FF/5`); server: where it "
+                                "listens", unset="required for client and server",
+                                example="127.0.0.1:12000")
+    main_line: str = option("tcp", "client, server: the stream transport of the main line and "
+                            "handshake", example="tcp")
+    peer: str | None = option(None, "peer: the far host, where topics are sent (not needed on a "
+                              "bus)", unset="required for point-to-point links",
+                              example="192.168.1.20")
+    listen: str | None = option(None, "peer: the address this side binds",
+                                unset=f"`{LISTEN_DEFAULT}`", example=LISTEN_DEFAULT)
+    defaults: dict[str, str] = option({"transport": TRANSPORT_DEFAULT, "codec": CODEC_DEFAULT,
+                                       "cipher": CIPHER_DEFAULT},
+                                      "`{transport, codec, cipher}` for entries that do not say",
+                                      example="{transport: udp, codec: cdr, cipher: none}",
+                                      parse=_section(Defaults, build=False))
+    stale_after: float = option(15.0, "seconds of silence on a received topic before a warning",
+                                above=0, example="15")
+    stale_warnings: int = option(5, "warnings per silence (0: none)", minimum=0, example="5")
+    heartbeat: float = option(1.0, "seconds between pings on the main line", above=0,
+                              example="1.0")
+    peer_timeout: float = option(3.0, "seconds of silence on the main line before the far side "
+                                 "is declared down; must exceed `heartbeat`", above=0,
+                                 unit="seconds", unset="3 × `heartbeat`", example="3.0")
+    session_timeout: float = option(60.0, "server: seconds a client that lost its main line "
+                                    "keeps its session (routes, ids, queued frames)", above=0,
+                                    unit="seconds", example="60")
+    reconnect_min: float = option(0.1, "seconds before the first reconnection attempt; then "
+                                  "doubling, with jitter", key="reconnect.min", above=0,
+                                  unit="seconds", example="0.1")
+    reconnect_max: float = option(RECONNECT_MAX_DEFAULT, "seconds between attempts at most",
+                                  key="reconnect.max", above=0, unit="seconds", example="10",
+                                  unset="`10`, or `min` when larger")
+    queue_frames: int = option(1000, "per stream link, the frames reliable topics hold while it "
+                               "is down", key="queue.frames", minimum=0, example="1000")
+    queue_bytes: int = option(8 * 1024 * 1024, "and the bytes", key="queue.bytes", minimum=0,
+                              example="8388608")
+    limits: Limits = option(Limits(), "what a peer may cost before it is trusted",
+                            example="{connections: 256, connections_per_source: 16, "
+                                    "handshake_timeout: 5}", parse=_section(Limits))
+    identity: bytes | None = option(None, "this side's private key file (relative to the file), "
+                                    "mode 0600", example="robot1.key", parse=kinds.text,
+                                    unset="client, server: required, unless `insecure: true`; "
+                                          "peer: optional")
+    server_key: bytes | None = option(None, "client: the server's public key (base64, 44 "
+                                      "characters)", unset="required with `identity`",
+                                      example="<the server's public key, from rosgate keygen "
+                                              "identity>", parse=kinds.text)
+    handshake_port: int | None = option(None, "peer with `identity`: the TCP port of the "
+                                        "handshake line", minimum=1, maximum=65535, unset="—",
+                                        example="12100")
+    insecure: bool = option(False, "client, server: `true` runs without a handshake, warned "
+                            "about on every `run` and `check`", example="true")
+    rekey: float = option(120.0, "server (or responding peer): seconds a session key generation "
+                          "lasts", minimum=1, unit="seconds", example="120")
+    allow: tuple[Any, ...] = option((), "peer: the only addresses or networks frames and calls "
+                                    "are taken from; others are counted `not_allowed`",
+                                    unset="datagram and stream ports: `bridge.peer` only; "
+                                          "microcontroller service ports: anyone",
+                                    example="[192.168.0.20, 10.1.0.0/24]", parse=kinds.networks)
+    peer_key: str | None = option(None, "peer with `identity`: the other peer's public key",
+                                  unset="—", example="<the other peer's public key>",
+                                  parse=kinds.text)
+    clients: dict[str, ClientPolicy] = field(default_factory=dict)  # server: who may connect
+    fleet_timeout: float = option(30.0, "seconds after a robot's liveliness token went before "
+                                  "its fleet routes are dropped (see [Fleets](fleets.md))",
+                                  above=0, unit="seconds", example="30")
+    links: dict[str, LinkConfig] = option({}, "per transport, what this side may put on each "
+                                          "link", example="{udp: {bandwidth: 20mbit}}",
+                                          parse=_links)
+    plugins: dict[str, dict] = field(default_factory=dict)
+    topics: list[TopicConfig] = field(default_factory=list)
+    services: list[ServiceConfig] = field(default_factory=list)
+    lines: dict[str, int] = field(default_factory=dict)
+    base_dir: Path = field(default_factory=Path.cwd)
+
+    def error(self, key: str, message: str, fix: str | None = None) -> ConfigError:
+        """A ConfigError located at the line of dotted key `key` (falls back to the nearest
+        parent key's line)."""
+        return ConfigError(message, file=self.file, line=line_of(self.lines, key), key=key,
+                           fix=fix)
+
+    @property
+    def secure(self) -> bool:
+        """With identities: every link of a session is authenticated (client, server, and a
+        peer that names its peer's key)."""
+        return self.identity is not None
+
+
+@dataclass
+class File:
+    """The file's top level; the loader reads each section."""
+
+    bridge: dict = option(doc="this side: its name, role and links", example="{name: robot1, "
+                          "role: client, server: 127.0.0.1:12000}")
+    plugins: dict = option({}, "each plugin's options, by its name",
+                           example="{fernet: {key_file: secret.key}}")
+    topics: list = option([], "the topics to bridge", example="- topic: /chatter")
+    services: list = option([], "the services to bridge", example="- service: /mcu/ping")
+    clients: dict = option({}, "server: the clients it accepts",
+                           example="{robot1: {key: <public key>, topics: [{name: /robot1/**, "
+                                   "direction: both}]}}")
