@@ -12,8 +12,9 @@ transport plugin only opens sockets.
 Both send through a :class:`~rosgate.scheduler.Scheduler` — the one place a link's frames wait:
 per-topic queues in priority classes, latest-only replacement, late best-effort frames dropped,
 a bandwidth budget per peer (``bridge.links``) — drained by a send thread of the link's own, so
-sending never blocks the caller (a ROS executor). A frame that fits one packet goes out on the
-caller's thread when nothing waits and the budget allows: no thread hand-off for a quiet link.
+sending never blocks the caller (a ROS executor). A frame goes out on the caller's thread when
+nothing waits and the budget allows — whole, or its fragments until something else waits — so a
+quiet link has no thread hand-off (a late send thread must not cost a latest-only message).
 Frames that wait for the same destination leave together (one datagram up to ``max_frame``,
 one stream write up to :data:`WRITE` bytes), so a backlog costs few system calls.
 
@@ -165,6 +166,8 @@ class LinkCounters:
     that carried them, and how many frames shared one with others (coalesced)."""
 
     frames_out: int = 0
+    #: of frames_out, those sent from the caller's thread (the link was idle: no hand-off)
+    inline_out: int = 0
     packets_out: int = 0
     coalesced_out: int = 0
     bytes_out: int = 0
@@ -247,7 +250,9 @@ class _Sending(ABC):
             if not self._claim(to, len(packet)):
                 return None
         try:
-            return self._send_due(Due(packet, to, sender, _INLINE))
+            sent = self._send_due(Due(packet, to, sender, _INLINE))
+            self.counters.inline_out += sent
+            return sent
         finally:
             self._release()
 
@@ -303,6 +308,10 @@ def _one(packet: bytes) -> Callable[[], list[bytes]]:
 
 #: what a Due sent from the caller's thread ends: its one frame (see _Sending._send_now)
 _INLINE = Outgoing(None, None, 0, list)
+#: the longest frame whose fragments leave from the caller's thread (an idle link): one
+#: loopback datagram's worth, a few dozen system calls (one with segmentation offload). A
+#: longer one (an image) goes to the send thread, so a ROS executor never waits on a long one.
+INLINE_MAX = 64 * 1024
 
 
 def _batchable(due: Due) -> bool:
@@ -355,6 +364,8 @@ class DatagramLink(_Sending, Link):
         self.store = recovery.RetransmitStore()  # what this side may be asked to send again
         self._counters: dict[Address, int] = {}  # compact: the next piece's counter per destination
         self._send_parts = getattr(endpoint, "send_parts", None)
+        #: several datagrams in one call (UDP: segmentation offload), optional like send_parts
+        self._send_datagrams = getattr(endpoint, "send_datagrams", None)
         self._init_sending(budget, getattr(transport, "packet_overhead", 0), self.max_frame,
                            queue_frames, queue_bytes)
         self._threads = [
@@ -377,6 +388,10 @@ class DatagramLink(_Sending, Link):
         one = whole or kind == "none" and not self.compact and size <= self.max_frame
         if one:
             sent = self._send_now(frame, sender, to)
+            if sent is not None:
+                return sent
+        elif kind == "none" and not self.compact and size <= INLINE_MAX:
+            sent = self._send_fragments_now(frame, sender, to)
             if sent is not None:
                 return sent
         return self._put(Outgoing(sender, to, size,
@@ -439,6 +454,71 @@ class DatagramLink(_Sending, Link):
             return [header + chunk for header, chunk in parts]
         # a _Gather stands for its packet: the scheduler only takes its len()
         return cast(list[bytes], [_Gather(header, chunk) for header, chunk in parts])
+
+    def _send_fragments_now(self, frame: bytes, sender: Any, to: Address) -> bool | None:
+        """A frame longer than ``max_frame``, cut and sent from the caller's thread when the link
+        is idle, as :meth:`_send_now` sends a whole one; None when it must be queued instead.
+
+        Why not hand it to the send thread: waking it costs a thread switch that a busy
+        interpreter may put off for milliseconds, long enough for the topic's next message to
+        replace a latest-only one (``superseded``) on an idle link. The send thread still gets
+        the rest of the frame as soon as anything else waits or the budget runs short
+        (:meth:`Scheduler.resume`), so a long frame takes turns with others as before."""
+        with self._lock:
+            if not self._claim(to, self.max_frame):  # the first fragment's tokens
+                return None
+        scheduler, lock, counters = self.scheduler, self._lock, self.counters
+        try:
+            packets = self._cut(frame, sender, to, False, "none")
+            # a turn: the packets handed to the kernel at once, all in one call when the
+            # endpoint can; else one, then a look at what else waits (and at the budget, whose
+            # bucket is a few packets deep)
+            turn = len(packets) if scheduler.rate is None and self._send_datagrams else 1
+            start = 0
+            while start < len(packets):
+                if start:
+                    with lock:  # anything else waiting, or a budget short: the send thread's
+                        go = scheduler.may_send_now(to, len(packets[start]))
+                        if not go:
+                            scheduler.resume(Outgoing(sender, to, sum(map(len, packets[start:])),
+                                                      list, time.monotonic()),
+                                             packets[start:], time.monotonic())
+                    if not go:
+                        return True
+                end = min(start + turn, len(packets))
+                if not self._send_run(packets[start:end], sender, to, end == len(packets)):
+                    return False
+                start = end
+            counters.inline_out += 1
+            return True
+        finally:
+            self._release()
+
+    def _send_run(self, packets: list[bytes], sender: Any, to: Address, last: bool) -> bool:
+        """Packets of one frame, from the caller's thread; False when they could not be sent
+        (counted: the frame is lost)."""
+        try:
+            if len(packets) > 1 and self._send_datagrams is not None:
+                self._send_datagrams([cast(_Gather, p).parts if type(p) is _Gather else [p]
+                                      for p in packets], to)
+            else:
+                for packet in packets:
+                    if type(packet) is _Gather:
+                        assert self._send_parts is not None
+                        self._send_parts(cast(_Gather, packet).parts, to)
+                    else:
+                        self.endpoint.send(packet, to)
+        except OSError as exc:
+            sender.drop("link_down" if self.closed.is_set() else "send_error",
+                        f"to {to} on {self.name}: {exc}")
+            return False
+        counters = self.counters
+        counters.packets_out += len(packets)
+        counters.frames_out += last
+        for packet in packets:
+            counters.bytes_out += len(packet)
+            _on_wire(sender, len(packet), False)
+        return True
 
     def _send_due(self, due: Due) -> bool:
         packet, to, sender = due.packet, due.to, due.sender
