@@ -181,7 +181,7 @@ class LinkCounters:
 
     def line(self) -> str:
         return (f"out {self.frames_out} frames in {self.packets_out} packets "
-                f"({self.coalesced_out} coalesced, {self.bytes_out} B), "
+                f"({self.coalesced_out} coalesced, {self.inline_out} inline, {self.bytes_out} B), "
                 f"in {self.frames_in} frames in {self.packets_in} packets "
                 f"({self.coalesced_in} coalesced, {self.bytes_in} B)")
 
@@ -207,6 +207,10 @@ class _Sending(ABC):
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._busy = False  # a thread is sending (inline or the send thread): one at a time
+        #: callers waiting for the turn (see DatagramLink._await_turn), told when it is free
+        self._turn = threading.Condition(self._lock)
+        self._turn_waiters = 0
+        self._stuck = False  # the last wait for the turn timed out: the link is the bottleneck
         #: what a stream's inline write left unwritten: it goes before anything else
         self._rest: Due | None = None
 
@@ -233,6 +237,7 @@ class _Sending(ABC):
                 or not self.scheduler.may_send_now(to, size)):
             return False
         self._busy = True
+        self._stuck = False
         return True
 
     def _release(self) -> None:
@@ -241,6 +246,8 @@ class _Sending(ABC):
             self._busy = False
             if not self.scheduler.idle or self._rest is not None:
                 self._wake.notify()
+            if self._turn_waiters:
+                self._turn.notify_all()
 
     def _send_now(self, packet: bytes, sender: Any, to: Any) -> bool | None:
         """Send ``packet`` (a whole frame) from the caller's thread when it may leave at once
@@ -312,6 +319,8 @@ _INLINE = Outgoing(None, None, 0, list)
 #: loopback datagram's worth, a few dozen system calls (one with segmentation offload). A
 #: longer one (an image) goes to the send thread, so a ROS executor never waits on a long one.
 INLINE_MAX = 64 * 1024
+#: how long a caller waits for another thread's packet to leave before it queues its frame
+TURN_WAIT = 0.02
 
 
 def _batchable(due: Due) -> bool:
@@ -386,12 +395,15 @@ class DatagramLink(_Sending, Link):
         whole = self.bare or getattr(sender, "bare", False)
         kind = getattr(sender, "recovery", "none")
         one = whole or kind == "none" and not self.compact and size <= self.max_frame
+        inline = None
         if one:
-            sent = self._send_now(frame, sender, to)
-            if sent is not None:
-                return sent
+            inline = self._send_now
         elif kind == "none" and not self.compact and size <= INLINE_MAX:
-            sent = self._send_fragments_now(frame, sender, to)
+            inline = self._send_fragments_now
+        if inline is not None:
+            sent = inline(frame, sender, to)
+            if sent is None and self._await_turn() and self._send_waiting():
+                sent = inline(frame, sender, to)  # what waited is gone: the link is idle
             if sent is not None:
                 return sent
         return self._put(Outgoing(sender, to, size,
@@ -424,7 +436,9 @@ class DatagramLink(_Sending, Link):
                 sent += sum(self.send(frame, sender, to) for frame in group)
                 continue
             try:
-                sent += self._send_batch([Due(frame, to, sender) for frame in group], to)
+                batched = self._send_batch([Due(frame, to, sender) for frame in group], to)
+                self.counters.inline_out += batched
+                sent += batched
             finally:
                 self._release()
         return sent
@@ -454,6 +468,52 @@ class DatagramLink(_Sending, Link):
             return [header + chunk for header, chunk in parts]
         # a _Gather stands for its packet: the scheduler only takes its len()
         return cast(list[bytes], [_Gather(header, chunk) for header, chunk in parts])
+
+    def _await_turn(self) -> bool:
+        """Wait up to :data:`TURN_WAIT` while another thread sends a packet; whether the turn
+        is free. A packet takes microseconds; a thread that holds the turn longer was not
+        scheduled (a busy machine) — not a reason to queue a frame where a latest-only one can
+        be replaced — or is held by the kernel (a full send buffer: the link is the
+        bottleneck). After one wait in vain the link counts as the bottleneck, and callers
+        queue at once until they get a turn again."""
+        with self._lock:
+            if not self._busy:
+                return True
+            if self._stuck or self.closed.is_set():
+                return False
+            self._turn_waiters += 1
+            try:
+                free = self._turn.wait_for(lambda: not self._busy, TURN_WAIT)
+            finally:
+                self._turn_waiters -= 1
+            self._stuck = not free
+            return free
+
+    def _send_waiting(self) -> bool:
+        """Send what waits from the caller's thread (up to :data:`INLINE_MAX` bytes) when
+        nobody is sending: the send thread was woken for it but has not run yet, and a frame
+        queued behind it now could be replaced (latest-only) before it does. Whether nothing
+        waits any more. What the budget holds back stays for the send thread."""
+        scheduler = self.scheduler
+        with self._lock:
+            if self._busy or self.closed.is_set() or scheduler.idle:
+                return False
+            self._busy = True
+        try:
+            left = INLINE_MAX
+            while left > 0:
+                with self._lock:
+                    due = scheduler.next()
+                if scheduler.dropped:
+                    self._count_drops()
+                if not isinstance(due, Due):
+                    break
+                self._send_due(due)
+                left -= len(due.packet)
+            with self._lock:
+                return scheduler.idle
+        finally:
+            self._release()
 
     def _send_fragments_now(self, frame: bytes, sender: Any, to: Address) -> bool | None:
         """A frame longer than ``max_frame``, cut and sent from the caller's thread when the link
@@ -625,6 +685,8 @@ class DatagramLink(_Sending, Link):
             finally:
                 with wake:
                     self._busy = carry is not None  # a carried frame keeps its turn
+                    if self._turn_waiters and not self._busy:
+                        self._turn.notify_all()
 
     def _timers(self, now: float) -> None:
         """Under the lock: the retransmission probes that are due, queued."""
