@@ -11,10 +11,10 @@ effort may lose some in DDS on a loaded machine: they are not the bridge's drops
 
 On a loaded machine the bridge's own process may not run for over 20 ms; a best-effort message
 that waited that long in its subscription (or, on the far side, in the receive buffer) is then
-dropped ``too_late`` on purpose (the bridge sheds load it cannot catch up with). That is the machine, not the link: the
-second file gives the topic ``max_delay: 1`` (the link's own default wait) so that its counters
-must show no drop at all, and the first, as written, must show no ``superseded`` and nothing
-but that ``too_late``."""
+dropped ``too_late`` on purpose (the bridge sheds load it cannot catch up with). That is the
+machine, not the link: the second file gives the topic ``max_delay: 1`` (the link's own
+default wait) so that its counters must show no drop at all, and the first, as written, must
+show no ``superseded`` and nothing but that ``too_late``."""
 
 from __future__ import annotations
 
@@ -126,5 +126,5 @@ bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
     # hand-off to the send thread
     assert frames >= sent and frames - left_inline <= 5, robot.log
     # DDS on a loaded machine may lose a few on either side (not the bridge's drops), not most
-    assert count + warmups_sent >= sent >= 0.5 * count, f"the bridge took {sent} of {count}\n{robot.log}"
+    assert count + warmups_sent >= sent >= 0.5 * count, f"took {sent} of {count}\n{robot.log}"
     assert received >= len(got) >= 0.9 * received, f"{len(got)} of {sent} arrived\n{base.log}"

@@ -395,7 +395,7 @@ class DatagramLink(_Sending, Link):
         whole = self.bare or getattr(sender, "bare", False)
         kind = getattr(sender, "recovery", "none")
         one = whole or kind == "none" and not self.compact and size <= self.max_frame
-        inline = None
+        inline: Callable[[bytes, Any, Address], bool | None] | None = None
         if one:
             inline = self._send_now
         elif kind == "none" and not self.compact and size <= INLINE_MAX:

@@ -181,12 +181,12 @@ class UdpEndpoint:
         except BlockingIOError:  # poll said readable, and someone was faster (or a bad checksum)
             return None
         arrived, joined = 0, 0
-        for level, kind, data in ancillary:
+        for level, kind, value in ancillary:
             if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
-                seconds, nanoseconds = _TIMESPEC.unpack_from(data)
+                seconds, nanoseconds = _TIMESPEC.unpack_from(value)
                 arrived = seconds * 1_000_000_000 + nanoseconds
             elif level == _SOL_UDP and kind == _UDP_GRO:
-                joined = _GRO_SIZE.unpack_from(data)[0]
+                joined = _GRO_SIZE.unpack_from(value)[0]
         source = source if len(source) == 2 else source[:2]
         if 0 < joined < size:  # several datagrams: the first is in place, keep the others
             rest = memoryview(bytes(buffer[joined:size]))
