@@ -19,7 +19,7 @@ import pytest
 from rosgate_transport_udp import UdpEndpoint, UdpTransport
 
 from rosgate.config import LinkConfig
-from rosgate.links import DatagramLink
+from rosgate.links import INLINE_MAX, DatagramLink
 from rosgate.wire import envelope, framing
 
 TIMEOUT = 20.0
@@ -183,3 +183,36 @@ def test_a_frame_that_cannot_go_at_once_is_queued_and_counted_once_superseded(
     assert camera_got == [f for f in frames if f in camera_got]  # in order
     assert camera.drops == ["superseded"] * (len(frames) - len(camera_got))
     assert a.counters.inline_out == 0
+
+
+class CountingRuns(OneAtATime):
+    """A udp endpoint that counts what it is handed: several datagrams at once, or one."""
+
+    def __init__(self, inner: UdpEndpoint):
+        super().__init__(inner)
+        self.runs: list[int] = []
+        self.threads: set[str] = set()
+
+    def send_datagrams(self, datagrams, to) -> None:
+        self.runs.append(len(datagrams))
+        self.threads.add(threading.current_thread().name)
+        self.inner.send_datagrams(datagrams, to)
+
+
+def test_a_frame_longer_than_what_leaves_inline_goes_from_the_send_thread_in_runs(closing):
+    """A 300 kB frame (longer than INLINE_MAX) is the send thread's; it hands the kernel the
+    frame's fragments 64 at a time (one system call each with segmentation offload), and the
+    counters still count every packet and one frame."""
+    a, to, rx = pair(closing, CountingRuns)
+    camera = Camera()
+    image = message(1, 300_000)
+    assert len(image) > INLINE_MAX
+    assert a.send(image, camera, to)
+    assert rx.wait_for(1)
+    assert rx.frames == [image] and camera.drops == [] and rx.lost == []
+    packets = math.ceil(300_000 / (1_200 - framing.FRAGMENT.size))
+    wire = a.endpoint
+    assert wire.threads == {"tx-a"}
+    assert a.counters.packets_out == packets
+    assert max(wire.runs) == 64 and sum(wire.runs) >= packets - 1  # the first may go alone
+    assert a.counters.frames_out == 1 and a.counters.inline_out == 0

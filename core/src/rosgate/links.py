@@ -321,6 +321,8 @@ _INLINE = Outgoing(None, None, 0, list)
 INLINE_MAX = 64 * 1024
 #: how long a caller waits for another thread's packet to leave before it queues its frame
 TURN_WAIT = 0.02
+#: the most fragments of one frame the send thread hands the kernel in one call
+_RUN = 64
 
 
 def _batchable(due: Due) -> bool:
@@ -640,6 +642,7 @@ class DatagramLink(_Sending, Link):
         same destination share a datagram (the one that does not fit is sent next)."""
         wake, closed, scheduler = self._wake, self.closed, self.scheduler
         limit, coalesce = self.max_frame, not self.bare
+        run = self._send_datagrams is not None  # fragments in runs (see _send_run)
         carry: Due | None = None  # taken from the scheduler, not sent yet: it goes next
         while True:
             with wake:
@@ -672,11 +675,29 @@ class DatagramLink(_Sending, Link):
                         else:
                             carry = more
                             break
+                elif run and type(due.packet) is _Gather and due.ends is None:
+                    # the next fragments of the same frame, while the scheduler lets them go
+                    # one after the other: one system call (segmentation offload)
+                    while len(batch) < _RUN:
+                        more = scheduler.next(now)
+                        if not isinstance(more, Due):
+                            break
+                        if (type(more.packet) is _Gather and more.sender is due.sender
+                                and more.to == due.to and not more.again):
+                            batch.append(more)
+                            if more.ends is not None:
+                                break  # the frame's last
+                        else:
+                            carry = more
+                            break
             if scheduler.dropped:
                 self._count_drops()
             try:
                 if len(batch) == 1:
                     self._send_due(due)
+                elif type(due.packet) is _Gather:
+                    self._send_run([d.packet for d in batch], due.sender, due.to,
+                                   batch[-1].ends is not None)
                 else:
                     self._send_batch(batch, due.to)
             except Exception:  # a bug; the link must keep sending
