@@ -557,8 +557,9 @@ class DatagramLink(_Sending, Link):
             self._release()
 
     def _send_run(self, packets: list[bytes], sender: Any, to: Address, last: bool) -> bool:
-        """Packets of one frame, from the caller's thread; False when they could not be sent
-        (counted: the frame is lost)."""
+        """Packets of one frame in a row (from the caller's thread, or the send thread's run),
+        in one call where the endpoint takes several datagrams; ``last``: they end the frame.
+        False when they could not be sent (counted: the frame is lost)."""
         try:
             if len(packets) > 1 and self._send_datagrams is not None:
                 self._send_datagrams([cast(_Gather, p).parts if type(p) is _Gather else [p]
