@@ -61,7 +61,7 @@ OVERLOAD = 2.0    # the overload trial offers this times the sustained rate
 
 TARGET_SIZE, TARGET_ROUTE, TARGET_RATE = "2.5 kB", Route("udp"), 10_000
 REPLACED_RATE = 3_300  # ros2_socket_bridge at 2.5 kB, the system rosgate replaces
-OVERLOAD_P99_MS = 50   # issue 11: at 2x sustained, p99 under this for non-reliable topics
+OVERLOAD_P99_MS = 50   # target: at 2x sustained, p99 under this for non-reliable topics
 
 
 @dataclass(frozen=True)
@@ -96,6 +96,13 @@ SIZES = [
     # 2,000 images/s would be 2 GB/s: the CPU trial is the latency trial (20/s)
     Size("1 MB", "image", 1024 * 1024, 20, 2_000, 20, cpu_rate_max=20),
 ]
+# the headline: the file a user writes (client/server, identities, nothing else: udp with its
+# max_frame from the path, cdr, the session's aead cipher), reliable and best effort
+DEFAULT = Route("udp", cipher="aead", roles="session", max_frame=None)
+DEFAULT_BE = replace(DEFAULT, reliability="best_effort")
+DEFAULTS = [DEFAULT, DEFAULT_BE]
+# the rows below set udp's max_frame to 65,000 (loopback's datagrams): the bridge's cost per
+# message, without fragments
 ROUTES = [Route("udp"), Route("udp", codec="msgpack"), Route("udp", cipher="fernet"), Route("tcp")]
 QUICK_ROUTES = [Route("udp"), Route("tcp")]
 CLIENT_SERVER = Route("udp", roles="client/server")  # shown at 2.5 kB only
@@ -106,6 +113,7 @@ SESSION_RATIO = 0.85  # target: the session sustains >= this much of udp/cdr/non
 # anything (udp: one datagram per message, so only sizes that fit one)
 FLOORS = [Route("udp", roles="floor"), Route("tcp", roles="floor")]
 UDP_FLOOR_MAX = 65_000
+ALL_ROUTES = [*DEFAULTS, *ROUTES, CLIENT_SERVER, SESSION]
 
 
 @dataclass(frozen=True)
@@ -118,7 +126,7 @@ class Settings:
     close: float            # the search stops when the lowest failure is within this of the pass
 
 
-# full: within 10 %, so that two rows of the same run can be compared to 0.85x (issue 9's
+# full: within 10 %, so that two rows of the same run can be compared to 0.85x (the session's
 # target) and not be 25 % apart from where the search happened to stop
 FULL = Settings(False, trial_seconds=2.0, latency_seconds=2.0, cpu_seconds=3.0, max_trials=8,
                 close=1.10)
@@ -205,12 +213,13 @@ class Case:
     """The processes of one (size, path) and the trials run through them."""
 
     def __init__(self, size: Size, route: Route | None, folder: Path,
-                 checkout: Checkout = HERE_CHECKOUT, reliability: str = "reliable"):
+                 checkout: Checkout = HERE_CHECKOUT, reliability: str | None = None):
         self.size = size
         self.route = route
         self.folder = folder
         self.checkout = checkout
-        self.reliability = reliability
+        #: the QoS of every queue: the route's, unless a trial asks for another
+        self.reliability = reliability or (route.reliability if route else "reliable")
         self.trials = 0
         self.a: Bridge | None = None
         self.b: Bridge | None = None
@@ -218,7 +227,8 @@ class Case:
 
     @property
     def label(self) -> str:
-        kind = "" if self.reliability == "reliable" else f" {self.reliability.replace('_', '-')}"
+        own = self.route.reliability if self.route else "reliable"
+        kind = "" if self.reliability == own else f" {self.reliability.replace('_', '-')}"
         return f"{self.size.name} {self.route.label if self.route else 'bare rclpy'}{kind}"
 
     @property
@@ -442,8 +452,12 @@ class Result:
     trials: list[Trial] = field(default_factory=list)  # the search's
     overload: Trial | None = None      # at OVERLOAD x sustained, reliable (the case's QoS)
     overload_be: Trial | None = None   # the same rate, every queue best effort
-    #: the session only: a trial at SESSION_RATIO x udp/cdr/none's sustained rate (issue 9)
+    #: the session only: a trial at SESSION_RATIO x udp/cdr/none's sustained rate
     session_check: Trial | None = None
+    #: the default file only: a trial at DROP_CHECK x its sustained rate in fresh processes,
+    #: and the drops both bridges counted in it, by reason
+    drop_check: Trial | None = None
+    check_drops: dict[str, int] | None = None
     profiles: list[Path] = field(default_factory=list)
     error: str | None = None
     problems: list[str] = field(default_factory=list)
@@ -492,7 +506,7 @@ def measure(size: Size, route: Route | None, settings: Settings, folder: Path,
         result.error = str(exc)
         log(f"  [{case.label}] FAILED: {exc}")
     result.problems += case.problems()
-    # --quick: the best-effort overload only where the issue's target is
+    # --quick: the best-effort overload only where its target is
     quick_skip = settings.quick and (route is None or replace(route, rev="") != TARGET_ROUTE)
     if result.overload and size.key in options.best_effort and not quick_skip:
         result.overload_be = best_effort_overload(size, route, checkout, folder / "best-effort",
@@ -530,7 +544,7 @@ def best_effort_overload(size: Size, route: Route | None, checkout: Checkout, fo
 
 def confirm_session(results: list[Result], settings: Settings, options: Options,
                     folder: Path) -> None:
-    """Issue 9's target asks whether the session sustains SESSION_RATIO x what udp/cdr/none
+    """The session's target asks whether it sustains SESSION_RATIO x what udp/cdr/none
     sustained in the same run. Two searches each stop within 10 % of their path's limit, so
     their ratio alone is ±10 %; this asks the question directly: fresh session processes, one
     trial at exactly that rate, passing as a search trial passes (>= 95 % in time)."""
@@ -553,6 +567,48 @@ def confirm_session(results: list[Result], settings: Settings, options: Options,
                     f"rate: {describe(session.session_check)}")
         except RuntimeError as exc:
             session.problems.append(f"the session's check trial failed: {exc}")
+
+
+DROP_CHECK = 0.9  # the default file's drop check offers this times its sustained rate
+LINK_DROPS = ("superseded", "too_late")  # what says a bridge gave up on a message
+
+
+def check_drops(results: list[Result], settings: Settings, options: Options,
+                folder: Path) -> None:
+    """Whether the default file drops messages below its sustained rate: fresh processes, one
+    trial at DROP_CHECK x the sustained rate, then the drop counters both bridges log when
+    they stop (in fresh processes they count that trial and the warm-up only)."""
+    for r in results:
+        route = r.route
+        if route is None or not route.default_file or r.sustained is None:
+            continue
+        case = Case(r.size, route, folder / f"drops-{r.size.key}-{route.reliability}{route.rev}",
+                    options.checkouts[route.rev])
+        try:
+            with case:
+                case.warm_up()
+                r.drop_check = case.trial(DROP_CHECK * r.sustained.offered,
+                                          settings.trial_seconds)
+        except RuntimeError as exc:
+            r.problems.append(f"the drop check failed: {exc}")
+            continue
+        r.check_drops = counted_drops(case)
+        log(f"  [{case.label}] at {DROP_CHECK:g}x its sustained rate: "
+            f"{describe(r.drop_check)}; drops: {r.check_drops or 'none'}")
+
+
+def counted_drops(case: Case) -> dict[str, int]:
+    """Drops by reason from the counters the case's bridges logged when they stopped."""
+    found: dict[str, int] = {}
+    for bridge in case.bridges:
+        for line in bridge.lines.seen:
+            if "drops: " not in line:
+                continue
+            for item in line.rsplit("drops: ", 1)[1].split(", "):
+                reason, _, count = item.partition("=")
+                if count.isdigit():
+                    found[reason] = found.get(reason, 0) + int(count)
+    return found
 
 
 # -- profiles -------------------------------------------------------------------------------------
@@ -807,13 +863,13 @@ def verdicts(results: list[Result]) -> list[str]:
     return lines
 
 
-# -- issue 11's targets, each beside what the floor (no rosgate) reaches in the same run ----------
+# -- the fast path's targets, each beside what the floor (no rosgate) reaches in the same run -----
 UDP, TCP = Route("udp"), Route("tcp")
 UDP_FLOOR, TCP_FLOOR = FLOORS
 
 
 def fast_path_targets(results: list[Result], cpu_rate: float) -> str | None:
-    """A table: each target of issue 11, rosgate's value, the floor's, the verdict. A target
+    """A table: each target of the fast path, rosgate's value, the floor's, the verdict. A target
     the floor misses too is one no Python bridge on rclpy reaches on this machine."""
     found = {(r.size.name, r.route): r for r in results if r.route is None or not r.route.rev}
 
@@ -885,7 +941,66 @@ def fast_path_targets(results: list[Result], cpu_rate: float) -> str | None:
                       f"{floor:.{digits}f}{unit}" if floor is not None else "-", verdict])
     if not lines:
         return None
-    return markdown(["issue 11's target", "rosgate", "floor (no rosgate)", "verdict"], lines)
+    return markdown(["fast-path target", "rosgate", "floor (no rosgate)", "verdict"], lines)
+
+
+# -- the default file's targets, measured beside the rows they compare with --------------------
+DEFAULT_VS_BARE = 0.4      # the default file sustains at least this much of bare rclpy
+DEFAULT_VS_LOOPBACK = 0.9  # ... and of the same file with max_frame 65,000
+UDP_VS_FLOOR = 0.9         # udp/cdr/none against the udp floor, 2.5 kB
+IMAGE_CPU_US = 1_000       # 1 MB images: CPU per image on each side
+BATCH_CPU_US, BATCH_P99_MS = 30, 3  # with a 2 ms batch window, 2,000 msg/s of 2.5 kB
+
+
+def default_file_targets(results: list[Result]) -> str | None:
+    """A table: each target of the default file, what was measured, the verdict."""
+    found = {(r.size.name, r.route): r for r in results if r.route is None or not r.route.rev}
+
+    def sustained(size: str, route: Route | None) -> float | None:
+        r = found.get((size, route))
+        return r.sustained.offered if r and r.sustained else None
+
+    def vs(size: str, route: Route, base: Route | None) -> float | None:
+        mine, theirs = sustained(size, route), sustained(size, base)
+        return mine / theirs if mine is not None and theirs else None
+
+    lines = []
+    for size in ("100 B", "2.5 kB", "10 kB"):
+        for route in (DEFAULT_BE, DEFAULT):
+            r, got = found.get((size, route)), vs(size, route, None)
+            if r is None or got is None:
+                continue
+            drops = r.check_drops
+            late = {k: v for k, v in (drops or {}).items() if k in LINK_DROPS}
+            said = ("no drop check" if drops is None else
+                    ", ".join(f"{k}={v}" for k, v in late.items()) or "no superseded/too_late")
+            met = got >= DEFAULT_VS_BARE and drops is not None and not late
+            lines.append([f"{size} {route.path}: sustained >= {DEFAULT_VS_BARE}x bare, no "
+                          f"superseded/too_late drop at {DROP_CHECK}x it",
+                          f"{got:.2f}x; {said}", "MET" if met else "NOT MET"])
+    got = vs("2.5 kB", DEFAULT, SESSION)
+    if got is not None:
+        lines.append([f"2.5 kB {DEFAULT.path} sustains >= {DEFAULT_VS_LOOPBACK}x the same file "
+                      f"with max_frame 65000 ({SESSION.path})", f"{got:.2f}x",
+                      "MET" if got >= DEFAULT_VS_LOOPBACK else "NOT MET"])
+    got = vs("2.5 kB", UDP, UDP_FLOOR)
+    if got is not None:
+        lines.append([f"2.5 kB udp/cdr/none sustains >= {UDP_VS_FLOOR}x the udp floor",
+                      f"{got:.2f}x", "MET" if got >= UDP_VS_FLOOR else "NOT MET"])
+    image = found.get(("1 MB", DEFAULT))
+    if image and image.cpu:
+        sides = [image.cpu.us_per_msg(side) for side in ("A", "B")]
+        if None not in sides:
+            worst = max(v for v in sides if v is not None)
+            lines.append([f"1 MB {DEFAULT.path}: CPU per image <= {IMAGE_CPU_US / 1000:g} ms on "
+                          "each side", f"A {us(sides[0])} µs, B {us(sides[1])} µs",
+                          "MET" if worst <= IMAGE_CPU_US else "NOT MET"])
+    if not lines:
+        return None
+    lines.append([f"2.5 kB at 2,000 msg/s with a 2 ms batch window: CPU <= {BATCH_CPU_US} µs per "
+                  f"message on each side, p99 <= {BATCH_P99_MS} ms", "-",
+                  "NOT MEASURED: no batch window yet"])
+    return markdown(["default-file target", "measured", "verdict"], lines)
 
 
 def report(results: list[Result], settings: Settings, options: Options, elapsed: float,
@@ -915,6 +1030,12 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
         f"{settings.trial_seconds:g} s trial at twice the sustained rate after the search; "
         "delivered: the share that arrived at all, however late; p99: of what arrived.",
         "",
+        "The default file: what a user writes after the README's Security section — a "
+        "client/server session with identities and nothing else: udp with the max_frame it "
+        "takes from the path, cdr, the session's aead cipher (the topic's QoS is the "
+        "measurement's: reliable or best effort, deep queues). The other rows set udp's "
+        "max_frame to 65,000 (loopback's datagrams).",
+        "",
         table(results),
         "",
         *[f"**{line}**" for line in verdicts(results)],
@@ -931,9 +1052,17 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
         "",
         detail_table(results),
     ]
+    defaults = default_file_targets(results)
+    if defaults:
+        parts += ["", "## The default file's targets", "",
+                  f"Drop check: fresh processes, one {settings.trial_seconds:g} s trial at "
+                  f"{DROP_CHECK:g}x the row's sustained rate, then the drops both bridges "
+                  "counted (superseded: a latest-only message replaced by a newer one while it "
+                  "waited to be sent; too_late: one that waited longer than it may).", "",
+                  defaults]
     targets = fast_path_targets(results, options.cpu_rate)
     if targets:
-        parts += ["", "## Issue 11's targets, and the floor", "",
+        parts += ["", "## The fast path's targets, and the floor", "",
                   "The floor: bench/floor.py in place of both bridges, no rosgate — a raw "
                   "subscription whose callback sends each message as it came, and a thread that "
                   "receives and publishes it (udp: one datagram per message, so not at 1 MB; "
@@ -1021,7 +1150,7 @@ def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
     for size in SIZES:
         if wanted and size.key not in wanted:
             continue
-        routes = QUICK_ROUTES if settings.quick else ROUTES
+        routes = [*DEFAULTS, *(QUICK_ROUTES if settings.quick else ROUTES)]
         if size.name == TARGET_SIZE:
             routes = [*routes, CLIENT_SERVER, SESSION]
         floors = [f for f in FLOORS if f.transport == "tcp" or size.bytes <= UDP_FLOOR_MAX]
@@ -1038,7 +1167,7 @@ def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
     if profile_spec and not any(route and route.path == profile_spec.path
                                 and size.key == profile_spec.size_key for size, route in cases):
         size = next(s for s in SIZES if s.key == profile_spec.size_key)
-        route = next(r for r in [*ROUTES, CLIENT_SERVER, SESSION] if r.path == profile_spec.path)
+        route = next(r for r in ALL_ROUTES if r.path == profile_spec.path)
         cases += [(size, route)] + ([(size, replace(route, rev=base))] if base else [])
     return cases
 
@@ -1097,9 +1226,9 @@ def main() -> int:
         key = normalize(args.profile_size)
         if key not in {s.key for s in SIZES}:
             sys.exit(f"bench: --profile-size {args.profile_size}: sizes: {size_names()}")
-        if args.profile_path not in {r.path for r in [*ROUTES, CLIENT_SERVER, SESSION]}:
+        if args.profile_path not in {r.path for r in ALL_ROUTES}:
             sys.exit(f"bench: --profile-path {args.profile_path}: one of "
-                     f"{', '.join(r.path for r in [*ROUTES, CLIENT_SERVER, SESSION])}")
+                     f"{', '.join(r.path for r in ALL_ROUTES)}")
         options.profile = ProfileSpec(args.profile_path, key, args.profile_seconds,
                                       HERE / "profiles")
     start, load = time.monotonic(), Load()
@@ -1121,6 +1250,7 @@ def main() -> int:
             folder = Path(tmp) / f"case{i:02d}"
             results.append(measure(size, route, settings, folder, options))
         confirm_session(results, settings, options, Path(tmp))
+        check_drops(results, settings, options, Path(tmp))
     out = None if args.out == "-" else Path(args.out)
     plots_dir = args.plots or (out.parent / "plots" if out else None)
     drawn = []

@@ -1,4 +1,4 @@
-"""The constrained-link benchmark: two bridges through the link emulator set to issue 12's
+"""The constrained-link benchmark: two bridges through the link emulator set to a typical
 Wi-Fi (20 Mbit/s, 10 ms, 2 ms jitter, 1 % loss per IP packet, MTU 1500), everything in one run.
 
     publisher --DDS--> bridge A --udp--> relay (python -m rosgate_emulator) --udp-->

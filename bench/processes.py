@@ -266,11 +266,23 @@ class Route:
     # no rosgate, bench/floor.py's two processes (the least a Python bridge on rclpy does)
     roles: str = "peer"
     rev: str = ""        # whose rosgate: "" this checkout's, else a short commit (--base)
+    #: udp's max_frame in the files; None: none, as a user's file (udp takes it from the path)
+    max_frame: int | None = 65_000
+    #: the topic's QoS in both files, the publisher's and the subscriber's
+    reliability: str = "reliable"
+
+    @property
+    def default_file(self) -> bool:
+        """The file a user writes: a session with its keys and nothing else set."""
+        return self.roles == "session" and self.max_frame is None
 
     @property
     def path(self) -> str:
         """The label without the revision: what --path and --profile-path match."""
         name = f"{self.transport}/{self.codec}/{self.cipher}"
+        if self.default_file:
+            qos = "best effort" if self.reliability == "best_effort" else "reliable"
+            return f"default file, {qos}"
         if self.roles == "session":
             return f"{name} client/server authenticated"
         if self.roles == "floor":
@@ -299,23 +311,20 @@ def session_keys(folder: Path) -> tuple[str, str]:
     return client, server
 
 
-LOOPBACK_MAX_FRAME = 65_000
-
-
 def knows_max_frame(root: Path) -> bool:
     """Whether a checkout's udp plugin takes the max_frame option (real links: its default is a
     safe size for real networks, 1,200 bytes)."""
     module = root / "plugins" / "transport_udp" / "src" / "rosgate_transport_udp" / "__init__.py"
-    return "max_frame: int = option(" in module.read_text()
+    return "max_frame: int" in module.read_text()
 
 
 def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
                   reliability: str = "reliable", root: Path = ROOT) -> tuple[Path, Path]:
     """Write bridge A's and bridge B's bringup.yaml; return their paths.
 
-    UDP datagrams are up to 65,000 bytes here, as before real links (see "The link emulator" in
-    bench/README.md): loopback has no MTU and loses nothing, and what these rows measure is the
-    bridge's cost per message, not the cost of fragments — bench/constrained.py measures that."""
+    A route's ``max_frame`` is written into both files (65,000 bytes: loopback's datagrams, the
+    bridge's cost per message without fragments); the default file's route has none, as a
+    user's file: udp then takes it from the path (an older rosgate: 1,200 bytes)."""
     port = free_port()
     options = {}
     if route.cipher == "fernet":
@@ -324,12 +333,15 @@ def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
             subprocess.run([ROSGATE, "keygen", "fernet", "--out", str(key)], check=True,
                            capture_output=True)
         options["fernet"] = f"{{key_file: {key}}}"
-    if route.transport == "udp" and knows_max_frame(root):
-        options["udp"] = f"{{max_frame: {LOOPBACK_MAX_FRAME}}}"
+    if route.transport == "udp" and route.max_frame and knows_max_frame(root):
+        options["udp"] = f"{{max_frame: {route.max_frame}}}"
     plugins = ("plugins: {" + ", ".join(f"{k}: {v}" for k, v in options.items()) + "}\n"
                if options else "")
-    topic = (f"{{topic: /bench, type: {msg_type}, transport: {route.transport}, "
-             f"codec: {route.codec}, cipher: {route.cipher}, "
+    # the default file names no link, codec or cipher: udp, cdr, and the session's aead are
+    # what a file gets without them (its QoS is the measurement's: deep queues, see README)
+    link = ("" if route.default_file else
+            f"transport: {route.transport}, codec: {route.codec}, cipher: {route.cipher}, ")
+    topic = (f"{{topic: /bench, type: {msg_type}, {link}"
              f"qos: {{reliability: {reliability}, history: keep_last, depth: {depth}}}")
     if route.roles == "peer":
         a = (f"bridge: {{name: bench_a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}\n{plugins}"

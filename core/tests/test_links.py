@@ -276,7 +276,7 @@ def test_frames_that_waited_leave_together_from_the_send_thread(closing):
     order they came, and the one that does not fit goes next."""
     a, wire, a_inbox, b, to, b_inbox = recorded_pair(closing, max_frame=1200)
     wire.released.clear()
-    big = frame_of(1, 5000, random.Random(40))
+    big = frame_of(1, 70_000, random.Random(40))  # longer than what leaves inline
     assert a.send(big, a_inbox.sender(1), to) is True
     assert wire.entered.wait(5)  # its first fragment is on its way: the thread is held
     rng = random.Random(41)

@@ -13,8 +13,9 @@ transport plugin only opens sockets.
 Both send through a :class:`~rosgate.scheduler.Scheduler` — the one place a link's frames wait:
 per-topic queues in priority classes, latest-only replacement, late best-effort frames dropped,
 a bandwidth budget per peer (``bridge.links``) — drained by a send thread of the link's own, so
-sending never blocks the caller (a ROS executor). A frame that fits one packet goes out on the
-caller's thread when nothing waits and the budget allows: no thread hand-off for a quiet link.
+sending never blocks the caller (a ROS executor). A frame goes out on the caller's thread when
+nothing waits and the budget allows — whole, or its fragments until something else waits — so a
+quiet link has no thread hand-off (a late send thread must not cost a latest-only message).
 Frames that wait for the same destination leave together (one datagram up to ``max_frame``,
 one stream write up to :data:`WRITE` bytes), so a backlog costs few system calls.
 
@@ -177,6 +178,8 @@ class LinkCounters:
     that carried them, and how many frames shared one with others (coalesced)."""
 
     frames_out: int = 0
+    #: of frames_out, those sent from the caller's thread (the link was idle: no hand-off)
+    inline_out: int = 0
     packets_out: int = 0
     coalesced_out: int = 0
     bytes_out: int = 0
@@ -190,7 +193,7 @@ class LinkCounters:
 
     def line(self) -> str:
         return (f"out {self.frames_out} frames in {self.packets_out} packets "
-                f"({self.coalesced_out} coalesced, {self.bytes_out} B), "
+                f"({self.coalesced_out} coalesced, {self.inline_out} inline, {self.bytes_out} B), "
                 f"in {self.frames_in} frames in {self.packets_in} packets "
                 f"({self.coalesced_in} coalesced, {self.bytes_in} B)")
 
@@ -216,6 +219,10 @@ class _Sending(ABC):
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._busy = False  # a thread is sending (inline or the send thread): one at a time
+        #: callers waiting for the turn (see DatagramLink._await_turn), told when it is free
+        self._turn = threading.Condition(self._lock)
+        self._turn_waiters = 0
+        self._stuck = False  # the last wait for the turn timed out: the link is the bottleneck
         #: what a stream's inline write left unwritten: it goes before anything else
         self._rest: Due | None = None
 
@@ -242,6 +249,7 @@ class _Sending(ABC):
                 or not self.scheduler.may_send_now(to, size)):
             return False
         self._busy = True
+        self._stuck = False
         return True
 
     def _release(self) -> None:
@@ -250,6 +258,8 @@ class _Sending(ABC):
             self._busy = False
             if not self.scheduler.idle or self._rest is not None:
                 self._wake.notify()
+            if self._turn_waiters:
+                self._turn.notify_all()
 
     def _send_now(self, packet: bytes, sender: Any, to: Any) -> bool | None:
         """Send ``packet`` (a whole frame) from the caller's thread when it may leave at once
@@ -259,7 +269,9 @@ class _Sending(ABC):
             if not self._claim(to, len(packet)):
                 return None
         try:
-            return self._send_due(Due(packet, to, sender, _INLINE))
+            sent = self._send_due(Due(packet, to, sender, _INLINE))
+            self.counters.inline_out += sent
+            return sent
         finally:
             self._release()
 
@@ -315,6 +327,14 @@ def _one(packet: bytes) -> Callable[[], list[bytes]]:
 
 #: what a Due sent from the caller's thread ends: its one frame (see _Sending._send_now)
 _INLINE = Outgoing(None, None, 0, list)
+#: the longest frame whose fragments leave from the caller's thread (an idle link): one
+#: loopback datagram's worth, a few dozen system calls (one with segmentation offload). A
+#: longer one (an image) goes to the send thread, so a ROS executor never waits on a long one.
+INLINE_MAX = 64 * 1024
+#: how long a caller waits for another thread's packet to leave before it queues its frame
+TURN_WAIT = 0.02
+#: the most fragments of one frame the send thread hands the kernel in one call
+_RUN = 64
 
 
 def _batchable(due: Due) -> bool:
@@ -376,6 +396,8 @@ class DatagramLink(_Sending, Link):
                 on_lost, max_message=max_message)
         self._counters: dict[Address, int] = {}  # compact: the next piece's counter per destination
         self._send_parts = getattr(endpoint, "send_parts", None)
+        #: several datagrams in one call (UDP: segmentation offload), optional like send_parts
+        self._send_datagrams = getattr(endpoint, "send_datagrams", None)
         self._init_sending(budget, getattr(transport, "packet_overhead", 0), self.max_frame,
                            queue_frames, queue_bytes)
         self._threads = [
@@ -396,8 +418,15 @@ class DatagramLink(_Sending, Link):
         whole = self.bare or getattr(sender, "bare", False)
         kind = getattr(sender, "recovery", "none")
         one = whole or kind == "none" and not self.compact and size <= self.max_frame
+        inline: Callable[[bytes, Any, Address], bool | None] | None = None
         if one:
-            sent = self._send_now(frame, sender, to)
+            inline = self._send_now
+        elif kind == "none" and not self.compact and size <= INLINE_MAX:
+            inline = self._send_fragments_now
+        if inline is not None:
+            sent = inline(frame, sender, to)
+            if sent is None and self._await_turn() and self._send_waiting():
+                sent = inline(frame, sender, to)  # what waited is gone: the link is idle
             if sent is not None:
                 return sent
         return self._put(Outgoing(sender, to, size,
@@ -430,7 +459,9 @@ class DatagramLink(_Sending, Link):
                 sent += sum(self.send(frame, sender, to) for frame in group)
                 continue
             try:
-                sent += self._send_batch([Due(frame, to, sender) for frame in group], to)
+                batched = self._send_batch([Due(frame, to, sender) for frame in group], to)
+                self.counters.inline_out += batched
+                sent += batched
             finally:
                 self._release()
         return sent
@@ -527,6 +558,118 @@ class DatagramLink(_Sending, Link):
                 soonest = due
         return soonest
 
+    def _await_turn(self) -> bool:
+        """Wait up to :data:`TURN_WAIT` while another thread sends a packet; whether the turn
+        is free. A packet takes microseconds; a thread that holds the turn longer was not
+        scheduled (a busy machine) — not a reason to queue a frame where a latest-only one can
+        be replaced — or is held by the kernel (a full send buffer: the link is the
+        bottleneck). After one wait in vain the link counts as the bottleneck, and callers
+        queue at once until they get a turn again."""
+        with self._lock:
+            if not self._busy:
+                return True
+            if self._stuck or self.closed.is_set():
+                return False
+            self._turn_waiters += 1
+            try:
+                free = self._turn.wait_for(lambda: not self._busy, TURN_WAIT)
+            finally:
+                self._turn_waiters -= 1
+            self._stuck = not free
+            return free
+
+    def _send_waiting(self) -> bool:
+        """Send what waits from the caller's thread (up to :data:`INLINE_MAX` bytes) when
+        nobody is sending: the send thread was woken for it but has not run yet, and a frame
+        queued behind it now could be replaced (latest-only) before it does. Whether nothing
+        waits any more. What the budget holds back stays for the send thread."""
+        scheduler = self.scheduler
+        with self._lock:
+            if self._busy or self.closed.is_set() or scheduler.idle:
+                return False
+            self._busy = True
+        try:
+            left = INLINE_MAX
+            while left > 0:
+                with self._lock:
+                    due = scheduler.next()
+                if scheduler.dropped:
+                    self._count_drops()
+                if not isinstance(due, Due):
+                    break
+                self._send_due(due)
+                left -= len(due.packet)
+            with self._lock:
+                return scheduler.idle
+        finally:
+            self._release()
+
+    def _send_fragments_now(self, frame: bytes, sender: Any, to: Address) -> bool | None:
+        """A frame longer than ``max_frame``, cut and sent from the caller's thread when the link
+        is idle, as :meth:`_send_now` sends a whole one; None when it must be queued instead.
+
+        Why not hand it to the send thread: waking it costs a thread switch that a busy
+        interpreter may put off for milliseconds, long enough for the topic's next message to
+        replace a latest-only one (``superseded``) on an idle link. The send thread still gets
+        the rest of the frame as soon as anything else waits or the budget runs short
+        (:meth:`Scheduler.resume`), so a long frame takes turns with others as before."""
+        with self._lock:
+            if not self._claim(to, self.max_frame):  # the first fragment's tokens
+                return None
+        scheduler, lock, counters = self.scheduler, self._lock, self.counters
+        try:
+            packets = self._cut(frame, sender, to, False, "none")
+            # a turn: the packets handed to the kernel at once, all in one call when the
+            # endpoint can; else one, then a look at what else waits (and at the budget, whose
+            # bucket is a few packets deep)
+            turn = len(packets) if scheduler.rate is None and self._send_datagrams else 1
+            start = 0
+            while start < len(packets):
+                if start:
+                    with lock:  # anything else waiting, or a budget short: the send thread's
+                        go = scheduler.may_send_now(to, len(packets[start]))
+                        if not go:
+                            scheduler.resume(Outgoing(sender, to, sum(map(len, packets[start:])),
+                                                      list, time.monotonic()),
+                                             packets[start:], time.monotonic())
+                    if not go:
+                        return True
+                end = min(start + turn, len(packets))
+                if not self._send_run(packets[start:end], sender, to, end == len(packets)):
+                    return False
+                start = end
+            counters.inline_out += 1
+            return True
+        finally:
+            self._release()
+
+    def _send_run(self, packets: list[bytes], sender: Any, to: Address, last: bool) -> bool:
+        """Packets of one frame in a row (from the caller's thread, or the send thread's run),
+        in one call where the endpoint takes several datagrams; ``last``: they end the frame.
+        False when they could not be sent (counted: the frame is lost)."""
+        try:
+            if len(packets) > 1 and self._send_datagrams is not None:
+                self._send_datagrams([cast(_Gather, p).parts if type(p) is _Gather else [p]
+                                      for p in packets], to)
+            else:
+                for packet in packets:
+                    if type(packet) is _Gather:
+                        assert self._send_parts is not None
+                        self._send_parts(cast(_Gather, packet).parts, to)
+                    else:
+                        self.endpoint.send(packet, to)
+        except OSError as exc:
+            sender.drop("link_down" if self.closed.is_set() else "send_error",
+                        f"to {to} on {self.name}: {exc}")
+            return False
+        counters = self.counters
+        counters.packets_out += len(packets)
+        counters.frames_out += last
+        for packet in packets:
+            counters.bytes_out += len(packet)
+            _on_wire(sender, len(packet), False)
+        return True
+
     def _send_due(self, due: Due) -> bool:
         packet, to, sender = due.packet, due.to, due.sender
         count = 1
@@ -591,6 +734,7 @@ class DatagramLink(_Sending, Link):
         same destination share a datagram (the one that does not fit is sent next)."""
         wake, closed, scheduler = self._wake, self.closed, self.scheduler
         limit, coalesce = self.max_frame, not self.bare
+        run = self._send_datagrams is not None  # fragments in runs (see _send_run)
         carry: Due | None = None  # taken from the scheduler, not sent yet: it goes next
         while True:
             with wake:
@@ -629,6 +773,21 @@ class DatagramLink(_Sending, Link):
                             else:
                                 carry = more
                                 break
+                    elif run and type(due.packet) is _Gather and due.ends is None:
+                        # the next fragments of the same frame, while the scheduler lets them go
+                        # one after the other: one system call (segmentation offload)
+                        while len(batch) < _RUN:
+                            more = scheduler.next(now)
+                            if not isinstance(more, Due):
+                                break
+                            if (type(more.packet) is _Gather and more.sender is due.sender
+                                    and more.to == due.to and not more.again):
+                                batch.append(more)
+                                if more.ends is not None:
+                                    break  # the frame's last
+                            else:
+                                carry = more
+                                break
             if due is None:  # the packetizers' timers, outside the lock: they may queue repairs
                 self._tx_timer = self._run_timers(now, sending=True)
                 continue
@@ -637,6 +796,9 @@ class DatagramLink(_Sending, Link):
             try:
                 if len(batch) == 1:
                     self._send_due(due)
+                elif type(due.packet) is _Gather:
+                    self._send_run([d.packet for d in batch], due.sender, due.to,
+                                   batch[-1].ends is not None)
                 else:
                     self._send_batch(batch, due.to)
             except Exception:  # a bug; the link must keep sending
@@ -645,6 +807,8 @@ class DatagramLink(_Sending, Link):
             finally:
                 with wake:
                     self._busy = carry is not None  # a carried frame keeps its turn
+                    if self._turn_waiters and not self._busy:
+                        self._turn.notify_all()
 
     # -- in ------------------------------------------------------------------------------------
     def _receive_loop(self) -> None:

@@ -179,6 +179,16 @@ class Scheduler:
         self._activate(topic)
         return True
 
+    def resume(self, message: Outgoing, packets: list[bytes], now: float) -> None:
+        """A message whose first packets left from the caller's thread (the link was idle):
+        the rest wait here as its topic's message in progress, the next packet due since
+        ``now``, so they take turns with what came meanwhile as any message's packets do."""
+        topic = self._topic(message.sender)
+        assert topic.current is None and not topic.packets, "one message at a time per topic"
+        topic.current, topic.since = message, now
+        topic.packets.extend(packets)
+        self._activate(topic)
+
     def repair(self, sender: Any, to: Any, packets: list[bytes]) -> None:
         """Packets to send again (what a receiver asked for): first in their topic's turn."""
         topic = self._topic(sender)

@@ -80,7 +80,8 @@ def test_unknown_option():
         UdpTransport({"receive_buffer": 1 << 20, "recv_buffer": 1, "zz": 2})
     assert info.value.key == "recv_buffer"
     assert info.value.message == "unknown option of udp (did you mean 'receive_buffer'?)"
-    assert info.value.fix == "the options of udp are receive_buffer, send_buffer, max_frame"
+    assert info.value.fix == ("the options of udp are receive_buffer, send_buffer, max_frame, "
+                              "offload")
 
 
 def test_max_frame_defaults_to_a_size_every_path_carries():
