@@ -76,18 +76,14 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
 
 
-INSECURE = ("INSECURE: %s runs without authentication (bridge.insecure: true): anyone who can "
-            "reach it can read and send its topics and call its services. Set up identities: "
-            "docs/security.md")
-
-
 def _engine(path: str, plugins: Any = None, domain_id: int | None = None):
     from .config import load
     from .engine import Engine
 
     engine = Engine(load(path), plugins, domain_id=domain_id).prepare()
-    if engine.config.insecure:
-        logging.getLogger("rosgate").warning(INSECURE, path)
+    warning = engine.insecure_warning()
+    if warning is not None:
+        logging.getLogger("rosgate").warning(warning)
     return engine
 
 

@@ -316,7 +316,7 @@ class BridgeConfig:
     identity: bytes | None = None      # this side's private key (read from bridge.identity)
     server_key: bytes | None = None    # client: the server's public key; peer: the peer's
     handshake_port: int | None = None  # peer with identities: where the handshake line runs
-    insecure: bool = False             # client/server without a handshake (loudly)
+    insecure: bool = False             # links anyone can write to are accepted (loudly)
     rekey: float = REKEY_DEFAULT       # seconds between key generations in a session
     allow: tuple[Any, ...] = ()        # peer: the only addresses frames are taken from (if any)
     clients: dict[str, ClientPolicy] = field(default_factory=dict)  # server: who may connect
@@ -653,7 +653,7 @@ def _identity(src: _Source, bridge: dict, role: Role, insecure: bool,
     from .identity import IdentityError, decode_public, load_private
 
     if role is Role.PEER:
-        for key in ("server_key", "insecure"):
+        for key in ("server_key",):
             if key in bridge:
                 raise src.error(f"bridge.{key}", f"role peer has no {key}:",
                                 fix="a peer authenticates with identity:, peer_key: and "

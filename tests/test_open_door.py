@@ -1,0 +1,254 @@
+"""No open door by default: the attacks on a bridge whose links anyone could write to, or whose
+handshake capacity strangers could fill, or whose revoked clients kept a way in — each against
+real ``rosgate run`` processes and real sockets.
+
+Each docstring gives what the attack got on the code before the defence (measured here, 2
+cores, shared machine) and asserts what it gets now.
+"""
+
+from __future__ import annotations
+
+import itertools
+import socket
+import struct
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import ROSGATE, cross, free_port, wait_until
+from geometry_msgs.msg import Twist
+from rclpy.serialization import serialize_message
+from test_sessions_peer import identities
+
+from rosgate.wire import envelope
+from rosgate.wire.envelope import topic_id_for
+
+FAST = "heartbeat: 0.2, peer_timeout: 0.8, reconnect: {min: 0.05, max: 0.5}"
+
+
+def write(path: Path, content: str) -> Path:
+    path.write_text(content)
+    return path
+
+
+def twist(x: float) -> Twist:
+    t = Twist()
+    t.linear.x = x
+    return t
+
+
+# -- forged source addresses ---------------------------------------------------------------------
+def _checksum(data: bytes) -> int:
+    if len(data) % 2:
+        data += b"\0"
+    total = sum(struct.unpack(f"!{len(data) // 2}H", data))
+    while total >> 16:
+        total = (total & 0xFFFF) + (total >> 16)
+    return ~total & 0xFFFF
+
+
+def forged_udp(source: tuple[str, int], destination: tuple[str, int], payload: bytes) -> bytes:
+    """An IPv4 packet carrying a UDP datagram, with ``source`` written as its sender: what an
+    attacker on the path (or anyone, where nothing filters spoofed sources) can send."""
+    length = 8 + len(payload)
+    src, dst = socket.inet_aton(source[0]), socket.inet_aton(destination[0])
+    pseudo = src + dst + struct.pack("!BBH", 0, socket.IPPROTO_UDP, length)
+    udp = struct.pack("!HHHH", source[1], destination[1], length, 0)
+    udp = udp[:6] + struct.pack("!H", _checksum(pseudo + udp + payload) or 0xFFFF) + udp[8:]
+    ip = struct.pack("!BBHHHBBH4s4s", 0x45, 0, 20 + length, 0, 0, 64, socket.IPPROTO_UDP, 0,
+                     src, dst)
+    ip = ip[:10] + struct.pack("!H", _checksum(ip)) + ip[12:]
+    return ip + udp + payload
+
+
+def send_forged(packets: list[bytes], destination: str) -> None:
+    assert destination.startswith("127."), "forged packets stay on loopback"
+    with socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_RAW) as s:
+        for packet in packets:
+            s.sendto(packet, (destination, 0))
+
+
+def raw_sockets() -> bool:
+    try:
+        socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_RAW).close()
+    except PermissionError:
+        return False
+    return True
+
+
+needs_raw = pytest.mark.skipif(not raw_sockets(), reason="raw IP sockets need root "
+                               "(CAP_NET_RAW) to forge a source address")
+
+
+_SEQ = itertools.count(1000)
+
+
+def forged_twists(port: int, count: int, epoch: int = 1) -> list[bytes]:
+    """/cmd_vel frames (linear.x 9.0) as the base's would be, from the base's address, each
+    with a sequence number of its own."""
+    payload = serialize_message(twist(9.0))
+    return [forged_udp(("127.0.0.2", 40000), ("127.0.0.1", port),
+                       envelope.pack(0, topic_id_for("/cmd_vel"), epoch, next(_SEQ), 0) + payload)
+            for _ in range(count)]
+
+
+def peer_pair(tmp_path: Path, port: int, bridge: dict | None = None) -> tuple[str, str]:
+    """The robot (at 127.0.0.1, receiving /cmd_vel) and the base (at 127.0.0.2, sending it);
+    ``bridge``: each side's extra bridge keys (identities), else the two are open."""
+    robot_extra, base_extra = bridge or {}, {}
+    if bridge is not None:
+        robot_extra, base_extra = bridge["robot"], bridge["base"]
+    robot = (f"bridge: {{name: robot, role: peer, peer: 127.0.0.2, listen: 127.0.0.1, {FAST}"
+             f"{robot_extra}}}\ntopics:\n  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, "
+             f"direction: receive, port: {port}}}\n")
+    base = (f"bridge: {{name: base, role: peer, peer: 127.0.0.1, listen: 127.0.0.2, {FAST}"
+            f"{base_extra}}}\ntopics:\n  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, "
+            f"direction: transmit, port: {port}}}\n")
+    return (str(write(tmp_path / "robot.yaml", robot)), str(write(tmp_path / "base.yaml", base)))
+
+
+def with_identities(tmp_path: Path, handshake: int) -> dict:
+    keys = identities(tmp_path, a_initiates=True)
+    (robot_key, robot_pub), (base_key, base_pub) = keys["a"], keys["b"]
+    return {"robot": f", identity: {robot_key}, peer_key: {base_pub}, handshake_port: {handshake}",
+            "base": f", identity: {base_key}, peer_key: {robot_pub}, handshake_port: {handshake}"}
+
+
+@needs_raw
+def test_forged_source_datagrams_publish_nothing_on_peers_set_up_as_documented(
+        tmp_path, domain, ros_side, bridge):
+    """The attack: raw IP packets on the robot's /cmd_vel port with the base's address
+    (127.0.0.2) written as their source; no answer is needed.
+
+    Before, on the documented peer example (no identities, ``cipher: none``): 5 of 5 forged
+    Twists published on the robot's /cmd_vel (``received 5, drops: none``); source filtering
+    only stopped an honest wrong address. Now the documented pair has identities: every
+    frame must open under the session's keys, and 50 forged ones publish 0 while the base's
+    real Twists keep crossing."""
+    dr, db, port = domain(), domain(), free_port()
+    robot_file, base_file = peer_pair(tmp_path, port, with_identities(tmp_path, free_port()))
+    bridge(Path(robot_file), dr)
+    bridge(Path(base_file), db)
+    inbox = ros_side(dr, "robot").listen("/cmd_vel", Twist)
+    driver = ros_side(db, "base").publisher("/cmd_vel", Twist)
+    got = cross(driver, inbox, lambda i: twist(0.5 if i is None else float(i)),
+                lambda m: m.linear.x == 0.5, 3)
+    assert sorted(m.linear.x for m in got) == [0.0, 1.0, 2.0]
+    send_forged(forged_twists(port, 50), "127.0.0.1")
+    got = cross(driver, inbox, lambda i: twist(0.5 if i is None else 10.0 + i),
+                lambda m: m.linear.x == 0.5, 3)
+    assert sorted(m.linear.x for m in got) == [10.0, 11.0, 12.0]  # the base still drives
+    assert [m for m in inbox.items if m.linear.x == 9.0] == []
+
+
+@needs_raw
+def test_the_forged_source_attack_works_on_an_insecure_pair(tmp_path, domain, ros_side, bridge):
+    """What the test above would see without identities — the attack itself works: on the same
+    pair with ``insecure: true`` the forged Twists are published (which is why that file
+    must say so, and why ``rosgate run`` says so on every start)."""
+    dr, port = domain(), free_port()
+    robot_file, _ = peer_pair(tmp_path, port, {"robot": ", insecure: true", "base": ""})
+    robot = bridge(Path(robot_file), dr)
+    inbox = ros_side(dr, "robot").listen("/cmd_vel", Twist)
+    assert wait_until(lambda: robot.proc.poll() is None, 1)
+    for _ in range(20):  # until the listener and the bridge's publisher have met
+        send_forged(forged_twists(port, 1), "127.0.0.1")
+        if inbox.wait_count(1, 0.5):
+            break
+    send_forged(forged_twists(port, 5), "127.0.0.1")
+    assert inbox.wait_for(lambda items: len(items) >= 6, 5), len(inbox.items)
+    assert all(m.linear.x == 9.0 for m in inbox.items)
+
+
+def check(path: str) -> subprocess.CompletedProcess:
+    return subprocess.run([ROSGATE, "check", path], capture_output=True, text=True, timeout=60)
+
+
+# -- one rule for every role ---------------------------------------------------------------------
+OPEN_PEER = """bridge: {{name: robot1, role: peer, peer: 192.168.1.20, listen: 0.0.0.0{extra}}}
+topics:
+  - {{topic: /odom, type: nav_msgs/msg/Odometry, direction: transmit, port: 12001}}
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: receive, port: 12002}}
+"""
+
+
+def test_check_refuses_a_peer_anyone_can_write_to_and_insecure_says_which(tmp_path):
+    """Before: ``rosgate check`` of the documented peer example (no identities, ``cipher:
+    none``) printed ``udp:12002 cdr none`` and nothing else; ``rosgate run`` warned nothing.
+    Now it is refused at the entry anyone can write to, with a fix naming identities and
+    ``insecure: true``; with ``insecure: true`` it passes and says which entries are open
+    (the transmitting one is not: nothing arrives on it)."""
+    path = write(tmp_path / "robot1.yaml", OPEN_PEER.format(extra=""))
+    refused = check(str(path))
+    assert refused.returncode == 2, refused.stderr
+    assert f"{path}:4: topics[1].cipher: anyone who reaches this bridge can write to " \
+           "/cmd_vel: cipher none on udp:12002" in refused.stderr
+    fix = refused.stderr.split("fix: ", 1)[1]
+    for words in ("bridge.identity", "peer_key", "handshake_port", "insecure: true"):
+        assert words in fix, refused.stderr
+    path.write_text(OPEN_PEER.format(extra=", insecure: true"))
+    passed = check(str(path))
+    assert passed.returncode == 0, passed.stderr
+    assert "INSECURE" in passed.stderr
+    assert "topics[1].cipher (/cmd_vel: cipher none on udp:12002)" in passed.stderr
+    assert "/odom" not in passed.stderr
+
+
+def test_a_peer_with_a_keyed_cipher_or_identities_passes_without_a_warning(tmp_path):
+    """A static key from a file closes the door; so does a handshake."""
+    key = tmp_path / "aead.key"
+    assert subprocess.run([ROSGATE, "keygen", "aead", "--out", str(key)],
+                          capture_output=True).returncode == 0
+    path = write(tmp_path / "robot1.yaml", OPEN_PEER.format(extra=", defaults: {cipher: aead}")
+                 + f"plugins: {{aead: {{key_file: {key}}}}}\n")
+    passed = check(str(path))
+    assert passed.returncode == 0, passed.stderr
+    assert "INSECURE" not in passed.stderr
+    keys = with_identities(tmp_path, 12100)
+    path.write_text(OPEN_PEER.format(extra=keys["robot"]))
+    passed = check(str(path))
+    assert passed.returncode == 0, passed.stderr
+    assert "INSECURE" not in passed.stderr
+    path.write_text(OPEN_PEER.format(extra=keys["robot"]).replace(
+        "port: 12002}", "port: 12002, cipher: none}"))
+    refused = check(str(path))  # identities do not key cipher: none
+    assert refused.returncode == 2 and "topics[1].cipher" in refused.stderr, refused.stderr
+
+
+MICROCONTROLLER = """bridge: {{name: robot, role: peer, peer: 192.168.0.20, listen: 0.0.0.0,
+         defaults: {{codec: msgpack}}{extra}}}
+topics:
+  - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: 20000,
+     framing: none}}
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 20000,
+     framing: none}}
+services:
+  - {{service: /mcu/ping, type: std_srvs/srv/Trigger, direction: transmit, remote: ping,
+     transport: tcp, port: 20001, framing: serial_datagram, args: value}}
+  - {{service: /reset, type: std_srvs/srv/Trigger, direction: receive,
+     transport: tcp, port: 20001, framing: serial_datagram}}
+"""
+
+
+def test_a_microcontroller_entry_needs_allow_or_insecure(tmp_path):
+    """Microcontroller entries are keyless by design: before, anyone who reached their ports
+    published and called, and nothing said so. Now ``allow:`` must name the microcontroller
+    (or the file say ``insecure: true``, which then names the entries that listen: a call
+    made here goes out on a connection of its own)."""
+    path = write(tmp_path / "robot.yaml", MICROCONTROLLER.format(extra=""))
+    refused = check(str(path))
+    assert refused.returncode == 2, refused.stderr
+    assert f"{path}:5: topics[0].framing: anyone who reaches this bridge can write to " \
+           "/position: framing none on udp:20000, taken from anyone (and 1 more entry)" \
+           in refused.stderr
+    assert "bridge.allow" in refused.stderr and "insecure: true" in refused.stderr
+    path.write_text(MICROCONTROLLER.format(extra=", insecure: true"))
+    passed = check(str(path))
+    assert passed.returncode == 0, passed.stderr
+    assert ("topics[0].framing (/position: framing none on udp:20000, taken from anyone), "
+            "services[1].framing (/reset: framing serial_datagram on tcp:20001, taken from "
+            "anyone)") in passed.stderr
+    assert "/mcu/ping" not in passed.stderr
+    path.write_text(MICROCONTROLLER.format(extra=", allow: [192.168.0.20]"))
+    passed = check(str(path))
+    assert passed.returncode == 0 and "INSECURE" not in passed.stderr, passed.stderr
