@@ -9,13 +9,17 @@ cores, shared machine) and asserts what it gets now.
 from __future__ import annotations
 
 import itertools
+import json
+import signal
 import socket
 import struct
 import subprocess
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
-from conftest import ROSGATE, cross, free_port, wait_until
+from conftest import AUTH, ROSGATE, cross, free_port, wait_until
 from geometry_msgs.msg import Twist
 from rclpy.serialization import serialize_message
 from test_sessions_peer import identities
@@ -252,3 +256,162 @@ def test_a_microcontroller_entry_needs_allow_or_insecure(tmp_path):
     path.write_text(MICROCONTROLLER.format(extra=", allow: [192.168.0.20]"))
     passed = check(str(path))
     assert passed.returncode == 0 and "INSECURE" not in passed.stderr, passed.stderr
+
+
+# -- revocation ----------------------------------------------------------------------------------
+class KeyHolder:
+    """A client that holds a listed key and speaks the main line itself: it handshakes, may
+    wait before its hello, and seals its own frames under the session it is given."""
+
+    def __init__(self, port: int, key: Path, source: str = "127.0.0.1"):
+        from rosgate import identity
+        from rosgate.secure import initiate
+        from rosgate.transport import SocketConnection
+
+        sock = socket.socket()
+        sock.bind((source, 0))
+        sock.settimeout(5)
+        sock.connect(("127.0.0.1", port))
+        self.secure = initiate(SocketConnection(sock), identity.load_private(key),
+                               identity.decode_public(AUTH.public["server"]))
+        self.buffer = b""
+        self.keys: Any = None
+        self.ids: list[int] = []
+        self.seq = itertools.count(1)
+
+    def send(self, frame: bytes) -> bool:
+        try:
+            self.secure.send(len(frame).to_bytes(4, "big") + frame)
+        except OSError:
+            return False
+        return True
+
+    def closed_within(self, seconds: float) -> bool:
+        """Whether the server closes the connection within ``seconds`` (without a word)."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            try:
+                data = self.secure.receive(65536, 0.1)
+            except OSError:
+                return True
+            if data == b"":
+                return True
+            if data:
+                self.buffer += data
+        return False
+
+    def hello(self, topics: list[dict]) -> dict | None:
+        """The server's answer to our hello (welcome or refused), or None: closed or silent."""
+        from rosgate.roles.mainline import control
+
+        if not self.send(control({"type": "hello", "protocol": 1, "name": "robot1",
+                                  "topics": topics, "services": []})):
+            return None
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline:
+            while len(self.buffer) >= 4:
+                size = int.from_bytes(self.buffer[:4], "big")
+                if len(self.buffer) < 4 + size:
+                    break
+                frame, self.buffer = self.buffer[4:4 + size], self.buffer[4 + size:]
+                if frame[3] & envelope.FLAG_CONTROL:
+                    message = json.loads(frame[envelope.SIZE:])
+                    if message.get("type") in ("welcome", "refused"):
+                        return message
+            try:
+                data = self.secure.receive(65536, 0.2)
+            except OSError:
+                return None
+            if data == b"":
+                return None
+            self.buffer += data or b""
+        return None
+
+    def take_keys(self, welcome: dict, topic: str) -> None:
+        """The session's keys for ``topic`` (client to server), as a real client derives them."""
+        from rosgate.plugins import Plugins
+        from rosgate.roles.mainline import control, key_label
+        from rosgate.secure import KeySchedule, SessionKeys
+
+        schedule = KeySchedule(float(welcome["rekey"]))
+        schedule.install(int(welcome["key_id"]), bytes.fromhex(welcome["secret"]),
+                         self.secure.handshake_hash)
+        aead = Plugins.discover().get("cipher", "aead")
+        assert aead is not None
+        self.keys = SessionKeys(schedule, aead.cls, key_label("topic", "c2s", topic),
+                                key_label("topic", "s2c", topic))
+        self.ids = welcome["topic_ids"]
+        self.send(control({"type": "ready", "key_id": int(welcome["key_id"])}))
+
+    def publish(self, message: Any) -> bool:
+        epoch = self.keys.epoch()
+        header = envelope.pack(0, self.ids[0], epoch, next(self.seq), time.time_ns())
+        return self.send(header + self.keys.sealer(epoch).seal(header,
+                                                                serialize_message(message)))
+
+    def close(self) -> None:
+        self.secure.close()
+
+
+CHATTER_HELLO = [{"topic": "/chatter", "type": "geometry_msgs/msg/Twist",
+                  "direction": "transmit", "remote": "/robot1/cmd_vel", "transport": "tcp",
+                  "codec": "cdr", "cipher": "aead", "framing": "rosgate", "qos": 10}]
+
+
+def server_file(tmp_path: Path, port: int, clients: tuple[str, ...]) -> Path:
+    policy = "".join(f"""
+  {name}:
+    key: {AUTH.public[name]}
+    topics:
+      - {{name: /{name}/**, direction: both}}""" for name in clients)
+    return write(tmp_path / "server.yaml", f"""
+bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST},
+          identity: {AUTH.identity("server")}}}
+clients:{policy}
+""")
+
+
+def test_a_revoked_key_keeps_no_connection_it_had_handshaken(tmp_path, domain, ros_side,
+                                                            bridge):
+    """The attack: robot1, about to be revoked, keeps a connection handshaken and waiting (it
+    renews one every 3 s, before the 5 s deadline); robot1 is removed from ``clients:`` and
+    the server gets SIGHUP; one second later the waiting connection says hello.
+
+    Before: its live session was cut and new handshakes refused, but the waiting connection
+    was welcomed (the policy it was judged by was looked up when its handshake completed) and
+    its session published 15 Twists of 15 (one a second for 15 s; here, with this server's
+    faster heartbeat, 15 sent in 1.5 s, 10 published: the first went while ROS matched the
+    new publisher). Now the reload closes it at
+    once, and a hello on it would be judged by the policy as it is then: 0 published."""
+    ds, port = domain(), free_port()
+    server_yaml = server_file(tmp_path, port, ("robot1", "robot2"))
+    server = bridge(server_yaml, ds)
+    inbox = ros_side(ds, "base").listen("/robot1/cmd_vel", Twist)
+    honest = KeyHolder(port, AUTH.identity("robot1"))  # the control: a hello before the cut
+    welcome = honest.hello(CHATTER_HELLO)
+    assert welcome is not None and welcome["type"] == "welcome", welcome
+    honest.take_keys(welcome, "/robot1/cmd_vel")
+    for _ in range(50):
+        honest.publish(twist(0.5))
+        if inbox.wait_count(1, 0.2):
+            break
+    assert inbox.items and inbox.items[0].linear.x == 0.5
+    waiting = KeyHolder(port, AUTH.identity("robot1"))  # handshaken, no hello yet
+    server_yaml.write_text(server_file(tmp_path, port, ("robot2",)).read_text())
+    server.proc.send_signal(signal.SIGHUP)
+    assert server.wait_log("applied the policy of 1 client(s)", 5), server.log
+    assert honest.closed_within(3)  # the live session is cut, as before
+    assert waiting.closed_within(1.0)  # and so is the connection that was waiting
+    before = len(inbox.items)
+    welcome = waiting.hello(CHATTER_HELLO)
+    assert welcome is None or welcome["type"] == "refused", welcome
+    if welcome is not None and welcome["type"] == "welcome":  # what the attack got before
+        waiting.take_keys(welcome, "/robot1/cmd_vel")
+        for _ in range(15):
+            waiting.publish(twist(9.0))
+            time.sleep(0.1)  # inside the server's peer_timeout: the session stays up
+    assert not inbox.wait_count(before + 1, 2)
+    assert [m for m in inbox.items if m.linear.x == 9.0] == []
+    assert wait_until(lambda: server.proc.poll() is None, 0.1)
+    honest.close()
+    waiting.close()

@@ -168,6 +168,7 @@ class SecureConnection:
         self.peer_key = peer_key
         self.handshake_hash: bytes = noise.get_handshake_hash()
         self._buffer = bytearray(pending)
+        self.closed = False
 
     def send(self, data: bytes) -> None:
         records = []
@@ -204,6 +205,7 @@ class SecureConnection:
         return b"".join(out)
 
     def close(self) -> None:
+        self.closed = True
         self.raw.close()
 
 

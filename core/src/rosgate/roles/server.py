@@ -110,6 +110,10 @@ class ServerRole(Role):
         self.refusals = Refusals()
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
         self._handshakes = threading.BoundedSemaphore(MAX_HANDSHAKES)
+        #: every connection that completed a handshake and is not closed, whatever it does
+        #: now (waiting to say hello, in a session, a dedicated port): a reload closes those
+        #: whose key it no longer lists
+        self._keyed: set[SecureConnection] = set()
         self.acceptor: Acceptor | None = None  # until start() has its main line
 
     def start(self) -> None:
@@ -165,6 +169,9 @@ class ServerRole(Role):
                 return
             finally:
                 self._handshakes.release()
+            with self._lock:
+                self._keyed = {c for c in self._keyed if not c.closed}
+                self._keyed.add(secure)
             then(secure)
 
         threading.Thread(target=run, name=f"handshake-{peer[0]}", daemon=True).start()
@@ -174,8 +181,6 @@ class ServerRole(Role):
 
     def _main_line(self, connection: StreamConnection, peer: Address) -> None:
         holder: dict[str, Session] = {}
-        policy = (self._by_key.get(connection.peer_key)
-                  if isinstance(connection, SecureConnection) else None)
 
         def on_frame(frame: bytes, link: Link, source: Address) -> None:
             session = holder.get("session")
@@ -188,7 +193,9 @@ class ServerRole(Role):
                 link.last_heard = time.monotonic()
                 kind = message["type"]
                 if kind == "hello" and session is None:
-                    session = self._welcome(message, link, peer, policy)
+                    # the policy as it is now, not as it was when the handshake completed
+                    session = self._welcome(message, link, peer,
+                                            lambda: self._policy_of(connection))
                     if session is not None:
                         holder["session"] = session
                         link.trust()
@@ -218,11 +225,23 @@ class ServerRole(Role):
                                      self.router.on_lost, on_close, untrusted=self.untrusted,
                                      budget=self.bridge.budget(self.bridge.plan.main_line)))
 
+    def _policy_of(self, connection: StreamConnection) -> ClientPolicy | None:
+        """The policy of a connection's key as the server's file lists it now (None without
+        identities); :class:`ConfigError` for a key that is no longer listed."""
+        if not isinstance(connection, SecureConnection):
+            return None
+        policy = self._by_key.get(connection.peer_key)
+        if policy is None:
+            raise ConfigError("this client's key is no longer in clients:", file="the server",
+                              fix="the server's operator lists it again")
+        return policy
+
     # -- sessions ----------------------------------------------------------------------------
     def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address,
-                 policy: ClientPolicy | None) -> Session | None:
+                 policy_now: Callable[[], ClientPolicy | None]) -> Session | None:
         name = str(hello.get("name", "?"))[:100]
         try:
+            policy = policy_now()
             if policy is not None and name != policy.name:
                 raise ConfigError(f"the key of client {policy.name!r} says hello as {name!r}",
                                   file=f"client {policy.name}",
@@ -500,6 +519,13 @@ class ServerRole(Role):
         other client goes on untouched."""
         self.cfg.clients = clients
         self._by_key = {p.key: p for p in clients.values()}
+        with self._lock:
+            revoked = [c for c in self._keyed if not c.closed and c.peer_key not in self._by_key]
+        for connection in revoked:  # handshaken and waiting, or a dedicated port: closed now
+            connection.close()
+        if revoked:
+            log.warning("closed %d connection(s) whose key is no longer in clients:",
+                        len(revoked))
         for session in list(self.sessions.values()):
             policy = clients.get(session.name)
             link = session.main.current
