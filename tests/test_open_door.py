@@ -14,6 +14,7 @@ import signal
 import socket
 import struct
 import subprocess
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -415,3 +416,129 @@ def test_a_revoked_key_keeps_no_connection_it_had_handshaken(tmp_path, domain, r
     assert wait_until(lambda: server.proc.poll() is None, 0.1)
     honest.close()
     waiting.close()
+
+
+# -- no lockout ------------------------------------------------------------------------------------
+class Flood:
+    """Strangers' connections to ``port`` from each of ``sources``, ``per_source`` at a time,
+    each reopened as soon as the server closes it, until :meth:`stop`. ``first``: what each
+    connection sends once connected (nothing: it just holds its place)."""
+
+    def __init__(self, port: int, sources: tuple[str, ...], per_source: int,
+                 first: Any = None):
+        self.port, self.first = port, first
+        self.stop_ = threading.Event()
+        self.opened = 0
+        self.threads = [threading.Thread(target=self._hold, args=(source,), daemon=True)
+                        for source in sources for _ in range(per_source)]
+        for thread in self.threads:
+            thread.start()
+
+    def _hold(self, source: str) -> None:
+        while not self.stop_.is_set():
+            s = socket.socket()
+            try:
+                s.bind((source, 0))
+                s.settimeout(1)
+                s.connect(("127.0.0.1", self.port))
+                self.opened += 1
+                if self.first is not None:
+                    s.sendall(self.first())
+                while not self.stop_.is_set():  # until the server closes it
+                    try:
+                        if s.recv(4096) == b"":
+                            break
+                    except TimeoutError:
+                        continue
+            except OSError:
+                self.stop_.wait(0.05)
+            finally:
+                s.close()
+
+    def stop(self) -> None:
+        self.stop_.set()
+        for thread in self.threads:
+            thread.join(3)
+
+
+def random_key_first_message() -> bytes:
+    """A well-formed first handshake message from a key the server does not list: the server
+    pays a Diffie-Hellman to find that out."""
+    from noise.connection import Keypair, NoiseConnection
+
+    from rosgate import identity
+    from rosgate.secure import NOISE_PROTOCOL, PROLOGUE
+
+    noise = NoiseConnection.from_name(NOISE_PROTOCOL)
+    noise.set_as_initiator()
+    noise.set_prologue(PROLOGUE)
+    noise.set_keypair_from_private_bytes(Keypair.STATIC, identity.generate())
+    noise.set_keypair_from_public_bytes(Keypair.REMOTE_STATIC,
+                                        identity.decode_public(AUTH.public["server"]))
+    noise.start_handshake()
+    message = noise.write_message(b"")
+    return len(message).to_bytes(2, "big") + message
+
+
+def robot_file(tmp_path: Path, port: int) -> Path:
+    return write(tmp_path / "robot1.yaml", f"""
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST},
+          identity: {AUTH.identity("robot1")}, server_key: {AUTH.public["server"]}}}
+topics:
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit,
+     remote: /robot1/cmd_vel}}
+""")
+
+
+def time_to_up(tmp_path: Path, port: int, domain_id: int, bridge: Any) -> float:
+    """Seconds from a listed robot's start (its bridge running) to its session being up."""
+    robot = bridge(robot_file(tmp_path, port), domain_id)
+    started = time.monotonic()
+    robot.wait_log("server 'base' up", 30)
+    return time.monotonic() - started
+
+
+def test_strangers_holding_idle_connections_cannot_lock_a_listed_robot_out(
+        tmp_path, domain, bridge):
+    """The attack: idle connections to the server's main line from two addresses (16 each, the
+    per-source limit), each reopened as soon as the server closes it at its 5 s deadline, for
+    15 s; a listed robot is started 2 s into it.
+
+    Before: the 32 handshake slots were shared by everyone and taken at accept: the robot
+    could not connect for its 24 s and came up 2.2 s after the flood stopped (1 % of the
+    server's CPU). Now a connection takes a handshake slot only once its first message has
+    arrived, a source gets few of them, and addresses that recently held a session have
+    places of their own: the robot is up within 5 s of its start."""
+    ds, dr, port = domain(), domain(), free_port()
+    bridge(server_file(tmp_path, port, ("robot1",)), ds)
+    flood = Flood(port, ("127.0.0.2", "127.0.0.3"), 16)
+    try:
+        assert wait_until(lambda: flood.opened >= 32, 5), flood.opened
+        time.sleep(2)  # the flood takes every place it can get first
+        took = time_to_up(tmp_path, port, dr, bridge)
+        flooding = not flood.stop_.is_set()
+    finally:
+        flood.stop()
+    assert flooding
+    assert took < 5, f"the robot came up {took:.1f} s after its start"
+
+
+def test_a_flood_of_random_key_first_messages_cannot_lock_a_listed_robot_out(
+        tmp_path, domain, bridge):
+    """The attack: well-formed first handshake messages from random keys, as fast as 32
+    connections from two addresses can send them (each costs the server a Diffie-Hellman).
+
+    Before: 11-12 % of a core, and a listed robot still came up: keep it so. Now: the robot is
+    up within 1 s of its start."""
+    ds, dr, port = domain(), domain(), free_port()
+    server = bridge(server_file(tmp_path, port, ("robot1",)), ds)
+    flood = Flood(port, ("127.0.0.2", "127.0.0.3"), 16, first=random_key_first_message)
+    try:
+        assert wait_until(lambda: flood.opened >= 100, 10), flood.opened
+        took = time_to_up(tmp_path, port, dr, bridge)
+        flooding = not flood.stop_.is_set()
+    finally:
+        flood.stop()
+    assert flooding
+    assert took < 1, f"the robot came up {took:.1f} s after its start"
+    assert server.proc.poll() is None

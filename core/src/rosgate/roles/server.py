@@ -29,7 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..admission import Acceptor, KnownSources
+from ..admission import Acceptor, HandshakeSlots, KnownSources
 from ..config import (
     ClientPolicy,
     Direction,
@@ -49,6 +49,7 @@ from ..secure import (
     KeySchedule,
     SecureConnection,
     SessionKeys,
+    Busy,
     UnknownKey,
     open_hello,
     respond,
@@ -62,7 +63,8 @@ from .mainline import PROTOCOL, control, flipped, is_control, key_label, parse_c
 
 log = logging.getLogger("rosgate")
 
-MAX_HANDSHAKES = 32  # connections in their handshake at once; more are closed at once
+MAX_HANDSHAKES = 32  # handshakes worked on at once (each a Diffie-Hellman); more are refused
+HANDSHAKES_PER_SOURCE = 4  # of those, from one address: a few addresses cannot take them all
 
 Entry = TopicConfig | ServiceConfig
 
@@ -109,7 +111,8 @@ class ServerRole(Role):
         self.clients = KnownSources()
         self.refusals = Refusals()
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
-        self._handshakes = threading.BoundedSemaphore(MAX_HANDSHAKES)
+        self._handshakes = HandshakeSlots(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
+                                          self.limits.recent)
         #: every connection that completed a handshake and is not closed, whatever it does
         #: now (waiting to say hello, in a session, a dedicated port): a reload closes those
         #: whose key it no longer lists
@@ -144,15 +147,24 @@ class ServerRole(Role):
         if not self.cfg.secure:
             then(connection)
             return
-        if not self._handshakes.acquire(blocking=False):
-            connection.close()
-            self.router.link_drop(None, "too_many_handshakes", f"from {peer[0]}")
-            return
+        host = peer[0]
 
         def run() -> None:
+            slot = False
+
+            def admit() -> bool:  # once the first message is in: an idle connection takes none
+                nonlocal slot
+                slot = self._handshakes.take(host)
+                return slot
+
             try:
                 assert self.cfg.identity is not None
-                secure = respond(connection, self.cfg.identity, lambda key: key in self._by_key)
+                secure = respond(connection, self.cfg.identity, lambda key: key in self._by_key,
+                                 admit=admit)
+            except Busy:
+                connection.close()
+                self.router.link_drop(None, "too_many_handshakes", f"from {host}")
+                return
             except UnknownKey as exc:
                 connection.close()
                 self.router.link_drop(None, "unknown_client_key", f"from {peer[0]}")
@@ -168,7 +180,8 @@ class ServerRole(Role):
                                   f"refused a connection from {peer[0]}: {exc}")
                 return
             finally:
-                self._handshakes.release()
+                if slot:
+                    self._handshakes.give_back(host)
             with self._lock:
                 self._keyed = {c for c in self._keyed if not c.closed}
                 self._keyed.add(secure)
@@ -284,6 +297,8 @@ class ServerRole(Role):
         session.down_since = None
         if old is not None and old is not link:
             old.fail("the client connected again")
+        if isinstance(link.connection, SecureConnection):  # it keeps places of its own
+            self.limits.recent.remember(peer[0])
         log.info("client %r up: connected from %s with %d topic(s) and %d service(s)%s", name,
                  peer[0], len(session.topics), len(session.services),
                  f", {len(session.refused)} refused" if session.refused else "")
