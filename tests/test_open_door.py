@@ -542,3 +542,48 @@ def test_a_flood_of_random_key_first_messages_cannot_lock_a_listed_robot_out(
     assert flooding
     assert took < 1, f"the robot came up {took:.1f} s after its start"
     assert server.proc.poll() is None
+
+
+# -- names -----------------------------------------------------------------------------------------
+def test_a_name_that_is_no_ros_name_never_reaches_the_policy(tmp_path, domain, ros_side,
+                                                             bridge):
+    """The attack: robot1, whose policy allows ``/robot1/**`` with any cipher, asks for
+    ``framing: none`` entries, whose ``remote`` was text as written: ``/robot1/~``,
+    ``/robot1/../cmd_vel``, ``/robot1/x/`` and the relative ``robot1/x``.
+
+    Before: all four matched the rule ``/robot1/**`` (only a policy without ``none`` among
+    its ciphers stopped them); building the session then failed inside rclpy, logged as a bug
+    with a traceback, and the whole session, the valid entry too, was refused. Now every
+    name is checked as a ROS name before any rule sees it: each is refused with one
+    sentence, and the valid entry beside them runs."""
+    ds, port = domain(), free_port()
+    server = bridge(write(tmp_path / "server.yaml", f"""
+bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST},
+          identity: {AUTH.identity("server")}}}
+clients:
+  robot1:
+    key: {AUTH.public["robot1"]}
+    topics:
+      - {{name: /robot1/**, direction: both, ports: [1-65535], ciphers: [none, aead]}}
+"""), ds)
+    side = ros_side(ds, "base")
+    bad = ["/robot1/~", "/robot1/../cmd_vel", "/robot1/x/", "robot1/x"]
+    asked = [{"topic": f"/t{i}", "type": "std_msgs/msg/String", "direction": "transmit",
+              "remote": remote, "transport": "udp", "codec": "cdr", "cipher": "none",
+              "framing": "none", "qos": 10} for i, remote in enumerate(bad)]
+    asked.append(dict(CHATTER_HELLO[0]))
+    holder = KeyHolder(port, AUTH.identity("robot1"))
+    welcome = holder.hello(asked)
+    assert welcome is not None and welcome["type"] == "welcome", welcome
+    refused = {r["entry"]: r["error"] for r in welcome["refused"]}
+    for i, remote in enumerate(bad):
+        assert refused[f"topics[{i}] (/t{i})"] == (
+            f"robot1 may not transmit {remote!r}: it is not a ROS name (parts of letters, "
+            "digits and '_' after a single '/', none starting with a digit)"), refused
+        assert server.wait_log(f"may not transmit {remote!r}", 5), server.log
+    assert len(refused) == len(bad)
+    assert welcome["topic_ids"][len(bad)] != 0
+    assert wait_until(lambda: side.ros.node.count_publishers("/robot1/cmd_vel") == 1, 5)
+    names = {name for name, _ in side.ros.node.get_topic_names_and_types()}
+    assert not [n for n in names if n.startswith("/robot1/") and n != "/robot1/cmd_vel"], names
+    holder.close()
