@@ -4,10 +4,10 @@
 keys, message types, addresses: :mod:`rosgate.resolver`) and raises :class:`ConfigError`
 naming the file, line and key. It also refuses an open door (:func:`open_entries`): an entry
 whose frames anyone who reaches the bridge could write, unless the file says ``insecure:
-true`` — then :meth:`Engine.insecure_warning` names those entries, on every start. ``start()`` opens the ROS node, makes the router
-(:mod:`rosgate.router`) and starts the role (:mod:`rosgate.roles`), which opens the links;
-``stop()`` closes everything, in reverse order. In between, a housekeeping thread warns about
-stale topics and logs the counters.
+true`` — then :meth:`Engine.insecure_warning` names those entries, on every start.
+``start()`` opens the ROS node, makes the router (:mod:`rosgate.router`) and starts the role
+(:mod:`rosgate.roles`), which opens the links; ``stop()`` closes everything, in reverse order.
+In between, a housekeeping thread warns about stale topics and logs the counters.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from .config import BridgeConfig, Direction, Framing, Role
+from .config import BridgeConfig, Direction, Role
 from .errors import ConfigError
 from .links import Lifetime
 from .plugins import Plugins

@@ -45,11 +45,11 @@ from ..policy import refusal
 from ..resolver import PreparedService, PreparedTopic
 from ..routes import Route
 from ..secure import (
+    Busy,
     HandshakeError,
     KeySchedule,
     SecureConnection,
     SessionKeys,
-    Busy,
     UnknownKey,
     open_hello,
     respond,
