@@ -344,10 +344,13 @@ def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
     topic = (f"{{topic: /bench, type: {msg_type}, {link}"
              f"qos: {{reliability: {reliability}, history: keep_last, depth: {depth}}}")
     if route.roles == "peer":
-        a = (f"bridge: {{name: bench_a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}\n{plugins}"
-             f"topics:\n  - {topic}, direction: transmit, port: {port}}}\n")
-        b = (f"bridge: {{name: bench_b, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}\n{plugins}"
-             f"topics:\n  - {topic}, direction: receive, port: {port}}}\n")
+        # a peer without identities runs open only when its file says so (a revision from
+        # before that rule knows no insecure: for peers)
+        open_ = "" if route.rev else ", insecure: true"
+        a = (f"bridge: {{name: bench_a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1{open_}}}\n"
+             f"{plugins}topics:\n  - {topic}, direction: transmit, port: {port}}}\n")
+        b = (f"bridge: {{name: bench_b, role: peer, peer: 127.0.0.1, listen: 127.0.0.1{open_}}}\n"
+             f"{plugins}topics:\n  - {topic}, direction: receive, port: {port}}}\n")
     else:
         # the client's file holds the topic list; its datagram topic uses the server's port
         a_keys, b_keys = session_keys(folder) if route.roles == "session" else (

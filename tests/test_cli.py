@@ -106,9 +106,13 @@ def test_port_in_use_is_a_clear_error(config):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
         taken.bind(("127.0.0.1", 0))
         port = taken.getsockname()[1]
-        path = config(GOOD.format(port=port).replace("direction: transmit", "direction: receive"))
-        text = user_error(rosgate("run", str(path), env={"ROS_DOMAIN_ID": "3"}))
-    assert f"{path}:10: topics[0].port: cannot bind UDP 127.0.0.1:{port}" in text
+        path = config(GOOD.format(port=port).replace("direction: transmit", "direction: receive")
+                      .replace("  listen:", "  insecure: true\n  listen:"))
+        result = rosgate("run", str(path), env={"ROS_DOMAIN_ID": "3"})
+    text = result.stderr  # after the warning that insecure: true says on every start
+    assert result.returncode == 2 and "Traceback" not in text, text
+    assert "INSECURE" in text and "\nrosgate: error: " in text
+    assert f"{path}:11: topics[0].port: cannot bind UDP 127.0.0.1:{port}" in text
 
 
 def test_a_server_whose_main_line_port_is_in_use_says_so_and_exits_cleanly(config, tmp_path):

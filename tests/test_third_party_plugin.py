@@ -27,7 +27,7 @@ from rosgate.plugins import Plugins
 
 def peer(name: str, directory: str, direction: str, port: int, msg: str, extra: str = "") -> str:
     return f"""
-bridge: {{name: {name}, role: peer, peer: {directory}, listen: {directory}}}
+bridge: {{name: {name}, role: peer, peer: {directory}, listen: {directory}, insecure: true}}
 {extra}
 topics:
   - {{topic: /data, type: {msg}, direction: {direction}, port: {port}, transport: unixdgram}}
@@ -78,7 +78,7 @@ def test_its_options_are_checked_with_file_and_line(tmp_path):
 def udp_peer(name: str, direction: str, port: int, msg: str, extra: str = "",
              topic: str = "codec: json") -> str:
     return f"""
-bridge: {{name: {name}, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+bridge: {{name: {name}, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, insecure: true}}
 {extra}
 topics:
   - {{topic: /data, type: {msg}, direction: {direction}, port: {port}, {topic}}}

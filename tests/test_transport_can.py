@@ -42,7 +42,7 @@ def side(name: str, can_options: str, topics: list[tuple], key: Path | None = No
                       for topic, msg, direction, port, codec, cipher
                       in (t + ("cdr", "none")[len(t) - 4:] for t in topics))
     return f"""
-bridge: {{name: {name}, role: peer, peer: can0, listen: can0}}
+bridge: {{name: {name}, role: peer, peer: can0, listen: can0, insecure: true}}
 plugins:
   can: {can_options}{keys}
 topics:{entries}

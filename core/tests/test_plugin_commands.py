@@ -208,11 +208,17 @@ def test_plugins_options_prints_each_option_in_columns():
     assert (result.returncode, result.stderr) == (0, "")
     assert result.stdout == (
         "transport udp (rosgate-transport-udp 0.1.0), under plugins: udp:\n"
-        "  OPTION          TYPE  DEFAULT  DESCRIPTION\n"
-        "  receive_buffer  int   4194304  bytes of kernel receive buffer to ask for (at least 1)\n"
-        "  send_buffer     int   4194304  bytes of kernel send buffer to ask for (at least 1)\n"
-        "  max_frame       int   1200     the largest datagram to send, in bytes; longer frames "
-        "go in fragments (1472 fills Ethernet over IPv4; 65000 on loopback) (256 to 65000)\n")
+        "  OPTION          TYPE        DEFAULT  DESCRIPTION\n"
+        "  receive_buffer  int         4194304  bytes of kernel receive buffer to ask for (at "
+        "least 1)\n"
+        "  send_buffer     int         4194304  bytes of kernel send buffer to ask for (at least "
+        "1)\n"
+        "  max_frame       int | None  null     the largest datagram to send, in bytes; longer "
+        "frames go in fragments. Default: the path's MTU less the IP and UDP headers (1472 on "
+        "Ethernet, 65000 on loopback), 1200 where the path is not known; a value set here is an "
+        "upper bound (256 to 65000)\n"
+        "  offload         bool        true     let the kernel cut and join a frame's datagrams "
+        "(UDP_SEGMENT, UDP_GRO) where it can: one system call per frame\n")
 
 
 def test_plugins_options_shows_required_options_choices_and_option_less_plugins(site):

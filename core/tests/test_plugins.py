@@ -681,7 +681,7 @@ def test_builtin_cannot_be_blocked(monkeypatch):
      "bring the interface up: ip link set can0 up type can bitrate 500000"),
 ], ids=["core-default", "transport-fix"])
 def test_a_link_error_is_located_with_the_transports_fix_or_the_default(error, fix):
-    config = loads("bridge: {name: a, role: peer, peer: h}\n"
+    config = loads("bridge: {name: a, role: peer, peer: h, insecure: true}\n"
                    "topics:\n  - {topic: /t, type: std_msgs/msg/String, direction: receive, "
                    "port: 5}\n",
                    file="x.yaml")

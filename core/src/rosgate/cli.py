@@ -34,7 +34,12 @@ def main(argv: list[str] | None = None) -> int:
     if verb not in CORE_COMMANDS:  # a plugin's, or help: only then are all plugins loaded
         _add_plugin_commands(commands)
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO,
+    # a one-shot verb's answer is its output: only warnings join it on stderr (a path's MTU,
+    # said at INFO, is news for a running bridge, not for check)
+    quiet = args.command in ("check", "plugins", "keygen", "pubkey")
+    level = logging.DEBUG if getattr(args, "verbose", False) else \
+        logging.WARNING if quiet else logging.INFO
+    logging.basicConfig(level=level,
                         format="[rosgate] %(levelname)s %(message)s", stream=sys.stderr)
     try:
         return int(args.run(args))
@@ -97,18 +102,14 @@ def _add_plugin_commands(commands: Any) -> None:
         sub.set_defaults(run=command.run)
 
 
-INSECURE = ("INSECURE: %s runs without authentication (bridge.insecure: true): anyone who can "
-            "reach it can read and send its topics and call its services. Set up identities: "
-            "docs/security.md")
-
-
 def _engine(path: str, plugins: Any = None, domain_id: int | None = None):
     from .config import load
     from .engine import Engine
 
     engine = Engine(load(path), plugins, domain_id=domain_id).prepare()
-    if engine.config.insecure:
-        logging.getLogger("rosgate").warning(INSECURE, path)
+    warning = engine.insecure_warning()
+    if warning is not None:
+        logging.getLogger("rosgate").warning(warning)
     return engine
 
 

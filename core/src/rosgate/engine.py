@@ -2,10 +2,12 @@
 
 ``Engine(config).prepare()`` resolves everything that can be wrong in a file (plugins, options,
 keys, message types, addresses: :mod:`rosgate.resolver`) and raises :class:`ConfigError`
-naming the file, line and key. ``start()`` opens the ROS node, makes the router
-(:mod:`rosgate.router`) and starts the role (:mod:`rosgate.roles`), which opens the links;
-``stop()`` closes everything, in reverse order. In between, a housekeeping thread warns about
-stale topics and logs the counters.
+naming the file, line and key. It also refuses an open door (:func:`open_entries`): an entry
+whose frames anyone who reaches the bridge could write, unless the file says ``insecure:
+true`` — then :meth:`Engine.insecure_warning` names those entries, on every start.
+``start()`` opens the ROS node, makes the router (:mod:`rosgate.router`) and starts the role
+(:mod:`rosgate.roles`), which opens the links; ``stop()`` closes everything, in reverse order.
+In between, a housekeeping thread warns about stale topics and logs the counters.
 """
 
 from __future__ import annotations
@@ -14,13 +16,14 @@ import logging
 import os
 import threading
 import time
+from dataclasses import dataclass
 from typing import Any
 
-from .config import BridgeConfig, Role
+from .config import BridgeConfig, Direction, Role
 from .errors import ConfigError
 from .links import Lifetime
 from .plugins import Plugins
-from .resolver import Plan, Resolver
+from .resolver import Plan, PreparedService, PreparedTopic, Resolver
 from .roles import Bridge
 from .roles import Role as BridgeRole
 from .roles.client import ClientRole
@@ -38,6 +41,62 @@ ROLES: dict[Role, type[BridgeRole]] = {Role.PEER: PeerRole, Role.CLIENT: ClientR
                                        Role.SERVER: ServerRole}
 
 
+@dataclass(frozen=True)
+class OpenEntry:
+    """An entry anyone who reaches the bridge can write to: its frames reach ROS here
+    unauthenticated (a receiving topic, or a service: calls or answers come in)."""
+
+    key: str  # where the file says it: topics[0].cipher, services[1].framing
+    name: str  # its ROS name here
+    why: str  # what leaves it open, in a few words
+    fix: str
+
+    def __str__(self) -> str:
+        return f"{self.key} ({self.name}: {self.why})"
+
+
+def open_entries(plan: Plan) -> list[OpenEntry]:
+    """The entries of ``plan`` that carry ROS traffic into this side without authentication.
+
+    An entry is closed when a handshake keys its cipher (identities: client/server, and peers
+    with ``peer_key``), or when its cipher authenticates with a key from the file's key file or
+    variable. A microcontroller entry (``framing: none`` or ``serial_datagram``: no envelope, so
+    no cipher) that listens is closed only by ``bridge.allow`` naming the microcontroller's
+    addresses.
+    Entries on a bus are the bus transport's to judge; topics this side only transmits are
+    read, not written, here."""
+    cfg = plan.config
+    found = []
+    entries: list[PreparedTopic | PreparedService] = [*plan.topics, *plan.services]
+    for p in entries:
+        t = p.config
+        is_topic = isinstance(p, PreparedTopic)
+        if p.key is not None or (is_topic and t.direction is Direction.TRANSMIT):
+            continue
+        key = f"{'topics' if is_topic else 'services'}[{p.index}]"
+        link = f"{t.transport}:{t.port}" if t.port else t.transport
+        if t.framing.bare:
+            # a call made here goes out on a connection of its own: only a listening port
+            # takes what anyone sends
+            if not cfg.allow and t.direction is Direction.RECEIVE:
+                found.append(OpenEntry(
+                    f"{key}.framing", p.name, f"framing {t.framing} on {link}, taken from "
+                    "anyone", "name the microcontroller's addresses in bridge.allow: "
+                    "[192.168.0.20]; or, on a network you trust entirely, insecure: true"))
+            continue
+        session_keyed = cfg.secure and p.cipher is None  # the resolver leaves it to the session
+        statically_keyed = p.cipher is not None and p.cipher_cls is not None and \
+            p.cipher_cls.authenticates
+        if not (session_keyed or statically_keyed):
+            fix = ("give both peers identities (bridge.identity, peer_key, handshake_port: "
+                   "docs/security.md) or this entry a cipher keyed from a file (cipher: aead, "
+                   "plugins: {aead: {key_file: aead.key}})" if cfg.role is Role.PEER
+                   else "use a cipher the session keys (aead, nacl, fernet)")
+            found.append(OpenEntry(f"{key}.cipher", p.name, f"cipher {t.cipher} on {link}",
+                                   f"{fix}; or, on a network you trust entirely, insecure: true"))
+    return found
+
+
 class Engine:
     def __init__(self, config: BridgeConfig, plugins: Plugins | None = None,
                  domain_id: int | None = None):
@@ -46,15 +105,39 @@ class Engine:
         self.domain_id = domain_id
         self.resolver = Resolver(config, self.plugins)
         self.plan: Plan | None = None
+        self.open_doors: list[OpenEntry] = []  # what insecure: true leaves open
         self.life = Lifetime()
         self.ros: RosNode | None = None
         self.router: Router | None = None
         self.role: BridgeRole | None = None
 
     def prepare(self) -> Engine:
-        """Resolve the file; :class:`ConfigError` for the first mistake."""
-        self.plan = self.resolver.plan()
+        """Resolve the file; :class:`ConfigError` for the first mistake, or for the first
+        entry anyone could write to (unless the file says ``insecure: true``)."""
+        plan = self.resolver.plan()
+        self.open_doors = open_entries(plan)
+        if self.open_doors and not self.config.insecure:
+            first = self.open_doors[0]
+            more = len(self.open_doors) - 1
+            also = f" (and {more} more {'entry' if more == 1 else 'entries'})" if more else ""
+            raise self.config.error(first.key, f"anyone who reaches this bridge can write to "
+                                    f"{first.name}: {first.why}{also}", first.fix)
+        self.plan = plan
         return self
+
+    def insecure_warning(self) -> str | None:
+        """What to say on every start of a file that says ``insecure: true``: the entries
+        anyone can write to, by name."""
+        cfg = self.config
+        if not cfg.insecure:
+            return None
+        if cfg.role is not Role.PEER:
+            return (f"INSECURE: {cfg.file} runs without authentication (bridge.insecure: true): "
+                    "anyone who can reach it can read and send its topics and call its "
+                    "services. Set up identities: docs/security.md")
+        entries = ", ".join(map(str, self.open_doors)) or "none of its entries, as it stands"
+        return (f"INSECURE: {cfg.file} says insecure: true: anyone who can reach it can write "
+                f"to {entries}. Set up identities or keyed ciphers: docs/security.md")
 
     def start(self) -> Engine:
         if self.plan is None:

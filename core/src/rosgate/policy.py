@@ -40,15 +40,29 @@ def _allows_direction(rule: Rule, direction: str) -> bool:
     return rule.direction in ("both", direction)
 
 
+#: an absolute ROS name: parts of letters, digits and '_', none starting with a digit
+_ROS_NAME = re.compile(r"(?:/[A-Za-z_][A-Za-z0-9_]*)+")
+ROS_NAME_MAX = 200  # characters, as in a file
+
+
+def is_ros_name(text: str) -> bool:
+    return len(text) <= ROS_NAME_MAX and _ROS_NAME.fullmatch(text) is not None
+
+
 def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig,
             keyless: set[str]) -> str | None:
     """Why ``entry`` (as the client sent it) is refused, or None when a rule allows it.
-    ``keyless`` are the ciphers a session cannot key (``none``): allowed only when named."""
+    ``keyless`` are the ciphers a session cannot key (``none``): allowed only when named.
+    A name that is not an absolute ROS name (``~``, ``..``, an empty or relative part: what
+    a bare framing's ``remote`` may carry as text) is refused before any rule sees it."""
     is_topic = isinstance(entry, TopicConfig)
     kind = "topic" if is_topic else "service"
     rules = policy.topics if is_topic else policy.services
     name, direction = entry.remote, str(entry.direction)
     what = name if is_topic else f"service {name}"
+    if not is_ros_name(name):
+        return (f"{policy.name} may not {direction} {name!r}: it is not a ROS name (parts of "
+                "letters, digits and '_' after a single '/', none starting with a digit)")
     by_name = [r for r in rules if _allows_direction(r, direction) and matches(r.name, name)]
     if not by_name:
         allowed = [r.name for r in rules if _allows_direction(r, direction)]

@@ -150,7 +150,7 @@ class Resolver:
             key = "identity, server_key" if cfg.role is Role.CLIENT else "identity"
             raise cfg.error("bridge", f"a {cfg.role} needs bridge.{key} to authenticate its "
                             "sessions", "make one with 'rosgate keygen identity --out NAME.key' "
-                            "(README, Security: setting up identities); or, on a network you "
+                            "(docs/security.md: setting up identities); or, on a network you "
                             "trust entirely, insecure: true")
         return Plan(cfg, topics, services, self.main_line, self.main_address)
 

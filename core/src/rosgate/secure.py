@@ -134,13 +134,17 @@ def initiate(connection: StreamConnection, identity: bytes, server_key: bytes,
 
 
 def respond(connection: StreamConnection, identity: bytes, known: Callable[[bytes], bool],
-            timeout: float = HANDSHAKE_TIMEOUT) -> SecureConnection:
+            timeout: float = HANDSHAKE_TIMEOUT,
+            admit: Callable[[], bool] | None = None) -> SecureConnection:
     """The server's side: nothing but the handshake is parsed; a client whose static key
-    ``known`` refuses gets no answer at all."""
+    ``known`` refuses gets no answer at all. ``admit`` is asked once the first message has
+    arrived, before the Diffie-Hellman: False refuses the handshake (:class:`Busy`)."""
     deadline = time.monotonic() + timeout
     noise = _noise(False, identity)
     buffer = bytearray()
     message = _read_message(connection, buffer, deadline)
+    if admit is not None and not admit():
+        raise Busy("too many handshakes at once")
     try:
         noise.read_message(message)
     except Exception:
@@ -150,6 +154,10 @@ def respond(connection: StreamConnection, identity: bytes, known: Callable[[byte
         raise UnknownKey(remote)
     _send_message(connection, noise.write_message(b""))
     return SecureConnection(connection, noise, remote, bytes(buffer))
+
+
+class Busy(HandshakeError):
+    """A handshake refused before its Diffie-Hellman: too many at once (from its address)."""
 
 
 class UnknownKey(HandshakeError):
@@ -168,6 +176,7 @@ class SecureConnection:
         self.peer_key = peer_key
         self.handshake_hash: bytes = noise.get_handshake_hash()
         self._buffer = bytearray(pending)
+        self.closed = False
 
     def send(self, data: bytes) -> None:
         records = []
@@ -204,6 +213,7 @@ class SecureConnection:
         return b"".join(out)
 
     def close(self) -> None:
+        self.closed = True
         self.raw.close()
 
 

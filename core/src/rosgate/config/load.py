@@ -205,11 +205,10 @@ def _identity(src: Source, bridge: dict, given: dict, role: Role,
     from ..identity import IdentityError, load_private
 
     if role is Role.PEER:
-        for key in ("server_key", "insecure"):
-            if key in bridge:
-                raise src.error(f"bridge.{key}", f"role peer has no {key}:",
-                                fix="a peer authenticates with identity:, peer_key: and "
-                                    "handshake_port: (README, Security), or not at all")
+        if "server_key" in bridge:
+            raise src.error("bridge.server_key", "role peer has no server_key:",
+                            fix="a peer authenticates with identity:, peer_key: and "
+                                "handshake_port: (docs/security.md), or says insecure: true")
         found = [k for k in ("identity", "peer_key", "handshake_port") if k in bridge]
         if not found:
             if "rekey" in bridge:

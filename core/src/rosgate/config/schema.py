@@ -377,8 +377,9 @@ class BridgeConfig:
     handshake_port: int | None = option(None, "peer with `identity`: the TCP port of the "
                                         "handshake line", minimum=1, maximum=65535, unset="—",
                                         example="12100")
-    insecure: bool = option(False, "client, server: `true` runs without a handshake, warned "
-                            "about on every `run` and `check`", example="true")
+    insecure: bool = option(False, "`true` accepts links anyone can write to (no handshake, no "
+                            "keyed cipher), named in a warning on every `run` and `check`",
+                            example="true")
     rekey: float = option(120.0, "server (or responding peer): seconds a session key generation "
                           "lasts", minimum=1, unit="seconds", example="120")
     allow: tuple[Any, ...] = option((), "peer: the only addresses or networks frames and calls "

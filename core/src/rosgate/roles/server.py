@@ -29,7 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..admission import Acceptor, KnownSources
+from ..admission import Acceptor, HandshakeSlots, KnownSources
 from ..config import (
     ClientPolicy,
     Direction,
@@ -45,6 +45,7 @@ from ..policy import refusal
 from ..resolver import PreparedService, PreparedTopic
 from ..routes import Route
 from ..secure import (
+    Busy,
     HandshakeError,
     KeySchedule,
     SecureConnection,
@@ -62,7 +63,8 @@ from .mainline import PROTOCOL, control, flipped, is_control, key_label, parse_c
 
 log = logging.getLogger("rosgate")
 
-MAX_HANDSHAKES = 32  # connections in their handshake at once; more are closed at once
+MAX_HANDSHAKES = 32  # handshakes worked on at once (each a Diffie-Hellman); more are refused
+HANDSHAKES_PER_SOURCE = 4  # of those, from one address: a few addresses cannot take them all
 
 Entry = TopicConfig | ServiceConfig
 
@@ -109,7 +111,12 @@ class ServerRole(Role):
         self.clients = KnownSources()
         self.refusals = Refusals()
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
-        self._handshakes = threading.BoundedSemaphore(MAX_HANDSHAKES)
+        self._handshakes = HandshakeSlots(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
+                                          self.limits.recent)
+        #: every connection that completed a handshake and is not closed, whatever it does
+        #: now (waiting to say hello, in a session, a dedicated port): a reload closes those
+        #: whose key it no longer lists
+        self._keyed: set[SecureConnection] = set()
         self.acceptor: Acceptor | None = None  # until start() has its main line
 
     def start(self) -> None:
@@ -140,15 +147,24 @@ class ServerRole(Role):
         if not self.cfg.secure:
             then(connection)
             return
-        if not self._handshakes.acquire(blocking=False):
-            connection.close()
-            self.router.link_drop(None, "too_many_handshakes", f"from {peer[0]}")
-            return
+        host = peer[0]
 
         def run() -> None:
+            slot = False
+
+            def admit() -> bool:  # once the first message is in: an idle connection takes none
+                nonlocal slot
+                slot = self._handshakes.take(host)
+                return slot
+
             try:
                 assert self.cfg.identity is not None
-                secure = respond(connection, self.cfg.identity, lambda key: key in self._by_key)
+                secure = respond(connection, self.cfg.identity, lambda key: key in self._by_key,
+                                 admit=admit)
+            except Busy:
+                connection.close()
+                self.router.link_drop(None, "too_many_handshakes", f"from {host}")
+                return
             except UnknownKey as exc:
                 connection.close()
                 self.router.link_drop(None, "unknown_client_key", f"from {peer[0]}")
@@ -164,7 +180,11 @@ class ServerRole(Role):
                                   f"refused a connection from {peer[0]}: {exc}")
                 return
             finally:
-                self._handshakes.release()
+                if slot:
+                    self._handshakes.give_back(host)
+            with self._lock:
+                self._keyed = {c for c in self._keyed if not c.closed}
+                self._keyed.add(secure)
             then(secure)
 
         threading.Thread(target=run, name=f"handshake-{peer[0]}", daemon=True).start()
@@ -174,8 +194,6 @@ class ServerRole(Role):
 
     def _main_line(self, connection: StreamConnection, peer: Address) -> None:
         holder: dict[str, Session] = {}
-        policy = (self._by_key.get(connection.peer_key)
-                  if isinstance(connection, SecureConnection) else None)
 
         def on_frame(frame: bytes, link: Link, source: Address) -> None:
             session = holder.get("session")
@@ -188,7 +206,9 @@ class ServerRole(Role):
                 link.last_heard = time.monotonic()
                 kind = message["type"]
                 if kind == "hello" and session is None:
-                    session = self._welcome(message, link, peer, policy)
+                    # the policy as it is now, not as it was when the handshake completed
+                    session = self._welcome(message, link, peer,
+                                            lambda: self._policy_of(connection))
                     if session is not None:
                         holder["session"] = session
                         link.trust()
@@ -218,11 +238,23 @@ class ServerRole(Role):
                                      self.router.on_lost, on_close, untrusted=self.untrusted,
                                      budget=self.bridge.budget(self.bridge.plan.main_line)))
 
+    def _policy_of(self, connection: StreamConnection) -> ClientPolicy | None:
+        """The policy of a connection's key as the server's file lists it now (None without
+        identities); :class:`ConfigError` for a key that is no longer listed."""
+        if not isinstance(connection, SecureConnection):
+            return None
+        policy = self._by_key.get(connection.peer_key)
+        if policy is None:
+            raise ConfigError("this client's key is no longer in clients:", file="the server",
+                              fix="the server's operator lists it again")
+        return policy
+
     # -- sessions ----------------------------------------------------------------------------
     def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address,
-                 policy: ClientPolicy | None) -> Session | None:
+                 policy_now: Callable[[], ClientPolicy | None]) -> Session | None:
         name = str(hello.get("name", "?"))[:100]
         try:
+            policy = policy_now()
             if policy is not None and name != policy.name:
                 raise ConfigError(f"the key of client {policy.name!r} says hello as {name!r}",
                                   file=f"client {policy.name}",
@@ -265,6 +297,8 @@ class ServerRole(Role):
         session.down_since = None
         if old is not None and old is not link:
             old.fail("the client connected again")
+        if isinstance(link.connection, SecureConnection):  # it keeps places of its own
+            self.limits.recent.remember(peer[0])
         log.info("client %r up: connected from %s with %d topic(s) and %d service(s)%s", name,
                  peer[0], len(session.topics), len(session.services),
                  f", {len(session.refused)} refused" if session.refused else "")
@@ -500,6 +534,13 @@ class ServerRole(Role):
         other client goes on untouched."""
         self.cfg.clients = clients
         self._by_key = {p.key: p for p in clients.values()}
+        with self._lock:
+            revoked = [c for c in self._keyed if not c.closed and c.peer_key not in self._by_key]
+        for connection in revoked:  # handshaken and waiting, or a dedicated port: closed now
+            connection.close()
+        if revoked:
+            log.warning("closed %d connection(s) whose key is no longer in clients:",
+                        len(revoked))
         for session in list(self.sessions.values()):
             policy = clients.get(session.name)
             link = session.main.current
