@@ -41,7 +41,7 @@ from typing import Any
 
 from rosgate import hookimpl
 
-from .router import ROUTER
+from .router import CERTS, ROUTER
 from .transport import ZenohSession, ZenohTransport, zenoh_config, zenoh_message
 
 __all__ = ["ZenohSession", "ZenohTransport", "zenoh_config", "zenoh_message"]
@@ -55,3 +55,4 @@ def rosgate_transports(register: Any) -> None:
 @hookimpl
 def rosgate_commands(register: Any) -> None:
     register(ROUTER)
+    register(CERTS)

@@ -19,9 +19,11 @@ from rosgate import LinkError, OptionError, option
 from rosgate.bus import BusTransport
 from rosgate.bus import check_key as check_chunks
 
+from .tls import zenoh_tls
+
 log = logging.getLogger("rosgate.zenoh")
 
-OWN_OPTIONS = ("prefix", "namespace", "speak")
+OWN_OPTIONS = ("prefix", "namespace", "speak", "tls", "insecure")
 _ZENOH = "zenoh's own, passed through (see zenoh's DEFAULT_CONFIG.json5)"
 _PRIORITIES = (zenoh.Priority.REAL_TIME, zenoh.Priority.INTERACTIVE_HIGH,
                zenoh.Priority.INTERACTIVE_LOW, zenoh.Priority.DATA_HIGH, zenoh.Priority.DATA,
@@ -101,6 +103,12 @@ class ZenohTransport(BusTransport):
         speak: Literal["rosgate", "ros2dds"] = option(
             "rosgate", "ros2dds: framing-none topics and cipher-none services (codec cdr) are "
             "announced, cached and called as zenoh-bridge-ros2dds does; rosgate: rosgate's own")
+        tls: str | None = option(
+            None, "a folder of certificates made by 'rosgate certs': mutual TLS with the "
+            "fleet's CA, presenting <bridge name>.pem (endpoints tls/<host>:<port>)")
+        insecure: bool = option(
+            False, "fleet entries without cipher and without TLS: allowed, loudly (anyone who "
+            "reaches the router can read and send them)")
         mode: Literal["peer", "client", "router"] = option(
             "peer", "zenoh's mode: peer opens without a router, client needs one at start")
         connect: dict[str, Any] | list[str] | None = option(
@@ -160,9 +168,28 @@ class ZenohTransport(BusTransport):
         key = super().default_key(bridge, ros_name, bare)
         return f"{self.namespace}/{key}" if bare and self.namespace else key
 
+    @property
+    def encrypted(self) -> bool:
+        """Whether zenoh's TLS protects this bus (rosgate's certificates or zenoh's own)."""
+        link = (self.options.transport or {}).get("link")
+        return self.options.tls is not None or isinstance(link, dict) and "tls" in link
+
     def open(self, name: str) -> ZenohSession:
+        config = zenoh_config(dataclasses.asdict(self.options))
+        if self.options.tls is not None:
+            try:
+                config.insert_json5("transport/link/tls",
+                                    json.dumps(zenoh_tls(self.options.tls, name)))
+            except FileNotFoundError as exc:
+                raise LinkError(f"zenoh: no certificate {exc} for {name!r}",
+                                f"make it with 'rosgate certs --out {self.options.tls} "
+                                f"{name}' (docs/fleets.md)") from None
+        elif self.options.insecure:
+            log.warning("INSECURE: %s: fleet entries without a cipher cross zenoh without TLS "
+                        "(plugins.zenoh.insecure: true): anyone who reaches the router can read "
+                        "and send them. Set up TLS: docs/fleets.md", name)
         try:
-            session = zenoh.open(zenoh_config(dataclasses.asdict(self.options)))
+            session = zenoh.open(config)
         except zenoh.ZError as exc:
             raise LinkError(f"zenoh: cannot open a session: {zenoh_message(exc)}",
                             "check plugins.zenoh: with mode: client a router must answer at one "
