@@ -133,7 +133,7 @@ def base_file(folder: Path, endpoint: str) -> Path:
              "odom": ("nav_msgs/msg/Odometry", 100), "status": ("std_msgs/msg/String", 100)}
     path.write_text(
         "bridge: {name: base, role: peer, defaults: {transport: zenoh}, stale_after: 600}\n"
-        f"plugins: {{zenoh: {{mode: client, connect: [{endpoint}]}}}}\ntopics:\n"
+        f"plugins: {{zenoh: {{mode: client, connect: [{endpoint}], insecure: true}}}}\ntopics:\n"
         + "".join(entry.format(t=t, type=types[t][0], qos=types[t][1]) for t in TOPICS))
     return path
 

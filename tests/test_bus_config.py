@@ -11,7 +11,7 @@ from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.errors import ConfigError
 
-ZENOH = "plugins:\n  zenoh: {mode: client, connect: [tcp/127.0.0.1:7447]}\n"
+ZENOH = "plugins:\n  zenoh: {mode: client, connect: [tcp/127.0.0.1:7447], insecure: true}\n"
 
 
 def plan(text: str):

@@ -20,13 +20,14 @@ from test_services import DEEP, Caller
 class Router:
     """A ``rosgate router`` process on a fixed loopback port; it can be killed and started again."""
 
-    def __init__(self) -> None:
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+    def __init__(self, *args: str, scheme: str = "tcp") -> None:
+        self.endpoint = f"{scheme}/127.0.0.1:{free_port()}"
+        self.args = list(args)  # more of rosgate router's arguments (--tls DIR, --robot NAME)
         self.proc: subprocess.Popen | None = None
         self.start()
 
     def start(self) -> None:
-        self.proc = subprocess.Popen([ROSGATE, "router", "--listen", self.endpoint],
+        self.proc = subprocess.Popen([ROSGATE, "router", "--listen", self.endpoint, *self.args],
                                      stderr=subprocess.PIPE, text=True)
         assert self.proc.stderr is not None
         line = self.proc.stderr.readline()
@@ -79,7 +80,7 @@ def base_file(tmp: Path, router: Router, fleet_timeout: float = 30) -> Path:
     path = tmp / "base.yaml"
     path.write_text(f"""\
 bridge: {{name: base, role: peer, defaults: {{transport: zenoh}}, fleet_timeout: {fleet_timeout}}}
-{zenoh_plugin(router)}topics:
+{zenoh_plugin(router, ", insecure: true")}topics:
   - {{topic: '/{{robot}}/odom', type: std_msgs/msg/String, direction: receive,
       remote: 'fleet/{{robot}}/odom'}}
   - {{topic: '/{{robot}}/cmd', type: std_msgs/msg/String, direction: transmit,

@@ -14,13 +14,19 @@ import json
 import random
 import threading
 import time
+from pathlib import Path
 
 import pytest
 import zenoh
+import zenoh.ext
 from conftest import wait_until
 from geometry_msgs.msg import Twist
-from rclpy.serialization import serialize_message
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
+from std_msgs.msg import String
+from std_srvs.srv import SetBool
+from test_services import DEEP, Caller, echo_set_bool
 from test_zenoh_fleet import Router, zenoh_plugin
 
 TIMEOUT = 20.0
@@ -38,7 +44,8 @@ def plain(router):
     """A plain zenoh session, as a zenoh-bridge-ros2dds base would have one."""
     session = zenoh.open(zenoh.Config.from_json5(json.dumps({
         "mode": "client", "connect": {"endpoints": [router.endpoint]},
-        "scouting": {"multicast": {"enabled": False}}})))
+        "scouting": {"multicast": {"enabled": False}},
+        "timestamping": {"enabled": True}})))  # as that bridge has it: its caches need it
     yield session
     session.close()  # a session with callbacks must be closed, or the process may hang
 
@@ -116,3 +123,215 @@ def test_a_ros2dds_base_feeds_rosgate_byte_for_byte(bot1, plain, ros_side, topic
         publisher.put(payload)
     publisher.undeclare()
     assert got[0] == payload
+
+
+# -- as an equal: speak: ros2dds ------------------------------------------------------------------
+# zenoh-bridge-ros2dds and rosgate as equals (plugins: {zenoh: {speak: ros2dds}}), checked against
+# a peer written from that bridge's sources (zenoh-plugin-ros2dds: liveliness_mgt.rs for the
+# tokens, route_publisher.rs / route_subscriber.rs for the publication cache and the querying
+# subscriber of transient_local topics, route_service_*.rs and ros2_utils.rs for service calls
+# and their request-header attachment). What the peer declares and reads is written out here.
+
+LATCHED = QoSProfile(depth=3, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                     reliability=ReliabilityPolicy.RELIABLE)
+
+
+def bot1_file(tmp: Path, router) -> Path:
+    path = tmp / "bot1.yaml"
+    path.write_text(f"""\
+bridge: {{name: bot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}}}
+{zenoh_plugin(router, ", namespace: /bot1, speak: ros2dds")}topics:
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, framing: none}}
+  - {{topic: /map, type: std_msgs/msg/String, direction: transmit, framing: none,
+      qos: {{durability: transient_local, depth: 3}}}}
+  - {{topic: /cmd_in, type: geometry_msgs/msg/Twist, direction: receive, framing: none,
+      qos: {{reliability: best_effort, depth: 5}}}}
+services:
+  - {{service: /set, type: std_srvs/srv/SetBool, direction: receive, remote: bot1/set}}
+  - {{service: /zb_set, type: std_srvs/srv/SetBool, direction: transmit, remote: bot1/zb_set}}
+""")
+    return path
+
+
+@pytest.fixture
+def equal(tmp_path, router, bridge, domain):
+    d = domain()
+    return bridge(bot1_file(tmp_path, router), d), d
+
+
+def tokens_of(session: zenoh.Session) -> list[str]:
+    """Every zenoh-bridge-ros2dds token there is, as that bridge's liveliness subscriber
+    (``@/*/@ros2_lv/**``) sees them."""
+    return [str(r.ok.key_expr) for r in session.liveliness().get("@/*/@ros2_lv/**", timeout=5)
+            if r.ok is not None]
+
+
+def test_the_peer_sees_every_route_by_its_token_before_any_data(equal, plain):
+    def routes() -> set[str]:
+        return {"/".join(t.split("/")[3:]) for t in tokens_of(plain) if t.count("/") > 2}
+
+    expected = {
+        # kind / key with '§' for '/' / type with '§' / [K]:reliability:durability:history,depth
+        "MP/bot1§cmd_vel/geometry_msgs§msg§Twist/:1:0:0,10",
+        "MP/bot1§map/std_msgs§msg§String/:1:1:0,3",
+        "MS/bot1§cmd_in/geometry_msgs§msg§Twist/:0:0:0,5",
+        "SS/bot1§set/std_srvs§srv§SetBool",
+        "SC/bot1§zb_set/std_srvs§srv§SetBool",
+    }
+    assert wait_until(lambda: routes() == expected, TIMEOUT), routes()
+    zids = {t.split("/")[1] for t in tokens_of(plain)}
+    assert len(zids) == 1, "every token is the bridge session's own"
+    assert f"@/{zids.pop()}/@ros2_lv" in tokens_of(plain), "the bridge token is declared too"
+
+
+def test_a_late_joiner_gets_the_last_transient_local_samples(equal, plain, ros_side):
+    _bridge, d = equal
+    publisher = ros_side(d, "robot").publisher("/map", String, LATCHED)
+    live: list[bytes] = []
+    plain.declare_subscriber("bot1/map", zenoh.handlers.Callback(
+        lambda s: live.append(s.payload.to_bytes()), indirect=False))
+    assert wait_until(lambda: publisher.get_subscription_count() >= 1, TIMEOUT)
+    sent = [f"map {n}" for n in range(5)]
+    for text in sent:
+        publisher.publish(String(data=text))
+
+    def texts(samples: list[bytes]) -> list[str]:  # CDR padding bytes are not compared
+        return [deserialize_message(s, String).data for s in samples]
+
+    # what DDS hands the bridge: all five, or (its subscription matching the publisher mid-way)
+    # some, then the publisher's own history of three
+    assert wait_until(lambda: texts(live)[-3:] == sent[-3:], TIMEOUT), texts(live)
+
+    late: list[bytes] = []
+    # route_subscriber.rs: a transient_local route is an advanced subscriber that queries the
+    # history of every publisher it detects, up to the reader's depth
+    subscriber = zenoh.ext.declare_advanced_subscriber(
+        plain, "bot1/map", zenoh.handlers.Callback(lambda s: late.append(s.payload.to_bytes()),
+                                                   indirect=False),
+        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=10))
+    assert wait_until(lambda: len(late) >= 3, TIMEOUT), late
+    time.sleep(0.5)  # a fourth sample would be a bug: give it the chance to show
+    subscriber.undeclare()
+    assert texts(late) == sent[-3:], "the cache keeps the topic's depth (3), in order"
+    assert late == live[-3:], "byte for byte as they were published on the key"
+
+
+def test_rosgate_queries_the_history_of_a_transient_local_topic_on_start(
+        tmp_path, router, plain, bridge, domain, ros_side):
+    # route_publisher.rs: a transient_local route is an advanced publisher with a cache and
+    # publisher detection; its samples exist before rosgate starts
+    publisher = zenoh.ext.declare_advanced_publisher(
+        plain, "bot2/latched", cache=zenoh.ext.CacheConfig(max_samples=5),
+        publisher_detection=True)
+    sent = [serialize_message(String(data=f"latched {n}")) for n in range(2)]
+    for payload in sent:
+        publisher.put(payload)
+    d = domain()
+    path = tmp_path / "bot2.yaml"
+    path.write_text(f"""\
+bridge: {{name: bot2, role: peer, defaults: {{transport: zenoh, codec: cdr}}}}
+{zenoh_plugin(router, ", speak: ros2dds")}topics:
+  - {{topic: /latched, type: std_msgs/msg/String, direction: receive, framing: none,
+      remote: bot2/latched, qos: {{durability: transient_local, depth: 5}}}}
+""")
+    bridge(path, d)
+    got: list[bytes] = []
+    ros_side(d, "robot").ros.subscribe(
+        String, "/latched", QoSProfile(depth=5, durability=DurabilityPolicy.TRANSIENT_LOCAL),
+        got.append, raw=True)
+    assert wait_until(lambda: len(got) >= 2, TIMEOUT), got
+    # DDS may pad the serialized sample to a 4-byte boundary: compare what it says
+    assert [deserialize_message(g, String).data for g in got] == ["latched 0", "latched 1"]
+    assert [g[:len(s)] for g, s in zip(got, sent, strict=True)] == sent
+    publisher.undeclare()
+
+
+def test_the_peer_calls_a_service_rosgate_bridges(equal, plain, ros_side):
+    _bridge, d = equal
+    ros_side(d, "robot").ros.node.create_service(SetBool, "/set", echo_set_bool, qos_profile=DEEP)
+    # route_service_cli.rs: the query's payload is the request's CDR; its attachment the
+    # request header: b"rqh", the client's GUID (8 bytes), the sequence number (8), endianness
+    header = b"rqh" + bytes(range(8)) + (7).to_bytes(8, "little") + b"\x01"
+    deadline = time.monotonic() + TIMEOUT
+    while True:  # until the bridge's ROS client has found the server
+        replies = [r for r in plain.get("bot1/set", payload=serialize_message(
+            SetBool.Request(data=True)), attachment=header, timeout=5) if r.ok is not None]
+        if replies:
+            break
+        assert time.monotonic() < deadline, "the service never answered"
+        time.sleep(0.2)
+    assert len(replies) == 1
+    answer = deserialize_message(replies[0].ok.payload.to_bytes(), SetBool.Response)
+    assert (answer.success, answer.message) == (True, "data=True")
+    assert str(replies[0].ok.key_expr) == "bot1/set"
+
+
+def test_rosgate_calls_a_service_the_peer_serves(equal, plain, ros_side):
+    _bridge, d = equal
+    seen: list[tuple[bytes, bytes | None]] = []
+
+    def serve(query: zenoh.Query) -> None:  # route_service_srv.rs, seen from outside
+        request = query.payload.to_bytes() if query.payload is not None else b""
+        attachment = query.attachment.to_bytes() if query.attachment is not None else None
+        seen.append((request, attachment))
+        data = deserialize_message(request, SetBool.Request).data
+        query.reply("bot1/zb_set", serialize_message(
+            SetBool.Response(success=not data, message=f"peer got {data}")))
+
+    queryable = plain.declare_queryable("bot1/zb_set", zenoh.handlers.Callback(
+        serve, indirect=False))
+    caller = Caller(ros_side(d, "robot"), SetBool, "/zb_set")
+    answers = caller.call_many([SetBool.Request(data=False), SetBool.Request(data=True)], 10)
+    queryable.undeclare()
+    assert [(a.success, a.message) for a in answers] == [(True, "peer got False"),
+                                                         (False, "peer got True")]
+    assert [deserialize_message(r, SetBool.Request).data for r, _ in seen] == [False, True]
+    for _request, attachment in seen:
+        assert attachment is not None and attachment[:3] == b"rqh" and len(attachment) == 20
+        assert attachment[19] == 1  # little endian, as the CDR it goes with
+    assert {a[3:11] for _r, a in seen if a} .__len__() == 1, "one client id for one route"
+    assert sorted(int.from_bytes(a[11:19], "little") for _r, a in seen if a) == [1, 2]
+
+
+def test_rosgate_learns_a_ros2dds_robot_from_its_tokens(tmp_path, router, plain, bridge,
+                                                        domain, ros_side):
+    d = domain()
+    path = tmp_path / "base.yaml"
+    path.write_text(f"""\
+bridge: {{name: base, role: peer, defaults: {{transport: zenoh, codec: cdr}}, fleet_timeout: 30}}
+{zenoh_plugin(router, ", speak: ros2dds, insecure: true")}topics:
+  - {{topic: "/{{robot}}/cmd", remote: "fleet/{{robot}}/cmd", type: std_msgs/msg/String,
+      direction: transmit, framing: none}}
+  - {{topic: "/{{robot}}/odom", remote: "fleet/{{robot}}/odom", type: std_msgs/msg/String,
+      direction: receive, framing: none}}
+""")
+    base = bridge(path, d)
+    zid = str(plain.zid())
+    got: list[bytes] = []
+    arrived = threading.Event()
+
+    def sample(s: zenoh.Sample) -> None:
+        got.append(s.payload.to_bytes())
+        arrived.set()
+
+    subscriber = plain.declare_subscriber("fleet/zb7/cmd", zenoh.handlers.Callback(
+        sample, indirect=False))
+    # the tokens a zenoh-bridge-ros2dds robot declares for a ROS subscriber of /cmd and a ROS
+    # publisher of /odom behind it (liveliness_mgt.rs), and nothing else: no frame at all
+    tokens = [plain.liveliness().declare_token(f"@/{zid}/@ros2_lv/{kind}/fleet§zb7§{name}/"
+                                               "std_msgs§msg§String/:1:0:0,10")
+              for kind, name in (("MS", "cmd"), ("MP", "odom"))]
+    assert base.wait_log("fleet: robot zb7 joined", TIMEOUT), base.log
+    assert base.wait_log("fleet: publishing /zb7/odom for robot zb7", TIMEOUT), base.log
+    publisher = ros_side(d, "base").publisher("/zb7/cmd", String, 10)
+    payload = serialize_message(String(data="go"))
+    deadline = time.monotonic() + TIMEOUT
+    while not arrived.wait(0.2):
+        assert time.monotonic() < deadline, "nothing reached the robot's key"
+        publisher.publish(payload)
+    assert got[0][:len(payload)] == payload  # DDS may pad it to a 4-byte boundary
+    assert deserialize_message(got[0], String).data == "go"
+    for token in tokens:
+        token.undeclare()
+    assert base.wait_log("fleet: robot zb7 left", TIMEOUT), base.log
+    subscriber.undeclare()

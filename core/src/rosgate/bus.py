@@ -122,6 +122,25 @@ class NameTemplates(Protocol):
         that link (a prepared topic or service) as the bridge starts."""
 
 
+class Dialect(Protocol):
+    """Entries a bus wires in another system's convention rather than rosgate's own (the zenoh
+    plugin: zenoh-bridge-ros2dds's and rmw_zenoh's graph announcements, history and bare service
+    calls). A bus that has one sets :attr:`BusTransport.dialect`."""
+
+    def name(self, entry: TopicConfig | ServiceConfig) -> str | None:
+        """The convention ``entry`` follows, in a few words for ``rosgate check``; None: the
+        core wires it as usual."""
+
+    def check(self, entry: TopicConfig | ServiceConfig, key: str) -> None:
+        """Refuse an entry (whose :meth:`name` is not None) that the convention cannot carry,
+        with a :class:`rosgate.ConfigError` whose ``key`` is the entry's field."""
+
+    def wire(self, wiring: Any, link: Any, entry: Any) -> None:
+        """Make the routes of one prepared entry (a topic or a service) on one bus link of a
+        bridge (a :class:`rosgate.roles.bus.BusWiring` and its :class:`rosgate.buslink.BusLink`),
+        with the wiring's methods and the link's session."""
+
+
 def is_template(text: str) -> bool:
     """Whether an entry's name or key holds a placeholder (``{robot}``)."""
     return "{" in text or "}" in text
@@ -136,6 +155,8 @@ class BusTransport(Transport):
     prefix: str = "rosgate"
     #: entries with placeholders, or None: this bus takes none
     templates: NameTemplates | None = None
+    #: entries wired in another system's convention, or None: every entry is rosgate's
+    dialect: Dialect | None = None
 
     @abstractmethod
     def open(self, name: str) -> BusSession:

@@ -81,11 +81,17 @@ class BusLink:
     def subscribe(self, key_expr: str, on_frame: KeyedFrameHandler, drop: KeyedDrop) -> Handle:
         """Frames on keys matching ``key_expr`` go to ``on_frame(key, frame)`` on the link's thread;
         ``drop(key, reason)`` counts one the queue had no room for."""
+        return self.keep(self.session.subscribe(key_expr, self.queued(on_frame, drop)))
+
+    def queued(self, on_frame: KeyedFrameHandler, drop: KeyedDrop) -> KeyedFrameHandler:
+        """A callback for the bus library's thread that queues each frame for ``on_frame`` on
+        the link's thread (what :meth:`subscribe` declares; a bus's own kinds of subscription
+        use it too, with :meth:`keep`)."""
         def arrived(key: str, frame: bytes) -> None:
             if not self._put(on_frame, (key, frame)):
                 drop(key, "queue_overflow")
 
-        return self._keep(self.session.subscribe(key_expr, arrived))
+        return arrived
 
     def serve(self, key: str, on_frame: FrameHandler, hold: float) -> Handle:
         """Queries on ``key`` go to ``on_frame(frame, answerer, (key, number))``; the answer is
@@ -99,18 +105,19 @@ class BusLink:
                 self._finish(number)
                 self.link_drop(self, "queue_overflow", f"a query on {concrete}")
 
-        return self._keep(self.session.serve(key, arrived))
+        return self.keep(self.session.serve(key, arrived))
 
     def token(self, key: str) -> Handle:
-        return self._keep(self.session.token(key))
+        return self.keep(self.session.token(key))
 
     def watch(self, key_expr: str, on_change: Callable[[str, bool], None]) -> Handle:
         """Liveliness, in order with the frames: ``on_change(key, alive)`` on the link's thread.
         Never dropped for want of room: a missed departure would leave a robot forever."""
-        return self._keep(self.session.watch(
+        return self.keep(self.session.watch(
             key_expr, lambda key, alive: self._inbox.put((on_change, (key, alive)))))
 
-    def _keep(self, handle: Handle) -> Handle:
+    def keep(self, handle: Handle) -> Handle:
+        """Withdraw ``handle`` when the link closes."""
         with self._lock:
             self._handles.append(handle)
         return handle

@@ -121,6 +121,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     for f in plugins.failures:
         print(f"rosgate: warning: plugin {f.plugin!r} ({f.distribution}) failed to load: "
               f"{f.reason}", file=sys.stderr)
+    from .bus import BusTransport
+
     engine = _engine(args.file, plugins)
     cfg, plan = engine.config, engine.plan
     assert plan is not None
@@ -130,8 +132,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         t = p.config
         arrow = "->" if t.direction == "transmit" else "<-"
         port = f":{t.port}" if t.port else ""
+        dialect = p.transport.dialect if isinstance(p.transport, BusTransport) else None
+        speaks = dialect.name(t) if dialect is not None else None
         print(f"  {p.name} {arrow} {p.key or t.remote}  [{t.type}] {t.transport}{port} {t.codec} "
-              f"{t.cipher}")
+              f"{t.cipher}" + (f"  ({speaks})" if speaks else ""))
     from .budget import report
 
     for line in report(plan):

@@ -332,6 +332,12 @@ class Resolver:
             where = f"{key}.remote" if given else f"{key}.{kind}"
             raise error(where, str(exc), "write remote: as parts separated by single '/', "
                         "e.g. remote: fleet/robot1/scan") from None
+        dialect = transport.dialect
+        if dialect is not None and dialect.name(entry) is not None:
+            try:
+                dialect.check(entry, bus_key)
+            except ConfigError as exc:
+                raise error(f"{key}.{exc.key}", exc.message, exc.fix) from None
         return bus_key
 
     def _point_to_point(self, entry: TopicConfig | ServiceConfig, key: str, transport: Transport,

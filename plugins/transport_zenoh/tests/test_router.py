@@ -40,7 +40,9 @@ def test_router_routes_until_sigterm_and_says_where_it_listens():
     finally:
         router.send_signal(signal.SIGTERM)
         assert router.wait(10) == 0
-    assert router.stderr.read() == "[rosgate] INFO stopping\n"
+    assert router.stderr.read() == (
+        "[rosgate] WARNING the router runs without TLS: any zenoh session that reaches it may "
+        "join (rosgate router --tls DIR, docs/fleets.md)\n[rosgate] INFO stopping\n")
 
 
 def test_router_help_names_its_options():
@@ -48,8 +50,11 @@ def test_router_help_names_its_options():
                             timeout=60)
     assert result.returncode == 0
     assert result.stdout.startswith("usage: rosgate router [-h] [--listen ENDPOINT] [--config "
-                                    "FILE]\n")
-    assert "(default tcp/0.0.0.0:7447)" in result.stdout
+                                    "FILE] [--tls DIR]\n")
+    for option in ("[--robot NAME]", "[--base NAME]", "[--prefix PREFIX]"):
+        assert option in result.stdout
+    assert "(default tcp/0.0.0.0:7447" in result.stdout
+    assert "tls/0.0.0.0:7447 with --tls" in " ".join(result.stdout.split())
 
 
 def test_router_is_the_plugin_s_verb_gone_when_the_plugin_is_blocked(tmp_path):

@@ -75,11 +75,21 @@ class BusWiring:
             add = self._templates[link.name] = templates.start(self, link)
         add(p)
 
+    def _dialect(self, link: BusLink, p: PreparedTopic | PreparedService) -> bool:
+        """An entry in another system's convention is the bus's own to wire."""
+        dialect = link.transport.dialect
+        if dialect is None or dialect.name(p.config) is None:
+            return False
+        dialect.wire(self, link, p)
+        return True
+
     # -- topics ----------------------------------------------------------------------------------
     def topic(self, p: PreparedTopic) -> None:
         link = self.link(p)
         if is_template(p.config.topic):
             self._templated(link, p)
+        elif self._dialect(link, p):
+            return
         elif p.config.direction is Direction.TRANSMIT:
             self.transmitter(link, p)
         else:
@@ -94,6 +104,8 @@ class BusWiring:
         assert p.key is not None
         if is_template(s.service):
             self._templated(link, p)
+            return
+        if self._dialect(link, p):
             return
         service_id = topic_id_for(p.key)
         if s.direction is Direction.RECEIVE:

@@ -5,13 +5,17 @@ bridge holds a liveliness token. Zenoh routes, fragments, discovers and reconnec
 keeps its envelope and cipher (``framing: rosgate``) or sends the codec's bytes bare
 (``framing: none``, the zenoh-bridge-ros2dds convention with ``codec: cdr``).
 
-Options (``plugins: {zenoh: {...}}``): two are rosgate's —
+Options (``plugins: {zenoh: {...}}``): five are rosgate's —
 
 * ``prefix`` (default ``rosgate``): the first part of rosgate's own keys,
   ``<prefix>/<bridge name>/<topic>``, and of its liveliness tokens ``<prefix>/<name>/@alive``.
   Every bridge of a fleet uses the same prefix.
 * ``namespace`` (default ``/``, none): the key of a ``framing: none`` entry without ``remote`` is
   ``<namespace>/<ROS name>``, as zenoh-bridge-ros2dds' ``namespace`` option makes it.
+* ``speak`` (default ``rosgate``): ``ros2dds`` wires bare-CDR entries as zenoh-bridge-ros2dds
+  does — liveliness tokens, publication caches, raw service calls (:mod:`.dialect`).
+* ``tls``: a folder made by ``rosgate certs``: zenoh's mutual TLS with the fleet's CA, and
+  ``insecure`` (default false): allow cipherless fleet entries without TLS, loudly (:mod:`.tls`).
 
 — and everything else is zenoh's own configuration, passed through as written (its
 ``DEFAULT_CONFIG.json5``): ``mode: peer|client``, ``connect: {endpoints: [...]}``,
@@ -28,7 +32,8 @@ publisher while the link is congested, up to its ``wait_before_close``), best ef
 Fleets (:mod:`.fleet`): an entry may name its robot by placeholder, ``topic: /{robot}/scan``
 with ``remote: fleet/{robot}/scan`` (:mod:`.placeholders`): one wildcard subscription, a route
 per robot found by its frames or its liveliness token. ``rosgate router`` (:mod:`.router`) runs
-a zenoh router for bridges to meet at.
+a zenoh router for bridges to meet at (with ``--tls``, mutual TLS and per-robot access control);
+``rosgate certs`` makes the fleet's certificates.
 
 Threads: zenoh calls rosgate directly from its own receive threads (``Callback(...,
 indirect=False)``): rosgate only queues there, and no Python thread is left behind to keep a
@@ -41,7 +46,7 @@ from typing import Any
 
 from rosgate import hookimpl
 
-from .router import ROUTER
+from .router import CERTS, ROUTER
 from .transport import ZenohSession, ZenohTransport, zenoh_config, zenoh_message
 
 __all__ = ["ZenohSession", "ZenohTransport", "zenoh_config", "zenoh_message"]
@@ -55,3 +60,4 @@ def rosgate_transports(register: Any) -> None:
 @hookimpl
 def rosgate_commands(register: Any) -> None:
     register(ROUTER)
+    register(CERTS)

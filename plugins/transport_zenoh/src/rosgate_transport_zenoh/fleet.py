@@ -32,7 +32,10 @@ from rosgate.roles.bus import BusWiring
 from rosgate.routes import ReceiveRoute, Route
 
 from . import placeholders
+from .dialect import NAME, Ros2dds
 from .placeholders import Template
+from .ros2dds import Announced, Kind
+from .transport import ZenohTransport
 
 if TYPE_CHECKING:
     from rosgate.bus import BusTransport
@@ -84,6 +87,15 @@ class Fleets:
         except ValueError as exc:
             raise ConfigError(str(exc), key="remote", fix="write remote: as parts separated by "
                               f"single '/', e.g. {_KEY_EXAMPLE}") from None
+        transport = self.transport
+        if (entry.cipher == "none" and isinstance(transport, ZenohTransport)
+                and not transport.encrypted and not transport.options.insecure):
+            raise ConfigError("a fleet entry without a cipher on a zenoh bus without TLS: anyone "
+                              "who reaches the router could read it and send on it",
+                              key="cipher", fix="set plugins.zenoh.tls: <folder> (make it with "
+                              "'rosgate certs', docs/fleets.md) and run the router with --tls; "
+                              "or a cipher on the entry; or, on a network you trust entirely, "
+                              "plugins.zenoh.insecure: true")
 
     def start(self, wiring: BusWiring, link: BusLink) -> Callable[[Prepared], None]:
         fleet = Fleet(wiring, link)
@@ -117,6 +129,8 @@ class Fleet:
         self.timeout = wiring.cfg.fleet_timeout
         self.alive = Template(link.transport.alive_key("{robot}"))
         self.transmit: list[tuple[Prepared, Template, Template]] = []
+        self.receive: list[tuple[PreparedTopic, Template, Template]] = []
+        self.announced: list[Announced] = []  # zenoh-bridge-ros2dds routes seen
         self.members: dict[str, Member] = {}
         self._stop = wiring.stopping
         self._thread = threading.Thread(target=self._sweeper, name=f"fleet-{link.name}",
@@ -124,6 +138,9 @@ class Fleet:
 
     def start(self) -> None:
         self.link.watch(self.alive.wildcard(), self._token)
+        dialect = self.link.transport.dialect
+        if isinstance(dialect, Ros2dds):  # zenoh-bridge-ros2dds robots are members too
+            dialect.graph(self.link).listen(self._announced)
         self._thread.start()
 
     def add(self, p: Prepared) -> None:
@@ -137,20 +154,50 @@ class Fleet:
                 self.link.call_later(self._transmit_for, member, p, names, keys)
             return
         assert isinstance(p, PreparedTopic)
+        self.receive.append((p, names, keys))
+        for announced in self.announced:
+            self.link.call_later(self._announced, announced, True)
         self.link.subscribe(keys.wildcard(), lambda key, frame: self._frame(p, names, keys, key,
                                                                             frame),
                             lambda key, reason: self.link.link_drop(self.link, reason,
                                                                     f"a frame on {key}"))
 
     # -- on the link's thread ---------------------------------------------------------------------
-    def _frame(self, p: PreparedTopic, names: Template, keys: Template, key: str,
-               frame: bytes) -> None:
-        values = keys.match(key)
-        if values is None:
-            self.link.link_drop(self.link, "unknown_topic", f"{key} does not fit {keys.text}")
+    def _announced(self, route: Announced, alive: bool) -> None:
+        """A zenoh-bridge-ros2dds route: a robot whose publisher, subscriber or service fits a
+        fleet entry's key joins as by its liveliness token (a receiving route is made before any
+        frame), and leaves when the last of its routes is gone."""
+        robots = {values["robot"] for values in self._fits(route)} - {self.name}
+        if not alive:
+            if route in self.announced:
+                self.announced.remove(route)
+            for robot in robots:
+                if not any(robot in self._robots(other) for other in self.announced):
+                    self._token(self.link.transport.alive_key(robot), False)
             return
-        member = self._member(values["robot"], f"a frame on {key}")
-        member.last_seen = time.monotonic()
+        if route not in self.announced:
+            self.announced.append(route)
+        for robot in robots:
+            member = self._member(robot, f"its {NAME} {route.kind.words} on {route.key}")
+            member.token = member.had_token = True
+        if route.kind is Kind.PUBLISHER:
+            for p, names, keys in self.receive:
+                values = keys.match(route.key)
+                if values is not None and values["robot"] in robots:
+                    self._receiver_for(self.members[values["robot"]], p, names, keys, values)
+
+    def _fits(self, route: Announced) -> list[dict[str, str]]:
+        """The placeholder values of each fleet entry ``route`` fits (by direction)."""
+        entries = self.receive if route.kind is Kind.PUBLISHER else (
+            self.transmit if route.kind in (Kind.SUBSCRIBER, Kind.SERVER) else [])
+        found = (keys.match(route.key) for _p, _names, keys in entries)
+        return [values for values in found if values is not None]
+
+    def _robots(self, route: Announced) -> set[str]:
+        return {values["robot"] for values in self._fits(route)}
+
+    def _receiver_for(self, member: Member, p: PreparedTopic, names: Template, keys: Template,
+                      values: dict[str, str]) -> ReceiveRoute:
         route = member.routes.get(("topics", p.index))
         if route is None:
             filled = _filled(p, names, keys, values)
@@ -160,7 +207,17 @@ class Fleet:
             log.info("fleet: publishing %s for robot %s (frames on %s)", filled.config.topic,
                      member.name, filled.key)
         assert isinstance(route, ReceiveRoute)
-        self.wiring.dispatch(route, key, frame)
+        return route
+
+    def _frame(self, p: PreparedTopic, names: Template, keys: Template, key: str,
+               frame: bytes) -> None:
+        values = keys.match(key)
+        if values is None:
+            self.link.link_drop(self.link, "unknown_topic", f"{key} does not fit {keys.text}")
+            return
+        member = self._member(values["robot"], f"a frame on {key}")
+        member.last_seen = time.monotonic()
+        self.wiring.dispatch(self._receiver_for(member, p, names, keys, values), key, frame)
 
     def _token(self, key: str, alive: bool) -> None:
         values = self.alive.match(key)

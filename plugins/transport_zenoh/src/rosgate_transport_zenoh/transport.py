@@ -13,14 +13,17 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import zenoh
+import zenoh.ext
 
 from rosgate import LinkError, OptionError, option
 from rosgate.bus import BusTransport
 from rosgate.bus import check_key as check_chunks
 
+from .tls import zenoh_tls
+
 log = logging.getLogger("rosgate.zenoh")
 
-OWN_OPTIONS = ("prefix", "namespace")
+OWN_OPTIONS = ("prefix", "namespace", "speak", "tls", "insecure")
 _ZENOH = "zenoh's own, passed through (see zenoh's DEFAULT_CONFIG.json5)"
 _PRIORITIES = (zenoh.Priority.REAL_TIME, zenoh.Priority.INTERACTIVE_HIGH,
                zenoh.Priority.INTERACTIVE_LOW, zenoh.Priority.DATA_HIGH, zenoh.Priority.DATA,
@@ -50,6 +53,8 @@ def zenoh_config(options: Mapping[str, Any]) -> zenoh.Config:
         multicast = scouting.setdefault("multicast", {})
         if isinstance(multicast, dict):
             multicast.setdefault("enabled", False)
+    if options.get("speak") == "ros2dds":  # its publication caches order samples by timestamp
+        given.setdefault("timestamping", {"enabled": True})
     config = zenoh.Config()
     for key, value in given.items():
         _insert(config, key, value)
@@ -95,6 +100,15 @@ class ZenohTransport(BusTransport):
                              "and liveliness tokens; the same across a fleet")
         namespace: str = option("/", "framing: none keys are <namespace>/<ROS name>, as "
                                 "zenoh-bridge-ros2dds' namespace (shadows zenoh's own)")
+        speak: Literal["rosgate", "ros2dds"] = option(
+            "rosgate", "ros2dds: framing-none topics and cipher-none services (codec cdr) are "
+            "announced, cached and called as zenoh-bridge-ros2dds does; rosgate: rosgate's own")
+        tls: str | None = option(
+            None, "a folder of certificates made by 'rosgate certs': mutual TLS with the "
+            "fleet's CA, presenting <bridge name>.pem (endpoints tls/<host>:<port>)")
+        insecure: bool = option(
+            False, "fleet entries without cipher and without TLS: allowed, loudly (anyone who "
+            "reaches the router can read and send them)")
         mode: Literal["peer", "client", "router"] = option(
             "peer", "zenoh's mode: peer opens without a router, client needs one at start")
         connect: dict[str, Any] | list[str] | None = option(
@@ -141,6 +155,10 @@ class ZenohTransport(BusTransport):
         from .fleet import Fleets
 
         self.templates = Fleets(self)
+        if self.options.speak == "ros2dds":
+            from .dialect import Ros2dds
+
+            self.dialect = Ros2dds()
 
     def check_key(self, key: str) -> str:
         return check_key(key)
@@ -150,9 +168,28 @@ class ZenohTransport(BusTransport):
         key = super().default_key(bridge, ros_name, bare)
         return f"{self.namespace}/{key}" if bare and self.namespace else key
 
+    @property
+    def encrypted(self) -> bool:
+        """Whether zenoh's TLS protects this bus (rosgate's certificates or zenoh's own)."""
+        link = (self.options.transport or {}).get("link")
+        return self.options.tls is not None or isinstance(link, dict) and "tls" in link
+
     def open(self, name: str) -> ZenohSession:
+        config = zenoh_config(dataclasses.asdict(self.options))
+        if self.options.tls is not None:
+            try:
+                config.insert_json5("transport/link/tls",
+                                    json.dumps(zenoh_tls(self.options.tls, name)))
+            except FileNotFoundError as exc:
+                raise LinkError(f"zenoh: no certificate {exc} for {name!r}",
+                                f"make it with 'rosgate certs --out {self.options.tls} "
+                                f"{name}' (docs/fleets.md)") from None
+        elif self.options.insecure:
+            log.warning("INSECURE: %s: fleet entries without a cipher cross zenoh without TLS "
+                        "(plugins.zenoh.insecure: true): anyone who reaches the router can read "
+                        "and send them. Set up TLS: docs/fleets.md", name)
         try:
-            session = zenoh.open(zenoh_config(dataclasses.asdict(self.options)))
+            session = zenoh.open(config)
         except zenoh.ZError as exc:
             raise LinkError(f"zenoh: cannot open a session: {zenoh_message(exc)}",
                             "check plugins.zenoh: with mode: client a router must answer at one "
@@ -180,7 +217,7 @@ class _Declared:
 
 
 class _Publisher:
-    def __init__(self, publisher: zenoh.Publisher):
+    def __init__(self, publisher: zenoh.Publisher | zenoh.ext.AdvancedPublisher):
         self.publisher = publisher
 
     def put(self, frame: bytes) -> None:
@@ -232,14 +269,36 @@ class ZenohSession:
         # it is closed, so the session keeps it
         self._tokens: set[_Declared] = set()
 
-    def publisher(self, key: str, *, reliable: bool, priority: int) -> _Publisher:
+    def zid(self) -> str:
+        """This session's zenoh id, as keys write it."""
+        return str(self.session.zid())
+
+    def publisher(self, key: str, *, reliable: bool, priority: int,
+                  history: int = 0) -> _Publisher:
+        """``history``: keep that many last samples for late joiners to query (zenoh-ext's
+        advanced publisher with a cache and publisher detection, as zenoh-bridge-ros2dds
+        serves transient_local topics)."""
         congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+        if history:
+            return _Publisher(zenoh.ext.declare_advanced_publisher(
+                self.session, key, congestion_control=congestion,
+                priority=_PRIORITIES[priority - 1],
+                cache=zenoh.ext.CacheConfig(max_samples=history), publisher_detection=True))
         return _Publisher(self.session.declare_publisher(
             key, congestion_control=congestion, priority=_PRIORITIES[priority - 1]))
 
-    def subscribe(self, key_expr: str, on_sample: Callable[[str, bytes], None]) -> _Declared:
-        return _Declared(self.session.declare_subscriber(key_expr, _direct(
-            lambda sample: on_sample(str(sample.key_expr), sample.payload.to_bytes()))))
+    def subscribe(self, key_expr: str, on_sample: Callable[[str, bytes], None],
+                  history: int = 0) -> _Declared:
+        """``history``: also ask publishers that keep samples (now and as they come) for up to
+        that many each (zenoh-ext's advanced subscriber, as zenoh-bridge-ros2dds receives
+        transient_local topics)."""
+        handler = _direct(lambda sample: on_sample(str(sample.key_expr),
+                                                   sample.payload.to_bytes()))
+        if history:
+            return _Declared(zenoh.ext.declare_advanced_subscriber(
+                self.session, key_expr, handler, history=zenoh.ext.HistoryConfig(
+                    detect_late_publishers=True, max_samples=history)))
+        return _Declared(self.session.declare_subscriber(key_expr, handler))
 
     def serve(self, key: str, on_query: Callable[[str, bytes, Any], None]) -> _Declared:
         def arrived(query: zenoh.Query) -> None:
@@ -250,7 +309,8 @@ class ZenohSession:
         return _Declared(self.session.declare_queryable(key, _direct(arrived)))
 
     def query(self, key: str, payload: bytes, timeout: float,
-              on_reply: Callable[[bytes], None], on_done: Callable[[int], None]) -> None:
+              on_reply: Callable[[bytes], None], on_done: Callable[[int], None],
+              attachment: bytes | None = None) -> None:
         answers = [0]
 
         def reply(got: zenoh.Reply) -> None:
@@ -263,7 +323,8 @@ class ZenohSession:
 
         try:
             self.session.get(key, _direct(reply, lambda: on_done(answers[0])), payload=payload,
-                             timeout=timeout, consolidation=_NO_CONSOLIDATION)
+                             timeout=timeout, consolidation=_NO_CONSOLIDATION,
+                             attachment=attachment)
         except zenoh.ZError as exc:
             raise OSError(zenoh_message(exc)) from None
 

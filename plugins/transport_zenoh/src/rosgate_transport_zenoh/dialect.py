@@ -1,0 +1,260 @@
+"""Entries wired as zenoh-bridge-ros2dds wires its routes (:mod:`.ros2dds`), so that a
+zenoh-bridge-ros2dds robot and rosgate meet as equals: the zenoh transport's
+:class:`rosgate.bus.Dialect`.
+
+With ``plugins: {zenoh: {speak: ros2dds}}`` it takes the entries that carry bare CDR, as that
+bridge does: topics with ``framing: none`` and ``codec: cdr``, services with ``codec: cdr`` and
+``cipher: none``. ``rosgate check`` marks them ``(zenoh-bridge-ros2dds)``.
+
+* every route holds the liveliness token that bridge would declare for it (``MP`` for a topic
+  sent out, ``MS`` for one received, ``SS`` for a service served here, ``SC`` for one called
+  from here), with the entry's type and QoS, so the other bridge sets up its side before any
+  data flows; the session holds the bridge token ``@/<zid>/@ros2_lv``;
+* a transient_local topic sent out keeps its last ``depth`` samples for late joiners to query
+  (zenoh-ext's publication cache, as that bridge does), and a transient_local topic received
+  asks the publishers on its key for theirs when it starts and when they appear;
+* a service is a queryable whose query is the request's CDR and whose answer is the response's;
+  calls from here carry that bridge's request-header attachment. A call the serving side could
+  not answer gets no answer (that bridge has no way to say why), so the caller's timeout speaks;
+* the other bridges' tokens are read (:class:`Graph`): each one's routes are logged as they
+  come and go, and fleets (:mod:`.fleet`) learn robots from them.
+
+The core's routes do the rest (codec, counters, ROS entities): service calls cross them in an
+envelope that this module adds and removes at the bus's edge, with the ``none`` cipher.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from rosgate.buslink import BusLink, BusOutlet
+from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
+from rosgate.links import Link, Sender
+from rosgate.resolver import PreparedService, PreparedTopic
+from rosgate.ros import qos_profile
+from rosgate.services import CallerRoute, ServerRoute
+from rosgate.transport import Address
+from rosgate.wire import envelope
+from rosgate.wire.envelope import topic_id_for
+
+from . import ros2dds
+from .ros2dds import Kind, Qos
+
+if TYPE_CHECKING:
+    from rosgate.roles.bus import BusWiring
+
+    from .transport import ZenohSession
+
+log = logging.getLogger("rosgate")
+
+NAME = "zenoh-bridge-ros2dds"
+KEEP_ALL_HISTORY = 1000  # samples a keep_all transient_local topic keeps for late joiners
+
+
+def speaks(entry: TopicConfig | ServiceConfig) -> bool:
+    """Whether an entry carries bare CDR as zenoh-bridge-ros2dds does: a topic with
+    ``framing: none``, a service with no cipher (its calls lose their envelope on the bus)."""
+    if entry.codec != "cdr" or entry.cipher != "none":
+        return False
+    return isinstance(entry, ServiceConfig) or entry.framing is Framing.NONE
+
+
+class Ros2dds:
+    """The dialect of zenoh-bridge-ros2dds (module documentation)."""
+
+    def __init__(self) -> None:
+        self._started: dict[int, Graph] = {}  # per bus link: the other bridges' routes
+
+    def name(self, entry: TopicConfig | ServiceConfig) -> str | None:
+        return NAME if speaks(entry) else None
+
+    def check(self, entry: TopicConfig | ServiceConfig, key: str) -> None:
+        """Every entry it names it can carry: bare framing already excludes a cipher."""
+
+    def wire(self, wiring: BusWiring, link: BusLink, p: PreparedTopic | PreparedService) -> None:
+        self.graph(link)
+        session: ZenohSession = link.session  # type: ignore[assignment]
+        zid = session.zid()
+        assert p.key is not None
+        if isinstance(p, PreparedService):
+            self._service(wiring, link, p, zid)
+            return
+        qos = Qos.of(qos_profile(p.config.qos))
+        history = (KEEP_ALL_HISTORY if qos.keep_all else qos.depth) if qos.transient_local else 0
+        if p.config.direction is Direction.TRANSMIT:
+            publisher = session.publisher(p.key, reliable=p.reliable, priority=p.priority,
+                                          history=history)
+            wiring.router.topic(p, topic_id_for(p.key), p.name,
+                                BusOutlet(link, p.key, publisher), bare_names=False)
+            link.token(ros2dds.token(zid, Kind.PUBLISHER, p.key, p.config.type, qos))
+            return
+        route = wiring.receiver(p)
+        link.keep(session.subscribe(p.key, link.queued(
+            lambda key, frame: wiring.dispatch(route, key, frame),
+            lambda key, reason: route.drop(reason)), history=history))
+        link.token(ros2dds.token(zid, Kind.SUBSCRIBER, p.key, p.config.type, qos))
+
+    def _service(self, wiring: BusWiring, link: BusLink, p: PreparedService, zid: str) -> None:
+        assert p.key is not None
+        if p.config.direction is Direction.RECEIVE:
+            route = wiring.router.service(p, topic_id_for(p.key), p.name, None)
+            assert isinstance(route, ServerRoute)
+            answers = RawAnswers(link, route)
+            link.serve(p.key, lambda payload, _answerer, source: answers.request(payload, source),
+                       p.config.timeout + 1.0)
+            link.token(ros2dds.token(zid, Kind.SERVER, p.key, p.config.type))
+            return
+        calls = RawCalls(link, p.key, p.config.timeout)
+        caller = wiring.router.service(p, topic_id_for(p.key), p.name, calls)
+        assert isinstance(caller, CallerRoute)
+        calls.route = caller
+        link.token(ros2dds.token(zid, Kind.CLIENT, p.key, p.config.type))
+
+    def graph(self, link: BusLink) -> Graph:
+        """The other bridges' routes as seen on ``link``, watched from its first entry on."""
+        graph = self._started.get(id(link))
+        if graph is None:
+            session: ZenohSession = link.session  # type: ignore[assignment]
+            graph = self._started[id(link)] = Graph(session.zid())
+            link.token(ros2dds.bridge_token(session.zid()))
+            link.watch(ros2dds.ALL, graph.changed)
+        return graph
+
+
+class Graph:
+    """The routes other zenoh-bridge-ros2dds bridges (and rosgate bridges speaking their
+    convention) announce, from their liveliness tokens; runs on the bus link's thread."""
+
+    def __init__(self, own: str):
+        self.own = own
+        self.routes: dict[str, ros2dds.Announced] = {}  # token key ->
+        self.listeners: list[Callable[[ros2dds.Announced, bool], None]] = []
+
+    def changed(self, key: str, alive: bool) -> None:
+        announced = ros2dds.parse(key)
+        if announced is None or announced.zid == self.own:
+            return
+        if alive:
+            if key in self.routes:
+                return
+            self.routes[key] = announced
+            log.info("%s %s: %s on %s [%s]", NAME, announced.zid, announced.kind.words,
+                     announced.key, announced.type)
+        elif self.routes.pop(key, None) is None:
+            return
+        else:
+            log.info("%s %s: %s on %s is gone", NAME, announced.zid, announced.kind.words,
+                     announced.key)
+        for listener in list(self.listeners):
+            listener(announced, alive)
+
+    def listen(self, listener: Callable[[ros2dds.Announced, bool], None]) -> None:
+        """``listener(route, alive)`` for each route known now and each that comes or goes."""
+        self.listeners.append(listener)
+        for announced in list(self.routes.values()):
+            listener(announced, True)
+
+
+class RawAnswers(Link):
+    """A served service's calls as that bridge makes them: each query's payload (the request's
+    CDR) is handed to the route in an envelope made here, and the route's answer leaves as the
+    response's CDR alone."""
+
+    def __init__(self, link: BusLink, route: ServerRoute):
+        self.bus = link
+        self.route = route
+        self.name = f"{link.name}:{route.service.service}"
+        self.closed = link.closed
+        self.epoch = int.from_bytes(os.urandom(4), "big")
+        self.numbers = itertools.count(1)
+
+    def request(self, payload: bytes, source: tuple[str, int]) -> None:
+        """The link's thread: one query."""
+        route = self.route
+        frame = route.seal(envelope.FLAG_REQUEST, self.epoch, next(self.numbers), payload)
+        route.on_request(envelope.unpack(frame), frame, self, source)
+
+    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
+        assert to is not None
+        query = self.bus.take(to[1]) if not self.closed.is_set() else None
+        if query is None:
+            sender.drop("late_answer", f"the query on {to[0]} was closed before the answer")
+            return False
+        try:
+            header = envelope.unpack(frame)
+            if header.flags & envelope.FLAG_FAILED:
+                return False  # no answer: the route counted why, the caller's timeout speaks
+            body = self.route.open(frame, header.epoch)
+            if body is None:
+                return False
+            query.reply(body)
+        except OSError as exc:
+            sender.drop("send_error", f"answer on {to[0]}: {exc}")
+            return False
+        finally:
+            try:
+                query.close()
+            except OSError:
+                pass
+        return True
+
+    def close(self) -> None:
+        pass
+
+
+class RawCalls(Link):
+    """A called service's calls as that bridge serves them: the route's request envelope is
+    opened here and its body (the request's CDR) is the query, with the request-header
+    attachment; the answer (the response's CDR) goes back to the route in an envelope."""
+
+    def __init__(self, link: BusLink, key: str, timeout: float):
+        self.bus = link
+        self.key = key
+        self.timeout = timeout + 1.0  # the call's deadline goes first
+        self.name = f"{link.name}:{key}"
+        self.closed = link.closed
+        self.client = int.from_bytes(os.urandom(8), "little")
+        self.route: CallerRoute | None = None  # set once the route is made
+
+    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
+        route = self.route
+        assert route is not None
+        if self.closed.is_set():
+            sender.drop("link_down", f"{self.bus.name} is closed")
+            return False
+        header = envelope.unpack(frame)
+        body = route.open(frame, header.epoch)
+        if body is None:
+            return False
+        bus = self.bus
+
+        def answered(payload: bytes) -> None:
+            bus.call_later(self._answer, route, header, payload)
+
+        def done(answers: int) -> None:
+            if not answers:
+                bus.call_later(sender.drop, "no_server",
+                               f"nothing on {bus.name} answered on {self.key} (no bridge serves "
+                               "it, or its server did not answer)")
+
+        session: ZenohSession = bus.session  # type: ignore[assignment]
+        try:
+            session.query(self.key, body, self.timeout, answered, done,
+                          attachment=ros2dds.request_header(self.client, header.seq))
+        except OSError as exc:
+            sender.drop("send_error", f"query on {self.key}: {exc}")
+            return False
+        return True
+
+    @staticmethod
+    def _answer(route: CallerRoute, request: envelope.Header, payload: bytes) -> None:
+        frame = route.seal(envelope.FLAG_REPLY, request.epoch, request.seq, payload)
+        route.on_reply(envelope.unpack(frame), frame)
+
+    def close(self) -> None:
+        pass
+
