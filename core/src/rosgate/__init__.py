@@ -11,6 +11,7 @@ from .codec import Codec
 from .commands import Command
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import hookimpl
+from .monitor import Monitor
 from .options import option
 from .transport import (
     Address,
@@ -32,7 +33,8 @@ from .transport import (
 __all__ = [
     "Address", "Cipher", "CipherError", "Codec", "CodecError", "Command", "ConfigError",
     "DatagramEndpoint",
-    "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError",
+    "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "Monitor",
+    "OptionError",
     "RosgateError", "SocketConnection",
     "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transport",
     "check_ip_address", "hookimpl", "ip_source_hosts", "option", "parse_host_port",

@@ -1,5 +1,5 @@
-"""The built-in plugins, registered through the same hooks as any other: the ``cdr`` codec and
-the ``none`` cipher."""
+"""The built-in plugins, registered through the same hooks as any other: the ``cdr`` codec,
+the ``none`` cipher and the ``diagnostics`` monitor."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from typing import Any
 
 from .cipher import Cipher
 from .codec import Codec
+from .diagnostics import Diagnostics
 from .errors import CodecError
 from .hookspecs import hookimpl
 
@@ -63,3 +64,8 @@ def rosgate_codecs(register: Any) -> None:
 @hookimpl
 def rosgate_ciphers(register: Any) -> None:
     register(NoCipher)
+
+
+@hookimpl
+def rosgate_monitors(register: Any) -> None:
+    register(Diagnostics)

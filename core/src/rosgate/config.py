@@ -117,7 +117,8 @@ TOP_KEYS = ("bridge", "plugins", "topics", "services", "clients")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
                "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect",
                "queue", "identity", "server_key", "insecure", "rekey", "allow", "peer_key",
-               "handshake_port", "fleet_timeout", "links", "limits")
+               "handshake_port", "fleet_timeout", "links", "limits", "diagnostics", "metrics",
+               "metrics_public")
 LINK_KEYS = ("bandwidth", "max_delay")
 CLIENT_KEYS = ("key", "topics", "services")
 RULE_KEYS = ("name", "direction", "types", "ports", "ciphers")
@@ -156,6 +157,7 @@ _EXAMPLES = {
     "services.type": "std_srvs/srv/Trigger", "services.remote": "/ping",
     "direction": "transmit (this side to the peer) or receive (the peer to this side)",
     "remote": "/robot1/chatter", "port": "12001", "framing": "rosgate", "qos": "sensor_data",
+    "diagnostics": "false", "metrics": "127.0.0.1:9108", "metrics_public": "true",
     "max_rate": "20", "priority": "data", "latest_only": "true", "recovery": "fec",
     "recovery_overhead": "0.1", "compression": "zstd", "compression_level": "3",
     "typical_size": "921600", "links": "{udp: {bandwidth: 20mbit}}", "bandwidth": "20mbit",
@@ -323,6 +325,9 @@ class BridgeConfig:
     fleet_timeout: float = FLEET_TIMEOUT_DEFAULT
     links: dict[str, LinkConfig] = field(default_factory=dict)  # by transport name
     plugins: dict[str, dict] = field(default_factory=dict)
+    diagnostics: bool = True           # publish /diagnostics (the built-in monitor)
+    metrics: str | None = None         # host:port of a Prometheus endpoint (a monitor plugin)
+    metrics_public: bool = False       # let metrics: bind an address that is not loopback
     topics: list[TopicConfig] = field(default_factory=list)
     services: list[ServiceConfig] = field(default_factory=list)
     lines: dict[str, int] = field(default_factory=dict)
@@ -581,6 +586,9 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
                               "a number of seconds > 0", _positive),
         links=_links(src, bridge),
         plugins=_plugins(src, data),
+        diagnostics=_flag(src, {"diagnostics": True, **bridge}, "bridge", "diagnostics"),
+        metrics=_text(src, bridge, "bridge", "metrics"),
+        metrics_public=_flag(src, bridge, "bridge", "metrics_public"),
         topics=_entries(src, data, "topics", role, defaults),
         services=_entries(src, data, "services", role, defaults),
         lines=src.lines,

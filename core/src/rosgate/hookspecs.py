@@ -28,6 +28,7 @@ import pluggy
 from .cipher import Cipher
 from .codec import Codec
 from .commands import Command
+from .monitor import Monitor
 from .transport import Transport
 
 hookspec = pluggy.HookspecMarker("rosgate")
@@ -57,3 +58,10 @@ def rosgate_commands(register: Callable[[Command], None]) -> None:
     :mod:`rosgate.commands`). ``rosgate`` loads every plugin when it is asked for a verb that is
     not its own, or for its help. A verb rosgate has (``run``, ``check``...) or that another plugin
     registered first is reported and skipped."""
+
+
+@hookspec
+def rosgate_monitors(register: Callable[[type[Monitor]], None]) -> None:
+    """Register monitor classes (exporters of a running bridge's status: diagnostics, metrics):
+    subclasses of :class:`rosgate.Monitor` (see :mod:`rosgate.monitor`). A monitor runs when the
+    bridge's file asks for it by name."""

@@ -39,6 +39,7 @@ from .bus import BusTransport
 from .cipher import Cipher
 from .codec import Codec
 from .commands import Command, command_problem
+from .monitor import Monitor
 from .options import declaration_problem
 from .transport import DatagramTransport, StreamTransport, Transport
 
@@ -52,6 +53,7 @@ KINDS: dict[str, tuple[str, type]] = {
     "transport": ("rosgate_transports", Transport),
     "codec": ("rosgate_codecs", Codec),
     "cipher": ("rosgate_ciphers", Cipher),
+    "monitor": ("rosgate_monitors", Monitor),
 }
 
 
