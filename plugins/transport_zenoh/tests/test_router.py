@@ -12,7 +12,6 @@ import sys
 from pathlib import Path
 
 import zenoh
-
 from rosgate_testing import free_port
 
 ROSGATE = str(Path(sys.executable).with_name("rosgate"))
