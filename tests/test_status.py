@@ -48,10 +48,13 @@ topics:
 
 
 class Publisher:
-    """Publishes /flow at a steady rate in a thread of its own until stopped."""
+    """Publishes ``topic`` at a steady rate in a thread of its own until stopped, from the
+    moment the bridge's subscription is matched."""
 
-    def __init__(self, side, rate: float, payload: str = "x" * 100):
-        self.pub = side.publisher("/flow", String)
+    def __init__(self, side, rate: float, payload: str = "x" * 100, topic: str = "/flow"):
+        self.pub = side.publisher(topic, String)
+        assert wait_until(lambda: self.pub.get_subscription_count() > 0, 20), \
+            f"no subscription to {topic}"
         self.rate, self.message = rate, String(data=payload)
         self.count = 0
         self.stop = threading.Event()

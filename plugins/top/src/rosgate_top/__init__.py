@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         before = client.status()
         if args.once:
             time.sleep(args.interval)
-            Console().print(render(client.status(), before))
+            Console().print(render(client.status(), before, keys=False))
             return 0
         return _live(client, before, args.interval)
 

@@ -53,9 +53,12 @@ def rows(now: dict[str, Any], before: dict[str, Any] | None) -> list[Row]:
 
 
 def render(now: dict[str, Any], before: dict[str, Any] | None, sort: str = "name",
-           reverse: bool = False) -> Group:
-    return Group(_header(now), _entries(now, before, sort, reverse), _links(now, before),
-                 Text("s: sort by the next column   r: reverse   q: quit", style="dim"))
+           reverse: bool = False, keys: bool = True) -> Group:
+    """The whole view; ``keys``: with the line that says which keys do what."""
+    parts: list[Any] = [_header(now), _entries(now, before, sort, reverse), _links(now, before)]
+    if keys:
+        parts.append(Text("s: sort by the next column   r: reverse   q: quit", style="dim"))
+    return Group(*parts)
 
 
 def _header(now: dict[str, Any]) -> Text:
