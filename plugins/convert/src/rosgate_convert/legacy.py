@@ -68,12 +68,12 @@ def full_type(short: str) -> tuple[str, str | None]:
     if short.count("/") == 1:
         pkg, name = short.split("/")
         return f"{pkg}/msg/{name}", None
-    pkg = KNOWN_TYPES.get(short)
-    if pkg is not None:
-        missing = None if importlib.util.find_spec(pkg) else (
-            f"{pkg}/msg/{short}: the package {pkg} is not installed here (install "
-            f"ros-<distro>-{pkg.replace('_', '-')} where this bridge runs)")
-        return f"{pkg}/msg/{short}", missing
+    known = KNOWN_TYPES.get(short)
+    if known is not None:
+        missing = None if importlib.util.find_spec(known) else (
+            f"{known}/msg/{short}: the package {known} is not installed here (install "
+            f"ros-<distro>-{known.replace('_', '-')} where this bridge runs)")
+        return f"{known}/msg/{short}", missing
     for pkg in SEARCHED:
         if importlib.util.find_spec(pkg) is None:
             continue
