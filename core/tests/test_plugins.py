@@ -300,7 +300,8 @@ def module(name: str, source: str, **names: Any) -> types.ModuleType:
     return made
 
 
-HOOKS = "the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_monitors, rosgate_transports"
+HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_monitors, "
+         "rosgate_transports")
 
 
 def test_a_misspelt_hook_is_a_failure_naming_it_and_nothing_of_the_plugin_is_kept():
