@@ -39,8 +39,9 @@ def suite_of(kind: str, cls: type) -> str:
 
 
 REGISTRATIONS = [r for r in Plugins.discover().all() if r.distribution in folders_of_tests()]
+# monitors have no conformance suite in the kit yet: their tests run a real bridge
 IN_TREE = sorted((r.kind, r.name, r.cls.__name__, r.distribution, suite_of(r.kind, r.cls))
-                 for r in REGISTRATIONS)
+                 for r in REGISTRATIONS if r.kind in SUITES)
 
 
 def test_every_in_tree_plugin_is_found():

@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 
 ROSGATE = str(Path(sys.executable).with_name("rosgate"))
-HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_packetizers, "
-         "rosgate_transforms, rosgate_transports")
+HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_monitors, "
+         "rosgate_packetizers, rosgate_transforms, rosgate_transports")
 
 TYPO = """
     from rosgate import hookimpl

@@ -300,8 +300,8 @@ def module(name: str, source: str, **names: Any) -> types.ModuleType:
     return made
 
 
-HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_packetizers, "
-         "rosgate_transforms, rosgate_transports")
+HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_monitors, "
+         "rosgate_packetizers, rosgate_transforms, rosgate_transports")
 
 
 def test_a_misspelt_hook_is_a_failure_naming_it_and_nothing_of_the_plugin_is_kept():
@@ -503,8 +503,8 @@ def test_asking_for_udp_imports_no_other_plugin():
 def test_every_hook_is_documented_in_its_spec_and_in_the_guide():
     guide = (ROOT / "docs" / "plugins.md").read_text()
     hooks = [name for name in dir(hookspecs) if name.startswith("rosgate_")]
-    assert hooks == ["rosgate_ciphers", "rosgate_codecs", "rosgate_commands", "rosgate_packetizers",
-                     "rosgate_transforms", "rosgate_transports"]
+    assert hooks == ["rosgate_ciphers", "rosgate_codecs", "rosgate_commands", "rosgate_monitors",
+                     "rosgate_packetizers", "rosgate_transforms", "rosgate_transports"]
     for name in hooks:
         assert getattr(hookspecs, name).__doc__, f"{name} has no docstring"
         assert name in guide, f"docs/plugins.md does not mention {name}"

@@ -11,6 +11,7 @@ from .codec import Codec
 from .commands import Command
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import hookimpl
+from .monitor import Monitor
 from .options import option
 from .packetizer import Packetizer, PacketLink
 from .transform import Transform, TransformError
@@ -34,8 +35,8 @@ from .transport import (
 __all__ = [
     "Address", "Cipher", "CipherError", "Codec", "CodecError", "Command", "ConfigError",
     "DatagramEndpoint",
-    "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError",
-    "PacketLink", "Packetizer", "RosgateError", "SocketConnection",
+    "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "Monitor",
+    "OptionError", "PacketLink", "Packetizer", "RosgateError", "SocketConnection",
     "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transform",
     "TransformError", "Transport", "check_ip_address", "hookimpl", "ip_source_hosts", "option",
     "parse_host_port",

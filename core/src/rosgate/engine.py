@@ -7,7 +7,10 @@ whose frames anyone who reaches the bridge could write, unless the file says ``i
 true`` — then :meth:`Engine.insecure_warning` names those entries, on every start.
 ``start()`` opens the ROS node, makes the router (:mod:`rosgate.router`) and starts the role
 (:mod:`rosgate.roles`), which opens the links; ``stop()`` closes everything, in reverse order.
-In between, a housekeeping thread warns about stale topics and logs the counters.
+In between, a housekeeping thread warns about stale topics, hands the bridge's status
+(:mod:`rosgate.status`) to the monitors the file asks for (:mod:`rosgate.monitor`:
+``/diagnostics``, metrics...) once a second, and logs a summary line once a minute; the status
+socket (:mod:`rosgate.runtime`) answers ``rosgate top``.
 """
 
 from __future__ import annotations
@@ -20,8 +23,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from .config import BridgeConfig, Direction, Role
-from .errors import ConfigError
+from .errors import ConfigError, OptionError
 from .links import Lifetime
+from .monitor import Monitor, Status, Watched
+from .options import parse
 from .plugins import Plugins
 from .resolver import Plan, PreparedService, PreparedTopic, Resolver
 from .roles import Bridge
@@ -32,10 +37,15 @@ from .roles.server import ServerRole
 from .ros import RosNode
 from .router import Router
 from .routes import ReceiveRoute, Route
+from .runtime import StatusServer
+from .status import collect, summary
 
 log = logging.getLogger("rosgate")
 
 STATS_EVERY = float(os.environ.get("ROSGATE_STATS_EVERY", "60"))
+STATUS_EVERY = 1.0  # seconds between two statuses handed to the monitors
+#: the bridge: key that asks for a monitor, and the distribution that has one of that name
+MONITOR_KEYS = {"metrics": "rosgate-metrics-prometheus"}
 
 ROLES: dict[Role, type[BridgeRole]] = {Role.PEER: PeerRole, Role.CLIENT: ClientRole,
                                        Role.SERVER: ServerRole}
@@ -110,6 +120,10 @@ class Engine:
         self.ros: RosNode | None = None
         self.router: Router | None = None
         self.role: BridgeRole | None = None
+        self.monitors: list[Monitor] = []
+        self.status_server: StatusServer | None = None
+        self.started = time.monotonic()
+        self._monitor_classes: list[tuple[type[Monitor], Any]] = []
 
     def prepare(self) -> Engine:
         """Resolve the file; :class:`ConfigError` for the first mistake, or for the first
@@ -123,6 +137,7 @@ class Engine:
             raise self.config.error(first.key, f"anyone who reaches this bridge can write to "
                                     f"{first.name}: {first.why}{also}", first.fix)
         self.plan = plan
+        self._monitor_classes = self._wanted_monitors()
         return self
 
     def insecure_warning(self) -> str | None:
@@ -139,6 +154,29 @@ class Engine:
         return (f"INSECURE: {cfg.file} says insecure: true: anyone who can reach it can write "
                 f"to {entries}. Set up identities or keyed ciphers: docs/security.md")
 
+    def _wanted_monitors(self) -> list[tuple[type[Monitor], Any]]:
+        """The monitors the file asks for (bridge: keys, plugins: tables), with their options."""
+        cfg, found = self.config, []
+        names = ["diagnostics"] if cfg.diagnostics else []
+        names += [name for name in MONITOR_KEYS if getattr(cfg, name)]
+        other = {name for kind, name in self.plugins.registered if kind != "monitor"}
+        names += [name for name in cfg.plugins if name not in names and name not in other]
+        for name in names:
+            registration = self.plugins.get("monitor", name)
+            if registration is None:
+                if name in MONITOR_KEYS:
+                    message, _ = self.plugins.explain_missing("monitor", name)
+                    raise cfg.error(f"bridge.{name}", message,
+                                    f"pip install {MONITOR_KEYS[name]}, or remove {name}:")
+                continue  # a plugins: table of a plugin that is no monitor
+            try:
+                options = parse(registration.cls, cfg.plugins.get(name) or {})
+            except OptionError as exc:
+                key = f"plugins.{name}" + (f".{exc.key}" if exc.key else "")
+                raise cfg.error(key, exc.message, exc.fix) from None
+            found.append((registration.cls, options))
+        return found
+
     def start(self) -> Engine:
         if self.plan is None:
             self.prepare()
@@ -149,6 +187,7 @@ class Engine:
             Bridge(self.config, self.plan, self.resolver, self.router, self.life))
         try:
             self.role.start()
+            self._start_monitors()
         except ConfigError:
             self.stop()
             raise
@@ -161,6 +200,10 @@ class Engine:
         if self.life.stopping.is_set():
             return
         self.life.stopping.set()
+        if self.status_server is not None:
+            self.status_server.close()
+        for monitor in self.monitors:
+            monitor.stop()
         if self.router is not None:
             self.router.log_stats()  # before the routes and their counters go
             self._log_links()
@@ -195,16 +238,44 @@ class Engine:
     def __exit__(self, *exc: Any) -> None:
         self.stop()
 
+    def _start_monitors(self) -> None:
+        assert self.ros is not None
+        watched = Watched(self.config, self.status, self.ros, self.life.stopping)
+        for cls, options in self._monitor_classes:
+            monitor = cls(watched, options)
+            monitor.start()
+            self.monitors.append(monitor)
+        try:
+            self.status_server = StatusServer(self.config.name, self.status)
+        except OSError as exc:  # rosgate top will not see this bridge; the bridge runs on
+            log.warning("%s: no status socket (rosgate top): %s", self.config.name, exc)
+
+    def status(self) -> Status:
+        """What the bridge does now: every route's and link's counters (:mod:`rosgate.status`)."""
+        return collect(self.config, self.role, self.router, self.life, self.started)
+
     def _housekeeping(self) -> None:
-        next_stats = time.monotonic() + STATS_EVERY
-        while not self.life.stopping.wait(0.5):
+        now = time.monotonic()
+        next_status, next_summary = now + STATUS_EVERY, now + STATS_EVERY
+        last_summary: Status | None = None
+        while not self.life.stopping.wait(0.25):
             assert self.router is not None
             now = time.monotonic()
             self.router.warn_stale(self.config, now)
-            if now >= next_stats:
-                next_stats = now + STATS_EVERY
-                self.router.log_stats()
-                self._log_links()
+            if now < next_status:
+                continue
+            next_status = now + STATUS_EVERY
+            status = self.status()
+            for monitor in self.monitors:
+                try:
+                    monitor.update(status)
+                except Exception:  # one monitor's bug must not stop the others
+                    self.router.warner.bug(f"monitor_{monitor.name}",
+                                           f"monitor {monitor.name!r} failed")
+            if now >= next_summary:
+                next_summary = now + STATS_EVERY
+                log.info("%s", summary(status, last_summary))
+                last_summary = status
 
     def _log_links(self) -> None:
         for link in self.life.links():

@@ -28,6 +28,7 @@ import pluggy
 from .cipher import Cipher
 from .codec import Codec
 from .commands import Command
+from .monitor import Monitor
 from .packetizer import Packetizer
 from .transform import Transform
 from .transport import Transport
@@ -72,3 +73,10 @@ def rosgate_packetizers(register: Callable[[type[Packetizer]], None]) -> None:
     """Register packetizer classes (how a datagram link cuts frames into packets and puts them
     back together: fragments, loss recovery): subclasses of :class:`rosgate.Packetizer`, each
     with ``magic`` bytes no other installed packetizer has."""
+
+
+@hookspec
+def rosgate_monitors(register: Callable[[type[Monitor]], None]) -> None:
+    """Register monitor classes (exporters of a running bridge's status: diagnostics, metrics):
+    subclasses of :class:`rosgate.Monitor` (see :mod:`rosgate.monitor`). A monitor runs when the
+    bridge's file asks for it by name."""

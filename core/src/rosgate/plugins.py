@@ -41,6 +41,7 @@ from .bus import BusTransport
 from .cipher import Cipher
 from .codec import Codec
 from .commands import Command, command_problem
+from .monitor import Monitor
 from .options import declaration_problem
 from .packetizer import RESERVED_MAGIC, Packetizer
 from .transform import Transform
@@ -58,6 +59,7 @@ KINDS: dict[str, tuple[str, type]] = {
     "cipher": ("rosgate_ciphers", Cipher),
     "transform": ("rosgate_transforms", Transform),
     "packetizer": ("rosgate_packetizers", Packetizer),
+    "monitor": ("rosgate_monitors", Monitor),
 }
 #: the word of a kind in distribution names, where it is not the kind itself
 _DISTRIBUTION_WORD = {"cipher": "crypto", "transform": "compress", "packetizer": "recovery"}

@@ -397,6 +397,14 @@ class BridgeConfig:
     links: dict[str, LinkConfig] = option({}, "per transport, what this side may put on each "
                                           "link", example="{udp: {bandwidth: 20mbit}}",
                                           parse=_links)
+    diagnostics: bool = option(True, "publish `diagnostic_msgs/DiagnosticArray` on `/diagnostics` "
+                               "once a second (see [operators.md](operators.md))",
+                               example="false")
+    metrics: str | None = option(None, "`host:port` of a Prometheus endpoint (the "
+                                 "`rosgate-metrics-prometheus` monitor)", unset="none",
+                                 example="127.0.0.1:9108", parse=kinds.text)
+    metrics_public: bool = option(False, "let `metrics` bind an address that is not loopback",
+                                  example="true")
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
     services: list[ServiceConfig] = field(default_factory=list)

@@ -1,0 +1,192 @@
+"""A running bridge's local status socket: where it is, serving it, asking it.
+
+Each bridge serves its status (:mod:`rosgate.status`) on a Unix socket named after it,
+``<runtime dir>/<name>.sock``: ``$ROSGATE_RUNTIME_DIR``, else ``$XDG_RUNTIME_DIR/rosgate``, else
+``/tmp/rosgate-<uid>``. The folder is made mode 0700 and refused when another user owns it or
+others may write to it; the socket is mode 0600, and a connection from another user (root
+aside, who can read anything anyway) is closed unanswered. It never listens on a network.
+
+The protocol is JSON lines: the client writes one line (``{"get": "status"}``), the bridge
+answers with one line, the status; a client may ask again on the same connection. Answering
+reads counters and copies a few lists: nothing on the data path waits for it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import stat
+import struct
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from .errors import RosgateError
+
+log = logging.getLogger("rosgate")
+
+RUNTIME_VARIABLE = "ROSGATE_RUNTIME_DIR"
+SUFFIX = ".sock"
+MAX_REQUEST = 4096  # bytes of one request line; a longer one ends the connection
+MAX_CLIENTS = 8  # connections served at once; more wait in the listen backlog
+
+
+class NoBridge(RosgateError):
+    """No bridge answers where one was looked for."""
+
+
+def runtime_dir() -> Path:
+    """The folder of this user's bridges' sockets (not made here)."""
+    given = os.environ.get(RUNTIME_VARIABLE)
+    if given:
+        return Path(given)
+    xdg = os.environ.get("XDG_RUNTIME_DIR")
+    if xdg and Path(xdg).is_dir():
+        return Path(xdg) / "rosgate"
+    return Path(f"/tmp/rosgate-{os.getuid()}")
+
+
+def socket_path(name: str) -> Path:
+    return runtime_dir() / f"{name}{SUFFIX}"
+
+
+def running() -> list[str]:
+    """The names of the bridges that have a socket here (some may have died since)."""
+    folder = runtime_dir()
+    try:
+        return sorted(p.name[:-len(SUFFIX)] for p in folder.iterdir() if p.name.endswith(SUFFIX))
+    except OSError:
+        return []
+
+
+def _private_dir(folder: Path) -> None:
+    """Make ``folder`` 0700, or check that an existing one is ours and closed to others."""
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    info = folder.stat()
+    if info.st_uid != os.getuid() or info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise OSError(f"{folder} is not this user's alone (owner uid {info.st_uid}, mode "
+                      f"{stat.S_IMODE(info.st_mode):o}); remove it or set {RUNTIME_VARIABLE}")
+
+
+class StatusServer:
+    """Serves ``status()`` on the bridge's socket until :meth:`close`."""
+
+    def __init__(self, name: str, status: Callable[[], dict[str, Any]]):
+        self.path = socket_path(name)
+        self.status = status
+        self._slots = threading.BoundedSemaphore(MAX_CLIENTS)
+        self._closed = threading.Event()
+        _private_dir(self.path.parent)
+        if self.path.exists() or self.path.is_symlink():
+            if _answers(self.path):
+                raise OSError(f"another bridge named {name!r} serves {self.path}")
+            self.path.unlink()  # left behind by a bridge that died
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)  # the socket is 0600 from its first moment
+        try:
+            self._sock.bind(str(self.path))
+        finally:
+            os.umask(old)
+        self._sock.listen(MAX_CLIENTS)
+        self._thread = threading.Thread(target=self._accept, name="status-socket", daemon=True)
+        self._thread.start()
+
+    def _accept(self) -> None:
+        while not self._closed.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except OSError:
+                return  # closed
+            if not _same_user(conn):
+                conn.close()
+                continue
+            self._slots.acquire()
+            threading.Thread(target=self._serve, args=(conn,), name="status-client",
+                             daemon=True).start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        try:
+            with conn, conn.makefile("rb") as requests:
+                while not self._closed.is_set():
+                    line = requests.readline(MAX_REQUEST)
+                    if not line.endswith(b"\n"):
+                        return  # closed, or a request too long to be ours
+                    conn.sendall(json.dumps(self.status(), separators=(",", ":")).encode()
+                                 + b"\n")
+        except OSError:
+            pass  # the client went away
+        except Exception:  # a bug in the status must not end the bridge
+            log.exception("status socket: could not answer")
+        finally:
+            self._slots.release()
+
+    def close(self) -> None:
+        self._closed.set()
+        self._sock.close()
+        try:
+            self.path.unlink()
+        except OSError:
+            pass
+
+
+def _same_user(conn: socket.socket) -> bool:
+    uid = os.getuid()
+    try:
+        _, peer_uid, _ = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET,
+                                                             socket.SO_PEERCRED, 12))
+    except (OSError, AttributeError):  # no SO_PEERCRED here: the 0600 socket is the guard
+        return True
+    return peer_uid in (uid, 0)
+
+
+def _answers(path: Path) -> bool:
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+            probe.settimeout(1.0)
+            probe.connect(str(path))
+        return True
+    except OSError:
+        return False
+
+
+class StatusClient:
+    """A connection to one bridge's status socket."""
+
+    def __init__(self, name: str, timeout: float = 5.0):
+        self.name = name
+        self.path = socket_path(name)
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._sock.settimeout(timeout)
+        try:
+            self._sock.connect(str(self.path))
+        except OSError as exc:
+            self._sock.close()
+            others = [n for n in running() if n != name]
+            hint = f" (sockets here: {', '.join(others)})" if others else ""
+            raise NoBridge(f"no bridge named {name!r} is running on this machine for this user: "
+                           f"{self.path}: {exc.strerror or exc}{hint}") from None
+        self._replies = self._sock.makefile("rb")
+
+    def status(self) -> dict[str, Any]:
+        try:
+            self._sock.sendall(b'{"get":"status"}\n')
+            line = self._replies.readline()
+        except OSError as exc:
+            raise NoBridge(f"bridge {self.name!r} stopped answering: {exc}") from None
+        if not line:
+            raise NoBridge(f"bridge {self.name!r} has stopped")
+        status: dict[str, Any] = json.loads(line)
+        return status
+
+    def close(self) -> None:
+        self._replies.close()
+        self._sock.close()
+
+    def __enter__(self) -> StatusClient:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()

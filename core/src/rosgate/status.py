@@ -1,0 +1,187 @@
+"""A running bridge's status: every topic, service and link with its counters, as one plain,
+JSON-ready mapping — what ``rosgate top``, ``/diagnostics``, metrics and the summary line read.
+
+Fields (counters only grow; rates are differences between two statuses over their ``time``)::
+
+    version    1 (a field may be added; none is renamed)
+    bridge     this bridge's name          role     client | server | peer
+    time       seconds (monotonic clock)   uptime   seconds since the bridge started
+    entries    one per topic and service route, and per entry the peer refused:
+        kind        topic | service        name       the ROS name on this side
+        direction   transmit | receive     peer       the other side's name (or address)
+        type        pkg/msg/Type           transport  udp, tcp...      port   int or null
+        sent, bytes_sent, received, bytes_received, lost     counters
+        drops       {reason: count}        queue      messages waiting to be sent
+        stale       receiving topics: no message for bridge.stale_after seconds (else null)
+        silence     receiving topics: seconds since the last message (else null)
+        latency     seconds from sender to publish, where known (else null)
+        refused     why the peer refused this entry (policy, type), or null
+    peers      [{name, up (true, false, or null: unknown)}]
+    links      [{name, up, frames_out, bytes_out, packets_out, frames_in, bytes_in, packets_in,
+                 queue, bandwidth (bit/s budget, or null), rtt (seconds, or null)}]
+    link_drops {reason: count} of frames that belonged to no topic
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from .config import BridgeConfig, TopicConfig
+from .links import Lifetime, Link, LinkSlot
+from .roles import Role
+from .roles.client import ClientRole
+from .roles.peer import PeerRole
+from .roles.server import ServerRole
+from .router import Router
+from .routes import ReceiveRoute, Route, TransmitRoute
+
+VERSION = 1
+
+
+def collect(config: BridgeConfig, role: Role | None, router: Router | None, life: Lifetime,
+            started: float) -> dict[str, Any]:
+    now = time.monotonic()
+    routes = router.snapshot() if router is not None else []
+    peers_of = _peers_of_routes(role, routes)
+    entries = [_entry(r, peers_of.get(id(r), _peer_in_label(r.label)), config, now)
+               for r in routes]
+    entries += _refused(role)
+    return {"version": VERSION, "bridge": config.name, "role": str(config.role), "time": now,
+            "uptime": now - started, "entries": entries, "peers": _peers(role, config),
+            "links": _links(life.links()),
+            "link_drops": dict(router.link_drops) if router is not None else {}}
+
+
+def _entry(route: Route, peer: str, config: BridgeConfig, now: float) -> dict[str, Any]:
+    e, c = route.entry, route.counters
+    topic = isinstance(e, TopicConfig)
+    silence = now - route.last_received if isinstance(route, ReceiveRoute) else None
+    return {"kind": "topic" if topic else "service",
+            "name": e.topic if isinstance(e, TopicConfig) else e.service,
+            "direction": str(e.direction), "peer": peer, "type": e.type,
+            "transport": e.transport, "port": e.port,
+            "sent": c.sent, "bytes_sent": c.bytes_sent, "received": c.received,
+            "bytes_received": c.bytes_received, "lost": c.lost, "drops": dict(c.drops),
+            "queue": route.queue_depth if isinstance(route, TransmitRoute) else 0,
+            "stale": silence >= config.stale_after if silence is not None else None,
+            "silence": silence, "latency": None, "refused": None}
+
+
+def _peer_in_label(label: str) -> str:
+    """The peer a route's label names: ``/chatter (to robot1)`` -> ``robot1``."""
+    _, _, rest = label.rpartition(" (")
+    return rest.rstrip(")").partition(" ")[2] or "?"
+
+
+def _peers_of_routes(role: Role | None, routes: list[Route]) -> dict[int, str]:
+    if isinstance(role, ServerRole):
+        return {id(r): s.name for s in list(role.sessions.values()) for r in s.routes}
+    if isinstance(role, ClientRole) and role.server_name:
+        return {id(r): role.server_name for r in routes}
+    return {}
+
+
+def _refused(role: Role | None) -> list[dict[str, Any]]:
+    """Entries the other side refused (its policy, a type it does not know): no route here."""
+    found: list[tuple[str, str, str, Any]] = []
+    if isinstance(role, ClientRole):
+        found = [(entry, role.server_name or "server", why, None)
+                 for entry, why in role.refused.items()]
+    elif isinstance(role, ServerRole):
+        for s in list(role.sessions.values()):
+            for index, why in list(s.refused.items()):
+                e = s.entries[index] if index < len(s.entries) else None
+                name = (e.topic if isinstance(e, TopicConfig) else e.service) if e else str(index)
+                found.append((name, s.name, why, e))
+    out: list[dict[str, Any]] = []
+    for name, peer, why, e in found:
+        out.append({"kind": "topic" if e is None or isinstance(e, TopicConfig) else "service",
+                    "name": name, "direction": str(e.direction) if e else None, "peer": peer,
+                    "type": e.type if e else None, "transport": e.transport if e else None,
+                    "port": e.port if e else None, "sent": 0, "bytes_sent": 0, "received": 0,
+                    "bytes_received": 0, "lost": 0, "drops": {}, "queue": 0, "stale": None,
+                    "silence": None, "latency": None, "refused": why})
+    return out
+
+
+def _peers(role: Role | None, config: BridgeConfig) -> list[dict[str, Any]]:
+    if isinstance(role, ClientRole):
+        return [{"name": role.server_name or config.server, "up": role.connected.is_set()}]
+    if isinstance(role, ServerRole):
+        return [{"name": s.name, "up": s.down_since is None}
+                for s in list(role.sessions.values())]
+    if isinstance(role, PeerRole) and config.peer:
+        up = role.handshake.up.is_set() if role.handshake is not None else None
+        return [{"name": config.peer, "up": up}]
+    return []
+
+
+def _links(links: list[Link]) -> list[dict[str, Any]]:
+    inside = {id(link.current) for link in links
+              if isinstance(link, LinkSlot) and link.current is not None}
+    out = []
+    for link in links:
+        if id(link) in inside:
+            continue  # shown as its slot, which stays when the connection goes
+        c = link.counters
+        current = link.current if isinstance(link, LinkSlot) else link
+        up = current is not None and not current.closed.is_set()
+        budget = getattr(current, "budget", None)
+        queued = getattr(current, "queued", None)
+        out.append({"name": link.name, "up": up, "frames_out": c.frames_out,
+                    "bytes_out": c.bytes_out, "packets_out": c.packets_out,
+                    "frames_in": c.frames_in, "bytes_in": c.bytes_in, "packets_in": c.packets_in,
+                    "queue": (link.waiting if isinstance(link, LinkSlot) else 0)
+                    + (queued() if queued is not None and up else 0),
+                    "bandwidth": budget.bandwidth if budget is not None else None, "rtt": None})
+    return out
+
+
+# -- the summary line ------------------------------------------------------------------------
+
+def summary(now: dict[str, Any], before: dict[str, Any] | None) -> str:
+    """One line for the log: totals since ``before`` (or the start), and what is abnormal."""
+    entries = [e for e in now["entries"] if e["refused"] is None]
+    old = {(e["kind"], e["name"], e["direction"], e["peer"]): e
+           for e in (before or {}).get("entries", [])}
+    span = now["time"] - before["time"] if before else now["uptime"]
+
+    def delta(e: dict[str, Any], key: str) -> int:
+        o = old.get((e["kind"], e["name"], e["direction"], e["peer"]))
+        return int(e[key] - (o[key] if o else 0))
+
+    sent = sum(delta(e, "sent") for e in entries)
+    received = sum(delta(e, "received") for e in entries)
+    volume = sum(delta(e, "bytes_sent") + delta(e, "bytes_received") for e in entries)
+    topics = sum(e["kind"] == "topic" for e in entries)
+    parts = [f"{now['bridge']}: last {span:.0f} s: {topics} topic(s), "
+             f"{len(entries) - topics} service(s), sent {sent}, received {received} "
+             f"({_size(volume)})"]
+    drops: dict[str, int] = {}
+    for e in entries:
+        o = old.get((e["kind"], e["name"], e["direction"], e["peer"]))
+        for reason, n in e["drops"].items():
+            n -= o["drops"].get(reason, 0) if o else 0
+            if n:
+                drops[reason] = drops.get(reason, 0) + n
+    if drops:
+        parts.append("drops " + ", ".join(f"{k}={v}" for k, v in sorted(drops.items())))
+    stale = sorted(e["name"] for e in entries if e["stale"])
+    if stale:
+        parts.append("stale " + ", ".join(stale))
+    down = sorted(str(p["name"]) for p in now["peers"] if p["up"] is False)
+    if down:
+        parts.append("down " + ", ".join(down))
+    refused = sorted(e["name"] for e in now["entries"] if e["refused"] is not None)
+    if refused:
+        parts.append("refused " + ", ".join(refused))
+    return "; ".join(parts)
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if abs(n) < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} GB"

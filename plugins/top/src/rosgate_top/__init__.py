@@ -1,0 +1,134 @@
+"""``rosgate top``: a live terminal view of a bridge running on this machine.
+
+It asks the bridge's local status socket (:mod:`rosgate.runtime`) once a second and draws what
+changed as rates (:mod:`rosgate_top.view`) with rich. Keys are read from the terminal one at a
+time (cbreak mode: no echo, Ctrl-C still interrupts); without a terminal (a pipe) it draws
+until stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import select
+import sys
+import termios
+import time
+import tty
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import yaml
+from rich.console import Console
+from rich.live import Live
+
+from rosgate import Command, ConfigError, hookimpl
+from rosgate.runtime import NoBridge, StatusClient, running
+
+from .view import SORT_KEYS, render
+
+INTERVAL = 1.0
+
+
+def arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("bridge", nargs="?", metavar="FILE or NAME",
+                        help="the bridge's bringup.yaml or its name (default: the only bridge "
+                             "running here)")
+    parser.add_argument("--interval", type=float, default=INTERVAL, metavar="SECONDS",
+                        help=f"seconds between refreshes (default {INTERVAL:g})")
+    parser.add_argument("--once", action="store_true",
+                        help="print one view (rates over one interval) as text and exit")
+
+
+def bridge_name(given: str | None) -> str:
+    """The bridge a ``FILE or NAME`` argument means."""
+    if given is None:
+        names = running()
+        if len(names) == 1:
+            return names[0]
+        if not names:
+            raise NoBridge("no rosgate bridge is running on this machine for this user (start "
+                           "one with rosgate run FILE)")
+        raise ConfigError(f"{len(names)} bridges run here: {', '.join(names)}",
+                          fix="name one: rosgate top NAME", file="rosgate top")
+    path = Path(given)
+    if path.suffix in (".yaml", ".yml") or path.is_file():
+        try:
+            data = yaml.safe_load(path.read_text(encoding="utf-8"))
+            name = data["bridge"]["name"]
+        except (OSError, yaml.YAMLError, TypeError, KeyError) as exc:
+            raise ConfigError(f"cannot read the bridge's name from it: {exc}", file=given,
+                              fix="give the bridge's name instead: rosgate top NAME") from None
+        return str(name)
+    return given
+
+
+def run(args: argparse.Namespace) -> int:
+    name = bridge_name(args.bridge)
+    with StatusClient(name) as client:
+        before = client.status()
+        if args.once:
+            time.sleep(args.interval)
+            Console().print(render(client.status(), before, keys=False))
+            return 0
+        return _live(client, before, args.interval)
+
+
+def _live(client: StatusClient, before: dict[str, Any], interval: float) -> int:
+    console = Console()
+    sort, reverse = 0, False
+    now = before
+    try:
+        with Live(render(now, None), console=console, auto_refresh=False,
+                  redirect_stdout=False, redirect_stderr=False) as live, _keys() as key:
+            due = time.monotonic() + interval
+            while True:
+                pressed = key(max(0.0, due - time.monotonic()))
+                if pressed in ("q", "Q"):
+                    break
+                if pressed == "s":
+                    sort = (sort + 1) % len(SORT_KEYS)
+                elif pressed == "r":
+                    reverse = not reverse
+                elif pressed is None:
+                    before, now = now, client.status()
+                    due = time.monotonic() + interval
+                live.update(render(now, before, SORT_KEYS[sort], reverse), refresh=True)
+    except KeyboardInterrupt:
+        pass
+    except NoBridge as exc:
+        console.print(f"rosgate top: {exc}")
+        return 1
+    return 0
+
+
+@contextlib.contextmanager
+def _keys() -> Iterator[Callable[[float], str | None]]:
+    """A function that waits up to its argument (seconds) for one key: the key, or None."""
+    fd = sys.stdin.fileno() if sys.stdin is not None else -1
+    if fd < 0 or not os.isatty(fd):
+        def wait(timeout: float) -> str | None:
+            time.sleep(timeout)
+            return None
+        yield wait
+        return
+    saved = termios.tcgetattr(fd)
+    tty.setcbreak(fd)
+    try:
+        def key(timeout: float) -> str | None:
+            ready, _, _ = select.select([fd], [], [], timeout)
+            data = os.read(fd, 1) if ready else b""
+            if ready and not data:  # the terminal is gone: wait as if no key came
+                time.sleep(timeout)
+            return data.decode(errors="replace") or None
+        yield key
+    finally:
+        termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+
+
+@hookimpl
+def rosgate_commands(register: Callable[[Command], None]) -> None:
+    register(Command("top", "a live view of a running bridge (rates, drops, links)", run,
+                     arguments))

@@ -1,0 +1,157 @@
+"""What ``rosgate top`` shows: two statuses of a bridge (:mod:`rosgate.status`) become rates,
+and the rates become two tables (rich)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from rich.console import Group
+from rich.table import Table
+from rich.text import Text
+
+#: what ``s`` cycles through: the column a table is sorted by
+SORT_KEYS = ("name", "out/s", "in/s", "drops")
+
+
+@dataclass
+class Row:
+    entry: dict[str, Any]
+    out_rate: float | None  # messages per second
+    in_rate: float | None
+    out_bytes: float | None  # bytes per second
+    in_bytes: float | None
+    new_drops: dict[str, int]  # since the previous status
+
+    def sort_value(self, key: str) -> Any:
+        if key == "out/s":
+            return self.out_rate or 0.0
+        if key == "in/s":
+            return self.in_rate or 0.0
+        if key == "drops":
+            return sum(self.entry["drops"].values())
+        return self.entry["name"]
+
+
+def _key(e: dict[str, Any]) -> tuple[Any, ...]:
+    return e["kind"], e["name"], e["direction"], e["peer"]
+
+
+def rows(now: dict[str, Any], before: dict[str, Any] | None) -> list[Row]:
+    old = {_key(e): e for e in (before or {}).get("entries", [])}
+    span = now["time"] - before["time"] if before else 0.0
+    out = []
+    for e in now["entries"]:
+        o = old.get(_key(e))
+
+        def rate(field: str, e: dict[str, Any] = e, o: dict[str, Any] | None = o) -> float | None:
+            return (e[field] - o[field]) / span if o is not None and span > 0 else None
+        new = {k: v - (o["drops"].get(k, 0) if o else 0) for k, v in e["drops"].items()}
+        out.append(Row(e, rate("sent"), rate("received"), rate("bytes_sent"),
+                       rate("bytes_received"), {k: v for k, v in new.items() if v > 0}))
+    return out
+
+
+def render(now: dict[str, Any], before: dict[str, Any] | None, sort: str = "name",
+           reverse: bool = False, keys: bool = True) -> Group:
+    """The whole view; ``keys``: with the line that says which keys do what."""
+    parts: list[Any] = [_header(now), _entries(now, before, sort, reverse), _links(now, before)]
+    if keys:
+        parts.append(Text("s: sort by the next column   r: reverse   q: quit", style="dim"))
+    return Group(*parts)
+
+
+def _header(now: dict[str, Any]) -> Text:
+    peers = ", ".join(f"{p['name']} {_state(p['up'])}" for p in now["peers"]) or "none"
+    text = Text()
+    text.append(f"rosgate {now['bridge']}", style="bold")
+    text.append(f" ({now['role']}), up {_duration(now['uptime'])}; peers: {peers}")
+    if now["link_drops"]:
+        text.append("; frames for no topic: " + _drops(now["link_drops"]), style="yellow")
+    return text
+
+
+def _entries(now: dict[str, Any], before: dict[str, Any] | None, sort: str,
+             reverse: bool) -> Table:
+    mark = " ▼" if not reverse else " ▲"
+    table = Table(title="topics and services", title_justify="left", expand=False)
+    for column in ("NAME", "KIND", "DIR", "PEER", "OUT/S", "IN/S", "OUT B/S", "IN B/S",
+                   "LATENCY", "QUEUE", "STALE", "DROPS"):
+        header = column + (mark if column.lower() == sort else "")
+        table.add_column(header, justify="right" if "/S" in column or column in (
+            "LATENCY", "QUEUE") else "left", no_wrap=column != "DROPS")
+    ordered = sorted(rows(now, before), key=lambda r: r.sort_value(sort),
+                     reverse=reverse != (sort != "name"))
+    for r in ordered:
+        e = r.entry
+        if e["refused"] is not None:
+            state = Text(f"refused: {e['refused']}", style="bold red")
+            table.add_row(e["name"], e["kind"], _way(e["direction"]), e["peer"], "", "", "", "",
+                          "", "", "", state)
+            continue
+        drops = Text(_drops(e["drops"]) or "-",
+                     style="bold red" if r.new_drops else "")
+        stale = {True: Text("stale", style="yellow"), False: Text("no"), None: Text("-")}[
+            e["stale"]]
+        table.add_row(e["name"], e["kind"], _way(e["direction"]), e["peer"],
+                      _number(r.out_rate), _number(r.in_rate), _bytes(r.out_bytes),
+                      _bytes(r.in_bytes), _seconds(e["latency"]), str(e["queue"]), stale, drops)
+    return table
+
+
+def _links(now: dict[str, Any], before: dict[str, Any] | None) -> Table:
+    old = {link["name"]: link for link in (before or {}).get("links", [])}
+    span = now["time"] - before["time"] if before else 0.0
+    table = Table(title="links", title_justify="left")
+    for column in ("LINK", "STATE", "RTT", "OUT B/S", "IN B/S", "BUDGET USE", "QUEUE"):
+        table.add_column(column, justify="left" if column in ("LINK", "STATE") else "right",
+                         no_wrap=True)
+    for link in sorted(now["links"], key=lambda link: link["name"]):
+        o = old.get(link["name"])
+        out_rate = (link["bytes_out"] - o["bytes_out"]) / span if o and span > 0 else None
+        in_rate = (link["bytes_in"] - o["bytes_in"]) / span if o and span > 0 else None
+        budget = link["bandwidth"]
+        use = (f"{out_rate * 8 / budget:.0%}" if budget and out_rate is not None
+               else "-" if not budget else "")
+        table.add_row(link["name"], Text(_state(link["up"]),
+                                         style="green" if link["up"] else "bold red"),
+                      _seconds(link["rtt"]), _bytes(out_rate), _bytes(in_rate), use,
+                      str(link["queue"]))
+    return table
+
+
+def _way(direction: str | None) -> str:
+    return {"transmit": "out", "receive": "in"}.get(direction or "", "?")
+
+
+def _state(up: bool | None) -> str:
+    return {True: "up", False: "DOWN", None: "?"}[up]
+
+
+def _drops(drops: dict[str, int]) -> str:
+    return " ".join(f"{k}={v}" for k, v in sorted(drops.items()))
+
+
+def _number(value: float | None) -> str:
+    if value is None:
+        return "…"
+    return f"{value:.0f}" if value >= 10 else f"{value:.1f}"
+
+
+def _bytes(value: float | None) -> str:
+    if value is None:
+        return "…"
+    for unit in ("B", "kB", "MB"):
+        if value < 1000:
+            return f"{value:.0f} {unit}" if unit == "B" else f"{value:.1f} {unit}"
+        value /= 1000
+    return f"{value:.1f} GB"
+
+
+def _seconds(value: float | None) -> str:
+    return "-" if value is None else f"{value * 1000:.1f} ms"
+
+
+def _duration(seconds: float) -> str:
+    s = int(seconds)
+    return f"{s // 3600:d}:{s // 60 % 60:02d}:{s % 60:02d}"
