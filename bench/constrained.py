@@ -172,10 +172,15 @@ def files(case: Case, folder: Path, relay_port: int, port_b: int) -> tuple[Path,
                          f"{', ' + extra if extra else ''}}}")
         entries_b.append(f"  - {{{common}, direction: receive, port: {port_b}}}")
     bridge = "{{name: {}, role: peer, peer: 127.0.0.1, listen: 127.0.0.1{}}}"
+    # an open peer pair on loopback, said so (a revision from before that rule knows no insecure:
+    # for peers and needs none)
+    open_ = "" if case.checkout.rev else ", insecure: true"
+    extra_a = (", " + case.bridge_a if case.bridge_a else "") + open_
     a, b = folder / "bridge_a.yaml", folder / "bridge_b.yaml"
-    a.write_text(f"bridge: {bridge.format('robot', ', ' + case.bridge_a if case.bridge_a else '')}"
+    a.write_text(f"bridge: {bridge.format('robot', extra_a)}"
                  f"\n{case.plugins_a}\ntopics:\n" + "\n".join(entries_a) + "\n")
-    b.write_text(f"bridge: {bridge.format('base', '')}\ntopics:\n" + "\n".join(entries_b) + "\n")
+    b.write_text(f"bridge: {bridge.format('base', open_)}\ntopics:\n" + "\n".join(entries_b)
+                 + "\n")
     return a, b
 
 
