@@ -639,7 +639,7 @@ def test_legacy_file_is_named_as_such(path: Path) -> None:
     assert (error.file, error.line, error.key) == (str(path), 1, "client_node")
     assert "old ros2_socket_bridge format" in error.message
     assert "bridge:" in error.message and "topics:" in error.message
-    assert "README" in error.fix
+    assert "rosgate convert" in error.fix
 
 
 def test_legacy_files_exist() -> None:

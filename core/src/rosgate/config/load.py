@@ -164,10 +164,11 @@ def _reject_legacy(src: Source, data: dict) -> None:
             raise src.error(key, f"this is the old ros2_socket_bridge format "
                                  f"({key}: ros__parameters:); rosgate uses bridge: + topics: "
                                  "instead",
-                            fix="rewrite it as in the README's bringup.yaml walk-through: a "
-                                "bridge: section (name, role: client, server: host:port) and one "
-                                "topics: entry per topic (topic, type: pkg/msg/Type, direction, "
-                                "port)")
+                            fix="'rosgate convert FILE' (pip install rosgate-convert) writes "
+                                "the rosgate files for it; or rewrite it as in "
+                                "docs/configuration.md: a bridge: section (name, role: client, "
+                                "server: host:port) and one topics: entry per topic (topic, "
+                                "type: pkg/msg/Type, direction, port)")
 
 
 def _check_role(src: Source, data: dict, bridge: dict, role: Role) -> None:
