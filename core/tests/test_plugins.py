@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rosgate_message_tree import TreeCodec
 
 import rosgate
 from rosgate import (
@@ -27,7 +28,6 @@ from rosgate import (
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import loads
 from rosgate.engine import Engine
-from rosgate.message_tree import TreeCodec
 from rosgate.options import parse
 from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration
 from rosgate.roles import Bridge
