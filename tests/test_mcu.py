@@ -18,13 +18,13 @@ import msgpack
 import pytest
 from conftest import free_port, wait_until
 from geometry_msgs.msg import Pose2D, Twist
+from rosgate_mcu_cvra import serial_datagram
 from std_msgs.msg import Float32
 from std_srvs.srv import SetBool, Trigger
 from test_services import DEEP, Caller
 
 from rosgate.config import load, loads, service_to_mapping, topic_to_mapping
 from rosgate.errors import ConfigError
-from rosgate.wire import serial_datagram
 
 SIMULATOR = Path(__file__).parent.parent / "examples" / "mcu_simulator.py"
 

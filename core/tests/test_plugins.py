@@ -301,7 +301,7 @@ def module(name: str, source: str, **names: Any) -> types.ModuleType:
 
 
 HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_packetizers, "
-         "rosgate_transforms, rosgate_transports")
+         "rosgate_service_framings, rosgate_transforms, rosgate_transports")
 
 
 def test_a_misspelt_hook_is_a_failure_naming_it_and_nothing_of_the_plugin_is_kept():
@@ -504,7 +504,7 @@ def test_every_hook_is_documented_in_its_spec_and_in_the_guide():
     guide = (ROOT / "docs" / "plugins.md").read_text()
     hooks = [name for name in dir(hookspecs) if name.startswith("rosgate_")]
     assert hooks == ["rosgate_ciphers", "rosgate_codecs", "rosgate_commands", "rosgate_packetizers",
-                     "rosgate_transforms", "rosgate_transports"]
+                     "rosgate_service_framings", "rosgate_transforms", "rosgate_transports"]
     for name in hooks:
         assert getattr(hookspecs, name).__doc__, f"{name} has no docstring"
         assert name in guide, f"docs/plugins.md does not mention {name}"

@@ -229,7 +229,7 @@ def stream_framing(data: bytes) -> None:
 def serial_datagram(data: bytes) -> None:
     """SLIP-style frames with CRC-32: the decoder never raises, holds at most its limit, and
     what the encoder writes decodes to what it was given."""
-    from rosgate.wire import serial_datagram as sd
+    from rosgate_mcu_cvra import serial_datagram as sd
 
     errors: list[tuple[str, str]] = []
     reader = Reader(data)

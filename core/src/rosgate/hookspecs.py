@@ -29,6 +29,7 @@ from .cipher import Cipher
 from .codec import Codec
 from .commands import Command
 from .packetizer import Packetizer
+from .service_framing import ServiceFraming
 from .transform import Transform
 from .transport import Transport
 
@@ -72,3 +73,9 @@ def rosgate_packetizers(register: Callable[[type[Packetizer]], None]) -> None:
     """Register packetizer classes (how a datagram link cuts frames into packets and puts them
     back together: fragments, loss recovery): subclasses of :class:`rosgate.Packetizer`, each
     with ``magic`` bytes no other installed packetizer has."""
+
+
+@hookspec
+def rosgate_service_framings(register: Callable[[type[ServiceFraming]], None]) -> None:
+    """Register service framings (a device's call pattern, for service entries with
+    ``framing: <name>``): subclasses of :class:`rosgate.service_framing.ServiceFraming`."""
