@@ -617,6 +617,20 @@ def test_explain_missing_names_the_distribution(kind, name, distribution):
                    f"or pick an installed {kind}")
 
 
+@pytest.mark.parametrize("kind, name, distribution", [
+    ("packetizer", "fec", "rosgate-recovery"),
+    ("packetizer", "retransmit", "rosgate-recovery"),
+    ("service_framing", "serial_datagram", "rosgate-mcu-cvra"),
+])
+def test_explain_missing_names_rosgate_s_own_distribution_where_the_convention_does_not(
+        kind, name, distribution):
+    message, fix = Plugins().explain_missing(kind, name)
+    what = kind.replace("_", " ")
+    assert message == f"unknown {what} {name!r} (installed {what}s: none)"
+    assert fix == (f"pip install the distribution that provides it ({distribution}), "
+                   f"or pick an installed {what}")
+
+
 def test_explain_missing_gives_the_reason_a_plugin_failed():
     plugins = Plugins()
     plugins.add(plugin(rosgate_codecs=boom), "cbor", "rosgate-codec-cbor")
