@@ -18,7 +18,7 @@ from rosgate.plugins import Plugins
 ROOT = Path(__file__).resolve().parent.parent
 SUITES = {"transport": "TransportConformance", "codec": "CodecConformance",
           "cipher": "CipherConformance", "transform": "TransformConformance",
-          "packetizer": "PacketizerConformance"}
+          "packetizer": "PacketizerConformance", "service_framing": "ServiceFramingConformance"}
 
 
 def folders_of_tests() -> dict[str, Path]:

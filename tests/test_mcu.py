@@ -18,13 +18,16 @@ import msgpack
 import pytest
 from conftest import free_port, wait_until
 from geometry_msgs.msg import Pose2D, Twist
+from rosgate_mcu_cvra import serial_datagram
 from std_msgs.msg import Float32
 from std_srvs.srv import SetBool, Trigger
 from test_services import DEEP, Caller
 
+import rosgate.builtin
 from rosgate.config import load, loads, service_to_mapping, topic_to_mapping
 from rosgate.errors import ConfigError
-from rosgate.wire import serial_datagram
+from rosgate.plugins import Plugins
+from rosgate.resolver import Resolver
 
 SIMULATOR = Path(__file__).parent.parent / "examples" / "mcu_simulator.py"
 
@@ -528,3 +531,34 @@ services:
     assert "layout" in topic_to_mapping(topic) and service_to_mapping(service)["no_answer"] == "nil"
     envelope = loads(MCU_TOPIC).topics[0]
     assert not {"layout", "args", "floats"} & set(topic_to_mapping(envelope))
+
+
+def test_check_names_the_distribution_that_makes_the_calls_when_it_is_missing():
+    """Service calls with a board are the plugin rosgate-mcu-cvra's; without it, the entry's
+    framing is the error, with the distribution to install."""
+    import rosgate_codec_msgpack
+    import rosgate_transport_tcp
+    import rosgate_transport_udp
+
+    services = """
+services:
+  - {service: /mcu/ping, type: std_srvs/srv/Trigger, direction: transmit, remote: ping,
+     transport: tcp, port: 20001, framing: serial_datagram, codec: msgpack}
+"""
+    config = loads(MCU_TOPIC + "    framing: none\n" + services)
+    without = Plugins()
+    for name, module in (("builtin", rosgate.builtin), ("tcp", rosgate_transport_tcp),
+                         ("udp", rosgate_transport_udp), ("msgpack", rosgate_codec_msgpack)):
+        without.add(module, name)
+    with pytest.raises(ConfigError) as error:
+        Resolver(config, without).plan()
+    assert (error.value.key, error.value.line) == ("services[0].framing", 13)
+    assert error.value.message == ("unknown service framing 'serial_datagram' (installed service "
+                                   "framings: none)")
+    assert error.value.fix == ("pip install the distribution that provides it (rosgate-mcu-cvra), "
+                               "or pick an installed service framing")
+    with_it = Plugins.discover()
+    plan = Resolver(config, with_it).plan()
+    assert plan.services[0].service_framing is with_it.get("service_framing",
+                                                           "serial_datagram").cls
+    assert with_it.get("service_framing", "serial_datagram").distribution == "rosgate-mcu-cvra"

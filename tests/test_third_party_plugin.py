@@ -1,7 +1,7 @@
 """A plugin from another distribution works by installation alone: the ``unixdgram`` transport
 in tests/thirdparty/ is found through its entry point and carries topics, including messages
 that the core must fragment to fit its 16000-byte datagrams; the ``json`` codec there, written
-from the docs on rosgate.message_tree's to_tree/from_tree, carries topics as JSON text. A plugin
+from the docs on rosgate_message_tree's to_tree/from_tree, carries topics as JSON text. A plugin
 that declares no Options (it reads a dict) still carries topics, with a DeprecationWarning."""
 
 from __future__ import annotations

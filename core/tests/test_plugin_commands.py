@@ -18,7 +18,7 @@ import pytest
 
 ROSGATE = str(Path(sys.executable).with_name("rosgate"))
 HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_monitors, "
-         "rosgate_packetizers, rosgate_transforms, rosgate_transports")
+         "rosgate_packetizers, rosgate_service_framings, rosgate_transforms, rosgate_transports")
 
 TYPO = """
     from rosgate import hookimpl

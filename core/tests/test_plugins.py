@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rosgate_message_tree import TreeCodec
 
 import rosgate
 from rosgate import (
@@ -27,7 +28,6 @@ from rosgate import (
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import loads
 from rosgate.engine import Engine
-from rosgate.message_tree import TreeCodec
 from rosgate.options import parse
 from rosgate.plugins import DISABLE_VARIABLE, Failure, Plugins, Registration
 from rosgate.roles import Bridge
@@ -301,7 +301,7 @@ def module(name: str, source: str, **names: Any) -> types.ModuleType:
 
 
 HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_monitors, "
-         "rosgate_packetizers, rosgate_transforms, rosgate_transports")
+         "rosgate_packetizers, rosgate_service_framings, rosgate_transforms, rosgate_transports")
 
 
 def test_a_misspelt_hook_is_a_failure_naming_it_and_nothing_of_the_plugin_is_kept():
@@ -504,7 +504,8 @@ def test_every_hook_is_documented_in_its_spec_and_in_the_guide():
     guide = (ROOT / "docs" / "plugins.md").read_text()
     hooks = [name for name in dir(hookspecs) if name.startswith("rosgate_")]
     assert hooks == ["rosgate_ciphers", "rosgate_codecs", "rosgate_commands", "rosgate_monitors",
-                     "rosgate_packetizers", "rosgate_transforms", "rosgate_transports"]
+                     "rosgate_packetizers", "rosgate_service_framings", "rosgate_transforms",
+                     "rosgate_transports"]
     for name in hooks:
         assert getattr(hookspecs, name).__doc__, f"{name} has no docstring"
         assert name in guide, f"docs/plugins.md does not mention {name}"
@@ -615,6 +616,20 @@ def test_explain_missing_names_the_distribution(kind, name, distribution):
     assert message == f"unknown {kind} {name!r} (installed {kind}s: none)"
     assert fix == (f"pip install the distribution that provides it (by convention {distribution}), "
                    f"or pick an installed {kind}")
+
+
+@pytest.mark.parametrize("kind, name, distribution", [
+    ("packetizer", "fec", "rosgate-recovery"),
+    ("packetizer", "retransmit", "rosgate-recovery"),
+    ("service_framing", "serial_datagram", "rosgate-mcu-cvra"),
+])
+def test_explain_missing_names_rosgate_s_own_distribution_where_the_convention_does_not(
+        kind, name, distribution):
+    message, fix = Plugins().explain_missing(kind, name)
+    what = kind.replace("_", " ")
+    assert message == f"unknown {what} {name!r} (installed {what}s: none)"
+    assert fix == (f"pip install the distribution that provides it ({distribution}), "
+                   f"or pick an installed {what}")
 
 
 def test_explain_missing_gives_the_reason_a_plugin_failed():

@@ -19,17 +19,19 @@ import atheris
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-with atheris.instrument_imports(include=["rosgate", "rosgate_codec_msgpack",
-                                         "rosgate_codec_cbor", "targets"]):
+with atheris.instrument_imports(include=["rosgate", "rosgate_message_tree", "rosgate_mcu_cvra",
+                                         "rosgate_codec_msgpack", "rosgate_codec_cbor",
+                                         "targets"]):
     import rosgate_codec_cbor  # noqa: F401
     import rosgate_codec_msgpack  # noqa: F401
+    import rosgate_mcu_cvra  # noqa: F401
+    import rosgate_message_tree  # noqa: F401
     import targets
 
     import rosgate.config
-    import rosgate.message_tree
     import rosgate.roles.mainline
     import rosgate.ros  # noqa: F401
-    from rosgate.wire import control, envelope, framing, names, serial_datagram  # noqa: F401
+    from rosgate.wire import control, envelope, framing, names  # noqa: F401
 
 LIMIT = float(os.environ.get("ROSGATE_FUZZ_LIMIT_MS", "100")) / 1000
 

@@ -22,7 +22,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 import targets
 
 CORPUS = Path(__file__).parent / "corpus"
-VECTORS = Path(__file__).parent.parent / "data" / "vectors" / "serial_datagram.txt"
+VECTORS = (Path(__file__).parents[2] / "plugins" / "mcu_cvra" / "tests" / "vectors"
+           / "serial_datagram.txt")
 
 
 def messages() -> list[tuple[int, object]]:
@@ -73,10 +74,11 @@ def main() -> None:
     from rclpy.serialization import serialize_message
     from rosgate_codec_cbor import CborCodec
     from rosgate_codec_msgpack import MsgpackCodec
+    from rosgate_mcu_cvra import serial_datagram
 
     from rosgate.config import TopicConfig, topic_to_mapping
     from rosgate.roles.mainline import control
-    from rosgate.wire import envelope, framing, names, serial_datagram
+    from rosgate.wire import envelope, framing, names
 
     rng = random.Random(10)
     pack = envelope.pack

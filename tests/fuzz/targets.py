@@ -109,7 +109,7 @@ def caches() -> tuple[int, ...]:
     during which they grew paid for building them, which a time limit must not count."""
     import sys
 
-    from rosgate.message_tree import _TREES
+    from rosgate_message_tree import _TREES
 
     return (message_types.cache_info().misses, _codec.cache_info().misses, len(_TREES),
             len(sys.modules))
@@ -120,7 +120,7 @@ def warm(run: Target) -> None:
     for msg_type in message_types():
         for codec in ("msgpack", "cbor", "cdr"):
             _codec(codec, msg_type)
-    from rosgate.message_tree import to_tree
+    from rosgate_message_tree import to_tree
     for msg_type in message_types():
         to_tree(msg_type())
     for seed in (b"", b"\x00" * 64):
@@ -229,7 +229,7 @@ def stream_framing(data: bytes) -> None:
 def serial_datagram(data: bytes) -> None:
     """SLIP-style frames with CRC-32: the decoder never raises, holds at most its limit, and
     what the encoder writes decodes to what it was given."""
-    from rosgate.wire import serial_datagram as sd
+    from rosgate_mcu_cvra import serial_datagram as sd
 
     errors: list[tuple[str, str]] = []
     reader = Reader(data)
@@ -377,9 +377,9 @@ def cdr_check(data: bytes) -> None:
     of which can be read (walked as a tree: which also gives the fuzzer coverage to follow).
     A frame the quick look passes and rclpy cannot read is a finding."""
     from rclpy.serialization import deserialize_message
+    from rosgate_message_tree import to_tree
 
     from rosgate.errors import CodecError
-    from rosgate.message_tree import to_tree
 
     reader = Reader(data)
     msg_type, payload = _pick_type(reader), reader.rest()

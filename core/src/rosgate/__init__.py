@@ -1,9 +1,10 @@
 """rosgate: a pluggable ROS 2 network bridge.
 
 The public API for plugin authors is what this module exports, with :mod:`rosgate.hookspecs`
-(the hooks), :mod:`rosgate.options` (declared options), :mod:`rosgate.keys` (the key convention),
-:mod:`rosgate.message_tree` (messages as trees). A plugin's tests run the plugin kit, the
-distribution ``rosgate-testing`` (import ``rosgate_testing``).
+(the hooks), :mod:`rosgate.options` (declared options), :mod:`rosgate.keys` (the key convention).
+A tree codec maps messages through the library ``rosgate-message-tree`` (import
+``rosgate_message_tree``). A plugin's tests run the plugin kit, the distribution
+``rosgate-testing`` (import ``rosgate_testing``).
 """
 
 from .cipher import Cipher

@@ -4,8 +4,8 @@ A codec plugin subclasses :class:`Codec`, implements :meth:`~Codec.encode` and
 :meth:`~Codec.decode`, and is registered through the ``rosgate_codecs`` hook. The core makes one
 instance per topic (or service side), so all per-type work — walking the message definition,
 building converters — happens once, in ``__init__``, never per message. A text or tree format
-need not walk messages itself: :func:`rosgate.message_tree.to_tree` and
-:func:`~rosgate.message_tree.from_tree` map a message to plain Python values and back, strictly.
+need not walk messages itself: the library ``rosgate-message-tree`` (import
+``rosgate_message_tree``) maps a message to plain Python values and back, strictly.
 
 Threads: an instance serves one topic (or one side of a service). ``encode`` runs in ROS
 executor threads, ``decode`` in link threads, and either may run in several threads at once, so

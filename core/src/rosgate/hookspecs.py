@@ -30,6 +30,7 @@ from .codec import Codec
 from .commands import Command
 from .monitor import Monitor
 from .packetizer import Packetizer
+from .service_framing import ServiceFraming
 from .transform import Transform
 from .transport import Transport
 
@@ -80,3 +81,9 @@ def rosgate_monitors(register: Callable[[type[Monitor]], None]) -> None:
     """Register monitor classes (exporters of a running bridge's status: diagnostics, metrics):
     subclasses of :class:`rosgate.Monitor` (see :mod:`rosgate.monitor`). A monitor runs when the
     bridge's file asks for it by name."""
+
+
+@hookspec
+def rosgate_service_framings(register: Callable[[type[ServiceFraming]], None]) -> None:
+    """Register service framings (a device's call pattern, for service entries with
+    ``framing: <name>``): subclasses of :class:`rosgate.service_framing.ServiceFraming`."""

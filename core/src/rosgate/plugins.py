@@ -44,6 +44,7 @@ from .commands import Command, command_problem
 from .monitor import Monitor
 from .options import declaration_problem
 from .packetizer import RESERVED_MAGIC, Packetizer
+from .service_framing import ServiceFraming
 from .transform import Transform
 from .transport import DatagramTransport, StreamTransport, Transport
 
@@ -60,9 +61,14 @@ KINDS: dict[str, tuple[str, type]] = {
     "transform": ("rosgate_transforms", Transform),
     "packetizer": ("rosgate_packetizers", Packetizer),
     "monitor": ("rosgate_monitors", Monitor),
+    "service_framing": ("rosgate_service_framings", ServiceFraming),
 }
 #: the word of a kind in distribution names, where it is not the kind itself
 _DISTRIBUTION_WORD = {"cipher": "crypto", "transform": "compress", "packetizer": "recovery"}
+#: the plugins rosgate's own distributions provide under names the convention does not give
+_OWN_DISTRIBUTIONS = {("packetizer", "fec"): "rosgate-recovery",
+                      ("packetizer", "retransmit"): "rosgate-recovery",
+                      ("service_framing", "serial_datagram"): "rosgate-mcu-cvra"}
 
 
 def conventional_distribution(kind: str, name: str) -> str:
@@ -71,6 +77,13 @@ def conventional_distribution(kind: str, name: str) -> str:
     convention only: one distribution may hold several plugins (``rosgate-recovery`` holds
     ``fec`` and ``retransmit``)."""
     return f"rosgate-{_DISTRIBUTION_WORD.get(kind, kind)}-{name}"
+
+
+def distribution_hint(kind: str, name: str) -> str:
+    """Which distribution to install for a plugin that is not here: rosgate's own where one
+    provides it, else the one the convention names."""
+    own = _OWN_DISTRIBUTIONS.get((kind, name))
+    return own if own else f"by convention {conventional_distribution(kind, name)}"
 
 
 def wire_keys(kind: str, cls: Any) -> list[tuple[str, Any]]:
@@ -304,17 +317,18 @@ class Plugins:
     def explain_missing(self, kind: str, name: str) -> tuple[str, str]:
         """(message, fix) for a bringup.yaml that asks for a plugin that is not here."""
         installed = ", ".join(self.names(kind)) or "none"
-        message = f"unknown {kind} {name!r} (installed {kind}s: {installed})"
+        what = kind.replace("_", " ")
+        message = f"unknown {what} {name!r} (installed {what}s: {installed})"
         failed = [f for f in self.failures if f.plugin == name]
         if failed:
             message += f"; plugin {name!r} is installed but failed to load: {failed[0].reason}"
             return message, (f"repair or reinstall {failed[0].distribution}, or pick an installed "
-                             f"{kind}")
+                             f"{what}")
         if name in self.blocked:
             message += f"; plugin {name!r} is blocked by {DISABLE_VARIABLE}"
-            return message, f"remove {name} from {DISABLE_VARIABLE}, or pick an installed {kind}"
-        return message, (f"pip install the distribution that provides it (by convention "
-                         f"{conventional_distribution(kind, name)}), or pick an installed {kind}")
+            return message, f"remove {name} from {DISABLE_VARIABLE}, or pick an installed {what}"
+        return message, (f"pip install the distribution that provides it "
+                         f"({distribution_hint(kind, name)}), or pick an installed {what}")
 
 
 _installed: Plugins | None = None

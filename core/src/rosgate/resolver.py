@@ -33,6 +33,7 @@ from .options import parse
 from .packetizer import Packetizer
 from .plugins import Plugins, Registration
 from .ros import TypeNotFound, is_reliable, resolve_type
+from .service_framing import ServiceFraming
 from .transform import Transform
 from .transport import Address, DatagramTransport, StreamTransport, Transport
 from .wire.envelope import topic_id_for
@@ -92,6 +93,8 @@ class PreparedService:
     reliable: bool = False
     key: str | None = None  # on a bus: the key its queries go to
     cipher_cls: type[Cipher] | None = None
+    #: the plugin that makes its calls when ``framing`` is not ``rosgate`` (a microcontroller's)
+    service_framing: type[ServiceFraming] | None = None
 
     @property
     def name(self) -> str:
@@ -277,13 +280,16 @@ class Resolver:
             codec_cls(srv_type.Response, codec_options)
         except OptionError as exc:
             raise self._option_error(service.codec, exc, f"{key}.codec", error) from None
-        if service.framing is Framing.SERIAL_DATAGRAM:
+        service_framing: type[ServiceFraming] | None = None
+        if service.framing is not Framing.ROSGATE:  # a microcontroller's calls: by a plugin
+            service_framing = self.plugin("service_framing", service.framing.value,
+                                          f"{key}.framing", error).cls
             if self.config.role is not Role.PEER:
-                raise error(f"{key}.framing", "framing serial_datagram is for microcontroller "
+                raise error(f"{key}.framing", f"framing {service.framing} is for microcontroller "
                             "peers, which have no main line", "use role: peer for this bridge")
             if not isinstance(transport, StreamTransport):
-                raise error(f"{key}.transport", "framing serial_datagram needs a stream transport "
-                            "(one connection per call)", "use transport: tcp")
+                raise error(f"{key}.transport", f"framing {service.framing} needs a stream "
+                            "transport (one connection per call)", "use transport: tcp")
             if not codec_cls.messagepack:
                 raise error(f"{key}.codec", f"codec {service.codec} does not put the service's "
                             "name on the wire (it does not write MessagePack)",
@@ -297,7 +303,8 @@ class Resolver:
         self._check_main_line_port(service, key, transport, error)
         address, local = self._addresses(transport, service, key, error)
         return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
-                               index, address, local, cipher_cls=cipher_cls)
+                               index, address, local, cipher_cls=cipher_cls,
+                               service_framing=service_framing)
 
     def _bus_key(self, transport: BusTransport, entry: TopicConfig | ServiceConfig, key: str,
                  error: ErrorMaker) -> str:

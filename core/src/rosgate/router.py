@@ -15,7 +15,6 @@ from collections.abc import Callable
 from typing import Any
 
 from .config import BridgeConfig, Direction, Framing
-from .cvra import CvraCallerRoute
 from .keyring import Keys, StaticKeys
 from .links import Link
 from .resolver import PreparedService, PreparedTopic
@@ -30,7 +29,7 @@ from .routes import (
     Warner,
 )
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
-from .transport import Address
+from .transport import Address, StreamTransport
 from .wire import envelope
 from .wire.names import Layout
 
@@ -116,9 +115,11 @@ class Router:
         if s.direction is Direction.RECEIVE:
             route = ServerRoute(*args)
             route.entity = self.ros.client(p.srv_type, s.service, qos)
-        elif s.framing is Framing.SERIAL_DATAGRAM:
-            route = CvraCallerRoute(*args, transport=p.transport, address=p.address)
-            route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, route.on_request)
+        elif p.service_framing is not None:  # a microcontroller's call pattern, by its plugin
+            assert isinstance(p.transport, StreamTransport)  # the resolver checked
+            route = caller = p.service_framing.caller(*args, transport=p.transport,
+                                                      address=p.address)
+            route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, caller.on_request)
         else:
             assert link is not None
             route = CallerRoute(*args, link=link, destination=destination)

@@ -8,10 +8,9 @@ import subprocess
 import sys
 import textwrap
 
+from rosgate_message_tree import type_name
 from rosgate_testing import samples
 from rosidl_parser import definition as idl
-
-from rosgate.message_tree import type_name
 
 
 def kinds(t: idl.AbstractType, found: set[str]) -> set[str]:

@@ -10,8 +10,9 @@ ports or a far host (and with the file's static ciphers: a bus has no peer to ha
 
 Microcontrollers (the CVRA profile) are peers too: ``framing: none`` topics share a
 :class:`~rosgate.routes.BarePort` per port, told apart by name, and ``framing:
-serial_datagram`` services get a :class:`~rosgate.cvra.CallServer` per port (receive) or a
-connection per call (transmit).
+serial_datagram`` services (the plugin ``rosgate-mcu-cvra``, through the
+``rosgate_service_framings`` hook) get a :class:`~rosgate.service_framing.CallPort` per port
+(receive) or a connection per call (transmit).
 
 Peers with identities (``identity``, ``peer_key``, ``handshake_port``) run the client/server
 handshake between them (:mod:`rosgate.secure`, Noise IK) on a TCP line of its own: the side
@@ -39,7 +40,6 @@ from typing import Any
 
 from ..admission import Acceptor, Sources
 from ..config import Direction, Framing
-from ..cvra import CallServer
 from ..errors import LinkError
 from ..keyring import Keys
 from ..links import Connector, Link, StreamLink
@@ -55,6 +55,7 @@ from ..secure import (
     initiate,
     respond,
 )
+from ..service_framing import CallPort
 from ..services import ServerRoute
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
@@ -98,11 +99,11 @@ class PeerRole(Role):
                 self._stream_topic(p)
             else:
                 self._datagram_topic(p)
-        call_servers: dict[Address, CallServer] = {}
+        call_servers: dict[Address, CallPort] = {}
         for s in self.bridge.plan.services:
             if s.key is not None:
                 bus.service(s)
-            elif s.config.framing is Framing.SERIAL_DATAGRAM:
+            elif s.service_framing is not None:
                 self._microcontroller_service(s, call_servers)
             else:
                 self._service(s)
@@ -168,9 +169,9 @@ class PeerRole(Role):
         self.router.service(p, service_id, s.service, link, fixed(p.address), self._keys(p))
 
     def _microcontroller_service(self, p: PreparedService,
-                                 servers: dict[Address, CallServer]) -> None:
-        """``framing: serial_datagram``: one connection per call. A serving port is shared by
-        every service on it, told apart by name."""
+                                 servers: dict[Address, CallPort]) -> None:
+        """``framing: serial_datagram`` (or another plugin's call pattern): one connection per
+        call. A serving port is shared by every service on it, told apart by name."""
         s = p.config
         if s.direction is Direction.TRANSMIT:
             self.router.service(p, 0, s.service, None)  # connects to the peer per call
@@ -181,9 +182,10 @@ class PeerRole(Role):
                 listener = p.transport.listen(p.address)
             except LinkError as exc:
                 raise self.bridge.link_error(exc, f"services[{p.index}].port") from None
-            server = servers[p.address] = CallServer(f"{p.transport.name}:{p.address[1]}",
-                                                     self.router.link_drop,
-                                                     self.cfg.limits.idle_timeout)
+            assert p.service_framing is not None
+            server = servers[p.address] = p.service_framing.server(
+                f"{p.transport.name}:{p.address[1]}", self.router.link_drop,
+                self.cfg.limits.idle_timeout)
             self.life.closing(Acceptor(listener, server.name, server.accepted, self.limits,
                                        self.allow_list(), self.refuse_connection))
         route = self.router.service(p, 0, s.service, None)  # found by name: no id

@@ -2,7 +2,7 @@
 
 CBOR is MessagePack's standardised cousin (an IETF RFC, with libraries for every language and
 for microcontrollers: TinyCBOR, QCBOR, nanocbor). The mapping is the one the ``msgpack`` codec
-uses, shared through :mod:`rosgate.message_tree`; in CBOR terms:
+uses, shared through :mod:`rosgate_message_tree`; in CBOR terms:
 
 =================================  ===========================================================
 ROS                                CBOR
@@ -24,7 +24,7 @@ the network: anything but exactly one CBOR data item is refused (trailing bytes 
 map keys that are not text or byte strings, duplicate keys, nesting deeper than 64, every tag
 (this codec writes none: dates, bignums, and above all cbor2's shared values, tags 28 and 29,
 with which 24 kB became 36 million floats), more arrays and maps than one per 8 bytes of input
-(:func:`rosgate.message_tree.container_budget`; checked by a walk over the items before they
+(:func:`rosgate_message_tree.container_budget`; checked by a walk over the items before they
 are built, for inputs over 1 kB), and any tree that does not fit the message (an unknown field,
 a value of the wrong type or range, a fixed array of the wrong length, a bounded sequence or
 string over its bound) — each a :class:`rosgate.CodecError` naming the field by its dotted path
@@ -41,9 +41,9 @@ from collections.abc import Callable
 from typing import Any
 
 import cbor2
+from rosgate_message_tree import BUDGET_FROM, OverBudget, TreeCodec, WireFormat, container_budget
 
 import rosgate
-from rosgate.message_tree import BUDGET_FROM, OverBudget, TreeCodec, WireFormat, container_budget
 
 
 def _header(major: int) -> Callable[[int], bytes]:

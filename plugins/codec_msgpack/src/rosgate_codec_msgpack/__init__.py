@@ -3,7 +3,7 @@
 This is the wire format of the CVRA MessagePack bridge: a microcontroller with a small
 MessagePack library reads and writes it without knowing anything about ROS or CDR.
 
-Wire mapping: the tree mapping of :mod:`rosgate.message_tree` (shared with the ``cbor``
+Wire mapping: the tree mapping of :mod:`rosgate_message_tree` (shared with the ``cbor``
 codec), in MessagePack terms:
 
 =================================  ===========================================================
@@ -39,10 +39,10 @@ service's request or answer), as a microcontroller's firmware sends it:
 Any float width is taken for any float field, and an integer too. Decoding is otherwise strict,
 because the bytes come from the network: anything but exactly one MessagePack object, a map key
 that is not a str, an ext type (timestamps included), or a tree that does not fit the message
-(see :mod:`rosgate.message_tree`) is a :class:`rosgate.CodecError` naming the field by its
+(see :mod:`rosgate_message_tree`) is a :class:`rosgate.CodecError` naming the field by its
 dotted path (``pose.position.w``, ``points[3].x``). Nothing is longer than the input, and the
 parser builds at most one array or map per 8 bytes of it
-(:func:`rosgate.message_tree.container_budget`): 4 MB of empty maps is refused, not 277 MB.
+(:func:`rosgate_message_tree.container_budget`): 4 MB of empty maps is refused, not 277 MB.
 
 Framing ``none`` and ``serial_datagram`` (the microcontroller profile): the core writes and
 reads the entry's name in front of the codec's bytes (``messagepack = True`` says it may), and
@@ -66,10 +66,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import msgpack
-from rosidl_parser import definition as idl
-
-import rosgate
-from rosgate.message_tree import (
+from rosgate_message_tree import (
     BUDGET_FROM,
     ContainerBudget,
     TreeCodec,
@@ -78,6 +75,9 @@ from rosgate.message_tree import (
     describe,
     message_tree,
 )
+from rosidl_parser import definition as idl
+
+import rosgate
 
 _packb = msgpack.packb
 

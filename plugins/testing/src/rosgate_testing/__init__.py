@@ -58,7 +58,10 @@ What each suite checks (every check uses real sockets, real message classes, rea
   reported present, arriving and leaving (with their holder too); ``close`` is prompt and leaves
   no thread, and a process that exits without closing does not hang; frames and calls cross
   through :class:`rosgate.buslink.BusLink`, whose full queue is counted.
-* All four: the plugin is found through its entry point in the group ``rosgate``.
+* :class:`ServiceFramingConformance` — a device's call pattern (:mod:`rosgate.service_framing`):
+  a serving port counts and closes every garbage connection without answering, and closes a
+  silent one after its idle timeout (see ``service_framings.py``).
+* All of them: the plugin is found through its entry point in the group ``rosgate``.
 
 The helpers (:func:`free_port`, :func:`has_ipv6_loopback`, :func:`wait_until_blocked`,
 :func:`receive_exactly`, :func:`write_key`, :func:`mutations`, :class:`Frames`) are what plugin
@@ -82,6 +85,7 @@ from .helpers import (
     write_key,
 )
 from .packetizers import PacketizerConformance as PacketizerConformance  # each module says
+from .service_framings import ServiceFramingConformance as ServiceFramingConformance
 from .transforms import TransformConformance as TransformConformance  # what its suite checks
 from .transports import TransportConformance
 

@@ -1,7 +1,7 @@
 """rosgate codec ``json``: a ROS message as a JSON object, for peers that read JSON (a web page,
 a script, a log). A complete codec plugin in one page.
 
-The mapping is rosgate's tree mapping (:mod:`rosgate.message_tree`): a message is an object of
+The mapping is rosgate's tree mapping (:mod:`rosgate_message_tree`): a message is an object of
 its fields in .msg order, nested messages are objects, arrays are arrays, numbers, strings and
 booleans are themselves, ``builtin_interfaces/Time`` is ``{"sec": ..., "nanosec": ...}``. JSON has
 no byte strings, so ``uint8[]`` and ``byte[]`` fields (an image's pixels) are base64 text. Floats
@@ -24,8 +24,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from rosgate_message_tree import from_tree, to_tree
+
 from rosgate import Codec, CodecError, hookimpl, option
-from rosgate.message_tree import from_tree, to_tree
 
 
 class JsonCodec(Codec):

@@ -4,7 +4,7 @@
 
 END (0xC0) ends a frame; inside one, 0xC0 is written ESC ESC_END (0xDB 0xDC) and 0xDB is
 written ESC ESC_ESC (0xDB 0xDD), as in SLIP. The CRC is zlib's CRC-32 over the unescaped
-payload. Vectors: tests/data/vectors/serial_datagram.txt (core/tests/test_serial_datagram.py).
+payload. Vectors: plugins/mcu_cvra/tests/vectors/serial_datagram.txt (test_serial_datagram.py).
 
 :class:`Decoder` is incremental: feed it what a connection gives, it yields whole payloads and
 reports every frame it throws away (``bad_escape``, ``too_short``, ``bad_crc``, ``too_long``)

@@ -1,4 +1,4 @@
-"""Services with microcontrollers: the CVRA profile (``framing: serial_datagram``).
+"""Services with microcontrollers: the CVRA call pattern (``framing: serial_datagram``).
 
 One stream connection (TCP) per call. The caller writes one serial datagram (serial_datagram.py)
 whose payload is the service's ``remote`` name and the request, laid out as ``[name, args]`` or
@@ -12,7 +12,7 @@ value: the codec maps it onto the response) and closes the connection.
   services (else it is closed: ``request_timeout``), and may not fall silent for
   ``bridge.limits.idle_timeout`` meanwhile (``idle_timeout``); with the bridge's limits on
   connections per source, idle sockets cannot hold the port's places against a
-  microcontroller. The answer, or a failure answer (see services.py), is written within the
+  microcontroller. The answer, or a failure answer (see rosgate.services), is written within the
   service's ``timeout``, then the bridge closes.
 * ``direction: transmit`` -> :class:`CvraCallerRoute`: a proxy ROS server here; each call
   connects to ``peer:port``, writes the request and reads until the answer decodes (or the peer
@@ -36,13 +36,14 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from .errors import CodecError
-from .links import POLL
-from .services import Call, ServerRoute, ServiceRoute
-from .transport import Address, StreamConnection, StreamTransport, Transport
-from .warn import BUGS
-from .wire import serial_datagram
-from .wire.names import Layout, NameMissing, pack_name, split_name
+from rosgate import CodecError
+from rosgate.links import POLL
+from rosgate.services import Call, ServerRoute, ServiceRoute
+from rosgate.transport import Address, StreamConnection, StreamTransport, Transport
+from rosgate.warn import BUGS
+from rosgate.wire.names import Layout, NameMissing, pack_name, split_name
+
+from . import serial_datagram
 
 log = logging.getLogger("rosgate")
 

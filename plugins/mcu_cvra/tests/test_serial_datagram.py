@@ -6,10 +6,9 @@ import zlib
 from pathlib import Path
 
 import pytest
+from rosgate_mcu_cvra import serial_datagram as sd
 
-from rosgate.wire import serial_datagram as sd
-
-VECTORS = Path(__file__).resolve().parents[2] / "tests" / "data" / "vectors" / "serial_datagram.txt"
+VECTORS = Path(__file__).resolve().parent / "vectors" / "serial_datagram.txt"
 
 
 def vectors() -> list[tuple[bytes, bytes]]:

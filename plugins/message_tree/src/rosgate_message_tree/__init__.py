@@ -53,8 +53,8 @@ Both take ``base64=True`` for a format without byte strings: ``uint8[]`` and ``b
 then base64 text (RFC 4648, standard alphabet, padded), and ``from_tree`` refuses text that is
 not. ``tests/thirdparty/codec_json/`` is a JSON codec written with them.
 
-This module needs the ROS Python packages (``rosidl_parser``, numpy), so the core imports it
-only when a tree codec is used.
+This library needs the ROS Python packages (``rosidl_parser``, numpy); a bridge loads it only
+through a tree codec that depends on it.
 """
 
 from __future__ import annotations
@@ -75,8 +75,7 @@ from typing import Any, ClassVar
 import numpy
 from rosidl_parser import definition as idl
 
-from .codec import Codec
-from .errors import CodecError
+from rosgate import Codec, CodecError
 
 Encoder = Callable[[Any], bytes]
 Decoder = Callable[[Any], Any]

@@ -1,4 +1,4 @@
-"""rosgate.message_tree on its own: parsed trees (plain Python values, as any format's parser
+"""rosgate_message_tree on its own: parsed trees (plain Python values, as any format's parser
 returns them) to messages, strictly; a toy format for the writing side. The msgpack and cbor
 codecs test the mapping byte for byte in their own formats."""
 
@@ -9,11 +9,11 @@ import struct
 import numpy
 import pytest
 from geometry_msgs.msg import PoseWithCovariance, Twist
+from rosgate_message_tree import TreeCodec, TreeError, WireFormat, message_tree, type_name
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32
 
 from rosgate import CodecError, OptionError
-from rosgate.message_tree import TreeCodec, TreeError, WireFormat, message_tree, type_name
 
 # A format that writes every part as a tagged, length-prefixed piece: enough to see the order
 # and kind of what the mapping writes, without depending on a real format.
