@@ -592,3 +592,50 @@ clients:
     names = {name for name, _ in side.ros.node.get_topic_names_and_types()}
     assert not [n for n in names if n.startswith("/robot1/") and n != "/robot1/cmd_vel"], names
     holder.close()
+
+
+def test_a_client_cannot_make_the_server_hold_a_history_its_policy_does_not_allow(
+        tmp_path, domain, ros_side, bridge):
+    """The attack: robot1, allowed ``/robot1/**``, asks for topics whose server-side publisher
+    would keep what the server's file never chose: a transient_local history 100,000 deep,
+    a keep_all queue (no bound at all), and a latched ``/robot1/map`` from a server whose rule
+    allows only volatile topics.
+
+    Before: each was accepted as asked (the policy looked at names, types, ports and ciphers
+    only). Now a rule bounds the depth (1,000 unless it says otherwise), keep_all (refused
+    unless it says ``keep_all: true``) and the durability: each is refused with one sentence,
+    and the entry beside them that asks for a sane QoS runs."""
+    ds, port = domain(), free_port()
+    server = bridge(write(tmp_path / "server.yaml", f"""
+bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {PATIENT},
+          identity: {AUTH.identity("server")}}}
+clients:
+  robot1:
+    key: {AUTH.public["robot1"]}
+    topics:
+      - {{name: /robot1/**, direction: both, durability: [volatile]}}
+"""), ds)
+    side = ros_side(ds, "base")
+    qos = {"/robot1/deep": {"durability": "transient_local", "depth": 100000},
+           "/robot1/unbounded": {"history": "keep_all"},
+           "/robot1/map": {"durability": "transient_local", "depth": 1}}
+    asked = [dict(CHATTER_HELLO[0], topic=f"/t{i}", remote=remote, qos=q)
+             for i, (remote, q) in enumerate(qos.items())]
+    asked.append(dict(CHATTER_HELLO[0]))
+    holder = KeyHolder(port, AUTH.identity("robot1"))
+    welcome = holder.hello(asked)
+    assert welcome is not None and welcome["type"] == "welcome", welcome
+    refused = {r["entry"]: r["error"] for r in welcome["refused"]}
+    assert refused == {
+        "topics[0] (/t0)": "robot1 may not transmit /robot1/deep with depth 100000 (policy for "
+                           "robot1 allows depth at most 1000 for /robot1/**)",
+        "topics[1] (/t1)": "robot1 may not transmit /robot1/unbounded with depth keep_all "
+                           "(policy for robot1 allows depth at most 1000 for /robot1/**)",
+        "topics[2] (/t2)": "robot1 may not transmit /robot1/map with durability transient_local "
+                           "(policy for robot1 allows durability volatile for /robot1/**)"}
+    assert server.wait_log("may not transmit /robot1/deep with depth 100000", 5), server.log
+    assert welcome["topic_ids"][3] != 0
+    assert wait_until(lambda: side.ros.node.count_publishers("/robot1/cmd_vel") == 1, 5)
+    names = {name for name, _ in side.ros.node.get_topic_names_and_types()}
+    assert not names & set(qos), names
+    holder.close()

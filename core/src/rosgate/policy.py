@@ -10,7 +10,10 @@ against the rules of its ``clients.NAME`` entry in the server's file, on the ser
   ROS graph, or calls the server's services), ``receive`` (server to client), or ``both``;
 * ``types``: globs on ``pkg/msg/Type`` (any type when left out);
 * ``ports``: the dedicated ports it may use (none when left out: only the main port);
-* ``ciphers``: the ciphers it may use (when left out: any cipher a session keys, never ``none``).
+* ``ciphers``: the ciphers it may use (when left out: any cipher a session keys, never ``none``);
+* topics only, their QoS: ``depth``, the deepest queue it may ask for (1,000 when left out),
+  ``keep_all`` whether it may ask for a queue without bound, ``durability`` which durabilities
+  (any when left out): a client cannot make the server hold an unbounded history for it.
 
 :func:`refusal` gives the one sentence logged on both sides when an entry is refused, naming
 the client, the entry and the rule: ``robot1 may not transmit /cmd_vel (policy for robot1
@@ -20,7 +23,9 @@ allows /robot1/**)``.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from functools import lru_cache
+from typing import Any
 
 from .config import ClientPolicy, Rule, ServiceConfig, TopicConfig
 
@@ -68,7 +73,7 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig,
         allowed = [r.name for r in rules if _allows_direction(r, direction)]
         says = ", ".join(allowed) if allowed else f"no {kind}s it {direction}s"
         return f"{policy.name} may not {direction} {what} (policy for {policy.name} allows {says})"
-    checks = (
+    checks: list[tuple[str, Any, Callable[[Rule], bool], Callable[[Rule], str]]] = [
         ("type", entry.type, lambda r: r.types is None
          or any(matches(t, entry.type) for t in r.types),
          lambda r: f"types {', '.join(r.types or ())}"),
@@ -80,7 +85,16 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig,
          else entry.cipher not in keyless,
          lambda r: "ciphers " + (", ".join(r.ciphers) if r.ciphers is not None
                                  else "keyed by the session (not none)")),
-    )
+    ]
+    if isinstance(entry, TopicConfig):
+        depth, durability = _asked_qos(entry.qos)
+        checks += [
+            ("depth", depth or "keep_all", lambda r: depth <= r.depth if depth else r.keep_all,
+             lambda r: f"depth at most {r.depth}" + (" or keep_all" if r.keep_all else "")),
+            ("durability", durability, lambda r: r.durability is None
+             or durability in r.durability,
+             lambda r: "durability " + ", ".join(r.durability or ())),
+        ]
     for label, value, allows, describe in checks:
         if not any(allows(r) for r in by_name):
             rule = by_name[0]
@@ -90,4 +104,16 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig,
         if all(check[2](rule) for check in checks):
             return None
     return (f"{policy.name} may not {direction} {what} as asked (no rule of policy for "
-            f"{policy.name} allows its type, port and cipher together)")
+            f"{policy.name} allows its type, port, cipher and QoS together)")
+
+
+def _asked_qos(spec: int | str | dict) -> tuple[int | None, str]:
+    """The depth (None: keep_all) and durability a topic's QoS asks for, as rclpy makes it."""
+    from rclpy import qos
+
+    from .ros import qos_profile
+
+    profile = qos_profile(spec)
+    depth = None if profile.history == qos.HistoryPolicy.KEEP_ALL else int(profile.depth)
+    lasting = profile.durability == qos.DurabilityPolicy.TRANSIENT_LOCAL
+    return depth, "transient_local" if lasting else "volatile"

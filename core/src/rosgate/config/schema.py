@@ -243,6 +243,13 @@ class Rule:
     ciphers: tuple[str, ...] | None = option(None, "ciphers it may use (`none` only when listed)",
                                              unset="any cipher a session keys", example="[aead]",
                                              parse=kinds.names)
+    depth: int = option(1000, "topics: the deepest queue (QoS depth) an entry may ask for",
+                        minimum=1, maximum=kinds.QOS_DEPTH_MAX, example="100")
+    keep_all: bool = option(False, "topics: whether an entry may ask for history `keep_all` (a "
+                            "queue without bound)", example="true")
+    durability: tuple[str, ...] | None = option(None, "topics: the durabilities an entry may ask "
+                                                "for", unset="any: `volatile`, `transient_local`",
+                                                example="[volatile]", parse=kinds.durabilities)
     line: int = 0
 
 
