@@ -51,6 +51,10 @@ log = logging.getLogger("rosgate")
 # A proxy needs deep queues: with the default service QoS (depth 10) a server answered 11 of 50
 # concurrent calls; with depth 1000 on both ends, 50 of 50 (DESIGN.md, measured).
 QUEUE_DEPTH = 1000
+# a call whose ROS server is not discovered yet waits for it this share of its timeout, and
+# looks again this often (seconds)
+DISCOVERY_SHARE = 0.8
+DISCOVERY_POLL = 0.05
 
 
 def failure(response_type: Any, reason: str) -> Any:
@@ -294,12 +298,29 @@ class ServerRoute(ServiceRoute):
         self._lock = threading.Lock()
 
     def serve(self, request: Any, call: Call) -> None:
-        """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``."""
+        """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``.
+        A server not discovered yet is waited for (polled every :data:`DISCOVERY_POLL` s) up
+        to :data:`DISCOVERY_SHARE` of the timeout, so that the failure still reaches the caller,
+        whose bridge waits ``timeout`` in all."""
+        start = time.monotonic()
+        wait_until = start + self.service.timeout * DISCOVERY_SHARE
         client = self.entity
-        if not client.service_is_ready():
-            self.fail(call, "no_server", f"no ROS server {self.service.service} is running "
-                                         "on the serving side")
-            return
+
+        def when_ready() -> None:
+            if client.service_is_ready():
+                self._call(request, call, start)
+            elif call.done:
+                return
+            elif time.monotonic() >= wait_until:
+                self.fail(call, "no_server", f"no ROS server {self.service.service} is running "
+                                             "on the serving side")
+            else:
+                self.deadlines.after(DISCOVERY_POLL, when_ready)
+
+        when_ready()
+
+    def _call(self, request: Any, call: Call, start: float) -> None:
+        client = self.entity
         future = client.call_async(request)
         future.add_done_callback(lambda f: self._answered(f, call))
 
@@ -308,7 +329,7 @@ class ServerRoute(ServiceRoute):
                 client.remove_pending_request(future)
                 self.fail(call, "timeout", f"the ROS server {self.service.service} did not answer "
                                            f"within {self.service.timeout:g} s")
-        self.deadlines.after(self.service.timeout, expire)
+        self.deadlines.after(max(0.0, start + self.service.timeout - time.monotonic()), expire)
 
     def _answered(self, future: Any, call: Call) -> None:
         if future.cancelled() or future.exception() is not None:
