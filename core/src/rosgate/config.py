@@ -199,6 +199,9 @@ class TopicConfig:
     port: int | None = None
     framing: Framing = FRAMING_DEFAULT
     qos: int | str | dict = QOS_DEFAULT
+    #: False: the entry gives no qos, so the QoS is found from the publishers the sending side
+    #: discovers (durability and reliability)
+    qos_given: bool = True
     max_rate: float | None = None
     priority: int | None = None  # 1 (real time) .. 7 (background); None: data (5)
     latest_only: bool | None = None  # None: as the QoS says (best effort: true)
@@ -376,6 +379,8 @@ def topic_to_mapping(t: TopicConfig) -> dict:
     """As the user would write it: the keys of real links only when they are not the defaults
     (so a server that predates them still reads a client's hello that does not use them)."""
     mapping = _to_mapping(t, TOPIC_KEYS)
+    if not t.qos_given:  # the far side finds it from the publishers too
+        del mapping["qos"]
     if t.recovery is Recovery.NONE:
         del mapping["recovery"]
     if t.recovery is not Recovery.FEC:
@@ -984,6 +989,7 @@ def _topic(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Topi
     return TopicConfig(
         **common,
         qos=_qos(src, data, path),
+        qos_given="qos" in data,
         max_rate=_number(src, data, path, "max_rate", None,
                          f"a number of Hz > 0 ({MAX_RATE_RANGE[0]:g}..{MAX_RATE_RANGE[1]:g})",
                          lambda v: MAX_RATE_RANGE[0] <= v <= MAX_RATE_RANGE[1]),

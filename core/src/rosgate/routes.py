@@ -32,6 +32,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, cast
 
+from . import announce
+from .announce import Identity, TypeCheck
 from .builtin import NoCipher
 from .codec import Codec
 from .config import (
@@ -84,6 +86,9 @@ class Counters:
     bytes_before_compression: int = 0
     bytes_after_compression: int = 0
     not_compressed: int = 0
+    #: announcements of the entry (rosgate.announce) the link dropped on the way out: never
+    #: data, so not among the drops
+    announce_drops: int = 0
 
     def snapshot(self) -> dict[str, Any]:
         return {"sent": self.sent, "received": self.received, "bytes_sent": self.bytes_sent,
@@ -106,6 +111,12 @@ class Route:
     recovery = Recovery.NONE.value
     recovery_overhead = RECOVERY_OVERHEAD_DEFAULT
     bare = False
+    #: the sending side of an entry with an envelope: says its type (and QoS) on its link
+    announces = False
+    #: the entry's ROS class (a message or a service), set with its ROS entity
+    interface: Any = None
+    link: Link
+    destination: Callable[[], Address | None]
 
     def __init__(self, entry: TopicConfig | ServiceConfig, topic_id: int, codec: Any,
                  keys: Keys, warner: Warner, label: str, reliable: bool = False):
@@ -126,6 +137,39 @@ class Route:
         #: it is dropped (too_late) rather than delivered late; 0: never (reliable topics,
         #: services: they have their own deadlines)
         self.max_wait_ns = 0
+        #: the entry's type against the far side's (the router gives this side's hash)
+        self.check = TypeCheck(label, Identity(entry.type, None))
+        self._announced = itertools.count(1)
+        self.announcer = Announcer(self)
+        self.born = time.monotonic()
+
+    def announcement(self, qos: dict[str, Any] | None) -> bytes:
+        """An announcement frame of this entry (:mod:`rosgate.announce`): its type and hash,
+        and ``qos`` when it was found from publishers. NoKey before a session has keys."""
+        body = announce.encode(self.check.mine, qos)
+        epoch = self.keys.epoch()
+        return self.seal(envelope.FLAG_ANNOUNCE, epoch, next(self._announced), body)
+
+    def heard(self, header: envelope.Header,
+              frame: bytes) -> tuple[Identity | None, dict[str, Any] | None] | None:
+        """The far side's announcement of this entry, opened and read, its type checked; None
+        (counted) when it does not open or read."""
+        body = self.open(frame, header.epoch)
+        if body is None:
+            return None
+        try:
+            identity, qos = announce.parse_body(bytes(body))
+        except ValueError as exc:
+            self.drop("bad_announcement", str(exc))
+            return None
+        self.check.far(identity)
+        return identity, qos
+
+    def refuse_type(self, why: str = "type_mismatch") -> None:
+        """A frame dropped because the far side's type is not this side's (or not known yet)."""
+        self.counters.drops[why] += 1
+        if why == "type_mismatch":
+            self.check.say()
 
     def on_wire(self, size: int, again: bool) -> None:
         """A packet of ``size`` bytes left on the link for this route (``again``: re-sent)."""
@@ -169,6 +213,25 @@ class Route:
         except CipherError as exc:
             self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
             return None
+
+
+class Announcer:
+    """A route's announcements as the link's sender: in the control class, never waiting out a
+    link loss (the next one comes soon)."""
+
+    __slots__ = ("route",)
+    reliable = False
+    priority = 0
+
+    def __init__(self, route: Route):
+        self.route = route
+
+    @property
+    def topic_id(self) -> int:
+        return self.route.topic_id
+
+    def drop(self, reason: str, detail: str = "") -> None:
+        self.route.counters.announce_drops += 1
 
 
 class TopicFraming:
@@ -252,6 +315,8 @@ class TransmitRoute(Route):
         self.take: Callable[[], Any] | None = None
         self.compressor = (Compressor(topic.compression_level)
                            if topic.compression is Compression.ZSTD else None)
+        #: the QoS found from the publishers here (entries without qos; None: none found yet)
+        self.qos_found: dict[str, Any] | None = None
 
     def encode(self, message: Any) -> tuple[bytes, int]:
         """The message's payload, compressed when that makes it smaller; and the envelope flags
@@ -362,6 +427,8 @@ class ReceiveRoute(Route):
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
         #: whatever this side's file says: the sender's envelope says what it compressed
         self.decompressor = Decompressor(DEFAULT_MAX_MESSAGE)
+        #: the QoS its publisher has from the far side's publishers (None: the entry's own)
+        self.qos_in_use: dict[str, Any] | None = None
 
     def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> None:
         """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
@@ -379,6 +446,11 @@ class ReceiveRoute(Route):
         if refused:
             self.drop(refused)
             return
+        if not self.check.ok:
+            why = self.check.refuses()
+            if why is not None:
+                self.refuse_type(why)
+                return
         if arrived and self.max_wait_ns:
             waited = time.time_ns() - arrived
             if waited > self.max_wait_ns:  # overloaded: drop what waited, to catch up

@@ -204,6 +204,10 @@ class CallerRoute(ServiceRoute):
     def on_request(self, request: Any, respond: Callable[[Any], None]) -> None:
         """The ROS executor's thread: send the call and return; the answer comes later."""
         call = self.answering(respond)
+        if self.check.mismatch is not None:
+            self.fail(call, "type_mismatch", self.check.mismatch)
+            self.check.say()
+            return
         to = self.destination()
         if to is None and self.link.datagram:
             self.fail(call, "no_peer_yet", "the far side's address is not known yet")
@@ -242,6 +246,10 @@ class CallerRoute(ServiceRoute):
             return
         self.counters.received += 1
         self.counters.bytes_received += len(frame)
+        if self.check.mismatch is not None:
+            self.fail(call, "type_mismatch", self.check.mismatch)
+            self.check.say()
+            return
         if header.flags & envelope.FLAG_FAILED:
             self.fail(call, "remote_failure", body.decode("utf-8", "replace")[:500])
             return
@@ -352,6 +360,13 @@ class ServerRoute(ServiceRoute):
             refused = self.window.accept(header.epoch, header.seq)
         if refused:
             self.drop(refused)
+            return
+        if self.check.mismatch is not None:  # answered as a failure, never served
+            self.refuse_type()
+            reason = self.check.mismatch.encode()
+            if link.send(self.seal(envelope.FLAG_REPLY | envelope.FLAG_FAILED, header.epoch,
+                                   header.seq, reason), self, source):
+                self.counters.sent += 1
             return
         try:
             request = self.codec.decode(self.codec.request, payload)

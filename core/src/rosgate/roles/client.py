@@ -116,7 +116,8 @@ class ClientRole(Role):
         plan = self.bridge.plan
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
-                           "services": [service_to_mapping(p.config) for p in plan.services]}),
+                           "services": [service_to_mapping(p.config) for p in plan.services],
+                           "entries": [self.router.entry_item(p) for p in self._entries()]}),
                   self.control)
         if not self._await_answer(link) or self._welcome is None:
             return False
@@ -136,6 +137,7 @@ class ClientRole(Role):
                 self._install_keys(answer, link)
             self._note_refusals(answer.get("refused", []))
             self._apply(ids)
+            self._far_entries(answer.get("entries"))
         except (KeyError, TypeError, ValueError, RosgateError) as exc:
             log.error("%s: cannot use the server's answer: %s", self.cfg.name, exc)
             if self.topic_ids is None:
@@ -149,8 +151,16 @@ class ClientRole(Role):
         link.last_heard = time.monotonic()
         self.connected.set()
         self._say_hello()
+        self.router.resync(list(self.routes.values()))  # the server hears us now
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
         return True
+
+    def _far_entries(self, items: Any) -> None:
+        """The server's word on each entry (its type, the QoS it found): none from an older
+        server."""
+        for index, route in self.routes.items():
+            self.router.far(route, items[index] if isinstance(items, list)
+                            and index < len(items) else None)
 
     def _install_keys(self, answer: dict[str, Any], link: StreamLink) -> None:
         """The session's secret from the welcome (inside the Noise channel); then say we hold

@@ -247,6 +247,7 @@ class ServerRole(Role):
             return None
         for why in session.refused.values():
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
+        items = self._far_entries(session, hello.get("entries"))
         count = len(session.topics)
         ids = [session.by_index[i].topic_id if i in session.by_index else 0
                for i in range(len(session.entries))]
@@ -254,7 +255,7 @@ class ServerRole(Role):
             "type": "welcome", "name": self.cfg.name, "session": session.id,
             "topic_ids": ids[:count], "service_ids": ids[count:],
             "refused": [{"entry": self._entry_name(session, i), "error": why}
-                        for i, why in sorted(session.refused.items())]}
+                        for i, why in sorted(session.refused.items())], "entries": items}
         if isinstance(link.connection, SecureConnection):
             welcome.update(self._new_keys(session, link.connection))
         else:
@@ -269,6 +270,15 @@ class ServerRole(Role):
                  peer[0], len(session.topics), len(session.services),
                  f", {len(session.refused)} refused" if session.refused else "")
         return session
+
+    def _far_entries(self, session: Session, items: Any) -> list[Any]:
+        """Check the client's word on each entry (type, QoS: none from an older client); this
+        side's, for the welcome."""
+        for i, route in session.by_index.items():
+            self.router.far(route, items[i] if isinstance(items, list) and i < len(items)
+                            else None)
+        return [self.router.item(session.by_index[i]) if i in session.by_index else None
+                for i in range(len(session.entries))]
 
     def _new_keys(self, session: Session, connection: SecureConnection) -> dict[str, Any]:
         """A fresh secret for this handshake (sent inside it). The previous one still opens
@@ -472,6 +482,7 @@ class ServerRole(Role):
                 self.clients.forget(old)
             self.clients.learn(source)
             session.addresses[link] = source
+            self.router.resync(session.routes)  # its latched topics, now that it hears us
             log.debug("client %r is at %s on %s", session.name, source, link.name)
 
     def _end(self, session: Session) -> None:
