@@ -155,6 +155,8 @@ def qos_found(infos: list[Any]) -> dict[str, Any] | None:
 #: the depth of a QoS found from publishers, and at most what a latched topic's keeps
 QOS_FOUND_DEPTH = 10
 QOS_FOUND_MAX_DEPTH = 1000
+#: an entry without qos before any publisher is found: the default profile, QoSProfile(depth=10)
+QOS_UNFOUND = {"reliability": "reliable", "durability": "volatile", "depth": QOS_FOUND_DEPTH}
 
 
 def qos_profile(spec: int | str | dict) -> Any:

@@ -24,7 +24,7 @@ from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .resolver import PreparedService, PreparedTopic
-from .ros import RosNode, cdr_checker, qos_found, qos_profile, type_hash
+from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_found, qos_profile, type_hash
 from .routes import (
     BareFraming,
     BarePort,
@@ -100,8 +100,8 @@ class Router:
             route.announces = t.framing is Framing.ROSGATE and p.key is None
             if not t.qos_given:
                 route.qos_found = qos_found(self.ros.publishers_found(t.topic))
-            if route.qos_found is not None:
-                qos = qos_profile(route.qos_found)
+                route.qos_in_use = route.qos_found or QOS_UNFOUND
+                qos = qos_profile(route.qos_in_use)
             if route.announces:  # before the first message, or a latched history
                 self.announce(route)
             route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
@@ -116,6 +116,7 @@ class Router:
             self._identify(route, p.msg_type)
             # a bus announces nothing, a microcontroller neither: their types are not checked
             route.check.ok = p.key is not None or t.framing is not Framing.ROSGATE
+            route.qos_in_use = None if t.qos_given else QOS_UNFOUND
             route.entity = self.ros.publisher(p.msg_type, t.topic, qos)
             if codec.raw:
                 route.publish = self.ros.raw_publisher(route.entity)
@@ -341,6 +342,7 @@ class Router:
                                               qos_profile(qos), route.on_message,
                                               route.codec.raw)
             route.take = self.ros.taker(route.entity)
+            route.qos_in_use = qos
         self.ros.destroy(old)
 
     def _find_qos(self, route: TransmitRoute) -> None:
@@ -354,7 +356,8 @@ class Router:
                  found["reliability"], found["durability"], found["depth"])
         if route.announces:
             self.announce(route)
-        self._subscribe(route, found)
+        if found != route.qos_in_use:  # a new subscription only for a new QoS (it overlaps)
+            self._subscribe(route, found)
 
     def _watch(self) -> None:
         """Every :data:`WATCH_EVERY` seconds, the publishers of topics without a qos; every

@@ -138,7 +138,7 @@ class Route:
         #: services: they have their own deadlines)
         self.max_wait_ns = 0
         #: the entry's type against the far side's (the router gives this side's hash)
-        self.check = TypeCheck(label, Identity(entry.type, None))
+        self.check = TypeCheck(label, Identity(entry.type, None), heard=True)
         self._announced = itertools.count(1)
         self.announcer = Announcer(self)
         self.born = time.monotonic()
@@ -317,6 +317,8 @@ class TransmitRoute(Route):
                            if topic.compression is Compression.ZSTD else None)
         #: the QoS found from the publishers here (entries without qos; None: none found yet)
         self.qos_found: dict[str, Any] | None = None
+        #: and the one its subscription has (None: the entry's own)
+        self.qos_in_use: dict[str, Any] | None = None
 
     def encode(self, message: Any) -> tuple[bytes, int]:
         """The message's payload, compressed when that makes it smaller; and the envelope flags
