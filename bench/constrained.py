@@ -74,8 +74,8 @@ TYPES = {"image": "sensor_msgs/msg/Image", "twist": "geometry_msgs/msg/Twist",
          "string": "std_msgs/msg/String", "grid": "nav_msgs/msg/OccupancyGrid"}
 
 #: what the tuned case adds to each topic, and to bridge A
-TUNED = {"/camera": "priority: data_low, latest_only: true, max_delay: 0.05, recovery: fec, "
-                   "recovery_overhead: 0.05",
+TUNED = {"/camera": "priority: data_low, latest_only: true, max_delay: 0.05, "
+                   "recovery: {fec: {overhead: 0.05}}",
          "/cmd_vel": "priority: interactive_high", "/status": "priority: data"}
 BUDGET = "links: {udp: {bandwidth: 20mbit}}"
 #: the tuned case knows its network: Ethernet's MTU, so datagrams of 1,472 bytes

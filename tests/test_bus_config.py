@@ -244,3 +244,36 @@ def test_router_takes_zenoh_s_own_config_file_and_refuses_a_bad_endpoint(tmp_pat
         assert router.wait(10) == 0
     text = user_error(rosgate("router", "--listen", "tcp/127.0.0.1"))
     assert "zenoh router: " in text
+
+
+def test_a_bus_without_name_templates_refuses_placeholders_at_the_entry_s_name():
+    """Placeholders are the bus's to fill (zenoh's fleets); a bus that sets no ``templates``
+    refuses them, located, and its entries without placeholders are keyed as on any bus."""
+    import types
+
+    from rosgate.bus import BusTransport
+    from rosgate.plugins import Plugins
+
+    class PlainBus(BusTransport):
+        name = "plainbus"
+
+        def open(self, name):
+            raise AssertionError("check opens nothing")
+
+    plugins = Plugins.discover()
+    module = types.ModuleType("rosgate_transport_plainbus")
+    module.rosgate_transports = lambda register: register(PlainBus)  # type: ignore[attr-defined]
+    plugins.add(module, "plainbus")
+    assert plugins.failures == []
+    head = "bridge: {name: r1, role: peer, defaults: {transport: plainbus}}\ntopics:\n"
+    ok = Engine(loads(head + "  - {topic: /x, type: std_msgs/msg/String, direction: transmit}\n",
+                      file="bringup.yaml"), plugins).prepare().plan
+    assert [t.key for t in ok.topics] == ["rosgate/r1/x"]
+    with pytest.raises(ConfigError) as info:
+        Engine(loads(head + "  - {topic: '/{robot}/x', remote: 'f/{robot}/x', "
+                            "type: std_msgs/msg/String, direction: receive}\n",
+                     file="bringup.yaml"), plugins).prepare()
+    e = info.value
+    assert (e.file, e.line, e.key) == ("bringup.yaml", 3, "topics[0].topic"), str(e)
+    assert e.message == "plainbus takes no placeholders such as {robot}"
+    assert e.fix == "write the robot's name, or use a bus that takes them"

@@ -17,7 +17,8 @@ from rosgate.plugins import Plugins
 
 ROOT = Path(__file__).resolve().parent.parent
 SUITES = {"transport": "TransportConformance", "codec": "CodecConformance",
-          "cipher": "CipherConformance"}
+          "cipher": "CipherConformance", "transform": "TransformConformance",
+          "packetizer": "PacketizerConformance"}
 
 
 def folders_of_tests() -> dict[str, Path]:
@@ -47,7 +48,9 @@ def test_every_in_tree_plugin_is_found():
         ("transport", "udp"), ("transport", "tcp"), ("transport", "unixdgram"),
         ("transport", "can"), ("transport", "bt"), ("transport", "zenoh"),
         ("codec", "cdr"), ("codec", "msgpack"), ("codec", "cbor"), ("codec", "json"),
-        ("cipher", "none"), ("cipher", "fernet"), ("cipher", "nacl")}
+        ("cipher", "none"), ("cipher", "fernet"), ("cipher", "nacl"),
+        ("transform", "zstd"), ("packetizer", "fragments"), ("packetizer", "fec"),
+        ("packetizer", "retransmit")}
 
 
 @pytest.mark.parametrize("kind, name, cls, distribution, suite", IN_TREE,

@@ -162,7 +162,8 @@ topics: [{{topic: /chatter, type: std_msgs/msg/String, direction: transmit}}]
 def test_compressed_frames_that_lie_are_counted_and_never_published(engines, domain, ros_side):
     """FLAG_COMPRESSED on a link without a cipher: anyone can send such a frame. A bomb (64 MiB of
     zeros in a few kB, over the 64 MiB a frame may hold once the message's CDR is around it) is
-    refused before anything is allocated; garbage and damaged zstd frames are counted."""
+    refused before anything is allocated; garbage and damaged zstd frames, a transform id no
+    installed transform has and a flagged frame without a payload are counted."""
     import zstandard
 
     a, b, da, db, port = peer_pair(engines, domain)
@@ -176,11 +177,13 @@ def test_compressed_frames_that_lie_are_counted_and_never_published(engines, dom
     good = zstandard.ZstdCompressor().compress(serialize_message(String(data="squeezed " * 20)))
     damaged = bytearray(good)
     damaged[-5] ^= 0xFF
-    frames = [header(1) + bomb, header(2) + unsized, header(3) + b"not zstd",
-              header(4) + bytes(damaged), header(5) + good]
+    zstd = bytes([1])  # the wire id of the zstd transform, in front of what it made
+    frames = [header(1) + zstd + bomb, header(2) + zstd + unsized, header(3) + zstd + b"not zstd",
+              header(4) + zstd + bytes(damaged), header(5) + zstd + good,
+              header(6) + bytes([0x99]) + good, header(7)]  # no such transform; no payload
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         for frame in frames:
             s.sendto(frame, ("127.0.0.1", port))
-    assert wait_until(lambda: route.counters.drops == {"decompression_error": 4}), route.counters
+    assert wait_until(lambda: route.counters.drops == {"decompression_error": 6}), route.counters
     assert inbox.wait_for(lambda items: any(m.data.startswith("squeezed") for m in items), 5)
     assert {m.data for m in inbox.items} <= {"warmup", "real-0", "squeezed " * 20}

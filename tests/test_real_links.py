@@ -51,11 +51,11 @@ def mostly_unknown_map(width: int, height: int, seed: int) -> OccupancyGrid:
 def test_compressed_topics_cross_byte_for_byte_and_count_what_they_saved(engines, domain,
                                                                         ros_side):
     port = free_port()
-    common = f"port: {port}, compression: zstd"
     a, b, da, db = peer_pair(engines, domain, f"""\
-  - {{topic: /map, type: nav_msgs/msg/OccupancyGrid, direction: transmit, {common}}}
-  - {{topic: /noise, type: sensor_msgs/msg/Image, direction: transmit, {common},
-      compression_level: 1}}""",
+  - {{topic: /map, type: nav_msgs/msg/OccupancyGrid, direction: transmit, port: {port},
+      compression: zstd}}
+  - {{topic: /noise, type: sensor_msgs/msg/Image, direction: transmit, port: {port},
+      compression: {{zstd: {{level: 1}}}}}}""",
         # the receiver's file need not say compression: the envelope says it per frame
         f"""\
   - {{topic: /map, type: nav_msgs/msg/OccupancyGrid, direction: receive, port: {port}}}

@@ -10,6 +10,7 @@ import base64
 import json
 import socket
 import types
+from pathlib import Path
 
 import pytest
 from conftest import cross, free_port
@@ -132,6 +133,53 @@ def test_json_on_the_wire_is_what_a_web_page_reads(engines, domain, ros_side):
     assert tree["header"]["frame_id"] == "caméra 7"
     assert base64.b64decode(tree["data"], validate=True) == bytes([7, 255, 0]) * 333 + b"\x01"
     assert (tree["height"], tree["width"], tree["encoding"]) == (10, 100, "mono8")
+
+
+# --- deflate and twice: a compressor and a packetizer written by a third party -------------------
+
+def test_deflate_and_twice_carry_a_topic_end_to_end(engines, domain, ros_side):
+    """The sender's file picks both (deflate at level 9); the receiver's says neither: the
+    envelope names the transform, the packets' magic the packetizer."""
+    da, db, port = domain(), domain(), free_port()
+    a = engines(udp_peer("a", "transmit", port, "std_msgs/msg/String",
+                         topic="compression: {deflate: {level: 9}}, recovery: twice"), da)
+    b = engines(udp_peer("b", "receive", port, "std_msgs/msg/String", topic="codec: cdr"), db)
+    make = lambda i: String(data="warmup" if i is None else f"command {i}; " * 50)
+    got = cross(ros_side(da, "a").publisher("/data", String),
+                ros_side(db, "b").listen("/data", String), make,
+                lambda m: m.data == "warmup", 5, interval=0.02)
+    assert got == [make(i) for i in range(5)]
+    sender, receiver = a.routes()[0].counters, b.routes()[0].counters
+    assert receiver.drops == {} and sender.drops == {}
+    # the five commands shrink; the short warm-ups do not, and go as they were
+    assert sender.sent - sender.not_compressed == 5
+    assert sender.bytes_after_compression < sender.bytes_before_compression / 5
+    # every packet went twice: twice the frames' bytes and an 11-byte header each time
+    assert sender.bytes_on_wire == 2 * (sender.bytes_sent + 11 * sender.sent)
+    assert a.resolver.plugins.get("packetizer", "twice").distribution == \
+        "rosgate-packetizer-twice"
+    link = b.stats()["links"][f"udp:{port}"]
+    assert link["frames_in"] >= 5 and link["packets_in"] == 2 * link["frames_in"]
+
+
+@pytest.mark.parametrize("source", [
+    "compress_deflate/src/rosgate_compress_deflate/__init__.py",
+    "packetizer_twice/src/rosgate_packetizer_twice/__init__.py"])
+def test_the_guide_shows_each_example_whole_and_as_it_is(source):
+    """docs/plugins.md prints both examples in full: what it shows is what runs here."""
+    root = Path(__file__).resolve().parent
+    code = (root / "thirdparty" / source).read_text()
+    assert len(code.splitlines()) <= 60
+    assert f"```python\n{code}```" in (root.parent / "docs" / "plugins.md").read_text()
+
+
+def test_a_topic_s_options_for_deflate_are_checked_where_they_are_written():
+    text = udp_peer("a", "transmit", 9, "std_msgs/msg/String",
+                    topic="compression: {deflate: {level: 10}}")
+    with pytest.raises(ConfigError) as error:
+        Engine(loads(text, file="x.yaml")).prepare()
+    assert str(error.value).startswith(
+        "x.yaml:5: topics[0].compression.deflate.level: must be 1 to 9, not 10")
 
 
 # --- a plugin that declares no options ----------------------------------------------------------

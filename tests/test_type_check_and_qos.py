@@ -45,9 +45,10 @@ def route(engine: Any, label: str) -> Any:
     return next(r for r in engine.routes() if r.label.startswith(label))
 
 
-def publisher_durability(side: Any, topic: str) -> set[Any]:
+def publisher_durability(side: Any, topic: str, bridge: str) -> set[Any]:
+    """The durability of the publishers ``bridge`` has on ``topic``, as ``side`` sees them."""
     return {info.qos_profile.durability for info in side.ros.node.get_publishers_info_by_topic(
-        topic) if info.node_name.startswith("rosgate_")}
+        topic) if info.node_name == f"rosgate_{bridge}"}
 
 
 # -- QoS found from the publishers -----------------------------------------------------------
@@ -80,7 +81,8 @@ topics:
                            {"robot frame a", "robot frame b"}, 10), got_up.items
     assert got_down.wait_for(lambda items: {m.data for m in items} ==
                              {"base frame a", "base frame b"}, 10), got_down.items
-    assert publisher_durability(base, "/up_static") == {DurabilityPolicy.TRANSIENT_LOCAL}
+    assert wait_until(lambda: publisher_durability(base, "/up_static", "base") ==
+                      {DurabilityPolicy.TRANSIENT_LOCAL})
     assert not up.counters.drops and not down.counters.drops
     del keep
 
@@ -100,11 +102,12 @@ topics: [{{{entry}, direction: transmit}}]""", da)
     inbox = late_listener(side_b, "/static")
     assert inbox.wait_for(lambda items: {m.data for m in items} ==
                           {"peer frame a", "peer frame b"}, 10), inbox.items
-    assert publisher_durability(side_b, "/static") == {DurabilityPolicy.TRANSIENT_LOCAL}
+    assert wait_until(lambda: publisher_durability(side_b, "/static", "b") ==
+                      {DurabilityPolicy.TRANSIENT_LOCAL})
     # a volatile publisher joins: the topic is latched no longer, on both sides
     keep.append(side_a.publisher("/static", String, 10))
     assert wait_until(lambda: route(a, "/static").qos_found["durability"] == "volatile", 10)
-    assert wait_until(lambda: publisher_durability(side_b, "/static") ==
+    assert wait_until(lambda: publisher_durability(side_b, "/static", "b") ==
                       {DurabilityPolicy.VOLATILE}, 10)
     assert receiving.qos_in_use == {"reliability": "reliable", "durability": "volatile",
                                     "depth": 10}
@@ -122,7 +125,8 @@ topics: [{{{entry}, direction: transmit}}]""", da)
     receiving = route(b, "/static")
     assert wait_until(lambda: receiving.counters.received >= 2, 20), receiving.counters
     assert receiving.qos_in_use is None
-    assert publisher_durability(side_b, "/static") == {DurabilityPolicy.VOLATILE}
+    assert wait_until(lambda: publisher_durability(side_b, "/static", "b") ==
+                      {DurabilityPolicy.VOLATILE})
     del keep
 
 

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from rosgate_testing import CipherConformance, CodecConformance
+from rosgate_testing import CipherConformance, CodecConformance, PacketizerConformance
 
-from rosgate.builtin import CdrCodec, NoCipher
+from rosgate.builtin import CdrCodec, Fragments, NoCipher
 
 
 class TestCdrConformance(CodecConformance):
@@ -13,3 +13,8 @@ class TestCdrConformance(CodecConformance):
 
 class TestNoneConformance(CipherConformance):
     cipher = NoCipher
+
+
+class TestFragmentsConformance(PacketizerConformance):
+    packetizer = Fragments
+    cuts_every_frame = False  # the link sends a frame that fits whole

@@ -8,6 +8,7 @@ import time
 
 import pytest
 
+from rosgate.reassembly import PARTIAL_COST, CompactReassembler, Reassembler
 from rosgate.wire import envelope
 from rosgate.wire.framing import (
     CHUNK,
@@ -18,10 +19,7 @@ from rosgate.wire.framing import (
     LAST,
     LENGTH,
     MAX_OPEN_MESSAGES,
-    PARTIAL_COST,
-    CompactReassembler,
     FramingError,
-    Reassembler,
     StreamReader,
     compact_fragment,
     fragment,
@@ -383,7 +381,7 @@ class Clock:
 
     def __init__(self, monkeypatch, now: float = 1000.0):
         self.now = now
-        monkeypatch.setattr("rosgate.wire.framing.time.monotonic", lambda: self.now)
+        monkeypatch.setattr("rosgate.reassembly.time.monotonic", lambda: self.now)
 
 
 def lone(index: int, count: int, topic: int, frame_id: int, chunk: bytes = b"x") -> bytes:

@@ -15,6 +15,7 @@ from rosgate_transport_bt import BluetoothTransport
 from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
+from rosgate import reassembly
 from rosgate.links import DatagramLink, LinkSlot, QueueLimits, StreamLink
 from rosgate.wire import envelope, framing
 from rosgate.wire.framing import FRAGMENT, LENGTH, length_prefixed
@@ -361,7 +362,7 @@ def test_a_flood_of_one_byte_fragments_is_bounded_and_counted(closing):
     victim = closing(DatagramLink(transport, endpoint, "victim", inbox.on_frame, inbox.on_lost))
     to = endpoint.sock.getsockname()
     reassembler = victim.reassembler
-    assert isinstance(reassembler, framing.Reassembler)
+    assert isinstance(reassembler, reassembly.Reassembler)
     flood = 3000
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as attacker:
         for i in range(flood):
@@ -371,7 +372,7 @@ def test_a_flood_of_one_byte_fragments_is_bounded_and_counted(closing):
         assert inbox.drops == [(TOPIC, "reassembly_overflow")] * (flood - held)
         assert reassembler.pending == held
         # each: its bookkeeping, a byte per fragment slot, its buffer (2 x 1 byte, earned at once)
-        assert reassembler.pending_bytes == held * (framing.PARTIAL_COST + 2 + 2)
+        assert reassembler.pending_bytes == held * (reassembly.PARTIAL_COST + 2 + 2)
         # a real sender is not crowded out
         sender = closing(DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "sender",
                                       Inbox().on_frame, Inbox().on_lost))

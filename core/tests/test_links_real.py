@@ -12,9 +12,11 @@ import random
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import pytest
 from rosgate_emulator import Profile, TcpRelay, UdpRelay
+from rosgate_recovery import Fec
 from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
@@ -32,7 +34,7 @@ class Topic:
     topic_id: int
     priority: int = 5
     recovery: str = "none"
-    recovery_overhead: float = 0.1
+    recovery_options: Any = None
     latest_only: bool = False
     reliable: bool = True
     drops: list[str] = field(default_factory=list)
@@ -108,7 +110,7 @@ def test_recovery_brings_every_frame_through_3_percent_loss(closing, kind):
     """20 frames of 100 kB (84 datagrams each): without recovery 92 % of them are lost
     (1 - 0.97^84); with either recovery, none."""
     a, relay, rx = lossy_pair(closing, LOSSY)
-    topic = Topic(9, recovery=kind, recovery_overhead=0.25)
+    topic = Topic(9, recovery=kind, recovery_options=Fec.Options(overhead=0.25))
     frames = [frame(9, i, 100_000) for i in range(20)]
     for f in frames:
         assert a.send(f, topic, relay.address)
@@ -119,7 +121,8 @@ def test_recovery_brings_every_frame_through_3_percent_loss(closing, kind):
     assert len(rx.recovered) >= 15                  # and recovery brought those frames back
     if kind == "retransmit":
         assert topic.again >= relay.up.dropped["loss"] * 0.8  # about what was lost, sent again
-        assert wait_until(lambda: len(a.store) == 0)   # every frame acknowledged
+        store = a.packetizer("retransmit").store
+        assert wait_until(lambda: len(store) == 0)   # every frame acknowledged
     else:
         assert topic.again == 0
         assert topic.wire > 1.2 * sum(map(len, frames))  # the repair fragments
@@ -160,7 +163,7 @@ def test_fec_needs_no_way_back(closing):
     relay = closing(UdpRelay(Profile(loss=0.05, seed=3), target=b_end.sock.getsockname()))
     a = closing(DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "a",
                              Receiver().on_frame, Receiver().on_lost))
-    topic = Topic(2, recovery="fec", recovery_overhead=0.3)
+    topic = Topic(2, recovery="fec", recovery_options=Fec.Options(overhead=0.3))
     frames = [frame(2, i, 30_000) for i in range(10)]
     for f in frames:
         a.send(f, topic, relay.address)

@@ -1,7 +1,9 @@
-"""``rosgate plugins`` and ``rosgate check`` as plugin authors and users meet them, with real
-installed-style plugins (a distribution's metadata, its entry point and its module on
-PYTHONPATH): a misspelt hook reported by name, every mistake in a plugin's options located at
-file:line:key with the fix, a plugin's options listed, columns aligned."""
+"""``rosgate plugins``, ``rosgate check`` and the verbs plugins add, as plugin authors and users
+meet them, with real installed-style plugins (a distribution's metadata, its entry point and its
+module on PYTHONPATH): a misspelt hook reported by name, every mistake in a plugin's options
+located at file:line:key with the fix, a plugin's options listed, columns aligned; a third
+party's ``rosgate <verb>`` run with its arguments, and a plugin whose verb fails costing only
+that verb."""
 
 from __future__ import annotations
 
@@ -15,7 +17,8 @@ from pathlib import Path
 import pytest
 
 ROSGATE = str(Path(sys.executable).with_name("rosgate"))
-HOOKS = "the hooks are rosgate_ciphers, rosgate_codecs, rosgate_transports"
+HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_packetizers, "
+         "rosgate_transforms, rosgate_transports")
 
 TYPO = """
     from rosgate import hookimpl
@@ -112,9 +115,9 @@ def site(tmp_path: Path) -> Path:
     return site
 
 
-def rosgate(site: Path, *args: str) -> subprocess.CompletedProcess:
+def rosgate(site: Path, *args: str, **env: str) -> subprocess.CompletedProcess:
     return subprocess.run([ROSGATE, *args], capture_output=True, text=True, timeout=60,
-                          env=dict(os.environ, PYTHONPATH=str(site)))
+                          env=dict(os.environ, PYTHONPATH=str(site), **env))
 
 
 BRINGUP = """\
@@ -242,3 +245,174 @@ def test_plugins_aligns_columns_to_the_longest_name_and_names_a_transport_of_no_
         line.split() for line in table]
     assert ("failed to load plugin 'old' (rosgate-transport-old): OldTransport is no kind of "
             "link (subclass DatagramTransport, StreamTransport or BusTransport)") in lines
+
+
+# --- commands: rosgate <verb> from a plugin -------------------------------------------------------
+
+HELLO = """
+    import os
+
+    from rosgate import Command, ConfigError, hookimpl
+
+    if os.environ.get("HELLO_IMPORTED"):  # the test's witness that the module was imported
+        open(os.environ["HELLO_IMPORTED"], "a").write("imported\\n")
+
+
+    def arguments(parser):
+        parser.add_argument("who")
+        parser.add_argument("--times", type=int, default=1)
+
+
+    def run(args):
+        if args.who == "nobody":
+            raise ConfigError("there is nobody to greet", file="hello", fix="name someone")
+        for _ in range(args.times):
+            print(f"hello {args.who}")
+        return 3 if args.who == "three" else 0
+
+
+    @hookimpl
+    def rosgate_commands(register):
+        register(Command("hello", "greet someone", run, arguments))
+"""
+
+BROKEN_VERB = """
+    from dataclasses import dataclass
+
+    from rosgate import Codec
+
+
+    class SameCodec(Codec):
+        name = "same"
+        raw = True
+
+        @dataclass(frozen=True)
+        class Options:
+            pass
+
+        def encode(self, message):
+            return message
+
+        def decode(self, data):
+            return data
+
+
+    def rosgate_codecs(register):
+        register(SameCodec)
+
+
+    def rosgate_commands(register):
+        raise RuntimeError("no verbs today")
+"""
+
+ZEALOUS = """
+    from rosgate import Command
+
+
+    def rosgate_commands(register):
+        register(Command("run", "run something else", lambda args: 0))
+        register(Command("hello", "a second hello", lambda args: 0))
+        register(Command("Two Words", "not a word", lambda args: 0))
+        register("wave")
+        register(Command("wave", "wave at someone", lambda args: print("waving") or 0))
+"""
+
+
+def test_a_third_party_command_runs_with_its_arguments_and_exit_status(site):
+    install(site, "rosgate-hello", "hello", HELLO)
+    result = rosgate(site, "hello", "world", "--times", "2")
+    assert (result.returncode, result.stdout, result.stderr) == (0, "hello world\nhello world\n",
+                                                                 "")
+    assert rosgate(site, "hello", "three").returncode == 3
+    usage = rosgate(site, "hello")
+    assert usage.returncode == 2
+    assert "rosgate hello: error: the following arguments are required: who" in usage.stderr
+
+
+def test_a_third_party_command_s_user_error_is_one_message_with_its_fix(site):
+    install(site, "rosgate-hello", "hello", HELLO)
+    result = rosgate(site, "hello", "nobody")
+    assert (result.returncode, result.stdout) == (2, "")
+    assert result.stderr == "rosgate: error: hello: there is nobody to greet\n  fix: name someone\n"
+
+
+def test_help_and_plugins_list_a_plugin_s_command_with_its_distribution(site):
+    install(site, "rosgate-hello", "hello", HELLO)
+    help_text = rosgate(site, "--help").stdout
+    assert re.search(r"\n    hello +greet someone \(rosgate-hello\)\n", help_text), help_text
+    for verb in ("run", "check", "plugins", "keygen", "pubkey"):
+        assert f"\n    {verb} " in help_text
+    rows = [line.split() for line in rosgate(site, "plugins").stdout.splitlines()]
+    assert ["command", "hello", "rosgate-hello", "1.0"] in rows
+    assert ["command", "router", "rosgate-transport-zenoh", "0.1.0"] in rows
+
+
+def test_rosgate_s_own_verbs_import_no_plugin_and_another_verb_imports_them(site, tmp_path):
+    install(site, "rosgate-hello", "hello", HELLO)
+    witness = tmp_path / "imported"
+    key = tmp_path / "id.key"
+    made = rosgate(site, "keygen", "identity", "--out", str(key), HELLO_IMPORTED=str(witness))
+    assert made.returncode == 0, made.stderr
+    assert rosgate(site, "pubkey", str(key), HELLO_IMPORTED=str(witness)).returncode == 0
+    assert not witness.exists()
+    assert rosgate(site, "hello", "you", HELLO_IMPORTED=str(witness)).stdout == "hello you\n"
+    assert witness.read_text() == "imported\n"
+
+
+def test_a_plugin_whose_command_fails_costs_only_its_verb(site, tmp_path):
+    install(site, "rosgate-hello", "hello", HELLO)
+    install(site, "rosgate-codec-same", "same", BROKEN_VERB)
+    warning = ("rosgate: warning: plugin 'same' (rosgate-codec-same) failed to load: "
+               "rosgate_commands: RuntimeError: no verbs today")
+
+    result = rosgate(site, "hello", "world")
+    assert (result.returncode, result.stdout) == (0, "hello world\n")
+    assert result.stderr.startswith(warning), result.stderr
+    missing = rosgate(site, "greet")
+    assert missing.returncode == 2
+    assert missing.stderr.startswith(warning)
+    assert "rosgate: error: argument COMMAND: invalid choice: 'greet'" in missing.stderr
+
+    listing = rosgate(site, "plugins").stdout
+    assert any(line.split()[:3] == ["codec", "same", "rosgate-codec-same"]
+               for line in listing.splitlines())  # its codec is kept
+    path = tmp_path / "bringup.yaml"
+    path.write_text(BRINGUP.replace("knobs", "same").replace("    host: h\n    OPTION\n", ""))
+    check = rosgate(site, "check", str(path))
+    assert check.returncode == 0, check.stderr
+    assert "/t -> /t  [std_msgs/msg/String] udp:12001 same none" in check.stdout
+
+
+def test_commands_that_cannot_be_registered_are_reported_and_skipped(site):
+    install(site, "rosgate-hello", "hello", HELLO)
+    install(site, "rosgate-zealous", "zealous", ZEALOUS)  # loaded after hello: by name
+    listing = rosgate(site, "plugins").stdout.splitlines()
+    failures = [line for line in listing if line.startswith("failed to load plugin 'zealous'")]
+    assert [line.split(": ", 1)[1] for line in failures] == [
+        "command 'run' is rosgate's own; skipped",
+        "command 'hello' is already provided by rosgate-hello; skipped",
+        "command name 'Two Words' is not a lower-case word (e.g. 'router')",
+        "registered 'wave', which is not a rosgate.Command"]
+    assert ["command", "wave", "rosgate-zealous", "1.0"] in [line.split() for line in listing]
+    assert rosgate(site, "wave").stdout == "waving\n"
+    assert rosgate(site, "hello", "again").stdout == "hello again\n"  # the first one's
+    assert rosgate(site, "run").stderr.endswith("the following arguments are required: file\n")
+
+
+def test_plugins_add_and_remove_a_command_in_process():
+    import types
+
+    from rosgate import Command
+    from rosgate.plugins import Plugins
+
+    module = types.ModuleType("waving")
+    wave = Command("wave", "wave", lambda args: 0)
+    module.rosgate_commands = lambda register: register(wave)  # type: ignore[attr-defined]
+    plugins = Plugins()
+    plugins.add(module, "waving", "rosgate-waving", "2.0")
+    assert plugins.failures == []
+    registration = plugins.commands["wave"]
+    assert (registration.command, registration.plugin, registration.distribution,
+            registration.version) == (wave, "waving", "rosgate-waving", "2.0")
+    plugins.remove("waving")
+    assert plugins.commands == {}

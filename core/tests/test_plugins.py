@@ -300,7 +300,8 @@ def module(name: str, source: str, **names: Any) -> types.ModuleType:
     return made
 
 
-HOOKS = "the hooks are rosgate_ciphers, rosgate_codecs, rosgate_transports"
+HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_packetizers, "
+         "rosgate_transforms, rosgate_transports")
 
 
 def test_a_misspelt_hook_is_a_failure_naming_it_and_nothing_of_the_plugin_is_kept():
@@ -502,10 +503,93 @@ def test_asking_for_udp_imports_no_other_plugin():
 def test_every_hook_is_documented_in_its_spec_and_in_the_guide():
     guide = (ROOT / "docs" / "plugins.md").read_text()
     hooks = [name for name in dir(hookspecs) if name.startswith("rosgate_")]
-    assert hooks == ["rosgate_ciphers", "rosgate_codecs", "rosgate_transports"]
+    assert hooks == ["rosgate_ciphers", "rosgate_codecs", "rosgate_commands", "rosgate_packetizers",
+                     "rosgate_transforms", "rosgate_transports"]
     for name in hooks:
         assert getattr(hookspecs, name).__doc__, f"{name} has no docstring"
         assert name in guide, f"docs/plugins.md does not mention {name}"
+
+
+# --- transforms and packetizers: also known by what they put on the wire --------------------------
+
+class Squash(rosgate.Transform):
+    name = "squash"
+    wire_id = 200
+
+    def encode(self, payload: bytes) -> bytes | None:
+        return None
+
+    def decode(self, data: bytes) -> bytes:
+        return data
+
+
+class Twice(rosgate.Packetizer):
+    name = "twice"
+    magic = (b"X2",)
+
+    def cut(self, frame, sender, to, options):
+        return [frame]
+
+    def feed(self, packet, source, now):
+        return None
+
+    @classmethod
+    def cost(cls, frame, max_frame, options):
+        return frame, 1
+
+
+def test_transforms_and_packetizers_are_found_by_name_and_by_what_they_put_on_the_wire():
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_transforms=registers(Squash),
+                       rosgate_packetizers=registers(Twice)), "mine")
+    assert plugins.failures == []
+    assert plugins.get("transform", "squash").cls is Squash
+    assert plugins.by_wire("transform", 200).cls is Squash
+    assert plugins.by_wire("packetizer", b"X2").cls is Twice
+    assert plugins.by_wire("packetizer", b"X3") is None
+    plugins.remove("mine")
+    assert plugins.by_wire("transform", 200) is None
+
+
+def test_a_second_plugin_with_the_same_wire_id_or_magic_is_a_failure():
+    other_squash = type("OtherSquash", (Squash,), {"name": "other"})
+    other_twice = type("OtherTwice", (Twice,), {"name": "thrice", "magic": (b"X3", b"X2")})
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_transforms=registers(Squash),
+                       rosgate_packetizers=registers(Twice)), "first", "rosgate-first")
+    plugins.add(plugin(rosgate_transforms=registers(other_squash),
+                       rosgate_packetizers=registers(other_twice)), "second", "rosgate-second")
+    assert [f.reason for f in plugins.failures] == [
+        "transform 'other' has the wire_id of 'squash' (rosgate-first); skipped",
+        "packetizer 'thrice' has the magic of 'twice' (rosgate-first); skipped"]
+    assert plugins.get("packetizer", "thrice") is None
+    assert plugins.by_wire("packetizer", b"X3") is None  # nothing of the refused class is kept
+
+
+@pytest.mark.parametrize("attributes, reason", [
+    ({"wire_id": 0}, "BadSquash has no valid 'wire_id' (1..255, the byte that names it)"),
+    ({"wire_id": True}, "BadSquash has no valid 'wire_id' (1..255, the byte that names it)"),
+    ({"wire_id": 256}, "BadSquash has no valid 'wire_id' (1..255, the byte that names it)"),
+])
+def test_a_transform_needs_a_byte_that_names_it(attributes, reason):
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_transforms=registers(type("BadSquash", (Squash,), attributes))),
+                "bad")
+    assert [f.reason for f in plugins.failures] == [reason]
+
+
+@pytest.mark.parametrize("magic, reason", [
+    (b"X2", "BadTwice has no valid 'magic' (a tuple of two-byte bytes: (b'XY',))"),
+    ((b"XYZ",), "BadTwice has no valid 'magic' (a tuple of two-byte bytes: (b'XY',))"),
+    ((), "BadTwice has no valid 'magic' (a tuple of two-byte bytes: (b'XY',))"),
+    ((b"RG",), "BadTwice claims a magic of the link's own (b'RG', b'RB')"),
+    ((b"X9", b"RB"), "BadTwice claims a magic of the link's own (b'RG', b'RB')"),
+])
+def test_a_packetizer_needs_magic_of_its_own(magic, reason):
+    plugins = Plugins()
+    plugins.add(plugin(rosgate_packetizers=registers(type("BadTwice", (Twice,),
+                                                          {"magic": magic}))), "bad")
+    assert [f.reason for f in plugins.failures] == [reason]
 
 
 # --- explaining a missing plugin -----------------------------------------------------------------

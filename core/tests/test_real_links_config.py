@@ -1,19 +1,14 @@
 """bringup.yaml's keys for real links: bridge.links (a budget per transport) and, per topic,
-latest_only, recovery, compression and typical_size — parsed values, and one located error per
-mistake (file, line, key, fix)."""
+latest_only, recovery, compression (each a plugin, by name or with its options) and typical_size
+— parsed values, and one located error per mistake (file, line, key, fix), whether the file's
+reader finds it or the resolver (the plugin and its options)."""
 
 from __future__ import annotations
 
 import pytest
 
-from rosgate.config import (
-    Compression,
-    Recovery,
-    loads,
-    parse_bandwidth,
-    topic_from_mapping,
-    topic_to_mapping,
-)
+from rosgate.config import loads, parse_bandwidth, topic_from_mapping, topic_to_mapping
+from rosgate.engine import Engine
 from rosgate.errors import ConfigError
 
 HEAD = "bridge:\n  name: robot1\n  role: peer\n  peer: 127.0.0.2\n"
@@ -36,10 +31,9 @@ def test_a_budget_per_transport_and_the_keys_of_a_topic():
     priority: data_low
     latest_only: true
     max_delay: 0.05
-    recovery: fec
-    recovery_overhead: 0.2
-    compression: zstd
-    compression_level: -3
+    recovery: {fec: {overhead: 0.2}}
+    compression:
+      zstd: {level: -3}
     typical_size: 921600
   - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 9}
 """)
@@ -48,24 +42,23 @@ def test_a_budget_per_transport_and_the_keys_of_a_topic():
     assert (tcp.bandwidth, tcp.max_delay) == (2.5e6, 1.0)
     camera, twist = cfg.topics
     assert (camera.priority, camera.latest_only, camera.max_delay, camera.recovery,
-            camera.recovery_overhead, camera.compression, camera.compression_level,
-            camera.typical_size) == (6, True, 0.05, Recovery.FEC, 0.2, Compression.ZSTD, -3,
-                                     921600)
+            camera.recovery_options, camera.compression, camera.compression_options,
+            camera.typical_size) == (6, True, 0.05, "fec", {"overhead": 0.2}, "zstd",
+                                     {"level": -3}, 921600)
     # defaults: nothing changes what rosgate did before real links
     assert (twist.priority, twist.latest_only, twist.max_delay, twist.recovery,
-            twist.compression, twist.typical_size) == (None, None, None, Recovery.NONE,
-                                                       Compression.NONE, None)
+            twist.compression, twist.typical_size) == (None, None, None, "none", "none", None)
 
 
 def test_a_client_s_entry_crosses_to_the_server_with_its_keys():
-    cfg = loads(HEAD + TOPIC + "    recovery: retransmit\n    compression: zstd\n"
+    cfg = loads(HEAD + TOPIC + "    recovery: retransmit\n    compression: {zstd: {level: 19}}\n"
                 "    latest_only: false\n")
     mapping = topic_to_mapping(cfg.topics[0])
-    assert mapping["recovery"] == "retransmit" and mapping["compression"] == "zstd"
-    assert "recovery_overhead" not in mapping  # a key of fec only
+    assert mapping["recovery"] == "retransmit" and mapping["compression"] == {"zstd": {"level": 19}}
+    assert "recovery_options" not in mapping  # written as the user would
     again = topic_from_mapping(mapping, {}, "client robot1", index=0)
-    assert (again.recovery, again.compression, again.compression_level, again.latest_only) == (
-        Recovery.RETRANSMIT, Compression.ZSTD, 3, False)
+    assert (again.recovery, again.compression, again.compression_options, again.latest_only) == (
+        "retransmit", "zstd", {"level": 19}, False)
 
 
 @pytest.mark.parametrize("text, bits", [
@@ -97,25 +90,20 @@ ERRORS = {
     "latest_only_not_a_flag": (
         HEAD + TOPIC + "    latest_only: yes please\n", 9, "topics[0].latest_only",
         "expected true or false", "latest_only: true"),
-    "unknown_recovery": (
-        HEAD + TOPIC + "    recovery: arq\n", 9, "topics[0].recovery",
-        "'arq' is not one of none, fec, retransmit", "recovery: fec"),
-    "overhead_without_fec": (
-        HEAD + TOPIC + "    recovery: retransmit\n    recovery_overhead: 0.1\n", 10,
-        "topics[0].recovery_overhead", "the share of repair fragments of recovery: fec",
-        "set recovery: fec"),
-    "overhead_out_of_range": (
-        HEAD + TOPIC + "    recovery: fec\n    recovery_overhead: 1.5\n", 10,
-        "topics[0].recovery_overhead", "expected a share > 0 and <= 1", "recovery_overhead: 0.1"),
-    "unknown_compression": (
-        HEAD + TOPIC + "    compression: zstandard\n", 9, "topics[0].compression",
-        "'zstandard' is not one of none, zstd", "compression: zstd"),
+    "recovery_not_a_name": (
+        HEAD + TOPIC + "    recovery: 5\n", 9, "topics[0].recovery",
+        "expected a plugin's name, got 5", "recovery: fec"),
+    "two_compressions": (
+        HEAD + TOPIC + "    compression: {zstd: {}, lz4: {}}\n", 9, "topics[0].compression",
+        "expected one compression plugin with its options, got 2 names",
+        "compression: zstd (or with options: {zstd: {level: 19}})"),
+    "options_not_a_mapping": (
+        HEAD + TOPIC + "    recovery: {fec: 0.2}\n", 9, "topics[0].recovery",
+        "expected a name and a mapping of its options, got 'fec': 0.2",
+        "{fec: {overhead: 0.25}}"),
     "level_without_compression": (
         HEAD + TOPIC + "    compression_level: 9\n", 9, "topics[0].compression_level",
-        "compression_level without compression", "add compression: zstd"),
-    "level_zero": (
-        HEAD + TOPIC + "    compression: zstd\n    compression_level: 0\n", 10,
-        "topics[0].compression_level", "expected an integer -7..22, not 0", "compression_level: 3"),
+        "unknown key 'compression_level'", "valid keys are"),
     "compression_on_bare_framing": (
         HEAD + TOPIC + "    framing: none\n    compression: zstd\n", 10, "topics[0].compression",
         "compression needs the envelope (framing: rosgate)", "use framing: rosgate"),
@@ -139,6 +127,46 @@ def test_error(text, line, key, message, fix):
     assert fix in e.fix, str(e)
 
 
+# what only the installed plugins can tell: their names, and their options (checked as every
+# plugin's are, located where the topic or the plugins: table wrote them)
+PLUGIN_ERRORS = {
+    "unknown_recovery": (
+        HEAD + TOPIC + "    recovery: arq\n", 9, "topics[0].recovery",
+        "unknown packetizer 'arq' (installed packetizers: fec, fragments, retransmit",
+        "pick an installed packetizer"),
+    "overhead_of_retransmit": (
+        HEAD + TOPIC + "    recovery: {retransmit: {overhead: 0.1}}\n", 9,
+        "topics[0].recovery.retransmit.overhead", "retransmit takes no options", "remove it"),
+    "overhead_out_of_range": (
+        HEAD + TOPIC + "    recovery:\n      fec: {overhead: 1.5}\n", 10,
+        "topics[0].recovery.fec.overhead", "must be at most 1.0, not 1.5", "overhead:"),
+    "overhead_zero": (
+        HEAD + TOPIC + "    recovery: {fec: {overhead: 0}}\n", 9,
+        "topics[0].recovery.fec.overhead", "must be more than 0, not 0", "overhead: 0.1"),
+    "unknown_compression": (
+        HEAD + TOPIC + "    compression: zstandard\n", 9, "topics[0].compression",
+        "unknown transform 'zstandard' (installed transforms: ",
+        "pick an installed transform"),
+    "level_zero": (
+        HEAD + TOPIC + "    compression:\n      zstd:\n        level: 0\n", 11,
+        "topics[0].compression.zstd.level", "must not be 0", "level: 3"),
+    "level_in_the_plugins_table": (
+        HEAD + "plugins:\n  zstd: {level: 23}\n" + TOPIC + "    compression: zstd\n", 6,
+        "plugins.zstd.level", "must be -7 to 22, not 23", "level: zstd's level"),
+}
+
+
+@pytest.mark.parametrize("text, line, key, message, fix", PLUGIN_ERRORS.values(),
+                         ids=PLUGIN_ERRORS.keys())
+def test_plugin_error(text, line, key, message, fix):
+    with pytest.raises(ConfigError) as info:
+        Engine(loads(text, file="bringup.yaml")).prepare()
+    e = info.value
+    assert (e.file, e.line, e.key) == ("bringup.yaml", line, key), str(e)
+    assert message in e.message, str(e)
+    assert fix in e.fix, str(e)
+
+
 def test_check_shows_the_budget_arithmetic(tmp_path, capsys):
     """rosgate check, with a bandwidth and max_rates in the file: each topic's rate x its size
     on the wire (envelope, fragment headers, repair fragments, IP and UDP headers) against the
@@ -151,7 +179,7 @@ def test_check_shows_the_budget_arithmetic(tmp_path, capsys):
 plugins: {udp: {max_frame: 1472}}
 topics:
   - {topic: /camera, type: sensor_msgs/msg/Image, direction: transmit, port: 9, max_rate: 2.5,
-     typical_size: 921655, recovery: fec, recovery_overhead: 0.05}
+     typical_size: 921655, recovery: {fec: {overhead: 0.05}}}
   - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 9, max_rate: 50}
   - {topic: /odom, type: nav_msgs/msg/Odometry, direction: transmit, port: 9, max_rate: 20}
   - {topic: /map, type: nav_msgs/msg/OccupancyGrid, direction: receive, port: 9}

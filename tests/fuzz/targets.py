@@ -166,14 +166,15 @@ def envelope(data: bytes) -> None:
 def reassembly(data: bytes) -> None:
     """Datagrams to a fragment reassembler and a compact one, from up to four sources: some as
     the input gives them, some cut from a frame by the link's own fragmenter and shuffled."""
+    from rosgate.reassembly import CompactReassembler, Reassembler
     from rosgate.wire import framing
 
     lost: list[tuple[int | None, str]] = []
     bound = 1 << 16
-    fragments = framing.Reassembler(lambda *x: lost.append(x), max_message=bound,
-                                    max_pending_bytes=4 * bound)
-    compact = framing.CompactReassembler(lambda *x: lost.append(x), max_message=bound,
-                                         max_pending_bytes=4 * bound)
+    fragments = Reassembler(lambda *x: lost.append(x), max_message=bound,
+                            max_pending_bytes=4 * bound)
+    compact = CompactReassembler(lambda *x: lost.append(x), max_message=bound,
+                                 max_pending_bytes=4 * bound)
     reader = Reader(data)
     while reader.left:
         kind, source = reader.byte(), reader.byte() % 4

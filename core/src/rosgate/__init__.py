@@ -8,9 +8,12 @@ distribution ``rosgate-testing`` (import ``rosgate_testing``).
 
 from .cipher import Cipher
 from .codec import Codec
+from .commands import Command
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import hookimpl
 from .options import option
+from .packetizer import Packetizer, PacketLink
+from .transform import Transform, TransformError
 from .transport import (
     Address,
     DatagramEndpoint,
@@ -29,10 +32,12 @@ from .transport import (
 )
 
 __all__ = [
-    "Address", "Cipher", "CipherError", "Codec", "CodecError", "ConfigError", "DatagramEndpoint",
+    "Address", "Cipher", "CipherError", "Codec", "CodecError", "Command", "ConfigError",
+    "DatagramEndpoint",
     "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "OptionError",
-    "RosgateError", "SocketConnection",
-    "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transport",
-    "check_ip_address", "hookimpl", "ip_source_hosts", "option", "parse_host_port",
+    "PacketLink", "Packetizer", "RosgateError", "SocketConnection",
+    "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transform",
+    "TransformError", "Transport", "check_ip_address", "hookimpl", "ip_source_hosts", "option",
+    "parse_host_port",
 ]
 __version__ = "0.1.0"

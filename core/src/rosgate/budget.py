@@ -1,7 +1,7 @@
 """The budget arithmetic ``rosgate check`` shows: for each link with a ``bandwidth``
 (``bridge.links``), what this side's topics with a ``max_rate`` would put on it — each message's
-size on the wire (envelope, cipher, fragment headers, FEC repair fragments, the transport's
-packet headers) times its rate — against the bandwidth.
+size on the wire (envelope, cipher, what its packetizer adds — fragment headers, FEC repair
+fragments —, the transport's packet headers) times its rate — against the bandwidth.
 
 A message's size is ``typical_size`` when the entry gives one, else the CDR size of a default
 message when its type has no field of variable length (a Twist: exact), else unknown (an
@@ -15,11 +15,12 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from .config import Direction, Framing, Recovery
+from .builtin import Fragments
+from .config import Direction, Framing
 from .resolver import Plan, PreparedTopic
 from .ros import resolve_type
 from .transport import DatagramTransport
-from .wire import envelope, framing, recovery
+from .wire import envelope, framing
 
 #: tc-style: the bits of a link in the units people write them in
 UNITS = ((1e9, "Gbit/s"), (1e6, "Mbit/s"), (1e3, "kbit/s"), (1, "bit/s"))
@@ -85,24 +86,16 @@ def cipher_overhead(p: PreparedTopic) -> int:
 
 def on_the_wire(frame: int, p: PreparedTopic) -> tuple[int, int]:
     """(bytes, packets) of one frame of ``frame`` bytes on the topic's link."""
-    transport, t = p.transport, p.config
+    transport = p.transport
     if not isinstance(transport, DatagramTransport):  # a stream: budgets refuse buses
         chunks = 1 if frame <= framing.CHUNK else math.ceil(frame / framing.CHUNK)
         return frame + (4 if chunks == 1 else 8 * chunks), chunks
     limit, overhead = transport.max_frame, transport.packet_overhead
-    if t.recovery is Recovery.FEC:
-        room = limit - recovery.FEC.size
-        total = max(1, math.ceil(frame / room))
-        size = max(1, math.ceil(frame / total))
-        per_block = recovery.block_limit(t.recovery_overhead)
-        blocks = math.ceil(total / per_block)
-        packets = sum(k + math.ceil(k * t.recovery_overhead)
-                      for k in (total // blocks + (b < total % blocks) for b in range(blocks)))
-        return packets * (size + recovery.FEC.size + overhead), packets
-    if t.recovery is Recovery.RETRANSMIT or frame > limit:
-        packets = max(1, math.ceil(frame / (limit - framing.FRAGMENT.size)))
-        return frame + packets * (framing.FRAGMENT.size + overhead), packets
-    return frame + overhead, 1
+    if p.recovery is None and frame <= limit:
+        return frame + overhead, 1
+    packetizer, options = p.recovery or (Fragments, None)
+    size, packets = packetizer.cost(frame, limit, options)
+    return size + packets * overhead, packets
 
 
 def costs(plan: Plan, transport: str) -> list[Cost]:

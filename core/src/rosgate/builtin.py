@@ -1,8 +1,10 @@
-"""The built-in plugins, registered through the same hooks as any other: the ``cdr`` codec and
-the ``none`` cipher."""
+"""The built-in plugins, registered through the same hooks as any other: the ``cdr`` codec, the
+``none`` cipher and the ``fragments`` packetizer."""
 
 from __future__ import annotations
 
+import math
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -10,6 +12,10 @@ from .cipher import Cipher
 from .codec import Codec
 from .errors import CodecError
 from .hookspecs import hookimpl
+from .packetizer import Packet, Packetizer, PacketLink
+from .reassembly import Reassembler
+from .transport import Address
+from .wire import framing
 
 
 class CdrCodec(Codec):
@@ -55,6 +61,43 @@ class NoCipher(Cipher):
         return body
 
 
+class Fragments(Packetizer):
+    """A frame longer than the link's ``max_frame`` as numbered fragments (``RF``, see
+    :mod:`rosgate.wire.framing`), reassembled in one buffer per frame; a lost fragment loses the
+    frame (counted ``fragment_lost``). What every topic without ``recovery:`` gets."""
+
+    name = "fragments"
+    magic = (framing.FRAGMENT_MAGIC,)
+
+    @dataclass(frozen=True)
+    class Options:
+        """None: the link's ``max_frame`` says it all."""
+
+    def __init__(self, link: PacketLink):
+        super().__init__(link)
+        self.reassembler = Reassembler(link.lost, max_message=link.max_message)
+
+    def cut(self, frame: bytes, sender: Any, to: Address, options: Any) -> list[Packet]:
+        # frame ids unpredictable: a spoofed source cannot poison a reassembly (see Reassembler)
+        frame_id = int.from_bytes(os.urandom(4), "big")
+        return list(framing.fragments(frame, self.link.max_frame, sender.topic_id, frame_id))
+
+    def feed(self, packet: bytes | memoryview, source: Address, now: float) -> bytes | None:
+        # the buffer it was reassembled in, the handler's to keep: a route hands it to rclpy
+        # without a copy (handlers take any bytes-like frame)
+        return self.reassembler.add(source, packet)  # type: ignore[return-value]
+
+    def timer(self, now: float) -> float | None:
+        if self.reassembler.pending:
+            self.reassembler.expire(now)
+        return None
+
+    @classmethod
+    def cost(cls, frame: int, max_frame: int, options: Any) -> tuple[int, int]:
+        packets = max(1, math.ceil(frame / (max_frame - framing.FRAGMENT.size)))
+        return frame + packets * framing.FRAGMENT.size, packets
+
+
 @hookimpl
 def rosgate_codecs(register: Any) -> None:
     register(CdrCodec)
@@ -63,3 +106,8 @@ def rosgate_codecs(register: Any) -> None:
 @hookimpl
 def rosgate_ciphers(register: Any) -> None:
     register(NoCipher)
+
+
+@hookimpl
+def rosgate_packetizers(register: Any) -> None:
+    register(Fragments)

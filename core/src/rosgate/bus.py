@@ -29,14 +29,14 @@ from __future__ import annotations
 import re
 from abc import abstractmethod
 from collections.abc import Callable
-from typing import Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from .transport import Transport
 
-#: priorities as zenoh numbers them: 1 (most urgent) to 7; topics default to DATA
-PRIORITIES = {"real_time": 1, "interactive_high": 2, "interactive_low": 3, "data_high": 4,
-              "data": 5, "data_low": 6, "background": 7}
-PRIORITY_DEFAULT = PRIORITIES["data"]
+if TYPE_CHECKING:
+    from .config import ServiceConfig, TopicConfig
+
+PRIORITY_DEFAULT = 5  # data, in the numbering of config.PRIORITIES (zenoh's): 1 to 7
 
 _CHUNK = re.compile(r"[^/*$?#]+|\*|\*\*")
 
@@ -107,25 +107,40 @@ class BusSession(Protocol):
         """Close the session and everything declared on it, promptly."""
 
 
+class NameTemplates(Protocol):
+    """Entries whose names hold placeholders (``topic: /{robot}/scan`` with ``remote:
+    fleet/{robot}/scan``): one entry in the file, a route for each value the bus finds. A bus that
+    takes them sets :attr:`BusTransport.templates`; the zenoh plugin's fleets are the example."""
+
+    def check(self, entry: TopicConfig | ServiceConfig, key: str) -> None:
+        """Refuse a templated entry whose key is ``key`` (its ``remote``, or the default key)
+        with a :class:`rosgate.ConfigError` whose ``key`` is the entry's field (``remote``)."""
+
+    def start(self, wiring: Any, link: Any) -> Callable[[Any], None]:
+        """Begin on one bus link of a bridge (a :class:`rosgate.roles.bus.BusWiring` and its
+        :class:`rosgate.buslink.BusLink`); the function returned takes each templated entry of
+        that link (a prepared topic or service) as the bridge starts."""
+
+
+def is_template(text: str) -> bool:
+    """Whether an entry's name or key holds a placeholder (``{robot}``)."""
+    return "{" in text or "}" in text
+
+
 class BusTransport(Transport):
     """Base class of bus plugins. Set :attr:`name`; implement :meth:`open`. Set :attr:`prefix`
-    and :attr:`namespace` from your options if you take them (the core's key conventions)."""
+    from your options if you take it (the core's key convention)."""
 
     #: rosgate's own keys start with it: ``<prefix>/<bridge name>/<topic>`` and the liveliness
     #: token ``<prefix>/<bridge name>/@alive``
     prefix: str = "rosgate"
-    #: keys of ``framing: none`` entries: ``<namespace>/<ROS name without its leading slash>``,
-    #: as zenoh-bridge-ros2dds names them ("" for none)
-    namespace: str = ""
+    #: entries with placeholders, or None: this bus takes none
+    templates: NameTemplates | None = None
 
     @abstractmethod
     def open(self, name: str) -> BusSession:
         """Open a session for the bridge called ``name``. Raise :class:`rosgate.LinkError` when it
         cannot be opened (no router where one is required, a port in use)."""
-
-    def router(self, listen: list[str], config_file: str | None) -> BusSession:
-        """Open a session that routes for others (``rosgate router``), if the bus has routers."""
-        raise NotImplementedError(f"transport {self.name!r} has no router")
 
     def check_key(self, key: str) -> str:
         """Validate a key (or key expression) written in bringup.yaml; ``ValueError`` with a
@@ -133,13 +148,10 @@ class BusTransport(Transport):
         return check_key(key)
 
     def default_key(self, bridge: str, ros_name: str, bare: bool) -> str:
-        """The key of an entry without ``remote``: ``<namespace>/<name>`` for bare frames (the
-        zenoh-bridge-ros2dds convention), else ``<prefix>/<bridge>/<name>``."""
+        """The key of an entry without ``remote``: the ROS name without its slash for bare
+        frames, else ``<prefix>/<bridge>/<name>``."""
         name = ros_name.removeprefix("/")
-        if bare:
-            namespace = self.namespace.strip("/")
-            return f"{namespace}/{name}" if namespace else name
-        return f"{self.prefix}/{bridge}/{name}"
+        return name if bare else f"{self.prefix}/{bridge}/{name}"
 
     def alive_key(self, bridge: str) -> str:
         """The liveliness token a bridge declares for itself."""

@@ -1,4 +1,4 @@
-"""The ``rosgate`` command: run, check, plugins, keygen.
+"""The ``rosgate`` command: run, check, plugins, keygen, pubkey, and the commands plugins add.
 
 A problem the user can fix is printed as one message (file, line, key, fix) with exit status 2;
 tracebacks are kept for bugs.
@@ -18,16 +18,33 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from . import __version__
+from .commands import CORE_COMMANDS, stop_on_signals, wait_for_signal
 from .errors import ConfigError, RosgateError
 
 if TYPE_CHECKING:
     from .cipher import Cipher
 
 EXIT_USAGE = 2
-ROUTER_LISTEN = "tcp/0.0.0.0:7447"
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser, commands = _parser()
+    verb = next((a for a in argv if not a.startswith("-")), None)
+    if verb not in CORE_COMMANDS:  # a plugin's, or help: only then are all plugins loaded
+        _add_plugin_commands(commands)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO,
+                        format="[rosgate] %(levelname)s %(message)s", stream=sys.stderr)
+    try:
+        return int(args.run(args))
+    except RosgateError as exc:
+        print(f"rosgate: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+def _parser() -> tuple[argparse.ArgumentParser, Any]:
+    """rosgate's own commands (:data:`rosgate.commands.CORE_COMMANDS`)."""
     parser = argparse.ArgumentParser(prog="rosgate",
                                      description="A pluggable ROS 2 network bridge.")
     parser.add_argument("--version", action="version", version=f"rosgate {__version__}")
@@ -38,42 +55,46 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--domain-id", type=int, default=None,
                      help="ROS domain id (default: ROS_DOMAIN_ID, else 0)")
     run.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    run.set_defaults(run=cmd_run)
 
     check = commands.add_parser("check", help="validate a bringup.yaml and exit")
     check.add_argument("file")
+    check.set_defaults(run=cmd_check)
 
     plugins = commands.add_parser("plugins",
                                   help="list installed plugins, and the ones that failed to load")
     plugins.add_argument("--options", metavar="NAME",
                          help="print the options a plugin takes under plugins: NAME:")
-
-    router = commands.add_parser("router", help="run a bus router for bridges to meet at (zenoh), "
-                                                "until stopped")
-    router.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                        help=f"where to listen, repeatable (default {ROUTER_LISTEN})")
-    router.add_argument("--config", metavar="FILE",
-                        help="the bus's own configuration file (zenoh: JSON5, as for zenohd -c)")
-    router.add_argument("--transport", default="zenoh", help="the bus transport (default zenoh)")
+    plugins.set_defaults(run=cmd_plugins)
 
     keygen = commands.add_parser("keygen", help="write a new key (mode 0600): 'identity' for a "
                                                 "bridge's identity, or a cipher's name")
     keygen.add_argument("cipher", help="identity, or the cipher's name, e.g. fernet")
     keygen.add_argument("--out", help="the key file to write (default: CIPHER.key)")
     keygen.add_argument("--force", action="store_true", help="replace an existing file")
+    keygen.set_defaults(run=cmd_keygen)
 
     pubkey = commands.add_parser("pubkey", help="print the public key of an identity file")
     pubkey.add_argument("file")
+    pubkey.set_defaults(run=cmd_pubkey)
+    assert tuple(commands.choices) == CORE_COMMANDS
+    return parser, commands
 
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO,
-                        format="[rosgate] %(levelname)s %(message)s", stream=sys.stderr)
-    try:
-        return {"run": cmd_run, "check": cmd_check, "plugins": cmd_plugins,
-                "router": cmd_router, "keygen": cmd_keygen,
-                "pubkey": cmd_pubkey}[args.command](args)
-    except RosgateError as exc:
-        print(f"rosgate: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+
+def _add_plugin_commands(commands: Any) -> None:
+    """The plugins' commands; a plugin that failed to load is named (its command is missing)."""
+    from .plugins import Plugins
+
+    plugins = Plugins.discover()
+    plugins.load_all()
+    for f in plugins.failures:
+        print(f"rosgate: warning: plugin {f.plugin!r} ({f.distribution}) failed to load: "
+              f"{f.reason}", file=sys.stderr)
+    for name, registration in sorted(plugins.commands.items()):
+        command = registration.command
+        sub = commands.add_parser(name, help=f"{command.help} ({registration.distribution})")
+        command.arguments(sub)
+        sub.set_defaults(run=command.run)
 
 
 INSECURE = ("INSECURE: %s runs without authentication (bridge.insecure: true): anyone who can "
@@ -89,15 +110,6 @@ def _engine(path: str, plugins: Any = None, domain_id: int | None = None):
     if engine.config.insecure:
         logging.getLogger("rosgate").warning(INSECURE, path)
     return engine
-
-
-def wait_for_signal(stop: threading.Event) -> None:
-    """Wait until a signal handler sets ``stop``. In slices: Python runs handlers in the main
-    thread, and a process-directed signal that the kernel hands to another thread (zenoh's and
-    DDS's native threads are candidates) does not interrupt a wait without a timeout, so the
-    main thread would never run the handler."""
-    while not stop.wait(0.2):
-        pass
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -128,9 +140,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     engine = _engine(args.file, domain_id=args.domain_id)
-    stop, reload = threading.Event(), threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop, reload = stop_on_signals(), threading.Event()
 
     def hangup(*_: object) -> None:  # a server applies its file's clients: again
         reload.set()
@@ -157,35 +167,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_router(args: argparse.Namespace) -> int:
-    """A router of a bus transport (a zenoh session in router mode), until SIGINT/SIGTERM."""
-    from .bus import BusTransport
-    from .plugins import Plugins
-
-    plugins = Plugins.discover()
-    registration = plugins.get("transport", args.transport)
-    if registration is None:
-        message, fix = plugins.explain_missing("transport", args.transport)
-        raise ConfigError(message, fix=fix, file="router")
-    if not issubclass(registration.cls, BusTransport):
-        raise ConfigError(f"transport {args.transport!r} is not a bus: it has no router",
-                          file="router", fix="use --transport zenoh")
-    listen = args.listen or ([] if args.config else [ROUTER_LISTEN])
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    session = registration.cls({}).router(listen, args.config)
-    log = logging.getLogger("rosgate")
-    log.info("%s router running, listening on %s", args.transport,
-             ", ".join(listen) or f"what {args.config} says")
-    try:
-        wait_for_signal(stop)
-    finally:
-        log.info("stopping")
-        session.close()
-    return 0
-
-
 def cmd_plugins(args: argparse.Namespace) -> int:
     from .plugins import Plugins
 
@@ -193,8 +174,10 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     if args.options:
         return _print_options(plugins, args.options)
     registrations = plugins.all()
-    for line in _columns([("KIND", "NAME", "DISTRIBUTION", "VERSION")] +
-                         [(r.kind, r.name, r.distribution, r.version) for r in registrations]):
+    rows = sorted([(r.kind, r.name, r.distribution, r.version) for r in registrations]
+                  + [("command", name, c.distribution, c.version)
+                     for name, c in plugins.commands.items()])
+    for line in _columns([("KIND", "NAME", "DISTRIBUTION", "VERSION"), *rows]):
         print(line)
     for failure in plugins.failures:
         print(f"failed to load plugin {failure.plugin!r} ({failure.distribution}): "

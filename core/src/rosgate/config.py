@@ -23,7 +23,6 @@ from typing import Any, overload
 import yaml
 
 from .errors import ConfigError
-from .placeholders import check as check_placeholders
 
 
 class Role(StrEnum):
@@ -39,19 +38,6 @@ class Direction(StrEnum):
     @property
     def flipped(self) -> Direction:
         return Direction.RECEIVE if self is Direction.TRANSMIT else Direction.TRANSMIT
-
-
-class Recovery(StrEnum):
-    """How a topic's messages ride out losses on a datagram link."""
-
-    NONE = "none"              # a message with a lost fragment is lost (counted)
-    FEC = "fec"                # repair fragments per message: any k of k + m rebuild it
-    RETRANSMIT = "retransmit"  # the receiver asks again for what is missing, within a deadline
-
-
-class Compression(StrEnum):
-    NONE = "none"
-    ZSTD = "zstd"
 
 
 class Framing(StrEnum):
@@ -91,9 +77,8 @@ FLEET_TIMEOUT_DEFAULT = 30.0
 PRIORITIES = {"real_time": 1, "interactive_high": 2, "interactive_low": 3, "data_high": 4,
               "data": 5, "data_low": 6, "background": 7}
 
-RECOVERY_OVERHEAD_DEFAULT = 0.1   # fec: repair fragments per data fragment
-COMPRESSION_LEVEL_DEFAULT = 3     # zstd's own default: fast, and most of the gain
-COMPRESSION_LEVELS = (-7, 22)     # zstd's fast levels, then 1 (fastest) to 22 (smallest)
+#: recovery: and compression: without a plugin (a topic's own fragments, its payload as it is)
+NO_PLUGIN = "none"
 MAX_DELAY_DEFAULT = 1.0           # seconds a best-effort message may wait in a link's queue
 # microcontroller entries (framing none or serial_datagram): how what this side sends is laid out
 LAYOUTS = ("array", "pair")       # [name, args] (CVRA's firmware) | name then args (its README)
@@ -132,8 +117,7 @@ LIMITS_KEYS = ("connections", "connections_per_source", "handshake_timeout",
                "max_frame_before_auth", "idle_timeout", "sessions")
 TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cipher", "port",
               "framing", "qos", "max_rate", "priority", "latest_only", "max_delay", "recovery",
-              "recovery_overhead", "compression", "compression_level", "typical_size",
-              *MCU_KEYS)
+              "compression", "typical_size", *MCU_KEYS)
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
                 "framing", "timeout", "max_request", *MCU_KEYS, "no_answer")
 QOS_KEYS = ("reliability", "durability", "history", "depth")
@@ -157,8 +141,9 @@ _EXAMPLES = {
     "services.type": "std_srvs/srv/Trigger", "services.remote": "/ping",
     "direction": "transmit (this side to the peer) or receive (the peer to this side)",
     "remote": "/robot1/chatter", "port": "12001", "framing": "rosgate", "qos": "sensor_data",
-    "max_rate": "20", "priority": "data", "latest_only": "true", "recovery": "fec",
-    "recovery_overhead": "0.1", "compression": "zstd", "compression_level": "3",
+    "max_rate": "20", "priority": "data", "latest_only": "true",
+    "recovery": "fec (or with options: {fec: {overhead: 0.25}})",
+    "compression": "zstd (or with options: {zstd: {level: 19}})",
     "typical_size": "921600", "links": "{udp: {bandwidth: 20mbit}}", "bandwidth": "20mbit",
     "max_delay": "1.0", "topics.max_delay": "0.05", "fleet_timeout": "30", "timeout": "5",
     "max_request": "65536", "reliability": "reliable", "durability": "volatile",
@@ -177,6 +162,7 @@ _EXAMPLES = {
 
 _BRIDGE_NAME = re.compile(r"[A-Za-z0-9_.-]+")
 _NAME_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+# a part of a name that a bus fills in ({robot}): which ones there are is the bus's to say
 _PLACEHOLDER = re.compile(r"\{[^{}/]*\}")
 # a bus key as written for remote: chunks without wildcards or a leading slash (bus.py says more)
 _KEY = re.compile(r"[^/*$?#\s]+(?:/[^/*$?#\s]+)*")
@@ -207,10 +193,13 @@ class TopicConfig:
     latest_only: bool | None = None  # None: as the QoS says (best effort: true)
     max_delay: float | None = None  # seconds a message may wait to start; None: the link's (best
     #                                 effort) or none (reliable)
-    recovery: Recovery = Recovery.NONE
-    recovery_overhead: float = RECOVERY_OVERHEAD_DEFAULT
-    compression: Compression = Compression.NONE
-    compression_level: int = COMPRESSION_LEVEL_DEFAULT
+    #: a packetizer by name (loss recovery: fec, retransmit); none: the link's own fragments
+    recovery: str = NO_PLUGIN
+    #: the topic's options for it, over its plugins: table (recovery: {fec: {overhead: 0.2}})
+    recovery_options: dict[str, Any] = field(default_factory=dict)
+    #: a payload transform by name (zstd); none: the payload as the codec wrote it
+    compression: str = NO_PLUGIN
+    compression_options: dict[str, Any] = field(default_factory=dict)
     typical_size: int | None = None  # bytes, for rosgate check's budget arithmetic
     layout: str = LAYOUTS[0]  # microcontroller entries: see LAYOUTS, ARGS and FLOATS
     args: str = ARGS[0]
@@ -381,12 +370,11 @@ def topic_to_mapping(t: TopicConfig) -> dict:
     mapping = _to_mapping(t, TOPIC_KEYS)
     if not t.qos_given:  # the far side finds it from the publishers too
         del mapping["qos"]
-    if t.recovery is Recovery.NONE:
-        del mapping["recovery"]
-    if t.recovery is not Recovery.FEC:
-        del mapping["recovery_overhead"]
-    if t.compression is Compression.NONE:
-        del mapping["compression"], mapping["compression_level"]
+    for key, options in (("recovery", t.recovery_options), ("compression", t.compression_options)):
+        if mapping[key] == NO_PLUGIN:
+            del mapping[key]
+        elif options:
+            mapping[key] = {mapping[key]: dict(options)}
     return _without_microcontroller_keys(t, mapping)
 
 
@@ -1033,7 +1021,6 @@ def _common(src: _Source, data: dict, path: str, name_key: str, kind: str,
         remote = _text(src, data, path, "remote", name.removeprefix("/"))
     else:
         remote = _remote(src, data, path) if "remote" in data else name
-    _check_placeholders(src, data, path, name_key, name, remote)
     fields = {
         name_key: name,
         "type": _interface(src, data, path, kind),
@@ -1151,30 +1138,6 @@ def _remote(src: _Source, data: dict, path: str) -> str:
     return _ros_name(src, data, path, "remote", placeholders=True)  # raises, saying why
 
 
-def _check_placeholders(src: _Source, data: dict, path: str, name_key: str, name: str,
-                        remote: str) -> None:
-    """Fleet entries: the same known placeholders in the ROS name and in remote."""
-    try:
-        found = check_placeholders(name)
-    except ValueError as exc:
-        raise src.error(_join(path, name_key), str(exc), fix="e.g. topic: /{robot}/scan") from None
-    if found and "remote" not in data:
-        raise src.error(_join(path, name_key), "an entry with placeholders needs remote: with the "
-                        "same placeholders (the key every robot uses)",
-                        fix="add e.g. remote: fleet/{robot}/scan")
-    try:
-        in_remote = check_placeholders(remote)
-    except ValueError as exc:
-        raise src.error(_join(path, "remote"), str(exc), fix="e.g. remote: fleet/{robot}/scan") \
-            from None
-    if sorted(found) != sorted(in_remote):
-        raise src.error(_join(path, "remote"),
-                        f"{name_key} and remote must hold the same placeholders "
-                        f"({', '.join('{' + n + '}' for n in found) or 'none'} in {name_key}, "
-                        f"{', '.join('{' + n + '}' for n in in_remote) or 'none'} in remote)",
-                        fix="e.g. topic: /{robot}/scan with remote: fleet/{robot}/scan")
-
-
 def _priority(src: _Source, data: dict, path: str) -> int | None:
     if "priority" not in data:
         return None
@@ -1190,23 +1153,16 @@ def _priority(src: _Source, data: dict, path: str) -> int | None:
 
 
 def _real_link(src: _Source, data: dict, path: str, framing: Framing) -> dict[str, Any]:
-    """The keys of a topic on a constrained link: latest_only, recovery, compression."""
-    recovery = Recovery(_choice(src, data, path, "recovery", tuple(Recovery), Recovery.NONE))
-    compression = Compression(_choice(src, data, path, "compression", tuple(Compression),
-                                      Compression.NONE))
-    if "recovery_overhead" in data and recovery is not Recovery.FEC:
-        raise src.error(_join(path, "recovery_overhead"), "recovery_overhead is the share of "
-                        "repair fragments of recovery: fec", fix="set recovery: fec, or remove it")
-    if "compression_level" in data and compression is Compression.NONE:
-        raise src.error(_join(path, "compression_level"), "compression_level without "
-                        "compression", fix="add compression: zstd, or remove it")
+    """The keys of a topic on a constrained link: latest_only, recovery, compression (each a
+    plugin: the resolver finds it and checks its options)."""
+    recovery, recovery_options = _plugin_choice(src, data, path, "recovery")
+    compression, compression_options = _plugin_choice(src, data, path, "compression")
     if framing is not Framing.ROSGATE:
         for key in ("recovery", "compression"):
-            if key in data and data[key] != "none":
+            if key in data and data[key] != NO_PLUGIN:
                 raise src.error(_join(path, key), f"{key} needs the envelope (framing: rosgate): "
                                 f"with framing {framing} a datagram is the bare payload",
                                 fix=f"remove {key}:, or use framing: rosgate")
-    low, high = COMPRESSION_LEVELS
     latest_only = None
     if "latest_only" in data:
         latest_only = _flag(src, data, path, "latest_only")
@@ -1215,16 +1171,33 @@ def _real_link(src: _Source, data: dict, path: str, framing: Framing) -> dict[st
         "max_delay": _number(src, data, path, "max_delay", None, "a number of seconds > 0",
                              _positive),
         "recovery": recovery,
-        "recovery_overhead": _number(src, data, path, "recovery_overhead",
-                                     RECOVERY_OVERHEAD_DEFAULT, "a share > 0 and <= 1 (0.1: one "
-                                     "repair fragment per ten)", lambda v: 0 < v <= 1),
+        "recovery_options": recovery_options,
         "compression": compression,
-        "compression_level": _number(src, data, path, "compression_level",
-                                     COMPRESSION_LEVEL_DEFAULT, f"an integer {low}..{high}, not 0",
-                                     lambda v: low <= v <= high and v != 0, integer=True),
+        "compression_options": compression_options,
         "typical_size": _number(src, data, path, "typical_size", None, "a number of bytes >= 1",
                                 lambda v: v >= 1, integer=True),
     }
+
+
+def _plugin_choice(src: _Source, data: dict, path: str, key: str) -> tuple[str, dict[str, Any]]:
+    """A plugin picked per topic: ``key: NAME``, or ``key: {NAME: {option: value}}`` with the
+    topic's own options over the plugin's ``plugins:`` table (the resolver checks them)."""
+    value = data.get(key, NO_PLUGIN)
+    fix = f"write it as {key}: {_example(path, key)}"
+    if isinstance(value, dict):
+        if len(value) != 1:
+            raise src.error(_join(path, key), f"expected one {key} plugin with its options, got "
+                            f"{len(value)} names", fix=fix)
+        ((name, options),) = value.items()
+        if options is None:
+            options = {}
+        if not isinstance(name, str) or not isinstance(options, dict):
+            raise src.error(_join(path, key), f"expected a name and a mapping of its options, got "
+                            f"{_show(name)}: {_show(options)}", fix=fix)
+        return name, options
+    if not isinstance(value, str) or not _NAME_TOKEN.fullmatch(value):
+        raise src.error(_join(path, key), f"expected a plugin's name, got {_show(value)}", fix=fix)
+    return value, {}
 
 
 def _interface(src: _Source, data: dict, path: str, kind: str) -> str:

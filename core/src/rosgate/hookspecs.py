@@ -27,6 +27,9 @@ import pluggy
 
 from .cipher import Cipher
 from .codec import Codec
+from .commands import Command
+from .packetizer import Packetizer
+from .transform import Transform
 from .transport import Transport
 
 hookspec = pluggy.HookspecMarker("rosgate")
@@ -47,3 +50,25 @@ def rosgate_codecs(register: Callable[[type[Codec]], None]) -> None:
 @hookspec
 def rosgate_ciphers(register: Callable[[type[Cipher]], None]) -> None:
     """Register cipher classes (seal/open frames): subclasses of :class:`rosgate.Cipher`."""
+
+
+@hookspec
+def rosgate_commands(register: Callable[[Command], None]) -> None:
+    """Register ``rosgate`` subcommands: one :class:`rosgate.Command` each (its name, one line of
+    help, the function that adds its arguments and the one that runs it; see
+    :mod:`rosgate.commands`). ``rosgate`` loads every plugin when it is asked for a verb that is
+    not its own, or for its help. A verb rosgate has (``run``, ``check``...) or that another plugin
+    registered first is reported and skipped."""
+
+
+@hookspec
+def rosgate_transforms(register: Callable[[type[Transform]], None]) -> None:
+    """Register payload transform classes (compression, between codec and cipher): subclasses of
+    :class:`rosgate.Transform`, each with a ``wire_id`` no other installed transform has."""
+
+
+@hookspec
+def rosgate_packetizers(register: Callable[[type[Packetizer]], None]) -> None:
+    """Register packetizer classes (how a datagram link cuts frames into packets and puts them
+    back together: fragments, loss recovery): subclasses of :class:`rosgate.Packetizer`, each
+    with ``magic`` bytes no other installed packetizer has."""

@@ -1,12 +1,13 @@
 """Links: the core's side of a transport. Framing, fragmentation and threads live here, so a
 transport plugin only opens sockets.
 
-* :class:`DatagramLink` — one bound endpoint; sends whole frames, several frames coalesced in
-  one datagram, fragments, FEC fragments or fragments it can send again (``recovery``);
-  reassembles, splits, answers NACKs and ACKs, and hands every frame to ``on_frame``. A
-  transport with small frames (``max_frame`` below ``framing.COMPACT_BELOW``, such as CAN) gets
-  the compact fragment scheme instead. In bare mode (``framing: none``) it hands over the
-  datagram untouched.
+* :class:`DatagramLink` — one bound endpoint; sends whole frames, or several frames coalesced in
+  one datagram, and hands longer frames — and every frame of a topic with ``recovery:`` — to a
+  packetizer (:mod:`rosgate.packetizer`: the built-in ``fragments``, or a plugin's such as
+  ``fec``) to cut into packets; splits batches, hands every other packet to the packetizer of
+  its magic, and every frame to ``on_frame``. A transport with small frames (``max_frame`` below
+  ``framing.COMPACT_BELOW``, such as CAN) gets the compact fragment scheme instead. In bare mode
+  (``framing: none``) it hands over the datagram untouched.
 * :class:`StreamLink` — one connection; frames carry a length prefix, long ones go in chunks.
 
 Both send through a :class:`~rosgate.scheduler.Scheduler` — the one place a link's frames wait:
@@ -52,8 +53,11 @@ from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
 from .admission import Sources
-from .config import MAX_DELAY_DEFAULT, LinkConfig
+from .config import MAX_DELAY_DEFAULT, NO_PLUGIN, LinkConfig
 from .errors import LinkError
+from .packetizer import Packet, Packetizer
+from .plugins import Plugins, installed
+from .reassembly import CompactReassembler, Reassembler
 from .scheduler import Due, Outgoing, Scheduler
 from .transport import (
     Address,
@@ -64,7 +68,7 @@ from .transport import (
     Transport,
 )
 from .warn import BUGS
-from .wire import envelope, framing, recovery
+from .wire import envelope, framing
 
 log = logging.getLogger("rosgate")
 
@@ -84,8 +88,9 @@ class Sender(Protocol):
     Links read these too, each optional (a sender without it gets the default):
     ``priority`` (0 control .. 7 background, default 5, data), ``latest_only`` (False),
     ``max_delay`` (seconds a frame may wait to start; None: the link's, for best-effort
-    senders), ``recovery`` ("none", "fec", "retransmit") and ``recovery_overhead`` (0.1),
-    ``bare`` (its frames are whole datagrams, never cut: ``framing: none``), and
+    senders), ``recovery`` (the name of the packetizer of its frames, "none": the link's own)
+    and ``recovery_options`` (the topic's options for it), ``bare`` (its frames are whole
+    datagrams, never cut: ``framing: none``), and
     ``on_wire(size, again)``, told of every packet put on the link for it (``again``: a
     retransmission).
     """
@@ -290,15 +295,15 @@ def _on_wire(sender: Any, size: int, again: bool) -> None:
 
 
 class _Gather:
-    """A fragment as its parts — its header and a view of the frame — for scatter-gather
+    """A packet as its parts — a fragment's header and a view of the frame — for scatter-gather
     sending (``send_parts``: no copy of the frame); the scheduler takes it for a packet of
     ``len()`` bytes."""
 
     __slots__ = ("parts", "size")
 
-    def __init__(self, header: bytes, chunk: memoryview):
-        self.parts = [header, chunk]
-        self.size = len(header) + len(chunk)
+    def __init__(self, parts: tuple[bytes | memoryview, ...]):
+        self.parts = list(parts)
+        self.size = sum(map(len, parts))
 
     def __len__(self) -> int:
         return self.size
@@ -318,15 +323,18 @@ def _batchable(due: Due) -> bool:
 
 
 class DatagramLink(_Sending, Link):
-    """A bound datagram endpoint. Frames out: whole when they fit ``max_frame``, else
-    fragments; a topic with ``recovery: fec`` always as FEC fragments (repair included), one
-    with ``recovery: retransmit`` always as fragments a receiver can ask for again (kept until
-    acknowledged); compact pieces on links of small frames; a bare sender's frames whole,
-    whatever their size. Whole frames that leave one after the other for the same destination
-    share a datagram (a batch, see :mod:`rosgate.wire.framing`; not on bare links, whose
-    receivers take one message per datagram). Datagrams in: from admitted ``sources`` only,
-    batches split, fragments of every kind reassembled, NACKs and ACKs answered, each frame to
-    ``on_frame``."""
+    """A bound datagram endpoint. Frames out: whole when they fit ``max_frame``, else cut by the
+    built-in ``fragments`` packetizer; every frame of a topic with ``recovery: NAME`` cut by that
+    packetizer (FEC with its repair fragments, fragments kept until acknowledged...); compact
+    pieces on links of small frames; a bare sender's frames whole, whatever their size. Whole
+    frames that leave one after the other for the same destination share a datagram (a batch,
+    see :mod:`rosgate.wire.framing`; not on bare links, whose receivers take one message per
+    datagram). Datagrams in: from admitted ``sources`` only, batches split, every other packet
+    to the packetizer of its magic (found in ``packetizers``, by default the installed plugins),
+    each frame to ``on_frame``.
+
+    It is the :class:`~rosgate.packetizer.PacketLink` of its packetizers: one of each kind it
+    meets, made on first use and kept for its life; their timers run on both of its threads."""
 
     datagram = True
 
@@ -335,7 +343,8 @@ class DatagramLink(_Sending, Link):
                  max_message: int = framing.DEFAULT_MAX_MESSAGE, sources: Sources | None = None,
                  budget: LinkConfig | None = None,
                  on_recovered: RecoveredHandler | None = None,
-                 queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024):
+                 queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
+                 packetizers: Plugins | None = None):
         self.transport = transport
         #: who frames are taken from (None: anyone); others are counted ``not_allowed``
         self.sources = sources
@@ -351,15 +360,20 @@ class DatagramLink(_Sending, Link):
         self.counters = LinkCounters()
         # small frames cannot spare 14 bytes of fragment header: every frame goes as compact pieces
         self.compact = not bare and self.max_frame < framing.COMPACT_BELOW
-        self.reassembler: framing.Reassembler | framing.CompactReassembler
+        self.registry = packetizers or installed()
+        #: packetizers made so far, by name and by magic (None: a whole frame, the link's own)
+        self._by_name: dict[str, Packetizer] = {}
+        self._by_magic: dict[bytes, Packetizer | None] = {envelope.MAGIC: None}
+        self._making = threading.Lock()
+        self._tx_timer: float | None = None  # when the send thread runs the timers next
+        self.reassembler: Reassembler | CompactReassembler
         if self.compact:
-            self.reassembler = framing.CompactReassembler(on_lost, envelope.topic_of,
-                                                          max_message=max_message)
+            self.reassembler = CompactReassembler(on_lost, envelope.topic_of,
+                                                  max_message=max_message)
         else:
-            self.reassembler = framing.Reassembler(on_lost, max_message=max_message)
-        self._fec: recovery.FecReassembler | None = None        # made with the first of each
-        self._repeat: recovery.RepeatReassembler | None = None
-        self.store = recovery.RetransmitStore()  # what this side may be asked to send again
+            self.fragments = self.packetizer("fragments")
+            self.reassembler = getattr(self.fragments, "reassembler", None) or Reassembler(
+                on_lost, max_message=max_message)
         self._counters: dict[Address, int] = {}  # compact: the next piece's counter per destination
         self._send_parts = getattr(endpoint, "send_parts", None)
         self._init_sending(budget, getattr(transport, "packet_overhead", 0), self.max_frame,
@@ -424,28 +438,94 @@ class DatagramLink(_Sending, Link):
     def _cut(self, frame: bytes, sender: Any, to: Address, whole: bool, kind: str) -> list[bytes]:
         """A frame's packets, made when it starts (on the send thread, in the order frames
         leave: compact counters and FEC coding happen here, not on the caller's thread)."""
-        if whole or kind == "none" and not self.compact and len(frame) <= self.max_frame:
+        if whole or kind == NO_PLUGIN and not self.compact and len(frame) <= self.max_frame:
             return [frame]
         if self.compact:
             counter = self._counters.get(to, 0)
             pieces = framing.compact_fragment(frame, self.max_frame, counter)
             self._counters[to] = (counter + len(pieces)) & framing.COMPACT_COUNTER
             return [b"".join(pieces)]  # one packet: a frame's pieces never interleave (no id)
-        if kind == "fec":
-            return recovery.fec_fragments(frame, self.max_frame, sender.topic_id,
-                                          recovery.frame_id(),
-                                          getattr(sender, "recovery_overhead", 0.1))
-        if kind == "retransmit":
-            fid = recovery.frame_id()
-            packets = recovery.repeat_fragments(frame, self.max_frame, sender.topic_id, fid)
-            self.store.keep(to, fid, packets, sender, time.monotonic())
-            return packets
-        # frame ids unpredictable: a spoofed source cannot poison a reassembly (see Reassembler)
-        parts = framing.fragments(frame, self.max_frame, sender.topic_id, recovery.frame_id())
+        packetizer = self.fragments if kind == NO_PLUGIN else self.packetizer(kind)
+        packets = packetizer.cut(frame, sender, to, getattr(sender, "recovery_options", None))
+        return [self._packet(packet) for packet in packets]
+
+    def _packet(self, packet: Packet) -> bytes:
+        if not isinstance(packet, tuple):
+            return packet
         if self._send_parts is None:
-            return [header + chunk for header, chunk in parts]
+            return b"".join(packet)
         # a _Gather stands for its packet: the scheduler only takes its len()
-        return cast(list[bytes], [_Gather(header, chunk) for header, chunk in parts])
+        return cast(bytes, _Gather(packet))
+
+    # -- packetizers ---------------------------------------------------------------------------
+    def packetizer(self, name: str) -> Packetizer:
+        """The link's packetizer of that name, made on first use."""
+        found = self._by_name.get(name)
+        if found is None:
+            registration = self.registry.get("packetizer", name)
+            if registration is None:
+                raise framing.FramingError(f"no packetizer {name!r} is installed")
+            found = self._make(registration.cls)
+        return found
+
+    def _make(self, cls: type[Packetizer]) -> Packetizer:
+        with self._making:  # the send thread and the receive thread may both meet it first
+            found = self._by_name.get(cls.name)
+            if found is None:
+                found = cls(self)
+                for magic in cls.magic:
+                    self._by_magic[magic] = found
+                self._by_name[cls.name] = found
+            return found
+
+    def _receiver(self, magic: bytes) -> Packetizer | None:
+        """The packetizer of packets with ``magic``; None: a whole frame. Looked up once per
+        magic (the first unknown one loads every plugin, see Plugins.by_wire)."""
+        registration = self.registry.by_wire("packetizer", magic)
+        if registration is None:
+            if len(self._by_magic) < 0x10000:  # the two bytes bound it
+                self._by_magic[magic] = None
+            return None
+        return self._make(registration.cls)
+
+    def lost(self, topic_id: int | None, reason: str) -> None:
+        self.on_lost(topic_id, reason)
+
+    def recovered(self, topic_id: int) -> None:
+        self.on_recovered(topic_id)
+
+    def repeat(self, sender: Any, to: Address, packets: list[bytes]) -> None:
+        with self._lock:
+            self.scheduler.repair(sender, to, packets)
+            self._wake.notify()
+
+    def answer(self, packet: bytes, to: Address) -> None:
+        """A packet sent at once from the calling thread (a few bytes, counted against the
+        budget); one that cannot be sent is asked again later anyway."""
+        with self._lock:
+            self.scheduler.charge(to, len(packet))
+        try:
+            self.endpoint.send(packet, to)
+        except OSError:
+            pass
+
+    def _run_timers(self, now: float, sending: bool = False) -> float | None:
+        """Every packetizer's timer (on the send thread: of those told of frames ``sent``); when
+        the soonest wants to run again. A packetizer's bug is logged, and the link keeps
+        going."""
+        soonest = None
+        for packetizer in list(self._by_name.values()):
+            if sending and not _sends(packetizer):
+                continue
+            try:
+                due = packetizer.timer(now)
+            except Exception:
+                BUGS.bug("packetizer_error", f"{self.name}: packetizer {packetizer.name}'s timer "
+                                             "failed (a bug in the plugin)")
+                continue
+            if due is not None and (soonest is None or due < soonest):
+                soonest = due
+        return soonest
 
     def _send_due(self, due: Due) -> bool:
         packet, to, sender = due.packet, due.to, due.sender
@@ -474,10 +554,14 @@ class DatagramLink(_Sending, Link):
         if due.ends is not None:
             counters.frames_out += 1
         _on_wire(sender, len(packet), due.again)
-        if due.ends is not None and type(packet) is bytes and packet[:2] == recovery.REPEAT_MAGIC:
-            fid = int.from_bytes(packet[10:14], "big")  # RS: magic, index, count, topic, frame
-            with self._lock:
-                self.store.sent(to, fid, time.monotonic())
+        if due.ends is not None and due.ends is not _INLINE and type(packet) is bytes:
+            packetizer = self._by_magic.get(packet[:2])
+            if packetizer is not None and _sends(packetizer):  # the last packet of a frame
+                now = time.monotonic()
+                packetizer.sent(packet, to, now)
+                due_at = packetizer.timer(now)
+                if due_at is not None and (self._tx_timer is None or due_at < self._tx_timer):
+                    self._tx_timer = due_at
         return True
 
     def _send_batch(self, dues: list[Due], to: Address) -> int:
@@ -514,7 +598,10 @@ class DatagramLink(_Sending, Link):
                     if closed.is_set():
                         return
                     now = time.monotonic()
-                    self._timers(now)
+                    timer = self._tx_timer
+                    if timer is not None and now >= timer:
+                        due = None
+                        break
                     if carry is not None:
                         due, carry = carry, None
                         break
@@ -522,23 +609,29 @@ class DatagramLink(_Sending, Link):
                     if isinstance(got, Due):
                         due = got
                         break
-                    until = [t for t in (got, self._next_timer()) if t is not None]
+                    until = [t for t in (got, timer) if t is not None]
                     wake.wait(max(0.0, min(until) - now) if until else None)
-                self._busy = True
-                batch = [due]
-                if coalesce and _batchable(due):
-                    total = len(due.packet)
-                    while True:
-                        more = scheduler.next(now)
-                        if not isinstance(more, Due):
-                            break
-                        if (_batchable(more) and more.to == due.to and framing.batch_size(
-                                total + len(more.packet), len(batch) + 1) <= limit):
-                            batch.append(more)
-                            total += len(more.packet)
-                        else:
-                            carry = more
-                            break
+                if due is None:
+                    self._tx_timer = None
+                else:
+                    self._busy = True
+                    batch = [due]
+                    if coalesce and _batchable(due):
+                        total = len(due.packet)
+                        while True:
+                            more = scheduler.next(now)
+                            if not isinstance(more, Due):
+                                break
+                            if (_batchable(more) and more.to == due.to and framing.batch_size(
+                                    total + len(more.packet), len(batch) + 1) <= limit):
+                                batch.append(more)
+                                total += len(more.packet)
+                            else:
+                                carry = more
+                                break
+            if due is None:  # the packetizers' timers, outside the lock: they may queue repairs
+                self._tx_timer = self._run_timers(now, sending=True)
+                continue
             if scheduler.dropped:
                 self._count_drops()
             try:
@@ -552,15 +645,6 @@ class DatagramLink(_Sending, Link):
             finally:
                 with wake:
                     self._busy = carry is not None  # a carried frame keeps its turn
-
-    def _timers(self, now: float) -> None:
-        """Under the lock: the retransmission probes that are due, queued."""
-        for owner, to, packet in self.store.probes(now):
-            self.scheduler.repair(owner, to, [packet])
-
-    def _next_timer(self) -> float | None:
-        """When the send thread must wake with nothing queued (a retransmission probe)."""
-        return self.store.next_probe()
 
     # -- in ------------------------------------------------------------------------------------
     def _receive_loop(self) -> None:
@@ -584,13 +668,9 @@ class DatagramLink(_Sending, Link):
                 return buffer[:size], source
 
         closed = self.closed
+        timer: float | None = None  # when the packetizers' timers run next on this thread
         while not closed.is_set():
-            timeout = POLL
-            repeat = self._repeat
-            if repeat is not None:
-                soon = repeat.next_poll()
-                if soon is not None:
-                    timeout = min(POLL, max(0.001, soon - time.monotonic()))
+            timeout = POLL if timer is None else min(POLL, max(0.001, timer - time.monotonic()))
             try:
                 got = receive(timeout)
             except OSError:
@@ -603,40 +683,45 @@ class DatagramLink(_Sending, Link):
                 self.on_lost(None, "transport_error")
                 closed.wait(POLL)  # do not spin on a receive that fails at once
                 continue
-            if repeat is not None:
-                repeat.poll(time.monotonic())
+            now = time.monotonic()
+            if got is None or timer is not None and now >= timer:
+                timer = self._run_timers(now)
+                if self.compact:
+                    self.reassembler.expire(now)
             if got is None:
-                self.reassembler.expire()
-                if self._fec is not None:
-                    self._fec.expire(time.monotonic())
                 continue
-            self._datagram(*got)
+            fed = self._datagram(*got, now)
+            if fed is not None:  # what it was given may have moved its timer
+                due = fed.timer(now)
+                if due is not None and (timer is None or due < timer):
+                    timer = due
 
-    def _datagram(self, datagram: bytes | memoryview, source: Address) -> None:
-        """One datagram as it came (a view of the receive buffer, valid until the next one)."""
+    def _datagram(self, datagram: bytes | memoryview, source: Address,
+                  now: float = 0.0) -> Packetizer | None:
+        """One datagram as it came (a view of the receive buffer, valid until the next one); the
+        packetizer it was fed to, if any."""
         if self.sources is not None and not self.sources.admits(source, datagram):
             self.on_lost(None, "not_allowed")
-            return
+            return None
         counters = self.counters
         counters.packets_in += 1
         counters.bytes_in += len(datagram)
         if self.bare:
             counters.frames_in += 1
             deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
-            return
-        kind = datagram[1] if len(datagram) > 1 and datagram[0] == 0x52 else 0  # "R?"
-        if self.compact or kind == 0x46:  # "RF": a fragment
+            return None
+        if self.compact:
             try:
                 frame = self.reassembler.add(source, datagram)
             except framing.FramingError:
                 self.on_lost(None, "bad_fragment")
-                return
+                return None
             if frame is not None:
                 counters.frames_in += 1
-                # the buffer it was reassembled in, the handler's to keep: a route hands it to
-                # rclpy without a copy (typed bytes: handlers take any bytes-like frame)
                 deliver(self, cast(bytes, frame), source)
-        elif kind == 0x42:  # "RB": several frames
+            return None
+        kind = datagram[1] if len(datagram) > 1 and datagram[0] == 0x52 else 0  # "R?"
+        if kind == 0x42:  # "RB": several frames
             try:
                 for record in framing.unbatch(datagram):
                     counters.frames_in += 1
@@ -644,54 +729,35 @@ class DatagramLink(_Sending, Link):
                     deliver(self, bytes(record), source)
             except framing.FramingError:
                 self.on_lost(None, "bad_batch")
-        elif kind in _RECOVERY_KINDS:
-            try:
-                frame = self._recovery(bytes(datagram), source, time.monotonic())
-            except framing.FramingError:
-                self.on_lost(None, "bad_fragment")
-                return
-            if frame is not None:
-                counters.frames_in += 1
-                deliver(self, frame, source)
+            return None
+        if kind == 0x47:  # "RG": an envelope, the most common of all, looked up by nobody
+            packetizer = None
         else:
+            magic = bytes(datagram[:2])
+            packetizer = self._by_magic.get(magic, _UNKNOWN)
+            if packetizer is _UNKNOWN:
+                packetizer = self._receiver(magic)
+        if packetizer is None:  # a whole frame
             counters.frames_in += 1
             deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
-
-    def _recovery(self, datagram: bytes, source: Address, now: float) -> bytes | None:
-        """The link's own datagrams of loss recovery: FEC and numbered fragments (a frame when
-        one completes it), NACKs and ACKs (answered here)."""
-        kind = datagram[:2]
-        if kind == recovery.FEC_MAGIC:
-            if self._fec is None:
-                self._fec = recovery.FecReassembler(self.on_lost, self.on_recovered,
-                                                    max_message=self.max_message)
-            return self._fec.add(source, datagram, now)
-        if kind == recovery.REPEAT_MAGIC:
-            if self._repeat is None:
-                self._repeat = recovery.RepeatReassembler(self.on_lost, self.on_recovered,
-                                                          self._answer,
-                                                          max_message=self.max_message)
-            return self._repeat.add(source, datagram, now)
-        if kind == recovery.NACK_MAGIC:
-            with self._lock:
-                again = self.store.on_nack(source, datagram)
-                if again is not None:
-                    self.scheduler.repair(again[0], source, again[1])
-                    self._wake.notify()
             return None
-        with self._lock:  # ACK_MAGIC
-            self.store.on_ack(source, datagram, now)
-        return None
-
-    def _answer(self, datagram: bytes, to: Address) -> None:
-        """A NACK or an ACK, sent at once from the receiving thread (a few bytes, counted
-        against the budget); one that cannot be sent is asked again later anyway."""
-        with self._lock:
-            self.scheduler.charge(to, len(datagram))
+        assert isinstance(packetizer, Packetizer)
         try:
-            self.endpoint.send(datagram, to)
-        except OSError:
-            pass
+            frame = packetizer.feed(datagram, source, now or time.monotonic())
+        except framing.FramingError:
+            self.on_lost(None, "bad_fragment")
+            return packetizer
+        except Exception:  # a packetizer must raise FramingError; anything else is its bug
+            BUGS.bug("packetizer_error", f"{self.name}: packetizer {packetizer.name} failed on a "
+                                         "packet (a bug in the plugin)")
+            self.on_lost(None, "bad_fragment")
+            return packetizer
+        if frame is not None:
+            counters.frames_in += 1
+            # the buffer it was put together in, the handler's to keep: a route hands it to
+            # rclpy without a copy (typed bytes: handlers take any bytes-like frame)
+            deliver(self, frame, source)
+        return packetizer
 
     def close(self) -> None:
         with self._wake:  # once only, whichever thread gets here first
@@ -708,9 +774,14 @@ class DatagramLink(_Sending, Link):
                 thread.join(timeout=2)
 
 
-# the second byte of the loss recovery's datagrams: FEC, numbered fragments, NACK, ACK ("R?")
-_RECOVERY_KINDS = frozenset(magic[1] for magic in (recovery.FEC_MAGIC, recovery.REPEAT_MAGIC,
-                                                   recovery.NACK_MAGIC, recovery.ACK_MAGIC))
+#: a magic the link has not looked up yet
+_UNKNOWN: Any = object()
+
+
+def _sends(packetizer: Packetizer) -> bool:
+    """Whether it wants to know when its frames left (and has its timer run on the send thread
+    too): it implements ``sent``."""
+    return type(packetizer).sent is not Packetizer.sent
 WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
 
 

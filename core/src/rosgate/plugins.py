@@ -3,8 +3,12 @@
 Listing the entry points imports nothing. Asking for a plugin (``get("transport", "udp")``)
 loads the entry point of that name first — a plugin's entry point is named like the class it
 registers, by convention — and the remaining ones only if the class is not there (python-can's
-model); ``rosgate plugins`` and ``rosgate check`` load them all. The built-in plugins (``cdr``,
-``none``: the core's own module) load at once, through the same hooks as any other.
+model); ``rosgate plugins`` and ``rosgate check`` load them all, and so does ``rosgate`` when
+asked for a verb that is not its own: plugins add commands (:attr:`Plugins.commands`). The
+built-in plugins (``cdr``, ``none``, ``fragments``: the core's own module) load at once, through
+the same hooks as any other. Transforms and packetizers are also found by what they put on the
+wire (a transform's ``wire_id``, a packetizer's ``magic``): a receiver looks them up by that, and
+two installed plugins claiming the same one are reported like two of the same name.
 
 pluggy does the plugin work. As pytest does with ``pytest_``, every function of a plugin module
 whose name starts with ``rosgate_`` is a hook implementation, marked with ``rosgate.hookimpl``
@@ -25,6 +29,7 @@ import os
 import threading
 import traceback
 import types
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata
 from typing import Any
@@ -35,7 +40,10 @@ from . import hookspecs
 from .bus import BusTransport
 from .cipher import Cipher
 from .codec import Codec
+from .commands import Command, command_problem
 from .options import declaration_problem
+from .packetizer import RESERVED_MAGIC, Packetizer
+from .transform import Transform
 from .transport import DatagramTransport, StreamTransport, Transport
 
 ENTRY_POINT_GROUP = "rosgate"
@@ -48,13 +56,28 @@ KINDS: dict[str, tuple[str, type]] = {
     "transport": ("rosgate_transports", Transport),
     "codec": ("rosgate_codecs", Codec),
     "cipher": ("rosgate_ciphers", Cipher),
+    "transform": ("rosgate_transforms", Transform),
+    "packetizer": ("rosgate_packetizers", Packetizer),
 }
+#: the word of a kind in distribution names, where it is not the kind itself
+_DISTRIBUTION_WORD = {"cipher": "crypto", "transform": "compress", "packetizer": "recovery"}
 
 
 def conventional_distribution(kind: str, name: str) -> str:
-    """The distribution that provides a plugin by the naming convention: ``rosgate-<kind>-<name>``,
-    ``crypto`` for ciphers. A convention only: one distribution may hold several plugins."""
-    return f"rosgate-{'crypto' if kind == 'cipher' else kind}-{name}"
+    """The distribution that provides a plugin by the naming convention: ``rosgate-<kind>-<name>``
+    (``crypto`` for ciphers, ``compress`` for transforms, ``recovery`` for packetizers). A
+    convention only: one distribution may hold several plugins (``rosgate-recovery`` holds
+    ``fec`` and ``retransmit``)."""
+    return f"rosgate-{_DISTRIBUTION_WORD.get(kind, kind)}-{name}"
+
+
+def wire_keys(kind: str, cls: Any) -> list[tuple[str, Any]]:
+    """What a plugin class is recognised by on the wire, besides its name."""
+    if kind == "transform":
+        return [(kind, cls.wire_id)]
+    if kind == "packetizer":
+        return [(kind, bytes(m)) for m in cls.magic]
+    return []
 
 
 @dataclass(frozen=True)
@@ -63,6 +86,14 @@ class Registration:
     name: str
     cls: type
     plugin: str  # entry-point name (or the name given to Plugins.add)
+    distribution: str
+    version: str
+
+
+@dataclass(frozen=True)
+class CommandRegistration:
+    command: Command
+    plugin: str
     distribution: str
     version: str
 
@@ -113,6 +144,9 @@ class Plugins:
     def __init__(self, blocked: list[str] | None = None) -> None:
         self.manager = PluginManager()
         self.registered: dict[tuple[str, str], Registration] = {}
+        self.commands: dict[str, CommandRegistration] = {}  # rosgate <name>, from plugins
+        #: (kind, wire id or magic) -> the registration that claimed it
+        self.on_wire: dict[tuple[str, Any], Registration] = {}
         self.failures: list[Failure] = []
         self.blocked: list[str] = list(blocked or [])
         self._waiting: list[metadata.EntryPoint] = []  # found, not loaded yet
@@ -197,8 +231,35 @@ class Plugins:
                     fail(f"{kind} {cls.name!r} is already provided by {first.distribution}; "
                          "skipped")
                     continue
-                self.registered[key] = Registration(kind, cls.name, cls, plugin, distribution,
-                                                    version)
+                claimed = [self.on_wire[w] for w in wire_keys(kind, cls) if w in self.on_wire]
+                if claimed:
+                    what = "wire_id" if kind == "transform" else "magic"
+                    fail(f"{kind} {cls.name!r} has the {what} of {claimed[0].name!r} "
+                         f"({claimed[0].distribution}); skipped")
+                    continue
+                registration = Registration(kind, cls.name, cls, plugin, distribution, version)
+                self.registered[key] = registration
+                for wire in wire_keys(kind, cls):
+                    self.on_wire[wire] = registration
+        self._add_commands(module, plugin, distribution, version, fail)
+
+    def _add_commands(self, module: Any, plugin: str, distribution: str, version: str,
+                      fail: Callable[[str], None]) -> None:
+        found: list[Any] = []
+        try:
+            self.manager.call_for(module, "rosgate_commands", register=found.append)
+        except Exception as exc:
+            return fail(f"rosgate_commands: {_reason(exc)}")  # its other kinds are kept
+        for command in found:
+            problem = command_problem(command)
+            if problem is None and command.name in self.commands:
+                problem = (f"command {command.name!r} is already provided by "
+                           f"{self.commands[command.name].distribution}; skipped")
+            if problem:
+                fail(problem)
+                continue
+            self.commands[command.name] = CommandRegistration(command, plugin, distribution,
+                                                              version)
 
     def remove(self, plugin: str) -> None:
         """Forget a plugin added with :meth:`add` (tests)."""
@@ -206,6 +267,10 @@ class Plugins:
             self.manager.unregister(name=plugin)
             for key in [k for k, r in self.registered.items() if r.plugin == plugin]:
                 del self.registered[key]
+            for name in [n for n, c in self.commands.items() if c.plugin == plugin]:
+                del self.commands[name]
+            for wire in [w for w, r in self.on_wire.items() if r.plugin == plugin]:
+                del self.on_wire[wire]
 
     # -- lookup ----------------------------------------------------------------------------
     def get(self, kind: str, name: str) -> Registration | None:
@@ -217,6 +282,14 @@ class Plugins:
             if (kind, name) not in self.registered:
                 self.load_all()
             return self.registered.get((kind, name))
+
+    def by_wire(self, kind: str, wire: Any) -> Registration | None:
+        """The transform of a ``wire_id``, the packetizer of a ``magic``: loading every plugin
+        the first time one is not found."""
+        with self._lock:
+            if (kind, wire) not in self.on_wire:
+                self.load_all()
+            return self.on_wire.get((kind, wire))
 
     def all(self) -> list[Registration]:
         """Every plugin class, everything loaded; by kind, then name."""
@@ -242,6 +315,20 @@ class Plugins:
                          f"{conventional_distribution(kind, name)}), or pick an installed {kind}")
 
 
+_installed: Plugins | None = None
+_installed_lock = threading.Lock()
+
+
+def installed() -> Plugins:
+    """The plugins of this process's environment, discovered once: what a link or a route looks
+    a packetizer or a transform up in by what came on the wire."""
+    global _installed
+    with _installed_lock:
+        if _installed is None:
+            _installed = Plugins.discover()
+        return _installed
+
+
 def _check_class(cls: Any, base: type) -> str | None:
     if not (isinstance(cls, type) and issubclass(cls, base)):
         return f"registered {cls!r}, which is not a subclass of rosgate.{base.__name__}"
@@ -255,6 +342,18 @@ def _check_class(cls: Any, base: type) -> str | None:
                                                   BusTransport)):
         return f"{cls.__name__} is no kind of link (subclass DatagramTransport, StreamTransport " \
                "or BusTransport)"
+    if base is Transform:
+        wire_id = getattr(cls, "wire_id", None)
+        if not isinstance(wire_id, int) or isinstance(wire_id, bool) or not 1 <= wire_id <= 255:
+            return f"{cls.__name__} has no valid 'wire_id' (1..255, the byte that names it)"
+    if base is Packetizer:
+        magic = getattr(cls, "magic", None)
+        if (not isinstance(magic, tuple) or not magic
+                or not all(isinstance(m, bytes) and len(m) == 2 for m in magic)):
+            return f"{cls.__name__} has no valid 'magic' (a tuple of two-byte bytes: (b'XY',))"
+        if set(magic) & set(RESERVED_MAGIC):
+            return f"{cls.__name__} claims a magic of the link's own " \
+                   f"({', '.join(map(repr, RESERVED_MAGIC))})"
     return declaration_problem(cls)
 
 

@@ -11,21 +11,32 @@ A server resolves the entries a client sends in its hello the same way (``topic`
 from __future__ import annotations
 
 import dataclasses
+import threading
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
-from .bus import PRIORITY_DEFAULT, BusTransport
+from .bus import PRIORITY_DEFAULT, BusTransport, is_template
 from .cipher import Cipher
 from .codec import Codec
-from .config import BridgeConfig, Direction, Framing, Recovery, Role, ServiceConfig, TopicConfig
+from .config import (
+    NO_PLUGIN,
+    BridgeConfig,
+    Direction,
+    Framing,
+    Role,
+    ServiceConfig,
+    TopicConfig,
+)
 from .errors import ConfigError, OptionError
 from .options import parse
-from .placeholders import Template, has_placeholders
+from .packetizer import Packetizer
 from .plugins import Plugins, Registration
 from .ros import TypeNotFound, is_reliable, resolve_type
+from .transform import Transform
 from .transport import Address, DatagramTransport, StreamTransport, Transport
 from .wire.envelope import topic_id_for
+from .wire.framing import DEFAULT_MAX_MESSAGE
 
 ErrorMaker = Callable[..., ConfigError]
 
@@ -52,6 +63,12 @@ class PreparedTopic:
     cipher_cls: type[Cipher] | None = None
     #: an unsent message is replaced by a newer one (default: for best-effort QoS)
     latest_only: bool = False
+    #: recovery: the packetizer class and the topic's options for it (None: the link's own)
+    recovery: tuple[type[Packetizer], Any] | None = None
+    #: compression: the transform a transmitting topic applies (None: none)
+    compression: Transform | None = None
+    #: a receiving topic's transform of each wire id, whatever its own entry says
+    transforms: Callable[[int], Transform | None] = field(default=lambda wire_id: None)
 
     @property
     def name(self) -> str:
@@ -102,6 +119,8 @@ class Resolver:
         self.ciphers: dict[str, Cipher] = {}
         self.main_line: StreamTransport | None = None
         self.main_address: Address | None = None
+        self._decoders: dict[int, Transform | None] = {}
+        self._decoders_lock = threading.Lock()
 
     def plan(self) -> Plan:
         cfg = self.config
@@ -160,25 +179,77 @@ class Resolver:
         reliable = is_reliable(topic.qos)
         priority = topic.priority or PRIORITY_DEFAULT
         self._real_link(topic, key, transport, error)
+        recovery = self._recovery(topic, key, error)
+        compression = self._compression(topic, key, error)
         if isinstance(transport, BusTransport):
             return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher,
                                  index, NO_ADDRESS, NO_ADDRESS, reliable,
                                  self._bus_key(transport, topic, key, error), priority,
-                                 cipher_cls)
+                                 cipher_cls, recovery=recovery, compression=compression,
+                                 transforms=self.transform_for)
         self._point_to_point(topic, key, transport, error)
         self._check_main_line_port(topic, key, transport, error)
         address, local = self._addresses(transport, topic, key, error)
         latest_only = not reliable if topic.latest_only is None else topic.latest_only
         return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher, index,
                              address, local, reliable, priority=priority, cipher_cls=cipher_cls,
-                             latest_only=latest_only)
+                             latest_only=latest_only, recovery=recovery, compression=compression,
+                             transforms=self.transform_for)
+
+    def _recovery(self, topic: TopicConfig, key: str,
+                  error: ErrorMaker) -> tuple[type[Packetizer], Any] | None:
+        if topic.recovery == NO_PLUGIN:
+            return None
+        cls = self.plugin("packetizer", topic.recovery, f"{key}.recovery", error).cls
+        return cls, self._topic_options(cls, topic.recovery, topic.recovery_options,
+                                        f"{key}.recovery", error)
+
+    def _compression(self, topic: TopicConfig, key: str, error: ErrorMaker) -> Transform | None:
+        if topic.compression == NO_PLUGIN:
+            return None
+        asked_by = f"{key}.compression"
+        cls = self.plugin("transform", topic.compression, asked_by, error).cls
+        options = self._topic_options(cls, topic.compression, topic.compression_options,
+                                      asked_by, error)
+        try:
+            return cls(options, DEFAULT_MAX_MESSAGE)
+        except OptionError as exc:
+            raise self._option_error(topic.compression, exc, asked_by, error) from None
+
+    def _topic_options(self, cls: type, name: str, own: dict[str, Any], asked_by: str,
+                       error: ErrorMaker) -> Any:
+        """A plugin's options for one topic: its ``plugins:`` table, with what the topic gives
+        (``compression: {zstd: {level: 19}}``) over it; a mistake is located where it was
+        written."""
+        try:
+            return parse(cls, {**self._options(name), **own})
+        except OptionError as exc:
+            if exc.key is not None and exc.key in own:
+                raise error(f"{asked_by}.{name}.{exc.key}", exc.message, exc.fix) from None
+            raise self._option_error(name, exc, asked_by, error) from None
+
+    def transform_for(self, wire_id: int) -> Transform | None:
+        """The transform a receiver decodes a payload of ``wire_id`` with (options from this
+        file's ``plugins:`` table), made once; None when no installed transform has that id."""
+        with self._decoders_lock:
+            if wire_id not in self._decoders:
+                found = self.plugins.by_wire("transform", wire_id)
+                decoder = None
+                if found is not None:
+                    try:
+                        decoder = found.cls(parse(found.cls, self._options(found.name)),
+                                            DEFAULT_MAX_MESSAGE)
+                    except OptionError:
+                        decoder = None  # rosgate check reports it; frames are counted
+                self._decoders[wire_id] = decoder
+            return self._decoders[wire_id]
 
     @staticmethod
     def _real_link(topic: TopicConfig, key: str, transport: Transport,
                    error: ErrorMaker) -> None:
         """Recovery is for datagram links, latest_only for the links rosgate schedules."""
         bus = isinstance(transport, BusTransport)
-        if topic.recovery is not Recovery.NONE and (isinstance(transport, StreamTransport) or bus):
+        if topic.recovery != NO_PLUGIN and (isinstance(transport, StreamTransport) or bus):
             what = "a bus" if bus else "a stream"
             raise error(f"{key}.recovery", f"recovery: {topic.recovery} is for datagram links "
                         f"(udp): {topic.transport} is {what}, which delivers whole and in order "
@@ -241,18 +312,22 @@ class Resolver:
         if entry.port is not None:
             raise error(f"{key}.port", f"port: does not apply to a {entry.transport} {kind}: "
                         "it is published on a key (remote:)", "remove port: from this entry")
-        if (kind == "service" and has_placeholders(entry.remote)
-                and entry.direction is Direction.RECEIVE):
-            raise error(f"{key}.direction", "a fleet service (with {robot}) is called here and "
-                        "served by each robot, so its direction is transmit",
-                        "use direction: transmit, or name the service without placeholders")
         name = entry.topic if isinstance(entry, TopicConfig) else entry.service
         bare = entry.framing is Framing.NONE
         given = "remote" in entry.lines
         bus_key = (entry.remote.removeprefix("/") if given
                    else transport.default_key(cfg.name, name, bare))
+        if is_template(name) or is_template(bus_key):
+            if transport.templates is None:
+                raise error(f"{key}.{kind}", f"{entry.transport} takes no placeholders such as "
+                            "{robot}", "write the robot's name, or use a bus that takes them")
+            try:
+                transport.templates.check(entry, bus_key)
+            except ConfigError as exc:
+                raise error(f"{key}.{exc.key}", exc.message, exc.fix) from None
+            return bus_key
         try:
-            transport.check_key(Template(bus_key).wildcard())
+            transport.check_key(bus_key)
         except ValueError as exc:
             where = f"{key}.remote" if given else f"{key}.{kind}"
             raise error(where, str(exc), "write remote: as parts separated by single '/', "
@@ -265,7 +340,7 @@ class Resolver:
         point-to-point entries need: a port, and peer: for the far host."""
         kind = "topic" if isinstance(entry, TopicConfig) else "service"
         name = entry.topic if isinstance(entry, TopicConfig) else entry.service
-        if has_placeholders(name):
+        if is_template(name):
             raise error(f"{key}.{kind}", f"placeholders such as {{robot}} need a bus transport "
                         f"(zenoh); {entry.transport} links one peer to another",
                         "set transport: zenoh on this entry, or write the robot's name")

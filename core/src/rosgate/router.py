@@ -95,7 +95,8 @@ class Router:
                        if t.framing is Framing.NONE else EnvelopeFraming())
             route = TransmitRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
                                   framing=framing, link=link, destination=destination,
-                                  priority=p.priority, latest_only=p.latest_only)
+                                  priority=p.priority, latest_only=p.latest_only,
+                                  recovery=p.recovery, compression=p.compression)
             self._identify(route, p.msg_type)
             route.announces = t.framing is Framing.ROSGATE and p.key is None
             if not t.qos_given:
@@ -112,7 +113,7 @@ class Router:
             if codec.raw and not trusted:
                 decode = _checked(decode, cdr_checker(p.msg_type))
             route = ReceiveRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
-                                 decode=decode)
+                                 decode=decode, transforms=p.transforms)
             self._identify(route, p.msg_type)
             # a bus announces nothing, a microcontroller neither: their types are not checked
             route.check.ok = p.key is not None or t.framing is not Framing.ROSGATE

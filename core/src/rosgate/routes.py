@@ -2,13 +2,13 @@
 
 transmit (a ROS subscription callback)::
 
-    message -> codec.encode -> compress (optional) -> framing.frame (envelope header,
-    cipher.seal) -> link.send
+    message -> codec.encode -> transform (compression, optional) -> framing.frame (envelope
+    header, cipher.seal) -> link.send
 
 receive (a link's thread, with a frame whose header names this topic)::
 
-    cipher.open -> replay window -> decompress (when the header says so) -> decode (codec, CDR
-    check) -> ROS publish
+    cipher.open -> replay window -> transform back (when the header says so, by the transform's
+    wire id) -> decode (codec, CDR check) -> ROS publish
 
 The cipher of each frame comes from the route's :class:`~rosgate.keyring.Keys` by the
 envelope's epoch: one static cipher, or a session's keys, which change with each key
@@ -36,22 +36,15 @@ from . import announce
 from .announce import Identity, TypeCheck
 from .builtin import NoCipher
 from .codec import Codec
-from .config import (
-    PRIORITIES,
-    RECOVERY_OVERHEAD_DEFAULT,
-    Compression,
-    Recovery,
-    ServiceConfig,
-    TopicConfig,
-)
+from .config import NO_PLUGIN, PRIORITIES, ServiceConfig, TopicConfig
 from .errors import CipherError, CodecError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
+from .packetizer import Packetizer
+from .transform import Transform, TransformError
 from .transport import Address
 from .warn import Warner
 from .wire import envelope
-from .wire.compression import CompressionError, Compressor, Decompressor
-from .wire.framing import DEFAULT_MAX_MESSAGE
 from .wire.names import LAYOUT_DEFAULT, Layout, NameMissing, pack_name, split_name
 
 log = logging.getLogger("rosgate")
@@ -108,8 +101,8 @@ class Route:
     priority: int = PRIORITIES["data"]
     latest_only = False
     max_delay: float | None = None  # None: the link's, for best effort
-    recovery = Recovery.NONE.value
-    recovery_overhead = RECOVERY_OVERHEAD_DEFAULT
+    recovery = NO_PLUGIN  # the packetizer of its frames on datagram links (none: the link's own)
+    recovery_options: Any = None  # the topic's options for it
     bare = False
     #: the sending side of an entry with an envelope: says its type (and QoS) on its link
     announces = False
@@ -292,7 +285,9 @@ class TransmitRoute(Route):
     def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
                  warner: Warner, label: str, reliable: bool, *, framing: TopicFraming,
                  link: Link, destination: Callable[[], Address | None],
-                 priority: int = PRIORITIES["data"], latest_only: bool = False):
+                 priority: int = PRIORITIES["data"], latest_only: bool = False,
+                 recovery: tuple[type[Packetizer], Any] | None = None,
+                 compression: Transform | None = None):
         super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
         self.max_wait_ns = max_wait_ns(topic, reliable)
@@ -301,8 +296,8 @@ class TransmitRoute(Route):
         self.priority = priority
         self.latest_only = latest_only
         self.max_delay = topic.max_delay
-        self.recovery = topic.recovery.value
-        self.recovery_overhead = topic.recovery_overhead
+        if recovery is not None:
+            self.recovery, self.recovery_options = recovery[0].name, recovery[1]
         self.bare = framing.bare
         self.destination = destination  # where to send, looked up per message (a server learns it)
         self.epoch: int | None = None  # of the key in use, set by the first frame
@@ -313,20 +308,20 @@ class TransmitRoute(Route):
         self.last_sent_ns = 0
         #: takes the next message already waiting, or None (set with the subscription)
         self.take: Callable[[], Any] | None = None
-        self.compressor = (Compressor(topic.compression_level)
-                           if topic.compression is Compression.ZSTD else None)
+        self.transform = compression
+        self.transform_id = bytes([compression.wire_id]) if compression is not None else b""
         #: the QoS found from the publishers here (entries without qos; None: none found yet)
         self.qos_found: dict[str, Any] | None = None
         #: and the one its subscription has (None: the entry's own)
         self.qos_in_use: dict[str, Any] | None = None
 
     def encode(self, message: Any) -> tuple[bytes, int]:
-        """The message's payload, compressed when that makes it smaller; and the envelope flags
-        that say so."""
+        """The message's payload, transformed (compressed) when that makes it smaller: then after
+        the transform's wire id, with the envelope flag that says so."""
         payload = self.codec.encode(message)
-        if self.compressor is None:
+        if self.transform is None:
             return payload, 0
-        packed = self.compressor.compress(payload)
+        packed = self.transform.encode(payload)
         counters = self.counters
         counters.bytes_before_compression += len(payload)
         if packed is None:
@@ -334,7 +329,7 @@ class TransmitRoute(Route):
             counters.not_compressed += 1
             return payload, 0
         counters.bytes_after_compression += len(packed)
-        return packed, envelope.FLAG_COMPRESSED
+        return self.transform_id + packed, envelope.FLAG_COMPRESSED
 
     def on_message(self, message: Any) -> None:
         """A message from the subscription, and every other one already waiting in it (up to a
@@ -414,7 +409,8 @@ class ReceiveRoute(Route):
 
     def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
                  warner: Warner, label: str, reliable: bool, *,
-                 decode: Callable[[bytes], Any]):
+                 decode: Callable[[bytes], Any],
+                 transforms: Callable[[int], Transform | None] = lambda wire_id: None):
         super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
         self.max_wait_ns = max_wait_ns(topic, reliable)
@@ -427,8 +423,9 @@ class ReceiveRoute(Route):
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
-        #: whatever this side's file says: the sender's envelope says what it compressed
-        self.decompressor = Decompressor(DEFAULT_MAX_MESSAGE)
+        #: whatever this side's file says: the sender's envelope says what it transformed, and
+        #: the payload's first byte with which transform
+        self.transforms = transforms
         #: the QoS its publisher has from the far side's publishers (None: the entry's own)
         self.qos_in_use: dict[str, Any] | None = None
 
@@ -459,12 +456,26 @@ class ReceiveRoute(Route):
                 self.drop("too_late", f"waited {waited / 1e6:.0f} ms in the receive buffer")
                 return
         if header.flags & envelope.FLAG_COMPRESSED:
-            try:
-                payload = self.decompressor.decompress(payload)
-            except CompressionError as exc:
-                self.drop("decompression_error", str(exc))
+            payload = self.transform_back(payload)
+            if payload is None:
                 return
         self.deliver(payload, size)
+
+    def transform_back(self, payload: bytes) -> bytes | None:
+        """A transformed payload as the codec wrote it; None when it cannot be (counted)."""
+        transform = self.transforms(payload[0]) if payload else None
+        if transform is None:
+            self.drop("decompression_error", "transformed by a transform this side does not have "
+                      f"(wire id {payload[0] if payload else 'missing'})")
+            return None
+        try:
+            return transform.decode(bytes(payload[1:]))
+        except TransformError as exc:
+            self.drop("decompression_error", f"{transform.name}: {exc}")
+        except Exception as exc:  # a transform must raise TransformError; anything else: its bug
+            self.drop("decompression_error", f"{transform.name} failed: {type(exc).__name__}: "
+                      f"{exc}")
+        return None
 
     def deliver(self, payload: bytes, size: int) -> None:
         """Decode and publish; ``size`` is what arrived on the link, for the counters."""

@@ -7,6 +7,7 @@ import pytest
 import zenoh
 from rosgate_testing import BusConformance, free_port
 from rosgate_transport_zenoh import ZenohTransport, zenoh_config
+from rosgate_transport_zenoh.router import open_router
 
 from rosgate import LinkError, OptionError
 
@@ -17,7 +18,7 @@ ROUTERS: list = []
 def router():
     """A zenoh router in this process, on a free loopback port, for the module's tests."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    session = ZenohTransport({}).router([endpoint], None)
+    session = open_router([endpoint], None)
     yield endpoint
     session.close()
 

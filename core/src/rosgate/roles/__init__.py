@@ -168,7 +168,8 @@ class Role:
             if bare_named is None:
                 link = DatagramLink(transport, endpoint, name, self.router.on_frame,
                                     self.router.on_lost, sources=sources, budget=budget,
-                                    on_recovered=self.router.on_recovered)
+                                    on_recovered=self.router.on_recovered,
+                                    packetizers=self.bridge.resolver.plugins)
             else:
                 port = self.router.bare_port(bare_named)
                 link = DatagramLink(transport, endpoint, name, port.on_frame,

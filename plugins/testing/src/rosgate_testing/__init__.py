@@ -81,6 +81,8 @@ from .helpers import (
     wait_until_blocked,
     write_key,
 )
+from .packetizers import PacketizerConformance as PacketizerConformance  # each module says
+from .transforms import TransformConformance as TransformConformance  # what its suite checks
 from .transports import TransportConformance
 
 __all__ = [

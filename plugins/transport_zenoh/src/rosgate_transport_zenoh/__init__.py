@@ -25,6 +25,11 @@ publisher while the link is congested, up to its ``wait_before_close``), best ef
 ``DROP``; ``priority:`` 1..7 is zenoh's ``Priority`` (``REAL_TIME`` .. ``BACKGROUND``, default
 ``DATA``). A service call is one ``get`` (consolidation ``NONE``, its first answer wins).
 
+Fleets (:mod:`.fleet`): an entry may name its robot by placeholder, ``topic: /{robot}/scan``
+with ``remote: fleet/{robot}/scan`` (:mod:`.placeholders`): one wildcard subscription, a route
+per robot found by its frames or its liveliness token. ``rosgate router`` (:mod:`.router`) runs
+a zenoh router for bridges to meet at.
+
 Threads: zenoh calls rosgate directly from its own receive threads (``Callback(...,
 indirect=False)``): rosgate only queues there, and no Python thread is left behind to keep a
 process from exiting. Sessions are closed explicitly when the bridge stops.
@@ -32,290 +37,21 @@ process from exiting. Sessions are closed explicitly when the bridge stops.
 
 from __future__ import annotations
 
-import dataclasses
-import json
-import logging
-import re
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
-import zenoh
+from rosgate import hookimpl
 
-from rosgate import LinkError, OptionError, hookimpl, option
-from rosgate.bus import BusTransport
-from rosgate.bus import check_key as check_chunks
+from .router import ROUTER
+from .transport import ZenohSession, ZenohTransport, zenoh_config, zenoh_message
 
-log = logging.getLogger("rosgate.zenoh")
-
-OWN_OPTIONS = ("prefix", "namespace")
-_ZENOH = "zenoh's own, passed through (see zenoh's DEFAULT_CONFIG.json5)"
-_PRIORITIES = (zenoh.Priority.REAL_TIME, zenoh.Priority.INTERACTIVE_HIGH,
-               zenoh.Priority.INTERACTIVE_LOW, zenoh.Priority.DATA_HIGH, zenoh.Priority.DATA,
-               zenoh.Priority.DATA_LOW, zenoh.Priority.BACKGROUND)
-_NO_CONSOLIDATION = zenoh.ConsolidationMode.NONE  # every answer, not the "best" one
-_FIX = "see zenoh's DEFAULT_CONFIG.json5 for the options and their forms"
-
-
-def zenoh_message(exc: BaseException) -> str:
-    """A ZError in words: without the Rust source location, serde's message unwrapped."""
-    text = str(exc).split(" at /", 1)[0].strip()
-    found = re.search(r'msg: "((?:[^"\\]|\\.)*)"', text)
-    if found:
-        return found.group(1).replace('\\"', '"')
-    return "unknown option" if text == 'Str("unknown key")' else text
-
-
-def zenoh_config(options: Mapping[str, Any]) -> zenoh.Config:
-    """The zenoh part of the options as a ``zenoh.Config``; :class:`OptionError` naming the
-    option (its dotted path) for anything zenoh refuses."""
-    given = {k: v for k, v in options.items() if k not in OWN_OPTIONS and v is not None}
-    for key in ("connect", "listen"):
-        if isinstance(given.get(key), list):
-            given[key] = {"endpoints": given[key]}
-    scouting = given.setdefault("scouting", {})
-    if isinstance(scouting, dict):
-        multicast = scouting.setdefault("multicast", {})
-        if isinstance(multicast, dict):
-            multicast.setdefault("enabled", False)
-    config = zenoh.Config()
-    for key, value in given.items():
-        _insert(config, key, value)
-    return config
-
-
-def _insert(config: zenoh.Config, path: str, value: Any) -> None:
-    try:
-        config.insert_json5(path, json.dumps(value))
-    except zenoh.ZError as exc:
-        if isinstance(value, dict) and value:  # name the option inside that is wrong
-            for key, inner in value.items():
-                _insert(config, f"{path}/{key}", inner)
-        message = zenoh_message(exc)
-        if message == "unknown option":
-            parent, _, last = path.rpartition("/")
-            message = f"unknown zenoh option '{last}'" + (f" under {parent.replace('/', '.')}"
-                                                          if parent else "")
-        raise OptionError(path.replace("/", "."), message, _FIX) from None
-    except (TypeError, ValueError) as exc:  # a value json cannot write: YAML gave something odd
-        raise OptionError(path.replace("/", "."), f"cannot be passed to zenoh: {exc}",
-                          _FIX) from None
-
-
-def check_key(key: str) -> str:
-    """A key as rosgate and zenoh both take it; ``ValueError`` saying why not."""
-    check_chunks(key)
-    try:
-        zenoh.KeyExpr(key)
-    except zenoh.ZError as exc:
-        raise ValueError(f"{key!r} is not a zenoh key expression: {zenoh_message(exc)}") from None
-    return key
-
-
-class ZenohTransport(BusTransport):
-    name = "zenoh"
-
-    @dataclass(frozen=True)
-    class Options:
-        """rosgate's two options, then zenoh's own configuration sections, passed through."""
-
-        prefix: str = option("rosgate", "first part of rosgate's keys (<prefix>/<bridge>/<topic>) "
-                             "and liveliness tokens; the same across a fleet")
-        namespace: str = option("/", "framing: none keys are <namespace>/<ROS name>, as "
-                                "zenoh-bridge-ros2dds' namespace (shadows zenoh's own)")
-        mode: Literal["peer", "client", "router"] = option(
-            "peer", "zenoh's mode: peer opens without a router, client needs one at start")
-        connect: dict[str, Any] | list[str] | None = option(
-            None, "zenoh's connect: {endpoints: [...], retry: {...}}, or the endpoints alone")
-        listen: dict[str, Any] | list[str] | None = option(
-            None, "zenoh's listen: {endpoints: [...]}, or the endpoints alone")
-        scouting: dict[str, Any] | None = option(
-            None, "zenoh's scouting; multicast is off unless enabled here")
-        transport: dict[str, Any] | None = option(
-            None, "zenoh's transport: link (tls, tx.lease...), unicast, shared_memory...")
-        id: str | None = option(None, _ZENOH)
-        metadata: dict[str, Any] | None = option(None, _ZENOH)
-        open: dict[str, Any] | None = option(None, _ZENOH)
-        timestamping: dict[str, Any] | None = option(None, _ZENOH)
-        queries_default_timeout: int | None = option(None, _ZENOH + "; milliseconds")
-        routing: dict[str, Any] | None = option(None, _ZENOH)
-        aggregation: dict[str, Any] | None = option(None, _ZENOH)
-        qos: dict[str, Any] | None = option(None, _ZENOH)
-        adminspace: dict[str, Any] | None = option(None, _ZENOH)
-        downsampling: list[Any] | None = option(None, _ZENOH)
-        low_pass_filter: list[Any] | None = option(None, _ZENOH)
-        access_control: dict[str, Any] | None = option(None, _ZENOH)
-
-        def __post_init__(self) -> None:
-            try:
-                check_key(self.prefix)
-            except ValueError as exc:
-                raise OptionError("prefix", str(exc), "e.g. prefix: fleet") from None
-            if self.namespace.strip("/"):
-                try:
-                    check_key(self.namespace.strip("/"))
-                except ValueError as exc:
-                    raise OptionError("namespace", str(exc), "e.g. namespace: /bot1 (as "
-                                      "zenoh-bridge-ros2dds writes it)") from None
-            zenoh_config(dataclasses.asdict(self))  # zenoh refuses now: `rosgate check` shows it
-
-    options: Options
-
-    def __init__(self, options: Any):
-        super().__init__(options)
-        self.prefix = self.options.prefix
-        self.namespace = self.options.namespace.strip("/")
-
-    def check_key(self, key: str) -> str:
-        return check_key(key)
-
-    def open(self, name: str) -> ZenohSession:
-        try:
-            session = zenoh.open(zenoh_config(dataclasses.asdict(self.options)))
-        except zenoh.ZError as exc:
-            raise LinkError(f"zenoh: cannot open a session: {zenoh_message(exc)}",
-                            "check plugins.zenoh: with mode: client a router must answer at one "
-                            "of connect.endpoints; mode: peer opens without one") from None
-        info = session.info
-        log.info("%s: zenoh session %s (%s), routers %s", name, session.zid(), self.options.mode,
-                 [str(z) for z in info.routers_zid()] or "none")
-        return ZenohSession(session)
-
-    def router(self, listen: list[str], config_file: str | None) -> ZenohSession:
-        try:
-            config = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
-            config.insert_json5("mode", json.dumps("router"))
-            if listen:
-                config.insert_json5("listen/endpoints", json.dumps(listen))
-            if not config_file:
-                config.insert_json5("scouting/multicast/enabled", "false")
-            return ZenohSession(zenoh.open(config))
-        except zenoh.ZError as exc:
-            raise LinkError(f"zenoh router: {zenoh_message(exc)}", "check --listen "
-                            "(tcp/<address>:<port>, the port free) and --config") from None
-
-
-class _Declared:
-    """A subscription, queryable, token or watch: ``close`` undeclares it."""
-
-    def __init__(self, entity: Any, forget: Callable[[], None] | None = None):
-        self.entity = entity
-        self.forget = forget
-
-    def close(self) -> None:
-        if self.forget is not None:
-            self.forget()
-        try:
-            self.entity.undeclare()
-        except zenoh.ZError:  # already gone with its session
-            pass
-
-
-class _Publisher:
-    def __init__(self, publisher: zenoh.Publisher):
-        self.publisher = publisher
-
-    def put(self, frame: bytes) -> None:
-        try:
-            self.publisher.put(frame)
-        except zenoh.ZError as exc:
-            raise OSError(zenoh_message(exc)) from None
-
-    def close(self) -> None:
-        try:
-            self.publisher.undeclare()
-        except zenoh.ZError:
-            pass
-
-
-class _Query:
-    """A query received: answered on the queryable's own key (zenoh requires a key that
-    intersects the query's), then dropped, which tells the caller it is over."""
-
-    def __init__(self, query: zenoh.Query, key: str):
-        self.query = query
-        self.key = key
-
-    def reply(self, payload: bytes) -> None:
-        try:
-            self.query.reply(self.key, payload)
-        except zenoh.ZError as exc:
-            raise OSError(zenoh_message(exc)) from None
-
-    def close(self) -> None:
-        try:
-            self.query.drop()
-        except zenoh.ZError:
-            pass
-
-
-def _direct(callback: Callable[[Any], None], drop: Callable[[], None] | None = None) -> Any:
-    """Run ``callback`` on zenoh's receive thread: no Python thread per declaration (zenoh's
-    default handler makes non-daemon ones, which hang a process that exits without closing)."""
-    return zenoh.handlers.Callback(callback, drop, indirect=False)
-
-
-class ZenohSession:
-    """A :class:`rosgate.bus.BusSession` over one ``zenoh.Session``."""
-
-    def __init__(self, session: zenoh.Session):
-        self.session = session
-        # zenoh undeclares a token whose last reference goes; the bus contract holds it until
-        # it is closed, so the session keeps it
-        self._tokens: set[_Declared] = set()
-
-    def publisher(self, key: str, *, reliable: bool, priority: int) -> _Publisher:
-        congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
-        return _Publisher(self.session.declare_publisher(
-            key, congestion_control=congestion, priority=_PRIORITIES[priority - 1]))
-
-    def subscribe(self, key_expr: str, on_sample: Callable[[str, bytes], None]) -> _Declared:
-        return _Declared(self.session.declare_subscriber(key_expr, _direct(
-            lambda sample: on_sample(str(sample.key_expr), sample.payload.to_bytes()))))
-
-    def serve(self, key: str, on_query: Callable[[str, bytes, Any], None]) -> _Declared:
-        def arrived(query: zenoh.Query) -> None:
-            payload = query.payload
-            on_query(str(query.key_expr), payload.to_bytes() if payload is not None else b"",
-                     _Query(query, key))
-
-        return _Declared(self.session.declare_queryable(key, _direct(arrived)))
-
-    def query(self, key: str, payload: bytes, timeout: float,
-              on_reply: Callable[[bytes], None], on_done: Callable[[int], None]) -> None:
-        answers = [0]
-
-        def reply(got: zenoh.Reply) -> None:
-            if got.ok is not None:
-                answers[0] += 1
-                on_reply(got.ok.payload.to_bytes())
-            else:  # zenoh's own "Timeout", or a server's reply_err: no answer
-                log.debug("zenoh: query on %s: %s", key,
-                          got.err.payload.to_bytes()[:200] if got.err is not None else "?")
-
-        try:
-            self.session.get(key, _direct(reply, lambda: on_done(answers[0])), payload=payload,
-                             timeout=timeout, consolidation=_NO_CONSOLIDATION)
-        except zenoh.ZError as exc:
-            raise OSError(zenoh_message(exc)) from None
-
-    def token(self, key: str) -> _Declared:
-        token = _Declared(self.session.liveliness().declare_token(key),
-                          lambda: self._tokens.discard(token))
-        self._tokens.add(token)
-        return token
-
-    def watch(self, key_expr: str, on_change: Callable[[str, bool], None]) -> _Declared:
-        put = zenoh.SampleKind.PUT
-        return _Declared(self.session.liveliness().declare_subscriber(
-            key_expr, _direct(lambda sample: on_change(str(sample.key_expr), sample.kind == put)),
-            history=True))
-
-    def close(self) -> None:
-        self.session.close()
-        self._tokens.clear()
+__all__ = ["ZenohSession", "ZenohTransport", "zenoh_config", "zenoh_message"]
 
 
 @hookimpl
 def rosgate_transports(register: Any) -> None:
     register(ZenohTransport)
+
+
+@hookimpl
+def rosgate_commands(register: Any) -> None:
+    register(ROUTER)

@@ -1,17 +1,18 @@
-"""Compression of a topic's payloads: zstd, between the codec and the cipher.
+"""The ``zstd`` payload transform: a topic's payloads compressed, between the codec and the cipher.
 
-A transmitting route with ``compression: zstd`` compresses every payload (a zstd frame, which
-states its decompressed size) and sends the result when it is smaller, with the envelope's
-``FLAG_COMPRESSED`` set; a payload that does not shrink (an image of noise, a tiny message)
-goes as it was, flag clear. The flag travels in the envelope header, which every cipher
-authenticates, so a receiver decompresses exactly what the sender compressed, whatever its own
-file says.
+A transmitting topic with ``compression: zstd`` compresses every payload (a zstd frame, which
+states its decompressed size) at ``level`` (``plugins: {zstd: {level: 3}}``, or per topic
+``compression: {zstd: {level: 19}}``) and sends the result when it is smaller, after its wire id
+(1), with the envelope's ``FLAG_COMPRESSED`` set; a payload that does not shrink (an image of
+noise, a tiny message) goes as it was, flag clear. The flag travels in the envelope header, which
+every cipher authenticates, so a receiver decompresses exactly what the sender compressed,
+whatever its own file says (see :mod:`rosgate.transform`).
 
 A hostile sender (anyone who reaches a port without a cipher) can make a small frame that
-claims to decompress into a huge one. :func:`decompress` therefore refuses a frame that does not
-state its size, or states more than ``limit`` — the most a frame may have on a link
-(64 MiB), so compression lets no message be larger than it could be uncompressed — before it
-allocates anything.
+claims to decompress into a huge one. :meth:`Decompressor.decompress` therefore refuses a frame
+that does not state its size, or states more than ``limit`` — the most a frame may have on a
+link (64 MiB), so compression lets no message be larger than it could be uncompressed — before
+it allocates anything.
 
 Compressing before sealing lets someone who can put chosen bytes into a topic and watch frame
 sizes learn about the rest of that message (CRIME, BREACH): do not compress a topic that mixes
@@ -21,13 +22,16 @@ secrets with data an attacker controls.
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass
 from typing import Any
+
+from rosgate import OptionError, Transform, TransformError, hookimpl, option
 
 #: zstd's magic number, the first 4 bytes of every frame (little-endian 0xFD2FB528)
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 
 
-class CompressionError(ValueError):
+class CompressionError(TransformError):
     """A payload that cannot be decompressed within the bound (counted ``decompression_error``)."""
 
 
@@ -86,3 +90,37 @@ class Decompressor:
         if len(out) != size:
             raise CompressionError(f"a zstd frame of {len(out)} bytes that stated {size}")
         return out
+
+
+class ZstdTransform(Transform):
+    """zstd compression; payloads it does not shrink go as they are."""
+
+    name = "zstd"
+    wire_id = 1
+
+    @dataclass(frozen=True)
+    class Options:
+        level: int = option(3, "zstd's level: 1 (fastest) to 22 (smallest), -7 to -1 faster "
+                               "still; 3, zstd's own default, is fast and gets most of the gain",
+                            minimum=-7, maximum=22)
+
+        def __post_init__(self) -> None:
+            if self.level == 0:
+                raise OptionError("level", "must not be 0 (zstd would take it for its default, 3)",
+                                  "level: 3, or -7..-1 for faster, 1..22 for smaller")
+
+    def __init__(self, options: Any, limit: int):
+        super().__init__(options, limit)
+        self.compressor = Compressor(self.options.level)
+        self.decompressor = Decompressor(limit)
+
+    def encode(self, payload: bytes) -> bytes | None:
+        return self.compressor.compress(payload)
+
+    def decode(self, data: bytes) -> bytes:
+        return self.decompressor.decompress(data)
+
+
+@hookimpl
+def rosgate_transforms(register: Any) -> None:
+    register(ZstdTransform)

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import pytest
-
-from rosgate.placeholders import Template, check
+from rosgate_transport_zenoh.placeholders import Template, check
 
 
 def test_a_template_becomes_a_wildcard_matches_and_fills():

@@ -8,10 +8,8 @@ import heapq
 import random
 
 import pytest
-
-from rosgate.wire import recovery
-from rosgate.wire.framing import FramingError
-from rosgate.wire.recovery import (
+from rosgate_recovery import wire as recovery
+from rosgate_recovery.wire import (
     FEC,
     FecReassembler,
     RepeatReassembler,
@@ -20,6 +18,8 @@ from rosgate.wire.recovery import (
     fec_fragments,
     repeat_fragments,
 )
+
+from rosgate.wire.framing import FramingError
 
 TOPIC = 7
 

@@ -1,4 +1,5 @@
-"""Loss recovery on datagram links: forward error correction and selective repeat.
+"""The formats and the state of loss recovery on datagram links: forward error correction and
+selective repeat (the packetizers of :mod:`rosgate_recovery` put them on a link).
 
 A message cut into fragments is lost when any fragment is: at 1 % packet loss a 921,600-byte
 image in 1,200-byte datagrams (778 fragments) arrives whole 0.04 % of the time. A topic chooses
@@ -43,7 +44,7 @@ someone off the path cannot make a sender repeat itself, and every fragment is r
 bounded number of times (:data:`MAX_SENDS`) within the sender's bandwidth budget.
 
 The receivers here keep what they hold within bounds on time (``timeout``, the deadline) and
-memory, and count every frame they give up once, as :class:`rosgate.wire.framing.Reassembler`
+memory, and count every frame they give up once, as :class:`rosgate.reassembly.Reassembler`
 does. Nothing here opens a socket or reads a clock of its own: times are passed in.
 """
 
@@ -57,7 +58,7 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
-from .framing import DEFAULT_MAX_MESSAGE, FINISHED_REMEMBERED, FRAGMENT, FramingError
+from rosgate.wire.framing import DEFAULT_MAX_MESSAGE, FINISHED_REMEMBERED, FRAGMENT, FramingError
 
 FEC = struct.Struct(">2sIIIHHBBB")
 FEC_MAGIC = b"RE"

@@ -7,8 +7,7 @@ import os
 
 import pytest
 import zstandard
-
-from rosgate.wire.compression import CompressionError, Compressor, Decompressor
+from rosgate_compress_zstd import CompressionError, Compressor, Decompressor
 
 
 @pytest.mark.parametrize("level", [-7, 1, 3, 19])

@@ -5,7 +5,7 @@ A topic entry may name a robot by placeholder, in its ROS name and its key alike
     - {topic: "/{robot}/scan", remote: "fleet/{robot}/scan", direction: receive, ...}
 
 A placeholder is a whole chunk (between slashes) written ``{name}``; :data:`NAMES` are the ones
-there are. On a bus the key template becomes a subscription with ``*`` in its place, and each
+there are. On zenoh the key template becomes a subscription with ``*`` in its place, and each
 concrete key that arrives (``fleet/robot7/scan``) gives the placeholder its value (``robot7``),
 which fills the ROS name (``/robot7/scan``). No rclpy, no bus here: text only.
 """
@@ -84,7 +84,3 @@ class Template:
     def __repr__(self) -> str:
         return f"Template({self.text!r})"
 
-
-def valid_value(value: str) -> bool:
-    """Whether ``value`` can fill a placeholder (it becomes part of a ROS name)."""
-    return _VALUE.fullmatch(value) is not None

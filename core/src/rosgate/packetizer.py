@@ -1,0 +1,109 @@
+"""Packetizers: how a datagram link cuts a frame into packets, and puts packets back together.
+
+A datagram link (:class:`rosgate.links.DatagramLink`) keeps its queue, its threads and its
+dispatch; what goes into a packet is a packetizer's. The built-in ``fragments`` cuts a frame
+longer than the link's ``max_frame`` into numbered fragments; loss recovery (``recovery: fec``,
+``recovery: retransmit``, from the ``rosgate-recovery`` distribution) are packetizers too. A
+topic picks one by name (``recovery: NAME``); its options come from ``plugins: {NAME: {...}}``,
+and a topic may give its own on top (``recovery: {fec: {overhead: 0.25}}``).
+
+A packetizer plugin subclasses :class:`Packetizer`, sets :attr:`~Packetizer.name` and
+:attr:`~Packetizer.magic`, implements :meth:`~Packetizer.cut`, :meth:`~Packetizer.feed` and
+:meth:`~Packetizer.cost`, and is registered through the ``rosgate_packetizers`` hook. Every
+packet it makes starts with one of its two-byte magics: the receiving link hands each packet to
+the packetizer of its magic, so the receiver needs no setting. ``RG`` (the envelope) and ``RB``
+(a batch of whole frames) are the link's own.
+
+A link makes one instance of each packetizer it meets and keeps it for its life: the sending
+and the receiving side of every topic that uses it, on every peer of the link. Threads:
+:meth:`cut` and :meth:`sent` run on the link's send thread (``cut`` under the link's lock),
+:meth:`feed` and :meth:`timer` on its receive thread — and, for a packetizer that implements
+``sent``, :meth:`timer` on the send thread too: such a one locks what both threads touch, and
+calls the link's :class:`PacketLink` methods outside that lock.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar, Protocol
+
+from .transport import Address
+
+#: a packet as :meth:`Packetizer.cut` may give it: bytes, or the parts of one packet (a header
+#: and a view of the frame), which the link sends without joining them where the transport can
+Packet = bytes | tuple[bytes | memoryview, ...]
+
+#: magics a packetizer may not claim: the link's own whole frames (``RG``) and batches (``RB``)
+RESERVED_MAGIC = (b"RG", b"RB")
+
+
+class PacketLink(Protocol):
+    """What a packetizer may ask of the link that made it."""
+
+    name: str
+    #: the largest packet the transport carries
+    max_frame: int
+    #: the largest frame a packetizer may put together
+    max_message: int
+
+    def lost(self, topic_id: int | None, reason: str) -> None:
+        """Count a frame given up (``fragment_lost``, ``reassembly_overflow``...) against its
+        topic (None: unknown). Once per frame."""
+
+    def recovered(self, topic_id: int) -> None:
+        """A frame that arrived whole only thanks to the recovery (repair, retransmission)."""
+
+    def answer(self, packet: bytes, to: Address) -> None:
+        """Send a small packet now, outside the queue (an acknowledgement), counted against the
+        budget of ``to``. One that cannot be sent is not retried."""
+
+    def repeat(self, sender: Any, to: Address, packets: list[bytes]) -> None:
+        """Queue ``packets`` again for ``sender`` (what :meth:`Packetizer.cut` was given),
+        before its other packets."""
+
+
+class Packetizer(ABC):
+    """Base class of packetizer plugins (see the module's docstring)."""
+
+    #: the name users write in bringup.yaml (``recovery: fec``)
+    name: ClassVar[str]
+    #: the first two bytes of every packet it makes; unique among installed packetizers
+    magic: ClassVar[tuple[bytes, ...]]
+
+    def __init__(self, link: PacketLink):
+        self.link = link
+
+    @abstractmethod
+    def cut(self, frame: bytes, sender: Any, to: Address, options: Any) -> list[Packet]:
+        """The packets of ``frame``, each at most ``link.max_frame`` bytes, for ``to``.
+        ``sender.topic_id`` is the topic's id (put it in the packets, so a frame lost on the way
+        is counted against its topic); ``options`` the topic's ``Options`` instance. Raise
+        :class:`rosgate.wire.framing.FramingError` for a frame it cannot cut (counted
+        ``send_error``)."""
+
+    def sent(self, packet: bytes, to: Address, now: float) -> None:
+        """The last packet of a frame it cut has left the link (``now``: time.monotonic()), e.g.
+        to start a retransmission timer. Not implemented (the default): the link does not call
+        it, nor :meth:`timer` from its send thread."""
+        return None
+
+    @abstractmethod
+    def feed(self, packet: bytes | memoryview, source: Address, now: float) -> bytes | None:
+        """Take one packet (a view of the receive buffer, valid during the call: copy what you
+        keep); the frame when it completes one. ``packet`` comes from the network: raise
+        :class:`rosgate.wire.framing.FramingError` for one that is malformed (counted
+        ``bad_fragment``), and keep what you hold bounded in time and memory, counting every
+        frame given up with ``link.lost``."""
+
+    def timer(self, now: float) -> float | None:
+        """Do what is due at ``now`` (ask again for what is missing, give up what is late);
+        return when to be called next (None: whenever the link is idle, at least every 0.2 s).
+        The link calls it after every packet fed (and, if it implements :meth:`sent`, every frame
+        sent), and at the time it returned."""
+        return None
+
+    @classmethod
+    @abstractmethod
+    def cost(cls, frame: int, max_frame: int, options: Any) -> tuple[int, int]:
+        """(bytes, packets) that one frame of ``frame`` bytes takes on a link of ``max_frame``,
+        without the transport's own per-packet headers, for ``rosgate check``'s budget."""
