@@ -96,7 +96,8 @@ class Auth:
         if bridge["role"] == "server":
             bridge["identity"] = str(self.identity("server"))
             data["clients"] = {name: {"key": self.public[name], "topics": ALLOW_ALL,
-                                      "services": ALLOW_ALL} for name in self.CLIENTS}
+                                      "services": ALLOW_ALL, "actions": ALLOW_ALL}
+                               for name in self.CLIENTS}
         else:
             bridge["identity"] = str(self.identity(bridge["name"]))
             bridge["server_key"] = self.public["server"]

@@ -99,13 +99,13 @@ QOS_POLICIES = {
     "history": ("keep_last", "keep_all"),
 }
 
-TOP_KEYS = ("bridge", "plugins", "topics", "services", "clients")
+TOP_KEYS = ("bridge", "plugins", "topics", "services", "actions", "clients")
 BRIDGE_KEYS = ("name", "role", "server", "main_line", "peer", "listen", "defaults", "stale_after",
                "stale_warnings", "heartbeat", "peer_timeout", "session_timeout", "reconnect",
                "queue", "identity", "server_key", "insecure", "rekey", "allow", "peer_key",
                "handshake_port", "fleet_timeout", "links", "limits")
 LINK_KEYS = ("bandwidth", "max_delay")
-CLIENT_KEYS = ("key", "topics", "services")
+CLIENT_KEYS = ("key", "topics", "services", "actions")
 RULE_KEYS = ("name", "direction", "types", "ports", "ciphers")
 RULE_DIRECTIONS = ("transmit", "receive", "both")
 SESSION_CIPHER_DEFAULT = "aead"   # the default cipher inside an authenticated session
@@ -120,6 +120,8 @@ TOPIC_KEYS = ("topic", "type", "direction", "remote", "transport", "codec", "cip
               "compression", "typical_size", *MCU_KEYS)
 SERVICE_KEYS = ("service", "type", "direction", "remote", "transport", "codec", "cipher", "port",
                 "framing", "timeout", "max_request", *MCU_KEYS, "no_answer")
+ACTION_KEYS = ("action", "type", "direction", "remote", "transport", "codec", "cipher", "port",
+               "timeout")
 QOS_KEYS = ("reliability", "durability", "history", "depth")
 
 # One example value per key for the fix of every error about it; "section.key" where it differs.
@@ -139,6 +141,8 @@ _EXAMPLES = {
     "bridge.queue.bytes": "8388608", "transport": "udp", "codec": "cdr", "cipher": "none",
     "topic": "/chatter", "service": "/mcu/ping", "type": "std_msgs/msg/String",
     "services.type": "std_srvs/srv/Trigger", "services.remote": "/ping",
+    "action": "/navigate_to_pose", "actions.type": "nav2_msgs/action/NavigateToPose",
+    "actions.remote": "/robot1/navigate_to_pose",
     "direction": "transmit (this side to the peer) or receive (the peer to this side)",
     "remote": "/robot1/chatter", "port": "12001", "framing": "rosgate", "qos": "sensor_data",
     "max_rate": "20", "priority": "data", "latest_only": "true",
@@ -204,6 +208,25 @@ class TopicConfig:
     layout: str = LAYOUTS[0]  # microcontroller entries: see LAYOUTS, ARGS and FLOATS
     args: str = ARGS[0]
     floats: str = FLOATS[0]
+    line: int = 0
+    lines: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class ActionConfig:
+    """An action: its goals, cancels and results cross as three services, its feedback and
+    status as two topics (rosgate.actions)."""
+
+    action: str
+    type: str
+    direction: Direction
+    remote: str
+    transport: str = TRANSPORT_DEFAULT
+    codec: str = CODEC_DEFAULT
+    cipher: str = CIPHER_DEFAULT
+    port: int | None = None
+    framing: Framing = FRAMING_DEFAULT
+    timeout: float = TIMEOUT_DEFAULT  # for a goal's acceptance and a cancel; a result waits
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
 
@@ -282,6 +305,7 @@ class ClientPolicy:
     topics: tuple[Rule, ...] = ()
     services: tuple[Rule, ...] = ()
     line: int = 0
+    actions: tuple[Rule, ...] = ()
 
 
 @dataclass
@@ -317,6 +341,7 @@ class BridgeConfig:
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
     services: list[ServiceConfig] = field(default_factory=list)
+    actions: list[ActionConfig] = field(default_factory=list)
     lines: dict[str, int] = field(default_factory=dict)
     base_dir: Path = field(default_factory=Path.cwd)
 
@@ -576,6 +601,7 @@ def _bridge_config(data: Any, src: _Source, base_dir: Path) -> BridgeConfig:
         plugins=_plugins(src, data),
         topics=_entries(src, data, "topics", role, defaults),
         services=_entries(src, data, "services", role, defaults),
+        actions=_entries(src, data, "actions", role, defaults),
         lines=src.lines,
         base_dir=base_dir,
     )
@@ -758,7 +784,8 @@ def _clients(src: _Source, data: dict, role: Role) -> dict[str, ClientPolicy]:
         seen[key] = name
         policies[name] = ClientPolicy(name, key, _rules(src, entry, f"{path}.topics"),
                                       _rules(src, entry, f"{path}.services"),
-                                      src.lines.get(path, 0))
+                                      src.lines.get(path, 0),
+                                      _rules(src, entry, f"{path}.actions"))
     return policies
 
 
@@ -932,7 +959,7 @@ def _entries(src: _Source, data: dict, key: str, role: Role, defaults: dict[str,
     if not isinstance(items, list):
         raise src.error(key, f"expected a list of entries, got {_show(items)}",
                         fix=f"start each entry with '- {key[:-1]}: ' on its own line under {key}:")
-    build = _topic if key == "topics" else _service
+    build = {"topics": _topic, "services": _service, "actions": _action}[key]
     entries = []
     for i, item in enumerate(items):
         # a peer's port: is checked by the resolver: entries on a bus have none
@@ -986,6 +1013,29 @@ def _topic(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> Topi
         **_microcontroller(src, data, path, common["framing"]),
         **_entry_lines(src, path),
     )
+
+
+def _action(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> ActionConfig:
+    _expect_entry(src, data, path, "action")
+    _check_keys(src, data, path, ACTION_KEYS)
+    _require(src, data, path, ("action", "type", "direction"))
+    return ActionConfig(
+        **_common(src, data, path, "action", "action", defaults),
+        timeout=_number(src, data, path, "timeout", TIMEOUT_DEFAULT,
+                        f"a number of seconds > 0, at most {TIMEOUT_MAX:g}",
+                        lambda v: 0 < v <= TIMEOUT_MAX),
+        **_entry_lines(src, path),
+    )
+
+
+def action_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
+                        index: int | None = None) -> ActionConfig:
+    """Like topic_from_mapping, for an action entry."""
+    return _action(_Source(where), data, _entry_path("actions", index), defaults)
+
+
+def action_to_mapping(a: ActionConfig) -> dict:
+    return _to_mapping(a, ACTION_KEYS)
 
 
 def _service(src: _Source, data: Any, path: str, defaults: dict[str, str]) -> ServiceConfig:
@@ -1203,7 +1253,7 @@ def _plugin_choice(src: _Source, data: dict, path: str, key: str) -> tuple[str, 
 def _interface(src: _Source, data: dict, path: str, kind: str) -> str:
     text = _required(src, data, path, "type")
     example = _example(path, "type")
-    what = "a topic" if kind == "msg" else "a service"
+    what = {"msg": "a topic", "srv": "a service", "action": "an action"}[kind]
     match = _INTERFACE.fullmatch(text)
     if match is None:
         raise src.error(_join(path, "type"), f"'{text}' is not an interface type name",
@@ -1373,7 +1423,7 @@ def _number(src: _Source, data: dict, path: str, key: str, default: Any, expecte
     return value if integer else float(value)
 
 
-def _to_mapping(entry: TopicConfig | ServiceConfig, keys: tuple[str, ...]) -> dict:
+def _to_mapping(entry: TopicConfig | ServiceConfig | ActionConfig, keys: tuple[str, ...]) -> dict:
     mapping = {}
     for key in keys:
         value = getattr(entry, key)

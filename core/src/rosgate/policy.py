@@ -22,7 +22,7 @@ from __future__ import annotations
 import re
 from functools import lru_cache
 
-from .config import ClientPolicy, Rule, ServiceConfig, TopicConfig
+from .config import ActionConfig, ClientPolicy, Rule, ServiceConfig, TopicConfig
 
 
 @lru_cache(maxsize=1024)
@@ -40,15 +40,18 @@ def _allows_direction(rule: Rule, direction: str) -> bool:
     return rule.direction in ("both", direction)
 
 
-def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig,
+def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionConfig,
             keyless: set[str]) -> str | None:
     """Why ``entry`` (as the client sent it) is refused, or None when a rule allows it.
-    ``keyless`` are the ciphers a session cannot key (``none``): allowed only when named."""
+    ``keyless`` are the ciphers a session cannot key (``none``): allowed only when named.
+    An action (``transmit``: the client sends goals) is judged by ``actions:`` rules, on the
+    action's name, its type ``pkg/action/Type``, port and cipher."""
     is_topic = isinstance(entry, TopicConfig)
-    kind = "topic" if is_topic else "service"
-    rules = policy.topics if is_topic else policy.services
+    kind, rules = (("topic", policy.topics) if is_topic else
+                   ("action", policy.actions) if isinstance(entry, ActionConfig) else
+                   ("service", policy.services))
     name, direction = entry.remote, str(entry.direction)
-    what = name if is_topic else f"service {name}"
+    what = name if is_topic else f"{kind} {name}"
     by_name = [r for r in rules if _allows_direction(r, direction) and matches(r.name, name)]
     if not by_name:
         allowed = [r.name for r in rules if _allows_direction(r, direction)]

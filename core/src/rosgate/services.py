@@ -51,6 +51,9 @@ log = logging.getLogger("rosgate")
 # A proxy needs deep queues: with the default service QoS (depth 10) a server answered 11 of 50
 # concurrent calls; with depth 1000 on both ends, 50 of 50 (DESIGN.md, measured).
 QUEUE_DEPTH = 1000
+# action_msgs: GoalStatus.STATUS_ABORTED, CancelGoal.Response.ERROR_REJECTED
+GOAL_ABORTED = 6
+CANCEL_REJECTED = 1
 # a call whose ROS server is not discovered yet waits for it this share of its timeout, and
 # looks again this often (seconds)
 DISCOVERY_SHARE = 0.8
@@ -65,6 +68,12 @@ def failure(response_type: Any, reason: str) -> Any:
         response.success = False
     if fields.get("message") == "string":
         response.message = f"rosgate: {reason}"
+    # an action's parts (rosgate.actions): a result that cannot come ends the goal aborted, a
+    # cancel that cannot be delivered is rejected (a goal not accepted is send_goal's default)
+    if fields.get("status") == "int8" and "result" in fields:
+        response.status = GOAL_ABORTED
+    if fields.get("return_code") == "int8" and "goals_canceling" in fields:
+        response.return_code = CANCEL_REJECTED
     return response
 
 
@@ -259,6 +268,15 @@ class CallerRoute(ServiceRoute):
             self.fail(call, "decode_error", str(exc))
             return
         call.answer(response)
+
+    def fail_all(self, reason: str, detail: str) -> None:
+        """Every call still waiting is failed (the session's line was lost): an action's
+        goal then ends aborted rather than waiting out its result's timeout."""
+        with self._lock:
+            waiting = [call for _, call in self.calls.values()]
+            self.calls.clear()
+        for call in waiting:
+            self.fail(call, reason, detail)
 
     def _pop(self, seq: int, epoch: int | None = None) -> Call | None:
         """The call waiting under ``seq`` (and ``epoch``, when given), taken out."""

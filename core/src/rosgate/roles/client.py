@@ -26,7 +26,7 @@ import threading
 import time
 from typing import Any
 
-from ..config import Direction, service_to_mapping, topic_to_mapping
+from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
 from ..errors import LinkError, RosgateError
 from ..keyring import Keys
 from ..links import Connector, DatagramLink, Link, LinkSlot, StreamLink
@@ -34,6 +34,7 @@ from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
 from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, initiate, seal_hello
+from ..services import CallerRoute
 from ..transport import Address, StreamConnection, StreamTransport
 from . import Bridge, Role
 from .mainline import (
@@ -117,6 +118,7 @@ class ClientRole(Role):
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
                            "services": [service_to_mapping(p.config) for p in plan.services],
+                           "actions": [action_to_mapping(a.config) for a in plan.actions],
                            "entries": [self.router.entry_item(p) for p in self._entries()]}),
                   self.control)
         if not self._await_answer(link) or self._welcome is None:
@@ -127,7 +129,7 @@ class ClientRole(Role):
             return False
         try:
             ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
-            if len(ids) != len(plan.topics) + len(plan.services):
+            if len(ids) != len(self._entries()):
                 raise ValueError("topic and service id count does not match")
             if not all(0 <= i < 2**32 for i in ids):  # 0: an entry the server refused
                 raise ValueError("a topic or service id out of range")
@@ -205,12 +207,15 @@ class ClientRole(Role):
 
     def _lost(self, link: StreamLink) -> None:
         self.connected.clear()
+        for route in self.routes.values():  # calls waiting for an answer get none now
+            if isinstance(route, CallerRoute):
+                route.fail_all("link_down", "the session's main line was lost")
         log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
                     link.why or "main line closed")
 
     def _entries(self) -> list[PreparedTopic | PreparedService]:
         plan = self.bridge.plan
-        return [*plan.topics, *plan.services]
+        return [*plan.topics, *plan.services, *plan.action_parts]
 
     def _apply(self, ids: list[int]) -> None:
         """Make the routes match the server's answer: one per entry it accepted (id > 0),

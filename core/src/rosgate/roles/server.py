@@ -29,12 +29,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..actions import parts as action_parts
 from ..admission import Acceptor, KnownSources
 from ..config import (
+    ActionConfig,
     ClientPolicy,
     Direction,
     ServiceConfig,
     TopicConfig,
+    action_from_mapping,
     service_from_mapping,
     topic_from_mapping,
 )
@@ -53,6 +56,7 @@ from ..secure import (
     open_hello,
     respond,
 )
+from ..services import CallerRoute
 from ..transport import Address, StreamConnection, StreamTransport
 from ..warn import BUGS
 from ..wire import envelope
@@ -87,6 +91,8 @@ class Session:
     schedule: KeySchedule | None = None
     key_id: int | None = None  # of the last handshake's secret
     hellos: envelope.ReplayWindow = field(default_factory=envelope.ReplayWindow)
+    actions: list[Any] = field(default_factory=list)  # its action list, as it sent it
+    part_of: dict[int, ActionConfig] = field(default_factory=dict)  # entry -> its action
 
     @property
     def routes(self) -> list[Route]:
@@ -210,6 +216,9 @@ class ServerRole(Role):
             session = holder.get("session")
             if session is not None and session.main.current is link and session.id in self.sessions:
                 session.down_since = time.monotonic()
+                for route in session.routes:  # calls waiting for the client get no answer now
+                    if isinstance(route, CallerRoute):
+                        route.fail_all("link_down", "the client's main line was lost")
                 log.warning("client %r down (%s); keeping its session for %g s", session.name,
                             link.why or "main line closed", self.cfg.session_timeout)
 
@@ -309,6 +318,7 @@ class ServerRole(Role):
         if found is None:
             return None
         if (found.topics == hello.get("topics") and found.services == hello.get("services", [])
+                and found.actions == hello.get("actions", [])
                 and hello.get("protocol") == PROTOCOL):
             return found
         log.info("client %r came back with other topics: its old session is dropped", name)
@@ -324,10 +334,11 @@ class ServerRole(Role):
             raise ConfigError(f"the server keeps {len(self.sessions)} sessions already, its "
                               "limit", file=f"client {name}",
                               fix="try again later (bridge.limits.sessions on the server)")
-        entries = self._client_entries(hello, name)
+        entries, part_of = self._client_entries(hello, name)
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
                           hello.get("services", []), self.bridge.slot(f"main of {name}"),
-                          entries=entries, policy=policy)
+                          entries=entries, policy=policy, actions=hello.get("actions", []),
+                          part_of=part_of)
         try:
             self._sync(session)
         except BaseException:  # whatever failed, nothing half-built stays behind
@@ -337,13 +348,17 @@ class ServerRole(Role):
             self.sessions[session.id] = session
         return session
 
-    def _client_entries(self, hello: dict[str, Any], name: str) -> list[Entry]:
-        """The hello's entries, checked like a file's (no type is imported here)."""
+    def _client_entries(self, hello: dict[str, Any],
+                        name: str) -> tuple[list[Entry], dict[int, ActionConfig]]:
+        """The hello's entries, checked like a file's (no type is imported here): topics,
+        services, then the parts of its actions; and the action of each part."""
         where = f"client {name}"
         error = where_error(where)
         topics, services = hello.get("topics"), hello.get("services", [])
-        if not isinstance(topics, list) or not isinstance(services, list):
-            raise ConfigError("hello without a topic and a service list", file=where)
+        actions = hello.get("actions", [])
+        if (not isinstance(topics, list) or not isinstance(services, list)
+                or not isinstance(actions, list)):
+            raise ConfigError("hello without a topic, a service and an action list", file=where)
         entries: list[Entry] = []
         for key, items, parse in (("topics", topics, topic_from_mapping),
                                   ("services", services, service_from_mapping)):
@@ -351,7 +366,15 @@ class ServerRole(Role):
                 if not isinstance(mapping, dict):
                     raise error(f"{key}[{i}]", "not a mapping")
                 entries.append(parse(mapping, self.cfg.defaults, where, index=i))
-        return entries
+        part_of: dict[int, ActionConfig] = {}
+        for i, mapping in enumerate(actions):
+            if not isinstance(mapping, dict):
+                raise error(f"actions[{i}]", "not a mapping")
+            action = action_from_mapping(mapping, self.cfg.defaults, where, index=i)
+            for part in action_parts(action):
+                part_of[len(entries)] = action
+                entries.append(part)
+        return entries, part_of
 
     def _sync(self, session: Session) -> None:
         """Routes for the entries the policy allows (made in order: topics, then services),
@@ -361,7 +384,8 @@ class ServerRole(Role):
         where = f"client {session.name}"
         topics = len(session.topics)
         for index, entry in enumerate(session.entries):
-            why = refusal(session.policy, entry, keyless) if session.policy is not None else None
+            asked = session.part_of.get(index, entry)  # an action's part: the action
+            why = refusal(session.policy, asked, keyless) if session.policy is not None else None
             if why is not None:
                 session.refused[index] = why
                 route = session.by_index.pop(index, None)
@@ -372,7 +396,7 @@ class ServerRole(Role):
             if index in session.by_index:
                 continue
             resolver, server_view = self.bridge.resolver, flipped(entry)
-            if index < topics:
+            if isinstance(entry, TopicConfig):
                 p: PreparedTopic | PreparedService = resolver.topic(
                     server_view, index, "topics", where_error(where))
             else:
