@@ -4,6 +4,7 @@ through the bridges."""
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from typing import Any
@@ -292,3 +293,72 @@ actions: [{{action: /fib, type: test_msgs/action/Fibonacci, direction: transmit}
     answer = settled(pending, 10)
     assert answer.status == GoalStatus.STATUS_ABORTED
     del keep
+
+
+# -- the file and the policy --------------------------------------------------------------------
+def test_an_action_entry_becomes_three_services_and_two_topics():
+    from rosgate.actions import parts
+    from rosgate.config import ServiceConfig, TopicConfig, loads
+
+    cfg = loads("""
+bridge: {name: a, role: peer, peer: 127.0.0.1}
+actions:
+  - {action: /fib, type: test_msgs/action/Fibonacci, direction: transmit, remote: /r/fib,
+     port: 12300, timeout: 2, transport: tcp}
+""")
+    (action,) = cfg.actions
+    got = [(type(p).__name__, p.topic if isinstance(p, TopicConfig) else p.service, p.type,
+            str(p.direction), p.remote, p.port, p.transport) for p in parts(action)]
+    assert got == [
+        ("ServiceConfig", "/fib/_action/send_goal", "test_msgs/action/Fibonacci_SendGoal",
+         "transmit", "/r/fib/_action/send_goal", 12300, "tcp"),
+        ("ServiceConfig", "/fib/_action/cancel_goal", "action_msgs/srv/CancelGoal",
+         "transmit", "/r/fib/_action/cancel_goal", 12300, "tcp"),
+        ("ServiceConfig", "/fib/_action/get_result", "test_msgs/action/Fibonacci_GetResult",
+         "transmit", "/r/fib/_action/get_result", 12300, "tcp"),
+        ("TopicConfig", "/fib/_action/feedback", "test_msgs/action/Fibonacci_FeedbackMessage",
+         "receive", "/r/fib/_action/feedback", 12301, "tcp"),
+        ("TopicConfig", "/fib/_action/status", "action_msgs/msg/GoalStatusArray", "receive",
+         "/r/fib/_action/status", 12301, "tcp")]
+    timeouts = [p.timeout for p in parts(action) if isinstance(p, ServiceConfig)]
+    assert timeouts == [2, 2, 3600]  # a result waits as long as its goal runs
+    status = parts(action)[4]
+    assert isinstance(status, TopicConfig)
+    assert status.qos == {"reliability": "reliable", "durability": "transient_local", "depth": 1}
+
+
+@pytest.mark.parametrize("entry, error", [
+    ("{action: /fib, type: test_msgs/action/Fibonacci, direction: transmit, codek: cdr}",
+     "actions[0].codek: unknown key 'codek'"),
+    ("{action: /fib, type: test_msgs/srv/Fibonacci, direction: transmit}",
+     "actions[0].type: 'test_msgs/srv/Fibonacci' is a 'srv' type, but an action needs "
+     "package/action/Type"),
+    ("{action: /fib, type: test_msgs/action/Fibonacci, direction: transmit, timeout: 0}",
+     "actions[0].timeout"),
+])
+def test_action_entries_are_checked_like_services(entry, error):
+    from rosgate.config import loads
+    from rosgate.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=re.escape(error)):
+        loads(f"bridge: {{name: a, role: peer, peer: 127.0.0.1}}\nactions: [{entry}]\n")
+
+
+def test_a_servers_policy_judges_actions_by_their_own_rules():
+    from rosgate.config import ActionConfig, ClientPolicy, Direction, Rule
+    from rosgate.policy import refusal
+
+    policy = ClientPolicy("robot1", bytes(32), services=(Rule("/**", "both"),),
+                          actions=(Rule("/robot1/**", "transmit",
+                                        types=("nav2_msgs/action/*",)),))
+    goal = lambda name, kind="nav2_msgs/action/NavigateToPose", way=Direction.TRANSMIT: \
+        ActionConfig(name, kind, way, name, cipher="aead")
+    assert refusal(policy, goal("/robot1/navigate"), {"none"}) is None
+    assert refusal(policy, goal("/base/navigate"), {"none"}) == (
+        "robot1 may not transmit action /base/navigate (policy for robot1 allows /robot1/**)")
+    assert refusal(policy, goal("/robot1/fib", "test_msgs/action/Fibonacci"), {"none"}) == (
+        "robot1 may not transmit action /robot1/fib with type test_msgs/action/Fibonacci "
+        "(policy for robot1 allows types nav2_msgs/action/* for /robot1/**)")
+    assert refusal(policy, goal("/robot1/navigate", way=Direction.RECEIVE), {"none"}) == (
+        "robot1 may not receive action /robot1/navigate (policy for robot1 allows no actions "
+        "it receives)")
