@@ -42,7 +42,7 @@ def parts(action: ActionConfig) -> list[TopicConfig | ServiceConfig]:
     def topic(part: str, type_name: str, qos: dict) -> TopicConfig:
         return TopicConfig(f"{action.action}/_action/{part}", type_name, reports,
                            f"{action.remote}/_action/{part}", action.transport, action.codec,
-                           action.cipher, topic_port, action.framing, qos=dict(qos),
+                           action.cipher, topic_port, action.framing, qos=dict(qos), qos_given=True,
                            line=action.line, lines=action.lines)
 
     return [

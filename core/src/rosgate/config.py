@@ -191,7 +191,7 @@ class TopicConfig:
     qos: int | str | dict = QOS_DEFAULT
     #: False: the entry gives no qos, so the QoS is found from the publishers the sending side
     #: discovers (durability and reliability)
-    qos_given: bool = True
+    qos_given: bool = field(default=True, compare=False)
     max_rate: float | None = None
     priority: int | None = None  # 1 (real time) .. 7 (background); None: data (5)
     latest_only: bool | None = None  # None: as the QoS says (best effort: true)
