@@ -13,16 +13,16 @@ A receiving side whose type differs (both hashes known and unequal) refuses the 
 frames are dropped as ``type_mismatch`` and nothing is published (a service's calls are answered
 as failures); the refusal is said once per :data:`MISMATCH_EVERY` seconds, in one sentence
 naming both types and both hashes. A far side that says no hash (an older rosgate) is accepted
-and said once. A receiving topic that has heard nothing yet (its sender started first and its
-first announcements went nowhere) drops what comes as ``type_unknown`` until it hears, or for
-:data:`GRACE` seconds, after which a silent sender is taken for an older rosgate (said once).
+and said once. A receiving topic that has heard nothing yet (its sender started first, and its
+first announcement went nowhere) publishes what comes until it hears the next one: at most
+:data:`ANNOUNCE_FAST` seconds while the sender is young, else :data:`ANNOUNCE_EVERY` (an older
+rosgate never announces, and must keep working).
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,9 +34,6 @@ log = logging.getLogger("rosgate")
 
 ANNOUNCE_EVERY = 2.0  # seconds between two announcements of one entry (after its first ones)
 ANNOUNCE_FAST = 0.5  # seconds between them while the entry is younger than ANNOUNCE_EVERY
-#: seconds a receiving topic that has heard nothing of its sender's type drops its frames
-#: (``type_unknown``) before it takes the sender for an older rosgate, which says nothing
-GRACE = ANNOUNCE_EVERY + 1.0
 MISMATCH_EVERY = 60.0  # seconds between two sentences about one entry's mismatch
 MAX_DEPTH = 1000  # of an announced QoS: what a far side may make this side keep
 
@@ -113,36 +110,18 @@ def qos_of(value: Any) -> dict[str, Any] | None:
 class TypeCheck:
     """One entry's type against what the far side says of its own."""
 
-    __slots__ = ("label", "mine", "theirs", "mismatch", "ok", "_said", "_unheard_since")
+    __slots__ = ("label", "mine", "theirs", "mismatch", "_said")
 
-    def __init__(self, label: str, mine: Identity, heard: bool = False):
+    def __init__(self, label: str, mine: Identity):
         self.label = label
         self.mine = mine
         self.theirs: Identity | None = None
         #: the sentence that says why the entry is refused; None while the types agree
         self.mismatch: str | None = None
-        #: the far side was heard and its type agrees: frames pass without another look
-        self.ok = heard
         self._said: set[str] = set()
-        self._unheard_since: float | None = None
-
-    def refuses(self) -> str | None:
-        """Why a frame is dropped now (``type_mismatch``, ``type_unknown``), or None."""
-        if self.mismatch is not None:
-            return "type_mismatch"
-        now = time.monotonic()
-        if self._unheard_since is None:
-            self._unheard_since = now
-        if now - self._unheard_since < GRACE:
-            return "type_unknown"
-        self.ok = True
-        self._once("silent", f"{self.label}: the far side said nothing of its type within "
-                             f"{GRACE:g} s (an older rosgate): its type is not checked")
-        return None
 
     def far(self, theirs: Identity | None) -> None:
         """What the far side says of its type (None: nothing, an older rosgate)."""
-        self.ok = True
         if theirs is None or theirs.hash is None or self.mine.hash is None:
             self.mismatch = None
             who = "the far side" if theirs is None or theirs.hash is None else "this side"
@@ -153,7 +132,6 @@ class TypeCheck:
         if theirs.hash == self.mine.hash:
             self.mismatch = None
             return
-        self.ok = False
         self.mismatch = (f"{self.label}: refused, the far side's type is {theirs} and this "
                          f"side's is {self.mine}, so its frames are dropped")
         self.say()

@@ -115,8 +115,6 @@ class Router:
             route = ReceiveRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
                                  decode=decode, transforms=p.transforms)
             self._identify(route, p.msg_type)
-            # a bus announces nothing, a microcontroller neither: their types are not checked
-            route.check.ok = p.key is not None or t.framing is not Framing.ROSGATE
             route.qos_in_use = None if t.qos_given else QOS_UNFOUND
             route.entity = self.ros.publisher(p.msg_type, t.topic, qos)
             if codec.raw:

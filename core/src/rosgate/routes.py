@@ -131,7 +131,7 @@ class Route:
         #: services: they have their own deadlines)
         self.max_wait_ns = 0
         #: the entry's type against the far side's (the router gives this side's hash)
-        self.check = TypeCheck(label, Identity(entry.type, None), heard=True)
+        self.check = TypeCheck(label, Identity(entry.type, None))
         self._announced = itertools.count(1)
         self.announcer = Announcer(self)
         self.born = time.monotonic()
@@ -158,11 +158,10 @@ class Route:
         self.check.far(identity)
         return identity, qos
 
-    def refuse_type(self, why: str = "type_mismatch") -> None:
-        """A frame dropped because the far side's type is not this side's (or not known yet)."""
-        self.counters.drops[why] += 1
-        if why == "type_mismatch":
-            self.check.say()
+    def refuse_type(self) -> None:
+        """A frame dropped because the far side's type is not this side's."""
+        self.counters.drops["type_mismatch"] += 1
+        self.check.say()
 
     def on_wire(self, size: int, again: bool) -> None:
         """A packet of ``size`` bytes left on the link for this route (``again``: re-sent)."""
@@ -445,11 +444,9 @@ class ReceiveRoute(Route):
         if refused:
             self.drop(refused)
             return
-        if not self.check.ok:
-            why = self.check.refuses()
-            if why is not None:
-                self.refuse_type(why)
-                return
+        if self.check.mismatch is not None:
+            self.refuse_type()
+            return
         if arrived and self.max_wait_ns:
             waited = time.time_ns() - arrived
             if waited > self.max_wait_ns:  # overloaded: drop what waited, to catch up
