@@ -80,10 +80,12 @@ class Router:
     def topic(self, p: PreparedTopic, topic_id: int, label: str, link: Link,
               destination: Destination = _no_destination,
               keys: Keys | None = None,
-              bare_names: bool = True) -> TransmitRoute | ReceiveRoute:
+              bare_names: bool = True, announce: bool = True) -> TransmitRoute | ReceiveRoute:
         """A topic's route and its ROS entity; a receiver with an envelope is found by its id.
         ``keys``: a session's; by default the entry's cipher as the file configured it.
-        ``bare_names=False``: bare frames never carry the topic's name (a bus names them by key)."""
+        ``bare_names=False``: bare frames never carry the topic's name (a bus names them by key).
+        ``announce=False``: its announcements wait for :meth:`start_announcing` (a client's,
+        until the server knows where its datagrams come from)."""
         t = p.config
         keys = keys or StaticKeys(_static(p.cipher))
         codec = p.codec_cls(p.msg_type, p.codec_options)
@@ -98,7 +100,7 @@ class Router:
                                   priority=p.priority, latest_only=p.latest_only,
                                   recovery=p.recovery, compression=p.compression)
             self._identify(route, p.msg_type)
-            route.announces = t.framing is Framing.ROSGATE and p.key is None
+            route.announces = announce and t.framing is Framing.ROSGATE and p.key is None
             if not t.qos_given:
                 route.qos_found = qos_found(self.ros.publishers_found(t.topic))
                 route.qos_in_use = route.qos_found or QOS_UNFOUND
@@ -127,7 +129,7 @@ class Router:
 
     def service(self, p: PreparedService, service_id: int, label: str, link: Link | None,
                 destination: Destination = _no_destination,
-                keys: Keys | None = None) -> ServiceRoute:
+                keys: Keys | None = None, announce: bool = True) -> ServiceRoute:
         """A service's route and its ROS entity. With an envelope, calls and answers find it by
         its id; a microcontroller's calls (serial datagrams) find a serving route by name."""
         s = p.config
@@ -147,8 +149,9 @@ class Router:
             assert link is not None
             route = CallerRoute(*args, link=link, destination=destination)
             self._identify(route, p.srv_type)
-            route.announces = p.key is None
-            self.announce(route)
+            route.announces = announce and p.key is None
+            if route.announces:
+                self.announce(route)
             route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, route.on_request)
         with self._lock:
             self.routes.append(route)
@@ -322,6 +325,14 @@ class Router:
         self.ros.destroy(old)
         log.info("%s: publishes as its far side's publishers do: %s, %s, depth %d", route.label,
                  qos["reliability"], qos["durability"], qos["depth"])
+
+    def start_announcing(self, routes: list[Route]) -> None:
+        """Routes made with ``announce=False`` say their entries now, and from now on."""
+        for route in routes:
+            if (isinstance(route, TransmitRoute) and not route.bare
+                    or isinstance(route, CallerRoute)):
+                route.announces = True
+                self.announce(route)
 
     def resync(self, routes: list[Route] | None = None) -> None:
         """The far side (re)appeared: the latched topics found here say their QoS again and

@@ -153,7 +153,8 @@ class ClientRole(Role):
         link.last_heard = time.monotonic()
         self.connected.set()
         self._say_hello()
-        self.router.resync(list(self.routes.values()))  # the server hears us now
+        self.router.start_announcing(list(self.routes.values()))  # the server hears us now
+        self.router.resync(list(self.routes.values()))
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
         return True
 
@@ -249,9 +250,11 @@ class ClientRole(Role):
                                       sources=self.sources(p.transport, p.address[0]))
             self.hello_to.add((link, p.address))
         keys = self._keys(p)
+        # announcements start once the server has our datagram hello (its ports take frames
+        # only from where a hello came from)
         if isinstance(p, PreparedTopic):
-            return self.router.topic(p, topic_id, label, link, destination, keys)
-        return self.router.service(p, topic_id, label, link, destination, keys)
+            return self.router.topic(p, topic_id, label, link, destination, keys, announce=False)
+        return self.router.service(p, topic_id, label, link, destination, keys, announce=False)
 
     def _keys(self, p: PreparedTopic | PreparedService) -> Keys | None:
         if self.schedule is None:
