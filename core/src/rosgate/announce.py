@@ -33,7 +33,8 @@ from .wire.control import ControlError, parse
 log = logging.getLogger("rosgate")
 
 ANNOUNCE_EVERY = 2.0  # seconds between two announcements of one entry (after its first ones)
-ANNOUNCE_FAST = 0.5  # seconds between them while the entry is younger than ANNOUNCE_EVERY
+ANNOUNCE_FAST = 0.5  # seconds between them while the entry is young:
+YOUNG = 2.0  # seconds after its start
 MISMATCH_EVERY = 60.0  # seconds between two sentences about one entry's mismatch
 MAX_DEPTH = 1000  # of an announced QoS: what a far side may make this side keep
 

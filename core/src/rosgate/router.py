@@ -381,7 +381,7 @@ class Router:
                 try:
                     if isinstance(route, TransmitRoute) and not route.topic.qos_given:
                         self._find_qos(route)
-                    young = now - route.born < announce.ANNOUNCE_EVERY
+                    young = now - route.born < announce.YOUNG
                     if route.announces and (young or tick % every == 0):
                         self.announce(route)
                 except Exception:  # one route's trouble must not stop the others' announcements
