@@ -100,7 +100,8 @@ class Auth:
         elif bridge["role"] == "server":
             bridge["identity"] = str(self.identity("server"))
             data["clients"] = {name: {"key": self.public[name], "topics": ALLOW_ALL,
-                                      "services": ALLOW_ALL} for name in self.CLIENTS}
+                                      "services": ALLOW_ALL, "actions": ALLOW_ALL}
+                               for name in self.CLIENTS}
         else:
             bridge["identity"] = str(self.identity(bridge["name"]))
             bridge["server_key"] = self.public["server"]

@@ -32,6 +32,16 @@ def numbered(inbox: Inbox) -> list[str]:
     return [m.data for m in list(inbox.items) if m.data != "warmup"]
 
 
+@pytest.fixture(autouse=True)
+def quiet_announcements(monkeypatch):
+    """Each entry announces its type once, at its start, and not again while a test counts
+    what the proxy damaged: these tests do their arithmetic on data datagrams."""
+    from rosgate import announce
+
+    monkeypatch.setattr(announce, "ANNOUNCE_EVERY", 3600.0)
+    monkeypatch.setattr(announce, "YOUNG", 0.0)
+
+
 @pytest.fixture
 def proxy():
     """``proxy(target_port, rates)`` -> a FaultProxy on a free port forwarding to target_port."""

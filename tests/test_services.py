@@ -242,19 +242,46 @@ def test_slow_server_answered_as_failure_within_timeout_and_the_late_answer_drop
     assert drops_b.since() == {"b /set": {"timeout": 1}}
 
 
-def test_missing_server_answered_as_failure_at_once(engines, domain, ros_side):
+def test_missing_server_answered_as_failure_within_its_timeout(engines, domain, ros_side):
     da, db, port = domain(), domain(), free_port()
-    entry = f"service: /set, type: std_srvs/srv/SetBool, direction: transmit, port: {port}"
+    entry = (f"service: /set, type: std_srvs/srv/SetBool, direction: transmit, port: {port}, "
+             "timeout: 1")
     a = engines(peer_yaml("a", [entry]), da)
     b = engines(peer_yaml("b", [flip(entry)]), db)
     caller = Caller(ros_side(da, "a"), SetBool, "/set")
     start = time.monotonic()
     answer = caller.call(SetBool.Request(data=True), timeout=5)
-    assert time.monotonic() - start < 1.0
+    # the serving bridge waits most of the timeout for a server to appear, then says so in time
+    assert 0.7 < time.monotonic() - start < 1.0
     assert answer == SetBool.Response(
         success=False, message="rosgate: no ROS server /set is running on the serving side")
     assert dict(b.routes()[0].counters.drops) == {"no_server": 1}
     assert dict(a.routes()[0].counters.drops) == {"remote_failure": 1}
+
+
+@pytest.mark.parametrize("delay", [1.0, 2.0])
+def test_a_call_waits_for_a_server_that_appears_after_it(engines, domain, ros_side, delay):
+    """The ROS server starts ``delay`` seconds after the call was made: the call is answered by
+    it, within the entry's timeout, and nothing is counted as a failure."""
+    da, db, port = domain(), domain(), free_port()
+    entry = (f"service: /late, type: std_srvs/srv/SetBool, direction: transmit, port: {port}, "
+             "timeout: 4")
+    a = engines(peer_yaml("a", [entry]), da)
+    b = engines(peer_yaml("b", [flip(entry)]), db)
+    side_b = ros_side(db, "b")
+    caller = Caller(ros_side(da, "a"), SetBool, "/late")
+    start = time.monotonic()
+    future = caller.client.call_async(SetBool.Request(data=True))
+    done = threading.Event()
+    future.add_done_callback(lambda _: done.set())
+    assert not done.wait(delay)  # nobody serves /late yet: the call waits
+    side_b.ros.node.create_service(SetBool, "/late", echo_set_bool, qos_profile=DEEP)
+    assert done.wait(4.5), "the call was never answered"
+    took = time.monotonic() - start
+    assert future.result() == SetBool.Response(success=True, message="data=True")
+    assert delay <= took < 4.0
+    assert dict(a.routes()[0].counters.drops) == {}
+    assert dict(b.routes()[0].counters.drops) == {}
 
 
 def test_peer_gone_answered_as_failure_within_timeout(engines, domain, ros_side):

@@ -127,7 +127,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     cfg, plan = engine.config, engine.plan
     assert plan is not None
     print(f"{args.file}: ok ({cfg.role} {cfg.name!r}, {len(cfg.topics)} topic(s)"
-          + (f", {len(cfg.services)} service(s))" if cfg.services else ")"))
+          + (f", {len(cfg.services)} service(s)" if cfg.services else "")
+          + (f", {len(cfg.actions)} action(s))" if cfg.actions else ")"))
     for p in [*plan.topics, *plan.services]:
         t = p.config
         arrow = "->" if t.direction == "transmit" else "<-"
@@ -136,6 +137,12 @@ def cmd_check(args: argparse.Namespace) -> int:
         speaks = dialect.name(t) if dialect is not None else None
         print(f"  {p.name} {arrow} {p.key or t.remote}  [{t.type}] {t.transport}{port} {t.codec} "
               f"{t.cipher}" + (f"  ({speaks})" if speaks else ""))
+    for a in plan.actions:  # three services and two topics each (rosgate.actions)
+        c = a.config
+        arrow = "->" if c.direction == "transmit" else "<-"
+        port = f":{c.port}" if c.port else ""
+        print(f"  {a.name} {arrow} {c.remote}  [{c.type}] {c.transport}{port} {c.codec} "
+              f"{c.cipher}")
     from .budget import report
 
     for line in report(plan):

@@ -27,7 +27,7 @@ from collections.abc import Callable
 from functools import lru_cache
 from typing import Any
 
-from .config import ClientPolicy, Rule, ServiceConfig, TopicConfig
+from .config import ActionConfig, ClientPolicy, Rule, ServiceConfig, TopicConfig
 
 
 @lru_cache(maxsize=1024)
@@ -54,17 +54,20 @@ def is_ros_name(text: str) -> bool:
     return len(text) <= ROS_NAME_MAX and _ROS_NAME.fullmatch(text) is not None
 
 
-def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig,
+def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionConfig,
             keyless: set[str]) -> str | None:
     """Why ``entry`` (as the client sent it) is refused, or None when a rule allows it.
     ``keyless`` are the ciphers a session cannot key (``none``): allowed only when named.
     A name that is not an absolute ROS name (``~``, ``..``, an empty or relative part: what
-    a bare framing's ``remote`` may carry as text) is refused before any rule sees it."""
+    a bare framing's ``remote`` may carry as text) is refused before any rule sees it. An
+    action (``transmit``: the client sends goals) is judged by ``actions:`` rules, on the
+    action's name, its type ``pkg/action/Type``, port and cipher."""
     is_topic = isinstance(entry, TopicConfig)
-    kind = "topic" if is_topic else "service"
-    rules = policy.topics if is_topic else policy.services
+    kind, rules = (("topic", policy.topics) if is_topic else
+                   ("action", policy.actions) if isinstance(entry, ActionConfig) else
+                   ("service", policy.services))
     name, direction = entry.remote, str(entry.direction)
-    what = name if is_topic else f"service {name}"
+    what = name if is_topic else f"{kind} {name}"
     if not is_ros_name(name):
         return (f"{policy.name} may not {direction} {name!r}: it is not a ROS name (parts of "
                 "letters, digits and '_' after a single '/', none starting with a digit)")

@@ -16,11 +16,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from . import actions
 from .bus import PRIORITY_DEFAULT, BusTransport, is_template
 from .cipher import Cipher
 from .codec import Codec
 from .config import (
     NO_PLUGIN,
+    ActionConfig,
     BridgeConfig,
     Direction,
     Framing,
@@ -102,6 +104,18 @@ class PreparedService:
 
 
 @dataclass
+class PreparedAction:
+    """An action as the five entries it is made of (rosgate.actions), each prepared."""
+
+    config: ActionConfig
+    parts: list[PreparedTopic | PreparedService]
+
+    @property
+    def name(self) -> str:
+        return self.config.action
+
+
+@dataclass
 class Plan:
     """What a bridge will run: its prepared entries, and its main line (client and server)."""
 
@@ -110,6 +124,11 @@ class Plan:
     services: list[PreparedService]
     main_line: StreamTransport | None = None
     main_address: Address | None = None
+    actions: list[PreparedAction] = dataclasses.field(default_factory=list)
+
+    @property
+    def action_parts(self) -> list[PreparedTopic | PreparedService]:
+        return [part for action in self.actions for part in action.parts]
 
 
 class Resolver:
@@ -149,13 +168,14 @@ class Resolver:
         topics = [self.topic(t, i, "topics") for i, t in enumerate(cfg.topics)]
         self._check_shared_ports(topics)
         services = [self.service(s, i, "services") for i, s in enumerate(cfg.services)]
+        actions = [self.action(a, i, "actions") for i, a in enumerate(cfg.actions)]
         if cfg.role is not Role.PEER and not cfg.secure and not cfg.insecure:
             key = "identity, server_key" if cfg.role is Role.CLIENT else "identity"
             raise cfg.error("bridge", f"a {cfg.role} needs bridge.{key} to authenticate its "
                             "sessions", "make one with 'rosgate keygen identity --out NAME.key' "
                             "(docs/security.md: setting up identities); or, on a network you "
                             "trust entirely, insecure: true")
-        return Plan(cfg, topics, services, self.main_line, self.main_address)
+        return Plan(cfg, topics, services, self.main_line, self.main_address, actions)
 
     # -- entries ---------------------------------------------------------------------------
     def topic(self, topic: TopicConfig, index: int, section: str,
@@ -305,6 +325,27 @@ class Resolver:
         return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
                                index, address, local, cipher_cls=cipher_cls,
                                service_framing=service_framing)
+
+    def action(self, action: ActionConfig, index: int, section: str,
+               error: ErrorMaker | None = None) -> PreparedAction:
+        """An action's five entries, prepared as topics and services are; a mistake is
+        located at the action's keys."""
+        error = error or self.config.error
+        key = f"{section}[{index}]"
+        try:
+            resolve_type(action.type)
+        except TypeNotFound as exc:
+            raise error(f"{key}.type", str(exc)) from None
+        if self.config.role is Role.PEER and action.port is None:
+            raise error(f"{key}.port", "peer role: an action needs a port (its calls use it, "
+                        "its feedback and status the next one)", "add port: <1..65534>")
+        prepared: list[PreparedTopic | PreparedService] = []
+        for part in actions.parts(action):
+            if isinstance(part, TopicConfig):
+                prepared.append(self.topic(part, index, section, error))
+            else:
+                prepared.append(self.service(part, index, section, error))
+        return PreparedAction(action, prepared)
 
     def _bus_key(self, transport: BusTransport, entry: TopicConfig | ServiceConfig, key: str,
                  error: ErrorMaker) -> str:

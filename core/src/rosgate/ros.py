@@ -9,6 +9,7 @@ another thread hangs, with the rclpy from the package index).
 from __future__ import annotations
 
 import ctypes
+import functools
 import importlib
 import logging
 import re
@@ -21,7 +22,8 @@ from .errors import CodecError
 
 _log = logging.getLogger("rosgate")
 
-TYPE_NAME = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv)/([A-Z][A-Za-z0-9]*)$")
+# an action's parts are named pkg/action/Type_SendGoal, Type_FeedbackMessage ...
+TYPE_NAME = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv|action)/([A-Z][A-Za-z0-9_]*)$")
 
 
 class TypeNotFound(LookupError):
@@ -48,11 +50,26 @@ def resolve_type(name: str) -> type:
     except ImportError:
         raise missing from None
     cls = getattr(module, type_name, None)
+    if cls is None and kind == "action" and "_" in type_name:
+        cls = _action_part(module, type_name)
     if not isinstance(cls, type):
         known = sorted(n for n in dir(module) if n[:1].isupper() and not n.startswith("Metaclass"))
         raise TypeNotFound(f"package {package!r} has no {kind} {type_name!r} "
                            f"(it has: {', '.join(known)})")
     return cls
+
+
+#: an action's parts as the graph names them (pkg/action/Type_SendGoal), and in Type.Impl
+_ACTION_PARTS = {"SendGoal": "SendGoalService", "GetResult": "GetResultService",
+                 "FeedbackMessage": "FeedbackMessage"}
+
+
+def _action_part(module: Any, type_name: str) -> Any:
+    """``Type_SendGoal``, ``Type_GetResult``, ``Type_FeedbackMessage`` of an action module,
+    found in ``Type.Impl`` (the module does not export them all)."""
+    base, _, part = type_name.partition("_")
+    impl = getattr(getattr(module, base, None), "Impl", None)
+    return getattr(impl, _ACTION_PARTS.get(part, ""), None) if impl is not None else None
 
 
 def is_interface_package(package: str, kind: str) -> bool:
@@ -80,6 +97,82 @@ def is_interface_package(package: str, kind: str) -> bool:
         if (folder / kind / "__init__.py").is_file() and (listed or generated):
             return True
     return False
+
+
+class _TypeHash(ctypes.Structure):
+    """rosidl_type_hash_t: a version, then 32 bytes (SHA-256 of the type's description)."""
+
+    _fields_ = [("version", ctypes.c_uint8), ("value", ctypes.c_uint8 * 32)]
+
+
+_GetTypeHash = ctypes.CFUNCTYPE(ctypes.POINTER(_TypeHash), ctypes.c_void_p)
+
+
+class _MessageTypeSupport(ctypes.Structure):
+    """The start of rosidl_message_type_support_t (Iron and later)."""
+
+    _fields_ = [("identifier", ctypes.c_char_p), ("data", ctypes.c_void_p),
+                ("func", ctypes.c_void_p), ("get_type_hash", _GetTypeHash)]
+
+
+class _ServiceTypeSupport(ctypes.Structure):
+    """The start of rosidl_service_type_support_t (Iron and later): after the request, response
+    and event type supports and the event's two functions, the hash."""
+
+    _fields_ = [("identifier", ctypes.c_char_p), ("data", ctypes.c_void_p),
+                ("func", ctypes.c_void_p), ("request", ctypes.c_void_p),
+                ("response", ctypes.c_void_p), ("event", ctypes.c_void_p),
+                ("create_event", ctypes.c_void_p), ("destroy_event", ctypes.c_void_p),
+                ("get_type_hash", _GetTypeHash)]
+
+
+@functools.lru_cache(maxsize=1024)
+def type_hash(interface: type) -> str | None:
+    """The RIHS01 hash ROS gives ``interface`` (a message or a service class), as the graph
+    shows it (``RIHS01_<64 hex digits>``), read from its C type support; None where this ROS
+    has none (before Iron) or the type support cannot be read."""
+    meta: Any = type(interface)
+    try:
+        meta.__import_type_support__()
+        capsule = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
+            ("PyCapsule_GetPointer", ctypes.pythonapi))
+        address = capsule(meta._TYPE_SUPPORT, None)
+        layout = _ServiceTypeSupport if hasattr(interface, "Request") else _MessageTypeSupport
+        support = layout.from_address(address)
+        if not support.get_type_hash:
+            return None
+        found = support.get_type_hash(address)
+        if not found or found.contents.version < 1:
+            return None
+        return f"RIHS{found.contents.version:02}_{bytes(found.contents.value).hex()}"
+    except (AttributeError, ValueError, OSError, TypeError) as exc:
+        _log.debug("no type hash for %s: %s", getattr(interface, "__name__", interface), exc)
+        return None
+
+
+def qos_found(infos: list[Any]) -> dict[str, Any] | None:
+    """The QoS a subscription (and a publisher for it elsewhere) takes from the publishers in
+    ``infos`` (rclpy's TopicEndpointInfo): reliable when all are, transient_local when all are
+    (as ROS's own best-available QoS decides), deep enough for the history of all of them;
+    None when there is none."""
+    from rclpy import qos
+
+    if not infos:
+        return None
+    profiles = [info.qos_profile for info in infos]
+    reliable = all(p.reliability == qos.ReliabilityPolicy.RELIABLE for p in profiles)
+    latched = all(p.durability == qos.DurabilityPolicy.TRANSIENT_LOCAL for p in profiles)
+    depth = sum(max(1, p.depth) for p in profiles) if latched else QOS_FOUND_DEPTH
+    return {"reliability": "reliable" if reliable else "best_effort",
+            "durability": "transient_local" if latched else "volatile",
+            "depth": max(QOS_FOUND_DEPTH, min(depth, QOS_FOUND_MAX_DEPTH))}
+
+
+#: the depth of a QoS found from publishers, and at most what a latched topic's keeps
+QOS_FOUND_DEPTH = 10
+QOS_FOUND_MAX_DEPTH = 1000
+#: an entry without qos before any publisher is found: the default profile, QoSProfile(depth=10)
+QOS_UNFOUND = {"reliability": "reliable", "durability": "volatile", "depth": QOS_FOUND_DEPTH}
 
 
 def qos_profile(spec: int | str | dict) -> Any:
@@ -326,6 +419,13 @@ class RosNode:
             return None if got is None else (got[0], got[1]["received_timestamp"])
 
         return next_waiting
+
+    def publishers_found(self, topic: str) -> list[Any]:
+        """The publishers of ``topic`` on the ROS graph, but this node's own (a bridge that
+        also receives the topic)."""
+        me = (self.node.get_name(), self.node.get_namespace())
+        return [info for info in self.node.get_publishers_info_by_topic(topic)
+                if (info.node_name, info.node_namespace) != me]
 
     def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)

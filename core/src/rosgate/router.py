@@ -8,17 +8,22 @@ ids a route gets; the router never opens a link.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
+from . import announce
+from .announce import Identity
 from .config import BridgeConfig, Direction, Framing
-from .keyring import Keys, StaticKeys
+from .errors import CipherError
+from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .resolver import PreparedService, PreparedTopic
-from .ros import RosNode, cdr_checker, qos_profile
+from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_found, qos_profile, type_hash
 from .routes import (
     BareFraming,
     BarePort,
@@ -30,10 +35,15 @@ from .routes import (
 )
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
 from .transport import Address, StreamTransport
+from .warn import BUGS
 from .wire import envelope
 from .wire.names import Layout
 
 log = logging.getLogger("rosgate")
+
+#: seconds between two looks at the publishers of topics without a qos (and between the
+#: announcements of a young entry)
+WATCH_EVERY = announce.ANNOUNCE_FAST
 
 Destination = Callable[[], Address | None]
 HelloHandler = Callable[[envelope.Header, bytes, Link, Address], None]
@@ -61,15 +71,20 @@ class Router:
         #: a role that takes hellos (the server) sets this; elsewhere a hello is foreign
         self.on_hello: HelloHandler | None = None
         self._lock = threading.RLock()
+        self._closing = threading.Event()
+        self._watcher = threading.Thread(target=self._watch, name="announce", daemon=True)
+        self._watcher.start()
 
     # -- making routes -----------------------------------------------------------------------
     def topic(self, p: PreparedTopic, topic_id: int, label: str, link: Link,
               destination: Destination = _no_destination,
               keys: Keys | None = None,
-              bare_names: bool = True) -> TransmitRoute | ReceiveRoute:
+              bare_names: bool = True, announce: bool = True) -> TransmitRoute | ReceiveRoute:
         """A topic's route and its ROS entity; a receiver with an envelope is found by its id.
         ``keys``: a session's; by default the entry's cipher as the file configured it.
-        ``bare_names=False``: bare frames never carry the topic's name (a bus names them by key)."""
+        ``bare_names=False``: bare frames never carry the topic's name (a bus names them by key).
+        ``announce=False``: its announcements wait for :meth:`start_announcing` (a client's,
+        until the server knows where its datagrams come from)."""
         t = p.config
         keys = keys or StaticKeys(_static(p.cipher))
         codec = p.codec_cls(p.msg_type, p.codec_options)
@@ -83,6 +98,14 @@ class Router:
                                   framing=framing, link=link, destination=destination,
                                   priority=p.priority, latest_only=p.latest_only,
                                   recovery=p.recovery, compression=p.compression)
+            self._identify(route, p.msg_type)
+            route.announces = announce and t.framing is Framing.ROSGATE and p.key is None
+            if not t.qos_given:
+                route.qos_found = qos_found(self.ros.publishers_found(t.topic))
+                route.qos_in_use = route.qos_found or QOS_UNFOUND
+                qos = qos_profile(route.qos_in_use)
+            if route.announces:  # before the first message, or a latched history
+                self.announce(route)
             route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
             route.take = self.ros.taker(route.entity)
         else:
@@ -92,6 +115,8 @@ class Router:
                 decode = _checked(decode, cdr_checker(p.msg_type))
             route = ReceiveRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
                                  decode=decode, transforms=p.transforms)
+            self._identify(route, p.msg_type)
+            route.qos_in_use = None if t.qos_given else QOS_UNFOUND
             route.entity = self.ros.publisher(p.msg_type, t.topic, qos)
             if codec.raw:
                 route.publish = self.ros.raw_publisher(route.entity)
@@ -103,7 +128,7 @@ class Router:
 
     def service(self, p: PreparedService, service_id: int, label: str, link: Link | None,
                 destination: Destination = _no_destination,
-                keys: Keys | None = None) -> ServiceRoute:
+                keys: Keys | None = None, announce: bool = True) -> ServiceRoute:
         """A service's route and its ROS entity. With an envelope, calls and answers find it by
         its id; a microcontroller's calls (serial datagrams) find a serving route by name."""
         s = p.config
@@ -114,6 +139,7 @@ class Router:
         route: ServiceRoute
         if s.direction is Direction.RECEIVE:
             route = ServerRoute(*args)
+            self._identify(route, p.srv_type)
             route.entity = self.ros.client(p.srv_type, s.service, qos)
         elif p.service_framing is not None:  # a microcontroller's call pattern, by its plugin
             assert isinstance(p.transport, StreamTransport)  # the resolver checked
@@ -123,6 +149,10 @@ class Router:
         else:
             assert link is not None
             route = CallerRoute(*args, link=link, destination=destination)
+            self._identify(route, p.srv_type)
+            route.announces = announce and p.key is None
+            if route.announces:
+                self.announce(route)
             route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, route.on_request)
         with self._lock:
             self.routes.append(route)
@@ -198,6 +228,8 @@ class Router:
                                f"service id {header.topic_id} from {source}")
             else:
                 server.on_request(header, frame, link, source)
+        elif flags & envelope.FLAG_ANNOUNCE:
+            self._announced(header, frame, link, source)
         elif flags & envelope.FLAG_REPLY:
             caller = self.callers.get(header.topic_id)
             if caller is None:
@@ -211,6 +243,151 @@ class Router:
                 self.link_drop(link, "unknown_topic", f"topic id {header.topic_id} from {source}")
             else:
                 route.on_frame(header, frame)
+
+    # -- what the sides say of their entries (rosgate.announce) ---------------------------------
+    def hash_of(self, interface: type) -> str | None:
+        """The RIHS01 hash of a message or service class (None: this ROS gives none)."""
+        return type_hash(interface)
+
+    def _identify(self, route: Route, interface: type) -> None:
+        route.check.mine = Identity(route.entry.type, self.hash_of(interface))
+        route.interface = interface
+
+    def announce(self, route: Route) -> None:
+        """Say the entry's type (and the QoS found here) on its link, to its far side."""
+        link, to = route.link, route.destination()
+        if to is None and link.datagram:
+            return  # the far side's address is not known yet: the next announcement finds it
+        qos = route.qos_found if isinstance(route, TransmitRoute) else None
+        try:
+            frame = route.announcement(qos)
+        except (NoKey, CipherError):
+            route.counters.announce_drops += 1
+            return
+        link.send(frame, route.announcer, to)
+
+    def _announced(self, header: envelope.Header, frame: bytes, link: Link,
+                   source: Address) -> None:
+        """A far side's announcement: to the receiving route (or serving route) of its id."""
+        route: Route | None = self.receivers.get(header.topic_id) or self.servers.get(
+            header.topic_id)
+        if route is None:
+            self.link_drop(link, "unknown_topic", f"announcement for id {header.topic_id} "
+                                                  f"from {source}")
+            return
+        heard = route.heard(header, frame)
+        if heard is not None and isinstance(route, ReceiveRoute):
+            self.follow_qos(route, heard[1])
+
+    def far(self, route: Route, item: Any) -> None:
+        """What a hello or a welcome says of the far side's entry (None: nothing, an older
+        rosgate): its type checked, its QoS followed."""
+        try:
+            identity, qos = announce.read(item)
+        except ValueError as exc:
+            route.drop("bad_announcement", str(exc))
+            return
+        route.check.far(identity)
+        if isinstance(route, ReceiveRoute):
+            self.follow_qos(route, qos)
+
+    def entry_item(self, p: PreparedTopic | PreparedService) -> dict[str, Any]:
+        """An entry as a hello says it before its route exists: its type, and the QoS found
+        here for a topic it sends without a qos."""
+        qos = None
+        if isinstance(p, PreparedTopic):
+            interface: type = p.msg_type
+            t = p.config
+            if t.direction is Direction.TRANSMIT and not t.qos_given:
+                qos = qos_found(self.ros.publishers_found(t.topic))
+        else:
+            interface = p.srv_type
+        return announce.item(Identity(p.config.type, self.hash_of(interface)), qos)
+
+    def item(self, route: Route) -> dict[str, Any]:
+        """This side's entry as a hello or a welcome says it."""
+        qos = route.qos_found if isinstance(route, TransmitRoute) else None
+        return announce.item(route.check.mine, qos)
+
+    def follow_qos(self, route: ReceiveRoute, qos: dict[str, Any] | None) -> None:
+        """The publisher takes the QoS the far side found from its publishers, unless the
+        entry sets its own (a new publisher replaces the old)."""
+        if route.topic.qos_given or qos is None or qos == route.qos_in_use:
+            return
+        with self._lock:
+            if qos == route.qos_in_use or route.entity is None:
+                return
+            old = route.entity
+            route.entity = self.ros.publisher(route.interface, route.topic.topic,
+                                              qos_profile(qos))
+            if route.codec.raw:
+                route.publish = self.ros.raw_publisher(route.entity)
+            route.qos_in_use = qos
+        self.ros.destroy(old)
+        log.info("%s: publishes as its far side's publishers do: %s, %s, depth %d", route.label,
+                 qos["reliability"], qos["durability"], qos["depth"])
+
+    def start_announcing(self, routes: list[Route]) -> None:
+        """Routes made with ``announce=False`` say their entries now, and from now on."""
+        for route in routes:
+            if (isinstance(route, TransmitRoute) and not route.bare
+                    or isinstance(route, CallerRoute)):
+                route.announces = True
+                self.announce(route)
+
+    def resync(self, routes: list[Route] | None = None) -> None:
+        """The far side (re)appeared: the latched topics found here say their QoS again and
+        subscribe anew, so it gets their publishers' history."""
+        for route in self.snapshot() if routes is None else routes:
+            if (isinstance(route, TransmitRoute) and route.qos_found is not None
+                    and route.qos_found["durability"] == "transient_local"):
+                self.announce(route)
+                self._subscribe(route, route.qos_found)
+
+    def _subscribe(self, route: TransmitRoute, qos: dict[str, Any]) -> None:
+        with self._lock:
+            old = route.entity
+            if old is None:
+                return  # removed meanwhile
+            route.entity = self.ros.subscribe(route.interface, route.topic.topic,
+                                              qos_profile(qos), route.on_message,
+                                              route.codec.raw)
+            route.take = self.ros.taker(route.entity)
+            route.qos_in_use = qos
+        self.ros.destroy(old)
+
+    def _find_qos(self, route: TransmitRoute) -> None:
+        """Look at the publishers of a topic without a qos; a new QoS is announced before the
+        subscription changes to it."""
+        found = qos_found(self.ros.publishers_found(route.topic.topic))
+        if found is None or found == route.qos_found:
+            return
+        route.qos_found = found
+        log.info("%s: subscribes as its publishers publish: %s, %s, depth %d", route.label,
+                 found["reliability"], found["durability"], found["depth"])
+        if route.announces:
+            self.announce(route)
+        if found != route.qos_in_use:  # a new subscription only for a new QoS (it overlaps)
+            self._subscribe(route, found)
+
+    def _watch(self) -> None:
+        """Every :data:`WATCH_EVERY` seconds, the publishers of topics without a qos; every
+        :data:`~rosgate.announce.ANNOUNCE_EVERY` seconds, every entry's announcement."""
+        every = max(1, round(announce.ANNOUNCE_EVERY / WATCH_EVERY))
+        for tick in itertools.count():
+            if self._closing.wait(WATCH_EVERY):
+                return
+            now = time.monotonic()
+            for route in self.snapshot():
+                try:
+                    if isinstance(route, TransmitRoute) and not route.topic.qos_given:
+                        self._find_qos(route)
+                    young = now - route.born < announce.YOUNG
+                    if route.announces and (young or tick % every == 0):
+                        self.announce(route)
+                except Exception:  # one route's trouble must not stop the others' announcements
+                    BUGS.bug("announce_error", f"{route.label}: could not announce or look at "
+                                               "its publishers (a bug: please report it)")
 
     def on_lost(self, topic_id: int | None, reason: str) -> None:
         """A receiving link lost a frame (a fragment that never came) or met bytes it could not
@@ -271,6 +448,8 @@ class Router:
             log.info("frames for no topic: %s", dict(self.link_drops))
 
     def close(self) -> None:
+        self._closing.set()
+        self._watcher.join(timeout=2)
         for route in self.snapshot():
             self.remove(route)
         self.deadlines.close()

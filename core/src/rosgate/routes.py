@@ -32,6 +32,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, cast
 
+from . import announce
+from .announce import Identity, TypeCheck
 from .builtin import NoCipher
 from .codec import Codec
 from .config import NO_PLUGIN, PRIORITIES, ServiceConfig, TopicConfig
@@ -77,6 +79,9 @@ class Counters:
     bytes_before_compression: int = 0
     bytes_after_compression: int = 0
     not_compressed: int = 0
+    #: announcements of the entry (rosgate.announce) the link dropped on the way out: never
+    #: data, so not among the drops
+    announce_drops: int = 0
 
     def snapshot(self) -> dict[str, Any]:
         return {"sent": self.sent, "received": self.received, "bytes_sent": self.bytes_sent,
@@ -99,6 +104,12 @@ class Route:
     recovery = NO_PLUGIN  # the packetizer of its frames on datagram links (none: the link's own)
     recovery_options: Any = None  # the topic's options for it
     bare = False
+    #: the sending side of an entry with an envelope: says its type (and QoS) on its link
+    announces = False
+    #: the entry's ROS class (a message or a service), set with its ROS entity
+    interface: Any = None
+    link: Link
+    destination: Callable[[], Address | None]
 
     def __init__(self, entry: TopicConfig | ServiceConfig, topic_id: int, codec: Any,
                  keys: Keys, warner: Warner, label: str, reliable: bool = False):
@@ -119,6 +130,38 @@ class Route:
         #: it is dropped (too_late) rather than delivered late; 0: never (reliable topics,
         #: services: they have their own deadlines)
         self.max_wait_ns = 0
+        #: the entry's type against the far side's (the router gives this side's hash)
+        self.check = TypeCheck(label, Identity(entry.type, None))
+        self._announced = itertools.count(1)
+        self.announcer = Announcer(self)
+        self.born = time.monotonic()
+
+    def announcement(self, qos: dict[str, Any] | None) -> bytes:
+        """An announcement frame of this entry (:mod:`rosgate.announce`): its type and hash,
+        and ``qos`` when it was found from publishers. NoKey before a session has keys."""
+        body = announce.encode(self.check.mine, qos)
+        epoch = self.keys.epoch()
+        return self.seal(envelope.FLAG_ANNOUNCE, epoch, next(self._announced), body)
+
+    def heard(self, header: envelope.Header,
+              frame: bytes) -> tuple[Identity | None, dict[str, Any] | None] | None:
+        """The far side's announcement of this entry, opened and read, its type checked; None
+        (counted) when it does not open or read."""
+        body = self.open(frame, header.epoch)
+        if body is None:
+            return None
+        try:
+            identity, qos = announce.parse_body(bytes(body))
+        except ValueError as exc:
+            self.drop("bad_announcement", str(exc))
+            return None
+        self.check.far(identity)
+        return identity, qos
+
+    def refuse_type(self) -> None:
+        """A frame dropped because the far side's type is not this side's."""
+        self.counters.drops["type_mismatch"] += 1
+        self.check.say()
 
     def on_wire(self, size: int, again: bool) -> None:
         """A packet of ``size`` bytes left on the link for this route (``again``: re-sent)."""
@@ -162,6 +205,25 @@ class Route:
         except CipherError as exc:
             self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
             return None
+
+
+class Announcer:
+    """A route's announcements as the link's sender: in the control class, never waiting out a
+    link loss (the next one comes soon)."""
+
+    __slots__ = ("route",)
+    reliable = False
+    priority = 0
+
+    def __init__(self, route: Route):
+        self.route = route
+
+    @property
+    def topic_id(self) -> int:
+        return self.route.topic_id
+
+    def drop(self, reason: str, detail: str = "") -> None:
+        self.route.counters.announce_drops += 1
 
 
 class TopicFraming:
@@ -247,6 +309,10 @@ class TransmitRoute(Route):
         self.take: Callable[[], Any] | None = None
         self.transform = compression
         self.transform_id = bytes([compression.wire_id]) if compression is not None else b""
+        #: the QoS found from the publishers here (entries without qos; None: none found yet)
+        self.qos_found: dict[str, Any] | None = None
+        #: and the one its subscription has (None: the entry's own)
+        self.qos_in_use: dict[str, Any] | None = None
 
     def encode(self, message: Any) -> tuple[bytes, int]:
         """The message's payload, transformed (compressed) when that makes it smaller: then after
@@ -359,6 +425,8 @@ class ReceiveRoute(Route):
         #: whatever this side's file says: the sender's envelope says what it transformed, and
         #: the payload's first byte with which transform
         self.transforms = transforms
+        #: the QoS its publisher has from the far side's publishers (None: the entry's own)
+        self.qos_in_use: dict[str, Any] | None = None
 
     def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> None:
         """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
@@ -375,6 +443,9 @@ class ReceiveRoute(Route):
             self.counters.lost += self.window.lost - lost
         if refused:
             self.drop(refused)
+            return
+        if self.check.mismatch is not None:
+            self.refuse_type()
             return
         if arrived and self.max_wait_ns:
             waited = time.time_ns() - arrived

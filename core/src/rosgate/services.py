@@ -51,6 +51,13 @@ log = logging.getLogger("rosgate")
 # A proxy needs deep queues: with the default service QoS (depth 10) a server answered 11 of 50
 # concurrent calls; with depth 1000 on both ends, 50 of 50 (DESIGN.md, measured).
 QUEUE_DEPTH = 1000
+# action_msgs: GoalStatus.STATUS_ABORTED, CancelGoal.Response.ERROR_REJECTED
+GOAL_ABORTED = 6
+CANCEL_REJECTED = 1
+# a call whose ROS server is not discovered yet waits for it this share of its timeout, and
+# looks again this often (seconds)
+DISCOVERY_SHARE = 0.8
+DISCOVERY_POLL = 0.05
 
 
 def failure(response_type: Any, reason: str) -> Any:
@@ -61,6 +68,12 @@ def failure(response_type: Any, reason: str) -> Any:
         response.success = False
     if fields.get("message") == "string":
         response.message = f"rosgate: {reason}"
+    # an action's parts (rosgate.actions): a result that cannot come ends the goal aborted, a
+    # cancel that cannot be delivered is rejected (a goal not accepted is send_goal's default)
+    if fields.get("status") == "int8" and "result" in fields:
+        response.status = GOAL_ABORTED
+    if fields.get("return_code") == "int8" and "goals_canceling" in fields:
+        response.return_code = CANCEL_REJECTED
     return response
 
 
@@ -200,6 +213,10 @@ class CallerRoute(ServiceRoute):
     def on_request(self, request: Any, respond: Callable[[Any], None]) -> None:
         """The ROS executor's thread: send the call and return; the answer comes later."""
         call = self.answering(respond)
+        if self.check.mismatch is not None:
+            self.fail(call, "type_mismatch", self.check.mismatch)
+            self.check.say()
+            return
         to = self.destination()
         if to is None and self.link.datagram:
             self.fail(call, "no_peer_yet", "the far side's address is not known yet")
@@ -238,6 +255,10 @@ class CallerRoute(ServiceRoute):
             return
         self.counters.received += 1
         self.counters.bytes_received += len(frame)
+        if self.check.mismatch is not None:
+            self.fail(call, "type_mismatch", self.check.mismatch)
+            self.check.say()
+            return
         if header.flags & envelope.FLAG_FAILED:
             self.fail(call, "remote_failure", body.decode("utf-8", "replace")[:500])
             return
@@ -247,6 +268,15 @@ class CallerRoute(ServiceRoute):
             self.fail(call, "decode_error", str(exc))
             return
         call.answer(response)
+
+    def fail_all(self, reason: str, detail: str) -> None:
+        """Every call still waiting is failed (the session's line was lost): an action's
+        goal then ends aborted rather than waiting out its result's timeout."""
+        with self._lock:
+            waiting = [call for _, call in self.calls.values()]
+            self.calls.clear()
+        for call in waiting:
+            self.fail(call, reason, detail)
 
     def _pop(self, seq: int, epoch: int | None = None) -> Call | None:
         """The call waiting under ``seq`` (and ``epoch``, when given), taken out."""
@@ -294,12 +324,29 @@ class ServerRoute(ServiceRoute):
         self._lock = threading.Lock()
 
     def serve(self, request: Any, call: Call) -> None:
-        """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``."""
+        """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``.
+        A server not discovered yet is waited for (polled every :data:`DISCOVERY_POLL` s) up
+        to :data:`DISCOVERY_SHARE` of the timeout, so that the failure still reaches the caller,
+        whose bridge waits ``timeout`` in all."""
+        start = time.monotonic()
+        wait_until = start + self.service.timeout * DISCOVERY_SHARE
         client = self.entity
-        if not client.service_is_ready():
-            self.fail(call, "no_server", f"no ROS server {self.service.service} is running "
-                                         "on the serving side")
-            return
+
+        def when_ready() -> None:
+            if client.service_is_ready():
+                self._call(request, call, start)
+            elif call.done:
+                return
+            elif time.monotonic() >= wait_until:
+                self.fail(call, "no_server", f"no ROS server {self.service.service} is running "
+                                             "on the serving side")
+            else:
+                self.deadlines.after(DISCOVERY_POLL, when_ready)
+
+        when_ready()
+
+    def _call(self, request: Any, call: Call, start: float) -> None:
+        client = self.entity
         future = client.call_async(request)
         future.add_done_callback(lambda f: self._answered(f, call))
 
@@ -308,7 +355,7 @@ class ServerRoute(ServiceRoute):
                 client.remove_pending_request(future)
                 self.fail(call, "timeout", f"the ROS server {self.service.service} did not answer "
                                            f"within {self.service.timeout:g} s")
-        self.deadlines.after(self.service.timeout, expire)
+        self.deadlines.after(max(0.0, start + self.service.timeout - time.monotonic()), expire)
 
     def _answered(self, future: Any, call: Call) -> None:
         if future.cancelled() or future.exception() is not None:
@@ -331,6 +378,13 @@ class ServerRoute(ServiceRoute):
             refused = self.window.accept(header.epoch, header.seq)
         if refused:
             self.drop(refused)
+            return
+        if self.check.mismatch is not None:  # answered as a failure, never served
+            self.refuse_type()
+            reason = self.check.mismatch.encode()
+            if link.send(self.seal(envelope.FLAG_REPLY | envelope.FLAG_FAILED, header.epoch,
+                                   header.seq, reason), self, source):
+                self.counters.sent += 1
             return
         try:
             request = self.codec.decode(self.codec.request, payload)

@@ -1,8 +1,10 @@
 """bringup.yaml: its keys declared once (``schema``), read with every mistake located at its file,
 line and key (``load``), and its reference generated for docs/configuration.md (``docs``)."""
 
-from .kinds import PRIORITIES, QOS_PROFILES, parse_bandwidth
+from .kinds import PRIORITIES, QOS_POLICIES, QOS_PROFILES, parse_bandwidth
 from .load import (
+    action_from_mapping,
+    action_to_mapping,
     load,
     loads,
     service_from_mapping,
@@ -15,7 +17,9 @@ from .schema import (
     CODEC_DEFAULT,
     MAX_DELAY_DEFAULT,
     NO_PLUGIN,
+    TIMEOUT_MAX,
     TRANSPORT_DEFAULT,
+    ActionConfig,
     BridgeConfig,
     ClientPolicy,
     Direction,
@@ -29,6 +33,8 @@ from .schema import (
 )
 
 __all__ = [
+    "QOS_POLICIES", "TIMEOUT_MAX",
+    "ActionConfig", "action_from_mapping", "action_to_mapping",
     "CIPHER_DEFAULT", "CODEC_DEFAULT", "MAX_DELAY_DEFAULT", "PRIORITIES", "QOS_PROFILES",
     "NO_PLUGIN", "TRANSPORT_DEFAULT", "BridgeConfig", "ClientPolicy",
     "Direction", "Framing", "LinkConfig", "Limits", "Role", "Rule",

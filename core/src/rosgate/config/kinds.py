@@ -173,8 +173,8 @@ def remote(key: Key, value: Any) -> str:
 
 
 def interface(kind: str) -> Any:
-    """The parse function of a ``type:`` key of entries of ``kind`` (msg, srv)."""
-    what = "a topic" if kind == "msg" else "a service"
+    """The parse function of a ``type:`` key of entries of ``kind`` (msg, srv, action)."""
+    what = {"msg": "a topic", "srv": "a service", "action": "an action"}[kind]
 
     def parse(key: Key, value: Any) -> str:
         name = text(key, value)

@@ -24,6 +24,7 @@ from .schema import (
     PEER_TIMEOUT_HEARTBEATS,
     RECONNECT_MAX_DEFAULT,
     SESSION_CIPHER_DEFAULT,
+    ActionConfig,
     BridgeConfig,
     ClientPolicy,
     Defaults,
@@ -68,10 +69,22 @@ def service_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
     return _service(Source(where), data, _entry_path("services", index), defaults)
 
 
+def action_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
+                        index: int | None = None) -> ActionConfig:
+    """Like topic_from_mapping, for an action entry."""
+    return _action(Source(where), data, _entry_path("actions", index), defaults)
+
+
+def action_to_mapping(a: ActionConfig) -> dict:
+    return _to_mapping(a, ActionConfig)
+
+
 def topic_to_mapping(t: TopicConfig) -> dict:
     """As the user would write it: the keys of real links only when they are not the defaults
     (so a server that predates them still reads a client's hello that does not use them)."""
     mapping = _to_mapping(t, TopicConfig)
+    if not t.qos_given:  # the far side finds it from the publishers too
+        del mapping["qos"]
     for key, options in (("recovery", t.recovery_options), ("compression", t.compression_options)):
         if mapping[key] == NO_PLUGIN:
             del mapping[key]
@@ -87,7 +100,7 @@ def service_to_mapping(s: ServiceConfig) -> dict:
     return mapping
 
 
-def _to_mapping(entry: TopicConfig | ServiceConfig, section: type) -> dict:
+def _to_mapping(entry: TopicConfig | ServiceConfig | ActionConfig, section: type) -> dict:
     mapping = {}
     for key in names(section):
         value = getattr(entry, key)
@@ -155,6 +168,7 @@ def _bridge_config(data: Any, src: Source, base_dir: Path) -> BridgeConfig:
         clients=_clients(src, data, role), plugins=_plugins(src, data),
         topics=_entries(src, data, "topics", defaults),
         services=_entries(src, data, "services", defaults),
+        actions=_entries(src, data, "actions", defaults),
         lines=src.lines, base_dir=base_dir)
 
 
@@ -192,7 +206,7 @@ def _check_role(src: Source, data: dict, bridge: dict, role: Role) -> None:
         raise src.error("bridge.server", "missing required key 'server'",
                         fix=f"add server: {where}")
     if role is Role.SERVER:
-        for key in ("topics", "services"):
+        for key in ("topics", "services", "actions"):
             if data.get(key):
                 raise src.error(key, f"a server gets its {key} from its clients, so its file has "
                                      f"no {key}:",
@@ -297,7 +311,7 @@ def _entries(src: Source, data: dict, key: str, defaults: dict[str, str]) -> lis
     if not isinstance(items, list):
         raise src.error(key, f"expected a list of entries, got {show(items)}",
                         fix=f"start each entry with '- {key[:-1]}: ' on its own line under {key}:")
-    build = _topic if key == "topics" else _service
+    build = {"topics": _topic, "services": _service, "actions": _action}[key]
     # a peer's port: is checked by the resolver: entries on a bus have none
     entries = [build(src, item, f"{key}[{i}]", defaults) for i, item in enumerate(items)]
     _check_duplicates(src, key, entries)
@@ -305,7 +319,7 @@ def _entries(src: Source, data: dict, key: str, defaults: dict[str, str]) -> lis
 
 
 def _check_duplicates(src: Source, key: str, entries: list) -> None:
-    name_key = key[:-1]  # "topic" | "service"
+    name_key = key[:-1]  # "topic" | "service" | "action"
     by_name: dict[tuple[str, str], int] = {}
     by_remote: dict[str, int] = {}
     for j, entry in enumerate(entries):
@@ -337,6 +351,7 @@ def _topic(src: Source, data: Any, path: str, defaults: dict[str, str]) -> Topic
                             "or leave framing: out")
     for key in ("recovery", "compression"):  # a plugin's name and the entry's options for it
         given[key], given[f"{key}_options"] = given.get(key, (NO_PLUGIN, {}))
+    given["qos_given"] = "qos" in data
     if framing.bare:
         for key in ("recovery", "compression"):
             if key in data and data[key] != NO_PLUGIN:
@@ -344,6 +359,11 @@ def _topic(src: Source, data: Any, path: str, defaults: dict[str, str]) -> Topic
                                 f"with framing {framing} a datagram is the bare payload",
                                 fix=f"remove {key}:, or use framing: rosgate")
     return TopicConfig(**given, **src.entry_lines(path))
+
+
+def _action(src: Source, data: Any, path: str, defaults: dict[str, str]) -> ActionConfig:
+    return ActionConfig(**_entry(src, data, path, "action", ActionConfig, defaults),
+                        **src.entry_lines(path))
 
 
 def _service(src: Source, data: Any, path: str, defaults: dict[str, str]) -> ServiceConfig:

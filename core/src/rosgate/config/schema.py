@@ -52,6 +52,7 @@ LISTEN_DEFAULT = "0.0.0.0"
 PEER_TIMEOUT_HEARTBEATS = 3       # default bridge.peer_timeout, in heartbeats
 RECONNECT_MAX_DEFAULT = 10.0
 MAX_DELAY_DEFAULT = 1.0           # seconds a best-effort message may wait in a link's queue
+TIMEOUT_MAX = 3600.0  # seconds: a service call's, an action goal's acceptance; a result's wait
 #: recovery: and compression: without a plugin (a topic's own fragments, its payload as it is)
 NO_PLUGIN = "none"
 PRIORITIES = kinds.PRIORITIES
@@ -111,7 +112,12 @@ class TopicConfig:
     framing: Framing = option(Framing.ROSGATE, "`rosgate`: the envelope; `none`: the bare payload "
                               "on a datagram link (a microcontroller's)", example="rosgate")
     qos: int | str | dict = option(10, "the QoS of this side's publisher or subscription",
-                                   example="sensor_data", parse=kinds.qos)
+                                   example="sensor_data", parse=kinds.qos,
+                                   unset="found from the publishers the sending side discovers "
+                                         "(durability, reliability); depth 10")
+    #: False: the entry gives no qos, so its QoS is found from the publishers the sending side
+    #: discovers (durability and reliability)
+    qos_given: bool = field(default=True, compare=False)
     max_rate: float | None = option(None, "faster messages are dropped (`rate_limit`)",
                                     minimum=1e-6, maximum=1e6, unit="Hz", unset="unlimited",
                                     example="20")
@@ -171,7 +177,7 @@ class ServiceConfig:
     framing: Framing = option(Framing.ROSGATE, "`rosgate`: the envelope; `serial_datagram`: a "
                               "microcontroller's calls", example="rosgate")
     timeout: float = option(5.0, "the ROS caller is answered within this, whatever happens",
-                            above=0, maximum=3600, unit="seconds", example="5")
+                            above=0, maximum=TIMEOUT_MAX, unit="seconds", example="5")
     max_request: int = option(64 * 1024, "a longer request is dropped and counted", minimum=16,
                               maximum=64 * 1024 * 1024, unit="bytes", example="65536")
     layout: str = _entry("layout")
@@ -179,6 +185,33 @@ class ServiceConfig:
     floats: str = _entry("floats")
     no_answer: str = option(NO_ANSWERS[0], "calls to a microcontroller: what a connection closed "
                             "without a byte means", choices=NO_ANSWERS, example="fail")
+    line: int = 0
+    lines: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass
+class ActionConfig:
+    """`actions:` entries carry ROS 2 actions: goals, cancels and results cross as the action's
+    three services, feedback and status as its two topics; [actions.md](actions.md) says how."""
+
+    action: str = option(doc="the ROS name on this side", example="/navigate_to_pose",
+                         parse=kinds.ros_name)
+    type: str = option(doc="the action type", example="nav2_msgs/action/NavigateToPose",
+                       parse=kinds.interface("action"))
+    direction: Direction = option(doc="`transmit`: goals sent here are served on the far side; "
+                                      "`receive`: the far side's goals are served here",
+                                  example="transmit (this side to the peer) or receive (the peer "
+                                          "to this side)")
+    remote: str = option(doc="the name on the far side", unset="the same as `action`",
+                         example="/robot1/navigate_to_pose", parse=kinds.text)
+    transport: str = _entry("transport")
+    codec: str = _entry("codec")
+    cipher: str = _entry("cipher")
+    port: int | None = _entry("port")
+    timeout: float = option(5.0, "a goal's acceptance and a cancel are answered within this; a "
+                            "result waits as long as its goal runs", above=0, maximum=TIMEOUT_MAX,
+                            unit="seconds", example="5")
+    framing: Framing = Framing.ROSGATE
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
 
@@ -282,6 +315,8 @@ class ClientPolicy:
                                       parse=_rules)
     services: tuple[Rule, ...] = option((), "rules: services the client may bridge",
                                         unset="none", parse=_rules)
+    actions: tuple[Rule, ...] = option((), "rules: actions the client may bridge", unset="none",
+                                       parse=_rules)
     line: int = 0
 
 
@@ -415,6 +450,7 @@ class BridgeConfig:
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
     services: list[ServiceConfig] = field(default_factory=list)
+    actions: list[ActionConfig] = field(default_factory=list)
     lines: dict[str, int] = field(default_factory=dict)
     base_dir: Path = field(default_factory=Path.cwd)
 
@@ -441,6 +477,7 @@ class File:
                            example="{fernet: {key_file: secret.key}}")
     topics: list = option([], "the topics to bridge", example="- topic: /chatter")
     services: list = option([], "the services to bridge", example="- service: /mcu/ping")
+    actions: list = option([], "the actions to bridge", example="- action: /navigate_to_pose")
     clients: dict = option({}, "server: the clients it accepts",
                            example="{robot1: {key: <public key>, topics: [{name: /robot1/**, "
                                    "direction: both}]}}")

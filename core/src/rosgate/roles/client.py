@@ -26,7 +26,7 @@ import threading
 import time
 from typing import Any
 
-from ..config import Direction, service_to_mapping, topic_to_mapping
+from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
 from ..errors import LinkError, RosgateError
 from ..keyring import Keys
 from ..links import Connector, DatagramLink, Link, LinkSlot, StreamLink
@@ -34,6 +34,7 @@ from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
 from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, initiate, seal_hello
+from ..services import CallerRoute
 from ..transport import Address, StreamConnection, StreamTransport
 from . import Bridge, Role
 from .mainline import (
@@ -116,7 +117,9 @@ class ClientRole(Role):
         plan = self.bridge.plan
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
-                           "services": [service_to_mapping(p.config) for p in plan.services]}),
+                           "services": [service_to_mapping(p.config) for p in plan.services],
+                           "actions": [action_to_mapping(a.config) for a in plan.actions],
+                           "entries": [self.router.entry_item(p) for p in self._entries()]}),
                   self.control)
         if not self._await_answer(link) or self._welcome is None:
             return False
@@ -126,7 +129,7 @@ class ClientRole(Role):
             return False
         try:
             ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
-            if len(ids) != len(plan.topics) + len(plan.services):
+            if len(ids) != len(self._entries()):
                 raise ValueError("topic and service id count does not match")
             if not all(0 <= i < 2**32 for i in ids):  # 0: an entry the server refused
                 raise ValueError("a topic or service id out of range")
@@ -136,6 +139,7 @@ class ClientRole(Role):
                 self._install_keys(answer, link)
             self._note_refusals(answer.get("refused", []))
             self._apply(ids)
+            self._far_entries(answer.get("entries"))
         except (KeyError, TypeError, ValueError, RosgateError) as exc:
             log.error("%s: cannot use the server's answer: %s", self.cfg.name, exc)
             if self.topic_ids is None:
@@ -149,8 +153,17 @@ class ClientRole(Role):
         link.last_heard = time.monotonic()
         self.connected.set()
         self._say_hello()
+        self.router.start_announcing(list(self.routes.values()))  # the server hears us now
+        self.router.resync(list(self.routes.values()))
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
         return True
+
+    def _far_entries(self, items: Any) -> None:
+        """The server's word on each entry (its type, the QoS it found): none from an older
+        server."""
+        for index, route in self.routes.items():
+            self.router.far(route, items[index] if isinstance(items, list)
+                            and index < len(items) else None)
 
     def _install_keys(self, answer: dict[str, Any], link: StreamLink) -> None:
         """The session's secret from the welcome (inside the Noise channel); then say we hold
@@ -195,12 +208,15 @@ class ClientRole(Role):
 
     def _lost(self, link: StreamLink) -> None:
         self.connected.clear()
+        for route in self.routes.values():  # calls waiting for an answer get none now
+            if isinstance(route, CallerRoute):
+                route.fail_all("link_down", "the session's main line was lost")
         log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
                     link.why or "main line closed")
 
     def _entries(self) -> list[PreparedTopic | PreparedService]:
         plan = self.bridge.plan
-        return [*plan.topics, *plan.services]
+        return [*plan.topics, *plan.services, *plan.action_parts]
 
     def _apply(self, ids: list[int]) -> None:
         """Make the routes match the server's answer: one per entry it accepted (id > 0),
@@ -234,9 +250,11 @@ class ClientRole(Role):
                                       sources=self.sources(p.transport, p.address[0]))
             self.hello_to.add((link, p.address))
         keys = self._keys(p)
+        # announcements start once the server has our datagram hello (its ports take frames
+        # only from where a hello came from)
         if isinstance(p, PreparedTopic):
-            return self.router.topic(p, topic_id, label, link, destination, keys)
-        return self.router.service(p, topic_id, label, link, destination, keys)
+            return self.router.topic(p, topic_id, label, link, destination, keys, announce=False)
+        return self.router.service(p, topic_id, label, link, destination, keys, announce=False)
 
     def _keys(self, p: PreparedTopic | PreparedService) -> Keys | None:
         if self.schedule is None:

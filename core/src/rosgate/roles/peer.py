@@ -107,6 +107,15 @@ class PeerRole(Role):
                 self._microcontroller_service(s, call_servers)
             else:
                 self._service(s)
+        for part in self.bridge.plan.action_parts:  # an action: three services, two topics
+            if part.key is not None:
+                bus.topic(part) if isinstance(part, PreparedTopic) else bus.service(part)
+            elif isinstance(part, PreparedService):
+                self._service(part)
+            elif isinstance(part.transport, StreamTransport):
+                self._stream_topic(part)
+            else:
+                self._datagram_topic(part)
 
     def _datagram_topic(self, p: PreparedTopic) -> None:
         t, key = p.config, f"topics[{p.index}].port"

@@ -29,12 +29,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..actions import parts as action_parts
 from ..admission import Acceptor, HandshakeSlots, KnownSources
 from ..config import (
+    ActionConfig,
     ClientPolicy,
     Direction,
     ServiceConfig,
     TopicConfig,
+    action_from_mapping,
     service_from_mapping,
     topic_from_mapping,
 )
@@ -54,6 +57,7 @@ from ..secure import (
     open_hello,
     respond,
 )
+from ..services import CallerRoute
 from ..transport import Address, StreamConnection, StreamTransport
 from ..warn import BUGS
 from ..wire import envelope
@@ -89,6 +93,8 @@ class Session:
     schedule: KeySchedule | None = None
     key_id: int | None = None  # of the last handshake's secret
     hellos: envelope.ReplayWindow = field(default_factory=envelope.ReplayWindow)
+    actions: list[Any] = field(default_factory=list)  # its action list, as it sent it
+    part_of: dict[int, ActionConfig] = field(default_factory=dict)  # entry -> its action
 
     @property
     def routes(self) -> list[Route]:
@@ -230,6 +236,9 @@ class ServerRole(Role):
             session = holder.get("session")
             if session is not None and session.main.current is link and session.id in self.sessions:
                 session.down_since = time.monotonic()
+                for route in session.routes:  # calls waiting for the client get no answer now
+                    if isinstance(route, CallerRoute):
+                        route.fail_all("link_down", "the client's main line was lost")
                 log.warning("client %r down (%s); keeping its session for %g s", session.name,
                             link.why or "main line closed", self.cfg.session_timeout)
 
@@ -279,6 +288,7 @@ class ServerRole(Role):
             return None
         for why in session.refused.values():
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
+        items = self._far_entries(session, hello.get("entries"))
         count = len(session.topics)
         ids = [session.by_index[i].topic_id if i in session.by_index else 0
                for i in range(len(session.entries))]
@@ -286,7 +296,7 @@ class ServerRole(Role):
             "type": "welcome", "name": self.cfg.name, "session": session.id,
             "topic_ids": ids[:count], "service_ids": ids[count:],
             "refused": [{"entry": self._entry_name(session, i), "error": why}
-                        for i, why in sorted(session.refused.items())]}
+                        for i, why in sorted(session.refused.items())], "entries": items}
         if isinstance(link.connection, SecureConnection):
             welcome.update(self._new_keys(session, link.connection))
         else:
@@ -303,6 +313,15 @@ class ServerRole(Role):
                  peer[0], len(session.topics), len(session.services),
                  f", {len(session.refused)} refused" if session.refused else "")
         return session
+
+    def _far_entries(self, session: Session, items: Any) -> list[Any]:
+        """Check the client's word on each entry (type, QoS: none from an older client); this
+        side's, for the welcome."""
+        for i, route in session.by_index.items():
+            self.router.far(route, items[i] if isinstance(items, list) and i < len(items)
+                            else None)
+        return [self.router.item(session.by_index[i]) if i in session.by_index else None
+                for i in range(len(session.entries))]
 
     def _new_keys(self, session: Session, connection: SecureConnection) -> dict[str, Any]:
         """A fresh secret for this handshake (sent inside it). The previous one still opens
@@ -333,6 +352,7 @@ class ServerRole(Role):
         if found is None:
             return None
         if (found.topics == hello.get("topics") and found.services == hello.get("services", [])
+                and found.actions == hello.get("actions", [])
                 and hello.get("protocol") == PROTOCOL):
             return found
         log.info("client %r came back with other topics: its old session is dropped", name)
@@ -348,10 +368,11 @@ class ServerRole(Role):
             raise ConfigError(f"the server keeps {len(self.sessions)} sessions already, its "
                               "limit", file=f"client {name}",
                               fix="try again later (bridge.limits.sessions on the server)")
-        entries = self._client_entries(hello, name)
+        entries, part_of = self._client_entries(hello, name)
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
                           hello.get("services", []), self.bridge.slot(f"main of {name}"),
-                          entries=entries, policy=policy)
+                          entries=entries, policy=policy, actions=hello.get("actions", []),
+                          part_of=part_of)
         try:
             self._sync(session)
         except BaseException:  # whatever failed, nothing half-built stays behind
@@ -361,13 +382,17 @@ class ServerRole(Role):
             self.sessions[session.id] = session
         return session
 
-    def _client_entries(self, hello: dict[str, Any], name: str) -> list[Entry]:
-        """The hello's entries, checked like a file's (no type is imported here)."""
+    def _client_entries(self, hello: dict[str, Any],
+                        name: str) -> tuple[list[Entry], dict[int, ActionConfig]]:
+        """The hello's entries, checked like a file's (no type is imported here): topics,
+        services, then the parts of its actions; and the action of each part."""
         where = f"client {name}"
         error = where_error(where)
         topics, services = hello.get("topics"), hello.get("services", [])
-        if not isinstance(topics, list) or not isinstance(services, list):
-            raise ConfigError("hello without a topic and a service list", file=where)
+        actions = hello.get("actions", [])
+        if (not isinstance(topics, list) or not isinstance(services, list)
+                or not isinstance(actions, list)):
+            raise ConfigError("hello without a topic, a service and an action list", file=where)
         entries: list[Entry] = []
         for key, items, parse in (("topics", topics, topic_from_mapping),
                                   ("services", services, service_from_mapping)):
@@ -375,7 +400,15 @@ class ServerRole(Role):
                 if not isinstance(mapping, dict):
                     raise error(f"{key}[{i}]", "not a mapping")
                 entries.append(parse(mapping, self.cfg.defaults, where, index=i))
-        return entries
+        part_of: dict[int, ActionConfig] = {}
+        for i, mapping in enumerate(actions):
+            if not isinstance(mapping, dict):
+                raise error(f"actions[{i}]", "not a mapping")
+            action = action_from_mapping(mapping, self.cfg.defaults, where, index=i)
+            for part in action_parts(action):
+                part_of[len(entries)] = action
+                entries.append(part)
+        return entries, part_of
 
     def _sync(self, session: Session) -> None:
         """Routes for the entries the policy allows (made in order: topics, then services),
@@ -385,7 +418,8 @@ class ServerRole(Role):
         where = f"client {session.name}"
         topics = len(session.topics)
         for index, entry in enumerate(session.entries):
-            why = refusal(session.policy, entry, keyless) if session.policy is not None else None
+            asked = session.part_of.get(index, entry)  # an action's part: the action
+            why = refusal(session.policy, asked, keyless) if session.policy is not None else None
             if why is not None:
                 session.refused[index] = why
                 route = session.by_index.pop(index, None)
@@ -396,7 +430,7 @@ class ServerRole(Role):
             if index in session.by_index:
                 continue
             resolver, server_view = self.bridge.resolver, flipped(entry)
-            if index < topics:
+            if isinstance(entry, TopicConfig):
                 p: PreparedTopic | PreparedService = resolver.topic(
                     server_view, index, "topics", where_error(where))
             else:
@@ -506,6 +540,7 @@ class ServerRole(Role):
                 self.clients.forget(old)
             self.clients.learn(source)
             session.addresses[link] = source
+            self.router.resync(session.routes)  # its latched topics, now that it hears us
             log.debug("client %r is at %s on %s", session.name, source, link.name)
 
     def _end(self, session: Session) -> None:

@@ -34,6 +34,7 @@ FLAG_REQUEST = 0x04  # a service call: topic_id = service id, epoch + seq = the 
 FLAG_REPLY = 0x08    # its answer: epoch and seq echoed from the request
 FLAG_FAILED = 0x10   # with FLAG_REPLY: the serving side had no answer; the body is the reason
 FLAG_COMPRESSED = 0x20  # the payload under the cipher: a transform's wire id, what it made
+FLAG_ANNOUNCE = 0x40  # what the sending side says of an entry: its type and QoS (rosgate.announce)
 
 CONTROL_TOPIC = 0
 

@@ -1,0 +1,150 @@
+"""What the sending side of an entry says about it, so the two sides agree before a frame is
+published: the entry's type, with the RIHS01 hash ROS gives it, and the QoS it found from the
+publishers it discovered (when the entry sets none).
+
+Client and server say it in the hello and the welcome (one item per entry, in the order of
+their lists); on every role the sending side of each ``framing: rosgate`` entry also announces
+it on the entry's link, at once and every :data:`ANNOUNCE_EVERY` seconds after, in a frame of
+its own (envelope flag ``FLAG_ANNOUNCE``, the entry's id, the body sealed by the entry's cipher
+like its data): a JSON object ``{"type": "pkg/msg/Type", "hash": "RIHS01_...", "qos":
+{"reliability": ..., "durability": ..., "depth": ...}}``, ``hash`` and ``qos`` optional.
+
+A receiving side whose type differs (both hashes known and unequal) refuses the entry: its
+frames are dropped as ``type_mismatch`` and nothing is published (a service's calls are answered
+as failures); the refusal is said once per :data:`MISMATCH_EVERY` seconds, in one sentence
+naming both types and both hashes. A far side that says no hash (an older rosgate) is accepted
+and said once. A receiving topic that has heard nothing yet (its sender started first, and its
+first announcement went nowhere) publishes what comes until it hears the next one: at most
+:data:`ANNOUNCE_FAST` seconds while the sender is young, else :data:`ANNOUNCE_EVERY` (an older
+rosgate never announces, and must keep working).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+from .config import QOS_POLICIES
+from .warn import Warner
+from .wire.control import ControlError, parse
+
+log = logging.getLogger("rosgate")
+
+ANNOUNCE_EVERY = 2.0  # seconds between two announcements of one entry (after its first ones)
+ANNOUNCE_FAST = 0.5  # seconds between them while the entry is young:
+YOUNG = 2.0  # seconds after its start
+MISMATCH_EVERY = 60.0  # seconds between two sentences about one entry's mismatch
+MAX_DEPTH = 1000  # of an announced QoS: what a far side may make this side keep
+
+#: one sentence per entry and minute, whoever's frames it drops
+MISMATCHES = Warner(MISMATCH_EVERY)
+
+
+@dataclass(frozen=True)
+class Identity:
+    """A type as one side knows it: its name and its RIHS01 hash (None: unknown)."""
+
+    name: str
+    hash: str | None
+
+    def __str__(self) -> str:
+        return f"{self.name} ({self.hash or 'no hash'})"
+
+
+def encode(identity: Identity, qos: dict[str, Any] | None) -> bytes:
+    body: dict[str, Any] = {"type": identity.name}
+    if identity.hash is not None:
+        body["hash"] = identity.hash
+    if qos is not None:
+        body["qos"] = qos
+    return json.dumps(body, separators=(",", ":")).encode()
+
+
+def item(identity: Identity, qos: dict[str, Any] | None) -> dict[str, Any]:
+    """One entry's item of a hello or a welcome (the announcement's body as a mapping)."""
+    decoded: dict[str, Any] = json.loads(encode(identity, qos))
+    return decoded
+
+
+def read(item: Any) -> tuple[Identity | None, dict[str, Any] | None]:
+    """The type and the QoS in an announcement's mapping or a hello's item; (None, None) for
+    an item that says nothing (an older peer). ValueError for one that is not readable."""
+    if item is None:
+        return None, None
+    if not isinstance(item, dict):
+        raise ValueError("an entry's announcement is not a mapping")
+    name, found = item.get("type"), item.get("hash")
+    if not isinstance(name, str) or not (found is None or isinstance(found, str)):
+        raise ValueError("an announcement's type or hash is not a string")
+    return Identity(name[:200], None if found is None else found[:100]), qos_of(item.get("qos"))
+
+
+def parse_body(body: bytes) -> tuple[Identity | None, dict[str, Any] | None]:
+    """An announcement frame's (opened) body; ValueError when it is not one."""
+    try:
+        return read(parse(body))
+    except ControlError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def qos_of(value: Any) -> dict[str, Any] | None:
+    """An announced QoS, checked (from the network): reliability, durability and a depth."""
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise ValueError("an announced QoS is not a mapping")
+    qos: dict[str, Any] = {}
+    for policy in ("reliability", "durability"):
+        if value.get(policy) not in QOS_POLICIES[policy]:
+            raise ValueError(f"announced {policy} {value.get(policy)!r} is none of "
+                             f"{', '.join(QOS_POLICIES[policy])}")
+        qos[policy] = value[policy]
+    depth = value.get("depth")
+    if not isinstance(depth, int) or isinstance(depth, bool) or not 1 <= depth <= MAX_DEPTH:
+        raise ValueError(f"announced depth {depth!r} is not 1..{MAX_DEPTH}")
+    qos["depth"] = depth
+    return qos
+
+
+class TypeCheck:
+    """One entry's type against what the far side says of its own."""
+
+    __slots__ = ("label", "mine", "theirs", "mismatch", "_said")
+
+    def __init__(self, label: str, mine: Identity):
+        self.label = label
+        self.mine = mine
+        self.theirs: Identity | None = None
+        #: the sentence that says why the entry is refused; None while the types agree
+        self.mismatch: str | None = None
+        self._said: set[str] = set()
+
+    def far(self, theirs: Identity | None) -> None:
+        """What the far side says of its type (None: nothing, an older rosgate)."""
+        if theirs is None or theirs.hash is None or self.mine.hash is None:
+            self.mismatch = None
+            who = "the far side" if theirs is None or theirs.hash is None else "this side"
+            self._once(who, f"{self.label}: {who} gives no type hash (an older rosgate, or a "
+                            f"ROS before Iron): its type is not checked")
+            return
+        self.theirs = theirs
+        if theirs.hash == self.mine.hash:
+            self.mismatch = None
+            return
+        self.mismatch = (f"{self.label}: refused, the far side's type is {theirs} and this "
+                         f"side's is {self.mine}, so its frames are dropped")
+        self.say()
+
+    def say(self) -> None:
+        """Say the mismatch, at most once per :data:`MISMATCH_EVERY` seconds."""
+        held = MISMATCHES.due(self.label, "type_mismatch")
+        if held is not None and self.mismatch is not None:
+            more = f" ({held} more since)" if held else ""
+            log.error("%s%s", self.mismatch, more)
+
+    def _once(self, key: str, sentence: str) -> None:
+        if key not in self._said:
+            self._said.add(key)
+            log.warning("%s", sentence)
