@@ -175,6 +175,7 @@ def test_check_shows_the_budget_arithmetic(tmp_path, capsys):
 
     path = tmp_path / "robot.yaml"
     path.write_text(HEAD + """\
+  insecure: true
   links: {udp: {bandwidth: 20mbit}}
 plugins: {udp: {max_frame: 1472}}
 topics:

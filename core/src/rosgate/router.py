@@ -68,6 +68,7 @@ class Router:
         self.servers: dict[int, ServerRoute] = {}
         self.routes: list[Route] = []
         self.link_drops: Counter = Counter()
+        self.announcements_ignored = 0  # of entries this side does not carry (a shared bus)
         #: a role that takes hellos (the server) sets this; elsewhere a hello is foreign
         self.on_hello: HelloHandler | None = None
         self._lock = threading.RLock()
@@ -272,8 +273,11 @@ class Router:
         route: Route | None = self.receivers.get(header.topic_id) or self.servers.get(
             header.topic_id)
         if route is None:
-            self.link_drop(link, "unknown_topic", f"announcement for id {header.topic_id} "
-                                                  f"from {source}")
+            # an entry this side does not carry: on a shared bus (CAN) every node hears every
+            # node's announcements. No message is lost, so no drop: counted, and said in debug
+            self.announcements_ignored += 1
+            log.debug("%s: an announcement for id %d from %s, an entry this side does not carry",
+                      link.name, header.topic_id, source)
             return
         heard = route.heard(header, frame)
         if heard is not None and isinstance(route, ReceiveRoute):

@@ -142,7 +142,7 @@ class Scheduler:
         self.capacity = burst(self.rate, packet + overhead) if self.rate else 0
         self.clock = clock
         self._classes: list[OrderedDict[int, _Topic]] = [OrderedDict() for _ in range(CLASSES)]
-        self._topics: dict[int, _Topic] = {}
+        self._topics: dict[tuple[int, int], _Topic] = {}
         self._buckets: dict[Any, Bucket] = {}
         self._frames = 0  # messages waiting (not started)
         self._bytes = 0
@@ -150,11 +150,13 @@ class Scheduler:
 
     # -- in ------------------------------------------------------------------------------------
     def _topic(self, sender: Any) -> _Topic:
-        """The queue of the sender's topic (by topic id: what its fragments carry)."""
-        topic = self._topics.get(sender.topic_id)
+        """The queue of the sender's topic (by topic id: what its fragments carry) in the
+        sender's class: a route's announcements (the control class) never wait in, or replace
+        anything of, the queue of its messages."""
+        key = _key(sender)
+        topic = self._topics.get(key)
         if topic is None:
-            priority = min(max(int(getattr(sender, "priority", DATA)), 0), CLASSES - 1)
-            topic = self._topics[sender.topic_id] = _Topic(sender, priority)
+            topic = self._topics[key] = _Topic(sender, key[1])
         return topic
 
     def _activate(self, topic: _Topic) -> None:
@@ -310,7 +312,7 @@ class Scheduler:
 
     def depth(self, sender: Any) -> int:
         """Messages of ``sender`` not fully sent: waiting, plus the one in progress."""
-        topic = self._topics.get(sender.topic_id)
+        topic = self._topics.get(_key(sender))
         if topic is None:
             return 0
         return len(topic.waiting) + (topic.current is not None)
@@ -326,7 +328,7 @@ class Scheduler:
 
     def forget(self, sender: Any) -> None:
         """A sender that is gone (a removed route): what it queued goes too."""
-        topic = self._topics.pop(sender.topic_id, None)
+        topic = self._topics.pop(_key(sender), None)
         if topic is not None:
             self._classes[topic.priority].pop(sender.topic_id, None)
             self._frames -= len(topic.waiting)
@@ -341,3 +343,8 @@ class Scheduler:
         self._topics.clear()
         self._frames = self._bytes = 0
         return unsent
+
+
+def _key(sender: Any) -> tuple[int, int]:
+    """A sender's queue: its topic id and its class."""
+    return sender.topic_id, min(max(int(getattr(sender, "priority", DATA)), 0), CLASSES - 1)
