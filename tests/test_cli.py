@@ -177,6 +177,22 @@ def test_run_stops_cleanly_on_sigterm(config):
     assert "stopping" in rest and "Traceback" not in rest
 
 
+def test_run_stops_cleanly_on_a_burst_of_signals(config):
+    """SIGINT from a shell and its process group at once, and more while stopping: a handler
+    that took a lock (Event.set) once hung a bridge for good inside its own Event.wait."""
+    path = config(GOOD.format(port=free_port()))
+    proc = subprocess.Popen([ROSGATE, "run", str(path)], stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, ROS_DOMAIN_ID="4"))
+    assert proc.stderr is not None
+    for line in proc.stderr:
+        if "running as peer" in line:
+            break
+    for _ in range(50):
+        proc.send_signal(signal.SIGINT)
+    assert proc.wait(20) == 0
+    assert "Traceback" not in proc.stderr.read()
+
+
 def test_plugins_lists_every_kind_with_its_distribution():
     result = rosgate("plugins")
     assert result.returncode == 0

@@ -12,7 +12,6 @@ import logging
 import os
 import signal
 import sys
-import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -152,12 +151,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     engine = _engine(args.file, domain_id=args.domain_id)
-    stop, reload = stop_on_signals(), threading.Event()
-
-    def hangup(*_: object) -> None:  # a server applies its file's clients: again
-        reload.set()
-        stop.set()
-    signal.signal(signal.SIGHUP, hangup)
+    signals = stop_on_signals(signal.SIGHUP)  # SIGHUP: a server applies its clients: again
     # kill -USR1 <pid>: every thread's stack to stderr, from C, even when a thread holds the GIL
     # (for a bridge that does not stop or does not answer)
     faulthandler.register(signal.SIGUSR1, all_threads=True)
@@ -166,12 +160,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     except ConfigError:
         raise
     try:
-        while True:
-            wait_for_signal(stop)
-            if not reload.is_set():
-                break
-            reload.clear()
-            stop.clear()
+        while wait_for_signal(signals) == signal.SIGHUP:
             engine.reload(args.file)  # SIGHUP: the server's policy, from the file as it is now
     finally:
         logging.getLogger("rosgate").info("stopping")

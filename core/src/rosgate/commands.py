@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import argparse
 import signal
-import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -69,18 +69,34 @@ def command_problem(command: object) -> str | None:
     return None
 
 
-def wait_for_signal(stop: threading.Event) -> None:
-    """Wait until a signal handler sets ``stop``. In slices: Python runs handlers in the main
+class Signals:
+    """The signals a command that runs until stopped has caught, oldest first.
+
+    The handler only appends to a list. A handler that took a lock (``Event.set`` does) could
+    hang for good: Python runs it in the main thread between two bytecodes, possibly while that
+    thread holds the very lock inside ``Event.wait`` (seen: two SIGINTs, a bridge that never
+    stopped)."""
+
+    def __init__(self, *signums: int):
+        self.caught: list[int] = []
+        for signum in signums:
+            signal.signal(signum, self._caught)
+
+    def _caught(self, signum: int, frame: object) -> None:
+        self.caught.append(signum)
+
+
+def stop_on_signals(*more: int) -> Signals:
+    """SIGINT, SIGTERM (and ``more``), caught: what a command that runs until stopped waits on
+    with :func:`wait_for_signal`."""
+    return Signals(signal.SIGINT, signal.SIGTERM, *more)
+
+
+def wait_for_signal(signals: Signals) -> int:
+    """Wait until a signal is caught; return it. In slices: Python runs handlers in the main
     thread, and a process-directed signal that the kernel hands to another thread (zenoh's and
     DDS's native threads are candidates) does not interrupt a wait without a timeout, so the
     main thread would never run the handler."""
-    while not stop.wait(0.2):
-        pass
-
-
-def stop_on_signals() -> threading.Event:
-    """An event set by SIGINT or SIGTERM: what a command that runs until stopped waits on."""
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    return stop
+    while not signals.caught:
+        time.sleep(0.2)
+    return signals.caught.pop(0)

@@ -85,7 +85,7 @@ def secured(args: argparse.Namespace) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     listen = args.listen or ([] if args.config else [LISTEN_TLS if args.tls else LISTEN])
     extra = secured(args)
-    stop = stop_on_signals()
+    signals = stop_on_signals()
     session = open_router(listen, args.config, extra)
     log.info("zenoh router running, listening on %s",
              ", ".join(listen) or f"what {args.config} says")
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         log.warning("the router runs without TLS: any zenoh session that reaches it may join "
                     "(rosgate router --tls DIR, docs/fleets.md)")
     try:
-        wait_for_signal(stop)
+        wait_for_signal(signals)
     finally:
         log.info("stopping")
         session.close()
