@@ -287,7 +287,10 @@ class BusAnswerer(Link):
             sender.drop("late_answer", f"the query on {to[0]} was closed before the answer")
             return False
         try:
-            query.reply(frame)
+            body = self.body(frame)
+            if body is None:
+                return False
+            query.reply(body)
         except OSError as exc:
             sender.drop("send_error", f"answer on {to[0]}: {exc}")
             return False
@@ -297,6 +300,11 @@ class BusAnswerer(Link):
             except OSError:
                 pass
         return True
+
+    def body(self, frame: bytes) -> bytes | None:
+        """What answers the query: the frame itself. A bus plugin that speaks another
+        convention may unwrap it (None: the query gets no answer)."""
+        return frame
 
     def close(self) -> None:
         pass

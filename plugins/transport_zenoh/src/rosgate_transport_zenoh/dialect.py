@@ -31,7 +31,7 @@ import os
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from rosgate.buslink import BusLink, BusOutlet
+from rosgate.buslink import BusAnswerer, BusLink, BusOutlet
 from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
 from rosgate.links import Link, Sender
 from rosgate.resolver import PreparedService, PreparedTopic
@@ -159,16 +159,15 @@ class Graph:
             listener(announced, True)
 
 
-class RawAnswers(Link):
+class RawAnswers(BusAnswerer):
     """A served service's calls as that bridge makes them: each query's payload (the request's
     CDR) is handed to the route in an envelope made here, and the route's answer leaves as the
     response's CDR alone."""
 
     def __init__(self, link: BusLink, route: ServerRoute):
-        self.bus = link
+        super().__init__(link)
         self.route = route
         self.name = f"{link.name}:{route.service.service}"
-        self.closed = link.closed
         self.epoch = int.from_bytes(os.urandom(4), "big")
         self.numbers = itertools.count(1)
 
@@ -178,32 +177,11 @@ class RawAnswers(Link):
         frame = route.seal(envelope.FLAG_REQUEST, self.epoch, next(self.numbers), payload)
         route.on_request(envelope.unpack(frame), frame, self, source)
 
-    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
-        assert to is not None
-        query = self.bus.take(to[1]) if not self.closed.is_set() else None
-        if query is None:
-            sender.drop("late_answer", f"the query on {to[0]} was closed before the answer")
-            return False
-        try:
-            header = envelope.unpack(frame)
-            if header.flags & envelope.FLAG_FAILED:
-                return False  # no answer: the route counted why, the caller's timeout speaks
-            body = self.route.open(frame, header.epoch)
-            if body is None:
-                return False
-            query.reply(body)
-        except OSError as exc:
-            sender.drop("send_error", f"answer on {to[0]}: {exc}")
-            return False
-        finally:
-            try:
-                query.close()
-            except OSError:
-                pass
-        return True
-
-    def close(self) -> None:
-        pass
+    def body(self, frame: bytes) -> bytes | None:
+        header = envelope.unpack(frame)
+        if header.flags & envelope.FLAG_FAILED:
+            return None  # no answer: the route counted why, the caller's timeout speaks
+        return self.route.open(frame, header.epoch)
 
 
 class RawCalls(Link):
