@@ -364,12 +364,15 @@ CHATTER_HELLO = [{"topic": "/chatter", "type": "geometry_msgs/msg/Twist",
 PATIENT = "heartbeat: 0.5, peer_timeout: 3, reconnect: {min: 0.05, max: 0.5}"
 
 
-def server_file(tmp_path: Path, port: int, clients: tuple[str, ...], timing: str = FAST) -> Path:
+def server_file(tmp_path: Path, port: int, clients: tuple[str, ...], timing: str = FAST,
+                rule: str = "") -> Path:
+    """A server that accepts ``clients``, each allowed ``/NAME/**`` both ways (and ``rule``'s
+    further keys)."""
     policy = "".join(f"""
   {name}:
     key: {AUTH.public[name]}
     topics:
-      - {{name: /{name}/**, direction: both}}""" for name in clients)
+      - {{name: /{name}/**, direction: both{rule}}}""" for name in clients)
     return write(tmp_path / "server.yaml", f"""
 bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {timing},
           identity: {AUTH.identity("server")}}}
@@ -562,15 +565,8 @@ def test_a_name_that_is_no_ros_name_never_reaches_the_policy(tmp_path, domain, r
     name is checked as a ROS name before any rule sees it: each is refused with one
     sentence, and the valid entry beside them runs."""
     ds, port = domain(), free_port()
-    server = bridge(write(tmp_path / "server.yaml", f"""
-bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST},
-          identity: {AUTH.identity("server")}}}
-clients:
-  robot1:
-    key: {AUTH.public["robot1"]}
-    topics:
-      - {{name: /robot1/**, direction: both, ports: [1-65535], ciphers: [none, aead]}}
-"""), ds)
+    server = bridge(server_file(tmp_path, port, ("robot1",),
+                                rule=", ports: [1-65535], ciphers: [none, aead]"), ds)
     side = ros_side(ds, "base")
     bad = ["/robot1/~", "/robot1/../cmd_vel", "/robot1/x/", "robot1/x"]
     asked = [{"topic": f"/t{i}", "type": "std_msgs/msg/String", "direction": "transmit",
@@ -606,15 +602,8 @@ def test_a_client_cannot_make_the_server_hold_a_history_its_policy_does_not_allo
     unless it says ``keep_all: true``) and the durability: each is refused with one sentence,
     and the entry beside them that asks for a sane QoS runs."""
     ds, port = domain(), free_port()
-    server = bridge(write(tmp_path / "server.yaml", f"""
-bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {PATIENT},
-          identity: {AUTH.identity("server")}}}
-clients:
-  robot1:
-    key: {AUTH.public["robot1"]}
-    topics:
-      - {{name: /robot1/**, direction: both, durability: [volatile]}}
-"""), ds)
+    server = bridge(server_file(tmp_path, port, ("robot1",), PATIENT,
+                                rule=", durability: [volatile]"), ds)
     side = ros_side(ds, "base")
     qos = {"/robot1/deep": {"durability": "transient_local", "depth": 100000},
            "/robot1/unbounded": {"history": "keep_all"},
