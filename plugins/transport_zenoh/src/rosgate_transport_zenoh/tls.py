@@ -10,7 +10,10 @@ peers whose certificate the CA signed (``transport.link.tls`` with ``enable_mtls
 endpoints are ``tls/<host>:<port>``. The router's access control (:func:`access_control`) names
 robots by those common names: each robot may put, serve and hold tokens only on
 ``<prefix>/<robot>/**`` (and its ``@alive``), and may subscribe or query only there; a base may
-do anything; anything else is denied.
+do anything; anything else is denied. A robot is told of every subscription under
+``<prefix>/**`` (its key expression, no data): a zenoh publisher sends only while it knows a
+matching subscriber, and a base's fleet entry subscribes ``<prefix>/*/<topic>``, which is no key
+of the robot's own.
 """
 
 from __future__ import annotations
@@ -57,12 +60,15 @@ def access_control(prefix: str, robots: list[str], bases: list[str]) -> dict[str
     subjects: list[dict[str, Any]] = [{"id": "bases", "cert_common_names": bases}] if bases \
         else []
     policies = [{"rules": ["base"], "subjects": ["bases"]}] if bases else []
+    if robots:  # the subscriptions a robot's publishers must know of to send at all
+        rules.append({"id": "subscriptions", "permission": "allow", "flows": ["egress"],
+                      "messages": ["declare_subscriber"], "key_exprs": [f"{prefix}/**"]})
     for robot in robots:
         own = [f"{prefix}/{robot}/**", f"{prefix}/{robot}/@alive"]
         rules.append({"id": f"robot {robot}", "permission": "allow",
                       "flows": ["ingress", "egress"], "messages": SEND + TAKE, "key_exprs": own})
         subjects.append({"id": robot, "cert_common_names": [robot]})
-        policies.append({"rules": [f"robot {robot}"], "subjects": [robot]})
+        policies.append({"rules": [f"robot {robot}", "subscriptions"], "subjects": [robot]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}
 
