@@ -1,17 +1,24 @@
 """rosgate fleet benchmark: one base bridge with fleet entries, 50 robots through a zenoh router.
 
-    .venv/bin/python bench/fleet.py [--robots 50] [--seconds 10] [--full] [--skip-throughput]
+    .venv/bin/python bench/fleet.py [--robots 50] [--seconds 10] [--tls both|on|off] [--full]
+                                    [--skip-throughput]
 
-1. **Fleet.** A ``rosgate router``; a base (``rosgate run``) whose three fleet entries
+1. **Fleet**, twice by default: with zenoh's mutual TLS and the router's access control (the
+   default deployment), then without TLS (``--tls on|off``: one of them). A ``rosgate router``
+   (with TLS: ``--tls DIR --base fleet_base --robot robotNN ...``, certificates from
+   ``rosgate certs``); a base (``rosgate run``, ``tls: DIR`` in its zenoh options) whose three
+   fleet entries
    (``/{robot}/scan``, ``/{robot}/odom``, ``/{robot}/status``) make a ROS publisher for each
-   robot the first time it sends; ``--robots`` simulated robots in two processes
-   (``fleet_robots.py``: a zenoh session each, a liveliness token, three topics at 10 Hz in
-   rosgate envelopes: LaserScan ~2.5 kB best effort, Odometry and a 100 B String reliable); a
-   ROS process on the base's domain (``fleet_counter.py``) counting what the base publishes.
+   robot the first time it sends; ``--robots`` simulated robots in two processes (one below
+   10 robots; ``fleet_robots.py``: a zenoh session each, with TLS presenting the robot's own
+   certificate, a liveliness token, three topics at 10 Hz in rosgate envelopes: LaserScan
+   ~2.5 kB best effort, Odometry and a 100 B String reliable); a ROS process on the base's domain
+   (``fleet_counter.py``) counting what the base publishes, compared field by field.
    A warm-up phase lets every route and DDS match form; then a measured phase of ``--seconds``.
    Reported: how many of the robots' topics the base published, the delivered ratio (messages
-   of the measured phase that reached the base's ROS side / sent), the base's CPU (share of one
-   core, and per message) and RSS (now and peak), the router's CPU.
+   of the measured phase that reached the base's ROS side unchanged / sent), the base's CPU
+   (share of one core, and per message) and RSS (now and peak), the router's CPU, and the
+   machine's load (``/proc/loadavg``, and other processes' share of the CPU meanwhile).
 2. **Throughput**: 2.5 kB Strings over zenoh (through a router) against udp, with bench.py's
    own cases and sustained-rate search (``--full``: its full trials; else its quick ones).
 
@@ -27,17 +34,20 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from fleet_counter import CHANGED
+from fleet_robots import PREFIX, TOPICS, robot_name
 from processes import ROSGATE, Lines, Route, free_port, next_domains, ros_env
 
 import bench
 
 HERE = Path(__file__).resolve().parent
-DELIVERED_TARGET = 0.99
+DELIVERED_TARGET = 0.998
 WARM_UP_ROUNDS = 6
-TOPICS = ("scan", "odom", "status")
+BASE = "fleet_base"  # its certificate's name too; not "base", which other bridges here may use
 
 
 def log(text: str) -> None:
@@ -82,22 +92,34 @@ class Child:
     def answer(self, timeout: float) -> object:
         return json.loads(self.lines.next(timeout))
 
-    def stop(self) -> None:
+    def quit(self) -> None:
         try:
             self.send("quit")
+        except OSError:
+            pass
+
+    def stop(self) -> None:
+        try:
+            self.quit()
             self.proc.wait(15)
-        except (OSError, subprocess.TimeoutExpired):
+        except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
         self.log.close()
 
 
 class Router:
-    def __init__(self, log_path: Path):
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.log = log_path.open("w")
-        self.proc = subprocess.Popen([ROSGATE, "router", "--listen", self.endpoint],
-                                     stderr=subprocess.PIPE, text=True)
+    """``rosgate router`` on a loopback port; with ``tls`` (a folder ``rosgate certs`` filled)
+    mutual TLS and access control: ``base`` may do anything, each robot only its own keys."""
+
+    def __init__(self, tls: Path | None = None, robots: Sequence[str] = ()):
+        self.endpoint = f"{'tls' if tls else 'tcp'}/127.0.0.1:{free_port()}"
+        argv = [ROSGATE, "router", "--listen", self.endpoint]
+        if tls is not None:
+            argv += ["--tls", str(tls), "--prefix", PREFIX, "--base", BASE]
+            for robot in robots:
+                argv += ["--robot", robot]
+        self.proc = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True)
         self.lines = Lines(self.proc.stderr, "router")  # type: ignore[arg-type]
         self.lines.wait_for("router running", 30)
 
@@ -108,54 +130,93 @@ class Router:
 
 @dataclass
 class FleetResult:
+    tls: bool  # mutual TLS, each robot presenting its own certificate, and access control
     robots: int
     seconds: float
     topics_published: int
     sent: dict[str, int]
     delivered: dict[str, int]
+    changed: int  # arrivals whose bytes equal no message the robots sent
     base_cpu: float  # share of one core during the measured phase
     base_rss: tuple[float, float]
     router_cpu: float
     robots_cpu: float
+    robot_processes: int
     warm_up_rounds: int
-    base_problems: list[str]
+    load: tuple[float, float]  # /proc/loadavg's 1-minute load, before and after the phase
+    others: float  # the share of the machine's CPU other processes used during the phase
+    problems: list[str]
 
     @property
     def ratio(self) -> float:
         return sum(self.delivered.values()) / max(1, sum(self.sent.values()))
 
+    @property
+    def met(self) -> bool:
+        return self.ratio >= DELIVERED_TARGET and self.changed == 0 and \
+            self.topics_published == self.robots * len(TOPICS)
 
-def base_file(folder: Path, endpoint: str) -> Path:
+    @property
+    def label(self) -> str:
+        return "TLS + access control" if self.tls else "no TLS"
+
+
+def certificates(folder: Path, robots: list[str]) -> Path:
+    """A fleet CA and a certificate each for the router, the base and every robot."""
+    tls = folder / "certs"
+    subprocess.run([ROSGATE, "certs", "--out", str(tls), "router", BASE, *robots], check=True,
+                   capture_output=True, timeout=120)
+    return tls
+
+
+def base_file(folder: Path, endpoint: str, tls: Path | None) -> Path:
     path = folder / "base.yaml"
     entry = ("  - {{topic: '/{{robot}}/{t}', type: {type}, direction: receive, "
-             "remote: 'fleet/{{robot}}/{t}', qos: {qos}}}\n")
+             "remote: '{prefix}/{{robot}}/{t}', qos: {qos}}}\n")
     types = {"scan": ("sensor_msgs/msg/LaserScan", "sensor_data"),
              "odom": ("nav_msgs/msg/Odometry", 100), "status": ("std_msgs/msg/String", 100)}
+    secure = f"tls: {tls}" if tls is not None else "insecure: true"
     path.write_text(
-        "bridge: {name: base, role: peer, defaults: {transport: zenoh}, stale_after: 600}\n"
-        f"plugins: {{zenoh: {{mode: client, connect: [{endpoint}], insecure: true}}}}\ntopics:\n"
-        + "".join(entry.format(t=t, type=types[t][0], qos=types[t][1]) for t in TOPICS))
+        f"bridge: {{name: {BASE}, role: peer, defaults: {{transport: zenoh}}, stale_after: 600}}\n"
+        f"plugins: {{zenoh: {{mode: client, connect: [{endpoint}], prefix: {PREFIX}, {secure}}}}}\n"
+        "topics:\n"
+        + "".join(entry.format(t=t, type=types[t][0], qos=types[t][1], prefix=PREFIX)
+                  for t in TOPICS))
     return path
 
 
-def fleet(robots: int, seconds: float, folder: Path) -> FleetResult:
-    router = Router(folder / "router.log")
-    domain = next_domains()[0]
-    base = subprocess.Popen([ROSGATE, "run", str(base_file(folder, router.endpoint))],
-                            env=ros_env(domain), stderr=subprocess.PIPE, text=True)
-    base_lines = Lines(base.stderr, "base")  # type: ignore[arg-type]
-    children: list[Child] = []
+def loadavg() -> float:
+    with open("/proc/loadavg") as f:
+        return float(f.read().split()[0])
+
+
+def fleet(robots: int, seconds: float, folder: Path, tls: bool, domain: int | None = None,
+          warm_up: float = 2.0) -> FleetResult:
+    """One fleet run; ``domain``: the base's DDS domain (default: the benchmark's next)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    names = [robot_name(n) for n in range(robots)]
+    domain = next_domains()[0] if domain is None else domain
+    # the processes start as early as they can (their imports take seconds): the counter needs
+    # nothing, the robots only the router; the warm-up waits for every route to form
+    counter = Child("counter", [sys.executable, str(HERE / "fleet_counter.py"), str(robots)],
+                    ros_env(domain), folder / "counter.log")
+    children: list[Child] = [counter]
+    router: Router | None = None
+    base: subprocess.Popen | None = None
     try:
+        certs = certificates(folder, names) if tls else None
+        router = Router(certs, names)
+        base = subprocess.Popen([ROSGATE, "run", str(base_file(folder, router.endpoint, certs))],
+                                env=ros_env(domain), stderr=subprocess.PIPE, text=True)
+        base_lines = Lines(base.stderr, "base")  # type: ignore[arg-type]
+        groups = 2 if robots >= 10 else 1
+        for i in range(groups):  # the robots have no ROS node: their domain does not matter
+            first, last = robots * i // groups, robots * (i + 1) // groups
+            children.append(Child(f"robots{first}", [
+                sys.executable, str(HERE / "fleet_robots.py"), router.endpoint, str(first),
+                str(last - first), *(["--tls", str(certs)] if certs else [])],
+                ros_env(domain), folder / f"robots{first}.log"))
         base_lines.wait_for("running as", 60)
-        counter = Child("counter", [sys.executable, str(HERE / "fleet_counter.py"), str(robots)],
-                        ros_env(domain), folder / "counter.log")
-        children.append(counter)
-        half = robots // 2
-        for first, count in ((0, half), (half, robots - half)):
-            children.append(Child(f"robots{first}", [sys.executable,
-                                                     str(HERE / "fleet_robots.py"),
-                                                     router.endpoint, str(first), str(count)],
-                                  ros_env(domain + 1), folder / f"robots{first}.log"))
         for child in children:
             child.ready()
         fleet_processes = children[1:]
@@ -172,18 +233,24 @@ def fleet(robots: int, seconds: float, folder: Path) -> FleetResult:
         expected = robots * len(TOPICS)
         rounds = 0
         for rounds in range(1, WARM_UP_ROUNDS + 1):  # until every route and DDS match formed
-            phase("w", 2.0)
+            phase("w", warm_up)
             time.sleep(0.5)
-            seen = sum(1 for c in counts().values() if c.get("w"))
-            log(f"fleet: warm-up {rounds}: {seen} of {expected} robot topics on the base")
+            now = counts()
+            seen = sum(1 for c in now.values() if c.get("w"))
+            changed = sum(c.get(CHANGED, 0) for c in now.values())
+            log(f"fleet ({'TLS' if tls else 'no TLS'}): warm-up {rounds}: {seen} of {expected} "
+                f"robot topics on the base" + (f", {changed} messages changed" if changed else ""))
             if seen == expected:
                 break
         before = counts()
-        base0, router0 = cpu_seconds(base.pid), cpu_seconds(router.proc.pid)
+        ours = [base.pid, router.proc.pid] + [c.proc.pid for c in children]
+        cpu0 = {pid: cpu_seconds(pid) for pid in ours}
+        busy0, load0 = bench.system_busy(), loadavg()
         started = time.monotonic()
         results = phase("m", seconds)
         wall = time.monotonic() - started
-        base1, router1 = cpu_seconds(base.pid), cpu_seconds(router.proc.pid)
+        cpu1 = {pid: cpu_seconds(pid) for pid in ours}
+        busy1, load1 = bench.system_busy(), loadavg()
         rss = memory_mb(base.pid)
         time.sleep(1.0)  # the last messages on their way
         after = counts()
@@ -191,27 +258,39 @@ def fleet(robots: int, seconds: float, folder: Path) -> FleetResult:
         delivered = {t: sum(c.get("m", 0) - before.get(topic, {}).get("m", 0)
                             for topic, c in after.items() if topic.endswith("/" + t))
                      for t in TOPICS}
+        changed = sum(c.get(CHANGED, 0) for c in after.values())
         published = sum(1 for c in after.values() if c.get("m"))
         robots_cpu = sum(r["cpu_s"] for r in results) / wall
+        used = {pid: cpu1[pid] - cpu0[pid] for pid in ours}
+        others = max(0.0, busy1 - busy0 - sum(used.values())) / (wall * (os.cpu_count() or 1))
     finally:
-        base.send_signal(2)  # first, so that robots leaving is not what it logs last
-        base.wait(20)
-        base_lines.ended.wait(5)
+        if base is not None:
+            base.send_signal(2)  # first, so that robots leaving is not what it logs last
+            base.wait(20)
+            base_lines.ended.wait(5)
+        for child in children:
+            child.quit()
         for child in reversed(children):
             child.stop()
-        router.stop()
+        if router is not None:
+            router.stop()
+            router.lines.ended.wait(5)
     (folder / "base.log").write_text("\n".join(base_lines.seen) + "\n")
-    problems = [line for line in base_lines.seen
-                if " WARNING " in line or " ERROR " in line or "Traceback" in line
+    (folder / "router.log").write_text("\n".join(router.lines.seen) + "\n")
+    problems = [f"{who}: {line}" for who, lines in (("base", base_lines), ("router", router.lines))
+                for line in lines.seen
+                if " ERROR " in line or "Traceback" in line or (
+                    " WARNING " in line and "without TLS" not in line and "INSECURE" not in line)
                 or ("drops:" in line and not line.endswith("drops: none"))]
-    return FleetResult(robots, wall, published, sent, delivered, (base1 - base0) / wall, rss,
-                       (router1 - router0) / wall, robots_cpu, rounds, problems)
+    return FleetResult(tls, robots, wall, published, sent, delivered, changed,
+                       used[base.pid] / wall, rss, used[router.proc.pid] / wall, robots_cpu,
+                       len(children) - 1, rounds, (load0, load1), others, problems)
 
 
 def throughput(settings: bench.Settings, folder: Path) -> list[bench.Result]:
     """2.5 kB over udp and over zenoh (both bridges clients of one router), through bench.py's
     cases: bench.bringup_files is wrapped to write the zenoh pair."""
-    router = Router(folder / "router-throughput.log")
+    router = Router()
     plain = bench.bringup_files
 
     def bringup_files(route: Route, msg_type: str, depth: int, where: Path,
@@ -244,36 +323,58 @@ def throughput(settings: bench.Settings, folder: Path) -> list[bench.Result]:
     return results
 
 
-def report(result: FleetResult | None, rates: list[bench.Result], elapsed: float) -> str:
+def report(fleets: list[FleetResult], rates: list[bench.Result], elapsed: float) -> str:
     parts = ["# rosgate fleet benchmark", "",
              f"{time.strftime('%Y-%m-%d %H:%M')}, rosgate {bench.revision()}, {os.cpu_count()} "
              f"cores, {elapsed / 60:.1f} min.", ""]
-    if result is not None:
-        r = result
-        offered = sum(r.sent.values()) / r.seconds
-        total = sum(r.delivered.values())
-        verdict = "MET" if r.ratio >= DELIVERED_TARGET and \
-            r.topics_published == r.robots * len(TOPICS) else "NOT MET"
+    if fleets:
+        first = fleets[0]
+        offered = sum(first.sent.values()) / first.seconds
+        expected = first.robots * len(TOPICS)
+
+        def row(label: str, cell) -> str:
+            return f"| {label} | " + " | ".join(cell(r) for r in fleets) + " |"
+
+        def share(part: int, whole: int) -> str:
+            return f"{part:,} of {whole:,} ({part / max(1, whole):.2%})"
+
         parts += [
-            f"## Fleet: {r.robots} robots x {len(TOPICS)} topics at 10 Hz through one zenoh "
-            "router into one base with fleet entries", "",
-            "| | |", "|---|--:|",
-            f"| robot topics published on the base's ROS side | {r.topics_published} of "
-            f"{r.robots * len(TOPICS)} |",
-            f"| measured phase | {r.seconds:.1f} s, {offered:,.0f} msg/s offered |",
-            *[f"| delivered {t} | {r.delivered[t]:,} of {r.sent[t]:,} "
-              f"({r.delivered[t] / max(1, r.sent[t]):.2%}) |" for t in TOPICS],
-            f"| delivered, all | {total:,} of {sum(r.sent.values()):,} ({r.ratio:.2%}) |",
-            f"| base CPU | {r.base_cpu:.1%} of one core "
-            f"({1e6 * r.base_cpu * r.seconds / max(1, total):.0f} µs per message) |",
-            f"| base RSS | {r.base_rss[0]:.0f} MB (peak {r.base_rss[1]:.0f} MB) |",
-            f"| router CPU | {r.router_cpu:.1%} of one core |",
-            f"| simulated robots' CPU (2 processes) | {r.robots_cpu:.1%} of one core |",
-            "", f"**target: every robot's topics published on the base, delivered >= "
-            f"{DELIVERED_TARGET:.0%}: {verdict} ({r.ratio:.2%})**"]
-        if r.base_problems:
-            parts += ["", "The base's warnings and drop counters:", "",
-                      *[f"- {line}" for line in r.base_problems[:10]]]
+            f"## Fleet: {first.robots} robots x {len(TOPICS)} topics at 10 Hz "
+            f"({offered:,.0f} msg/s) through one zenoh router into one base with fleet entries",
+            "", "With TLS, the router is `rosgate router --tls DIR --base fleet_base --robot "
+            "robot00 ...` (certificates from `rosgate certs`), the base says `tls: DIR`, and each "
+            "simulated robot's zenoh session presents its own certificate; the router's access "
+            "control lets each robot put only on its own keys. Without TLS, the same files say "
+            "`insecure: true` instead.", "",
+            "| | " + " | ".join(r.label for r in fleets) + " |",
+            "|---|" + "--:|" * len(fleets),
+            row("robot topics published on the base's ROS side",
+                lambda r: f"{r.topics_published} of {expected}"),
+            row("measured phase", lambda r: f"{r.seconds:.1f} s"),
+            *[row(f"delivered {t}", lambda r, t=t: share(r.delivered[t], r.sent[t]))
+              for t in TOPICS],
+            row("**delivered, all**",
+                lambda r: f"**{share(sum(r.delivered.values()), sum(r.sent.values()))}**"),
+            row("arrived changed (bytes equal no message sent)", lambda r: f"{r.changed}"),
+            row("base CPU", lambda r: f"{r.base_cpu:.1%} of one core "
+                f"({1e6 * r.base_cpu * r.seconds / max(1, sum(r.delivered.values())):.0f} "
+                "µs/msg)"),
+            row("base RSS", lambda r: f"{r.base_rss[0]:.0f} MB (peak {r.base_rss[1]:.0f} MB)"),
+            row("router CPU", lambda r: f"{r.router_cpu:.1%} of one core"),
+            row("simulated robots' CPU", lambda r: f"{r.robots_cpu:.1%} of one core "
+                f"({r.robot_processes} processes)"),
+            row("warm-up rounds", lambda r: f"{r.warm_up_rounds}"),
+            row("machine load (1-min loadavg, before / after)",
+                lambda r: f"{r.load[0]:.2f} / {r.load[1]:.2f}"),
+            row("other processes' share of the CPU meanwhile", lambda r: f"{r.others:.0%}"),
+            "", f"**target: every robot's topics published on the base, nothing changed, "
+            f"delivered >= {DELIVERED_TARGET:.1%}:** " + ", ".join(
+                f"{r.label}: **{'MET' if r.met else 'NOT MET'}** ({r.ratio:.2%})"
+                for r in fleets)]
+        for r in fleets:
+            if r.problems:
+                parts += ["", f"{r.label}: the base's and the router's warnings and drop "
+                          "counters:", "", *[f"- {line}" for line in r.problems[:10]]]
     if rates:
         parts += ["", "## 2.5 kB throughput: zenoh (through a router) vs udp, same run", "",
                   bench.table(rates)]
@@ -287,6 +388,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", type=int, default=50)
     parser.add_argument("--seconds", type=float, default=10.0, help="the measured phase")
+    parser.add_argument("--tls", choices=("both", "on", "off"), default="both",
+                        help="the fleet with TLS and access control, without, or both (default)")
     parser.add_argument("--full", action="store_true", help="bench.py's full throughput trials")
     parser.add_argument("--skip-fleet", action="store_true")
     parser.add_argument("--skip-throughput", action="store_true")
@@ -295,13 +398,16 @@ def main() -> int:
     start = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="rosgate-fleet-") as tmp:
         folder = Path(tmp)
-        result = None if args.skip_fleet else fleet(args.robots, args.seconds, folder)
+        modes = [] if args.skip_fleet else {"both": [True, False], "on": [True],
+                                            "off": [False]}[args.tls]
+        fleets = [fleet(args.robots, args.seconds, folder / ("tls" if tls else "plain"), tls)
+                  for tls in modes]
         rates = [] if args.skip_throughput else throughput(
             bench.FULL if args.full else bench.QUICK, folder)
-    text = report(result, rates, time.monotonic() - start)
+    text = report(fleets, rates, time.monotonic() - start)
     print(text)
     args.out.write_text(text)
-    failed = result is not None and result.ratio < DELIVERED_TARGET or any(r.error for r in rates)
+    failed = any(not r.met for r in fleets) or any(r.error for r in rates)
     return 1 if failed else 0
 
 

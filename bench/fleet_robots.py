@@ -1,12 +1,15 @@
 """Simulated robots for bench/fleet.py: plain zenoh sessions that speak as rosgate robots do.
 
-    python fleet_robots.py ENDPOINT FIRST COUNT
+    python fleet_robots.py ENDPOINT FIRST COUNT [--tls DIR]
 
 Each robot is a zenoh client session of its own with a liveliness token
-``rosgate/robotNN/@alive`` and three publishers, ``fleet/robotNN/{scan,odom,status}``: a
+``fleet/robotNN/@alive`` and three publishers, ``fleet/robotNN/{scan,odom,status}``: a
 LaserScan of ~2.5 kB (best effort: CongestionControl.DROP), an Odometry (~0.7 kB) and a 100 B
-String (reliable: BLOCK), each in a rosgate envelope (cipher none) around its CDR. Commands, one
-per line on stdin, one JSON line back on stdout:
+String (reliable: BLOCK), each in a rosgate envelope (cipher none) around its CDR. With
+``--tls DIR`` (a folder ``rosgate certs`` filled) every session is zenoh's mutual TLS, presenting
+``DIR/robotNN.pem`` as a rosgate bridge named robotNN does (``plugins: {zenoh: {tls: DIR}}``), so
+a router with access control lets each robot on its own keys only. Commands, one per line on
+stdin, one JSON line back on stdout:
 
     run PHASE SECONDS  -> {"sent": {"scan": n, ...}, "cpu_s": s, "wall_s": s}
                           every robot publishes its three topics at 10 Hz; PHASE (one letter)
@@ -17,6 +20,7 @@ per line on stdin, one JSON line back on stdout:
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import resource
@@ -26,6 +30,7 @@ import time
 import zenoh
 from nav_msgs.msg import Odometry
 from rclpy.serialization import serialize_message
+from rosgate_transport_zenoh.tls import zenoh_tls
 from sensor_msgs.msg import LaserScan
 from std_msgs.msg import String
 
@@ -34,6 +39,11 @@ from rosgate.wire.envelope import topic_id_for
 
 RATE = 10.0  # Hz, every topic
 TOPICS = ("scan", "odom", "status")
+PREFIX = "fleet"  # the robots' keys, their tokens', and the router's --prefix
+
+
+def robot_name(n: int) -> str:
+    return f"robot{n:02d}"
 
 
 def message(topic: str, phase: str) -> bytes:
@@ -49,13 +59,14 @@ def message(topic: str, phase: str) -> bytes:
 
 
 class Robot:
-    def __init__(self, endpoint: str, name: str):
-        config = zenoh.Config.from_json5(json.dumps({
-            "mode": "client", "connect": {"endpoints": [endpoint]},
-            "scouting": {"multicast": {"enabled": False}}}))
-        self.session = zenoh.open(config)
-        self.token = self.session.liveliness().declare_token(f"rosgate/{name}/@alive")
-        self.keys = {t: f"fleet/{name}/{t}" for t in TOPICS}
+    def __init__(self, endpoint: str, name: str, tls: str | None):
+        config: dict = {"mode": "client", "connect": {"endpoints": [endpoint]},
+                        "scouting": {"multicast": {"enabled": False}}}
+        if tls is not None:  # the transport.link.tls a rosgate bridge with `tls: DIR` uses
+            config["transport"] = {"link": {"tls": zenoh_tls(tls, name)}}
+        self.session = zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
+        self.token = self.session.liveliness().declare_token(f"{PREFIX}/{name}/@alive")
+        self.keys = {t: f"{PREFIX}/{name}/{t}" for t in TOPICS}
         block, drop = zenoh.CongestionControl.BLOCK, zenoh.CongestionControl.DROP
         self.publishers = {t: self.session.declare_publisher(
             key, congestion_control=drop if t == "scan" else block) for t, key in self.keys.items()}
@@ -90,8 +101,14 @@ def run(robots: list[Robot], phase: str, seconds: float) -> dict:
 
 
 def main() -> None:
-    endpoint, first, count = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-    robots = [Robot(endpoint, f"robot{n:02d}") for n in range(first, first + count)]
+    parser = argparse.ArgumentParser()
+    parser.add_argument("endpoint")
+    parser.add_argument("first", type=int)
+    parser.add_argument("count", type=int)
+    parser.add_argument("--tls", metavar="DIR")
+    args = parser.parse_args()
+    robots = [Robot(args.endpoint, robot_name(n), args.tls)
+              for n in range(args.first, args.first + args.count)]
     print(json.dumps("ready"), flush=True)
     try:
         for line in sys.stdin:

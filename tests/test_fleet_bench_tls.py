@@ -1,0 +1,38 @@
+"""The fleet benchmark's TLS path, small: ``bench/fleet.py`` with 3 robots through a real
+``rosgate router --tls DIR --base ... --robot ...`` (mutual TLS and access control) into a real
+``rosgate run`` base with fleet entries; the simulated robots (``bench/fleet_robots.py``) are
+zenoh TLS sessions, each presenting its own certificate from ``rosgate certs``; the counter
+(``bench/fleet_counter.py``) compares every message the base publishes with what the robots
+sent, field by field. So the code that makes the benchmark's TLS row cannot rot unseen."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+import fleet
+
+ROBOTS = 3
+SECONDS = 2.0
+
+
+def test_every_message_of_a_small_tls_fleet_arrives_unchanged(tmp_path, domain):
+    result = fleet.fleet(ROBOTS, SECONDS, tmp_path, True, domain=domain(), warm_up=1.0)
+    assert result.tls
+    robots = [f"robot{n:02d}" for n in range(ROBOTS)]
+    for name in ("ca", "router", fleet.BASE, *robots):  # made by rosgate certs
+        assert (tmp_path / "certs" / f"{name}.pem").is_file()
+    assert "listening on tls/127.0.0.1:" in (tmp_path / "router.log").read_text()
+    assert f"tls: {tmp_path / 'certs'}" in (tmp_path / "base.yaml").read_text()
+    base = (tmp_path / "base.log").read_text()
+    for robot in robots:  # each robot's token passed the router's access control
+        assert f"fleet: robot {robot} joined (its liveliness token)" in base
+    assert result.topics_published == ROBOTS * len(fleet.TOPICS)
+    sent = round(SECONDS * 10) * ROBOTS  # 10 Hz, every robot, every topic
+    assert result.sent == dict.fromkeys(fleet.TOPICS, sent)
+    assert result.delivered == result.sent, "every message of the measured phase arrived"
+    assert result.changed == 0, "each equal, field by field, to what its robot sent"
+    assert result.problems == []
+    assert result.met
