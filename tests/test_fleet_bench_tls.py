@@ -7,8 +7,11 @@ sent, field by field. So the code that makes the benchmark's TLS row cannot rot 
 
 from __future__ import annotations
 
+import subprocess
 import sys
 from pathlib import Path
+
+from conftest import ROSGATE
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
@@ -36,3 +39,23 @@ def test_every_message_of_a_small_tls_fleet_arrives_unchanged(tmp_path, domain):
     assert result.changed == 0, "each equal, field by field, to what its robot sent"
     assert result.problems == []
     assert result.met
+
+
+def test_check_counts_zenohs_own_tls_options_as_tls(tmp_path):
+    """A file may give zenoh's ``transport.link.tls`` itself instead of ``tls: DIR``: a
+    cipherless fleet entry is then accepted as on a TLS bus, and refused without it."""
+    tls = ("transport: {link: {tls: {root_ca_certificate: certs/ca.pem, enable_mtls: true, "
+           "connect_certificate: certs/base.pem, connect_private_key: certs/base.key}}}")
+    text = ("bridge: {{name: base, role: peer, defaults: {{transport: zenoh}}}}\n"
+            "plugins: {{zenoh: {{mode: client, connect: [tls/127.0.0.1:7447]{extra}}}}}\n"
+            "topics:\n  - {{topic: '/{{robot}}/odom', type: std_msgs/msg/String, "
+            "direction: receive, remote: 'fleet/{{robot}}/odom'}}\n")
+    path = tmp_path / "base.yaml"
+    results = {}
+    for name, extra in (("zenoh's own", ", " + tls), ("none", "")):
+        path.write_text(text.format(extra=extra))
+        results[name] = subprocess.run([ROSGATE, "check", str(path)], capture_output=True,
+                                       text=True, timeout=60)
+    assert results["zenoh's own"].returncode == 0, results["zenoh's own"].stderr
+    assert results["none"].returncode == 2
+    assert "topics[0].cipher" in results["none"].stderr
