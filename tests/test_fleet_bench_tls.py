@@ -3,7 +3,9 @@
 ``rosgate run`` base with fleet entries; the simulated robots (``bench/fleet_robots.py``) are
 zenoh TLS sessions, each presenting its own certificate from ``rosgate certs``; the counter
 (``bench/fleet_counter.py``) compares every message the base publishes with what the robots
-sent, field by field. So the code that makes the benchmark's TLS row cannot rot unseen."""
+sent, field by field. So the code that makes the benchmark's TLS row cannot rot unseen. Beside
+it, what that row relies on from the router's access control, at the zenoh level, and how
+``rosgate check`` reads zenoh's own TLS options."""
 
 from __future__ import annotations
 
@@ -11,7 +13,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-from conftest import ROSGATE
+import zenoh
+from conftest import ROSGATE, wait_until
+from test_zenoh_fleet import Router
+from test_zenoh_tls import TIMEOUT, as_bridge, session
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
@@ -59,3 +64,48 @@ def test_check_counts_zenohs_own_tls_options_as_tls(tmp_path):
     assert results["zenoh's own"].returncode == 0, results["zenoh's own"].stderr
     assert results["none"].returncode == 2
     assert "topics[0].cipher" in results["none"].stderr
+
+
+def test_through_the_access_control_a_robot_reaches_a_fleet_subscription(tmp_path):
+    """What a base's fleet entry needs from ``rosgate router --tls --robot --base``: a robot's
+    declared publisher puts on its own key into the base's ``fleet/*/odom`` (a key expression no
+    robot owns, which the robot must still learn of, or its publisher sends nothing); its token
+    under the router's prefix reaches the base, one under the plugin's default prefix does not;
+    and another robot hears none of it."""
+    certs = fleet.certificates(tmp_path, ["robot1", "robot2"])
+    router = Router("--tls", str(certs), "--robot", "robot1", "--robot", "robot2", "--base",
+                    fleet.BASE, scheme="tls")
+    sessions = []
+    try:
+        base, robot1, robot2 = (session(router, as_bridge(certs, name))
+                                for name in (fleet.BASE, "robot1", "robot2"))
+        sessions += [base, robot1, robot2]
+        got: dict[str, list[str]] = {"base": [], "tokens": [], "robot2": []}
+
+        def into(name: str):
+            return zenoh.handlers.Callback(
+                lambda s: got[name].append(f"{s.key_expr} {s.payload.to_bytes().decode()}"),
+                indirect=False)
+
+        base.declare_subscriber("fleet/*/odom", into("base"))
+        base.liveliness().declare_subscriber("fleet/*/@alive", into("tokens"))
+        base.liveliness().declare_subscriber("rosgate/*/@alive", into("tokens"))
+        robot2.declare_subscriber("fleet/robot1/**", into("robot2"))
+        odom = robot1.declare_publisher("fleet/robot1/odom")
+        _tokens = [robot1.liveliness().declare_token(f"{prefix}/robot1/@alive")
+                  for prefix in ("rosgate", "fleet")]
+        n = 0
+        while not wait_until(lambda: bool(got["base"]), 0.2):
+            assert n < 100, "robot1's publisher never reached the base's fleet subscription"
+            n += 1
+            odom.put(f"odom {n}")
+        odom.put("last")
+        assert wait_until(lambda: got["base"][-1] == "fleet/robot1/odom last", TIMEOUT)
+        assert got["base"][-2:] == [f"fleet/robot1/odom odom {n}", "fleet/robot1/odom last"]
+        assert wait_until(lambda: bool(got["tokens"]), TIMEOUT)
+        assert [t.split()[0] for t in got["tokens"]] == ["fleet/robot1/@alive"]
+        assert got["robot2"] == []
+    finally:
+        for s in sessions:
+            s.close()
+        router.stop()
