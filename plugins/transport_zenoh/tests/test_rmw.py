@@ -23,10 +23,9 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
-from zenoh.ext import Int64, z_serialize
-
 from rosgate_transport_zenoh import rmw
 from rosgate_transport_zenoh.rmw import Entity, Kind, Node, Qos
+from zenoh.ext import Int64, z_serialize
 
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 ZID = "26f163a320e95b83d877a2c32706d88a"

@@ -28,11 +28,14 @@ Tokens (every ``/`` inside a part written ``%``; an empty namespace is ``/``, so
     @ros2_lv/<domain>/<zid>/<nid>/<id>/MP|MS|SS|SC/<enclave>/<namespace>/<node>/<name>/<type>/<hash>/<qos>
 
 ``<zid>`` is the session's zenoh id as zenoh writes it; ``<nid>`` the node's and ``<id>`` the
-entity's number in their process. ``<qos>`` is
-``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:<liveliness>,<lease s>,<ns>``
-in rmw's numbers, each field left empty where it is rmw_zenoh's default (reliable, transient
-local, keep last 42, no deadline, no lifespan, automatic liveliness with no lease): a
-volatile, reliable, keep-last-10 publisher is ``:2:,10:,:,:,,``.
+entity's number in their process. ``<qos>`` is, in rmw's numbers::
+
+    <reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:
+    <liveliness>,<lease s>,<ns>                                      (one part, no line break)
+
+each field left empty where it is rmw_zenoh's default (reliable, transient local, keep last 42,
+no deadline, no lifespan, automatic liveliness with no lease): a volatile, reliable,
+keep-last-10 publisher is ``:2:,10:,:,:,,``.
 
 rmw_zenoh makes an entity's GID from an XXH3-128 hash of its token; this module takes the first
 16 bytes of its SHA-256 instead (no XXH3 here). Either is unique per token; rmw_zenoh only
