@@ -18,6 +18,7 @@ import json
 import struct
 import threading
 import time
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -27,6 +28,7 @@ from geometry_msgs.msg import Twist
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import String
+from test_cli import rosgate, user_error
 from test_zenoh_fleet import Router, zenoh_plugin
 
 TIMEOUT = 20.0
@@ -95,10 +97,8 @@ def router():
     r.stop()
 
 
-@pytest.fixture
-def bot1(tmp_path, router, bridge, domain):
-    d = domain()
-    path = tmp_path / "bot1.yaml"
+def bot1_file(tmp: Path, router: Router, more: str = "") -> Path:
+    path = tmp / "bot1.yaml"
     path.write_text(f"""\
 bridge: {{name: bot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}}}
 {zenoh_plugin(router, ", speak: rmw_zenoh")}topics:
@@ -108,8 +108,14 @@ bridge: {{name: bot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}}}
       remote: /robot1/cmd_vel, qos: {{reliability: best_effort, depth: 5}}}}
   - {{topic: /map, type: std_msgs/msg/String, direction: transmit, framing: none,
       qos: {{durability: transient_local, depth: 3}}}}
-""")
-    return bridge(path, d), d
+""" + more)
+    return path
+
+
+@pytest.fixture
+def bot1(tmp_path, router, bridge, domain):
+    d = domain()
+    return bridge(bot1_file(tmp_path, router), d), d
 
 
 @pytest.fixture
@@ -265,3 +271,24 @@ def test_rosgate_logs_the_rmw_zenoh_nodes_it_sees(bot1, rmw_node):
     rmw_node.close()
     assert bridge_.wait_log(f"rmw_zenoh {rmw_node.zid}: /listener is gone", TIMEOUT), \
         bridge_.log
+
+
+def test_check_says_which_entries_speak_rmw_zenoh(tmp_path, router):
+    path = bot1_file(tmp_path, router, "  - {topic: /status, type: std_msgs/msg/String, "
+                     "direction: transmit}\n")
+    result = rosgate("check", str(path))
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert "  /chatter -> chatter  [std_msgs/msg/String] zenoh cdr none  (rmw_zenoh)" in lines
+    assert ("  /cmd_vel <- robot1/cmd_vel  [geometry_msgs/msg/Twist] zenoh cdr none  (rmw_zenoh)"
+            in lines)
+    assert "  /status -> rosgate/bot1/status  [std_msgs/msg/String] zenoh cdr none" in lines, \
+        "an entry with rosgate's envelope stays rosgate's"
+
+
+def test_check_refuses_a_key_that_is_no_ros_name(tmp_path, router):
+    path = bot1_file(tmp_path, router, "  - {topic: /odom, type: std_msgs/msg/String, "
+                     "direction: transmit, framing: none, remote: /robot-1/odom}\n")
+    text = user_error(rosgate("check", str(path)))
+    assert f"{path}:11: topics[3].remote: 'robot-1/odom' is not a ROS name" in text, text
+    assert "e.g. remote: /robot1/cmd_vel" in text
