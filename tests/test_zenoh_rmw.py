@@ -28,12 +28,16 @@ from geometry_msgs.msg import Twist
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import String
+from std_srvs.srv import SetBool
 from test_cli import rosgate, user_error
+from test_services import DEEP, Caller, echo_set_bool
 from test_zenoh_fleet import Router, zenoh_plugin
 
 TIMEOUT = 20.0
 STRING = ("std_msgs::msg::dds_::String_",
           "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18")
+SETBOOL = ("std_srvs::srv::dds_::SetBool_",
+           "RIHS01_abe9e4bb6b41b40e6789712c00ec8871923e089af3f667a79992a428cff2da0a")
 TWIST = ("geometry_msgs::msg::dds_::Twist_",
          "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a")
 LATCHED = QoSProfile(depth=3, durability=DurabilityPolicy.TRANSIENT_LOCAL,
@@ -108,7 +112,11 @@ bridge: {{name: bot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}}}
       remote: /robot1/cmd_vel, qos: {{reliability: best_effort, depth: 5}}}}
   - {{topic: /map, type: std_msgs/msg/String, direction: transmit, framing: none,
       qos: {{durability: transient_local, depth: 3}}}}
-""" + more)
+""" + more + """\
+services:
+  - {service: /set, type: std_srvs/srv/SetBool, direction: receive, remote: /robot1/set}
+  - {service: /rmw_set, type: std_srvs/srv/SetBool, direction: transmit, remote: /rmw_set}
+""")
     return path
 
 
@@ -131,6 +139,8 @@ def test_an_rmw_zenoh_node_sees_rosgate_in_its_graph_before_any_data(bot1, rmw_n
         ("MP", "%chatter", *STRING, ":2:,10:,:,:,,"),  # reliable, volatile, keep last 10
         ("MS", "%robot1%cmd_vel", *TWIST, "2:2:,5:,:,:,,"),  # best effort, volatile, 5
         ("MP", "%map", *STRING, "::,3:,:,:,,"),  # reliable, transient local (defaults), 3
+        ("SS", "%robot1%set", *SETBOOL, ":2:,10:,:,:,,"),  # ROS's services profile
+        ("SC", "%rmw_set", *SETBOOL, ":2:,10:,:,:,,"),
     }
 
     def entities() -> set[tuple[str, ...]]:
@@ -148,7 +158,7 @@ def test_an_rmw_zenoh_node_sees_rosgate_in_its_graph_before_any_data(bot1, rmw_n
         assert parts[:4] == node[:4], "every entity is the bridge's node's, in its domain"
         assert parts[6:9] == node[6:9]
     entity_ids = [p[4] for p in tokens if p[5] != "NN"]
-    assert len(set(entity_ids)) == 3 and node[4] not in entity_ids
+    assert len(set(entity_ids)) == 5 and node[4] not in entity_ids
 
 
 def test_a_message_from_rclpy_reaches_an_rmw_zenoh_subscriber_with_its_attachment(
@@ -284,6 +294,8 @@ def test_check_says_which_entries_speak_rmw_zenoh(tmp_path, router):
             in lines)
     assert "  /status -> rosgate/bot1/status  [std_msgs/msg/String] zenoh cdr none" in lines, \
         "an entry with rosgate's envelope stays rosgate's"
+    assert "  /set <- robot1/set  [std_srvs/srv/SetBool] zenoh cdr none  (rmw_zenoh)" in lines
+    assert "  /rmw_set -> rmw_set  [std_srvs/srv/SetBool] zenoh cdr none  (rmw_zenoh)" in lines
 
 
 def test_check_refuses_a_key_that_is_no_ros_name(tmp_path, router):
@@ -292,3 +304,76 @@ def test_check_refuses_a_key_that_is_no_ros_name(tmp_path, router):
     text = user_error(rosgate("check", str(path)))
     assert f"{path}:11: topics[3].remote: 'robot-1/odom' is not a ROS name" in text, text
     assert "e.g. remote: /robot1/cmd_vel" in text
+
+
+def test_an_rmw_zenoh_client_calls_a_service_rosgate_bridges(bot1, rmw_node, ros_side):
+    bridge_, d = bot1
+    ros_side(d, "server").ros.node.create_service(SetBool, "/set", echo_set_bool,
+                                                  qos_profile=DEEP)
+    rmw_node.announce("SC", "/robot1/set", SETBOOL, ":2:,10:,:,:,,")
+    key = rmw_node.key("/robot1/set", SETBOOL)
+
+    def call(data: bool, attachment: bytes | None) -> list[zenoh.Reply]:
+        # rmw_send_request: the request's CDR, the call's attachment, every complete queryable
+        return [r for r in rmw_node.session.get(
+            key, payload=serialize_message(SetBool.Request(data=data)), attachment=attachment,
+            target=zenoh.QueryTarget.ALL_COMPLETE, timeout=5) if r.ok is not None]
+
+    deadline = time.monotonic() + TIMEOUT
+    while not (replies := call(True, rmw_node.attachment())):
+        assert time.monotonic() < deadline, "the service never answered"  # ROS discovery
+        time.sleep(0.2)
+    asked = rmw_node.seq
+    assert len(replies) == 1 and str(replies[0].ok.key_expr) == key
+    answer = deserialize_message(replies[0].ok.payload.to_bytes(), SetBool.Response)
+    assert (answer.success, answer.message) == (True, "data=True")
+    assert replies[0].ok.attachment is not None
+    seq, stamp, gid = read_attachment(replies[0].ok.attachment.to_bytes())
+    assert (seq, gid) == (asked, bytes(range(16))), "the call's number and the caller's GID"
+    assert abs(stamp - time.time_ns()) < 30 * 10**9
+    replies = call(False, rmw_node.attachment())
+    assert read_attachment(replies[0].ok.attachment.to_bytes())[0] == asked + 1
+    answer = deserialize_message(replies[0].ok.payload.to_bytes(), SetBool.Response)
+    assert (answer.success, answer.message) == (True, "data=False")
+    assert call(True, None) == [], "a call without its attachment gets no answer"
+    assert bridge_.wait_log(f"dropped (bad_attachment): a call on {key}: no attachment",
+                            TIMEOUT), bridge_.log
+
+
+def test_rosgate_calls_a_service_an_rmw_zenoh_node_serves(bot1, rmw_node, ros_side):
+    _bridge, d = bot1
+    key = rmw_node.key("/rmw_set", SETBOOL)
+    seen: list[tuple[bool, bytes | None]] = []
+
+    def serve(query: zenoh.Query) -> None:  # rmw_service_data.cpp, seen from outside
+        attachment = query.attachment.to_bytes() if query.attachment is not None else None
+        data = deserialize_message(query.payload.to_bytes(), SetBool.Request).data
+        seen.append((data, attachment))
+        seq, _stamp, gid = read_attachment(attachment or b"")
+        query.reply(key, serialize_message(SetBool.Response(
+            success=not data, message=f"rmw node got {data}")),
+            attachment=struct.pack("<qqB", seq, time.time_ns(), 16) + gid)
+
+    queryable = rmw_node.session.declare_queryable(
+        key, zenoh.handlers.Callback(serve, indirect=False), complete=True)
+    rmw_node.announce("SS", "/rmw_set", SETBOOL, ":2:,10:,:,:,,")
+    caller = Caller(ros_side(d, "client"), SetBool, "/rmw_set")
+    answers = caller.call_many([SetBool.Request(data=False), SetBool.Request(data=True)], 10)
+    queryable.undeclare()
+    assert [(a.success, a.message) for a in answers] == [(True, "rmw node got False"),
+                                                         (False, "rmw node got True")]
+    assert sorted(data for data, _ in seen) == [False, True]
+    calls = [read_attachment(a) for _, a in seen if a is not None]
+    assert len(calls) == 2, "every call carries rmw_zenoh's attachment"
+    assert sorted(seq for seq, _, _ in calls) == [1, 2], "numbered from 1, one up per call"
+    assert len({gid for _, _, gid in calls}) == 1, "one client, one GID"
+
+
+def test_check_wants_the_name_of_a_service_on_the_rmw_zenoh_side(tmp_path, router):
+    path = bot1_file(tmp_path, router)
+    path.write_text(path.read_text() + (
+        "  - {service: /reset, type: std_srvs/srv/SetBool, direction: receive}\n"))
+    text = user_error(rosgate("check", str(path)))
+    assert f"{path}:14: services[2].service: a service rmw_zenoh nodes " \
+           "call or serve needs remote:" in text, text
+    assert "add remote: /reset to this entry" in text

@@ -203,6 +203,10 @@ class ZenohTransport(BusTransport):
         info = session.info
         log.info("%s: zenoh session %s (%s), routers %s", name, session.zid(), self.options.mode,
                  [str(z) for z in info.routers_zid()] or "none")
+        if self.options.speak == "rmw_zenoh":
+            from .rmw_dialect import RmwSession
+
+            return RmwSession(session)
         return ZenohSession(session)
 
 
