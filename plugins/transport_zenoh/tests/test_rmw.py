@@ -176,3 +176,26 @@ def test_the_keyed_attachment_of_rmw_zenoh_before_0_2_4_is_read_too():
 def test_an_attachment_that_is_not_rmw_zenohs_is_refused(data):
     with pytest.raises(ValueError):
         rmw.read_attachment(data)
+
+
+# -- the graph rosgate reads ----------------------------------------------------------------------
+def test_the_graph_counts_other_nodes_entities_and_ignores_its_own_and_junk(caplog):
+    from rosgate_transport_zenoh.rmw_dialect import Graph
+
+    other = Node(7, "aa11", "0", "listener", namespace="/ns")
+    sub = Entity(other, "1", Kind.SUBSCRIBER, "/chatter", "std_msgs/msg/String", STRING_HASH)
+    mine = Entity(NODE, "1", Kind.PUBLISHER, "/chatter", "std_msgs/msg/String", STRING_HASH)
+    graph = Graph(ZID)
+    with caplog.at_level("INFO", logger="rosgate"):
+        for token in (other.token(), sub.token(), sub.token(), mine.token(), NODE.token(),
+                      "@ros2_lv/7/aa11/0/1/MS/%/%", "@ros2_lv/7/aa11/0/1/MS/%/%/x/%t/y/z/q"):
+            graph.changed(token, True)
+    assert dict(graph.counts) == {"node": 1, "subscriber": 1}, "its own and junk are not counted"
+    assert graph.known == {other.token(): other, sub.token(): sub}
+    assert "rmw_zenoh aa11: /ns/listener" in caplog.text
+    assert "rmw_zenoh aa11: subscriber on /chatter [std_msgs/msg/String] of listener" in caplog.text
+    with caplog.at_level("INFO", logger="rosgate"):
+        graph.changed(sub.token(), False)
+        graph.changed(sub.token(), False)  # a second departure changes nothing
+    assert dict(graph.counts) == {"node": 1, "subscriber": 0}
+    assert "subscriber on /chatter [std_msgs/msg/String] of listener is gone" in caplog.text
