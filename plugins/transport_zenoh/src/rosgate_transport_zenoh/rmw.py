@@ -3,8 +3,8 @@
 the graph's liveliness tokens. Text and bytes only: no session here.
 
 Followed: rmw_zenoh 0.2.4 and later on Jazzy (the zenoh 1.x line; the attachment format of
-``attachment_helpers.cpp`` since "Change serialization format", #605), which rolling shares.
-Read from the source: ``liveliness_utils.cpp`` (keys, tokens, mangling, QoS), ``qos.cpp`` (the
+``attachment_helpers.cpp`` since its "Change serialization format" of 0.2.4), which rolling
+shares. Read from the source: ``liveliness_utils.cpp`` (keys, tokens, mangling, QoS), ``qos.cpp`` (the
 defaults a token leaves out), ``attachment_helpers.cpp`` and ``rmw_publisher_data.cpp``
 (attachment, sequence numbers from 1), ``type_support_common.cpp`` (type names).
 
@@ -38,8 +38,12 @@ no deadline, no lifespan, automatic liveliness with no lease): a volatile, relia
 keep-last-10 publisher is ``:2:,10:,:,:,,``.
 
 rmw_zenoh makes an entity's GID from an XXH3-128 hash of its token; this module takes the first
-16 bytes of its SHA-256 instead (no XXH3 here). Either is unique per token; rmw_zenoh only
-passes the attachment's GID on to the subscriber's message info, and checks it against nothing.
+16 bytes of its SHA-256 instead (no XXH3 here). Either is unique per token: rmw_zenoh uses the
+attachment's GID to tell publishers (and a service's callers) apart, never to look one up in
+the graph.
+
+Services use the same key and attachment: a client's query carries one (its own numbers and
+GID); the server answers with the call's sequence number, a timestamp and the caller's GID.
 """
 
 from __future__ import annotations
