@@ -4,9 +4,10 @@ the graph's liveliness tokens. Text and bytes only: no session here.
 
 Followed: rmw_zenoh 0.2.4 and later on Jazzy (the zenoh 1.x line; the attachment format of
 ``attachment_helpers.cpp`` since its "Change serialization format" of 0.2.4), which rolling
-shares. Read from the source: ``liveliness_utils.cpp`` (keys, tokens, mangling, QoS), ``qos.cpp`` (the
-defaults a token leaves out), ``attachment_helpers.cpp`` and ``rmw_publisher_data.cpp``
-(attachment, sequence numbers from 1), ``type_support_common.cpp`` (type names).
+shares. Read from the source: ``liveliness_utils.cpp`` (keys, tokens, mangling, QoS),
+``qos.cpp`` (the defaults a token leaves out), ``attachment_helpers.cpp`` and
+``rmw_publisher_data.cpp`` (attachment, sequence numbers from 1), ``rmw_service_data.cpp``
+(answers), ``type_support_common.cpp`` (type names).
 
 Data key::
 
