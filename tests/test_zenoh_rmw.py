@@ -101,11 +101,11 @@ def router():
     r.stop()
 
 
-def bot1_file(tmp: Path, router: Router, more: str = "") -> Path:
+def bot1_file(tmp: Path, router: Router, more: str = "", options: str = "") -> Path:
     path = tmp / "bot1.yaml"
     path.write_text(f"""\
 bridge: {{name: bot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}}}
-{zenoh_plugin(router, ", speak: rmw_zenoh")}topics:
+{zenoh_plugin(router, ", speak: rmw_zenoh" + options)}topics:
   - {{topic: /chatter, type: std_msgs/msg/String, direction: transmit, framing: none,
       qos: {{depth: 10}}}}
   - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: receive, framing: none,
@@ -377,3 +377,26 @@ def test_check_wants_the_name_of_a_service_on_the_rmw_zenoh_side(tmp_path, route
     assert f"{path}:14: services[2].service: a service rmw_zenoh nodes " \
            "call or serve needs remote:" in text, text
     assert "add remote: /reset to this entry" in text
+
+
+def test_the_rmw_zenoh_side_may_have_a_domain_of_its_own(tmp_path, router, bridge, domain,
+                                                         ros_side):
+    d = domain()  # the bridge's DDS side; the rmw_zenoh nodes are in domain 42
+    bridge(bot1_file(tmp_path, router, options=", domain: 42"), d)
+    node = RmwNode(router, 42)
+    try:
+        assert wait_until(lambda: len(node.graph()) == 6, TIMEOUT), node.graph()
+        assert {p[1] for p in node.graph()} == {"42"}
+        got: list[bytes] = []
+        node.session.declare_subscriber(node.key("/chatter", STRING), zenoh.handlers.Callback(
+            lambda s: got.append(s.payload.to_bytes()), indirect=False))
+        publisher = ros_side(d, "talker").publisher("/chatter", String, 10)
+        payload = serialize_message(String(data="to domain 42"))
+        deadline = time.monotonic() + TIMEOUT
+        while not wait_until(lambda: bool(got), 0.2):
+            assert time.monotonic() < deadline, "nothing arrived on 42/chatter/..."
+            publisher.publish(payload)
+        assert got[0][:len(payload)] == payload  # DDS may pad it to a 4-byte boundary
+        assert deserialize_message(got[0], String).data == "to domain 42"
+    finally:
+        node.close()

@@ -8,7 +8,7 @@ name on the rmw_zenoh side); ``rosgate check`` marks them ``(rmw_zenoh)``.
 
 * The entry's key is the ROS name the rmw_zenoh side knows the topic by (its ``remote``, or its
   name), and its data goes on ``<domain>/<name>/<type>/<hash>`` with the type's RIHS01 hash;
-  the domain is this bridge's ROS domain.
+  the domain is the plugin's ``domain`` option, by default this bridge's own ROS domain.
 * Each bus link is one node in rmw_zenoh's graph (``NN``, named as the bridge's ROS node, in
   namespace ``/`` and enclave ``/``); each entry one entity of it: ``MP`` for a topic sent out,
   ``MS`` for one received, with its type, hash and QoS. Tokens are declared before any data.
@@ -169,7 +169,9 @@ class RmwZenoh:
         found = self._nodes.get(id(link))
         if found is None:
             session: ZenohSession = link.session  # type: ignore[assignment]
-            domain = wiring.router.ros.context.get_domain_id()
+            domain = link.transport.options.domain
+            if domain is None:
+                domain = wiring.router.ros.context.get_domain_id()
             name = re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{wiring.name}")  # as its ROS node
             found = self._nodes[id(link)] = _Node(rmw.Node(domain, session.zid(), "0", name))
             link.token(found.node.token())

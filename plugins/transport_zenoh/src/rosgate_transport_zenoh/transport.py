@@ -23,7 +23,7 @@ from .tls import zenoh_tls
 
 log = logging.getLogger("rosgate.zenoh")
 
-OWN_OPTIONS = ("prefix", "namespace", "speak", "tls", "insecure")
+OWN_OPTIONS = ("prefix", "namespace", "speak", "domain", "tls", "insecure")
 _ZENOH = "zenoh's own, passed through (see zenoh's DEFAULT_CONFIG.json5)"
 _PRIORITIES = (zenoh.Priority.REAL_TIME, zenoh.Priority.INTERACTIVE_HIGH,
                zenoh.Priority.INTERACTIVE_LOW, zenoh.Priority.DATA_HIGH, zenoh.Priority.DATA,
@@ -105,6 +105,9 @@ class ZenohTransport(BusTransport):
             "announced, cached and called as zenoh-bridge-ros2dds does; rmw_zenoh: framing-none "
             "topics (codec cdr) are keyed, attached and announced as rmw_zenoh nodes do; "
             "rosgate: rosgate's own")
+        domain: int | None = option(
+            None, "speak: rmw_zenoh: the ROS domain id of the rmw_zenoh nodes (the first part "
+            "of their keys and tokens); default: this bridge's own (ROS_DOMAIN_ID)", minimum=0)
         tls: str | None = option(
             None, "a folder of certificates made by 'rosgate certs': mutual TLS with the "
             "fleet's CA, presenting <bridge name>.pem (endpoints tls/<host>:<port>)")
