@@ -102,9 +102,9 @@ class ZenohTransport(BusTransport):
                                 "zenoh-bridge-ros2dds' namespace (shadows zenoh's own)")
         speak: Literal["rosgate", "ros2dds", "rmw_zenoh"] = option(
             "rosgate", "ros2dds: framing-none topics and cipher-none services (codec cdr) are "
-            "announced, cached and called as zenoh-bridge-ros2dds does; rmw_zenoh: framing-none "
-            "topics (codec cdr) are keyed, attached and announced as rmw_zenoh nodes do; "
-            "rosgate: rosgate's own")
+            "announced, cached and called as zenoh-bridge-ros2dds does; rmw_zenoh: the same "
+            "entries are keyed, attached and announced as rmw_zenoh nodes do; rosgate: "
+            "rosgate's own")
         domain: int | None = option(
             None, "speak: rmw_zenoh: the ROS domain id of the rmw_zenoh nodes (the first part "
             "of their keys and tokens); default: this bridge's own (ROS_DOMAIN_ID)", minimum=0)
