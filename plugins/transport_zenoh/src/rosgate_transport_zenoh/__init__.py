@@ -5,7 +5,7 @@ bridge holds a liveliness token. Zenoh routes, fragments, discovers and reconnec
 keeps its envelope and cipher (``framing: rosgate``) or sends the codec's bytes bare
 (``framing: none``, the zenoh-bridge-ros2dds convention with ``codec: cdr``).
 
-Options (``plugins: {zenoh: {...}}``): five are rosgate's —
+Options (``plugins: {zenoh: {...}}``): six are rosgate's —
 
 * ``prefix`` (default ``rosgate``): the first part of rosgate's own keys,
   ``<prefix>/<bridge name>/<topic>``, and of its liveliness tokens ``<prefix>/<name>/@alive``.
@@ -13,7 +13,9 @@ Options (``plugins: {zenoh: {...}}``): five are rosgate's —
 * ``namespace`` (default ``/``, none): the key of a ``framing: none`` entry without ``remote`` is
   ``<namespace>/<ROS name>``, as zenoh-bridge-ros2dds' ``namespace`` option makes it.
 * ``speak`` (default ``rosgate``): ``ros2dds`` wires bare-CDR entries as zenoh-bridge-ros2dds
-  does — liveliness tokens, publication caches, raw service calls (:mod:`.dialect`).
+  does — liveliness tokens, publication caches, raw service calls (:mod:`.dialect`);
+  ``rmw_zenoh`` wires bare-CDR topics as a node running rmw_zenoh does — its keys, attachments
+  and graph tokens (:mod:`.rmw_dialect`), in the ROS domain ``domain`` (default: the bridge's).
 * ``tls``: a folder made by ``rosgate certs``: zenoh's mutual TLS with the fleet's CA, and
   ``insecure`` (default false): allow cipherless fleet entries without TLS, loudly (:mod:`.tls`).
 

@@ -23,7 +23,7 @@ from .tls import zenoh_tls
 
 log = logging.getLogger("rosgate.zenoh")
 
-OWN_OPTIONS = ("prefix", "namespace", "speak", "tls", "insecure")
+OWN_OPTIONS = ("prefix", "namespace", "speak", "domain", "tls", "insecure")
 _ZENOH = "zenoh's own, passed through (see zenoh's DEFAULT_CONFIG.json5)"
 _PRIORITIES = (zenoh.Priority.REAL_TIME, zenoh.Priority.INTERACTIVE_HIGH,
                zenoh.Priority.INTERACTIVE_LOW, zenoh.Priority.DATA_HIGH, zenoh.Priority.DATA,
@@ -53,7 +53,7 @@ def zenoh_config(options: Mapping[str, Any]) -> zenoh.Config:
         multicast = scouting.setdefault("multicast", {})
         if isinstance(multicast, dict):
             multicast.setdefault("enabled", False)
-    if options.get("speak") == "ros2dds":  # its publication caches order samples by timestamp
+    if options.get("speak") in ("ros2dds", "rmw_zenoh"):  # caches order samples by timestamp
         given.setdefault("timestamping", {"enabled": True})
     config = zenoh.Config()
     for key, value in given.items():
@@ -100,9 +100,14 @@ class ZenohTransport(BusTransport):
                              "and liveliness tokens; the same across a fleet")
         namespace: str = option("/", "framing: none keys are <namespace>/<ROS name>, as "
                                 "zenoh-bridge-ros2dds' namespace (shadows zenoh's own)")
-        speak: Literal["rosgate", "ros2dds"] = option(
+        speak: Literal["rosgate", "ros2dds", "rmw_zenoh"] = option(
             "rosgate", "ros2dds: framing-none topics and cipher-none services (codec cdr) are "
-            "announced, cached and called as zenoh-bridge-ros2dds does; rosgate: rosgate's own")
+            "announced, cached and called as zenoh-bridge-ros2dds does; rmw_zenoh: the same "
+            "entries are keyed, attached and announced as rmw_zenoh nodes do; rosgate: "
+            "rosgate's own")
+        domain: int | None = option(
+            None, "speak: rmw_zenoh: the ROS domain id of the rmw_zenoh nodes (the first part "
+            "of their keys and tokens); default: this bridge's own (ROS_DOMAIN_ID)", minimum=0)
         tls: str | None = option(
             None, "a folder of certificates made by 'rosgate certs': mutual TLS with the "
             "fleet's CA, presenting <bridge name>.pem (endpoints tls/<host>:<port>)")
@@ -159,6 +164,10 @@ class ZenohTransport(BusTransport):
             from .dialect import Ros2dds
 
             self.dialect = Ros2dds()
+        elif self.options.speak == "rmw_zenoh":
+            from .rmw_dialect import RmwZenoh
+
+            self.dialect = RmwZenoh()
 
     def check_key(self, key: str) -> str:
         return check_key(key)
@@ -197,6 +206,10 @@ class ZenohTransport(BusTransport):
         info = session.info
         log.info("%s: zenoh session %s (%s), routers %s", name, session.zid(), self.options.mode,
                  [str(z) for z in info.routers_zid()] or "none")
+        if self.options.speak == "rmw_zenoh":
+            from .rmw_dialect import RmwSession
+
+            return RmwSession(session)
         return ZenohSession(session)
 
 
