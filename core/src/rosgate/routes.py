@@ -321,7 +321,7 @@ class TransmitRoute(Route):
         #: and the one its subscription has (None: the entry's own)
         self.qos_in_use: dict[str, Any] | None = None
         #: the batch window (seconds, 0: none), its node's open windows, and what came in it
-        self.window = topic.batch
+        self.window = topic.batch or 0.0
         self.batches = Batches()
         self.pending: list[Any] = []
 
