@@ -618,6 +618,7 @@ SIDES = {"peer": ("bridge A, transmit: DDS subscription -> link",
                   "bridge B, receive: link -> DDS publisher"),
          "client/server": ("bridge A, the client, transmit: DDS subscription -> link",
                            "bridge B, the server, receive: link -> DDS publisher")}
+SIDES["session"] = SIDES["client/server"]  # the same processes, authenticated
 
 
 def profile_stem(size: Size, route: Route) -> str:
