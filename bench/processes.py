@@ -270,6 +270,8 @@ class Route:
     max_frame: int | None = 65_000
     #: the topic's QoS in both files, the publisher's and the subscriber's
     reliability: str = "reliable"
+    #: the topic's batch window as the file writes it ("2ms"); "": none
+    batch: str = ""
 
     @property
     def default_file(self) -> bool:
@@ -282,7 +284,7 @@ class Route:
         name = f"{self.transport}/{self.codec}/{self.cipher}"
         if self.default_file:
             qos = "best effort" if self.reliability == "best_effort" else "reliable"
-            return f"default file, {qos}"
+            return f"default file, {qos}" + (f", batch {self.batch}" if self.batch else "")
         if self.roles == "session":
             return f"{name} client/server authenticated"
         if self.roles == "floor":
@@ -342,7 +344,8 @@ def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
     link = ("" if route.default_file else
             f"transport: {route.transport}, codec: {route.codec}, cipher: {route.cipher}, ")
     topic = (f"{{topic: /bench, type: {msg_type}, {link}"
-             f"qos: {{reliability: {reliability}, history: keep_last, depth: {depth}}}")
+             f"qos: {{reliability: {reliability}, history: keep_last, depth: {depth}}}"
+             + (f", batch: {route.batch}" if route.batch else ""))
     if route.roles == "peer":
         # a peer without identities runs open only when its file says so (a revision from
         # before that rule knows no insecure: for peers)

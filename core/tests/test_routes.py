@@ -32,13 +32,13 @@ class Link:
         return len(frames)
 
 
-def route(waiting: deque, max_rate: float | None = None,
-          reliable: bool = False) -> tuple[TransmitRoute, Link]:
+def route(waiting: deque, max_rate: float | None = None, reliable: bool = False,
+          max_delay: float | None = None) -> tuple[TransmitRoute, Link]:
     """A transmitting route; ``waiting`` holds what its subscription has waiting: messages, or
     (message, when it arrived) pairs (else: just now)."""
     fields = inspect.signature(TopicConfig).parameters
     topic = TopicConfig(**{name: None for name, p in fields.items() if p.default is p.empty})
-    topic.max_rate = max_rate
+    topic.max_rate, topic.max_delay = max_rate, max_delay
     link = Link()
     r = TransmitRoute(topic, 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")), Warner(), "/t",
                       reliable,
@@ -87,9 +87,9 @@ def test_taking_stops_at_a_datagrams_worth():
 
 def test_what_waited_too_long_is_dropped_with_all_before_it():
     now = time.time_ns()
-    old, fresh = now - 50_000_000, now  # 20 ms by default for best effort (routes.MAX_WAIT)
+    old, fresh = now - 50_000_000, now  # older than the topic's max_delay (20 ms)
     waiting = deque([(b"1", old), (b"2", old), (b"3", fresh), (b"4", old), (b"5", fresh)])
-    r, link = route(waiting)
+    r, link = route(waiting, max_delay=0.02)
     r.on_message(b"0")
     assert [[f[envelope.SIZE:] for f in call] for call in link.calls] == [[b"5"]]
     assert r.counters.drops == {"too_late": 5} and r.counters.sent == 1
@@ -126,9 +126,10 @@ class RecordingCipher(NoCipher):
         return body
 
 
-def receiver(codec, cipher) -> ReceiveRoute:
+def receiver(codec, cipher, max_delay: float | None = None) -> ReceiveRoute:
     fields = inspect.signature(TopicConfig).parameters
     topic = TopicConfig(**{name: None for name, p in fields.items() if p.default is p.empty})
+    topic.max_delay = max_delay
     return ReceiveRoute(topic, 7, codec, StaticKeys(cipher), Warner(), "/t", False,
                         decode=codec.decode)
 
@@ -154,7 +155,7 @@ def test_ciphers_get_bytes_whatever_the_frame():
 
 
 def test_a_frame_that_waited_too_long_in_the_receive_buffer_is_dropped():
-    route = receiver(CdrCodec(None, {}), NoCipher({}, "."))
+    route = receiver(CdrCodec(None, {}), NoCipher({}, "."), max_delay=0.02)
     published = []
     route.publish = published.append
     now = time.time_ns()

@@ -107,6 +107,7 @@ class Router:
                 qos = qos_profile(route.qos_in_use)
             if route.announces:  # before the first message, or a latched history
                 self.announce(route)
+            route.batches = self.ros.batches
             route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
             route.take = self.ros.taker(route.entity)
         else:

@@ -34,6 +34,7 @@ from typing import Any, ClassVar, cast
 
 from . import announce
 from .announce import Identity, TypeCheck
+from .batch import Batches
 from .builtin import NoCipher
 from .codec import Codec
 from .config import NO_PLUGIN, PRIORITIES, ServiceConfig, TopicConfig
@@ -49,11 +50,12 @@ from .wire.names import LAYOUT_DEFAULT, Layout, NameMissing, pack_name, split_na
 
 log = logging.getLogger("rosgate")
 
-# seconds a best-effort message may wait in the subscription's queue or the receive buffer
-MAX_WAIT = 0.02
 # a transmitting route takes what waits in its subscription up to this much at a time
 DRAIN_FRAMES = 32
 DRAIN_BYTES = 60_000
+# and when a batch window closes (many datagrams' worth: send_all cuts them)
+BATCH_FRAMES = 512
+BATCH_BYTES = 1_000_000
 
 # reasons that say something is wrong (a warning); the others are routine and only counted
 QUIET_REASONS = {"rate_limit", "duplicate", "superseded"}
@@ -126,9 +128,9 @@ class Route:
         self.plain = isinstance(keys, StaticKeys) and type(keys.cipher).open is NoCipher.open
         #: a reassembled frame's bytearray may go on as the payload (see open)
         self.zero_copy = False
-        #: best-effort topics: how long (ns) a message may wait in a queue of the bridge before
-        #: it is dropped (too_late) rather than delivered late; 0: never (reliable topics,
-        #: services: they have their own deadlines)
+        #: how long (ns) a message may wait in a queue of the bridge before it is dropped
+        #: (too_late) rather than delivered late: the topic's max_delay; 0: never (services
+        #: have their own deadlines)
         self.max_wait_ns = 0
         #: the entry's type against the far side's (the router gives this side's hash)
         self.check = TypeCheck(label, Identity(entry.type, None))
@@ -268,14 +270,19 @@ class BareFraming(TopicFraming):
         return self.prefix + payload
 
 
-def max_wait_ns(topic: TopicConfig, reliable: bool) -> int:
+def max_wait_ns(topic: TopicConfig) -> int:
     """How long (ns) a message may wait in the bridge's own buffers — the subscription's
     queue, the receive buffer — before it is dropped (``too_late``) rather than delivered late:
-    the topic's ``max_delay``; without one, :data:`MAX_WAIT` for best effort (there a wait means
-    the bridge is behind, not the link) and forever for reliable topics."""
-    if topic.max_delay is not None:
-        return int(1e9 * topic.max_delay)
-    return 0 if reliable else int(1e9 * MAX_WAIT)
+    the topic's ``max_delay`` (a camera that would rather skip a frame); 0, never, without one.
+
+    Why not a default for best effort: what waits there waits for a thread of the bridge, not
+    for the link. A process that is not scheduled for a while (a busy machine) finds a backlog
+    when it runs again and sends it at once; the link was idle meanwhile, so dropping it would
+    lose messages the link could carry. Where the link is the bottleneck (a budget, a full
+    kernel send buffer) frames wait in the link's queue instead, and there latest-only
+    replaces them (``superseded``) and the link's ``max_delay`` drops them (``too_late``). A
+    backlog in front of the bridge is bounded by the topic's own QoS depth."""
+    return int(1e9 * topic.max_delay) if topic.max_delay is not None else 0
 
 
 class TransmitRoute(Route):
@@ -289,7 +296,7 @@ class TransmitRoute(Route):
                  compression: Transform | None = None):
         super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
-        self.max_wait_ns = max_wait_ns(topic, reliable)
+        self.max_wait_ns = max_wait_ns(topic)
         self.framing = framing
         self.link = link
         self.priority = priority
@@ -313,6 +320,10 @@ class TransmitRoute(Route):
         self.qos_found: dict[str, Any] | None = None
         #: and the one its subscription has (None: the entry's own)
         self.qos_in_use: dict[str, Any] | None = None
+        #: the batch window (seconds, 0: none), its node's open windows, and what came in it
+        self.window = topic.batch or 0.0
+        self.batches = Batches()
+        self.pending: list[Any] = []
 
     def encode(self, message: Any) -> tuple[bytes, int]:
         """The message's payload, transformed (compressed) when that makes it smaller: then after
@@ -333,30 +344,56 @@ class TransmitRoute(Route):
     def on_message(self, message: Any) -> None:
         """A message from the subscription, and every other one already waiting in it (up to a
         datagram's worth): framed, then handed to the link together, so a backlog leaves in
-        few datagrams (one executor wake-up, one system call) instead of one per message."""
+        few datagrams (one executor wake-up, one system call) instead of one per message.
+        With a batch window, the message opens the window instead (or joins the open one)."""
+        if self.window:
+            self.pending.append(message)
+            if len(self.pending) == 1:
+                self.batches.open(time.monotonic() + self.window, self.flush)
+            return
+        self._send(self._drain([message], DRAIN_FRAMES, DRAIN_BYTES))
+
+    def flush(self) -> None:
+        """The batch window closed: what came in it, and everything waiting now, leaves
+        together."""
+        messages, self.pending = self.pending, []
+        if self.take is not None and self.entity is not None:
+            messages = self._drain(messages, BATCH_FRAMES, BATCH_BYTES)
+        self._send(messages)
+
+    def _drain(self, messages: list[Any], frames: int, size: int) -> list[Any]:
+        """``messages`` and those waiting in the subscription after them, up to ``frames``
+        messages or about ``size`` bytes of frames."""
+        take = self.take
+        if take is None:
+            return messages
+        max_wait, now = self.max_wait_ns, time.time_ns()
+        while len(messages) < frames:
+            got = take()
+            if got is None:
+                break
+            more, received = got
+            if max_wait and now - received > max_wait:
+                # waited longer than the topic's max_delay in the subscription's queue,
+                # and so did every message before it: drop them all
+                for _ in range(len(messages) + 1):
+                    self.drop("too_late", f"waited over {max_wait / 1e6:.0f} ms to be taken")
+                messages.clear()
+                continue
+            messages.append(more)
+            if len(messages) * self._size >= size:
+                break
+        return messages
+
+    def _send(self, messages: list[Any]) -> None:
+        """Messages framed and handed to the link in one call."""
+        if not messages:
+            return
         to = self.destination()
         if to is None and self.link.datagram:
-            self.drop("no_peer_yet", "the far side's address is not known yet")
+            for _ in messages:
+                self.drop("no_peer_yet", "the far side's address is not known yet")
             return
-        messages = [message]
-        take = self.take
-        if take is not None:
-            max_wait, now = self.max_wait_ns, time.time_ns()
-            while len(messages) < DRAIN_FRAMES:
-                got = take()
-                if got is None:
-                    break
-                more, received = got
-                if max_wait and now - received > max_wait:
-                    # waited too long in the subscription's queue, and so did every message
-                    # before it: overloaded, drop them to catch up (reliable topics never do)
-                    for _ in range(len(messages) + 1):
-                        self.drop("too_late", f"waited over {max_wait / 1e6:.0f} ms to be taken")
-                    messages.clear()
-                    continue
-                messages.append(more)
-                if len(messages) * self._size >= DRAIN_BYTES:
-                    break
         frames: list[bytes] = []
         size = 0
         for one in messages:
@@ -398,6 +435,7 @@ class TransmitRoute(Route):
 
     def close(self) -> None:
         """The route is removed: what it queued goes (a message half sent is not finished)."""
+        self.pending.clear()  # an open window closes with nothing to send
         forget = getattr(self.link, "forget", None)
         if forget is not None:
             forget(self)
@@ -412,7 +450,7 @@ class ReceiveRoute(Route):
                  transforms: Callable[[int], Transform | None] = lambda wire_id: None):
         super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
         self.topic = topic
-        self.max_wait_ns = max_wait_ns(topic, reliable)
+        self.max_wait_ns = max_wait_ns(topic)
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
         #: publishes what decode returned (set with the publisher: raw CDR as bytes or bytearray)
         self.publish: Callable[[Any], None] = lambda message: self.entity.publish(message)
@@ -449,7 +487,7 @@ class ReceiveRoute(Route):
             return
         if arrived and self.max_wait_ns:
             waited = time.time_ns() - arrived
-            if waited > self.max_wait_ns:  # overloaded: drop what waited, to catch up
+            if waited > self.max_wait_ns:  # older than the topic's max_delay allows
                 self.drop("too_late", f"waited {waited / 1e6:.0f} ms in the receive buffer")
                 return
         if header.flags & envelope.FLAG_COMPRESSED:

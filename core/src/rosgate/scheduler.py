@@ -45,6 +45,7 @@ from typing import Any
 CLASSES = 8  # 0: control; 1 (real_time) .. 7 (background)
 CONTROL = 0
 DATA = 5     # a sender that names no priority
+KEYS_KEPT = 4096  # senders whose queue key is remembered, at most
 
 
 def burst(rate_bytes: float, packet: int) -> int:
@@ -147,17 +148,31 @@ class Scheduler:
         self._frames = 0  # messages waiting (not started)
         self._bytes = 0
         self.dropped: list[tuple[Any, str, str]] = []  # for the link to count outside its lock
+        #: each sender's queue key, found once (by id; the sender is kept so the id stays its)
+        self._keys: dict[int, tuple[Any, tuple[int, int]]] = {}
 
     # -- in ------------------------------------------------------------------------------------
     def _topic(self, sender: Any) -> _Topic:
         """The queue of the sender's topic (by topic id: what its fragments carry) in the
         sender's class: a route's announcements (the control class) never wait in, or replace
         anything of, the queue of its messages."""
-        key = _key(sender)
+        key = self._key(sender)
         topic = self._topics.get(key)
         if topic is None:
             topic = self._topics[key] = _Topic(sender, key[1])
         return topic
+
+    def _key(self, sender: Any) -> tuple[int, int]:
+        """The sender's queue key (:func:`_key`), read from it once: a sender's topic id and
+        class do not change."""
+        found = self._keys.get(id(sender))
+        if found is not None and found[0] is sender:
+            return found[1]
+        key = _key(sender)
+        if len(self._keys) >= KEYS_KEPT:  # senders of one message each (service calls)
+            self._keys.clear()
+        self._keys[id(sender)] = (sender, key)
+        return key
 
     def _activate(self, topic: _Topic) -> None:
         self._classes[topic.priority].setdefault(topic.sender.topic_id, topic)
@@ -312,7 +327,7 @@ class Scheduler:
 
     def depth(self, sender: Any) -> int:
         """Messages of ``sender`` not fully sent: waiting, plus the one in progress."""
-        topic = self._topics.get(_key(sender))
+        topic = self._topics.get(self._key(sender))
         if topic is None:
             return 0
         return len(topic.waiting) + (topic.current is not None)
@@ -328,7 +343,8 @@ class Scheduler:
 
     def forget(self, sender: Any) -> None:
         """A sender that is gone (a removed route): what it queued goes too."""
-        topic = self._topics.pop(_key(sender), None)
+        found = self._keys.pop(id(sender), None)
+        topic = self._topics.pop(found[1] if found else _key(sender), None)
         if topic is not None:
             self._classes[topic.priority].pop(sender.topic_id, None)
             self._frames -= len(topic.waiting)
@@ -341,6 +357,7 @@ class Scheduler:
         for topics in self._classes:
             topics.clear()
         self._topics.clear()
+        self._keys.clear()
         self._frames = self._bytes = 0
         return unsent
 

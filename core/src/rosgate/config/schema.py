@@ -11,6 +11,7 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
+from ..batch import window
 from ..errors import ConfigError
 from ..options import option
 from . import kinds
@@ -132,6 +133,11 @@ class TopicConfig:
                                      above=0, unit="seconds", example="0.05",
                                      unset="best effort: the link's `max_delay` in its send "
                                            "queue; reliable: no limit")
+    batch: float | None = option(None, "a window that opens with a message: what the topic "
+                                 "publishes until it closes is taken at once and leaves together "
+                                 "(one datagram or stream write as far as it fits); it bounds "
+                                 "the latency it adds", unit="seconds", example="2ms",
+                                 parse=window, unset="no window: each message leaves as it comes")
     recovery: str = option(NO_PLUGIN, "loss recovery by a packetizer plugin (`fec`, `retransmit`), "
                            "on datagram links with `framing: rosgate`; its options over its "
                            "`plugins:` table as `{fec: {overhead: 0.25}}`",

@@ -1,0 +1,199 @@
+"""A best-effort message is superseded or dropped late only when the link is the bottleneck,
+never because a thread of the bridge was not scheduled.
+
+A stalled bridge (its executor or its receive thread held for 50 ms) finds a backlog when it
+runs again: it sends all of it, and the far side publishes all of it, on a link that was idle
+meanwhile. A link that cannot keep up (a budget, a send that blocks as on a full kernel send
+buffer) still replaces what waits for it (``superseded``) and drops what waited longer than its
+``max_delay`` (``too_late``)."""
+
+from __future__ import annotations
+
+import inspect
+import threading
+import time
+from collections import deque
+from typing import Any
+
+import pytest
+from rosgate_transport_udp import UdpTransport
+
+from rosgate.builtin import CdrCodec, NoCipher
+from rosgate.config import LinkConfig, TopicConfig
+from rosgate.keyring import StaticKeys
+from rosgate.links import DatagramLink
+from rosgate.routes import EnvelopeFraming, ReceiveRoute, TransmitRoute, Warner
+from rosgate.wire import envelope
+
+STALL_NS = 50_000_000  # how long the thread was held
+
+
+def topic(max_delay: float | None = None) -> TopicConfig:
+    fields = inspect.signature(TopicConfig).parameters
+    entry = TopicConfig(**{name: None for name, p in fields.items() if p.default is p.empty})
+    entry.max_delay = max_delay
+    return entry
+
+
+def payload(i: int) -> bytes:
+    return b"\x00\x01\x00\x00" + b"%06d" % i + bytes(2_490)  # CDR of a 2.5 kB message
+
+
+class Receiver:
+    """The far side: a datagram link on loopback; the frames it put together, in order."""
+
+    def __init__(self) -> None:
+        transport = UdpTransport({})
+        self.frames: list[bytes] = []
+        self.changed = threading.Condition()
+        self.link = DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "far",
+                                 self.on_frame, lambda *a: None)
+        self.address = self.link.endpoint.sock.getsockname()
+
+    def on_frame(self, frame: bytes, link: Any, source: Any) -> None:
+        with self.changed:
+            self.frames.append(bytes(frame))
+            self.changed.notify_all()
+
+    def wait(self, count: int, timeout: float = 10.0) -> list[bytes]:
+        with self.changed:
+            self.changed.wait_for(lambda: len(self.frames) >= count, timeout)
+            return list(self.frames)
+
+    def close(self) -> None:
+        self.link.close()
+
+
+@pytest.fixture
+def far():
+    receiver = Receiver()
+    yield receiver
+    receiver.close()
+
+
+@pytest.fixture
+def closing():
+    things: list[Any] = []
+    yield lambda thing: things.append(thing) or thing
+    for thing in reversed(things):
+        thing.close()
+
+
+def transmitter(link: DatagramLink, to: Any, waiting: deque, *, max_delay: float | None = None,
+                latest_only: bool = True) -> TransmitRoute:
+    """A best-effort, latest-only route on ``link`` whose subscription holds ``waiting``:
+    (message, when the middleware received it) pairs."""
+    route = TransmitRoute(topic(max_delay), 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")),
+                          Warner(), "/scan", False, framing=EnvelopeFraming(), link=link,
+                          destination=lambda: to, latest_only=latest_only)
+    route.take = lambda: waiting.popleft() if waiting else None
+    return route
+
+
+def udp_link(closing, budget: LinkConfig | None = None, endpoint: Any = None) -> DatagramLink:
+    transport = UdpTransport({})
+    endpoint = endpoint or transport.bind(("127.0.0.1", 0))
+    return closing(DatagramLink(transport, endpoint, "udp", lambda *a: None, lambda *a: None,
+                                budget=budget))
+
+
+# --- a stalled thread on an idle link: everything goes --------------------------------------
+
+def test_a_backlog_after_the_executor_was_held_for_50_ms_is_sent_whole(closing, far):
+    link = udp_link(closing)
+    stalled = time.time_ns() - STALL_NS  # all of it waited while the executor was not running
+    waiting = deque((payload(i), stalled + i * 500_000) for i in range(1, 100))
+    route = transmitter(link, far.address, waiting)
+    route.on_message(payload(0))
+    while waiting:  # the executor calls again for what is left (32 at a time)
+        route.on_message(waiting.popleft()[0])
+    frames = far.wait(100)
+    assert route.counters.drops == {} and route.counters.sent == 100
+    assert [envelope.unpack(f).seq for f in frames] == list(range(1, 101))
+    assert [f[envelope.SIZE:] for f in frames] == [payload(i) for i in range(100)]
+    assert link.counters.frames_out == 100
+
+
+def test_a_backlog_in_the_receive_buffer_after_a_stall_is_published_whole():
+    route = ReceiveRoute(topic(), 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")),
+                         Warner(), "/scan", False, decode=bytes)
+    published: list[bytes] = []
+    route.publish = published.append
+    arrived = time.time_ns() - STALL_NS  # every datagram waited 50 ms for the receive thread
+    for seq in range(1, 51):
+        frame = envelope.pack(0, 7, 1, seq, 0) + payload(seq)
+        route.on_frame(envelope.unpack(frame), frame, arrived + seq * 1000)
+    assert published == [payload(seq) for seq in range(1, 51)]
+    assert route.counters.drops == {} and route.counters.received == 50
+
+
+def test_a_topic_that_asks_for_max_delay_still_gets_it_after_a_stall(closing, far):
+    """The topic's own max_delay is a wish about age, whatever made it old."""
+    link = udp_link(closing)
+    waiting = deque([(payload(1), time.time_ns() - STALL_NS), (payload(2), time.time_ns())])
+    route = transmitter(link, far.address, waiting, max_delay=0.02)
+    route.on_message(payload(0))
+    frames = far.wait(1)
+    assert [f[envelope.SIZE:] for f in frames] == [payload(2)]
+    assert route.counters.drops == {"too_late": 2}
+
+
+# --- the link is the bottleneck: latest-only and max_delay still drop -----------------------
+
+def test_a_budget_the_messages_exceed_supersedes_what_waits(closing, far):
+    """25 kB/s for 500 kB offered at once: after the bucket's burst, each message waits for
+    tokens, and the next one replaces it; the newest arrives."""
+    link = udp_link(closing, LinkConfig(transport="udp", bandwidth=200_000))
+    route = transmitter(link, far.address, deque())
+    for i in range(200):
+        route.on_message(payload(i))
+    drops = route.counters.drops
+    assert drops["superseded"] > 50 and set(drops) == {"superseded"}
+    got = far.wait(200 - drops["superseded"])
+    assert len(got) + drops["superseded"] == 200
+    assert got[-1][envelope.SIZE:] == payload(199)  # the newest is what got through
+
+
+class Blocking:
+    """An endpoint whose sends block until released, as a send does on a full kernel send
+    buffer."""
+
+    send_datagrams = None  # one send at a time, each held
+
+    def __init__(self, endpoint: Any):
+        self.endpoint = endpoint
+        self.released = threading.Event()
+        self.entered = threading.Event()
+
+    def send(self, frame: bytes, to: Any) -> None:
+        self.entered.set()
+        self.released.wait(10)
+        self.endpoint.send(frame, to)
+
+    def send_parts(self, parts: list, to: Any) -> None:
+        self.send(b"".join(parts), to)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.endpoint, name)
+
+
+def test_a_send_that_blocks_supersedes_and_drops_late(closing, far):
+    transport = UdpTransport({})
+    wire = Blocking(transport.bind(("127.0.0.1", 0)))
+    link = closing(DatagramLink(transport, wire, "udp", lambda *a: None, lambda *a: None,
+                                budget=LinkConfig(transport="udp", max_delay=0.05)))
+    image = transmitter(link, far.address, deque(), latest_only=False)
+    image.topic_id = 8
+    image.on_message(b"\x00\x01\x00\x00" + bytes(100_000))  # the send thread is held on it
+    assert wire.entered.wait(5)
+    route = transmitter(link, far.address, deque())
+    for i in range(5):
+        route.on_message(payload(i))
+    assert route.counters.drops == {"superseded": 4}  # only the newest waits
+    time.sleep(0.1)  # longer than the link's max_delay (an age is what this test is about)
+    wire.released.set()
+    deadline = time.monotonic() + 5
+    while "too_late" not in route.counters.drops and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert route.counters.drops == {"superseded": 4, "too_late": 1}
+    assert image.counters.drops == {}
