@@ -37,21 +37,30 @@ class BuildError(RuntimeError):
 def build(prefix: pathlib.Path, package: str, messages: Mapping[str, str]) -> pathlib.Path:
     """``package`` with ``messages`` (name -> .msg text) generated and compiled into ``prefix``,
     unless a build of the very same definitions is there already (a stamp file says which)."""
+    import fcntl
+
     stamp = prefix / "built.json"
     wanted = {"package": package, "messages": dict(messages), "python": sys.version,
               "generator": _generator_version()}
-    if stamp.exists() and json.loads(stamp.read_text()) == wanted:
-        return prefix
-    if prefix.exists():
-        shutil.rmtree(prefix)
+    prefix.parent.mkdir(parents=True, exist_ok=True)
+    with open(prefix.parent / f".{prefix.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # two test runs at once build it once
+        if stamp.exists() and json.loads(stamp.read_text()) == wanted:
+            return prefix
+        if prefix.exists():
+            shutil.rmtree(prefix)
+        _build(prefix, package, messages)
+        stamp.write_text(json.dumps(wanted))
+    return prefix
+
+
+def _build(prefix: pathlib.Path, package: str, messages: Mapping[str, str]) -> None:
     source = prefix / "src" / package
     (source / "msg").mkdir(parents=True)
     for name, text in messages.items():
         (source / "msg" / f"{name}.msg").write_text(text)
     generated = _generate(prefix / "gen", source, package, sorted(messages))
     _compile(prefix, generated, package, sorted(messages))
-    stamp.write_text(json.dumps(wanted))
-    return prefix
 
 
 def environment(prefix: pathlib.Path, base: Mapping[str, str] | None = None) -> dict[str, str]:
