@@ -153,6 +153,7 @@ class PeerRole(Role):
         t = p.config
         route = self.router.topic(p, topic_id_for(t.remote), t.topic, link, keys=self._keys(p))
         assert isinstance(route, ReceiveRoute)
+        route.check.expect(route.drop)  # its sender may have announced before this side started
         if t.topic != t.remote:
             self.router.alias(route, topic_id_for(t.topic))
 
@@ -175,7 +176,10 @@ class PeerRole(Role):
                       budget=self.bridge.budget(p.transport)).start()
         else:
             link = self.datagram_link(p.transport, p.local, key, sources=self._sources(p))
-        self.router.service(p, service_id, s.service, link, fixed(p.address), self._keys(p))
+        route = self.router.service(p, service_id, s.service, link, fixed(p.address),
+                                    self._keys(p))
+        if isinstance(route, ServerRoute):  # its caller may have announced before it started
+            route.check.expect(route.drop)
 
     def _microcontroller_service(self, p: PreparedService,
                                  servers: dict[Address, CallPort]) -> None:
