@@ -461,9 +461,10 @@ class ReceiveRoute(Route):
                 self.drop("too_late", f"waited {waited / 1e6:.0f} ms in the receive buffer")
                 return
         if header.flags & envelope.FLAG_COMPRESSED:
-            payload = self.transform_back(payload)
-            if payload is None:
+            restored = self.transform_back(payload)
+            if restored is None:
                 return
+            payload = restored
         self.deliver(payload, size)
 
     def transform_back(self, payload: bytes) -> bytes | None:
