@@ -256,6 +256,35 @@ def test_a_peer_receiver_started_after_its_sender_loses_nothing_of_its_own_type(
     assert entry["received"] >= len(got), entry
 
 
+def test_a_peer_server_started_after_its_caller_serves_no_call_of_another_type(
+        engines, domain, ros_side):
+    """Its first calls wait for the caller's next announcement, then are answered as failures."""
+    from std_srvs.srv import SetBool, Trigger
+
+    da, db, port = domain(), domain(), free_port()
+    peer = "bridge: {name: %s, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}"
+    entry = f"service: /set, port: {port}, timeout: 5"
+    engines(f"{peer % 'a'}\nservices: [{{{entry}, type: std_srvs/srv/SetBool, "
+            "direction: transmit}]", da)
+    served: list[Any] = []
+    ros_side(db, "b").ros.node.create_service(Trigger, "/set",
+                                              lambda q, r: served.append(q) or r)
+    caller = ros_side(da, "a").ros.node.create_client(SetBool, "/set")
+    assert caller.wait_for_service(timeout_sec=10)
+    b = engines(f"{peer % 'b'}\nservices: [{{{entry}, type: std_srvs/srv/Trigger, "
+                "direction: receive}]", db)
+    answers: list[Any] = []
+    deadline = time.monotonic() + 30
+    while not any("refused, the far side's type" in a.message for a in answers):
+        assert time.monotonic() < deadline, [a.message for a in answers]
+        future = caller.call_async(SetBool.Request(data=True))
+        assert wait_until(future.done, 10)
+        answers.append(future.result())
+    assert served == [] and not any(a.success for a in answers)
+    route = b.routes()[0]
+    assert route.counters.drops["type_mismatch"] >= 1 and route.counters.received == 0
+
+
 @pytest.fixture
 def client_hashes_another_version(monkeypatch):
     """robot1's bridge says another hash for every type: the same names, another version."""
