@@ -72,6 +72,37 @@ def test_a_goal_ends_aborted_soon_after_the_serving_peer_dies(
     del server
 
 
+def test_a_quiet_goal_on_a_live_open_peer_is_not_taken_for_a_lost_peer(
+        tmp_path, engines, domain, action_side, logs):  # noqa: F811
+    """No feedback for longer than the silence that loses a peer: the far side's announcements
+    keep it alive, and the goal succeeds."""
+    from action_msgs.msg import GoalStatus
+    from rclpy.action import ActionServer
+
+    da, db = domain(), domain()
+    calling, serving = files(tmp_path, secure=False)
+    engines(serving, db)
+    a = engines(calling, da)
+    quiet = silent_for(PEER_TIMEOUT) + 3 * HEARTBEAT
+
+    def execute(goal_handle):
+        if goal_handle.request.order > 1:
+            side.stopping.wait(quiet)  # the action's work: long, and without a word
+        goal_handle.succeed()
+        return Fibonacci.Result(sequence=[goal_handle.request.order])
+
+    side = action_side(db, "b")
+    server = ActionServer(side.node, Fibonacci, "/fib", execute)
+    client = warmed_up(action_side(da, "a").client(Fibonacci, "/fib"), Fibonacci.Goal(order=1),
+                       timeout=30)
+    goal = Goal(client, Fibonacci.Goal(order=2))
+    assert goal.handle.accepted
+    answer = goal.result(timeout=quiet + 10)
+    assert answer.status == GoalStatus.STATUS_SUCCEEDED and list(answer.result.sequence) == [2]
+    assert not a.role.lost and logs.having("taken for lost") == []
+    del server
+
+
 def test_an_open_peer_is_lost_after_two_and_a_half_announcement_periods():
     from rosgate.announce import ANNOUNCE_EVERY
 
