@@ -189,8 +189,10 @@ def cross(publisher: Any, inbox: Inbox, make: Callable[[int | None], Any],
 class Bridge:
     """A ``rosgate run`` process."""
 
-    def __init__(self, config: Path, domain_id: int, ready: str = "running as"):
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
+    def __init__(self, config: Path, domain_id: int, ready: str = "running as",
+                 env: dict[str, str] | None = None):
+        env = dict(os.environ if env is None else env, ROS_DOMAIN_ID=str(domain_id),
+                   PYTHONUNBUFFERED="1")
         config.write_text(AUTH.secure(config.read_text()))
         self.config = config
         self.lines: list[str] = []

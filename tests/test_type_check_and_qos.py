@@ -5,7 +5,11 @@ its publishers use (a latched topic reaches a late subscriber on the far side)."
 from __future__ import annotations
 
 import logging
+import tempfile
+import threading
 import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -14,7 +18,8 @@ from geometry_msgs.msg import Point
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from rosgate.announce import Identity, TypeCheck, parse_body, qos_of, read
+from rosgate import runtime
+from rosgate.announce import HOLD_FOR, Identity, TypeCheck, parse_body, qos_of, read
 from rosgate.router import Router
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
@@ -158,6 +163,128 @@ topics: [{{topic: /mm, type: geometry_msgs/msg/Point, direction: transmit, port:
     assert set(receiving.counters.drops) == {"type_mismatch"}
 
 
+class Talker:
+    """Publishes ``make(n)`` for n = 1, 2, ... at ``rate`` Hz in a thread of its own."""
+
+    def __init__(self, publisher: Any, make: Callable[[int], Any], rate: float = 50):
+        self.publisher, self.make, self.rate = publisher, make, rate
+        self.count = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.stop.wait(1 / self.rate):  # paces the talker; nothing waits on it
+            self.count += 1
+            self.publisher.publish(self.make(self.count))
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5)
+
+
+@pytest.fixture
+def status_dir(monkeypatch) -> Iterator[Path]:
+    """The bridges' status sockets, in a folder of the test's own (AF_UNIX: a short path)."""
+    with tempfile.TemporaryDirectory(prefix="rg", dir="/tmp") as folder:
+        path = Path(folder) / "run"
+        monkeypatch.setenv(runtime.RUNTIME_VARIABLE, str(path))
+        yield path
+
+
+def entry_status(bridge_name: str, topic: str) -> dict[str, Any]:
+    with runtime.StatusClient(bridge_name) as client:
+        status = client.status()
+    [entry] = [e for e in status["entries"] if e["name"] == topic]
+    return entry
+
+
+def late_receiver(tmp_path: Path, bridge, domain, ros_side, sent: type, received: type,
+                  make: Callable[[int], Any]) -> tuple[Any, Inbox, Talker]:
+    """A sending peer (``sent``) whose talker runs, past its young announcements; then a
+    receiving peer (``received``) started late, in processes of their own, its listener there
+    before it: what the receiver publishes from its first frame on is in the inbox."""
+    da, db, port = domain(), domain(), free_port()
+    kind = lambda t: f"{t.__module__.split('.')[0]}/msg/{t.__name__}"
+    sender = tmp_path / "a.yaml"
+    sender.write_text(f"""bridge: {{name: a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+topics: [{{topic: /late, type: {kind(sent)}, direction: transmit, port: {port}}}]""")
+    receiver = tmp_path / "b.yaml"
+    receiver.write_text(f"""bridge: {{name: b, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+topics: [{{topic: /late, type: {kind(received)}, direction: receive, port: {port}}}]""")
+    a = bridge(sender, da)
+    talker = Talker(ros_side(da, "a").publisher("/late", sent), make)
+    inbox = ros_side(db, "b").listen("/late", received)
+    # 3 s of messages: the sender is past its young announcements (every 0.5 s for 2 s), its
+    # next comes up to 2 s after the receiver starts
+    assert wait_until(lambda: entry_status("a", "/late")["sent"] >= 150, 20), a.log
+    return bridge(receiver, db), inbox, talker
+
+
+def test_a_peer_receiver_started_after_its_sender_publishes_nothing_of_another_type(
+        tmp_path, bridge, domain, ros_side, status_dir):
+    """Its frames wait for the sender's next announcement, then go as type_mismatch."""
+    from geometry_msgs.msg import Vector3
+
+    b, inbox, talker = late_receiver(tmp_path, bridge, domain, ros_side, Point, Vector3,
+                                     lambda n: Point(x=float(n), y=2.0, z=3.0))
+    assert wait_until(lambda: entry_status("b", "/late")["drops"].get("type_mismatch", 0)
+                      >= 100, 30), (entry_status("b", "/late"), b.log)
+    talker.close()
+    entry = entry_status("b", "/late")
+    assert entry["received"] == 0 and set(entry["drops"]) == {"type_mismatch"}, entry
+    assert inbox.items == []
+    assert [line for line in b.log.splitlines() if "refused, the far side's type" in line] \
+        and "far side said nothing" not in b.log
+
+
+def test_a_peer_receiver_started_after_its_sender_loses_nothing_of_its_own_type(
+        tmp_path, bridge, domain, ros_side, status_dir):
+    """Its first frames are held until the announcement says the types agree, then
+    published in order: from the first message on, none is missing."""
+    b, inbox, talker = late_receiver(tmp_path, bridge, domain, ros_side, String, String,
+                                     lambda n: String(data=str(n)))
+    assert inbox.wait_count(100, 30), (inbox.items, b.log)
+    talker.close()
+    assert inbox.wait_for(lambda items: items[-1].data == str(talker.count), 10)
+    got = [int(m.data) for m in inbox.items]
+    assert got == list(range(got[0], talker.count + 1)), got  # in order, no gap, to the last
+    entry = entry_status("b", "/late")
+    # every frame that reached the bridge was published (the listener may miss the first few
+    # while DDS matches it with the bridge's new publisher: not the bridge's loss)
+    assert not entry["drops"] and entry["lost"] == 0, entry
+    assert entry["received"] >= len(got), entry
+
+
+def test_a_peer_server_started_after_its_caller_serves_no_call_of_another_type(
+        engines, domain, ros_side):
+    """Its first calls wait for the caller's next announcement, then are answered as failures."""
+    from std_srvs.srv import SetBool, Trigger
+
+    da, db, port = domain(), domain(), free_port()
+    peer = "bridge: {name: %s, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}"
+    entry = f"service: /set, port: {port}, timeout: 5"
+    engines(f"{peer % 'a'}\nservices: [{{{entry}, type: std_srvs/srv/SetBool, "
+            "direction: transmit}]", da)
+    served: list[Any] = []
+    ros_side(db, "b").ros.node.create_service(Trigger, "/set",
+                                              lambda q, r: served.append(q) or r)
+    caller = ros_side(da, "a").ros.node.create_client(SetBool, "/set")
+    assert caller.wait_for_service(timeout_sec=10)
+    b = engines(f"{peer % 'b'}\nservices: [{{{entry}, type: std_srvs/srv/Trigger, "
+                "direction: receive}]", db)
+    answers: list[Any] = []
+    deadline = time.monotonic() + 30
+    while not any("refused, the far side's type" in a.message for a in answers):
+        assert time.monotonic() < deadline, [a.message for a in answers]
+        future = caller.call_async(SetBool.Request(data=True))
+        assert wait_until(future.done, 10)
+        answers.append(future.result())
+    assert served == [] and not any(a.success for a in answers)
+    route = b.routes()[0]
+    assert route.counters.drops["type_mismatch"] >= 1 and route.counters.received == 0
+
+
 @pytest.fixture
 def client_hashes_another_version(monkeypatch):
     """robot1's bridge says another hash for every type: the same names, another version."""
@@ -220,6 +347,76 @@ services:
 
 
 # -- the parts --------------------------------------------------------------------------------
+class Verdicts:
+    """What became of held frames: (n, True) published, (n, False) refused; and the drops."""
+
+    def __init__(self) -> None:
+        self.given: list[tuple[int, bool]] = []
+        self.drops: list[str] = []
+
+    def frame(self, n: int) -> Callable[[bool], None]:
+        return lambda agreed: self.given.append((n, agreed))
+
+    def drop(self, reason: str, detail: str) -> None:
+        self.drops.append(reason)
+
+
+MINE = Identity("std_msgs/msg/String", "RIHS01_" + "aa" * 32)
+
+
+def test_held_frames_are_published_in_order_once_the_far_side_agrees():
+    check, verdicts = TypeCheck("/t", MINE), Verdicts()
+    assert not check.hold(10, verdicts.frame(0))  # nothing awaited: it goes on now
+    check.expect(verdicts.drop)
+    assert all(check.hold(10, verdicts.frame(n)) for n in range(1, 4))
+    assert verdicts.given == []
+    check.far(MINE)
+    assert verdicts.given == [(1, True), (2, True), (3, True)]
+    assert not check.awaiting and not check.hold(10, verdicts.frame(4))
+    assert verdicts.drops == [] and check.heard_at is not None
+
+
+def test_held_frames_are_refused_when_the_far_side_differs(caplog):
+    check, verdicts = TypeCheck("/t", MINE), Verdicts()
+    check.expect(verdicts.drop)
+    assert check.hold(10, verdicts.frame(1)) and check.hold(10, verdicts.frame(2))
+    with caplog.at_level(logging.ERROR, logger="rosgate"):
+        check.far(Identity("std_msgs/msg/String", "RIHS01_" + "bb" * 32))
+    assert verdicts.given == [(1, False), (2, False)]
+    assert check.mismatch is not None and check.mismatch in caplog.text
+
+
+def test_what_is_held_is_bounded_and_the_oldest_go_counted():
+    from rosgate.announce import HOLD_BYTES, HOLD_FRAMES
+
+    check, verdicts = TypeCheck("/t", MINE), Verdicts()
+    check.expect(verdicts.drop)
+    for n in range(HOLD_FRAMES + 5):
+        assert check.hold(1, verdicts.frame(n))
+    assert verdicts.drops == ["type_unheard"] * 5
+    assert check.hold(HOLD_BYTES, verdicts.frame(-1))  # one frame the size of the whole bound
+    assert verdicts.drops == ["type_unheard"] * (5 + HOLD_FRAMES)
+    check.far(MINE)
+    assert verdicts.given == [(-1, True)]
+
+
+def test_a_far_side_that_never_announces_is_published_unchecked_after_a_while(caplog):
+    """An older rosgate: what was held goes on after HOLD_FOR seconds, said once."""
+    check, verdicts = TypeCheck("/t", MINE), Verdicts()
+    check.expect(verdicts.drop)
+    assert check.hold(10, verdicts.frame(1))
+    now = time.monotonic()
+    check.expire(now + HOLD_FOR - 0.5)
+    assert verdicts.given == [] and check.awaiting
+    with caplog.at_level(logging.WARNING, logger="rosgate"):
+        check.expire(now + HOLD_FOR + 0.5)
+    assert verdicts.given == [(1, True)] and not check.awaiting
+    assert not check.hold(10, verdicts.frame(2))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"/t: the far side said nothing of its type in {HOLD_FOR:g} s (an older rosgate?): its "
+        "type is not checked until it does"]
+
+
 def test_a_far_side_without_a_hash_is_accepted_and_said_once(caplog):
     check = TypeCheck("/t", Identity("std_msgs/msg/String", "RIHS01_" + "aa" * 32))
     with caplog.at_level(logging.WARNING, logger="rosgate"):

@@ -13,16 +13,23 @@ A receiving side whose type differs (both hashes known and unequal) refuses the 
 frames are dropped as ``type_mismatch`` and nothing is published (a service's calls are answered
 as failures); the refusal is said once per :data:`MISMATCH_EVERY` seconds, in one sentence
 naming both types and both hashes. A far side that says no hash (an older rosgate) is accepted
-and said once. A receiving topic that has heard nothing yet (its sender started first, and its
-first announcement went nowhere) publishes what comes until it hears the next one: at most
-:data:`ANNOUNCE_FAST` seconds while the sender is young, else :data:`ANNOUNCE_EVERY` (an older
-rosgate never announces, and must keep working).
+and said once. A receiving entry that waits for its far side's first word (a peer started after
+its sender, whose first announcement went nowhere: :meth:`TypeCheck.expect`) holds what comes
+until it hears the next announcement, then publishes it all, or drops it all as
+``type_mismatch``; it holds at most :data:`HOLD_FRAMES` frames and :data:`HOLD_BYTES` bytes (the
+oldest beyond go, counted ``type_unheard``). A far side silent for :data:`HOLD_FOR` seconds
+after the first held frame is taken for an older rosgate, which never announces and must keep
+working: what was held is published, said once.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,6 +44,11 @@ ANNOUNCE_FAST = 0.5  # seconds between them while the entry is young:
 YOUNG = 2.0  # seconds after its start
 MISMATCH_EVERY = 60.0  # seconds between two sentences about one entry's mismatch
 MAX_DEPTH = 1000  # of an announced QoS: what a far side may make this side keep
+#: seconds a receiving entry holds frames for its far side's first announcement (two periods:
+#: one announcement may be lost on the way)
+HOLD_FOR = 2 * ANNOUNCE_EVERY
+HOLD_FRAMES = 1000  # frames held meanwhile, at most
+HOLD_BYTES = 16 << 20  # and bytes
 
 #: one sentence per entry and minute, whoever's frames it drops
 MISMATCHES = Warner(MISMATCH_EVERY)
@@ -108,10 +120,15 @@ def qos_of(value: Any) -> dict[str, Any] | None:
     return qos
 
 
+#: a held frame, delivered (True: the types agree) or refused (False) once the far side speaks
+Verdict = Callable[[bool], None]
+
+
 class TypeCheck:
     """One entry's type against what the far side says of its own."""
 
-    __slots__ = ("label", "mine", "theirs", "mismatch", "_said")
+    __slots__ = ("label", "mine", "theirs", "mismatch", "heard_at", "awaiting", "_said",
+                 "_held", "_held_bytes", "_since", "_drop", "_lock")
 
     def __init__(self, label: str, mine: Identity):
         self.label = label
@@ -119,10 +136,60 @@ class TypeCheck:
         self.theirs: Identity | None = None
         #: the sentence that says why the entry is refused; None while the types agree
         self.mismatch: str | None = None
+        #: when the far side last said its type (time.monotonic(); None: never)
+        self.heard_at: float | None = None
+        #: frames wait for the far side's first word (see :meth:`expect`)
+        self.awaiting = False
         self._said: set[str] = set()
+        self._held: deque[tuple[int, Verdict]] = deque()
+        self._held_bytes = 0
+        self._since = 0.0
+        self._drop: Callable[[str, str], None] = lambda reason, detail: None
+        self._lock = threading.RLock()
+
+    def expect(self, drop: Callable[[str, str], None]) -> None:
+        """Hold this entry's frames until the far side says its type (a peer's receiving entry:
+        its sender announces on the link). ``drop(reason, detail)`` counts a frame let go."""
+        self._drop = drop
+        self.awaiting = True
+
+    def hold(self, size: int, verdict: Verdict) -> bool:
+        """While the far side's first word is awaited: keep a frame of ``size`` bytes, whose
+        ``verdict`` is given when it comes, and say True; False: the frame goes on now."""
+        with self._lock:
+            if not self.awaiting:
+                return False
+            now = time.monotonic()
+            if not self._held:
+                self._since = now
+            self._held.append((size, verdict))
+            self._held_bytes += size
+            while len(self._held) > HOLD_FRAMES or self._held_bytes > HOLD_BYTES:
+                gone, _ = self._held.popleft()
+                self._held_bytes -= gone
+                self._drop("type_unheard", f"more than {HOLD_FRAMES} frames or "
+                           f"{HOLD_BYTES >> 20} MiB came before the far side said its type")
+            self.expire(now)
+            return True
+
+    def expire(self, now: float) -> None:
+        """A far side silent for :data:`HOLD_FOR` seconds since the first frame held is an
+        older rosgate, which never announces: what was held goes on, unchecked."""
+        with self._lock:
+            if self.awaiting and self._held and now - self._since > HOLD_FOR:
+                self._once("silent", f"{self.label}: the far side said nothing of its type in "
+                                     f"{HOLD_FOR:g} s (an older rosgate?): its type is not "
+                                     "checked until it does")
+                self._settle()
 
     def far(self, theirs: Identity | None) -> None:
         """What the far side says of its type (None: nothing, an older rosgate)."""
+        with self._lock:
+            self.heard_at = time.monotonic()
+            self._judge(theirs)
+            self._settle()
+
+    def _judge(self, theirs: Identity | None) -> None:
         if theirs is None or theirs.hash is None or self.mine.hash is None:
             self.mismatch = None
             who = "the far side" if theirs is None or theirs.hash is None else "this side"
@@ -136,6 +203,14 @@ class TypeCheck:
         self.mismatch = (f"{self.label}: refused, the far side's type is {theirs} and this "
                          f"side's is {self.mine}, so its frames are dropped")
         self.say()
+
+    def _settle(self) -> None:
+        """No more waiting: what was held is published, or refused, in the order it came."""
+        self.awaiting = False
+        held, self._held, self._held_bytes = self._held, deque(), 0
+        agreed = self.mismatch is None
+        for _, verdict in held:
+            verdict(agreed)
 
     def say(self) -> None:
         """Say the mismatch, at most once per :data:`MISMATCH_EVERY` seconds."""

@@ -387,6 +387,8 @@ class Router:
                 try:
                     if isinstance(route, TransmitRoute) and not route.topic.qos_given:
                         self._find_qos(route)
+                    if route.check.awaiting:  # a far side that never says its type
+                        route.check.expire(now)
                     young = now - route.born < announce.YOUNG
                     if route.announces and (young or tick % every == 0):
                         self.announce(route)

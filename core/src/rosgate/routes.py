@@ -485,15 +485,24 @@ class ReceiveRoute(Route):
         if self.check.mismatch is not None:
             self.refuse_type()
             return
+        if self.check.awaiting and self.check.hold(size, lambda agreed: self.accept(
+                header, payload, size) if agreed else self.refuse_type()):
+            return  # until the far side says its type (rosgate.announce)
+        self.accept(header, payload, size, arrived)
+
+    def accept(self, header: envelope.Header, payload: bytes, size: int,
+               arrived: int = 0) -> None:
+        """A frame past its checks: published, unless it waited too long here."""
         if arrived and self.max_wait_ns:
             waited = time.time_ns() - arrived
             if waited > self.max_wait_ns:  # older than the topic's max_delay allows
                 self.drop("too_late", f"waited {waited / 1e6:.0f} ms in the receive buffer")
                 return
         if header.flags & envelope.FLAG_COMPRESSED:
-            payload = self.transform_back(payload)
-            if payload is None:
+            restored = self.transform_back(payload)
+            if restored is None:
                 return
+            payload = restored
         self.deliver(payload, size)
 
     def transform_back(self, payload: bytes) -> bytes | None:

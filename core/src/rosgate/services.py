@@ -379,20 +379,33 @@ class ServerRoute(ServiceRoute):
         if refused:
             self.drop(refused)
             return
-        if self.check.mismatch is not None:  # answered as a failure, never served
-            self.refuse_type()
-            reason = self.check.mismatch.encode()
-            if link.send(self.seal(envelope.FLAG_REPLY | envelope.FLAG_FAILED, header.epoch,
-                                   header.seq, reason), self, source):
-                self.counters.sent += 1
+        if self.check.mismatch is not None:
+            self.refuse(header, link, source)
             return
+        if self.check.awaiting and self.check.hold(len(frame), lambda agreed: self.accept(
+                header, payload, len(frame), link, source) if agreed else
+                self.refuse(header, link, source)):
+            return  # until the far side says its type (rosgate.announce)
+        self.accept(header, payload, len(frame), link, source)
+
+    def refuse(self, header: envelope.Header, link: Link, source: Address) -> None:
+        """A call of another type than this side's: answered as a failure, never served."""
+        self.refuse_type()
+        reason = self.check.mismatch or f"{self.label}: refused, the far side's type differs"
+        if link.send(self.seal(envelope.FLAG_REPLY | envelope.FLAG_FAILED, header.epoch,
+                               header.seq, reason.encode()), self, source):
+            self.counters.sent += 1
+
+    def accept(self, header: envelope.Header, payload: bytes, size: int, link: Link,
+               source: Address) -> None:
+        """A call past its checks: served by the ROS server here, answered on ``link``."""
         try:
             request = self.codec.decode(self.codec.request, payload)
         except CodecError as exc:
             self.drop("decode_error", str(exc))
             return
         self.counters.received += 1
-        self.counters.bytes_received += len(frame)
+        self.counters.bytes_received += size
         with self._lock:
             busy = self.in_flight >= QUEUE_DEPTH
             if not busy:

@@ -23,6 +23,14 @@ which both files must spell alike), per direction and key generation; the line c
 heartbeats and is made again after a loss or a restart, with a new secret each time. Bare and
 serial-datagram entries (microcontrollers) stay keyless.
 
+Liveness: calls waiting for the far side's answers (an action's result waits up to an hour)
+fail at once, counted ``link_down``, when the peer is lost, as a client's do when its main line
+is: with identities, when the handshake line is (silent for ``peer_timeout``); without, when
+the peer says nothing for :func:`silent_for` seconds — no announcement of any of its entries
+(each says its type every :data:`~rosgate.announce.ANNOUNCE_EVERY` seconds) and no data. A
+peer never heard from is not judged (an older rosgate announces nothing; its calls wait out
+their timeouts). While it stays silent, each new call fails within ``heartbeat`` seconds.
+
 Sources: every datagram link and listening stream port (the handshake line's too) takes frames
 and connections only from ``bridge.peer`` (resolved once, at start), or, when it is given, from
 the addresses of ``bridge.allow``; the others are counted ``not_allowed``, before any
@@ -39,13 +47,14 @@ import time
 from typing import Any
 
 from ..admission import Acceptor, Sources
+from ..announce import ANNOUNCE_EVERY
 from ..config import Direction, Framing
 from ..errors import LinkError
 from ..keyring import Keys
 from ..links import Connector, Link, StreamLink
 from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
-from ..routes import ReceiveRoute
+from ..routes import ReceiveRoute, Route
 from ..secure import (
     HandshakeError,
     KeySchedule,
@@ -56,7 +65,7 @@ from ..secure import (
     respond,
 )
 from ..service_framing import CallPort
-from ..services import ServerRoute
+from ..services import CallerRoute, ServerRoute
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
 from . import NoLink, Refusals, Role
@@ -65,11 +74,24 @@ from .mainline import control, is_control, key_label, parse_control
 
 log = logging.getLogger("rosgate")
 
+#: announcement periods a peer without a handshake line may stay silent before it is lost: one
+#: announcement may be lost on the way, and a half period is the margin
+SILENT_PERIODS = 2.5
+
+
+def silent_for(peer_timeout: float) -> float:
+    """Seconds of silence after which a peer without a handshake line is lost."""
+    return max(peer_timeout, SILENT_PERIODS * ANNOUNCE_EVERY)
+
 
 class PeerRole(Role):
     def __init__(self, bridge: Any):
         super().__init__(bridge)
         self.handshake: PeerHandshake | None = PeerHandshake(self) if self.cfg.secure else None
+        #: the routes whose far side is the peer: what it says keeps it alive; callers wait on it
+        self.heard_from: list[Route] = []
+        self.callers: list[CallerRoute] = []
+        self.lost = False  # a peer without a handshake line: silent too long
 
     def _keys(self, p: PreparedTopic | PreparedService) -> Keys | None:
         """A session's keys for an entry with an envelope (None: the file's cipher)."""
@@ -84,6 +106,41 @@ class PeerRole(Role):
         if self.handshake is not None:
             self.handshake.start()
         self._start_entries()
+        if self.handshake is None and self.callers and self.heard_from:
+            threading.Thread(target=self._watch_peer, name="peer-liveness", daemon=True).start()
+
+    def fail_calls(self, detail: str) -> None:
+        """The peer is lost: every call waiting for its answer fails now."""
+        for route in self.callers:
+            route.fail_all("link_down", detail)
+
+    def last_heard(self) -> float | None:
+        """When the peer last said anything of its entries (None: never)."""
+        heard = [r.check.heard_at for r in self.heard_from if r.check.heard_at is not None]
+        if not heard:
+            return None
+        data = [r.last_received for r in self.heard_from if isinstance(r, ReceiveRoute)
+                and r.counters.received]
+        return max(heard + data)
+
+    def _watch_peer(self) -> None:
+        """A peer without a handshake line: lost after :func:`silent_for` seconds of silence."""
+        limit = silent_for(self.cfg.peer_timeout)
+        while not self.life.stopping.wait(self.cfg.heartbeat):
+            heard = self.last_heard()
+            if heard is None:
+                continue
+            silence = time.monotonic() - heard
+            if silence <= limit:
+                if self.lost:
+                    self.lost = False
+                    log.info("%s: peer %s heard again", self.cfg.name, self.cfg.peer)
+                continue
+            if not self.lost:
+                self.lost = True
+                log.warning("%s: peer %s silent for %.1f s: taken for lost, calls waiting for "
+                            "it fail", self.cfg.name, self.cfg.peer, silence)
+            self.fail_calls(f"the peer {self.cfg.peer} was silent for {silence:.1f} s")
 
     def stop(self) -> None:
         super().stop()
@@ -153,6 +210,8 @@ class PeerRole(Role):
         t = p.config
         route = self.router.topic(p, topic_id_for(t.remote), t.topic, link, keys=self._keys(p))
         assert isinstance(route, ReceiveRoute)
+        route.check.expect(route.drop)  # its sender may have announced before this side started
+        self.heard_from.append(route)
         if t.topic != t.remote:
             self.router.alias(route, topic_id_for(t.topic))
 
@@ -175,7 +234,13 @@ class PeerRole(Role):
                       budget=self.bridge.budget(p.transport)).start()
         else:
             link = self.datagram_link(p.transport, p.local, key, sources=self._sources(p))
-        self.router.service(p, service_id, s.service, link, fixed(p.address), self._keys(p))
+        route = self.router.service(p, service_id, s.service, link, fixed(p.address),
+                                    self._keys(p))
+        if isinstance(route, ServerRoute):  # its caller may have announced before it started
+            route.check.expect(route.drop)
+            self.heard_from.append(route)
+        elif isinstance(route, CallerRoute):
+            self.callers.append(route)
 
     def _microcontroller_service(self, p: PreparedService,
                                  servers: dict[Address, CallPort]) -> None:
@@ -293,6 +358,7 @@ class PeerHandshake:
 
     def _lost(self, link: StreamLink) -> None:
         self.up.clear()
+        self.role.fail_calls("the handshake line with the peer was lost")
         log.warning("%s: peer %s down (%s); handshaking again", self.cfg.name, self.cfg.peer,
                     link.why or "handshake line closed")
 
