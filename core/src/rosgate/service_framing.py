@@ -22,10 +22,11 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Any, ClassVar, Protocol
 
+from .drops import Reason
 from .transport import Address, StreamConnection, StreamTransport
 
 #: (what dropped it, reason, detail): counts a drop that belongs to no service, by port
-LinkDrop = Callable[[Any, str, str], None]
+LinkDrop = Callable[[Any, Reason, str], None]
 
 
 class CallPort(Protocol):
