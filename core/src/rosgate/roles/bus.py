@@ -163,8 +163,8 @@ class BusWiring:
             route.drop(exc.reason, f"{len(frame)} bytes on {key}")
             return
         if header.flags or header.topic_id != route.topic_id:
-            route.drop(Drop.UNEXPECTED_FRAME, f"on {key}: not a frame of this topic "
-                                              f"(flags {header.flags:#x}, topic id {header.topic_id})")
+            route.drop(Drop.UNEXPECTED_FRAME, f"on {key}: not a frame of this topic (flags "
+                                              f"{header.flags:#x}, topic id {header.topic_id})")
             return
         route.on_frame(header, frame)
 
