@@ -97,6 +97,7 @@ def test_members_are_the_strings_counters_and_status_show():
     assert counted == {"too_late": 2}
     assert f"{Drop.QUEUE_FULL}={counted[Drop.QUEUE_FULL]}" == "queue_full=0"
     assert Drop("type_mismatch") is Drop.TYPE_MISMATCH
+    assert repr(dict(counted)) == "{'too_late': 2}"
 
 
 def test_the_table_in_operators_md_is_up_to_date():

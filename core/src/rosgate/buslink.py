@@ -29,7 +29,7 @@ from collections.abc import Callable
 from typing import Any
 
 from .bus import BusPublisher, BusQuery, BusSession, BusTransport, Handle
-from .drops import Drop, Reason
+from .drops import Drop, LinkDrop, Reason
 from .links import FrameHandler, Link, Sender
 from .transport import Address
 from .warn import BUGS
@@ -40,8 +40,6 @@ QUEUE_DEFAULT = 10_000  # items waiting for the link's thread before arrivals ar
 POLL = 0.2  # seconds the thread waits for an item before looking after unanswered queries
 QUERY_MARGIN = 1.0  # seconds a query outlives its call's timeout: the call's deadline goes first
 
-#: a frame for no route: (link, reason, detail), counted per bridge
-LinkDrop = Callable[[Any, Reason, str], None]
 #: a frame from a subscription: (its concrete key, the frame)
 KeyedFrameHandler = Callable[[str, bytes], None]
 #: a subscription's drops before its handler saw the frame: (concrete key, reason)

@@ -11,7 +11,9 @@ docs/operators.md``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from enum import StrEnum
+from typing import Any
 
 
 class Drop(StrEnum):
@@ -24,6 +26,9 @@ class Drop(StrEnum):
         member._value_ = value
         member.doc = doc
         return member
+
+    def __repr__(self) -> str:  # a counter's dict in a log line reads as it always has
+        return repr(self.value)
 
     # sending
     RATE_LIMIT = "rate_limit", "faster than the topic's `max_rate`"
@@ -102,6 +107,8 @@ class PluginDrop(str):
 
 #: what a drop is counted by
 Reason = Drop | PluginDrop
+#: counts a frame that belongs to no topic, per bridge: (the link or port, reason, detail)
+LinkDrop = Callable[[Any, Reason, str], None]
 
 _DECLARED: dict[str, PluginDrop] = {}
 
