@@ -38,12 +38,12 @@ class Drop(StrEnum):
     QUEUE_FULL = "queue_full", ("a queue had no room: a link's send queue at its `frames` or "
                                 "`bytes` limit, a bus link's queue, or a link that is down (its "
                                 "oldest message goes)")
-    LINK_DOWN = "link_down", "the link was closed or down while the frame waited to be sent"
+    LINK_DOWN = "link_down", "the link was closed or down with the frame or call still waiting"
     SEND_ERROR = "send_error", "the transport failed to send the frame"
     NO_PEER_YET = "no_peer_yet", "the far side's address is not known yet"
     NO_SESSION_KEY = "no_session_key", "the session's key is not there yet, or is gone"
     ENCODE_ERROR = "encode_error", "the codec could not write the message"
-    TOO_LARGE = "too_large", "a service request longer than its `max_request`"
+    TOO_LARGE = "too_large", "a service's request (or a board's answer) over its `max_request`"
     TOO_LARGE_FOR_BARE_FRAMING = "too_large_for_bare_framing", \
         "a frame with `framing: none` larger than one datagram of the link"
     SESSION_RESET = "session_reset", \
@@ -54,11 +54,12 @@ class Drop(StrEnum):
     REMOTE_FAILURE = "remote_failure", "the far side answered the call as failed"
     SERVER_ERROR = "server_error", "the ROS server's call failed"
     # receiving: the link
-    TRANSPORT_ERROR = "transport_error", "the transport failed while receiving"
+    TRANSPORT_ERROR = "transport_error", "the transport failed while receiving (a bug: logged)"
     OVERSIZED_DATAGRAM = "oversized_datagram", "a datagram longer than the link's `max_frame`"
     BAD_FRAGMENT = "bad_fragment", "a fragment whose header or size is impossible"
     BAD_BATCH = "bad_batch", "a batch datagram whose lengths run past its end"
-    BAD_LENGTH = "bad_length", "a stream frame whose length prefix is impossible"
+    BAD_LENGTH = "bad_length", \
+        "a stream frame whose length is impossible, or over `max_frame_before_auth` before trust"
     FRAGMENT_LOST = "fragment_lost", "a frame's fragments stopped coming before it was whole"
     REASSEMBLY_OVERFLOW = "reassembly_overflow", \
         "partial frames over the reassembly's count or memory bound (the oldest goes)"
@@ -85,10 +86,12 @@ class Drop(StrEnum):
     LATE_ANSWER = "late_answer", "a service's answer after its call was over"
     # connections and sessions
     ACCEPT_FAILED = "accept_failed", "accepting a connection failed (tried again after a pause)"
-    TOO_MANY_CONNECTIONS = "too_many_connections", "past `bridge.limits.connections`"
+    TOO_MANY_CONNECTIONS = "too_many_connections", \
+        "past `bridge.limits.connections` (or a port's most calls at once)"
     TOO_MANY_PER_SOURCE = "too_many_per_source", "past `bridge.limits.connections_per_source`"
     TOO_MANY_HANDSHAKES = "too_many_handshakes", "too many handshakes at once"
-    HANDSHAKE_TIMEOUT = "handshake_timeout", "a connection that did not finish its handshake"
+    HANDSHAKE_TIMEOUT = "handshake_timeout", \
+        "a connection that did not finish its handshake within `bridge.limits.handshake_timeout`"
     BAD_HANDSHAKE = "bad_handshake", "a handshake that failed (a wrong key, or not Noise)"
     UNKNOWN_CLIENT_KEY = "unknown_client_key", "a client key the server's `clients:` lacks"
     BAD_HELLO = "bad_hello", "a hello that cannot be read"
