@@ -2,7 +2,7 @@
 in tests/thirdparty/ is found through its entry point and carries topics, including messages
 that the core must fragment to fit its 16000-byte datagrams; the ``json`` codec there, written
 from the docs on rosgate_message_tree's to_tree/from_tree, carries topics as JSON text. A plugin
-that declares no Options (it reads a dict) still carries topics, with a DeprecationWarning."""
+that declares no Options takes none, and carries topics."""
 
 from __future__ import annotations
 
@@ -185,13 +185,13 @@ def test_a_topic_s_options_for_deflate_are_checked_where_they_are_written():
 # --- a plugin that declares no options ----------------------------------------------------------
 
 def legacy_module() -> types.ModuleType:
-    """A transport as plugins were written before they declared Options."""
+    """A transport that declares no Options: it takes none."""
     class LegacyUdp(DatagramTransport):
         name = "legacyudp"
 
         def __init__(self, options):
             super().__init__(options)
-            self.max_frame = options.get("max_frame", 1400)  # its options: a dict
+            self.max_frame = 1400
 
         def bind(self, address):
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -203,27 +203,29 @@ def legacy_module() -> types.ModuleType:
     return module
 
 
-def test_a_plugin_without_declared_options_still_carries_topics(domain, ros_side):
+def test_a_plugin_without_declared_options_takes_none_and_carries_topics(domain, ros_side):
     plugins = Plugins.discover()
     plugins.add(legacy_module(), "legacyudp", "rosgate-transport-legacyudp")
     assert plugins.failures == []
-    extra = "plugins:\n  legacyudp: {max_frame: 500}"
     da, db, port = domain(), domain(), free_port()
+    given = udp_peer("a", "transmit", port, "std_msgs/msg/String",
+                     "plugins:\n  legacyudp: {max_frame: 500}", topic="transport: legacyudp")
+    with pytest.raises(ConfigError, match="legacyudp takes no options"):
+        Engine(loads(given, file="x.yaml"), plugins, domain_id=da).prepare()
     started = []
     try:
         for name, direction, domain_id in (("a", "transmit", da), ("b", "receive", db)):
-            text = udp_peer(name, direction, port, "std_msgs/msg/String", extra,
+            text = udp_peer(name, direction, port, "std_msgs/msg/String",
                             topic="transport: legacyudp")
             engine = Engine(loads(text, file="x.yaml"), plugins, domain_id=domain_id)
-            with pytest.deprecated_call(match="LegacyUdp declares no Options"):
-                engine.prepare()
-            assert engine.resolver.transports["legacyudp"].options == {"max_frame": 500}
+            engine.prepare()
+            assert engine.resolver.transports["legacyudp"].options == {}
             started.append(engine.start())
         make = lambda i: String(data="warmup" if i is None else f"{i}" * 2000)
         got = cross(ros_side(da, "a").publisher("/data", String),
                     ros_side(db, "b").listen("/data", String), make,
                     lambda m: m.data == "warmup", 5, interval=0.02)
-        assert got == [make(i) for i in range(5)]  # 2 kB each: fragmented to 500-byte frames
+        assert got == [make(i) for i in range(5)]  # 2 kB each: fragmented to 1400-byte frames
         assert started[1].routes()[0].counters.drops == {}
     finally:
         for engine in started:

@@ -778,7 +778,7 @@ def test_a_slot_holds_reliable_frames_while_down_and_sends_them_first_in_order(c
     assert [slot.send(f"r{i}".encode(), reliable) for i in range(5)] == [True] * 5
     assert slot.send(b"best effort", best_effort) is False
     # oldest first out: r0 and r1 over the 3-frame bound; the best-effort frame was never held
-    assert drops.drops == [(1, "queue_overflow"), (1, "queue_overflow"), (2, "link_down")]
+    assert drops.drops == [(1, "queue_full"), (1, "queue_full"), (2, "link_down")]
     assert slot.waiting == 3
     client, server = tcp_connections()
     inbox = Inbox()
@@ -798,7 +798,7 @@ def test_a_slot_bounds_bytes_and_discards_on_request():
     slot.send(b"7890", held)   # exactly 10 bytes held
     assert drops.drops == []
     slot.send(b"x", held)      # 11: the oldest goes
-    assert drops.drops == [(7, "queue_overflow")] and slot.waiting == 2
+    assert drops.drops == [(7, "queue_full")] and slot.waiting == 2
     slot.discard("session_reset")
     assert drops.drops[1:] == [(7, "session_reset")] * 2 and slot.waiting == 0
     slot.close()

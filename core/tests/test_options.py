@@ -67,7 +67,7 @@ def test_an_unknown_key_suggests_the_closest_and_lists_them_all():
     assert error({"host": "a", "zzz": 1}).message == "unknown option of demo"
 
 
-def test_a_class_without_options_takes_none():
+def test_a_class_with_empty_options_takes_none():
     class Bare:
         name = "bare"
 
@@ -140,13 +140,15 @@ def test_rules_across_fields_live_in_post_init():
     assert (e.key, e.message, e.fix) == ("high", "must not be below low (5)", "swap low and high")
 
 
-def test_a_class_without_options_gets_its_table_as_a_dict_and_a_warning():
+def test_a_class_without_options_takes_none_either():
     class Legacy:
         name = "legacy"
 
-    with pytest.warns(DeprecationWarning, match="Legacy declares no Options") as caught:
-        assert parse(Legacy, {"anything": 1}) == {"anything": 1}
-    assert caught[0].filename == __file__  # pointed at the class, where the fix goes
+    with pytest.raises(OptionError) as info:
+        parse(Legacy, {"anything": 1})
+    assert (info.value.key, info.value.message, info.value.fix) == (
+        "anything", "legacy takes no options", "remove it from plugins: legacy:")
+    assert parse(Legacy, {}) == {}
 
 
 def test_as_options_keeps_what_the_core_parsed_and_parses_a_plain_mapping():
@@ -159,7 +161,9 @@ def test_as_options_keeps_what_the_core_parsed_and_parses_a_plain_mapping():
     class Legacy:
         name = "legacy"
 
-    assert as_options(Legacy, {"x": 1}) == {"x": 1}
+    assert as_options(Legacy, {}) == {}
+    with pytest.raises(OptionError, match="legacy takes no options"):
+        as_options(Legacy, {"x": 1})
 
 
 def test_declared_lists_each_option_for_the_listing():
@@ -173,7 +177,7 @@ def test_declared_lists_each_option_for_the_listing():
     assert rows["mode"].limits() == rows["colour"].limits().replace("red, green", "push, pull")
     assert [spell(rows[n].type) for n in ("mode", "names", "extra", "timeout")] == [
         "str", "list[str]", "dict[str, Any]", "float | None"]
-    assert declared(type("Legacy", (), {})) is None
+    assert declared(type("Legacy", (), {})) == []
 
 
 def test_option_needs_a_doc():

@@ -20,6 +20,7 @@ from rosgate import (
     Codec,
     DatagramTransport,
     LinkError,
+    OptionError,
     StreamTransport,
     Transport,
     hookimpl,
@@ -439,7 +440,7 @@ def test_a_transport_that_says_its_kind_by_an_attribute_is_refused():
                                         "BusTransport)")]
 
 
-def test_a_transport_without_options_registers_and_gets_its_table_as_a_dict():
+def test_a_transport_without_options_registers_and_takes_none():
     class Plain(DatagramTransport):
         name = "plain"
 
@@ -453,10 +454,10 @@ def test_a_transport_without_options_registers_and_gets_its_table_as_a_dict():
     plugins = Plugins()
     plugins.add(plugin(rosgate_transports=registers(Plain)), "plain", "rosgate-transport-plain")
     assert plugins.failures == [] and plugins.get("transport", "plain").cls is Plain
-    with pytest.deprecated_call(match="Plain declares no Options"):
-        options = parse(Plain, {"max_frame": 64})
-    plain = Plain(options)
-    assert (plain.options, plain.max_frame) == ({"max_frame": 64}, 64)
+    with pytest.raises(OptionError, match="plain takes no options"):
+        parse(Plain, {"max_frame": 64})
+    plain = Plain(parse(Plain, {}))
+    assert (plain.options, plain.max_frame) == ({}, 100)
 
 
 # --- lazy discovery ------------------------------------------------------------------------------

@@ -30,6 +30,7 @@ from collections import Counter
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from .drops import Drop, Reason
 from .transport import Address, StreamConnection, StreamListener
 from .warn import BUGS, Warner
 from .wire import envelope
@@ -152,14 +153,14 @@ class ConnectionLimits:
         self._count = 0
         self._lock = threading.Lock()
 
-    def admit(self, host: str) -> str | None:
+    def admit(self, host: str) -> Drop | None:
         """Take a place for a connection from ``host``; None when taken, else why not."""
         with self._lock:
             if self._count >= self.total or (self._count >= self.open_to_all
                                              and host not in self.recent):
-                return "too_many_connections"
+                return Drop.TOO_MANY_CONNECTIONS
             if self._by_source[host] >= self.per_source:
-                return "too_many_per_source"
+                return Drop.TOO_MANY_PER_SOURCE
             self._count += 1
             self._by_source[host] += 1
             return None
@@ -237,7 +238,7 @@ class _Counted:
         return getattr(self._connection, name)
 
 
-RefusedHandler = Callable[["Acceptor", str, str], None]
+RefusedHandler = Callable[["Acceptor", Reason, str], None]
 
 
 class Acceptor:
@@ -274,7 +275,7 @@ class Acceptor:
                     return
                 failures += 1
                 pause = min(ACCEPT_BACKOFF[0] * 2 ** (failures - 1), ACCEPT_BACKOFF[1])
-                self._refused("accept_failed", f"{exc}; trying again in {pause:g} s")
+                self._refused(Drop.ACCEPT_FAILED, f"{exc}; trying again in {pause:g} s")
                 self.closed.wait(pause)
                 continue
             failures = 0
@@ -285,8 +286,8 @@ class Acceptor:
         host = peer[0]
         if self.sources is not None and not self.sources.admits(peer):
             connection.close()
-            self._refused("not_allowed", f"a connection from {host} (taken from: "
-                                            f"{self.sources})")
+            self._refused(Drop.NOT_ALLOWED, f"a connection from {host} (taken from: "
+                                               f"{self.sources})")
             return
         limits = self.limits
         if limits is not None:
@@ -303,9 +304,9 @@ class Acceptor:
             BUGS.bug("accept_handler", f"{self.name}: error while taking a connection from "
                                        f"{host}")
             connection.close()
-            self._refused("handler_error", f"a connection from {host}")
+            self._refused(Drop.HANDLER_ERROR, f"a connection from {host}")
 
-    def _refused(self, reason: str, detail: str) -> None:
+    def _refused(self, reason: Reason, detail: str) -> None:
         if self.on_refused is not None:
             self.on_refused(self, reason, detail)
         else:

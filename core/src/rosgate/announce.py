@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .config import QOS_POLICIES
+from .drops import Drop, Reason
 from .warn import Warner
 from .wire.control import ControlError, parse
 
@@ -144,10 +145,10 @@ class TypeCheck:
         self._held: deque[tuple[int, Verdict]] = deque()
         self._held_bytes = 0
         self._since = 0.0
-        self._drop: Callable[[str, str], None] = lambda reason, detail: None
+        self._drop: Callable[[Reason, str], None] = lambda reason, detail: None
         self._lock = threading.RLock()
 
-    def expect(self, drop: Callable[[str, str], None]) -> None:
+    def expect(self, drop: Callable[[Reason, str], None]) -> None:
         """Hold this entry's frames until the far side says its type (a peer's receiving entry:
         its sender announces on the link). ``drop(reason, detail)`` counts a frame let go."""
         self._drop = drop
@@ -167,7 +168,7 @@ class TypeCheck:
             while len(self._held) > HOLD_FRAMES or self._held_bytes > HOLD_BYTES:
                 gone, _ = self._held.popleft()
                 self._held_bytes -= gone
-                self._drop("type_unheard", f"more than {HOLD_FRAMES} frames or "
+                self._drop(Drop.TYPE_UNHEARD, f"more than {HOLD_FRAMES} frames or "
                            f"{HOLD_BYTES >> 20} MiB came before the far side said its type")
             self.expire(now)
             return True

@@ -8,7 +8,7 @@ no reconnection (the bus does those). What the core does:
   thread, in arrival order. The bus library's callbacks must return at once (a slow one stalls
   the whole session), and the handlers above (cipher, codec, ROS publish) take their time.
   The queue is bounded: what arrives while it is full is dropped and counted
-  (``queue_overflow``, against the topic when the subscription has one).
+  (``queue_full``, against the topic when the subscription has one).
 * **Outlets.** A route sends through a :class:`BusOutlet` (publish on its key), a
   :class:`BusCaller` (one query per service call) or the link's :class:`BusAnswerer` (the
   answer to a query that came in, found by the ``(key, number)`` it was handed over with as
@@ -29,6 +29,7 @@ from collections.abc import Callable
 from typing import Any
 
 from .bus import BusPublisher, BusQuery, BusSession, BusTransport, Handle
+from .drops import Drop, LinkDrop, Reason
 from .links import FrameHandler, Link, Sender
 from .transport import Address
 from .warn import BUGS
@@ -39,12 +40,10 @@ QUEUE_DEFAULT = 10_000  # items waiting for the link's thread before arrivals ar
 POLL = 0.2  # seconds the thread waits for an item before looking after unanswered queries
 QUERY_MARGIN = 1.0  # seconds a query outlives its call's timeout: the call's deadline goes first
 
-#: a frame for no route: (link, reason, detail), counted per bridge
-LinkDrop = Callable[[Any, str, str], None]
 #: a frame from a subscription: (its concrete key, the frame)
 KeyedFrameHandler = Callable[[str, bytes], None]
 #: a subscription's drops before its handler saw the frame: (concrete key, reason)
-KeyedDrop = Callable[[str, str], None]
+KeyedDrop = Callable[[str, Reason], None]
 
 
 class BusLink:
@@ -89,7 +88,7 @@ class BusLink:
         use it too, with :meth:`keep`)."""
         def arrived(key: str, frame: bytes) -> None:
             if not self._put(on_frame, (key, frame)):
-                drop(key, "queue_overflow")
+                drop(key, Drop.QUEUE_FULL)
 
         return arrived
 
@@ -103,7 +102,7 @@ class BusLink:
                 self._pending[number] = (query, time.monotonic() + hold)
             if not self._put(on_frame, (payload, self.answerer, (concrete, number))):
                 self._finish(number)
-                self.link_drop(self, "queue_overflow", f"a query on {concrete}")
+                self.link_drop(self, Drop.QUEUE_FULL, f"a query on {concrete}")
 
         return self.keep(self.session.serve(key, arrived))
 
@@ -156,7 +155,7 @@ class BusLink:
                 except Exception:
                     BUGS.bug("handler_error", f"{self.name}: error while handling what the bus "
                                               "delivered (a bug: please report it)")
-                    self.link_drop(self, "handler_error", "see the traceback logged once a minute")
+                    self.link_drop(self, Drop.HANDLER_ERROR, "see the traceback logged each minute")
             now = time.monotonic()
             if now >= next_sweep:  # under load too: a held query must not wait for a quiet moment
                 next_sweep = now + POLL
@@ -214,12 +213,12 @@ class BusOutlet(Link):
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         if self.closed.is_set():
-            sender.drop("link_down", f"{self.bus.name} is closed")
+            sender.drop(Drop.LINK_DOWN, f"{self.bus.name} is closed")
             return False
         try:
             self.publisher.put(frame)
         except OSError as exc:
-            sender.drop("send_error", f"on {self.key}: {exc}")
+            sender.drop(Drop.SEND_ERROR, f"on {self.key}: {exc}")
             return False
         return True
 
@@ -245,7 +244,7 @@ class BusCaller(Link):
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         if self.closed.is_set():
-            sender.drop("link_down", f"{self.bus.name} is closed")
+            sender.drop(Drop.LINK_DOWN, f"{self.bus.name} is closed")
             return False
         on_answer = self.on_answer
         assert on_answer is not None, "a caller's answers need a handler"
@@ -256,14 +255,14 @@ class BusCaller(Link):
 
         def done(answers: int) -> None:
             if not answers:
-                bus.call_later(sender.drop, "no_server",
+                bus.call_later(sender.drop, Drop.NO_SERVER,
                                f"nothing on {bus.name} answered on {self.key} (no bridge serves "
                                "it, or it refused the call)")
 
         try:
             bus.session.query(self.key, frame, self.timeout, answered, done)
         except OSError as exc:
-            sender.drop("send_error", f"query on {self.key}: {exc}")
+            sender.drop(Drop.SEND_ERROR, f"query on {self.key}: {exc}")
             return False
         return True
 
@@ -284,7 +283,7 @@ class BusAnswerer(Link):
         assert to is not None
         query = self.bus.take(to[1]) if not self.closed.is_set() else None
         if query is None:
-            sender.drop("late_answer", f"the query on {to[0]} was closed before the answer")
+            sender.drop(Drop.LATE_ANSWER, f"the query on {to[0]} was closed before the answer")
             return False
         try:
             body = self.body(frame)
@@ -292,7 +291,7 @@ class BusAnswerer(Link):
                 return False
             query.reply(body)
         except OSError as exc:
-            sender.drop("send_error", f"answer on {to[0]}: {exc}")
+            sender.drop(Drop.SEND_ERROR, f"answer on {to[0]}: {exc}")
             return False
         finally:
             try:

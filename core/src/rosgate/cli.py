@@ -198,9 +198,7 @@ def _print_options(plugins: Any, name: str) -> int:
     for r in found:
         print(f"{r.kind} {r.name} ({r.distribution} {r.version}), under plugins: {r.name}:")
         options = declared(r.cls)
-        if options is None:
-            print("  declares no Options: its table reaches it unchecked")
-        elif not options:
+        if not options:
             print("  no options")
         else:
             rows = [("OPTION", "TYPE", "DEFAULT", "DESCRIPTION")]

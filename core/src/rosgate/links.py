@@ -55,6 +55,7 @@ from typing import Any, Protocol, cast
 
 from .admission import Sources
 from .config import MAX_DELAY_DEFAULT, NO_PLUGIN, LinkConfig
+from .drops import Drop, Reason
 from .errors import LinkError
 from .packetizer import Packet, Packetizer
 from .plugins import Plugins, installed
@@ -75,7 +76,7 @@ log = logging.getLogger("rosgate")
 
 FrameHandler = Callable[[bytes, "Link", Address], None]
 #: a loss on the receiving side: (topic id when known, reason)
-LostHandler = Callable[[int | None, str], None]
+LostHandler = Callable[[int | None, Reason], None]
 #: a frame that arrived whole only thanks to its recovery (FEC repair, retransmission)
 RecoveredHandler = Callable[[int], None]
 
@@ -104,7 +105,7 @@ class Sender(Protocol):
     def reliable(self) -> bool:
         """Its frames wait in a :class:`LinkSlot` while the link is down (reliable QoS)."""
 
-    def drop(self, reason: str, detail: str = "") -> None:
+    def drop(self, reason: Reason, detail: str = "") -> None:
         """Count one of its frames as dropped on the way out."""
 
 
@@ -284,7 +285,7 @@ class _Sending(ABC):
         if self.scheduler.dropped:
             self._count_drops()
         if not queued and self.closed.is_set():
-            message.sender.drop("link_down", f"{self.name} is closed")
+            message.sender.drop(Drop.LINK_DOWN, f"{self.name} is closed")
         return queued
 
     def _count_drops(self) -> None:
@@ -412,7 +413,7 @@ class DatagramLink(_Sending, Link):
         assert to is not None, "a datagram link needs a destination"
         size = len(frame)
         if self.bare and size > self.max_frame:
-            sender.drop("too_large_for_bare_framing",
+            sender.drop(Drop.TOO_LARGE_FOR_BARE_FRAMING,
                         f"{size} bytes, {self.name} carries at most {self.max_frame}")
             return False
         whole = self.bare or getattr(sender, "bare", False)
@@ -519,7 +520,7 @@ class DatagramLink(_Sending, Link):
             return None
         return self._make(registration.cls)
 
-    def lost(self, topic_id: int | None, reason: str) -> None:
+    def lost(self, topic_id: int | None, reason: Reason) -> None:
         self.on_lost(topic_id, reason)
 
     def recovered(self, topic_id: int) -> None:
@@ -659,7 +660,7 @@ class DatagramLink(_Sending, Link):
                     else:
                         self.endpoint.send(packet, to)
         except OSError as exc:
-            sender.drop("link_down" if self.closed.is_set() else "send_error",
+            sender.drop(Drop.LINK_DOWN if self.closed.is_set() else Drop.SEND_ERROR,
                         f"to {to} on {self.name}: {exc}")
             return False
         counters = self.counters
@@ -689,7 +690,7 @@ class DatagramLink(_Sending, Link):
             # a message cut short by close() was counted there (link_down), unless this was
             # its last packet
             if due.ends is not None or not self.closed.is_set():
-                sender.drop("send_error", f"to {to} on {self.name}: {exc}")
+                sender.drop(Drop.SEND_ERROR, f"to {to} on {self.name}: {exc}")
             return False
         counters = self.counters
         counters.packets_out += count
@@ -718,7 +719,7 @@ class DatagramLink(_Sending, Link):
                 self.endpoint.send(b"".join(parts), to)
         except OSError as exc:
             for due in dues:
-                due.sender.drop("send_error", f"to {to} on {self.name}: {exc}")
+                due.sender.drop(Drop.SEND_ERROR, f"to {to} on {self.name}: {exc}")
             return 0
         counters = self.counters
         counters.frames_out += len(frames)
@@ -827,7 +828,7 @@ class DatagramLink(_Sending, Link):
                     return None
                 size, source, self.arrived = got
                 if size >= len(buffer):
-                    self.on_lost(None, "oversized_datagram")
+                    self.on_lost(None, Drop.OVERSIZED_DATAGRAM)
                     return None
                 return buffer[:size], source
 
@@ -844,7 +845,7 @@ class DatagramLink(_Sending, Link):
             except Exception:  # a transport plugin's bug must not silently end the link
                 BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
                                             "(a bug in the plugin)")
-                self.on_lost(None, "transport_error")
+                self.on_lost(None, Drop.TRANSPORT_ERROR)
                 closed.wait(POLL)  # do not spin on a receive that fails at once
                 continue
             now = time.monotonic()
@@ -865,7 +866,7 @@ class DatagramLink(_Sending, Link):
         """One datagram as it came (a view of the receive buffer, valid until the next one); the
         packetizer it was fed to, if any."""
         if self.sources is not None and not self.sources.admits(source, datagram):
-            self.on_lost(None, "not_allowed")
+            self.on_lost(None, Drop.NOT_ALLOWED)
             return None
         counters = self.counters
         counters.packets_in += 1
@@ -878,7 +879,7 @@ class DatagramLink(_Sending, Link):
             try:
                 frame = self.reassembler.add(source, datagram)
             except framing.FramingError:
-                self.on_lost(None, "bad_fragment")
+                self.on_lost(None, Drop.BAD_FRAGMENT)
                 return None
             if frame is not None:
                 counters.frames_in += 1
@@ -892,7 +893,7 @@ class DatagramLink(_Sending, Link):
                     counters.coalesced_in += 1
                     deliver(self, bytes(record), source)
             except framing.FramingError:
-                self.on_lost(None, "bad_batch")
+                self.on_lost(None, Drop.BAD_BATCH)
             return None
         if kind == 0x47:  # "RG": an envelope, the most common of all, looked up by nobody
             packetizer = None
@@ -909,12 +910,12 @@ class DatagramLink(_Sending, Link):
         try:
             frame = packetizer.feed(datagram, source, now or time.monotonic())
         except framing.FramingError:
-            self.on_lost(None, "bad_fragment")
+            self.on_lost(None, Drop.BAD_FRAGMENT)
             return packetizer
         except Exception:  # a packetizer must raise FramingError; anything else is its bug
             BUGS.bug("packetizer_error", f"{self.name}: packetizer {packetizer.name} failed on a "
                                          "packet (a bug in the plugin)")
-            self.on_lost(None, "bad_fragment")
+            self.on_lost(None, Drop.BAD_FRAGMENT)
             return packetizer
         if frame is not None:
             counters.frames_in += 1
@@ -931,7 +932,7 @@ class DatagramLink(_Sending, Link):
             unsent = self.scheduler.clear()
             self._wake.notify_all()
         for sender in unsent:
-            sender.drop("link_down", f"{self.name} closed with the frame still queued")
+            sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
         self.endpoint.close()
         for thread in self._threads:
             if thread is not threading.current_thread() and thread.ident is not None:
@@ -1054,7 +1055,7 @@ class StreamLink(_Sending, Link):
             written = self._send_nowait(data)
         except OSError as exc:
             for _ in sizes:
-                sender.drop("link_down", f"{self.name}: send failed")
+                sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
             self.fail(f"send failed: {exc}")
             return False
         counters = self.counters
@@ -1111,7 +1112,7 @@ class StreamLink(_Sending, Link):
             except OSError as exc:
                 for due in batch:
                     if due.ends is not None:
-                        due.sender.drop("link_down", f"{self.name}: send failed")
+                        due.sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
                 self.fail(f"send failed: {exc}")
                 return
             counters = self.counters
@@ -1164,12 +1165,12 @@ class StreamLink(_Sending, Link):
             except Exception as exc:  # a transport plugin's bug: drop this connection, loudly
                 BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
                                             "(a bug in the plugin)")
-                self.on_lost(None, "transport_error")
+                self.on_lost(None, Drop.TRANSPORT_ERROR)
                 self.fail(f"transport error: {type(exc).__name__}: {exc}")
                 return
             trust_by = self._trust_by
             if trust_by is not None and time.monotonic() > trust_by:
-                self.on_lost(None, "handshake_timeout")
+                self.on_lost(None, Drop.HANDSHAKE_TIMEOUT)
                 self.fail("no handshake in time")
                 return
             if got is None:
@@ -1198,7 +1199,7 @@ class StreamLink(_Sending, Link):
                     deliver(self, frame, self.peer)
             except framing.FramingError as exc:
                 # a corrupt length means we can no longer find frame boundaries: start afresh
-                self.on_lost(None, "bad_length")
+                self.on_lost(None, Drop.BAD_LENGTH)
                 self.fail(f"stream corrupt ({exc})")
                 return
             finally:
@@ -1238,7 +1239,7 @@ class StreamLink(_Sending, Link):
                 unsent.append(self._rest.sender)
                 self._rest = None
         for sender in unsent:
-            sender.drop("link_down", f"{self.name} closed with the frame still queued")
+            sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
         if self.on_close:
             self.on_close(self)
 
@@ -1256,7 +1257,7 @@ class LinkSlot(Link):
     peer again) :meth:`attach`-es each new connection.
 
     While there is no live connection, frames of :attr:`Sender.reliable` senders wait, oldest
-    dropped first when the limits are reached (counted ``queue_overflow``), and are handed to the
+    dropped first when the limits are reached (counted ``queue_full``), and are handed to the
     next connection in order, before anything sent later. Other frames are counted ``link_down``.
     Frames already handed to a connection that then fails are not taken back (there are no
     acknowledgements): a connection's loss can cost what was in flight.
@@ -1290,10 +1291,10 @@ class LinkSlot(Link):
                     self._waiting_bytes -= len(old)
                     overflow.append(old_sender)
         for old_sender in overflow:
-            old_sender.drop("queue_overflow", f"{self.name} is down and its queue is full")
+            old_sender.drop(Drop.QUEUE_FULL, f"{self.name} is down and its queue is full")
         if refused:
             for _ in frames:
-                sender.drop("link_down", f"{self.name} is down")
+                sender.drop(Drop.LINK_DOWN, f"{self.name} is down")
             return 0
         return len(frames)
 
@@ -1306,7 +1307,7 @@ class LinkSlot(Link):
             self._waiting_bytes = 0
             self.current = link
 
-    def discard(self, reason: str) -> None:
+    def discard(self, reason: Reason) -> None:
         """Drop what waits (its topic ids mean nothing to a new session), counted by ``reason``."""
         with self._lock:
             senders = [sender for _, sender in self._waiting]
@@ -1338,7 +1339,7 @@ class LinkSlot(Link):
 
     def close(self) -> None:
         self.closed.set()
-        self.discard("link_down")
+        self.discard(Drop.LINK_DOWN)
         if self.current is not None:
             self.current.close()
 
@@ -1459,4 +1460,4 @@ def deliver(link: DatagramLink | StreamLink, frame: bytes, source: Address) -> N
     except Exception:
         BUGS.bug("handler_error", f"{link.name}: error while handling a frame from {source} "
                                   "(a bug: please report it)")
-        link.on_lost(None, "handler_error")
+        link.on_lost(None, Drop.HANDLER_ERROR)

@@ -64,7 +64,7 @@ class Monitor:
 
     def __init__(self, bridge: Watched, options: Any):
         self.bridge = bridge
-        self.options = options  # the parsed Options of plugins: <name>: (a dict without Options)
+        self.options = options  # the parsed Options of plugins: <name>: ({} without Options)
 
     def start(self) -> None:
         """Called once the bridge runs. Raise :class:`rosgate.ConfigError` (with

@@ -36,18 +36,15 @@ The types an option may have (YAML gives nothing else):
 =====================  ========================================================================
 
 ``rosgate plugins --options NAME`` prints the declaration: each option's name, type, default and
-doc. A plugin class without ``Options`` still gets its table as a ``dict``, unchecked, with a
-``DeprecationWarning``.
+doc. A plugin class without ``Options`` takes none: any key in its table is refused.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
-import inspect
 import types
 import typing
-import warnings
 from collections.abc import Mapping
 from dataclasses import MISSING
 from typing import Any, Literal, Union
@@ -141,10 +138,10 @@ class Declared:
         return f"{self.name}: {self.doc} ({', '.join(d for d in details if d)})"
 
 
-def declared(cls: type) -> list[Declared] | None:
-    """The options ``cls`` declares, in declaration order; ``None`` without ``Options``."""
+def declared(cls: type) -> list[Declared]:
+    """The options ``cls`` declares, in declaration order (none without ``Options``)."""
     options = getattr(cls, "Options", None)
-    return None if options is None else fields_of(options)
+    return [] if options is None else fields_of(options)
 
 
 def fields_of(options: type) -> list[Declared]:
@@ -180,7 +177,6 @@ def declaration_problem(cls: type) -> str | None:
         rows = declared(cls)
     except Exception as exc:  # an annotation that does not evaluate, a default factory that fails
         return f"{where}: {type(exc).__name__}: {exc}"
-    assert rows is not None
     for row in rows:
         unsupported = _unsupported(row.type)
         if unsupported is not None:
@@ -197,11 +193,8 @@ def declaration_problem(cls: type) -> str | None:
 def parse(cls: Any, table: Mapping[str, Any]) -> Any:
     """``table`` (a plugin's table under ``plugins:``) checked against ``cls.Options``: the
     ``Options`` instance, or :class:`rosgate.OptionError` naming the key that is wrong and how to
-    fix it. A class without ``Options`` gets ``dict(table)``, unchecked (deprecated)."""
+    fix it. A class without ``Options`` takes none: its table must be empty, and it gets ``{}``."""
     rows = declared(cls)
-    if rows is None:
-        _warn_undeclared(cls)
-        return dict(table)
     name = getattr(cls, "name", cls.__name__)
     by_name = {row.name: row for row in rows}
     for key in table:
@@ -214,6 +207,8 @@ def parse(cls: Any, table: Mapping[str, Any]) -> Any:
         elif row.required:
             raise OptionError(None, f"{name} needs the option {row.name!r} ({row.doc})",
                               f"add {row.name}: <{_words(row.type)}> under plugins: {name}:")
+    if not hasattr(cls, "Options"):
+        return {}
     return cls.Options(**values)  # __post_init__ checks what ties fields together
 
 
@@ -221,7 +216,7 @@ def as_options(cls: type, options: Any) -> Any:
     """What a plugin's constructor keeps as ``self.options``: the parsed ``Options`` the core
     passes, or a plain mapping (a test, a script) parsed here the same way."""
     if isinstance(options, Mapping):
-        return parse(cls, options) if hasattr(cls, "Options") else dict(options)
+        return parse(cls, options)
     return options
 
 
@@ -368,16 +363,3 @@ def _unknown(name: str, key: str, valid: list[str]) -> OptionError:
     return OptionError(key, f"unknown option of {name}{hint}",
                        f"the options of {name} are {', '.join(valid)}")
 
-
-def _warn_undeclared(cls: type) -> None:
-    """Point the warning at the plugin's class, where the fix goes."""
-    message = DeprecationWarning(
-        f"{cls.__name__} declares no Options, so its table under plugins: reaches it unchecked, "
-        "as a dict; declare a frozen dataclass Options whose fields are made with rosgate.option()")
-    try:
-        filename, lineno = inspect.getsourcefile(cls), inspect.getsourcelines(cls)[1]
-    except (OSError, TypeError):
-        warnings.warn(message, stacklevel=3)
-        return
-    warnings.warn_explicit(message, DeprecationWarning, filename or "?", lineno,
-                           module=cls.__module__)

@@ -27,6 +27,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar, Protocol
 
+from .drops import Reason
 from .transport import Address
 
 #: a packet as :meth:`Packetizer.cut` may give it: bytes, or the parts of one packet (a header
@@ -46,7 +47,7 @@ class PacketLink(Protocol):
     #: the largest frame a packetizer may put together
     max_message: int
 
-    def lost(self, topic_id: int | None, reason: str) -> None:
+    def lost(self, topic_id: int | None, reason: Reason) -> None:
         """Count a frame given up (``fragment_lost``, ``reassembly_overflow``...) against its
         topic (None: unknown). Once per frame."""
 

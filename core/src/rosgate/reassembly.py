@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 
+from .drops import Drop, Reason
 from .wire.framing import (
     COMPACT_COUNTER,
     COMPACT_SOURCES,
@@ -83,7 +84,7 @@ class Reassembler:
     spoofed source cannot guess the id of a frame in progress and slip a fragment into it.
     """
 
-    def __init__(self, on_lost: Callable[[int, str], None], timeout: float = 2.0,
+    def __init__(self, on_lost: Callable[[int, Reason], None], timeout: float = 2.0,
                  max_pending_bytes: int = 4 * DEFAULT_MAX_MESSAGE,
                  max_message: int = DEFAULT_MAX_MESSAGE, max_partials: int = 1024,
                  source_partials: int = 128, source_bytes: int | None = None):
@@ -182,9 +183,9 @@ class Reassembler:
         """A new partial frame (accounted by the caller), room made for it first."""
         owner = self._sources.get(source)
         if owner is not None and len(owner.partials) >= self.source_partials:
-            self._give_up(next(iter(owner.partials)), "reassembly_overflow")
+            self._give_up(next(iter(owner.partials)), Drop.REASSEMBLY_OVERFLOW)
         if len(self._pending) >= self.max_partials:
-            self._give_up(next(iter(self._pending)), "reassembly_overflow")
+            self._give_up(next(iter(self._pending)), Drop.REASSEMBLY_OVERFLOW)
         owner = self._sources.setdefault(source, _Source())
         partial = self._pending[key] = _Partial(key, source, topic_id, count, now,
                                                 bytearray(count), aside={})
@@ -208,9 +209,9 @@ class Reassembler:
         owner.cost += cost
         self._pending_bytes += cost
         while owner.cost > self.source_bytes and owner.partials:
-            self._give_up(next(iter(owner.partials)), "reassembly_overflow")
+            self._give_up(next(iter(owner.partials)), Drop.REASSEMBLY_OVERFLOW)
         while self._pending_bytes > self.max_pending_bytes and self._pending:
-            self._give_up(next(iter(self._pending)), "reassembly_overflow")
+            self._give_up(next(iter(self._pending)), Drop.REASSEMBLY_OVERFLOW)
 
     def _complete(self, partial: _Partial) -> bytearray:
         self._forget(partial)
@@ -240,9 +241,9 @@ class Reassembler:
             oldest = next(iter(pending.values()))
             if oldest.started >= deadline:
                 return
-            self._give_up(oldest.key, "fragment_lost")
+            self._give_up(oldest.key, Drop.FRAGMENT_LOST)
 
-    def _give_up(self, key: tuple, reason: str) -> None:
+    def _give_up(self, key: tuple, reason: Reason) -> None:
         partial = self._pending[key]
         self._forget(partial)
         self.on_lost(partial.topic_id, reason)
@@ -268,7 +269,7 @@ class CompactReassembler:
     stalled frames looks only at the stalled ones and the first that is not; a frame in progress
     is accounted as its bytes plus :data:`PARTIAL_COST`."""
 
-    def __init__(self, on_lost: Callable[[int | None, str], None],
+    def __init__(self, on_lost: Callable[[int | None, Reason], None],
                  topic_of: Callable[[bytes], int | None] = lambda start: None,
                  timeout: float = 2.0, max_pending_bytes: int = 4 * DEFAULT_MAX_MESSAGE,
                  max_message: int = DEFAULT_MAX_MESSAGE):
@@ -295,15 +296,15 @@ class CompactReassembler:
                 oldest_source = next(iter(self._senders))
                 oldest = self._senders.pop(oldest_source)
                 if oldest.frame is not None:
-                    self._give_up(oldest_source, oldest, "reassembly_overflow")
+                    self._give_up(oldest_source, oldest, Drop.REASSEMBLY_OVERFLOW)
         elif counter == (sender.next - 1) & COMPACT_COUNTER:
             return None  # a duplicated piece
         elif counter != sender.next:
-            self._give_up(source, sender, "fragment_lost")
+            self._give_up(source, sender, Drop.FRAGMENT_LOST)
         sender.next = (counter + 1) & COMPACT_COUNTER
         if head & COMPACT_START:
             if sender.frame is not None:  # the sender abandoned a frame half-sent
-                self._give_up(source, sender, "fragment_lost")
+                self._give_up(source, sender, Drop.FRAGMENT_LOST)
             if self._active:
                 self.expire(now)  # a stalled source is noticed even while others keep sending
             length, offset = read_leb128(piece, 1)
@@ -342,16 +343,16 @@ class CompactReassembler:
             source, sender = next(iter(active.items()))
             if sender.last >= deadline:
                 return
-            self._give_up(source, sender, "fragment_lost")
+            self._give_up(source, sender, Drop.FRAGMENT_LOST)
 
     def _shed(self) -> None:
         # memory bound: drop frames in progress, the longest silent first
         active = self._active
         while self._pending_bytes > self.max_pending_bytes and active:
             source, sender = next(iter(active.items()))
-            self._give_up(source, sender, "reassembly_overflow")
+            self._give_up(source, sender, Drop.REASSEMBLY_OVERFLOW)
 
-    def _give_up(self, source: Hashable, sender: _Sender, reason: str) -> None:
+    def _give_up(self, source: Hashable, sender: _Sender, reason: Reason) -> None:
         """Count one lost frame: the one in progress, or one that vanished whole."""
         if sender.frame is not None:
             self._pending_bytes -= len(sender.frame) + PARTIAL_COST

@@ -19,6 +19,7 @@ from typing import Any
 from . import announce
 from .announce import Identity
 from .config import BridgeConfig, Direction, Framing
+from .drops import Drop, Reason
 from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
@@ -209,24 +210,25 @@ class Router:
         try:
             header = envelope.unpack(frame)
         except envelope.EnvelopeError as exc:
-            self.link_drop(link, f"{exc}_frame", f"{len(frame)} bytes from {source}")
+            self.link_drop(link, exc.reason, f"{len(frame)} bytes from {source}")
             return
         flags = header.flags
         if not flags:  # a topic's frame: the common case first
             route = self.receivers.get(header.topic_id)
             if route is None:
-                self.link_drop(link, "unknown_topic", f"topic id {header.topic_id} from {source}")
+                self.link_drop(link, Drop.UNKNOWN_TOPIC,
+                               f"topic id {header.topic_id} from {source}")
             else:
                 route.on_frame(header, frame, link.arrived)
         elif flags & envelope.FLAG_HELLO:
             if self.on_hello is None:
-                self.link_drop(link, "unexpected_hello", f"from {source}")
+                self.link_drop(link, Drop.UNEXPECTED_HELLO, f"from {source}")
             else:
                 self.on_hello(header, frame, link, source)
         elif flags & envelope.FLAG_REQUEST:
             server = self.servers.get(header.topic_id)
             if server is None:
-                self.link_drop(link, "unknown_service",
+                self.link_drop(link, Drop.UNKNOWN_SERVICE,
                                f"service id {header.topic_id} from {source}")
             else:
                 server.on_request(header, frame, link, source)
@@ -235,14 +237,15 @@ class Router:
         elif flags & envelope.FLAG_REPLY:
             caller = self.callers.get(header.topic_id)
             if caller is None:
-                self.link_drop(link, "unknown_service",
+                self.link_drop(link, Drop.UNKNOWN_SERVICE,
                                f"service id {header.topic_id} from {source}")
             else:
                 caller.on_reply(header, frame)
         else:
             route = self.receivers.get(header.topic_id)
             if route is None:
-                self.link_drop(link, "unknown_topic", f"topic id {header.topic_id} from {source}")
+                self.link_drop(link, Drop.UNKNOWN_TOPIC,
+                               f"topic id {header.topic_id} from {source}")
             else:
                 route.on_frame(header, frame)
 
@@ -290,7 +293,7 @@ class Router:
         try:
             identity, qos = announce.read(item)
         except ValueError as exc:
-            route.drop("bad_announcement", str(exc))
+            route.drop(Drop.BAD_ANNOUNCEMENT, str(exc))
             return
         route.check.far(identity)
         if isinstance(route, ReceiveRoute):
@@ -396,7 +399,7 @@ class Router:
                     BUGS.bug("announce_error", f"{route.label}: could not announce or look at "
                                                "its publishers (a bug: please report it)")
 
-    def on_lost(self, topic_id: int | None, reason: str) -> None:
+    def on_lost(self, topic_id: int | None, reason: Reason) -> None:
         """A receiving link lost a frame (a fragment that never came) or met bytes it could not
         frame; counted against the topic when the link knows it."""
         route = self.receivers.get(topic_id) if topic_id is not None else None
@@ -411,7 +414,7 @@ class Router:
         if route is not None:
             route.counters.recovered += 1
 
-    def link_drop(self, link: Any, reason: str, detail: str) -> None:
+    def link_drop(self, link: Any, reason: Reason, detail: str) -> None:
         """A frame that belongs to no route: counted per bridge, warned about per link."""
         with self._lock:
             self.link_drops[reason] += 1

@@ -38,6 +38,7 @@ from .batch import Batches
 from .builtin import NoCipher
 from .codec import Codec
 from .config import NO_PLUGIN, PRIORITIES, ServiceConfig, TopicConfig
+from .drops import Drop, Reason
 from .errors import CipherError, CodecError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
@@ -58,7 +59,7 @@ BATCH_FRAMES = 512
 BATCH_BYTES = 1_000_000
 
 # reasons that say something is wrong (a warning); the others are routine and only counted
-QUIET_REASONS = {"rate_limit", "duplicate", "superseded"}
+QUIET_REASONS = {Drop.RATE_LIMIT, Drop.DUPLICATE, Drop.SUPERSEDED}
 
 
 @dataclass
@@ -155,14 +156,14 @@ class Route:
         try:
             identity, qos = announce.parse_body(bytes(body))
         except ValueError as exc:
-            self.drop("bad_announcement", str(exc))
+            self.drop(Drop.BAD_ANNOUNCEMENT, str(exc))
             return None
         self.check.far(identity)
         return identity, qos
 
     def refuse_type(self) -> None:
         """A frame dropped because the far side's type is not this side's."""
-        self.counters.drops["type_mismatch"] += 1
+        self.counters.drops[Drop.TYPE_MISMATCH] += 1
         self.check.say()
 
     def on_wire(self, size: int, again: bool) -> None:
@@ -171,7 +172,7 @@ class Route:
         if again:
             self.counters.retransmitted += 1
 
-    def drop(self, reason: str, detail: str = "") -> None:
+    def drop(self, reason: Reason, detail: str = "") -> None:
         self.counters.drops[reason] += 1
         if reason not in QUIET_REASONS:
             self.warner.warn(self.label, reason, detail or reason.replace("_", " "))
@@ -198,14 +199,14 @@ class Route:
             return bytes(frame[envelope.SIZE:])
         cipher = self.keys.opener(epoch)
         if cipher is None:
-            self.drop("unknown_key", "sealed under a key this side does not hold (an earlier "
-                                     "session, a restart, or an expired key generation)")
+            self.drop(Drop.UNKNOWN_KEY, "sealed under a key this side does not hold (an earlier "
+                                        "session, a restart, or an expired key generation)")
             return None
         header, body = bytes(frame[:envelope.SIZE]), bytes(frame[envelope.SIZE:])
         try:
             return cipher.open(header, body)
         except CipherError as exc:
-            self.drop("auth_failed", f"{exc} (wrong key, tampered, or not from the peer)")
+            self.drop(Drop.AUTH_FAILED, f"{exc} (wrong key, tampered, or not from the peer)")
             return None
 
 
@@ -224,7 +225,7 @@ class Announcer:
     def topic_id(self) -> int:
         return self.route.topic_id
 
-    def drop(self, reason: str, detail: str = "") -> None:
+    def drop(self, reason: Reason, detail: str = "") -> None:
         self.route.counters.announce_drops += 1
 
 
@@ -377,7 +378,7 @@ class TransmitRoute(Route):
                 # waited longer than the topic's max_delay in the subscription's queue,
                 # and so did every message before it: drop them all
                 for _ in range(len(messages) + 1):
-                    self.drop("too_late", f"waited over {max_wait / 1e6:.0f} ms to be taken")
+                    self.drop(Drop.TOO_LATE, f"waited over {max_wait / 1e6:.0f} ms to be taken")
                 messages.clear()
                 continue
             messages.append(more)
@@ -392,7 +393,7 @@ class TransmitRoute(Route):
         to = self.destination()
         if to is None and self.link.datagram:
             for _ in messages:
-                self.drop("no_peer_yet", "the far side's address is not known yet")
+                self.drop(Drop.NO_PEER_YET, "the far side's address is not known yet")
             return
         frames: list[bytes] = []
         size = 0
@@ -414,17 +415,17 @@ class TransmitRoute(Route):
         now = time.time_ns()
         if self.min_interval_ns:
             if now - self.last_sent_ns < self.min_interval_ns:
-                self.drop("rate_limit")
+                self.drop(Drop.RATE_LIMIT)
                 return None
             self.last_sent_ns = now
         try:
             payload, flags = self.encode(message)
             return self.framing.frame(self, payload, now, flags)
         except NoKey:
-            self.drop("no_session_key", "the session's handshake has not happened yet")
+            self.drop(Drop.NO_SESSION_KEY, "the session's handshake has not happened yet")
             return None
         except Exception as exc:  # a codec or cipher bug must not stop the executor
-            self.drop("encode_error", f"{type(exc).__name__}: {exc}")
+            self.drop(Drop.ENCODE_ERROR, f"{type(exc).__name__}: {exc}")
             return None
 
     @property
@@ -496,7 +497,7 @@ class ReceiveRoute(Route):
         if arrived and self.max_wait_ns:
             waited = time.time_ns() - arrived
             if waited > self.max_wait_ns:  # older than the topic's max_delay allows
-                self.drop("too_late", f"waited {waited / 1e6:.0f} ms in the receive buffer")
+                self.drop(Drop.TOO_LATE, f"waited {waited / 1e6:.0f} ms in the receive buffer")
                 return
         if header.flags & envelope.FLAG_COMPRESSED:
             restored = self.transform_back(payload)
@@ -509,15 +510,15 @@ class ReceiveRoute(Route):
         """A transformed payload as the codec wrote it; None when it cannot be (counted)."""
         transform = self.transforms(payload[0]) if payload else None
         if transform is None:
-            self.drop("decompression_error", "transformed by a transform this side does not have "
-                      f"(wire id {payload[0] if payload else 'missing'})")
+            self.drop(Drop.DECOMPRESSION_ERROR, "transformed by a transform this side does not "
+                      f"have (wire id {payload[0] if payload else 'missing'})")
             return None
         try:
             return transform.decode(bytes(payload[1:]))
         except TransformError as exc:
-            self.drop("decompression_error", f"{transform.name}: {exc}")
+            self.drop(Drop.DECOMPRESSION_ERROR, f"{transform.name}: {exc}")
         except Exception as exc:  # a transform must raise TransformError; anything else: its bug
-            self.drop("decompression_error", f"{transform.name} failed: {type(exc).__name__}: "
+            self.drop(Drop.DECOMPRESSION_ERROR, f"{transform.name} failed: {type(exc).__name__}: "
                       f"{exc}")
         return None
 
@@ -526,16 +527,16 @@ class ReceiveRoute(Route):
         try:
             message = self.decode(payload)
         except CodecError as exc:
-            self.drop("decode_error", str(exc))
+            self.drop(Drop.DECODE_ERROR, str(exc))
             return
         except Exception as exc:  # a codec must raise CodecError; anything else is its bug
-            self.drop("decode_error",
+            self.drop(Drop.DECODE_ERROR,
                       f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
             return
         try:
             self.publish(message)
         except Exception as exc:
-            self.drop("publish_error", f"{type(exc).__name__}: {exc}")
+            self.drop(Drop.PUBLISH_ERROR, f"{type(exc).__name__}: {exc}")
             return
         self.counters.received += 1
         self.counters.bytes_received += size
@@ -548,7 +549,7 @@ class BarePort:
     of each datagram when their codec writes MessagePack, else the port's only topic.
     ``link_drop(link, reason, detail)`` counts a datagram that belongs to none of them."""
 
-    def __init__(self, named: bool, link_drop: Callable[[Link, str, str], None]):
+    def __init__(self, named: bool, link_drop: Callable[[Link, Reason, str], None]):
         self.named = named
         self.link_drop = link_drop
         self.routes: dict[str, ReceiveRoute] = {}
@@ -574,10 +575,10 @@ class BarePort:
         try:
             name, rest = split_name(datagram)
         except NameMissing as exc:
-            self.link_drop(link, "unnamed_frame", f"{len(datagram)} bytes from {source}: {exc}")
+            self.link_drop(link, Drop.UNNAMED_FRAME, f"{len(datagram)} bytes from {source}: {exc}")
             return
         route = self.routes.get(name)
         if route is None:
-            self.link_drop(link, "unknown_topic", f"name {name!r} from {source}")
+            self.link_drop(link, Drop.UNKNOWN_TOPIC, f"name {name!r} from {source}")
             return
         route.deliver(rest, len(datagram))

@@ -42,6 +42,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from .drops import Drop, Reason
+
 CLASSES = 8  # 0: control; 1 (real_time) .. 7 (background)
 CONTROL = 0
 DATA = 5     # a sender that names no priority
@@ -147,7 +149,7 @@ class Scheduler:
         self._buckets: dict[Any, Bucket] = {}
         self._frames = 0  # messages waiting (not started)
         self._bytes = 0
-        self.dropped: list[tuple[Any, str, str]] = []  # for the link to count outside its lock
+        self.dropped: list[tuple[Any, Reason, str]] = []  # for the link to count outside its lock
         #: each sender's queue key, found once (by id; the sender is kept so the id stays its)
         self._keys: dict[int, tuple[Any, tuple[int, int]]] = {}
 
@@ -185,9 +187,9 @@ class Scheduler:
                 old = topic.waiting.popleft()
                 self._frames -= 1
                 self._bytes -= old.size
-                self.dropped.append((old.sender, "superseded", "a newer message replaced it"))
+                self.dropped.append((old.sender, Drop.SUPERSEDED, "a newer message replaced it"))
         if self._frames >= self.limit_frames or self._bytes + message.size > self.limit_bytes:
-            self.dropped.append((message.sender, "queue_full",
+            self.dropped.append((message.sender, Drop.QUEUE_FULL,
                                  f"{self._frames} frames, {self._bytes} bytes waiting"))
             return False
         topic.waiting.append(message)
@@ -257,13 +259,14 @@ class Scheduler:
         if limit is None and not getattr(message.sender, "reliable", True):
             limit = self.max_delay
         if limit is not None and now - message.queued > limit:
-            self.dropped.append((message.sender, "too_late", f"waited {now - message.queued:.3f} s "
-                                 f"to be sent (max_delay {limit:g} s)"))
+            self.dropped.append((message.sender, Drop.TOO_LATE,
+                                 f"waited {now - message.queued:.3f} s to be sent "
+                                 f"(max_delay {limit:g} s)"))
             return False
         try:
             packets = message.cut()
         except Exception as exc:  # a frame that cannot be cut (too large): counted
-            self.dropped.append((message.sender, "send_error", str(exc)))
+            self.dropped.append((message.sender, Drop.SEND_ERROR, str(exc)))
             return False
         topic.current, topic.since = message, message.queued
         topic.packets.extend(packets)

@@ -308,9 +308,6 @@ class KeySchedule:
             until = min(until, started + (generation + 2) * self.rekey)
         return root, until
 
-    def usable(self, epoch: int, sealing: bool) -> bool:
-        return self._root(epoch, sealing) is not None
-
     def secret(self, epoch: int, label: str, size: int,
                sealing: bool) -> tuple[bytes, float] | None:
         """The key of ``label`` in ``epoch``, and until when it may be used without asking

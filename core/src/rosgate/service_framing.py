@@ -19,13 +19,10 @@ framing makes the two things that speak the device's pattern:
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable
 from typing import Any, ClassVar, Protocol
 
+from .drops import LinkDrop
 from .transport import Address, StreamConnection, StreamTransport
-
-#: (what dropped it, reason, detail): counts a drop that belongs to no service, by port
-LinkDrop = Callable[[Any, str, str], None]
 
 
 class CallPort(Protocol):

@@ -38,6 +38,7 @@ from collections.abc import Callable
 from typing import Any
 
 from .config import ServiceConfig
+from .drops import Drop, Reason
 from .errors import CodecError
 from .keyring import NoKey
 from .links import Link
@@ -189,7 +190,7 @@ class ServiceRoute(Route):
         self.srv_type = srv_type
         self.deadlines = deadlines
 
-    def fail(self, call: Call, reason: str, detail: str) -> None:
+    def fail(self, call: Call, reason: Reason, detail: str) -> None:
         """Settle ``call`` with a failure, counted by ``reason`` (unless it is settled already)."""
         call.fail(detail, lambda: self.drop(reason, detail))
 
@@ -214,12 +215,12 @@ class CallerRoute(ServiceRoute):
         """The ROS executor's thread: send the call and return; the answer comes later."""
         call = self.answering(respond)
         if self.check.mismatch is not None:
-            self.fail(call, "type_mismatch", self.check.mismatch)
+            self.fail(call, Drop.TYPE_MISMATCH, self.check.mismatch)
             self.check.say()
             return
         to = self.destination()
         if to is None and self.link.datagram:
-            self.fail(call, "no_peer_yet", "the far side's address is not known yet")
+            self.fail(call, Drop.NO_PEER_YET, "the far side's address is not known yet")
             return
         # a call's id is (epoch, seq): the epoch of the key sealing it (a random one per start
         # with a static key), seq counting on across epochs, so no id repeats under one key
@@ -229,10 +230,10 @@ class CallerRoute(ServiceRoute):
             frame = self.seal(envelope.FLAG_REQUEST, epoch, seq,
                               self.codec.encode(self.codec.request, request))
         except NoKey:
-            self.fail(call, "no_session_key", "the session's handshake has not happened yet")
+            self.fail(call, Drop.NO_SESSION_KEY, "the session's handshake has not happened yet")
             return
         except Exception as exc:  # a codec or cipher bug must not leave the ROS caller waiting
-            self.fail(call, "encode_error", f"{type(exc).__name__}: {exc}")
+            self.fail(call, Drop.ENCODE_ERROR, f"{type(exc).__name__}: {exc}")
             return
         with self._lock:
             self.calls[seq] = (epoch, call)
@@ -250,26 +251,26 @@ class CallerRoute(ServiceRoute):
             return
         call = self._pop(header.seq, header.epoch)
         if call is None:
-            self.drop("late_answer", f"answer to call {header.seq}, which was answered already "
-                                     "or timed out")
+            self.drop(Drop.LATE_ANSWER, f"answer to call {header.seq}, which was answered already "
+                                        "or timed out")
             return
         self.counters.received += 1
         self.counters.bytes_received += len(frame)
         if self.check.mismatch is not None:
-            self.fail(call, "type_mismatch", self.check.mismatch)
+            self.fail(call, Drop.TYPE_MISMATCH, self.check.mismatch)
             self.check.say()
             return
         if header.flags & envelope.FLAG_FAILED:
-            self.fail(call, "remote_failure", body.decode("utf-8", "replace")[:500])
+            self.fail(call, Drop.REMOTE_FAILURE, body.decode("utf-8", "replace")[:500])
             return
         try:
             response = self.codec.decode(self.codec.response, body)
         except CodecError as exc:
-            self.fail(call, "decode_error", str(exc))
+            self.fail(call, Drop.DECODE_ERROR, str(exc))
             return
         call.answer(response)
 
-    def fail_all(self, reason: str, detail: str) -> None:
+    def fail_all(self, reason: Reason, detail: str) -> None:
         """Every call still waiting is failed (the session's line was lost): an action's
         goal then ends aborted rather than waiting out its result's timeout."""
         with self._lock:
@@ -290,7 +291,7 @@ class CallerRoute(ServiceRoute):
     def _expire(self, seq: int) -> None:
         call = self._pop(seq)
         if call is not None:
-            self.fail(call, "timeout", f"no answer within {self.service.timeout:g} s")
+            self.fail(call, Drop.TIMEOUT, f"no answer within {self.service.timeout:g} s")
 
 
 class _CallSender:
@@ -307,7 +308,7 @@ class _CallSender:
     def topic_id(self) -> int:
         return self.route.topic_id
 
-    def drop(self, reason: str, detail: str = "") -> None:
+    def drop(self, reason: Reason, detail: str = "") -> None:
         self.route.fail(self.call, reason, detail or f"{self.route.link.name}: {reason}")
 
 
@@ -338,8 +339,8 @@ class ServerRoute(ServiceRoute):
             elif call.done:
                 return
             elif time.monotonic() >= wait_until:
-                self.fail(call, "no_server", f"no ROS server {self.service.service} is running "
-                                             "on the serving side")
+                self.fail(call, Drop.NO_SERVER, f"no ROS server {self.service.service} is running "
+                                                "on the serving side")
             else:
                 self.deadlines.after(DISCOVERY_POLL, when_ready)
 
@@ -353,23 +354,23 @@ class ServerRoute(ServiceRoute):
         def expire() -> None:
             if not future.done():
                 client.remove_pending_request(future)
-                self.fail(call, "timeout", f"the ROS server {self.service.service} did not answer "
-                                           f"within {self.service.timeout:g} s")
+                self.fail(call, Drop.TIMEOUT, f"the ROS server {self.service.service} did not "
+                                          f"answer within {self.service.timeout:g} s")
         self.deadlines.after(max(0.0, start + self.service.timeout - time.monotonic()), expire)
 
     def _answered(self, future: Any, call: Call) -> None:
         if future.cancelled() or future.exception() is not None:
-            self.fail(call, "server_error", f"the ROS call failed: {future.exception()}")
+            self.fail(call, Drop.SERVER_ERROR, f"the ROS call failed: {future.exception()}")
         elif not call.answer(future.result()):
-            self.drop("late_answer", f"{self.service.service} answered after the timeout")
+            self.drop(Drop.LATE_ANSWER, f"{self.service.service} answered after the timeout")
 
     def on_request(self, header: envelope.Header, frame: bytes, link: Link,
                    source: Address) -> None:
         """A link's thread: a call from the far side (framing rosgate); the answer goes back on
         the link and to the address it came from."""
         if len(frame) > envelope.SIZE + self.service.max_request:
-            self.drop("too_large", f"request of {len(frame) - envelope.SIZE} bytes, "
-                                   f"max_request is {self.service.max_request}")
+            self.drop(Drop.TOO_LARGE, f"request of {len(frame) - envelope.SIZE} bytes, "
+                                      f"max_request is {self.service.max_request}")
             return
         payload = self.open(frame, header.epoch)
         if payload is None:
@@ -402,7 +403,7 @@ class ServerRoute(ServiceRoute):
         try:
             request = self.codec.decode(self.codec.request, payload)
         except CodecError as exc:
-            self.drop("decode_error", str(exc))
+            self.drop(Drop.DECODE_ERROR, str(exc))
             return
         self.counters.received += 1
         self.counters.bytes_received += size
@@ -418,7 +419,7 @@ class ServerRoute(ServiceRoute):
             try:
                 frame = self.seal(envelope.FLAG_REPLY | flags, header.epoch, header.seq, body)
             except NoKey:  # the request's key expired while the ROS server took its time
-                self.drop("no_session_key", "the request's session key is gone")
+                self.drop(Drop.NO_SESSION_KEY, "the request's session key is gone")
                 return
             if link.send(frame, self, source):
                 self.counters.sent += 1
@@ -428,13 +429,13 @@ class ServerRoute(ServiceRoute):
             try:
                 body = self.codec.encode(self.codec.response, response)
             except Exception as exc:
-                self.drop("encode_error", f"{type(exc).__name__}: {exc}")
+                self.drop(Drop.ENCODE_ERROR, f"{type(exc).__name__}: {exc}")
                 reply(envelope.FLAG_FAILED, b"the serving bridge could not encode the answer")
                 return
             reply(0, body)
 
         if busy:
-            self.drop("too_many_calls", f"{QUEUE_DEPTH} calls in progress")
+            self.drop(Drop.TOO_MANY_CALLS, f"{QUEUE_DEPTH} calls in progress")
             reply(envelope.FLAG_FAILED, f"the serving bridge has {QUEUE_DEPTH} calls of "
                                         f"{self.service.service} in progress".encode())
             return

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 from ..admission import Acceptor, ConnectionLimits, Sources
 from ..config import BridgeConfig, LinkConfig
+from ..drops import Reason
 from ..errors import ConfigError, LinkError
 from ..links import (
     Backoff,
@@ -115,7 +116,7 @@ class Role:
         """``bridge.allow`` as sources (None: anyone, when it is not given)."""
         return Sources((), map(str, self.cfg.allow)) if self.cfg.allow else None
 
-    def refuse_connection(self, acceptor: Acceptor, reason: str, detail: str) -> None:
+    def refuse_connection(self, acceptor: Acceptor, reason: Reason, detail: str) -> None:
         """A connection an acceptor closed at once, counted like a frame for no topic."""
         self.router.link_drop(acceptor, reason, detail)
 
@@ -238,7 +239,7 @@ class Control:
     def __init__(self, router: Router):
         self.router = router
 
-    def drop(self, reason: str, detail: str = "") -> None:
+    def drop(self, reason: Reason, detail: str = "") -> None:
         self.router.link_drop(None, reason, detail or "a control frame on a link")
 
 

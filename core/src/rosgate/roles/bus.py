@@ -22,6 +22,7 @@ from typing import Any
 from ..bus import BusTransport, is_template
 from ..buslink import BusLink
 from ..config import BridgeConfig, Direction, Framing
+from ..drops import Drop
 from ..errors import LinkError
 from ..links import Link
 from ..resolver import PreparedService, PreparedTopic
@@ -122,10 +123,10 @@ class BusWiring:
         try:
             header = envelope.unpack(frame)
         except envelope.EnvelopeError as exc:
-            route.drop(f"{exc}_frame", f"a query on {source[0]}")
+            route.drop(exc.reason, f"a query on {source[0]}")
             return
         if not header.flags & envelope.FLAG_REQUEST or header.topic_id != route.topic_id:
-            route.drop("unexpected_frame", f"a query on {source[0]} that is not a call of it")
+            route.drop(Drop.UNEXPECTED_FRAME, f"a query on {source[0]} that is not a call of it")
             return
         route.on_request(header, frame, answerer, source)
 
@@ -159,11 +160,11 @@ class BusWiring:
         try:
             header = envelope.unpack(frame)
         except envelope.EnvelopeError as exc:
-            route.drop(f"{exc}_frame", f"{len(frame)} bytes on {key}")
+            route.drop(exc.reason, f"{len(frame)} bytes on {key}")
             return
         if header.flags or header.topic_id != route.topic_id:
-            route.drop("unexpected_frame", f"on {key}: not a frame of this topic "
-                                           f"(flags {header.flags:#x}, topic id {header.topic_id})")
+            route.drop(Drop.UNEXPECTED_FRAME, f"on {key}: not a frame of this topic (flags "
+                                              f"{header.flags:#x}, topic id {header.topic_id})")
             return
         route.on_frame(header, frame)
 

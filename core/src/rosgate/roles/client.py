@@ -27,6 +27,7 @@ import time
 from typing import Any
 
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
+from ..drops import Drop
 from ..errors import LinkError, RosgateError
 from ..keyring import Keys
 from ..links import Connector, DatagramLink, Link, LinkSlot, StreamLink
@@ -100,7 +101,7 @@ class ClientRole(Role):
         if is_control(frame):
             message = parse_control(frame)
             if message is None:
-                self.router.link_drop(link, "bad_control", "unreadable control message")
+                self.router.link_drop(link, Drop.BAD_CONTROL, "unreadable control message")
                 return
             assert isinstance(link, StreamLink)
             link.last_heard = time.monotonic()
@@ -210,7 +211,7 @@ class ClientRole(Role):
         self.connected.clear()
         for route in self.routes.values():  # calls waiting for an answer get none now
             if isinstance(route, CallerRoute):
-                route.fail_all("link_down", "the session's main line was lost")
+                route.fail_all(Drop.LINK_DOWN, "the session's main line was lost")
         log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
                     link.why or "main line closed")
 
@@ -225,7 +226,7 @@ class ClientRole(Role):
             old and new and old != new for old, new in zip(self.topic_ids, ids, strict=True))
         if renumbered:
             for slot in [self.main, *self._dedicated.values()]:
-                slot.discard("session_reset")
+                slot.discard(Drop.SESSION_RESET)
         for index, (p, topic_id) in enumerate(zip(self._entries(), ids, strict=True)):
             route = self.routes.get(index)
             if topic_id == 0:

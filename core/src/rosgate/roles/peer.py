@@ -49,6 +49,7 @@ from typing import Any
 from ..admission import Acceptor, Sources
 from ..announce import ANNOUNCE_EVERY
 from ..config import Direction, Framing
+from ..drops import Drop
 from ..errors import LinkError
 from ..keyring import Keys
 from ..links import Connector, Link, StreamLink
@@ -112,7 +113,7 @@ class PeerRole(Role):
     def fail_calls(self, detail: str) -> None:
         """The peer is lost: every call waiting for its answer fails now."""
         for route in self.callers:
-            route.fail_all("link_down", detail)
+            route.fail_all(Drop.LINK_DOWN, detail)
 
     def last_heard(self) -> float | None:
         """When the peer last said anything of its entries (None: never)."""
@@ -370,7 +371,7 @@ class PeerHandshake:
             except HandshakeError as exc:
                 connection.close()
                 why = "its key is not peer_key" if isinstance(exc, UnknownKey) else str(exc)
-                self.role.router.link_drop(None, "bad_handshake", f"from {peer[0]}")
+                self.role.router.link_drop(None, Drop.BAD_HANDSHAKE, f"from {peer[0]}")
                 self.refusals.say(f"{peer[0]}", f"{self.cfg.name}: refused a handshake "
                                   f"from {peer[0]}: {why}")
                 return
@@ -404,11 +405,12 @@ class PeerHandshake:
 
     def _on_frame(self, frame: bytes, link: Link, source: Address) -> None:
         if not is_control(frame):
-            self.role.router.link_drop(link, "not_control", f"on the handshake line from {source}")
+            self.role.router.link_drop(link, Drop.NOT_CONTROL,
+                                       f"on the handshake line from {source}")
             return
         message = parse_control(frame)
         if message is None:
-            self.role.router.link_drop(link, "bad_control", f"from {source}")
+            self.role.router.link_drop(link, Drop.BAD_CONTROL, f"from {source}")
             return
         assert isinstance(link, StreamLink)
         link.last_heard = time.monotonic()

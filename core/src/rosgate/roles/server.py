@@ -41,6 +41,7 @@ from ..config import (
     service_from_mapping,
     topic_from_mapping,
 )
+from ..drops import Drop
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys
 from ..links import DatagramLink, Link, LinkSlot, StreamLink
@@ -169,11 +170,11 @@ class ServerRole(Role):
                                  admit=admit)
             except Busy:
                 connection.close()
-                self.router.link_drop(None, "too_many_handshakes", f"from {host}")
+                self.router.link_drop(None, Drop.TOO_MANY_HANDSHAKES, f"from {host}")
                 return
             except UnknownKey as exc:
                 connection.close()
-                self.router.link_drop(None, "unknown_client_key", f"from {peer[0]}")
+                self.router.link_drop(None, Drop.UNKNOWN_CLIENT_KEY, f"from {peer[0]}")
                 shown = base64.b64encode(exc.key).decode()[:8]
                 # said once per address and window: an attacker can make keys without end
                 self.refusals.say(f"unknown key {peer[0]}", f"refused a connection from "
@@ -181,7 +182,7 @@ class ServerRole(Role):
                 return
             except HandshakeError as exc:
                 connection.close()
-                self.router.link_drop(None, "bad_handshake", f"from {peer[0]}")
+                self.router.link_drop(None, Drop.BAD_HANDSHAKE, f"from {peer[0]}")
                 self.refusals.say(f"handshake {peer[0]}",
                                   f"refused a connection from {peer[0]}: {exc}")
                 return
@@ -206,7 +207,7 @@ class ServerRole(Role):
             if is_control(frame):
                 message = parse_control(frame)
                 if message is None:
-                    self.router.link_drop(link, "bad_control", f"from {source}")
+                    self.router.link_drop(link, Drop.BAD_CONTROL, f"from {source}")
                     return
                 assert isinstance(link, StreamLink)
                 link.last_heard = time.monotonic()
@@ -227,7 +228,7 @@ class ServerRole(Role):
                     self._end(session)
                 return
             if session is None:
-                self.router.link_drop(link, "before_handshake", f"data from {source}")
+                self.router.link_drop(link, Drop.BEFORE_HANDSHAKE, f"data from {source}")
                 return
             self.router.on_frame(frame, link, source)
 
@@ -238,7 +239,7 @@ class ServerRole(Role):
                 session.down_since = time.monotonic()
                 for route in session.routes:  # calls waiting for the client get no answer now
                     if isinstance(route, CallerRoute):
-                        route.fail_all("link_down", "the client's main line was lost")
+                        route.fail_all(Drop.LINK_DOWN, "the client's main line was lost")
                 log.warning("client %r down (%s); keeping its session for %g s", session.name,
                             link.why or "main line closed", self.cfg.session_timeout)
 
@@ -280,9 +281,9 @@ class ServerRole(Role):
             link.send(control({"type": "refused", "error": str(exc)}), self.control)
             return None
         except Exception:  # a bug, or ROS refusing what the checks let through
-            BUGS.bug("session_error", f"could not build the session of client {name!r} from "
-                                      f"{peer[0]} (a bug: please report it)")
-            self.router.link_drop(link, "session_error", f"client {name!r} from {peer[0]}")
+            BUGS.bug(Drop.SESSION_ERROR, f"could not build the session of client {name!r} from "
+                                         f"{peer[0]} (a bug: please report it)")
+            self.router.link_drop(link, Drop.SESSION_ERROR, f"client {name!r} from {peer[0]}")
             link.send(control({"type": "refused", "error": "the server could not build this "
                                "session (see its log)"}), self.control)
             return None
@@ -507,7 +508,7 @@ class ServerRole(Role):
                     if old is not None and old is not link:
                         old.fail("the client connected again")
                 else:
-                    self.router.link_drop(link, "bad_hello", f"from {source}")
+                    self.router.link_drop(link, Drop.BAD_HELLO, f"from {source}")
                 return
             self.router.on_frame(frame, link, source)
 
@@ -532,7 +533,7 @@ class ServerRole(Role):
         """A datagram hello: the client's address on this link, learnt only from a genuine one."""
         session = self.sessions.get(header.topic_id)
         if session is None or not self._hello_is_genuine(session, header, frame, link):
-            self.router.link_drop(link, "bad_hello", f"from {source}")
+            self.router.link_drop(link, Drop.BAD_HELLO, f"from {source}")
             return
         if isinstance(link, DatagramLink) and session.addresses.get(link) != source:
             old = session.addresses.get(link)

@@ -20,6 +20,8 @@ import struct
 import zlib
 from typing import NamedTuple
 
+from ..drops import Drop
+
 MAGIC = b"RG"
 VERSION = 1
 HEADER = struct.Struct(">2sBBIIQQ")
@@ -57,7 +59,11 @@ def is_hello(datagram: bytes | memoryview) -> bool:
 
 
 class EnvelopeError(ValueError):
-    """Bytes that do not start with a valid envelope header."""
+    """Bytes that do not start with a valid envelope header; counted as its ``reason``."""
+
+    def __init__(self, what: str, reason: Drop):
+        super().__init__(what)
+        self.reason = reason
 
 
 class Header(NamedTuple):
@@ -76,9 +82,11 @@ def unpack(frame: bytes | bytearray | memoryview) -> Header:
     try:
         word, topic_id, epoch, seq, stamp = _WORDS.unpack_from(frame)
     except struct.error:
-        raise EnvelopeError("truncated") from None
+        raise EnvelopeError("truncated", Drop.TRUNCATED_FRAME) from None
     if word & 0xFFFFFF00 != _MAGIC_VERSION:
-        raise EnvelopeError("foreign" if word >> 16 != _MAGIC_VERSION >> 16 else "version")
+        if word >> 16 != _MAGIC_VERSION >> 16:
+            raise EnvelopeError("foreign", Drop.FOREIGN_FRAME)
+        raise EnvelopeError("version", Drop.VERSION_FRAME)
     return Header(word & 0xFF, topic_id, epoch, seq, stamp)
 
 
@@ -125,7 +133,7 @@ class ReplayWindow:
         tracks = self._windows.get(epoch)
         return tracks[-1][0] if tracks else None
 
-    def accept(self, epoch: int, seq: int) -> str | None:
+    def accept(self, epoch: int, seq: int) -> Drop | None:
         """None when the frame is new, else why it is refused ("duplicate" or "stale")."""
         tracks = self._windows.get(epoch)
         if tracks is None:
@@ -145,7 +153,7 @@ class ReplayWindow:
                 return self._in(tracks, track, seq)
         highest = max(track[0] for track in tracks)
         if any(track[0] - self.JUMP <= seq <= track[0] - width for track in tracks):
-            return "stale"
+            return Drop.STALE
         if highest < seq <= highest + self.JUMP:
             self.lost += seq - highest - 1  # a real jump over lost frames, most likely
         tracks.append([seq, 1])
@@ -153,7 +161,7 @@ class ReplayWindow:
             del tracks[0]
         return None
 
-    def _in(self, tracks: list[list[int]], track: list[int], seq: int) -> str | None:
+    def _in(self, tracks: list[list[int]], track: list[int], seq: int) -> Drop | None:
         """``seq`` in ``track``, which becomes the most recently used, merged with any window
         it has come close to."""
         refused = self._slide(track, seq)
@@ -162,7 +170,7 @@ class ReplayWindow:
         self._merge(tracks)
         return refused
 
-    def _slide(self, window: list[int], seq: int) -> str | None:
+    def _slide(self, window: list[int], seq: int) -> Drop | None:
         """``seq`` in one window: accepted (the window moves on) or refused."""
         top, seen = window
         if seq > top:
@@ -173,9 +181,9 @@ class ReplayWindow:
             return None
         offset = top - seq
         if offset >= self.WIDTH:
-            return "stale"
+            return Drop.STALE
         if seen >> offset & 1:
-            return "duplicate"
+            return Drop.DUPLICATE
         window[1] = seen | 1 << offset
         self.lost -= 1
         return None

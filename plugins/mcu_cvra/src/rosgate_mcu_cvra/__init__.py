@@ -15,7 +15,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from rosgate import hookimpl
-from rosgate.service_framing import LinkDrop, ServiceFraming
+from rosgate.drops import LinkDrop
+from rosgate.service_framing import ServiceFraming
 from rosgate.transport import Address, StreamTransport
 
 from .calls import CallServer, CvraCallerRoute

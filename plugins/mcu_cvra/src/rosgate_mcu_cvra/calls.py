@@ -37,6 +37,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from rosgate import CodecError
+from rosgate.drops import Drop, Reason, declare
 from rosgate.links import POLL
 from rosgate.services import Call, ServerRoute, ServiceRoute
 from rosgate.transport import Address, StreamConnection, StreamTransport, Transport
@@ -46,6 +47,15 @@ from rosgate.wire.names import Layout, NameMissing, pack_name, split_name
 from . import serial_datagram
 
 log = logging.getLogger("rosgate")
+
+IDLE_TIMEOUT = declare("idle_timeout", "a caller silent for `bridge.limits.idle_timeout` before "
+                                       "its request was whole")
+CLOSED_EARLY = declare("closed_early", "a caller that closed before its request was whole")
+REQUEST_TIMEOUT = declare("request_timeout", "a caller whose request was not whole within the "
+                                             "longest `timeout` of the port's services")
+UNNAMED_REQUEST = declare("unnamed_request", "a request that does not start with a service's name")
+CONNECT_FAILED = declare("connect_failed", "the microcontroller could not be connected to")
+NO_ANSWER = declare("no_answer", "the microcontroller closed without a byte of answer")
 
 MAX_CONNECTIONS = 64   # calls served at once on one port; more are closed at once and counted
 CALLER_THREADS = 16    # connections a calling route has open at once; more calls wait their turn
@@ -57,7 +67,7 @@ class CallServer:
     """Serves microcontrollers' calls on one port (direction receive), for every service there.
     The services' names are read with the codec of the first (only msgpack names requests)."""
 
-    def __init__(self, name: str, link_drop: Callable[[Any, str, str], None],
+    def __init__(self, name: str, link_drop: Callable[[Any, Reason, str], None],
                  idle_timeout: float = 2.0):
         self.name = name
         self.link_drop = link_drop  # counts what belongs to no service (by port)
@@ -78,14 +88,14 @@ class CallServer:
 
     def accepted(self, connection: StreamConnection, peer: Address) -> None:
         if not self._slots.acquire(blocking=False):
-            self.drop("too_many_connections", f"{MAX_CONNECTIONS} calls in progress; "
-                                              f"closed a connection from {peer[0]}")
+            self.drop(Drop.TOO_MANY_CONNECTIONS, f"{MAX_CONNECTIONS} calls in progress; "
+                                                 f"closed a connection from {peer[0]}")
             connection.close()
             return
         threading.Thread(target=self._serve, args=(connection, peer), daemon=True,
                          name=f"call-{self.name}").start()
 
-    def drop(self, reason: str, detail: str) -> None:
+    def drop(self, reason: Reason, detail: str) -> None:
         self.link_drop(self, reason, detail)
 
     def _serve(self, connection: StreamConnection, peer: Address) -> None:
@@ -100,13 +110,13 @@ class CallServer:
         except Exception:  # a bug, not the peer's bytes: keep serving the others
             BUGS.bug("call_error", f"{self.name}: error while serving a call from {peer[0]} "
                                    "(a bug: please report it)")
-            self.drop("handler_error", f"from {peer[0]}")
+            self.drop(Drop.HANDLER_ERROR, f"from {peer[0]}")
         finally:
             connection.close()
             self._slots.release()
 
     def _read_request(self, connection: StreamConnection, peer: Address) -> bytes | None:
-        errors: list[tuple[str, str]] = []
+        errors: list[tuple[Reason, str]] = []
         decoder = serial_datagram.Decoder(lambda *error: errors.append(error), self.max_request)
         deadline = time.monotonic() + self.wait
         heard = time.monotonic()
@@ -115,14 +125,14 @@ class CallServer:
             data = connection.receive(CHUNK, min(left, POLL))
             if data is None:
                 if time.monotonic() - heard > self.idle_timeout:
-                    self.drop("idle_timeout", f"{peer[0]} silent for {self.idle_timeout:g} s "
-                                              f"after {received} bytes")
+                    self.drop(IDLE_TIMEOUT, f"{peer[0]} silent for {self.idle_timeout:g} s "
+                                          f"after {received} bytes")
                     return None
                 continue
             heard = time.monotonic()
             if not data:
-                self.drop("closed_early", f"{peer[0]} closed after {received} bytes, "
-                                          "before a whole request")
+                self.drop(CLOSED_EARLY, f"{peer[0]} closed after {received} bytes, "
+                                      "before a whole request")
                 return None
             received += len(data)
             for payload in decoder.feed(data):
@@ -132,7 +142,7 @@ class CallServer:
                 self.drop(reason, f"request from {peer[0]}: {detail}")
                 return None
         said = "said nothing" if not received else f"sent {received} bytes, no whole request"
-        self.drop("request_timeout", f"{peer[0]} {said} within {self.wait:g} s")
+        self.drop(REQUEST_TIMEOUT, f"{peer[0]} {said} within {self.wait:g} s")
         return None
 
     def _answer(self, payload: bytes, peer: Address) -> bytes | None:
@@ -140,22 +150,22 @@ class CallServer:
         try:
             name, rest = split_name(payload)
         except NameMissing as exc:
-            self.drop("unnamed_request", f"from {peer[0]}: {exc}")
+            self.drop(UNNAMED_REQUEST, f"from {peer[0]}: {exc}")
             return None
         route = self.routes.get(name)
         if route is None:
-            self.drop("unknown_service", f"{name!r} from {peer[0]} (served here: "
-                                         f"{', '.join(self.routes)})")
+            self.drop(Drop.UNKNOWN_SERVICE, f"{name!r} from {peer[0]} (served here: "
+                                            f"{', '.join(self.routes)})")
             return None
         if len(payload) > route.service.max_request:
-            route.drop("too_large", f"request of {len(payload)} bytes, max_request is "
-                                    f"{route.service.max_request}")
+            route.drop(Drop.TOO_LARGE, f"request of {len(payload)} bytes, max_request is "
+                                       f"{route.service.max_request}")
             return None
         codec = route.codec
         try:
             request = codec.decode(codec.request, rest)
         except CodecError as exc:
-            route.drop("decode_error", str(exc))
+            route.drop(Drop.DECODE_ERROR, str(exc))
             return None
         route.counters.received += 1
         route.counters.bytes_received += len(payload)
@@ -172,7 +182,7 @@ class CallServer:
         try:
             data = codec.encode(codec.response, answer[0])
         except Exception as exc:
-            route.drop("encode_error", f"{type(exc).__name__}: {exc}")
+            route.drop(Drop.ENCODE_ERROR, f"{type(exc).__name__}: {exc}")
             return None
         route.counters.sent += 1
         route.counters.bytes_sent += len(data)
@@ -193,7 +203,7 @@ class CvraCallerRoute(ServiceRoute):
         """The ROS executor's thread: hand the call to a connection thread and return."""
         call = self.answering(respond)
         self.deadlines.after(self.service.timeout, lambda: self.fail(
-            call, "timeout", f"no answer from {self.address[0]}:{self.address[1]} within "
+            call, Drop.TIMEOUT, f"no answer from {self.address[0]}:{self.address[1]} within "
                              f"{self.service.timeout:g} s"))
         self._pool.submit(self._call, request, call, time.monotonic() + self.service.timeout)
 
@@ -205,7 +215,7 @@ class CvraCallerRoute(ServiceRoute):
                                                      Layout(self.service.layout))
                                            + codec.encode(codec.request, request))
         except Exception as exc:
-            self.fail(call, "encode_error", f"{type(exc).__name__}: {exc}")
+            self.fail(call, Drop.ENCODE_ERROR, f"{type(exc).__name__}: {exc}")
             return
         left = deadline - time.monotonic()
         if call.done or left <= 0:
@@ -213,7 +223,7 @@ class CvraCallerRoute(ServiceRoute):
         try:
             connection = self.transport.connect(self.address, left)
         except OSError as exc:
-            self.fail(call, "connect_failed", f"{self.address[0]}:{self.address[1]}: {exc}")
+            self.fail(call, CONNECT_FAILED, f"{self.address[0]}:{self.address[1]}: {exc}")
             return
         try:
             connection.send(frame)
@@ -221,7 +231,7 @@ class CvraCallerRoute(ServiceRoute):
             self.counters.bytes_sent += len(frame)
             self._read_answer(connection, call, deadline)
         except OSError as exc:
-            self.fail(call, "link_down", f"{self.address[0]}:{self.address[1]}: {exc}")
+            self.fail(call, Drop.LINK_DOWN, f"{self.address[0]}:{self.address[1]}: {exc}")
         finally:
             connection.close()
 
@@ -235,7 +245,7 @@ class CvraCallerRoute(ServiceRoute):
             if chunk is None:
                 continue
             if chunk and len(data) + len(chunk) > self.service.max_request:
-                self.fail(call, "too_large", f"answer over {self.service.max_request} bytes")
+                self.fail(call, Drop.TOO_LARGE, f"answer over {self.service.max_request} bytes")
                 return
             data += chunk
             silent = not data and self.service.no_answer == "nil"
@@ -244,7 +254,7 @@ class CvraCallerRoute(ServiceRoute):
             except CodecError as exc:
                 if chunk:
                     continue  # perhaps not all of it yet
-                self.fail(call, "decode_error" if data else "no_answer",
+                self.fail(call, Drop.DECODE_ERROR if data else NO_ANSWER,
                           str(exc) if data else "closed without an answer")
                 return
             self.counters.received += 1
@@ -253,7 +263,7 @@ class CvraCallerRoute(ServiceRoute):
                 log.debug("%s: %s closed without a byte: answered as nil (no_answer: nil)",
                           self.label, self.address[0])
             if not call.answer(response):
-                self.drop("late_answer", f"answer from {self.address[0]} after the timeout")
+                self.drop(Drop.LATE_ANSWER, f"answer from {self.address[0]} after the timeout")
             return
 
     def close(self) -> None:

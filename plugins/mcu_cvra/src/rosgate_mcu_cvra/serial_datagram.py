@@ -16,6 +16,14 @@ from __future__ import annotations
 import zlib
 from collections.abc import Callable, Iterator
 
+from rosgate.drops import Reason, declare
+
+BAD_ESCAPE = declare("bad_escape", "a serial datagram with ESC followed by neither ESC_END nor "
+                                   "ESC_ESC")
+TOO_SHORT = declare("too_short", "a serial datagram shorter than its CRC")
+BAD_CRC = declare("bad_crc", "a serial datagram whose CRC-32 does not match its payload")
+TOO_LONG = declare("too_long", "a serial datagram longer than `max_request` without its end")
+
 END, ESC, ESC_END, ESC_ESC = 0xC0, 0xDB, 0xDC, 0xDD
 CRC_SIZE = 4
 _ESCAPES = {ESC_END: END, ESC_ESC: ESC}
@@ -33,7 +41,7 @@ class Decoder:
     """Cuts a byte stream into payloads. ``max_frame`` bounds a frame's unescaped size: a longer
     one is dropped (``too_long``) and skipped up to its END, so memory stays bounded."""
 
-    def __init__(self, on_error: Callable[[str, str], None], max_frame: int = 64 * 1024):
+    def __init__(self, on_error: Callable[[Reason, str], None], max_frame: int = 64 * 1024):
         self.on_error = on_error  # (reason, detail)
         self.max_frame = max_frame
         self._frame = bytearray()
@@ -52,7 +60,7 @@ class Decoder:
                 self._escaped = False
                 original = _ESCAPES.get(byte)
                 if original is None:
-                    self._give_up("bad_escape", f"0xDB followed by 0x{byte:02X}")
+                    self._give_up(BAD_ESCAPE, f"0xDB followed by 0x{byte:02X}")
                 else:
                     self._append(original)
             elif byte == ESC:
@@ -67,11 +75,11 @@ class Decoder:
 
     def _append(self, byte: int) -> None:
         if len(self._frame) >= self.max_frame + CRC_SIZE:
-            self._give_up("too_long", f"over {self.max_frame} bytes without an end")
+            self._give_up(TOO_LONG, f"over {self.max_frame} bytes without an end")
         else:
             self._frame.append(byte)
 
-    def _give_up(self, reason: str, detail: str) -> None:
+    def _give_up(self, reason: Reason, detail: str) -> None:
         self.on_error(reason, detail)
         self._frame.clear()
         self._escaped = False
@@ -84,13 +92,13 @@ class Decoder:
         if skipping:
             return None
         if escaped:
-            self.on_error("bad_escape", "0xDB followed by the end of the frame")
+            self.on_error(BAD_ESCAPE, "0xDB followed by the end of the frame")
             return None
         if len(frame) < CRC_SIZE:
-            self.on_error("too_short", f"{len(frame)} bytes before the end, a CRC alone takes 4")
+            self.on_error(TOO_SHORT, f"{len(frame)} bytes before the end, a CRC alone takes 4")
             return None
         payload, crc = frame[:-CRC_SIZE], int.from_bytes(frame[-CRC_SIZE:], "big")
         if zlib.crc32(payload) != crc:
-            self.on_error("bad_crc", f"CRC 0x{crc:08X}, payload's is 0x{zlib.crc32(payload):08X}")
+            self.on_error(BAD_CRC, f"CRC 0x{crc:08X}, payload's is 0x{zlib.crc32(payload):08X}")
             return None
         return payload

@@ -58,6 +58,7 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
+from rosgate.drops import Drop, Reason
 from rosgate.wire.framing import DEFAULT_MAX_MESSAGE, FINISHED_REMEMBERED, FRAGMENT, FramingError
 
 FEC = struct.Struct(">2sIIIHHBBB")
@@ -77,7 +78,7 @@ NACK_AFTER = 0.02       # seconds without a new fragment before the rest is aske
 RTT_INITIAL = 0.1       # seconds, until a round trip is measured
 MAX_RANGES = 128        # ranges in one NACK (more wait for the next one)
 
-Lost = Callable[[int | None, str], None]
+Lost = Callable[[int | None, Reason], None]
 Recovered = Callable[[int], None]
 Send = Callable[[bytes, Any], None]
 
@@ -188,13 +189,13 @@ class _Pending:
             key, frame = next(iter(self._pending.items()))
             if now - frame.last <= self.timeout:
                 return
-            self._give_up(key, "fragment_lost")
+            self._give_up(key, Drop.FRAGMENT_LOST)
 
     def _shed(self) -> None:
         while self._pending_bytes > self.max_pending_bytes and self._pending:
-            self._give_up(next(iter(self._pending)), "reassembly_overflow")
+            self._give_up(next(iter(self._pending)), Drop.REASSEMBLY_OVERFLOW)
 
-    def _give_up(self, key: Hashable, reason: str) -> None:
+    def _give_up(self, key: Hashable, reason: Reason) -> None:
         frame = self._pending.pop(key)
         self._pending_bytes -= frame.held
         self._remember(key)

@@ -299,7 +299,7 @@ class BusConformance:
         gate.set()
         got = received.wait_count(start + 40 - len(overflowed))[start:]
         assert len(got) + len(overflowed) == 40
-        assert {reason for _, reason in overflowed} == {"queue_overflow"}
+        assert {reason for _, reason in overflowed} == {"queue_full"}
         assert all(frame in frames for frame in got)
         assert sent.drops == [] and drops == []
 

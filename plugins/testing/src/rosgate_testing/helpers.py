@@ -13,6 +13,7 @@ from typing import Any
 
 import pytest
 
+from rosgate.drops import Reason
 from rosgate.plugins import Plugins
 from rosgate.transport import Address, StreamConnection
 
@@ -114,7 +115,7 @@ class Frames:
             self.frames.append(bytes(frame))
             self._cond.notify_all()
 
-    def on_lost(self, topic_id: int | None, reason: str) -> None:
+    def on_lost(self, topic_id: int | None, reason: Reason) -> None:
         with self._cond:
             self.drops.append((topic_id, reason))
 
@@ -137,7 +138,7 @@ class Sender:
     reliable: bool
     frames: Frames
 
-    def drop(self, reason: str, detail: str = "") -> None:
+    def drop(self, reason: Reason, detail: str = "") -> None:
         self.frames.on_lost(self.topic_id, reason)
 
 # -- used by the suites ------------------------------------------------------------------------

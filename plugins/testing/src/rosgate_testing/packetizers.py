@@ -31,6 +31,7 @@ from typing import Any, ClassVar
 
 import pytest
 
+from rosgate.drops import Reason
 from rosgate.options import parse
 from rosgate.packetizer import Packetizer
 from rosgate.wire.framing import FramingError
@@ -61,7 +62,7 @@ class SimulatedLink:
     recovered_frames: list[int] = field(default_factory=list)
     outbox: list[bytes] = field(default_factory=list)
 
-    def lost(self, topic_id: int | None, reason: str) -> None:
+    def lost(self, topic_id: int | None, reason: Reason) -> None:
         self.lost_frames.append((topic_id, reason))
 
     def recovered(self, topic_id: int) -> None:

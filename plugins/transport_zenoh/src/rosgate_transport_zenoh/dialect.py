@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 
 from rosgate.buslink import BusAnswerer, BusLink, BusOutlet
 from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
+from rosgate.drops import Drop
 from rosgate.links import Link, Sender
 from rosgate.resolver import PreparedService, PreparedTopic
 from rosgate.ros import qos_profile
@@ -202,7 +203,7 @@ class RawCalls(Link):
         route = self.route
         assert route is not None
         if self.closed.is_set():
-            sender.drop("link_down", f"{self.bus.name} is closed")
+            sender.drop(Drop.LINK_DOWN, f"{self.bus.name} is closed")
             return False
         header = envelope.unpack(frame)
         body = route.open(frame, header.epoch)
@@ -215,7 +216,7 @@ class RawCalls(Link):
 
         def done(answers: int) -> None:
             if not answers:
-                bus.call_later(sender.drop, "no_server",
+                bus.call_later(sender.drop, Drop.NO_SERVER,
                                f"nothing on {bus.name} answered on {self.key} (no bridge serves "
                                "it, or its server did not answer)")
 
@@ -224,7 +225,7 @@ class RawCalls(Link):
             session.query(self.key, body, self.timeout, answered, done,
                           attachment=ros2dds.request_header(self.client, header.seq))
         except OSError as exc:
-            sender.drop("send_error", f"query on {self.key}: {exc}")
+            sender.drop(Drop.SEND_ERROR, f"query on {self.key}: {exc}")
             return False
         return True
 

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 from rosgate import ConfigError
 from rosgate.buslink import BusLink
 from rosgate.config import Direction, ServiceConfig, TopicConfig
+from rosgate.drops import Drop
 from rosgate.resolver import PreparedService, PreparedTopic
 from rosgate.roles.bus import BusWiring
 from rosgate.routes import ReceiveRoute, Route
@@ -213,7 +214,7 @@ class Fleet:
                frame: bytes) -> None:
         values = keys.match(key)
         if values is None:
-            self.link.link_drop(self.link, "unknown_topic", f"{key} does not fit {keys.text}")
+            self.link.link_drop(self.link, Drop.UNKNOWN_TOPIC, f"{key} does not fit {keys.text}")
             return
         member = self._member(values["robot"], f"a frame on {key}")
         member.last_seen = time.monotonic()
