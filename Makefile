@@ -24,7 +24,7 @@ demo: sync
 # processes and DDS discovery, not on the cores. Each worker takes a slice of the run's DDS
 # domains (ROSGATE_TEST_DOMAINS, default 20-119) and the ports that go with them
 # (tests/conftest.py); tests marked xdist_group share one worker. PYTEST_WORKERS=0: one process.
-PYTEST_WORKERS ?= 4
+PYTEST_WORKERS ?= 3
 test: sync lint
 	$(VENV)/bin/pytest -n $(PYTEST_WORKERS) --dist loadgroup
 

@@ -210,7 +210,7 @@ class Bridge:
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
-        if not self.wait_log(ready, 20):
+        if not self.wait_log(ready, 60):  # imports alone take seconds of CPU, shared with others
             self.stop()
             raise AssertionError(f"bridge {config.name} did not start:\n{self.log}")
 

@@ -24,15 +24,18 @@ def free_port(host: str = "127.0.0.1") -> int:
     """A port free for both TCP and UDP on ``host`` (IPv4). With ``ROSGATE_TEST_PORTS=FIRST-LAST``
     set, the next such port of that range, in turn: test runs (and parallel workers of one run)
     given ranges of their own never hand out the same port, where ports the kernel picks from
-    its shared ephemeral range may be picked again by another process before a test binds them."""
+    its shared ephemeral range may be picked again by another process before a test binds them.
+    Every other port of the range, so that the one after a port is never handed out: an action
+    takes its port and the next."""
     span = os.environ.get("ROSGATE_TEST_PORTS")
     if not span:
         return _kernel_port(host)
     first, last = (int(n) for n in span.split("-"))
     global _port_turn
-    for _ in range(last - first + 1):
-        port = first + (os.getpid() + _port_turn) % (last - first + 1)  # a subprocess starts
-        _port_turn += 1                                                 # elsewhere in the range
+    slots = (last - first + 1) // 2
+    for _ in range(slots):
+        port = first + 2 * ((os.getpid() + _port_turn) % slots)  # a subprocess starts elsewhere
+        _port_turn += 1
         if _bindable(host, port):
             return port
     raise RuntimeError(f"no free port in ROSGATE_TEST_PORTS={span}")
