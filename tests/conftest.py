@@ -36,6 +36,10 @@ _FIRST, _LAST = (int(n) for n in os.environ.get("ROSGATE_TEST_DOMAINS", "20-119"
 if "PYTEST_XDIST_WORKER" in os.environ:  # one of make test's workers
     _FIRST, _LAST = worker_share(_FIRST, _LAST, os.environ["PYTEST_XDIST_WORKER"],
                                  int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))
+    # pytest-xdist sets COLUMNS=80 and LINES=24 in its workers: a program started in a
+    # pseudo-terminal of another size (rosgate top's test) would believe them over the terminal
+    os.environ.pop("COLUMNS", None)
+    os.environ.pop("LINES", None)
 # free_port (rosgate_testing) hands out these, for every test of this process and the scripts
 # it starts (tests/soak)
 os.environ["ROSGATE_TEST_PORTS"] = "{}-{}".format(*domain_ports(_FIRST, _LAST))
