@@ -20,8 +20,13 @@ sync: $(UV)
 demo: sync
 	$(VENV)/bin/python examples/demo.py
 
+# the tests on PYTEST_WORKERS processes at once (pytest-xdist): most of them wait on bridge
+# processes and DDS discovery, not on the cores. Each worker takes a slice of the run's DDS
+# domains (ROSGATE_TEST_DOMAINS, default 20-119) and the ports that go with them
+# (tests/conftest.py); tests marked xdist_group share one worker. PYTEST_WORKERS=0: one process.
+PYTEST_WORKERS ?= 3
 test: sync lint
-	$(VENV)/bin/pytest
+	$(VENV)/bin/pytest -n $(PYTEST_WORKERS) --dist loadgroup
 
 # lint findings (ruff check), the core's layers (import-linter contracts) and types (mypy: core
 # and plugins); the rules of all three are in pyproject.toml

@@ -21,6 +21,7 @@ from typing import Any
 import pytest
 import yaml
 from rosgate_testing import free_port  # tests also import it from here
+from workers import domain_ports, take_turns, worker_share
 
 from rosgate import identity
 from rosgate.config import loads
@@ -32,11 +33,25 @@ ROSGATE = str(Path(sys.executable).with_name("rosgate"))
 # ROSGATE_TEST_DOMAINS=FIRST-LAST gives a test run its own DDS domains, so two runs on one
 # machine never hear each other (default 20-119; the benchmark uses 150 and up)
 _FIRST, _LAST = (int(n) for n in os.environ.get("ROSGATE_TEST_DOMAINS", "20-119").split("-"))
+if "PYTEST_XDIST_WORKER" in os.environ:  # one of make test's workers
+    _FIRST, _LAST = worker_share(_FIRST, _LAST, os.environ["PYTEST_XDIST_WORKER"],
+                                 int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))
+    # pytest-xdist sets COLUMNS=80 and LINES=24 in its workers: a program started in a
+    # pseudo-terminal of another size (rosgate top's test) would believe them over the terminal
+    os.environ.pop("COLUMNS", None)
+    os.environ.pop("LINES", None)
+# free_port (rosgate_testing) hands out these, for every test of this process and the scripts
+# it starts (tests/soak)
+os.environ["ROSGATE_TEST_PORTS"] = "{}-{}".format(*domain_ports(_FIRST, _LAST))
 _domains = itertools.count()
 
 
 def next_domain() -> int:
     return _FIRST + next(_domains) % (_LAST - _FIRST + 1)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    take_turns(config)
 
 
 @pytest.fixture
@@ -201,7 +216,7 @@ class Bridge:
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
-        if not self.wait_log(ready, 20):
+        if not self.wait_log(ready, 60):  # imports alone take seconds of CPU, shared with others
             self.stop()
             raise AssertionError(f"bridge {config.name} did not start:\n{self.log}")
 

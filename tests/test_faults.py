@@ -232,6 +232,7 @@ def test_udp_with_loss_duplicates_and_reordering(engines, domain, ros_side, prox
     assert sorted(m.data for m in got) == sorted(f"m{1000 + i}" for i in range(20))
 
 
+@pytest.mark.alone  # an intact datagram starved of the cores by other tests can be lost unseen
 def test_corrupted_and_truncated_datagrams_are_counted_and_never_published(
         engines, domain, ros_side, proxy, tmp_path):
     key = tmp_path / "k.key"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import random
 import socket
 import threading
@@ -21,17 +22,47 @@ TIMEOUT = 5.0  # seconds any single wait in the suites may take before the check
 
 
 def free_port(host: str = "127.0.0.1") -> int:
-    """A port free for both TCP and UDP on ``host`` (IPv4)."""
+    """A port free for both TCP and UDP on ``host`` (IPv4). With ``ROSGATE_TEST_PORTS=FIRST-LAST``
+    set, the next such port of that range, in turn: test runs (and parallel workers of one run)
+    given ranges of their own never hand out the same port, where ports the kernel picks from
+    its shared ephemeral range may be picked again by another process before a test binds them.
+    Every other port of the range, so that the one after a port is never handed out: an action
+    takes its port and the next."""
+    span = os.environ.get("ROSGATE_TEST_PORTS")
+    if not span:
+        return _kernel_port(host)
+    first, last = (int(n) for n in span.split("-"))
+    global _port_turn
+    slots = (last - first + 1) // 2
+    for _ in range(slots):
+        port = first + 2 * ((os.getpid() + _port_turn) % slots)  # a subprocess starts elsewhere
+        _port_turn += 1
+        if _bindable(host, port):
+            return port
+    raise RuntimeError(f"no free port in ROSGATE_TEST_PORTS={span}")
+
+
+_port_turn = 0
+
+
+def _kernel_port(host: str) -> int:
     while True:
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
             tcp.bind((host, 0))
             port = tcp.getsockname()[1]
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
-                try:
-                    udp.bind((host, port))
-                except OSError:
-                    continue
-            return port
+            if _bindable(host, port, tcp=False):
+                return port
+
+
+def _bindable(host: str, port: int, tcp: bool = True) -> bool:
+    kinds = (socket.SOCK_STREAM, socket.SOCK_DGRAM) if tcp else (socket.SOCK_DGRAM,)
+    try:
+        for kind in kinds:
+            with socket.socket(socket.AF_INET, kind) as s:
+                s.bind((host, port))
+    except OSError:
+        return False
+    return True
 
 
 def has_ipv6_loopback() -> bool:
