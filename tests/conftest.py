@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -43,6 +44,9 @@ if "PYTEST_XDIST_WORKER" in os.environ:  # one of make test's workers
 # free_port (rosgate_testing) hands out these, for every test of this process and the scripts
 # it starts (tests/soak)
 os.environ["ROSGATE_TEST_PORTS"] = "{}-{}".format(*domain_ports(_FIRST, _LAST))
+# and their status sockets in a folder of this process's own: bridges of two workers (or two runs)
+# are often both named "a" or "b"
+os.environ.setdefault("ROSGATE_RUNTIME_DIR", tempfile.mkdtemp(prefix="rosgate-test-run-"))
 _domains = itertools.count()
 
 
