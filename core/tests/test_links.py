@@ -17,6 +17,7 @@ from rosgate_transport_udp import UdpTransport
 
 from rosgate import reassembly
 from rosgate.links import DatagramLink, LinkSlot, QueueLimits, StreamLink
+from rosgate.spec import Delivery
 from rosgate.wire import envelope, framing
 from rosgate.wire.framing import FRAGMENT, LENGTH, length_prefixed
 
@@ -67,10 +68,18 @@ class Sent:
     def __init__(self, topic_id: int, reliable: bool, inbox: Inbox):
         self.topic_id = topic_id
         self.reliable = reliable
+        self.max_delay: float | None = None
         self.inbox = inbox
+
+    @property
+    def delivery(self) -> Delivery:
+        return Delivery(reliable=self.reliable, max_delay=self.max_delay)
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.inbox.on_lost(self.topic_id, reason)
+
+    def on_wire(self, size: int, again: bool) -> None:
+        pass
 
 
 def frame_of(seq: int, size: int, rng: random.Random) -> bytes:

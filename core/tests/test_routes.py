@@ -18,6 +18,7 @@ from rosgate.routes import (
     TransmitRoute,
     Warner,
 )
+from rosgate.spec import Delivery
 from rosgate.wire import envelope
 
 
@@ -41,7 +42,7 @@ def route(waiting: deque, max_rate: float | None = None,
     topic.max_rate = max_rate
     link = Link()
     r = TransmitRoute(topic, 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")), Warner(), "/t",
-                      reliable,
+                      Delivery(reliable=reliable),
                       framing=EnvelopeFraming(), link=link,  # type: ignore[arg-type]
                       destination=lambda: ("127.0.0.1", 9))
 
@@ -129,7 +130,7 @@ class RecordingCipher(NoCipher):
 def receiver(codec, cipher) -> ReceiveRoute:
     fields = inspect.signature(TopicConfig).parameters
     topic = TopicConfig(**{name: None for name, p in fields.items() if p.default is p.empty})
-    return ReceiveRoute(topic, 7, codec, StaticKeys(cipher), Warner(), "/t", False,
+    return ReceiveRoute(topic, 7, codec, StaticKeys(cipher), Warner(), "/t", Delivery(),
                         decode=codec.decode)
 
 

@@ -54,12 +54,13 @@ from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
 from .admission import Sources
-from .config import MAX_DELAY_DEFAULT, NO_PLUGIN, LinkConfig
+from .config import MAX_DELAY_DEFAULT, LinkConfig
 from .errors import LinkError
 from .packetizer import Packet, Packetizer
 from .plugins import Plugins, installed
 from .reassembly import CompactReassembler, Reassembler
 from .scheduler import Due, Outgoing, Scheduler
+from .spec import Delivery
 from .transport import (
     Address,
     DatagramEndpoint,
@@ -84,28 +85,21 @@ CONNECT_TIMEOUT = 5.0
 
 
 class Sender(Protocol):
-    """What sends a frame: a route, or a role's control channel.
+    """What sends a frame: a route, a call, or a role's control channel."""
 
-    Links read these too, each optional (a sender without it gets the default):
-    ``priority`` (0 control .. 7 background, default 5, data), ``latest_only`` (False),
-    ``max_delay`` (seconds a frame may wait to start; None: the link's, for best-effort
-    senders), ``recovery`` (the name of the packetizer of its frames, "none": the link's own)
-    and ``recovery_options`` (the topic's options for it), ``bare`` (its frames are whole
-    datagrams, never cut: ``framing: none``), and
-    ``on_wire(size, again)``, told of every packet put on the link for it (``again``: a
-    retransmission).
-    """
+    @property
+    def delivery(self) -> Delivery:
+        """How the link carries its frames (read on every send: set once, never changed)."""
 
     @property
     def topic_id(self) -> int:
         """The id fragments of its frames carry (so a receiver counts a lost one against it)."""
 
-    @property
-    def reliable(self) -> bool:
-        """Its frames wait in a :class:`LinkSlot` while the link is down (reliable QoS)."""
-
     def drop(self, reason: str, detail: str = "") -> None:
         """Count one of its frames as dropped on the way out."""
+
+    def on_wire(self, size: int, again: bool) -> None:
+        """A packet of ``size`` bytes left on the link for it (``again``: a retransmission)."""
 
 
 class Link:
@@ -132,6 +126,13 @@ class Link:
         """Hand several frames of one sender to the link at once (they may share a datagram or a
         write); how many were sent or queued, as :meth:`send` says for one."""
         return sum(self.send(frame, sender, to) for frame in frames)
+
+    def queue_depth(self, sender: Sender) -> int:
+        """Messages of ``sender`` waiting or being sent (a link without a queue: none)."""
+        return 0
+
+    def forget(self, sender: Sender) -> None:
+        """A sender that is gone: drop what it queued, silently."""
 
     def close(self) -> None:
         raise NotImplementedError
@@ -160,8 +161,7 @@ class Lifetime:
         """The links open now that count what they carry."""
         with self._lock:
             return [item for item in self._items.values()
-                    if isinstance(item, Link) and isinstance(getattr(item, "counters", None),
-                                                             LinkCounters)]
+                    if isinstance(item, Link)]
 
     def close_all(self) -> None:
         self.stopping.set()
@@ -300,12 +300,6 @@ class _Sending(ABC):
         it was dropped (counted). Each kind of link has its own."""
 
 
-def _on_wire(sender: Any, size: int, again: bool) -> None:
-    counted = getattr(sender, "on_wire", None)
-    if counted is not None:
-        counted(size, again)
-
-
 class _Gather:
     """A packet as its parts — a fragment's header and a view of the frame — for scatter-gather
     sending (``send_parts``: no copy of the frame); the scheduler takes it for a packet of
@@ -415,13 +409,14 @@ class DatagramLink(_Sending, Link):
             sender.drop("too_large_for_bare_framing",
                         f"{size} bytes, {self.name} carries at most {self.max_frame}")
             return False
-        whole = self.bare or getattr(sender, "bare", False)
-        kind = getattr(sender, "recovery", "none")
-        one = whole or kind == "none" and not self.compact and size <= self.max_frame
+        delivery = sender.delivery
+        whole = self.bare or delivery.whole
+        own = delivery.packetizer is None and not self.compact  # whole or fragments
+        one = whole or own and size <= self.max_frame
         inline: Callable[[bytes, Any, Address], bool | None] | None = None
         if one:
             inline = self._send_now
-        elif kind == "none" and not self.compact and size <= INLINE_MAX:
+        elif own and size <= INLINE_MAX:
             inline = self._send_fragments_now
         if inline is not None:
             sent = inline(frame, sender, to)
@@ -430,7 +425,7 @@ class DatagramLink(_Sending, Link):
             if sent is not None:
                 return sent
         return self._put(Outgoing(sender, to, size,
-                                  lambda: self._cut(frame, sender, to, whole, kind),
+                                  lambda: self._cut(frame, sender, to, whole),
                                   time.monotonic(), batchable=one and not whole))
 
     def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
@@ -438,8 +433,9 @@ class DatagramLink(_Sending, Link):
         fit share datagrams sent from here; otherwise each is queued (and coalesced again by
         the send thread)."""
         assert to is not None, "a datagram link needs a destination"
-        if len(frames) < 2 or self.bare or self.compact or getattr(sender, "bare", False) \
-                or getattr(sender, "recovery", "none") != "none":
+        delivery = sender.delivery
+        if len(frames) < 2 or self.bare or self.compact or delivery.whole \
+                or delivery.packetizer is not None:
             return sum(self.send(frame, sender, to) for frame in frames)
         limit, sent, start = self.max_frame, 0, 0
         while start < len(frames):  # groups of consecutive frames that fit one datagram
@@ -466,18 +462,21 @@ class DatagramLink(_Sending, Link):
                 self._release()
         return sent
 
-    def _cut(self, frame: bytes, sender: Any, to: Address, whole: bool, kind: str) -> list[bytes]:
+    def _cut(self, frame: bytes, sender: Sender, to: Address, whole: bool) -> list[bytes]:
         """A frame's packets, made when it starts (on the send thread, in the order frames
         leave: compact counters and FEC coding happen here, not on the caller's thread)."""
-        if whole or kind == NO_PLUGIN and not self.compact and len(frame) <= self.max_frame:
+        delivery = sender.delivery
+        own = delivery.packetizer is None
+        if whole or own and not self.compact and len(frame) <= self.max_frame:
             return [frame]
         if self.compact:
             counter = self._counters.get(to, 0)
             pieces = framing.compact_fragment(frame, self.max_frame, counter)
             self._counters[to] = (counter + len(pieces)) & framing.COMPACT_COUNTER
             return [b"".join(pieces)]  # one packet: a frame's pieces never interleave (no id)
-        packetizer = self.fragments if kind == NO_PLUGIN else self.packetizer(kind)
-        packets = packetizer.cut(frame, sender, to, getattr(sender, "recovery_options", None))
+        packetizer = self.fragments if delivery.packetizer is None \
+            else self._make(delivery.packetizer)
+        packets = packetizer.cut(frame, sender, to, delivery.packetizer_options)
         return [self._packet(packet) for packet in packets]
 
     def _packet(self, packet: Packet) -> bytes:
@@ -618,7 +617,7 @@ class DatagramLink(_Sending, Link):
                 return None
         scheduler, lock, counters = self.scheduler, self._lock, self.counters
         try:
-            packets = self._cut(frame, sender, to, False, "none")
+            packets = self._cut(frame, sender, to, False)
             # a turn: the packets handed to the kernel at once, all in one call when the
             # endpoint can; else one, then a look at what else waits (and at the budget, whose
             # bucket is a few packets deep)
@@ -667,7 +666,7 @@ class DatagramLink(_Sending, Link):
         counters.frames_out += last
         for packet in packets:
             counters.bytes_out += len(packet)
-            _on_wire(sender, len(packet), False)
+            sender.on_wire(len(packet), False)
         return True
 
     def _send_due(self, due: Due) -> bool:
@@ -677,7 +676,7 @@ class DatagramLink(_Sending, Link):
             if type(packet) is _Gather:
                 assert self._send_parts is not None
                 self._send_parts(cast(_Gather, packet).parts, to)
-            elif self.compact and not getattr(sender, "bare", False):
+            elif self.compact and not sender.delivery.whole:
                 step = self.max_frame
                 count = 0
                 for i in range(0, len(packet), step):
@@ -696,7 +695,7 @@ class DatagramLink(_Sending, Link):
         counters.bytes_out += len(packet)
         if due.ends is not None:
             counters.frames_out += 1
-        _on_wire(sender, len(packet), due.again)
+        sender.on_wire(len(packet), due.again)
         if due.ends is not None and due.ends is not _INLINE and type(packet) is bytes:
             packetizer = self._by_magic.get(packet[:2])
             if packetizer is not None and _sends(packetizer):  # the last packet of a frame
@@ -726,7 +725,7 @@ class DatagramLink(_Sending, Link):
         counters.coalesced_out += len(frames)
         counters.bytes_out += framing.batch_size(sum(map(len, frames)), len(frames))
         for due in dues:
-            _on_wire(due.sender, len(due.packet) + framing.LENGTH.size, False)
+            due.sender.on_wire(len(due.packet) + framing.LENGTH.size, False)
         return len(frames)
 
     def _send_loop(self) -> None:
@@ -1074,7 +1073,7 @@ class StreamLink(_Sending, Link):
             rest = Due(data[written:], None, sender, _INLINE, frames=len(sizes) - whole)
             with self._lock:
                 self._rest = rest
-        _on_wire(sender, written, False)
+        sender.on_wire(written, False)
         return True
 
     def _send_loop(self) -> None:
@@ -1121,7 +1120,7 @@ class StreamLink(_Sending, Link):
             for due in batch:
                 if due.ends is not None:
                     frames += due.frames
-                _on_wire(due.sender, len(due.packet), False)
+                due.sender.on_wire(len(due.packet), False)
             counters.frames_out += frames
             if frames > 1:
                 counters.coalesced_out += frames
@@ -1255,7 +1254,7 @@ class LinkSlot(Link):
     """A stream link that comes and goes. A :class:`Connector` (or a server that accepted the
     peer again) :meth:`attach`-es each new connection.
 
-    While there is no live connection, frames of :attr:`Sender.reliable` senders wait, oldest
+    While there is no live connection, frames of reliable senders wait, oldest
     dropped first when the limits are reached (counted ``queue_overflow``), and are handed to the
     next connection in order, before anything sent later. Other frames are counted ``link_down``.
     Frames already handed to a connection that then fails are not taken back (there are no
@@ -1277,7 +1276,7 @@ class LinkSlot(Link):
             link = self.current
             if link is not None and not link.closed.is_set():
                 return link.send_all(frames, sender)
-            if self.closed.is_set() or not sender.reliable:
+            if self.closed.is_set() or not sender.delivery.reliable:
                 refused = True
             else:
                 refused = False

@@ -30,11 +30,11 @@ from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_
 from ..errors import LinkError, RosgateError
 from ..keyring import Keys
 from ..links import Connector, DatagramLink, Link, LinkSlot, StreamLink
-from ..resolver import PreparedService, PreparedTopic
 from ..router import fixed
 from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, initiate, seal_hello
 from ..services import CallerRoute
+from ..spec import ServiceSpec, TopicSpec
 from ..transport import Address, StreamConnection, StreamTransport
 from . import Bridge, Role
 from .mainline import (
@@ -214,7 +214,7 @@ class ClientRole(Role):
         log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
                     link.why or "main line closed")
 
-    def _entries(self) -> list[PreparedTopic | PreparedService]:
+    def _entries(self) -> list[TopicSpec | ServiceSpec]:
         plan = self.bridge.plan
         return [*plan.topics, *plan.services, *plan.action_parts]
 
@@ -237,7 +237,7 @@ class ClientRole(Role):
                 self.router.renumber(route, topic_id)
         self.topic_ids = ids
 
-    def _route(self, p: PreparedTopic | PreparedService, topic_id: int) -> Route:
+    def _route(self, p: TopicSpec | ServiceSpec, topic_id: int) -> Route:
         t = p.config
         way = "to" if t.direction is Direction.TRANSMIT else "from"
         label = f"{p.name} ({way} {self.server_name})"
@@ -252,15 +252,15 @@ class ClientRole(Role):
         keys = self._keys(p)
         # announcements start once the server has our datagram hello (its ports take frames
         # only from where a hello came from)
-        if isinstance(p, PreparedTopic):
+        if isinstance(p, TopicSpec):
             return self.router.topic(p, topic_id, label, link, destination, keys, announce=False)
         return self.router.service(p, topic_id, label, link, destination, keys, announce=False)
 
-    def _keys(self, p: PreparedTopic | PreparedService) -> Keys | None:
+    def _keys(self, p: TopicSpec | ServiceSpec) -> Keys | None:
         if self.schedule is None:
             return None  # insecure: the file's cipher
         assert p.cipher_cls is not None
-        kind = "topic" if isinstance(p, PreparedTopic) else "service"
+        kind = "topic" if isinstance(p, TopicSpec) else "service"
         name = p.config.remote  # the server's name for it: both sides derive the same keys
         return SessionKeys(self.schedule, p.cipher_cls, key_label(kind, "c2s", name),
                            key_label(kind, "s2c", name))
@@ -279,7 +279,7 @@ class ClientRole(Role):
             link.close()
             self.life.forget(link)
 
-    def _dedicated_stream(self, p: PreparedTopic | PreparedService) -> LinkSlot:
+    def _dedicated_stream(self, p: TopicSpec | ServiceSpec) -> LinkSlot:
         address = p.address
         port = address[1]
         if port in self._dedicated:

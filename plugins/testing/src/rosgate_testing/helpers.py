@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 
 from rosgate.plugins import Plugins
+from rosgate.spec import Delivery
 from rosgate.transport import Address, StreamConnection
 
 TIMEOUT = 5.0  # seconds any single wait in the suites may take before the check fails
@@ -137,8 +138,15 @@ class Sender:
     reliable: bool
     frames: Frames
 
+    @property
+    def delivery(self) -> Delivery:
+        return Delivery(reliable=self.reliable)
+
     def drop(self, reason: str, detail: str = "") -> None:
         self.frames.on_lost(self.topic_id, reason)
+
+    def on_wire(self, size: int, again: bool) -> None:
+        pass
 
 # -- used by the suites ------------------------------------------------------------------------
 
