@@ -16,8 +16,10 @@ from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
 from rosgate import reassembly
-from rosgate.links import DatagramLink, LinkSlot, QueueLimits, StreamLink
+from rosgate.connector import LinkSlot, QueueLimits
+from rosgate.links import DatagramLink
 from rosgate.spec import Delivery
+from rosgate.streamlink import StreamLink
 from rosgate.wire import envelope, framing
 from rosgate.wire.framing import FRAGMENT, LENGTH, length_prefixed
 

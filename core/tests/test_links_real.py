@@ -21,9 +21,10 @@ from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
 from rosgate.config import LinkConfig
-from rosgate.links import DatagramLink, StreamLink
+from rosgate.links import DatagramLink
 from rosgate.plugins import installed
 from rosgate.spec import Delivery
+from rosgate.streamlink import StreamLink
 from rosgate.wire import envelope
 
 TIMEOUT = 20.0

@@ -1,5 +1,5 @@
-"""Links: the core's side of a transport. Framing, fragmentation and threads live here, so a
-transport plugin only opens sockets.
+"""Links: the core's side of a transport — a queue, threads and dispatch — so a transport
+plugin only opens sockets.
 
 * :class:`DatagramLink` — one bound endpoint; sends whole frames, or several frames coalesced in
   one datagram, and hands longer frames — and every frame of a topic with ``recovery:`` — to a
@@ -8,7 +8,8 @@ transport plugin only opens sockets.
   its magic, and every frame to ``on_frame``. A transport with small frames (``max_frame`` below
   ``framing.COMPACT_BELOW``, such as CAN) gets the compact fragment scheme instead. In bare mode
   (``framing: none``) it hands over the datagram untouched.
-* :class:`StreamLink` — one connection; frames carry a length prefix, long ones go in chunks.
+* :class:`~rosgate.streamlink.StreamLink` — one connection (its own module), and
+  :mod:`rosgate.connector` for the stream links that come and go.
 
 Both send through a :class:`~rosgate.scheduler.Scheduler` — the one place a link's frames wait:
 per-topic queues in priority classes, latest-only replacement, late best-effort frames dropped,
@@ -17,45 +18,36 @@ sending never blocks the caller (a ROS executor). A frame goes out on the caller
 nothing waits and the budget allows — whole, or its fragments until something else waits — so a
 quiet link has no thread hand-off (a late send thread must not cost a latest-only message).
 Frames that wait for the same destination leave together (one datagram up to ``max_frame``,
-one stream write up to :data:`WRITE` bytes), so a backlog costs few system calls.
-
-* :class:`LinkSlot` — a place for a stream link that comes and goes (reconnects). While it is
-  empty, frames of reliable senders wait in a bounded queue and leave in order when a connection
-  is attached; frames of other senders are dropped.
-* :class:`Connector` — keeps a :class:`LinkSlot` filled: connects, and reconnects after every loss.
+one stream write), so a backlog costs few system calls.
 
 Who a link takes frames and connections from, and accepting connections, are
 :mod:`rosgate.admission`'s: a datagram link is given its :class:`~rosgate.admission.Sources`.
 
 Who sent a frame travels with it: every ``send`` takes the :class:`Sender` (a route, or the
 control channel) so a frame dropped later — a queue that overflows, a connection that breaks
-with frames still queued — is counted against it, without a lookup. Losses on the receiving
-side (a fragment that never came) are reported with the topic id the fragments carried.
+with frames still queued — is counted against it, without a lookup; how to carry it is the
+sender's :class:`~rosgate.spec.Delivery`, read, never guessed. What a transport can do beyond
+``send`` (scatter-gather, several datagrams per call, receiving in place) is looked up once,
+when the link is made. Losses on the receiving side (a fragment that never came) are reported
+with the topic id the fragments carried.
 
 Every receive loop catches what a peer's bytes can cause and counts it; a link never dies of
 input, and an unexpected error's traceback is logged once per reason per minute
-(:data:`rosgate.warn.BUGS`). A stream connection the bridge accepted is untrusted until its
-owner calls :meth:`StreamLink.trust` (a handshake, a hello): until then its frames are small
-and it has a deadline (:class:`Untrusted`). :class:`Lifetime` is what a running bridge closes
-when it stops.
+(:data:`rosgate.warn.BUGS`). :class:`Lifetime` is what a running bridge closes when it stops.
 """
 
 from __future__ import annotations
 
-import itertools
 import logging
-import random
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
 from .admission import Sources
 from .config import MAX_DELAY_DEFAULT, LinkConfig
-from .errors import LinkError
 from .packetizer import Packet, Packetizer
 from .plugins import Plugins, installed
 from .reassembly import CompactReassembler, Reassembler
@@ -65,9 +57,6 @@ from .transport import (
     Address,
     DatagramEndpoint,
     DatagramTransport,
-    StreamConnection,
-    StreamTransport,
-    Transport,
 )
 from .warn import BUGS
 from .wire import envelope, framing
@@ -81,7 +70,6 @@ LostHandler = Callable[[int | None, str], None]
 RecoveredHandler = Callable[[int], None]
 
 POLL = 0.2  # seconds a receive waits before checking whether the link is closing
-CONNECT_TIMEOUT = 5.0
 
 
 class Sender(Protocol):
@@ -269,7 +257,7 @@ class _Sending(ABC):
             if not self._claim(to, len(packet)):
                 return None
         try:
-            sent = self._send_due(Due(packet, to, sender, _INLINE))
+            sent = self._send_due(Due(packet, to, sender, SENT_INLINE))
             self.counters.inline_out += sent
             return sent
         finally:
@@ -315,12 +303,8 @@ class _Gather:
         return self.size
 
 
-def _one(packet: bytes) -> Callable[[], list[bytes]]:
-    return lambda: [packet]
-
-
 #: what a Due sent from the caller's thread ends: its one frame (see _Sending._send_now)
-_INLINE = Outgoing(None, None, 0, list)
+SENT_INLINE = Outgoing(None, None, 0, list)
 #: the longest frame whose fragments leave from the caller's thread (an idle link): one
 #: loopback datagram's worth, a few dozen system calls (one with segmentation offload). A
 #: longer one (an image) goes to the send thread, so a ROS executor never waits on a long one.
@@ -696,7 +680,7 @@ class DatagramLink(_Sending, Link):
         if due.ends is not None:
             counters.frames_out += 1
         sender.on_wire(len(packet), due.again)
-        if due.ends is not None and due.ends is not _INLINE and type(packet) is bytes:
+        if due.ends is not None and due.ends is not SENT_INLINE and type(packet) is bytes:
             packetizer = self._by_magic.get(packet[:2])
             if packetizer is not None and _sends(packetizer):  # the last packet of a frame
                 now = time.monotonic()
@@ -945,516 +929,19 @@ def _sends(packetizer: Packetizer) -> bool:
     """Whether it wants to know when its frames left (and has its timer run on the send thread
     too): it implements ``sent``."""
     return type(packetizer).sent is not Packetizer.sent
-WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
 
 
-@dataclass(frozen=True)
-class Untrusted:
-    """What a connection may do before its owner trusts it (``bridge.limits``): frames of at most
-    ``max_frame`` bytes, and ``deadline`` seconds to earn trust before it is closed."""
-
-    max_frame: int
-    deadline: float
+class Receiving(Protocol):
+    name: str
+    on_frame: FrameHandler
+    on_lost: LostHandler
 
 
-class StreamLink(_Sending, Link):
-    """One stream connection, framed with length prefixes; frames longer than
-    :data:`rosgate.wire.framing.CHUNK` go in chunks, and the writer takes at most
-    :data:`WRITE` bytes at a time from the scheduler, so a frame of a higher class (a Twist
-    behind a camera's backlog) waits for one write, not for the whole backlog. (The kernel's
-    send buffer still holds what was written: a budget below the link's rate keeps it short.)
-
-    Sending never blocks the caller: when nothing waits, a frame of one record is written from
-    the caller's thread as far as the connection takes it without waiting (``send_nowait``: no
-    thread hand-off for a message alone; the rest goes first when the writer next writes).
-
-    With ``untrusted``, the connection is held to those limits until :meth:`trust` (a frame too
-    long is a corrupt stream; the deadline passing ends the connection, counted
-    ``handshake_timeout``)."""
-
-    def __init__(self, connection: StreamConnection, name: str, peer: Address,
-                 on_frame: FrameHandler, on_lost: LostHandler,
-                 on_close: Callable[[StreamLink], None] | None = None,
-                 queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
-                 max_message: int = framing.DEFAULT_MAX_MESSAGE,
-                 untrusted: Untrusted | None = None, budget: LinkConfig | None = None):
-        self.connection = connection
-        self.name = name
-        self.peer = peer
-        self.on_frame = on_frame
-        self.on_lost = on_lost
-        self.on_close = on_close
-        self.closed = threading.Event()
-        # for liveness: the main line's roles set it on every control message (a heartbeat), not
-        # on bytes, so a stream that lost its frame boundaries does not look alive
-        self.last_heard = time.monotonic()
-        self.why = ""  # why the connection ended, once it has
-        self.queue_frames = queue_frames
-        self.queue_bytes = queue_bytes
-        self.counters = LinkCounters()
-        self._send_nowait = getattr(connection, "send_nowait", None)
-        self._messages = itertools.count(1)  # numbers of chunked frames
-        self._init_sending(budget, 0, framing.CHUNK + framing.CHUNK_HEAD.size, queue_frames,
-                           queue_bytes)
-        self._reader = framing.StreamReader(untrusted.max_frame if untrusted else max_message,
-                                            direct=hasattr(connection, "receive_into"))
-        self.max_message = max_message
-        self._trust_by = time.monotonic() + untrusted.deadline if untrusted else None
-        self._threads = [
-            threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
-            threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
-        ]
-        for thread in self._threads:
-            thread.start()
-
-    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
-        # the limits count a frame with its length prefix, as it is written
-        if len(frame) <= framing.CHUNK:
-            record = framing.length_prefixed(frame)
-            if self._send_nowait is not None:
-                sent = self._send_now(record, sender, None)
-                if sent is not None:
-                    return sent
-            return self._put(Outgoing(sender, None, len(record), _one(record), time.monotonic()))
-        return self._put(Outgoing(sender, None, len(frame) + framing.LENGTH.size,
-                                  lambda: framing.stream_records(frame, next(self._messages)),
-                                  time.monotonic()))
-
-    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
-        """Frames of one sender together (a route's backlog): one write from the caller's
-        thread when nothing waits; otherwise each is queued."""
-        if len(frames) < 2 or self._send_nowait is None \
-                or any(len(frame) > framing.CHUNK for frame in frames):
-            return sum(self.send(frame, sender) for frame in frames)
-        records = [framing.length_prefixed(frame) for frame in frames]
-        data = b"".join(records)
-        with self._lock:
-            go = self._claim(None, len(data))
-        if not go:
-            now = time.monotonic()
-            return sum(self._put(Outgoing(sender, None, len(record), _one(record), now))
-                       for record in records)
-        try:
-            self._write_now(data, sender, [len(record) for record in records])
-        finally:
-            self._release()
-        return len(records)
-
-    def _send_due(self, due: Due) -> bool:
-        """One record from the caller's thread (see :meth:`_write_now`)."""
-        return self._write_now(due.packet, due.sender, [len(due.packet)])
-
-    def _write_now(self, data: bytes, sender: Sender, sizes: list[int]) -> bool:
-        """Write records as far as the connection takes them now; what it does not take goes
-        first when the writer next writes (nothing can come between: this thread is the only
-        one writing)."""
-        assert self._send_nowait is not None
-        try:
-            written = self._send_nowait(data)
-        except OSError as exc:
-            for _ in sizes:
-                sender.drop("link_down", f"{self.name}: send failed")
-            self.fail(f"send failed: {exc}")
-            return False
-        counters = self.counters
-        whole, offset = 0, 0
-        for size in sizes:  # the records wholly written
-            offset += size
-            if offset > written:
-                break
-            whole += 1
-        if written:
-            counters.packets_out += 1
-            counters.bytes_out += written
-            counters.frames_out += whole
-            if whole > 1:
-                counters.coalesced_out += whole
-        if written < len(data):
-            rest = Due(data[written:], None, sender, _INLINE, frames=len(sizes) - whole)
-            with self._lock:
-                self._rest = rest
-        sender.on_wire(written, False)
-        return True
-
-    def _send_loop(self) -> None:
-        """Gather what the scheduler lets go, up to :data:`WRITE` bytes, into one write."""
-        wake, closed, scheduler = self._wake, self.closed, self.scheduler
-        while True:
-            batch: list[Due] = []
-            size = 0
-            with wake:
-                while not batch:
-                    if closed.is_set():
-                        return
-                    if self._busy:  # a caller is writing: its rest, if any, comes first
-                        wake.wait()
-                        continue
-                    if self._rest is not None:
-                        batch.append(self._rest)
-                        size, self._rest = len(self._rest.packet), None
-                    due = scheduler.next()
-                    while isinstance(due, Due):
-                        batch.append(due)
-                        size += len(due.packet)
-                        if size >= WRITE:
-                            break
-                        due = scheduler.next()
-                    if not batch:
-                        wake.wait(max(0.0, due - time.monotonic())
-                                  if isinstance(due, float) else None)
-                self._busy = True
-            if scheduler.dropped:
-                self._count_drops()
-            try:
-                self.connection.send(b"".join([d.packet for d in batch]))
-            except OSError as exc:
-                for due in batch:
-                    if due.ends is not None:
-                        due.sender.drop("link_down", f"{self.name}: send failed")
-                self.fail(f"send failed: {exc}")
-                return
-            counters = self.counters
-            counters.packets_out += 1
-            counters.bytes_out += size
-            frames = 0
-            for due in batch:
-                if due.ends is not None:
-                    frames += due.frames
-                due.sender.on_wire(len(due.packet), False)
-            counters.frames_out += frames
-            if frames > 1:
-                counters.coalesced_out += frames
-            with wake:
-                self._busy = False
-                wake.notify_all()  # for drain()
-
-    def drain(self, timeout: float) -> bool:
-        """Wait until everything sent so far is written (a last word before closing)."""
-        with self._wake:
-            return self._wake.wait_for(
-                lambda: (self.scheduler.idle and not self._busy and self._rest is None
-                         or self.closed.is_set()), timeout)
-
-    def trust(self) -> None:
-        """The connection proved itself: the full frame size, no deadline."""
-        self._reader.max_frame = self.max_message
-        self._trust_by = None
-
-    @property
-    def trusted(self) -> bool:
-        return self._trust_by is None
-
-    def _receive_loop(self) -> None:
-        receive_into = getattr(self.connection, "receive_into", None)
-        buffer = memoryview(bytearray(256 * 1024))
-        reader, closed = self._reader, self.closed
-        while not closed.is_set():
-            target = reader.target() if receive_into is not None else None
-            try:
-                if receive_into is not None and target is not None:  # a large frame, in place
-                    got: int | bytes | None = receive_into(target, POLL)
-                elif receive_into is not None:
-                    got = receive_into(buffer, POLL)
-                else:
-                    got = self.connection.receive(len(buffer), POLL)
-            except OSError as exc:
-                self.fail(f"receive failed: {exc}")
-                return
-            except Exception as exc:  # a transport plugin's bug: drop this connection, loudly
-                BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
-                                            "(a bug in the plugin)")
-                self.on_lost(None, "transport_error")
-                self.fail(f"transport error: {type(exc).__name__}: {exc}")
-                return
-            trust_by = self._trust_by
-            if trust_by is not None and time.monotonic() > trust_by:
-                self.on_lost(None, "handshake_timeout")
-                self.fail("no handshake in time")
-                return
-            if got is None:
-                continue
-            if not got:
-                self.fail("closed by peer")
-                return
-            counters = self.counters
-            counters.packets_in += 1
-            if target is not None:
-                assert isinstance(got, int)
-                target.release()  # the frame is the handler's: it may cut it (routes do)
-                counters.bytes_in += got
-                whole = reader.filled(got)
-                if whole is not None:
-                    counters.frames_in += 1
-                    # its own buffer, the handler's to keep (typed bytes: see DatagramLink)
-                    deliver(self, cast(bytes, whole), self.peer)
-                continue
-            data = buffer[:got] if isinstance(got, int) else got
-            counters.bytes_in += len(data)
-            count = 0
-            try:
-                for frame in reader.feed(data):
-                    count += 1
-                    deliver(self, frame, self.peer)
-            except framing.FramingError as exc:
-                # a corrupt length means we can no longer find frame boundaries: start afresh
-                self.on_lost(None, "bad_length")
-                self.fail(f"stream corrupt ({exc})")
-                return
-            finally:
-                counters.frames_in += count
-                if count > 1:
-                    counters.coalesced_in += count
-
-    def fail(self, why: str) -> None:
-        """End the connection for a reason worth logging (lost, corrupt, silent)."""
-        if self.closed.is_set():
-            return
-        self.why = why
-        # a stranger's connection (never trusted) is counted by its reason, not logged: a
-        # flood of them must not flood the log
-        log.log(logging.INFO if self.trusted else logging.DEBUG,
-                "%s: connection to %s ended: %s", self.name, self.peer, why)
-        self.close()
-
-    def close(self) -> None:
-        with self._wake:  # once only, whichever thread gets here first
-            if self.closed.is_set():
-                return
-            self.closed.set()
-            self._wake.notify_all()
-        try:
-            self.connection.close()
-        except OSError:
-            pass
-        for thread in self._threads:
-            # the receive thread may fail before the send thread has even started; an unstarted
-            # thread sees `closed` when it starts and returns
-            if thread is not threading.current_thread() and thread.ident is not None:
-                thread.join(timeout=2)
-        with self._wake:  # what never reached the connection is a drop, and counted as one
-            unsent = self.scheduler.clear()
-            if self._rest is not None:
-                unsent.append(self._rest.sender)
-                self._rest = None
-        for sender in unsent:
-            sender.drop("link_down", f"{self.name} closed with the frame still queued")
-        if self.on_close:
-            self.on_close(self)
-
-
-@dataclass(frozen=True)
-class QueueLimits:
-    """How much a :class:`LinkSlot` holds for reliable topics while it has no connection."""
-
-    frames: int
-    bytes: int
-
-
-class LinkSlot(Link):
-    """A stream link that comes and goes. A :class:`Connector` (or a server that accepted the
-    peer again) :meth:`attach`-es each new connection.
-
-    While there is no live connection, frames of reliable senders wait, oldest
-    dropped first when the limits are reached (counted ``queue_overflow``), and are handed to the
-    next connection in order, before anything sent later. Other frames are counted ``link_down``.
-    Frames already handed to a connection that then fails are not taken back (there are no
-    acknowledgements): a connection's loss can cost what was in flight.
-    """
-
-    def __init__(self, name: str, limits: QueueLimits):
-        self.name = name
-        self.limits = limits
-        self.current: StreamLink | None = None
-        self.closed = threading.Event()
-        self._waiting: deque[tuple[bytes, Sender]] = deque()
-        self._waiting_bytes = 0
-        self._lock = threading.Lock()  # keeps sends and the flush of the queue in order
-
-    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
-        overflow: list[Sender] = []
-        with self._lock:
-            link = self.current
-            if link is not None and not link.closed.is_set():
-                return link.send_all(frames, sender)
-            if self.closed.is_set() or not sender.delivery.reliable:
-                refused = True
-            else:
-                refused = False
-                for frame in frames:
-                    self._waiting.append((frame, sender))
-                    self._waiting_bytes += len(frame)
-                while self._waiting and (len(self._waiting) > self.limits.frames
-                                         or self._waiting_bytes > self.limits.bytes):
-                    old, old_sender = self._waiting.popleft()
-                    self._waiting_bytes -= len(old)
-                    overflow.append(old_sender)
-        for old_sender in overflow:
-            old_sender.drop("queue_overflow", f"{self.name} is down and its queue is full")
-        if refused:
-            for _ in frames:
-                sender.drop("link_down", f"{self.name} is down")
-            return 0
-        return len(frames)
-
-    def attach(self, link: StreamLink) -> None:
-        """Use ``link`` from now on; what waited goes first."""
-        with self._lock:
-            while self._waiting:
-                frame, sender = self._waiting.popleft()
-                link.send(frame, sender)
-            self._waiting_bytes = 0
-            self.current = link
-
-    def discard(self, reason: str) -> None:
-        """Drop what waits (its topic ids mean nothing to a new session), counted by ``reason``."""
-        with self._lock:
-            senders = [sender for _, sender in self._waiting]
-            self._waiting.clear()
-            self._waiting_bytes = 0
-        for sender in senders:
-            sender.drop(reason)
-
-    @property
-    def waiting(self) -> int:
-        return len(self._waiting)
-
-    def forget(self, sender: Any) -> None:
-        link = self.current
-        if link is not None:
-            link.forget(sender)
-
-    def queue_depth(self, sender: Any) -> int:
-        """Messages of ``sender`` waiting here while the link is down, or in its connection."""
-        with self._lock:
-            held = sum(1 for _, s in self._waiting if s is sender)
-            link = self.current
-        return held + (link.queue_depth(sender) if link is not None else 0)
-
-    @property
-    def counters(self) -> LinkCounters:  # type: ignore[override]  # the connection's, read-only
-        link = self.current
-        return link.counters if link is not None else LinkCounters()
-
-    def close(self) -> None:
-        self.closed.set()
-        self.discard("link_down")
-        if self.current is not None:
-            self.current.close()
-
-
-@dataclass(frozen=True)
-class Backoff:
-    """Seconds between reconnection attempts: from ``min``, doubling up to ``max``, jittered."""
-
-    min: float
-    max: float
-
-    def delay(self, failures: int) -> float:
-        return min(self.min * 2 ** (failures - 1), self.max) * random.uniform(0.5, 1.0)
-
-
-class Connector:
-    """Keeps a stream connection up: connects, and after every loss reconnects by itself.
-
-    Attempts are spaced by capped exponential backoff with jitter, so a fleet of clients does
-    not hammer a server that comes back. After a connection that worked is lost, the next
-    attempt is immediate. ``on_connected(link)`` may refuse a connection (a failed handshake),
-    which counts as a failed attempt; ``on_lost(link)`` hears of every accepted connection that
-    ended.
-    """
-
-    def __init__(self, transport: Transport, address: Address, slot: LinkSlot,
-                 on_frame: FrameHandler, on_frame_lost: LostHandler, life: Lifetime,
-                 backoff: Backoff,
-                 on_connected: Callable[[StreamLink], bool] | None = None,
-                 on_lost: Callable[[StreamLink], None] | None = None,
-                 secure: Callable[[StreamConnection], StreamConnection] | None = None,
-                 budget: LinkConfig | None = None):
-        assert isinstance(transport, StreamTransport)
-        self.transport = transport
-        self.budget = budget
-        self.secure = secure
-        self.address = address
-        self.slot = slot
-        self.on_frame = on_frame
-        self.on_frame_lost = on_frame_lost
-        self.life = life
-        self.backoff = backoff
-        self.on_connected = on_connected
-        self.on_lost = on_lost
-        self.connected = threading.Event()
-        self._last_failure = ""
-        self._thread = threading.Thread(target=self._loop, name=f"connect-{slot.name}", daemon=True)
-        life.closing(self)
-
-    def start(self) -> Connector:
-        self._thread.start()
-        return self
-
-    def _loop(self) -> None:
-        stopping = self.life.stopping
-        failures = 0
-        while not stopping.is_set() and not self.slot.closed.is_set():
-            link = self._connect()
-            if link is None:
-                failures += 1
-                stopping.wait(self.backoff.delay(failures))
-                continue
-            failures = 0
-            self._last_failure = ""
-            self.slot.attach(link)
-            self.connected.set()
-            while not link.closed.wait(0.5):
-                if stopping.is_set() or self.slot.closed.is_set():
-                    break
-            self.connected.clear()
-            if stopping.is_set() and not self.slot.closed.is_set():
-                return  # the bridge is stopping: its role may have a last word (bye), then
-                # closing the slot closes the link
-            link.close()
-            if self.on_lost is not None and not stopping.is_set():
-                self.on_lost(link)
-
-    def _connect(self) -> StreamLink | None:
-        """One attempt: a connection its owner accepted, or None."""
-        try:
-            connection = self.transport.connect(self.address, CONNECT_TIMEOUT)
-        except (OSError, LinkError) as exc:
-            log.debug("%s: connect failed: %s", self.slot.name, exc)
-            return None
-        if self.secure is not None:
-            try:
-                connection = self.secure(connection)
-            except LinkError as exc:
-                connection.close()
-                self.failed(exc)
-                return None
-        link = self.life.closing(StreamLink(connection, self.slot.name, self.address,
-                                            self.on_frame, self.on_frame_lost,
-                                            on_close=self.life.forget, budget=self.budget))
-        if self.on_connected is not None and not self.on_connected(link):
-            link.close()
-            return None
-        return link
-
-    def failed(self, exc: LinkError) -> None:
-        """A connection that opened but was refused (its handshake failed): said once, until a
-        connection works again."""
-        if str(exc) != self._last_failure:
-            self._last_failure = str(exc)
-            log.warning("%s: %s", self.slot.name, exc)
-
-    def close(self) -> None:
-        self.slot.close()
-        if self._thread.is_alive() and threading.current_thread() is not self._thread:
-            self._thread.join(timeout=3)
-
-
-def deliver(link: DatagramLink | StreamLink, frame: bytes, source: Address) -> None:
+def deliver(link: Receiving, frame: bytes, source: Address) -> None:
     """Hand a frame to the link's handler. A handler that raises has a bug; it is counted, its
     traceback logged once per minute, and the link keeps receiving."""
     try:
-        link.on_frame(frame, link, source)
+        link.on_frame(frame, cast(Link, link), source)
     except Exception:
         BUGS.bug("handler_error", f"{link.name}: error while handling a frame from {source} "
                                   "(a bug: please report it)")

@@ -27,14 +27,16 @@ import time
 from typing import Any
 
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
+from ..connector import Connector, LinkSlot
 from ..errors import LinkError, RosgateError
 from ..keyring import Keys
-from ..links import Connector, DatagramLink, Link, LinkSlot, StreamLink
+from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, initiate, seal_hello
 from ..services import CallerRoute
 from ..spec import ServiceSpec, TopicSpec
+from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from . import Bridge, Role
 from .mainline import (

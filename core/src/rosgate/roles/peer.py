@@ -40,9 +40,10 @@ from typing import Any
 
 from ..admission import Acceptor, Sources
 from ..config import Direction, Framing
+from ..connector import Connector
 from ..errors import LinkError
 from ..keyring import Keys
-from ..links import Connector, Link, StreamLink
+from ..links import Link
 from ..router import fixed
 from ..routes import ReceiveRoute
 from ..secure import (
@@ -57,6 +58,7 @@ from ..secure import (
 from ..service_framing import CallPort
 from ..services import ServerRoute
 from ..spec import ServiceSpec, TopicSpec
+from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
 from . import NoLink, Refusals, Role

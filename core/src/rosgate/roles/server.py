@@ -41,9 +41,10 @@ from ..config import (
     service_from_mapping,
     topic_from_mapping,
 )
+from ..connector import LinkSlot
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys
-from ..links import DatagramLink, Link, LinkSlot, StreamLink
+from ..links import DatagramLink, Link
 from ..policy import refusal
 from ..routes import Route
 from ..secure import (
@@ -58,6 +59,7 @@ from ..secure import (
 )
 from ..services import CallerRoute
 from ..spec import ServiceSpec, TopicSpec
+from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..warn import BUGS
 from ..wire import envelope
