@@ -372,7 +372,7 @@ def test_a_flood_of_one_byte_fragments_is_bounded_and_counted(closing):
     endpoint = transport.bind(("127.0.0.1", 0))
     victim = closing(DatagramLink(transport, endpoint, "victim", inbox.on_frame, inbox.on_lost))
     to = endpoint.sock.getsockname()
-    reassembler = victim.reassembler
+    reassembler = victim.own.reassembler  # type: ignore[attr-defined]
     assert isinstance(reassembler, reassembly.Reassembler)
     flood = 3000
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as attacker:

@@ -47,10 +47,10 @@ from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
 from .admission import Sources
+from .builtin import Compact
 from .config import MAX_DELAY_DEFAULT, LinkConfig
 from .packetizer import Packet, Packetizer
 from .plugins import Plugins, installed
-from .reassembly import CompactReassembler, Reassembler
 from .scheduler import Due, Outgoing, Scheduler
 from .spec import Delivery
 from .transport import (
@@ -364,15 +364,8 @@ class DatagramLink(_Sending, Link):
         self._by_magic: dict[bytes, Packetizer | None] = {envelope.MAGIC: None}
         self._making = threading.Lock()
         self._tx_timer: float | None = None  # when the send thread runs the timers next
-        self.reassembler: Reassembler | CompactReassembler
-        if self.compact:
-            self.reassembler = CompactReassembler(on_lost, envelope.topic_of,
-                                                  max_message=max_message)
-        else:
-            self.fragments = self.packetizer("fragments")
-            self.reassembler = getattr(self.fragments, "reassembler", None) or Reassembler(
-                on_lost, max_message=max_message)
-        self._counters: dict[Address, int] = {}  # compact: the next piece's counter per destination
+        #: what cuts a frame of a sender without a packetizer of its own when it does not fit
+        self.own = self._make(Compact) if self.compact else self.packetizer("fragments")
         self._send_parts = getattr(endpoint, "send_parts", None)
         #: several datagrams in one call (UDP: segmentation offload), optional like send_parts
         self._send_datagrams = getattr(endpoint, "send_datagrams", None)
@@ -395,12 +388,12 @@ class DatagramLink(_Sending, Link):
             return False
         delivery = sender.delivery
         whole = self.bare or delivery.whole
-        own = delivery.packetizer is None and not self.compact  # whole or fragments
-        one = whole or own and size <= self.max_frame
+        plain = delivery.packetizer is None and not self.compact  # whole or fragments
+        one = whole or plain and size <= self.max_frame
         inline: Callable[[bytes, Any, Address], bool | None] | None = None
         if one:
             inline = self._send_now
-        elif own and size <= INLINE_MAX:
+        elif plain and size <= INLINE_MAX:
             inline = self._send_fragments_now
         if inline is not None:
             sent = inline(frame, sender, to)
@@ -450,15 +443,10 @@ class DatagramLink(_Sending, Link):
         """A frame's packets, made when it starts (on the send thread, in the order frames
         leave: compact counters and FEC coding happen here, not on the caller's thread)."""
         delivery = sender.delivery
-        own = delivery.packetizer is None
+        own = self.compact or delivery.packetizer is None
         if whole or own and not self.compact and len(frame) <= self.max_frame:
             return [frame]
-        if self.compact:
-            counter = self._counters.get(to, 0)
-            pieces = framing.compact_fragment(frame, self.max_frame, counter)
-            self._counters[to] = (counter + len(pieces)) & framing.COMPACT_COUNTER
-            return [b"".join(pieces)]  # one packet: a frame's pieces never interleave (no id)
-        packetizer = self.fragments if delivery.packetizer is None \
+        packetizer = self.own if own or delivery.packetizer is None \
             else self._make(delivery.packetizer)
         packets = packetizer.cut(frame, sender, to, delivery.packetizer_options)
         return [self._packet(packet) for packet in packets]
@@ -833,8 +821,6 @@ class DatagramLink(_Sending, Link):
             now = time.monotonic()
             if got is None or timer is not None and now >= timer:
                 timer = self._run_timers(now)
-                if self.compact:
-                    self.reassembler.expire(now)
             if got is None:
                 continue
             fed = self._datagram(*got, now)
@@ -857,18 +843,10 @@ class DatagramLink(_Sending, Link):
             counters.frames_in += 1
             deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
             return None
-        if self.compact:
-            try:
-                frame = self.reassembler.add(source, datagram)
-            except framing.FramingError:
-                self.on_lost(None, "bad_fragment")
-                return None
-            if frame is not None:
-                counters.frames_in += 1
-                deliver(self, cast(bytes, frame), source)
-            return None
         kind = datagram[1] if len(datagram) > 1 and datagram[0] == 0x52 else 0  # "R?"
-        if kind == 0x42:  # "RB": several frames
+        if self.compact:  # every datagram is a piece
+            packetizer = self.own
+        elif kind == 0x42:  # "RB": several frames
             try:
                 for record in framing.unbatch(datagram):
                     counters.frames_in += 1
@@ -877,7 +855,7 @@ class DatagramLink(_Sending, Link):
             except framing.FramingError:
                 self.on_lost(None, "bad_batch")
             return None
-        if kind == 0x47:  # "RG": an envelope, the most common of all, looked up by nobody
+        elif kind == 0x47:  # "RG": an envelope, the most common of all, looked up by nobody
             packetizer = None
         else:
             magic = bytes(datagram[:2])
