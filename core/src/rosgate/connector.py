@@ -1,5 +1,6 @@
-"""Stream links that come and go: a :class:`LinkSlot` is the place a route sends through, a
-:class:`Connector` keeps it filled (connects, and reconnects after every loss).
+"""Links that come and go: a :class:`LinkSlot` is the place a route sends through, a
+:class:`Connector` keeps it filled (connects, and reconnects after every loss), and a bridge's
+:class:`Lifetime` closes whatever is still open when it stops.
 
 While a slot is empty, frames of reliable senders wait in a bounded queue and leave in order
 when a connection is attached; frames of other senders are dropped.
@@ -17,13 +18,47 @@ from typing import Any
 
 from .config import LinkConfig
 from .errors import LinkError
-from .links import FrameHandler, Lifetime, Link, LinkCounters, LostHandler, Sender
+from .links import FrameHandler, Link, LinkCounters, LostHandler, Sender
 from .streamlink import StreamLink
 from .transport import Address, StreamConnection, StreamTransport, Transport
 
 log = logging.getLogger("rosgate")
 
 CONNECT_TIMEOUT = 5.0
+
+
+class Lifetime:
+    """What a running bridge closes when it stops, in reverse opening order, and the event that
+    says it is stopping. Links that end by themselves (a connection the peer closed) are
+    forgotten, so they are not held until the end."""
+
+    def __init__(self) -> None:
+        self.stopping = threading.Event()
+        self._items: dict[int, Any] = {}
+        self._lock = threading.Lock()
+
+    def closing(self, item: Any) -> Any:
+        with self._lock:
+            self._items[id(item)] = item
+        return item
+
+    def forget(self, item: Any) -> None:
+        with self._lock:
+            self._items.pop(id(item), None)
+
+    def links(self) -> list[Link]:
+        """The links open now that count what they carry."""
+        with self._lock:
+            return [item for item in self._items.values()
+                    if isinstance(item, Link)]
+
+    def close_all(self) -> None:
+        self.stopping.set()
+        with self._lock:
+            items = list(self._items.values())
+            self._items.clear()
+        for item in reversed(items):
+            item.close()
 
 
 @dataclass(frozen=True)

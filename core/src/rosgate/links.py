@@ -1,15 +1,6 @@
 """Links: the core's side of a transport — a queue, threads and dispatch — so a transport
-plugin only opens sockets.
-
-* :class:`DatagramLink` — one bound endpoint; sends whole frames, or several frames coalesced in
-  one datagram, and hands longer frames — and every frame of a topic with ``recovery:`` — to a
-  packetizer (:mod:`rosgate.packetizer`: the built-in ``fragments``, or a plugin's such as
-  ``fec``) to cut into packets; splits batches, hands every other packet to the packetizer of
-  its magic, and every frame to ``on_frame``. A transport with small frames (``max_frame`` below
-  ``framing.COMPACT_BELOW``, such as CAN) gets the compact fragment scheme instead. In bare mode
-  (``framing: none``) it hands over the datagram untouched.
-* :class:`~rosgate.streamlink.StreamLink` — one connection (its own module), and
-  :mod:`rosgate.connector` for the stream links that come and go.
+plugin only opens sockets: :class:`DatagramLink` here, :class:`~rosgate.streamlink.StreamLink`
+for one connection, :mod:`rosgate.connector` for the stream links that come and go.
 
 Both send through a :class:`~rosgate.scheduler.Scheduler` — the one place a link's frames wait:
 per-topic queues in priority classes, latest-only replacement, late best-effort frames dropped,
@@ -20,21 +11,18 @@ quiet link has no thread hand-off (a late send thread must not cost a latest-onl
 Frames that wait for the same destination leave together (one datagram up to ``max_frame``,
 one stream write), so a backlog costs few system calls.
 
-Who a link takes frames and connections from, and accepting connections, are
-:mod:`rosgate.admission`'s: a datagram link is given its :class:`~rosgate.admission.Sources`.
-
 Who sent a frame travels with it: every ``send`` takes the :class:`Sender` (a route, or the
 control channel) so a frame dropped later — a queue that overflows, a connection that breaks
 with frames still queued — is counted against it, without a lookup; how to carry it is the
 sender's :class:`~rosgate.spec.Delivery`, read, never guessed. What a transport can do beyond
 ``send`` (scatter-gather, several datagrams per call, receiving in place) is looked up once,
 when the link is made. Losses on the receiving side (a fragment that never came) are reported
-with the topic id the fragments carried.
+with the topic id the fragments carried. Who a link takes frames from is
+:mod:`rosgate.admission`'s (:class:`~rosgate.admission.Sources`).
 
 Every receive loop catches what a peer's bytes can cause and counts it; a link never dies of
 input, and an unexpected error's traceback is logged once per reason per minute
-(:data:`rosgate.warn.BUGS`). :class:`Lifetime` is what a running bridge closes when it stops.
-"""
+(:data:`rosgate.warn.BUGS`). """
 
 from __future__ import annotations
 
@@ -124,40 +112,6 @@ class Link:
 
     def close(self) -> None:
         raise NotImplementedError
-
-
-class Lifetime:
-    """What a running bridge closes when it stops, in reverse opening order, and the event that
-    says it is stopping. Links that end by themselves (a connection the peer closed) are
-    forgotten, so they are not held until the end."""
-
-    def __init__(self) -> None:
-        self.stopping = threading.Event()
-        self._items: dict[int, Any] = {}
-        self._lock = threading.Lock()
-
-    def closing(self, item: Any) -> Any:
-        with self._lock:
-            self._items[id(item)] = item
-        return item
-
-    def forget(self, item: Any) -> None:
-        with self._lock:
-            self._items.pop(id(item), None)
-
-    def links(self) -> list[Link]:
-        """The links open now that count what they carry."""
-        with self._lock:
-            return [item for item in self._items.values()
-                    if isinstance(item, Link)]
-
-    def close_all(self) -> None:
-        self.stopping.set()
-        with self._lock:
-            items = list(self._items.values())
-            self._items.clear()
-        for item in reversed(items):
-            item.close()
 
 
 @dataclass
@@ -321,15 +275,14 @@ def _batchable(due: Due) -> bool:
 
 
 class DatagramLink(_Sending, Link):
-    """A bound datagram endpoint. Frames out: whole when they fit ``max_frame``, else cut by the
-    built-in ``fragments`` packetizer; every frame of a topic with ``recovery: NAME`` cut by that
-    packetizer (FEC with its repair fragments, fragments kept until acknowledged...); compact
-    pieces on links of small frames; a bare sender's frames whole, whatever their size. Whole
-    frames that leave one after the other for the same destination share a datagram (a batch,
-    see :mod:`rosgate.wire.framing`; not on bare links, whose receivers take one message per
-    datagram). Datagrams in: from admitted ``sources`` only, batches split, every other packet
-    to the packetizer of its magic (found in ``packetizers``, by default the installed plugins),
-    each frame to ``on_frame``.
+    """A bound datagram endpoint. Frames out: whole when they fit ``max_frame`` (several in one
+    datagram, a batch, when they leave one after the other for one destination), else cut by
+    the link's own packetizer (``fragments``, or ``compact`` on links of small frames such as
+    CAN); every frame of a topic with ``recovery: NAME`` by that packetizer; a bare sender's
+    (``framing: none``) whole, whatever its size, never batched. Datagrams in: from admitted
+    ``sources`` only, batches split, every other packet to the packetizer of its magic (found in
+    ``packetizers``, by default the installed plugins), each frame to ``on_frame``; on a bare
+    link, each datagram as it came.
 
     It is the :class:`~rosgate.packetizer.PacketLink` of its packetizers: one of each kind it
     meets, made on first use and kept for its life; their timers run on both of its threads."""
@@ -366,8 +319,12 @@ class DatagramLink(_Sending, Link):
         self._tx_timer: float | None = None  # when the send thread runs the timers next
         #: what cuts a frame of a sender without a packetizer of its own when it does not fit
         self.own = self._make(Compact) if self.compact else self.packetizer("fragments")
-        self._send_parts = getattr(endpoint, "send_parts", None)
-        #: several datagrams in one call (UDP: segmentation offload), optional like send_parts
+        # what the endpoint can do beyond send, looked up once: scatter-gather (a packet's parts
+        # without joining them; else joined here), several datagrams in one call (UDP:
+        # segmentation offload)
+        self._gather = hasattr(endpoint, "send_parts")
+        self._send_parts: Callable[[Any, Address], None] = getattr(
+            endpoint, "send_parts", lambda parts, to: endpoint.send(b"".join(parts), to))
         self._send_datagrams = getattr(endpoint, "send_datagrams", None)
         self._init_sending(budget, getattr(transport, "packet_overhead", 0), self.max_frame,
                            queue_frames, queue_bytes)
@@ -454,7 +411,7 @@ class DatagramLink(_Sending, Link):
     def _packet(self, packet: Packet) -> bytes:
         if not isinstance(packet, tuple):
             return packet
-        if self._send_parts is None:
+        if not self._gather:
             return b"".join(packet)
         # a _Gather stands for its packet: the scheduler only takes its len()
         return cast(bytes, _Gather(packet))
@@ -625,7 +582,6 @@ class DatagramLink(_Sending, Link):
             else:
                 for packet in packets:
                     if type(packet) is _Gather:
-                        assert self._send_parts is not None
                         self._send_parts(cast(_Gather, packet).parts, to)
                     else:
                         self.endpoint.send(packet, to)
@@ -646,7 +602,6 @@ class DatagramLink(_Sending, Link):
         count = 1
         try:
             if type(packet) is _Gather:
-                assert self._send_parts is not None
                 self._send_parts(cast(_Gather, packet).parts, to)
             elif self.compact and not sender.delivery.whole:
                 step = self.max_frame
@@ -682,11 +637,7 @@ class DatagramLink(_Sending, Link):
         """Whole frames in one datagram; how many were sent (a failure is counted for each)."""
         frames = [due.packet for due in dues]
         try:
-            parts = framing.batch(frames)
-            if self._send_parts is not None:
-                self._send_parts(parts, to)
-            else:
-                self.endpoint.send(b"".join(parts), to)
+            self._send_parts(framing.batch(frames), to)
         except OSError as exc:
             for due in dues:
                 due.sender.drop("send_error", f"to {to} on {self.name}: {exc}")

@@ -28,8 +28,8 @@ import time
 from typing import Any
 
 from .config import BridgeConfig, TopicConfig
-from .connector import LinkSlot
-from .links import Lifetime, Link
+from .connector import Lifetime, LinkSlot
+from .links import Link
 from .roles import Role
 from .roles.client import ClientRole
 from .roles.peer import PeerRole

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 
 from ..admission import Acceptor, ConnectionLimits, Sources
 from ..config import BridgeConfig, LinkConfig
-from ..connector import Backoff, LinkSlot, QueueLimits
+from ..connector import Backoff, Lifetime, LinkSlot, QueueLimits
 from ..errors import ConfigError, LinkError
-from ..links import DatagramLink, Lifetime, Link, LinkCounters
+from ..links import DatagramLink, Link, LinkCounters
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort
