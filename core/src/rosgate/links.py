@@ -326,7 +326,7 @@ class DatagramLink(_Sending, Link):
         self._send_parts: Callable[[Any, Address], None] = getattr(
             endpoint, "send_parts", lambda parts, to: endpoint.send(b"".join(parts), to))
         self._send_datagrams = getattr(endpoint, "send_datagrams", None)
-        self._init_sending(budget, getattr(transport, "packet_overhead", 0), self.max_frame,
+        self._init_sending(budget, transport.packet_overhead, self.max_frame,
                            queue_frames, queue_bytes)
         self._threads = [
             threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),

@@ -77,6 +77,14 @@ class Router:
         self._watcher.start()
 
     # -- making routes -----------------------------------------------------------------------
+    def route(self, p: TopicSpec | ServiceSpec, route_id: int, label: str, link: Link,
+              destination: Destination = _no_destination, keys: Keys | None = None,
+              announce: bool = True) -> Route:
+        """The route of an entry over ``link``, a topic's or a service's, as its spec says."""
+        if isinstance(p, TopicSpec):
+            return self.topic(p, route_id, label, link, destination, keys, announce=announce)
+        return self.service(p, route_id, label, link, destination, keys, announce)
+
     def topic(self, p: TopicSpec, topic_id: int, label: str, link: Link,
               destination: Destination = _no_destination,
               keys: Keys | None = None,

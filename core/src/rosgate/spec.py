@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 from .cipher import Cipher
 from .codec import Codec
@@ -62,6 +62,8 @@ class RouteSpec:
     delivery: Delivery = Delivery()
     key: str | None = None  # on a bus: the key (a template with placeholders), else None
     cipher_cls: type[Cipher] | None = None
+    #: "topic" or "service": how logs, errors and key labels name it
+    kind: ClassVar[str]
 
     @property
     def name(self) -> str:
@@ -70,6 +72,7 @@ class RouteSpec:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class TopicSpec(RouteSpec):
+    kind = "topic"
     config: TopicConfig
     msg_type: type
     #: compression: the transform a transmitting topic applies (None: none)
@@ -84,6 +87,7 @@ class TopicSpec(RouteSpec):
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ServiceSpec(RouteSpec):
+    kind = "service"
     config: ServiceConfig
     srv_type: Any  # a ROS service class: Request and Response inside
     #: the plugin that makes its calls when ``framing`` is not ``rosgate`` (a microcontroller's)

@@ -254,18 +254,15 @@ class ClientRole(Role):
         keys = self._keys(p)
         # announcements start once the server has our datagram hello (its ports take frames
         # only from where a hello came from)
-        if isinstance(p, TopicSpec):
-            return self.router.topic(p, topic_id, label, link, destination, keys, announce=False)
-        return self.router.service(p, topic_id, label, link, destination, keys, announce=False)
+        return self.router.route(p, topic_id, label, link, destination, keys, announce=False)
 
     def _keys(self, p: TopicSpec | ServiceSpec) -> Keys | None:
         if self.schedule is None:
             return None  # insecure: the file's cipher
         assert p.cipher_cls is not None
-        kind = "topic" if isinstance(p, TopicSpec) else "service"
         name = p.config.remote  # the server's name for it: both sides derive the same keys
-        return SessionKeys(self.schedule, p.cipher_cls, key_label(kind, "c2s", name),
-                           key_label(kind, "s2c", name))
+        return SessionKeys(self.schedule, p.cipher_cls, key_label(p.kind, "c2s", name),
+                           key_label(p.kind, "s2c", name))
 
     def _unbuild(self) -> None:
         super().stop()

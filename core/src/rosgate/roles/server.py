@@ -473,9 +473,7 @@ class ServerRole(Role):
             def destination() -> Address | None:  # where the client said hello from, last
                 return session.addresses.get(datagrams)
         keys = self._keys(session, p)
-        if isinstance(p, TopicSpec):
-            return self.router.topic(p, topic_id, label, link, destination, keys)
-        return self.router.service(p, topic_id, label, link, destination, keys)
+        return self.router.route(p, topic_id, label, link, destination, keys)
 
     def _keys(self, session: Session, p: TopicSpec | ServiceSpec) -> Keys | None:
         if not self.cfg.secure:
@@ -483,9 +481,8 @@ class ServerRole(Role):
         if session.schedule is None:
             session.schedule = KeySchedule(self.cfg.rekey)
         assert p.cipher_cls is not None
-        kind = "topic" if isinstance(p, TopicSpec) else "service"
-        return SessionKeys(session.schedule, p.cipher_cls, key_label(kind, "s2c", p.name),
-                           key_label(kind, "c2s", p.name))
+        return SessionKeys(session.schedule, p.cipher_cls, key_label(p.kind, "s2c", p.name),
+                           key_label(p.kind, "c2s", p.name))
 
     @staticmethod
     def _no_address() -> Address | None:
