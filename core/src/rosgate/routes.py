@@ -30,7 +30,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, cast
+from typing import Any, cast
 
 from . import announce
 from .announce import Identity, TypeCheck
@@ -225,10 +225,8 @@ class Announcer:
 
 
 class TopicFraming:
-    """How a topic's payloads become frames, chosen once per route."""
-
-    #: True: datagrams carry the payload alone (no envelope, no fragments, no cipher)
-    bare: ClassVar[bool]
+    """How a topic's payloads become frames, chosen once per route (the spec's
+    ``Delivery.whole`` says the link must not cut them: ``framing: none``)."""
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
         """``flags``: the envelope's (FLAG_COMPRESSED); a bare frame has none."""
@@ -239,8 +237,6 @@ class EnvelopeFraming(TopicFraming):
     """``framing: rosgate``: the 28-byte envelope (topic id, the sender's epoch and sequence
     number, the send time), then the payload sealed by the topic's cipher, which authenticates
     the header too. Receivers are found by topic id (the router) and keep a replay window."""
-
-    bare = False
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
         # no lock: a route's messages come from the one executor thread (RosNode)
@@ -256,8 +252,6 @@ class BareFraming(TopicFraming):
     """``framing: none``: one datagram per message, the codec's bytes alone — laid out with the
     topic's ``remote`` name (:mod:`rosgate.wire.names`) when the codec writes MessagePack (the
     microcontroller format), so several topics can share a port."""
-
-    bare = True
 
     def __init__(self, name: str | None, layout: Layout = LAYOUT_DEFAULT):
         self.prefix = pack_name(name, layout) if name is not None else b""
