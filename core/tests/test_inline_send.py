@@ -20,6 +20,7 @@ from rosgate_transport_udp import UdpEndpoint, UdpTransport
 
 from rosgate.config import LinkConfig
 from rosgate.links import INLINE_MAX, DatagramLink
+from rosgate.spec import Delivery
 from rosgate.wire import envelope, framing
 
 TIMEOUT = 20.0
@@ -34,8 +35,15 @@ class Camera:
     reliable: bool = False
     drops: list[str] = field(default_factory=list)
 
+    @property
+    def delivery(self) -> Delivery:
+        return Delivery(reliable=self.reliable, latest_only=self.latest_only)
+
     def drop(self, reason: str, detail: str = "") -> None:
         self.drops.append(reason)
+
+    def on_wire(self, size: int, again: bool) -> None:
+        pass
 
 
 class Receiver:

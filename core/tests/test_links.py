@@ -16,7 +16,10 @@ from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
 from rosgate import reassembly
-from rosgate.links import DatagramLink, LinkSlot, QueueLimits, StreamLink
+from rosgate.connector import LinkSlot, QueueLimits
+from rosgate.links import DatagramLink
+from rosgate.spec import Delivery
+from rosgate.streamlink import StreamLink
 from rosgate.wire import envelope, framing
 from rosgate.wire.framing import FRAGMENT, LENGTH, length_prefixed
 
@@ -67,10 +70,18 @@ class Sent:
     def __init__(self, topic_id: int, reliable: bool, inbox: Inbox):
         self.topic_id = topic_id
         self.reliable = reliable
+        self.max_delay: float | None = None
         self.inbox = inbox
+
+    @property
+    def delivery(self) -> Delivery:
+        return Delivery(reliable=self.reliable, max_delay=self.max_delay)
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.inbox.on_lost(self.topic_id, reason)
+
+    def on_wire(self, size: int, again: bool) -> None:
+        pass
 
 
 def frame_of(seq: int, size: int, rng: random.Random) -> bytes:
@@ -361,7 +372,7 @@ def test_a_flood_of_one_byte_fragments_is_bounded_and_counted(closing):
     endpoint = transport.bind(("127.0.0.1", 0))
     victim = closing(DatagramLink(transport, endpoint, "victim", inbox.on_frame, inbox.on_lost))
     to = endpoint.sock.getsockname()
-    reassembler = victim.reassembler
+    reassembler = victim.own.reassembler  # type: ignore[attr-defined]
     assert isinstance(reassembler, reassembly.Reassembler)
     flood = 3000
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as attacker:

@@ -21,7 +21,10 @@ from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
 from rosgate.config import LinkConfig
-from rosgate.links import DatagramLink, StreamLink
+from rosgate.links import DatagramLink
+from rosgate.plugins import installed
+from rosgate.spec import Delivery
+from rosgate.streamlink import StreamLink
 from rosgate.wire import envelope
 
 TIMEOUT = 20.0
@@ -40,6 +43,14 @@ class Topic:
     drops: list[str] = field(default_factory=list)
     wire: int = 0
     again: int = 0
+
+    @property
+    def delivery(self) -> Delivery:
+        packetizer = None if self.recovery == "none" else installed().get("packetizer",
+                                                                          self.recovery).cls
+        return Delivery(reliable=self.reliable, priority=self.priority,
+                        latest_only=self.latest_only, packetizer=packetizer,
+                        packetizer_options=self.recovery_options)
 
     def drop(self, reason: str, detail: str = "") -> None:
         self.drops.append(reason)

@@ -18,6 +18,7 @@ from rosgate.routes import (
     TransmitRoute,
     Warner,
 )
+from rosgate.spec import Delivery
 from rosgate.wire import envelope
 
 
@@ -41,7 +42,7 @@ def route(waiting: deque, max_rate: float | None = None, reliable: bool = False,
     topic.max_rate, topic.max_delay = max_rate, max_delay
     link = Link()
     r = TransmitRoute(topic, 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")), Warner(), "/t",
-                      reliable,
+                      Delivery(reliable=reliable),
                       framing=EnvelopeFraming(), link=link,  # type: ignore[arg-type]
                       destination=lambda: ("127.0.0.1", 9))
 
@@ -130,7 +131,7 @@ def receiver(codec, cipher, max_delay: float | None = None) -> ReceiveRoute:
     fields = inspect.signature(TopicConfig).parameters
     topic = TopicConfig(**{name: None for name, p in fields.items() if p.default is p.empty})
     topic.max_delay = max_delay
-    return ReceiveRoute(topic, 7, codec, StaticKeys(cipher), Warner(), "/t", False,
+    return ReceiveRoute(topic, 7, codec, StaticKeys(cipher), Warner(), "/t", Delivery(),
                         decode=codec.decode)
 
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import pytest
 
 from rosgate.scheduler import Bucket, Due, Outgoing, Scheduler, burst
+from rosgate.spec import Delivery
 
 IDS = itertools.count(1)
 
@@ -22,7 +23,13 @@ class Topic:
     topic_id: int = field(default_factory=lambda: next(IDS))
     latest_only: bool = False
     reliable: bool = True
+    max_delay: float | None = None
     drops: list[str] = field(default_factory=list)
+
+    @property
+    def delivery(self) -> Delivery:
+        return Delivery(reliable=self.reliable, priority=self.priority,
+                        latest_only=self.latest_only, max_delay=self.max_delay)
 
 
 class Clock:

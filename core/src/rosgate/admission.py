@@ -18,7 +18,7 @@ holds. Roles choose it; datagram links and acceptors apply it.
 
 It sits below :mod:`rosgate.links` (which takes :class:`Sources`) and above the transports:
 nothing here frames, queues or sends. What an accepted connection may do before it is trusted
-is the link's (:class:`~rosgate.links.Untrusted`).
+is the link's (:class:`~rosgate.streamlink.Untrusted`).
 """
 
 from __future__ import annotations

@@ -17,8 +17,9 @@ from typing import Any
 
 from .builtin import Fragments
 from .config import Direction, Framing
-from .resolver import Plan, PreparedTopic
+from .resolver import Plan
 from .ros import resolve_type
+from .spec import TopicSpec
 from .transport import DatagramTransport
 from .wire import envelope, framing
 
@@ -72,7 +73,7 @@ class Cost:
         return None if self.rate is None or self.wire is None else self.rate * self.wire * 8
 
 
-def cipher_overhead(p: PreparedTopic) -> int:
+def cipher_overhead(p: TopicSpec) -> int:
     """Bytes a topic's cipher adds to a frame (its session's cipher when there is no static
     one)."""
     cipher = p.cipher
@@ -84,16 +85,17 @@ def cipher_overhead(p: PreparedTopic) -> int:
     return len(cipher.seal(header, bytes(100))) - 100
 
 
-def on_the_wire(frame: int, p: PreparedTopic) -> tuple[int, int]:
+def on_the_wire(frame: int, p: TopicSpec) -> tuple[int, int]:
     """(bytes, packets) of one frame of ``frame`` bytes on the topic's link."""
     transport = p.transport
     if not isinstance(transport, DatagramTransport):  # a stream: budgets refuse buses
         chunks = 1 if frame <= framing.CHUNK else math.ceil(frame / framing.CHUNK)
         return frame + (4 if chunks == 1 else 8 * chunks), chunks
     limit, overhead = transport.max_frame, transport.packet_overhead
-    if p.recovery is None and frame <= limit:
+    packetizer, options = p.delivery.packetizer, p.delivery.packetizer_options
+    if packetizer is None and frame <= limit:
         return frame + overhead, 1
-    packetizer, options = p.recovery or (Fragments, None)
+    packetizer = packetizer or Fragments
     size, packets = packetizer.cost(frame, limit, options)
     return size + packets * overhead, packets
 

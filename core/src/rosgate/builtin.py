@@ -14,9 +14,9 @@ from .diagnostics import Diagnostics
 from .errors import CodecError
 from .hookspecs import hookimpl
 from .packetizer import Packet, Packetizer, PacketLink
-from .reassembly import Reassembler
+from .reassembly import CompactReassembler, Reassembler
 from .transport import Address
-from .wire import framing
+from .wire import envelope, framing
 
 
 class CdrCodec(Codec):
@@ -97,6 +97,46 @@ class Fragments(Packetizer):
     def cost(cls, frame: int, max_frame: int, options: Any) -> tuple[int, int]:
         packets = max(1, math.ceil(frame / (max_frame - framing.FRAGMENT.size)))
         return frame + packets * framing.FRAGMENT.size, packets
+
+
+class Compact(Packetizer):
+    """Every frame as compact pieces (``framing.compact_fragment``), one frame at a time per
+    destination: a datagram link's own scheme when its transport's frames cannot spare a
+    fragment header (``max_frame`` below ``framing.COMPACT_BELOW``: CAN). Pieces carry no magic:
+    on such a link every datagram is a piece, and the link feeds them all here."""
+
+    name = "compact"
+    magic = ()
+
+    @dataclass(frozen=True)
+    class Options:
+        """None: the link's ``max_frame`` says it all."""
+
+    def __init__(self, link: PacketLink):
+        super().__init__(link)
+        self.reassembler = CompactReassembler(link.lost, envelope.topic_of,
+                                              max_message=link.max_message)
+        self._counters: dict[Address, int] = {}  # the next piece's counter per destination
+
+    def cut(self, frame: bytes, sender: Any, to: Address, options: Any) -> list[Packet]:
+        counter = self._counters.get(to, 0)
+        pieces = framing.compact_fragment(frame, self.link.max_frame, counter)
+        self._counters[to] = (counter + len(pieces)) & framing.COMPACT_COUNTER
+        # one packet, which the link sends piece by piece: pieces carry no frame id, so the
+        # pieces of two frames must never interleave
+        return [b"".join(pieces)]
+
+    def feed(self, packet: bytes | memoryview, source: Address, now: float) -> bytes | None:
+        return self.reassembler.add(source, packet)
+
+    def timer(self, now: float) -> float | None:
+        self.reassembler.expire(now)
+        return None
+
+    @classmethod
+    def cost(cls, frame: int, max_frame: int, options: Any) -> tuple[int, int]:
+        pieces = framing.compact_fragment(bytes(frame), max_frame, 0)  # rosgate check only
+        return sum(map(len, pieces)), len(pieces)
 
 
 @hookimpl

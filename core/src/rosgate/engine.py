@@ -23,12 +23,12 @@ from dataclasses import dataclass
 from typing import Any
 
 from .config import BridgeConfig, Direction, Role
+from .connector import Lifetime
 from .errors import ConfigError, OptionError
-from .links import Lifetime
 from .monitor import Monitor, Status, Watched
 from .options import parse
 from .plugins import Plugins
-from .resolver import Plan, PreparedService, PreparedTopic, Resolver
+from .resolver import Plan, Resolver
 from .roles import Bridge
 from .roles import Role as BridgeRole
 from .roles.client import ClientRole
@@ -38,6 +38,7 @@ from .ros import RosNode
 from .router import Router
 from .routes import ReceiveRoute, Route
 from .runtime import StatusServer
+from .spec import ServiceSpec, TopicSpec
 from .status import collect, summary
 
 log = logging.getLogger("rosgate")
@@ -77,10 +78,10 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
     read, not written, here."""
     cfg = plan.config
     found = []
-    entries: list[PreparedTopic | PreparedService] = [*plan.topics, *plan.services]
+    entries: list[TopicSpec | ServiceSpec] = [*plan.topics, *plan.services]
     for p in entries:
         t = p.config
-        is_topic = isinstance(p, PreparedTopic)
+        is_topic = isinstance(p, TopicSpec)
         if p.key is not None or (is_topic and t.direction is Direction.TRANSMIT):
             continue
         key = f"{'topics' if is_topic else 'services'}[{p.index}]"

@@ -1,14 +1,6 @@
-"""Links: the core's side of a transport. Framing, fragmentation and threads live here, so a
-transport plugin only opens sockets.
-
-* :class:`DatagramLink` — one bound endpoint; sends whole frames, or several frames coalesced in
-  one datagram, and hands longer frames — and every frame of a topic with ``recovery:`` — to a
-  packetizer (:mod:`rosgate.packetizer`: the built-in ``fragments``, or a plugin's such as
-  ``fec``) to cut into packets; splits batches, hands every other packet to the packetizer of
-  its magic, and every frame to ``on_frame``. A transport with small frames (``max_frame`` below
-  ``framing.COMPACT_BELOW``, such as CAN) gets the compact fragment scheme instead. In bare mode
-  (``framing: none``) it hands over the datagram untouched.
-* :class:`StreamLink` — one connection; frames carry a length prefix, long ones go in chunks.
+"""Links: the core's side of a transport — a queue, threads and dispatch — so a transport
+plugin only opens sockets: :class:`DatagramLink` here, :class:`~rosgate.streamlink.StreamLink`
+for one connection, :mod:`rosgate.connector` for the stream links that come and go.
 
 Both send through a :class:`~rosgate.scheduler.Scheduler` — the one place a link's frames wait:
 per-topic queues in priority classes, latest-only replacement, late best-effort frames dropped,
@@ -17,57 +9,43 @@ sending never blocks the caller (a ROS executor). A frame goes out on the caller
 nothing waits and the budget allows — whole, or its fragments until something else waits — so a
 quiet link has no thread hand-off (a late send thread must not cost a latest-only message).
 Frames that wait for the same destination leave together (one datagram up to ``max_frame``,
-one stream write up to :data:`WRITE` bytes), so a backlog costs few system calls.
-
-* :class:`LinkSlot` — a place for a stream link that comes and goes (reconnects). While it is
-  empty, frames of reliable senders wait in a bounded queue and leave in order when a connection
-  is attached; frames of other senders are dropped.
-* :class:`Connector` — keeps a :class:`LinkSlot` filled: connects, and reconnects after every loss.
-
-Who a link takes frames and connections from, and accepting connections, are
-:mod:`rosgate.admission`'s: a datagram link is given its :class:`~rosgate.admission.Sources`.
+one stream write), so a backlog costs few system calls.
 
 Who sent a frame travels with it: every ``send`` takes the :class:`Sender` (a route, or the
 control channel) so a frame dropped later — a queue that overflows, a connection that breaks
-with frames still queued — is counted against it, without a lookup. Losses on the receiving
-side (a fragment that never came) are reported with the topic id the fragments carried.
+with frames still queued — is counted against it, without a lookup; how to carry it is the
+sender's :class:`~rosgate.spec.Delivery`, read, never guessed. What a transport can do beyond
+``send`` (scatter-gather, several datagrams per call, receiving in place) is looked up once,
+when the link is made. Losses on the receiving side (a fragment that never came) are reported
+with the topic id the fragments carried. Who a link takes frames from is
+:mod:`rosgate.admission`'s (:class:`~rosgate.admission.Sources`).
 
 Every receive loop catches what a peer's bytes can cause and counts it; a link never dies of
 input, and an unexpected error's traceback is logged once per reason per minute
-(:data:`rosgate.warn.BUGS`). A stream connection the bridge accepted is untrusted until its
-owner calls :meth:`StreamLink.trust` (a handshake, a hello): until then its frames are small
-and it has a deadline (:class:`Untrusted`). :class:`Lifetime` is what a running bridge closes
-when it stops.
-"""
+(:data:`rosgate.warn.BUGS`). """
 
 from __future__ import annotations
 
-import itertools
 import logging
-import random
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
 from .admission import Sources
-from .config import MAX_DELAY_DEFAULT, NO_PLUGIN, LinkConfig
+from .builtin import Compact
+from .config import MAX_DELAY_DEFAULT, LinkConfig
 from .drops import Drop, Reason
-from .errors import LinkError
 from .packetizer import Packet, Packetizer
 from .plugins import Plugins, installed
-from .reassembly import CompactReassembler, Reassembler
 from .scheduler import Due, Outgoing, Scheduler
+from .spec import Delivery
 from .transport import (
     Address,
     DatagramEndpoint,
     DatagramTransport,
-    StreamConnection,
-    StreamTransport,
-    Transport,
 )
 from .warn import BUGS
 from .wire import envelope, framing
@@ -81,32 +59,24 @@ LostHandler = Callable[[int | None, Reason], None]
 RecoveredHandler = Callable[[int], None]
 
 POLL = 0.2  # seconds a receive waits before checking whether the link is closing
-CONNECT_TIMEOUT = 5.0
 
 
 class Sender(Protocol):
-    """What sends a frame: a route, or a role's control channel.
+    """What sends a frame: a route, a call, or a role's control channel."""
 
-    Links read these too, each optional (a sender without it gets the default):
-    ``priority`` (0 control .. 7 background, default 5, data), ``latest_only`` (False),
-    ``max_delay`` (seconds a frame may wait to start; None: the link's, for best-effort
-    senders), ``recovery`` (the name of the packetizer of its frames, "none": the link's own)
-    and ``recovery_options`` (the topic's options for it), ``bare`` (its frames are whole
-    datagrams, never cut: ``framing: none``), and
-    ``on_wire(size, again)``, told of every packet put on the link for it (``again``: a
-    retransmission).
-    """
+    @property
+    def delivery(self) -> Delivery:
+        """How the link carries its frames (read on every send: set once, never changed)."""
 
     @property
     def topic_id(self) -> int:
         """The id fragments of its frames carry (so a receiver counts a lost one against it)."""
 
-    @property
-    def reliable(self) -> bool:
-        """Its frames wait in a :class:`LinkSlot` while the link is down (reliable QoS)."""
-
     def drop(self, reason: Reason, detail: str = "") -> None:
         """Count one of its frames as dropped on the way out."""
+
+    def on_wire(self, size: int, again: bool) -> None:
+        """A packet of ``size`` bytes left on the link for it (``again``: a retransmission)."""
 
 
 class Link:
@@ -134,43 +104,15 @@ class Link:
         write); how many were sent or queued, as :meth:`send` says for one."""
         return sum(self.send(frame, sender, to) for frame in frames)
 
+    def queue_depth(self, sender: Sender) -> int:
+        """Messages of ``sender`` waiting or being sent (a link without a queue: none)."""
+        return 0
+
+    def forget(self, sender: Sender) -> None:
+        """A sender that is gone: drop what it queued, silently."""
+
     def close(self) -> None:
         raise NotImplementedError
-
-
-class Lifetime:
-    """What a running bridge closes when it stops, in reverse opening order, and the event that
-    says it is stopping. Links that end by themselves (a connection the peer closed) are
-    forgotten, so they are not held until the end."""
-
-    def __init__(self) -> None:
-        self.stopping = threading.Event()
-        self._items: dict[int, Any] = {}
-        self._lock = threading.Lock()
-
-    def closing(self, item: Any) -> Any:
-        with self._lock:
-            self._items[id(item)] = item
-        return item
-
-    def forget(self, item: Any) -> None:
-        with self._lock:
-            self._items.pop(id(item), None)
-
-    def links(self) -> list[Link]:
-        """The links open now that count what they carry."""
-        with self._lock:
-            return [item for item in self._items.values()
-                    if isinstance(item, Link) and isinstance(getattr(item, "counters", None),
-                                                             LinkCounters)]
-
-    def close_all(self) -> None:
-        self.stopping.set()
-        with self._lock:
-            items = list(self._items.values())
-            self._items.clear()
-        for item in reversed(items):
-            item.close()
 
 
 @dataclass
@@ -270,7 +212,7 @@ class _Sending(ABC):
             if not self._claim(to, len(packet)):
                 return None
         try:
-            sent = self._send_due(Due(packet, to, sender, _INLINE))
+            sent = self._send_due(Due(packet, to, sender, SENT_INLINE))
             self.counters.inline_out += sent
             return sent
         finally:
@@ -301,12 +243,6 @@ class _Sending(ABC):
         it was dropped (counted). Each kind of link has its own."""
 
 
-def _on_wire(sender: Any, size: int, again: bool) -> None:
-    counted = getattr(sender, "on_wire", None)
-    if counted is not None:
-        counted(size, again)
-
-
 class _Gather:
     """A packet as its parts — a fragment's header and a view of the frame — for scatter-gather
     sending (``send_parts``: no copy of the frame); the scheduler takes it for a packet of
@@ -322,12 +258,8 @@ class _Gather:
         return self.size
 
 
-def _one(packet: bytes) -> Callable[[], list[bytes]]:
-    return lambda: [packet]
-
-
 #: what a Due sent from the caller's thread ends: its one frame (see _Sending._send_now)
-_INLINE = Outgoing(None, None, 0, list)
+SENT_INLINE = Outgoing(None, None, 0, list)
 #: the longest frame whose fragments leave from the caller's thread (an idle link): one
 #: loopback datagram's worth, a few dozen system calls (one with segmentation offload). A
 #: longer one (an image) goes to the send thread, so a ROS executor never waits on a long one.
@@ -344,15 +276,14 @@ def _batchable(due: Due) -> bool:
 
 
 class DatagramLink(_Sending, Link):
-    """A bound datagram endpoint. Frames out: whole when they fit ``max_frame``, else cut by the
-    built-in ``fragments`` packetizer; every frame of a topic with ``recovery: NAME`` cut by that
-    packetizer (FEC with its repair fragments, fragments kept until acknowledged...); compact
-    pieces on links of small frames; a bare sender's frames whole, whatever their size. Whole
-    frames that leave one after the other for the same destination share a datagram (a batch,
-    see :mod:`rosgate.wire.framing`; not on bare links, whose receivers take one message per
-    datagram). Datagrams in: from admitted ``sources`` only, batches split, every other packet
-    to the packetizer of its magic (found in ``packetizers``, by default the installed plugins),
-    each frame to ``on_frame``.
+    """A bound datagram endpoint. Frames out: whole when they fit ``max_frame`` (several in one
+    datagram, a batch, when they leave one after the other for one destination), else cut by
+    the link's own packetizer (``fragments``, or ``compact`` on links of small frames such as
+    CAN); every frame of a topic with ``recovery: NAME`` by that packetizer; a bare sender's
+    (``framing: none``) whole, whatever its size, never batched. Datagrams in: from admitted
+    ``sources`` only, batches split, every other packet to the packetizer of its magic (found in
+    ``packetizers``, by default the installed plugins), each frame to ``on_frame``; on a bare
+    link, each datagram as it came.
 
     It is the :class:`~rosgate.packetizer.PacketLink` of its packetizers: one of each kind it
     meets, made on first use and kept for its life; their timers run on both of its threads."""
@@ -387,19 +318,16 @@ class DatagramLink(_Sending, Link):
         self._by_magic: dict[bytes, Packetizer | None] = {envelope.MAGIC: None}
         self._making = threading.Lock()
         self._tx_timer: float | None = None  # when the send thread runs the timers next
-        self.reassembler: Reassembler | CompactReassembler
-        if self.compact:
-            self.reassembler = CompactReassembler(on_lost, envelope.topic_of,
-                                                  max_message=max_message)
-        else:
-            self.fragments = self.packetizer("fragments")
-            self.reassembler = getattr(self.fragments, "reassembler", None) or Reassembler(
-                on_lost, max_message=max_message)
-        self._counters: dict[Address, int] = {}  # compact: the next piece's counter per destination
-        self._send_parts = getattr(endpoint, "send_parts", None)
-        #: several datagrams in one call (UDP: segmentation offload), optional like send_parts
+        #: what cuts a frame of a sender without a packetizer of its own when it does not fit
+        self.own = self._make(Compact) if self.compact else self.packetizer("fragments")
+        # what the endpoint can do beyond send, looked up once: scatter-gather (a packet's parts
+        # without joining them; else joined here), several datagrams in one call (UDP:
+        # segmentation offload)
+        self._gather = hasattr(endpoint, "send_parts")
+        self._send_parts: Callable[[Any, Address], None] = getattr(
+            endpoint, "send_parts", lambda parts, to: endpoint.send(b"".join(parts), to))
         self._send_datagrams = getattr(endpoint, "send_datagrams", None)
-        self._init_sending(budget, getattr(transport, "packet_overhead", 0), self.max_frame,
+        self._init_sending(budget, transport.packet_overhead, self.max_frame,
                            queue_frames, queue_bytes)
         self._threads = [
             threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
@@ -416,13 +344,14 @@ class DatagramLink(_Sending, Link):
             sender.drop(Drop.TOO_LARGE_FOR_BARE_FRAMING,
                         f"{size} bytes, {self.name} carries at most {self.max_frame}")
             return False
-        whole = self.bare or getattr(sender, "bare", False)
-        kind = getattr(sender, "recovery", "none")
-        one = whole or kind == "none" and not self.compact and size <= self.max_frame
+        delivery = sender.delivery
+        whole = self.bare or delivery.whole
+        plain = delivery.packetizer is None and not self.compact  # whole or fragments
+        one = whole or plain and size <= self.max_frame
         inline: Callable[[bytes, Any, Address], bool | None] | None = None
         if one:
             inline = self._send_now
-        elif kind == "none" and not self.compact and size <= INLINE_MAX:
+        elif plain and size <= INLINE_MAX:
             inline = self._send_fragments_now
         if inline is not None:
             sent = inline(frame, sender, to)
@@ -431,7 +360,7 @@ class DatagramLink(_Sending, Link):
             if sent is not None:
                 return sent
         return self._put(Outgoing(sender, to, size,
-                                  lambda: self._cut(frame, sender, to, whole, kind),
+                                  lambda: self._cut(frame, sender, to, whole),
                                   time.monotonic(), batchable=one and not whole))
 
     def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
@@ -439,8 +368,9 @@ class DatagramLink(_Sending, Link):
         fit share datagrams sent from here; otherwise each is queued (and coalesced again by
         the send thread)."""
         assert to is not None, "a datagram link needs a destination"
-        if len(frames) < 2 or self.bare or self.compact or getattr(sender, "bare", False) \
-                or getattr(sender, "recovery", "none") != "none":
+        delivery = sender.delivery
+        if len(frames) < 2 or self.bare or self.compact or delivery.whole \
+                or delivery.packetizer is not None:
             return sum(self.send(frame, sender, to) for frame in frames)
         limit, sent, start = self.max_frame, 0, 0
         while start < len(frames):  # groups of consecutive frames that fit one datagram
@@ -467,24 +397,22 @@ class DatagramLink(_Sending, Link):
                 self._release()
         return sent
 
-    def _cut(self, frame: bytes, sender: Any, to: Address, whole: bool, kind: str) -> list[bytes]:
+    def _cut(self, frame: bytes, sender: Sender, to: Address, whole: bool) -> list[bytes]:
         """A frame's packets, made when it starts (on the send thread, in the order frames
         leave: compact counters and FEC coding happen here, not on the caller's thread)."""
-        if whole or kind == NO_PLUGIN and not self.compact and len(frame) <= self.max_frame:
+        delivery = sender.delivery
+        own = self.compact or delivery.packetizer is None
+        if whole or own and not self.compact and len(frame) <= self.max_frame:
             return [frame]
-        if self.compact:
-            counter = self._counters.get(to, 0)
-            pieces = framing.compact_fragment(frame, self.max_frame, counter)
-            self._counters[to] = (counter + len(pieces)) & framing.COMPACT_COUNTER
-            return [b"".join(pieces)]  # one packet: a frame's pieces never interleave (no id)
-        packetizer = self.fragments if kind == NO_PLUGIN else self.packetizer(kind)
-        packets = packetizer.cut(frame, sender, to, getattr(sender, "recovery_options", None))
+        packetizer = self.own if own or delivery.packetizer is None \
+            else self._make(delivery.packetizer)
+        packets = packetizer.cut(frame, sender, to, delivery.packetizer_options)
         return [self._packet(packet) for packet in packets]
 
     def _packet(self, packet: Packet) -> bytes:
         if not isinstance(packet, tuple):
             return packet
-        if self._send_parts is None:
+        if not self._gather:
             return b"".join(packet)
         # a _Gather stands for its packet: the scheduler only takes its len()
         return cast(bytes, _Gather(packet))
@@ -619,7 +547,7 @@ class DatagramLink(_Sending, Link):
                 return None
         scheduler, lock, counters = self.scheduler, self._lock, self.counters
         try:
-            packets = self._cut(frame, sender, to, False, "none")
+            packets = self._cut(frame, sender, to, False)
             # a turn: the packets handed to the kernel at once, all in one call when the
             # endpoint can; else one, then a look at what else waits (and at the budget, whose
             # bucket is a few packets deep)
@@ -655,7 +583,6 @@ class DatagramLink(_Sending, Link):
             else:
                 for packet in packets:
                     if type(packet) is _Gather:
-                        assert self._send_parts is not None
                         self._send_parts(cast(_Gather, packet).parts, to)
                     else:
                         self.endpoint.send(packet, to)
@@ -668,7 +595,7 @@ class DatagramLink(_Sending, Link):
         counters.frames_out += last
         for packet in packets:
             counters.bytes_out += len(packet)
-            _on_wire(sender, len(packet), False)
+            sender.on_wire(len(packet), False)
         return True
 
     def _send_due(self, due: Due) -> bool:
@@ -676,9 +603,8 @@ class DatagramLink(_Sending, Link):
         count = 1
         try:
             if type(packet) is _Gather:
-                assert self._send_parts is not None
                 self._send_parts(cast(_Gather, packet).parts, to)
-            elif self.compact and not getattr(sender, "bare", False):
+            elif self.compact and not sender.delivery.whole:
                 step = self.max_frame
                 count = 0
                 for i in range(0, len(packet), step):
@@ -697,8 +623,8 @@ class DatagramLink(_Sending, Link):
         counters.bytes_out += len(packet)
         if due.ends is not None:
             counters.frames_out += 1
-        _on_wire(sender, len(packet), due.again)
-        if due.ends is not None and due.ends is not _INLINE and type(packet) is bytes:
+        sender.on_wire(len(packet), due.again)
+        if due.ends is not None and due.ends is not SENT_INLINE and type(packet) is bytes:
             packetizer = self._by_magic.get(packet[:2])
             if packetizer is not None and _sends(packetizer):  # the last packet of a frame
                 now = time.monotonic()
@@ -712,11 +638,7 @@ class DatagramLink(_Sending, Link):
         """Whole frames in one datagram; how many were sent (a failure is counted for each)."""
         frames = [due.packet for due in dues]
         try:
-            parts = framing.batch(frames)
-            if self._send_parts is not None:
-                self._send_parts(parts, to)
-            else:
-                self.endpoint.send(b"".join(parts), to)
+            self._send_parts(framing.batch(frames), to)
         except OSError as exc:
             for due in dues:
                 due.sender.drop(Drop.SEND_ERROR, f"to {to} on {self.name}: {exc}")
@@ -727,7 +649,7 @@ class DatagramLink(_Sending, Link):
         counters.coalesced_out += len(frames)
         counters.bytes_out += framing.batch_size(sum(map(len, frames)), len(frames))
         for due in dues:
-            _on_wire(due.sender, len(due.packet) + framing.LENGTH.size, False)
+            due.sender.on_wire(len(due.packet) + framing.LENGTH.size, False)
         return len(frames)
 
     def _send_loop(self) -> None:
@@ -851,8 +773,6 @@ class DatagramLink(_Sending, Link):
             now = time.monotonic()
             if got is None or timer is not None and now >= timer:
                 timer = self._run_timers(now)
-                if self.compact:
-                    self.reassembler.expire(now)
             if got is None:
                 continue
             fed = self._datagram(*got, now)
@@ -875,18 +795,10 @@ class DatagramLink(_Sending, Link):
             counters.frames_in += 1
             deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
             return None
-        if self.compact:
-            try:
-                frame = self.reassembler.add(source, datagram)
-            except framing.FramingError:
-                self.on_lost(None, Drop.BAD_FRAGMENT)
-                return None
-            if frame is not None:
-                counters.frames_in += 1
-                deliver(self, cast(bytes, frame), source)
-            return None
         kind = datagram[1] if len(datagram) > 1 and datagram[0] == 0x52 else 0  # "R?"
-        if kind == 0x42:  # "RB": several frames
+        if self.compact:  # every datagram is a piece
+            packetizer = self.own
+        elif kind == 0x42:  # "RB": several frames
             try:
                 for record in framing.unbatch(datagram):
                     counters.frames_in += 1
@@ -895,7 +807,7 @@ class DatagramLink(_Sending, Link):
             except framing.FramingError:
                 self.on_lost(None, Drop.BAD_BATCH)
             return None
-        if kind == 0x47:  # "RG": an envelope, the most common of all, looked up by nobody
+        elif kind == 0x47:  # "RG": an envelope, the most common of all, looked up by nobody
             packetizer = None
         else:
             magic = bytes(datagram[:2])
@@ -947,516 +859,19 @@ def _sends(packetizer: Packetizer) -> bool:
     """Whether it wants to know when its frames left (and has its timer run on the send thread
     too): it implements ``sent``."""
     return type(packetizer).sent is not Packetizer.sent
-WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
 
 
-@dataclass(frozen=True)
-class Untrusted:
-    """What a connection may do before its owner trusts it (``bridge.limits``): frames of at most
-    ``max_frame`` bytes, and ``deadline`` seconds to earn trust before it is closed."""
-
-    max_frame: int
-    deadline: float
+class Receiving(Protocol):
+    name: str
+    on_frame: FrameHandler
+    on_lost: LostHandler
 
 
-class StreamLink(_Sending, Link):
-    """One stream connection, framed with length prefixes; frames longer than
-    :data:`rosgate.wire.framing.CHUNK` go in chunks, and the writer takes at most
-    :data:`WRITE` bytes at a time from the scheduler, so a frame of a higher class (a Twist
-    behind a camera's backlog) waits for one write, not for the whole backlog. (The kernel's
-    send buffer still holds what was written: a budget below the link's rate keeps it short.)
-
-    Sending never blocks the caller: when nothing waits, a frame of one record is written from
-    the caller's thread as far as the connection takes it without waiting (``send_nowait``: no
-    thread hand-off for a message alone; the rest goes first when the writer next writes).
-
-    With ``untrusted``, the connection is held to those limits until :meth:`trust` (a frame too
-    long is a corrupt stream; the deadline passing ends the connection, counted
-    ``handshake_timeout``)."""
-
-    def __init__(self, connection: StreamConnection, name: str, peer: Address,
-                 on_frame: FrameHandler, on_lost: LostHandler,
-                 on_close: Callable[[StreamLink], None] | None = None,
-                 queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
-                 max_message: int = framing.DEFAULT_MAX_MESSAGE,
-                 untrusted: Untrusted | None = None, budget: LinkConfig | None = None):
-        self.connection = connection
-        self.name = name
-        self.peer = peer
-        self.on_frame = on_frame
-        self.on_lost = on_lost
-        self.on_close = on_close
-        self.closed = threading.Event()
-        # for liveness: the main line's roles set it on every control message (a heartbeat), not
-        # on bytes, so a stream that lost its frame boundaries does not look alive
-        self.last_heard = time.monotonic()
-        self.why = ""  # why the connection ended, once it has
-        self.queue_frames = queue_frames
-        self.queue_bytes = queue_bytes
-        self.counters = LinkCounters()
-        self._send_nowait = getattr(connection, "send_nowait", None)
-        self._messages = itertools.count(1)  # numbers of chunked frames
-        self._init_sending(budget, 0, framing.CHUNK + framing.CHUNK_HEAD.size, queue_frames,
-                           queue_bytes)
-        self._reader = framing.StreamReader(untrusted.max_frame if untrusted else max_message,
-                                            direct=hasattr(connection, "receive_into"))
-        self.max_message = max_message
-        self._trust_by = time.monotonic() + untrusted.deadline if untrusted else None
-        self._threads = [
-            threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
-            threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
-        ]
-        for thread in self._threads:
-            thread.start()
-
-    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
-        # the limits count a frame with its length prefix, as it is written
-        if len(frame) <= framing.CHUNK:
-            record = framing.length_prefixed(frame)
-            if self._send_nowait is not None:
-                sent = self._send_now(record, sender, None)
-                if sent is not None:
-                    return sent
-            return self._put(Outgoing(sender, None, len(record), _one(record), time.monotonic()))
-        return self._put(Outgoing(sender, None, len(frame) + framing.LENGTH.size,
-                                  lambda: framing.stream_records(frame, next(self._messages)),
-                                  time.monotonic()))
-
-    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
-        """Frames of one sender together (a route's backlog): one write from the caller's
-        thread when nothing waits; otherwise each is queued."""
-        if len(frames) < 2 or self._send_nowait is None \
-                or any(len(frame) > framing.CHUNK for frame in frames):
-            return sum(self.send(frame, sender) for frame in frames)
-        records = [framing.length_prefixed(frame) for frame in frames]
-        data = b"".join(records)
-        with self._lock:
-            go = self._claim(None, len(data))
-        if not go:
-            now = time.monotonic()
-            return sum(self._put(Outgoing(sender, None, len(record), _one(record), now))
-                       for record in records)
-        try:
-            self._write_now(data, sender, [len(record) for record in records])
-        finally:
-            self._release()
-        return len(records)
-
-    def _send_due(self, due: Due) -> bool:
-        """One record from the caller's thread (see :meth:`_write_now`)."""
-        return self._write_now(due.packet, due.sender, [len(due.packet)])
-
-    def _write_now(self, data: bytes, sender: Sender, sizes: list[int]) -> bool:
-        """Write records as far as the connection takes them now; what it does not take goes
-        first when the writer next writes (nothing can come between: this thread is the only
-        one writing)."""
-        assert self._send_nowait is not None
-        try:
-            written = self._send_nowait(data)
-        except OSError as exc:
-            for _ in sizes:
-                sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
-            self.fail(f"send failed: {exc}")
-            return False
-        counters = self.counters
-        whole, offset = 0, 0
-        for size in sizes:  # the records wholly written
-            offset += size
-            if offset > written:
-                break
-            whole += 1
-        if written:
-            counters.packets_out += 1
-            counters.bytes_out += written
-            counters.frames_out += whole
-            if whole > 1:
-                counters.coalesced_out += whole
-        if written < len(data):
-            rest = Due(data[written:], None, sender, _INLINE, frames=len(sizes) - whole)
-            with self._lock:
-                self._rest = rest
-        _on_wire(sender, written, False)
-        return True
-
-    def _send_loop(self) -> None:
-        """Gather what the scheduler lets go, up to :data:`WRITE` bytes, into one write."""
-        wake, closed, scheduler = self._wake, self.closed, self.scheduler
-        while True:
-            batch: list[Due] = []
-            size = 0
-            with wake:
-                while not batch:
-                    if closed.is_set():
-                        return
-                    if self._busy:  # a caller is writing: its rest, if any, comes first
-                        wake.wait()
-                        continue
-                    if self._rest is not None:
-                        batch.append(self._rest)
-                        size, self._rest = len(self._rest.packet), None
-                    due = scheduler.next()
-                    while isinstance(due, Due):
-                        batch.append(due)
-                        size += len(due.packet)
-                        if size >= WRITE:
-                            break
-                        due = scheduler.next()
-                    if not batch:
-                        wake.wait(max(0.0, due - time.monotonic())
-                                  if isinstance(due, float) else None)
-                self._busy = True
-            if scheduler.dropped:
-                self._count_drops()
-            try:
-                self.connection.send(b"".join([d.packet for d in batch]))
-            except OSError as exc:
-                for due in batch:
-                    if due.ends is not None:
-                        due.sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
-                self.fail(f"send failed: {exc}")
-                return
-            counters = self.counters
-            counters.packets_out += 1
-            counters.bytes_out += size
-            frames = 0
-            for due in batch:
-                if due.ends is not None:
-                    frames += due.frames
-                _on_wire(due.sender, len(due.packet), False)
-            counters.frames_out += frames
-            if frames > 1:
-                counters.coalesced_out += frames
-            with wake:
-                self._busy = False
-                wake.notify_all()  # for drain()
-
-    def drain(self, timeout: float) -> bool:
-        """Wait until everything sent so far is written (a last word before closing)."""
-        with self._wake:
-            return self._wake.wait_for(
-                lambda: (self.scheduler.idle and not self._busy and self._rest is None
-                         or self.closed.is_set()), timeout)
-
-    def trust(self) -> None:
-        """The connection proved itself: the full frame size, no deadline."""
-        self._reader.max_frame = self.max_message
-        self._trust_by = None
-
-    @property
-    def trusted(self) -> bool:
-        return self._trust_by is None
-
-    def _receive_loop(self) -> None:
-        receive_into = getattr(self.connection, "receive_into", None)
-        buffer = memoryview(bytearray(256 * 1024))
-        reader, closed = self._reader, self.closed
-        while not closed.is_set():
-            target = reader.target() if receive_into is not None else None
-            try:
-                if receive_into is not None and target is not None:  # a large frame, in place
-                    got: int | bytes | None = receive_into(target, POLL)
-                elif receive_into is not None:
-                    got = receive_into(buffer, POLL)
-                else:
-                    got = self.connection.receive(len(buffer), POLL)
-            except OSError as exc:
-                self.fail(f"receive failed: {exc}")
-                return
-            except Exception as exc:  # a transport plugin's bug: drop this connection, loudly
-                BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
-                                            "(a bug in the plugin)")
-                self.on_lost(None, Drop.TRANSPORT_ERROR)
-                self.fail(f"transport error: {type(exc).__name__}: {exc}")
-                return
-            trust_by = self._trust_by
-            if trust_by is not None and time.monotonic() > trust_by:
-                self.on_lost(None, Drop.HANDSHAKE_TIMEOUT)
-                self.fail("no handshake in time")
-                return
-            if got is None:
-                continue
-            if not got:
-                self.fail("closed by peer")
-                return
-            counters = self.counters
-            counters.packets_in += 1
-            if target is not None:
-                assert isinstance(got, int)
-                target.release()  # the frame is the handler's: it may cut it (routes do)
-                counters.bytes_in += got
-                whole = reader.filled(got)
-                if whole is not None:
-                    counters.frames_in += 1
-                    # its own buffer, the handler's to keep (typed bytes: see DatagramLink)
-                    deliver(self, cast(bytes, whole), self.peer)
-                continue
-            data = buffer[:got] if isinstance(got, int) else got
-            counters.bytes_in += len(data)
-            count = 0
-            try:
-                for frame in reader.feed(data):
-                    count += 1
-                    deliver(self, frame, self.peer)
-            except framing.FramingError as exc:
-                # a corrupt length means we can no longer find frame boundaries: start afresh
-                self.on_lost(None, Drop.BAD_LENGTH)
-                self.fail(f"stream corrupt ({exc})")
-                return
-            finally:
-                counters.frames_in += count
-                if count > 1:
-                    counters.coalesced_in += count
-
-    def fail(self, why: str) -> None:
-        """End the connection for a reason worth logging (lost, corrupt, silent)."""
-        if self.closed.is_set():
-            return
-        self.why = why
-        # a stranger's connection (never trusted) is counted by its reason, not logged: a
-        # flood of them must not flood the log
-        log.log(logging.INFO if self.trusted else logging.DEBUG,
-                "%s: connection to %s ended: %s", self.name, self.peer, why)
-        self.close()
-
-    def close(self) -> None:
-        with self._wake:  # once only, whichever thread gets here first
-            if self.closed.is_set():
-                return
-            self.closed.set()
-            self._wake.notify_all()
-        try:
-            self.connection.close()
-        except OSError:
-            pass
-        for thread in self._threads:
-            # the receive thread may fail before the send thread has even started; an unstarted
-            # thread sees `closed` when it starts and returns
-            if thread is not threading.current_thread() and thread.ident is not None:
-                thread.join(timeout=2)
-        with self._wake:  # what never reached the connection is a drop, and counted as one
-            unsent = self.scheduler.clear()
-            if self._rest is not None:
-                unsent.append(self._rest.sender)
-                self._rest = None
-        for sender in unsent:
-            sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
-        if self.on_close:
-            self.on_close(self)
-
-
-@dataclass(frozen=True)
-class QueueLimits:
-    """How much a :class:`LinkSlot` holds for reliable topics while it has no connection."""
-
-    frames: int
-    bytes: int
-
-
-class LinkSlot(Link):
-    """A stream link that comes and goes. A :class:`Connector` (or a server that accepted the
-    peer again) :meth:`attach`-es each new connection.
-
-    While there is no live connection, frames of :attr:`Sender.reliable` senders wait, oldest
-    dropped first when the limits are reached (counted ``queue_full``), and are handed to the
-    next connection in order, before anything sent later. Other frames are counted ``link_down``.
-    Frames already handed to a connection that then fails are not taken back (there are no
-    acknowledgements): a connection's loss can cost what was in flight.
-    """
-
-    def __init__(self, name: str, limits: QueueLimits):
-        self.name = name
-        self.limits = limits
-        self.current: StreamLink | None = None
-        self.closed = threading.Event()
-        self._waiting: deque[tuple[bytes, Sender]] = deque()
-        self._waiting_bytes = 0
-        self._lock = threading.Lock()  # keeps sends and the flush of the queue in order
-
-    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
-        overflow: list[Sender] = []
-        with self._lock:
-            link = self.current
-            if link is not None and not link.closed.is_set():
-                return link.send_all(frames, sender)
-            if self.closed.is_set() or not sender.reliable:
-                refused = True
-            else:
-                refused = False
-                for frame in frames:
-                    self._waiting.append((frame, sender))
-                    self._waiting_bytes += len(frame)
-                while self._waiting and (len(self._waiting) > self.limits.frames
-                                         or self._waiting_bytes > self.limits.bytes):
-                    old, old_sender = self._waiting.popleft()
-                    self._waiting_bytes -= len(old)
-                    overflow.append(old_sender)
-        for old_sender in overflow:
-            old_sender.drop(Drop.QUEUE_FULL, f"{self.name} is down and its queue is full")
-        if refused:
-            for _ in frames:
-                sender.drop(Drop.LINK_DOWN, f"{self.name} is down")
-            return 0
-        return len(frames)
-
-    def attach(self, link: StreamLink) -> None:
-        """Use ``link`` from now on; what waited goes first."""
-        with self._lock:
-            while self._waiting:
-                frame, sender = self._waiting.popleft()
-                link.send(frame, sender)
-            self._waiting_bytes = 0
-            self.current = link
-
-    def discard(self, reason: Reason) -> None:
-        """Drop what waits (its topic ids mean nothing to a new session), counted by ``reason``."""
-        with self._lock:
-            senders = [sender for _, sender in self._waiting]
-            self._waiting.clear()
-            self._waiting_bytes = 0
-        for sender in senders:
-            sender.drop(reason)
-
-    @property
-    def waiting(self) -> int:
-        return len(self._waiting)
-
-    def forget(self, sender: Any) -> None:
-        link = self.current
-        if link is not None:
-            link.forget(sender)
-
-    def queue_depth(self, sender: Any) -> int:
-        """Messages of ``sender`` waiting here while the link is down, or in its connection."""
-        with self._lock:
-            held = sum(1 for _, s in self._waiting if s is sender)
-            link = self.current
-        return held + (link.queue_depth(sender) if link is not None else 0)
-
-    @property
-    def counters(self) -> LinkCounters:  # type: ignore[override]  # the connection's, read-only
-        link = self.current
-        return link.counters if link is not None else LinkCounters()
-
-    def close(self) -> None:
-        self.closed.set()
-        self.discard(Drop.LINK_DOWN)
-        if self.current is not None:
-            self.current.close()
-
-
-@dataclass(frozen=True)
-class Backoff:
-    """Seconds between reconnection attempts: from ``min``, doubling up to ``max``, jittered."""
-
-    min: float
-    max: float
-
-    def delay(self, failures: int) -> float:
-        return min(self.min * 2 ** (failures - 1), self.max) * random.uniform(0.5, 1.0)
-
-
-class Connector:
-    """Keeps a stream connection up: connects, and after every loss reconnects by itself.
-
-    Attempts are spaced by capped exponential backoff with jitter, so a fleet of clients does
-    not hammer a server that comes back. After a connection that worked is lost, the next
-    attempt is immediate. ``on_connected(link)`` may refuse a connection (a failed handshake),
-    which counts as a failed attempt; ``on_lost(link)`` hears of every accepted connection that
-    ended.
-    """
-
-    def __init__(self, transport: Transport, address: Address, slot: LinkSlot,
-                 on_frame: FrameHandler, on_frame_lost: LostHandler, life: Lifetime,
-                 backoff: Backoff,
-                 on_connected: Callable[[StreamLink], bool] | None = None,
-                 on_lost: Callable[[StreamLink], None] | None = None,
-                 secure: Callable[[StreamConnection], StreamConnection] | None = None,
-                 budget: LinkConfig | None = None):
-        assert isinstance(transport, StreamTransport)
-        self.transport = transport
-        self.budget = budget
-        self.secure = secure
-        self.address = address
-        self.slot = slot
-        self.on_frame = on_frame
-        self.on_frame_lost = on_frame_lost
-        self.life = life
-        self.backoff = backoff
-        self.on_connected = on_connected
-        self.on_lost = on_lost
-        self.connected = threading.Event()
-        self._last_failure = ""
-        self._thread = threading.Thread(target=self._loop, name=f"connect-{slot.name}", daemon=True)
-        life.closing(self)
-
-    def start(self) -> Connector:
-        self._thread.start()
-        return self
-
-    def _loop(self) -> None:
-        stopping = self.life.stopping
-        failures = 0
-        while not stopping.is_set() and not self.slot.closed.is_set():
-            link = self._connect()
-            if link is None:
-                failures += 1
-                stopping.wait(self.backoff.delay(failures))
-                continue
-            failures = 0
-            self._last_failure = ""
-            self.slot.attach(link)
-            self.connected.set()
-            while not link.closed.wait(0.5):
-                if stopping.is_set() or self.slot.closed.is_set():
-                    break
-            self.connected.clear()
-            if stopping.is_set() and not self.slot.closed.is_set():
-                return  # the bridge is stopping: its role may have a last word (bye), then
-                # closing the slot closes the link
-            link.close()
-            if self.on_lost is not None and not stopping.is_set():
-                self.on_lost(link)
-
-    def _connect(self) -> StreamLink | None:
-        """One attempt: a connection its owner accepted, or None."""
-        try:
-            connection = self.transport.connect(self.address, CONNECT_TIMEOUT)
-        except (OSError, LinkError) as exc:
-            log.debug("%s: connect failed: %s", self.slot.name, exc)
-            return None
-        if self.secure is not None:
-            try:
-                connection = self.secure(connection)
-            except LinkError as exc:
-                connection.close()
-                self.failed(exc)
-                return None
-        link = self.life.closing(StreamLink(connection, self.slot.name, self.address,
-                                            self.on_frame, self.on_frame_lost,
-                                            on_close=self.life.forget, budget=self.budget))
-        if self.on_connected is not None and not self.on_connected(link):
-            link.close()
-            return None
-        return link
-
-    def failed(self, exc: LinkError) -> None:
-        """A connection that opened but was refused (its handshake failed): said once, until a
-        connection works again."""
-        if str(exc) != self._last_failure:
-            self._last_failure = str(exc)
-            log.warning("%s: %s", self.slot.name, exc)
-
-    def close(self) -> None:
-        self.slot.close()
-        if self._thread.is_alive() and threading.current_thread() is not self._thread:
-            self._thread.join(timeout=3)
-
-
-def deliver(link: DatagramLink | StreamLink, frame: bytes, source: Address) -> None:
+def deliver(link: Receiving, frame: bytes, source: Address) -> None:
     """Hand a frame to the link's handler. A handler that raises has a bug; it is counted, its
     traceback logged once per minute, and the link keeps receiving."""
     try:
-        link.on_frame(frame, link, source)
+        link.on_frame(frame, cast(Link, link), source)
     except Exception:
         BUGS.bug("handler_error", f"{link.name}: error while handling a frame from {source} "
                                   "(a bug: please report it)")

@@ -2,7 +2,9 @@
 
 A datagram link (:class:`rosgate.links.DatagramLink`) keeps its queue, its threads and its
 dispatch; what goes into a packet is a packetizer's. The built-in ``fragments`` cuts a frame
-longer than the link's ``max_frame`` into numbered fragments; loss recovery (``recovery: fec``,
+longer than the link's ``max_frame`` into numbered fragments (on links of small frames, such as
+CAN, the built-in ``compact`` cuts every frame instead: its pieces carry no magic, and such a
+link feeds it every datagram); loss recovery (``recovery: fec``,
 ``recovery: retransmit``, from the ``rosgate-recovery`` distribution) are packetizers too. A
 topic picks one by name (``recovery: NAME``); its options come from ``plugins: {NAME: {...}}``,
 and a topic may give its own on top (``recovery: {fec: {overhead: 0.25}}``).

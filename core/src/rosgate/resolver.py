@@ -1,5 +1,5 @@
 """The resolver: a bringup.yaml's entries, checked against what is installed, become a
-:class:`Plan` of prepared topics and services — every plugin found and configured, every
+:class:`Plan` of :class:`~rosgate.spec.RouteSpec` — every plugin found and configured, every
 message type imported, every address built and accepted by its transport. Nothing opens: this
 is all ``rosgate check`` needs, and every mistake is a :class:`ConfigError` naming the file, the
 line, the key and the fix.
@@ -13,7 +13,8 @@ from __future__ import annotations
 import dataclasses
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 from . import actions
@@ -36,6 +37,7 @@ from .packetizer import Packetizer
 from .plugins import Plugins, Registration
 from .ros import TypeNotFound, is_reliable, resolve_type
 from .service_framing import ServiceFraming
+from .spec import Delivery, ServiceSpec, TopicSpec
 from .transform import Transform
 from .transport import Address, DatagramTransport, StreamTransport, Transport
 from .wire.envelope import topic_id_for
@@ -48,67 +50,11 @@ NO_ADDRESS: Address = ("", 0)  # bus entries have a key instead
 
 
 @dataclass
-class PreparedTopic:
-    """A topic with every plugin and type resolved."""
-
-    config: TopicConfig
-    msg_type: type
-    codec_cls: type[Codec]
-    codec_options: Any
-    transport: Transport
-    cipher: Cipher | None  # built from the file's key; None in a session (keyed from it)
-    index: int  # position in the file (or in the client's list), for error messages
-    address: Address  # the far side; a peer's receiving topic: where to listen
-    local: Address  # peer role, datagram transmit: where to send from
-    reliable: bool  # frames wait out a stream link's loss (reliable QoS)
-    key: str | None = None  # on a bus: the key (a template with placeholders), else None
-    priority: int = PRIORITY_DEFAULT  # 1 (real time) .. 7 (background)
-    cipher_cls: type[Cipher] | None = None
-    #: an unsent message is replaced by a newer one (default: for best-effort QoS)
-    latest_only: bool = False
-    #: recovery: the packetizer class and the topic's options for it (None: the link's own)
-    recovery: tuple[type[Packetizer], Any] | None = None
-    #: compression: the transform a transmitting topic applies (None: none)
-    compression: Transform | None = None
-    #: a receiving topic's transform of each wire id, whatever its own entry says
-    transforms: Callable[[int], Transform | None] = field(default=lambda wire_id: None)
-
-    @property
-    def name(self) -> str:
-        return self.config.topic
-
-
-@dataclass
-class PreparedService:
-    """A service with every plugin and type resolved."""
-
-    config: ServiceConfig
-    srv_type: Any  # a ROS service class: Request and Response inside
-    codec_cls: type[Codec]
-    codec_options: Any
-    transport: Transport
-    cipher: Cipher | None
-    index: int
-    address: Address  # as for a topic: the far side, or where a peer listens
-    local: Address
-    # calls are not held while a link is down: the caller's timeout answers them instead
-    reliable: bool = False
-    key: str | None = None  # on a bus: the key its queries go to
-    cipher_cls: type[Cipher] | None = None
-    #: the plugin that makes its calls when ``framing`` is not ``rosgate`` (a microcontroller's)
-    service_framing: type[ServiceFraming] | None = None
-
-    @property
-    def name(self) -> str:
-        return self.config.service
-
-
-@dataclass
 class PreparedAction:
     """An action as the five entries it is made of (rosgate.actions), each prepared."""
 
     config: ActionConfig
-    parts: list[PreparedTopic | PreparedService]
+    parts: list[TopicSpec | ServiceSpec]
 
     @property
     def name(self) -> str:
@@ -120,14 +66,14 @@ class Plan:
     """What a bridge will run: its prepared entries, and its main line (client and server)."""
 
     config: BridgeConfig
-    topics: list[PreparedTopic]
-    services: list[PreparedService]
+    topics: list[TopicSpec]
+    services: list[ServiceSpec]
     main_line: StreamTransport | None = None
     main_address: Address | None = None
     actions: list[PreparedAction] = dataclasses.field(default_factory=list)
 
     @property
-    def action_parts(self) -> list[PreparedTopic | PreparedService]:
+    def action_parts(self) -> list[TopicSpec | ServiceSpec]:
         return [part for action in self.actions for part in action.parts]
 
 
@@ -179,7 +125,7 @@ class Resolver:
 
     # -- entries ---------------------------------------------------------------------------
     def topic(self, topic: TopicConfig, index: int, section: str,
-              error: ErrorMaker | None = None) -> PreparedTopic:
+              error: ErrorMaker | None = None) -> TopicSpec:
         error = error or self.config.error
         key = f"{section}[{index}]"
         transport = self.transport(topic.transport, f"{key}.transport", error)
@@ -204,20 +150,23 @@ class Resolver:
         self._real_link(topic, key, transport, error)
         recovery = self._recovery(topic, key, error)
         compression = self._compression(topic, key, error)
-        if isinstance(transport, BusTransport):
-            return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher,
-                                 index, NO_ADDRESS, NO_ADDRESS, reliable,
-                                 self._bus_key(transport, topic, key, error), priority,
-                                 cipher_cls, recovery=recovery, compression=compression,
-                                 transforms=self.transform_for)
+        spec = partial(TopicSpec, config=topic, msg_type=msg_type, codec_cls=codec_cls,
+                       codec_options=codec_options, transport=transport, cipher=cipher,
+                       cipher_cls=cipher_cls, index=index, compression=compression,
+                       transforms=self.transform_for)
+        if isinstance(transport, BusTransport):  # a bus paces and drops by itself
+            return spec(address=NO_ADDRESS, local=NO_ADDRESS,
+                        key=self._bus_key(transport, topic, key, error),
+                        delivery=Delivery(reliable=reliable, priority=priority))
         self._point_to_point(topic, key, transport, error)
         self._check_main_line_port(topic, key, transport, error)
         address, local = self._addresses(transport, topic, key, error)
-        latest_only = not reliable if topic.latest_only is None else topic.latest_only
-        return PreparedTopic(topic, msg_type, codec_cls, codec_options, transport, cipher, index,
-                             address, local, reliable, priority=priority, cipher_cls=cipher_cls,
-                             latest_only=latest_only, recovery=recovery, compression=compression,
-                             transforms=self.transform_for)
+        packetizer, options = recovery or (None, None)
+        return spec(address=address, local=local, delivery=Delivery(
+            reliable=reliable, priority=priority,
+            latest_only=not reliable if topic.latest_only is None else topic.latest_only,
+            max_delay=topic.max_delay, packetizer=packetizer, packetizer_options=options,
+            whole=topic.framing is Framing.NONE))
 
     def _recovery(self, topic: TopicConfig, key: str,
                   error: ErrorMaker) -> tuple[type[Packetizer], Any] | None:
@@ -283,7 +232,7 @@ class Resolver:
                         "when it is congested", "remove latest_only: from this entry")
 
     def service(self, service: ServiceConfig, index: int, section: str,
-                error: ErrorMaker | None = None) -> PreparedService:
+                error: ErrorMaker | None = None) -> ServiceSpec:
         error = error or self.config.error
         key = f"{section}[{index}]"
         transport = self.transport(service.transport, f"{key}.transport", error)
@@ -314,17 +263,17 @@ class Resolver:
                 raise error(f"{key}.codec", f"codec {service.codec} does not put the service's "
                             "name on the wire (it does not write MessagePack)",
                             "use codec: msgpack")
+        spec = partial(ServiceSpec, config=service, srv_type=srv_type, codec_cls=codec_cls,
+                       codec_options=codec_options, transport=transport, cipher=cipher,
+                       cipher_cls=cipher_cls, index=index)
         if isinstance(transport, BusTransport):
-            return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
-                                   index, NO_ADDRESS, NO_ADDRESS,
-                                   key=self._bus_key(transport, service, key, error),
-                                   cipher_cls=cipher_cls)
+            return spec(address=NO_ADDRESS, local=NO_ADDRESS,
+                        key=self._bus_key(transport, service, key, error))
         self._point_to_point(service, key, transport, error)
         self._check_main_line_port(service, key, transport, error)
         address, local = self._addresses(transport, service, key, error)
-        return PreparedService(service, srv_type, codec_cls, codec_options, transport, cipher,
-                               index, address, local, cipher_cls=cipher_cls,
-                               service_framing=service_framing)
+        # calls are not held while a link is down: the caller's timeout answers them instead
+        return spec(address=address, local=local, service_framing=service_framing)
 
     def action(self, action: ActionConfig, index: int, section: str,
                error: ErrorMaker | None = None) -> PreparedAction:
@@ -339,7 +288,7 @@ class Resolver:
         if self.config.role is Role.PEER and action.port is None:
             raise error(f"{key}.port", "peer role: an action needs a port (its calls use it, "
                         "its feedback and status the next one)", "add port: <1..65534>")
-        prepared: list[PreparedTopic | PreparedService] = []
+        prepared: list[TopicSpec | ServiceSpec] = []
         for part in actions.parts(action):
             if isinstance(part, TopicConfig):
                 prepared.append(self.topic(part, index, section, error))
@@ -459,9 +408,9 @@ class Resolver:
         except ValueError as exc:
             raise error(key, str(exc), fix) from None
 
-    def _check_shared_ports(self, topics: list[PreparedTopic]) -> None:
+    def _check_shared_ports(self, topics: list[TopicSpec]) -> None:
         """Topics that share a receiving port must be told apart on it."""
-        by_port: dict[tuple[str, int | None], list[PreparedTopic]] = {}
+        by_port: dict[tuple[str, int | None], list[TopicSpec]] = {}
         topics = [p for p in topics if p.key is None]  # a bus tells topics apart by key
         for p in topics:
             if p.config.direction is Direction.RECEIVE:
@@ -479,7 +428,7 @@ class Resolver:
                     "so with framing: none this topic needs a port of its own",
                     "give each such topic its own port, or use codec msgpack")
         if self.config.role is Role.PEER:
-            seen: dict[int, PreparedTopic] = {}
+            seen: dict[int, TopicSpec] = {}
             for p in topics:
                 t = p.config
                 for name in ({t.topic, t.remote} if t.direction is Direction.RECEIVE

@@ -23,7 +23,6 @@ from .drops import Drop, Reason
 from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
-from .resolver import PreparedService, PreparedTopic
 from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_found, qos_profile, type_hash
 from .routes import (
     BareFraming,
@@ -35,6 +34,7 @@ from .routes import (
     Warner,
 )
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
+from .spec import ServiceSpec, TopicSpec
 from .transport import Address, StreamTransport
 from .warn import BUGS
 from .wire import envelope
@@ -78,7 +78,15 @@ class Router:
         self._watcher.start()
 
     # -- making routes -----------------------------------------------------------------------
-    def topic(self, p: PreparedTopic, topic_id: int, label: str, link: Link,
+    def route(self, p: TopicSpec | ServiceSpec, route_id: int, label: str, link: Link,
+              destination: Destination = _no_destination, keys: Keys | None = None,
+              announce: bool = True) -> Route:
+        """The route of an entry over ``link``, a topic's or a service's, as its spec says."""
+        if isinstance(p, TopicSpec):
+            return self.topic(p, route_id, label, link, destination, keys, announce=announce)
+        return self.service(p, route_id, label, link, destination, keys, announce)
+
+    def topic(self, p: TopicSpec, topic_id: int, label: str, link: Link,
               destination: Destination = _no_destination,
               keys: Keys | None = None,
               bare_names: bool = True, announce: bool = True) -> TransmitRoute | ReceiveRoute:
@@ -96,10 +104,9 @@ class Router:
             framing = (BareFraming(t.remote if codec.messagepack and bare_names else None,
                                    Layout(t.layout))
                        if t.framing is Framing.NONE else EnvelopeFraming())
-            route = TransmitRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
+            route = TransmitRoute(t, topic_id, codec, keys, self.warner, label, p.delivery,
                                   framing=framing, link=link, destination=destination,
-                                  priority=p.priority, latest_only=p.latest_only,
-                                  recovery=p.recovery, compression=p.compression)
+                                  compression=p.compression)
             self._identify(route, p.msg_type)
             route.announces = announce and t.framing is Framing.ROSGATE and p.key is None
             if not t.qos_given:
@@ -116,7 +123,7 @@ class Router:
             trusted = keys.authenticates and t.framing is Framing.ROSGATE
             if codec.raw and not trusted:
                 decode = _checked(decode, cdr_checker(p.msg_type))
-            route = ReceiveRoute(t, topic_id, codec, keys, self.warner, label, p.reliable,
+            route = ReceiveRoute(t, topic_id, codec, keys, self.warner, label, p.delivery,
                                  decode=decode, transforms=p.transforms)
             self._identify(route, p.msg_type)
             route.qos_in_use = None if t.qos_given else QOS_UNFOUND
@@ -129,7 +136,7 @@ class Router:
                 self.receivers[topic_id] = route
         return route
 
-    def service(self, p: PreparedService, service_id: int, label: str, link: Link | None,
+    def service(self, p: ServiceSpec, service_id: int, label: str, link: Link | None,
                 destination: Destination = _no_destination,
                 keys: Keys | None = None, announce: bool = True) -> ServiceRoute:
         """A service's route and its ROS entity. With an envelope, calls and answers find it by
@@ -190,9 +197,7 @@ class Router:
         if route.entity is not None:
             self.ros.destroy(route.entity)
             route.entity = None
-        close = getattr(route, "close", None)
-        if close is not None:
-            close()
+        route.close()
 
     def _forget(self, route: Route) -> list[dict[int, Any]]:
         """Take ``route`` out of the dispatch tables (every id it has); the tables it was in."""
@@ -299,11 +304,11 @@ class Router:
         if isinstance(route, ReceiveRoute):
             self.follow_qos(route, qos)
 
-    def entry_item(self, p: PreparedTopic | PreparedService) -> dict[str, Any]:
+    def entry_item(self, p: TopicSpec | ServiceSpec) -> dict[str, Any]:
         """An entry as a hello says it before its route exists: its type, and the QoS found
         here for a topic it sends without a qos."""
         qos = None
-        if isinstance(p, PreparedTopic):
+        if isinstance(p, TopicSpec):
             interface: type = p.msg_type
             t = p.config
             if t.direction is Direction.TRANSMIT and not t.qos_given:
@@ -338,7 +343,7 @@ class Router:
     def start_announcing(self, routes: list[Route]) -> None:
         """Routes made with ``announce=False`` say their entries now, and from now on."""
         for route in routes:
-            if (isinstance(route, TransmitRoute) and not route.bare
+            if (isinstance(route, TransmitRoute) and not route.delivery.whole
                     or isinstance(route, CallerRoute)):
                 route.announces = True
                 self.announce(route)

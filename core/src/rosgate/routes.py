@@ -30,19 +30,19 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, cast
+from typing import Any, cast
 
 from . import announce
 from .announce import Identity, TypeCheck
 from .batch import Batches
 from .builtin import NoCipher
 from .codec import Codec
-from .config import NO_PLUGIN, PRIORITIES, ServiceConfig, TopicConfig
+from .config import ServiceConfig, TopicConfig
 from .drops import Drop, Reason
 from .errors import CipherError, CodecError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
-from .packetizer import Packetizer
+from .spec import CONTROL, Delivery
 from .transform import Transform, TransformError
 from .transport import Address
 from .warn import Warner
@@ -100,13 +100,6 @@ class Route:
     """A topic's (or service's) path through the bridge in one direction; the
     :class:`rosgate.links.Sender` of its frames."""
 
-    #: what the link's scheduler and fragmentation read (a transmitting topic sets its own)
-    priority: int = PRIORITIES["data"]
-    latest_only = False
-    max_delay: float | None = None  # None: the link's, for best effort
-    recovery = NO_PLUGIN  # the packetizer of its frames on datagram links (none: the link's own)
-    recovery_options: Any = None  # the topic's options for it
-    bare = False
     #: the sending side of an entry with an envelope: says its type (and QoS) on its link
     announces = False
     #: the entry's ROS class (a message or a service), set with its ROS entity
@@ -115,14 +108,14 @@ class Route:
     destination: Callable[[], Address | None]
 
     def __init__(self, entry: TopicConfig | ServiceConfig, topic_id: int, codec: Any,
-                 keys: Keys, warner: Warner, label: str, reliable: bool = False):
+                 keys: Keys, warner: Warner, label: str, delivery: Delivery = Delivery()):
         self.entry = entry
         self.topic_id = topic_id
         self.codec = codec
         self.keys = keys
         self.warner = warner
         self.label = label  # how logs name this route: "/chatter (to robot1)"
-        self.reliable = reliable  # frames wait out a stream link's loss (reliable QoS)
+        self.delivery = delivery  # what the link reads of each of its frames
         self.counters = Counters()
         self.entity: Any = None  # the ROS subscription, publisher, service or client
         #: the none cipher: a frame's body is its payload (decided once, not per frame)
@@ -172,6 +165,9 @@ class Route:
         if again:
             self.counters.retransmitted += 1
 
+    def close(self) -> None:
+        """The route is removed (its ROS entity is gone already)."""
+
     def drop(self, reason: Reason, detail: str = "") -> None:
         self.counters.drops[reason] += 1
         if reason not in QUIET_REASONS:
@@ -215,8 +211,7 @@ class Announcer:
     link loss (the next one comes soon)."""
 
     __slots__ = ("route",)
-    reliable = False
-    priority = 0
+    delivery = CONTROL
 
     def __init__(self, route: Route):
         self.route = route
@@ -228,12 +223,13 @@ class Announcer:
     def drop(self, reason: Reason, detail: str = "") -> None:
         self.route.counters.announce_drops += 1
 
+    def on_wire(self, size: int, again: bool) -> None:
+        pass  # not the topic's data: bytes_on_wire counts its messages only
+
 
 class TopicFraming:
-    """How a topic's payloads become frames, chosen once per route."""
-
-    #: True: datagrams carry the payload alone (no envelope, no fragments, no cipher)
-    bare: ClassVar[bool]
+    """How a topic's payloads become frames, chosen once per route (the spec's
+    ``Delivery.whole`` says the link must not cut them: ``framing: none``)."""
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
         """``flags``: the envelope's (FLAG_COMPRESSED); a bare frame has none."""
@@ -244,8 +240,6 @@ class EnvelopeFraming(TopicFraming):
     """``framing: rosgate``: the 28-byte envelope (topic id, the sender's epoch and sequence
     number, the send time), then the payload sealed by the topic's cipher, which authenticates
     the header too. Receivers are found by topic id (the router) and keep a replay window."""
-
-    bare = False
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
         # no lock: a route's messages come from the one executor thread (RosNode)
@@ -261,8 +255,6 @@ class BareFraming(TopicFraming):
     """``framing: none``: one datagram per message, the codec's bytes alone — laid out with the
     topic's ``remote`` name (:mod:`rosgate.wire.names`) when the codec writes MessagePack (the
     microcontroller format), so several topics can share a port."""
-
-    bare = True
 
     def __init__(self, name: str | None, layout: Layout = LAYOUT_DEFAULT):
         self.prefix = pack_name(name, layout) if name is not None else b""
@@ -290,22 +282,14 @@ class TransmitRoute(Route):
     """ROS subscription -> link."""
 
     def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
-                 warner: Warner, label: str, reliable: bool, *, framing: TopicFraming,
+                 warner: Warner, label: str, delivery: Delivery, *, framing: TopicFraming,
                  link: Link, destination: Callable[[], Address | None],
-                 priority: int = PRIORITIES["data"], latest_only: bool = False,
-                 recovery: tuple[type[Packetizer], Any] | None = None,
                  compression: Transform | None = None):
-        super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
+        super().__init__(topic, topic_id, codec, keys, warner, label, delivery)
         self.topic = topic
         self.max_wait_ns = max_wait_ns(topic)
         self.framing = framing
         self.link = link
-        self.priority = priority
-        self.latest_only = latest_only
-        self.max_delay = topic.max_delay
-        if recovery is not None:
-            self.recovery, self.recovery_options = recovery[0].name, recovery[1]
-        self.bare = framing.bare
         self.destination = destination  # where to send, looked up per message (a server learns it)
         self.epoch: int | None = None  # of the key in use, set by the first frame
         self.seqs = itertools.count(1)  # its sequence numbers
@@ -431,25 +415,22 @@ class TransmitRoute(Route):
     @property
     def queue_depth(self) -> int:
         """Its messages waiting in the link, or being sent, now."""
-        depth = getattr(self.link, "queue_depth", None)
-        return depth(self) if depth is not None else 0
+        return self.link.queue_depth(self)
 
     def close(self) -> None:
         """The route is removed: what it queued goes (a message half sent is not finished)."""
         self.pending.clear()  # an open window closes with nothing to send
-        forget = getattr(self.link, "forget", None)
-        if forget is not None:
-            forget(self)
+        self.link.forget(self)
 
 
 class ReceiveRoute(Route):
     """Link -> ROS publisher."""
 
     def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
-                 warner: Warner, label: str, reliable: bool, *,
+                 warner: Warner, label: str, delivery: Delivery, *,
                  decode: Callable[[bytes], Any],
                  transforms: Callable[[int], Transform | None] = lambda wire_id: None):
-        super().__init__(topic, topic_id, codec, keys, warner, label, reliable)
+        super().__init__(topic, topic_id, codec, keys, warner, label, delivery)
         self.topic = topic
         self.max_wait_ns = max_wait_ns(topic)
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates

@@ -46,7 +46,6 @@ from .drops import Drop, Reason
 
 CLASSES = 8  # 0: control; 1 (real_time) .. 7 (background)
 CONTROL = 0
-DATA = 5     # a sender that names no priority
 KEYS_KEPT = 4096  # senders whose queue key is remembered, at most
 
 
@@ -182,7 +181,7 @@ class Scheduler:
     def put(self, message: Outgoing) -> bool:
         """Queue a frame; False when the link's limits refuse it (counted ``queue_full``)."""
         topic = self._topic(message.sender)
-        if getattr(message.sender, "latest_only", False):
+        if message.sender.delivery.latest_only:
             while topic.waiting:
                 old = topic.waiting.popleft()
                 self._frames -= 1
@@ -255,8 +254,9 @@ class Scheduler:
         message = topic.waiting.popleft()
         self._frames -= 1
         self._bytes -= message.size
-        limit = getattr(message.sender, "max_delay", None)
-        if limit is None and not getattr(message.sender, "reliable", True):
+        delivery = message.sender.delivery
+        limit = delivery.max_delay
+        if limit is None and not delivery.reliable:
             limit = self.max_delay
         if limit is not None and now - message.queued > limit:
             self.dropped.append((message.sender, Drop.TOO_LATE,
@@ -367,4 +367,4 @@ class Scheduler:
 
 def _key(sender: Any) -> tuple[int, int]:
     """A sender's queue: its topic id and its class."""
-    return sender.topic_id, min(max(int(getattr(sender, "priority", DATA)), 0), CLASSES - 1)
+    return sender.topic_id, min(max(sender.delivery.priority, 0), CLASSES - 1)

@@ -168,7 +168,7 @@ class UnknownKey(HandshakeError):
 
 class SecureConnection:
     """A :class:`~rosgate.transport.StreamConnection` whose bytes travel in Noise transport
-    messages. One thread sends and one receives (a :class:`~rosgate.links.StreamLink`'s)."""
+    messages. One thread sends and one receives (a :class:`~rosgate.streamlink.StreamLink`'s)."""
 
     def __init__(self, raw: StreamConnection, noise, peer_key: bytes, pending: bytes = b""):
         self.raw = raw

@@ -43,6 +43,7 @@ from .errors import CodecError
 from .keyring import NoKey
 from .links import Link
 from .routes import Route
+from .spec import Delivery
 from .transport import Address
 from .warn import BUGS
 from .wire import envelope
@@ -185,7 +186,7 @@ class ServiceRoute(Route):
     def __init__(self, service: ServiceConfig, service_id: int, codec: ServiceCodec, keys: Any,
                  warner: Any, label: str, srv_type: Any, deadlines: Deadlines):
         # calls are not held while a link is down: the caller's timeout answers them instead
-        super().__init__(service, service_id, codec, keys, warner, label, reliable=False)
+        super().__init__(service, service_id, codec, keys, warner, label)
         self.service = service
         self.srv_type = srv_type
         self.deadlines = deadlines
@@ -298,7 +299,6 @@ class _CallSender:
     """A call's request as the link's sender: a drop on the way out fails the call at once."""
 
     __slots__ = ("route", "call")
-    reliable = False
 
     def __init__(self, route: CallerRoute, call: Call):
         self.route = route
@@ -307,6 +307,13 @@ class _CallSender:
     @property
     def topic_id(self) -> int:
         return self.route.topic_id
+
+    @property
+    def delivery(self) -> Delivery:
+        return self.route.delivery
+
+    def on_wire(self, size: int, again: bool) -> None:
+        pass  # a call is counted as one, whatever it took on the link
 
     def drop(self, reason: Reason, detail: str = "") -> None:
         self.route.fail(self.call, reason, detail or f"{self.route.link.name}: {reason}")

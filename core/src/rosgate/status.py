@@ -28,7 +28,8 @@ import time
 from typing import Any
 
 from .config import BridgeConfig, TopicConfig
-from .links import Lifetime, Link, LinkSlot
+from .connector import Lifetime, LinkSlot
+from .links import Link
 from .roles import Role
 from .roles.client import ClientRole
 from .roles.peer import PeerRole

@@ -21,22 +21,15 @@ from dataclasses import dataclass
 
 from ..admission import Acceptor, ConnectionLimits, Sources
 from ..config import BridgeConfig, LinkConfig
+from ..connector import Backoff, Lifetime, LinkSlot, QueueLimits
 from ..drops import Reason
 from ..errors import ConfigError, LinkError
-from ..links import (
-    Backoff,
-    DatagramLink,
-    Lifetime,
-    Link,
-    LinkCounters,
-    LinkSlot,
-    QueueLimits,
-    StreamLink,
-    Untrusted,
-)
+from ..links import DatagramLink, Link, LinkCounters
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort
+from ..spec import CONTROL
+from ..streamlink import StreamLink, Untrusted
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from ..wire import envelope
 
@@ -233,14 +226,16 @@ class Control:
     pings, the handshake. A control frame that is dropped belongs to no topic."""
 
     topic_id = envelope.CONTROL_TOPIC
-    reliable = False
-    priority = 0  # the scheduler's class above every topic's: hellos and pings keep flowing
+    delivery = CONTROL  # the scheduler's class above every topic's: hellos and pings keep flowing
 
     def __init__(self, router: Router):
         self.router = router
 
     def drop(self, reason: Reason, detail: str = "") -> None:
         self.router.link_drop(None, reason, detail or "a control frame on a link")
+
+    def on_wire(self, size: int, again: bool) -> None:
+        pass
 
 
 REFUSAL_EVERY = 60.0  # seconds between two log lines about one refusal

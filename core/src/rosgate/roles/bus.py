@@ -25,9 +25,9 @@ from ..config import BridgeConfig, Direction, Framing
 from ..drops import Drop
 from ..errors import LinkError
 from ..links import Link
-from ..resolver import PreparedService, PreparedTopic
 from ..routes import ReceiveRoute, Route, TransmitRoute
 from ..services import ServerRoute
+from ..spec import ServiceSpec, TopicSpec
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
 from . import Bridge, NoLink
@@ -51,7 +51,7 @@ class BusWiring:
         """This bridge's name."""
         return self.cfg.name
 
-    def link(self, p: PreparedTopic | PreparedService) -> BusLink:
+    def link(self, p: TopicSpec | ServiceSpec) -> BusLink:
         transport = p.transport
         assert isinstance(transport, BusTransport)
         found = self.links.get(transport.name)
@@ -60,7 +60,7 @@ class BusWiring:
         try:
             session = transport.open(self.cfg.name)
         except LinkError as exc:
-            kind = "topics" if isinstance(p, PreparedTopic) else "services"
+            kind = "topics" if isinstance(p, TopicSpec) else "services"
             raise self.bridge.link_error(exc, f"{kind}[{p.index}].transport") from None
         link = self.bridge.life.closing(BusLink(transport, session, transport.name,
                                                 self.router.link_drop))
@@ -68,7 +68,7 @@ class BusWiring:
         self.links[transport.name] = link
         return link
 
-    def _templated(self, link: BusLink, p: PreparedTopic | PreparedService) -> None:
+    def _templated(self, link: BusLink, p: TopicSpec | ServiceSpec) -> None:
         add = self._templates.get(link.name)
         if add is None:
             templates = link.transport.templates
@@ -76,7 +76,7 @@ class BusWiring:
             add = self._templates[link.name] = templates.start(self, link)
         add(p)
 
-    def _dialect(self, link: BusLink, p: PreparedTopic | PreparedService) -> bool:
+    def _dialect(self, link: BusLink, p: TopicSpec | ServiceSpec) -> bool:
         """An entry in another system's convention is the bus's own to wire."""
         dialect = link.transport.dialect
         if dialect is None or dialect.name(p.config) is None:
@@ -85,7 +85,7 @@ class BusWiring:
         return True
 
     # -- topics ----------------------------------------------------------------------------------
-    def topic(self, p: PreparedTopic) -> None:
+    def topic(self, p: TopicSpec) -> None:
         link = self.link(p)
         if is_template(p.config.topic):
             self._templated(link, p)
@@ -100,7 +100,7 @@ class BusWiring:
                            lambda key, reason: route.drop(reason))
 
     # -- services --------------------------------------------------------------------------------
-    def service(self, p: PreparedService) -> None:
+    def service(self, p: ServiceSpec) -> None:
         link, s = self.link(p), p.config
         assert p.key is not None
         if is_template(s.service):
@@ -131,20 +131,20 @@ class BusWiring:
         route.on_request(header, frame, answerer, source)
 
     # -- routes, one per key ---------------------------------------------------------------------
-    def transmitter(self, link: BusLink, p: PreparedTopic) -> Route:
+    def transmitter(self, link: BusLink, p: TopicSpec) -> Route:
         """A topic published on its key."""
         assert p.key is not None
-        outlet = link.outlet(p.key, p.reliable, p.priority)
+        outlet = link.outlet(p.key, p.delivery.reliable, p.delivery.priority)
         return self.router.topic(p, topic_id_for(p.key), p.name, outlet, bare_names=False)
 
-    def caller(self, link: BusLink, p: PreparedService) -> Route:
+    def caller(self, link: BusLink, p: ServiceSpec) -> Route:
         """A service called here and served on the bus: each call one query on its key."""
         assert p.key is not None
         outlet = link.caller(p.key, p.config.timeout)
         outlet.on_answer = self.router.on_frame
         return self.router.service(p, topic_id_for(p.key), p.name, outlet)
 
-    def receiver(self, p: PreparedTopic) -> ReceiveRoute:
+    def receiver(self, p: TopicSpec) -> ReceiveRoute:
         """A topic received from its key: frames reach it through :meth:`dispatch`."""
         assert p.key is not None
         route = self.router.topic(p, topic_id_for(p.key), p.name, NoLink())

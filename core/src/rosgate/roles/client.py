@@ -27,15 +27,17 @@ import time
 from typing import Any
 
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
+from ..connector import Connector, LinkSlot
 from ..drops import Drop
 from ..errors import LinkError, RosgateError
 from ..keyring import Keys
-from ..links import Connector, DatagramLink, Link, LinkSlot, StreamLink
-from ..resolver import PreparedService, PreparedTopic
+from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, initiate, seal_hello
 from ..services import CallerRoute
+from ..spec import ServiceSpec, TopicSpec
+from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from . import Bridge, Role
 from .mainline import (
@@ -215,7 +217,7 @@ class ClientRole(Role):
         log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
                     link.why or "main line closed")
 
-    def _entries(self) -> list[PreparedTopic | PreparedService]:
+    def _entries(self) -> list[TopicSpec | ServiceSpec]:
         plan = self.bridge.plan
         return [*plan.topics, *plan.services, *plan.action_parts]
 
@@ -238,7 +240,7 @@ class ClientRole(Role):
                 self.router.renumber(route, topic_id)
         self.topic_ids = ids
 
-    def _route(self, p: PreparedTopic | PreparedService, topic_id: int) -> Route:
+    def _route(self, p: TopicSpec | ServiceSpec, topic_id: int) -> Route:
         t = p.config
         way = "to" if t.direction is Direction.TRANSMIT else "from"
         label = f"{p.name} ({way} {self.server_name})"
@@ -253,18 +255,15 @@ class ClientRole(Role):
         keys = self._keys(p)
         # announcements start once the server has our datagram hello (its ports take frames
         # only from where a hello came from)
-        if isinstance(p, PreparedTopic):
-            return self.router.topic(p, topic_id, label, link, destination, keys, announce=False)
-        return self.router.service(p, topic_id, label, link, destination, keys, announce=False)
+        return self.router.route(p, topic_id, label, link, destination, keys, announce=False)
 
-    def _keys(self, p: PreparedTopic | PreparedService) -> Keys | None:
+    def _keys(self, p: TopicSpec | ServiceSpec) -> Keys | None:
         if self.schedule is None:
             return None  # insecure: the file's cipher
         assert p.cipher_cls is not None
-        kind = "topic" if isinstance(p, PreparedTopic) else "service"
         name = p.config.remote  # the server's name for it: both sides derive the same keys
-        return SessionKeys(self.schedule, p.cipher_cls, key_label(kind, "c2s", name),
-                           key_label(kind, "s2c", name))
+        return SessionKeys(self.schedule, p.cipher_cls, key_label(p.kind, "c2s", name),
+                           key_label(p.kind, "s2c", name))
 
     def _unbuild(self) -> None:
         super().stop()
@@ -280,7 +279,7 @@ class ClientRole(Role):
             link.close()
             self.life.forget(link)
 
-    def _dedicated_stream(self, p: PreparedTopic | PreparedService) -> LinkSlot:
+    def _dedicated_stream(self, p: TopicSpec | ServiceSpec) -> LinkSlot:
         address = p.address
         port = address[1]
         if port in self._dedicated:

@@ -49,11 +49,11 @@ from typing import Any
 from ..admission import Acceptor, Sources
 from ..announce import ANNOUNCE_EVERY
 from ..config import Direction, Framing
+from ..connector import Connector
 from ..drops import Drop
 from ..errors import LinkError
 from ..keyring import Keys
-from ..links import Connector, Link, StreamLink
-from ..resolver import PreparedService, PreparedTopic
+from ..links import Link
 from ..router import fixed
 from ..routes import ReceiveRoute, Route
 from ..secure import (
@@ -67,6 +67,8 @@ from ..secure import (
 )
 from ..service_framing import CallPort
 from ..services import CallerRoute, ServerRoute
+from ..spec import ServiceSpec, TopicSpec
+from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
 from . import NoLink, Refusals, Role
@@ -94,13 +96,13 @@ class PeerRole(Role):
         self.callers: list[CallerRoute] = []
         self.lost = False  # a peer without a handshake line: silent too long
 
-    def _keys(self, p: PreparedTopic | PreparedService) -> Keys | None:
+    def _keys(self, p: TopicSpec | ServiceSpec) -> Keys | None:
         """A session's keys for an entry with an envelope (None: the file's cipher)."""
         if self.handshake is None or p.config.framing is not Framing.ROSGATE:
             return None
         return self.handshake.keys(p)
 
-    def _sources(self, p: PreparedTopic | PreparedService) -> Sources | None:
+    def _sources(self, p: TopicSpec | ServiceSpec) -> Sources | None:
         return self.sources(p.transport, self.cfg.peer)
 
     def start(self) -> None:
@@ -167,15 +169,15 @@ class PeerRole(Role):
                 self._service(s)
         for part in self.bridge.plan.action_parts:  # an action: three services, two topics
             if part.key is not None:
-                bus.topic(part) if isinstance(part, PreparedTopic) else bus.service(part)
-            elif isinstance(part, PreparedService):
+                bus.topic(part) if isinstance(part, TopicSpec) else bus.service(part)
+            elif isinstance(part, ServiceSpec):
                 self._service(part)
             elif isinstance(part.transport, StreamTransport):
                 self._stream_topic(part)
             else:
                 self._datagram_topic(part)
 
-    def _datagram_topic(self, p: PreparedTopic) -> None:
+    def _datagram_topic(self, p: TopicSpec) -> None:
         t, key = p.config, f"topics[{p.index}].port"
         sources = self._sources(p)
         if t.direction is Direction.TRANSMIT:
@@ -194,7 +196,7 @@ class PeerRole(Role):
         link = self.datagram_link(p.transport, p.address, key, sources=sources)
         self._receiver(p, link)
 
-    def _stream_topic(self, p: PreparedTopic) -> None:
+    def _stream_topic(self, p: TopicSpec) -> None:
         t, key = p.config, f"topics[{p.index}].port"
         if t.direction is Direction.RECEIVE:
             self._receiver(p, NoLink())
@@ -206,7 +208,7 @@ class PeerRole(Role):
         Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
                   self.life, self.bridge.backoff, budget=self.bridge.budget(p.transport)).start()
 
-    def _receiver(self, p: PreparedTopic, link: Link) -> None:
+    def _receiver(self, p: TopicSpec, link: Link) -> None:
         """A receiving topic is found by its remote name's id, and by its own name's."""
         t = p.config
         route = self.router.topic(p, topic_id_for(t.remote), t.topic, link, keys=self._keys(p))
@@ -216,7 +218,7 @@ class PeerRole(Role):
         if t.topic != t.remote:
             self.router.alias(route, topic_id_for(t.topic))
 
-    def _service(self, p: PreparedService) -> None:
+    def _service(self, p: ServiceSpec) -> None:
         """A service with an envelope: found by the id of its remote name."""
         s, key = p.config, f"services[{p.index}].port"
         service_id = topic_id_for(s.remote)
@@ -243,7 +245,7 @@ class PeerRole(Role):
         elif isinstance(route, CallerRoute):
             self.callers.append(route)
 
-    def _microcontroller_service(self, p: PreparedService,
+    def _microcontroller_service(self, p: ServiceSpec,
                                  servers: dict[Address, CallPort]) -> None:
         """``framing: serial_datagram`` (or another plugin's call pattern): one connection per
         call. A serving port is shared by every service on it, told apart by name."""
@@ -293,9 +295,9 @@ class PeerHandshake:
         self._answer: dict[str, Any] | None = None
         self._answered = threading.Event()
 
-    def keys(self, p: PreparedTopic | PreparedService) -> Keys:
+    def keys(self, p: TopicSpec | ServiceSpec) -> Keys:
         assert p.cipher_cls is not None
-        kind = "topic" if isinstance(p, PreparedTopic) else "service"
+        kind = "topic" if isinstance(p, TopicSpec) else "service"
         name = p.config.remote
         return SessionKeys(self.schedule, p.cipher_cls, key_label(kind, self.mine, name),
                            key_label(kind, self.theirs, name))

@@ -41,12 +41,12 @@ from ..config import (
     service_from_mapping,
     topic_from_mapping,
 )
+from ..connector import LinkSlot
 from ..drops import Drop
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys
-from ..links import DatagramLink, Link, LinkSlot, StreamLink
+from ..links import DatagramLink, Link
 from ..policy import refusal
-from ..resolver import PreparedService, PreparedTopic
 from ..routes import Route
 from ..secure import (
     Busy,
@@ -59,6 +59,8 @@ from ..secure import (
     respond,
 )
 from ..services import CallerRoute
+from ..spec import ServiceSpec, TopicSpec
+from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..warn import BUGS
 from ..wire import envelope
@@ -432,13 +434,13 @@ class ServerRole(Role):
                 continue
             resolver, server_view = self.bridge.resolver, flipped(entry)
             if isinstance(entry, TopicConfig):
-                p: PreparedTopic | PreparedService = resolver.topic(
+                p: TopicSpec | ServiceSpec = resolver.topic(
                     server_view, index, "topics", where_error(where))
             else:
                 p = resolver.service(server_view, index - topics, "services", where_error(where))
             session.by_index[index] = self._route(session, p)
 
-    def _topic_id(self, session: Session, p: PreparedTopic | PreparedService) -> int:
+    def _topic_id(self, session: Session, p: TopicSpec | ServiceSpec) -> int:
         """Derived from the client's name and the topic or service, so a returning client gets
         the ids it had even from a restarted server; the next free one on a collision."""
         t = p.config
@@ -448,7 +450,7 @@ class ServerRole(Role):
             topic_id = (topic_id + 1) & 0xFFFFFFFF
         return topic_id
 
-    def _route(self, session: Session, p: PreparedTopic | PreparedService) -> Route:
+    def _route(self, session: Session, p: TopicSpec | ServiceSpec) -> Route:
         t = p.config
         topic_id = self._topic_id(session, p)
         way = "to" if t.direction is Direction.TRANSMIT else "from"
@@ -472,19 +474,16 @@ class ServerRole(Role):
             def destination() -> Address | None:  # where the client said hello from, last
                 return session.addresses.get(datagrams)
         keys = self._keys(session, p)
-        if isinstance(p, PreparedTopic):
-            return self.router.topic(p, topic_id, label, link, destination, keys)
-        return self.router.service(p, topic_id, label, link, destination, keys)
+        return self.router.route(p, topic_id, label, link, destination, keys)
 
-    def _keys(self, session: Session, p: PreparedTopic | PreparedService) -> Keys | None:
+    def _keys(self, session: Session, p: TopicSpec | ServiceSpec) -> Keys | None:
         if not self.cfg.secure:
             return None
         if session.schedule is None:
             session.schedule = KeySchedule(self.cfg.rekey)
         assert p.cipher_cls is not None
-        kind = "topic" if isinstance(p, PreparedTopic) else "service"
-        return SessionKeys(session.schedule, p.cipher_cls, key_label(kind, "s2c", p.name),
-                           key_label(kind, "c2s", p.name))
+        return SessionKeys(session.schedule, p.cipher_cls, key_label(p.kind, "s2c", p.name),
+                           key_label(p.kind, "c2s", p.name))
 
     @staticmethod
     def _no_address() -> Address | None:

@@ -16,6 +16,7 @@ import pytest
 
 from rosgate.drops import Reason
 from rosgate.plugins import Plugins
+from rosgate.spec import Delivery
 from rosgate.transport import Address, StreamConnection
 
 TIMEOUT = 5.0  # seconds any single wait in the suites may take before the check fails
@@ -169,8 +170,15 @@ class Sender:
     reliable: bool
     frames: Frames
 
+    @property
+    def delivery(self) -> Delivery:
+        return Delivery(reliable=self.reliable)
+
     def drop(self, reason: Reason, detail: str = "") -> None:
         self.frames.on_lost(self.topic_id, reason)
+
+    def on_wire(self, size: int, again: bool) -> None:
+        pass
 
 # -- used by the suites ------------------------------------------------------------------------
 

@@ -10,8 +10,9 @@ from typing import Any, ClassVar
 
 import pytest
 
-from rosgate.links import DatagramLink, StreamLink
+from rosgate.links import DatagramLink
 from rosgate.options import parse
+from rosgate.streamlink import StreamLink
 from rosgate.transport import (
     Address,
     DatagramTransport,

@@ -35,9 +35,9 @@ from rosgate.buslink import BusAnswerer, BusLink, BusOutlet
 from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
 from rosgate.drops import Drop
 from rosgate.links import Link, Sender
-from rosgate.resolver import PreparedService, PreparedTopic
 from rosgate.ros import qos_profile
 from rosgate.services import CallerRoute, ServerRoute
+from rosgate.spec import ServiceSpec, TopicSpec
 from rosgate.transport import Address
 from rosgate.wire import envelope
 from rosgate.wire.envelope import topic_id_for
@@ -76,18 +76,19 @@ class Ros2dds:
     def check(self, entry: TopicConfig | ServiceConfig, key: str) -> None:
         """Every entry it names it can carry: bare framing already excludes a cipher."""
 
-    def wire(self, wiring: BusWiring, link: BusLink, p: PreparedTopic | PreparedService) -> None:
+    def wire(self, wiring: BusWiring, link: BusLink, p: TopicSpec | ServiceSpec) -> None:
         self.graph(link)
         session: ZenohSession = link.session  # type: ignore[assignment]
         zid = session.zid()
         assert p.key is not None
-        if isinstance(p, PreparedService):
+        if isinstance(p, ServiceSpec):
             self._service(wiring, link, p, zid)
             return
         qos = Qos.of(qos_profile(p.config.qos))
         history = (KEEP_ALL_HISTORY if qos.keep_all else qos.depth) if qos.transient_local else 0
         if p.config.direction is Direction.TRANSMIT:
-            publisher = session.publisher(p.key, reliable=p.reliable, priority=p.priority,
+            publisher = session.publisher(p.key, reliable=p.delivery.reliable,
+                                          priority=p.delivery.priority,
                                           history=history)
             wiring.router.topic(p, topic_id_for(p.key), p.name,
                                 BusOutlet(link, p.key, publisher), bare_names=False)
@@ -99,7 +100,7 @@ class Ros2dds:
             lambda key, reason: route.drop(reason)), history=history))
         link.token(ros2dds.token(zid, Kind.SUBSCRIBER, p.key, p.config.type, qos))
 
-    def _service(self, wiring: BusWiring, link: BusLink, p: PreparedService, zid: str) -> None:
+    def _service(self, wiring: BusWiring, link: BusLink, p: ServiceSpec, zid: str) -> None:
         assert p.key is not None
         if p.config.direction is Direction.RECEIVE:
             route = wiring.router.service(p, topic_id_for(p.key), p.name, None)

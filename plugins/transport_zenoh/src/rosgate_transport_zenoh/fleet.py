@@ -28,9 +28,9 @@ from rosgate import ConfigError
 from rosgate.buslink import BusLink
 from rosgate.config import Direction, ServiceConfig, TopicConfig
 from rosgate.drops import Drop
-from rosgate.resolver import PreparedService, PreparedTopic
 from rosgate.roles.bus import BusWiring
 from rosgate.routes import ReceiveRoute, Route
+from rosgate.spec import ServiceSpec, TopicSpec
 
 from . import placeholders
 from .dialect import NAME, Ros2dds
@@ -46,7 +46,7 @@ log = logging.getLogger("rosgate")
 SWEEP_EVERY = 0.5  # seconds between looks at departed robots
 _KEY_EXAMPLE = "remote: fleet/{robot}/scan"
 
-Prepared = PreparedTopic | PreparedService
+Prepared = TopicSpec | ServiceSpec
 
 
 class Fleets:
@@ -130,7 +130,7 @@ class Fleet:
         self.timeout = wiring.cfg.fleet_timeout
         self.alive = Template(link.transport.alive_key("{robot}"))
         self.transmit: list[tuple[Prepared, Template, Template]] = []
-        self.receive: list[tuple[PreparedTopic, Template, Template]] = []
+        self.receive: list[tuple[TopicSpec, Template, Template]] = []
         self.announced: list[Announced] = []  # zenoh-bridge-ros2dds routes seen
         self.members: dict[str, Member] = {}
         self._stop = wiring.stopping
@@ -149,12 +149,12 @@ class Fleet:
         (which the base calls) gets a route per robot, now and as robots come."""
         assert p.key is not None
         names, keys = Template(p.name), Template(p.key)
-        if p.config.direction is Direction.TRANSMIT or isinstance(p, PreparedService):
+        if p.config.direction is Direction.TRANSMIT or isinstance(p, ServiceSpec):
             self.transmit.append((p, names, keys))
             for member in list(self.members.values()):
                 self.link.call_later(self._transmit_for, member, p, names, keys)
             return
-        assert isinstance(p, PreparedTopic)
+        assert isinstance(p, TopicSpec)
         self.receive.append((p, names, keys))
         for announced in self.announced:
             self.link.call_later(self._announced, announced, True)
@@ -197,12 +197,12 @@ class Fleet:
     def _robots(self, route: Announced) -> set[str]:
         return {values["robot"] for values in self._fits(route)}
 
-    def _receiver_for(self, member: Member, p: PreparedTopic, names: Template, keys: Template,
+    def _receiver_for(self, member: Member, p: TopicSpec, names: Template, keys: Template,
                       values: dict[str, str]) -> ReceiveRoute:
         route = member.routes.get(("topics", p.index))
         if route is None:
             filled = _filled(p, names, keys, values)
-            assert isinstance(filled, PreparedTopic)
+            assert isinstance(filled, TopicSpec)
             route = self.wiring.receiver(filled)
             member.routes[("topics", p.index)] = route
             log.info("fleet: publishing %s for robot %s (frames on %s)", filled.config.topic,
@@ -210,7 +210,7 @@ class Fleet:
         assert isinstance(route, ReceiveRoute)
         return route
 
-    def _frame(self, p: PreparedTopic, names: Template, keys: Template, key: str,
+    def _frame(self, p: TopicSpec, names: Template, keys: Template, key: str,
                frame: bytes) -> None:
         values = keys.match(key)
         if values is None:
@@ -253,11 +253,11 @@ class Fleet:
     def _transmit_for(self, member: Member, p: Prepared, names: Template,
                       keys: Template) -> None:
         """A transmitting topic's route, or a service's caller, for one robot."""
-        slot = ("topics" if isinstance(p, PreparedTopic) else "services", p.index)
+        slot = ("topics" if isinstance(p, TopicSpec) else "services", p.index)
         if slot in member.routes or member.name not in self.members:
             return
         filled = _filled(p, names, keys, {"robot": member.name})
-        if isinstance(filled, PreparedTopic):
+        if isinstance(filled, TopicSpec):
             member.routes[slot] = self.wiring.transmitter(self.link, filled)
             log.info("fleet: sending %s to robot %s on %s", filled.name, member.name, filled.key)
             return
@@ -290,7 +290,7 @@ class Fleet:
 def _filled(p: Prepared, names: Template, keys: Template, values: dict[str, str]) -> Prepared:
     """An entry with the placeholders filled: one robot's route."""
     name, key = names.fill(values), keys.fill(values)
-    if isinstance(p, PreparedTopic):
+    if isinstance(p, TopicSpec):
         return dataclasses.replace(p, key=key, config=dataclasses.replace(
             p.config, topic=name, remote=key))
     return dataclasses.replace(p, key=key, config=dataclasses.replace(

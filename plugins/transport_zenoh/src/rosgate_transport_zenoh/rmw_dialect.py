@@ -44,9 +44,9 @@ import zenoh.ext
 from rosgate.buslink import BusLink, BusOutlet
 from rosgate.config import Direction, ServiceConfig, TopicConfig
 from rosgate.errors import ConfigError
-from rosgate.resolver import PreparedService, PreparedTopic
 from rosgate.ros import TypeNotFound, qos_profile, resolve_type, type_hash
 from rosgate.services import CallerRoute, ServerRoute
+from rosgate.spec import ServiceSpec, TopicSpec
 from rosgate.wire.envelope import topic_id_for
 
 from . import rmw
@@ -100,10 +100,10 @@ class RmwZenoh:
             raise ConfigError(f"this ROS gives no type hash for {entry.type}, which rmw_zenoh's "
                               "keys hold", key="type", fix="use ROS 2 Jazzy or later here")
 
-    def wire(self, wiring: BusWiring, link: BusLink, p: PreparedTopic | PreparedService) -> None:
+    def wire(self, wiring: BusWiring, link: BusLink, p: TopicSpec | ServiceSpec) -> None:
         assert p.key is not None
         node = self.node(wiring, link)
-        if isinstance(p, PreparedService):
+        if isinstance(p, ServiceSpec):
             self._service(wiring, link, p, node)
             return
         found = type_hash(p.msg_type)
@@ -118,8 +118,8 @@ class RmwZenoh:
         session: ZenohSession = link.session  # type: ignore[assignment]
         link.token(entity.token())  # in the graph before any data
         if transmit:
-            publisher = Publisher(session.session, key, entity.gid(), reliable=p.reliable,
-                                  priority=p.priority, history=history)
+            publisher = Publisher(session.session, key, entity.gid(), reliable=p.delivery.reliable,
+                                  priority=p.delivery.priority, history=history)
             wiring.router.topic(p, topic_id_for(key), p.name, BusOutlet(link, key, publisher),
                                 bare_names=False)
             return
@@ -138,7 +138,7 @@ class RmwZenoh:
 
         link.keep(subscribe(session.session, key, sample, history))
 
-    def _service(self, wiring: BusWiring, link: BusLink, p: PreparedService, node: _Node) -> None:
+    def _service(self, wiring: BusWiring, link: BusLink, p: ServiceSpec, node: _Node) -> None:
         assert p.key is not None
         found = type_hash(p.srv_type)
         assert found is not None, "check() refused the entry"

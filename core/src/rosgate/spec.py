@@ -1,0 +1,98 @@
+"""What a route needs, decided once by the resolver and never looked up again.
+
+:class:`RouteSpec` is an entry of bringup.yaml (or of a client's hello) with every plugin found
+and configured, its interface imported and its addresses checked — frozen, so a route, its
+link and its scheduler all read the same values. :class:`Delivery` is the part a link reads of
+every frame's sender: a route's comes from its spec, the control channel's and the
+announcements' are the constants below.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from .cipher import Cipher
+from .codec import Codec
+from .config import PRIORITIES, ServiceConfig, TopicConfig
+from .packetizer import Packetizer
+from .service_framing import ServiceFraming
+from .transform import Transform
+from .transport import Address, Transport
+
+
+@dataclass(frozen=True, slots=True)
+class Delivery:
+    """How a link carries the frames of one sender."""
+
+    #: frames wait out a stream link's loss (reliable QoS); best-effort frames that waited
+    #: longer than the link's ``max_delay`` are dropped (``too_late``)
+    reliable: bool = False
+    #: the scheduler's class: 0 control, 1 (real time) .. 7 (background)
+    priority: int = PRIORITIES["data"]
+    #: a frame not yet started is replaced by the sender's next one (``superseded``)
+    latest_only: bool = False
+    #: seconds a frame may wait to start (None: the link's, for best-effort senders)
+    max_delay: float | None = None
+    #: the packetizer that cuts every frame, and the topic's options for it (None: the link's
+    #: own: whole when it fits, else ``fragments``)
+    packetizer: type[Packetizer] | None = None
+    packetizer_options: Any = None
+    #: ``framing: none``: every frame is a whole datagram, never cut
+    whole: bool = False
+
+
+#: hellos, pings, handshakes: above every topic's class, never waiting out a link's loss
+CONTROL = Delivery(priority=0)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RouteSpec:
+    """An entry, resolved: what the wiring needs to build its link side and its route."""
+
+    config: TopicConfig | ServiceConfig
+    codec_cls: type[Codec]
+    codec_options: Any
+    transport: Transport
+    cipher: Cipher | None  # built from the file's key; None in a session (keyed from it)
+    index: int  # position in the file (or in the client's list), for error messages
+    address: Address  # the far side; a peer's receiving entry: where to listen
+    local: Address  # peer role, datagram transmit: where to send from
+    delivery: Delivery = Delivery()
+    key: str | None = None  # on a bus: the key (a template with placeholders), else None
+    cipher_cls: type[Cipher] | None = None
+    #: "topic" or "service": how logs, errors and key labels name it
+    kind: ClassVar[str]
+
+    @property
+    def name(self) -> str:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TopicSpec(RouteSpec):
+    kind = "topic"
+    config: TopicConfig
+    msg_type: type
+    #: compression: the transform a transmitting topic applies (None: none)
+    compression: Transform | None = None
+    #: a receiving topic's transform of each wire id, whatever its own entry says
+    transforms: Callable[[int], Transform | None] = field(default=lambda wire_id: None)
+
+    @property
+    def name(self) -> str:
+        return self.config.topic
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ServiceSpec(RouteSpec):
+    kind = "service"
+    config: ServiceConfig
+    srv_type: Any  # a ROS service class: Request and Response inside
+    #: the plugin that makes its calls when ``framing`` is not ``rosgate`` (a microcontroller's)
+    service_framing: type[ServiceFraming] | None = None
+
+    @property
+    def name(self) -> str:
+        return self.config.service

@@ -1,0 +1,338 @@
+"""A stream link: one connection (TCP, RFCOMM, a Noise channel over either), its frames
+length-prefixed, long ones in chunks, sent through the link's scheduler as a datagram link's
+are (:mod:`rosgate.links`).
+
+A stream connection the bridge accepted is untrusted until its owner calls
+:meth:`StreamLink.trust` (a handshake, a hello): until then its frames are small and it has a
+deadline (:class:`Untrusted`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import cast
+
+from .config import LinkConfig
+from .drops import Drop
+from .links import (
+    POLL,
+    SENT_INLINE,
+    FrameHandler,
+    Link,
+    LinkCounters,
+    LostHandler,
+    Sender,
+    _Sending,
+    deliver,
+)
+from .scheduler import Due, Outgoing
+from .transport import Address, StreamConnection
+from .warn import BUGS
+from .wire import framing
+
+log = logging.getLogger("rosgate")
+
+WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
+
+
+@dataclass(frozen=True)
+class Untrusted:
+    """What a connection may do before its owner trusts it (``bridge.limits``): frames of at most
+    ``max_frame`` bytes, and ``deadline`` seconds to earn trust before it is closed."""
+
+    max_frame: int
+    deadline: float
+
+
+class StreamLink(_Sending, Link):
+    """One stream connection, framed with length prefixes; frames longer than
+    :data:`rosgate.wire.framing.CHUNK` go in chunks, and the writer takes at most
+    :data:`WRITE` bytes at a time from the scheduler, so a frame of a higher class (a Twist
+    behind a camera's backlog) waits for one write, not for the whole backlog. (The kernel's
+    send buffer still holds what was written: a budget below the link's rate keeps it short.)
+
+    Sending never blocks the caller: when nothing waits, a frame of one record is written from
+    the caller's thread as far as the connection takes it without waiting (``send_nowait``: no
+    thread hand-off for a message alone; the rest goes first when the writer next writes).
+
+    With ``untrusted``, the connection is held to those limits until :meth:`trust` (a frame too
+    long is a corrupt stream; the deadline passing ends the connection, counted
+    ``handshake_timeout``)."""
+
+    def __init__(self, connection: StreamConnection, name: str, peer: Address,
+                 on_frame: FrameHandler, on_lost: LostHandler,
+                 on_close: Callable[[StreamLink], None] | None = None,
+                 queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
+                 max_message: int = framing.DEFAULT_MAX_MESSAGE,
+                 untrusted: Untrusted | None = None, budget: LinkConfig | None = None):
+        self.connection = connection
+        self.name = name
+        self.peer = peer
+        self.on_frame = on_frame
+        self.on_lost = on_lost
+        self.on_close = on_close
+        self.closed = threading.Event()
+        # for liveness: the main line's roles set it on every control message (a heartbeat), not
+        # on bytes, so a stream that lost its frame boundaries does not look alive
+        self.last_heard = time.monotonic()
+        self.why = ""  # why the connection ended, once it has
+        self.queue_frames = queue_frames
+        self.queue_bytes = queue_bytes
+        self.counters = LinkCounters()
+        self._send_nowait = getattr(connection, "send_nowait", None)
+        self._messages = itertools.count(1)  # numbers of chunked frames
+        self._init_sending(budget, 0, framing.CHUNK + framing.CHUNK_HEAD.size, queue_frames,
+                           queue_bytes)
+        self._reader = framing.StreamReader(untrusted.max_frame if untrusted else max_message,
+                                            direct=hasattr(connection, "receive_into"))
+        self.max_message = max_message
+        self._trust_by = time.monotonic() + untrusted.deadline if untrusted else None
+        self._threads = [
+            threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
+            threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
+        # the limits count a frame with its length prefix, as it is written
+        if len(frame) <= framing.CHUNK:
+            record = framing.length_prefixed(frame)
+            if self._send_nowait is not None:
+                sent = self._send_now(record, sender, None)
+                if sent is not None:
+                    return sent
+            return self._put(Outgoing(sender, None, len(record), _one(record), time.monotonic()))
+        return self._put(Outgoing(sender, None, len(frame) + framing.LENGTH.size,
+                                  lambda: framing.stream_records(frame, next(self._messages)),
+                                  time.monotonic()))
+
+    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
+        """Frames of one sender together (a route's backlog): one write from the caller's
+        thread when nothing waits; otherwise each is queued."""
+        if len(frames) < 2 or self._send_nowait is None \
+                or any(len(frame) > framing.CHUNK for frame in frames):
+            return sum(self.send(frame, sender) for frame in frames)
+        records = [framing.length_prefixed(frame) for frame in frames]
+        data = b"".join(records)
+        with self._lock:
+            go = self._claim(None, len(data))
+        if not go:
+            now = time.monotonic()
+            return sum(self._put(Outgoing(sender, None, len(record), _one(record), now))
+                       for record in records)
+        try:
+            self._write_now(data, sender, [len(record) for record in records])
+        finally:
+            self._release()
+        return len(records)
+
+    def _send_due(self, due: Due) -> bool:
+        """One record from the caller's thread (see :meth:`_write_now`)."""
+        return self._write_now(due.packet, due.sender, [len(due.packet)])
+
+    def _write_now(self, data: bytes, sender: Sender, sizes: list[int]) -> bool:
+        """Write records as far as the connection takes them now; what it does not take goes
+        first when the writer next writes (nothing can come between: this thread is the only
+        one writing)."""
+        assert self._send_nowait is not None
+        try:
+            written = self._send_nowait(data)
+        except OSError as exc:
+            for _ in sizes:
+                sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
+            self.fail(f"send failed: {exc}")
+            return False
+        counters = self.counters
+        whole, offset = 0, 0
+        for size in sizes:  # the records wholly written
+            offset += size
+            if offset > written:
+                break
+            whole += 1
+        if written:
+            counters.packets_out += 1
+            counters.bytes_out += written
+            counters.frames_out += whole
+            if whole > 1:
+                counters.coalesced_out += whole
+        if written < len(data):
+            rest = Due(data[written:], None, sender, SENT_INLINE, frames=len(sizes) - whole)
+            with self._lock:
+                self._rest = rest
+        sender.on_wire(written, False)
+        return True
+
+    def _send_loop(self) -> None:
+        """Gather what the scheduler lets go, up to :data:`WRITE` bytes, into one write."""
+        wake, closed, scheduler = self._wake, self.closed, self.scheduler
+        while True:
+            batch: list[Due] = []
+            size = 0
+            with wake:
+                while not batch:
+                    if closed.is_set():
+                        return
+                    if self._busy:  # a caller is writing: its rest, if any, comes first
+                        wake.wait()
+                        continue
+                    if self._rest is not None:
+                        batch.append(self._rest)
+                        size, self._rest = len(self._rest.packet), None
+                    due = scheduler.next()
+                    while isinstance(due, Due):
+                        batch.append(due)
+                        size += len(due.packet)
+                        if size >= WRITE:
+                            break
+                        due = scheduler.next()
+                    if not batch:
+                        wake.wait(max(0.0, due - time.monotonic())
+                                  if isinstance(due, float) else None)
+                self._busy = True
+            if scheduler.dropped:
+                self._count_drops()
+            try:
+                self.connection.send(b"".join([d.packet for d in batch]))
+            except OSError as exc:
+                for due in batch:
+                    if due.ends is not None:
+                        due.sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
+                self.fail(f"send failed: {exc}")
+                return
+            counters = self.counters
+            counters.packets_out += 1
+            counters.bytes_out += size
+            frames = 0
+            for due in batch:
+                if due.ends is not None:
+                    frames += due.frames
+                due.sender.on_wire(len(due.packet), False)
+            counters.frames_out += frames
+            if frames > 1:
+                counters.coalesced_out += frames
+            with wake:
+                self._busy = False
+                wake.notify_all()  # for drain()
+
+    def drain(self, timeout: float) -> bool:
+        """Wait until everything sent so far is written (a last word before closing)."""
+        with self._wake:
+            return self._wake.wait_for(
+                lambda: (self.scheduler.idle and not self._busy and self._rest is None
+                         or self.closed.is_set()), timeout)
+
+    def trust(self) -> None:
+        """The connection proved itself: the full frame size, no deadline."""
+        self._reader.max_frame = self.max_message
+        self._trust_by = None
+
+    @property
+    def trusted(self) -> bool:
+        return self._trust_by is None
+
+    def _receive_loop(self) -> None:
+        receive_into = getattr(self.connection, "receive_into", None)
+        buffer = memoryview(bytearray(256 * 1024))
+        reader, closed = self._reader, self.closed
+        while not closed.is_set():
+            target = reader.target() if receive_into is not None else None
+            try:
+                if receive_into is not None and target is not None:  # a large frame, in place
+                    got: int | bytes | None = receive_into(target, POLL)
+                elif receive_into is not None:
+                    got = receive_into(buffer, POLL)
+                else:
+                    got = self.connection.receive(len(buffer), POLL)
+            except OSError as exc:
+                self.fail(f"receive failed: {exc}")
+                return
+            except Exception as exc:  # a transport plugin's bug: drop this connection, loudly
+                BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
+                                            "(a bug in the plugin)")
+                self.on_lost(None, Drop.TRANSPORT_ERROR)
+                self.fail(f"transport error: {type(exc).__name__}: {exc}")
+                return
+            trust_by = self._trust_by
+            if trust_by is not None and time.monotonic() > trust_by:
+                self.on_lost(None, Drop.HANDSHAKE_TIMEOUT)
+                self.fail("no handshake in time")
+                return
+            if got is None:
+                continue
+            if not got:
+                self.fail("closed by peer")
+                return
+            counters = self.counters
+            counters.packets_in += 1
+            if target is not None:
+                assert isinstance(got, int)
+                target.release()  # the frame is the handler's: it may cut it (routes do)
+                counters.bytes_in += got
+                whole = reader.filled(got)
+                if whole is not None:
+                    counters.frames_in += 1
+                    # its own buffer, the handler's to keep (typed bytes: see DatagramLink)
+                    deliver(self, cast(bytes, whole), self.peer)
+                continue
+            data = buffer[:got] if isinstance(got, int) else got
+            counters.bytes_in += len(data)
+            count = 0
+            try:
+                for frame in reader.feed(data):
+                    count += 1
+                    deliver(self, frame, self.peer)
+            except framing.FramingError as exc:
+                # a corrupt length means we can no longer find frame boundaries: start afresh
+                self.on_lost(None, Drop.BAD_LENGTH)
+                self.fail(f"stream corrupt ({exc})")
+                return
+            finally:
+                counters.frames_in += count
+                if count > 1:
+                    counters.coalesced_in += count
+
+    def fail(self, why: str) -> None:
+        """End the connection for a reason worth logging (lost, corrupt, silent)."""
+        if self.closed.is_set():
+            return
+        self.why = why
+        # a stranger's connection (never trusted) is counted by its reason, not logged: a
+        # flood of them must not flood the log
+        log.log(logging.INFO if self.trusted else logging.DEBUG,
+                "%s: connection to %s ended: %s", self.name, self.peer, why)
+        self.close()
+
+    def close(self) -> None:
+        with self._wake:  # once only, whichever thread gets here first
+            if self.closed.is_set():
+                return
+            self.closed.set()
+            self._wake.notify_all()
+        try:
+            self.connection.close()
+        except OSError:
+            pass
+        for thread in self._threads:
+            # the receive thread may fail before the send thread has even started; an unstarted
+            # thread sees `closed` when it starts and returns
+            if thread is not threading.current_thread() and thread.ident is not None:
+                thread.join(timeout=2)
+        with self._wake:  # what never reached the connection is a drop, and counted as one
+            unsent = self.scheduler.clear()
+            if self._rest is not None:
+                unsent.append(self._rest.sender)
+                self._rest = None
+        for sender in unsent:
+            sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
+        if self.on_close:
+            self.on_close(self)
+
+
+def _one(packet: bytes) -> Callable[[], list[bytes]]:
+    return lambda: [packet]
