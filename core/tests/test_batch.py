@@ -16,6 +16,7 @@ from rosgate.config import TopicConfig, load
 from rosgate.errors import ConfigError
 from rosgate.keyring import StaticKeys
 from rosgate.routes import EnvelopeFraming, TransmitRoute, Warner
+from rosgate.spec import Delivery
 from rosgate.wire import envelope
 
 HEAD = """\
@@ -91,6 +92,9 @@ class Link:
         self.calls.append(list(frames))
         return len(frames)
 
+    def forget(self, sender) -> None:
+        """What the link queued for a removed route goes (nothing is queued here)."""
+
 
 def batching(window: float, waiting: deque) -> tuple[TransmitRoute, Link, Batches]:
     fields = inspect.signature(TopicConfig).parameters
@@ -98,7 +102,7 @@ def batching(window: float, waiting: deque) -> tuple[TransmitRoute, Link, Batche
     topic.batch = window
     link = Link()
     route = TransmitRoute(topic, 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")), Warner(),
-                          "/scan", False, framing=EnvelopeFraming(),
+                          "/scan", Delivery(), framing=EnvelopeFraming(),
                           link=link,  # type: ignore[arg-type]
                           destination=lambda: ("127.0.0.1", 9))
     route.batches = Batches()

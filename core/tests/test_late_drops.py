@@ -23,6 +23,7 @@ from rosgate.config import LinkConfig, TopicConfig
 from rosgate.keyring import StaticKeys
 from rosgate.links import DatagramLink
 from rosgate.routes import EnvelopeFraming, ReceiveRoute, TransmitRoute, Warner
+from rosgate.spec import Delivery
 from rosgate.wire import envelope
 
 STALL_NS = 50_000_000  # how long the thread was held
@@ -84,8 +85,9 @@ def transmitter(link: DatagramLink, to: Any, waiting: deque, *, max_delay: float
     """A best-effort, latest-only route on ``link`` whose subscription holds ``waiting``:
     (message, when the middleware received it) pairs."""
     route = TransmitRoute(topic(max_delay), 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")),
-                          Warner(), "/scan", False, framing=EnvelopeFraming(), link=link,
-                          destination=lambda: to, latest_only=latest_only)
+                          Warner(), "/scan", Delivery(latest_only=latest_only,
+                                                      max_delay=max_delay),
+                          framing=EnvelopeFraming(), link=link, destination=lambda: to)
     route.take = lambda: waiting.popleft() if waiting else None
     return route
 
@@ -116,7 +118,7 @@ def test_a_backlog_after_the_executor_was_held_for_50_ms_is_sent_whole(closing, 
 
 def test_a_backlog_in_the_receive_buffer_after_a_stall_is_published_whole():
     route = ReceiveRoute(topic(), 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")),
-                         Warner(), "/scan", False, decode=bytes)
+                         Warner(), "/scan", Delivery(), decode=bytes)
     published: list[bytes] = []
     route.publish = published.append
     arrived = time.time_ns() - STALL_NS  # every datagram waited 50 ms for the receive thread

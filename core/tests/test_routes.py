@@ -32,6 +32,9 @@ class Link:
         self.calls.append(list(frames))
         return len(frames)
 
+    def forget(self, sender) -> None:
+        """What the link queued for a removed route goes (nothing is queued here)."""
+
 
 def route(waiting: deque, max_rate: float | None = None, reliable: bool = False,
           max_delay: float | None = None) -> tuple[TransmitRoute, Link]:

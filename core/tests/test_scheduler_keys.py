@@ -5,13 +5,13 @@ with its queue."""
 from __future__ import annotations
 
 from rosgate.scheduler import CONTROL, KEYS_KEPT, Outgoing, Scheduler
+from rosgate.spec import Delivery
 
 
 class Sender:
     def __init__(self, topic_id: int, priority: int = 5):
         self.topic_id = topic_id
-        self.priority = priority
-        self.reliable = True
+        self.delivery = Delivery(reliable=True, priority=priority)
         self.dropped: list[str] = []
 
     def drop(self, reason: str, detail: str = "") -> None:
