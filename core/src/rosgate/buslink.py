@@ -32,6 +32,7 @@ from .bus import BusPublisher, BusQuery, BusSession, BusTransport, Handle
 from .links import FrameHandler, Link, Sender
 from .transport import Address
 from .warn import BUGS
+from .wire import envelope
 
 log = logging.getLogger("rosgate")
 
@@ -233,7 +234,8 @@ class BusOutlet(Link):
 class BusCaller(Link):
     """A service's calls: each request frame is one query on the key; answers come back through
     the link's thread to ``on_frame`` (the router, which finds the call). A query no server
-    answers fails its call at once (``no_server``)."""
+    answers fails its call at once (``no_server``). The caller's announcement of the entry
+    (:mod:`rosgate.announce`) is a query too, which servers hear and close unanswered."""
 
     def __init__(self, link: BusLink, key: str, timeout: float):
         self.bus = link
@@ -255,10 +257,12 @@ class BusCaller(Link):
             bus.call_later(on_answer, payload, self, (self.key, 0))
 
         def done(answers: int) -> None:
-            if not answers:
+            if not answers and not announcement:
                 bus.call_later(sender.drop, "no_server",
                                f"nothing on {bus.name} answered on {self.key} (no bridge serves "
                                "it, or it refused the call)")
+
+        announcement = bool(envelope.unpack(frame).flags & envelope.FLAG_ANNOUNCE)
 
         try:
             bus.session.query(self.key, frame, self.timeout, answered, done)

@@ -109,7 +109,8 @@ class Ros2dds:
             link.token(ros2dds.token(zid, Kind.SERVER, p.key, p.config.type))
             return
         calls = RawCalls(link, p.key, p.config.timeout)
-        caller = wiring.router.service(p, topic_id_for(p.key), p.name, calls)
+        # its calls are bare CDR: no envelope, so no announcement of rosgate's to say
+        caller = wiring.router.service(p, topic_id_for(p.key), p.name, calls, announce=False)
         assert isinstance(caller, CallerRoute)
         calls.route = caller
         link.token(ros2dds.token(zid, Kind.CLIENT, p.key, p.config.type))
