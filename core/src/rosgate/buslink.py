@@ -262,7 +262,10 @@ class BusCaller(Link):
                                f"nothing on {bus.name} answered on {self.key} (no bridge serves "
                                "it, or it refused the call)")
 
-        announcement = bool(envelope.unpack(frame).flags & envelope.FLAG_ANNOUNCE)
+        try:
+            announcement = bool(envelope.unpack(frame).flags & envelope.FLAG_ANNOUNCE)
+        except envelope.EnvelopeError:  # a call in another framing
+            announcement = False
 
         try:
             bus.session.query(self.key, frame, self.timeout, answered, done)

@@ -13,6 +13,10 @@ bridge does: topics with ``framing: none`` and ``codec: cdr``, services with ``c
 * a transient_local topic sent out keeps its last ``depth`` samples for late joiners to query
   (zenoh-ext's publication cache, as that bridge does), and a transient_local topic received
   asks the publishers on its key for theirs when it starts and when they appear;
+* an action (``codec: cdr``, ``cipher: none``) is that bridge's ``<key>/_action/`` layout: its
+  three services and two topics as above, under ``<key>/_action/send_goal|cancel_goal|
+  get_result|feedback|status``, with one token for the action (``AS`` served here, ``AC``
+  called from here) on ``<key>`` with the action's type, and none for its parts;
 * a service is a queryable whose query is the request's CDR and whose answer is the response's;
   calls from here carry that bridge's request-header attachment. A call the serving side could
   not answer gets no answer (that bridge has no way to say why), so the caller's timeout speaks;
@@ -25,6 +29,7 @@ envelope that this module adds and removes at the bus's edge, with the ``none`` 
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import os
@@ -57,10 +62,12 @@ KEEP_ALL_HISTORY = 1000  # samples a keep_all transient_local topic keeps for la
 
 def speaks(entry: TopicConfig | ServiceConfig) -> bool:
     """Whether an entry carries bare CDR as zenoh-bridge-ros2dds does: a topic with
-    ``framing: none``, a service with no cipher (its calls lose their envelope on the bus)."""
+    ``framing: none``, a service with no cipher (its calls lose their envelope on the bus),
+    and the feedback and status of an action with no cipher (whose parts come framed)."""
     if entry.codec != "cdr" or entry.cipher != "none":
         return False
-    return isinstance(entry, ServiceConfig) or entry.framing is Framing.NONE
+    return (isinstance(entry, ServiceConfig) or entry.framing is Framing.NONE
+            or ros2dds.action_part(entry.topic) is not None)
 
 
 class Ros2dds:
@@ -79,26 +86,34 @@ class Ros2dds:
         self.graph(link)
         session: ZenohSession = link.session  # type: ignore[assignment]
         zid = session.zid()
-        assert p.key is not None
+        key = p.key
+        assert key is not None
+        part = ros2dds.action_part(p.name)
         if isinstance(p, PreparedService):
-            self._service(wiring, link, p, zid)
+            self._service(wiring, link, p, zid, part)
             return
+        if part is not None:  # an action's feedback or status: bare CDR on the key, as topics
+            p = dataclasses.replace(p, config=dataclasses.replace(p.config,
+                                                                  framing=Framing.NONE))
         qos = Qos.of(qos_profile(p.config.qos))
         history = (KEEP_ALL_HISTORY if qos.keep_all else qos.depth) if qos.transient_local else 0
         if p.config.direction is Direction.TRANSMIT:
-            publisher = session.publisher(p.key, reliable=p.reliable, priority=p.priority,
+            publisher = session.publisher(key, reliable=p.reliable, priority=p.priority,
                                           history=history)
-            wiring.router.topic(p, topic_id_for(p.key), p.name,
-                                BusOutlet(link, p.key, publisher), bare_names=False)
-            link.token(ros2dds.token(zid, Kind.PUBLISHER, p.key, p.config.type, qos))
-            return
-        route = wiring.receiver(p)
-        link.keep(session.subscribe(p.key, link.queued(
-            lambda key, frame: wiring.dispatch(route, key, frame),
-            lambda key, reason: route.drop(reason)), history=history))
-        link.token(ros2dds.token(zid, Kind.SUBSCRIBER, p.key, p.config.type, qos))
+            wiring.router.topic(p, topic_id_for(key), p.name,
+                                BusOutlet(link, key, publisher), bare_names=False)
+            kind = Kind.PUBLISHER
+        else:
+            route = wiring.receiver(p)
+            link.keep(session.subscribe(key, link.queued(
+                lambda key, frame: wiring.dispatch(route, key, frame),
+                lambda key, reason: route.drop(reason)), history=history))
+            kind = Kind.SUBSCRIBER
+        if part is None:  # an action's parts have its token instead
+            link.token(ros2dds.token(zid, kind, key, p.config.type, qos))
 
-    def _service(self, wiring: BusWiring, link: BusLink, p: PreparedService, zid: str) -> None:
+    def _service(self, wiring: BusWiring, link: BusLink, p: PreparedService, zid: str,
+                 part: str | None) -> None:
         assert p.key is not None
         if p.config.direction is Direction.RECEIVE:
             route = wiring.router.service(p, topic_id_for(p.key), p.name, None)
@@ -106,14 +121,19 @@ class Ros2dds:
             answers = RawAnswers(link, route)
             link.serve(p.key, lambda payload, _answerer, source: answers.request(payload, source),
                        p.config.timeout + 1.0)
-            link.token(ros2dds.token(zid, Kind.SERVER, p.key, p.config.type))
-            return
-        calls = RawCalls(link, p.key, p.config.timeout)
-        # its calls are bare CDR: no envelope, so no announcement of rosgate's to say
-        caller = wiring.router.service(p, topic_id_for(p.key), p.name, calls, announce=False)
-        assert isinstance(caller, CallerRoute)
-        calls.route = caller
-        link.token(ros2dds.token(zid, Kind.CLIENT, p.key, p.config.type))
+            kinds = Kind.SERVER, Kind.ACTION_SERVER
+        else:
+            calls = RawCalls(link, p.key, p.config.timeout)
+            # its calls are bare CDR: no envelope, so no announcement of rosgate's to say
+            caller = wiring.router.service(p, topic_id_for(p.key), p.name, calls,
+                                           announce=False)
+            assert isinstance(caller, CallerRoute)
+            calls.route = caller
+            kinds = Kind.CLIENT, Kind.ACTION_CLIENT
+        if part is None:
+            link.token(ros2dds.token(zid, kinds[0], p.key, p.config.type))
+        elif part == "send_goal":  # one token for the action, with its first part
+            link.token(ros2dds.token(zid, kinds[1], *ros2dds.action_of(p.key, p.config.type)))
 
     def graph(self, link: BusLink) -> Graph:
         """The other bridges' routes as seen on ``link``, watched from its first entry on."""
