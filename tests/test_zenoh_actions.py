@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
-from test_actions import ActionSide, Goal, check_a_goal_crosses, ready
+from test_actions import ActionSide, Goal, check_a_goal_crosses, ready, settled, warmed_up
 from test_msgs.action import Fibonacci
 from test_zenoh_fleet import Router, zenoh_plugin
 
@@ -80,3 +80,27 @@ def test_a_goal_nobody_serves_over_zenoh_is_rejected_within_its_timeout(
     else:  # no queryable on the key: zenoh ends the query at once
         assert took < 1.0 + 0.3
         assert robot.wait_log("/fib/_action/send_goal: dropped (no_server)", 5)
+
+
+def test_a_serving_bridge_that_leaves_mid_goal_ends_the_goal_aborted(
+        tmp_path, router, bridge, domain, action_side):
+    """The calling side's get_result is a query to the serving bridge's queryable; when that
+    bridge stops, zenoh ends the query unanswered and the goal ends aborted."""
+    from action_msgs.msg import GoalStatus
+
+    d_robot, d_base = domain(), domain()
+    bridge(action_file(tmp_path, "robot", router, "transmit"), d_robot)
+    base = bridge(action_file(tmp_path, "base", router, "receive"), d_base)
+    keep = action_side(d_base, "base").fibonacci_server("/fib")
+    client = warmed_up(action_side(d_robot, "robot").client(Fibonacci, "/fib"),
+                       Fibonacci.Goal(order=1))
+    goal = Goal(client, Fibonacci.Goal(order=400))
+    assert goal.handle.accepted and goal.wait_feedback(3, 10)
+    pending = goal.handle.get_result_async()
+    start = time.monotonic()
+    assert base.stop() == 0  # the serving bridge goes, mid-goal
+    answer = settled(pending, 15)
+    assert answer.status == GoalStatus.STATUS_ABORTED
+    # zenoh ends the query when its queryable goes: not the result's hour (1.8 s measured)
+    assert time.monotonic() - start < 10
+    del keep
