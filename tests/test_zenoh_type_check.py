@@ -1,7 +1,8 @@
 """The type check over zenoh: each bus entry's sending side announces its type (name and RIHS01
 hash) on the entry's key, at once and again every few seconds; a receiving side whose type
-differs publishes nothing, counts ``type_mismatch`` and says so once a minute. Real ``rosgate
-router`` and ``rosgate run`` processes, real rclpy on both sides, each in a DDS domain of its own.
+differs publishes nothing, counts ``type_mismatch`` and says so once a minute. And what else a
+key carries besides messages: compressed ones. Real ``rosgate router`` and ``rosgate run``
+processes, real rclpy on both sides, each in a DDS domain of its own.
 """
 
 from __future__ import annotations
@@ -141,3 +142,23 @@ def test_an_older_sender_that_says_no_hash_is_accepted_and_said_once(
     assert counters("b", "/mm")["drops"] == {}
     assert b.log.count("/mm: the far side gives no type hash (an older rosgate, or a ROS before "
                        "Iron): its type is not checked") == 1
+
+
+def test_a_compressed_topic_crosses_zenoh(tmp_path, router, bridge, domain, ros_side,
+                                          runtime_dir):
+    """Beside messages and announcements, a key carries messages its sender compressed (the
+    envelope says so per frame): they are published as they were sent."""
+    from conftest import cross
+    from std_msgs.msg import String
+
+    da, db = domain(), domain()
+    bridge(peer_file(tmp_path, "b", router, "topics: [{topic: /log, type: std_msgs/msg/String, "
+                     "direction: receive, remote: fleet/log}]\n"), db)
+    bridge(peer_file(tmp_path, "a", router, "topics: [{topic: /log, type: std_msgs/msg/String, "
+                     "direction: transmit, remote: fleet/log, compression: zstd}]\n"), da)
+    text = lambda i: String(data="warm" if i is None else f"{i}:" + "all quiet here. " * 500)
+    got = cross(ros_side(da, "a").publisher("/log", String), ros_side(db, "b").listen(
+        "/log", String), text, lambda m: m.data == "warm", 5)
+    assert [m.data for m in got] == [text(i).data for i in range(5)]
+    assert counters("b", "/log")["drops"] == {}
+    assert counters("a", "/log")["bytes_sent"] < 5 * 8000 / 10  # they went compressed
