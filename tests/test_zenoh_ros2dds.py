@@ -603,3 +603,61 @@ bridge: {{name: bot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}}}
         if side is not None:
             side.close()
         peer.close()
+
+
+def test_a_base_declares_the_tokens_of_each_robots_routes_and_calls_it_bare(
+        tmp_path, router, plain, bridge, domain, ros_side):
+    """Fleet entries speak zenoh-bridge-ros2dds too: each robot's routes hold the tokens that
+    bridge declares (so a zenoh-bridge-ros2dds robot makes its DDS writer for the base's
+    /{robot}/cmd), a fleet service is called with bare CDR, and the tokens go with the robot."""
+    d = domain()
+    path = tmp_path / "base.yaml"
+    path.write_text(f"""\
+bridge: {{name: base, role: peer, defaults: {{transport: zenoh, codec: cdr}}, fleet_timeout: 2}}
+{zenoh_plugin(router, ", speak: ros2dds, insecure: true")}topics:
+  - {{topic: "/{{robot}}/cmd", remote: "fleet/{{robot}}/cmd", type: std_msgs/msg/String,
+      direction: transmit, framing: none}}
+  - {{topic: "/{{robot}}/odom", remote: "fleet/{{robot}}/odom", type: std_msgs/msg/String,
+      direction: receive, framing: none}}
+services:
+  - {{service: "/{{robot}}/set", remote: "fleet/{{robot}}/set", type: std_srvs/srv/SetBool,
+      direction: transmit, timeout: 3}}
+""")
+    base = bridge(path, d)
+    zid = str(plain.zid())
+    seen: list[tuple[bytes, bytes | None]] = []
+
+    def serve(query: zenoh.Query) -> None:
+        request = query.payload.to_bytes() if query.payload is not None else b""
+        seen.append((request, query.attachment.to_bytes() if query.attachment else None))
+        query.reply("fleet/zb7/set", serialize_message(SetBool.Response(success=True,
+                                                                        message="zb7 set")))
+
+    queryable = plain.declare_queryable("fleet/zb7/set", zenoh.handlers.Callback(
+        serve, indirect=False))
+    # robot zb7 as a zenoh-bridge-ros2dds robot announces its ROS subscriber of /cmd, publisher
+    # of /odom and server of /set (liveliness_mgt.rs)
+    tokens = [plain.liveliness().declare_token(f"@/{zid}/@ros2_lv/{route}") for route in (
+        "MS/fleet§zb7§cmd/std_msgs§msg§String/:1:0:0,10",
+        "MP/fleet§zb7§odom/std_msgs§msg§String/:1:0:0,10",
+        "SS/fleet§zb7§set/std_srvs§srv§SetBool")]
+
+    def base_routes() -> set[str]:
+        return {"/".join(t.split("/")[3:]) for t in tokens_of(plain)
+                if t.count("/") > 2 and t.split("/")[1] != zid}
+
+    expected = {"MP/fleet§zb7§cmd/std_msgs§msg§String/:1:0:0,10",
+                "MS/fleet§zb7§odom/std_msgs§msg§String/:1:0:0,10",
+                "SC/fleet§zb7§set/std_srvs§srv§SetBool"}
+    assert wait_until(lambda: base_routes() == expected, TIMEOUT), base_routes()
+    caller = Caller(ros_side(d, "base"), SetBool, "/zb7/set")
+    (answer,) = caller.call_many([SetBool.Request(data=True)], 10)
+    assert (answer.success, answer.message) == (True, "zb7 set")
+    assert [request for request, _ in seen] == [serialize_message(SetBool.Request(data=True))]
+    assert seen[0][1] is not None and seen[0][1][:3] == b"rqh"
+
+    for token in tokens:
+        token.undeclare()
+    queryable.undeclare()
+    assert base.wait_log("fleet: robot zb7 dropped", TIMEOUT), base.log
+    assert wait_until(lambda: base_routes() == set(), TIMEOUT), base_routes()

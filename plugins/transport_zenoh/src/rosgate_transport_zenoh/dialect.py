@@ -36,11 +36,13 @@ import os
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from rosgate.bus import Handle
 from rosgate.buslink import BusAnswerer, BusLink, BusOutlet
 from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
 from rosgate.links import Link, Sender
 from rosgate.resolver import PreparedService, PreparedTopic
 from rosgate.ros import qos_profile
+from rosgate.routes import Route
 from rosgate.services import CallerRoute, ServerRoute
 from rosgate.transport import Address
 from rosgate.wire import envelope
@@ -83,6 +85,12 @@ class Ros2dds:
         """Every entry it names it can carry: bare framing already excludes a cipher."""
 
     def wire(self, wiring: BusWiring, link: BusLink, p: PreparedTopic | PreparedService) -> None:
+        self.route(wiring, link, p)
+
+    def route(self, wiring: BusWiring, link: BusLink,
+              p: PreparedTopic | PreparedService) -> tuple[Route, Handle | None]:
+        """One entry's route (a fleet entry's, filled for one robot, too) and the token it holds
+        (None: an action's part other than its ``send_goal``, which holds the action's)."""
         self.graph(link)
         session: ZenohSession = link.session  # type: ignore[assignment]
         zid = session.zid()
@@ -90,50 +98,61 @@ class Ros2dds:
         assert key is not None
         part = ros2dds.action_part(p.name)
         if isinstance(p, PreparedService):
-            self._service(wiring, link, p, zid, part)
-            return
+            return self._service(wiring, link, p, zid, part)
         if part is not None:  # an action's feedback or status: bare CDR on the key, as topics
             p = dataclasses.replace(p, config=dataclasses.replace(p.config,
                                                                   framing=Framing.NONE))
         qos = Qos.of(qos_profile(p.config.qos))
         history = (KEEP_ALL_HISTORY if qos.keep_all else qos.depth) if qos.transient_local else 0
+        route: Route
         if p.config.direction is Direction.TRANSMIT:
             publisher = session.publisher(key, reliable=p.reliable, priority=p.priority,
                                           history=history)
-            wiring.router.topic(p, topic_id_for(key), p.name,
-                                BusOutlet(link, key, publisher), bare_names=False)
-            kind = Kind.PUBLISHER
+            route = wiring.router.topic(p, topic_id_for(key), p.name,
+                                        BusOutlet(link, key, publisher), bare_names=False)
         else:
-            route = wiring.receiver(p)
+            receiver = route = wiring.receiver(p)
             link.keep(session.subscribe(key, link.queued(
-                lambda key, frame: wiring.dispatch(route, key, frame),
-                lambda key, reason: route.drop(reason)), history=history))
-            kind = Kind.SUBSCRIBER
-        if part is None:  # an action's parts have its token instead
-            link.token(ros2dds.token(zid, kind, key, p.config.type, qos))
+                lambda key, frame: wiring.dispatch(receiver, key, frame),
+                lambda key, reason: receiver.drop(reason)), history=history))
+        if part is not None:  # an action's parts have its token instead
+            return route, None
+        return route, link.token(self.topic_token(link, p))
+
+    @staticmethod
+    def topic_token(link: BusLink, p: PreparedTopic) -> str:
+        """The token of a topic's route: ``MP`` sent out, ``MS`` received, with its QoS."""
+        session: ZenohSession = link.session  # type: ignore[assignment]
+        kind = Kind.PUBLISHER if p.config.direction is Direction.TRANSMIT else Kind.SUBSCRIBER
+        assert p.key is not None
+        return ros2dds.token(session.zid(), kind, p.key, p.config.type,
+                             Qos.of(qos_profile(p.config.qos)))
 
     def _service(self, wiring: BusWiring, link: BusLink, p: PreparedService, zid: str,
-                 part: str | None) -> None:
+                 part: str | None) -> tuple[Route, Handle | None]:
         assert p.key is not None
+        route: Route
         if p.config.direction is Direction.RECEIVE:
-            route = wiring.router.service(p, topic_id_for(p.key), p.name, None)
-            assert isinstance(route, ServerRoute)
-            answers = RawAnswers(link, route)
+            server = route = wiring.router.service(p, topic_id_for(p.key), p.name, None)
+            assert isinstance(server, ServerRoute)
+            answers = RawAnswers(link, server)
             link.serve(p.key, lambda payload, _answerer, source: answers.request(payload, source),
                        p.config.timeout + 1.0)
             kinds = Kind.SERVER, Kind.ACTION_SERVER
         else:
             calls = RawCalls(link, p.key, p.config.timeout)
             # its calls are bare CDR: no envelope, so no announcement of rosgate's to say
-            caller = wiring.router.service(p, topic_id_for(p.key), p.name, calls,
-                                           announce=False)
+            caller = route = wiring.router.service(p, topic_id_for(p.key), p.name, calls,
+                                                   announce=False)
             assert isinstance(caller, CallerRoute)
             calls.route = caller
             kinds = Kind.CLIENT, Kind.ACTION_CLIENT
         if part is None:
-            link.token(ros2dds.token(zid, kinds[0], p.key, p.config.type))
-        elif part == "send_goal":  # one token for the action, with its first part
-            link.token(ros2dds.token(zid, kinds[1], *ros2dds.action_of(p.key, p.config.type)))
+            return route, link.token(ros2dds.token(zid, kinds[0], p.key, p.config.type))
+        if part == "send_goal":  # one token for the action, with its first part
+            return route, link.token(ros2dds.token(zid, kinds[1],
+                                                   *ros2dds.action_of(p.key, p.config.type)))
+        return route, None
 
     def graph(self, link: BusLink) -> Graph:
         """The other bridges' routes as seen on ``link``, watched from its first entry on."""
