@@ -4,6 +4,8 @@ the others, so there is no main line, no ``peer:`` and no ``port:``.
 * A topic is published on its key; a receiving topic subscribes to its key and is found by it
   (the envelope's topic id must be the key's: a frame moved to another key is refused).
 * A service is a queryable on its key (``receive``) or one query per call (``transmit``).
+* The sending side of each entry announces its type on the entry's key (:mod:`rosgate.announce`):
+  a topic beside its messages, a service's caller as a query that servers close unanswered.
 * Each bridge holds a liveliness token (:meth:`rosgate.bus.BusTransport.alive_key`).
 * An entry whose name holds placeholders (``/{robot}/scan``) is the bus's own
   (:attr:`rosgate.bus.BusTransport.templates`, the zenoh plugin's fleets): it makes its routes
