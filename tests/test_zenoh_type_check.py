@@ -50,14 +50,26 @@ def counters(bridge_name: str, entry: str) -> dict[str, Any]:
         return next(e for e in ask.status()["entries"] if e["name"] == entry)
 
 
+@pytest.mark.parametrize("receiver_first", [True, False], ids=["receiver first",
+                                                              "sender first"])
 def test_point_sent_as_vector3_over_zenoh_is_refused_counted_and_said(
-        tmp_path, router, bridge, domain, ros_side, runtime_dir):
+        tmp_path, router, bridge, domain, ros_side, runtime_dir, receiver_first):
+    """Receiver first: the sender's first announcement, before its first message, reaches it.
+    Sender first: the receiver hears one of its re-announcements (every 2 s)."""
     da, db = domain(), domain()
-    # the receiver first: the sender's first announcement, before its first message, reaches it
-    b = bridge(peer_file(tmp_path, "b", router, "topics: [{topic: /mm, type: "
-                         "geometry_msgs/msg/Vector3, direction: receive, remote: fleet/mm}]\n"), db)
-    a = bridge(peer_file(tmp_path, "a", router, "topics: [{topic: /mm, type: "
-                         "geometry_msgs/msg/Point, direction: transmit, remote: fleet/mm}]\n"), da)
+    start = {
+        "b": lambda: bridge(peer_file(tmp_path, "b", router, "topics: [{topic: /mm, type: "
+                                      "geometry_msgs/msg/Vector3, direction: receive, "
+                                      "remote: fleet/mm}]\n"), db),
+        "a": lambda: bridge(peer_file(tmp_path, "a", router, "topics: [{topic: /mm, type: "
+                                      "geometry_msgs/msg/Point, direction: transmit, "
+                                      "remote: fleet/mm}]\n"), da)}
+    first, second = ("b", "a") if receiver_first else ("a", "b")
+    started = {first: start[first]()}
+    started[second] = start[second]()
+    a, b = started["a"], started["b"]
+    if not receiver_first:  # before anything is published: it heard a re-announcement
+        assert b.wait_log("/mm: refused, the far side's type", 10), b.log
     inbox = ros_side(db, "b").listen("/mm", Vector3)
     talker = ros_side(da, "a").publisher("/mm", Point)
     deadline = time.monotonic() + 20
