@@ -8,7 +8,15 @@ import time
 from pathlib import Path
 
 import pytest
-from test_actions import ActionSide, Goal, check_a_goal_crosses, ready, settled, warmed_up
+from test_actions import (
+    ActionSide,
+    Goal,
+    check_a_goal_crosses,
+    fibonacci,
+    ready,
+    settled,
+    warmed_up,
+)
 from test_msgs.action import Fibonacci
 from test_zenoh_fleet import Router, zenoh_plugin
 
@@ -103,4 +111,45 @@ def test_a_serving_bridge_that_leaves_mid_goal_ends_the_goal_aborted(
     assert answer.status == GoalStatus.STATUS_ABORTED
     # zenoh ends the query when its queryable goes: not the result's hour (1.8 s measured)
     assert time.monotonic() - start < 10
+    del keep
+
+
+def test_a_base_sends_goals_to_each_robot_by_one_fleet_action(tmp_path, router, bridge, domain,
+                                                              action_side):
+    """``action: /{robot}/fib`` on the base: each robot's action, found by the robot's
+    liveliness token, is offered as /<robot>/fib; its feedback and status come from the
+    robot's keys."""
+    from action_msgs.msg import GoalStatus
+
+    base_path = tmp_path / "base.yaml"
+    base_path.write_text(f"""\
+bridge: {{name: base, role: peer, defaults: {{transport: zenoh}}}}
+{zenoh_plugin(router, ", insecure: true")}actions:
+  - {{action: "/{{robot}}/fib", type: test_msgs/action/Fibonacci, direction: transmit,
+      remote: "fleet/{{robot}}/fib"}}
+""")
+    d = {"base": domain(), "robot1": domain(), "robot2": domain()}
+    bridge(base_path, d["base"])
+    keep = []
+    for name in ("robot1", "robot2"):
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(f"""\
+bridge: {{name: {name}, role: peer, defaults: {{transport: zenoh}}}}
+{zenoh_plugin(router)}actions:
+  - {{action: /fib, type: test_msgs/action/Fibonacci, direction: receive,
+      remote: fleet/{name}/fib}}
+""")
+        bridge(path, d[name])
+        keep.append(action_side(d[name], name).fibonacci_server("/fib"))
+    base = action_side(d["base"], "base")
+    for name, order in (("robot1", 20), ("robot2", 16)):
+        client = warmed_up(base.client(Fibonacci, f"/{name}/fib"), Fibonacci.Goal(order=1))
+        goal = Goal(client, Fibonacci.Goal(order=order))
+        assert goal.handle.accepted
+        answer = goal.result()
+        assert answer.status == GoalStatus.STATUS_SUCCEEDED
+        assert list(answer.result.sequence) == fibonacci(order + 1)
+        got = [list(f.sequence) for f in goal.feedback]
+        assert len(got) >= order * 3 // 4, got
+        assert got == [fibonacci(len(s) - 1) for s in got]
     del keep

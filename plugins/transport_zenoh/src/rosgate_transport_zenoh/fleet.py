@@ -120,7 +120,8 @@ class Member:
     had_token: bool = False
     last_seen: float = field(default_factory=time.monotonic)
     gone_since: float | None = None
-    routes: dict[tuple[str, int], Route] = field(default_factory=dict)  # (section, index) ->
+    #: (section, index, name) -> its route; the name tells an action's five parts apart
+    routes: dict[tuple[str, int, str], Route] = field(default_factory=dict)
     #: the zenoh-bridge-ros2dds tokens its routes hold (speak: ros2dds)
     tokens: list[Handle] = field(default_factory=list)
 
@@ -204,12 +205,13 @@ class Fleet:
 
     def _receiver_for(self, member: Member, p: PreparedTopic, names: Template, keys: Template,
                       values: dict[str, str]) -> ReceiveRoute:
-        route = member.routes.get(("topics", p.index))
+        slot = ("topics", p.index, p.name)
+        route = member.routes.get(slot)
         if route is None:
             filled = _filled(p, names, keys, values)
             assert isinstance(filled, PreparedTopic)
             route = self.wiring.receiver(filled)
-            member.routes[("topics", p.index)] = route
+            member.routes[slot] = route
             dialect = self._speaking(filled)
             if dialect is not None:  # its frames come through the fleet's subscription
                 member.tokens.append(self.link.token(dialect.topic_token(self.link, filled)))
@@ -261,7 +263,7 @@ class Fleet:
     def _transmit_for(self, member: Member, p: Prepared, names: Template,
                       keys: Template) -> None:
         """A transmitting topic's route, or a service's caller, for one robot."""
-        slot = ("topics" if isinstance(p, PreparedTopic) else "services", p.index)
+        slot = ("topics" if isinstance(p, PreparedTopic) else "services", p.index, p.name)
         if slot in member.routes or member.name not in self.members:
             return
         filled = _filled(p, names, keys, {"robot": member.name})
