@@ -362,3 +362,24 @@ def test_a_servers_policy_judges_actions_by_their_own_rules():
     assert refusal(policy, goal("/robot1/navigate", way=Direction.RECEIVE), {"none"}) == (
         "robot1 may not receive action /robot1/navigate (policy for robot1 allows no actions "
         "it receives)")
+
+
+def test_an_action_anyone_could_write_to_is_refused_as_other_entries_are():
+    """An action's feedback and status reach ROS on the calling side, its calls on the serving
+    side: on a peer link without identities or a keyed cipher it is an open door."""
+    from rosgate.config import loads
+    from rosgate.engine import Engine
+    from rosgate.errors import ConfigError
+
+    entry = ("actions: [{action: /fib, type: test_msgs/action/Fibonacci, direction: transmit, "
+             "port: 12300}]\n")
+    with pytest.raises(ConfigError, match=re.escape(
+            "actions[0].cipher: anyone who reaches this bridge can write to action /fib: cipher "
+            "none on udp:12300")):
+        Engine(loads(f"bridge: {{name: a, role: peer, peer: 127.0.0.1}}\n{entry}")).prepare()
+    engine = Engine(loads(f"bridge: {{name: a, role: peer, peer: 127.0.0.1, insecure: true}}\n"
+                          f"{entry}", file="a.yaml")).prepare()
+    assert engine.insecure_warning() == (
+        "INSECURE: a.yaml says insecure: true: anyone who can reach it can write to actions[0]"
+        ".cipher (action /fib: cipher none on udp:12300). Set up identities or keyed ciphers: "
+        "docs/security.md")

@@ -33,6 +33,7 @@ from .drops import Drop, LinkDrop, Reason
 from .links import FrameHandler, Link, Sender
 from .transport import Address
 from .warn import BUGS
+from .wire import envelope
 
 log = logging.getLogger("rosgate")
 
@@ -232,7 +233,8 @@ class BusOutlet(Link):
 class BusCaller(Link):
     """A service's calls: each request frame is one query on the key; answers come back through
     the link's thread to ``on_frame`` (the router, which finds the call). A query no server
-    answers fails its call at once (``no_server``)."""
+    answers fails its call at once (``no_server``). The caller's announcement of the entry
+    (:mod:`rosgate.announce`) is a query too, which servers hear and close unanswered."""
 
     def __init__(self, link: BusLink, key: str, timeout: float):
         self.bus = link
@@ -254,10 +256,15 @@ class BusCaller(Link):
             bus.call_later(on_answer, payload, self, (self.key, 0))
 
         def done(answers: int) -> None:
-            if not answers:
+            if not answers and not announcement:
                 bus.call_later(sender.drop, Drop.NO_SERVER,
                                f"nothing on {bus.name} answered on {self.key} (no bridge serves "
                                "it, or it refused the call)")
+
+        try:
+            announcement = bool(envelope.unpack(frame).flags & envelope.FLAG_ANNOUNCE)
+        except envelope.EnvelopeError:  # a call in another framing
+            announcement = False
 
         try:
             bus.session.query(self.key, frame, self.timeout, answered, done)

@@ -137,11 +137,14 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(f"  {p.name} {arrow} {p.key or t.remote}  [{t.type}] {t.transport}{port} {t.codec} "
               f"{t.cipher}" + (f"  ({speaks})" if speaks else ""))
     for a in plan.actions:  # three services and two topics each (rosgate.actions)
-        c = a.config
+        c, calls = a.config, a.parts[0]  # its send_goal: on a bus, its key shows theirs
         arrow = "->" if c.direction == "transmit" else "<-"
         port = f":{c.port}" if c.port else ""
-        print(f"  {a.name} {arrow} {c.remote}  [{c.type}] {c.transport}{port} {c.codec} "
-              f"{c.cipher}")
+        where = calls.key.removesuffix("send_goal") + "*" if calls.key else c.remote
+        dialect = calls.transport.dialect if isinstance(calls.transport, BusTransport) else None
+        speaks = dialect.name(calls.config) if dialect is not None else None
+        print(f"  {a.name} {arrow} {where}  [{c.type}] {c.transport}{port} {c.codec} "
+              f"{c.cipher}" + (f"  ({speaks})" if speaks else ""))
     from .budget import report
 
     for line in report(plan):

@@ -77,21 +77,25 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
     Entries on a bus are the bus transport's to judge; topics this side only transmits are
     read, not written, here."""
     cfg = plan.config
-    found = []
-    entries: list[TopicSpec | ServiceSpec] = [*plan.topics, *plan.services]
-    for p in entries:
+    found: list[OpenEntry] = []
+    entries: list[TopicSpec | ServiceSpec] = [*plan.topics, *plan.services, *plan.action_parts]
+    for n, p in enumerate(entries):
         t = p.config
         is_topic = isinstance(p, TopicSpec)
         if p.key is not None or (is_topic and t.direction is Direction.TRANSMIT):
             continue
-        key = f"{'topics' if is_topic else 'services'}[{p.index}]"
+        part = n >= len(plan.topics) + len(plan.services)  # an action's: said once, as the action
+        key = f"{'actions' if part else 'topics' if is_topic else 'services'}[{p.index}]"
+        if part and any(f.key.startswith(f"{key}.") for f in found):
+            continue
+        name = f"action {plan.actions[p.index].name}" if part else p.name
         link = f"{t.transport}:{t.port}" if t.port else t.transport
         if t.framing.bare:
             # a call made here goes out on a connection of its own: only a listening port
             # takes what anyone sends
             if not cfg.allow and t.direction is Direction.RECEIVE:
                 found.append(OpenEntry(
-                    f"{key}.framing", p.name, f"framing {t.framing} on {link}, taken from "
+                    f"{key}.framing", name, f"framing {t.framing} on {link}, taken from "
                     "anyone", "name the microcontroller's addresses in bridge.allow: "
                     "[192.168.0.20]; or, on a network you trust entirely, insecure: true"))
             continue
@@ -103,7 +107,7 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
                    "docs/security.md) or this entry a cipher keyed from a file (cipher: aead, "
                    "plugins: {aead: {key_file: aead.key}})" if cfg.role is Role.PEER
                    else "use a cipher the session keys (aead, nacl, fernet)")
-            found.append(OpenEntry(f"{key}.cipher", p.name, f"cipher {t.cipher} on {link}",
+            found.append(OpenEntry(f"{key}.cipher", name, f"cipher {t.cipher} on {link}",
                                    f"{fix}; or, on a network you trust entirely, insecure: true"))
     return found
 
@@ -193,8 +197,9 @@ class Engine:
             self.stop()
             raise
         threading.Thread(target=self._housekeeping, name="housekeeping", daemon=True).start()
-        log.info("%s: running as %s with %d topic(s) and %d service(s)", self.config.name,
-                 self.config.role, len(self.plan.topics), len(self.plan.services))
+        log.info("%s: running as %s with %d topic(s) and %d service(s)%s", self.config.name,
+                 self.config.role, len(self.plan.topics), len(self.plan.services),
+                 f" and {len(self.plan.actions)} action(s)" if self.plan.actions else "")
         return self
 
     def stop(self) -> None:

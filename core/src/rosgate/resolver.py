@@ -285,7 +285,9 @@ class Resolver:
             resolve_type(action.type)
         except TypeNotFound as exc:
             raise error(f"{key}.type", str(exc)) from None
-        if self.config.role is Role.PEER and action.port is None:
+        bus = isinstance(self.transport(action.transport, f"{key}.transport", error),
+                         BusTransport)
+        if self.config.role is Role.PEER and action.port is None and not bus:
             raise error(f"{key}.port", "peer role: an action needs a port (its calls use it, "
                         "its feedback and status the next one)", "add port: <1..65534>")
         prepared: list[TopicSpec | ServiceSpec] = []

@@ -108,7 +108,7 @@ class Router:
                                   framing=framing, link=link, destination=destination,
                                   compression=p.compression)
             self._identify(route, p.msg_type)
-            route.announces = announce and t.framing is Framing.ROSGATE and p.key is None
+            route.announces = announce and t.framing is Framing.ROSGATE
             if not t.qos_given:
                 route.qos_found = qos_found(self.ros.publishers_found(t.topic))
                 route.qos_in_use = route.qos_found or QOS_UNFOUND
@@ -160,7 +160,7 @@ class Router:
             assert link is not None
             route = CallerRoute(*args, link=link, destination=destination)
             self._identify(route, p.srv_type)
-            route.announces = announce and p.key is None
+            route.announces = announce
             if route.announces:
                 self.announce(route)
             route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, route.on_request)

@@ -4,6 +4,8 @@ the others, so there is no main line, no ``peer:`` and no ``port:``.
 * A topic is published on its key; a receiving topic subscribes to its key and is found by it
   (the envelope's topic id must be the key's: a frame moved to another key is refused).
 * A service is a queryable on its key (``receive``) or one query per call (``transmit``).
+* The sending side of each entry announces its type on the entry's key (:mod:`rosgate.announce`):
+  a topic beside its messages, a service's caller as a query that servers close unanswered.
 * Each bridge holds a liveliness token (:meth:`rosgate.bus.BusTransport.alive_key`).
 * An entry whose name holds placeholders (``/{robot}/scan``) is the bus's own
   (:attr:`rosgate.bus.BusTransport.templates`, the zenoh plugin's fleets): it makes its routes
@@ -31,6 +33,10 @@ from ..spec import ServiceSpec, TopicSpec
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
 from . import Bridge, NoLink
+
+#: what a topic's frame on its key may say besides being a message: an announcement of the
+#: entry, or a payload its sender transformed (compressed)
+_TOPIC_FLAGS = envelope.FLAG_ANNOUNCE | envelope.FLAG_COMPRESSED
 
 
 class BusWiring:
@@ -119,11 +125,18 @@ class BusWiring:
 
     def _request(self, route: ServerRoute, link: BusLink, frame: bytes, answerer: Link,
                  source: tuple[str, int]) -> None:
-        """A query's payload must be a call of this service (its id, the REQUEST flag)."""
+        """A query's payload must be a call of this service (its id, the REQUEST flag), or its
+        caller's announcement, which is heard and closed without an answer."""
         try:
             header = envelope.unpack(frame)
         except envelope.EnvelopeError as exc:
             route.drop(exc.reason, f"a query on {source[0]}")
+            return
+        if header.topic_id == route.topic_id and header.flags == envelope.FLAG_ANNOUNCE:
+            query = link.take(source[1])
+            if query is not None:
+                query.close()
+            route.heard(header, frame)
             return
         if not header.flags & envelope.FLAG_REQUEST or header.topic_id != route.topic_id:
             route.drop(Drop.UNEXPECTED_FRAME, f"a query on {source[0]} that is not a call of it")
@@ -151,9 +164,10 @@ class BusWiring:
         assert isinstance(route, ReceiveRoute)
         return route
 
-    @staticmethod
-    def dispatch(route: ReceiveRoute, key: str, frame: bytes) -> None:
-        """A frame from the route's key: bare, or an envelope that names this key's topic."""
+    def dispatch(self, route: ReceiveRoute, key: str, frame: bytes) -> None:
+        """A frame from the route's key: bare, or an envelope that names this key's topic: a
+        message, or the sender's announcement of the entry (its type checked, its QoS
+        followed)."""
         if route.topic.framing is Framing.NONE:
             route.deliver(frame, len(frame))
             return
@@ -162,9 +176,15 @@ class BusWiring:
         except envelope.EnvelopeError as exc:
             route.drop(exc.reason, f"{len(frame)} bytes on {key}")
             return
-        if header.flags or header.topic_id != route.topic_id:
-            route.drop(Drop.UNEXPECTED_FRAME, f"on {key}: not a frame of this topic (flags "
-                                              f"{header.flags:#x}, topic id {header.topic_id})")
+        if header.flags & ~_TOPIC_FLAGS or header.topic_id != route.topic_id:
+            route.drop(Drop.UNEXPECTED_FRAME,
+                       f"on {key}: not a frame of this topic (flags {header.flags:#x}, "
+                       f"topic id {header.topic_id})")
+            return
+        if header.flags & envelope.FLAG_ANNOUNCE:
+            heard = route.heard(header, frame)
+            if heard is not None:
+                self.router.follow_qos(route, heard[1])
             return
         route.on_frame(header, frame)
 

@@ -13,6 +13,10 @@ bridge does: topics with ``framing: none`` and ``codec: cdr``, services with ``c
 * a transient_local topic sent out keeps its last ``depth`` samples for late joiners to query
   (zenoh-ext's publication cache, as that bridge does), and a transient_local topic received
   asks the publishers on its key for theirs when it starts and when they appear;
+* an action (``codec: cdr``, ``cipher: none``) is that bridge's ``<key>/_action/`` layout: its
+  three services and two topics as above, under ``<key>/_action/send_goal|cancel_goal|
+  get_result|feedback|status``, with one token for the action (``AS`` served here, ``AC``
+  called from here) on ``<key>`` with the action's type, and none for its parts;
 * a service is a queryable whose query is the request's CDR and whose answer is the response's;
   calls from here carry that bridge's request-header attachment. A call the serving side could
   not answer gets no answer (that bridge has no way to say why), so the caller's timeout speaks;
@@ -25,17 +29,20 @@ envelope that this module adds and removes at the bus's edge, with the ``none`` 
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import os
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from rosgate.bus import Handle
 from rosgate.buslink import BusAnswerer, BusLink, BusOutlet
 from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
 from rosgate.drops import Drop
 from rosgate.links import Link, Sender
 from rosgate.ros import qos_profile
+from rosgate.routes import Route
 from rosgate.services import CallerRoute, ServerRoute
 from rosgate.spec import ServiceSpec, TopicSpec
 from rosgate.transport import Address
@@ -58,10 +65,12 @@ KEEP_ALL_HISTORY = 1000  # samples a keep_all transient_local topic keeps for la
 
 def speaks(entry: TopicConfig | ServiceConfig) -> bool:
     """Whether an entry carries bare CDR as zenoh-bridge-ros2dds does: a topic with
-    ``framing: none``, a service with no cipher (its calls lose their envelope on the bus)."""
+    ``framing: none``, a service with no cipher (its calls lose their envelope on the bus),
+    and the feedback and status of an action with no cipher (whose parts come framed)."""
     if entry.codec != "cdr" or entry.cipher != "none":
         return False
-    return isinstance(entry, ServiceConfig) or entry.framing is Framing.NONE
+    return (isinstance(entry, ServiceConfig) or entry.framing is Framing.NONE
+            or ros2dds.action_part(entry.topic) is not None)
 
 
 class Ros2dds:
@@ -77,44 +86,74 @@ class Ros2dds:
         """Every entry it names it can carry: bare framing already excludes a cipher."""
 
     def wire(self, wiring: BusWiring, link: BusLink, p: TopicSpec | ServiceSpec) -> None:
+        self.route(wiring, link, p)
+
+    def route(self, wiring: BusWiring, link: BusLink,
+              p: TopicSpec | ServiceSpec) -> tuple[Route, Handle | None]:
+        """One entry's route (a fleet entry's, filled for one robot, too) and the token it holds
+        (None: an action's part other than its ``send_goal``, which holds the action's)."""
         self.graph(link)
         session: ZenohSession = link.session  # type: ignore[assignment]
         zid = session.zid()
-        assert p.key is not None
+        key = p.key
+        assert key is not None
+        part = ros2dds.action_part(p.name)
         if isinstance(p, ServiceSpec):
-            self._service(wiring, link, p, zid)
-            return
+            return self._service(wiring, link, p, zid, part)
+        if part is not None:  # an action's feedback or status: bare CDR on the key, as topics
+            p = dataclasses.replace(p, config=dataclasses.replace(p.config,
+                                                                  framing=Framing.NONE))
         qos = Qos.of(qos_profile(p.config.qos))
         history = (KEEP_ALL_HISTORY if qos.keep_all else qos.depth) if qos.transient_local else 0
+        route: Route
         if p.config.direction is Direction.TRANSMIT:
-            publisher = session.publisher(p.key, reliable=p.delivery.reliable,
-                                          priority=p.delivery.priority,
-                                          history=history)
-            wiring.router.topic(p, topic_id_for(p.key), p.name,
-                                BusOutlet(link, p.key, publisher), bare_names=False)
-            link.token(ros2dds.token(zid, Kind.PUBLISHER, p.key, p.config.type, qos))
-            return
-        route = wiring.receiver(p)
-        link.keep(session.subscribe(p.key, link.queued(
-            lambda key, frame: wiring.dispatch(route, key, frame),
-            lambda key, reason: route.drop(reason)), history=history))
-        link.token(ros2dds.token(zid, Kind.SUBSCRIBER, p.key, p.config.type, qos))
+            publisher = session.publisher(key, reliable=p.delivery.reliable,
+                                          priority=p.delivery.priority, history=history)
+            route = wiring.router.topic(p, topic_id_for(key), p.name,
+                                        BusOutlet(link, key, publisher), bare_names=False)
+        else:
+            receiver = route = wiring.receiver(p)
+            link.keep(session.subscribe(key, link.queued(
+                lambda key, frame: wiring.dispatch(receiver, key, frame),
+                lambda key, reason: receiver.drop(reason)), history=history))
+        if part is not None:  # an action's parts have its token instead
+            return route, None
+        return route, link.token(self.topic_token(link, p))
 
-    def _service(self, wiring: BusWiring, link: BusLink, p: ServiceSpec, zid: str) -> None:
+    @staticmethod
+    def topic_token(link: BusLink, p: TopicSpec) -> str:
+        """The token of a topic's route: ``MP`` sent out, ``MS`` received, with its QoS."""
+        session: ZenohSession = link.session  # type: ignore[assignment]
+        kind = Kind.PUBLISHER if p.config.direction is Direction.TRANSMIT else Kind.SUBSCRIBER
         assert p.key is not None
+        return ros2dds.token(session.zid(), kind, p.key, p.config.type,
+                             Qos.of(qos_profile(p.config.qos)))
+
+    def _service(self, wiring: BusWiring, link: BusLink, p: ServiceSpec, zid: str,
+                 part: str | None) -> tuple[Route, Handle | None]:
+        assert p.key is not None
+        route: Route
         if p.config.direction is Direction.RECEIVE:
-            route = wiring.router.service(p, topic_id_for(p.key), p.name, None)
-            assert isinstance(route, ServerRoute)
-            answers = RawAnswers(link, route)
+            server = route = wiring.router.service(p, topic_id_for(p.key), p.name, None)
+            assert isinstance(server, ServerRoute)
+            answers = RawAnswers(link, server)
             link.serve(p.key, lambda payload, _answerer, source: answers.request(payload, source),
                        p.config.timeout + 1.0)
-            link.token(ros2dds.token(zid, Kind.SERVER, p.key, p.config.type))
-            return
-        calls = RawCalls(link, p.key, p.config.timeout)
-        caller = wiring.router.service(p, topic_id_for(p.key), p.name, calls)
-        assert isinstance(caller, CallerRoute)
-        calls.route = caller
-        link.token(ros2dds.token(zid, Kind.CLIENT, p.key, p.config.type))
+            kinds = Kind.SERVER, Kind.ACTION_SERVER
+        else:
+            calls = RawCalls(link, p.key, p.config.timeout)
+            # its calls are bare CDR: no envelope, so no announcement of rosgate's to say
+            caller = route = wiring.router.service(p, topic_id_for(p.key), p.name, calls,
+                                                   announce=False)
+            assert isinstance(caller, CallerRoute)
+            calls.route = caller
+            kinds = Kind.CLIENT, Kind.ACTION_CLIENT
+        if part is None:
+            return route, link.token(ros2dds.token(zid, kinds[0], p.key, p.config.type))
+        if part == "send_goal":  # one token for the action, with its first part
+            return route, link.token(ros2dds.token(zid, kinds[1],
+                                                   *ros2dds.action_of(p.key, p.config.type)))
+        return route, None
 
     def graph(self, link: BusLink) -> Graph:
         """The other bridges' routes as seen on ``link``, watched from its first entry on."""

@@ -9,6 +9,10 @@ fleet/{robot}/scan`` (:mod:`.placeholders`), the zenoh transport's
   (``<prefix>/*/@alive``) or the frames it received.
 * A robot whose token goes is logged once; its routes are dropped after ``bridge.fleet_timeout``
   seconds unless it returns (a robot known by its frames only: after that long without any).
+* With ``speak: ros2dds``, a robot's routes of entries that speak it are made as
+  zenoh-bridge-ros2dds makes them (:mod:`.dialect`: bare service calls, cached transient_local
+  topics) and hold its tokens (``MP``, ``MS``, ``SC`` on the robot's keys), which go with the
+  robot's routes.
 
 Everything here runs on the bus link's thread (routes are made and dropped in one thread) but
 the sweeper, which only queues a look at departed robots there.
@@ -39,7 +43,7 @@ from .ros2dds import Announced, Kind
 from .transport import ZenohTransport
 
 if TYPE_CHECKING:
-    from rosgate.bus import BusTransport
+    from rosgate.bus import BusTransport, Handle
 
 log = logging.getLogger("rosgate")
 
@@ -117,7 +121,10 @@ class Member:
     had_token: bool = False
     last_seen: float = field(default_factory=time.monotonic)
     gone_since: float | None = None
-    routes: dict[tuple[str, int], Route] = field(default_factory=dict)  # (section, index) ->
+    #: (section, index, name) -> its route; the name tells an action's five parts apart
+    routes: dict[tuple[str, int, str], Route] = field(default_factory=dict)
+    #: the zenoh-bridge-ros2dds tokens its routes hold (speak: ros2dds)
+    tokens: list[Handle] = field(default_factory=list)
 
 
 class Fleet:
@@ -199,12 +206,16 @@ class Fleet:
 
     def _receiver_for(self, member: Member, p: TopicSpec, names: Template, keys: Template,
                       values: dict[str, str]) -> ReceiveRoute:
-        route = member.routes.get(("topics", p.index))
+        slot = ("topics", p.index, p.name)
+        route = member.routes.get(slot)
         if route is None:
             filled = _filled(p, names, keys, values)
             assert isinstance(filled, TopicSpec)
             route = self.wiring.receiver(filled)
-            member.routes[("topics", p.index)] = route
+            member.routes[slot] = route
+            dialect = self._speaking(filled)
+            if dialect is not None:  # its frames come through the fleet's subscription
+                member.tokens.append(self.link.token(dialect.topic_token(self.link, filled)))
             log.info("fleet: publishing %s for robot %s (frames on %s)", filled.config.topic,
                      member.name, filled.key)
         assert isinstance(route, ReceiveRoute)
@@ -253,17 +264,31 @@ class Fleet:
     def _transmit_for(self, member: Member, p: Prepared, names: Template,
                       keys: Template) -> None:
         """A transmitting topic's route, or a service's caller, for one robot."""
-        slot = ("topics" if isinstance(p, TopicSpec) else "services", p.index)
+        slot = ("topics" if isinstance(p, TopicSpec) else "services", p.index, p.name)
         if slot in member.routes or member.name not in self.members:
             return
         filled = _filled(p, names, keys, {"robot": member.name})
+        dialect = self._speaking(filled)
+        if dialect is not None:  # as zenoh-bridge-ros2dds would route it, with its token
+            member.routes[slot], token = dialect.route(self.wiring, self.link, filled)
+            if token is not None:
+                member.tokens.append(token)
         if isinstance(filled, TopicSpec):
-            member.routes[slot] = self.wiring.transmitter(self.link, filled)
+            if dialect is None:
+                member.routes[slot] = self.wiring.transmitter(self.link, filled)
             log.info("fleet: sending %s to robot %s on %s", filled.name, member.name, filled.key)
             return
-        member.routes[slot] = self.wiring.caller(self.link, filled)
+        if dialect is None:
+            member.routes[slot] = self.wiring.caller(self.link, filled)
         log.info("fleet: offering %s, served by robot %s on %s", filled.name, member.name,
                  filled.key)
+
+    def _speaking(self, filled: Prepared) -> Ros2dds | None:
+        """The dialect, when a robot's route speaks it (``speak: ros2dds``, bare CDR)."""
+        dialect = self.link.transport.dialect
+        if isinstance(dialect, Ros2dds) and dialect.name(filled.config) is not None:
+            return dialect
+        return None
 
     def _sweep(self) -> None:
         now = time.monotonic()
@@ -279,6 +304,8 @@ class Fleet:
             del self.members[member.name]
             for route in member.routes.values():
                 self.wiring.remove(route)
+            for token in member.tokens:
+                self.link.release(token)
             log.warning("fleet: robot %s dropped (%s %.0f s ago): %d route(s) removed",
                         member.name, why, silent, len(member.routes))
 

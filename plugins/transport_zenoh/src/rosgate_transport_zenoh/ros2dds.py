@@ -9,11 +9,22 @@ Tokens::
     @/<zenoh id>/@ros2_lv/MS/<key>/<type>/<qos>             a subscriber: data is taken from <key>
     @/<zenoh id>/@ros2_lv/SS/<key>/<type>                   a service served on <key>
     @/<zenoh id>/@ros2_lv/SC/<key>/<type>                   a service called on <key>
+    @/<zenoh id>/@ros2_lv/AS/<key>/<type>                   an action served on <key>/_action/
+    @/<zenoh id>/@ros2_lv/AC/<key>/<type>                   an action called on <key>/_action/
 
 ``<key>`` and ``<type>`` (``geometry_msgs/msg/Twist``) with every ``/`` written ``§``;
 ``<qos>`` is ``[K]:<reliability>:<durability>:<history>,<depth>[:<user data>]`` in Cyclone DDS's
 numbers (best effort 0, reliable 1; volatile 0, transient local 1; keep last 0, keep all 1),
 ``K`` only for keyed types (no ROS message is keyed), an empty field for a policy left unset.
+
+Actions (``route_action_srv.rs``, ``route_action_cli.rs``, ``ros2_utils.rs``): an action keyed
+``<key>`` with type ``pkg/action/Name`` is three services and two topics under
+``<key>/_action/``: ``send_goal`` (``pkg/action/Name_SendGoal``), ``cancel_goal``
+(``action_msgs/srv/CancelGoal``), ``get_result`` (``pkg/action/Name_GetResult``), called as any
+service, and ``feedback`` (``pkg/action/Name_FeedbackMessage``, reliable, volatile) and
+``status`` (``action_msgs/msg/GoalStatusArray``, reliable, transient_local: cached and queried
+as any transient_local topic). The five parts hold no token of their own: the action holds one,
+``AS`` or ``AC``, on ``<key>`` with the action's type.
 
 Service calls: the query's payload is the request's CDR (with its 4-byte encapsulation header),
 the answer the response's CDR; a bridge's query carries the attachment ``b"rqh"`` + the 16-byte
@@ -81,6 +92,24 @@ class Qos:
             raise ValueError(f"QoS chunk {chunk!r}: history is not <kind>,<depth>")
         return cls(reliable=parts[1] != "0", transient_local=parts[2] == "1",
                    keep_all=history[0] == "1", depth=int(history[1]))
+
+
+#: the parts of an action, each under ``<key>/_action/``
+ACTION_PARTS = ("send_goal", "cancel_goal", "get_result", "feedback", "status")
+_ACTION = "/_action/"
+
+
+def action_part(name: str) -> str | None:
+    """Which part of an action a ROS name or a key is (``/fib/_action/send_goal``:
+    ``send_goal``), as that bridge tells them apart (by the name's end); None: no part."""
+    head, found, part = name.rpartition(_ACTION)
+    return part if found and head and part in ACTION_PARTS else None
+
+
+def action_of(key: str, part_type: str) -> tuple[str, str]:
+    """The key and the type of the action whose ``send_goal`` part is ``key`` with
+    ``part_type`` (``bot1/fib/_action/send_goal``, ``pkg/action/Fib_SendGoal``)."""
+    return (key.removesuffix(f"{_ACTION}send_goal"), part_type.removesuffix("_SendGoal"))
 
 
 def escape(text: str) -> str:
