@@ -38,7 +38,7 @@ services:
   - {service: '/{robot}/reset', type: std_srvs/srv/Trigger, direction: transmit,
      remote: 'fleet/{robot}/reset'}
 """)
-    assert [(t.key, t.priority, t.reliable) for t in p.topics] == [
+    assert [(t.key, t.delivery.priority, t.delivery.reliable) for t in p.topics] == [
         ("rosgate/robot-1/scan", 5, False),  # <prefix>/<bridge name>/<topic>
         ("fleet/robot-1/cmd", 5, True),      # remote: a key, as written
         ("camera/image", 7, True),           # framing none: the ROS name, as ros2dds keys it
@@ -59,7 +59,7 @@ topics:
   - {topic: /d, type: std_msgs/msg/String, direction: transmit, port: 9, latest_only: true,
      transport: tcp}
 """)
-    assert [(t.priority, t.latest_only) for t in p.topics] == [
+    assert [(t.delivery.priority, t.delivery.latest_only) for t in p.topics] == [
         (3, False), (5, True), (2, False), (5, True)]
 
 

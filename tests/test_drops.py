@@ -5,6 +5,8 @@ string where a reason is counted fails here."""
 from __future__ import annotations
 
 import ast
+import importlib
+import inspect
 import re
 from collections import Counter
 from pathlib import Path
@@ -43,9 +45,14 @@ def bare_reasons(source: str) -> list[tuple[int, str]]:
     return found
 
 
-def _plugin_reasons() -> list[PluginDrop]:
-    import rosgate_mcu_cvra.calls  # noqa: F401  (declares its reasons)
+#: the plugin modules that declare reasons of their own, and the page that explains them
+PLUGIN_PAGES = {"rosgate_mcu_cvra.calls": "microcontrollers.md",
+                "rosgate_transport_zenoh.rmw_dialect": "fleets.md"}
 
+
+def _plugin_reasons() -> list[PluginDrop]:
+    for module in PLUGIN_PAGES:
+        importlib.import_module(module)  # declares its reasons
     return drops.declared()
 
 
@@ -117,12 +124,17 @@ def test_the_table_check_fails_when_a_row_is_missing():
 
 
 def test_every_reason_a_plugin_declares_is_on_its_page():
-    page = (ROOT / "docs" / "microcontrollers.md").read_text(encoding="utf-8")
     declared = _plugin_reasons()
-    assert {"bad_crc", "too_long", "no_answer", "connect_failed"} <= set(declared)
-    for reason in declared:
-        assert reason.doc
-        assert f"`{reason}`" in page, f"{reason} ({reason.doc}) is not in microcontrollers.md"
+    assert {"bad_crc", "too_long", "no_answer", "connect_failed", "bad_attachment"} <= \
+        set(declared)
+    for module, name in PLUGIN_PAGES.items():
+        page = (ROOT / "docs" / name).read_text(encoding="utf-8")
+        source = inspect.getsource(importlib.import_module(module))
+        own = [reason for reason in declared if f'declare("{reason}"' in source]
+        assert own, f"{module} declares no reason"
+        for reason in own:
+            assert reason.doc
+            assert f"`{reason}`" in page, f"{reason} ({reason.doc}) is not in {name}"
 
 
 def test_declare_gives_one_reason_per_name_and_refuses_the_cores():

@@ -117,15 +117,17 @@ def message(i: int) -> bytes:
 
 def test_what_comes_in_a_window_leaves_in_one_call_in_order():
     waiting: deque = deque()
-    route, link, batches = batching(0.002, waiting)
+    # a window far longer than this test can be descheduled for: what it asserts of the
+    # window's end does not depend on the machine's load
+    route, link, batches = batching(10.0, waiting)
     opened = time.monotonic()
     for i in range(3):  # the executor hands them over one by one: the window holds them
         route.on_message(message(i))
     assert link.calls == [] and batches
     waiting.extend(message(i) for i in range(3, 40))  # arrived while the executor slept
     wait = batches.close_due(time.monotonic())
-    assert wait is not None and 0 < wait <= 0.002 - (time.monotonic() - opened) + 1e-3
-    assert batches.close_due(opened + 0.0021) is None
+    assert wait is not None and 0 < wait <= 10.0 - (time.monotonic() - opened) + 1e-3
+    assert batches.close_due(opened + 10.0001) is None
     assert len(link.calls) == 1  # one call: the link puts them in as few datagrams as fit
     frames = link.calls[0]
     assert [f[envelope.SIZE:] for f in frames] == [message(i) for i in range(40)]
@@ -133,7 +135,7 @@ def test_what_comes_in_a_window_leaves_in_one_call_in_order():
     assert route.counters.sent == 40 and not waiting and not route.pending
     route.on_message(message(40))  # the next message opens the next window
     assert link.calls == [frames] and batches
-    batches.close_due(time.monotonic() + 1)
+    batches.close_due(time.monotonic() + 11)
     assert [f[envelope.SIZE:] for f in link.calls[1]] == [message(40)]
 
 

@@ -43,6 +43,7 @@ import zenoh.ext
 
 from rosgate.buslink import BusLink, BusOutlet
 from rosgate.config import Direction, ServiceConfig, TopicConfig
+from rosgate.drops import declare
 from rosgate.errors import ConfigError
 from rosgate.ros import TypeNotFound, qos_profile, resolve_type, type_hash
 from rosgate.services import CallerRoute, ServerRoute
@@ -59,6 +60,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("rosgate")
 
 NAME = "rmw_zenoh"
+BAD_ATTACHMENT = declare("bad_attachment", "an rmw_zenoh sample or call without a readable "
+                         "attachment (sequence number, timestamp, GID)")
 #: what rmw_zenoh's tokens say of a service's QoS: ROS's services profile (reliable, volatile,
 #: keep last 10)
 SERVICE_QOS = rmw.Qos(durability=2, depth=10)
@@ -132,7 +135,7 @@ class RmwZenoh:
             try:
                 rmw.read_attachment(attachment.to_bytes() if attachment is not None else None)
             except ValueError as exc:
-                link.call_later(route.drop, "bad_attachment", f"on {key}: {exc}")
+                link.call_later(route.drop, BAD_ATTACHMENT, f"on {key}: {exc}")
                 return
             arrived(key, s.payload.to_bytes())
 
@@ -153,14 +156,15 @@ class RmwZenoh:
             route = wiring.router.service(p, topic_id_for(key), p.name, None)
             assert isinstance(route, ServerRoute)
             answers = RawAnswers(link, route)
-            session.refused[key] = lambda detail: link.call_later(route.drop, "bad_attachment",
+            session.refused[key] = lambda detail: link.call_later(route.drop, BAD_ATTACHMENT,
                                                                   detail)
             link.serve(key, lambda payload, _answerer, source: answers.request(payload, source),
                        p.config.timeout + 1.0)
             return
         session.callers[key] = (entity.gid(), itertools.count(1))
         calls = RawCalls(link, key, p.config.timeout)
-        caller = wiring.router.service(p, topic_id_for(key), p.name, calls)
+        # its calls are bare CDR: no envelope, so no announcement of rosgate's to say
+        caller = wiring.router.service(p, topic_id_for(key), p.name, calls, announce=False)
         assert isinstance(caller, CallerRoute)
         calls.route = caller
 
