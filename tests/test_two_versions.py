@@ -3,7 +3,8 @@ generated and compiled here by ROS's own generators (tests/generated.py), v1 ``f
 and v2 ``float64 value`` + ``string unit``, each in a prefix of its own. Every bridge, talker and
 listener is a process whose PYTHONPATH, LD_LIBRARY_PATH and AMENT_PREFIX_PATH hold one version.
 
-The type check refuses the entry: the hashes differ as the type supports give them, nothing is
+The type check refuses the entry on every role (a peer link, client/server, a zenoh bus through
+a real ``rosgate router``): the hashes differ as the type supports give them, nothing is
 published, every frame is counted ``type_mismatch``, and the refusing bridge says so in one
 sentence naming both hashes. One version on both sides crosses exact (the control)."""
 
@@ -22,6 +23,8 @@ from typing import Any
 import generated
 import pytest
 from conftest import free_port, wait_until
+from test_zenoh_fleet import Router, zenoh_plugin
+from test_zenoh_type_check import router  # noqa: F401  (the zenoh role's router, a fixture)
 
 from rosgate import runtime
 
@@ -161,9 +164,17 @@ def receiving(name: str) -> dict[str, Any]:
     return entry
 
 
-def files(tmp_path: Path, role: str, port: int) -> tuple[tuple[str, Path], tuple[str, Path]]:
-    """(name, file) of the sending bridge and of the receiving one."""
-    if role == "peer":
+def files(tmp_path: Path, role: str, port: int,
+          bus_router: Router | None = None) -> tuple[tuple[str, Path], tuple[str, Path]]:
+    """(name, file) of the sending bridge and of the receiving one; the zenoh role's both
+    reach each other through ``bus_router``."""
+    if role == "zenoh":
+        assert bus_router is not None
+        sides = [(name, f"bridge: {{name: {name}, role: peer, defaults: {{transport: zenoh}}}}\n"
+                        f"{zenoh_plugin(bus_router)}topics: [{{topic: /reading, type: {TYPE}, "
+                        f"direction: {direction}, remote: fleet/reading}}]\n")
+                 for name, direction in (("robot1", "transmit"), ("base", "receive"))]
+    elif role == "peer":
         entry = f"{{topic: /reading, type: {TYPE}, port: {port}, direction: "
         sides = [(name, f"bridge: {{name: {name}, role: peer, peer: 127.0.0.1, listen: "
                         f"127.0.0.1}}\ntopics: [{entry}{direction}}}]\n")
@@ -182,10 +193,11 @@ def files(tmp_path: Path, role: str, port: int) -> tuple[tuple[str, Path], tuple
 
 
 def start_pair(bridge, tmp_path: Path, role: str, sending: tuple[Path, int],
-               receiving_side: tuple[Path, int]) -> tuple[Any, Any]:
+               receiving_side: tuple[Path, int],
+               bus_router: Router | None = None) -> tuple[Any, Any]:
     """Bridges for (version prefix, domain) each, the receiving one first (a server must be up
-    before its client; a peer receiver hears its sender's first announcement)."""
-    (_, send_file), (_, receive_file) = files(tmp_path, role, free_port())
+    before its client; a peer or bus receiver hears its sender's first announcement)."""
+    (_, send_file), (_, receive_file) = files(tmp_path, role, free_port(), bus_router)
     receiver = bridge(receive_file, receiving_side[1],
                       env=generated.environment(receiving_side[0]))
     sender = bridge(send_file, sending[1], env=generated.environment(sending[0]))
@@ -199,14 +211,19 @@ def test_the_two_versions_hashes_differ_as_their_type_supports_give_them(version
     assert (v1, v2) == (described_hash(versions["v1"]), described_hash(versions["v2"]))
 
 
-@pytest.mark.parametrize("role", ["peer", "client_server"])
+def bus(request: pytest.FixtureRequest, role: str) -> Router | None:
+    """A ``rosgate router`` for the zenoh role (none for the others)."""
+    return request.getfixturevalue("router") if role == "zenoh" else None
+
+
+@pytest.mark.parametrize("role", ["peer", "client_server", "zenoh"])
 def test_two_versions_of_one_message_are_refused_counted_and_said(
-        versions, hashes, bridge, domain, nodes, tmp_path, status_dir, role):
+        versions, hashes, bridge, domain, nodes, tmp_path, status_dir, request, role):
     ds, dr = domain(), domain()
     listener = nodes(versions["v2"], dr, "listen")  # starting while the bridges start
     talker = nodes(versions["v1"], ds, "talk")
     sender, receiver = start_pair(bridge, tmp_path, role, (versions["v1"], ds),
-                                  (versions["v2"], dr))
+                                  (versions["v2"], dr), bus(request, role))
     name = "b" if role == "peer" else "base"
     listener.ready(), talker.ready()
     assert wait_until(lambda: receiving(name)["drops"].get("type_mismatch", 0) >= 10, 30), \
@@ -216,7 +233,7 @@ def test_two_versions_of_one_message_are_refused_counted_and_said(
     assert entry["type"] == TYPE
     assert len(talker.having("published")) >= 10
     assert listener.having("got") == []
-    label = "/reading" if role == "peer" else "/reading (from robot1)"
+    label = "/reading (from robot1)" if role == "client_server" else "/reading"
     said = [line for line in receiver.log.splitlines() if "refused, the far side's type" in line]
     assert len(said) == 1, receiver.log
     assert said[0].endswith(
@@ -224,18 +241,21 @@ def test_two_versions_of_one_message_are_refused_counted_and_said(
         f"side's is {TYPE} ({hashes['v2']}), so its frames are dropped"), said
 
 
+@pytest.mark.parametrize("role", ["peer", "zenoh"])
 def test_one_version_on_both_sides_crosses_exact(versions, bridge, domain, nodes, tmp_path,
-                                                 status_dir):
+                                                 status_dir, request, role):
     """The control: the generated package itself crosses, field by field."""
     ds, dr = domain(), domain()
     listener = nodes(versions["v2"], dr, "listen")
     talker = nodes(versions["v2"], ds, "talk")
-    start_pair(bridge, tmp_path, "peer", (versions["v2"], ds), (versions["v2"], dr))
+    _, receiver = start_pair(bridge, tmp_path, role, (versions["v2"], ds), (versions["v2"], dr),
+                            bus(request, role))
     listener.ready(), talker.ready()
     assert listener.wait(lambda lines: sum(line.startswith("got") for line in lines) >= 5, 30), \
         listener.lines
     for line in listener.having("got"):
         _, value, unit = line.split(" ", 2)
         assert float(value) % 1 == 0.25 and unit == "'°C ✓'", line
-    entry = receiving("b")
+    entry = receiving("b" if role == "peer" else "base")
     assert entry["received"] >= 5 and not entry["drops"], entry
+    assert "refused" not in receiver.log
