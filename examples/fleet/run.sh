@@ -23,7 +23,8 @@ trap 'kill -INT "${pids[@]}" 2>/dev/null; wait' INT TERM EXIT
     --robot robot1 --robot robot2 & pids+=($!)
 for _ in $(seq 300); do                 # the bridges are zenoh clients: the router first
     (exec 3<>/dev/tcp/127.0.0.1/7447) 2>/dev/null && break
-    kill -0 "${pids[0]}" && sleep 0.1
+    kill -0 "${pids[0]}" 2>/dev/null || { echo "run.sh: the router stopped" >&2; exit 1; }
+    sleep 0.1
 done
 ROS_DOMAIN_ID="${ROBOT1_DOMAIN:-1}" "$rosgate" run robot1.yaml & pids+=($!)
 ROS_DOMAIN_ID="${ROBOT2_DOMAIN:-2}" "$rosgate" run robot2.yaml & pids+=($!)
