@@ -70,8 +70,8 @@ def test_through_the_access_control_a_robot_reaches_a_fleet_subscription(tmp_pat
     """What a base's fleet entry needs from ``rosgate router --tls --robot --base``: a robot's
     declared publisher puts on its own key into the base's ``fleet/*/odom`` (a key expression no
     robot owns, which the robot must still learn of, or its publisher sends nothing); its token
-    under the router's prefix reaches the base, one under the plugin's default prefix does not;
-    and another robot hears none of it."""
+    under the router's prefix and under the plugin's default prefix reach the base, one it
+    declares for another robot does not; and another robot hears none of it."""
     certs = fleet.certificates(tmp_path, ["robot1", "robot2"])
     router = Router("--tls", str(certs), "--robot", "robot1", "--robot", "robot2", "--base",
                     fleet.BASE, scheme="tls")
@@ -88,12 +88,13 @@ def test_through_the_access_control_a_robot_reaches_a_fleet_subscription(tmp_pat
                 indirect=False)
 
         base.declare_subscriber("fleet/*/odom", into("base"))
-        base.liveliness().declare_subscriber("fleet/*/@alive", into("tokens"))
-        base.liveliness().declare_subscriber("rosgate/*/@alive", into("tokens"))
+        for alive in ("fleet/*/@alive", "rosgate/*/@alive"):  # history: tokens declared before
+            base.liveliness().declare_subscriber(alive, into("tokens"), history=True)  # it too
         robot2.declare_subscriber("fleet/robot1/**", into("robot2"))
         odom = robot1.declare_publisher("fleet/robot1/odom")
-        _tokens = [robot1.liveliness().declare_token(f"{prefix}/robot1/@alive")
-                  for prefix in ("rosgate", "fleet")]
+        _tokens = [robot1.liveliness().declare_token(key)  # robot2's first: refused
+                   for key in ("rosgate/robot2/@alive", "fleet/robot2/@alive",
+                               "rosgate/robot1/@alive", "fleet/robot1/@alive")]
         n = 0
         while not wait_until(lambda: bool(got["base"]), 0.2):
             assert n < 100, "robot1's publisher never reached the base's fleet subscription"
@@ -102,8 +103,9 @@ def test_through_the_access_control_a_robot_reaches_a_fleet_subscription(tmp_pat
         odom.put("last")
         assert wait_until(lambda: got["base"][-1] == "fleet/robot1/odom last", TIMEOUT)
         assert got["base"][-2:] == [f"fleet/robot1/odom odom {n}", "fleet/robot1/odom last"]
-        assert wait_until(lambda: bool(got["tokens"]), TIMEOUT)
-        assert [t.split()[0] for t in got["tokens"]] == ["fleet/robot1/@alive"]
+        assert wait_until(lambda: len({t.split()[0] for t in got["tokens"]}) >= 2, TIMEOUT)
+        assert {t.split()[0] for t in got["tokens"]} == {"fleet/robot1/@alive",
+                                                         "rosgate/robot1/@alive"}
         assert got["robot2"] == []
     finally:
         for s in sessions:

@@ -1,5 +1,6 @@
 """examples/fleet: its files pass ``rosgate check``, and run.sh — the docker-compose.yml fleet as
-plain processes — carries a robot's odometry to the base and the base's commands to a robot."""
+plain processes — makes the fleet's certificates, starts the router with mutual TLS and access
+control, and carries a robot's odometry to the base and the base's commands to a robot."""
 
 from __future__ import annotations
 
@@ -29,10 +30,15 @@ def test_the_example_files_pass_check(name):
 
 def test_run_sh_brings_up_the_fleet(tmp_path, domain, ros_side):
     folder = tmp_path / "fleet"
-    shutil.copytree(EXAMPLE, folder)
+    shutil.copytree(EXAMPLE, folder, ignore=shutil.ignore_patterns("certs"))  # run.sh makes them
     port = str(free_port())  # 7447 may be taken on a shared machine
     for path in [*folder.glob("*.yaml"), folder / "run.sh"]:
         path.write_text(path.read_text().replace("7447", port))
+    # the CA and the router's certificate already there: run.sh makes only the missing ones
+    made = subprocess.run([ROSGATE, "certs", "--out", str(folder / "certs"), "router"],
+                          capture_output=True, text=True, timeout=60)
+    assert made.returncode == 0, made.stderr
+    before = {name: (folder / "certs" / f"{name}.pem").read_bytes() for name in ("ca", "router")}
     d = {"robot1": domain(), "robot2": domain(), "base": domain()}
     env = dict(os.environ, ROBOT1_DOMAIN=str(d["robot1"]), ROBOT2_DOMAIN=str(d["robot2"]),
                BASE_DOMAIN=str(d["base"]), PYTHONUNBUFFERED="1")
@@ -69,3 +75,13 @@ def test_run_sh_brings_up_the_fleet(tmp_path, domain, ros_side):
     text = "\n".join(lines)
     assert "Traceback" not in text
     assert text.count("fleet: publishing /robot1/odom for robot robot1") == 1
+    for name in ("robot1", "robot2", "base"):  # made by run.sh's rosgate certs, with that CA
+        assert f"wrote certs/{name}.pem" in text and (folder / "certs" / f"{name}.pem").is_file()
+        assert (folder / "certs" / f"{name}.key").stat().st_mode & 0o077 == 0
+    for name, pem in before.items():  # kept as they were
+        assert f"wrote certs/{name}.pem" not in text
+        assert (folder / "certs" / f"{name}.pem").read_bytes() == pem
+    assert "listening on tls/127.0.0.1:" in text
+    assert "without TLS" not in text and "INSECURE" not in text
+    for robot in ("robot1", "robot2"):  # each robot's token passed the router's access control
+        assert f"fleet: robot {robot} joined (its liveliness token)" in text

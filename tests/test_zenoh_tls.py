@@ -56,6 +56,11 @@ def as_bridge(certs, name: str) -> dict:
 @pytest.fixture
 def robot1(tmp_path, certs, router, bridge, domain):
     d = domain()
+    return bridge(robot1_file(tmp_path, certs, router), d), d
+
+
+def robot1_file(tmp_path, certs, router: Router):
+    """robot1's file: the zenoh plugin's default prefix, so its token is rosgate/robot1/@alive."""
     path = tmp_path / "robot1.yaml"
     path.write_text(f"""\
 bridge: {{name: robot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}}}
@@ -66,7 +71,7 @@ topics:
   - {{topic: /odom, type: std_msgs/msg/String, direction: transmit, framing: none,
       remote: fleet/robot1/odom}}
 """)
-    return bridge(path, d), d
+    return path
 
 
 def test_a_session_without_a_certificate_cannot_connect(certs, router):
@@ -115,6 +120,35 @@ def test_a_robot_cannot_send_on_another_robots_keys_nor_take_them(certs, router,
     assert {deserialize_message(b, String).data for b in stolen} == {"forged"}
     for s in (robot2, base):
         s.close()
+
+
+def test_with_default_prefixes_the_base_learns_a_robot_from_its_token(tmp_path, certs, router,
+                                                                     bridge, domain):
+    """The router's default --prefix (fleet) and the zenoh plugin's default prefix (rosgate)
+    agree: robot1's token rosgate/robot1/@alive passes the access control, so the base knows
+    robot1 before any data; a robot's session cannot hold another robot's token."""
+    path = tmp_path / "base.yaml"
+    path.write_text(f"""\
+bridge: {{name: base, role: peer, defaults: {{transport: zenoh}}}}
+plugins: {{zenoh: {{mode: client, connect: [{router.endpoint}], tls: {certs}}}}}
+topics:
+  - {{topic: '/{{robot}}/odom', type: std_msgs/msg/String, direction: receive,
+     remote: 'fleet/{{robot}}/odom'}}
+""")
+    base = bridge(path, domain())
+    robot2 = session(router, as_bridge(certs, "robot2"))
+    try:  # robot2 claims robot1's token first, then its own, in order on one link
+        _tokens = [robot2.liveliness().declare_token(f"{prefix}/{name}/@alive")
+                   for name in ("robot1", "robot2") for prefix in ("rosgate", "fleet")]
+        assert base.wait_log("fleet: robot robot2 joined (its liveliness token)", TIMEOUT), \
+            base.log
+        assert "robot robot1" not in base.log, "robot2 held robot1's token"
+        bridge(robot1_file(tmp_path, certs, router), domain())  # no ROS publisher: no data
+        assert base.wait_log("fleet: robot robot1 joined (its liveliness token)", TIMEOUT), \
+            base.log
+        assert "fleet: publishing" not in base.log, "robot1 was learned before any frame"
+    finally:
+        robot2.close()
 
 
 def test_check_refuses_a_fleet_without_cipher_or_tls_unless_insecure(tmp_path):

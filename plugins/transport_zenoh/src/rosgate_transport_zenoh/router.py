@@ -18,10 +18,12 @@ from rosgate import Command, LinkError
 from rosgate.commands import stop_on_signals, wait_for_signal
 
 from .tls import access_control, make, zenoh_tls
-from .transport import ZenohSession, zenoh_message
+from .transport import ZenohSession, ZenohTransport, zenoh_message
 
 LISTEN = "tcp/0.0.0.0:7447"
 LISTEN_TLS = "tls/0.0.0.0:7447"
+#: the zenoh plugin's default prefix: a bridge's liveliness token unless its file sets prefix:
+TOKENS = ZenohTransport.Options.prefix
 
 log = logging.getLogger("rosgate")
 
@@ -39,7 +41,8 @@ def arguments(parser: argparse.ArgumentParser) -> None:
                         help="the router's certificate in DIR (default router)")
     parser.add_argument("--robot", action="append", default=[], metavar="NAME",
                         help="with --tls: a robot (its certificate's name) that may send and "
-                             "take only on PREFIX/NAME/**; repeatable. With a --robot or --base "
+                             "take only on PREFIX/NAME/**, its token PREFIX/NAME/@alive or "
+                             f"{TOKENS}/NAME/@alive; repeatable. With a --robot or --base "
                              "every other session is denied everything")
     parser.add_argument("--base", action="append", default=[], metavar="NAME",
                         help="with --tls: a base that may send and take on every key; repeatable")
@@ -78,7 +81,8 @@ def secured(args: argparse.Namespace) -> dict[str, Any]:
         raise LinkError(f"zenoh router: no certificate {exc}",
                         f"make it with 'rosgate certs --out {args.tls} {args.name}'") from None
     if args.robot or args.base:
-        extra["access_control"] = access_control(args.prefix, args.robot, args.base)
+        extra["access_control"] = access_control(args.prefix, args.robot, args.base,
+                                                 [TOKENS])
     return extra
 
 

@@ -9,11 +9,13 @@ A bridge with ``plugins: {zenoh: {tls: DIR}}`` presents ``DIR/<its name>.pem`` a
 peers whose certificate the CA signed (``transport.link.tls`` with ``enable_mtls``); its
 endpoints are ``tls/<host>:<port>``. The router's access control (:func:`access_control`) names
 robots by those common names: each robot may put, serve and hold tokens only on
-``<prefix>/<robot>/**`` (and its ``@alive``), and may subscribe or query only there; a base may
-do anything; anything else is denied. A robot is told of every subscription under
-``<prefix>/**`` (its key expression, no data): a zenoh publisher sends only while it knows a
-matching subscriber, and a base's fleet entry subscribes ``<prefix>/*/<topic>``, which is no key
-of the robot's own.
+``<prefix>/<robot>/**``, and may subscribe or query only there; its liveliness token may be
+``<prefix>/<robot>/@alive`` or, under each of ``tokens`` (the plugin's default prefix, which a
+bridge's token has unless its file sets ``prefix:``), ``<token prefix>/<robot>/@alive``, never
+another robot's; a base may do anything; anything else is denied. A robot is told of every
+subscription under ``<prefix>/**`` (its key expression, no data): a zenoh publisher sends only
+while it knows a matching subscriber, and a base's fleet entry subscribes ``<prefix>/*/<topic>``,
+which is no key of the robot's own.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 import datetime
 import ipaddress
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -52,11 +55,15 @@ def zenoh_tls(directory: str | Path, name: str) -> dict[str, Any]:
             "verify_name_on_connect": False}  # the CA and the ACL's common names identify peers
 
 
-def access_control(prefix: str, robots: list[str], bases: list[str]) -> dict[str, Any]:
-    """zenoh's ``access_control``: default deny; bases anything; each robot its own keys."""
+def access_control(prefix: str, robots: list[str], bases: list[str],
+                   tokens: Sequence[str] = ()) -> dict[str, Any]:
+    """zenoh's ``access_control``: default deny; bases anything; each robot its own keys and
+    its own liveliness token under ``prefix`` and under each of ``tokens``."""
+    alive = list(dict.fromkeys([prefix, *tokens]))  # zenoh's ** matches no @ chunk: named
     rules: list[dict[str, Any]] = [{"id": "base", "permission": "allow",
                                     "flows": ["ingress", "egress"], "messages": SEND + TAKE,
-                                    "key_exprs": ["**", "@/**", f"{prefix}/*/@alive"]}]
+                                    "key_exprs": ["**", "@/**",
+                                                  *(f"{p}/*/@alive" for p in alive)]}]
     subjects: list[dict[str, Any]] = [{"id": "bases", "cert_common_names": bases}] if bases \
         else []
     policies = [{"rules": ["base"], "subjects": ["bases"]}] if bases else []
@@ -64,7 +71,7 @@ def access_control(prefix: str, robots: list[str], bases: list[str]) -> dict[str
         rules.append({"id": "subscriptions", "permission": "allow", "flows": ["egress"],
                       "messages": ["declare_subscriber"], "key_exprs": [f"{prefix}/**"]})
     for robot in robots:
-        own = [f"{prefix}/{robot}/**", f"{prefix}/{robot}/@alive"]
+        own = [f"{prefix}/{robot}/**", *(f"{p}/{robot}/@alive" for p in alive)]
         rules.append({"id": f"robot {robot}", "permission": "allow",
                       "flows": ["ingress", "egress"], "messages": SEND + TAKE, "key_exprs": own})
         subjects.append({"id": robot, "cert_common_names": [robot]})
