@@ -211,3 +211,23 @@ def test_a_malformed_declaration_is_named():
     assert problem(BadDefault) == ("Plugin.Options.level: its default does not fit: must be at "
                                    "least 1, not 0")
     assert problem(Demo.Options) is None
+
+
+class Paths:
+    name = "paths"
+
+    @dataclass(frozen=True)
+    class Options:
+        folder: str | None = option(None, "a folder, relative to the file", relative=True)
+        label: str = option("x", "not a path")
+
+
+def test_a_relative_option_is_read_from_the_files_folder(tmp_path):
+    """A path option given as the file gives it is read from the bringup.yaml's folder, as a
+    cipher's key_file is; an absolute one, a plain string and an absent one are left alone."""
+    parsed = parse(Paths, {"folder": "certs", "label": "certs"}, tmp_path)
+    assert parsed.folder == str(tmp_path / "certs") and parsed.label == "certs"
+    assert parse(Paths, {"folder": "/etc/fleet"}, tmp_path).folder == "/etc/fleet"
+    assert parse(Paths, {}, tmp_path).folder is None
+    assert parse(Paths, {"folder": "certs"}).folder == "certs"  # no file: as given
+    assert [row.relative for row in declared(Paths)] == [True, False]

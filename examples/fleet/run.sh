@@ -7,7 +7,7 @@
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 rosgate="${1:-$here/../../.venv/bin/rosgate}"
-cd "$here"                              # the files say tls: certs
+cd "$here"                              # certs are made and read here (the router's --tls certs)
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 names=(router robot1 robot2 base)
 missing=()

@@ -47,6 +47,7 @@ import types
 import typing
 from collections.abc import Mapping
 from dataclasses import MISSING
+from pathlib import Path
 from typing import Any, Literal, Union
 
 from .errors import OptionError
@@ -59,7 +60,7 @@ def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = Non
            maximum: float | None = None, choices: typing.Sequence[Any] | None = None,
            above: float | None = None, excluded: typing.Sequence[Any] = (), unit: str = "",
            example: str | None = None, unset: str | None = None, key: str | None = None,
-           parse: typing.Callable[..., Any] | None = None) -> Any:
+           parse: typing.Callable[..., Any] | None = None, relative: bool = False) -> Any:
     """One option of a plugin's ``Options``, or one key of bringup.yaml's own schema: its default
     (none: the option is required), a one-line ``doc`` for ``rosgate plugins --options``, the
     generated reference and error messages, and optionally the range (``minimum``, ``maximum``,
@@ -70,7 +71,8 @@ def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = Non
     an ``example`` value for the fix of an error, what an absent key means when that is not a
     plain default (``unset``, which also makes a key without a default optional), the ``key``
     path when it is not the field's name ("reconnect.min"), and a ``parse`` function for a value
-    no type says (a ROS name, a QoS).
+    no type says (a ROS name, a QoS). ``relative``: a path, read relative to the bringup.yaml
+    that gives it (as a cipher's ``key_file`` is), not to the folder rosgate runs in.
 
     A thin wrapper over :func:`dataclasses.field`; list and dict defaults are copied per instance.
     """
@@ -79,7 +81,7 @@ def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = Non
     metadata = {"doc": doc, "minimum": minimum, "maximum": maximum,
                 "choices": tuple(choices) if choices is not None else None, "above": above,
                 "excluded": tuple(excluded), "unit": unit, "example": example, "unset": unset,
-                "key": key, "parse": parse}
+                "key": key, "parse": parse, "relative": relative}
     if isinstance(default, (list, dict)):
         return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
@@ -103,6 +105,7 @@ class Declared:
     unset: str | None = None
     key: str = ""  # the path under its table or section: the name, unless option(key=) says
     parse: typing.Callable[..., Any] | None = None
+    relative: bool = False  # a path, relative to the bringup.yaml that gives it
 
     @property
     def required(self) -> bool:
@@ -158,7 +161,8 @@ def fields_of(options: type) -> list[Declared]:
                              meta.get("minimum"), meta.get("maximum"), meta.get("choices"),
                              meta.get("above"),
                              meta.get("excluded", ()), meta.get("unit", ""), meta.get("example"),
-                             meta.get("unset"), meta.get("key") or f.name, meta.get("parse")))
+                             meta.get("unset"), meta.get("key") or f.name, meta.get("parse"),
+                             meta.get("relative", False)))
     return rows
 
 
@@ -190,10 +194,11 @@ def declaration_problem(cls: type) -> str | None:
     return None
 
 
-def parse(cls: Any, table: Mapping[str, Any]) -> Any:
+def parse(cls: Any, table: Mapping[str, Any], base_dir: Path | None = None) -> Any:
     """``table`` (a plugin's table under ``plugins:``) checked against ``cls.Options``: the
     ``Options`` instance, or :class:`rosgate.OptionError` naming the key that is wrong and how to
-    fix it. A class without ``Options`` takes none: its table must be empty, and it gets ``{}``."""
+    fix it. A class without ``Options`` takes none: its table must be empty, and it gets ``{}``.
+    ``base_dir``: the bringup.yaml's folder, which ``relative`` options' paths are read from."""
     rows = declared(cls)
     name = getattr(cls, "name", cls.__name__)
     by_name = {row.name: row for row in rows}
@@ -204,6 +209,8 @@ def parse(cls: Any, table: Mapping[str, Any]) -> Any:
     for row in rows:
         if row.name in table:
             values[row.name] = _check(row, table[row.name])
+            if row.relative and base_dir is not None and isinstance(values[row.name], str):
+                values[row.name] = str(base_dir / Path(values[row.name]).expanduser())
         elif row.required:
             raise OptionError(None, f"{name} needs the option {row.name!r} ({row.doc})",
                               f"add {row.name}: <{_words(row.type)}> under plugins: {name}:")

@@ -194,7 +194,7 @@ class Resolver:
         (``compression: {zstd: {level: 19}}``) over it; a mistake is located where it was
         written."""
         try:
-            return parse(cls, {**self._options(name), **own})
+            return parse(cls, {**self._options(name), **own}, self.config.base_dir)
         except OptionError as exc:
             if exc.key is not None and exc.key in own:
                 raise error(f"{asked_by}.{name}.{exc.key}", exc.message, exc.fix) from None
@@ -209,8 +209,9 @@ class Resolver:
                 decoder = None
                 if found is not None:
                     try:
-                        decoder = found.cls(parse(found.cls, self._options(found.name)),
-                                            DEFAULT_MAX_MESSAGE)
+                        options = parse(found.cls, self._options(found.name),
+                                        self.config.base_dir)
+                        decoder = found.cls(options, DEFAULT_MAX_MESSAGE)
                     except OptionError:
                         decoder = None  # rosgate check reports it; frames are counted
                 self._decoders[wire_id] = decoder
@@ -455,7 +456,7 @@ class Resolver:
         if name not in self.transports:
             cls = self.plugin("transport", name, key, error).cls
             try:
-                self.transports[name] = cls(parse(cls, self._options(name)))
+                self.transports[name] = cls(parse(cls, self._options(name), self.config.base_dir))
             except OptionError as exc:
                 raise self._option_error(name, exc, key, error) from None
         return self.transports[name]
@@ -464,7 +465,8 @@ class Resolver:
         if name not in self.ciphers:
             cls = self.plugin("cipher", name, key, error).cls
             try:
-                self.ciphers[name] = cls(parse(cls, self._options(name)), self.config.base_dir)
+                self.ciphers[name] = cls(parse(cls, self._options(name), self.config.base_dir),
+                                         self.config.base_dir)
             except OptionError as exc:
                 raise self._option_error(name, exc, key, error) from None
         return self.ciphers[name]
@@ -488,7 +490,7 @@ class Resolver:
         route)."""
         cls = self.plugin("codec", name, key, error).cls
         try:
-            return cls, parse(cls, self._options(name))
+            return cls, parse(cls, self._options(name), self.config.base_dir)
         except OptionError as exc:
             raise self._option_error(name, exc, key, error) from None
 

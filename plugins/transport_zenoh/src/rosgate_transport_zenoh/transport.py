@@ -110,7 +110,8 @@ class ZenohTransport(BusTransport):
             "of their keys and tokens); default: this bridge's own (ROS_DOMAIN_ID)", minimum=0)
         tls: str | None = option(
             None, "a folder of certificates made by 'rosgate certs': mutual TLS with the "
-            "fleet's CA, presenting <bridge name>.pem (endpoints tls/<host>:<port>)")
+            "fleet's CA, presenting <bridge name>.pem (endpoints tls/<host>:<port>); relative to "
+            "this file", relative=True)
         insecure: bool = option(
             False, "fleet entries without cipher and without TLS: allowed, loudly (anyone who "
             "reaches the router can read and send them)")
