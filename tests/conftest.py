@@ -15,7 +15,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -171,18 +171,31 @@ class RosSide:
         self.ros.close()
 
 
-@pytest.fixture
-def ros_side():
-    sides: list[RosSide] = []
+def sides_of(kind: Callable[[int, str], Any]) -> Iterator[Callable[..., Any]]:
+    """A fixture's maker of ROS sides of ``kind``, each closed when the test ends."""
+    sides: list[Any] = []
 
-    def make(domain_id: int, name: str = "side") -> RosSide:
-        side = RosSide(domain_id, f"{name}_{domain_id}")
+    def make(domain_id: int, name: str = "side") -> Any:
+        side = kind(domain_id, f"{name}_{domain_id}")
         sides.append(side)
         return side
 
     yield make
     for side in sides:
         side.close()
+
+
+@pytest.fixture
+def ros_side():
+    yield from sides_of(RosSide)
+
+
+@pytest.fixture
+def action_side():
+    """Sides with rclpy's own action servers and clients (tests/test_actions.py)."""
+    from test_actions import ActionSide
+
+    yield from sides_of(ActionSide)
 
 
 def cross(publisher: Any, inbox: Inbox, make: Callable[[int | None], Any],

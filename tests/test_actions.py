@@ -103,20 +103,6 @@ class ActionSide:
         self.context.try_shutdown()
 
 
-@pytest.fixture
-def action_side():
-    sides: list[ActionSide] = []
-
-    def make(domain_id: int, name: str) -> ActionSide:
-        side = ActionSide(domain_id, f"{name}_{domain_id}")
-        sides.append(side)
-        return side
-
-    yield make
-    for side in sides:
-        side.close()
-
-
 def settled(future: Any, timeout: float) -> Any:
     """What ``future`` (an rclpy future, done on the executor's threads) gave."""
     done = threading.Event()

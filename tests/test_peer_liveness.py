@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 from conftest import Bridge, free_port, wait_until
-from test_actions import Goal, action_side, settled, warmed_up  # noqa: F401  (a fixture)
+from test_actions import Goal, settled, warmed_up
 from test_msgs.action import Fibonacci
 from test_sessions_peer import identities
 
@@ -39,7 +39,7 @@ actions: [{{action: /fib, type: test_msgs/action/Fibonacci, direction: {directio
 
 @pytest.mark.parametrize("secure", [False, True], ids=["open", "identities"])
 def test_a_goal_ends_aborted_soon_after_the_serving_peer_dies(
-        tmp_path, engines, domain, action_side, logs, secure):  # noqa: F811
+        tmp_path, engines, domain, action_side, logs, secure):
     from action_msgs.msg import GoalStatus
 
     da, db = domain(), domain()
@@ -73,7 +73,7 @@ def test_a_goal_ends_aborted_soon_after_the_serving_peer_dies(
 
 
 def test_a_quiet_goal_on_a_live_open_peer_is_not_taken_for_a_lost_peer(
-        tmp_path, engines, domain, action_side, logs):  # noqa: F811
+        tmp_path, engines, domain, action_side, logs):
     """No feedback for longer than the silence that loses a peer: the far side's announcements
     keep it alive, and the goal succeeds."""
     from action_msgs.msg import GoalStatus

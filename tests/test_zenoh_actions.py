@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 from test_actions import (
-    ActionSide,
     Goal,
     check_a_goal_crosses,
     fibonacci,
@@ -26,20 +25,6 @@ def router():
     r = Router()
     yield r
     r.stop()
-
-
-@pytest.fixture
-def action_side():
-    sides: list[ActionSide] = []
-
-    def make(domain_id: int, name: str) -> ActionSide:
-        side = ActionSide(domain_id, f"{name}_{domain_id}")
-        sides.append(side)
-        return side
-
-    yield make
-    for side in sides:
-        side.close()
 
 
 def action_file(tmp: Path, name: str, router: Router, direction: str, timeout: float = 5) -> Path:

@@ -52,7 +52,15 @@ from rosgate.wire.envelope import topic_id_for
 
 from . import rmw
 from .dialect import KEEP_ALL_HISTORY, RawAnswers, RawCalls, speaks
-from .transport import _PRIORITIES, ZenohSession, _Declared, _direct, _Query, zenoh_message
+from .transport import (
+    _PRIORITIES,
+    ZenohSession,
+    _Declared,
+    _direct,
+    _Publisher,
+    _Query,
+    zenoh_message,
+)
 
 if TYPE_CHECKING:
     from rosgate.roles.bus import BusWiring
@@ -220,7 +228,7 @@ class Graph:
             log.info("%s %s: %s is gone", NAME, node.zid, what)
 
 
-class Publisher:
+class Publisher(_Publisher):
     """A topic's publisher on its rmw_zenoh key: every sample with rmw_zenoh's attachment."""
 
     def __init__(self, session: zenoh.Session, key: str, gid: bytes, *, reliable: bool,
@@ -228,14 +236,15 @@ class Publisher:
         self.gid = gid
         self.numbers = itertools.count(1)
         congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
-        self.publisher: Any
+        publisher: Any
         if history:  # transient_local: late joiners query the cache, as rmw_zenoh's do
-            self.publisher = zenoh.ext.declare_advanced_publisher(
+            publisher = zenoh.ext.declare_advanced_publisher(
                 session, key, congestion_control=congestion, priority=_PRIORITIES[priority - 1],
                 cache=zenoh.ext.CacheConfig(max_samples=history), publisher_detection=True)
         else:
-            self.publisher = session.declare_publisher(
+            publisher = session.declare_publisher(
                 key, congestion_control=congestion, priority=_PRIORITIES[priority - 1])
+        super().__init__(publisher)
 
     def put(self, frame: bytes) -> None:
         try:
@@ -243,12 +252,6 @@ class Publisher:
                                                                 time.time_ns(), self.gid))
         except zenoh.ZError as exc:
             raise OSError(zenoh_message(exc)) from None
-
-    def close(self) -> None:
-        try:
-            self.publisher.undeclare()
-        except zenoh.ZError:
-            pass
 
 
 def subscribe(session: zenoh.Session, key: str, sample: Callable[[zenoh.Sample], None],
