@@ -171,6 +171,13 @@ class RosSide:
         self.ros.close()
 
 
+@pytest.fixture(autouse=True)
+def _runtime_dir(tmp_path_factory, monkeypatch):
+    """Each test's bridges keep their status sockets in a folder of the test's own: a bridge of
+    the test before (still stopping) may bear the same name."""
+    monkeypatch.setenv("ROSGATE_RUNTIME_DIR", str(tmp_path_factory.mktemp("run")))
+
+
 def sides_of(kind: Callable[[int, str], Any]) -> Iterator[Callable[..., Any]]:
     """A fixture's maker of ROS sides of ``kind``, each closed when the test ends."""
     sides: list[Any] = []

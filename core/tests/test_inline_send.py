@@ -13,6 +13,7 @@ import math
 import random
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 
 import pytest
@@ -162,6 +163,10 @@ def test_on_a_budget_the_send_thread_finishes_what_the_bucket_cannot_hold(closin
     assert rx.wait_for(2)
     assert rx.frames == [first, second]
     assert camera.drops == []
+    # counted once the send returned, which may be a moment after the far side has the frame
+    deadline = time.monotonic() + 5
+    while a.counters.frames_out < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
     assert a.counters.frames_out == 2
     assert a.counters.inline_out == 0  # neither left whole from the caller
     per_frame = math.ceil(60_000 / (1_200 - framing.FRAGMENT.size))
