@@ -30,7 +30,8 @@ class Top:
 
     def __init__(self, *args: str):
         self.child = pexpect.spawn(ROSGATE, ["top", *args], env=dict(os.environ, TERM="xterm"),
-                                   dimensions=(60, 220), encoding="utf-8", timeout=10)
+                                   dimensions=(60, 220), encoding="utf-8", codec_errors="replace",
+                                   timeout=10)
         self.screen = ""
 
     def read(self, seconds: float) -> None:
@@ -139,7 +140,7 @@ def test_top_once_prints_one_frame(tmp_path, domain, bridge, runtime_dir):
     server.write_text(f"bridge: {{name: base, role: server, server: 127.0.0.1:{free_port()}}}\n")
     bridge(server, domain())
     out = ANSI.sub("", pexpect.run(f"{ROSGATE} top base --once --interval 0.2",
-                                   encoding="utf-8", timeout=20,
+                                   encoding="utf-8", codec_errors="replace", timeout=20,
                                    env=dict(os.environ, COLUMNS="160")))
     assert "q: quit" not in out
     assert "rosgate base (server)" in out and "topics and services" in out and "links" in out
