@@ -103,6 +103,17 @@ def closing():
         thing.close()
 
 
+def settles(condition, timeout: float = TIMEOUT) -> bool:
+    """Whether ``condition()`` holds within ``timeout``: a link's counters move after the
+    kernel has taken the packets, so the far side may hold a frame before they do."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
 def message(seq: int, size: int = 2_500) -> bytes:
     header = envelope.pack(0, 7, 1, seq, 0)
     return header + random.Random(seq).randbytes(size - len(header))
@@ -163,10 +174,7 @@ def test_on_a_budget_the_send_thread_finishes_what_the_bucket_cannot_hold(closin
     assert rx.wait_for(2)
     assert rx.frames == [first, second]
     assert camera.drops == []
-    # counted once the send returned, which may be a moment after the far side has the frame
-    deadline = time.monotonic() + 5
-    while a.counters.frames_out < 2 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    assert settles(lambda: a.counters.frames_out >= 2)
     assert a.counters.frames_out == 2
     assert a.counters.inline_out == 0  # neither left whole from the caller
     per_frame = math.ceil(60_000 / (1_200 - framing.FRAGMENT.size))
@@ -226,6 +234,7 @@ def test_a_frame_longer_than_what_leaves_inline_goes_from_the_send_thread_in_run
     packets = math.ceil(300_000 / (1_200 - framing.FRAGMENT.size))
     wire = a.endpoint
     assert wire.threads == {"tx-a"}
+    assert settles(lambda: a.counters.packets_out >= packets and a.counters.frames_out >= 1)
     assert a.counters.packets_out == packets
     assert max(wire.runs) == 64 and sum(wire.runs) >= packets - 1  # the first may go alone
     assert a.counters.frames_out == 1 and a.counters.inline_out == 0
