@@ -52,8 +52,8 @@ from typing import Any, Literal, Union
 
 from .errors import OptionError
 
-__all__ = ["MISSING", "Declared", "as_options", "declaration_problem", "declared", "fields_of",
-           "option", "parse", "spell"]
+__all__ = ["MISSING", "Declared", "as_options", "declaration_problem", "declared",
+           "did_you_mean", "fields_of", "option", "parse", "spell"]
 
 
 def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = None,
@@ -78,26 +78,28 @@ def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = Non
     """
     if not doc:
         raise TypeError("option() needs a doc: one line saying what the option does")
-    metadata = {"doc": doc, "minimum": minimum, "maximum": maximum,
-                "choices": tuple(choices) if choices is not None else None, "above": above,
-                "excluded": tuple(excluded), "unit": unit, "example": example, "unset": unset,
-                "key": key, "parse": parse, "relative": relative}
+    row = Declared(doc=doc, minimum=minimum, maximum=maximum, above=above, unit=unit,
+                   choices=tuple(choices) if choices is not None else None,
+                   excluded=tuple(excluded), example=example, unset=unset, key=key or "",
+                   parse=parse, relative=relative)
     if isinstance(default, (list, dict)):
-        return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata)
-    return dataclasses.field(default=default, metadata=metadata)
+        return dataclasses.field(default_factory=lambda: type(default)(default),
+                                 metadata={"option": row})
+    return dataclasses.field(default=default, metadata={"option": row})
 
 
 @dataclasses.dataclass(frozen=True)
 class Declared:
-    """One declared option, as ``rosgate plugins --options`` shows it."""
+    """One declared option, as :func:`option` says it and ``rosgate plugins --options`` shows
+    it; :func:`fields_of` adds what the field says (its name, type and default)."""
 
-    name: str
-    type: Any
-    default: Any  # MISSING when required
-    doc: str
-    minimum: float | None
-    maximum: float | None
-    choices: tuple[Any, ...] | None
+    name: str = ""
+    type: Any = Any
+    default: Any = dataclasses.field(default_factory=lambda: MISSING)  # MISSING: required
+    doc: str = ""
+    minimum: float | None = None
+    maximum: float | None = None
+    choices: tuple[Any, ...] | None = None
     above: float | None = None
     excluded: tuple[Any, ...] = ()
     unit: str = ""
@@ -110,6 +112,16 @@ class Declared:
     @property
     def required(self) -> bool:
         return self.default is MISSING and self.unset is None
+
+    def fits(self, value: Any) -> bool:
+        """Whether ``value`` (of the right type) is within the bounds, among the choices and
+        not excluded."""
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and (
+                self.minimum is not None and value < self.minimum
+                or self.above is not None and value <= self.above
+                or self.maximum is not None and value > self.maximum):
+            return False
+        return (self.choices is None or value in self.choices) and value not in self.excluded
 
     def limits(self) -> str:
         """The range or choices in words ("at least 1", "one of: a, b"), or ``""``."""
@@ -151,19 +163,11 @@ def fields_of(options: type) -> list[Declared]:
     """The fields of a dataclass, as options, in declaration order (a field not made with
     :func:`option` has an empty ``doc``)."""
     hints = typing.get_type_hints(options)
-    rows = []
-    for f in dataclasses.fields(options):
-        if not f.init:
-            continue
-        default = f.default if f.default_factory is MISSING else f.default_factory()
-        meta = f.metadata
-        rows.append(Declared(f.name, hints[f.name], default, meta.get("doc", ""),
-                             meta.get("minimum"), meta.get("maximum"), meta.get("choices"),
-                             meta.get("above"),
-                             meta.get("excluded", ()), meta.get("unit", ""), meta.get("example"),
-                             meta.get("unset"), meta.get("key") or f.name, meta.get("parse"),
-                             meta.get("relative", False)))
-    return rows
+    return [dataclasses.replace(
+        row, name=f.name, type=hints[f.name], key=row.key or f.name,
+        default=f.default if f.default_factory is MISSING else f.default_factory())
+        for f in dataclasses.fields(options) if f.init
+        for row in [f.metadata.get("option", Declared())]]
 
 
 def declaration_problem(cls: type) -> str | None:
@@ -240,12 +244,7 @@ def _check(row: Declared, given: Any) -> Any:
     except _Wrong:
         raise OptionError(row.name, f"must be {_words(row.type)}, not {_show(given)}",
                           row.describe()) from None
-    number = isinstance(value, (int, float)) and not isinstance(value, bool)
-    below = number and (row.minimum is not None and value < row.minimum
-                        or row.above is not None and value <= row.above)
-    above = number and row.maximum is not None and value > row.maximum
-    if (below or above or row.choices is not None and value not in row.choices
-            or value in row.excluded):
+    if not row.fits(value):
         raise OptionError(row.name, f"must be {row.limits()}, not {_show(given)}", row.describe())
     return value
 
@@ -365,8 +364,11 @@ def _show(value: Any) -> str:
 def _unknown(name: str, key: str, valid: list[str]) -> OptionError:
     if not valid:
         return OptionError(key, f"{name} takes no options", f"remove it from plugins: {name}:")
-    close = difflib.get_close_matches(key, valid, n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    return OptionError(key, f"unknown option of {name}{hint}",
+    return OptionError(key, f"unknown option of {name}{did_you_mean(key, valid)[1]}",
                        f"the options of {name} are {', '.join(valid)}")
 
+
+def did_you_mean(word: str, choices: typing.Sequence[str]) -> tuple[str | None, str]:
+    """The closest of ``choices`` to ``word`` (or None), and the hint that names it."""
+    close = difflib.get_close_matches(word, choices, n=1)
+    return (close[0], f" (did you mean '{close[0]}'?)") if close else (None, "")

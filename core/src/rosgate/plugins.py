@@ -23,7 +23,6 @@ blocks entry points by name (``builtin`` cannot be blocked: the core needs ``cdr
 
 from __future__ import annotations
 
-import difflib
 import inspect
 import os
 import threading
@@ -42,7 +41,7 @@ from .cipher import Cipher
 from .codec import Codec
 from .commands import Command, command_problem
 from .monitor import Monitor
-from .options import declaration_problem
+from .options import declaration_problem, did_you_mean
 from .packetizer import RESERVED_MAGIC, Packetizer
 from .service_framing import ServiceFraming
 from .transform import Transform
@@ -71,19 +70,11 @@ _OWN_DISTRIBUTIONS = {("packetizer", "fec"): "rosgate-recovery",
                       ("service_framing", "serial_datagram"): "rosgate-mcu-cvra"}
 
 
-def conventional_distribution(kind: str, name: str) -> str:
-    """The distribution that provides a plugin by the naming convention: ``rosgate-<kind>-<name>``
-    (``crypto`` for ciphers, ``compress`` for transforms, ``recovery`` for packetizers). A
-    convention only: one distribution may hold several plugins (``rosgate-recovery`` holds
-    ``fec`` and ``retransmit``)."""
-    return f"rosgate-{_DISTRIBUTION_WORD.get(kind, kind)}-{name}"
-
-
 def distribution_hint(kind: str, name: str) -> str:
     """Which distribution to install for a plugin that is not here: rosgate's own where one
-    provides it, else the one the convention names."""
+    provides it, else the one the naming convention gives, ``rosgate-<kind>-<name>``."""
     own = _OWN_DISTRIBUTIONS.get((kind, name))
-    return own if own else f"by convention {conventional_distribution(kind, name)}"
+    return own or f"by convention rosgate-{_DISTRIBUTION_WORD.get(kind, kind)}-{name}"
 
 
 def wire_keys(kind: str, cls: Any) -> list[tuple[str, Any]]:
@@ -375,10 +366,7 @@ def _check_class(cls: Any, base: type) -> str | None:
 
 def _misspelt(names: list[str]) -> str:
     hooks = sorted(h for h in dir(hookspecs) if h.startswith(HOOK_PREFIX))
-    parts = []
-    for name in names:
-        close = difflib.get_close_matches(name, hooks, n=1)
-        parts.append(f"{name!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    parts = [f"{name!r}{did_you_mean(name, hooks)[1]}" for name in names]
     return f"unknown hook {', '.join(parts)}; the hooks are {', '.join(hooks)}"
 
 

@@ -14,8 +14,8 @@ from enum import Enum
 from typing import Any
 
 from ..errors import ConfigError
-from ..options import Declared
-from .source import Source, did_you_mean, join, show
+from ..options import Declared, did_you_mean
+from .source import Source, join, show
 
 QOS_DEPTH_MAX = 100_000  # far past any real queue; rclpy fails on depths past 64 bits
 ROS_NAME_MAX = 200  # characters: rclpy refuses topic names past 247, service names sooner
@@ -95,13 +95,9 @@ def flag(key: Key, value: Any) -> bool:
 
 
 def number(key: Key, value: Any, integer: bool) -> int | float:
-    row = key.row
     if (isinstance(value, bool) or not isinstance(value, int if integer else (int, float))
-            or isinstance(value, float) and not math.isfinite(value)
-            or row.above is not None and value <= row.above
-            or row.minimum is not None and value < row.minimum
-            or row.maximum is not None and value > row.maximum or value in row.excluded):
-        raise key.error(f"expected {expected(row, integer)}, got {show(value)}")
+            or isinstance(value, float) and not math.isfinite(value) or not key.row.fits(value)):
+        raise key.error(f"expected {expected(key.row, integer)}, got {show(value)}")
     return value if integer else float(value)
 
 
@@ -232,8 +228,7 @@ def qos(key: Key, value: Any) -> int | str | dict:
 
 def _inner(key: Key, name: str, example: str) -> Key:
     """A key inside ``key``'s own mapping (qos: {depth: ...})."""
-    row = Declared(name, str, None, "", None, None, None, example=example, key=name)
-    return Key(key.src, key.path, row)
+    return Key(key.src, key.path, Declared(name, str, None, example=example, key=name))
 
 
 def _depth_bound(src: Source, path: str, depth: int) -> int:

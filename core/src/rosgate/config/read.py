@@ -7,10 +7,10 @@ from __future__ import annotations
 from functools import cache
 from typing import Any
 
-from ..options import Declared, fields_of
+from ..options import Declared, did_you_mean, fields_of
 from . import kinds
 from .kinds import Key
-from .source import Source, did_you_mean, join
+from .source import Source, join
 
 
 @cache
@@ -49,8 +49,7 @@ def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
                 continue
             row_path = join(path, under)
             if not isinstance(given, dict):
-                parent = Declared(under, dict, None, "", None, None, None,
-                                  example=example(section, under), key=under)
+                parent = Declared(under, dict, None, example=example(section, under), key=under)
                 kinds.mapping(Key(src, path, parent), given)
             if under not in checked:
                 check_keys(src, given, row_path, names(section, under))

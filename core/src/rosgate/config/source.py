@@ -3,7 +3,6 @@ error about a value names where it was written."""
 
 from __future__ import annotations
 
-import difflib
 import re
 from dataclasses import dataclass, field
 from typing import Any
@@ -161,9 +160,3 @@ def show(value: Any) -> str:
     if isinstance(value, list):
         return "a list"
     return repr(value)
-
-
-def did_you_mean(word: str, choices: tuple[str, ...] | list[str]) -> tuple[str | None, str]:
-    """The closest of ``choices`` to ``word`` (or None), and the hint that names it."""
-    close = difflib.get_close_matches(word, choices, n=1)
-    return (close[0], f" (did you mean '{close[0]}'?)") if close else (None, "")
