@@ -200,72 +200,65 @@ class Plugins:
             version: str = "?") -> None:
         """Register one plugin module (or hashable object with hook implementations) and collect
         what it registers. Tests use this to add a plugin in-process."""
-        with self._lock:
-            self._add(module, plugin, distribution, version)
-
-    def _add(self, module: Any, plugin: str, distribution: str, version: str) -> None:
         def fail(reason: str) -> None:
             self.failures.append(Failure(plugin, distribution, reason))
 
-        if self.manager.has_plugin(plugin):
-            return fail("a plugin of this name is already loaded")
-        try:
-            self.manager.register(module, name=plugin)
-        except Exception as exc:  # pluggy refuses a hook taking arguments the hook does not give
-            return fail(_reason(exc))
-        try:
-            self.manager.check_pending()
-        except pluggy.PluginValidationError as exc:
-            unknown = self.manager.unknown_hooks(exc.plugin)
-            self.manager.unregister(exc.plugin)
-            return fail(_misspelt(unknown) if unknown else str(exc))
-        for kind, (hook_name, base) in KINDS.items():
-            found: list[Any] = []
+        with self._lock:
+            if self.manager.has_plugin(plugin):
+                return fail("a plugin of this name is already loaded")
             try:
-                self.manager.call_for(module, hook_name, register=found.append)
-            except Exception as exc:
-                fail(f"{hook_name}: {_reason(exc)}")
-                continue  # what it registered before it raised is not kept
-            for cls in found:
-                problem = _check_class(cls, base)
+                self.manager.register(module, name=plugin)
+            except Exception as exc:  # pluggy refuses a hook taking arguments the spec lacks
+                return fail(_reason(exc))
+            try:
+                self.manager.check_pending()
+            except pluggy.PluginValidationError as exc:
+                unknown = self.manager.unknown_hooks(exc.plugin)
+                self.manager.unregister(exc.plugin)
+                return fail(_misspelt(unknown) if unknown else str(exc))
+            for kind, (hook_name, base) in KINDS.items():
+                for cls in self._call(module, hook_name, fail):
+                    problem = _check_class(cls, base) or self._clash(kind, cls)
+                    if problem:
+                        fail(problem)
+                        continue
+                    registration = Registration(kind, cls.name, cls, plugin, distribution, version)
+                    self.registered[(kind, cls.name)] = registration
+                    for wire in wire_keys(kind, cls):
+                        self.on_wire[wire] = registration
+            for command in self._call(module, "rosgate_commands", fail):
+                problem = command_problem(command)
+                if problem is None and command.name in self.commands:
+                    problem = (f"command {command.name!r} is already provided by "
+                               f"{self.commands[command.name].distribution}; skipped")
                 if problem:
                     fail(problem)
                     continue
-                key = (kind, cls.name)
-                if key in self.registered:
-                    first = self.registered[key]
-                    fail(f"{kind} {cls.name!r} is already provided by {first.distribution}; "
-                         "skipped")
-                    continue
-                claimed = [self.on_wire[w] for w in wire_keys(kind, cls) if w in self.on_wire]
-                if claimed:
-                    what = "wire_id" if kind == "transform" else "magic"
-                    fail(f"{kind} {cls.name!r} has the {what} of {claimed[0].name!r} "
-                         f"({claimed[0].distribution}); skipped")
-                    continue
-                registration = Registration(kind, cls.name, cls, plugin, distribution, version)
-                self.registered[key] = registration
-                for wire in wire_keys(kind, cls):
-                    self.on_wire[wire] = registration
-        self._add_commands(module, plugin, distribution, version, fail)
+                self.commands[command.name] = CommandRegistration(command, plugin, distribution,
+                                                                  version)
 
-    def _add_commands(self, module: Any, plugin: str, distribution: str, version: str,
-                      fail: Callable[[str], None]) -> None:
+    def _call(self, module: Any, hook_name: str, fail: Callable[[str], None]) -> list[Any]:
+        """What ``module``'s implementation of a hook registers: nothing when it raises (its
+        other hooks are still called)."""
         found: list[Any] = []
         try:
-            self.manager.call_for(module, "rosgate_commands", register=found.append)
+            self.manager.call_for(module, hook_name, register=found.append)
         except Exception as exc:
-            return fail(f"rosgate_commands: {_reason(exc)}")  # its other kinds are kept
-        for command in found:
-            problem = command_problem(command)
-            if problem is None and command.name in self.commands:
-                problem = (f"command {command.name!r} is already provided by "
-                           f"{self.commands[command.name].distribution}; skipped")
-            if problem:
-                fail(problem)
-                continue
-            self.commands[command.name] = CommandRegistration(command, plugin, distribution,
-                                                              version)
+            fail(f"{hook_name}: {_reason(exc)}")
+            return []
+        return found
+
+    def _clash(self, kind: str, cls: Any) -> str | None:
+        """Why ``cls`` cannot have its name or its wire id (magic), or ``None``."""
+        first = self.registered.get((kind, cls.name))
+        if first is not None:
+            return f"{kind} {cls.name!r} is already provided by {first.distribution}; skipped"
+        claimed = [self.on_wire[w] for w in wire_keys(kind, cls) if w in self.on_wire]
+        if claimed:
+            what = "wire_id" if kind == "transform" else "magic"
+            return (f"{kind} {cls.name!r} has the {what} of {claimed[0].name!r} "
+                    f"({claimed[0].distribution}); skipped")
+        return None
 
     def remove(self, plugin: str) -> None:
         """Forget a plugin added with :meth:`add` (tests)."""
