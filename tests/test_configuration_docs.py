@@ -9,7 +9,7 @@ import pytest
 
 from rosgate.config import BridgeConfig, ServiceConfig, TopicConfig, loads
 from rosgate.config.docs import BEGIN, COMMAND, END, render
-from rosgate.config.read import keys
+from rosgate.config.kinds import keys
 from rosgate.errors import ConfigError
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "configuration.md"

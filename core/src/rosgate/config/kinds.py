@@ -1,8 +1,8 @@
-"""The kinds of value a key of bringup.yaml may hold, each read from what YAML gave and checked,
-or refused with a ConfigError located at the key: the plain kinds a declared type names (text,
-one of some choices, a number in bounds, true or false), and those a schema field names with
-``option(parse=...)`` (a ROS name, a QoS, a bandwidth...). A parse function's docstring is its
-"values" column in docs/configuration.md."""
+"""Reading bringup.yaml against its declarations: a section's keys (an unknown one with the
+closest valid one, a required one missing) and each value by its kind, every mistake a ConfigError
+located at its key. The plain kinds are those a declared type names (text, choices, a number in
+bounds, true or false); a field names the others with ``option(parse=...)`` (a ROS name, a QoS, a
+bandwidth...), and a parse function's docstring is its "values" column in docs/configuration.md."""
 
 from __future__ import annotations
 
@@ -11,10 +11,11 @@ import math
 import re
 from dataclasses import dataclass
 from enum import Enum
+from functools import cache
 from typing import Any
 
 from ..errors import ConfigError
-from ..options import Declared, did_you_mean
+from ..options import Declared, did_you_mean, fields_of
 from .source import Source, join, show
 
 QOS_DEPTH_MAX = 100_000  # far past any real queue; rclpy fails on depths past 64 bits
@@ -65,6 +66,70 @@ class Key:
 
     def error(self, message: str, fix: str | None = None) -> ConfigError:
         return self.src.error(self.path, message, fix=fix or f"e.g. {self.name}: {self.example}")
+
+
+# -- a section ----------------------------------------------------------------------------------
+
+@cache
+def keys(section: type) -> tuple[Declared, ...]:
+    """The keys ``section`` declares, in the order the file's reference lists them."""
+    return tuple(row for row in fields_of(section) if row.doc)
+
+
+def key_names(section: type, under: str = "") -> tuple[str, ...]:
+    """The valid keys of ``section`` (or of its sub-mapping ``under``: "reconnect")."""
+    prefix = f"{under}." if under else ""
+    found = [row.key[len(prefix):].partition(".")[0] for row in keys(section)
+             if row.key.startswith(prefix)]
+    return tuple(dict.fromkeys(found))
+
+
+def example(section: type, under: str) -> str:
+    """A sub-mapping as a fix writes it: its first three keys with their examples."""
+    rows = [row for row in keys(section) if row.key.startswith(under + ".")][:3]
+    return "{" + ", ".join(f"{row.key.rpartition('.')[2]}: {row.example}" for row in rows) + "}"
+
+
+def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
+    """The keys of ``data`` (the mapping at ``path``) that were written, each as its field holds
+    it, by field name; the dataclass's defaults stand for the others."""
+    check_keys(src, data, path, key_names(section))
+    require(src, data, path, section)
+    values: dict[str, Any] = {}
+    checked = set()
+    for row in keys(section):
+        under, _, name = row.key.rpartition(".")
+        table = data
+        if under:
+            table = data.get(under)
+            if table is None:  # absent or written empty
+                continue
+            if not isinstance(table, dict):
+                parent = Declared(under, dict, None, example=example(section, under), key=under)
+                mapping(Key(src, path, parent), table)  # raises, saying what to write
+            if under not in checked:
+                check_keys(src, table, join(path, under), key_names(section, under))
+                checked.add(under)
+        if name in table:
+            key = Key(src, join(path, under) if under else path, row)
+            values[row.name] = (row.parse or plain)(key, table[name])
+    return values
+
+
+def check_keys(src: Source, data: dict, path: str, valid: tuple[str, ...]) -> None:
+    for key in data:
+        if key not in valid:
+            hint = did_you_mean(key, valid)[1]
+            raise src.error(join(path, key), f"unknown key '{key}'{hint}",
+                            fix=f"valid keys are {', '.join(valid)}")
+
+
+def require(src: Source, data: dict, path: str, section: type) -> None:
+    for row in keys(section):
+        if row.required and row.key not in data:
+            where = f" under {path}:" if path else ""
+            raise src.error(join(path, row.key), f"missing required key '{row.key}'",
+                            fix=f"add {row.key}: {row.example}{where}")
 
 
 # -- the plain kinds -----------------------------------------------------------------------------

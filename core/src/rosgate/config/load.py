@@ -14,8 +14,7 @@ from typing import Any
 
 from ..errors import ConfigError
 from . import kinds
-from .kinds import Key
-from .read import check_keys, keys, names, read, require
+from .kinds import Key, check_keys, key_names, keys, read, require
 from .schema import (
     CIPHER_DEFAULT,
     LISTEN_DEFAULT,
@@ -102,7 +101,7 @@ def service_to_mapping(s: ServiceConfig) -> dict:
 
 def _to_mapping(entry: TopicConfig | ServiceConfig | ActionConfig, section: type) -> dict:
     mapping = {}
-    for key in names(section):
+    for key in key_names(section):
         value = getattr(entry, key)
         # unset optional keys are left out, as a user would; microcontroller keys are only for
         # microcontroller entries (an entry with an envelope refuses them)
@@ -128,7 +127,7 @@ def _bridge_config(data: Any, src: Source, base_dir: Path) -> BridgeConfig:
         raise src.error("", f"expected a mapping with bridge: at the top, got {show(data)}",
                         fix=START_FIX)
     _reject_legacy(src, data)
-    check_keys(src, data, "", names(File))
+    check_keys(src, data, "", key_names(File))
     require(src, data, "", File)
     bridge = _top(src, data, "bridge")
     given = read(src, bridge, "bridge", BridgeConfig)

@@ -15,8 +15,7 @@ from ..batch import window
 from ..errors import ConfigError
 from ..options import option
 from . import kinds
-from .kinds import Key
-from .read import read
+from .kinds import Key, read
 from .source import line_of, show
 
 
