@@ -125,7 +125,8 @@ class Declared:
 
     def limits(self) -> str:
         """The range or choices in words ("at least 1", "one of: a, b"), or ``""``."""
-        choices = self.choices or _literal_choices(self.type)
+        choices = self.choices or (typing.get_args(self.type)
+                                   if typing.get_origin(self.type) is Literal else ())
         if choices:
             return "one of: " + ", ".join(_yaml(c) for c in choices)
         if self.above is not None:
@@ -333,10 +334,6 @@ def spell(hint: Any) -> str:
     if hint is Any:
         return "Any"
     return getattr(hint, "__name__", str(hint))
-
-
-def _literal_choices(hint: Any) -> tuple[Any, ...]:
-    return typing.get_args(hint) if typing.get_origin(hint) is Literal else ()
 
 
 def _yaml(value: Any) -> str:

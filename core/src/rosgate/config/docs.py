@@ -108,10 +108,8 @@ def _values(row: Declared) -> str:
 
 
 def _default(row: Declared) -> str:
-    if row.unset is not None:
-        return row.unset
-    if row.required:
-        return "required"
+    if row.unset is not None or row.required:
+        return row.default_text()
     return f"`{row.default:g}`" if isinstance(row.default, float) else f"`{row.default_text()}`"
 
 
