@@ -274,11 +274,7 @@ def qos(key: Key, value: Any) -> int | str | dict:
     if not isinstance(value, dict):
         raise key.error("expected a depth (integer >= 1), a profile name or a mapping "
                         f"{{{', '.join(QOS_KEYS)}}}, got {show(value)}", fix=fix)
-    for name in value:
-        if name not in QOS_KEYS:
-            raise key.src.error(join(key.path, name), f"unknown key '{name}'"
-                                f"{did_you_mean(name, QOS_KEYS)[1]}",
-                                fix=f"valid keys are {', '.join(QOS_KEYS)}")
+    check_keys(key.src, value, key.path, QOS_KEYS)
     policies: dict[str, Any] = {}
     for name, choices in QOS_POLICIES.items():
         if name in value:
