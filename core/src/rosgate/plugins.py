@@ -133,11 +133,6 @@ class PluginManager(pluggy.PluginManager):
         return sorted(caller.name for caller in self.get_hookcallers(plugin) or []
                       if not caller.has_spec())
 
-    def call_for(self, plugin: Any, hook_name: str, **kwargs: Any) -> None:
-        """Call ``plugin``'s implementation of a hook, and nobody else's."""
-        others = [p for p in self.get_plugins() if p is not plugin]
-        self.subset_hook_caller(hook_name, remove_plugins=others)(**kwargs)
-
 
 def _is_function(value: Any) -> bool:
     return inspect.isfunction(value) or isinstance(value, (staticmethod, classmethod,
@@ -238,11 +233,13 @@ class Plugins:
                                                                   version)
 
     def _call(self, module: Any, hook_name: str, fail: Callable[[str], None]) -> list[Any]:
-        """What ``module``'s implementation of a hook registers: nothing when it raises (its
-        other hooks are still called)."""
+        """What ``module``'s implementation of a hook registers (nobody else's is called):
+        nothing when it raises (its other hooks are still called)."""
         found: list[Any] = []
+        others = [p for p in self.manager.get_plugins() if p is not module]
         try:
-            self.manager.call_for(module, hook_name, register=found.append)
+            self.manager.subset_hook_caller(hook_name, remove_plugins=others)(
+                register=found.append)
         except Exception as exc:
             fail(f"{hook_name}: {_reason(exc)}")
             return []
