@@ -187,19 +187,24 @@ def _num(value: float) -> str:
 
 def plain(key: Key, value: Any) -> Any:
     """The value of a key whose declared type says how to read it."""
-    hint = key.row.type
-    arms = [arm for arm in getattr(hint, "__args__", (hint,)) if arm is not type(None)]
-    kind = arms[0]
+    kind, choices = kind_of(key.row)
     if kind is bool:
         return flag(key, value)
     if kind in (int, float):
         return number(key, value, integer=kind is int)
-    if isinstance(kind, type) and issubclass(kind, Enum):
-        return kind(choice(key, value, tuple(kind)))
+    if choices is not None:
+        return kind(choice(key, value, choices))  # an Enum's member, or the str itself
     if kind is str:
-        return text(key, value) if key.row.choices is None else choice(key, value,
-                                                                         key.row.choices)
-    raise TypeError(f"{key.path}: declare a parse function for {hint}")  # a bug of the schema
+        return text(key, value)
+    raise TypeError(f"{key.path}: declare a parse function for {kind}")  # a bug of the schema
+
+
+def kind_of(row: Declared) -> tuple[Any, tuple[Any, ...] | None]:
+    """The type of a key's value (``None`` aside), and the choices it is among, if any."""
+    kind = next(arm for arm in getattr(row.type, "__args__", (row.type,))
+                if arm is not type(None))
+    enum = isinstance(kind, type) and issubclass(kind, Enum)
+    return kind, tuple(kind) if enum else row.choices
 
 
 # -- the kinds a field names with option(parse=...) ---------------------------------------------
