@@ -6,9 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from rosgate_docgen import BEGIN, COMMAND, END, render
 
 from rosgate.config import BridgeConfig, ServiceConfig, TopicConfig, loads
-from rosgate.config.docs import BEGIN, COMMAND, END, render
 from rosgate.config.kinds import keys
 from rosgate.errors import ConfigError
 

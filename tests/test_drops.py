@@ -12,9 +12,9 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
+from rosgate_docgen import BEGIN, DROPS_COMMAND, END, drop_reasons, render
 
 from rosgate import drops
-from rosgate.config.docs import BEGIN, DROPS_COMMAND, END, drop_reasons, render
 from rosgate.drops import Drop, PluginDrop, declare
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -5,7 +5,7 @@ counters, ``rosgate status``, the metrics and the log lines all show the value (
 The functions that count take a :class:`Drop` or a reason a plugin declared with
 :func:`declare`, never a bare string, so a new reason always comes with its sentence.
 
-The table of docs/operators.md is generated from this module (``python -m rosgate.config.docs
+The table of docs/operators.md is generated from this module (``python -m rosgate_docgen
 docs/operators.md``).
 """
 

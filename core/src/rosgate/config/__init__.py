@@ -1,5 +1,6 @@
 """bringup.yaml: its keys declared once (``schema``), read with every mistake located at its file,
-line and key (``load``), and its reference generated for docs/configuration.md (``docs``)."""
+line and key (``load``); docs/configuration.md's reference is generated from the schema by the
+``rosgate_docgen`` development tool (``tools/docgen``)."""
 
 from .kinds import PRIORITIES, QOS_POLICIES, QOS_PROFILES, parse_bandwidth
 from .load import (

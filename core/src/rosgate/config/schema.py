@@ -1,8 +1,8 @@
 """bringup.yaml's keys, each declared once: its type, default, bounds or choices, one line of doc
 and an example for the fix of an error about it. The loader (rosgate.config.load) reads a file
 against these declarations, and docs/configuration.md's reference is generated from them
-(rosgate.config.docs). The rules that tie keys together (a role's keys, an entry's framing) are in
-the loader."""
+(``tools/docgen``). The rules that tie keys together (a role's keys, an entry's framing) are in the
+loader."""
 
 from __future__ import annotations
 
