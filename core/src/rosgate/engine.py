@@ -45,8 +45,8 @@ log = logging.getLogger("rosgate")
 
 STATS_EVERY = float(os.environ.get("ROSGATE_STATS_EVERY", "60"))
 STATUS_EVERY = 1.0  # seconds between two statuses handed to the monitors
-#: the bridge: key that asks for a monitor, and the distribution that has one of that name
-MONITOR_KEYS = {"metrics": "rosgate-metrics-prometheus"}
+#: the bridge: keys that ask for a monitor, and the distribution that has one of that name
+MONITOR_KEYS = {"diagnostics": "rosgate-diagnostics", "metrics": "rosgate-metrics-prometheus"}
 
 ROLES: dict[Role, type[BridgeRole]] = {Role.PEER: PeerRole, Role.CLIENT: ClientRole,
                                        Role.SERVER: ServerRole}
@@ -162,18 +162,21 @@ class Engine:
     def _wanted_monitors(self) -> list[tuple[type[Monitor], Any]]:
         """The monitors the file asks for (bridge: keys, plugins: tables), with their options."""
         cfg, found = self.config, []
-        names = ["diagnostics"] if cfg.diagnostics else []
-        names += [name for name in MONITOR_KEYS if getattr(cfg, name)]
+        names = [name for name in MONITOR_KEYS if getattr(cfg, name)]
         other = {name for kind, name in self.plugins.registered if kind != "monitor"}
         names += [name for name in cfg.plugins if name not in names and name not in other]
         for name in names:
             registration = self.plugins.get("monitor", name)
             if registration is None:
-                if name in MONITOR_KEYS:
-                    message, _ = self.plugins.explain_missing("monitor", name)
-                    raise cfg.error(f"bridge.{name}", message,
-                                    f"pip install {MONITOR_KEYS[name]}, or remove {name}:")
-                continue  # a plugins: table of a plugin that is no monitor
+                if name not in MONITOR_KEYS:
+                    continue  # a plugins: table of a plugin that is no monitor
+                message, _ = self.plugins.explain_missing("monitor", name)
+                install = f"pip install {MONITOR_KEYS[name]}"
+                if f"bridge.{name}" not in cfg.lines:  # on by default: the bridge runs without
+                    log.warning("%s: no %s: %s (%s, or set bridge.%s: false)", cfg.name, name,
+                                message, install, name)
+                    continue
+                raise cfg.error(f"bridge.{name}", message, f"{install}, or remove {name}:")
             try:
                 options = parse(registration.cls, cfg.plugins.get(name) or {})
             except OptionError as exc:

@@ -1,5 +1,6 @@
-"""Monitors: what watches a running bridge and tells the world — ``/diagnostics`` (built in), a
-Prometheus endpoint (``rosgate-metrics-prometheus``), or any exporter a third party writes.
+"""Monitors: what watches a running bridge and tells the world — ``/diagnostics``
+(``rosgate-diagnostics``), a Prometheus endpoint (``rosgate-metrics-prometheus``), or any
+exporter a third party writes.
 
 A plugin implements the ``rosgate_monitors`` hook (:mod:`rosgate.hookspecs`) and registers one
 :class:`Monitor` subclass per exporter::
