@@ -1,16 +1,12 @@
 """The engine: a bridge's lifecycle — prepare, start, keep house, stop.
 
-``Engine(config).prepare()`` resolves everything that can be wrong in a file (plugins, options,
-keys, message types, addresses: :mod:`rosgate.resolver`) and raises :class:`ConfigError`
-naming the file, line and key. It also refuses an open door (:func:`open_entries`): an entry
-whose frames anyone who reaches the bridge could write, unless the file says ``insecure:
-true`` — then :meth:`Engine.insecure_warning` names those entries, on every start.
-``start()`` opens the ROS node, makes the router (:mod:`rosgate.router`) and starts the role
-(:mod:`rosgate.roles`), which opens the links; ``stop()`` closes everything, in reverse order.
-In between, a housekeeping thread warns about stale topics, hands the bridge's status
-(:mod:`rosgate.status`) to the monitors the file asks for (:mod:`rosgate.monitor`:
-``/diagnostics``, metrics...) once a second, and logs a summary line once a minute; the status
-socket (:mod:`rosgate.runtime`) answers ``rosgate top``.
+``prepare()`` resolves the file (:mod:`rosgate.resolver`) and refuses an entry anyone who
+reaches the bridge could write (:func:`open_entries`) unless the file says ``insecure: true``;
+``start()`` opens the ROS node, the router and the role (:mod:`rosgate.roles`), which opens the
+links; ``stop()`` closes them in reverse order. In between, a housekeeping thread warns about
+stale topics, hands the status (:mod:`rosgate.status`) to the monitors (:mod:`rosgate.monitor`)
+once a second and logs a summary line once a minute; the status socket (:mod:`rosgate.runtime`)
+answers ``rosgate top``.
 """
 
 from __future__ import annotations
@@ -22,7 +18,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from .config import BridgeConfig, Direction, Role
+from .config import BridgeConfig, Direction, Role, load
 from .connector import Lifetime
 from .errors import ConfigError, OptionError
 from .monitor import Monitor, Status, Watched
@@ -215,7 +211,9 @@ class Engine:
             monitor.stop()
         if self.router is not None:
             self.router.log_stats()  # before the routes and their counters go
-            self._log_links()
+            for link in self.life.links():
+                if link.counters.frames_out or link.counters.frames_in:
+                    log.info("link %s: %s", link.name, link.counters.line())
         if self.role is not None:
             self.role.stop()
         self.life.close_all()
@@ -228,9 +226,6 @@ class Engine:
         """SIGHUP: a server applies the ``clients:`` of its file as it is now (a file that no
         longer loads is reported and the running policy kept). Other roles have nothing to
         reload."""
-        from .config import load
-        from .roles.server import ServerRole
-
         if not isinstance(self.role, ServerRole):
             log.info("SIGHUP: nothing to reload for a %s", self.config.role)
             return
@@ -285,11 +280,6 @@ class Engine:
                 next_summary = now + STATS_EVERY
                 log.info("%s", summary(status, last_summary))
                 last_summary = status
-
-    def _log_links(self) -> None:
-        for link in self.life.links():
-            if link.counters.frames_out or link.counters.frames_in:
-                log.info("link %s: %s", link.name, link.counters.line())
 
     # -- what a running bridge carried ----------------------------------------------------------
     def routes(self) -> list[Route]:
