@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 from conftest import free_port, wait_until
+from rosgate_top.client import NoBridge, StatusClient, running
 from std_msgs.msg import String
 
 from rosgate import runtime
@@ -86,8 +87,8 @@ def test_the_status_socket_tells_what_flows(engines, domain, ros_side, runtime_d
         assert stat.S_IMODE(folder.stat().st_mode) == 0o700
         sock = folder / "robot1.sock"
         assert stat.S_IMODE(sock.stat().st_mode) == 0o600
-        assert sorted(runtime.running()) == ["base", "robot1"]
-        with runtime.StatusClient("robot1") as ask:
+        assert sorted(running()) == ["base", "robot1"]
+        with StatusClient("robot1") as ask:
             first = ask.status()
             time.sleep(1.0)  # a rate needs two statuses some time apart
             second = ask.status()
@@ -106,15 +107,15 @@ def test_the_status_socket_tells_what_flows(engines, domain, ros_side, runtime_d
     assert second["peers"] == [{"name": "base", "up": True}]
     assert any(link["up"] and link["frames_out"] > 0 for link in second["links"])
     # the server sees the same topic, from robot1
-    with runtime.StatusClient("base") as ask:
+    with StatusClient("base") as ask:
         seen = entry(ask.status(), "/flow")
     assert (seen["direction"], seen["peer"]) == ("receive", "robot1")
     assert seen["received"] >= 50
 
 
 def test_no_bridge_is_a_clear_error(runtime_dir):
-    with pytest.raises(runtime.NoBridge, match="no bridge named 'nobody' is running"):
-        runtime.StatusClient("nobody")
+    with pytest.raises(NoBridge, match="no bridge named 'nobody' is running"):
+        StatusClient("nobody")
 
 
 def test_a_socket_left_by_a_dead_bridge_is_replaced_and_a_live_one_kept(runtime_dir):
@@ -122,7 +123,7 @@ def test_a_socket_left_by_a_dead_bridge_is_replaced_and_a_live_one_kept(runtime_
     (runtime_dir / "x.sock").touch()  # nobody answers there
     server = runtime.StatusServer("x", lambda: {"bridge": "x"})
     try:
-        with runtime.StatusClient("x") as ask:
+        with StatusClient("x") as ask:
             assert ask.status() == {"bridge": "x"}
         with pytest.raises(OSError, match="another bridge named 'x'"):
             runtime.StatusServer("x", lambda: {})

@@ -1,4 +1,5 @@
-"""A running bridge's local status socket: where it is, serving it, asking it.
+"""A running bridge's local status socket: where it is, and serving it (``rosgate top``, the
+plugin ``rosgate-top``, asks it).
 
 Each bridge serves its status (:mod:`rosgate.status`) on a Unix socket named after it,
 ``<runtime dir>/<name>.sock``: ``$ROSGATE_RUNTIME_DIR``, else ``$XDG_RUNTIME_DIR/rosgate``, else
@@ -24,18 +25,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .errors import RosgateError
-
 log = logging.getLogger("rosgate")
 
 RUNTIME_VARIABLE = "ROSGATE_RUNTIME_DIR"
 SUFFIX = ".sock"
 MAX_REQUEST = 4096  # bytes of one request line; a longer one ends the connection
 MAX_CLIENTS = 8  # connections served at once; more wait in the listen backlog
-
-
-class NoBridge(RosgateError):
-    """No bridge answers where one was looked for."""
 
 
 def runtime_dir() -> Path:
@@ -51,15 +46,6 @@ def runtime_dir() -> Path:
 
 def socket_path(name: str) -> Path:
     return runtime_dir() / f"{name}{SUFFIX}"
-
-
-def running() -> list[str]:
-    """The names of the bridges that have a socket here (some may have died since)."""
-    folder = runtime_dir()
-    try:
-        return sorted(p.name[:-len(SUFFIX)] for p in folder.iterdir() if p.name.endswith(SUFFIX))
-    except OSError:
-        return []
 
 
 def _private_dir(folder: Path) -> None:
@@ -150,43 +136,3 @@ def _answers(path: Path) -> bool:
         return True
     except OSError:
         return False
-
-
-class StatusClient:
-    """A connection to one bridge's status socket."""
-
-    def __init__(self, name: str, timeout: float = 5.0):
-        self.name = name
-        self.path = socket_path(name)
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self._sock.settimeout(timeout)
-        try:
-            self._sock.connect(str(self.path))
-        except OSError as exc:
-            self._sock.close()
-            others = [n for n in running() if n != name]
-            hint = f" (sockets here: {', '.join(others)})" if others else ""
-            raise NoBridge(f"no bridge named {name!r} is running on this machine for this user: "
-                           f"{self.path}: {exc.strerror or exc}{hint}") from None
-        self._replies = self._sock.makefile("rb")
-
-    def status(self) -> dict[str, Any]:
-        try:
-            self._sock.sendall(b'{"get":"status"}\n')
-            line = self._replies.readline()
-        except OSError as exc:
-            raise NoBridge(f"bridge {self.name!r} stopped answering: {exc}") from None
-        if not line:
-            raise NoBridge(f"bridge {self.name!r} has stopped")
-        status: dict[str, Any] = json.loads(line)
-        return status
-
-    def close(self) -> None:
-        self._replies.close()
-        self._sock.close()
-
-    def __enter__(self) -> StatusClient:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
