@@ -236,12 +236,6 @@ class Engine:
             return
         self.role.reload(fresh.clients)
 
-    def __enter__(self) -> Engine:
-        return self.start()
-
-    def __exit__(self, *exc: Any) -> None:
-        self.stop()
-
     def _start_monitors(self) -> None:
         assert self.ros is not None
         watched = Watched(self.config, self.status, self.ros, self.life.stopping)

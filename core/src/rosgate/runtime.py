@@ -14,6 +14,7 @@ reads counters and copies a few lists: nothing on the data path waits for it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -35,11 +36,9 @@ MAX_CLIENTS = 8  # connections served at once; more wait in the listen backlog
 
 def runtime_dir() -> Path:
     """The folder of this user's bridges' sockets (not made here)."""
-    given = os.environ.get(RUNTIME_VARIABLE)
-    if given:
+    if given := os.environ.get(RUNTIME_VARIABLE):
         return Path(given)
-    xdg = os.environ.get("XDG_RUNTIME_DIR")
-    if xdg and Path(xdg).is_dir():
+    if (xdg := os.environ.get("XDG_RUNTIME_DIR")) and Path(xdg).is_dir():
         return Path(xdg) / "rosgate"
     return Path(f"/tmp/rosgate-{os.getuid()}")
 
@@ -77,8 +76,7 @@ class StatusServer:
         finally:
             os.umask(old)
         self._sock.listen(MAX_CLIENTS)
-        self._thread = threading.Thread(target=self._accept, name="status-socket", daemon=True)
-        self._thread.start()
+        threading.Thread(target=self._accept, name="status-socket", daemon=True).start()
 
     def _accept(self) -> None:
         while not self._closed.is_set():
@@ -112,10 +110,8 @@ class StatusServer:
     def close(self) -> None:
         self._closed.set()
         self._sock.close()
-        try:
+        with contextlib.suppress(OSError):
             self.path.unlink()
-        except OSError:
-            pass
 
 
 def _same_user(conn: socket.socket) -> bool:
