@@ -174,3 +174,27 @@ topics:
     assert ": 2 topic(s), 0 service(s), sent " in line
     assert "drops rate_limit=" in line and "stale /quiet" in line
     assert logging.getLogger("rosgate").level == logging.INFO
+
+
+def test_the_summary_line_counts_what_happened_since_the_last_one():
+    from rosgate.status import IDLE, summary
+
+    def row(name, direction="transmit", **counters):
+        return {**IDLE, "kind": "topic", "name": name, "direction": direction, "peer": "base",
+                **counters}
+
+    before = {"bridge": "r", "time": 10.0, "uptime": 10.0, "peers": [], "entries": [
+        row("/a", sent=5, bytes_sent=500, drops={"rate_limit": 2}),
+        row("/q", "receive", received=1, bytes_received=100)]}
+    now = {"bridge": "r", "time": 70.0, "uptime": 70.0,
+           "peers": [{"name": "base", "up": False}, {"name": "b2", "up": None}], "entries": [
+               row("/a", sent=15, bytes_sent=1500, drops={"rate_limit": 5, "queue_full": 1}),
+               row("/q", "receive", received=4, bytes_received=400, stale=True),
+               row("/s", kind="service", received=2, bytes_received=250),
+               row("/no", refused="policy")]}
+    assert summary(now, before) == (
+        "r: last 60 s: 2 topic(s), 1 service(s), sent 10, received 5 (1.6 kB); "
+        "drops queue_full=1, rate_limit=3; stale /q; down base; refused /no")
+    # the first line counts from the start
+    assert summary(before, None) == "r: last 10 s: 2 topic(s), 0 service(s), sent 5, " \
+        "received 1 (600 B); drops rate_limit=2"
