@@ -1,5 +1,6 @@
-"""What a running bridge tells its operator: its status over the local socket, /diagnostics,
-and the summary line. A real client/server pair in this process, ROS sides in their own domains."""
+"""What a running bridge tells its operator: its status over the local socket and the summary
+line (/diagnostics: test_diagnostics.py). A real client/server pair in this process, ROS sides
+in their own domains."""
 
 from __future__ import annotations
 
@@ -13,15 +14,12 @@ from pathlib import Path
 
 import pytest
 from conftest import free_port, wait_until
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rosgate_top.client import NoBridge, StatusClient, running
 from std_msgs.msg import String
 
 from rosgate import runtime
 from rosgate.config import loads
 from rosgate.errors import ConfigError
-
-OK, WARN, ERROR = (int.from_bytes(level, "big") for level in
-                   (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR))
 
 
 @pytest.fixture
@@ -89,8 +87,8 @@ def test_the_status_socket_tells_what_flows(engines, domain, ros_side, runtime_d
         assert stat.S_IMODE(folder.stat().st_mode) == 0o700
         sock = folder / "robot1.sock"
         assert stat.S_IMODE(sock.stat().st_mode) == 0o600
-        assert sorted(runtime.running()) == ["base", "robot1"]
-        with runtime.StatusClient("robot1") as ask:
+        assert sorted(running()) == ["base", "robot1"]
+        with StatusClient("robot1") as ask:
             first = ask.status()
             time.sleep(1.0)  # a rate needs two statuses some time apart
             second = ask.status()
@@ -109,15 +107,15 @@ def test_the_status_socket_tells_what_flows(engines, domain, ros_side, runtime_d
     assert second["peers"] == [{"name": "base", "up": True}]
     assert any(link["up"] and link["frames_out"] > 0 for link in second["links"])
     # the server sees the same topic, from robot1
-    with runtime.StatusClient("base") as ask:
+    with StatusClient("base") as ask:
         seen = entry(ask.status(), "/flow")
     assert (seen["direction"], seen["peer"]) == ("receive", "robot1")
     assert seen["received"] >= 50
 
 
 def test_no_bridge_is_a_clear_error(runtime_dir):
-    with pytest.raises(runtime.NoBridge, match="no bridge named 'nobody' is running"):
-        runtime.StatusClient("nobody")
+    with pytest.raises(NoBridge, match="no bridge named 'nobody' is running"):
+        StatusClient("nobody")
 
 
 def test_a_socket_left_by_a_dead_bridge_is_replaced_and_a_live_one_kept(runtime_dir):
@@ -125,7 +123,7 @@ def test_a_socket_left_by_a_dead_bridge_is_replaced_and_a_live_one_kept(runtime_
     (runtime_dir / "x.sock").touch()  # nobody answers there
     server = runtime.StatusServer("x", lambda: {"bridge": "x"})
     try:
-        with runtime.StatusClient("x") as ask:
+        with StatusClient("x") as ask:
             assert ask.status() == {"bridge": "x"}
         with pytest.raises(OSError, match="another bridge named 'x'"):
             runtime.StatusServer("x", lambda: {})
@@ -139,104 +137,6 @@ def test_a_socket_folder_others_may_enter_is_refused(runtime_dir):
     os.chmod(runtime_dir, 0o755)
     with pytest.raises(OSError, match="not this user's alone"):
         runtime.StatusServer("x", lambda: {})
-
-
-class DiagnosticsInbox:
-    def __init__(self, side):
-        self.arrays: list[DiagnosticArray] = []
-        self.cond = threading.Condition()
-        side.ros.subscribe(DiagnosticArray, "/diagnostics", 10, self._put, False)
-
-    def _put(self, array) -> None:
-        with self.cond:
-            self.arrays.append(array)
-            self.cond.notify_all()
-
-    def wait_status(self, name: str, level: int, timeout: float = 10.0):
-        """The first status named ``name`` at ``level`` to arrive from now on."""
-        found = []
-
-        def seen() -> bool:
-            for array in self.arrays[start:]:
-                for s in array.status:
-                    if s.name == name and s.level == bytes([level]):
-                        found.append(s)
-                        return True
-            return False
-        with self.cond:
-            start = len(self.arrays)
-            assert self.cond.wait_for(seen, timeout), (
-                f"no {name} at level {level}; last: "
-                + repr([(s.name, s.level, s.message) for a in self.arrays[-1:] for s in a.status]))
-        return found[0]
-
-
-def test_diagnostics_say_ok_warn_and_error(engines, domain, ros_side):
-    server, client, ds, dc = pair(engines, domain, free_port())
-    robot = ros_side(dc, "robot")
-    inbox = DiagnosticsInbox(robot)
-    publisher = Publisher(robot, 50)
-    try:
-        assert wait_until(lambda: client.status()["peers"][0]["up"], 20)
-        flowing = inbox.wait_status("rosgate: robot1: topic /flow (to base)", OK)
-        values = {kv.key: kv.value for kv in flowing.values}
-        assert flowing.hardware_id == "robot1" and flowing.message == "ok"
-        assert values["direction"] == "transmit" and values["peer"] == "base"
-        assert values["type"] == "std_msgs/msg/String"
-        assert int(values["sent"]) > 0 and int(values["bytes_sent"]) >= 100 * int(values["sent"])
-        stale = inbox.wait_status("rosgate: robot1: topic /quiet (from base)", WARN)
-        assert stale.message.startswith("stale: no message for")
-        assert {kv.key: kv.value for kv in stale.values}["received"] == "0"
-        link = inbox.wait_status("rosgate: robot1: peer base", OK)
-        assert link.message == "up"
-        server.stop()  # the peer goes down
-        down = inbox.wait_status("rosgate: robot1: peer base", ERROR, 20)
-        assert down.message == "down"
-        entry_down = inbox.wait_status("rosgate: robot1: topic /flow (to base)", ERROR)
-        assert entry_down.message == "peer base is down"
-        assert int({kv.key: kv.value for kv in entry_down.values}["sent"]) > 0
-    finally:
-        publisher.close()
-
-
-def test_drops_since_the_last_status_warn(engines, domain, ros_side):
-    """A topic limited to 5 Hz and published at 50 drops rate_limit: WARN, with the count."""
-    port = free_port()
-    ds, dc = domain(), domain()
-    engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}", ds)
-    engines(f"""
-bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
-topics:
-  - {{topic: /flow, type: std_msgs/msg/String, direction: transmit, max_rate: 5}}
-""", dc)
-    robot = ros_side(dc, "robot")
-    inbox = DiagnosticsInbox(robot)
-    publisher = Publisher(robot, 50)
-    try:
-        warned = inbox.wait_status("rosgate: robot1: topic /flow (to base)", WARN, 20)
-    finally:
-        publisher.close()
-    assert warned.message.startswith("dropped rate_limit=")
-    values = {kv.key: kv.value for kv in warned.values}
-    assert int(values["drops.rate_limit"]) > 0
-
-
-def test_diagnostics_can_be_turned_off(engines, domain, ros_side, runtime_dir):
-    port = free_port()
-    ds = domain()
-    server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, "
-                     "diagnostics: false}", ds)
-    assert [m.name for m in server.monitors] == []
-    side = ros_side(ds, "base")
-    assert wait_until(lambda: server.status()["uptime"] > 1.5, 5)
-    names = [name for name, _ in side.ros.node.get_topic_names_and_types()]
-    assert "/diagnostics" not in names
-
-
-def test_diagnostics_key_is_checked():
-    with pytest.raises(ConfigError, match="bridge.diagnostics.*expected true or false"):
-        loads("bridge: {name: a, role: server, server: 127.0.0.1:1, insecure: true, "
-              "diagnostics: maybe}")
 
 
 def test_metrics_without_its_plugin_is_named(monkeypatch):
@@ -274,3 +174,27 @@ topics:
     assert ": 2 topic(s), 0 service(s), sent " in line
     assert "drops rate_limit=" in line and "stale /quiet" in line
     assert logging.getLogger("rosgate").level == logging.INFO
+
+
+def test_the_summary_line_counts_what_happened_since_the_last_one():
+    from rosgate.status import IDLE, summary
+
+    def row(name, direction="transmit", **counters):
+        return {**IDLE, "kind": "topic", "name": name, "direction": direction, "peer": "base",
+                **counters}
+
+    before = {"bridge": "r", "time": 10.0, "uptime": 10.0, "peers": [], "entries": [
+        row("/a", sent=5, bytes_sent=500, drops={"rate_limit": 2}),
+        row("/q", "receive", received=1, bytes_received=100)]}
+    now = {"bridge": "r", "time": 70.0, "uptime": 70.0,
+           "peers": [{"name": "base", "up": False}, {"name": "b2", "up": None}], "entries": [
+               row("/a", sent=15, bytes_sent=1500, drops={"rate_limit": 5, "queue_full": 1}),
+               row("/q", "receive", received=4, bytes_received=400, stale=True),
+               row("/s", kind="service", received=2, bytes_received=250),
+               row("/no", refused="policy")]}
+    assert summary(now, before) == (
+        "r: last 60 s: 2 topic(s), 1 service(s), sent 10, received 5 (1.6 kB); "
+        "drops queue_full=1, rate_limit=3; stale /q; down base; refused /no")
+    # the first line counts from the start
+    assert summary(before, None) == "r: last 10 s: 2 topic(s), 0 service(s), sent 5, " \
+        "received 1 (600 B); drops rate_limit=2"

@@ -23,6 +23,7 @@ from typing import Any
 import generated
 import pytest
 from conftest import free_port, wait_until
+from rosgate_top.client import StatusClient
 from test_zenoh_fleet import Router, zenoh_plugin
 from test_zenoh_type_check import router  # noqa: F401  (the zenoh role's router, a fixture)
 
@@ -157,7 +158,7 @@ def described_hash(prefix: Path) -> str:
 
 def receiving(name: str) -> dict[str, Any]:
     """The bridge ``name``'s receiving /reading entry, from its status socket."""
-    with runtime.StatusClient(name) as client:
+    with StatusClient(name) as client:
         status = client.status()
     [entry] = [e for e in status["entries"] if e["name"] == "/reading"
                and e["direction"] == "receive"]

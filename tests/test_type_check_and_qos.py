@@ -16,6 +16,7 @@ import pytest
 from conftest import Inbox, free_port, wait_until
 from geometry_msgs.msg import Point
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgate_top.client import StatusClient
 from std_msgs.msg import String
 
 from rosgate import runtime
@@ -193,7 +194,7 @@ def status_dir(monkeypatch) -> Iterator[Path]:
 
 
 def entry_status(bridge_name: str, topic: str) -> dict[str, Any]:
-    with runtime.StatusClient(bridge_name) as client:
+    with StatusClient(bridge_name) as client:
         status = client.status()
     [entry] = [e for e in status["entries"] if e["name"] == topic]
     return entry

@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 from conftest import wait_until
 from geometry_msgs.msg import Point, Vector3
+from rosgate_top.client import StatusClient
 from std_srvs.srv import SetBool, Trigger
 from test_services import DEEP
 from test_type_check_and_qos import POINT_HASH, VECTOR3_HASH
@@ -46,7 +47,7 @@ def peer_file(tmp: Path, name: str, router: Router, entries: str) -> Path:
 
 
 def counters(bridge_name: str, entry: str) -> dict[str, Any]:
-    with runtime.StatusClient(bridge_name) as ask:
+    with StatusClient(bridge_name) as ask:
         return next(e for e in ask.status()["entries"] if e["name"] == entry)
 
 

@@ -1,5 +1,5 @@
 """The built-in plugins, registered through the same hooks as any other: the ``cdr`` codec, the
-``none`` cipher, the ``fragments`` packetizer and the ``diagnostics`` monitor."""
+``none`` cipher and the ``fragments`` packetizer."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from typing import Any
 
 from .cipher import Cipher
 from .codec import Codec
-from .diagnostics import Diagnostics
 from .errors import CodecError
 from .hookspecs import hookimpl
 from .packetizer import Packet, Packetizer, PacketLink
@@ -152,8 +151,3 @@ def rosgate_ciphers(register: Any) -> None:
 @hookimpl
 def rosgate_packetizers(register: Any) -> None:
     register(Fragments)
-
-
-@hookimpl
-def rosgate_monitors(register: Any) -> None:
-    register(Diagnostics)

@@ -12,7 +12,8 @@ import logging
 import os
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -22,6 +23,9 @@ from .errors import ConfigError, RosgateError
 
 if TYPE_CHECKING:
     from .cipher import Cipher
+    from .engine import Engine
+    from .plugins import Plugins
+    from .spec import RouteSpec
 
 EXIT_USAGE = 2
 
@@ -85,8 +89,8 @@ def _parser() -> tuple[argparse.ArgumentParser, Any]:
     return parser, commands
 
 
-def _add_plugin_commands(commands: Any) -> None:
-    """The plugins' commands; a plugin that failed to load is named (its command is missing)."""
+def _all_plugins() -> Plugins:
+    """Every plugin loaded; one that failed to load is named on stderr."""
     from .plugins import Plugins
 
     plugins = Plugins.discover()
@@ -94,14 +98,19 @@ def _add_plugin_commands(commands: Any) -> None:
     for f in plugins.failures:
         print(f"rosgate: warning: plugin {f.plugin!r} ({f.distribution}) failed to load: "
               f"{f.reason}", file=sys.stderr)
-    for name, registration in sorted(plugins.commands.items()):
+    return plugins
+
+
+def _add_plugin_commands(commands: Any) -> None:
+    """The plugins' commands (a plugin that failed to load is named: its command is missing)."""
+    for name, registration in sorted(_all_plugins().commands.items()):
         command = registration.command
         sub = commands.add_parser(name, help=f"{command.help} ({registration.distribution})")
         command.arguments(sub)
         sub.set_defaults(run=command.run)
 
 
-def _engine(path: str, plugins: Any = None, domain_id: int | None = None):
+def _engine(path: str, plugins: Plugins | None = None, domain_id: int | None = None) -> Engine:
     from .config import load
     from .engine import Engine
 
@@ -113,43 +122,36 @@ def _engine(path: str, plugins: Any = None, domain_id: int | None = None):
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from .plugins import Plugins
+    from .budget import report
 
-    plugins = Plugins.discover()
-    plugins.load_all()  # a plugin this file does not use may still be one the next file needs
-    for f in plugins.failures:
-        print(f"rosgate: warning: plugin {f.plugin!r} ({f.distribution}) failed to load: "
-              f"{f.reason}", file=sys.stderr)
-    from .bus import BusTransport
-
-    engine = _engine(args.file, plugins)
+    # every plugin: one this file does not use may still be one the next file needs
+    engine = _engine(args.file, _all_plugins())
     cfg, plan = engine.config, engine.plan
     assert plan is not None
     print(f"{args.file}: ok ({cfg.role} {cfg.name!r}, {len(cfg.topics)} topic(s)"
           + (f", {len(cfg.services)} service(s)" if cfg.services else "")
           + (f", {len(cfg.actions)} action(s))" if cfg.actions else ")"))
     for p in [*plan.topics, *plan.services]:
-        t = p.config
-        arrow = "->" if t.direction == "transmit" else "<-"
-        port = f":{t.port}" if t.port else ""
-        dialect = p.transport.dialect if isinstance(p.transport, BusTransport) else None
-        speaks = dialect.name(t) if dialect is not None else None
-        print(f"  {p.name} {arrow} {p.key or t.remote}  [{t.type}] {t.transport}{port} {t.codec} "
-              f"{t.cipher}" + (f"  ({speaks})" if speaks else ""))
+        print(_entry_line(p.name, p.key or p.config.remote, p.config, p))
     for a in plan.actions:  # three services and two topics each (rosgate.actions)
-        c, calls = a.config, a.parts[0]  # its send_goal: on a bus, its key shows theirs
-        arrow = "->" if c.direction == "transmit" else "<-"
-        port = f":{c.port}" if c.port else ""
-        where = calls.key.removesuffix("send_goal") + "*" if calls.key else c.remote
-        dialect = calls.transport.dialect if isinstance(calls.transport, BusTransport) else None
-        speaks = dialect.name(calls.config) if dialect is not None else None
-        print(f"  {a.name} {arrow} {where}  [{c.type}] {c.transport}{port} {c.codec} "
-              f"{c.cipher}" + (f"  ({speaks})" if speaks else ""))
-    from .budget import report
-
+        calls = a.parts[0]  # its send_goal: on a bus, its key shows theirs
+        where = calls.key.removesuffix("send_goal") + "*" if calls.key else a.config.remote
+        print(_entry_line(a.name, where, a.config, calls))
     for line in report(plan):
         print(line)
     return 0
+
+
+def _entry_line(name: str, where: str, c: Any, spec: RouteSpec) -> str:
+    """``  /chatter -> base  [std_msgs/msg/String] udp cdr aead`` (and a bus dialect's name)"""
+    from .bus import BusTransport
+
+    arrow = "->" if c.direction == "transmit" else "<-"
+    port = f":{c.port}" if c.port else ""
+    dialect = spec.transport.dialect if isinstance(spec.transport, BusTransport) else None
+    speaks = dialect.name(spec.config) if dialect is not None else None
+    return (f"  {name} {arrow} {where}  [{c.type}] {c.transport}{port} {c.codec} {c.cipher}"
+            + (f"  ({speaks})" if speaks else ""))
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -158,10 +160,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     # kill -USR1 <pid>: every thread's stack to stderr, from C, even when a thread holds the GIL
     # (for a bridge that does not stop or does not answer)
     faulthandler.register(signal.SIGUSR1, all_threads=True)
-    try:
-        engine.start()
-    except ConfigError:
-        raise
+    engine.start()
     try:
         while wait_for_signal(signals) == signal.SIGHUP:
             engine.reload(args.file)  # SIGHUP: the server's policy, from the file as it is now
@@ -238,32 +237,33 @@ def cmd_keygen(args: argparse.Namespace) -> int:
         raise ConfigError(f"cipher {args.cipher!r} takes no key", file="keygen")
     path = Path(args.out or f"{args.cipher}.key")
     flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if args.force else os.O_EXCL)
-    try:
+    with _new_key_file(path):
         # created 0600 from the start: the key is never readable by others, not even briefly
-        fd = os.open(path, flags, 0o600)
+        with os.fdopen(os.open(path, flags, 0o600), "wb") as out:
+            os.fchmod(out.fileno(), 0o600)
+            out.write(key + b"\n")
+    print(f"wrote a new {args.cipher} key to {path} (mode 0600)")
+    return 0
+
+
+@contextmanager
+def _new_key_file(path: Path) -> Iterator[None]:
+    """Writing a key file: an existing one, or a folder that cannot be written, said as such."""
+    try:
+        yield
     except FileExistsError:
         raise ConfigError(f"{path} exists; not replacing a key", file="keygen",
                           fix="pass --force to replace it, or choose another --out") from None
     except OSError as exc:
         raise ConfigError(f"cannot write {path}: {exc.strerror}", file="keygen") from None
-    with os.fdopen(fd, "wb") as out:
-        os.fchmod(out.fileno(), 0o600)
-        out.write(key + b"\n")
-    print(f"wrote a new {args.cipher} key to {path} (mode 0600)")
-    return 0
 
 
 def _keygen_identity(path: Path, force: bool) -> int:
     from . import identity
 
     key = identity.generate()
-    try:
+    with _new_key_file(path):
         identity.write_private(path, key, force)
-    except FileExistsError:
-        raise ConfigError(f"{path} exists; not replacing a key", file="keygen",
-                          fix="pass --force to replace it, or choose another --out") from None
-    except OSError as exc:
-        raise ConfigError(f"cannot write {path}: {exc.strerror}", file="keygen") from None
     print(f"wrote a new identity to {path} (mode 0600); its public key, for the other side's "
           "file (server_key: on a client, clients: NAME: key: on a server):", file=sys.stderr)
     print(identity.encode(identity.public_of(key)))

@@ -1,21 +1,6 @@
 """Commands a plugin adds to ``rosgate``: ``rosgate <verb>`` beside run, check, plugins, keygen
-and pubkey (the zenoh plugin's ``rosgate router`` is one).
-
-A plugin implements the ``rosgate_commands`` hook (:mod:`rosgate.hookspecs`) and registers one
-:class:`Command` per verb::
-
-    from rosgate import Command, hookimpl
-
-    def arguments(parser):
-        parser.add_argument("--listen", action="append", default=[])
-
-    def run(args):
-        ...
-        return 0
-
-    @hookimpl
-    def rosgate_commands(register):
-        register(Command("router", "run a router until stopped", run, arguments))
+and pubkey (the zenoh plugin's ``rosgate router`` is one), registered through the
+``rosgate_commands`` hook as a :class:`Command` (an example: docs/plugins.md, "Commands").
 
 ``run`` gets the parsed arguments and returns the exit status. A problem the user can fix is
 raised as :class:`rosgate.RosgateError` (``ConfigError``, ``LinkError``...): ``rosgate`` prints it

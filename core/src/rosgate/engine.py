@@ -1,16 +1,12 @@
 """The engine: a bridge's lifecycle — prepare, start, keep house, stop.
 
-``Engine(config).prepare()`` resolves everything that can be wrong in a file (plugins, options,
-keys, message types, addresses: :mod:`rosgate.resolver`) and raises :class:`ConfigError`
-naming the file, line and key. It also refuses an open door (:func:`open_entries`): an entry
-whose frames anyone who reaches the bridge could write, unless the file says ``insecure:
-true`` — then :meth:`Engine.insecure_warning` names those entries, on every start.
-``start()`` opens the ROS node, makes the router (:mod:`rosgate.router`) and starts the role
-(:mod:`rosgate.roles`), which opens the links; ``stop()`` closes everything, in reverse order.
-In between, a housekeeping thread warns about stale topics, hands the bridge's status
-(:mod:`rosgate.status`) to the monitors the file asks for (:mod:`rosgate.monitor`:
-``/diagnostics``, metrics...) once a second, and logs a summary line once a minute; the status
-socket (:mod:`rosgate.runtime`) answers ``rosgate top``.
+``prepare()`` resolves the file (:mod:`rosgate.resolver`) and refuses an entry anyone who
+reaches the bridge could write (:func:`open_entries`) unless the file says ``insecure: true``;
+``start()`` opens the ROS node, the router and the role (:mod:`rosgate.roles`), which opens the
+links; ``stop()`` closes them in reverse order. In between, a housekeeping thread warns about
+stale topics, hands the status (:mod:`rosgate.status`) to the monitors (:mod:`rosgate.monitor`)
+once a second and logs a summary line once a minute; the status socket (:mod:`rosgate.runtime`)
+answers ``rosgate top``.
 """
 
 from __future__ import annotations
@@ -22,7 +18,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from .config import BridgeConfig, Direction, Role
+from .config import BridgeConfig, Direction, Role, load
 from .connector import Lifetime
 from .errors import ConfigError, OptionError
 from .monitor import Monitor, Status, Watched
@@ -45,8 +41,8 @@ log = logging.getLogger("rosgate")
 
 STATS_EVERY = float(os.environ.get("ROSGATE_STATS_EVERY", "60"))
 STATUS_EVERY = 1.0  # seconds between two statuses handed to the monitors
-#: the bridge: key that asks for a monitor, and the distribution that has one of that name
-MONITOR_KEYS = {"metrics": "rosgate-metrics-prometheus"}
+#: the bridge: keys that ask for a monitor, and the distribution that has one of that name
+MONITOR_KEYS = {"diagnostics": "rosgate-diagnostics", "metrics": "rosgate-metrics-prometheus"}
 
 ROLES: dict[Role, type[BridgeRole]] = {Role.PEER: PeerRole, Role.CLIENT: ClientRole,
                                        Role.SERVER: ServerRole}
@@ -162,18 +158,21 @@ class Engine:
     def _wanted_monitors(self) -> list[tuple[type[Monitor], Any]]:
         """The monitors the file asks for (bridge: keys, plugins: tables), with their options."""
         cfg, found = self.config, []
-        names = ["diagnostics"] if cfg.diagnostics else []
-        names += [name for name in MONITOR_KEYS if getattr(cfg, name)]
+        names = [name for name in MONITOR_KEYS if getattr(cfg, name)]
         other = {name for kind, name in self.plugins.registered if kind != "monitor"}
         names += [name for name in cfg.plugins if name not in names and name not in other]
         for name in names:
             registration = self.plugins.get("monitor", name)
             if registration is None:
-                if name in MONITOR_KEYS:
-                    message, _ = self.plugins.explain_missing("monitor", name)
-                    raise cfg.error(f"bridge.{name}", message,
-                                    f"pip install {MONITOR_KEYS[name]}, or remove {name}:")
-                continue  # a plugins: table of a plugin that is no monitor
+                if name not in MONITOR_KEYS:
+                    continue  # a plugins: table of a plugin that is no monitor
+                message, _ = self.plugins.explain_missing("monitor", name)
+                install = f"pip install {MONITOR_KEYS[name]}"
+                if f"bridge.{name}" not in cfg.lines:  # on by default: the bridge runs without
+                    log.warning("%s: no %s: %s (%s, or set bridge.%s: false)", cfg.name, name,
+                                message, install, name)
+                    continue
+                raise cfg.error(f"bridge.{name}", message, f"{install}, or remove {name}:")
             try:
                 options = parse(registration.cls, cfg.plugins.get(name) or {})
             except OptionError as exc:
@@ -212,7 +211,9 @@ class Engine:
             monitor.stop()
         if self.router is not None:
             self.router.log_stats()  # before the routes and their counters go
-            self._log_links()
+            for link in self.life.links():
+                if link.counters.frames_out or link.counters.frames_in:
+                    log.info("link %s: %s", link.name, link.counters.line())
         if self.role is not None:
             self.role.stop()
         self.life.close_all()
@@ -225,9 +226,6 @@ class Engine:
         """SIGHUP: a server applies the ``clients:`` of its file as it is now (a file that no
         longer loads is reported and the running policy kept). Other roles have nothing to
         reload."""
-        from .config import load
-        from .roles.server import ServerRole
-
         if not isinstance(self.role, ServerRole):
             log.info("SIGHUP: nothing to reload for a %s", self.config.role)
             return
@@ -237,12 +235,6 @@ class Engine:
             log.error("SIGHUP: %s; the running policy stays", exc)
             return
         self.role.reload(fresh.clients)
-
-    def __enter__(self) -> Engine:
-        return self.start()
-
-    def __exit__(self, *exc: Any) -> None:
-        self.stop()
 
     def _start_monitors(self) -> None:
         assert self.ros is not None
@@ -282,11 +274,6 @@ class Engine:
                 next_summary = now + STATS_EVERY
                 log.info("%s", summary(status, last_summary))
                 last_summary = status
-
-    def _log_links(self) -> None:
-        for link in self.life.links():
-            if link.counters.frames_out or link.counters.frames_in:
-                log.info("link %s: %s", link.name, link.counters.line())
 
     # -- what a running bridge carried ----------------------------------------------------------
     def routes(self) -> list[Route]:

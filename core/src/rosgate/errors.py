@@ -38,16 +38,10 @@ class ConfigError(RosgateError):
         super().__init__(str(self))
 
     def __str__(self) -> str:
-        where = self.file or "<config>"
-        if self.line is not None:
-            where += f":{self.line}"
-        text = f"{where}: "
-        if self.key:
-            text += f"{self.key}: "
-        text += self.message
-        if self.fix:
-            text += f"\n  fix: {self.fix}"
-        return text
+        where = (self.file or "<config>") + (f":{self.line}" if self.line is not None else "")
+        key = f"{self.key}: " if self.key else ""
+        fix = f"\n  fix: {self.fix}" if self.fix else ""
+        return f"{where}: {key}{self.message}{fix}"
 
 
 class LinkError(RosgateError):

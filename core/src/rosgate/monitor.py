@@ -1,25 +1,7 @@
-"""Monitors: what watches a running bridge and tells the world — ``/diagnostics`` (built in), a
-Prometheus endpoint (``rosgate-metrics-prometheus``), or any exporter a third party writes.
-
-A plugin implements the ``rosgate_monitors`` hook (:mod:`rosgate.hookspecs`) and registers one
-:class:`Monitor` subclass per exporter::
-
-    from rosgate import Monitor, hookimpl
-
-    class Statsd(Monitor):
-        name = "statsd"
-
-        @dataclass(frozen=True)
-        class Options:
-            address: str = option("127.0.0.1:8125", "where statsd listens")
-
-        def update(self, status):
-            for entry in status["entries"]:
-                ...
-
-    @hookimpl
-    def rosgate_monitors(register):
-        register(Statsd)
+"""Monitors: what watches a running bridge and tells the world — ``/diagnostics``
+(``rosgate-diagnostics``), a Prometheus endpoint (``rosgate-metrics-prometheus``), or any
+exporter a third party writes: a :class:`Monitor` subclass registered through the
+``rosgate_monitors`` hook (an example: docs/plugins.md, "Monitors").
 
 A monitor runs when the bridge's file asks for it: by its table under ``plugins:``
 (``plugins: {statsd: {address: ...}}``, parsed against its ``Options``), or by a ``bridge:`` key

@@ -1,4 +1,5 @@
-"""A running bridge's local status socket: where it is, serving it, asking it.
+"""A running bridge's local status socket: where it is, and serving it (``rosgate top``, the
+plugin ``rosgate-top``, asks it).
 
 Each bridge serves its status (:mod:`rosgate.status`) on a Unix socket named after it,
 ``<runtime dir>/<name>.sock``: ``$ROSGATE_RUNTIME_DIR``, else ``$XDG_RUNTIME_DIR/rosgate``, else
@@ -13,6 +14,7 @@ reads counters and copies a few lists: nothing on the data path waits for it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -24,8 +26,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .errors import RosgateError
-
 log = logging.getLogger("rosgate")
 
 RUNTIME_VARIABLE = "ROSGATE_RUNTIME_DIR"
@@ -34,32 +34,17 @@ MAX_REQUEST = 4096  # bytes of one request line; a longer one ends the connectio
 MAX_CLIENTS = 8  # connections served at once; more wait in the listen backlog
 
 
-class NoBridge(RosgateError):
-    """No bridge answers where one was looked for."""
-
-
 def runtime_dir() -> Path:
     """The folder of this user's bridges' sockets (not made here)."""
-    given = os.environ.get(RUNTIME_VARIABLE)
-    if given:
+    if given := os.environ.get(RUNTIME_VARIABLE):
         return Path(given)
-    xdg = os.environ.get("XDG_RUNTIME_DIR")
-    if xdg and Path(xdg).is_dir():
+    if (xdg := os.environ.get("XDG_RUNTIME_DIR")) and Path(xdg).is_dir():
         return Path(xdg) / "rosgate"
     return Path(f"/tmp/rosgate-{os.getuid()}")
 
 
 def socket_path(name: str) -> Path:
     return runtime_dir() / f"{name}{SUFFIX}"
-
-
-def running() -> list[str]:
-    """The names of the bridges that have a socket here (some may have died since)."""
-    folder = runtime_dir()
-    try:
-        return sorted(p.name[:-len(SUFFIX)] for p in folder.iterdir() if p.name.endswith(SUFFIX))
-    except OSError:
-        return []
 
 
 def _private_dir(folder: Path) -> None:
@@ -91,8 +76,7 @@ class StatusServer:
         finally:
             os.umask(old)
         self._sock.listen(MAX_CLIENTS)
-        self._thread = threading.Thread(target=self._accept, name="status-socket", daemon=True)
-        self._thread.start()
+        threading.Thread(target=self._accept, name="status-socket", daemon=True).start()
 
     def _accept(self) -> None:
         while not self._closed.is_set():
@@ -126,10 +110,8 @@ class StatusServer:
     def close(self) -> None:
         self._closed.set()
         self._sock.close()
-        try:
+        with contextlib.suppress(OSError):
             self.path.unlink()
-        except OSError:
-            pass
 
 
 def _same_user(conn: socket.socket) -> bool:
@@ -150,43 +132,3 @@ def _answers(path: Path) -> bool:
         return True
     except OSError:
         return False
-
-
-class StatusClient:
-    """A connection to one bridge's status socket."""
-
-    def __init__(self, name: str, timeout: float = 5.0):
-        self.name = name
-        self.path = socket_path(name)
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self._sock.settimeout(timeout)
-        try:
-            self._sock.connect(str(self.path))
-        except OSError as exc:
-            self._sock.close()
-            others = [n for n in running() if n != name]
-            hint = f" (sockets here: {', '.join(others)})" if others else ""
-            raise NoBridge(f"no bridge named {name!r} is running on this machine for this user: "
-                           f"{self.path}: {exc.strerror or exc}{hint}") from None
-        self._replies = self._sock.makefile("rb")
-
-    def status(self) -> dict[str, Any]:
-        try:
-            self._sock.sendall(b'{"get":"status"}\n')
-            line = self._replies.readline()
-        except OSError as exc:
-            raise NoBridge(f"bridge {self.name!r} stopped answering: {exc}") from None
-        if not line:
-            raise NoBridge(f"bridge {self.name!r} has stopped")
-        status: dict[str, Any] = json.loads(line)
-        return status
-
-    def close(self) -> None:
-        self._replies.close()
-        self._sock.close()
-
-    def __enter__(self) -> StatusClient:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()

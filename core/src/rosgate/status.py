@@ -27,9 +27,10 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from .config import BridgeConfig, TopicConfig
+from .config import BridgeConfig, ServiceConfig, TopicConfig
 from .connector import Lifetime, LinkSlot
 from .links import Link
+from .monitor import Status
 from .roles import Role
 from .roles.client import ClientRole
 from .roles.peer import PeerRole
@@ -41,7 +42,7 @@ VERSION = 1
 
 
 def collect(config: BridgeConfig, role: Role | None, router: Router | None, life: Lifetime,
-            started: float) -> dict[str, Any]:
+            started: float) -> Status:
     now = time.monotonic()
     routes = router.snapshot() if router is not None else []
     peers_of = _peers_of_routes(role, routes)
@@ -54,19 +55,31 @@ def collect(config: BridgeConfig, role: Role | None, router: Router | None, life
             "link_drops": dict(router.link_drops) if router is not None else {}}
 
 
-def _entry(route: Route, peer: str, config: BridgeConfig, now: float) -> dict[str, Any]:
-    e, c = route.entry, route.counters
-    topic = isinstance(e, TopicConfig)
+#: an entry's counters before anything crossed, and its state when nothing is wrong
+IDLE = {"sent": 0, "bytes_sent": 0, "received": 0, "bytes_received": 0, "lost": 0, "drops": {},
+        "queue": 0, "stale": None, "silence": None, "latency": None, "refused": None}
+
+
+def _row(e: TopicConfig | ServiceConfig | None, name: str, peer: str, **state: Any) -> Status:
+    return {"kind": "service" if isinstance(e, ServiceConfig) else "topic", "name": name,
+            "direction": str(e.direction) if e else None, "peer": peer,
+            "type": e.type if e else None, "transport": e.transport if e else None,
+            "port": e.port if e else None, **IDLE, "drops": {}, **state}
+
+
+def _name(e: TopicConfig | ServiceConfig) -> str:
+    return e.topic if isinstance(e, TopicConfig) else e.service
+
+
+def _entry(route: Route, peer: str, config: BridgeConfig, now: float) -> Status:
+    c = route.counters
     silence = now - route.last_received if isinstance(route, ReceiveRoute) else None
-    return {"kind": "topic" if topic else "service",
-            "name": e.topic if isinstance(e, TopicConfig) else e.service,
-            "direction": str(e.direction), "peer": peer, "type": e.type,
-            "transport": e.transport, "port": e.port,
-            "sent": c.sent, "bytes_sent": c.bytes_sent, "received": c.received,
-            "bytes_received": c.bytes_received, "lost": c.lost, "drops": dict(c.drops),
-            "queue": route.queue_depth if isinstance(route, TransmitRoute) else 0,
-            "stale": silence >= config.stale_after if silence is not None else None,
-            "silence": silence, "latency": None, "refused": None}
+    return _row(route.entry, _name(route.entry), peer, sent=c.sent, bytes_sent=c.bytes_sent,
+                received=c.received, bytes_received=c.bytes_received, lost=c.lost,
+                drops=dict(c.drops),
+                queue=route.queue_depth if isinstance(route, TransmitRoute) else 0,
+                stale=silence >= config.stale_after if silence is not None else None,
+                silence=silence)
 
 
 def _peer_in_label(label: str) -> str:
@@ -83,30 +96,20 @@ def _peers_of_routes(role: Role | None, routes: list[Route]) -> dict[int, str]:
     return {}
 
 
-def _refused(role: Role | None) -> list[dict[str, Any]]:
+def _refused(role: Role | None) -> list[Status]:
     """Entries the other side refused (its policy, a type it does not know): no route here."""
-    found: list[tuple[str, str, str, Any]] = []
     if isinstance(role, ClientRole):
-        found = [(entry, role.server_name or "server", why, None)
-                 for entry, why in role.refused.items()]
-    elif isinstance(role, ServerRole):
-        for s in list(role.sessions.values()):
-            for index, why in list(s.refused.items()):
-                e = s.entries[index] if index < len(s.entries) else None
-                name = (e.topic if isinstance(e, TopicConfig) else e.service) if e else str(index)
-                found.append((name, s.name, why, e))
-    out: list[dict[str, Any]] = []
-    for name, peer, why, e in found:
-        out.append({"kind": "topic" if e is None or isinstance(e, TopicConfig) else "service",
-                    "name": name, "direction": str(e.direction) if e else None, "peer": peer,
-                    "type": e.type if e else None, "transport": e.transport if e else None,
-                    "port": e.port if e else None, "sent": 0, "bytes_sent": 0, "received": 0,
-                    "bytes_received": 0, "lost": 0, "drops": {}, "queue": 0, "stale": None,
-                    "silence": None, "latency": None, "refused": why})
+        return [_row(None, name, role.server_name or "server", refused=why)
+                for name, why in role.refused.items()]
+    out = []
+    for s in list(role.sessions.values()) if isinstance(role, ServerRole) else []:
+        for index, why in list(s.refused.items()):
+            e = s.entries[index] if index < len(s.entries) else None
+            out.append(_row(e, _name(e) if e else str(index), s.name, refused=why))
     return out
 
 
-def _peers(role: Role | None, config: BridgeConfig) -> list[dict[str, Any]]:
+def _peers(role: Role | None, config: BridgeConfig) -> list[Status]:
     if isinstance(role, ClientRole):
         return [{"name": role.server_name or config.server, "up": role.connected.is_set()}]
     if isinstance(role, ServerRole):
@@ -118,7 +121,7 @@ def _peers(role: Role | None, config: BridgeConfig) -> list[dict[str, Any]]:
     return []
 
 
-def _links(links: list[Link]) -> list[dict[str, Any]]:
+def _links(links: list[Link]) -> list[Status]:
     inside = {id(link.current) for link in links
               if isinstance(link, LinkSlot) and link.current is not None}
     out = []
@@ -141,48 +144,44 @@ def _links(links: list[Link]) -> list[dict[str, Any]]:
 
 # -- the summary line ------------------------------------------------------------------------
 
-def summary(now: dict[str, Any], before: dict[str, Any] | None) -> str:
+def _key(e: Status) -> tuple[Any, ...]:
+    return e["kind"], e["name"], e["direction"], e["peer"]
+
+
+def summary(now: Status, before: Status | None) -> str:
     """One line for the log: totals since ``before`` (or the start), and what is abnormal."""
     entries = [e for e in now["entries"] if e["refused"] is None]
-    old = {(e["kind"], e["name"], e["direction"], e["peer"]): e
-           for e in (before or {}).get("entries", [])}
+    old = {_key(e): e for e in (before or {}).get("entries", [])}
     span = now["time"] - before["time"] if before else now["uptime"]
-
-    def delta(e: dict[str, Any], key: str) -> int:
-        o = old.get((e["kind"], e["name"], e["direction"], e["peer"]))
-        return int(e[key] - (o[key] if o else 0))
-
-    sent = sum(delta(e, "sent") for e in entries)
-    received = sum(delta(e, "received") for e in entries)
-    volume = sum(delta(e, "bytes_sent") + delta(e, "bytes_received") for e in entries)
-    topics = sum(e["kind"] == "topic" for e in entries)
-    parts = [f"{now['bridge']}: last {span:.0f} s: {topics} topic(s), "
-             f"{len(entries) - topics} service(s), sent {sent}, received {received} "
-             f"({_size(volume)})"]
+    totals: dict[str, int] = {}
     drops: dict[str, int] = {}
     for e in entries:
-        o = old.get((e["kind"], e["name"], e["direction"], e["peer"]))
+        o = old.get(_key(e), IDLE)
+        for key in ("sent", "received", "bytes_sent", "bytes_received"):
+            totals[key] = totals.get(key, 0) + int(e[key] - o[key])
         for reason, n in e["drops"].items():
-            n -= o["drops"].get(reason, 0) if o else 0
+            n -= o["drops"].get(reason, 0)
             if n:
                 drops[reason] = drops.get(reason, 0) + n
+    topics = sum(e["kind"] == "topic" for e in entries)
+    volume = totals.get("bytes_sent", 0) + totals.get("bytes_received", 0)
+    parts = [f"{now['bridge']}: last {span:.0f} s: {topics} topic(s), "
+             f"{len(entries) - topics} service(s), sent {totals.get('sent', 0)}, received "
+             f"{totals.get('received', 0)} ({_size(volume)})"]
     if drops:
         parts.append("drops " + ", ".join(f"{k}={v}" for k, v in sorted(drops.items())))
-    stale = sorted(e["name"] for e in entries if e["stale"])
-    if stale:
-        parts.append("stale " + ", ".join(stale))
-    down = sorted(str(p["name"]) for p in now["peers"] if p["up"] is False)
-    if down:
-        parts.append("down " + ", ".join(down))
-    refused = sorted(e["name"] for e in now["entries"] if e["refused"] is not None)
-    if refused:
-        parts.append("refused " + ", ".join(refused))
+    for word, names in (
+            ("stale", [e["name"] for e in entries if e["stale"]]),
+            ("down", [str(p["name"]) for p in now["peers"] if p["up"] is False]),
+            ("refused", [e["name"] for e in now["entries"] if e["refused"] is not None])):
+        if names:
+            parts.append(f"{word} " + ", ".join(sorted(names)))
     return "; ".join(parts)
 
 
 def _size(n: float) -> str:
-    for unit in ("B", "kB", "MB", "GB"):
-        if abs(n) < 1000 or unit == "GB":
+    for unit in ("B", "kB", "MB"):
+        if abs(n) < 1000:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1000
     return f"{n:.1f} GB"

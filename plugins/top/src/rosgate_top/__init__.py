@@ -1,6 +1,6 @@
 """``rosgate top``: a live terminal view of a bridge running on this machine.
 
-It asks the bridge's local status socket (:mod:`rosgate.runtime`) once a second and draws what
+It asks the bridge's local status socket (:mod:`rosgate_top.client`) once a second and draws what
 changed as rates (:mod:`rosgate_top.view`) with rich. Keys are read from the terminal one at a
 time (cbreak mode: no echo, Ctrl-C still interrupts); without a terminal (a pipe) it draws
 until stopped.
@@ -25,8 +25,8 @@ from rich.console import Console
 from rich.live import Live
 
 from rosgate import Command, ConfigError, hookimpl
-from rosgate.runtime import NoBridge, StatusClient, running
 
+from .client import NoBridge, StatusClient, running
 from .view import SORT_KEYS, render
 
 INTERVAL = 1.0

@@ -1,4 +1,4 @@
-"""The built-in ``diagnostics`` monitor: a ``diagnostic_msgs/msg/DiagnosticArray`` on
+"""The ``diagnostics`` monitor: a ``diagnostic_msgs/msg/DiagnosticArray`` on
 ``/diagnostics`` once a second, as rqt_robot_monitor and diagnostic_aggregator read it.
 
 One status per topic, service and link, and one per peer. Its ``name`` is
@@ -10,17 +10,20 @@ One status per topic, service and link, and one per peer. Its ``name`` is
   sends more than its budget;
 * OK — otherwise.
 
-On by default; ``bridge.diagnostics: false`` turns it off. ``diagnostic_msgs`` is imported when
-the monitor starts, so a bridge without it installed only says so, once.
+On for every bridge once installed; ``bridge.diagnostics: false`` turns it off.
+``diagnostic_msgs`` is imported when the monitor starts, so a bridge without it only says so,
+once.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from .monitor import Monitor, Status
+from rosgate import Monitor, hookimpl
+from rosgate.monitor import Status
 
 log = logging.getLogger("rosgate")
 
@@ -117,3 +120,8 @@ def assess(now: Status, before: Status | None) -> list[tuple[int, str, str, list
 
 def _key(e: dict[str, Any]) -> tuple[Any, ...]:
     return e["kind"], e["name"], e["direction"], e["peer"]
+
+
+@hookimpl
+def rosgate_monitors(register: Callable[[type[Monitor]], None]) -> None:
+    register(Diagnostics)
