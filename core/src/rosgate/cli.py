@@ -122,6 +122,13 @@ def cmd_check(args: argparse.Namespace) -> int:
               f"{f.reason}", file=sys.stderr)
     from .bus import BusTransport
 
+    def speaks(p: Any) -> str:
+        """The convention a bus entry follows, for the line that lists it."""
+        if not isinstance(p.transport, BusTransport):
+            return ""
+        said = engine.resolver.bus_role(p.transport, "").speaks(p.transport, p.config)
+        return f"  ({said})" if said else ""
+
     engine = _engine(args.file, plugins)
     cfg, plan = engine.config, engine.plan
     assert plan is not None
@@ -132,19 +139,15 @@ def cmd_check(args: argparse.Namespace) -> int:
         t = p.config
         arrow = "->" if t.direction == "transmit" else "<-"
         port = f":{t.port}" if t.port else ""
-        dialect = p.transport.dialect if isinstance(p.transport, BusTransport) else None
-        speaks = dialect.name(t) if dialect is not None else None
         print(f"  {p.name} {arrow} {p.key or t.remote}  [{t.type}] {t.transport}{port} {t.codec} "
-              f"{t.cipher}" + (f"  ({speaks})" if speaks else ""))
+              f"{t.cipher}" + speaks(p))
     for a in plan.actions:  # three services and two topics each (rosgate.actions)
         c, calls = a.config, a.parts[0]  # its send_goal: on a bus, its key shows theirs
         arrow = "->" if c.direction == "transmit" else "<-"
         port = f":{c.port}" if c.port else ""
         where = calls.key.removesuffix("send_goal") + "*" if calls.key else c.remote
-        dialect = calls.transport.dialect if isinstance(calls.transport, BusTransport) else None
-        speaks = dialect.name(calls.config) if dialect is not None else None
         print(f"  {a.name} {arrow} {where}  [{c.type}] {c.transport}{port} {c.codec} "
-              f"{c.cipher}" + (f"  ({speaks})" if speaks else ""))
+              f"{c.cipher}" + speaks(calls))
     from .budget import report
 
     for line in report(plan):

@@ -37,7 +37,7 @@ from typing import Any
 import pluggy
 
 from . import hookspecs
-from .bus import BusTransport
+from .bus import BusRole, BusTransport
 from .cipher import Cipher
 from .codec import Codec
 from .commands import Command, command_problem
@@ -62,13 +62,15 @@ KINDS: dict[str, tuple[str, type]] = {
     "packetizer": ("rosgate_packetizers", Packetizer),
     "monitor": ("rosgate_monitors", Monitor),
     "service_framing": ("rosgate_service_framings", ServiceFraming),
+    "bus_role": ("rosgate_bus_roles", BusRole),
 }
 #: the word of a kind in distribution names, where it is not the kind itself
 _DISTRIBUTION_WORD = {"cipher": "crypto", "transform": "compress", "packetizer": "recovery"}
 #: the plugins rosgate's own distributions provide under names the convention does not give
 _OWN_DISTRIBUTIONS = {("packetizer", "fec"): "rosgate-recovery",
                       ("packetizer", "retransmit"): "rosgate-recovery",
-                      ("service_framing", "serial_datagram"): "rosgate-mcu-cvra"}
+                      ("service_framing", "serial_datagram"): "rosgate-mcu-cvra",
+                      ("bus_role", "fleet"): "rosgate-fleet"}
 
 
 def conventional_distribution(kind: str, name: str) -> str:
