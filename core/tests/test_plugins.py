@@ -631,8 +631,8 @@ def test_explain_missing_names_rosgate_s_own_distribution_where_the_convention_d
     message, fix = Plugins().explain_missing(kind, name)
     what = kind.replace("_", " ")
     assert message == f"unknown {what} {name!r} (installed {what}s: none)"
-    assert fix == (f"pip install the distribution that provides it ({distribution}), "
-                   f"or pick an installed {what}")
+    pick = "" if kind == "bus_role" else f", or pick an installed {what}"  # the bus names it
+    assert fix == f"pip install the distribution that provides it ({distribution}){pick}"
 
 
 def test_explain_missing_gives_the_reason_a_plugin_failed():

@@ -321,16 +321,17 @@ class Plugins:
         installed = ", ".join(self.names(kind)) or "none"
         what = kind.replace("_", " ")
         message = f"unknown {what} {name!r} (installed {what}s: {installed})"
+        # a file names no bus role: the bus transport does, so there is none to pick
+        pick = "" if kind == "bus_role" else f", or pick an installed {what}"
         failed = [f for f in self.failures if f.plugin == name]
         if failed:
             message += f"; plugin {name!r} is installed but failed to load: {failed[0].reason}"
-            return message, (f"repair or reinstall {failed[0].distribution}, or pick an installed "
-                             f"{what}")
+            return message, f"repair or reinstall {failed[0].distribution}{pick}"
         if name in self.blocked:
             message += f"; plugin {name!r} is blocked by {DISABLE_VARIABLE}"
-            return message, f"remove {name} from {DISABLE_VARIABLE}, or pick an installed {what}"
+            return message, f"remove {name} from {DISABLE_VARIABLE}{pick}"
         return message, (f"pip install the distribution that provides it "
-                         f"({distribution_hint(kind, name)}), or pick an installed {what}")
+                         f"({distribution_hint(kind, name)}){pick}")
 
 
 _installed: Plugins | None = None

@@ -327,8 +327,7 @@ class Resolver:
         if found is None:
             message, fix = self.plugins.explain_missing("bus_role", transport.role)
             raise (error or self.config.error)(
-                key, f"{transport.name} is a bus, whose entries a bus role wires: {message}",
-                fix.replace(", or pick an installed bus role", ""))
+                key, f"{transport.name} is a bus, whose entries a bus role wires: {message}", fix)
         return found.cls
 
     def _point_to_point(self, entry: TopicConfig | ServiceConfig, key: str, transport: Transport,
