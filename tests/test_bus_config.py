@@ -4,12 +4,17 @@ bus) exactly as ``rosgate check`` and ``rosgate run`` see them."""
 
 from __future__ import annotations
 
+import types
+
 import pytest
 from test_cli import rosgate, user_error
 
+from rosgate import builtin
+from rosgate.bus import BusRole, BusTransport
 from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.errors import ConfigError
+from rosgate.plugins import Plugins
 
 ZENOH = "plugins:\n  zenoh: {mode: client, connect: [tcp/127.0.0.1:7447], insecure: true}\n"
 
@@ -249,12 +254,9 @@ def test_router_takes_zenoh_s_own_config_file_and_refuses_a_bad_endpoint(tmp_pat
 def test_a_bus_without_name_templates_refuses_placeholders_at_the_entry_s_name():
     """Placeholders are the bus's to fill (zenoh's fleets); a bus that sets no ``templates``
     refuses them, located, and its entries without placeholders are keyed as on any bus."""
-    import types
+    from rosgate_fleet import FleetTransport
 
-    from rosgate.bus import BusTransport
-    from rosgate.plugins import Plugins
-
-    class PlainBus(BusTransport):
+    class PlainBus(FleetTransport):
         name = "plainbus"
 
         def open(self, name):
@@ -277,3 +279,107 @@ def test_a_bus_without_name_templates_refuses_placeholders_at_the_entry_s_name()
     assert (e.file, e.line, e.key) == ("bringup.yaml", 3, "topics[0].topic"), str(e)
     assert e.message == "plainbus takes no placeholders such as {robot}"
     assert e.fix == "write the robot's name, or use a bus that takes them"
+
+
+class Mqtt(BusTransport):
+    """A bus transport written from outside, with a bus role of its own."""
+
+    name = "mqtt"
+    role = "mqttfleet"
+
+    def open(self, name):
+        raise AssertionError("the bus role opens what it needs")
+
+
+class MqttRole(BusRole):
+    """A bus role written from outside: keys of its own, and a record of what it was handed."""
+
+    name = "mqttfleet"
+    made: list[MqttRole] = []
+
+    def __init__(self, bridge):
+        super().__init__(bridge)
+        self.wired: list[tuple[str, str | None]] = []
+        MqttRole.made.append(self)
+
+    @staticmethod
+    def key(transport, entry, bridge):
+        if entry.remote == "/refused":
+            raise ConfigError("this bus refuses it", key="remote", fix="write another remote")
+        return f"mqtt/{bridge}{entry.remote}"
+
+    @staticmethod
+    def speaks(transport, entry):
+        return "mqtt's own"
+
+    def topic(self, spec):
+        self.wired.append(("topic", spec.key))
+
+    def service(self, spec):
+        self.wired.append(("service", spec.key))
+
+
+def outside_plugins(*, with_role: bool) -> Plugins:
+    """The built-ins and the mqtt transport, with or without its bus role: no rosgate-fleet."""
+    plugins = Plugins()
+    plugins.add(builtin, "builtin")
+    module = types.ModuleType("rosgate_transport_mqtt")
+    module.rosgate_transports = lambda register: register(Mqtt)  # type: ignore[attr-defined]
+    if with_role:
+        module.rosgate_bus_roles = lambda register: register(MqttRole)  # type: ignore[attr-defined]
+    plugins.add(module, "mqtt")
+    assert plugins.failures == []
+    return plugins
+
+
+MQTT = """\
+bridge: {name: r1, role: peer, defaults: {transport: mqtt}}
+topics:
+  - {topic: /x, type: std_msgs/msg/String, direction: transmit}
+"""
+
+
+def test_a_bus_entry_whose_bus_role_is_not_installed_names_the_distribution_to_install():
+    for role, distribution in [("mqttfleet", "by convention rosgate-bus_role-mqttfleet"),
+                               ("fleet", "rosgate-fleet")]:
+        Mqtt.role = role
+        try:
+            with pytest.raises(ConfigError) as info:
+                Engine(loads(MQTT, file="bringup.yaml"),
+                       outside_plugins(with_role=False)).prepare()
+        finally:
+            Mqtt.role = "mqttfleet"
+        e = info.value
+        assert (e.file, e.line, e.key) == ("bringup.yaml", 3, "topics[0].transport"), str(e)
+        assert e.message == (f"mqtt is a bus, whose entries a bus role wires: unknown bus role "
+                             f"{role!r} (installed bus roles: none)")
+        assert e.fix == f"pip install the distribution that provides it ({distribution})"
+
+
+def test_a_bus_role_from_outside_keys_and_wires_the_entries_of_its_bus(domain):
+    """The hook the fleet role is registered through serves a third party alike: its keys reach
+    the plan, its refusals are located at the entry's field, and one instance per bridge is
+    handed every bus entry as the bridge starts."""
+    plugins = outside_plugins(with_role=True)
+    text = MQTT + ("services:\n"
+                   "  - {service: /s, type: std_srvs/srv/Trigger, direction: receive}\n")
+    engine = Engine(loads(text, file="bringup.yaml"), plugins, domain_id=domain())
+    MqttRole.made.clear()
+    engine.prepare()
+    assert engine.plan is not None
+    assert [t.key for t in engine.plan.topics] == ["mqtt/r1/x"]
+    assert [s.key for s in engine.plan.services] == ["mqtt/r1/s"]
+    assert MqttRole.made == []  # checking the file makes no role
+    engine.start()
+    try:
+        assert len(MqttRole.made) == 1
+        assert MqttRole.made[0].bridge.config.name == "r1"
+        assert MqttRole.made[0].wired == [("topic", "mqtt/r1/x"), ("service", "mqtt/r1/s")]
+    finally:
+        engine.stop()
+    with pytest.raises(ConfigError) as info:
+        Engine(loads(MQTT.replace("direction: transmit}", "direction: transmit, "
+                                  "remote: /refused}"), file="bringup.yaml"), plugins).prepare()
+    e = info.value
+    assert (e.file, e.line, e.key) == ("bringup.yaml", 3, "topics[0].remote"), str(e)
+    assert (e.message, e.fix) == ("this bus refuses it", "write another remote")

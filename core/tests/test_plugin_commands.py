@@ -17,8 +17,9 @@ from pathlib import Path
 import pytest
 
 ROSGATE = str(Path(sys.executable).with_name("rosgate"))
-HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_monitors, "
-         "rosgate_packetizers, rosgate_service_framings, rosgate_transforms, rosgate_transports")
+HOOKS = ("the hooks are rosgate_bus_roles, rosgate_ciphers, rosgate_codecs, rosgate_commands, "
+         "rosgate_monitors, rosgate_packetizers, rosgate_service_framings, rosgate_transforms, "
+         "rosgate_transports")
 
 TYPO = """
     from rosgate import hookimpl

@@ -301,8 +301,9 @@ def module(name: str, source: str, **names: Any) -> types.ModuleType:
     return made
 
 
-HOOKS = ("the hooks are rosgate_ciphers, rosgate_codecs, rosgate_commands, rosgate_monitors, "
-         "rosgate_packetizers, rosgate_service_framings, rosgate_transforms, rosgate_transports")
+HOOKS = ("the hooks are rosgate_bus_roles, rosgate_ciphers, rosgate_codecs, rosgate_commands, "
+         "rosgate_monitors, rosgate_packetizers, rosgate_service_framings, rosgate_transforms, "
+         "rosgate_transports")
 
 
 def test_a_misspelt_hook_is_a_failure_naming_it_and_nothing_of_the_plugin_is_kept():
@@ -504,9 +505,9 @@ def test_asking_for_udp_imports_no_other_plugin():
 def test_every_hook_is_documented_in_its_spec_and_in_the_guide():
     guide = (ROOT / "docs" / "plugins.md").read_text()
     hooks = [name for name in dir(hookspecs) if name.startswith("rosgate_")]
-    assert hooks == ["rosgate_ciphers", "rosgate_codecs", "rosgate_commands", "rosgate_monitors",
-                     "rosgate_packetizers", "rosgate_service_framings", "rosgate_transforms",
-                     "rosgate_transports"]
+    assert hooks == ["rosgate_bus_roles", "rosgate_ciphers", "rosgate_codecs", "rosgate_commands",
+                     "rosgate_monitors", "rosgate_packetizers", "rosgate_service_framings",
+                     "rosgate_transforms", "rosgate_transports"]
     for name in hooks:
         assert getattr(hookspecs, name).__doc__, f"{name} has no docstring"
         assert name in guide, f"docs/plugins.md does not mention {name}"
@@ -623,14 +624,15 @@ def test_explain_missing_names_the_distribution(kind, name, distribution):
     ("packetizer", "fec", "rosgate-recovery"),
     ("packetizer", "retransmit", "rosgate-recovery"),
     ("service_framing", "serial_datagram", "rosgate-mcu-cvra"),
+    ("bus_role", "fleet", "rosgate-fleet"),
 ])
 def test_explain_missing_names_rosgate_s_own_distribution_where_the_convention_does_not(
         kind, name, distribution):
     message, fix = Plugins().explain_missing(kind, name)
     what = kind.replace("_", " ")
     assert message == f"unknown {what} {name!r} (installed {what}s: none)"
-    assert fix == (f"pip install the distribution that provides it ({distribution}), "
-                   f"or pick an installed {what}")
+    pick = "" if kind == "bus_role" else f", or pick an installed {what}"  # the bus names it
+    assert fix == f"pip install the distribution that provides it ({distribution}){pick}"
 
 
 def test_explain_missing_gives_the_reason_a_plugin_failed():

@@ -1,190 +1,65 @@
 """Buses: the third kind of link, for pub/sub and query networks addressed by key (Eclipse Zenoh).
 
 A datagram link moves frames to an address and a stream link moves bytes over a connection; a
-bus moves whole frames by **key**: publish on a key, subscribe to a key expression
-(``fleet/*/scan``) and receive each frame with the concrete key it was published on, serve and
-issue queries (services), and declare and watch liveliness tokens (who is there). A bus
-discovers and reconnects by itself and fragments what it carries, so the core does neither on
-it: no length prefixes, no fragments, no reconnection. It keeps the envelope and the cipher
-(``framing: rosgate``) or sends the codec's bytes bare (``framing: none``).
-
-A bus plugin subclasses :class:`BusTransport`, registered through the ``rosgate_transports``
-hook like any transport, and implements :meth:`BusTransport.open`, returning a
-:class:`BusSession`. Bus entries need no ``port:`` and no ``peer:``: an entry's ``remote`` is its
-key (default :meth:`BusTransport.default_key`).
-
-Keys are ``/``-separated chunks without a leading or trailing ``/``; in a key expression ``*``
-matches one chunk and ``**`` any number. Chunks that start with ``@`` are matched only by a
-pattern that names them (``rosgate/*/@alive`` matches ``rosgate/robot1/@alive``; ``**`` does not).
-
-Threads: the ``on_*`` callbacks a session is given may be called from the bus library's own
-threads, several at once. The core's callbacks only queue what they get and return at once (a
-slow callback can stall a bus library's whole session), so a plugin may call them from its
-receive thread directly. A plugin must not leave threads that keep the process from exiting:
-:meth:`BusSession.close` ends everything it started.
+bus moves whole frames by **key**, and discovers, reconnects and fragments by itself. The core
+knows only the kind: a bus plugin subclasses :class:`BusTransport` (registered through
+``rosgate_transports`` like any transport), and its entries — peer role, no ``port:``, no
+``peer:`` — are wired by the **bus role** its :attr:`~BusTransport.role` names: a
+:class:`BusRole` registered through the ``rosgate_bus_roles`` hook. rosgate's own is ``fleet``
+(distribution ``rosgate-fleet``: keys, bus links, ``{robot}`` placeholders), which defines the
+session a bus transport's :meth:`~BusTransport.open` returns.
 """
 
 from __future__ import annotations
 
-import re
-from abc import abstractmethod
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Protocol
+from abc import ABC, abstractmethod
+from typing import Any
 
+from .config import ServiceConfig, TopicConfig
+from .spec import ServiceSpec, TopicSpec
 from .transport import Transport
-
-if TYPE_CHECKING:
-    from .config import ServiceConfig, TopicConfig
-
-PRIORITY_DEFAULT = 5  # data, in the numbering of config.PRIORITIES (zenoh's): 1 to 7
-
-_CHUNK = re.compile(r"[^/*$?#]+|\*|\*\*")
-
-
-class Handle(Protocol):
-    """A declaration (subscription, queryable, token, watch); ``close`` withdraws it."""
-
-    def close(self) -> None: ...
-
-
-class BusPublisher(Protocol):
-    """Publishes on one key."""
-
-    def put(self, frame: bytes) -> None:
-        """Hand one frame to the bus. Raise ``OSError`` when it cannot be handed over (the core
-        counts it as ``send_error``). A reliable publisher may wait while the bus is congested;
-        a best-effort one drops instead, silently, as the bus does."""
-
-    def close(self) -> None: ...
-
-
-class BusQuery(Protocol):
-    """One query received by a queryable: answer it once, or close it without an answer."""
-
-    def reply(self, payload: bytes) -> None:
-        """Answer with ``payload``; raise ``OSError`` when the answer cannot be sent."""
-
-    def close(self) -> None:
-        """Finish the query (after a reply, or instead of one: the caller then gets none)."""
-
-
-#: a frame arrived: (the concrete key it was published on, the frame)
-SampleHandler = Callable[[str, bytes], None]
-#: a query arrived: (the concrete key, its payload, the query to answer)
-QueryHandler = Callable[[str, bytes, BusQuery], None]
-#: liveliness: (a token's key, True when it appeared, False when it went)
-ChangeHandler = Callable[[str, bool], None]
-
-
-class BusSession(Protocol):
-    """An open session on the bus. Every method but ``close`` may be called from any thread."""
-
-    def publisher(self, key: str, *, reliable: bool, priority: int) -> BusPublisher:
-        """A publisher on ``key``. ``reliable``: the topic's QoS is reliable, so the bus should
-        push back when congested rather than drop (zenoh: ``CongestionControl.BLOCK``), else
-        drop (``DROP``). ``priority``: 1 (real time) to 7 (background), see :data:`PRIORITIES`."""
-
-    def subscribe(self, key_expr: str, on_sample: SampleHandler) -> Handle:
-        """Deliver every frame published on a key matching ``key_expr`` to ``on_sample``."""
-
-    def serve(self, key: str, on_query: QueryHandler) -> Handle:
-        """Answer queries on ``key``: each is handed to ``on_query`` with a :class:`BusQuery`."""
-
-    def query(self, key: str, payload: bytes, timeout: float,
-              on_reply: Callable[[bytes], None], on_done: Callable[[int], None]) -> None:
-        """Send one query and return at once. ``on_reply(payload)`` for each answer;
-        ``on_done(answers)`` once when the query is over (all servers answered, none serves the
-        key, or ``timeout`` seconds passed). Raise ``OSError`` when it cannot be sent."""
-
-    def token(self, key: str) -> Handle:
-        """Declare a liveliness token on ``key``, held until closed or the session ends."""
-
-    def watch(self, key_expr: str, on_change: ChangeHandler) -> Handle:
-        """Report tokens matching ``key_expr``: those already declared at once (``True``), then
-        each that appears (``True``) or goes (``False``: withdrawn, or its holder is gone)."""
-
-    def close(self) -> None:
-        """Close the session and everything declared on it, promptly."""
-
-
-class NameTemplates(Protocol):
-    """Entries whose names hold placeholders (``topic: /{robot}/scan`` with ``remote:
-    fleet/{robot}/scan``): one entry in the file, a route for each value the bus finds. A bus that
-    takes them sets :attr:`BusTransport.templates`; the zenoh plugin's fleets are the example."""
-
-    def check(self, entry: TopicConfig | ServiceConfig, key: str) -> None:
-        """Refuse a templated entry whose key is ``key`` (its ``remote``, or the default key)
-        with a :class:`rosgate.ConfigError` whose ``key`` is the entry's field (``remote``)."""
-
-    def start(self, wiring: Any, link: Any) -> Callable[[Any], None]:
-        """Begin on one bus link of a bridge (a :class:`rosgate.roles.bus.BusWiring` and its
-        :class:`rosgate.buslink.BusLink`); the function returned takes each templated entry of
-        that link (a prepared topic or service) as the bridge starts."""
-
-
-class Dialect(Protocol):
-    """Entries a bus wires in another system's convention rather than rosgate's own (the zenoh
-    plugin: zenoh-bridge-ros2dds's and rmw_zenoh's graph announcements, history and bare service
-    calls). A bus that has one sets :attr:`BusTransport.dialect`."""
-
-    def name(self, entry: TopicConfig | ServiceConfig) -> str | None:
-        """The convention ``entry`` follows, in a few words for ``rosgate check``; None: the
-        core wires it as usual."""
-
-    def check(self, entry: TopicConfig | ServiceConfig, key: str) -> None:
-        """Refuse an entry (whose :meth:`name` is not None) that the convention cannot carry,
-        with a :class:`rosgate.ConfigError` whose ``key`` is the entry's field."""
-
-    def wire(self, wiring: Any, link: Any, entry: Any) -> None:
-        """Make the routes of one prepared entry (a topic or a service) on one bus link of a
-        bridge (a :class:`rosgate.roles.bus.BusWiring` and its :class:`rosgate.buslink.BusLink`),
-        with the wiring's methods and the link's session."""
-
-
-def is_template(text: str) -> bool:
-    """Whether an entry's name or key holds a placeholder (``{robot}``)."""
-    return "{" in text or "}" in text
 
 
 class BusTransport(Transport):
-    """Base class of bus plugins. Set :attr:`name`; implement :meth:`open`. Set :attr:`prefix`
-    from your options if you take it (the core's key convention)."""
+    """Base class of bus plugins. Set :attr:`name`; implement :meth:`open`. A bus for the
+    ``fleet`` role subclasses :class:`rosgate_fleet.FleetTransport`, which adds its keys."""
 
-    #: rosgate's own keys start with it: ``<prefix>/<bridge name>/<topic>`` and the liveliness
-    #: token ``<prefix>/<bridge name>/@alive``
-    prefix: str = "rosgate"
-    #: entries with placeholders, or None: this bus takes none
-    templates: NameTemplates | None = None
-    #: entries wired in another system's convention, or None: every entry is rosgate's
-    dialect: Dialect | None = None
+    #: the bus role that wires this bus's entries (a plugin of kind ``bus_role``)
+    role: str = "fleet"
 
     @abstractmethod
-    def open(self, name: str) -> BusSession:
-        """Open a session for the bridge called ``name``. Raise :class:`rosgate.LinkError` when it
+    def open(self, name: str) -> Any:
+        """Open a session for the bridge called ``name``, of the interface the bus role expects
+        (``fleet``: :class:`rosgate_fleet.BusSession`). Raise :class:`rosgate.LinkError` when it
         cannot be opened (no router where one is required, a port in use)."""
 
-    def check_key(self, key: str) -> str:
-        """Validate a key (or key expression) written in bringup.yaml; ``ValueError`` with a
-        sentence saying what is wrong. The default checks the chunk rules above."""
-        return check_key(key)
 
-    def default_key(self, bridge: str, ros_name: str, bare: bool) -> str:
-        """The key of an entry without ``remote``: the ROS name without its slash for bare
-        frames, else ``<prefix>/<bridge>/<name>``."""
-        name = ros_name.removeprefix("/")
-        return name if bare else f"{self.prefix}/{bridge}/{name}"
+class BusRole(ABC):
+    """The bus side of a peer-role bridge. The resolver asks :meth:`key` of each bus entry; the
+    peer role makes one instance per bridge (``cls(bridge)``, a :class:`rosgate.roles.Bridge`)
+    and hands it each prepared bus entry as the bridge starts."""
 
-    def alive_key(self, bridge: str) -> str:
-        """The liveliness token a bridge declares for itself."""
-        return f"{self.prefix}/{bridge}/@alive"
+    name: str = ""
 
+    def __init__(self, bridge: Any) -> None:
+        self.bridge = bridge
 
-def check_key(key: str) -> str:
-    """The chunk rules of keys (module docstring); ``ValueError`` saying which is broken."""
-    if not key or key.startswith("/") or key.endswith("/"):
-        raise ValueError(f"{key!r} is not a key: no leading or trailing '/', not empty")
-    for chunk in key.split("/"):
-        if not _CHUNK.fullmatch(chunk):
-            raise ValueError(f"{key!r} is not a key: chunk {chunk!r} is empty or holds "
-                             "'*', '$', '?' or '#' (a wildcard is '*' or '**' alone)")
-    return key
+    @staticmethod
+    @abstractmethod
+    def key(transport: BusTransport, entry: TopicConfig | ServiceConfig, bridge: str) -> str:
+        """The key ``entry`` is carried on (bridge: this bridge's name). Refuse what the bus
+        cannot carry with a :class:`rosgate.ConfigError` whose ``key`` is the entry's field."""
+
+    @staticmethod
+    def speaks(transport: BusTransport, entry: TopicConfig | ServiceConfig) -> str | None:
+        """The convention ``entry`` follows, in a few words for ``rosgate check``; None:
+        rosgate's own."""
+        return None
+
+    @abstractmethod
+    def topic(self, spec: TopicSpec) -> None:
+        """Make the routes of one bus topic."""
+
+    @abstractmethod
+    def service(self, spec: ServiceSpec) -> None:
+        """Make the routes of one bus service."""

@@ -25,7 +25,6 @@ if TYPE_CHECKING:
     from .cipher import Cipher
     from .engine import Engine
     from .plugins import Plugins
-    from .spec import RouteSpec
 
 EXIT_USAGE = 2
 
@@ -123,33 +122,37 @@ def _engine(path: str, plugins: Plugins | None = None, domain_id: int | None = N
 
 def cmd_check(args: argparse.Namespace) -> int:
     from .budget import report
+    from .bus import BusTransport
 
     # every plugin: one this file does not use may still be one the next file needs
     engine = _engine(args.file, _all_plugins())
+
+    def speaks(p: Any) -> str:
+        """The convention a bus entry follows, for the line that lists it."""
+        if not isinstance(p.transport, BusTransport):
+            return ""
+        return engine.resolver.bus_role(p.transport, "").speaks(p.transport, p.config) or ""
+
     cfg, plan = engine.config, engine.plan
     assert plan is not None
     print(f"{args.file}: ok ({cfg.role} {cfg.name!r}, {len(cfg.topics)} topic(s)"
           + (f", {len(cfg.services)} service(s)" if cfg.services else "")
           + (f", {len(cfg.actions)} action(s))" if cfg.actions else ")"))
     for p in [*plan.topics, *plan.services]:
-        print(_entry_line(p.name, p.key or p.config.remote, p.config, p))
+        print(_entry_line(p.name, p.key or p.config.remote, p.config, speaks(p)))
     for a in plan.actions:  # three services and two topics each (rosgate.actions)
         calls = a.parts[0]  # its send_goal: on a bus, its key shows theirs
         where = calls.key.removesuffix("send_goal") + "*" if calls.key else a.config.remote
-        print(_entry_line(a.name, where, a.config, calls))
+        print(_entry_line(a.name, where, a.config, speaks(calls)))
     for line in report(plan):
         print(line)
     return 0
 
 
-def _entry_line(name: str, where: str, c: Any, spec: RouteSpec) -> str:
+def _entry_line(name: str, where: str, c: Any, speaks: str) -> str:
     """``  /chatter -> base  [std_msgs/msg/String] udp cdr aead`` (and a bus dialect's name)"""
-    from .bus import BusTransport
-
     arrow = "->" if c.direction == "transmit" else "<-"
     port = f":{c.port}" if c.port else ""
-    dialect = spec.transport.dialect if isinstance(spec.transport, BusTransport) else None
-    speaks = dialect.name(spec.config) if dialect is not None else None
     return (f"  {name} {arrow} {where}  [{c.type}] {c.transport}{port} {c.codec} {c.cipher}"
             + (f"  ({speaks})" if speaks else ""))
 

@@ -25,6 +25,7 @@ from collections.abc import Callable
 
 import pluggy
 
+from .bus import BusRole
 from .cipher import Cipher
 from .codec import Codec
 from .commands import Command
@@ -42,6 +43,12 @@ hookimpl = pluggy.HookimplMarker("rosgate")
 def rosgate_transports(register: Callable[[type[Transport]], None]) -> None:
     """Register transport classes (links): subclasses of :class:`rosgate.DatagramTransport`,
     :class:`rosgate.StreamTransport` or :class:`rosgate.bus.BusTransport`."""
+
+
+@hookspec
+def rosgate_bus_roles(register: Callable[[type[BusRole]], None]) -> None:
+    """Register bus roles: subclasses of :class:`rosgate.bus.BusRole`, which check and wire the
+    entries of the bus transports whose ``role`` names them (rosgate-fleet's ``fleet``)."""
 
 
 @hookspec

@@ -36,7 +36,7 @@ from typing import Any
 import pluggy
 
 from . import hookspecs
-from .bus import BusTransport
+from .bus import BusRole, BusTransport
 from .cipher import Cipher
 from .codec import Codec
 from .commands import Command, command_problem
@@ -61,13 +61,15 @@ KINDS: dict[str, tuple[str, type]] = {
     "packetizer": ("rosgate_packetizers", Packetizer),
     "monitor": ("rosgate_monitors", Monitor),
     "service_framing": ("rosgate_service_framings", ServiceFraming),
+    "bus_role": ("rosgate_bus_roles", BusRole),
 }
 #: the word of a kind in distribution names, where it is not the kind itself
 _DISTRIBUTION_WORD = {"cipher": "crypto", "transform": "compress", "packetizer": "recovery"}
 #: the plugins rosgate's own distributions provide under names the convention does not give
 _OWN_DISTRIBUTIONS = {("packetizer", "fec"): "rosgate-recovery",
                       ("packetizer", "retransmit"): "rosgate-recovery",
-                      ("service_framing", "serial_datagram"): "rosgate-mcu-cvra"}
+                      ("service_framing", "serial_datagram"): "rosgate-mcu-cvra",
+                      ("bus_role", "fleet"): "rosgate-fleet"}
 
 
 def distribution_hint(kind: str, name: str) -> str:
@@ -300,16 +302,17 @@ class Plugins:
         installed = ", ".join(self.names(kind)) or "none"
         what = kind.replace("_", " ")
         message = f"unknown {what} {name!r} (installed {what}s: {installed})"
+        # a file names no bus role: the bus transport does, so there is none to pick
+        pick = "" if kind == "bus_role" else f", or pick an installed {what}"
         failed = [f for f in self.failures if f.plugin == name]
         if failed:
             message += f"; plugin {name!r} is installed but failed to load: {failed[0].reason}"
-            return message, (f"repair or reinstall {failed[0].distribution}, or pick an installed "
-                             f"{what}")
+            return message, f"repair or reinstall {failed[0].distribution}{pick}"
         if name in self.blocked:
             message += f"; plugin {name!r} is blocked by {DISABLE_VARIABLE}"
-            return message, f"remove {name} from {DISABLE_VARIABLE}, or pick an installed {what}"
+            return message, f"remove {name} from {DISABLE_VARIABLE}{pick}"
         return message, (f"pip install the distribution that provides it "
-                         f"({distribution_hint(kind, name)}), or pick an installed {what}")
+                         f"({distribution_hint(kind, name)}){pick}")
 
 
 _installed: Plugins | None = None

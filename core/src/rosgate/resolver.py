@@ -18,11 +18,12 @@ from functools import partial
 from typing import Any
 
 from . import actions
-from .bus import PRIORITY_DEFAULT, BusTransport, is_template
+from .bus import BusRole, BusTransport
 from .cipher import Cipher
 from .codec import Codec
 from .config import (
     NO_PLUGIN,
+    PRIORITIES,
     ActionConfig,
     BridgeConfig,
     Direction,
@@ -146,7 +147,7 @@ class Resolver:
                         "framing: none needs a datagram transport (udp, can, ...)",
                         "use framing: rosgate on stream links")
         reliable = is_reliable(topic.qos)
-        priority = topic.priority or PRIORITY_DEFAULT
+        priority = topic.priority or PRIORITIES["data"]
         self._real_link(topic, key, transport, error)
         recovery = self._recovery(topic, key, error)
         compression = self._compression(topic, key, error)
@@ -301,8 +302,8 @@ class Resolver:
 
     def _bus_key(self, transport: BusTransport, entry: TopicConfig | ServiceConfig, key: str,
                  error: ErrorMaker) -> str:
-        """A bus entry's key: its remote, or the transport's default key. Bus entries live in
-        peer-role files (no main line: the bus finds the others) and have no port."""
+        """A bus entry's key, as its bus role makes it. Bus entries live in peer-role files (no
+        main line: the bus finds the others) and have no port."""
         kind = "topic" if isinstance(entry, TopicConfig) else "service"
         cfg = self.config
         if cfg.role is not Role.PEER:
@@ -312,33 +313,22 @@ class Resolver:
         if entry.port is not None:
             raise error(f"{key}.port", f"port: does not apply to a {entry.transport} {kind}: "
                         "it is published on a key (remote:)", "remove port: from this entry")
-        name = entry.topic if isinstance(entry, TopicConfig) else entry.service
-        bare = entry.framing is Framing.NONE
-        given = "remote" in entry.lines
-        bus_key = (entry.remote.removeprefix("/") if given
-                   else transport.default_key(cfg.name, name, bare))
-        if is_template(name) or is_template(bus_key):
-            if transport.templates is None:
-                raise error(f"{key}.{kind}", f"{entry.transport} takes no placeholders such as "
-                            "{robot}", "write the robot's name, or use a bus that takes them")
-            try:
-                transport.templates.check(entry, bus_key)
-            except ConfigError as exc:
-                raise error(f"{key}.{exc.key}", exc.message, exc.fix) from None
-            return bus_key
+        role = self.bus_role(transport, f"{key}.transport", error)
         try:
-            transport.check_key(bus_key)
-        except ValueError as exc:
-            where = f"{key}.remote" if given else f"{key}.{kind}"
-            raise error(where, str(exc), "write remote: as parts separated by single '/', "
-                        "e.g. remote: fleet/robot1/scan") from None
-        dialect = transport.dialect
-        if dialect is not None and dialect.name(entry) is not None:
-            try:
-                dialect.check(entry, bus_key)
-            except ConfigError as exc:
-                raise error(f"{key}.{exc.key}", exc.message, exc.fix) from None
-        return bus_key
+            return role.key(transport, entry, cfg.name)
+        except ConfigError as exc:
+            raise error(f"{key}.{exc.key}", exc.message, exc.fix) from None
+
+    def bus_role(self, transport: BusTransport, key: str,
+                 error: ErrorMaker | None = None) -> type[BusRole]:
+        """The bus role that wires ``transport``'s entries; a :class:`ConfigError` at ``key``
+        naming the distribution to install when it is not here."""
+        found = self.plugins.get("bus_role", transport.role)
+        if found is None:
+            message, fix = self.plugins.explain_missing("bus_role", transport.role)
+            raise (error or self.config.error)(
+                key, f"{transport.name} is a bus, whose entries a bus role wires: {message}", fix)
+        return found.cls
 
     def _point_to_point(self, entry: TopicConfig | ServiceConfig, key: str, transport: Transport,
                         error: ErrorMaker) -> None:
@@ -346,7 +336,7 @@ class Resolver:
         point-to-point entries need: a port, and peer: for the far host."""
         kind = "topic" if isinstance(entry, TopicConfig) else "service"
         name = entry.topic if isinstance(entry, TopicConfig) else entry.service
-        if is_template(name):
+        if "{" in name or "}" in name:
             raise error(f"{key}.{kind}", f"placeholders such as {{robot}} need a bus transport "
                         f"(zenoh); {entry.transport} links one peer to another",
                         "set transport: zenoh on this entry, or write the robot's name")

@@ -5,7 +5,7 @@ talking. Receiving entries bind (or listen at) ``listen:port``; transmitting ent
 connect) to ``peer:port``. Services likewise: a serving side answers on the link and to the
 address each call came from.
 
-Entries on a bus (zenoh) are wired by :class:`~rosgate.roles.bus.BusWiring`: by key, without
+Entries on a bus (zenoh) are wired by its bus role (:mod:`rosgate.bus`): by key, without
 ports or a far host (and with the file's static ciphers: a bus has no peer to handshake with).
 
 Microcontrollers (the CVRA profile) are peers too: ``framing: none`` topics share a
@@ -48,6 +48,7 @@ from typing import Any
 
 from ..admission import Acceptor, Sources
 from ..announce import ANNOUNCE_EVERY
+from ..bus import BusRole, BusTransport
 from ..config import Direction, Framing
 from ..connector import Connector
 from ..drops import Drop
@@ -72,7 +73,6 @@ from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
 from . import NoLink, Refusals, Role
-from .bus import BusWiring
 from .mainline import control, is_control, key_label, parse_control
 
 log = logging.getLogger("rosgate")
@@ -95,6 +95,7 @@ class PeerRole(Role):
         self.heard_from: list[Route] = []
         self.callers: list[CallerRoute] = []
         self.lost = False  # a peer without a handshake line: silent too long
+        self.bus_roles: dict[type[BusRole], BusRole] = {}
 
     def _keys(self, p: TopicSpec | ServiceSpec) -> Keys | None:
         """A session's keys for an entry with an envelope (None: the file's cipher)."""
@@ -150,11 +151,16 @@ class PeerRole(Role):
         if self.handshake is not None:
             self.handshake.schedule.forget()
 
+    def _bus(self, p: TopicSpec | ServiceSpec) -> BusRole:
+        """The bridge's instance of the bus role that wires ``p``'s transport."""
+        assert isinstance(p.transport, BusTransport)
+        cls = self.bridge.resolver.bus_role(p.transport, "")
+        return self.bus_roles.get(cls) or self.bus_roles.setdefault(cls, cls(self.bridge))
+
     def _start_entries(self) -> None:
-        bus = BusWiring(self.bridge)
         for p in self.bridge.plan.topics:
             if p.key is not None:
-                bus.topic(p)
+                self._bus(p).topic(p)
             elif isinstance(p.transport, StreamTransport):
                 self._stream_topic(p)
             else:
@@ -162,14 +168,15 @@ class PeerRole(Role):
         call_servers: dict[Address, CallPort] = {}
         for s in self.bridge.plan.services:
             if s.key is not None:
-                bus.service(s)
+                self._bus(s).service(s)
             elif s.service_framing is not None:
                 self._microcontroller_service(s, call_servers)
             else:
                 self._service(s)
         for part in self.bridge.plan.action_parts:  # an action: three services, two topics
             if part.key is not None:
-                bus.topic(part) if isinstance(part, TopicSpec) else bus.service(part)
+                role = self._bus(part)
+                role.topic(part) if isinstance(part, TopicSpec) else role.service(part)
             elif isinstance(part, ServiceSpec):
                 self._service(part)
             elif isinstance(part.transport, StreamTransport):

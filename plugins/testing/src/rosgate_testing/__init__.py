@@ -50,14 +50,14 @@ What each suite checks (every check uses real sockets, real message classes, rea
   another key, every truncation and random bodies are refused with :class:`rosgate.CipherError`;
   two seals of one payload differ. A cipher with ``authenticates = False`` (``none``) skips the
   refusal tests, saying so.
-* :class:`BusConformance` — bus links (:mod:`rosgate.bus`): frames of 1 byte to 1 MiB cross
-  byte-exact with the concrete key they were published on; ``*`` matches one chunk and ``**``
+* :class:`BusConformance` — bus links (:mod:`rosgate_fleet.session`): frames of 1 byte to 1 MiB
+  cross byte-exact with the concrete key they were published on; ``*`` matches one chunk and ``**``
   any; a reliable publisher keeps order; a closed subscription delivers nothing more; a query is
   answered byte-exact from another thread, one nobody serves is over at once without answers,
   one closed unanswered likewise, one held is over after its timeout; liveliness tokens are
   reported present, arriving and leaving (with their holder too); ``close`` is prompt and leaves
   no thread, and a process that exits without closing does not hang; frames and calls cross
-  through :class:`rosgate.buslink.BusLink`, whose full queue is counted.
+  through :class:`rosgate_fleet.BusLink`, whose full queue is counted.
 * :class:`ServiceFramingConformance` — a device's call pattern (:mod:`rosgate.service_framing`):
   a serving port counts and closes every garbage connection without answering, and closes a
   silent one after its idle timeout (see ``service_framings.py``).

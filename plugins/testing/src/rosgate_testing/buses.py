@@ -1,5 +1,6 @@
-"""The conformance suite of bus transports (:mod:`rosgate.bus`): publish and subscribe by key,
-queries, liveliness, closing, and the core's :class:`rosgate.buslink.BusLink` over them."""
+"""The conformance suite of bus transports (:mod:`rosgate_fleet.session`): publish and subscribe
+by key, queries, liveliness, closing, and rosgate-fleet's :class:`rosgate_fleet.BusLink` over
+them."""
 
 from __future__ import annotations
 
@@ -14,11 +15,13 @@ from collections.abc import Callable, Iterator, Mapping
 from typing import Any, ClassVar
 
 import pytest
+from rosgate_fleet import BusLink, BusSession, FleetTransport
 
-from rosgate.bus import PRIORITY_DEFAULT, BusSession, BusTransport
-from rosgate.buslink import BusLink
+from rosgate.config import PRIORITIES
 
 from .helpers import TIMEOUT, Closing, Frames, assert_registered, frame_of
+
+PRIORITY_DEFAULT = PRIORITIES["data"]
 
 
 class Inbox:
@@ -45,13 +48,13 @@ class BusConformance:
     to meet at, a port of their own): every session the suite opens with ``plugin`` must see
     every other."""
 
-    #: the BusTransport subclass under test, or a factory taking the options
-    transport: ClassVar[Callable[[Mapping[str, Any]], BusTransport]]
+    #: the FleetTransport subclass under test, or a factory taking the options
+    transport: ClassVar[Callable[[Mapping[str, Any]], FleetTransport]]
     #: the plugin's options, as under ``plugins:`` in bringup.yaml
     options: ClassVar[Mapping[str, Any]] = {}
 
     @pytest.fixture
-    def plugin(self) -> BusTransport:
+    def plugin(self) -> FleetTransport:
         return type(self).transport(dict(self.options))
 
     @pytest.fixture
@@ -61,7 +64,7 @@ class BusConformance:
         closing.close_all()
 
     @pytest.fixture
-    def open_session(self, plugin: BusTransport, closing: Closing) -> Callable[[], BusSession]:
+    def open_session(self, plugin: FleetTransport, closing: Closing) -> Callable[[], BusSession]:
         names = iter(f"kit{n}" for n in range(1000))
         return lambda: closing(plugin.open(next(names)))
 
@@ -82,8 +85,8 @@ class BusConformance:
                 return len(inbox.items)
             assert time.monotonic() < deadline, "nothing published ever arrived"
 
-    def test_found_through_its_entry_point(self, plugin: BusTransport) -> None:
-        assert isinstance(plugin, BusTransport)
+    def test_found_through_its_entry_point(self, plugin: FleetTransport) -> None:
+        assert isinstance(plugin, FleetTransport)
         assert_registered("transport", type(plugin))
 
     def test_frames_cross_byte_exact_with_their_concrete_key(self, plugin, open_session, space):

@@ -1,6 +1,6 @@
 """rosgate transport ``zenoh``: an Eclipse Zenoh bus, for fleets.
 
-A bus link (:mod:`rosgate.bus`): topics are published on keys, services are queryables, and each
+A bus link (:mod:`rosgate_fleet`): topics are published on keys, services are queryables, and each
 bridge holds a liveliness token. Zenoh routes, fragments, discovers and reconnects; rosgate
 keeps its envelope and cipher (``framing: rosgate``) or sends the codec's bytes bare
 (``framing: none``, the zenoh-bridge-ros2dds convention with ``codec: cdr``).

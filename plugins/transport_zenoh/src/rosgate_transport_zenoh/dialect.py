@@ -1,6 +1,6 @@
 """Entries wired as zenoh-bridge-ros2dds wires its routes (:mod:`.ros2dds`), so that a
 zenoh-bridge-ros2dds robot and rosgate meet as equals: the zenoh transport's
-:class:`rosgate.bus.Dialect`.
+:class:`rosgate_fleet.Dialect`.
 
 With ``plugins: {zenoh: {speak: ros2dds}}`` it takes the entries that carry bare CDR, as that
 bridge does: topics with ``framing: none`` and ``codec: cdr``, services with ``codec: cdr`` and
@@ -36,8 +36,8 @@ import os
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from rosgate.bus import Handle
-from rosgate.buslink import BusAnswerer, BusLink, BusOutlet
+from rosgate_fleet import BusAnswerer, BusLink, BusOutlet, Handle
+
 from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
 from rosgate.drops import Drop
 from rosgate.links import Link, Sender
@@ -53,7 +53,7 @@ from . import ros2dds
 from .ros2dds import Kind, Qos
 
 if TYPE_CHECKING:
-    from rosgate.roles.bus import BusWiring
+    from rosgate_fleet import BusWiring
 
     from .transport import ZenohSession
 

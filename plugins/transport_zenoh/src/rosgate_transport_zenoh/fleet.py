@@ -1,6 +1,6 @@
 """Fleets: one entry for any number of robots, ``topic: /{robot}/scan`` with ``remote:
 fleet/{robot}/scan`` (:mod:`.placeholders`), the zenoh transport's
-:class:`rosgate.bus.NameTemplates`.
+:class:`rosgate_fleet.NameTemplates`.
 
 * A receiving fleet topic is one wildcard subscription (``fleet/*/scan``); the first frame from
   a robot makes its route (the ROS publisher ``/robot7/scan``), logged once.
@@ -28,11 +28,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from rosgate_fleet import BusLink, BusWiring
+
 from rosgate import ConfigError
-from rosgate.buslink import BusLink
 from rosgate.config import Direction, ServiceConfig, TopicConfig
 from rosgate.drops import Drop
-from rosgate.roles.bus import BusWiring
 from rosgate.routes import ReceiveRoute, Route
 from rosgate.spec import ServiceSpec, TopicSpec
 
@@ -43,7 +43,7 @@ from .ros2dds import Announced, Kind
 from .transport import ZenohTransport
 
 if TYPE_CHECKING:
-    from rosgate.bus import BusTransport, Handle
+    from rosgate_fleet import FleetTransport, Handle
 
 log = logging.getLogger("rosgate")
 
@@ -56,7 +56,7 @@ Prepared = TopicSpec | ServiceSpec
 class Fleets:
     """What the zenoh transport does with entries that hold placeholders."""
 
-    def __init__(self, transport: BusTransport):
+    def __init__(self, transport: FleetTransport):
         self.transport = transport
 
     def check(self, entry: TopicConfig | ServiceConfig, key: str) -> None:
@@ -133,7 +133,7 @@ class Fleet:
     def __init__(self, wiring: BusWiring, link: BusLink):
         self.wiring = wiring
         self.link = link
-        self.name = wiring.name
+        self.name = wiring.cfg.name
         self.timeout = wiring.cfg.fleet_timeout
         self.alive = Template(link.transport.alive_key("{robot}"))
         self.transmit: list[tuple[Prepared, Template, Template]] = []

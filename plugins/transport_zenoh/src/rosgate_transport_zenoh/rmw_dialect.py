@@ -1,6 +1,6 @@
 """Entries wired as a ROS 2 node running rmw_zenoh wires its publishers and subscribers
 (:mod:`.rmw`), so that rmw_zenoh nodes see rosgate's topics in their graph and exchange data
-with them: the zenoh transport's :class:`rosgate.bus.Dialect` for ``speak: rmw_zenoh``.
+with them: the zenoh transport's :class:`rosgate_fleet.Dialect` for ``speak: rmw_zenoh``.
 
 It takes the topics that carry bare CDR (``framing: none``, ``codec: cdr``, ``cipher: none``)
 and the services with ``codec: cdr`` and ``cipher: none`` (their ``remote:`` is the service's
@@ -40,8 +40,8 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 import zenoh.ext
+from rosgate_fleet import BusLink, BusOutlet
 
-from rosgate.buslink import BusLink, BusOutlet
 from rosgate.config import Direction, ServiceConfig, TopicConfig
 from rosgate.drops import declare
 from rosgate.errors import ConfigError
@@ -63,7 +63,7 @@ from .transport import (
 )
 
 if TYPE_CHECKING:
-    from rosgate.roles.bus import BusWiring
+    from rosgate_fleet import BusWiring
 
 log = logging.getLogger("rosgate")
 
@@ -184,7 +184,7 @@ class RmwZenoh:
             domain = link.transport.options.domain
             if domain is None:
                 domain = wiring.router.ros.context.get_domain_id()
-            name = re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{wiring.name}")  # as its ROS node
+            name = re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{wiring.cfg.name}")  # as its ROS node
             found = self._nodes[id(link)] = _Node(rmw.Node(domain, session.zid(), "0", name))
             link.token(found.node.token())
             link.watch(rmw.everything(domain), found.graph.changed)

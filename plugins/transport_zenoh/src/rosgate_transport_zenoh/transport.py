@@ -1,5 +1,5 @@
 """The zenoh transport: options passed to zenoh, keys as zenoh checks them, and the bus
-session over a ``zenoh.Session`` (:mod:`rosgate.bus`)."""
+session over a ``zenoh.Session`` (:mod:`rosgate_fleet.session`)."""
 
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ from typing import Any, Literal
 
 import zenoh
 import zenoh.ext
+from rosgate_fleet import FleetTransport
+from rosgate_fleet import check_key as check_chunks
 
 from rosgate import LinkError, OptionError, option
-from rosgate.bus import BusTransport
-from rosgate.bus import check_key as check_chunks
 
 from .tls import zenoh_tls
 
@@ -89,7 +89,7 @@ def check_key(key: str) -> str:
     return key
 
 
-class ZenohTransport(BusTransport):
+class ZenohTransport(FleetTransport):
     name = "zenoh"
 
     @dataclass(frozen=True)
@@ -275,7 +275,7 @@ def _direct(callback: Callable[[Any], None], drop: Callable[[], None] | None = N
 
 
 class ZenohSession:
-    """A :class:`rosgate.bus.BusSession` over one ``zenoh.Session``."""
+    """A :class:`rosgate_fleet.BusSession` over one ``zenoh.Session``."""
 
     def __init__(self, session: zenoh.Session):
         self.session = session

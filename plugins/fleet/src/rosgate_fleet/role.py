@@ -1,17 +1,19 @@
-"""Entries on a bus (zenoh), wired for the peer role: each file is complete and the bus finds
-the others, so there is no main line, no ``peer:`` and no ``port:``.
+"""The ``fleet`` bus role: entries on a bus (zenoh), wired for the peer role. Each file is
+complete and the bus finds the others, so there is no main line, no ``peer:`` and no ``port:``.
+
+* An entry's key is its ``remote``, or :meth:`rosgate_fleet.FleetTransport.default_key`.
 
 * A topic is published on its key; a receiving topic subscribes to its key and is found by it
   (the envelope's topic id must be the key's: a frame moved to another key is refused).
 * A service is a queryable on its key (``receive``) or one query per call (``transmit``).
 * The sending side of each entry announces its type on the entry's key (:mod:`rosgate.announce`):
   a topic beside its messages, a service's caller as a query that servers close unanswered.
-* Each bridge holds a liveliness token (:meth:`rosgate.bus.BusTransport.alive_key`).
+* Each bridge holds a liveliness token (:meth:`rosgate_fleet.FleetTransport.alive_key`).
 * An entry whose name holds placeholders (``/{robot}/scan``) is the bus's own
-  (:attr:`rosgate.bus.BusTransport.templates`, the zenoh plugin's fleets): it makes its routes
+  (:attr:`rosgate_fleet.FleetTransport.templates`, the zenoh plugin's fleets): it makes its routes
   with the methods of :class:`BusWiring` as the bus finds robots.
 
-Everything a bus delivers is handled on its link's thread (:class:`rosgate.buslink.BusLink`),
+Everything a bus delivers is handled on its link's thread (:class:`rosgate_fleet.BusLink`),
 templated entries' bookkeeping included, so routes are made and dropped in one thread.
 """
 
@@ -19,29 +21,39 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
-from ..bus import BusTransport, is_template
-from ..buslink import BusLink
-from ..config import BridgeConfig, Direction, Framing
-from ..drops import Drop
-from ..errors import LinkError
-from ..links import Link
-from ..routes import ReceiveRoute, Route, TransmitRoute
-from ..services import ServerRoute
-from ..spec import ServiceSpec, TopicSpec
-from ..wire import envelope
-from ..wire.envelope import topic_id_for
-from . import Bridge, NoLink
+from rosgate import ConfigError
+from rosgate.bus import BusRole, BusTransport
+from rosgate.config import BridgeConfig, Direction, Framing, ServiceConfig, TopicConfig
+from rosgate.drops import Drop
+from rosgate.errors import LinkError
+from rosgate.links import Link
+from rosgate.roles import Bridge, NoLink
+from rosgate.routes import ReceiveRoute, Route, TransmitRoute
+from rosgate.services import ServerRoute
+from rosgate.spec import ServiceSpec, TopicSpec
+from rosgate.wire import envelope
+from rosgate.wire.envelope import topic_id_for
+
+from .link import BusLink
+from .session import FleetTransport, is_template
 
 #: what a topic's frame on its key may say besides being a message: an announcement of the
 #: entry, or a payload its sender transformed (compressed)
 _TOPIC_FLAGS = envelope.FLAG_ANNOUNCE | envelope.FLAG_COMPRESSED
 
 
-class BusWiring:
+class BusWiring(BusRole):
     """The bus entries of a peer-role bridge: one :class:`BusLink` per bus transport. Its public
-    methods are what a bus's :class:`rosgate.bus.NameTemplates` makes routes with."""
+    methods are what a bus's :class:`rosgate_fleet.NameTemplates` makes routes with."""
+
+    name = "fleet"
+
+    @dataclass(frozen=True)
+    class Options:
+        """None: each bus transport has its own."""
 
     def __init__(self, bridge: Bridge):
         self.bridge = bridge
@@ -52,14 +64,46 @@ class BusWiring:
         self.links: dict[str, BusLink] = {}
         self._templates: dict[str, Callable[[Any], None]] = {}
 
-    @property
-    def name(self) -> str:
-        """This bridge's name."""
-        return self.cfg.name
+    @staticmethod
+    def key(transport: BusTransport, entry: TopicConfig | ServiceConfig, bridge: str) -> str:
+        """An entry's key: its remote, or the transport's default key; with placeholders, the
+        bus's templates check it, in another convention its dialect."""
+        if not isinstance(transport, FleetTransport):
+            raise ConfigError(f"{transport.name} asks for the bus role fleet but is no "
+                              "rosgate_fleet.FleetTransport, whose keys that role uses",
+                              key="transport", fix=f"report it to the authors of the "
+                              f"{transport.name} plugin, or use another transport")
+        kind = "topic" if isinstance(entry, TopicConfig) else "service"
+        name = entry.topic if isinstance(entry, TopicConfig) else entry.service
+        given = "remote" in entry.lines
+        key = (entry.remote.removeprefix("/") if given
+               else transport.default_key(bridge, name, entry.framing is Framing.NONE))
+        if is_template(name) or is_template(key):
+            if transport.templates is None:
+                raise ConfigError(f"{entry.transport} takes no placeholders such as {{robot}}",
+                                  key=kind, fix="write the robot's name, or use a bus that "
+                                  "takes them")
+            transport.templates.check(entry, key)
+            return key
+        try:
+            transport.check_key(key)
+        except ValueError as exc:
+            raise ConfigError(str(exc), key="remote" if given else kind,
+                              fix="write remote: as parts separated by single '/', e.g. "
+                              "remote: fleet/robot1/scan") from None
+        dialect = transport.dialect
+        if dialect is not None and dialect.name(entry) is not None:
+            dialect.check(entry, key)
+        return key
+
+    @staticmethod
+    def speaks(transport: BusTransport, entry: TopicConfig | ServiceConfig) -> str | None:
+        dialect = transport.dialect if isinstance(transport, FleetTransport) else None
+        return dialect.name(entry) if dialect is not None else None
 
     def link(self, p: TopicSpec | ServiceSpec) -> BusLink:
         transport = p.transport
-        assert isinstance(transport, BusTransport)
+        assert isinstance(transport, FleetTransport)
         found = self.links.get(transport.name)
         if found is not None:
             return found

@@ -1,7 +1,7 @@
-"""Bus links: the core's side of a bus transport (:mod:`rosgate.bus`), one session each.
+"""Bus links: rosgate's side of a bus session (:mod:`rosgate_fleet.session`), one each.
 
 A bus carries whole frames by key, so there is no framing here: no length prefix, no fragments,
-no reconnection (the bus does those). What the core does:
+no reconnection (the bus does those). What a link does:
 
 * **One queue in, one thread.** Everything the session reports — frames, queries, answers to
   queries, liveliness — is queued by the bus library's thread and handled by the link's own
@@ -28,12 +28,13 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from .bus import BusPublisher, BusQuery, BusSession, BusTransport, Handle
-from .drops import Drop, LinkDrop, Reason
-from .links import FrameHandler, Link, Sender
-from .transport import Address
-from .warn import BUGS
-from .wire import envelope
+from rosgate.drops import Drop, LinkDrop, Reason
+from rosgate.links import FrameHandler, Link, Sender
+from rosgate.transport import Address
+from rosgate.warn import BUGS
+from rosgate.wire import envelope
+
+from .session import BusPublisher, BusQuery, BusSession, FleetTransport, Handle
 
 log = logging.getLogger("rosgate")
 
@@ -50,7 +51,7 @@ KeyedDrop = Callable[[str, Reason], None]
 class BusLink:
     """A session on a bus, its inbound queue and the thread that drains it."""
 
-    def __init__(self, transport: BusTransport, session: BusSession, name: str,
+    def __init__(self, transport: FleetTransport, session: BusSession, name: str,
                  link_drop: LinkDrop, queue_limit: int = QUEUE_DEFAULT):
         self.transport = transport
         self.session = session
