@@ -46,14 +46,14 @@ import threading
 import time
 from typing import Any
 
-from ..admission import Acceptor, Sources
+from ..admission import Acceptor
 from ..announce import ANNOUNCE_EVERY
 from ..config import Direction, Framing
 from ..connector import Connector
 from ..drops import Drop
 from ..errors import LinkError
 from ..keyring import Keys
-from ..links import Link
+from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import ReceiveRoute, Route
 from ..secure import (
@@ -102,9 +102,6 @@ class PeerRole(Role):
             return None
         return self.handshake.keys(p)
 
-    def _sources(self, p: TopicSpec | ServiceSpec) -> Sources | None:
-        return self.sources(p.transport, self.cfg.peer)
-
     def start(self) -> None:
         if self.handshake is not None:
             self.handshake.start()
@@ -152,98 +149,52 @@ class PeerRole(Role):
 
     def _start_entries(self) -> None:
         bus = BusWiring(self.bridge)
-        for p in self.bridge.plan.topics:
-            if p.key is not None:
-                bus.topic(p)
-            elif isinstance(p.transport, StreamTransport):
-                self._stream_topic(p)
-            else:
-                self._datagram_topic(p)
         call_servers: dict[Address, CallPort] = {}
-        for s in self.bridge.plan.services:
-            if s.key is not None:
-                bus.service(s)
-            elif s.service_framing is not None:
-                self._microcontroller_service(s, call_servers)
+        plan = self.bridge.plan
+        for p in [*plan.topics, *plan.services, *plan.action_parts]:  # an action: its parts
+            if p.key is not None:
+                bus.topic(p) if isinstance(p, TopicSpec) else bus.service(p)
+            elif isinstance(p, ServiceSpec) and p.service_framing is not None:
+                self._microcontroller_service(p, call_servers)
             else:
-                self._service(s)
-        for part in self.bridge.plan.action_parts:  # an action: three services, two topics
-            if part.key is not None:
-                bus.topic(part) if isinstance(part, TopicSpec) else bus.service(part)
-            elif isinstance(part, ServiceSpec):
-                self._service(part)
-            elif isinstance(part.transport, StreamTransport):
-                self._stream_topic(part)
-            else:
-                self._datagram_topic(part)
+                self._entry(p)
 
-    def _datagram_topic(self, p: TopicSpec) -> None:
-        t, key = p.config, f"topics[{p.index}].port"
-        sources = self._sources(p)
-        if t.direction is Direction.TRANSMIT:
-            link = self.datagram_link(p.transport, p.local, key, sources=sources)
-            self.router.topic(p, topic_id_for(t.remote), t.topic, link, fixed(p.address),
-                              self._keys(p))
-            return
-        if t.framing is Framing.NONE:
-            named = p.codec_cls.messagepack
-            link = self.datagram_link(p.transport, p.address, key, bare_named=named,
-                                      sources=sources)
-            route = self.router.topic(p, topic_id_for(t.remote), t.topic, link)
-            assert isinstance(route, ReceiveRoute)
-            self.bare_ports[link].add(route, {t.topic, t.remote})
-            return
-        link = self.datagram_link(p.transport, p.address, key, sources=sources)
-        self._receiver(p, link)
-
-    def _stream_topic(self, p: TopicSpec) -> None:
-        t, key = p.config, f"topics[{p.index}].port"
-        if t.direction is Direction.RECEIVE:
-            self._receiver(p, NoLink())
-            self.listen(p.transport, p.address, self.router.on_frame, key,
-                        sources=self._sources(p))
-            return
-        slot = self.bridge.slot(f"{t.transport}->{self.cfg.peer}:{t.port}")
-        self.router.topic(p, topic_id_for(t.remote), t.topic, slot, keys=self._keys(p))
-        Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
-                  self.life, self.bridge.backoff, budget=self.bridge.budget(p.transport)).start()
-
-    def _receiver(self, p: TopicSpec, link: Link) -> None:
-        """A receiving topic is found by its remote name's id, and by its own name's."""
-        t = p.config
-        route = self.router.topic(p, topic_id_for(t.remote), t.topic, link, keys=self._keys(p))
-        assert isinstance(route, ReceiveRoute)
-        route.check.expect(route.drop)  # its sender may have announced before this side started
-        self.heard_from.append(route)
-        if t.topic != t.remote:
-            self.router.alias(route, topic_id_for(t.topic))
-
-    def _service(self, p: ServiceSpec) -> None:
-        """A service with an envelope: found by the id of its remote name."""
-        s, key = p.config, f"services[{p.index}].port"
-        service_id = topic_id_for(s.remote)
+    def _entry(self, p: TopicSpec | ServiceSpec) -> None:
+        """An entry found by the id of its remote name (a receiving topic by its own name's
+        too). Receiving, it binds or listens at ``listen:port``; transmitting, it sends from
+        ``listen`` or connects to ``peer:port``."""
+        c, key = p.config, f"{p.kind}s[{p.index}].port"
+        stream = isinstance(p.transport, StreamTransport)
+        sources = self.sources(p.transport, self.cfg.peer)
+        bare = None  # a port of framing: none topics: whether their datagrams carry names
         link: Link
-        if s.direction is Direction.RECEIVE:
-            if isinstance(p.transport, StreamTransport):
-                self.listen(p.transport, p.address, self.router.on_frame, key,
-                        sources=self._sources(p))
-                link = NoLink()  # answers go back on the connection each call came on
-            else:
-                link = self.datagram_link(p.transport, p.address, key, sources=self._sources(p))
-        elif isinstance(p.transport, StreamTransport):
-            link = slot = self.bridge.slot(f"{s.transport}->{self.cfg.peer}:{s.port}")
+        if c.direction is Direction.RECEIVE and stream:
+            link = NoLink()  # frames come through the listener; answers go back on their line
+        elif c.direction is Direction.RECEIVE:
+            bare = p.codec_cls.messagepack if c.framing is Framing.NONE else None
+            link = self.datagram_link(p.transport, p.address, key, bare, sources)
+        elif stream:
+            link = slot = self.bridge.slot(f"{c.transport}->{self.cfg.peer}:{c.port}")
+        else:
+            link = self.datagram_link(p.transport, p.local, key, sources=sources)
+        route = self.router.route(p, topic_id_for(c.remote), p.name, link, fixed(p.address),
+                                  self._keys(p))
+        if stream and c.direction is Direction.RECEIVE:
+            self.listen(p.transport, p.address, self.router.on_frame, key, sources=sources)
+        elif stream:
             Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
                       self.life, self.bridge.backoff,
                       budget=self.bridge.budget(p.transport)).start()
-        else:
-            link = self.datagram_link(p.transport, p.local, key, sources=self._sources(p))
-        route = self.router.service(p, service_id, s.service, link, fixed(p.address),
-                                    self._keys(p))
-        if isinstance(route, ServerRoute):  # its caller may have announced before it started
-            route.check.expect(route.drop)
-            self.heard_from.append(route)
-        elif isinstance(route, CallerRoute):
+        if isinstance(route, CallerRoute):
             self.callers.append(route)
+        elif bare is not None:  # framing: none, told apart by name
+            assert isinstance(route, ReceiveRoute) and isinstance(link, DatagramLink)
+            self.bare_ports[link].add(route, {p.name, c.remote})
+        elif isinstance(route, ReceiveRoute | ServerRoute):
+            route.check.expect(route.drop)  # its sender may have announced before it started
+            self.heard_from.append(route)
+            if p.name != c.remote and isinstance(route, ReceiveRoute):
+                self.router.alias(route, topic_id_for(p.name))
 
     def _microcontroller_service(self, p: ServiceSpec,
                                  servers: dict[Address, CallPort]) -> None:
