@@ -38,11 +38,13 @@ datagram changes nothing.
 
 from __future__ import annotations
 
+import os
 import struct
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
@@ -239,6 +241,7 @@ class KeySchedule:
         # restarted may reuse a key id: same epoch, another root)
         self._seal_state: tuple[int, float] | None = None
         self.version = 0
+        self.offered: int | None = None  # the key id of the last secret this side offered
 
     def _changed(self) -> None:
         """Under the lock, after the roots or the sealing root changed."""
@@ -264,11 +267,32 @@ class KeySchedule:
                 self._sealing = key_id
             self._changed()
 
-    def seal_with(self, key_id: int) -> None:
+    def seal_with(self, key_id: object) -> None:
+        """Seal under ``key_id`` from now on (the initiator says it holds it: ``ready``)."""
         with self._lock:
-            if key_id in self._roots:
+            if isinstance(key_id, int) and key_id in self._roots:
                 self._sealing = key_id
                 self._changed()
+
+    def offer(self, handshake_hash: bytes) -> dict[str, Any]:
+        """The responder's side: a fresh secret for this handshake, installed here, and what to
+        send inside it. The previous root still seals until the initiator is ready."""
+        first = self.offered is None
+        # a random first id: a restarted server rarely reuses its predecessor's (and when it
+        # does, the client's root serials keep the two apart)
+        self.offered = os.urandom(1)[0] if self.offered is None else (self.offered + 1) % 256
+        secret = os.urandom(32)
+        self.install(self.offered, secret, handshake_hash, seal_now=first)
+        return {"secret": secret.hex(), "key_id": self.offered, "rekey": self.rekey}
+
+    def accept(self, offer: dict[str, Any], handshake_hash: bytes) -> int:
+        """The initiator's side: install the secret of a responder's :meth:`offer`; its key id.
+        ValueError (or KeyError, TypeError) when the offer holds none."""
+        secret, key_id = bytes.fromhex(offer["secret"]), int(offer["key_id"])
+        if len(secret) != 32 or not 0 <= key_id < 256:
+            raise ValueError("not a session secret")
+        self.install(key_id, secret, handshake_hash)
+        return key_id
 
     def forget(self) -> None:
         """Erase every root (the session ends)."""

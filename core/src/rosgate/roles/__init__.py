@@ -18,20 +18,23 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from ..admission import Acceptor, ConnectionLimits, Sources
 from ..config import BridgeConfig, LinkConfig
 from ..connector import Backoff, Lifetime, LinkSlot, QueueLimits
-from ..drops import Reason
+from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..links import DatagramLink, Link, LinkCounters
 from ..resolver import Plan, Resolver
 from ..router import Router
-from ..routes import BarePort
-from ..spec import CONTROL
+from ..routes import BarePort, Route
+from ..secure import KeySchedule, SessionKeys
+from ..spec import CONTROL, ServiceSpec, TopicSpec
 from ..streamlink import StreamLink, Untrusted
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from ..wire import envelope
+from .mainline import control, key_label, parse_control
 
 log = logging.getLogger("rosgate")
 
@@ -112,6 +115,34 @@ class Role:
     def refuse_connection(self, acceptor: Acceptor, reason: Reason, detail: str) -> None:
         """A connection an acceptor closed at once, counted like a frame for no topic."""
         self.router.link_drop(acceptor, reason, detail)
+
+    def read_control(self, frame: bytes, link: Link, source: Address) -> dict[str, Any] | None:
+        """A control message on a line (heard from now on); None, counted, when unreadable."""
+        message = parse_control(frame)
+        if message is None:
+            self.router.link_drop(link, Drop.BAD_CONTROL, f"from {source}")
+            return None
+        assert isinstance(link, StreamLink)
+        link.last_heard = time.monotonic()
+        return message
+
+    def far_entries(self, routes: dict[int, Route], items: Any) -> None:
+        """The far side's word (a hello's, a welcome's) on each entry of ours: its type and the
+        QoS it found; none from an older rosgate."""
+        for index, route in routes.items():
+            self.router.far(route, items[index] if isinstance(items, list)
+                            and index < len(items) else None)
+
+    def heartbeat(self, link: StreamLink | None) -> None:
+        """Ping on a line; a far side silent for ``peer_timeout`` is taken for down and its
+        line failed (a stalled TCP connection never ends alone)."""
+        if link is None or link.closed.is_set():
+            return
+        silence = time.monotonic() - link.last_heard
+        if silence > self.cfg.peer_timeout:
+            link.fail(f"silent for {silence:.1f} s")
+        else:
+            link.send(control({"type": "ping"}), self.control)
 
     def _hold(self, kind: str, transport: Transport, local: Address, owner: object) -> None:
         if owner is not None:
@@ -260,6 +291,41 @@ class Refusals:
             self._last[key] = now
             held = self._held.pop(key, 0)
         log.log(level, "%s%s", message, f" ({held} more since)" if held else "")
+
+
+class Answer:
+    """The one control message an initiator waits for on its new line (a welcome, a peer's
+    keys)."""
+
+    def __init__(self) -> None:
+        self.message: dict[str, Any] | None = None
+        self._got = threading.Event()
+
+    def clear(self) -> None:
+        self.message = None
+        self._got.clear()
+
+    def put(self, message: dict[str, Any]) -> None:
+        self.message = message
+        self._got.set()
+
+    def wait(self, link: StreamLink, stopping: threading.Event,
+             timeout: float) -> dict[str, Any] | None:
+        """The answer; None when the line closed, the bridge stops or ``timeout`` passed."""
+        deadline = time.monotonic() + timeout
+        while not self._got.wait(0.1):
+            if link.closed.is_set() or stopping.is_set() or time.monotonic() > deadline:
+                return None
+        return self.message
+
+
+def session_keys(schedule: KeySchedule, p: TopicSpec | ServiceSpec, name: str, send: str,
+                 receive: str) -> SessionKeys:
+    """An entry's keys in a session: ``name`` as both sides spell it, ``send`` and
+    ``receive`` the ways (``c2s``, ``s2c``; ``i2r``, ``r2i`` between peers)."""
+    assert p.cipher_cls is not None
+    return SessionKeys(schedule, p.cipher_cls, key_label(p.kind, send, name),
+                       key_label(p.kind, receive, name))
 
 
 class NoLink(Link):

@@ -41,7 +41,6 @@ given. Transports that cannot tell who sent a frame (a CAN bus) filter nothing.
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from typing import Any
@@ -60,7 +59,6 @@ from ..secure import (
     HandshakeError,
     KeySchedule,
     SecureConnection,
-    SessionKeys,
     UnknownKey,
     initiate,
     respond,
@@ -71,9 +69,9 @@ from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
-from . import NoLink, Refusals, Role
+from . import Answer, NoLink, Refusals, Role, session_keys
 from .bus import BusWiring
-from .mainline import control, is_control, key_label, parse_control
+from .mainline import control, is_control
 
 log = logging.getLogger("rosgate")
 
@@ -240,18 +238,12 @@ class PeerHandshake:
         transport = role.bridge.resolver.transport("tcp", "bridge.handshake_port")
         assert isinstance(transport, StreamTransport)
         self.transport = transport
-        self.key_id: int | None = None
         self.up = threading.Event()
         self.link: StreamLink | None = None
-        self._answer: dict[str, Any] | None = None
-        self._answered = threading.Event()
+        self.answer = Answer()
 
     def keys(self, p: TopicSpec | ServiceSpec) -> Keys:
-        assert p.cipher_cls is not None
-        kind = "topic" if isinstance(p, TopicSpec) else "service"
-        name = p.config.remote
-        return SessionKeys(self.schedule, p.cipher_cls, key_label(kind, self.mine, name),
-                           key_label(kind, self.theirs, name))
+        return session_keys(self.schedule, p, p.config.remote, self.mine, self.theirs)
 
     def _address(self, host: str | None) -> Address:
         try:
@@ -284,28 +276,21 @@ class PeerHandshake:
 
     def _initiated(self, link: StreamLink) -> bool:
         """Wait for the responder's keys inside the new channel; install them."""
-        self._answered.clear()
-        self._answer = None
-        deadline = time.monotonic() + 5.0
-        while not self._answered.wait(0.1):
-            if link.closed.is_set() or self.role.life.stopping.is_set():
-                return False
-            if time.monotonic() > deadline:
+        self.answer.clear()
+        answer = self.answer.wait(link, self.role.life.stopping, 5.0)
+        if answer is None:
+            if not link.closed.is_set() and not self.role.life.stopping.is_set():
                 log.warning("%s: no keys from peer %s", self.cfg.name, self.cfg.peer)
-                return False
-        answer = self._answer
+            return False
         connection = link.connection
+        assert isinstance(connection, SecureConnection)
         try:
-            assert answer is not None and isinstance(connection, SecureConnection)
-            secret, key_id = bytes.fromhex(answer["secret"]), int(answer["key_id"])
-            if len(secret) != 32 or not 0 <= key_id < 256:
-                raise ValueError("not a session secret")
-            if float(answer["rekey"]) != self.schedule.rekey:
-                self.schedule.rekey = float(answer["rekey"])  # the responder's, as a server's
-        except (AssertionError, KeyError, TypeError, ValueError) as exc:
+            rekey = float(answer["rekey"])  # the responder's, as a server's
+            key_id = self.schedule.accept(answer, connection.handshake_hash)
+        except (KeyError, TypeError, ValueError) as exc:
             log.error("%s: cannot use the peer's keys: %s", self.cfg.name, exc)
             return False
-        self.schedule.install(key_id, secret, connection.handshake_hash)
+        self.schedule.rekey = rekey
         link.send(control({"type": "ready", "key_id": key_id}), self.role.control)
         self._up(link)
         return True
@@ -331,12 +316,8 @@ class PeerHandshake:
             link = self.role.life.closing(StreamLink(
                 secure, f"handshake<-{peer[0]}", peer, self._on_frame, self.role.router.on_lost,
                 on_close=self._closed))
-            first = self.key_id is None
-            self.key_id = os.urandom(1)[0] if self.key_id is None else (self.key_id + 1) % 256
-            secret = os.urandom(32)
-            self.schedule.install(self.key_id, secret, secure.handshake_hash, seal_now=first)
-            link.send(control({"type": "keys", "secret": secret.hex(), "key_id": self.key_id,
-                               "rekey": self.schedule.rekey}), self.role.control)
+            keys = self.schedule.offer(secure.handshake_hash)
+            link.send(control({"type": "keys", **keys}), self.role.control)
             old, self.link = self.link, link
             if old is not None and old is not link:
                 old.fail("the peer made a new handshake")
@@ -361,28 +342,15 @@ class PeerHandshake:
             self.role.router.link_drop(link, Drop.NOT_CONTROL,
                                        f"on the handshake line from {source}")
             return
-        message = parse_control(frame)
+        message = self.role.read_control(frame, link, source)
         if message is None:
-            self.role.router.link_drop(link, Drop.BAD_CONTROL, f"from {source}")
             return
-        assert isinstance(link, StreamLink)
-        link.last_heard = time.monotonic()
         if message["type"] == "keys" and self.initiator:
-            self._answer = message
-            self._answered.set()
+            self.answer.put(message)
         elif message["type"] == "ready" and not self.initiator:
-            key_id = message.get("key_id")
-            if isinstance(key_id, int):
-                self.schedule.seal_with(key_id)
+            self.schedule.seal_with(message.get("key_id"))
 
     def _ping_loop(self) -> None:
-        cfg = self.cfg
-        while not self.role.life.stopping.wait(cfg.heartbeat):
-            link = self.link
-            if not self.up.is_set() or link is None or link.closed.is_set():
-                continue
-            silence = time.monotonic() - link.last_heard
-            if silence > cfg.peer_timeout:
-                link.fail(f"silent for {silence:.1f} s")
-            else:
-                link.send(control({"type": "ping"}), self.role.control)
+        while not self.role.life.stopping.wait(self.cfg.heartbeat):
+            if self.up.is_set():
+                self.role.heartbeat(self.link)

@@ -53,7 +53,6 @@ from ..secure import (
     HandshakeError,
     KeySchedule,
     SecureConnection,
-    SessionKeys,
     UnknownKey,
     open_hello,
     respond,
@@ -65,8 +64,8 @@ from ..transport import Address, StreamConnection, StreamTransport
 from ..warn import BUGS
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
-from . import Bridge, Refusals, Role
-from .mainline import PROTOCOL, control, flipped, is_control, key_label, parse_control, where_error
+from . import Bridge, Refusals, Role, session_keys
+from .mainline import PROTOCOL, control, flipped, is_control, where_error
 
 log = logging.getLogger("rosgate")
 
@@ -94,7 +93,6 @@ class Session:
     down_since: float | None = None  # monotonic time the main line was lost; None while up
     policy: ClientPolicy | None = None  # authenticated: the client's entry in clients:
     schedule: KeySchedule | None = None
-    key_id: int | None = None  # of the last handshake's secret
     hellos: envelope.ReplayWindow = field(default_factory=envelope.ReplayWindow)
     actions: list[Any] = field(default_factory=list)  # its action list, as it sent it
     part_of: dict[int, ActionConfig] = field(default_factory=dict)  # entry -> its action
@@ -207,12 +205,10 @@ class ServerRole(Role):
         def on_frame(frame: bytes, link: Link, source: Address) -> None:
             session = holder.get("session")
             if is_control(frame):
-                message = parse_control(frame)
+                message = self.read_control(frame, link, source)
                 if message is None:
-                    self.router.link_drop(link, Drop.BAD_CONTROL, f"from {source}")
                     return
                 assert isinstance(link, StreamLink)
-                link.last_heard = time.monotonic()
                 kind = message["type"]
                 if kind == "hello" and session is None:
                     # the policy as it is now, not as it was when the handshake completed
@@ -222,9 +218,7 @@ class ServerRole(Role):
                         holder["session"] = session
                         link.trust()
                 elif kind == "ready" and session is not None and session.schedule is not None:
-                    key_id = message.get("key_id")
-                    if isinstance(key_id, int):
-                        session.schedule.seal_with(key_id)
+                    session.schedule.seal_with(message.get("key_id"))
                 elif kind == "bye" and session is not None and session.main.current is link:
                     log.info("client %r left", session.name)
                     self._end(session)
@@ -291,7 +285,9 @@ class ServerRole(Role):
             return None
         for why in session.refused.values():
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
-        items = self._far_entries(session, hello.get("entries"))
+        self.far_entries(session.by_index, hello.get("entries"))
+        items = [self.router.item(session.by_index[i]) if i in session.by_index else None
+                 for i in range(len(session.entries))]
         count = len(session.topics)
         ids = [session.by_index[i].topic_id if i in session.by_index else 0
                for i in range(len(session.entries))]
@@ -300,8 +296,10 @@ class ServerRole(Role):
             "topic_ids": ids[:count], "service_ids": ids[count:],
             "refused": [{"entry": self._entry_name(session, i), "error": why}
                         for i, why in sorted(session.refused.items())], "entries": items}
-        if isinstance(link.connection, SecureConnection):
-            welcome.update(self._new_keys(session, link.connection))
+        if isinstance(link.connection, SecureConnection):  # a fresh secret for this handshake
+            if session.schedule is None:
+                session.schedule = KeySchedule(self.cfg.rekey)
+            welcome.update(session.schedule.offer(link.connection.handshake_hash))
         else:
             welcome["token"] = session.token.hex()
         link.send(control(welcome), self.control)
@@ -316,29 +314,6 @@ class ServerRole(Role):
                  peer[0], len(session.topics), len(session.services),
                  f", {len(session.refused)} refused" if session.refused else "")
         return session
-
-    def _far_entries(self, session: Session, items: Any) -> list[Any]:
-        """Check the client's word on each entry (type, QoS: none from an older client); this
-        side's, for the welcome."""
-        for i, route in session.by_index.items():
-            self.router.far(route, items[i] if isinstance(items, list) and i < len(items)
-                            else None)
-        return [self.router.item(session.by_index[i]) if i in session.by_index else None
-                for i in range(len(session.entries))]
-
-    def _new_keys(self, session: Session, connection: SecureConnection) -> dict[str, Any]:
-        """A fresh secret for this handshake (sent inside it). The previous one still opens
-        what was sealed under it for a while, and seals until the client says it is ready."""
-        first = session.key_id is None
-        if session.schedule is None:
-            session.schedule = KeySchedule(self.cfg.rekey)
-        # a random first id: a restarted server rarely reuses its predecessor's (and when it
-        # does, the client's root serials keep the two apart)
-        session.key_id = os.urandom(1)[0] if session.key_id is None else (session.key_id + 1) % 256
-        secret = os.urandom(32)
-        session.schedule.install(session.key_id, secret, connection.handshake_hash,
-                                 seal_now=first)
-        return {"secret": secret.hex(), "key_id": session.key_id, "rekey": self.cfg.rekey}
 
     @staticmethod
     def _entry_name(session: Session, index: int) -> str:
@@ -481,9 +456,7 @@ class ServerRole(Role):
             return None
         if session.schedule is None:
             session.schedule = KeySchedule(self.cfg.rekey)
-        assert p.cipher_cls is not None
-        return SessionKeys(session.schedule, p.cipher_cls, key_label(p.kind, "s2c", p.name),
-                           key_label(p.kind, "c2s", p.name))
+        return session_keys(session.schedule, p, p.name, "s2c", "c2s")
 
     @staticmethod
     def _no_address() -> Address | None:
@@ -619,7 +592,5 @@ class ServerRole(Role):
                         log.warning("client %r gone for %g s: its session is dropped",
                                     session.name, cfg.session_timeout)
                         self._end(session)
-                elif link is not None and now - link.last_heard > cfg.peer_timeout:
-                    link.fail(f"silent for {now - link.last_heard:.1f} s")
-                elif link is not None:
-                    link.send(control({"type": "ping"}), self.control)
+                else:
+                    self.heartbeat(link)
