@@ -29,7 +29,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..actions import parts as action_parts
 from ..admission import Acceptor, HandshakeSlots, KnownSources
 from ..config import (
     ActionConfig,
@@ -37,9 +36,6 @@ from ..config import (
     Direction,
     ServiceConfig,
     TopicConfig,
-    action_from_mapping,
-    service_from_mapping,
-    topic_from_mapping,
 )
 from ..connector import LinkSlot
 from ..drops import Drop
@@ -65,7 +61,7 @@ from ..warn import BUGS
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
 from . import Bridge, Refusals, Role, session_keys
-from .mainline import PROTOCOL, control, flipped, is_control, where_error
+from .mainline import PROTOCOL, client_entries, control, flipped, is_control, where_error
 
 log = logging.getLogger("rosgate")
 
@@ -346,7 +342,7 @@ class ServerRole(Role):
             raise ConfigError(f"the server keeps {len(self.sessions)} sessions already, its "
                               "limit", file=f"client {name}",
                               fix="try again later (bridge.limits.sessions on the server)")
-        entries, part_of = self._client_entries(hello, name)
+        entries, part_of = client_entries(hello, self.cfg.defaults, f"client {name}")
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
                           hello.get("services", []), self.bridge.slot(f"main of {name}"),
                           entries=entries, policy=policy, actions=hello.get("actions", []),
@@ -359,34 +355,6 @@ class ServerRole(Role):
         with self._lock:
             self.sessions[session.id] = session
         return session
-
-    def _client_entries(self, hello: dict[str, Any],
-                        name: str) -> tuple[list[Entry], dict[int, ActionConfig]]:
-        """The hello's entries, checked like a file's (no type is imported here): topics,
-        services, then the parts of its actions; and the action of each part."""
-        where = f"client {name}"
-        error = where_error(where)
-        topics, services = hello.get("topics"), hello.get("services", [])
-        actions = hello.get("actions", [])
-        if (not isinstance(topics, list) or not isinstance(services, list)
-                or not isinstance(actions, list)):
-            raise ConfigError("hello without a topic, a service and an action list", file=where)
-        entries: list[Entry] = []
-        for key, items, parse in (("topics", topics, topic_from_mapping),
-                                  ("services", services, service_from_mapping)):
-            for i, mapping in enumerate(items):
-                if not isinstance(mapping, dict):
-                    raise error(f"{key}[{i}]", "not a mapping")
-                entries.append(parse(mapping, self.cfg.defaults, where, index=i))
-        part_of: dict[int, ActionConfig] = {}
-        for i, mapping in enumerate(actions):
-            if not isinstance(mapping, dict):
-                raise error(f"actions[{i}]", "not a mapping")
-            action = action_from_mapping(mapping, self.cfg.defaults, where, index=i)
-            for part in action_parts(action):
-                part_of[len(entries)] = action
-                entries.append(part)
-        return entries, part_of
 
     def _sync(self, session: Session) -> None:
         """Routes for the entries the policy allows (made in order: topics, then services),
