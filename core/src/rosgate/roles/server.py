@@ -29,7 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..admission import Acceptor, HandshakeSlots, KnownSources
+from ..admission import Acceptor, ConnectionLimits, KnownSources
 from ..config import (
     ActionConfig,
     ClientPolicy,
@@ -114,8 +114,8 @@ class ServerRole(Role):
         self.clients = KnownSources()
         self.refusals = Refusals()
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
-        self._handshakes = HandshakeSlots(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
-                                          self.limits.recent)
+        self._handshakes = ConnectionLimits(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
+                                            self.limits.recent)
         #: every connection that completed a handshake and is not closed, whatever it does
         #: now (waiting to say hello, in a session, a dedicated port): a reload closes those
         #: whose key it no longer lists
@@ -157,7 +157,7 @@ class ServerRole(Role):
 
             def admit() -> bool:  # once the first message is in: an idle connection takes none
                 nonlocal slot
-                slot = self._handshakes.take(host)
+                slot = self._handshakes.admit(host) is None
                 return slot
 
             try:
@@ -184,7 +184,7 @@ class ServerRole(Role):
                 return
             finally:
                 if slot:
-                    self._handshakes.give_back(host)
+                    self._handshakes.release(host)
             with self._lock:
                 self._keyed = {c for c in self._keyed if not c.closed}
                 self._keyed.add(secure)
