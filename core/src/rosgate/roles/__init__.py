@@ -203,53 +203,50 @@ class Role:
             self.datagram_links[(transport.name, local)] = self.life.closing(link)
             return link
 
-    def accept_into(self, on_frame: FrameHandler, transport: Transport, port: int,
-                    handshake: Handshake | None = None, untrusted: Untrusted | None = None,
-                    ) -> Callable[[StreamConnection, Address], None]:
-        """What to do with each connection accepted on a port: a link that feeds ``on_frame``
-        (after ``handshake``, when given; held to ``untrusted`` until ``on_frame`` trusts it)
-        and is forgotten by the bridge when it ends."""
-        life, on_lost = self.life, self.router.on_lost
-        budget = self.bridge.budget(transport)
+    def accept(self, transport: Transport, local: Address,
+               on_connection: Callable[[StreamConnection, Address], None], key: str | None,
+               sources: Sources | None = None, name: str | None = None) -> Acceptor:
+        """Accept stream connections at ``local`` within the bridge's connection limits, from
+        ``sources`` only when given. A LinkError is located at ``key``; without one (a server
+        listening for a client) it goes to the caller."""
+        assert isinstance(transport, StreamTransport)
+        try:
+            listener = transport.listen(local)
+        except LinkError as exc:
+            if key is None:
+                raise
+            raise self.bridge.link_error(exc, key) from None
+        return self.life.closing(Acceptor(listener, name or f"{transport.name}:{local[1]}",
+                                          on_connection, self.limits, sources,
+                                          self.refuse_connection))
+
+    def listen(self, transport: Transport, local: Address, on_frame: FrameHandler,
+               key: str | None = None, handshake: Handshake | None = None,
+               sources: Sources | None = None, untrusted: Untrusted | None = None,
+               owner: object = None) -> Acceptor:
+        """A link that feeds ``on_frame`` for each connection accepted at ``local`` (one
+        acceptor per address), after ``handshake`` when given, held to ``untrusted`` until
+        ``on_frame`` trusts it, forgotten by the bridge when it ends. An ``owner`` holds the
+        acceptor until :meth:`release`."""
+        life, budget = self.life, self.bridge.budget(transport)
 
         def accepted(connection: StreamConnection, peer: Address) -> None:
             def link(ready: StreamConnection) -> None:
-                life.closing(StreamLink(ready, f"{transport.name}:{port}<-{peer[0]}", peer,
-                                        on_frame, on_lost, on_close=life.forget,
+                life.closing(StreamLink(ready, f"{transport.name}:{local[1]}<-{peer[0]}", peer,
+                                        on_frame, self.router.on_lost, on_close=life.forget,
                                         untrusted=untrusted, budget=budget))
             if handshake is None:
                 link(connection)
             else:
                 handshake(connection, peer, link)
 
-        return accepted
-
-    def listen(self, transport: Transport, local: Address, on_frame: FrameHandler,
-               key: str | None = None, handshake: Handshake | None = None,
-               sources: Sources | None = None, untrusted: Untrusted | None = None,
-               owner: object = None) -> Acceptor:
-        """Accept stream connections at ``local`` (once per address), from ``sources`` only
-        when given, within the bridge's connection limits, each through ``handshake`` when
-        given. A LinkError is located at ``key``; without one (a server listening for a client)
-        it goes to the caller. An ``owner`` holds the listener until :meth:`release`."""
-        assert isinstance(transport, StreamTransport)
         with self._lock:
-            found = self.listening.get((transport.name, local))
-            if found is not None:
-                self._hold("listen", transport, local, owner)
-                return found
-            try:
-                listener = transport.listen(local)
-            except LinkError as exc:
-                if key is None:
-                    raise
-                raise self.bridge.link_error(exc, key) from None
-            acceptor = self.listening[(transport.name, local)] = Acceptor(
-                listener, f"{transport.name}:{local[1]}",
-                self.accept_into(on_frame, transport, local[1], handshake, untrusted),
-                self.limits, sources, self.refuse_connection)
             self._hold("listen", transport, local, owner)
-        return self.life.closing(acceptor)
+            found = self.listening.get((transport.name, local))
+            if found is None:
+                found = self.listening[(transport.name, local)] = self.accept(
+                    transport, local, accepted, key, sources)
+            return found
 
 
 class Control:

@@ -45,12 +45,10 @@ import threading
 import time
 from typing import Any
 
-from ..admission import Acceptor
 from ..announce import ANNOUNCE_EVERY
 from ..config import Direction, Framing
 from ..connector import Connector
 from ..drops import Drop
-from ..errors import LinkError
 from ..keyring import Keys
 from ..links import DatagramLink, Link
 from ..router import fixed
@@ -203,17 +201,12 @@ class PeerRole(Role):
             self.router.service(p, 0, s.service, None)  # connects to the peer per call
             return
         if p.address not in servers:
-            assert isinstance(p.transport, StreamTransport)  # the resolver checked
-            try:
-                listener = p.transport.listen(p.address)
-            except LinkError as exc:
-                raise self.bridge.link_error(exc, f"services[{p.index}].port") from None
             assert p.service_framing is not None
             server = servers[p.address] = p.service_framing.server(
                 f"{p.transport.name}:{p.address[1]}", self.router.link_drop,
                 self.cfg.limits.idle_timeout)
-            self.life.closing(Acceptor(listener, server.name, server.accepted, self.limits,
-                                       self.allow_list(), self.refuse_connection))
+            self.accept(p.transport, p.address, server.accepted, f"services[{p.index}].port",
+                        self.allow_list())
         route = self.router.service(p, 0, s.service, None)  # found by name: no id
         assert isinstance(route, ServerRoute)
         servers[p.address].add(route)
@@ -252,22 +245,16 @@ class PeerHandshake:
             raise self.cfg.error("bridge.handshake_port", str(exc)) from None
 
     def start(self) -> None:
-        life = self.role.life
         if self.initiator:
             slot = self.role.bridge.slot(f"handshake->{self.cfg.peer}")
             Connector(self.transport, self._address(self.cfg.peer), slot, self._on_frame,
-                      self.role.router.on_lost, life, self.role.bridge.backoff,
+                      self.role.router.on_lost, self.role.life, self.role.bridge.backoff,
                       self._initiated, self._lost, secure=self._initiate).start()
         else:
             address = self._address(self.cfg.listen)
-            try:
-                listener = self.transport.listen(address)
-            except LinkError as exc:
-                raise self.role.bridge.link_error(exc, "bridge.handshake_port") from None
-            role = self.role
-            life.closing(Acceptor(listener, f"handshake:{address[1]}", self._accepted,
-                                  role.limits, role.sources(self.transport, self.cfg.peer),
-                                  role.refuse_connection))
+            self.role.accept(self.transport, address, self._accepted, "bridge.handshake_port",
+                             self.role.sources(self.transport, self.cfg.peer),
+                             f"handshake:{address[1]}")
         threading.Thread(target=self._ping_loop, name="peer-ping", daemon=True).start()
 
     # -- the initiator -------------------------------------------------------------------------

@@ -125,13 +125,8 @@ class ServerRole(Role):
     def start(self) -> None:
         plan = self.bridge.plan
         assert plan.main_line is not None and plan.main_address is not None
-        try:
-            listener = plan.main_line.listen(plan.main_address)
-        except LinkError as exc:
-            raise self.bridge.link_error(exc, "bridge.server") from None
-        self.acceptor = self.life.closing(Acceptor(listener, f"main:{plan.main_address[1]}",
-                                                   self._accepted, self.limits,
-                                                   on_refused=self.refuse_connection))
+        self.acceptor = self.accept(plan.main_line, plan.main_address, self._accepted,
+                                    "bridge.server", name=f"main:{plan.main_address[1]}")
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
 
     def stop(self) -> None:
