@@ -1,20 +1,13 @@
 """Admission: who a bridge takes frames and connections from, and how many connections it
 holds. Roles choose it; datagram links and acceptors apply it.
 
-* :class:`Sources` — the hosts and IP networks a link takes datagrams (and an acceptor
-  connections) from; a :class:`~rosgate.links.DatagramLink` counts the others ``not_allowed``,
-  before any reassembly. :class:`KnownSources` — a server's: the addresses its clients' genuine
-  hellos came from, learnt while running; from anywhere else only a hello is taken.
-* :class:`ConnectionLimits` — how many accepted stream connections a bridge holds at once (or
-  handshakes a server works on), in total and per source address (``bridge.limits``), with
-  places kept for addresses that recently held a session (:class:`RecentHosts`); a
-  connection gives its place back when it is closed.
-* :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``, within
-  :class:`ConnectionLimits` and from admitted :class:`Sources` only, reporting every refusal;
-  it backs off when accepting fails (out of file descriptors: EMFILE, ENFILE), never spinning.
+* :class:`Sources` — the hosts and networks a link takes datagrams (an acceptor connections)
+  from; :class:`KnownSources`, a server's, learnt from its clients' genuine hellos.
+* :class:`ConnectionLimits` — how many connections (or handshakes) are held at once, in total
+  and per source, with places kept for :class:`RecentHosts`.
+* :class:`Acceptor` — accepts stream connections within those, reporting every refusal.
 
-It sits below :mod:`rosgate.links` (which takes :class:`Sources`) and above the transports:
-nothing here frames, queues or sends. What an accepted connection may do before it is trusted
+Nothing here frames, queues or sends; what an accepted connection may do before it is trusted
 is the link's (:class:`~rosgate.streamlink.Untrusted`).
 """
 

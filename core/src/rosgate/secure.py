@@ -1,39 +1,29 @@
-"""Authenticated sessions: the handshake, the main line's encryption, and a session's keys.
+"""Authenticated sessions: the handshake, the stream after it, and a session's keys
+(docs/security.md says why and what each gives).
 
-**Handshake.** ``Noise_IK_25519_ChaChaPoly_BLAKE2s`` (the Noise Protocol Framework, through the
-``noiseprotocol`` package on ``cryptography``): the client (initiator) knows the server's static
-public key; its first message carries its own static key, encrypted, and the server checks it
-against its ``clients:`` before it parses anything else. One round trip. Each handshake
-message travels as ``u16 length | message`` with at most :data:`HANDSHAKE_MAX` bytes, and the
-whole handshake must finish within :data:`HANDSHAKE_TIMEOUT` seconds. The prologue binds the
-protocol version (``rosgate/1``).
+**Handshake**: ``Noise_IK_25519_ChaChaPoly_BLAKE2s`` through the ``noiseprotocol`` package. The
+initiator knows the responder's static key; its first message carries its own, which the
+responder checks before it parses anything else. Each message is ``u16 length | message`` of
+at most :data:`HANDSHAKE_MAX` bytes, all within :data:`HANDSHAKE_TIMEOUT` seconds; the prologue
+binds the protocol version. After it (:class:`SecureConnection`) every byte travels in Noise
+transport messages, ``u16 length | ciphertext``, with Noise's counter nonces: a reordered,
+replayed, dropped or altered record ends the connection.
 
-**The stream after it** (:class:`SecureConnection`): every byte is inside Noise transport
-messages, ``u16 length | ciphertext`` (at most 65535 bytes each, so the core's stream framing
-above it is chunked), with Noise's own counter nonces: a reordered, replayed, dropped or
-altered record ends the connection. The client's hello (its name, topics and services) is the
-first transport message, so it has the handshake's full forward secrecy.
-
-**Session keys** (:class:`KeySchedule`): in its welcome, over that channel, the server sends a
-fresh random 32-byte secret and a key id. Both sides derive the session root with
-HKDF-SHA256 (salt: the Noise handshake hash, so the root is bound to this handshake), and from
-it one key per direction, topic (or service) and key generation::
+**Session keys** (:class:`KeySchedule`): the responder sends a fresh random 32-byte secret and
+a key id inside the channel (:meth:`KeySchedule.offer`). Both sides derive the session root
+with HKDF-SHA256, salted with the handshake hash, and from it one key per direction, entry and
+generation::
 
     key = HKDF(root, info = "rosgate/1 " + label + generation)     label: "topic c2s /robot1/scan"
 
-A generation lasts ``rekey`` seconds (the server's ``bridge.rekey``, sent in the welcome); both
-sides count generations from the handshake on their own clocks and accept the one before and the
-one after their own, so nothing is dropped while they turn over. The envelope's 32-bit epoch
-names the key: ``key id << 24 | generation``; with the sequence number that makes 12 bytes that
-never repeat under one key (the session's AEAD nonce). Each reconnect is a new handshake and a new
-root; the previous root opens frames for :data:`GRACE` seconds more (frames queued while the link
-was down were sealed under it), then is erased. A frame of an earlier session, a server restart
-or a generation long gone names a key that no longer exists and never opens.
+A generation lasts ``rekey`` seconds on each side's clock; the one before and the one after
+are accepted too. The envelope's epoch names the key (``key id << 24 | generation``); with the
+sequence number it makes the AEAD's 12-byte nonce, never repeated under one key. A previous
+root still opens frames for :data:`GRACE` seconds after a new handshake, then is erased.
 
-**Datagram hellos** (:func:`seal_hello`) tell the server where a client's UDP link is: an
-envelope with the session id, sealed under the session's ``hello c2s`` key with ChaCha20-Poly1305
-(the header as associated data) and checked against a replay window. An unauthenticated
-datagram changes nothing.
+**Datagram hellos** (:func:`seal_hello`) tell a server where a client's datagram link is: the
+session id in an envelope sealed with ChaCha20-Poly1305 under the ``hello c2s`` key (the header
+as associated data), checked against a replay window.
 """
 
 from __future__ import annotations
