@@ -29,7 +29,7 @@ from ..links import DatagramLink, Link, LinkCounters
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort, Route
-from ..secure import KeySchedule, SessionKeys
+from ..secure import KeySchedule, SessionKeys, initiate
 from ..spec import CONTROL, ServiceSpec, TopicSpec
 from ..streamlink import StreamLink, Untrusted
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
@@ -98,6 +98,16 @@ class Role:
     def stop(self) -> None:
         for route in self.router.snapshot():
             self.router.remove(route)
+
+    def entries(self) -> list[TopicSpec | ServiceSpec]:
+        """The file's entries: topics, services, then the parts of its actions."""
+        plan = self.bridge.plan
+        return [*plan.topics, *plan.services, *plan.action_parts]
+
+    def initiate(self, connection: StreamConnection) -> StreamConnection:
+        """Our side of the Noise handshake, to the holder of ``server_key`` (or ``peer_key``)."""
+        assert self.cfg.identity is not None and self.cfg.server_key is not None
+        return initiate(connection, self.cfg.identity, self.cfg.server_key)
 
     def sources(self, transport: Transport, host: str | None) -> Sources | None:
         """Who links of ``transport`` take frames from: the addresses of ``bridge.allow`` when

@@ -34,11 +34,11 @@ from ..keyring import Keys
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import Route
-from ..secure import KeySchedule, SecureConnection, SessionKeys, initiate, seal_hello
+from ..secure import KeySchedule, SecureConnection, SessionKeys, seal_hello
 from ..services import CallerRoute
 from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import StreamLink
-from ..transport import Address, StreamConnection, StreamTransport
+from ..transport import Address, StreamTransport
 from . import Answer, Bridge, Role, session_keys
 from .mainline import (
     HANDSHAKE_TIMEOUT,
@@ -72,12 +72,8 @@ class ClientRole(Role):
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
                                    bridge.backoff, self._handshake, self._lost,
-                                   secure=self._secure if self.cfg.secure else None,
+                                   secure=self.initiate if self.cfg.secure else None,
                                    budget=bridge.budget(plan.main_line))
-
-    def _secure(self, connection: StreamConnection) -> StreamConnection:
-        assert self.cfg.identity is not None and self.cfg.server_key is not None
-        return initiate(connection, self.cfg.identity, self.cfg.server_key)
 
     def start(self) -> None:
         self.connector.start()
@@ -112,7 +108,7 @@ class ClientRole(Role):
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
                            "services": [service_to_mapping(p.config) for p in plan.services],
                            "actions": [action_to_mapping(a.config) for a in plan.actions],
-                           "entries": [self.router.entry_item(p) for p in self._entries()]}),
+                           "entries": [self.router.entry_item(p) for p in self.entries()]}),
                   self.control)
         answer = self._await_answer(link)
         if answer is None:
@@ -122,7 +118,7 @@ class ClientRole(Role):
             return False
         try:
             ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
-            if len(ids) != len(self._entries()):
+            if len(ids) != len(self.entries()):
                 raise ValueError("topic and service id count does not match")
             if not all(0 <= i < 2**32 for i in ids):  # 0: an entry the server refused
                 raise ValueError("a topic or service id out of range")
@@ -192,10 +188,6 @@ class ClientRole(Role):
         log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
                     link.why or "main line closed")
 
-    def _entries(self) -> list[TopicSpec | ServiceSpec]:
-        plan = self.bridge.plan
-        return [*plan.topics, *plan.services, *plan.action_parts]
-
     def _apply(self, ids: list[int]) -> None:
         """Make the routes match the server's answer: one per entry it accepted (id > 0),
         renumbered when a restarted server numbered them anew; none for a refused entry."""
@@ -204,7 +196,7 @@ class ClientRole(Role):
         if renumbered:
             for slot in [self.main, *self._dedicated.values()]:
                 slot.discard(Drop.SESSION_RESET)
-        for index, (p, topic_id) in enumerate(zip(self._entries(), ids, strict=True)):
+        for index, (p, topic_id) in enumerate(zip(self.entries(), ids, strict=True)):
             route = self.routes.get(index)
             if topic_id == 0:
                 if route is not None:
@@ -268,7 +260,7 @@ class ClientRole(Role):
 
         Connector(p.transport, address, slot, self.router.on_frame, self.router.on_lost, self.life,
                   self.bridge.backoff, introduce,
-                  secure=self._secure if self.cfg.secure else None,
+                  secure=self.initiate if self.cfg.secure else None,
                   budget=self.bridge.budget(p.transport)).start()
         self._dedicated[port] = slot
         return slot

@@ -58,7 +58,6 @@ from ..secure import (
     KeySchedule,
     SecureConnection,
     UnknownKey,
-    initiate,
     respond,
 )
 from ..service_framing import CallPort
@@ -146,8 +145,7 @@ class PeerRole(Role):
     def _start_entries(self) -> None:
         bus = BusWiring(self.bridge)
         call_servers: dict[Address, CallPort] = {}
-        plan = self.bridge.plan
-        for p in [*plan.topics, *plan.services, *plan.action_parts]:  # an action: its parts
+        for p in self.entries():
             if p.key is not None:
                 bus.topic(p) if isinstance(p, TopicSpec) else bus.service(p)
             elif isinstance(p, ServiceSpec) and p.service_framing is not None:
@@ -249,7 +247,7 @@ class PeerHandshake:
             slot = self.role.bridge.slot(f"handshake->{self.cfg.peer}")
             Connector(self.transport, self._address(self.cfg.peer), slot, self._on_frame,
                       self.role.router.on_lost, self.role.life, self.role.bridge.backoff,
-                      self._initiated, self._lost, secure=self._initiate).start()
+                      self._initiated, self._lost, secure=self.role.initiate).start()
         else:
             address = self._address(self.cfg.listen)
             self.role.accept(self.transport, address, self._accepted, "bridge.handshake_port",
@@ -258,9 +256,6 @@ class PeerHandshake:
         threading.Thread(target=self._ping_loop, name="peer-ping", daemon=True).start()
 
     # -- the initiator -------------------------------------------------------------------------
-    def _initiate(self, connection: StreamConnection) -> StreamConnection:
-        return initiate(connection, self.identity, self.peer_key)
-
     def _initiated(self, link: StreamLink) -> bool:
         """Wait for the responder's keys inside the new channel; install them."""
         self.answer.clear()
