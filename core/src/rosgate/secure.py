@@ -300,10 +300,12 @@ class KeySchedule:
     def _generation(self, started: float) -> int:
         return int((self.clock() - started) / self.rekey) % GENERATIONS
 
-    def _root(self, epoch: int, sealing: bool) -> tuple[bytes, float] | None:
-        """The root of ``epoch``, and until when (monotonic) it may be used so.
-        Opening accepts the generation before and after our own; sealing any of a known root
-        (a reply seals under its request's)."""
+    def secret(self, epoch: int, label: str, size: int,
+               sealing: bool) -> tuple[bytes, float] | None:
+        """The key of ``label`` in ``epoch``, and until when (monotonic) it may be used without
+        asking again (while :attr:`version` stays); None when this side no longer (or never)
+        has it. Opening accepts the generation before and after our own; sealing any of a
+        known root (a reply seals under its request's)."""
         key_id, generation = epoch >> 24, epoch % GENERATIONS
         now = self.clock()
         with self._lock:
@@ -320,17 +322,7 @@ class KeySchedule:
             if abs(generation - self._generation(started)) > 1:
                 return None
             until = min(until, started + (generation + 2) * self.rekey)
-        return root, until
-
-    def secret(self, epoch: int, label: str, size: int,
-               sealing: bool) -> tuple[bytes, float] | None:
-        """The key of ``label`` in ``epoch``, and until when it may be used without asking
-        again (while :attr:`version` stays); None when this side no longer (or never) has it."""
-        found = self._root(epoch, sealing)
-        if found is None:
-            return None
-        root, until = found
-        info = f"rosgate/1 {label} {epoch % GENERATIONS}".encode()
+        info = f"rosgate/1 {label} {generation}".encode()
         return hkdf(root, info, length=size), until
 
 
