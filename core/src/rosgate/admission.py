@@ -22,10 +22,9 @@ from typing import Any
 
 from .drops import Drop, Reason
 from .transport import Address, StreamConnection, StreamListener
-from .warn import BUGS, Warner
+from .warn import BUGS
 from .wire import envelope
 
-_WARNER = Warner()  # for an acceptor whose owner does not count its refusals
 ACCEPT_POLL = 0.2  # seconds an accept waits before checking whether the acceptor is closing
 ACCEPT_BACKOFF = (0.1, 1.0)  # seconds between failed accepts: the first, doubling up to the second
 
@@ -207,8 +206,8 @@ class Acceptor:
 
     def __init__(self, listener: StreamListener, name: str,
                  on_connection: Callable[[StreamConnection, Address], None],
-                 limits: ConnectionLimits | None = None, sources: Sources | None = None,
-                 on_refused: RefusedHandler | None = None):
+                 limits: ConnectionLimits, sources: Sources | None,
+                 on_refused: RefusedHandler):
         self.listener = listener
         self.name = name
         self.on_connection = on_connection
@@ -229,7 +228,7 @@ class Acceptor:
                     return
                 failures += 1
                 pause = min(ACCEPT_BACKOFF[0] * 2 ** (failures - 1), ACCEPT_BACKOFF[1])
-                self._refused(Drop.ACCEPT_FAILED, f"{exc}; trying again in {pause:g} s")
+                self.on_refused(self, Drop.ACCEPT_FAILED, f"{exc}; trying again in {pause:g} s")
                 self.closed.wait(pause)
                 continue
             failures = 0
@@ -240,31 +239,25 @@ class Acceptor:
         host = peer[0]
         if self.sources is not None and not self.sources.admits(peer):
             connection.close()
-            self._refused(Drop.NOT_ALLOWED, f"a connection from {host} (taken from: "
-                                               f"{self.sources})")
+            self.on_refused(self, Drop.NOT_ALLOWED, f"a connection from {host} (taken from: "
+                                                    f"{self.sources})")
             return
         limits = self.limits
-        if limits is not None:
-            refused = limits.admit(host)
-            if refused is not None:
-                connection.close()
-                self._refused(refused, f"closed a connection from {host} ({limits.held} held, "
-                                       f"at most {limits.total}, {limits.per_source} per source)")
-                return
-            connection = _Counted(connection, lambda: limits.release(host))
+        refused = limits.admit(host)
+        if refused is not None:
+            connection.close()
+            self.on_refused(self, refused, f"closed a connection from {host} ({limits.held} "
+                                           f"held, at most {limits.total}, {limits.per_source} "
+                                           "per source)")
+            return
+        connection = _Counted(connection, lambda: limits.release(host))
         try:
             self.on_connection(connection, peer)
         except Exception:  # a bug, or no thread to be had: this connection only
             BUGS.bug("accept_handler", f"{self.name}: error while taking a connection from "
                                        f"{host}")
             connection.close()
-            self._refused(Drop.HANDLER_ERROR, f"a connection from {host}")
-
-    def _refused(self, reason: Reason, detail: str) -> None:
-        if self.on_refused is not None:
-            self.on_refused(self, reason, detail)
-        else:
-            _WARNER.warn(self.name, reason, detail)
+            self.on_refused(self, Drop.HANDLER_ERROR, f"a connection from {host}")
 
     def close(self) -> None:
         if self.closed.is_set():
