@@ -122,10 +122,6 @@ class Role:
         """``bridge.allow`` as sources (None: anyone, when it is not given)."""
         return Sources((), map(str, self.cfg.allow)) if self.cfg.allow else None
 
-    def refuse_connection(self, acceptor: Acceptor, reason: Reason, detail: str) -> None:
-        """A connection an acceptor closed at once, counted like a frame for no topic."""
-        self.router.link_drop(acceptor, reason, detail)
-
     def read_control(self, frame: bytes, link: Link, source: Address) -> dict[str, Any] | None:
         """A control message on a line (heard from now on); None, counted, when unreadable."""
         message = parse_control(frame)
@@ -226,9 +222,10 @@ class Role:
             if key is None:
                 raise
             raise self.bridge.link_error(exc, key) from None
+        # a connection it closed at once is counted like a frame for no topic
         return self.life.closing(Acceptor(listener, name or f"{transport.name}:{local[1]}",
                                           on_connection, self.limits, sources,
-                                          self.refuse_connection))
+                                          self.router.link_drop))
 
     def listen(self, transport: Transport, local: Address, on_frame: FrameHandler,
                key: str | None = None, handshake: Handshake | None = None,
