@@ -43,7 +43,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any
 
 from ..announce import ANNOUNCE_EVERY
 from ..config import Direction, Framing
@@ -66,7 +65,7 @@ from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
-from . import Answer, NoLink, Refusals, Role, session_keys
+from . import Answer, Bridge, NoLink, Refusals, Role, session_keys
 from .bus import BusWiring
 from .mainline import control, is_control
 
@@ -83,7 +82,7 @@ def silent_for(peer_timeout: float) -> float:
 
 
 class PeerRole(Role):
-    def __init__(self, bridge: Any):
+    def __init__(self, bridge: Bridge):
         super().__init__(bridge)
         self.handshake: PeerHandshake | None = PeerHandshake(self) if self.cfg.secure else None
         #: the routes whose far side is the peer: what it says keeps it alive; callers wait on it
