@@ -159,23 +159,18 @@ class ServerRole(Role):
                 assert self.cfg.identity is not None
                 secure = respond(connection, self.cfg.identity, lambda key: key in self._by_key,
                                  admit=admit)
-            except Busy:
-                connection.close()
-                self.router.link_drop(None, Drop.TOO_MANY_HANDSHAKES, f"from {host}")
-                return
-            except UnknownKey as exc:
-                connection.close()
-                self.router.link_drop(None, Drop.UNKNOWN_CLIENT_KEY, f"from {peer[0]}")
-                shown = base64.b64encode(exc.key).decode()[:8]
-                # said once per address and window: an attacker can make keys without end
-                self.refusals.say(f"unknown key {peer[0]}", f"refused a connection from "
-                                  f"{peer[0]}: its key {shown}... is not in clients:")
-                return
             except HandshakeError as exc:
                 connection.close()
-                self.router.link_drop(None, Drop.BAD_HANDSHAKE, f"from {peer[0]}")
-                self.refusals.say(f"handshake {peer[0]}",
-                                  f"refused a connection from {peer[0]}: {exc}")
+                reason = (Drop.TOO_MANY_HANDSHAKES if isinstance(exc, Busy) else
+                          Drop.UNKNOWN_CLIENT_KEY if isinstance(exc, UnknownKey) else
+                          Drop.BAD_HANDSHAKE)
+                self.router.link_drop(None, reason, f"from {host}")
+                why = (f"its key {base64.b64encode(exc.key).decode()[:8]}... is not in clients:"
+                       if isinstance(exc, UnknownKey) else str(exc))
+                if not isinstance(exc, Busy):
+                    # said once per address and window: an attacker can make keys without end
+                    self.refusals.say(f"{reason} {host}",
+                                      f"refused a connection from {host}: {why}")
                 return
             finally:
                 if slot:
