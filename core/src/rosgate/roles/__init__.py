@@ -73,8 +73,9 @@ class Bridge:
 
 class Role:
     """What the three roles share: datagram links by local address, listening ports within the
-    bridge's connection limits, the sources links take frames from, and the control channel's
-    drops."""
+    bridge's connection limits, the sources links take frames from, and the lines that carry
+    control messages (a main line, a peers' handshake line): reading them, heartbeats, the
+    initiator's handshake."""
 
     def __init__(self, bridge: Bridge):
         self.bridge = bridge
