@@ -29,10 +29,6 @@ def matches(pattern: str, text: str) -> bool:
     return _glob(pattern).fullmatch(text) is not None
 
 
-def _allows_direction(rule: Rule, direction: str) -> bool:
-    return rule.direction in ("both", direction)
-
-
 #: an absolute ROS name: parts of letters, digits and '_', none starting with a digit
 _ROS_NAME = re.compile(r"(?:/[A-Za-z_][A-Za-z0-9_]*)+")
 ROS_NAME_MAX = 200  # characters, as in a file
@@ -59,9 +55,10 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionCon
     if not is_ros_name(name):
         return (f"{policy.name} may not {direction} {name!r}: it is not a ROS name (parts of "
                 "letters, digits and '_' after a single '/', none starting with a digit)")
-    by_name = [r for r in rules if _allows_direction(r, direction) and matches(r.name, name)]
+    ways = [r for r in rules if r.direction in ("both", direction)]
+    by_name = [r for r in ways if matches(r.name, name)]
     if not by_name:
-        allowed = [r.name for r in rules if _allows_direction(r, direction)]
+        allowed = [r.name for r in ways]
         says = ", ".join(allowed) if allowed else f"no {kind}s it {direction}s"
         return f"{policy.name} may not {direction} {what} (policy for {policy.name} allows {says})"
     checks: list[tuple[str, Any, Callable[[Rule], bool], Callable[[Rule], str]]] = [
