@@ -282,9 +282,8 @@ class ServerRole(Role):
             "topic_ids": ids[:count], "service_ids": ids[count:],
             "refused": [{"entry": self._entry_name(session, i), "error": why}
                         for i, why in sorted(session.refused.items())], "entries": items}
-        if isinstance(link.connection, SecureConnection):  # a fresh secret for this handshake
-            if session.schedule is None:
-                session.schedule = KeySchedule(self.cfg.rekey)
+        if session.schedule is not None:  # a fresh secret for this handshake, inside it
+            assert isinstance(link.connection, SecureConnection)
             welcome.update(session.schedule.offer(link.connection.handshake_hash))
         else:
             welcome["token"] = session.token.hex()
@@ -336,7 +335,8 @@ class ServerRole(Role):
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
                           hello.get("services", []), self.bridge.slot(f"main of {name}"),
                           entries=entries, policy=policy, actions=hello.get("actions", []),
-                          part_of=part_of)
+                          part_of=part_of,
+                          schedule=KeySchedule(self.cfg.rekey) if self.cfg.secure else None)
         try:
             self._sync(session)
         except BaseException:  # whatever failed, nothing half-built stays behind
@@ -410,10 +410,8 @@ class ServerRole(Role):
         return self.router.route(p, topic_id, label, link, destination, keys)
 
     def _keys(self, session: Session, p: TopicSpec | ServiceSpec) -> Keys | None:
-        if not self.cfg.secure:
-            return None
         if session.schedule is None:
-            session.schedule = KeySchedule(self.cfg.rekey)
+            return None  # without identities: the file's cipher
         return session_keys(session.schedule, p, p.name, "s2c", "c2s")
 
     @staticmethod
