@@ -29,7 +29,15 @@ from ..links import DatagramLink, Link, LinkCounters
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort, Route
-from ..secure import KeySchedule, SessionKeys, initiate
+from ..secure import (
+    HandshakeError,
+    KeySchedule,
+    SecureConnection,
+    SessionKeys,
+    UnknownKey,
+    initiate,
+    respond,
+)
 from ..spec import CONTROL, ServiceSpec, TopicSpec
 from ..streamlink import StreamLink, Untrusted
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
@@ -92,6 +100,7 @@ class Role:
         self.limits = ConnectionLimits(limits.connections, limits.connections_per_source)
         #: what a connection a client opened may do before it is trusted
         self.untrusted = Untrusted(limits.max_frame_before_auth, limits.handshake_timeout)
+        self.refusals = Refusals()
         self._lock = threading.RLock()
 
     def start(self) -> None: ...
@@ -109,6 +118,27 @@ class Role:
         """Our side of the Noise handshake, to the holder of ``server_key`` (or ``peer_key``)."""
         assert self.cfg.identity is not None and self.cfg.server_key is not None
         return initiate(connection, self.cfg.identity, self.cfg.server_key)
+
+    def respond(self, connection: StreamConnection, host: str, known: Callable[[bytes], bool],
+                admit: Callable[[], bool] | None = None) -> SecureConnection | None:
+        """The responder's side of the Noise handshake (``known``: whether a key is taken);
+        None when it failed: the connection is closed, counted and said once per
+        :data:`REFUSAL_EVERY` (an attacker can make keys without end)."""
+        assert self.cfg.identity is not None
+        try:
+            return respond(connection, self.cfg.identity, known, admit=admit)
+        except HandshakeError as exc:
+            connection.close()
+            reason, sentence = self.handshake_refused(exc, host)
+            self.router.link_drop(None, reason, f"from {host}")
+            if sentence is not None:
+                self.refusals.say(f"{reason} {host}", sentence)
+            return None
+
+    def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
+        """How a failed handshake is counted, and the sentence that says it (None: none)."""
+        why = "its key is not peer_key" if isinstance(exc, UnknownKey) else str(exc)
+        return Drop.BAD_HANDSHAKE, f"{self.cfg.name}: refused a handshake from {host}: {why}"
 
     def sources(self, transport: Transport, host: str | None) -> Sources | None:
         """Who links of ``transport`` take frames from: the addresses of ``bridge.allow`` when

@@ -52,20 +52,14 @@ from ..keyring import Keys
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import ReceiveRoute, Route
-from ..secure import (
-    HandshakeError,
-    KeySchedule,
-    SecureConnection,
-    UnknownKey,
-    respond,
-)
+from ..secure import KeySchedule, SecureConnection
 from ..service_framing import CallPort
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
-from . import Answer, Bridge, NoLink, Refusals, Role, session_keys
+from . import Answer, Bridge, NoLink, Role, session_keys
 from .bus import BusWiring
 from .mainline import control, is_control
 
@@ -220,11 +214,10 @@ class PeerHandshake:
 
         self.role = role
         self.cfg = cfg
-        self.identity, self.peer_key = cfg.identity, cfg.server_key
+        self.peer_key = cfg.server_key
         self.initiator = public_of(cfg.identity) < cfg.server_key
         self.mine, self.theirs = ("i2r", "r2i") if self.initiator else ("r2i", "i2r")
         self.schedule = KeySchedule(cfg.rekey)
-        self.refusals = Refusals()
         transport = role.bridge.resolver.transport("tcp", "bridge.handshake_port")
         assert isinstance(transport, StreamTransport)
         self.transport = transport
@@ -285,14 +278,8 @@ class PeerHandshake:
     # -- the responder --------------------------------------------------------------------------
     def _accepted(self, connection: StreamConnection, peer: Address) -> None:
         def run() -> None:
-            try:
-                secure = respond(connection, self.identity, lambda key: key == self.peer_key)
-            except HandshakeError as exc:
-                connection.close()
-                why = "its key is not peer_key" if isinstance(exc, UnknownKey) else str(exc)
-                self.role.router.link_drop(None, Drop.BAD_HANDSHAKE, f"from {peer[0]}")
-                self.refusals.say(f"{peer[0]}", f"{self.cfg.name}: refused a handshake "
-                                  f"from {peer[0]}: {why}")
+            secure = self.role.respond(connection, peer[0], lambda key: key == self.peer_key)
+            if secure is None:
                 return
             link = self.role.life.closing(StreamLink(
                 secure, f"handshake<-{peer[0]}", peer, self._on_frame, self.role.router.on_lost,

@@ -38,7 +38,7 @@ from ..config import (
     TopicConfig,
 )
 from ..connector import LinkSlot
-from ..drops import Drop
+from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys
 from ..links import DatagramLink, Link
@@ -51,7 +51,6 @@ from ..secure import (
     SecureConnection,
     UnknownKey,
     open_hello,
-    respond,
 )
 from ..services import CallerRoute
 from ..spec import ServiceSpec, TopicSpec
@@ -60,7 +59,7 @@ from ..transport import Address, StreamConnection, StreamTransport
 from ..warn import BUGS
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
-from . import Bridge, Refusals, Role, session_keys
+from . import Bridge, Role, session_keys
 from .mainline import PROTOCOL, client_entries, control, flipped, is_control, where_error
 
 log = logging.getLogger("rosgate")
@@ -112,7 +111,6 @@ class ServerRole(Role):
         self.router.on_hello = self.on_hello
         #: datagram ports take frames only from where clients' genuine hellos came from
         self.clients = KnownSources()
-        self.refusals = Refusals()
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
         self._handshakes = ConnectionLimits(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
                                             self.limits.recent)
@@ -156,31 +154,28 @@ class ServerRole(Role):
                 return slot
 
             try:
-                assert self.cfg.identity is not None
-                secure = respond(connection, self.cfg.identity, lambda key: key in self._by_key,
-                                 admit=admit)
-            except HandshakeError as exc:
-                connection.close()
-                reason = (Drop.TOO_MANY_HANDSHAKES if isinstance(exc, Busy) else
-                          Drop.UNKNOWN_CLIENT_KEY if isinstance(exc, UnknownKey) else
-                          Drop.BAD_HANDSHAKE)
-                self.router.link_drop(None, reason, f"from {host}")
-                why = (f"its key {base64.b64encode(exc.key).decode()[:8]}... is not in clients:"
-                       if isinstance(exc, UnknownKey) else str(exc))
-                if not isinstance(exc, Busy):
-                    # said once per address and window: an attacker can make keys without end
-                    self.refusals.say(f"{reason} {host}",
-                                      f"refused a connection from {host}: {why}")
-                return
+                secure = self.respond(connection, host, lambda key: key in self._by_key, admit)
             finally:
                 if slot:
                     self._handshakes.release(host)
+            if secure is None:
+                return
             with self._lock:
                 self._keyed = {c for c in self._keyed if not c.closed}
                 self._keyed.add(secure)
             then(secure)
 
         threading.Thread(target=run, name=f"handshake-{peer[0]}", daemon=True).start()
+
+    def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
+        """A handshake refused for being one too many is counted, not said."""
+        if isinstance(exc, Busy):
+            return Drop.TOO_MANY_HANDSHAKES, None
+        if isinstance(exc, UnknownKey):
+            shown = base64.b64encode(exc.key).decode()[:8]
+            return Drop.UNKNOWN_CLIENT_KEY, (f"refused a connection from {host}: its key "
+                                             f"{shown}... is not in clients:")
+        return Drop.BAD_HANDSHAKE, f"refused a connection from {host}: {exc}"
 
     def _accepted(self, connection: StreamConnection, peer: Address) -> None:
         self.handshake(connection, peer, lambda secure: self._main_line(secure, peer))
