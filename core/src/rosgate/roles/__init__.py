@@ -34,7 +34,6 @@ from ..secure import (
     KeySchedule,
     SecureConnection,
     SessionKeys,
-    UnknownKey,
     initiate,
     respond,
 )
@@ -137,8 +136,7 @@ class Role:
 
     def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
         """How a failed handshake is counted, and the sentence that says it (None: none)."""
-        why = "its key is not peer_key" if isinstance(exc, UnknownKey) else str(exc)
-        return Drop.BAD_HANDSHAKE, f"{self.cfg.name}: refused a handshake from {host}: {why}"
+        raise NotImplementedError  # a role that responds to handshakes says
 
     def sources(self, transport: Transport, host: str | None) -> Sources | None:
         """Who links of ``transport`` take frames from: the addresses of ``bridge.allow`` when

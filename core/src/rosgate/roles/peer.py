@@ -47,12 +47,12 @@ import time
 from ..announce import ANNOUNCE_EVERY
 from ..config import Direction, Framing
 from ..connector import Connector
-from ..drops import Drop
+from ..drops import Drop, Reason
 from ..keyring import Keys
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import ReceiveRoute, Route
-from ..secure import KeySchedule, SecureConnection
+from ..secure import HandshakeError, KeySchedule, SecureConnection, UnknownKey
 from ..service_framing import CallPort
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
@@ -96,6 +96,10 @@ class PeerRole(Role):
         self._start_entries()
         if self.handshake is None and self.callers and self.heard_from:
             threading.Thread(target=self._watch_peer, name="peer-liveness", daemon=True).start()
+
+    def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
+        why = "its key is not peer_key" if isinstance(exc, UnknownKey) else str(exc)
+        return Drop.BAD_HANDSHAKE, f"{self.cfg.name}: refused a handshake from {host}: {why}"
 
     def fail_calls(self, detail: str) -> None:
         """The peer is lost: every call waiting for its answer fails now."""
