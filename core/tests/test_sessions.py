@@ -242,6 +242,39 @@ def test_a_server_seals_under_the_old_root_until_the_client_is_ready():
     assert server.epoch() >> 24 == 8
 
 
+def test_an_offered_secret_keys_both_sides_and_the_next_offer_is_the_next_key_id():
+    clock, digest = Clock(), os.urandom(32)
+    responder, initiator = KeySchedule(10.0, clock), KeySchedule(10.0, clock)
+    offer = responder.offer(digest)
+    assert sorted(offer) == ["key_id", "rekey", "secret"] and offer["rekey"] == 10.0
+    assert len(bytes.fromhex(offer["secret"])) == 32 and 0 <= offer["key_id"] < 256
+    assert responder.epoch() >> 24 == offer["key_id"]  # the first offer seals at once
+    assert initiator.accept(offer, digest) == offer["key_id"]
+    sender, receiver = route_keys(responder, initiator)
+    epoch, header, body = frame(sender, 1)
+    assert receiver.opener(epoch).open(header, body) == b"payload"
+    again = responder.offer(os.urandom(32))
+    assert again["key_id"] == (offer["key_id"] + 1) % 256 and again["secret"] != offer["secret"]
+    assert responder.epoch() >> 24 == offer["key_id"]  # until the initiator is ready
+    responder.seal_with("not a key id")
+    responder.seal_with([again["key_id"]])
+    assert responder.epoch() >> 24 == offer["key_id"]
+    responder.seal_with(again["key_id"])
+    assert responder.epoch() >> 24 == again["key_id"]
+
+
+@pytest.mark.parametrize("offer", [
+    {"secret": "00" * 31, "key_id": 1}, {"secret": "00" * 32, "key_id": 256},
+    {"secret": "00" * 32, "key_id": -1}, {"secret": "zz", "key_id": 1}, {"key_id": 1},
+    {"secret": "00" * 32, "key_id": "x"}, {"secret": 5, "key_id": 1}])
+def test_an_offer_without_a_session_secret_is_refused_and_installs_nothing(offer):
+    schedule = KeySchedule(10.0, Clock())
+    with pytest.raises((ValueError, KeyError, TypeError)):
+        schedule.accept(offer, os.urandom(32))
+    with pytest.raises(LookupError):
+        schedule.epoch()
+
+
 def test_a_forgotten_schedule_opens_and_seals_nothing():
     a, b, _ = schedules()
     sender, receiver = route_keys(a, b)

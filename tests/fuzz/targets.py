@@ -247,11 +247,11 @@ def serial_datagram(data: bytes) -> None:
 
 @target()
 def control_message(data: bytes) -> None:
-    """A control message's JSON, then, for a hello, every topic and service entry checked as a
+    """A control message's JSON, then, for a hello, its topics, services and actions checked as a
     server checks them, and what the server builds from a valid one (QoS, rate)."""
-    from rosgate.config import ServiceConfig, TopicConfig, topic_from_mapping
+    from rosgate.config import TopicConfig
     from rosgate.errors import ConfigError
-    from rosgate.roles.mainline import client_services, flipped
+    from rosgate.roles.mainline import client_entries, flipped
     from rosgate.ros import is_reliable, qos_profile
     from rosgate.wire import control
 
@@ -260,19 +260,10 @@ def control_message(data: bytes) -> None:
     except control.ControlError:
         return
     defaults = {"transport": "udp", "codec": "cdr", "cipher": "none"}
-    entries: list[TopicConfig | ServiceConfig] = []
-    topics = message.get("topics")
-    if isinstance(topics, list):
-        for i, mapping in enumerate(topics):
-            if isinstance(mapping, dict):
-                try:
-                    entries.append(topic_from_mapping(mapping, defaults, "fuzz", index=i))
-                except ConfigError:
-                    pass
     try:
-        entries += client_services(message, defaults, "fuzz")
+        entries, _ = client_entries(message, defaults, "fuzz")
     except ConfigError:
-        pass
+        return
     for entry in entries:
         flipped(entry)
         _resolve_safely(entry.type)

@@ -1,23 +1,13 @@
 """Admission: who a bridge takes frames and connections from, and how many connections it
 holds. Roles choose it; datagram links and acceptors apply it.
 
-* :class:`Sources` — the hosts and IP networks a link takes datagrams (and an acceptor
-  connections) from; a :class:`~rosgate.links.DatagramLink` counts the others ``not_allowed``,
-  before any reassembly. :class:`KnownSources` — a server's: the addresses its clients' genuine
-  hellos came from, learnt while running; from anywhere else only a hello is taken.
-* :class:`ConnectionLimits` — how many accepted stream connections a bridge holds at once, in
-  total and per source address (``bridge.limits``), with places kept for addresses that
-  recently held a session (:class:`RecentHosts`); a connection gives its place back when it
-  is closed.
-* :class:`HandshakeSlots` — how many handshakes a server works on at once (each costs a
-  Diffie-Hellman): few per source address, some kept for recent hosts, so that strangers
-  from a few addresses cannot take them all.
-* :class:`Acceptor` — accepts stream connections and hands each to ``on_connection``, within
-  :class:`ConnectionLimits` and from admitted :class:`Sources` only, reporting every refusal;
-  it backs off when accepting fails (out of file descriptors: EMFILE, ENFILE), never spinning.
+* :class:`Sources` — the hosts and networks a link takes datagrams (an acceptor connections)
+  from; :class:`KnownSources`, a server's, learnt from its clients' genuine hellos.
+* :class:`ConnectionLimits` — how many connections (or handshakes) are held at once, in total
+  and per source, with places kept for :class:`RecentHosts`.
+* :class:`Acceptor` — accepts stream connections within those, reporting every refusal.
 
-It sits below :mod:`rosgate.links` (which takes :class:`Sources`) and above the transports:
-nothing here frames, queues or sends. What an accepted connection may do before it is trusted
+Nothing here frames, queues or sends; what an accepted connection may do before it is trusted
 is the link's (:class:`~rosgate.streamlink.Untrusted`).
 """
 
@@ -32,10 +22,9 @@ from typing import Any
 
 from .drops import Drop, Reason
 from .transport import Address, StreamConnection, StreamListener
-from .warn import BUGS, Warner
+from .warn import BUGS
 from .wire import envelope
 
-_WARNER = Warner()  # for an acceptor whose owner does not count its refusals
 ACCEPT_POLL = 0.2  # seconds an accept waits before checking whether the acceptor is closing
 ACCEPT_BACKOFF = (0.1, 1.0)  # seconds between failed accepts: the first, doubling up to the second
 
@@ -109,9 +98,9 @@ class KnownSources(Sources):
 
 class RecentHosts:
     """Addresses that recently held an authenticated session (a server's clients, a peer):
-    they keep places of their own in :class:`ConnectionLimits` and :class:`HandshakeSlots`,
-    so a robot that was connected gets back in while strangers hold every other place.
-    Bounded: the least recently seen is forgotten first."""
+    they keep places of their own in every :class:`ConnectionLimits`, so a robot that was
+    connected gets back in while strangers hold every other place. Bounded: the least
+    recently seen is forgotten first."""
 
     KEEP = 1024  # addresses
     FOR = 24 * 3600.0  # seconds an address counts as recent after its last session began
@@ -133,28 +122,26 @@ class RecentHosts:
         return seen is not None and self.clock() - seen < self.FOR
 
 
-def _reserved(total: int) -> int:
-    """Places kept for recent hosts: a quarter, at least one when there are two or more."""
-    return total // 4 if total >= 4 else min(1, total - 1)
-
-
 class ConnectionLimits:
-    """How many accepted stream connections a bridge holds at once: in total, and from one
-    source address (``bridge.limits``). A quarter of the total is kept for :class:`RecentHosts`
-    (strangers from many addresses cannot fill it). Shared by every :class:`Acceptor` of a
-    bridge."""
+    """How many connections a bridge holds at once (``bridge.limits``), or handshakes a server
+    works on (each costs a Diffie-Hellman): in total, and from one source address. A quarter
+    of the total is kept for :class:`RecentHosts`, so strangers from many addresses cannot
+    fill it. A handshake takes its place once its first message has arrived, not when its
+    connection is accepted: a connection that only holds its place costs a thread and a file
+    descriptor (bounded by the connection limits), never a Diffie-Hellman."""
 
     def __init__(self, total: int, per_source: int, recent: RecentHosts | None = None):
         self.total = total
         self.per_source = per_source
         self.recent = recent if recent is not None else RecentHosts()
-        self.open_to_all = total - _reserved(total)
+        # places kept for recent hosts: a quarter, at least one when there are two or more
+        self.open_to_all = total - (total // 4 if total >= 4 else min(1, total - 1))
         self._by_source: Counter[str] = Counter()
         self._count = 0
         self._lock = threading.Lock()
 
     def admit(self, host: str) -> Drop | None:
-        """Take a place for a connection from ``host``; None when taken, else why not."""
+        """Take a place for ``host``; None when taken, else why not."""
         with self._lock:
             if self._count >= self.total or (self._count >= self.open_to_all
                                              and host not in self.recent):
@@ -175,40 +162,6 @@ class ConnectionLimits:
     @property
     def held(self) -> int:
         return self._count
-
-
-class HandshakeSlots:
-    """How many handshakes are worked on at once: ``total``, at most ``per_source`` from one
-    address, and a quarter of the total only for :class:`RecentHosts`. A connection takes a
-    slot when its first handshake message has arrived (the Diffie-Hellman is what costs), not
-    when it is accepted: a connection that only holds its place costs a thread and a file
-    descriptor (bounded by :class:`ConnectionLimits`), never a slot."""
-
-    def __init__(self, total: int, per_source: int, recent: RecentHosts):
-        self.total = total
-        self.per_source = per_source
-        self.recent = recent
-        self.open_to_all = total - _reserved(total)
-        self._by_source: Counter[str] = Counter()
-        self._count = 0
-        self._lock = threading.Lock()
-
-    def take(self, host: str) -> bool:
-        with self._lock:
-            if self._count >= self.total or self._by_source[host] >= self.per_source:
-                return False
-            if self._count >= self.open_to_all and host not in self.recent:
-                return False
-            self._count += 1
-            self._by_source[host] += 1
-            return True
-
-    def give_back(self, host: str) -> None:
-        with self._lock:
-            self._count -= 1
-            self._by_source[host] -= 1
-            if not self._by_source[host]:
-                del self._by_source[host]
 
 
 class _Counted:
@@ -253,8 +206,8 @@ class Acceptor:
 
     def __init__(self, listener: StreamListener, name: str,
                  on_connection: Callable[[StreamConnection, Address], None],
-                 limits: ConnectionLimits | None = None, sources: Sources | None = None,
-                 on_refused: RefusedHandler | None = None):
+                 limits: ConnectionLimits, sources: Sources | None,
+                 on_refused: RefusedHandler):
         self.listener = listener
         self.name = name
         self.on_connection = on_connection
@@ -275,7 +228,7 @@ class Acceptor:
                     return
                 failures += 1
                 pause = min(ACCEPT_BACKOFF[0] * 2 ** (failures - 1), ACCEPT_BACKOFF[1])
-                self._refused(Drop.ACCEPT_FAILED, f"{exc}; trying again in {pause:g} s")
+                self.on_refused(self, Drop.ACCEPT_FAILED, f"{exc}; trying again in {pause:g} s")
                 self.closed.wait(pause)
                 continue
             failures = 0
@@ -286,31 +239,25 @@ class Acceptor:
         host = peer[0]
         if self.sources is not None and not self.sources.admits(peer):
             connection.close()
-            self._refused(Drop.NOT_ALLOWED, f"a connection from {host} (taken from: "
-                                               f"{self.sources})")
+            self.on_refused(self, Drop.NOT_ALLOWED, f"a connection from {host} (taken from: "
+                                                    f"{self.sources})")
             return
         limits = self.limits
-        if limits is not None:
-            refused = limits.admit(host)
-            if refused is not None:
-                connection.close()
-                self._refused(refused, f"closed a connection from {host} ({limits.held} held, "
-                                       f"at most {limits.total}, {limits.per_source} per source)")
-                return
-            connection = _Counted(connection, lambda: limits.release(host))
+        refused = limits.admit(host)
+        if refused is not None:
+            connection.close()
+            self.on_refused(self, refused, f"closed a connection from {host} ({limits.held} "
+                                           f"held, at most {limits.total}, {limits.per_source} "
+                                           "per source)")
+            return
+        connection = _Counted(connection, lambda: limits.release(host))
         try:
             self.on_connection(connection, peer)
         except Exception:  # a bug, or no thread to be had: this connection only
             BUGS.bug("accept_handler", f"{self.name}: error while taking a connection from "
                                        f"{host}")
             connection.close()
-            self._refused(Drop.HANDLER_ERROR, f"a connection from {host}")
-
-    def _refused(self, reason: Reason, detail: str) -> None:
-        if self.on_refused is not None:
-            self.on_refused(self, reason, detail)
-        else:
-            _WARNER.warn(self.name, reason, detail)
+            self.on_refused(self, Drop.HANDLER_ERROR, f"a connection from {host}")
 
     def close(self) -> None:
         if self.closed.is_set():

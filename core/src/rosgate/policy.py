@@ -1,23 +1,11 @@
-"""A server's policy: what each client may ask for, default deny.
+"""A server's policy: what each client may ask for, default deny (docs/security.md, "Policy").
 
-Each entry a client sends in its hello (a topic or a service, in the client's words) is checked
-against the rules of its ``clients.NAME`` entry in the server's file, on the server-side name
-(the client's ``remote``). An entry is allowed when one rule of its kind matches all of:
-
-* ``name``: a glob on the server-side name — ``*`` and ``?`` within one segment, ``**`` across
-  segments (``/robot1/**`` matches ``/robot1/scan`` and ``/robot1/arm/joint``);
-* ``direction``: the client's — ``transmit`` (client to server: it publishes on the server's
-  ROS graph, or calls the server's services), ``receive`` (server to client), or ``both``;
-* ``types``: globs on ``pkg/msg/Type`` (any type when left out);
-* ``ports``: the dedicated ports it may use (none when left out: only the main port);
-* ``ciphers``: the ciphers it may use (when left out: any cipher a session keys, never ``none``);
-* topics only, their QoS: ``depth``, the deepest queue it may ask for (1,000 when left out),
-  ``keep_all`` whether it may ask for a queue without bound, ``durability`` which durabilities
-  (any when left out): a client cannot make the server hold an unbounded history for it.
-
-:func:`refusal` gives the one sentence logged on both sides when an entry is refused, naming
-the client, the entry and the rule: ``robot1 may not transmit /cmd_vel (policy for robot1
-allows /robot1/**)``.
+Each entry a client sends in its hello is checked, on its server-side name (the client's
+``remote``), against the rules of its kind under ``clients.NAME``: an entry is allowed when one
+rule matches its name (a glob: ``*`` and ``?`` within one segment, ``**`` across), direction,
+type, port, cipher and, for a topic, the QoS it asks for. :func:`refusal` gives the one
+sentence both sides log for a refused entry: ``robot1 may not transmit /cmd_vel (policy for
+robot1 allows /robot1/**)``.
 """
 
 from __future__ import annotations
@@ -39,10 +27,6 @@ def _glob(pattern: str) -> re.Pattern[str]:
 
 def matches(pattern: str, text: str) -> bool:
     return _glob(pattern).fullmatch(text) is not None
-
-
-def _allows_direction(rule: Rule, direction: str) -> bool:
-    return rule.direction in ("both", direction)
 
 
 #: an absolute ROS name: parts of letters, digits and '_', none starting with a digit
@@ -71,9 +55,10 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionCon
     if not is_ros_name(name):
         return (f"{policy.name} may not {direction} {name!r}: it is not a ROS name (parts of "
                 "letters, digits and '_' after a single '/', none starting with a digit)")
-    by_name = [r for r in rules if _allows_direction(r, direction) and matches(r.name, name)]
+    ways = [r for r in rules if r.direction in ("both", direction)]
+    by_name = [r for r in ways if matches(r.name, name)]
     if not by_name:
-        allowed = [r.name for r in rules if _allows_direction(r, direction)]
+        allowed = [r.name for r in ways]
         says = ", ".join(allowed) if allowed else f"no {kind}s it {direction}s"
         return f"{policy.name} may not {direction} {what} (policy for {policy.name} allows {says})"
     checks: list[tuple[str, Any, Callable[[Rule], bool], Callable[[Rule], str]]] = [

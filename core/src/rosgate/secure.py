@@ -1,48 +1,40 @@
-"""Authenticated sessions: the handshake, the main line's encryption, and a session's keys.
+"""Authenticated sessions: the handshake, the stream after it, and a session's keys
+(docs/security.md says why and what each gives).
 
-**Handshake.** ``Noise_IK_25519_ChaChaPoly_BLAKE2s`` (the Noise Protocol Framework, through the
-``noiseprotocol`` package on ``cryptography``): the client (initiator) knows the server's static
-public key; its first message carries its own static key, encrypted, and the server checks it
-against its ``clients:`` before it parses anything else. One round trip. Each handshake
-message travels as ``u16 length | message`` with at most :data:`HANDSHAKE_MAX` bytes, and the
-whole handshake must finish within :data:`HANDSHAKE_TIMEOUT` seconds. The prologue binds the
-protocol version (``rosgate/1``).
+**Handshake**: ``Noise_IK_25519_ChaChaPoly_BLAKE2s`` through the ``noiseprotocol`` package. The
+initiator knows the responder's static key; its first message carries its own, which the
+responder checks before it parses anything else. Each message is ``u16 length | message`` of
+at most :data:`HANDSHAKE_MAX` bytes, all within :data:`HANDSHAKE_TIMEOUT` seconds; the prologue
+binds the protocol version. After it (:class:`SecureConnection`) every byte travels in Noise
+transport messages, ``u16 length | ciphertext``, with Noise's counter nonces: a reordered,
+replayed, dropped or altered record ends the connection.
 
-**The stream after it** (:class:`SecureConnection`): every byte is inside Noise transport
-messages, ``u16 length | ciphertext`` (at most 65535 bytes each, so the core's stream framing
-above it is chunked), with Noise's own counter nonces: a reordered, replayed, dropped or
-altered record ends the connection. The client's hello (its name, topics and services) is the
-first transport message, so it has the handshake's full forward secrecy.
-
-**Session keys** (:class:`KeySchedule`): in its welcome, over that channel, the server sends a
-fresh random 32-byte secret and a key id. Both sides derive the session root with
-HKDF-SHA256 (salt: the Noise handshake hash, so the root is bound to this handshake), and from
-it one key per direction, topic (or service) and key generation::
+**Session keys** (:class:`KeySchedule`): the responder sends a fresh random 32-byte secret and
+a key id inside the channel (:meth:`KeySchedule.offer`). Both sides derive the session root
+with HKDF-SHA256, salted with the handshake hash, and from it one key per direction, entry and
+generation::
 
     key = HKDF(root, info = "rosgate/1 " + label + generation)     label: "topic c2s /robot1/scan"
 
-A generation lasts ``rekey`` seconds (the server's ``bridge.rekey``, sent in the welcome); both
-sides count generations from the handshake on their own clocks and accept the one before and the
-one after their own, so nothing is dropped while they turn over. The envelope's 32-bit epoch
-names the key: ``key id << 24 | generation``; with the sequence number that makes 12 bytes that
-never repeat under one key (the session's AEAD nonce). Each reconnect is a new handshake and a new
-root; the previous root opens frames for :data:`GRACE` seconds more (frames queued while the link
-was down were sealed under it), then is erased. A frame of an earlier session, a server restart
-or a generation long gone names a key that no longer exists and never opens.
+A generation lasts ``rekey`` seconds on each side's clock; the one before and the one after
+are accepted too. The envelope's epoch names the key (``key id << 24 | generation``); with the
+sequence number it makes the AEAD's 12-byte nonce, never repeated under one key. A previous
+root still opens frames for :data:`GRACE` seconds after a new handshake, then is erased.
 
-**Datagram hellos** (:func:`seal_hello`) tell the server where a client's UDP link is: an
-envelope with the session id, sealed under the session's ``hello c2s`` key with ChaCha20-Poly1305
-(the header as associated data) and checked against a replay window. An unauthenticated
-datagram changes nothing.
+**Datagram hellos** (:func:`seal_hello`) tell a server where a client's datagram link is: the
+session id in an envelope sealed with ChaCha20-Poly1305 under the ``hello c2s`` key (the header
+as associated data), checked against a replay window.
 """
 
 from __future__ import annotations
 
+import os
 import struct
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
@@ -239,6 +231,7 @@ class KeySchedule:
         # restarted may reuse a key id: same epoch, another root)
         self._seal_state: tuple[int, float] | None = None
         self.version = 0
+        self.offered: int | None = None  # the key id of the last secret this side offered
 
     def _changed(self) -> None:
         """Under the lock, after the roots or the sealing root changed."""
@@ -264,11 +257,32 @@ class KeySchedule:
                 self._sealing = key_id
             self._changed()
 
-    def seal_with(self, key_id: int) -> None:
+    def seal_with(self, key_id: object) -> None:
+        """Seal under ``key_id`` from now on (the initiator says it holds it: ``ready``)."""
         with self._lock:
-            if key_id in self._roots:
+            if isinstance(key_id, int) and key_id in self._roots:
                 self._sealing = key_id
                 self._changed()
+
+    def offer(self, handshake_hash: bytes) -> dict[str, Any]:
+        """The responder's side: a fresh secret for this handshake, installed here, and what to
+        send inside it. The previous root still seals until the initiator is ready."""
+        first = self.offered is None
+        # a random first id: a restarted server rarely reuses its predecessor's (and when it
+        # does, the client's root serials keep the two apart)
+        self.offered = os.urandom(1)[0] if self.offered is None else (self.offered + 1) % 256
+        secret = os.urandom(32)
+        self.install(self.offered, secret, handshake_hash, seal_now=first)
+        return {"secret": secret.hex(), "key_id": self.offered, "rekey": self.rekey}
+
+    def accept(self, offer: dict[str, Any], handshake_hash: bytes) -> int:
+        """The initiator's side: install the secret of a responder's :meth:`offer`; its key id.
+        ValueError (or KeyError, TypeError) when the offer holds none."""
+        secret, key_id = bytes.fromhex(offer["secret"]), int(offer["key_id"])
+        if len(secret) != 32 or not 0 <= key_id < 256:
+            raise ValueError("not a session secret")
+        self.install(key_id, secret, handshake_hash)
+        return key_id
 
     def forget(self) -> None:
         """Erase every root (the session ends)."""
@@ -286,10 +300,12 @@ class KeySchedule:
     def _generation(self, started: float) -> int:
         return int((self.clock() - started) / self.rekey) % GENERATIONS
 
-    def _root(self, epoch: int, sealing: bool) -> tuple[bytes, float] | None:
-        """The root of ``epoch``, and until when (monotonic) it may be used so.
-        Opening accepts the generation before and after our own; sealing any of a known root
-        (a reply seals under its request's)."""
+    def secret(self, epoch: int, label: str, size: int,
+               sealing: bool) -> tuple[bytes, float] | None:
+        """The key of ``label`` in ``epoch``, and until when (monotonic) it may be used without
+        asking again (while :attr:`version` stays); None when this side no longer (or never)
+        has it. Opening accepts the generation before and after our own; sealing any of a
+        known root (a reply seals under its request's)."""
         key_id, generation = epoch >> 24, epoch % GENERATIONS
         now = self.clock()
         with self._lock:
@@ -306,17 +322,7 @@ class KeySchedule:
             if abs(generation - self._generation(started)) > 1:
                 return None
             until = min(until, started + (generation + 2) * self.rekey)
-        return root, until
-
-    def secret(self, epoch: int, label: str, size: int,
-               sealing: bool) -> tuple[bytes, float] | None:
-        """The key of ``label`` in ``epoch``, and until when it may be used without asking
-        again (while :attr:`version` stays); None when this side no longer (or never) has it."""
-        found = self._root(epoch, sealing)
-        if found is None:
-            return None
-        root, until = found
-        info = f"rosgate/1 {label} {epoch % GENERATIONS}".encode()
+        info = f"rosgate/1 {label} {generation}".encode()
         return hkdf(root, info, length=size), until
 
 

@@ -18,20 +18,30 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from ..admission import Acceptor, ConnectionLimits, Sources
 from ..config import BridgeConfig, LinkConfig
 from ..connector import Backoff, Lifetime, LinkSlot, QueueLimits
-from ..drops import Reason
+from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..links import DatagramLink, Link, LinkCounters
 from ..resolver import Plan, Resolver
 from ..router import Router
-from ..routes import BarePort
-from ..spec import CONTROL
+from ..routes import BarePort, Route
+from ..secure import (
+    HandshakeError,
+    KeySchedule,
+    SecureConnection,
+    SessionKeys,
+    initiate,
+    respond,
+)
+from ..spec import CONTROL, ServiceSpec, TopicSpec
 from ..streamlink import StreamLink, Untrusted
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from ..wire import envelope
+from .mainline import control, key_label, parse_control
 
 log = logging.getLogger("rosgate")
 
@@ -70,8 +80,9 @@ class Bridge:
 
 class Role:
     """What the three roles share: datagram links by local address, listening ports within the
-    bridge's connection limits, the sources links take frames from, and the control channel's
-    drops."""
+    bridge's connection limits, the sources links take frames from, and the lines that carry
+    control messages (a main line, a peers' handshake line): reading them, heartbeats, the
+    initiator's handshake."""
 
     def __init__(self, bridge: Bridge):
         self.bridge = bridge
@@ -88,6 +99,7 @@ class Role:
         self.limits = ConnectionLimits(limits.connections, limits.connections_per_source)
         #: what a connection a client opened may do before it is trusted
         self.untrusted = Untrusted(limits.max_frame_before_auth, limits.handshake_timeout)
+        self.refusals = Refusals()
         self._lock = threading.RLock()
 
     def start(self) -> None: ...
@@ -95,6 +107,36 @@ class Role:
     def stop(self) -> None:
         for route in self.router.snapshot():
             self.router.remove(route)
+
+    def entries(self) -> list[TopicSpec | ServiceSpec]:
+        """The file's entries: topics, services, then the parts of its actions."""
+        plan = self.bridge.plan
+        return [*plan.topics, *plan.services, *plan.action_parts]
+
+    def initiate(self, connection: StreamConnection) -> StreamConnection:
+        """Our side of the Noise handshake, to the holder of ``server_key`` (or ``peer_key``)."""
+        assert self.cfg.identity is not None and self.cfg.server_key is not None
+        return initiate(connection, self.cfg.identity, self.cfg.server_key)
+
+    def respond(self, connection: StreamConnection, host: str, known: Callable[[bytes], bool],
+                admit: Callable[[], bool] | None = None) -> SecureConnection | None:
+        """The responder's side of the Noise handshake (``known``: whether a key is taken);
+        None when it failed: the connection is closed, counted and said once per
+        :data:`REFUSAL_EVERY` (an attacker can make keys without end)."""
+        assert self.cfg.identity is not None
+        try:
+            return respond(connection, self.cfg.identity, known, admit=admit)
+        except HandshakeError as exc:
+            connection.close()
+            reason, sentence = self.handshake_refused(exc, host)
+            self.router.link_drop(None, reason, f"from {host}")
+            if sentence is not None:
+                self.refusals.say(f"{reason} {host}", sentence)
+            return None
+
+    def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
+        """How a failed handshake is counted, and the sentence that says it (None: none)."""
+        raise NotImplementedError  # a role that responds to handshakes says
 
     def sources(self, transport: Transport, host: str | None) -> Sources | None:
         """Who links of ``transport`` take frames from: the addresses of ``bridge.allow`` when
@@ -109,9 +151,33 @@ class Role:
         """``bridge.allow`` as sources (None: anyone, when it is not given)."""
         return Sources((), map(str, self.cfg.allow)) if self.cfg.allow else None
 
-    def refuse_connection(self, acceptor: Acceptor, reason: Reason, detail: str) -> None:
-        """A connection an acceptor closed at once, counted like a frame for no topic."""
-        self.router.link_drop(acceptor, reason, detail)
+    def read_control(self, frame: bytes, link: Link, source: Address) -> dict[str, Any] | None:
+        """A control message on a line (heard from now on); None, counted, when unreadable."""
+        message = parse_control(frame)
+        if message is None:
+            self.router.link_drop(link, Drop.BAD_CONTROL, f"from {source}")
+            return None
+        assert isinstance(link, StreamLink)
+        link.last_heard = time.monotonic()
+        return message
+
+    def far_entries(self, routes: dict[int, Route], items: Any) -> None:
+        """The far side's word (a hello's, a welcome's) on each entry of ours: its type and the
+        QoS it found; none from an older rosgate."""
+        for index, route in routes.items():
+            self.router.far(route, items[index] if isinstance(items, list)
+                            and index < len(items) else None)
+
+    def heartbeat(self, link: StreamLink | None) -> None:
+        """Ping on a line; a far side silent for ``peer_timeout`` is taken for down and its
+        line failed (a stalled TCP connection never ends alone)."""
+        if link is None or link.closed.is_set():
+            return
+        silence = time.monotonic() - link.last_heard
+        if silence > self.cfg.peer_timeout:
+            link.fail(f"silent for {silence:.1f} s")
+        else:
+            link.send(control({"type": "ping"}), self.control)
 
     def _hold(self, kind: str, transport: Transport, local: Address, owner: object) -> None:
         if owner is not None:
@@ -172,53 +238,51 @@ class Role:
             self.datagram_links[(transport.name, local)] = self.life.closing(link)
             return link
 
-    def accept_into(self, on_frame: FrameHandler, transport: Transport, port: int,
-                    handshake: Handshake | None = None, untrusted: Untrusted | None = None,
-                    ) -> Callable[[StreamConnection, Address], None]:
-        """What to do with each connection accepted on a port: a link that feeds ``on_frame``
-        (after ``handshake``, when given; held to ``untrusted`` until ``on_frame`` trusts it)
-        and is forgotten by the bridge when it ends."""
-        life, on_lost = self.life, self.router.on_lost
-        budget = self.bridge.budget(transport)
+    def accept(self, transport: Transport, local: Address,
+               on_connection: Callable[[StreamConnection, Address], None], key: str | None,
+               sources: Sources | None = None, name: str | None = None) -> Acceptor:
+        """Accept stream connections at ``local`` within the bridge's connection limits, from
+        ``sources`` only when given. A LinkError is located at ``key``; without one (a server
+        listening for a client) it goes to the caller."""
+        assert isinstance(transport, StreamTransport)
+        try:
+            listener = transport.listen(local)
+        except LinkError as exc:
+            if key is None:
+                raise
+            raise self.bridge.link_error(exc, key) from None
+        # a connection it closed at once is counted like a frame for no topic
+        return self.life.closing(Acceptor(listener, name or f"{transport.name}:{local[1]}",
+                                          on_connection, self.limits, sources,
+                                          self.router.link_drop))
+
+    def listen(self, transport: Transport, local: Address, on_frame: FrameHandler,
+               key: str | None = None, handshake: Handshake | None = None,
+               sources: Sources | None = None, untrusted: Untrusted | None = None,
+               owner: object = None) -> Acceptor:
+        """A link that feeds ``on_frame`` for each connection accepted at ``local`` (one
+        acceptor per address), after ``handshake`` when given, held to ``untrusted`` until
+        ``on_frame`` trusts it, forgotten by the bridge when it ends. An ``owner`` holds the
+        acceptor until :meth:`release`."""
+        life, budget = self.life, self.bridge.budget(transport)
 
         def accepted(connection: StreamConnection, peer: Address) -> None:
             def link(ready: StreamConnection) -> None:
-                life.closing(StreamLink(ready, f"{transport.name}:{port}<-{peer[0]}", peer,
-                                        on_frame, on_lost, on_close=life.forget,
+                life.closing(StreamLink(ready, f"{transport.name}:{local[1]}<-{peer[0]}", peer,
+                                        on_frame, self.router.on_lost, on_close=life.forget,
                                         untrusted=untrusted, budget=budget))
             if handshake is None:
                 link(connection)
             else:
                 handshake(connection, peer, link)
 
-        return accepted
-
-    def listen(self, transport: Transport, local: Address, on_frame: FrameHandler,
-               key: str | None = None, handshake: Handshake | None = None,
-               sources: Sources | None = None, untrusted: Untrusted | None = None,
-               owner: object = None) -> Acceptor:
-        """Accept stream connections at ``local`` (once per address), from ``sources`` only
-        when given, within the bridge's connection limits, each through ``handshake`` when
-        given. A LinkError is located at ``key``; without one (a server listening for a client)
-        it goes to the caller. An ``owner`` holds the listener until :meth:`release`."""
-        assert isinstance(transport, StreamTransport)
         with self._lock:
-            found = self.listening.get((transport.name, local))
-            if found is not None:
-                self._hold("listen", transport, local, owner)
-                return found
-            try:
-                listener = transport.listen(local)
-            except LinkError as exc:
-                if key is None:
-                    raise
-                raise self.bridge.link_error(exc, key) from None
-            acceptor = self.listening[(transport.name, local)] = Acceptor(
-                listener, f"{transport.name}:{local[1]}",
-                self.accept_into(on_frame, transport, local[1], handshake, untrusted),
-                self.limits, sources, self.refuse_connection)
             self._hold("listen", transport, local, owner)
-        return self.life.closing(acceptor)
+            found = self.listening.get((transport.name, local))
+            if found is None:
+                found = self.listening[(transport.name, local)] = self.accept(
+                    transport, local, accepted, key, sources)
+            return found
 
 
 class Control:
@@ -260,6 +324,41 @@ class Refusals:
             self._last[key] = now
             held = self._held.pop(key, 0)
         log.log(level, "%s%s", message, f" ({held} more since)" if held else "")
+
+
+class Answer:
+    """The one control message an initiator waits for on its new line (a welcome, a peer's
+    keys)."""
+
+    def __init__(self) -> None:
+        self.message: dict[str, Any] | None = None
+        self._got = threading.Event()
+
+    def clear(self) -> None:
+        self.message = None
+        self._got.clear()
+
+    def put(self, message: dict[str, Any]) -> None:
+        self.message = message
+        self._got.set()
+
+    def wait(self, link: StreamLink, stopping: threading.Event,
+             timeout: float) -> dict[str, Any] | None:
+        """The answer; None when the line closed, the bridge stops or ``timeout`` passed."""
+        deadline = time.monotonic() + timeout
+        while not self._got.wait(0.1):
+            if link.closed.is_set() or stopping.is_set() or time.monotonic() > deadline:
+                return None
+        return self.message
+
+
+def session_keys(schedule: KeySchedule, p: TopicSpec | ServiceSpec, name: str, send: str,
+                 receive: str) -> SessionKeys:
+    """An entry's keys in a session: ``name`` as both sides spell it, ``send`` and
+    ``receive`` the ways (``c2s``, ``s2c``; ``i2r``, ``r2i`` between peers)."""
+    assert p.cipher_cls is not None
+    return SessionKeys(schedule, p.cipher_cls, key_label(p.kind, send, name),
+                       key_label(p.kind, receive, name))
 
 
 class NoLink(Link):

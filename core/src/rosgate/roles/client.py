@@ -34,20 +34,18 @@ from ..keyring import Keys
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import Route
-from ..secure import KeySchedule, SecureConnection, SessionKeys, initiate, seal_hello
+from ..secure import KeySchedule, SecureConnection, SessionKeys, seal_hello
 from ..services import CallerRoute
 from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import StreamLink
-from ..transport import Address, StreamConnection, StreamTransport
-from . import Bridge, Role
+from ..transport import Address, StreamTransport
+from . import Answer, Bridge, Role, session_keys
 from .mainline import (
     HANDSHAKE_TIMEOUT,
     PROTOCOL,
     control,
     hello_datagram,
     is_control,
-    key_label,
-    parse_control,
 )
 
 log = logging.getLogger("rosgate")
@@ -68,19 +66,14 @@ class ClientRole(Role):
         self.schedule: KeySchedule | None = None  # the session's keys (authenticated)
         self._hello_seq = itertools.count(1)
         self._dedicated: dict[int, LinkSlot] = {}
-        self._welcome: dict[str, Any] | None = None
-        self._answer = threading.Event()
+        self.answer = Answer()
         plan = bridge.plan
         assert plan.main_line is not None and plan.main_address is not None
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
                                    bridge.backoff, self._handshake, self._lost,
-                                   secure=self._secure if self.cfg.secure else None,
+                                   secure=self.initiate if self.cfg.secure else None,
                                    budget=bridge.budget(plan.main_line))
-
-    def _secure(self, connection: StreamConnection) -> StreamConnection:
-        assert self.cfg.identity is not None and self.cfg.server_key is not None
-        return initiate(connection, self.cfg.identity, self.cfg.server_key)
 
     def start(self) -> None:
         self.connector.start()
@@ -100,39 +93,32 @@ class ClientRole(Role):
             self.schedule.forget()
 
     def _on_main_frame(self, frame: bytes, link: Link, source: Address) -> None:
-        if is_control(frame):
-            message = parse_control(frame)
-            if message is None:
-                self.router.link_drop(link, Drop.BAD_CONTROL, "unreadable control message")
-                return
-            assert isinstance(link, StreamLink)
-            link.last_heard = time.monotonic()
-            if message["type"] in ("welcome", "refused"):
-                self._welcome = message
-                self._answer.set()
+        if not is_control(frame):
+            self.router.on_frame(frame, link, source)
             return
-        self.router.on_frame(frame, link, source)
+        message = self.read_control(frame, link, source)
+        if message is not None and message["type"] in ("welcome", "refused"):
+            self.answer.put(message)
 
     def _handshake(self, link: StreamLink) -> bool:
         """Send our entries; build, re-key or drop their routes from the server's answer."""
-        self._answer.clear()
-        self._welcome = None
+        self.answer.clear()
         plan = self.bridge.plan
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
                            "services": [service_to_mapping(p.config) for p in plan.services],
                            "actions": [action_to_mapping(a.config) for a in plan.actions],
-                           "entries": [self.router.entry_item(p) for p in self._entries()]}),
+                           "entries": [self.router.entry_item(p) for p in self.entries()]}),
                   self.control)
-        if not self._await_answer(link) or self._welcome is None:
+        answer = self._await_answer(link)
+        if answer is None:
             return False
-        answer = self._welcome
         if answer["type"] == "refused":
             log.error("%s: the server refused us: %s", self.cfg.name, answer.get("error"))
             return False
         try:
             ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
-            if len(ids) != len(self._entries()):
+            if len(ids) != len(self.entries()):
                 raise ValueError("topic and service id count does not match")
             if not all(0 <= i < 2**32 for i in ids):  # 0: an entry the server refused
                 raise ValueError("a topic or service id out of range")
@@ -142,7 +128,7 @@ class ClientRole(Role):
                 self._install_keys(answer, link)
             self._note_refusals(answer.get("refused", []))
             self._apply(ids)
-            self._far_entries(answer.get("entries"))
+            self.far_entries(self.routes, answer.get("entries"))
         except (KeyError, TypeError, ValueError, RosgateError) as exc:
             log.error("%s: cannot use the server's answer: %s", self.cfg.name, exc)
             if self.topic_ids is None:
@@ -161,21 +147,11 @@ class ClientRole(Role):
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
         return True
 
-    def _far_entries(self, items: Any) -> None:
-        """The server's word on each entry (its type, the QoS it found): none from an older
-        server."""
-        for index, route in self.routes.items():
-            self.router.far(route, items[index] if isinstance(items, list)
-                            and index < len(items) else None)
-
     def _install_keys(self, answer: dict[str, Any], link: StreamLink) -> None:
         """The session's secret from the welcome (inside the Noise channel); then say we hold
         it, so the server seals under it too."""
         connection = link.connection
         assert isinstance(connection, SecureConnection)
-        secret, key_id = bytes.fromhex(answer["secret"]), int(answer["key_id"])
-        if len(secret) != 32 or not 0 <= key_id < 256:
-            raise ValueError("not a session secret")
         rekey = float(answer.get("rekey", self.cfg.rekey))
         if self.schedule is None or self.schedule.rekey != rekey:
             old = self.schedule
@@ -184,7 +160,7 @@ class ClientRole(Role):
                 for route in self.routes.values():
                     if isinstance(route.keys, SessionKeys):
                         route.keys.schedule = self.schedule
-        self.schedule.install(key_id, secret, connection.handshake_hash)
+        key_id = self.schedule.accept(answer, connection.handshake_hash)
         link.send(control({"type": "ready", "key_id": key_id}), self.control)
 
     def _note_refusals(self, refused: list[Any]) -> None:
@@ -194,20 +170,15 @@ class ClientRole(Role):
                 log.error("%s: the server refused %s: %s", self.cfg.name, entry, why)
         self.refused = now
 
-    def _await_answer(self, link: StreamLink) -> bool:
-        deadline = time.monotonic() + HANDSHAKE_TIMEOUT
-        while not self._answer.wait(0.1):
-            if link.closed.is_set() and not self.life.stopping.is_set():
-                self.connector.failed(LinkError(
-                    "the server closed the connection before answering our hello (does it "
-                    "require identities? then set bridge.identity and server_key)"))
-            if link.closed.is_set() or self.life.stopping.is_set():
-                return False
-            if time.monotonic() > deadline:
-                log.warning("%s: no answer to the handshake from %s", self.cfg.name,
-                            self.cfg.server)
-                return False
-        return True
+    def _await_answer(self, link: StreamLink) -> dict[str, Any] | None:
+        answer = self.answer.wait(link, self.life.stopping, HANDSHAKE_TIMEOUT)
+        if answer is None and link.closed.is_set() and not self.life.stopping.is_set():
+            self.connector.failed(LinkError(
+                "the server closed the connection before answering our hello (does it "
+                "require identities? then set bridge.identity and server_key)"))
+        elif answer is None and not self.life.stopping.is_set():
+            log.warning("%s: no answer to the handshake from %s", self.cfg.name, self.cfg.server)
+        return answer
 
     def _lost(self, link: StreamLink) -> None:
         self.connected.clear()
@@ -217,10 +188,6 @@ class ClientRole(Role):
         log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
                     link.why or "main line closed")
 
-    def _entries(self) -> list[TopicSpec | ServiceSpec]:
-        plan = self.bridge.plan
-        return [*plan.topics, *plan.services, *plan.action_parts]
-
     def _apply(self, ids: list[int]) -> None:
         """Make the routes match the server's answer: one per entry it accepted (id > 0),
         renumbered when a restarted server numbered them anew; none for a refused entry."""
@@ -229,7 +196,7 @@ class ClientRole(Role):
         if renumbered:
             for slot in [self.main, *self._dedicated.values()]:
                 slot.discard(Drop.SESSION_RESET)
-        for index, (p, topic_id) in enumerate(zip(self._entries(), ids, strict=True)):
+        for index, (p, topic_id) in enumerate(zip(self.entries(), ids, strict=True)):
             route = self.routes.get(index)
             if topic_id == 0:
                 if route is not None:
@@ -260,10 +227,8 @@ class ClientRole(Role):
     def _keys(self, p: TopicSpec | ServiceSpec) -> Keys | None:
         if self.schedule is None:
             return None  # insecure: the file's cipher
-        assert p.cipher_cls is not None
-        name = p.config.remote  # the server's name for it: both sides derive the same keys
-        return SessionKeys(self.schedule, p.cipher_cls, key_label(p.kind, "c2s", name),
-                           key_label(p.kind, "s2c", name))
+        # by the server's name for it: both sides derive the same keys
+        return session_keys(self.schedule, p, p.config.remote, "c2s", "s2c")
 
     def _unbuild(self) -> None:
         super().stop()
@@ -295,7 +260,7 @@ class ClientRole(Role):
 
         Connector(p.transport, address, slot, self.router.on_frame, self.router.on_lost, self.life,
                   self.bridge.backoff, introduce,
-                  secure=self._secure if self.cfg.secure else None,
+                  secure=self.initiate if self.cfg.secure else None,
                   budget=self.bridge.budget(p.transport)).start()
         self._dedicated[port] = slot
         return slot
@@ -317,11 +282,6 @@ class ClientRole(Role):
         declared down and its connection recycled (a stalled TCP connection never ends alone).
         Datagram hellos go on while the main line is down, so the server keeps our address."""
         while not self.life.stopping.wait(self.cfg.heartbeat):
-            link = self.main.current
-            if self.connected.is_set() and link is not None and not link.closed.is_set():
-                silence = time.monotonic() - link.last_heard
-                if silence > self.cfg.peer_timeout:
-                    link.fail(f"silent for {silence:.1f} s")
-                    continue
-                link.send(control({"type": "ping"}), self.control)
+            if self.connected.is_set():
+                self.heartbeat(self.main.current)
             self._say_hello()

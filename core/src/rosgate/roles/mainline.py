@@ -27,7 +27,15 @@ import time
 from dataclasses import replace
 from typing import Any
 
-from ..config import ServiceConfig, TopicConfig, service_from_mapping
+from ..actions import parts as action_parts
+from ..config import (
+    ActionConfig,
+    ServiceConfig,
+    TopicConfig,
+    action_from_mapping,
+    service_from_mapping,
+    topic_from_mapping,
+)
 from ..errors import ConfigError
 from ..wire import control as wire_control
 from ..wire import envelope
@@ -80,13 +88,29 @@ def where_error(where: str) -> Any:
     return error
 
 
-def client_services(hello: dict[str, Any], defaults: dict[str, str],
-                    where: str) -> list[ServiceConfig]:
-    """The service entries of a client's hello, checked like a file's (older clients send none)."""
-    services = hello.get("services", [])
-    if not isinstance(services, list):
-        raise ConfigError("hello with a service list that is not a list", file=where)
-    for i, mapping in enumerate(services):
+def client_entries(hello: dict[str, Any], defaults: dict[str, str],
+                   where: str) -> tuple[list[TopicConfig | ServiceConfig], dict[int, ActionConfig]]:
+    """A hello's entries, checked like a file's (no type is imported here): topics, services,
+    then the parts of its actions; and the action of each part."""
+    error = where_error(where)
+    topics, services = hello.get("topics"), hello.get("services", [])
+    actions = hello.get("actions", [])
+    if (not isinstance(topics, list) or not isinstance(services, list)
+            or not isinstance(actions, list)):
+        raise ConfigError("hello without a topic, a service and an action list", file=where)
+    entries: list[TopicConfig | ServiceConfig] = []
+    for key, items, parse in (("topics", topics, topic_from_mapping),
+                              ("services", services, service_from_mapping)):
+        for i, mapping in enumerate(items):
+            if not isinstance(mapping, dict):
+                raise error(f"{key}[{i}]", "not a mapping")
+            entries.append(parse(mapping, defaults, where, index=i))
+    part_of: dict[int, ActionConfig] = {}
+    for i, mapping in enumerate(actions):
         if not isinstance(mapping, dict):
-            raise ConfigError("not a mapping", file=where, key=f"services[{i}]")
-    return [service_from_mapping(m, defaults, where, index=i) for i, m in enumerate(services)]
+            raise error(f"actions[{i}]", "not a mapping")
+        action = action_from_mapping(mapping, defaults, where, index=i)
+        for part in action_parts(action):
+            part_of[len(entries)] = action
+            entries.append(part)
+    return entries, part_of

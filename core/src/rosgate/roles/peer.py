@@ -41,39 +41,27 @@ given. Transports that cannot tell who sent a frame (a CAN bus) filter nothing.
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
-from typing import Any
 
-from ..admission import Acceptor, Sources
 from ..announce import ANNOUNCE_EVERY
 from ..bus import BusRole, BusTransport
 from ..config import Direction, Framing
 from ..connector import Connector
-from ..drops import Drop
-from ..errors import LinkError
+from ..drops import Drop, Reason
 from ..keyring import Keys
-from ..links import Link
+from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import ReceiveRoute, Route
-from ..secure import (
-    HandshakeError,
-    KeySchedule,
-    SecureConnection,
-    SessionKeys,
-    UnknownKey,
-    initiate,
-    respond,
-)
+from ..secure import HandshakeError, KeySchedule, SecureConnection, UnknownKey
 from ..service_framing import CallPort
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
-from . import NoLink, Refusals, Role
-from .mainline import control, is_control, key_label, parse_control
+from . import Answer, Bridge, NoLink, Role, session_keys
+from .mainline import control, is_control
 
 log = logging.getLogger("rosgate")
 
@@ -88,7 +76,7 @@ def silent_for(peer_timeout: float) -> float:
 
 
 class PeerRole(Role):
-    def __init__(self, bridge: Any):
+    def __init__(self, bridge: Bridge):
         super().__init__(bridge)
         self.handshake: PeerHandshake | None = PeerHandshake(self) if self.cfg.secure else None
         #: the routes whose far side is the peer: what it says keeps it alive; callers wait on it
@@ -103,15 +91,16 @@ class PeerRole(Role):
             return None
         return self.handshake.keys(p)
 
-    def _sources(self, p: TopicSpec | ServiceSpec) -> Sources | None:
-        return self.sources(p.transport, self.cfg.peer)
-
     def start(self) -> None:
         if self.handshake is not None:
             self.handshake.start()
         self._start_entries()
         if self.handshake is None and self.callers and self.heard_from:
             threading.Thread(target=self._watch_peer, name="peer-liveness", daemon=True).start()
+
+    def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
+        why = "its key is not peer_key" if isinstance(exc, UnknownKey) else str(exc)
+        return Drop.BAD_HANDSHAKE, f"{self.cfg.name}: refused a handshake from {host}: {why}"
 
     def fail_calls(self, detail: str) -> None:
         """The peer is lost: every call waiting for its answer fails now."""
@@ -158,99 +147,52 @@ class PeerRole(Role):
         return self.bus_roles.get(cls) or self.bus_roles.setdefault(cls, cls(self.bridge))
 
     def _start_entries(self) -> None:
-        for p in self.bridge.plan.topics:
-            if p.key is not None:
-                self._bus(p).topic(p)
-            elif isinstance(p.transport, StreamTransport):
-                self._stream_topic(p)
-            else:
-                self._datagram_topic(p)
         call_servers: dict[Address, CallPort] = {}
-        for s in self.bridge.plan.services:
-            if s.key is not None:
-                self._bus(s).service(s)
-            elif s.service_framing is not None:
-                self._microcontroller_service(s, call_servers)
+        for p in self.entries():
+            if p.key is not None:
+                bus = self._bus(p)
+                bus.topic(p) if isinstance(p, TopicSpec) else bus.service(p)
+            elif isinstance(p, ServiceSpec) and p.service_framing is not None:
+                self._microcontroller_service(p, call_servers)
             else:
-                self._service(s)
-        for part in self.bridge.plan.action_parts:  # an action: three services, two topics
-            if part.key is not None:
-                role = self._bus(part)
-                role.topic(part) if isinstance(part, TopicSpec) else role.service(part)
-            elif isinstance(part, ServiceSpec):
-                self._service(part)
-            elif isinstance(part.transport, StreamTransport):
-                self._stream_topic(part)
-            else:
-                self._datagram_topic(part)
+                self._entry(p)
 
-    def _datagram_topic(self, p: TopicSpec) -> None:
-        t, key = p.config, f"topics[{p.index}].port"
-        sources = self._sources(p)
-        if t.direction is Direction.TRANSMIT:
-            link = self.datagram_link(p.transport, p.local, key, sources=sources)
-            self.router.topic(p, topic_id_for(t.remote), t.topic, link, fixed(p.address),
-                              self._keys(p))
-            return
-        if t.framing is Framing.NONE:
-            named = p.codec_cls.messagepack
-            link = self.datagram_link(p.transport, p.address, key, bare_named=named,
-                                      sources=sources)
-            route = self.router.topic(p, topic_id_for(t.remote), t.topic, link)
-            assert isinstance(route, ReceiveRoute)
-            self.bare_ports[link].add(route, {t.topic, t.remote})
-            return
-        link = self.datagram_link(p.transport, p.address, key, sources=sources)
-        self._receiver(p, link)
-
-    def _stream_topic(self, p: TopicSpec) -> None:
-        t, key = p.config, f"topics[{p.index}].port"
-        if t.direction is Direction.RECEIVE:
-            self._receiver(p, NoLink())
-            self.listen(p.transport, p.address, self.router.on_frame, key,
-                        sources=self._sources(p))
-            return
-        slot = self.bridge.slot(f"{t.transport}->{self.cfg.peer}:{t.port}")
-        self.router.topic(p, topic_id_for(t.remote), t.topic, slot, keys=self._keys(p))
-        Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
-                  self.life, self.bridge.backoff, budget=self.bridge.budget(p.transport)).start()
-
-    def _receiver(self, p: TopicSpec, link: Link) -> None:
-        """A receiving topic is found by its remote name's id, and by its own name's."""
-        t = p.config
-        route = self.router.topic(p, topic_id_for(t.remote), t.topic, link, keys=self._keys(p))
-        assert isinstance(route, ReceiveRoute)
-        route.check.expect(route.drop)  # its sender may have announced before this side started
-        self.heard_from.append(route)
-        if t.topic != t.remote:
-            self.router.alias(route, topic_id_for(t.topic))
-
-    def _service(self, p: ServiceSpec) -> None:
-        """A service with an envelope: found by the id of its remote name."""
-        s, key = p.config, f"services[{p.index}].port"
-        service_id = topic_id_for(s.remote)
+    def _entry(self, p: TopicSpec | ServiceSpec) -> None:
+        """An entry found by the id of its remote name (a receiving topic by its own name's
+        too). Receiving, it binds or listens at ``listen:port``; transmitting, it sends from
+        ``listen`` or connects to ``peer:port``."""
+        c, key = p.config, f"{p.kind}s[{p.index}].port"
+        stream = isinstance(p.transport, StreamTransport)
+        sources = self.sources(p.transport, self.cfg.peer)
+        bare = None  # a port of framing: none topics: whether their datagrams carry names
         link: Link
-        if s.direction is Direction.RECEIVE:
-            if isinstance(p.transport, StreamTransport):
-                self.listen(p.transport, p.address, self.router.on_frame, key,
-                        sources=self._sources(p))
-                link = NoLink()  # answers go back on the connection each call came on
-            else:
-                link = self.datagram_link(p.transport, p.address, key, sources=self._sources(p))
-        elif isinstance(p.transport, StreamTransport):
-            link = slot = self.bridge.slot(f"{s.transport}->{self.cfg.peer}:{s.port}")
+        if c.direction is Direction.RECEIVE and stream:
+            link = NoLink()  # frames come through the listener; answers go back on their line
+        elif c.direction is Direction.RECEIVE:
+            bare = p.codec_cls.messagepack if c.framing is Framing.NONE else None
+            link = self.datagram_link(p.transport, p.address, key, bare, sources)
+        elif stream:
+            link = slot = self.bridge.slot(f"{c.transport}->{self.cfg.peer}:{c.port}")
+        else:
+            link = self.datagram_link(p.transport, p.local, key, sources=sources)
+        route = self.router.route(p, topic_id_for(c.remote), p.name, link, fixed(p.address),
+                                  self._keys(p))
+        if stream and c.direction is Direction.RECEIVE:
+            self.listen(p.transport, p.address, self.router.on_frame, key, sources=sources)
+        elif stream:
             Connector(p.transport, p.address, slot, self.router.on_frame, self.router.on_lost,
                       self.life, self.bridge.backoff,
                       budget=self.bridge.budget(p.transport)).start()
-        else:
-            link = self.datagram_link(p.transport, p.local, key, sources=self._sources(p))
-        route = self.router.service(p, service_id, s.service, link, fixed(p.address),
-                                    self._keys(p))
-        if isinstance(route, ServerRoute):  # its caller may have announced before it started
-            route.check.expect(route.drop)
-            self.heard_from.append(route)
-        elif isinstance(route, CallerRoute):
+        if isinstance(route, CallerRoute):
             self.callers.append(route)
+        elif bare is not None:  # framing: none, told apart by name
+            assert isinstance(route, ReceiveRoute) and isinstance(link, DatagramLink)
+            self.bare_ports[link].add(route, {p.name, c.remote})
+        elif isinstance(route, ReceiveRoute | ServerRoute):
+            route.check.expect(route.drop)  # its sender may have announced before it started
+            self.heard_from.append(route)
+            if p.name != c.remote and isinstance(route, ReceiveRoute):
+                self.router.alias(route, topic_id_for(p.name))
 
     def _microcontroller_service(self, p: ServiceSpec,
                                  servers: dict[Address, CallPort]) -> None:
@@ -261,17 +203,12 @@ class PeerRole(Role):
             self.router.service(p, 0, s.service, None)  # connects to the peer per call
             return
         if p.address not in servers:
-            assert isinstance(p.transport, StreamTransport)  # the resolver checked
-            try:
-                listener = p.transport.listen(p.address)
-            except LinkError as exc:
-                raise self.bridge.link_error(exc, f"services[{p.index}].port") from None
             assert p.service_framing is not None
             server = servers[p.address] = p.service_framing.server(
                 f"{p.transport.name}:{p.address[1]}", self.router.link_drop,
                 self.cfg.limits.idle_timeout)
-            self.life.closing(Acceptor(listener, server.name, server.accepted, self.limits,
-                                       self.allow_list(), self.refuse_connection))
+            self.accept(p.transport, p.address, server.accepted, f"services[{p.index}].port",
+                        self.allow_list())
         route = self.router.service(p, 0, s.service, None)  # found by name: no id
         assert isinstance(route, ServerRoute)
         servers[p.address].add(route)
@@ -288,26 +225,19 @@ class PeerHandshake:
 
         self.role = role
         self.cfg = cfg
-        self.identity, self.peer_key = cfg.identity, cfg.server_key
+        self.peer_key = cfg.server_key
         self.initiator = public_of(cfg.identity) < cfg.server_key
         self.mine, self.theirs = ("i2r", "r2i") if self.initiator else ("r2i", "i2r")
         self.schedule = KeySchedule(cfg.rekey)
-        self.refusals = Refusals()
         transport = role.bridge.resolver.transport("tcp", "bridge.handshake_port")
         assert isinstance(transport, StreamTransport)
         self.transport = transport
-        self.key_id: int | None = None
         self.up = threading.Event()
         self.link: StreamLink | None = None
-        self._answer: dict[str, Any] | None = None
-        self._answered = threading.Event()
+        self.answer = Answer()
 
     def keys(self, p: TopicSpec | ServiceSpec) -> Keys:
-        assert p.cipher_cls is not None
-        kind = "topic" if isinstance(p, TopicSpec) else "service"
-        name = p.config.remote
-        return SessionKeys(self.schedule, p.cipher_cls, key_label(kind, self.mine, name),
-                           key_label(kind, self.theirs, name))
+        return session_keys(self.schedule, p, p.config.remote, self.mine, self.theirs)
 
     def _address(self, host: str | None) -> Address:
         try:
@@ -316,52 +246,36 @@ class PeerHandshake:
             raise self.cfg.error("bridge.handshake_port", str(exc)) from None
 
     def start(self) -> None:
-        life = self.role.life
         if self.initiator:
             slot = self.role.bridge.slot(f"handshake->{self.cfg.peer}")
             Connector(self.transport, self._address(self.cfg.peer), slot, self._on_frame,
-                      self.role.router.on_lost, life, self.role.bridge.backoff,
-                      self._initiated, self._lost, secure=self._initiate).start()
+                      self.role.router.on_lost, self.role.life, self.role.bridge.backoff,
+                      self._initiated, self._lost, secure=self.role.initiate).start()
         else:
             address = self._address(self.cfg.listen)
-            try:
-                listener = self.transport.listen(address)
-            except LinkError as exc:
-                raise self.role.bridge.link_error(exc, "bridge.handshake_port") from None
-            role = self.role
-            life.closing(Acceptor(listener, f"handshake:{address[1]}", self._accepted,
-                                  role.limits, role.sources(self.transport, self.cfg.peer),
-                                  role.refuse_connection))
+            self.role.accept(self.transport, address, self._accepted, "bridge.handshake_port",
+                             self.role.sources(self.transport, self.cfg.peer),
+                             f"handshake:{address[1]}")
         threading.Thread(target=self._ping_loop, name="peer-ping", daemon=True).start()
 
     # -- the initiator -------------------------------------------------------------------------
-    def _initiate(self, connection: StreamConnection) -> StreamConnection:
-        return initiate(connection, self.identity, self.peer_key)
-
     def _initiated(self, link: StreamLink) -> bool:
         """Wait for the responder's keys inside the new channel; install them."""
-        self._answered.clear()
-        self._answer = None
-        deadline = time.monotonic() + 5.0
-        while not self._answered.wait(0.1):
-            if link.closed.is_set() or self.role.life.stopping.is_set():
-                return False
-            if time.monotonic() > deadline:
+        self.answer.clear()
+        answer = self.answer.wait(link, self.role.life.stopping, 5.0)
+        if answer is None:
+            if not link.closed.is_set() and not self.role.life.stopping.is_set():
                 log.warning("%s: no keys from peer %s", self.cfg.name, self.cfg.peer)
-                return False
-        answer = self._answer
+            return False
         connection = link.connection
+        assert isinstance(connection, SecureConnection)
         try:
-            assert answer is not None and isinstance(connection, SecureConnection)
-            secret, key_id = bytes.fromhex(answer["secret"]), int(answer["key_id"])
-            if len(secret) != 32 or not 0 <= key_id < 256:
-                raise ValueError("not a session secret")
-            if float(answer["rekey"]) != self.schedule.rekey:
-                self.schedule.rekey = float(answer["rekey"])  # the responder's, as a server's
-        except (AssertionError, KeyError, TypeError, ValueError) as exc:
+            rekey = float(answer["rekey"])  # the responder's, as a server's
+            key_id = self.schedule.accept(answer, connection.handshake_hash)
+        except (KeyError, TypeError, ValueError) as exc:
             log.error("%s: cannot use the peer's keys: %s", self.cfg.name, exc)
             return False
-        self.schedule.install(key_id, secret, connection.handshake_hash)
+        self.schedule.rekey = rekey
         link.send(control({"type": "ready", "key_id": key_id}), self.role.control)
         self._up(link)
         return True
@@ -375,24 +289,14 @@ class PeerHandshake:
     # -- the responder --------------------------------------------------------------------------
     def _accepted(self, connection: StreamConnection, peer: Address) -> None:
         def run() -> None:
-            try:
-                secure = respond(connection, self.identity, lambda key: key == self.peer_key)
-            except HandshakeError as exc:
-                connection.close()
-                why = "its key is not peer_key" if isinstance(exc, UnknownKey) else str(exc)
-                self.role.router.link_drop(None, Drop.BAD_HANDSHAKE, f"from {peer[0]}")
-                self.refusals.say(f"{peer[0]}", f"{self.cfg.name}: refused a handshake "
-                                  f"from {peer[0]}: {why}")
+            secure = self.role.respond(connection, peer[0], lambda key: key == self.peer_key)
+            if secure is None:
                 return
             link = self.role.life.closing(StreamLink(
                 secure, f"handshake<-{peer[0]}", peer, self._on_frame, self.role.router.on_lost,
                 on_close=self._closed))
-            first = self.key_id is None
-            self.key_id = os.urandom(1)[0] if self.key_id is None else (self.key_id + 1) % 256
-            secret = os.urandom(32)
-            self.schedule.install(self.key_id, secret, secure.handshake_hash, seal_now=first)
-            link.send(control({"type": "keys", "secret": secret.hex(), "key_id": self.key_id,
-                               "rekey": self.schedule.rekey}), self.role.control)
+            keys = self.schedule.offer(secure.handshake_hash)
+            link.send(control({"type": "keys", **keys}), self.role.control)
             old, self.link = self.link, link
             if old is not None and old is not link:
                 old.fail("the peer made a new handshake")
@@ -417,28 +321,15 @@ class PeerHandshake:
             self.role.router.link_drop(link, Drop.NOT_CONTROL,
                                        f"on the handshake line from {source}")
             return
-        message = parse_control(frame)
+        message = self.role.read_control(frame, link, source)
         if message is None:
-            self.role.router.link_drop(link, Drop.BAD_CONTROL, f"from {source}")
             return
-        assert isinstance(link, StreamLink)
-        link.last_heard = time.monotonic()
         if message["type"] == "keys" and self.initiator:
-            self._answer = message
-            self._answered.set()
+            self.answer.put(message)
         elif message["type"] == "ready" and not self.initiator:
-            key_id = message.get("key_id")
-            if isinstance(key_id, int):
-                self.schedule.seal_with(key_id)
+            self.schedule.seal_with(message.get("key_id"))
 
     def _ping_loop(self) -> None:
-        cfg = self.cfg
-        while not self.role.life.stopping.wait(cfg.heartbeat):
-            link = self.link
-            if not self.up.is_set() or link is None or link.closed.is_set():
-                continue
-            silence = time.monotonic() - link.last_heard
-            if silence > cfg.peer_timeout:
-                link.fail(f"silent for {silence:.1f} s")
-            else:
-                link.send(control({"type": "ping"}), self.role.control)
+        while not self.role.life.stopping.wait(self.cfg.heartbeat):
+            if self.up.is_set():
+                self.role.heartbeat(self.link)

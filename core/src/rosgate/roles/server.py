@@ -29,20 +29,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..actions import parts as action_parts
-from ..admission import Acceptor, HandshakeSlots, KnownSources
+from ..admission import Acceptor, ConnectionLimits, KnownSources
 from ..config import (
     ActionConfig,
     ClientPolicy,
     Direction,
     ServiceConfig,
     TopicConfig,
-    action_from_mapping,
-    service_from_mapping,
-    topic_from_mapping,
 )
 from ..connector import LinkSlot
-from ..drops import Drop
+from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys
 from ..links import DatagramLink, Link
@@ -53,10 +49,8 @@ from ..secure import (
     HandshakeError,
     KeySchedule,
     SecureConnection,
-    SessionKeys,
     UnknownKey,
     open_hello,
-    respond,
 )
 from ..services import CallerRoute
 from ..spec import ServiceSpec, TopicSpec
@@ -65,8 +59,8 @@ from ..transport import Address, StreamConnection, StreamTransport
 from ..warn import BUGS
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
-from . import Bridge, Refusals, Role
-from .mainline import PROTOCOL, control, flipped, is_control, key_label, parse_control, where_error
+from . import Bridge, Role, session_keys
+from .mainline import PROTOCOL, client_entries, control, flipped, is_control, where_error
 
 log = logging.getLogger("rosgate")
 
@@ -94,7 +88,6 @@ class Session:
     down_since: float | None = None  # monotonic time the main line was lost; None while up
     policy: ClientPolicy | None = None  # authenticated: the client's entry in clients:
     schedule: KeySchedule | None = None
-    key_id: int | None = None  # of the last handshake's secret
     hellos: envelope.ReplayWindow = field(default_factory=envelope.ReplayWindow)
     actions: list[Any] = field(default_factory=list)  # its action list, as it sent it
     part_of: dict[int, ActionConfig] = field(default_factory=dict)  # entry -> its action
@@ -118,10 +111,9 @@ class ServerRole(Role):
         self.router.on_hello = self.on_hello
         #: datagram ports take frames only from where clients' genuine hellos came from
         self.clients = KnownSources()
-        self.refusals = Refusals()
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
-        self._handshakes = HandshakeSlots(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
-                                          self.limits.recent)
+        self._handshakes = ConnectionLimits(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
+                                            self.limits.recent)
         #: every connection that completed a handshake and is not closed, whatever it does
         #: now (waiting to say hello, in a session, a dedicated port): a reload closes those
         #: whose key it no longer lists
@@ -131,13 +123,8 @@ class ServerRole(Role):
     def start(self) -> None:
         plan = self.bridge.plan
         assert plan.main_line is not None and plan.main_address is not None
-        try:
-            listener = plan.main_line.listen(plan.main_address)
-        except LinkError as exc:
-            raise self.bridge.link_error(exc, "bridge.server") from None
-        self.acceptor = self.life.closing(Acceptor(listener, f"main:{plan.main_address[1]}",
-                                                   self._accepted, self.limits,
-                                                   on_refused=self.refuse_connection))
+        self.acceptor = self.accept(plan.main_line, plan.main_address, self._accepted,
+                                    "bridge.server", name=f"main:{plan.main_address[1]}")
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
 
     def stop(self) -> None:
@@ -163,40 +150,32 @@ class ServerRole(Role):
 
             def admit() -> bool:  # once the first message is in: an idle connection takes none
                 nonlocal slot
-                slot = self._handshakes.take(host)
+                slot = self._handshakes.admit(host) is None
                 return slot
 
             try:
-                assert self.cfg.identity is not None
-                secure = respond(connection, self.cfg.identity, lambda key: key in self._by_key,
-                                 admit=admit)
-            except Busy:
-                connection.close()
-                self.router.link_drop(None, Drop.TOO_MANY_HANDSHAKES, f"from {host}")
-                return
-            except UnknownKey as exc:
-                connection.close()
-                self.router.link_drop(None, Drop.UNKNOWN_CLIENT_KEY, f"from {peer[0]}")
-                shown = base64.b64encode(exc.key).decode()[:8]
-                # said once per address and window: an attacker can make keys without end
-                self.refusals.say(f"unknown key {peer[0]}", f"refused a connection from "
-                                  f"{peer[0]}: its key {shown}... is not in clients:")
-                return
-            except HandshakeError as exc:
-                connection.close()
-                self.router.link_drop(None, Drop.BAD_HANDSHAKE, f"from {peer[0]}")
-                self.refusals.say(f"handshake {peer[0]}",
-                                  f"refused a connection from {peer[0]}: {exc}")
-                return
+                secure = self.respond(connection, host, lambda key: key in self._by_key, admit)
             finally:
                 if slot:
-                    self._handshakes.give_back(host)
+                    self._handshakes.release(host)
+            if secure is None:
+                return
             with self._lock:
                 self._keyed = {c for c in self._keyed if not c.closed}
                 self._keyed.add(secure)
             then(secure)
 
         threading.Thread(target=run, name=f"handshake-{peer[0]}", daemon=True).start()
+
+    def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
+        """A handshake refused for being one too many is counted, not said."""
+        if isinstance(exc, Busy):
+            return Drop.TOO_MANY_HANDSHAKES, None
+        if isinstance(exc, UnknownKey):
+            shown = base64.b64encode(exc.key).decode()[:8]
+            return Drop.UNKNOWN_CLIENT_KEY, (f"refused a connection from {host}: its key "
+                                             f"{shown}... is not in clients:")
+        return Drop.BAD_HANDSHAKE, f"refused a connection from {host}: {exc}"
 
     def _accepted(self, connection: StreamConnection, peer: Address) -> None:
         self.handshake(connection, peer, lambda secure: self._main_line(secure, peer))
@@ -207,12 +186,10 @@ class ServerRole(Role):
         def on_frame(frame: bytes, link: Link, source: Address) -> None:
             session = holder.get("session")
             if is_control(frame):
-                message = parse_control(frame)
+                message = self.read_control(frame, link, source)
                 if message is None:
-                    self.router.link_drop(link, Drop.BAD_CONTROL, f"from {source}")
                     return
                 assert isinstance(link, StreamLink)
-                link.last_heard = time.monotonic()
                 kind = message["type"]
                 if kind == "hello" and session is None:
                     # the policy as it is now, not as it was when the handshake completed
@@ -222,9 +199,7 @@ class ServerRole(Role):
                         holder["session"] = session
                         link.trust()
                 elif kind == "ready" and session is not None and session.schedule is not None:
-                    key_id = message.get("key_id")
-                    if isinstance(key_id, int):
-                        session.schedule.seal_with(key_id)
+                    session.schedule.seal_with(message.get("key_id"))
                 elif kind == "bye" and session is not None and session.main.current is link:
                     log.info("client %r left", session.name)
                     self._end(session)
@@ -291,7 +266,9 @@ class ServerRole(Role):
             return None
         for why in session.refused.values():
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
-        items = self._far_entries(session, hello.get("entries"))
+        self.far_entries(session.by_index, hello.get("entries"))
+        items = [self.router.item(session.by_index[i]) if i in session.by_index else None
+                 for i in range(len(session.entries))]
         count = len(session.topics)
         ids = [session.by_index[i].topic_id if i in session.by_index else 0
                for i in range(len(session.entries))]
@@ -300,8 +277,9 @@ class ServerRole(Role):
             "topic_ids": ids[:count], "service_ids": ids[count:],
             "refused": [{"entry": self._entry_name(session, i), "error": why}
                         for i, why in sorted(session.refused.items())], "entries": items}
-        if isinstance(link.connection, SecureConnection):
-            welcome.update(self._new_keys(session, link.connection))
+        if session.schedule is not None:  # a fresh secret for this handshake, inside it
+            assert isinstance(link.connection, SecureConnection)
+            welcome.update(session.schedule.offer(link.connection.handshake_hash))
         else:
             welcome["token"] = session.token.hex()
         link.send(control(welcome), self.control)
@@ -316,29 +294,6 @@ class ServerRole(Role):
                  peer[0], len(session.topics), len(session.services),
                  f", {len(session.refused)} refused" if session.refused else "")
         return session
-
-    def _far_entries(self, session: Session, items: Any) -> list[Any]:
-        """Check the client's word on each entry (type, QoS: none from an older client); this
-        side's, for the welcome."""
-        for i, route in session.by_index.items():
-            self.router.far(route, items[i] if isinstance(items, list) and i < len(items)
-                            else None)
-        return [self.router.item(session.by_index[i]) if i in session.by_index else None
-                for i in range(len(session.entries))]
-
-    def _new_keys(self, session: Session, connection: SecureConnection) -> dict[str, Any]:
-        """A fresh secret for this handshake (sent inside it). The previous one still opens
-        what was sealed under it for a while, and seals until the client says it is ready."""
-        first = session.key_id is None
-        if session.schedule is None:
-            session.schedule = KeySchedule(self.cfg.rekey)
-        # a random first id: a restarted server rarely reuses its predecessor's (and when it
-        # does, the client's root serials keep the two apart)
-        session.key_id = os.urandom(1)[0] if session.key_id is None else (session.key_id + 1) % 256
-        secret = os.urandom(32)
-        session.schedule.install(session.key_id, secret, connection.handshake_hash,
-                                 seal_now=first)
-        return {"secret": secret.hex(), "key_id": session.key_id, "rekey": self.cfg.rekey}
 
     @staticmethod
     def _entry_name(session: Session, index: int) -> str:
@@ -371,11 +326,12 @@ class ServerRole(Role):
             raise ConfigError(f"the server keeps {len(self.sessions)} sessions already, its "
                               "limit", file=f"client {name}",
                               fix="try again later (bridge.limits.sessions on the server)")
-        entries, part_of = self._client_entries(hello, name)
+        entries, part_of = client_entries(hello, self.cfg.defaults, f"client {name}")
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
                           hello.get("services", []), self.bridge.slot(f"main of {name}"),
                           entries=entries, policy=policy, actions=hello.get("actions", []),
-                          part_of=part_of)
+                          part_of=part_of,
+                          schedule=KeySchedule(self.cfg.rekey) if self.cfg.secure else None)
         try:
             self._sync(session)
         except BaseException:  # whatever failed, nothing half-built stays behind
@@ -384,34 +340,6 @@ class ServerRole(Role):
         with self._lock:
             self.sessions[session.id] = session
         return session
-
-    def _client_entries(self, hello: dict[str, Any],
-                        name: str) -> tuple[list[Entry], dict[int, ActionConfig]]:
-        """The hello's entries, checked like a file's (no type is imported here): topics,
-        services, then the parts of its actions; and the action of each part."""
-        where = f"client {name}"
-        error = where_error(where)
-        topics, services = hello.get("topics"), hello.get("services", [])
-        actions = hello.get("actions", [])
-        if (not isinstance(topics, list) or not isinstance(services, list)
-                or not isinstance(actions, list)):
-            raise ConfigError("hello without a topic, a service and an action list", file=where)
-        entries: list[Entry] = []
-        for key, items, parse in (("topics", topics, topic_from_mapping),
-                                  ("services", services, service_from_mapping)):
-            for i, mapping in enumerate(items):
-                if not isinstance(mapping, dict):
-                    raise error(f"{key}[{i}]", "not a mapping")
-                entries.append(parse(mapping, self.cfg.defaults, where, index=i))
-        part_of: dict[int, ActionConfig] = {}
-        for i, mapping in enumerate(actions):
-            if not isinstance(mapping, dict):
-                raise error(f"actions[{i}]", "not a mapping")
-            action = action_from_mapping(mapping, self.cfg.defaults, where, index=i)
-            for part in action_parts(action):
-                part_of[len(entries)] = action
-                entries.append(part)
-        return entries, part_of
 
     def _sync(self, session: Session) -> None:
         """Routes for the entries the policy allows (made in order: topics, then services),
@@ -477,13 +405,9 @@ class ServerRole(Role):
         return self.router.route(p, topic_id, label, link, destination, keys)
 
     def _keys(self, session: Session, p: TopicSpec | ServiceSpec) -> Keys | None:
-        if not self.cfg.secure:
-            return None
         if session.schedule is None:
-            session.schedule = KeySchedule(self.cfg.rekey)
-        assert p.cipher_cls is not None
-        return SessionKeys(session.schedule, p.cipher_cls, key_label(p.kind, "s2c", p.name),
-                           key_label(p.kind, "c2s", p.name))
+            return None  # without identities: the file's cipher
+        return session_keys(session.schedule, p, p.name, "s2c", "c2s")
 
     @staticmethod
     def _no_address() -> Address | None:
@@ -619,7 +543,5 @@ class ServerRole(Role):
                         log.warning("client %r gone for %g s: its session is dropped",
                                     session.name, cfg.session_timeout)
                         self._end(session)
-                elif link is not None and now - link.last_heard > cfg.peer_timeout:
-                    link.fail(f"silent for {now - link.last_heard:.1f} s")
-                elif link is not None:
-                    link.send(control({"type": "ping"}), self.control)
+                else:
+                    self.heartbeat(link)
