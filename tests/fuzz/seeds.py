@@ -76,6 +76,7 @@ def main() -> None:
     from rosgate_codec_msgpack import MsgpackCodec
     from rosgate_mcu_cvra import serial_datagram
 
+    from rosgate.builtin import fragment
     from rosgate.config import TopicConfig, topic_to_mapping
     from rosgate.roles.mainline import control
     from rosgate.wire import envelope, framing, names
@@ -93,7 +94,7 @@ def main() -> None:
     frame = pack(0, 7, 1, 1, 0) + rng.randbytes(300)
     cut = bytes([0, 1]) + len(frame).to_bytes(2, "big") + frame + bytes([64]) + \
         (7).to_bytes(4, "big") + (1).to_bytes(4, "big") + bytes(range(1, 40))
-    pieces = framing.fragment(frame, 100, 7, 9)
+    pieces = fragment(frame, 100, 7, 9)
     raw = b"".join(bytes([1, 2, len(p) - 1]) + p for p in pieces)
     write("reassembly", [cut, raw, raw + cut])
 

@@ -41,7 +41,7 @@ packets of whatever other packetizer a topic picks, each with magics of its own:
       2      2    index     0-based fragment number
       4      2    count     number of fragments of this frame
       6      4    topic_id  for counting a lost message against its topic
-      10     4    frame_id  random per frame (see rosgate.reassembly.Reassembler)
+      10     4    frame_id  random per frame (see rosgate.builtin.Reassembler)
       14          chunk
 
   The built-in ``fragments`` packetizer (:mod:`rosgate.builtin`) cuts and reassembles them; a
@@ -73,8 +73,8 @@ the order they were sent, as a CAN bus keeps them per arbitration id. The receiv
 * ignores a piece that repeats the previous counter (a duplicated frame);
 * drops a frame whose pieces stop coming for ``timeout`` seconds (counted as a gap is).
 
-Everything here is a pure format; the state of putting fragments and pieces back together is
-:mod:`rosgate.reassembly`'s.
+Everything here is a pure format; cutting frames into fragments and pieces and putting them
+back together is the built-in packetizers' (:mod:`rosgate.builtin`).
 
 Overhead: 1 byte a piece plus the length, e.g. a 100 kB frame takes 14,287 classic CAN frames
 or 1,588 CAN FD frames.
@@ -217,29 +217,6 @@ class StreamReader:
 
 
 # -- datagrams ----------------------------------------------------------------------------
-def fragments(frame: bytes | bytearray, max_frame: int, topic_id: int,
-              frame_id: int) -> list[tuple[bytes, memoryview]]:
-    """The fragments of ``frame`` (longer than ``max_frame``) as (header, chunk) pairs: each
-    chunk a view of ``frame``, for scatter-gather sending without joining them."""
-    chunk = max_frame - FRAGMENT.size
-    if chunk <= 0:
-        raise FramingError(f"a datagram of {max_frame} bytes cannot carry a fragment header")
-    count = -(-len(frame) // chunk)
-    if count > 0xFFFF:
-        raise FramingError(f"a frame of {len(frame)} bytes needs more than 65535 fragments")
-    view = memoryview(frame)
-    pack = FRAGMENT.pack
-    return [(pack(FRAGMENT_MAGIC, i, count, topic_id, frame_id), view[i * chunk:(i + 1) * chunk])
-            for i in range(count)]
-
-
-def fragment(frame: bytes, max_frame: int, topic_id: int, frame_id: int) -> list[bytes]:
-    """Split ``frame`` into datagrams of at most ``max_frame`` bytes (one when it fits)."""
-    if len(frame) <= max_frame:
-        return [frame]
-    return [header + chunk for header, chunk in fragments(frame, max_frame, topic_id, frame_id)]
-
-
 def batch(frames: list[bytes]) -> list[bytes | memoryview]:
     """The parts of one datagram carrying ``frames``: ``"RB"``, then ``u32 length | frame`` for
     each (the records of a stream link). Its size is :func:`batch_size`."""
@@ -269,43 +246,3 @@ def unbatch(datagram: bytes | memoryview) -> Iterator[bytes | memoryview]:
             raise FramingError(f"a batch's frame of {length} bytes runs past its end")
         yield datagram[offset:offset + length]
         offset += length
-
-
-def is_fragment(datagram: bytes | memoryview) -> bool:
-    return datagram[:2] == FRAGMENT_MAGIC
-
-
-# -- compact pieces, for links with small frames (CAN) --------------------------------------
-def compact_fragment(frame: bytes, max_frame: int, counter: int) -> list[bytes]:
-    """Cut ``frame`` into compact pieces of at most ``max_frame`` bytes, the first numbered
-    ``counter``; the caller's counter for this destination moves on by the number of pieces."""
-    length = _leb128(len(frame))
-    first = max_frame - 1 - len(length)
-    if first < 0 or max_frame < 2:
-        raise FramingError(f"a datagram of {max_frame} bytes cannot carry a compact header "
-                           f"for a frame of {len(frame)} bytes")
-    view = memoryview(frame)
-    step = max_frame - 1
-    pieces = [bytes([COMPACT_START | counter & COMPACT_COUNTER]) + length + view[:first]]
-    for number, start in enumerate(range(first, len(frame), step), counter + 1):
-        pieces.append(bytes([number & COMPACT_COUNTER]) + view[start:start + step])
-    return pieces
-
-
-def _leb128(value: int) -> bytes:
-    out = bytearray()
-    while value > 0x7F:
-        out.append(value & 0x7F | 0x80)
-        value >>= 7
-    out.append(value)
-    return bytes(out)
-
-
-def read_leb128(data: bytes | memoryview, start: int) -> tuple[int, int]:
-    """(value, offset after it); at most 5 bytes, enough for any frame this side accepts."""
-    value = 0
-    for i, byte in enumerate(data[start:start + 5]):
-        value |= (byte & 0x7F) << 7 * i
-        if not byte & 0x80:
-            return value, start + i + 1
-    raise FramingError("first piece without a complete length")
