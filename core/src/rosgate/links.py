@@ -142,17 +142,17 @@ class LinkCounters:
 
 
 class _Sending(ABC):
-    """What both kinds of link share on the way out: the scheduler, its lock, and the send
-    thread's bookkeeping. ``_send_due`` and ``_send_loop``'s gathering are the kind's own."""
+    """What both kinds of link share: the scheduler, its lock, the send thread's bookkeeping,
+    the two threads and closing. ``_send_due`` and the loops are the kind's own."""
 
-    name: str
-    closed: threading.Event
-    counters: LinkCounters
-    scheduler: Scheduler
+    #: told once the link has closed (a stream link's owner forgets it)
+    on_close: Callable[[Any], None] | None = None
 
-    def _init_sending(self, budget: LinkConfig | None, overhead: int, packet: int,
+    def _init_sending(self, name: str, budget: LinkConfig | None, overhead: int, packet: int,
                       frames: int, bytes_: int) -> None:
-        self.budget = budget
+        self.name = name
+        self.closed = threading.Event()
+        self.counters = LinkCounters()
         self.scheduler = Scheduler(
             bandwidth=budget.bandwidth if budget else None, overhead=overhead,
             max_delay=budget.max_delay if budget else MAX_DELAY_DEFAULT, frames=frames,
@@ -168,6 +168,47 @@ class _Sending(ABC):
         self._stuck = False  # the last wait for the turn timed out: the link is the bottleneck
         #: what a stream's inline write left unwritten: it goes before anything else
         self._rest: Due | None = None
+
+    def _start(self) -> None:
+        """Start the receive and the send thread: the last step of making a link."""
+        self._threads = [
+            threading.Thread(target=self._receive_loop, name=f"rx-{self.name}", daemon=True),
+            threading.Thread(target=self._send_loop, name=f"tx-{self.name}", daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def close(self) -> None:
+        with self._wake:  # once only, whichever thread gets here first
+            if self.closed.is_set():
+                return
+            self.closed.set()
+            self._wake.notify_all()
+        self._close_io()
+        for thread in self._threads:
+            # the receive thread may fail before the send thread has even started; an unstarted
+            # thread sees `closed` when it starts and returns
+            if thread is not threading.current_thread() and thread.ident is not None:
+                thread.join(timeout=2)
+        with self._wake:  # what never reached the transport is a drop, and counted as one
+            unsent = self.scheduler.clear()
+            if self._rest is not None:
+                unsent.append(self._rest.sender)
+                self._rest = None
+        for sender in unsent:
+            sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
+        if self.on_close is not None:
+            self.on_close(self)
+
+    @abstractmethod
+    def _close_io(self) -> None:
+        """Close the endpoint or the connection (the threads see ``closed`` and end)."""
+
+    @abstractmethod
+    def _receive_loop(self) -> None: ...
+
+    @abstractmethod
+    def _send_loop(self) -> None: ...
 
     def queue_depth(self, sender: Any) -> int:
         """Messages of ``sender`` waiting or being sent."""
@@ -301,15 +342,14 @@ class DatagramLink(_Sending, Link):
         #: who frames are taken from (None: anyone); others are counted ``not_allowed``
         self.sources = sources
         self.endpoint = endpoint
-        self.name = name
         self.bare = bare
         self.max_frame = transport.max_frame
         self.on_frame = on_frame
         self.on_lost = on_lost
         self.on_recovered = on_recovered or (lambda topic_id: None)
         self.max_message = max_message
-        self.closed = threading.Event()
-        self.counters = LinkCounters()
+        self._init_sending(name, budget, transport.packet_overhead, self.max_frame,
+                           queue_frames, queue_bytes)
         # small frames cannot spare 14 bytes of fragment header: every frame goes as compact pieces
         self.compact = not bare and self.max_frame < framing.COMPACT_BELOW
         self.registry = packetizers or installed()
@@ -327,14 +367,7 @@ class DatagramLink(_Sending, Link):
         self._send_parts: Callable[[Any, Address], None] = getattr(
             endpoint, "send_parts", lambda parts, to: endpoint.send(b"".join(parts), to))
         self._send_datagrams = getattr(endpoint, "send_datagrams", None)
-        self._init_sending(budget, transport.packet_overhead, self.max_frame,
-                           queue_frames, queue_bytes)
-        self._threads = [
-            threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
-            threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
-        ]
-        for thread in self._threads:
-            thread.start()
+        self._start()
 
     # -- out -----------------------------------------------------------------------------------
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
@@ -836,19 +869,8 @@ class DatagramLink(_Sending, Link):
             deliver(self, frame, source)
         return packetizer
 
-    def close(self) -> None:
-        with self._wake:  # once only, whichever thread gets here first
-            if self.closed.is_set():
-                return
-            self.closed.set()
-            unsent = self.scheduler.clear()
-            self._wake.notify_all()
-        for sender in unsent:
-            sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
+    def _close_io(self) -> None:
         self.endpoint.close()
-        for thread in self._threads:
-            if thread is not threading.current_thread() and thread.ident is not None:
-                thread.join(timeout=2)
 
 
 #: a magic the link has not looked up yet

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -24,7 +23,6 @@ from .links import (
     SENT_INLINE,
     FrameHandler,
     Link,
-    LinkCounters,
     LostHandler,
     Sender,
     _Sending,
@@ -71,33 +69,23 @@ class StreamLink(_Sending, Link):
                  max_message: int = framing.DEFAULT_MAX_MESSAGE,
                  untrusted: Untrusted | None = None, budget: LinkConfig | None = None):
         self.connection = connection
-        self.name = name
         self.peer = peer
         self.on_frame = on_frame
         self.on_lost = on_lost
         self.on_close = on_close
-        self.closed = threading.Event()
         # for liveness: the main line's roles set it on every control message (a heartbeat), not
         # on bytes, so a stream that lost its frame boundaries does not look alive
         self.last_heard = time.monotonic()
         self.why = ""  # why the connection ended, once it has
-        self.queue_frames = queue_frames
-        self.queue_bytes = queue_bytes
-        self.counters = LinkCounters()
         self._send_nowait = getattr(connection, "send_nowait", None)
         self._messages = itertools.count(1)  # numbers of chunked frames
-        self._init_sending(budget, 0, framing.CHUNK + framing.CHUNK_HEAD.size, queue_frames,
+        self._init_sending(name, budget, 0, framing.CHUNK + framing.CHUNK_HEAD.size, queue_frames,
                            queue_bytes)
         self._reader = framing.StreamReader(untrusted.max_frame if untrusted else max_message,
                                             direct=hasattr(connection, "receive_into"))
         self.max_message = max_message
         self._trust_by = time.monotonic() + untrusted.deadline if untrusted else None
-        self._threads = [
-            threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
-            threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
-        ]
-        for thread in self._threads:
-            thread.start()
+        self._start()
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         # the limits count a frame with its length prefix, as it is written
@@ -308,30 +296,11 @@ class StreamLink(_Sending, Link):
                 "%s: connection to %s ended: %s", self.name, self.peer, why)
         self.close()
 
-    def close(self) -> None:
-        with self._wake:  # once only, whichever thread gets here first
-            if self.closed.is_set():
-                return
-            self.closed.set()
-            self._wake.notify_all()
+    def _close_io(self) -> None:
         try:
             self.connection.close()
         except OSError:
             pass
-        for thread in self._threads:
-            # the receive thread may fail before the send thread has even started; an unstarted
-            # thread sees `closed` when it starts and returns
-            if thread is not threading.current_thread() and thread.ident is not None:
-                thread.join(timeout=2)
-        with self._wake:  # what never reached the connection is a drop, and counted as one
-            unsent = self.scheduler.clear()
-            if self._rest is not None:
-                unsent.append(self._rest.sender)
-                self._rest = None
-        for sender in unsent:
-            sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
-        if self.on_close:
-            self.on_close(self)
 
 
 def _one(packet: bytes) -> Callable[[], list[bytes]]:
