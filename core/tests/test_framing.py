@@ -17,6 +17,7 @@ from rosgate.builtin import (
     fragment,
 )
 from rosgate.packetizer import RESERVED_MAGIC
+from rosgate.streamlink import StreamReader, length_prefixed, stream_records
 from rosgate.wire import envelope
 from rosgate.wire.framing import (
     CHUNK,
@@ -29,9 +30,6 @@ from rosgate.wire.framing import (
     LENGTH,
     MAX_OPEN_MESSAGES,
     FramingError,
-    StreamReader,
-    length_prefixed,
-    stream_records,
 )
 
 

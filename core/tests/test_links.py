@@ -19,9 +19,9 @@ from rosgate import builtin
 from rosgate.connector import LinkSlot, QueueLimits
 from rosgate.links import DatagramLink
 from rosgate.spec import Delivery
-from rosgate.streamlink import StreamLink
+from rosgate.streamlink import StreamLink, length_prefixed
 from rosgate.wire import envelope
-from rosgate.wire.framing import FRAGMENT, LENGTH, length_prefixed
+from rosgate.wire.framing import FRAGMENT, LENGTH
 
 TOPIC = 5
 

@@ -79,7 +79,8 @@ def main() -> None:
     from rosgate.builtin import fragment
     from rosgate.config import TopicConfig, topic_to_mapping
     from rosgate.roles.mainline import control
-    from rosgate.wire import envelope, framing, names
+    from rosgate.streamlink import length_prefixed
+    from rosgate.wire import envelope, names
 
     rng = random.Random(10)
     pack = envelope.pack
@@ -99,7 +100,7 @@ def main() -> None:
     write("reassembly", [cut, raw, raw + cut])
 
     # streams: a limit, then length-prefixed frames cut into pieces
-    stream = b"".join(framing.length_prefixed(pack(0, 7, 1, i, 0) + b"x" * i)
+    stream = b"".join(length_prefixed(pack(0, 7, 1, i, 0) + b"x" * i)
                       for i in range(5))
     write("stream_framing", [b"\x01\x00" + bytes([len(stream) // 4]) + stream,
                              b"\x00\x10" + b"\x03" + b"\xff\xff\xff\xff" * 4])

@@ -208,11 +208,12 @@ def reassembly(data: bytes) -> None:
 @target()
 def stream_framing(data: bytes) -> None:
     """Length-prefixed frames, fed in pieces of sizes the input chooses, with a small limit."""
+    from rosgate.streamlink import StreamReader
     from rosgate.wire import framing
 
     reader = Reader(data)
     limit = 64 + reader.integer(2)
-    stream = framing.StreamReader(limit)
+    stream = StreamReader(limit)
     for piece in reader.chunks():
         try:
             for frame in stream.feed(piece):

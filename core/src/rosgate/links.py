@@ -30,7 +30,7 @@ import logging
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
@@ -316,6 +316,37 @@ def _batchable(due: Due) -> bool:
     return due.ends is not None and due.ends.batchable and not due.again
 
 
+def batch(frames: list[bytes]) -> list[bytes | memoryview]:
+    """The parts of one datagram carrying ``frames``: ``"RB"``, then ``u32 length | frame`` for
+    each (the records of a stream link). Its size is :func:`batch_size`."""
+    parts: list[bytes | memoryview] = [framing.BATCH_MAGIC]
+    pack = framing.LENGTH.pack
+    for frame in frames:
+        parts += (pack(len(frame)), frame)
+    return parts
+
+
+def batch_size(sizes: int, count: int) -> int:
+    """The size of a batch of ``count`` frames of ``sizes`` bytes in all."""
+    return len(framing.BATCH_MAGIC) + count * framing.LENGTH.size + sizes
+
+
+def unbatch(datagram: bytes | memoryview) -> Iterator[bytes | memoryview]:
+    """The frames of a batch, as slices of ``datagram``; FramingError at a length that runs past
+    its end (after yielding the frames before it)."""
+    end, offset = len(datagram), len(framing.BATCH_MAGIC)
+    unpack = framing.LENGTH.unpack_from
+    while offset < end:
+        if offset + framing.LENGTH.size > end:
+            raise framing.FramingError("a batch ends inside a length")
+        (length,) = unpack(datagram, offset)
+        offset += framing.LENGTH.size
+        if offset + length > end:
+            raise framing.FramingError(f"a batch's frame of {length} bytes runs past its end")
+        yield datagram[offset:offset + length]
+        offset += length
+
+
 class DatagramLink(_Sending, Link):
     """A bound datagram endpoint. Frames out: whole when they fit ``max_frame`` (several in one
     datagram, a batch, when they leave one after the other for one destination), else cut by
@@ -409,7 +440,7 @@ class DatagramLink(_Sending, Link):
         while start < len(frames):  # groups of consecutive frames that fit one datagram
             total, end = 0, start
             while end < len(frames) and len(frames[end]) <= limit \
-                    and framing.batch_size(total + len(frames[end]), end - start + 1) <= limit:
+                    and batch_size(total + len(frames[end]), end - start + 1) <= limit:
                 total += len(frames[end])
                 end += 1
             if end - start < 2:
@@ -418,7 +449,7 @@ class DatagramLink(_Sending, Link):
                 continue
             group, start = frames[start:end], end
             with self._lock:
-                go = self._claim(to, framing.batch_size(total, len(group)))
+                go = self._claim(to, batch_size(total, len(group)))
             if not go:
                 sent += sum(self.send(frame, sender, to) for frame in group)
                 continue
@@ -671,7 +702,7 @@ class DatagramLink(_Sending, Link):
         """Whole frames in one datagram; how many were sent (a failure is counted for each)."""
         frames = [due.packet for due in dues]
         try:
-            self._send_parts(framing.batch(frames), to)
+            self._send_parts(batch(frames), to)
         except OSError as exc:
             for due in dues:
                 due.sender.drop(Drop.SEND_ERROR, f"to {to} on {self.name}: {exc}")
@@ -680,7 +711,7 @@ class DatagramLink(_Sending, Link):
         counters.frames_out += len(frames)
         counters.packets_out += 1
         counters.coalesced_out += len(frames)
-        counters.bytes_out += framing.batch_size(sum(map(len, frames)), len(frames))
+        counters.bytes_out += batch_size(sum(map(len, frames)), len(frames))
         for due in dues:
             due.sender.on_wire(len(due.packet) + framing.LENGTH.size, False)
         return len(frames)
@@ -722,7 +753,7 @@ class DatagramLink(_Sending, Link):
                             more = scheduler.next(now)
                             if not isinstance(more, Due):
                                 break
-                            if (_batchable(more) and more.to == due.to and framing.batch_size(
+                            if (_batchable(more) and more.to == due.to and batch_size(
                                     total + len(more.packet), len(batch) + 1) <= limit):
                                 batch.append(more)
                                 total += len(more.packet)
@@ -833,7 +864,7 @@ class DatagramLink(_Sending, Link):
             packetizer = self.own
         elif kind == 0x42:  # "RB": several frames
             try:
-                for record in framing.unbatch(datagram):
+                for record in unbatch(datagram):
                     counters.frames_in += 1
                     counters.coalesced_in += 1
                     deliver(self, bytes(record), source)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import cast
 
@@ -31,11 +31,126 @@ from .links import (
 from .scheduler import Due, Outgoing
 from .transport import Address, StreamConnection
 from .warn import BUGS
-from .wire import framing
+from .wire.framing import (
+    CHUNK,
+    CHUNK_HEAD,
+    CHUNK_LENGTH,
+    CHUNKED,
+    DEFAULT_MAX_MESSAGE,
+    DIRECT_ABOVE,
+    EARN_BUFFER,
+    LAST,
+    LENGTH,
+    MAX_OPEN_MESSAGES,
+    FramingError,
+)
 
 log = logging.getLogger("rosgate")
 
 WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
+
+
+def length_prefixed(frame: bytes) -> bytes:
+    return LENGTH.pack(len(frame)) + frame
+
+
+def stream_records(frame: bytes, message: int, chunk: int = CHUNK) -> list[bytes]:
+    """``frame`` as the records of a stream: one, or chunks of ``message`` when it is longer
+    than ``chunk``."""
+    if len(frame) <= chunk:
+        return [length_prefixed(frame)]
+    view = memoryview(frame)
+    starts = range(0, len(frame), chunk)
+    last = starts[-1]
+    return [CHUNK_HEAD.pack(CHUNKED | (LAST if start == last else 0)
+                            | (min(chunk, len(frame) - start) + 4), message & 0xFFFFFFFF)
+            + view[start:start + chunk] for start in starts]
+
+
+class StreamReader:
+    """Cuts a byte stream into frames, chunked ones put back together. Feed it what the
+    connection gives (:meth:`feed`); or, to save a copy of large frames, ask it where the
+    next bytes should go (:meth:`target`), read them there and say how many (:meth:`filled`).
+
+    With ``direct``, a frame longer than :data:`DIRECT_ABOVE` whose length is known is read
+    straight into a buffer of its own, once 1/:data:`EARN_BUFFER` of it has come (so a length
+    prefix alone does not make the reader zero 64 MiB), and handed on as that bytearray: the
+    caller must then read into :meth:`target` while it is not None."""
+
+    def __init__(self, max_frame: int = DEFAULT_MAX_MESSAGE, direct: bool = False):
+        self.max_frame = max_frame
+        self.direct = direct
+        self._buffer = bytearray()
+        self._open: dict[int, bytearray] = {}  # message -> what came of it
+        self._open_bytes = 0
+        self._frame: bytearray | None = None  # a large frame being read into place
+        self._filled = 0
+
+    def target(self) -> memoryview | None:
+        """Where the next bytes go when a large frame is being read in place, else None."""
+        if self._frame is None:
+            return None
+        return memoryview(self._frame)[self._filled:]
+
+    def filled(self, count: int) -> bytearray | None:
+        """``count`` bytes were read into :meth:`target`; the frame once it is whole."""
+        self._filled += count
+        frame = self._frame
+        if frame is None or self._filled < len(frame):
+            return None
+        self._frame = None
+        return frame
+
+    def feed(self, data: bytes | memoryview) -> Iterator[bytes]:
+        """Yield every complete frame; raise FramingError when a length is impossible."""
+        buffer = self._buffer
+        buffer += data
+        start = 0
+        try:
+            while len(buffer) - start >= 4:
+                (length,) = LENGTH.unpack_from(buffer, start)
+                chunked = length & CHUNKED
+                size = length & CHUNK_LENGTH if chunked else length
+                if size > self.max_frame or chunked and size < 4:
+                    raise FramingError(f"frame length {size} over the limit {self.max_frame}"
+                                       if size > self.max_frame else "a chunk without its head")
+                end = start + 4 + size
+                if end > len(buffer):
+                    have = len(buffer) - start - 4
+                    if (self.direct and not chunked and size > DIRECT_ABOVE
+                            and have * EARN_BUFFER >= size):
+                        # the rest is read straight into the frame's own buffer
+                        self._frame = frame = bytearray(size)
+                        frame[:have] = memoryview(buffer)[start + 4:]
+                        self._filled = have
+                        start = len(buffer)
+                    break
+                if not chunked:
+                    yield bytes(buffer[start + 4:end])
+                else:
+                    whole = self._chunk(buffer, start + 4, end, bool(length & LAST))
+                    if whole is not None:
+                        yield cast(bytes, whole)  # bytes-like: handlers take either
+                start = end
+        finally:
+            del buffer[:start]
+
+    def _chunk(self, buffer: bytearray, start: int, end: int, last: bool) -> bytearray | None:
+        (message,) = LENGTH.unpack_from(buffer, start)
+        part = self._open.get(message)
+        if part is None:
+            if len(self._open) >= MAX_OPEN_MESSAGES:
+                raise FramingError(f"more than {MAX_OPEN_MESSAGES} chunked frames open at once")
+            part = self._open[message] = bytearray()
+        part += buffer[start + 4:end]
+        self._open_bytes += end - start - 4
+        if len(part) > self.max_frame or self._open_bytes > 2 * self.max_frame:
+            raise FramingError(f"chunked frames over the limit {self.max_frame}")
+        if not last:
+            return None
+        del self._open[message]
+        self._open_bytes -= len(part)
+        return part  # its own buffer, the handler's to keep (and cut: routes do)
 
 
 @dataclass(frozen=True)
@@ -49,7 +164,7 @@ class Untrusted:
 
 class StreamLink(_Sending, Link):
     """One stream connection, framed with length prefixes; frames longer than
-    :data:`rosgate.wire.framing.CHUNK` go in chunks, and the writer takes at most
+    :data:`rosgate.wire.CHUNK` go in chunks, and the writer takes at most
     :data:`WRITE` bytes at a time from the scheduler, so a frame of a higher class (a Twist
     behind a camera's backlog) waits for one write, not for the whole backlog. (The kernel's
     send buffer still holds what was written: a budget below the link's rate keeps it short.)
@@ -66,7 +181,7 @@ class StreamLink(_Sending, Link):
                  on_frame: FrameHandler, on_lost: LostHandler,
                  on_close: Callable[[StreamLink], None] | None = None,
                  queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
-                 max_message: int = framing.DEFAULT_MAX_MESSAGE,
+                 max_message: int = DEFAULT_MAX_MESSAGE,
                  untrusted: Untrusted | None = None, budget: LinkConfig | None = None):
         self.connection = connection
         self.peer = peer
@@ -79,9 +194,9 @@ class StreamLink(_Sending, Link):
         self.why = ""  # why the connection ended, once it has
         self._send_nowait = getattr(connection, "send_nowait", None)
         self._messages = itertools.count(1)  # numbers of chunked frames
-        self._init_sending(name, budget, 0, framing.CHUNK + framing.CHUNK_HEAD.size, queue_frames,
+        self._init_sending(name, budget, 0, CHUNK + CHUNK_HEAD.size, queue_frames,
                            queue_bytes)
-        self._reader = framing.StreamReader(untrusted.max_frame if untrusted else max_message,
+        self._reader = StreamReader(untrusted.max_frame if untrusted else max_message,
                                             direct=hasattr(connection, "receive_into"))
         self.max_message = max_message
         self._trust_by = time.monotonic() + untrusted.deadline if untrusted else None
@@ -89,24 +204,24 @@ class StreamLink(_Sending, Link):
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         # the limits count a frame with its length prefix, as it is written
-        if len(frame) <= framing.CHUNK:
-            record = framing.length_prefixed(frame)
+        if len(frame) <= CHUNK:
+            record = length_prefixed(frame)
             if self._send_nowait is not None:
                 sent = self._send_now(record, sender, None)
                 if sent is not None:
                     return sent
             return self._put(Outgoing(sender, None, len(record), _one(record), time.monotonic()))
-        return self._put(Outgoing(sender, None, len(frame) + framing.LENGTH.size,
-                                  lambda: framing.stream_records(frame, next(self._messages)),
+        return self._put(Outgoing(sender, None, len(frame) + LENGTH.size,
+                                  lambda: stream_records(frame, next(self._messages)),
                                   time.monotonic()))
 
     def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
         """Frames of one sender together (a route's backlog): one write from the caller's
         thread when nothing waits; otherwise each is queued."""
         if len(frames) < 2 or self._send_nowait is None \
-                or any(len(frame) > framing.CHUNK for frame in frames):
+                or any(len(frame) > CHUNK for frame in frames):
             return sum(self.send(frame, sender) for frame in frames)
-        records = [framing.length_prefixed(frame) for frame in frames]
+        records = [length_prefixed(frame) for frame in frames]
         data = b"".join(records)
         with self._lock:
             go = self._claim(None, len(data))
@@ -275,7 +390,7 @@ class StreamLink(_Sending, Link):
                 for frame in reader.feed(data):
                     count += 1
                     deliver(self, frame, self.peer)
-            except framing.FramingError as exc:
+            except FramingError as exc:
                 # a corrupt length means we can no longer find frame boundaries: start afresh
                 self.on_lost(None, Drop.BAD_LENGTH)
                 self.fail(f"stream corrupt ({exc})")

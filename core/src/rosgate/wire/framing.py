@@ -73,8 +73,10 @@ the order they were sent, as a CAN bus keeps them per arbitration id. The receiv
 * ignores a piece that repeats the previous counter (a duplicated frame);
 * drops a frame whose pieces stop coming for ``timeout`` seconds (counted as a gap is).
 
-Everything here is a pure format; cutting frames into fragments and pieces and putting them
-back together is the built-in packetizers' (:mod:`rosgate.builtin`).
+Everything here is a pure format. Reading and writing stream records is
+:mod:`rosgate.streamlink`'s, batches are :mod:`rosgate.links`'s, and cutting frames into
+fragments and pieces and putting them back together is the built-in packetizers'
+(:mod:`rosgate.builtin`).
 
 Overhead: 1 byte a piece plus the length, e.g. a 100 kB frame takes 14,287 classic CAN frames
 or 1,588 CAN FD frames.
@@ -83,8 +85,6 @@ or 1,588 CAN FD frames.
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
-from typing import cast
 
 LENGTH = struct.Struct(">I")
 CHUNK_HEAD = struct.Struct(">II")
@@ -110,139 +110,3 @@ EARN_BUFFER = 16
 
 class FramingError(ValueError):
     """The bytes cannot be framed (length over the limit, malformed fragment)."""
-
-
-# -- streams ------------------------------------------------------------------------------
-def length_prefixed(frame: bytes) -> bytes:
-    return LENGTH.pack(len(frame)) + frame
-
-
-def stream_records(frame: bytes, message: int, chunk: int = CHUNK) -> list[bytes]:
-    """``frame`` as the records of a stream: one, or chunks of ``message`` when it is longer
-    than ``chunk``."""
-    if len(frame) <= chunk:
-        return [length_prefixed(frame)]
-    view = memoryview(frame)
-    starts = range(0, len(frame), chunk)
-    last = starts[-1]
-    return [CHUNK_HEAD.pack(CHUNKED | (LAST if start == last else 0)
-                            | (min(chunk, len(frame) - start) + 4), message & 0xFFFFFFFF)
-            + view[start:start + chunk] for start in starts]
-
-
-class StreamReader:
-    """Cuts a byte stream into frames, chunked ones put back together. Feed it what the
-    connection gives (:meth:`feed`); or, to save a copy of large frames, ask it where the
-    next bytes should go (:meth:`target`), read them there and say how many (:meth:`filled`).
-
-    With ``direct``, a frame longer than :data:`DIRECT_ABOVE` whose length is known is read
-    straight into a buffer of its own, once 1/:data:`EARN_BUFFER` of it has come (so a length
-    prefix alone does not make the reader zero 64 MiB), and handed on as that bytearray: the
-    caller must then read into :meth:`target` while it is not None."""
-
-    def __init__(self, max_frame: int = DEFAULT_MAX_MESSAGE, direct: bool = False):
-        self.max_frame = max_frame
-        self.direct = direct
-        self._buffer = bytearray()
-        self._open: dict[int, bytearray] = {}  # message -> what came of it
-        self._open_bytes = 0
-        self._frame: bytearray | None = None  # a large frame being read into place
-        self._filled = 0
-
-    def target(self) -> memoryview | None:
-        """Where the next bytes go when a large frame is being read in place, else None."""
-        if self._frame is None:
-            return None
-        return memoryview(self._frame)[self._filled:]
-
-    def filled(self, count: int) -> bytearray | None:
-        """``count`` bytes were read into :meth:`target`; the frame once it is whole."""
-        self._filled += count
-        frame = self._frame
-        if frame is None or self._filled < len(frame):
-            return None
-        self._frame = None
-        return frame
-
-    def feed(self, data: bytes | memoryview) -> Iterator[bytes]:
-        """Yield every complete frame; raise FramingError when a length is impossible."""
-        buffer = self._buffer
-        buffer += data
-        start = 0
-        try:
-            while len(buffer) - start >= 4:
-                (length,) = LENGTH.unpack_from(buffer, start)
-                chunked = length & CHUNKED
-                size = length & CHUNK_LENGTH if chunked else length
-                if size > self.max_frame or chunked and size < 4:
-                    raise FramingError(f"frame length {size} over the limit {self.max_frame}"
-                                       if size > self.max_frame else "a chunk without its head")
-                end = start + 4 + size
-                if end > len(buffer):
-                    have = len(buffer) - start - 4
-                    if (self.direct and not chunked and size > DIRECT_ABOVE
-                            and have * EARN_BUFFER >= size):
-                        # the rest is read straight into the frame's own buffer
-                        self._frame = frame = bytearray(size)
-                        frame[:have] = memoryview(buffer)[start + 4:]
-                        self._filled = have
-                        start = len(buffer)
-                    break
-                if not chunked:
-                    yield bytes(buffer[start + 4:end])
-                else:
-                    whole = self._chunk(buffer, start + 4, end, bool(length & LAST))
-                    if whole is not None:
-                        yield cast(bytes, whole)  # bytes-like: handlers take either
-                start = end
-        finally:
-            del buffer[:start]
-
-    def _chunk(self, buffer: bytearray, start: int, end: int, last: bool) -> bytearray | None:
-        (message,) = LENGTH.unpack_from(buffer, start)
-        part = self._open.get(message)
-        if part is None:
-            if len(self._open) >= MAX_OPEN_MESSAGES:
-                raise FramingError(f"more than {MAX_OPEN_MESSAGES} chunked frames open at once")
-            part = self._open[message] = bytearray()
-        part += buffer[start + 4:end]
-        self._open_bytes += end - start - 4
-        if len(part) > self.max_frame or self._open_bytes > 2 * self.max_frame:
-            raise FramingError(f"chunked frames over the limit {self.max_frame}")
-        if not last:
-            return None
-        del self._open[message]
-        self._open_bytes -= len(part)
-        return part  # its own buffer, the handler's to keep (and cut: routes do)
-
-
-# -- datagrams ----------------------------------------------------------------------------
-def batch(frames: list[bytes]) -> list[bytes | memoryview]:
-    """The parts of one datagram carrying ``frames``: ``"RB"``, then ``u32 length | frame`` for
-    each (the records of a stream link). Its size is :func:`batch_size`."""
-    parts: list[bytes | memoryview] = [BATCH_MAGIC]
-    pack = LENGTH.pack
-    for frame in frames:
-        parts += (pack(len(frame)), frame)
-    return parts
-
-
-def batch_size(sizes: int, count: int) -> int:
-    """The size of a batch of ``count`` frames of ``sizes`` bytes in all."""
-    return len(BATCH_MAGIC) + count * LENGTH.size + sizes
-
-
-def unbatch(datagram: bytes | memoryview) -> Iterator[bytes | memoryview]:
-    """The frames of a batch, as slices of ``datagram``; FramingError at a length that runs past
-    its end (after yielding the frames before it)."""
-    end, offset = len(datagram), len(BATCH_MAGIC)
-    unpack = LENGTH.unpack_from
-    while offset < end:
-        if offset + LENGTH.size > end:
-            raise FramingError("a batch ends inside a length")
-        (length,) = unpack(datagram, offset)
-        offset += LENGTH.size
-        if offset + length > end:
-            raise FramingError(f"a batch's frame of {length} bytes runs past its end")
-        yield datagram[offset:offset + length]
-        offset += length
