@@ -16,10 +16,9 @@ from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
 from rosgate import builtin
-from rosgate.connector import LinkSlot, QueueLimits
 from rosgate.links import DatagramLink
 from rosgate.spec import Delivery
-from rosgate.streamlink import StreamLink, length_prefixed
+from rosgate.streamlink import LinkSlot, QueueLimits, StreamLink, length_prefixed
 from rosgate.wire import envelope
 from rosgate.wire.framing import FRAGMENT, LENGTH
 

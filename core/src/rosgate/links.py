@@ -1,6 +1,7 @@
 """Links: the core's side of a transport — a queue, threads and dispatch — so a transport
-plugin only opens sockets: :class:`DatagramLink` here, :class:`~rosgate.streamlink.StreamLink`
-for one connection, :mod:`rosgate.connector` for the stream links that come and go.
+plugin only opens sockets: :class:`DatagramLink` here (with the batches it makes and splits),
+:mod:`rosgate.streamlink` for stream links, and the :class:`Lifetime` that closes what a bridge
+has open when it stops.
 
 Both send through a :class:`~rosgate.scheduler.Scheduler` — the one place a link's frames wait:
 per-topic queues in priority classes, latest-only replacement, late best-effort frames dropped,
@@ -113,6 +114,40 @@ class Link:
 
     def close(self) -> None:
         raise NotImplementedError
+
+
+class Lifetime:
+    """What a running bridge closes when it stops, in reverse opening order, and the event that
+    says it is stopping. Links that end by themselves (a connection the peer closed) are
+    forgotten, so they are not held until the end."""
+
+    def __init__(self) -> None:
+        self.stopping = threading.Event()
+        self._items: dict[int, Any] = {}
+        self._lock = threading.Lock()
+
+    def closing(self, item: Any) -> Any:
+        with self._lock:
+            self._items[id(item)] = item
+        return item
+
+    def forget(self, item: Any) -> None:
+        with self._lock:
+            self._items.pop(id(item), None)
+
+    def links(self) -> list[Link]:
+        """The links open now that count what they carry."""
+        with self._lock:
+            return [item for item in self._items.values()
+                    if isinstance(item, Link)]
+
+    def close_all(self) -> None:
+        self.stopping.set()
+        with self._lock:
+            items = list(self._items.values())
+            self._items.clear()
+        for item in reversed(items):
+            item.close()
 
 
 @dataclass

@@ -28,14 +28,14 @@ import time
 from typing import Any
 
 from .config import BridgeConfig, TopicConfig
-from .connector import Lifetime, LinkSlot
-from .links import Link
+from .links import Lifetime, Link
 from .roles import Role
 from .roles.client import ClientRole
 from .roles.peer import PeerRole
 from .roles.server import ServerRole
 from .router import Router
 from .routes import ReceiveRoute, Route, TransmitRoute
+from .streamlink import LinkSlot
 
 VERSION = 1
 

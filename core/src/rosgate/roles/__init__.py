@@ -21,15 +21,14 @@ from dataclasses import dataclass
 
 from ..admission import Acceptor, ConnectionLimits, Sources
 from ..config import BridgeConfig, LinkConfig
-from ..connector import Backoff, Lifetime, LinkSlot, QueueLimits
 from ..drops import Reason
 from ..errors import ConfigError, LinkError
-from ..links import DatagramLink, Link, LinkCounters
+from ..links import DatagramLink, Lifetime, Link, LinkCounters
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort
 from ..spec import CONTROL
-from ..streamlink import StreamLink, Untrusted
+from ..streamlink import Backoff, LinkSlot, QueueLimits, StreamLink, Untrusted
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from ..wire import envelope
 

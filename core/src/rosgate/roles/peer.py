@@ -49,7 +49,6 @@ from typing import Any
 from ..admission import Acceptor, Sources
 from ..announce import ANNOUNCE_EVERY
 from ..config import Direction, Framing
-from ..connector import Connector
 from ..drops import Drop
 from ..errors import LinkError
 from ..keyring import Keys
@@ -68,7 +67,7 @@ from ..secure import (
 from ..service_framing import CallPort
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import StreamLink
+from ..streamlink import Connector, StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
 from . import NoLink, Refusals, Role

@@ -41,7 +41,6 @@ from ..config import (
     service_from_mapping,
     topic_from_mapping,
 )
-from ..connector import LinkSlot
 from ..drops import Drop
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys
@@ -60,7 +59,7 @@ from ..secure import (
 )
 from ..services import CallerRoute
 from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import StreamLink
+from ..streamlink import LinkSlot, StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..warn import BUGS
 from ..wire import envelope
