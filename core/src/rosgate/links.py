@@ -180,8 +180,20 @@ class _Sending(ABC):
     """What both kinds of link share: the scheduler, its lock, the send thread's bookkeeping,
     the two threads and closing. ``_send_due`` and the loops are the kind's own."""
 
+    on_frame: FrameHandler
+    on_lost: LostHandler
     #: told once the link has closed (a stream link's owner forgets it)
     on_close: Callable[[Any], None] | None = None
+
+    def _deliver(self, frame: bytes, source: Address) -> None:
+        """Hand a frame to the handler. A handler that raises has a bug; it is counted, its
+        traceback logged once per minute, and the link keeps receiving."""
+        try:
+            self.on_frame(frame, cast(Link, self), source)
+        except Exception:
+            BUGS.bug("handler_error", f"{self.name}: error while handling a frame from {source} "
+                                      "(a bug: please report it)")
+            self.on_lost(None, Drop.HANDLER_ERROR)
 
     def _init_sending(self, name: str, budget: LinkConfig | None, overhead: int, packet: int,
                       frames: int, bytes_: int) -> None:
@@ -890,24 +902,20 @@ class DatagramLink(_Sending, Link):
         counters = self.counters
         counters.packets_in += 1
         counters.bytes_in += len(datagram)
-        if self.bare:
-            counters.frames_in += 1
-            deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
-            return None
         kind = datagram[1] if len(datagram) > 1 and datagram[0] == 0x52 else 0  # "R?"
-        if self.compact:  # every datagram is a piece
+        if self.bare or kind == 0x47 and not self.compact:  # "RG": an envelope, the most common
+            packetizer = None
+        elif self.compact:  # every datagram is a piece
             packetizer = self.own
         elif kind == 0x42:  # "RB": several frames
             try:
                 for record in unbatch(datagram):
                     counters.frames_in += 1
                     counters.coalesced_in += 1
-                    deliver(self, bytes(record), source)
+                    self._deliver(bytes(record), source)
             except framing.FramingError:
                 self.on_lost(None, Drop.BAD_BATCH)
             return None
-        elif kind == 0x47:  # "RG": an envelope, the most common of all, looked up by nobody
-            packetizer = None
         else:
             magic = bytes(datagram[:2])
             packetizer = self._by_magic.get(magic, _UNKNOWN)
@@ -915,7 +923,7 @@ class DatagramLink(_Sending, Link):
                 packetizer = self._receiver(magic)
         if packetizer is None:  # a whole frame
             counters.frames_in += 1
-            deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
+            self._deliver(datagram if type(datagram) is bytes else bytes(datagram), source)
             return None
         assert isinstance(packetizer, Packetizer)
         try:
@@ -932,7 +940,7 @@ class DatagramLink(_Sending, Link):
             counters.frames_in += 1
             # the buffer it was put together in, the handler's to keep: a route hands it to
             # rclpy without a copy (typed bytes: handlers take any bytes-like frame)
-            deliver(self, frame, source)
+            self._deliver(frame, source)
         return packetizer
 
     def _close_io(self) -> None:
@@ -947,20 +955,3 @@ def _sends(packetizer: Packetizer) -> bool:
     """Whether it wants to know when its frames left (and has its timer run on the send thread
     too): it implements ``sent``."""
     return type(packetizer).sent is not Packetizer.sent
-
-
-class Receiving(Protocol):
-    name: str
-    on_frame: FrameHandler
-    on_lost: LostHandler
-
-
-def deliver(link: Receiving, frame: bytes, source: Address) -> None:
-    """Hand a frame to the link's handler. A handler that raises has a bug; it is counted, its
-    traceback logged once per minute, and the link keeps receiving."""
-    try:
-        link.on_frame(frame, cast(Link, link), source)
-    except Exception:
-        BUGS.bug("handler_error", f"{link.name}: error while handling a frame from {source} "
-                                  "(a bug: please report it)")
-        link.on_lost(None, Drop.HANDLER_ERROR)

@@ -36,7 +36,6 @@ from .links import (
     LostHandler,
     Sender,
     _Sending,
-    deliver,
 )
 from .scheduler import Due, Outgoing
 from .transport import Address, StreamConnection, StreamTransport, Transport
@@ -392,7 +391,7 @@ class StreamLink(_Sending, Link):
                 if whole is not None:
                     counters.frames_in += 1
                     # its own buffer, the handler's to keep (typed bytes: see DatagramLink)
-                    deliver(self, cast(bytes, whole), self.peer)
+                    self._deliver(cast(bytes, whole), self.peer)
                 continue
             data = buffer[:got] if isinstance(got, int) else got
             counters.bytes_in += len(data)
@@ -400,7 +399,7 @@ class StreamLink(_Sending, Link):
             try:
                 for frame in reader.feed(data):
                     count += 1
-                    deliver(self, frame, self.peer)
+                    self._deliver(frame, self.peer)
             except FramingError as exc:
                 # a corrupt length means we can no longer find frame boundaries: start afresh
                 self.on_lost(None, Drop.BAD_LENGTH)
