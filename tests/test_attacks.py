@@ -283,7 +283,7 @@ def hello(topics: list[dict]) -> bytes:
 def read_control(s: socket.socket, timeout: float = 5) -> dict | None:
     """The first control message the server sends back (pings skipped), or None."""
     from rosgate.roles.mainline import parse_control
-    from rosgate.wire.framing import StreamReader
+    from rosgate.streamlink import StreamReader
 
     reader, deadline = StreamReader(), time.monotonic() + timeout
     s.settimeout(0.2)
@@ -378,7 +378,7 @@ topics: [{{topic: /bomb, type: {msg_type}, direction: receive, port: {port}, cod
 
 
 def send_frame(port: int, payload: bytes, remote: str = "/bomb") -> None:
-    from rosgate.wire.framing import fragment
+    from rosgate.builtin import fragment
 
     frame = envelope.pack(0, envelope.topic_id_for(remote), 7, 1, 0) + payload
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:

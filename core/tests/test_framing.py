@@ -8,7 +8,16 @@ import time
 
 import pytest
 
-from rosgate.reassembly import PARTIAL_COST, CompactReassembler, Reassembler
+from rosgate.builtin import (
+    PARTIAL_COST,
+    CompactReassembler,
+    Fragments,
+    Reassembler,
+    compact_fragment,
+    fragment,
+)
+from rosgate.packetizer import RESERVED_MAGIC
+from rosgate.streamlink import StreamReader, length_prefixed, stream_records
 from rosgate.wire import envelope
 from rosgate.wire.framing import (
     CHUNK,
@@ -16,16 +25,11 @@ from rosgate.wire.framing import (
     CHUNKED,
     DEFAULT_MAX_MESSAGE,
     FRAGMENT,
+    FRAGMENT_MAGIC,
     LAST,
     LENGTH,
     MAX_OPEN_MESSAGES,
     FramingError,
-    StreamReader,
-    compact_fragment,
-    fragment,
-    is_fragment,
-    length_prefixed,
-    stream_records,
 )
 
 
@@ -194,8 +198,9 @@ def test_fragment_layout_byte_exact():
         b"RF\x00\x01\x00\x03\x00\x00\x00\x07\x01\x02\x03\x04" + bytes(range(10, 20)),
         b"RF\x00\x02\x00\x03\x00\x00\x00\x07\x01\x02\x03\x04" + bytes(range(20, 25)),
     ]
-    assert all(is_fragment(p) for p in pieces)
-    assert not is_fragment(b"RG\x01" + bytes(25))
+    assert all(p[:2] == FRAGMENT_MAGIC for p in pieces)
+    # the link hands them to the fragments packetizer by that magic, never as whole frames
+    assert Fragments.magic == (FRAGMENT_MAGIC,) and FRAGMENT_MAGIC not in RESERVED_MAGIC
 
 
 def test_one_byte_over_makes_two_fragments():
@@ -381,7 +386,7 @@ class Clock:
 
     def __init__(self, monkeypatch, now: float = 1000.0):
         self.now = now
-        monkeypatch.setattr("rosgate.reassembly.time.monotonic", lambda: self.now)
+        monkeypatch.setattr("rosgate.builtin.time.monotonic", lambda: self.now)
 
 
 def lone(index: int, count: int, topic: int, frame_id: int, chunk: bytes = b"x") -> bytes:

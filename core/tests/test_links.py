@@ -15,13 +15,12 @@ from rosgate_transport_bt import BluetoothTransport
 from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
-from rosgate import reassembly
-from rosgate.connector import LinkSlot, QueueLimits
+from rosgate import builtin
 from rosgate.links import DatagramLink
 from rosgate.spec import Delivery
-from rosgate.streamlink import StreamLink
-from rosgate.wire import envelope, framing
-from rosgate.wire.framing import FRAGMENT, LENGTH, length_prefixed
+from rosgate.streamlink import LinkSlot, QueueLimits, StreamLink, length_prefixed
+from rosgate.wire import envelope
+from rosgate.wire.framing import FRAGMENT, LENGTH
 
 TOPIC = 5
 
@@ -373,7 +372,7 @@ def test_a_flood_of_one_byte_fragments_is_bounded_and_counted(closing):
     victim = closing(DatagramLink(transport, endpoint, "victim", inbox.on_frame, inbox.on_lost))
     to = endpoint.sock.getsockname()
     reassembler = victim.own.reassembler  # type: ignore[attr-defined]
-    assert isinstance(reassembler, reassembly.Reassembler)
+    assert isinstance(reassembler, builtin.Reassembler)
     flood = 3000
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as attacker:
         for i in range(flood):
@@ -383,7 +382,7 @@ def test_a_flood_of_one_byte_fragments_is_bounded_and_counted(closing):
         assert inbox.drops == [(TOPIC, "reassembly_overflow")] * (flood - held)
         assert reassembler.pending == held
         # each: its bookkeeping, a byte per fragment slot, its buffer (2 x 1 byte, earned at once)
-        assert reassembler.pending_bytes == held * (reassembly.PARTIAL_COST + 2 + 2)
+        assert reassembler.pending_bytes == held * (builtin.PARTIAL_COST + 2 + 2)
         # a real sender is not crowded out
         sender = closing(DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "sender",
                                       Inbox().on_frame, Inbox().on_lost))
@@ -540,7 +539,7 @@ def test_a_lost_small_frame_drops_its_frame_only_and_counts_it_against_the_topic
     to = b.endpoint.endpoint.sock.getsockname()
     rng = random.Random(6)
     frames = [frame_of(i, 5 + 49 * 7, rng) for i in range(5)]  # 5 bytes in the first piece
-    assert all(len(framing.compact_fragment(f, 8, 0)) == 50 for f in frames)
+    assert all(len(builtin.compact_fragment(f, 8, 0)) == 50 for f in frames)
     for frame in frames:
         a.send(frame, a_inbox.sender(TOPIC), to)
     assert b_inbox.wait(lambda: len(b_inbox.frames) >= 4 and b_inbox.drops)

@@ -8,7 +8,7 @@ import dataclasses
 import pytest
 from rosgate_recovery import Fec
 
-from rosgate.builtin import Compact, Fragments
+from rosgate.builtin import Compact, Fragments, compact_fragment
 from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.spec import CONTROL, Delivery, ServiceSpec, TopicSpec
@@ -63,7 +63,7 @@ def test_a_spec_and_its_delivery_are_frozen():
 @pytest.mark.parametrize("size", [1, 6, 7, 8, 100, 1000, 70_000])
 @pytest.mark.parametrize("max_frame", [8, 64])
 def test_the_compact_packetizer_s_cost_is_what_it_cuts(size, max_frame):
-    pieces = framing.compact_fragment(bytes(size), max_frame, 0)
+    pieces = compact_fragment(bytes(size), max_frame, 0)
     assert Compact.cost(size, max_frame, None) == (sum(map(len, pieces)), len(pieces))
     assert all(len(piece) <= max_frame for piece in pieces)
 

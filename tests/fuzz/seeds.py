@@ -76,9 +76,11 @@ def main() -> None:
     from rosgate_codec_msgpack import MsgpackCodec
     from rosgate_mcu_cvra import serial_datagram
 
+    from rosgate.builtin import fragment
     from rosgate.config import TopicConfig, topic_to_mapping
     from rosgate.roles.mainline import control
-    from rosgate.wire import envelope, framing, names
+    from rosgate.streamlink import length_prefixed
+    from rosgate.wire import envelope, names
 
     rng = random.Random(10)
     pack = envelope.pack
@@ -93,12 +95,12 @@ def main() -> None:
     frame = pack(0, 7, 1, 1, 0) + rng.randbytes(300)
     cut = bytes([0, 1]) + len(frame).to_bytes(2, "big") + frame + bytes([64]) + \
         (7).to_bytes(4, "big") + (1).to_bytes(4, "big") + bytes(range(1, 40))
-    pieces = framing.fragment(frame, 100, 7, 9)
+    pieces = fragment(frame, 100, 7, 9)
     raw = b"".join(bytes([1, 2, len(p) - 1]) + p for p in pieces)
     write("reassembly", [cut, raw, raw + cut])
 
     # streams: a limit, then length-prefixed frames cut into pieces
-    stream = b"".join(framing.length_prefixed(pack(0, 7, 1, i, 0) + b"x" * i)
+    stream = b"".join(length_prefixed(pack(0, 7, 1, i, 0) + b"x" * i)
                       for i in range(5))
     write("stream_framing", [b"\x01\x00" + bytes([len(stream) // 4]) + stream,
                              b"\x00\x10" + b"\x03" + b"\xff\xff\xff\xff" * 4])

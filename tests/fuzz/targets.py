@@ -166,7 +166,7 @@ def envelope(data: bytes) -> None:
 def reassembly(data: bytes) -> None:
     """Datagrams to a fragment reassembler and a compact one, from up to four sources: some as
     the input gives them, some cut from a frame by the link's own fragmenter and shuffled."""
-    from rosgate.reassembly import CompactReassembler, Reassembler
+    from rosgate.builtin import CompactReassembler, Reassembler, compact_fragment, fragment
     from rosgate.wire import framing
 
     lost: list[tuple[int | None, str]] = []
@@ -182,13 +182,12 @@ def reassembly(data: bytes) -> None:
             frame = reader.take(reader.integer(2) % 4096)
             size = 16 + reader.byte()
             try:
-                pieces = framing.fragment(frame, size, reader.integer(4), reader.integer(4))
+                pieces = fragment(frame, size, reader.integer(4), reader.integer(4))
             except framing.FramingError:
                 continue
             order = sorted(range(len(pieces)), key=lambda i: (reader.byte(), i))
             datagrams = [pieces[i] for i in order if reader.byte() % 8]
-            datagrams += [bytes(p) for p in framing.compact_fragment(frame, 8 + size % 56,
-                                                                     reader.byte())]
+            datagrams += [bytes(p) for p in compact_fragment(frame, 8 + size % 56, reader.byte())]
         else:
             datagrams = [reader.take(reader.byte() + 1)]
         for datagram in datagrams:
@@ -209,11 +208,12 @@ def reassembly(data: bytes) -> None:
 @target()
 def stream_framing(data: bytes) -> None:
     """Length-prefixed frames, fed in pieces of sizes the input chooses, with a small limit."""
+    from rosgate.streamlink import StreamReader
     from rosgate.wire import framing
 
     reader = Reader(data)
     limit = 64 + reader.integer(2)
-    stream = framing.StreamReader(limit)
+    stream = StreamReader(limit)
     for piece in reader.chunks():
         try:
             for frame in stream.feed(piece):

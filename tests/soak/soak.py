@@ -40,6 +40,7 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 from conftest import Bridge, RosSide, free_port  # noqa: E402
 from resources import Resources, Snapshot  # noqa: E402
 
+from rosgate.streamlink import length_prefixed  # noqa: E402
 from rosgate.wire import envelope, framing  # noqa: E402
 
 TOPICS = {  # name on the client -> (direction seen from the client, extra keys)
@@ -153,11 +154,11 @@ class Attacks:
                                          "direction": "transmit"}], "services": []})
             try:
                 with socket.create_connection(("127.0.0.1", self.port), 2) as c:
-                    c.sendall(framing.length_prefixed(hello))
+                    c.sendall(length_prefixed(hello))
                     c.settimeout(2)
                     c.recv(4096)  # the welcome
                     if n % 4:
-                        c.sendall(framing.length_prefixed(control({"type": "bye"})))
+                        c.sendall(length_prefixed(control({"type": "bye"})))
                         time.sleep(0.05)
                 self.done["churn sessions"] += 1
             except OSError:

@@ -1,21 +1,39 @@
 """The built-in plugins, registered through the same hooks as any other: the ``cdr`` codec, the
-``none`` cipher and the ``fragments`` packetizer."""
+``none`` cipher, and the datagram links' own packetizers —
+``fragments`` (numbered fragments, ``RF``) and ``compact`` (the pieces of links with small
+frames, CAN). Each packetizer cuts its frames and puts them back together here, within bounds;
+the formats are :mod:`rosgate.wire.framing`'s. Every frame given up is counted once through
+``on_lost(topic_id, reason)``.
+"""
 
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+import time
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass, field
 from typing import Any
 
 from .cipher import Cipher
 from .codec import Codec
+from .drops import Drop, Reason
 from .errors import CodecError
 from .hookspecs import hookimpl
 from .packetizer import Packet, Packetizer, PacketLink
-from .reassembly import CompactReassembler, Reassembler
 from .transport import Address
-from .wire import envelope, framing
+from .wire import envelope
+from .wire.framing import (
+    COMPACT_COUNTER,
+    COMPACT_SOURCES,
+    COMPACT_START,
+    DEFAULT_MAX_MESSAGE,
+    EARN_BUFFER,
+    FINISHED_REMEMBERED,
+    FRAGMENT,
+    FRAGMENT_MAGIC,
+    FramingError,
+)
 
 
 class CdrCodec(Codec):
@@ -61,13 +79,261 @@ class NoCipher(Cipher):
         return body
 
 
+# -- fragments --------------------------------------------------------------------------------
+
+def fragments(frame: bytes | bytearray, max_frame: int, topic_id: int,
+              frame_id: int) -> list[tuple[bytes, memoryview]]:
+    """The fragments of ``frame`` (longer than ``max_frame``) as (header, chunk) pairs: each
+    chunk a view of ``frame``, for scatter-gather sending without joining them."""
+    chunk = max_frame - FRAGMENT.size
+    if chunk <= 0:
+        raise FramingError(f"a datagram of {max_frame} bytes cannot carry a fragment header")
+    count = -(-len(frame) // chunk)
+    if count > 0xFFFF:
+        raise FramingError(f"a frame of {len(frame)} bytes needs more than 65535 fragments")
+    view = memoryview(frame)
+    pack = FRAGMENT.pack
+    return [(pack(FRAGMENT_MAGIC, i, count, topic_id, frame_id), view[i * chunk:(i + 1) * chunk])
+            for i in range(count)]
+
+
+def fragment(frame: bytes, max_frame: int, topic_id: int, frame_id: int) -> list[bytes]:
+    """Split ``frame`` into datagrams of at most ``max_frame`` bytes (one when it fits)."""
+    if len(frame) <= max_frame:
+        return [frame]
+    return [header + chunk for header, chunk in fragments(frame, max_frame, topic_id, frame_id)]
+
+
+@dataclass(slots=True)
+class _Partial:
+    """A frame whose fragments are coming in."""
+
+    key: tuple
+    source: Hashable
+    topic_id: int
+    count: int
+    started: float
+    have: bytearray          # one byte per fragment, set once it came
+    received: int = 0        # fragments in
+    size: int = 0            # their bytes
+    chunk: int = 0           # the length of every fragment but the last, once one came
+    last: int = -1           # the length of the last fragment, once it came
+    buffer: bytearray | None = None       # the frame, once earned (see Reassembler)
+    aside: dict[int, bytes] | None = None  # fragments that came before the buffer
+    cost: int = 0            # bytes this partial is accounted for
+
+
+@dataclass(slots=True)
+class _Source:
+    """What one source has pending."""
+
+    partials: dict[tuple, None] = field(default_factory=dict)  # keys, oldest first
+    cost: int = 0
+
+
+#: what a partial frame costs beyond its bytes (its objects, its entries in the tables):
+#: measured with tracemalloc (core/tests/test_framing.py checks the accounting covers it)
+PARTIAL_COST = 1024
+#: what a fragment kept aside costs beyond its bytes (a bytes object, a dict entry)
+ASIDE_COST = 128
+
+
+class Reassembler:
+    """Puts fragments back together into one preallocated buffer per frame, within bounds.
+
+    Bounds, all counted when they bite (``on_lost(topic_id, reason)``, once per frame given up):
+
+    * time: a frame whose fragments stop coming is given up ``timeout`` seconds after its last
+      one (``fragment_lost``). Partial frames are kept in the order they were last heard of, so
+      expiring them looks at the expired ones and the first that is not, never at all of them;
+    * per source: at most ``source_partials`` partial frames and ``source_bytes`` bytes; the
+      source's oldest partial frame goes first (``reassembly_overflow``);
+    * per link (this reassembler): at most ``max_partials`` and ``max_pending_bytes``; the
+      oldest partial frame of any source goes first (``reassembly_overflow``).
+
+    Bytes are what a partial frame really costs: its buffer or the fragments kept aside, plus
+    :data:`PARTIAL_COST` for its bookkeeping, so a flood of one-byte fragments is bounded as
+    tightly as a few large frames. A partial frame gets its buffer (``count`` times the length
+    of its fragments, zeroed) once 1/:data:`EARN_BUFFER` of it has come; fragments before that
+    wait aside and are copied in then. The completed frame is that buffer, a ``bytearray``,
+    handed on without another copy.
+
+    Fragments are found by (source, topic id, frame id). Senders draw frame ids at random, so a
+    spoofed source cannot guess the id of a frame in progress and slip a fragment into it.
+    """
+
+    def __init__(self, on_lost: Callable[[int, Reason], None], timeout: float = 2.0,
+                 max_pending_bytes: int = 4 * DEFAULT_MAX_MESSAGE,
+                 max_message: int = DEFAULT_MAX_MESSAGE, max_partials: int = 1024,
+                 source_partials: int = 128, source_bytes: int | None = None):
+        self.on_lost = on_lost
+        self.timeout = timeout
+        self.max_pending_bytes = max_pending_bytes
+        self.max_message = max_message
+        self.max_partials = max_partials
+        self.source_partials = source_partials
+        self.source_bytes = 2 * max_message if source_bytes is None else source_bytes
+        self._pending: dict[tuple, _Partial] = {}  # oldest first
+        self._sources: dict[Hashable, _Source] = {}
+        self._pending_bytes = 0
+        # frames recently completed or given up: a late duplicate fragment of one of them is
+        # ignored instead of starting a partial frame that would later count as lost
+        self._finished: dict[tuple, None] = {}
+
+    @property
+    def pending(self) -> int:
+        """Partial frames held now."""
+        return len(self._pending)
+
+    @property
+    def pending_bytes(self) -> int:
+        """What they are accounted for."""
+        return self._pending_bytes
+
+    def add(self, source: Hashable, datagram: bytes | memoryview) -> bytearray | None:
+        """Take one fragment (copied: it may be a view of a receive buffer); return the whole
+        frame when this fragment completes it."""
+        size = len(datagram) - FRAGMENT.size
+        if size <= 0:
+            raise FramingError("fragment too short")
+        _, index, count, topic_id, frame_id = FRAGMENT.unpack_from(datagram)
+        if index >= count or count < 2:
+            raise FramingError("fragment header out of range")
+        now = time.monotonic()
+        if self._pending:
+            self.expire(now)
+        key = (source, topic_id, frame_id)
+        partial = self._pending.get(key)
+        if partial is None:
+            if key in self._finished:
+                return None
+            self._check_sizes(count, index, size, 0, -1)
+            partial = self._start(key, source, topic_id, count, now)
+            before, partial.cost = 0, PARTIAL_COST + count
+        elif partial.count != count:
+            raise FramingError("fragment count changed within a frame")
+        else:
+            if partial.have[index]:
+                return None  # a duplicated datagram
+            self._check_sizes(count, index, size, partial.chunk, partial.last)
+            before = partial.cost
+            # still coming: its time runs from now (a frame on a slow link takes long), and
+            # the pending stay in the order they were last heard of
+            partial.started = now
+            del self._pending[key]
+            self._pending[key] = partial
+        if index < count - 1:
+            partial.chunk = size
+        else:
+            partial.last = size
+        partial.have[index] = 1
+        partial.received += 1
+        partial.size += size
+        if partial.buffer is None and partial.chunk and \
+                partial.size * EARN_BUFFER >= count * partial.chunk:
+            self._earn_buffer(partial)
+        if partial.buffer is not None:
+            offset = index * partial.chunk
+            partial.buffer[offset:offset + size] = datagram[FRAGMENT.size:]
+        else:
+            assert partial.aside is not None
+            partial.aside[index] = bytes(datagram[FRAGMENT.size:])
+            partial.cost += size + ASIDE_COST
+        if partial.received == count:
+            partial.cost = before  # what the totals hold for it
+            return self._complete(partial)
+        self._charge(partial, partial.cost - before)
+        return None
+
+    def _check_sizes(self, count: int, index: int, size: int, chunk: int, last: int) -> None:
+        """Every fragment but the last is as long as the others; the last no longer; the frame
+        they make no longer than ``max_message``."""
+        if index < count - 1:
+            if chunk and size != chunk:
+                raise FramingError("fragment size changed within a frame")
+            if last > size or (count - 1) * size + max(last, 1) > self.max_message:
+                raise FramingError("fragment header out of range")
+        elif (chunk and size > chunk) or (count - 1) * max(chunk, 1) + size > self.max_message:
+            raise FramingError("fragment header out of range")
+
+    def _start(self, key: tuple, source: Hashable, topic_id: int, count: int,
+               now: float) -> _Partial:
+        """A new partial frame (accounted by the caller), room made for it first."""
+        owner = self._sources.get(source)
+        if owner is not None and len(owner.partials) >= self.source_partials:
+            self._give_up(next(iter(owner.partials)), Drop.REASSEMBLY_OVERFLOW)
+        if len(self._pending) >= self.max_partials:
+            self._give_up(next(iter(self._pending)), Drop.REASSEMBLY_OVERFLOW)
+        owner = self._sources.setdefault(source, _Source())
+        partial = self._pending[key] = _Partial(key, source, topic_id, count, now,
+                                                bytearray(count), aside={})
+        owner.partials[key] = None
+        return partial
+
+    def _earn_buffer(self, partial: _Partial) -> None:
+        chunk, aside = partial.chunk, partial.aside
+        buffer = partial.buffer = bytearray(partial.count * chunk)
+        if aside:
+            for index, data in aside.items():
+                buffer[index * chunk:index * chunk + len(data)] = data
+            partial.cost -= sum(map(len, aside.values())) + ASIDE_COST * len(aside)
+        partial.aside = None
+        partial.cost += len(buffer)
+
+    def _charge(self, partial: _Partial, cost: int) -> None:
+        """Add ``cost`` (already on ``partial``) to its source's and the link's totals, then
+        shed to the bounds, oldest first (``partial`` itself, if it is the oldest)."""
+        owner = self._sources[partial.source]
+        owner.cost += cost
+        self._pending_bytes += cost
+        while owner.cost > self.source_bytes and owner.partials:
+            self._give_up(next(iter(owner.partials)), Drop.REASSEMBLY_OVERFLOW)
+        while self._pending_bytes > self.max_pending_bytes and self._pending:
+            self._give_up(next(iter(self._pending)), Drop.REASSEMBLY_OVERFLOW)
+
+    def _complete(self, partial: _Partial) -> bytearray:
+        self._forget(partial)
+        buffer = partial.buffer
+        assert buffer is not None  # the last fragment in always earns it
+        del buffer[(partial.count - 1) * partial.chunk + partial.last:]
+        return buffer
+
+    def _forget(self, partial: _Partial) -> None:
+        del self._pending[partial.key]
+        owner = self._sources[partial.source]
+        del owner.partials[partial.key]
+        owner.cost -= partial.cost
+        self._pending_bytes -= partial.cost
+        if not owner.partials:
+            del self._sources[partial.source]
+        self._finished[partial.key] = None
+        if len(self._finished) > FINISHED_REMEMBERED:
+            del self._finished[next(iter(self._finished))]
+
+    def expire(self, now: float | None = None) -> None:
+        """Give up frames whose fragments stopped coming, oldest first; stop at the first that
+        is still in time."""
+        now = time.monotonic() if now is None else now
+        pending, deadline = self._pending, now - self.timeout
+        while pending:
+            oldest = next(iter(pending.values()))
+            if oldest.started >= deadline:
+                return
+            self._give_up(oldest.key, Drop.FRAGMENT_LOST)
+
+    def _give_up(self, key: tuple, reason: Reason) -> None:
+        partial = self._pending[key]
+        self._forget(partial)
+        self.on_lost(partial.topic_id, reason)
+
+
 class Fragments(Packetizer):
     """A frame longer than the link's ``max_frame`` as numbered fragments (``RF``, see
     :mod:`rosgate.wire.framing`), reassembled in one buffer per frame; a lost fragment loses the
     frame (counted ``fragment_lost``). What every topic without ``recovery:`` gets."""
 
     name = "fragments"
-    magic = (framing.FRAGMENT_MAGIC,)
+    magic = (FRAGMENT_MAGIC,)
 
     @dataclass(frozen=True)
     class Options:
@@ -80,7 +346,7 @@ class Fragments(Packetizer):
     def cut(self, frame: bytes, sender: Any, to: Address, options: Any) -> list[Packet]:
         # frame ids unpredictable: a spoofed source cannot poison a reassembly (see Reassembler)
         frame_id = int.from_bytes(os.urandom(4), "big")
-        return list(framing.fragments(frame, self.link.max_frame, sender.topic_id, frame_id))
+        return list(fragments(frame, self.link.max_frame, sender.topic_id, frame_id))
 
     def feed(self, packet: bytes | memoryview, source: Address, now: float) -> bytes | None:
         # the buffer it was reassembled in, the handler's to keep: a route hands it to rclpy
@@ -94,14 +360,164 @@ class Fragments(Packetizer):
 
     @classmethod
     def cost(cls, frame: int, max_frame: int, options: Any) -> tuple[int, int]:
-        packets = max(1, math.ceil(frame / (max_frame - framing.FRAGMENT.size)))
-        return frame + packets * framing.FRAGMENT.size, packets
+        packets = max(1, math.ceil(frame / (max_frame - FRAGMENT.size)))
+        return frame + packets * FRAGMENT.size, packets
+
+
+# -- compact pieces, for links with small frames (CAN) ----------------------------------------
+
+def compact_fragment(frame: bytes, max_frame: int, counter: int) -> list[bytes]:
+    """Cut ``frame`` into compact pieces of at most ``max_frame`` bytes, the first numbered
+    ``counter``; the caller's counter for this destination moves on by the number of pieces."""
+    length = _leb128(len(frame))
+    first = max_frame - 1 - len(length)
+    if first < 0 or max_frame < 2:
+        raise FramingError(f"a datagram of {max_frame} bytes cannot carry a compact header "
+                           f"for a frame of {len(frame)} bytes")
+    view = memoryview(frame)
+    step = max_frame - 1
+    pieces = [bytes([COMPACT_START | counter & COMPACT_COUNTER]) + length + view[:first]]
+    for number, start in enumerate(range(first, len(frame), step), counter + 1):
+        pieces.append(bytes([number & COMPACT_COUNTER]) + view[start:start + step])
+    return pieces
+
+
+def _leb128(value: int) -> bytes:
+    out = bytearray()
+    while value > 0x7F:
+        out.append(value & 0x7F | 0x80)
+        value >>= 7
+    out.append(value)
+    return bytes(out)
+
+
+def read_leb128(data: bytes | memoryview, start: int) -> tuple[int, int]:
+    """(value, offset after it); at most 5 bytes, enough for any frame this side accepts."""
+    value = 0
+    for i, byte in enumerate(data[start:start + 5]):
+        value |= (byte & 0x7F) << 7 * i
+        if not byte & 0x80:
+            return value, start + i + 1
+    raise FramingError("first piece without a complete length")
+
+
+@dataclass
+class _Sender:
+    """What a compact reassembler knows about one source."""
+
+    next: int                       # the counter its next piece should carry
+    topic_id: int | None = None     # of the frame in progress, else of its last frame
+    frame: bytearray | None = None  # the frame in progress
+    length: int = 0                 # its announced length
+    last: float = 0.0               # when its last piece came
+
+
+class CompactReassembler:
+    """Puts compact pieces back together, one frame at a time per source (the format:
+    :mod:`rosgate.wire.framing`). ``on_lost(topic_id, reason)`` is called once for every frame
+    given up, with the topic that ``topic_of`` (given the first 8 bytes of a frame) found, or
+    ``None``.
+
+    Sources with a frame in progress are kept in the order they last sent a piece, so expiring
+    stalled frames looks only at the stalled ones and the first that is not; a frame in progress
+    is accounted as its bytes plus :data:`PARTIAL_COST`."""
+
+    def __init__(self, on_lost: Callable[[int | None, Reason], None],
+                 topic_of: Callable[[bytes], int | None] = lambda start: None,
+                 timeout: float = 2.0, max_pending_bytes: int = 4 * DEFAULT_MAX_MESSAGE,
+                 max_message: int = DEFAULT_MAX_MESSAGE):
+        self.on_lost = on_lost
+        self.topic_of = topic_of
+        self.timeout = timeout
+        self.max_pending_bytes = max_pending_bytes
+        self.max_message = max_message
+        self._senders: dict[Hashable, _Sender] = {}
+        self._active: dict[Hashable, _Sender] = {}  # frames in progress, least recent first
+        self._pending_bytes = 0
+
+    def add(self, source: Hashable, piece: bytes | memoryview) -> bytes | None:
+        """Take one piece (copied: it may be a view of a receive buffer); return the whole frame
+        when this piece completes it."""
+        if not piece:
+            raise FramingError("empty piece")
+        head, now = piece[0], time.monotonic()
+        counter = head & COMPACT_COUNTER
+        sender = self._senders.get(source)
+        if sender is None:
+            sender = self._senders[source] = _Sender(counter)
+            if len(self._senders) > COMPACT_SOURCES:
+                oldest_source = next(iter(self._senders))
+                oldest = self._senders.pop(oldest_source)
+                if oldest.frame is not None:
+                    self._give_up(oldest_source, oldest, Drop.REASSEMBLY_OVERFLOW)
+        elif counter == (sender.next - 1) & COMPACT_COUNTER:
+            return None  # a duplicated piece
+        elif counter != sender.next:
+            self._give_up(source, sender, Drop.FRAGMENT_LOST)
+        sender.next = (counter + 1) & COMPACT_COUNTER
+        if head & COMPACT_START:
+            if sender.frame is not None:  # the sender abandoned a frame half-sent
+                self._give_up(source, sender, Drop.FRAGMENT_LOST)
+            if self._active:
+                self.expire(now)  # a stalled source is noticed even while others keep sending
+            length, offset = read_leb128(piece, 1)
+            if length > self.max_message:
+                raise FramingError(f"a frame of {length} bytes is over the limit "
+                                   f"{self.max_message}")
+            sender.frame, sender.length = bytearray(), length
+            self._pending_bytes += PARTIAL_COST
+        elif sender.frame is None:
+            return None  # continues a frame whose first piece never came: already counted
+        else:
+            offset = 1
+        frame = sender.frame
+        had = len(frame)
+        frame += piece[offset:offset + sender.length - had]  # past the length: padding
+        self._pending_bytes += len(frame) - had
+        sender.last = now
+        if had < 8 <= len(frame):
+            sender.topic_id = self.topic_of(bytes(frame[:8])) or sender.topic_id
+        active = self._active
+        active.pop(source, None)
+        if len(frame) < sender.length:
+            active[source] = sender  # now the most recent
+            self._shed()
+            return None
+        self._pending_bytes -= len(frame) + PARTIAL_COST
+        sender.frame = None
+        return bytes(frame)
+
+    def expire(self, now: float | None = None) -> None:
+        """Give up frames whose pieces stopped coming, the longest silent first; stop at the
+        first source that is still sending."""
+        now = time.monotonic() if now is None else now
+        active, deadline = self._active, now - self.timeout
+        while active:
+            source, sender = next(iter(active.items()))
+            if sender.last >= deadline:
+                return
+            self._give_up(source, sender, Drop.FRAGMENT_LOST)
+
+    def _shed(self) -> None:
+        # memory bound: drop frames in progress, the longest silent first
+        active = self._active
+        while self._pending_bytes > self.max_pending_bytes and active:
+            source, sender = next(iter(active.items()))
+            self._give_up(source, sender, Drop.REASSEMBLY_OVERFLOW)
+
+    def _give_up(self, source: Hashable, sender: _Sender, reason: Reason) -> None:
+        """Count one lost frame: the one in progress, or one that vanished whole."""
+        if sender.frame is not None:
+            self._pending_bytes -= len(sender.frame) + PARTIAL_COST
+            sender.frame = None
+            self._active.pop(source, None)
+        self.on_lost(sender.topic_id, reason)
 
 
 class Compact(Packetizer):
-    """Every frame as compact pieces (``framing.compact_fragment``), one frame at a time per
+    """Every frame as compact pieces (:func:`compact_fragment`), one frame at a time per
     destination: a datagram link's own scheme when its transport's frames cannot spare a
-    fragment header (``max_frame`` below ``framing.COMPACT_BELOW``: CAN). Pieces carry no magic:
+    fragment header (``max_frame`` below ``COMPACT_BELOW``: CAN). Pieces carry no magic:
     on such a link every datagram is a piece, and the link feeds them all here."""
 
     name = "compact"
@@ -119,8 +535,8 @@ class Compact(Packetizer):
 
     def cut(self, frame: bytes, sender: Any, to: Address, options: Any) -> list[Packet]:
         counter = self._counters.get(to, 0)
-        pieces = framing.compact_fragment(frame, self.link.max_frame, counter)
-        self._counters[to] = (counter + len(pieces)) & framing.COMPACT_COUNTER
+        pieces = compact_fragment(frame, self.link.max_frame, counter)
+        self._counters[to] = (counter + len(pieces)) & COMPACT_COUNTER
         # one packet, which the link sends piece by piece: pieces carry no frame id, so the
         # pieces of two frames must never interleave
         return [b"".join(pieces)]
@@ -134,7 +550,7 @@ class Compact(Packetizer):
 
     @classmethod
     def cost(cls, frame: int, max_frame: int, options: Any) -> tuple[int, int]:
-        pieces = framing.compact_fragment(bytes(frame), max_frame, 0)  # rosgate check only
+        pieces = compact_fragment(bytes(frame), max_frame, 0)  # rosgate check only
         return sum(map(len, pieces)), len(pieces)
 
 

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from .config import BridgeConfig, Direction, Role, load
-from .connector import Lifetime
 from .errors import ConfigError, OptionError
+from .links import Lifetime
 from .monitor import Monitor, Status, Watched
 from .options import parse
 from .plugins import Plugins

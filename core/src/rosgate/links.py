@@ -1,6 +1,7 @@
 """Links: the core's side of a transport — a queue, threads and dispatch — so a transport
-plugin only opens sockets: :class:`DatagramLink` here, :class:`~rosgate.streamlink.StreamLink`
-for one connection, :mod:`rosgate.connector` for the stream links that come and go.
+plugin only opens sockets: :class:`DatagramLink` here (with the batches it makes and splits),
+:mod:`rosgate.streamlink` for stream links, and the :class:`Lifetime` that closes what a bridge
+has open when it stops.
 
 Both send through a :class:`~rosgate.scheduler.Scheduler` — the one place a link's frames wait:
 per-topic queues in priority classes, latest-only replacement, late best-effort frames dropped,
@@ -30,7 +31,7 @@ import logging
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
@@ -115,6 +116,40 @@ class Link:
         raise NotImplementedError
 
 
+class Lifetime:
+    """What a running bridge closes when it stops, in reverse opening order, and the event that
+    says it is stopping. Links that end by themselves (a connection the peer closed) are
+    forgotten, so they are not held until the end."""
+
+    def __init__(self) -> None:
+        self.stopping = threading.Event()
+        self._items: dict[int, Any] = {}
+        self._lock = threading.Lock()
+
+    def closing(self, item: Any) -> Any:
+        with self._lock:
+            self._items[id(item)] = item
+        return item
+
+    def forget(self, item: Any) -> None:
+        with self._lock:
+            self._items.pop(id(item), None)
+
+    def links(self) -> list[Link]:
+        """The links open now that count what they carry."""
+        with self._lock:
+            return [item for item in self._items.values()
+                    if isinstance(item, Link)]
+
+    def close_all(self) -> None:
+        self.stopping.set()
+        with self._lock:
+            items = list(self._items.values())
+            self._items.clear()
+        for item in reversed(items):
+            item.close()
+
+
 @dataclass
 class LinkCounters:
     """What a link carried, per direction: frames, the datagrams (or stream writes and reads)
@@ -142,17 +177,29 @@ class LinkCounters:
 
 
 class _Sending(ABC):
-    """What both kinds of link share on the way out: the scheduler, its lock, and the send
-    thread's bookkeeping. ``_send_due`` and ``_send_loop``'s gathering are the kind's own."""
+    """What both kinds of link share: the scheduler, its lock, the send thread's bookkeeping,
+    the two threads and closing. ``_send_due`` and the loops are the kind's own."""
 
-    name: str
-    closed: threading.Event
-    counters: LinkCounters
-    scheduler: Scheduler
+    on_frame: FrameHandler
+    on_lost: LostHandler
+    #: told once the link has closed (a stream link's owner forgets it)
+    on_close: Callable[[Any], None] | None = None
 
-    def _init_sending(self, budget: LinkConfig | None, overhead: int, packet: int,
+    def _deliver(self, frame: bytes, source: Address) -> None:
+        """Hand a frame to the handler. A handler that raises has a bug; it is counted, its
+        traceback logged once per minute, and the link keeps receiving."""
+        try:
+            self.on_frame(frame, cast(Link, self), source)
+        except Exception:
+            BUGS.bug("handler_error", f"{self.name}: error while handling a frame from {source} "
+                                      "(a bug: please report it)")
+            self.on_lost(None, Drop.HANDLER_ERROR)
+
+    def _init_sending(self, name: str, budget: LinkConfig | None, overhead: int, packet: int,
                       frames: int, bytes_: int) -> None:
-        self.budget = budget
+        self.name = name
+        self.closed = threading.Event()
+        self.counters = LinkCounters()
         self.scheduler = Scheduler(
             bandwidth=budget.bandwidth if budget else None, overhead=overhead,
             max_delay=budget.max_delay if budget else MAX_DELAY_DEFAULT, frames=frames,
@@ -168,6 +215,47 @@ class _Sending(ABC):
         self._stuck = False  # the last wait for the turn timed out: the link is the bottleneck
         #: what a stream's inline write left unwritten: it goes before anything else
         self._rest: Due | None = None
+
+    def _start(self) -> None:
+        """Start the receive and the send thread: the last step of making a link."""
+        self._threads = [
+            threading.Thread(target=self._receive_loop, name=f"rx-{self.name}", daemon=True),
+            threading.Thread(target=self._send_loop, name=f"tx-{self.name}", daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def close(self) -> None:
+        with self._wake:  # once only, whichever thread gets here first
+            if self.closed.is_set():
+                return
+            self.closed.set()
+            self._wake.notify_all()
+        self._close_io()
+        for thread in self._threads:
+            # the receive thread may fail before the send thread has even started; an unstarted
+            # thread sees `closed` when it starts and returns
+            if thread is not threading.current_thread() and thread.ident is not None:
+                thread.join(timeout=2)
+        with self._wake:  # what never reached the transport is a drop, and counted as one
+            unsent = self.scheduler.clear()
+            if self._rest is not None:
+                unsent.append(self._rest.sender)
+                self._rest = None
+        for sender in unsent:
+            sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
+        if self.on_close is not None:
+            self.on_close(self)
+
+    @abstractmethod
+    def _close_io(self) -> None:
+        """Close the endpoint or the connection (the threads see ``closed`` and end)."""
+
+    @abstractmethod
+    def _receive_loop(self) -> None: ...
+
+    @abstractmethod
+    def _send_loop(self) -> None: ...
 
     def queue_depth(self, sender: Any) -> int:
         """Messages of ``sender`` waiting or being sent."""
@@ -275,6 +363,37 @@ def _batchable(due: Due) -> bool:
     return due.ends is not None and due.ends.batchable and not due.again
 
 
+def batch(frames: list[bytes]) -> list[bytes | memoryview]:
+    """The parts of one datagram carrying ``frames``: ``"RB"``, then ``u32 length | frame`` for
+    each (the records of a stream link). Its size is :func:`batch_size`."""
+    parts: list[bytes | memoryview] = [framing.BATCH_MAGIC]
+    pack = framing.LENGTH.pack
+    for frame in frames:
+        parts += (pack(len(frame)), frame)
+    return parts
+
+
+def batch_size(sizes: int, count: int) -> int:
+    """The size of a batch of ``count`` frames of ``sizes`` bytes in all."""
+    return len(framing.BATCH_MAGIC) + count * framing.LENGTH.size + sizes
+
+
+def unbatch(datagram: bytes | memoryview) -> Iterator[bytes | memoryview]:
+    """The frames of a batch, as slices of ``datagram``; FramingError at a length that runs past
+    its end (after yielding the frames before it)."""
+    end, offset = len(datagram), len(framing.BATCH_MAGIC)
+    unpack = framing.LENGTH.unpack_from
+    while offset < end:
+        if offset + framing.LENGTH.size > end:
+            raise framing.FramingError("a batch ends inside a length")
+        (length,) = unpack(datagram, offset)
+        offset += framing.LENGTH.size
+        if offset + length > end:
+            raise framing.FramingError(f"a batch's frame of {length} bytes runs past its end")
+        yield datagram[offset:offset + length]
+        offset += length
+
+
 class DatagramLink(_Sending, Link):
     """A bound datagram endpoint. Frames out: whole when they fit ``max_frame`` (several in one
     datagram, a batch, when they leave one after the other for one destination), else cut by
@@ -301,15 +420,14 @@ class DatagramLink(_Sending, Link):
         #: who frames are taken from (None: anyone); others are counted ``not_allowed``
         self.sources = sources
         self.endpoint = endpoint
-        self.name = name
         self.bare = bare
         self.max_frame = transport.max_frame
         self.on_frame = on_frame
         self.on_lost = on_lost
         self.on_recovered = on_recovered or (lambda topic_id: None)
         self.max_message = max_message
-        self.closed = threading.Event()
-        self.counters = LinkCounters()
+        self._init_sending(name, budget, transport.packet_overhead, self.max_frame,
+                           queue_frames, queue_bytes)
         # small frames cannot spare 14 bytes of fragment header: every frame goes as compact pieces
         self.compact = not bare and self.max_frame < framing.COMPACT_BELOW
         self.registry = packetizers or installed()
@@ -327,14 +445,7 @@ class DatagramLink(_Sending, Link):
         self._send_parts: Callable[[Any, Address], None] = getattr(
             endpoint, "send_parts", lambda parts, to: endpoint.send(b"".join(parts), to))
         self._send_datagrams = getattr(endpoint, "send_datagrams", None)
-        self._init_sending(budget, transport.packet_overhead, self.max_frame,
-                           queue_frames, queue_bytes)
-        self._threads = [
-            threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
-            threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
-        ]
-        for thread in self._threads:
-            thread.start()
+        self._start()
 
     # -- out -----------------------------------------------------------------------------------
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
@@ -376,7 +487,7 @@ class DatagramLink(_Sending, Link):
         while start < len(frames):  # groups of consecutive frames that fit one datagram
             total, end = 0, start
             while end < len(frames) and len(frames[end]) <= limit \
-                    and framing.batch_size(total + len(frames[end]), end - start + 1) <= limit:
+                    and batch_size(total + len(frames[end]), end - start + 1) <= limit:
                 total += len(frames[end])
                 end += 1
             if end - start < 2:
@@ -385,7 +496,7 @@ class DatagramLink(_Sending, Link):
                 continue
             group, start = frames[start:end], end
             with self._lock:
-                go = self._claim(to, framing.batch_size(total, len(group)))
+                go = self._claim(to, batch_size(total, len(group)))
             if not go:
                 sent += sum(self.send(frame, sender, to) for frame in group)
                 continue
@@ -638,7 +749,7 @@ class DatagramLink(_Sending, Link):
         """Whole frames in one datagram; how many were sent (a failure is counted for each)."""
         frames = [due.packet for due in dues]
         try:
-            self._send_parts(framing.batch(frames), to)
+            self._send_parts(batch(frames), to)
         except OSError as exc:
             for due in dues:
                 due.sender.drop(Drop.SEND_ERROR, f"to {to} on {self.name}: {exc}")
@@ -647,7 +758,7 @@ class DatagramLink(_Sending, Link):
         counters.frames_out += len(frames)
         counters.packets_out += 1
         counters.coalesced_out += len(frames)
-        counters.bytes_out += framing.batch_size(sum(map(len, frames)), len(frames))
+        counters.bytes_out += batch_size(sum(map(len, frames)), len(frames))
         for due in dues:
             due.sender.on_wire(len(due.packet) + framing.LENGTH.size, False)
         return len(frames)
@@ -689,7 +800,7 @@ class DatagramLink(_Sending, Link):
                             more = scheduler.next(now)
                             if not isinstance(more, Due):
                                 break
-                            if (_batchable(more) and more.to == due.to and framing.batch_size(
+                            if (_batchable(more) and more.to == due.to and batch_size(
                                     total + len(more.packet), len(batch) + 1) <= limit):
                                 batch.append(more)
                                 total += len(more.packet)
@@ -791,24 +902,20 @@ class DatagramLink(_Sending, Link):
         counters = self.counters
         counters.packets_in += 1
         counters.bytes_in += len(datagram)
-        if self.bare:
-            counters.frames_in += 1
-            deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
-            return None
         kind = datagram[1] if len(datagram) > 1 and datagram[0] == 0x52 else 0  # "R?"
-        if self.compact:  # every datagram is a piece
+        if self.bare or kind == 0x47 and not self.compact:  # "RG": an envelope, the most common
+            packetizer = None
+        elif self.compact:  # every datagram is a piece
             packetizer = self.own
         elif kind == 0x42:  # "RB": several frames
             try:
-                for record in framing.unbatch(datagram):
+                for record in unbatch(datagram):
                     counters.frames_in += 1
                     counters.coalesced_in += 1
-                    deliver(self, bytes(record), source)
+                    self._deliver(bytes(record), source)
             except framing.FramingError:
                 self.on_lost(None, Drop.BAD_BATCH)
             return None
-        elif kind == 0x47:  # "RG": an envelope, the most common of all, looked up by nobody
-            packetizer = None
         else:
             magic = bytes(datagram[:2])
             packetizer = self._by_magic.get(magic, _UNKNOWN)
@@ -816,7 +923,7 @@ class DatagramLink(_Sending, Link):
                 packetizer = self._receiver(magic)
         if packetizer is None:  # a whole frame
             counters.frames_in += 1
-            deliver(self, datagram if type(datagram) is bytes else bytes(datagram), source)
+            self._deliver(datagram if type(datagram) is bytes else bytes(datagram), source)
             return None
         assert isinstance(packetizer, Packetizer)
         try:
@@ -833,22 +940,11 @@ class DatagramLink(_Sending, Link):
             counters.frames_in += 1
             # the buffer it was put together in, the handler's to keep: a route hands it to
             # rclpy without a copy (typed bytes: handlers take any bytes-like frame)
-            deliver(self, frame, source)
+            self._deliver(frame, source)
         return packetizer
 
-    def close(self) -> None:
-        with self._wake:  # once only, whichever thread gets here first
-            if self.closed.is_set():
-                return
-            self.closed.set()
-            unsent = self.scheduler.clear()
-            self._wake.notify_all()
-        for sender in unsent:
-            sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
+    def _close_io(self) -> None:
         self.endpoint.close()
-        for thread in self._threads:
-            if thread is not threading.current_thread() and thread.ident is not None:
-                thread.join(timeout=2)
 
 
 #: a magic the link has not looked up yet
@@ -859,20 +955,3 @@ def _sends(packetizer: Packetizer) -> bool:
     """Whether it wants to know when its frames left (and has its timer run on the send thread
     too): it implements ``sent``."""
     return type(packetizer).sent is not Packetizer.sent
-
-
-class Receiving(Protocol):
-    name: str
-    on_frame: FrameHandler
-    on_lost: LostHandler
-
-
-def deliver(link: Receiving, frame: bytes, source: Address) -> None:
-    """Hand a frame to the link's handler. A handler that raises has a bug; it is counted, its
-    traceback logged once per minute, and the link keeps receiving."""
-    try:
-        link.on_frame(frame, cast(Link, link), source)
-    except Exception:
-        BUGS.bug("handler_error", f"{link.name}: error while handling a frame from {source} "
-                                  "(a bug: please report it)")
-        link.on_lost(None, Drop.HANDLER_ERROR)

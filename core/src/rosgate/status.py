@@ -28,8 +28,7 @@ import time
 from typing import Any
 
 from .config import BridgeConfig, ServiceConfig, TopicConfig
-from .connector import Lifetime, LinkSlot
-from .links import Link
+from .links import Lifetime, Link
 from .monitor import Status
 from .roles import Role
 from .roles.client import ClientRole
@@ -37,6 +36,7 @@ from .roles.peer import PeerRole
 from .roles.server import ServerRole
 from .router import Router
 from .routes import ReceiveRoute, Route, TransmitRoute
+from .streamlink import LinkSlot
 
 VERSION = 1
 

@@ -1,43 +1,166 @@
-"""A stream link: one connection (TCP, RFCOMM, a Noise channel over either), its frames
-length-prefixed, long ones in chunks, sent through the link's scheduler as a datagram link's
-are (:mod:`rosgate.links`).
+"""Stream links: a :class:`StreamLink` is one connection (TCP, RFCOMM, a Noise channel over
+either), its frames length-prefixed, long ones in chunks, sent through the link's scheduler as a
+datagram link's are (:mod:`rosgate.links`); a :class:`LinkSlot` is the place a route sends
+through while connections come and go, and a :class:`Connector` keeps it filled (connects, and
+reconnects after every loss).
 
 A stream connection the bridge accepted is untrusted until its owner calls
 :meth:`StreamLink.trust` (a handshake, a hello): until then its frames are small and it has a
-deadline (:class:`Untrusted`).
+deadline (:class:`Untrusted`). While a slot is empty, frames of reliable senders wait in a
+bounded queue and leave in order when a connection is attached; frames of other senders are
+dropped.
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
+import random
 import threading
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 from .config import LinkConfig
-from .drops import Drop
+from .drops import Drop, Reason
+from .errors import LinkError
 from .links import (
     POLL,
     SENT_INLINE,
     FrameHandler,
+    Lifetime,
     Link,
     LinkCounters,
     LostHandler,
     Sender,
     _Sending,
-    deliver,
 )
 from .scheduler import Due, Outgoing
-from .transport import Address, StreamConnection
+from .transport import Address, StreamConnection, StreamTransport, Transport
 from .warn import BUGS
-from .wire import framing
+from .wire.framing import (
+    CHUNK,
+    CHUNK_HEAD,
+    CHUNK_LENGTH,
+    CHUNKED,
+    DEFAULT_MAX_MESSAGE,
+    DIRECT_ABOVE,
+    EARN_BUFFER,
+    LAST,
+    LENGTH,
+    MAX_OPEN_MESSAGES,
+    FramingError,
+)
 
 log = logging.getLogger("rosgate")
 
 WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
+CONNECT_TIMEOUT = 5.0
+
+
+def length_prefixed(frame: bytes) -> bytes:
+    return LENGTH.pack(len(frame)) + frame
+
+
+def stream_records(frame: bytes, message: int, chunk: int = CHUNK) -> list[bytes]:
+    """``frame`` as the records of a stream: one, or chunks of ``message`` when it is longer
+    than ``chunk``."""
+    if len(frame) <= chunk:
+        return [length_prefixed(frame)]
+    view = memoryview(frame)
+    starts = range(0, len(frame), chunk)
+    last = starts[-1]
+    return [CHUNK_HEAD.pack(CHUNKED | (LAST if start == last else 0)
+                            | (min(chunk, len(frame) - start) + 4), message & 0xFFFFFFFF)
+            + view[start:start + chunk] for start in starts]
+
+
+class StreamReader:
+    """Cuts a byte stream into frames, chunked ones put back together. Feed it what the
+    connection gives (:meth:`feed`); or, to save a copy of large frames, ask it where the
+    next bytes should go (:meth:`target`), read them there and say how many (:meth:`filled`).
+
+    With ``direct``, a frame longer than :data:`DIRECT_ABOVE` whose length is known is read
+    straight into a buffer of its own, once 1/:data:`EARN_BUFFER` of it has come (so a length
+    prefix alone does not make the reader zero 64 MiB), and handed on as that bytearray: the
+    caller must then read into :meth:`target` while it is not None."""
+
+    def __init__(self, max_frame: int = DEFAULT_MAX_MESSAGE, direct: bool = False):
+        self.max_frame = max_frame
+        self.direct = direct
+        self._buffer = bytearray()
+        self._open: dict[int, bytearray] = {}  # message -> what came of it
+        self._open_bytes = 0
+        self._frame: bytearray | None = None  # a large frame being read into place
+        self._filled = 0
+
+    def target(self) -> memoryview | None:
+        """Where the next bytes go when a large frame is being read in place, else None."""
+        if self._frame is None:
+            return None
+        return memoryview(self._frame)[self._filled:]
+
+    def filled(self, count: int) -> bytearray | None:
+        """``count`` bytes were read into :meth:`target`; the frame once it is whole."""
+        self._filled += count
+        frame = self._frame
+        if frame is None or self._filled < len(frame):
+            return None
+        self._frame = None
+        return frame
+
+    def feed(self, data: bytes | memoryview) -> Iterator[bytes]:
+        """Yield every complete frame; raise FramingError when a length is impossible."""
+        buffer = self._buffer
+        buffer += data
+        start = 0
+        try:
+            while len(buffer) - start >= 4:
+                (length,) = LENGTH.unpack_from(buffer, start)
+                chunked = length & CHUNKED
+                size = length & CHUNK_LENGTH if chunked else length
+                if size > self.max_frame or chunked and size < 4:
+                    raise FramingError(f"frame length {size} over the limit {self.max_frame}"
+                                       if size > self.max_frame else "a chunk without its head")
+                end = start + 4 + size
+                if end > len(buffer):
+                    have = len(buffer) - start - 4
+                    if (self.direct and not chunked and size > DIRECT_ABOVE
+                            and have * EARN_BUFFER >= size):
+                        # the rest is read straight into the frame's own buffer
+                        self._frame = frame = bytearray(size)
+                        frame[:have] = memoryview(buffer)[start + 4:]
+                        self._filled = have
+                        start = len(buffer)
+                    break
+                if not chunked:
+                    yield bytes(buffer[start + 4:end])
+                else:
+                    whole = self._chunk(buffer, start + 4, end, bool(length & LAST))
+                    if whole is not None:
+                        yield cast(bytes, whole)  # bytes-like: handlers take either
+                start = end
+        finally:
+            del buffer[:start]
+
+    def _chunk(self, buffer: bytearray, start: int, end: int, last: bool) -> bytearray | None:
+        (message,) = LENGTH.unpack_from(buffer, start)
+        part = self._open.get(message)
+        if part is None:
+            if len(self._open) >= MAX_OPEN_MESSAGES:
+                raise FramingError(f"more than {MAX_OPEN_MESSAGES} chunked frames open at once")
+            part = self._open[message] = bytearray()
+        part += buffer[start + 4:end]
+        self._open_bytes += end - start - 4
+        if len(part) > self.max_frame or self._open_bytes > 2 * self.max_frame:
+            raise FramingError(f"chunked frames over the limit {self.max_frame}")
+        if not last:
+            return None
+        del self._open[message]
+        self._open_bytes -= len(part)
+        return part  # its own buffer, the handler's to keep (and cut: routes do)
 
 
 @dataclass(frozen=True)
@@ -51,7 +174,7 @@ class Untrusted:
 
 class StreamLink(_Sending, Link):
     """One stream connection, framed with length prefixes; frames longer than
-    :data:`rosgate.wire.framing.CHUNK` go in chunks, and the writer takes at most
+    :data:`rosgate.wire.CHUNK` go in chunks, and the writer takes at most
     :data:`WRITE` bytes at a time from the scheduler, so a frame of a higher class (a Twist
     behind a camera's backlog) waits for one write, not for the whole backlog. (The kernel's
     send buffer still holds what was written: a budget below the link's rate keeps it short.)
@@ -68,57 +191,47 @@ class StreamLink(_Sending, Link):
                  on_frame: FrameHandler, on_lost: LostHandler,
                  on_close: Callable[[StreamLink], None] | None = None,
                  queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
-                 max_message: int = framing.DEFAULT_MAX_MESSAGE,
+                 max_message: int = DEFAULT_MAX_MESSAGE,
                  untrusted: Untrusted | None = None, budget: LinkConfig | None = None):
         self.connection = connection
-        self.name = name
         self.peer = peer
         self.on_frame = on_frame
         self.on_lost = on_lost
         self.on_close = on_close
-        self.closed = threading.Event()
         # for liveness: the main line's roles set it on every control message (a heartbeat), not
         # on bytes, so a stream that lost its frame boundaries does not look alive
         self.last_heard = time.monotonic()
         self.why = ""  # why the connection ended, once it has
-        self.queue_frames = queue_frames
-        self.queue_bytes = queue_bytes
-        self.counters = LinkCounters()
         self._send_nowait = getattr(connection, "send_nowait", None)
         self._messages = itertools.count(1)  # numbers of chunked frames
-        self._init_sending(budget, 0, framing.CHUNK + framing.CHUNK_HEAD.size, queue_frames,
+        self._init_sending(name, budget, 0, CHUNK + CHUNK_HEAD.size, queue_frames,
                            queue_bytes)
-        self._reader = framing.StreamReader(untrusted.max_frame if untrusted else max_message,
+        self._reader = StreamReader(untrusted.max_frame if untrusted else max_message,
                                             direct=hasattr(connection, "receive_into"))
         self.max_message = max_message
         self._trust_by = time.monotonic() + untrusted.deadline if untrusted else None
-        self._threads = [
-            threading.Thread(target=self._receive_loop, name=f"rx-{name}", daemon=True),
-            threading.Thread(target=self._send_loop, name=f"tx-{name}", daemon=True),
-        ]
-        for thread in self._threads:
-            thread.start()
+        self._start()
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         # the limits count a frame with its length prefix, as it is written
-        if len(frame) <= framing.CHUNK:
-            record = framing.length_prefixed(frame)
+        if len(frame) <= CHUNK:
+            record = length_prefixed(frame)
             if self._send_nowait is not None:
                 sent = self._send_now(record, sender, None)
                 if sent is not None:
                     return sent
             return self._put(Outgoing(sender, None, len(record), _one(record), time.monotonic()))
-        return self._put(Outgoing(sender, None, len(frame) + framing.LENGTH.size,
-                                  lambda: framing.stream_records(frame, next(self._messages)),
+        return self._put(Outgoing(sender, None, len(frame) + LENGTH.size,
+                                  lambda: stream_records(frame, next(self._messages)),
                                   time.monotonic()))
 
     def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
         """Frames of one sender together (a route's backlog): one write from the caller's
         thread when nothing waits; otherwise each is queued."""
         if len(frames) < 2 or self._send_nowait is None \
-                or any(len(frame) > framing.CHUNK for frame in frames):
+                or any(len(frame) > CHUNK for frame in frames):
             return sum(self.send(frame, sender) for frame in frames)
-        records = [framing.length_prefixed(frame) for frame in frames]
+        records = [length_prefixed(frame) for frame in frames]
         data = b"".join(records)
         with self._lock:
             go = self._claim(None, len(data))
@@ -278,7 +391,7 @@ class StreamLink(_Sending, Link):
                 if whole is not None:
                     counters.frames_in += 1
                     # its own buffer, the handler's to keep (typed bytes: see DatagramLink)
-                    deliver(self, cast(bytes, whole), self.peer)
+                    self._deliver(cast(bytes, whole), self.peer)
                 continue
             data = buffer[:got] if isinstance(got, int) else got
             counters.bytes_in += len(data)
@@ -286,8 +399,8 @@ class StreamLink(_Sending, Link):
             try:
                 for frame in reader.feed(data):
                     count += 1
-                    deliver(self, frame, self.peer)
-            except framing.FramingError as exc:
+                    self._deliver(frame, self.peer)
+            except FramingError as exc:
                 # a corrupt length means we can no longer find frame boundaries: start afresh
                 self.on_lost(None, Drop.BAD_LENGTH)
                 self.fail(f"stream corrupt ({exc})")
@@ -308,30 +421,219 @@ class StreamLink(_Sending, Link):
                 "%s: connection to %s ended: %s", self.name, self.peer, why)
         self.close()
 
-    def close(self) -> None:
-        with self._wake:  # once only, whichever thread gets here first
-            if self.closed.is_set():
-                return
-            self.closed.set()
-            self._wake.notify_all()
+    def _close_io(self) -> None:
         try:
             self.connection.close()
         except OSError:
             pass
-        for thread in self._threads:
-            # the receive thread may fail before the send thread has even started; an unstarted
-            # thread sees `closed` when it starts and returns
-            if thread is not threading.current_thread() and thread.ident is not None:
-                thread.join(timeout=2)
-        with self._wake:  # what never reached the connection is a drop, and counted as one
-            unsent = self.scheduler.clear()
-            if self._rest is not None:
-                unsent.append(self._rest.sender)
-                self._rest = None
-        for sender in unsent:
-            sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
-        if self.on_close:
-            self.on_close(self)
+
+
+@dataclass(frozen=True)
+class QueueLimits:
+    """How much a :class:`LinkSlot` holds for reliable topics while it has no connection."""
+
+    frames: int
+    bytes: int
+
+
+class LinkSlot(Link):
+    """A stream link that comes and goes. A :class:`Connector` (or a server that accepted the
+    peer again) :meth:`attach`-es each new connection.
+
+    While there is no live connection, frames of reliable senders wait, oldest
+    dropped first when the limits are reached (counted ``queue_full``), and are handed to the
+    next connection in order, before anything sent later. Other frames are counted ``link_down``.
+    Frames already handed to a connection that then fails are not taken back (there are no
+    acknowledgements): a connection's loss can cost what was in flight.
+    """
+
+    def __init__(self, name: str, limits: QueueLimits):
+        self.name = name
+        self.limits = limits
+        self.current: StreamLink | None = None
+        self.closed = threading.Event()
+        self._waiting: deque[tuple[bytes, Sender]] = deque()
+        self._waiting_bytes = 0
+        self._lock = threading.Lock()  # keeps sends and the flush of the queue in order
+
+    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
+        overflow: list[Sender] = []
+        with self._lock:
+            link = self.current
+            if link is not None and not link.closed.is_set():
+                return link.send_all(frames, sender)
+            if self.closed.is_set() or not sender.delivery.reliable:
+                refused = True
+            else:
+                refused = False
+                for frame in frames:
+                    self._waiting.append((frame, sender))
+                    self._waiting_bytes += len(frame)
+                while self._waiting and (len(self._waiting) > self.limits.frames
+                                         or self._waiting_bytes > self.limits.bytes):
+                    old, old_sender = self._waiting.popleft()
+                    self._waiting_bytes -= len(old)
+                    overflow.append(old_sender)
+        for old_sender in overflow:
+            old_sender.drop(Drop.QUEUE_FULL, f"{self.name} is down and its queue is full")
+        if refused:
+            for _ in frames:
+                sender.drop(Drop.LINK_DOWN, f"{self.name} is down")
+            return 0
+        return len(frames)
+
+    def attach(self, link: StreamLink) -> None:
+        """Use ``link`` from now on; what waited goes first."""
+        with self._lock:
+            while self._waiting:
+                frame, sender = self._waiting.popleft()
+                link.send(frame, sender)
+            self._waiting_bytes = 0
+            self.current = link
+
+    def discard(self, reason: Reason) -> None:
+        """Drop what waits (its topic ids mean nothing to a new session), counted by ``reason``."""
+        with self._lock:
+            senders = [sender for _, sender in self._waiting]
+            self._waiting.clear()
+            self._waiting_bytes = 0
+        for sender in senders:
+            sender.drop(reason)
+
+    @property
+    def waiting(self) -> int:
+        return len(self._waiting)
+
+    def forget(self, sender: Any) -> None:
+        link = self.current
+        if link is not None:
+            link.forget(sender)
+
+    def queue_depth(self, sender: Any) -> int:
+        """Messages of ``sender`` waiting here while the link is down, or in its connection."""
+        with self._lock:
+            held = sum(1 for _, s in self._waiting if s is sender)
+            link = self.current
+        return held + (link.queue_depth(sender) if link is not None else 0)
+
+    @property
+    def counters(self) -> LinkCounters:  # type: ignore[override]  # the connection's, read-only
+        link = self.current
+        return link.counters if link is not None else LinkCounters()
+
+    def close(self) -> None:
+        self.closed.set()
+        self.discard(Drop.LINK_DOWN)
+        if self.current is not None:
+            self.current.close()
+
+
+@dataclass(frozen=True)
+class Backoff:
+    """Seconds between reconnection attempts: from ``min``, doubling up to ``max``, jittered."""
+
+    min: float
+    max: float
+
+    def delay(self, failures: int) -> float:
+        return min(self.min * 2 ** (failures - 1), self.max) * random.uniform(0.5, 1.0)
+
+
+class Connector:
+    """Keeps a stream connection up: connects, and after every loss reconnects by itself.
+
+    Attempts are spaced by capped exponential backoff with jitter, so a fleet of clients does
+    not hammer a server that comes back. After a connection that worked is lost, the next
+    attempt is immediate. ``on_connected(link)`` may refuse a connection (a failed handshake),
+    which counts as a failed attempt; ``on_lost(link)`` hears of every accepted connection that
+    ended.
+    """
+
+    def __init__(self, transport: Transport, address: Address, slot: LinkSlot,
+                 on_frame: FrameHandler, on_frame_lost: LostHandler, life: Lifetime,
+                 backoff: Backoff,
+                 on_connected: Callable[[StreamLink], bool] | None = None,
+                 on_lost: Callable[[StreamLink], None] | None = None,
+                 secure: Callable[[StreamConnection], StreamConnection] | None = None,
+                 budget: LinkConfig | None = None):
+        assert isinstance(transport, StreamTransport)
+        self.transport = transport
+        self.budget = budget
+        self.secure = secure
+        self.address = address
+        self.slot = slot
+        self.on_frame = on_frame
+        self.on_frame_lost = on_frame_lost
+        self.life = life
+        self.backoff = backoff
+        self.on_connected = on_connected
+        self.on_lost = on_lost
+        self.connected = threading.Event()
+        self._last_failure = ""
+        self._thread = threading.Thread(target=self._loop, name=f"connect-{slot.name}", daemon=True)
+        life.closing(self)
+
+    def start(self) -> Connector:
+        self._thread.start()
+        return self
+
+    def _loop(self) -> None:
+        stopping = self.life.stopping
+        failures = 0
+        while not stopping.is_set() and not self.slot.closed.is_set():
+            link = self._connect()
+            if link is None:
+                failures += 1
+                stopping.wait(self.backoff.delay(failures))
+                continue
+            failures = 0
+            self._last_failure = ""
+            self.slot.attach(link)
+            self.connected.set()
+            while not link.closed.wait(0.5):
+                if stopping.is_set() or self.slot.closed.is_set():
+                    break
+            self.connected.clear()
+            if stopping.is_set() and not self.slot.closed.is_set():
+                return  # the bridge is stopping: its role may have a last word (bye), then
+                # closing the slot closes the link
+            link.close()
+            if self.on_lost is not None and not stopping.is_set():
+                self.on_lost(link)
+
+    def _connect(self) -> StreamLink | None:
+        """One attempt: a connection its owner accepted, or None."""
+        try:
+            connection = self.transport.connect(self.address, CONNECT_TIMEOUT)
+        except (OSError, LinkError) as exc:
+            log.debug("%s: connect failed: %s", self.slot.name, exc)
+            return None
+        if self.secure is not None:
+            try:
+                connection = self.secure(connection)
+            except LinkError as exc:
+                connection.close()
+                self.failed(exc)
+                return None
+        link = self.life.closing(StreamLink(connection, self.slot.name, self.address,
+                                            self.on_frame, self.on_frame_lost,
+                                            on_close=self.life.forget, budget=self.budget))
+        if self.on_connected is not None and not self.on_connected(link):
+            link.close()
+            return None
+        return link
+
+    def failed(self, exc: LinkError) -> None:
+        """A connection that opened but was refused (its handshake failed): said once, until a
+        connection works again."""
+        if str(exc) != self._last_failure:
+            self._last_failure = str(exc)
+            log.warning("%s: %s", self.slot.name, exc)
+
+    def close(self) -> None:
+        self.slot.close()
+        if self._thread.is_alive() and threading.current_thread() is not self._thread:
+            self._thread.join(timeout=3)
 
 
 def _one(packet: bytes) -> Callable[[], list[bytes]]:

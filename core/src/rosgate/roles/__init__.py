@@ -22,10 +22,9 @@ from typing import Any
 
 from ..admission import Acceptor, ConnectionLimits, Sources
 from ..config import BridgeConfig, LinkConfig
-from ..connector import Backoff, Lifetime, LinkSlot, QueueLimits
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
-from ..links import DatagramLink, Link, LinkCounters
+from ..links import DatagramLink, Lifetime, Link, LinkCounters
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort, Route
@@ -38,7 +37,7 @@ from ..secure import (
     respond,
 )
 from ..spec import CONTROL, ServiceSpec, TopicSpec
-from ..streamlink import StreamLink, Untrusted
+from ..streamlink import Backoff, LinkSlot, QueueLimits, StreamLink, Untrusted
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from ..wire import envelope
 from .mainline import control, key_label, parse_control

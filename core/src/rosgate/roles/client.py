@@ -27,7 +27,6 @@ import time
 from typing import Any
 
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
-from ..connector import Connector, LinkSlot
 from ..drops import Drop
 from ..errors import LinkError, RosgateError
 from ..keyring import Keys
@@ -37,7 +36,7 @@ from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, seal_hello
 from ..services import CallerRoute
 from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import StreamLink
+from ..streamlink import Connector, LinkSlot, StreamLink
 from ..transport import Address, StreamTransport
 from . import Answer, Bridge, Role, session_keys
 from .mainline import (

@@ -47,7 +47,6 @@ import time
 from ..announce import ANNOUNCE_EVERY
 from ..bus import BusRole, BusTransport
 from ..config import Direction, Framing
-from ..connector import Connector
 from ..drops import Drop, Reason
 from ..keyring import Keys
 from ..links import DatagramLink, Link
@@ -57,7 +56,7 @@ from ..secure import HandshakeError, KeySchedule, SecureConnection, UnknownKey
 from ..service_framing import CallPort
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import StreamLink
+from ..streamlink import Connector, StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
 from . import Answer, Bridge, NoLink, Role, session_keys

@@ -37,7 +37,6 @@ from ..config import (
     ServiceConfig,
     TopicConfig,
 )
-from ..connector import LinkSlot
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys
@@ -54,7 +53,7 @@ from ..secure import (
 )
 from ..services import CallerRoute
 from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import StreamLink
+from ..streamlink import LinkSlot, StreamLink
 from ..transport import Address, StreamConnection, StreamTransport
 from ..warn import BUGS
 from ..wire import envelope

@@ -41,7 +41,7 @@ packets of whatever other packetizer a topic picks, each with magics of its own:
       2      2    index     0-based fragment number
       4      2    count     number of fragments of this frame
       6      4    topic_id  for counting a lost message against its topic
-      10     4    frame_id  random per frame (see rosgate.reassembly.Reassembler)
+      10     4    frame_id  random per frame (see rosgate.builtin.Reassembler)
       14          chunk
 
   The built-in ``fragments`` packetizer (:mod:`rosgate.builtin`) cuts and reassembles them; a
@@ -73,8 +73,10 @@ the order they were sent, as a CAN bus keeps them per arbitration id. The receiv
 * ignores a piece that repeats the previous counter (a duplicated frame);
 * drops a frame whose pieces stop coming for ``timeout`` seconds (counted as a gap is).
 
-Everything here is a pure format; the state of putting fragments and pieces back together is
-:mod:`rosgate.reassembly`'s.
+Everything here is a pure format. Reading and writing stream records is
+:mod:`rosgate.streamlink`'s, batches are :mod:`rosgate.links`'s, and cutting frames into
+fragments and pieces and putting them back together is the built-in packetizers'
+(:mod:`rosgate.builtin`).
 
 Overhead: 1 byte a piece plus the length, e.g. a 100 kB frame takes 14,287 classic CAN frames
 or 1,588 CAN FD frames.
@@ -83,8 +85,6 @@ or 1,588 CAN FD frames.
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
-from typing import cast
 
 LENGTH = struct.Struct(">I")
 CHUNK_HEAD = struct.Struct(">II")
@@ -110,202 +110,3 @@ EARN_BUFFER = 16
 
 class FramingError(ValueError):
     """The bytes cannot be framed (length over the limit, malformed fragment)."""
-
-
-# -- streams ------------------------------------------------------------------------------
-def length_prefixed(frame: bytes) -> bytes:
-    return LENGTH.pack(len(frame)) + frame
-
-
-def stream_records(frame: bytes, message: int, chunk: int = CHUNK) -> list[bytes]:
-    """``frame`` as the records of a stream: one, or chunks of ``message`` when it is longer
-    than ``chunk``."""
-    if len(frame) <= chunk:
-        return [length_prefixed(frame)]
-    view = memoryview(frame)
-    starts = range(0, len(frame), chunk)
-    last = starts[-1]
-    return [CHUNK_HEAD.pack(CHUNKED | (LAST if start == last else 0)
-                            | (min(chunk, len(frame) - start) + 4), message & 0xFFFFFFFF)
-            + view[start:start + chunk] for start in starts]
-
-
-class StreamReader:
-    """Cuts a byte stream into frames, chunked ones put back together. Feed it what the
-    connection gives (:meth:`feed`); or, to save a copy of large frames, ask it where the
-    next bytes should go (:meth:`target`), read them there and say how many (:meth:`filled`).
-
-    With ``direct``, a frame longer than :data:`DIRECT_ABOVE` whose length is known is read
-    straight into a buffer of its own, once 1/:data:`EARN_BUFFER` of it has come (so a length
-    prefix alone does not make the reader zero 64 MiB), and handed on as that bytearray: the
-    caller must then read into :meth:`target` while it is not None."""
-
-    def __init__(self, max_frame: int = DEFAULT_MAX_MESSAGE, direct: bool = False):
-        self.max_frame = max_frame
-        self.direct = direct
-        self._buffer = bytearray()
-        self._open: dict[int, bytearray] = {}  # message -> what came of it
-        self._open_bytes = 0
-        self._frame: bytearray | None = None  # a large frame being read into place
-        self._filled = 0
-
-    def target(self) -> memoryview | None:
-        """Where the next bytes go when a large frame is being read in place, else None."""
-        if self._frame is None:
-            return None
-        return memoryview(self._frame)[self._filled:]
-
-    def filled(self, count: int) -> bytearray | None:
-        """``count`` bytes were read into :meth:`target`; the frame once it is whole."""
-        self._filled += count
-        frame = self._frame
-        if frame is None or self._filled < len(frame):
-            return None
-        self._frame = None
-        return frame
-
-    def feed(self, data: bytes | memoryview) -> Iterator[bytes]:
-        """Yield every complete frame; raise FramingError when a length is impossible."""
-        buffer = self._buffer
-        buffer += data
-        start = 0
-        try:
-            while len(buffer) - start >= 4:
-                (length,) = LENGTH.unpack_from(buffer, start)
-                chunked = length & CHUNKED
-                size = length & CHUNK_LENGTH if chunked else length
-                if size > self.max_frame or chunked and size < 4:
-                    raise FramingError(f"frame length {size} over the limit {self.max_frame}"
-                                       if size > self.max_frame else "a chunk without its head")
-                end = start + 4 + size
-                if end > len(buffer):
-                    have = len(buffer) - start - 4
-                    if (self.direct and not chunked and size > DIRECT_ABOVE
-                            and have * EARN_BUFFER >= size):
-                        # the rest is read straight into the frame's own buffer
-                        self._frame = frame = bytearray(size)
-                        frame[:have] = memoryview(buffer)[start + 4:]
-                        self._filled = have
-                        start = len(buffer)
-                    break
-                if not chunked:
-                    yield bytes(buffer[start + 4:end])
-                else:
-                    whole = self._chunk(buffer, start + 4, end, bool(length & LAST))
-                    if whole is not None:
-                        yield cast(bytes, whole)  # bytes-like: handlers take either
-                start = end
-        finally:
-            del buffer[:start]
-
-    def _chunk(self, buffer: bytearray, start: int, end: int, last: bool) -> bytearray | None:
-        (message,) = LENGTH.unpack_from(buffer, start)
-        part = self._open.get(message)
-        if part is None:
-            if len(self._open) >= MAX_OPEN_MESSAGES:
-                raise FramingError(f"more than {MAX_OPEN_MESSAGES} chunked frames open at once")
-            part = self._open[message] = bytearray()
-        part += buffer[start + 4:end]
-        self._open_bytes += end - start - 4
-        if len(part) > self.max_frame or self._open_bytes > 2 * self.max_frame:
-            raise FramingError(f"chunked frames over the limit {self.max_frame}")
-        if not last:
-            return None
-        del self._open[message]
-        self._open_bytes -= len(part)
-        return part  # its own buffer, the handler's to keep (and cut: routes do)
-
-
-# -- datagrams ----------------------------------------------------------------------------
-def fragments(frame: bytes | bytearray, max_frame: int, topic_id: int,
-              frame_id: int) -> list[tuple[bytes, memoryview]]:
-    """The fragments of ``frame`` (longer than ``max_frame``) as (header, chunk) pairs: each
-    chunk a view of ``frame``, for scatter-gather sending without joining them."""
-    chunk = max_frame - FRAGMENT.size
-    if chunk <= 0:
-        raise FramingError(f"a datagram of {max_frame} bytes cannot carry a fragment header")
-    count = -(-len(frame) // chunk)
-    if count > 0xFFFF:
-        raise FramingError(f"a frame of {len(frame)} bytes needs more than 65535 fragments")
-    view = memoryview(frame)
-    pack = FRAGMENT.pack
-    return [(pack(FRAGMENT_MAGIC, i, count, topic_id, frame_id), view[i * chunk:(i + 1) * chunk])
-            for i in range(count)]
-
-
-def fragment(frame: bytes, max_frame: int, topic_id: int, frame_id: int) -> list[bytes]:
-    """Split ``frame`` into datagrams of at most ``max_frame`` bytes (one when it fits)."""
-    if len(frame) <= max_frame:
-        return [frame]
-    return [header + chunk for header, chunk in fragments(frame, max_frame, topic_id, frame_id)]
-
-
-def batch(frames: list[bytes]) -> list[bytes | memoryview]:
-    """The parts of one datagram carrying ``frames``: ``"RB"``, then ``u32 length | frame`` for
-    each (the records of a stream link). Its size is :func:`batch_size`."""
-    parts: list[bytes | memoryview] = [BATCH_MAGIC]
-    pack = LENGTH.pack
-    for frame in frames:
-        parts += (pack(len(frame)), frame)
-    return parts
-
-
-def batch_size(sizes: int, count: int) -> int:
-    """The size of a batch of ``count`` frames of ``sizes`` bytes in all."""
-    return len(BATCH_MAGIC) + count * LENGTH.size + sizes
-
-
-def unbatch(datagram: bytes | memoryview) -> Iterator[bytes | memoryview]:
-    """The frames of a batch, as slices of ``datagram``; FramingError at a length that runs past
-    its end (after yielding the frames before it)."""
-    end, offset = len(datagram), len(BATCH_MAGIC)
-    unpack = LENGTH.unpack_from
-    while offset < end:
-        if offset + LENGTH.size > end:
-            raise FramingError("a batch ends inside a length")
-        (length,) = unpack(datagram, offset)
-        offset += LENGTH.size
-        if offset + length > end:
-            raise FramingError(f"a batch's frame of {length} bytes runs past its end")
-        yield datagram[offset:offset + length]
-        offset += length
-
-
-def is_fragment(datagram: bytes | memoryview) -> bool:
-    return datagram[:2] == FRAGMENT_MAGIC
-
-
-# -- compact pieces, for links with small frames (CAN) --------------------------------------
-def compact_fragment(frame: bytes, max_frame: int, counter: int) -> list[bytes]:
-    """Cut ``frame`` into compact pieces of at most ``max_frame`` bytes, the first numbered
-    ``counter``; the caller's counter for this destination moves on by the number of pieces."""
-    length = _leb128(len(frame))
-    first = max_frame - 1 - len(length)
-    if first < 0 or max_frame < 2:
-        raise FramingError(f"a datagram of {max_frame} bytes cannot carry a compact header "
-                           f"for a frame of {len(frame)} bytes")
-    view = memoryview(frame)
-    step = max_frame - 1
-    pieces = [bytes([COMPACT_START | counter & COMPACT_COUNTER]) + length + view[:first]]
-    for number, start in enumerate(range(first, len(frame), step), counter + 1):
-        pieces.append(bytes([number & COMPACT_COUNTER]) + view[start:start + step])
-    return pieces
-
-
-def _leb128(value: int) -> bytes:
-    out = bytearray()
-    while value > 0x7F:
-        out.append(value & 0x7F | 0x80)
-        value >>= 7
-    out.append(value)
-    return bytes(out)
-
-
-def read_leb128(data: bytes | memoryview, start: int) -> tuple[int, int]:
-    """(value, offset after it); at most 5 bytes, enough for any frame this side accepts."""
-    value = 0
-    for i, byte in enumerate(data[start:start + 5]):
-        value |= (byte & 0x7F) << 7 * i
-        if not byte & 0x80:
-            return value, start + i + 1
-    raise FramingError("first piece without a complete length")

@@ -44,7 +44,7 @@ someone off the path cannot make a sender repeat itself, and every fragment is r
 bounded number of times (:data:`MAX_SENDS`) within the sender's bandwidth budget.
 
 The receivers here keep what they hold within bounds on time (``timeout``, the deadline) and
-memory, and count every frame they give up once, as :class:`rosgate.reassembly.Reassembler`
+memory, and count every frame they give up once, as :class:`rosgate.builtin.Reassembler`
 does. Nothing here opens a socket or reads a clock of its own: times are passed in.
 """
 
