@@ -23,7 +23,7 @@ from .drops import Drop, Reason
 from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
-from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_found, qos_profile, type_hash
+from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, type_hash
 from .routes import (
     BareFraming,
     BarePort,
@@ -112,7 +112,7 @@ class Router:
                                   compression=p.compression)
             self._identify(route, p.msg_type)
             if not t.qos_given:
-                route.qos_found = qos_found(self.ros.publishers_found(t.topic))
+                route.qos_found = self.ros.qos_found(t.topic)
                 qos = route.qos_in_use = route.qos_found or QOS_UNFOUND
             # announced before the first message, or a latched history
             self._start(route, announce and t.framing is Framing.ROSGATE)
@@ -185,20 +185,21 @@ class Router:
         if route.codec.raw:
             route.publish = self.ros.raw_publisher(route.entity)
 
-    def _renew(self, route: TransmitRoute | ReceiveRoute, qos: dict[str, Any]) -> None:
+    def _renew(self, route: TransmitRoute | ReceiveRoute, qos: dict[str, Any]) -> bool:
         """A route's subscription or publisher made anew with ``qos``; the old one goes once
         the new one is up (they overlap). A publisher is renewed only for a new QoS; a
         subscription also to be sent a latched history again."""
         with self._lock:
             old = route.entity
             if old is None or isinstance(route, ReceiveRoute) and qos == route.qos_in_use:
-                return  # removed meanwhile, or done already
+                return False  # removed meanwhile, or done already
             if isinstance(route, TransmitRoute):
                 self._listen(route, qos)
             else:
                 self._publish(route, qos)
             route.qos_in_use = qos
         self.ros.destroy(old)
+        return True
 
     def bare_port(self, named: bool) -> BarePort:
         """The receivers of one port with ``framing: none``."""
@@ -326,7 +327,7 @@ class Router:
             interface: type = p.msg_type
             t = p.config
             if t.direction is Direction.TRANSMIT and not t.qos_given:
-                qos = qos_found(self.ros.publishers_found(t.topic))
+                qos = self.ros.qos_found(t.topic)
         else:
             interface = p.srv_type
         return announce.item(Identity(p.config.type, self.hash_of(interface)), qos)
@@ -341,9 +342,9 @@ class Router:
         entry sets its own (a new publisher replaces the old)."""
         if route.topic.qos_given or qos is None or qos == route.qos_in_use:
             return
-        self._renew(route, qos)
-        log.info("%s: publishes as its far side's publishers do: %s, %s, depth %d", route.label,
-                 qos["reliability"], qos["durability"], qos["depth"])
+        if self._renew(route, qos):
+            log.info("%s: publishes as its far side's publishers do: %s, %s, depth %d",
+                     route.label, qos["reliability"], qos["durability"], qos["depth"])
 
     def start_announcing(self, routes: list[Route]) -> None:
         """Routes made with ``announce=False`` say their entries now, and from now on."""
@@ -365,7 +366,7 @@ class Router:
     def _find_qos(self, route: TransmitRoute) -> None:
         """Look at the publishers of a topic without a qos; a new QoS is announced before the
         subscription changes to it."""
-        found = qos_found(self.ros.publishers_found(route.topic.topic))
+        found = self.ros.qos_found(route.topic.topic)
         if found is None or found == route.qos_found:
             return
         route.qos_found = found
