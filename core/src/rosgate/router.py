@@ -72,7 +72,6 @@ class Router:
         self.servers: dict[int, ServerRoute] = {}
         self.routes: list[Route] = []
         self.link_drops: Counter = Counter()
-        self.announcements_ignored = 0  # of entries this side does not carry (a shared bus)
         #: a role that takes hellos (the server) sets this; elsewhere a hello is foreign
         self.on_hello: HelloHandler | None = None
         self._lock = threading.RLock()
@@ -287,8 +286,7 @@ class Router:
         try:
             frame = route.announcement(qos)
         except (NoKey, CipherError):
-            route.counters.announce_drops += 1
-            return
+            return  # not data: the next announcement comes soon
         link.send(frame, route.announcer, to)
 
     def _announced(self, header: envelope.Header, frame: bytes, link: Link,
@@ -298,8 +296,7 @@ class Router:
             header.topic_id)
         if route is None:
             # an entry this side does not carry: on a shared bus (CAN) every node hears every
-            # node's announcements. No message is lost, so no drop: counted, and said in debug
-            self.announcements_ignored += 1
+            # node's announcements. No message is lost, so no drop: said in debug
             log.debug("%s: an announcement for id %d from %s, an entry this side does not carry",
                       link.name, header.topic_id, source)
             return

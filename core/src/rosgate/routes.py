@@ -82,15 +82,10 @@ class Counters:
     bytes_before_compression: int = 0
     bytes_after_compression: int = 0
     not_compressed: int = 0
-    #: announcements of the entry (rosgate.announce) the link dropped on the way out: never
-    #: data, so not among the drops
-    announce_drops: int = 0
 
     def snapshot(self) -> dict[str, Any]:
-        """Every counter but ``announce_drops``, the drops as a plain mapping."""
-        counts = {f.name: getattr(self, f.name) for f in fields(self)}
-        del counts["announce_drops"]
-        return {**counts, "drops": dict(self.drops)}
+        """Every counter, the drops as a plain mapping."""
+        return {**{f.name: getattr(self, f.name) for f in fields(self)}, "drops": dict(self.drops)}
 
 
 class Route:
@@ -130,7 +125,8 @@ class Route:
         self.replay = envelope.ReplayWindow(authenticated=keys.authenticates)
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
         self._announced = itertools.count(1)
-        self.announcer = SideSender(self, CONTROL, self._announce_dropped)
+        # an announcement the link drops is not data (not among the drops): the next one comes
+        self.announcer = SideSender(self, CONTROL, lambda reason, detail="": None)
         self.born = time.monotonic()
 
     def announcement(self, qos: dict[str, Any] | None) -> bytes:
@@ -171,9 +167,6 @@ class Route:
             return None
         self.check.far(identity)
         return identity, qos
-
-    def _announce_dropped(self, reason: Reason, detail: str = "") -> None:
-        self.counters.announce_drops += 1
 
     def refuse_type(self) -> None:
         """A frame dropped because the far side's type is not this side's."""
@@ -548,11 +541,6 @@ class BarePort:
                 self.routes[name] = route
         else:
             self.only = route
-
-    @property
-    def receivers(self) -> list[ReceiveRoute]:
-        return list({id(r): r for r in self.routes.values()}.values()) if self.named \
-            else [self.only] if self.only is not None else []
 
     def on_frame(self, datagram: bytes, link: Link, source: Address) -> None:
         if not self.named:
