@@ -285,13 +285,9 @@ class Resolver:
         if self.config.role is Role.PEER and action.port is None and not bus:
             raise error(f"{key}.port", "peer role: an action needs a port (its calls use it, "
                         "its feedback and status the next one)", "add port: <1..65534>")
-        prepared: list[TopicSpec | ServiceSpec] = []
-        for part in actions.parts(action):
-            if isinstance(part, TopicConfig):
-                prepared.append(self.topic(part, index, section, error))
-            else:
-                prepared.append(self.service(part, index, section, error))
-        return PreparedAction(action, prepared)
+        return PreparedAction(action, [
+            self.topic(part, index, section, error) if isinstance(part, TopicConfig)
+            else self.service(part, index, section, error) for part in actions.parts(action)])
 
     def _bus_key(self, transport: BusTransport, entry: TopicConfig | ServiceConfig, key: str,
                  error: ErrorMaker) -> str:

@@ -307,14 +307,9 @@ class Router:
     def far(self, route: Route, item: Any) -> None:
         """What a hello or a welcome says of the far side's entry (None: nothing, an older
         rosgate): its type checked, its QoS followed."""
-        try:
-            identity, qos = announce.read(item)
-        except ValueError as exc:
-            route.drop(Drop.BAD_ANNOUNCEMENT, str(exc))
-            return
-        route.check.far(identity)
-        if isinstance(route, ReceiveRoute):
-            self.follow_qos(route, qos)
+        told = route.told(item)
+        if told is not None and isinstance(route, ReceiveRoute):
+            self.follow_qos(route, told[1])
 
     def entry_item(self, p: TopicSpec | ServiceSpec) -> dict[str, Any]:
         """An entry as a hello says it before its route exists: its type, and the QoS found

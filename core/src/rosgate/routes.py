@@ -155,13 +155,17 @@ class Route:
 
     def heard(self, header: envelope.Header,
               frame: bytes) -> tuple[Identity | None, dict[str, Any] | None] | None:
-        """The far side's announcement of this entry, opened and read, its type checked; None
-        (counted) when it does not open or read."""
+        """The far side's announcement frame of this entry: see :meth:`told`."""
         body = self.open(frame, header.epoch)
-        if body is None:
-            return None
+        return None if body is None else self.told(bytes(body))
+
+    def told(self, said: bytes | Any) -> tuple[Identity | None, dict[str, Any] | None] | None:
+        """What the far side says of this entry (an announcement's opened body, or a hello's or
+        a welcome's item; None: nothing, an older rosgate): read, its type checked. None
+        (counted) when it cannot be read."""
         try:
-            identity, qos = announce.parse_body(bytes(body))
+            identity, qos = (announce.parse_body(said) if isinstance(said, bytes)
+                             else announce.read(said))
         except ValueError as exc:
             self.drop(Drop.BAD_ANNOUNCEMENT, str(exc))
             return None
