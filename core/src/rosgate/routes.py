@@ -159,7 +159,7 @@ class Route:
         body = self.open(frame, header.epoch)
         return None if body is None else self.told(bytes(body))
 
-    def told(self, said: bytes | Any) -> tuple[Identity | None, dict[str, Any] | None] | None:
+    def told(self, said: Any) -> tuple[Identity | None, dict[str, Any] | None] | None:
         """What the far side says of this entry (an announcement's opened body, or a hello's or
         a welcome's item; None: nothing, an older rosgate): read, its type checked. None
         (counted) when it cannot be read."""
