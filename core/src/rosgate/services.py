@@ -1,6 +1,5 @@
-"""Services across the link: a ROS call made on one side, served by the real server on the other.
-
-An entry's direction picks the route:
+"""Services across the link: a ROS call made on one side, served by the real server on the other
+(docs/services.md says how they behave for users).
 
 * ``transmit`` -> :class:`CallerRoute`: a proxy ROS service server here, named ``service``. Each
   call crosses the link; the answer comes back and is returned to the ROS caller.
@@ -8,23 +7,15 @@ An entry's direction picks the route:
   through a ROS client.
 
 Wire (``framing: rosgate``): a request is an envelope with ``FLAG_REQUEST``, topic id = the
-service's id, and the call's id in (epoch, seq): the caller's random epoch and a per-caller count
-from 1. The body is ``cipher.seal(header, codec(Request))``. The answer echoes epoch and seq with
+service's id, and the call's id in (epoch, seq): the caller's epoch and a per-caller count from
+1. The body is ``cipher.seal(header, codec(Request))``. The answer echoes epoch and seq with
 ``FLAG_REPLY``; with ``FLAG_FAILED`` too when the serving side got no answer from its ROS server,
-and then the (sealed) body is the reason in UTF-8. Many calls are in flight at once; each answer
-finds its call by seq. An answer that finds no waiting call (timed out, answered already) is
-dropped as ``late_answer``. Requests pass the replay window: a replayed request is not served
-twice.
+and then the (sealed) body is the reason in UTF-8. Each answer finds its call by seq; one that
+finds none is dropped as ``late_answer``. A call the bridge cannot complete is answered with
+:func:`failure` within ``timeout``, counted by reason and warned about.
 
-Failure: ROS 2 services have no error channel. A call the bridge cannot complete (no answer
-within ``timeout``, no ROS server on the far side, link down, undecodable answer) is answered
-with the type's default Response, except ``success = False`` and ``message`` = the reason
-(starting "rosgate: ") when the type has those fields (std_srvs Trigger and SetBool do). It is
-counted by reason and warned about. The ROS caller never waits longer than ``timeout``.
-
-Codecs: the entry's codec is instantiated for ``Type.Request`` and ``Type.Response``. rclpy
-service servers and clients hand over message objects, so a raw codec (``cdr``) gets them
-serialized with ``rclpy.serialization`` first.
+Codecs: the entry's codec is made for ``Type.Request`` and ``Type.Response``; a raw codec
+(``cdr``) gets rclpy's message objects serialized first (:class:`ServiceCodec`).
 """
 
 from __future__ import annotations
@@ -62,7 +53,9 @@ DISCOVERY_POLL = 0.05
 
 
 def failure(response_type: Any, reason: str) -> Any:
-    """The answer a ROS caller gets when the bridge has none (see the module documentation)."""
+    """The answer a ROS caller gets when the bridge has none (ROS 2 services have no error
+    channel): the type's default Response, but ``success = False`` and ``message`` = the reason
+    (starting "rosgate: ") where the type has those fields (std_srvs Trigger and SetBool do)."""
     response = response_type()
     fields = response_type.get_fields_and_field_types()
     if fields.get("success") == "boolean":
