@@ -66,19 +66,18 @@ class Identity:
         return f"{self.name} ({self.hash or 'no hash'})"
 
 
-def encode(identity: Identity, qos: dict[str, Any] | None) -> bytes:
+def item(identity: Identity, qos: dict[str, Any] | None) -> dict[str, Any]:
+    """One entry's item of a hello or a welcome: what its announcement's body says."""
     body: dict[str, Any] = {"type": identity.name}
     if identity.hash is not None:
         body["hash"] = identity.hash
     if qos is not None:
-        body["qos"] = qos
-    return json.dumps(body, separators=(",", ":")).encode()
+        body["qos"] = dict(qos)
+    return body
 
 
-def item(identity: Identity, qos: dict[str, Any] | None) -> dict[str, Any]:
-    """One entry's item of a hello or a welcome (the announcement's body as a mapping)."""
-    decoded: dict[str, Any] = json.loads(encode(identity, qos))
-    return decoded
+def encode(identity: Identity, qos: dict[str, Any] | None) -> bytes:
+    return json.dumps(item(identity, qos), separators=(",", ":")).encode()
 
 
 def read(item: Any) -> tuple[Identity | None, dict[str, Any] | None]:

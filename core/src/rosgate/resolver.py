@@ -14,7 +14,6 @@ import dataclasses
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
 from typing import Any
 
 from . import actions
@@ -129,19 +128,7 @@ class Resolver:
               error: ErrorMaker | None = None) -> TopicSpec:
         error = error or self.config.error
         key = f"{section}[{index}]"
-        transport = self.transport(topic.transport, f"{key}.transport", error)
-        codec_cls, codec_options = self._codec(topic.codec, f"{key}.codec", error)
-        codec_options = _microcontroller(codec_cls, codec_options, topic)
-        cipher_cls, cipher = self._entry_cipher(topic.cipher, f"{key}.cipher", error,
-                                                isinstance(transport, BusTransport))
-        try:
-            msg_type = resolve_type(topic.type)
-        except TypeNotFound as exc:
-            raise error(f"{key}.type", str(exc)) from None
-        try:
-            codec_cls(msg_type, codec_options)
-        except OptionError as exc:
-            raise self._option_error(topic.codec, exc, f"{key}.codec", error) from None
+        transport, common = self._entry(topic, index, key, error)
         if topic.framing is Framing.NONE and isinstance(transport, StreamTransport):
             raise error(f"{key}.framing",
                         "framing: none needs a datagram transport (udp, can, ...)",
@@ -149,25 +136,54 @@ class Resolver:
         reliable = is_reliable(topic.qos)
         priority = topic.priority or PRIORITIES["data"]
         self._real_link(topic, key, transport, error)
-        recovery = self._recovery(topic, key, error)
+        packetizer, options = self._recovery(topic, key, error) or (None, None)
         compression = self._compression(topic, key, error)
-        spec = partial(TopicSpec, config=topic, msg_type=msg_type, codec_cls=codec_cls,
-                       codec_options=codec_options, transport=transport, cipher=cipher,
-                       cipher_cls=cipher_cls, index=index, compression=compression,
-                       transforms=self.transform_for)
         if isinstance(transport, BusTransport):  # a bus paces and drops by itself
-            return spec(address=NO_ADDRESS, local=NO_ADDRESS,
-                        key=self._bus_key(transport, topic, key, error),
-                        delivery=Delivery(reliable=reliable, priority=priority))
-        self._point_to_point(topic, key, transport, error)
-        self._check_main_line_port(topic, key, transport, error)
-        address, local = self._addresses(transport, topic, key, error)
-        packetizer, options = recovery or (None, None)
-        return spec(address=address, local=local, delivery=Delivery(
-            reliable=reliable, priority=priority,
-            latest_only=not reliable if topic.latest_only is None else topic.latest_only,
-            max_delay=topic.max_delay, packetizer=packetizer, packetizer_options=options,
-            whole=topic.framing is Framing.NONE))
+            delivery = Delivery(reliable=reliable, priority=priority)
+        else:
+            delivery = Delivery(
+                reliable=reliable, priority=priority,
+                latest_only=not reliable if topic.latest_only is None else topic.latest_only,
+                max_delay=topic.max_delay, packetizer=packetizer, packetizer_options=options,
+                whole=topic.framing is Framing.NONE)
+        return TopicSpec(**common, **self._where(topic, key, transport, error),
+                         delivery=delivery, compression=compression,
+                         transforms=self.transform_for)
+
+    def _entry(self, entry: TopicConfig | ServiceConfig, index: int, key: str,
+               error: ErrorMaker) -> tuple[Transport, dict[str, Any]]:
+        """An entry's transport, and what its spec holds of every plugin and of its type, each
+        checked: its codec's options fit the type (a service's Request and Response)."""
+        transport = self.transport(entry.transport, f"{key}.transport", error)
+        codec_cls, codec_options = self._codec(entry.codec, f"{key}.codec", error)
+        codec_options = _microcontroller(codec_cls, codec_options, entry)
+        cipher_cls, cipher = self._entry_cipher(entry.cipher, f"{key}.cipher", error,
+                                                isinstance(transport, BusTransport))
+        try:
+            interface: Any = resolve_type(entry.type)
+        except TypeNotFound as exc:
+            raise error(f"{key}.type", str(exc)) from None
+        topic = isinstance(entry, TopicConfig)
+        try:
+            for part in (interface,) if topic else (interface.Request, interface.Response):
+                codec_cls(part, codec_options)
+        except OptionError as exc:
+            raise self._option_error(entry.codec, exc, f"{key}.codec", error) from None
+        return transport, {"config": entry, "msg_type" if topic else "srv_type": interface,
+                           "codec_cls": codec_cls, "codec_options": codec_options,
+                           "transport": transport, "cipher": cipher, "cipher_cls": cipher_cls,
+                           "index": index}
+
+    def _where(self, entry: TopicConfig | ServiceConfig, key: str, transport: Transport,
+               error: ErrorMaker) -> dict[str, Any]:
+        """Where an entry's frames go: its key on a bus, else its addresses."""
+        if isinstance(transport, BusTransport):
+            return {"address": NO_ADDRESS, "local": NO_ADDRESS,
+                    "key": self._bus_key(transport, entry, key, error)}
+        self._point_to_point(entry, key, transport, error)
+        self._check_main_line_port(entry, key, transport, error)
+        address, local = self._addresses(transport, entry, key, error)
+        return {"address": address, "local": local}
 
     def _recovery(self, topic: TopicConfig, key: str,
                   error: ErrorMaker) -> tuple[type[Packetizer], Any] | None:
@@ -237,20 +253,7 @@ class Resolver:
                 error: ErrorMaker | None = None) -> ServiceSpec:
         error = error or self.config.error
         key = f"{section}[{index}]"
-        transport = self.transport(service.transport, f"{key}.transport", error)
-        codec_cls, codec_options = self._codec(service.codec, f"{key}.codec", error)
-        codec_options = _microcontroller(codec_cls, codec_options, service)
-        cipher_cls, cipher = self._entry_cipher(service.cipher, f"{key}.cipher", error,
-                                                isinstance(transport, BusTransport))
-        try:
-            srv_type: Any = resolve_type(service.type)
-        except TypeNotFound as exc:
-            raise error(f"{key}.type", str(exc)) from None
-        try:
-            codec_cls(srv_type.Request, codec_options)
-            codec_cls(srv_type.Response, codec_options)
-        except OptionError as exc:
-            raise self._option_error(service.codec, exc, f"{key}.codec", error) from None
+        transport, common = self._entry(service, index, key, error)
         service_framing: type[ServiceFraming] | None = None
         if service.framing is not Framing.ROSGATE:  # a microcontroller's calls: by a plugin
             service_framing = self.plugin("service_framing", service.framing.value,
@@ -261,21 +264,12 @@ class Resolver:
             if not isinstance(transport, StreamTransport):
                 raise error(f"{key}.transport", f"framing {service.framing} needs a stream "
                             "transport (one connection per call)", "use transport: tcp")
-            if not codec_cls.messagepack:
+            if not common["codec_cls"].messagepack:
                 raise error(f"{key}.codec", f"codec {service.codec} does not put the service's "
                             "name on the wire (it does not write MessagePack)",
                             "use codec: msgpack")
-        spec = partial(ServiceSpec, config=service, srv_type=srv_type, codec_cls=codec_cls,
-                       codec_options=codec_options, transport=transport, cipher=cipher,
-                       cipher_cls=cipher_cls, index=index)
-        if isinstance(transport, BusTransport):
-            return spec(address=NO_ADDRESS, local=NO_ADDRESS,
-                        key=self._bus_key(transport, service, key, error))
-        self._point_to_point(service, key, transport, error)
-        self._check_main_line_port(service, key, transport, error)
-        address, local = self._addresses(transport, service, key, error)
-        # calls are not held while a link is down: the caller's timeout answers them instead
-        return spec(address=address, local=local, service_framing=service_framing)
+        return ServiceSpec(**common, **self._where(service, key, transport, error),
+                           service_framing=service_framing)
 
     def action(self, action: ActionConfig, index: int, section: str,
                error: ErrorMaker | None = None) -> PreparedAction:
@@ -292,13 +286,9 @@ class Resolver:
         if self.config.role is Role.PEER and action.port is None and not bus:
             raise error(f"{key}.port", "peer role: an action needs a port (its calls use it, "
                         "its feedback and status the next one)", "add port: <1..65534>")
-        prepared: list[TopicSpec | ServiceSpec] = []
-        for part in actions.parts(action):
-            if isinstance(part, TopicConfig):
-                prepared.append(self.topic(part, index, section, error))
-            else:
-                prepared.append(self.service(part, index, section, error))
-        return PreparedAction(action, prepared)
+        return PreparedAction(action, [
+            self.topic(part, index, section, error) if isinstance(part, TopicConfig)
+            else self.service(part, index, section, error) for part in actions.parts(action)])
 
     def _bus_key(self, transport: BusTransport, entry: TopicConfig | ServiceConfig, key: str,
                  error: ErrorMaker) -> str:
@@ -444,22 +434,22 @@ class Resolver:
 
     def transport(self, name: str, key: str, error: ErrorMaker | None = None) -> Transport:
         if name not in self.transports:
-            cls = self.plugin("transport", name, key, error).cls
-            try:
-                self.transports[name] = cls(parse(cls, self._options(name), self.config.base_dir))
-            except OptionError as exc:
-                raise self._option_error(name, exc, key, error) from None
+            self.transports[name] = self._made("transport", name, key, error)
         return self.transports[name]
 
     def cipher(self, name: str, key: str, error: ErrorMaker | None = None) -> Cipher:
         if name not in self.ciphers:
-            cls = self.plugin("cipher", name, key, error).cls
-            try:
-                self.ciphers[name] = cls(parse(cls, self._options(name), self.config.base_dir),
-                                         self.config.base_dir)
-            except OptionError as exc:
-                raise self._option_error(name, exc, key, error) from None
+            self.ciphers[name] = self._made("cipher", name, key, error, self.config.base_dir)
         return self.ciphers[name]
+
+    def _made(self, kind: str, name: str, key: str, error: ErrorMaker | None,
+              *args: Any) -> Any:
+        """A plugin made with its options from the file (and ``args``)."""
+        cls = self.plugin(kind, name, key, error).cls
+        try:
+            return cls(parse(cls, self._options(name), self.config.base_dir), *args)
+        except OptionError as exc:
+            raise self._option_error(name, exc, key, error) from None
 
     def _entry_cipher(self, name: str, key: str, error: ErrorMaker,
                       on_bus: bool = False) -> tuple[type[Cipher], Cipher | None]:

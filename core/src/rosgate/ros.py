@@ -127,6 +127,11 @@ class _ServiceTypeSupport(ctypes.Structure):
                 ("get_type_hash", _GetTypeHash)]
 
 
+#: the pointer in a PyCapsule: rosidl's metaclasses hold their C functions in capsules
+_capsule = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
+    ("PyCapsule_GetPointer", ctypes.pythonapi))
+
+
 @functools.lru_cache(maxsize=1024)
 def type_hash(interface: type) -> str | None:
     """The RIHS01 hash ROS gives ``interface`` (a message or a service class), as the graph
@@ -135,9 +140,7 @@ def type_hash(interface: type) -> str | None:
     meta: Any = type(interface)
     try:
         meta.__import_type_support__()
-        capsule = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
-            ("PyCapsule_GetPointer", ctypes.pythonapi))
-        address = capsule(meta._TYPE_SUPPORT, None)
+        address = _capsule(meta._TYPE_SUPPORT, None)
         layout = _ServiceTypeSupport if hasattr(interface, "Request") else _MessageTypeSupport
         support = layout.from_address(address)
         if not support.get_type_hash:
@@ -149,24 +152,6 @@ def type_hash(interface: type) -> str | None:
     except (AttributeError, ValueError, OSError, TypeError) as exc:
         _log.debug("no type hash for %s: %s", getattr(interface, "__name__", interface), exc)
         return None
-
-
-def qos_found(infos: list[Any]) -> dict[str, Any] | None:
-    """The QoS a subscription (and a publisher for it elsewhere) takes from the publishers in
-    ``infos`` (rclpy's TopicEndpointInfo): reliable when all are, transient_local when all are
-    (as ROS's own best-available QoS decides), deep enough for the history of all of them;
-    None when there is none."""
-    from rclpy import qos
-
-    if not infos:
-        return None
-    profiles = [info.qos_profile for info in infos]
-    reliable = all(p.reliability == qos.ReliabilityPolicy.RELIABLE for p in profiles)
-    latched = all(p.durability == qos.DurabilityPolicy.TRANSIENT_LOCAL for p in profiles)
-    depth = sum(max(1, p.depth) for p in profiles) if latched else QOS_FOUND_DEPTH
-    return {"reliability": "reliable" if reliable else "best_effort",
-            "durability": "transient_local" if latched else "volatile",
-            "depth": max(QOS_FOUND_DEPTH, min(depth, QOS_FOUND_MAX_DEPTH))}
 
 
 #: the depth of a QoS found from publishers, and at most what a latched topic's keeps
@@ -185,12 +170,10 @@ def qos_profile(spec: int | str | dict) -> Any:
     if isinstance(spec, str):  # a name config.QOS_PROFILES admits
         return getattr(qos, f"qos_profile_{spec}")
     profile = qos.QoSProfile(depth=spec.get("depth", 10))
-    if "reliability" in spec:
-        profile.reliability = getattr(qos.ReliabilityPolicy, spec["reliability"].upper())
-    if "durability" in spec:
-        profile.durability = getattr(qos.DurabilityPolicy, spec["durability"].upper())
-    if "history" in spec:
-        profile.history = getattr(qos.HistoryPolicy, spec["history"].upper())
+    for policy, values in (("reliability", qos.ReliabilityPolicy),
+                           ("durability", qos.DurabilityPolicy), ("history", qos.HistoryPolicy)):
+        if policy in spec:
+            setattr(profile, policy, getattr(values, spec[policy].upper()))
     return profile
 
 
@@ -256,15 +239,13 @@ class _RmwChecker:
     _library: Any = None  # the middleware's C library, found once per process
 
     def __init__(self, msg_type: type, rmw: Any, reset_error: Any):
-        capsule = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
-            ("PyCapsule_GetPointer", ctypes.pythonapi))
         meta: Any = type(msg_type)  # rosidl's metaclass holds the C type support
         meta.__import_type_support__()
         self.name = msg_type.__name__
-        self.type_support = capsule(meta._TYPE_SUPPORT, None)
-        create = ctypes.CFUNCTYPE(ctypes.c_void_p)(capsule(meta._CREATE_ROS_MESSAGE, None))
+        self.type_support = _capsule(meta._TYPE_SUPPORT, None)
+        create = ctypes.CFUNCTYPE(ctypes.c_void_p)(_capsule(meta._CREATE_ROS_MESSAGE, None))
         self._destroy = ctypes.CFUNCTYPE(None, ctypes.c_void_p)(
-            capsule(meta._DESTROY_ROS_MESSAGE, None))
+            _capsule(meta._DESTROY_ROS_MESSAGE, None))
         self.message = create()
         if not self.message:
             raise MemoryError(f"cannot create a {self.name}")
@@ -380,10 +361,6 @@ class RosNode:
         self._thread = threading.Thread(target=self._spin, name=f"ros-{name}", daemon=True)
         self._thread.start()
 
-    @property
-    def logger(self) -> Any:
-        return self.node.get_logger()
-
     def _spin(self) -> None:
         # one spin_once per wake-up (it runs one callback, which takes every message the middleware
         # announced); the context is asked whether it is still up every SPIN seconds, not per
@@ -430,12 +407,25 @@ class RosNode:
 
         return next_waiting
 
-    def publishers_found(self, topic: str) -> list[Any]:
-        """The publishers of ``topic`` on the ROS graph, but this node's own (a bridge that
-        also receives the topic)."""
+    def qos_found(self, topic: str) -> dict[str, Any] | None:
+        """The QoS a subscription to ``topic`` (and a publisher for it elsewhere) takes from its
+        publishers on the ROS graph, but this node's own (a bridge that also receives the
+        topic): reliable when all are, transient_local when all are (as ROS's own
+        best-available QoS decides), deep enough for the history of all of them; None when
+        there is none."""
+        from rclpy import qos
+
         me = (self.node.get_name(), self.node.get_namespace())
-        return [info for info in self.node.get_publishers_info_by_topic(topic)
-                if (info.node_name, info.node_namespace) != me]
+        profiles = [info.qos_profile for info in self.node.get_publishers_info_by_topic(topic)
+                    if (info.node_name, info.node_namespace) != me]
+        if not profiles:
+            return None
+        reliable = all(p.reliability == qos.ReliabilityPolicy.RELIABLE for p in profiles)
+        latched = all(p.durability == qos.DurabilityPolicy.TRANSIENT_LOCAL for p in profiles)
+        depth = sum(max(1, p.depth) for p in profiles) if latched else QOS_FOUND_DEPTH
+        return {"reliability": "reliable" if reliable else "best_effort",
+                "durability": "transient_local" if latched else "volatile",
+                "depth": max(QOS_FOUND_DEPTH, min(depth, QOS_FOUND_MAX_DEPTH))}
 
     def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)

@@ -23,7 +23,7 @@ from .drops import Drop, Reason
 from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
-from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_found, qos_profile, type_hash
+from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, type_hash
 from .routes import (
     BareFraming,
     BarePort,
@@ -48,6 +48,9 @@ WATCH_EVERY = announce.ANNOUNCE_FAST
 
 Destination = Callable[[], Address | None]
 HelloHandler = Callable[[envelope.Header, bytes, Link, Address], None]
+#: the flags of frames that are not a topic's message
+_NOT_DATA = (envelope.FLAG_HELLO | envelope.FLAG_REQUEST | envelope.FLAG_REPLY
+             | envelope.FLAG_ANNOUNCE)
 
 
 def _no_destination() -> Address | None:
@@ -69,7 +72,6 @@ class Router:
         self.servers: dict[int, ServerRoute] = {}
         self.routes: list[Route] = []
         self.link_drops: Counter = Counter()
-        self.announcements_ignored = 0  # of entries this side does not carry (a shared bus)
         #: a role that takes hellos (the server) sets this; elsewhere a hello is foreign
         self.on_hello: HelloHandler | None = None
         self._lock = threading.RLock()
@@ -96,9 +98,9 @@ class Router:
         ``announce=False``: its announcements wait for :meth:`start_announcing` (a client's,
         until the server knows where its datagrams come from)."""
         t = p.config
-        keys = keys or StaticKeys(_static(p.cipher))
+        keys = keys or _file_keys(p)
         codec = p.codec_cls(p.msg_type, p.codec_options)
-        qos = qos_profile(t.qos)
+        qos = t.qos
         route: TransmitRoute | ReceiveRoute
         if t.direction is Direction.TRANSMIT:
             framing = (BareFraming(t.remote if codec.messagepack and bare_names else None,
@@ -108,16 +110,13 @@ class Router:
                                   framing=framing, link=link, destination=destination,
                                   compression=p.compression)
             self._identify(route, p.msg_type)
-            route.announces = announce and t.framing is Framing.ROSGATE
             if not t.qos_given:
-                route.qos_found = qos_found(self.ros.publishers_found(t.topic))
-                route.qos_in_use = route.qos_found or QOS_UNFOUND
-                qos = qos_profile(route.qos_in_use)
-            if route.announces:  # before the first message, or a latched history
-                self.announce(route)
+                route.qos_found = self.ros.qos_found(t.topic)
+                qos = route.qos_in_use = route.qos_found or QOS_UNFOUND
+            # announced before the first message, or a latched history
+            self._start(route, announce and t.framing is Framing.ROSGATE)
             route.batches = self.ros.batches
-            route.entity = self.ros.subscribe(p.msg_type, t.topic, qos, route.on_message, codec.raw)
-            route.take = self.ros.taker(route.entity)
+            self._listen(route, qos)
         else:
             decode: Callable[[bytes], Any] = codec.decode
             trusted = keys.authenticates and t.framing is Framing.ROSGATE
@@ -127,13 +126,9 @@ class Router:
                                  decode=decode, transforms=p.transforms)
             self._identify(route, p.msg_type)
             route.qos_in_use = None if t.qos_given else QOS_UNFOUND
-            route.entity = self.ros.publisher(p.msg_type, t.topic, qos)
-            if codec.raw:
-                route.publish = self.ros.raw_publisher(route.entity)
-        with self._lock:
-            self.routes.append(route)
-            if isinstance(route, ReceiveRoute) and t.framing is Framing.ROSGATE:
-                self.receivers[topic_id] = route
+            self._publish(route, qos)
+        self._add(route, self.receivers if isinstance(route, ReceiveRoute)
+                  and t.framing is Framing.ROSGATE else None, topic_id)
         return route
 
     def service(self, p: ServiceSpec, service_id: int, label: str, link: Link | None,
@@ -143,8 +138,7 @@ class Router:
         its id; a microcontroller's calls (serial datagrams) find a serving route by name."""
         s = p.config
         args = (s, service_id, ServiceCodec(p.codec_cls, p.srv_type, p.codec_options),
-                keys or StaticKeys(_static(p.cipher)),
-                self.warner, label, p.srv_type, self.deadlines)
+                keys or _file_keys(p), self.warner, label, p.srv_type, self.deadlines)
         qos = deep_qos()
         route: ServiceRoute
         if s.direction is Direction.RECEIVE:
@@ -160,17 +154,51 @@ class Router:
             assert link is not None
             route = CallerRoute(*args, link=link, destination=destination)
             self._identify(route, p.srv_type)
-            route.announces = announce
-            if route.announces:
-                self.announce(route)
+            self._start(route, announce)
             route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, route.on_request)
+        table = self.servers if isinstance(route, ServerRoute) else self.callers
+        self._add(route, table if s.framing is Framing.ROSGATE else None, service_id)
+        return route
+
+    def _add(self, route: Route, table: dict[int, Any] | None, route_id: int) -> None:
+        """A new route, found by ``route_id`` in ``table`` (None: found otherwise, or never)."""
         with self._lock:
             self.routes.append(route)
-            if s.framing is Framing.ROSGATE:
-                table: dict[int, Any] = self.servers if isinstance(route, ServerRoute) \
-                    else self.callers
-                table[service_id] = route
-        return route
+            if table is not None:
+                table[route_id] = route
+
+    def _start(self, route: Route, announces: bool) -> None:
+        route.announces = announces
+        if announces:
+            self.announce(route)
+
+    def _listen(self, route: TransmitRoute, qos: int | str | dict[str, Any]) -> None:
+        """A transmitting route's subscription, with ``qos``."""
+        route.entity = self.ros.subscribe(route.interface, route.topic.topic, qos_profile(qos),
+                                          route.on_message, route.codec.raw)
+        route.take = self.ros.taker(route.entity)
+
+    def _publish(self, route: ReceiveRoute, qos: int | str | dict[str, Any]) -> None:
+        """A receiving route's publisher, with ``qos``."""
+        route.entity = self.ros.publisher(route.interface, route.topic.topic, qos_profile(qos))
+        if route.codec.raw:
+            route.publish = self.ros.raw_publisher(route.entity)
+
+    def _renew(self, route: TransmitRoute | ReceiveRoute, qos: dict[str, Any]) -> bool:
+        """A route's subscription or publisher made anew with ``qos``; the old one goes once
+        the new one is up (they overlap). A publisher is renewed only for a new QoS; a
+        subscription also to be sent a latched history again."""
+        with self._lock:
+            old = route.entity
+            if old is None or isinstance(route, ReceiveRoute) and qos == route.qos_in_use:
+                return False  # removed meanwhile, or done already
+            if isinstance(route, TransmitRoute):
+                self._listen(route, qos)
+            else:
+                self._publish(route, qos)
+            route.qos_in_use = qos
+        self.ros.destroy(old)
+        return True
 
     def bare_port(self, named: bool) -> BarePort:
         """The receivers of one port with ``framing: none``."""
@@ -217,12 +245,11 @@ class Router:
         except envelope.EnvelopeError as exc:
             self.link_drop(link, exc.reason, f"{len(frame)} bytes from {source}")
             return
-        flags = header.flags
-        if not flags:  # a topic's frame: the common case first
-            route = self.receivers.get(header.topic_id)
+        flags, topic_id = header.flags, header.topic_id
+        if not flags & _NOT_DATA:  # a topic's frame: the common case first
+            route = self.receivers.get(topic_id)
             if route is None:
-                self.link_drop(link, Drop.UNKNOWN_TOPIC,
-                               f"topic id {header.topic_id} from {source}")
+                self.link_drop(link, Drop.UNKNOWN_TOPIC, f"topic id {topic_id} from {source}")
             else:
                 route.on_frame(header, frame, link.arrived)
         elif flags & envelope.FLAG_HELLO:
@@ -230,29 +257,16 @@ class Router:
                 self.link_drop(link, Drop.UNEXPECTED_HELLO, f"from {source}")
             else:
                 self.on_hello(header, frame, link, source)
-        elif flags & envelope.FLAG_REQUEST:
-            server = self.servers.get(header.topic_id)
-            if server is None:
-                self.link_drop(link, Drop.UNKNOWN_SERVICE,
-                               f"service id {header.topic_id} from {source}")
+        elif (calls := flags & envelope.FLAG_REQUEST) or not flags & envelope.FLAG_ANNOUNCE:
+            service: Any = (self.servers if calls else self.callers).get(topic_id)
+            if service is None:
+                self.link_drop(link, Drop.UNKNOWN_SERVICE, f"service id {topic_id} from {source}")
+            elif calls:
+                service.on_request(header, frame, link, source)
             else:
-                server.on_request(header, frame, link, source)
-        elif flags & envelope.FLAG_ANNOUNCE:
-            self._announced(header, frame, link, source)
-        elif flags & envelope.FLAG_REPLY:
-            caller = self.callers.get(header.topic_id)
-            if caller is None:
-                self.link_drop(link, Drop.UNKNOWN_SERVICE,
-                               f"service id {header.topic_id} from {source}")
-            else:
-                caller.on_reply(header, frame)
+                service.on_reply(header, frame)
         else:
-            route = self.receivers.get(header.topic_id)
-            if route is None:
-                self.link_drop(link, Drop.UNKNOWN_TOPIC,
-                               f"topic id {header.topic_id} from {source}")
-            else:
-                route.on_frame(header, frame)
+            self._announced(header, frame, link, source)
 
     # -- what the sides say of their entries (rosgate.announce) ---------------------------------
     def hash_of(self, interface: type) -> str | None:
@@ -272,8 +286,7 @@ class Router:
         try:
             frame = route.announcement(qos)
         except (NoKey, CipherError):
-            route.counters.announce_drops += 1
-            return
+            return  # not data: the next announcement comes soon
         link.send(frame, route.announcer, to)
 
     def _announced(self, header: envelope.Header, frame: bytes, link: Link,
@@ -283,8 +296,7 @@ class Router:
             header.topic_id)
         if route is None:
             # an entry this side does not carry: on a shared bus (CAN) every node hears every
-            # node's announcements. No message is lost, so no drop: counted, and said in debug
-            self.announcements_ignored += 1
+            # node's announcements. No message is lost, so no drop: said in debug
             log.debug("%s: an announcement for id %d from %s, an entry this side does not carry",
                       link.name, header.topic_id, source)
             return
@@ -295,14 +307,9 @@ class Router:
     def far(self, route: Route, item: Any) -> None:
         """What a hello or a welcome says of the far side's entry (None: nothing, an older
         rosgate): its type checked, its QoS followed."""
-        try:
-            identity, qos = announce.read(item)
-        except ValueError as exc:
-            route.drop(Drop.BAD_ANNOUNCEMENT, str(exc))
-            return
-        route.check.far(identity)
-        if isinstance(route, ReceiveRoute):
-            self.follow_qos(route, qos)
+        told = route.told(item)
+        if told is not None and isinstance(route, ReceiveRoute):
+            self.follow_qos(route, told[1])
 
     def entry_item(self, p: TopicSpec | ServiceSpec) -> dict[str, Any]:
         """An entry as a hello says it before its route exists: its type, and the QoS found
@@ -312,7 +319,7 @@ class Router:
             interface: type = p.msg_type
             t = p.config
             if t.direction is Direction.TRANSMIT and not t.qos_given:
-                qos = qos_found(self.ros.publishers_found(t.topic))
+                qos = self.ros.qos_found(t.topic)
         else:
             interface = p.srv_type
         return announce.item(Identity(p.config.type, self.hash_of(interface)), qos)
@@ -327,18 +334,9 @@ class Router:
         entry sets its own (a new publisher replaces the old)."""
         if route.topic.qos_given or qos is None or qos == route.qos_in_use:
             return
-        with self._lock:
-            if qos == route.qos_in_use or route.entity is None:
-                return
-            old = route.entity
-            route.entity = self.ros.publisher(route.interface, route.topic.topic,
-                                              qos_profile(qos))
-            if route.codec.raw:
-                route.publish = self.ros.raw_publisher(route.entity)
-            route.qos_in_use = qos
-        self.ros.destroy(old)
-        log.info("%s: publishes as its far side's publishers do: %s, %s, depth %d", route.label,
-                 qos["reliability"], qos["durability"], qos["depth"])
+        if self._renew(route, qos):
+            log.info("%s: publishes as its far side's publishers do: %s, %s, depth %d",
+                     route.label, qos["reliability"], qos["durability"], qos["depth"])
 
     def start_announcing(self, routes: list[Route]) -> None:
         """Routes made with ``announce=False`` say their entries now, and from now on."""
@@ -355,24 +353,12 @@ class Router:
             if (isinstance(route, TransmitRoute) and route.qos_found is not None
                     and route.qos_found["durability"] == "transient_local"):
                 self.announce(route)
-                self._subscribe(route, route.qos_found)
-
-    def _subscribe(self, route: TransmitRoute, qos: dict[str, Any]) -> None:
-        with self._lock:
-            old = route.entity
-            if old is None:
-                return  # removed meanwhile
-            route.entity = self.ros.subscribe(route.interface, route.topic.topic,
-                                              qos_profile(qos), route.on_message,
-                                              route.codec.raw)
-            route.take = self.ros.taker(route.entity)
-            route.qos_in_use = qos
-        self.ros.destroy(old)
+                self._renew(route, route.qos_found)
 
     def _find_qos(self, route: TransmitRoute) -> None:
         """Look at the publishers of a topic without a qos; a new QoS is announced before the
         subscription changes to it."""
-        found = qos_found(self.ros.publishers_found(route.topic.topic))
+        found = self.ros.qos_found(route.topic.topic)
         if found is None or found == route.qos_found:
             return
         route.qos_found = found
@@ -381,7 +367,7 @@ class Router:
         if route.announces:
             self.announce(route)
         if found != route.qos_in_use:  # a new subscription only for a new QoS (it overlaps)
-            self._subscribe(route, found)
+            self._renew(route, found)
 
     def _watch(self) -> None:
         """Every :data:`WATCH_EVERY` seconds, the publishers of topics without a qos; every
@@ -489,10 +475,11 @@ def _real_link_counters(route: Route) -> str:
     return "".join(f", {p}" for p in parts)
 
 
-def _static(cipher: Any) -> Any:
-    """An entry's cipher from the file: a session's entries always come with their keys."""
-    assert cipher is not None, "an entry of a session needs the session's keys"
-    return cipher
+def _file_keys(p: TopicSpec | ServiceSpec) -> Keys:
+    """An entry's keys from its cipher in the file: a session's entries always come with the
+    session's keys."""
+    assert p.cipher is not None, "an entry of a session needs the session's keys"
+    return StaticKeys(p.cipher)
 
 
 def _checked(decode: Callable[[bytes], Any],

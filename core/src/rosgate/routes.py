@@ -29,7 +29,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, cast
 
 from . import announce
@@ -82,18 +82,10 @@ class Counters:
     bytes_before_compression: int = 0
     bytes_after_compression: int = 0
     not_compressed: int = 0
-    #: announcements of the entry (rosgate.announce) the link dropped on the way out: never
-    #: data, so not among the drops
-    announce_drops: int = 0
 
     def snapshot(self) -> dict[str, Any]:
-        return {"sent": self.sent, "received": self.received, "bytes_sent": self.bytes_sent,
-                "bytes_received": self.bytes_received, "lost": self.lost,
-                "drops": dict(self.drops),
-                "bytes_before_compression": self.bytes_before_compression,
-                "bytes_after_compression": self.bytes_after_compression,
-                "not_compressed": self.not_compressed, "bytes_on_wire": self.bytes_on_wire,
-                "retransmitted": self.retransmitted, "recovered": self.recovered}
+        """Every counter, the drops as a plain mapping."""
+        return {**{f.name: getattr(self, f.name) for f in fields(self)}, "drops": dict(self.drops)}
 
 
 class Route:
@@ -104,6 +96,8 @@ class Route:
     announces = False
     #: the entry's ROS class (a message or a service), set with its ROS entity
     interface: Any = None
+    #: what :meth:`admit` refuses for skipped sequence numbers is a loss on the way
+    counts_lost = False
     link: Link
     destination: Callable[[], Address | None]
 
@@ -122,14 +116,17 @@ class Route:
         self.plain = isinstance(keys, StaticKeys) and type(keys.cipher).open is NoCipher.open
         #: a reassembled frame's bytearray may go on as the payload (see open)
         self.zero_copy = False
-        #: how long (ns) a message may wait in a queue of the bridge before it is dropped
-        #: (too_late) rather than delivered late: the topic's max_delay; 0: never (services
-        #: have their own deadlines)
-        self.max_wait_ns = 0
+        #: see :func:`max_wait_ns` (services have their own deadlines)
+        self.max_wait_ns = max_wait_ns(entry) if isinstance(entry, TopicConfig) else 0
         #: the entry's type against the far side's (the router gives this side's hash)
         self.check = TypeCheck(label, Identity(entry.type, None))
+        #: a receiving side's sequence numbers: without a cipher that vouches for the header,
+        #: one forged frame may not move it
+        self.replay = envelope.ReplayWindow(authenticated=keys.authenticates)
+        self._lock = threading.Lock()  # frames may come from several links (reconnects)
         self._announced = itertools.count(1)
-        self.announcer = Announcer(self)
+        # an announcement the link drops is not data (not among the drops): the next one comes
+        self.announcer = SideSender(self, CONTROL, lambda reason, detail="": None)
         self.born = time.monotonic()
 
     def announcement(self, qos: dict[str, Any] | None) -> bytes:
@@ -139,15 +136,36 @@ class Route:
         epoch = self.keys.epoch()
         return self.seal(envelope.FLAG_ANNOUNCE, epoch, next(self._announced), body)
 
+    def admit(self, header: envelope.Header, frame: bytes) -> bytes | None:
+        """A received frame's payload, once its cipher and the replay window accept it; None
+        (counted) when either does not. A topic's skipped sequence numbers count as lost (a
+        late frame that fills a gap takes one back)."""
+        payload = self.open(frame, header.epoch)
+        if payload is None:
+            return None
+        replay = self.replay
+        with self._lock:
+            refused = replay.accept(header.epoch, header.seq)
+            if self.counts_lost:
+                self.counters.lost = replay.lost
+        if refused:
+            self.drop(refused)
+            return None
+        return payload
+
     def heard(self, header: envelope.Header,
               frame: bytes) -> tuple[Identity | None, dict[str, Any] | None] | None:
-        """The far side's announcement of this entry, opened and read, its type checked; None
-        (counted) when it does not open or read."""
+        """The far side's announcement frame of this entry: see :meth:`told`."""
         body = self.open(frame, header.epoch)
-        if body is None:
-            return None
+        return None if body is None else self.told(bytes(body))
+
+    def told(self, said: Any) -> tuple[Identity | None, dict[str, Any] | None] | None:
+        """What the far side says of this entry (an announcement's opened body, or a hello's or
+        a welcome's item; None: nothing, an older rosgate): read, its type checked. None
+        (counted) when it cannot be read."""
         try:
-            identity, qos = announce.parse_body(bytes(body))
+            identity, qos = (announce.parse_body(said) if isinstance(said, bytes)
+                             else announce.read(said))
         except ValueError as exc:
             self.drop(Drop.BAD_ANNOUNCEMENT, str(exc))
             return None
@@ -206,25 +224,24 @@ class Route:
             return None
 
 
-class Announcer:
-    """A route's announcements as the link's sender: in the control class, never waiting out a
-    link loss (the next one comes soon)."""
+class SideSender:
+    """Frames of a route that are not its messages, as the link's sender: an announcement (in
+    the control class, never waiting out a link loss: the next one comes soon) or a service
+    call (whose drop fails the call). Their bytes are not the route's data."""
 
-    __slots__ = ("route",)
-    delivery = CONTROL
+    __slots__ = ("route", "delivery", "drop")
 
-    def __init__(self, route: Route):
+    def __init__(self, route: Route, delivery: Delivery, drop: Callable[..., None]):
         self.route = route
+        self.delivery = delivery
+        self.drop = drop  # (reason, detail="")
 
     @property
     def topic_id(self) -> int:
         return self.route.topic_id
 
-    def drop(self, reason: Reason, detail: str = "") -> None:
-        self.route.counters.announce_drops += 1
-
     def on_wire(self, size: int, again: bool) -> None:
-        pass  # not the topic's data: bytes_on_wire counts its messages only
+        pass
 
 
 class TopicFraming:
@@ -246,9 +263,7 @@ class EnvelopeFraming(TopicFraming):
         epoch = route.keys.epoch()
         if epoch != route.epoch:  # a new key: a new sequence under it
             route.epoch, route.seqs = epoch, itertools.count(1)
-        header = envelope.HEADER.pack(envelope.MAGIC, envelope.VERSION, flags, route.topic_id,
-                                      epoch, next(route.seqs), stamp)
-        return header + route.keys.sealer(epoch).seal(header, payload)
+        return route.seal(flags, epoch, next(route.seqs), payload, stamp)
 
 
 class BareFraming(TopicFraming):
@@ -287,7 +302,6 @@ class TransmitRoute(Route):
                  compression: Transform | None = None):
         super().__init__(topic, topic_id, codec, keys, warner, label, delivery)
         self.topic = topic
-        self.max_wait_ns = max_wait_ns(topic)
         self.framing = framing
         self.link = link
         self.destination = destination  # where to send, looked up per message (a server learns it)
@@ -426,22 +440,20 @@ class TransmitRoute(Route):
 class ReceiveRoute(Route):
     """Link -> ROS publisher."""
 
+    counts_lost = True
+
     def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
                  warner: Warner, label: str, delivery: Delivery, *,
                  decode: Callable[[bytes], Any],
                  transforms: Callable[[int], Transform | None] = lambda wire_id: None):
         super().__init__(topic, topic_id, codec, keys, warner, label, delivery)
         self.topic = topic
-        self.max_wait_ns = max_wait_ns(topic)
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
         #: publishes what decode returned (set with the publisher: raw CDR as bytes or bytearray)
         self.publish: Callable[[Any], None] = lambda message: self.entity.publish(message)
         self.zero_copy = codec.raw  # the core's raw decode, CDR check and publisher take one
-        # without a cipher that vouches for the header, one forged frame may not move it
-        self.window = envelope.ReplayWindow(authenticated=keys.authenticates)
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
-        self._lock = threading.Lock()  # frames may come from several links (reconnects)
         #: whatever this side's file says: the sender's envelope says what it transformed, and
         #: the payload's first byte with which transform
         self.transforms = transforms
@@ -452,17 +464,8 @@ class ReceiveRoute(Route):
         """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
         datagram that carried it reached this machine (time.time_ns(); 0: unknown)."""
         size = len(frame)
-        payload = self.open(frame, header.epoch)
+        payload = self.admit(header, frame)
         if payload is None:
-            return
-        with self._lock:
-            # losses on the way: a jump over sequence numbers counts them, and a late frame
-            # (reordered) that fills a gap takes one back
-            lost = self.window.lost
-            refused = self.window.accept(header.epoch, header.seq)
-            self.counters.lost += self.window.lost - lost
-        if refused:
-            self.drop(refused)
             return
         if self.check.mismatch is not None:
             self.refuse_type()
@@ -542,11 +545,6 @@ class BarePort:
                 self.routes[name] = route
         else:
             self.only = route
-
-    @property
-    def receivers(self) -> list[ReceiveRoute]:
-        return list({id(r): r for r in self.routes.values()}.values()) if self.named \
-            else [self.only] if self.only is not None else []
 
     def on_frame(self, datagram: bytes, link: Link, source: Address) -> None:
         if not self.named:

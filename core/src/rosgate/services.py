@@ -1,6 +1,5 @@
-"""Services across the link: a ROS call made on one side, served by the real server on the other.
-
-An entry's direction picks the route:
+"""Services across the link: a ROS call made on one side, served by the real server on the other
+(docs/services.md says how they behave for users).
 
 * ``transmit`` -> :class:`CallerRoute`: a proxy ROS service server here, named ``service``. Each
   call crosses the link; the answer comes back and is returned to the ROS caller.
@@ -8,23 +7,15 @@ An entry's direction picks the route:
   through a ROS client.
 
 Wire (``framing: rosgate``): a request is an envelope with ``FLAG_REQUEST``, topic id = the
-service's id, and the call's id in (epoch, seq): the caller's random epoch and a per-caller count
-from 1. The body is ``cipher.seal(header, codec(Request))``. The answer echoes epoch and seq with
+service's id, and the call's id in (epoch, seq): the caller's epoch and a per-caller count from
+1. The body is ``cipher.seal(header, codec(Request))``. The answer echoes epoch and seq with
 ``FLAG_REPLY``; with ``FLAG_FAILED`` too when the serving side got no answer from its ROS server,
-and then the (sealed) body is the reason in UTF-8. Many calls are in flight at once; each answer
-finds its call by seq. An answer that finds no waiting call (timed out, answered already) is
-dropped as ``late_answer``. Requests pass the replay window: a replayed request is not served
-twice.
+and then the (sealed) body is the reason in UTF-8. Each answer finds its call by seq; one that
+finds none is dropped as ``late_answer``. A call the bridge cannot complete is answered with
+:func:`failure` within ``timeout``, counted by reason and warned about.
 
-Failure: ROS 2 services have no error channel. A call the bridge cannot complete (no answer
-within ``timeout``, no ROS server on the far side, link down, undecodable answer) is answered
-with the type's default Response, except ``success = False`` and ``message`` = the reason
-(starting "rosgate: ") when the type has those fields (std_srvs Trigger and SetBool do). It is
-counted by reason and warned about. The ROS caller never waits longer than ``timeout``.
-
-Codecs: the entry's codec is instantiated for ``Type.Request`` and ``Type.Response``. rclpy
-service servers and clients hand over message objects, so a raw codec (``cdr``) gets them
-serialized with ``rclpy.serialization`` first.
+Codecs: the entry's codec is made for ``Type.Request`` and ``Type.Response``; a raw codec
+(``cdr``) gets rclpy's message objects serialized first (:class:`ServiceCodec`).
 """
 
 from __future__ import annotations
@@ -42,8 +33,7 @@ from .drops import Drop, Reason
 from .errors import CodecError
 from .keyring import NoKey
 from .links import Link
-from .routes import Route
-from .spec import Delivery
+from .routes import Route, SideSender
 from .transport import Address
 from .warn import BUGS
 from .wire import envelope
@@ -63,7 +53,9 @@ DISCOVERY_POLL = 0.05
 
 
 def failure(response_type: Any, reason: str) -> Any:
-    """The answer a ROS caller gets when the bridge has none (see the module documentation)."""
+    """The answer a ROS caller gets when the bridge has none (ROS 2 services have no error
+    channel): the type's default Response, but ``success = False`` and ``message`` = the reason
+    (starting "rosgate: ") where the type has those fields (std_srvs Trigger and SetBool do)."""
     response = response_type()
     fields = response_type.get_fields_and_field_types()
     if fields.get("success") == "boolean":
@@ -210,14 +202,11 @@ class CallerRoute(ServiceRoute):
         self.destination = destination
         self.calls: dict[int, tuple[int, Call]] = {}  # seq -> (epoch, call)
         self._ids = itertools.count(1)
-        self._lock = threading.Lock()
 
     def on_request(self, request: Any, respond: Callable[[Any], None]) -> None:
         """The ROS executor's thread: send the call and return; the answer comes later."""
         call = self.answering(respond)
-        if self.check.mismatch is not None:
-            self.fail(call, Drop.TYPE_MISMATCH, self.check.mismatch)
-            self.check.say()
+        if self._refused(call):
             return
         to = self.destination()
         if to is None and self.link.datagram:
@@ -239,7 +228,10 @@ class CallerRoute(ServiceRoute):
         with self._lock:
             self.calls[seq] = (epoch, call)
         self.deadlines.after(self.service.timeout, lambda: self._expire(seq))
-        if not self.link.send(frame, _CallSender(self, call), to):
+        # a drop on the way out fails the call at once
+        sender = SideSender(self, self.delivery, lambda reason, detail="": self.fail(
+            call, reason, detail or f"{self.link.name}: {reason}"))
+        if not self.link.send(frame, sender, to):
             self._pop(seq)  # the link counted the drop, and answered the caller with it
             return
         self.counters.sent += 1
@@ -257,9 +249,7 @@ class CallerRoute(ServiceRoute):
             return
         self.counters.received += 1
         self.counters.bytes_received += len(frame)
-        if self.check.mismatch is not None:
-            self.fail(call, Drop.TYPE_MISMATCH, self.check.mismatch)
-            self.check.say()
+        if self._refused(call):
             return
         if header.flags & envelope.FLAG_FAILED:
             self.fail(call, Drop.REMOTE_FAILURE, body.decode("utf-8", "replace")[:500])
@@ -270,6 +260,14 @@ class CallerRoute(ServiceRoute):
             self.fail(call, Drop.DECODE_ERROR, str(exc))
             return
         call.answer(response)
+
+    def _refused(self, call: Call) -> bool:
+        """Whether the far side's type differs: then the call fails, saying so."""
+        if self.check.mismatch is None:
+            return False
+        self.fail(call, Drop.TYPE_MISMATCH, self.check.mismatch)
+        self.check.say()
+        return True
 
     def fail_all(self, reason: Reason, detail: str) -> None:
         """Every call still waiting is failed (the session's line was lost): an action's
@@ -295,30 +293,6 @@ class CallerRoute(ServiceRoute):
             self.fail(call, Drop.TIMEOUT, f"no answer within {self.service.timeout:g} s")
 
 
-class _CallSender:
-    """A call's request as the link's sender: a drop on the way out fails the call at once."""
-
-    __slots__ = ("route", "call")
-
-    def __init__(self, route: CallerRoute, call: Call):
-        self.route = route
-        self.call = call
-
-    @property
-    def topic_id(self) -> int:
-        return self.route.topic_id
-
-    @property
-    def delivery(self) -> Delivery:
-        return self.route.delivery
-
-    def on_wire(self, size: int, again: bool) -> None:
-        pass  # a call is counted as one, whatever it took on the link
-
-    def drop(self, reason: Reason, detail: str = "") -> None:
-        self.route.fail(self.call, reason, detail or f"{self.route.link.name}: {reason}")
-
-
 class ServerRoute(ServiceRoute):
     """``receive``: calls from the far side, served by the ROS server here. At most
     :data:`QUEUE_DEPTH` calls from the link are in progress at once (the ROS client's queue);
@@ -327,9 +301,7 @@ class ServerRoute(ServiceRoute):
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
-        self.window = envelope.ReplayWindow(authenticated=self.keys.authenticates)
         self.in_flight = 0
-        self._lock = threading.Lock()
 
     def serve(self, request: Any, call: Call) -> None:
         """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``.
@@ -379,13 +351,8 @@ class ServerRoute(ServiceRoute):
             self.drop(Drop.TOO_LARGE, f"request of {len(frame) - envelope.SIZE} bytes, "
                                       f"max_request is {self.service.max_request}")
             return
-        payload = self.open(frame, header.epoch)
+        payload = self.admit(header, frame)
         if payload is None:
-            return
-        with self._lock:
-            refused = self.window.accept(header.epoch, header.seq)
-        if refused:
-            self.drop(refused)
             return
         if self.check.mismatch is not None:
             self.refuse(header, link, source)
@@ -400,9 +367,19 @@ class ServerRoute(ServiceRoute):
         """A call of another type than this side's: answered as a failure, never served."""
         self.refuse_type()
         reason = self.check.mismatch or f"{self.label}: refused, the far side's type differs"
-        if link.send(self.seal(envelope.FLAG_REPLY | envelope.FLAG_FAILED, header.epoch,
-                               header.seq, reason.encode()), self, source):
+        self.reply(header, link, source, envelope.FLAG_FAILED, reason.encode())
+
+    def reply(self, header: envelope.Header, link: Link, source: Address, flags: int,
+              body: bytes) -> None:
+        """The answer to the call of ``header``, back on ``link`` to where it came from."""
+        try:
+            frame = self.seal(envelope.FLAG_REPLY | flags, header.epoch, header.seq, body)
+        except NoKey:  # the request's key expired while the ROS server took its time
+            self.drop(Drop.NO_SESSION_KEY, "the request's session key is gone")
+            return
+        if link.send(frame, self, source):
             self.counters.sent += 1
+            self.counters.bytes_sent += len(frame)
 
     def accept(self, header: envelope.Header, payload: bytes, size: int, link: Link,
                source: Address) -> None:
@@ -423,14 +400,7 @@ class ServerRoute(ServiceRoute):
             if not busy:
                 with self._lock:
                     self.in_flight -= 1
-            try:
-                frame = self.seal(envelope.FLAG_REPLY | flags, header.epoch, header.seq, body)
-            except NoKey:  # the request's key expired while the ROS server took its time
-                self.drop(Drop.NO_SESSION_KEY, "the request's session key is gone")
-                return
-            if link.send(frame, self, source):
-                self.counters.sent += 1
-                self.counters.bytes_sent += len(frame)
+            self.reply(header, link, source, flags, body)
 
         def answered(response: Any) -> None:
             try:

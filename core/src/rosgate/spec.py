@@ -67,7 +67,8 @@ class RouteSpec:
 
     @property
     def name(self) -> str:
-        raise NotImplementedError
+        """The entry's ROS name on this side."""
+        return self.config.topic if isinstance(self.config, TopicConfig) else self.config.service
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -80,10 +81,6 @@ class TopicSpec(RouteSpec):
     #: a receiving topic's transform of each wire id, whatever its own entry says
     transforms: Callable[[int], Transform | None] = field(default=lambda wire_id: None)
 
-    @property
-    def name(self) -> str:
-        return self.config.topic
-
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ServiceSpec(RouteSpec):
@@ -92,7 +89,3 @@ class ServiceSpec(RouteSpec):
     srv_type: Any  # a ROS service class: Request and Response inside
     #: the plugin that makes its calls when ``framing`` is not ``rosgate`` (a microcontroller's)
     service_framing: type[ServiceFraming] | None = None
-
-    @property
-    def name(self) -> str:
-        return self.config.service
