@@ -30,9 +30,10 @@ from contextlib import ExitStack
 from dataclasses import replace
 from pathlib import Path
 
-import bench
 import profiling
 from processes import HERE_CHECKOUT, Checkout, thread_cpu_seconds
+
+import bench
 
 IMAGE = next(size for size in bench.SIZES if size.key == "1m")
 ROUTE = bench.DEFAULT  # the default file, reliable
