@@ -18,6 +18,11 @@ file: the session derives a fresh secret per direction, topic and key generation
 handshake) and calls :meth:`Cipher.from_secret`. A cipher that declares
 :attr:`Cipher.session_key_size` can be used in sessions; one that leaves it at 0 (``none``)
 cannot be keyed and is refused unless the server's policy names it.
+
+A cipher that can write its output into a buffer it is given sets :attr:`Cipher.in_place` and
+implements :meth:`~Cipher.seal_into` and :meth:`~Cipher.open_into`: the core then seals a large
+payload straight into the frame it sends, and opens a reassembled frame where it lies, so a
+1 MB image is not copied on either side for the cipher's sake.
 """
 
 from __future__ import annotations
@@ -55,6 +60,23 @@ class Cipher(ABC):
     def open(self, header: bytes, body: bytes) -> bytes:
         """The payload sealed in ``body`` under ``header``; :class:`rosgate.CipherError` if the
         header, the body or the key differ, and nothing else (``body`` comes from the network)."""
+
+    #: implements :meth:`seal_into` and :meth:`open_into` (and sets :attr:`overhead`)
+    in_place: ClassVar[bool] = False
+    #: with :attr:`in_place`: the bytes ``seal`` adds to a payload (the same for every payload)
+    overhead: int = 0
+
+    def seal_into(self, header: bytes, payload: bytes, body: memoryview) -> None:
+        """What :meth:`seal` returns, written into ``body`` (``len(payload) + overhead``
+        bytes) instead. Only called when :attr:`in_place` is set."""
+        raise NotImplementedError(f"cipher {self.name!r} does not seal in place")
+
+    def open_into(self, header: bytes | memoryview, body: memoryview) -> tuple[int, int]:
+        """:meth:`open`, decrypted where it lies: ``body`` (a writable view of the received
+        frame) is overwritten, and the payload is ``body[start:end]``; returns ``(start,
+        end)``. Raises as :meth:`open` does (``body`` is then garbage, and is dropped). Only
+        called when :attr:`in_place` is set."""
+        raise NotImplementedError(f"cipher {self.name!r} does not open in place")
 
     #: bytes of secret a session derives for this cipher; 0: it cannot be keyed from a session
     session_key_size: ClassVar[int] = 0

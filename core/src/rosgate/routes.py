@@ -57,6 +57,9 @@ DRAIN_BYTES = 60_000
 # and when a batch window closes (many datagrams' worth: send_all cuts them)
 BATCH_FRAMES = 512
 BATCH_BYTES = 1_000_000
+# a payload at least this long is sealed straight into its frame (a bytearray) by a cipher that
+# can: no copy of an image to put the header in front. Shorter frames stay bytes.
+SEAL_IN_PLACE = 64 * 1024
 
 # reasons that say something is wrong (a warning); the others are routine and only counted
 QUIET_REASONS = {Drop.RATE_LIMIT, Drop.DUPLICATE, Drop.SUPERSEDED}
@@ -196,16 +199,24 @@ class Route:
         """An envelope frame of this route: the header, then the payload sealed with it."""
         header = envelope.pack(flags, self.topic_id, epoch, seq,
                                time.time_ns() if stamp is None else stamp)
-        return header + self.keys.sealer(epoch).seal(header, payload)
+        sealer = self.keys.sealer(epoch)
+        if sealer.in_place and len(payload) >= SEAL_IN_PLACE:
+            frame = bytearray(envelope.SIZE + len(payload) + sealer.overhead)
+            frame[:envelope.SIZE] = header
+            with memoryview(frame) as view:
+                sealer.seal_into(header, payload, view[envelope.SIZE:])
+            return cast(bytes, frame)  # bytes-like: links send views of a frame this long
+        return header + sealer.seal(header, payload)
 
     def open(self, frame: bytes, epoch: int) -> bytes | None:
         """An envelope frame's payload if the cipher of its epoch accepts it; None (counted)
         when it does not.
         A reassembled frame comes as the bytearray it was reassembled in, the route's to keep:
-        with the ``none`` cipher on a receiving route of a raw codec (cdr: the core's own decode,
-        CDR check and publisher take a bytearray) its header is cut off in place and the rest
-        goes to rclpy without a copy.
-        Ciphers and other codecs get bytes, as their contracts say."""
+        on a receiving route of a raw codec (cdr: the core's own decode, CDR check and publisher
+        take a bytearray) with the ``none`` cipher, or one that opens in place
+        (:attr:`Cipher.in_place`), its header is cut off in place and the rest goes to rclpy
+        without a copy.
+        Other ciphers and codecs get bytes, as their contracts say."""
         if self.plain:
             if type(frame) is bytearray and self.zero_copy:
                 del frame[:envelope.SIZE]  # O(1): CPython moves the start, copies nothing
@@ -216,8 +227,15 @@ class Route:
             self.drop(Drop.UNKNOWN_KEY, "sealed under a key this side does not hold (an earlier "
                                         "session, a restart, or an expired key generation)")
             return None
-        header, body = bytes(frame[:envelope.SIZE]), bytes(frame[envelope.SIZE:])
         try:
+            if type(frame) is bytearray and self.zero_copy and cipher.in_place:
+                # a reassembled frame, opened where it lies; header and tag cut off in place
+                with memoryview(frame) as view:
+                    start, end = cipher.open_into(view[:envelope.SIZE], view[envelope.SIZE:])
+                del frame[envelope.SIZE + end:]
+                del frame[:envelope.SIZE + start]  # O(1), as above
+                return cast(bytes, frame)
+            header, body = bytes(frame[:envelope.SIZE]), bytes(frame[envelope.SIZE:])
             return cipher.open(header, body)
         except CipherError as exc:
             self.drop(Drop.AUTH_FAILED, f"{exc} (wrong key, tampered, or not from the peer)")

@@ -18,6 +18,11 @@ request's epoch and sequence number): a random 12-byte nonce goes in front,
 ``key_file``  a file holding the key: 32 random bytes in standard base64 (44 characters).
               Create one with ``rosgate keygen aead --out aead.key`` (mode 0600).
 ``key_env``   the name of an environment variable holding the key in the same form.
+
+**In place** (:attr:`rosgate.Cipher.in_place`): a large frame is sealed straight into the
+buffer it is sent from (``encrypt_into``), and a reassembled one is decrypted back into the
+buffer it was reassembled in (``decrypt_into``, from a copy of the ciphertext: input and output
+never overlap), so no new image-sized buffer is made for the cipher on either side.
 """
 
 from __future__ import annotations
@@ -45,6 +50,8 @@ class AeadCipher(Cipher):
     Options = KeyOptions  # key_file or key_env: the convention of every rosgate cipher
     options: KeyOptions
     session_key_size = KEY_SIZE
+    # encrypt_into and decrypt_into: cryptography 45 and later
+    in_place = hasattr(ChaCha20Poly1305, "decrypt_into")
 
     def __init__(self, options: KeyOptions, base_dir: Path):
         super().__init__(options, base_dir)
@@ -60,6 +67,7 @@ class AeadCipher(Cipher):
                               "create one with 'rosgate keygen aead --out aead.key'")
         self._aead = ChaCha20Poly1305(key)
         self._nonce_in_header = False
+        self.overhead = NONCE + TAG
 
     @classmethod
     def from_secret(cls, secret: bytes) -> AeadCipher:
@@ -67,6 +75,7 @@ class AeadCipher(Cipher):
         cipher.options = KeyOptions()
         cipher._aead = ChaCha20Poly1305(secret)
         cipher._nonce_in_header = True
+        cipher.overhead = TAG
         return cipher
 
     def seal(self, header: bytes, payload: bytes) -> bytes:
@@ -86,6 +95,29 @@ class AeadCipher(Cipher):
             return self._aead.decrypt(nonce, sealed, header)
         except InvalidTag:
             raise CipherError("does not verify under this key and header") from None
+
+    def seal_into(self, header: bytes, payload: bytes, body: memoryview) -> None:
+        if self._nonce_in_header:
+            self._aead.encrypt_into(header[NONCE_IN_HEADER], payload, header, body)
+            return
+        nonce = os.urandom(NONCE)
+        body[:NONCE] = nonce
+        self._aead.encrypt_into(nonce, payload, header, body[NONCE:])
+
+    def open_into(self, header: bytes | memoryview, body: memoryview) -> tuple[int, int]:
+        start = 0 if self._nonce_in_header else NONCE
+        nonce = header[NONCE_IN_HEADER] if self._nonce_in_header else body[:NONCE]
+        end = len(body) - TAG
+        if end < start or len(nonce) != NONCE:
+            raise CipherError(f"an aead body has at least {TAG} bytes after its nonce")
+        # the ciphertext is copied out first (one memcpy): decrypting a buffer into itself is
+        # what OpenSSL allows, but not what cryptography promises, so the two never overlap
+        sealed = bytes(body[start:])
+        try:
+            self._aead.decrypt_into(nonce, sealed, header, body[start:end])
+        except InvalidTag:
+            raise CipherError("does not verify under this key and header") from None
+        return start, end
 
     @classmethod
     def generate_key(cls) -> bytes:
