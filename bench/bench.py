@@ -572,7 +572,7 @@ def confirm_session(results: list[Result], settings: Settings, options: Options,
 
 
 DROP_CHECK = 0.9  # the default file's drop check offers this times its sustained rate
-LINK_DROPS = ("superseded", "too_late")  # what says a bridge gave up on a message
+LINK_DROPS = ("superseded", "too_late", "overload")  # what says a bridge gave up on a message
 
 
 def check_drops(results: list[Result], settings: Settings, options: Options,
@@ -975,11 +975,11 @@ def default_file_targets(results: list[Result]) -> str | None:
                 continue
             drops = r.check_drops
             late = {k: v for k, v in (drops or {}).items() if k in LINK_DROPS}
-            said = ("no drop check" if drops is None else
-                    ", ".join(f"{k}={v}" for k, v in late.items()) or "no superseded/too_late")
+            said = ("no drop check" if drops is None else ", ".join(
+                f"{k}={v}" for k, v in late.items()) or "none of " + "/".join(LINK_DROPS))
             met = got >= DEFAULT_VS_BARE and drops is not None and not late
             lines.append([f"{size} {route.path}: sustained >= {DEFAULT_VS_BARE}x bare, no "
-                          f"superseded/too_late drop at {DROP_CHECK}x it",
+                          f"{'/'.join(LINK_DROPS)} drop at {DROP_CHECK}x it",
                           f"{got:.2f}x; {said}", "MET" if met else "NOT MET"])
     got = vs("2.5 kB", DEFAULT, SESSION)
     if got is not None:
@@ -1069,7 +1069,8 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
                   f"Drop check: fresh processes, one {settings.trial_seconds:g} s trial at "
                   f"{DROP_CHECK:g}x the row's sustained rate, then the drops both bridges "
                   "counted (superseded: a latest-only message replaced by a newer one while it "
-                  "waited to be sent; too_late: one that waited longer than it may).", "",
+                  "waited to be sent; too_late: one that waited longer than it may; overload: "
+                  "one shed while its topic stayed behind).", "",
                   defaults]
     targets = fast_path_targets(results, options.cpu_rate)
     if targets:
