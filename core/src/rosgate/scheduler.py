@@ -163,10 +163,6 @@ class _Topic:
     repaired: float = 0.0  # when its repairs were asked for
     backlog: Backlog | None = None
 
-    @property
-    def busy(self) -> bool:
-        return bool(self.repairs or self.packets or self.waiting)
-
 
 class Scheduler:
     """The send queue of one link (see the module's docstring). Not thread-safe: the link holds
@@ -204,12 +200,12 @@ class Scheduler:
         return topic
 
     def _key(self, sender: Any) -> tuple[int, int]:
-        """The sender's queue key (:func:`_key`), read from it once: a sender's topic id and
-        class do not change."""
+        """The sender's queue: its topic id and its class, read from it once (they do not
+        change)."""
         found = self._keys.get(id(sender))
         if found is not None and found[0] is sender:
             return found[1]
-        key = _key(sender)
+        key = sender.topic_id, min(max(sender.delivery.priority, 0), CLASSES - 1)
         if len(self._keys) >= KEYS_KEPT:  # senders of one message each (service calls)
             self._keys.clear()
         self._keys[id(sender)] = (sender, key)
@@ -365,7 +361,7 @@ class Scheduler:
                         if not topic.packets:
                             ends, topic.current = topic.current, None
                     topics.move_to_end(key)  # its turn is over
-                    if not topic.busy:
+                    if not (topic.repairs or topic.packets or topic.waiting):
                         del topics[key]
                     return Due(packet, to, sender, ends, again)
                 if not restart:
@@ -390,8 +386,8 @@ class Scheduler:
 
     def forget(self, sender: Any) -> None:
         """A sender that is gone (a removed route): what it queued goes too."""
-        found = self._keys.pop(id(sender), None)
-        topic = self._topics.pop(found[1] if found else _key(sender), None)
+        topic = self._topics.pop(self._key(sender), None)
+        del self._keys[id(sender)]
         if topic is not None:
             self._classes[topic.priority].pop(sender.topic_id, None)
             self._frames -= len(topic.waiting)
@@ -407,8 +403,3 @@ class Scheduler:
         self._keys.clear()
         self._frames = self._bytes = 0
         return unsent
-
-
-def _key(sender: Any) -> tuple[int, int]:
-    """A sender's queue: its topic id and its class."""
-    return sender.topic_id, min(max(sender.delivery.priority, 0), CLASSES - 1)
