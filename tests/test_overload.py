@@ -70,6 +70,8 @@ topics:
         if delay > 0:
             time.sleep(delay)  # paces the publisher
         publisher.publish(String(data=text(i)))
+    while inbox.wait_count(len(inbox.items) + 1, 0.5):
+        pass  # until what the send queue held has arrived: nothing more for 0.5 s
     assert robot.stop() == 0 and base.stop() == 0  # their last lines: the counters
     sent, _, drops = counters(robot.log, "/scan")
     _, received, far_drops = counters(base.log, "/scan")
