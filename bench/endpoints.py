@@ -7,8 +7,9 @@ one JSON line on stdout:
     pub: ``run TRIAL RATE SECONDS``  -> {"sent": n, "seconds": s, "end_ns": t}   publish at a
                                         steady rate; end_ns: wall clock after the last one
     sub: ``stats TRIAL [DEADLINE_NS]`` -> {"received": n, "in_time": n, "p50_us": .., "p90_us": ..,
-                                          "p99_us": ..}
-                                        in_time: how many arrived by the deadline
+                                          "p99_us": .., "p99_settled_us": ..}
+                                        in_time: how many arrived by the deadline;
+                                        settled: of those sent in the trial's second half
          ``total``                   -> {"received": n}   everything so far (for draining)
     both: ``quit``
 
@@ -181,12 +182,18 @@ class Tally:
 
     def stats(self, trial: int, deadline_ns: int) -> dict:
         arrivals = self.arrivals.get(trial, array("q"))
-        latencies = sorted(self.latencies.get(trial, ()))
-        n = len(latencies)
-        pick = lambda q: latencies[min(n - 1, int(q * n))] / 1000 if n else None
+        waits = self.latencies.get(trial, array("q"))
+        latencies = sorted(waits)
+        pick = lambda q, of: of[min(len(of) - 1, int(q * len(of)))] / 1000 if of else None
+        # what a path does once it has settled into an overload, its first reaction over:
+        # the messages sent in the second half of the trial
+        stamps = [at - wait for at, wait in zip(arrivals, waits, strict=True)]
+        half = (min(stamps) + max(stamps)) / 2 if stamps else 0
+        settled = sorted(w for stamp, w in zip(stamps, waits, strict=True) if stamp >= half)
         # arrivals are appended in time order, one callback after the other
         return {"received": len(arrivals), "in_time": bisect.bisect_right(arrivals, deadline_ns),
-                "p50_us": pick(0.50), "p90_us": pick(0.90), "p99_us": pick(0.99)}
+                "p50_us": pick(0.50, latencies), "p90_us": pick(0.90, latencies),
+                "p99_us": pick(0.99, latencies), "p99_settled_us": pick(0.99, settled)}
 
 
 def run_subscriber(p: StringPayload, depth: int, reliability: str) -> None:

@@ -5,7 +5,9 @@ A stalled bridge (its executor or its receive thread held for 50 ms) finds a bac
 runs again: it sends all of it, and the far side publishes all of it, on a link that was idle
 meanwhile. A link that cannot keep up (a budget, a send that blocks as on a full kernel send
 buffer) still replaces what waits for it (``superseded``) and drops what waited longer than its
-``max_delay`` (``too_late``)."""
+``max_delay`` (``too_late``). A best-effort topic that stays behind for longer than a stall
+lasts (HOLD), wherever it waits, sheds what waited over LAG (``overload``); a shorter stall sheds
+nothing."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import inspect
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -23,6 +26,7 @@ from rosgate.config import LinkConfig, TopicConfig
 from rosgate.keyring import StaticKeys
 from rosgate.links import DatagramLink
 from rosgate.routes import EnvelopeFraming, ReceiveRoute, TransmitRoute, Warner
+from rosgate.scheduler import HOLD, LAG
 from rosgate.spec import Delivery
 from rosgate.wire import envelope
 
@@ -199,3 +203,138 @@ def test_a_send_that_blocks_supersedes_and_drops_late(closing, far):
         time.sleep(0.01)
     assert route.counters.drops == {"superseded": 4, "too_late": 1}
     assert image.counters.drops == {}
+
+
+# --- a link that stays behind: best effort sheds its oldest, a stall sheds nothing ----------
+
+class Clocked(Receiver):
+    """The far side, noting when each frame arrived (time.time_ns(), as the envelope's stamp
+    says when the frame was made)."""
+
+    def __init__(self) -> None:
+        self.arrived: list[int] = []
+        super().__init__()
+
+    def on_frame(self, frame: bytes, link: Any, source: Any) -> None:
+        self.arrived.append(time.time_ns())
+        super().on_frame(frame, link, source)
+
+
+def offer(route: TransmitRoute, rate: float, seconds: float) -> int:
+    """Messages at a steady ``rate`` for ``seconds``, as the executor hands them to the route:
+    how many."""
+    start, count = time.monotonic(), int(rate * seconds)
+    for i in range(count):
+        delay = start + i / rate - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)  # paces the publisher
+        route.on_message(payload(i))
+    return count
+
+
+def test_a_budget_offered_twice_what_it_carries_sheds_the_oldest_and_what_arrives_is_fresh(
+        closing):
+    """4 Mbit/s carries about 190 frames of 2.5 kB a second; 380 a second are offered for 2 s.
+    Best effort, not latest-only: the send queue grows until the topic has been behind for
+    HOLD, then what waited over LAG is shed (``overload``) and what arrives is fresh. Before,
+    it waited up to the link's max_delay (1 s)."""
+    far = closing(Clocked())
+    link = udp_link(closing, LinkConfig(transport="udp", bandwidth=4_000_000))
+    route = transmitter(link, far.address, deque(), latest_only=False)
+    start = time.time_ns()
+    offered = offer(route, 380, 2.0)
+    drops = route.counters.drops
+    deadline = time.monotonic() + 10  # until the send queue has emptied: each message arrived
+    while len(far.frames) + drops.get("overload", 0) < offered and time.monotonic() < deadline:
+        time.sleep(0.01)  # or was counted (counters to poll, no event)
+    assert set(drops) == {"overload"} and drops["overload"] > offered / 4, drops
+    frames = far.wait(offered - drops["overload"])
+    assert len(frames) == offered - drops["overload"]
+    headers = [envelope.unpack(f) for f in frames]
+    seqs = [h.seq for h in headers]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)  # in order, each once
+    assert [f[envelope.SIZE:] for f in frames] == [payload(s - 1) for s in seqs]
+    ages = [(h.stamp - start, (at - h.stamp) / 1e9) for h, at in
+            zip(headers, far.arrived[:len(frames)], strict=True)]
+    early = [age for made, age in ages if made < HOLD * 1e9]
+    settled = [age for made, age in ages if made > (2 * HOLD + 0.1) * 1e9]
+    assert max(early) > 2 * LAG  # behind at first, as the queue grew
+    assert len(settled) > 100 and max(settled) < LAG + 0.05, max(settled)  # then fresh
+
+
+def test_a_send_held_for_less_than_the_hold_drops_nothing(closing):
+    """The send thread held for 150 ms (a full send buffer, a process not scheduled) while a
+    best-effort topic offers 400 frames a second: the 60 that waited leave when it goes on,
+    and every frame arrives, in order."""
+    far = closing(Receiver())
+    transport = UdpTransport({})
+    wire = Blocking(transport.bind(("127.0.0.1", 0)))
+    link = closing(DatagramLink(transport, wire, "udp", lambda *a: None, lambda *a: None))
+    image = transmitter(link, far.address, deque(), latest_only=False)
+    image.topic_id = 8
+    route = transmitter(link, far.address, deque(), latest_only=False)
+    image.on_message(b"\x00\x01\x00\x00" + bytes(100_000))  # the send thread is held on it
+    assert wire.entered.wait(5)
+    held = time.monotonic()
+    count = offer(route, 400, 0.15)
+    while time.monotonic() < held + 0.15:
+        time.sleep(0.005)  # the rest of the stall (what the test is about)
+    wire.released.set()
+    count += offer(route, 400, 0.5)
+    frames = [f for f in far.wait(count + 1) if envelope.unpack(f).topic_id == 7]
+    assert route.counters.drops == {} and image.counters.drops == {}
+    assert [envelope.unpack(f).seq for f in frames] == list(range(1, count + 1))
+
+
+def behind_for(seconds: float, step: Callable[[int, int], bool]) -> list[tuple[float, bool]]:
+    """``step(i, arrived)`` again and again for ``seconds``, each time with a message that
+    waited 30 ms (LAG is 20): (since the start, whether it went through) of each."""
+    start, out, i = time.monotonic(), [], 0
+    while (now := time.monotonic()) - start < seconds:
+        out.append((now - start, step(i, time.time_ns() - 30_000_000)))
+        i += 1
+        time.sleep(0.001)  # paces the messages
+    return out
+
+
+def test_a_receive_buffer_that_stays_behind_is_shed_after_the_hold_and_only_then():
+    route = ReceiveRoute(topic(), 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")),
+                         Warner(), "/scan", Delivery(), decode=bytes)
+    published: list[bytes] = []
+    route.publish = published.append
+
+    def receive(seq: int, arrived: int) -> bool:
+        before = len(published)
+        frame = envelope.pack(0, 7, 1, seq + 1, 0) + payload(seq)
+        route.on_frame(envelope.unpack(frame), frame, arrived)
+        return len(published) > before
+
+    went = behind_for(2 * HOLD, receive)
+    assert all(ok for at, ok in went if at < HOLD - 0.05)
+    assert not any(ok for at, ok in went if at > HOLD + 0.05)
+    assert route.counters.drops == {"overload": sum(not ok for _, ok in went)}
+    # a reliable topic's receive buffer never sheds
+    reliable = ReceiveRoute(topic(), 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")),
+                            Warner(), "/scan", Delivery(reliable=True), decode=bytes)
+    reliable.publish = published.append
+    route = reliable
+    assert all(ok for _, ok in behind_for(2 * HOLD, receive))
+    assert reliable.counters.drops == {}
+
+
+def test_a_subscription_queue_that_stays_behind_is_shed_after_the_hold(closing, far):
+    link = udp_link(closing)
+    waiting: deque = deque()
+    route = transmitter(link, far.address, waiting, latest_only=False)
+
+    def take(i: int, received: int) -> bool:
+        sent = route.counters.sent
+        waiting.append((payload(2 * i + 1), received))
+        route.on_message(payload(2 * i))  # (the executor's own: no stamp)
+        return route.counters.sent > sent
+
+    went = behind_for(2 * HOLD, take)
+    assert all(ok for at, ok in went if at < HOLD - 0.05)
+    assert not any(ok for at, ok in went if at > HOLD + 0.05)
+    assert route.counters.drops == {"overload": 2 * sum(not ok for _, ok in went)}
+    assert len(far.wait(route.counters.sent)) == route.counters.sent

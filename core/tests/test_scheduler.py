@@ -6,11 +6,12 @@ seconds."""
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass, field
 
 import pytest
 
-from rosgate.scheduler import Bucket, Due, Outgoing, Scheduler, burst
+from rosgate.scheduler import HOLD, LAG, Backlog, Bucket, Due, Outgoing, Scheduler, burst
 from rosgate.spec import Delivery
 
 IDS = itertools.count(1)
@@ -237,3 +238,107 @@ def test_a_budget_keeps_strict_priority_for_its_destination():
     s.put(message(high, "h", packets=6, size=1000))
     s.put(message(low, "l", size=10))
     assert drain(s, clock) == [f"h.{i}" for i in range(6)] + ["l.0"]
+
+
+# -- shedding by age: only while a best-effort topic stays behind --------------------------------
+def run(topic: Topic, seconds: float = 3.0, packet_time: float = 0.002,
+        stalls: tuple[tuple[float, float], ...] = ()) -> tuple[list[tuple[float, float]], int]:
+    """2,500-byte messages offered one a millisecond on a budget of one per ``packet_time``,
+    the send thread held during each (start, length) of ``stalls``: (when, how long it waited)
+    of every message that left, and how many were offered."""
+    clock = Clock()
+    s = Scheduler(bandwidth=2_500 * 8 / packet_time, clock=clock, packet=2_500)
+    left: list[tuple[float, float]] = []
+    offered = 0
+    while clock.now < seconds:
+        while offered * 0.001 <= clock.now:
+            s.put(message(topic, f"m{offered}", size=2_500, queued=offered * 0.001))
+            offered += 1
+        held = next((start + length for start, length in stalls
+                     if start <= clock.now < start + length), None)
+        due = None if held else s.next()
+        if isinstance(due, Due):
+            assert due.ends is not None  # one packet each
+            left.append((clock.now, clock.now - due.ends.queued))
+            continue
+        clock.now = min(due or math.inf, held or math.inf, offered * 0.001)
+    for sender, reason, _ in s.dropped:
+        sender.drops.append(reason)
+    return left, offered
+
+
+def test_a_best_effort_topic_that_stays_behind_sheds_its_oldest_and_what_leaves_is_fresh():
+    be = Topic("scan", reliable=False)
+    left, offered = run(be)  # twice what the link carries
+    # behind from the start: what leaves ages as the queue grows, until the topic has been
+    # behind for HOLD on end; from then on nothing older than LAG leaves
+    early = [age for at, age in left if at < HOLD]
+    late = [age for at, age in left if at > 2 * HOLD]
+    assert max(early) > 2 * LAG
+    assert late and max(late) <= LAG + 0.002 + 1e-9  # LAG, and one packet's time on the link
+    assert set(be.drops) == {"overload"}  # never too_late: the link's max_delay is not reached
+    waiting = offered - len(left) - len(be.drops)
+    assert 0 <= waiting <= LAG / 0.001 + 2  # the rest is what waits at the end: LAG's worth
+    assert len(left) == pytest.approx(3.0 / 0.002, rel=0.02)  # the link stayed busy
+
+
+def test_a_reliable_topic_never_sheds_by_age():
+    rel = Topic("scan")
+    left, _ = run(rel)
+    assert rel.drops == []
+    assert max(age for _, age in left) > 1.0  # it waits, however long: the queue bounds it
+
+
+def test_a_topic_with_a_max_delay_of_its_own_is_dropped_at_that_age_only():
+    cam = Topic("cam", reliable=False, max_delay=0.1)
+    left, _ = run(cam)
+    assert set(cam.drops) == {"too_late"}
+    late = [age for at, age in left if at > 2 * HOLD]
+    assert LAG < max(late) <= 0.1 + 0.002 + 1e-9  # its own limit, not the shedding's
+
+
+def test_stalls_shorter_than_the_hold_shed_nothing():
+    """The send thread held for 120 ms, five times: what waited leaves late, catching up
+    within 120 ms more (the link carries twice what is offered), and nothing is dropped."""
+    be = Topic("scan", reliable=False)
+    stalls = tuple((0.1 + n * 0.5, 0.12) for n in range(5))
+    left, offered = run(be, packet_time=0.0005, stalls=stalls)
+    assert be.drops == []
+    assert len(left) == offered
+    assert max(age for _, age in left) >= 0.119  # the stalls were real
+    assert max(age for at, age in left if at > 2.7) < 0.001  # caught up long since
+
+
+def test_backlog_sheds_only_after_hold_on_end_and_stops_after_hold_caught_up():
+    b = Backlog()
+    shed = [(n * 0.001, b.shed(2 * LAG, n * 0.001)) for n in range(int(3 * HOLD / 0.001))]
+    assert not any(s for at, s in shed if at < HOLD - 0.0015)
+    assert all(s for at, s in shed if at >= HOLD + 0.0015)
+    end = shed[-1][0]
+    # caught up, with a late one now and then: the late ones are still shed
+    assert not b.shed(LAG / 2, end)
+    assert b.shed(2 * LAG, end + HOLD / 2)
+    # then caught up for HOLD: the next late one starts a new spell, and goes through
+    assert not b.shed(LAG / 2, end + HOLD / 2 + HOLD)
+    assert not b.shed(2 * LAG, end + HOLD / 2 + HOLD + 0.001)
+
+
+def test_backlog_of_stalls_never_sheds():
+    """Backlogs that take just under HOLD to catch up with, each ended by a fresh message,
+    again and again."""
+    b = Backlog()
+    t = 0.0
+    for _ in range(50):
+        for _ in range(int(HOLD / 0.001) - 5):
+            assert not b.shed(0.1 + LAG, t)
+            t += 0.001
+        assert not b.shed(0.0, t)
+        t += 0.001
+
+
+def test_backlog_a_late_message_long_after_the_last_one_starts_a_new_spell():
+    """Observations further apart than HOLD are not a topic that stays behind (one that went
+    quiet, then stalled once more)."""
+    b = Backlog()
+    for n in range(10):
+        assert not b.shed(2 * LAG, n * (HOLD + 0.01))

@@ -28,11 +28,8 @@ UNITS = ((1e9, "Gbit/s"), (1e6, "Mbit/s"), (1e3, "kbit/s"), (1, "bit/s"))
 
 
 def rate_text(bits: float) -> str:
-    for scale, unit in UNITS:
-        if bits >= scale or scale == 1:
-            return f"{bits / scale:,.3g} {unit}" if bits < 10 * scale else \
-                f"{bits / scale:,.1f} {unit}"
-    return f"{bits:g} bit/s"
+    scale, unit = next((scale, unit) for scale, unit in UNITS if bits >= scale or scale == 1)
+    return f"{bits / scale:,{'.3g' if bits < 10 * scale else '.1f'}} {unit}"
 
 
 def fixed_size(msg_type: Any) -> int | None:

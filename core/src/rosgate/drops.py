@@ -35,6 +35,10 @@ class Drop(StrEnum):
     SUPERSEDED = "superseded", "a latest-only topic's waiting message was replaced by a newer one"
     TOO_LATE = "too_late", ("a best-effort message waited longer than its `max_delay` (to be "
                             "taken, in the send queue or in the receive buffer)")
+    OVERLOAD = "overload", ("a best-effort message (without a `max_delay` of its own) that "
+                            "waited over 20 ms — to be taken, in the send queue or in the receive "
+                            "buffer — while its topic had been behind for 200 ms on end: a "
+                            "sustained overload sheds the oldest, so what arrives stays fresh")
     QUEUE_FULL = "queue_full", ("a queue had no room: a link's send queue at its `frames` or "
                                 "`bytes` limit, a bus link's queue, or a link that is down (its "
                                 "oldest message goes)")

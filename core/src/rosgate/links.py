@@ -787,6 +787,9 @@ class DatagramLink(_Sending, Link):
                     if isinstance(got, Due):
                         due = got
                         break
+                    if scheduler.dropped:  # counted (outside the lock) before any wait
+                        due = None
+                        break
                     until = [t for t in (got, timer) if t is not None]
                     wake.wait(max(0.0, min(until) - now) if until else None)
                 if due is None:
@@ -822,11 +825,11 @@ class DatagramLink(_Sending, Link):
                             else:
                                 carry = more
                                 break
+            if scheduler.dropped:
+                self._count_drops()
             if due is None:  # the packetizers' timers, outside the lock: they may queue repairs
                 self._tx_timer = self._run_timers(now, sending=True)
                 continue
-            if scheduler.dropped:
-                self._count_drops()
             try:
                 if len(batch) == 1:
                     self._send_due(due)

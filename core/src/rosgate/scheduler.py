@@ -23,6 +23,8 @@ as *packets*: a datagram, a fragment, a chunk of a stream. Then:
   link's limits (``frames``, ``bytes``: beyond them a new message is refused, ``queue_full``);
   a topic's own ``max_delay`` (its sender's) applies to it whatever its reliability: a camera
   that would rather skip a frame than send one that waited (the link then idles for the next);
+* **overload**: a best-effort topic without a ``max_delay`` of its own that stays behind sheds
+  its oldest messages (see :class:`Backlog`);
 * **budget**: with a ``bandwidth``, a token bucket per destination (per peer: a server's
   clients each have their own) refilled at that many bits per second, counting every packet
   with the transport's ``packet_overhead`` (IP and UDP headers). A packet leaves only when its
@@ -47,6 +49,43 @@ from .drops import Drop, Reason
 CLASSES = 8  # 0: control; 1 (real_time) .. 7 (background)
 CONTROL = 0
 KEYS_KEPT = 4096  # senders whose queue key is remembered, at most
+LAG = 0.02   # seconds: a message that waited longer finds its topic behind
+HOLD = 0.2   # seconds behind on end (or caught up, to stop) before a topic sheds (Backlog)
+
+
+class Backlog:
+    """Whether a best-effort topic sheds a message by its age: each place a topic's messages
+    wait (the subscription's queue, the send queue, the receive buffer) has one, told how long
+    each message waited as it leaves.
+
+    A message older than :data:`LAG` finds the topic *behind*. Behind for :data:`HOLD` on end,
+    the topic sheds every message older than ``LAG`` (counted ``overload``) until none has been
+    for ``HOLD``: under a sustained overload what arrives stays fresh. A stall (a process not
+    scheduled, a GC pause) leaves a backlog that its thread catches up with in less than
+    ``HOLD`` once it runs again, as it sees it, so nothing is shed: the backlog is sent."""
+
+    __slots__ = ("since", "last")
+
+    def __init__(self) -> None:
+        self.since: float | None = None  # when this spell behind began
+        self.last = -HOLD  # when a message last waited longer than LAG
+
+    def shed(self, waited: float, now: float) -> bool:
+        """Whether a message that waited ``waited`` seconds, leaving at ``now``, is shed."""
+        if waited <= LAG:
+            if self.since is not None and (now - self.since < HOLD or now - self.last >= HOLD):
+                self.since = None  # caught up: a stall's backlog is gone, or the overload is
+            return False
+        if self.since is None or now - self.last >= HOLD:  # (late ones far apart: no spell)
+            self.since = now
+        self.last = now
+        return now - self.since >= HOLD
+
+
+def backlog(delivery: Any) -> Backlog | None:
+    """A sender's :class:`Backlog`; None when it never sheds by age: reliable, or with a
+    ``max_delay`` of its own (that age is the one it asked for)."""
+    return None if delivery.reliable or delivery.max_delay is not None else Backlog()
 
 
 def burst(rate_bytes: float, packet: int) -> int:
@@ -122,10 +161,7 @@ class _Topic:
     repairs: deque[tuple[bytes, Any]] = field(default_factory=deque)
     since: float = 0.0     # when its next packet (of the message in progress) became due
     repaired: float = 0.0  # when its repairs were asked for
-
-    @property
-    def busy(self) -> bool:
-        return bool(self.repairs or self.packets or self.waiting)
+    backlog: Backlog | None = None
 
 
 class Scheduler:
@@ -160,16 +196,16 @@ class Scheduler:
         key = self._key(sender)
         topic = self._topics.get(key)
         if topic is None:
-            topic = self._topics[key] = _Topic(sender, key[1])
+            topic = self._topics[key] = _Topic(sender, key[1], backlog=backlog(sender.delivery))
         return topic
 
     def _key(self, sender: Any) -> tuple[int, int]:
-        """The sender's queue key (:func:`_key`), read from it once: a sender's topic id and
-        class do not change."""
+        """The sender's queue: its topic id and its class, read from it once (they do not
+        change)."""
         found = self._keys.get(id(sender))
         if found is not None and found[0] is sender:
             return found[1]
-        key = _key(sender)
+        key = sender.topic_id, min(max(sender.delivery.priority, 0), CLASSES - 1)
         if len(self._keys) >= KEYS_KEPT:  # senders of one message each (service calls)
             self._keys.clear()
         self._keys[id(sender)] = (sender, key)
@@ -258,10 +294,14 @@ class Scheduler:
         limit = delivery.max_delay
         if limit is None and not delivery.reliable:
             limit = self.max_delay
-        if limit is not None and now - message.queued > limit:
+        waited = now - message.queued
+        if limit is not None and waited > limit:
             self.dropped.append((message.sender, Drop.TOO_LATE,
-                                 f"waited {now - message.queued:.3f} s to be sent "
-                                 f"(max_delay {limit:g} s)"))
+                                 f"waited {waited:.3f} s to be sent (max_delay {limit:g} s)"))
+            return False
+        if topic.backlog is not None and topic.backlog.shed(waited, now):
+            self.dropped.append((message.sender, Drop.OVERLOAD,
+                                 f"waited {waited * 1e3:.0f} ms to be sent"))
             return False
         try:
             packets = message.cut()
@@ -321,7 +361,7 @@ class Scheduler:
                         if not topic.packets:
                             ends, topic.current = topic.current, None
                     topics.move_to_end(key)  # its turn is over
-                    if not topic.busy:
+                    if not (topic.repairs or topic.packets or topic.waiting):
                         del topics[key]
                     return Due(packet, to, sender, ends, again)
                 if not restart:
@@ -346,8 +386,8 @@ class Scheduler:
 
     def forget(self, sender: Any) -> None:
         """A sender that is gone (a removed route): what it queued goes too."""
-        found = self._keys.pop(id(sender), None)
-        topic = self._topics.pop(found[1] if found else _key(sender), None)
+        topic = self._topics.pop(self._key(sender), None)
+        del self._keys[id(sender)]
         if topic is not None:
             self._classes[topic.priority].pop(sender.topic_id, None)
             self._frames -= len(topic.waiting)
@@ -363,8 +403,3 @@ class Scheduler:
         self._keys.clear()
         self._frames = self._bytes = 0
         return unsent
-
-
-def _key(sender: Any) -> tuple[int, int]:
-    """A sender's queue: its topic id and its class."""
-    return sender.topic_id, min(max(sender.delivery.priority, 0), CLASSES - 1)
