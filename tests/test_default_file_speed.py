@@ -60,6 +60,9 @@ def inline(log: str, link: str) -> tuple[int, int]:
     return int(found.group(1)), int(found.group(2))
 
 
+# 2,500 msg/s needs the cores: a bridge starved of them by other tests for longer than the
+# overload hold (200 ms) rightly sheds, and that is not what this test is about
+@pytest.mark.alone
 @pytest.mark.parametrize("plugins, topic", [
     ("", ""), ("plugins: {udp: {max_frame: 1200}}\n", ", max_delay: 1")],
     ids=["the-default-file", "max_frame-1200"])
