@@ -252,8 +252,10 @@ def test_missing_server_answered_as_failure_within_its_timeout(engines, domain, 
     start = time.monotonic()
     answer = caller.call(SetBool.Request(data=True), timeout=5)
     # the serving bridge waits most of the timeout (1.6 s) for a server to appear, then says so
-    # in time: the caller's own 2 s timeout never fires
-    assert 1.5 < time.monotonic() - start < 2.0
+    # in time: the caller's own 2 s timeout never fires (it would answer with its own words and
+    # count a timeout, as the assertions below would see; the bound on the clock is loose for a
+    # loaded machine)
+    assert 1.5 < time.monotonic() - start < 3.0
     assert answer == SetBool.Response(
         success=False, message="rosgate: no ROS server /set is running on the serving side")
     assert dict(b.routes()[0].counters.drops) == {"no_server": 1}
