@@ -5,9 +5,9 @@ A stalled bridge (its executor or its receive thread held for 50 ms) finds a bac
 runs again: it sends all of it, and the far side publishes all of it, on a link that was idle
 meanwhile. A link that cannot keep up (a budget, a send that blocks as on a full kernel send
 buffer) still replaces what waits for it (``superseded``) and drops what waited longer than its
-``max_delay`` (``too_late``). A best-effort topic that stays behind for longer than a stall
-lasts (HOLD), wherever it waits, sheds what waited over LAG (``overload``); a shorter stall sheds
-nothing."""
+``max_delay`` (``too_late``). A best-effort topic that stays behind in the link's queue for
+longer than a stall lasts (HOLD) sheds what waited over LAG there (``overload``); a shorter stall
+sheds nothing, and the subscription's queue and the receive buffer never shed."""
 
 from __future__ import annotations
 
@@ -297,7 +297,10 @@ def behind_for(seconds: float, step: Callable[[int, int], bool]) -> list[tuple[f
     return out
 
 
-def test_a_receive_buffer_that_stays_behind_is_shed_after_the_hold_and_only_then():
+def test_a_receive_buffer_that_stays_behind_is_published_late_never_shed():
+    """What waits in the receive buffer waits for this bridge's thread, not for the link: a
+    CPU-bound bridge publishes it late rather than drop it (a backlog there is bounded by the
+    socket's buffer), best effort or reliable."""
     route = ReceiveRoute(topic(), 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")),
                          Warner(), "/scan", Delivery(), decode=bytes)
     published: list[bytes] = []
@@ -310,10 +313,8 @@ def test_a_receive_buffer_that_stays_behind_is_shed_after_the_hold_and_only_then
         return len(published) > before
 
     went = behind_for(2 * HOLD, receive)
-    assert all(ok for at, ok in went if at < HOLD - 0.05)
-    assert not any(ok for at, ok in went if at > HOLD + 0.05)
-    assert route.counters.drops == {"overload": sum(not ok for _, ok in went)}
-    # a reliable topic's receive buffer never sheds
+    assert len(went) > 50 and all(ok for _, ok in went)
+    assert route.counters.drops == {}
     reliable = ReceiveRoute(topic(), 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")),
                             Warner(), "/scan", Delivery(reliable=True), decode=bytes)
     reliable.publish = published.append
@@ -322,7 +323,9 @@ def test_a_receive_buffer_that_stays_behind_is_shed_after_the_hold_and_only_then
     assert reliable.counters.drops == {}
 
 
-def test_a_subscription_queue_that_stays_behind_is_shed_after_the_hold(closing, far):
+def test_a_subscription_queue_that_stays_behind_is_sent_late_never_shed(closing, far):
+    """What waits in the subscription's queue waits for this bridge's executor, not for the
+    link (idle here): it is sent late rather than dropped; the topic's QoS depth bounds it."""
     link = udp_link(closing)
     waiting: deque = deque()
     route = transmitter(link, far.address, waiting, latest_only=False)
@@ -334,7 +337,6 @@ def test_a_subscription_queue_that_stays_behind_is_shed_after_the_hold(closing, 
         return route.counters.sent > sent
 
     went = behind_for(2 * HOLD, take)
-    assert all(ok for at, ok in went if at < HOLD - 0.05)
-    assert not any(ok for at, ok in went if at > HOLD + 0.05)
-    assert route.counters.drops == {"overload": 2 * sum(not ok for _, ok in went)}
+    assert len(went) > 50 and all(ok for _, ok in went)
+    assert route.counters.drops == {}
     assert len(far.wait(route.counters.sent)) == route.counters.sent

@@ -36,9 +36,9 @@ class Drop(StrEnum):
     TOO_LATE = "too_late", ("a best-effort message waited longer than its `max_delay` (to be "
                             "taken, in the send queue or in the receive buffer)")
     OVERLOAD = "overload", ("a best-effort message (without a `max_delay` of its own) that "
-                            "waited over 20 ms — to be taken, in the send queue or in the receive "
-                            "buffer — while its topic had been behind for 200 ms on end: a "
-                            "sustained overload sheds the oldest, so what arrives stays fresh")
+                            "waited over 20 ms in a link's send queue while its topic had been "
+                            "behind there for 200 ms on end: a link offered more than it carries "
+                            "sheds the oldest, so what arrives stays fresh")
     QUEUE_FULL = "queue_full", ("a queue had no room: a link's send queue at its `frames` or "
                                 "`bytes` limit, a bus link's queue, or a link that is down (its "
                                 "oldest message goes)")

@@ -42,7 +42,6 @@ from .drops import Drop, Reason
 from .errors import CipherError, CodecError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
-from .scheduler import backlog
 from .spec import CONTROL, Delivery
 from .transform import Transform, TransformError
 from .transport import Address
@@ -308,8 +307,8 @@ def max_wait_ns(topic: TopicConfig) -> int:
     lose messages the link could carry. Where the link is the bottleneck (a budget, a full
     kernel send buffer) frames wait in the link's queue instead, and there latest-only
     replaces them (``superseded``) and the link's ``max_delay`` drops them (``too_late``). A
-    backlog in front of the bridge is bounded by the topic's own QoS depth, and one that stays
-    longer than a stall lasts is shed (:class:`~rosgate.scheduler.Backlog`)."""
+    backlog in front of the bridge is bounded by the topic's own QoS depth; one in the link's
+    queue that stays longer than a stall lasts is shed (:class:`~rosgate.scheduler.Backlog`)."""
     return int(1e9 * topic.max_delay) if topic.max_delay is not None else 0
 
 
@@ -322,7 +321,6 @@ class TransmitRoute(Route):
                  compression: Transform | None = None):
         super().__init__(topic, topic_id, codec, keys, warner, label, delivery)
         self.topic = topic
-        self.backlog = backlog(delivery)  # of the subscription's queue
         self.framing = framing
         self.link = link
         self.destination = destination  # where to send, looked up per message (a server learns it)
@@ -387,7 +385,7 @@ class TransmitRoute(Route):
         take = self.take
         if take is None:
             return messages
-        max_wait, backlog, now = self.max_wait_ns, self.backlog, time.time_ns()
+        max_wait, now = self.max_wait_ns, time.time_ns()
         while len(messages) < frames:
             got = take()
             if got is None:
@@ -396,8 +394,6 @@ class TransmitRoute(Route):
             late = None
             if max_wait and now - received > max_wait:
                 late = Drop.TOO_LATE, f"waited over {max_wait / 1e6:.0f} ms to be taken"
-            elif backlog is not None and backlog.shed((now - received) / 1e9, now / 1e9):
-                late = Drop.OVERLOAD, f"waited {(now - received) / 1e6:.0f} ms to be taken"
             if late:  # too long in the subscription's queue, and so was every message
                 # before it: drop them all
                 for _ in range(len(messages) + 1):
@@ -473,7 +469,6 @@ class ReceiveRoute(Route):
                  transforms: Callable[[int], Transform | None] = lambda wire_id: None):
         super().__init__(topic, topic_id, codec, keys, warner, label, delivery)
         self.topic = topic
-        self.backlog = backlog(delivery)  # of the receive buffer
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
         #: publishes what decode returned (set with the publisher: raw CDR as bytes or bytearray)
         self.publish: Callable[[Any], None] = lambda message: self.entity.publish(message)
@@ -504,14 +499,10 @@ class ReceiveRoute(Route):
     def accept(self, header: envelope.Header, payload: bytes, size: int,
                arrived: int = 0) -> None:
         """A frame past its checks: published, unless it waited too long here."""
-        if arrived and (self.max_wait_ns or self.backlog is not None):
-            now = time.time_ns()
-            waited = now - arrived
-            if self.max_wait_ns and waited > self.max_wait_ns:  # the topic's max_delay
+        if arrived and self.max_wait_ns:  # the topic's max_delay
+            waited = time.time_ns() - arrived
+            if waited > self.max_wait_ns:
                 self.drop(Drop.TOO_LATE, f"waited {waited / 1e6:.0f} ms in the receive buffer")
-                return
-            if self.backlog is not None and self.backlog.shed(waited / 1e9, now / 1e9):
-                self.drop(Drop.OVERLOAD, f"waited {waited / 1e6:.0f} ms in the receive buffer")
                 return
         if header.flags & envelope.FLAG_COMPRESSED:
             restored = self.transform_back(payload)

@@ -54,9 +54,11 @@ HOLD = 0.2   # seconds behind on end (or caught up, to stop) before a topic shed
 
 
 class Backlog:
-    """Whether a best-effort topic sheds a message by its age: each place a topic's messages
-    wait (the subscription's queue, the send queue, the receive buffer) has one, told how long
-    each message waited as it leaves.
+    """Whether a best-effort topic sheds a message by its age from a link's send queue, where
+    it waits only when the link is the bottleneck (a budget, a full kernel send buffer): told
+    how long each message waited as it leaves. The subscription's queue and the receive buffer
+    never shed: what waits there waits for a thread of the bridge, not for the link, and a
+    backlog there is bounded by the topic's QoS depth.
 
     A message older than :data:`LAG` finds the topic *behind*. Behind for :data:`HOLD` on end,
     the topic sheds every message older than ``LAG`` (counted ``overload``) until none has been
