@@ -205,6 +205,18 @@ def action_side():
     yield from sides_of(ActionSide)
 
 
+def warm_up(publisher: Any, inbox: Inbox, message: Any, timeout: float = 30.0,
+            every: float = 0.2) -> int:
+    """Publish ``message`` until one arrives in ``inbox`` (the session is up and DDS has matched
+    both ends); how many were published."""
+    deadline, sent = time.monotonic() + timeout, 0
+    while not inbox.wait_count(1, every):
+        assert time.monotonic() < deadline, "nothing crossed the bridge"
+        publisher.publish(message)
+        sent += 1
+    return sent
+
+
 def cross(publisher: Any, inbox: Inbox, make: Callable[[int | None], Any],
           is_warmup: Callable[[Any], bool], count: int, timeout: float = 20.0,
           interval: float = 0.005) -> list[Any]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from conftest import free_port
+from conftest import free_port, warm_up
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from test_default_file_speed import counters
@@ -47,13 +47,9 @@ topics:
     inbox = far.listen("/camera", Image, qos)
     publisher = near.publisher("/camera", Image, qos)
 
-    deadline, warmups = time.monotonic() + 30, 0
     warm = Image(height=1, width=1, encoding="mono8", step=1, data=b"\x00")
     warm.header.frame_id = "warmup"
-    while not inbox.wait_count(1, 0.3):  # the session is up and DDS has matched both ends
-        assert time.monotonic() < deadline, "nothing crossed the bridge"
-        publisher.publish(warm)
-        warmups += 1
+    warm_up(publisher, inbox, warm, every=0.3)
     for i in range(COUNT):
         publisher.publish(image(i))
         time.sleep(0.05)  # a camera's pace: 20 images a second

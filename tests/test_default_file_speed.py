@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import free_port
+from conftest import free_port, warm_up
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
@@ -85,11 +85,8 @@ bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
     inbox = far.listen("/scan", String, deep)
     publisher = near.publisher("/scan", String, deep)
 
-    deadline, warmups_sent = time.monotonic() + 30, 0
-    while not inbox.wait_count(1, 0.2):  # the session is up and DDS has matched both ends
-        assert time.monotonic() < deadline, "nothing crossed the bridge"
-        publisher.publish(String(data="warmup"))
-        warmups_sent += 1
+    # the session is up and DDS has matched both ends
+    warmups_sent = warm_up(publisher, inbox, String(data="warmup"))
     warmups = len(inbox.items)
 
     count, per_tick = int(RATE * SECONDS), int(RATE * TICK)

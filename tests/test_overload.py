@@ -17,7 +17,7 @@ import statistics
 import time
 from pathlib import Path
 
-from conftest import Inbox, free_port
+from conftest import Inbox, free_port, warm_up
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from test_default_file_speed import counters
@@ -55,11 +55,8 @@ topics:
                       raw=False)
     publisher = near.publisher("/scan", String, deep)
 
-    deadline, warmups_sent = time.monotonic() + 30, 0
-    while not inbox.wait_count(1, 0.2):
-        assert time.monotonic() < deadline, "nothing crossed the bridge"
-        publisher.publish(String(data="warmup"))
-        warmups_sent += 1
+    # the session is up and DDS has matched both ends
+    warmups_sent = warm_up(publisher, inbox, String(data="warmup"))
     inbox.wait_for(lambda items: False, 0.5)  # what the warm-up queued is gone
     warmups = len(inbox.items)
 

@@ -17,7 +17,7 @@ import threading
 import time
 from pathlib import Path
 
-from conftest import free_port
+from conftest import free_port, warm_up
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
@@ -71,11 +71,8 @@ topics:
     inbox = far.listen("/scan", String, deep)
     publisher = near.publisher("/scan", String, deep)
 
-    deadline, warmups_sent = time.monotonic() + 30, 0
-    while not inbox.wait_count(1, 0.2):
-        assert time.monotonic() < deadline, "nothing crossed the bridge"
-        publisher.publish(String(data="warmup"))
-        warmups_sent += 1
+    # the session is up and DDS has matched both ends
+    warmups_sent = warm_up(publisher, inbox, String(data="warmup"))
     warmups = len(inbox.items)
 
     done, stops = threading.Event(), [0, 0]
