@@ -249,6 +249,11 @@ def test_corrupted_and_truncated_datagrams_are_counted_and_never_published(
     cross(talker, inbox, text, is_warmup, 0)
     settle(inbox)
     route = b.routes()[0]
+
+    def coalesced() -> int:  # frames that shared a datagram with others (a lagging send thread)
+        return sum(link.counters.coalesced_out for link in a.life.links())
+
+    start = coalesced()
     p.udp.rates = UdpRates(corrupt=0.3, truncate=0.3)
     count = 200
     for i in range(count):
@@ -256,15 +261,19 @@ def test_corrupted_and_truncated_datagrams_are_counted_and_never_published(
         time.sleep(0.002)  # pacing the talker
     # every intact one, however late on a loaded machine (a quiet spell alone can end the wait
     # before the last of them), then whatever else may still come
-    inbox.wait_for(lambda items: len(numbered(inbox)) >= count - p.udp.counts["faulted"], 10)
+    inbox.wait_for(lambda items: len(numbered(inbox))
+                   >= count - p.udp.counts["faulted"] - (coalesced() - start), 10)
     settle(inbox)
     numbers = [int(m[1:]) for m in numbered(inbox)]
     faulted = p.udp.counts["faulted"]
+    shared = coalesced() - start
     print(f"\nproxy: {dict(p.udp.counts)}; arrived {len(numbers)}; route drops "
-          f"{dict(route.counters.drops)}; link drops {b.link_drops}")
+          f"{dict(route.counters.drops)}; link drops {b.link_drops}; coalesced {shared}")
     assert faulted > 50
     assert sorted(numbers) == sorted(set(numbers)) and set(numbers) <= set(range(count))
-    assert len(numbers) == count - faulted  # every intact datagram arrived
+    # every intact datagram arrived: one message each, unless a lagging send thread put several
+    # in one datagram, which a fault then loses together (at most ``shared`` more messages)
+    assert count - faulted - shared <= len(numbers) <= count - faulted
     # every damaged one was dropped and counted, once
     assert sum(route.counters.drops.values()) + sum(b.link_drops.values()) == faulted
 
