@@ -463,6 +463,45 @@ def test_a_client_gone_past_session_timeout_is_forgotten_then_welcomed_anew(engi
     assert server.routes() == [] and server.receivers == {}
 
 
+def test_a_client_back_at_once_waits_for_its_last_sessions_udp_port_to_close(
+        engines, domain, ros_side, monkeypatch, caplog):
+    """A client that stops and starts again at once: the server's new session binds the udp
+    port its ended session is still closing once it is closed, not into "address in use"."""
+    import threading
+
+    from rosgate.links import DatagramLink
+
+    ds, dc, port = domain(), domain(), free_port()
+    server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}}}", ds)
+    client_yaml = (f"bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}\n"
+                   "topics: [{topic: /up, type: std_msgs/msg/String, direction: transmit}]")
+    first = engines(client_yaml, dc)
+    role = server.role
+    assert wait_until(lambda: first.role.connected.is_set(), 5)  # welcomed: it says goodbye
+    assert len(role.sessions) == 1 and len(server.routes()) == 1
+    session = next(iter(role.sessions.values()))
+    close, closing = DatagramLink.close, threading.Event()
+    served = [link for link in server.life.links() if isinstance(link, DatagramLink)]
+    assert len(served) == 1
+
+    def slow_close(link: DatagramLink) -> None:  # the server's port takes a second to be free
+        if link in served:
+            closing.set()
+            time.sleep(1.0)
+        close(link)
+
+    monkeypatch.setattr(DatagramLink, "close", slow_close)
+    first.stop()  # it says goodbye: the server ends the session and releases its udp port
+    assert wait_until(lambda: not role.sessions, 5) and closing.wait(5)
+    engines(client_yaml, dc)
+    assert wait_until(lambda: len(role.sessions) == 1, 10)
+    assert next(iter(role.sessions.values())).id != session.id
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    got = cross(robot.publisher("/up", String), base.listen("/up", String), text, is_warmup, 5)
+    assert sorted(m.data for m in got) == [f"m{i}" for i in range(5)]
+    assert "already in use" not in caplog.text and "refus" not in caplog.text
+
+
 def test_a_restarted_server_that_numbers_topics_anew(engines, domain, ros_side, monkeypatch):
     """The client re-keys its routes; frames that waited under the old ids are dropped and
     counted, never sent under ids that now mean something else."""

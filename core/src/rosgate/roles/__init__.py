@@ -49,6 +49,10 @@ FrameHandler = Callable[[bytes, Link, Address], None]
 Handshake = Callable[[StreamConnection, Address, Callable[[StreamConnection], None]], None]
 
 
+#: how long binding a datagram port waits for a session that ended to close it
+UNBIND_WAIT = 5.0
+
+
 @dataclass
 class Bridge:
     """What a role works with."""
@@ -100,6 +104,8 @@ class Role:
         self.untrusted = Untrusted(limits.max_frame_before_auth, limits.handshake_timeout)
         self.refusals = Refusals()
         self._lock = threading.RLock()
+        #: datagram ports a session that ended is closing now: bound again only once closed
+        self._unbinding: dict[tuple[str, Address], threading.Event] = {}
 
     def start(self) -> None: ...
 
@@ -185,7 +191,7 @@ class Role:
     def release(self, owner: object) -> None:
         """Close every datagram link and listener that no one but ``owner`` holds (a session
         that ended): its port is free again, its threads gone."""
-        closing: list[DatagramLink | Acceptor] = []
+        closing: list[tuple[DatagramLink | Acceptor, tuple[str, Address] | None]] = []
         with self._lock:
             for (kind, name, local), owners in list(self._holders.items()):
                 owners.discard(id(owner))
@@ -196,14 +202,18 @@ class Role:
                     link = self.datagram_links.pop((name, local), None)
                     if link is not None:
                         self.bare_ports.pop(link, None)
-                        closing.append(link)
+                        self._unbinding[(name, local)] = threading.Event()
+                        closing.append((link, (name, local)))
                 else:
                     acceptor = self.listening.pop((name, local), None)
                     if acceptor is not None:
-                        closing.append(acceptor)
-        for item in closing:
+                        closing.append((acceptor, None))
+        for item, where in closing:
             item.close()
             self.life.forget(item)
+            if where is not None:
+                with self._lock:
+                    self._unbinding.pop(where).set()
 
     def datagram_link(self, transport: Transport, local: Address, key: str = "bridge",
                       bare_named: bool | None = None, sources: Sources | None = None,
@@ -213,7 +223,17 @@ class Role:
         ``sources``: who it takes frames from (the first entry on the port decides). An
         ``owner`` holds it until :meth:`release`; without one it lasts as long as the bridge."""
         assert isinstance(transport, DatagramTransport)
+        deadline = time.monotonic() + UNBIND_WAIT
         with self._lock:
+            # a session that just ended may still be closing this port (a client that came back
+            # at once): bind once it is closed, not into "address already in use"
+            while (unbinding := self._unbinding.get((transport.name, local))) is not None \
+                    and time.monotonic() < deadline:
+                self._lock.release()
+                try:
+                    unbinding.wait(deadline - time.monotonic())
+                finally:
+                    self._lock.acquire()
             self._hold("datagram", transport, local, owner)
             found = self.datagram_links.get((transport.name, local))
             if found is not None:

@@ -139,6 +139,7 @@ class ClientRole(Role):
                 if slot.current is not None:
                     slot.current.fail("the server started a new session")
         link.last_heard = time.monotonic()
+        self.main.attach(link)  # now, not when the connector gets to it: a stop says bye on it
         self.connected.set()
         self._say_hello()
         self.router.start_announcing(list(self.routes.values()))  # the server hears us now
