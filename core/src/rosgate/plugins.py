@@ -300,11 +300,12 @@ class Plugins:
 
     def explain_missing(self, kind: str, name: str, named: bool = True) -> tuple[str, str]:
         """(message, fix) for a bringup.yaml that needs a plugin that is not here: one it names,
-        or (``named`` False) one its choices need, such as a bus transport's role."""
+        or (``named`` False) one its choices need (a small link's packetizer)."""
         installed = ", ".join(self.names(kind)) or "none"
         what = kind.replace("_", " ")
         message = f"unknown {what} {name!r} (installed {what}s: {installed})"
-        pick = f", or pick an installed {what}" if named else ""
+        # a file names no bus role: the bus transport does, so there is none to pick
+        pick = f", or pick an installed {what}" if named and kind != "bus_role" else ""
         failed = [f for f in self.failures if f.plugin == name]
         if failed:
             message += f"; plugin {name!r} is installed but failed to load: {failed[0].reason}"

@@ -191,7 +191,12 @@ class Resolver:
                   error: ErrorMaker) -> tuple[type[Packetizer], Any] | None:
         if topic.recovery == NO_PLUGIN:
             return None
-        cls = self.plugin("packetizer", topic.recovery, f"{key}.recovery", error).cls
+        cls: type[Packetizer] = self.plugin("packetizer", topic.recovery, f"{key}.recovery",
+                                            error).cls
+        if cls.cuts_every_frame:
+            raise error(f"{key}.recovery", f"{topic.recovery} is what links of small frames cut "
+                        "every frame with, by themselves: it recovers nothing",
+                        "remove recovery: from this entry, or pick fec or retransmit")
         return cls, self._topic_options(cls, topic.recovery, topic.recovery_options,
                                         f"{key}.recovery", error)
 
@@ -317,7 +322,7 @@ class Resolver:
         naming the distribution to install when it is not here."""
         found = self.plugins.get("bus_role", transport.role)
         if found is None:
-            message, fix = self.plugins.explain_missing("bus_role", transport.role, False)
+            message, fix = self.plugins.explain_missing("bus_role", transport.role)
             raise (error or self.config.error)(
                 key, f"{transport.name} is a bus, whose entries a bus role wires: {message}", fix)
         return found.cls

@@ -16,9 +16,10 @@ give every transmitting topic of every node its own port; topics of one node may
 
 Frames: a link of such small frames cuts every frame into pieces of 8 (or 64) bytes with a
 one-byte header (the ``compact`` packetizer of ``rosgate-compact``, a dependency), reassembles
-them per arbitration id, and drops and counts a frame one of whose pieces is lost. CAN FD pieces are padded to the next valid length
-(12, 16, 20, 24, 32, 48, 64). Each engine opens the bus once, however many topics use it, since
-pcan, kvaser and slcan channels open only once per process.
+them per arbitration id, and drops and counts a frame one of whose pieces is lost. CAN FD pieces
+are padded to the next valid length (12, 16, 20, 24, 32, 48, 64). Each engine opens the bus
+once, however many topics use it, since pcan, kvaser and slcan channels open only once per
+process.
 """
 
 from __future__ import annotations
