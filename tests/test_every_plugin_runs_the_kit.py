@@ -50,7 +50,8 @@ def test_every_in_tree_plugin_is_found():
         ("transport", "can"), ("transport", "bt"), ("transport", "zenoh"),
         ("codec", "cdr"), ("codec", "msgpack"), ("codec", "cbor"), ("codec", "json"),
         ("cipher", "none"), ("cipher", "fernet"), ("cipher", "nacl"),
-        ("transform", "zstd"), ("packetizer", "fragments"), ("packetizer", "fec"),
+        ("transform", "zstd"), ("packetizer", "fragments"), ("packetizer", "compact"),
+        ("packetizer", "fec"),
         ("packetizer", "retransmit")}
 
 

@@ -12,12 +12,15 @@ from pathlib import Path
 
 import can
 import pytest
+import rosgate_transport_can
+import rosgate_transport_udp
 from can.interfaces.virtual import VirtualBus
 from conftest import ROSGATE, cross
 from cryptography.fernet import Fernet
 from geometry_msgs.msg import Twist
 from sensor_msgs.msg import Image
 
+from rosgate import builtin
 from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.errors import ConfigError
@@ -238,3 +241,46 @@ def test_with_the_plugin_blocked_the_user_is_told_how_to_get_it_back(tmp_path):
     # blocked, so installed: the fix is to unblock it, not to install it again
     assert "fix: remove can from ROSGATE_DISABLE_PLUGINS, or pick an installed transport" \
         in result.stderr
+
+
+def test_without_the_compact_packetizer_the_file_is_refused_naming_its_distribution():
+    plugins = Plugins()
+    plugins.add(builtin, "builtin")
+    plugins.add(rosgate_transport_can, "can")
+    plugins.add(rosgate_transport_udp, "udp")  # the file's default transport
+    text = side("a", bus(), [("/t", "geometry_msgs/msg/Twist", "transmit", 1)])
+    with pytest.raises(ConfigError) as error:
+        Engine(loads(text, file="x.yaml"), plugins).prepare()
+    e = error.value
+    assert (e.file, e.line, e.key) == ("x.yaml", 6, "topics[0].transport"), str(e)
+    assert e.message == ("can carries packets of 8 bytes, which its links cut with the packetizer "
+                         "'compact': unknown packetizer 'compact' (installed packetizers: "
+                         "fragments)")
+    assert e.fix == "pip install the distribution that provides it (rosgate-compact)"
+
+
+def test_with_the_compact_packetizer_blocked_rosgate_check_says_so_at_the_topic(tmp_path):
+    path = tmp_path / "bringup.yaml"
+    path.write_text(side("a", bus(fd="true"), [("/t", "geometry_msgs/msg/Twist", "receive", 1)]))
+    result = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
+                            timeout=60, env=dict(os.environ, ROSGATE_DISABLE_PLUGINS="compact"))
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert ("topics[0].transport: can carries packets of 64 bytes, which its links cut with the "
+            "packetizer 'compact': unknown packetizer 'compact'") in result.stderr
+    assert "fix: remove compact from ROSGATE_DISABLE_PLUGINS\n" in result.stderr + "\n"
+
+
+def test_check_counts_every_frame_in_compact_pieces(tmp_path, capsys):
+    """rosgate check's budget on a CAN link: a Twist (52 B of CDR, the 28-byte envelope) takes 12
+    classic CAN frames of a head byte each, one length byte in the first."""
+    from rosgate.cli import main
+
+    path = tmp_path / "bringup.yaml"
+    text = side("a", bus(), [("/t", "geometry_msgs/msg/Twist", "transmit", 1)])
+    path.write_text(text.replace("insecure: true}",
+                                 "insecure: true, links: {can: {bandwidth: 500kbit}}}")
+                    .replace("transport: can,", "transport: can, max_rate: 50,"))
+    assert main(["check", str(path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[out.index("budget of can: 500.0 kbit/s per peer") + 1] == \
+        "  /t  50 Hz x 52 B = 93 B on the wire (12 packets) -> 37.2 kbit/s"

@@ -11,12 +11,15 @@ import time
 from typing import Any
 
 import pytest
+from rosgate_compact import compact_fragment
 from rosgate_transport_bt import BluetoothTransport
 from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
 from rosgate import builtin
+from rosgate.errors import LinkError
 from rosgate.links import DatagramLink
+from rosgate.plugins import Plugins
 from rosgate.spec import Delivery
 from rosgate.streamlink import LinkSlot, QueueLimits, StreamLink, length_prefixed
 from rosgate.wire import envelope
@@ -487,7 +490,22 @@ def small_link_pair(closing, max_frame: int, lose: int | None = None):
                                                 (65_000, False)])
 def test_the_fragment_scheme_follows_max_frame(closing, max_frame, compact):
     (a, _, _), _ = small_link_pair(closing, max_frame)
-    assert a.compact is compact
+    assert a.cuts is compact
+    assert a.own.name == ("compact" if compact else "fragments")
+
+
+def test_a_small_link_without_its_packetizer_installed_names_the_distribution(closing):
+    transport = UdpTransport({})
+    transport.max_frame = 8
+    endpoint = closing(transport.bind(("127.0.0.1", 0)))
+    only_builtin = Plugins()
+    only_builtin.add(builtin, "builtin")
+    with pytest.raises(LinkError) as info:
+        DatagramLink(transport, endpoint, "small", Inbox().on_frame, Inbox().on_lost,
+                     packetizers=only_builtin)
+    assert str(info.value) == ("small: no packetizer 'compact' is installed, which a link of "
+                               "8-byte packets needs")
+    assert info.value.fix == "pip install rosgate-compact"
 
 
 def test_bare_links_never_use_the_compact_scheme(closing):
@@ -496,7 +514,7 @@ def test_bare_links_never_use_the_compact_scheme(closing):
     inbox = Inbox()
     link = closing(DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "bare",
                                 inbox.on_frame, inbox.on_lost, bare=True))
-    assert link.compact is False
+    assert link.cuts is False and link.own.name == "fragments"
     assert link.send(bytes(9), inbox.sender(9), ("127.0.0.1", 9)) is False
     assert inbox.drops == [(9, "too_large_for_bare_framing")]
 
@@ -539,7 +557,7 @@ def test_a_lost_small_frame_drops_its_frame_only_and_counts_it_against_the_topic
     to = b.endpoint.endpoint.sock.getsockname()
     rng = random.Random(6)
     frames = [frame_of(i, 5 + 49 * 7, rng) for i in range(5)]  # 5 bytes in the first piece
-    assert all(len(builtin.compact_fragment(f, 8, 0)) == 50 for f in frames)
+    assert all(len(compact_fragment(f, 8, 0)) == 50 for f in frames)
     for frame in frames:
         a.send(frame, a_inbox.sender(TOPIC), to)
     assert b_inbox.wait(lambda: len(b_inbox.frames) >= 4 and b_inbox.drops)

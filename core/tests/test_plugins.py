@@ -625,6 +625,7 @@ def test_explain_missing_names_the_distribution(kind, name, distribution):
     ("packetizer", "retransmit", "rosgate-recovery"),
     ("service_framing", "serial_datagram", "rosgate-mcu-cvra"),
     ("bus_role", "fleet", "rosgate-fleet"),
+    ("packetizer", "compact", "rosgate-compact"),
 ])
 def test_explain_missing_names_rosgate_s_own_distribution_where_the_convention_does_not(
         kind, name, distribution):

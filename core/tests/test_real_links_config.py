@@ -132,8 +132,12 @@ def test_error(text, line, key, message, fix):
 PLUGIN_ERRORS = {
     "unknown_recovery": (
         HEAD + TOPIC + "    recovery: arq\n", 9, "topics[0].recovery",
-        "unknown packetizer 'arq' (installed packetizers: fec, fragments, retransmit",
+        "unknown packetizer 'arq' (installed packetizers: compact, fec, fragments, retransmit",
         "pick an installed packetizer"),
+    "a_link_s_own_packetizer": (
+        HEAD + TOPIC + "    recovery: compact\n", 9, "topics[0].recovery",
+        "compact is what links of small frames cut every frame with, by themselves",
+        "remove recovery: from this entry"),
     "overhead_of_retransmit": (
         HEAD + TOPIC + "    recovery: {retransmit: {overhead: 0.1}}\n", 9,
         "topics[0].recovery.retransmit.overhead", "retransmit takes no options", "remove it"),

@@ -8,7 +8,7 @@ import dataclasses
 import pytest
 from rosgate_recovery import Fec
 
-from rosgate.builtin import Compact, Fragments, compact_fragment
+from rosgate.builtin import Fragments
 from rosgate.config import loads
 from rosgate.engine import Engine
 from rosgate.spec import CONTROL, Delivery, ServiceSpec, TopicSpec
@@ -60,13 +60,5 @@ def test_a_spec_and_its_delivery_are_frozen():
     assert CONTROL.priority == 0 and not CONTROL.reliable
 
 
-@pytest.mark.parametrize("size", [1, 6, 7, 8, 100, 1000, 70_000])
-@pytest.mark.parametrize("max_frame", [8, 64])
-def test_the_compact_packetizer_s_cost_is_what_it_cuts(size, max_frame):
-    pieces = compact_fragment(bytes(size), max_frame, 0)
-    assert Compact.cost(size, max_frame, None) == (sum(map(len, pieces)), len(pieces))
-    assert all(len(piece) <= max_frame for piece in pieces)
-
-
-def test_fragments_and_compact_are_the_link_s_own_and_claim_no_one_else_s_magic():
-    assert Compact.magic == () and Fragments.magic == (framing.FRAGMENT_MAGIC,)
+def test_fragments_is_the_link_s_own_and_claims_no_one_else_s_magic():
+    assert Fragments.magic == (framing.FRAGMENT_MAGIC,)

@@ -166,7 +166,9 @@ def envelope(data: bytes) -> None:
 def reassembly(data: bytes) -> None:
     """Datagrams to a fragment reassembler and a compact one, from up to four sources: some as
     the input gives them, some cut from a frame by the link's own fragmenter and shuffled."""
-    from rosgate.builtin import CompactReassembler, Reassembler, compact_fragment, fragment
+    from rosgate_compact import CompactReassembler, compact_fragment
+
+    from rosgate.builtin import Reassembler, fragment
     from rosgate.wire import framing
 
     lost: list[tuple[int | None, str]] = []

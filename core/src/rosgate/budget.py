@@ -17,6 +17,8 @@ from typing import Any
 
 from .builtin import Fragments
 from .config import Direction, Framing
+from .packetizer import Packetizer, own_packetizer
+from .plugins import installed
 from .resolver import Plan
 from .ros import resolve_type
 from .spec import TopicSpec
@@ -89,10 +91,13 @@ def on_the_wire(frame: int, p: TopicSpec) -> tuple[int, int]:
         chunks = 1 if frame <= framing.CHUNK else math.ceil(frame / framing.CHUNK)
         return frame + (4 if chunks == 1 else 8 * chunks), chunks
     limit, overhead = transport.max_frame, transport.packet_overhead
+    found = installed().get("packetizer", own_packetizer(limit))  # the resolver checked it
+    own: type[Packetizer] = found.cls if found is not None else Fragments
     packetizer, options = p.delivery.packetizer, p.delivery.packetizer_options
-    if packetizer is None and frame <= limit:
-        return frame + overhead, 1
-    packetizer = packetizer or Fragments
+    if own.cuts_every_frame or packetizer is None:  # the link's own packetizer
+        if frame <= limit and not own.cuts_every_frame:
+            return frame + overhead, 1
+        packetizer = own
     size, packets = packetizer.cost(frame, limit, options)
     return size + packets * overhead, packets
 

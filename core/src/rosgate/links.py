@@ -36,11 +36,11 @@ from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
 from .admission import Sources
-from .builtin import Compact
 from .config import MAX_DELAY_DEFAULT, LinkConfig
 from .drops import Drop, Reason
-from .packetizer import Packet, Packetizer
-from .plugins import Plugins, installed
+from .errors import LinkError
+from .packetizer import Packet, Packetizer, own_packetizer
+from .plugins import Plugins, distribution_hint, installed
 from .scheduler import Due, Outgoing, Scheduler
 from .spec import Delivery
 from .transport import (
@@ -397,12 +397,13 @@ def unbatch(datagram: bytes | memoryview) -> Iterator[bytes | memoryview]:
 class DatagramLink(_Sending, Link):
     """A bound datagram endpoint. Frames out: whole when they fit ``max_frame`` (several in one
     datagram, a batch, when they leave one after the other for one destination), else cut by
-    the link's own packetizer (``fragments``, or ``compact`` on links of small frames such as
-    CAN); every frame of a topic with ``recovery: NAME`` by that packetizer; a bare sender's
-    (``framing: none``) whole, whatever its size, never batched. Datagrams in: from admitted
-    ``sources`` only, batches split, every other packet to the packetizer of its magic (found in
-    ``packetizers``, by default the installed plugins), each frame to ``on_frame``; on a bare
-    link, each datagram as it came.
+    the link's own packetizer (:func:`~rosgate.packetizer.own_packetizer`); every frame of a
+    topic with ``recovery: NAME`` by that packetizer; a bare sender's (``framing: none``) whole,
+    whatever its size, never batched. Datagrams in: from admitted ``sources`` only, batches
+    split, every other packet to the packetizer of its magic (found in ``packetizers``, by
+    default the installed plugins), each frame to ``on_frame``; on a bare link, each datagram as
+    it came. When its own packetizer ``cuts_every_frame`` (on links of small frames), every frame
+    out and every datagram in is that packetizer's.
 
     It is the :class:`~rosgate.packetizer.PacketLink` of its packetizers: one of each kind it
     meets, made on first use and kept for its life; their timers run on both of its threads."""
@@ -428,8 +429,6 @@ class DatagramLink(_Sending, Link):
         self.max_message = max_message
         self._init_sending(name, budget, transport.packet_overhead, self.max_frame,
                            queue_frames, queue_bytes)
-        # small frames cannot spare 14 bytes of fragment header: every frame goes as compact pieces
-        self.compact = not bare and self.max_frame < framing.COMPACT_BELOW
         self.registry = packetizers or installed()
         #: packetizers made so far, by name and by magic (None: a whole frame, the link's own)
         self._by_name: dict[str, Packetizer] = {}
@@ -437,7 +436,9 @@ class DatagramLink(_Sending, Link):
         self._making = threading.Lock()
         self._tx_timer: float | None = None  # when the send thread runs the timers next
         #: what cuts a frame of a sender without a packetizer of its own when it does not fit
-        self.own = self._make(Compact) if self.compact else self.packetizer("fragments")
+        self.own = self.packetizer("fragments" if bare else own_packetizer(self.max_frame))
+        #: every frame is cut by ``own``, and every datagram in is its
+        self.cuts = self.own.cuts_every_frame
         # what the endpoint can do beyond send, looked up once: scatter-gather (a packet's parts
         # without joining them; else joined here), several datagrams in one call (UDP:
         # segmentation offload)
@@ -457,7 +458,7 @@ class DatagramLink(_Sending, Link):
             return False
         delivery = sender.delivery
         whole = self.bare or delivery.whole
-        plain = delivery.packetizer is None and not self.compact  # whole or fragments
+        plain = delivery.packetizer is None and not self.cuts  # whole or fragments
         one = whole or plain and size <= self.max_frame
         inline: Callable[[bytes, Any, Address], bool | None] | None = None
         if one:
@@ -480,7 +481,7 @@ class DatagramLink(_Sending, Link):
         the send thread)."""
         assert to is not None, "a datagram link needs a destination"
         delivery = sender.delivery
-        if len(frames) < 2 or self.bare or self.compact or delivery.whole \
+        if len(frames) < 2 or self.bare or self.cuts or delivery.whole \
                 or delivery.packetizer is not None:
             return sum(self.send(frame, sender, to) for frame in frames)
         limit, sent, start = self.max_frame, 0, 0
@@ -510,10 +511,10 @@ class DatagramLink(_Sending, Link):
 
     def _cut(self, frame: bytes, sender: Sender, to: Address, whole: bool) -> list[bytes]:
         """A frame's packets, made when it starts (on the send thread, in the order frames
-        leave: compact counters and FEC coding happen here, not on the caller's thread)."""
+        leave: counters and FEC coding happen here, not on the caller's thread)."""
         delivery = sender.delivery
-        own = self.compact or delivery.packetizer is None
-        if whole or own and not self.compact and len(frame) <= self.max_frame:
+        own = self.cuts or delivery.packetizer is None
+        if whole or own and not self.cuts and len(frame) <= self.max_frame:
             return [frame]
         packetizer = self.own if own or delivery.packetizer is None \
             else self._make(delivery.packetizer)
@@ -535,7 +536,9 @@ class DatagramLink(_Sending, Link):
         if found is None:
             registration = self.registry.get("packetizer", name)
             if registration is None:
-                raise framing.FramingError(f"no packetizer {name!r} is installed")
+                raise LinkError(f"{self.name}: no packetizer {name!r} is installed, which a link "
+                                f"of {self.max_frame}-byte packets needs",
+                                f"pip install {distribution_hint('packetizer', name)}")
             found = self._make(registration.cls)
         return found
 
@@ -715,7 +718,7 @@ class DatagramLink(_Sending, Link):
         try:
             if type(packet) is _Gather:
                 self._send_parts(cast(_Gather, packet).parts, to)
-            elif self.compact and not sender.delivery.whole:
+            elif self.cuts and not sender.delivery.whole:
                 step = self.max_frame
                 count = 0
                 for i in range(0, len(packet), step):
@@ -906,9 +909,9 @@ class DatagramLink(_Sending, Link):
         counters.packets_in += 1
         counters.bytes_in += len(datagram)
         kind = datagram[1] if len(datagram) > 1 and datagram[0] == 0x52 else 0  # "R?"
-        if self.bare or kind == 0x47 and not self.compact:  # "RG": an envelope, the most common
+        if self.bare or kind == 0x47 and not self.cuts:  # "RG": an envelope, the most common
             packetizer = None
-        elif self.compact:  # every datagram is a piece
+        elif self.cuts:  # every datagram is its own packetizer's
             packetizer = self.own
         elif kind == 0x42:  # "RB": several frames
             try:

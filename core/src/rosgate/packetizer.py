@@ -1,11 +1,11 @@
 """Packetizers: how a datagram link cuts a frame into packets, and puts packets back together.
 
 A datagram link (:class:`rosgate.links.DatagramLink`) keeps its queue, its threads and its
-dispatch; what goes into a packet is a packetizer's. The built-in ``fragments`` cuts a frame
-longer than the link's ``max_frame`` into numbered fragments (on links of small frames, such as
-CAN, the built-in ``compact`` cuts every frame instead: its pieces carry no magic, and such a
-link feeds it every datagram); loss recovery (``recovery: fec``,
-``recovery: retransmit``, from the ``rosgate-recovery`` distribution) are packetizers too. A
+dispatch; what goes into a packet is a packetizer's. A link's own packetizer cuts the frames of
+topics without one of their own: the built-in ``fragments``, which cuts a frame longer than the
+link's ``max_frame`` into numbered fragments, or on links of small frames (:data:`SMALL_FRAME`:
+CAN) ``compact`` (``rosgate-compact``), which cuts every frame. Loss recovery (``recovery:
+fec``, ``recovery: retransmit``, from the ``rosgate-recovery`` distribution) are packetizers too. A
 topic picks one by name (``recovery: NAME``); its options come from ``plugins: {NAME: {...}}``,
 and a topic may give its own on top (``recovery: {fec: {overhead: 0.25}}``).
 
@@ -38,6 +38,18 @@ Packet = bytes | tuple[bytes | memoryview, ...]
 
 #: magics a packetizer may not claim: the link's own whole frames (``RG``) and batches (``RB``)
 RESERVED_MAGIC = (b"RG", b"RB")
+#: a datagram link whose transport's ``max_frame`` is below this cannot spare 14 bytes of
+#: fragment header in its packets (CAN's 8 and CAN FD's 64): its own packetizer is
+#: :data:`SMALL_FRAME_PACKETIZER`. A rule on ``max_frame``, not a transport's setting, so that
+#: any transport of small frames gets it without saying so.
+SMALL_FRAME = 256
+SMALL_FRAME_PACKETIZER = "compact"
+
+
+def own_packetizer(max_frame: int) -> str:
+    """The name of the own packetizer of a datagram link whose packets carry ``max_frame``
+    bytes (see the module's docstring)."""
+    return SMALL_FRAME_PACKETIZER if max_frame < SMALL_FRAME else "fragments"
 
 
 class PacketLink(Protocol):
@@ -72,6 +84,11 @@ class Packetizer(ABC):
     name: ClassVar[str]
     #: the first two bytes of every packet it makes; unique among installed packetizers
     magic: ClassVar[tuple[bytes, ...]]
+    #: True: as a link's own packetizer it is given every frame, even one that fits a packet,
+    #: and every datagram the link receives (the link sends nothing else, so its packets need no
+    #: magic); one packet it cuts may hold several datagrams, each ``max_frame`` bytes but the
+    #: last, which the link sends back to back: pieces without a frame id never interleave
+    cuts_every_frame: ClassVar[bool] = False
 
     def __init__(self, link: PacketLink):
         self.link = link

@@ -69,7 +69,8 @@ _DISTRIBUTION_WORD = {"cipher": "crypto", "transform": "compress", "packetizer":
 _OWN_DISTRIBUTIONS = {("packetizer", "fec"): "rosgate-recovery",
                       ("packetizer", "retransmit"): "rosgate-recovery",
                       ("service_framing", "serial_datagram"): "rosgate-mcu-cvra",
-                      ("bus_role", "fleet"): "rosgate-fleet"}
+                      ("bus_role", "fleet"): "rosgate-fleet",
+                      ("packetizer", "compact"): "rosgate-compact"}
 
 
 def distribution_hint(kind: str, name: str) -> str:
@@ -297,13 +298,14 @@ class Plugins:
     def names(self, kind: str) -> list[str]:
         return [r.name for r in self.all() if r.kind == kind]
 
-    def explain_missing(self, kind: str, name: str) -> tuple[str, str]:
-        """(message, fix) for a bringup.yaml that asks for a plugin that is not here."""
+    def explain_missing(self, kind: str, name: str, named: bool = True) -> tuple[str, str]:
+        """(message, fix) for a bringup.yaml that needs a plugin that is not here: one it names,
+        or (``named`` False) one its choices need (a small link's packetizer)."""
         installed = ", ".join(self.names(kind)) or "none"
         what = kind.replace("_", " ")
         message = f"unknown {what} {name!r} (installed {what}s: {installed})"
         # a file names no bus role: the bus transport does, so there is none to pick
-        pick = "" if kind == "bus_role" else f", or pick an installed {what}"
+        pick = f", or pick an installed {what}" if named and kind != "bus_role" else ""
         failed = [f for f in self.failures if f.plugin == name]
         if failed:
             message += f"; plugin {name!r} is installed but failed to load: {failed[0].reason}"
@@ -348,7 +350,8 @@ def _check_class(cls: Any, base: type) -> str | None:
             return f"{cls.__name__} has no valid 'wire_id' (1..255, the byte that names it)"
     if base is Packetizer:
         magic = getattr(cls, "magic", None)
-        if (not isinstance(magic, tuple) or not magic
+        # only a link's sole packetizer (cuts_every_frame) needs no magic to be found
+        if (not isinstance(magic, tuple) or not (magic or getattr(cls, "cuts_every_frame", False))
                 or not all(isinstance(m, bytes) and len(m) == 2 for m in magic)):
             return f"{cls.__name__} has no valid 'magic' (a tuple of two-byte bytes: (b'XY',))"
         if set(magic) & set(RESERVED_MAGIC):

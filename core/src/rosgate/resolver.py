@@ -33,7 +33,7 @@ from .config import (
 )
 from .errors import ConfigError, OptionError
 from .options import parse
-from .packetizer import Packetizer
+from .packetizer import Packetizer, own_packetizer
 from .plugins import Plugins, Registration
 from .ros import TypeNotFound, is_reliable, resolve_type
 from .service_framing import ServiceFraming
@@ -155,6 +155,8 @@ class Resolver:
         """An entry's transport, and what its spec holds of every plugin and of its type, each
         checked: its codec's options fit the type (a service's Request and Response)."""
         transport = self.transport(entry.transport, f"{key}.transport", error)
+        if isinstance(transport, DatagramTransport) and entry.framing is Framing.ROSGATE:
+            self._own_packetizer(transport, f"{key}.transport", error)
         codec_cls, codec_options = self._codec(entry.codec, f"{key}.codec", error)
         codec_options = _microcontroller(codec_cls, codec_options, entry)
         cipher_cls, cipher = self._entry_cipher(entry.cipher, f"{key}.cipher", error,
@@ -189,7 +191,12 @@ class Resolver:
                   error: ErrorMaker) -> tuple[type[Packetizer], Any] | None:
         if topic.recovery == NO_PLUGIN:
             return None
-        cls = self.plugin("packetizer", topic.recovery, f"{key}.recovery", error).cls
+        cls: type[Packetizer] = self.plugin("packetizer", topic.recovery, f"{key}.recovery",
+                                            error).cls
+        if cls.cuts_every_frame:
+            raise error(f"{key}.recovery", f"{topic.recovery} is what links of small frames cut "
+                        "every frame with, by themselves: it recovers nothing",
+                        "remove recovery: from this entry, or pick fec or retransmit")
         return cls, self._topic_options(cls, topic.recovery, topic.recovery_options,
                                         f"{key}.recovery", error)
 
@@ -319,6 +326,16 @@ class Resolver:
             raise (error or self.config.error)(
                 key, f"{transport.name} is a bus, whose entries a bus role wires: {message}", fix)
         return found.cls
+
+    def _own_packetizer(self, transport: DatagramTransport, key: str,
+                        error: ErrorMaker) -> None:
+        """The packetizer that cuts frames on ``transport``'s links is here (a link of small
+        frames needs a plugin's)."""
+        name = own_packetizer(transport.max_frame)
+        if self.plugins.get("packetizer", name) is None:
+            message, fix = self.plugins.explain_missing("packetizer", name, False)
+            raise error(key, f"{transport.name} carries packets of {transport.max_frame} bytes, "
+                        f"which its links cut with the packetizer {name!r}: {message}", fix)
 
     def _point_to_point(self, entry: TopicConfig | ServiceConfig, key: str, transport: Transport,
                         error: ErrorMaker) -> None:

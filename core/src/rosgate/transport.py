@@ -191,8 +191,8 @@ class Transport(ABC):
 
 
 class DatagramTransport(Transport):
-    """A link that keeps message boundaries (UDP, CAN). Set :attr:`max_frame`; the core
-    fragments larger frames (compact pieces below 256 bytes, see ``rosgate.framing``)."""
+    """A link that keeps message boundaries (UDP, CAN). Set :attr:`max_frame`; the core cuts
+    larger frames (every frame below 256 bytes: see :data:`rosgate.packetizer.SMALL_FRAME`)."""
 
     #: the largest frame one ``send`` carries; the core fragments above it. A class attribute,
     #: or an instance attribute set in ``__init__`` from an option.

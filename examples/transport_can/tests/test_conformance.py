@@ -1,6 +1,6 @@
 """The ``can`` transport through the plugin kit's datagram suite, on python-can's ``virtual``
-interface: classic CAN (8-byte frames) and CAN FD (64-byte frames), so the core's compact
-fragmentation carries everything larger.
+interface: classic CAN (8-byte frames) and CAN FD (64-byte frames), so the link's compact
+pieces (rosgate-compact) carry every frame.
 
 What a bus changes, declared to the suite: each end is a transport of its own on one channel
 (a node does not hear its own frames); a receive reports ``(channel, receiving port)``, so an
@@ -46,5 +46,5 @@ class TestCanConformance(TransportConformance):
 class TestCanFdConformance(TestCanConformance):
     options = {"interface": "virtual", "fd": True}
     # a CAN FD frame has 0-8, 12, 16, 20, 24, 32, 48 or 64 data bytes: the plugin pads with
-    # zeros, and the core's compact pieces carry the length that strips them again
+    # zeros, and the compact pieces carry the length that strips them again
     padded_length = staticmethod(lambda n: dlc2len(len2dlc(n)))

@@ -1,8 +1,8 @@
 """The wire: how rosgate's bytes look on a link. No rclpy, no sockets, no plugins.
 
 * :mod:`.envelope` — the 28-byte header in front of every frame, and the replay window.
-* :mod:`.framing` — length prefixes on streams; batches, fragments and compact pieces on
-  datagram links (cut and put back together by the packetizers of :mod:`rosgate.builtin`).
+* :mod:`.framing` — length prefixes on streams; batches and fragments on datagram links
+  (fragments cut and put back together by the packetizer of :mod:`rosgate.builtin`).
 * :mod:`.names` — a name in front of a bare datagram, as the CVRA profile writes it.
 * :mod:`.control` — the main line's control messages (JSON), read within bounds.
 

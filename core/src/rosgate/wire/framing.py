@@ -49,37 +49,13 @@ packets of whatever other packetizer a topic picks, each with magics of its own:
 
 On a bare link (``framing: none``) every datagram is one message, never batched.
 
-Links with small frames (``max_frame`` below :data:`COMPACT_BELOW`: CAN's 8 and CAN FD's 64
-bytes) cannot spend 14 bytes of every frame on that header, so they use the **compact** scheme
-instead. Every frame of such a link, even one that would fit, travels as pieces::
-
-    first piece:  1  head     0x80 | counter
-                  1-5 length   the frame's length, unsigned LEB128 (7 bits a byte, low first)
-                      chunk    as much of the frame as fits
-    other pieces: 1  head     counter (high bit clear)
-                      chunk
-
-``counter`` (7 bits) counts every piece a link sends to one destination, across frames, so the
-receiver, which keeps one reassembly per source, sees consecutive values. No topic or frame id
-travels: the source (on CAN the arbitration id) says which sender's frame a piece continues,
-and the topic is read from the envelope once its first 8 bytes are in. Pieces must arrive in
-the order they were sent, as a CAN bus keeps them per arbitration id. The receiver:
-
-* completes a frame when ``length`` bytes are in; bytes past them in the last piece are padding
-  (a CAN FD frame has 12, 16, 20, 24, 32, 48 or 64 data bytes) and are ignored;
-* on a counter gap drops the frame in progress, or the frames that vanished whole, counting one
-  lost frame against the topic of the frame in progress or else of the last frame from that
-  source, and ignores pieces that continue a frame whose first piece it never saw;
-* ignores a piece that repeats the previous counter (a duplicated frame);
-* drops a frame whose pieces stop coming for ``timeout`` seconds (counted as a gap is).
+Links with small frames (CAN) cannot spend 14 bytes of every frame on that header: they cut
+every frame with another packetizer (see :data:`rosgate.packetizer.SMALL_FRAME`).
 
 Everything here is a pure format. Reading and writing stream records is
 :mod:`rosgate.streamlink`'s, batches are :mod:`rosgate.links`'s, and cutting frames into
-fragments and pieces and putting them back together is the built-in packetizers'
+fragments and putting them back together is the built-in ``fragments`` packetizer's
 (:mod:`rosgate.builtin`).
-
-Overhead: 1 byte a piece plus the length, e.g. a 100 kB frame takes 14,287 classic CAN frames
-or 1,588 CAN FD frames.
 """
 
 from __future__ import annotations
@@ -98,10 +74,6 @@ FRAGMENT_MAGIC = b"RF"
 BATCH_MAGIC = b"RB"
 DEFAULT_MAX_MESSAGE = 64 * 1024 * 1024
 FINISHED_REMEMBERED = 4096  # frames whose late fragments are recognised and ignored
-COMPACT_BELOW = 256  # links whose max_frame is below this use the compact scheme
-COMPACT_START = 0x80
-COMPACT_COUNTER = 0x7F
-COMPACT_SOURCES = 4096  # sources remembered by a compact reassembler (oldest forgotten first)
 DIRECT_ABOVE = 64 * 1024  # stream frames longer than this are read into place
 #: a large frame gets its buffer (all of it, zeroed) once this share of it has come: a length
 #: that claims 64 MiB does not make the receiver zero 64 MiB for it

@@ -14,11 +14,12 @@ on a bus (``peer:`` and ``listen:`` may say ``can0``, or anything). One node sen
 senders on one id would garble each other's frames (the pieces of a frame carry no sender), so
 give every transmitting topic of every node its own port; topics of one node may share one.
 
-Frames: the rosgate core cuts every frame into pieces of 8 (or 64) bytes with a one-byte header
-(the compact scheme of ``rosgate.wire.framing``), reassembles them per arbitration id, and drops and
-counts a frame one of whose pieces is lost. CAN FD pieces are padded to the next valid length
-(12, 16, 20, 24, 32, 48, 64). Each engine opens the bus once, however many topics use it, since
-pcan, kvaser and slcan channels open only once per process.
+Frames: a link of such small frames cuts every frame into pieces of 8 (or 64) bytes with a
+one-byte header (the ``compact`` packetizer of ``rosgate-compact``, a dependency), reassembles
+them per arbitration id, and drops and counts a frame one of whose pieces is lost. CAN FD pieces
+are padded to the next valid length (12, 16, 20, 24, 32, 48, 64). Each engine opens the bus
+once, however many topics use it, since pcan, kvaser and slcan channels open only once per
+process.
 """
 
 from __future__ import annotations

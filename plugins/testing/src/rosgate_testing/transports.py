@@ -12,6 +12,7 @@ import pytest
 
 from rosgate.links import DatagramLink
 from rosgate.options import parse
+from rosgate.packetizer import own_packetizer
 from rosgate.streamlink import StreamLink
 from rosgate.transport import (
     Address,
@@ -20,7 +21,6 @@ from rosgate.transport import (
     StreamTransport,
     Transport,
 )
-from rosgate.wire.framing import COMPACT_BELOW
 
 from .helpers import (
     TIMEOUT,
@@ -231,15 +231,15 @@ class TransportConformance:
             self, plugin, far_plugin, address, closing):
         a, _, b, b_address = self._endpoints(plugin, far_plugin, address, closing)
         m = plugin.max_frame
-        # DatagramLink picks the scheme from max_frame: 14-byte fragment headers, or below
-        # COMPACT_BELOW (CAN's 8 and 64) compact pieces, whose length field grows a byte at
+        # DatagramLink picks its own packetizer by max_frame: 14-byte fragment headers, or below
+        # SMALL_FRAME (CAN's 8 and 64) compact pieces, whose length field grows a byte at
         # 128 and 16384 and whose 7-bit piece counter wraps past 128 pieces
         sizes = [1, m, m + 1, 2 * m + 3, 127, 128, 16_384, min(1 << 20, 200 * m)]
         sent, received = Frames(), Frames()
         tx = closing(DatagramLink(plugin, a, "conformance-tx", sent.on_frame, sent.on_lost))
         rx = closing(DatagramLink(far_plugin, b, "conformance-rx", received.on_frame,
                                   received.on_lost))
-        assert tx.compact == rx.compact == (m < COMPACT_BELOW)
+        assert tx.own.name == rx.own.name == own_packetizer(m)
         frames = [frame_of(size, seed) for seed, size in enumerate(sizes)]
         for frame in frames:
             assert tx.send(frame, sent.sender(7), to=b_address), (
