@@ -110,8 +110,8 @@ class UdpEndpoint:
         self._readable = select.poll()
         self._readable.register(sock, select.POLLIN)
         #: the receive timeout set on the socket (seconds; None: none yet), or False where it
-        #: cannot be set (then receives wait in poll)
-        self._timeout: float | bool | None = None
+        #: cannot be set (then receives wait in poll); Linux's struct timeval only
+        self._timeout: float | bool | None = None if _LINUX else False
         try:  # the kernel stamps every datagram with its arrival (receive_into reports it)
             sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
             self._stamps = socket.CMSG_SPACE(_TIMESPEC.size)
