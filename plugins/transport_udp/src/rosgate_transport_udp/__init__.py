@@ -67,6 +67,10 @@ _LIMIT = {socket.SO_RCVBUF: ("receive", "net.core.rmem_max"),
 # systems the option fails and arrival times are unknown (0)
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if _LINUX else -1)
 _TIMESPEC = struct.Struct("@qq")
+_TIMEVAL = struct.Struct("@ll")  # SO_RCVTIMEO's struct timeval: seconds, microseconds
+#: the shortest wait left to SO_RCVTIMEO, which the kernel counts in its ticks (4 ms at 250 Hz):
+#: a shorter one (a packetizer's timer is due) waits in poll, which keeps to it
+_KERNEL_WAIT = 0.05
 # Linux's numbers, not named by Python's socket module: the route's MTU on a connected socket,
 # segmentation offload (a sendmsg control message: the size of each datagram), receive offload
 # (a socket option, then a control message on receive: the size of the datagrams joined)
@@ -89,9 +93,12 @@ HEADERS = {socket.AF_INET: 28, socket.AF_INET6: 48}  # IP and UDP headers
 
 
 class UdpEndpoint:
-    """A bound UDP socket. The socket stays blocking, with no timeout: a receive waits in
-    ``poll`` instead, so neither side pays for a timeout mode (``settimeout`` is an ``ioctl``, and
-    CPython polls before every send on a socket that has one).
+    """A bound UDP socket. The socket stays blocking, with no timeout of Python's
+    (``settimeout`` is an ``ioctl``, and CPython polls before every send and receive on a socket
+    that has one): a receive waits in the kernel's own ``recvmsg`` under the socket's
+    ``SO_RCVTIMEO``, set only when the wait asked for changes — one system call per datagram.
+    A short wait (below :data:`_KERNEL_WAIT`), or one where the option cannot be set, waits in
+    ``poll``, then receives (two).
 
     With ``offload`` (and a kernel that has it), :meth:`send_datagrams` hands a run of
     same-sized datagrams to the kernel in one ``sendmsg`` (``UDP_SEGMENT``), and a receive may
@@ -102,6 +109,9 @@ class UdpEndpoint:
         self.sock = sock
         self._readable = select.poll()
         self._readable.register(sock, select.POLLIN)
+        #: the receive timeout set on the socket (seconds; None: none yet), or False where it
+        #: cannot be set (then receives wait in poll); Linux's struct timeval only
+        self._timeout: float | bool | None = None if _LINUX else False
         try:  # the kernel stamps every datagram with its arrival (receive_into reports it)
             sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
             self._stamps = socket.CMSG_SPACE(_TIMESPEC.size)
@@ -173,12 +183,19 @@ class UdpEndpoint:
             data, source, arrived = self._joined.popleft()
             buffer[:len(data)] = data
             return len(data), source, arrived
-        if not self._readable.poll(timeout * 1000):
-            return None
+        flags, timed = 0, self._timeout
+        if timed is False or timeout != timed and (timeout < _KERNEL_WAIT or
+                                                   not self._wait(timeout)):
+            if not self._readable.poll(timeout * 1000):
+                return None
+            flags = socket.MSG_DONTWAIT
         try:
-            size, ancillary, _, source = self.sock.recvmsg_into((buffer,), self._ancillary,
-                                                                socket.MSG_DONTWAIT)
-        except BlockingIOError:  # poll said readable, and someone was faster (or a bad checksum)
+            size, ancillary, _, source = self.sock.recvmsg_into((buffer,), self._ancillary, flags)
+        except BlockingIOError:
+            # nothing within the timeout; or poll said readable and someone was faster (or the
+            # datagram had a bad checksum)
+            return None
+        if source is None:  # the socket was shut down (close() wakes a waiting receive)
             return None
         arrived, joined = 0, 0
         for level, kind, value in ancillary:
@@ -194,6 +211,19 @@ class UdpEndpoint:
                                 for i in range(0, len(rest), joined))
             size = joined
         return size, source, arrived
+
+    def _wait(self, timeout: float) -> bool:
+        """Set the socket's receive timeout; whether it could be set (else receives wait in
+        poll from now on)."""
+        micros = round(timeout * 1e6)
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO,
+                                 _TIMEVAL.pack(micros // 1_000_000, micros % 1_000_000))
+        except (OSError, AttributeError, struct.error):
+            self._timeout = False
+            return False
+        self._timeout = timeout
+        return True
 
     def close(self) -> None:
         try:
