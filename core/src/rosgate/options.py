@@ -43,17 +43,20 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import types
 import typing
 from collections.abc import Mapping
 from dataclasses import MISSING
+from enum import Enum
 from pathlib import Path
 from typing import Any, Literal, Union
 
 from .errors import OptionError
 
-__all__ = ["MISSING", "Declared", "as_options", "declaration_problem", "declared",
-           "did_you_mean", "fields_of", "option", "parse", "spell"]
+__all__ = ["MISSING", "Declared", "as_options", "check", "declaration_problem", "declared",
+           "did_you_mean", "expected", "fields_of", "missing", "option", "parse", "show", "spell",
+           "unknown"]
 
 
 def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = None,
@@ -193,9 +196,9 @@ def declaration_problem(cls: type) -> str | None:
                     "(str, int, float, bool, Literal[...], list[T], dict[str, T], T | None, Any)")
         if not row.required:
             try:
-                _check(row, row.default)
-            except OptionError as exc:
-                return f"{where}.{row.name}: its default does not fit: {exc.message}"
+                check(row, row.default)
+            except ValueError as exc:
+                return f"{where}.{row.name}: its default does not fit: {exc.args[0]}"
     return None
 
 
@@ -209,16 +212,20 @@ def parse(cls: Any, table: Mapping[str, Any], base_dir: Path | None = None) -> A
     by_name = {row.name: row for row in rows}
     for key in table:
         if key not in by_name:
-            raise _unknown(name, str(key), list(by_name))
+            message, fix = unknown(str(key), list(by_name))
+            raise OptionError(str(key), message, fix if rows else
+                              f"{name} takes no options: remove it")
     values = {}
     for row in rows:
         if row.name in table:
-            values[row.name] = _check(row, table[row.name])
+            try:
+                values[row.name] = check(row, table[row.name])
+            except ValueError as exc:
+                raise OptionError(row.name, *exc.args) from None
             if row.relative and base_dir is not None and isinstance(values[row.name], str):
                 values[row.name] = str(base_dir / Path(values[row.name]).expanduser())
         elif row.required:
-            raise OptionError(None, f"{name} needs the option {row.name!r} ({row.doc})",
-                              f"add {row.name}: <{_words(row.type)}> under plugins: {name}:")
+            raise OptionError(row.name, *missing(row, f"plugins: {name}:"))
     if not hasattr(cls, "Options"):
         return {}
     return cls.Options(**values)  # __post_init__ checks what ties fields together
@@ -232,22 +239,81 @@ def as_options(cls: type, options: Any) -> Any:
     return options
 
 
-# -- checking one value --------------------------------------------------------------------------
+# -- reading a table: a plugin's options and bringup.yaml's own sections alike ------------------
 
-class _Wrong(Exception):
-    """A value that does not fit a type; the caller words the error."""
+def unknown(key: str, valid: typing.Sequence[str]) -> tuple[str, str]:
+    """The message and fix for ``key``, which is not one of ``valid``."""
+    return f"unknown key '{key}'{did_you_mean(key, valid)[1]}", f"valid keys are {', '.join(valid)}"
 
 
-def _check(row: Declared, given: Any) -> Any:
-    """``given`` as the option holds it (an int taken for a float becomes one), or OptionError."""
+def missing(row: Declared, under: str) -> tuple[str, str]:
+    """The message and fix for the required key ``row``, missing from the table ``under``."""
+    value = row.example or f"<{_words(row.type)}>"
+    where = f" under {under}" if under else ""
+    return f"missing required key '{row.key}' ({row.doc})", f"add {row.key}: {value}{where}"
+
+
+def check(row: Declared, given: Any) -> Any:
+    """``given`` as ``row``'s field holds it (an int taken for a float becomes one, a name of an
+    Enum's member the member), or ValueError(message, fix)."""
     try:
         value = _convert(row.type, given)
     except _Wrong:
-        raise OptionError(row.name, f"must be {_words(row.type)}, not {_show(given)}",
-                          row.describe()) from None
-    if not row.fits(value):
-        raise OptionError(row.name, f"must be {row.limits()}, not {_show(given)}", row.describe())
-    return value
+        pass
+    else:
+        if row.fits(value) and not (isinstance(value, float) and not math.isfinite(value)):
+            return value
+    choices = row.choices or _choices(row.type)
+    close, hint = did_you_mean(str(given), [str(c) for c in choices])
+    example = close or row.example
+    fix = f"e.g. {row.key.rpartition('.')[2]}: {example}" if example else row.describe()
+    if choices:
+        raise ValueError(f"{show(given)} is not one of {', '.join(map(_yaml, choices))}{hint}", fix)
+    raise ValueError(f"expected {expected(row)}, got {show(given)}", fix)
+
+
+def expected(row: Declared) -> str:
+    """What ``row`` takes in words, a number with its unit and bounds: "an integer 1..65535",
+    "a number of seconds > 0", "a string or null"."""
+    return " or ".join(_number(row, arm) if arm in (int, float) else _words(arm)
+                       for arm in _arms(row.type))
+
+
+def _number(row: Declared, kind: Any) -> str:
+    what = f"a number of {row.unit}" if row.unit else _words(kind)
+    low = f"> {_num(row.above)}" if row.above is not None else (
+        f">= {_num(row.minimum)}" if row.minimum is not None else "")
+    if row.maximum is None:
+        bounds = low
+    elif row.minimum is not None:
+        bounds = f"{_num(row.minimum)}..{_num(row.maximum)}"
+    else:
+        bounds = f"{low}, at most {_num(row.maximum)}".removeprefix(", ")
+    excluded = "".join(f", not {_num(v)}" for v in row.excluded)
+    return " ".join(part for part in (what, bounds) if part) + excluded
+
+
+def _num(value: float) -> str:
+    return str(value) if isinstance(value, int) else f"{value:g}"
+
+
+def _arms(hint: Any) -> tuple[Any, ...]:
+    return typing.get_args(hint) if typing.get_origin(hint) in (Union, types.UnionType) else (
+        hint,)
+
+
+def _choices(hint: Any) -> tuple[Any, ...]:
+    """The values a Literal or an Enum (or a union with one) lists."""
+    for arm in _arms(hint):
+        if typing.get_origin(arm) is Literal:
+            return typing.get_args(arm)
+        if isinstance(arm, type) and issubclass(arm, Enum):
+            return tuple(member.value for member in arm)
+    return ()
+
+
+class _Wrong(Exception):
+    """A value that does not fit a type; the caller words the error."""
 
 
 def _convert(hint: Any, value: Any) -> Any:
@@ -265,6 +331,11 @@ def _convert(hint: Any, value: Any) -> Any:
         # type() as well as ==: true is not 1, 1.0 is not 1
         if any(type(value) is type(choice) and value == choice for choice in args):
             return value
+        raise _Wrong
+    if isinstance(hint, type) and issubclass(hint, Enum):
+        if isinstance(value, hint) or any(type(value) is type(m.value) and value == m.value
+                                          for m in hint):
+            return hint(value)
         raise _Wrong
     if origin is list:
         if type(value) is not list:
@@ -347,22 +418,17 @@ def _yaml(value: Any) -> str:
     return str(value)
 
 
-def _show(value: Any) -> str:
+def show(value: Any) -> str:
     """A value a user wrote, for an error message."""
-    if isinstance(value, str):
-        return repr(value)
+    if value is None:
+        return "nothing"
+    if isinstance(value, bool):
+        return f"{str(value).lower()} (a boolean)"
     if isinstance(value, dict):
         return "a mapping"
     if isinstance(value, list):
         return f"a list {value!r}" if len(repr(value)) < 40 else "a list"
-    return _yaml(value)
-
-
-def _unknown(name: str, key: str, valid: list[str]) -> OptionError:
-    if not valid:
-        return OptionError(key, f"{name} takes no options", f"remove it from plugins: {name}:")
-    return OptionError(key, f"unknown option of {name}{did_you_mean(key, valid)[1]}",
-                       f"the options of {name} are {', '.join(valid)}")
+    return repr(value)
 
 
 def did_you_mean(word: str, choices: typing.Sequence[str]) -> tuple[str | None, str]:
