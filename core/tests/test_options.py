@@ -113,7 +113,7 @@ def test_a_value_of_the_wrong_type(key, value, message):
 
 def test_the_fix_says_what_the_option_is_and_takes():
     assert error({"host": "a", "level": "x"}).fix == (
-        "level: how hard to try (an integer, 1 to 9, default 3)")
+        "level: how hard to try (an integer, 1..9, default 3)")
     assert error({"host": "a", "mode": 1}).fix == (
         "mode: who starts (one of: push, pull, default push)")
     assert error({"host": 1}).fix == "host: the far host (a string, required)"
@@ -175,8 +175,8 @@ def test_declared_lists_each_option_for_the_listing():
     assert (rows["host"].required, rows["host"].default_text()) == (True, "required")
     assert (rows["timeout"].default_text(), rows["fast"].default_text()) == ("null", "false")
     assert (rows["names"].default_text(), rows["extra"].default_text()) == ("[]", "{}")
-    assert rows["level"].limits() == "1 to 9"
-    assert rows["timeout"].limits() == "at least 0"
+    assert rows["level"].limits() == "1..9"
+    assert rows["timeout"].limits() == ">= 0"
     assert rows["mode"].limits() == rows["colour"].limits().replace("red, green", "push, pull")
     assert [spell(rows[n].type) for n in ("mode", "names", "extra", "timeout")] == [
         "str", "list[str]", "dict[str, Any]", "float | None"]

@@ -169,9 +169,9 @@ def test_a_misspelt_hook_is_reported_by_plugins_and_check(site, tmp_path):
     ("", 3, "plugins.knobs.host", "missing required key 'host' (where the knobs are)",
      "add host: <a string> under plugins: knobs:"),
     ("level: true", 5, "plugins.knobs.level", "expected an integer 1..9, got true (a boolean)",
-     "level: how hard to try (an integer, 1 to 9, default 3)"),
+     "level: how hard to try (an integer, 1..9, default 3)"),
     ("level: 12", 5, "plugins.knobs.level", "expected an integer 1..9, got 12",
-     "level: how hard to try (an integer, 1 to 9, default 3)"),
+     "level: how hard to try (an integer, 1..9, default 3)"),
     ("mode: both", 5, "plugins.knobs.mode", "'both' is not one of push, pull",
      "mode: who starts (one of: push, pull, default push)"),
     ("colour: blue", 5, "plugins.knobs.colour", "'blue' is not one of red, green",
@@ -210,14 +210,12 @@ def test_plugins_options_prints_each_option_in_columns():
     assert result.stdout == (
         "transport udp (rosgate-transport-udp 0.1.0), under plugins: udp:\n"
         "  OPTION          TYPE        DEFAULT  DESCRIPTION\n"
-        "  receive_buffer  int         4194304  bytes of kernel receive buffer to ask for (at "
-        "least 1)\n"
-        "  send_buffer     int         4194304  bytes of kernel send buffer to ask for (at least "
-        "1)\n"
+        "  receive_buffer  int         4194304  bytes of kernel receive buffer to ask for (>= 1)\n"
+        "  send_buffer     int         4194304  bytes of kernel send buffer to ask for (>= 1)\n"
         "  max_frame       int | None  null     the largest datagram to send, in bytes; longer "
         "frames go in fragments. Default: the path's MTU less the IP and UDP headers (1472 on "
         "Ethernet, 65000 on loopback), 1200 where the path is not known; a value set here is an "
-        "upper bound (256 to 65000)\n"
+        "upper bound (256..65000)\n"
         "  offload         bool        true     let the kernel cut and join a frame's datagrams "
         "(UDP_SEGMENT, UDP_GRO) where it can: one system call per frame\n")
 

@@ -127,21 +127,17 @@ class Declared:
         return (self.choices is None or value in self.choices) and value not in self.excluded
 
     def limits(self) -> str:
-        """The range or choices in words ("at least 1", "one of: a, b"), or ``""``."""
-        choices = self.choices or (typing.get_args(self.type)
-                                   if typing.get_origin(self.type) is Literal else ())
+        """The choices or the range in words ("one of: a, b", "1..9", ">= 1", "> 0, at most 1"),
+        or ``""``."""
+        choices = self.choices or _choices(self.type)
         if choices:
-            return "one of: " + ", ".join(_yaml(c) for c in choices)
-        if self.above is not None:
-            return f"more than {_yaml(self.above)}" + (
-                f", at most {_yaml(self.maximum)}" if self.maximum is not None else "")
+            return "one of: " + ", ".join(map(_yaml, choices))
         if self.minimum is not None and self.maximum is not None:
-            return f"{_yaml(self.minimum)} to {_yaml(self.maximum)}"
-        if self.minimum is not None:
-            return f"at least {_yaml(self.minimum)}"
-        if self.maximum is not None:
-            return f"at most {_yaml(self.maximum)}"
-        return ""
+            return f"{_num(self.minimum)}..{_num(self.maximum)}"
+        low = (f"> {_num(self.above)}" if self.above is not None
+               else f">= {_num(self.minimum)}" if self.minimum is not None else "")
+        high = f"at most {_num(self.maximum)}" if self.maximum is not None else ""
+        return ", ".join(part for part in (low, high) if part)
 
     def default_text(self) -> str:
         """The default as bringup.yaml would spell it, or ``required``."""
@@ -281,16 +277,8 @@ def expected(row: Declared) -> str:
 
 def _number(row: Declared, kind: Any) -> str:
     what = f"a number of {row.unit}" if row.unit else _words(kind)
-    low = f"> {_num(row.above)}" if row.above is not None else (
-        f">= {_num(row.minimum)}" if row.minimum is not None else "")
-    if row.maximum is None:
-        bounds = low
-    elif row.minimum is not None:
-        bounds = f"{_num(row.minimum)}..{_num(row.maximum)}"
-    else:
-        bounds = f"{low}, at most {_num(row.maximum)}".removeprefix(", ")
     excluded = "".join(f", not {_num(v)}" for v in row.excluded)
-    return " ".join(part for part in (what, bounds) if part) + excluded
+    return " ".join(part for part in (what, row.limits()) if part) + excluded
 
 
 def _num(value: float) -> str:
