@@ -218,9 +218,7 @@ def qos(key: Key, value: Any) -> int | str | dict:
             raise key.error(f"unknown QoS profile '{value}'"
                             f"{did_you_mean(name, QOS_PROFILES)[1]}", fix=fix)
     if isinstance(value, int) and not isinstance(value, bool):
-        if value < 1:
-            raise key.error(f"a QoS depth must be >= 1, got {value}", fix=fix)
-        return _depth_bound(key.src, key.path, value)
+        return _depth(key.src, key.section, key.name, value)
     if not isinstance(value, dict):
         raise key.error("expected a depth (integer >= 1), a profile name or a mapping "
                         f"{{{', '.join(QOS_KEYS)}}}, got {show(value)}", fix=fix)
@@ -228,23 +226,18 @@ def qos(key: Key, value: Any) -> int | str | dict:
     policies: dict[str, Any] = {}
     for name, choices in QOS_POLICIES.items():
         if name in value:
-            policies[name] = plain(_inner(key, name, type=str, choices=choices), value[name])
+            row = Declared(name, str, choices=choices, key=name)
+            policies[name] = plain(Key(key.src, key.path, row), value[name])
     if "depth" in value:
-        depth = plain(_inner(key, "depth", type=int, minimum=1, example="10"), value["depth"])
-        policies["depth"] = _depth_bound(key.src, join(key.path, "depth"), depth)
+        policies["depth"] = _depth(key.src, key.path, "depth", value["depth"])
     return policies
 
 
-def _inner(key: Key, name: str, **declared: Any) -> Key:
-    """A key inside ``key``'s own mapping (qos: {depth: ...})."""
-    return Key(key.src, key.path, Declared(name, key=name, **declared))
-
-
-def _depth_bound(src: Source, path: str, depth: int) -> int:
-    if depth > QOS_DEPTH_MAX:
-        raise src.error(path, f"a QoS depth must be at most {QOS_DEPTH_MAX}, got {depth}",
-                        fix="a depth a subscriber can hold, e.g. qos: 1000")
-    return depth
+def _depth(src: Source, section: str, name: str, value: Any) -> int:
+    """A QoS depth (`qos: 10`, `qos: {depth: 10}`), no deeper than a subscriber can hold."""
+    row = Declared(name, int, doc="the QoS depth", minimum=1, maximum=QOS_DEPTH_MAX,
+                   unit="messages", example="10", key=name)
+    return plain(Key(src, section, row), value)
 
 
 def plugin_choice(key: Key, value: Any) -> tuple[str, dict[str, Any]]:
