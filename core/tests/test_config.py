@@ -478,6 +478,12 @@ ERRORS = {
     "qos_reliability": (
         CLIENT_HEAD + TOPIC + "    qos:\n      reliability: lossy\n",
         10, "topics[0].qos.reliability", "'lossy' is not one of reliable, best_effort"),
+    "rule_durability": (
+        SERVER_HEAD + "clients:\n  robot1:\n    key: AAECAwQFBgcICQoLDA0ODxAREhMUFRYXGBkaGxwdHh8=\n"
+        "    topics:\n      - {name: /robot1/**, direction: both, durability: [transient_locl]}\n",
+        9, "clients.robot1.topics[0].durability",
+        "'transient_locl' is not one of volatile, transient_local "
+        "(did you mean 'transient_local'?)"),
     "qos_depth": (
         CLIENT_HEAD + TOPIC + "    qos: {history: keep_last, depth: 0}\n",
         9, "topics[0].qos.depth", "expected a number of messages 1..100000, got 0"),

@@ -333,13 +333,8 @@ def names(key: Key, value: Any) -> tuple[str, ...]:
 
 def durabilities(key: Key, value: Any) -> tuple[str, ...]:
     """a list of durabilities: `volatile`, `transient_local`"""
-    found = names(key, value)
-    for name in found:
-        if name not in QOS_POLICIES["durability"]:
-            raise key.error(f"expected volatile or transient_local, got {show(name)}"
-                            f"{did_you_mean(name, QOS_POLICIES['durability'])[1]}",
-                            fix="e.g. [volatile] or [volatile, transient_local]")
-    return found
+    one = replace(key.row, type=str, choices=QOS_POLICIES["durability"], example=None)
+    return tuple(plain(Key(key.src, key.section, one), name) for name in names(key, value))
 
 
 def mapping(key: Key, value: Any) -> dict:
