@@ -145,12 +145,16 @@ class Declared:
             return self.unset
         return "required" if self.required else _yaml(self.default)
 
-    def describe(self) -> str:
-        """What the option is and takes, for the ``fix:`` of an error about it."""
+    def fix(self, value: Any = None) -> str:
+        """The ``fix:`` of an error about this key: ``value`` or the example as the file would
+        have it, or else what the key is and takes."""
+        name, value = self.key.rpartition(".")[2] or self.name, value or self.example
+        if value:
+            return f"e.g. {name}: {value}"
         words, limits = _words(self.type), self.limits()
         details = [words, "" if limits == words else limits,  # a Literal says its choices once
                    "required" if self.required else f"default {self.default_text()}"]
-        return f"{self.name}: {self.doc} ({', '.join(d for d in details if d)})"
+        return f"{name}: {self.doc} ({', '.join(d for d in details if d)})"
 
 
 def declared(cls: type) -> list[Declared]:
@@ -261,11 +265,10 @@ def check(row: Declared, given: Any) -> Any:
             return value
     choices = row.choices or _choices(row.type)
     close, hint = did_you_mean(str(given), [str(c) for c in choices])
-    example = close or row.example
-    fix = f"e.g. {row.key.rpartition('.')[2]}: {example}" if example else row.describe()
     if choices:
-        raise ValueError(f"{show(given)} is not one of {', '.join(map(_yaml, choices))}{hint}", fix)
-    raise ValueError(f"expected {expected(row)}, got {show(given)}", fix)
+        raise ValueError(f"{show(given)} is not one of {', '.join(map(_yaml, choices))}{hint}",
+                         row.fix(close))
+    raise ValueError(f"expected {expected(row)}, got {show(given)}", row.fix())
 
 
 def expected(row: Declared) -> str:

@@ -63,7 +63,7 @@ class Key:
         return self.row.example or "<value>"
 
     def error(self, message: str, fix: str | None = None) -> ConfigError:
-        return self.src.error(self.path, message, fix=fix or f"e.g. {self.name}: {self.example}")
+        return self.src.error(self.path, message, fix=fix or self.row.fix())
 
 
 # -- a section ----------------------------------------------------------------------------------
