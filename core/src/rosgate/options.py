@@ -318,15 +318,11 @@ def _convert(hint: Any, value: Any) -> Any:
             except _Wrong:
                 pass
         raise _Wrong
-    if origin is Literal:
+    if origin is Literal or isinstance(hint, type) and issubclass(hint, Enum):
+        given = value.value if isinstance(value, Enum) else value
         # type() as well as ==: true is not 1, 1.0 is not 1
-        if any(type(value) is type(choice) and value == choice for choice in args):
-            return value
-        raise _Wrong
-    if isinstance(hint, type) and issubclass(hint, Enum):
-        if isinstance(value, hint) or any(type(value) is type(m.value) and value == m.value
-                                          for m in hint):
-            return hint(value)
+        if any(type(given) is type(choice) and given == choice for choice in _choices(hint)):
+            return value if origin is Literal else hint(given)
         raise _Wrong
     if origin is list:
         if type(value) is not list:
