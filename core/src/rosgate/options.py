@@ -18,8 +18,9 @@ The core parses the table with :func:`parse` and constructs the plugin with the 
 instance, which the plugin reads as ``self.options.receive_buffer``. Everything a user can get wrong
 in the table is an :class:`rosgate.OptionError` before the plugin sees it, which the core locates
 at the file's line of that option: an unknown key (with the closest valid one), a missing required
-key, a value of the wrong type, out of range or not among the choices. Rules that tie fields
-together go in the dataclass's ``__post_init__``, raising ``OptionError`` too.
+key, a value of the wrong type, out of range or not among the choices, each worded as the same
+mistake in bringup.yaml's own keys is (:func:`unknown`, :func:`missing`, :func:`check`). Rules
+that tie fields together go in the dataclass's ``__post_init__``, raising ``OptionError`` too.
 
 The types an option may have (YAML gives nothing else):
 

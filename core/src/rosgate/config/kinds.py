@@ -1,7 +1,8 @@
 """Reading bringup.yaml against its declarations: a section's keys (an unknown one with the
 closest valid one, a required one missing) and each value by its kind, every mistake a ConfigError
-located at its key. The plain kinds are those a declared type names (text, choices, a number in
-bounds, true or false); a field names the others with ``option(parse=...)`` (a ROS name, a QoS, a
+located at its key. The plain kinds are those a declared type names, read and worded by
+rosgate.options as a plugin's options are (a number in bounds, choices, true or false; text must
+not be empty); a field names the others with ``option(parse=...)`` (a ROS name, a QoS, a
 bandwidth...), and a parse function's docstring is its "values" column in docs/configuration.md."""
 
 from __future__ import annotations
