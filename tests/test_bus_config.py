@@ -173,11 +173,11 @@ ERRORS = {
     "zenoh_unknown_option": (
         "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    mdoe: client\n" + TOPIC
         + "transport: zenoh}\n", 4, "plugins.zenoh.mdoe",
-        "unknown option of zenoh (did you mean 'mode'?)"),
+        "unknown key 'mdoe' (did you mean 'mode'?)"),
     "zenoh_bad_mode": (
         "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    mode: robot\n" + TOPIC
         + "transport: zenoh}\n", 4, "plugins.zenoh.mode",
-        "must be one of: peer, client, router, not 'robot'"),
+        "'robot' is not one of peer, client, router"),
     "zenoh_unknown_nested_option": (
         "bridge: {name: r1, role: peer}\nplugins:\n  zenoh:\n    transport:\n      link:\n"
         "        tx: {leese: 1}\n" + TOPIC + "transport: zenoh}\n", 6,
@@ -206,7 +206,7 @@ def test_a_wrong_zenoh_option_is_one_clear_message_from_the_cli(tmp_path):
     path.write_text("bridge: {name: r1, role: peer}\nplugins:\n  zenoh: {mode: robot}\n" + TOPIC
                     + "transport: zenoh}\n")
     text = user_error(rosgate("check", str(path)))
-    assert f"{path}:3: plugins.zenoh.mode: must be one of: peer, client, router" in text
+    assert f"{path}:3: plugins.zenoh.mode: 'robot' is not one of peer, client, router" in text
 
 
 def test_run_without_the_router_a_client_needs_is_one_clear_message(tmp_path):

@@ -502,7 +502,7 @@ topics:
      "'list' is not one of array, pair"),
     ("    framing: none\n    args: dict\n", "topics[0].args", "'dict' is not one of map, array"),
     ("    framing: none\n    floats: 32\n", "topics[0].floats",
-     "'32' is not one of float32, float64"),
+     "32 is not one of float32, float64"),  # a number, as YAML read it
     ("    floats: float32\n", "topics[0].floats", "floats is for microcontroller entries"),
 ])
 def test_microcontroller_keys_are_checked_where_they_are_written(tmp_path, entry, key, message):

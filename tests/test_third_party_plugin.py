@@ -70,7 +70,8 @@ def test_its_options_are_checked_with_file_and_line(tmp_path):
                 "plugins:\n  unixdgram: {max_frame: 10}")
     with pytest.raises(ConfigError) as error:
         Engine(loads(text, file="x.yaml")).prepare()
-    assert str(error.value).startswith("x.yaml:4: plugins.unixdgram.max_frame: must be")
+    assert str(error.value).startswith("x.yaml:4: plugins.unixdgram.max_frame: expected an "
+                                       "integer 64..200000, got 10")
 
 
 # --- json: a codec written by a third party on the tree mapping ----------------------------------
@@ -184,7 +185,7 @@ def test_a_topic_s_options_for_deflate_are_checked_where_they_are_written():
     with pytest.raises(ConfigError) as error:
         Engine(loads(text, file="x.yaml")).prepare()
     assert str(error.value).startswith(
-        "x.yaml:5: topics[0].compression.deflate.level: must be 1 to 9, not 10")
+        "x.yaml:5: topics[0].compression.deflate.level: expected an integer 1..9, got 10")
 
 
 # --- a plugin that declares no options ----------------------------------------------------------
@@ -215,7 +216,8 @@ def test_a_plugin_without_declared_options_takes_none_and_carries_topics(domain,
     da, db, port = domain(), domain(), free_port()
     given = udp_peer("a", "transmit", port, "std_msgs/msg/String",
                      "plugins:\n  legacyudp: {max_frame: 500}", topic="transport: legacyudp")
-    with pytest.raises(ConfigError, match="legacyudp takes no options"):
+    with pytest.raises(ConfigError, match="plugins.legacyudp.max_frame: unknown key 'max_frame'\n"
+                                          "  fix: legacyudp takes no options: remove it"):
         Engine(loads(given, file="x.yaml"), plugins, domain_id=da).prepare()
     started = []
     try:

@@ -185,9 +185,9 @@ def test_several_receivers_and_senders_share_one_bus_by_port(engines, domain, ro
 
 
 @pytest.mark.parametrize("option, value, message", [
-    ("bitrate", "500k", "plugins.can.bitrate: must be an integer or null, not '500k'"),
+    ("bitrate", "500k", "plugins.can.bitrate: expected an integer >= 1 or null, got '500k'"),
     ("interface", "socketcann", "plugins.can.interface: python-can has no interface 'socketcann'"),
-    ("fd", "maybe", "plugins.can.fd: must be true or false"),
+    ("fd", "maybe", "plugins.can.fd: expected true or false, got 'maybe'"),
     ("base_id", "0x800", "plugins.can.base_id: must be an arbitration id from 0 to 2046"),
 ])
 def test_wrong_options_are_located_in_the_file(option, value, message):

@@ -471,16 +471,22 @@ ERRORS = {
         9, "topics[0].qos", "expected a depth (integer >= 1), a profile name or a mapping"),
     "qos_zero": (
         CLIENT_HEAD + TOPIC + "    qos: '0'\n",
-        9, "topics[0].qos", "a QoS depth must be >= 1, got 0"),
+        9, "topics[0].qos", "expected a number of messages 1..100000, got 0"),
     "qos_profile": (
         CLIENT_HEAD + TOPIC + "    qos: sensor\n",
         9, "topics[0].qos", "unknown QoS profile 'sensor' (did you mean 'sensor_data'?)"),
     "qos_reliability": (
         CLIENT_HEAD + TOPIC + "    qos:\n      reliability: lossy\n",
         10, "topics[0].qos.reliability", "'lossy' is not one of reliable, best_effort"),
+    "rule_durability": (
+        SERVER_HEAD + "clients:\n  robot1:\n    key: AAECAwQFBgcICQoLDA0ODxAREhMUFRYXGBkaGxwdHh8=\n"
+        "    topics:\n      - {name: /robot1/**, direction: both, durability: [transient_locl]}\n",
+        9, "clients.robot1.topics[0].durability",
+        "'transient_locl' is not one of volatile, transient_local "
+        "(did you mean 'transient_local'?)"),
     "qos_depth": (
         CLIENT_HEAD + TOPIC + "    qos: {history: keep_last, depth: 0}\n",
-        9, "topics[0].qos.depth", "expected an integer >= 1, got 0"),
+        9, "topics[0].qos.depth", "expected a number of messages 1..100000, got 0"),
     # roles (peer: and port: in role peer are needed by point-to-point entries only, which only
     # the resolver knows: tests/test_bus_config.py)
     "client_without_server": (
@@ -581,10 +587,10 @@ ERRORS = {
         5, "bridge.limits.handshake_timeout", "expected a number of seconds > 0, got inf"),
     "qos_depth_huge": (
         CLIENT_HEAD + TOPIC + f"    qos: {2**64}\n",
-        9, "topics[0].qos", "a QoS depth must be at most 100000, got 18446744073709551616"),
+        9, "topics[0].qos", "expected a number of messages 1..100000, got 18446744073709551616"),
     "qos_mapping_depth_huge": (
         CLIENT_HEAD + TOPIC + "    qos: {depth: 1000000}\n",
-        9, "topics[0].qos.depth", "a QoS depth must be at most 100000"),
+        9, "topics[0].qos.depth", "expected a number of messages 1..100000, got 1000000"),
     "max_rate_tiny": (
         CLIENT_HEAD + TOPIC + "    max_rate: 1.0e-320\n",
         9, "topics[0].max_rate", "expected a number of Hz 1e-06..1e+06, got 1e-320"),

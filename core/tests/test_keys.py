@@ -63,8 +63,8 @@ def test_exactly_one_source(tmp_path, options):
 def test_unknown_option_is_named(tmp_path):
     error = option_error({"key_file": "a", "keyfile": "a", "mode": 1}, tmp_path)
     assert (error.key, error.message) == ("keyfile",
-                                          "unknown option of demo (did you mean 'key_file'?)")
-    assert error.fix == "the options of demo are key_file, key_env"
+                                          "unknown key 'keyfile' (did you mean 'key_file'?)")
+    assert error.fix == "valid keys are key_file, key_env"
 
 
 @pytest.mark.parametrize("table, name", [({"key_file": 5}, "key_file"),
@@ -72,7 +72,7 @@ def test_unknown_option_is_named(tmp_path):
 def test_a_source_must_be_a_string(tmp_path, table, name):
     error = option_error(table, tmp_path)
     assert error.key == name
-    assert error.message.startswith("must be a string or null, not ")
+    assert error.message.startswith("expected a string or null, got ")
 
 
 @pytest.mark.parametrize("make", [lambda d: None, lambda d: (d / "nope.key").mkdir()],

@@ -61,10 +61,10 @@ def test_list_and_dict_defaults_are_not_shared():
 
 def test_an_unknown_key_suggests_the_closest_and_lists_them_all():
     e = error({"host": "a", "levle": 2})
-    assert (e.key, e.message) == ("levle", "unknown option of demo (did you mean 'level'?)")
-    assert e.fix == ("the options of demo are host, level, ratio, fast, mode, colour, names, "
+    assert (e.key, e.message) == ("levle", "unknown key 'levle' (did you mean 'level'?)")
+    assert e.fix == ("valid keys are host, level, ratio, fast, mode, colour, names, "
                      "extra, timeout, low, high")
-    assert error({"host": "a", "zzz": 1}).message == "unknown option of demo"
+    assert error({"host": "a", "zzz": 1}).message == "unknown key 'zzz'"
 
 
 def test_a_class_with_empty_options_takes_none():
@@ -78,32 +78,33 @@ def test_a_class_with_empty_options_takes_none():
     with pytest.raises(OptionError) as info:
         parse(Bare, {"fast": True})
     assert (info.value.key, info.value.message, info.value.fix) == (
-        "fast", "bare takes no options", "remove it from plugins: bare:")
+        "fast", "unknown key 'fast'", "bare takes no options: remove it")
 
 
-def test_a_missing_required_key_is_the_tables_problem():
+def test_a_missing_required_key_is_named_with_its_doc():
     e = error({})
-    assert (e.key, e.message, e.fix) == (None, "demo needs the option 'host' (the far host)",
+    assert (e.key, e.message, e.fix) == ("host", "missing required key 'host' (the far host)",
                                          "add host: <a string> under plugins: demo:")
 
 
 @pytest.mark.parametrize("key, value, message", [
-    ("host", 5, "must be a string, not 5"),
-    ("level", True, "must be an integer, not true"),            # a boolean is never a number
-    ("level", 2.0, "must be an integer, not 2.0"),
-    ("level", "3", "must be an integer, not '3'"),
-    ("ratio", False, "must be a number, not false"),
-    ("ratio", "half", "must be a number, not 'half'"),
-    ("fast", 1, "must be true or false, not 1"),
-    ("fast", "yes", "must be true or false, not 'yes'"),
-    ("mode", "both", "must be one of: push, pull, not 'both'"),
-    ("mode", 1, "must be one of: push, pull, not 1"),
-    ("names", "/x", "must be a list (a string each), not '/x'"),
-    ("names", ["/x", 2], "must be a list (a string each), not a list ['/x', 2]"),
-    ("extra", ["k"], "must be a mapping, not a list ['k']"),
-    ("extra", {1: "v"}, "must be a mapping, not a mapping"),     # keys are names
-    ("timeout", "soon", "must be a number or null, not 'soon'"),
-    ("level", None, "must be an integer, not null"),
+    ("host", 5, "expected a string, got 5"),
+    ("level", True, "expected an integer 1..9, got true (a boolean)"),  # never a number
+    ("level", 2.0, "expected an integer 1..9, got 2.0"),
+    ("level", "3", "expected an integer 1..9, got '3'"),
+    ("ratio", False, "expected a number 0..1, got false (a boolean)"),
+    ("ratio", "half", "expected a number 0..1, got 'half'"),
+    ("fast", 1, "expected true or false, got 1"),
+    ("fast", "yes", "expected true or false, got 'yes'"),
+    ("mode", "both", "'both' is not one of push, pull"),
+    ("mode", 1, "1 is not one of push, pull"),
+    ("names", "/x", "expected a list (a string each), got '/x'"),
+    ("names", ["/x", 2], "expected a list (a string each), got a list ['/x', 2]"),
+    ("extra", ["k"], "expected a mapping, got a list ['k']"),
+    ("extra", {1: "v"}, "expected a mapping, got a mapping"),     # keys are names
+    ("timeout", "soon", "expected a number >= 0 or null, got 'soon'"),
+    ("timeout", float("inf"), "expected a number >= 0 or null, got inf"),  # .inf is no number
+    ("level", None, "expected an integer 1..9, got nothing"),
 ], ids=lambda v: str(v))
 def test_a_value_of_the_wrong_type(key, value, message):
     e = error({"host": "a", key: value})
@@ -112,18 +113,19 @@ def test_a_value_of_the_wrong_type(key, value, message):
 
 def test_the_fix_says_what_the_option_is_and_takes():
     assert error({"host": "a", "level": "x"}).fix == (
-        "level: how hard to try (an integer, 1 to 9, default 3)")
+        "level: how hard to try (an integer, 1..9, default 3)")
     assert error({"host": "a", "mode": 1}).fix == (
         "mode: who starts (one of: push, pull, default push)")
     assert error({"host": 1}).fix == "host: the far host (a string, required)"
 
 
 @pytest.mark.parametrize("key, value, message", [
-    ("level", 0, "must be 1 to 9, not 0"),
-    ("level", 10, "must be 1 to 9, not 10"),
-    ("ratio", 1.5, "must be 0 to 1, not 1.5"),
-    ("timeout", -1, "must be at least 0, not -1"),          # as written, not as converted
-    ("colour", "blue", "must be one of: red, green, not 'blue'"),
+    ("level", 0, "expected an integer 1..9, got 0"),
+    ("level", 10, "expected an integer 1..9, got 10"),
+    ("ratio", 1.5, "expected a number 0..1, got 1.5"),
+    ("timeout", -1, "expected a number >= 0 or null, got -1"),  # as written, not as converted
+    ("colour", "blue", "'blue' is not one of red, green"),
+    ("colour", "gren", "'gren' is not one of red, green (did you mean 'green'?)"),
 ])
 def test_a_value_out_of_range_or_not_among_the_choices(key, value, message):
     e = error({"host": "a", key: value})
@@ -147,7 +149,7 @@ def test_a_class_without_options_takes_none_either():
     with pytest.raises(OptionError) as info:
         parse(Legacy, {"anything": 1})
     assert (info.value.key, info.value.message, info.value.fix) == (
-        "anything", "legacy takes no options", "remove it from plugins: legacy:")
+        "anything", "unknown key 'anything'", "legacy takes no options: remove it")
     assert parse(Legacy, {}) == {}
 
 
@@ -162,8 +164,9 @@ def test_as_options_keeps_what_the_core_parsed_and_parses_a_plain_mapping():
         name = "legacy"
 
     assert as_options(Legacy, {}) == {}
-    with pytest.raises(OptionError, match="legacy takes no options"):
+    with pytest.raises(OptionError, match="unknown key 'x'") as info:
         as_options(Legacy, {"x": 1})
+    assert info.value.fix == "legacy takes no options: remove it"
 
 
 def test_declared_lists_each_option_for_the_listing():
@@ -172,8 +175,8 @@ def test_declared_lists_each_option_for_the_listing():
     assert (rows["host"].required, rows["host"].default_text()) == (True, "required")
     assert (rows["timeout"].default_text(), rows["fast"].default_text()) == ("null", "false")
     assert (rows["names"].default_text(), rows["extra"].default_text()) == ("[]", "{}")
-    assert rows["level"].limits() == "1 to 9"
-    assert rows["timeout"].limits() == "at least 0"
+    assert rows["level"].limits() == "1..9"
+    assert rows["timeout"].limits() == ">= 0"
     assert rows["mode"].limits() == rows["colour"].limits().replace("red, green", "push, pull")
     assert [spell(rows[n].type) for n in ("mode", "names", "extra", "timeout")] == [
         "str", "list[str]", "dict[str, Any]", "float | None"]
@@ -208,8 +211,8 @@ def test_a_malformed_declaration_is_named():
     class BadDefault:
         level: int = option(0, "how hard", minimum=1)
 
-    assert problem(BadDefault) == ("Plugin.Options.level: its default does not fit: must be at "
-                                   "least 1, not 0")
+    assert problem(BadDefault) == ("Plugin.Options.level: its default does not fit: expected "
+                                   "an integer >= 1, got 0")
     assert problem(Demo.Options) is None
 
 

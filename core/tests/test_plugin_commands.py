@@ -164,20 +164,20 @@ def test_a_misspelt_hook_is_reported_by_plugins_and_check(site, tmp_path):
 # --- every mistake in a plugin's options, located -------------------------------------------------
 
 @pytest.mark.parametrize("option, line, key, message, fix", [
-    ("levle: 2", 5, "plugins.knobs.levle", "unknown option of knobs (did you mean 'level'?)",
-     "the options of knobs are host, level, mode, colour, names, low, high"),
-    ("", 3, "plugins.knobs", "knobs needs the option 'host' (where the knobs are)",
+    ("levle: 2", 5, "plugins.knobs.levle", "unknown key 'levle' (did you mean 'level'?)",
+     "valid keys are host, level, mode, colour, names, low, high"),
+    ("", 3, "plugins.knobs.host", "missing required key 'host' (where the knobs are)",
      "add host: <a string> under plugins: knobs:"),
-    ("level: true", 5, "plugins.knobs.level", "must be an integer, not true",
-     "level: how hard to try (an integer, 1 to 9, default 3)"),
-    ("level: 12", 5, "plugins.knobs.level", "must be 1 to 9, not 12",
-     "level: how hard to try (an integer, 1 to 9, default 3)"),
-    ("mode: both", 5, "plugins.knobs.mode", "must be one of: push, pull, not 'both'",
+    ("level: true", 5, "plugins.knobs.level", "expected an integer 1..9, got true (a boolean)",
+     "level: how hard to try (an integer, 1..9, default 3)"),
+    ("level: 12", 5, "plugins.knobs.level", "expected an integer 1..9, got 12",
+     "level: how hard to try (an integer, 1..9, default 3)"),
+    ("mode: both", 5, "plugins.knobs.mode", "'both' is not one of push, pull",
      "mode: who starts (one of: push, pull, default push)"),
-    ("colour: blue", 5, "plugins.knobs.colour", "must be one of: red, green, not 'blue'",
+    ("colour: blue", 5, "plugins.knobs.colour", "'blue' is not one of red, green",
      "colour: colour of the log lines (a string, one of: red, green, default red)"),
     ("names: [a, 1]", 5, "plugins.knobs.names",
-     "must be a list (a string each), not a list ['a', 1]",
+     "expected a list (a string each), got a list ['a', 1]",
      "names: names to leave out (a list (a string each), default [])"),
     ("low: 5\n    high: 4", 6, "plugins.knobs.high", "must not be below low (5)",
      "swap low and high"),
@@ -187,7 +187,7 @@ def test_check_locates_every_option_error_at_file_line_key(site, tmp_path, optio
     install(site, "rosgate-codec-knobs", "knobs", KNOBS)
     path = tmp_path / "bringup.yaml"
     text = BRINGUP.replace("OPTION", option)
-    path.write_text(text.replace("    host: h\n", "") if key == "plugins.knobs" else text)
+    path.write_text(text.replace("    host: h\n", "") if key == "plugins.knobs.host" else text)
     result = rosgate(site, "check", str(path))
     assert result.returncode == 2
     assert result.stderr == f"rosgate: error: {path}:{line}: {key}: {message}\n  fix: {fix}\n"
@@ -210,14 +210,12 @@ def test_plugins_options_prints_each_option_in_columns():
     assert result.stdout == (
         "transport udp (rosgate-transport-udp 0.1.0), under plugins: udp:\n"
         "  OPTION          TYPE        DEFAULT  DESCRIPTION\n"
-        "  receive_buffer  int         4194304  bytes of kernel receive buffer to ask for (at "
-        "least 1)\n"
-        "  send_buffer     int         4194304  bytes of kernel send buffer to ask for (at least "
-        "1)\n"
+        "  receive_buffer  int         4194304  bytes of kernel receive buffer to ask for (>= 1)\n"
+        "  send_buffer     int         4194304  bytes of kernel send buffer to ask for (>= 1)\n"
         "  max_frame       int | None  null     the largest datagram to send, in bytes; longer "
         "frames go in fragments. Default: the path's MTU less the IP and UDP headers (1472 on "
         "Ethernet, 65000 on loopback), 1200 where the path is not known; a value set here is an "
-        "upper bound (256 to 65000)\n"
+        "upper bound (256..65000)\n"
         "  offload         bool        true     let the kernel cut and join a frame's datagrams "
         "(UDP_SEGMENT, UDP_GRO) where it can: one system call per frame\n")
 

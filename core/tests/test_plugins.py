@@ -455,8 +455,9 @@ def test_a_transport_without_options_registers_and_takes_none():
     plugins = Plugins()
     plugins.add(plugin(rosgate_transports=registers(Plain)), "plain", "rosgate-transport-plain")
     assert plugins.failures == [] and plugins.get("transport", "plain").cls is Plain
-    with pytest.raises(OptionError, match="plain takes no options"):
+    with pytest.raises(OptionError, match="unknown key 'max_frame'") as info:
         parse(Plain, {"max_frame": 64})
+    assert info.value.fix == "plain takes no options: remove it"
     plain = Plain(parse(Plain, {}))
     assert (plain.options, plain.max_frame) == ({}, 100)
 

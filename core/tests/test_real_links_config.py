@@ -140,10 +140,11 @@ PLUGIN_ERRORS = {
         "remove recovery: from this entry"),
     "overhead_of_retransmit": (
         HEAD + TOPIC + "    recovery: {retransmit: {overhead: 0.1}}\n", 9,
-        "topics[0].recovery.retransmit.overhead", "retransmit takes no options", "remove it"),
+        "topics[0].recovery.retransmit.overhead", "unknown key 'overhead'",
+        "retransmit takes no options: remove it"),
     "overhead_out_of_range": (
         HEAD + TOPIC + "    recovery:\n      fec: {overhead: 1.5}\n", 10,
-        "topics[0].recovery.fec.overhead", "must be at most 1.0, not 1.5", "overhead:"),
+        "topics[0].recovery.fec.overhead", "expected a number at most 1, got 1.5", "overhead:"),
     "overhead_zero": (
         HEAD + TOPIC + "    recovery: {fec: {overhead: 0}}\n", 9,
         "topics[0].recovery.fec.overhead", "must be more than 0, not 0", "overhead: 0.1"),
@@ -156,7 +157,7 @@ PLUGIN_ERRORS = {
         "topics[0].compression.zstd.level", "must not be 0", "level: 3"),
     "level_in_the_plugins_table": (
         HEAD + "plugins:\n  zstd: {level: 23}\n" + TOPIC + "    compression: zstd\n", 6,
-        "plugins.zstd.level", "must be -7 to 22, not 23", "level: zstd's level"),
+        "plugins.zstd.level", "expected an integer -7..22, got 23", "level: zstd's level"),
 }
 
 

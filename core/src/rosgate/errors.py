@@ -13,8 +13,8 @@ class OptionError(RosgateError):
     ``Options`` declare, by an ``Options.__post_init__`` for rules that tie options together, and
     by a plugin's constructor for what only it can tell (a key file that cannot be read).
 
-    ``key`` is the option's name (``key_file``), or ``None`` for the table as a whole (a required
-    option missing); the core adds the file and line where it was set. ``fix`` says what to do.
+    ``key`` is the option's name (``key_file``), or ``None`` for the table as a whole (exactly
+    one of two options); the core adds the file and line where it was set. ``fix`` says what to do.
     The message never contains a key.
     """
 

@@ -18,8 +18,9 @@ The core parses the table with :func:`parse` and constructs the plugin with the 
 instance, which the plugin reads as ``self.options.receive_buffer``. Everything a user can get wrong
 in the table is an :class:`rosgate.OptionError` before the plugin sees it, which the core locates
 at the file's line of that option: an unknown key (with the closest valid one), a missing required
-key, a value of the wrong type, out of range or not among the choices. Rules that tie fields
-together go in the dataclass's ``__post_init__``, raising ``OptionError`` too.
+key, a value of the wrong type, out of range or not among the choices, each worded as the same
+mistake in bringup.yaml's own keys is (:func:`unknown`, :func:`missing`, :func:`check`). Rules
+that tie fields together go in the dataclass's ``__post_init__``, raising ``OptionError`` too.
 
 The types an option may have (YAML gives nothing else):
 
@@ -43,17 +44,20 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import types
 import typing
 from collections.abc import Mapping
 from dataclasses import MISSING
+from enum import Enum
 from pathlib import Path
 from typing import Any, Literal, Union
 
 from .errors import OptionError
 
-__all__ = ["MISSING", "Declared", "as_options", "declaration_problem", "declared",
-           "did_you_mean", "fields_of", "option", "parse", "spell"]
+__all__ = ["MISSING", "Declared", "as_options", "check", "declaration_problem", "declared",
+           "did_you_mean", "expected", "fields_of", "missing", "option", "parse", "show", "spell",
+           "unknown"]
 
 
 def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = None,
@@ -124,21 +128,17 @@ class Declared:
         return (self.choices is None or value in self.choices) and value not in self.excluded
 
     def limits(self) -> str:
-        """The range or choices in words ("at least 1", "one of: a, b"), or ``""``."""
-        choices = self.choices or (typing.get_args(self.type)
-                                   if typing.get_origin(self.type) is Literal else ())
+        """The choices or the range in words ("one of: a, b", "1..9", ">= 1", "> 0, at most 1"),
+        or ``""``."""
+        choices = self.choices or _choices(self.type)
         if choices:
-            return "one of: " + ", ".join(_yaml(c) for c in choices)
-        if self.above is not None:
-            return f"more than {_yaml(self.above)}" + (
-                f", at most {_yaml(self.maximum)}" if self.maximum is not None else "")
+            return "one of: " + ", ".join(map(_yaml, choices))
         if self.minimum is not None and self.maximum is not None:
-            return f"{_yaml(self.minimum)} to {_yaml(self.maximum)}"
-        if self.minimum is not None:
-            return f"at least {_yaml(self.minimum)}"
-        if self.maximum is not None:
-            return f"at most {_yaml(self.maximum)}"
-        return ""
+            return f"{_num(self.minimum)}..{_num(self.maximum)}"
+        low = (f"> {_num(self.above)}" if self.above is not None
+               else f">= {_num(self.minimum)}" if self.minimum is not None else "")
+        high = f"at most {_num(self.maximum)}" if self.maximum is not None else ""
+        return ", ".join(part for part in (low, high) if part)
 
     def default_text(self) -> str:
         """The default as bringup.yaml would spell it, or ``required``."""
@@ -146,12 +146,16 @@ class Declared:
             return self.unset
         return "required" if self.required else _yaml(self.default)
 
-    def describe(self) -> str:
-        """What the option is and takes, for the ``fix:`` of an error about it."""
+    def fix(self, value: Any = None) -> str:
+        """The ``fix:`` of an error about this key: ``value`` or the example as the file would
+        have it, or else what the key is and takes."""
+        name, value = self.key.rpartition(".")[2] or self.name, value or self.example
+        if value:
+            return f"e.g. {name}: {value}"
         words, limits = _words(self.type), self.limits()
         details = [words, "" if limits == words else limits,  # a Literal says its choices once
                    "required" if self.required else f"default {self.default_text()}"]
-        return f"{self.name}: {self.doc} ({', '.join(d for d in details if d)})"
+        return f"{name}: {self.doc} ({', '.join(d for d in details if d)})"
 
 
 def declared(cls: type) -> list[Declared]:
@@ -193,9 +197,9 @@ def declaration_problem(cls: type) -> str | None:
                     "(str, int, float, bool, Literal[...], list[T], dict[str, T], T | None, Any)")
         if not row.required:
             try:
-                _check(row, row.default)
-            except OptionError as exc:
-                return f"{where}.{row.name}: its default does not fit: {exc.message}"
+                check(row, row.default)
+            except ValueError as exc:
+                return f"{where}.{row.name}: its default does not fit: {exc.args[0]}"
     return None
 
 
@@ -209,16 +213,20 @@ def parse(cls: Any, table: Mapping[str, Any], base_dir: Path | None = None) -> A
     by_name = {row.name: row for row in rows}
     for key in table:
         if key not in by_name:
-            raise _unknown(name, str(key), list(by_name))
+            message, fix = unknown(str(key), list(by_name))
+            raise OptionError(str(key), message, fix if rows else
+                              f"{name} takes no options: remove it")
     values = {}
     for row in rows:
         if row.name in table:
-            values[row.name] = _check(row, table[row.name])
+            try:
+                values[row.name] = check(row, table[row.name])
+            except ValueError as exc:
+                raise OptionError(row.name, *exc.args) from None
             if row.relative and base_dir is not None and isinstance(values[row.name], str):
                 values[row.name] = str(base_dir / Path(values[row.name]).expanduser())
         elif row.required:
-            raise OptionError(None, f"{name} needs the option {row.name!r} ({row.doc})",
-                              f"add {row.name}: <{_words(row.type)}> under plugins: {name}:")
+            raise OptionError(row.name, *missing(row, f"plugins: {name}:"))
     if not hasattr(cls, "Options"):
         return {}
     return cls.Options(**values)  # __post_init__ checks what ties fields together
@@ -232,22 +240,72 @@ def as_options(cls: type, options: Any) -> Any:
     return options
 
 
-# -- checking one value --------------------------------------------------------------------------
+# -- reading a table: a plugin's options and bringup.yaml's own sections alike ------------------
 
-class _Wrong(Exception):
-    """A value that does not fit a type; the caller words the error."""
+def unknown(key: str, valid: typing.Sequence[str]) -> tuple[str, str]:
+    """The message and fix for ``key``, which is not one of ``valid``."""
+    return f"unknown key '{key}'{did_you_mean(key, valid)[1]}", f"valid keys are {', '.join(valid)}"
 
 
-def _check(row: Declared, given: Any) -> Any:
-    """``given`` as the option holds it (an int taken for a float becomes one), or OptionError."""
+def missing(row: Declared, under: str) -> tuple[str, str]:
+    """The message and fix for the required key ``row``, missing from the table ``under``."""
+    value = row.example or f"<{_words(row.type)}>"
+    where = f" under {under}" if under else ""
+    return f"missing required key '{row.key}' ({row.doc})", f"add {row.key}: {value}{where}"
+
+
+def check(row: Declared, given: Any) -> Any:
+    """``given`` as ``row``'s field holds it (an int taken for a float becomes one, a name of an
+    Enum's member the member), or ValueError(message, fix)."""
     try:
         value = _convert(row.type, given)
     except _Wrong:
-        raise OptionError(row.name, f"must be {_words(row.type)}, not {_show(given)}",
-                          row.describe()) from None
-    if not row.fits(value):
-        raise OptionError(row.name, f"must be {row.limits()}, not {_show(given)}", row.describe())
-    return value
+        pass
+    else:
+        if row.fits(value) and not (isinstance(value, float) and not math.isfinite(value)):
+            return value
+    choices = row.choices or _choices(row.type)
+    close, hint = did_you_mean(str(given), [str(c) for c in choices])
+    if choices:
+        raise ValueError(f"{show(given)} is not one of {', '.join(map(_yaml, choices))}{hint}",
+                         row.fix(close))
+    raise ValueError(f"expected {expected(row)}, got {show(given)}", row.fix())
+
+
+def expected(row: Declared) -> str:
+    """What ``row`` takes in words, a number with its unit and bounds: "an integer 1..65535",
+    "a number of seconds > 0", "a string or null"."""
+    return " or ".join(_number(row, arm) if arm in (int, float) else _words(arm)
+                       for arm in _arms(row.type))
+
+
+def _number(row: Declared, kind: Any) -> str:
+    what = f"a number of {row.unit}" if row.unit else _words(kind)
+    excluded = "".join(f", not {_num(v)}" for v in row.excluded)
+    return " ".join(part for part in (what, row.limits()) if part) + excluded
+
+
+def _num(value: float) -> str:
+    return str(value) if isinstance(value, int) else f"{value:g}"
+
+
+def _arms(hint: Any) -> tuple[Any, ...]:
+    return typing.get_args(hint) if typing.get_origin(hint) in (Union, types.UnionType) else (
+        hint,)
+
+
+def _choices(hint: Any) -> tuple[Any, ...]:
+    """The values a Literal or an Enum (or a union with one) lists."""
+    for arm in _arms(hint):
+        if typing.get_origin(arm) is Literal:
+            return typing.get_args(arm)
+        if isinstance(arm, type) and issubclass(arm, Enum):
+            return tuple(member.value for member in arm)
+    return ()
+
+
+class _Wrong(Exception):
+    """A value that does not fit a type; the caller words the error."""
 
 
 def _convert(hint: Any, value: Any) -> Any:
@@ -261,10 +319,11 @@ def _convert(hint: Any, value: Any) -> Any:
             except _Wrong:
                 pass
         raise _Wrong
-    if origin is Literal:
+    if origin is Literal or isinstance(hint, type) and issubclass(hint, Enum):
+        given = value.value if isinstance(value, Enum) else value
         # type() as well as ==: true is not 1, 1.0 is not 1
-        if any(type(value) is type(choice) and value == choice for choice in args):
-            return value
+        if any(type(given) is type(choice) and given == choice for choice in _choices(hint)):
+            return value if origin is Literal else hint(given)
         raise _Wrong
     if origin is list:
         if type(value) is not list:
@@ -347,22 +406,17 @@ def _yaml(value: Any) -> str:
     return str(value)
 
 
-def _show(value: Any) -> str:
+def show(value: Any) -> str:
     """A value a user wrote, for an error message."""
-    if isinstance(value, str):
-        return repr(value)
+    if value is None:
+        return "nothing"
+    if isinstance(value, bool):
+        return f"{str(value).lower()} (a boolean)"
     if isinstance(value, dict):
         return "a mapping"
     if isinstance(value, list):
         return f"a list {value!r}" if len(repr(value)) < 40 else "a list"
-    return _yaml(value)
-
-
-def _unknown(name: str, key: str, valid: list[str]) -> OptionError:
-    if not valid:
-        return OptionError(key, f"{name} takes no options", f"remove it from plugins: {name}:")
-    return OptionError(key, f"unknown option of {name}{did_you_mean(key, valid)[1]}",
-                       f"the options of {name} are {', '.join(valid)}")
+    return repr(value)
 
 
 def did_you_mean(word: str, choices: typing.Sequence[str]) -> tuple[str | None, str]:

@@ -140,18 +140,18 @@ def test_python_can_errors_become_link_errors():
 
 
 @pytest.mark.parametrize("options, key, message", [
-    ({"bitrate": "500k"}, "bitrate", "must be an integer or null, not '500k'"),
-    ({"bitrate": True}, "bitrate", "must be an integer or null, not true"),
-    ({"data_bitrate": 0}, "data_bitrate", "must be at least 1, not 0"),
-    ({"fd": 1}, "fd", "must be true or false"),
-    ({"extended": "yes"}, "extended", "must be true or false"),
+    ({"bitrate": "500k"}, "bitrate", "expected an integer >= 1 or null, got '500k'"),
+    ({"bitrate": True}, "bitrate", "expected an integer >= 1 or null, got true (a boolean)"),
+    ({"data_bitrate": 0}, "data_bitrate", "expected an integer >= 1 or null, got 0"),
+    ({"fd": 1}, "fd", "expected true or false, got 1"),
+    ({"extended": "yes"}, "extended", "expected true or false, got 'yes'"),
     ({"interface": "vcan"}, "interface", "python-can has no interface 'vcan'"),
     ({"base_id": -1}, "base_id", "must be an arbitration id from 0 to 2046"),
     ({"base_id": 0x7FF}, "base_id", "must be an arbitration id from 0 to 2046"),
-    ({"base_id": "0x100"}, "base_id", "must be an integer, not '0x100'"),
+    ({"base_id": "0x100"}, "base_id", "expected an integer, got '0x100'"),
     ({"bus": {"bitrate": 500000}}, "bus", "bitrate is an option of its own"),
-    ({"bus": []}, "bus", "must be a mapping"),
-    ({"bitrates": 1}, "bitrates", "unknown option of can (did you mean 'bitrate'?)"),
+    ({"bus": []}, "bus", "expected a mapping, got a list []"),
+    ({"bitrates": 1}, "bitrates", "unknown key 'bitrates' (did you mean 'bitrate'?)"),
 ], ids=["bitrate-text", "bitrate-bool", "data_bitrate-0", "fd-int", "extended-text",
         "interface", "base_id-negative", "base_id-last", "base_id-text",
         "bus-named", "bus-list", "unknown"])

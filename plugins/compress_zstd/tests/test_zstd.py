@@ -36,9 +36,9 @@ def test_a_payload_goes_out_as_a_zstd_frame_of_its_level():
 
 @pytest.mark.parametrize("options, message", [
     ({"level": 0}, "must not be 0 (zstd would take it for its default, 3)"),
-    ({"level": 23}, "must be -7 to 22, not 23"),
-    ({"level": -8}, "must be -7 to 22, not -8"),
-    ({"level": "max"}, "must be an integer, not 'max'"),
+    ({"level": 23}, "expected an integer -7..22, got 23"),
+    ({"level": -8}, "expected an integer -7..22, got -8"),
+    ({"level": "max"}, "expected an integer -7..22, got 'max'"),
 ])
 def test_wrong_levels(options, message):
     with pytest.raises(OptionError) as error:

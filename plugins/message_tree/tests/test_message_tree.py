@@ -81,4 +81,5 @@ def test_the_codec_base_checks_types_options_and_names_the_field():
         codec.encode(Twist())
     with pytest.raises(OptionError) as info:
         ToyCodec(Float32, {"fast": True})
-    assert (info.value.key, info.value.fix) == ("fast", "remove it from plugins: toy:")
+    assert (info.value.key, info.value.message, info.value.fix) == (
+        "fast", "unknown key 'fast'", "toy takes no options: remove it")

@@ -30,8 +30,8 @@ class TestRetransmitOnALossierPathConformance(PacketizerConformance):
 
 @pytest.mark.parametrize("options, message", [
     ({"overhead": 0}, "must be more than 0, not 0"),
-    ({"overhead": 1.5}, "must be at most 1.0, not 1.5"),
-    ({"overhead": "lots"}, "must be a number, not 'lots'"),
+    ({"overhead": 1.5}, "expected a number at most 1, got 1.5"),
+    ({"overhead": "lots"}, "expected a number at most 1, got 'lots'"),
 ])
 def test_wrong_overheads(options, message):
     with pytest.raises(OptionError) as error:

@@ -60,8 +60,8 @@ def test_check_address_validates_addresses_the_core_builds(bt):
 
 
 @pytest.mark.parametrize("options, key, says", [
-    ({"channel": 3}, "channel", "unknown option of bt"),
-    ({"emulate_dir": 5}, "emulate_dir", "must be a string or null, not 5"),
+    ({"channel": 3}, "channel", "unknown key 'channel'"),
+    ({"emulate_dir": 5}, "emulate_dir", "expected a string or null, got 5"),
     ({"emulate_dir": ""}, "emulate_dir", "must be a directory path"),
 ])
 def test_bad_options(options, key, says):

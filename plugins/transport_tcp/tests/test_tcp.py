@@ -95,20 +95,20 @@ def test_nodelay_is_set_on_both_ends(closing, options, expected):
     assert nodelay(server) is expected
 
 
-@pytest.mark.parametrize("value, shown", [("yes", "'yes'"), (1, "1"), (0, "0"), (None, "null"),
+@pytest.mark.parametrize("value, shown", [("yes", "'yes'"), (1, "1"), (0, "0"), (None, "nothing"),
                                           ("true", "'true'")])
 def test_nodelay_must_be_a_boolean(value, shown):
     with pytest.raises(OptionError) as info:
         TcpTransport({"nodelay": value})
     assert info.value.key == "nodelay"
-    assert info.value.message == f"must be true or false, not {shown}"
+    assert info.value.message == f"expected true or false, got {shown}"
 
 
 def test_unknown_option():
     with pytest.raises(OptionError) as info:
         TcpTransport({"nodelay": True, "no_delay": True})
     assert info.value.key == "no_delay"
-    assert info.value.message == "unknown option of tcp (did you mean 'nodelay'?)"
+    assert info.value.message == "unknown key 'no_delay' (did you mean 'nodelay'?)"
 
 
 @pytest.mark.parametrize("text, address", [

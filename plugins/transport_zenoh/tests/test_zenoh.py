@@ -43,8 +43,8 @@ def test_options_reach_zenoh_and_multicast_scouting_is_off_unless_asked():
 
 
 @pytest.mark.parametrize("options, key, words", [
-    ({"mdoe": "client"}, "mdoe", "unknown option of zenoh (did you mean 'mode'?)"),
-    ({"mode": "robot"}, "mode", "must be one of: peer, client, router, not 'robot'"),
+    ({"mdoe": "client"}, "mdoe", "unknown key 'mdoe' (did you mean 'mode'?)"),
+    ({"mode": "robot"}, "mode", "'robot' is not one of peer, client, router"),
     ({"connect": {"endpoints": "tcp/1.2.3.4:5"}}, "connect.endpoints",
      "expected list of endpoints"),
     ({"transport": {"link": {"tx": {"leese": 1}}}}, "transport.link.tx.leese",
@@ -52,7 +52,7 @@ def test_options_reach_zenoh_and_multicast_scouting_is_off_unless_asked():
     ({"scouting": {"multicast": {"enabled": "no"}}}, "scouting.multicast.enabled",
      "expected a boolean"),
     ({"prefix": "a//b"}, "prefix", "is not a key"),
-    ({"prefix": 7}, "prefix", "must be a string"),
+    ({"prefix": 7}, "prefix", "expected a string, got 7"),
     ({"namespace": "/bot*"}, "namespace", "bot*"),
 ])
 def test_a_wrong_option_names_itself(options, key, words):

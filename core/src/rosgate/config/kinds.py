@@ -1,22 +1,21 @@
 """Reading bringup.yaml against its declarations: a section's keys (an unknown one with the
 closest valid one, a required one missing) and each value by its kind, every mistake a ConfigError
-located at its key. The plain kinds are those a declared type names (text, choices, a number in
-bounds, true or false); a field names the others with ``option(parse=...)`` (a ROS name, a QoS, a
+located at its key. The plain kinds are those a declared type names, read and worded by
+rosgate.options as a plugin's options are (a number in bounds, choices, true or false; text must
+not be empty); a field names the others with ``option(parse=...)`` (a ROS name, a QoS, a
 bandwidth...), and a parse function's docstring is its "values" column in docs/configuration.md."""
 
 from __future__ import annotations
 
 import ipaddress
-import math
 import re
-from dataclasses import dataclass
-from enum import Enum
+from dataclasses import dataclass, replace
 from functools import cache
 from typing import Any
 
 from ..errors import ConfigError
-from ..options import Declared, did_you_mean, fields_of
-from .source import Source, join, show
+from ..options import Declared, check, did_you_mean, fields_of, missing, show, unknown
+from .source import Source, join
 
 QOS_DEPTH_MAX = 100_000  # far past any real queue; rclpy fails on depths past 64 bits
 ROS_NAME_MAX = 200  # characters: rclpy refuses topic names past 247, service names sooner
@@ -65,7 +64,7 @@ class Key:
         return self.row.example or "<value>"
 
     def error(self, message: str, fix: str | None = None) -> ConfigError:
-        return self.src.error(self.path, message, fix=fix or f"e.g. {self.name}: {self.example}")
+        return self.src.error(self.path, message, fix=fix or self.row.fix())
 
 
 # -- a section ----------------------------------------------------------------------------------
@@ -119,17 +118,13 @@ def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
 def check_keys(src: Source, data: dict, path: str, valid: tuple[str, ...]) -> None:
     for key in data:
         if key not in valid:
-            hint = did_you_mean(key, valid)[1]
-            raise src.error(join(path, key), f"unknown key '{key}'{hint}",
-                            fix=f"valid keys are {', '.join(valid)}")
+            raise src.error(join(path, key), *unknown(key, valid))
 
 
 def require(src: Source, data: dict, path: str, section: type) -> None:
     for row in keys(section):
         if row.required and row.key not in data:
-            where = f" under {path}:" if path else ""
-            raise src.error(join(path, row.key), f"missing required key '{row.key}'",
-                            fix=f"add {row.key}: {row.example}{where}")
+            raise src.error(join(path, row.key), *missing(row, f"{path}:" if path else ""))
 
 
 # -- the plain kinds -----------------------------------------------------------------------------
@@ -144,67 +139,18 @@ def text(key: Key, value: Any) -> str:
     return value
 
 
-def choice(key: Key, value: Any, choices: tuple[str, ...]) -> str:
-    value = text(key, value)
-    if value not in choices:
-        close, hint = did_you_mean(value, choices)
-        raise key.error(f"'{value}' is not one of {', '.join(choices)}{hint}",
-                        fix=f"e.g. {key.name}: {close or key.example}")
-    return value
-
-
-def flag(key: Key, value: Any) -> bool:
-    if not isinstance(value, bool):
-        raise key.error(f"expected true or false, got {show(value)}")
-    return value
-
-
-def number(key: Key, value: Any, integer: bool) -> int | float:
-    if (isinstance(value, bool) or not isinstance(value, int if integer else (int, float))
-            or isinstance(value, float) and not math.isfinite(value) or not key.row.fits(value)):
-        raise key.error(f"expected {expected(key.row, integer)}, got {show(value)}")
-    return value if integer else float(value)
-
-
-def expected(row: Declared, integer: bool) -> str:
-    """A number's kind and bounds in words: "an integer 1..65535", "a number of seconds > 0"."""
-    what = f"a number of {row.unit}" if row.unit else "an integer" if integer else "a number"
-    low = f"> {_num(row.above)}" if row.above is not None else (
-        f">= {_num(row.minimum)}" if row.minimum is not None else "")
-    if row.maximum is None:
-        bounds = low
-    elif row.minimum is not None:
-        bounds = f"{_num(row.minimum)}..{_num(row.maximum)}"
-    else:
-        bounds = f"{low}, at most {_num(row.maximum)}"
-    excluded = "".join(f", not {_num(v)}" for v in row.excluded)
-    return " ".join(part for part in (what, bounds) if part) + excluded
-
-
-def _num(value: float) -> str:
-    return str(value) if isinstance(value, int) else f"{value:g}"
-
-
 def plain(key: Key, value: Any) -> Any:
-    """The value of a key whose declared type says how to read it."""
-    kind, choices = kind_of(key.row)
-    if kind is bool:
-        return flag(key, value)
-    if kind in (int, float):
-        return number(key, value, integer=kind is int)
-    if choices is not None:
-        return kind(choice(key, value, choices))  # an Enum's member, or the str itself
-    if kind is str:
+    """The value of a key whose declared type says how to read it (null is none: it is written
+    by leaving the key out)."""
+    row = replace(key.row, type=next(arm for arm in getattr(key.row.type, "__args__",
+                                                            (key.row.type,))
+                                     if arm is not type(None)))
+    if row.type is str and row.choices is None:
         return text(key, value)
-    raise TypeError(f"{key.path}: declare a parse function for {kind}")  # a bug of the schema
-
-
-def kind_of(row: Declared) -> tuple[Any, tuple[Any, ...] | None]:
-    """The type of a key's value (``None`` aside), and the choices it is among, if any."""
-    kind = next(arm for arm in getattr(row.type, "__args__", (row.type,))
-                if arm is not type(None))
-    enum = isinstance(kind, type) and issubclass(kind, Enum)
-    return kind, tuple(kind) if enum else row.choices
+    try:
+        return check(row, value)
+    except ValueError as exc:
+        raise key.error(*exc.args) from None
 
 
 # -- the kinds a field names with option(parse=...) ---------------------------------------------
@@ -273,9 +219,7 @@ def qos(key: Key, value: Any) -> int | str | dict:
             raise key.error(f"unknown QoS profile '{value}'"
                             f"{did_you_mean(name, QOS_PROFILES)[1]}", fix=fix)
     if isinstance(value, int) and not isinstance(value, bool):
-        if value < 1:
-            raise key.error(f"a QoS depth must be >= 1, got {value}", fix=fix)
-        return _depth_bound(key.src, key.path, value)
+        return _depth(key.src, key.section, key.name, value)
     if not isinstance(value, dict):
         raise key.error("expected a depth (integer >= 1), a profile name or a mapping "
                         f"{{{', '.join(QOS_KEYS)}}}, got {show(value)}", fix=fix)
@@ -283,25 +227,18 @@ def qos(key: Key, value: Any) -> int | str | dict:
     policies: dict[str, Any] = {}
     for name, choices in QOS_POLICIES.items():
         if name in value:
-            policies[name] = choice(_inner(key, name, choices[0]), value[name], choices)
+            row = Declared(name, str, choices=choices, key=name)
+            policies[name] = plain(Key(key.src, key.path, row), value[name])
     if "depth" in value:
-        depth = value["depth"]
-        if isinstance(depth, bool) or not isinstance(depth, int) or depth < 1:
-            raise _inner(key, "depth", "10").error(f"expected an integer >= 1, got {show(depth)}")
-        policies["depth"] = _depth_bound(key.src, join(key.path, "depth"), depth)
+        policies["depth"] = _depth(key.src, key.path, "depth", value["depth"])
     return policies
 
 
-def _inner(key: Key, name: str, example: str) -> Key:
-    """A key inside ``key``'s own mapping (qos: {depth: ...})."""
-    return Key(key.src, key.path, Declared(name, str, None, example=example, key=name))
-
-
-def _depth_bound(src: Source, path: str, depth: int) -> int:
-    if depth > QOS_DEPTH_MAX:
-        raise src.error(path, f"a QoS depth must be at most {QOS_DEPTH_MAX}, got {depth}",
-                        fix="a depth a subscriber can hold, e.g. qos: 1000")
-    return depth
+def _depth(src: Source, section: str, name: str, value: Any) -> int:
+    """A QoS depth (`qos: 10`, `qos: {depth: 10}`), no deeper than a subscriber can hold."""
+    row = Declared(name, int, doc="the QoS depth", minimum=1, maximum=QOS_DEPTH_MAX,
+                   unit="messages", example="10", key=name)
+    return plain(Key(src, section, row), value)
 
 
 def plugin_choice(key: Key, value: Any) -> tuple[str, dict[str, Any]]:
@@ -397,13 +334,8 @@ def names(key: Key, value: Any) -> tuple[str, ...]:
 
 def durabilities(key: Key, value: Any) -> tuple[str, ...]:
     """a list of durabilities: `volatile`, `transient_local`"""
-    found = names(key, value)
-    for name in found:
-        if name not in QOS_POLICIES["durability"]:
-            raise key.error(f"expected volatile or transient_local, got {show(name)}"
-                            f"{did_you_mean(name, QOS_POLICIES['durability'])[1]}",
-                            fix="e.g. [volatile] or [volatile, transient_local]")
-    return found
+    one = replace(key.row, type=str, choices=QOS_POLICIES["durability"], example=None)
+    return tuple(plain(Key(key.src, key.section, one), name) for name in names(key, value))
 
 
 def mapping(key: Key, value: Any) -> dict:

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError
+from ..options import show
 from . import kinds
 from .kinds import Key, check_keys, key_names, keys, read, require
 from .schema import (
@@ -34,7 +35,7 @@ from .schema import (
     ServiceConfig,
     TopicConfig,
 )
-from .source import START_FIX, Source, join, parse, show
+from .source import START_FIX, Source, join, parse
 
 
 def load(path: str | Path) -> BridgeConfig:

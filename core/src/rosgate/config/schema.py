@@ -13,10 +13,10 @@ from typing import Any
 
 from ..batch import window
 from ..errors import ConfigError
-from ..options import option
+from ..options import option, show
 from . import kinds
 from .kinds import Key, read
-from .source import line_of, show
+from .source import line_of
 
 
 class Role(StrEnum):

@@ -148,15 +148,3 @@ def line_of(lines: dict[str, int], key: str) -> int | None:
         key = _parent(key)
     return None
 
-
-def show(value: Any) -> str:
-    """A value a user wrote, for an error message."""
-    if value is None:
-        return "nothing"
-    if isinstance(value, bool):
-        return f"{str(value).lower()} (a boolean)"
-    if isinstance(value, dict):
-        return "a mapping"
-    if isinstance(value, list):
-        return "a list"
-    return repr(value)

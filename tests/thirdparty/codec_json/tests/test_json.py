@@ -44,10 +44,10 @@ def test_options_indent_and_ascii():
 
 
 @pytest.mark.parametrize("options, key, message", [
-    ({"indent": -1}, "indent", "must be 0 to 8, not -1"),
-    ({"indent": "two"}, "indent", "must be an integer or null, not 'two'"),
-    ({"ascii": "no"}, "ascii", "must be true or false, not 'no'"),
-    ({"indnet": 2}, "indnet", "unknown option of json (did you mean 'indent'?)"),
+    ({"indent": -1}, "indent", "expected an integer 0..8 or null, got -1"),
+    ({"indent": "two"}, "indent", "expected an integer 0..8 or null, got 'two'"),
+    ({"ascii": "no"}, "ascii", "expected true or false, got 'no'"),
+    ({"indnet": 2}, "indnet", "unknown key 'indnet' (did you mean 'indent'?)"),
 ])
 def test_wrong_options(options, key, message):
     with pytest.raises(OptionError) as error:

@@ -39,4 +39,4 @@ def test_what_it_refuses(data, message):
 def test_its_level_is_checked():
     with pytest.raises(OptionError) as error:
         DeflateTransform({"level": 10}, 1000)
-    assert (error.value.key, error.value.message) == ("level", "must be 1 to 9, not 10")
+    assert (error.value.key, error.value.message) == ("level", "expected an integer 1..9, got 10")
