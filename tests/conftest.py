@@ -237,6 +237,15 @@ def cross(publisher: Any, inbox: Inbox, make: Callable[[int | None], Any],
     return numbered(list(inbox.items))
 
 
+def settle(inbox: Inbox, quiet: float = 0.5, timeout: float = 10.0) -> None:
+    """Wait until nothing new has arrived for ``quiet`` seconds (what was in flight is in)."""
+    deadline = time.monotonic() + timeout
+    seen = -1
+    while time.monotonic() < deadline and seen != len(inbox.items):
+        seen = len(inbox.items)
+        inbox.wait_count(seen + 1, quiet)
+
+
 class Bridge:
     """A ``rosgate run`` process."""
 

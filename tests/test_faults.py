@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import Bridge, Inbox, cross, free_port, wait_until
+from conftest import Bridge, Inbox, cross, free_port, settle, wait_until
 from faults import FaultProxy, UdpRates
 from std_msgs.msg import String
 
@@ -199,15 +199,6 @@ def coalesced(engine) -> int:
     """Frames that shared a datagram with others (a lagging send thread batches what waits):
     one fault loses them together."""
     return sum(link.counters.coalesced_out for link in engine.life.links())
-
-
-def settle(inbox: Inbox, quiet: float = 0.5, timeout: float = 10.0) -> None:
-    """Wait until nothing new has arrived for ``quiet`` seconds."""
-    deadline = time.monotonic() + timeout
-    seen = -1
-    while time.monotonic() < deadline and seen != len(inbox.items):
-        seen = len(inbox.items)
-        inbox.wait_count(seen + 1, quiet)
 
 
 def test_udp_with_loss_duplicates_and_reordering(engines, domain, ros_side, proxy):
