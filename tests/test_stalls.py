@@ -10,10 +10,9 @@ core/tests/test_late_drops.py."""
 
 from __future__ import annotations
 
-import os
 import re
-import signal
-import threading
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -38,18 +37,35 @@ def counters(log: str, topic: str) -> tuple[int, int, str]:
     return sent, received, line.rsplit("drops: ", 1)[1]
 
 
-def stall(pids: list[int], done: threading.Event, stops: list[int]) -> None:
-    """Stop each process in turn for STALL seconds, every BETWEEN seconds, until ``done``."""
-    turn = 0
-    while not done.wait(BETWEEN):
-        pid = pids[turn % len(pids)]
-        os.kill(pid, signal.SIGSTOP)
-        try:
-            time.sleep(STALL)  # the stall itself: what the test is about
-        finally:
-            os.kill(pid, signal.SIGCONT)
-        stops[turn % len(pids)] += 1
-        turn += 1
+# The stopper runs in a process of its own: a thread of the test's process, which publishes
+# 1,000 messages a second, may wait for the GIL long enough on a loaded machine to stop the
+# bridges fewer times than the test needs.
+STALLER = f"""
+import os, select, signal, sys, time
+pids, stops, turn = [int(p) for p in sys.argv[1:]], [0] * (len(sys.argv) - 1), 0
+while not select.select([sys.stdin], [], [], {BETWEEN})[0]:  # until the test closes stdin
+    pid = pids[turn % len(pids)]
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        time.sleep({STALL})  # the stall itself: what the test is about
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    stops[turn % len(pids)] += 1
+    turn += 1
+print(*stops)
+"""
+
+
+def stall(pids: list[int]) -> subprocess.Popen:
+    """Stop each process in turn for STALL seconds, every BETWEEN seconds, until :func:`stops`."""
+    return subprocess.Popen([sys.executable, "-c", STALLER, *map(str, pids)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+
+def stops(staller: subprocess.Popen) -> list[int]:
+    """End the stopper; how many times it stopped each process."""
+    out, _ = staller.communicate("", timeout=10)
+    return [int(n) for n in out.split()]
 
 
 def test_stopping_either_bridge_for_50_ms_loses_nothing(tmp_path: Path, domain, ros_side,
@@ -75,9 +91,7 @@ topics:
     warmups_sent = warm_up(publisher, inbox, String(data="warmup"))
     warmups = len(inbox.items)
 
-    done, stops = threading.Event(), [0, 0]
-    stopper = threading.Thread(target=stall, args=([robot.proc.pid, base.proc.pid], done, stops))
-    stopper.start()
+    staller = stall([robot.proc.pid, base.proc.pid])
     try:
         start = time.monotonic()
         for i in range(COUNT):
@@ -87,12 +101,11 @@ topics:
                     time.sleep(delay)
             publisher.publish(String(data=text(i)))
     finally:
-        done.set()
-        stopper.join()
+        stopped = stops(staller)
     inbox.wait_for(lambda items: len(items) >= warmups + COUNT, 20)
     got = [m.data for m in inbox.items if m.data != "warmup"]
 
-    assert min(stops) >= 3, stops  # each bridge was stopped, several times, while it flowed
+    assert min(stopped) >= 3, stopped  # each bridge was stopped, several times, while it flowed
     assert robot.stop() == 0 and base.stop() == 0  # their last lines: the counters
     sent, _, robot_drops = counters(robot.log, "/scan")
     _, received, base_drops = counters(base.log, "/scan")
