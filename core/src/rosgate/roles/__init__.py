@@ -105,7 +105,8 @@ class Role:
         self.refusals = Refusals()
         self._lock = threading.RLock()
         #: datagram ports a session that ended is closing now: bound again only once closed
-        self._unbinding: dict[tuple[str, Address], threading.Event] = {}
+        self._unbinding: set[tuple[str, Address]] = set()
+        self._unbound = threading.Condition(self._lock)
 
     def start(self) -> None: ...
 
@@ -202,7 +203,7 @@ class Role:
                     link = self.datagram_links.pop((name, local), None)
                     if link is not None:
                         self.bare_ports.pop(link, None)
-                        self._unbinding[(name, local)] = threading.Event()
+                        self._unbinding.add((name, local))
                         closing.append((link, (name, local)))
                 else:
                     acceptor = self.listening.pop((name, local), None)
@@ -212,8 +213,9 @@ class Role:
             item.close()
             self.life.forget(item)
             if where is not None:
-                with self._lock:
-                    self._unbinding.pop(where).set()
+                with self._unbound:
+                    self._unbinding.discard(where)
+                    self._unbound.notify_all()
 
     def datagram_link(self, transport: Transport, local: Address, key: str = "bridge",
                       bare_named: bool | None = None, sources: Sources | None = None,
@@ -223,17 +225,11 @@ class Role:
         ``sources``: who it takes frames from (the first entry on the port decides). An
         ``owner`` holds it until :meth:`release`; without one it lasts as long as the bridge."""
         assert isinstance(transport, DatagramTransport)
-        deadline = time.monotonic() + UNBIND_WAIT
         with self._lock:
             # a session that just ended may still be closing this port (a client that came back
             # at once): bind once it is closed, not into "address already in use"
-            while (unbinding := self._unbinding.get((transport.name, local))) is not None \
-                    and time.monotonic() < deadline:
-                self._lock.release()
-                try:
-                    unbinding.wait(deadline - time.monotonic())
-                finally:
-                    self._lock.acquire()
+            self._unbound.wait_for(lambda: (transport.name, local) not in self._unbinding,
+                                   UNBIND_WAIT)
             self._hold("datagram", transport, local, owner)
             found = self.datagram_links.get((transport.name, local))
             if found is not None:
