@@ -202,3 +202,16 @@ topics:
         "  /odom     not counted (nav_msgs/msg/Odometry varies in size: give typical_size)",
         "  total 20.1 Mbit/s of 20.0 Mbit/s (100.5 %): over budget: latest_only topics send less "
         "often, others wait in the queue (reliable) or are dropped late (best effort)"]
+
+
+def test_a_monitors_wrong_option_is_located_at_its_key():
+    """A monitor's table is read like any plugin's: the error names the file, line and key."""
+    text = """bridge: {name: a, role: peer, peer: 127.0.0.1, insecure: true}
+plugins:
+  diagnostics:
+    periodd: 1
+"""
+    with pytest.raises(ConfigError) as caught:
+        Engine(loads(text, file="bringup.yaml")).prepare()
+    assert str(caught.value) == ("bringup.yaml:4: plugins.diagnostics.periodd: unknown key "
+                                 "'periodd'\n  fix: diagnostics takes no options: remove it")

@@ -176,8 +176,7 @@ class Engine:
             try:
                 options = parse(registration.cls, cfg.plugins.get(name) or {})
             except OptionError as exc:
-                key = f"plugins.{name}" + (f".{exc.key}" if exc.key else "")
-                raise cfg.error(key, exc.message, exc.fix) from None
+                raise self.resolver.option_error(name, exc, f"bridge.{name}") from None
             found.append((registration.cls, options))
         return found
 

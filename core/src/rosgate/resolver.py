@@ -170,7 +170,7 @@ class Resolver:
             for part in (interface,) if topic else (interface.Request, interface.Response):
                 codec_cls(part, codec_options)
         except OptionError as exc:
-            raise self._option_error(entry.codec, exc, f"{key}.codec", error) from None
+            raise self.option_error(entry.codec, exc, f"{key}.codec", error) from None
         return transport, {"config": entry, "msg_type" if topic else "srv_type": interface,
                            "codec_cls": codec_cls, "codec_options": codec_options,
                            "transport": transport, "cipher": cipher, "cipher_cls": cipher_cls,
@@ -210,7 +210,7 @@ class Resolver:
         try:
             return cls(options, DEFAULT_MAX_MESSAGE)
         except OptionError as exc:
-            raise self._option_error(topic.compression, exc, asked_by, error) from None
+            raise self.option_error(topic.compression, exc, asked_by, error) from None
 
     def _topic_options(self, cls: type, name: str, own: dict[str, Any], asked_by: str,
                        error: ErrorMaker) -> Any:
@@ -222,7 +222,7 @@ class Resolver:
         except OptionError as exc:
             if exc.key is not None and exc.key in own:
                 raise error(f"{asked_by}.{name}.{exc.key}", exc.message, exc.fix) from None
-            raise self._option_error(name, exc, asked_by, error) from None
+            raise self.option_error(name, exc, asked_by, error) from None
 
     def transform_for(self, wire_id: int) -> Transform | None:
         """The transform a receiver decodes a payload of ``wire_id`` with (options from this
@@ -466,7 +466,7 @@ class Resolver:
         try:
             return cls(parse(cls, self._options(name), self.config.base_dir), *args)
         except OptionError as exc:
-            raise self._option_error(name, exc, key, error) from None
+            raise self.option_error(name, exc, key, error) from None
 
     def _entry_cipher(self, name: str, key: str, error: ErrorMaker,
                       on_bus: bool = False) -> tuple[type[Cipher], Cipher | None]:
@@ -489,7 +489,7 @@ class Resolver:
         try:
             return cls, parse(cls, self._options(name), self.config.base_dir)
         except OptionError as exc:
-            raise self._option_error(name, exc, key, error) from None
+            raise self.option_error(name, exc, key, error) from None
 
     def _options(self, plugin: str) -> Any:
         return self.config.plugins.get(plugin) or {}
@@ -500,8 +500,8 @@ class Resolver:
         except ValueError as exc:
             raise self.config.error(key, str(exc)) from None
 
-    def _option_error(self, plugin: str, exc: OptionError, asked_by: str,
-                      error: ErrorMaker | None) -> ConfigError:
+    def option_error(self, plugin: str, exc: OptionError, asked_by: str,
+                     error: ErrorMaker | None = None) -> ConfigError:
         """Locate a plugin's complaint at its option, or, when the file has no options for the
         plugin at all, at the key that asked for the plugin."""
         if f"plugins.{plugin}" not in self.config.lines:
