@@ -320,6 +320,18 @@ def knows_max_frame(root: Path) -> bool:
     return "max_frame: int" in module.read_text()
 
 
+def refuses_open_links(root: Path) -> bool:
+    """Whether a checkout refuses a peer (or any entry anyone could write to) unless the file
+    says insecure: true; an older one knows no insecure: for peers and refuses the key."""
+    return "open_doors" in (root / "core" / "src" / "rosgate" / "engine.py").read_text()
+
+
+def knows_insecure(root: Path) -> bool:
+    """Whether a checkout's client and server take insecure: (from sessions on)."""
+    return any("insecure" in path.read_text()
+               for path in (root / "core" / "src" / "rosgate").rglob("*.py"))
+
+
 def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
                   reliability: str = "reliable", root: Path = ROOT) -> tuple[Path, Path]:
     """Write bridge A's and bridge B's bringup.yaml; return their paths.
@@ -349,7 +361,7 @@ def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
     if route.roles == "peer":
         # a peer without identities runs open only when its file says so (a revision from
         # before that rule knows no insecure: for peers)
-        open_ = "" if route.rev else ", insecure: true"
+        open_ = ", insecure: true" if refuses_open_links(root) else ""
         a = (f"bridge: {{name: bench_a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1{open_}}}\n"
              f"{plugins}topics:\n  - {topic}, direction: transmit, port: {port}}}\n")
         b = (f"bridge: {{name: bench_b, role: peer, peer: 127.0.0.1, listen: 127.0.0.1{open_}}}\n"
@@ -358,7 +370,7 @@ def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
         # the client's file holds the topic list; its datagram topic uses the server's port
         a_keys, b_keys = session_keys(folder) if route.roles == "session" else (
             # a revision from before sessions knows no insecure: (and needs none)
-            ("", "") if route.rev else (", insecure: true", ", insecure: true"))
+            (", insecure: true",) * 2 if knows_insecure(root) else ("", ""))
         a = (f"bridge: {{name: bench_a, role: client, server: 127.0.0.1:{port}{a_keys}}}\n"
              f"{plugins}topics:\n  - {topic}, direction: transmit}}\n")
         b = f"bridge: {{name: bench_b, role: server, server: 127.0.0.1:{port}{b_keys}}}\n{plugins}"
