@@ -154,7 +154,9 @@ def short_path(file: str, roots: list[Path]) -> str:
 # Innermost named frames that mean "waiting, not running": a sample whose innermost named frame is
 # one of these is idle. py-spy has its own idle test, but with --native it did not recognise these
 # waits here (the innermost libc frames below them have no symbols), so it is done again here.
-WAITS = {"poll", "ppoll", "select", "pselect", "pselect6", "epoll_wait", "epoll_pwait",
+# udp's receive waits inside recvmsg (under the socket's SO_RCVTIMEO), so a sample there is the
+# wait nearly always: copying one datagram out is about a microsecond.
+WAITS = {"recvmsg", "poll", "ppoll", "select", "pselect", "pselect6", "epoll_wait", "epoll_pwait",
          "pthread_cond_wait", "pthread_cond_timedwait", "pthread_cond_clockwait",
          "sem_wait", "sem_timedwait", "sem_clockwait", "PyThread_acquire_lock_timed", "take_gil",
          "nanosleep", "clock_nanosleep", "usleep", "accept", "accept4", "pause", "sigwait",
