@@ -62,14 +62,13 @@ __all__ = ["MISSING", "Declared", "as_options", "check", "declaration_problem", 
 
 def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = None,
            maximum: float | None = None, choices: typing.Sequence[Any] | None = None,
-           above: float | None = None, excluded: typing.Sequence[Any] = (), unit: str = "",
+           above: float | None = None, unit: str = "",
            example: str | None = None, unset: str | None = None, key: str | None = None,
            parse: typing.Callable[..., Any] | None = None, relative: bool = False) -> Any:
     """One option of a plugin's ``Options``, or one key of bringup.yaml's own schema: its default
     (none: the option is required), a one-line ``doc`` for ``rosgate plugins --options``, the
     generated reference and error messages, and optionally the range (``minimum``, ``maximum``,
-    inclusive; ``above``, exclusive), the values it may not take (``excluded``) or the ``choices``
-    its value must be in.
+    inclusive; ``above``, exclusive) or the ``choices`` its value must be in.
 
     The rest serves the core's schema (rosgate.config): the ``unit`` a number is in ("seconds"),
     an ``example`` value for the fix of an error, what an absent key means when that is not a
@@ -84,7 +83,7 @@ def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = Non
         raise TypeError("option() needs a doc: one line saying what the option does")
     row = Declared(doc=doc, minimum=minimum, maximum=maximum, above=above, unit=unit,
                    choices=tuple(choices) if choices is not None else None,
-                   excluded=tuple(excluded), example=example, unset=unset, key=key or "",
+                   example=example, unset=unset, key=key or "",
                    parse=parse, relative=relative)
     if isinstance(default, (list, dict)):
         return dataclasses.field(default_factory=lambda: type(default)(default),
@@ -105,7 +104,6 @@ class Declared:
     maximum: float | None = None
     choices: tuple[Any, ...] | None = None
     above: float | None = None
-    excluded: tuple[Any, ...] = ()
     unit: str = ""
     example: str | None = None
     unset: str | None = None
@@ -118,14 +116,13 @@ class Declared:
         return self.default is MISSING and self.unset is None
 
     def fits(self, value: Any) -> bool:
-        """Whether ``value`` (of the right type) is within the bounds, among the choices and
-        not excluded."""
+        """Whether ``value`` (of the right type) is within the bounds and among the choices."""
         if isinstance(value, (int, float)) and not isinstance(value, bool) and (
                 self.minimum is not None and value < self.minimum
                 or self.above is not None and value <= self.above
                 or self.maximum is not None and value > self.maximum):
             return False
-        return (self.choices is None or value in self.choices) and value not in self.excluded
+        return self.choices is None or value in self.choices
 
     def limits(self) -> str:
         """The choices or the range in words ("one of: a, b", "1..9", ">= 1", "> 0, at most 1"),
@@ -281,8 +278,7 @@ def expected(row: Declared) -> str:
 
 def _number(row: Declared, kind: Any) -> str:
     what = f"a number of {row.unit}" if row.unit else _words(kind)
-    excluded = "".join(f", not {_num(v)}" for v in row.excluded)
-    return " ".join(part for part in (what, row.limits()) if part) + excluded
+    return " ".join(part for part in (what, row.limits()) if part)
 
 
 def _num(value: float) -> str:
