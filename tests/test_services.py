@@ -217,7 +217,10 @@ def test_slow_server_answered_as_failure_within_timeout_and_the_late_answer_drop
     entry = (f"service: /set, type: std_srvs/srv/SetBool, direction: transmit, port: {port}, "
              "timeout: 0.5")
     a = engines(peer_yaml("a", [entry]), da)
-    b = engines(peer_yaml("b", [flip(entry)]), db)
+    # the serving bridge waits longer than the caller's: with the same 0.5 s, on a loaded
+    # machine its own failure ("the ROS server /set did not answer") could reach the caller
+    # before the caller's timer ran, and the caller would answer with that instead
+    b = engines(peer_yaml("b", [flip(entry).replace("timeout: 0.5", "timeout: 1.5")]), db)
     side_a, side_b = ros_side(da, "a"), ros_side(db, "b")
     server = HoldingServer(side_b, "/set", 2)  # holds the first call until a second comes
     caller = Caller(side_a, SetBool, "/set")
