@@ -27,10 +27,13 @@ def draw(results: list[Result], folder: Path) -> list[Path]:
     rates = FuncFormatter(lambda v, _: f"{v / 1000:g}k" if v >= 1000 else f"{v:g}")
 
     folder.mkdir(parents=True, exist_ok=True)
-    palette = plt.get_cmap("tab10").colors
+    # one colour per path, the same for a base revision's row of it (dashed, hollow markers);
+    # the default file's rows drawn heavier: they are the headline
+    pairs = plt.get_cmap("tab20").colors  # ten colours, each with a light one: the strong first
+    palette = pairs[::2] + pairs[1::2]
     colors: dict[str, tuple] = {}
     for r in results:
-        colors.setdefault(r.path, palette[len(colors) % len(palette)])
+        colors.setdefault(kind(r), palette[len(colors) % len(palette)])
     sizes = list(dict.fromkeys(r.size for r in results))
     written = []
 
@@ -41,11 +44,13 @@ def draw(results: list[Result], folder: Path) -> list[Path]:
         fig, ax = plt.subplots(figsize=(8, 6))
         low, high = float("inf"), 0.0
         for r in rows:
-            color = colors[r.path]
+            color = colors[kind(r)]
             points = sorted((t.offered, t.delivered) for t in r.trials if t.sent)
             xs, ys = zip(*points, strict=True)
-            ax.plot(xs, ys, "o-", color=color, label=r.path, markersize=5, linewidth=0.8,
-                    alpha=0.85)
+            base = bool(r.route and r.route.rev)
+            ax.plot(xs, ys, "o--" if base else "o-", color=color, label=r.path, markersize=5,
+                    markerfacecolor="none" if base else color,
+                    linewidth=1.8 if r.route and r.route.default_file else 0.8, alpha=0.85)
             if r.sustained:
                 ax.plot([r.sustained.offered], [r.sustained.delivered], "o", markersize=12,
                         markerfacecolor="none", markeredgecolor=color)
@@ -91,7 +96,7 @@ def draw(results: list[Result], folder: Path) -> list[Path]:
             for i, (q, shade) in enumerate((("p50_us", 1.0), ("p90_us", 0.65), ("p99_us", 0.35))):
                 values = [(getattr(r.latency, q) or 0) / 1000 for r in rows]
                 ys = [y + (1 - i) * 0.27 for y in range(len(rows))]
-                ax.barh(ys, values, height=0.27, color=[colors[r.path] for r in rows],
+                ax.barh(ys, values, height=0.27, color=[colors[kind(r)] for r in rows],
                         alpha=shade)
                 for y, value in zip(ys, values, strict=True):
                     ax.text(value, y, f" {q[:3]} {value:.2f}", va="center", fontsize=7)
@@ -114,3 +119,8 @@ def draw(results: list[Result], folder: Path) -> list[Path]:
         plt.close(fig)
         written.append(path)
     return written
+
+
+def kind(result: Result) -> str:
+    """A row's path without the revision: what its colour follows."""
+    return result.route.path if result.route else "bare rclpy"
