@@ -22,7 +22,7 @@ from typing import Any
 import pytest
 import yaml
 from rosgate_testing import free_port  # tests also import it from here
-from workers import domain_ports, take_turns, worker_share
+from workers import alone_first, domain_ports, take_turns, worker_share
 
 from rosgate import identity
 from rosgate.config import loads
@@ -56,6 +56,10 @@ def next_domain() -> int:
 
 def pytest_configure(config: pytest.Config) -> None:
     take_turns(config)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    alone_first(items)
 
 
 @pytest.fixture
