@@ -22,7 +22,7 @@ from typing import Any
 import pytest
 import yaml
 from rosgate_testing import free_port  # tests also import it from here
-from workers import domain_ports, take_turns, worker_share
+from workers import alone_first, domain_ports, take_turns, worker_share
 
 from rosgate import identity
 from rosgate.config import loads
@@ -56,6 +56,10 @@ def next_domain() -> int:
 
 def pytest_configure(config: pytest.Config) -> None:
     take_turns(config)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    alone_first(items)
 
 
 @pytest.fixture
@@ -257,6 +261,7 @@ class Bridge:
         self.config = config
         self.lines: list[str] = []
         self._cond = threading.Condition()
+        self._interrupted = False
         self.proc = subprocess.Popen([ROSGATE, "run", str(config)], env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -283,9 +288,15 @@ class Bridge:
                                        or self.proc.poll() is not None and text not in self.log,
                                        timeout) and any(text in line for line in self.lines)
 
+    def interrupt(self) -> None:
+        """Ask it to stop (SIGINT, once) without waiting: ``stop`` waits for it."""
+        if not self._interrupted and self.proc.poll() is None:
+            self._interrupted = True
+            self.proc.send_signal(signal.SIGINT)
+
     def stop(self) -> int:
         if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
+            self.interrupt()
             try:
                 self.proc.wait(15)
             except subprocess.TimeoutExpired:
@@ -359,6 +370,8 @@ def bridge():
         return b
 
     yield start
+    for b in started:  # all at once: their shutdowns overlap instead of adding up
+        b.interrupt()
     codes = [b.stop() for b in started]  # every one, before any assertion can stop the loop
     for b, code in zip(started, codes, strict=True):
         assert "Traceback" not in b.log, b.log

@@ -7,7 +7,7 @@ import os
 
 import pytest
 from conftest import _FIRST, _LAST, next_domain
-from workers import domain_ports, worker_share
+from workers import alone_first, domain_ports, worker_share
 
 
 def test_workers_share_the_domains_without_overlap_and_each_gets_its_ports():
@@ -85,3 +85,16 @@ def test_an_alone_test_runs_while_no_other_does_and_the_others_side_by_side(tmp_
     others = sorted(spans.values())
     assert any(b[0] < a[1] for a, b in zip(others, others[1:], strict=False)), \
         "the other tests never ran side by side"
+
+
+def test_the_alone_tests_come_first_and_every_test_keeps_its_order_among_its_kind():
+    class Item:
+        def __init__(self, name: str, alone: bool):
+            self.name, self.alone = name, alone
+
+        def get_closest_marker(self, name: str) -> object | None:
+            return object() if name == "alone" and self.alone else None
+
+    items = [Item("a", False), Item("b", True), Item("c", False), Item("d", True), Item("e", False)]
+    alone_first(items)
+    assert [item.name for item in items] == ["b", "d", "a", "c", "e"]

@@ -51,6 +51,15 @@ class Turns:
             fcntl.flock(self.tests, fcntl.LOCK_UN)
 
 
+def alone_first(items: list[pytest.Item]) -> None:
+    """The run's ``alone`` tests first, in their order, then the others in theirs. An ``alone``
+    test that comes up mid-run waits, with every worker held at the turnstile, until the tests
+    the other workers are running end (a long one keeps the whole machine waiting); at the
+    start nothing runs yet, so the ``alone`` tests take their turns back to back and cost their
+    own time only."""
+    items.sort(key=lambda item: item.get_closest_marker("alone") is None)
+
+
 def take_turns(config: pytest.Config) -> None:
     """In a pytest-xdist worker (whose basetemp is the run's, then ``popen-gwN``), take turns
     with the run's other workers; in a run without workers there is nothing to share."""
