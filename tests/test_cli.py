@@ -163,10 +163,10 @@ def test_run_takes_the_domain_id_from_the_command_line(config, domain, ros_side)
             assert proc.wait(20) == 0
 
 
-def test_run_stops_cleanly_on_sigterm(config):
+def test_run_stops_cleanly_on_sigterm(config, domain):
     path = config(GOOD.format(port=free_port()))
     proc = subprocess.Popen([ROSGATE, "run", str(path)], stderr=subprocess.PIPE, text=True,
-                            env=dict(os.environ, ROS_DOMAIN_ID="4"))
+                            env=dict(os.environ, ROS_DOMAIN_ID=str(domain())))
     assert proc.stderr is not None
     for line in proc.stderr:
         if "running as peer" in line:
@@ -177,12 +177,12 @@ def test_run_stops_cleanly_on_sigterm(config):
     assert "stopping" in rest and "Traceback" not in rest
 
 
-def test_run_stops_cleanly_on_a_burst_of_signals(config):
+def test_run_stops_cleanly_on_a_burst_of_signals(config, domain):
     """SIGINT from a shell and its process group at once, and more while stopping: a handler
     that took a lock (Event.set) once hung a bridge for good inside its own Event.wait."""
     path = config(GOOD.format(port=free_port()))
     proc = subprocess.Popen([ROSGATE, "run", str(path)], stderr=subprocess.PIPE, text=True,
-                            env=dict(os.environ, ROS_DOMAIN_ID="4"))
+                            env=dict(os.environ, ROS_DOMAIN_ID=str(domain())))
     assert proc.stderr is not None
     for line in proc.stderr:
         if "running as peer" in line:
