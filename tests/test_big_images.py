@@ -27,9 +27,9 @@ def image(i: int) -> Image:
     return img
 
 
-def test_1mb_images_cross_the_default_file_byte_for_byte(tmp_path: Path, domain, ros_side,
-                                                          bridge):
-    server_domain, client_domain = domain(), domain()
+def camera_pair(tmp_path: Path, msg_type: str, qos: str) -> tuple[Path, Path]:
+    """The files a user writes for a camera: a server (base) and a client (robot1) whose
+    /camera of ``msg_type`` crosses to it with the entry's ``qos``."""
     port = free_port()
     server = tmp_path / "server.yaml"
     server.write_text(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}\n")
@@ -37,9 +37,16 @@ def test_1mb_images_cross_the_default_file_byte_for_byte(tmp_path: Path, domain,
     client.write_text(f"""
 bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
 topics:
-  - {{topic: /camera, type: sensor_msgs/msg/Image, direction: transmit,
-     qos: {{reliability: reliable, depth: 20}}}}
+  - {{topic: /camera, type: {msg_type}, direction: transmit, qos: {qos}}}
 """)
+    return server, client
+
+
+def test_1mb_images_cross_the_default_file_byte_for_byte(tmp_path: Path, domain, ros_side,
+                                                          bridge):
+    server_domain, client_domain = domain(), domain()
+    server, client = camera_pair(tmp_path, "sensor_msgs/msg/Image",
+                                 "{reliability: reliable, depth: 20}")
     base = bridge(server, server_domain)
     robot = bridge(client, client_domain)
     far, near = ros_side(server_domain, "far"), ros_side(client_domain, "near")

@@ -18,9 +18,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-from conftest import free_port, warm_up
+from conftest import warm_up
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import UInt8MultiArray
+from test_big_images import camera_pair
 
 import rosgate
 from rosgate.cli import FASTDDS_PROFILES, large_shared_memory
@@ -51,7 +52,7 @@ for i in range(count):
     pub.publish(UInt8MultiArray(data=data))
     time.sleep(0.05)  # a camera's pace: 20 images a second
 print("sent", flush=True)
-time.sleep(2.0)  # the last ones leave before the publisher goes
+sys.stdin.readline()  # the writer stays until the test has what it waits for (then: killed)
 """
 
 
@@ -63,16 +64,8 @@ def crossing(tmp_path: Path, domain, ros_side, bridge, far_env: dict[str, str]) 
     """What a best-effort subscriber gets of COUNT best-effort images across a client and a
     server, the server (the far side, which publishes) started with ``far_env``."""
     server_domain, client_domain = domain(), domain()
-    port = free_port()
-    server = tmp_path / "server.yaml"
-    server.write_text(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}\n")
-    client = tmp_path / "robot1.yaml"
-    client.write_text(f"""
-bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
-topics:
-  - {{topic: /camera, type: std_msgs/msg/UInt8MultiArray, direction: transmit,
-     qos: {{reliability: best_effort, depth: 10}}}}
-""")
+    server, client = camera_pair(tmp_path, "std_msgs/msg/UInt8MultiArray",
+                                 "{reliability: best_effort, depth: 10}")
     bridge(server, server_domain, env=far_env)
     bridge(client, client_domain)
     best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
