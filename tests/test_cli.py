@@ -224,10 +224,10 @@ def test_a_plugin_whose_library_is_missing_is_reported_by_name_and_the_rest_work
     missing = {"nacl": ("nacl", "rosgate-crypto-nacl"), "rich": ("top", "rosgate-top"),
                "prometheus_client": ("metrics", "rosgate-metrics-prometheus")}
     # None in sys.modules: what an import, and importlib's find_spec, take for "not installed"
-    hide = "import sys; sys.modules.update(dict.fromkeys({!r})); ".format(sorted(missing))
+    hide = f"import sys; sys.modules.update(dict.fromkeys({sorted(missing)!r})); "
 
     def rosgate_without(*args: str) -> subprocess.CompletedProcess:
-        code = hide + "from rosgate.cli import main; sys.exit(main({!r}))".format(list(args))
+        code = hide + f"from rosgate.cli import main; sys.exit(main({list(args)!r}))"
         return subprocess.run([str(Path(ROSGATE).with_name("python")), "-c", code],
                               capture_output=True, text=True, timeout=60,
                               env=dict(os.environ, NACL_KEY="A" * 43 + "="))
