@@ -260,6 +260,28 @@ def test_a_plugin_whose_library_is_missing_is_reported_by_name_and_the_rest_work
     assert result.returncode == 0, result.stderr
 
 
+def test_a_plugin_whose_library_is_installed_but_broken_is_named_where_it_is_used(tmp_path,
+                                                                                   config):
+    """Installed, such a library passes the plugin's load; it fails where the plugin imports it
+    (a cipher made, a command run), and the error names the plugin, without a traceback."""
+    site = tmp_path / "site"
+    for library in ("nacl", "rich"):
+        (site / library).mkdir(parents=True)
+        (site / library / "__init__.py").write_text(
+            f"raise ImportError('lib{library}.so: cannot open shared object file')\n")
+    env = {"PYTHONPATH": str(site), "NACL_KEY": "A" * 43 + "="}
+    path = config(GOOD.format(port=12001).replace("    port:", "    cipher: nacl\n    port:")
+                  + "plugins:\n  nacl: {key_env: NACL_KEY}\n")
+    for args, plugin, distribution, library in [
+            (("check", str(path)), "nacl", "rosgate-crypto-nacl", "nacl"),
+            (("top", "robot1", "--once"), "top", "rosgate-top", "rich")]:
+        text = user_error(rosgate(*args, env=env))
+        assert text.startswith(
+            f"rosgate: error: plugin {plugin!r} ({distribution}) failed to load: ImportError: "
+            f"lib{library}.so: cannot open shared object file ({site / library / '__init__.py'}:1)"
+            f"\n  fix: repair or reinstall {distribution}\n"), text
+
+
 def test_blocked_plugin_is_named_when_asked_for(config):
     env = {"ROSGATE_DISABLE_PLUGINS": "msgpack"}
     assert "blocked plugin 'msgpack'" in rosgate("plugins", env=env).stdout
