@@ -376,12 +376,16 @@ class _Builder:
         def encode_tolist(value: Any) -> bytes:
             return pack(value.tolist())  # array.array and numpy hand over Python numbers in C
 
+        def beyond_float32(values: list[Any]) -> bool:
+            magnitudes = numpy.abs(numpy.array(values, dtype=numpy.float64))
+            return bool(((magnitudes > FLOAT32_MAX) & (magnitudes < numpy.inf)).any())
+
         def decode(value: Any) -> Any:
             check(value)
             if set(map(type, value)) <= allowed:
                 try:
                     # array('f') would turn an out-of-range float32 into inf without a word
-                    if not (single and _beyond_float32(value)):
+                    if not (single and beyond_float32(value)):
                         items = array.array(typecode, value)
                         return numpy.array(items) if fixed else items
                 except OverflowError:  # an integer outside the element type's range
@@ -447,13 +451,6 @@ def _first_byte(value: bytes) -> int:
 
 def _tolist(value: Any) -> list[Any]:
     return value.tolist()  # array.array and numpy hand over Python numbers in C
-
-
-def _beyond_float32(values: list[Any]) -> bool:
-    import numpy  # here, not at the top: loading a tree codec's plugin needs no numpy
-
-    magnitudes = numpy.abs(numpy.array(values, dtype=numpy.float64))
-    return bool(((magnitudes > FLOAT32_MAX) & (magnitudes < numpy.inf)).any())
 
 
 # -- messages ---------------------------------------------------------------------------------
