@@ -218,6 +218,70 @@ def test_a_broken_plugin_is_reported_by_name_and_the_rest_work(tmp_path, config)
     assert rosgate("check", str(config(GOOD.format(port=12001))), env=env).returncode == 0
 
 
+def test_a_plugin_whose_library_is_missing_is_reported_by_name_and_the_rest_work(config):
+    """The libraries these plugins import only where they use them (they are slow to import) are
+    still looked for when the plugin loads: without one, its plugin fails to load, by name."""
+    missing = {"nacl": ("nacl", "rosgate-crypto-nacl"), "rich": ("top", "rosgate-top"),
+               "prometheus_client": ("metrics", "rosgate-metrics-prometheus")}
+    # None in sys.modules: what an import, and importlib's find_spec, take for "not installed"
+    hide = f"import sys; sys.modules.update(dict.fromkeys({sorted(missing)!r})); "
+
+    def rosgate_without(*args: str) -> subprocess.CompletedProcess:
+        code = hide + f"from rosgate.cli import main; sys.exit(main({list(args)!r}))"
+        return subprocess.run([str(Path(ROSGATE).with_name("python")), "-c", code],
+                              capture_output=True, text=True, timeout=60,
+                              env=dict(os.environ, NACL_KEY="A" * 43 + "="))
+
+    listing = rosgate_without("plugins")
+    assert listing.returncode == 0, listing.stderr
+    for library, (plugin, distribution) in missing.items():
+        assert (f"failed to load plugin {plugin!r} ({distribution}): ModuleNotFoundError: "
+                f"No module named {library!r}") in listing.stdout
+    rows = {tuple(line.split()[:2]) for line in listing.stdout.splitlines()}
+    assert ("transport", "udp") in rows and ("cipher", "aead") in rows
+    assert not {("cipher", "nacl"), ("monitor", "metrics"), ("command", "top")} & rows
+
+    path = config(GOOD.format(port=12001).replace("    port:", "    cipher: nacl\n    port:")
+                  + "plugins:\n  nacl: {key_env: NACL_KEY}\n")
+    check = rosgate_without("check", str(path))
+    assert check.returncode == 2 and "Traceback" not in check.stderr, check.stderr
+    # check loads every plugin: each that failed is named first, then the file's error
+    *warnings, text = check.stderr.split("rosgate: ")
+    for library, (plugin, distribution) in missing.items():
+        assert (f"warning: plugin {plugin!r} ({distribution}) failed to load: "
+                f"ModuleNotFoundError: No module named {library!r}") in "".join(warnings)
+    assert text.startswith(f"error: {path}:10: topics[0].cipher: unknown cipher 'nacl' "
+                           "(installed ciphers: "), text
+    assert ("plugin 'nacl' is installed but failed to load: ModuleNotFoundError: No module "
+            "named 'nacl'") in text
+    assert "fix: repair or reinstall rosgate-crypto-nacl, or pick an installed cipher" in text
+    # the same file, nacl there: it passes
+    result = rosgate("check", str(path), env={"NACL_KEY": "A" * 43 + "="})
+    assert result.returncode == 0, result.stderr
+
+
+def test_a_plugin_whose_library_is_installed_but_broken_is_named_where_it_is_used(tmp_path,
+                                                                                   config):
+    """Installed, such a library passes the plugin's load; it fails where the plugin imports it
+    (a cipher made, a command run), and the error names the plugin, without a traceback."""
+    site = tmp_path / "site"
+    for library in ("nacl", "rich"):
+        (site / library).mkdir(parents=True)
+        (site / library / "__init__.py").write_text(
+            f"raise ImportError('lib{library}.so: cannot open shared object file')\n")
+    env = {"PYTHONPATH": str(site), "NACL_KEY": "A" * 43 + "="}
+    path = config(GOOD.format(port=12001).replace("    port:", "    cipher: nacl\n    port:")
+                  + "plugins:\n  nacl: {key_env: NACL_KEY}\n")
+    for args, plugin, distribution, library in [
+            (("check", str(path)), "nacl", "rosgate-crypto-nacl", "nacl"),
+            (("top", "robot1", "--once"), "top", "rosgate-top", "rich")]:
+        text = user_error(rosgate(*args, env=env))
+        assert text.startswith(
+            f"rosgate: error: plugin {plugin!r} ({distribution}) failed to load: ImportError: "
+            f"lib{library}.so: cannot open shared object file ({site / library / '__init__.py'}:1)"
+            f"\n  fix: repair or reinstall {distribution}\n"), text
+
+
 def test_blocked_plugin_is_named_when_asked_for(config):
     env = {"ROSGATE_DISABLE_PLUGINS": "msgpack"}
     assert "blocked plugin 'msgpack'" in rosgate("plugins", env=env).stdout

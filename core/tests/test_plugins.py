@@ -501,6 +501,34 @@ def test_asking_for_udp_imports_no_other_plugin():
     assert result.stdout.split() == ["[]", "['rosgate_transport_udp']"], result.stdout
 
 
+#: libraries that take tens to hundreds of milliseconds to import, which a plugin imports where it
+#: uses them (a codec's converters, a cipher's box, a monitor's start, a command's run)
+SLOW_TO_IMPORT = ("numpy", "rich", "prometheus_client", "nacl")
+
+
+def test_loading_a_plugin_imports_no_library_that_is_slow_to_import():
+    """In a fresh process: every installed entry point loaded, one at a time, as ``rosgate
+    --help`` and ``rosgate check`` load them all; none may bring one of those libraries."""
+    code = textwrap.dedent(f"""
+        import sys
+        from importlib import metadata
+        from rosgate.plugins import ENTRY_POINT_GROUP, Plugins
+
+        plugins = Plugins()
+        for ep in sorted(metadata.entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
+            plugins.add(ep.load(), ep.name)
+            print(ep.name, *[m for m in {SLOW_TO_IMPORT!r} if m in sys.modules])
+        print("failures", len(plugins.failures))
+    """)
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            timeout=60, check=True)
+    lines = result.stdout.splitlines()
+    assert lines[-1] == "failures 0", result.stdout
+    loaded = [line.split() for line in lines[:-1]]
+    assert {"msgpack", "cbor", "nacl", "metrics", "top"} <= {name for name, *_ in loaded}
+    assert [line for line in loaded if len(line) > 1] == [], result.stdout
+
+
 # --- the hooks are documented where plugin authors read -------------------------------------------
 
 def test_every_hook_is_documented_in_its_spec_and_in_the_guide():

@@ -52,6 +52,16 @@ def main(argv: list[str] | None = None) -> int:
     except RosgateError as exc:
         print(f"rosgate: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except ImportError as exc:  # a library a plugin imports where it uses it, installed but broken
+        from .plugins import failed_import
+
+        failure = failed_import(exc)
+        if failure is None:
+            raise  # the core's own: a bug, with its traceback
+        print(f"rosgate: error: plugin {failure.plugin!r} ({failure.distribution}) failed to "
+              f"load: {failure.reason}\n  fix: repair or reinstall {failure.distribution}",
+              file=sys.stderr)
+        return EXIT_USAGE
 
 
 def _parser() -> tuple[argparse.ArgumentParser, Any]:

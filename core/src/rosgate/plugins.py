@@ -331,6 +331,21 @@ def installed() -> Plugins:
         return _installed
 
 
+def failed_import(exc: ImportError) -> Failure | None:
+    """The plugin an ImportError failed in, as a :class:`Failure`: a plugin imports a library
+    that is slow to import where it uses it (its module only checks that it is installed), so a
+    library that is installed but broken fails there, not when the plugin loads. The plugin is
+    the one whose module made the innermost call; None when no plugin's module did."""
+    packages = {ep.value.split(":")[0].split(".")[0]: ep
+                for ep in metadata.entry_points(group=ENTRY_POINT_GROUP) if ep.name != BUILTIN}
+    frames = traceback.walk_tb(exc.__traceback__)
+    names = [str(frame.f_globals.get("__name__", "")).split(".")[0] for frame, _ in frames]
+    ep = next((packages[name] for name in reversed(names) if name in packages), None)
+    if ep is None:
+        return None
+    return Failure(ep.name, ep.dist.name if ep.dist else "?", _reason(exc))
+
+
 def _check_class(cls: Any, base: type) -> str | None:
     if not (isinstance(cls, type) and issubclass(cls, base)):
         return f"registered {cls!r}, which is not a subclass of rosgate.{base.__name__}"

@@ -161,6 +161,10 @@ QOS_FOUND_MAX_DEPTH = 1000
 QOS_UNFOUND = {"reliability": "reliable", "durability": "volatile", "depth": QOS_FOUND_DEPTH}
 
 
+#: the profiles a file may name (config.QOS_PROFILES) whose reliability is best effort in rclpy
+BEST_EFFORT_PROFILES = frozenset({"sensor_data"})
+
+
 def qos_profile(spec: int | str | dict) -> Any:
     """A QoS profile from a depth, a profile name or a mapping (already validated by config)."""
     from rclpy import qos
@@ -179,10 +183,11 @@ def qos_profile(spec: int | str | dict) -> Any:
 
 def is_reliable(spec: int | str | dict) -> bool:
     """Whether a topic's frames wait out a link loss: unless its QoS says best effort (the
-    system default and best-available profiles are reliable with every shipped RMW)."""
-    from rclpy import qos
-
-    return qos_profile(spec).reliability != qos.ReliabilityPolicy.BEST_EFFORT
+    system default and best-available profiles are reliable with every shipped RMW). Read from
+    the file's words as rclpy's profiles have them, without rclpy: ``rosgate check`` needs none."""
+    if isinstance(spec, str):
+        return spec not in BEST_EFFORT_PROFILES
+    return not (isinstance(spec, dict) and spec.get("reliability") == "best_effort")
 
 
 def cdr_checker(msg_type: type) -> Callable[[bytes], None]:

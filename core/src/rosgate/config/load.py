@@ -217,8 +217,6 @@ def _identity(src: Source, bridge: dict, given: dict, role: Role,
               base_dir: Path) -> tuple[bytes | None, bytes | None]:
     """This side's private key and (client) the server's public key (a peer's: the other peer's).
     Client and server refuse to go without them unless ``insecure: true`` says so."""
-    from ..identity import IdentityError, load_private
-
     if role is Role.PEER:
         if "server_key" in bridge:
             raise src.error("bridge.server_key", "role peer has no server_key:",
@@ -260,6 +258,8 @@ def _identity(src: Source, bridge: dict, given: dict, role: Role,
             raise src.error("bridge.identity", "a client with an identity needs the server's "
                             "public key too", fix="add server_key: <the server's public key>")
         wanted = "server_key" if role is Role.CLIENT else ""
+    from ..identity import IdentityError, load_private  # its cryptography: only with identities
+
     try:
         identity = load_private(base_dir / given["identity"])
     except IdentityError as exc:

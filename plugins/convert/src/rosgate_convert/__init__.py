@@ -17,7 +17,6 @@ from pathlib import Path
 import yaml
 
 from rosgate import Command, ConfigError, hookimpl
-from rosgate import identity as identities
 
 from .legacy import Converted, convert
 
@@ -35,6 +34,9 @@ def arguments(parser: argparse.ArgumentParser) -> None:
 
 def _identity(path: Path) -> str:
     """The public key of the identity at ``path``, made first if there is none."""
+    # here, not at the top: its cryptography takes a while, and only `rosgate convert` needs it
+    from rosgate import identity as identities
+
     if not path.exists():
         identities.write_private(path, identities.generate())
     try:

@@ -34,27 +34,48 @@ import binascii
 import hashlib
 import os
 from collections.abc import Callable
+from importlib.util import find_spec
 from pathlib import Path
-
-from nacl.exceptions import CryptoError
-from nacl.secret import SecretBox
+from typing import TYPE_CHECKING
 
 from rosgate import Cipher, CipherError, OptionError, hookimpl
 from rosgate.keys import KeyOptions, describe_source, key_source, load_key
 
+if TYPE_CHECKING:
+    from nacl.secret import SecretBox
+
+# PyNaCl takes a tenth of a second to import: it is imported when a box is made, not when the
+# plugin loads; missing, it still makes the plugin fail to load, by name
+if find_spec("nacl") is None:
+    raise ModuleNotFoundError("No module named 'nacl'", name="nacl")
+
+KEY_SIZE, NONCE_SIZE, MAC_SIZE = 32, 24, 16  # XSalsa20-Poly1305's, as SecretBox has them
 SALT = 16
-OVERHEAD = SALT + SecretBox.MACBYTES
+OVERHEAD = SALT + MAC_SIZE
 
 
 def _nonce(salt: bytes, header: bytes) -> bytes:
-    return hashlib.blake2b(salt + header, digest_size=SecretBox.NONCE_SIZE).digest()
+    return hashlib.blake2b(salt + header, digest_size=NONCE_SIZE).digest()
+
+
+def _box(key: bytes) -> SecretBox:
+    from nacl.secret import SecretBox  # here, not at the top: see find_spec above
+
+    return SecretBox(key)
+
+
+def _refused() -> type[Exception]:
+    """What a box raises for a body that does not open (called only then)."""
+    from nacl.exceptions import CryptoError
+
+    return CryptoError
 
 
 class NaclCipher(Cipher):
     name = "nacl"
     Options = KeyOptions  # key_file or key_env: the convention of every rosgate cipher
     options: KeyOptions
-    session_key_size = SecretBox.KEY_SIZE
+    session_key_size = KEY_SIZE
 
     def __init__(self, options: KeyOptions, base_dir: Path):
         super().__init__(options, base_dir)
@@ -63,18 +84,18 @@ class NaclCipher(Cipher):
             key = base64.b64decode(text, validate=True)
         except (binascii.Error, ValueError):
             key = b""
-        if len(key) != SecretBox.KEY_SIZE:
+        if len(key) != KEY_SIZE:
             raise OptionError(key_source(self.options),
                               f"the key in {describe_source(self.options)} is not a "
-                              f"nacl key ({SecretBox.KEY_SIZE} bytes in base64)",
+                              f"nacl key ({KEY_SIZE} bytes in base64)",
                               "create one with 'rosgate keygen nacl --out nacl.key'")
-        self._box = SecretBox(key)
+        self._box = _box(key)
 
     @classmethod
     def from_secret(cls, secret: bytes) -> NaclCipher:
         cipher = cls.__new__(cls)
         cipher.options = KeyOptions()
-        cipher._box = SecretBox(secret)
+        cipher._box = _box(secret)
         return cipher
 
     def seal(self, header: bytes, payload: bytes) -> bytes:
@@ -87,12 +108,12 @@ class NaclCipher(Cipher):
         salt = body[:SALT]
         try:
             return self._box.decrypt(body[SALT:], _nonce(salt, header))
-        except CryptoError:
+        except _refused():  # evaluated only when decrypt raised
             raise CipherError("does not verify under this key and header") from None
 
     @classmethod
     def generate_key(cls) -> bytes:
-        return base64.b64encode(os.urandom(SecretBox.KEY_SIZE))
+        return base64.b64encode(os.urandom(KEY_SIZE))
 
 
 @hookimpl

@@ -72,7 +72,6 @@ from functools import cached_property, partial
 from operator import attrgetter
 from typing import Any, ClassVar
 
-import numpy
 from rosidl_parser import definition as idl
 
 from rosgate import Codec, CodecError
@@ -83,7 +82,7 @@ ToTree = Callable[[Any], Any]
 
 # the largest finite float32 (FLT_MAX, 0x7f7fffff), which rclpy's own deserializer hands over;
 # rclpy's field check (ROS_PYTHON_CHECK_FIELDS=1) rounds it to 3.402823466e38 and would refuse it
-FLOAT32_MAX = float(numpy.finfo(numpy.float32).max)
+FLOAT32_MAX: float = struct.unpack(">f", bytes.fromhex("7f7fffff"))[0]
 
 _INTEGER_RANGES = {
     "int8": (-(2**7), 2**7 - 1), "uint8": (0, 2**8 - 1),
@@ -315,6 +314,8 @@ class _Builder:
             def build(data: bytes) -> Any:
                 return list(map(int.to_bytes, data))
         else:
+            import numpy  # here, not at the top: loading a tree codec's plugin needs no numpy
+
             fixed = isinstance(t, idl.Array)
             raw = memoryview  # no copy of an image's pixels before writing them
 
@@ -352,6 +353,8 @@ class _Builder:
 
     def numbers(self, t: idl.AbstractNestedType) -> _Converter:
         """Numeric collections, decoded by array.array in C (which also enforces integer ranges)."""
+        import numpy  # here, not at the top: loading a tree codec's plugin needs no numpy
+
         typename = t.value_type.typename
         typecode = _TYPECODES[typename]
         check = self.length_checker(t, list, "an array")
@@ -373,12 +376,16 @@ class _Builder:
         def encode_tolist(value: Any) -> bytes:
             return pack(value.tolist())  # array.array and numpy hand over Python numbers in C
 
+        def beyond_float32(values: list[Any]) -> bool:
+            magnitudes = numpy.abs(numpy.array(values, dtype=numpy.float64))
+            return bool(((magnitudes > FLOAT32_MAX) & (magnitudes < numpy.inf)).any())
+
         def decode(value: Any) -> Any:
             check(value)
             if set(map(type, value)) <= allowed:
                 try:
                     # array('f') would turn an out-of-range float32 into inf without a word
-                    if not (single and _beyond_float32(value)):
+                    if not (single and beyond_float32(value)):
                         items = array.array(typecode, value)
                         return numpy.array(items) if fixed else items
                 except OverflowError:  # an integer outside the element type's range
@@ -444,11 +451,6 @@ def _first_byte(value: bytes) -> int:
 
 def _tolist(value: Any) -> list[Any]:
     return value.tolist()  # array.array and numpy hand over Python numbers in C
-
-
-def _beyond_float32(values: list[Any]) -> bool:
-    magnitudes = numpy.abs(numpy.array(values, dtype=numpy.float64))
-    return bool(((magnitudes > FLOAT32_MAX) & (magnitudes < numpy.inf)).any())
 
 
 # -- messages ---------------------------------------------------------------------------------

@@ -17,17 +17,20 @@ import termios
 import time
 import tty
 from collections.abc import Callable, Iterator
+from importlib.util import find_spec
 from pathlib import Path
 from typing import Any
 
 import yaml
-from rich.console import Console
-from rich.live import Live
 
 from rosgate import Command, ConfigError, hookimpl
 
 from .client import NoBridge, StatusClient, running
-from .view import SORT_KEYS, render
+
+# rich takes a while to import: it (and .view) is imported when `rosgate top` runs, not when the
+# plugin loads to add its command; missing, it still makes the plugin fail to load, by name
+if find_spec("rich") is None:
+    raise ModuleNotFoundError("No module named 'rich'", name="rich")
 
 INTERVAL = 1.0
 
@@ -66,6 +69,10 @@ def bridge_name(given: str | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from rich.console import Console  # here, not at the top: see find_spec above
+
+    from .view import render
+
     name = bridge_name(args.bridge)
     with StatusClient(name) as client:
         before = client.status()
@@ -77,6 +84,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _live(client: StatusClient, before: dict[str, Any], interval: float) -> int:
+    from rich.console import Console
+    from rich.live import Live
+
+    from .view import SORT_KEYS, render
+
     console = Console()
     sort, reverse = 0, False
     now = before
