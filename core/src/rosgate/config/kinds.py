@@ -75,6 +75,10 @@ def keys(section: type) -> tuple[Declared, ...]:
     return tuple(row for row in fields_of(section) if row.doc)
 
 
+def row_of(section: type, key: str) -> Declared:
+    return next(row for row in keys(section) if row.key == key)
+
+
 def key_names(section: type, under: str = "") -> tuple[str, ...]:
     """The valid keys of ``section`` (or of its sub-mapping ``under``: "reconnect")."""
     prefix = f"{under}." if under else ""
