@@ -17,7 +17,6 @@ from ..options import show
 from . import kinds
 from .kinds import Key, check_keys, key_names, keys, read, require, row_of
 from .schema import (
-    CIPHER_DEFAULT,
     LISTEN_DEFAULT,
     MCU_KEYS,
     NO_PLUGIN,
@@ -135,7 +134,7 @@ def _bridge_config(data: Any, src: Source, base_dir: Path) -> BridgeConfig:
     _check_role(src, data, bridge, role)
     identity, server_key = _identity(src, bridge, given, role, base_dir)
     defaults = {"transport": Defaults.transport, "codec": Defaults.codec,
-                "cipher": CIPHER_DEFAULT if identity is None else SESSION_CIPHER_DEFAULT,
+                "cipher": Defaults.cipher if identity is None else SESSION_CIPHER_DEFAULT,
                 **given.get("defaults", {})}
     heartbeat = given.get("heartbeat", BridgeConfig.heartbeat)
     peer_timeout = given.setdefault("peer_timeout", heartbeat * PEER_TIMEOUT_HEARTBEATS)

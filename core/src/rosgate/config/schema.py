@@ -55,7 +55,6 @@ MAX_DELAY_DEFAULT = 1.0           # seconds a best-effort message may wait in a 
 TIMEOUT_MAX = 3600.0  # seconds: a service call's, an action goal's acceptance; a result's wait
 #: recovery: and compression: without a plugin (a topic's own fragments, its payload as it is)
 NO_PLUGIN = "none"
-PRIORITIES = kinds.PRIORITIES
 # microcontroller entries (framing none or serial_datagram): how what this side sends is laid out
 LAYOUTS = ("array", "pair")       # [name, args] (CVRA's firmware) | name then args (its README)
 ARGS = ("map", "array", "value")  # the arguments: fields by name | in .msg order | first alone
@@ -64,8 +63,12 @@ NO_ANSWERS = ("fail", "nil")      # a call's connection closed without a byte: a
 MCU_KEYS = ("layout", "args", "floats")
 RULE_DIRECTIONS = ("transmit", "receive", "both")
 
-# the keys topics and services share, declared once for both
+# the keys topics, services and actions share, declared once for all
 _ENTRY: dict[str, dict[str, Any]] = {
+    "name": dict(doc="the ROS name on this side", parse=kinds.ros_name),
+    "direction": dict(example="transmit (this side to the peer) or receive (the peer to this "
+                              "side)"),
+    "remote": dict(parse=kinds.text),  # a ROS name, a bus key or a bare name: see load
     "transport": dict(default=TRANSPORT_DEFAULT, doc="the link: `udp`, `tcp`, or any installed "
                       "transport plugin", unset="`bridge.defaults.transport` (`udp`)",
                       example="udp"),
@@ -86,25 +89,21 @@ _ENTRY: dict[str, dict[str, Any]] = {
 }
 
 
-def _entry(key: str) -> Any:
-    return option(**_ENTRY[key])
+def _entry(key: str, **given: Any) -> Any:
+    return option(**_ENTRY[key], **given)
 
 
 @dataclass
 class TopicConfig:
     """Per topic you choose:"""
 
-    topic: str = option(doc="the ROS name on this side", example="/chatter",
-                        parse=kinds.ros_name)
+    topic: str = _entry("name", example="/chatter")
     type: str = option(doc="the message type", example="std_msgs/msg/String",
                        parse=kinds.interface("msg"))
-    direction: Direction = option(doc="`transmit`: to the far side (client to server, or to the "
-                                      "peer); `receive`: from it",
-                                  example="transmit (this side to the peer) or receive (the peer "
-                                          "to this side)")
-    remote: str = option(doc="the name on the far side (server, peer's link name, or a bus key)",
-                         unset="the same as `topic`", example="/robot1/chatter",
-                         parse=kinds.text)  # a ROS name, a bus key or a bare name: see load
+    direction: Direction = _entry("direction", doc="`transmit`: to the far side (client to "
+                                  "server, or to the peer); `receive`: from it")
+    remote: str = _entry("remote", doc="the name on the far side (server, peer's link name, or a "
+                         "bus key)", unset="the same as `topic`", example="/robot1/chatter")
     transport: str = _entry("transport")
     codec: str = _entry("codec")
     cipher: str = _entry("cipher")
@@ -165,16 +164,13 @@ class ServiceConfig:
     """`services:` entries carry ROS 2 services across the link; [services.md](services.md)
     says how calls, answers and failures behave."""
 
-    service: str = option(doc="the ROS name on this side", example="/mcu/ping",
-                          parse=kinds.ros_name)
+    service: str = _entry("name", example="/mcu/ping")
     type: str = option(doc="the service type", example="std_srvs/srv/Trigger",
                        parse=kinds.interface("srv"))
-    direction: Direction = option(doc="`transmit`: calls made here are served on the far side; "
-                                      "`receive`: the far side's calls are served here",
-                                  example="transmit (this side to the peer) or receive (the peer "
-                                          "to this side)")
-    remote: str = option(doc="the name on the far side", unset="the same as `service`",
-                         example="/ping", parse=kinds.text)
+    direction: Direction = _entry("direction", doc="`transmit`: calls made here are served on the "
+                                  "far side; `receive`: the far side's calls are served here")
+    remote: str = _entry("remote", doc="the name on the far side", unset="the same as `service`",
+                         example="/ping")
     transport: str = _entry("transport")
     codec: str = _entry("codec")
     cipher: str = _entry("cipher")
@@ -199,16 +195,13 @@ class ActionConfig:
     """`actions:` entries carry ROS 2 actions: goals, cancels and results cross as the action's
     three services, feedback and status as its two topics; [actions.md](actions.md) says how."""
 
-    action: str = option(doc="the ROS name on this side", example="/navigate_to_pose",
-                         parse=kinds.ros_name)
+    action: str = _entry("name", example="/navigate_to_pose")
     type: str = option(doc="the action type", example="nav2_msgs/action/NavigateToPose",
                        parse=kinds.interface("action"))
-    direction: Direction = option(doc="`transmit`: goals sent here are served on the far side; "
-                                      "`receive`: the far side's goals are served here",
-                                  example="transmit (this side to the peer) or receive (the peer "
-                                          "to this side)")
-    remote: str = option(doc="the name on the far side", unset="the same as `action`",
-                         example="/robot1/navigate_to_pose", parse=kinds.text)
+    direction: Direction = _entry("direction", doc="`transmit`: goals sent here are served on the "
+                                  "far side; `receive`: the far side's goals are served here")
+    remote: str = _entry("remote", doc="the name on the far side", unset="the same as `action`",
+                         example="/robot1/navigate_to_pose")
     transport: str = _entry("transport")
     codec: str = _entry("codec")
     cipher: str = _entry("cipher")
