@@ -1,9 +1,7 @@
-"""Reading bringup.yaml against its declarations: a section's keys (an unknown one with the
-closest valid one, a required one missing) and each value by its kind, every mistake a ConfigError
-located at its key. The plain kinds are those a declared type names, read and worded by
-rosgate.options as a plugin's options are (a number in bounds, choices, true or false; text must
-not be empty); a field names the others with ``option(parse=...)`` (a ROS name, a QoS, a
-bandwidth...), and a parse function's docstring is its "values" column in docs/configuration.md."""
+"""Reading bringup.yaml against its declarations: a section's keys and each value by its kind,
+every mistake a ConfigError located at its key. A declared type's value is read as a plugin's
+option is (rosgate.options); a field names other kinds with ``option(parse=...)``, whose docstring
+is its "values" column in docs/configuration.md."""
 
 from __future__ import annotations
 
@@ -87,12 +85,6 @@ def key_names(section: type, under: str = "") -> tuple[str, ...]:
     return tuple(dict.fromkeys(found))
 
 
-def example(section: type, under: str) -> str:
-    """A sub-mapping as a fix writes it: its first three keys with their examples."""
-    rows = [row for row in keys(section) if row.key.startswith(under + ".")][:3]
-    return "{" + ", ".join(f"{row.key.rpartition('.')[2]}: {row.example}" for row in rows) + "}"
-
-
 def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
     """The keys of ``data`` (the mapping at ``path``) that were written, each as its field holds
     it, by field name; the dataclass's defaults stand for the others."""
@@ -107,8 +99,10 @@ def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
             table = data.get(under)
             if table is None:  # absent or written empty
                 continue
-            if not isinstance(table, dict):
-                parent = Declared(under, dict, None, example=example(section, under), key=under)
+            if not isinstance(table, dict):  # the fix shows its first three keys
+                rows = [r for r in keys(section) if r.key.startswith(f"{under}.")][:3]
+                example = ", ".join(f"{r.key.rpartition('.')[2]}: {r.example}" for r in rows)
+                parent = Declared(under, dict, None, example=f"{{{example}}}", key=under)
                 mapping(Key(src, path, parent), table)  # raises, saying what to write
             if under not in checked:
                 check_keys(src, table, join(path, under), key_names(section, under))

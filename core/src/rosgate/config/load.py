@@ -1,11 +1,7 @@
-"""bringup.yaml: parse, validate, fill defaults. Every mistake becomes one ConfigError that names
-the file, the line, the key and the fix, never a traceback.
-
-Each key is read against its declaration (rosgate.config.schema); this module adds what ties keys
-together: which keys a role takes, an entry's framing, defaults that follow other keys, names
-listed twice. Topic and service entries also arrive over the network from clients (no file, no
-lines): ``topic_from_mapping`` / ``service_from_mapping`` run the same checks on them.
-"""
+"""bringup.yaml: parse, validate, fill defaults; every mistake one ConfigError naming the file, the
+line, the key and the fix. Each key is read against its declaration (schema); this module adds what
+ties keys together: which keys a role takes, an entry's framing, defaults that follow other keys,
+names listed twice. ``*_from_mapping`` run the same checks on entries a client sends."""
 
 from __future__ import annotations
 
@@ -79,8 +75,8 @@ def action_to_mapping(a: ActionConfig) -> dict:
 
 
 def topic_to_mapping(t: TopicConfig) -> dict:
-    """As the user would write it: the keys of real links only when they are not the defaults
-    (so a server that predates them still reads a client's hello that does not use them)."""
+    """As the user would write it, plugin keys only when used (so that a server that predates them
+    still reads a client's hello that does not use them)."""
     mapping = _to_mapping(t, TopicConfig)
     if not t.qos_given:  # the far side finds it from the publishers too
         del mapping["qos"]

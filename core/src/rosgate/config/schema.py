@@ -1,8 +1,6 @@
-"""bringup.yaml's keys, each declared once: its type, default, bounds or choices, one line of doc
-and an example for the fix of an error about it. The loader (rosgate.config.load) reads a file
-against these declarations, and docs/configuration.md's reference is generated from them
-(``tools/docgen``). The rules that tie keys together (a role's keys, an entry's framing) are in the
-loader."""
+"""bringup.yaml's keys, each declared once: type, default, bounds or choices, one line of doc and
+an example for an error's fix. The loader reads a file against them (and adds the rules that tie
+keys together); docs/configuration.md's reference is generated from them (``tools/docgen``)."""
 
 from __future__ import annotations
 
@@ -453,15 +451,13 @@ class BridgeConfig:
     base_dir: Path = field(default_factory=Path.cwd)
 
     def error(self, key: str, message: str, fix: str | None = None) -> ConfigError:
-        """A ConfigError located at the line of dotted key `key` (falls back to the nearest
-        parent key's line)."""
+        """A ConfigError at the line of dotted key `key` (or of its nearest parent)."""
         return ConfigError(message, file=self.file, line=line_of(self.lines, key), key=key,
                            fix=fix)
 
     @property
     def secure(self) -> bool:
-        """With identities: every link of a session is authenticated (client, server, and a
-        peer that names its peer's key)."""
+        """With identities: every link of a session is authenticated."""
         return self.identity is not None
 
 
