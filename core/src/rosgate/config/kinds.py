@@ -91,7 +91,6 @@ def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
     check_keys(src, data, path, key_names(section))
     require(src, data, path, section)
     values: dict[str, Any] = {}
-    checked = set()
     for row in keys(section):
         under, _, name = row.key.rpartition(".")
         table = data
@@ -104,9 +103,7 @@ def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
                 example = ", ".join(f"{r.key.rpartition('.')[2]}: {r.example}" for r in rows)
                 parent = Declared(under, dict, None, example=f"{{{example}}}", key=under)
                 mapping(Key(src, path, parent), table)  # raises, saying what to write
-            if under not in checked:
-                check_keys(src, table, join(path, under), key_names(section, under))
-                checked.add(under)
+            check_keys(src, table, join(path, under), key_names(section, under))
         if name in table:
             key = Key(src, join(path, under) if under else path, row)
             values[row.name] = (row.parse or plain)(key, table[name])
