@@ -120,8 +120,7 @@ class Declared:
         return self.choices is None or value in self.choices
 
     def limits(self) -> str:
-        """The choices or the range in words ("one of: a, b", "1..9", ">= 1", "> 0, at most 1"),
-        or ``""``."""
+        """The choices or the range in words ("one of: a, b", "1..9", "> 0, at most 1") or ""."""
         choices = self.choices or _choices(self.type)
         if choices:
             return "one of: " + ", ".join(map(_yaml, choices))
@@ -157,8 +156,7 @@ def declared(cls: type) -> list[Declared]:
 
 
 def fields_of(options: type) -> list[Declared]:
-    """The fields of a dataclass, as options, in declaration order (a field not made with
-    :func:`option` has an empty ``doc``)."""
+    """A dataclass's fields as options, in order (one not made with :func:`option` has no doc)."""
     hints = typing.get_type_hints(options)
     return [dataclasses.replace(
         row, name=f.name, type=hints[f.name], key=row.key or f.name,
@@ -224,8 +222,7 @@ def parse(cls: Any, table: Mapping[str, Any], base_dir: Path | None = None) -> A
 
 
 def as_options(cls: type, options: Any) -> Any:
-    """What a plugin's constructor keeps as ``self.options``: the parsed ``Options`` the core
-    passes, or a plain mapping (a test, a script) parsed here the same way."""
+    """A plugin's ``self.options``: the ``Options`` the core passes, or a mapping parsed here."""
     return parse(cls, options) if isinstance(options, Mapping) else options
 
 

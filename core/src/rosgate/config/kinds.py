@@ -86,8 +86,7 @@ def key_names(section: type, under: str = "") -> tuple[str, ...]:
 
 
 def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
-    """The keys of ``data`` (the mapping at ``path``) that were written, each as its field holds
-    it, by field name; the dataclass's defaults stand for the others."""
+    """The written keys of ``data`` (the mapping at ``path``) by field name, as fields hold them."""
     check_keys(src, data, path, key_names(section))
     require(src, data, path, section)
     values: dict[str, Any] = {}
@@ -135,8 +134,7 @@ def text(key: Key, value: Any) -> str:
 
 
 def plain(key: Key, value: Any) -> Any:
-    """The value of a key whose declared type says how to read it (null is none: it is written
-    by leaving the key out)."""
+    """A value its declared type says how to read (null is none: the key is left out)."""
     row = replace(key.row, type=next(arm for arm in getattr(key.row.type, "__args__",
                                                             (key.row.type,))
                                      if arm is not type(None)))
