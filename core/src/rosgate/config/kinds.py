@@ -109,6 +109,14 @@ def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
     return values
 
 
+def item(src: Source, path: str, value: Any, section: type, what: str, fix: str,
+         *args: Any) -> Any:
+    """``section`` made of ``value``, one of a collection's mappings (a rule, a link, a client)."""
+    if not isinstance(value, dict):
+        raise src.error(path, f"expected {what}, got {show(value)}", fix=fix)
+    return section(*args, **read(src, value, path, section), line=src.lines.get(path, 0))
+
+
 def check_keys(src: Source, data: dict, path: str, valid: tuple[str, ...]) -> None:
     for key in data:
         if key not in valid:

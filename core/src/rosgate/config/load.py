@@ -275,11 +275,8 @@ def _clients(src: Source, data: dict, role: Role) -> dict[str, ClientPolicy]:
         if not kinds.BRIDGE_NAME.fullmatch(name):
             raise src.error(path, f"'{name}' is not a valid client name",
                             fix="use the client's bridge.name: letters, digits, '_', '.', '-'")
-        if entry is not None and not isinstance(entry, dict):
-            raise src.error(path, f"expected a mapping, got {show(entry)}",
-                            fix=f"write it as {name}: {{key: <the client's public key>}}")
-        policy = ClientPolicy(name, **read(src, entry or {}, path, ClientPolicy),
-                              line=src.lines.get(path, 0))
+        policy = kinds.item(src, path, {} if entry is None else entry, ClientPolicy, "a mapping",
+                            f"write it as {name}: {{key: <the client's public key>}}", name)
         if policy.key in seen:
             raise src.error(f"{path}.key", f"the same key as clients.{seen[policy.key]}",
                             fix="give every client an identity of its own")

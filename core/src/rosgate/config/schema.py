@@ -289,14 +289,8 @@ def _rules(key: Key, value: Any) -> tuple[Rule, ...]:
         return ()
     if not isinstance(value, list):
         raise key.error(f"expected a list of rules, got {show(value)}", fix=fix)
-    rules = []
-    for i, item in enumerate(value):
-        path = f"{key.path}[{i}]"
-        if not isinstance(item, dict):
-            raise key.src.error(path, f"expected a rule (name:, direction: ...), got {show(item)}",
-                                fix=fix)
-        rules.append(Rule(**read(key.src, item, path, Rule), line=key.src.lines.get(path, 0)))
-    return tuple(rules)
+    return tuple(kinds.item(key.src, f"{key.path}[{i}]", rule, Rule,
+                            "a rule (name:, direction: ...)", fix) for i, rule in enumerate(value))
 
 
 @dataclass(frozen=True)
@@ -341,15 +335,9 @@ def _section(section: type, build: bool = True) -> Any:
 
 def _links(key: Key, value: Any) -> dict[str, LinkConfig]:
     """per transport: `{udp: {bandwidth: 20mbit}}`"""
-    links = {}
-    for name, given in kinds.mapping(key, value).items():
-        path = f"{key.path}.{name}"
-        if not isinstance(given, dict):
-            raise key.src.error(path, f"expected a mapping, got {show(given)}",
-                                fix=f"write it as {name}: {{bandwidth: 20mbit}}")
-        links[name] = LinkConfig(name, **read(key.src, given, path, LinkConfig),
-                                 line=key.src.lines.get(path, 0))
-    return links
+    return {name: kinds.item(key.src, f"{key.path}.{name}", given, LinkConfig, "a mapping",
+                             f"write it as {name}: {{bandwidth: 20mbit}}", name)
+            for name, given in kinds.mapping(key, value).items()}
 
 
 _links.section = LinkConfig  # type: ignore[attr-defined]
