@@ -1,42 +1,13 @@
 """A plugin's options: declared once, as a frozen dataclass; checked by the core.
 
-A plugin class declares the table it takes under ``plugins: {NAME: {...}}`` in bringup.yaml as a
-nested ``Options`` dataclass whose fields are made with :func:`option`::
-
-    from dataclasses import dataclass
-    from rosgate import DatagramTransport, option
-
-    class UdpTransport(DatagramTransport):
-        name = "udp"
-
-        @dataclass(frozen=True)
-        class Options:
-            receive_buffer: int = option(4 * 1024 * 1024, "bytes of kernel receive buffer",
-                                         minimum=1)
-
-The core parses the table with :func:`parse` and constructs the plugin with the ``Options``
-instance (``self.options.receive_buffer``). Everything a user can get wrong in the table (an unknown
-key, a missing one, a wrong type, out of range, not among the choices) is an
-:class:`rosgate.OptionError` before the plugin sees it, located at the file's line and worded as
-the same mistake in bringup.yaml's own keys is. Rules that tie fields together go in the
-dataclass's ``__post_init__``, raising ``OptionError`` too.
-
-The types an option may have (YAML gives nothing else):
-
-=====================  ========================================================================
-``str``                text
-``int``                an integer (``true`` is not one)
-``float``              a number (an integer is taken, as ``float``)
-``bool``               ``true`` or ``false``
-``Literal["a", "b"]``  one of the values listed
-``list[T]``            a list whose elements are each a ``T``
-``dict[str, T]``       a mapping of names to ``T`` (``dict[str, Any]``: a table passed through)
-``T | None``           ``T``, or ``null`` (unions of the other types work alike)
-``Any``                anything
-=====================  ========================================================================
-
-``rosgate plugins --options NAME`` prints the declaration: each option's name, type, default and
-doc. A plugin class without ``Options`` takes none: any key in its table is refused.
+A plugin class declares the table it takes under ``plugins: {NAME: {...}}`` as a nested
+``@dataclass(frozen=True) class Options`` whose fields are made with :func:`option`; the core
+checks the table with :func:`parse` (every mistake an :class:`rosgate.OptionError` located at the
+file's line, worded as for bringup.yaml's own keys) and constructs the plugin with the instance
+(``self.options``). Rules that tie fields together go in ``__post_init__``, raising
+``OptionError``. Option types: ``str``, ``int``, ``float``, ``bool``, ``Literal[...]``,
+``list[T]``, ``dict[str, T]``, ``T | None``, ``Any``. docs/plugins.md ("Options") shows an example
+and the errors; a plugin class without ``Options`` takes none.
 """
 
 from __future__ import annotations
