@@ -219,8 +219,7 @@ class LinkConfig:
     transport: str
     bandwidth: float | None = option(None, "bits per second this side sends at most to each "
                                      "destination, packet headers counted; not for a bus",
-                                     unset="unlimited", example="20mbit",
-                                     parse=kinds.bandwidth)
+                                     unset="unlimited", example="20mbit", parse=kinds.bandwidth)
     max_delay: float = option(MAX_DELAY_DEFAULT, "seconds a best-effort message without a "
                               "`max_delay` of its own may wait in the send queue (`too_late`)",
                               above=0, unit="seconds", example="1.0")
@@ -265,10 +264,9 @@ class Rule:
                             example="transmit, receive or both")
     types: tuple[str, ...] | None = option(None, "globs on `pkg/msg/Type`", unset="any",
                                            example="[geometry_msgs/msg/*]", parse=kinds.names)
-    ports: tuple[tuple[int, int], ...] = option((), "ports of their own it may ask for",
-                                                unset="none: the main port only",
-                                                example="[12001, 12010-12019]",
-                                                parse=kinds.port_ranges)
+    ports: tuple[tuple[int, int], ...] = option(
+        (), "ports of their own it may ask for", unset="none: the main port only",
+        example="[12001, 12010-12019]", parse=kinds.port_ranges)
     ciphers: tuple[str, ...] | None = option(None, "ciphers it may use (`none` only when listed)",
                                              unset="any cipher a session keys", example="[aead]",
                                              parse=kinds.names)
@@ -301,8 +299,7 @@ class ClientPolicy:
     key: bytes = option(doc="the client's public key; `NAME` is its `bridge.name`",
                         example="<the client's public key>", parse=kinds.public_key)
     topics: tuple[Rule, ...] = option((), "rules: topics the client may bridge; an entry must "
-                                      "match one", unset="none: every topic refused",
-                                      parse=_rules)
+                                      "match one", unset="none: every topic refused", parse=_rules)
     services: tuple[Rule, ...] = option((), "rules: services the client may bridge",
                                         unset="none", parse=_rules)
     actions: tuple[Rule, ...] = option((), "rules: actions the client may bridge", unset="none",
@@ -352,10 +349,9 @@ class BridgeConfig:
     name: str = option(doc="this side's name; a server knows a client by it (`clients:`)",
                        example="robot1", parse=kinds.bridge_name)
     role: Role = option(doc="what this side is", example="client")
-    server: str | None = option(None, "client: the server's main line, `host:port` or "
-                                "`[v6]:port` (Bluetooth: `AA:BB:CC:DD:EE:FF/5`); server: where it "
-                                "listens", unset="required for client and server",
-                                example="127.0.0.1:12000")
+    server: str | None = option(None, "client: the server's main line, `host:port` or `[v6]:port` "
+                                "(Bluetooth: `AA:BB:CC:DD:EE:FF/5`); server: where it listens",
+                                unset="required for client and server", example="127.0.0.1:12000")
     main_line: str = option("tcp", "client, server: the stream transport of the main line and "
                             "handshake", example="tcp")
     peer: str | None = option(None, "peer: the far host, where topics are sent (not needed on a "
@@ -371,8 +367,7 @@ class BridgeConfig:
     stale_after: float = option(15.0, "seconds of silence on a received topic before a warning",
                                 above=0, example="15")
     stale_warnings: int = option(5, "warnings per silence (0: none)", minimum=0, example="5")
-    heartbeat: float = option(1.0, "seconds between pings on the main line", above=0,
-                              example="1.0")
+    heartbeat: float = option(1.0, "seconds between pings on the main line", above=0, example="1.0")
     peer_timeout: float = option(3.0, "seconds of silence on the main line before the far side "
                                  "is declared down; must exceed `heartbeat`", above=0,
                                  unit="seconds", unset="3 × `heartbeat`", example="3.0")
@@ -420,12 +415,10 @@ class BridgeConfig:
     fleet_timeout: float = option(30.0, "seconds after a robot's liveliness token went before "
                                   "its fleet routes are dropped (see [Fleets](fleets.md))",
                                   above=0, unit="seconds", example="30")
-    links: dict[str, LinkConfig] = option({}, "per transport, what this side may put on each "
-                                          "link", example="{udp: {bandwidth: 20mbit}}",
-                                          parse=_links)
+    links: dict[str, LinkConfig] = option({}, "per transport, what this side may put on each link",
+                                          example="{udp: {bandwidth: 20mbit}}", parse=_links)
     diagnostics: bool = option(True, "publish `diagnostic_msgs/DiagnosticArray` on `/diagnostics` "
-                               "once a second (see [operators.md](operators.md))",
-                               example="false")
+                               "once a second (see [operators.md](operators.md))", example="false")
     metrics: str | None = option(None, "`host:port` of a Prometheus endpoint (the "
                                  "`rosgate-metrics-prometheus` monitor)", unset="none",
                                  example="127.0.0.1:9108", parse=kinds.text)
