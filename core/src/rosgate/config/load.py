@@ -10,15 +10,9 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..options import show
-from . import kinds
+from . import kinds, schema
 from .kinds import Key, check_keys, key_names, keys, read, require, row_of
 from .schema import (
-    LISTEN_DEFAULT,
-    MCU_KEYS,
-    NO_PLUGIN,
-    PEER_TIMEOUT_HEARTBEATS,
-    RECONNECT_MAX_DEFAULT,
-    SESSION_CIPHER_DEFAULT,
     ActionConfig,
     BridgeConfig,
     ClientPolicy,
@@ -81,7 +75,7 @@ def topic_to_mapping(t: TopicConfig) -> dict:
     if not t.qos_given:  # the far side finds it from the publishers too
         del mapping["qos"]
     for key, options in (("recovery", t.recovery_options), ("compression", t.compression_options)):
-        if mapping[key] == NO_PLUGIN:
+        if mapping[key] == schema.NO_PLUGIN:
             del mapping[key]
         elif options:
             mapping[key] = {mapping[key]: dict(options)}
@@ -101,7 +95,7 @@ def _to_mapping(entry: TopicConfig | ServiceConfig | ActionConfig, section: type
         value = getattr(entry, key)
         # unset optional keys are left out, as a user would; microcontroller keys are only for
         # microcontroller entries (an entry with an envelope refuses them)
-        if value is not None and (entry.framing.bare or key not in MCU_KEYS):
+        if value is not None and (entry.framing.bare or key not in schema.MCU_KEYS):
             mapping[key] = dict(value) if isinstance(value, dict) else value
     return mapping
 
@@ -130,18 +124,18 @@ def _bridge_config(data: Any, src: Source, base_dir: Path) -> BridgeConfig:
     _check_role(src, data, bridge, role)
     identity, server_key = _identity(src, bridge, given, role, base_dir)
     defaults = {"transport": Defaults.transport, "codec": Defaults.codec,
-                "cipher": Defaults.cipher if identity is None else SESSION_CIPHER_DEFAULT,
+                "cipher": Defaults.cipher if identity is None else schema.SESSION_CIPHER_DEFAULT,
                 **given.get("defaults", {})}
     heartbeat = given.get("heartbeat", BridgeConfig.heartbeat)
-    peer_timeout = given.setdefault("peer_timeout", heartbeat * PEER_TIMEOUT_HEARTBEATS)
+    peer_timeout = given.setdefault("peer_timeout", heartbeat * schema.PEER_TIMEOUT_HEARTBEATS)
     if peer_timeout <= heartbeat:
         raise src.error("bridge.peer_timeout", f"{peer_timeout:g} s is not longer than the "
                         f"heartbeat ({heartbeat:g} s): every peer would be declared down between "
                         "two pings",
-                        fix=f"e.g. peer_timeout: {heartbeat * PEER_TIMEOUT_HEARTBEATS:g} "
+                        fix=f"e.g. peer_timeout: {heartbeat * schema.PEER_TIMEOUT_HEARTBEATS:g} "
                             "(three heartbeats)")
     low = given.get("reconnect_min", BridgeConfig.reconnect_min)
-    high = given.setdefault("reconnect_max", max(low, RECONNECT_MAX_DEFAULT))
+    high = given.setdefault("reconnect_max", max(low, schema.RECONNECT_MAX_DEFAULT))
     if high < low:
         raise src.error("bridge.reconnect.max", f"max ({high:g} s) is below min ({low:g} s)",
                         fix="make max at least min, e.g. reconnect: {min: 0.1, max: 10}")
@@ -155,7 +149,7 @@ def _bridge_config(data: Any, src: Source, base_dir: Path) -> BridgeConfig:
         raise src.error("bridge.allow", "allow: is for role peer (a client or server "
                         "authenticates its peers by their keys)", fix="remove it")
     if role is Role.PEER:
-        given.setdefault("listen", LISTEN_DEFAULT)
+        given.setdefault("listen", schema.LISTEN_DEFAULT)
     return BridgeConfig(
         file=src.file, **{**given, "defaults": defaults, "identity": identity,
                           "server_key": server_key},
@@ -356,7 +350,7 @@ def _entry(src: Source, data: Any, path: str, section: type, defaults: dict[str,
                         f"authenticate; cipher must be none, not '{given['cipher']}'",
                         fix="set cipher: none on this entry, or use framing: rosgate to keep "
                             "the cipher")
-    for key in MCU_KEYS:
+    for key in schema.MCU_KEYS:
         if key in data and not framing.bare:
             raise src.error(join(path, key), f"{key} is for microcontroller entries (framing none "
                             "or serial_datagram); this entry has an envelope",
@@ -377,8 +371,8 @@ def _topic(src: Source, data: dict, path: str, given: dict[str, Any]) -> None:
                         fix="use framing: none for bare payloads on a datagram link, "
                             "or leave framing: out")
     for key in ("recovery", "compression"):  # a plugin's name and the entry's options for it
-        given[key], given[f"{key}_options"] = given.get(key, (NO_PLUGIN, {}))
-        if framing.bare and key in data and data[key] != NO_PLUGIN:
+        given[key], given[f"{key}_options"] = given.get(key, (schema.NO_PLUGIN, {}))
+        if framing.bare and key in data and data[key] != schema.NO_PLUGIN:
             raise src.error(join(path, key), f"{key} needs the envelope (framing: rosgate): "
                             f"with framing {framing} a datagram is the bare payload",
                             fix=f"remove {key}:, or use framing: rosgate")
