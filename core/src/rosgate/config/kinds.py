@@ -143,9 +143,8 @@ def text(key: Key, value: Any) -> str:
 
 def plain(key: Key, value: Any) -> Any:
     """A value its declared type says how to read (null is none: the key is left out)."""
-    row = replace(key.row, type=next(arm for arm in getattr(key.row.type, "__args__",
-                                                            (key.row.type,))
-                                     if arm is not type(None)))
+    arms = getattr(key.row.type, "__args__", (key.row.type,))
+    row = replace(key.row, type=next(arm for arm in arms if arm is not type(None)))
     if row.type is str and row.choices is None:
         return text(key, value)
     try:
