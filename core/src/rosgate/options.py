@@ -47,9 +47,8 @@ def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = Non
     if not doc:
         raise TypeError("option() needs a doc: one line saying what the option does")
     row = Declared(doc=doc, minimum=minimum, maximum=maximum, above=above, unit=unit,
-                   choices=tuple(choices) if choices is not None else None,
-                   example=example, unset=unset, key=key or "",
-                   parse=parse, relative=relative)
+                   choices=tuple(choices) if choices is not None else None, example=example,
+                   unset=unset, key=key or "", parse=parse, relative=relative)
     if isinstance(default, (list, dict)):
         return dataclasses.field(default_factory=lambda: type(default)(default),
                                  metadata={"option": row})
