@@ -1,47 +1,18 @@
 """A plugin's options: declared once, as a frozen dataclass; checked by the core.
 
-A plugin class declares the table it takes under ``plugins: {NAME: {...}}`` in bringup.yaml as a
-nested ``Options`` dataclass whose fields are made with :func:`option`::
-
-    from dataclasses import dataclass
-    from rosgate import DatagramTransport, option
-
-    class UdpTransport(DatagramTransport):
-        name = "udp"
-
-        @dataclass(frozen=True)
-        class Options:
-            receive_buffer: int = option(4 * 1024 * 1024, "bytes of kernel receive buffer",
-                                         minimum=1)
-
-The core parses the table with :func:`parse` and constructs the plugin with the ``Options``
-instance, which the plugin reads as ``self.options.receive_buffer``. Everything a user can get wrong
-in the table is an :class:`rosgate.OptionError` before the plugin sees it, which the core locates
-at the file's line of that option: an unknown key (with the closest valid one), a missing required
-key, a value of the wrong type, out of range or not among the choices, each worded as the same
-mistake in bringup.yaml's own keys is (:func:`unknown`, :func:`missing`, :func:`check`). Rules
-that tie fields together go in the dataclass's ``__post_init__``, raising ``OptionError`` too.
-
-The types an option may have (YAML gives nothing else):
-
-=====================  ========================================================================
-``str``                text
-``int``                an integer (``true`` is not one)
-``float``              a number (an integer is taken, as ``float``)
-``bool``               ``true`` or ``false``
-``Literal["a", "b"]``  one of the values listed
-``list[T]``            a list whose elements are each a ``T``
-``dict[str, T]``       a mapping of names to ``T`` (``dict[str, Any]``: a table passed through)
-``T | None``           ``T``, or ``null`` (unions of the other types work alike)
-``Any``                anything
-=====================  ========================================================================
-
-``rosgate plugins --options NAME`` prints the declaration: each option's name, type, default and
-doc. A plugin class without ``Options`` takes none: any key in its table is refused.
+A plugin class declares the table it takes under ``plugins: {NAME: {...}}`` as a nested
+``@dataclass(frozen=True) class Options`` whose fields are made with :func:`option`; the core
+checks the table with :func:`parse` (every mistake an :class:`rosgate.OptionError` located at the
+file's line, worded as for bringup.yaml's own keys) and constructs the plugin with the instance
+(``self.options``). Rules that tie fields together go in ``__post_init__``, raising
+``OptionError``. Option types: ``str``, ``int``, ``float``, ``bool``, ``Literal[...]``,
+``list[T]``, ``dict[str, T]``, ``T | None``, ``Any``. docs/plugins.md ("Options") shows an example
+and the errors; a plugin class without ``Options`` takes none.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import difflib
 import math
@@ -65,26 +36,19 @@ def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = Non
            above: float | None = None, unit: str = "",
            example: str | None = None, unset: str | None = None, key: str | None = None,
            parse: typing.Callable[..., Any] | None = None, relative: bool = False) -> Any:
-    """One option of a plugin's ``Options``, or one key of bringup.yaml's own schema: its default
-    (none: the option is required), a one-line ``doc`` for ``rosgate plugins --options``, the
-    generated reference and error messages, and optionally the range (``minimum``, ``maximum``,
-    inclusive; ``above``, exclusive) or the ``choices`` its value must be in.
-
-    The rest serves the core's schema (rosgate.config): the ``unit`` a number is in ("seconds"),
-    an ``example`` value for the fix of an error, what an absent key means when that is not a
-    plain default (``unset``, which also makes a key without a default optional), the ``key``
-    path when it is not the field's name ("reconnect.min"), and a ``parse`` function for a value
-    no type says (a ROS name, a QoS). ``relative``: a path, read relative to the bringup.yaml
-    that gives it (as a cipher's ``key_file`` is), not to the folder rosgate runs in.
-
-    A thin wrapper over :func:`dataclasses.field`; list and dict defaults are copied per instance.
-    """
+    """One option of a plugin's ``Options`` (or one key of bringup.yaml's own schema): its default
+    (none: required), a one-line ``doc`` for ``rosgate plugins --options`` and error messages, and
+    optionally the range (``minimum``, ``maximum`` inclusive; ``above`` exclusive) or ``choices``.
+    ``relative``: a path read relative to the bringup.yaml that gives it (as a cipher's
+    ``key_file``), not to the folder rosgate runs in. The rest serves the core's schema: a number's
+    ``unit``, an ``example`` for an error's fix, what an absent key means (``unset``, which also
+    makes a key without a default optional), the ``key`` path ("reconnect.min") and a ``parse``
+    function for a value no type says. List and dict defaults are copied per instance."""
     if not doc:
         raise TypeError("option() needs a doc: one line saying what the option does")
     row = Declared(doc=doc, minimum=minimum, maximum=maximum, above=above, unit=unit,
-                   choices=tuple(choices) if choices is not None else None,
-                   example=example, unset=unset, key=key or "",
-                   parse=parse, relative=relative)
+                   choices=tuple(choices) if choices is not None else None, example=example,
+                   unset=unset, key=key or "", parse=parse, relative=relative)
     if isinstance(default, (list, dict)):
         return dataclasses.field(default_factory=lambda: type(default)(default),
                                  metadata={"option": row})
@@ -93,8 +57,7 @@ def option(default: Any = MISSING, doc: str = "", *, minimum: float | None = Non
 
 @dataclasses.dataclass(frozen=True)
 class Declared:
-    """One declared option, as :func:`option` says it and ``rosgate plugins --options`` shows
-    it; :func:`fields_of` adds what the field says (its name, type and default)."""
+    """One declared option; :func:`fields_of` adds the field's name, type and default."""
 
     name: str = ""
     type: Any = Any
@@ -116,7 +79,9 @@ class Declared:
         return self.default is MISSING and self.unset is None
 
     def fits(self, value: Any) -> bool:
-        """Whether ``value`` (of the right type) is within the bounds and among the choices."""
+        """Whether ``value`` (of the right type) is finite, within the bounds and the choices."""
+        if isinstance(value, float) and not math.isfinite(value):
+            return False
         if isinstance(value, (int, float)) and not isinstance(value, bool) and (
                 self.minimum is not None and value < self.minimum
                 or self.above is not None and value <= self.above
@@ -125,8 +90,7 @@ class Declared:
         return self.choices is None or value in self.choices
 
     def limits(self) -> str:
-        """The choices or the range in words ("one of: a, b", "1..9", ">= 1", "> 0, at most 1"),
-        or ``""``."""
+        """The choices or the range in words ("one of: a, b", "1..9", "> 0, at most 1") or ""."""
         choices = self.choices or _choices(self.type)
         if choices:
             return "one of: " + ", ".join(map(_yaml, choices))
@@ -162,8 +126,7 @@ def declared(cls: type) -> list[Declared]:
 
 
 def fields_of(options: type) -> list[Declared]:
-    """The fields of a dataclass, as options, in declaration order (a field not made with
-    :func:`option` has an empty ``doc``)."""
+    """A dataclass's fields as options, in order (one not made with :func:`option` has no doc)."""
     hints = typing.get_type_hints(options)
     return [dataclasses.replace(
         row, name=f.name, type=hints[f.name], key=row.key or f.name,
@@ -224,17 +187,13 @@ def parse(cls: Any, table: Mapping[str, Any], base_dir: Path | None = None) -> A
                 values[row.name] = str(base_dir / Path(values[row.name]).expanduser())
         elif row.required:
             raise OptionError(row.name, *missing(row, f"plugins: {name}:"))
-    if not hasattr(cls, "Options"):
-        return {}
-    return cls.Options(**values)  # __post_init__ checks what ties fields together
+    # Options' __post_init__ checks what ties fields together
+    return cls.Options(**values) if hasattr(cls, "Options") else {}
 
 
 def as_options(cls: type, options: Any) -> Any:
-    """What a plugin's constructor keeps as ``self.options``: the parsed ``Options`` the core
-    passes, or a plain mapping (a test, a script) parsed here the same way."""
-    if isinstance(options, Mapping):
-        return parse(cls, options)
-    return options
+    """A plugin's ``self.options``: the ``Options`` the core passes, or a mapping parsed here."""
+    return parse(cls, options) if isinstance(options, Mapping) else options
 
 
 # -- reading a table: a plugin's options and bringup.yaml's own sections alike ------------------
@@ -254,12 +213,9 @@ def missing(row: Declared, under: str) -> tuple[str, str]:
 def check(row: Declared, given: Any) -> Any:
     """``given`` as ``row``'s field holds it (an int taken for a float becomes one, a name of an
     Enum's member the member), or ValueError(message, fix)."""
-    try:
+    with contextlib.suppress(_Wrong):
         value = _convert(row.type, given)
-    except _Wrong:
-        pass
-    else:
-        if row.fits(value) and not (isinstance(value, float) and not math.isfinite(value)):
+        if row.fits(value):
             return value
     choices = row.choices or _choices(row.type)
     close, hint = did_you_mean(str(given), [str(c) for c in choices])
@@ -305,15 +261,11 @@ class _Wrong(Exception):
 
 
 def _convert(hint: Any, value: Any) -> Any:
-    if hint is Any:
-        return value
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (Union, types.UnionType):
         for arm in args:
-            try:
+            with contextlib.suppress(_Wrong):
                 return _convert(arm, value)
-            except _Wrong:
-                pass
         raise _Wrong
     if origin is Literal or isinstance(hint, type) and issubclass(hint, Enum):
         given = value.value if isinstance(value, Enum) else value
@@ -321,22 +273,14 @@ def _convert(hint: Any, value: Any) -> Any:
         if any(type(given) is type(choice) and given == choice for choice in _choices(hint)):
             return value if origin is Literal else hint(given)
         raise _Wrong
-    if origin is list:
-        if type(value) is not list:
-            raise _Wrong
+    if origin is list and type(value) is list:
         return [_convert(args[0], item) for item in value]
-    if origin is dict:
-        if type(value) is not dict or not all(type(key) is str for key in value):
-            raise _Wrong
+    if origin is dict and type(value) is dict and all(type(key) is str for key in value):
         return {key: _convert(args[1], item) for key, item in value.items()}
-    if hint is type(None):
-        if value is None:
-            return None
-        raise _Wrong
     if hint is float and type(value) is int:
         return float(value)
     # type(), not isinstance(): YAML's true is an int to Python, but not a number to a user
-    if hint in (str, int, float, bool) and type(value) is hint:
+    if hint is Any or hint in (str, int, float, bool, type(None)) and type(value) is hint:
         return value
     raise _Wrong
 
@@ -384,11 +328,7 @@ def spell(hint: Any) -> str:
         return " | ".join(dict.fromkeys(type(a).__name__ for a in args))
     if origin is not None:
         return f"{origin.__name__}[{', '.join(spell(a) for a in args)}]"
-    if hint is type(None):
-        return "None"
-    if hint is Any:
-        return "Any"
-    return getattr(hint, "__name__", str(hint))
+    return "None" if hint is type(None) else getattr(hint, "__name__", str(hint))
 
 
 def _yaml(value: Any) -> str:

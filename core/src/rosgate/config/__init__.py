@@ -14,12 +14,9 @@ from .load import (
     topic_to_mapping,
 )
 from .schema import (
-    CIPHER_DEFAULT,
-    CODEC_DEFAULT,
     MAX_DELAY_DEFAULT,
     NO_PLUGIN,
     TIMEOUT_MAX,
-    TRANSPORT_DEFAULT,
     ActionConfig,
     BridgeConfig,
     ClientPolicy,
@@ -34,11 +31,9 @@ from .schema import (
 )
 
 __all__ = [
-    "QOS_POLICIES", "TIMEOUT_MAX",
-    "ActionConfig", "action_from_mapping", "action_to_mapping",
-    "CIPHER_DEFAULT", "CODEC_DEFAULT", "MAX_DELAY_DEFAULT", "PRIORITIES", "QOS_PROFILES",
-    "NO_PLUGIN", "TRANSPORT_DEFAULT", "BridgeConfig", "ClientPolicy",
-    "Direction", "Framing", "LinkConfig", "Limits", "Role", "Rule",
-    "ServiceConfig", "TopicConfig", "load", "loads", "parse_bandwidth", "service_from_mapping",
-    "service_to_mapping", "topic_from_mapping", "topic_to_mapping",
+    "MAX_DELAY_DEFAULT", "NO_PLUGIN", "PRIORITIES", "QOS_POLICIES", "QOS_PROFILES", "TIMEOUT_MAX",
+    "ActionConfig", "BridgeConfig", "ClientPolicy", "Direction", "Framing", "LinkConfig", "Limits",
+    "Role", "Rule", "ServiceConfig", "TopicConfig", "action_from_mapping", "action_to_mapping",
+    "load", "loads", "parse_bandwidth", "service_from_mapping", "service_to_mapping",
+    "topic_from_mapping", "topic_to_mapping",
 ]

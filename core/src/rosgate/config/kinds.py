@@ -1,9 +1,7 @@
-"""Reading bringup.yaml against its declarations: a section's keys (an unknown one with the
-closest valid one, a required one missing) and each value by its kind, every mistake a ConfigError
-located at its key. The plain kinds are those a declared type names, read and worded by
-rosgate.options as a plugin's options are (a number in bounds, choices, true or false; text must
-not be empty); a field names the others with ``option(parse=...)`` (a ROS name, a QoS, a
-bandwidth...), and a parse function's docstring is its "values" column in docs/configuration.md."""
+"""Reading bringup.yaml against its declarations: a section's keys and each value by its kind,
+every mistake a ConfigError located at its key. A declared type's value is read as a plugin's
+option is (rosgate.options); a field names other kinds with ``option(parse=...)``, whose docstring
+is its "values" column in docs/configuration.md."""
 
 from __future__ import annotations
 
@@ -75,6 +73,10 @@ def keys(section: type) -> tuple[Declared, ...]:
     return tuple(row for row in fields_of(section) if row.doc)
 
 
+def row_of(section: type, key: str) -> Declared:
+    return next(row for row in keys(section) if row.key == key)
+
+
 def key_names(section: type, under: str = "") -> tuple[str, ...]:
     """The valid keys of ``section`` (or of its sub-mapping ``under``: "reconnect")."""
     prefix = f"{under}." if under else ""
@@ -83,19 +85,11 @@ def key_names(section: type, under: str = "") -> tuple[str, ...]:
     return tuple(dict.fromkeys(found))
 
 
-def example(section: type, under: str) -> str:
-    """A sub-mapping as a fix writes it: its first three keys with their examples."""
-    rows = [row for row in keys(section) if row.key.startswith(under + ".")][:3]
-    return "{" + ", ".join(f"{row.key.rpartition('.')[2]}: {row.example}" for row in rows) + "}"
-
-
 def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
-    """The keys of ``data`` (the mapping at ``path``) that were written, each as its field holds
-    it, by field name; the dataclass's defaults stand for the others."""
+    """The written keys of ``data`` (the mapping at ``path``) by field name, as fields hold them."""
     check_keys(src, data, path, key_names(section))
     require(src, data, path, section)
     values: dict[str, Any] = {}
-    checked = set()
     for row in keys(section):
         under, _, name = row.key.rpartition(".")
         table = data
@@ -103,16 +97,24 @@ def read(src: Source, data: Any, path: str, section: type) -> dict[str, Any]:
             table = data.get(under)
             if table is None:  # absent or written empty
                 continue
-            if not isinstance(table, dict):
-                parent = Declared(under, dict, None, example=example(section, under), key=under)
+            if not isinstance(table, dict):  # the fix shows its first three keys
+                rows = [r for r in keys(section) if r.key.startswith(f"{under}.")][:3]
+                example = ", ".join(f"{r.key.rpartition('.')[2]}: {r.example}" for r in rows)
+                parent = Declared(under, dict, None, example=f"{{{example}}}", key=under)
                 mapping(Key(src, path, parent), table)  # raises, saying what to write
-            if under not in checked:
-                check_keys(src, table, join(path, under), key_names(section, under))
-                checked.add(under)
+            check_keys(src, table, join(path, under), key_names(section, under))
         if name in table:
             key = Key(src, join(path, under) if under else path, row)
             values[row.name] = (row.parse or plain)(key, table[name])
     return values
+
+
+def item(src: Source, path: str, value: Any, section: type, what: str, fix: str,
+         *args: Any) -> Any:
+    """``section`` made of ``value``, one of a collection's mappings (a rule, a link, a client)."""
+    if not isinstance(value, dict):
+        raise src.error(path, f"expected {what}, got {show(value)}", fix=fix)
+    return section(*args, **read(src, value, path, section), line=src.lines.get(path, 0))
 
 
 def check_keys(src: Source, data: dict, path: str, valid: tuple[str, ...]) -> None:
@@ -140,11 +142,9 @@ def text(key: Key, value: Any) -> str:
 
 
 def plain(key: Key, value: Any) -> Any:
-    """The value of a key whose declared type says how to read it (null is none: it is written
-    by leaving the key out)."""
-    row = replace(key.row, type=next(arm for arm in getattr(key.row.type, "__args__",
-                                                            (key.row.type,))
-                                     if arm is not type(None)))
+    """A value its declared type says how to read (null is none: the key is left out)."""
+    arms = getattr(key.row.type, "__args__", (key.row.type,))
+    row = replace(key.row, type=next(arm for arm in arms if arm is not type(None)))
     if row.type is str and row.choices is None:
         return text(key, value)
     try:

@@ -1,11 +1,7 @@
-"""bringup.yaml: parse, validate, fill defaults. Every mistake becomes one ConfigError that names
-the file, the line, the key and the fix, never a traceback.
-
-Each key is read against its declaration (rosgate.config.schema); this module adds what ties keys
-together: which keys a role takes, an entry's framing, defaults that follow other keys, names
-listed twice. Topic and service entries also arrive over the network from clients (no file, no
-lines): ``topic_from_mapping`` / ``service_from_mapping`` run the same checks on them.
-"""
+"""bringup.yaml: parse, validate, fill defaults; every mistake one ConfigError naming the file, the
+line, the key and the fix. Each key is read against its declaration (schema); this module adds what
+ties keys together: which keys a role takes, an entry's framing, defaults that follow other keys,
+names listed twice. ``*_from_mapping`` run the same checks on entries a client sends."""
 
 from __future__ import annotations
 
@@ -14,16 +10,9 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..options import show
-from . import kinds
-from .kinds import Key, check_keys, key_names, keys, read, require
+from . import kinds, schema
+from .kinds import Key, check_keys, key_names, keys, read, require, row_of
 from .schema import (
-    CIPHER_DEFAULT,
-    LISTEN_DEFAULT,
-    MCU_KEYS,
-    NO_PLUGIN,
-    PEER_TIMEOUT_HEARTBEATS,
-    RECONNECT_MAX_DEFAULT,
-    SESSION_CIPHER_DEFAULT,
     ActionConfig,
     BridgeConfig,
     ClientPolicy,
@@ -60,19 +49,19 @@ def topic_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                        index: int | None = None) -> TopicConfig:
     """Validate one topic entry received from a client; `where` becomes the error's file and
     `index` its position in the client's list (error keys read "topics[3].codec")."""
-    return _topic(Source(where), data, _entry_path("topics", index), defaults)
+    return _entry(Source(where), data, _entry_path("topics", index), TopicConfig, defaults)
 
 
 def service_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                          index: int | None = None) -> ServiceConfig:
     """Like topic_from_mapping, for a service entry."""
-    return _service(Source(where), data, _entry_path("services", index), defaults)
+    return _entry(Source(where), data, _entry_path("services", index), ServiceConfig, defaults)
 
 
 def action_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                         index: int | None = None) -> ActionConfig:
     """Like topic_from_mapping, for an action entry."""
-    return _action(Source(where), data, _entry_path("actions", index), defaults)
+    return _entry(Source(where), data, _entry_path("actions", index), ActionConfig, defaults)
 
 
 def action_to_mapping(a: ActionConfig) -> dict:
@@ -80,13 +69,13 @@ def action_to_mapping(a: ActionConfig) -> dict:
 
 
 def topic_to_mapping(t: TopicConfig) -> dict:
-    """As the user would write it: the keys of real links only when they are not the defaults
-    (so a server that predates them still reads a client's hello that does not use them)."""
+    """As the user would write it, plugin keys only when used (so that a server that predates them
+    still reads a client's hello that does not use them)."""
     mapping = _to_mapping(t, TopicConfig)
     if not t.qos_given:  # the far side finds it from the publishers too
         del mapping["qos"]
     for key, options in (("recovery", t.recovery_options), ("compression", t.compression_options)):
-        if mapping[key] == NO_PLUGIN:
+        if mapping[key] == schema.NO_PLUGIN:
             del mapping[key]
         elif options:
             mapping[key] = {mapping[key]: dict(options)}
@@ -106,7 +95,7 @@ def _to_mapping(entry: TopicConfig | ServiceConfig | ActionConfig, section: type
         value = getattr(entry, key)
         # unset optional keys are left out, as a user would; microcontroller keys are only for
         # microcontroller entries (an entry with an envelope refuses them)
-        if value is not None and (entry.framing.bare or key not in MCU_KEYS):
+        if value is not None and (entry.framing.bare or key not in schema.MCU_KEYS):
             mapping[key] = dict(value) if isinstance(value, dict) else value
     return mapping
 
@@ -117,8 +106,7 @@ def _entry_path(key: str, index: int | None) -> str:
 
 def _top(src: Source, data: dict, key: str) -> Any:
     """A section of the file: its mapping, or {} when absent."""
-    row = next(row for row in keys(File) if row.key == key)
-    return kinds.mapping(Key(src, "", row), data.get(key))
+    return kinds.mapping(Key(src, "", row_of(File, key)), data.get(key))
 
 
 # --- the file ------------------------------------------------------------------------------------
@@ -136,18 +124,18 @@ def _bridge_config(data: Any, src: Source, base_dir: Path) -> BridgeConfig:
     _check_role(src, data, bridge, role)
     identity, server_key = _identity(src, bridge, given, role, base_dir)
     defaults = {"transport": Defaults.transport, "codec": Defaults.codec,
-                "cipher": CIPHER_DEFAULT if identity is None else SESSION_CIPHER_DEFAULT,
+                "cipher": Defaults.cipher if identity is None else schema.SESSION_CIPHER_DEFAULT,
                 **given.get("defaults", {})}
     heartbeat = given.get("heartbeat", BridgeConfig.heartbeat)
-    peer_timeout = given.setdefault("peer_timeout", heartbeat * PEER_TIMEOUT_HEARTBEATS)
+    peer_timeout = given.setdefault("peer_timeout", heartbeat * schema.PEER_TIMEOUT_HEARTBEATS)
     if peer_timeout <= heartbeat:
         raise src.error("bridge.peer_timeout", f"{peer_timeout:g} s is not longer than the "
                         f"heartbeat ({heartbeat:g} s): every peer would be declared down between "
                         "two pings",
-                        fix=f"e.g. peer_timeout: {heartbeat * PEER_TIMEOUT_HEARTBEATS:g} "
+                        fix=f"e.g. peer_timeout: {heartbeat * schema.PEER_TIMEOUT_HEARTBEATS:g} "
                             "(three heartbeats)")
     low = given.get("reconnect_min", BridgeConfig.reconnect_min)
-    high = given.setdefault("reconnect_max", max(low, RECONNECT_MAX_DEFAULT))
+    high = given.setdefault("reconnect_max", max(low, schema.RECONNECT_MAX_DEFAULT))
     if high < low:
         raise src.error("bridge.reconnect.max", f"max ({high:g} s) is below min ({low:g} s)",
                         fix="make max at least min, e.g. reconnect: {min: 0.1, max: 10}")
@@ -161,7 +149,7 @@ def _bridge_config(data: Any, src: Source, base_dir: Path) -> BridgeConfig:
         raise src.error("bridge.allow", "allow: is for role peer (a client or server "
                         "authenticates its peers by their keys)", fix="remove it")
     if role is Role.PEER:
-        given.setdefault("listen", LISTEN_DEFAULT)
+        given.setdefault("listen", schema.LISTEN_DEFAULT)
     return BridgeConfig(
         file=src.file, **{**given, "defaults": defaults, "identity": identity,
                           "server_key": server_key},
@@ -213,6 +201,9 @@ def _check_role(src: Source, data: dict, bridge: dict, role: Role) -> None:
                                 fix=f"remove {key}: here and list them in each client's file")
 
 
+_HANDSHAKE = ("identity", "peer_key", "handshake_port")
+
+
 def _identity(src: Source, bridge: dict, given: dict, role: Role,
               base_dir: Path) -> tuple[bytes | None, bytes | None]:
     """This side's private key and (client) the server's public key (a peer's: the other peer's).
@@ -222,24 +213,20 @@ def _identity(src: Source, bridge: dict, given: dict, role: Role,
             raise src.error("bridge.server_key", "role peer has no server_key:",
                             fix="a peer authenticates with identity:, peer_key: and "
                                 "handshake_port: (docs/security.md), or says insecure: true")
-        found = [k for k in ("identity", "peer_key", "handshake_port") if k in bridge]
-        if not found:
-            if "rekey" in bridge:
-                raise src.error("bridge.rekey", "rekey: is for peers with identities",
-                                fix="add identity:, peer_key: and handshake_port:, or remove it")
-            return None, None
-        for key in ("identity", "peer_key", "handshake_port"):
-            if key not in bridge:
-                row = next(row for row in keys(BridgeConfig) if row.key == key)
-                raise src.error(f"bridge.{found[0]}", "a peer with a handshake needs "
-                                "identity:, peer_key: and handshake_port:",
-                                fix=f"add {key}: {row.example}")
-        wanted = "peer_key"
+        found = [key for key in _HANDSHAKE if key in bridge]
+        lacking = [key for key in _HANDSHAKE if key not in bridge]
+        if not found and "rekey" in bridge:
+            raise src.error("bridge.rekey", "rekey: is for peers with identities",
+                            fix="add identity:, peer_key: and handshake_port:, or remove it")
+        if found and lacking:
+            raise src.error(f"bridge.{found[0]}", "a peer with a handshake needs identity:, "
+                            "peer_key: and handshake_port:",
+                            fix=f"add {lacking[0]}: {row_of(BridgeConfig, lacking[0]).example}")
     else:
-        if "peer_key" in bridge or "handshake_port" in bridge:
-            key = "peer_key" if "peer_key" in bridge else "handshake_port"
-            raise src.error(f"bridge.{key}", f"{key}: is for role peer",
-                            fix="a client names server_key:, a server its clients:")
+        for key in ("peer_key", "handshake_port"):
+            if key in bridge:
+                raise src.error(f"bridge.{key}", f"{key}: is for role peer",
+                                fix="a client names server_key:, a server its clients:")
         if role is Role.SERVER and "server_key" in bridge:
             raise src.error("bridge.server_key", "a server has no server_key: it names its "
                             "clients' keys under clients:", fix="remove it")
@@ -250,24 +237,24 @@ def _identity(src: Source, bridge: dict, given: dict, role: Role,
                                     "each other", fix="remove insecure: true to authenticate (or "
                                                       "the key to run without)")
             return None, None
-        if "identity" not in bridge:
-            # a client or server without identities is refused when it is planned
-            # (Resolver.plan), so that this module still reads any file for what else it may say
-            return None, None
-        if role is Role.CLIENT and "server_key" not in bridge:
+        if role is Role.CLIENT and "identity" in bridge and "server_key" not in bridge:
             raise src.error("bridge.identity", "a client with an identity needs the server's "
                             "public key too", fix="add server_key: <the server's public key>")
-        wanted = "server_key" if role is Role.CLIENT else ""
+    if "identity" not in bridge:
+        # a client or server without identities is refused when it is planned
+        # (Resolver.plan), so that this module still reads any file for what else it may say
+        return None, None
     from ..identity import IdentityError, load_private  # its cryptography: only with identities
 
     try:
         identity = load_private(base_dir / given["identity"])
     except IdentityError as exc:
         raise src.error("bridge.identity", str(exc), fix=exc.fix) from None
-    if not wanted:
+    wanted = {Role.PEER: "peer_key", Role.CLIENT: "server_key"}.get(role)
+    if wanted is None:
         return identity, None
-    row = next(row for row in keys(BridgeConfig) if row.key == wanted)
-    return identity, kinds.public_key(Key(src, "bridge", row), given[wanted])
+    return identity, kinds.public_key(Key(src, "bridge", row_of(BridgeConfig, wanted)),
+                                      given[wanted])
 
 
 def _clients(src: Source, data: dict, role: Role) -> dict[str, ClientPolicy]:
@@ -282,11 +269,8 @@ def _clients(src: Source, data: dict, role: Role) -> dict[str, ClientPolicy]:
         if not kinds.BRIDGE_NAME.fullmatch(name):
             raise src.error(path, f"'{name}' is not a valid client name",
                             fix="use the client's bridge.name: letters, digits, '_', '.', '-'")
-        if entry is not None and not isinstance(entry, dict):
-            raise src.error(path, f"expected a mapping, got {show(entry)}",
-                            fix=f"write it as {name}: {{key: <the client's public key>}}")
-        policy = ClientPolicy(name, **read(src, entry or {}, path, ClientPolicy),
-                              line=src.lines.get(path, 0))
+        policy = kinds.item(src, path, {} if entry is None else entry, ClientPolicy, "a mapping",
+                            f"write it as {name}: {{key: <the client's public key>}}", name)
         if policy.key in seen:
             raise src.error(f"{path}.key", f"the same key as clients.{seen[policy.key]}",
                             fix="give every client an identity of its own")
@@ -311,9 +295,9 @@ def _entries(src: Source, data: dict, key: str, defaults: dict[str, str]) -> lis
     if not isinstance(items, list):
         raise src.error(key, f"expected a list of entries, got {show(items)}",
                         fix=f"start each entry with '- {key[:-1]}: ' on its own line under {key}:")
-    build = {"topics": _topic, "services": _service, "actions": _action}[key]
+    section = {"topics": TopicConfig, "services": ServiceConfig, "actions": ActionConfig}[key]
     # a peer's port: is checked by the resolver: entries on a bus have none
-    entries = [build(src, item, f"{key}[{i}]", defaults) for i, item in enumerate(items)]
+    entries = [_entry(src, item, f"{key}[{i}]", section, defaults) for i, item in enumerate(items)]
     _check_duplicates(src, key, entries)
     return entries
 
@@ -341,50 +325,9 @@ def _check_duplicates(src: Source, key: str, entries: list) -> None:
 
 # --- entries (file or network) -------------------------------------------------------------------
 
-def _topic(src: Source, data: Any, path: str, defaults: dict[str, str]) -> TopicConfig:
-    given = _entry(src, data, path, "topic", TopicConfig, defaults)
-    framing = given["framing"]
-    if framing is Framing.SERIAL_DATAGRAM:
-        raise src.error(join(path, "framing"), "framing serial_datagram is for services (request "
-                                               "and answer to a microcontroller), not topics",
-                        fix="use framing: none for bare payloads on a datagram link, "
-                            "or leave framing: out")
-    for key in ("recovery", "compression"):  # a plugin's name and the entry's options for it
-        given[key], given[f"{key}_options"] = given.get(key, (NO_PLUGIN, {}))
-    given["qos_given"] = "qos" in data
-    if framing.bare:
-        for key in ("recovery", "compression"):
-            if key in data and data[key] != NO_PLUGIN:
-                raise src.error(join(path, key), f"{key} needs the envelope (framing: rosgate): "
-                                f"with framing {framing} a datagram is the bare payload",
-                                fix=f"remove {key}:, or use framing: rosgate")
-    return TopicConfig(**given, **src.entry_lines(path))
-
-
-def _action(src: Source, data: Any, path: str, defaults: dict[str, str]) -> ActionConfig:
-    return ActionConfig(**_entry(src, data, path, "action", ActionConfig, defaults),
-                        **src.entry_lines(path))
-
-
-def _service(src: Source, data: Any, path: str, defaults: dict[str, str]) -> ServiceConfig:
-    given = _entry(src, data, path, "service", ServiceConfig, defaults)
-    framing = given["framing"]
-    if framing is Framing.NONE:
-        raise src.error(join(path, "framing"), "framing none is for topics: a service call needs "
-                                               "its answer matched to it",
-                        fix="leave framing: out (rosgate), or use framing: serial_datagram with a "
-                            "microcontroller")
-    if "no_answer" in data and (framing is not Framing.SERIAL_DATAGRAM
-                                or given["direction"] is not Direction.TRANSMIT):
-        raise src.error(join(path, "no_answer"), "no_answer is for calls this bridge makes to a "
-                        "microcontroller (direction: transmit, framing: serial_datagram)",
-                        fix="remove no_answer: from this entry")
-    return ServiceConfig(**given, **src.entry_lines(path))
-
-
-def _entry(src: Source, data: Any, path: str, name_key: str, section: type,
-           defaults: dict[str, str]) -> dict[str, Any]:
-    """The keys topics and services share, and the rules that tie them together."""
+def _entry(src: Source, data: Any, path: str, section: type, defaults: dict[str, str]) -> Any:
+    """A topic, service or action entry: the keys they share, and the rules that tie them."""
+    name_key = keys(section)[0].key  # "topic" | "service" | "action"
     if not isinstance(data, dict):
         raise src.error(path, f"expected a mapping ({name_key}:, type:, direction: ...), "
                               f"got {show(data)}",
@@ -396,8 +339,7 @@ def _entry(src: Source, data: Any, path: str, name_key: str, section: type,
     if framing.bare:  # the name on the wire as written
         given.setdefault("remote", name.removeprefix("/"))
     elif "remote" in given:
-        remote = next(row for row in keys(section) if row.key == "remote")
-        given["remote"] = kinds.remote(Key(src, path, remote), given["remote"])
+        given["remote"] = kinds.remote(Key(src, path, row_of(section, "remote")), given["remote"])
     else:
         given["remote"] = name
     for key in ("transport", "codec", "cipher"):
@@ -408,10 +350,44 @@ def _entry(src: Source, data: Any, path: str, name_key: str, section: type,
                         f"authenticate; cipher must be none, not '{given['cipher']}'",
                         fix="set cipher: none on this entry, or use framing: rosgate to keep "
                             "the cipher")
-    for key in MCU_KEYS:
+    for key in schema.MCU_KEYS:
         if key in data and not framing.bare:
             raise src.error(join(path, key), f"{key} is for microcontroller entries (framing none "
                             "or serial_datagram); this entry has an envelope",
                             fix=f"remove {key}:, or set framing: none (topics) or "
                                 "serial_datagram (services)")
-    return given
+    if section is TopicConfig:
+        _topic(src, data, path, given)
+    elif section is ServiceConfig:
+        _service(src, data, path, given)
+    return section(**given, **src.entry_lines(path))
+
+
+def _topic(src: Source, data: dict, path: str, given: dict[str, Any]) -> None:
+    framing = given["framing"]
+    if framing is Framing.SERIAL_DATAGRAM:
+        raise src.error(join(path, "framing"), "framing serial_datagram is for services (request "
+                                               "and answer to a microcontroller), not topics",
+                        fix="use framing: none for bare payloads on a datagram link, "
+                            "or leave framing: out")
+    for key in ("recovery", "compression"):  # a plugin's name and the entry's options for it
+        given[key], given[f"{key}_options"] = given.get(key, (schema.NO_PLUGIN, {}))
+        if framing.bare and key in data and data[key] != schema.NO_PLUGIN:
+            raise src.error(join(path, key), f"{key} needs the envelope (framing: rosgate): "
+                            f"with framing {framing} a datagram is the bare payload",
+                            fix=f"remove {key}:, or use framing: rosgate")
+    given["qos_given"] = "qos" in data
+
+
+def _service(src: Source, data: dict, path: str, given: dict[str, Any]) -> None:
+    framing = given["framing"]
+    if framing is Framing.NONE:
+        raise src.error(join(path, "framing"), "framing none is for topics: a service call needs "
+                                               "its answer matched to it",
+                        fix="leave framing: out (rosgate), or use framing: serial_datagram with a "
+                            "microcontroller")
+    if "no_answer" in data and (framing is not Framing.SERIAL_DATAGRAM
+                                or given["direction"] is not Direction.TRANSMIT):
+        raise src.error(join(path, "no_answer"), "no_answer is for calls this bridge makes to a "
+                        "microcontroller (direction: transmit, framing: serial_datagram)",
+                        fix="remove no_answer: from this entry")

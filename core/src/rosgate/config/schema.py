@@ -1,8 +1,6 @@
-"""bringup.yaml's keys, each declared once: its type, default, bounds or choices, one line of doc
-and an example for the fix of an error about it. The loader (rosgate.config.load) reads a file
-against these declarations, and docs/configuration.md's reference is generated from them
-(``tools/docgen``). The rules that tie keys together (a role's keys, an entry's framing) are in the
-loader."""
+"""bringup.yaml's keys, each declared once: type, default, bounds or choices, one line of doc and
+an example for an error's fix. The loader reads a file against them (and adds the rules that tie
+keys together); docs/configuration.md's reference is generated from them (``tools/docgen``)."""
 
 from __future__ import annotations
 
@@ -55,7 +53,6 @@ MAX_DELAY_DEFAULT = 1.0           # seconds a best-effort message may wait in a 
 TIMEOUT_MAX = 3600.0  # seconds: a service call's, an action goal's acceptance; a result's wait
 #: recovery: and compression: without a plugin (a topic's own fragments, its payload as it is)
 NO_PLUGIN = "none"
-PRIORITIES = kinds.PRIORITIES
 # microcontroller entries (framing none or serial_datagram): how what this side sends is laid out
 LAYOUTS = ("array", "pair")       # [name, args] (CVRA's firmware) | name then args (its README)
 ARGS = ("map", "array", "value")  # the arguments: fields by name | in .msg order | first alone
@@ -64,8 +61,12 @@ NO_ANSWERS = ("fail", "nil")      # a call's connection closed without a byte: a
 MCU_KEYS = ("layout", "args", "floats")
 RULE_DIRECTIONS = ("transmit", "receive", "both")
 
-# the keys topics and services share, declared once for both
+# the keys topics, services and actions share, declared once for all
 _ENTRY: dict[str, dict[str, Any]] = {
+    "name": dict(doc="the ROS name on this side", parse=kinds.ros_name),
+    "direction": dict(example="transmit (this side to the peer) or receive (the peer to this "
+                              "side)"),
+    "remote": dict(parse=kinds.text),  # a ROS name, a bus key or a bare name: see load
     "transport": dict(default=TRANSPORT_DEFAULT, doc="the link: `udp`, `tcp`, or any installed "
                       "transport plugin", unset="`bridge.defaults.transport` (`udp`)",
                       example="udp"),
@@ -86,25 +87,21 @@ _ENTRY: dict[str, dict[str, Any]] = {
 }
 
 
-def _entry(key: str) -> Any:
-    return option(**_ENTRY[key])
+def _entry(key: str, **given: Any) -> Any:
+    return option(**_ENTRY[key], **given)
 
 
 @dataclass
 class TopicConfig:
     """Per topic you choose:"""
 
-    topic: str = option(doc="the ROS name on this side", example="/chatter",
-                        parse=kinds.ros_name)
+    topic: str = _entry("name", example="/chatter")
     type: str = option(doc="the message type", example="std_msgs/msg/String",
                        parse=kinds.interface("msg"))
-    direction: Direction = option(doc="`transmit`: to the far side (client to server, or to the "
-                                      "peer); `receive`: from it",
-                                  example="transmit (this side to the peer) or receive (the peer "
-                                          "to this side)")
-    remote: str = option(doc="the name on the far side (server, peer's link name, or a bus key)",
-                         unset="the same as `topic`", example="/robot1/chatter",
-                         parse=kinds.text)  # a ROS name, a bus key or a bare name: see load
+    direction: Direction = _entry("direction", doc="`transmit`: to the far side (client to "
+                                  "server, or to the peer); `receive`: from it")
+    remote: str = _entry("remote", doc="the name on the far side (server, peer's link name, or a "
+                         "bus key)", unset="the same as `topic`", example="/robot1/chatter")
     transport: str = _entry("transport")
     codec: str = _entry("codec")
     cipher: str = _entry("cipher")
@@ -165,16 +162,13 @@ class ServiceConfig:
     """`services:` entries carry ROS 2 services across the link; [services.md](services.md)
     says how calls, answers and failures behave."""
 
-    service: str = option(doc="the ROS name on this side", example="/mcu/ping",
-                          parse=kinds.ros_name)
+    service: str = _entry("name", example="/mcu/ping")
     type: str = option(doc="the service type", example="std_srvs/srv/Trigger",
                        parse=kinds.interface("srv"))
-    direction: Direction = option(doc="`transmit`: calls made here are served on the far side; "
-                                      "`receive`: the far side's calls are served here",
-                                  example="transmit (this side to the peer) or receive (the peer "
-                                          "to this side)")
-    remote: str = option(doc="the name on the far side", unset="the same as `service`",
-                         example="/ping", parse=kinds.text)
+    direction: Direction = _entry("direction", doc="`transmit`: calls made here are served on the "
+                                  "far side; `receive`: the far side's calls are served here")
+    remote: str = _entry("remote", doc="the name on the far side", unset="the same as `service`",
+                         example="/ping")
     transport: str = _entry("transport")
     codec: str = _entry("codec")
     cipher: str = _entry("cipher")
@@ -199,16 +193,13 @@ class ActionConfig:
     """`actions:` entries carry ROS 2 actions: goals, cancels and results cross as the action's
     three services, feedback and status as its two topics; [actions.md](actions.md) says how."""
 
-    action: str = option(doc="the ROS name on this side", example="/navigate_to_pose",
-                         parse=kinds.ros_name)
+    action: str = _entry("name", example="/navigate_to_pose")
     type: str = option(doc="the action type", example="nav2_msgs/action/NavigateToPose",
                        parse=kinds.interface("action"))
-    direction: Direction = option(doc="`transmit`: goals sent here are served on the far side; "
-                                      "`receive`: the far side's goals are served here",
-                                  example="transmit (this side to the peer) or receive (the peer "
-                                          "to this side)")
-    remote: str = option(doc="the name on the far side", unset="the same as `action`",
-                         example="/robot1/navigate_to_pose", parse=kinds.text)
+    direction: Direction = _entry("direction", doc="`transmit`: goals sent here are served on the "
+                                  "far side; `receive`: the far side's goals are served here")
+    remote: str = _entry("remote", doc="the name on the far side", unset="the same as `action`",
+                         example="/robot1/navigate_to_pose")
     transport: str = _entry("transport")
     codec: str = _entry("codec")
     cipher: str = _entry("cipher")
@@ -228,8 +219,7 @@ class LinkConfig:
     transport: str
     bandwidth: float | None = option(None, "bits per second this side sends at most to each "
                                      "destination, packet headers counted; not for a bus",
-                                     unset="unlimited", example="20mbit",
-                                     parse=kinds.bandwidth)
+                                     unset="unlimited", example="20mbit", parse=kinds.bandwidth)
     max_delay: float = option(MAX_DELAY_DEFAULT, "seconds a best-effort message without a "
                               "`max_delay` of its own may wait in the send queue (`too_late`)",
                               above=0, unit="seconds", example="1.0")
@@ -274,10 +264,9 @@ class Rule:
                             example="transmit, receive or both")
     types: tuple[str, ...] | None = option(None, "globs on `pkg/msg/Type`", unset="any",
                                            example="[geometry_msgs/msg/*]", parse=kinds.names)
-    ports: tuple[tuple[int, int], ...] = option((), "ports of their own it may ask for",
-                                                unset="none: the main port only",
-                                                example="[12001, 12010-12019]",
-                                                parse=kinds.port_ranges)
+    ports: tuple[tuple[int, int], ...] = option(
+        (), "ports of their own it may ask for", unset="none: the main port only",
+        example="[12001, 12010-12019]", parse=kinds.port_ranges)
     ciphers: tuple[str, ...] | None = option(None, "ciphers it may use (`none` only when listed)",
                                              unset="any cipher a session keys", example="[aead]",
                                              parse=kinds.names)
@@ -298,14 +287,8 @@ def _rules(key: Key, value: Any) -> tuple[Rule, ...]:
         return ()
     if not isinstance(value, list):
         raise key.error(f"expected a list of rules, got {show(value)}", fix=fix)
-    rules = []
-    for i, item in enumerate(value):
-        path = f"{key.path}[{i}]"
-        if not isinstance(item, dict):
-            raise key.src.error(path, f"expected a rule (name:, direction: ...), got {show(item)}",
-                                fix=fix)
-        rules.append(Rule(**read(key.src, item, path, Rule), line=key.src.lines.get(path, 0)))
-    return tuple(rules)
+    return tuple(kinds.item(key.src, f"{key.path}[{i}]", rule, Rule,
+                            "a rule (name:, direction: ...)", fix) for i, rule in enumerate(value))
 
 
 @dataclass(frozen=True)
@@ -316,8 +299,7 @@ class ClientPolicy:
     key: bytes = option(doc="the client's public key; `NAME` is its `bridge.name`",
                         example="<the client's public key>", parse=kinds.public_key)
     topics: tuple[Rule, ...] = option((), "rules: topics the client may bridge; an entry must "
-                                      "match one", unset="none: every topic refused",
-                                      parse=_rules)
+                                      "match one", unset="none: every topic refused", parse=_rules)
     services: tuple[Rule, ...] = option((), "rules: services the client may bridge",
                                         unset="none", parse=_rules)
     actions: tuple[Rule, ...] = option((), "rules: actions the client may bridge", unset="none",
@@ -350,15 +332,9 @@ def _section(section: type, build: bool = True) -> Any:
 
 def _links(key: Key, value: Any) -> dict[str, LinkConfig]:
     """per transport: `{udp: {bandwidth: 20mbit}}`"""
-    links = {}
-    for name, given in kinds.mapping(key, value).items():
-        path = f"{key.path}.{name}"
-        if not isinstance(given, dict):
-            raise key.src.error(path, f"expected a mapping, got {show(given)}",
-                                fix=f"write it as {name}: {{bandwidth: 20mbit}}")
-        links[name] = LinkConfig(name, **read(key.src, given, path, LinkConfig),
-                                 line=key.src.lines.get(path, 0))
-    return links
+    return {name: kinds.item(key.src, f"{key.path}.{name}", given, LinkConfig, "a mapping",
+                             f"write it as {name}: {{bandwidth: 20mbit}}", name)
+            for name, given in kinds.mapping(key, value).items()}
 
 
 _links.section = LinkConfig  # type: ignore[attr-defined]
@@ -373,10 +349,9 @@ class BridgeConfig:
     name: str = option(doc="this side's name; a server knows a client by it (`clients:`)",
                        example="robot1", parse=kinds.bridge_name)
     role: Role = option(doc="what this side is", example="client")
-    server: str | None = option(None, "client: the server's main line, `host:port` or "
-                                "`[v6]:port` (Bluetooth: `AA:BB:CC:DD:EE:FF/5`); server: where it "
-                                "listens", unset="required for client and server",
-                                example="127.0.0.1:12000")
+    server: str | None = option(None, "client: the server's main line, `host:port` or `[v6]:port` "
+                                "(Bluetooth: `AA:BB:CC:DD:EE:FF/5`); server: where it listens",
+                                unset="required for client and server", example="127.0.0.1:12000")
     main_line: str = option("tcp", "client, server: the stream transport of the main line and "
                             "handshake", example="tcp")
     peer: str | None = option(None, "peer: the far host, where topics are sent (not needed on a "
@@ -392,8 +367,7 @@ class BridgeConfig:
     stale_after: float = option(15.0, "seconds of silence on a received topic before a warning",
                                 above=0, example="15")
     stale_warnings: int = option(5, "warnings per silence (0: none)", minimum=0, example="5")
-    heartbeat: float = option(1.0, "seconds between pings on the main line", above=0,
-                              example="1.0")
+    heartbeat: float = option(1.0, "seconds between pings on the main line", above=0, example="1.0")
     peer_timeout: float = option(3.0, "seconds of silence on the main line before the far side "
                                  "is declared down; must exceed `heartbeat`", above=0,
                                  unit="seconds", unset="3 × `heartbeat`", example="3.0")
@@ -441,12 +415,10 @@ class BridgeConfig:
     fleet_timeout: float = option(30.0, "seconds after a robot's liveliness token went before "
                                   "its fleet routes are dropped (see [Fleets](fleets.md))",
                                   above=0, unit="seconds", example="30")
-    links: dict[str, LinkConfig] = option({}, "per transport, what this side may put on each "
-                                          "link", example="{udp: {bandwidth: 20mbit}}",
-                                          parse=_links)
+    links: dict[str, LinkConfig] = option({}, "per transport, what this side may put on each link",
+                                          example="{udp: {bandwidth: 20mbit}}", parse=_links)
     diagnostics: bool = option(True, "publish `diagnostic_msgs/DiagnosticArray` on `/diagnostics` "
-                               "once a second (see [operators.md](operators.md))",
-                               example="false")
+                               "once a second (see [operators.md](operators.md))", example="false")
     metrics: str | None = option(None, "`host:port` of a Prometheus endpoint (the "
                                  "`rosgate-metrics-prometheus` monitor)", unset="none",
                                  example="127.0.0.1:9108", parse=kinds.text)
@@ -460,15 +432,13 @@ class BridgeConfig:
     base_dir: Path = field(default_factory=Path.cwd)
 
     def error(self, key: str, message: str, fix: str | None = None) -> ConfigError:
-        """A ConfigError located at the line of dotted key `key` (falls back to the nearest
-        parent key's line)."""
+        """A ConfigError at the line of dotted key `key` (or of its nearest parent)."""
         return ConfigError(message, file=self.file, line=line_of(self.lines, key), key=key,
                            fix=fix)
 
     @property
     def secure(self) -> bool:
-        """With identities: every link of a session is authenticated (client, server, and a
-        peer that names its peer's key)."""
+        """With identities: every link of a session is authenticated."""
         return self.identity is not None
 
 
