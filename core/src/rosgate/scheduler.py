@@ -1,36 +1,13 @@
-"""The scheduler: in which order, and how fast, frames leave a link.
+"""The scheduler: in which order, and how fast, frames leave a link (the rules are
+docs/real-links.md's "Priorities", "Latest only", "Late messages" and "Budgets").
 
-Every link has one. Frames are queued per topic (by the topic id of their
-:class:`~rosgate.links.Sender`), the
-topics grouped in priority classes — zenoh's seven, ``real_time`` (1) to ``background`` (7),
-and class 0 above them for the control channel (hellos, pings, handshakes) — and a frame leaves
-as *packets*: a datagram, a fragment, a chunk of a stream. Then:
-
-* **strict priority** between classes: nothing of a class leaves while a higher class has a
-  packet that may go;
-* **first come, first served, a packet at a time** between the topics of one class: messages
-  leave in the order they came, but a long one's packets take turns with the others' (each
-  waits from when the packet before it left), so the fragments of two topics' messages
-  interleave and a small message waits at most one packet of every other topic of its class,
-  never a whole image;
-* **one message at a time per topic**: a message partly sent is finished before the topic's next
-  one starts (a topic's fragments never interleave with each other; a stream's chunks must not);
-  a topic's packets sent again (retransmissions) go before its other packets;
-* **latest only**: a ``latest_only`` topic's message not yet started is replaced by a newer
-  one (counted ``superseded``): what waits is never older than one message;
-* **too late**: a best-effort topic's message that waited ``max_delay`` seconds without starting is
-  dropped (counted ``too_late``) rather than sent stale; a reliable topic's waits, within the
-  link's limits (``frames``, ``bytes``: beyond them a new message is refused, ``queue_full``);
-  a topic's own ``max_delay`` (its sender's) applies to it whatever its reliability: a camera
-  that would rather skip a frame than send one that waited (the link then idles for the next);
-* **overload**: a best-effort topic without a ``max_delay`` of its own that stays behind sheds
-  its oldest messages (see :class:`Backlog`);
-* **budget**: with a ``bandwidth``, a token bucket per destination (per peer: a server's
-  clients each have their own) refilled at that many bits per second, counting every packet
-  with the transport's ``packet_overhead`` (IP and UDP headers). A packet leaves only when its
-  destination has the tokens; another destination's packet may go meanwhile. The bucket holds
-  :func:`burst` bytes, enough to keep the rate while the send thread wakes late, small enough
-  not to fill the link's own queue.
+Frames queue per topic (the :class:`~rosgate.links.Sender`'s topic id) in priority classes —
+zenoh's seven, and class 0 above them for the control channel — and leave as *packets* (a
+datagram, a fragment, a chunk of a stream): strict priority between classes; within one, the
+packet that has waited longest (so a long message's packets take turns with the others'); one
+message at a time per topic, its retransmissions first; ``latest_only`` replacement
+(``superseded``); a message dropped when it waited past ``max_delay`` before starting
+(``too_late``) or by its :class:`Backlog` (``overload``); a token bucket per destination.
 
 Nothing here sends or waits: the link's send thread asks :meth:`Scheduler.next` for the next
 packet, sends it, and sleeps until the time it is told when there is none yet.
@@ -54,17 +31,10 @@ HOLD = 0.2   # seconds behind on end (or caught up, to stop) before a topic shed
 
 
 class Backlog:
-    """Whether a best-effort topic sheds a message by its age from a link's send queue, where
-    it waits only when the link is the bottleneck (a budget, a full kernel send buffer): told
-    how long each message waited as it leaves. The subscription's queue and the receive buffer
-    never shed: what waits there waits for a thread of the bridge, not for the link, and a
-    backlog there is bounded by the topic's QoS depth.
-
-    A message older than :data:`LAG` finds the topic *behind*. Behind for :data:`HOLD` on end,
-    the topic sheds every message older than ``LAG`` (counted ``overload``) until none has been
-    for ``HOLD``: under a sustained overload what arrives stays fresh. A stall (a process not
-    scheduled, a GC pause) leaves a backlog that its thread catches up with in less than
-    ``HOLD`` once it runs again, as it sees it, so nothing is shed: the backlog is sent."""
+    """Whether a best-effort topic sheds a message from the send queue by its age (only there:
+    it waits there only when the link is the bottleneck). Behind (a message older than
+    :data:`LAG`) for :data:`HOLD` on end, it sheds what is older than ``LAG`` until nothing has
+    been for ``HOLD``; a stall's backlog is caught up with in less than ``HOLD``: sent, not shed."""
 
     __slots__ = ("since", "last")
 
@@ -82,12 +52,6 @@ class Backlog:
             self.since = now
         self.last = now
         return now - self.since >= HOLD
-
-
-def backlog(delivery: Any) -> Backlog | None:
-    """A sender's :class:`Backlog`; None when it never sheds by age: reliable, or with a
-    ``max_delay`` of its own (that age is the one it asked for)."""
-    return None if delivery.reliable or delivery.max_delay is not None else Backlog()
 
 
 def burst(rate_bytes: float, packet: int) -> int:
@@ -127,15 +91,13 @@ class Bucket:
 
 @dataclass(eq=False)
 class Outgoing:
-    """One frame on its way: cut into packets when it starts (fragments, repair fragments), and
-    told when its last packet left (``done``, e.g. to start a retransmission timer)."""
+    """One frame on its way, cut into its packets when it starts."""
 
     sender: Any
     to: Any
     size: int
     cut: Callable[[], list[bytes]]
     queued: float = 0.0
-    done: Callable[[float], None] | None = None
     #: a whole frame in one packet, which a datagram link may put in a datagram with others
     batchable: bool = False
 
@@ -167,9 +129,8 @@ class _Topic:
 
 
 class Scheduler:
-    """The send queue of one link (see the module's docstring). Not thread-safe: the link holds
-    its lock around every call. ``drop(sender, reason, detail)`` counts a message that will not
-    be sent."""
+    """The send queue of one link. Not thread-safe: the link holds its lock around every call,
+    and counts what ``dropped`` holds outside it."""
 
     def __init__(self, *, bandwidth: float | None = None, overhead: int = 0,
                  max_delay: float = 1.0, frames: int = 10_000, bytes: int = 64 * 1024 * 1024,
@@ -192,18 +153,19 @@ class Scheduler:
 
     # -- in ------------------------------------------------------------------------------------
     def _topic(self, sender: Any) -> _Topic:
-        """The queue of the sender's topic (by topic id: what its fragments carry) in the
-        sender's class: a route's announcements (the control class) never wait in, or replace
-        anything of, the queue of its messages."""
+        """The queue of the sender's topic in its class: a route's announcements (the control
+        class) never wait in, or replace anything of, the queue of its messages. Reliable
+        topics and those with a ``max_delay`` of their own never shed by age."""
         key = self._key(sender)
         topic = self._topics.get(key)
         if topic is None:
-            topic = self._topics[key] = _Topic(sender, key[1], backlog=backlog(sender.delivery))
+            delivery = sender.delivery
+            sheds = not delivery.reliable and delivery.max_delay is None
+            topic = self._topics[key] = _Topic(sender, key[1], backlog=Backlog() if sheds else None)
         return topic
 
     def _key(self, sender: Any) -> tuple[int, int]:
-        """The sender's queue: its topic id and its class, read from it once (they do not
-        change)."""
+        """The sender's topic id and class, read once (they do not change)."""
         found = self._keys.get(id(sender))
         if found is not None and found[0] is sender:
             return found[1]
@@ -236,9 +198,8 @@ class Scheduler:
         return True
 
     def resume(self, message: Outgoing, packets: list[bytes], now: float) -> None:
-        """A message whose first packets left from the caller's thread (the link was idle):
-        the rest wait here as its topic's message in progress, the next packet due since
-        ``now``, so they take turns with what came meanwhile as any message's packets do."""
+        """The rest of a message whose first packets left from the caller's thread: its topic's
+        message in progress, due since ``now``."""
         topic = self._topic(message.sender)
         assert topic.current is None and not topic.packets, "one message at a time per topic"
         topic.current, topic.since = message, now
@@ -269,8 +230,7 @@ class Scheduler:
         return bucket
 
     def may_send_now(self, to: Any, size: int) -> bool:
-        """Whether a packet for ``to`` may leave at once, nothing being queued (then its tokens
-        are taken): the caller's fast path."""
+        """Whether a packet for ``to`` may leave at once (nothing queued; its tokens taken)."""
         if self._frames or any(self._classes):
             return False
         bucket = self._bucket(to, self.clock())
@@ -315,13 +275,10 @@ class Scheduler:
         return bool(packets)
 
     def next(self, now: float | None = None) -> Due | float | None:
-        """The packet to send now; or when to ask again (a budget is short); or None when
-        nothing waits.
+        """The packet to send now; or when to ask again (a budget is short); or None.
 
-        Within a class, the topic whose next packet has waited longest goes: a message waits
-        from when it was queued, the next packet of a message in progress from when the one
-        before it left. So whole messages leave in the order they came, and the packets of
-        long ones take turns with everything else (round robin when they tie)."""
+        Within a class the packet that has waited longest goes: a message waits from when it
+        was queued, a message's next packet from when the one before it left."""
         now = self.clock() if now is None else now
         soonest: float | None = None
         blocked: set[Any] = set()  # destinations whose budget keeps a packet back
@@ -335,12 +292,9 @@ class Scheduler:
                     else:
                         line.append((since, key, topic))
                 line.sort(key=lambda entry: entry[0])  # stable: ties keep the round robin
-                restart = False
                 for _, key, topic in line:
-                    if not topic.repairs and not topic.packets:
-                        if not self._start(topic, now):
-                            restart = True  # dropped (late): look at the line again
-                            break
+                    if not topic.repairs and not topic.packets and not self._start(topic, now):
+                        break  # dropped (late): look at the line again
                     again = bool(topic.repairs)
                     packet, to = topic.repairs[0] if again else (
                         topic.packets[0], topic.current.to if topic.current else None)
@@ -366,16 +320,14 @@ class Scheduler:
                     if not (topic.repairs or topic.packets or topic.waiting):
                         del topics[key]
                     return Due(packet, to, sender, ends, again)
-                if not restart:
+                else:
                     break
         return soonest
 
     def depth(self, sender: Any) -> int:
         """Messages of ``sender`` not fully sent: waiting, plus the one in progress."""
         topic = self._topics.get(self._key(sender))
-        if topic is None:
-            return 0
-        return len(topic.waiting) + (topic.current is not None)
+        return 0 if topic is None else len(topic.waiting) + (topic.current is not None)
 
     @property
     def idle(self) -> bool:
