@@ -12,7 +12,6 @@ traceback is logged once per reason per minute (:data:`rosgate.warn.BUGS`). """
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -28,15 +27,9 @@ from .packetizer import Packet, Packetizer, own_packetizer
 from .plugins import Plugins, distribution_hint, installed
 from .scheduler import Due, Outgoing, Scheduler
 from .spec import Delivery
-from .transport import (
-    Address,
-    DatagramEndpoint,
-    DatagramTransport,
-)
+from .transport import Address, DatagramEndpoint, DatagramTransport
 from .warn import BUGS
 from .wire import envelope, framing
-
-log = logging.getLogger("rosgate")
 
 FrameHandler = Callable[[bytes, "Link", Address], None]
 #: a loss on the receiving side: (topic id when known, reason)
