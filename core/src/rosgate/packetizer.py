@@ -1,27 +1,19 @@
-"""Packetizers: how a datagram link cuts a frame into packets, and puts packets back together.
+"""Packetizers: how a datagram link cuts a frame into packets and puts them back together.
 
-A datagram link (:class:`rosgate.links.DatagramLink`) keeps its queue, its threads and its
-dispatch; what goes into a packet is a packetizer's. A link's own packetizer cuts the frames of
-topics without one of their own: the built-in ``fragments``, which cuts a frame longer than the
-link's ``max_frame`` into numbered fragments, or on links of small frames (:data:`SMALL_FRAME`:
-CAN) ``compact`` (``rosgate-compact``), which cuts every frame. Loss recovery (``recovery:
-fec``, ``recovery: retransmit``, from the ``rosgate-recovery`` distribution) are packetizers too. A
-topic picks one by name (``recovery: NAME``); its options come from ``plugins: {NAME: {...}}``,
-and a topic may give its own on top (``recovery: {fec: {overhead: 0.25}}``).
+A link's own packetizer cuts the frames of topics without one: ``fragments`` (built in) cuts
+what is longer than ``max_frame``; on links of small frames (:data:`SMALL_FRAME`) ``compact``
+cuts every frame. Loss recovery (``recovery: fec``, ``recovery: retransmit``) is packetizers
+too: a topic picks one by name, with options from ``plugins: {NAME: {...}}`` and its own on top
+(``recovery: {fec: {overhead: 0.25}}``).
 
-A packetizer plugin subclasses :class:`Packetizer`, sets :attr:`~Packetizer.name` and
-:attr:`~Packetizer.magic`, implements :meth:`~Packetizer.cut`, :meth:`~Packetizer.feed` and
-:meth:`~Packetizer.cost`, and is registered through the ``rosgate_packetizers`` hook. Every
-packet it makes starts with one of its two-byte magics: the receiving link hands each packet to
-the packetizer of its magic, so the receiver needs no setting. ``RG`` (the envelope) and ``RB``
-(a batch of whole frames) are the link's own.
-
-A link makes one instance of each packetizer it meets and keeps it for its life: the sending
-and the receiving side of every topic that uses it, on every peer of the link. Threads:
-:meth:`cut` and :meth:`sent` run on the link's send thread (``cut`` under the link's lock),
-:meth:`feed` and :meth:`timer` on its receive thread — and, for a packetizer that implements
-``sent``, :meth:`timer` on the send thread too: such a one locks what both threads touch, and
-calls the link's :class:`PacketLink` methods outside that lock.
+A plugin subclasses :class:`Packetizer` (``name``, ``magic``, ``cut``, ``feed``, ``cost``) and
+registers it through the ``rosgate_packetizers`` hook. Every packet starts with one of its
+two-byte magics, so the receiving link finds its packetizer without a setting (``RG`` and ``RB``
+are the link's own). A link makes one instance of each packetizer it meets, for every topic and
+peer. Threads: :meth:`~Packetizer.cut` (under the link's lock) and :meth:`~Packetizer.sent` run
+on the send thread, :meth:`~Packetizer.feed` and :meth:`~Packetizer.timer` on the receive
+thread — and, for one that implements ``sent``, ``timer`` on the send thread too: such a one
+locks what both threads touch, and calls its :class:`PacketLink` outside that lock.
 """
 
 from __future__ import annotations
@@ -38,17 +30,14 @@ Packet = bytes | tuple[bytes | memoryview, ...]
 
 #: magics a packetizer may not claim: the link's own whole frames (``RG``) and batches (``RB``)
 RESERVED_MAGIC = (b"RG", b"RB")
-#: a datagram link whose transport's ``max_frame`` is below this cannot spare 14 bytes of
-#: fragment header in its packets (CAN's 8 and CAN FD's 64): its own packetizer is
-#: :data:`SMALL_FRAME_PACKETIZER`. A rule on ``max_frame``, not a transport's setting, so that
-#: any transport of small frames gets it without saying so.
+#: below this ``max_frame`` (CAN's 8, CAN FD's 64) a link cannot spare 14 bytes of fragment
+#: header: its own packetizer is :data:`SMALL_FRAME_PACKETIZER`, whatever the transport
 SMALL_FRAME = 256
 SMALL_FRAME_PACKETIZER = "compact"
 
 
 def own_packetizer(max_frame: int) -> str:
-    """The name of the own packetizer of a datagram link whose packets carry ``max_frame``
-    bytes (see the module's docstring)."""
+    """The name of the own packetizer of a datagram link of ``max_frame``-byte packets."""
     return SMALL_FRAME_PACKETIZER if max_frame < SMALL_FRAME else "fragments"
 
 
