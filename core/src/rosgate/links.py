@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import threading
 import time
-from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
@@ -114,8 +113,7 @@ class Lifetime:
     def links(self) -> list[Link]:
         """The links open now that count what they carry."""
         with self._lock:
-            return [item for item in self._items.values()
-                    if isinstance(item, Link)]
+            return [item for item in self._items.values() if isinstance(item, Link)]
 
     def close_all(self) -> None:
         self.stopping.set()
@@ -152,12 +150,18 @@ class LinkCounters:
                 f"({self.coalesced_in} coalesced, {self.bytes_in} B)")
 
 
-class _Sending(ABC):
+class _Sending:
     """What both kinds of link share: the scheduler, its lock, the send turn, the two threads
     and closing."""
 
     on_frame: FrameHandler
     on_lost: LostHandler
+    # each kind's own: closing its endpoint or connection, its two threads, and sending one
+    # packet in this thread's turn (False: dropped, counted)
+    _close_io: Callable[[], None]
+    _receive_loop: Callable[[], None]
+    _send_loop: Callable[[], None]
+    _send_due: Callable[[Due], bool]
     #: told once the link has closed (a stream link's owner forgets it)
     on_close: Callable[[Any], None] | None = None
 
@@ -219,15 +223,6 @@ class _Sending(ABC):
             sender.drop(Drop.LINK_DOWN, f"{self.name} closed with the frame still queued")
         if self.on_close is not None:
             self.on_close(self)
-
-    @abstractmethod
-    def _close_io(self) -> None: ...
-
-    @abstractmethod
-    def _receive_loop(self) -> None: ...
-
-    @abstractmethod
-    def _send_loop(self) -> None: ...
 
     def queue_depth(self, sender: Any) -> int:
         with self._lock:
@@ -293,10 +288,6 @@ class _Sending(ABC):
         while dropped:
             sender, reason, detail = dropped.pop(0)
             sender.drop(reason, f"{self.name}: {detail}")
-
-    @abstractmethod
-    def _send_due(self, due: Due) -> bool:
-        """Send one packet in this thread's turn; False when it was dropped (counted)."""
 
 
 class _Gather:
@@ -389,7 +380,6 @@ class DatagramLink(_Sending, Link):
         self._send_datagrams = getattr(endpoint, "send_datagrams", None)
         self._start()
 
-    # -- out -----------------------------------------------------------------------------------
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         assert to is not None, "a datagram link needs a destination"
         size = len(frame)
@@ -464,7 +454,6 @@ class DatagramLink(_Sending, Link):
         # a _Gather stands for its packet: the scheduler only takes its len()
         return cast(bytes, _Gather(packet))
 
-    # -- packetizers ---------------------------------------------------------------------------
     def packetizer(self, name: str) -> Packetizer:
         """The link's packetizer of that name, made on first use."""
         found = self._by_name.get(name)
@@ -707,33 +696,24 @@ class DatagramLink(_Sending, Link):
                     self._tx_timer = None
                 else:
                     self._busy = True
-                    batch = [due]
-                    if coalesce and _batchable(due):
-                        total = len(due.packet)
-                        while True:
-                            more = scheduler.next(now)
-                            if not isinstance(more, Due):
-                                break
-                            if (_batchable(more) and more.to == due.to and batch_size(
-                                    total + len(more.packet), len(batch) + 1) <= limit):
-                                batch.append(more)
-                                total += len(more.packet)
-                            else:
-                                carry = more
-                                break
-                    elif run and type(due.packet) is _Gather and due.ends is None:
-                        while len(batch) < _RUN:
-                            more = scheduler.next(now)
-                            if not isinstance(more, Due):
-                                break
-                            if (type(more.packet) is _Gather and more.sender is due.sender
-                                    and more.to == due.to and not more.again):
-                                batch.append(more)
-                                if more.ends is not None:
-                                    break  # the frame's last
-                            else:
-                                carry = more
-                                break
+                    batch, total = [due], len(due.packet)
+                    # whole frames that fit one datagram, or a frame's next fragments (one call)
+                    batching = coalesce and _batchable(due)
+                    running = run and type(due.packet) is _Gather and due.ends is None
+                    while batching or running:
+                        more = scheduler.next(now)
+                        if not isinstance(more, Due):
+                            break
+                        total += len(more.packet)
+                        if more.to != due.to or not (
+                                _batchable(more) and batch_size(total, len(batch) + 1) <= limit
+                                if batching else type(more.packet) is _Gather
+                                and more.sender is due.sender and not more.again):
+                            carry = more
+                            break
+                        batch.append(more)
+                        if running and (more.ends is not None or len(batch) == _RUN):
+                            break  # the frame's last, or the most one call takes
             if scheduler.dropped:
                 self._count_drops()
             if due is None:  # the packetizers' timers, outside the lock: they may queue repairs
@@ -756,7 +736,6 @@ class DatagramLink(_Sending, Link):
                     if self._turn_waiters and not self._busy:
                         self._turn.notify_all()
 
-    # -- in ------------------------------------------------------------------------------------
     def _receive_loop(self) -> None:
         receive_into = getattr(self.endpoint, "receive_into", None)
         if receive_into is None:
@@ -782,9 +761,7 @@ class DatagramLink(_Sending, Link):
             timeout = POLL if timer is None else min(POLL, max(0.001, timer - time.monotonic()))
             try:
                 got = receive(timeout)
-            except OSError:
-                if closed.is_set():
-                    return
+            except OSError:  # passing, or the endpoint closed: the loop's test tells
                 continue
             except Exception:  # a transport plugin's bug must not silently end the link
                 BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
@@ -804,7 +781,7 @@ class DatagramLink(_Sending, Link):
                     timer = due
 
     def _datagram(self, datagram: bytes | memoryview, source: Address,
-                  now: float = 0.0) -> Packetizer | None:
+                  now: float) -> Packetizer | None:
         """One datagram (a view of the receive buffer); the packetizer it was fed to, if any."""
         if self.sources is not None and not self.sources.admits(source, datagram):
             self.on_lost(None, Drop.NOT_ALLOWED)
@@ -839,7 +816,7 @@ class DatagramLink(_Sending, Link):
             return None
         assert isinstance(packetizer, Packetizer)
         try:
-            frame = packetizer.feed(datagram, source, now or time.monotonic())
+            frame = packetizer.feed(datagram, source, now)
         except framing.FramingError:
             self.on_lost(None, Drop.BAD_FRAGMENT)
             return packetizer

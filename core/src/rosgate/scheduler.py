@@ -151,7 +151,6 @@ class Scheduler:
         #: each sender's queue key, found once (by id; the sender is kept so the id stays its)
         self._keys: dict[int, tuple[Any, tuple[int, int]]] = {}
 
-    # -- in ------------------------------------------------------------------------------------
     def _topic(self, sender: Any) -> _Topic:
         """The queue of the sender's topic in its class: a route's announcements (the control
         class) never wait in, or replace anything of, the queue of its messages. Reliable
@@ -220,7 +219,6 @@ class Scheduler:
         if bucket is not None:
             bucket.charge(size + self.overhead, self.clock())
 
-    # -- out -----------------------------------------------------------------------------------
     def _bucket(self, to: Any, now: float) -> Bucket | None:
         if self.rate is None:
             return None
