@@ -620,12 +620,11 @@ class DatagramLink(_Sending, Link):
         try:
             if type(packet) is _Gather:
                 self._send_parts(cast(_Gather, packet).parts, to)
-            elif self.cuts and not sender.delivery.whole:
-                step = self.max_frame
-                count = 0
-                for i in range(0, len(packet), step):
-                    self.endpoint.send(packet[i:i + step], to)
-                    count += 1
+            elif self.cuts and not sender.delivery.whole:  # a packet of several datagrams
+                pieces = range(0, len(packet), self.max_frame)
+                count = len(pieces)
+                for i in pieces:
+                    self.endpoint.send(packet[i:i + self.max_frame], to)
             else:
                 self.endpoint.send(packet, to)
         except OSError as exc:
