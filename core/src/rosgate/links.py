@@ -449,10 +449,8 @@ class DatagramLink(_Sending, Link):
     def _packet(self, packet: Packet) -> bytes:
         if not isinstance(packet, tuple):
             return packet
-        if not self._gather:
-            return b"".join(packet)
         # a _Gather stands for its packet: the scheduler only takes its len()
-        return cast(bytes, _Gather(packet))
+        return cast(bytes, _Gather(packet)) if self._gather else b"".join(packet)
 
     def packetizer(self, name: str) -> Packetizer:
         """The link's packetizer of that name, made on first use."""

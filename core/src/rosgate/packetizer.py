@@ -73,10 +73,9 @@ class Packetizer(ABC):
     name: ClassVar[str]
     #: the first two bytes of every packet it makes; unique among installed packetizers
     magic: ClassVar[tuple[bytes, ...]]
-    #: True: as a link's own packetizer it is given every frame, even one that fits a packet,
-    #: and every datagram the link receives (the link sends nothing else, so its packets need no
-    #: magic); one packet it cuts may hold several datagrams, each ``max_frame`` bytes but the
-    #: last, which the link sends back to back: pieces without a frame id never interleave
+    #: True: as a link's own packetizer it gets every frame and every datagram (so its packets
+    #: need no magic); a packet it cuts may hold several datagrams (``max_frame`` bytes each but
+    #: the last), sent back to back: pieces without a frame id never interleave
     cuts_every_frame: ClassVar[bool] = False
 
     def __init__(self, link: PacketLink):
@@ -84,11 +83,10 @@ class Packetizer(ABC):
 
     @abstractmethod
     def cut(self, frame: bytes, sender: Any, to: Address, options: Any) -> list[Packet]:
-        """The packets of ``frame``, each at most ``link.max_frame`` bytes, for ``to``.
-        ``sender.topic_id`` is the topic's id (put it in the packets, so a frame lost on the way
-        is counted against its topic); ``options`` the topic's ``Options`` instance. Raise
-        :class:`rosgate.wire.framing.FramingError` for a frame it cannot cut (counted
-        ``send_error``)."""
+        """The packets of ``frame`` for ``to``, each at most ``link.max_frame`` bytes; put
+        ``sender.topic_id`` in them, so a frame lost on the way is counted against its topic.
+        ``options``: the topic's ``Options``. Raise :class:`rosgate.wire.framing.FramingError`
+        for a frame it cannot cut (counted ``send_error``)."""
 
     def sent(self, packet: bytes, to: Address, now: float) -> None:
         """The last packet of a frame it cut has left the link (``now``: time.monotonic()), e.g.
@@ -98,17 +96,15 @@ class Packetizer(ABC):
 
     @abstractmethod
     def feed(self, packet: bytes | memoryview, source: Address, now: float) -> bytes | None:
-        """Take one packet (a view of the receive buffer, valid during the call: copy what you
-        keep); the frame when it completes one. ``packet`` comes from the network: raise
-        :class:`rosgate.wire.framing.FramingError` for one that is malformed (counted
-        ``bad_fragment``), and keep what you hold bounded in time and memory, counting every
-        frame given up with ``link.lost``."""
+        """Take one packet from the network (a view valid during the call: copy what you keep);
+        the frame when it completes one. Raise :class:`rosgate.wire.framing.FramingError` for a
+        malformed one (counted ``bad_fragment``); keep what you hold bounded in time and memory,
+        counting every frame given up with ``link.lost``."""
 
     def timer(self, now: float) -> float | None:
-        """Do what is due at ``now`` (ask again for what is missing, give up what is late);
-        return when to be called next (None: whenever the link is idle, at least every 0.2 s).
-        The link calls it after every packet fed (and, if it implements :meth:`sent`, every frame
-        sent), and at the time it returned."""
+        """Do what is due at ``now`` (ask again for what is missing, give up what is late); when
+        to be called next (None: when the link is idle, at least every 0.2 s). Also called after
+        every packet fed (and, with :meth:`sent`, every frame sent)."""
         return None
 
     @classmethod

@@ -250,10 +250,9 @@ class Scheduler:
         message = topic.waiting.popleft()
         self._frames -= 1
         self._bytes -= message.size
-        delivery = message.sender.delivery
-        limit = delivery.max_delay
-        if limit is None and not delivery.reliable:
-            limit = self.max_delay
+        delivery = message.sender.delivery  # best effort waits the link's max_delay at most
+        limit = delivery.max_delay if delivery.max_delay is not None or delivery.reliable \
+            else self.max_delay
         waited = now - message.queued
         if limit is not None and waited > limit:
             self.dropped.append((message.sender, Drop.TOO_LATE,
