@@ -478,8 +478,7 @@ class DatagramLink(_Sending, Link):
         """The packetizer of ``magic`` (None: a whole frame), looked up once per magic."""
         registration = self.registry.by_wire("packetizer", magic)
         if registration is None:
-            if len(self._by_magic) < 0x10000:  # the two bytes bound it
-                self._by_magic[magic] = None
+            self._by_magic[magic] = None  # (a magic is two bytes at most: this stays bounded)
             return None
         return self._make(registration.cls)
 
@@ -811,7 +810,6 @@ class DatagramLink(_Sending, Link):
             counters.frames_in += 1
             self._deliver(datagram if type(datagram) is bytes else bytes(datagram), source)
             return None
-        assert isinstance(packetizer, Packetizer)
         try:
             frame = packetizer.feed(datagram, source, now)
         except framing.FramingError:

@@ -317,7 +317,7 @@ class Scheduler:
                     if not (topic.repairs or topic.packets or topic.waiting):
                         del topics[key]
                     return Due(packet, to, sender, ends, again)
-                else:
+                else:  # nothing of this class may go now: the next class
                     break
         return soonest
 
