@@ -68,15 +68,12 @@ class Bucket:
         self.tokens = float(capacity)
         self.at = now
 
-    def _fill(self, now: float) -> None:
-        if now > self.at:
-            self.tokens = min(self.capacity, self.tokens + (now - self.at) * self.rate)
-            self.at = now
-
     def take(self, size: int, now: float) -> float:
         """0 and take ``size`` bytes' tokens when they are there; else the seconds until they
         will be (taking nothing)."""
-        self._fill(now)
+        if now > self.at:
+            self.tokens = min(self.capacity, self.tokens + (now - self.at) * self.rate)
+            self.at = now
         need = min(size, self.capacity)  # a packet larger than the bucket waits for a full one
         if self.tokens + 1e-6 >= need:  # (not a rounding error away from it, forever)
             self.tokens -= size
@@ -85,7 +82,7 @@ class Bucket:
 
     def charge(self, size: int, now: float) -> None:
         """Count bytes sent outside the queue (acknowledgements): the bucket may go into debt."""
-        self._fill(now)
+        self.take(0, now)  # (takes nothing: fills the bucket up to now)
         self.tokens -= size
 
 
@@ -234,17 +231,6 @@ class Scheduler:
         bucket = self._bucket(to, self.clock())
         return bucket is None or bucket.take(size + self.overhead, self.clock()) == 0.0
 
-    @staticmethod
-    def _since(topic: _Topic) -> float | None:
-        """Since when the topic's next packet has been waiting (None: it has none)."""
-        if topic.repairs:
-            return topic.repaired
-        if topic.packets:
-            return topic.since
-        if topic.waiting:
-            return topic.waiting[0].queued
-        return None
-
     def _start(self, topic: _Topic, now: float) -> bool:
         """Cut the topic's next message into packets; False when it was dropped instead."""
         message = topic.waiting.popleft()
@@ -282,8 +268,9 @@ class Scheduler:
         for topics in self._classes:
             while topics:
                 line = []
-                for key, topic in list(topics.items()):
-                    since = self._since(topic)
+                for key, topic in list(topics.items()):  # since when its next packet waits
+                    since = topic.repaired if topic.repairs else topic.since if topic.packets \
+                        else topic.waiting[0].queued if topic.waiting else None
                     if since is None:
                         del topics[key]
                     else:
