@@ -33,8 +33,6 @@ from .wire import envelope, framing
 FrameHandler = Callable[[bytes, "Link", Address], None]
 #: a loss on the receiving side: (topic id when known, reason)
 LostHandler = Callable[[int | None, Reason], None]
-#: a frame that arrived whole only thanks to its recovery (FEC repair, retransmission)
-RecoveredHandler = Callable[[int], None]
 
 POLL = 0.2  # seconds a receive waits before checking whether the link is closing
 
@@ -196,10 +194,8 @@ class _Sending:
         self._rest: Due | None = None
 
     def _start(self) -> None:
-        self._threads = [
-            threading.Thread(target=self._receive_loop, name=f"rx-{self.name}", daemon=True),
-            threading.Thread(target=self._send_loop, name=f"tx-{self.name}", daemon=True),
-        ]
+        self._threads = [threading.Thread(target=loop, name=f"{kind}-{self.name}", daemon=True)
+                         for kind, loop in (("rx", self._receive_loop), ("tx", self._send_loop))]
         for thread in self._threads:
             thread.start()
 
@@ -349,9 +345,8 @@ class DatagramLink(_Sending, Link):
                  on_frame: FrameHandler, on_lost: LostHandler, bare: bool = False,
                  max_message: int = framing.DEFAULT_MAX_MESSAGE, sources: Sources | None = None,
                  budget: LinkConfig | None = None,
-                 on_recovered: RecoveredHandler | None = None,
-                 queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
-                 packetizers: Plugins | None = None):
+                 on_recovered: Callable[[int], None] | None = None, queue_frames: int = 10_000,
+                 queue_bytes: int = 64 * 1024 * 1024, packetizers: Plugins | None = None):
         self.transport = transport
         self.sources = sources  # None: anyone; others are counted not_allowed
         self.endpoint = endpoint
