@@ -1,15 +1,7 @@
-"""The batch window (a topic's ``batch:``): its messages leave together, not one by one.
-
-Without a window, the ROS executor wakes for every message and the route frames and sends it
-at once: a thread switch and a system call per message on each side. With one, the first message
-opens the window; the executor's thread then sleeps until the window closes (messages pile up
-in the middleware meanwhile, no wake-up for any of them), and the route takes everything
-waiting in one go, frames it, and hands it to its link as one call (one datagram, or one stream
-write, as far as they fit). The far side receives that datagram in one wake and publishes every
-message in it from there. A message waits at most the window for the ones after it: that is
-the latency a topic opts into. A window of 0 is no window.
-
-:class:`Batches` is the executor's side: one per ROS node, used only from its thread.
+"""The batch window (a topic's ``batch:``, see docs/real-links.md): the first message opens it,
+the executor's thread sleeps until it closes (no wake-up per message), then the route takes
+everything waiting and hands it to its link in one call: one datagram or stream write as far
+as they fit, on each side a thread switch and a system call for all of them.
 """
 
 from __future__ import annotations
@@ -40,30 +32,20 @@ def window(key: Any, value: Any) -> float:
     return seconds
 
 
-class Batches:
-    """The windows open on one ROS node: when each closes, and the call that closes it.
-
-    The executor's loop asks :meth:`close_due` before it waits for the next event: while a
-    window is open it sleeps until the first one closes instead (see the module's docstring)."""
-
-    __slots__ = ("_open",)
-
-    def __init__(self) -> None:
-        self._open: list[tuple[float, Callable[[], None]]] = []
+class Batches(list[tuple[float, Callable[[], None]]]):
+    """The windows open on one ROS node (when each closes, the call that closes it), used only
+    from its executor's thread: it asks :meth:`close_due` before it waits for the next event."""
 
     def open(self, closes: float, flush: Callable[[], None]) -> None:
         """A window that closes at ``closes`` (time.monotonic()); ``flush`` sends its batch."""
-        self._open.append((closes, flush))
-
-    def __bool__(self) -> bool:
-        return bool(self._open)
+        self.append((closes, flush))
 
     def close_due(self, now: float) -> float | None:
         """Close every window due by ``now`` (its flush runs here); the seconds until the next
         one closes, or None when none is open."""
-        due = [entry for entry in self._open if entry[0] <= now]
+        due = [entry for entry in self if entry[0] <= now]
         if due:
-            self._open = [entry for entry in self._open if entry[0] > now]
+            self[:] = [entry for entry in self if entry[0] > now]
             for _, flush in due:
                 flush()
-        return min(entry[0] for entry in self._open) - now if self._open else None
+        return min(entry[0] for entry in self) - now if self else None

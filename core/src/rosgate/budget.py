@@ -12,7 +12,6 @@ data); nor are retransmissions (they depend on the losses).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 from .builtin import Fragments
@@ -56,22 +55,6 @@ def _fixed(msg_type: Any) -> bool:
     return True
 
 
-@dataclass
-class Cost:
-    """One topic's share of a budget."""
-
-    topic: str
-    rate: float | None
-    size: int | None            # the message (CDR)
-    wire: int | None = None     # one message on the wire
-    packets: int = 0
-    note: str = ""
-
-    @property
-    def bits(self) -> float | None:
-        return None if self.rate is None or self.wire is None else self.rate * self.wire * 8
-
-
 def cipher_overhead(p: TopicSpec) -> int:
     """Bytes a topic's cipher adds to a frame (its session's cipher when there is no static
     one)."""
@@ -102,49 +85,35 @@ def on_the_wire(frame: int, p: TopicSpec) -> tuple[int, int]:
     return size + packets * overhead, packets
 
 
-def costs(plan: Plan, transport: str) -> list[Cost]:
-    """What this side's topics put on the links of ``transport``."""
-    out = []
-    for p in plan.topics:
-        t = p.config
-        if t.transport != transport or t.direction is not Direction.TRANSMIT:
-            continue
-        size = t.typical_size or fixed_size(p.msg_type)
-        cost = Cost(t.topic, t.max_rate, size)
-        if size is None:
-            cost.note = f"{t.type} varies in size: give typical_size"
-        elif t.max_rate is None:
-            cost.note = "no max_rate: as often as it is published"
-        if size is not None:
-            frame = size if t.framing is not Framing.ROSGATE else \
-                envelope.SIZE + cipher_overhead(p) + size
-            cost.wire, cost.packets = on_the_wire(frame, p)
-        out.append(cost)
-    return out
-
-
 def report(plan: Plan) -> list[str]:
     """The lines ``rosgate check`` prints: one block per budgeted transport this side uses."""
     lines: list[str] = []
     for name, link in plan.config.links.items():
-        if link.bandwidth is None:
-            continue
-        topics = costs(plan, name)
-        if not topics:
+        topics = [p for p in plan.topics
+                  if p.config.transport == name and p.config.direction is Direction.TRANSMIT]
+        if link.bandwidth is None or not topics:
             continue
         lines.append(f"budget of {name}: {rate_text(link.bandwidth)} per peer")
-        width = max(len(c.topic) for c in topics)
+        width = max(len(p.config.topic) for p in topics)
         total = 0.0
-        for c in topics:
-            head = f"  {c.topic:<{width}}  "
-            if c.bits is None or c.size is None or c.wire is None or c.rate is None:
-                size = f"{c.size:,} B a message, {c.wire:,} B on the wire; " if c.wire else ""
-                lines.append(f"{head}{size}not counted ({c.note})")
+        for p in topics:
+            t = p.config
+            head = f"  {t.topic:<{width}}  "
+            size = t.typical_size or fixed_size(p.msg_type)
+            if size is None:
+                lines.append(f"{head}not counted ({t.type} varies in size: give typical_size)")
                 continue
-            total += c.bits
-            lines.append(f"{head}{c.rate:g} Hz x {c.size:,} B = {c.wire:,} B on the wire "
-                         f"({c.packets:,} packet{'s' if c.packets != 1 else ''}) -> "
-                         f"{rate_text(c.bits)}")
+            frame = size if t.framing is not Framing.ROSGATE else \
+                envelope.SIZE + cipher_overhead(p) + size
+            wire, packets = on_the_wire(frame, p)
+            if t.max_rate is None:
+                lines.append(f"{head}{size:,} B a message, {wire:,} B on the wire; not counted "
+                             "(no max_rate: as often as it is published)")
+                continue
+            bits = t.max_rate * wire * 8
+            total += bits
+            lines.append(f"{head}{t.max_rate:g} Hz x {size:,} B = {wire:,} B on the wire "
+                         f"({packets:,} packet{'s' if packets != 1 else ''}) -> {rate_text(bits)}")
         share = total / link.bandwidth
         verdict = "fits" if share <= 1 else "over budget: latest_only topics send less often, " \
             "others wait in the queue (reliable) or are dropped late (best effort)"

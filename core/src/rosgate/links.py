@@ -1,36 +1,19 @@
 """Links: the core's side of a transport — a queue, threads and dispatch — so a transport
-plugin only opens sockets: :class:`DatagramLink` here (with the batches it makes and splits),
-:mod:`rosgate.streamlink` for stream links, and the :class:`Lifetime` that closes what a bridge
-has open when it stops.
+plugin only opens sockets: :class:`DatagramLink` here, :mod:`rosgate.streamlink` for streams,
+and the :class:`Lifetime` that closes what a bridge has open when it stops.
 
-Both send through a :class:`~rosgate.scheduler.Scheduler` — the one place a link's frames wait:
-per-topic queues in priority classes, latest-only replacement, late best-effort frames dropped,
-a bandwidth budget per peer (``bridge.links``) — drained by a send thread of the link's own, so
-sending never blocks the caller (a ROS executor). A frame goes out on the caller's thread when
-nothing waits and the budget allows — whole, or its fragments until something else waits — so a
-quiet link has no thread hand-off (a late send thread must not cost a latest-only message).
-Frames that wait for the same destination leave together (one datagram up to ``max_frame``,
-one stream write), so a backlog costs few system calls.
-
-Who sent a frame travels with it: every ``send`` takes the :class:`Sender` (a route, or the
-control channel) so a frame dropped later — a queue that overflows, a connection that breaks
-with frames still queued — is counted against it, without a lookup; how to carry it is the
-sender's :class:`~rosgate.spec.Delivery`, read, never guessed. What a transport can do beyond
-``send`` (scatter-gather, several datagrams per call, receiving in place) is looked up once,
-when the link is made. Losses on the receiving side (a fragment that never came) are reported
-with the topic id the fragments carried. Who a link takes frames from is
-:mod:`rosgate.admission`'s (:class:`~rosgate.admission.Sources`).
-
-Every receive loop catches what a peer's bytes can cause and counts it; a link never dies of
-input, and an unexpected error's traceback is logged once per reason per minute
-(:data:`rosgate.warn.BUGS`). """
+Both send through a :class:`~rosgate.scheduler.Scheduler`, drained by a send thread of the
+link's own so sending never blocks the caller (a ROS executor); a frame goes out on the
+caller's thread when nothing waits and the budget allows (a quiet link has no thread hand-off),
+and frames waiting for one destination leave together (one datagram, one stream write). Every
+``send`` takes the :class:`Sender`, so a frame dropped later is counted against it. Every
+receive loop counts what a peer's bytes cause and never dies of input; an unexpected error's
+traceback is logged once per reason per minute (:data:`rosgate.warn.BUGS`). """
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
-from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
@@ -43,21 +26,13 @@ from .packetizer import Packet, Packetizer, own_packetizer
 from .plugins import Plugins, distribution_hint, installed
 from .scheduler import Due, Outgoing, Scheduler
 from .spec import Delivery
-from .transport import (
-    Address,
-    DatagramEndpoint,
-    DatagramTransport,
-)
+from .transport import Address, DatagramEndpoint, DatagramTransport
 from .warn import BUGS
 from .wire import envelope, framing
-
-log = logging.getLogger("rosgate")
 
 FrameHandler = Callable[[bytes, "Link", Address], None]
 #: a loss on the receiving side: (topic id when known, reason)
 LostHandler = Callable[[int | None, Reason], None]
-#: a frame that arrived whole only thanks to its recovery (FEC repair, retransmission)
-RecoveredHandler = Callable[[int], None]
 
 POLL = 0.2  # seconds a receive waits before checking whether the link is closing
 
@@ -88,8 +63,7 @@ class Link:
     counters: LinkCounters
     #: datagram links need a destination for every send; stream links are connected
     datagram: bool = False
-    #: while a frame is handed to its handler: when the datagram that carried it arrived (ns,
-    #: the clock of time.time_ns, as the transport's receive_into says), or 0: unknown
+    #: while a frame is handed to its handler: when its datagram arrived (time.time_ns), 0: unknown
     arrived: int = 0
 
     # a link implements send or send_all (or both): each defaults to the other
@@ -117,9 +91,8 @@ class Link:
 
 
 class Lifetime:
-    """What a running bridge closes when it stops, in reverse opening order, and the event that
-    says it is stopping. Links that end by themselves (a connection the peer closed) are
-    forgotten, so they are not held until the end."""
+    """What a running bridge closes when it stops, in reverse opening order (links that end by
+    themselves are forgotten), and the event that says it is stopping."""
 
     def __init__(self) -> None:
         self.stopping = threading.Event()
@@ -138,8 +111,7 @@ class Lifetime:
     def links(self) -> list[Link]:
         """The links open now that count what they carry."""
         with self._lock:
-            return [item for item in self._items.values()
-                    if isinstance(item, Link)]
+            return [item for item in self._items.values() if isinstance(item, Link)]
 
     def close_all(self) -> None:
         self.stopping.set()
@@ -152,8 +124,8 @@ class Lifetime:
 
 @dataclass
 class LinkCounters:
-    """What a link carried, per direction: frames, the datagrams (or stream writes and reads)
-    that carried them, and how many frames shared one with others (coalesced)."""
+    """What a link carried, per direction: frames, the packets (datagrams, stream writes and
+    reads) that carried them, and the frames that shared one with others (coalesced)."""
 
     frames_out: int = 0
     #: of frames_out, those sent from the caller's thread (the link was idle: no hand-off)
@@ -176,18 +148,23 @@ class LinkCounters:
                 f"({self.coalesced_in} coalesced, {self.bytes_in} B)")
 
 
-class _Sending(ABC):
-    """What both kinds of link share: the scheduler, its lock, the send thread's bookkeeping,
-    the two threads and closing. ``_send_due`` and the loops are the kind's own."""
+class _Sending:
+    """What both kinds of link share: the scheduler, its lock, the send turn, the two threads
+    and closing."""
 
     on_frame: FrameHandler
     on_lost: LostHandler
+    # each kind's own: closing its endpoint or connection, its two threads, and sending one
+    # packet in this thread's turn (False: dropped, counted)
+    _close_io: Callable[[], None]
+    _receive_loop: Callable[[], None]
+    _send_loop: Callable[[], None]
+    _send_due: Callable[[Due], bool]
     #: told once the link has closed (a stream link's owner forgets it)
     on_close: Callable[[Any], None] | None = None
 
     def _deliver(self, frame: bytes, source: Address) -> None:
-        """Hand a frame to the handler. A handler that raises has a bug; it is counted, its
-        traceback logged once per minute, and the link keeps receiving."""
+        """Hand a frame to the handler; one that raises has a bug: counted, and the link goes on."""
         try:
             self.on_frame(frame, self, source)  # type: ignore[arg-type]  # a Link subclass's
         except Exception:
@@ -217,11 +194,8 @@ class _Sending(ABC):
         self._rest: Due | None = None
 
     def _start(self) -> None:
-        """Start the receive and the send thread: the last step of making a link."""
-        self._threads = [
-            threading.Thread(target=self._receive_loop, name=f"rx-{self.name}", daemon=True),
-            threading.Thread(target=self._send_loop, name=f"tx-{self.name}", daemon=True),
-        ]
+        self._threads = [threading.Thread(target=loop, name=f"{kind}-{self.name}", daemon=True)
+                         for kind, loop in (("rx", self._receive_loop), ("tx", self._send_loop))]
         for thread in self._threads:
             thread.start()
 
@@ -233,8 +207,7 @@ class _Sending(ABC):
             self._wake.notify_all()
         self._close_io()
         for thread in self._threads:
-            # the receive thread may fail before the send thread has even started; an unstarted
-            # thread sees `closed` when it starts and returns
+            # an unstarted thread (the receive thread failed first) sees `closed` and returns
             if thread is not threading.current_thread() and thread.ident is not None:
                 thread.join(timeout=2)
         with self._wake:  # what never reached the transport is a drop, and counted as one
@@ -247,18 +220,7 @@ class _Sending(ABC):
         if self.on_close is not None:
             self.on_close(self)
 
-    @abstractmethod
-    def _close_io(self) -> None:
-        """Close the endpoint or the connection (the threads see ``closed`` and end)."""
-
-    @abstractmethod
-    def _receive_loop(self) -> None: ...
-
-    @abstractmethod
-    def _send_loop(self) -> None: ...
-
     def queue_depth(self, sender: Any) -> int:
-        """Messages of ``sender`` waiting or being sent."""
         with self._lock:
             return self.scheduler.depth(sender)
 
@@ -268,14 +230,13 @@ class _Sending(ABC):
             return self.scheduler.waiting
 
     def forget(self, sender: Any) -> None:
-        """A sender that is gone: drop what it queued, silently."""
         with self._lock:
             self.scheduler.forget(sender)
 
     def _claim(self, to: Any, size: int) -> bool:
-        """Under the lock: whether the calling thread may send ``size`` bytes to ``to`` itself,
-        now — open, nobody sending, nothing left over from a write, nothing queued, the budget
-        has the tokens. When True it is this thread's turn until :meth:`_release`."""
+        """Under the lock: whether the calling thread may send ``size`` bytes to ``to`` itself
+        now (nothing sending or queued, the budget's tokens taken); then it is its turn until
+        :meth:`_release`."""
         if (self.closed.is_set() or self._busy or self._rest is not None
                 or not self.scheduler.may_send_now(to, size)):
             return False
@@ -293,9 +254,8 @@ class _Sending(ABC):
                 self._turn.notify_all()
 
     def _send_now(self, packet: bytes, sender: Any, to: Any) -> bool | None:
-        """Send ``packet`` (a whole frame) from the caller's thread when it may leave at once
-        (see :meth:`_claim`): whether it went (False: dropped, counted); None when it must be
-        queued instead. The common case of a quiet link: no message object, no hand-off."""
+        """A whole frame sent from the caller's thread if it may leave at once (a quiet link:
+        no message object, no hand-off): whether it went; None: queue it."""
         with self._lock:
             if not self._claim(to, len(packet)):
                 return None
@@ -325,16 +285,10 @@ class _Sending(ABC):
             sender, reason, detail = dropped.pop(0)
             sender.drop(reason, f"{self.name}: {detail}")
 
-    @abstractmethod
-    def _send_due(self, due: Due) -> bool:
-        """Send one packet from the caller's thread (its turn, see :meth:`_claim`); False when
-        it was dropped (counted). Each kind of link has its own."""
-
 
 class _Gather:
-    """A packet as its parts — a fragment's header and a view of the frame — for scatter-gather
-    sending (``send_parts``: no copy of the frame); the scheduler takes it for a packet of
-    ``len()`` bytes."""
+    """A packet as its parts (a header, a view of the frame) for scatter-gather sending, no copy
+    of the frame; the scheduler takes it for a packet of ``len()`` bytes."""
 
     __slots__ = ("parts", "size")
 
@@ -348,9 +302,8 @@ class _Gather:
 
 #: what a Due sent from the caller's thread ends: its one frame (see _Sending._send_now)
 SENT_INLINE = Outgoing(None, None, 0, list)
-#: the longest frame whose fragments leave from the caller's thread (an idle link): one
-#: loopback datagram's worth, a few dozen system calls (one with segmentation offload). A
-#: longer one (an image) goes to the send thread, so a ROS executor never waits on a long one.
+#: the longest frame whose fragments leave from the caller's thread (an idle link): a few
+#: dozen system calls; a longer one goes to the send thread, so an executor never waits long
 INLINE_MAX = 64 * 1024
 #: how long a caller waits for another thread's packet to leave before it queues its frame
 TURN_WAIT = 0.02
@@ -364,8 +317,7 @@ def _batchable(due: Due) -> bool:
 
 
 def batch(frames: list[bytes]) -> list[bytes | memoryview]:
-    """The parts of one datagram carrying ``frames``: ``"RB"``, then ``u32 length | frame`` for
-    each (the records of a stream link). Its size is :func:`batch_size`."""
+    """The parts of one datagram carrying ``frames``: ``"RB"``, then ``u32 length | frame``."""
     parts: list[bytes | memoryview] = [framing.BATCH_MAGIC]
     pack = framing.LENGTH.pack
     for frame in frames:
@@ -379,18 +331,13 @@ def batch_size(sizes: int, count: int) -> int:
 
 
 class DatagramLink(_Sending, Link):
-    """A bound datagram endpoint. Frames out: whole when they fit ``max_frame`` (several in one
-    datagram, a batch, when they leave one after the other for one destination), else cut by
-    the link's own packetizer (:func:`~rosgate.packetizer.own_packetizer`); every frame of a
-    topic with ``recovery: NAME`` by that packetizer; a bare sender's (``framing: none``) whole,
-    whatever its size, never batched. Datagrams in: from admitted ``sources`` only, batches
-    split, every other packet to the packetizer of its magic (found in ``packetizers``, by
-    default the installed plugins), each frame to ``on_frame``; on a bare link, each datagram as
-    it came. When its own packetizer ``cuts_every_frame`` (on links of small frames), every frame
-    out and every datagram in is that packetizer's.
-
-    It is the :class:`~rosgate.packetizer.PacketLink` of its packetizers: one of each kind it
-    meets, made on first use and kept for its life; their timers run on both of its threads."""
+    """A bound datagram endpoint. Frames out: whole when they fit ``max_frame`` (batched with
+    others for one destination), else cut by the link's own packetizer, or by the topic's
+    ``recovery``; a bare link's whole, never batched. Datagrams in: from ``sources`` only, to the
+    packetizer of their magic (``packetizers``: the installed ones by default); a bare link's as
+    they came. An own packetizer that ``cuts_every_frame`` (small frames) takes every frame and
+    every datagram. It is the :class:`~rosgate.packetizer.PacketLink` of its packetizers (one of
+    each, made on first use); their timers run on both of its threads."""
 
     datagram = True
 
@@ -398,18 +345,16 @@ class DatagramLink(_Sending, Link):
                  on_frame: FrameHandler, on_lost: LostHandler, bare: bool = False,
                  max_message: int = framing.DEFAULT_MAX_MESSAGE, sources: Sources | None = None,
                  budget: LinkConfig | None = None,
-                 on_recovered: RecoveredHandler | None = None,
-                 queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
-                 packetizers: Plugins | None = None):
+                 on_recovered: Callable[[int], None] | None = None, queue_frames: int = 10_000,
+                 queue_bytes: int = 64 * 1024 * 1024, packetizers: Plugins | None = None):
         self.transport = transport
-        #: who frames are taken from (None: anyone); others are counted ``not_allowed``
-        self.sources = sources
+        self.sources = sources  # None: anyone; others are counted not_allowed
         self.endpoint = endpoint
         self.bare = bare
         self.max_frame = transport.max_frame
         self.on_frame = on_frame
-        self.on_lost = on_lost
-        self.on_recovered = on_recovered or (lambda topic_id: None)
+        self.on_lost = self.lost = on_lost  # lost, recovered: what its packetizers report
+        self.recovered = on_recovered or (lambda topic_id: None)
         self.max_message = max_message
         self._init_sending(name, budget, transport.packet_overhead, self.max_frame,
                            queue_frames, queue_bytes)
@@ -423,16 +368,13 @@ class DatagramLink(_Sending, Link):
         self.own = self.packetizer("fragments" if bare else own_packetizer(self.max_frame))
         #: every frame is cut by ``own``, and every datagram in is its
         self.cuts = self.own.cuts_every_frame
-        # what the endpoint can do beyond send, looked up once: scatter-gather (a packet's parts
-        # without joining them; else joined here), several datagrams in one call (UDP:
-        # segmentation offload)
+        # what the endpoint can do beyond send: scatter-gather, several datagrams in one call
         self._gather = hasattr(endpoint, "send_parts")
         self._send_parts: Callable[[Any, Address], None] = getattr(
             endpoint, "send_parts", lambda parts, to: endpoint.send(b"".join(parts), to))
         self._send_datagrams = getattr(endpoint, "send_datagrams", None)
         self._start()
 
-    # -- out -----------------------------------------------------------------------------------
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
         assert to is not None, "a datagram link needs a destination"
         size = len(frame)
@@ -444,11 +386,8 @@ class DatagramLink(_Sending, Link):
         whole = self.bare or delivery.whole
         plain = delivery.packetizer is None and not self.cuts  # whole or fragments
         one = whole or plain and size <= self.max_frame
-        inline: Callable[[bytes, Any, Address], bool | None] | None = None
-        if one:
-            inline = self._send_now
-        elif plain and size <= INLINE_MAX:
-            inline = self._send_fragments_now
+        inline = self._send_now if one else \
+            self._send_fragments_now if plain and size <= INLINE_MAX else None
         if inline is not None:
             sent = inline(frame, sender, to)
             if sent is None and self._await_turn() and self._send_waiting():
@@ -460,9 +399,8 @@ class DatagramLink(_Sending, Link):
                                   time.monotonic(), batchable=one and not whole))
 
     def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
-        """Frames of one sender together (a route's backlog): when the link is idle, those that
-        fit share datagrams sent from here; otherwise each is queued (and coalesced again by
-        the send thread)."""
+        """Frames of one sender: on an idle link those that fit share datagrams sent from here;
+        else each is queued (and coalesced again by the send thread)."""
         assert to is not None, "a datagram link needs a destination"
         delivery = sender.delivery
         if len(frames) < 2 or self.bare or self.cuts or delivery.whole \
@@ -471,17 +409,16 @@ class DatagramLink(_Sending, Link):
         limit, sent, start = self.max_frame, 0, 0
         while start < len(frames):  # groups of consecutive frames that fit one datagram
             total, end = 0, start
-            while end < len(frames) and len(frames[end]) <= limit \
+            while end < len(frames) \
                     and batch_size(total + len(frames[end]), end - start + 1) <= limit:
                 total += len(frames[end])
                 end += 1
-            if end - start < 2:
-                sent += self.send(frames[start], sender, to)
-                start += 1
-                continue
+            end = max(end, start + 1)  # a frame alone: sent as one
             group, start = frames[start:end], end
-            with self._lock:
-                go = self._claim(to, batch_size(total, len(group)))
+            go = len(group) > 1
+            if go:
+                with self._lock:
+                    go = self._claim(to, batch_size(total, len(group)))
             if not go:
                 sent += sum(self.send(frame, sender, to) for frame in group)
                 continue
@@ -494,8 +431,7 @@ class DatagramLink(_Sending, Link):
         return sent
 
     def _cut(self, frame: bytes, sender: Sender, to: Address, whole: bool) -> list[bytes]:
-        """A frame's packets, made when it starts (on the send thread, in the order frames
-        leave: counters and FEC coding happen here, not on the caller's thread)."""
+        """A frame's packets, made when it starts (counters and FEC coding on the send thread)."""
         delivery = sender.delivery
         own = self.cuts or delivery.packetizer is None
         if whole or own and not self.cuts and len(frame) <= self.max_frame:
@@ -508,12 +444,9 @@ class DatagramLink(_Sending, Link):
     def _packet(self, packet: Packet) -> bytes:
         if not isinstance(packet, tuple):
             return packet
-        if not self._gather:
-            return b"".join(packet)
         # a _Gather stands for its packet: the scheduler only takes its len()
-        return cast(bytes, _Gather(packet))
+        return cast(bytes, _Gather(packet)) if self._gather else b"".join(packet)
 
-    # -- packetizers ---------------------------------------------------------------------------
     def packetizer(self, name: str) -> Packetizer:
         """The link's packetizer of that name, made on first use."""
         found = self._by_name.get(name)
@@ -537,20 +470,12 @@ class DatagramLink(_Sending, Link):
             return found
 
     def _receiver(self, magic: bytes) -> Packetizer | None:
-        """The packetizer of packets with ``magic``; None: a whole frame. Looked up once per
-        magic (the first unknown one loads every plugin, see Plugins.by_wire)."""
+        """The packetizer of ``magic`` (None: a whole frame), looked up once per magic."""
         registration = self.registry.by_wire("packetizer", magic)
         if registration is None:
-            if len(self._by_magic) < 0x10000:  # the two bytes bound it
-                self._by_magic[magic] = None
+            self._by_magic[magic] = None  # (a magic is two bytes at most: this stays bounded)
             return None
         return self._make(registration.cls)
-
-    def lost(self, topic_id: int | None, reason: Reason) -> None:
-        self.on_lost(topic_id, reason)
-
-    def recovered(self, topic_id: int) -> None:
-        self.on_recovered(topic_id)
 
     def repeat(self, sender: Any, to: Address, packets: list[bytes]) -> None:
         with self._lock:
@@ -558,8 +483,7 @@ class DatagramLink(_Sending, Link):
             self._wake.notify()
 
     def answer(self, packet: bytes, to: Address) -> None:
-        """A packet sent at once from the calling thread (a few bytes, counted against the
-        budget); one that cannot be sent is asked again later anyway."""
+        """Sent at once (counted against the budget); one that fails is asked for again anyway."""
         with self._lock:
             self.scheduler.charge(to, len(packet))
         try:
@@ -568,9 +492,8 @@ class DatagramLink(_Sending, Link):
             pass
 
     def _run_timers(self, now: float, sending: bool = False) -> float | None:
-        """Every packetizer's timer (on the send thread: of those told of frames ``sent``); when
-        the soonest wants to run again. A packetizer's bug is logged, and the link keeps
-        going."""
+        """Every packetizer's timer (on the send thread: those that implement ``sent``); when
+        the soonest wants to run again."""
         soonest = None
         for packetizer in list(self._by_name.values()):
             if sending and not _sends(packetizer):
@@ -586,12 +509,10 @@ class DatagramLink(_Sending, Link):
         return soonest
 
     def _await_turn(self) -> bool:
-        """Wait up to :data:`TURN_WAIT` while another thread sends a packet; whether the turn
-        is free. A packet takes microseconds; a thread that holds the turn longer was not
-        scheduled (a busy machine) — not a reason to queue a frame where a latest-only one can
-        be replaced — or is held by the kernel (a full send buffer: the link is the
-        bottleneck). After one wait in vain the link counts as the bottleneck, and callers
-        queue at once until they get a turn again."""
+        """Wait up to :data:`TURN_WAIT` for another thread's packet to leave; whether the turn
+        is free. A longer wait means a thread not scheduled (not a reason to queue where a
+        latest-only frame can be replaced) or a full send buffer: after one wait in vain, callers
+        queue at once until one gets a turn again."""
         with self._lock:
             if not self._busy:
                 return True
@@ -606,10 +527,9 @@ class DatagramLink(_Sending, Link):
             return free
 
     def _send_waiting(self) -> bool:
-        """Send what waits from the caller's thread (up to :data:`INLINE_MAX` bytes) when
-        nobody is sending: the send thread was woken for it but has not run yet, and a frame
-        queued behind it now could be replaced (latest-only) before it does. Whether nothing
-        waits any more. What the budget holds back stays for the send thread."""
+        """Send what waits (up to :data:`INLINE_MAX` bytes) when nobody is sending: the send
+        thread was woken but has not run, and a latest-only frame queued now could be replaced
+        before it does. Whether nothing waits any more."""
         scheduler = self.scheduler
         with self._lock:
             if self._busy or self.closed.is_set() or scheduler.idle:
@@ -632,48 +552,38 @@ class DatagramLink(_Sending, Link):
             self._release()
 
     def _send_fragments_now(self, frame: bytes, sender: Any, to: Address) -> bool | None:
-        """A frame longer than ``max_frame``, cut and sent from the caller's thread when the link
-        is idle, as :meth:`_send_now` sends a whole one; None when it must be queued instead.
-
-        Why not hand it to the send thread: waking it costs a thread switch that a busy
-        interpreter may put off for milliseconds, long enough for the topic's next message to
-        replace a latest-only one (``superseded``) on an idle link. The send thread still gets
-        the rest of the frame as soon as anything else waits or the budget runs short
-        (:meth:`Scheduler.resume`), so a long frame takes turns with others as before."""
+        """A frame longer than ``max_frame`` cut and sent from the caller's thread as
+        :meth:`_send_now` sends a whole one: a hand-off to the send thread may take milliseconds
+        on a busy interpreter, long enough for a latest-only frame to be superseded. The rest
+        goes to the send thread once anything else waits or the budget runs short."""
         with self._lock:
             if not self._claim(to, self.max_frame):  # the first fragment's tokens
                 return None
         scheduler, lock, counters = self.scheduler, self._lock, self.counters
         try:
             packets = self._cut(frame, sender, to, False)
-            # a turn: the packets handed to the kernel at once, all in one call when the
-            # endpoint can; else one, then a look at what else waits (and at the budget, whose
-            # bucket is a few packets deep)
+            # all the packets in one call when the endpoint can and no budget limits; else one at
+            # a time, each after a look at what else waits
             turn = len(packets) if scheduler.rate is None and self._send_datagrams else 1
-            start = 0
-            while start < len(packets):
+            for start in range(0, len(packets), turn):
                 if start:
                     with lock:  # anything else waiting, or a budget short: the send thread's
-                        go = scheduler.may_send_now(to, len(packets[start]))
-                        if not go:
-                            scheduler.resume(Outgoing(sender, to, sum(map(len, packets[start:])),
-                                                      list, time.monotonic()),
-                                             packets[start:], time.monotonic())
-                    if not go:
-                        return True
-                end = min(start + turn, len(packets))
-                if not self._send_run(packets[start:end], sender, to, end == len(packets)):
+                        if not scheduler.may_send_now(to, len(packets[start])):
+                            rest, now = packets[start:], time.monotonic()
+                            scheduler.resume(Outgoing(sender, to, sum(map(len, rest)), list, now),
+                                             rest, now)
+                            return True
+                end = start + turn
+                if not self._send_run(packets[start:end], sender, to, end >= len(packets)):
                     return False
-                start = end
             counters.inline_out += 1
             return True
         finally:
             self._release()
 
     def _send_run(self, packets: list[bytes], sender: Any, to: Address, last: bool) -> bool:
-        """Packets of one frame in a row (from the caller's thread, or the send thread's run),
-        in one call where the endpoint takes several datagrams; ``last``: they end the frame.
-        False when they could not be sent (counted: the frame is lost)."""
+        """Packets of one frame in a row, in one call where the endpoint can; ``last``: they end
+        the frame. False when they could not be sent (counted)."""
         try:
             if len(packets) > 1 and self._send_datagrams is not None:
                 self._send_datagrams([cast(_Gather, p).parts if type(p) is _Gather else [p]
@@ -702,17 +612,15 @@ class DatagramLink(_Sending, Link):
         try:
             if type(packet) is _Gather:
                 self._send_parts(cast(_Gather, packet).parts, to)
-            elif self.cuts and not sender.delivery.whole:
-                step = self.max_frame
-                count = 0
-                for i in range(0, len(packet), step):
-                    self.endpoint.send(packet[i:i + step], to)
-                    count += 1
+            elif self.cuts and not sender.delivery.whole:  # a packet of several datagrams
+                pieces = range(0, len(packet), self.max_frame)
+                count = len(pieces)
+                for i in pieces:
+                    self.endpoint.send(packet[i:i + self.max_frame], to)
             else:
                 self.endpoint.send(packet, to)
         except OSError as exc:
-            # a message cut short by close() was counted there (link_down), unless this was
-            # its last packet
+            # a message cut short by close() was counted there, unless this was its last packet
             if due.ends is not None or not self.closed.is_set():
                 sender.drop(Drop.SEND_ERROR, f"to {to} on {self.name}: {exc}")
             return False
@@ -751,8 +659,8 @@ class DatagramLink(_Sending, Link):
         return len(frames)
 
     def _send_loop(self) -> None:
-        """Send what the scheduler lets go; whole frames that come one after the other for the
-        same destination share a datagram (the one that does not fit is sent next)."""
+        """Send what the scheduler lets go; consecutive whole frames for one destination share a
+        datagram, consecutive fragments of one frame one system call."""
         wake, closed, scheduler = self._wake, self.closed, self.scheduler
         limit, coalesce = self.max_frame, not self.bare
         run = self._send_datagrams is not None  # fragments in runs (see _send_run)
@@ -764,18 +672,14 @@ class DatagramLink(_Sending, Link):
                         return
                     now = time.monotonic()
                     timer = self._tx_timer
-                    if timer is not None and now >= timer:
-                        due = None
-                        break
-                    if carry is not None:
-                        due, carry = carry, None
+                    due, carry = carry, None  # None: the timers are due, or drops to count
+                    if due is not None or timer is not None and now >= timer:
                         break
                     got = None if self._busy else scheduler.next(now)
                     if isinstance(got, Due):
                         due = got
                         break
                     if scheduler.dropped:  # counted (outside the lock) before any wait
-                        due = None
                         break
                     until = [t for t in (got, timer) if t is not None]
                     wake.wait(max(0.0, min(until) - now) if until else None)
@@ -783,35 +687,24 @@ class DatagramLink(_Sending, Link):
                     self._tx_timer = None
                 else:
                     self._busy = True
-                    batch = [due]
-                    if coalesce and _batchable(due):
-                        total = len(due.packet)
-                        while True:
-                            more = scheduler.next(now)
-                            if not isinstance(more, Due):
-                                break
-                            if (_batchable(more) and more.to == due.to and batch_size(
-                                    total + len(more.packet), len(batch) + 1) <= limit):
-                                batch.append(more)
-                                total += len(more.packet)
-                            else:
-                                carry = more
-                                break
-                    elif run and type(due.packet) is _Gather and due.ends is None:
-                        # the next fragments of the same frame, while the scheduler lets them go
-                        # one after the other: one system call (segmentation offload)
-                        while len(batch) < _RUN:
-                            more = scheduler.next(now)
-                            if not isinstance(more, Due):
-                                break
-                            if (type(more.packet) is _Gather and more.sender is due.sender
-                                    and more.to == due.to and not more.again):
-                                batch.append(more)
-                                if more.ends is not None:
-                                    break  # the frame's last
-                            else:
-                                carry = more
-                                break
+                    batch, total = [due], len(due.packet)
+                    # whole frames that fit one datagram, or a frame's next fragments (one call)
+                    batching = coalesce and _batchable(due)
+                    running = run and type(due.packet) is _Gather and due.ends is None
+                    while batching or running:
+                        more = scheduler.next(now)
+                        if not isinstance(more, Due):
+                            break
+                        total += len(more.packet)
+                        if more.to != due.to or not (
+                                _batchable(more) and batch_size(total, len(batch) + 1) <= limit
+                                if batching else type(more.packet) is _Gather
+                                and more.sender is due.sender and not more.again):
+                            carry = more
+                            break
+                        batch.append(more)
+                        if running and (more.ends is not None or len(batch) == _RUN):
+                            break  # the frame's last, or the most one call takes
             if scheduler.dropped:
                 self._count_drops()
             if due is None:  # the packetizers' timers, outside the lock: they may queue repairs
@@ -834,15 +727,13 @@ class DatagramLink(_Sending, Link):
                     if self._turn_waiters and not self._busy:
                         self._turn.notify_all()
 
-    # -- in ------------------------------------------------------------------------------------
     def _receive_loop(self) -> None:
         receive_into = getattr(self.endpoint, "receive_into", None)
         if receive_into is None:
             receive: Callable[[float], tuple[bytes | memoryview, Address] | None] = \
-                lambda timeout: self.endpoint.receive(timeout)
+                self.endpoint.receive
         else:
-            # one buffer for every datagram: longer than any frame this link accepts, so a
-            # datagram that fills it is one too long
+            # one buffer for every datagram, so long that one that fills it is too long
             buffer = memoryview(bytearray(max(self.max_frame, 65_535) + 1))
 
             def receive(timeout: float) -> tuple[bytes | memoryview, Address] | None:
@@ -861,9 +752,7 @@ class DatagramLink(_Sending, Link):
             timeout = POLL if timer is None else min(POLL, max(0.001, timer - time.monotonic()))
             try:
                 got = receive(timeout)
-            except OSError:
-                if closed.is_set():
-                    return
+            except OSError:  # passing, or the endpoint closed: the loop's test tells
                 continue
             except Exception:  # a transport plugin's bug must not silently end the link
                 BUGS.bug("transport_error", f"{self.name}: the transport's receive failed "
@@ -883,9 +772,8 @@ class DatagramLink(_Sending, Link):
                     timer = due
 
     def _datagram(self, datagram: bytes | memoryview, source: Address,
-                  now: float = 0.0) -> Packetizer | None:
-        """One datagram as it came (a view of the receive buffer, valid until the next one); the
-        packetizer it was fed to, if any."""
+                  now: float) -> Packetizer | None:
+        """One datagram (a view of the receive buffer); the packetizer it was fed to, if any."""
         if self.sources is not None and not self.sources.admits(source, datagram):
             self.on_lost(None, Drop.NOT_ALLOWED)
             return None
@@ -897,8 +785,7 @@ class DatagramLink(_Sending, Link):
             packetizer = None
         elif self.cuts:  # every datagram is its own packetizer's
             packetizer = self.own
-        elif kind == 0x42:  # "RB": several frames (see batch), read here, not by a generator
-            # (the receive thread's cost per message); a length past the end ends it, counted
+        elif kind == 0x42:  # "RB": a batch, read inline (no generator: a cost per message)
             end, offset, deliver = len(datagram), _BATCH_START, self._deliver
             while offset < end:
                 start = offset + _LENGTH_SIZE
@@ -918,9 +805,8 @@ class DatagramLink(_Sending, Link):
             counters.frames_in += 1
             self._deliver(datagram if type(datagram) is bytes else bytes(datagram), source)
             return None
-        assert isinstance(packetizer, Packetizer)
         try:
-            frame = packetizer.feed(datagram, source, now or time.monotonic())
+            frame = packetizer.feed(datagram, source, now)
         except framing.FramingError:
             self.on_lost(None, Drop.BAD_FRAGMENT)
             return packetizer
@@ -931,9 +817,7 @@ class DatagramLink(_Sending, Link):
             return packetizer
         if frame is not None:
             counters.frames_in += 1
-            # the buffer it was put together in, the handler's to keep: a route hands it to
-            # rclpy without a copy (typed bytes: handlers take any bytes-like frame)
-            self._deliver(frame, source)
+            self._deliver(frame, source)  # the handler's to keep (rclpy takes it uncopied)
         return packetizer
 
     def _close_io(self) -> None:
@@ -949,6 +833,5 @@ _UNKNOWN: Any = object()
 
 
 def _sends(packetizer: Packetizer) -> bool:
-    """Whether it wants to know when its frames left (and has its timer run on the send thread
-    too): it implements ``sent``."""
+    """Whether it implements ``sent`` (and has its timer run on the send thread too)."""
     return type(packetizer).sent is not Packetizer.sent

@@ -1,27 +1,19 @@
-"""Packetizers: how a datagram link cuts a frame into packets, and puts packets back together.
+"""Packetizers: how a datagram link cuts a frame into packets and puts them back together.
 
-A datagram link (:class:`rosgate.links.DatagramLink`) keeps its queue, its threads and its
-dispatch; what goes into a packet is a packetizer's. A link's own packetizer cuts the frames of
-topics without one of their own: the built-in ``fragments``, which cuts a frame longer than the
-link's ``max_frame`` into numbered fragments, or on links of small frames (:data:`SMALL_FRAME`:
-CAN) ``compact`` (``rosgate-compact``), which cuts every frame. Loss recovery (``recovery:
-fec``, ``recovery: retransmit``, from the ``rosgate-recovery`` distribution) are packetizers too. A
-topic picks one by name (``recovery: NAME``); its options come from ``plugins: {NAME: {...}}``,
-and a topic may give its own on top (``recovery: {fec: {overhead: 0.25}}``).
+A link's own packetizer cuts the frames of topics without one: ``fragments`` (built in) cuts
+what is longer than ``max_frame``; on links of small frames (:data:`SMALL_FRAME`) ``compact``
+cuts every frame. Loss recovery (``recovery: fec``, ``recovery: retransmit``) is packetizers
+too: a topic picks one by name, with options from ``plugins: {NAME: {...}}`` and its own on top
+(``recovery: {fec: {overhead: 0.25}}``).
 
-A packetizer plugin subclasses :class:`Packetizer`, sets :attr:`~Packetizer.name` and
-:attr:`~Packetizer.magic`, implements :meth:`~Packetizer.cut`, :meth:`~Packetizer.feed` and
-:meth:`~Packetizer.cost`, and is registered through the ``rosgate_packetizers`` hook. Every
-packet it makes starts with one of its two-byte magics: the receiving link hands each packet to
-the packetizer of its magic, so the receiver needs no setting. ``RG`` (the envelope) and ``RB``
-(a batch of whole frames) are the link's own.
-
-A link makes one instance of each packetizer it meets and keeps it for its life: the sending
-and the receiving side of every topic that uses it, on every peer of the link. Threads:
-:meth:`cut` and :meth:`sent` run on the link's send thread (``cut`` under the link's lock),
-:meth:`feed` and :meth:`timer` on its receive thread — and, for a packetizer that implements
-``sent``, :meth:`timer` on the send thread too: such a one locks what both threads touch, and
-calls the link's :class:`PacketLink` methods outside that lock.
+A plugin subclasses :class:`Packetizer` (``name``, ``magic``, ``cut``, ``feed``, ``cost``) and
+registers it through the ``rosgate_packetizers`` hook. Every packet starts with one of its
+two-byte magics, so the receiving link finds its packetizer without a setting (``RG`` and ``RB``
+are the link's own). A link makes one instance of each packetizer it meets, for every topic and
+peer. Threads: :meth:`~Packetizer.cut` (under the link's lock) and :meth:`~Packetizer.sent` run
+on the send thread, :meth:`~Packetizer.feed` and :meth:`~Packetizer.timer` on the receive
+thread — and, for one that implements ``sent``, ``timer`` on the send thread too: such a one
+locks what both threads touch, and calls its :class:`PacketLink` outside that lock.
 """
 
 from __future__ import annotations
@@ -38,17 +30,14 @@ Packet = bytes | tuple[bytes | memoryview, ...]
 
 #: magics a packetizer may not claim: the link's own whole frames (``RG``) and batches (``RB``)
 RESERVED_MAGIC = (b"RG", b"RB")
-#: a datagram link whose transport's ``max_frame`` is below this cannot spare 14 bytes of
-#: fragment header in its packets (CAN's 8 and CAN FD's 64): its own packetizer is
-#: :data:`SMALL_FRAME_PACKETIZER`. A rule on ``max_frame``, not a transport's setting, so that
-#: any transport of small frames gets it without saying so.
+#: below this ``max_frame`` (CAN's 8, CAN FD's 64) a link cannot spare 14 bytes of fragment
+#: header: its own packetizer is :data:`SMALL_FRAME_PACKETIZER`, whatever the transport
 SMALL_FRAME = 256
 SMALL_FRAME_PACKETIZER = "compact"
 
 
 def own_packetizer(max_frame: int) -> str:
-    """The name of the own packetizer of a datagram link whose packets carry ``max_frame``
-    bytes (see the module's docstring)."""
+    """The name of the own packetizer of a datagram link of ``max_frame``-byte packets."""
     return SMALL_FRAME_PACKETIZER if max_frame < SMALL_FRAME else "fragments"
 
 
@@ -84,10 +73,9 @@ class Packetizer(ABC):
     name: ClassVar[str]
     #: the first two bytes of every packet it makes; unique among installed packetizers
     magic: ClassVar[tuple[bytes, ...]]
-    #: True: as a link's own packetizer it is given every frame, even one that fits a packet,
-    #: and every datagram the link receives (the link sends nothing else, so its packets need no
-    #: magic); one packet it cuts may hold several datagrams, each ``max_frame`` bytes but the
-    #: last, which the link sends back to back: pieces without a frame id never interleave
+    #: True: as a link's own packetizer it gets every frame and every datagram (so its packets
+    #: need no magic); a packet it cuts may hold several datagrams (``max_frame`` bytes each but
+    #: the last), sent back to back: pieces without a frame id never interleave
     cuts_every_frame: ClassVar[bool] = False
 
     def __init__(self, link: PacketLink):
@@ -95,11 +83,10 @@ class Packetizer(ABC):
 
     @abstractmethod
     def cut(self, frame: bytes, sender: Any, to: Address, options: Any) -> list[Packet]:
-        """The packets of ``frame``, each at most ``link.max_frame`` bytes, for ``to``.
-        ``sender.topic_id`` is the topic's id (put it in the packets, so a frame lost on the way
-        is counted against its topic); ``options`` the topic's ``Options`` instance. Raise
-        :class:`rosgate.wire.framing.FramingError` for a frame it cannot cut (counted
-        ``send_error``)."""
+        """The packets of ``frame`` for ``to``, each at most ``link.max_frame`` bytes; put
+        ``sender.topic_id`` in them, so a frame lost on the way is counted against its topic.
+        ``options``: the topic's ``Options``. Raise :class:`rosgate.wire.framing.FramingError`
+        for a frame it cannot cut (counted ``send_error``)."""
 
     def sent(self, packet: bytes, to: Address, now: float) -> None:
         """The last packet of a frame it cut has left the link (``now``: time.monotonic()), e.g.
@@ -109,17 +96,15 @@ class Packetizer(ABC):
 
     @abstractmethod
     def feed(self, packet: bytes | memoryview, source: Address, now: float) -> bytes | None:
-        """Take one packet (a view of the receive buffer, valid during the call: copy what you
-        keep); the frame when it completes one. ``packet`` comes from the network: raise
-        :class:`rosgate.wire.framing.FramingError` for one that is malformed (counted
-        ``bad_fragment``), and keep what you hold bounded in time and memory, counting every
-        frame given up with ``link.lost``."""
+        """Take one packet from the network (a view valid during the call: copy what you keep);
+        the frame when it completes one. Raise :class:`rosgate.wire.framing.FramingError` for a
+        malformed one (counted ``bad_fragment``); keep what you hold bounded in time and memory,
+        counting every frame given up with ``link.lost``."""
 
     def timer(self, now: float) -> float | None:
-        """Do what is due at ``now`` (ask again for what is missing, give up what is late);
-        return when to be called next (None: whenever the link is idle, at least every 0.2 s).
-        The link calls it after every packet fed (and, if it implements :meth:`sent`, every frame
-        sent), and at the time it returned."""
+        """Do what is due at ``now`` (ask again for what is missing, give up what is late); when
+        to be called next (None: when the link is idle, at least every 0.2 s). Also called after
+        every packet fed (and, with :meth:`sent`, every frame sent)."""
         return None
 
     @classmethod

@@ -1,36 +1,13 @@
-"""The scheduler: in which order, and how fast, frames leave a link.
+"""The scheduler: in which order, and how fast, frames leave a link (the rules are
+docs/real-links.md's "Priorities", "Latest only", "Late messages" and "Budgets").
 
-Every link has one. Frames are queued per topic (by the topic id of their
-:class:`~rosgate.links.Sender`), the
-topics grouped in priority classes — zenoh's seven, ``real_time`` (1) to ``background`` (7),
-and class 0 above them for the control channel (hellos, pings, handshakes) — and a frame leaves
-as *packets*: a datagram, a fragment, a chunk of a stream. Then:
-
-* **strict priority** between classes: nothing of a class leaves while a higher class has a
-  packet that may go;
-* **first come, first served, a packet at a time** between the topics of one class: messages
-  leave in the order they came, but a long one's packets take turns with the others' (each
-  waits from when the packet before it left), so the fragments of two topics' messages
-  interleave and a small message waits at most one packet of every other topic of its class,
-  never a whole image;
-* **one message at a time per topic**: a message partly sent is finished before the topic's next
-  one starts (a topic's fragments never interleave with each other; a stream's chunks must not);
-  a topic's packets sent again (retransmissions) go before its other packets;
-* **latest only**: a ``latest_only`` topic's message not yet started is replaced by a newer
-  one (counted ``superseded``): what waits is never older than one message;
-* **too late**: a best-effort topic's message that waited ``max_delay`` seconds without starting is
-  dropped (counted ``too_late``) rather than sent stale; a reliable topic's waits, within the
-  link's limits (``frames``, ``bytes``: beyond them a new message is refused, ``queue_full``);
-  a topic's own ``max_delay`` (its sender's) applies to it whatever its reliability: a camera
-  that would rather skip a frame than send one that waited (the link then idles for the next);
-* **overload**: a best-effort topic without a ``max_delay`` of its own that stays behind sheds
-  its oldest messages (see :class:`Backlog`);
-* **budget**: with a ``bandwidth``, a token bucket per destination (per peer: a server's
-  clients each have their own) refilled at that many bits per second, counting every packet
-  with the transport's ``packet_overhead`` (IP and UDP headers). A packet leaves only when its
-  destination has the tokens; another destination's packet may go meanwhile. The bucket holds
-  :func:`burst` bytes, enough to keep the rate while the send thread wakes late, small enough
-  not to fill the link's own queue.
+Frames queue per topic (the :class:`~rosgate.links.Sender`'s topic id) in priority classes —
+zenoh's seven, and class 0 above them for the control channel — and leave as *packets* (a
+datagram, a fragment, a chunk of a stream): strict priority between classes; within one, the
+packet that has waited longest (so a long message's packets take turns with the others'); one
+message at a time per topic, its retransmissions first; ``latest_only`` replacement
+(``superseded``); a message dropped when it waited past ``max_delay`` before starting
+(``too_late``) or by its :class:`Backlog` (``overload``); a token bucket per destination.
 
 Nothing here sends or waits: the link's send thread asks :meth:`Scheduler.next` for the next
 packet, sends it, and sleeps until the time it is told when there is none yet.
@@ -54,17 +31,10 @@ HOLD = 0.2   # seconds behind on end (or caught up, to stop) before a topic shed
 
 
 class Backlog:
-    """Whether a best-effort topic sheds a message by its age from a link's send queue, where
-    it waits only when the link is the bottleneck (a budget, a full kernel send buffer): told
-    how long each message waited as it leaves. The subscription's queue and the receive buffer
-    never shed: what waits there waits for a thread of the bridge, not for the link, and a
-    backlog there is bounded by the topic's QoS depth.
-
-    A message older than :data:`LAG` finds the topic *behind*. Behind for :data:`HOLD` on end,
-    the topic sheds every message older than ``LAG`` (counted ``overload``) until none has been
-    for ``HOLD``: under a sustained overload what arrives stays fresh. A stall (a process not
-    scheduled, a GC pause) leaves a backlog that its thread catches up with in less than
-    ``HOLD`` once it runs again, as it sees it, so nothing is shed: the backlog is sent."""
+    """Whether a best-effort topic sheds a message from the send queue by its age (only there:
+    it waits there only when the link is the bottleneck). Behind (a message older than
+    :data:`LAG`) for :data:`HOLD` on end, it sheds what is older than ``LAG`` until nothing has
+    been for ``HOLD``; a stall's backlog is caught up with in less than ``HOLD``: sent, not shed."""
 
     __slots__ = ("since", "last")
 
@@ -84,12 +54,6 @@ class Backlog:
         return now - self.since >= HOLD
 
 
-def backlog(delivery: Any) -> Backlog | None:
-    """A sender's :class:`Backlog`; None when it never sheds by age: reliable, or with a
-    ``max_delay`` of its own (that age is the one it asked for)."""
-    return None if delivery.reliable or delivery.max_delay is not None else Backlog()
-
-
 def burst(rate_bytes: float, packet: int) -> int:
     """The bucket's size: 10 ms at the rate, and at least four of the link's largest packets."""
     return int(max(rate_bytes * 0.01, 4 * packet))
@@ -104,15 +68,12 @@ class Bucket:
         self.tokens = float(capacity)
         self.at = now
 
-    def _fill(self, now: float) -> None:
-        if now > self.at:
-            self.tokens = min(self.capacity, self.tokens + (now - self.at) * self.rate)
-            self.at = now
-
     def take(self, size: int, now: float) -> float:
         """0 and take ``size`` bytes' tokens when they are there; else the seconds until they
         will be (taking nothing)."""
-        self._fill(now)
+        if now > self.at:
+            self.tokens = min(self.capacity, self.tokens + (now - self.at) * self.rate)
+            self.at = now
         need = min(size, self.capacity)  # a packet larger than the bucket waits for a full one
         if self.tokens + 1e-6 >= need:  # (not a rounding error away from it, forever)
             self.tokens -= size
@@ -121,21 +82,19 @@ class Bucket:
 
     def charge(self, size: int, now: float) -> None:
         """Count bytes sent outside the queue (acknowledgements): the bucket may go into debt."""
-        self._fill(now)
+        self.take(0, now)  # (takes nothing: fills the bucket up to now)
         self.tokens -= size
 
 
 @dataclass(eq=False)
 class Outgoing:
-    """One frame on its way: cut into packets when it starts (fragments, repair fragments), and
-    told when its last packet left (``done``, e.g. to start a retransmission timer)."""
+    """One frame on its way, cut into its packets when it starts."""
 
     sender: Any
     to: Any
     size: int
     cut: Callable[[], list[bytes]]
     queued: float = 0.0
-    done: Callable[[float], None] | None = None
     #: a whole frame in one packet, which a datagram link may put in a datagram with others
     batchable: bool = False
 
@@ -167,9 +126,8 @@ class _Topic:
 
 
 class Scheduler:
-    """The send queue of one link (see the module's docstring). Not thread-safe: the link holds
-    its lock around every call. ``drop(sender, reason, detail)`` counts a message that will not
-    be sent."""
+    """The send queue of one link. Not thread-safe: the link holds its lock around every call,
+    and counts what ``dropped`` holds outside it."""
 
     def __init__(self, *, bandwidth: float | None = None, overhead: int = 0,
                  max_delay: float = 1.0, frames: int = 10_000, bytes: int = 64 * 1024 * 1024,
@@ -190,20 +148,20 @@ class Scheduler:
         #: each sender's queue key, found once (by id; the sender is kept so the id stays its)
         self._keys: dict[int, tuple[Any, tuple[int, int]]] = {}
 
-    # -- in ------------------------------------------------------------------------------------
     def _topic(self, sender: Any) -> _Topic:
-        """The queue of the sender's topic (by topic id: what its fragments carry) in the
-        sender's class: a route's announcements (the control class) never wait in, or replace
-        anything of, the queue of its messages."""
+        """The queue of the sender's topic in its class: a route's announcements (the control
+        class) never wait in, or replace anything of, the queue of its messages. Reliable
+        topics and those with a ``max_delay`` of their own never shed by age."""
         key = self._key(sender)
         topic = self._topics.get(key)
         if topic is None:
-            topic = self._topics[key] = _Topic(sender, key[1], backlog=backlog(sender.delivery))
+            delivery = sender.delivery
+            sheds = not delivery.reliable and delivery.max_delay is None
+            topic = self._topics[key] = _Topic(sender, key[1], backlog=Backlog() if sheds else None)
         return topic
 
     def _key(self, sender: Any) -> tuple[int, int]:
-        """The sender's queue: its topic id and its class, read from it once (they do not
-        change)."""
+        """The sender's topic id and class, read once (they do not change)."""
         found = self._keys.get(id(sender))
         if found is not None and found[0] is sender:
             return found[1]
@@ -236,9 +194,8 @@ class Scheduler:
         return True
 
     def resume(self, message: Outgoing, packets: list[bytes], now: float) -> None:
-        """A message whose first packets left from the caller's thread (the link was idle):
-        the rest wait here as its topic's message in progress, the next packet due since
-        ``now``, so they take turns with what came meanwhile as any message's packets do."""
+        """The rest of a message whose first packets left from the caller's thread: its topic's
+        message in progress, due since ``now``."""
         topic = self._topic(message.sender)
         assert topic.current is None and not topic.packets, "one message at a time per topic"
         topic.current, topic.since = message, now
@@ -259,7 +216,6 @@ class Scheduler:
         if bucket is not None:
             bucket.charge(size + self.overhead, self.clock())
 
-    # -- out -----------------------------------------------------------------------------------
     def _bucket(self, to: Any, now: float) -> Bucket | None:
         if self.rate is None:
             return None
@@ -269,33 +225,20 @@ class Scheduler:
         return bucket
 
     def may_send_now(self, to: Any, size: int) -> bool:
-        """Whether a packet for ``to`` may leave at once, nothing being queued (then its tokens
-        are taken): the caller's fast path."""
+        """Whether a packet for ``to`` may leave at once (nothing queued; its tokens taken)."""
         if self._frames or any(self._classes):
             return False
         bucket = self._bucket(to, self.clock())
         return bucket is None or bucket.take(size + self.overhead, self.clock()) == 0.0
-
-    @staticmethod
-    def _since(topic: _Topic) -> float | None:
-        """Since when the topic's next packet has been waiting (None: it has none)."""
-        if topic.repairs:
-            return topic.repaired
-        if topic.packets:
-            return topic.since
-        if topic.waiting:
-            return topic.waiting[0].queued
-        return None
 
     def _start(self, topic: _Topic, now: float) -> bool:
         """Cut the topic's next message into packets; False when it was dropped instead."""
         message = topic.waiting.popleft()
         self._frames -= 1
         self._bytes -= message.size
-        delivery = message.sender.delivery
-        limit = delivery.max_delay
-        if limit is None and not delivery.reliable:
-            limit = self.max_delay
+        delivery = message.sender.delivery  # best effort waits the link's max_delay at most
+        limit = delivery.max_delay if delivery.max_delay is not None or delivery.reliable \
+            else self.max_delay
         waited = now - message.queued
         if limit is not None and waited > limit:
             self.dropped.append((message.sender, Drop.TOO_LATE,
@@ -315,32 +258,27 @@ class Scheduler:
         return bool(packets)
 
     def next(self, now: float | None = None) -> Due | float | None:
-        """The packet to send now; or when to ask again (a budget is short); or None when
-        nothing waits.
+        """The packet to send now; or when to ask again (a budget is short); or None.
 
-        Within a class, the topic whose next packet has waited longest goes: a message waits
-        from when it was queued, the next packet of a message in progress from when the one
-        before it left. So whole messages leave in the order they came, and the packets of
-        long ones take turns with everything else (round robin when they tie)."""
+        Within a class the packet that has waited longest goes: a message waits from when it
+        was queued, a message's next packet from when the one before it left."""
         now = self.clock() if now is None else now
         soonest: float | None = None
         blocked: set[Any] = set()  # destinations whose budget keeps a packet back
         for topics in self._classes:
             while topics:
                 line = []
-                for key, topic in list(topics.items()):
-                    since = self._since(topic)
+                for key, topic in list(topics.items()):  # since when its next packet waits
+                    since = topic.repaired if topic.repairs else topic.since if topic.packets \
+                        else topic.waiting[0].queued if topic.waiting else None
                     if since is None:
                         del topics[key]
                     else:
                         line.append((since, key, topic))
                 line.sort(key=lambda entry: entry[0])  # stable: ties keep the round robin
-                restart = False
                 for _, key, topic in line:
-                    if not topic.repairs and not topic.packets:
-                        if not self._start(topic, now):
-                            restart = True  # dropped (late): look at the line again
-                            break
+                    if not topic.repairs and not topic.packets and not self._start(topic, now):
+                        break  # dropped (late): look at the line again
                     again = bool(topic.repairs)
                     packet, to = topic.repairs[0] if again else (
                         topic.packets[0], topic.current.to if topic.current else None)
@@ -366,16 +304,14 @@ class Scheduler:
                     if not (topic.repairs or topic.packets or topic.waiting):
                         del topics[key]
                     return Due(packet, to, sender, ends, again)
-                if not restart:
+                else:  # nothing of this class may go now: the next class
                     break
         return soonest
 
     def depth(self, sender: Any) -> int:
         """Messages of ``sender`` not fully sent: waiting, plus the one in progress."""
         topic = self._topics.get(self._key(sender))
-        if topic is None:
-            return 0
-        return len(topic.waiting) + (topic.current is not None)
+        return 0 if topic is None else len(topic.waiting) + (topic.current is not None)
 
     @property
     def idle(self) -> bool:
