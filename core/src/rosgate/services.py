@@ -1,21 +1,11 @@
-"""Services across the link: a ROS call made on one side, served by the real server on the other
-(docs/services.md says how they behave for users).
+"""Services across the link (docs/services.md): ``transmit`` is a :class:`CallerRoute`, a proxy
+ROS server here whose calls cross the link; ``receive`` a :class:`ServerRoute`, which serves
+calls from the link through a ROS client.
 
-* ``transmit`` -> :class:`CallerRoute`: a proxy ROS service server here, named ``service``. Each
-  call crosses the link; the answer comes back and is returned to the ROS caller.
-* ``receive`` -> :class:`ServerRoute`: calls from the link are served by the ROS server here,
-  through a ROS client.
-
-Wire (``framing: rosgate``): a request is an envelope with ``FLAG_REQUEST``, topic id = the
-service's id, and the call's id in (epoch, seq): the caller's epoch and a per-caller count from
-1. The body is ``cipher.seal(header, codec(Request))``. The answer echoes epoch and seq with
-``FLAG_REPLY``; with ``FLAG_FAILED`` too when the serving side got no answer from its ROS server,
-and then the (sealed) body is the reason in UTF-8. Each answer finds its call by seq; one that
-finds none is dropped as ``late_answer``. A call the bridge cannot complete is answered with
-:func:`failure` within ``timeout``, counted by reason and warned about.
-
-Codecs: the entry's codec is made for ``Type.Request`` and ``Type.Response``; a raw codec
-(``cdr``) gets rclpy's message objects serialized first (:class:`ServiceCodec`).
+Wire (``framing: rosgate``): a request has ``FLAG_REQUEST``, the service's id and the call's id
+in (epoch, seq); its answer echoes them with ``FLAG_REPLY`` (and ``FLAG_FAILED``, the body then
+the reason in UTF-8). A call the bridge cannot complete is answered with :func:`failure` within
+``timeout``, counted by reason and warned about.
 """
 
 from __future__ import annotations
@@ -54,8 +44,8 @@ DISCOVERY_POLL = 0.05
 
 def failure(response_type: Any, reason: str) -> Any:
     """The answer a ROS caller gets when the bridge has none (ROS 2 services have no error
-    channel): the type's default Response, but ``success = False`` and ``message`` = the reason
-    (starting "rosgate: ") where the type has those fields (std_srvs Trigger and SetBool do)."""
+    channel): the default Response, with ``success = False`` and ``message = "rosgate: <reason>"``
+    where the type has those fields."""
     response = response_type()
     fields = response_type.get_fields_and_field_types()
     if fields.get("success") == "boolean":
@@ -83,25 +73,22 @@ class Call:
         self._lock = threading.Lock()
         self.done = False
 
-    def _settle(self) -> bool:
-        with self._lock:
-            first, self.done = not self.done, True
-        return first
-
     def answer(self, response: Any) -> bool:
-        if self._settle():
-            self._on_answer(response)
-            return True
-        return False
+        return self._settle(self._on_answer, response)
 
     def fail(self, reason: str, count: Callable[[], None] | None = None) -> bool:
         """``count`` runs before the failure is answered, so whoever sees it sees it counted."""
-        if self._settle():
+        return self._settle(self._on_failure, reason, count)
+
+    def _settle(self, outcome: Callable[[Any], None], value: Any,
+                count: Callable[[], None] | None = None) -> bool:
+        with self._lock:
+            first, self.done = not self.done, True
+        if first:
             if count is not None:
                 count()
-            self._on_failure(reason)
-            return True
-        return False
+            outcome(value)
+        return first
 
 
 class Deadlines:
@@ -395,11 +382,15 @@ class ServerRoute(ServiceRoute):
             busy = self.in_flight >= QUEUE_DEPTH
             if not busy:
                 self.in_flight += 1
+        if busy:
+            self.drop(Drop.TOO_MANY_CALLS, f"{QUEUE_DEPTH} calls in progress")
+            self.reply(header, link, source, envelope.FLAG_FAILED, f"the serving bridge has "
+                       f"{QUEUE_DEPTH} calls of {self.service.service} in progress".encode())
+            return
 
         def reply(flags: int, body: bytes) -> None:
-            if not busy:
-                with self._lock:
-                    self.in_flight -= 1
+            with self._lock:
+                self.in_flight -= 1
             self.reply(header, link, source, flags, body)
 
         def answered(response: Any) -> None:
@@ -411,11 +402,6 @@ class ServerRoute(ServiceRoute):
                 return
             reply(0, body)
 
-        if busy:
-            self.drop(Drop.TOO_MANY_CALLS, f"{QUEUE_DEPTH} calls in progress")
-            reply(envelope.FLAG_FAILED, f"the serving bridge has {QUEUE_DEPTH} calls of "
-                                        f"{self.service.service} in progress".encode())
-            return
         self.serve(request, Call(answered, lambda reason: reply(envelope.FLAG_FAILED,
                                                                 reason.encode())))
 
