@@ -21,19 +21,11 @@ from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, type_hash
-from .routes import (
-    BareFraming,
-    BarePort,
-    EnvelopeFraming,
-    ReceiveRoute,
-    Route,
-    TransmitRoute,
-    Warner,
-)
+from .routes import BareFraming, BarePort, EnvelopeFraming, ReceiveRoute, Route, TransmitRoute
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
 from .spec import ServiceSpec, TopicSpec
 from .transport import Address, StreamTransport
-from .warn import BUGS
+from .warn import BUGS, Warner
 from .wire import envelope
 from .wire.names import Layout
 
@@ -274,9 +266,8 @@ class Router:
         link, to = route.link, route.destination()
         if to is None and link.datagram:
             return  # the far side's address is not known yet: the next announcement finds it
-        qos = route.qos_found if isinstance(route, TransmitRoute) else None
         try:
-            frame = route.announcement(qos)
+            frame = route.announcement()
         except (NoKey, CipherError):
             return  # not data: the next announcement comes soon
         link.send(frame, route.announcer, to)
@@ -318,8 +309,7 @@ class Router:
 
     def item(self, route: Route) -> dict[str, Any]:
         """This side's entry as a hello or a welcome says it."""
-        qos = route.qos_found if isinstance(route, TransmitRoute) else None
-        return announce.item(route.check.mine, qos)
+        return announce.item(route.check.mine, route.qos_found)
 
     def follow_qos(self, route: ReceiveRoute, qos: dict[str, Any] | None) -> None:
         """The publisher takes the QoS the far side found from its publishers, unless the
@@ -335,8 +325,7 @@ class Router:
         for route in routes:
             if (isinstance(route, TransmitRoute) and not route.delivery.whole
                     or isinstance(route, CallerRoute)):
-                route.announces = True
-                self.announce(route)
+                self._start(route, True)
 
     def resync(self, routes: list[Route] | None = None) -> None:
         """The far side (re)appeared: latched topics found here say their QoS again and

@@ -13,7 +13,6 @@ route's :class:`Counters`, warned about at most once per :data:`rosgate.warn.WAR
 from __future__ import annotations
 
 import itertools
-import logging
 import threading
 import time
 from collections import Counter
@@ -37,8 +36,6 @@ from .transport import Address
 from .warn import Warner
 from .wire import envelope
 from .wire.names import LAYOUT_DEFAULT, Layout, NameMissing, pack_name, split_name
-
-log = logging.getLogger("rosgate")
 
 # a transmitting route takes what waits in its subscription up to this much at a time
 DRAIN_FRAMES = 32
@@ -86,6 +83,10 @@ class Route:
     interface: Any = None  # the entry's ROS class (message or service), set with its entity
     #: what :meth:`admit` refuses for skipped sequence numbers is a loss on the way
     counts_lost = False
+    #: the QoS found from the publishers here (a transmitting entry without qos; None: none
+    #: yet), and the one its subscription or publisher has (None: the entry's own)
+    qos_found: dict[str, Any] | None = None
+    qos_in_use: dict[str, Any] | None = None
     link: Link
     destination: Callable[[], Address | None]
 
@@ -114,10 +115,10 @@ class Route:
         self.announcer = SideSender(self, CONTROL, lambda reason, detail="": None)
         self.born = time.monotonic()
 
-    def announcement(self, qos: dict[str, Any] | None) -> bytes:
-        """An announcement frame of this entry (:mod:`rosgate.announce`), with ``qos`` when it
-        was found from publishers. NoKey before a session has keys."""
-        body = announce.encode(self.check.mine, qos)
+    def announcement(self) -> bytes:
+        """An announcement frame of this entry (:mod:`rosgate.announce`), with the QoS found
+        here. NoKey before a session has keys."""
+        body = announce.encode(self.check.mine, self.qos_found)
         epoch = self.keys.epoch()
         return self.seal(envelope.FLAG_ANNOUNCE, epoch, next(self._announced), body)
 
@@ -295,10 +296,6 @@ class TransmitRoute(Route):
         self.take: Callable[[], Any] | None = None
         self.transform = compression
         self.transform_id = bytes([compression.wire_id]) if compression is not None else b""
-        #: the QoS found from the publishers here (entries without qos; None: none found yet)
-        self.qos_found: dict[str, Any] | None = None
-        #: and the one its subscription has (None: the entry's own)
-        self.qos_in_use: dict[str, Any] | None = None
         #: the batch window (seconds, 0: none), its node's open windows, and what came in it
         self.window = topic.batch or 0.0
         self.batches = Batches()
@@ -434,8 +431,6 @@ class ReceiveRoute(Route):
         #: whatever this side's file says: the sender's envelope says what it transformed, and
         #: the payload's first byte with which transform
         self.transforms = transforms
-        #: the QoS its publisher has from the far side's publishers (None: the entry's own)
-        self.qos_in_use: dict[str, Any] | None = None
 
     def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> None:
         """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
@@ -461,38 +456,32 @@ class ReceiveRoute(Route):
                 self.drop(Drop.TOO_LATE, f"waited {waited / 1e6:.0f} ms in the receive buffer")
                 return
         if header.flags & envelope.FLAG_COMPRESSED:
-            restored = self.transform_back(payload)
-            if restored is None:
-                return
-            payload = restored
-        self.deliver(payload, size)
+            self.transform_back(payload, size)
+        else:
+            self.deliver(payload, size)
 
-    def transform_back(self, payload: bytes) -> bytes | None:
-        """A transformed payload as the codec wrote it; None when it cannot be (counted)."""
+    def transform_back(self, payload: bytes, size: int) -> None:
+        """A transformed payload delivered as the codec wrote it, or dropped (counted)."""
         transform = self.transforms(payload[0]) if payload else None
         if transform is None:
             self.drop(Drop.DECOMPRESSION_ERROR, "transformed by a transform this side does not "
                       f"have (wire id {payload[0] if payload else 'missing'})")
-            return None
+            return
         try:
-            return transform.decode(bytes(payload[1:]))
-        except TransformError as exc:
-            self.drop(Drop.DECOMPRESSION_ERROR, f"{transform.name}: {exc}")
+            restored = transform.decode(bytes(payload[1:]))
         except Exception as exc:  # a transform must raise TransformError; anything else: its bug
-            self.drop(Drop.DECOMPRESSION_ERROR, f"{transform.name} failed: {type(exc).__name__}: "
-                      f"{exc}")
-        return None
+            failed = "" if isinstance(exc, TransformError) else f" failed: {type(exc).__name__}"
+            self.drop(Drop.DECOMPRESSION_ERROR, f"{transform.name}{failed}: {exc}")
+        else:
+            self.deliver(restored, size)
 
     def deliver(self, payload: bytes, size: int) -> None:
         """Decode and publish; ``size`` is what arrived on the link, for the counters."""
         try:
             message = self.decode(payload)
-        except CodecError as exc:
-            self.drop(Drop.DECODE_ERROR, str(exc))
-            return
         except Exception as exc:  # a codec must raise CodecError; anything else is its bug
-            self.drop(Drop.DECODE_ERROR,
-                      f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
+            self.drop(Drop.DECODE_ERROR, str(exc) if isinstance(exc, CodecError)
+                      else f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
             return
         try:
             self.publish(message)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import heapq
 import itertools
-import logging
 import threading
 import time
 from collections.abc import Callable
@@ -27,8 +26,6 @@ from .routes import Route, SideSender
 from .transport import Address
 from .warn import BUGS
 from .wire import envelope
-
-log = logging.getLogger("rosgate")
 
 # A proxy needs deep queues: with the default service QoS (depth 10) a server answered 11 of 50
 # concurrent calls; with depth 1000 on both ends, 50 of 50 (DESIGN.md, measured).
