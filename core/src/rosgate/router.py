@@ -42,13 +42,12 @@ _NOT_DATA = (envelope.FLAG_HELLO | envelope.FLAG_REQUEST | envelope.FLAG_REPLY
              | envelope.FLAG_ANNOUNCE)
 
 
-def _no_destination() -> Address | None:
-    return None
-
-
-def fixed(address: Address) -> Destination:
+def fixed(address: Address | None) -> Destination:
     """A destination that never changes (a configured peer, a server's port)."""
     return lambda: address
+
+
+_no_destination = fixed(None)
 
 
 class Router:
@@ -107,8 +106,7 @@ class Router:
             self._listen(route, qos)
         else:
             decode: Callable[[bytes], Any] = codec.decode
-            trusted = keys.authenticates and t.framing is Framing.ROSGATE
-            if codec.raw and not trusted:
+            if codec.raw and not (keys.authenticates and t.framing is Framing.ROSGATE):
                 decode = _checked(decode, cdr_checker(p.msg_type))
             route = ReceiveRoute(t, topic_id, codec, keys, self.warner, label, p.delivery,
                                  decode=decode, transforms=p.transforms)
@@ -438,20 +436,15 @@ class Router:
 
 def _real_link_counters(route: Route) -> str:
     """The counters of real links that say something (wire, repairs, compression, queue)."""
-    c, parts = route.counters, []
-    if c.bytes_on_wire and c.bytes_on_wire != c.bytes_sent:
-        parts.append(f"on the wire {c.bytes_on_wire} B")
-    if c.retransmitted:
-        parts.append(f"retransmitted {c.retransmitted}")
-    if c.recovered:
-        parts.append(f"recovered {c.recovered}")
-    if c.bytes_before_compression:
-        parts.append(f"compressed {c.bytes_before_compression} B -> {c.bytes_after_compression}"
-                     f" B ({c.not_compressed} sent as they were)")
+    c = route.counters
     depth = route.queue_depth if isinstance(route, TransmitRoute) else 0
-    if depth:
-        parts.append(f"queued {depth}")
-    return "".join(f", {p}" for p in parts)
+    parts = [(c.bytes_on_wire not in (0, c.bytes_sent), f"on the wire {c.bytes_on_wire} B"),
+             (c.retransmitted, f"retransmitted {c.retransmitted}"),
+             (c.recovered, f"recovered {c.recovered}"),
+             (c.bytes_before_compression, f"compressed {c.bytes_before_compression} B -> "
+              f"{c.bytes_after_compression} B ({c.not_compressed} sent as they were)"),
+             (depth, f"queued {depth}")]
+    return "".join(f", {part}" for shown, part in parts if shown)
 
 
 def _file_keys(p: TopicSpec | ServiceSpec) -> Keys:

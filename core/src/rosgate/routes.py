@@ -265,13 +265,10 @@ class BareFraming:
 
 
 def max_wait_ns(topic: TopicConfig) -> int:
-    """How long (ns) a message may wait in the bridge's own buffers (subscription queue,
-    receive buffer) before it is dropped ``too_late``: the topic's ``max_delay``; 0, never.
-
-    No default for best effort: what waits there waits for a bridge thread, not the link. A
-    process not scheduled for a while finds a backlog the idle link can carry. Where the link
-    is the bottleneck, frames wait in its queue instead, where latest-only (``superseded``),
-    the link's ``max_delay`` and :class:`~rosgate.scheduler.Backlog` shed them."""
+    """How long (ns) a message may wait in the bridge's own buffers before it is dropped
+    ``too_late``: the topic's ``max_delay``; 0, never. No default: a backlog there waits for a
+    bridge thread, not the link, which can carry it; where the link is the bottleneck, frames
+    wait in its queue instead, shed by latest-only, its ``max_delay`` and the scheduler."""
     return int(1e9 * topic.max_delay) if topic.max_delay is not None else 0
 
 
@@ -342,10 +339,7 @@ class TransmitRoute(Route):
         if take is None:
             return messages
         max_wait, now = self.max_wait_ns, time.time_ns()
-        while len(messages) < frames:
-            got = take()
-            if got is None:
-                break
+        while len(messages) < frames and (got := take()) is not None:
             more, received = got
             if max_wait and now - received > max_wait:
                 # too long in the subscription's queue, and so was every message before it
@@ -360,20 +354,13 @@ class TransmitRoute(Route):
 
     def _send(self, messages: list[Any]) -> None:
         """Messages framed and handed to the link in one call."""
-        if not messages:
-            return
         to = self.destination()
         if to is None and self.link.datagram:
             for _ in messages:
                 self.drop(Drop.NO_PEER_YET, "the far side's address is not known yet")
             return
-        frames: list[bytes] = []
-        size = 0
-        for one in messages:
-            frame = self._frame(one)
-            if frame is not None:
-                frames.append(frame)
-                size += len(frame)
+        frames = [frame for frame in map(self._frame, messages) if frame is not None]
+        size = sum(map(len, frames))
         if size:
             self._size = size // len(frames)
         if frames:

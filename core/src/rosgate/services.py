@@ -33,8 +33,7 @@ QUEUE_DEPTH = 1000
 # action_msgs: GoalStatus.STATUS_ABORTED, CancelGoal.Response.ERROR_REJECTED
 GOAL_ABORTED = 6
 CANCEL_REJECTED = 1
-# a call whose ROS server is not discovered yet waits for it this share of its timeout, and
-# looks again this often (seconds)
+# a call waits this share of its timeout for its ROS server's discovery, polling (seconds)
 DISCOVERY_SHARE = 0.8
 DISCOVERY_POLL = 0.05
 
@@ -254,8 +253,8 @@ class CallerRoute(ServiceRoute):
         return True
 
     def fail_all(self, reason: Reason, detail: str) -> None:
-        """Every call still waiting is failed (the session's line was lost): an action's
-        goal then ends aborted rather than waiting out its result's timeout."""
+        """Every waiting call fails (the session's line was lost): an action's goal ends
+        aborted rather than waiting out its result's timeout."""
         with self._lock:
             waiting = [call for _, call in self.calls.values()]
             self.calls.clear()
@@ -278,10 +277,8 @@ class CallerRoute(ServiceRoute):
 
 
 class ServerRoute(ServiceRoute):
-    """``receive``: calls from the far side, served by the ROS server here. At most
-    :data:`QUEUE_DEPTH` calls from the link are in progress at once (the ROS client's queue);
-    one more is answered as a failure at once (``too_many_calls``), so a flood of requests
-    cannot pile up pending calls and deadlines."""
+    """``receive``: calls from the far side, served by the ROS server here. A call beyond
+    :data:`QUEUE_DEPTH` in progress fails at once (``too_many_calls``): a flood cannot pile up."""
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
@@ -289,9 +286,8 @@ class ServerRoute(ServiceRoute):
 
     def serve(self, request: Any, call: Call) -> None:
         """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``.
-        A server not discovered yet is waited for (polled every :data:`DISCOVERY_POLL` s) up
-        to :data:`DISCOVERY_SHARE` of the timeout, so that the failure still reaches the caller,
-        whose bridge waits ``timeout`` in all."""
+        An undiscovered server is polled for up to :data:`DISCOVERY_SHARE` of the timeout, so
+        that the failure still reaches the caller, whose bridge waits ``timeout`` in all."""
         start = time.monotonic()
         wait_until = start + self.service.timeout * DISCOVERY_SHARE
         client = self.entity
