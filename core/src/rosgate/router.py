@@ -295,15 +295,12 @@ class Router:
     def entry_item(self, p: TopicSpec | ServiceSpec) -> dict[str, Any]:
         """An entry as a hello says it before its route exists (with the QoS found here for a
         topic it sends without a qos)."""
-        qos = None
         if isinstance(p, TopicSpec):
-            interface: type = p.msg_type
             t = p.config
-            if t.direction is Direction.TRANSMIT and not t.qos_given:
-                qos = self.ros.qos_found(t.topic)
-        else:
-            interface = p.srv_type
-        return announce.item(Identity(p.config.type, self.hash_of(interface)), qos)
+            qos = (self.ros.qos_found(t.topic)
+                   if t.direction is Direction.TRANSMIT and not t.qos_given else None)
+            return announce.item(Identity(t.type, self.hash_of(p.msg_type)), qos)
+        return announce.item(Identity(p.config.type, self.hash_of(p.srv_type)), None)
 
     def item(self, route: Route) -> dict[str, Any]:
         """This side's entry as a hello or a welcome says it."""

@@ -494,8 +494,7 @@ class BarePort:
 
     def add(self, route: ReceiveRoute, names: set[str]) -> None:
         if self.named:
-            for name in names:
-                self.routes[name] = route
+            self.routes.update(dict.fromkeys(names, route))
         else:
             self.only = route
 

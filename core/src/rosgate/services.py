@@ -132,7 +132,6 @@ class ServiceCodec:
     def __init__(self, codec_cls: type, srv_type: Any, options: Any):
         self.request = codec_cls(srv_type.Request, options)
         self.response = codec_cls(srv_type.Response, options)
-        self.name = self.request.name
 
     @staticmethod
     def encode(codec: Any, message: Any) -> bytes:
@@ -325,10 +324,11 @@ class ServerRoute(ServiceRoute):
 
     def on_request(self, header: envelope.Header, frame: bytes, link: Link,
                    source: Address) -> None:
-        """A link's thread: a call from the far side (framing rosgate); the answer goes back on
-        the link and to the address it came from."""
-        if len(frame) > envelope.SIZE + self.service.max_request:
-            self.drop(Drop.TOO_LARGE, f"request of {len(frame) - envelope.SIZE} bytes, "
+        """A link's thread: a call from the far side (framing rosgate), answered on ``link`` to
+        where it came from."""
+        size = len(frame)
+        if size > envelope.SIZE + self.service.max_request:
+            self.drop(Drop.TOO_LARGE, f"request of {size - envelope.SIZE} bytes, "
                                       f"max_request is {self.service.max_request}")
             return
         payload = self.admit(header, frame)
@@ -337,11 +337,11 @@ class ServerRoute(ServiceRoute):
         if self.check.mismatch is not None:
             self.refuse(header, link, source)
             return
-        if self.check.awaiting and self.check.hold(len(frame), lambda agreed: self.accept(
-                header, payload, len(frame), link, source) if agreed else
-                self.refuse(header, link, source)):
+        if self.check.awaiting and self.check.hold(size, lambda agreed: self.accept(
+                header, payload, size, link, source) if agreed else self.refuse(
+                header, link, source)):
             return  # until the far side says its type (rosgate.announce)
-        self.accept(header, payload, len(frame), link, source)
+        self.accept(header, payload, size, link, source)
 
     def refuse(self, header: envelope.Header, link: Link, source: Address) -> None:
         """A call of another type than this side's: answered as a failure, never served."""
