@@ -30,8 +30,8 @@ class Codec(ABC):
     messagepack: ClassVar[bool] = False
 
     def __init__(self, msg_type: type, options: Any):
-        """``msg_type``: the ROS message class (or a service's ``Request``/``Response``);
-        ``options``: the plugin's ``Options`` (a plain mapping is parsed here)."""
+        """Kept as :attr:`msg_type`, the ROS message class (or a service's ``Request`` or
+        ``Response``), and :attr:`options`, the plugin's ``Options`` (a mapping is parsed)."""
         self.msg_type = msg_type
         self.options = as_options(type(self), options)
 

@@ -211,13 +211,10 @@ class Router:
 
     def _forget(self, route: Route) -> list[dict[int, Any]]:
         """``route`` taken out of the dispatch tables (every id); the tables it was in."""
-        tables = []
-        for table in (self.receivers, self.callers, self.servers):
-            ids = [i for i, r in table.items() if r is route]
-            for i in ids:
+        tables = [t for t in (self.receivers, self.callers, self.servers) if route in t.values()]
+        for table in tables:
+            for i in [i for i, r in table.items() if r is route]:
                 del table[i]
-            if ids:
-                tables.append(table)
         return tables
 
     # -- receiving: every envelope frame from every link comes through here ----------------

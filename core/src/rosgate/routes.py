@@ -415,8 +415,7 @@ class ReceiveRoute(Route):
         self.zero_copy = codec.raw  # the core's raw decode, CDR check and publisher take one
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
-        #: whatever this side's file says: the sender's envelope says what it transformed, and
-        #: the payload's first byte with which transform
+        #: the transform of a wire id, whatever this side's file says (the sender's frame says)
         self.transforms = transforms
 
     def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> None:

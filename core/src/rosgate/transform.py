@@ -32,8 +32,8 @@ class Transform(ABC):
     wire_id: ClassVar[int]
 
     def __init__(self, options: Any, limit: int):
-        """``options``: the plugin's ``Options`` (a plain mapping is parsed here); ``limit``: the
-        most bytes :meth:`decode` may return."""
+        """Kept as :attr:`options`, the plugin's ``Options`` (a plain mapping is parsed here),
+        and :attr:`limit`, the most bytes :meth:`decode` may return."""
         self.options = as_options(type(self), options)
         self.limit = limit
 
