@@ -1,21 +1,7 @@
-"""Actions across the link. A ROS 2 action *is* three services and two topics, under
-``<name>/_action/``: ``send_goal`` (a goal, answered accepted or not), ``cancel_goal``,
-``get_result`` (answered when the goal ends), ``feedback`` and ``status`` (published by the
-action server). An ``actions:`` entry becomes those five entries, with the types rosidl makes
-for the action (``pkg/action/Type_SendGoal``, ``Type_GetResult``, ``Type_FeedbackMessage``,
-``action_msgs/srv/CancelGoal``, ``action_msgs/msg/GoalStatusArray``), and the service and topic
-routes carry them: the ROS action client on the calling side and the ROS action server on the
-serving side talk as if they were on one graph.
-
-* ``direction: transmit``: goals sent here are served on the far side: the three services are
-  transmitted, feedback and status received; ``receive`` the other way round.
-* ``send_goal`` and ``cancel_goal`` are answered within the entry's ``timeout``: a goal for an
-  action nobody serves is answered "not accepted", a cancel the bridge cannot deliver
-  "rejected". ``get_result`` waits as long as the goal runs (up to an hour); when it cannot be
-  answered (the link or the session is lost) it answers status ABORTED.
-* status is ``transient_local`` (as ROS publishes it), feedback reliable, depth 10.
-* In peer role an action takes two ports: ``port`` for its calls (on the serving side) and
-  ``port + 1`` for its feedback and status (on the calling side).
+"""Actions across the link (docs/actions.md): a ROS 2 action *is* three services and two
+topics under ``<name>/_action/``, so an ``actions:`` entry becomes those five entries, with the
+types rosidl makes for it, and the service and topic routes carry them. ``get_result`` waits as
+long as a goal runs (up to an hour); in peer role feedback and status take ``port + 1``.
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
-"""The router: owns every route of a running bridge.
-
-It makes routes from prepared entries (with their ROS entities and their framing), finds the
-route of every frame that comes in — topics by topic id, service calls and answers by service
-id, in tables of their own — and counts what belongs to no route. Roles decide which links and
-ids a route gets; the router never opens a link.
+"""The router owns every route of a running bridge: it makes them (with their ROS entities),
+finds the route of every frame that comes in (topics, calls and answers by id, in tables of
+their own) and counts what belongs to none. Roles choose links and ids; it never opens a link.
 """
 
 from __future__ import annotations
@@ -24,26 +21,18 @@ from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, type_hash
-from .routes import (
-    BareFraming,
-    BarePort,
-    EnvelopeFraming,
-    ReceiveRoute,
-    Route,
-    TransmitRoute,
-    Warner,
-)
+from .routes import BareFraming, BarePort, EnvelopeFraming, ReceiveRoute, Route, TransmitRoute
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
 from .spec import ServiceSpec, TopicSpec
 from .transport import Address, StreamTransport
-from .warn import BUGS
+from .warn import BUGS, Warner
 from .wire import envelope
 from .wire.names import Layout
 
 log = logging.getLogger("rosgate")
 
-#: seconds between two looks at the publishers of topics without a qos (and between the
-#: announcements of a young entry)
+#: seconds between looks at the publishers of topics without a qos (and announcements of young
+#: entries)
 WATCH_EVERY = announce.ANNOUNCE_FAST
 
 Destination = Callable[[], Address | None]
@@ -53,13 +42,12 @@ _NOT_DATA = (envelope.FLAG_HELLO | envelope.FLAG_REQUEST | envelope.FLAG_REPLY
              | envelope.FLAG_ANNOUNCE)
 
 
-def _no_destination() -> Address | None:
-    return None
-
-
-def fixed(address: Address) -> Destination:
+def fixed(address: Address | None) -> Destination:
     """A destination that never changes (a configured peer, a server's port)."""
     return lambda: address
+
+
+_no_destination = fixed(None)
 
 
 class Router:
@@ -92,11 +80,10 @@ class Router:
               destination: Destination = _no_destination,
               keys: Keys | None = None,
               bare_names: bool = True, announce: bool = True) -> TransmitRoute | ReceiveRoute:
-        """A topic's route and its ROS entity; a receiver with an envelope is found by its id.
-        ``keys``: a session's; by default the entry's cipher as the file configured it.
+        """A topic's route and its ROS entity. ``keys``: a session's (default: the file's cipher).
         ``bare_names=False``: bare frames never carry the topic's name (a bus names them by key).
-        ``announce=False``: its announcements wait for :meth:`start_announcing` (a client's,
-        until the server knows where its datagrams come from)."""
+        ``announce=False``: announcements wait for :meth:`start_announcing` (a client's, until
+        the server knows where its datagrams come from)."""
         t = p.config
         keys = keys or _file_keys(p)
         codec = p.codec_cls(p.msg_type, p.codec_options)
@@ -119,8 +106,7 @@ class Router:
             self._listen(route, qos)
         else:
             decode: Callable[[bytes], Any] = codec.decode
-            trusted = keys.authenticates and t.framing is Framing.ROSGATE
-            if codec.raw and not trusted:
+            if codec.raw and not (keys.authenticates and t.framing is Framing.ROSGATE):
                 decode = _checked(decode, cdr_checker(p.msg_type))
             route = ReceiveRoute(t, topic_id, codec, keys, self.warner, label, p.delivery,
                                  decode=decode, transforms=p.transforms)
@@ -134,8 +120,7 @@ class Router:
     def service(self, p: ServiceSpec, service_id: int, label: str, link: Link | None,
                 destination: Destination = _no_destination,
                 keys: Keys | None = None, announce: bool = True) -> ServiceRoute:
-        """A service's route and its ROS entity. With an envelope, calls and answers find it by
-        its id; a microcontroller's calls (serial datagrams) find a serving route by name."""
+        """A service's route and its ROS entity; found by id with an envelope (else by name)."""
         s = p.config
         args = (s, service_id, ServiceCodec(p.codec_cls, p.srv_type, p.codec_options),
                 keys or _file_keys(p), self.warner, label, p.srv_type, self.deadlines)
@@ -173,21 +158,19 @@ class Router:
             self.announce(route)
 
     def _listen(self, route: TransmitRoute, qos: int | str | dict[str, Any]) -> None:
-        """A transmitting route's subscription, with ``qos``."""
         route.entity = self.ros.subscribe(route.interface, route.topic.topic, qos_profile(qos),
                                           route.on_message, route.codec.raw)
         route.take = self.ros.taker(route.entity)
 
     def _publish(self, route: ReceiveRoute, qos: int | str | dict[str, Any]) -> None:
-        """A receiving route's publisher, with ``qos``."""
         route.entity = self.ros.publisher(route.interface, route.topic.topic, qos_profile(qos))
         if route.codec.raw:
             route.publish = self.ros.raw_publisher(route.entity)
 
     def _renew(self, route: TransmitRoute | ReceiveRoute, qos: dict[str, Any]) -> bool:
-        """A route's subscription or publisher made anew with ``qos``; the old one goes once
-        the new one is up (they overlap). A publisher is renewed only for a new QoS; a
-        subscription also to be sent a latched history again."""
+        """A route's subscription or publisher made anew with ``qos``, overlapping the old one.
+        A publisher is renewed only for a new QoS; a subscription also to get a latched history
+        again."""
         with self._lock:
             old = route.entity
             if old is None or isinstance(route, ReceiveRoute) and qos == route.qos_in_use:
@@ -201,7 +184,6 @@ class Router:
         return True
 
     def bare_port(self, named: bool) -> BarePort:
-        """The receivers of one port with ``framing: none``."""
         return BarePort(named, self.link_drop)
 
     def alias(self, route: ReceiveRoute, topic_id: int) -> None:
@@ -228,14 +210,11 @@ class Router:
         route.close()
 
     def _forget(self, route: Route) -> list[dict[int, Any]]:
-        """Take ``route`` out of the dispatch tables (every id it has); the tables it was in."""
-        tables = []
-        for table in (self.receivers, self.callers, self.servers):
-            ids = [i for i, r in table.items() if r is route]
-            for i in ids:
+        """``route`` taken out of the dispatch tables (every id); the tables it was in."""
+        tables = [t for t in (self.receivers, self.callers, self.servers) if route in t.values()]
+        for table in tables:
+            for i in [i for i, r in table.items() if r is route]:
                 del table[i]
-            if ids:
-                tables.append(table)
         return tables
 
     # -- receiving: every envelope frame from every link comes through here ----------------
@@ -282,9 +261,8 @@ class Router:
         link, to = route.link, route.destination()
         if to is None and link.datagram:
             return  # the far side's address is not known yet: the next announcement finds it
-        qos = route.qos_found if isinstance(route, TransmitRoute) else None
         try:
-            frame = route.announcement(qos)
+            frame = route.announcement()
         except (NoKey, CipherError):
             return  # not data: the next announcement comes soon
         link.send(frame, route.announcer, to)
@@ -312,22 +290,18 @@ class Router:
             self.follow_qos(route, told[1])
 
     def entry_item(self, p: TopicSpec | ServiceSpec) -> dict[str, Any]:
-        """An entry as a hello says it before its route exists: its type, and the QoS found
-        here for a topic it sends without a qos."""
-        qos = None
+        """An entry as a hello says it before its route exists (with the QoS found here for a
+        topic it sends without a qos)."""
         if isinstance(p, TopicSpec):
-            interface: type = p.msg_type
             t = p.config
-            if t.direction is Direction.TRANSMIT and not t.qos_given:
-                qos = self.ros.qos_found(t.topic)
-        else:
-            interface = p.srv_type
-        return announce.item(Identity(p.config.type, self.hash_of(interface)), qos)
+            qos = (self.ros.qos_found(t.topic)
+                   if t.direction is Direction.TRANSMIT and not t.qos_given else None)
+            return announce.item(Identity(t.type, self.hash_of(p.msg_type)), qos)
+        return announce.item(Identity(p.config.type, self.hash_of(p.srv_type)), None)
 
     def item(self, route: Route) -> dict[str, Any]:
         """This side's entry as a hello or a welcome says it."""
-        qos = route.qos_found if isinstance(route, TransmitRoute) else None
-        return announce.item(route.check.mine, qos)
+        return announce.item(route.check.mine, route.qos_found)
 
     def follow_qos(self, route: ReceiveRoute, qos: dict[str, Any] | None) -> None:
         """The publisher takes the QoS the far side found from its publishers, unless the
@@ -343,12 +317,11 @@ class Router:
         for route in routes:
             if (isinstance(route, TransmitRoute) and not route.delivery.whole
                     or isinstance(route, CallerRoute)):
-                route.announces = True
-                self.announce(route)
+                self._start(route, True)
 
     def resync(self, routes: list[Route] | None = None) -> None:
-        """The far side (re)appeared: the latched topics found here say their QoS again and
-        subscribe anew, so it gets their publishers' history."""
+        """The far side (re)appeared: latched topics found here say their QoS again and
+        subscribe anew, so it gets their history."""
         for route in self.snapshot() if routes is None else routes:
             if (isinstance(route, TransmitRoute) and route.qos_found is not None
                     and route.qos_found["durability"] == "transient_local"):
@@ -356,8 +329,7 @@ class Router:
                 self._renew(route, route.qos_found)
 
     def _find_qos(self, route: TransmitRoute) -> None:
-        """Look at the publishers of a topic without a qos; a new QoS is announced before the
-        subscription changes to it."""
+        """The publishers of a topic without a qos: a new QoS is announced, then subscribed."""
         found = self.ros.qos_found(route.topic.topic)
         if found is None or found == route.qos_found:
             return
@@ -391,8 +363,8 @@ class Router:
                                                "its publishers (a bug: please report it)")
 
     def on_lost(self, topic_id: int | None, reason: Reason) -> None:
-        """A receiving link lost a frame (a fragment that never came) or met bytes it could not
-        frame; counted against the topic when the link knows it."""
+        """A receiving link lost a frame or met bytes it could not frame: counted against the
+        topic when the link knows it."""
         route = self.receivers.get(topic_id) if topic_id is not None else None
         if route is not None:
             route.drop(reason)
@@ -457,27 +429,20 @@ class Router:
 
 
 def _real_link_counters(route: Route) -> str:
-    """The counters of real links, where they say something: what went on the wire, what was
-    sent again or rebuilt, what compression saved, what waits."""
-    c, parts = route.counters, []
-    if c.bytes_on_wire and c.bytes_on_wire != c.bytes_sent:
-        parts.append(f"on the wire {c.bytes_on_wire} B")
-    if c.retransmitted:
-        parts.append(f"retransmitted {c.retransmitted}")
-    if c.recovered:
-        parts.append(f"recovered {c.recovered}")
-    if c.bytes_before_compression:
-        parts.append(f"compressed {c.bytes_before_compression} B -> {c.bytes_after_compression}"
-                     f" B ({c.not_compressed} sent as they were)")
+    """The counters of real links that say something (wire, repairs, compression, queue)."""
+    c = route.counters
     depth = route.queue_depth if isinstance(route, TransmitRoute) else 0
-    if depth:
-        parts.append(f"queued {depth}")
-    return "".join(f", {p}" for p in parts)
+    parts = [(c.bytes_on_wire not in (0, c.bytes_sent), f"on the wire {c.bytes_on_wire} B"),
+             (c.retransmitted, f"retransmitted {c.retransmitted}"),
+             (c.recovered, f"recovered {c.recovered}"),
+             (c.bytes_before_compression, f"compressed {c.bytes_before_compression} B -> "
+              f"{c.bytes_after_compression} B ({c.not_compressed} sent as they were)"),
+             (depth, f"queued {depth}")]
+    return "".join(f", {part}" for shown, part in parts if shown)
 
 
 def _file_keys(p: TopicSpec | ServiceSpec) -> Keys:
-    """An entry's keys from its cipher in the file: a session's entries always come with the
-    session's keys."""
+    """An entry's keys from its cipher in the file (a session's entries come with its keys)."""
     assert p.cipher is not None, "an entry of a session needs the session's keys"
     return StaticKeys(p.cipher)
 

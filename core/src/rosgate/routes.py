@@ -1,30 +1,18 @@
-"""Routes: one topic on one side of a link. The data path, top to bottom.
+"""Routes: one topic on one side of a link. The data path, top to bottom:
 
-transmit (a ROS subscription callback)::
+* transmit (a ROS subscription callback): message -> codec.encode -> transform (optional) ->
+  framing.frame (envelope header, cipher.seal) -> link.send
+* receive (a link's thread): cipher.open -> replay window -> transform back -> decode (codec,
+  CDR check) -> ROS publish
 
-    message -> codec.encode -> transform (compression, optional) -> framing.frame (envelope
-    header, cipher.seal) -> link.send
-
-receive (a link's thread, with a frame whose header names this topic)::
-
-    cipher.open -> replay window -> transform back (when the header says so, by the transform's
-    wire id) -> decode (codec, CDR check) -> ROS publish
-
-The cipher of each frame comes from the route's :class:`~rosgate.keyring.Keys` by the
-envelope's epoch: one static cipher, or a session's keys, which change with each key
-generation and handshake (then a new epoch starts a new sequence).
-
-The framing is a strategy chosen once per route from the entry's ``framing:``
-(:class:`EnvelopeFraming`, or :class:`BareFraming` for datagrams without an envelope, whose
-receiving topics share a :class:`BarePort`). Every drop is counted by reason in the route's
-:class:`Counters`, and warned about at most once per :data:`rosgate.warn.WARN_EVERY` seconds per
-reason.
+Each frame's cipher comes from the route's :class:`~rosgate.keyring.Keys` by the envelope's
+epoch (a new key generation starts a new sequence). Every drop is counted by reason in the
+route's :class:`Counters`, warned about at most once per :data:`rosgate.warn.WARN_EVERY` s.
 """
 
 from __future__ import annotations
 
 import itertools
-import logging
 import threading
 import time
 from collections import Counter
@@ -49,8 +37,6 @@ from .warn import Warner
 from .wire import envelope
 from .wire.names import LAYOUT_DEFAULT, Layout, NameMissing, pack_name, split_name
 
-log = logging.getLogger("rosgate")
-
 # a transmitting route takes what waits in its subscription up to this much at a time
 DRAIN_FRAMES = 32
 DRAIN_BYTES = 60_000
@@ -71,17 +57,14 @@ class Counters:
     received: int = 0
     bytes_sent: int = 0
     bytes_received: int = 0
-    lost: int = 0  # sequence numbers skipped by the sender's frames and never filled in
+    lost: int = 0  # sequence numbers skipped by the sender and never filled in
     drops: Counter = field(default_factory=Counter)
-    # the link's view (sender): every byte of every packet put on it for this topic — after
-    # compression, with fragment headers, repair fragments and retransmissions; and how many
-    # packets were sent again because a receiver asked (recovery: retransmit)
+    # sender, the link's view: every byte put on it for this topic (compressed, with fragment
+    # headers, repairs and retransmissions), and the packets a receiver asked for again
     bytes_on_wire: int = 0
     retransmitted: int = 0
-    # receiver: frames that arrived whole only thanks to their recovery (fec, retransmit)
-    recovered: int = 0
-    # compression (sender): payload bytes before and after, and payloads sent as they were
-    # because compressing did not make them smaller
+    recovered: int = 0  # receiver: frames whole only thanks to fec or retransmit
+    # compression (sender): payload bytes before and after; payloads it did not make smaller
     bytes_before_compression: int = 0
     bytes_after_compression: int = 0
     not_compressed: int = 0
@@ -97,10 +80,13 @@ class Route:
 
     #: the sending side of an entry with an envelope: says its type (and QoS) on its link
     announces = False
-    #: the entry's ROS class (a message or a service), set with its ROS entity
-    interface: Any = None
+    interface: Any = None  # the entry's ROS class (message or service), set with its entity
     #: what :meth:`admit` refuses for skipped sequence numbers is a loss on the way
     counts_lost = False
+    #: the QoS found from the publishers here (a transmitting entry without qos; None: none
+    #: yet), and the one its subscription or publisher has (None: the entry's own)
+    qos_found: dict[str, Any] | None = None
+    qos_in_use: dict[str, Any] | None = None
     link: Link
     destination: Callable[[], Address | None]
 
@@ -117,14 +103,11 @@ class Route:
         self.entity: Any = None  # the ROS subscription, publisher, service or client
         #: the none cipher: a frame's body is its payload (decided once, not per frame)
         self.plain = isinstance(keys, StaticKeys) and type(keys.cipher).open is NoCipher.open
-        #: a reassembled frame's bytearray may go on as the payload (see open)
-        self.zero_copy = False
-        #: see :func:`max_wait_ns` (services have their own deadlines)
+        self.zero_copy = False  # a reassembled frame's bytearray may become the payload (open)
         self.max_wait_ns = max_wait_ns(entry) if isinstance(entry, TopicConfig) else 0
         #: the entry's type against the far side's (the router gives this side's hash)
         self.check = TypeCheck(label, Identity(entry.type, None))
-        #: a receiving side's sequence numbers: without a cipher that vouches for the header,
-        #: one forged frame may not move it
+        #: without a cipher that vouches for the header, one forged frame may not move it
         self.replay = envelope.ReplayWindow(authenticated=keys.authenticates)
         self._lock = threading.Lock()  # frames may come from several links (reconnects)
         self._announced = itertools.count(1)
@@ -132,16 +115,16 @@ class Route:
         self.announcer = SideSender(self, CONTROL, lambda reason, detail="": None)
         self.born = time.monotonic()
 
-    def announcement(self, qos: dict[str, Any] | None) -> bytes:
-        """An announcement frame of this entry (:mod:`rosgate.announce`): its type and hash,
-        and ``qos`` when it was found from publishers. NoKey before a session has keys."""
-        body = announce.encode(self.check.mine, qos)
+    def announcement(self) -> bytes:
+        """An announcement frame of this entry (:mod:`rosgate.announce`), with the QoS found
+        here. NoKey before a session has keys."""
+        body = announce.encode(self.check.mine, self.qos_found)
         epoch = self.keys.epoch()
         return self.seal(envelope.FLAG_ANNOUNCE, epoch, next(self._announced), body)
 
     def admit(self, header: envelope.Header, frame: bytes) -> bytes | None:
-        """A received frame's payload, once its cipher and the replay window accept it; None
-        (counted) when either does not. A topic's skipped sequence numbers count as lost (a
+        """A received frame's payload once its cipher and the replay window accept it; None
+        (counted) when either does not. Skipped sequence numbers of a topic count as lost (a
         late frame that fills a gap takes one back)."""
         payload = self.open(frame, header.epoch)
         if payload is None:
@@ -163,9 +146,9 @@ class Route:
         return None if body is None else self.told(bytes(body))
 
     def told(self, said: Any) -> tuple[Identity | None, dict[str, Any] | None] | None:
-        """What the far side says of this entry (an announcement's opened body, or a hello's or
-        a welcome's item; None: nothing, an older rosgate): read, its type checked. None
-        (counted) when it cannot be read."""
+        """What the far side says of this entry (an announcement's body, or a hello's or a
+        welcome's item; None from an older rosgate), its type checked; None (counted) when
+        it cannot be read."""
         try:
             identity, qos = (announce.parse_body(said) if isinstance(said, bytes)
                              else announce.read(said))
@@ -210,13 +193,10 @@ class Route:
 
     def open(self, frame: bytes, epoch: int) -> bytes | None:
         """An envelope frame's payload if the cipher of its epoch accepts it; None (counted)
-        when it does not.
-        A reassembled frame comes as the bytearray it was reassembled in, the route's to keep:
-        on a receiving route of a raw codec (cdr: the core's own decode, CDR check and publisher
-        take a bytearray) with the ``none`` cipher, or one that opens in place
-        (:attr:`Cipher.in_place`), its header is cut off in place and the rest goes to rclpy
-        without a copy.
-        Other ciphers and codecs get bytes, as their contracts say."""
+        when it does not. A reassembled frame (a bytearray, the route's to keep) of a zero-copy
+        route with the none cipher or one that opens in place loses its header in place and
+        goes to rclpy without a copy; other ciphers and codecs get bytes, as their contracts
+        say."""
         if self.plain:
             if type(frame) is bytearray and self.zero_copy:
                 del frame[:envelope.SIZE]  # O(1): CPython moves the start, copies nothing
@@ -229,7 +209,6 @@ class Route:
             return None
         try:
             if type(frame) is bytearray and self.zero_copy and cipher.in_place:
-                # a reassembled frame, opened where it lies; header and tag cut off in place
                 with memoryview(frame) as view:
                     start, end = cipher.open_into(view[:envelope.SIZE], view[envelope.SIZE:])
                 del frame[envelope.SIZE + end:]
@@ -242,17 +221,15 @@ class Route:
             return None
 
 
+@dataclass(slots=True, eq=False)
 class SideSender:
     """Frames of a route that are not its messages, as the link's sender: an announcement (in
     the control class, never waiting out a link loss: the next one comes soon) or a service
     call (whose drop fails the call). Their bytes are not the route's data."""
 
-    __slots__ = ("route", "delivery", "drop")
-
-    def __init__(self, route: Route, delivery: Delivery, drop: Callable[..., None]):
-        self.route = route
-        self.delivery = delivery
-        self.drop = drop  # (reason, detail="")
+    route: Route
+    delivery: Delivery
+    drop: Callable[..., None]  # (reason, detail="")
 
     @property
     def topic_id(self) -> int:
@@ -262,16 +239,7 @@ class SideSender:
         pass
 
 
-class TopicFraming:
-    """How a topic's payloads become frames, chosen once per route (the spec's
-    ``Delivery.whole`` says the link must not cut them: ``framing: none``)."""
-
-    def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
-        """``flags``: the envelope's (FLAG_COMPRESSED); a bare frame has none."""
-        raise NotImplementedError
-
-
-class EnvelopeFraming(TopicFraming):
+class EnvelopeFraming:
     """``framing: rosgate``: the 28-byte envelope (topic id, the sender's epoch and sequence
     number, the send time), then the payload sealed by the topic's cipher, which authenticates
     the header too. Receivers are found by topic id (the router) and keep a replay window."""
@@ -284,10 +252,10 @@ class EnvelopeFraming(TopicFraming):
         return route.seal(flags, epoch, next(route.seqs), payload, stamp)
 
 
-class BareFraming(TopicFraming):
-    """``framing: none``: one datagram per message, the codec's bytes alone — laid out with the
-    topic's ``remote`` name (:mod:`rosgate.wire.names`) when the codec writes MessagePack (the
-    microcontroller format), so several topics can share a port."""
+class BareFraming:
+    """``framing: none``: one datagram per message, the codec's bytes alone (no flags) — after
+    the topic's ``remote`` name (:mod:`rosgate.wire.names`) when the codec writes MessagePack
+    (the microcontroller format), so several topics can share a port (:class:`BarePort`)."""
 
     def __init__(self, name: str | None, layout: Layout = LAYOUT_DEFAULT):
         self.prefix = pack_name(name, layout) if name is not None else b""
@@ -297,18 +265,10 @@ class BareFraming(TopicFraming):
 
 
 def max_wait_ns(topic: TopicConfig) -> int:
-    """How long (ns) a message may wait in the bridge's own buffers — the subscription's
-    queue, the receive buffer — before it is dropped (``too_late``) rather than delivered late:
-    the topic's ``max_delay`` (a camera that would rather skip a frame); 0, never, without one.
-
-    Why not a default for best effort: what waits there waits for a thread of the bridge, not
-    for the link. A process that is not scheduled for a while (a busy machine) finds a backlog
-    when it runs again and sends it at once; the link was idle meanwhile, so dropping it would
-    lose messages the link could carry. Where the link is the bottleneck (a budget, a full
-    kernel send buffer) frames wait in the link's queue instead, and there latest-only
-    replaces them (``superseded``) and the link's ``max_delay`` drops them (``too_late``). A
-    backlog in front of the bridge is bounded by the topic's own QoS depth; one in the link's
-    queue that stays longer than a stall lasts is shed (:class:`~rosgate.scheduler.Backlog`)."""
+    """How long (ns) a message may wait in the bridge's own buffers before it is dropped
+    ``too_late``: the topic's ``max_delay``; 0, never. No default: a backlog there waits for a
+    bridge thread, not the link, which can carry it; where the link is the bottleneck, frames
+    wait in its queue instead, shed by latest-only, its ``max_delay`` and the scheduler."""
     return int(1e9 * topic.max_delay) if topic.max_delay is not None else 0
 
 
@@ -316,9 +276,9 @@ class TransmitRoute(Route):
     """ROS subscription -> link."""
 
     def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
-                 warner: Warner, label: str, delivery: Delivery, *, framing: TopicFraming,
-                 link: Link, destination: Callable[[], Address | None],
-                 compression: Transform | None = None):
+                 warner: Warner, label: str, delivery: Delivery, *,
+                 framing: EnvelopeFraming | BareFraming, link: Link,
+                 destination: Callable[[], Address | None], compression: Transform | None = None):
         super().__init__(topic, topic_id, codec, keys, warner, label, delivery)
         self.topic = topic
         self.framing = framing
@@ -327,25 +287,20 @@ class TransmitRoute(Route):
         self.epoch: int | None = None  # of the key in use, set by the first frame
         self.seqs = itertools.count(1)  # its sequence numbers
         self._size = 1  # of a frame, lately: how many messages a datagram's worth is
-        rate = topic.max_rate
-        self.min_interval_ns = int(1e9 / rate) if rate else 0
+        self.min_interval_ns = int(1e9 / topic.max_rate) if topic.max_rate else 0
         self.last_sent_ns = 0
-        #: takes the next message already waiting, or None (set with the subscription)
+        #: takes the next message waiting in the subscription, or None (set with it)
         self.take: Callable[[], Any] | None = None
         self.transform = compression
         self.transform_id = bytes([compression.wire_id]) if compression is not None else b""
-        #: the QoS found from the publishers here (entries without qos; None: none found yet)
-        self.qos_found: dict[str, Any] | None = None
-        #: and the one its subscription has (None: the entry's own)
-        self.qos_in_use: dict[str, Any] | None = None
         #: the batch window (seconds, 0: none), its node's open windows, and what came in it
         self.window = topic.batch or 0.0
         self.batches = Batches()
         self.pending: list[Any] = []
 
     def encode(self, message: Any) -> tuple[bytes, int]:
-        """The message's payload, transformed (compressed) when that makes it smaller: then after
-        the transform's wire id, with the envelope flag that says so."""
+        """The message's payload and envelope flags: compressed when that makes it smaller (then
+        after the transform's wire id, with FLAG_COMPRESSED)."""
         payload = self.codec.encode(message)
         if self.transform is None:
             return payload, 0
@@ -360,10 +315,9 @@ class TransmitRoute(Route):
         return self.transform_id + packed, envelope.FLAG_COMPRESSED
 
     def on_message(self, message: Any) -> None:
-        """A message from the subscription, and every other one already waiting in it (up to a
-        datagram's worth): framed, then handed to the link together, so a backlog leaves in
-        few datagrams (one executor wake-up, one system call) instead of one per message.
-        With a batch window, the message opens the window instead (or joins the open one)."""
+        """A message, and every other one already waiting in the subscription (up to a
+        datagram's worth), handed to the link together: a backlog leaves in few datagrams
+        (one wake-up, one system call). With a batch window, it opens or joins the window."""
         if self.window:
             self.pending.append(message)
             if len(self.pending) == 1:
@@ -372,8 +326,7 @@ class TransmitRoute(Route):
         self._send(self._drain([message], DRAIN_FRAMES, DRAIN_BYTES))
 
     def flush(self) -> None:
-        """The batch window closed: what came in it, and everything waiting now, leaves
-        together."""
+        """The batch window closed: what came in it and everything waiting now leave together."""
         messages, self.pending = self.pending, []
         if self.take is not None and self.entity is not None:
             messages = self._drain(messages, BATCH_FRAMES, BATCH_BYTES)
@@ -386,18 +339,12 @@ class TransmitRoute(Route):
         if take is None:
             return messages
         max_wait, now = self.max_wait_ns, time.time_ns()
-        while len(messages) < frames:
-            got = take()
-            if got is None:
-                break
+        while len(messages) < frames and (got := take()) is not None:
             more, received = got
-            late = None
             if max_wait and now - received > max_wait:
-                late = Drop.TOO_LATE, f"waited over {max_wait / 1e6:.0f} ms to be taken"
-            if late:  # too long in the subscription's queue, and so was every message
-                # before it: drop them all
+                # too long in the subscription's queue, and so was every message before it
                 for _ in range(len(messages) + 1):
-                    self.drop(*late)
+                    self.drop(Drop.TOO_LATE, f"waited over {max_wait / 1e6:.0f} ms to be taken")
                 messages.clear()
                 continue
             messages.append(more)
@@ -407,20 +354,13 @@ class TransmitRoute(Route):
 
     def _send(self, messages: list[Any]) -> None:
         """Messages framed and handed to the link in one call."""
-        if not messages:
-            return
         to = self.destination()
         if to is None and self.link.datagram:
             for _ in messages:
                 self.drop(Drop.NO_PEER_YET, "the far side's address is not known yet")
             return
-        frames: list[bytes] = []
-        size = 0
-        for one in messages:
-            frame = self._frame(one)
-            if frame is not None:
-                frames.append(frame)
-                size += len(frame)
+        frames = [frame for frame in map(self._frame, messages) if frame is not None]
+        size = sum(map(len, frames))
         if size:
             self._size = size // len(frames)
         if frames:
@@ -475,11 +415,8 @@ class ReceiveRoute(Route):
         self.zero_copy = codec.raw  # the core's raw decode, CDR check and publisher take one
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
-        #: whatever this side's file says: the sender's envelope says what it transformed, and
-        #: the payload's first byte with which transform
+        #: the transform of a wire id, whatever this side's file says (the sender's frame says)
         self.transforms = transforms
-        #: the QoS its publisher has from the far side's publishers (None: the entry's own)
-        self.qos_in_use: dict[str, Any] | None = None
 
     def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> None:
         """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
@@ -505,38 +442,32 @@ class ReceiveRoute(Route):
                 self.drop(Drop.TOO_LATE, f"waited {waited / 1e6:.0f} ms in the receive buffer")
                 return
         if header.flags & envelope.FLAG_COMPRESSED:
-            restored = self.transform_back(payload)
-            if restored is None:
-                return
-            payload = restored
-        self.deliver(payload, size)
+            self.transform_back(payload, size)
+        else:
+            self.deliver(payload, size)
 
-    def transform_back(self, payload: bytes) -> bytes | None:
-        """A transformed payload as the codec wrote it; None when it cannot be (counted)."""
+    def transform_back(self, payload: bytes, size: int) -> None:
+        """A transformed payload delivered as the codec wrote it, or dropped (counted)."""
         transform = self.transforms(payload[0]) if payload else None
         if transform is None:
             self.drop(Drop.DECOMPRESSION_ERROR, "transformed by a transform this side does not "
                       f"have (wire id {payload[0] if payload else 'missing'})")
-            return None
+            return
         try:
-            return transform.decode(bytes(payload[1:]))
-        except TransformError as exc:
-            self.drop(Drop.DECOMPRESSION_ERROR, f"{transform.name}: {exc}")
+            restored = transform.decode(bytes(payload[1:]))
         except Exception as exc:  # a transform must raise TransformError; anything else: its bug
-            self.drop(Drop.DECOMPRESSION_ERROR, f"{transform.name} failed: {type(exc).__name__}: "
-                      f"{exc}")
-        return None
+            failed = "" if isinstance(exc, TransformError) else f" failed: {type(exc).__name__}"
+            self.drop(Drop.DECOMPRESSION_ERROR, f"{transform.name}{failed}: {exc}")
+        else:
+            self.deliver(restored, size)
 
     def deliver(self, payload: bytes, size: int) -> None:
         """Decode and publish; ``size`` is what arrived on the link, for the counters."""
         try:
             message = self.decode(payload)
-        except CodecError as exc:
-            self.drop(Drop.DECODE_ERROR, str(exc))
-            return
         except Exception as exc:  # a codec must raise CodecError; anything else is its bug
-            self.drop(Drop.DECODE_ERROR,
-                      f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
+            self.drop(Drop.DECODE_ERROR, str(exc) if isinstance(exc, CodecError)
+                      else f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
             return
         try:
             self.publish(message)
@@ -562,8 +493,7 @@ class BarePort:
 
     def add(self, route: ReceiveRoute, names: set[str]) -> None:
         if self.named:
-            for name in names:
-                self.routes[name] = route
+            self.routes.update(dict.fromkeys(names, route))
         else:
             self.only = route
 

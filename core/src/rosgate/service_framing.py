@@ -1,19 +1,8 @@
-"""Service framings: how calls travel when a service entry says ``framing: <name>`` other than
-``rosgate`` — the call pattern of a device without rosgate's envelope (a microcontroller's
-firmware), on a stream transport, in peer role.
-
-A plugin subclasses :class:`ServiceFraming`, names it (``name`` is what ``framing:`` says) and
-registers it through the ``rosgate_service_framings`` hook. The core keeps the entries, their
-ROS side and the listening ports (with the bridge's limits on connections and sources); the
-framing makes the two things that speak the device's pattern:
-
-* ``direction: transmit``: :meth:`ServiceFraming.caller`, a service route whose
-  ``on_request(request, respond)`` the proxy ROS server calls: it reaches the device at
-  ``address`` over ``transport`` and answers every call, within the entry's ``timeout``.
-* ``direction: receive``: :meth:`ServiceFraming.server`, a :class:`CallPort` per listening port,
-  to which the core adds every serving route of that port and hands every accepted connection.
-
-``rosgate-mcu-cvra`` (``framing: serial_datagram``, CVRA's firmware) is one.
+"""Service framings: the call pattern of a device without rosgate's envelope (a
+microcontroller's firmware), for service entries with ``framing: <name>`` (peer role, a stream
+transport). A plugin subclasses :class:`ServiceFraming` and registers it through the
+``rosgate_service_framings`` hook (docs/plugins.md, "Service framings"); the core keeps the ROS
+side and the listening ports with their limits. ``rosgate-mcu-cvra`` is one.
 """
 
 from __future__ import annotations
@@ -48,10 +37,10 @@ class ServiceFraming(ABC):
     @classmethod
     @abstractmethod
     def caller(cls, *route_args: Any, transport: StreamTransport, address: Address) -> Any:
-        """``direction: transmit``: a route made with ``route_args`` (the arguments of
-        :class:`rosgate.services.ServiceRoute`, so subclass it) that calls the device at
-        ``address``. The core serves the entry's ROS service with its ``on_request``, and calls
-        its ``close()``, if it has one, when the route is removed."""
+        """``direction: transmit``: a :class:`rosgate.services.ServiceRoute` subclass made with
+        ``route_args`` that calls the device at ``address``: the core serves the ROS service
+        with its ``on_request(request, respond)`` (answer every call within ``timeout``) and
+        calls its ``close()``, if it has one, when the route is removed."""
 
     @classmethod
     @abstractmethod

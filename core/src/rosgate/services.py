@@ -1,28 +1,17 @@
-"""Services across the link: a ROS call made on one side, served by the real server on the other
-(docs/services.md says how they behave for users).
+"""Services across the link (docs/services.md): ``transmit`` is a :class:`CallerRoute`, a proxy
+ROS server here whose calls cross the link; ``receive`` a :class:`ServerRoute`, which serves
+calls from the link through a ROS client.
 
-* ``transmit`` -> :class:`CallerRoute`: a proxy ROS service server here, named ``service``. Each
-  call crosses the link; the answer comes back and is returned to the ROS caller.
-* ``receive`` -> :class:`ServerRoute`: calls from the link are served by the ROS server here,
-  through a ROS client.
-
-Wire (``framing: rosgate``): a request is an envelope with ``FLAG_REQUEST``, topic id = the
-service's id, and the call's id in (epoch, seq): the caller's epoch and a per-caller count from
-1. The body is ``cipher.seal(header, codec(Request))``. The answer echoes epoch and seq with
-``FLAG_REPLY``; with ``FLAG_FAILED`` too when the serving side got no answer from its ROS server,
-and then the (sealed) body is the reason in UTF-8. Each answer finds its call by seq; one that
-finds none is dropped as ``late_answer``. A call the bridge cannot complete is answered with
-:func:`failure` within ``timeout``, counted by reason and warned about.
-
-Codecs: the entry's codec is made for ``Type.Request`` and ``Type.Response``; a raw codec
-(``cdr``) gets rclpy's message objects serialized first (:class:`ServiceCodec`).
+Wire (``framing: rosgate``): a request has ``FLAG_REQUEST``, the service's id and the call's id
+in (epoch, seq); its answer echoes them with ``FLAG_REPLY`` (and ``FLAG_FAILED``, the body then
+the reason in UTF-8). A call the bridge cannot complete is answered with :func:`failure` within
+``timeout``, counted by reason and warned about.
 """
 
 from __future__ import annotations
 
 import heapq
 import itertools
-import logging
 import threading
 import time
 from collections.abc import Callable
@@ -38,24 +27,21 @@ from .transport import Address
 from .warn import BUGS
 from .wire import envelope
 
-log = logging.getLogger("rosgate")
-
 # A proxy needs deep queues: with the default service QoS (depth 10) a server answered 11 of 50
 # concurrent calls; with depth 1000 on both ends, 50 of 50 (DESIGN.md, measured).
 QUEUE_DEPTH = 1000
 # action_msgs: GoalStatus.STATUS_ABORTED, CancelGoal.Response.ERROR_REJECTED
 GOAL_ABORTED = 6
 CANCEL_REJECTED = 1
-# a call whose ROS server is not discovered yet waits for it this share of its timeout, and
-# looks again this often (seconds)
+# a call waits this share of its timeout for its ROS server's discovery, polling (seconds)
 DISCOVERY_SHARE = 0.8
 DISCOVERY_POLL = 0.05
 
 
 def failure(response_type: Any, reason: str) -> Any:
     """The answer a ROS caller gets when the bridge has none (ROS 2 services have no error
-    channel): the type's default Response, but ``success = False`` and ``message`` = the reason
-    (starting "rosgate: ") where the type has those fields (std_srvs Trigger and SetBool do)."""
+    channel): the default Response, with ``success = False`` and ``message = "rosgate: <reason>"``
+    where the type has those fields."""
     response = response_type()
     fields = response_type.get_fields_and_field_types()
     if fields.get("success") == "boolean":
@@ -83,25 +69,22 @@ class Call:
         self._lock = threading.Lock()
         self.done = False
 
-    def _settle(self) -> bool:
-        with self._lock:
-            first, self.done = not self.done, True
-        return first
-
     def answer(self, response: Any) -> bool:
-        if self._settle():
-            self._on_answer(response)
-            return True
-        return False
+        return self._settle(self._on_answer, response)
 
     def fail(self, reason: str, count: Callable[[], None] | None = None) -> bool:
         """``count`` runs before the failure is answered, so whoever sees it sees it counted."""
-        if self._settle():
+        return self._settle(self._on_failure, reason, count)
+
+    def _settle(self, outcome: Callable[[Any], None], value: Any,
+                count: Callable[[], None] | None = None) -> bool:
+        with self._lock:
+            first, self.done = not self.done, True
+        if first:
             if count is not None:
                 count()
-            self._on_failure(reason)
-            return True
-        return False
+            outcome(value)
+        return first
 
 
 class Deadlines:
@@ -149,7 +132,6 @@ class ServiceCodec:
     def __init__(self, codec_cls: type, srv_type: Any, options: Any):
         self.request = codec_cls(srv_type.Request, options)
         self.response = codec_cls(srv_type.Response, options)
-        self.name = self.request.name
 
     @staticmethod
     def encode(codec: Any, message: Any) -> bytes:
@@ -270,8 +252,8 @@ class CallerRoute(ServiceRoute):
         return True
 
     def fail_all(self, reason: Reason, detail: str) -> None:
-        """Every call still waiting is failed (the session's line was lost): an action's
-        goal then ends aborted rather than waiting out its result's timeout."""
+        """Every waiting call fails (the session's line was lost): an action's goal ends
+        aborted rather than waiting out its result's timeout."""
         with self._lock:
             waiting = [call for _, call in self.calls.values()]
             self.calls.clear()
@@ -294,10 +276,8 @@ class CallerRoute(ServiceRoute):
 
 
 class ServerRoute(ServiceRoute):
-    """``receive``: calls from the far side, served by the ROS server here. At most
-    :data:`QUEUE_DEPTH` calls from the link are in progress at once (the ROS client's queue);
-    one more is answered as a failure at once (``too_many_calls``), so a flood of requests
-    cannot pile up pending calls and deadlines."""
+    """``receive``: calls from the far side, served by the ROS server here. A call beyond
+    :data:`QUEUE_DEPTH` in progress fails at once (``too_many_calls``): a flood cannot pile up."""
 
     def __init__(self, *args: Any) -> None:
         super().__init__(*args)
@@ -305,9 +285,8 @@ class ServerRoute(ServiceRoute):
 
     def serve(self, request: Any, call: Call) -> None:
         """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``.
-        A server not discovered yet is waited for (polled every :data:`DISCOVERY_POLL` s) up
-        to :data:`DISCOVERY_SHARE` of the timeout, so that the failure still reaches the caller,
-        whose bridge waits ``timeout`` in all."""
+        An undiscovered server is polled for up to :data:`DISCOVERY_SHARE` of the timeout, so
+        that the failure still reaches the caller, whose bridge waits ``timeout`` in all."""
         start = time.monotonic()
         wait_until = start + self.service.timeout * DISCOVERY_SHARE
         client = self.entity
@@ -345,10 +324,11 @@ class ServerRoute(ServiceRoute):
 
     def on_request(self, header: envelope.Header, frame: bytes, link: Link,
                    source: Address) -> None:
-        """A link's thread: a call from the far side (framing rosgate); the answer goes back on
-        the link and to the address it came from."""
-        if len(frame) > envelope.SIZE + self.service.max_request:
-            self.drop(Drop.TOO_LARGE, f"request of {len(frame) - envelope.SIZE} bytes, "
+        """A link's thread: a call from the far side (framing rosgate), answered on ``link`` to
+        where it came from."""
+        size = len(frame)
+        if size > envelope.SIZE + self.service.max_request:
+            self.drop(Drop.TOO_LARGE, f"request of {size - envelope.SIZE} bytes, "
                                       f"max_request is {self.service.max_request}")
             return
         payload = self.admit(header, frame)
@@ -357,11 +337,11 @@ class ServerRoute(ServiceRoute):
         if self.check.mismatch is not None:
             self.refuse(header, link, source)
             return
-        if self.check.awaiting and self.check.hold(len(frame), lambda agreed: self.accept(
-                header, payload, len(frame), link, source) if agreed else
-                self.refuse(header, link, source)):
+        if self.check.awaiting and self.check.hold(size, lambda agreed: self.accept(
+                header, payload, size, link, source) if agreed else self.refuse(
+                header, link, source)):
             return  # until the far side says its type (rosgate.announce)
-        self.accept(header, payload, len(frame), link, source)
+        self.accept(header, payload, size, link, source)
 
     def refuse(self, header: envelope.Header, link: Link, source: Address) -> None:
         """A call of another type than this side's: answered as a failure, never served."""
@@ -395,11 +375,15 @@ class ServerRoute(ServiceRoute):
             busy = self.in_flight >= QUEUE_DEPTH
             if not busy:
                 self.in_flight += 1
+        if busy:
+            self.drop(Drop.TOO_MANY_CALLS, f"{QUEUE_DEPTH} calls in progress")
+            self.reply(header, link, source, envelope.FLAG_FAILED, f"the serving bridge has "
+                       f"{QUEUE_DEPTH} calls of {self.service.service} in progress".encode())
+            return
 
         def reply(flags: int, body: bytes) -> None:
-            if not busy:
-                with self._lock:
-                    self.in_flight -= 1
+            with self._lock:
+                self.in_flight -= 1
             self.reply(header, link, source, flags, body)
 
         def answered(response: Any) -> None:
@@ -411,11 +395,6 @@ class ServerRoute(ServiceRoute):
                 return
             reply(0, body)
 
-        if busy:
-            self.drop(Drop.TOO_MANY_CALLS, f"{QUEUE_DEPTH} calls in progress")
-            reply(envelope.FLAG_FAILED, f"the serving bridge has {QUEUE_DEPTH} calls of "
-                                        f"{self.service.service} in progress".encode())
-            return
         self.serve(request, Call(answered, lambda reason: reply(envelope.FLAG_FAILED,
                                                                 reason.encode())))
 

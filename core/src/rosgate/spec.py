@@ -1,10 +1,6 @@
-"""What a route needs, decided once by the resolver and never looked up again.
-
-:class:`RouteSpec` is an entry of bringup.yaml (or of a client's hello) with every plugin found
-and configured, its interface imported and its addresses checked — frozen, so a route, its
-link and its scheduler all read the same values. :class:`Delivery` is the part a link reads of
-every frame's sender: a route's comes from its spec, the control channel's and the
-announcements' are the constants below.
+"""What a route needs, decided once by the resolver and never looked up again: a frozen
+:class:`RouteSpec` per entry (plugins found, interface imported, addresses checked), and the
+:class:`Delivery` a link reads of every frame's sender.
 """
 
 from __future__ import annotations

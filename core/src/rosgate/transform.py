@@ -1,20 +1,11 @@
-"""Payload transforms: a topic's payload, bytes to bytes, between the codec and the cipher.
-Compression is one (``compression: zstd``, from the ``rosgate-compress-zstd`` distribution).
+"""Payload transforms (compression): a topic's payload, bytes to bytes, between the codec and
+the cipher. A plugin subclasses :class:`Transform` and registers it through the
+``rosgate_transforms`` hook (docs/plugins.md, "A compressor and a packetizer").
 
-A transform plugin subclasses :class:`Transform`, sets :attr:`~Transform.name` and
-:attr:`~Transform.wire_id`, implements :meth:`~Transform.encode` and :meth:`~Transform.decode`,
-and is registered through the ``rosgate_transforms`` hook. A transmitting topic picks it by name;
-its options come from ``plugins: {NAME: {...}}``, and a topic may give its own on top
-(``compression: {zstd: {level: 19}}``).
-
-On the wire a transformed payload has the envelope's ``FLAG_COMPRESSED`` set and starts with the
-transform's one-byte ``wire_id``: the receiver picks the transform by that byte, so its file
-needs no setting. The flag is in the header, which every cipher authenticates, so a receiver
-decodes exactly what the sender transformed. A payload :meth:`~Transform.encode` leaves alone
-(``None``: it would not shrink) goes as it was, flag clear.
-
-Threads: ``encode`` runs in ROS executor threads, ``decode`` in link threads, each possibly in
-several at once: lock what an instance keeps between calls (a compression context).
+A transformed payload starts with the transform's ``wire_id``, under the envelope's
+``FLAG_COMPRESSED`` (authenticated by every cipher): the receiver needs no setting. ``encode``
+runs in executor threads, ``decode`` in link threads, several at once: lock what an instance
+keeps between calls (a compression context).
 """
 
 from __future__ import annotations
@@ -41,9 +32,8 @@ class Transform(ABC):
     wire_id: ClassVar[int]
 
     def __init__(self, options: Any, limit: int):
-        """``options``: the plugin's ``Options`` instance (a plain mapping is parsed here the same
-        way); ``limit``: the most bytes :meth:`decode` may return. Kept as :attr:`options` and
-        :attr:`limit`."""
+        """Kept as :attr:`options`, the plugin's ``Options`` (a plain mapping is parsed here),
+        and :attr:`limit`, the most bytes :meth:`decode` may return."""
         self.options = as_options(type(self), options)
         self.limit = limit
 
