@@ -325,7 +325,8 @@ def _check_class(cls: Any, base: type) -> str | None:
     if not isinstance(name, str) or not name.isidentifier():
         return f"{cls.__name__} has no valid 'name' (a short identifier such as 'udp')"
     if inspect.isabstract(cls):
-        return f"{cls.__name__} does not implement {', '.join(sorted(cls.__abstractmethods__))}"
+        missing = sorted(getattr(cls, "__abstractmethods__", ()))
+        return f"{cls.__name__} does not implement {', '.join(missing)}"
     if base is Transport and not issubclass(cls, (DatagramTransport, StreamTransport,
                                                   BusTransport)):
         return f"{cls.__name__} is no kind of link (subclass DatagramTransport, StreamTransport " \
