@@ -1,10 +1,6 @@
-"""Rate-limited warnings: what a peer's bytes can make the bridge say, said a bounded number of
-times. A flood of bad frames costs a few log lines, never a log line each.
-
-* :class:`Warner` — one warning per subject and reason per window, then a count of what was
-  held back.
-* :data:`BUGS` — tracebacks of unexpected errors (a handler or a plugin that raised): one
-  traceback per reason per minute; the rest are counted by whoever caught them.
+"""Rate-limited warnings: a flood of bad frames from a peer costs a few log lines, never one
+each. :class:`Warner` says one warning per subject and reason per window, then how many were
+held back; :data:`BUGS` one traceback of an unexpected error per reason per minute.
 """
 
 from __future__ import annotations
