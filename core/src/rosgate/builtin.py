@@ -185,9 +185,9 @@ class Reassembler:
             before, partial.cost = 0, PARTIAL_COST + count
         elif partial.count != count:
             raise FramingError("fragment count changed within a frame")
+        elif partial.have[index]:
+            return None  # a duplicated datagram
         else:
-            if partial.have[index]:
-                return None  # a duplicated datagram
             self._check_sizes(count, index, size, partial.chunk, partial.last)
             before = partial.cost
             # still coming: its time runs from now (a frame on a slow link takes long), and

@@ -42,16 +42,11 @@ DISABLE_VARIABLE = "ROSGATE_DISABLE_PLUGINS"
 BUILTIN = "builtin"
 HOOK_PREFIX = "rosgate_"
 
-KINDS: dict[str, tuple[str, type]] = {
-    # kind: (hook name, base class)
-    "transport": ("rosgate_transports", Transport),
-    "codec": ("rosgate_codecs", Codec),
-    "cipher": ("rosgate_ciphers", Cipher),
-    "transform": ("rosgate_transforms", Transform),
-    "packetizer": ("rosgate_packetizers", Packetizer),
-    "monitor": ("rosgate_monitors", Monitor),
-    "service_framing": ("rosgate_service_framings", ServiceFraming),
-    "bus_role": ("rosgate_bus_roles", BusRole),
+#: each kind's base class; its hook is ``rosgate_<kind>s``
+KINDS: dict[str, type] = {
+    "transport": Transport, "codec": Codec, "cipher": Cipher, "transform": Transform,
+    "packetizer": Packetizer, "monitor": Monitor, "service_framing": ServiceFraming,
+    "bus_role": BusRole,
 }
 #: the word of a kind in distribution names, where it is not the kind itself
 _DISTRIBUTION_WORD = {"cipher": "crypto", "transform": "compress", "packetizer": "recovery"}
@@ -196,8 +191,8 @@ class Plugins:
                 unknown = self.manager.unknown_hooks(exc.plugin)
                 self.manager.unregister(exc.plugin)
                 return fail(_misspelt(unknown) if unknown else str(exc))
-            for kind, (hook_name, base) in KINDS.items():
-                for cls in self._call(module, hook_name, fail):
+            for kind, base in KINDS.items():
+                for cls in self._call(module, f"{HOOK_PREFIX}{kind}s", fail):
                     problem = _check_class(cls, base) or self._clash(kind, cls)
                     if problem:
                         fail(problem)
