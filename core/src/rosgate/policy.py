@@ -13,6 +13,7 @@ from functools import lru_cache
 from typing import Any
 
 from .config import ActionConfig, ClientPolicy, Rule, ServiceConfig, TopicConfig
+from .config.kinds import ROS_NAME_MAX
 
 
 @lru_cache(maxsize=1024)
@@ -28,11 +29,6 @@ def matches(pattern: str, text: str) -> bool:
 
 #: an absolute ROS name: parts of letters, digits and '_', none starting with a digit
 _ROS_NAME = re.compile(r"(?:/[A-Za-z_][A-Za-z0-9_]*)+")
-ROS_NAME_MAX = 200  # characters, as in a file
-
-
-def is_ros_name(text: str) -> bool:
-    return len(text) <= ROS_NAME_MAX and _ROS_NAME.fullmatch(text) is not None
 
 
 def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionConfig,
@@ -47,7 +43,7 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionCon
                    ("service", policy.services))
     name, direction = entry.remote, str(entry.direction)
     what = name if is_topic else f"{kind} {name}"
-    if not is_ros_name(name):
+    if len(name) > ROS_NAME_MAX or not _ROS_NAME.fullmatch(name):
         return (f"{policy.name} may not {direction} {name!r}: it is not a ROS name (parts of "
                 "letters, digits and '_' after a single '/', none starting with a digit)")
     ways = [r for r in rules if r.direction in ("both", direction)]
