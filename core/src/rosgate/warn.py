@@ -43,19 +43,17 @@ class Warner:
 
     def warn(self, subject: str, reason: str, detail: str) -> None:
         held = self.due(subject, reason)
-        if held is None:
-            return
-        more = f" ({held} more since the last warning)" if held else ""
-        log.warning("%s: dropped (%s): %s%s", subject, reason, detail, more)
+        if held is not None:
+            more = f" ({held} more since the last warning)" if held else ""
+            log.warning("%s: dropped (%s): %s%s", subject, reason, detail, more)
 
     def bug(self, reason: str, message: str) -> None:
         """Log ``message`` with the traceback being handled, at most once per window for
         ``reason``; the caller counts every occurrence itself."""
         held = self.due("bug", reason)
-        if held is None:
-            return
-        more = f" ({held} more since the last one, not shown)" if held else ""
-        log.error("%s%s", message, more, exc_info=True)
+        if held is not None:
+            more = f" ({held} more since the last one, not shown)" if held else ""
+            log.error("%s%s", message, more, exc_info=True)
 
 
 #: tracebacks of unexpected errors, process-wide
