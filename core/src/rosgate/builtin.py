@@ -66,8 +66,6 @@ class NoCipher(Cipher):
         return body
 
 
-# -- fragments --------------------------------------------------------------------------------
-
 def fragments(frame: bytes | bytearray, max_frame: int, topic_id: int,
               frame_id: int) -> list[tuple[bytes, memoryview]]:
     """The fragments of ``frame`` (longer than ``max_frame``) as (header, chunk) pairs: each

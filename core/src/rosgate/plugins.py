@@ -136,7 +136,6 @@ class Plugins:
         self._waiting: list[metadata.EntryPoint] = []  # found, not loaded yet
         self._lock = threading.RLock()  # a server prepares its clients' topics in their threads
 
-    # -- loading ---------------------------------------------------------------------------
     @classmethod
     def discover(cls) -> Plugins:
         """List the entry points (importing none but the core's own)."""
@@ -245,7 +244,6 @@ class Plugins:
                 for key in [k for k, r in table.items() if r.plugin == plugin]:
                     del table[key]
 
-    # -- lookup ----------------------------------------------------------------------------
     def get(self, kind: str, name: str) -> Registration | None:
         """The plugin class of that kind and name: the entry point named ``name`` loaded first,
         every other one if the class is not there."""

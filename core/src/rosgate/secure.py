@@ -48,8 +48,6 @@ class HandshakeError(LinkError):
     """A handshake that failed: not Noise, a wrong or unknown key, too slow, too big."""
 
 
-# -- the handshake ----------------------------------------------------------------------------
-
 def _noise(initiator: bool, identity: bytes, remote: bytes | None = None):
     from noise.connection import Keypair, NoiseConnection
 
@@ -192,8 +190,6 @@ class SecureConnection:
         self.closed = True
         self.raw.close()
 
-
-# -- session keys --------------------------------------------------------------------------------
 
 def hkdf(secret: bytes, info: bytes, salt: bytes | None = None, length: int = 32) -> bytes:
     return HKDF(algorithm=SHA256(), length=length, salt=salt, info=info).derive(secret)
