@@ -35,10 +35,6 @@ class CdrCodec(Codec):
     name = "cdr"
     raw = True
 
-    @dataclass(frozen=True)
-    class Options:
-        """None: the bytes are ROS's own."""
-
     def encode(self, message: bytes) -> bytes:
         return message
 
@@ -54,10 +50,6 @@ class NoCipher(Cipher):
 
     name = "none"
     authenticates = False
-
-    @dataclass(frozen=True)
-    class Options:
-        """None: there is no key."""
 
     def seal(self, header: bytes, payload: bytes) -> bytes:
         return payload
@@ -305,10 +297,6 @@ class Fragments(Packetizer):
 
     name = "fragments"
     magic = (FRAGMENT_MAGIC,)
-
-    @dataclass(frozen=True)
-    class Options:
-        """None: the link's ``max_frame`` says it all."""
 
     def __init__(self, link: PacketLink):
         super().__init__(link)
