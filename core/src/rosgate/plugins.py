@@ -147,18 +147,14 @@ class Plugins:
                 plugins.blocked.append(ep.name)
             else:
                 plugins._waiting.append(ep)
-        plugins._load_named(BUILTIN)
+        plugins.load_all(BUILTIN)
         return plugins
 
-    def load_all(self) -> None:
+    def load_all(self, name: str | None = None) -> None:
+        """Load the entry points not loaded yet (only those named ``name``, when given)."""
         with self._lock:
-            while self._waiting:
-                self._load(self._waiting[0])
-
-    def _load_named(self, name: str) -> None:
-        with self._lock:
-            for ep in [ep for ep in self._waiting if ep.name == name]:
-                self._load(ep)
+            while waiting := [ep for ep in self._waiting if name in (None, ep.name)]:
+                self._load(waiting[0])
 
     def _load(self, ep: metadata.EntryPoint) -> None:
         self._waiting.remove(ep)
@@ -249,7 +245,7 @@ class Plugins:
         every other one if the class is not there."""
         with self._lock:
             if (kind, name) not in self.registered:
-                self._load_named(name)
+                self.load_all(name)
             if (kind, name) not in self.registered:
                 self.load_all()
             return self.registered.get((kind, name))
