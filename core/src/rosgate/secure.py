@@ -61,17 +61,17 @@ def _noise(initiator: bool, identity: bytes, remote: bytes | None = None):
     return noise
 
 
-def _read_message(connection: StreamConnection, buffer: bytearray, deadline: float) -> bytes:
-    """One ``u16 length | message`` of the handshake, within the deadline."""
+def _read_message(connection: StreamConnection, deadline: float) -> tuple[bytes, bytes]:
+    """One ``u16 length | message`` of the handshake within the deadline, and what came after."""
+    buffer = bytearray()
     while True:
         if len(buffer) >= RECORD.size:
             (size,) = RECORD.unpack_from(buffer)
             if size > HANDSHAKE_MAX:
                 raise HandshakeError(f"not a handshake (a message of {size} bytes)")
-            if len(buffer) >= RECORD.size + size:
-                message = bytes(buffer[RECORD.size:RECORD.size + size])
-                del buffer[:RECORD.size + size]
-                return message
+            end = RECORD.size + size
+            if len(buffer) >= end:
+                return bytes(buffer[RECORD.size:end]), bytes(buffer[end:])
         left = deadline - time.monotonic()
         if left <= 0:
             raise HandshakeError("no handshake in time")
@@ -98,14 +98,13 @@ def initiate(connection: StreamConnection, identity: bytes, server_key: bytes,
     deadline = time.monotonic() + timeout
     noise = _noise(True, identity, server_key)
     _send_message(connection, noise.write_message(b""))
-    buffer = bytearray()
-    message = _read_message(connection, buffer, deadline)
+    message, pending = _read_message(connection, deadline)
     try:
         noise.read_message(message)
     except Exception:  # noiseprotocol raises several kinds; all mean the same here
         raise HandshakeError("the server's answer does not verify (is bridge.server_key the "
                              "server's key?)") from None
-    return SecureConnection(connection, noise, server_key, bytes(buffer))
+    return SecureConnection(connection, noise, server_key, pending)
 
 
 def respond(connection: StreamConnection, identity: bytes, known: Callable[[bytes], bool],
@@ -115,8 +114,7 @@ def respond(connection: StreamConnection, identity: bytes, known: Callable[[byte
     ``admit``, asked before the Diffie-Hellman, refuses with :class:`Busy` when False."""
     deadline = time.monotonic() + timeout
     noise = _noise(False, identity)
-    buffer = bytearray()
-    message = _read_message(connection, buffer, deadline)
+    message, pending = _read_message(connection, deadline)
     if admit is not None and not admit():
         raise Busy("too many handshakes at once")
     try:
@@ -127,7 +125,7 @@ def respond(connection: StreamConnection, identity: bytes, known: Callable[[byte
     if not known(remote):
         raise UnknownKey(remote)
     _send_message(connection, noise.write_message(b""))
-    return SecureConnection(connection, noise, remote, bytes(buffer))
+    return SecureConnection(connection, noise, remote, pending)
 
 
 class Busy(HandshakeError):
