@@ -8,7 +8,6 @@ certificate authority. A private key file others can read is refused: they could
 from __future__ import annotations
 
 import base64
-import binascii
 import os
 import stat
 from pathlib import Path
@@ -70,8 +69,7 @@ def load_private(path: Path) -> bytes:
 def write_private(path: Path, key: bytes, force: bool = False) -> None:
     """Write a private key file, mode 0600 from its creation; never over an existing file
     unless ``force``."""
-    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if force else os.O_EXCL)
-    fd = os.open(path, flags, 0o600)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if force else os.O_EXCL), 0o600)
     with os.fdopen(fd, "w") as out:
         os.fchmod(out.fileno(), 0o600)
         out.write(encode(key) + "\n")
@@ -82,6 +80,6 @@ def _decode(text: object) -> bytes | None:
         return None
     try:
         key = base64.b64decode(text.strip(), validate=True)
-    except (binascii.Error, ValueError):
+    except ValueError:  # binascii.Error is one
         return None
     return key if len(key) == KEY_SIZE else None
