@@ -117,10 +117,6 @@ class PluginManager(pluggy.PluginManager):
                                        tryfirst=False, trylast=False, specname=None)
         return opts
 
-    def unknown_hooks(self, plugin: Any) -> list[str]:
-        return sorted(caller.name for caller in self.get_hookcallers(plugin) or []
-                      if not caller.has_spec())
-
 
 class Plugins:
     """Every plugin class this process knows of, by kind and name, loaded as asked for."""
@@ -183,7 +179,8 @@ class Plugins:
             try:
                 self.manager.check_pending()
             except pluggy.PluginValidationError as exc:
-                unknown = self.manager.unknown_hooks(exc.plugin)
+                unknown = sorted(c.name for c in self.manager.get_hookcallers(exc.plugin) or []
+                                 if not c.has_spec())
                 self.manager.unregister(exc.plugin)
                 return fail(_misspelt(unknown) if unknown else str(exc))
             for kind, base in KINDS.items():
