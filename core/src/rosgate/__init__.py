@@ -1,10 +1,8 @@
 """rosgate: a pluggable ROS 2 network bridge.
 
-The public API for plugin authors is what this module exports, with :mod:`rosgate.hookspecs`
-(the hooks), :mod:`rosgate.options` (declared options), :mod:`rosgate.keys` (the key convention).
-A tree codec maps messages through the library ``rosgate-message-tree`` (import
-``rosgate_message_tree``). A plugin's tests run the plugin kit, the distribution
-``rosgate-testing`` (import ``rosgate_testing``).
+The API for plugin authors is what this module exports, with :mod:`rosgate.hookspecs`,
+:mod:`rosgate.options` and :mod:`rosgate.keys`. Tree codecs map messages with
+``rosgate_message_tree``; a plugin's tests run the plugin kit, ``rosgate_testing``.
 """
 
 from .cipher import Cipher
@@ -35,11 +33,10 @@ from .transport import (
 
 __all__ = [
     "Address", "Cipher", "CipherError", "Codec", "CodecError", "Command", "ConfigError",
-    "DatagramEndpoint",
-    "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection", "LinkError", "Monitor",
-    "OptionError", "PacketLink", "Packetizer", "RosgateError", "SocketConnection",
-    "SocketListener", "StreamConnection", "StreamListener", "StreamTransport", "Transform",
-    "TransformError", "Transport", "check_ip_address", "hookimpl", "ip_source_hosts", "option",
-    "parse_host_port",
+    "DatagramEndpoint", "DatagramTransport", "FastDatagramEndpoint", "FastStreamConnection",
+    "LinkError", "Monitor", "OptionError", "PacketLink", "Packetizer", "RosgateError",
+    "SocketConnection", "SocketListener", "StreamConnection", "StreamListener", "StreamTransport",
+    "Transform", "TransformError", "Transport", "check_ip_address", "hookimpl", "ip_source_hosts",
+    "option", "parse_host_port",
 ]
 __version__ = "0.1.0"

@@ -1,9 +1,6 @@
 """The built-in plugins, registered through the same hooks as any other: the ``cdr`` codec, the
-``none`` cipher, and the datagram links' own packetizer, ``fragments`` (numbered fragments,
-``RF``: the format is :mod:`rosgate.wire.framing`'s), which cuts frames and puts them back
-together within bounds, counting every frame given up once through ``on_lost(topic_id,
-reason)``.
-"""
+``none`` cipher and the datagram links' own packetizer, ``fragments`` (``RF``, the format of
+:mod:`rosgate.wire.framing`)."""
 
 from __future__ import annotations
 
@@ -32,20 +29,11 @@ from .wire.framing import (
 
 
 class CdrCodec(Codec):
-    """The ROS wire format itself, passed through untouched.
-
-    The subscription is raw (rclpy hands over the serialized CDR bytes) and the publisher
-    publishes those bytes: no Python-level (de)serialization at all. Frames no cipher
-    authenticated are checked by the core before they are published
-    (:func:`rosgate.ros.cdr_checker`); authenticated ones pass straight through.
-    """
+    """The ROS wire format itself, passed through untouched (raw subscription, raw publish).
+    Frames no cipher authenticated are checked by :func:`rosgate.ros.cdr_checker` first."""
 
     name = "cdr"
     raw = True
-
-    @dataclass(frozen=True)
-    class Options:
-        """None: the bytes are ROS's own."""
 
     def encode(self, message: bytes) -> bytes:
         return message
@@ -63,18 +51,12 @@ class NoCipher(Cipher):
     name = "none"
     authenticates = False
 
-    @dataclass(frozen=True)
-    class Options:
-        """None: there is no key."""
-
     def seal(self, header: bytes, payload: bytes) -> bytes:
         return payload
 
     def open(self, header: bytes, body: bytes) -> bytes:
         return body
 
-
-# -- fragments --------------------------------------------------------------------------------
 
 def fragments(frame: bytes | bytearray, max_frame: int, topic_id: int,
               frame_id: int) -> list[tuple[bytes, memoryview]]:
@@ -134,27 +116,18 @@ ASIDE_COST = 128
 
 
 class Reassembler:
-    """Puts fragments back together into one preallocated buffer per frame, within bounds.
+    """Puts fragments back together, one buffer per frame, within bounds; each frame given up is
+    counted once, ``on_lost(topic_id, reason)``:
 
-    Bounds, all counted when they bite (``on_lost(topic_id, reason)``, once per frame given up):
+    * time: ``timeout`` seconds after its last fragment (``fragment_lost``); partial frames are
+      kept in the order last heard of, so expiring never scans them all;
+    * per source ``source_partials`` and ``source_bytes``, per link ``max_partials`` and
+      ``max_pending_bytes``; the oldest goes first (``reassembly_overflow``).
 
-    * time: a frame whose fragments stop coming is given up ``timeout`` seconds after its last
-      one (``fragment_lost``). Partial frames are kept in the order they were last heard of, so
-      expiring them looks at the expired ones and the first that is not, never at all of them;
-    * per source: at most ``source_partials`` partial frames and ``source_bytes`` bytes; the
-      source's oldest partial frame goes first (``reassembly_overflow``);
-    * per link (this reassembler): at most ``max_partials`` and ``max_pending_bytes``; the
-      oldest partial frame of any source goes first (``reassembly_overflow``).
-
-    Bytes are what a partial frame really costs: its buffer or the fragments kept aside, plus
-    :data:`PARTIAL_COST` for its bookkeeping, so a flood of one-byte fragments is bounded as
-    tightly as a few large frames. A partial frame gets its buffer (``count`` times the length
-    of its fragments, zeroed) once 1/:data:`EARN_BUFFER` of it has come; fragments before that
-    wait aside and are copied in then. The completed frame is that buffer, a ``bytearray``,
-    handed on without another copy.
-
-    Fragments are found by (source, topic id, frame id). Senders draw frame ids at random, so a
-    spoofed source cannot guess the id of a frame in progress and slip a fragment into it.
+    Bytes are what a partial frame costs (buffer or fragments aside, plus :data:`PARTIAL_COST`),
+    so one-byte fragments are bounded as tightly as large frames. The buffer comes once
+    1/:data:`EARN_BUFFER` of the frame has; the completed frame is that buffer, not copied.
+    Frame ids are random: a spoofed source cannot slip a fragment into a frame in progress.
     """
 
     def __init__(self, on_lost: Callable[[int, Reason], None], timeout: float = 2.0,
@@ -170,7 +143,7 @@ class Reassembler:
         self.source_bytes = 2 * max_message if source_bytes is None else source_bytes
         self._pending: dict[tuple, _Partial] = {}  # oldest first
         self._sources: dict[Hashable, _Source] = {}
-        self._pending_bytes = 0
+        self.pending_bytes = 0  # what the partial frames are accounted for
         # frames recently completed or given up: a late duplicate fragment of one of them is
         # ignored instead of starting a partial frame that would later count as lost
         self._finished: dict[tuple, None] = {}
@@ -179,11 +152,6 @@ class Reassembler:
     def pending(self) -> int:
         """Partial frames held now."""
         return len(self._pending)
-
-    @property
-    def pending_bytes(self) -> int:
-        """What they are accounted for."""
-        return self._pending_bytes
 
     def add(self, source: Hashable, datagram: bytes | memoryview) -> bytearray | None:
         """Take one fragment (copied: it may be a view of a receive buffer); return the whole
@@ -207,9 +175,9 @@ class Reassembler:
             before, partial.cost = 0, PARTIAL_COST + count
         elif partial.count != count:
             raise FramingError("fragment count changed within a frame")
+        elif partial.have[index]:
+            return None  # a duplicated datagram
         else:
-            if partial.have[index]:
-                return None  # a duplicated datagram
             self._check_sizes(count, index, size, partial.chunk, partial.last)
             before = partial.cost
             # still coming: its time runs from now (a frame on a slow link takes long), and
@@ -280,10 +248,10 @@ class Reassembler:
         shed to the bounds, oldest first (``partial`` itself, if it is the oldest)."""
         owner = self._sources[partial.source]
         owner.cost += cost
-        self._pending_bytes += cost
+        self.pending_bytes += cost
         while owner.cost > self.source_bytes and owner.partials:
             self._give_up(next(iter(owner.partials)), Drop.REASSEMBLY_OVERFLOW)
-        while self._pending_bytes > self.max_pending_bytes and self._pending:
+        while self.pending_bytes > self.max_pending_bytes and self._pending:
             self._give_up(next(iter(self._pending)), Drop.REASSEMBLY_OVERFLOW)
 
     def _complete(self, partial: _Partial) -> bytearray:
@@ -298,7 +266,7 @@ class Reassembler:
         owner = self._sources[partial.source]
         del owner.partials[partial.key]
         owner.cost -= partial.cost
-        self._pending_bytes -= partial.cost
+        self.pending_bytes -= partial.cost
         if not owner.partials:
             del self._sources[partial.source]
         self._finished[partial.key] = None
@@ -329,10 +297,6 @@ class Fragments(Packetizer):
 
     name = "fragments"
     magic = (FRAGMENT_MAGIC,)
-
-    @dataclass(frozen=True)
-    class Options:
-        """None: the link's ``max_frame`` says it all."""
 
     def __init__(self, link: PacketLink):
         super().__init__(link)

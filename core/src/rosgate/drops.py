@@ -1,12 +1,7 @@
-"""Why something was dropped: one enumeration, each reason with the sentence the docs show.
-
-Every drop is counted by its reason, per topic or, for what belongs to no topic, per bridge; the
-counters, ``rosgate status``, the metrics and the log lines all show the value (``too_late``).
-The functions that count take a :class:`Drop` or a reason a plugin declared with
-:func:`declare`, never a bare string, so a new reason always comes with its sentence.
-
-The table of docs/operators.md is generated from this module (``python -m rosgate_docgen
-docs/operators.md``).
+"""Why something was dropped: one enumeration, each reason with the sentence the docs show
+(docs/operators.md's table is generated from it). Every drop is counted by reason, per topic
+or per bridge, and counting takes a :class:`Drop` or a plugin's reason made by :func:`declare`,
+never a bare string, so a new reason always comes with its sentence.
 """
 
 from __future__ import annotations
@@ -128,14 +123,12 @@ def declare(name: str, doc: str) -> PluginDrop:
     if name in Drop.__members__.values():
         raise ValueError(f"drop reason {name!r} is the core's: count rosgate.drops.Drop({name!r})")
     known = _DECLARED.get(name)
-    if known is not None:
-        if known.doc != doc:
-            raise ValueError(f"drop reason {name!r} is declared already: {known.doc!r}")
-        return known
-    reason = PluginDrop(name)
-    reason.doc = doc
-    _DECLARED[name] = reason
-    return reason
+    if known is None:
+        known = _DECLARED[name] = PluginDrop(name)
+        known.doc = doc
+    elif known.doc != doc:
+        raise ValueError(f"drop reason {name!r} is declared already: {known.doc!r}")
+    return known
 
 
 def declared() -> list[PluginDrop]:

@@ -9,14 +9,9 @@ class RosgateError(Exception):
 
 
 class OptionError(RosgateError):
-    """A plugin's option is wrong. Raised by :func:`rosgate.options.parse` for what the plugin's
-    ``Options`` declare, by an ``Options.__post_init__`` for rules that tie options together, and
-    by a plugin's constructor for what only it can tell (a key file that cannot be read).
-
-    ``key`` is the option's name (``key_file``), or ``None`` for the table as a whole (exactly
-    one of two options); the core adds the file and line where it was set. ``fix`` says what to do.
-    The message never contains a key.
-    """
+    """A plugin's option is wrong: raised by :func:`rosgate.options.parse`, an
+    ``Options.__post_init__`` or a plugin's constructor. ``key`` is the option (``key_file``), or
+    ``None`` for the whole table; the core adds file and line. The message never holds a key."""
 
     def __init__(self, key: str | None, message: str, fix: str | None = None):
         super().__init__(message)
@@ -45,13 +40,9 @@ class ConfigError(RosgateError):
 
 
 class LinkError(RosgateError):
-    """A link could not be set up (address in use, unreachable, unsupported on this machine).
-    Raised by a transport's ``bind`` or ``listen``; the core shows it at the key that named the
-    address, without a traceback.
-
-    ``fix`` says what to do about it when the transport knows better than the core's default
-    (free the port, or pick another one): a CAN interface that is down, a missing driver.
-    """
+    """A link could not be set up (address in use, unreachable, unsupported), raised by a
+    transport's ``bind`` or ``listen`` and shown at the key that named the address. ``fix``: when
+    the transport knows better than "free the port" (a CAN interface down, a missing driver)."""
 
     def __init__(self, message: str, fix: str | None = None):
         super().__init__(message)
@@ -59,8 +50,7 @@ class LinkError(RosgateError):
 
 
 class CodecError(Exception):
-    """Bytes or a message a codec cannot handle. Raised per message: the frame is dropped and
-    counted."""
+    """Bytes or a message a codec cannot handle: the frame is dropped and counted."""
 
 
 class CipherError(Exception):

@@ -5,18 +5,13 @@ A plugin is a module registered in the entry-point group ``rosgate``::
     [project.entry-points.rosgate]
     can = "rosgate_transport_can"
 
-that defines one or more of the functions below. Every function of the module whose name starts
-with ``rosgate_`` is taken for a hook implementation (mark it with :data:`rosgate.hookimpl`, or
-not, as you like): a name that matches no hook here — ``rosgate_transport`` for
-``rosgate_transports`` — makes the plugin fail to load, and ``rosgate plugins`` says why.
-
-Each hook hands the plugin a ``register`` callback: call it once per class you provide. The core
-owns the names: two plugins registering the same name is reported, and the second is skipped.
-Each hook is called once per plugin, when the plugin is loaded (on first use of one of its names,
-or by ``rosgate plugins``); an exception it raises makes that plugin fail to load, and nothing it
-registered in that hook is kept. Hooks are always called with keyword arguments, so an
-implementation may omit parameters it does not use, and new parameters can be added without
-breaking existing plugins. Results are not used.
+that defines one or more of the functions below. Every function of it named ``rosgate_*`` is
+taken for a hook implementation (marked with :data:`rosgate.hookimpl` or not): a name that
+matches no hook (``rosgate_transport``) makes the plugin fail to load, as ``rosgate plugins``
+says. Each hook hands a ``register`` callback, called once per class provided; two plugins
+registering one name are reported and the second is skipped. Hooks are called once, when the
+plugin loads, always with keyword arguments (omit the parameters you do not use); one that
+raises fails the plugin, keeping nothing it registered. Results are not used.
 """
 
 from __future__ import annotations
@@ -63,11 +58,9 @@ def rosgate_ciphers(register: Callable[[type[Cipher]], None]) -> None:
 
 @hookspec
 def rosgate_commands(register: Callable[[Command], None]) -> None:
-    """Register ``rosgate`` subcommands: one :class:`rosgate.Command` each (its name, one line of
-    help, the function that adds its arguments and the one that runs it; see
-    :mod:`rosgate.commands`). ``rosgate`` loads every plugin when it is asked for a verb that is
-    not its own, or for its help. A verb rosgate has (``run``, ``check``...) or that another plugin
-    registered first is reported and skipped."""
+    """Register ``rosgate`` subcommands: one :class:`rosgate.Command` each (see
+    :mod:`rosgate.commands`), loaded when ``rosgate`` is asked for a verb not its own or for its
+    help. A verb rosgate has (``run``, ``check``...) or another plugin took first is skipped."""
 
 
 @hookspec

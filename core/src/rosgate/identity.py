@@ -1,24 +1,17 @@
 """Identities: the X25519 key pairs that authenticate a bridge in a session's handshake.
 
-A private key file (``rosgate keygen identity --out robot1.key``) holds 32 random bytes in
-standard base64 on one line, mode 0600. A public key is written the same way (44 characters)
-and is what the other side names: a client's ``bridge.server_key``, a server's
-``clients.NAME.key``. As with SSH and WireGuard there is no certificate authority: each side
-lists the public keys it trusts.
-
-A private key file that its group or other users can read is refused, not warned about
-(``chmod 600 FILE``): whoever reads it can be this bridge.
+A key file holds 32 bytes in base64 on one line, mode 0600; a public key is written the same way
+(44 characters). As with SSH and WireGuard each side lists the public keys it trusts, no
+certificate authority. A private key file others can read is refused: they could be this bridge.
 """
 
 from __future__ import annotations
 
 import base64
-import binascii
 import os
 import stat
 from pathlib import Path
 
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey
 
 KEY_SIZE = 32
@@ -34,14 +27,11 @@ class IdentityError(ValueError):
 
 def generate() -> bytes:
     """A new private key (32 bytes)."""
-    return X25519PrivateKey.generate().private_bytes(
-        serialization.Encoding.Raw, serialization.PrivateFormat.Raw,
-        serialization.NoEncryption())
+    return X25519PrivateKey.generate().private_bytes_raw()
 
 
 def public_of(private: bytes) -> bytes:
-    return X25519PrivateKey.from_private_bytes(private).public_key().public_bytes(
-        serialization.Encoding.Raw, serialization.PublicFormat.Raw)
+    return X25519PrivateKey.from_private_bytes(private).public_key().public_bytes_raw()
 
 
 def encode(key: bytes) -> str:
@@ -60,28 +50,26 @@ def decode_public(text: object) -> bytes:
 
 def load_private(path: Path) -> bytes:
     """The private key in ``path``: refused when others can read the file, or it is no key."""
+    create = f"create one with 'rosgate keygen identity --out {path}'"
     try:
         mode = path.stat().st_mode
         text = path.read_text(encoding="ascii").strip()
     except (OSError, UnicodeDecodeError) as exc:
         why = exc.strerror if isinstance(exc, OSError) else "not base64 text"
-        raise IdentityError(f"cannot read identity file {str(path)!r}: {why}",
-                            f"create one with 'rosgate keygen identity --out {path}'") from None
+        raise IdentityError(f"cannot read identity file {str(path)!r}: {why}", create) from None
     if mode & (stat.S_IRWXG | stat.S_IRWXO):
         raise IdentityError(f"identity file {str(path)!r} can be read by other users "
                             f"(mode {stat.S_IMODE(mode):o})", f"chmod 600 {path}")
     key = _decode(text)
     if key is None:
-        raise IdentityError(f"{str(path)!r} is not an identity key (32 bytes in base64)",
-                            f"create one with 'rosgate keygen identity --out {path}'")
+        raise IdentityError(f"{str(path)!r} is not an identity key (32 bytes in base64)", create)
     return key
 
 
 def write_private(path: Path, key: bytes, force: bool = False) -> None:
     """Write a private key file, mode 0600 from its creation; never over an existing file
     unless ``force``."""
-    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if force else os.O_EXCL)
-    fd = os.open(path, flags, 0o600)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if force else os.O_EXCL), 0o600)
     with os.fdopen(fd, "w") as out:
         os.fchmod(out.fileno(), 0o600)
         out.write(encode(key) + "\n")
@@ -92,6 +80,6 @@ def _decode(text: object) -> bytes | None:
         return None
     try:
         key = base64.b64decode(text.strip(), validate=True)
-    except (binascii.Error, ValueError):
+    except ValueError:  # binascii.Error is one
         return None
     return key if len(key) == KEY_SIZE else None

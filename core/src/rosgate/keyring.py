@@ -1,9 +1,6 @@
-"""Which cipher seals and opens a route's frames, by the envelope's epoch.
-
-A route asks its :class:`Keys` for the epoch to seal under now, and for the cipher of an epoch
-a frame names. :class:`StaticKeys` is one cipher built from the file's options (peer role, and
-``insecure: true``) with a random epoch per sender start. A session's keys (``rosgate.secure``)
-change with every key generation and every handshake, and the epoch says which.
+"""Which cipher seals and opens a route's frames: :class:`StaticKeys`, one cipher from the file's
+options (peer role, ``insecure: true``), or a session's keys (:mod:`rosgate.secure`), which
+change with every key generation and handshake.
 """
 
 from __future__ import annotations
@@ -19,7 +16,7 @@ class NoKey(LookupError):
 
 
 class Keys(ABC):
-    """The ciphers of one route."""
+    """The ciphers of one route, by the envelope's epoch."""
 
     #: True when ``open`` proves a frame came from a key holder unchanged
     authenticates: bool = True

@@ -1,17 +1,7 @@
-"""Where a cipher's key comes from: the convention every rosgate cipher shares.
-
-A keyed cipher declares ``Options = KeyOptions`` and so takes exactly one of two options under
-``plugins: {NAME: {...}}``:
-
-``key_file``  a file holding the key (relative to the bringup.yaml), as written by
-              ``rosgate keygen NAME --out FILE`` (mode 0600; a file others can read is warned
-              about).
-``key_env``   the name of an environment variable holding the key.
-
-Never the key itself on the command line, where ``ps`` shows it to every user. What the key's
-bytes mean (base64, length) is the cipher's business: :func:`load_key` returns them stripped of
-surrounding blanks, and the cipher raises ``OptionError(key_source(options), ...)`` if they are
-not a key it can use.
+"""Where a cipher's key comes from, the convention every rosgate cipher shares: ``Options =
+KeyOptions`` (``key_file`` or ``key_env``, never the key on a command line ``ps`` shows), and
+:func:`load_key` for its bytes, stripped of blanks. What they mean is the cipher's business: it
+raises ``OptionError(key_source(options), ...)`` when they are no key it can use.
 """
 
 from __future__ import annotations
@@ -28,8 +18,7 @@ from .options import option
 
 @dataclass(frozen=True)
 class KeyOptions:
-    """The options of a keyed cipher. Exactly one is set; :func:`load_key` says so when not,
-    naming the cipher (a dataclass does not know which cipher it belongs to)."""
+    """Exactly one is set: :func:`load_key` checks, since it knows the cipher's name."""
 
     key_file: str | None = option(
         None, "file holding the key, relative to the bringup.yaml (rosgate keygen NAME --out "

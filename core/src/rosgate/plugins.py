@@ -1,24 +1,14 @@
 """Finding plugins: entry points in the group ``rosgate``, loaded when first asked for.
 
-Listing the entry points imports nothing. Asking for a plugin (``get("transport", "udp")``)
-loads the entry point of that name first — a plugin's entry point is named like the class it
-registers, by convention — and the remaining ones only if the class is not there (python-can's
-model); ``rosgate plugins`` and ``rosgate check`` load them all, and so does ``rosgate`` when
-asked for a verb that is not its own: plugins add commands (:attr:`Plugins.commands`). The
-built-in plugins (``cdr``, ``none``, ``fragments``: the core's own module) load at once, through
-the same hooks as any other. Transforms and packetizers are also found by what they put on the
-wire (a transform's ``wire_id``, a packetizer's ``magic``): a receiver looks them up by that, and
-two installed plugins claiming the same one are reported like two of the same name.
+Asking for a plugin loads the entry point of that name first (by convention named like the class
+it registers), the others only if the class is not there (python-can's model); listing and
+unknown verbs load them all. Transforms and packetizers are also found by what they put on the
+wire (``wire_id``, ``magic``), which no two installed plugins may share.
 
-pluggy does the plugin work. As pytest does with ``pytest_``, every function of a plugin module
-whose name starts with ``rosgate_`` is a hook implementation, marked with ``rosgate.hookimpl``
-or not, so ``check_pending`` catches a misspelt hook instead of ignoring it; and pluggy calls the
-hooks, one plugin at a time, so whatever a hook raises is the failure of the plugin that raised it.
-
-A plugin that fails — it does not import, names a hook that does not exist, a hook raises, it
-registers a class that is not a valid plugin class — is recorded as a :class:`Failure` naming it,
-with the reason, and skipped; the others keep working. ``ROSGATE_DISABLE_PLUGINS=name,name``
-blocks entry points by name (``builtin`` cannot be blocked: the core needs ``cdr`` and ``none``).
+As pytest does with ``pytest_``, every ``rosgate_*`` function of a plugin is a hook
+implementation, so ``check_pending`` catches a misspelt hook. A plugin that fails (import, hook,
+class) is recorded as a :class:`Failure` naming it and skipped; ``ROSGATE_DISABLE_PLUGINS``
+blocks entry points by name (not ``builtin``: the core needs ``cdr`` and ``none``).
 """
 
 from __future__ import annotations
@@ -52,16 +42,11 @@ DISABLE_VARIABLE = "ROSGATE_DISABLE_PLUGINS"
 BUILTIN = "builtin"
 HOOK_PREFIX = "rosgate_"
 
-KINDS: dict[str, tuple[str, type]] = {
-    # kind: (hook name, base class)
-    "transport": ("rosgate_transports", Transport),
-    "codec": ("rosgate_codecs", Codec),
-    "cipher": ("rosgate_ciphers", Cipher),
-    "transform": ("rosgate_transforms", Transform),
-    "packetizer": ("rosgate_packetizers", Packetizer),
-    "monitor": ("rosgate_monitors", Monitor),
-    "service_framing": ("rosgate_service_framings", ServiceFraming),
-    "bus_role": ("rosgate_bus_roles", BusRole),
+#: each kind's base class; its hook is ``rosgate_<kind>s``
+KINDS: dict[str, type] = {
+    "transport": Transport, "codec": Codec, "cipher": Cipher, "transform": Transform,
+    "packetizer": Packetizer, "monitor": Monitor, "service_framing": ServiceFraming,
+    "bus_role": BusRole,
 }
 #: the word of a kind in distribution names, where it is not the kind itself
 _DISTRIBUTION_WORD = {"cipher": "crypto", "transform": "compress", "packetizer": "recovery"}
@@ -115,8 +100,7 @@ class Failure:
 
 
 class PluginManager(pluggy.PluginManager):
-    """pluggy's manager for the hooks of :mod:`rosgate.hookspecs`, with pytest's rule: every
-    function named ``rosgate_*`` is a hook implementation, so a misspelt one is never ignored."""
+    """pluggy's manager with pytest's rule: each ``rosgate_*`` function is a hook implementation."""
 
     def __init__(self) -> None:
         super().__init__("rosgate")
@@ -126,20 +110,12 @@ class PluginManager(pluggy.PluginManager):
         if not name.startswith(HOOK_PREFIX):
             return None  # and nothing else is looked at, as pytest does
         opts = super().parse_hookimpl_opts(plugin, name)
-        if opts is None and _is_function(inspect.getattr_static(plugin, name, None)):
+        value = inspect.getattr_static(plugin, name, None)
+        if opts is None and (inspect.isfunction(value) or isinstance(
+                value, (staticmethod, classmethod, types.MethodType))):
             opts = pluggy.HookimplOpts(wrapper=False, hookwrapper=False, optionalhook=False,
                                        tryfirst=False, trylast=False, specname=None)
         return opts
-
-    def unknown_hooks(self, plugin: Any) -> list[str]:
-        """The names of ``plugin``'s implementations that match no hook."""
-        return sorted(caller.name for caller in self.get_hookcallers(plugin) or []
-                      if not caller.has_spec())
-
-
-def _is_function(value: Any) -> bool:
-    return inspect.isfunction(value) or isinstance(value, (staticmethod, classmethod,
-                                                           types.MethodType))
 
 
 class Plugins:
@@ -156,11 +132,9 @@ class Plugins:
         self._waiting: list[metadata.EntryPoint] = []  # found, not loaded yet
         self._lock = threading.RLock()  # a server prepares its clients' topics in their threads
 
-    # -- loading ---------------------------------------------------------------------------
     @classmethod
     def discover(cls) -> Plugins:
-        """List the entry points in the group ``rosgate`` (importing none of them but the
-        core's own); the others load when asked for."""
+        """List the entry points (importing none but the core's own)."""
         plugins = cls()
         blocked = {n.strip() for n in os.environ.get(DISABLE_VARIABLE, "").split(",") if n.strip()}
         blocked.discard(BUILTIN)
@@ -169,24 +143,18 @@ class Plugins:
                 plugins.blocked.append(ep.name)
             else:
                 plugins._waiting.append(ep)
-        plugins._load_named(BUILTIN)
+        plugins.load_all(BUILTIN)
         return plugins
 
-    def load_all(self) -> None:
-        """Load every entry point not loaded yet."""
+    def load_all(self, name: str | None = None) -> None:
+        """Load the entry points not loaded yet (only those named ``name``, when given)."""
         with self._lock:
-            while self._waiting:
-                self._load(self._waiting[0])
-
-    def _load_named(self, name: str) -> None:
-        with self._lock:
-            for ep in [ep for ep in self._waiting if ep.name == name]:
-                self._load(ep)
+            while waiting := [ep for ep in self._waiting if name in (None, ep.name)]:
+                self._load(waiting[0])
 
     def _load(self, ep: metadata.EntryPoint) -> None:
         self._waiting.remove(ep)
-        distribution = ep.dist.name if ep.dist else "?"
-        version = ep.dist.version if ep.dist else "?"
+        distribution, version = (ep.dist.name, ep.dist.version) if ep.dist else ("?", "?")
         try:
             module = ep.load()
         except Exception as exc:  # a broken plugin must not take the others down
@@ -196,8 +164,8 @@ class Plugins:
 
     def add(self, module: types.ModuleType | Any, plugin: str, distribution: str = "?",
             version: str = "?") -> None:
-        """Register one plugin module (or hashable object with hook implementations) and collect
-        what it registers. Tests use this to add a plugin in-process."""
+        """Register a plugin module (or any hashable object with hooks) and collect what it
+        registers (tests add plugins in-process with it)."""
         def fail(reason: str) -> None:
             self.failures.append(Failure(plugin, distribution, reason))
 
@@ -211,11 +179,12 @@ class Plugins:
             try:
                 self.manager.check_pending()
             except pluggy.PluginValidationError as exc:
-                unknown = self.manager.unknown_hooks(exc.plugin)
+                unknown = sorted(c.name for c in self.manager.get_hookcallers(exc.plugin) or []
+                                 if not c.has_spec())
                 self.manager.unregister(exc.plugin)
                 return fail(_misspelt(unknown) if unknown else str(exc))
-            for kind, (hook_name, base) in KINDS.items():
-                for cls in self._call(module, hook_name, fail):
+            for kind, base in KINDS.items():
+                for cls in self._call(module, f"{HOOK_PREFIX}{kind}s", fail):
                     problem = _check_class(cls, base) or self._clash(kind, cls)
                     if problem:
                         fail(problem)
@@ -236,8 +205,7 @@ class Plugins:
                                                                   version)
 
     def _call(self, module: Any, hook_name: str, fail: Callable[[str], None]) -> list[Any]:
-        """What ``module``'s implementation of a hook registers (nobody else's is called):
-        nothing when it raises (its other hooks are still called)."""
+        """What ``module``'s own implementation of a hook registers; nothing when it raises."""
         found: list[Any] = []
         others = [p for p in self.manager.get_plugins() if p is not module]
         try:
@@ -249,7 +217,7 @@ class Plugins:
         return found
 
     def _clash(self, kind: str, cls: Any) -> str | None:
-        """Why ``cls`` cannot have its name or its wire id (magic), or ``None``."""
+        """Why ``cls`` cannot have its name or its wire id (magic)."""
         first = self.registered.get((kind, cls.name))
         if first is not None:
             return f"{kind} {cls.name!r} is already provided by {first.distribution}; skipped"
@@ -264,34 +232,30 @@ class Plugins:
         """Forget a plugin added with :meth:`add` (tests)."""
         with self._lock:
             self.manager.unregister(name=plugin)
-            for key in [k for k, r in self.registered.items() if r.plugin == plugin]:
-                del self.registered[key]
-            for name in [n for n, c in self.commands.items() if c.plugin == plugin]:
-                del self.commands[name]
-            for wire in [w for w, r in self.on_wire.items() if r.plugin == plugin]:
-                del self.on_wire[wire]
+            tables: tuple[dict[Any, Any], ...] = (self.registered, self.commands, self.on_wire)
+            for table in tables:
+                for key in [k for k, r in table.items() if r.plugin == plugin]:
+                    del table[key]
 
-    # -- lookup ----------------------------------------------------------------------------
     def get(self, kind: str, name: str) -> Registration | None:
-        """The plugin class of that kind and name, loading what it takes to find it: the entry
-        point named ``name``, then, if the class is not there, every other one."""
+        """The plugin class of that kind and name: the entry point named ``name`` loaded first,
+        every other one if the class is not there."""
         with self._lock:
             if (kind, name) not in self.registered:
-                self._load_named(name)
+                self.load_all(name)
             if (kind, name) not in self.registered:
                 self.load_all()
             return self.registered.get((kind, name))
 
     def by_wire(self, kind: str, wire: Any) -> Registration | None:
-        """The transform of a ``wire_id``, the packetizer of a ``magic``: loading every plugin
-        the first time one is not found."""
+        """The transform of a ``wire_id``, the packetizer of a ``magic`` (loads all if unknown)."""
         with self._lock:
             if (kind, wire) not in self.on_wire:
                 self.load_all()
             return self.on_wire.get((kind, wire))
 
     def all(self) -> list[Registration]:
-        """Every plugin class, everything loaded; by kind, then name."""
+        """Every plugin class, all loaded, by kind then name."""
         self.load_all()
         return sorted(self.registered.values(), key=lambda r: (r.kind, r.name))
 
@@ -299,8 +263,7 @@ class Plugins:
         return [r.name for r in self.all() if r.kind == kind]
 
     def explain_missing(self, kind: str, name: str, named: bool = True) -> tuple[str, str]:
-        """(message, fix) for a bringup.yaml that needs a plugin that is not here: one it names,
-        or (``named`` False) one its choices need (a small link's packetizer)."""
+        """(message, fix) for a plugin a file names, or (``named`` False) its choices need."""
         installed = ", ".join(self.names(kind)) or "none"
         what = kind.replace("_", " ")
         message = f"unknown {what} {name!r} (installed {what}s: {installed})"
@@ -322,8 +285,7 @@ _installed_lock = threading.Lock()
 
 
 def installed() -> Plugins:
-    """The plugins of this process's environment, discovered once: what a link or a route looks
-    a packetizer or a transform up in by what came on the wire."""
+    """The plugins of this environment, discovered once (where links look up what came)."""
     global _installed
     with _installed_lock:
         if _installed is None:
@@ -332,18 +294,14 @@ def installed() -> Plugins:
 
 
 def failed_import(exc: ImportError) -> Failure | None:
-    """The plugin an ImportError failed in, as a :class:`Failure`: a plugin imports a library
-    that is slow to import where it uses it (its module only checks that it is installed), so a
-    library that is installed but broken fails there, not when the plugin loads. The plugin is
-    the one whose module made the innermost call; None when no plugin's module did."""
+    """The plugin whose module made the innermost call of an ImportError: plugins import slow
+    libraries where they use them, so a broken one fails there, not when the plugin loads."""
     packages = {ep.value.split(":")[0].split(".")[0]: ep
                 for ep in metadata.entry_points(group=ENTRY_POINT_GROUP) if ep.name != BUILTIN}
     frames = traceback.walk_tb(exc.__traceback__)
     names = [str(frame.f_globals.get("__name__", "")).split(".")[0] for frame, _ in frames]
     ep = next((packages[name] for name in reversed(names) if name in packages), None)
-    if ep is None:
-        return None
-    return Failure(ep.name, ep.dist.name if ep.dist else "?", _reason(exc))
+    return None if ep is None else Failure(ep.name, ep.dist.name if ep.dist else "?", _reason(exc))
 
 
 def _check_class(cls: Any, base: type) -> str | None:
@@ -382,7 +340,7 @@ def _misspelt(names: list[str]) -> str:
 
 
 def _reason(exc: BaseException) -> str:
-    last = traceback.extract_tb(exc.__traceback__)[-1:] if exc.__traceback__ else []
+    last = traceback.extract_tb(exc.__traceback__)[-1:]
     where = f" ({last[0].filename}:{last[0].lineno})" if last else ""
     text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
     return f"{type(exc).__name__}: {text}{where}"

@@ -1,11 +1,8 @@
 """A server's policy: what each client may ask for, default deny (docs/security.md, "Policy").
-
-Each entry a client sends in its hello is checked, on its server-side name (the client's
-``remote``), against the rules of its kind under ``clients.NAME``: an entry is allowed when one
-rule matches its name (a glob: ``*`` and ``?`` within one segment, ``**`` across), direction,
-type, port, cipher and, for a topic, the QoS it asks for. :func:`refusal` gives the one
-sentence both sides log for a refused entry: ``robot1 may not transmit /cmd_vel (policy for
-robot1 allows /robot1/**)``.
+Each entry of a client's hello is allowed when one rule of its kind under ``clients.NAME``
+matches its server-side name (a glob: ``*`` and ``?`` within a segment, ``**`` across),
+direction, type, port, cipher and a topic's QoS; :func:`refusal` gives the sentence both sides
+log otherwise.
 """
 
 from __future__ import annotations
@@ -16,6 +13,7 @@ from functools import lru_cache
 from typing import Any
 
 from .config import ActionConfig, ClientPolicy, Rule, ServiceConfig, TopicConfig
+from .config.kinds import ROS_NAME_MAX
 
 
 @lru_cache(maxsize=1024)
@@ -31,28 +29,21 @@ def matches(pattern: str, text: str) -> bool:
 
 #: an absolute ROS name: parts of letters, digits and '_', none starting with a digit
 _ROS_NAME = re.compile(r"(?:/[A-Za-z_][A-Za-z0-9_]*)+")
-ROS_NAME_MAX = 200  # characters, as in a file
-
-
-def is_ros_name(text: str) -> bool:
-    return len(text) <= ROS_NAME_MAX and _ROS_NAME.fullmatch(text) is not None
 
 
 def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionConfig,
             keyless: set[str]) -> str | None:
     """Why ``entry`` (as the client sent it) is refused, or None when a rule allows it.
-    ``keyless`` are the ciphers a session cannot key (``none``): allowed only when named.
-    A name that is not an absolute ROS name (``~``, ``..``, an empty or relative part: what
-    a bare framing's ``remote`` may carry as text) is refused before any rule sees it. An
-    action (``transmit``: the client sends goals) is judged by ``actions:`` rules, on the
-    action's name, its type ``pkg/action/Type``, port and cipher."""
+    ``keyless`` ciphers (``none``) are allowed only when named. A name that is not an absolute
+    ROS name (``~``, ``..``, empty parts: a bare framing's ``remote`` is text) is refused before
+    any rule; an action (``transmit``: the client sends goals) is judged by ``actions:``."""
     is_topic = isinstance(entry, TopicConfig)
     kind, rules = (("topic", policy.topics) if is_topic else
                    ("action", policy.actions) if isinstance(entry, ActionConfig) else
                    ("service", policy.services))
     name, direction = entry.remote, str(entry.direction)
     what = name if is_topic else f"{kind} {name}"
-    if not is_ros_name(name):
+    if len(name) > ROS_NAME_MAX or not _ROS_NAME.fullmatch(name):
         return (f"{policy.name} may not {direction} {name!r}: it is not a ROS name (parts of "
                 "letters, digits and '_' after a single '/', none starting with a digit)")
     ways = [r for r in rules if r.direction in ("both", direction)]

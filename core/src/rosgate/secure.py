@@ -1,29 +1,14 @@
-"""Authenticated sessions: the handshake, the stream after it, and a session's keys
-(docs/security.md says why and what each gives).
+"""Authenticated sessions (docs/security.md says what each part gives and why):
 
-**Handshake**: ``Noise_IK_25519_ChaChaPoly_BLAKE2s`` through the ``noiseprotocol`` package. The
-initiator knows the responder's static key; its first message carries its own, which the
-responder checks before it parses anything else. Each message is ``u16 length | message`` of
-at most :data:`HANDSHAKE_MAX` bytes, all within :data:`HANDSHAKE_TIMEOUT` seconds; the prologue
-binds the protocol version. After it (:class:`SecureConnection`) every byte travels in Noise
-transport messages, ``u16 length | ciphertext``, with Noise's counter nonces: a reordered,
-replayed, dropped or altered record ends the connection.
-
-**Session keys** (:class:`KeySchedule`): the responder sends a fresh random 32-byte secret and
-a key id inside the channel (:meth:`KeySchedule.offer`). Both sides derive the session root
-with HKDF-SHA256, salted with the handshake hash, and from it one key per direction, entry and
-generation::
-
-    key = HKDF(root, info = "rosgate/1 " + label + generation)     label: "topic c2s /robot1/scan"
-
-A generation lasts ``rekey`` seconds on each side's clock; the one before and the one after
-are accepted too. The envelope's epoch names the key (``key id << 24 | generation``); with the
-sequence number it makes the AEAD's 12-byte nonce, never repeated under one key. A previous
-root still opens frames for :data:`GRACE` seconds after a new handshake, then is erased.
-
-**Datagram hellos** (:func:`seal_hello`) tell a server where a client's datagram link is: the
-session id in an envelope sealed with ChaCha20-Poly1305 under the ``hello c2s`` key (the header
-as associated data), checked against a replay window.
+* the handshake, ``Noise_IK_25519_ChaChaPoly_BLAKE2s``: the initiator knows the responder's static
+  key and sends its own, checked before anything else is parsed; each message ``u16 length |
+  message``, bounded in size and time, the prologue binding the protocol version;
+* :class:`SecureConnection`, the stream after it: Noise transport records with counter nonces,
+  so a reordered, replayed, dropped or altered record ends the connection;
+* :class:`KeySchedule`, a session's keys: a root from the responder's fresh secret (HKDF salted
+  with the handshake hash), then ``HKDF(root, "rosgate/1 " + label + generation)`` per
+  direction, entry and generation; the envelope's epoch (``key id << 24 | generation``) names it;
+* :func:`seal_hello`, datagrams that tell a server where a client's link is.
 """
 
 from __future__ import annotations
@@ -63,8 +48,6 @@ class HandshakeError(LinkError):
     """A handshake that failed: not Noise, a wrong or unknown key, too slow, too big."""
 
 
-# -- the handshake ----------------------------------------------------------------------------
-
 def _noise(initiator: bool, identity: bytes, remote: bytes | None = None):
     from noise.connection import Keypair, NoiseConnection
 
@@ -78,17 +61,17 @@ def _noise(initiator: bool, identity: bytes, remote: bytes | None = None):
     return noise
 
 
-def _read_message(connection: StreamConnection, buffer: bytearray, deadline: float) -> bytes:
-    """One ``u16 length | message`` of the handshake, within the deadline."""
+def _read_message(connection: StreamConnection, deadline: float) -> tuple[bytes, bytes]:
+    """One ``u16 length | message`` of the handshake within the deadline, and what came after."""
+    buffer = bytearray()
     while True:
         if len(buffer) >= RECORD.size:
             (size,) = RECORD.unpack_from(buffer)
             if size > HANDSHAKE_MAX:
                 raise HandshakeError(f"not a handshake (a message of {size} bytes)")
-            if len(buffer) >= RECORD.size + size:
-                message = bytes(buffer[RECORD.size:RECORD.size + size])
-                del buffer[:RECORD.size + size]
-                return message
+            end = RECORD.size + size
+            if len(buffer) >= end:
+                return bytes(buffer[RECORD.size:end]), bytes(buffer[end:])
         left = deadline - time.monotonic()
         if left <= 0:
             raise HandshakeError("no handshake in time")
@@ -115,26 +98,23 @@ def initiate(connection: StreamConnection, identity: bytes, server_key: bytes,
     deadline = time.monotonic() + timeout
     noise = _noise(True, identity, server_key)
     _send_message(connection, noise.write_message(b""))
-    buffer = bytearray()
-    message = _read_message(connection, buffer, deadline)
+    message, pending = _read_message(connection, deadline)
     try:
         noise.read_message(message)
     except Exception:  # noiseprotocol raises several kinds; all mean the same here
         raise HandshakeError("the server's answer does not verify (is bridge.server_key the "
                              "server's key?)") from None
-    return SecureConnection(connection, noise, server_key, bytes(buffer))
+    return SecureConnection(connection, noise, server_key, pending)
 
 
 def respond(connection: StreamConnection, identity: bytes, known: Callable[[bytes], bool],
             timeout: float = HANDSHAKE_TIMEOUT,
             admit: Callable[[], bool] | None = None) -> SecureConnection:
-    """The server's side: nothing but the handshake is parsed; a client whose static key
-    ``known`` refuses gets no answer at all. ``admit`` is asked once the first message has
-    arrived, before the Diffie-Hellman: False refuses the handshake (:class:`Busy`)."""
+    """The server's side: a client whose static key ``known`` refuses gets no answer at all.
+    ``admit``, asked before the Diffie-Hellman, refuses with :class:`Busy` when False."""
     deadline = time.monotonic() + timeout
     noise = _noise(False, identity)
-    buffer = bytearray()
-    message = _read_message(connection, buffer, deadline)
+    message, pending = _read_message(connection, deadline)
     if admit is not None and not admit():
         raise Busy("too many handshakes at once")
     try:
@@ -145,7 +125,7 @@ def respond(connection: StreamConnection, identity: bytes, known: Callable[[byte
     if not known(remote):
         raise UnknownKey(remote)
     _send_message(connection, noise.write_message(b""))
-    return SecureConnection(connection, noise, remote, bytes(buffer))
+    return SecureConnection(connection, noise, remote, pending)
 
 
 class Busy(HandshakeError):
@@ -159,8 +139,8 @@ class UnknownKey(HandshakeError):
 
 
 class SecureConnection:
-    """A :class:`~rosgate.transport.StreamConnection` whose bytes travel in Noise transport
-    messages. One thread sends and one receives (a :class:`~rosgate.streamlink.StreamLink`'s)."""
+    """A stream connection whose bytes travel in Noise transport messages; one thread sends and
+    one receives (a :class:`~rosgate.streamlink.StreamLink`'s)."""
 
     def __init__(self, raw: StreamConnection, noise, peer_key: bytes, pending: bytes = b""):
         self.raw = raw
@@ -209,8 +189,6 @@ class SecureConnection:
         self.raw.close()
 
 
-# -- session keys --------------------------------------------------------------------------------
-
 def hkdf(secret: bytes, info: bytes, salt: bytes | None = None, length: int = 32) -> bytes:
     return HKDF(algorithm=SHA256(), length=length, salt=salt, info=info).derive(secret)
 
@@ -225,7 +203,7 @@ class KeySchedule:
         self._lock = threading.Lock()
         # key id -> (root, generation 0 started at, erase at (None: current))
         self._roots: dict[int, tuple[bytes, float, float | None]] = {}
-        self._sealing: int | None = None
+        self._sealing = -1  # the key id sealing now; key ids are 0..255, so -1 is none
         # read on every frame without the lock: (key id, its start) of the sealing root, and a
         # count of changes that makes every cached key be looked up again (a server that
         # restarted may reuse a key id: same epoch, another root)
@@ -235,9 +213,8 @@ class KeySchedule:
 
     def _changed(self) -> None:
         """Under the lock, after the roots or the sealing root changed."""
-        found = self._roots.get(self._sealing) if self._sealing is not None else None
-        self._seal_state = (self._sealing, found[1]) if found and self._sealing is not None \
-            else None
+        found = self._roots.get(self._sealing)
+        self._seal_state = (self._sealing, found[1]) if found else None
         self.version += 1
 
     def install(self, key_id: int, secret: bytes, handshake_hash: bytes,
@@ -247,11 +224,8 @@ class KeySchedule:
         root = hkdf(secret, b"rosgate/1 session root", salt=handshake_hash)
         now = self.clock()
         with self._lock:
-            for old, (r, started, _) in list(self._roots.items()):
-                if old == key_id:
-                    del self._roots[old]
-                else:
-                    self._roots[old] = (r, started, now + GRACE)  # opens a while longer
+            self._roots = {old: (r, started, now + GRACE)  # opens a while longer
+                           for old, (r, started, _) in self._roots.items() if old != key_id}
             self._roots[key_id] = (root, now, None)
             if seal_now or self._sealing not in self._roots:
                 self._sealing = key_id
@@ -288,7 +262,7 @@ class KeySchedule:
         """Erase every root (the session ends)."""
         with self._lock:
             self._roots.clear()
-            self._sealing = None
+            self._sealing = -1
             self._changed()
 
     def epoch(self) -> int:
@@ -339,9 +313,8 @@ class SessionKeys(Keys):
         self.send_label = send
         self.receive_label = receive
         self.authenticates = cipher_cls.authenticates
-        self._keyless = cipher_cls.session_key_size == 0
         # a keyless cipher (none) reads no file: any folder will do
-        self._plain = cipher_cls({}, Path(".")) if self._keyless else None
+        self._plain = cipher_cls({}, Path(".")) if cipher_cls.session_key_size == 0 else None
         # (epoch, sealing) -> (the schedule's version, usable until, cipher)
         self._cache: dict[tuple[int, bool], tuple[int, float, Cipher]] = {}
         self._lock = threading.Lock()

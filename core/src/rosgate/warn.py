@@ -1,10 +1,6 @@
-"""Rate-limited warnings: what a peer's bytes can make the bridge say, said a bounded number of
-times. A flood of bad frames costs a few log lines, never a log line each.
-
-* :class:`Warner` — one warning per subject and reason per window, then a count of what was
-  held back.
-* :data:`BUGS` — tracebacks of unexpected errors (a handler or a plugin that raised): one
-  traceback per reason per minute; the rest are counted by whoever caught them.
+"""Rate-limited warnings: a flood of bad frames from a peer costs a few log lines, never one
+each. :class:`Warner` says one warning per subject and reason per window, then how many were
+held back; :data:`BUGS` one traceback of an unexpected error per reason per minute.
 """
 
 from __future__ import annotations
@@ -47,19 +43,17 @@ class Warner:
 
     def warn(self, subject: str, reason: str, detail: str) -> None:
         held = self.due(subject, reason)
-        if held is None:
-            return
-        more = f" ({held} more since the last warning)" if held else ""
-        log.warning("%s: dropped (%s): %s%s", subject, reason, detail, more)
+        if held is not None:
+            more = f" ({held} more since the last warning)" if held else ""
+            log.warning("%s: dropped (%s): %s%s", subject, reason, detail, more)
 
     def bug(self, reason: str, message: str) -> None:
         """Log ``message`` with the traceback being handled, at most once per window for
         ``reason``; the caller counts every occurrence itself."""
         held = self.due("bug", reason)
-        if held is None:
-            return
-        more = f" ({held} more since the last one, not shown)" if held else ""
-        log.error("%s%s", message, more, exc_info=True)
+        if held is not None:
+            more = f" ({held} more since the last one, not shown)" if held else ""
+            log.error("%s%s", message, more, exc_info=True)
 
 
 #: tracebacks of unexpected errors, process-wide
