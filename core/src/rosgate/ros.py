@@ -1,21 +1,20 @@
-"""The ROS side: message types, QoS, and one rclpy context + node per engine.
-
-Each engine gets its own rclpy ``Context`` (and DDS domain when asked), so several engines can
-live in one process. The node is spun by ``rclpy.experimental.EventsExecutor`` in a thread of
-its own, with a loop of ``spin_once`` (while its ``spin()`` runs, creating a subscription from
-another thread hangs, with the rclpy from the package index).
-"""
+"""The ROS side: message types, QoS, and one rclpy context + node per engine (so several
+engines, each in its own DDS domain when asked, live in one process)."""
 
 from __future__ import annotations
 
 import ctypes
 import functools
 import importlib
+import importlib.util
 import logging
+import os
 import re
+import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from .batch import Batches
@@ -77,11 +76,6 @@ def is_interface_package(package: str, kind: str) -> bool:
     """Whether ``package`` is an installed ROS interface package with ``kind`` (msg, srv)
     interfaces — decided without importing it: the ament resource index lists it, or its
     folder holds the C type support rosidl generates and a ``kind`` subpackage."""
-    import importlib.util
-    import os
-    import sys
-    from pathlib import Path
-
     prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
     prefixes.append(sys.prefix)
     listed = any((Path(prefix) / "share" / "ament_index" / "resource_index" / "rosidl_interfaces"
@@ -100,26 +94,19 @@ def is_interface_package(package: str, kind: str) -> bool:
     return False
 
 
-class _TypeHash(ctypes.Structure):
-    """rosidl_type_hash_t: a version, then 32 bytes (SHA-256 of the type's description)."""
-
+class _TypeHash(ctypes.Structure):  # rosidl_type_hash_t: SHA-256 of the type's description
     _fields_ = [("version", ctypes.c_uint8), ("value", ctypes.c_uint8 * 32)]
 
 
 _GetTypeHash = ctypes.CFUNCTYPE(ctypes.POINTER(_TypeHash), ctypes.c_void_p)
 
 
-class _MessageTypeSupport(ctypes.Structure):
-    """The start of rosidl_message_type_support_t (Iron and later)."""
-
+class _MessageTypeSupport(ctypes.Structure):  # rosidl_message_type_support_t's start (Iron+)
     _fields_ = [("identifier", ctypes.c_char_p), ("data", ctypes.c_void_p),
                 ("func", ctypes.c_void_p), ("get_type_hash", _GetTypeHash)]
 
 
-class _ServiceTypeSupport(ctypes.Structure):
-    """The start of rosidl_service_type_support_t (Iron and later): after the request, response
-    and event type supports and the event's two functions, the hash."""
-
+class _ServiceTypeSupport(ctypes.Structure):  # rosidl_service_type_support_t's start (Iron+)
     _fields_ = [("identifier", ctypes.c_char_p), ("data", ctypes.c_void_p),
                 ("func", ctypes.c_void_p), ("request", ctypes.c_void_p),
                 ("response", ctypes.c_void_p), ("event", ctypes.c_void_p),
@@ -191,17 +178,13 @@ def is_reliable(spec: int | str | dict) -> bool:
 
 
 def cdr_checker(msg_type: type) -> Callable[[bytes], None]:
-    """A check that serialized CDR bytes are a valid ``msg_type``, so bytes from an unknown sender
-    never reach a ROS subscriber as a message it cannot read. Raises :class:`rosgate.CodecError`
-    saying why.
+    """A check that serialized CDR bytes are a valid ``msg_type`` (else :class:`CodecError`), so
+    bytes from an unknown sender never reach a subscriber as a message it cannot read.
 
-    The check is the middleware's own deserializer (``rmw_deserialize``, C) into one C message
-    kept for the purpose, called through ctypes: ~2 us for a 2.5 kB String in a tight loop and
-    ~40 us for a 1 MiB Image, but ~15 us in a bridge at 2,000 msg/s, where each call runs cold.
-    rclpy's ``deserialize_message`` (the fallback, where the middleware library cannot be found)
-    also builds the Python message: ~6-16 us and ~1.7 ms. In front of either, where the type
-    allows, a quick look written from the message's definition (:mod:`rosgate.cdr`) passes what
-    is certainly well-formed; only what it is not sure of goes to the deserializer."""
+    The middleware's deserializer (``rmw_deserialize`` through ctypes: ~2 us for a 2.5 kB String
+    in a tight loop, ~15 us cold in a bridge) beats rclpy's ``deserialize_message`` (the
+    fallback: ~6-16 us, ~1.7 ms for a 1 MiB Image); in front of either, the quick look of
+    :mod:`rosgate.cdr` passes what is certainly well-formed."""
     checker = _RmwChecker.make(msg_type)
     full: Callable[[bytes], None]
     if checker is not None:
@@ -280,23 +263,16 @@ class _RmwChecker:
     def check(self, data: bytes | bytearray) -> None:
         serialized = self.serialized
         with self.lock:
-            if type(data) is bytes:
-                serialized.buffer = data
-                failed = self._check(len(data))
-            else:  # a reassembled frame: its buffer, exported for the call only
-                view = (ctypes.c_char * len(data)).from_buffer(data)
-                serialized.buffer = ctypes.cast(view, ctypes.c_char_p)
-                failed = self._check(len(data))
-                del view
+            # a reassembled frame (bytearray): its buffer, exported for the call only
+            view = None if type(data) is bytes else (ctypes.c_char * len(data)).from_buffer(data)
+            serialized.buffer = data if view is None else ctypes.cast(view, ctypes.c_char_p)
+            serialized.buffer_length = serialized.buffer_capacity = len(data)
+            failed = self.deserialize(self.address, self.type_support, self.message)
             serialized.buffer = None  # do not keep the frame alive
+            del view
         if failed:
             self.reset_error()  # else rcutils complains to stderr about the next error
             raise CodecError(f"not a valid {self.name} (its CDR does not deserialize)")
-
-    def _check(self, length: int) -> int:
-        serialized = self.serialized
-        serialized.buffer_length = serialized.buffer_capacity = length
-        return self.deserialize(self.address, self.type_support, self.message)
 
     def __del__(self) -> None:
         if self.message:
@@ -367,13 +343,10 @@ class RosNode:
         self._thread.start()
 
     def _spin(self) -> None:
-        # one spin_once per wake-up (it runs one callback, which takes every message the middleware
-        # announced); the context is asked whether it is still up every SPIN seconds, not per
-        # message (Context.ok takes a lock: 3-4 us/msg in bridge A's profile at 8,000 msg/s).
-        # EventsExecutor.spin() would stay in C++, but while it runs, creating a subscription
-        # from another thread hangs (rclpy from the package index).
-        # While a topic's batch window is open (rosgate.batch) the thread sleeps until it
-        # closes instead of waking for each message, then the route takes them all at once.
+        # spin_once, not EventsExecutor.spin(): while that runs, creating a subscription from
+        # another thread hangs (rclpy from the package index). Context.ok is asked every SPIN
+        # seconds, not per message (it takes a lock: 3-4 us/msg at 8,000 msg/s). While a batch
+        # window is open (rosgate.batch) the thread sleeps until it closes.
         stop, ok, clock, batches = self._stop, self.context.ok, time.monotonic, self.batches
         spin_once = self.executor.spin_once
         checked = clock()
@@ -450,16 +423,12 @@ class RosNode:
 
     def deferred_service(self, srv_type: type, name: str, qos: Any,
                          on_request: Callable[[Any, Callable[[Any], None]], None]) -> Any:
-        """A service server whose answers may come later, from any thread.
+        """A service server whose answers may come later: ``on_request(request, respond)`` runs
+        on the executor thread and must not block; ``respond(response)``, once, from any thread.
 
-        ``on_request(request, respond)`` runs on the executor thread and must not block; calling
-        ``respond(response)`` (once, from any thread) answers the caller. Why not an async
-        callback: EventsExecutor does not run coroutines (it hands the coroutine itself to
-        ``send_response``: TypeError), and rclpy's Python executors resume awaiting tasks by
-        polling them in a busy loop. Both executors answer by calling ``service.send_response
-        (result, header)`` on the service object, so the callback returns a marker and
-        ``send_response`` is replaced on this instance: given the marker it passes the request
-        and a ``respond`` bound to the request's header to ``on_request``.
+        Not an async callback: EventsExecutor hands the coroutine itself to ``send_response``
+        and rclpy's Python executors poll awaiting tasks in a busy loop. So the callback returns
+        a marker, and this instance's ``send_response`` turns it into the call of ``on_request``.
         """
         from rclpy.exceptions import InvalidHandle
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
