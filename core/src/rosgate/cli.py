@@ -7,13 +7,13 @@ tracebacks are kept for bugs.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
 import logging
 import os
 import signal
 import sys
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -157,7 +157,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     for a in plan.actions:  # three services and two topics each (rosgate.actions)
         calls = a.parts[0]  # its send_goal: on a bus, its key shows theirs
         where = calls.key.removesuffix("send_goal") + "*" if calls.key else a.config.remote
-        print(_entry_line(a.name, where, a.config, speaks(calls)))
+        print(_entry_line(a.config.action, where, a.config, speaks(calls)))
     for line in report(plan):
         print(line)
     return 0
@@ -172,24 +172,19 @@ def _entry_line(name: str, where: str, c: Any, speaks: str) -> str:
 
 
 def keep_large_buffers() -> None:
-    """Let malloc reuse the megabyte buffers a bridge goes through per image (a reassembled
-    frame, rclpy's copy, the middleware's) instead of handing each back to the kernel when it
-    is freed: by default glibc maps such a block fresh, or trims it off its heap, and the next
-    one is faulted in a page at a time — 256 page faults per megabyte, most of a bridge's CPU per
-    image. A heap now keeps up to :data:`KEEP_BUFFERS` free. Left alone where the environment
-    sets glibc's own MALLOC_*_THRESHOLD_, and where the C library is not glibc."""
+    """Let glibc's malloc keep up to :data:`KEEP_BUFFERS` of the megabyte buffers a bridge goes
+    through per image, instead of returning each to the kernel and faulting the next one in a
+    page at a time (256 page faults per megabyte, most of a bridge's CPU per image). Left alone
+    where the environment sets MALLOC_*_THRESHOLD_, and where the C library is not glibc."""
     if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ:
         return
     import ctypes
 
-    try:
+    with contextlib.suppress(OSError):
         libc = ctypes.CDLL(None)
-        if not hasattr(libc, "gnu_get_libc_version"):
-            return
-        libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BUFFERS)
-        libc.mallopt(_M_TRIM_THRESHOLD, KEEP_BUFFERS)
-    except OSError:
-        return
+        if hasattr(libc, "gnu_get_libc_version"):
+            libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BUFFERS)
+            libc.mallopt(_M_TRIM_THRESHOLD, KEEP_BUFFERS)
 
 
 #: Fast DDS's ways of naming a profile of its own: where one says something, rosgate says nothing
@@ -289,7 +284,15 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     from .plugins import Plugins
 
     if args.cipher == "identity":
-        return _keygen_identity(Path(args.out or "identity.key"), args.force)
+        from . import identity
+
+        path, private = Path(args.out or "identity.key"), identity.generate()
+        with _new_key_file(path):
+            identity.write_private(path, private, args.force)
+        print(f"wrote a new identity to {path} (mode 0600); its public key, for the other side's "
+              "file (server_key: on a client, clients: NAME: key: on a server):", file=sys.stderr)
+        print(identity.encode(identity.public_of(private)))
+        return 0
     plugins = Plugins.discover()
     registration = plugins.get("cipher", args.cipher)
     if registration is None:
@@ -310,7 +313,7 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     return 0
 
 
-@contextmanager
+@contextlib.contextmanager
 def _new_key_file(path: Path) -> Iterator[None]:
     """Writing a key file: an existing one, or a folder that cannot be written, said as such."""
     try:
@@ -320,18 +323,6 @@ def _new_key_file(path: Path) -> Iterator[None]:
                           fix="pass --force to replace it, or choose another --out") from None
     except OSError as exc:
         raise ConfigError(f"cannot write {path}: {exc.strerror}", file="keygen") from None
-
-
-def _keygen_identity(path: Path, force: bool) -> int:
-    from . import identity
-
-    key = identity.generate()
-    with _new_key_file(path):
-        identity.write_private(path, key, force)
-    print(f"wrote a new identity to {path} (mode 0600); its public key, for the other side's "
-          "file (server_key: on a client, clients: NAME: key: on a server):", file=sys.stderr)
-    print(identity.encode(identity.public_of(key)))
-    return 0
 
 
 def cmd_pubkey(args: argparse.Namespace) -> int:

@@ -52,10 +52,6 @@ class PreparedAction:
     config: ActionConfig
     parts: list[TopicSpec | ServiceSpec]
 
-    @property
-    def name(self) -> str:
-        return self.config.action
-
 
 @dataclass
 class Plan:

@@ -39,10 +39,9 @@ def resolve_type(name: str) -> type:
     if not match:
         raise TypeNotFound(f"{name!r} is not an interface name of the form pkg/msg/Type")
     package, kind, type_name = match.groups()
-    dist = "ros-jazzy-" + package.replace("_", "-")
-    missing = TypeNotFound(
-        f"interface package {package!r} is not installed (apt install ros-$ROS_DISTRO-"
-        f"{package.replace('_', '-')}, or pip install {dist})")
+    dashed = package.replace("_", "-")
+    missing = TypeNotFound(f"interface package {package!r} is not installed (apt install "
+                           f"ros-$ROS_DISTRO-{dashed}, or pip install ros-jazzy-{dashed})")
     if not is_interface_package(package, kind):
         raise missing
     try:
@@ -369,13 +368,10 @@ class RosNode:
 
     @staticmethod
     def taker(subscription: Any) -> Callable[[], tuple[Any, int] | None]:
-        """For a subscription's callback (on the executor's thread, the only one that takes from
-        it): the next message already waiting in the middleware and when it arrived there
-        (``time.time_ns()`` nanoseconds: the middleware's reception stamp), or None, without
-        waiting. The executor calls back once per message announced; a callback that takes the
-        rest itself handles a backlog in one go, and the executor's own takes then find
-        nothing. (The executor's callback gets no stamp: this rclpy's EventsExecutor fails on
-        callbacks that ask for the message info.)"""
+        """For a subscription's callback (on the executor's thread): the next message waiting in
+        the middleware and its reception stamp (``time.time_ns()``), or None, without waiting;
+        a callback takes a backlog in one go. (This rclpy's EventsExecutor fails on callbacks
+        that ask for the message info, so the stamp is taken here.)"""
         take = subscription.handle.take_message
         msg_type, raw = subscription.msg_type, subscription.raw
 
@@ -386,11 +382,9 @@ class RosNode:
         return next_waiting
 
     def qos_found(self, topic: str) -> dict[str, Any] | None:
-        """The QoS a subscription to ``topic`` (and a publisher for it elsewhere) takes from its
-        publishers on the ROS graph, but this node's own (a bridge that also receives the
-        topic): reliable when all are, transient_local when all are (as ROS's own
-        best-available QoS decides), deep enough for the history of all of them; None when
-        there is none."""
+        """The QoS ``topic``'s publishers on the graph (not this node's) agree on, as ROS's
+        best-available QoS decides: reliable, transient_local when all are, deep enough for all
+        their histories; None without publishers."""
         from rclpy import qos
 
         me = (self.node.get_name(), self.node.get_namespace())

@@ -1,15 +1,8 @@
-"""A running bridge's local status socket: where it is, and serving it (``rosgate top``, the
-plugin ``rosgate-top``, asks it).
-
-Each bridge serves its status (:mod:`rosgate.status`) on a Unix socket named after it,
-``<runtime dir>/<name>.sock``: ``$ROSGATE_RUNTIME_DIR``, else ``$XDG_RUNTIME_DIR/rosgate``, else
-``/tmp/rosgate-<uid>``. The folder is made mode 0700 and refused when another user owns it or
-others may write to it; the socket is mode 0600, and a connection from another user (root
-aside, who can read anything anyway) is closed unanswered. It never listens on a network.
-
-The protocol is JSON lines: the client writes one line (``{"get": "status"}``), the bridge
-answers with one line, the status; a client may ask again on the same connection. Answering
-reads counters and copies a few lists: nothing on the data path waits for it.
+"""A bridge's status (:mod:`rosgate.status`) on a Unix socket, ``<runtime dir>/<name>.sock``,
+for ``rosgate top``. The folder is 0700 and refused when another user owns it or others may
+write to it; the socket is 0600, and a connection from another user (root aside) is closed
+unanswered. Never on a network. JSON lines: one request line (``{"get": "status"}``), one
+answer line, the status; again on the same connection if the client likes.
 """
 
 from __future__ import annotations
@@ -35,7 +28,7 @@ MAX_CLIENTS = 8  # connections served at once; more wait in the listen backlog
 
 
 def runtime_dir() -> Path:
-    """The folder of this user's bridges' sockets (not made here)."""
+    """``$ROSGATE_RUNTIME_DIR``, else ``$XDG_RUNTIME_DIR/rosgate``, else ``/tmp/rosgate-<uid>``."""
     if given := os.environ.get(RUNTIME_VARIABLE):
         return Path(given)
     if (xdg := os.environ.get("XDG_RUNTIME_DIR")) and Path(xdg).is_dir():
