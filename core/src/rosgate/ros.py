@@ -83,14 +83,10 @@ def is_interface_package(package: str, kind: str) -> bool:
         spec = importlib.util.find_spec(package)  # a top-level name: finds, does not import
     except (ImportError, ValueError):
         return False
-    if spec is None or not spec.submodule_search_locations:
-        return False
-    for location in spec.submodule_search_locations:
-        folder = Path(location)
-        generated = any(folder.glob(f"{package}_s__rosidl_typesupport_c*"))
-        if (folder / kind / "__init__.py").is_file() and (listed or generated):
-            return True
-    return False
+    folders = (spec.submodule_search_locations or []) if spec else []
+    return any((Path(f) / kind / "__init__.py").is_file()
+               and (listed or any(Path(f).glob(f"{package}_s__rosidl_typesupport_c*")))
+               for f in folders)
 
 
 class _TypeHash(ctypes.Structure):  # rosidl_type_hash_t: SHA-256 of the type's description
@@ -223,8 +219,6 @@ class _RmwChecker:
     topic may come from several links at once). Deserializing into a used message is what the
     generated type support does anyway: it finalizes strings and sequences before filling them."""
 
-    _library: Any = None  # the middleware's C library, found once per process
-
     def __init__(self, msg_type: type, rmw: Any, reset_error: Any):
         meta: Any = type(msg_type)  # rosidl's metaclass holds the C type support
         meta.__import_type_support__()
@@ -248,13 +242,11 @@ class _RmwChecker:
     def make(cls, msg_type: type) -> _RmwChecker | None:
         """A checker, or None where the middleware's library or the type's C support is not
         found (then rclpy's deserializer does the check)."""
-        if cls._library is None:
-            cls._library = _find_rmw() or False
-        if not cls._library:
+        library = _find_rmw()
+        if library is None:
             return None
-        rmw, reset_error = cls._library
         try:
-            return cls(msg_type, rmw, reset_error)
+            return cls(msg_type, *library)
         except (AttributeError, OSError, MemoryError) as exc:
             _log.debug("CDR check of %s through rclpy: %s", msg_type.__name__, exc)
             return None
@@ -279,6 +271,7 @@ class _RmwChecker:
             self.message = None
 
 
+@functools.cache
 def _find_rmw() -> tuple[Any, Any] | None:
     """The library with ``rmw_deserialize``, and ``rcutils_reset_error``, among those rclpy loaded:
     ``librmw_implementation`` (ROS from apt: it dispatches to the middleware in use) or else the
