@@ -38,7 +38,11 @@ def main(argv: list[str] | None = None) -> int:
     parser, commands = _parser()
     verb = next((a for a in argv if not a.startswith("-")), None)
     if verb not in CORE_COMMANDS:  # a plugin's, or help: only then are all plugins loaded
-        _add_plugin_commands(commands)
+        for name, registration in sorted(_all_plugins().commands.items()):
+            command = registration.command
+            sub = commands.add_parser(name, help=f"{command.help} ({registration.distribution})")
+            command.arguments(sub)
+            sub.set_defaults(run=command.run)
     args = parser.parse_args(argv)
     # a one-shot verb's answer is its output: only warnings join it on stderr (a path's MTU,
     # said at INFO, is news for a running bridge, not for check)
@@ -112,15 +116,6 @@ def _all_plugins() -> Plugins:
         print(f"rosgate: warning: plugin {f.plugin!r} ({f.distribution}) failed to load: "
               f"{f.reason}", file=sys.stderr)
     return plugins
-
-
-def _add_plugin_commands(commands: Any) -> None:
-    """The plugins' commands (a plugin that failed to load is named: its command is missing)."""
-    for name, registration in sorted(_all_plugins().commands.items()):
-        command = registration.command
-        sub = commands.add_parser(name, help=f"{command.help} ({registration.distribution})")
-        command.arguments(sub)
-        sub.set_defaults(run=command.run)
 
 
 def _engine(path: str, plugins: Plugins | None = None, domain_id: int | None = None) -> Engine:

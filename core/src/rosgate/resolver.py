@@ -127,21 +127,10 @@ class Resolver:
             raise error(f"{key}.framing",
                         "framing: none needs a datagram transport (udp, can, ...)",
                         "use framing: rosgate on stream links")
-        reliable = is_reliable(topic.qos)
-        priority = topic.priority or PRIORITIES["data"]
-        self._real_link(topic, key, transport, error)
-        packetizer, options = self._recovery(topic, key, error) or (None, None)
+        delivery = self._delivery(topic, key, transport, error)
         compression = None if topic.compression == NO_PLUGIN else self._made(
             "transform", topic.compression, f"{key}.compression", error, DEFAULT_MAX_MESSAGE,
             own=topic.compression_options)
-        if isinstance(transport, BusTransport):  # a bus paces and drops by itself
-            delivery = Delivery(reliable=reliable, priority=priority)
-        else:
-            delivery = Delivery(
-                reliable=reliable, priority=priority,
-                latest_only=not reliable if topic.latest_only is None else topic.latest_only,
-                max_delay=topic.max_delay, packetizer=packetizer, packetizer_options=options,
-                whole=topic.framing is Framing.NONE)
         return TopicSpec(**common, **self._where(topic, key, transport, error),
                          delivery=delivery, compression=compression,
                          transforms=self.transform_for)
@@ -189,18 +178,37 @@ class Resolver:
         address, local = self._addresses(transport, entry, key, error)
         return {"address": address, "local": local}
 
-    def _recovery(self, topic: TopicConfig, key: str,
-                  error: ErrorMaker) -> tuple[type[Packetizer], Any] | None:
-        if topic.recovery == NO_PLUGIN:
-            return None
-        cls: type[Packetizer] = self.plugin("packetizer", topic.recovery, f"{key}.recovery",
-                                            error).cls
-        if cls.cuts_every_frame:
-            raise error(f"{key}.recovery", f"{topic.recovery} is what links of small frames cut "
-                        "every frame with, by themselves: it recovers nothing",
-                        "remove recovery: from this entry, or pick fec or retransmit")
-        return cls, self._plugin_options(cls, topic.recovery, topic.recovery_options,
-                                         f"{key}.recovery", error)
+    def _delivery(self, topic: TopicConfig, key: str, transport: Transport,
+                  error: ErrorMaker) -> Delivery:
+        """Recovery is for datagram links, latest_only for the links rosgate schedules (a bus
+        paces and drops by itself)."""
+        bus = isinstance(transport, BusTransport)
+        if topic.recovery != NO_PLUGIN and (isinstance(transport, StreamTransport) or bus):
+            what = "a bus" if bus else "a stream"
+            raise error(f"{key}.recovery", f"recovery: {topic.recovery} is for datagram links "
+                        f"(udp): {topic.transport} is {what}, which delivers whole and in order "
+                        "by itself", "remove recovery: from this entry")
+        if topic.latest_only is not None and bus:
+            raise error(f"{key}.latest_only", f"latest_only applies to links rosgate schedules; "
+                        f"{topic.transport} is a bus, which drops best-effort samples itself "
+                        "when it is congested", "remove latest_only: from this entry")
+        reliable, priority = is_reliable(topic.qos), topic.priority or PRIORITIES["data"]
+        if bus:
+            return Delivery(reliable=reliable, priority=priority)
+        packetizer: type[Packetizer] | None = None
+        options = None
+        if topic.recovery != NO_PLUGIN:
+            packetizer = self.plugin("packetizer", topic.recovery, f"{key}.recovery", error).cls
+            if packetizer.cuts_every_frame:
+                raise error(f"{key}.recovery", f"{topic.recovery} is what links of small frames "
+                            "cut every frame with, by themselves: it recovers nothing",
+                            "remove recovery: from this entry, or pick fec or retransmit")
+            options = self._plugin_options(packetizer, topic.recovery, topic.recovery_options,
+                                           f"{key}.recovery", error)
+        latest_only = not reliable if topic.latest_only is None else topic.latest_only
+        return Delivery(reliable=reliable, priority=priority, latest_only=latest_only,
+                        max_delay=topic.max_delay, packetizer=packetizer,
+                        packetizer_options=options, whole=topic.framing is Framing.NONE)
 
     def _plugin_options(self, cls: type, name: str, own: dict[str, Any], asked_by: str,
                         error: ErrorMaker) -> Any:
@@ -225,21 +233,6 @@ class Resolver:
                         options = parse(found.cls, self._options(found.name), self.config.base_dir)
                         self._decoders[wire_id] = found.cls(options, DEFAULT_MAX_MESSAGE)
             return self._decoders[wire_id]
-
-    @staticmethod
-    def _real_link(topic: TopicConfig, key: str, transport: Transport,
-                   error: ErrorMaker) -> None:
-        """Recovery is for datagram links, latest_only for the links rosgate schedules."""
-        bus = isinstance(transport, BusTransport)
-        if topic.recovery != NO_PLUGIN and (isinstance(transport, StreamTransport) or bus):
-            what = "a bus" if bus else "a stream"
-            raise error(f"{key}.recovery", f"recovery: {topic.recovery} is for datagram links "
-                        f"(udp): {topic.transport} is {what}, which delivers whole and in order "
-                        "by itself", "remove recovery: from this entry")
-        if topic.latest_only is not None and bus:
-            raise error(f"{key}.latest_only", f"latest_only applies to links rosgate schedules; "
-                        f"{topic.transport} is a bus, which drops best-effort samples itself "
-                        "when it is congested", "remove latest_only: from this entry")
 
     def service(self, service: ServiceConfig, index: int, section: str,
                 error: ErrorMaker | None = None) -> ServiceSpec:
