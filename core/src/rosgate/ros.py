@@ -96,19 +96,6 @@ class _TypeHash(ctypes.Structure):  # rosidl_type_hash_t: SHA-256 of the type's 
 _GetTypeHash = ctypes.CFUNCTYPE(ctypes.POINTER(_TypeHash), ctypes.c_void_p)
 
 
-class _MessageTypeSupport(ctypes.Structure):  # rosidl_message_type_support_t's start (Iron+)
-    _fields_ = [("identifier", ctypes.c_char_p), ("data", ctypes.c_void_p),
-                ("func", ctypes.c_void_p), ("get_type_hash", _GetTypeHash)]
-
-
-class _ServiceTypeSupport(ctypes.Structure):  # rosidl_service_type_support_t's start (Iron+)
-    _fields_ = [("identifier", ctypes.c_char_p), ("data", ctypes.c_void_p),
-                ("func", ctypes.c_void_p), ("request", ctypes.c_void_p),
-                ("response", ctypes.c_void_p), ("event", ctypes.c_void_p),
-                ("create_event", ctypes.c_void_p), ("destroy_event", ctypes.c_void_p),
-                ("get_type_hash", _GetTypeHash)]
-
-
 #: the pointer in a PyCapsule: rosidl's metaclasses hold their C functions in capsules
 _capsule = ctypes.PYFUNCTYPE(ctypes.c_void_p, ctypes.py_object, ctypes.c_char_p)(
     ("PyCapsule_GetPointer", ctypes.pythonapi))
@@ -123,11 +110,14 @@ def type_hash(interface: type) -> str | None:
     try:
         meta.__import_type_support__()
         address = _capsule(meta._TYPE_SUPPORT, None)
-        layout = _ServiceTypeSupport if hasattr(interface, "Request") else _MessageTypeSupport
-        support = layout.from_address(address)
-        if not support.get_type_hash:
+        # rosidl_{message,service}_type_support_t (Iron and later) start with pointers only: the
+        # hash getter after identifier, data, func (a service's: request, response, event and
+        # the event's create and destroy functions too)
+        slot = 8 if hasattr(interface, "Request") else 3
+        getter = (ctypes.c_void_p * (slot + 1)).from_address(address)[slot]
+        if not getter:
             return None
-        found = support.get_type_hash(address)
+        found = _GetTypeHash(getter)(address)
         if not found or found.contents.version < 1:
             return None
         return f"RIHS{found.contents.version:02}_{bytes(found.contents.value).hex()}"
