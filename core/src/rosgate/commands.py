@@ -48,30 +48,21 @@ def command_problem(command: object) -> str | None:
     return None
 
 
-class Signals:
-    """The signals caught, oldest first. The handler only appends: one that took a lock
-    (``Event.set`` does) could hang for good, run between two bytecodes of the main thread while
-    it holds that very lock in ``Event.wait`` (seen: two SIGINTs, a bridge that never stopped)."""
-
-    def __init__(self, *signums: int):
-        self.caught: list[int] = []
-        for signum in signums:
-            signal.signal(signum, self._caught)
-
-    def _caught(self, signum: int, frame: object) -> None:
-        self.caught.append(signum)
+def stop_on_signals(*more: int) -> list[int]:
+    """SIGINT, SIGTERM (and ``more``) caught into a list, oldest first, for
+    :func:`wait_for_signal`. The handler only appends: one that took a lock (``Event.set`` does)
+    could hang for good, run between two bytecodes of the main thread while it holds that very
+    lock in ``Event.wait`` (seen: two SIGINTs, a bridge that never stopped)."""
+    caught: list[int] = []
+    for signum in (signal.SIGINT, signal.SIGTERM, *more):
+        signal.signal(signum, lambda signum, frame: caught.append(signum))
+    return caught
 
 
-def stop_on_signals(*more: int) -> Signals:
-    """SIGINT, SIGTERM (and ``more``), caught: what a command that runs until stopped waits on
-    with :func:`wait_for_signal`."""
-    return Signals(signal.SIGINT, signal.SIGTERM, *more)
-
-
-def wait_for_signal(signals: Signals) -> int:
+def wait_for_signal(caught: list[int]) -> int:
     """Wait until a signal is caught; return it. In slices: a signal the kernel hands to another
     thread (zenoh's, DDS's) does not interrupt a wait without a timeout, and Python runs handlers
     in the main thread only."""
-    while not signals.caught:
+    while not caught:
         time.sleep(0.2)
-    return signals.caught.pop(0)
+    return caught.pop(0)
