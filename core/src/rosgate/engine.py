@@ -211,8 +211,7 @@ class Engine:
 
     def reload(self, path: str) -> None:
         """SIGHUP: a server applies the ``clients:`` of its file as it is now (a file that no
-        longer loads is reported and the running policy kept). Other roles have nothing to
-        reload."""
+        longer loads is reported and the running policy kept)."""
         if not isinstance(self.role, ServerRole):
             log.info("SIGHUP: nothing to reload for a %s", self.config.role)
             return

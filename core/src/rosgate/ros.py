@@ -31,10 +31,9 @@ class TypeNotFound(LookupError):
 
 
 def resolve_type(name: str) -> type:
-    """``pkg/msg/Type`` (or ``pkg/srv/Type``) to its Python class.
-
-    Names come from peers too, so nothing is imported before ``pkg`` is known to be a ROS
-    interface package (:func:`is_interface_package`): ``this/msg/Foo`` must not import ``this``."""
+    """``pkg/msg/Type`` (or ``pkg/srv/Type``) to its Python class. Names come from peers too:
+    nothing is imported before ``pkg`` is known to be an interface package (``this/msg/Foo`` must
+    not import ``this``)."""
     match = TYPE_NAME.match(name)
     if not match:
         raise TypeNotFound(f"{name!r} is not an interface name of the form pkg/msg/Type")
@@ -154,9 +153,8 @@ def qos_profile(spec: int | str | dict) -> Any:
 
 
 def is_reliable(spec: int | str | dict) -> bool:
-    """Whether a topic's frames wait out a link loss: unless its QoS says best effort (the
-    system default and best-available profiles are reliable with every shipped RMW). Read from
-    the file's words as rclpy's profiles have them, without rclpy: ``rosgate check`` needs none."""
+    """Whether a topic's frames wait out a link loss: unless its QoS says best effort (the system
+    default and best-available profiles are reliable with every shipped RMW). Without rclpy."""
     if isinstance(spec, str):
         return spec not in BEST_EFFORT_PROFILES
     return not (isinstance(spec, dict) and spec.get("reliability") == "best_effort")
@@ -196,10 +194,7 @@ def cdr_checker(msg_type: type) -> Callable[[bytes], None]:
     return check
 
 
-class _SerializedMessage(ctypes.Structure):
-    """rmw_serialized_message_t (rcutils_uint8_array_t): the bytes, their length, the capacity,
-    and an allocator that deserializing never uses."""
-
+class _SerializedMessage(ctypes.Structure):  # rmw_serialized_message_t; the allocator unused
     _fields_ = [("buffer", ctypes.c_char_p), ("buffer_length", ctypes.c_size_t),
                 ("buffer_capacity", ctypes.c_size_t), ("allocator", ctypes.c_void_p * 5)]
 
@@ -223,8 +218,8 @@ class _RmwChecker:
         self.serialized = _SerializedMessage()
         self.address = ctypes.addressof(self.serialized)
         pointer = ctypes.c_void_p
-        signature = ctypes.CFUNCTYPE(ctypes.c_int, pointer, pointer, pointer)
-        self.deserialize = signature(("rmw_deserialize", rmw))
+        self.deserialize = ctypes.CFUNCTYPE(ctypes.c_int, pointer, pointer, pointer)(
+            ("rmw_deserialize", rmw))
         self.reset_error = reset_error
         self.lock = threading.Lock()
 
