@@ -24,6 +24,9 @@ _log = logging.getLogger("rosgate")
 
 # an action's parts are named pkg/action/Type_SendGoal, Type_FeedbackMessage ...
 TYPE_NAME = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv|action)/([A-Z][A-Za-z0-9_]*)$")
+#: an action's parts as the graph names them (pkg/action/Type_SendGoal), and in Type.Impl
+_ACTION_PARTS = {"SendGoal": "SendGoalService", "GetResult": "GetResultService",
+                 "FeedbackMessage": "FeedbackMessage"}
 
 
 class TypeNotFound(LookupError):
@@ -48,26 +51,15 @@ def resolve_type(name: str) -> type:
     except ImportError:
         raise missing from None
     cls = getattr(module, type_name, None)
-    if cls is None and kind == "action" and "_" in type_name:
-        cls = _action_part(module, type_name)
+    if cls is None and kind == "action" and "_" in type_name:  # not all exported: in Type.Impl
+        base, _, part = type_name.partition("_")
+        impl = getattr(getattr(module, base, None), "Impl", None)
+        cls = getattr(impl, _ACTION_PARTS.get(part, ""), None)
     if not isinstance(cls, type):
         known = sorted(n for n in dir(module) if n[:1].isupper() and not n.startswith("Metaclass"))
         raise TypeNotFound(f"package {package!r} has no {kind} {type_name!r} "
                            f"(it has: {', '.join(known)})")
     return cls
-
-
-#: an action's parts as the graph names them (pkg/action/Type_SendGoal), and in Type.Impl
-_ACTION_PARTS = {"SendGoal": "SendGoalService", "GetResult": "GetResultService",
-                 "FeedbackMessage": "FeedbackMessage"}
-
-
-def _action_part(module: Any, type_name: str) -> Any:
-    """``Type_SendGoal``, ``Type_GetResult``, ``Type_FeedbackMessage`` of an action module,
-    found in ``Type.Impl`` (the module does not export them all)."""
-    base, _, part = type_name.partition("_")
-    impl = getattr(getattr(module, base, None), "Impl", None)
-    return getattr(impl, _ACTION_PARTS.get(part, ""), None) if impl is not None else None
 
 
 def is_interface_package(package: str, kind: str) -> bool:
