@@ -123,8 +123,7 @@ def _engine(path: str, plugins: Plugins | None = None, domain_id: int | None = N
     from .engine import Engine
 
     engine = Engine(load(path), plugins, domain_id=domain_id).prepare()
-    warning = engine.insecure_warning()
-    if warning is not None:
+    if (warning := engine.insecure_warning()) is not None:
         logging.getLogger("rosgate").warning(warning)
     return engine
 

@@ -178,10 +178,18 @@ class Engine:
             Bridge(self.config, self.plan, self.resolver, self.router, self.life))
         try:
             self.role.start()
-            self._start_monitors()
+            watched = Watched(self.config, self.status, self.ros, self.life.stopping)
+            for cls, options in self._monitor_classes:
+                monitor = cls(watched, options)
+                monitor.start()
+                self.monitors.append(monitor)
         except ConfigError:
             self.stop()
             raise
+        try:
+            self.status_server = StatusServer(self.config.name, self.status)
+        except OSError as exc:  # rosgate top will not see this bridge; the bridge runs on
+            log.warning("%s: no status socket (rosgate top): %s", self.config.name, exc)
         threading.Thread(target=self._housekeeping, name="housekeeping", daemon=True).start()
         log.info("%s: running as %s with %d topic(s) and %d service(s)%s", self.config.name,
                  self.config.role, len(self.plan.topics), len(self.plan.services),
@@ -221,18 +229,6 @@ class Engine:
             log.error("SIGHUP: %s; the running policy stays", exc)
             return
         self.role.reload(fresh.clients)
-
-    def _start_monitors(self) -> None:
-        assert self.ros is not None
-        watched = Watched(self.config, self.status, self.ros, self.life.stopping)
-        for cls, options in self._monitor_classes:
-            monitor = cls(watched, options)
-            monitor.start()
-            self.monitors.append(monitor)
-        try:
-            self.status_server = StatusServer(self.config.name, self.status)
-        except OSError as exc:  # rosgate top will not see this bridge; the bridge runs on
-            log.warning("%s: no status socket (rosgate top): %s", self.config.name, exc)
 
     def status(self) -> Status:
         """What the bridge does now: every route's and link's counters (:mod:`rosgate.status`)."""

@@ -22,7 +22,6 @@ from .errors import CodecError
 
 _log = logging.getLogger("rosgate")
 
-# an action's parts are named pkg/action/Type_SendGoal, Type_FeedbackMessage ...
 TYPE_NAME = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv|action)/([A-Z][A-Za-z0-9_]*)$")
 #: an action's parts as the graph names them (pkg/action/Type_SendGoal), and in Type.Impl
 _ACTION_PARTS = {"SendGoal": "SendGoalService", "GetResult": "GetResultService",

@@ -40,15 +40,6 @@ def socket_path(name: str) -> Path:
     return runtime_dir() / f"{name}{SUFFIX}"
 
 
-def _private_dir(folder: Path) -> None:
-    """Make ``folder`` 0700, or check that an existing one is ours and closed to others."""
-    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-    info = folder.stat()
-    if info.st_uid != os.getuid() or info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise OSError(f"{folder} is not this user's alone (owner uid {info.st_uid}, mode "
-                      f"{stat.S_IMODE(info.st_mode):o}); remove it or set {RUNTIME_VARIABLE}")
-
-
 class StatusServer:
     """Serves ``status()`` on the bridge's socket until :meth:`close`."""
 
@@ -57,7 +48,12 @@ class StatusServer:
         self.status = status
         self._slots = threading.BoundedSemaphore(MAX_CLIENTS)
         self._closed = threading.Event()
-        _private_dir(self.path.parent)
+        folder = self.path.parent  # 0700, or an existing one ours and closed to others
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        info = folder.stat()
+        if info.st_uid != os.getuid() or info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+            raise OSError(f"{folder} is not this user's alone (owner uid {info.st_uid}, mode "
+                          f"{stat.S_IMODE(info.st_mode):o}); remove it or set {RUNTIME_VARIABLE}")
         if self.path.exists() or self.path.is_symlink():
             if _answers(self.path):
                 raise OSError(f"another bridge named {name!r} serves {self.path}")
