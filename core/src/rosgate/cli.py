@@ -229,8 +229,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     plugins = Plugins.discover()
     if args.options:
         return _print_options(plugins, args.options)
-    registrations = plugins.all()
-    rows = sorted([(r.kind, r.name, r.distribution, r.version) for r in registrations]
+    rows = sorted([(r.kind, r.name, r.distribution, r.version) for r in plugins.all()]
                   + [("command", name, c.distribution, c.version)
                      for name, c in plugins.commands.items()])
     for line in _columns([("KIND", "NAME", "DISTRIBUTION", "VERSION"), *rows]):
@@ -252,16 +251,11 @@ def _print_options(plugins: Any, name: str) -> int:
         raise ConfigError(f"no plugin is named {name!r} (installed: {installed})", file="plugins")
     for r in found:
         print(f"{r.kind} {r.name} ({r.distribution} {r.version}), under plugins: {r.name}:")
-        options = declared(r.cls)
-        if not options:
-            print("  no options")
-        else:
-            rows = [("OPTION", "TYPE", "DEFAULT", "DESCRIPTION")]
-            for o in options:
-                limits = f" ({o.limits()})" if o.limits() else ""
-                rows.append((o.name, spell(o.type), o.default_text(), o.doc + limits))
-            for line in _columns(rows):
-                print("  " + line)
+        rows = [(o.name, spell(o.type), o.default_text(),
+                 o.doc + (f" ({o.limits()})" if o.limits() else "")) for o in declared(r.cls)]
+        header = ("OPTION", "TYPE", "DEFAULT", "DESCRIPTION")
+        for line in _columns([header, *rows]) if rows else ["no options"]:
+            print("  " + line)
     return 0
 
 
