@@ -296,12 +296,10 @@ class RosNode:
         from rclpy.context import Context
         from rclpy.experimental import EventsExecutor
 
-        self._rclpy = rclpy
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id)
-        node_name = re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{name}")
-        self.node = rclpy.create_node(node_name, context=self.context,
-                                      start_parameter_services=False)
+        self.node = rclpy.create_node(re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{name}"),
+                                      context=self.context, start_parameter_services=False)
         self.executor = EventsExecutor(context=self.context)
         self.executor.add_node(self.node)
         #: the batch windows of its subscriptions, closed on the executor's thread
