@@ -192,11 +192,10 @@ def _fuse(steps: list[Step]) -> list[Step]:
 def walker(msg_type: type) -> Callable[[bytes | bytearray], bool] | None:
     """The quick look for ``msg_type`` (see the module's docstring), or None when the type has a
     field it does not judge."""
-    try:
-        little, big = _Walker(True).message(msg_type), _Walker(False).message(msg_type)
+    try:  # by the encapsulation's second byte: 1 little-endian, 0 big-endian
+        orders = {1: _Walker(True).message(msg_type), 0: _Walker(False).message(msg_type)}
     except (_Unsupported, AttributeError, ImportError):
         return None
-    orders: dict[int, list[Step]] = {1: little, 0: big}
 
     def well_formed(data: bytes | bytearray) -> bool:
         if len(data) < _HEADER or data[0] != 0:

@@ -96,8 +96,7 @@ class Resolver:
         for key in ("transport", "codec", "cipher"):
             self.plugin(key, cfg.defaults[key], f"bridge.defaults.{key}")
         for name in cfg.links:
-            transport = self.transport(name, f"bridge.links.{name}")
-            if isinstance(transport, BusTransport):
+            if isinstance(self.transport(name, f"bridge.links.{name}"), BusTransport):
                 raise cfg.error(f"bridge.links.{name}", f"{name} is a bus: it paces and orders "
                                 "what it sends itself", f"remove {name} from bridge.links")
         if cfg.secure and cfg.role is Role.SERVER:
