@@ -7,13 +7,13 @@ tracebacks are kept for bugs.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
 import logging
 import os
 import signal
 import sys
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -38,7 +38,11 @@ def main(argv: list[str] | None = None) -> int:
     parser, commands = _parser()
     verb = next((a for a in argv if not a.startswith("-")), None)
     if verb not in CORE_COMMANDS:  # a plugin's, or help: only then are all plugins loaded
-        _add_plugin_commands(commands)
+        for name, registration in sorted(_all_plugins().commands.items()):
+            command = registration.command
+            sub = commands.add_parser(name, help=f"{command.help} ({registration.distribution})")
+            command.arguments(sub)
+            sub.set_defaults(run=command.run)
     args = parser.parse_args(argv)
     # a one-shot verb's answer is its output: only warnings join it on stderr (a path's MTU,
     # said at INFO, is news for a running bridge, not for check)
@@ -114,22 +118,12 @@ def _all_plugins() -> Plugins:
     return plugins
 
 
-def _add_plugin_commands(commands: Any) -> None:
-    """The plugins' commands (a plugin that failed to load is named: its command is missing)."""
-    for name, registration in sorted(_all_plugins().commands.items()):
-        command = registration.command
-        sub = commands.add_parser(name, help=f"{command.help} ({registration.distribution})")
-        command.arguments(sub)
-        sub.set_defaults(run=command.run)
-
-
 def _engine(path: str, plugins: Plugins | None = None, domain_id: int | None = None) -> Engine:
     from .config import load
     from .engine import Engine
 
     engine = Engine(load(path), plugins, domain_id=domain_id).prepare()
-    warning = engine.insecure_warning()
-    if warning is not None:
+    if (warning := engine.insecure_warning()) is not None:
         logging.getLogger("rosgate").warning(warning)
     return engine
 
@@ -157,7 +151,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     for a in plan.actions:  # three services and two topics each (rosgate.actions)
         calls = a.parts[0]  # its send_goal: on a bus, its key shows theirs
         where = calls.key.removesuffix("send_goal") + "*" if calls.key else a.config.remote
-        print(_entry_line(a.name, where, a.config, speaks(calls)))
+        print(_entry_line(a.config.action, where, a.config, speaks(calls)))
     for line in report(plan):
         print(line)
     return 0
@@ -172,24 +166,19 @@ def _entry_line(name: str, where: str, c: Any, speaks: str) -> str:
 
 
 def keep_large_buffers() -> None:
-    """Let malloc reuse the megabyte buffers a bridge goes through per image (a reassembled
-    frame, rclpy's copy, the middleware's) instead of handing each back to the kernel when it
-    is freed: by default glibc maps such a block fresh, or trims it off its heap, and the next
-    one is faulted in a page at a time — 256 page faults per megabyte, most of a bridge's CPU per
-    image. A heap now keeps up to :data:`KEEP_BUFFERS` free. Left alone where the environment
-    sets glibc's own MALLOC_*_THRESHOLD_, and where the C library is not glibc."""
+    """Let glibc's malloc keep up to :data:`KEEP_BUFFERS` of the megabyte buffers a bridge goes
+    through per image, instead of returning each to the kernel and faulting the next one in a
+    page at a time (256 page faults per megabyte, most of a bridge's CPU per image). Left alone
+    where the environment sets MALLOC_*_THRESHOLD_, and where the C library is not glibc."""
     if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ:
         return
     import ctypes
 
-    try:
+    with contextlib.suppress(OSError):
         libc = ctypes.CDLL(None)
-        if not hasattr(libc, "gnu_get_libc_version"):
-            return
-        libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BUFFERS)
-        libc.mallopt(_M_TRIM_THRESHOLD, KEEP_BUFFERS)
-    except OSError:
-        return
+        if hasattr(libc, "gnu_get_libc_version"):
+            libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BUFFERS)
+            libc.mallopt(_M_TRIM_THRESHOLD, KEEP_BUFFERS)
 
 
 #: Fast DDS's ways of naming a profile of its own: where one says something, rosgate says nothing
@@ -240,8 +229,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     plugins = Plugins.discover()
     if args.options:
         return _print_options(plugins, args.options)
-    registrations = plugins.all()
-    rows = sorted([(r.kind, r.name, r.distribution, r.version) for r in registrations]
+    rows = sorted([(r.kind, r.name, r.distribution, r.version) for r in plugins.all()]
                   + [("command", name, c.distribution, c.version)
                      for name, c in plugins.commands.items()])
     for line in _columns([("KIND", "NAME", "DISTRIBUTION", "VERSION"), *rows]):
@@ -263,16 +251,11 @@ def _print_options(plugins: Any, name: str) -> int:
         raise ConfigError(f"no plugin is named {name!r} (installed: {installed})", file="plugins")
     for r in found:
         print(f"{r.kind} {r.name} ({r.distribution} {r.version}), under plugins: {r.name}:")
-        options = declared(r.cls)
-        if not options:
-            print("  no options")
-        else:
-            rows = [("OPTION", "TYPE", "DEFAULT", "DESCRIPTION")]
-            for o in options:
-                limits = f" ({o.limits()})" if o.limits() else ""
-                rows.append((o.name, spell(o.type), o.default_text(), o.doc + limits))
-            for line in _columns(rows):
-                print("  " + line)
+        rows = [(o.name, spell(o.type), o.default_text(),
+                 o.doc + (f" ({o.limits()})" if o.limits() else "")) for o in declared(r.cls)]
+        header = ("OPTION", "TYPE", "DEFAULT", "DESCRIPTION")
+        for line in _columns([header, *rows]) if rows else ["no options"]:
+            print("  " + line)
     return 0
 
 
@@ -289,7 +272,15 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     from .plugins import Plugins
 
     if args.cipher == "identity":
-        return _keygen_identity(Path(args.out or "identity.key"), args.force)
+        from . import identity
+
+        path, private = Path(args.out or "identity.key"), identity.generate()
+        with _new_key_file(path):
+            identity.write_private(path, private, args.force)
+        print(f"wrote a new identity to {path} (mode 0600); its public key, for the other side's "
+              "file (server_key: on a client, clients: NAME: key: on a server):", file=sys.stderr)
+        print(identity.encode(identity.public_of(private)))
+        return 0
     plugins = Plugins.discover()
     registration = plugins.get("cipher", args.cipher)
     if registration is None:
@@ -310,7 +301,7 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     return 0
 
 
-@contextmanager
+@contextlib.contextmanager
 def _new_key_file(path: Path) -> Iterator[None]:
     """Writing a key file: an existing one, or a folder that cannot be written, said as such."""
     try:
@@ -320,18 +311,6 @@ def _new_key_file(path: Path) -> Iterator[None]:
                           fix="pass --force to replace it, or choose another --out") from None
     except OSError as exc:
         raise ConfigError(f"cannot write {path}: {exc.strerror}", file="keygen") from None
-
-
-def _keygen_identity(path: Path, force: bool) -> int:
-    from . import identity
-
-    key = identity.generate()
-    with _new_key_file(path):
-        identity.write_private(path, key, force)
-    print(f"wrote a new identity to {path} (mode 0600); its public key, for the other side's "
-          "file (server_key: on a client, clients: NAME: key: on a server):", file=sys.stderr)
-    print(identity.encode(identity.public_of(key)))
-    return 0
 
 
 def cmd_pubkey(args: argparse.Namespace) -> int:

@@ -1,11 +1,9 @@
-"""Commands a plugin adds to ``rosgate``: ``rosgate <verb>`` beside run, check, plugins, keygen
-and pubkey (the zenoh plugin's ``rosgate router`` is one), registered through the
-``rosgate_commands`` hook as a :class:`Command` (an example: docs/plugins.md, "Commands").
+"""Commands a plugin adds to ``rosgate`` (the zenoh plugin's ``rosgate router``), registered
+through the ``rosgate_commands`` hook as a :class:`Command` (docs/plugins.md, "Commands").
 
-``run`` gets the parsed arguments and returns the exit status. A problem the user can fix is
-raised as :class:`rosgate.RosgateError` (``ConfigError``, ``LinkError``...): ``rosgate`` prints it
-as one message and exits with status 2, as it does for its own commands. A command that runs until
-stopped waits with :func:`wait_for_signal`.
+A problem the user can fix is raised as :class:`rosgate.RosgateError`: ``rosgate`` prints it as
+one message and exits with status 2. A command that runs until stopped waits with
+:func:`wait_for_signal`.
 """
 
 from __future__ import annotations
@@ -15,10 +13,6 @@ import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-
-
-def _no_arguments(parser: argparse.ArgumentParser) -> None:
-    """A command that takes no arguments adds none."""
 
 
 @dataclass(frozen=True)
@@ -32,7 +26,7 @@ class Command:
     #: runs the command with the parsed arguments; returns the exit status
     run: Callable[[argparse.Namespace], int]
     #: adds the command's arguments to its own ``argparse`` parser
-    arguments: Callable[[argparse.ArgumentParser], None] = _no_arguments
+    arguments: Callable[[argparse.ArgumentParser], None] = lambda parser: None
 
 
 #: rosgate's own verbs: a plugin cannot take them
@@ -54,34 +48,21 @@ def command_problem(command: object) -> str | None:
     return None
 
 
-class Signals:
-    """The signals a command that runs until stopped has caught, oldest first.
-
-    The handler only appends to a list. A handler that took a lock (``Event.set`` does) could
-    hang for good: Python runs it in the main thread between two bytecodes, possibly while that
-    thread holds the very lock inside ``Event.wait`` (seen: two SIGINTs, a bridge that never
-    stopped)."""
-
-    def __init__(self, *signums: int):
-        self.caught: list[int] = []
-        for signum in signums:
-            signal.signal(signum, self._caught)
-
-    def _caught(self, signum: int, frame: object) -> None:
-        self.caught.append(signum)
+def stop_on_signals(*more: int) -> list[int]:
+    """SIGINT, SIGTERM (and ``more``) caught into a list, oldest first, for
+    :func:`wait_for_signal`. The handler only appends: one that took a lock (``Event.set`` does)
+    could hang for good, run between two bytecodes of the main thread while it holds that very
+    lock in ``Event.wait`` (seen: two SIGINTs, a bridge that never stopped)."""
+    caught: list[int] = []
+    for signum in (signal.SIGINT, signal.SIGTERM, *more):
+        signal.signal(signum, lambda signum, frame: caught.append(signum))
+    return caught
 
 
-def stop_on_signals(*more: int) -> Signals:
-    """SIGINT, SIGTERM (and ``more``), caught: what a command that runs until stopped waits on
-    with :func:`wait_for_signal`."""
-    return Signals(signal.SIGINT, signal.SIGTERM, *more)
-
-
-def wait_for_signal(signals: Signals) -> int:
-    """Wait until a signal is caught; return it. In slices: Python runs handlers in the main
-    thread, and a process-directed signal that the kernel hands to another thread (zenoh's and
-    DDS's native threads are candidates) does not interrupt a wait without a timeout, so the
-    main thread would never run the handler."""
-    while not signals.caught:
+def wait_for_signal(caught: list[int]) -> int:
+    """Wait until a signal is caught; return it. In slices: a signal the kernel hands to another
+    thread (zenoh's, DDS's) does not interrupt a wait without a timeout, and Python runs handlers
+    in the main thread only."""
+    while not caught:
         time.sleep(0.2)
-    return signals.caught.pop(0)
+    return caught.pop(0)

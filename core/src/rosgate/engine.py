@@ -1,12 +1,6 @@
-"""The engine: a bridge's lifecycle — prepare, start, keep house, stop.
-
-``prepare()`` resolves the file (:mod:`rosgate.resolver`) and refuses an entry anyone who
-reaches the bridge could write (:func:`open_entries`) unless the file says ``insecure: true``;
-``start()`` opens the ROS node, the router and the role (:mod:`rosgate.roles`), which opens the
-links; ``stop()`` closes them in reverse order. In between, a housekeeping thread warns about
-stale topics, hands the status (:mod:`rosgate.status`) to the monitors (:mod:`rosgate.monitor`)
-once a second and logs a summary line once a minute; the status socket (:mod:`rosgate.runtime`)
-answers ``rosgate top``.
+"""A bridge's lifecycle: prepare (resolve the file, refuse open entries unless ``insecure:
+true``), start (ROS node, router, role, monitors, status socket), keep house (stale warnings,
+the status to the monitors each second, a summary line each minute), stop in reverse order.
 """
 
 from __future__ import annotations
@@ -50,8 +44,7 @@ ROLES: dict[Role, type[BridgeRole]] = {Role.PEER: PeerRole, Role.CLIENT: ClientR
 
 @dataclass(frozen=True)
 class OpenEntry:
-    """An entry anyone who reaches the bridge can write to: its frames reach ROS here
-    unauthenticated (a receiving topic, or a service: calls or answers come in)."""
+    """An entry whose frames reach ROS here unauthenticated (a receiving topic, a service)."""
 
     key: str  # where the file says it: topics[0].cipher, services[1].framing
     name: str  # its ROS name here
@@ -63,15 +56,10 @@ class OpenEntry:
 
 
 def open_entries(plan: Plan) -> list[OpenEntry]:
-    """The entries of ``plan`` that carry ROS traffic into this side without authentication.
-
-    An entry is closed when a handshake keys its cipher (identities: client/server, and peers
-    with ``peer_key``), or when its cipher authenticates with a key from the file's key file or
-    variable. A microcontroller entry (``framing: none`` or ``serial_datagram``: no envelope, so
-    no cipher) that listens is closed only by ``bridge.allow`` naming the microcontroller's
-    addresses.
-    Entries on a bus are the bus transport's to judge; topics this side only transmits are
-    read, not written, here."""
+    """The entries of ``plan`` that carry ROS traffic into this side without authentication:
+    neither keyed by a handshake nor by an authenticating cipher's key from the file. A
+    listening microcontroller entry (no envelope, so no cipher) is closed only by
+    ``bridge.allow``; a bus's entries are its transport's to judge."""
     cfg = plan.config
     found: list[OpenEntry] = []
     entries: list[TopicSpec | ServiceSpec] = [*plan.topics, *plan.services, *plan.action_parts]
@@ -84,7 +72,7 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
         key = f"{'actions' if part else 'topics' if is_topic else 'services'}[{p.index}]"
         if part and any(f.key.startswith(f"{key}.") for f in found):
             continue
-        name = f"action {plan.actions[p.index].name}" if part else p.name
+        name = f"action {plan.actions[p.index].config.action}" if part else p.name
         link = f"{t.transport}:{t.port}" if t.port else t.transport
         if t.framing.bare:
             # a call made here goes out on a connection of its own: only a listening port
@@ -190,10 +178,18 @@ class Engine:
             Bridge(self.config, self.plan, self.resolver, self.router, self.life))
         try:
             self.role.start()
-            self._start_monitors()
+            watched = Watched(self.config, self.status, self.ros, self.life.stopping)
+            for cls, options in self._monitor_classes:
+                monitor = cls(watched, options)
+                monitor.start()
+                self.monitors.append(monitor)
         except ConfigError:
             self.stop()
             raise
+        try:
+            self.status_server = StatusServer(self.config.name, self.status)
+        except OSError as exc:  # rosgate top will not see this bridge; the bridge runs on
+            log.warning("%s: no status socket (rosgate top): %s", self.config.name, exc)
         threading.Thread(target=self._housekeeping, name="housekeeping", daemon=True).start()
         log.info("%s: running as %s with %d topic(s) and %d service(s)%s", self.config.name,
                  self.config.role, len(self.plan.topics), len(self.plan.services),
@@ -223,8 +219,7 @@ class Engine:
 
     def reload(self, path: str) -> None:
         """SIGHUP: a server applies the ``clients:`` of its file as it is now (a file that no
-        longer loads is reported and the running policy kept). Other roles have nothing to
-        reload."""
+        longer loads is reported and the running policy kept)."""
         if not isinstance(self.role, ServerRole):
             log.info("SIGHUP: nothing to reload for a %s", self.config.role)
             return
@@ -234,18 +229,6 @@ class Engine:
             log.error("SIGHUP: %s; the running policy stays", exc)
             return
         self.role.reload(fresh.clients)
-
-    def _start_monitors(self) -> None:
-        assert self.ros is not None
-        watched = Watched(self.config, self.status, self.ros, self.life.stopping)
-        for cls, options in self._monitor_classes:
-            monitor = cls(watched, options)
-            monitor.start()
-            self.monitors.append(monitor)
-        try:
-            self.status_server = StatusServer(self.config.name, self.status)
-        except OSError as exc:  # rosgate top will not see this bridge; the bridge runs on
-            log.warning("%s: no status socket (rosgate top): %s", self.config.name, exc)
 
     def status(self) -> Status:
         """What the bridge does now: every route's and link's counters (:mod:`rosgate.status`)."""

@@ -1,15 +1,9 @@
-"""Monitors: what watches a running bridge and tells the world — ``/diagnostics``
-(``rosgate-diagnostics``), a Prometheus endpoint (``rosgate-metrics-prometheus``), or any
-exporter a third party writes: a :class:`Monitor` subclass registered through the
-``rosgate_monitors`` hook (an example: docs/plugins.md, "Monitors").
+"""Monitors export a running bridge's status (``/diagnostics``, Prometheus, any third party's):
+a :class:`Monitor` subclass registered through the ``rosgate_monitors`` hook (docs/plugins.md,
+"Monitors"), run when the file has its table under ``plugins:`` or its ``bridge:`` key.
 
-A monitor runs when the bridge's file asks for it: by its table under ``plugins:``
-(``plugins: {statsd: {address: ...}}``, parsed against its ``Options``), or by a ``bridge:`` key
-rosgate knows (``diagnostics``, on unless ``false``; ``metrics: host:port``). It reads the
-bridge only through its **status**: a plain, JSON-ready mapping, the same one ``rosgate top``
-reads from the bridge's local socket (:mod:`rosgate.status` describes every field). Counters in
-it only grow; a monitor that wants rates keeps the previous status and divides by the difference
-of their ``time``.
+The status is the plain, JSON-ready mapping ``rosgate top`` reads (:mod:`rosgate.status` describes
+every field). Its counters only grow: rates are differences over the difference of ``time``.
 """
 
 from __future__ import annotations

@@ -1,15 +1,11 @@
-"""The resolver: a bringup.yaml's entries, checked against what is installed, become a
-:class:`Plan` of :class:`~rosgate.spec.RouteSpec` — every plugin found and configured, every
-message type imported, every address built and accepted by its transport. Nothing opens: this
-is all ``rosgate check`` needs, and every mistake is a :class:`ConfigError` naming the file, the
-line, the key and the fix.
-
-A server resolves the entries a client sends in its hello the same way (``topic`` and
-``service``, with an error maker that names the client instead of a file).
+"""A bringup.yaml's entries, checked against what is installed, become a :class:`Plan` of
+:class:`~rosgate.spec.RouteSpec` without opening anything (all ``rosgate check`` needs); a server
+resolves a client's hello the same way, with an error maker that names the client.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import threading
 from collections.abc import Callable
@@ -56,10 +52,6 @@ class PreparedAction:
     config: ActionConfig
     parts: list[TopicSpec | ServiceSpec]
 
-    @property
-    def name(self) -> str:
-        return self.config.action
-
 
 @dataclass
 class Plan:
@@ -85,30 +77,31 @@ class Resolver:
         self.plugins = plugins
         self.transports: dict[str, Transport] = {}
         self.ciphers: dict[str, Cipher] = {}
-        self.main_line: StreamTransport | None = None
         self.main_address: Address | None = None
         self._decoders: dict[int, Transform | None] = {}
         self._decoders_lock = threading.Lock()
 
     def plan(self) -> Plan:
-        cfg = self.config
+        cfg, main_line = self.config, None
         if cfg.role is not Role.PEER:
             main = self.transport(cfg.main_line, "bridge.main_line")
             if not isinstance(main, StreamTransport):
                 raise cfg.error("bridge.main_line", f"{cfg.main_line!r} is not a stream transport",
                                 "the main line needs a stream link such as tcp or bt")
-            self.main_line = main
-            self.main_address = self._parse_address(main, cfg.server, "bridge.server")
+            main_line = main
+            try:
+                self.main_address = main.check_address(main.parse_address(cfg.server or ""))
+            except ValueError as exc:
+                raise cfg.error("bridge.server", str(exc)) from None
         for key in ("transport", "codec", "cipher"):
             self.plugin(key, cfg.defaults[key], f"bridge.defaults.{key}")
         for name in cfg.links:
-            transport = self.transport(name, f"bridge.links.{name}")
-            if isinstance(transport, BusTransport):
+            if isinstance(self.transport(name, f"bridge.links.{name}"), BusTransport):
                 raise cfg.error(f"bridge.links.{name}", f"{name} is a bus: it paces and orders "
                                 "what it sends itself", f"remove {name} from bridge.links")
         if cfg.secure and cfg.role is Role.SERVER:
             for name, policy in cfg.clients.items():  # a cipher a rule names must exist
-                for _i, rule in enumerate([*policy.topics, *policy.services]):
+                for rule in [*policy.topics, *policy.services]:
                     for cipher in rule.ciphers or ():
                         self.plugin("cipher", cipher, f"clients.{name}")
         topics = [self.topic(t, i, "topics") for i, t in enumerate(cfg.topics)]
@@ -121,7 +114,7 @@ class Resolver:
                             "sessions", "make one with 'rosgate keygen identity --out NAME.key' "
                             "(docs/security.md: setting up identities); or, on a network you "
                             "trust entirely, insecure: true")
-        return Plan(cfg, topics, services, self.main_line, self.main_address, actions)
+        return Plan(cfg, topics, services, main_line, self.main_address, actions)
 
     # -- entries ---------------------------------------------------------------------------
     def topic(self, topic: TopicConfig, index: int, section: str,
@@ -133,19 +126,10 @@ class Resolver:
             raise error(f"{key}.framing",
                         "framing: none needs a datagram transport (udp, can, ...)",
                         "use framing: rosgate on stream links")
-        reliable = is_reliable(topic.qos)
-        priority = topic.priority or PRIORITIES["data"]
-        self._real_link(topic, key, transport, error)
-        packetizer, options = self._recovery(topic, key, error) or (None, None)
-        compression = self._compression(topic, key, error)
-        if isinstance(transport, BusTransport):  # a bus paces and drops by itself
-            delivery = Delivery(reliable=reliable, priority=priority)
-        else:
-            delivery = Delivery(
-                reliable=reliable, priority=priority,
-                latest_only=not reliable if topic.latest_only is None else topic.latest_only,
-                max_delay=topic.max_delay, packetizer=packetizer, packetizer_options=options,
-                whole=topic.framing is Framing.NONE)
+        delivery = self._delivery(topic, key, transport, error)
+        compression = None if topic.compression == NO_PLUGIN else self._made(
+            "transform", topic.compression, f"{key}.compression", error, DEFAULT_MAX_MESSAGE,
+            own=topic.compression_options)
         return TopicSpec(**common, **self._where(topic, key, transport, error),
                          delivery=delivery, compression=compression,
                          transforms=self.transform_for)
@@ -156,9 +140,16 @@ class Resolver:
         checked: its codec's options fit the type (a service's Request and Response)."""
         transport = self.transport(entry.transport, f"{key}.transport", error)
         if isinstance(transport, DatagramTransport) and entry.framing is Framing.ROSGATE:
-            self._own_packetizer(transport, f"{key}.transport", error)
-        codec_cls, codec_options = self._codec(entry.codec, f"{key}.codec", error)
-        codec_options = _microcontroller(codec_cls, codec_options, entry)
+            name = own_packetizer(transport.max_frame)  # a link of small frames needs a plugin's
+            if self.plugins.get("packetizer", name) is None:
+                message, fix = self.plugins.explain_missing("packetizer", name, False)
+                raise error(f"{key}.transport", f"{transport.name} carries packets of "
+                            f"{transport.max_frame} bytes, which its links cut with the "
+                            f"packetizer {name!r}: {message}", fix)
+        # the codec's options are parsed once; the router makes an instance per route
+        codec_cls: type[Codec] = self.plugin("codec", entry.codec, f"{key}.codec", error).cls
+        codec_options = _microcontroller(codec_cls, self._plugin_options(
+            codec_cls, entry.codec, {}, f"{key}.codec", error), entry)
         cipher_cls, cipher = self._entry_cipher(entry.cipher, f"{key}.cipher", error,
                                                 isinstance(transport, BusTransport))
         try:
@@ -183,40 +174,45 @@ class Resolver:
             return {"address": NO_ADDRESS, "local": NO_ADDRESS,
                     "key": self._bus_key(transport, entry, key, error)}
         self._point_to_point(entry, key, transport, error)
-        self._check_main_line_port(entry, key, transport, error)
         address, local = self._addresses(transport, entry, key, error)
         return {"address": address, "local": local}
 
-    def _recovery(self, topic: TopicConfig, key: str,
-                  error: ErrorMaker) -> tuple[type[Packetizer], Any] | None:
-        if topic.recovery == NO_PLUGIN:
-            return None
-        cls: type[Packetizer] = self.plugin("packetizer", topic.recovery, f"{key}.recovery",
-                                            error).cls
-        if cls.cuts_every_frame:
-            raise error(f"{key}.recovery", f"{topic.recovery} is what links of small frames cut "
-                        "every frame with, by themselves: it recovers nothing",
-                        "remove recovery: from this entry, or pick fec or retransmit")
-        return cls, self._topic_options(cls, topic.recovery, topic.recovery_options,
-                                        f"{key}.recovery", error)
+    def _delivery(self, topic: TopicConfig, key: str, transport: Transport,
+                  error: ErrorMaker) -> Delivery:
+        """Recovery is for datagram links, latest_only for the links rosgate schedules (a bus
+        paces and drops by itself)."""
+        bus = isinstance(transport, BusTransport)
+        if topic.recovery != NO_PLUGIN and (isinstance(transport, StreamTransport) or bus):
+            what = "a bus" if bus else "a stream"
+            raise error(f"{key}.recovery", f"recovery: {topic.recovery} is for datagram links "
+                        f"(udp): {topic.transport} is {what}, which delivers whole and in order "
+                        "by itself", "remove recovery: from this entry")
+        if topic.latest_only is not None and bus:
+            raise error(f"{key}.latest_only", f"latest_only applies to links rosgate schedules; "
+                        f"{topic.transport} is a bus, which drops best-effort samples itself "
+                        "when it is congested", "remove latest_only: from this entry")
+        reliable, priority = is_reliable(topic.qos), topic.priority or PRIORITIES["data"]
+        if bus:
+            return Delivery(reliable=reliable, priority=priority)
+        packetizer: type[Packetizer] | None = None
+        options = None
+        if topic.recovery != NO_PLUGIN:
+            packetizer = self.plugin("packetizer", topic.recovery, f"{key}.recovery", error).cls
+            if packetizer.cuts_every_frame:
+                raise error(f"{key}.recovery", f"{topic.recovery} is what links of small frames "
+                            "cut every frame with, by themselves: it recovers nothing",
+                            "remove recovery: from this entry, or pick fec or retransmit")
+            options = self._plugin_options(packetizer, topic.recovery, topic.recovery_options,
+                                           f"{key}.recovery", error)
+        latest_only = not reliable if topic.latest_only is None else topic.latest_only
+        return Delivery(reliable=reliable, priority=priority, latest_only=latest_only,
+                        max_delay=topic.max_delay, packetizer=packetizer,
+                        packetizer_options=options, whole=topic.framing is Framing.NONE)
 
-    def _compression(self, topic: TopicConfig, key: str, error: ErrorMaker) -> Transform | None:
-        if topic.compression == NO_PLUGIN:
-            return None
-        asked_by = f"{key}.compression"
-        cls = self.plugin("transform", topic.compression, asked_by, error).cls
-        options = self._topic_options(cls, topic.compression, topic.compression_options,
-                                      asked_by, error)
-        try:
-            return cls(options, DEFAULT_MAX_MESSAGE)
-        except OptionError as exc:
-            raise self.option_error(topic.compression, exc, asked_by, error) from None
-
-    def _topic_options(self, cls: type, name: str, own: dict[str, Any], asked_by: str,
-                       error: ErrorMaker) -> Any:
-        """A plugin's options for one topic: its ``plugins:`` table, with what the topic gives
-        (``compression: {zstd: {level: 19}}``) over it; a mistake is located where it was
-        written."""
+    def _plugin_options(self, cls: type, name: str, own: dict[str, Any], asked_by: str,
+                        error: ErrorMaker) -> Any:
+        """Its ``plugins:`` table, with what an entry gives (``compression: {zstd: {level: 19}}``)
+        over it; a mistake is located where it was written."""
         try:
             return parse(cls, {**self._options(name), **own}, self.config.base_dir)
         except OptionError as exc:
@@ -229,32 +225,13 @@ class Resolver:
         file's ``plugins:`` table), made once; None when no installed transform has that id."""
         with self._decoders_lock:
             if wire_id not in self._decoders:
+                self._decoders[wire_id] = None
                 found = self.plugins.by_wire("transform", wire_id)
-                decoder = None
                 if found is not None:
-                    try:
-                        options = parse(found.cls, self._options(found.name),
-                                        self.config.base_dir)
-                        decoder = found.cls(options, DEFAULT_MAX_MESSAGE)
-                    except OptionError:
-                        decoder = None  # rosgate check reports it; frames are counted
-                self._decoders[wire_id] = decoder
+                    with contextlib.suppress(OptionError):  # check reports it; frames are counted
+                        options = parse(found.cls, self._options(found.name), self.config.base_dir)
+                        self._decoders[wire_id] = found.cls(options, DEFAULT_MAX_MESSAGE)
             return self._decoders[wire_id]
-
-    @staticmethod
-    def _real_link(topic: TopicConfig, key: str, transport: Transport,
-                   error: ErrorMaker) -> None:
-        """Recovery is for datagram links, latest_only for the links rosgate schedules."""
-        bus = isinstance(transport, BusTransport)
-        if topic.recovery != NO_PLUGIN and (isinstance(transport, StreamTransport) or bus):
-            what = "a bus" if bus else "a stream"
-            raise error(f"{key}.recovery", f"recovery: {topic.recovery} is for datagram links "
-                        f"(udp): {topic.transport} is {what}, which delivers whole and in order "
-                        "by itself", "remove recovery: from this entry")
-        if topic.latest_only is not None and bus:
-            raise error(f"{key}.latest_only", f"latest_only applies to links rosgate schedules; "
-                        f"{topic.transport} is a bus, which drops best-effort samples itself "
-                        "when it is congested", "remove latest_only: from this entry")
 
     def service(self, service: ServiceConfig, index: int, section: str,
                 error: ErrorMaker | None = None) -> ServiceSpec:
@@ -301,8 +278,7 @@ class Resolver:
                  error: ErrorMaker) -> str:
         """A bus entry's key, as its bus role makes it. Bus entries live in peer-role files (no
         main line: the bus finds the others) and have no port."""
-        kind = "topic" if isinstance(entry, TopicConfig) else "service"
-        cfg = self.config
+        kind, cfg = _kind(entry), self.config
         if cfg.role is not Role.PEER:
             raise error(f"{key}.transport", f"{entry.transport} is a bus: its {kind}s belong in a "
                         f"file of role peer (no main line: {entry.transport} finds the others)",
@@ -327,21 +303,11 @@ class Resolver:
                 key, f"{transport.name} is a bus, whose entries a bus role wires: {message}", fix)
         return found.cls
 
-    def _own_packetizer(self, transport: DatagramTransport, key: str,
-                        error: ErrorMaker) -> None:
-        """The packetizer that cuts frames on ``transport``'s links is here (a link of small
-        frames needs a plugin's)."""
-        name = own_packetizer(transport.max_frame)
-        if self.plugins.get("packetizer", name) is None:
-            message, fix = self.plugins.explain_missing("packetizer", name, False)
-            raise error(key, f"{transport.name} carries packets of {transport.max_frame} bytes, "
-                        f"which its links cut with the packetizer {name!r}: {message}", fix)
-
     def _point_to_point(self, entry: TopicConfig | ServiceConfig, key: str, transport: Transport,
                         error: ErrorMaker) -> None:
-        """What only a bus takes: placeholders, a key for remote; and what a peer's
-        point-to-point entries need: a port, and peer: for the far host."""
-        kind = "topic" if isinstance(entry, TopicConfig) else "service"
+        """What only a bus takes: placeholders, a key for remote; and what point-to-point
+        entries need: a port (a peer's; a client's off the main line), peer: for the far host."""
+        cfg, kind = self.config, _kind(entry)
         name = entry.topic if isinstance(entry, TopicConfig) else entry.service
         if "{" in name or "}" in name:
             raise error(f"{key}.{kind}", f"placeholders such as {{robot}} need a bus transport "
@@ -351,22 +317,17 @@ class Resolver:
             raise error(f"{key}.remote", f"'{entry.remote}' is not a valid ROS name (keys are "
                         f"for bus transports; {entry.transport} is not one)",
                         "use letters, digits and '_' in parts separated by single '/'")
-        if self.config.role is Role.PEER:
+        if cfg.role is Role.PEER:
             if entry.port is None:
                 raise error(f"{key}.port", f"peer role: each {kind} needs its own port",
                             f"add port: <1..65535> to this entry (only bus {kind}s, such as "
                             "zenoh's, have none)")
-            if self.config.peer is None:
-                raise self.config.error("bridge.peer", "missing required key 'peer'",
-                                        f"add peer: <far host>, the address of the other side "
-                                        f"({key} is on {entry.transport}, a point-to-point link)")
-
-    def _check_main_line_port(self, entry: TopicConfig | ServiceConfig, key: str,
-                              transport: Transport, error: ErrorMaker) -> None:
-        cfg = self.config
+            if cfg.peer is None:
+                raise cfg.error("bridge.peer", "missing required key 'peer'",
+                                f"add peer: <far host>, the address of the other side "
+                                f"({key} is on {entry.transport}, a point-to-point link)")
         if (cfg.role is Role.CLIENT and isinstance(transport, StreamTransport)
                 and entry.port is None and entry.transport != cfg.main_line):
-            kind = "topic" if isinstance(entry, TopicConfig) else "service"
             raise error(f"{key}.port", f"a {kind} on {entry.transport} needs a port of its own "
                         f"(only {cfg.main_line} {kind}s ride the main line)", "add port: <number>")
 
@@ -393,8 +354,7 @@ class Resolver:
             host, where = self.main_address[0], "bridge.server"
             local = ("::" if ":" in host else ANY_IP, 0)
         port = entry.port or (self.main_address[1] if self.main_address else 0)
-        kind = "topic" if isinstance(entry, TopicConfig) else "service"
-        fix = f"this {kind}'s {entry.transport} address is {where} with port {port}"
+        fix = f"this {_kind(entry)}'s {entry.transport} address is {where} with port {port}"
         if where == "bridge.listen" and "bridge.listen" not in cfg.lines:  # 0.0.0.0: IP only
             fix = f"set bridge.listen to this side's {entry.transport} address"
         return self._check(transport, (host or "", port), f"{key}.port" if entry.port else where,
@@ -418,8 +378,7 @@ class Resolver:
         for group in by_port.values():
             bare = [p for p in group if p.config.framing is Framing.NONE]
             if bare and len(bare) != len(group):
-                p = bare[0]
-                raise self.config.error(f"topics[{p.index}].framing",
+                raise self.config.error(f"topics[{bare[0].index}].framing",
                                         "topics on one port must all use the same framing")
             if len(bare) > 1 and not all(p.codec_cls.messagepack for p in bare):
                 p = next(p for p in bare if not p.codec_cls.messagepack)
@@ -454,17 +413,13 @@ class Resolver:
             self.transports[name] = self._made("transport", name, key, error)
         return self.transports[name]
 
-    def cipher(self, name: str, key: str, error: ErrorMaker | None = None) -> Cipher:
-        if name not in self.ciphers:
-            self.ciphers[name] = self._made("cipher", name, key, error, self.config.base_dir)
-        return self.ciphers[name]
-
-    def _made(self, kind: str, name: str, key: str, error: ErrorMaker | None,
-              *args: Any) -> Any:
-        """A plugin made with its options from the file (and ``args``)."""
+    def _made(self, kind: str, name: str, key: str, error: ErrorMaker | None, *args: Any,
+              own: dict[str, Any] | None = None) -> Any:
+        """A plugin made with its options from the file and ``own`` (and ``args``)."""
         cls = self.plugin(kind, name, key, error).cls
+        options = self._plugin_options(cls, name, own or {}, key, error or self.config.error)
         try:
-            return cls(parse(cls, self._options(name), self.config.base_dir), *args)
+            return cls(options, *args)
         except OptionError as exc:
             raise self.option_error(name, exc, key, error) from None
 
@@ -479,26 +434,13 @@ class Resolver:
             if session and cls.authenticates:
                 raise error(key, f"cipher {name!r} cannot be keyed from a session",
                             "pick a cipher that can (aead, nacl, fernet)")
-            return cls, self.cipher(name, key, error)  # static (or keyless: none)
+            if name not in self.ciphers:  # static (or keyless: none)
+                self.ciphers[name] = self._made("cipher", name, key, error, self.config.base_dir)
+            return cls, self.ciphers[name]
         return cls, None
-
-    def _codec(self, name: str, key: str, error: ErrorMaker) -> tuple[type[Codec], Any]:
-        """The codec's class and its options, parsed once (the router makes an instance per
-        route)."""
-        cls = self.plugin("codec", name, key, error).cls
-        try:
-            return cls, parse(cls, self._options(name), self.config.base_dir)
-        except OptionError as exc:
-            raise self.option_error(name, exc, key, error) from None
 
     def _options(self, plugin: str) -> Any:
         return self.config.plugins.get(plugin) or {}
-
-    def _parse_address(self, transport: Transport, text: str | None, key: str) -> Address:
-        try:
-            return transport.check_address(transport.parse_address(text or ""))
-        except ValueError as exc:
-            raise self.config.error(key, str(exc)) from None
 
     def option_error(self, plugin: str, exc: OptionError, asked_by: str,
                      error: ErrorMaker | None = None) -> ConfigError:
@@ -508,6 +450,10 @@ class Resolver:
             return (error or self.config.error)(asked_by, f"{plugin}: {exc.message}", exc.fix)
         key = f"plugins.{plugin}" + (f".{exc.key}" if exc.key else "")
         return self.config.error(key, exc.message, exc.fix)
+
+
+def _kind(entry: TopicConfig | ServiceConfig) -> str:
+    return "topic" if isinstance(entry, TopicConfig) else "service"
 
 
 def _microcontroller(codec_cls: type[Codec], options: Any,

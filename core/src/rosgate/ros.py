@@ -1,21 +1,20 @@
-"""The ROS side: message types, QoS, and one rclpy context + node per engine.
-
-Each engine gets its own rclpy ``Context`` (and DDS domain when asked), so several engines can
-live in one process. The node is spun by ``rclpy.experimental.EventsExecutor`` in a thread of
-its own, with a loop of ``spin_once`` (while its ``spin()`` runs, creating a subscription from
-another thread hangs, with the rclpy from the package index).
-"""
+"""The ROS side: message types, QoS, and one rclpy context + node per engine (so several
+engines, each in its own DDS domain when asked, live in one process)."""
 
 from __future__ import annotations
 
 import ctypes
 import functools
 import importlib
+import importlib.util
 import logging
+import os
 import re
+import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from .batch import Batches
@@ -23,8 +22,10 @@ from .errors import CodecError
 
 _log = logging.getLogger("rosgate")
 
-# an action's parts are named pkg/action/Type_SendGoal, Type_FeedbackMessage ...
 TYPE_NAME = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv|action)/([A-Z][A-Za-z0-9_]*)$")
+#: an action's parts as the graph names them (pkg/action/Type_SendGoal), and in Type.Impl
+_ACTION_PARTS = {"SendGoal": "SendGoalService", "GetResult": "GetResultService",
+                 "FeedbackMessage": "FeedbackMessage"}
 
 
 class TypeNotFound(LookupError):
@@ -32,18 +33,16 @@ class TypeNotFound(LookupError):
 
 
 def resolve_type(name: str) -> type:
-    """``pkg/msg/Type`` (or ``pkg/srv/Type``) to its Python class.
-
-    Names come from peers too, so nothing is imported before ``pkg`` is known to be a ROS
-    interface package (:func:`is_interface_package`): ``this/msg/Foo`` must not import ``this``."""
+    """``pkg/msg/Type`` (or ``pkg/srv/Type``) to its Python class. Names come from peers too:
+    nothing is imported before ``pkg`` is known to be an interface package (``this/msg/Foo`` must
+    not import ``this``)."""
     match = TYPE_NAME.match(name)
     if not match:
         raise TypeNotFound(f"{name!r} is not an interface name of the form pkg/msg/Type")
     package, kind, type_name = match.groups()
-    dist = "ros-jazzy-" + package.replace("_", "-")
-    missing = TypeNotFound(
-        f"interface package {package!r} is not installed (apt install ros-$ROS_DISTRO-"
-        f"{package.replace('_', '-')}, or pip install {dist})")
+    dashed = package.replace("_", "-")
+    missing = TypeNotFound(f"interface package {package!r} is not installed (apt install "
+                           f"ros-$ROS_DISTRO-{dashed}, or pip install ros-jazzy-{dashed})")
     if not is_interface_package(package, kind):
         raise missing
     try:
@@ -51,8 +50,10 @@ def resolve_type(name: str) -> type:
     except ImportError:
         raise missing from None
     cls = getattr(module, type_name, None)
-    if cls is None and kind == "action" and "_" in type_name:
-        cls = _action_part(module, type_name)
+    if cls is None and kind == "action" and "_" in type_name:  # not all exported: in Type.Impl
+        base, _, part = type_name.partition("_")
+        impl = getattr(getattr(module, base, None), "Impl", None)
+        cls = getattr(impl, _ACTION_PARTS.get(part, ""), None)
     if not isinstance(cls, type):
         known = sorted(n for n in dir(module) if n[:1].isupper() and not n.startswith("Metaclass"))
         raise TypeNotFound(f"package {package!r} has no {kind} {type_name!r} "
@@ -60,28 +61,10 @@ def resolve_type(name: str) -> type:
     return cls
 
 
-#: an action's parts as the graph names them (pkg/action/Type_SendGoal), and in Type.Impl
-_ACTION_PARTS = {"SendGoal": "SendGoalService", "GetResult": "GetResultService",
-                 "FeedbackMessage": "FeedbackMessage"}
-
-
-def _action_part(module: Any, type_name: str) -> Any:
-    """``Type_SendGoal``, ``Type_GetResult``, ``Type_FeedbackMessage`` of an action module,
-    found in ``Type.Impl`` (the module does not export them all)."""
-    base, _, part = type_name.partition("_")
-    impl = getattr(getattr(module, base, None), "Impl", None)
-    return getattr(impl, _ACTION_PARTS.get(part, ""), None) if impl is not None else None
-
-
 def is_interface_package(package: str, kind: str) -> bool:
     """Whether ``package`` is an installed ROS interface package with ``kind`` (msg, srv)
     interfaces — decided without importing it: the ament resource index lists it, or its
     folder holds the C type support rosidl generates and a ``kind`` subpackage."""
-    import importlib.util
-    import os
-    import sys
-    from pathlib import Path
-
     prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
     prefixes.append(sys.prefix)
     listed = any((Path(prefix) / "share" / "ament_index" / "resource_index" / "rosidl_interfaces"
@@ -90,41 +73,17 @@ def is_interface_package(package: str, kind: str) -> bool:
         spec = importlib.util.find_spec(package)  # a top-level name: finds, does not import
     except (ImportError, ValueError):
         return False
-    if spec is None or not spec.submodule_search_locations:
-        return False
-    for location in spec.submodule_search_locations:
-        folder = Path(location)
-        generated = any(folder.glob(f"{package}_s__rosidl_typesupport_c*"))
-        if (folder / kind / "__init__.py").is_file() and (listed or generated):
-            return True
-    return False
+    folders = (spec.submodule_search_locations or []) if spec else []
+    return any((Path(f) / kind / "__init__.py").is_file()
+               and (listed or any(Path(f).glob(f"{package}_s__rosidl_typesupport_c*")))
+               for f in folders)
 
 
-class _TypeHash(ctypes.Structure):
-    """rosidl_type_hash_t: a version, then 32 bytes (SHA-256 of the type's description)."""
-
+class _TypeHash(ctypes.Structure):  # rosidl_type_hash_t: SHA-256 of the type's description
     _fields_ = [("version", ctypes.c_uint8), ("value", ctypes.c_uint8 * 32)]
 
 
 _GetTypeHash = ctypes.CFUNCTYPE(ctypes.POINTER(_TypeHash), ctypes.c_void_p)
-
-
-class _MessageTypeSupport(ctypes.Structure):
-    """The start of rosidl_message_type_support_t (Iron and later)."""
-
-    _fields_ = [("identifier", ctypes.c_char_p), ("data", ctypes.c_void_p),
-                ("func", ctypes.c_void_p), ("get_type_hash", _GetTypeHash)]
-
-
-class _ServiceTypeSupport(ctypes.Structure):
-    """The start of rosidl_service_type_support_t (Iron and later): after the request, response
-    and event type supports and the event's two functions, the hash."""
-
-    _fields_ = [("identifier", ctypes.c_char_p), ("data", ctypes.c_void_p),
-                ("func", ctypes.c_void_p), ("request", ctypes.c_void_p),
-                ("response", ctypes.c_void_p), ("event", ctypes.c_void_p),
-                ("create_event", ctypes.c_void_p), ("destroy_event", ctypes.c_void_p),
-                ("get_type_hash", _GetTypeHash)]
 
 
 #: the pointer in a PyCapsule: rosidl's metaclasses hold their C functions in capsules
@@ -141,11 +100,14 @@ def type_hash(interface: type) -> str | None:
     try:
         meta.__import_type_support__()
         address = _capsule(meta._TYPE_SUPPORT, None)
-        layout = _ServiceTypeSupport if hasattr(interface, "Request") else _MessageTypeSupport
-        support = layout.from_address(address)
-        if not support.get_type_hash:
+        # rosidl_{message,service}_type_support_t (Iron and later) start with pointers only: the
+        # hash getter after identifier, data, func (a service's: request, response, event and
+        # the event's create and destroy functions too)
+        slot = 8 if hasattr(interface, "Request") else 3
+        getter = (ctypes.c_void_p * (slot + 1)).from_address(address)[slot]
+        if not getter:
             return None
-        found = support.get_type_hash(address)
+        found = _GetTypeHash(getter)(address)
         if not found or found.contents.version < 1:
             return None
         return f"RIHS{found.contents.version:02}_{bytes(found.contents.value).hex()}"
@@ -182,26 +144,21 @@ def qos_profile(spec: int | str | dict) -> Any:
 
 
 def is_reliable(spec: int | str | dict) -> bool:
-    """Whether a topic's frames wait out a link loss: unless its QoS says best effort (the
-    system default and best-available profiles are reliable with every shipped RMW). Read from
-    the file's words as rclpy's profiles have them, without rclpy: ``rosgate check`` needs none."""
+    """Whether a topic's frames wait out a link loss: unless its QoS says best effort (the system
+    default and best-available profiles are reliable with every shipped RMW). Without rclpy."""
     if isinstance(spec, str):
         return spec not in BEST_EFFORT_PROFILES
     return not (isinstance(spec, dict) and spec.get("reliability") == "best_effort")
 
 
 def cdr_checker(msg_type: type) -> Callable[[bytes], None]:
-    """A check that serialized CDR bytes are a valid ``msg_type``, so bytes from an unknown sender
-    never reach a ROS subscriber as a message it cannot read. Raises :class:`rosgate.CodecError`
-    saying why.
+    """A check that serialized CDR bytes are a valid ``msg_type`` (else :class:`CodecError`), so
+    bytes from an unknown sender never reach a subscriber as a message it cannot read.
 
-    The check is the middleware's own deserializer (``rmw_deserialize``, C) into one C message
-    kept for the purpose, called through ctypes: ~2 us for a 2.5 kB String in a tight loop and
-    ~40 us for a 1 MiB Image, but ~15 us in a bridge at 2,000 msg/s, where each call runs cold.
-    rclpy's ``deserialize_message`` (the fallback, where the middleware library cannot be found)
-    also builds the Python message: ~6-16 us and ~1.7 ms. In front of either, where the type
-    allows, a quick look written from the message's definition (:mod:`rosgate.cdr`) passes what
-    is certainly well-formed; only what it is not sure of goes to the deserializer."""
+    The middleware's deserializer (``rmw_deserialize`` through ctypes: ~2 us for a 2.5 kB String
+    in a tight loop, ~15 us cold in a bridge) beats rclpy's ``deserialize_message`` (the
+    fallback: ~6-16 us, ~1.7 ms for a 1 MiB Image); in front of either, the quick look of
+    :mod:`rosgate.cdr` passes what is certainly well-formed."""
     checker = _RmwChecker.make(msg_type)
     full: Callable[[bytes], None]
     if checker is not None:
@@ -228,10 +185,7 @@ def cdr_checker(msg_type: type) -> Callable[[bytes], None]:
     return check
 
 
-class _SerializedMessage(ctypes.Structure):
-    """rmw_serialized_message_t (rcutils_uint8_array_t): the bytes, their length, the capacity,
-    and an allocator that deserializing never uses."""
-
+class _SerializedMessage(ctypes.Structure):  # rmw_serialized_message_t; the allocator unused
     _fields_ = [("buffer", ctypes.c_char_p), ("buffer_length", ctypes.c_size_t),
                 ("buffer_capacity", ctypes.c_size_t), ("allocator", ctypes.c_void_p * 5)]
 
@@ -240,8 +194,6 @@ class _RmwChecker:
     """``rmw_deserialize`` into a C message of one type, reused (under a lock: frames of one
     topic may come from several links at once). Deserializing into a used message is what the
     generated type support does anyway: it finalizes strings and sequences before filling them."""
-
-    _library: Any = None  # the middleware's C library, found once per process
 
     def __init__(self, msg_type: type, rmw: Any, reset_error: Any):
         meta: Any = type(msg_type)  # rosidl's metaclass holds the C type support
@@ -257,8 +209,8 @@ class _RmwChecker:
         self.serialized = _SerializedMessage()
         self.address = ctypes.addressof(self.serialized)
         pointer = ctypes.c_void_p
-        signature = ctypes.CFUNCTYPE(ctypes.c_int, pointer, pointer, pointer)
-        self.deserialize = signature(("rmw_deserialize", rmw))
+        self.deserialize = ctypes.CFUNCTYPE(ctypes.c_int, pointer, pointer, pointer)(
+            ("rmw_deserialize", rmw))
         self.reset_error = reset_error
         self.lock = threading.Lock()
 
@@ -266,13 +218,11 @@ class _RmwChecker:
     def make(cls, msg_type: type) -> _RmwChecker | None:
         """A checker, or None where the middleware's library or the type's C support is not
         found (then rclpy's deserializer does the check)."""
-        if cls._library is None:
-            cls._library = _find_rmw() or False
-        if not cls._library:
+        library = _find_rmw()
+        if library is None:
             return None
-        rmw, reset_error = cls._library
         try:
-            return cls(msg_type, rmw, reset_error)
+            return cls(msg_type, *library)
         except (AttributeError, OSError, MemoryError) as exc:
             _log.debug("CDR check of %s through rclpy: %s", msg_type.__name__, exc)
             return None
@@ -280,23 +230,16 @@ class _RmwChecker:
     def check(self, data: bytes | bytearray) -> None:
         serialized = self.serialized
         with self.lock:
-            if type(data) is bytes:
-                serialized.buffer = data
-                failed = self._check(len(data))
-            else:  # a reassembled frame: its buffer, exported for the call only
-                view = (ctypes.c_char * len(data)).from_buffer(data)
-                serialized.buffer = ctypes.cast(view, ctypes.c_char_p)
-                failed = self._check(len(data))
-                del view
+            # a reassembled frame (bytearray): its buffer, exported for the call only
+            view = None if type(data) is bytes else (ctypes.c_char * len(data)).from_buffer(data)
+            serialized.buffer = data if view is None else ctypes.cast(view, ctypes.c_char_p)
+            serialized.buffer_length = serialized.buffer_capacity = len(data)
+            failed = self.deserialize(self.address, self.type_support, self.message)
             serialized.buffer = None  # do not keep the frame alive
+            del view
         if failed:
             self.reset_error()  # else rcutils complains to stderr about the next error
             raise CodecError(f"not a valid {self.name} (its CDR does not deserialize)")
-
-    def _check(self, length: int) -> int:
-        serialized = self.serialized
-        serialized.buffer_length = serialized.buffer_capacity = length
-        return self.deserialize(self.address, self.type_support, self.message)
 
     def __del__(self) -> None:
         if self.message:
@@ -304,6 +247,7 @@ class _RmwChecker:
             self.message = None
 
 
+@functools.cache
 def _find_rmw() -> tuple[Any, Any] | None:
     """The library with ``rmw_deserialize``, and ``rcutils_reset_error``, among those rclpy loaded:
     ``librmw_implementation`` (ROS from apt: it dispatches to the middleware in use) or else the
@@ -352,12 +296,10 @@ class RosNode:
         from rclpy.context import Context
         from rclpy.experimental import EventsExecutor
 
-        self._rclpy = rclpy
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id)
-        node_name = re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{name}")
-        self.node = rclpy.create_node(node_name, context=self.context,
-                                      start_parameter_services=False)
+        self.node = rclpy.create_node(re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{name}"),
+                                      context=self.context, start_parameter_services=False)
         self.executor = EventsExecutor(context=self.context)
         self.executor.add_node(self.node)
         #: the batch windows of its subscriptions, closed on the executor's thread
@@ -367,13 +309,10 @@ class RosNode:
         self._thread.start()
 
     def _spin(self) -> None:
-        # one spin_once per wake-up (it runs one callback, which takes every message the middleware
-        # announced); the context is asked whether it is still up every SPIN seconds, not per
-        # message (Context.ok takes a lock: 3-4 us/msg in bridge A's profile at 8,000 msg/s).
-        # EventsExecutor.spin() would stay in C++, but while it runs, creating a subscription
-        # from another thread hangs (rclpy from the package index).
-        # While a topic's batch window is open (rosgate.batch) the thread sleeps until it
-        # closes instead of waking for each message, then the route takes them all at once.
+        # spin_once, not EventsExecutor.spin(): while that runs, creating a subscription from
+        # another thread hangs (rclpy from the package index). Context.ok is asked every SPIN
+        # seconds, not per message (it takes a lock: 3-4 us/msg at 8,000 msg/s). While a batch
+        # window is open (rosgate.batch) the thread sleeps until it closes.
         stop, ok, clock, batches = self._stop, self.context.ok, time.monotonic, self.batches
         spin_once = self.executor.spin_once
         checked = clock()
@@ -396,13 +335,10 @@ class RosNode:
 
     @staticmethod
     def taker(subscription: Any) -> Callable[[], tuple[Any, int] | None]:
-        """For a subscription's callback (on the executor's thread, the only one that takes from
-        it): the next message already waiting in the middleware and when it arrived there
-        (``time.time_ns()`` nanoseconds: the middleware's reception stamp), or None, without
-        waiting. The executor calls back once per message announced; a callback that takes the
-        rest itself handles a backlog in one go, and the executor's own takes then find
-        nothing. (The executor's callback gets no stamp: this rclpy's EventsExecutor fails on
-        callbacks that ask for the message info.)"""
+        """For a subscription's callback (on the executor's thread): the next message waiting in
+        the middleware and its reception stamp (``time.time_ns()``), or None, without waiting;
+        a callback takes a backlog in one go. (This rclpy's EventsExecutor fails on callbacks
+        that ask for the message info, so the stamp is taken here.)"""
         take = subscription.handle.take_message
         msg_type, raw = subscription.msg_type, subscription.raw
 
@@ -413,11 +349,9 @@ class RosNode:
         return next_waiting
 
     def qos_found(self, topic: str) -> dict[str, Any] | None:
-        """The QoS a subscription to ``topic`` (and a publisher for it elsewhere) takes from its
-        publishers on the ROS graph, but this node's own (a bridge that also receives the
-        topic): reliable when all are, transient_local when all are (as ROS's own
-        best-available QoS decides), deep enough for the history of all of them; None when
-        there is none."""
+        """The QoS ``topic``'s publishers on the graph (not this node's) agree on, as ROS's
+        best-available QoS decides: reliable, transient_local when all are, deep enough for all
+        their histories; None without publishers."""
         from rclpy import qos
 
         me = (self.node.get_name(), self.node.get_namespace())
@@ -450,16 +384,12 @@ class RosNode:
 
     def deferred_service(self, srv_type: type, name: str, qos: Any,
                          on_request: Callable[[Any, Callable[[Any], None]], None]) -> Any:
-        """A service server whose answers may come later, from any thread.
+        """A service server whose answers may come later: ``on_request(request, respond)`` runs
+        on the executor thread and must not block; ``respond(response)``, once, from any thread.
 
-        ``on_request(request, respond)`` runs on the executor thread and must not block; calling
-        ``respond(response)`` (once, from any thread) answers the caller. Why not an async
-        callback: EventsExecutor does not run coroutines (it hands the coroutine itself to
-        ``send_response``: TypeError), and rclpy's Python executors resume awaiting tasks by
-        polling them in a busy loop. Both executors answer by calling ``service.send_response
-        (result, header)`` on the service object, so the callback returns a marker and
-        ``send_response`` is replaced on this instance: given the marker it passes the request
-        and a ``respond`` bound to the request's header to ``on_request``.
+        Not an async callback: EventsExecutor hands the coroutine itself to ``send_response``
+        and rclpy's Python executors poll awaiting tasks in a busy loop. So the callback returns
+        a marker, and this instance's ``send_response`` turns it into the call of ``on_request``.
         """
         from rclpy.exceptions import InvalidHandle
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy

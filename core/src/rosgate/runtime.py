@@ -1,15 +1,8 @@
-"""A running bridge's local status socket: where it is, and serving it (``rosgate top``, the
-plugin ``rosgate-top``, asks it).
-
-Each bridge serves its status (:mod:`rosgate.status`) on a Unix socket named after it,
-``<runtime dir>/<name>.sock``: ``$ROSGATE_RUNTIME_DIR``, else ``$XDG_RUNTIME_DIR/rosgate``, else
-``/tmp/rosgate-<uid>``. The folder is made mode 0700 and refused when another user owns it or
-others may write to it; the socket is mode 0600, and a connection from another user (root
-aside, who can read anything anyway) is closed unanswered. It never listens on a network.
-
-The protocol is JSON lines: the client writes one line (``{"get": "status"}``), the bridge
-answers with one line, the status; a client may ask again on the same connection. Answering
-reads counters and copies a few lists: nothing on the data path waits for it.
+"""A bridge's status (:mod:`rosgate.status`) on a Unix socket, ``<runtime dir>/<name>.sock``,
+for ``rosgate top``. The folder is 0700 and refused when another user owns it or others may
+write to it; the socket is 0600, and a connection from another user (root aside) is closed
+unanswered. Never on a network. JSON lines: one request line (``{"get": "status"}``), one
+answer line, the status; again on the same connection if the client likes.
 """
 
 from __future__ import annotations
@@ -35,7 +28,7 @@ MAX_CLIENTS = 8  # connections served at once; more wait in the listen backlog
 
 
 def runtime_dir() -> Path:
-    """The folder of this user's bridges' sockets (not made here)."""
+    """``$ROSGATE_RUNTIME_DIR``, else ``$XDG_RUNTIME_DIR/rosgate``, else ``/tmp/rosgate-<uid>``."""
     if given := os.environ.get(RUNTIME_VARIABLE):
         return Path(given)
     if (xdg := os.environ.get("XDG_RUNTIME_DIR")) and Path(xdg).is_dir():
@@ -47,15 +40,6 @@ def socket_path(name: str) -> Path:
     return runtime_dir() / f"{name}{SUFFIX}"
 
 
-def _private_dir(folder: Path) -> None:
-    """Make ``folder`` 0700, or check that an existing one is ours and closed to others."""
-    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-    info = folder.stat()
-    if info.st_uid != os.getuid() or info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise OSError(f"{folder} is not this user's alone (owner uid {info.st_uid}, mode "
-                      f"{stat.S_IMODE(info.st_mode):o}); remove it or set {RUNTIME_VARIABLE}")
-
-
 class StatusServer:
     """Serves ``status()`` on the bridge's socket until :meth:`close`."""
 
@@ -64,7 +48,12 @@ class StatusServer:
         self.status = status
         self._slots = threading.BoundedSemaphore(MAX_CLIENTS)
         self._closed = threading.Event()
-        _private_dir(self.path.parent)
+        folder = self.path.parent  # 0700, or an existing one ours and closed to others
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        info = folder.stat()
+        if info.st_uid != os.getuid() or info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+            raise OSError(f"{folder} is not this user's alone (owner uid {info.st_uid}, mode "
+                          f"{stat.S_IMODE(info.st_mode):o}); remove it or set {RUNTIME_VARIABLE}")
         if self.path.exists() or self.path.is_symlink():
             if _answers(self.path):
                 raise OSError(f"another bridge named {name!r} serves {self.path}")
