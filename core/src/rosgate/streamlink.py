@@ -11,8 +11,10 @@ import logging
 import random
 import threading
 import time
+from bisect import bisect_right
 from collections import deque
 from collections.abc import Callable, Iterator
+from contextlib import suppress
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -244,12 +246,9 @@ class StreamLink(_Sending, Link):
             self.fail(f"send failed: {exc}")
             return False
         counters = self.counters
-        whole, offset = 0, 0
-        for size in sizes:  # the records wholly written
-            offset += size
-            if offset > written:
-                break
-            whole += 1
+        # the records wholly written
+        whole = (len(sizes) if written == len(data)
+                 else bisect_right(list(itertools.accumulate(sizes)), written))
         if written:
             counters.packets_out += 1
             counters.bytes_out += written
@@ -265,7 +264,7 @@ class StreamLink(_Sending, Link):
 
     def _send_loop(self) -> None:
         """Gather what the scheduler lets go, up to :data:`WRITE` bytes, into one write."""
-        wake, closed, scheduler = self._wake, self.closed, self.scheduler
+        wake, closed, scheduler, counters = self._wake, self.closed, self.scheduler, self.counters
         while True:
             batch: list[Due] = []
             size = 0
@@ -300,7 +299,6 @@ class StreamLink(_Sending, Link):
                         due.sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
                 self.fail(f"send failed: {exc}")
                 return
-            counters = self.counters
             counters.packets_out += 1
             counters.bytes_out += size
             frames = 0
@@ -401,10 +399,8 @@ class StreamLink(_Sending, Link):
         self.close()
 
     def _close_io(self) -> None:
-        try:
+        with suppress(OSError):
             self.connection.close()
-        except OSError:
-            pass
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ import select
 import socket
 from abc import ABC, abstractmethod
 from collections.abc import Callable
+from contextlib import suppress
 from typing import Any, ClassVar, Protocol
 
 from .options import as_options
@@ -231,10 +232,8 @@ class SocketConnection:
         return self.sock.recv_into(buffer)  # 0 at the end, or OSError once closed
 
     def close(self) -> None:
-        try:
+        with suppress(OSError):
             self.sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
         self.sock.close()
 
 
