@@ -11,7 +11,6 @@ import logging
 import random
 import threading
 import time
-from bisect import bisect_right
 from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import suppress
@@ -225,41 +224,36 @@ class StreamLink(_Sending, Link):
             return sum(self._put(Outgoing(sender, None, len(record), _one(record), now))
                        for record in records)
         try:
-            self._write_now(data, sender, [len(record) for record in records])
+            self._send_due(Due(data, None, sender, SENT_INLINE, frames=len(records)))
         finally:
             self._release()
         return len(records)
 
     def _send_due(self, due: Due) -> bool:
-        """One record from the caller's thread (see :meth:`_write_now`)."""
-        return self._write_now(due.packet, due.sender, [len(due.packet)])
-
-    def _write_now(self, data: bytes, sender: Sender, sizes: list[int]) -> bool:
-        """Write records as far as the connection takes them now; the rest goes first when the
-        writer next writes (nothing comes between: this thread has the turn)."""
+        """Write ``due``'s records as far as the connection takes them now; the rest goes first
+        when the writer next writes (nothing comes between: this thread has the turn), and its
+        frames are counted out with it."""
         assert self._send_nowait is not None
         try:
-            written = self._send_nowait(data)
+            written = self._send_nowait(due.packet)
         except OSError as exc:
-            for _ in sizes:
-                sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
+            for _ in range(due.frames):
+                due.sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
             self.fail(f"send failed: {exc}")
             return False
         counters = self.counters
-        # the records wholly written
-        whole = (len(sizes) if written == len(data)
-                 else bisect_right(list(itertools.accumulate(sizes)), written))
         if written:
             counters.packets_out += 1
             counters.bytes_out += written
-            counters.frames_out += whole
-            if whole > 1:
-                counters.coalesced_out += whole
-        if written < len(data):
-            rest = Due(data[written:], None, sender, SENT_INLINE, frames=len(sizes) - whole)
+        if written == len(due.packet):
+            counters.frames_out += due.frames
+            if due.frames > 1:
+                counters.coalesced_out += due.frames
+        else:
+            rest = Due(due.packet[written:], None, due.sender, SENT_INLINE, frames=due.frames)
             with self._lock:
                 self._rest = rest
-        sender.on_wire(written, False)
+        due.sender.on_wire(written, False)
         return True
 
     def _send_loop(self) -> None:
