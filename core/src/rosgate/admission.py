@@ -11,6 +11,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Any
 
 from .drops import Drop, Reason
@@ -174,9 +175,7 @@ class _Counted:
         return getattr(self._connection, name)
 
 
-RefusedHandler = Callable[["Acceptor", Reason, str], None]
-
-
+@dataclass(eq=False)
 class Acceptor:
     """Accepts connections on a listener until closed, and hands each to ``on_connection``.
 
@@ -187,18 +186,16 @@ class Acceptor:
     ``accept_failed``: a listener whose backlog cannot be taken never spins.
     """
 
-    def __init__(self, listener: StreamListener, name: str,
-                 on_connection: Callable[[StreamConnection, Address], None],
-                 limits: ConnectionLimits, sources: Sources | None,
-                 on_refused: RefusedHandler):
-        self.listener = listener
-        self.name = name
-        self.on_connection = on_connection
-        self.limits = limits
-        self.sources = sources
-        self.on_refused = on_refused
+    listener: StreamListener
+    name: str
+    on_connection: Callable[[StreamConnection, Address], None]
+    limits: ConnectionLimits
+    sources: Sources | None
+    on_refused: Callable[[Acceptor, Reason, str], None]
+
+    def __post_init__(self) -> None:
         self.closed = threading.Event()
-        self._thread = threading.Thread(target=self._loop, name=f"accept-{name}", daemon=True)
+        self._thread = threading.Thread(target=self._loop, name=f"accept-{self.name}", daemon=True)
         self._thread.start()
 
     def _loop(self) -> None:

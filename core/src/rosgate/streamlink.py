@@ -89,9 +89,7 @@ class StreamReader:
 
     def target(self) -> memoryview | None:
         """Where the next bytes go when a large frame is being read in place, else None."""
-        if self._frame is None:
-            return None
-        return memoryview(self._frame)[self._filled:]
+        return None if self._frame is None else memoryview(self._frame)[self._filled:]
 
     def filled(self, count: int) -> bytearray | None:
         """``count`` bytes were read into :meth:`target`; the frame once it is whole."""
@@ -525,15 +523,13 @@ class Connector:
     budget: LinkConfig | None = None
 
     def __post_init__(self) -> None:
-        self.connected = threading.Event()
         self._last_failure = ""
         self._thread = threading.Thread(target=self._loop, name=f"connect-{self.slot.name}",
                                         daemon=True)
         self.life.closing(self)
 
-    def start(self) -> Connector:
+    def start(self) -> None:
         self._thread.start()
-        return self
 
     def _loop(self) -> None:
         stopping = self.life.stopping
@@ -547,11 +543,9 @@ class Connector:
             failures = 0
             self._last_failure = ""
             self.slot.attach(link)
-            self.connected.set()
             while not link.closed.wait(0.5):
                 if stopping.is_set() or self.slot.closed.is_set():
                     break
-            self.connected.clear()
             if stopping.is_set() and not self.slot.closed.is_set():
                 return  # the bridge is stopping: its role may have a last word (bye), then
                 # closing the slot closes the link
