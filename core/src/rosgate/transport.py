@@ -29,13 +29,10 @@ Address = tuple[str, int]
 
 
 class DatagramEndpoint(Protocol):
-    """A bound datagram socket (or a look-alike).
-
-    Threads: ``send`` may be called from several threads at once (ROS executor threads that
-    transmit, link threads that answer), so it must be safe to call concurrently, as a socket's
-    ``sendto`` is. ``receive`` is called from one thread, the link's receiving thread; ``close``
-    from another.
-    """
+    """A bound datagram socket (or a look-alike). ``send`` may be called from several threads
+    at once (ROS executor threads that transmit, link threads that answer): make it safe to call
+    concurrently, as a socket's ``sendto`` is. ``receive`` is called from the link's receiving
+    thread; ``close`` from another."""
 
     def send(self, frame: bytes, to: Address) -> None:
         """Hand one frame of at most ``max_frame`` bytes to the link, addressed to ``to``.
@@ -83,11 +80,8 @@ class FastDatagramEndpoint(DatagramEndpoint, Protocol):
 
 
 class StreamConnection(Protocol):
-    """One connected byte stream.
-
-    Threads: ``send`` is called from one thread (the link's writer) and ``receive`` from
-    another (the link's reader), at the same time; ``close`` from any thread.
-    """
+    """One connected byte stream: ``send`` is called from one thread (the link's writer) while
+    ``receive`` is from another (the link's reader); ``close`` from any thread."""
 
     def send(self, data: bytes) -> None:
         """Send all of ``data``, or raise ``OSError`` when the connection is gone: the core
@@ -108,14 +102,13 @@ class FastStreamConnection(StreamConnection, Protocol):
 
     def receive_into(self, buffer: memoryview, timeout: float) -> int | None:
         """As :meth:`~StreamConnection.receive`, writing up to ``len(buffer)`` bytes into
-        ``buffer``: how many (0 when the far end closed), or ``None`` after ``timeout``. The core
-        reads a large frame straight into the buffer it will hand on, and everything else into
-        one buffer of its own, instead of a new bytes object per read."""
+        ``buffer``: how many (0 when the far end closed), or ``None`` after ``timeout``: no new
+        bytes object per read, and a large frame is read straight into the buffer handed on."""
 
     def send_nowait(self, data: bytes) -> int:
-        """Write what of ``data`` goes without waiting (0 when nothing does): the core writes a
-        frame from the caller's thread when nothing else is being written, and leaves the rest,
-        if any, to the link's writer thread. ``OSError`` as for ``send``."""
+        """Write what of ``data`` goes without waiting: how many bytes (0 when none). The core
+        writes from the caller's thread when nothing else is being written, and leaves the rest
+        to the link's writer. ``OSError`` as for ``send``."""
 
 
 class StreamListener(Protocol):
