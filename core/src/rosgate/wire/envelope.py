@@ -150,12 +150,20 @@ class ReplayWindow:
         return None
 
     def _in(self, tracks: list[list[int]], track: list[int], seq: int) -> Drop | None:
-        """``seq`` in ``track``, which becomes the most recently used, merged with any window
-        it has come close to."""
+        """``seq`` in ``track``, which becomes the most recently used and takes in every window
+        that has come within ``WIDTH`` of it."""
         refused = self._slide(track, seq)
         tracks.remove(track)
         tracks.append(track)
-        self._merge(tracks)
+        for other in tracks[:-1]:
+            distance = track[0] - other[0]
+            if abs(distance) >= self.WIDTH:
+                continue
+            if distance >= 0:
+                track[1] = (track[1] | other[1] << distance) & self._MASK
+            else:
+                track[0], track[1] = other[0], (other[1] | track[1] << -distance) & self._MASK
+            tracks.remove(other)
         return refused
 
     def _slide(self, window: list[int], seq: int) -> Drop | None:
@@ -175,16 +183,3 @@ class ReplayWindow:
         window[1] = seen | 1 << offset
         self.lost -= 1
         return None
-
-    def _merge(self, tracks: list[list[int]]) -> None:
-        """Fold windows that have come within ``WIDTH`` of the most recent one into it."""
-        current = tracks[-1]
-        for other in tracks[:-1]:
-            distance = current[0] - other[0]
-            if abs(distance) >= self.WIDTH:
-                continue
-            if distance >= 0:
-                current[1] = (current[1] | other[1] << distance) & self._MASK
-            else:
-                current[0], current[1] = other[0], (other[1] | current[1] << -distance) & self._MASK
-            tracks.remove(other)
