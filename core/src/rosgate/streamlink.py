@@ -502,13 +502,11 @@ class Backoff:
 
 @dataclass(eq=False)
 class Connector:
-    """Keeps a stream connection up: connects, and after every loss reconnects by itself.
-
-    Attempts are spaced by capped exponential backoff with jitter, so a fleet of clients does
-    not hammer a server that comes back; after a connection that worked is lost, the next
-    attempt is immediate. ``on_connected(link)`` may refuse a connection (a failed handshake),
-    which counts as a failed attempt; ``on_lost(link)`` hears of every accepted connection that
-    ended."""
+    """Keeps a stream connection up: connects, and after every loss reconnects by itself, with
+    capped exponential backoff and jitter (a fleet of clients does not hammer a server that
+    comes back); after a connection that worked is lost, at once. ``on_connected(link)`` may
+    refuse a connection (a failed handshake: a failed attempt); ``on_lost(link)`` hears of
+    every accepted connection that ended."""
 
     transport: Transport
     address: Address
@@ -547,8 +545,7 @@ class Connector:
                 if stopping.is_set() or self.slot.closed.is_set():
                     break
             if stopping.is_set() and not self.slot.closed.is_set():
-                return  # the bridge is stopping: its role may have a last word (bye), then
-                # closing the slot closes the link
+                return  # the role may have a last word (bye); closing the slot closes the link
             link.close()
             if self.on_lost is not None and not stopping.is_set():
                 self.on_lost(link)
