@@ -1,14 +1,7 @@
-"""Admission: who a bridge takes frames and connections from, and how many connections it
-holds. Roles choose it; datagram links and acceptors apply it.
-
-* :class:`Sources` — the hosts and networks a link takes datagrams (an acceptor connections)
-  from; :class:`KnownSources`, a server's, learnt from its clients' genuine hellos.
-* :class:`ConnectionLimits` — how many connections (or handshakes) are held at once, in total
-  and per source, with places kept for :class:`RecentHosts`.
-* :class:`Acceptor` — accepts stream connections within those, reporting every refusal.
-
-Nothing here frames, queues or sends; what an accepted connection may do before it is trusted
-is the link's (:class:`~rosgate.streamlink.Untrusted`).
+"""Admission: who a bridge takes frames and connections from (:class:`Sources`), how many
+connections it holds (:class:`ConnectionLimits`), and the loop that accepts them within those
+(:class:`Acceptor`). What a connection may do before it is trusted is the link's
+(:class:`~rosgate.streamlink.Untrusted`).
 """
 
 from __future__ import annotations
@@ -18,6 +11,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Any
 
 from .drops import Drop, Reason
@@ -124,11 +118,10 @@ class RecentHosts:
 
 class ConnectionLimits:
     """How many connections a bridge holds at once (``bridge.limits``), or handshakes a server
-    works on (each costs a Diffie-Hellman): in total, and from one source address. A quarter
-    of the total is kept for :class:`RecentHosts`, so strangers from many addresses cannot
-    fill it. A handshake takes its place once its first message has arrived, not when its
-    connection is accepted: a connection that only holds its place costs a thread and a file
-    descriptor (bounded by the connection limits), never a Diffie-Hellman."""
+    works on (each costs a Diffie-Hellman): in total, and from one source address. A quarter of
+    the total is kept for :class:`RecentHosts`, so strangers from many addresses cannot fill it.
+    A handshake takes its place once its first message has arrived, not at accept: a connection
+    that only holds a place costs a thread and a descriptor, never a Diffie-Hellman."""
 
     def __init__(self, total: int, per_source: int, recent: RecentHosts | None = None):
         self.total = total
@@ -137,31 +130,27 @@ class ConnectionLimits:
         # places kept for recent hosts: a quarter, at least one when there are two or more
         self.open_to_all = total - (total // 4 if total >= 4 else min(1, total - 1))
         self._by_source: Counter[str] = Counter()
-        self._count = 0
+        self.held = 0
         self._lock = threading.Lock()
 
     def admit(self, host: str) -> Drop | None:
         """Take a place for ``host``; None when taken, else why not."""
         with self._lock:
-            if self._count >= self.total or (self._count >= self.open_to_all
-                                             and host not in self.recent):
+            if self.held >= self.total or (self.held >= self.open_to_all
+                                           and host not in self.recent):
                 return Drop.TOO_MANY_CONNECTIONS
             if self._by_source[host] >= self.per_source:
                 return Drop.TOO_MANY_PER_SOURCE
-            self._count += 1
+            self.held += 1
             self._by_source[host] += 1
             return None
 
     def release(self, host: str) -> None:
         with self._lock:
-            self._count -= 1
+            self.held -= 1
             self._by_source[host] -= 1
             if not self._by_source[host]:
                 del self._by_source[host]
-
-    @property
-    def held(self) -> int:
-        return self._count
 
 
 class _Counted:
@@ -169,14 +158,9 @@ class _Counted:
 
     def __init__(self, connection: StreamConnection, release: Callable[[], None]):
         self._connection = connection
+        self.send, self.receive = connection.send, connection.receive  # no call in between
         self._release: Callable[[], None] | None = release
         self._lock = threading.Lock()
-
-    def send(self, data: bytes) -> None:
-        self._connection.send(data)
-
-    def receive(self, max_bytes: int, timeout: float) -> bytes | None:
-        return self._connection.receive(max_bytes, timeout)
 
     def close(self) -> None:
         try:
@@ -191,9 +175,7 @@ class _Counted:
         return getattr(self._connection, name)
 
 
-RefusedHandler = Callable[["Acceptor", Reason, str], None]
-
-
+@dataclass(eq=False)
 class Acceptor:
     """Accepts connections on a listener until closed, and hands each to ``on_connection``.
 
@@ -204,18 +186,16 @@ class Acceptor:
     ``accept_failed``: a listener whose backlog cannot be taken never spins.
     """
 
-    def __init__(self, listener: StreamListener, name: str,
-                 on_connection: Callable[[StreamConnection, Address], None],
-                 limits: ConnectionLimits, sources: Sources | None,
-                 on_refused: RefusedHandler):
-        self.listener = listener
-        self.name = name
-        self.on_connection = on_connection
-        self.limits = limits
-        self.sources = sources
-        self.on_refused = on_refused
+    listener: StreamListener
+    name: str
+    on_connection: Callable[[StreamConnection, Address], None]
+    limits: ConnectionLimits
+    sources: Sources | None
+    on_refused: Callable[[Acceptor, Reason, str], None]
+
+    def __post_init__(self) -> None:
         self.closed = threading.Event()
-        self._thread = threading.Thread(target=self._loop, name=f"accept-{name}", daemon=True)
+        self._thread = threading.Thread(target=self._loop, name=f"accept-{self.name}", daemon=True)
         self._thread.start()
 
     def _loop(self) -> None:

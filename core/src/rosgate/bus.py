@@ -1,13 +1,11 @@
 """Buses: the third kind of link, for pub/sub and query networks addressed by key (Eclipse Zenoh).
 
-A datagram link moves frames to an address and a stream link moves bytes over a connection; a
-bus moves whole frames by **key**, and discovers, reconnects and fragments by itself. The core
-knows only the kind: a bus plugin subclasses :class:`BusTransport` (registered through
-``rosgate_transports`` like any transport), and its entries — peer role, no ``port:``, no
-``peer:`` — are wired by the **bus role** its :attr:`~BusTransport.role` names: a
-:class:`BusRole` registered through the ``rosgate_bus_roles`` hook. rosgate's own is ``fleet``
-(distribution ``rosgate-fleet``: keys, bus links, ``{robot}`` placeholders), which defines the
-session a bus transport's :meth:`~BusTransport.open` returns.
+A bus moves whole frames by **key**, and discovers, reconnects and fragments by itself. A bus
+plugin subclasses :class:`BusTransport` (registered through ``rosgate_transports``); its entries
+(peer role, no ``port:``, no ``peer:``) are wired by the :class:`BusRole` its
+:attr:`~BusTransport.role` names, registered through ``rosgate_bus_roles``. rosgate's own is
+``fleet`` (distribution ``rosgate-fleet``), which defines the session :meth:`BusTransport.open`
+returns.
 """
 
 from __future__ import annotations

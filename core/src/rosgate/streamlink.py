@@ -1,14 +1,7 @@
 """Stream links: a :class:`StreamLink` is one connection (TCP, RFCOMM, a Noise channel over
 either), its frames length-prefixed, long ones in chunks, sent through the link's scheduler as a
 datagram link's are (:mod:`rosgate.links`); a :class:`LinkSlot` is the place a route sends
-through while connections come and go, and a :class:`Connector` keeps it filled (connects, and
-reconnects after every loss).
-
-A stream connection the bridge accepted is untrusted until its owner calls
-:meth:`StreamLink.trust` (a handshake, a hello): until then its frames are small and it has a
-deadline (:class:`Untrusted`). While a slot is empty, frames of reliable senders wait in a
-bounded queue and leave in order when a connection is attached; frames of other senders are
-dropped.
+through while connections come and go, and a :class:`Connector` keeps it filled.
 """
 
 from __future__ import annotations
@@ -20,6 +13,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
+from contextlib import suppress
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -78,14 +72,11 @@ def stream_records(frame: bytes, message: int, chunk: int = CHUNK) -> list[bytes
 
 
 class StreamReader:
-    """Cuts a byte stream into frames, chunked ones put back together. Feed it what the
-    connection gives (:meth:`feed`); or, to save a copy of large frames, ask it where the
-    next bytes should go (:meth:`target`), read them there and say how many (:meth:`filled`).
-
-    With ``direct``, a frame longer than :data:`DIRECT_ABOVE` whose length is known is read
-    straight into a buffer of its own, once 1/:data:`EARN_BUFFER` of it has come (so a length
-    prefix alone does not make the reader zero 64 MiB), and handed on as that bytearray: the
-    caller must then read into :meth:`target` while it is not None."""
+    """Cuts a byte stream into frames, chunked ones put back together: :meth:`feed` it what the
+    connection gives. With ``direct``, a frame longer than :data:`DIRECT_ABOVE` is read straight
+    into a buffer of its own once 1/:data:`EARN_BUFFER` of it has come (a length prefix alone
+    does not make the reader zero 64 MiB): while :meth:`target` is not None, the caller reads
+    into it and says how many bytes came (:meth:`filled`), saving a copy of large frames."""
 
     def __init__(self, max_frame: int = DEFAULT_MAX_MESSAGE, direct: bool = False):
         self.max_frame = max_frame
@@ -98,9 +89,7 @@ class StreamReader:
 
     def target(self) -> memoryview | None:
         """Where the next bytes go when a large frame is being read in place, else None."""
-        if self._frame is None:
-            return None
-        return memoryview(self._frame)[self._filled:]
+        return None if self._frame is None else memoryview(self._frame)[self._filled:]
 
     def filled(self, count: int) -> bytearray | None:
         """``count`` bytes were read into :meth:`target`; the frame once it is whole."""
@@ -173,19 +162,13 @@ class Untrusted:
 
 
 class StreamLink(_Sending, Link):
-    """One stream connection, framed with length prefixes; frames longer than
-    :data:`rosgate.wire.CHUNK` go in chunks, and the writer takes at most
-    :data:`WRITE` bytes at a time from the scheduler, so a frame of a higher class (a Twist
-    behind a camera's backlog) waits for one write, not for the whole backlog. (The kernel's
-    send buffer still holds what was written: a budget below the link's rate keeps it short.)
-
-    Sending never blocks the caller: when nothing waits, a frame of one record is written from
-    the caller's thread as far as the connection takes it without waiting (``send_nowait``: no
-    thread hand-off for a message alone; the rest goes first when the writer next writes).
+    """One stream connection. The writer takes at most :data:`WRITE` bytes at a time from the
+    scheduler, so a frame of a higher class (a Twist behind a camera's backlog) waits for one
+    write, not for the whole backlog. When nothing waits, frames are written from the caller's
+    thread as far as the connection takes them without waiting (``send_nowait``: no hand-off).
 
     With ``untrusted``, the connection is held to those limits until :meth:`trust` (a frame too
-    long is a corrupt stream; the deadline passing ends the connection, counted
-    ``handshake_timeout``)."""
+    long is a corrupt stream; the deadline passing ends it, counted ``handshake_timeout``)."""
 
     def __init__(self, connection: StreamConnection, name: str, peer: Address,
                  on_frame: FrameHandler, on_lost: LostHandler,
@@ -228,8 +211,7 @@ class StreamLink(_Sending, Link):
     def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
         """Frames of one sender together (a route's backlog): one write from the caller's
         thread when nothing waits; otherwise each is queued."""
-        if len(frames) < 2 or self._send_nowait is None \
-                or any(len(frame) > CHUNK for frame in frames):
+        if len(frames) < 2 or self._send_nowait is None or max(map(len, frames)) > CHUNK:
             return sum(self.send(frame, sender) for frame in frames)
         records = [length_prefixed(frame) for frame in frames]
         data = b"".join(records)
@@ -240,50 +222,41 @@ class StreamLink(_Sending, Link):
             return sum(self._put(Outgoing(sender, None, len(record), _one(record), now))
                        for record in records)
         try:
-            self._write_now(data, sender, [len(record) for record in records])
+            self._send_due(Due(data, None, sender, SENT_INLINE, frames=len(records)))
         finally:
             self._release()
         return len(records)
 
     def _send_due(self, due: Due) -> bool:
-        """One record from the caller's thread (see :meth:`_write_now`)."""
-        return self._write_now(due.packet, due.sender, [len(due.packet)])
-
-    def _write_now(self, data: bytes, sender: Sender, sizes: list[int]) -> bool:
-        """Write records as far as the connection takes them now; what it does not take goes
-        first when the writer next writes (nothing can come between: this thread is the only
-        one writing)."""
+        """Write ``due``'s records as far as the connection takes them now; the rest goes first
+        when the writer next writes (nothing comes between: this thread has the turn), and its
+        frames are counted out with it."""
         assert self._send_nowait is not None
         try:
-            written = self._send_nowait(data)
+            written = self._send_nowait(due.packet)
         except OSError as exc:
-            for _ in sizes:
-                sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
+            for _ in range(due.frames):
+                due.sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
             self.fail(f"send failed: {exc}")
             return False
         counters = self.counters
-        whole, offset = 0, 0
-        for size in sizes:  # the records wholly written
-            offset += size
-            if offset > written:
-                break
-            whole += 1
         if written:
             counters.packets_out += 1
             counters.bytes_out += written
-            counters.frames_out += whole
-            if whole > 1:
-                counters.coalesced_out += whole
-        if written < len(data):
-            rest = Due(data[written:], None, sender, SENT_INLINE, frames=len(sizes) - whole)
+        if written == len(due.packet):
+            counters.frames_out += due.frames
+            if due.frames > 1:
+                counters.coalesced_out += due.frames
+        else:
+            rest = Due(due.packet[written:], None, due.sender, SENT_INLINE, frames=due.frames)
             with self._lock:
                 self._rest = rest
-        sender.on_wire(written, False)
+        due.sender.on_wire(written, False)
         return True
 
     def _send_loop(self) -> None:
         """Gather what the scheduler lets go, up to :data:`WRITE` bytes, into one write."""
-        wake, closed, scheduler = self._wake, self.closed, self.scheduler
+        wake, closed, scheduler, counters = self._wake, self.closed, self.scheduler, self.counters
         while True:
             batch: list[Due] = []
             size = 0
@@ -318,7 +291,6 @@ class StreamLink(_Sending, Link):
                         due.sender.drop(Drop.LINK_DOWN, f"{self.name}: send failed")
                 self.fail(f"send failed: {exc}")
                 return
-            counters = self.counters
             counters.packets_out += 1
             counters.bytes_out += size
             frames = 0
@@ -352,16 +324,14 @@ class StreamLink(_Sending, Link):
     def _receive_loop(self) -> None:
         receive_into = getattr(self.connection, "receive_into", None)
         buffer = memoryview(bytearray(256 * 1024))
-        reader, closed = self._reader, self.closed
+        reader, closed, counters = self._reader, self.closed, self.counters
         while not closed.is_set():
             target = reader.target() if receive_into is not None else None
             try:
-                if receive_into is not None and target is not None:  # a large frame, in place
-                    got: int | bytes | None = receive_into(target, POLL)
-                elif receive_into is not None:
-                    got = receive_into(buffer, POLL)
-                else:
-                    got = self.connection.receive(len(buffer), POLL)
+                if receive_into is None:
+                    got: int | bytes | None = self.connection.receive(len(buffer), POLL)
+                else:  # a large frame in place
+                    got = receive_into(buffer if target is None else target, POLL)
             except OSError as exc:
                 self.fail(f"receive failed: {exc}")
                 return
@@ -381,7 +351,6 @@ class StreamLink(_Sending, Link):
             if not got:
                 self.fail("closed by peer")
                 return
-            counters = self.counters
             counters.packets_in += 1
             if target is not None:
                 assert isinstance(got, int)
@@ -422,10 +391,8 @@ class StreamLink(_Sending, Link):
         self.close()
 
     def _close_io(self) -> None:
-        try:
+        with suppress(OSError):
             self.connection.close()
-        except OSError:
-            pass
 
 
 @dataclass(frozen=True)
@@ -437,15 +404,11 @@ class QueueLimits:
 
 
 class LinkSlot(Link):
-    """A stream link that comes and goes. A :class:`Connector` (or a server that accepted the
-    peer again) :meth:`attach`-es each new connection.
-
-    While there is no live connection, frames of reliable senders wait, oldest
-    dropped first when the limits are reached (counted ``queue_full``), and are handed to the
-    next connection in order, before anything sent later. Other frames are counted ``link_down``.
-    Frames already handed to a connection that then fails are not taken back (there are no
-    acknowledgements): a connection's loss can cost what was in flight.
-    """
+    """A stream link that comes and goes: a :class:`Connector` (or a server that accepted the
+    peer again) :meth:`attach`-es each new connection. While there is none, frames of reliable
+    senders wait, oldest dropped first past the limits (``queue_full``), and go to the next
+    connection first; other frames are counted ``link_down``. Frames handed to a connection
+    that then fails are not taken back (no acknowledgements)."""
 
     def __init__(self, name: str, limits: QueueLimits):
         self.name = name
@@ -462,10 +425,8 @@ class LinkSlot(Link):
             link = self.current
             if link is not None and not link.closed.is_set():
                 return link.send_all(frames, sender)
-            if self.closed.is_set() or not sender.delivery.reliable:
-                refused = True
-            else:
-                refused = False
+            refused = self.closed.is_set() or not sender.delivery.reliable
+            if not refused:
                 for frame in frames:
                     self._waiting.append((frame, sender))
                     self._waiting_bytes += len(frame)
@@ -539,43 +500,34 @@ class Backoff:
         return min(self.min * 2 ** (failures - 1), self.max) * random.uniform(0.5, 1.0)
 
 
+@dataclass(eq=False)
 class Connector:
-    """Keeps a stream connection up: connects, and after every loss reconnects by itself.
+    """Keeps a stream connection up: connects, and after every loss reconnects by itself, with
+    capped exponential backoff and jitter (a fleet of clients does not hammer a server that
+    comes back); after a connection that worked is lost, at once. ``on_connected(link)`` may
+    refuse a connection (a failed handshake: a failed attempt); ``on_lost(link)`` hears of
+    every accepted connection that ended."""
 
-    Attempts are spaced by capped exponential backoff with jitter, so a fleet of clients does
-    not hammer a server that comes back. After a connection that worked is lost, the next
-    attempt is immediate. ``on_connected(link)`` may refuse a connection (a failed handshake),
-    which counts as a failed attempt; ``on_lost(link)`` hears of every accepted connection that
-    ended.
-    """
+    transport: Transport
+    address: Address
+    slot: LinkSlot
+    on_frame: FrameHandler
+    on_frame_lost: LostHandler
+    life: Lifetime
+    backoff: Backoff
+    on_connected: Callable[[StreamLink], bool] | None = None
+    on_lost: Callable[[StreamLink], None] | None = None
+    secure: Callable[[StreamConnection], StreamConnection] | None = None
+    budget: LinkConfig | None = None
 
-    def __init__(self, transport: Transport, address: Address, slot: LinkSlot,
-                 on_frame: FrameHandler, on_frame_lost: LostHandler, life: Lifetime,
-                 backoff: Backoff,
-                 on_connected: Callable[[StreamLink], bool] | None = None,
-                 on_lost: Callable[[StreamLink], None] | None = None,
-                 secure: Callable[[StreamConnection], StreamConnection] | None = None,
-                 budget: LinkConfig | None = None):
-        assert isinstance(transport, StreamTransport)
-        self.transport = transport
-        self.budget = budget
-        self.secure = secure
-        self.address = address
-        self.slot = slot
-        self.on_frame = on_frame
-        self.on_frame_lost = on_frame_lost
-        self.life = life
-        self.backoff = backoff
-        self.on_connected = on_connected
-        self.on_lost = on_lost
-        self.connected = threading.Event()
+    def __post_init__(self) -> None:
         self._last_failure = ""
-        self._thread = threading.Thread(target=self._loop, name=f"connect-{slot.name}", daemon=True)
-        life.closing(self)
+        self._thread = threading.Thread(target=self._loop, name=f"connect-{self.slot.name}",
+                                        daemon=True)
+        self.life.closing(self)
 
-    def start(self) -> Connector:
+    def start(self) -> None:
         self._thread.start()
-        return self
 
     def _loop(self) -> None:
         stopping = self.life.stopping
@@ -589,20 +541,18 @@ class Connector:
             failures = 0
             self._last_failure = ""
             self.slot.attach(link)
-            self.connected.set()
             while not link.closed.wait(0.5):
                 if stopping.is_set() or self.slot.closed.is_set():
                     break
-            self.connected.clear()
             if stopping.is_set() and not self.slot.closed.is_set():
-                return  # the bridge is stopping: its role may have a last word (bye), then
-                # closing the slot closes the link
+                return  # the role may have a last word (bye); closing the slot closes the link
             link.close()
             if self.on_lost is not None and not stopping.is_set():
                 self.on_lost(link)
 
     def _connect(self) -> StreamLink | None:
         """One attempt: a connection its owner accepted, or None."""
+        assert isinstance(self.transport, StreamTransport)
         try:
             connection = self.transport.connect(self.address, CONNECT_TIMEOUT)
         except (OSError, LinkError) as exc:

@@ -1,38 +1,17 @@
 """Transports: the links that move opaque frames between two machines.
 
-A transport plugin subclasses one kind — :class:`DatagramTransport`, :class:`StreamTransport`
-or :class:`rosgate.bus.BusTransport` — and is registered through the ``rosgate_transports`` hook.
-The class it subclasses is its kind, and the only statement of it: the core asks ``isinstance``.
-It only opens sockets (or socket-like objects): the core does everything above them — envelope,
-cipher, stream framing (length prefix), fragmentation and reassembly for frames larger than
-:attr:`DatagramTransport.max_frame`, reconnection, counting.
+A transport plugin subclasses one kind — :class:`DatagramTransport` (every ``send`` delivered
+whole or not at all: UDP, CAN), :class:`StreamTransport` (an ordered byte stream: TCP, RFCOMM) or
+:class:`rosgate.bus.BusTransport` — and registers it through the ``rosgate_transports`` hook; the
+core asks ``isinstance``. It only opens sockets (or socket-like objects): the core does
+everything above them — envelope, cipher, stream framing, fragmentation and reassembly of frames
+larger than :attr:`DatagramTransport.max_frame`, reconnection, counting.
 
-* **datagram** (:class:`DatagramTransport`): every ``send`` is delivered whole or not at all (UDP,
-  CAN). Implement :meth:`~DatagramTransport.bind`, returning a :class:`DatagramEndpoint`.
-* **stream** (:class:`StreamTransport`): an ordered byte stream with no boundaries (TCP, RFCOMM).
-  Implement :meth:`~StreamTransport.listen` and :meth:`~StreamTransport.connect`, returning a
-  :class:`StreamListener` and :class:`StreamConnection`.
-
-Addresses are ``(host, port)`` pairs; what ``host`` and ``port`` mean is the transport's own
-business (an IP address and a UDP port; a Bluetooth device address and an RFCOMM channel; a CAN
-interface and an arbitration id). Which addresses reach a transport, per role:
-
-* the main line (roles ``client`` and ``server``): ``bridge.server`` as written goes through
-  :meth:`Transport.parse_address`, then :meth:`Transport.check_address`. The server listens
-  there, the client connects there.
-* a topic or service: :meth:`Transport.check_address` gets ``(host, port)`` built by the core.
-  ``port`` is the entry's ``port:`` (in a client or server without one: the main line's port).
-  ``host`` is the host of ``bridge.server`` for a client and a server, and for a peer
-  ``bridge.listen`` (receiving entries) or ``bridge.peer`` (transmitting ones).
-* then, on a datagram link: a server and a receiving peer ``bind`` that address; a transmitting
-  peer binds ``(bridge.listen, 0)`` and a client ``("0.0.0.0", 0)`` (``"::"`` for an IPv6
-  server) — port 0: any port, an unnamed socket — and they send to the checked address. A
-  server answers each client at the source its frames came from.
-* on a stream link: a server and a receiving peer ``listen`` at that address; a client and a
-  transmitting peer ``connect`` to it, again after every loss.
-
-A ``ValueError`` from ``parse_address`` or ``check_address`` is shown to the user at the key the
-address came from (``bridge.server``, ``topics[2].port``), so say in it what is expected.
+Addresses are ``(host, port)`` pairs whose meaning is the transport's business (an IP address
+and a UDP port; a Bluetooth device address and an RFCOMM channel). Which address reaches which
+method, per role, is the table in docs/plugins.md. A ``ValueError`` from ``parse_address`` or
+``check_address`` is shown to the user at the key the address came from (``bridge.server``,
+``topics[2].port``), so say in it what is expected.
 """
 
 from __future__ import annotations
@@ -41,6 +20,7 @@ import select
 import socket
 from abc import ABC, abstractmethod
 from collections.abc import Callable
+from contextlib import suppress
 from typing import Any, ClassVar, Protocol
 
 from .options import as_options
@@ -49,13 +29,10 @@ Address = tuple[str, int]
 
 
 class DatagramEndpoint(Protocol):
-    """A bound datagram socket (or a look-alike).
-
-    Threads: ``send`` may be called from several threads at once (ROS executor threads that
-    transmit, link threads that answer), so it must be safe to call concurrently, as a socket's
-    ``sendto`` is. ``receive`` is called from one thread, the link's receiving thread; ``close``
-    from another.
-    """
+    """A bound datagram socket (or a look-alike). ``send`` may be called from several threads
+    at once (ROS executor threads that transmit, link threads that answer): make it safe to call
+    concurrently, as a socket's ``sendto`` is. ``receive`` is called from the link's receiving
+    thread; ``close`` from another."""
 
     def send(self, frame: bytes, to: Address) -> None:
         """Hand one frame of at most ``max_frame`` bytes to the link, addressed to ``to``.
@@ -81,11 +58,9 @@ class DatagramEndpoint(Protocol):
 
 
 class FastDatagramEndpoint(DatagramEndpoint, Protocol):
-    """A :class:`DatagramEndpoint` that also offers the core's fast path. Both methods are
-    optional, each on its own: the core looks for them once per link and uses ``send`` and
-    ``receive`` where they are missing (the kit's conformance suite tests whichever a transport
-    has). They save an allocation and a copy per frame on busy links.
-    """
+    """A :class:`DatagramEndpoint` with the core's fast path: an allocation and a copy less per
+    frame. Each method is optional: the core looks for it once per link, else uses ``send`` and
+    ``receive`` (the kit's conformance suite tests whichever a transport has)."""
 
     def receive_into(self, buffer: memoryview,
                      timeout: float) -> tuple[int, Address, int] | None:
@@ -105,11 +80,8 @@ class FastDatagramEndpoint(DatagramEndpoint, Protocol):
 
 
 class StreamConnection(Protocol):
-    """One connected byte stream.
-
-    Threads: ``send`` is called from one thread (the link's writer) and ``receive`` from
-    another (the link's reader), at the same time; ``close`` from any thread.
-    """
+    """One connected byte stream: ``send`` is called from one thread (the link's writer) while
+    ``receive`` is from another (the link's reader); ``close`` from any thread."""
 
     def send(self, data: bytes) -> None:
         """Send all of ``data``, or raise ``OSError`` when the connection is gone: the core
@@ -130,14 +102,13 @@ class FastStreamConnection(StreamConnection, Protocol):
 
     def receive_into(self, buffer: memoryview, timeout: float) -> int | None:
         """As :meth:`~StreamConnection.receive`, writing up to ``len(buffer)`` bytes into
-        ``buffer``: how many (0 when the far end closed), or ``None`` after ``timeout``. The core
-        reads a large frame straight into the buffer it will hand on, and everything else into
-        one buffer of its own, instead of a new bytes object per read."""
+        ``buffer``: how many (0 when the far end closed), or ``None`` after ``timeout``: no new
+        bytes object per read, and a large frame is read straight into the buffer handed on."""
 
     def send_nowait(self, data: bytes) -> int:
-        """Write what of ``data`` goes without waiting (0 when nothing does): the core writes a
-        frame from the caller's thread when nothing else is being written, and leaves the rest,
-        if any, to the link's writer thread. ``OSError`` as for ``send``."""
+        """Write what of ``data`` goes without waiting: how many bytes (0 when none). The core
+        writes from the caller's thread when nothing else is being written, and leaves the rest
+        to the link's writer. ``OSError`` as for ``send``."""
 
 
 class StreamListener(Protocol):
@@ -151,13 +122,9 @@ class StreamListener(Protocol):
 
 
 class Transport(ABC):
-    """What the three kinds have in common: a name, options and addresses. Subclass
-    :class:`DatagramTransport`, :class:`StreamTransport` or :class:`rosgate.bus.BusTransport`;
-    a class that subclasses this one alone is refused when it registers.
-
-    The core makes one instance per bridge, from the plugin's declared ``Options`` (see
-    :mod:`rosgate.options`), and shares it between every link of that transport.
-    """
+    """What the three kinds share: a name, options and addresses. A class that subclasses this
+    one alone is refused when it registers. The core makes one instance per bridge, from the
+    plugin's declared ``Options`` (:mod:`rosgate.options`), shared by all its links."""
 
     #: the name users write in bringup.yaml (``transport: udp``)
     name: ClassVar[str]
@@ -258,10 +225,8 @@ class SocketConnection:
         return self.sock.recv_into(buffer)  # 0 at the end, or OSError once closed
 
     def close(self) -> None:
-        try:
+        with suppress(OSError):
             self.sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
         self.sock.close()
 
 

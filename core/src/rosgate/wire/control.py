@@ -1,11 +1,5 @@
 """Control messages: the JSON bodies of the main line's frames (``hello``, ``welcome``, ``ping``,
-``bye`` ...), read within bounds, because they come from peers not yet trusted.
-
-:func:`parse` takes at most :data:`MAX_SIZE` bytes of UTF-8 JSON, nested at most
-:data:`MAX_DEPTH` deep (a ROS entry in a hello needs 4), without ``NaN`` or ``Infinity``, whose
-top level is an object; anything else is :class:`ControlError`, never another exception. The
-depth is checked before the parser runs, so ``[[[[...`` costs one pass over the bytes and never
-recursion.
+``bye`` ...), read within bounds (:func:`parse`), because they come from peers not yet trusted.
 """
 
 from __future__ import annotations
@@ -46,7 +40,9 @@ def too_deep(data: bytes, limit: int = MAX_DEPTH) -> bool:
 
 
 def parse(data: bytes) -> dict[str, Any]:
-    """The control message in ``data``; :class:`ControlError` saying why it is none."""
+    """The JSON object in ``data``: at most :data:`MAX_SIZE` bytes of UTF-8, nested at most
+    :data:`MAX_DEPTH` deep (a ROS entry in a hello needs 4), no ``NaN`` or ``Infinity``; else
+    :class:`ControlError` saying why, never another exception."""
     if len(data) > MAX_SIZE:
         raise ControlError(f"{len(data)} bytes, more than {MAX_SIZE}")
     if too_deep(data):

@@ -93,23 +93,17 @@ def unpack(frame: bytes | bytearray | memoryview) -> Header:
 class ReplayWindow:
     """Accepts each (epoch, seq) once: duplicates and frames older than the window are refused.
 
-    Each sender epoch (a new one at every sender start) has a 64-frame sliding window, as in
-    IPsec, so reordered datagrams get through once. Windows of the last ``EPOCHS`` epochs are
-    kept, so switching back and forth between epochs cannot replay frames; no epoch is refused
-    outright, so a forged frame on an unauthenticated link cannot lock the real sender out.
-    Replaying frames of an epoch forgotten long ago is for an authenticated handshake to stop.
+    Each sender epoch has a 64-frame sliding window, as in IPsec, so reordered datagrams get
+    through once. The last ``EPOCHS`` epochs are kept, so switching between epochs cannot replay
+    frames; no epoch is refused outright, so a forged frame cannot lock the real sender out.
 
-    On an unauthenticated route (``authenticated=False``: no cipher vouches for the header)
-    one forged frame must not move the sequence either: a frame more than ``WIDTH`` ahead of
-    (or ``JUMP`` behind) every window the epoch has does not move them, it opens a window of its
-    own, one of ``TRACKS`` per epoch (the least recently used is forgotten). The real sender's
-    next frames still land in its own window; a sender that really jumped (many frames lost)
-    carries on in the new one; windows that come within ``WIDTH`` of each other merge. What is
-    refused stays as before: a duplicate within a window, and a frame up to ``JUMP`` behind one
-    (``stale``).
+    Unauthenticated (no cipher vouches for the header), one forged frame must not move the
+    sequence either: a frame more than ``WIDTH`` ahead of (or ``JUMP`` behind) every window of
+    its epoch opens a window of its own, one of ``TRACKS`` (least recently used forgotten). The
+    real sender carries on in its window, a sender that really jumped in the new one; windows
+    that come within ``WIDTH`` of each other merge.
 
-    :attr:`lost` counts the sequence numbers skipped and never filled in (losses on the way):
-    a jump within a window adds the gap, a late frame that fills one takes one back.
+    :attr:`lost` counts sequence numbers skipped and never filled in (losses on the way).
     """
 
     WIDTH = 64
@@ -123,15 +117,9 @@ class ReplayWindow:
     def __init__(self, authenticated: bool = True) -> None:
         self.authenticated = authenticated
         self.lost = 0
-        # epoch -> its windows [top, seen], least recently used first; bit i of seen set: seq
-        # (top - i) was accepted. Insertion order is age order, so the first epoch is the one to
-        # forget.
+        # epoch -> its windows [top, seen], least recently used first; bit i of seen: seq
+        # (top - i) was accepted. The first epoch (insertion order) is the one to forget.
         self._windows: dict[int, list[list[int]]] = {}
-
-    def top(self, epoch: int) -> int | None:
-        """The highest sequence number accepted in ``epoch``'s most recently used window."""
-        tracks = self._windows.get(epoch)
-        return tracks[-1][0] if tracks else None
 
     def accept(self, epoch: int, seq: int) -> Drop | None:
         """None when the frame is new, else why it is refused ("duplicate" or "stale")."""
@@ -162,12 +150,20 @@ class ReplayWindow:
         return None
 
     def _in(self, tracks: list[list[int]], track: list[int], seq: int) -> Drop | None:
-        """``seq`` in ``track``, which becomes the most recently used, merged with any window
-        it has come close to."""
+        """``seq`` in ``track``, which becomes the most recently used and takes in every window
+        that has come within ``WIDTH`` of it."""
         refused = self._slide(track, seq)
         tracks.remove(track)
         tracks.append(track)
-        self._merge(tracks)
+        for other in tracks[:-1]:
+            distance = track[0] - other[0]
+            if abs(distance) >= self.WIDTH:
+                continue
+            if distance >= 0:
+                track[1] = (track[1] | other[1] << distance) & self._MASK
+            else:
+                track[0], track[1] = other[0], (other[1] | track[1] << -distance) & self._MASK
+            tracks.remove(other)
         return refused
 
     def _slide(self, window: list[int], seq: int) -> Drop | None:
@@ -187,16 +183,3 @@ class ReplayWindow:
         window[1] = seen | 1 << offset
         self.lost -= 1
         return None
-
-    def _merge(self, tracks: list[list[int]]) -> None:
-        """Fold windows that have come within ``WIDTH`` of the most recent one into it."""
-        current = tracks[-1]
-        for other in tracks[:-1]:
-            distance = current[0] - other[0]
-            if abs(distance) >= self.WIDTH:
-                continue
-            if distance >= 0:
-                current[1] = (current[1] | other[1] << distance) & self._MASK
-            else:
-                current[0], current[1] = other[0], (other[1] | current[1] << -distance) & self._MASK
-            tracks.remove(other)

@@ -1,29 +1,23 @@
-"""Putting frames on links: length prefixes on streams, fragments on datagram links.
+"""Putting frames on links: length prefixes on streams, batches and fragments on datagram links.
 
-Stream links (TCP, RFCOMM) carry ``u32 length | frame`` records. A length above the limit
-means the stream is not ours or is corrupt: the reader refuses it and the connection is closed
-(never a delimiter searched for in the payload).
-
-A frame longer than :data:`CHUNK` goes as **chunks** instead, so that another topic's frame
-can go between them and waits at most one chunk (the link's scheduler interleaves the chunks of
-different topics' frames; one topic's frames go one after the other)::
+Stream links (TCP, RFCOMM) carry ``u32 length | frame`` records. A length above the limit means
+the stream is not ours or is corrupt: the reader refuses it and the connection is closed (never a
+delimiter searched for in the payload). A frame longer than :data:`CHUNK` goes as **chunks**, so
+that another topic's frame can go between them and waits at most one chunk::
 
     u32 CHUNKED | LAST? | n    the top bit says "a chunk"; the next one "the frame's last"
     u32 message              which frame it continues: a number the sender gives each frame
     n - 4 bytes              the next part of that frame
 
-A reader gathers each message's chunks and hands over the frame with its last chunk; it holds
-at most :data:`MAX_OPEN_MESSAGES` unfinished frames and, all together, at most twice the largest
-frame it takes. A length of a whole frame is below 2^31, so the two kinds never mix up; a reader
-that predates chunks refuses a chunk as a length over its limit, and reconnects.
+A reader holds at most :data:`MAX_OPEN_MESSAGES` unfinished frames and, all together, at most
+twice the largest frame it takes. A whole frame's length is below 2^31, so the two never mix up;
+a reader that predates chunks refuses a chunk as a length over its limit, and reconnects.
 
-Datagram links carry three kinds of datagram, told apart by their first two bytes (and the
-packets of whatever other packetizer a topic picks, each with magics of its own: see
-:mod:`rosgate.packetizer`):
+Datagram links carry frames whole (an envelope: ``"RG"``), and two kinds of datagram of their
+own, told apart by their first two bytes (other packetizers' magics: :mod:`rosgate.packetizer`):
 
-* a frame, whole (an envelope: ``"RG"``), when it fits ``max_frame`` and leaves alone;
-* a **batch** of frames that left together for one destination, as many as fit
-  ``max_frame``::
+* a **batch** of frames that left together for one destination, as many as fit ``max_frame``
+  (a frame alone never travels as a batch; a bare link, ``framing: none``, never batches)::
 
       offset size field
       0      2    magic     b"RB"
@@ -31,10 +25,9 @@ packets of whatever other packetizer a topic picks, each with magics of its own:
       6           frame
                   length, frame, ... to the end of the datagram (the records of a stream link)
 
-  A receiver splits it; a length that runs past the end is counted (``bad_batch``) and ends
-  the batch, the frames before it delivered. A frame alone never travels as a batch, so a
-  receiver that predates batches reads a quiet link's datagrams (not a busy one's);
-* a **fragment** of a frame longer than ``max_frame``::
+  A length that runs past the end is counted (``bad_batch``) and ends the batch;
+* a **fragment** of a frame longer than ``max_frame``, cut and put back together by the built-in
+  ``fragments`` packetizer (:mod:`rosgate.builtin`)::
 
       offset size field
       0      2    magic     b"RF"
@@ -44,18 +37,8 @@ packets of whatever other packetizer a topic picks, each with magics of its own:
       10     4    frame_id  random per frame (see rosgate.builtin.Reassembler)
       14          chunk
 
-  The built-in ``fragments`` packetizer (:mod:`rosgate.builtin`) cuts and reassembles them; a
-  frame whose fragments do not all arrive within a timeout is dropped and counted once.
-
-On a bare link (``framing: none``) every datagram is one message, never batched.
-
-Links with small frames (CAN) cannot spend 14 bytes of every frame on that header: they cut
-every frame with another packetizer (see :data:`rosgate.packetizer.SMALL_FRAME`).
-
-Everything here is a pure format. Reading and writing stream records is
-:mod:`rosgate.streamlink`'s, batches are :mod:`rosgate.links`'s, and cutting frames into
-fragments and putting them back together is the built-in ``fragments`` packetizer's
-(:mod:`rosgate.builtin`).
+Only formats here: stream records are read and written by :mod:`rosgate.streamlink`, batches by
+:mod:`rosgate.links`.
 """
 
 from __future__ import annotations

@@ -1,14 +1,9 @@
-"""A name in front of a bare datagram: the microcontroller (CVRA) profile's ``framing: none`` and
-its service requests carry the topic's (or service's) name, then its arguments, in one of two
-layouts, told apart on receipt by their first byte:
-
-* ``array`` (what CVRA's firmware and its ``cvra_rpc`` package write): one MessagePack array of
-  two elements, ``[name, args]`` — the byte ``0x92``, the name as a str, then the arguments;
-* ``pair`` (what the CVRA bridge's README describes): the name as a str, then the arguments.
-
-So the array layout is the pair layout behind one header byte. Only array headers of two
-elements and the str forms of MessagePack (fixstr, str 8, str 16, str 32) are written and read
-here, so the core needs no MessagePack library for them; the arguments are the codec's business.
+"""A name in front of a bare datagram: the microcontroller (CVRA) profile's ``framing: none``
+and its service requests carry the topic's (or service's) name, then its arguments, laid out
+``array`` (``[name, args]``: one MessagePack array of two, as CVRA's firmware and ``cvra_rpc``
+write) or ``pair`` (the name, then the arguments, as the CVRA README says), told apart on receipt
+by the first byte. Only two-element array headers and MessagePack's str forms are read and
+written here, so the core needs no MessagePack library; the arguments are the codec's business.
 """
 
 from __future__ import annotations
@@ -26,11 +21,10 @@ class Layout(StrEnum):
     PAIR = "pair"
 
 
-LAYOUTS = tuple(Layout)
 LAYOUT_DEFAULT = Layout.ARRAY
 
-_STR8, _STR16, _STR32 = 0xD9, 0xDA, 0xDB
-_LENGTH = {_STR8: struct.Struct(">B"), _STR16: struct.Struct(">H"), _STR32: struct.Struct(">I")}
+# str 8, str 16, str 32: the byte that says which, then the length
+_LENGTH = {0xD9: struct.Struct(">B"), 0xDA: struct.Struct(">H"), 0xDB: struct.Struct(">I")}
 # an array of exactly two elements: fixarray, and the array 16 / array 32 forms some packers use
 _PAIR_ARRAYS = (b"\x92", b"\xdc\x00\x02", b"\xdd\x00\x00\x00\x02")
 
@@ -47,8 +41,7 @@ def pack_name(name: str, layout: Layout = Layout.PAIR) -> bytes:
     head = b"\x92" if layout is Layout.ARRAY else b""
     if size < 32:
         return head + bytes((0xA0 | size,)) + data
-    for code in (_STR8, _STR16, _STR32):
-        length = _LENGTH[code]
+    for code, length in _LENGTH.items():
         if size < 1 << (8 * length.size):
             return head + bytes((code,)) + length.pack(size) + data
     raise ValueError(f"a name of {size} bytes is too long")
@@ -59,27 +52,18 @@ def split_name(datagram: bytes | memoryview) -> tuple[str, bytes]:
     :class:`NameMissing` when it has neither."""
     if not datagram:
         raise NameMissing("empty datagram")
-    start = 0
+    at = 0
     head = datagram[0]
     if head & 0xF0 == 0x90 or head in (0xDC, 0xDD):
-        start = next((len(a) for a in _PAIR_ARRAYS if bytes(datagram[:len(a)]) == a), 0)
-        if not start:
+        at = next((len(a) for a in _PAIR_ARRAYS if bytes(datagram[:len(a)]) == a), 0)
+        if not at:
+            elements = (f"{head & 0x0F} elements" if head & 0xF0 == 0x90
+                        else "array 16 or 32 of another length, or truncated")
             raise NameMissing(f"neither layout: an array that is not [name, args] (first byte "
-                              f"0x{head:02x}: {_elements(datagram)})")
-    return _read_str(datagram, start)
-
-
-def _elements(datagram: bytes | memoryview) -> str:
-    head = datagram[0]
-    if head & 0xF0 == 0x90:
-        return f"{head & 0x0F} elements"
-    return "array 16 or 32 of another length, or truncated"
-
-
-def _read_str(datagram: bytes | memoryview, at: int) -> tuple[str, bytes]:
-    if at >= len(datagram):
-        raise NameMissing("an array [name, args] that ends before its name")
-    head = datagram[at]
+                              f"0x{head:02x}: {elements})")
+        if at >= len(datagram):
+            raise NameMissing("an array [name, args] that ends before its name")
+        head = datagram[at]
     if head & 0xE0 == 0xA0:
         start, size = at + 1, head & 0x1F
     elif head in _LENGTH:
