@@ -64,8 +64,7 @@ class ClientRole(Role):
 
     def start(self) -> None:
         self.connector.start()
-        self._pinger = threading.Thread(target=self._ping_loop, name="client-ping", daemon=True)
-        self._pinger.start()
+        threading.Thread(target=self._ping_loop, name="client-ping", daemon=True).start()
 
     def stop(self) -> None:
         link = self.main.current

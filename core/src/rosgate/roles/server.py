@@ -170,10 +170,10 @@ class ServerRole(Role):
         return Drop.BAD_HANDSHAKE, f"refused a connection from {host}: {exc}"
 
     def _main_line(self, connection: StreamConnection, peer: Address) -> None:
-        holder: dict[str, Session] = {}
+        session: Session | None = None
 
         def on_frame(frame: bytes, link: Link, source: Address) -> None:
-            session = holder.get("session")
+            nonlocal session
             if is_control(frame):
                 message = self.read_control(frame, link, source)
                 if message is None:
@@ -181,11 +181,8 @@ class ServerRole(Role):
                 assert isinstance(link, StreamLink)
                 kind = message["type"]
                 if kind == "hello" and session is None:
-                    # the policy as it is now, not as it was when the handshake completed
-                    session = self._welcome(message, link, peer,
-                                            lambda: self._policy_of(connection))
+                    session = self._welcome(message, link, peer)
                     if session is not None:
-                        holder["session"] = session
                         link.trust()
                 elif kind == "ready" and session is not None and session.schedule is not None:
                     session.schedule.seal_with(message.get("key_id"))
@@ -200,7 +197,6 @@ class ServerRole(Role):
 
         def on_close(link: StreamLink) -> None:
             self.life.forget(link)
-            session = holder.get("session")
             if session is not None and session.main.current is link and session.id in self.sessions:
                 session.down_since = time.monotonic()
                 for route in session.routes:  # calls waiting for the client get no answer now
@@ -226,11 +222,11 @@ class ServerRole(Role):
         return policy
 
     # -- sessions ----------------------------------------------------------------------------
-    def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address,
-                 policy_now: Callable[[], ClientPolicy | None]) -> Session | None:
+    def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address) -> Session | None:
         name = str(hello.get("name", "?"))[:100]
         try:
-            policy = policy_now()
+            # the policy as it is now, not as it was when the handshake completed
+            policy = self._policy_of(link.connection)
             if policy is not None and name != policy.name:
                 raise ConfigError(f"the key of client {policy.name!r} says hello as {name!r}",
                                   file=f"client {policy.name}",
@@ -333,7 +329,7 @@ class ServerRole(Role):
         none for the others: a newly refused entry's route is torn down."""
         keyless = {name for (kind, name), r in self.bridge.resolver.plugins.registered.items()
                    if kind == "cipher" and not getattr(r.cls, "session_key_size", 0)}
-        where = f"client {session.name}"
+        resolver, error = self.bridge.resolver, where_error(f"client {session.name}")
         topics = len(session.topics)
         for index, entry in enumerate(session.entries):
             asked = session.part_of.get(index, entry)  # an action's part: the action
@@ -347,12 +343,10 @@ class ServerRole(Role):
             session.refused.pop(index, None)
             if index in session.by_index:
                 continue
-            resolver, server_view = self.bridge.resolver, flipped(entry)
             if isinstance(entry, TopicConfig):
-                p: TopicSpec | ServiceSpec = resolver.topic(
-                    server_view, index, "topics", where_error(where))
+                p: TopicSpec | ServiceSpec = resolver.topic(flipped(entry), index, "topics", error)
             else:
-                p = resolver.service(server_view, index - topics, "services", where_error(where))
+                p = resolver.service(flipped(entry), index - topics, "services", error)
             session.by_index[index] = self._route(session, p)
 
     def _route(self, session: Session, p: TopicSpec | ServiceSpec) -> Route:
@@ -417,9 +411,8 @@ class ServerRole(Role):
             if (not isinstance(connection, SecureConnection) or session.policy is None
                     or connection.peer_key != session.policy.key):
                 return False
-        if not open_hello(session.schedule, header, frame):
-            return False
-        return session.hellos.accept(header.epoch, header.seq) is None
+        return (open_hello(session.schedule, header, frame)
+                and session.hellos.accept(header.epoch, header.seq) is None)
 
     def on_hello(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
         """A datagram hello: the client's address on this link, learnt only from a genuine one."""
