@@ -349,14 +349,17 @@ class ServerRole(Role):
                 p = resolver.service(flipped(entry), index - topics, "services", error)
             session.by_index[index] = self._route(session, p)
 
-    def _route(self, session: Session, p: TopicSpec | ServiceSpec) -> Route:
-        t, port = p.config, p.config.port
-        # the id is derived from the client's name and the entry, so a returning client gets the
-        # ids it had even from a restarted server; the next free one on a collision
+    def _topic_id(self, session: Session, p: TopicSpec | ServiceSpec) -> int:
+        """Derived from the client's name and the entry, so a returning client gets the ids it
+        had even from a restarted server; the next free one on a collision."""
         used = {r.topic_id for r in self.router.snapshot()} | {r.topic_id for r in session.routes}
-        topic_id = topic_id_for(f"{session.name}\0{t.direction}\0{p.name}")
+        topic_id = topic_id_for(f"{session.name}\0{p.config.direction}\0{p.name}")
         while topic_id in used or topic_id == envelope.CONTROL_TOPIC:
             topic_id = (topic_id + 1) & 0xFFFFFFFF
+        return topic_id
+
+    def _route(self, session: Session, p: TopicSpec | ServiceSpec) -> Route:
+        t, port = p.config, p.config.port
         way = "to" if t.direction is Direction.TRANSMIT else "from"
         link: Link
         if not isinstance(p.transport, StreamTransport):
@@ -373,8 +376,8 @@ class ServerRole(Role):
         destination = partial(session.addresses.get, link)
         keys = None if session.schedule is None else session_keys(  # None: the file's cipher
             session.schedule, p, p.name, "s2c", "c2s")
-        return self.router.route(p, topic_id, f"{p.name} ({way} {session.name})", link,
-                                 destination, keys)
+        return self.router.route(p, self._topic_id(session, p), f"{p.name} ({way} {session.name})",
+                                 link, destination, keys)
 
     def _dedicated_frame(self, port: int) -> Any:
         """What frames on a dedicated stream port go to: the first says whose it is."""
