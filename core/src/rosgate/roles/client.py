@@ -1,5 +1,6 @@
 """The client role: connects its main line to the server (the client starts every connection,
-so it can sit behind NAT), sends its entries, builds routes from the answer. Routes are built at
+so it can sit behind NAT), sends its entries, builds routes from the answer. Stream entries
+without a port ride the main line; datagram ones use the server's main port. Routes are built at
 the first welcome and outlive the main line: datagram topics keep flowing, reliable frames wait
 in their :class:`LinkSlot`. A server that restarted may answer with other ids: the routes are
 re-keyed, and frames that waited under the old ids are dropped (``session_reset``), never sent

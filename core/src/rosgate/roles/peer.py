@@ -159,7 +159,8 @@ class PeerRole(Role):
     def _microcontroller_service(self, p: ServiceSpec,
                                  servers: dict[Address, CallPort]) -> None:
         """``framing: serial_datagram`` (or another plugin's call pattern): a connection per call;
-        a serving port is shared by its services, told apart by name (no id)."""
+        a serving port is shared by its services, told apart by name (no id), and takes calls
+        from anyone unless ``bridge.allow`` is given."""
         s = p.config
         if s.direction is Direction.TRANSMIT:
             self.router.service(p, 0, s.service, None)  # connects to the peer per call
