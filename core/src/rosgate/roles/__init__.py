@@ -307,21 +307,17 @@ class Answer:
 
     def __init__(self) -> None:
         self.message: dict[str, Any] | None = None
-        self._got = threading.Event()
-
-    def clear(self) -> None:
-        self.message = None
-        self._got.clear()
+        self.got = threading.Event()  # cleared before each hello: a message is then new
 
     def put(self, message: dict[str, Any]) -> None:
         self.message = message
-        self._got.set()
+        self.got.set()
 
     def wait(self, link: StreamLink, stopping: threading.Event,
              timeout: float) -> dict[str, Any] | None:
         """The answer; None when the line closed, the bridge stops or ``timeout`` passed."""
         deadline = time.monotonic() + timeout
-        while not self._got.wait(0.1):
+        while not self.got.wait(0.1):
             if link.closed.is_set() or stopping.is_set() or time.monotonic() > deadline:
                 return None
         return self.message

@@ -221,7 +221,7 @@ class PeerHandshake:
     # -- the initiator -------------------------------------------------------------------------
     def _initiated(self, link: StreamLink) -> bool:
         """Wait for the responder's keys inside the new channel; install them."""
-        self.answer.clear()
+        self.answer.got.clear()
         answer = self.answer.wait(link, self.role.life.stopping, 5.0)
         if answer is None:
             if not link.closed.is_set() and not self.role.life.stopping.is_set():
