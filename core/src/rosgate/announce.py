@@ -20,7 +20,7 @@ from typing import Any
 from .config import QOS_POLICIES
 from .drops import Drop, Reason
 from .warn import Warner
-from .wire.control import ControlError, parse
+from .wire.control import parse
 
 log = logging.getLogger("rosgate")
 
@@ -79,10 +79,7 @@ def read(item: Any) -> tuple[Identity | None, dict[str, Any] | None]:
 
 def parse_body(body: bytes) -> tuple[Identity | None, dict[str, Any] | None]:
     """An announcement frame's (opened) body; ValueError when it is not one."""
-    try:
-        return read(parse(body))
-    except ControlError as exc:
-        raise ValueError(str(exc)) from None
+    return read(parse(body))  # a ControlError is a ValueError
 
 
 def qos_of(value: Any) -> dict[str, Any] | None:
