@@ -362,8 +362,10 @@ class ServerRole(Role):
         t, port = p.config, p.config.port
         way = "to" if t.direction is Direction.TRANSMIT else "from"
         link: Link
+        destination = self._no_address  # a stream link has one far side
         if not isinstance(p.transport, StreamTransport):
             link = self.datagram_link(p.transport, p.address, owner=session, sources=self.clients)
+            destination = partial(session.addresses.get, link)  # where the client said hello
         elif port is None:
             link = session.main
         else:
@@ -372,12 +374,14 @@ class ServerRole(Role):
             if port not in session.streams:
                 session.streams[port] = self.bridge.slot(f"port {port} of {session.name}")
             link = session.streams[port]
-        # where the client last said hello from on a datagram link (none on a stream)
-        destination = partial(session.addresses.get, link)
         keys = None if session.schedule is None else session_keys(  # None: the file's cipher
             session.schedule, p, p.name, "s2c", "c2s")
         return self.router.route(p, self._topic_id(session, p), f"{p.name} ({way} {session.name})",
                                  link, destination, keys)
+
+    @staticmethod
+    def _no_address() -> Address | None:
+        return None
 
     def _dedicated_frame(self, port: int) -> Any:
         """What frames on a dedicated stream port go to: the first says whose it is."""
