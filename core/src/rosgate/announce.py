@@ -1,26 +1,10 @@
-"""What the sending side of an entry says about it, so the two sides agree before a frame is
-published: the entry's type, with the RIHS01 hash ROS gives it, and the QoS it found from the
-publishers it discovered (when the entry sets none).
-
-Client and server say it in the hello and the welcome (one item per entry, in the order of
-their lists); on every role the sending side of each ``framing: rosgate`` entry also announces
-it on the entry's link, at once and every :data:`ANNOUNCE_EVERY` seconds after, in a frame of
-its own (envelope flag ``FLAG_ANNOUNCE``, the entry's id, the body sealed by the entry's cipher
-like its data): a JSON object ``{"type": "pkg/msg/Type", "hash": "RIHS01_...", "qos":
-{"reliability": ..., "durability": ..., "depth": ...}}``, ``hash`` and ``qos`` optional.
-
-A receiving side whose type differs (both hashes known and unequal) refuses the entry: its
-frames are dropped as ``type_mismatch`` and nothing is published (a service's calls are answered
-as failures); the refusal is said once per :data:`MISMATCH_EVERY` seconds, in one sentence
-naming both types and both hashes. A far side that says no hash (an older rosgate) is accepted
-and said once. A receiving entry that waits for its far side's first word (a peer started after
-its sender, whose first announcement went nowhere: :meth:`TypeCheck.expect`) holds what comes
-until it hears the next announcement, then publishes it all, or drops it all as
-``type_mismatch``; it holds at most :data:`HOLD_FRAMES` frames and :data:`HOLD_BYTES` bytes (the
-oldest beyond go, counted ``type_unheard``). A far side silent for :data:`HOLD_FOR` seconds
-after the first held frame is taken for an older rosgate, which never announces and must keep
-working: what was held is published, said once.
-"""
+"""What the sending side of an entry says about it before a frame is published: its type with
+ROS's RIHS01 hash, and the QoS it found (when the entry sets none). Said in the hello and the
+welcome, and announced on the entry's link at once and every :data:`ANNOUNCE_EVERY` seconds as
+``{"type": ..., "hash": ..., "qos": {...}}`` under ``FLAG_ANNOUNCE``, sealed like its data.
+A receiving side whose type differs refuses the entry (``type_mismatch``); one waiting for the
+far side's first word holds what comes (:meth:`TypeCheck.expect`). docs/configuration.md says
+the rest."""
 
 from __future__ import annotations
 
@@ -36,7 +20,7 @@ from typing import Any
 from .config import QOS_POLICIES
 from .drops import Drop, Reason
 from .warn import Warner
-from .wire.control import ControlError, parse
+from .wire.control import parse
 
 log = logging.getLogger("rosgate")
 
@@ -67,7 +51,7 @@ class Identity:
 
 
 def item(identity: Identity, qos: dict[str, Any] | None) -> dict[str, Any]:
-    """One entry's item of a hello or a welcome: what its announcement's body says."""
+    """One entry's item of a hello or a welcome, and its announcement's body."""
     body: dict[str, Any] = {"type": identity.name}
     if identity.hash is not None:
         body["hash"] = identity.hash
@@ -81,8 +65,8 @@ def encode(identity: Identity, qos: dict[str, Any] | None) -> bytes:
 
 
 def read(item: Any) -> tuple[Identity | None, dict[str, Any] | None]:
-    """The type and the QoS in an announcement's mapping or a hello's item; (None, None) for
-    an item that says nothing (an older peer). ValueError for one that is not readable."""
+    """An announcement's or a hello item's type and QoS; (None, None) from an older peer;
+    ValueError when unreadable."""
     if item is None:
         return None, None
     if not isinstance(item, dict):
@@ -95,14 +79,11 @@ def read(item: Any) -> tuple[Identity | None, dict[str, Any] | None]:
 
 def parse_body(body: bytes) -> tuple[Identity | None, dict[str, Any] | None]:
     """An announcement frame's (opened) body; ValueError when it is not one."""
-    try:
-        return read(parse(body))
-    except ControlError as exc:
-        raise ValueError(str(exc)) from None
+    return read(parse(body))  # a ControlError is a ValueError
 
 
 def qos_of(value: Any) -> dict[str, Any] | None:
-    """An announced QoS, checked (from the network): reliability, durability and a depth."""
+    """An announced QoS (from the network), checked."""
     if value is None:
         return None
     if not isinstance(value, dict):
@@ -134,12 +115,9 @@ class TypeCheck:
         self.label = label
         self.mine = mine
         self.theirs: Identity | None = None
-        #: the sentence that says why the entry is refused; None while the types agree
-        self.mismatch: str | None = None
-        #: when the far side last said its type (time.monotonic(); None: never)
-        self.heard_at: float | None = None
-        #: frames wait for the far side's first word (see :meth:`expect`)
-        self.awaiting = False
+        self.mismatch: str | None = None  # why the entry is refused; None while types agree
+        self.heard_at: float | None = None  # when the far side last said its type (monotonic)
+        self.awaiting = False  # frames wait for the far side's first word (:meth:`expect`)
         self._said: set[str] = set()
         self._held: deque[tuple[int, Verdict]] = deque()
         self._held_bytes = 0
@@ -148,14 +126,13 @@ class TypeCheck:
         self._lock = threading.RLock()
 
     def expect(self, drop: Callable[[Reason, str], None]) -> None:
-        """Hold this entry's frames until the far side says its type (a peer's receiving entry:
-        its sender announces on the link). ``drop(reason, detail)`` counts a frame let go."""
+        """Hold frames until the far side says its type; ``drop`` counts a frame let go."""
         self._drop = drop
         self.awaiting = True
 
     def hold(self, size: int, verdict: Verdict) -> bool:
-        """While the far side's first word is awaited: keep a frame of ``size`` bytes, whose
-        ``verdict`` is given when it comes, and say True; False: the frame goes on now."""
+        """True: the frame is held until the far side's first word gives its ``verdict``;
+        False: it goes on now."""
         with self._lock:
             if not self.awaiting:
                 return False
@@ -173,8 +150,8 @@ class TypeCheck:
             return True
 
     def expire(self, now: float) -> None:
-        """A far side silent for :data:`HOLD_FOR` seconds since the first frame held is an
-        older rosgate, which never announces: what was held goes on, unchecked."""
+        """A far side silent :data:`HOLD_FOR` seconds after the first held frame is an older
+        rosgate, which never announces: what was held goes on, unchecked."""
         with self._lock:
             if self.awaiting and self._held and now - self._since > HOLD_FOR:
                 self._once("silent", f"{self.label}: the far side said nothing of its type in "
@@ -205,7 +182,7 @@ class TypeCheck:
         self.say()
 
     def _settle(self) -> None:
-        """No more waiting: what was held is published, or refused, in the order it came."""
+        """What was held is published, or refused, in the order it came."""
         self.awaiting = False
         held, self._held, self._held_bytes = self._held, deque(), 0
         agreed = self.mismatch is None
@@ -216,8 +193,7 @@ class TypeCheck:
         """Say the mismatch, at most once per :data:`MISMATCH_EVERY` seconds."""
         held = MISMATCHES.due(self.label, "type_mismatch")
         if held is not None and self.mismatch is not None:
-            more = f" ({held} more since)" if held else ""
-            log.error("%s%s", self.mismatch, more)
+            log.error("%s%s", self.mismatch, f" ({held} more since)" if held else "")
 
     def _once(self, key: str, sentence: str) -> None:
         if key not in self._said:

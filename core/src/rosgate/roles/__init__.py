@@ -1,13 +1,6 @@
-"""Roles: which links a bridge opens and which routes go over them.
-
-* :class:`~rosgate.roles.peer.PeerRole` — both files complete, no main line (static links and
-  microcontrollers, whose CVRA wiring lives there too).
-* :class:`~rosgate.roles.client.ClientRole` — connects a main line to a server and sends its
-  topics in a handshake (:mod:`.mainline`).
-* :class:`~rosgate.roles.server.ServerRole` — accepts many clients, a session each.
-
-A role works with a :class:`Bridge`: the plan, the router, the bridge's lifetime — never with
-the engine. :class:`Role` holds what the three share.
+"""Roles: which links a bridge opens and which routes go over them — peer (both files
+complete), client (a main line to a server, :mod:`.mainline`) and server (a session per client).
+A role works with a :class:`Bridge`, never with the engine; :class:`Role` holds what they share.
 """
 
 from __future__ import annotations
@@ -15,7 +8,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -24,7 +16,7 @@ from ..admission import Acceptor, ConnectionLimits, Sources
 from ..config import BridgeConfig, LinkConfig
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
-from ..links import DatagramLink, Lifetime, Link, LinkCounters
+from ..links import DatagramLink, FrameHandler, Lifetime, Link, LinkCounters
 from ..resolver import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort, Route
@@ -39,18 +31,18 @@ from ..secure import (
 from ..spec import CONTROL, ServiceSpec, TopicSpec
 from ..streamlink import Backoff, LinkSlot, QueueLimits, StreamLink, Untrusted
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
+from ..warn import Warner
 from ..wire import envelope
 from .mainline import control, key_label, parse_control
 
 log = logging.getLogger("rosgate")
 
-FrameHandler = Callable[[bytes, Link, Address], None]
 #: (connection, peer, then): authenticate an accepted connection, then hand it to ``then``
 Handshake = Callable[[StreamConnection, Address, Callable[[StreamConnection], None]], None]
 
 
-#: how long binding a datagram port waits for a session that ended to close it
-UNBIND_WAIT = 5.0
+UNBIND_WAIT = 5.0  # seconds binding a datagram port waits for a session that ended to close it
+REFUSAL_EVERY = 60.0  # seconds between two log lines about one refusal
 
 
 @dataclass
@@ -64,8 +56,7 @@ class Bridge:
     life: Lifetime
 
     def slot(self, name: str) -> LinkSlot:
-        """A place for a stream link that reconnects; reliable frames wait in it while it is
-        down."""
+        """A place for a stream link that reconnects; reliable frames wait in it while down."""
         return LinkSlot(name, QueueLimits(self.config.queue_frames, self.config.queue_bytes))
 
     @property
@@ -73,19 +64,15 @@ class Bridge:
         return Backoff(self.config.reconnect_min, self.config.reconnect_max)
 
     def budget(self, transport: Transport) -> LinkConfig | None:
-        """What this side may put on each link of ``transport`` (bridge.links)."""
         return self.config.links.get(transport.name)
 
     def link_error(self, exc: LinkError, key: str) -> ConfigError:
-        """A link that cannot be opened, located at the key that named it."""
         return self.config.error(key, str(exc), exc.fix or "free the port, or pick another one")
 
 
 class Role:
-    """What the three roles share: datagram links by local address, listening ports within the
-    bridge's connection limits, the sources links take frames from, and the lines that carry
-    control messages (a main line, a peers' handshake line): reading them, heartbeats, the
-    initiator's handshake."""
+    """What the roles share: datagram links and listening ports (within the connection limits),
+    the sources links take frames from, and the lines of control messages."""
 
     def __init__(self, bridge: Bridge):
         self.bridge = bridge
@@ -102,7 +89,7 @@ class Role:
         self.limits = ConnectionLimits(limits.connections, limits.connections_per_source)
         #: what a connection a client opened may do before it is trusted
         self.untrusted = Untrusted(limits.max_frame_before_auth, limits.handshake_timeout)
-        self.refusals = Refusals()
+        self.refusals = Refusals(REFUSAL_EVERY)
         self._lock = threading.RLock()
         #: datagram ports a session that ended is closing now: bound again only once closed
         self._unbinding: set[tuple[str, Address]] = set()
@@ -115,20 +102,19 @@ class Role:
             self.router.remove(route)
 
     def entries(self) -> list[TopicSpec | ServiceSpec]:
-        """The file's entries: topics, services, then the parts of its actions."""
+        """Topics, services, then the parts of actions."""
         plan = self.bridge.plan
         return [*plan.topics, *plan.services, *plan.action_parts]
 
     def initiate(self, connection: StreamConnection) -> StreamConnection:
-        """Our side of the Noise handshake, to the holder of ``server_key`` (or ``peer_key``)."""
+        """The Noise handshake to the holder of ``server_key`` (or ``peer_key``)."""
         assert self.cfg.identity is not None and self.cfg.server_key is not None
         return initiate(connection, self.cfg.identity, self.cfg.server_key)
 
     def respond(self, connection: StreamConnection, host: str, known: Callable[[bytes], bool],
                 admit: Callable[[], bool] | None = None) -> SecureConnection | None:
-        """The responder's side of the Noise handshake (``known``: whether a key is taken);
-        None when it failed: the connection is closed, counted and said once per
-        :data:`REFUSAL_EVERY` (an attacker can make keys without end)."""
+        """The responder's Noise handshake (``known``: whether a key is taken); None when it
+        failed: closed, counted, said once per :data:`REFUSAL_EVERY` (keys cost nothing)."""
         assert self.cfg.identity is not None
         try:
             return respond(connection, self.cfg.identity, known, admit=admit)
@@ -142,12 +128,11 @@ class Role:
 
     def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
         """How a failed handshake is counted, and the sentence that says it (None: none)."""
-        raise NotImplementedError  # a role that responds to handshakes says
+        raise NotImplementedError
 
     def sources(self, transport: Transport, host: str | None) -> Sources | None:
-        """Who links of ``transport`` take frames from: the addresses of ``bridge.allow`` when
-        it is given (peer role), else ``host`` (the peer, the server) as its frames show it;
-        None (anyone) when the transport cannot tell who sent a frame."""
+        """Who links of ``transport`` take frames from: ``bridge.allow`` when given, else
+        ``host``; None (anyone) when the transport cannot tell who sent a frame."""
         if self.cfg.allow:
             return self.allow_list()
         hosts = transport.source_hosts(host or "")
@@ -158,7 +143,7 @@ class Role:
         return Sources((), map(str, self.cfg.allow)) if self.cfg.allow else None
 
     def read_control(self, frame: bytes, link: Link, source: Address) -> dict[str, Any] | None:
-        """A control message on a line (heard from now on); None, counted, when unreadable."""
+        """A control message on a line; None, counted, when unreadable."""
         message = parse_control(frame)
         if message is None:
             self.router.link_drop(link, Drop.BAD_CONTROL, f"from {source}")
@@ -168,15 +153,14 @@ class Role:
         return message
 
     def far_entries(self, routes: dict[int, Route], items: Any) -> None:
-        """The far side's word (a hello's, a welcome's) on each entry of ours: its type and the
-        QoS it found; none from an older rosgate."""
+        """The far side's word (a hello's, a welcome's) on each entry: its type and QoS."""
         for index, route in routes.items():
             self.router.far(route, items[index] if isinstance(items, list)
                             and index < len(items) else None)
 
     def heartbeat(self, link: StreamLink | None) -> None:
-        """Ping on a line; a far side silent for ``peer_timeout`` is taken for down and its
-        line failed (a stalled TCP connection never ends alone)."""
+        """Ping on a line, or fail it when silent for ``peer_timeout`` (a stalled TCP connection
+        never ends alone)."""
         if link is None or link.closed.is_set():
             return
         silence = time.monotonic() - link.last_heard
@@ -190,29 +174,27 @@ class Role:
             self._holders.setdefault((kind, transport.name, local), set()).add(id(owner))
 
     def release(self, owner: object) -> None:
-        """Close every datagram link and listener that no one but ``owner`` holds (a session
-        that ended): its port is free again, its threads gone."""
-        closing: list[tuple[DatagramLink | Acceptor, tuple[str, Address] | None]] = []
+        """Close every datagram link and listener that only ``owner`` held (a session that
+        ended): its port is free again, its threads gone."""
+        closing: list[tuple[DatagramLink | Acceptor, tuple[str, Address]]] = []
         with self._lock:
-            for (kind, name, local), owners in list(self._holders.items()):
+            for key, owners in list(self._holders.items()):
                 owners.discard(id(owner))
                 if owners:
                     continue
-                del self._holders[(kind, name, local)]
-                if kind == "datagram":
-                    link = self.datagram_links.pop((name, local), None)
-                    if link is not None:
-                        self.bare_ports.pop(link, None)
-                        self._unbinding.add((name, local))
-                        closing.append((link, (name, local)))
-                else:
-                    acceptor = self.listening.pop((name, local), None)
-                    if acceptor is not None:
-                        closing.append((acceptor, None))
+                del self._holders[key]
+                where = key[1:]
+                found = self.datagram_links if key[0] == "datagram" else self.listening
+                item = found.pop(where, None)
+                if isinstance(item, DatagramLink):
+                    self.bare_ports.pop(item, None)
+                    self._unbinding.add(where)
+                if item is not None:
+                    closing.append((item, where))
         for item, where in closing:
             item.close()
             self.life.forget(item)
-            if where is not None:
+            if isinstance(item, DatagramLink):
                 with self._unbound:
                     self._unbinding.discard(where)
                     self._unbound.notify_all()
@@ -220,10 +202,9 @@ class Role:
     def datagram_link(self, transport: Transport, local: Address, key: str = "bridge",
                       bare_named: bool | None = None, sources: Sources | None = None,
                       owner: object = None) -> DatagramLink:
-        """The link bound at ``local`` (shared by every entry on that port). ``bare_named`` is
-        not None for a port of ``framing: none`` topics: whether their datagrams carry names.
-        ``sources``: who it takes frames from (the first entry on the port decides). An
-        ``owner`` holds it until :meth:`release`; without one it lasts as long as the bridge."""
+        """The link bound at ``local``, shared by every entry on that port (the first decides
+        its ``sources``). ``bare_named``: a port of ``framing: none`` topics, whether their
+        datagrams carry names. An ``owner`` holds it until :meth:`release`, else the bridge."""
         assert isinstance(transport, DatagramTransport)
         with self._lock:
             # a session that just ended may still be closing this port (a client that came back
@@ -239,16 +220,14 @@ class Role:
             except LinkError as exc:
                 raise self.bridge.link_error(exc, key) from None
             name = f"{transport.name}:{local[1]}" if local[1] else f"{transport.name}"
-            budget = self.bridge.budget(transport)
-            if bare_named is None:
-                link = DatagramLink(transport, endpoint, name, self.router.on_frame,
-                                    self.router.on_lost, sources=sources, budget=budget,
-                                    on_recovered=self.router.on_recovered,
-                                    packetizers=self.bridge.resolver.plugins)
-            else:
-                port = self.router.bare_port(bare_named)
-                link = DatagramLink(transport, endpoint, name, port.on_frame,
-                                    self.router.on_lost, bare=True, sources=sources, budget=budget)
+            port = None if bare_named is None else self.router.bare_port(bare_named)
+            link = DatagramLink(
+                transport, endpoint, name, self.router.on_frame if port is None else port.on_frame,
+                self.router.on_lost, bare=port is not None, sources=sources,
+                budget=self.bridge.budget(transport),
+                on_recovered=self.router.on_recovered if port is None else None,
+                packetizers=self.bridge.resolver.plugins if port is None else None)
+            if port is not None:
                 self.bare_ports[link] = port
             self.datagram_links[(transport.name, local)] = self.life.closing(link)
             return link
@@ -256,9 +235,8 @@ class Role:
     def accept(self, transport: Transport, local: Address,
                on_connection: Callable[[StreamConnection, Address], None], key: str | None,
                sources: Sources | None = None, name: str | None = None) -> Acceptor:
-        """Accept stream connections at ``local`` within the bridge's connection limits, from
-        ``sources`` only when given. A LinkError is located at ``key``; without one (a server
-        listening for a client) it goes to the caller."""
+        """Accept stream connections at ``local`` within the connection limits, from ``sources``
+        when given. A LinkError is located at ``key``, or raised when there is none."""
         assert isinstance(transport, StreamTransport)
         try:
             listener = transport.listen(local)
@@ -275,10 +253,9 @@ class Role:
                key: str | None = None, handshake: Handshake | None = None,
                sources: Sources | None = None, untrusted: Untrusted | None = None,
                owner: object = None) -> Acceptor:
-        """A link that feeds ``on_frame`` for each connection accepted at ``local`` (one
-        acceptor per address), after ``handshake`` when given, held to ``untrusted`` until
-        ``on_frame`` trusts it, forgotten by the bridge when it ends. An ``owner`` holds the
-        acceptor until :meth:`release`."""
+        """A link feeding ``on_frame`` for each connection accepted at ``local`` (one acceptor
+        per address, held by ``owner`` until :meth:`release`), after ``handshake`` when given,
+        held to ``untrusted`` until ``on_frame`` trusts it."""
         life, budget = self.life, self.bridge.budget(transport)
 
         def accepted(connection: StreamConnection, peer: Address) -> None:
@@ -300,15 +277,14 @@ class Role:
             return found
 
 
+@dataclass(eq=False)  # hashed by identity, as every sender
 class Control:
-    """The control channel (topic 0) as the sender of the frames it puts on links: hellos,
-    pings, the handshake. A control frame that is dropped belongs to no topic."""
+    """The sender of control frames (topic 0: hellos, pings, the handshake); a dropped one
+    belongs to no topic."""
 
+    router: Router
     topic_id = envelope.CONTROL_TOPIC
     delivery = CONTROL  # the scheduler's class above every topic's: hellos and pings keep flowing
-
-    def __init__(self, router: Router):
-        self.router = router
 
     def drop(self, reason: Reason, detail: str = "") -> None:
         self.router.link_drop(None, reason, detail or "a control frame on a link")
@@ -317,51 +293,31 @@ class Control:
         pass
 
 
-REFUSAL_EVERY = 60.0  # seconds between two log lines about one refusal
-
-
-class Refusals:
-    """Refusals said once per :data:`REFUSAL_EVERY` seconds each (an attacker retrying must not
-    flood the log), with how many were held back."""
-
-    def __init__(self, every: float = REFUSAL_EVERY):
-        self.every = every
-        self._last: dict[str, float] = {}
-        self._held: Counter = Counter()
-        self._lock = threading.Lock()
+class Refusals(Warner):
+    """Refusals said once per window each (an attacker retrying must not flood the log)."""
 
     def say(self, key: str, message: str, level: int = logging.WARNING) -> None:
-        now = time.monotonic()
-        with self._lock:
-            if now - self._last.get(key, -self.every) < self.every:
-                self._held[key] += 1
-                return
-            self._last[key] = now
-            held = self._held.pop(key, 0)
-        log.log(level, "%s%s", message, f" ({held} more since)" if held else "")
+        held = self.due(key, "refused")
+        if held is not None:
+            log.log(level, "%s%s", message, f" ({held} more since)" if held else "")
 
 
 class Answer:
-    """The one control message an initiator waits for on its new line (a welcome, a peer's
-    keys)."""
+    """The control message an initiator waits for on its new line (a welcome, a peer's keys)."""
 
     def __init__(self) -> None:
         self.message: dict[str, Any] | None = None
-        self._got = threading.Event()
-
-    def clear(self) -> None:
-        self.message = None
-        self._got.clear()
+        self.got = threading.Event()  # cleared before each hello: a message is then new
 
     def put(self, message: dict[str, Any]) -> None:
         self.message = message
-        self._got.set()
+        self.got.set()
 
     def wait(self, link: StreamLink, stopping: threading.Event,
              timeout: float) -> dict[str, Any] | None:
         """The answer; None when the line closed, the bridge stops or ``timeout`` passed."""
         deadline = time.monotonic() + timeout
-        while not self._got.wait(0.1):
+        while not self.got.wait(0.1):
             if link.closed.is_set() or stopping.is_set() or time.monotonic() > deadline:
                 return None
         return self.message
@@ -369,8 +325,8 @@ class Answer:
 
 def session_keys(schedule: KeySchedule, p: TopicSpec | ServiceSpec, name: str, send: str,
                  receive: str) -> SessionKeys:
-    """An entry's keys in a session: ``name`` as both sides spell it, ``send`` and
-    ``receive`` the ways (``c2s``, ``s2c``; ``i2r``, ``r2i`` between peers)."""
+    """An entry's keys in a session: ``name`` as both sides spell it, ``send`` and ``receive``
+    the ways (``c2s``, ``s2c``; ``i2r``, ``r2i`` between peers)."""
     assert p.cipher_cls is not None
     return SessionKeys(schedule, p.cipher_cls, key_label(p.kind, send, name),
                        key_label(p.kind, receive, name))

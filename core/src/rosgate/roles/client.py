@@ -1,21 +1,11 @@
-"""The client role: connects its main line to the server, sends its topics, builds routes from
-the answer, and rides through the main line's losses.
-
-Stream topics without a port ride the main line; datagram topics without a port use the
-server's main port number on that transport. The client starts every connection, so it can sit
-behind NAT.
-
-Routes are built once, at the first welcome, and outlive the main line: datagram topics keep
-flowing while it is down (and the client keeps saying hello on them), and reliable topics on
-stream links wait in their :class:`LinkSlot`. After a reconnect the client sends its topic list
-again; a server that kept the session answers with the same topic ids and everything resumes.
-A server that restarted may answer with other ids: the routes are re-keyed, and frames that
-waited under the old ids are dropped (counted ``session_reset``), never sent under a wrong id.
-
-Authenticated (``bridge.identity`` and ``server_key``): every connection starts with the Noise
-handshake (:mod:`rosgate.secure`), the hello travels inside it, and the welcome brings the
-session's secret; routes take their keys from the session's :class:`KeySchedule`. An entry the
-server's policy refuses is logged once and left out; the others run.
+"""The client role: connects its main line to the server (the client starts every connection,
+so it can sit behind NAT), sends its entries, builds routes from the answer. Stream entries
+without a port ride the main line; datagram ones use the server's main port. Routes are built at
+the first welcome and outlive the main line: datagram topics keep flowing, reliable frames wait
+in their :class:`LinkSlot`. A server that restarted may answer with other ids: the routes are
+re-keyed, and frames that waited under the old ids are dropped (``session_reset``), never sent
+under a wrong id. Authenticated, routes take their keys from the session's
+:class:`KeySchedule` (docs/security.md).
 """
 
 from __future__ import annotations
@@ -29,7 +19,6 @@ from typing import Any
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
 from ..drops import Drop
 from ..errors import LinkError, RosgateError
-from ..keyring import Keys
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import Route
@@ -76,8 +65,7 @@ class ClientRole(Role):
 
     def start(self) -> None:
         self.connector.start()
-        self._pinger = threading.Thread(target=self._ping_loop, name="client-ping", daemon=True)
-        self._pinger.start()
+        threading.Thread(target=self._ping_loop, name="client-ping", daemon=True).start()
 
     def stop(self) -> None:
         link = self.main.current
@@ -101,7 +89,7 @@ class ClientRole(Role):
 
     def _handshake(self, link: StreamLink) -> bool:
         """Send our entries; build, re-key or drop their routes from the server's answer."""
-        self.answer.clear()
+        self.answer.got.clear()
         plan = self.bridge.plan
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
@@ -109,8 +97,15 @@ class ClientRole(Role):
                            "actions": [action_to_mapping(a.config) for a in plan.actions],
                            "entries": [self.router.entry_item(p) for p in self.entries()]}),
                   self.control)
-        answer = self._await_answer(link)
+        answer = self.answer.wait(link, self.life.stopping, HANDSHAKE_TIMEOUT)
         if answer is None:
+            if link.closed.is_set() and not self.life.stopping.is_set():
+                self.connector.failed(LinkError(
+                    "the server closed the connection before answering our hello (does it "
+                    "require identities? then set bridge.identity and server_key)"))
+            elif not self.life.stopping.is_set():
+                log.warning("%s: no answer to the handshake from %s", self.cfg.name,
+                            self.cfg.server)
             return False
         if answer["type"] == "refused":
             log.error("%s: the server refused us: %s", self.cfg.name, answer.get("error"))
@@ -148,8 +143,8 @@ class ClientRole(Role):
         return True
 
     def _install_keys(self, answer: dict[str, Any], link: StreamLink) -> None:
-        """The session's secret from the welcome (inside the Noise channel); then say we hold
-        it, so the server seals under it too."""
+        """The session's secret from the welcome; then say we hold it, so the server seals
+        under it too."""
         connection = link.connection
         assert isinstance(connection, SecureConnection)
         rekey = float(answer.get("rekey", self.cfg.rekey))
@@ -169,16 +164,6 @@ class ClientRole(Role):
             if self.refused.get(entry) != why:
                 log.error("%s: the server refused %s: %s", self.cfg.name, entry, why)
         self.refused = now
-
-    def _await_answer(self, link: StreamLink) -> dict[str, Any] | None:
-        answer = self.answer.wait(link, self.life.stopping, HANDSHAKE_TIMEOUT)
-        if answer is None and link.closed.is_set() and not self.life.stopping.is_set():
-            self.connector.failed(LinkError(
-                "the server closed the connection before answering our hello (does it "
-                "require identities? then set bridge.identity and server_key)"))
-        elif answer is None and not self.life.stopping.is_set():
-            log.warning("%s: no answer to the handshake from %s", self.cfg.name, self.cfg.server)
-        return answer
 
     def _lost(self, link: StreamLink) -> None:
         self.connected.clear()
@@ -219,16 +204,12 @@ class ClientRole(Role):
             link = self.datagram_link(p.transport, p.local,
                                       sources=self.sources(p.transport, p.address[0]))
             self.hello_to.add((link, p.address))
-        keys = self._keys(p)
+        # None: the file's cipher; else by the server's name for it (both derive the same keys)
+        keys = None if self.schedule is None else session_keys(
+            self.schedule, p, p.config.remote, "c2s", "s2c")
         # announcements start once the server has our datagram hello (its ports take frames
         # only from where a hello came from)
         return self.router.route(p, topic_id, label, link, destination, keys, announce=False)
-
-    def _keys(self, p: TopicSpec | ServiceSpec) -> Keys | None:
-        if self.schedule is None:
-            return None  # insecure: the file's cipher
-        # by the server's name for it: both sides derive the same keys
-        return session_keys(self.schedule, p, p.config.remote, "c2s", "s2c")
 
     def _unbuild(self) -> None:
         super().stop()
@@ -245,8 +226,7 @@ class ClientRole(Role):
             self.life.forget(link)
 
     def _dedicated_stream(self, p: TopicSpec | ServiceSpec) -> LinkSlot:
-        address = p.address
-        port = address[1]
+        address, port = p.address, p.address[1]
         if port in self._dedicated:
             return self._dedicated[port]
         slot = self.bridge.slot(f"{p.config.transport}->{address[0]}:{port}")
@@ -278,9 +258,8 @@ class ClientRole(Role):
             link.send(self._hello(), self.control, to)
 
     def _ping_loop(self) -> None:
-        """Heartbeat on the main line, and liveness: a server silent for ``peer_timeout`` is
-        declared down and its connection recycled (a stalled TCP connection never ends alone).
-        Datagram hellos go on while the main line is down, so the server keeps our address."""
+        """Heartbeat on the main line; datagram hellos go on while it is down, so the server
+        keeps our address."""
         while not self.life.stopping.wait(self.cfg.heartbeat):
             if self.connected.is_set():
                 self.heartbeat(self.main.current)

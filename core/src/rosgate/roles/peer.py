@@ -1,41 +1,15 @@
-"""The peer role: both files complete, no main line.
+"""The peer role: both files complete, no main line. A topic's id is derived from its link name
+(``remote``), so both sides agree without talking; receiving entries bind or listen at
+``listen:port``, transmitting ones send or connect to ``peer:port``. Bus entries (zenoh) are
+wired by their bus role (:mod:`rosgate.bus`); microcontroller entries (``framing: none``,
+``serial_datagram``) share a :class:`~rosgate.routes.BarePort` or a
+:class:`~rosgate.service_framing.CallPort` per port (docs/microcontrollers.md).
 
-A topic's id on the wire is derived from its link name (``remote``), so both sides agree without
-talking. Receiving entries bind (or listen at) ``listen:port``; transmitting entries send (or
-connect) to ``peer:port``. Services likewise: a serving side answers on the link and to the
-address each call came from.
-
-Entries on a bus (zenoh) are wired by its bus role (:mod:`rosgate.bus`): by key, without
-ports or a far host (and with the file's static ciphers: a bus has no peer to handshake with).
-
-Microcontrollers (the CVRA profile) are peers too: ``framing: none`` topics share a
-:class:`~rosgate.routes.BarePort` per port, told apart by name, and ``framing:
-serial_datagram`` services (the plugin ``rosgate-mcu-cvra``, through the
-``rosgate_service_framings`` hook) get a :class:`~rosgate.service_framing.CallPort` per port
-(receive) or a connection per call (transmit).
-
-Peers with identities (``identity``, ``peer_key``, ``handshake_port``) run the client/server
-handshake between them (:mod:`rosgate.secure`, Noise IK) on a TCP line of its own: the side
-whose public key sorts first initiates (connects to ``peer:handshake_port``), the other
-responds (listens on ``listen:handshake_port``) and sends the session's secret inside it.
-Every ``framing: rosgate`` entry is then keyed from the session by its link name (``remote``,
-which both files must spell alike), per direction and key generation; the line carries
-heartbeats and is made again after a loss or a restart, with a new secret each time. Bare and
-serial-datagram entries (microcontrollers) stay keyless.
-
-Liveness: calls waiting for the far side's answers (an action's result waits up to an hour)
-fail at once, counted ``link_down``, when the peer is lost, as a client's do when its main line
-is: with identities, when the handshake line is (silent for ``peer_timeout``); without, when
-the peer says nothing for :func:`silent_for` seconds — no announcement of any of its entries
-(each says its type every :data:`~rosgate.announce.ANNOUNCE_EVERY` seconds) and no data. A
-peer never heard from is not judged (an older rosgate announces nothing; its calls wait out
-their timeouts). While it stays silent, each new call fails within ``heartbeat`` seconds.
-
-Sources: every datagram link and listening stream port (the handshake line's too) takes frames
-and connections only from ``bridge.peer`` (resolved once, at start), or, when it is given, from
-the addresses of ``bridge.allow``; the others are counted ``not_allowed``, before any
-reassembly. A microcontroller service port takes calls from anyone unless ``bridge.allow`` is
-given. Transports that cannot tell who sent a frame (a CAN bus) filter nothing.
+With identities, a TCP handshake line runs the client/server Noise handshake: the side whose
+public key sorts first initiates, and ``framing: rosgate`` entries are keyed from its session
+(docs/security.md). Calls waiting for the peer fail (``link_down``) when that line is lost, or,
+without one, after :func:`silent_for` seconds without a word from the peer (docs/actions.md).
+Links take frames only from ``bridge.peer`` or ``bridge.allow`` (``not_allowed``).
 """
 
 from __future__ import annotations
@@ -65,7 +39,7 @@ from .mainline import control, is_control
 log = logging.getLogger("rosgate")
 
 #: announcement periods a peer without a handshake line may stay silent before it is lost: one
-#: announcement may be lost on the way, and a half period is the margin
+#: announcement may be lost, and a half period is the margin
 SILENT_PERIODS = 2.5
 
 
@@ -84,12 +58,6 @@ class PeerRole(Role):
         self.lost = False  # a peer without a handshake line: silent too long
         self.bus_roles: dict[type[BusRole], BusRole] = {}
 
-    def _keys(self, p: TopicSpec | ServiceSpec) -> Keys | None:
-        """A session's keys for an entry with an envelope (None: the file's cipher)."""
-        if self.handshake is None or p.config.framing is not Framing.ROSGATE:
-            return None
-        return self.handshake.keys(p)
-
     def start(self) -> None:
         if self.handshake is not None:
             self.handshake.start()
@@ -102,12 +70,11 @@ class PeerRole(Role):
         return Drop.BAD_HANDSHAKE, f"{self.cfg.name}: refused a handshake from {host}: {why}"
 
     def fail_calls(self, detail: str) -> None:
-        """The peer is lost: every call waiting for its answer fails now."""
         for route in self.callers:
             route.fail_all(Drop.LINK_DOWN, detail)
 
     def last_heard(self) -> float | None:
-        """When the peer last said anything of its entries (None: never)."""
+        """When the peer last said anything of its entries (None: never: it is not judged)."""
         heard = [r.check.heard_at for r in self.heard_from if r.check.heard_at is not None]
         if not heard:
             return None
@@ -116,40 +83,34 @@ class PeerRole(Role):
         return max(heard + data)
 
     def _watch_peer(self) -> None:
-        """A peer without a handshake line: lost after :func:`silent_for` seconds of silence."""
         limit = silent_for(self.cfg.peer_timeout)
         while not self.life.stopping.wait(self.cfg.heartbeat):
             heard = self.last_heard()
             if heard is None:
                 continue
             silence = time.monotonic() - heard
-            if silence <= limit:
-                if self.lost:
-                    self.lost = False
-                    log.info("%s: peer %s heard again", self.cfg.name, self.cfg.peer)
-                continue
-            if not self.lost:
+            if silence > limit:
+                if not self.lost:
+                    log.warning("%s: peer %s silent for %.1f s: taken for lost, calls waiting "
+                                "for it fail", self.cfg.name, self.cfg.peer, silence)
                 self.lost = True
-                log.warning("%s: peer %s silent for %.1f s: taken for lost, calls waiting for "
-                            "it fail", self.cfg.name, self.cfg.peer, silence)
-            self.fail_calls(f"the peer {self.cfg.peer} was silent for {silence:.1f} s")
+                self.fail_calls(f"the peer {self.cfg.peer} was silent for {silence:.1f} s")
+            elif self.lost:
+                self.lost = False
+                log.info("%s: peer %s heard again", self.cfg.name, self.cfg.peer)
 
     def stop(self) -> None:
         super().stop()
         if self.handshake is not None:
             self.handshake.schedule.forget()
 
-    def _bus(self, p: TopicSpec | ServiceSpec) -> BusRole:
-        """The bridge's instance of the bus role that wires ``p``'s transport."""
-        assert isinstance(p.transport, BusTransport)
-        cls = self.bridge.resolver.bus_role(p.transport, "")
-        return self.bus_roles.get(cls) or self.bus_roles.setdefault(cls, cls(self.bridge))
-
     def _start_entries(self) -> None:
         call_servers: dict[Address, CallPort] = {}
         for p in self.entries():
-            if p.key is not None:
-                bus = self._bus(p)
+            if p.key is not None:  # one instance of each bus role per bridge
+                assert isinstance(p.transport, BusTransport)
+                cls = self.bridge.resolver.bus_role(p.transport, "")
+                bus = self.bus_roles.get(cls) or self.bus_roles.setdefault(cls, cls(self.bridge))
                 bus.topic(p) if isinstance(p, TopicSpec) else bus.service(p)
             elif isinstance(p, ServiceSpec) and p.service_framing is not None:
                 self._microcontroller_service(p, call_servers)
@@ -158,8 +119,7 @@ class PeerRole(Role):
 
     def _entry(self, p: TopicSpec | ServiceSpec) -> None:
         """An entry found by the id of its remote name (a receiving topic by its own name's
-        too). Receiving, it binds or listens at ``listen:port``; transmitting, it sends from
-        ``listen`` or connects to ``peer:port``."""
+        too)."""
         c, key = p.config, f"{p.kind}s[{p.index}].port"
         stream = isinstance(p.transport, StreamTransport)
         sources = self.sources(p.transport, self.cfg.peer)
@@ -174,8 +134,11 @@ class PeerRole(Role):
             link = slot = self.bridge.slot(f"{c.transport}->{self.cfg.peer}:{c.port}")
         else:
             link = self.datagram_link(p.transport, p.local, key, sources=sources)
+        keys = None  # the file's cipher, unless a session keys an entry with an envelope
+        if self.handshake is not None and c.framing is Framing.ROSGATE:
+            keys = self.handshake.keys(p)
         route = self.router.route(p, topic_id_for(c.remote), p.name, link, fixed(p.address),
-                                  self._keys(p))
+                                  keys)
         if stream and c.direction is Direction.RECEIVE:
             self.listen(p.transport, p.address, self.router.on_frame, key, sources=sources)
         elif stream:
@@ -195,8 +158,9 @@ class PeerRole(Role):
 
     def _microcontroller_service(self, p: ServiceSpec,
                                  servers: dict[Address, CallPort]) -> None:
-        """``framing: serial_datagram`` (or another plugin's call pattern): one connection per
-        call. A serving port is shared by every service on it, told apart by name."""
+        """``framing: serial_datagram`` (or another plugin's call pattern): a connection per call;
+        a serving port is shared by its services, told apart by name (no id), and takes calls
+        from anyone unless ``bridge.allow`` is given."""
         s = p.config
         if s.direction is Direction.TRANSMIT:
             self.router.service(p, 0, s.service, None)  # connects to the peer per call
@@ -208,7 +172,7 @@ class PeerRole(Role):
                 self.cfg.limits.idle_timeout)
             self.accept(p.transport, p.address, server.accepted, f"services[{p.index}].port",
                         self.allow_list())
-        route = self.router.service(p, 0, s.service, None)  # found by name: no id
+        route = self.router.service(p, 0, s.service, None)
         assert isinstance(route, ServerRoute)
         servers[p.address].add(route)
 
@@ -217,14 +181,11 @@ class PeerHandshake:
     """The handshake line between two peers with identities, and the session's keys."""
 
     def __init__(self, role: PeerRole):
-        cfg = role.cfg
-        assert cfg.identity is not None and cfg.server_key is not None
-        assert cfg.handshake_port is not None
+        cfg = self.cfg = role.cfg
+        assert cfg.identity and cfg.server_key and cfg.handshake_port is not None
         from ..identity import public_of
 
         self.role = role
-        self.cfg = cfg
-        self.peer_key = cfg.server_key
         self.initiator = public_of(cfg.identity) < cfg.server_key
         self.mine, self.theirs = ("i2r", "r2i") if self.initiator else ("r2i", "i2r")
         self.schedule = KeySchedule(cfg.rekey)
@@ -260,7 +221,7 @@ class PeerHandshake:
     # -- the initiator -------------------------------------------------------------------------
     def _initiated(self, link: StreamLink) -> bool:
         """Wait for the responder's keys inside the new channel; install them."""
-        self.answer.clear()
+        self.answer.got.clear()
         answer = self.answer.wait(link, self.role.life.stopping, 5.0)
         if answer is None:
             if not link.closed.is_set() and not self.role.life.stopping.is_set():
@@ -288,7 +249,7 @@ class PeerHandshake:
     # -- the responder --------------------------------------------------------------------------
     def _accepted(self, connection: StreamConnection, peer: Address) -> None:
         def run() -> None:
-            secure = self.role.respond(connection, peer[0], lambda key: key == self.peer_key)
+            secure = self.role.respond(connection, peer[0], lambda key: key == self.cfg.server_key)
             if secure is None:
                 return
             link = self.role.life.closing(StreamLink(

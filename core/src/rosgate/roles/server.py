@@ -1,21 +1,12 @@
-"""The server role: accepts many clients; each client's topics become a :class:`Session` of
-routes.
+"""The server role: accepts many clients; each client's entries become a :class:`Session` of
+routes. A session outlives its main line for ``session_timeout`` seconds, and a client that
+comes back with the same entries gets it back: the same ids (derived from its name and the
+entry), its waiting frames first (docs/real-links.md).
 
-A session outlives its main line. When the connection is lost (or falls silent for
-``peer_timeout``) the session is kept, by the client's name, for ``session_timeout`` seconds:
-its datagram routes keep working and frames of reliable topics for the client wait. A client
-that says hello again under the same name with the same topics gets the same session back —
-same topic ids, its waiting frames first; with other topics, the old session is dropped and a
-new one made. Topic ids are derived from the client's name and the topic, so even a restarted
-server gives a returning client the ids it had.
-
-Authenticated (``bridge.identity`` and ``clients:``): a connection is nothing until its Noise
-handshake proves a client key listed under ``clients:`` — the handshake runs in a thread of its
-own, with a deadline and a small maximum message, and no other byte is parsed before it. The
-key decides the client's name (a hello under another name is refused) and its policy
-(:mod:`rosgate.policy`): each entry outside it is refused on its own, with one sentence in both
-logs, and the rest of the session runs. Each handshake brings a new session secret; datagram
-hellos must be sealed under it; :meth:`ServerRole.reload` applies a changed policy (SIGHUP).
+Authenticated (``bridge.identity`` and ``clients:``): nothing a connection sends is parsed
+before its Noise handshake proves a key listed under ``clients:``, which decides the client's
+name and policy (:mod:`rosgate.policy`); each entry the policy refuses is left out, said in both
+logs. :meth:`ServerRole.reload` applies a changed policy (SIGHUP; docs/security.md).
 """
 
 from __future__ import annotations
@@ -27,6 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 from ..admission import Acceptor, ConnectionLimits, KnownSources
@@ -39,7 +31,6 @@ from ..config import (
 )
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
-from ..keyring import Keys
 from ..links import DatagramLink, Link
 from ..policy import refusal
 from ..routes import Route
@@ -122,8 +113,11 @@ class ServerRole(Role):
     def start(self) -> None:
         plan = self.bridge.plan
         assert plan.main_line is not None and plan.main_address is not None
-        self.acceptor = self.accept(plan.main_line, plan.main_address, self._accepted,
-                                    "bridge.server", name=f"main:{plan.main_address[1]}")
+        self.acceptor = self.accept(
+            plan.main_line, plan.main_address,
+            lambda connection, peer: self.handshake(
+                connection, peer, lambda secure: self._main_line(secure, peer)),
+            "bridge.server", name=f"main:{plan.main_address[1]}")
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
 
     def stop(self) -> None:
@@ -137,8 +131,7 @@ class ServerRole(Role):
     def handshake(self, connection: StreamConnection, peer: Address,
                   then: Callable[[StreamConnection], None]) -> None:
         """Run the Noise handshake of an accepted connection in a thread of its own, then hand
-        the secure connection to ``then``; a connection that fails it is closed, said once per
-        :data:`~rosgate.roles.REFUSAL_EVERY` and counted."""
+        the secure connection to ``then``."""
         if not self.cfg.secure:
             then(connection)
             return
@@ -176,14 +169,11 @@ class ServerRole(Role):
                                              f"{shown}... is not in clients:")
         return Drop.BAD_HANDSHAKE, f"refused a connection from {host}: {exc}"
 
-    def _accepted(self, connection: StreamConnection, peer: Address) -> None:
-        self.handshake(connection, peer, lambda secure: self._main_line(secure, peer))
-
     def _main_line(self, connection: StreamConnection, peer: Address) -> None:
-        holder: dict[str, Session] = {}
+        session: Session | None = None
 
         def on_frame(frame: bytes, link: Link, source: Address) -> None:
-            session = holder.get("session")
+            nonlocal session
             if is_control(frame):
                 message = self.read_control(frame, link, source)
                 if message is None:
@@ -191,11 +181,8 @@ class ServerRole(Role):
                 assert isinstance(link, StreamLink)
                 kind = message["type"]
                 if kind == "hello" and session is None:
-                    # the policy as it is now, not as it was when the handshake completed
-                    session = self._welcome(message, link, peer,
-                                            lambda: self._policy_of(connection))
+                    session = self._welcome(message, link, peer)
                     if session is not None:
-                        holder["session"] = session
                         link.trust()
                 elif kind == "ready" and session is not None and session.schedule is not None:
                     session.schedule.seal_with(message.get("key_id"))
@@ -210,7 +197,6 @@ class ServerRole(Role):
 
         def on_close(link: StreamLink) -> None:
             self.life.forget(link)
-            session = holder.get("session")
             if session is not None and session.main.current is link and session.id in self.sessions:
                 session.down_since = time.monotonic()
                 for route in session.routes:  # calls waiting for the client get no answer now
@@ -236,11 +222,11 @@ class ServerRole(Role):
         return policy
 
     # -- sessions ----------------------------------------------------------------------------
-    def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address,
-                 policy_now: Callable[[], ClientPolicy | None]) -> Session | None:
+    def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address) -> Session | None:
         name = str(hello.get("name", "?"))[:100]
         try:
-            policy = policy_now()
+            # the policy as it is now, not as it was when the handshake completed
+            policy = self._policy_of(link.connection)
             if policy is not None and name != policy.name:
                 raise ConfigError(f"the key of client {policy.name!r} says hello as {name!r}",
                                   file=f"client {policy.name}",
@@ -266,16 +252,14 @@ class ServerRole(Role):
         for why in session.refused.values():
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
         self.far_entries(session.by_index, hello.get("entries"))
-        items = [self.router.item(session.by_index[i]) if i in session.by_index else None
-                 for i in range(len(session.entries))]
-        count = len(session.topics)
-        ids = [session.by_index[i].topic_id if i in session.by_index else 0
-               for i in range(len(session.entries))]
+        routes = [session.by_index.get(i) for i in range(len(session.entries))]
+        ids, count = [0 if r is None else r.topic_id for r in routes], len(session.topics)
         welcome: dict[str, Any] = {
             "type": "welcome", "name": self.cfg.name, "session": session.id,
             "topic_ids": ids[:count], "service_ids": ids[count:],
             "refused": [{"entry": self._entry_name(session, i), "error": why}
-                        for i, why in sorted(session.refused.items())], "entries": items}
+                        for i, why in sorted(session.refused.items())],
+            "entries": [None if r is None else self.router.item(r) for r in routes]}
         if session.schedule is not None:  # a fresh secret for this handshake, inside it
             assert isinstance(link.connection, SecureConnection)
             welcome.update(session.schedule.offer(link.connection.handshake_hash))
@@ -345,7 +329,7 @@ class ServerRole(Role):
         none for the others: a newly refused entry's route is torn down."""
         keyless = {name for (kind, name), r in self.bridge.resolver.plugins.registered.items()
                    if kind == "cipher" and not getattr(r.cls, "session_key_size", 0)}
-        where = f"client {session.name}"
+        resolver, error = self.bridge.resolver, where_error(f"client {session.name}")
         topics = len(session.topics)
         for index, entry in enumerate(session.entries):
             asked = session.part_of.get(index, entry)  # an action's part: the action
@@ -359,54 +343,41 @@ class ServerRole(Role):
             session.refused.pop(index, None)
             if index in session.by_index:
                 continue
-            resolver, server_view = self.bridge.resolver, flipped(entry)
             if isinstance(entry, TopicConfig):
-                p: TopicSpec | ServiceSpec = resolver.topic(
-                    server_view, index, "topics", where_error(where))
+                p: TopicSpec | ServiceSpec = resolver.topic(flipped(entry), index, "topics", error)
             else:
-                p = resolver.service(server_view, index - topics, "services", where_error(where))
+                p = resolver.service(flipped(entry), index - topics, "services", error)
             session.by_index[index] = self._route(session, p)
 
     def _topic_id(self, session: Session, p: TopicSpec | ServiceSpec) -> int:
-        """Derived from the client's name and the topic or service, so a returning client gets
-        the ids it had even from a restarted server; the next free one on a collision."""
-        t = p.config
+        """Derived from the client's name and the entry, so a returning client gets the ids it
+        had even from a restarted server; the next free one on a collision."""
         used = {r.topic_id for r in self.router.snapshot()} | {r.topic_id for r in session.routes}
-        topic_id = topic_id_for(f"{session.name}\0{t.direction}\0{p.name}")
+        topic_id = topic_id_for(f"{session.name}\0{p.config.direction}\0{p.name}")
         while topic_id in used or topic_id == envelope.CONTROL_TOPIC:
             topic_id = (topic_id + 1) & 0xFFFFFFFF
         return topic_id
 
     def _route(self, session: Session, p: TopicSpec | ServiceSpec) -> Route:
-        t = p.config
-        topic_id = self._topic_id(session, p)
+        t, port = p.config, p.config.port
         way = "to" if t.direction is Direction.TRANSMIT else "from"
-        label = f"{p.name} ({way} {session.name})"
         link: Link
-        destination = self._no_address
-        port = t.port
-        if isinstance(p.transport, StreamTransport) and port is None:
+        destination = self._no_address  # a stream link has one far side
+        if not isinstance(p.transport, StreamTransport):
+            link = self.datagram_link(p.transport, p.address, owner=session, sources=self.clients)
+            destination = partial(session.addresses.get, link)  # where the client said hello
+        elif port is None:
             link = session.main
-        elif isinstance(p.transport, StreamTransport) and port is not None:
+        else:
             self.listen(p.transport, p.address, self._dedicated_frame(port),
                         handshake=self.handshake, untrusted=self.untrusted, owner=session)
             if port not in session.streams:
                 session.streams[port] = self.bridge.slot(f"port {port} of {session.name}")
             link = session.streams[port]
-        else:
-            datagrams = self.datagram_link(p.transport, p.address, owner=session,
-                                           sources=self.clients)
-            link = datagrams
-
-            def destination() -> Address | None:  # where the client said hello from, last
-                return session.addresses.get(datagrams)
-        keys = self._keys(session, p)
-        return self.router.route(p, topic_id, label, link, destination, keys)
-
-    def _keys(self, session: Session, p: TopicSpec | ServiceSpec) -> Keys | None:
-        if session.schedule is None:
-            return None  # without identities: the file's cipher
-        return session_keys(session.schedule, p, p.name, "s2c", "c2s")
+        keys = None if session.schedule is None else session_keys(  # None: the file's cipher
+            session.schedule, p, p.name, "s2c", "c2s")
+        return self.router.route(p, self._topic_id(session, p), f"{p.name} ({way} {session.name})",
+                                 link, destination, keys)
 
     @staticmethod
     def _no_address() -> Address | None:
@@ -447,9 +418,8 @@ class ServerRole(Role):
             if (not isinstance(connection, SecureConnection) or session.policy is None
                     or connection.peer_key != session.policy.key):
                 return False
-        if not open_hello(session.schedule, header, frame):
-            return False
-        return session.hellos.accept(header.epoch, header.seq) is None
+        return (open_hello(session.schedule, header, frame)
+                and session.hellos.accept(header.epoch, header.seq) is None)
 
     def on_hello(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
         """A datagram hello: the client's address on this link, learnt only from a genuine one."""
@@ -486,10 +456,9 @@ class ServerRole(Role):
 
     # -- a new policy (SIGHUP) ---------------------------------------------------------------
     def reload(self, clients: dict[str, ClientPolicy]) -> None:
-        """Apply a new ``clients:`` to new and existing sessions. A client no longer listed (or
-        with another key) is disconnected; one whose entries the new policy judges otherwise has
-        them torn down or added and its main line recycled, so it hears which now run. Every
-        other client goes on untouched."""
+        """Apply a new ``clients:``: a client no longer listed (or with another key) is
+        disconnected; one whose entries it judges otherwise has them torn down or added and its
+        main line recycled, so it hears which now run; the others go on untouched."""
         self.cfg.clients = clients
         self._by_key = {p.key: p for p in clients.values()}
         with self._lock:
@@ -502,45 +471,41 @@ class ServerRole(Role):
         for session in list(self.sessions.values()):
             policy = clients.get(session.name)
             link = session.main.current
+            why = "the server's policy changed"
             if policy is None or session.policy is None or policy.key != session.policy.key:
                 log.warning("client %r: no longer accepted with its key; its session ends",
                             session.name)
                 self._end(session)
-                if link is not None:
-                    link.fail("the server's policy no longer accepts this client")
-                continue
-            before = (dict(session.refused), set(session.by_index))
-            session.policy = policy
-            try:
-                self._sync(session)
-            except (ConfigError, LinkError) as exc:
-                log.error("client %r: cannot apply the new policy (%s); its session ends",
-                          session.name, exc)
-                self._end(session)
-                if link is not None:
-                    link.fail("the server's policy changed")
-                continue
-            if (dict(session.refused), set(session.by_index)) != before:
-                for why in session.refused.values():
-                    self.refusals.say(f"{session.name} {why}", why, logging.ERROR)
-                log.info("client %r: the new policy changed its entries; reconnecting it",
-                         session.name)
-                if link is not None:
-                    link.fail("the server's policy changed")
+                why = "the server's policy no longer accepts this client"
+            else:
+                before = (dict(session.refused), set(session.by_index))
+                session.policy = policy
+                try:
+                    self._sync(session)
+                except (ConfigError, LinkError) as exc:
+                    log.error("client %r: cannot apply the new policy (%s); its session ends",
+                              session.name, exc)
+                    self._end(session)
+                else:
+                    if (dict(session.refused), set(session.by_index)) == before:
+                        continue
+                    for refused in session.refused.values():
+                        self.refusals.say(f"{session.name} {refused}", refused, logging.ERROR)
+                    log.info("client %r: the new policy changed its entries; reconnecting it",
+                             session.name)
+            if link is not None:
+                link.fail(why)
         log.info("applied the policy of %d client(s)", len(clients))
 
     def _ping_loop(self) -> None:
-        """Heartbeat to every connected client; liveness: a client silent for ``peer_timeout``
-        is declared down (its connection recycled), one gone for ``session_timeout`` is dropped."""
+        """Heartbeat to every connected client; one gone for ``session_timeout`` is dropped."""
         cfg = self.cfg
         while not self.life.stopping.wait(cfg.heartbeat):
             now = time.monotonic()
             for session in list(self.sessions.values()):
-                link = session.main.current
-                if session.down_since is not None:
-                    if now - session.down_since > cfg.session_timeout:
-                        log.warning("client %r gone for %g s: its session is dropped",
-                                    session.name, cfg.session_timeout)
-                        self._end(session)
-                else:
-                    self.heartbeat(link)
+                if session.down_since is None:
+                    self.heartbeat(session.main.current)
+                elif now - session.down_since > cfg.session_timeout:
+                    log.warning("client %r gone for %g s: its session is dropped",
+                                session.name, cfg.session_timeout)
+                    self._end(session)
