@@ -199,7 +199,7 @@ def reassembly(data: bytes) -> None:
                 except framing.FramingError:
                     continue
                 assert whole is None or len(whole) <= bound
-                assert reassembler._pending_bytes <= 4 * bound + 65536
+                assert reassembler.pending_bytes <= 4 * bound + 65536
         if kind % 7 == 0:
             fragments.expire(float("inf"))
             compact.expire(float("inf"))

@@ -127,7 +127,7 @@ class CompactReassembler:
         self.max_message = max_message
         self._senders: dict[Hashable, _Sender] = {}
         self._active: dict[Hashable, _Sender] = {}  # frames in progress, least recent first
-        self._pending_bytes = 0
+        self.pending_bytes = 0
 
     def add(self, source: Hashable, piece: bytes | memoryview) -> bytes | None:
         """Take one piece (copied: it may be a view of a receive buffer); return the whole frame
@@ -160,7 +160,7 @@ class CompactReassembler:
                 raise FramingError(f"a frame of {length} bytes is over the limit "
                                    f"{self.max_message}")
             sender.frame, sender.length = bytearray(), length
-            self._pending_bytes += PARTIAL_COST
+            self.pending_bytes += PARTIAL_COST
         elif sender.frame is None:
             return None  # continues a frame whose first piece never came: already counted
         else:
@@ -168,7 +168,7 @@ class CompactReassembler:
         frame = sender.frame
         had = len(frame)
         frame += piece[offset:offset + sender.length - had]  # past the length: padding
-        self._pending_bytes += len(frame) - had
+        self.pending_bytes += len(frame) - had
         sender.last = now
         if had < 8 <= len(frame):
             sender.topic_id = self.topic_of(bytes(frame[:8])) or sender.topic_id
@@ -178,7 +178,7 @@ class CompactReassembler:
             active[source] = sender  # now the most recent
             self._shed()
             return None
-        self._pending_bytes -= len(frame) + PARTIAL_COST
+        self.pending_bytes -= len(frame) + PARTIAL_COST
         sender.frame = None
         return bytes(frame)
 
@@ -196,14 +196,14 @@ class CompactReassembler:
     def _shed(self) -> None:
         # memory bound: drop frames in progress, the longest silent first
         active = self._active
-        while self._pending_bytes > self.max_pending_bytes and active:
+        while self.pending_bytes > self.max_pending_bytes and active:
             source, sender = next(iter(active.items()))
             self._give_up(source, sender, Drop.REASSEMBLY_OVERFLOW)
 
     def _give_up(self, source: Hashable, sender: _Sender, reason: Reason) -> None:
         """Count one lost frame: the one in progress, or one that vanished whole."""
         if sender.frame is not None:
-            self._pending_bytes -= len(sender.frame) + PARTIAL_COST
+            self.pending_bytes -= len(sender.frame) + PARTIAL_COST
             sender.frame = None
             self._active.pop(source, None)
         sender.skipping = True

@@ -171,7 +171,7 @@ class _Pending:
         self.max_pending_bytes = max_pending_bytes
         self.max_message = max_message
         self._pending: OrderedDict[Any, Any] = OrderedDict()  # longest silent first
-        self._pending_bytes = 0
+        self.pending_bytes = 0
         self._finished: OrderedDict[Hashable, None] = OrderedDict()
 
     def _heard(self, key: Hashable, frame: Any, now: float) -> None:
@@ -192,12 +192,12 @@ class _Pending:
             self._give_up(key, Drop.FRAGMENT_LOST)
 
     def _shed(self) -> None:
-        while self._pending_bytes > self.max_pending_bytes and self._pending:
+        while self.pending_bytes > self.max_pending_bytes and self._pending:
             self._give_up(next(iter(self._pending)), Drop.REASSEMBLY_OVERFLOW)
 
     def _give_up(self, key: Hashable, reason: Reason) -> None:
         frame = self._pending.pop(key)
-        self._pending_bytes -= frame.held
+        self.pending_bytes -= frame.held
         self._remember(key)
         self.on_lost(frame.topic_id, reason)
 
@@ -243,7 +243,7 @@ class FecReassembler(_Pending):
         self._heard(key, frame, now)
         state.chunks[index] = chunk
         frame.held += size
-        self._pending_bytes += size
+        self.pending_bytes += size
         if len(state.chunks) < k:
             self._shed()
             return None
@@ -256,7 +256,7 @@ class FecReassembler(_Pending):
                                                     tuple(indexes))
             state.data = [bytes(c) for c in rebuilt]
             frame.recovered = True
-        self._pending_bytes -= sum(len(c) for c in state.chunks.values())
+        self.pending_bytes -= sum(len(c) for c in state.chunks.values())
         frame.held -= sum(len(c) for c in state.chunks.values())
         state.chunks.clear()
         frame.done += 1
@@ -383,12 +383,12 @@ class RepeatReassembler(_Pending):
             frame.gap = 0.8 * frame.gap + 0.2 * (now - frame.last)
         frame.parts[index] = chunk
         frame.held += len(chunk)
-        self._pending_bytes += len(chunk)
+        self.pending_bytes += len(chunk)
         self._heard(key, frame, now)
         frame.check_at = now + max(NACK_AFTER, 4 * frame.gap)
         if len(frame.parts) == count:
             del self._pending[key]
-            self._pending_bytes -= frame.held
+            self.pending_bytes -= frame.held
             self._remember(key)
             self.send(ack([fid]), source)
             if frame.recovered:
