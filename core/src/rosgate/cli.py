@@ -290,13 +290,11 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     key = cipher.generate_key()
     if key is None:
         raise ConfigError(f"cipher {args.cipher!r} takes no key", file="keygen")
+    from .identity import write_secret
+
     path = Path(args.out or f"{args.cipher}.key")
-    flags = os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if args.force else os.O_EXCL)
     with _new_key_file(path):
-        # created 0600 from the start: the key is never readable by others, not even briefly
-        with os.fdopen(os.open(path, flags, 0o600), "wb") as out:
-            os.fchmod(out.fileno(), 0o600)
-            out.write(key + b"\n")
+        write_secret(path, key + b"\n", args.force)
     print(f"wrote a new {args.cipher} key to {path} (mode 0600)")
     return 0
 

@@ -67,12 +67,17 @@ def load_private(path: Path) -> bytes:
 
 
 def write_private(path: Path, key: bytes, force: bool = False) -> None:
-    """Write a private key file, mode 0600 from its creation; never over an existing file
-    unless ``force``."""
+    """Write an identity key file (:func:`write_secret`)."""
+    write_secret(path, (encode(key) + "\n").encode(), force)
+
+
+def write_secret(path: Path, data: bytes, force: bool = False) -> None:
+    """Write a key file, mode 0600 from its creation (never readable by others, not even
+    briefly); never over an existing file unless ``force``."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | (os.O_TRUNC if force else os.O_EXCL), 0o600)
-    with os.fdopen(fd, "w") as out:
+    with os.fdopen(fd, "wb") as out:
         os.fchmod(out.fileno(), 0o600)
-        out.write(encode(key) + "\n")
+        out.write(data)
 
 
 def _decode(text: object) -> bytes | None:
