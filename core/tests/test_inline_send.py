@@ -13,10 +13,10 @@ import math
 import random
 import sys
 import threading
-import time
 from dataclasses import dataclass, field
 
 import pytest
+from polling import settles
 from rosgate_transport_udp import UdpEndpoint, UdpTransport
 
 from rosgate.config import LinkConfig
@@ -101,17 +101,6 @@ def closing():
     yield lambda thing: things.append(thing) or thing
     for thing in reversed(things):
         thing.close()
-
-
-def settles(condition, timeout: float = TIMEOUT) -> bool:
-    """Whether ``condition()`` holds within ``timeout``: a link's counters move after the
-    kernel has taken the packets, so the far side may hold a frame before they do."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def message(seq: int, size: int = 2_500) -> bytes:

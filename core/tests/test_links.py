@@ -7,10 +7,10 @@ from __future__ import annotations
 import random
 import socket
 import threading
-import time
 from typing import Any
 
 import pytest
+from polling import settles
 from rosgate_compact import compact_fragment
 from rosgate_transport_bt import BluetoothTransport
 from rosgate_transport_tcp import TcpTransport
@@ -84,16 +84,6 @@ class Sent:
 
     def on_wire(self, size: int, again: bool) -> None:
         pass
-
-
-def settled(predicate, timeout: float = 5.0) -> bool:
-    """Whether ``predicate`` holds within ``timeout`` (counters a link's own thread updates)."""
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 def frame_of(seq: int, size: int, rng: random.Random) -> bytes:
@@ -315,7 +305,7 @@ def test_frames_that_waited_leave_together_from_the_send_thread(closing):
     assert len(batches) == 1 and len(batches[0]) <= 1200
     # the send thread counts a datagram after the far end may have read it
     counted = lambda: (a.counters.coalesced_out, a.counters.frames_out)
-    assert settled(lambda: counted() == (5, 7)), counted()
+    assert settles(lambda: counted() == (5, 7)), counted()
 
 
 def test_a_large_frame_leaves_from_the_send_thread_in_scatter_gather_fragments(closing):
@@ -657,10 +647,7 @@ def blocked_writer(closing, tcp_connections, **kwargs) -> tuple[StreamLink, Inbo
     link = closing(stream_link(client, "stuck", inbox, **kwargs))
     assert link.send(bytes(8_000_000), inbox.sender(1)) is True
     # the writer has taken it off the queue (and cannot finish writing it)
-    deadline = time.monotonic() + 5
-    while link.queued() and time.monotonic() < deadline:
-        time.sleep(0.005)
-    assert not link.queued(), "the writer never took the frame"
+    assert settles(lambda: not link.queued(), 5), "the writer never took the frame"
     return link, inbox
 
 

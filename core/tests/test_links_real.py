@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
+from polling import settles
 from rosgate_emulator import Profile, TcpRelay, UdpRelay
 from rosgate_recovery import Fec
 from rosgate_transport_tcp import TcpTransport
@@ -133,7 +134,7 @@ def test_recovery_brings_every_frame_through_3_percent_loss(closing, kind):
     if kind == "retransmit":
         assert topic.again >= relay.up.dropped["loss"] * 0.8  # about what was lost, sent again
         store = a.packetizer("retransmit").store
-        assert wait_until(lambda: len(store) == 0)   # every frame acknowledged
+        assert settles(lambda: len(store) == 0)   # every frame acknowledged
     else:
         assert topic.again == 0
         assert topic.wire > 1.2 * sum(map(len, frames))  # the repair fragments
@@ -267,13 +268,3 @@ def test_streams_interleave_large_frames_with_small_ones_of_a_higher_class(closi
     assert rx.wait(lambda: big in rx.frames, 30)
     assert rx.frames == small + [big]
 
-
-def wait_until(predicate, timeout: float = TIMEOUT) -> bool:
-    """Polls: for state nothing signals (a link's retransmit store); the relay's counters have
-    their own event (UdpRelay.wait_until)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()

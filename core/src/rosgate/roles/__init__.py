@@ -127,7 +127,8 @@ class Role:
             return None
 
     def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
-        """How a failed handshake is counted, and the sentence that says it (None: none)."""
+        """How a failed handshake is counted, and the sentence that says it (None: none); said
+        by the roles that respond to handshakes (server, peer), never asked of a client."""
         raise NotImplementedError
 
     def sources(self, transport: Transport, host: str | None) -> Sources | None:
