@@ -162,3 +162,15 @@ def test_the_link_checker_sees_links_and_anchors(tmp_path):
     assert links == ["other.md#top", "../img.png"]
     assert HISTORY.search("the attacks of issue 10") and HISTORY.search("Issue #9")
     assert not HISTORY.search("see the issue tracker")
+
+
+def test_every_command_is_in_the_commands_page():
+    """Every verb `rosgate --help` lists on this machine (the core's and the installed plugins')
+    has a row of its own in docs/commands.md."""
+    listing = subprocess.run([ROSGATE, "--help"], capture_output=True, text=True, timeout=60,
+                             check=True).stdout
+    verbs = re.findall(r"^    (\w+)\s", listing, re.MULTILINE)
+    assert {"run", "check", "top", "router", "certs", "convert"} <= set(verbs)
+    rows = (ROOT / "docs" / "commands.md").read_text()
+    missing = [verb for verb in verbs if f"| `rosgate {verb}" not in rows]
+    assert not missing, f"docs/commands.md has no row for: {missing}"

@@ -13,6 +13,7 @@ import logging
 import os
 import signal
 import sys
+import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -49,8 +50,13 @@ def main(argv: list[str] | None = None) -> int:
     quiet = args.command in ("check", "plugins", "keygen", "pubkey")
     level = logging.DEBUG if getattr(args, "verbose", False) else \
         logging.WARNING if quiet else logging.INFO
-    logging.basicConfig(level=level,
-                        format="[rosgate] %(levelname)s %(message)s", stream=sys.stderr)
+    # a running bridge's lines carry the time to the millisecond (ISO 8601, local time with its
+    # offset), so a reconnect can be timed from the log alone; a one-shot verb's are its answer
+    stamp = "" if quiet else "%(asctime)s.%(msecs)03d%(tz)s "
+    logging.basicConfig(level=level, format=f"{stamp}[rosgate] %(levelname)s %(message)s",
+                        datefmt="%Y-%m-%dT%H:%M:%S", stream=sys.stderr)
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(_zone)
     try:
         return int(args.run(args))
     except RosgateError as exc:
@@ -66,6 +72,12 @@ def main(argv: list[str] | None = None) -> int:
               f"load: {failure.reason}\n  fix: repair or reinstall {failure.distribution}",
               file=sys.stderr)
         return EXIT_USAGE
+
+
+def _zone(record: logging.LogRecord) -> bool:
+    """Gives a log record the local time's offset from UTC (``+0100``), as ISO 8601 writes it."""
+    record.tz = time.strftime("%z", time.localtime(record.created))
+    return True
 
 
 def _parser() -> tuple[argparse.ArgumentParser, Any]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -28,19 +29,26 @@ def client_through(endpoint: str) -> list[str]:
         session.close()
 
 
+def _untimed(line: str) -> str:
+    """A log line without the time it starts with (ISO 8601, milliseconds, the zone's offset)."""
+    stamp, rest = line.split(" ", 1)
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}[+-]\d{4}", stamp), line
+    return rest
+
+
 def test_router_routes_until_sigterm_and_says_where_it_listens():
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = subprocess.Popen([ROSGATE, "router", "--listen", endpoint], stderr=subprocess.PIPE,
                               text=True)
     try:
         assert router.stderr is not None
-        assert router.stderr.readline() == \
+        assert _untimed(router.stderr.readline()) == \
             f"[rosgate] INFO zenoh router running, listening on {endpoint}\n"
         assert len(client_through(endpoint)) == 1
     finally:
         router.send_signal(signal.SIGTERM)
         assert router.wait(10) == 0
-    assert router.stderr.read() == (
+    assert "".join(map(_untimed, router.stderr.readlines())) == (
         "[rosgate] WARNING the router runs without TLS: any zenoh session that reaches it may "
         "join (rosgate router --tls DIR, docs/fleets.md)\n[rosgate] INFO stopping\n")
 
