@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import re
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -144,3 +145,22 @@ def test_top_once_prints_one_frame(tmp_path, domain, bridge, runtime_dir):
                                    env=dict(os.environ, COLUMNS="160")))
     assert "q: quit" not in out
     assert "rosgate base (server)" in out and "topics and services" in out and "links" in out
+
+
+def test_top_once_into_a_pipe_prints_every_row_whole(tmp_path, domain, bridge, runtime_dir):
+    """Not a terminal (a pipe, a file, grep): plain text, no escapes, and a row as wide as it
+    needs, where rich alone would cut it at 80 columns."""
+    name = "/robot1/sensors/front_left_stereo_camera/image_rect_color/compressed_for_the_base"
+    peer = tmp_path / "peer.yaml"
+    peer.write_text(
+        f"bridge: {{name: far, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, insecure: true}}\n"
+        f"topics:\n  - {{topic: {name}, type: std_msgs/msg/String, direction: transmit, "
+        f"port: {free_port()}}}\n")
+    bridge(peer, domain())
+    result = subprocess.run([ROSGATE, "top", "far", "--once", "--interval", "0.2"],
+                            capture_output=True, text=True, timeout=30,
+                            env={k: v for k, v in os.environ.items() if k != "COLUMNS"})
+    assert result.returncode == 0, result.stderr
+    assert "\x1b" not in result.stdout
+    row = next(line for line in result.stdout.splitlines() if "/robot1/" in line)
+    assert name in row and "topic" in row and len(row) > 100, result.stdout

@@ -68,6 +68,10 @@ def bridge_name(given: str | None) -> str:
     return given
 
 
+#: the columns of ``--once`` when its output is not a terminal: every row whole
+NO_WIDTH_LIMIT = 10_000
+
+
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console  # here, not at the top: see find_spec above
 
@@ -78,7 +82,9 @@ def run(args: argparse.Namespace) -> int:
         before = client.status()
         if args.once:
             time.sleep(args.interval)
-            Console().print(render(client.status(), before, keys=False))
+            # into a pipe or a file: the whole width of every row (rich would cut at 80 columns)
+            piped = None if sys.stdout.isatty() else NO_WIDTH_LIMIT
+            Console(width=piped).print(render(client.status(), before, keys=False))
             return 0
         return _live(client, before, args.interval)
 
