@@ -333,11 +333,13 @@ class LogRecorder(logging.Handler):
     def __init__(self) -> None:
         super().__init__()
         self.messages: list[str] = []
+        self.records: list[logging.LogRecord] = []
         self.cond = threading.Condition()
 
     def emit(self, record: logging.LogRecord) -> None:
         with self.cond:
             self.messages.append(record.getMessage())
+            self.records.append(record)
             self.cond.notify_all()
 
     def having(self, part: str) -> list[str]:

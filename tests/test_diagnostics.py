@@ -4,6 +4,7 @@ domains."""
 
 from __future__ import annotations
 
+import logging
 import threading
 
 import pytest
@@ -140,3 +141,22 @@ def test_asked_for_without_its_plugin_is_named(monkeypatch):
         Engine(config).prepare()
     assert "b.yaml:2: bridge.diagnostics: unknown monitor 'diagnostics'" in str(caught.value)
     assert "fix: pip install rosgate-diagnostics, or remove diagnostics:" in str(caught.value)
+
+
+def test_without_its_plugin_installed_a_bridge_runs_silently(logs):
+    """On by default, not installed (the README's install line leaves it out): nothing to say
+    at INFO or WARNING; -v (DEBUG) still tells."""
+    from rosgate.engine import Engine
+    from rosgate.plugins import Plugins
+
+    plugins = Plugins.discover()
+    plugins._waiting = [ep for ep in plugins._waiting if ep.name != "diagnostics"]
+    logger = logging.getLogger("rosgate")
+    logger.setLevel(logging.DEBUG)
+    engine = Engine(loads("bridge: {name: a, role: server, server: 127.0.0.1:1, insecure: true}",
+                          file="b.yaml"), plugins).prepare()
+    assert engine._monitor_classes == []
+    said = logs.having("a: no diagnostics: ")
+    assert len(said) == 1, logs.messages
+    assert [r.levelno for r in logs.records if "no diagnostics" in r.getMessage()] == \
+        [logging.DEBUG]

@@ -157,8 +157,13 @@ class Engine:
                 message, _ = self.plugins.explain_missing("monitor", name)
                 install = f"pip install {MONITOR_KEYS[name]}"
                 if f"bridge.{name}" not in cfg.lines:  # on by default: the bridge runs without
-                    log.warning("%s: no %s: %s (%s, or set bridge.%s: false)", cfg.name, name,
-                                message, install, name)
+                    # and says so where something stands in the way (a block, a failed import);
+                    # a monitor never installed is one the user did not want: said at -v only
+                    troubled = name in self.plugins.blocked or \
+                        any(f.plugin == name for f in self.plugins.failures)
+                    log.log(logging.WARNING if troubled else logging.DEBUG,
+                            "%s: no %s: %s (%s, or set bridge.%s: false)", cfg.name, name,
+                            message, install, name)
                     continue
                 raise cfg.error(f"bridge.{name}", message, f"{install}, or remove {name}:")
             try:
