@@ -6,7 +6,7 @@ UV := $(shell command -v uv 2>/dev/null || echo .tools/bin/uv)
 VENV := .venv
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 
-.PHONY: demo test lint bench bench-profile sync clean
+.PHONY: demo test lint bench bench-profile sync clean wheels
 
 # --inexact: the ROS wheels ship colcon *.egg-info folders that an exact sync would delete
 # (taking std_msgs/ and friends with them). Bytecode is compiled here, the installed packages' and
@@ -19,6 +19,12 @@ sync: $(UV)
 .tools/bin/uv:
 	$(PYTHON) -m venv .tools
 	.tools/bin/pip install --quiet uv
+
+# every distribution of this repository as a wheel, into $(DIST)/: what `pip install --find-links
+# dist ...` (the README's install line) installs from, until they are on the package index
+DIST ?= dist
+wheels: $(UV)
+	$(UV) build --all-packages --wheel --quiet --out-dir $(DIST)
 
 demo: sync
 	$(VENV)/bin/python examples/demo.py

@@ -383,3 +383,34 @@ def test_check_names_service_errors(config, change, line, key, words):
     text = user_error(rosgate("check", str(path)))
     assert f"{path}:{line}: {key}: " in text
     assert words in text
+
+
+def test_check_on_a_server_prints_what_each_client_may_do(tmp_path):
+    """The policy a server will enforce, a line per rule, in the client's words turned into
+    what it may do here; a client without rules is said to bridge nothing."""
+    keys = [subprocess.run([ROSGATE, "keygen", "identity", "--out", str(tmp_path / f"{n}.key")],
+                           capture_output=True, text=True, timeout=60, check=True).stdout.strip()
+            for n in ("base", "robot1", "robot2", "robot3")]
+    server = tmp_path / "base.yaml"
+    server.write_text(
+        f"bridge: {{name: base, role: server, server: 127.0.0.1:{free_port()}, "
+        f"identity: {tmp_path / 'base.key'}}}\n"
+        "clients:\n"
+        f"  robot1: {{key: {keys[1]}, topics: [{{name: /robot1/**, direction: transmit}}, "
+        "{name: /cmd_vel, direction: receive, types: [geometry_msgs/msg/Twist], ports: [12001, "
+        "12010-12019], ciphers: [aead]}], services: [{name: /reset, direction: transmit}], "
+        "actions: [{name: /fib, direction: receive}]}\n"
+        f"  robot2: {{key: {keys[2]}, topics: [{{name: /robot2/scan, direction: both}}]}}\n"
+        f"  robot3: {{key: {keys[3]}}}\n")
+    result = subprocess.run([ROSGATE, "check", str(server)], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == [
+        f"{server}: ok (server 'base', 0 topic(s), 3 client(s))",
+        "  robot1 may send topic /robot1/**  [any type]  ciphers any, main port only",
+        "  robot1 may take topic /cmd_vel  [geometry_msgs/msg/Twist]  ciphers aead, "
+        "ports 12001, 12010-12019",
+        "  robot1 may call service /reset  [any type]  ciphers any, main port only",
+        "  robot1 may serve goals of action /fib  [any type]  ciphers any, main port only",
+        "  robot2 may send and take topic /robot2/scan  [any type]  ciphers any, main port only",
+        "  robot3 may bridge nothing (no rules: every entry refused)"]

@@ -122,7 +122,9 @@ def test_the_quickstart_works(tmp_path):
         assert result.returncode == 0, (file, result.stdout, result.stderr)
         assert "Traceback" not in result.stderr
         outputs.append(result.stdout)
-    assert "ok (server 'base', 0 topic(s))" in "".join(outputs)
+    assert "ok (server 'base', 0 topic(s), 1 client(s))" in "".join(outputs)
+    assert "  robot1 may send topic /chatter  [any type]  ciphers any, main port only\n" \
+        in "".join(outputs)
     assert "ok (client 'robot1', 1 topic(s))" in "".join(outputs)
     assert "/chatter -> /chatter  [std_msgs/msg/String] udp cdr aead" in "".join(outputs)
 

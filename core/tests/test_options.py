@@ -234,3 +234,15 @@ def test_a_relative_option_is_read_from_the_files_folder(tmp_path):
     assert parse(Paths, {}, tmp_path).folder is None
     assert parse(Paths, {"folder": "certs"}).folder == "certs"  # no file: as given
     assert [row.relative for row in declared(Paths)] == [True, False]
+
+
+def test_a_word_of_another_table_suggests_this_table_s_word():
+    """A client's entry says topic:, a server's rule name:; either in the other's place is
+    answered with the word this table uses, not just the list of keys."""
+    from rosgate.options import did_you_mean, unknown
+
+    assert unknown("topic", ["name", "direction", "types"])[0] == \
+        "unknown key 'topic' (did you mean 'name'?)"
+    assert did_you_mean("name", ["service", "type", "direction"])[0] == "service"
+    assert did_you_mean("type", ["name", "types"])[0] == "types"
+    assert did_you_mean("topicc", ["topic", "type"])[0] == "topic"  # spelling still helps

@@ -157,7 +157,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     assert plan is not None
     print(f"{args.file}: ok ({cfg.role} {cfg.name!r}, {len(cfg.topics)} topic(s)"
           + (f", {len(cfg.services)} service(s)" if cfg.services else "")
-          + (f", {len(cfg.actions)} action(s))" if cfg.actions else ")"))
+          + (f", {len(cfg.actions)} action(s)" if cfg.actions else "")
+          + (f", {len(cfg.clients)} client(s))" if cfg.clients else ")"))
     for p in [*plan.topics, *plan.services]:
         print(_entry_line(p.name, p.key or p.config.remote, p.config, speaks(p)))
     for a in plan.actions:  # three services and two topics each (rosgate.actions)
@@ -166,7 +167,30 @@ def cmd_check(args: argparse.Namespace) -> int:
         print(_entry_line(a.config.action, where, a.config, speaks(calls)))
     for line in report(plan):
         print(line)
+    for name, policy in cfg.clients.items():
+        print(*_policy_lines(name, policy), sep="\n")
     return 0
+
+
+#: what a rule's direction (the client's) lets a client do, by kind of entry
+_MAY = {"topics": {"transmit": "send", "receive": "take", "both": "send and take"},
+        "services": {"transmit": "call", "receive": "serve", "both": "call and serve"},
+        "actions": {"transmit": "send goals to", "receive": "serve goals of",
+                    "both": "send and serve goals of"}}
+
+
+def _policy_lines(client: str, policy: Any) -> list[str]:
+    """What a server lets one client bridge, a line per rule:
+    ``  robot1 may send topic /robot1/**  [geometry_msgs/msg/*]  ciphers any, main port only``"""
+    lines = []
+    for kind in ("topics", "services", "actions"):
+        for rule in getattr(policy, kind):
+            types = ", ".join(rule.types) if rule.types is not None else "any type"
+            ports = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in rule.ports)
+            lines.append(f"  {client} may {_MAY[kind][rule.direction]} {kind[:-1]} {rule.name}  "
+                         f"[{types}]  ciphers {', '.join(rule.ciphers or ['any'])}, "
+                         + (f"ports {ports}" if ports else "main port only"))
+    return lines or [f"  {client} may bridge nothing (no rules: every entry refused)"]
 
 
 def _entry_line(name: str, where: str, c: Any, speaks: str) -> str:

@@ -355,7 +355,16 @@ def show(value: Any) -> str:
     return repr(value)
 
 
+#: the words one table uses for what another says otherwise: a client's entries name their topic
+#: with topic: (service:, action:) and a type with type:, a server's rules with name: and types:
+SAME_IDEA = {"topic": ("name",), "service": ("name",), "action": ("name",), "type": ("types",),
+             "port": ("ports",), "cipher": ("ciphers",), "types": ("type",), "ports": ("port",),
+             "ciphers": ("cipher",), "name": ("topic", "service", "action")}
+
+
 def did_you_mean(word: str, choices: typing.Sequence[str]) -> tuple[str | None, str]:
-    """The closest of ``choices`` to ``word`` (or None), and the hint that names it."""
-    close = difflib.get_close_matches(word, choices, n=1)
+    """The closest of ``choices`` to ``word`` (or None), and the hint that names it: a word of
+    the same idea in another table first, then the closest spelling."""
+    close = [w for w in SAME_IDEA.get(word, ()) if w in choices] or \
+        difflib.get_close_matches(word, choices, n=1)
     return (close[0], f" (did you mean '{close[0]}'?)") if close else (None, "")
