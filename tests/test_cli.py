@@ -74,9 +74,14 @@ def test_check_accepts_a_good_file(config):
     (("    port:", "    codec: yaml\n    port:"), 10, "topics[0].codec",
      "pip install the distribution that provides it (by convention rosgate-codec-yaml)"),
     # message type that does not exist / package not installed
-    (("std_msgs/msg/String", "std_msgs/msg/Strin"), 8, "topics[0].type", "has no msg 'Strin'"),
+    (("std_msgs/msg/String", "std_msgs/msg/Strin"), 8, "topics[0].type",
+     "has no msg 'Strin' (did you mean 'String'?)"),
     (("std_msgs/msg/String", "robot_msgs/msg/Arm"), 8, "topics[0].type",
-     "'robot_msgs' is not installed"),
+     "'robot_msgs' is not installed (apt install ros-$ROS_DISTRO-robot-msgs, or pip install "
+     "ros-jazzy-robot-msgs)"),
+    # a package misspelt is not one to install: the installed one it resembles is named
+    (("std_msgs/msg/String", "std_msg/msg/String"), 8, "topics[0].type",
+     "interface package 'std_msg' is not installed (did you mean 'std_msgs'?)\n"),
     # a cipher whose key is missing
     (("    port:", "    cipher: fernet\n    port:"), 10, "topics[0].cipher",
      "fernet: fernet needs exactly one of key_file or key_env"),

@@ -362,9 +362,11 @@ SAME_IDEA = {"topic": ("name",), "service": ("name",), "action": ("name",), "typ
              "ciphers": ("cipher",), "name": ("topic", "service", "action")}
 
 
-def did_you_mean(word: str, choices: typing.Sequence[str]) -> tuple[str | None, str]:
+def did_you_mean(word: str, choices: typing.Sequence[str],
+                 cutoff: float = 0.6) -> tuple[str | None, str]:
     """The closest of ``choices`` to ``word`` (or None), and the hint that names it: a word of
-    the same idea in another table first, then the closest spelling."""
+    the same idea in another table first, then the closest spelling (``cutoff``: how close, 0 to
+    1, as difflib measures)."""
     close = [w for w in SAME_IDEA.get(word, ()) if w in choices] or \
-        difflib.get_close_matches(word, choices, n=1)
+        difflib.get_close_matches(word, choices, n=1, cutoff=cutoff)
     return (close[0], f" (did you mean '{close[0]}'?)") if close else (None, "")

@@ -19,6 +19,7 @@ from typing import Any
 
 from .batch import Batches
 from .errors import CodecError
+from .options import did_you_mean
 
 _log = logging.getLogger("rosgate")
 
@@ -41,8 +42,11 @@ def resolve_type(name: str) -> type:
         raise TypeNotFound(f"{name!r} is not an interface name of the form pkg/msg/Type")
     package, kind, type_name = match.groups()
     dashed = package.replace("_", "-")
-    missing = TypeNotFound(f"interface package {package!r} is not installed (apt install "
-                           f"ros-$ROS_DISTRO-{dashed}, or pip install ros-jazzy-{dashed})")
+    # one letter off an installed package (std_msg): a typo, not a package to install
+    close, hint = did_you_mean(package, interface_packages(), cutoff=0.85)
+    missing = TypeNotFound(f"interface package {package!r} is not installed{hint}" + (
+        "" if close else f" (apt install ros-$ROS_DISTRO-{dashed}, or pip install "
+        f"ros-jazzy-{dashed})"))
     if not is_interface_package(package, kind):
         raise missing
     try:
@@ -56,9 +60,22 @@ def resolve_type(name: str) -> type:
         cls = getattr(impl, _ACTION_PARTS.get(part, ""), None)
     if not isinstance(cls, type):
         known = sorted(n for n in dir(module) if n[:1].isupper() and not n.startswith("Metaclass"))
-        raise TypeNotFound(f"package {package!r} has no {kind} {type_name!r} "
+        hint = did_you_mean(type_name, known)[1]
+        raise TypeNotFound(f"package {package!r} has no {kind} {type_name!r}{hint} "
                            f"(it has: {', '.join(known)})")
     return cls
+
+
+def interface_packages() -> list[str]:
+    """The ROS interface packages installed here, as the ament resource index lists them (this
+    Python's prefix and AMENT_PREFIX_PATH's): what a misspelt package name is compared with."""
+    prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    found: set[str] = set()
+    for prefix in [*prefixes, sys.prefix]:
+        index = Path(prefix) / "share" / "ament_index" / "resource_index" / "rosidl_interfaces"
+        if index.is_dir():
+            found.update(entry.name for entry in index.iterdir())
+    return sorted(found)
 
 
 def is_interface_package(package: str, kind: str) -> bool:
