@@ -198,3 +198,37 @@ def test_the_summary_line_counts_what_happened_since_the_last_one():
     # the first line counts from the start
     assert summary(before, None) == "r: last 10 s: 2 topic(s), 0 service(s), sent 5, " \
         "received 1 (600 B); drops rate_limit=2"
+
+
+def test_counters_and_the_summary_line_go_on_across_a_new_policy(engines, domain, ros_side,
+                                                                  logs):
+    """A new policy (SIGHUP) that refuses a client's topic and another that allows it again
+    tear its routes down and build them anew: the counters of a route that comes back go on
+    from where they were, on both sides, and the summary line never says a negative count."""
+    from dataclasses import replace
+
+    from rosgate.config.schema import Rule
+    from rosgate.status import summary
+
+    server, client, ds, dc = pair(engines, domain, free_port())
+    publisher = Publisher(ros_side(dc, "robot"), 100)
+    listener = ros_side(ds, "base").listen("/flow", String)
+    try:
+        assert listener.wait_count(50, 20), "nothing crossed"
+        before = {"base": server.status(), "robot1": client.status()}
+        policy = server.config.clients["robot1"]  # /flow refused a while, then allowed again
+        server.role.reload({"robot1": replace(policy, topics=(Rule("/quiet", "both"),))})
+        assert logs.wait("client 'robot1': the new policy changed its entries", 1, 10)
+        assert logs.wait("robot1: the server refused topics[0] (/flow)", 1, 10)
+        server.role.reload({"robot1": policy})
+        assert logs.wait("client 'robot1': the new policy changed its entries", 2, 10)
+        count = len(listener.items)
+        assert listener.wait_count(count + 50, 20), "nothing crossed after the new policy"
+        after = {"base": server.status(), "robot1": client.status()}
+    finally:
+        publisher.close()
+    for side, key in (("base", "received"), ("robot1", "sent")):
+        then, now = entry(before[side], "/flow")[key], entry(after[side], "/flow")[key]
+        assert now >= then + 50, (side, then, now)
+        line = summary(after[side], before[side])
+        assert "-" not in line.split(": last ")[1].split(";")[0], line

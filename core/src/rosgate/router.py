@@ -21,7 +21,15 @@ from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, type_hash
-from .routes import BareFraming, BarePort, EnvelopeFraming, ReceiveRoute, Route, TransmitRoute
+from .routes import (
+    BareFraming,
+    BarePort,
+    Counters,
+    EnvelopeFraming,
+    ReceiveRoute,
+    Route,
+    TransmitRoute,
+)
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
 from .spec import ServiceSpec, TopicSpec
 from .transport import Address, StreamTransport
@@ -42,6 +50,10 @@ _NOT_DATA = (envelope.FLAG_HELLO | envelope.FLAG_REQUEST | envelope.FLAG_REPLY
              | envelope.FLAG_ANNOUNCE)
 
 
+#: the most counters of removed routes kept for the routes that replace them
+MAX_RETIRED = 10_000
+
+
 def fixed(address: Address | None) -> Destination:
     """A destination that never changes (a configured peer, a server's port)."""
     return lambda: address
@@ -59,6 +71,9 @@ class Router:
         self.callers: dict[int, CallerRoute] = {}
         self.servers: dict[int, ServerRoute] = {}
         self.routes: list[Route] = []
+        #: the counters of routes taken down, by kind and label, for the route that replaces
+        #: one (a reconnect, a new policy, a QoS change): a bridge's counters only grow
+        self._retired: dict[tuple[type, str], Counters] = {}
         self.link_drops: Counter = Counter()
         #: a role that takes hellos (the server) sets this; elsewhere a hello is foreign
         self.on_hello: HelloHandler | None = None
@@ -148,6 +163,9 @@ class Router:
     def _add(self, route: Route, table: dict[int, Any] | None, route_id: int) -> None:
         """A new route, found by ``route_id`` in ``table`` (None: found otherwise, or never)."""
         with self._lock:
+            carried = self._retired.pop((type(route), route.label), None)
+            if carried is not None:
+                route.counters = carried
             self.routes.append(route)
             if table is not None:
                 table[route_id] = route
@@ -204,6 +222,8 @@ class Router:
             self._forget(route)
             if route in self.routes:
                 self.routes.remove(route)
+                if len(self._retired) < MAX_RETIRED:  # labels come from clients' entries
+                    self._retired[(type(route), route.label)] = route.counters
         if route.entity is not None:
             self.ros.destroy(route.entity)
             route.entity = None
