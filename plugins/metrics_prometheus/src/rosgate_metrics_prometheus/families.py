@@ -26,11 +26,60 @@ LINK_COUNTERS = (
 )
 
 
+#: the most link labels a bridge's metrics carry: past them, connections share OTHER_LINKS
+MAX_LINK_LABELS = 1000
+OTHER_LINKS = "main<-other"
+
+
+def link_label(name: str) -> str:
+    """A link's label: its name, without the far end's port where the far end dialled in
+    (``main<-192.168.1.7:58102`` -> ``main<-192.168.1.7``): a reconnect's new port would start
+    a new series each time."""
+    head, arrow, far = name.rpartition("<-")
+    return f"{head}{arrow}{far.rpartition(':')[0]}" if arrow and ":" in far else name
+
+
+class LinkTotals:
+    """Link counters by label, across the connections that came and went under it: a label's
+    counter is what its connections that closed carried plus what the open ones carry now, so
+    it only grows."""
+
+    def __init__(self) -> None:
+        self.closed: dict[str, dict[str, int]] = {}  # label -> field -> carried by closed links
+        self.last: dict[str, dict[str, Any]] = {}  # link name -> its last status
+
+    def add(self, links: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+        now = {link["name"]: link for link in links}
+        for name, link in self.last.items():
+            if name not in now:
+                carried = self.closed.setdefault(self._label(name), {})
+                for field, _, _ in LINK_COUNTERS:
+                    carried[field] = carried.get(field, 0) + link[field]
+        self.last = now
+        rows: dict[str, dict[str, Any]] = {}
+        for label, carried in self.closed.items():
+            rows[label] = {"up": 0, "queue": 0, **carried}
+        for name, link in now.items():
+            row = rows.setdefault(self._label(name), {"up": 0, "queue": 0})
+            row["up"] = max(row["up"], int(link["up"]))
+            row["queue"] += link["queue"]
+            for field, _, _ in LINK_COUNTERS:
+                row[field] = row.get(field, 0) + link[field]
+        return rows
+
+    def _label(self, name: str) -> str:
+        label = link_label(name)
+        if label in self.closed or len(self.closed) < MAX_LINK_LABELS or label == name:
+            return label
+        return OTHER_LINKS
+
+
 class StatusCollector(Collector):
     """The families of one bridge's status, read at each scrape."""
 
     def __init__(self, status: Callable[[], dict[str, Any]]):
         self.status = status
+        self.links = LinkTotals()
 
     def collect(self) -> Iterator[Any]:
         status = self.status()
@@ -43,7 +92,7 @@ class StatusCollector(Collector):
             if e["refused"] is not None:
                 refused.add_metric(_labels(bridge, e), 1)
         yield refused
-        yield from link_families(bridge, status)
+        yield from link_families(bridge, status, self.links.add(status["links"]))
         uptime = GaugeMetricFamily("rosgate_uptime_seconds", "Seconds since the bridge started",
                                    labels=["bridge"])
         uptime.add_metric([bridge], status["uptime"])
@@ -76,15 +125,16 @@ def entry_families(bridge: str, entries: list[dict[str, Any]]) -> Iterator[Any]:
     yield from (drops, queue, stale)
 
 
-def link_families(bridge: str, status: dict[str, Any]) -> Iterator[Any]:
+def link_families(bridge: str, status: dict[str, Any],
+                  links: dict[str, dict[str, Any]]) -> Iterator[Any]:
     up = GaugeMetricFamily("rosgate_link_up", "1 while a link is up", labels=["bridge", "link"])
     queue = GaugeMetricFamily("rosgate_link_queue_depth", "Messages waiting in a link",
                               labels=["bridge", "link"])
     counters = [(field, CounterMetricFamily(name, doc, labels=["bridge", "link"]))
                 for field, name, doc in LINK_COUNTERS]
-    for link in status["links"]:
-        labels = [bridge, link["name"]]
-        up.add_metric(labels, int(link["up"]))
+    for label, link in links.items():
+        labels = [bridge, label]
+        up.add_metric(labels, link["up"])
         queue.add_metric(labels, link["queue"])
         for field, family in counters:
             family.add_metric(labels, link[field])
