@@ -176,3 +176,29 @@ def test_every_command_is_in_the_commands_page():
     rows = (ROOT / "docs" / "commands.md").read_text()
     missing = [verb for verb in verbs if f"| `rosgate {verb}" not in rows]
     assert not missing, f"docs/commands.md has no row for: {missing}"
+
+
+def test_the_readme_s_numbers_come_from_the_pages_that_measured_them():
+    """The README quotes the benchmark page, not numbers of its own; and it says the same time
+    for make test as the contributing page."""
+    readme = " ".join(README.read_text().split())
+    bench = " ".join((ROOT / "docs" / "benchmark.md").read_text().split())
+    quoted = re.findall(r"(\d[\d,]*) msg/s", readme) + re.findall(r"(\d[\d,]*) reliable", readme)
+    assert quoted, "the README quotes the benchmark's rate"
+    for number in quoted:
+        assert number in bench, f"README quotes {number} msg/s, which docs/benchmark.md does not"
+    for ratio in re.findall(r"(0\.\d+)x bare", readme):
+        assert f"{ratio}x" in bench, f"README quotes {ratio}x, which docs/benchmark.md does not"
+    minutes = {page.name: re.findall(r"about (\d+) min", " ".join(page.read_text().split()))
+               for page in (README, ROOT / "docs" / "contributing.md")}
+    assert len({tuple(m) for m in minutes.values()}) == 1 and all(minutes.values()), minutes
+
+
+def test_the_readme_names_only_roles_a_file_can_say():
+    """`role:` takes client, server or peer: the README calls nothing else a role."""
+    from rosgate.config.schema import Role
+
+    said = re.findall(r"`role: (\w+)`", README.read_text())
+    assert said and set(said) <= {str(r) for r in Role}, said
+    headings = re.findall(r"^## (.*roles?.*)$", README.read_text(), re.MULTILINE | re.IGNORECASE)
+    assert all("three" not in h.lower() for h in headings), headings
