@@ -4,6 +4,7 @@ and key, exit status 2, never a traceback."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import stat
@@ -419,3 +420,19 @@ def test_check_on_a_server_prints_what_each_client_may_do(tmp_path):
         "  robot1 may serve goals of action /fib  [any type]  ciphers any, main port only",
         "  robot2 may send and take topic /robot2/scan  [any type]  ciphers any, main port only",
         "  robot3 may bridge nothing (no rules: every entry refused)"]
+
+
+def test_a_running_bridge_s_log_lines_carry_the_time_and_its_name(tmp_path, domain, bridge):
+    """ISO 8601 to the millisecond with the zone's offset, then who speaks: an operator greps
+    one bridge's lines and times a reconnect from the log alone."""
+    peer = tmp_path / "peer.yaml"
+    peer.write_text("bridge: {name: far, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, "
+                    "insecure: true}\ntopics:\n  - {topic: /x, type: std_msgs/msg/String, "
+                    f"direction: transmit, port: {free_port()}}}\n")
+    running = bridge(peer, domain())
+    line = next(x for x in running.lines if "running as" in x)
+    stamp, _, rest = line.partition(" ")
+    when = time.strptime(stamp[:19], "%Y-%m-%dT%H:%M:%S")
+    assert abs(time.mktime(when) - time.time()) < 300, line
+    assert re.fullmatch(r"\.\d{3}[+-]\d{4}", stamp[19:]), line
+    assert rest.startswith("[rosgate far] INFO "), line

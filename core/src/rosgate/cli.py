@@ -53,10 +53,10 @@ def main(argv: list[str] | None = None) -> int:
     # a running bridge's lines carry the time to the millisecond (ISO 8601, local time with its
     # offset), so a reconnect can be timed from the log alone; a one-shot verb's are its answer
     stamp = "" if quiet else "%(asctime)s.%(msecs)03d%(tz)s "
-    logging.basicConfig(level=level, format=f"{stamp}[rosgate] %(levelname)s %(message)s",
+    logging.basicConfig(level=level, format=f"{stamp}[%(who)s] %(levelname)s %(message)s",
                         datefmt="%Y-%m-%dT%H:%M:%S", stream=sys.stderr)
     for handler in logging.getLogger().handlers:
-        handler.addFilter(_zone)
+        handler.addFilter(_STAMP)
     try:
         return int(args.run(args))
     except RosgateError as exc:
@@ -74,10 +74,20 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
 
 
-def _zone(record: logging.LogRecord) -> bool:
-    """Gives a log record the local time's offset from UTC (``+0100``), as ISO 8601 writes it."""
-    record.tz = time.strftime("%z", time.localtime(record.created))
-    return True
+class _Stamp(logging.Filter):
+    """Gives a log record the local time's offset from UTC (``+0100``, as ISO 8601 writes it)
+    and who says it: ``rosgate``, then ``rosgate robot1`` once a bridge's file is read, so the
+    lines of several bridges in one journal or one terminal tell apart."""
+
+    who = "rosgate"
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        record.tz = time.strftime("%z", time.localtime(record.created))
+        record.who = self.who
+        return True
+
+
+_STAMP = _Stamp()
 
 
 def _parser() -> tuple[argparse.ArgumentParser, Any]:
@@ -240,6 +250,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     keep_large_buffers()
     profile = large_shared_memory()
     engine = _engine(args.file, domain_id=args.domain_id)
+    _STAMP.who = f"rosgate {engine.config.name}"
     signals = stop_on_signals(signal.SIGHUP)  # SIGHUP: a server applies its clients: again
     # kill -USR1 <pid>: every thread's stack to stderr, from C, even when a thread holds the GIL
     # (for a bridge that does not stop or does not answer)
