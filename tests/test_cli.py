@@ -436,3 +436,51 @@ def test_a_running_bridge_s_log_lines_carry_the_time_and_its_name(tmp_path, doma
     assert abs(time.mktime(when) - time.time()) < 300, line
     assert re.fullmatch(r"\.\d{3}[+-]\d{4}", stamp[19:]), line
     assert rest.startswith("[rosgate far] INFO "), line
+
+
+def _installed(tmp_path: Path, name: str, source: str) -> dict[str, str]:
+    """A plugin installed as a distribution would be (a dist-info with its entry point, its
+    module beside it); the environment that finds it."""
+    site = tmp_path / "site"
+    dist = site / f"rosgate_{name}-1.0.dist-info"
+    dist.mkdir(parents=True)
+    (dist / "METADATA").write_text(f"Metadata-Version: 2.1\nName: rosgate-{name}\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text(f"[rosgate]\n{name} = rosgate_{name}\n")
+    (site / f"rosgate_{name}.py").write_text(source)
+    return {"PYTHONPATH": str(site)}
+
+
+def test_a_plugin_of_the_first_api_that_imports_the_old_kit_is_told_where_it_went(tmp_path):
+    """Written from the first release's docs: its tests' kit was rosgate.testing. It is refused
+    by name, with the API version and the one-line fix, and the rest work."""
+    env = _installed(tmp_path, "oldcodec", "from rosgate.testing import codec_suite\n")
+    listing = rosgate("plugins", env=env)
+    assert listing.returncode == 0
+    assert ("failed to load plugin 'oldcodec' (rosgate-oldcodec): ModuleNotFoundError: No module "
+            "named 'rosgate.testing'") in listing.stdout
+    assert ("since rosgate plugin API 2: the plugin kit is a distribution of its own: pip "
+            "install rosgate-testing, and import rosgate_testing (docs/plugin-api.md)") \
+        in listing.stdout
+    assert ("codec", "cdr", "rosgate") in {tuple(line.split()[:3])
+                                           for line in listing.stdout.splitlines()}
+
+
+def test_a_plugin_written_for_a_newer_api_is_refused_by_name_with_the_version(tmp_path):
+    env = _installed(tmp_path, "future", "ROSGATE_API = 3\n"
+                     "from rosgate import hookimpl\n"
+                     "@hookimpl\ndef rosgate_codecs(register):\n    raise AssertionError\n")
+    listing = rosgate("plugins", env=env)
+    assert listing.returncode == 0
+    assert ("failed to load plugin 'future' (rosgate-future): written for rosgate plugin API 3; "
+            "this rosgate serves API 2: upgrade rosgate") in listing.stdout
+
+
+def test_a_plugin_that_says_the_api_of_this_rosgate_loads(tmp_path):
+    env = _installed(tmp_path, "current", "ROSGATE_API = 2\n"
+                     "from rosgate import Command, hookimpl\n"
+                     "def hello(args):\n    print('hello')\n    return 0\n"
+                     "@hookimpl\ndef rosgate_commands(register):\n"
+                     "    register(Command('hello', 'says hello', hello))\n")
+    listing = rosgate("plugins", env=env)
+    assert "failed to load plugin 'current'" not in listing.stdout, listing.stdout
+    assert rosgate("hello", env=env).stdout == "hello\n"

@@ -407,7 +407,7 @@ def test_a_transport_of_no_kind_is_refused():
     plugins.add(plugin(rosgate_transports=registers(Undecided)), "undecided")
     assert [f.reason for f in plugins.failures] == [
         "Undecided is no kind of link (subclass DatagramTransport, StreamTransport or "
-        "BusTransport)"]
+        "BusTransport, since rosgate plugin API 2: docs/plugin-api.md)"]
 
 
 def test_options_that_are_not_a_frozen_dataclass_are_refused():
@@ -438,7 +438,8 @@ def test_a_transport_that_says_its_kind_by_an_attribute_is_refused():
     assert plugins.get("transport", "old") is None
     assert plugins.failures == [Failure("old", "rosgate-transport-old", "Old is no kind of link "
                                         "(subclass DatagramTransport, StreamTransport or "
-                                        "BusTransport)")]
+                                        "BusTransport, since rosgate plugin API 2: "
+                                        "docs/plugin-api.md)")]
 
 
 def test_a_transport_without_options_registers_and_takes_none():

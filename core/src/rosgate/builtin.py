@@ -16,7 +16,7 @@ from .codec import Codec
 from .drops import Drop, Reason
 from .errors import CodecError
 from .hookspecs import hookimpl
-from .packetizer import Packet, Packetizer, PacketLink
+from .packetizer import PARTIAL_COST, Packet, Packetizer, PacketLink
 from .transport import Address
 from .wire.framing import (
     DEFAULT_MAX_MESSAGE,
@@ -108,9 +108,6 @@ class _Source:
     cost: int = 0
 
 
-#: what a partial frame costs beyond its bytes (its objects, its entries in the tables):
-#: measured with tracemalloc (core/tests/test_framing.py checks the accounting covers it)
-PARTIAL_COST = 1024
 #: what a fragment kept aside costs beyond its bytes (a bytes object, a dict entry)
 ASIDE_COST = 128
 

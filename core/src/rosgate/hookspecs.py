@@ -12,6 +12,10 @@ says. Each hook hands a ``register`` callback, called once per class provided; t
 registering one name are reported and the second is skipped. Hooks are called once, when the
 plugin loads, always with keyword arguments (omit the parameters you do not use); one that
 raises fails the plugin, keeping nothing it registered. Results are not used.
+
+A plugin module may say which version of the plugin API it was written for
+(``ROSGATE_API = 2``, see :data:`API_VERSION`); a newer one than this rosgate serves is refused
+by name, with the version.
 """
 
 from __future__ import annotations
@@ -29,6 +33,10 @@ from .packetizer import Packetizer
 from .service_framing import ServiceFraming
 from .transform import Transform
 from .transport import Transport
+
+#: the plugin API's version: what ``rosgate`` exports (``rosgate.__all__``) and the hooks here.
+#: 1 was the first release's; what changed since, with the one-line fix, is docs/plugin-api.md
+API_VERSION = 2
 
 hookspec = pluggy.HookspecMarker("rosgate")
 hookimpl = pluggy.HookimplMarker("rosgate")

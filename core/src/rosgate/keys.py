@@ -63,3 +63,14 @@ def describe_source(options: KeyOptions) -> str:
     if options.key_file is not None:
         return f"file {options.key_file!r}"
     return f"variable {options.key_env!r}"
+
+
+def identity_public_key(path: Path, make: bool = False) -> str:
+    """The public key (base64, as files write it) of the identity file at ``path``, which is made
+    first (mode 0600) when ``make`` and there is none. A file that cannot be used raises a
+    ValueError whose ``fix`` says what to do."""
+    from . import identity  # here: its cryptography takes a while to import
+
+    if make and not path.exists():
+        identity.write_private(path, identity.generate())
+    return identity.encode(identity.public_of(identity.load_private(path)))

@@ -24,6 +24,10 @@ from typing import Any, ClassVar, Protocol
 from .drops import Reason
 from .transport import Address
 
+#: what a reassembler's partial frame costs beyond its bytes (its objects, its entries in the
+#: tables): measured with tracemalloc (core/tests/test_framing.py checks the accounting covers it)
+PARTIAL_COST = 1024
+
 #: a packet as :meth:`Packetizer.cut` may give it: bytes, or the parts of one packet (a header
 #: and a view of the frame), which the link sends without joining them where the transport can
 Packet = bytes | tuple[bytes | memoryview, ...]

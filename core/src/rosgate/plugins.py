@@ -172,6 +172,10 @@ class Plugins:
         with self._lock:
             if self.manager.has_plugin(plugin):
                 return fail("a plugin of this name is already loaded")
+            written_for = getattr(module, "ROSGATE_API", hookspecs.API_VERSION)
+            if not isinstance(written_for, int) or written_for > hookspecs.API_VERSION:
+                return fail(f"written for rosgate plugin API {written_for!r}; this rosgate "
+                            f"serves API {hookspecs.API_VERSION}: upgrade rosgate")
             try:
                 self.manager.register(module, name=plugin)
             except Exception as exc:  # pluggy refuses a hook taking arguments the spec lacks
@@ -316,7 +320,8 @@ def _check_class(cls: Any, base: type) -> str | None:
     if base is Transport and not issubclass(cls, (DatagramTransport, StreamTransport,
                                                   BusTransport)):
         return f"{cls.__name__} is no kind of link (subclass DatagramTransport, StreamTransport " \
-               "or BusTransport)"
+               f"or BusTransport, since rosgate plugin API {hookspecs.API_VERSION}: " \
+               "docs/plugin-api.md)"
     if base is Transform:
         wire_id = getattr(cls, "wire_id", None)
         if not isinstance(wire_id, int) or isinstance(wire_id, bool) or not 1 <= wire_id <= 255:
@@ -339,8 +344,23 @@ def _misspelt(names: list[str]) -> str:
     return f"unknown hook {', '.join(parts)}; the hooks are {', '.join(hooks)}"
 
 
+#: modules of the first release's plugin API (API 1) that moved, and where to
+MOVED = {"rosgate.testing": "the plugin kit is a distribution of its own: pip install "
+                            "rosgate-testing, and import rosgate_testing"}
+
+
 def _reason(exc: BaseException) -> str:
     last = traceback.extract_tb(exc.__traceback__)[-1:]
     where = f" ({last[0].filename}:{last[0].lineno})" if last else ""
     text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
-    return f"{type(exc).__name__}: {text}{where}"
+    return f"{type(exc).__name__}: {text}{where}{_api_hint(exc)}"
+
+
+def _api_hint(exc: BaseException) -> str:
+    """What a plugin written for an older plugin API runs into, and its fix."""
+    name = getattr(exc, "name", None) if isinstance(exc, ImportError) else None
+    if not name or not name.startswith("rosgate."):
+        return ""
+    fix = MOVED.get(name, "import what a plugin needs from rosgate itself (rosgate.__all__); "
+                          "the core's other modules are not the plugin API")
+    return f" — since rosgate plugin API {hookspecs.API_VERSION}: {fix} (docs/plugin-api.md)"

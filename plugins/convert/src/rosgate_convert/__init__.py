@@ -16,7 +16,7 @@ from pathlib import Path
 
 import yaml
 
-from rosgate import Command, ConfigError, hookimpl
+from rosgate import Command, ConfigError, hookimpl, identity_public_key
 
 from .legacy import Converted, convert
 
@@ -34,15 +34,10 @@ def arguments(parser: argparse.ArgumentParser) -> None:
 
 def _identity(path: Path) -> str:
     """The public key of the identity at ``path``, made first if there is none."""
-    # here, not at the top: its cryptography takes a while, and only `rosgate convert` needs it
-    from rosgate import identity as identities
-
-    if not path.exists():
-        identities.write_private(path, identities.generate())
     try:
-        return identities.encode(identities.public_of(identities.load_private(path)))
-    except identities.IdentityError as exc:
-        raise ConfigError(str(exc), file=str(path), fix=exc.fix) from None
+        return identity_public_key(path, make=True)
+    except ValueError as exc:
+        raise ConfigError(str(exc), file=str(path), fix=getattr(exc, "fix", None)) from None
 
 
 def _write(path: Path, header: str, data: dict, force: bool) -> None:

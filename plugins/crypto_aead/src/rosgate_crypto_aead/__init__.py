@@ -36,8 +36,16 @@ from pathlib import Path
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 
-from rosgate import Cipher, CipherError, OptionError, hookimpl
-from rosgate.keys import KeyOptions, describe_source, key_source, load_key
+from rosgate import (
+    Cipher,
+    CipherError,
+    KeyOptions,
+    OptionError,
+    describe_source,
+    hookimpl,
+    key_source,
+    load_key,
+)
 
 KEY_SIZE = 32
 NONCE = 12

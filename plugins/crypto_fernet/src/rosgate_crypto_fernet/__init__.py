@@ -27,8 +27,16 @@ from pathlib import Path
 
 from cryptography.fernet import Fernet, InvalidToken
 
-from rosgate import Cipher, CipherError, OptionError, hookimpl
-from rosgate.keys import KeyOptions, describe_source, key_source, load_key
+from rosgate import (
+    Cipher,
+    CipherError,
+    KeyOptions,
+    OptionError,
+    describe_source,
+    hookimpl,
+    key_source,
+    load_key,
+)
 
 
 class FernetCipher(Cipher):

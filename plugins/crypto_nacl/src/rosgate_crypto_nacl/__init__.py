@@ -38,8 +38,16 @@ from importlib.util import find_spec
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rosgate import Cipher, CipherError, OptionError, hookimpl
-from rosgate.keys import KeyOptions, describe_source, key_source, load_key
+from rosgate import (
+    Cipher,
+    CipherError,
+    KeyOptions,
+    OptionError,
+    describe_source,
+    hookimpl,
+    key_source,
+    load_key,
+)
 
 if TYPE_CHECKING:
     from nacl.secret import SecretBox

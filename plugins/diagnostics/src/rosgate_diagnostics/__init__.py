@@ -22,8 +22,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from rosgate import Monitor, hookimpl
-from rosgate.monitor import Status
+from rosgate import Monitor, Status, hookimpl
 
 log = logging.getLogger("rosgate")
 

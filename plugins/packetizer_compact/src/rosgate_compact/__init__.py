@@ -45,13 +45,19 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 from typing import Any
 
-from rosgate import Packetizer, PacketLink, hookimpl
-from rosgate.builtin import PARTIAL_COST
-from rosgate.drops import Drop, Reason
-from rosgate.packetizer import Packet
-from rosgate.transport import Address
-from rosgate.wire import envelope
-from rosgate.wire.framing import DEFAULT_MAX_MESSAGE, FramingError
+from rosgate import (
+    DEFAULT_MAX_MESSAGE,
+    PARTIAL_COST,
+    Address,
+    Drop,
+    FramingError,
+    Packet,
+    Packetizer,
+    PacketLink,
+    Reason,
+    hookimpl,
+    topic_of,
+)
 
 __all__ = ["Compact", "CompactReassembler", "compact_fragment"]
 
@@ -224,7 +230,7 @@ class Compact(Packetizer):
 
     def __init__(self, link: PacketLink):
         super().__init__(link)
-        self.reassembler = CompactReassembler(link.lost, envelope.topic_of,
+        self.reassembler = CompactReassembler(link.lost, topic_of,
                                               max_message=link.max_message)
         self._counters: dict[Address, int] = {}  # the next piece's counter per destination
 

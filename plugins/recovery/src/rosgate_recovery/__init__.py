@@ -24,8 +24,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from rosgate import OptionError, Packetizer, PacketLink, hookimpl, option
-from rosgate.wire.framing import FRAGMENT
+from rosgate import FRAGMENT, OptionError, Packetizer, PacketLink, hookimpl, option
 
 from . import wire
 

@@ -58,8 +58,14 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
-from rosgate.drops import Drop, Reason
-from rosgate.wire.framing import DEFAULT_MAX_MESSAGE, FINISHED_REMEMBERED, FRAGMENT, FramingError
+from rosgate import (
+    DEFAULT_MAX_MESSAGE,
+    FINISHED_REMEMBERED,
+    FRAGMENT,
+    Drop,
+    FramingError,
+    Reason,
+)
 
 FEC = struct.Struct(">2sIIIHHBBB")
 FEC_MAGIC = b"RE"

@@ -14,8 +14,8 @@ import json
 import socket
 from typing import Any
 
-from rosgate import RosgateError
-from rosgate.runtime import SUFFIX, runtime_dir, socket_path
+from rosgate import SOCKET_SUFFIX as SUFFIX
+from rosgate import RosgateError, runtime_dir, socket_path
 
 
 class NoBridge(RosgateError):

@@ -9,8 +9,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
-from rosgate import Packetizer, PacketLink, hookimpl
-from rosgate.wire.framing import FramingError
+from rosgate import FramingError, Packetizer, PacketLink, hookimpl
 
 HEADER = struct.Struct(">2sIIB")  # magic, topic id, frame id, copy (0 or 1)
 
