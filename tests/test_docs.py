@@ -202,3 +202,13 @@ def test_the_readme_names_only_roles_a_file_can_say():
     assert said and set(said) <= {str(r) for r in Role}, said
     headings = re.findall(r"^## (.*roles?.*)$", README.read_text(), re.MULTILINE | re.IGNORECASE)
     assert all("three" not in h.lower() for h in headings), headings
+
+
+def test_the_plugin_guide_shows_what_plugins_options_prints():
+    """The guide's sample of `rosgate plugins --options udp` is the command's own output."""
+    page = (ROOT / "docs" / "plugins.md").read_text()
+    shown = page.split("`rosgate plugins --options NAME` prints what a plugin declares:")[1]
+    shown = shown.split("```\n", 2)[1]
+    printed = subprocess.run([ROSGATE, "plugins", "--options", "udp"], capture_output=True,
+                             text=True, timeout=60, check=True).stdout
+    assert shown == printed

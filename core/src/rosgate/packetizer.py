@@ -89,7 +89,7 @@ class Packetizer(ABC):
     def cut(self, frame: bytes, sender: Any, to: Address, options: Any) -> list[Packet]:
         """The packets of ``frame`` for ``to``, each at most ``link.max_frame`` bytes; put
         ``sender.topic_id`` in them, so a frame lost on the way is counted against its topic.
-        ``options``: the topic's ``Options``. Raise :class:`rosgate.wire.framing.FramingError`
+        ``options``: the topic's ``Options``. Raise :class:`rosgate.FramingError`
         for a frame it cannot cut (counted ``send_error``)."""
 
     def sent(self, packet: bytes, to: Address, now: float) -> None:
@@ -101,7 +101,7 @@ class Packetizer(ABC):
     @abstractmethod
     def feed(self, packet: bytes | memoryview, source: Address, now: float) -> bytes | None:
         """Take one packet from the network (a view valid during the call: copy what you keep);
-        the frame when it completes one. Raise :class:`rosgate.wire.framing.FramingError` for a
+        the frame when it completes one. Raise :class:`rosgate.FramingError` for a
         malformed one (counted ``bad_fragment``); keep what you hold bounded in time and memory,
         counting every frame given up with ``link.lost``."""
 

@@ -208,7 +208,7 @@ class _Builder:
                 if type(value) is not bool:
                     raise invalid("expected boolean", value)
                 return value
-            return _Converter(self.pack, decode_bool, _same)
+            return _Converter(self.pack, decode_bool, _of_kind(bool))
         if typename == "octet":
             pack = self.pack
 
@@ -231,7 +231,7 @@ class _Builder:
                 if type(value) is not int or not low <= value <= high:
                     raise invalid(expected, value)
                 return value
-            return _Converter(self.pack, decode_int, _same)
+            return _Converter(self.pack, decode_int, _of_kind(int))
         # char, wchar, long double, short, long ...: IDL-only types that no .msg can declare
         raise CodecError(f"the {self.wire.name} mapping does not support the IDL type {typename!r}")
 
@@ -257,7 +257,7 @@ class _Builder:
             if single and FLOAT32_MAX < abs(number) < math.inf:
                 raise TreeError(f"expected float (within +-{FLOAT32_MAX:g}), got {value!r}")
             return number
-        return _Converter(encode, decode, _same)
+        return _Converter(encode, decode, _of_kind(float, int))
 
     def string(self, t: idl.AbstractGenericString) -> _Converter:
         bound = getattr(t, "maximum_size", None)
@@ -279,7 +279,7 @@ class _Builder:
                 raise TreeError(f"{expected}, got a {self.wire.str_word} of {len(value)} "
                                 "characters")
             return value
-        return _Converter(self.pack, decode, _same)
+        return _Converter(self.pack, decode, _of_kind(str))
 
     # -- arrays and sequences -----------------------------------------------------------------
 
@@ -441,8 +441,16 @@ class _Builder:
         raise CodecError(f"the {self.wire.name} mapping does not support {type(t).__name__}")
 
 
-def _same(value: Any) -> Any:
-    return value
+def _of_kind(*kinds: type) -> Callable[[Any], Any]:
+    """A scalar's side of a plain tree: the value itself, when it is of one of ``kinds`` (what
+    rclpy's field checks allow); a TypeError (a :class:`rosgate.CodecError` to the caller) for a
+    value of another kind, which a message with the checks off can hold."""
+    def tree(value: Any) -> Any:
+        if type(value) not in kinds:
+            raise TypeError(f"a field holds a {type(value).__name__} where a "
+                            f"{kinds[0].__name__} belongs")
+        return value
+    return tree
 
 
 def _first_byte(value: bytes) -> int:

@@ -159,6 +159,19 @@ class CodecConformance:
         assert decoded == message
         assert codec.encode(decoded) == data  # the same message, the same bytes
 
+    @pytest.mark.parametrize("field, value", [("x", "fast"), ("y", None), ("z", [1.0])])
+    def test_a_field_holding_the_wrong_kind_of_value_is_a_codec_error(self, field: str,
+                                                                        value: Any) -> None:
+        """rclpy checks what is assigned to a field only with ROS_PYTHON_CHECK_FIELDS=1: without
+        it a float64 field can hold a string, and encode must refuse it with CodecError, never
+        write it. (A raw codec takes CDR, which rclpy wrote: it cannot be given one.)"""
+        if self.codec.raw:
+            pytest.skip("a raw codec is given serialized CDR, not a message")
+        message = sample("Twist")
+        setattr(message.linear, f"_{field}", value)  # past rclpy's field check, as unchecked
+        with pytest.raises(CodecError):
+            self.make(type(message)).encode(message)
+
     def test_empty_input_is_a_codec_error(self) -> None:
         with pytest.raises(CodecError):
             self.make(type(sample("Twist"))).decode(b"")
