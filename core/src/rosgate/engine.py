@@ -82,7 +82,7 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
         if isinstance(p.transport, BusTransport):
             door = None if statically_keyed else p.transport.unauthenticated()
             if door is not None:
-                found.append(_on_open_bus(key, name, p, door))
+                found.append(_on_open_bus(cfg, key, name, p, door))
             continue
         if t.framing.bare:
             # a call made here goes out on a connection of its own: only a listening port
@@ -104,16 +104,18 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
     return found
 
 
-def _on_open_bus(key: str, name: str, p: TopicSpec | ServiceSpec,
+def _on_open_bus(cfg: BridgeConfig, key: str, name: str, p: TopicSpec | ServiceSpec,
                  door: Unauthenticated) -> OpenEntry:
-    """A bus entry that takes frames from whoever reaches the bus: said at the bus's option."""
+    """A bus entry that takes frames from whoever reaches the bus: said at the bus's option
+    (at the entry when the file has no options for the bus)."""
     plugin = f"plugins.{p.transport.name}"
     sealed = "" if p.config.framing.bare else (
         "; or seal the entry with a cipher keyed from a file (cipher: aead, plugins: {aead: "
         "{key_file: aead.key}})")
     return OpenEntry(f"{key}.transport", name, f"{p.transport.name}: {door.why}",
                      f"{door.fix}{sealed}; or, on a network you trust entirely, bridge.insecure: "
-                     "true", f"{plugin}.{door.option}" if door.option else plugin)
+                     "true", None if plugin not in cfg.lines else
+                     f"{plugin}.{door.option}" if door.option else plugin)
 
 
 class Engine:
