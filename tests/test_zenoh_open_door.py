@@ -180,12 +180,14 @@ def attack(session: Session, robot: Robot, x: float, heard_within: float
     3 calls, while the robot publishes its odometry."""
     resets = robot.resets
     deadline = time.monotonic() + heard_within
-    while session.heard(0.1) and time.monotonic() < deadline:
+    while time.monotonic() < deadline:
+        if not session.heard(0.1):
+            continue
         session.publish(WARM_UP)
         if robot.cmd.wait_for(lambda items: any(m.linear.x == WARM_UP for m in items), 0.2):
             session.publish(x, TWISTS)
             answered = sum(session.call() for _ in range(CALLS))
-            wait_until(lambda: len(robot.sent(x)) >= TWISTS, 5)
+            wait_until(lambda: len(robot.sent(x)) >= TWISTS, 10)
             assert robot.resets - resets == answered
             break
     for _ in range(25):

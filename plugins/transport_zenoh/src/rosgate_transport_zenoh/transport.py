@@ -207,14 +207,15 @@ class ZenohTransport(FleetTransport):
         if not _mutual_tls(self.options.tls, _json(config, "transport/link/tls")):
             return Unauthenticated("tls", "no mutual TLS: zenoh takes a session from anyone who "
                                    "reaches this bridge or its router", _TLS_FIX)
-        for section in ("connect", "listen"):
+        written = {"connect": self.options.connect, "listen": self.options.listen}
+        for section, given in written.items():
             endpoints = _json(config, f"{section}/endpoints")
             if isinstance(endpoints, dict):  # zenoh's defaults, or the file's, per mode
                 endpoints = endpoints.get(mode)
             for endpoint in endpoints or ():
                 if str(endpoint).startswith("tls/"):
                     continue
-                if getattr(self.options, section) is None:  # zenoh's own default listener
+                if given is None:  # zenoh's own default listener
                     return Unauthenticated(
                         "mode", f"mode: {mode} listens on zenoh's default {endpoint} (every "
                         "interface) without TLS, where no router's access control sees who "
