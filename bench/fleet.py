@@ -178,10 +178,13 @@ def base_file(folder: Path, endpoint: str, tls: Path | None) -> Path:
              "remote: '{prefix}/{{robot}}/{t}', qos: {qos}}}\n")
     types = {"scan": ("sensor_msgs/msg/LaserScan", "sensor_data"),
              "odom": ("nav_msgs/msg/Odometry", 100), "status": ("std_msgs/msg/String", 100)}
-    secure = f"tls: {tls}" if tls is not None else "insecure: true"
+    # without TLS the base says it accepts frames from anyone who reaches the router: the
+    # benchmark measures what TLS costs
+    tls_, open_ = (f", tls: {tls}", "") if tls is not None else ("", ", insecure: true")
     path.write_text(
-        f"bridge: {{name: {BASE}, role: peer, defaults: {{transport: zenoh}}, stale_after: 600}}\n"
-        f"plugins: {{zenoh: {{mode: client, connect: [{endpoint}], prefix: {PREFIX}, {secure}}}}}\n"
+        f"bridge: {{name: {BASE}, role: peer, defaults: {{transport: zenoh}}, stale_after: 600"
+        f"{open_}}}\n"
+        f"plugins: {{zenoh: {{mode: client, connect: [{endpoint}], prefix: {PREFIX}{tls_}}}}}\n"
         "topics:\n"
         + "".join(entry.format(t=t, type=types[t][0], qos=types[t][1], prefix=PREFIX)
                   for t in TOPICS))
@@ -330,7 +333,8 @@ def throughput(settings: bench.Settings, folder: Path) -> list[bench.Result]:
         paths = where / "bench_a.yaml", where / "bench_b.yaml"
         for path, name, direction in zip(paths, ("bench_a", "bench_b"), ("transmit", "receive"),
                                          strict=True):
-            path.write_text(f"bridge: {{name: {name}, role: peer}}\n{plugin}"
+            # loopback, no TLS: the file says it takes frames from anyone who reaches the router
+            path.write_text(f"bridge: {{name: {name}, role: peer, insecure: true}}\n{plugin}"
                             f"topics:\n  - {topic}, direction: {direction}}}\n")
         return paths
 

@@ -16,7 +16,7 @@ from rosgate.engine import Engine
 from rosgate.errors import ConfigError
 from rosgate.plugins import Plugins
 
-ZENOH = "plugins:\n  zenoh: {mode: client, connect: [tcp/127.0.0.1:7447], insecure: true}\n"
+ZENOH = "plugins:\n  zenoh: {mode: client, connect: [tls/127.0.0.1:7447], tls: certs}\n"
 
 
 def plan(text: str):
@@ -363,6 +363,11 @@ def test_a_bus_role_from_outside_keys_and_wires_the_entries_of_its_bus(domain):
     plugins = outside_plugins(with_role=True)
     text = MQTT + ("services:\n"
                    "  - {service: /s, type: std_srvs/srv/Trigger, direction: receive}\n")
+    with pytest.raises(ConfigError) as refused:  # a bus that does not judge its links is open
+        Engine(loads(text, file="bringup.yaml"), plugins).prepare()
+    assert (refused.value.line, refused.value.key) == (5, "services[0].transport")
+    assert "/s: mqtt: mqtt does not say it authenticates" in refused.value.message
+    text = text.replace("{transport: mqtt}", "{transport: mqtt}, insecure: true")
     engine = Engine(loads(text, file="bringup.yaml"), plugins, domain_id=domain())
     MqttRole.made.clear()
     engine.prepare()

@@ -8,6 +8,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+import yaml
 from conftest import ROSGATE
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -212,3 +213,55 @@ def test_the_plugin_guide_shows_what_plugins_options_prints():
     printed = subprocess.run([ROSGATE, "plugins", "--options", "udp"], capture_output=True,
                              text=True, timeout=60, check=True).stdout
     assert shown == printed
+
+
+def whole_files() -> list[tuple[str, int, str]]:
+    """The yaml blocks of the pages that are a whole bringup file (a bridge with a role)."""
+    found = []
+    for page in PAGES:
+        for language, first, _, text in blocks(page):
+            try:
+                data = yaml.safe_load(text) if language == "yaml" else None
+            except yaml.YAMLError:  # a fragment written for reading
+                continue
+            bridge = data.get("bridge") if isinstance(data, dict) else None
+            if isinstance(bridge, dict) and "role" in bridge:
+                found.append((page.relative_to(ROOT).as_posix(), first, text))
+    return found
+
+
+@pytest.mark.parametrize("page, line, text", whole_files(), ids=lambda v: str(v)[:40])
+def test_every_whole_file_in_the_docs_passes_check_or_says_why_it_is_insecure(page, line, text,
+                                                                              tmp_path):
+    """As a reader would run it, with its keys made: ``rosgate check`` accepts it without
+    ``insecure: true``, or the block says ``insecure: true`` with a comment saying why."""
+    from rosgate import identity
+
+    data = yaml.safe_load(text)
+    bridge = data["bridge"]
+    if bridge.get("insecure"):
+        assert re.search(r"#\s*\w", text), f"{page}:{line}: say why it is insecure: true"
+    public = identity.encode(identity.public_of(identity.generate()))  # placeholders' stand-in
+    if "identity" in bridge:
+        identity.write_private(tmp_path / bridge["identity"], identity.generate())
+    for key in ("server_key", "peer_key"):
+        if key in bridge:
+            bridge[key] = public
+    for client in (data.get("clients") or {}).values():
+        client["key"] = public
+    path = tmp_path / "bringup.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    result = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
+                            timeout=60)
+    if "AF_BLUETOOTH" in result.stderr:
+        pytest.skip("this Python has no Bluetooth sockets")
+    assert result.returncode == 0, f"{page}:{line}:\n{result.stderr}"
+    assert ("INSECURE" in result.stderr) == bool(bridge.get("insecure")), result.stderr
+
+
+def test_the_docs_hold_whole_files_of_every_role_and_on_zenoh():
+    """The test above sees the files it is meant to."""
+    texts = [text for _, _, text in whole_files()]
+    for role in ("client", "server", "peer"):
+        assert any(f"role: {role}" in text for text in texts), role
+    assert sum("transport: zenoh" in text for text in texts) >= 3

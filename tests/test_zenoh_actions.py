@@ -109,7 +109,7 @@ def test_a_base_sends_goals_to_each_robot_by_one_fleet_action(tmp_path, router, 
     base_path = tmp_path / "base.yaml"
     base_path.write_text(f"""\
 bridge: {{name: base, role: peer, defaults: {{transport: zenoh}}}}
-{zenoh_plugin(router, ", insecure: true")}actions:
+{zenoh_plugin(router)}actions:
   - {{action: "/{{robot}}/fib", type: test_msgs/action/Fibonacci, direction: transmit,
       remote: "fleet/{{robot}}/fib"}}
 """)

@@ -80,7 +80,7 @@ def base_file(tmp: Path, router: Router, fleet_timeout: float = 30) -> Path:
     path = tmp / "base.yaml"
     path.write_text(f"""\
 bridge: {{name: base, role: peer, defaults: {{transport: zenoh}}, fleet_timeout: {fleet_timeout}}}
-{zenoh_plugin(router, ", insecure: true")}topics:
+{zenoh_plugin(router)}topics:
   - {{topic: '/{{robot}}/odom', type: std_msgs/msg/String, direction: receive,
       remote: 'fleet/{{robot}}/odom'}}
   - {{topic: '/{{robot}}/cmd', type: std_msgs/msg/String, direction: transmit,

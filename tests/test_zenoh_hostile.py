@@ -45,7 +45,7 @@ def test_bad_frames_on_a_bus_are_counted_by_reason_and_good_ones_still_flow(
     d = domain()
     base = engines(f"""
 bridge: {{name: base, role: peer, defaults: {{transport: zenoh}}}}
-plugins: {{zenoh: {{mode: client, connect: [{router.endpoint}], insecure: true}}}}
+plugins: {{zenoh: {{mode: client, connect: [{router.endpoint}]}}}}
 topics:
   - {{topic: /r1/cmd, type: std_msgs/msg/String, direction: receive, remote: fleet/r1/cmd}}
   - {{topic: '/{{robot}}/scan', type: std_msgs/msg/String, direction: receive,

@@ -102,9 +102,10 @@ def router():
 
 
 def bot1_file(tmp: Path, router: Router, more: str = "", options: str = "") -> Path:
+    """An rmw_zenoh router takes any session (no TLS): the file says it accepts that."""
     path = tmp / "bot1.yaml"
     path.write_text(f"""\
-bridge: {{name: bot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}}}
+bridge: {{name: bot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}, insecure: true}}
 {zenoh_plugin(router, ", speak: rmw_zenoh" + options)}topics:
   - {{topic: /chatter, type: std_msgs/msg/String, direction: transmit, framing: none,
       qos: {{depth: 10}}}}

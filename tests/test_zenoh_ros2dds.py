@@ -304,7 +304,7 @@ def test_rosgate_learns_a_ros2dds_robot_from_its_tokens(tmp_path, router, plain,
     path = tmp_path / "base.yaml"
     path.write_text(f"""\
 bridge: {{name: base, role: peer, defaults: {{transport: zenoh, codec: cdr}}, fleet_timeout: 30}}
-{zenoh_plugin(router, ", speak: ros2dds, insecure: true")}topics:
+{zenoh_plugin(router, ", speak: ros2dds")}topics:
   - {{topic: "/{{robot}}/cmd", remote: "fleet/{{robot}}/cmd", type: std_msgs/msg/String,
       direction: transmit, framing: none}}
   - {{topic: "/{{robot}}/odom", remote: "fleet/{{robot}}/odom", type: std_msgs/msg/String,
@@ -614,7 +614,7 @@ def test_a_base_declares_the_tokens_of_each_robots_routes_and_calls_it_bare(
     path = tmp_path / "base.yaml"
     path.write_text(f"""\
 bridge: {{name: base, role: peer, defaults: {{transport: zenoh, codec: cdr}}, fleet_timeout: 2}}
-{zenoh_plugin(router, ", speak: ros2dds, insecure: true")}topics:
+{zenoh_plugin(router, ", speak: ros2dds")}topics:
   - {{topic: "/{{robot}}/cmd", remote: "fleet/{{robot}}/cmd", type: std_msgs/msg/String,
       direction: transmit, framing: none}}
   - {{topic: "/{{robot}}/odom", remote: "fleet/{{robot}}/odom", type: std_msgs/msg/String,

@@ -151,27 +151,51 @@ topics:
         robot2.close()
 
 
-def test_check_refuses_a_fleet_without_cipher_or_tls_unless_insecure(tmp_path):
-    text = """\
-bridge: {name: base, role: peer, defaults: {transport: zenoh}}
-plugins: {zenoh: {mode: client, connect: [tcp/127.0.0.1:7447]%s}}
+BASE = """\
+bridge: {name: base, role: peer, defaults: {transport: zenoh}%s}
+plugins: {zenoh: {%s}}
 topics:
   - {topic: '/{robot}/odom', type: std_msgs/msg/String, direction: receive,
      remote: 'fleet/{robot}/odom'}
 """
-    path = tmp_path / "base.yaml"
-    path.write_text(text % "")
-    refused = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
-                             timeout=60)
-    assert refused.returncode == 2
-    assert "topics[0].cipher" in refused.stderr
-    assert "without a cipher on a zenoh bus without TLS" in refused.stderr
-    assert "rosgate certs" in refused.stderr
-    path.write_text(text % ", insecure: true")
-    allowed = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
-                             timeout=60)
-    assert allowed.returncode == 0, allowed.stderr
-    path.write_text(text % ", tls: certs")
-    with_tls = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
-                              timeout=60)
-    assert with_tls.returncode == 0, with_tls.stderr
+TLS_CA = "transport: {link: {tls: {root_ca_certificate: ca.pem%s}}}"
+JUDGED = {  # zenoh's options -> the option refused, or None: every link authenticated
+    "mode: client, connect: [tcp/127.0.0.1:7447]": "tls",
+    "mode: client, connect: [tcp/127.0.0.1:7447], tls: certs": "connect",
+    "mode: client, connect: [tls/127.0.0.1:7447], tls: certs": None,
+    "mode: client, connect: [tls/127.0.0.1:7447, ws/127.0.0.1:7448], tls: certs": "connect",
+    "mode: peer, connect: [tls/127.0.0.1:7447], tls: certs": "mode",
+    "connect: [tls/127.0.0.1:7447], tls: certs": "mode",  # peer is the default
+    "mode: router, listen: [tls/0.0.0.0:7447], tls: certs": None,
+    "mode: peer, connect: [tls/127.0.0.1:7447], listen: [], tls: certs": None,
+    "mode: peer, connect: [tls/127.0.0.1:7447], listen: [tls/0.0.0.0:0], tls: certs": None,
+    "mode: peer, listen: {endpoints: {peer: [tcp/0.0.0.0:0]}}, tls: certs": "listen",
+    "mode: client, connect: [tls/127.0.0.1:7447], tls: certs, "
+    "scouting: {multicast: {enabled: true}}": "scouting",
+    "mode: client, connect: [tls/127.0.0.1:7447], " + TLS_CA % ", enable_mtls: true": None,
+    "mode: client, connect: [tls/127.0.0.1:7447], " + TLS_CA % "": "tls",  # no client certs
+}
+
+
+@pytest.mark.parametrize("zenoh_options", JUDGED)
+def test_check_judges_every_link_of_the_session(zenoh_options):
+    """A receiving entry without a keyed cipher is refused, at the zenoh option that leaves
+    it open, unless mutual TLS guards every link the session has or can get; ``insecure:
+    true`` (the file's one key) accepts it."""
+    from rosgate.config import loads
+    from rosgate.engine import Engine
+    from rosgate.errors import ConfigError
+
+    option = JUDGED[zenoh_options]
+    text = BASE % ("", zenoh_options)
+    if option is None:
+        Engine(loads(text, file="base.yaml")).prepare()
+        return
+    with pytest.raises(ConfigError) as refused:
+        Engine(loads(text, file="base.yaml")).prepare()
+    e = refused.value
+    assert (e.line, e.key) == (2, f"plugins.zenoh.{option}"), str(e)
+    assert e.message.startswith("anyone who reaches this bridge can write to /{robot}/odom "
+                                "(topics[0]): zenoh: "), e.message
+    assert "bridge.insecure: true" in (e.fix or "")
+    Engine(loads(BASE % (", insecure: true", zenoh_options), file="base.yaml")).prepare()

@@ -11,11 +11,23 @@ returns.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 from typing import Any
 
 from .config import ServiceConfig, TopicConfig
 from .spec import ServiceSpec, TopicSpec
 from .transport import Transport
+
+
+@dataclass(frozen=True)
+class Unauthenticated:
+    """What lets anyone who reaches a bus write to a bridge's entries on it: ``option``, the
+    plugin's option where the fix goes (dotted, ``connect.endpoints``; None: the plugin's table
+    as a whole), ``why`` in a few words, and the ``fix``."""
+
+    option: str | None
+    why: str
+    fix: str
 
 
 class BusTransport(Transport):
@@ -30,6 +42,16 @@ class BusTransport(Transport):
         """Open a session for the bridge called ``name``, of the interface the bus role expects
         (``fleet``: :class:`rosgate_fleet.BusSession`). Raise :class:`rosgate.LinkError` when it
         cannot be opened (no router where one is required, a port in use)."""
+
+    def unauthenticated(self) -> Unauthenticated | None:
+        """Whether a stranger could send on this bus as its options stand: None when every link
+        the session has, or can get, authenticates the far side (mutual TLS with the fleet's
+        CA, say), else what leaves it open. ``rosgate check`` and ``rosgate run`` refuse an
+        entry that takes frames from an open bus (a receiving topic, a service, an action)
+        unless a keyed cipher seals it or the file says ``insecure: true``. A bus that does not
+        answer is open."""
+        return Unauthenticated(None, f"{self.name} does not say it authenticates who sends on "
+                               "it", f"ask the author of {self.name} to judge its links")
 
 
 class BusRole(ABC):

@@ -12,6 +12,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from .bus import BusTransport, Unauthenticated
 from .config import BridgeConfig, Direction, Role, load
 from .errors import ConfigError, OptionError
 from .links import Lifetime
@@ -50,6 +51,7 @@ class OpenEntry:
     name: str  # its ROS name here
     why: str  # what leaves it open, in a few words
     fix: str
+    at: str | None = None  # where the fix goes when not at the entry: plugins.zenoh.tls
 
     def __str__(self) -> str:
         return f"{self.key} ({self.name}: {self.why})"
@@ -59,14 +61,15 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
     """The entries of ``plan`` that carry ROS traffic into this side without authentication:
     neither keyed by a handshake nor by an authenticating cipher's key from the file. A
     listening microcontroller entry (no envelope, so no cipher) is closed only by
-    ``bridge.allow``; a bus's entries are its transport's to judge."""
+    ``bridge.allow``; a bus entry without a keyed cipher, only by a bus whose every link
+    authenticates the far side (:meth:`BusTransport.unauthenticated`)."""
     cfg = plan.config
     found: list[OpenEntry] = []
     entries: list[TopicSpec | ServiceSpec] = [*plan.topics, *plan.services, *plan.action_parts]
     for n, p in enumerate(entries):
         t = p.config
         is_topic = isinstance(p, TopicSpec)
-        if p.key is not None or (is_topic and t.direction is Direction.TRANSMIT):
+        if is_topic and t.direction is Direction.TRANSMIT:
             continue
         part = n >= len(plan.topics) + len(plan.services)  # an action's: said once, as the action
         key = f"{'actions' if part else 'topics' if is_topic else 'services'}[{p.index}]"
@@ -74,6 +77,13 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
             continue
         name = f"action {plan.actions[p.index].config.action}" if part else p.name
         link = f"{t.transport}:{t.port}" if t.port else t.transport
+        statically_keyed = not t.framing.bare and p.cipher is not None and \
+            p.cipher_cls is not None and p.cipher_cls.authenticates
+        if isinstance(p.transport, BusTransport):
+            door = None if statically_keyed else p.transport.unauthenticated()
+            if door is not None:
+                found.append(_on_open_bus(cfg, key, name, p, door))
+            continue
         if t.framing.bare:
             # a call made here goes out on a connection of its own: only a listening port
             # takes what anyone sends
@@ -84,8 +94,6 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
                     "[192.168.0.20]; or, on a network you trust entirely, insecure: true"))
             continue
         session_keyed = cfg.secure and p.cipher is None  # the resolver leaves it to the session
-        statically_keyed = p.cipher is not None and p.cipher_cls is not None and \
-            p.cipher_cls.authenticates
         if not (session_keyed or statically_keyed):
             fix = ("give both peers identities (bridge.identity, peer_key, handshake_port: "
                    "docs/security.md) or this entry a cipher keyed from a file (cipher: aead, "
@@ -94,6 +102,20 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
             found.append(OpenEntry(f"{key}.cipher", name, f"cipher {t.cipher} on {link}",
                                    f"{fix}; or, on a network you trust entirely, insecure: true"))
     return found
+
+
+def _on_open_bus(cfg: BridgeConfig, key: str, name: str, p: TopicSpec | ServiceSpec,
+                 door: Unauthenticated) -> OpenEntry:
+    """A bus entry that takes frames from whoever reaches the bus: said at the bus's option
+    (at the entry when the file has no options for the bus)."""
+    plugin = f"plugins.{p.transport.name}"
+    sealed = "" if p.config.framing.bare else (
+        "; or seal the entry with a cipher keyed from a file (cipher: aead, plugins: {aead: "
+        "{key_file: aead.key}})")
+    return OpenEntry(f"{key}.transport", name, f"{p.transport.name}: {door.why}",
+                     f"{door.fix}{sealed}; or, on a network you trust entirely, bridge.insecure: "
+                     "true", None if plugin not in cfg.lines else
+                     f"{plugin}.{door.option}" if door.option else plugin)
 
 
 class Engine:
@@ -123,8 +145,9 @@ class Engine:
             first = self.open_doors[0]
             more = len(self.open_doors) - 1
             also = f" (and {more} more {'entry' if more == 1 else 'entries'})" if more else ""
-            raise self.config.error(first.key, f"anyone who reaches this bridge can write to "
-                                    f"{first.name}: {first.why}{also}", first.fix)
+            entry = f" ({first.key.rpartition('.')[0]})" if first.at else ""
+            raise self.config.error(first.at or first.key, f"anyone who reaches this bridge can "
+                                    f"write to {first.name}{entry}: {first.why}{also}", first.fix)
         self.plan = plan
         self._monitor_classes = self._wanted_monitors()
         return self

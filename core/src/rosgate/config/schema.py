@@ -399,7 +399,8 @@ class BridgeConfig:
                                         "handshake line", minimum=1, maximum=65535, unset="—",
                                         example="12100")
     insecure: bool = option(False, "`true` accepts links anyone can write to (no handshake, no "
-                            "keyed cipher), named in a warning on every `run` and `check`",
+                            "keyed cipher, a bus without mutual TLS on every link), named in a "
+                            "warning on every `run` and `check`; the file's one such key",
                             example="true")
     rekey: float = option(120.0, "server (or responding peer): seconds a session key generation "
                           "lasts", minimum=1, unit="seconds", example="120")

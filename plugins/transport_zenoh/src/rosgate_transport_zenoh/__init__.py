@@ -5,7 +5,7 @@ bridge holds a liveliness token. Zenoh routes, fragments, discovers and reconnec
 keeps its envelope and cipher (``framing: rosgate``) or sends the codec's bytes bare
 (``framing: none``, the zenoh-bridge-ros2dds convention with ``codec: cdr``).
 
-Options (``plugins: {zenoh: {...}}``): six are rosgate's —
+Options (``plugins: {zenoh: {...}}``): five are rosgate's —
 
 * ``prefix`` (default ``rosgate``): the first part of rosgate's own keys,
   ``<prefix>/<bridge name>/<topic>``, and of its liveliness tokens ``<prefix>/<name>/@alive``.
@@ -16,8 +16,11 @@ Options (``plugins: {zenoh: {...}}``): six are rosgate's —
   does — liveliness tokens, publication caches, raw service calls (:mod:`.dialect`);
   ``rmw_zenoh`` wires bare-CDR topics as a node running rmw_zenoh does — its keys, attachments
   and graph tokens (:mod:`.rmw_dialect`), in the ROS domain ``domain`` (default: the bridge's).
-* ``tls``: a folder made by ``rosgate certs``: zenoh's mutual TLS with the fleet's CA, and
-  ``insecure`` (default false): allow cipherless fleet entries without TLS, loudly (:mod:`.tls`).
+* ``tls``: a folder made by ``rosgate certs``: zenoh's mutual TLS with the fleet's CA
+  (:mod:`.tls`). An entry that takes frames from the bus (a receiving topic, a service, an
+  action) without a keyed cipher needs it, with ``tls/`` endpoints alone, no listener of zenoh's
+  default (``mode: client``, or ``listen:`` said) and no multicast scouting
+  (:meth:`ZenohTransport.unauthenticated`); else the file says ``bridge.insecure: true``.
 
 — and everything else is zenoh's own configuration, passed through as written (its
 ``DEFAULT_CONFIG.json5``): ``mode: peer|client``, ``connect: {endpoints: [...]}``,

@@ -40,7 +40,6 @@ from . import placeholders
 from .dialect import NAME, Ros2dds
 from .placeholders import Template
 from .ros2dds import Announced, Kind
-from .transport import ZenohTransport
 
 if TYPE_CHECKING:
     from rosgate_fleet import FleetTransport, Handle
@@ -92,15 +91,6 @@ class Fleets:
         except ValueError as exc:
             raise ConfigError(str(exc), key="remote", fix="write remote: as parts separated by "
                               f"single '/', e.g. {_KEY_EXAMPLE}") from None
-        transport = self.transport
-        if (entry.cipher == "none" and isinstance(transport, ZenohTransport)
-                and not transport.encrypted and not transport.options.insecure):
-            raise ConfigError("a fleet entry without a cipher on a zenoh bus without TLS: anyone "
-                              "who reaches the router could read it and send on it",
-                              key="cipher", fix="set plugins.zenoh.tls: <folder> (make it with "
-                              "'rosgate certs', docs/fleets.md) and run the router with --tls; "
-                              "or a cipher on the entry; or, on a network you trust entirely, "
-                              "plugins.zenoh.insecure: true")
 
     def start(self, wiring: BusWiring, link: BusLink) -> Callable[[Prepared], None]:
         fleet = Fleet(wiring, link)

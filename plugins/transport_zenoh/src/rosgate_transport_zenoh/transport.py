@@ -18,6 +18,7 @@ from rosgate_fleet import FleetTransport
 from rosgate_fleet import check_key as check_chunks
 
 from rosgate import LinkError, OptionError, option
+from rosgate.bus import Unauthenticated
 
 from .tls import zenoh_tls
 
@@ -30,6 +31,10 @@ _PRIORITIES = (zenoh.Priority.REAL_TIME, zenoh.Priority.INTERACTIVE_HIGH,
                zenoh.Priority.DATA_LOW, zenoh.Priority.BACKGROUND)
 _NO_CONSOLIDATION = zenoh.ConsolidationMode.NONE  # every answer, not the "best" one
 _FIX = "see zenoh's DEFAULT_CONFIG.json5 for the options and their forms"
+_TLS_FIX = ("set tls: <folder> (certificates made by 'rosgate certs'), connect to tls/<host>:"
+            "<port>, and run the router with --tls (docs/fleets.md, Only the fleet)")
+_INSECURE_FIX = ("remove plugins.zenoh.insecure; set up TLS (tls: <folder>, docs/fleets.md), or, "
+                 "on a network you trust entirely, say bridge.insecure: true with a comment why")
 
 
 def zenoh_message(exc: BaseException) -> str:
@@ -79,6 +84,17 @@ def _insert(config: zenoh.Config, path: str, value: Any) -> None:
                           _FIX) from None
 
 
+def _json(config: zenoh.Config, path: str) -> Any:
+    return json.loads(config.get_json(path))
+
+
+def _mutual_tls(folder: str | None, tls: Any) -> bool:
+    """rosgate's certificates, or zenoh's own TLS settings asking the far side for a
+    certificate that a CA signed."""
+    return folder is not None or isinstance(tls, dict) and tls.get("enable_mtls") is True and \
+        bool(tls.get("root_ca_certificate") or tls.get("root_ca_certificate_base64"))
+
+
 def check_key(key: str) -> str:
     """A key as rosgate and zenoh both take it; ``ValueError`` saying why not."""
     check_chunks(key)
@@ -112,9 +128,9 @@ class ZenohTransport(FleetTransport):
             None, "a folder of certificates made by 'rosgate certs': mutual TLS with the "
             "fleet's CA, presenting <bridge name>.pem (endpoints tls/<host>:<port>); relative to "
             "this file", relative=True)
-        insecure: bool = option(
-            False, "fleet entries without cipher and without TLS: allowed, loudly (anyone who "
-            "reaches the router can read and send them)")
+        insecure: bool | None = option(
+            None, "not an option here: a file has one insecure key, bridge.insecure (refused "
+            "with that fix)")
         mode: Literal["peer", "client", "router"] = option(
             "peer", "zenoh's mode: peer opens without a router, client needs one at start")
         connect: dict[str, Any] | list[str] | None = option(
@@ -139,6 +155,9 @@ class ZenohTransport(FleetTransport):
         access_control: dict[str, Any] | None = option(None, _ZENOH)
 
         def __post_init__(self) -> None:
+            if self.insecure is not None:
+                raise OptionError("insecure", "a file has one insecure key, bridge.insecure, "
+                                  "for every entry on every link", _INSECURE_FIX)
             try:
                 check_key(self.prefix)
             except ValueError as exc:
@@ -178,11 +197,40 @@ class ZenohTransport(FleetTransport):
         key = super().default_key(bridge, ros_name, bare)
         return f"{self.namespace}/{key}" if bare and self.namespace else key
 
-    @property
-    def encrypted(self) -> bool:
-        """Whether zenoh's TLS protects this bus (rosgate's certificates or zenoh's own)."""
-        link = (self.options.transport or {}).get("link")
-        return self.options.tls is not None or isinstance(link, dict) and "tls" in link
+    def unauthenticated(self) -> Unauthenticated | None:
+        """Open unless zenoh's mutual TLS guards every link this session has or can get: a CA
+        (``tls:``, or zenoh's own ``transport.link.tls`` with ``enable_mtls``), only ``tls/``
+        endpoints to connect and to listen on (a peer or a router listens on zenoh's default
+        ``tcp/[::]`` unless ``listen:`` says otherwise), and no multicast scouting, which
+        joins whoever answers."""
+        config, mode = zenoh_config(dataclasses.asdict(self.options)), self.options.mode
+        if not _mutual_tls(self.options.tls, _json(config, "transport/link/tls")):
+            return Unauthenticated("tls", "no mutual TLS: zenoh takes a session from anyone who "
+                                   "reaches this bridge or its router", _TLS_FIX)
+        written = {"connect": self.options.connect, "listen": self.options.listen}
+        for section, given in written.items():
+            endpoints = _json(config, f"{section}/endpoints")
+            if isinstance(endpoints, dict):  # zenoh's defaults, or the file's, per mode
+                endpoints = endpoints.get(mode)
+            for endpoint in endpoints or ():
+                if str(endpoint).startswith("tls/"):
+                    continue
+                if given is None:  # zenoh's own default listener
+                    return Unauthenticated(
+                        "mode", f"mode: {mode} listens on zenoh's default {endpoint} (every "
+                        "interface) without TLS, where no router's access control sees who "
+                        "connects", "use mode: client (through the router, which checks what "
+                        "each robot may do), or say where it listens: listen: [tls/<host>:"
+                        "<port>], or listen: [] for nowhere")
+                return Unauthenticated(
+                    section, f"{section} endpoint {endpoint} is not TLS: whoever answers or "
+                    "dials there is not authenticated", f"write it tls/"
+                    f"{str(endpoint).partition('/')[2]} (only tls/ endpoints are mutual TLS)")
+        if _json(config, "scouting/multicast/enabled") is not False:
+            return Unauthenticated("scouting", "multicast scouting joins whoever answers on the "
+                                   "local network", "remove scouting.multicast.enabled: connect: "
+                                   "names the router")
+        return None
 
     def open(self, name: str) -> ZenohSession:
         config = zenoh_config(dataclasses.asdict(self.options))
@@ -194,10 +242,6 @@ class ZenohTransport(FleetTransport):
                 raise LinkError(f"zenoh: no certificate {exc} for {name!r}",
                                 f"make it with 'rosgate certs --out {self.options.tls} "
                                 f"{name}' (docs/fleets.md)") from None
-        elif self.options.insecure:
-            log.warning("INSECURE: %s: fleet entries without a cipher cross zenoh without TLS "
-                        "(plugins.zenoh.insecure: true): anyone who reaches the router can read "
-                        "and send them. Set up TLS: docs/fleets.md", name)
         try:
             session = zenoh.open(config)
         except zenoh.ZError as exc:
