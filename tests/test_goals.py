@@ -1,0 +1,197 @@
+"""Goals belong to the client that sent them: two clients a server allows the same action, as
+real ``rosgate run`` processes, each client's ROS side in a DDS domain of its own.
+
+The attack: robot1 sends a long goal; robot2, allowed the same action, reads robot1's goal id
+from the action's status, cancels it and asks for its result. Before goals had owners, robot1's
+goal ended CANCELED and robot2 read its result. Now robot2's cancel is answered as ROS answers
+a cancel of an unknown goal, its result request as ROS answers one for an unknown goal, it sees
+no status or feedback of robot1's goal, and robot1's goal succeeds. A rule that says
+``shared: true`` brings the shared behaviour back.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+from conftest import AUTH, Inbox, free_port
+from test_actions import Goal, settled, warmed_up
+from test_msgs.action import Fibonacci
+
+FAST = "heartbeat: 0.2, peer_timeout: 0.8, reconnect: {min: 0.05, max: 0.5}"
+LONG = 40  # the order of a long goal: it runs until the test releases it
+
+
+def server_file(tmp_path: Path, port: int, robot2_rule: str = "") -> Path:
+    rule = "{name: /fib, direction: transmit, types: [test_msgs/action/Fibonacci]"
+    path = tmp_path / "server.yaml"
+    path.write_text(f"""
+bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST},
+          identity: {AUTH.identity("server")}}}
+clients:
+  robot1:
+    key: {AUTH.public["robot1"]}
+    actions: [{rule}}}]
+  robot2:
+    key: {AUTH.public["robot2"]}
+    actions: [{rule}{robot2_rule}}}]
+""")
+    return path
+
+
+def client_file(tmp_path: Path, port: int, name: str) -> Path:
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(f"""
+bridge: {{name: {name}, role: client, server: 127.0.0.1:{port}, {FAST},
+          identity: {AUTH.identity(name)}, server_key: {AUTH.public["server"]}}}
+actions: [{{action: /fib, type: test_msgs/action/Fibonacci, direction: transmit, timeout: 3}}]
+""")
+    return path
+
+
+class HeldServer:
+    """The server side's action server: a goal of order ``LONG`` gives feedback until the test
+    releases it (or it is cancelled), then succeeds; any other goal succeeds at once."""
+
+    def __init__(self, side: Any):
+        from rclpy.action import ActionServer, CancelResponse
+
+        self.side = side
+        self.release = threading.Event()
+        self.server = ActionServer(side.node, Fibonacci, "/fib", self._execute,
+                                   cancel_callback=lambda _: CancelResponse.ACCEPT)
+
+    def _execute(self, goal_handle: Any) -> Any:
+        with self.side.ended:  # the side waits for its goals before it closes
+            self.side.running += 1
+        try:
+            return self._work(goal_handle)
+        finally:
+            with self.side.ended:
+                self.side.running -= 1
+                self.side.ended.notify_all()
+
+    def _work(self, goal_handle: Any) -> Any:
+        order = goal_handle.request.order
+        step = 0
+        while order == LONG and not self.release.wait(0.05):
+            if self.side.stopping.is_set():
+                goal_handle.abort()
+                return Fibonacci.Result()
+            if goal_handle.is_cancel_requested:
+                goal_handle.canceled()
+                return Fibonacci.Result(sequence=[step])
+            step += 1
+            goal_handle.publish_feedback(Fibonacci.Feedback(sequence=[step]))
+        goal_handle.succeed()
+        return Fibonacci.Result(sequence=[order, step])
+
+
+class Snoop:
+    """robot2's own look at the action's internals in its domain: the status and feedback the
+    bridge publishes there, and direct calls of cancel_goal and get_result."""
+
+    def __init__(self, side: Any):
+        from action_msgs.msg import GoalStatusArray
+        from action_msgs.srv import CancelGoal
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+        node = side.node
+        latched = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.status, self.feedback = Inbox(), Inbox()
+        node.create_subscription(GoalStatusArray, "/fib/_action/status", self.status.put, latched)
+        node.create_subscription(Fibonacci.Impl.FeedbackMessage, "/fib/_action/feedback",
+                                 self.feedback.put, 100)
+        self.cancel = node.create_client(CancelGoal, "/fib/_action/cancel_goal")
+        self.result = node.create_client(Fibonacci.Impl.GetResultService, "/fib/_action/get_result")
+
+    def goals_seen(self) -> set[bytes]:
+        """The goal ids robot2 saw in status arrays and feedback."""
+        seen = {bytes(s.goal_info.goal_id.uuid) for a in list(self.status.items)
+                for s in a.status_list}
+        return seen | {bytes(f.goal_id.uuid) for f in list(self.feedback.items)}
+
+    def cancel_goal(self, uuid: bytes) -> Any:
+        from action_msgs.srv import CancelGoal
+
+        request = CancelGoal.Request()
+        request.goal_info.goal_id.uuid = list(uuid)
+        assert self.cancel.wait_for_service(timeout_sec=15)
+        return settled(self.cancel.call_async(request), 10)
+
+    def get_result(self, uuid: bytes) -> Any:
+        request = Fibonacci.Impl.GetResultService.Request()
+        request.goal_id.uuid = list(uuid)
+        assert self.result.wait_for_service(timeout_sec=15)
+        return settled(self.result.call_async(request), 10)
+
+
+def two_clients(tmp_path: Path, domain: Any, bridge: Any, action_side: Any,
+                robot2_rule: str = "") -> tuple[Any, Any, Any, Any, Any]:
+    """The server's bridge and action server, robot1's and robot2's bridges and ROS sides;
+    robot1's goal running (after 3 of its feedbacks), robot2's own goal done."""
+    ds, d1, d2, port = domain(), domain(), domain(), free_port()
+    server = bridge(server_file(tmp_path, port, robot2_rule), ds)
+    bridge(client_file(tmp_path, port, "robot1"), d1)
+    bridge(client_file(tmp_path, port, "robot2"), d2)
+    held = HeldServer(action_side(ds, "base"))
+    robot1, robot2 = action_side(d1, "robot1"), action_side(d2, "robot2")
+    snoop = Snoop(robot2)
+    one = warmed_up(robot1.client(Fibonacci, "/fib"), Fibonacci.Goal(order=1))
+    two = warmed_up(robot2.client(Fibonacci, "/fib"), Fibonacci.Goal(order=1))
+    own = Goal(two, Fibonacci.Goal(order=2))
+    assert own.handle.accepted and list(own.result().result.sequence) == [2, 0]
+    goal = Goal(one, Fibonacci.Goal(order=LONG))
+    assert goal.handle.accepted and goal.wait_feedback(3, 10)
+    return server, held, goal, snoop, own
+
+
+def test_a_client_cannot_cancel_read_or_watch_another_clients_goal(tmp_path, domain, bridge,
+                                                                   action_side):
+    """Before goals had owners: robot1's goal CANCELED by robot2, its result read by robot2,
+    its id and feedback in robot2's status and feedback topics."""
+    from action_msgs.msg import GoalStatus
+    from action_msgs.srv import CancelGoal
+
+    server, held, goal, snoop, own = two_clients(tmp_path, domain, bridge, action_side)
+    victim = bytes(goal.handle.goal_id.uuid)
+    mine = bytes(own.handle.goal_id.uuid)
+
+    cancel = snoop.cancel_goal(victim)
+    assert cancel.return_code == CancelGoal.Response.ERROR_UNKNOWN_GOAL_ID
+    assert list(cancel.goals_canceling) == []
+    result = snoop.get_result(victim)
+    assert result.status == GoalStatus.STATUS_UNKNOWN
+    assert list(result.result.sequence) == []
+
+    held.release.set()
+    answer = goal.result()
+    assert answer.status == GoalStatus.STATUS_SUCCEEDED  # robot1's goal ran to its end
+    assert answer.result.sequence[0] == LONG and len(goal.feedback) >= 3
+
+    # robot2 saw its own goal's status (so the topic crosses to it), never robot1's goal
+    assert snoop.status.wait_for(lambda arrays: any(
+        bytes(s.goal_info.goal_id.uuid) == mine and s.status == GoalStatus.STATUS_SUCCEEDED
+        for a in arrays for s in a.status_list), 10)
+    assert victim not in snoop.goals_seen()
+    assert server.stop() == 0  # its counters, in its log at the end
+    assert "foreign_goal=2" in server.log, server.log  # the cancel and the result request
+
+
+def test_a_shared_action_lets_clients_cancel_each_others_goals(tmp_path, domain, bridge,
+                                                               action_side):
+    """``shared: true`` on robot2's rule: it sees robot1's goal and may cancel it."""
+    from action_msgs.msg import GoalStatus
+    from action_msgs.srv import CancelGoal
+
+    _, _, goal, snoop, _ = two_clients(tmp_path, domain, bridge, action_side, ", shared: true")
+    victim = bytes(goal.handle.goal_id.uuid)
+    assert snoop.status.wait_for(lambda _: victim in snoop.goals_seen(), 10)
+
+    cancel = snoop.cancel_goal(victim)
+    assert cancel.return_code == CancelGoal.Response.ERROR_NONE
+    assert [bytes(g.goal_id.uuid) for g in cancel.goals_canceling] == [victim]
+    assert goal.result().status == GoalStatus.STATUS_CANCELED
+    assert snoop.get_result(victim).status == GoalStatus.STATUS_CANCELED
