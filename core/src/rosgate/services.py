@@ -277,11 +277,14 @@ class CallerRoute(ServiceRoute):
 
 class ServerRoute(ServiceRoute):
     """``receive``: calls from the far side, served by the ROS server here. A call beyond
-    :data:`QUEUE_DEPTH` in progress fails at once (``too_many_calls``): a flood cannot pile up."""
+    :data:`QUEUE_DEPTH` in progress fails at once (``too_many_calls``): a flood cannot pile up.
+    ``goals``: an action's part as one client may use it (:class:`rosgate.actions.ClientGoals`),
+    which answers the calls about other clients' goals itself."""
 
-    def __init__(self, *args: Any) -> None:
+    def __init__(self, *args: Any, goals: Any = None) -> None:
         super().__init__(*args)
         self.in_flight = 0
+        self.goals = goals
 
     def serve(self, request: Any, call: Call) -> None:
         """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``.
@@ -371,6 +374,12 @@ class ServerRoute(ServiceRoute):
             return
         self.counters.received += 1
         self.counters.bytes_received += size
+        goals = self.goals
+        if goals is not None and (refused := goals.refuse(request)) is not None:
+            reason, detail, response = refused
+            self.drop(reason, detail)
+            self.reply(header, link, source, 0, self.codec.encode(self.codec.response, response))
+            return
         with self._lock:
             busy = self.in_flight >= QUEUE_DEPTH
             if not busy:
@@ -387,6 +396,8 @@ class ServerRoute(ServiceRoute):
             self.reply(header, link, source, flags, body)
 
         def answered(response: Any) -> None:
+            if goals is not None:
+                goals.answered(request, response)
             try:
                 body = self.codec.encode(self.codec.response, response)
             except Exception as exc:
@@ -395,8 +406,12 @@ class ServerRoute(ServiceRoute):
                 return
             reply(0, body)
 
-        self.serve(request, Call(answered, lambda reason: reply(envelope.FLAG_FAILED,
-                                                                reason.encode())))
+        def failed(reason: str) -> None:
+            if goals is not None:
+                goals.answered(request, None)
+            reply(envelope.FLAG_FAILED, reason.encode())
+
+        self.serve(request, Call(answered, failed))
 
 
 def deep_qos() -> Any:

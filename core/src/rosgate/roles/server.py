@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
+from ..actions import ClientGoals, Goals, client_goals
 from ..admission import Acceptor, ConnectionLimits, KnownSources
 from ..config import (
     ActionConfig,
@@ -32,7 +33,7 @@ from ..config import (
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..links import DatagramLink, Link
-from ..policy import refusal
+from ..policy import refusal, shared
 from ..routes import Route
 from ..secure import (
     Busy,
@@ -109,6 +110,8 @@ class ServerRole(Role):
         #: whose key it no longer lists
         self._keyed: set[SecureConnection] = set()
         self.acceptor: Acceptor | None = None  # until start() has its main line
+        #: who sent each goal, per action (its name here): clients use only their own goals
+        self.goals: dict[str, Goals] = {}
 
     def start(self) -> None:
         plan = self.bridge.plan
@@ -347,7 +350,8 @@ class ServerRole(Role):
                 p: TopicSpec | ServiceSpec = resolver.topic(flipped(entry), index, "topics", error)
             else:
                 p = resolver.service(flipped(entry), index - topics, "services", error)
-            session.by_index[index] = self._route(session, p)
+            session.by_index[index] = self._route(session, p,
+                                                  self._goals(session, index, p, keyless))
 
     def _topic_id(self, session: Session, p: TopicSpec | ServiceSpec) -> int:
         """Derived from the client's name and the entry, so a returning client gets the ids it
@@ -358,7 +362,21 @@ class ServerRole(Role):
             topic_id = (topic_id + 1) & 0xFFFFFFFF
         return topic_id
 
-    def _route(self, session: Session, p: TopicSpec | ServiceSpec) -> Route:
+    def _goals(self, session: Session, index: int, p: TopicSpec | ServiceSpec,
+               keyless: set[str]) -> ClientGoals | None:
+        """An action's part as the client may use it: the goals it sent (None: not an action's
+        part, or one its rule says is ``shared``)."""
+        action = session.part_of.get(index)
+        if action is None or (session.policy is not None
+                              and shared(session.policy, action, keyless)):
+            return None
+        with self._lock:
+            goals = self.goals.setdefault(action.remote, Goals())
+        interface = p.msg_type if isinstance(p, TopicSpec) else p.srv_type
+        return client_goals(goals, session.name, p.name, interface, p.codec_cls.raw)
+
+    def _route(self, session: Session, p: TopicSpec | ServiceSpec,
+               goals: ClientGoals | None = None) -> Route:
         t, port = p.config, p.config.port
         way = "to" if t.direction is Direction.TRANSMIT else "from"
         link: Link
@@ -377,7 +395,7 @@ class ServerRole(Role):
         keys = None if session.schedule is None else session_keys(  # None: the file's cipher
             session.schedule, p, p.name, "s2c", "c2s")
         return self.router.route(p, self._topic_id(session, p), f"{p.name} ({way} {session.name})",
-                                 link, destination, keys)
+                                 link, destination, keys, goals=goals)
 
     @staticmethod
     def _no_address() -> Address | None:
