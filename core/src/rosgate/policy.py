@@ -12,7 +12,7 @@ from collections.abc import Callable
 from functools import lru_cache
 from typing import Any
 
-from .config import ActionConfig, ClientPolicy, Rule, ServiceConfig, TopicConfig
+from .config import ActionConfig, BridgeConfig, ClientPolicy, Rule, ServiceConfig, TopicConfig
 from .config.kinds import ROS_NAME_MAX
 
 
@@ -38,6 +38,27 @@ _ACTION_PART = re.compile(r"(^|/)_action(/|$)")
 def is_action_part(name: str) -> bool:
     """Whether ``name`` (a name or a rule's glob) names something inside an action."""
     return _ACTION_PART.search(name) is not None
+
+
+def advice(cfg: BridgeConfig) -> list[str]:
+    """What ``check`` and ``run`` say of a server's rules that do not do what they seem to: a
+    topic or service rule naming a part of an action (only an actions: rule reaches those), a
+    topic or service rule that says ``shared`` (it applies to actions)."""
+    said = []
+    for client, policy in cfg.clients.items():
+        for kind, rules in (("topics", policy.topics), ("services", policy.services)):
+            for i, rule in enumerate(rules):
+                key = f"clients.{client}.{kind}[{i}]"
+                if is_action_part(rule.name):
+                    said.append(str(cfg.error(
+                        f"{key}.name", f"{rule.name} names a part of an action: no {kind[:-1]} "
+                        "rule allows it, only an actions: rule for the action does",
+                        f"allow the action with an actions: rule, e.g. - {{name: "
+                        f"{rule.name.split('/_action')[0] or '/'}, direction: transmit}}")))
+                if rule.shared:
+                    said.append(str(cfg.error(f"{key}.shared", f"shared applies to actions: "
+                                              f"rules, not to {kind}", "remove shared: here")))
+    return said
 
 
 def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionConfig,
