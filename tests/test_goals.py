@@ -200,3 +200,61 @@ def test_a_shared_action_lets_clients_cancel_each_others_goals(tmp_path, domain,
     assert [bytes(g.goal_id.uuid) for g in cancel.goals_canceling] == [victim]
     assert goal.result().status == GoalStatus.STATUS_CANCELED
     assert snoop.get_result(victim).status == GoalStatus.STATUS_CANCELED
+
+
+def test_a_topic_or_service_rule_does_not_reach_inside_an_action(tmp_path, domain, bridge,
+                                                                 ros_side):
+    """Before: a client allowed topics and services under /robot1/** (no action rule) could
+    publish on /robot1/fib/_action/status and call /robot1/fib/_action/cancel_goal, the
+    internals of the server side's action. Now both entries are refused, said in both logs,
+    nothing is published or served for them, and its other topic runs."""
+    from action_msgs.msg import GoalStatus, GoalStatusArray
+    from conftest import cross
+    from std_msgs.msg import String
+
+    ds, dc, port = domain(), domain(), free_port()
+    path = tmp_path / "server.yaml"
+    path.write_text(f"""
+bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST},
+          identity: {AUTH.identity("server")}}}
+clients:
+  robot1:
+    key: {AUTH.public["robot1"]}
+    topics: [{{name: /robot1/**, direction: both}}]
+    services: [{{name: /robot1/**, direction: both}}]
+""")
+    server = bridge(path, ds)
+    robot1 = tmp_path / "robot1.yaml"
+    robot1.write_text(f"""
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST},
+          identity: {AUTH.identity("robot1")}, server_key: {AUTH.public["server"]}}}
+topics:
+  - {{topic: /chatter, type: std_msgs/msg/String, direction: transmit, remote: /robot1/chatter}}
+  - {{topic: /forged, type: action_msgs/msg/GoalStatusArray, direction: transmit,
+      remote: /robot1/fib/_action/status}}
+services:
+  - {{service: /cancel, type: action_msgs/srv/CancelGoal, direction: transmit,
+      remote: /robot1/fib/_action/cancel_goal}}
+""")
+    client = bridge(robot1, dc)
+    side, robot = ros_side(ds, "base"), ros_side(dc, "robot")
+    forged_in = side.listen("/robot1/fib/_action/status", GoalStatusArray)
+    forged = robot.publisher("/forged", GoalStatusArray)
+    chatter, chatter_in = robot.publisher("/chatter", String), side.listen("/robot1/chatter",
+                                                                         String)
+    numbered = lambda i: String(data="warm-up" if i is None else f"m{i}")
+    is_warmup = lambda m: m.data == "warm-up"
+    cross(chatter, chatter_in, numbered, is_warmup, 0)  # the session runs
+    lie = GoalStatusArray(status_list=[GoalStatus(status=GoalStatus.STATUS_CANCELED)])
+    for _ in range(20):
+        forged.publish(lie)
+    got = cross(chatter, chatter_in, numbered, is_warmup, 3)  # what was sent before is in
+    assert [m.data for m in got] == ["m0", "m1", "m2"]
+    assert forged_in.items == []
+    for entry in ("/robot1/fib/_action/status", "service /robot1/fib/_action/cancel_goal"):
+        sentence = f"robot1 may not transmit {entry}: it is part of an action"
+        assert server.wait_log(sentence, 5), server.log
+        assert client.wait_log(sentence, 5), client.log
+    node = side.ros.node
+    assert node.count_publishers("/robot1/fib/_action/status") == 0
+    assert node.count_clients("/robot1/fib/_action/cancel_goal") == 0
