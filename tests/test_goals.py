@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import re
 import threading
+import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 from conftest import AUTH, Inbox, free_port
-from test_actions import Goal, settled, warmed_up
+from test_actions import Goal, ready, settled, warmed_up
 from test_msgs.action import Fibonacci
 
 FAST = "heartbeat: 0.2, peer_timeout: 0.8, reconnect: {min: 0.05, max: 0.5}"
@@ -114,11 +116,14 @@ class Snoop:
                 for s in a.status_list}
         return seen | {bytes(f.goal_id.uuid) for f in list(self.feedback.items)}
 
-    def cancel_goal(self, uuid: bytes) -> Any:
+    def cancel_goal(self, uuid: bytes, stamp: tuple[int, int] = (0, 0)) -> Any:
+        """A cancel as ROS reads it: no id and no time, every goal; a time, those accepted
+        before it."""
         from action_msgs.srv import CancelGoal
 
         request = CancelGoal.Request()
         request.goal_info.goal_id.uuid = list(uuid)
+        request.goal_info.stamp.sec, request.goal_info.stamp.nanosec = stamp
         assert self.cancel.wait_for_service(timeout_sec=15)
         return settled(self.cancel.call_async(request), 10)
 
@@ -130,9 +135,9 @@ class Snoop:
 
 
 def two_clients(tmp_path: Path, domain: Any, bridge: Any, action_side: Any,
-                robot2_rule: str = "") -> tuple[Any, Any, Any, Any, Any]:
-    """The server's bridge and action server, robot1's and robot2's bridges and ROS sides;
-    robot1's goal running (after 3 of its feedbacks), robot2's own goal done."""
+                robot2_rule: str = "") -> SimpleNamespace:
+    """The server's bridge and action server, robot1's ROS side, robot2's snoop; robot1's goal
+    running (after 3 of its feedbacks), robot2's own goal done."""
     ds, d1, d2, port = domain(), domain(), domain(), free_port()
     server = bridge(server_file(tmp_path, port, robot2_rule), ds)
     bridge(client_file(tmp_path, port, "robot1"), d1)
@@ -146,7 +151,8 @@ def two_clients(tmp_path: Path, domain: Any, bridge: Any, action_side: Any,
     assert own.handle.accepted and list(own.result().result.sequence) == [2, 0]
     goal = Goal(one, Fibonacci.Goal(order=LONG))
     assert goal.handle.accepted and goal.wait_feedback(3, 10)
-    return server, held, goal, snoop, own
+    return SimpleNamespace(server=server, held=held, goal=goal, snoop=snoop, own=own,
+                           robot1=robot1)
 
 
 def test_a_client_cannot_cancel_read_or_watch_another_clients_goal(tmp_path, domain, bridge,
@@ -156,13 +162,17 @@ def test_a_client_cannot_cancel_read_or_watch_another_clients_goal(tmp_path, dom
     from action_msgs.msg import GoalStatus
     from action_msgs.srv import CancelGoal
 
-    server, held, goal, snoop, own = two_clients(tmp_path, domain, bridge, action_side)
+    run = two_clients(tmp_path, domain, bridge, action_side)
+    server, held, goal, snoop = run.server, run.held, run.goal, run.snoop
     victim = bytes(goal.handle.goal_id.uuid)
-    mine = bytes(own.handle.goal_id.uuid)
+    mine = bytes(run.own.handle.goal_id.uuid)
 
     cancel = snoop.cancel_goal(victim)
     assert cancel.return_code == CancelGoal.Response.ERROR_UNKNOWN_GOAL_ID
     assert list(cancel.goals_canceling) == []
+    everything = snoop.cancel_goal(bytes(16))  # every goal: robot2's own, none running
+    assert everything.return_code == CancelGoal.Response.ERROR_NONE
+    assert list(everything.goals_canceling) == []
     result = snoop.get_result(victim)
     assert result.status == GoalStatus.STATUS_UNKNOWN
     assert list(result.result.sequence) == []
@@ -185,13 +195,45 @@ def test_a_client_cannot_cancel_read_or_watch_another_clients_goal(tmp_path, dom
                      server.log, re.M), server.log
 
 
+def test_a_cancel_of_every_goal_reaches_only_the_clients_own(tmp_path, domain, bridge,
+                                                            action_side):
+    """robot1 cancels every goal (no id, no time), then robot2 every goal accepted before now:
+    robot1's goal is cancelled, the goal the server side's own ROS client sent runs on (and that
+    client sees robot1's goal in its status, as ROS shows it), robot2 cancels nothing."""
+    from action_msgs.msg import GoalStatus
+    from action_msgs.srv import CancelGoal
+
+    run = two_clients(tmp_path, domain, bridge, action_side)
+    victim = bytes(run.goal.handle.goal_id.uuid)
+    local = Goal(ready(run.held.side.client(Fibonacci, "/fib")), Fibonacci.Goal(order=LONG))
+    assert local.handle.accepted and local.wait_feedback(2, 10)
+    theirs = bytes(local.handle.goal_id.uuid)
+    base = Snoop(run.held.side)
+    assert base.status.wait_for(lambda _: {victim, theirs} <= base.goals_seen(), 10)
+
+    later = time.time_ns() + 10**9  # a cancel of every goal accepted before a time
+    robot2 = run.snoop.cancel_goal(bytes(16), (later // 10**9, later % 10**9))
+    assert robot2.return_code == CancelGoal.Response.ERROR_NONE
+    assert list(robot2.goals_canceling) == []
+    robot1 = Snoop(run.robot1).cancel_goal(bytes(16))
+    assert robot1.return_code == CancelGoal.Response.ERROR_NONE
+    assert [bytes(g.goal_id.uuid) for g in robot1.goals_canceling] == [victim]
+    assert run.goal.result().status == GoalStatus.STATUS_CANCELED
+
+    count = len(local.feedback)
+    assert local.wait_feedback(count + 3, 10)  # the server side's own goal runs on
+    run.held.release.set()
+    assert local.result().status == GoalStatus.STATUS_SUCCEEDED
+
+
 def test_a_shared_action_lets_clients_cancel_each_others_goals(tmp_path, domain, bridge,
                                                                action_side):
     """``shared: true`` on robot2's rule: it sees robot1's goal and may cancel it."""
     from action_msgs.msg import GoalStatus
     from action_msgs.srv import CancelGoal
 
-    _, _, goal, snoop, _ = two_clients(tmp_path, domain, bridge, action_side, ", shared: true")
+    run = two_clients(tmp_path, domain, bridge, action_side, ", shared: true")
+    goal, snoop = run.goal, run.snoop
     victim = bytes(goal.handle.goal_id.uuid)
     assert snoop.status.wait_for(lambda _: victim in snoop.goals_seen(), 10)
 

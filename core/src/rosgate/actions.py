@@ -10,6 +10,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Any
 
 from .config import TIMEOUT_MAX, ActionConfig, ServiceConfig, TopicConfig
@@ -52,24 +53,26 @@ def parts(action: ActionConfig) -> list[TopicConfig | ServiceConfig]:
 #: action_msgs' numbers: GoalStatus terminal states, CancelGoal's return codes
 STATUS_UNKNOWN = 0
 ENDED = frozenset({4, 5, 6})  # succeeded, canceled, aborted
-CANCEL_REJECTED = 1
 CANCEL_UNKNOWN_GOAL = 2
 #: seconds an ended goal is remembered: rclpy's action server keeps a result 900 s by default
 KEEP_ENDED = 900.0
 #: goals of one action the server remembers per client; past it, a new goal is not accepted
 GOALS_PER_CLIENT = 1000
-_NO_GOAL = bytes(16)
+NO_GOAL = bytes(16)
+Stamp = tuple[int, int]  # a goal's acceptance time as its status says it: (sec, nanosec)
 
 
 class Goals:
-    """Who sent each goal of one action a server serves to its clients: goal id -> client.
-    Ended goals are forgotten :data:`KEEP_ENDED` seconds later, and a client holds at most
-    :data:`GOALS_PER_CLIENT` (its oldest ended goal goes first)."""
+    """Who sent each goal of one action a server serves to its clients: goal id -> client,
+    and when the action server accepted it (from its status). Ended goals are forgotten
+    :data:`KEEP_ENDED` seconds later, and a client holds at most :data:`GOALS_PER_CLIENT`
+    (its oldest ended goal goes first)."""
 
     def __init__(self, keep: float = KEEP_ENDED, cap: int = GOALS_PER_CLIENT,
                  clock: Callable[[], float] = time.monotonic):
         self.keep, self.cap, self.clock = keep, cap, clock
         self._owner: dict[bytes, str] = {}
+        self._stamp: dict[bytes, Stamp] = {}
         self._ended: dict[bytes, float] = {}  # goal id -> when it was seen ended (in order)
         self._held: Counter[str] = Counter()
         self._lock = threading.Lock()
@@ -101,16 +104,40 @@ class Goals:
         with self._lock:
             return self._owner.get(goal) == client
 
-    def ended(self, goals: Iterable[bytes]) -> None:
-        """Goals the action server says have ended: forgotten :attr:`keep` seconds from now."""
+    def covered(self, client: str, goal: bytes, stamp: Stamp) -> list[bytes]:
+        """The goals of ``client``, not ended, that a cancel of ``goal`` and ``stamp`` covers
+        as ROS reads it: no id and no time, every goal; a time, those accepted at or before
+        it (as far as their status said); an id, that goal."""
+        with self._lock:
+            return [g for g, owner in self._owner.items()
+                    if owner == client and g not in self._ended
+                    and (g == goal or goal == NO_GOAL and stamp == (0, 0)
+                         or stamp != (0, 0) and g in self._stamp and self._stamp[g] <= stamp)]
+
+    def update(self, statuses: Iterable[Any]) -> None:
+        """What the action server's status says: when goals were accepted, which have ended
+        (forgotten :attr:`keep` seconds from now)."""
         now = self.clock()
         with self._lock:
-            for goal in goals:
-                if goal in self._owner and goal not in self._ended:
+            for status in statuses:
+                goal = bytes(status.goal_info.goal_id.uuid)
+                if goal not in self._owner:
+                    continue
+                stamp = status.goal_info.stamp
+                self._stamp[goal] = (stamp.sec, stamp.nanosec)
+                if status.status in ENDED and goal not in self._ended:
                     self._ended[goal] = now
+
+    def ended(self, goal: bytes) -> None:
+        """A goal whose result came: forgotten :attr:`keep` seconds from now."""
+        now = self.clock()
+        with self._lock:
+            if goal in self._owner and goal not in self._ended:
+                self._ended[goal] = now
 
     def _drop(self, goal: bytes) -> None:
         client = self._owner.pop(goal)
+        self._stamp.pop(goal, None)
         self._ended.pop(goal, None)
         self._held[client] -= 1
         if not self._held[client]:
@@ -125,10 +152,30 @@ class Goals:
             self._drop(goal)
 
 
+@dataclass
+class Answer:
+    """A call answered by the serving bridge itself (never served): counted by ``reason``
+    when it is one."""
+
+    response: Any
+    reason: Reason | None = None
+    detail: str = ""
+
+
+@dataclass
+class Split:
+    """A call served as several (one cancel per goal), answered with their answers merged
+    (``None`` for one that failed)."""
+
+    requests: list[Any]
+    merge: Callable[[list[Any]], Any]
+
+
 class ClientGoals:
     """One part of an action as one client may use it: its calls about goals it did not send
-    are answered as the action server answers for a goal it does not know (never served), its
-    topics carry only its own goals' feedback and status."""
+    are answered as the action server answers for a goal it does not know (never served), a
+    cancel of many goals reaches only its own, its topics carry only its own goals' feedback
+    and status."""
 
     def __init__(self, goals: Goals, client: str, part: str, interface: Any, raw: bool):
         self.goals, self.client, self.part = goals, client, part
@@ -136,34 +183,48 @@ class ClientGoals:
         self.raw = raw  # messages are serialized CDR (codec cdr)
 
     # services: send_goal, cancel_goal, get_result
-    def refuse(self, request: Any) -> tuple[Reason, str, Any] | None:
-        """Why a request is answered without being served (reason, detail, the answer), or
-        None: serve it."""
+    def screen(self, request: Any) -> Answer | Split | None:
+        """How a request is handled: answered here, split, or (None) served as it is."""
         response = self.interface.Response()
+        if self.part == "cancel_goal":
+            return self._cancel(request, response)
+        goal = bytes(request.goal_id.uuid)
         if self.part == "send_goal":
-            why = self.goals.claim(bytes(request.goal_id.uuid), self.client)
+            why = self.goals.claim(goal, self.client)
             if why is None:
                 return None
-            return why, (f"{self.client} sent a goal under another's id" if why is
-                         Drop.FOREIGN_GOAL else f"{self.client} has {self.goals.cap} goals "
-                         "running"), response
-        if self.part == "cancel_goal":
-            info = request.goal_info
-            goal = bytes(info.goal_id.uuid)
-            if goal == _NO_GOAL or info.stamp.sec or info.stamp.nanosec:
-                response.return_code = CANCEL_REJECTED
-                return (Drop.FOREIGN_GOAL, f"{self.client} asked to cancel every goal (or those "
-                        "before a time), which may be other clients'", response)
-            if self.goals.owns(self.client, goal):
-                return None
-            response.return_code = CANCEL_UNKNOWN_GOAL
-            return Drop.FOREIGN_GOAL, f"{self.client} asked to cancel a goal not its own", response
-        goal = bytes(request.goal_id.uuid)
+            return Answer(response, why, f"{self.client} sent a goal under another's id" if why
+                          is Drop.FOREIGN_GOAL else f"{self.client} has {self.goals.cap} goals")
         if self.goals.owns(self.client, goal):
             return None
         response.status = STATUS_UNKNOWN
-        return Drop.FOREIGN_GOAL, f"{self.client} asked for a result of a goal not its own", \
-            response
+        return Answer(response, Drop.FOREIGN_GOAL, f"{self.client} asked for the result of a "
+                      "goal not its own")
+
+    def _cancel(self, request: Any, response: Any) -> Answer | Split | None:
+        info = request.goal_info
+        goal, stamp = bytes(info.goal_id.uuid), (info.stamp.sec, info.stamp.nanosec)
+        if goal != NO_GOAL and stamp == (0, 0):  # one goal
+            if self.goals.owns(self.client, goal):
+                return None
+            response.return_code = CANCEL_UNKNOWN_GOAL
+            return Answer(response, Drop.FOREIGN_GOAL, f"{self.client} asked to cancel a goal "
+                          "not its own")
+        mine = self.goals.covered(self.client, goal, stamp)
+        if not mine:  # as ROS answers a cancel that covers no goal
+            return Answer(response)
+        requests = []
+        for each in mine:
+            one = self.interface.Request()
+            one.goal_info.goal_id.uuid = list(each)
+            requests.append(one)
+        return Split(requests, self._merge)
+
+    def _merge(self, answers: list[Any]) -> Any:
+        response = self.interface.Response()
+        response.goals_canceling = [info for answer in answers if answer is not None
+                                    for info in answer.goals_canceling]
+        return response
 
     def answered(self, request: Any, response: Any | None) -> None:
         """The action server's answer (None: none came): a goal not accepted is nobody's, a
@@ -171,7 +232,7 @@ class ClientGoals:
         if self.part == "send_goal" and (response is None or not response.accepted):
             self.goals.release(bytes(request.goal_id.uuid), self.client)
         elif self.part == "get_result" and response is not None and response.status in ENDED:
-            self.goals.ended([bytes(request.goal_id.uuid)])
+            self.goals.ended(bytes(request.goal_id.uuid))
 
     # topics: feedback, status
     def select(self, message: Any) -> Any | None:
@@ -183,8 +244,7 @@ class ClientGoals:
         from rclpy.serialization import deserialize_message, serialize_message
 
         array = deserialize_message(bytes(message), self.interface) if self.raw else message
-        self.goals.ended(bytes(s.goal_info.goal_id.uuid) for s in array.status_list
-                         if s.status in ENDED)
+        self.goals.update(array.status_list)
         mine = self.interface(status_list=[s for s in array.status_list if self.goals.owns(
             self.client, bytes(s.goal_info.goal_id.uuid))])
         return serialize_message(mine) if self.raw else mine
