@@ -300,3 +300,155 @@ services:
     node = side.ros.node
     assert node.count_publishers("/robot1/fib/_action/status") == 0
     assert node.count_clients("/robot1/fib/_action/cancel_goal") == 0
+
+
+# -- the record of goals, the policy and check, without processes ------------------------------
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def status(goal: bytes, state: int, sec: int = 1) -> Any:
+    from action_msgs.msg import GoalStatus
+
+    s = GoalStatus(status=state)
+    s.goal_info.goal_id.uuid = list(goal)
+    s.goal_info.stamp.sec = sec
+    return s
+
+
+def test_goals_are_their_senders_and_forgotten_a_while_after_they_end():
+    from rosgate.actions import Goals
+    from rosgate.drops import Drop
+
+    clock = Clock()
+    goals = Goals(keep=10, cap=2, clock=clock)
+    a, b, c = b"a" * 16, b"b" * 16, b"c" * 16
+    assert goals.claim(a, "robot1") is None and goals.claim(a, "robot1") is None
+    assert goals.claim(a, "robot2") is Drop.FOREIGN_GOAL  # another's id
+    assert goals.owns("robot1", a) and not goals.owns("robot2", a)
+    assert goals.claim(b, "robot1") is None
+    assert goals.claim(c, "robot1") is Drop.TOO_MANY_GOALS  # two running: its cap
+    assert goals.claim(b"d" * 16, "robot2") is None  # a cap per client: robot1 blocks no other
+    goals.update([status(a, 4)])  # a succeeded
+    assert goals.claim(c, "robot1") is None  # its oldest ended goal made room
+    assert not goals.owns("robot1", a) and goals.owns("robot1", c)
+    goals.release(c, "robot1")  # not accepted: nobody's
+    goals.update([status(b, 6)])
+    clock.now = 9.9
+    goals.claim(bytes(16), "robot3")  # forgetting happens as goals come
+    assert goals.owns("robot1", b)
+    clock.now = 10.1
+    goals.claim(bytes(16), "robot3")
+    assert not goals.owns("robot1", b)
+
+
+def test_a_cancel_covers_the_clients_goals_as_ros_reads_it():
+    from rosgate.actions import NO_GOAL, Goals
+
+    goals = Goals()
+    early, late, other, done = b"e" * 16, b"l" * 16, b"o" * 16, b"d" * 16
+    for goal in (early, late, done):
+        goals.claim(goal, "robot1")
+    goals.claim(other, "robot2")
+    goals.update([status(early, 2, sec=5), status(late, 2, sec=9), status(other, 2, sec=1),
+                  status(done, 4, sec=1)])
+    assert sorted(goals.covered("robot1", NO_GOAL, (0, 0))) == sorted([early, late])
+    assert goals.covered("robot1", NO_GOAL, (5, 0)) == [early]
+    assert sorted(goals.covered("robot1", late, (5, 0))) == sorted([early, late])
+    assert goals.covered("robot1", other, (0, 0)) == []
+
+
+def test_feedback_and_status_carry_only_the_clients_goals_as_cdr():
+    from action_msgs.msg import GoalStatusArray
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from rosgate.actions import Goals, client_goals
+
+    goals = Goals()
+    mine, theirs = b"m" * 16, b"t" * 16
+    goals.claim(mine, "robot1")
+    goals.claim(theirs, "robot2")
+    feedback = client_goals(goals, "robot1", "/fib/_action/feedback",
+                            Fibonacci.Impl.FeedbackMessage, raw=True)
+    for goal, kept in ((mine, True), (theirs, False)):
+        message = Fibonacci.Impl.FeedbackMessage()
+        message.goal_id.uuid = list(goal)
+        message.feedback.sequence = [1, 2]
+        data = serialize_message(message)
+        assert (feedback.select(data) == data) is kept
+    watch = client_goals(goals, "robot1", "/fib/_action/status", GoalStatusArray, raw=True)
+    both = serialize_message(GoalStatusArray(status_list=[status(theirs, 2), status(mine, 4)]))
+    seen = deserialize_message(watch.select(both), GoalStatusArray)
+    assert [(bytes(s.goal_info.goal_id.uuid), s.status) for s in seen.status_list] == [(mine, 4)]
+    as_objects = client_goals(goals, "robot2", "/fib/_action/status", GoalStatusArray, raw=False)
+    seen = as_objects.select(deserialize_message(both, GoalStatusArray))
+    assert [bytes(s.goal_info.goal_id.uuid) for s in seen.status_list] == [theirs]
+
+
+def test_only_an_action_rule_reaches_inside_an_action_and_says_shared():
+    from rosgate.config import (
+        ActionConfig,
+        ClientPolicy,
+        Direction,
+        Rule,
+        ServiceConfig,
+        TopicConfig,
+    )
+    from rosgate.policy import refusal, shared
+
+    policy = ClientPolicy("robot1", bytes(32), topics=(Rule("/robot1/**", "both"),),
+                          services=(Rule("/robot1/**", "both"),),
+                          actions=(Rule("/robot1/fib", "transmit"),
+                                   Rule("/robot1/dock", "transmit", shared=True)))
+    topic = TopicConfig("/s", "action_msgs/msg/GoalStatusArray", Direction.TRANSMIT,
+                        "/robot1/fib/_action/status", cipher="aead")
+    assert refusal(policy, topic, {"none"}) == (
+        "robot1 may not transmit /robot1/fib/_action/status: it is part of an action (only an "
+        "actions: entry, allowed by an actions: rule, carries an action)")
+    call = ServiceConfig("/c", "action_msgs/srv/CancelGoal", Direction.TRANSMIT,
+                         "/robot1/fib/_action/cancel_goal", cipher="aead")
+    assert refusal(policy, call, {"none"}).startswith(
+        "robot1 may not transmit service /robot1/fib/_action/cancel_goal: it is part of an action")
+    plain = TopicConfig("/s", "std_msgs/msg/String", Direction.TRANSMIT, "/robot1/my_action",
+                        cipher="aead")
+    assert refusal(policy, plain, {"none"}) is None  # a name that only looks like one
+    action = lambda name: ActionConfig(name, "test_msgs/action/Fibonacci", Direction.TRANSMIT,
+                                       name, cipher="aead")
+    assert refusal(policy, action("/robot1/fib"), {"none"}) is None
+    assert not shared(policy, action("/robot1/fib"), {"none"})
+    assert shared(policy, action("/robot1/dock"), {"none"})
+    assert not shared(policy, action("/robot1/other"), {"none"})  # refused: not shared either
+
+
+def test_check_says_when_a_topic_rule_names_a_part_of_an_action(tmp_path):
+    import subprocess
+
+    from conftest import ROSGATE
+
+    path = tmp_path / "server.yaml"
+    path.write_text(f"""bridge: {{name: base, role: server, server: 127.0.0.1:12000,
+         identity: {AUTH.identity("server")}}}
+clients:
+  robot1:
+    key: {AUTH.public["robot1"]}
+    topics:
+      - {{name: /robot1/fib/_action/status, direction: both}}
+    services:
+      - {{name: /robot1/**, direction: both, shared: true}}
+    actions:
+      - {{name: /robot1/fib, direction: transmit, shared: true}}
+""")
+    result = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert (f"{path}:7: clients.robot1.topics[0].name: /robot1/fib/_action/status names a part "
+            "of an action: no topic rule allows it, only an actions: rule for the action does\n"
+            "  fix: allow the action with an actions: rule, e.g. - {name: /robot1/fib, "
+            "direction: transmit}") in result.stderr
+    assert (f"{path}:9: clients.robot1.services[0].shared: shared applies to actions: rules, "
+            "not to services") in result.stderr
+    assert "actions[0].shared" not in result.stderr
