@@ -452,3 +452,26 @@ clients:
     assert (f"{path}:9: clients.robot1.services[0].shared: shared applies to actions: rules, "
             "not to services") in result.stderr
     assert "actions[0].shared" not in result.stderr
+
+
+def test_a_reload_that_shares_the_action_gives_a_connected_client_every_goal(
+        tmp_path, domain, bridge, action_side):
+    """SIGHUP after ``shared: true`` is added to robot2's rule: robot2, connected all along,
+    sees robot1's running goal and may cancel it."""
+    import signal
+
+    from action_msgs.msg import GoalStatus
+    from action_msgs.srv import CancelGoal
+
+    run = two_clients(tmp_path, domain, bridge, action_side)
+    victim = bytes(run.goal.handle.goal_id.uuid)
+    assert run.snoop.cancel_goal(victim).return_code == CancelGoal.Response.ERROR_UNKNOWN_GOAL_ID
+    path = run.server.config
+    text = path.read_text()
+    path.write_text(text[:text.rindex("]}") + 1] + ", shared: true}]\n")
+    run.server.proc.send_signal(signal.SIGHUP)
+    assert run.server.wait_log("applied the policy of 2 client(s)", 10), run.server.log
+    assert run.snoop.status.wait_for(lambda _: victim in run.snoop.goals_seen(), 10)
+    cancel = run.snoop.cancel_goal(victim)
+    assert [bytes(g.goal_id.uuid) for g in cancel.goals_canceling] == [victim]
+    assert run.goal.result().status == GoalStatus.STATUS_CANCELED

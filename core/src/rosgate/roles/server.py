@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
-from ..actions import ClientGoals, Goals, client_goals
+from ..actions import Goals, client_goals
 from ..admission import Acceptor, ConnectionLimits, KnownSources
 from ..config import (
     ActionConfig,
@@ -82,6 +82,7 @@ class Session:
     hellos: envelope.ReplayWindow = field(default_factory=envelope.ReplayWindow)
     actions: list[Any] = field(default_factory=list)  # its action list, as it sent it
     part_of: dict[int, ActionConfig] = field(default_factory=dict)  # entry -> its action
+    owned: set[int] = field(default_factory=set)  # action parts limited to the client's goals
 
     @property
     def routes(self) -> list[Route]:
@@ -329,7 +330,8 @@ class ServerRole(Role):
 
     def _sync(self, session: Session) -> None:
         """Routes for the entries the policy allows (made in order: topics, then services),
-        none for the others: a newly refused entry's route is torn down."""
+        none for the others: a newly refused entry's route is torn down, an action's part whose
+        rule now says otherwise of ``shared`` made anew."""
         keyless = {name for (kind, name), r in self.bridge.resolver.plugins.registered.items()
                    if kind == "cipher" and not getattr(r.cls, "session_key_size", 0)}
         resolver, error = self.bridge.resolver, where_error(f"client {session.name}")
@@ -344,14 +346,20 @@ class ServerRole(Role):
                     self.router.remove(route)
                 continue
             session.refused.pop(index, None)
+            goals = self._goals(session, index, keyless)
             if index in session.by_index:
-                continue
+                if (index in session.owned) == (goals is not None):
+                    continue
+                self.router.remove(session.by_index.pop(index))
             if isinstance(entry, TopicConfig):
                 p: TopicSpec | ServiceSpec = resolver.topic(flipped(entry), index, "topics", error)
             else:
                 p = resolver.service(flipped(entry), index - topics, "services", error)
-            session.by_index[index] = self._route(session, p,
-                                                  self._goals(session, index, p, keyless))
+            session.by_index[index] = self._route(session, p, goals)
+            if goals is None:
+                session.owned.discard(index)
+            else:
+                session.owned.add(index)
 
     def _topic_id(self, session: Session, p: TopicSpec | ServiceSpec) -> int:
         """Derived from the client's name and the entry, so a returning client gets the ids it
@@ -362,21 +370,18 @@ class ServerRole(Role):
             topic_id = (topic_id + 1) & 0xFFFFFFFF
         return topic_id
 
-    def _goals(self, session: Session, index: int, p: TopicSpec | ServiceSpec,
-               keyless: set[str]) -> ClientGoals | None:
-        """An action's part as the client may use it: the goals it sent (None: not an action's
-        part, or one its rule says is ``shared``)."""
+    def _goals(self, session: Session, index: int, keyless: set[str]) -> Goals | None:
+        """The record of goals of the action an entry is part of, when the client may use only
+        its own goals (None: not an action's part, or one its rule says is ``shared``)."""
         action = session.part_of.get(index)
         if action is None or (session.policy is not None
                               and shared(session.policy, action, keyless)):
             return None
         with self._lock:
-            goals = self.goals.setdefault(action.remote, Goals())
-        interface = p.msg_type if isinstance(p, TopicSpec) else p.srv_type
-        return client_goals(goals, session.name, p.name, interface, p.codec_cls.raw)
+            return self.goals.setdefault(action.remote, Goals())
 
     def _route(self, session: Session, p: TopicSpec | ServiceSpec,
-               goals: ClientGoals | None = None) -> Route:
+               goals: Goals | None = None) -> Route:
         t, port = p.config, p.config.port
         way = "to" if t.direction is Direction.TRANSMIT else "from"
         link: Link
@@ -394,8 +399,11 @@ class ServerRole(Role):
             link = session.streams[port]
         keys = None if session.schedule is None else session_keys(  # None: the file's cipher
             session.schedule, p, p.name, "s2c", "c2s")
+        interface = p.msg_type if isinstance(p, TopicSpec) else p.srv_type
+        own = None if goals is None else client_goals(goals, session.name, p.name, interface,
+                                                      p.codec_cls.raw)
         return self.router.route(p, self._topic_id(session, p), f"{p.name} ({way} {session.name})",
-                                 link, destination, keys, goals=goals)
+                                 link, destination, keys, goals=own)
 
     @staticmethod
     def _no_address() -> Address | None:
