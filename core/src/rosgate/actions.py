@@ -181,6 +181,7 @@ class ClientGoals:
         self.goals, self.client, self.part = goals, client, part
         self.interface = interface  # the part's service (Request/Response) or message class
         self.raw = raw  # messages are serialized CDR (codec cdr)
+        self._shown: list[tuple[bytes, int]] | None = None  # the status the client saw last
 
     # services: send_goal, cancel_goal, get_result
     def screen(self, request: Any) -> Answer | Split | None:
@@ -237,7 +238,8 @@ class ClientGoals:
     # topics: feedback, status
     def select(self, message: Any) -> Any | None:
         """What of ``message`` the client may see: its goals' feedback, the status of its goals
-        (an array of the others left out); None: nothing."""
+        (an array of the others left out, not sent again when only theirs changed); None:
+        nothing."""
         if self.part == "feedback":
             goal = bytes(message[4:20]) if self.raw else bytes(message.goal_id.uuid)
             return message if self.goals.owns(self.client, goal) else None
@@ -247,6 +249,10 @@ class ClientGoals:
         self.goals.update(array.status_list)
         mine = self.interface(status_list=[s for s in array.status_list if self.goals.owns(
             self.client, bytes(s.goal_info.goal_id.uuid))])
+        shown = [(bytes(s.goal_info.goal_id.uuid), s.status) for s in mine.status_list]
+        if shown == self._shown:
+            return None
+        self._shown = shown
         return serialize_message(mine) if self.raw else mine
 
 
