@@ -371,11 +371,12 @@ class ServerRole(Role):
         return topic_id
 
     def _goals(self, session: Session, index: int, keyless: set[str]) -> Goals | None:
-        """The record of goals of the action an entry is part of, when the client may use only
-        its own goals (None: not an action's part, or one its rule says is ``shared``)."""
+        """The record of goals of the action an entry is part of, when the client sends goals
+        and may use only its own (None: not an action's part, an action it serves, or one its
+        rule says is ``shared``)."""
         action = session.part_of.get(index)
-        if action is None or (session.policy is not None
-                              and shared(session.policy, action, keyless)):
+        if (action is None or action.direction is not Direction.TRANSMIT
+                or session.policy is not None and shared(session.policy, action, keyless)):
             return None
         with self._lock:
             return self.goals.setdefault(action.remote, Goals())
