@@ -143,7 +143,7 @@ def warm(client: Any, timeout: float = 30.0) -> Any:
     while True:
         sent = client.send_goal_async(Fibonacci.Goal(order=1))
         answered = threading.Event()
-        sent.add_done_callback(lambda _: answered.set())
+        sent.add_done_callback(lambda _, this=answered: this.set())
         if answered.wait(5) and sent.result().accepted:
             settled(sent.result().get_result_async(), 20)  # so the server forgets it
             return client

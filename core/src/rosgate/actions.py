@@ -2,6 +2,8 @@
 topics under ``<name>/_action/``, so an ``actions:`` entry becomes those five entries, with the
 types rosidl makes for it, and the service and topic routes carry them. ``get_result`` waits as
 long as a goal runs (up to an hour); in peer role feedback and status take ``port + 1``.
+On a server, a goal belongs to the client that sent it (:class:`Goals`): :class:`ClientGoals`
+keeps each client to its own goals unless the rule says ``shared``.
 """
 
 from __future__ import annotations
