@@ -376,6 +376,9 @@ def test_a_cancel_covers_the_clients_goals_as_ros_reads_it():
     assert goals.covered("robot1", NO_GOAL, (5, 0)) == [early]
     assert sorted(goals.covered("robot1", late, (5, 0))) == sorted([early, late])
     assert goals.covered("robot1", other, (0, 0)) == []
+    goals.update([status(late, 2, sec=9)])  # the server no longer lists early (restarted)
+    assert goals.covered("robot1", NO_GOAL, (0, 0)) == [late]
+    assert goals.owns("robot1", early)  # ended: remembered a while yet
 
 
 def test_feedback_and_status_carry_only_the_clients_goals_as_cdr():

@@ -117,18 +117,23 @@ class Goals:
                          or stamp != (0, 0) and g in self._stamp and self._stamp[g] <= stamp)]
 
     def update(self, statuses: Iterable[Any]) -> None:
-        """What the action server's status says: when goals were accepted, which have ended
-        (forgotten :attr:`keep` seconds from now)."""
+        """What the action server's status (every goal it knows) says: when goals were
+        accepted, which have ended, and which it no longer knows (a goal it listed before,
+        missing now: ended too). Ended goals are forgotten :attr:`keep` seconds from now."""
         now = self.clock()
         with self._lock:
+            listed = set()
             for status in statuses:
                 goal = bytes(status.goal_info.goal_id.uuid)
                 if goal not in self._owner:
                     continue
+                listed.add(goal)
                 stamp = status.goal_info.stamp
                 self._stamp[goal] = (stamp.sec, stamp.nanosec)
                 if status.status in ENDED and goal not in self._ended:
                     self._ended[goal] = now
+            for goal in self._stamp.keys() - listed - self._ended.keys():
+                self._ended[goal] = now
 
     def ended(self, goal: bytes) -> None:
         """A goal whose result came: forgotten :attr:`keep` seconds from now."""
