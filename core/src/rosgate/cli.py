@@ -147,6 +147,10 @@ def _engine(path: str, plugins: Plugins | None = None, domain_id: int | None = N
     engine = Engine(load(path), plugins, domain_id=domain_id).prepare()
     if (warning := engine.insecure_warning()) is not None:
         logging.getLogger("rosgate").warning(warning)
+    from .policy import advice
+
+    for said in advice(engine.config):
+        logging.getLogger("rosgate").warning(said)
     return engine
 
 

@@ -52,6 +52,12 @@ class Drop(StrEnum):
     TIMEOUT = "timeout", "a call that got no answer within its `timeout`"
     REMOTE_FAILURE = "remote_failure", "the far side answered the call as failed"
     SERVER_ERROR = "server_error", "the ROS server's call failed"
+    FOREIGN_GOAL = "foreign_goal", ("an action's cancel, result request, goal id or feedback "
+                                    "about a goal another client sent: answered as for an "
+                                    "unknown goal, or not sent (goals belong to their sender "
+                                    "unless the action's rule says `shared`)")
+    TOO_MANY_GOALS = "too_many_goals", ("a client's goal past 1,000 of one action still running "
+                                        "on the server: not accepted")
     # receiving: the link
     TRANSPORT_ERROR = "transport_error", "the transport failed while receiving (a bug: logged)"
     OVERSIZED_DATAGRAM = "oversized_datagram", "a datagram longer than the link's `max_frame`"

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from functools import lru_cache
 from typing import Any
 
-from .config import ActionConfig, ClientPolicy, Rule, ServiceConfig, TopicConfig
+from .config import ActionConfig, BridgeConfig, ClientPolicy, Rule, ServiceConfig, TopicConfig
 from .config.kinds import ROS_NAME_MAX
 
 
@@ -31,12 +31,55 @@ def matches(pattern: str, text: str) -> bool:
 _ROS_NAME = re.compile(r"(?:/[A-Za-z_][A-Za-z0-9_]*)+")
 
 
+#: a name inside an action (``/x/_action/status``): only an ``actions:`` rule grants it
+_ACTION_PART = re.compile(r"(^|/)_action(/|$)")
+
+
+def is_action_part(name: str) -> bool:
+    """Whether ``name`` (a name or a rule's glob) names something inside an action."""
+    return _ACTION_PART.search(name) is not None
+
+
+def advice(cfg: BridgeConfig) -> list[str]:
+    """What ``check`` and ``run`` say of a server's rules that do not do what they seem to: a
+    topic or service rule naming a part of an action (only an actions: rule reaches those), a
+    topic or service rule that says ``shared`` (it applies to actions)."""
+    said = []
+    for client, policy in cfg.clients.items():
+        for kind, rules in (("topics", policy.topics), ("services", policy.services)):
+            for i, rule in enumerate(rules):
+                key = f"clients.{client}.{kind}[{i}]"
+                if is_action_part(rule.name):
+                    said.append(str(cfg.error(
+                        f"{key}.name", f"{rule.name} names a part of an action: no {kind[:-1]} "
+                        "rule allows it, only an actions: rule for the action does",
+                        f"allow the action with an actions: rule, e.g. - {{name: "
+                        f"{rule.name.split('/_action')[0] or '/'}, direction: transmit}}")))
+                if rule.shared:
+                    said.append(str(cfg.error(f"{key}.shared", f"shared applies to actions: "
+                                              f"rules, not to {kind}", "remove shared: here")))
+    return said
+
+
 def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionConfig,
             keyless: set[str]) -> str | None:
     """Why ``entry`` (as the client sent it) is refused, or None when a rule allows it.
     ``keyless`` ciphers (``none``) are allowed only when named. A name that is not an absolute
     ROS name (``~``, ``..``, empty parts: a bare framing's ``remote`` is text) is refused before
-    any rule; an action (``transmit``: the client sends goals) is judged by ``actions:``."""
+    any rule; an action (``transmit``: the client sends goals) is judged by ``actions:``, and
+    only an action's own entry reaches the names inside it (``<action>/_action/...``)."""
+    return _judge(policy, entry, keyless)[0]
+
+
+def shared(policy: ClientPolicy, action: ActionConfig, keyless: set[str]) -> bool:
+    """Whether a rule that allows ``action`` says ``shared``: the client sees and may cancel
+    every goal of it, not only its own (docs/actions.md)."""
+    return any(rule.shared for rule in _judge(policy, action, keyless)[1])
+
+
+def _judge(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionConfig,
+           keyless: set[str]) -> tuple[str | None, list[Rule]]:
+    """Why ``entry`` is refused (None: allowed), and the rules that allow it."""
     is_topic = isinstance(entry, TopicConfig)
     kind, rules = (("topic", policy.topics) if is_topic else
                    ("action", policy.actions) if isinstance(entry, ActionConfig) else
@@ -45,13 +88,17 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionCon
     what = name if is_topic else f"{kind} {name}"
     if len(name) > ROS_NAME_MAX or not _ROS_NAME.fullmatch(name):
         return (f"{policy.name} may not {direction} {name!r}: it is not a ROS name (parts of "
-                "letters, digits and '_' after a single '/', none starting with a digit)")
+                "letters, digits and '_' after a single '/', none starting with a digit)"), []
+    if not isinstance(entry, ActionConfig) and is_action_part(name):
+        return (f"{policy.name} may not {direction} {what}: it is part of an action (only an "
+                "actions: entry, allowed by an actions: rule, carries an action)"), []
     ways = [r for r in rules if r.direction in ("both", direction)]
     by_name = [r for r in ways if matches(r.name, name)]
     if not by_name:
         allowed = [r.name for r in ways]
         says = ", ".join(allowed) if allowed else f"no {kind}s it {direction}s"
-        return f"{policy.name} may not {direction} {what} (policy for {policy.name} allows {says})"
+        return (f"{policy.name} may not {direction} {what} (policy for {policy.name} allows "
+                f"{says})"), []
     checks: list[tuple[str, Any, Callable[[Rule], bool], Callable[[Rule], str]]] = [
         ("type", entry.type, lambda r: r.types is None
          or any(matches(t, entry.type) for t in r.types),
@@ -78,12 +125,12 @@ def refusal(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionCon
         if not any(allows(r) for r in by_name):
             rule = by_name[0]
             return (f"{policy.name} may not {direction} {what} with {label} {value} (policy "
-                    f"for {policy.name} allows {describe(rule)} for {rule.name})")
-    for rule in by_name:
-        if all(check[2](rule) for check in checks):
-            return None
+                    f"for {policy.name} allows {describe(rule)} for {rule.name})"), []
+    allowing = [rule for rule in by_name if all(check[2](rule) for check in checks)]
+    if allowing:
+        return None, allowing
     return (f"{policy.name} may not {direction} {what} as asked (no rule of policy for "
-            f"{policy.name} allows its type, port, cipher and QoS together)")
+            f"{policy.name} allows its type, port, cipher and QoS together)"), []
 
 
 def _asked_qos(spec: int | str | dict) -> tuple[int | None, str]:

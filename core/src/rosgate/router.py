@@ -14,6 +14,7 @@ from collections.abc import Callable
 from typing import Any
 
 from . import announce
+from .actions import ClientGoals
 from .announce import Identity
 from .config import BridgeConfig, Direction, Framing
 from .drops import Drop, Reason
@@ -85,16 +86,19 @@ class Router:
     # -- making routes -----------------------------------------------------------------------
     def route(self, p: TopicSpec | ServiceSpec, route_id: int, label: str, link: Link,
               destination: Destination = _no_destination, keys: Keys | None = None,
-              announce: bool = True) -> Route:
-        """The route of an entry over ``link``, a topic's or a service's, as its spec says."""
+              announce: bool = True, goals: ClientGoals | None = None) -> Route:
+        """The route of an entry over ``link``, a topic's or a service's, as its spec says.
+        ``goals``: an action's part as one client of a server may use it."""
         if isinstance(p, TopicSpec):
-            return self.topic(p, route_id, label, link, destination, keys, announce=announce)
-        return self.service(p, route_id, label, link, destination, keys, announce)
+            return self.topic(p, route_id, label, link, destination, keys, announce=announce,
+                              select=None if goals is None else goals.select)
+        return self.service(p, route_id, label, link, destination, keys, announce, goals)
 
     def topic(self, p: TopicSpec, topic_id: int, label: str, link: Link,
               destination: Destination = _no_destination,
               keys: Keys | None = None,
-              bare_names: bool = True, announce: bool = True) -> TransmitRoute | ReceiveRoute:
+              bare_names: bool = True, announce: bool = True,
+              select: Callable[[Any], Any] | None = None) -> TransmitRoute | ReceiveRoute:
         """A topic's route and its ROS entity. ``keys``: a session's (default: the file's cipher).
         ``bare_names=False``: bare frames never carry the topic's name (a bus names them by key).
         ``announce=False``: announcements wait for :meth:`start_announcing` (a client's, until
@@ -110,7 +114,7 @@ class Router:
                        if t.framing is Framing.NONE else EnvelopeFraming())
             route = TransmitRoute(t, topic_id, codec, keys, self.warner, label, p.delivery,
                                   framing=framing, link=link, destination=destination,
-                                  compression=p.compression)
+                                  compression=p.compression, select=select)
             self._identify(route, p.msg_type)
             if not t.qos_given:
                 route.qos_found = self.ros.qos_found(t.topic)
@@ -134,7 +138,8 @@ class Router:
 
     def service(self, p: ServiceSpec, service_id: int, label: str, link: Link | None,
                 destination: Destination = _no_destination,
-                keys: Keys | None = None, announce: bool = True) -> ServiceRoute:
+                keys: Keys | None = None, announce: bool = True,
+                goals: ClientGoals | None = None) -> ServiceRoute:
         """A service's route and its ROS entity; found by id with an envelope (else by name)."""
         s = p.config
         args = (s, service_id, ServiceCodec(p.codec_cls, p.srv_type, p.codec_options),
@@ -142,7 +147,7 @@ class Router:
         qos = deep_qos()
         route: ServiceRoute
         if s.direction is Direction.RECEIVE:
-            route = ServerRoute(*args)
+            route = ServerRoute(*args, goals=goals)
             self._identify(route, p.srv_type)
             route.entity = self.ros.client(p.srv_type, s.service, qos)
         elif p.service_framing is not None:  # a microcontroller's call pattern, by its plugin

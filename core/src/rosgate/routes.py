@@ -278,9 +278,13 @@ class TransmitRoute(Route):
     def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
                  warner: Warner, label: str, delivery: Delivery, *,
                  framing: EnvelopeFraming | BareFraming, link: Link,
-                 destination: Callable[[], Address | None], compression: Transform | None = None):
+                 destination: Callable[[], Address | None], compression: Transform | None = None,
+                 select: Callable[[Any], Any] | None = None):
         super().__init__(topic, topic_id, codec, keys, warner, label, delivery)
         self.topic = topic
+        #: what of each message the far side may see (None: nothing, ``foreign_goal``): an
+        #: action's feedback and status for one client (rosgate.actions.ClientGoals)
+        self.select = select
         self.framing = framing
         self.link = link
         self.destination = destination  # where to send, looked up per message (a server learns it)
@@ -378,6 +382,9 @@ class TransmitRoute(Route):
                 return None
             self.last_sent_ns = now
         try:
+            if self.select is not None and (message := self.select(message)) is None:
+                self.drop(Drop.FOREIGN_GOAL, "about a goal another client sent")
+                return None
             payload, flags = self.encode(message)
             return self.framing.frame(self, payload, now, flags)
         except NoKey:

@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from .actions import Answer, Split
 from .config import ServiceConfig
 from .drops import Drop, Reason
 from .errors import CodecError
@@ -277,11 +278,14 @@ class CallerRoute(ServiceRoute):
 
 class ServerRoute(ServiceRoute):
     """``receive``: calls from the far side, served by the ROS server here. A call beyond
-    :data:`QUEUE_DEPTH` in progress fails at once (``too_many_calls``): a flood cannot pile up."""
+    :data:`QUEUE_DEPTH` in progress fails at once (``too_many_calls``): a flood cannot pile up.
+    ``goals``: an action's part as one client may use it (:class:`rosgate.actions.ClientGoals`):
+    a call about other clients' goals is answered here, a cancel of many goals split."""
 
-    def __init__(self, *args: Any) -> None:
+    def __init__(self, *args: Any, goals: Any = None) -> None:
         super().__init__(*args)
         self.in_flight = 0
+        self.goals = goals
 
     def serve(self, request: Any, call: Call) -> None:
         """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``.
@@ -371,6 +375,14 @@ class ServerRoute(ServiceRoute):
             return
         self.counters.received += 1
         self.counters.bytes_received += size
+        goals = self.goals
+        screened = goals.screen(request) if goals is not None else None
+        if isinstance(screened, Answer):
+            if screened.reason is not None:
+                self.drop(screened.reason, screened.detail)
+            self.reply(header, link, source, 0,
+                       self.codec.encode(self.codec.response, screened.response))
+            return
         with self._lock:
             busy = self.in_flight >= QUEUE_DEPTH
             if not busy:
@@ -387,6 +399,8 @@ class ServerRoute(ServiceRoute):
             self.reply(header, link, source, flags, body)
 
         def answered(response: Any) -> None:
+            if goals is not None:
+                goals.answered(request, response)
             try:
                 body = self.codec.encode(self.codec.response, response)
             except Exception as exc:
@@ -395,8 +409,40 @@ class ServerRoute(ServiceRoute):
                 return
             reply(0, body)
 
-        self.serve(request, Call(answered, lambda reason: reply(envelope.FLAG_FAILED,
-                                                                reason.encode())))
+        def failed(reason: str) -> None:
+            if goals is not None:
+                goals.answered(request, None)
+            reply(envelope.FLAG_FAILED, reason.encode())
+
+        call = Call(answered, failed)
+        if isinstance(screened, Split):
+            self.serve_split(screened.requests, screened.merge, call)
+        else:
+            self.serve(request, call)
+
+    def serve_split(self, requests: list[Any], merge: Callable[[list[Any]], Any],
+                    call: Call) -> None:
+        """Serve ``requests`` (one call split in several), then answer ``call`` with
+        ``merge`` of their answers, each ``None`` that failed."""
+        answers: list[Any] = [None] * len(requests)
+        left = [len(requests)]
+
+        def one(index: int) -> Call:
+            def done(response: Any) -> None:
+                answers[index] = response
+                settled()
+
+            return Call(done, lambda reason: settled())
+
+        def settled() -> None:
+            with self._lock:
+                left[0] -= 1
+                last = left[0] == 0
+            if last:
+                call.answer(merge(answers))
+
+        for index, request in enumerate(requests):
+            self.serve(request, one(index))
 
 
 def deep_qos() -> Any:

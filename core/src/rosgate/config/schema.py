@@ -277,6 +277,9 @@ class Rule:
     durability: tuple[str, ...] | None = option(None, "topics: the durabilities an entry may ask "
                                                 "for", unset="any: `volatile`, `transient_local`",
                                                 example="[volatile]", parse=kinds.durabilities)
+    shared: bool = option(False, "actions: whether the client sees and may cancel every goal of "
+                          "the action, other clients' too (else only the goals it sent)",
+                          example="true")
     line: int = 0
 
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
+from ..actions import Goals, client_goals
 from ..admission import Acceptor, ConnectionLimits, KnownSources
 from ..config import (
     ActionConfig,
@@ -32,7 +33,7 @@ from ..config import (
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..links import DatagramLink, Link
-from ..policy import refusal
+from ..policy import refusal, shared
 from ..routes import Route
 from ..secure import (
     Busy,
@@ -81,6 +82,7 @@ class Session:
     hellos: envelope.ReplayWindow = field(default_factory=envelope.ReplayWindow)
     actions: list[Any] = field(default_factory=list)  # its action list, as it sent it
     part_of: dict[int, ActionConfig] = field(default_factory=dict)  # entry -> its action
+    owned: set[int] = field(default_factory=set)  # action parts limited to the client's goals
 
     @property
     def routes(self) -> list[Route]:
@@ -109,6 +111,8 @@ class ServerRole(Role):
         #: whose key it no longer lists
         self._keyed: set[SecureConnection] = set()
         self.acceptor: Acceptor | None = None  # until start() has its main line
+        #: who sent each goal, per action (its name here): clients use only their own goals
+        self.goals: dict[str, Goals] = {}
 
     def start(self) -> None:
         plan = self.bridge.plan
@@ -326,7 +330,8 @@ class ServerRole(Role):
 
     def _sync(self, session: Session) -> None:
         """Routes for the entries the policy allows (made in order: topics, then services),
-        none for the others: a newly refused entry's route is torn down."""
+        none for the others: a newly refused entry's route is torn down, an action's part whose
+        rule now says otherwise of ``shared`` made anew."""
         keyless = {name for (kind, name), r in self.bridge.resolver.plugins.registered.items()
                    if kind == "cipher" and not getattr(r.cls, "session_key_size", 0)}
         resolver, error = self.bridge.resolver, where_error(f"client {session.name}")
@@ -341,13 +346,20 @@ class ServerRole(Role):
                     self.router.remove(route)
                 continue
             session.refused.pop(index, None)
+            goals = self._goals(session, index, keyless)
             if index in session.by_index:
-                continue
+                if (index in session.owned) == (goals is not None):
+                    continue
+                self.router.remove(session.by_index.pop(index))
             if isinstance(entry, TopicConfig):
                 p: TopicSpec | ServiceSpec = resolver.topic(flipped(entry), index, "topics", error)
             else:
                 p = resolver.service(flipped(entry), index - topics, "services", error)
-            session.by_index[index] = self._route(session, p)
+            session.by_index[index] = self._route(session, p, goals)
+            if goals is None:
+                session.owned.discard(index)
+            else:
+                session.owned.add(index)
 
     def _topic_id(self, session: Session, p: TopicSpec | ServiceSpec) -> int:
         """Derived from the client's name and the entry, so a returning client gets the ids it
@@ -358,7 +370,19 @@ class ServerRole(Role):
             topic_id = (topic_id + 1) & 0xFFFFFFFF
         return topic_id
 
-    def _route(self, session: Session, p: TopicSpec | ServiceSpec) -> Route:
+    def _goals(self, session: Session, index: int, keyless: set[str]) -> Goals | None:
+        """The record of goals of the action an entry is part of, when the client sends goals
+        and may use only its own (None: not an action's part, an action it serves, or one its
+        rule says is ``shared``)."""
+        action = session.part_of.get(index)
+        if (action is None or action.direction is not Direction.TRANSMIT
+                or session.policy is not None and shared(session.policy, action, keyless)):
+            return None
+        with self._lock:
+            return self.goals.setdefault(action.remote, Goals())
+
+    def _route(self, session: Session, p: TopicSpec | ServiceSpec,
+               goals: Goals | None = None) -> Route:
         t, port = p.config, p.config.port
         way = "to" if t.direction is Direction.TRANSMIT else "from"
         link: Link
@@ -376,8 +400,11 @@ class ServerRole(Role):
             link = session.streams[port]
         keys = None if session.schedule is None else session_keys(  # None: the file's cipher
             session.schedule, p, p.name, "s2c", "c2s")
+        interface = p.msg_type if isinstance(p, TopicSpec) else p.srv_type
+        own = None if goals is None else client_goals(goals, session.name, p.name, interface,
+                                                      p.codec_cls.raw)
         return self.router.route(p, self._topic_id(session, p), f"{p.name} ({way} {session.name})",
-                                 link, destination, keys)
+                                 link, destination, keys, goals=own)
 
     @staticmethod
     def _no_address() -> Address | None:
