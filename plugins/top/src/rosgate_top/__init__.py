@@ -68,6 +68,10 @@ def bridge_name(given: str | None) -> str:
     return given
 
 
+#: what a status that is not a bridge's (fields missing or of another kind) raises as it is drawn
+NOT_A_STATUS = (KeyError, TypeError, ValueError, AttributeError, IndexError)
+
+
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console  # here, not at the top: see find_spec above
 
@@ -76,11 +80,15 @@ def run(args: argparse.Namespace) -> int:
     name = bridge_name(args.bridge)
     with StatusClient(name) as client:
         before = client.status()
-        if args.once:
-            time.sleep(args.interval)
-            Console().print(render(client.status(), before, keys=False))
-            return 0
-        return _live(client, before, args.interval)
+        try:
+            if args.once:
+                time.sleep(args.interval)
+                Console().print(render(client.status(), before, keys=False))
+                return 0
+            return _live(client, before, args.interval)
+        except NOT_A_STATUS as exc:
+            raise NoBridge(f"bridge {name!r} answered something that is no status it knows "
+                           f"({type(exc).__name__}: {exc!r:.80})") from None
 
 
 def _live(client: StatusClient, before: dict[str, Any], interval: float) -> int:
