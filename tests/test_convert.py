@@ -188,3 +188,32 @@ def test_a_pattern_in_an_old_file_is_refused(tmp_path, key, value):
     assert f"{old}:{line}: {key}[0]: {value!r} is a pattern, not a name" in done.stderr
     assert "fix: write each topic and type it carries by its name" in done.stderr
     assert not (tmp_path / "out.yaml").exists() and "clients:" not in done.stdout
+
+
+@pytest.mark.parametrize(("rule", "warned"), [
+    ("{name: /**, direction: both}", True),
+    ("{name: '**', direction: transmit, types: ['**']}", True),
+    ("{name: /**, direction: receive, types: ['*/*/*']}", True),
+    ("{name: /**, direction: both, types: [geometry_msgs/msg/Twist]}", False),
+    ("{name: /robot1/**, direction: both}", False),
+])
+def test_check_warns_on_a_rule_that_allows_everything(tmp_path, rule, warned):
+    """The review's file: a server rule allowing ``/**`` with any type (what the old
+    ``convert`` made of a ``/**`` topic), which ``rosgate check`` accepted without a word. Now
+    check (and run) says it, at the rule's line; a rule bounded by name or type is quiet."""
+    from conftest import AUTH
+
+    path = tmp_path / "server.yaml"
+    path.write_text(f"""bridge: {{name: base, role: server, server: 127.0.0.1:{free_port()},
+         identity: {AUTH.identity("server")}}}
+clients:
+  robot1:
+    key: {AUTH.public["robot1"]}
+    topics:
+      - {rule}
+""")
+    done = check(path)
+    assert done.returncode == 0, done.stderr
+    said = (f"{path}:7: clients.robot1.topics[0]: allows every name" in done.stderr
+            and "robot1 may reach every topic of this server's ROS graph" in done.stderr)
+    assert said == warned, done.stderr

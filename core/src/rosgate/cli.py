@@ -122,8 +122,12 @@ def _engine(path: str, plugins: Plugins | None = None, domain_id: int | None = N
     from .config import load
     from .engine import Engine
 
+    from .policy import broad_rules
+
     engine = Engine(load(path), plugins, domain_id=domain_id).prepare()
     if (warning := engine.insecure_warning()) is not None:
+        logging.getLogger("rosgate").warning(warning)
+    for warning in broad_rules(engine.config.clients, engine.config.file):
         logging.getLogger("rosgate").warning(warning)
     return engine
 
