@@ -76,10 +76,11 @@ def test_a_robot_that_was_connected_before_a_restart_is_no_stranger_under_a_floo
     assert server.proc.returncode == 0, server.log
     kept = Path(os.environ["ROSGATE_STATE_DIR"]) / "base.recent-hosts.json"
     assert list(json.loads(kept.read_text())["hosts"]) == ["127.0.0.1"]
-    bridge(server_file(tmp_path, port, ("robot1",), DEFAULT_TIMING), ds)  # the same file, a fresh process
+    # the same file, a fresh process
+    bridge(server_file(tmp_path, port, ("robot1",), DEFAULT_TIMING), ds)
     took = flooded_time_to_up(tmp_path, port, domain, bridge)
     print(f"robot1 up {took:.2f} s after its start")
-    
+
     assert took < 2, f"robot1 came up {took:.1f} s after its start"
 
 
@@ -94,5 +95,5 @@ def test_a_robot_never_seen_before_gets_in_under_a_flood(tmp_path, domain, bridg
     bridge(server_file(tmp_path, port, ("robot1",), DEFAULT_TIMING), ds)
     took = flooded_time_to_up(tmp_path, port, domain, bridge)
     print(f"robot1 up {took:.2f} s after its start")
-    
+
     assert took < 2, f"robot1 came up {took:.1f} s after its start"

@@ -32,10 +32,10 @@ HOSTILE = "/x[bold red]FAKE[/bold red]\x1b]0;owned\x07\x1b[2J"
 
 
 def fake_status() -> dict:
-    entry = {"kind": "topic", "name": HOSTILE, "direction": "transmit", "peer": "[blink]p[/]\x1b[5m",
-             "type": "std_msgs/msg/String", "transport": "udp", "port": None, "sent": 1,
-             "bytes_sent": 10, "received": 0, "bytes_received": 0, "lost": 0,
-             "drops": {"\x1b[31mred": 1}, "queue": 0, "stale": None, "silence": None,
+    entry = {"kind": "topic", "name": HOSTILE, "direction": "transmit",
+             "peer": "[blink]p[/]\x1b[5m", "type": "std_msgs/msg/String", "transport": "udp",
+             "port": None, "sent": 1, "bytes_sent": 10, "received": 0, "bytes_received": 0,
+             "lost": 0, "drops": {"\x1b[31mred": 1}, "queue": 0, "stale": None, "silence": None,
              "latency": None, "refused": None}
     return {"version": 1, "bridge": "robot1", "role": "client", "time": 1.0, "uptime": 1.0,
             "entries": [entry, dict(entry, name="/refused", refused="no [i]way[/i]\x1b[8m")],

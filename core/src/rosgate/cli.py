@@ -121,7 +121,6 @@ def _all_plugins() -> Plugins:
 def _engine(path: str, plugins: Plugins | None = None, domain_id: int | None = None) -> Engine:
     from .config import load
     from .engine import Engine
-
     from .policy import broad_rules
 
     engine = Engine(load(path), plugins, domain_id=domain_id).prepare()

@@ -65,7 +65,7 @@ def private_folder(folder: Path, variable: str) -> Path:
     folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     info = folder.stat()
     if info.st_uid != os.getuid() or info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        whose = ("another user's (uid {})".format(info.st_uid) if info.st_uid != os.getuid()
+        whose = (f"another user's (uid {info.st_uid})" if info.st_uid != os.getuid()
                  else "open to others")
         raise NotPrivate(f"{folder} is {whose}, mode {stat.S_IMODE(info.st_mode):o}: whoever "
                          "made it could fake this bridge's status or state; the bridge does "

@@ -144,7 +144,7 @@ def _way(direction: str | None) -> str:
 
 
 def _state(up: bool | None) -> str:
-    return {True: "up", False: "DOWN"}.get(up, "?") if isinstance(up, bool | None) else "?"
+    return "up" if up is True else "DOWN" if up is False else "?"
 
 
 def _drops(drops: dict[str, int]) -> str:
