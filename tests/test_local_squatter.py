@@ -151,3 +151,22 @@ def test_top_shows_markup_and_terminal_escapes_as_text(tmp_path, monkeypatch):
                   "[blink]p[/]\\x1b[5m", "refused: no [i]way[/i]\\x1b[8m", "base\\x1b[1m up",
                   "udp[u]\\x1b[4m", "\\x1b[31mred=1"):
         assert shown in done.stdout, (shown, done.stdout)
+
+
+@as_root
+def test_a_server_refuses_a_state_folder_another_user_made(squatter, tmp_path, domain):
+    """The same squat on the folder where a server keeps its recent clients (whoever could
+    write there could give their own addresses the places kept for robots): ``rosgate run``
+    refuses to start, naming the folder and ``ROSGATE_STATE_DIR``."""
+    path = tmp_path / "b.yaml"
+    path.write_text(AUTH.secure(f"""
+bridge: {{name: base, role: server, server: 127.0.0.1:{free_port()}}}
+"""))
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain()),
+               **{runtime.STATE_VARIABLE: str(squatter)})
+    done = subprocess.run([ROSGATE, "run", str(path)], env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert f"{squatter} is another user's (uid {NOBODY}), mode 700" in done.stderr, done.stderr
+    assert f"point {runtime.STATE_VARIABLE} at a folder of yours" in done.stderr
+    assert "Traceback" not in done.stderr and "running as" not in done.stderr

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
-from ..admission import Acceptor, ConnectionLimits, KnownSources, RecentHosts, heard, proven
+from ..admission import Acceptor, ConnectionLimits, KnownSources, RecentHosts, heard
 from ..config import (
     ActionConfig,
     ClientPolicy,
@@ -170,7 +170,6 @@ class ServerRole(Role):
                     self._handshakes.release(host)
             if secure is None:
                 return
-            proven(connection)
             with self._lock:
                 self._keyed = {c for c in self._keyed if not c.closed}
                 self._keyed.add(secure)
