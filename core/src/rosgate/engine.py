@@ -179,16 +179,16 @@ class Engine:
             private_folder(runtime_dir(), RUNTIME_VARIABLE)
         self.ros = RosNode(self.config.name, self.domain_id)
         self.router = Router(self.ros)
-        self.role = ROLES[self.config.role](
-            Bridge(self.config, self.plan, self.resolver, self.router, self.life))
         try:
+            self.role = ROLES[self.config.role](
+                Bridge(self.config, self.plan, self.resolver, self.router, self.life))
             self.role.start()
             watched = Watched(self.config, self.status, self.ros, self.life.stopping)
             for cls, options in self._monitor_classes:
                 monitor = cls(watched, options)
                 monitor.start()
                 self.monitors.append(monitor)
-        except ConfigError:
+        except (ConfigError, NotPrivate):  # a server's state folder another user made
             self.stop()
             raise
         try:
