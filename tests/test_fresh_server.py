@@ -63,10 +63,12 @@ def test_a_robot_that_was_connected_before_a_restart_is_no_stranger_under_a_floo
     starts.
 
     Before: the places kept for recent clients lived in memory only, so after the restart
-    robot1 was a stranger: it was not up when the flood stopped (24 s here, as the review's
-    23 s). Now the server keeps its recent clients' addresses in its state folder, and an
-    unauthenticated connection gives its place up to a new one that needs it: robot1 is up
-    within 1 s of its start (bound asserted: 2 s, for a loaded machine)."""
+    robot1 was a stranger: in 2 runs of 3 it was still out when the test gave up (30 s; the
+    review: 23 s, the whole flood), in 1 it slipped in (1.2 s) as the flood's connections
+    were closed at their handshake deadline and opened again. Now the server keeps its recent
+    clients' addresses in its state folder, and an unauthenticated connection gives its place
+    up to a new one that needs it: robot1 is up within 1 s of its start (0.05 s measured;
+    bound asserted: 2 s, for a loaded machine)."""
     ds, port = domain(), free_port()
     server = bridge(server_file(tmp_path, port, ("robot1",), DEFAULT_TIMING), ds)
     robot = bridge(robot_file(tmp_path, port), domain())
@@ -80,14 +82,14 @@ def test_a_robot_that_was_connected_before_a_restart_is_no_stranger_under_a_floo
     bridge(server_file(tmp_path, port, ("robot1",), DEFAULT_TIMING), ds)
     took = flooded_time_to_up(tmp_path, port, domain, bridge)
     print(f"robot1 up {took:.2f} s after its start")
-
     assert took < 2, f"robot1 came up {took:.1f} s after its start"
 
 
 def test_a_robot_never_seen_before_gets_in_under_a_flood(tmp_path, domain, bridge):
     """The attack: the same flood against a server that has never seen robot1 (no state).
 
-    Before: robot1 was refused every time it tried for the whole flood. Now a stranger's
+    Before: robot1, a stranger, was refused whenever every open place was held: out for the
+    30 s the test waits in 1 run of 3, in by luck (0.3 s, under 2 s) in 2. Now a stranger's
     idle connection gives its place to the newcomer, and a connection that has begun its
     handshake goes after every idle one: robot1 is up within 1 s of its start (bound asserted:
     2 s)."""
@@ -95,5 +97,4 @@ def test_a_robot_never_seen_before_gets_in_under_a_flood(tmp_path, domain, bridg
     bridge(server_file(tmp_path, port, ("robot1",), DEFAULT_TIMING), ds)
     took = flooded_time_to_up(tmp_path, port, domain, bridge)
     print(f"robot1 up {took:.2f} s after its start")
-
     assert took < 2, f"robot1 came up {took:.1f} s after its start"
