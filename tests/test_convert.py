@@ -103,3 +103,116 @@ def test_a_converted_pair_carries_a_topic(tmp_path, domain, ros_side, bridge):
                 lambda i: String(data="warmup" if i is None else f"converted-{i}"),
                 lambda m: m.data == "warmup", 20, interval=0.01)
     assert [m.data for m in got] == [f"converted-{i}" for i in range(20)]
+
+
+# -- hostile old files ---------------------------------------------------------------------------
+
+def alias_bomb() -> str:
+    """A kilobyte of nested aliases: nine lists of nine, nine deep, stand for 9**9 topics."""
+    lines = ['a0: &a0 ["x", "x", "x", "x", "x", "x", "x", "x", "x"]']
+    lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 9) + "]" for i in range(1, 9)]
+    lines += ["client:", "  ros__parameters:", "    receive_topics: [*a8]",
+              "    receive_msg_types: [String]"]
+    return "\n".join(lines) + "\n"
+
+
+def test_an_alias_bomb_is_refused_at_once_in_little_memory(tmp_path):
+    """The attack: ``rosgate convert`` on a 1 kB old file of nested aliases.
+
+    Before: it ran until killed (17 s and 1.6 GB to a MemoryError in the review; here killed
+    at 10 s, at 290 MB and growing). Now the file is read within bounds (its aliases expanded
+    to at most 100,000 values): refused with one message naming the file and the fix, within
+    1 s and 100 MB (Python's allocations while converting, measured in this process)."""
+    import time
+    import tracemalloc
+
+    from rosgate_convert.legacy import convert
+
+    from rosgate import ConfigError
+
+    text = alias_bomb()
+    assert len(text) < 1024
+    tracemalloc.start()
+    started = time.monotonic()
+    try:
+        with pytest.raises(ConfigError, match="its aliases expand to more than 100000 values"):
+            convert(text, "bomb.yaml")
+        took = time.monotonic() - started
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert took < 1, f"{took:.1f} s"
+    assert peak < 100 * 1024 * 1024, f"{peak // 1024 // 1024} MB"
+    old = tmp_path / "bomb.yaml"
+    old.write_text(text)
+    done = subprocess.run([ROSGATE, "convert", str(old), "-o", str(tmp_path / "out.yaml")],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    # the line of the list where the count passed the bound
+    assert f"{old}:6: its aliases expand to more than 100000 values" in done.stderr, done.stderr
+    assert "fix: write the lists out" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "out.yaml").exists()
+
+
+def test_a_recursive_alias_is_refused():
+    from rosgate_convert.legacy import read_yaml
+
+    from rosgate import ConfigError
+
+    with pytest.raises(ConfigError, match="refers to the list or mapping that contains it"):
+        read_yaml("a: &a [1, *a]\n", "loop.yaml")
+
+
+@pytest.mark.parametrize(("key", "value"), [("receive_topics", "/**"), ("receive_topics", "*"),
+                                            ("transmit_topics", "robot?/cmd"),
+                                            ("receive_msg_types", "*"),
+                                            ("receive_msg_types", "geometry_msgs/msg/*")])
+def test_a_pattern_in_an_old_file_is_refused(tmp_path, key, value):
+    """The attack: an old file whose topic is ``/**`` (or a type ``*``).
+
+    Before: it became a server rule allowing ``/**`` (port 22 with it), which ``rosgate
+    check`` accepted. Now ``rosgate convert`` refuses it at its line, and writes nothing."""
+    params = {"receive_topics": ["scan"], "receive_msg_types": ["LaserScan"],
+              "receive_ports": [22], "receive_protocols": ["UDP"],
+              "transmit_topics": ["cmd"], "transmit_msg_types": ["Twist"],
+              "transmit_ports": [12002], "transmit_protocols": ["UDP"]}
+    params[key] = [value]
+    old = tmp_path / "old.yaml"
+    old.write_text(yaml.safe_dump({"client_node": {"ros__parameters": params}}))
+    line = 1 + next(i for i, text in enumerate(old.read_text().splitlines())
+                    if text.strip().startswith(f"{key}:"))
+    done = subprocess.run([ROSGATE, "convert", str(old), "-o", str(tmp_path / "out.yaml")],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert f"{old}:{line}: {key}[0]: {value!r} is a pattern, not a name" in done.stderr
+    assert "fix: write each topic and type it carries by its name" in done.stderr
+    assert not (tmp_path / "out.yaml").exists() and "clients:" not in done.stdout
+
+
+@pytest.mark.parametrize(("rule", "warned"), [
+    ("{name: /**, direction: both}", True),
+    ("{name: '**', direction: transmit, types: ['**']}", True),
+    ("{name: /**, direction: receive, types: ['*/*/*']}", True),
+    ("{name: /**, direction: both, types: [geometry_msgs/msg/Twist]}", False),
+    ("{name: /robot1/**, direction: both}", False),
+])
+def test_check_warns_on_a_rule_that_allows_everything(tmp_path, rule, warned):
+    """The review's file: a server rule allowing ``/**`` with any type (what the old
+    ``convert`` made of a ``/**`` topic), which ``rosgate check`` accepted without a word. Now
+    check (and run) says it, at the rule's line; a rule bounded by name or type is quiet."""
+    from conftest import AUTH
+
+    path = tmp_path / "server.yaml"
+    path.write_text(f"""bridge: {{name: base, role: server, server: 127.0.0.1:{free_port()},
+         identity: {AUTH.identity("server")}}}
+clients:
+  robot1:
+    key: {AUTH.public["robot1"]}
+    topics:
+      - {rule}
+""")
+    done = check(path)
+    assert done.returncode == 0, done.stderr
+    said = (f"{path}:7: clients.robot1.topics[0]: allows every name" in done.stderr
+            and "robot1 may reach every topic of this server's ROS graph" in done.stderr)
+    assert said == warned, done.stderr

@@ -135,7 +135,7 @@ def test_a_socket_left_by_a_dead_bridge_is_replaced_and_a_live_one_kept(runtime_
 def test_a_socket_folder_others_may_enter_is_refused(runtime_dir):
     runtime_dir.mkdir(mode=0o755)
     os.chmod(runtime_dir, 0o755)
-    with pytest.raises(OSError, match="not this user's alone"):
+    with pytest.raises(runtime.NotPrivate, match="is open to others, mode 755"):
         runtime.StatusServer("x", lambda: {})
 
 

@@ -338,6 +338,10 @@ ERRORS = {
     "recursive_alias": (
         "bridge: &b\n  name: robot1\n  role: *b\n",
         3, "bridge.role", "alias refers to the mapping"),
+    "alias_bomb": (  # nine lists of nine, seven deep: 4.8 million values from 400 bytes
+        "bridge:\n  a0: &a0 [x, x, x, x, x, x, x, x, x]\n" + "".join(
+            f"  a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 9)}]\n" for i in range(1, 8)),
+        2, "bridge.a5[1][7][8][6][5][7]", "more than 200000 values once its aliases are expanded"),
     "key_not_a_name": (
         "? [a, b]\n: 1\n",
         1, None, "a key must be a plain name"),

@@ -18,8 +18,8 @@ from .keys import KeyOptions, describe_source, identity_public_key, key_source, 
 from .monitor import Monitor, Status
 from .options import option
 from .packetizer import PARTIAL_COST, Packet, Packetizer, PacketLink
+from .runtime import RUNTIME_VARIABLE, runtime_dir, socket_path
 from .runtime import SUFFIX as SOCKET_SUFFIX
-from .runtime import runtime_dir, socket_path
 from .service_framing import ServiceFraming
 from .transform import Transform, TransformError
 from .transport import (
@@ -46,11 +46,11 @@ __all__ = [
     "CodecError", "Command", "ConfigError", "DEFAULT_MAX_MESSAGE", "DatagramEndpoint",
     "DatagramTransport", "Drop", "FINISHED_REMEMBERED", "FRAGMENT", "FastDatagramEndpoint",
     "FastStreamConnection", "FramingError", "KeyOptions", "LinkDrop", "LinkError", "Monitor",
-    "OptionError", "PARTIAL_COST", "Packet", "PacketLink", "Packetizer", "Reason", "RosgateError",
-    "SOCKET_SUFFIX", "ServiceFraming", "SocketConnection", "SocketListener", "Status",
-    "StreamConnection", "StreamListener", "StreamTransport", "Transform", "TransformError",
-    "Transport", "check_ip_address", "declare", "describe_source", "hookimpl",
-    "identity_public_key", "ip_source_hosts", "key_source", "load_key", "option",
+    "OptionError", "PARTIAL_COST", "Packet", "PacketLink", "Packetizer", "RUNTIME_VARIABLE",
+    "Reason", "RosgateError", "SOCKET_SUFFIX", "ServiceFraming", "SocketConnection",
+    "SocketListener", "Status", "StreamConnection", "StreamListener", "StreamTransport",
+    "Transform", "TransformError", "Transport", "check_ip_address", "declare", "describe_source",
+    "hookimpl", "identity_public_key", "ip_source_hosts", "key_source", "load_key", "option",
     "parse_host_port", "runtime_dir", "socket_path", "topic_of",
 ]
 __version__ = "0.1.0"

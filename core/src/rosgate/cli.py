@@ -143,13 +143,12 @@ def _all_plugins() -> Plugins:
 def _engine(path: str, plugins: Plugins | None = None, domain_id: int | None = None) -> Engine:
     from .config import load
     from .engine import Engine
+    from .policy import advice, broad_rules
 
     engine = Engine(load(path), plugins, domain_id=domain_id).prepare()
     if (warning := engine.insecure_warning()) is not None:
         logging.getLogger("rosgate").warning(warning)
-    from .policy import advice
-
-    for said in advice(engine.config):
+    for said in [*advice(engine.config), *broad_rules(engine.config.clients, engine.config.file)]:
         logging.getLogger("rosgate").warning(said)
     return engine
 

@@ -5,6 +5,7 @@ the status to the monitors each second, a summary line each minute), stop in rev
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
@@ -28,7 +29,7 @@ from .roles.server import ServerRole
 from .ros import RosNode
 from .router import Router
 from .routes import ReceiveRoute, Route
-from .runtime import StatusServer
+from .runtime import RUNTIME_VARIABLE, NotPrivate, StatusServer, private_folder, runtime_dir
 from .spec import ServiceSpec, TopicSpec
 from .status import collect, summary
 
@@ -200,22 +201,29 @@ class Engine:
         if self.plan is None:
             self.prepare()
         assert self.plan is not None
+        # a status folder another user made: refused before anything runs (NotPrivate); one
+        # that cannot be made is said below, and the bridge runs without a status socket
+        with contextlib.suppress(OSError):
+            private_folder(runtime_dir(), RUNTIME_VARIABLE)
         self.ros = RosNode(self.config.name, self.domain_id)
         self.router = Router(self.ros)
-        self.role = ROLES[self.config.role](
-            Bridge(self.config, self.plan, self.resolver, self.router, self.life))
         try:
+            self.role = ROLES[self.config.role](
+                Bridge(self.config, self.plan, self.resolver, self.router, self.life))
             self.role.start()
             watched = Watched(self.config, self.status, self.ros, self.life.stopping)
             for cls, options in self._monitor_classes:
                 monitor = cls(watched, options)
                 monitor.start()
                 self.monitors.append(monitor)
-        except ConfigError:
+        except (ConfigError, NotPrivate):  # a server's state folder another user made
             self.stop()
             raise
         try:
             self.status_server = StatusServer(self.config.name, self.status)
+        except NotPrivate:  # made another user's since the check above
+            self.stop()
+            raise
         except OSError as exc:  # rosgate top will not see this bridge; the bridge runs on
             log.warning("%s: no status socket (rosgate top): %s", self.config.name, exc)
         threading.Thread(target=self._housekeeping, name="housekeeping", daemon=True).start()

@@ -133,6 +133,32 @@ def _judge(policy: ClientPolicy, entry: TopicConfig | ServiceConfig | ActionConf
             f"{policy.name} allows its type, port, cipher and QoS together)"), []
 
 
+#: names every rule pattern must match to be said to cover everything: short, deep, odd
+_ANY_NAME = ("/a", "/a/b", "/_x9/y/z/w/v/u")
+_ANY_TYPE = ("std_msgs/msg/String", "x/srv/Y", "nav2_msgs/action/NavigateToPose")
+
+
+def broad_rules(clients: dict[str, ClientPolicy], file: str) -> list[str]:
+    """A warning for each rule that allows every name (``/**``) with any type: the client may
+    then publish, call or send goals to anything on the server's graph (its robots' ``cmd_vel``
+    too), which a policy is there to prevent."""
+    out = []
+    for policy in clients.values():
+        for kind, rules in (("topics", policy.topics), ("services", policy.services),
+                            ("actions", policy.actions)):
+            for i, rule in enumerate(rules):
+                if all(matches(rule.name, n) for n in _ANY_NAME) and (
+                        rule.types is None
+                        or any(all(matches(t, x) for x in _ANY_TYPE) for t in rule.types)):
+                    where = f"{file}:{rule.line}" if rule.line else file
+                    out.append(
+                        f"{where}: clients.{policy.name}.{kind}[{i}]: allows every name "
+                        f"({rule.name}) with any type, {rule.direction}: {policy.name} may reach "
+                        f"every {kind[:-1]} of this server's ROS graph. Name what it needs "
+                        f"(e.g. name: /{policy.name}/**) and its types (types: [...])")
+    return out
+
+
 def _asked_qos(spec: int | str | dict) -> tuple[int | None, str]:
     """The depth (None: keep_all) and durability a topic's QoS asks for, as rclpy makes it."""
     from rclpy import qos

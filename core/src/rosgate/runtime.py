@@ -1,6 +1,8 @@
-"""A bridge's status (:mod:`rosgate.status`) on a Unix socket, ``<runtime dir>/<name>.sock``,
-for ``rosgate top``. The folder is 0700 and refused when another user owns it or others may
-write to it; the socket is 0600, and a connection from another user (root aside) is closed
+"""A bridge's folders on this machine: its status (:mod:`rosgate.status`) on a Unix socket,
+``<runtime dir>/<name>.sock``, for ``rosgate top``; and what it keeps across restarts in its
+state folder (:func:`state_dir`). Each folder is made 0700, and refused when another user owns
+it or others may enter it (:class:`NotPrivate`): a bridge never runs on a folder another local
+user prepared. The socket is 0600, and a connection from another user (root aside) is closed
 unanswered. Never on a network. JSON lines: one request line (``{"get": "status"}``), one
 answer line, the status; again on the same connection if the client likes.
 """
@@ -19,9 +21,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .errors import RosgateError
+
 log = logging.getLogger("rosgate")
 
 RUNTIME_VARIABLE = "ROSGATE_RUNTIME_DIR"
+STATE_VARIABLE = "ROSGATE_STATE_DIR"
 SUFFIX = ".sock"
 MAX_REQUEST = 4096  # bytes of one request line; a longer one ends the connection
 MAX_CLIENTS = 8  # connections served at once; more wait in the listen backlog
@@ -40,6 +45,35 @@ def socket_path(name: str) -> Path:
     return runtime_dir() / f"{name}{SUFFIX}"
 
 
+def state_dir() -> Path:
+    """``$ROSGATE_STATE_DIR``, else ``$XDG_STATE_HOME/rosgate``, else ``~/.local/state/rosgate``."""
+    if given := os.environ.get(STATE_VARIABLE):
+        return Path(given)
+    if xdg := os.environ.get("XDG_STATE_HOME"):
+        return Path(xdg) / "rosgate"
+    return Path.home() / ".local" / "state" / "rosgate"
+
+
+class NotPrivate(RosgateError):
+    """A bridge's folder that another user owns, or that others may enter."""
+
+
+def private_folder(folder: Path, variable: str) -> Path:
+    """``folder``, made 0700 when missing; :class:`NotPrivate` when it is another user's or
+    open to others (whoever made it could read, replace or fake what the bridge keeps there),
+    naming the folder, its owner and mode, and the fix (``variable`` moves it)."""
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    info = folder.stat()
+    if info.st_uid != os.getuid() or info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        whose = (f"another user's (uid {info.st_uid})" if info.st_uid != os.getuid()
+                 else "open to others")
+        raise NotPrivate(f"{folder} is {whose}, mode {stat.S_IMODE(info.st_mode):o}: whoever "
+                         "made it could fake this bridge's status or state; the bridge does "
+                         "not run on it\n  fix: remove that folder (as its owner or root), or "
+                         f"point {variable} at a folder of yours (mode 700)")
+    return folder
+
+
 class StatusServer:
     """Serves ``status()`` on the bridge's socket until :meth:`close`."""
 
@@ -48,12 +82,7 @@ class StatusServer:
         self.status = status
         self._slots = threading.BoundedSemaphore(MAX_CLIENTS)
         self._closed = threading.Event()
-        folder = self.path.parent  # 0700, or an existing one ours and closed to others
-        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-        info = folder.stat()
-        if info.st_uid != os.getuid() or info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-            raise OSError(f"{folder} is not this user's alone (owner uid {info.st_uid}, mode "
-                          f"{stat.S_IMODE(info.st_mode):o}); remove it or set {RUNTIME_VARIABLE}")
+        private_folder(self.path.parent, RUNTIME_VARIABLE)
         if self.path.exists() or self.path.is_symlink():
             if _answers(self.path):
                 raise OSError(f"another bridge named {name!r} serves {self.path}")

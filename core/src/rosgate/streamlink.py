@@ -17,6 +17,7 @@ from contextlib import suppress
 from dataclasses import dataclass
 from typing import Any, cast
 
+from .admission import proven
 from .config import LinkConfig
 from .drops import Drop, Reason
 from .errors import LinkError
@@ -313,9 +314,11 @@ class StreamLink(_Sending, Link):
                          or self.closed.is_set()), timeout)
 
     def trust(self) -> None:
-        """The connection proved itself: the full frame size, no deadline."""
+        """The connection proved itself: the full frame size, no deadline, and its place in
+        the connection limits is never given up to a newer connection."""
         self._reader.max_frame = self.max_message
         self._trust_by = None
+        proven(self.connection)
 
     @property
     def trusted(self) -> bool:

@@ -14,6 +14,7 @@ from ..errors import ConfigError
 _INDEX = re.compile(r"\[\d+\]$")
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 START_FIX = "start with a bridge: section, as in the README's bringup.yaml walk-through"
+MAX_VALUES = 200_000  # values a file holds once its aliases are expanded: far past any fleet's
 
 
 @dataclass
@@ -73,8 +74,14 @@ class _Builder:
         self.loader = loader
         self.src = src
         self.open: set[int] = set()  # collections being built: an alias to one is a cycle
+        self.built = 0  # values, each alias expanded: a kilobyte of nested ones means billions
 
     def build(self, node: yaml.Node, path: str) -> Any:
+        self.built += 1
+        if self.built > MAX_VALUES:
+            raise self.src.error(path, f"the file holds more than {MAX_VALUES} values once its "
+                                       "aliases are expanded",
+                                 fix="write it out without nested aliases (*name)")
         if isinstance(node, yaml.ScalarNode):
             value = self.loader.construct_object(node)
             if value is not None and not isinstance(value, str):

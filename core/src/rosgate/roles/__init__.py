@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from ..admission import Acceptor, ConnectionLimits, Sources
+from ..admission import Acceptor, ConnectionLimits, Sources, proven
 from ..config import BridgeConfig, LinkConfig
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
@@ -114,10 +114,11 @@ class Role:
     def respond(self, connection: StreamConnection, host: str, known: Callable[[bytes], bool],
                 admit: Callable[[], bool] | None = None) -> SecureConnection | None:
         """The responder's Noise handshake (``known``: whether a key is taken); None when it
-        failed: closed, counted, said once per :data:`REFUSAL_EVERY` (keys cost nothing)."""
+        failed: closed, counted, said once per :data:`REFUSAL_EVERY` (keys cost nothing). A
+        connection that completed it keeps its place in the connection limits for good."""
         assert self.cfg.identity is not None
         try:
-            return respond(connection, self.cfg.identity, known, admit=admit)
+            secure = respond(connection, self.cfg.identity, known, admit=admit)
         except HandshakeError as exc:
             connection.close()
             reason, sentence = self.handshake_refused(exc, host)
@@ -125,6 +126,8 @@ class Role:
             if sentence is not None:
                 self.refusals.say(f"{reason} {host}", sentence)
             return None
+        proven(connection)  # its place in the connection limits is never taken back
+        return secure
 
     def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
         """How a failed handshake is counted, and the sentence that says it (None: none); said

@@ -22,7 +22,7 @@ from functools import partial
 from typing import Any
 
 from ..actions import Goals, client_goals
-from ..admission import Acceptor, ConnectionLimits, KnownSources
+from ..admission import Acceptor, ConnectionLimits, KnownSources, RecentHosts, heard
 from ..config import (
     ActionConfig,
     ClientPolicy,
@@ -35,6 +35,7 @@ from ..errors import ConfigError, LinkError
 from ..links import DatagramLink, Link
 from ..policy import refusal, shared
 from ..routes import Route
+from ..runtime import STATE_VARIABLE, private_folder, state_dir
 from ..secure import (
     Busy,
     HandshakeError,
@@ -95,6 +96,20 @@ class Session:
             self.schedule.forget()
 
 
+def kept_recent_hosts(name: str) -> RecentHosts:
+    """The addresses of the server's recent clients, kept in its state folder
+    (:class:`~rosgate.runtime.NotPrivate` when another user could write there); in memory only,
+    said, when no folder can be had."""
+    try:
+        folder = private_folder(state_dir(), STATE_VARIABLE)
+    except OSError as exc:
+        log.warning("%s: no state folder (%s): after a restart its clients are strangers until "
+                    "they connect again (set %s to a folder of this user's)", name, exc,
+                    STATE_VARIABLE)
+        return RecentHosts()
+    return RecentHosts(folder / f"{name}.recent-hosts.json")
+
+
 class ServerRole(Role):
     def __init__(self, bridge: Bridge):
         super().__init__(bridge)
@@ -104,6 +119,8 @@ class ServerRole(Role):
         #: datagram ports take frames only from where clients' genuine hellos came from
         self.clients = KnownSources()
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
+        if self.cfg.secure:  # its clients' addresses keep their places across a restart
+            self.limits.recent = kept_recent_hosts(self.cfg.name)
         self._handshakes = ConnectionLimits(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
                                             self.limits.recent)
         #: every connection that completed a handshake and is not closed, whatever it does
@@ -146,6 +163,7 @@ class ServerRole(Role):
 
             def admit() -> bool:  # once the first message is in: an idle connection takes none
                 nonlocal slot
+                heard(connection)
                 slot = self._handshakes.admit(host) is None
                 return slot
 

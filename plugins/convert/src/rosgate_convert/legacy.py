@@ -36,6 +36,53 @@ SEARCHED = ("std_msgs", "geometry_msgs", "sensor_msgs", "nav_msgs", "tf2_msgs",
             "visualization_msgs", "diagnostic_msgs", "trajectory_msgs", "shape_msgs",
             "stereo_msgs", "actionlib_msgs")
 MAC = re.compile(r"[0-9A-Fa-f]{2}(:[0-9A-Fa-f]{2}){5}")
+MAX_BYTES = 1_000_000  # of an old file: the real ones are a few kB
+MAX_VALUES = 100_000  # values an old file holds once its aliases are expanded
+#: characters of a pattern: an old bridge named topics and types one by one, never by a pattern,
+#: and a pattern carried into the server's policy would allow every topic or type it matches
+WILDCARD = re.compile(r"[*?\[\]{}]")
+
+
+def read_yaml(text: str, file: str) -> Any:
+    """The old file's values, read within bounds: at most :data:`MAX_BYTES`, and at most
+    :data:`MAX_VALUES` values once aliases are expanded (a kilobyte of nested aliases stands
+    for billions); :class:`ConfigError` past them."""
+    if len(text) > MAX_BYTES:
+        raise ConfigError(f"{len(text)} characters: not a ros2_socket_bridge file (those are a "
+                          f"few kB; at most {MAX_BYTES} are read)", file=file,
+                          fix="give the bringup.yaml of the old client node")
+    root = yaml.compose(text, Loader=yaml.SafeLoader)
+    if root is not None:
+        _expanded_size(root, {}, set(), file)
+    return yaml.safe_load(text)
+
+
+def _expanded_size(node: yaml.Node, sizes: dict[int, int], open_: set[int], file: str) -> int:
+    """How many values ``node`` holds once its aliases are expanded (each node counted once per
+    place it appears); :class:`ConfigError` past :data:`MAX_VALUES` or for an alias to a node
+    that contains it."""
+    known = sizes.get(id(node))
+    if known is not None:
+        return known
+    if id(node) in open_:
+        raise ConfigError("an alias refers to the list or mapping that contains it",
+                          file=file, line=node.start_mark.line + 1,
+                          fix="remove the recursive alias (*name)")
+    size = 1
+    if isinstance(node, yaml.CollectionNode):
+        open_.add(id(node))
+        children = (node.value if isinstance(node, yaml.SequenceNode)
+                    else [n for pair in node.value for n in pair])
+        for child in children:
+            size += _expanded_size(child, sizes, open_, file)
+            if size > MAX_VALUES:
+                raise ConfigError(f"its aliases expand to more than {MAX_VALUES} values: not a "
+                                  "ros2_socket_bridge file", file=file,
+                                  line=node.start_mark.line + 1,
+                                  fix="write the lists out, without nested aliases (*name)")
+        open_.discard(id(node))
+    sizes[id(node)] = size
+    return size
 
 
 @dataclass
@@ -87,7 +134,7 @@ def full_type(short: str) -> tuple[str, str | None]:
 def convert(text: str, file: str, name: str = "robot1", server_name: str = "server",
             client_key: str = "robot1.key", server_key: str = "server.key",
             client_public: str = "", server_public: str = "") -> Converted:
-    data = yaml.safe_load(text)
+    data = read_yaml(text, file)
     node = next((v for v in data.values() if isinstance(v, dict) and "ros__parameters" in v),
                 None) if isinstance(data, dict) else None
     if node is None:
@@ -122,7 +169,11 @@ def convert(text: str, file: str, name: str = "robot1", server_name: str = "serv
                 note(f"{direction}_{k}", f"{len(values)} values for {count} topics: the "
                                          "missing ones take rosgate's defaults")
         for i, topic in enumerate(columns["topics"]):
-            entry = _topic(str(topic), direction, i, columns, note)
+            for key in ("topics", "msg_types"):
+                if i < len(columns[key]):
+                    _refuse_patterns(file, lines.get(f"{direction}_{key}"), f"{direction}_{key}",
+                                     i, columns[key][i])
+            entry = _topic(topic, direction, i, columns, note)
             if encryption is not None and i < len(encryption) and not encryption[i]:
                 note(f"{direction}_encryption", f"{entry['topic']} was not encrypted; rosgate "
                                                 "encrypts and authenticates it like the others")
@@ -147,6 +198,18 @@ def convert(text: str, file: str, name: str = "robot1", server_name: str = "serv
     out.server = {"bridge": server_bridge,
                   "clients": {name: {"key": client_public, "topics": rules}}}
     return out
+
+
+def _refuse_patterns(file: str, line: int | None, key: str, i: int, value: Any) -> None:
+    """:class:`ConfigError` for an old topic or type that is no name: a pattern, or no text."""
+    if not isinstance(value, str):
+        raise ConfigError(f"{type(value).__name__} where a name belongs", file=file, line=line,
+                          key=f"{key}[{i}]", fix="write each topic and type as a quoted name")
+    if WILDCARD.search(value):
+        raise ConfigError(f"{value!r} is a pattern, not a name: converted, it would let the "
+                          "client ask for everything it matches", file=file, line=line,
+                          key=f"{key}[{i}]", fix="write each topic and type it carries by its "
+                                                 "name")
 
 
 def _topic(topic: str, direction: str, i: int, columns: dict[str, list[Any]],

@@ -70,6 +70,8 @@ def bridge_name(given: str | None) -> str:
 
 #: the columns of ``--once`` when its output is not a terminal: every row whole
 NO_WIDTH_LIMIT = 10_000
+#: what a status that is not a bridge's (fields missing or of another kind) raises as it is drawn
+NOT_A_STATUS = (KeyError, TypeError, ValueError, AttributeError, IndexError)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,13 +82,17 @@ def run(args: argparse.Namespace) -> int:
     name = bridge_name(args.bridge)
     with StatusClient(name) as client:
         before = client.status()
-        if args.once:
-            time.sleep(args.interval)
-            # into a pipe or a file: the whole width of every row (rich would cut at 80 columns)
-            piped = None if sys.stdout.isatty() else NO_WIDTH_LIMIT
-            Console(width=piped).print(render(client.status(), before, keys=False))
-            return 0
-        return _live(client, before, args.interval)
+        try:
+            if args.once:
+                time.sleep(args.interval)
+                # into a pipe or a file: the whole width of every row (rich would cut at 80 columns)
+                piped = None if sys.stdout.isatty() else NO_WIDTH_LIMIT
+                Console(width=piped).print(render(client.status(), before, keys=False))
+                return 0
+            return _live(client, before, args.interval)
+        except NOT_A_STATUS as exc:
+            raise NoBridge(f"bridge {name!r} answered something that is no status it knows "
+                           f"({type(exc).__name__}: {exc!r:.80})") from None
 
 
 def _live(client: StatusClient, before: dict[str, Any], interval: float) -> int:

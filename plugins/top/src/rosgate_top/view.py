@@ -1,5 +1,11 @@
 """What ``rosgate top`` shows: two statuses of a bridge (:mod:`rosgate.status`) become rates,
-and the rates become two tables (rich)."""
+and the rates become two tables (rich).
+
+Every word of a status is shown as plain text (:func:`clean`): names and refusals carry what
+clients and peers chose (an entry's name, a reason quoting it), so rich markup in them is shown
+as written, never applied, and a terminal control character is shown as its escape
+(``\x1b``), never sent to the terminal.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +18,16 @@ from rich.text import Text
 
 #: what ``s`` cycles through: the column a table is sorted by
 SORT_KEYS = ("name", "out/s", "in/s", "drops")
+MAX_WORD = 300  # characters of one word shown; a longer one is cut
+
+
+def clean(value: Any) -> Text:
+    """``value`` as text to show: control and format characters (escapes, bidirectional
+    overrides) written as their escapes, cut at :data:`MAX_WORD`, never read as markup."""
+    text = str(value)[:MAX_WORD]
+    if not text.isprintable():
+        text = "".join(c if c.isprintable() else ascii(c)[1:-1] for c in text)
+    return Text(text)
 
 
 @dataclass
@@ -64,10 +80,11 @@ def render(now: dict[str, Any], before: dict[str, Any] | None, sort: str = "name
 def _header(now: dict[str, Any]) -> Text:
     peers = ", ".join(f"{p['name']} {_state(p['up'])}" for p in now["peers"]) or "none"
     text = Text()
-    text.append(f"rosgate {now['bridge']}", style="bold")
-    text.append(f" ({now['role']}), up {_duration(now['uptime'])}; peers: {peers}")
+    text.append(clean(f"rosgate {now['bridge']}").plain, style="bold")
+    text.append(clean(f" ({now['role']}), up {_duration(now['uptime'])}; peers: {peers}"))
     if now["link_drops"]:
-        text.append("; frames for no topic: " + _drops(now["link_drops"]), style="yellow")
+        text.append(clean("; frames for no topic: " + _drops(now["link_drops"])).plain,
+                    style="yellow")
     return text
 
 
@@ -84,18 +101,20 @@ def _entries(now: dict[str, Any], before: dict[str, Any] | None, sort: str,
                      reverse=reverse != (sort != "name"))
     for r in ordered:
         e = r.entry
+        name, kind, peer = clean(e["name"]), clean(e["kind"]), clean(e["peer"])
         if e["refused"] is not None:
-            state = Text(f"refused: {e['refused']}", style="bold red")
-            table.add_row(e["name"], e["kind"], _way(e["direction"]), e["peer"], "", "", "", "",
+            state = Text(clean(f"refused: {e['refused']}").plain, style="bold red")
+            table.add_row(name, kind, _way(e["direction"]), peer, "", "", "", "",
                           "", "", "", state)
             continue
-        drops = Text(_drops(e["drops"]) or "-",
+        drops = Text(clean(_drops(e["drops"]) or "-").plain,
                      style="bold red" if r.new_drops else "")
         stale = {True: Text("stale", style="yellow"), False: Text("no"), None: Text("-")}[
             e["stale"]]
-        table.add_row(e["name"], e["kind"], _way(e["direction"]), e["peer"],
+        table.add_row(name, kind, _way(e["direction"]), peer,
                       _number(r.out_rate), _number(r.in_rate), _bytes(r.out_bytes),
-                      _bytes(r.in_bytes), _seconds(e["latency"]), str(e["queue"]), stale, drops)
+                      _bytes(r.in_bytes), _seconds(e["latency"]), clean(e["queue"]), stale,
+                      drops)
     return table
 
 
@@ -113,10 +132,10 @@ def _links(now: dict[str, Any], before: dict[str, Any] | None) -> Table:
         budget = link["bandwidth"]
         use = (f"{out_rate * 8 / budget:.0%}" if budget and out_rate is not None
                else "-" if not budget else "")
-        table.add_row(link["name"], Text(_state(link["up"]),
+        table.add_row(clean(link["name"]), Text(_state(link["up"]),
                                          style="green" if link["up"] else "bold red"),
                       _seconds(link["rtt"]), _bytes(out_rate), _bytes(in_rate), use,
-                      str(link["queue"]))
+                      clean(link["queue"]))
     return table
 
 
@@ -125,7 +144,7 @@ def _way(direction: str | None) -> str:
 
 
 def _state(up: bool | None) -> str:
-    return {True: "up", False: "DOWN", None: "?"}[up]
+    return "up" if up is True else "DOWN" if up is False else "?"
 
 
 def _drops(drops: dict[str, int]) -> str:
