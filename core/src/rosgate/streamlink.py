@@ -506,7 +506,8 @@ class Connector:
     capped exponential backoff and jitter (a fleet of clients does not hammer a server that
     comes back); after a connection that worked is lost, at once. ``on_connected(link)`` may
     refuse a connection (a failed handshake: a failed attempt); ``on_lost(link)`` hears of
-    every accepted connection that ended."""
+    every accepted connection that ended; ``on_closed(link)`` hears of every connection that
+    closed (accepted or refused) at once, on the thread that closed it."""
 
     transport: Transport
     address: Address
@@ -519,6 +520,7 @@ class Connector:
     on_lost: Callable[[StreamLink], None] | None = None
     secure: Callable[[StreamConnection], StreamConnection] | None = None
     budget: LinkConfig | None = None
+    on_closed: Callable[[StreamLink], None] | None = None
 
     def __post_init__(self) -> None:
         self._last_failure = ""
@@ -567,11 +569,16 @@ class Connector:
                 return None
         link = self.life.closing(StreamLink(connection, self.slot.name, self.address,
                                             self.on_frame, self.on_frame_lost,
-                                            on_close=self.life.forget, budget=self.budget))
+                                            on_close=self._closed, budget=self.budget))
         if self.on_connected is not None and not self.on_connected(link):
             link.close()
             return None
         return link
+
+    def _closed(self, link: StreamLink) -> None:
+        self.life.forget(link)
+        if self.on_closed is not None:
+            self.on_closed(link)
 
     def failed(self, exc: LinkError) -> None:
         """A connection that opened but was refused (its handshake failed): said once, until a

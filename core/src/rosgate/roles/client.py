@@ -19,6 +19,7 @@ from typing import Any
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
 from ..drops import Drop
 from ..errors import LinkError, RosgateError
+from ..holdback import Holdback
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import Route
@@ -55,13 +56,16 @@ class ClientRole(Role):
         self._hello_seq = itertools.count(1)
         self._dedicated: dict[int, LinkSlot] = {}
         self.answer = Answer()
+        #: what reliable topics take while the server is out of reach
+        self.hold = Holdback(self.cfg.queue_frames, self.cfg.queue_bytes)
         plan = bridge.plan
         assert plan.main_line is not None and plan.main_address is not None
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
                                    bridge.backoff, self._handshake, self._lost,
                                    secure=self.initiate if self.cfg.secure else None,
-                                   budget=bridge.budget(plan.main_line))
+                                   budget=bridge.budget(plan.main_line),
+                                   on_closed=lambda link: self.hold.fail())
 
     def start(self) -> None:
         self.connector.start()
@@ -89,6 +93,7 @@ class ClientRole(Role):
 
     def _handshake(self, link: StreamLink) -> bool:
         """Send our entries; build, re-key or drop their routes from the server's answer."""
+        self.hold.handshake()
         self.answer.got.clear()
         plan = self.bridge.plan
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
@@ -128,8 +133,12 @@ class ClientRole(Role):
             if self.topic_ids is None:
                 self._unbuild()  # half-built: the next handshake starts clean
             return False
-        if (session, token) != (self.session, self.token):  # a restarted server reuses ids
+        new_session = (session, token) != (self.session, self.token)
+        if new_session:  # a restarted server reuses ids
             self.session, self.token = session, token
+            for slot in [self.main, *self._dedicated.values()]:
+                # what waited there was sealed under the old session's keys
+                slot.discard(Drop.SESSION_RESET)
             for slot in self._dedicated.values():  # they must introduce themselves anew
                 if slot.current is not None:
                     slot.current.fail("the server started a new session")
@@ -137,6 +146,8 @@ class ClientRole(Role):
         self.main.attach(link)  # now, not when the connector gets to it: a stop says bye on it
         self.connected.set()
         self._say_hello()
+        # what waited for the server goes first, sealed under this session's keys
+        self.hold.resume(new_session)
         self.router.start_announcing(list(self.routes.values()))  # the server hears us now
         self.router.resync(list(self.routes.values()))
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
@@ -209,7 +220,8 @@ class ClientRole(Role):
             self.schedule, p, p.config.remote, "c2s", "s2c")
         # announcements start once the server has our datagram hello (its ports take frames
         # only from where a hello came from)
-        return self.router.route(p, topic_id, label, link, destination, keys, announce=False)
+        return self.router.route(p, topic_id, label, link, destination, keys, announce=False,
+                                 hold=self.hold)
 
     def _unbuild(self) -> None:
         super().stop()

@@ -9,8 +9,9 @@ datagram link and dedicated stream the client also sends a HELLO-flagged envelop
 token) so the server learns where to send, even through NAT.
 
 Authenticated (:mod:`rosgate.secure`): all of it travels inside the Noise handshake; the welcome
-carries the session's secret (``secret``, ``key_id``, ``rekey``) instead of a token, the client
-answers ``ready`` once it holds it, and datagram hellos are sealed under the session's keys.
+carries the session's secret (``secret``, ``key_id``, ``rekey``) too, the client answers
+``ready`` once it holds it, and datagram hellos are sealed under the session's keys (the token
+then only tells a restarted server's session from the one the client had).
 """
 
 from __future__ import annotations

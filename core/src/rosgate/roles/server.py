@@ -263,8 +263,9 @@ class ServerRole(Role):
         if session.schedule is not None:  # a fresh secret for this handshake, inside it
             assert isinstance(link.connection, SecureConnection)
             welcome.update(session.schedule.offer(link.connection.handshake_hash))
-        else:
-            welcome["token"] = session.token.hex()
+        # the session's own: a client tells a restarted server's new session by it (ids start
+        # at 1 in every server); without identities it also vouches for datagram hellos
+        welcome["token"] = session.token.hex()
         link.send(control(welcome), self.control)
         old = session.main.current
         session.main.attach(link)  # after the welcome: what waited goes out under known ids
