@@ -97,7 +97,6 @@ topics:
             f"routes received {before} + {after}; robot sent {sent}, drops: {robot_drops}; "
             f"base drops: {first_drops} / {base_drops}")
     print(seen)
-    print("ROBOT LOG\n" + robot.log + "\nBASE1 LOG\n" + first_base + "\nBASE2 LOG\n" + base.log)
     assert got == list(range(COUNT)), seen  # every one, once, in order
     assert robot_drops == "none", robot.log
     assert first_drops == "none" and base_drops == "none", seen

@@ -3,13 +3,14 @@ kept encoded but not sealed, in order, within the ``bridge.queue`` bounds, and s
 session's keys once a main line is up again — the same session's, or a restarted server's new
 one, so nothing waits under a key the far side no longer holds.
 
-A stream link's frames wait here instead of going out. A datagram link's go out as ever (the
-server may be up and only the main line lost) and a copy waits: when the server answers with
-the same session the copies are forgotten; when it restarted (a new session), the old one had
-died with them, so they are sent again, sealed anew. Best-effort messages never wait: a stream
-link counts them ``link_down``; a datagram link's sent to a server that turns out to have
-restarted are counted ``link_down`` then. What overflows the bounds, or outlives a topic's
-``max_delay``, is counted; what still waits when the bridge stops is counted ``link_down``.
+A stream link's messages wait here instead of going out. A datagram link's go out as ever (the
+server may be up, only the main line lost) and a copy waits: when the server answers with the
+same session the copies are forgotten; when it restarted (a new session), the old one died
+with them, so they are sent again, sealed anew. A server that stops says ``bye`` first: from
+then on nothing reliable goes out until the next session. Best-effort messages never wait: a
+stream link counts them ``link_down``, and so does a datagram link those it sent to a server
+that turned out to restart. What overflows the bounds, or outlives a topic's ``max_delay``, is
+counted; what still waits when the bridge stops is counted ``link_down``.
 """
 
 from __future__ import annotations
@@ -66,32 +67,39 @@ class Holdback:
     #: messages sent on datagram links while down that will not be sent again (best-effort
     #: ones, copies past the bounds), per route: lost if the server restarted
     _unconfirmed: dict[int, tuple[Holder, int]] = field(default_factory=dict)
-    _resuming: bool = False
+    #: while down, a datagram link's reliable messages go out as well as waiting
+    _copies: bool = False
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _overflow_said: float = float("-inf")
 
     def fail(self) -> None:
-        """The main line is down: reliable messages wait from now on."""
+        """The main line is down: reliable messages wait from now on (a datagram link's go out
+        too, unless the server said it leaves or a handshake began)."""
         with self._lock:
-            self.down, self._resuming = True, False
+            if not self.down:
+                self.down, self._copies = True, True
+
+    def leave(self) -> None:
+        """The server said it stops: nothing reliable goes out until the next session."""
+        with self._lock:
+            self.down, self._copies = True, False
 
     def handshake(self) -> None:
         """A main line is making its handshake: nothing reliable goes out until :meth:`resume`
         (the keys it brings may be a new session's), nor after, if it fails."""
-        with self._lock:
-            self.down, self._resuming = True, True
+        self.leave()
 
     def take(self, route: Holder, encoded: list[tuple[bytes, int, int]], reliable: bool,
              datagram: bool) -> bool:
         """Messages of ``route`` (payload, flags, time taken, in order) while :attr:`down`:
-        kept when reliable. Whether they go out now as well: a datagram link's, until a
-        handshake begins; a stream link's best-effort ones (the link counts them
-        ``link_down``); and any, once the far side is back."""
+        kept when reliable. Whether they go out now as well: a datagram link's, unless the
+        server said it leaves or a handshake began; best-effort ones (a stream link counts
+        them ``link_down``); and any, once the far side is back."""
         overflow: list[Held] = []
         with self._lock:
             if not self.down:
                 return True
-            now = datagram and not self._resuming
+            now = datagram and self._copies
             if not reliable:
                 if now:
                     self._unconfirm(route, len(encoded))
@@ -156,7 +164,7 @@ class Holdback:
                 run.append(item)
             if run:
                 run[0].route.send_again(run)
-            self.down, self._resuming = False, False
+            self.down = False
 
     def forget(self, route: Holder) -> None:
         """A route that is gone: what it held goes, silently (as a link forgets it)."""

@@ -71,6 +71,11 @@ class ClientRole(Role):
         self.connector.start()
         threading.Thread(target=self._ping_loop, name="client-ping", daemon=True).start()
 
+    def wind_down(self) -> None:
+        """What still waits for the server is counted (``link_down``) before the counters are
+        logged."""
+        self.hold.close()
+
     def stop(self) -> None:
         link = self.main.current
         if self.connected.is_set() and link is not None:
@@ -90,6 +95,8 @@ class ClientRole(Role):
         message = self.read_control(frame, link, source)
         if message is not None and message["type"] in ("welcome", "refused"):
             self.answer.put(message)
+        elif message is not None and message["type"] == "bye":  # the server stops
+            self.hold.leave()
 
     def _handshake(self, link: StreamLink) -> bool:
         """Send our entries; build, re-key or drop their routes from the server's answer."""
