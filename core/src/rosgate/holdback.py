@@ -166,6 +166,11 @@ class Holdback:
                 run[0].route.send_again(run)
             self.down = False
 
+    @property
+    def waiting(self) -> int:
+        """Messages held now (copies that went out included)."""
+        return len(self._held)
+
     def forget(self, route: Holder) -> None:
         """A route that is gone: what it held goes, silently (as a link forgets it)."""
         with self._lock:

@@ -65,7 +65,7 @@ class ClientRole(Role):
                                    bridge.backoff, self._handshake, self._lost,
                                    secure=self.initiate if self.cfg.secure else None,
                                    budget=bridge.budget(plan.main_line),
-                                   on_closed=lambda link: self.hold.fail())
+                                   on_closing=lambda link: self.hold.fail())
 
     def start(self) -> None:
         self.connector.start()
