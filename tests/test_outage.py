@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import free_port, warm_up
+from conftest import free_port, wait_until, warm_up
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
@@ -100,3 +100,58 @@ topics:
     assert got == list(range(COUNT)), seen  # every one, once, in order
     assert robot_drops == "none", robot.log
     assert first_drops == "none" and base_drops == "none", seen
+
+
+FAST = "heartbeat: 0.2, peer_timeout: 0.8, reconnect: {min: 0.05, max: 0.5}"
+
+
+def test_what_waits_for_a_stopped_server_is_bounded_and_every_drop_is_counted(
+        engines, domain, ros_side, logs):
+    """Reliable messages past ``bridge.queue`` drop the oldest (``queue_full``, one warning
+    for the burst); best-effort ones do not wait for a server that said it stops (``link_down``);
+    the newest that waited reach the restarted server once each; what still waits when the
+    client stops is counted ``link_down``."""
+    ds, dc, port = domain(), domain(), free_port()
+    server_yaml = f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}}}"
+    server = engines(server_yaml, ds)
+    client = engines(f"""
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST},
+         queue: {{frames: 5, bytes: 1000000}}}}
+topics:
+  - {{topic: /rel, type: std_msgs/msg/String, direction: transmit, qos: 100}}
+  - {{topic: /fresh, type: std_msgs/msg/String, direction: transmit,
+     qos: {{reliability: best_effort, depth: 100}}}}""", dc)
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+    rel, rel_in = robot.publisher("/rel", String, 100), base.listen("/rel", String, 100)
+    fresh = robot.publisher("/fresh", String, best_effort)
+    fresh_in = base.listen("/fresh", String, best_effort)
+    warm_up(rel, rel_in, String(data="warmup"))
+    warm_up(fresh, fresh_in, String(data="warmup"))
+    role = client.role
+    mine = {r.topic.topic: r for r in client.routes()}
+
+    server.stop()
+    assert role.hold.down
+    for i in range(20):
+        rel.publish(String(data=f"m{i}"))
+        fresh.publish(String(data=f"f{i}"))
+    assert wait_until(lambda: mine["/rel"].counters.drops.get("queue_full") == 15
+                      and mine["/fresh"].counters.drops.get("link_down") == 20), (
+        mine["/rel"].counters.drops, mine["/fresh"].counters.drops)
+    assert role.hold.waiting == 5
+    assert len(logs.having("past bridge.queue")) == 1  # one burst, one warning
+
+    server = engines(server_yaml, ds)
+    assert wait_until(lambda: role.connected.is_set() and not role.hold.down)
+    far = {r.topic.topic: r for r in server.routes()}
+    assert wait_until(lambda: far["/rel"].counters.received == 5), far["/rel"].counters
+    assert role.hold.waiting == 0 and far["/fresh"].counters.received == 0
+    assert far["/rel"].counters.drops == {} and far["/rel"].counters.lost == 0
+
+    server.stop()
+    for i in range(2):
+        rel.publish(String(data=f"n{i}"))
+    assert wait_until(lambda: role.hold.waiting == 2)
+    client.stop()
+    assert mine["/rel"].counters.drops == {"queue_full": 15, "link_down": 2}

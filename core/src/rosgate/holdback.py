@@ -93,30 +93,43 @@ class Holdback:
              datagram: bool) -> bool:
         """Messages of ``route`` (payload, flags, time taken, in order) while :attr:`down`:
         kept when reliable. Whether they go out now as well: a datagram link's, unless the
-        server said it leaves or a handshake began; best-effort ones (a stream link counts
-        them ``link_down``); and any, once the far side is back."""
+        server said it leaves or a handshake began (then a best-effort one is counted
+        ``link_down``); a stream link's best-effort ones (the link counts them); and any, once
+        the far side is back."""
         overflow: list[Held] = []
+        refused = 0
         with self._lock:
             if not self.down:
                 return True
             now = datagram and self._copies
-            if not reliable:
-                if now:
-                    self._unconfirm(route, len(encoded))
-                return True
-            for payload, flags, stamp in encoded:
-                self._held.append(Held(route, payload, flags, stamp, now))
-                self._bytes += len(payload)
-            while self._held and (len(self._held) > self.frames or self._bytes > self.bytes):
-                gone = self._held.popleft()
-                self._bytes -= len(gone.payload)
-                if gone.sent:  # its copy went out: lost only if the server restarted
-                    self._unconfirm(gone.route, 1)
-                else:
-                    overflow.append(gone)
+            if reliable:
+                overflow = self._keep(route, encoded, now)
+            elif now:
+                self._unconfirm(route, len(encoded))
+            elif datagram:  # the server left, or is answering: nobody would take them
+                refused = len(encoded)
+        for _ in range(refused):
+            route.drop(Drop.LINK_DOWN, "the server is out of reach")
         if overflow:
             self._overflowed(overflow)
-        return now
+        return now or not (reliable or datagram)
+
+    def _keep(self, route: Holder, encoded: list[tuple[bytes, int, int]],
+              sent: bool) -> list[Held]:
+        """Under the lock: ``encoded`` kept, and the oldest gone past the bounds; those that
+        never went out, to be counted."""
+        overflow = []
+        for payload, flags, stamp in encoded:
+            self._held.append(Held(route, payload, flags, stamp, sent))
+            self._bytes += len(payload)
+        while self._held and (len(self._held) > self.frames or self._bytes > self.bytes):
+            gone = self._held.popleft()
+            self._bytes -= len(gone.payload)
+            if gone.sent:  # its copy went out: lost only if the server restarted
+                self._unconfirm(gone.route, 1)
+            else:
+                overflow.append(gone)
+        return overflow
 
     def _unconfirm(self, route: Holder, count: int) -> None:
         """Under the lock: ``count`` messages of ``route`` went out on a datagram link while the
