@@ -59,8 +59,8 @@ class Holdback:
     without the lock (a route that read it True holds under the lock, and finds it False if
     :meth:`resume` ran meanwhile: it then sends after what was held)."""
 
-    frames: int
-    bytes: int
+    max_frames: int
+    max_bytes: int
     down: bool = False
     _held: deque[Held] = field(default_factory=deque)
     _bytes: int = 0
@@ -122,7 +122,7 @@ class Holdback:
         for payload, flags, stamp in encoded:
             self._held.append(Held(route, payload, flags, stamp, sent))
             self._bytes += len(payload)
-        while self._held and (len(self._held) > self.frames or self._bytes > self.bytes):
+        while self._held and (len(self._held) > self.max_frames or self._bytes > self.max_bytes):
             gone = self._held.popleft()
             self._bytes -= len(gone.payload)
             if gone.sent:  # its copy went out: lost only if the server restarted
@@ -147,7 +147,7 @@ class Holdback:
             self._overflow_said = now
             log.warning("the server is out of reach: reliable messages past bridge.queue "
                         "(%d frames, %d bytes) are dropped, the oldest first (queue_full)",
-                        self.frames, self.bytes)
+                        self.max_frames, self.max_bytes)
 
     def resume(self, new_session: bool) -> None:
         """A main line is up again: what waits is sealed under the keys of now and sent, in the
