@@ -2,17 +2,19 @@
 (client/server, identities, the session's cipher), a topic with ROS's default QoS (reliable) at
 20 Hz for 30 s, the base bridge stopped 8 s into the stream and started again 10 s later, the
 listener on the base kept alive throughout. Every message arrives at the listener, once, in
-order — over the default udp and over tcp — and neither bridge counts a drop."""
+order — over the default udp and over tcp, and with the base killed (SIGKILL) between two
+messages — and no bridge counts a drop."""
 
 from __future__ import annotations
 
 import re
+import signal
 import threading
 import time
 from pathlib import Path
 
 import pytest
-from conftest import free_port, wait_until, warm_up
+from conftest import Bridge, free_port, wait_until, warm_up
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
@@ -57,9 +59,9 @@ class Talker(threading.Thread):
             return self._progress.wait_for(lambda: self.published >= n, timeout)
 
 
-@pytest.mark.parametrize("transport", ["udp", "tcp"])
+@pytest.mark.parametrize("transport, how", [("udp", "stop"), ("tcp", "stop"), ("udp", "kill")])
 def test_a_base_restarted_mid_stream_gets_every_message_once_in_order(
-        tmp_path: Path, domain, ros_side, bridge, transport):
+        tmp_path: Path, domain, ros_side, bridge, transport, how):
     server_domain, client_domain = domain(), domain()
     port = free_port()
     server_file = tmp_path / "base.yaml"
@@ -69,7 +71,9 @@ bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}}}
 topics:
   - {{topic: /chatter, type: std_msgs/msg/String, direction: transmit, transport: {transport}}}
 """)
-    base = bridge(server_file, server_domain)
+    # a base killed is no bridge of the fixture's, which wants a clean exit of each
+    base = Bridge(server_file, server_domain) if how == "kill" else bridge(server_file,
+                                                                            server_domain)
     robot = bridge(tmp_path / "robot1.yaml", client_domain)
     far, near = ros_side(server_domain, "far"), ros_side(client_domain, "near")
     reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
@@ -80,7 +84,14 @@ topics:
     talker = Talker(publisher)
     talker.start()
     assert talker.wait_published(STOP_AT * RATE, STOP_AT + 10)
-    assert base.stop() == 0
+    if how == "kill":
+        # between two messages: one in flight when a base dies is lost (no acknowledgements)
+        last = str(STOP_AT * RATE - 1)
+        assert inbox.wait_for(lambda items: any(m.data == last for m in items), 10)
+        base.proc.kill()
+        assert base.proc.wait(10) == -signal.SIGKILL
+    else:
+        assert base.stop() == 0
     first_base = base.log
     assert talker.wait_published((STOP_AT + DOWN) * RATE, DOWN + 10)
     base = bridge(server_file, server_domain)
@@ -91,9 +102,12 @@ topics:
 
     assert robot.stop() == 0 and base.stop() == 0  # their last lines: the counters
     sent, _, robot_drops = counters(robot.log, "/chatter")
-    _, before, first_drops = counters(first_base, "/chatter")
+    _, before, first_drops = (counters(first_base, "/chatter") if how == "stop"
+                              else (0, -1, "none"))  # a killed base says nothing
     _, after, base_drops = counters(base.log, "/chatter")
-    seen = (f"{len(got)} of {COUNT} at the listener ({len(set(got))} distinct); the base's "
+    missing = sorted(set(range(COUNT)) - set(got))
+    seen = (f"{len(got)} of {COUNT} at the listener ({len(set(got))} distinct, missing "
+            f"{missing[:10]}); the base's "
             f"routes received {before} + {after}; robot sent {sent}, drops: {robot_drops}; "
             f"base drops: {first_drops} / {base_drops}")
     print(seen)

@@ -69,13 +69,16 @@ class Holdback:
     _unconfirmed: dict[int, tuple[Holder, int]] = field(default_factory=dict)
     #: while down, a datagram link's reliable messages go out as well as waiting
     _copies: bool = False
-    _lock: threading.Lock = field(default_factory=threading.Lock)
+    #: main lines lost so far (one may be lost while :meth:`resume` sends, on its thread)
+    _failures: int = 0
+    _lock: threading.RLock = field(default_factory=threading.RLock)
     _overflow_said: float = float("-inf")
 
     def fail(self) -> None:
         """The main line is down: reliable messages wait from now on (a datagram link's go out
         too, unless the server said it leaves or a handshake began)."""
         with self._lock:
+            self._failures += 1
             if not self.down:
                 self.down, self._copies = True, True
 
@@ -154,6 +157,7 @@ class Holdback:
         order it was taken, before anything newer. ``new_session``: the server restarted, so
         what went out on datagram links meanwhile is sent again; else only what waited."""
         with self._lock:
+            failures = self._failures
             held, self._held, self._bytes = list(self._held), deque(), 0
             unconfirmed, self._unconfirmed = list(self._unconfirmed.values()), {}
             if new_session:
@@ -177,7 +181,8 @@ class Holdback:
                 run.append(item)
             if run:
                 run[0].route.send_again(run)
-            self.down = False
+            # a main line lost while these went out (fail, on this thread) keeps it down
+            self.down = self._failures != failures
 
     @property
     def waiting(self) -> int:
