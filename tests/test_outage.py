@@ -80,7 +80,7 @@ topics:
     inbox = far.listen("/chatter", String, reliable)
     publisher = near.publisher("/chatter", String, QoSProfile(depth=10))  # ROS's default QoS
 
-    warm_up(publisher, inbox, String(data="warmup"))
+    warmups = warm_up(publisher, inbox, String(data="warmup"))
     talker = Talker(publisher)
     talker.start()
     assert talker.wait_published(STOP_AT * RATE, STOP_AT + 10)
@@ -113,6 +113,7 @@ topics:
     print(seen)
     assert got == list(range(COUNT)), seen  # every one, once, in order
     assert robot_drops == "none", robot.log
+    assert COUNT <= sent <= COUNT + warmups, seen  # each taken once (a copy sent again is not)
     assert first_drops == "none" and base_drops == "none", seen
 
 

@@ -21,7 +21,8 @@ class Route:
     def drop(self, reason, detail: str = "") -> None:
         self.drops[reason] += 1
 
-    def send_again(self, held: list[Held]) -> None:
+    def send_again(self, held: list[Held], again: bool) -> None:
+        assert all(h.sent == again for h in held)
         self.sent += [h.payload for h in held]
         if self.hold is not None:
             self.hold.fail()

@@ -37,8 +37,9 @@ class Holder(Protocol):
     def drop(self, reason: Reason, detail: str = "") -> None:
         """Count one of its messages as dropped."""
 
-    def send_again(self, held: list[Held]) -> None:
-        """Seal ``held`` (its own, in order) under the keys of now and send them."""
+    def send_again(self, held: list[Held], again: bool) -> None:
+        """Seal ``held`` (its own, in order) under the keys of now and send them (``again``:
+        copies of them went out before)."""
 
 
 @dataclass(slots=True)
@@ -175,12 +176,12 @@ class Holdback:
                     route.drop(Drop.TOO_LATE, "waited longer than its max_delay for the "
                                               "server to come back")
                     continue
-                if run and run[-1].route is not route:
-                    run[0].route.send_again(run)
+                if run and (run[-1].route is not route or run[-1].sent != item.sent):
+                    run[0].route.send_again(run, run[0].sent)
                     run = []
                 run.append(item)
             if run:
-                run[0].route.send_again(run)
+                run[0].route.send_again(run, run[0].sent)
             # a main line lost while these went out (fail, on this thread) keeps it down
             self.down = self._failures != failures
 

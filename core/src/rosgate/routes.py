@@ -371,13 +371,16 @@ class TransmitRoute(Route):
         frames = [frame for frame in map(self._frame, messages) if frame is not None]
         self._hand(frames, to)
 
-    def _hand(self, frames: list[bytes], to: Address | None) -> None:
-        """Frames handed to the link in one call, and counted."""
+    def _hand(self, frames: list[bytes], to: Address | None, again: bool = False) -> None:
+        """Frames handed to the link in one call, and counted (``again``: sent before, counted
+        then)."""
         size = sum(map(len, frames))
         if size:
             self._size = size // len(frames)
         if frames:
             sent = self.link.send_all(frames, self, to)
+            if again:
+                return
             counters = self.counters
             counters.sent += sent
             counters.bytes_sent += size if sent == len(frames) else sum(map(len, frames[:sent]))
@@ -390,10 +393,11 @@ class TransmitRoute(Route):
         if hold.take(self, encoded, self.delivery.reliable, self.link.datagram):
             self._hand(self._seal_all(encoded), self.destination())
 
-    def send_again(self, held: list[Held]) -> None:
-        """Messages that waited for the far side, sealed under the keys of now, sent in order."""
+    def send_again(self, held: list[Held], again: bool) -> None:
+        """Messages that waited for the far side, sealed under the keys of now, sent in order
+        (``again``: copies of them went out before, and were counted sent)."""
         self._hand(self._seal_all([(h.payload, h.flags, h.stamp) for h in held]),
-                   self.destination())
+                   self.destination(), again)
 
     def _encode(self, message: Any) -> tuple[bytes, int, int] | None:
         """One message's payload, envelope flags and the time it was taken (ns), or None when
