@@ -31,7 +31,6 @@ log = logging.getLogger("rosgate")
 class Holder(Protocol):
     """A transmitting route, as the holdback sees it."""
 
-    label: str
     max_wait_ns: int
 
     def drop(self, reason: Reason, detail: str = "") -> None:
@@ -166,7 +165,7 @@ class Holdback:
                     for _ in range(count):
                         route.drop(Drop.LINK_DOWN, "sent while the main line was down, to a "
                                                    "server that restarted meanwhile")
-            now = time.time_ns()
+            now, out = time.time_ns(), 0
             run: list[Held] = []
             for item in held:
                 if item.sent and not new_session:
@@ -180,8 +179,13 @@ class Holdback:
                     run[0].route.send_again(run, run[0].sent)
                     run = []
                 run.append(item)
+                out += 1
             if run:
                 run[0].route.send_again(run, run[0].sent)
+            if out:
+                log.info("%d reliable message(s) that waited for the server went out, sealed "
+                         "under %s", out, "its new session's keys (it restarted)"
+                         if new_session else "the session's keys")
             # a main line lost while these went out (fail, on this thread) keeps it down
             self.down = self._failures != failures
 
