@@ -1,11 +1,13 @@
 """The client role: connects its main line to the server (the client starts every connection,
 so it can sit behind NAT), sends its entries, builds routes from the answer. Stream entries
 without a port ride the main line; datagram ones use the server's main port. Routes are built at
-the first welcome and outlive the main line: datagram topics keep flowing, reliable frames wait
-in their :class:`LinkSlot`. A server that restarted may answer with other ids: the routes are
-re-keyed, and frames that waited under the old ids are dropped (``session_reset``), never sent
-under a wrong id. Authenticated, routes take their keys from the session's
-:class:`KeySchedule` (docs/security.md).
+the first welcome and outlive the main line: while it is down, reliable messages wait unsealed
+in the :class:`~rosgate.holdback.Holdback` (a datagram link's go out too) and go out first once
+it is back, sealed under that session's keys. A server that restarted (another session token)
+may answer with other ids: the routes are re-keyed, and frames sealed under the old session
+that still wait in a stream slot are dropped (``session_reset``), never sent under a wrong id or
+key. Authenticated, routes take their keys from the session's :class:`KeySchedule`
+(docs/security.md).
 """
 
 from __future__ import annotations
