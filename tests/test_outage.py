@@ -3,7 +3,8 @@
 20 Hz for 30 s, the base bridge stopped 8 s into the stream and started again 10 s later, the
 listener on the base kept alive throughout. Every message arrives at the listener, once, in
 order — over the default udp and over tcp, and with the base killed (SIGKILL) between two
-messages — and no bridge counts a drop."""
+messages (the next one published once the robot has seen the base go: without
+acknowledgements, a message in flight at a crash is lost) — and no bridge counts a drop."""
 
 from __future__ import annotations
 
@@ -34,18 +35,23 @@ def counters(log: str, topic: str) -> tuple[int, int, str]:
 
 
 class Talker(threading.Thread):
-    """Publishes ``0``, ``1``, ... at RATE in a thread of its own; ``reached(n)`` is set once
-    message ``n`` is out."""
+    """Publishes ``0``, ``1``, ... at RATE in a thread of its own (:meth:`wait_published` waits
+    for its progress); with ``pause_at``, waits before that message until :attr:`go` is set,
+    then catches up."""
 
-    def __init__(self, publisher):
+    def __init__(self, publisher, pause_at: int | None = None):
         super().__init__(daemon=True)
         self.publisher = publisher
         self.published = 0
+        self.pause_at = pause_at
+        self.go = threading.Event()
         self._progress = threading.Condition()
 
     def run(self) -> None:
         start = time.monotonic()
         for i in range(COUNT):
+            if i == self.pause_at:
+                self.go.wait(30)
             delay = start + i / RATE - time.monotonic()
             if delay > 0:
                 time.sleep(delay)  # the stream's own pace; nothing waits on this
@@ -81,15 +87,18 @@ topics:
     publisher = near.publisher("/chatter", String, QoSProfile(depth=10))  # ROS's default QoS
 
     warmups = warm_up(publisher, inbox, String(data="warmup"))
-    talker = Talker(publisher)
+    talker = Talker(publisher, pause_at=STOP_AT * RATE if how == "kill" else None)
     talker.start()
     assert talker.wait_published(STOP_AT * RATE, STOP_AT + 10)
     if how == "kill":
-        # between two messages: one in flight when a base dies is lost (no acknowledgements)
+        # between two messages, once the robot has seen it: what is in flight when a base dies,
+        # or sent before the robot sees the connection end, is lost (no acknowledgements)
         last = str(STOP_AT * RATE - 1)
         assert inbox.wait_for(lambda items: any(m.data == last for m in items), 10)
         base.proc.kill()
         assert base.proc.wait(10) == -signal.SIGKILL
+        assert robot.wait_log("server 'base' down", 10), robot.log
+        talker.go.set()
     else:
         assert base.stop() == 0
     first_base = base.log
