@@ -179,3 +179,35 @@ topics:
     assert wait_until(lambda: role.hold.waiting == 2)
     client.stop()
     assert mine["/rel"].counters.drops == {"queue_full": 15, "link_down": 2}
+
+
+@pytest.mark.parametrize("entry", ["transport: udp", "transport: tcp",
+                                   "transport: tcp, port: {port}"])
+def test_what_waited_reaches_a_restarted_server_on_every_kind_of_link(
+        engines, domain, ros_side, entry):
+    """The main line, a datagram link and a stream port of its own: messages taken while the
+    server was down reach the restarted one, once each, sealed under its new session."""
+    ds, dc, port = domain(), domain(), free_port()
+    server_yaml = f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}}}"
+    server = engines(server_yaml, ds)
+    client = engines(f"""
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}
+topics:
+  - {{topic: /rel, type: std_msgs/msg/String, direction: transmit, qos: 100,
+     {entry.format(port=free_port())}}}""", dc)
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    rel, rel_in = robot.publisher("/rel", String, 100), base.listen("/rel", String, 100)
+    warm_up(rel, rel_in, String(data="warmup"))
+    role = client.role
+    mine = client.routes()[0]
+
+    server.stop()
+    for i in range(5):
+        rel.publish(String(data=f"m{i}"))
+    assert wait_until(lambda: role.hold.waiting == 5), role.hold.waiting
+    server = engines(server_yaml, ds)
+    assert wait_until(lambda: role.connected.is_set() and server.routes())
+    far = server.routes()[0]
+    assert wait_until(lambda: far.counters.received == 5, 15), (far.counters, mine.counters)
+    assert far.counters.drops == {} and far.counters.lost == 0 and mine.counters.drops == {}
+    assert server.link_drops == {}
