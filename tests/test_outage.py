@@ -163,7 +163,7 @@ topics:
     assert wait_until(lambda: mine["/rel"].counters.drops.get("queue_full") == 15
                       and mine["/fresh"].counters.drops.get("link_down") == 20), (
         mine["/rel"].counters.drops, mine["/fresh"].counters.drops)
-    assert role.hold.waiting == 5
+    assert role.hold.waiting == 5 and mine["/rel"].queue_depth == 5  # as status shows it
     assert len(logs.having("past bridge.queue")) == 1  # one burst, one warning
 
     server = engines(server_yaml, ds)

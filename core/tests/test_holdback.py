@@ -44,7 +44,7 @@ def test_a_stream_links_reliable_messages_wait_and_go_first_in_order():
     assert not hold.take(a, messages("a0", "a1"), reliable=True, datagram=False)
     assert not hold.take(b, messages("b0"), reliable=True, datagram=False)
     assert not hold.take(a, messages("a2"), reliable=True, datagram=False)
-    assert hold.waiting == 4
+    assert hold.waiting == 4 and (hold.depth(a), hold.depth(b)) == (3, 1)
     hold.resume(new_session=False)
     assert (a.sent, b.sent) == ([b"a0", b"a1", b"a2"], [b"b0"])
     assert not hold.down and hold.waiting == 0

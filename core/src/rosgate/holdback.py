@@ -194,6 +194,11 @@ class Holdback:
         """Messages held now (copies that went out included)."""
         return len(self._held)
 
+    def depth(self, route: Holder) -> int:
+        """Messages of ``route`` held now."""
+        with self._lock:
+            return sum(1 for item in self._held if item.route is route)
+
     def forget(self, route: Holder) -> None:
         """A route that is gone: what it held goes, silently (as a link forgets it)."""
         with self._lock:

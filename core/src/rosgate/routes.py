@@ -436,8 +436,9 @@ class TransmitRoute(Route):
 
     @property
     def queue_depth(self) -> int:
-        """Its messages waiting in the link, or being sent, now."""
-        return self.link.queue_depth(self)
+        """Its messages waiting in the link, or being sent, or for the far side, now."""
+        held = self.hold.depth(self) if self.hold is not None and self.hold.down else 0
+        return self.link.queue_depth(self) + held
 
     def close(self) -> None:
         """The route is removed: what it queued goes (a message half sent is not finished)."""
