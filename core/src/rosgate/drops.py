@@ -29,15 +29,18 @@ class Drop(StrEnum):
     RATE_LIMIT = "rate_limit", "faster than the topic's `max_rate`"
     SUPERSEDED = "superseded", "a latest-only topic's waiting message was replaced by a newer one"
     TOO_LATE = "too_late", ("a best-effort message waited longer than its `max_delay` (to be "
-                            "taken, in the send queue or in the receive buffer)")
+                            "taken, in the send queue or in the receive buffer), or any message "
+                            "that waited longer than it for the server to come back")
     OVERLOAD = "overload", ("a best-effort message (without a `max_delay` of its own) that "
                             "waited over 20 ms in a link's send queue while its topic had been "
                             "behind there for 200 ms on end: a link offered more than it carries "
                             "sheds the oldest, so what arrives stays fresh")
     QUEUE_FULL = "queue_full", ("a queue had no room: a link's send queue at its `frames` or "
-                                "`bytes` limit, a bus link's queue, or a link that is down (its "
-                                "oldest message goes)")
-    LINK_DOWN = "link_down", "the link was closed or down with the frame or call still waiting"
+                                "`bytes` limit, a bus link's queue, or what a link that is down "
+                                "or a server out of reach holds (its oldest message goes)")
+    LINK_DOWN = "link_down", ("the link was closed or down, or the server out of reach, with "
+                              "the frame or call still waiting (or sent to a server that "
+                              "restarted)")
     SEND_ERROR = "send_error", "the transport failed to send the frame"
     NO_PEER_YET = "no_peer_yet", "the far side's address is not known yet"
     NO_SESSION_KEY = "no_session_key", "the session's key is not there yet, or is gone"

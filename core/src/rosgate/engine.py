@@ -240,6 +240,8 @@ class Engine:
             self.status_server.close()
         for monitor in self.monitors:
             monitor.stop()
+        if self.role is not None:
+            self.role.wind_down()
         if self.router is not None:
             self.router.log_stats()  # before the routes and their counters go
             for link in self.life.links():

@@ -162,6 +162,8 @@ class _Sending:
     _send_due: Callable[[Due], bool]
     #: told once the link has closed (a stream link's owner forgets it)
     on_close: Callable[[Any], None] | None = None
+    #: told as soon as it starts closing, before its threads end (a client stops sending)
+    on_closing: Callable[[Any], None] | None = None
 
     def _deliver(self, frame: bytes, source: Address) -> None:
         """Hand a frame to the handler; one that raises has a bug: counted, and the link goes on."""
@@ -205,6 +207,8 @@ class _Sending:
                 return
             self.closed.set()
             self._wake.notify_all()
+        if self.on_closing is not None:
+            self.on_closing(self)
         self._close_io()
         for thread in self._threads:
             # an unstarted thread (the receive thread failed first) sees `closed` and returns

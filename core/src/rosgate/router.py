@@ -19,6 +19,7 @@ from .announce import Identity
 from .config import BridgeConfig, Direction, Framing
 from .drops import Drop, Reason
 from .errors import CipherError
+from .holdback import Holdback
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, type_hash
@@ -86,20 +87,24 @@ class Router:
     # -- making routes -----------------------------------------------------------------------
     def route(self, p: TopicSpec | ServiceSpec, route_id: int, label: str, link: Link,
               destination: Destination = _no_destination, keys: Keys | None = None,
-              announce: bool = True, goals: ClientGoals | None = None) -> Route:
+              announce: bool = True, goals: ClientGoals | None = None,
+              hold: Holdback | None = None) -> Route:
         """The route of an entry over ``link``, a topic's or a service's, as its spec says.
-        ``goals``: an action's part as one client of a server may use it."""
+        ``goals``: an action's part as one client of a server may use it; ``hold``: where a
+        client's reliable messages wait while its server is out of reach."""
         if isinstance(p, TopicSpec):
             return self.topic(p, route_id, label, link, destination, keys, announce=announce,
-                              select=None if goals is None else goals.select)
+                              select=None if goals is None else goals.select, hold=hold)
         return self.service(p, route_id, label, link, destination, keys, announce, goals)
 
     def topic(self, p: TopicSpec, topic_id: int, label: str, link: Link,
               destination: Destination = _no_destination,
               keys: Keys | None = None,
               bare_names: bool = True, announce: bool = True,
-              select: Callable[[Any], Any] | None = None) -> TransmitRoute | ReceiveRoute:
+              select: Callable[[Any], Any] | None = None,
+              hold: Holdback | None = None) -> TransmitRoute | ReceiveRoute:
         """A topic's route and its ROS entity. ``keys``: a session's (default: the file's cipher).
+        ``hold``: where a transmitting topic's messages wait while the far side is out of reach.
         ``bare_names=False``: bare frames never carry the topic's name (a bus names them by key).
         ``announce=False``: announcements wait for :meth:`start_announcing` (a client's, until
         the server knows where its datagrams come from)."""
@@ -114,7 +119,7 @@ class Router:
                        if t.framing is Framing.NONE else EnvelopeFraming())
             route = TransmitRoute(t, topic_id, codec, keys, self.warner, label, p.delivery,
                                   framing=framing, link=link, destination=destination,
-                                  compression=p.compression, select=select)
+                                  compression=p.compression, select=select, hold=hold)
             self._identify(route, p.msg_type)
             if not t.qos_given:
                 route.qos_found = self.ros.qos_found(t.topic)

@@ -28,6 +28,7 @@ from .codec import Codec
 from .config import ServiceConfig, TopicConfig
 from .drops import Drop, Reason
 from .errors import CipherError, CodecError
+from .holdback import Held, Holdback
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .spec import CONTROL, Delivery
@@ -279,12 +280,14 @@ class TransmitRoute(Route):
                  warner: Warner, label: str, delivery: Delivery, *,
                  framing: EnvelopeFraming | BareFraming, link: Link,
                  destination: Callable[[], Address | None], compression: Transform | None = None,
-                 select: Callable[[Any], Any] | None = None):
+                 select: Callable[[Any], Any] | None = None, hold: Holdback | None = None):
         super().__init__(topic, topic_id, codec, keys, warner, label, delivery)
         self.topic = topic
         #: what of each message the far side may see (None: nothing, ``foreign_goal``): an
         #: action's feedback and status for one client (rosgate.actions.ClientGoals)
         self.select = select
+        #: where its messages wait while the far side is out of reach (a client's), else None
+        self.hold = hold
         self.framing = framing
         self.link = link
         self.destination = destination  # where to send, looked up per message (a server learns it)
@@ -357,24 +360,51 @@ class TransmitRoute(Route):
         return messages
 
     def _send(self, messages: list[Any]) -> None:
-        """Messages framed and handed to the link in one call."""
+        """Messages framed and handed to the link in one call (or held while the far side is
+        out of reach: :mod:`rosgate.holdback`)."""
+        hold = self.hold
+        if hold is not None and hold.down:
+            self._hold(hold, messages)
+            return
         to = self.destination()
         if to is None and self.link.datagram:
             for _ in messages:
                 self.drop(Drop.NO_PEER_YET, "the far side's address is not known yet")
             return
         frames = [frame for frame in map(self._frame, messages) if frame is not None]
+        self._hand(frames, to)
+
+    def _hand(self, frames: list[bytes], to: Address | None, again: bool = False) -> None:
+        """Frames handed to the link in one call, and counted (``again``: sent before, counted
+        then)."""
         size = sum(map(len, frames))
         if size:
             self._size = size // len(frames)
         if frames:
             sent = self.link.send_all(frames, self, to)
+            if again:
+                return
             counters = self.counters
             counters.sent += sent
             counters.bytes_sent += size if sent == len(frames) else sum(map(len, frames[:sent]))
 
-    def _frame(self, message: Any) -> bytes | None:
-        """One message framed, or None when it was dropped (counted)."""
+    def _hold(self, hold: Holdback, messages: list[Any]) -> None:
+        """The far side is out of reach: ``hold`` keeps a reliable topic's messages and says
+        whether they go out now too (a datagram link's: the server may be up, only the main
+        line lost; and anything once the far side is back)."""
+        encoded = [got for got in map(self._encode, messages) if got is not None]
+        if hold.take(self, encoded, self.delivery.reliable, self.link.datagram):
+            self._hand(self._seal_all(encoded), self.destination())
+
+    def send_again(self, held: list[Held], again: bool) -> None:
+        """Messages that waited for the far side, sealed under the keys of now, sent in order
+        (``again``: copies of them went out before, and were counted sent)."""
+        self._hand(self._seal_all([(h.payload, h.flags, h.stamp) for h in held]),
+                   self.destination(), again)
+
+    def _encode(self, message: Any) -> tuple[bytes, int, int] | None:
+        """One message's payload, envelope flags and the time it was taken (ns), or None when
+        it was dropped (counted)."""
         now = time.time_ns()
         if self.min_interval_ns:
             if now - self.last_sent_ns < self.min_interval_ns:
@@ -386,23 +416,42 @@ class TransmitRoute(Route):
                 self.drop(Drop.FOREIGN_GOAL, "about a goal another client sent")
                 return None
             payload, flags = self.encode(message)
-            return self.framing.frame(self, payload, now, flags)
+        except Exception as exc:  # a codec bug must not stop the executor
+            self.drop(Drop.ENCODE_ERROR, f"{type(exc).__name__}: {exc}")
+            return None
+        return payload, flags, now
+
+    def _seal(self, payload: bytes, flags: int, stamp: int) -> bytes | None:
+        """An encoded message framed (sealed), or None when it was dropped (counted)."""
+        try:
+            return self.framing.frame(self, payload, stamp, flags)
         except NoKey:
             self.drop(Drop.NO_SESSION_KEY, "the session's handshake has not happened yet")
             return None
-        except Exception as exc:  # a codec or cipher bug must not stop the executor
+        except Exception as exc:  # a cipher bug must not stop the executor
             self.drop(Drop.ENCODE_ERROR, f"{type(exc).__name__}: {exc}")
             return None
 
+    def _seal_all(self, encoded: list[tuple[bytes, int, int]]) -> list[bytes]:
+        return [frame for frame in (self._seal(*e) for e in encoded) if frame is not None]
+
+    def _frame(self, message: Any) -> bytes | None:
+        """One message framed, or None when it was dropped (counted)."""
+        encoded = self._encode(message)
+        return None if encoded is None else self._seal(*encoded)
+
     @property
     def queue_depth(self) -> int:
-        """Its messages waiting in the link, or being sent, now."""
-        return self.link.queue_depth(self)
+        """Its messages waiting in the link, or being sent, or for the far side, now."""
+        held = self.hold.depth(self) if self.hold is not None and self.hold.down else 0
+        return self.link.queue_depth(self) + held
 
     def close(self) -> None:
         """The route is removed: what it queued goes (a message half sent is not finished)."""
         self.pending.clear()  # an open window closes with nothing to send
         self.link.forget(self)
+        if self.hold is not None:
+            self.hold.forget(self)
 
 
 class ReceiveRoute(Route):

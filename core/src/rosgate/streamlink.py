@@ -174,6 +174,7 @@ class StreamLink(_Sending, Link):
     def __init__(self, connection: StreamConnection, name: str, peer: Address,
                  on_frame: FrameHandler, on_lost: LostHandler,
                  on_close: Callable[[StreamLink], None] | None = None,
+                 on_closing: Callable[[StreamLink], None] | None = None,
                  queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
                  max_message: int = DEFAULT_MAX_MESSAGE,
                  untrusted: Untrusted | None = None, budget: LinkConfig | None = None):
@@ -182,6 +183,7 @@ class StreamLink(_Sending, Link):
         self.on_frame = on_frame
         self.on_lost = on_lost
         self.on_close = on_close
+        self.on_closing = on_closing
         # for liveness: the main line's roles set it on every control message (a heartbeat), not
         # on bytes, so a stream that lost its frame boundaries does not look alive
         self.last_heard = time.monotonic()
@@ -509,7 +511,8 @@ class Connector:
     capped exponential backoff and jitter (a fleet of clients does not hammer a server that
     comes back); after a connection that worked is lost, at once. ``on_connected(link)`` may
     refuse a connection (a failed handshake: a failed attempt); ``on_lost(link)`` hears of
-    every accepted connection that ended."""
+    every accepted connection that ended; ``on_closing(link)`` hears of every connection that
+    starts closing (accepted or refused) at once, on the thread that closes it."""
 
     transport: Transport
     address: Address
@@ -522,6 +525,7 @@ class Connector:
     on_lost: Callable[[StreamLink], None] | None = None
     secure: Callable[[StreamConnection], StreamConnection] | None = None
     budget: LinkConfig | None = None
+    on_closing: Callable[[StreamLink], None] | None = None
 
     def __post_init__(self) -> None:
         self._last_failure = ""
@@ -570,7 +574,8 @@ class Connector:
                 return None
         link = self.life.closing(StreamLink(connection, self.slot.name, self.address,
                                             self.on_frame, self.on_frame_lost,
-                                            on_close=self.life.forget, budget=self.budget))
+                                            on_close=self.life.forget,
+                                            on_closing=self.on_closing, budget=self.budget))
         if self.on_connected is not None and not self.on_connected(link):
             link.close()
             return None

@@ -383,8 +383,9 @@ class BridgeConfig:
     reconnect_max: float = option(RECONNECT_MAX_DEFAULT, "seconds between attempts at most",
                                   key="reconnect.max", above=0, unit="seconds", example="10",
                                   unset="`10`, or `min` when larger")
-    queue_frames: int = option(1000, "per stream link, the frames reliable topics hold while it "
-                               "is down", key="queue.frames", minimum=0, example="1000")
+    queue_frames: int = option(1000, "client: the messages reliable topics hold while the server "
+                               "is out of reach (and a stream link, while it is down)",
+                               key="queue.frames", minimum=0, example="1000")
     queue_bytes: int = option(8 * 1024 * 1024, "and the bytes", key="queue.bytes", minimum=0,
                               example="8388608")
     limits: Limits = option(Limits(), "what a peer may cost before it is trusted",

@@ -97,6 +97,9 @@ class Role:
 
     def start(self) -> None: ...
 
+    def wind_down(self) -> None:
+        """The bridge stops: last words to the far side, before the counters are logged."""
+
     def stop(self) -> None:
         for route in self.router.snapshot():
             self.router.remove(route)

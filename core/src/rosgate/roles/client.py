@@ -1,11 +1,13 @@
 """The client role: connects its main line to the server (the client starts every connection,
 so it can sit behind NAT), sends its entries, builds routes from the answer. Stream entries
 without a port ride the main line; datagram ones use the server's main port. Routes are built at
-the first welcome and outlive the main line: datagram topics keep flowing, reliable frames wait
-in their :class:`LinkSlot`. A server that restarted may answer with other ids: the routes are
-re-keyed, and frames that waited under the old ids are dropped (``session_reset``), never sent
-under a wrong id. Authenticated, routes take their keys from the session's
-:class:`KeySchedule` (docs/security.md).
+the first welcome and outlive the main line: while it is down, reliable messages wait unsealed
+in the :class:`~rosgate.holdback.Holdback` (a datagram link's go out too) and go out first once
+it is back, sealed under that session's keys. A server that restarted (another session token)
+may answer with other ids: the routes are re-keyed, and frames sealed under the old session
+that still wait in a stream slot are dropped (``session_reset``), never sent under a wrong id or
+key. Authenticated, routes take their keys from the session's :class:`KeySchedule`
+(docs/security.md).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Any
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
 from ..drops import Drop
 from ..errors import LinkError, RosgateError
+from ..holdback import Holdback
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import Route
@@ -55,17 +58,25 @@ class ClientRole(Role):
         self._hello_seq = itertools.count(1)
         self._dedicated: dict[int, LinkSlot] = {}
         self.answer = Answer()
+        #: what reliable topics take while the server is out of reach
+        self.hold = Holdback(self.cfg.queue_frames, self.cfg.queue_bytes)
         plan = bridge.plan
         assert plan.main_line is not None and plan.main_address is not None
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
                                    bridge.backoff, self._handshake, self._lost,
                                    secure=self.initiate if self.cfg.secure else None,
-                                   budget=bridge.budget(plan.main_line))
+                                   budget=bridge.budget(plan.main_line),
+                                   on_closing=lambda link: self.hold.fail())
 
     def start(self) -> None:
         self.connector.start()
         threading.Thread(target=self._ping_loop, name="client-ping", daemon=True).start()
+
+    def wind_down(self) -> None:
+        """What still waits for the server is counted (``link_down``) before the counters are
+        logged."""
+        self.hold.close()
 
     def stop(self) -> None:
         link = self.main.current
@@ -86,9 +97,12 @@ class ClientRole(Role):
         message = self.read_control(frame, link, source)
         if message is not None and message["type"] in ("welcome", "refused"):
             self.answer.put(message)
+        elif message is not None and message["type"] == "bye":  # the server stops
+            self.hold.leave()
 
     def _handshake(self, link: StreamLink) -> bool:
         """Send our entries; build, re-key or drop their routes from the server's answer."""
+        self.hold.handshake()
         self.answer.got.clear()
         plan = self.bridge.plan
         link.send(control({"type": "hello", "protocol": PROTOCOL, "name": self.cfg.name,
@@ -128,8 +142,12 @@ class ClientRole(Role):
             if self.topic_ids is None:
                 self._unbuild()  # half-built: the next handshake starts clean
             return False
-        if (session, token) != (self.session, self.token):  # a restarted server reuses ids
+        new_session = (session, token) != (self.session, self.token)
+        if new_session:  # a restarted server reuses ids
             self.session, self.token = session, token
+            for slot in [self.main, *self._dedicated.values()]:
+                # what waited there was sealed under the old session's keys
+                slot.discard(Drop.SESSION_RESET)
             for slot in self._dedicated.values():  # they must introduce themselves anew
                 if slot.current is not None:
                     slot.current.fail("the server started a new session")
@@ -137,6 +155,8 @@ class ClientRole(Role):
         self.main.attach(link)  # now, not when the connector gets to it: a stop says bye on it
         self.connected.set()
         self._say_hello()
+        # what waited for the server goes first, sealed under this session's keys
+        self.hold.resume(new_session)
         self.router.start_announcing(list(self.routes.values()))  # the server hears us now
         self.router.resync(list(self.routes.values()))
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
@@ -209,7 +229,8 @@ class ClientRole(Role):
             self.schedule, p, p.config.remote, "c2s", "s2c")
         # announcements start once the server has our datagram hello (its ports take frames
         # only from where a hello came from)
-        return self.router.route(p, topic_id, label, link, destination, keys, announce=False)
+        return self.router.route(p, topic_id, label, link, destination, keys, announce=False,
+                                 hold=self.hold)
 
     def _unbuild(self) -> None:
         super().stop()

@@ -4,13 +4,15 @@ topic 0 with the CONTROL flag and a JSON body (never pickle: a peer's bytes neve
 The client sends ``hello`` (name, topics, services, actions); the server answers ``welcome`` (its
 name, a session id and token, ``topic_ids`` and ``service_ids`` in the order asked, 0 for an
 entry its policy ``refused``, with why) or ``refused`` (why). Both ``ping`` every ``heartbeat``;
-a client that stops cleanly says ``bye`` and the server drops its session at once. On each
+a client that stops cleanly says ``bye`` and the server drops its session at once; a server that
+stops says ``bye`` to each client, whose reliable topics then wait for the next session. On each
 datagram link and dedicated stream the client also sends a HELLO-flagged envelope (session id,
 token) so the server learns where to send, even through NAT.
 
 Authenticated (:mod:`rosgate.secure`): all of it travels inside the Noise handshake; the welcome
-carries the session's secret (``secret``, ``key_id``, ``rekey``) instead of a token, the client
-answers ``ready`` once it holds it, and datagram hellos are sealed under the session's keys.
+carries the session's secret (``secret``, ``key_id``, ``rekey``) too, the client answers
+``ready`` once it holds it, and datagram hellos are sealed under the session's keys (the token
+then only tells a restarted server's session from the one the client had).
 """
 
 from __future__ import annotations

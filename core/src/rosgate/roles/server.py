@@ -58,6 +58,8 @@ log = logging.getLogger("rosgate")
 
 MAX_HANDSHAKES = 32  # handshakes worked on at once (each a Diffie-Hellman); more are refused
 HANDSHAKES_PER_SOURCE = 4  # of those, from one address: a few addresses cannot take them all
+WIND_DOWN = 1.0  # seconds a stopping server waits, at most, for what clients sent before its bye
+QUIET = 0.05  # seconds without a frame in that end the wait
 
 Entry = TopicConfig | ServiceConfig
 
@@ -140,6 +142,32 @@ class ServerRole(Role):
                 connection, peer, lambda secure: self._main_line(secure, peer)),
             "bridge.server", name=f"main:{plan.main_address[1]}")
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
+
+    def wind_down(self) -> None:
+        """Every connected client hears ``bye`` first, so its reliable topics wait for the next
+        server instead of going into a void; what they sent before it is taken in until the
+        links are quiet (at most :data:`WIND_DOWN` seconds)."""
+        if self.acceptor is not None:  # first: no client may come back while its session ends
+            self.acceptor.close()
+        with self._lock:
+            lines = [s.main.current for s in self.sessions.values() if s.main.current is not None]
+        for link in lines:
+            link.send(control({"type": "bye"}), self.control)
+        deadline = time.monotonic() + WIND_DOWN
+        for link in lines:
+            link.drain(max(0.0, deadline - time.monotonic()))
+        if lines:
+            self._until_quiet(deadline)
+
+    def _until_quiet(self, deadline: float) -> None:
+        """Wait until no frame has come in for :data:`QUIET` seconds, or ``deadline``."""
+        def frames_in() -> int:
+            return sum(link.counters.frames_in for link in self.life.links())
+
+        seen = -1
+        while seen != (now := frames_in()) and time.monotonic() < deadline:
+            seen = now
+            time.sleep(QUIET)  # a pause, not an event: silence has no signal
 
     def stop(self) -> None:
         if self.acceptor is not None:  # first: no client may come back while its session ends
@@ -285,8 +313,9 @@ class ServerRole(Role):
         if session.schedule is not None:  # a fresh secret for this handshake, inside it
             assert isinstance(link.connection, SecureConnection)
             welcome.update(session.schedule.offer(link.connection.handshake_hash))
-        else:
-            welcome["token"] = session.token.hex()
+        # the session's own: a client tells a restarted server's new session by it (ids start
+        # at 1 in every server); without identities it also vouches for datagram hellos
+        welcome["token"] = session.token.hex()
         link.send(control(welcome), self.control)
         old = session.main.current
         session.main.attach(link)  # after the welcome: what waited goes out under known ids
