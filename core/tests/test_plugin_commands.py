@@ -249,7 +249,8 @@ def test_plugins_aligns_columns_to_the_longest_name_and_names_a_transport_of_no_
     assert ["transport", "long", "rosgate-transport-long-and-rather-long-name", "1.0"] in [
         line.split() for line in table]
     assert ("failed to load plugin 'old' (rosgate-transport-old): OldTransport is no kind of "
-            "link (subclass DatagramTransport, StreamTransport or BusTransport)") in lines
+            "link (subclass DatagramTransport, StreamTransport or BusTransport, since rosgate "
+            "plugin API 2: docs/plugin-api.md)") in lines
 
 
 # --- commands: rosgate <verb> from a plugin -------------------------------------------------------
