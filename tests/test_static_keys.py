@@ -1,0 +1,103 @@
+"""Peers keyed by a key file (no identities, no handshake): frames captured on the way and sent
+again after the receiving bridge restarts publish nothing, and the pair carries on whichever
+side restarts, or when the receiver's record of its peer is lost. Real ``rosgate run``
+processes, a relay that keeps what it forwards, a raw UDP socket for the replay."""
+
+from __future__ import annotations
+
+import base64
+import os
+import socket
+from pathlib import Path
+
+from conftest import Bridge, cross, free_port, settle
+from faults import FaultProxy
+from geometry_msgs.msg import Twist
+
+from rosgate.wire import envelope
+
+FAST = "heartbeat: 0.2, peer_timeout: 0.8"
+WARMUP = -1.0
+
+
+def twist(i: int | None) -> Twist:
+    message = Twist()
+    message.linear.x = WARMUP if i is None else float(i)
+    message.angular.z = 0.5
+    return message
+
+
+def is_warmup(m: Twist) -> bool:
+    return m.linear.x == WARMUP
+
+
+def keyed_pair(folder: Path, send_to: int, listen_on: int) -> tuple[Path, Path]:
+    """Files of a (sends /cmd_vel to ``send_to``) and b (publishes what reaches ``listen_on``),
+    keyed by one aead key file, as ``rosgate check``'s fix for an open peer entry says."""
+    key = folder / "aead.key"
+    key.write_bytes(base64.b64encode(os.urandom(32)))  # what rosgate keygen aead writes
+    key.chmod(0o600)
+    files = []
+    for name, direction, port in (("a", "transmit", send_to), ("b", "receive", listen_on)):
+        path = folder / f"{name}.yaml"
+        path.write_text(f"""
+bridge: {{name: {name}, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, {FAST}, insecure: false}}
+plugins: {{aead: {{key_file: {key}}}}}
+topics:
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: {direction}, port: {port},
+     cipher: aead}}
+""")
+        files.append(path)
+    return files[0], files[1]
+
+
+def data_frames(captured: list[tuple[bool, bytes]]) -> list[bytes]:
+    """The datagrams a sent towards b that carry messages (not announcements)."""
+    return [d for up, d in captured if up and d[:2] == envelope.MAGIC
+            and not d[3] & envelope.FLAG_ANNOUNCE]
+
+
+def kill(b: Bridge) -> None:
+    """The receiving robot loses power: no orderly stop, nothing written on the way out."""
+    b.proc.kill()
+    b.proc.wait()
+
+
+def test_frames_captured_before_the_receiver_restarts_publish_nothing(tmp_path, domain,
+                                                                      ros_side, bridge):
+    """The review's attack 2: 25 datagrams of Twists captured on the way, sent again after the
+    receiving bridge restarted. Measured on the code before the replay record: 25 of 25
+    published (the restarted receiver's replay window is empty, and the sender's epoch still
+    runs). Now: 0, each counted ``replayed``."""
+    da, db = domain(), domain()
+    port = free_port()
+    proxy = FaultProxy(free_port(), port)
+    try:
+        a_yaml, b_yaml = keyed_pair(tmp_path, proxy.port, port)
+        bridge(a_yaml, da)
+        first = Bridge(b_yaml, db)
+        talker = ros_side(da, "a").publisher("/cmd_vel", Twist)
+        inbox = ros_side(db, "b").listen("/cmd_vel", Twist)
+        cross(talker, inbox, twist, is_warmup, 0)
+        mark = len(proxy.udp.captured)
+        got = cross(talker, inbox, twist, is_warmup, 25)
+        assert sorted(m.linear.x for m in got) == [float(i) for i in range(25)]
+        frames = data_frames(proxy.udp.captured[mark:])
+        assert len(frames) >= 25, len(frames)  # warm-ups may have crossed between them
+        kill(first)
+
+        second = bridge(b_yaml, db)
+        cross(talker, inbox, twist, is_warmup, 0)  # the sender's new frames cross: no lockout
+        start = len(inbox.items)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+            for frame in frames[-25:]:
+                udp.sendto(frame, ("127.0.0.1", port))
+        talker.publish(twist(1000))
+        assert inbox.wait_for(lambda items: any(m.linear.x == 1000 for m in items[start:]), 10)
+        settle(inbox)
+        replayed = [m.linear.x for m in inbox.items[start:] if 0 <= m.linear.x < 25]
+        assert replayed == []
+        second.stop()
+        assert "replayed=25" in second.log, second.log
+    finally:
+        proxy.close()
