@@ -177,9 +177,10 @@ class RosSide:
 
 @pytest.fixture(autouse=True)
 def _runtime_dir(tmp_path_factory, monkeypatch):
-    """Each test's bridges keep their status sockets in a folder of the test's own: a bridge of
-    the test before (still stopping) may bear the same name."""
+    """Each test's bridges keep their status sockets, and their state, in folders of the test's
+    own: a bridge of the test before (still stopping) may bear the same name."""
     monkeypatch.setenv("ROSGATE_RUNTIME_DIR", str(tmp_path_factory.mktemp("run")))
+    monkeypatch.setenv("ROSGATE_STATE_DIR", str(tmp_path_factory.mktemp("state")))
 
 
 def sides_of(kind: Callable[[int, str], Any]) -> Iterator[Callable[..., Any]]:

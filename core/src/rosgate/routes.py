@@ -129,6 +129,9 @@ class Route:
         payload = self.open(frame, header.epoch)
         if payload is None:
             return None
+        if not self.keys.fresh(header.stamp):  # a static key's frame from before this start
+            self.drop(Drop.REPLAYED)
+            return None
         replay = self.replay
         with self._lock:
             refused = replay.accept(header.epoch, header.seq)
@@ -181,7 +184,7 @@ class Route:
              stamp: int | None = None) -> bytes:
         """An envelope frame of this route: the header, then the payload sealed with it."""
         header = envelope.pack(flags, self.topic_id, epoch, seq,
-                               time.time_ns() if stamp is None else stamp)
+                               self.keys.stamp(time.time_ns() if stamp is None else stamp))
         sealer = self.keys.sealer(epoch)
         if sealer.in_place and len(payload) >= SEAL_IN_PLACE:
             frame = bytearray(envelope.SIZE + len(payload) + sealer.overhead)

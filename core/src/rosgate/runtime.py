@@ -22,6 +22,7 @@ from typing import Any
 log = logging.getLogger("rosgate")
 
 RUNTIME_VARIABLE = "ROSGATE_RUNTIME_DIR"
+STATE_VARIABLE = "ROSGATE_STATE_DIR"
 SUFFIX = ".sock"
 MAX_REQUEST = 4096  # bytes of one request line; a longer one ends the connection
 MAX_CLIENTS = 8  # connections served at once; more wait in the listen backlog
@@ -34,6 +35,23 @@ def runtime_dir() -> Path:
     if (xdg := os.environ.get("XDG_RUNTIME_DIR")) and Path(xdg).is_dir():
         return Path(xdg) / "rosgate"
     return Path(f"/tmp/rosgate-{os.getuid()}")
+
+
+def state_dir() -> Path:
+    """What a bridge keeps across restarts and reboots (the runtime folder is often cleared at
+    boot): ``$ROSGATE_STATE_DIR``, else ``$XDG_STATE_HOME/rosgate``, else
+    ``~/.local/state/rosgate``; made 0700, and refused (:class:`OSError`) as the runtime folder
+    is when another user owns it or others may write to it."""
+    if not (given := os.environ.get(STATE_VARIABLE)):
+        xdg = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+        given = str(Path(xdg) / "rosgate")
+    folder = Path(given)
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    info = folder.stat()
+    if info.st_uid != os.getuid() or info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise OSError(f"{folder} is not this user's alone (owner uid {info.st_uid}, mode "
+                      f"{stat.S_IMODE(info.st_mode):o}); remove it or set {STATE_VARIABLE}")
+    return folder
 
 
 def socket_path(name: str) -> Path:
