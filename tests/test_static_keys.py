@@ -14,10 +14,12 @@ from conftest import Bridge, cross, free_port, settle
 from faults import FaultProxy
 from geometry_msgs.msg import Twist
 
+from rosgate.keyring import ReplayRecord
 from rosgate.wire import envelope
 
 FAST = "heartbeat: 0.2, peer_timeout: 0.8"
 WARMUP = -1.0
+S = 1_000_000_000  # ns
 
 
 def twist(i: int | None) -> Twist:
@@ -101,3 +103,93 @@ def test_frames_captured_before_the_receiver_restarts_publish_nothing(tmp_path, 
         assert "replayed=25" in second.log, second.log
     finally:
         proxy.close()
+
+
+def test_the_pair_carries_on_whichever_side_restarts_or_loses_its_record(tmp_path, domain,
+                                                                          ros_side):
+    """No lockout: the sender restarting (its new frames are stamped after its old ones), the
+    receiver restarting, both in either order, and the receiver's record removed (it says so,
+    and takes its peer's frames again)."""
+    da, db = domain(), domain()
+    port = free_port()
+    a_yaml, b_yaml = keyed_pair(tmp_path, port, port)
+    record = Path(os.environ["ROSGATE_STATE_DIR"]) / "b.replay"
+    running: dict[str, Bridge] = {}
+
+    def up(*names: str) -> None:
+        for name in names:
+            running[name] = Bridge(a_yaml if name == "a" else b_yaml, da if name == "a" else db)
+
+    def down(*names: str) -> None:
+        for name in names:
+            kill(running.pop(name))
+
+    try:
+        up("a", "b")
+        talker = ros_side(da, "a").publisher("/cmd_vel", Twist)
+        inbox = ros_side(db, "b").listen("/cmd_vel", Twist)
+        steps = [("a restarts", ("a",), ("a",)), ("b restarts", ("b",), ("b",)),
+                 ("both down, a up first", ("a", "b"), ("a", "b")),
+                 ("both down, b up first", ("a", "b"), ("b", "a"))]
+        for what, stopped, started in [("first start", (), ()), *steps]:
+            down(*stopped)
+            up(*started)
+            got = cross(talker, inbox, twist, is_warmup, 10)
+            assert sorted(m.linear.x for m in got) == [float(i) for i in range(10)], what
+        assert record.exists()
+        assert "no record of what peer" not in "\n".join(running["b"].lines)
+        down("b")
+        record.unlink()
+        up("b")
+        assert running["b"].wait_log(f"no record of what peer 127.0.0.1 sent before this start "
+                                     f"({record}, a first start, or it was lost)", 10)
+        got = cross(talker, inbox, twist, is_warmup, 10)
+        assert sorted(m.linear.x for m in got) == [float(i) for i in range(10)]
+    finally:
+        for b in running.values():
+            assert b.stop() == 0 and "Traceback" not in b.log, b.log
+
+
+def test_a_restarted_sender_stamps_after_its_old_frames_even_with_its_clock_set_back(tmp_path):
+    """The record alone, on real files: the receiver refuses what it may have taken before its
+    restart and takes what follows; a sender whose clock went back a minute across its restart
+    still stamps after its old frames and after the receiver's mark, so it is not locked out."""
+    sender, receiver = ReplayRecord(tmp_path / "a.replay"), ReplayRecord(tmp_path / "b.replay")
+    assert not sender.known and not receiver.known
+    sent = [sender.stamp(1000 * S + i * S // 100) for i in range(300)]  # 3 s of frames
+    assert sent == sorted(sent) and sent[0] == 1000 * S
+    assert all(map(receiver.fresh, sent))
+    assert receiver.fresh(1)  # a first start refuses nothing (known is False)
+
+    sender, receiver = ReplayRecord(tmp_path / "a.replay"), ReplayRecord(tmp_path / "b.replay")
+    assert sender.known and receiver.known
+    assert not any(map(receiver.fresh, sent))  # every frame it took, and any frame before them
+    assert not receiver.fresh(sent[-1] + 1)  # within the mark's second ahead: maybe taken
+    after = sender.stamp(940 * S)  # its clock a minute behind
+    assert after > max(sent) and receiver.fresh(after)
+    assert sender.stamp(941 * S) >= after  # held up until its clock passes it
+
+
+def test_the_record_is_written_about_once_a_second_of_frames_not_per_frame(tmp_path):
+    path = tmp_path / "a.replay"
+    record = ReplayRecord(path)
+    record.stamp(1000 * S)
+    written = path.read_text()
+    for i in range(1000):  # a second of frames at 1 kHz, sent and heard
+        record.fresh(record.stamp(1000 * S + i * S // 1000))
+    assert path.read_text() != written  # heard: marked once
+    written = path.read_text()
+    for i in range(1000):
+        record.fresh(record.stamp(1000 * S + i * S // 1000))
+    assert path.read_text() == written
+    record.stamp(1002 * S)
+    assert path.read_text() != written
+
+
+def test_an_unreadable_record_is_taken_as_lost_and_said(tmp_path):
+    path = tmp_path / "b.replay"
+    path.write_text("{not json")
+    record = ReplayRecord(path)
+    assert not record.known and "JSONDecodeError" in record.unreadable
+    assert record.fresh(1)
+    assert ReplayRecord(path).known  # written whole again on the first frame
