@@ -8,9 +8,10 @@ from __future__ import annotations
 import base64
 import os
 import socket
+import subprocess
 from pathlib import Path
 
-from conftest import Bridge, cross, free_port, settle
+from conftest import ROSGATE, Bridge, cross, free_port, settle
 from faults import FaultProxy
 from geometry_msgs.msg import Twist
 
@@ -193,3 +194,23 @@ def test_an_unreadable_record_is_taken_as_lost_and_said(tmp_path):
     assert not record.known and "JSONDecodeError" in record.unreadable
     assert record.fresh(1)
     assert ReplayRecord(path).known  # written whole again on the first frame
+
+
+def test_the_refusal_of_an_open_peer_entry_ranks_identities_first_and_says_what_a_key_file_leaves(
+        tmp_path):
+    """Before, the fix offered a key file as equal to identities ("identities ... or this entry a
+    cipher keyed from a file"). Now identities come first, and the key file after what it leaves
+    open: theft from either machine, and a lost state folder."""
+    path = tmp_path / "robot1.yaml"
+    path.write_text("bridge: {name: robot1, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}\n"
+                    "topics: [{topic: /cmd_vel, type: geometry_msgs/msg/Twist, "
+                    "direction: receive, port: 12002}]\n")
+    refused = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True)
+    assert refused.returncode == 2, refused.stderr
+    fix = refused.stderr.split("fix: ", 1)[1]
+    assert fix.startswith("give both peers identities (bridge.identity, peer_key, "
+                          "handshake_port: docs/security.md); less safe, a cipher keyed from a "
+                          "file"), fix
+    for limit in ("from either machine", "writes to both sides", "loses its state folder",
+                  "insecure: true"):
+        assert limit in fix, fix
