@@ -123,14 +123,15 @@ class Route:
         return self.seal(envelope.FLAG_ANNOUNCE, epoch, next(self._announced), body)
 
     def admit(self, header: envelope.Header, frame: bytes) -> bytes | None:
-        """A received frame's payload once its cipher and the replay window accept it; None
-        (counted) when either does not. Skipped sequence numbers of a topic count as lost (a
-        late frame that fills a gap takes one back)."""
+        """A received frame's payload once its cipher, keys and replay window accept it; None
+        (counted) when one does not. Skipped sequence numbers of a topic count as lost (a late
+        frame that fills a gap takes one back)."""
         payload = self.open(frame, header.epoch)
         if payload is None:
             return None
-        if not self.keys.fresh(header.stamp):  # a static key's frame from before this start
-            self.drop(Drop.REPLAYED)
+        if not self.keys.fresh(header.stamp):
+            self.drop(Drop.REPLAYED, "sent before this bridge started (a replay; or the peer "
+                                     "lost its state folder and its clock went back)")
             return None
         replay = self.replay
         with self._lock:
