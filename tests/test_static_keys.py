@@ -7,13 +7,17 @@ from __future__ import annotations
 
 import base64
 import os
+import re
 import socket
 import subprocess
+import time
 from pathlib import Path
 
-from conftest import ROSGATE, Bridge, cross, free_port, settle
+from conftest import ROSGATE, Bridge, cross, free_port, settle, wait_until
 from faults import FaultProxy
 from geometry_msgs.msg import Twist
+from std_srvs.srv import SetBool
+from test_services import DEEP, Caller
 
 from rosgate.keyring import ReplayRecord
 from rosgate.wire import envelope
@@ -21,6 +25,7 @@ from rosgate.wire import envelope
 FAST = "heartbeat: 0.2, peer_timeout: 0.8"
 WARMUP = -1.0
 S = 1_000_000_000  # ns
+TWIST = "topic: /cmd_vel, type: geometry_msgs/msg/Twist"
 
 
 def twist(i: int | None) -> Twist:
@@ -34,8 +39,9 @@ def is_warmup(m: Twist) -> bool:
     return m.linear.x == WARMUP
 
 
-def keyed_pair(folder: Path, send_to: int, listen_on: int) -> tuple[Path, Path]:
-    """Files of a (sends /cmd_vel to ``send_to``) and b (publishes what reaches ``listen_on``),
+def keyed_pair(folder: Path, send_to: int, listen_on: int,
+               section: str = "topics", entry: str = TWIST) -> tuple[Path, Path]:
+    """Files of a (sends ``entry`` to ``send_to``) and b (takes what reaches ``listen_on``),
     keyed by one aead key file, as ``rosgate check``'s fix for an open peer entry says."""
     key = folder / "aead.key"
     key.write_bytes(base64.b64encode(os.urandom(32)))  # what rosgate keygen aead writes
@@ -46,18 +52,24 @@ def keyed_pair(folder: Path, send_to: int, listen_on: int) -> tuple[Path, Path]:
         path.write_text(f"""
 bridge: {{name: {name}, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, {FAST}, insecure: false}}
 plugins: {{aead: {{key_file: {key}}}}}
-topics:
-  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: {direction}, port: {port},
-     cipher: aead}}
+{section}:
+  - {{{entry}, direction: {direction}, port: {port}, cipher: aead}}
 """)
         files.append(path)
     return files[0], files[1]
 
 
-def data_frames(captured: list[tuple[bool, bytes]]) -> list[bytes]:
-    """The datagrams a sent towards b that carry messages (not announcements)."""
+def data_frames(captured: list[tuple[bool, bytes]], flag: int = 0) -> list[bytes]:
+    """The datagrams a sent towards b that carry messages (``flag``: calls), not
+    announcements."""
     return [d for up, d in captured if up and d[:2] == envelope.MAGIC
-            and not d[3] & envelope.FLAG_ANNOUNCE]
+            and not d[3] & envelope.FLAG_ANNOUNCE and d[3] & flag == flag]
+
+
+def replayed_count(b: Bridge) -> int:
+    """What a stopped bridge counted ``replayed`` (its route's line at stop)."""
+    found = re.search(r"drops: .*\breplayed=(\d+)", b.log)
+    return int(found.group(1)) if found else 0
 
 
 def kill(b: Bridge) -> None:
@@ -98,10 +110,62 @@ def test_frames_captured_before_the_receiver_restarts_publish_nothing(tmp_path, 
         talker.publish(twist(1000))
         assert inbox.wait_for(lambda items: any(m.linear.x == 1000 for m in items[start:]), 10)
         settle(inbox)
-        replayed = [m.linear.x for m in inbox.items[start:] if 0 <= m.linear.x < 25]
-        assert replayed == []
+        published = [m.linear.x for m in inbox.items[start:] if 0 <= m.linear.x < 25]
+        assert published == []
         second.stop()
-        assert "replayed=25" in second.log, second.log
+        assert replayed_count(second) >= 25, second.log  # and the sender's first after the restart
+    finally:
+        proxy.close()
+
+
+def ready(caller: Caller, timeout: float = 30.0) -> None:
+    """Call until a call is answered by the far side's ROS server (not by a bridge that is not
+    ready yet), then let the service's timeout pass, so an answer lost in DDS discovery cannot
+    land among the test's own."""
+    deadline = time.monotonic() + timeout
+    while caller.call(SetBool.Request(data=False)).message.startswith("rosgate: "):
+        assert time.monotonic() < deadline, "the bridges never got ready"
+        time.sleep(0.1)  # pacing the retries; each answer is waited on
+
+
+def test_calls_captured_before_the_server_restarts_are_not_served(tmp_path, domain, ros_side,
+                                                                 bridge):
+    """The same attack on a service (a command too): 5 captured calls sent again after the
+    serving bridge restarted. Before the replay record: served again. Now: 0 served."""
+    da, db = domain(), domain()
+    port = free_port()
+    proxy = FaultProxy(free_port(), port)
+    served: list[bool] = []
+
+    def serve(request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        served.append(request.data)
+        response.success = True
+        return response
+
+    try:
+        a_yaml, b_yaml = keyed_pair(tmp_path, proxy.port, port, "services",
+                                    "service: /arm, type: std_srvs/srv/SetBool, timeout: 2")
+        bridge(a_yaml, da)
+        first = Bridge(b_yaml, db)
+        ros_side(db, "b").ros.node.create_service(SetBool, "/arm", serve, qos_profile=DEEP)
+        caller = Caller(ros_side(da, "a"), SetBool, "/arm")
+        ready(caller)
+        mark = len(proxy.udp.captured)
+        for _ in range(5):
+            assert caller.call(SetBool.Request(data=True)).success
+        frames = data_frames(proxy.udp.captured[mark:], envelope.FLAG_REQUEST)
+        assert len(frames) == 5 and served.count(True) == 5
+        kill(first)
+
+        second = bridge(b_yaml, db)
+        ready(caller)  # the restarted server is found again
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+            for frame in frames:
+                udp.sendto(frame, ("127.0.0.1", port))
+        assert not caller.call(SetBool.Request(data=False)).message  # after the replays
+        assert not wait_until(lambda: served.count(True) > 5, 1.0), served
+        second.stop()
+        assert replayed_count(second) >= 5, second.log
     finally:
         proxy.close()
 
@@ -185,6 +249,23 @@ def test_the_record_is_written_about_once_a_second_of_frames_not_per_frame(tmp_p
     assert path.read_text() == written
     record.stamp(1002 * S)
     assert path.read_text() != written
+
+
+def test_an_orderly_stop_writes_the_marks_as_they_are(tmp_path):
+    """A crash leaves marks up to a second ahead (a restarted receiver then refuses up to a
+    second of its peer's frames); an orderly stop leaves the exact ones: nothing refused that
+    came after the last frame taken."""
+    record = ReplayRecord(tmp_path / "b.replay")
+    heard = [1000 * S + i * S // 10 for i in range(5)]
+    assert all(map(record.fresh, heard))
+    sent = record.stamp(2000 * S)
+    assert ReplayRecord(tmp_path / "b.replay").floor == heard[0] + ReplayRecord.AHEAD  # a crash
+    record.close()
+    again = ReplayRecord(tmp_path / "b.replay")
+    assert again.floor == heard[-1] and again.fresh(heard[-1] + 1)
+    assert again.first == sent + ReplayRecord.AHEAD + 1
+    assert record.fresh(heard[-1] + 2 * S)  # a frame after the stop still moves the mark on
+    assert ReplayRecord(tmp_path / "b.replay").floor == heard[-1] + 2 * S + ReplayRecord.AHEAD
 
 
 def test_an_unreadable_record_is_taken_as_lost_and_said(tmp_path):

@@ -115,6 +115,8 @@ class PeerRole(Role):
         super().stop()
         if self.handshake is not None:
             self.handshake.schedule.forget()
+        if self.record is not None:
+            self.record.close()
 
     def _start_entries(self) -> None:
         call_servers: dict[Address, CallPort] = {}
