@@ -6,6 +6,7 @@ processes, a relay that keeps what it forwards, a raw UDP socket for the replay.
 from __future__ import annotations
 
 import base64
+import json
 import os
 import re
 import socket
@@ -13,6 +14,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import pytest
 from conftest import ROSGATE, Bridge, cross, free_port, settle, wait_until
 from faults import FaultProxy
 from geometry_msgs.msg import Twist
@@ -210,9 +212,20 @@ def test_the_pair_carries_on_whichever_side_restarts_or_loses_its_record(tmp_pat
                                      f"({record}, a first start, or it was lost)", 10)
         got = cross(talker, inbox, twist, is_warmup, 10)
         assert sorted(m.linear.x for m in got) == [float(i) for i in range(10)]
+        twin_yaml = tmp_path / "twin.yaml"  # another bridge named b, on a port of its own
+        twin_yaml.write_text(b_yaml.read_text().replace(f"port: {port}", f"port: {free_port()}"))
+        twin = subprocess.run([ROSGATE, "run", str(twin_yaml)], capture_output=True, text=True,
+                              timeout=60, env=dict(os.environ, ROS_DOMAIN_ID=str(db)))
+        assert twin.returncode == 2 and f"another bridge keeps its replay record in {record}" \
+            in twin.stderr, twin.stderr
     finally:
         for b in running.values():
             assert b.stop() == 0 and "Traceback" not in b.log, b.log
+
+
+def marks(path: Path) -> dict[str, int]:
+    """What a record's file says."""
+    return json.loads(path.read_text())
 
 
 def test_a_restarted_sender_stamps_after_its_old_frames_even_with_its_clock_set_back(tmp_path):
@@ -226,6 +239,7 @@ def test_a_restarted_sender_stamps_after_its_old_frames_even_with_its_clock_set_
     assert all(map(receiver.fresh, sent))
     assert receiver.fresh(1)  # a first start refuses nothing (known is False)
 
+    del sender, receiver  # both crash: their locks go, as a killed process's do
     sender, receiver = ReplayRecord(tmp_path / "a.replay"), ReplayRecord(tmp_path / "b.replay")
     assert sender.known and receiver.known
     assert not any(map(receiver.fresh, sent))  # every frame it took, and any frame before them
@@ -259,13 +273,24 @@ def test_an_orderly_stop_writes_the_marks_as_they_are(tmp_path):
     heard = [1000 * S + i * S // 10 for i in range(5)]
     assert all(map(record.fresh, heard))
     sent = record.stamp(2000 * S)
-    assert ReplayRecord(tmp_path / "b.replay").floor == heard[0] + ReplayRecord.AHEAD  # a crash
+    assert marks(tmp_path / "b.replay")["heard"] == heard[0] + ReplayRecord.AHEAD  # if it crashed
     record.close()
-    again = ReplayRecord(tmp_path / "b.replay")
-    assert again.floor == heard[-1] and again.fresh(heard[-1] + 1)
-    assert again.first == sent + ReplayRecord.AHEAD + 1
+    assert marks(tmp_path / "b.replay") == {"heard": heard[-1], "sent": sent}
     assert record.fresh(heard[-1] + 2 * S)  # a frame after the stop still moves the mark on
-    assert ReplayRecord(tmp_path / "b.replay").floor == heard[-1] + 2 * S + ReplayRecord.AHEAD
+    assert marks(tmp_path / "b.replay")["heard"] == heard[-1] + 2 * S + ReplayRecord.AHEAD
+    again = ReplayRecord(tmp_path / "a.replay")
+    again.close()
+    again = ReplayRecord(tmp_path / "a.replay")  # a sender after an orderly stop
+    assert again.first == ReplayRecord.AHEAD + 1 and again.stamp(5) == ReplayRecord.AHEAD + 1
+
+
+def test_one_record_serves_one_bridge_at_a_time(tmp_path):
+    """Two bridges of one name and one state folder would each overwrite the other's marks."""
+    record = ReplayRecord(tmp_path / "b.replay")
+    with pytest.raises(OSError, match="another bridge keeps its replay record in"):
+        ReplayRecord(tmp_path / "b.replay")
+    record.close()
+    ReplayRecord(tmp_path / "b.replay").close()
 
 
 def test_an_unreadable_record_is_taken_as_lost_and_said(tmp_path):
@@ -274,7 +299,7 @@ def test_an_unreadable_record_is_taken_as_lost_and_said(tmp_path):
     record = ReplayRecord(path)
     assert not record.known and "JSONDecodeError" in record.unreadable
     assert record.fresh(1)
-    assert ReplayRecord(path).known  # written whole again on the first frame
+    assert marks(path) == {"sent": 0, "heard": 1 + ReplayRecord.AHEAD}  # whole again
 
 
 def test_the_refusal_of_an_open_peer_entry_ranks_identities_first_and_says_what_a_key_file_leaves(

@@ -8,6 +8,7 @@ file keeps a :class:`ReplayRecord` so that frames captured before it restarted a
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import os
@@ -98,6 +99,14 @@ class ReplayRecord:
     def __init__(self, path: Path):
         self.path = path
         self._lock = threading.Lock()
+        # one bridge per record: two writing one file would each lose the other's marks
+        self._holder = open(os.open(path.with_name(path.name + ".lock"),  # held until close
+                                    os.O_RDWR | os.O_CREAT, 0o600), "rb")
+        try:
+            fcntl.flock(self._holder, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._holder.close()
+            raise OSError(f"another bridge keeps its replay record in {path}") from None
         try:
             data = json.loads(path.read_text())
             sent, heard = int(data["sent"]), int(data["heard"])
@@ -142,6 +151,7 @@ class ReplayRecord:
         with self._lock:
             self._sent, self._heard = self._latest
             self._save()
+            self._holder.close()  # and the lock with it (as when the process ends)
 
     def _mark(self, sent: int = 0, heard: int = 0) -> None:
         """The file says ``AHEAD`` past ``sent`` or ``heard`` (before the frame goes on)."""

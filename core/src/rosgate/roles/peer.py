@@ -178,12 +178,12 @@ class PeerRole(Role):
         """The bridge's replay record, ``<state folder>/<name>.replay`` (read on first use)."""
         if self.record is None:
             try:
-                folder = state_dir()
+                self.record = ReplayRecord(state_dir() / f"{self.cfg.name}.replay")
             except OSError as exc:
-                raise ConfigError(f"no state folder for the replay record: {exc}",
+                raise ConfigError(f"no replay record for the key file's entries: {exc}",
                                   file=self.cfg.file, fix=f"set {STATE_VARIABLE} to a folder "
-                                  "of this user's on storage that survives a reboot") from None
-            self.record = ReplayRecord(folder / f"{self.cfg.name}.replay")
+                                  "of this user's alone, on storage that survives a reboot "
+                                  "(one per bridge of this name)") from None
         return self.record
 
     def _microcontroller_service(self, p: ServiceSpec,
