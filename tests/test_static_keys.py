@@ -265,25 +265,6 @@ def test_the_record_is_written_about_once_a_second_of_frames_not_per_frame(tmp_p
     assert path.read_text() != written
 
 
-def test_an_orderly_stop_writes_the_marks_as_they_are(tmp_path):
-    """A crash leaves marks up to a second ahead (a restarted receiver then refuses up to a
-    second of its peer's frames); an orderly stop leaves the exact ones: nothing refused that
-    came after the last frame taken."""
-    record = ReplayRecord(tmp_path / "b.replay")
-    heard = [1000 * S + i * S // 10 for i in range(5)]
-    assert all(map(record.fresh, heard))
-    sent = record.stamp(2000 * S)
-    assert marks(tmp_path / "b.replay")["heard"] == heard[0] + ReplayRecord.AHEAD  # if it crashed
-    record.close()
-    assert marks(tmp_path / "b.replay") == {"heard": heard[-1], "sent": sent}
-    assert record.fresh(heard[-1] + 2 * S)  # a frame after the stop still moves the mark on
-    assert marks(tmp_path / "b.replay")["heard"] == heard[-1] + 2 * S + ReplayRecord.AHEAD
-    again = ReplayRecord(tmp_path / "a.replay")
-    again.close()
-    again = ReplayRecord(tmp_path / "a.replay")  # a sender after an orderly stop
-    assert again.first == ReplayRecord.AHEAD + 1 and again.stamp(5) == ReplayRecord.AHEAD + 1
-
-
 def test_one_record_serves_one_bridge_at_a_time(tmp_path):
     """Two bridges of one name and one state folder would each overwrite the other's marks."""
     record = ReplayRecord(tmp_path / "b.replay")
