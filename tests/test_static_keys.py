@@ -301,3 +301,14 @@ def test_the_refusal_of_an_open_peer_entry_ranks_identities_first_and_says_what_
     for limit in ("from either machine", "writes to both sides", "loses its state folder",
                   "insecure: true"):
         assert limit in fix, fix
+
+
+def test_a_record_that_cannot_be_written_is_said_once_and_frames_go_on(tmp_path, caplog):
+    record = ReplayRecord(tmp_path / "b.replay")
+    (tmp_path / "b.replay.new").mkdir()  # where the next file is written: not a file
+    with caplog.at_level("ERROR", logger="rosgate"):
+        assert all(record.fresh(1000 * S + i * 2 * S) for i in range(3))  # a mark each
+    said = [r.getMessage() for r in caplog.records if "cannot write" in r.getMessage()]
+    assert said == [f"cannot write {tmp_path / 'b.replay'} (Is a directory): frames taken now "
+                    "could be replayed after a restart"]
+    assert not (tmp_path / "b.replay").exists()

@@ -146,13 +146,13 @@ class ReplayRecord:
         """The file says ``AHEAD`` past ``sent`` or ``heard`` (before the frame goes on)."""
         with self._lock:
             if sent > self._sent:
-                self._sent = sent + self.AHEAD
+                marks = sent + self.AHEAD, self._heard
             elif heard > self._heard:
-                self._heard = heard + self.AHEAD
+                marks = self._sent, heard + self.AHEAD
             else:
                 return  # another thread has marked it
             try:
-                self._write(json.dumps({"sent": self._sent, "heard": self._heard}).encode())
+                self._write(json.dumps({"sent": marks[0], "heard": marks[1]}).encode())
             except OSError as exc:  # the frame goes on: a robot is not stopped by a full disk
                 if not self._failing:
                     log.error("cannot write %s (%s): frames taken now could be replayed after "
@@ -160,6 +160,8 @@ class ReplayRecord:
                 self._failing = True
             else:
                 self._failing = False
+            # only now: another thread's frame below the new marks may go on without waiting
+            self._sent, self._heard = marks
 
     def _write(self, text: bytes) -> None:
         """The file replaced whole (a crash leaves the old one or the new one)."""
