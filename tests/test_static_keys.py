@@ -21,7 +21,8 @@ from geometry_msgs.msg import Twist
 from std_srvs.srv import SetBool
 from test_services import DEEP, Caller
 
-from rosgate.keyring import ReplayRecord
+from rosgate.builtin import NoCipher
+from rosgate.keyring import ReplayRecord, StaticKeys
 from rosgate.wire import envelope
 
 FAST = "heartbeat: 0.2, peer_timeout: 0.8"
@@ -312,3 +313,17 @@ def test_a_record_that_cannot_be_written_is_said_once_and_frames_go_on(tmp_path,
     assert said == [f"cannot write {tmp_path / 'b.replay'} (Is a directory): frames taken now "
                     "could be replayed after a restart"]
     assert not (tmp_path / "b.replay").exists()
+
+
+def test_a_frame_of_a_sender_start_the_window_forgot_is_refused(tmp_path):
+    """Within one run of the receiver: the replay window keeps a sender's last 8 starts, and a
+    frame of a start before them once opened a window of its own, as new. Now its send time is
+    not after the latest one taken in the start forgotten: refused."""
+    keys = StaticKeys(NoCipher({}, tmp_path), ReplayRecord(tmp_path / "b.replay"))
+    first = [(1, 1000 * S + i) for i in range(3)]  # the sender's first start: epoch 1
+    assert all(keys.fresh(*frame) for frame in first)
+    for start in range(2, 10):  # eight starts more, each stamping later
+        assert keys.fresh(start, (1000 + start) * S)
+        assert keys.fresh(start - 1, (1000 + start - 1) * S + 1)  # late, across the restart
+    assert not any(keys.fresh(*frame) for frame in first)
+    assert keys.fresh(9, 1010 * S)  # the sender's own frames go on

@@ -48,25 +48,48 @@ class Keys(ABC):
         """The send time a frame sealed now carries in its envelope (``now``: time.time_ns())."""
         return now
 
-    def fresh(self, stamp: int) -> bool:
-        """Whether an opened frame sent at ``stamp`` may be new to this run; False: sent before
-        this side last started, so perhaps taken already (a session's keys end with their
-        session, so any frame they open is of this run)."""
+    def fresh(self, epoch: int, stamp: int) -> bool:
+        """Whether an opened frame of ``epoch`` sent at ``stamp`` may be new (the replay window
+        then judges its sequence number); False: perhaps taken already. A session's keys end
+        with their session, so any frame they open is of this run."""
         return True
 
 
 class StaticKeys(Keys):
     """One cipher for every epoch; the epoch only starts a new sequence at each sender start.
-    With a ``record``, send times grow across this side's restarts and frames sent before its
-    own start are refused (:class:`ReplayRecord`)."""
+
+    With a ``record`` (:class:`ReplayRecord`), send times grow across the sender's starts, and
+    a frame sent before this side's start is refused; so is one of a sender start the replay
+    window forgot (it keeps the last ``EPOCHS``), by the latest send time seen in it: sound with
+    one sender, whose later starts stamp later."""
+
+    EPOCHS = 8  # as the replay window's
 
     def __init__(self, cipher: Cipher, record: ReplayRecord | None = None):
         self.cipher = cipher
         self.authenticates = cipher.authenticates
         self._epoch = int.from_bytes(os.urandom(4), "big")
+        self.record = record
+        self._floor = -1  # frames sent at or before this are of a forgotten epoch
+        self._latest: dict[int, int] = {}  # epoch -> the latest send time taken in it
         if record is not None:
             self.stamp = record.stamp  # type: ignore[method-assign]
-            self.fresh = record.fresh  # type: ignore[method-assign]
+
+    def fresh(self, epoch: int, stamp: int) -> bool:
+        if self.record is None:
+            return True
+        if stamp <= self._floor or not self.record.fresh(stamp):
+            return False
+        latest = self._latest.get(epoch)
+        if latest is None:
+            if len(self._latest) >= self.EPOCHS:
+                self._floor = max(self._floor, self._latest.pop(next(iter(self._latest))))
+                if stamp <= self._floor:
+                    return False
+            self._latest[epoch] = stamp
+        elif stamp > latest:
+            self._latest[epoch] = stamp
+        return True
 
     def epoch(self) -> int:
         return self._epoch

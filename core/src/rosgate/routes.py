@@ -129,13 +129,10 @@ class Route:
         payload = self.open(frame, header.epoch)
         if payload is None:
             return None
-        if not self.keys.fresh(header.stamp):
-            self.drop(Drop.REPLAYED, "sent before this bridge started (a replay; or the peer "
-                                     "lost its state folder and its clock went back)")
-            return None
         replay = self.replay
         with self._lock:
-            refused = replay.accept(header.epoch, header.seq)
+            refused = replay.accept(header.epoch, header.seq) if self.keys.fresh(
+                header.epoch, header.stamp) else Drop.REPLAYED
             if self.counts_lost:
                 self.counters.lost = replay.lost
         if refused:
