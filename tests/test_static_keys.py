@@ -121,6 +121,50 @@ def test_frames_captured_before_the_receiver_restarts_publish_nothing(tmp_path, 
         proxy.close()
 
 
+def test_frames_of_a_sender_start_the_receiver_has_forgotten_publish_nothing(tmp_path, domain,
+                                                                           ros_side, bridge):
+    """Within one run of the receiver: its replay window keeps the sender's last 8 starts, so
+    frames captured 9 sender starts ago once opened a window of their own and were published
+    (on the code before: 10 of 10). Now they are refused by their send time: 0."""
+    da, db = domain(), domain()
+    port = free_port()
+    proxy = FaultProxy(free_port(), port)
+    try:
+        a_yaml, b_yaml = keyed_pair(tmp_path, proxy.port, port)
+        b = bridge(b_yaml, db)
+        inbox = ros_side(db, "b").listen("/cmd_vel", Twist)
+        side_a = ros_side(da, "a")
+        talker = side_a.publisher("/cmd_vel", Twist)
+        frames: list[bytes] = []
+        for start in range(10):
+            a = Bridge(a_yaml, da)
+            cross(talker, inbox, twist, is_warmup, 0)  # b has heard this start
+            if start == 0:
+                mark = len(proxy.udp.captured)
+                got = cross(talker, inbox, twist, is_warmup, 10)
+                assert sorted(m.linear.x for m in got) == [float(i) for i in range(10)]
+                frames = data_frames(proxy.udp.captured[mark:])[-10:]
+            kill(a)
+        a = Bridge(a_yaml, da)
+        try:
+            cross(talker, inbox, twist, is_warmup, 0)
+            start = len(inbox.items)
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+                for frame in frames:
+                    udp.sendto(frame, ("127.0.0.1", port))
+            talker.publish(twist(1000))
+            assert inbox.wait_for(lambda items: any(m.linear.x == 1000 for m in items[start:]),
+                                  10)
+            settle(inbox)
+            assert [m.linear.x for m in inbox.items[start:] if 0 <= m.linear.x < 10] == []
+        finally:
+            assert a.stop() == 0, a.log
+        b.stop()
+        assert replayed_count(b) >= 10, b.log
+    finally:
+        proxy.close()
+
+
 def ready(caller: Caller, timeout: float = 30.0) -> None:
     """Call until a call is answered by the far side's ROS server (not by a bridge that is not
     ready yet), then let the service's timeout pass, so an answer lost in DDS discovery cannot
