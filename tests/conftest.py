@@ -47,6 +47,8 @@ os.environ["ROSGATE_TEST_PORTS"] = "{}-{}".format(*domain_ports(_FIRST, _LAST))
 # and their status sockets in a folder of this process's own: bridges of two workers (or two runs)
 # are often both named "a" or "b"
 os.environ.setdefault("ROSGATE_RUNTIME_DIR", tempfile.mkdtemp(prefix="rosgate-test-run-"))
+# and what servers keep across restarts (their recent clients), never in the user's own folder
+os.environ.setdefault("ROSGATE_STATE_DIR", tempfile.mkdtemp(prefix="rosgate-test-state-"))
 _domains = itertools.count()
 
 
@@ -177,8 +179,9 @@ class RosSide:
 
 @pytest.fixture(autouse=True)
 def _runtime_dir(tmp_path_factory, monkeypatch):
-    """Each test's bridges keep their status sockets, and their state, in folders of the test's
-    own: a bridge of the test before (still stopping) may bear the same name."""
+    """Each test's bridges keep their status sockets in a folder of the test's own: a bridge of
+    the test before (still stopping) may bear the same name; and their state: a server of the
+    test before must not have made this test's clients known."""
     monkeypatch.setenv("ROSGATE_RUNTIME_DIR", str(tmp_path_factory.mktemp("run")))
     monkeypatch.setenv("ROSGATE_STATE_DIR", str(tmp_path_factory.mktemp("state")))
 

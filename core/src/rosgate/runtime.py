@@ -19,6 +19,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .errors import RosgateError
+
 log = logging.getLogger("rosgate")
 
 RUNTIME_VARIABLE = "ROSGATE_RUNTIME_DIR"
@@ -37,25 +39,37 @@ def runtime_dir() -> Path:
     return Path(f"/tmp/rosgate-{os.getuid()}")
 
 
+def socket_path(name: str) -> Path:
+    return runtime_dir() / f"{name}{SUFFIX}"
+
+
 def state_dir() -> Path:
-    """What a bridge keeps across restarts and reboots (the runtime folder is often cleared at
-    boot): ``$ROSGATE_STATE_DIR``, else ``$XDG_STATE_HOME/rosgate``, else
-    ``~/.local/state/rosgate``; made 0700, and refused (:class:`OSError`) as the runtime folder
-    is when another user owns it or others may write to it."""
-    if not (given := os.environ.get(STATE_VARIABLE)):
-        xdg = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
-        given = str(Path(xdg) / "rosgate")
-    folder = Path(given)
+    """``$ROSGATE_STATE_DIR``, else ``$XDG_STATE_HOME/rosgate``, else ``~/.local/state/rosgate``."""
+    if given := os.environ.get(STATE_VARIABLE):
+        return Path(given)
+    if xdg := os.environ.get("XDG_STATE_HOME"):
+        return Path(xdg) / "rosgate"
+    return Path.home() / ".local" / "state" / "rosgate"
+
+
+class NotPrivate(RosgateError):
+    """A bridge's folder that another user owns, or that others may enter."""
+
+
+def private_folder(folder: Path, variable: str) -> Path:
+    """``folder``, made 0700 when missing; :class:`NotPrivate` when it is another user's or
+    open to others (whoever made it could read, replace or fake what the bridge keeps there),
+    naming the folder, its owner and mode, and the fix (``variable`` moves it)."""
     folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     info = folder.stat()
     if info.st_uid != os.getuid() or info.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise OSError(f"{folder} is not this user's alone (owner uid {info.st_uid}, mode "
-                      f"{stat.S_IMODE(info.st_mode):o}); remove it or set {STATE_VARIABLE}")
+        whose = (f"another user's (uid {info.st_uid})" if info.st_uid != os.getuid()
+                 else "open to others")
+        raise NotPrivate(f"{folder} is {whose}, mode {stat.S_IMODE(info.st_mode):o}: whoever "
+                         "made it could fake this bridge's status or state; the bridge does "
+                         "not run on it\n  fix: remove that folder (as its owner or root), or "
+                         f"point {variable} at a folder of yours (mode 700)")
     return folder
-
-
-def socket_path(name: str) -> Path:
-    return runtime_dir() / f"{name}{SUFFIX}"
 
 
 class StatusServer:

@@ -27,7 +27,7 @@ from ..keyring import Keys, ReplayRecord, StaticKeys
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import ReceiveRoute, Route
-from ..runtime import STATE_VARIABLE, state_dir
+from ..runtime import STATE_VARIABLE, private_folder, state_dir
 from ..secure import HandshakeError, KeySchedule, SecureConnection, UnknownKey
 from ..service_framing import CallPort
 from ..services import CallerRoute, ServerRoute
@@ -175,10 +175,12 @@ class PeerRole(Role):
                 self.router.alias(route, topic_id_for(p.name))
 
     def _record(self) -> ReplayRecord:
-        """The bridge's replay record, ``<state folder>/<name>.replay`` (read on first use)."""
+        """The bridge's replay record, ``<state folder>/<name>.replay`` (read on first use;
+        :class:`~rosgate.runtime.NotPrivate` when another user could write there)."""
         if self.record is None:
             try:
-                self.record = ReplayRecord(state_dir() / f"{self.cfg.name}.replay")
+                folder = private_folder(state_dir(), STATE_VARIABLE)
+                self.record = ReplayRecord(folder / f"{self.cfg.name}.replay")
             except OSError as exc:
                 raise ConfigError(f"no replay record for the key file's entries: {exc}",
                                   file=self.cfg.file, fix=f"set {STATE_VARIABLE} to a folder "
