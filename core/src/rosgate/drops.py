@@ -85,6 +85,9 @@ class Drop(StrEnum):
     AUTH_FAILED = "auth_failed", "the cipher refused it: wrong key, tampered, or not from the peer"
     DUPLICATE = "duplicate", "its sequence number was seen already (a replay or a copy)"
     STALE = "stale", "older than the replay window"
+    REPLAYED = "replayed", ("a peer's frame under a static key sent before this side last "
+                            "started (a replay; or the peer's clock and state folder both went "
+                            "back: docs/security.md)")
     TYPE_MISMATCH = "type_mismatch", "the far side's message type is not this side's"
     TYPE_UNHEARD = "type_unheard", ("held for the far side's type announcement beyond the hold's "
                                     "bound (1,000 frames or 16 MiB): the oldest went")

@@ -96,9 +96,13 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
             continue
         session_keyed = cfg.secure and p.cipher is None  # the resolver leaves it to the session
         if not (session_keyed or statically_keyed):
+            # a key file ranks below identities: what it leaves open is said with it
             fix = ("give both peers identities (bridge.identity, peer_key, handshake_port: "
-                   "docs/security.md) or this entry a cipher keyed from a file (cipher: aead, "
-                   "plugins: {aead: {key_file: aead.key}})" if cfg.role is Role.PEER
+                   "docs/security.md); less safe, a cipher keyed from a file both peers hold "
+                   "(cipher: aead, plugins: {aead: {key_file: aead.key}}): whoever copies it "
+                   "from either machine reads every frame, recorded or to come, and writes to "
+                   "both sides, and a peer that loses its state folder takes frames captured "
+                   "before once each" if cfg.role is Role.PEER
                    else "use a cipher the session keys (aead, nacl, fernet)")
             found.append(OpenEntry(f"{key}.cipher", name, f"cipher {t.cipher} on {link}",
                                    f"{fix}; or, on a network you trust entirely, insecure: true"))

@@ -124,15 +124,16 @@ class Route:
         return self.seal(envelope.FLAG_ANNOUNCE, epoch, next(self._announced), body)
 
     def admit(self, header: envelope.Header, frame: bytes) -> bytes | None:
-        """A received frame's payload once its cipher and the replay window accept it; None
-        (counted) when either does not. Skipped sequence numbers of a topic count as lost (a
-        late frame that fills a gap takes one back)."""
+        """A received frame's payload once its cipher, keys and replay window accept it; None
+        (counted) when one does not. Skipped sequence numbers of a topic count as lost (a late
+        frame that fills a gap takes one back)."""
         payload = self.open(frame, header.epoch)
         if payload is None:
             return None
         replay = self.replay
         with self._lock:
-            refused = replay.accept(header.epoch, header.seq)
+            refused = replay.accept(header.epoch, header.seq) if self.keys.fresh(
+                header.epoch, header.stamp) else Drop.REPLAYED
             if self.counts_lost:
                 self.counters.lost = replay.lost
         if refused:
@@ -182,7 +183,7 @@ class Route:
              stamp: int | None = None) -> bytes:
         """An envelope frame of this route: the header, then the payload sealed with it."""
         header = envelope.pack(flags, self.topic_id, epoch, seq,
-                               time.time_ns() if stamp is None else stamp)
+                               self.keys.stamp(time.time_ns() if stamp is None else stamp))
         sealer = self.keys.sealer(epoch)
         if sealer.in_place and len(payload) >= SEAL_IN_PLACE:
             frame = bytearray(envelope.SIZE + len(payload) + sealer.overhead)

@@ -22,10 +22,12 @@ from ..announce import ANNOUNCE_EVERY
 from ..bus import BusRole, BusTransport
 from ..config import Direction, Framing
 from ..drops import Drop, Reason
-from ..keyring import Keys
+from ..errors import ConfigError
+from ..keyring import Keys, ReplayRecord, StaticKeys
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import ReceiveRoute, Route
+from ..runtime import STATE_VARIABLE, private_folder, state_dir
 from ..secure import HandshakeError, KeySchedule, SecureConnection, UnknownKey
 from ..service_framing import CallPort
 from ..services import CallerRoute, ServerRoute
@@ -57,11 +59,21 @@ class PeerRole(Role):
         self.callers: list[CallerRoute] = []
         self.lost = False  # a peer without a handshake line: silent too long
         self.bus_roles: dict[type[BusRole], BusRole] = {}
+        #: entries keyed by the file's key remember their peer's send times (made with the first)
+        self.record: ReplayRecord | None = None
+        self.remembered = True  # or a receiving entry keyed by the file starts without a record
 
     def start(self) -> None:
         if self.handshake is not None:
             self.handshake.start()
         self._start_entries()
+        if not self.remembered and self.record is not None:
+            why = f"unreadable: {self.record.unreadable}" if self.record.unreadable else \
+                "a first start, or it was lost"
+            log.warning("%s: no record of what peer %s sent before this start (%s, %s): frames "
+                        "captured before now can be replayed to this bridge once each, until "
+                        "its next restart (docs/security.md)", self.cfg.name, self.cfg.peer,
+                        self.record.path, why)
         if self.handshake is None and self.callers and self.heard_from:
             threading.Thread(target=self._watch_peer, name="peer-liveness", daemon=True).start()
 
@@ -103,6 +115,8 @@ class PeerRole(Role):
         super().stop()
         if self.handshake is not None:
             self.handshake.schedule.forget()
+        if self.record is not None:
+            self.record.close()
 
     def _start_entries(self) -> None:
         call_servers: dict[Address, CallPort] = {}
@@ -134,9 +148,13 @@ class PeerRole(Role):
             link = slot = self.bridge.slot(f"{c.transport}->{self.cfg.peer}:{c.port}")
         else:
             link = self.datagram_link(p.transport, p.local, key, sources=sources)
-        keys = None  # the file's cipher, unless a session keys an entry with an envelope
+        keys: Keys | None = None  # a session's, or the file's key with the replay record
         if self.handshake is not None and c.framing is Framing.ROSGATE:
             keys = self.handshake.keys(p)
+        elif c.framing is Framing.ROSGATE and p.cipher is not None and p.cipher.authenticates:
+            keys = StaticKeys(p.cipher, self._record())
+            if c.direction is Direction.RECEIVE and not self._record().known:
+                self.remembered = False
         route = self.router.route(p, topic_id_for(c.remote), p.name, link, fixed(p.address),
                                   keys)
         if stream and c.direction is Direction.RECEIVE:
@@ -155,6 +173,20 @@ class PeerRole(Role):
             self.heard_from.append(route)
             if p.name != c.remote and isinstance(route, ReceiveRoute):
                 self.router.alias(route, topic_id_for(p.name))
+
+    def _record(self) -> ReplayRecord:
+        """The bridge's replay record, ``<state folder>/<name>.replay`` (read on first use;
+        :class:`~rosgate.runtime.NotPrivate` when another user could write there)."""
+        if self.record is None:
+            try:
+                folder = private_folder(state_dir(), STATE_VARIABLE)
+                self.record = ReplayRecord(folder / f"{self.cfg.name}.replay")
+            except OSError as exc:
+                raise ConfigError(f"no replay record for the key file's entries: {exc}",
+                                  file=self.cfg.file, fix=f"set {STATE_VARIABLE} to a folder "
+                                  "of this user's alone, on storage that survives a reboot "
+                                  "(one per bridge of this name)") from None
+        return self.record
 
     def _microcontroller_service(self, p: ServiceSpec,
                                  servers: dict[Address, CallPort]) -> None:

@@ -7,7 +7,9 @@
     4      4    topic_id  which topic (or control channel 0) the frame belongs to
     8      4    epoch     random per sender start: a restarted sender starts a new sequence
     12     8    seq       per topic and epoch, starting at 1
-    20     8    stamp     sender's wall clock at send, nanoseconds since the Unix epoch
+    20     8    stamp     sender's wall clock at send, nanoseconds since the Unix epoch (with a
+                          static key never earlier than before the sender's last start:
+                          rosgate.keyring.ReplayRecord)
     28          body      cipher.seal(header, payload)
 
 The header travels in clear (the receiver needs the topic id to pick the cipher) and every cipher
