@@ -297,3 +297,24 @@ def test_the_graph_counts_other_nodes_entities_and_ignores_its_own_and_junk(capl
         graph.changed(sub.token(), False)  # a second departure changes nothing
     assert dict(graph.counts) == {"node": 1, "subscriber": 0}
     assert "subscriber on /chatter [std_msgs/msg/String] of listener is gone" in caplog.text
+
+
+def test_the_graph_names_the_package_of_a_type_not_installed_here(caplog):
+    from rosgate_transport_zenoh.rmw_dialect import Graph
+
+    other = Node(7, "aa11", "0", "talker")
+    gadget = Entity(other, "1", Kind.PUBLISHER, "/gadget", "gadget_msgs/msg/Gadget",
+                    "RIHS01_" + "6a" * 32)
+    chatter = Entity(other, "2", Kind.PUBLISHER, "/chatter", "std_msgs/msg/String", STRING_HASH)
+    graph = Graph(ZID)
+    with caplog.at_level("INFO", logger="rosgate"):
+        for token in (other.token(), gadget.token(), chatter.token()):
+            graph.changed(token, True)
+    lines = {r.getMessage() for r in caplog.records}
+    assert ("rmw_zenoh aa11: publisher on /gadget [gadget_msgs/msg/Gadget] of talker (its type "
+            "is not installed on this side: interface package 'gadget_msgs' is not installed "
+            "(apt install ros-$ROS_DISTRO-gadget-msgs, or pip install ros-jazzy-gadget-msgs))"
+            ) in lines
+    assert "rmw_zenoh aa11: publisher on /chatter [std_msgs/msg/String] of talker" in lines
+    assert dict(graph.counts) == {"node": 1, "publisher": 2}
+
