@@ -28,10 +28,12 @@ from rosgate.wire import envelope
 
 GADGET = "gadget_msgs/msg/Gadget"
 GADGET_HASH = "RIHS01_" + "6a" * 32
-#: what this side says of the package, after the entry's name
-MISSING = ("the far side's type gadget_msgs/msg/Gadget is not installed on this side: interface "
-           "package 'gadget_msgs' is not installed (apt install ros-$ROS_DISTRO-gadget-msgs, or "
-           "pip install ros-jazzy-gadget-msgs)")
+PACKAGE = ("interface package 'gadget_msgs' is not installed (apt install "
+           "ros-$ROS_DISTRO-gadget-msgs, or pip install ros-jazzy-gadget-msgs)")
+#: what a receiving side says of the far side's type, after the entry's name
+MISSING = f"the far side's type {GADGET} is not installed on this side: {PACKAGE}"
+#: what a server says of a client's entry
+SERVER_MISSING = f"/gadget: its type {GADGET} is not installed on the server: {PACKAGE}"
 
 
 @pytest.fixture
@@ -200,9 +202,8 @@ def test_a_server_refuses_the_entry_whose_type_it_lacks_and_serves_the_rest(
         assert welcome["type"] == "welcome", welcome
         gadget_id, chatter_id = welcome["topic_ids"]
         assert gadget_id == 0 and chatter_id != 0
-        assert welcome["refused"] == [{"entry": "topics[0] (/gadget)",
-                                       "error": f"/gadget: {MISSING}"}]
-        assert base.wait_log(f"/gadget: {MISSING}", 5), base.log
+        assert welcome["refused"] == [{"entry": "topics[0] (/gadget)", "error": SERVER_MISSING}]
+        assert base.wait_log(SERVER_MISSING, 5), base.log
         seq = 1
         while not inbox.wait_count(1, 0.2):  # the other entry is served
             assert seq < 100, base.log

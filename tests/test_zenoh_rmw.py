@@ -4,8 +4,8 @@ node running rmw_zenoh_cpp does on the wire.
 
 No rmw_zenoh binary installs here, so that node is written out below from rmw_zenoh's sources
 (ros2/rmw_zenoh, ``rmw_zenoh_cpp/src/detail/``, the Jazzy format of 0.2.4 to 0.2.10): a plain
-zenoh session that declares a node token and one token per entity (``liveliness_utils.cpp``: ``@ros2_lv/
-<domain>/<zid>/<nid>/<id>/<NN|MP|MS>/<enclave>/<namespace>/<node>[/<topic>/<type>/<hash>/<qos>]``,
+zenoh session that declares a node token and one token per entity (``liveliness_utils.cpp``:
+``@ros2_lv/<domain>/<zid>/<nid>/<id>/<NN|MP|MS>/<enclave>/<namespace>/<node>[/<topic>/<type>/<hash>/<qos>]``,
 '/' inside a part written '%'), reads the graph with a liveliness query on
 ``@ros2_lv/<domain>/**``, keys its data ``<domain>/<name>/<pkg::msg::dds_::Name_>/<RIHS01 hash>``
 (``TopicInfo``), computes an entity's GID as the XXH3-128 of its token, and puts and reads

@@ -119,7 +119,7 @@ class TypeCheck:
         self.theirs: Identity | None = None
         self.mismatch: str | None = None  # why the entry is refused; None while types agree
         #: how its refused frames are counted: another type, or one not installed here
-        self.reason: Reason = Drop.TYPE_MISMATCH
+        self.reason: Drop = Drop.TYPE_MISMATCH
         self.heard_at: float | None = None  # when the far side last said its type (monotonic)
         self.awaiting = False  # frames wait for the far side's first word (:meth:`expect`)
         self._said: set[str] = set()
@@ -187,7 +187,8 @@ class TypeCheck:
             missing = not_installed(theirs.name) if theirs.name != self.mine.name else None
             if missing is not None:
                 self.reason, self.mismatch = Drop.TYPE_NOT_INSTALLED, (
-                    f"{self.label}: refused, {missing}, so its frames are dropped")
+                    f"{self.label}: refused, the far side's type {theirs.name} is not installed "
+                    f"on this side: {missing}, so its frames are dropped")
         self.theirs = theirs
         self.say()
 
@@ -212,10 +213,10 @@ class TypeCheck:
 
 
 def not_installed(type_name: str) -> str | None:
-    """What to say of a type the far side names that this side cannot load (the package to
-    install, by the type's name); None when it is installed here."""
+    """Why a type the far side names cannot be loaded here (the package to install, by the
+    type's name); None when it is installed."""
     try:
         resolve_type(type_name)
     except TypeNotFound as exc:
-        return f"the far side's type {type_name} is not installed on this side: {exc}"
+        return str(exc)
     return None

@@ -6,7 +6,8 @@ entry), its waiting frames first (docs/real-links.md).
 Authenticated (``bridge.identity`` and ``clients:``): nothing a connection sends is parsed
 before its Noise handshake proves a key listed under ``clients:``, which decides the client's
 name and policy (:mod:`rosgate.policy`); each entry the policy refuses, or whose type is not
-installed here, is left out, said in both logs. :meth:`ServerRole.reload` applies a changed policy (SIGHUP; docs/security.md).
+installed here, is left out, said in both logs. :meth:`ServerRole.reload` applies a changed
+policy (SIGHUP; docs/security.md).
 """
 
 from __future__ import annotations
@@ -337,7 +338,8 @@ class ServerRole(Role):
             why = refusal(session.policy, asked, keyless) if session.policy is not None else None
             missing = not_installed(asked.type) if why is None else None
             if missing is not None:  # this entry alone: the client's others are served
-                why = f"{asked.remote}: {missing}"
+                why = (f"{asked.remote}: its type {asked.type} is not installed on the "
+                       f"server: {missing}")
             if why is not None:
                 session.refused[index] = why
                 route = session.by_index.pop(index, None)
