@@ -222,10 +222,11 @@ def test_the_check_tells_a_type_not_installed_from_another_type(caplog):
     from rosgate.drops import Drop
 
     mine = Identity("std_msgs/msg/String", type_hash(String))
-    check = TypeCheck("/t", mine)
+    # a label of its own: what is said is said once a minute per label, for the whole process
+    check = TypeCheck("/installed_or_not", mine)
     check.far(Identity(GADGET, GADGET_HASH))
     assert check.reason is Drop.TYPE_NOT_INSTALLED
-    assert check.mismatch == f"/t: refused, {MISSING}, so its frames are dropped"
+    assert check.mismatch == f"/installed_or_not: refused, {MISSING}, so its frames are dropped"
     check.far(Identity("geometry_msgs/msg/Point", "RIHS01_" + "69" * 32))  # installed, another
     assert check.reason is Drop.TYPE_MISMATCH
     assert check.mismatch is not None and "not installed" not in check.mismatch
