@@ -51,7 +51,7 @@ from rosgate.spec import ServiceSpec, TopicSpec
 from rosgate.wire.envelope import topic_id_for
 
 from . import rmw
-from .dialect import KEEP_ALL_HISTORY, RawAnswers, RawCalls, speaks
+from .dialect import KEEP_ALL_HISTORY, MissingTypes, RawAnswers, RawCalls, speaks
 from .transport import (
     _PRIORITIES,
     ZenohSession,
@@ -206,7 +206,7 @@ class Graph:
         self.own = own
         self.known: dict[str, rmw.Node | rmw.Entity] = {}  # token -> what it announces
         self.counts: Counter[str] = Counter()  # kind words -> how many there are now
-        self._missing: dict[str, str] = {}  # type -> what is said of it ("": installed here)
+        self.missing = MissingTypes()
 
     def changed(self, token: str, alive: bool) -> None:
         found = rmw.parse(token)
@@ -228,19 +228,6 @@ class Graph:
         elif self.known.pop(token, None) is not None:
             self.counts[words] -= 1
             log.info("%s %s: %s is gone", NAME, node.zid, what)
-
-    def missing(self, type_name: str) -> str:
-        """What to add when ``type_name`` is not installed here (the package to install): this
-        side could not bridge it."""
-        said = self._missing.get(type_name)
-        if said is None:
-            try:
-                resolve_type(type_name)
-                said = ""
-            except TypeNotFound as exc:
-                said = f" (its type is not installed on this side: {exc})"
-            self._missing[type_name] = said
-        return said
 
 
 class Publisher(_Publisher):
