@@ -97,6 +97,40 @@ topics: [{{topic: /gadget, type: std_msgs/msg/String, direction: receive, port: 
     assert b.proc.poll() is None
 
 
+def test_a_peer_answers_a_call_of_a_type_it_lacks_as_a_failure_naming_the_package(
+        tmp_path, bridge, domain, ros_side, runtime_dir):
+    """A serving peer: the caller's announcement names a service type not installed here; its
+    call is answered as a failure that names the package, counted, and never served."""
+    from std_srvs.srv import Trigger
+
+    d, port = domain(), free_port()
+    path = tmp_path / "b.yaml"
+    path.write_text(f"""bridge: {{name: b, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+services: [{{service: /gadget_srv, type: std_srvs/srv/Trigger, direction: receive,
+             port: {port}}}]""")
+    b = bridge(path, d)
+    served: list[Any] = []
+    ros_side(d, "b").ros.node.create_service(Trigger, "/gadget_srv",
+                                             lambda q, r: served.append(q) or r)
+    service_id = envelope.topic_id_for("/gadget_srv")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(10)
+        s.sendto(frame(envelope.FLAG_ANNOUNCE, service_id, 1,
+                       announcement("gadget_msgs/srv/Gadget", GADGET_HASH)), ("127.0.0.1", port))
+        s.sendto(frame(envelope.FLAG_REQUEST, service_id, 2, b"\x00\x01\x00\x00gadget"),
+                 ("127.0.0.1", port))
+        answer, _ = s.recvfrom(65536)
+    header = envelope.HEADER.unpack_from(answer)
+    assert header[2] == envelope.FLAG_REPLY | envelope.FLAG_FAILED, header
+    assert answer[envelope.SIZE:].decode() == (
+        "/gadget_srv: refused, the far side's type gadget_msgs/srv/Gadget is not installed on "
+        "this side: interface package 'gadget_msgs' is not installed (apt install "
+        "ros-$ROS_DISTRO-gadget-msgs, or pip install ros-jazzy-gadget-msgs), so its frames are "
+        "dropped")
+    assert entry("b", "/gadget_srv")["drops"] == {"type_not_installed": 1}
+    assert served == [] and b.proc.poll() is None
+
+
 def test_zenoh_names_the_missing_package_counts_the_drops_and_goes_on(
         tmp_path, bridge, domain, ros_side, runtime_dir):
     import zenoh
