@@ -595,7 +595,8 @@ topics: [{{topic: /up, type: std_msgs/msg/String, direction: transmit}}]
 def test_a_type_name_from_a_client_never_imports_its_package(tmp_path, engines, domain,
                                                              monkeypatch):
     """Before: a type name ``this/msg/Foo`` in a hello made the server import ``this``, any
-    top-level package on its path (the sessions' fix, issue 9). Now: refused, never imported."""
+    top-level package on its path (the sessions' fix, issue 9). Now: the entry is refused as a
+    type not installed here, and the package never imported."""
     import sys
 
     evil = tmp_path / "rosgate_evil"
@@ -609,7 +610,10 @@ def test_a_type_name_from_a_client_never_imports_its_package(tmp_path, engines, 
         s.sendall(hello([{"topic": "/x", "type": "rosgate_evil/msg/Foo",
                           "direction": "transmit"}]))
         answer = read_control(s)
-    assert answer is not None and answer["type"] == "refused", answer
+    assert answer is not None and answer["type"] == "welcome" and answer["topic_ids"] == [0], \
+        answer
+    [refused] = answer["refused"]
+    assert "interface package 'rosgate_evil' is not installed" in refused["error"], refused
     assert not marker.exists() and "rosgate_evil" not in sys.modules
 
 

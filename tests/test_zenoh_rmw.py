@@ -3,13 +3,14 @@ bridging a real rclpy node, checked against a publisher and a subscriber that do
 node running rmw_zenoh_cpp does on the wire.
 
 No rmw_zenoh binary installs here, so that node is written out below from rmw_zenoh's sources
-(ros2/rmw_zenoh, ``rmw_zenoh_cpp/src/detail/``, the Jazzy 0.2.4+ format): a plain zenoh session
-that declares a node token and one token per entity (``liveliness_utils.cpp``: ``@ros2_lv/
-<domain>/<zid>/<nid>/<id>/<NN|MP|MS>/<enclave>/<namespace>/<node>[/<topic>/<type>/<hash>/<qos>]``,
+(ros2/rmw_zenoh, ``rmw_zenoh_cpp/src/detail/``, the Jazzy format of 0.2.4 to 0.2.10): a plain
+zenoh session that declares a node token and one token per entity (``liveliness_utils.cpp``:
+``@ros2_lv/<domain>/<zid>/<nid>/<id>/<NN|MP|MS>/<enclave>/<namespace>/<node>[/<topic>/<type>/<hash>/<qos>]``,
 '/' inside a part written '%'), reads the graph with a liveliness query on
 ``@ros2_lv/<domain>/**``, keys its data ``<domain>/<name>/<pkg::msg::dds_::Name_>/<RIHS01 hash>``
-(``TopicInfo``), and puts and reads the attachment of ``attachment_helpers.cpp`` (int64 sequence
-number from 1, int64 source timestamp in ns, the 16-byte GID as a zenoh-ext array). Its token
+(``TopicInfo``), computes an entity's GID as the XXH3-128 of its token, and puts and reads
+the attachment of ``attachment_helpers.cpp`` (int64 sequence number from 1, int64 source
+timestamp in ns, the 16-byte GID as a zenoh-ext array). Its token
 parsing and attachment decoding are written here again, not taken from rosgate."""
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import time
 from pathlib import Path
 
 import pytest
+import xxhash
 import zenoh
 import zenoh.ext
 from conftest import wait_until
@@ -94,6 +96,11 @@ def read_attachment(data: bytes) -> tuple[int, int, bytes]:
     return seq, stamp, data[17:]
 
 
+def gid_of(token: str) -> bytes:
+    """``Entity::Entity``: the token's XXH3-128 (seed 0), low 64 bits then high, little endian."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(16, "little")
+
+
 @pytest.fixture
 def router():
     r = Router()
@@ -137,11 +144,12 @@ def rmw_node(router, bot1):
 def test_an_rmw_zenoh_node_sees_rosgate_in_its_graph_before_any_data(bot1, rmw_node):
     expected_entities = {
         # kind, topic (mangled), type, hash, QoS as qos_to_keyexpr writes it
-        ("MP", "%chatter", *STRING, ":2:,10:,:,:,,"),  # reliable, volatile, keep last 10
-        ("MS", "%robot1%cmd_vel", *TWIST, "2:2:,5:,:,:,,"),  # best effort, volatile, 5
-        ("MP", "%map", *STRING, "::,3:,:,:,,"),  # reliable, transient local (defaults), 3
-        ("SS", "%robot1%set", *SETBOOL, ":2:,10:,:,:,,"),  # ROS's services profile
-        ("SC", "%rmw_set", *SETBOOL, ":2:,10:,:,:,,"),
+        # (each field empty where it is qos.cpp's default: reliable, volatile since 0.2.3)
+        ("MP", "%chatter", *STRING, "::,10:,:,:,,"),  # reliable, volatile, keep last 10
+        ("MS", "%robot1%cmd_vel", *TWIST, "2::,5:,:,:,,"),  # best effort, volatile, 5
+        ("MP", "%map", *STRING, ":1:,3:,:,:,,"),  # reliable, transient local, 3
+        ("SS", "%robot1%set", *SETBOOL, "::,10:,:,:,,"),  # ROS's services profile
+        ("SC", "%rmw_set", *SETBOOL, "::,10:,:,:,,"),
     }
 
     def entities() -> set[tuple[str, ...]]:
@@ -177,7 +185,7 @@ def test_a_message_from_rclpy_reaches_an_rmw_zenoh_subscriber_with_its_attachmen
     key = rmw_node.key("/chatter", STRING)
     subscriber = rmw_node.session.declare_subscriber(key, zenoh.handlers.Callback(
         sample, indirect=False))
-    rmw_node.announce("MS", "/chatter", STRING, ":2:,10:,:,:,,")
+    rmw_node.announce("MS", "/chatter", STRING, "::,10:,:,:,,")
     publisher = ros_side(d, "talker").publisher("/chatter", String, 10)
     before = time.time_ns()
     deadline = time.monotonic() + TIMEOUT
@@ -204,13 +212,17 @@ def test_a_message_from_rclpy_reaches_an_rmw_zenoh_subscriber_with_its_attachmen
         "sequence numbers go up by one per sample"
     assert all(before - 10**9 <= stamp <= time.time_ns() for _, stamp, _ in read)
     assert len({gid for _, _, gid in read}) == 1, "one publisher, one GID"
+    # the GID rmw_zenoh's graph computes for the bridge's publisher from its token
+    publishers = ["/".join(p) for p in rmw_node.graph() if p[5] == "MP" and p[9] == "%chatter"]
+    assert len(publishers) == 1, publishers
+    assert read[0][2] == gid_of(publishers[0]), "the attachment's GID is the token's XXH3-128"
 
 
 def test_a_message_from_an_rmw_zenoh_publisher_reaches_rclpy_field_by_field(
         bot1, rmw_node, ros_side):
     bridge_, d = bot1
     inbox = ros_side(d, "listener").listen("/cmd_vel", Twist, qos_profile_sensor_data)
-    rmw_node.announce("MP", "/robot1/cmd_vel", TWIST, "2:2:,5:,:,:,,")
+    rmw_node.announce("MP", "/robot1/cmd_vel", TWIST, "2::,5:,:,:,,")
     publisher = rmw_node.session.declare_publisher(rmw_node.key("/robot1/cmd_vel", TWIST))
     message = Twist()
     message.linear.x, message.linear.y, message.linear.z = 1.5, -0.25, 3.0
@@ -264,7 +276,7 @@ def test_a_late_rmw_zenoh_subscriber_gets_the_last_transient_local_samples(
             lambda s: late.append((s.payload.to_bytes(), s.attachment.to_bytes()
                                    if s.attachment is not None else None)), indirect=False),
         history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=3))
-    rmw_node.announce("MS", "/map", STRING, "::,3:,:,:,,")
+    rmw_node.announce("MS", "/map", STRING, ":1:,3:,:,:,,")
     assert wait_until(lambda: len(late) >= 3, TIMEOUT), late
     time.sleep(0.5)  # a fourth sample would be a bug: give it the chance to show
     subscriber.undeclare()
@@ -275,7 +287,7 @@ def test_a_late_rmw_zenoh_subscriber_gets_the_last_transient_local_samples(
 
 def test_rosgate_logs_the_rmw_zenoh_nodes_it_sees(bot1, rmw_node):
     bridge_, _d = bot1
-    rmw_node.announce("MS", "/chatter", STRING, ":2:,10:,:,:,,")
+    rmw_node.announce("MS", "/chatter", STRING, "::,10:,:,:,,")
     assert bridge_.wait_log(f"rmw_zenoh {rmw_node.zid}: /listener", TIMEOUT), bridge_.log
     assert bridge_.wait_log(f"rmw_zenoh {rmw_node.zid}: subscriber on /chatter "
                             "[std_msgs/msg/String] of listener", TIMEOUT), bridge_.log
@@ -311,7 +323,7 @@ def test_an_rmw_zenoh_client_calls_a_service_rosgate_bridges(bot1, rmw_node, ros
     bridge_, d = bot1
     ros_side(d, "server").ros.node.create_service(SetBool, "/set", echo_set_bool,
                                                   qos_profile=DEEP)
-    rmw_node.announce("SC", "/robot1/set", SETBOOL, ":2:,10:,:,:,,")
+    rmw_node.announce("SC", "/robot1/set", SETBOOL, "::,10:,:,:,,")
     key = rmw_node.key("/robot1/set", SETBOOL)
 
     def call(data: bool, attachment: bytes | None) -> list[zenoh.Reply]:
@@ -357,7 +369,7 @@ def test_rosgate_calls_a_service_an_rmw_zenoh_node_serves(bot1, rmw_node, ros_si
 
     queryable = rmw_node.session.declare_queryable(
         key, zenoh.handlers.Callback(serve, indirect=False), complete=True)
-    rmw_node.announce("SS", "/rmw_set", SETBOOL, ":2:,10:,:,:,,")
+    rmw_node.announce("SS", "/rmw_set", SETBOOL, "::,10:,:,:,,")
     caller = Caller(ros_side(d, "client"), SetBool, "/rmw_set")
     answers = caller.call_many([SetBool.Request(data=False), SetBool.Request(data=True)], 10)
     queryable.undeclare()

@@ -2,9 +2,10 @@
 ROS's RIHS01 hash, and the QoS it found (when the entry sets none). Said in the hello and the
 welcome, and announced on the entry's link at once and every :data:`ANNOUNCE_EVERY` seconds as
 ``{"type": ..., "hash": ..., "qos": {...}}`` under ``FLAG_ANNOUNCE``, sealed like its data.
-A receiving side whose type differs refuses the entry (``type_mismatch``); one waiting for the
-far side's first word holds what comes (:meth:`TypeCheck.expect`). docs/configuration.md says
-the rest."""
+A receiving side whose type differs refuses the entry (``type_mismatch``, or
+``type_not_installed`` naming the package when the far side's type is not installed here); one
+waiting for the far side's first word holds what comes (:meth:`TypeCheck.expect`).
+docs/configuration.md says the rest."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from typing import Any
 
 from .config import QOS_POLICIES
 from .drops import Drop, Reason
+from .ros import TypeNotFound, resolve_type
 from .warn import Warner
 from .wire.control import parse
 
@@ -108,14 +110,16 @@ Verdict = Callable[[bool], None]
 class TypeCheck:
     """One entry's type against what the far side says of its own."""
 
-    __slots__ = ("label", "mine", "theirs", "mismatch", "heard_at", "awaiting", "_said",
-                 "_held", "_held_bytes", "_since", "_drop", "_lock")
+    __slots__ = ("label", "mine", "theirs", "mismatch", "reason", "heard_at", "awaiting",
+                 "_said", "_held", "_held_bytes", "_since", "_drop", "_lock")
 
     def __init__(self, label: str, mine: Identity):
         self.label = label
         self.mine = mine
         self.theirs: Identity | None = None
         self.mismatch: str | None = None  # why the entry is refused; None while types agree
+        #: how its refused frames are counted: another type, or one not installed here
+        self.reason: Drop = Drop.TYPE_MISMATCH
         self.heard_at: float | None = None  # when the far side last said its type (monotonic)
         self.awaiting = False  # frames wait for the far side's first word (:meth:`expect`)
         self._said: set[str] = set()
@@ -173,12 +177,19 @@ class TypeCheck:
             self._once(who, f"{self.label}: {who} gives no type hash (an older rosgate, or a "
                             f"ROS before Iron): its type is not checked")
             return
-        self.theirs = theirs
         if theirs.hash == self.mine.hash:
-            self.mismatch = None
+            self.theirs, self.mismatch = theirs, None
             return
-        self.mismatch = (f"{self.label}: refused, the far side's type is {theirs} and this "
-                         f"side's is {self.mine}, so its frames are dropped")
+        if self.mismatch is None or theirs != self.theirs:  # judged once per type it says
+            self.reason, self.mismatch = Drop.TYPE_MISMATCH, (
+                f"{self.label}: refused, the far side's type is {theirs} and this side's is "
+                f"{self.mine}, so its frames are dropped")
+            missing = not_installed(theirs.name) if theirs.name != self.mine.name else None
+            if missing is not None:
+                self.reason, self.mismatch = Drop.TYPE_NOT_INSTALLED, (
+                    f"{self.label}: refused, the far side's type {theirs.name} is not installed "
+                    f"on this side: {missing}, so its frames are dropped")
+        self.theirs = theirs
         self.say()
 
     def _settle(self) -> None:
@@ -191,7 +202,7 @@ class TypeCheck:
 
     def say(self) -> None:
         """Say the mismatch, at most once per :data:`MISMATCH_EVERY` seconds."""
-        held = MISMATCHES.due(self.label, "type_mismatch")
+        held = MISMATCHES.due(self.label, self.reason.value)
         if held is not None and self.mismatch is not None:
             log.error("%s%s", self.mismatch, f" ({held} more since)" if held else "")
 
@@ -199,3 +210,13 @@ class TypeCheck:
         if key not in self._said:
             self._said.add(key)
             log.warning("%s", sentence)
+
+
+def not_installed(type_name: str) -> str | None:
+    """Why a type the far side names cannot be loaded here (the package to install, by the
+    type's name); None when it is installed."""
+    try:
+        resolve_type(type_name)
+    except TypeNotFound as exc:
+        return str(exc)
+    return None

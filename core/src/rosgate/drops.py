@@ -89,6 +89,8 @@ class Drop(StrEnum):
                             "started (a replay; or the peer's clock and state folder both went "
                             "back: docs/security.md)")
     TYPE_MISMATCH = "type_mismatch", "the far side's message type is not this side's"
+    TYPE_NOT_INSTALLED = "type_not_installed", ("the far side's message type is not installed on "
+                                                "this side (its log names the package)")
     TYPE_UNHEARD = "type_unheard", ("held for the far side's type announcement beyond the hold's "
                                     "bound (1,000 frames or 16 MiB): the oldest went")
     BAD_ANNOUNCEMENT = "bad_announcement", "an entry's type announcement that cannot be read"

@@ -162,7 +162,7 @@ class Route:
 
     def refuse_type(self) -> None:
         """A frame dropped because the far side's type is not this side's."""
-        self.counters.drops[Drop.TYPE_MISMATCH] += 1
+        self.counters.drops[self.check.reason] += 1
         self.check.say()
 
     def on_wire(self, size: int, again: bool) -> None:

@@ -248,7 +248,7 @@ class CallerRoute(ServiceRoute):
         """Whether the far side's type differs: then the call fails, saying so."""
         if self.check.mismatch is None:
             return False
-        self.fail(call, Drop.TYPE_MISMATCH, self.check.mismatch)
+        self.fail(call, self.check.reason, self.check.mismatch)
         self.check.say()
         return True
 

@@ -34,3 +34,21 @@ def test_an_actions_token_is_on_its_key_with_its_type():
     assert ros2dds.parse(served) == Announced("z1", Kind.ACTION_SERVER, "bot1/fib",
                                               "test_msgs/action/Fibonacci")
     assert ros2dds.parse(served + "/:1:0:0,10") is None  # an action's token has no QoS
+
+
+def test_the_graph_names_the_package_of_a_type_not_installed_here(caplog):
+    from rosgate_transport_zenoh.dialect import Graph
+
+    graph = Graph("own")
+    qos = ros2dds.Qos.parse(":1:0:0,10")
+    gadget = ros2dds.token("z7", Kind.PUBLISHER, "bot7/gadget", "gadget_msgs/msg/Gadget", qos)
+    odom = ros2dds.token("z7", Kind.PUBLISHER, "bot7/odom", "std_msgs/msg/String", qos)
+    with caplog.at_level("INFO", logger="rosgate"):
+        graph.changed(gadget, True)
+        graph.changed(odom, True)
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == [
+        "zenoh-bridge-ros2dds z7: publisher on bot7/gadget [gadget_msgs/msg/Gadget] (its type is "
+        "not installed on this side: interface package 'gadget_msgs' is not installed (apt "
+        "install ros-$ROS_DISTRO-gadget-msgs, or pip install ros-jazzy-gadget-msgs))",
+        "zenoh-bridge-ros2dds z7: publisher on bot7/odom [std_msgs/msg/String]"]

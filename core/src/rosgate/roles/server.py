@@ -5,8 +5,9 @@ entry), its waiting frames first (docs/real-links.md).
 
 Authenticated (``bridge.identity`` and ``clients:``): nothing a connection sends is parsed
 before its Noise handshake proves a key listed under ``clients:``, which decides the client's
-name and policy (:mod:`rosgate.policy`); each entry the policy refuses is left out, said in both
-logs. :meth:`ServerRole.reload` applies a changed policy (SIGHUP; docs/security.md).
+name and policy (:mod:`rosgate.policy`); each entry the policy refuses, or whose type is not
+installed here, is left out, said in both logs. :meth:`ServerRole.reload` applies a changed
+policy (SIGHUP; docs/security.md).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from typing import Any
 
 from ..actions import Goals, client_goals
 from ..admission import Acceptor, ConnectionLimits, KnownSources, RecentHosts, heard
+from ..announce import not_installed
 from ..config import (
     ActionConfig,
     ClientPolicy,
@@ -386,6 +388,10 @@ class ServerRole(Role):
         for index, entry in enumerate(session.entries):
             asked = session.part_of.get(index, entry)  # an action's part: the action
             why = refusal(session.policy, asked, keyless) if session.policy is not None else None
+            missing = not_installed(asked.type) if why is None else None
+            if missing is not None:  # this entry alone: the client's others are served
+                why = (f"{asked.remote}: its type {asked.type} is not installed on the "
+                       f"server: {missing}")
             if why is not None:
                 session.refused[index] = why
                 route = session.by_index.pop(index, None)

@@ -41,7 +41,7 @@ from rosgate_fleet import BusAnswerer, BusLink, BusOutlet, Handle
 from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
 from rosgate.drops import Drop
 from rosgate.links import Link, Sender
-from rosgate.ros import qos_profile
+from rosgate.ros import TypeNotFound, qos_profile, resolve_type
 from rosgate.routes import Route
 from rosgate.services import CallerRoute, ServerRoute
 from rosgate.spec import ServiceSpec, TopicSpec
@@ -166,6 +166,26 @@ class Ros2dds:
         return graph
 
 
+class MissingTypes:
+    """What a log line about another bridge's or node's entity adds when its type is not
+    installed here (the package to install: this side could not bridge it); each type is
+    looked up once."""
+
+    def __init__(self) -> None:
+        self._said: dict[str, str] = {}  # type -> what is added ("": installed here)
+
+    def __call__(self, type_name: str) -> str:
+        said = self._said.get(type_name)
+        if said is None:
+            try:
+                resolve_type(type_name)
+                said = ""
+            except TypeNotFound as exc:
+                said = f" (its type is not installed on this side: {exc})"
+            self._said[type_name] = said
+        return said
+
+
 class Graph:
     """The routes other zenoh-bridge-ros2dds bridges (and rosgate bridges speaking their
     convention) announce, from their liveliness tokens; runs on the bus link's thread."""
@@ -174,6 +194,7 @@ class Graph:
         self.own = own
         self.routes: dict[str, ros2dds.Announced] = {}  # token key ->
         self.listeners: list[Callable[[ros2dds.Announced, bool], None]] = []
+        self.missing = MissingTypes()
 
     def changed(self, key: str, alive: bool) -> None:
         announced = ros2dds.parse(key)
@@ -183,8 +204,8 @@ class Graph:
             if key in self.routes:
                 return
             self.routes[key] = announced
-            log.info("%s %s: %s on %s [%s]", NAME, announced.zid, announced.kind.words,
-                     announced.key, announced.type)
+            log.info("%s %s: %s on %s [%s]%s", NAME, announced.zid, announced.kind.words,
+                     announced.key, announced.type, self.missing(announced.type))
         elif self.routes.pop(key, None) is None:
             return
         else:

@@ -2,9 +2,10 @@
 ``rmw_zenoh_cpp/src/detail/``): the key of a topic's data, the attachment on every sample and
 the graph's liveliness tokens. Text and bytes only: no session here.
 
-Followed: rmw_zenoh 0.2.4 and later on Jazzy (the zenoh 1.x line; the attachment format of
-``attachment_helpers.cpp`` since its "Change serialization format" of 0.2.4), which rolling
-shares. Read from the source: ``liveliness_utils.cpp`` (keys, tokens, mangling, QoS),
+Followed: rmw_zenoh 0.2.4 and later on Jazzy, up to 0.2.10 (the zenoh 1.x line; the attachment
+format of ``attachment_helpers.cpp`` since its "Change serialization format" of 0.2.4; volatile
+as the default durability since 0.2.3's "Switch default durability to volatile"), which
+rolling shares. Read from the source: ``liveliness_utils.cpp`` (keys, tokens, mangling, QoS),
 ``qos.cpp`` (the defaults a token leaves out), ``attachment_helpers.cpp`` and
 ``rmw_publisher_data.cpp`` (attachment, sequence numbers from 1), ``rmw_service_data.cpp``
 (answers), ``type_support_common.cpp`` (type names).
@@ -34,14 +35,15 @@ entity's number in their process. ``<qos>`` is, in rmw's numbers::
     <reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:
     <liveliness>,<lease s>,<ns>                                      (one part, no line break)
 
-each field left empty where it is rmw_zenoh's default (reliable, transient local, keep last 42,
-no deadline, no lifespan, automatic liveliness with no lease): a volatile, reliable,
-keep-last-10 publisher is ``:2:,10:,:,:,,``.
+each field left empty where it is rmw_zenoh's default (reliable, volatile, keep last 42, no
+deadline, no lifespan, automatic liveliness with no lease): a volatile, reliable, keep-last-10
+publisher is ``::,10:,:,:,,``, a transient local one ``:1:,10:,:,:,,``. (rmw_zenoh 0.2.0 to
+0.2.2 took transient local as the default, so an empty durability meant transient local there;
+the token does not say which release wrote it, and this module reads it as 0.2.3 and later do.)
 
-rmw_zenoh makes an entity's GID from an XXH3-128 hash of its token; this module takes the first
-16 bytes of its SHA-256 instead (no XXH3 here). Either is unique per token: rmw_zenoh uses the
-attachment's GID to tell publishers (and a service's callers) apart, never to look one up in
-the graph.
+An entity's GID is the XXH3-128 hash (seed 0) of its token, its low 64 bits then its high 64
+bits, each little endian (``Entity::Entity`` in ``liveliness_utils.cpp``): the GID rmw_zenoh's
+graph computes for rosgate's entities is the one rosgate's attachments carry.
 
 Services use the same key and attachment: a client's query carries one (its own numbers and
 GID); the server answers with the call's sequence number, a timestamp and the caller's GID.
@@ -49,11 +51,12 @@ GID); the server answers with the call's sequence number, a timestamp and the ca
 
 from __future__ import annotations
 
-import hashlib
 import struct
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
+
+import xxhash
 
 ADMIN = "@ros2_lv"
 SLASH = "%"
@@ -112,7 +115,7 @@ class Qos:
     automatic, 3 manual by topic. The defaults are rmw_zenoh's (``qos.cpp``)."""
 
     reliability: int = 1
-    durability: int = 1
+    durability: int = 2
     history: int = 1
     depth: int = 42
     deadline: tuple[int, int] = INFINITE
@@ -244,8 +247,8 @@ class Entity:
 
 
 def gid(token: str) -> bytes:
-    """A 16-byte GID unique to an entity's token (module documentation: not rmw_zenoh's hash)."""
-    return hashlib.sha256(token.encode()).digest()[:GID_SIZE]
+    """An entity's 16-byte GID, as rmw_zenoh derives it from its token (module documentation)."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_SIZE, "little")
 
 
 def everything(domain: int) -> str:

@@ -25,7 +25,7 @@ name on the rmw_zenoh side); ``rosgate check`` marks them ``(rmw_zenoh)``.
   transient_local topic asks publishers for theirs, with zenoh-ext's advanced publisher and
   subscriber, as rmw_zenoh does.
 * The other nodes' tokens are read (:class:`Graph`): each node and entity is logged as it comes
-  and goes, and counted.
+  and goes (with the package to install when its type is not installed here), and counted.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ from rosgate.spec import ServiceSpec, TopicSpec
 from rosgate.wire.envelope import topic_id_for
 
 from . import rmw
-from .dialect import KEEP_ALL_HISTORY, RawAnswers, RawCalls, speaks
+from .dialect import KEEP_ALL_HISTORY, MissingTypes, RawAnswers, RawCalls, speaks
 from .transport import (
     _PRIORITIES,
     ZenohSession,
@@ -206,6 +206,7 @@ class Graph:
         self.own = own
         self.known: dict[str, rmw.Node | rmw.Entity] = {}  # token -> what it announces
         self.counts: Counter[str] = Counter()  # kind words -> how many there are now
+        self.missing = MissingTypes()
 
     def changed(self, token: str, alive: bool) -> None:
         found = rmw.parse(token)
@@ -222,7 +223,8 @@ class Graph:
                 return
             self.known[token] = found
             self.counts[words] += 1
-            log.info("%s %s: %s", NAME, node.zid, what)
+            missing = "" if isinstance(found, rmw.Node) else self.missing(found.type)
+            log.info("%s %s: %s%s", NAME, node.zid, what, missing)
         elif self.known.pop(token, None) is not None:
             self.counts[words] -= 1
             log.info("%s %s: %s is gone", NAME, node.zid, what)
