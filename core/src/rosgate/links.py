@@ -373,6 +373,9 @@ class DatagramLink(_Sending, Link):
         self._send_parts: Callable[[Any, Address], None] = getattr(
             endpoint, "send_parts", lambda parts, to: endpoint.send(b"".join(parts), to))
         self._send_datagrams = getattr(endpoint, "send_datagrams", None)
+        count_drops = getattr(endpoint, "count_drops", None)  # a CheckingDatagramEndpoint
+        if count_drops is not None:
+            count_drops(lambda reason, detail: self.on_lost(None, reason))
         self._start()
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
