@@ -1,0 +1,132 @@
+"""Two bridges over a serial line: a pseudo-terminal pair joined by the emulator's relay
+(rosgate_emulator.serial) at 57,600 baud that flips one bit in 10,000 bytes. A Twist at 20 Hz
+and a 200-byte status at 1 Hz cross under the aead cipher, a Trigger service crosses; every
+spoilt frame is counted and none is published. Then the line is unplugged for 3 s and comes
+back under new device paths behind the same names: traffic resumes within a second."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from conftest import wait_until
+from geometry_msgs.msg import Twist
+from rosgate_crypto_aead import AeadCipher
+from rosgate_emulator.serial import LineProfile, PtyRelay
+from rosgate_testing import write_key
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from test_services import DEEP, Caller, pong
+
+#: what the serial link counts when the line spoils a frame (rosgate_mcu_cvra.serial_datagram)
+LINE_DROPS = ("bad_crc", "bad_escape", "too_short", "too_long")
+
+
+def peer(name: str, device: str, key: Path, sends: bool) -> str:
+    way = {True: "transmit", False: "receive"}
+    return f"""
+bridge: {{name: {name}, role: peer, peer: line, listen: line, insecure: true}}
+plugins:
+  serial: {{device: {device}, baud: 57600}}
+  aead: {{key_file: {key}}}
+topics:
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: {way[sends]}, port: 1,
+     transport: serial, cipher: aead, qos: 100}}
+  - {{topic: /status, type: std_msgs/msg/String, direction: {way[sends]}, port: 2,
+     transport: serial, cipher: aead, qos: 100}}
+services:
+  - {{service: /trigger, type: std_srvs/srv/Trigger, direction: {way[sends]}, port: 3,
+     transport: serial, cipher: aead, timeout: 3}}
+"""
+
+
+def twist(i: int) -> Twist:
+    message = Twist()
+    message.linear.x = float(i)
+    message.angular.z = -0.5
+    return message
+
+
+def status(i: int) -> String:
+    return String(data=f"{i:04d}" + "s" * 196)  # 200 bytes
+
+
+def line_drops(engine) -> int:
+    return sum(engine.link_drops.get(reason, 0) for reason in LINE_DROPS)
+
+
+class Talker:
+    """Publishes Twists at 20 Hz and a status at 1 Hz, numbered, until stopped."""
+
+    def __init__(self, side):
+        self.twists = side.publisher("/cmd_vel", Twist)
+        self.status = side.publisher("/status", String)
+        self.sent = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        start = time.monotonic()
+        while not self.stop.wait(max(0.0, start + self.sent * 0.05 - time.monotonic())):
+            self.twists.publish(twist(self.sent))
+            if self.sent % 20 == 0:
+                self.status.publish(status(self.sent // 20))
+            self.sent += 1
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join()
+
+
+@pytest.fixture
+def line(tmp_path):
+    with PtyRelay(tmp_path,
+                  LineProfile(baud=57_600, flip=1e-4, seed=3)) as relay:
+        yield relay
+
+
+@pytest.fixture
+def key(tmp_path):
+    return write_key(tmp_path / "aead.key", AeadCipher.generate_key())
+
+
+def test_twist_status_and_trigger_cross_a_noisy_57600_baud_line(
+        engines, domain, ros_side, line, key):
+    da, db = domain(), domain()
+    a = engines(peer("a", line.a, key, sends=True), da)
+    b = engines(peer("b", line.b, key, sends=False), db)
+    side_a, side_b = ros_side(da, "a"), ros_side(db, "b")
+    twists, statuses = side_b.listen("/cmd_vel", Twist), side_b.listen("/status", String)
+    side_b.ros.node.create_service(Trigger, "/trigger", pong, qos_profile=DEEP)
+    talker = Talker(side_a)
+    try:
+        trigger = Caller(side_a, Trigger, "/trigger")
+        assert trigger.warm_up(Trigger.Request(), a, b)[0] == \
+            Trigger.Response(success=True, message="pong")
+        # until the line has spoilt frames both ways, and ten statuses have crossed
+        assert wait_until(lambda: line.up.flipped >= 2 and len(statuses.items) >= 10, 60), \
+            (line.up, len(statuses.items))
+        for _ in range(3):
+            assert trigger.call(Trigger.Request()) == \
+                Trigger.Response(success=True, message="pong")
+    finally:
+        talker.close()
+    assert wait_until(lambda: len(twists.items) >= talker.sent - 2 * line.up.flipped - 40, 10)
+    time.sleep(0.5)  # what was on the line lands (bounded: 57,600 baud, queues drained)
+    sent = talker.sent
+    got = [m.linear.x for m in twists.items]
+    assert all(m == twist(int(m.linear.x)) for m in twists.items), "a spoilt Twist was published"
+    assert len(set(got)) == len(got), "a Twist published twice"
+    assert all(m == status(int(m.data[:4])) for m in statuses.items), "a spoilt status"
+    # every flipped bit spoils the frame it lands in (CRC-32 misses no single-bit error), and
+    # at most two (a bit that makes or unmakes a delimiter)
+    assert line.up.flipped <= line_drops(b) <= 2 * line.up.flipped + 1, \
+        (line.up.flipped, b.link_drops)
+    assert line.down.flipped <= line_drops(a) <= 2 * line.down.flipped + 1, \
+        (line.down.flipped, a.link_drops)
+    # the Twists sent after the first one crossed, less the ones the flips spoilt
+    assert len(got) >= sent - min(got) - 2 * line.up.flipped - 2, (sent, min(got), len(got))
+    assert all(route.counters.drops.get("auth_failed", 0) == 0 for route in b.routes())
