@@ -130,3 +130,37 @@ def test_twist_status_and_trigger_cross_a_noisy_57600_baud_line(
     # the Twists sent after the first one crossed, less the ones the flips spoilt
     assert len(got) >= sent - min(got) - 2 * line.up.flipped - 2, (sent, min(got), len(got))
     assert all(route.counters.drops.get("auth_failed", 0) == 0 for route in b.routes())
+
+
+def test_unplugged_for_3_s_and_back_under_new_paths_resumes_within_1_s(
+        engines, domain, ros_side, tmp_path, key, logs):
+    with PtyRelay(tmp_path, LineProfile(baud=57_600)) as relay:
+        da, db = domain(), domain()
+        a = engines(peer("a", relay.a, key, sends=True), da)
+        engines(peer("b", relay.b, key, sends=False), db)
+        side_a, side_b = ros_side(da, "a"), ros_side(db, "b")
+        twists = side_b.listen("/cmd_vel", Twist)
+        talker = Talker(side_a)
+        try:
+            assert twists.wait_count(20, 30), "nothing crossed the line"
+            relay.unplug()
+            assert logs.wait("(unplugged?)", count=2, timeout=5)
+            unplugged = talker.sent
+            threading.Event().wait(3)  # the outage itself
+            arrived = len(twists.items)
+            relay.replug()
+            back = time.monotonic()
+            assert twists.wait_for(
+                lambda items: any(m.linear.x > unplugged + 60 for m in items[arrived:]), 5)
+            resumed = time.monotonic() - back
+            assert logs.wait("is back", count=2, timeout=5)
+        finally:
+            talker.close()
+        assert resumed < 1.0, f"traffic resumed {resumed:.2f} s after the device returned"
+        assert relay.paths[2:] != relay.paths[:2] and not set(relay.paths[2:]) & set(
+            relay.paths[:2]), relay.paths
+        gone, returned = logs.having("(unplugged?)"), logs.having("is back")
+        assert sorted(m.split()[2] for m in gone) == sorted([relay.a, relay.b]), gone
+        assert len(returned) == 2, returned  # logged once per device, each way
+        route = next(r for r in a.routes() if r.label == "/cmd_vel")
+        assert route.counters.drops.get("send_error", 0) >= 40, route.counters.drops

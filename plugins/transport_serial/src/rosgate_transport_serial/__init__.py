@@ -208,7 +208,7 @@ class Line:
             return  # appearing, or not ours yet: next look
         with self._write:
             self.port = port
-        log.warning("serial port %s is back (%s): its link is up",
+        log.info("serial port %s is back (%s): its link is up",
                     self.device, os.path.realpath(self.device))
 
     def _close_port(self) -> None:
