@@ -164,3 +164,34 @@ def test_unplugged_for_3_s_and_back_under_new_paths_resumes_within_1_s(
         assert len(returned) == 2, returned  # logged once per device, each way
         route = next(r for r in a.routes() if r.label == "/cmd_vel")
         assert route.counters.drops.get("send_error", 0) >= 40, route.counters.drops
+
+
+def test_check_budgets_the_line_from_its_baud_rate_and_names_what_cannot_fit(tmp_path, capsys):
+    from rosgate.cli import main
+
+    path = tmp_path / "radio.yaml"
+    path.write_text("""
+bridge: {name: a, role: peer, peer: line, listen: line, insecure: true}
+plugins:
+  serial: {device: /dev/serial/by-id/usb-radio-if00, baud: 57600}
+topics:
+  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 1,
+     transport: serial, max_rate: 20}
+  - {topic: /status, type: std_msgs/msg/String, direction: transmit, port: 2,
+     transport: serial, max_rate: 1, typical_size: 200}
+  - {topic: /big, type: std_msgs/msg/String, direction: transmit, port: 3,
+     transport: serial, max_rate: 100, typical_size: 1000}
+""")
+    assert main(["check", str(path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    # 57,600 baud at 10 bits a byte (start, 8 data, stop): 5,760 B/s = 46.08 kbit/s of frames
+    assert out[out.index("budget of serial: 46.1 kbit/s per peer (the line's own capacity)"):] \
+        == [
+        "budget of serial: 46.1 kbit/s per peer (the line's own capacity)",
+        # 52 B of CDR, the 28-byte envelope, a compact piece's head and length (2), 9 B of ports, CRC, END
+        "  /cmd_vel  20 Hz x 52 B = 91 B on the wire (1 packet) -> 14.6 kbit/s",
+        "  /status   1 Hz x 200 B = 240 B on the wire (1 packet) -> 1.92 kbit/s",
+        "  /big      100 Hz x 1,000 B = 1,080 B on the wire (5 packets) -> 864.0 kbit/s; "
+        "cannot fit: more than the whole budget by itself",
+        "  total 880.5 kbit/s of 46.1 kbit/s (1910.8 %): over budget: latest_only topics send "
+        "less often, others wait in the queue (reliable) or are dropped late (best effort)"]

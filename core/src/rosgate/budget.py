@@ -117,8 +117,11 @@ def report(plan: Plan) -> list[str]:
                 continue
             bits = t.max_rate * wire * 8
             total += bits
+            alone = "; cannot fit: more than the whole budget by itself" \
+                if bits > link.bandwidth else ""
             lines.append(f"{head}{t.max_rate:g} Hz x {size:,} B = {wire:,} B on the wire "
-                         f"({packets:,} packet{'s' if packets != 1 else ''}) -> {rate_text(bits)}")
+                         f"({packets:,} packet{'s' if packets != 1 else ''}) -> {rate_text(bits)}"
+                         f"{alone}")
         share = total / link.bandwidth
         verdict = "fits" if share <= 1 else "over budget: latest_only topics send less often, " \
             "others wait in the queue (reliable) or are dropped late (best effort)"
