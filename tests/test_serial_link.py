@@ -195,3 +195,46 @@ topics:
         "cannot fit: more than the whole budget by itself",
         "  total 880.5 kbit/s of 46.1 kbit/s (1910.8 %): over budget: latest_only topics send "
         "less often, others wait in the queue (reliable) or are dropped late (best effort)"]
+
+
+def test_a_board_on_the_line_speaks_cvra_layouts_both_ways(engines, domain, ros_side, tmp_path):
+    """A microcontroller at the far end of the line (here: this test, through the pseudo-
+    terminal) writes and reads one serial datagram per message, ``[name, args]`` in
+    MessagePack with 32-bit floats, no ports: ``multiplex: false``."""
+    import msgpack
+    import serial
+    from geometry_msgs.msg import Pose2D
+    from rosgate_mcu_cvra import serial_datagram
+
+    with PtyRelay(tmp_path, LineProfile(baud=115_200)) as relay:
+        d = domain()
+        engines(f"""
+bridge: {{name: robot, role: peer, peer: board, listen: board, insecure: true,
+         defaults: {{codec: msgpack}}}}
+plugins:
+  serial: {{device: {relay.a}, baud: 115200, multiplex: false}}
+topics:
+  - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: 1,
+     transport: serial, framing: none}}
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 1,
+     transport: serial, framing: none}}
+""", d)
+        side = ros_side(d, "robot")
+        positions = side.listen("/position", Pose2D)
+        cmd_vel = side.publisher("/cmd_vel", Twist)
+        board = serial.Serial(relay.b, 115200, timeout=0.1)
+        try:
+            decoder = serial_datagram.Decoder(lambda reason, detail: None)
+            heard: list[bytes] = []
+            deadline = time.monotonic() + 30
+            while not positions.items or not heard:  # until both ways have crossed
+                assert time.monotonic() < deadline, (positions.items, heard)
+                board.write(serial_datagram.encode(
+                    msgpack.packb(["position", [1.0, 0.5, 0.25]], use_single_float=True)))
+                cmd_vel.publish(twist(7))
+                heard += decoder.feed(board.read(1000))  # waits up to 0.1 s
+        finally:
+            board.close()
+        assert positions.items[0] == Pose2D(x=1.0, y=0.5, theta=0.25)
+        assert msgpack.unpackb(heard[0]) == ["cmd_vel", {
+            "linear": {"x": 7.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -0.5}}]
