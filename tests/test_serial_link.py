@@ -238,3 +238,21 @@ topics:
         assert positions.items[0] == Pose2D(x=1.0, y=0.5, theta=0.25)
         assert msgpack.unpackb(heard[0]) == ["cmd_vel", {
             "linear": {"x": 7.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": -0.5}}]
+
+
+@pytest.mark.parametrize("page, heading", [("real-links.md", "## Serial lines"),
+                                           ("microcontrollers.md", "## Over a serial line")])
+def test_the_files_of_the_docs_check(tmp_path, capsys, page, heading):
+    from rosgate.cli import main
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / page).read_text()
+    section = text[text.index(heading):]
+    section = section[:section.find("\n## ", 1)]
+    files = [block.split("```", 1)[0] for block in section.split("```yaml\n")[1:]]
+    assert files, f"no yaml block under {heading}"
+    write_key(tmp_path / "line.key", AeadCipher.generate_key())
+    for n, text in enumerate(files):
+        path = tmp_path / f"{n}.yaml"
+        path.write_text(text)
+        assert main(["check", str(path)]) == 0, capsys.readouterr()
+        assert ": ok (peer " in capsys.readouterr().out
