@@ -188,7 +188,8 @@ topics:
     assert out[out.index("budget of serial: 46.1 kbit/s per peer (the line's own capacity)"):] \
         == [
         "budget of serial: 46.1 kbit/s per peer (the line's own capacity)",
-        # 52 B of CDR, the 28-byte envelope, a compact piece's head and length (2), 9 B of ports, CRC, END
+        # 52 B of CDR, the 28-byte envelope, a compact piece's head and length (2 B), and 9 B:
+        # ports, CRC, END
         "  /cmd_vel  20 Hz x 52 B = 91 B on the wire (1 packet) -> 14.6 kbit/s",
         "  /status   1 Hz x 200 B = 240 B on the wire (1 packet) -> 1.92 kbit/s",
         "  /big      100 Hz x 1,000 B = 1,080 B on the wire (5 packets) -> 864.0 kbit/s; "

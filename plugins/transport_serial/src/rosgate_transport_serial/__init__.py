@@ -230,10 +230,10 @@ class Line:
             self._drop(serial_datagram.TOO_SHORT, f"{len(frame)} bytes, the ports alone take 4")
             return
         destination = int.from_bytes(frame[:2], "big")
-        endpoint = self.endpoints.get(destination)
-        if endpoint is not None:
+        bound = self.endpoints.get(destination)
+        if bound is not None:
             source = int.from_bytes(frame[2:PORTS_SIZE], "big")
-            endpoint.frames.put((frame[PORTS_SIZE:], (self.device, source)))
+            bound.frames.put((frame[PORTS_SIZE:], (self.device, source)))
 
     def _drop(self, reason: Any, detail: str) -> None:
         """A frame the line spoilt: counted by the link of the lowest port that counts."""
