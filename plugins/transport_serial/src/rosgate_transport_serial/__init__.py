@@ -123,6 +123,7 @@ class Line:
         self.endpoints: dict[int, SerialEndpoint] = {}
         self._lock = threading.Lock()
         self._write = threading.Lock()
+        self._cut = False  # a write failed part way: the far end holds part of a frame
         self._decoder = serial_datagram.Decoder(self._drop, options.max_frame + PORTS_SIZE)
         try:
             self.port: Any = self._open()
@@ -170,7 +171,11 @@ class Line:
             port = self.port
             if port is None:
                 raise ConnectionError(f"serial port {self.device} is gone")
+            if self._cut:  # a frame cut short before: end it, so the next one is whole
+                data = bytes((serial_datagram.END,)) + data
+            self._cut = True
             port.write(data)  # SerialException and SerialTimeoutException are OSErrors
+            self._cut = False
 
     # -- the reader ---------------------------------------------------------------------------
 

@@ -181,7 +181,10 @@ class PtyRelay:
                 if profile.duplicate and rng.random() < profile.duplicate:
                     out.append(byte)
                     counters.duplicated += 1
-            free_at = max(free_at, time.monotonic()) + len(out) * byte_time
+            now = time.monotonic()
+            if free_at < now - 0.05:  # the line was idle (a thread late by less: it catches up)
+                free_at = now
+            free_at += len(out) * byte_time
             wait = free_at - time.monotonic()
             if wait > 0 and stop.wait(wait):
                 return
