@@ -98,7 +98,7 @@ def report(plan: Plan) -> list[str]:
             continue
         lines.append(f"budget of {name}: {rate_text(link.bandwidth)} per peer"
                      + ("" if name in plan.config.links and plan.config.links[name].bandwidth
-                        else " (the line's own capacity)"))
+                        else " (the link's own)"))
         width = max(len(p.config.topic) for p in topics)
         total = 0.0
         for p in topics:

@@ -181,6 +181,9 @@ class DatagramTransport(Transport):
     #: bits per second the link itself carries at most, when it knows (a serial line, from its
     #: baud rate): the budget of its links when ``bridge.links`` gives no ``bandwidth``
     bandwidth: float | None = None
+    #: every destination shares one line (a serial port): one budget for each link, not one
+    #: per destination as on IP links
+    one_line: ClassVar[bool] = False
 
     @abstractmethod
     def bind(self, address: Address) -> DatagramEndpoint:

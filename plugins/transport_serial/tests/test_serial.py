@@ -120,7 +120,8 @@ def test_a_spoilt_frame_is_counted_and_the_next_one_arrives(relay):
 ])
 def test_capacity_counts_start_parity_and_stop_bits(options, bits):
     transport = SerialTransport({"device": "/dev/null", **options})
-    assert transport.bandwidth == line_rate(transport.options) == bits
+    assert line_rate(transport.options) == bits
+    assert transport.bandwidth == 0.95 * bits  # the budget: a little below the line
 
 
 @pytest.mark.parametrize("options, key", [
