@@ -1,8 +1,10 @@
 """Two bridges over a serial line: a pseudo-terminal pair joined by the emulator's relay
 (rosgate_emulator.serial) at 57,600 baud that flips one bit in 10,000 bytes. A Twist at 20 Hz
 and a 200-byte status at 1 Hz cross under the aead cipher, a Trigger service crosses; every
-spoilt frame is counted and none is published. Then the line is unplugged for 3 s and comes
-back under new device paths behind the same names: traffic resumes within a second."""
+spoilt frame is counted and none is published. The line is unplugged for 3 s and comes back
+under new device paths behind the same names: traffic resumes within a second. A topic too big
+for the line is named by rosgate check and, forced on it, shed without delaying a Twist; a board
+on the line speaks CVRA's layouts; the docs' files check."""
 
 from __future__ import annotations
 
@@ -11,9 +13,9 @@ import time
 from pathlib import Path
 
 import pytest
-from rclpy.qos import qos_profile_sensor_data
 from conftest import wait_until
 from geometry_msgs.msg import Twist
+from rclpy.qos import qos_profile_sensor_data
 from rosgate_crypto_aead import AeadCipher
 from rosgate_emulator.serial import LineProfile, PtyRelay
 from rosgate_testing import write_key
