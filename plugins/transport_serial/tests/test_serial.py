@@ -136,6 +136,33 @@ def test_bad_options(options, key):
     assert info.value.key == key
 
 
+def test_software_flow_control_is_refused_saying_why():
+    with pytest.raises(OptionError) as info:
+        SerialTransport({"device": "x", "flow_control": "xonxoff"})
+    assert "XON" in str(info.value) and "rtscts" in (info.value.fix or "")
+
+
+def test_garbage_on_the_line_is_counted_and_the_next_frame_arrives(relay):
+    import random
+
+    import serial
+
+    endpoint = SerialTransport({"device": relay.a}).bind(("serial", 1))
+    drops: list[str] = []
+    endpoint.count_drops(lambda reason, detail: drops.append(str(reason)))
+    raw = serial.Serial(relay.b, timeout=TIMEOUT)
+    try:
+        rng = random.Random(4)
+        garbage = bytes(rng.randrange(256) for _ in range(20_000))
+        raw.write(garbage + b"\xc0" + serial_datagram.encode(b"\x00\x01\x00\x02whole"))
+        assert endpoint.receive(TIMEOUT) == (b"whole", (relay.a, 2))
+        assert len(drops) > 10 and set(drops) <= {"bad_crc", "bad_escape", "too_short",
+                                                  "too_long"}, drops
+    finally:
+        endpoint.close()
+        raw.close()
+
+
 def test_a_missing_device_is_a_link_error(tmp_path):
     with pytest.raises(LinkError) as info:
         SerialTransport({"device": str(tmp_path / "ttyUSB9")}).bind(("serial", 1))

@@ -82,8 +82,8 @@ class SerialTransport(DatagramTransport):
         parity: Literal["none", "even", "odd", "mark", "space"] = option(
             "none", "the parity bit of each byte")
         stop_bits: float = option(1, "stop bits of each byte: 1, 1.5 or 2")
-        flow_control: Literal["none", "rtscts"] = option(
-            "none", "rtscts: hardware flow control (RTS/CTS lines)")
+        flow_control: Literal["none", "rtscts", "xonxoff"] = option(
+            "none", "rtscts: hardware flow control (RTS/CTS lines); xonxoff is refused")
         max_frame: int = option(250, "the longest frame on the line, bytes (radios lose long "
                                      "ones); the core cuts longer messages",
                                 minimum=16, maximum=65_000)
@@ -93,6 +93,10 @@ class SerialTransport(DatagramTransport):
         def __post_init__(self) -> None:
             if self.stop_bits not in (1, 1.5, 2):
                 raise OptionError("stop_bits", f"must be 1, 1.5 or 2, not {self.stop_bits!r}")
+            if self.flow_control == "xonxoff":
+                raise OptionError("flow_control", "software flow control would take the XON "
+                                  "and XOFF bytes (0x11, 0x13) out of binary frames",
+                                  "use rtscts (wire RTS and CTS) or none")
 
     options: Options
 
