@@ -209,7 +209,7 @@ class Line:
                     self.device)
         self._close_port()
         self._decoder = serial_datagram.Decoder(self._drop, self.options.max_frame + PORTS_SIZE)
-        for endpoint in list(self.endpoints.values()):
+        for endpoint in self._bound():
             endpoint.downs += 1
 
     def _reopen(self) -> None:
@@ -236,7 +236,7 @@ class Line:
 
     def _dispatch(self, frame: bytes) -> None:
         if not self.options.multiplex:
-            for endpoint in list(self.endpoints.values()):
+            for endpoint in self._bound():
                 if endpoint.port < EPHEMERAL:
                     endpoint.frames.put((frame, (self.device, 0)))
             return
@@ -249,9 +249,14 @@ class Line:
             source = int.from_bytes(frame[2:PORTS_SIZE], "big")
             bound.frames.put((frame[PORTS_SIZE:], (self.device, source)))
 
+    def _bound(self) -> list[SerialEndpoint]:
+        """The endpoints bound now (bind and close run in other threads)."""
+        with self._lock:
+            return list(self.endpoints.values())
+
     def _drop(self, reason: Any, detail: str) -> None:
         """A frame the line spoilt: counted by the link of the lowest port that counts."""
-        for _, endpoint in sorted(self.endpoints.items()):
+        for endpoint in sorted(self._bound(), key=lambda e: e.port):
             if endpoint.drop is not None:
                 endpoint.drop(reason, f"serial port {self.device}: {detail}")
                 return

@@ -9,7 +9,8 @@ by its :class:`LineProfile`:
 
 * **baud** — a byte takes ``bits_per_byte / baud`` seconds (start, 8 data bits, parity, stop
   bits: 10 by default); the relay writes no faster, so a sender that outruns the line waits in
-  the pseudo-terminal's buffer, as it would in a UART's.
+  the pseudo-terminal's buffer, as it would in a UART's. A relay thread that wakes late while
+  bytes wait catches up, so a busy machine does not make the line slower than its baud rate.
 * **flips** — each byte has one bit flipped with probability ``flip`` (``1e-4``: one flipped bit
   per 10,000 bytes); ``drop`` and ``duplicate`` lose or double a byte with their probabilities.
   The seeded random streams make a run repeatable.
@@ -157,7 +158,7 @@ class PtyRelay:
             self._rng[direction]
         byte_time = profile.bits_per_byte / profile.baud
         chunk = max(1, int(0.005 / byte_time))  # about 5 ms of the line per write
-        free_at = time.monotonic()
+        free_at, busy = time.monotonic(), False
         while not stop.is_set():
             try:
                 ready, _, _ = select.select([source], [], [], 0.05)
@@ -182,8 +183,10 @@ class PtyRelay:
                     out.append(byte)
                     counters.duplicated += 1
             now = time.monotonic()
-            if free_at < now - 0.05:  # the line was idle (a thread late by less: it catches up)
+            if free_at < now - 0.05 and not busy:  # the line was idle: it starts now
                 free_at = now
+            # else it was busy all along (this thread woke late): the line's time is not lost
+            busy = len(data) == chunk  # more was waiting
             free_at += len(out) * byte_time
             wait = free_at - time.monotonic()
             if wait > 0 and stop.wait(wait):
