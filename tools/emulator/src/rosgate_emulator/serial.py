@@ -191,9 +191,9 @@ class PtyRelay:
             wait = free_at - time.monotonic()
             if wait > 0 and stop.wait(wait):
                 return
+            counters.bytes += len(out)  # before: a reader never holds more than is counted
             if not _write_all(target, bytes(out), stop):
                 return
-            counters.bytes += len(out)
 
 
 def _write_all(fd: int, data: bytes, stop: threading.Event) -> bool:
