@@ -196,7 +196,8 @@ topics:
     assert budget == [
         "budget of udp: 20.0 Mbit/s per peer",
         # 921,683 B frames in 636 chunks of 1,450 B + 33 repair fragments, 21 + 28 B each
-        "  /camera   2.5 Hz x 921,655 B = 1,002,831 B on the wire (669 packets) -> 20.1 Mbit/s",
+        "  /camera   2.5 Hz x 921,655 B = 1,002,831 B on the wire (669 packets) -> 20.1 Mbit/s; "
+        "cannot fit: more than the whole budget by itself",
         # 52 B of CDR, the 28-byte envelope, 28 bytes of IP and UDP
         "  /cmd_vel  50 Hz x 52 B = 108 B on the wire (1 packet) -> 43.2 kbit/s",
         "  /odom     not counted (nav_msgs/msg/Odometry varies in size: give typical_size)",

@@ -21,7 +21,7 @@ from .plugins import installed
 from .resolver import Plan
 from .ros import resolve_type
 from .spec import TopicSpec
-from .transport import DatagramTransport
+from .transport import DatagramTransport, line_budget
 from .wire import envelope, framing
 
 #: tc-style: the bits of a link in the units people write them in
@@ -88,12 +88,17 @@ def on_the_wire(frame: int, p: TopicSpec) -> tuple[int, int]:
 def report(plan: Plan) -> list[str]:
     """The lines ``rosgate check`` prints: one block per budgeted transport this side uses."""
     lines: list[str] = []
-    for name, link in plan.config.links.items():
+    transports = {p.transport.name: p.transport for p in plan.topics}
+    for name in sorted(plan.config.links.keys() | transports.keys()):
+        link = line_budget(plan.config.links, transports[name]) if name in transports \
+            else plan.config.links[name]
         topics = [p for p in plan.topics
                   if p.config.transport == name and p.config.direction is Direction.TRANSMIT]
-        if link.bandwidth is None or not topics:
+        if link is None or link.bandwidth is None or not topics:
             continue
-        lines.append(f"budget of {name}: {rate_text(link.bandwidth)} per peer")
+        lines.append(f"budget of {name}: {rate_text(link.bandwidth)} per peer"
+                     + ("" if name in plan.config.links and plan.config.links[name].bandwidth
+                        else " (the link's own)"))
         width = max(len(p.config.topic) for p in topics)
         total = 0.0
         for p in topics:
@@ -112,8 +117,11 @@ def report(plan: Plan) -> list[str]:
                 continue
             bits = t.max_rate * wire * 8
             total += bits
+            alone = "; cannot fit: more than the whole budget by itself" \
+                if bits > link.bandwidth else ""
             lines.append(f"{head}{t.max_rate:g} Hz x {size:,} B = {wire:,} B on the wire "
-                         f"({packets:,} packet{'s' if packets != 1 else ''}) -> {rate_text(bits)}")
+                         f"({packets:,} packet{'s' if packets != 1 else ''}) -> {rate_text(bits)}"
+                         f"{alone}")
         share = total / link.bandwidth
         verdict = "fits" if share <= 1 else "over budget: latest_only topics send less often, " \
             "others wait in the queue (reliable) or are dropped late (best effort)"

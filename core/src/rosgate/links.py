@@ -175,14 +175,14 @@ class _Sending:
             self.on_lost(None, Drop.HANDLER_ERROR)
 
     def _init_sending(self, name: str, budget: LinkConfig | None, overhead: int, packet: int,
-                      frames: int, bytes_: int) -> None:
+                      frames: int, bytes_: int, one_line: bool = False) -> None:
         self.name = name
         self.closed = threading.Event()
         self.counters = LinkCounters()
         self.scheduler = Scheduler(
             bandwidth=budget.bandwidth if budget else None, overhead=overhead,
             max_delay=budget.max_delay if budget else MAX_DELAY_DEFAULT, frames=frames,
-            bytes=bytes_, packet=packet)
+            bytes=bytes_, packet=packet, one_line=one_line)
         # entered as the plain lock on the way out (a Condition's own with-statement costs a
         # Python call each way, ~0.3 us); the send thread waits on the condition
         self._lock = threading.Lock()
@@ -361,7 +361,7 @@ class DatagramLink(_Sending, Link):
         self.recovered = on_recovered or (lambda topic_id: None)
         self.max_message = max_message
         self._init_sending(name, budget, transport.packet_overhead, self.max_frame,
-                           queue_frames, queue_bytes)
+                           queue_frames, queue_bytes, transport.one_line)
         self.registry = packetizers or installed()
         #: packetizers made so far, by name and by magic (None: a whole frame, the link's own)
         self._by_name: dict[str, Packetizer] = {}
@@ -377,6 +377,9 @@ class DatagramLink(_Sending, Link):
         self._send_parts: Callable[[Any, Address], None] = getattr(
             endpoint, "send_parts", lambda parts, to: endpoint.send(b"".join(parts), to))
         self._send_datagrams = getattr(endpoint, "send_datagrams", None)
+        count_drops = getattr(endpoint, "count_drops", None)  # a CheckingDatagramEndpoint
+        if count_drops is not None:
+            count_drops(lambda reason, detail: self.on_lost(None, reason))
         self._start()
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:

@@ -131,8 +131,10 @@ class Scheduler:
 
     def __init__(self, *, bandwidth: float | None = None, overhead: int = 0,
                  max_delay: float = 1.0, frames: int = 10_000, bytes: int = 64 * 1024 * 1024,
-                 packet: int = 65_536, clock: Callable[[], float] = time.monotonic):
+                 packet: int = 65_536, clock: Callable[[], float] = time.monotonic,
+                 one_line: bool = False):
         self.rate = bandwidth / 8 if bandwidth else None  # bytes per second
+        self.one_line = one_line  # one budget for every destination (a serial line)
         self.overhead = overhead
         self.max_delay = max_delay
         self.limit_frames = frames
@@ -219,9 +221,10 @@ class Scheduler:
     def _bucket(self, to: Any, now: float) -> Bucket | None:
         if self.rate is None:
             return None
-        bucket = self._buckets.get(to)
+        key = None if self.one_line else to
+        bucket = self._buckets.get(key)
         if bucket is None:
-            bucket = self._buckets[to] = Bucket(self.rate, self.capacity, now)
+            bucket = self._buckets[key] = Bucket(self.rate, self.capacity, now)
         return bucket
 
     def may_send_now(self, to: Any, size: int) -> bool:

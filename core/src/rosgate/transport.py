@@ -21,8 +21,10 @@ import socket
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from contextlib import suppress
+from dataclasses import replace
 from typing import Any, ClassVar, Protocol
 
+from .config import LinkConfig
 from .options import as_options
 
 Address = tuple[str, int]
@@ -55,6 +57,15 @@ class DatagramEndpoint(Protocol):
     def close(self) -> None:
         """Release the endpoint; a ``receive`` blocked in another thread returns soon after
         (``None`` or ``OSError``)."""
+
+
+class CheckingDatagramEndpoint(DatagramEndpoint, Protocol):
+    """A :class:`DatagramEndpoint` that checks frames itself (a serial line's CRC) and drops
+    the spoilt ones: the core hands it, once, where to count them."""
+
+    def count_drops(self, drop: Callable[[Any, str], None]) -> None:
+        """Count every frame dropped from now on with ``drop(reason, detail)``: ``reason`` a
+        drop reason (declared with :func:`rosgate.drops.declare`), ``detail`` a sentence."""
 
 
 class FastDatagramEndpoint(DatagramEndpoint, Protocol):
@@ -167,12 +178,28 @@ class DatagramTransport(Transport):
     #: bytes the layers below add to every frame sent (UDP over IPv4: 28), so that a bandwidth
     #: budget (``bridge.links``) counts what the link carries
     packet_overhead: ClassVar[int] = 0
+    #: bits per second the link itself carries at most, when it knows (a serial line, from its
+    #: baud rate): the budget of its links when ``bridge.links`` gives no ``bandwidth``
+    bandwidth: float | None = None
+    #: every destination shares one line (a serial port): one budget for each link, not one
+    #: per destination as on IP links
+    one_line: ClassVar[bool] = False
 
     @abstractmethod
     def bind(self, address: Address) -> DatagramEndpoint:
         """Bind a datagram endpoint at ``address`` (port 0: any free port). Raise
         :class:`rosgate.LinkError` when it cannot be done (address in use, no such interface),
         with a ``fix`` when you know better than "free the port, or pick another one"."""
+
+
+def line_budget(links: dict[str, LinkConfig], transport: Transport) -> LinkConfig | None:
+    """The budget of ``transport``'s links: ``bridge.links``'s, its ``bandwidth`` taken from
+    the transport when the file gives none and the link knows its own (a serial line)."""
+    given = links.get(transport.name)
+    own = transport.bandwidth if isinstance(transport, DatagramTransport) else None
+    if own is None or given is not None and given.bandwidth is not None:
+        return given
+    return LinkConfig(transport.name, own) if given is None else replace(given, bandwidth=own)
 
 
 class StreamTransport(Transport):

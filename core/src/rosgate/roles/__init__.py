@@ -30,7 +30,14 @@ from ..secure import (
 )
 from ..spec import CONTROL, ServiceSpec, TopicSpec
 from ..streamlink import Backoff, LinkSlot, QueueLimits, StreamLink, Untrusted
-from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
+from ..transport import (
+    Address,
+    DatagramTransport,
+    StreamConnection,
+    StreamTransport,
+    Transport,
+    line_budget,
+)
 from ..warn import Warner
 from ..wire import envelope
 from .mainline import control, key_label, parse_control
@@ -64,7 +71,7 @@ class Bridge:
         return Backoff(self.config.reconnect_min, self.config.reconnect_max)
 
     def budget(self, transport: Transport) -> LinkConfig | None:
-        return self.config.links.get(transport.name)
+        return line_budget(self.config.links, transport)
 
     def link_error(self, exc: LinkError, key: str) -> ConfigError:
         return self.config.error(key, str(exc), exc.fix or "free the port, or pick another one")
