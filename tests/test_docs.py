@@ -249,6 +249,11 @@ def test_every_whole_file_in_the_docs_passes_check_or_says_why_it_is_insecure(pa
             bridge[key] = public
     for client in (data.get("clients") or {}).values():
         client["key"] = public
+    for name, options in (data.get("plugins") or {}).items():  # a cipher's key file, made
+        if isinstance(options, dict) and "key_file" in options:
+            made = subprocess.run([ROSGATE, "keygen", name, "--out", options["key_file"]],
+                                  cwd=tmp_path, capture_output=True, text=True, timeout=60)
+            assert made.returncode == 0, made.stderr
     path = tmp_path / "bringup.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     result = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
