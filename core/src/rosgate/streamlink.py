@@ -52,6 +52,8 @@ log = logging.getLogger("rosgate")
 
 WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
 CONNECT_TIMEOUT = 5.0
+#: seconds between two checks that a connection's local address is still this host's (a roam)
+ADDRESS_CHECK = 0.25
 
 
 def length_prefixed(frame: bytes) -> bytes:
@@ -541,9 +543,12 @@ class Connector:
             failures = 0
             self._last_failure = ""
             self.slot.attach(link)
-            while not link.closed.wait(0.5):
+            gone = getattr(link.connection, "address_gone", None)
+            while not link.closed.wait(ADDRESS_CHECK):
                 if stopping.is_set() or self.slot.closed.is_set():
                     break
+                if gone is not None and gone():  # it roamed: the connection is dead already
+                    link.fail("this host no longer has the address it connected from")
             if stopping.is_set() and not self.slot.closed.is_set():
                 return  # the role may have a last word (bye); closing the slot closes the link
             link.close()

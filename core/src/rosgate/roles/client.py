@@ -172,6 +172,7 @@ class ClientRole(Role):
                 route.fail_all(Drop.LINK_DOWN, "the session's main line was lost")
         log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
                     link.why or "main line closed")
+        self._say_hello()  # from where we are now: a server that kept our session answers there
 
     def _apply(self, ids: list[int]) -> None:
         """Make the routes match the server's answer: one per entry it accepted (id > 0),

@@ -54,6 +54,9 @@ from .mainline import PROTOCOL, client_entries, control, flipped, is_control, wh
 
 log = logging.getLogger("rosgate")
 
+#: datagrams a second taken on probation from unknown addresses (a client that moved), for all
+#: of them together: more are ``not_allowed``, and such a client is heard at its next hello
+STRANGERS_PER_SECOND = 500.0
 MAX_HANDSHAKES = 32  # handshakes worked on at once (each a Diffie-Hellman); more are refused
 HANDSHAKES_PER_SOURCE = 4  # of those, from one address: a few addresses cannot take them all
 
@@ -99,8 +102,10 @@ class ServerRole(Role):
         self.sessions: dict[int, Session] = {}
         self._ids = iter(range(1, 2**32))
         self.router.on_hello = self.on_hello
-        #: datagram ports take frames only from where clients' genuine hellos came from
-        self.clients = KnownSources()
+        self.router.on_heard = self.on_heard
+        #: datagram ports take frames from where clients' genuine hellos and frames came from
+        #: (and a few from elsewhere on probation: :meth:`on_heard`)
+        self.clients = KnownSources(STRANGERS_PER_SECOND)
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
         self._handshakes = ConnectionLimits(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
                                             self.limits.recent)
@@ -427,14 +432,38 @@ class ServerRole(Role):
         if session is None or not self._hello_is_genuine(session, header, frame, link):
             self.router.link_drop(link, Drop.BAD_HELLO, f"from {source}")
             return
-        if isinstance(link, DatagramLink) and session.addresses.get(link) != source:
+        if isinstance(link, DatagramLink):
+            self._found_at(session, link, source)
+
+    def on_heard(self, route: Route, link: Link, source: Address) -> None:
+        """A topic's frame opened under its key and new to its replay window, from ``source``:
+        when that is not where its client was, the client moved (a roam, a NAT's new port), and
+        is answered there from now on. A forged frame does not open, a replayed one is not new:
+        neither moves anyone (WireGuard's rule)."""
+        if self.clients.knows(source) or not isinstance(link, DatagramLink):
+            return
+        with self._lock:
+            session = next((s for s in self.sessions.values()
+                            if any(r is route for r in s.by_index.values())), None)
+        if session is not None:
+            self._found_at(session, link, source)
+
+    def _found_at(self, session: Session, link: DatagramLink, source: Address) -> None:
+        """Where ``session``'s client is on ``link``, from a genuine hello or frame."""
+        with self._lock:
             old = session.addresses.get(link)
+            if old == source or session.id not in self.sessions:
+                return
             if old is not None:
                 self.clients.forget(old)
             self.clients.learn(source)
             session.addresses[link] = source
-            self.router.resync(session.routes)  # its latched topics, now that it hears us
+        self.router.resync(session.routes)  # its latched topics, now that it hears us
+        if old is None:
             log.debug("client %r is at %s on %s", session.name, source, link.name)
+        else:
+            log.info("client %r moved from %s to %s on %s", session.name, f"{old[0]}:{old[1]}",
+                     f"{source[0]}:{source[1]}", link.name)
 
     def _end(self, session: Session) -> None:
         with self._lock:
