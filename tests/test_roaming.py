@@ -7,7 +7,6 @@ from __future__ import annotations
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -122,6 +121,10 @@ def test_a_robot_that_roams_mid_stream_loses_nothing(hosts, bridge, domain, tmp_
     print(f"roam over {transport}: {len(set(numbers))} of {COUNT} arrived, "
           f"{len(numbers) - len(set(numbers))} twice, longest gap {gap:.3f} s, "
           f"missing {missing[:20]}")
+    assert f"client 'robot1' up: connected from {new} with 1 topic(s) and 0 service(s), " \
+        "its session kept" in base.log, base.log
+    if transport == "udp":  # its frames from the new address moved it before its next hello
+        assert f"client 'robot1' moved from {old}:" in base.log, base.log
     assert len(set(numbers)) == COUNT, (missing, robot.log, base.log)
     assert numbers == list(range(COUNT)), "out of order or twice"
     assert gap <= MAX_GAP, gap

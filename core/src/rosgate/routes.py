@@ -139,6 +139,11 @@ class Route:
             return None
         return payload
 
+    def taken(self) -> dict[int, int]:
+        """What this route took of its far side: the newest sequence number per epoch."""
+        with self._lock:
+            return self.replay.newest()
+
     def heard(self, header: envelope.Header,
               frame: bytes) -> tuple[Identity | None, dict[str, Any] | None] | None:
         """The far side's announcement frame of this entry: see :meth:`told`."""

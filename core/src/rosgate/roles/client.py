@@ -34,6 +34,8 @@ from .mainline import (
     control,
     hello_datagram,
     is_control,
+    read_taken,
+    taken,
 )
 
 log = logging.getLogger("rosgate")
@@ -95,7 +97,8 @@ class ClientRole(Role):
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
                            "services": [service_to_mapping(p.config) for p in plan.services],
                            "actions": [action_to_mapping(a.config) for a in plan.actions],
-                           "entries": [self.router.entry_item(p) for p in self.entries()]}),
+                           "entries": [self.router.entry_item(p) for p in self.entries()],
+                           "taken": taken(self.routes.values())}),
                   self.control)
         answer = self.answer.wait(link, self.life.stopping, HANDSHAKE_TIMEOUT)
         if answer is None:
@@ -133,8 +136,13 @@ class ClientRole(Role):
             for slot in self._dedicated.values():  # they must introduce themselves anew
                 if slot.current is not None:
                     slot.current.fail("the server started a new session")
+        # only a server that kept our session says what it took: then what our last connection
+        # carried and it did not get goes again, first
+        got = read_taken(answer.get("taken"))
+        if got is None:
+            self.main.forget_written()
         link.last_heard = time.monotonic()
-        self.main.attach(link)  # now, not when the connector gets to it: a stop says bye on it
+        self.main.attach(link, got)  # now, not when the connector gets to it: a stop says bye
         self.connected.set()
         self._say_hello()
         self.router.start_announcing(list(self.routes.values()))  # the server hears us now

@@ -50,7 +50,16 @@ from ..warn import BUGS
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
 from . import Bridge, Role, session_keys
-from .mainline import PROTOCOL, client_entries, control, flipped, is_control, where_error
+from .mainline import (
+    PROTOCOL,
+    client_entries,
+    control,
+    flipped,
+    is_control,
+    read_taken,
+    taken,
+    where_error,
+)
 
 log = logging.getLogger("rosgate")
 
@@ -237,6 +246,7 @@ class ServerRole(Role):
                                   file=f"client {policy.name}",
                                   fix="each client uses its own identity and bridge.name")
             session = self._resume(hello, name)
+            resumed = session is not None
             if session is None:
                 session = self._new_session(hello, name, policy)
             else:
@@ -270,17 +280,22 @@ class ServerRole(Role):
             welcome.update(session.schedule.offer(link.connection.handshake_hash))
         else:
             welcome["token"] = session.token.hex()
+        if resumed:  # what its last connection carried: the client writes again what we lack
+            welcome["taken"] = taken(session.routes)
         link.send(control(welcome), self.control)
         old = session.main.current
-        session.main.attach(link)  # after the welcome: what waited goes out under known ids
+        # after the welcome: what waited goes out under known ids, after what the client's last
+        # connection did not get
+        session.main.attach(link, read_taken(hello.get("taken")) if resumed else None)
         session.down_since = None
         if old is not None and old is not link:
             old.fail("the client connected again")
         if isinstance(link.connection, SecureConnection):  # it keeps places of its own
             self.limits.recent.remember(peer[0])
-        log.info("client %r up: connected from %s with %d topic(s) and %d service(s)%s", name,
+        log.info("client %r up: connected from %s with %d topic(s) and %d service(s)%s%s", name,
                  peer[0], len(session.topics), len(session.services),
-                 f", {len(session.refused)} refused" if session.refused else "")
+                 f", {len(session.refused)} refused" if session.refused else "",
+                 ", its session kept" if resumed else "")
         return session
 
     @staticmethod
