@@ -4,9 +4,12 @@ veth pair, the client's address moved under a reliable topic at 100 Hz."""
 
 from __future__ import annotations
 
+import contextlib
+import socket
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -128,3 +131,77 @@ def test_a_robot_that_roams_mid_stream_loses_nothing(hosts, bridge, domain, tmp_
     assert len(set(numbers)) == COUNT, (missing, robot.log, base.log)
     assert numbers == list(range(COUNT)), "out of order or twice"
     assert gap <= MAX_GAP, gap
+
+
+def test_a_client_behind_a_nat_that_rebinds_is_followed_and_replays_move_nobody(
+        bridge, domain, ros_side, tmp_path):
+    """WireGuard's rule, on loopback: the server answers a client where its genuine frames come
+    from. An eavesdropper who sends every datagram it captured again, as it was or with a byte
+    changed, from an address of its own, gets nothing and moves nothing; a NAT that rebinds
+    (the client's datagrams from a new port) loses none of the client's messages and the
+    server's follow it there."""
+    from faults import FaultProxy
+    from std_msgs.msg import String
+
+    server_port, relay_port, da, db = free_port(), free_port(), domain(), domain()
+    (tmp_path / "base.yaml").write_text(
+        f"bridge: {{name: base, role: server, server: '127.0.0.1:{server_port}'}}\n")
+    (tmp_path / "robot1.yaml").write_text(
+        f"bridge: {{name: robot1, role: client, server: '127.0.0.1:{relay_port}'}}\n"
+        "topics:\n"
+        "  - {topic: /up, type: std_msgs/msg/String, direction: transmit}\n"
+        "  - {topic: /down, type: std_msgs/msg/String, direction: receive}\n")
+    relay = FaultProxy(relay_port, server_port)
+    try:
+        base = bridge(tmp_path / "base.yaml", db)
+        robot_bridge = bridge(tmp_path / "robot1.yaml", da)
+        assert robot_bridge.wait_log("server 'base' up", 30), robot_bridge.log
+        robot, station = ros_side(da, "robot"), ros_side(db, "base")
+        ups, downs = station.listen("/up", String, qos=1000), robot.listen("/down", String,
+                                                                           qos=1000)
+        up, down = robot.publisher("/up", String, qos=1000), station.publisher(
+            "/down", String, qos=1000)
+
+        def stream(publisher, inbox, tag: str, count: int, warm: bool = True) -> list[str]:
+            """Warm-ups until one crosses, then ``count`` numbered ones: those that came."""
+            start = len(inbox.items)
+            while warm and not inbox.wait_count(start + 1, 0.2):
+                publisher.publish(String(data="warm"))
+            for i in range(count):
+                publisher.publish(String(data=f"{tag} {i}"))
+                time.sleep(0.01)  # paces the publisher; nothing waits on this
+            mine = lambda items: [m.data for m in items if m.data.startswith(f"{tag} ")]
+            inbox.wait_for(lambda items: len(mine(items)) >= count, 10)
+            return mine(list(inbox.items))
+
+        assert stream(up, ups, "before", 20) == [f"before {i}" for i in range(20)]
+        assert stream(down, downs, "before", 20) == [f"before {i}" for i in range(20)]
+
+        # the eavesdropper: every datagram the client sent, again, and each with its last byte
+        # changed (its cipher's tag no longer matches), from an address of its own
+        captured = [data for upstream, data in relay.udp.captured if upstream]
+        assert len(captured) >= 20
+        attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        attacker.bind(("127.0.0.1", 0))
+        attacker.settimeout(0.2)
+        try:
+            for data in captured:
+                attacker.sendto(data, ("127.0.0.1", server_port))
+                attacker.sendto(data[:-1] + bytes([data[-1] ^ 1]), ("127.0.0.1", server_port))
+            assert stream(down, downs, "replayed", 50) == [f"replayed {i}" for i in range(50)]
+            got = []
+            with contextlib.suppress(TimeoutError):
+                while True:
+                    got.append(attacker.recvfrom(65536)[0])
+            assert got == [], f"the server sent {len(got)} datagram(s) to the eavesdropper"
+        finally:
+            attacker.close()
+        assert "moved" not in base.log, base.log
+
+        relay.udp.rebind()  # the NAT's new port: the server hears the client from there
+        # at once, no warm-up: the first of them is the first the server hears from there
+        assert stream(up, ups, "rebound", 100, warm=False) == [f"rebound {i}" for i in range(100)]
+        assert base.wait_log("client 'robot1' moved from 127.0.0.1:", 5), base.log
+        assert stream(down, downs, "rebound", 50) == [f"rebound {i}" for i in range(50)]
+    finally:
+        relay.close()
