@@ -88,10 +88,12 @@ def roam(pair, old: str, new: str) -> None:
 
 
 @pytest.mark.parametrize("transport", ["udp", "tcp"])
-def test_a_robot_that_roams_mid_stream_loses_nothing(hosts, bridge, domain, tmp_path, transport):
-    """1,000 reliable messages at 100 Hz; after 300 the robot's address moves (new address
-    added, routes switched to it, old address removed): all 1,000 arrive, in order, once each,
-    and the stream stalls for at most 1.5 s."""
+@pytest.mark.parametrize("direction", ["transmit", "receive"])
+def test_a_robot_that_roams_mid_stream_loses_nothing(hosts, bridge, domain, tmp_path, transport,
+                                                     direction):
+    """1,000 reliable messages at 100 Hz, from the robot (transmit) or to it (receive); after
+    300 the robot's address moves (new address added, routes switched to it, old address
+    removed): all 1,000 arrive, in order, once each, and the stream stalls for at most 1.5 s."""
     port, da, db = free_port(), domain(), domain()
     base_host, old = hosts.address("b"), hosts.address("a")
     new = old.rsplit(".", 1)[0] + ".3"
@@ -101,13 +103,16 @@ def test_a_robot_that_roams_mid_stream_loses_nothing(hosts, bridge, domain, tmp_
     (tmp_path / "robot1.yaml").write_text(
         f"bridge: {{name: robot1, role: client, server: '{base_host}:{port}'}}\n"
         "topics:\n"
-        f"  - {{topic: /chatter, type: std_msgs/msg/String, direction: transmit, {link}}}\n")
+        f"  - {{topic: /chatter, type: std_msgs/msg/String, direction: {direction}, {link}}}\n")
     base = bridge(tmp_path / "base.yaml", db, prefix=hosts.command("b", []))
     robot = bridge(tmp_path / "robot1.yaml", da, prefix=hosts.command("a", []))
     assert robot.wait_log("server 'base' up", 30), robot.log
-    listener = Side(hosts, "b", db, "listen", "/chatter")
+    (talks, td), (listens, ld) = ("a", da), ("b", db)
+    if direction == "receive":
+        (talks, td), (listens, ld) = (listens, ld), (talks, td)
+    listener = Side(hosts, listens, ld, "listen", "/chatter")
     assert listener.wait(lambda lines: "ready" in lines, 60), listener.lines
-    talker = Side(hosts, "a", da, "talk", "/chatter", str(COUNT), str(RATE))
+    talker = Side(hosts, talks, td, "talk", "/chatter", str(COUNT), str(RATE))
     assert listener.wait(lambda lines: any(line.startswith("warm ") for line in lines), 60), \
         (listener.lines[-5:], robot.log)
     talker.say("go")
@@ -121,7 +126,7 @@ def test_a_robot_that_roams_mid_stream_loses_nothing(hosts, bridge, domain, tmp_
     times = [t for _, t in got]
     gap = max((b - a for a, b in zip(times, times[1:], strict=False)), default=0.0)
     missing = sorted(set(range(COUNT)) - set(numbers))
-    print(f"roam over {transport}: {len(set(numbers))} of {COUNT} arrived, "
+    print(f"roam over {transport}, {direction}: {len(set(numbers))} of {COUNT} arrived, "
           f"{len(numbers) - len(set(numbers))} twice, longest gap {gap:.3f} s, "
           f"missing {missing[:20]}")
     assert f"client 'robot1' up: connected from {new} with 1 topic(s) and 0 service(s), " \

@@ -477,6 +477,19 @@ class DatagramLink(_Sending, Link):
             return None
         return self._make(registration.cls)
 
+    def moved(self, old: Address, new: Address) -> None:
+        """The far side at ``old`` is at ``new`` now (a roam): its packetizers send what they
+        keep for it there, their timers run at once."""
+        for packetizer in list(self._by_name.values()):
+            try:
+                packetizer.moved(old, new)
+            except Exception:
+                BUGS.bug("packetizer_error", f"{self.name}: packetizer {packetizer.name} could "
+                                             "not follow a far side that moved (a plugin bug)")
+        with self._wake:
+            self._tx_timer = time.monotonic()
+            self._wake.notify_all()
+
     def repeat(self, sender: Any, to: Address, packets: list[bytes]) -> None:
         with self._lock:
             self.scheduler.repair(sender, to, packets)

@@ -473,6 +473,8 @@ class ServerRole(Role):
                 self.clients.forget(old)
             self.clients.learn(source)
             session.addresses[link] = source
+        if old is not None:  # what waits for an acknowledgement from there goes here now
+            link.moved(old, source)
         self.router.resync(session.routes)  # its latched topics, now that it hears us
         if old is None:
             log.debug("client %r is at %s on %s", session.name, source, link.name)
