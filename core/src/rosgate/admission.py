@@ -71,12 +71,14 @@ class KnownSources(Sources):
     at once, its first frame that opens under its session's key moving its address; the rest is
     ``not_allowed``, before any reassembly."""
 
-    def __init__(self, strangers: float = 0.0) -> None:
+    def __init__(self, strangers: float = 0.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(())
         self._known: Counter[Address] = Counter()
         self._lock = threading.Lock()
         self.strangers = strangers
-        self._tokens, self._filled = strangers, time.monotonic()
+        self.clock = clock
+        self._tokens, self._filled = strangers, clock()
 
     def knows(self, source: Address) -> bool:
         return source in self._known
@@ -85,7 +87,7 @@ class KnownSources(Sources):
         """One more datagram from an unknown address, within the rate (a token bucket of one
         second's worth); called from the links' receiving threads."""
         with self._lock:
-            now = time.monotonic()
+            now = self.clock()
             self._tokens = min(self.strangers,
                                self._tokens + (now - self._filled) * self.strangers)
             self._filled = now
