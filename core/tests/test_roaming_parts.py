@@ -103,3 +103,12 @@ def test_a_slot_forgets_what_it_wrote_for_a_new_session(closing, tcp_connections
     slot.send(frame(9), reliable)
     assert third.wait(lambda: len(third.frames) >= 1)
     assert third.payloads() == [frame(9)]
+
+
+def test_what_a_far_side_says_it_took_is_read_or_ignored_never_a_crash():
+    from rosgate.roles.mainline import read_taken
+
+    assert read_taken([[5, [[1, 2], [3, 4]]], [6, []]]) == {5: {1: 2, 3: 4}, 6: {}}
+    for said in (None, "x", {"5": []}, [[5, [[1, float("inf")]]]], [[5, [[1, float("nan")]]]],
+                 [[5, "ab"]], [[5, {"a": 1}]], [[5, [[1]]]], [[None, []]], [5], [[1, 2, 3]]):
+        assert read_taken(said) is None, said

@@ -475,10 +475,12 @@ class LinkSlot(Link):
         says it took of this session's topics (a connection of the same session, again):
         frames written to the connections before that it did not take go before them."""
         with self._lock:
-            again = [] if taken is None else [(frame, sender) for frame, sender, _ in
-                                              self._written if _untaken(frame, taken)]
-            self._written.clear()
-            self._written_bytes = 0
+            again: list[tuple[bytes, Sender]] = []
+            if taken is not None:  # else nothing is known of what the far side took
+                again = [(frame, sender) for frame, sender, _ in self._written
+                         if _untaken(frame, taken)]
+                self._written.clear()
+                self._written_bytes = 0
             for frame, sender in [*again, *self._waiting]:
                 self._wrote([frame], sender)
                 link.send(frame, sender)

@@ -80,7 +80,7 @@ def read_taken(said: Any) -> Taken | None:
     try:
         return {int(topic_id): {int(epoch): int(seq) for epoch, seq in newest}
                 for topic_id, newest in said}
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an infinite number
         return None
 
 
