@@ -37,8 +37,8 @@ WATCH_EVERY = announce.ANNOUNCE_FAST
 
 Destination = Callable[[], Address | None]
 HelloHandler = Callable[[envelope.Header, bytes, Link, Address], None]
-#: (route, link, source): a topic's frame opened, on a datagram link, from that source
-HeardHandler = Callable[[Route, Link, Address], None]
+#: (route, header, link, source): a topic's frame opened, on a datagram link, from that source
+HeardHandler = Callable[[Route, envelope.Header, Link, Address], None]
 #: the flags of frames that are not a topic's message
 _NOT_DATA = (envelope.FLAG_HELLO | envelope.FLAG_REQUEST | envelope.FLAG_REPLY
              | envelope.FLAG_ANNOUNCE)
@@ -235,7 +235,7 @@ class Router:
                 self.link_drop(link, Drop.UNKNOWN_TOPIC, f"topic id {topic_id} from {source}")
             elif route.on_frame(header, frame, link.arrived) and link.datagram \
                     and self.on_heard is not None:
-                self.on_heard(route, link, source)
+                self.on_heard(route, header, link, source)
         elif flags & envelope.FLAG_HELLO:
             if self.on_hello is None:
                 self.link_drop(link, Drop.UNEXPECTED_HELLO, f"from {source}")

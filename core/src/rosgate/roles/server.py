@@ -113,8 +113,8 @@ class ServerRole(Role):
         self.router.on_hello = self.on_hello
         self.router.on_heard = self.on_heard
         #: datagram ports take frames from where clients' genuine hellos and frames came from
-        #: (and a few from elsewhere on probation: :meth:`on_heard`)
-        self.clients = KnownSources(STRANGERS_PER_SECOND)
+        #: (and, with identities, a few from elsewhere on probation: :meth:`on_heard`)
+        self.clients = KnownSources(STRANGERS_PER_SECOND if self.cfg.secure else 0)
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
         self._handshakes = ConnectionLimits(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
                                             self.limits.recent)
@@ -447,15 +447,20 @@ class ServerRole(Role):
         if session is None or not self._hello_is_genuine(session, header, frame, link):
             self.router.link_drop(link, Drop.BAD_HELLO, f"from {source}")
             return
-        if isinstance(link, DatagramLink):
+        if isinstance(link, DatagramLink) and (session.schedule is None  # a token hello
+                                               or _newest(session.hellos.newest(), header)):
             self._found_at(session, link, source)
 
-    def on_heard(self, route: Route, link: Link, source: Address) -> None:
+    def on_heard(self, route: Route, header: envelope.Header, link: Link,
+                 source: Address) -> None:
         """A topic's frame opened under its key and new to its replay window, from ``source``:
         when that is not where its client was, the client moved (a roam, a NAT's new port), and
         is answered there from now on. A forged frame does not open, a replayed one is not new:
-        neither moves anyone (WireGuard's rule)."""
-        if self.clients.knows(source) or not isinstance(link, DatagramLink):
+        neither moves anyone (WireGuard's rule); nor does one overtaken on the way by a newer
+        one (sent from where the client was just before). A frame anyone could have made (no
+        session keys: ``insecure: true``) moves nobody either: there only hellos do."""
+        if self.clients.knows(source) or not isinstance(link, DatagramLink) \
+                or not route.keys.authenticates or not _newest(route.taken(), header):
             return
         with self._lock:
             session = next((s for s in self.sessions.values()
@@ -555,3 +560,8 @@ class ServerRole(Role):
                     log.warning("client %r gone for %g s: its session is dropped",
                                 session.name, cfg.session_timeout)
                     self._end(session)
+
+
+def _newest(taken: dict[int, int], header: envelope.Header) -> bool:
+    """Whether a frame just taken is the newest of its epoch (not a late one)."""
+    return taken.get(header.epoch) == header.seq
