@@ -137,6 +137,8 @@ def test_a_robot_that_roams_mid_stream_loses_nothing(hosts, bridge, domain, tmp_
           f"missing {missing[:20]}")
     assert f"client 'robot1' up: connected from {new} with 1 topic(s) and 0 service(s), " \
         "its session kept" in base.log, said
+    # its main line given up as soon as its address went, not after peer_timeout's silence
+    assert "down (this host no longer has the address it connected from)" in robot.log, said
     if transport == "udp":  # its frames from the new address moved it before its next hello
         assert f"client 'robot1' moved from {old}:" in base.log, said
     assert len(set(numbers)) == COUNT, f"missing {missing}\n{said}"

@@ -112,3 +112,10 @@ def test_what_a_far_side_says_it_took_is_read_or_ignored_never_a_crash():
     for said in (None, "x", {"5": []}, [[5, [[1, float("inf")]]]], [[5, [[1, float("nan")]]]],
                  [[5, "ab"]], [[5, {"a": 1}]], [[5, [[1]]]], [[None, []]], [5], [[1, 2, 3]]):
         assert read_taken(said) is None, said
+
+
+def test_a_connection_whose_address_this_host_still_has_is_not_gone(tcp_connections):  # noqa: F811
+    client, server = tcp_connections()
+    gone = getattr(client, "address_gone", None)
+    if gone is not None:  # TCP's; the radio's stand-in (a Unix socket) has no address to lose
+        assert gone() is False and server.address_gone() is False
