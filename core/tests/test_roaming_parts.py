@@ -47,7 +47,7 @@ def frame(seq: int, flags: int = 0, topic: int = TOPIC) -> bytes:
 def test_a_slot_writes_again_what_a_dead_connection_carried_and_the_far_side_did_not_take(
         closing, tcp_connections):  # noqa: F811 (test_links's fixtures)
     drops = Inbox()
-    slot = closing(LinkSlot("slot", QueueLimits(frames=100, bytes=100_000)))
+    slot = closing(LinkSlot("slot", QueueLimits(frames=100, bytes=100_000), resends=True))
     reliable, best_effort = drops.sender(TOPIC, reliable=True), drops.sender(9)
     client, server = tcp_connections()
     first = Inbox()
@@ -77,7 +77,7 @@ def test_a_slot_writes_again_what_a_dead_connection_carried_and_the_far_side_did
 
 def test_a_slot_forgets_what_it_wrote_for_a_new_session(closing, tcp_connections):  # noqa: F811
     drops = Inbox()
-    slot = closing(LinkSlot("slot", QueueLimits(frames=3, bytes=100_000)))
+    slot = closing(LinkSlot("slot", QueueLimits(frames=3, bytes=100_000), resends=True))
     reliable = drops.sender(TOPIC, reliable=True)
     client, server = tcp_connections()
     first = Inbox()
@@ -119,3 +119,23 @@ def test_a_connection_whose_address_this_host_still_has_is_not_gone(tcp_connecti
     gone = getattr(client, "address_gone", None)
     if gone is not None:  # TCP's; the radio's stand-in (a Unix socket) has no address to lose
         assert gone() is False and server.address_gone() is False
+
+
+def test_a_slot_that_does_not_resend_keeps_nothing_it_wrote(closing, tcp_connections):  # noqa: F811
+    """A dedicated port's or a peer's slot: no handshake says what the far side took."""
+    slot = closing(LinkSlot("slot", QueueLimits(frames=100, bytes=100_000)))
+    client, server = tcp_connections()
+    first = Inbox()
+    closing(stream_link(server, "far", first))
+    near = closing(stream_link(client, "near", Inbox()))
+    slot.attach(near)
+    slot.send_all([frame(seq) for seq in range(1, 4)], Inbox().sender(TOPIC, reliable=True))
+    assert first.wait(lambda: len(first.frames) >= 3)
+    near.fail("gone")
+    client, server = tcp_connections()
+    second = Inbox()
+    closing(stream_link(server, "far again", second))
+    slot.attach(closing(stream_link(client, "near again", Inbox())), {TOPIC: {}})
+    slot.send(frame(9), Inbox().sender(TOPIC, reliable=True))
+    assert second.wait(lambda: len(second.frames) >= 1)
+    assert second.payloads() == [frame(9)]

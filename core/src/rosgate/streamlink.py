@@ -417,13 +417,15 @@ class LinkSlot(Link):
     peer again) :meth:`attach`-es each new connection. While there is none, frames of reliable
     senders wait, oldest dropped first past the limits (``queue_full``), and go to the next
     connection first; other frames are counted ``link_down``. Frames handed to a connection
-    that then fails are kept a while (:data:`RESEND_WITHIN`, within the same limits): the
-    next connection of the same session writes again those the far side says it did not
-    take (:meth:`attach`), before what waited."""
+    that then fails are lost, unless the slot ``resends`` (a main line, whose handshake says
+    what each side took): then they are kept a while (:data:`RESEND_WITHIN`, within the same
+    limits), and the next connection of the same session writes again those the far side says
+    it did not take (:meth:`attach`), before what waited."""
 
-    def __init__(self, name: str, limits: QueueLimits):
+    def __init__(self, name: str, limits: QueueLimits, resends: bool = False):
         self.name = name
         self.limits = limits
+        self.resends = resends
         self.current: StreamLink | None = None
         self.closed = threading.Event()
         self._waiting: deque[tuple[bytes, Sender]] = deque()
@@ -437,7 +439,7 @@ class LinkSlot(Link):
         with self._lock:
             link = self.current
             if link is not None and not link.closed.is_set():
-                if sender.delivery.reliable:
+                if self.resends and sender.delivery.reliable:
                     self._wrote(frames, sender)
                 return link.send_all(frames, sender)
             refused = self.closed.is_set() or not sender.delivery.reliable
@@ -482,7 +484,8 @@ class LinkSlot(Link):
                 self._written.clear()
                 self._written_bytes = 0
             for frame, sender in [*again, *self._waiting]:
-                self._wrote([frame], sender)
+                if self.resends:
+                    self._wrote([frame], sender)
                 link.send(frame, sender)
             self._waiting.clear()
             self._waiting_bytes = 0

@@ -44,7 +44,7 @@ log = logging.getLogger("rosgate")
 class ClientRole(Role):
     def __init__(self, bridge: Bridge):
         super().__init__(bridge)
-        self.main = bridge.slot(f"main->{self.cfg.server}")
+        self.main = bridge.slot(f"main->{self.cfg.server}", resends=True)
         self.session: int | None = None
         self.token = b""
         self.server_name: str | None = None

@@ -331,7 +331,8 @@ class ServerRole(Role):
                               fix="try again later (bridge.limits.sessions on the server)")
         entries, part_of = client_entries(hello, self.cfg.defaults, f"client {name}")
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
-                          hello.get("services", []), self.bridge.slot(f"main of {name}"),
+                          hello.get("services", []),
+                          self.bridge.slot(f"main of {name}", resends=True),
                           entries=entries, policy=policy, actions=hello.get("actions", []),
                           part_of=part_of,
                           schedule=KeySchedule(self.cfg.rekey) if self.cfg.secure else None)
