@@ -5,6 +5,7 @@ veth pair, the client's address moved under a reliable topic at 100 Hz."""
 from __future__ import annotations
 
 import contextlib
+import os
 import socket
 import subprocess
 import sys
@@ -37,8 +38,6 @@ class Side:
     """A ROS talker or listener (tests/roam_side.py) inside a namespace; its lines kept."""
 
     def __init__(self, pair, host: str, domain_id: int, *argv: str):
-        import os
-
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED="1")
         self.proc = pair.popen(host, [sys.executable, SIDE, *argv], env=env, text=True,
                                stdin=subprocess.PIPE, stdout=subprocess.PIPE,
@@ -139,7 +138,7 @@ def test_a_robot_that_roams_mid_stream_loses_nothing(hosts, bridge, domain, tmp_
         "its session kept" in base.log, said
     # its main line given up as soon as its address went, not after peer_timeout's silence
     assert "down (this host no longer has the address it connected from)" in robot.log, said
-    if transport == "udp":  # its frames from the new address moved it before its next hello
+    if transport == "udp":  # its first genuine datagram from there moved it, not a heartbeat
         assert f"client 'robot1' moved from {old}:" in base.log, said
     assert len(set(numbers)) == COUNT, f"missing {missing}\n{said}"
     assert numbers == list(range(COUNT)), "out of order or twice"
