@@ -448,8 +448,7 @@ class ServerRole(Role):
         if session is None or not self._hello_is_genuine(session, header, frame, link):
             self.router.link_drop(link, Drop.BAD_HELLO, f"from {source}")
             return
-        if isinstance(link, DatagramLink) and (session.schedule is None  # a token hello
-                                               or _newest(session.hellos.newest(), header)):
+        if isinstance(link, DatagramLink):  # (hellos of several links share one sequence)
             self._found_at(session, link, source)
 
     def on_heard(self, route: Route, header: envelope.Header, link: Link,
