@@ -5,6 +5,10 @@ them together across network namespaces)."""
 
 from __future__ import annotations
 
+import errno
+import threading
+
+from polling import settles
 from test_links import Inbox, closing, stream_link, tcp_connections  # noqa: F401 (fixtures)
 
 from rosgate.admission import KnownSources
@@ -139,3 +143,51 @@ def test_a_slot_that_does_not_resend_keeps_nothing_it_wrote(closing, tcp_connect
     slot.send(frame(9), Inbox().sender(TOPIC, reliable=True))
     assert second.wait(lambda: len(second.frames) >= 1)
     assert second.payloads() == [frame(9)]
+
+
+class NoRoute:
+    """A real UDP endpoint whose sends fail (no route to the far side) while ``down``: a host
+    between its old address and its new one."""
+
+    def __init__(self, endpoint) -> None:
+        self.endpoint = endpoint
+        self.down = threading.Event()
+        self.refused = 0
+
+    def send(self, frame: bytes, to) -> None:
+        if self.down.is_set():
+            self.refused += 1
+            raise OSError(errno.ENETUNREACH, "Network is unreachable")
+        self.endpoint.send(frame, to)
+
+    def receive(self, timeout: float):
+        return self.endpoint.receive(timeout)
+
+    def close(self) -> None:
+        self.endpoint.close()
+
+
+def test_a_message_the_system_would_not_send_is_repaired_once_there_is_a_route(closing):  # noqa: F811
+    """``recovery: retransmit``: what could not leave while the host had no address is sent
+    again once it has one (before: counted ``send_error`` and never sent)."""
+    from rosgate_transport_udp import UdpTransport
+    from test_links_real import Receiver, Topic, frame
+
+    from rosgate.links import DatagramLink
+
+    transport = UdpTransport({})
+    rx = Receiver()
+    far = transport.bind(("127.0.0.1", 0))
+    closing(DatagramLink(transport, far, "far", rx.on_frame, rx.on_lost))
+    near = NoRoute(transport.bind(("127.0.0.1", 0)))
+    link = closing(DatagramLink(transport, near, "near", Receiver().on_frame,
+                                Receiver().on_lost))
+    topic = Topic(TOPIC, recovery="retransmit")
+    frames = [frame(TOPIC, seq, 300) for seq in range(1, 6)]
+    near.down.set()
+    for f in frames:
+        link.send(f, topic, far.sock.getsockname())
+    assert settles(lambda: near.refused >= 5), near.refused
+    near.down.clear()
+    assert rx.wait(lambda: len(rx.frames) >= 5, 10), (rx.frames, topic.drops)
+    assert sorted(rx.frames) == sorted(frames) and topic.drops == []
