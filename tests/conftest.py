@@ -258,7 +258,8 @@ class Bridge:
     """A ``rosgate run`` process."""
 
     def __init__(self, config: Path, domain_id: int, ready: str = "running as",
-                 env: dict[str, str] | None = None, rosgate: str = ROSGATE):
+                 env: dict[str, str] | None = None, rosgate: str = ROSGATE,
+                 prefix: list[str] | None = None):
         env = dict(os.environ if env is None else env, ROS_DOMAIN_ID=str(domain_id),
                    PYTHONUNBUFFERED="1")
         config.write_text(AUTH.secure(config.read_text()))
@@ -266,7 +267,8 @@ class Bridge:
         self.lines: list[str] = []
         self._cond = threading.Condition()
         self._interrupted = False
-        self.proc = subprocess.Popen([rosgate, "run", str(config)], env=env,
+        # prefix: what runs it, e.g. ``ip netns exec NAME`` (which execs it: the same process)
+        self.proc = subprocess.Popen([*(prefix or []), rosgate, "run", str(config)], env=env,
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()

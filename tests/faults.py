@@ -175,6 +175,18 @@ class UdpFaults:
                     self._threads.append(thread)
             self._forward(upstream, data, self.target)
 
+    def rebind(self) -> None:
+        """Forward each sender's datagrams from a new socket (a new port), as a NAT that lost
+        its mapping does: the target sees its clients at new addresses."""
+        with self._lock:
+            for sender, old in list(self._upstream.items()):
+                upstream = self._upstream[sender] = _udp_socket((HOST, 0))
+                thread = threading.Thread(target=self._back_loop, args=(upstream, sender),
+                                          daemon=True)
+                thread.start()
+                self._threads.append(thread)
+                old.close()  # its thread ends; answers to the old port are lost, as behind a NAT
+
     def _back_loop(self, upstream: socket.socket, sender: tuple[str, int]) -> None:
         while not self._closed.is_set():
             try:

@@ -72,13 +72,36 @@ class Sources:
 
 class KnownSources(Sources):
     """Sources learnt while running: a server's clients, at the addresses their genuine hellos
-    came from. A datagram from anywhere else is taken only when it is a hello (which the server
-    then checks); everything else from there is ``not_allowed``, before any reassembly."""
+    or frames came from. A datagram from anywhere else is taken when it is a hello (which the
+    server then checks), or on probation, at most ``strangers`` a second from all unknown
+    addresses together: a client that moved (a roam, a NAT that picked another port) is heard
+    at once, its first frame that opens under its session's key moving its address; the rest is
+    ``not_allowed``, before any reassembly."""
 
-    def __init__(self) -> None:
+    def __init__(self, strangers: float = 0.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(())
         self._known: Counter[Address] = Counter()
         self._lock = threading.Lock()
+        self.strangers = strangers
+        self.clock = clock
+        self._tokens, self._filled = strangers, clock()
+
+    def knows(self, source: Address) -> bool:
+        return source in self._known
+
+    def _on_probation(self) -> bool:
+        """One more datagram from an unknown address, within the rate (a token bucket of one
+        second's worth); called from the links' receiving threads."""
+        with self._lock:
+            now = self.clock()
+            self._tokens = min(self.strangers,
+                               self._tokens + (now - self._filled) * self.strangers)
+            self._filled = now
+            if self._tokens < 1:
+                return False
+            self._tokens -= 1
+            return True
 
     def learn(self, source: Address) -> None:
         with self._lock:
@@ -91,7 +114,8 @@ class KnownSources(Sources):
                 del self._known[source]
 
     def admits(self, source: Address, datagram: bytes | memoryview = b"") -> bool:
-        return source in self._known or envelope.is_hello(datagram)
+        return source in self._known or envelope.is_hello(datagram) or (
+            self.strangers > 0 and self._on_probation())
 
     def __repr__(self) -> str:
         return f"{len(self._known)} client address(es)"

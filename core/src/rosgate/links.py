@@ -484,6 +484,19 @@ class DatagramLink(_Sending, Link):
             return None
         return self._make(registration.cls)
 
+    def moved(self, old: Address, new: Address) -> None:
+        """The far side at ``old`` is at ``new`` now (a roam): its packetizers send what they
+        keep for it there, their timers run at once."""
+        for packetizer in list(self._by_name.values()):
+            try:
+                packetizer.moved(old, new)
+            except Exception:
+                BUGS.bug("packetizer_error", f"{self.name}: packetizer {packetizer.name} could "
+                                             "not follow a far side that moved (a plugin bug)")
+        with self._wake:
+            self._tx_timer = time.monotonic()
+            self._wake.notify_all()
+
     def repeat(self, sender: Any, to: Address, packets: list[bytes]) -> None:
         with self._lock:
             self.scheduler.repair(sender, to, packets)
@@ -627,6 +640,11 @@ class DatagramLink(_Sending, Link):
             else:
                 self.endpoint.send(packet, to)
         except OSError as exc:
+            if self._repairs(packet) and not self.closed.is_set():
+                # no route for now (a host between two addresses): lost on the way, as far as
+                # its packetizer goes, which sends it again (the receiver counts what never came)
+                self._left(due, packet, to)
+                return False
             # a message cut short by close() was counted there, unless this was its last packet
             if due.ends is not None or not self.closed.is_set():
                 sender.drop(Drop.SEND_ERROR, f"to {to} on {self.name}: {exc}")
@@ -637,15 +655,26 @@ class DatagramLink(_Sending, Link):
         if due.ends is not None:
             counters.frames_out += 1
         sender.on_wire(len(packet), due.again)
+        self._left(due, packet, to)
+        return True
+
+    def _repairs(self, packet: Any) -> bool:
+        """Whether ``packet`` is of a packetizer that sends again what is lost (``sent``)."""
+        if type(packet) is not bytes:
+            return False
+        packetizer = self._by_magic.get(packet[:2])
+        return packetizer is not None and _sends(packetizer)
+
+    def _left(self, due: Due, packet: Any, to: Address) -> None:
+        """The last packet of a frame has left (or was lost leaving): its packetizer's timer."""
         if due.ends is not None and due.ends is not SENT_INLINE and type(packet) is bytes:
             packetizer = self._by_magic.get(packet[:2])
-            if packetizer is not None and _sends(packetizer):  # the last packet of a frame
+            if packetizer is not None and _sends(packetizer):
                 now = time.monotonic()
                 packetizer.sent(packet, to, now)
                 due_at = packetizer.timer(now)
                 if due_at is not None and (self._tx_timer is None or due_at < self._tx_timer):
                     self._tx_timer = due_at
-        return True
 
     def _send_batch(self, dues: list[Due], to: Address) -> int:
         """Whole frames in one datagram; how many were sent (a failure is counted for each)."""

@@ -111,6 +111,13 @@ class Packetizer(ABC):
         every packet fed (and, with :meth:`sent`, every frame sent)."""
         return None
 
+    def moved(self, old: Address, new: Address) -> None:
+        """The far side at ``old`` is at ``new`` from now on (it roamed, a NAT rebound it):
+        what is kept for ``old`` (frames not yet acknowledged) goes to ``new``. Called from
+        the link's receiving thread; the send thread's timers run right after. By default
+        nothing is kept per address."""
+        return None
+
     @classmethod
     @abstractmethod
     def cost(cls, frame: int, max_frame: int, options: Any) -> tuple[int, int]:

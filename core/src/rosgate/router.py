@@ -47,6 +47,8 @@ WATCH_EVERY = announce.ANNOUNCE_FAST
 
 Destination = Callable[[], Address | None]
 HelloHandler = Callable[[envelope.Header, bytes, Link, Address], None]
+#: (route, header, link, source): a topic's frame opened, on a datagram link, from that source
+HeardHandler = Callable[[Route, envelope.Header, Link, Address], None]
 #: the flags of frames that are not a topic's message
 _NOT_DATA = (envelope.FLAG_HELLO | envelope.FLAG_REQUEST | envelope.FLAG_REPLY
              | envelope.FLAG_ANNOUNCE)
@@ -79,6 +81,8 @@ class Router:
         self.link_drops: Counter = Counter()
         #: a role that takes hellos (the server) sets this; elsewhere a hello is foreign
         self.on_hello: HelloHandler | None = None
+        #: a role that learns where its far sides are from their frames (the server) sets this
+        self.on_heard: HeardHandler | None = None
         self._lock = threading.RLock()
         self._closing = threading.Event()
         self._watcher = threading.Thread(target=self._watch, name="announce", daemon=True)
@@ -259,8 +263,9 @@ class Router:
             route = self.receivers.get(topic_id)
             if route is None:
                 self.link_drop(link, Drop.UNKNOWN_TOPIC, f"topic id {topic_id} from {source}")
-            else:
-                route.on_frame(header, frame, link.arrived)
+            elif route.on_frame(header, frame, link.arrived) and link.datagram \
+                    and self.on_heard is not None:
+                self.on_heard(route, header, link, source)
         elif flags & envelope.FLAG_HELLO:
             if self.on_hello is None:
                 self.link_drop(link, Drop.UNEXPECTED_HELLO, f"from {source}")

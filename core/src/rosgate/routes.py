@@ -141,6 +141,11 @@ class Route:
             return None
         return payload
 
+    def taken(self) -> dict[int, int]:
+        """What this route took of its far side: the newest sequence number per epoch."""
+        with self._lock:
+            return self.replay.newest()
+
     def heard(self, header: envelope.Header,
               frame: bytes) -> tuple[Identity | None, dict[str, Any] | None] | None:
         """The far side's announcement frame of this entry: see :meth:`told`."""
@@ -475,20 +480,20 @@ class ReceiveRoute(Route):
         #: the transform of a wire id, whatever this side's file says (the sender's frame says)
         self.transforms = transforms
 
-    def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> None:
+    def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> bool:
         """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
-        datagram that carried it reached this machine (time.time_ns(); 0: unknown)."""
+        datagram that carried it reached this machine (time.time_ns(); 0: unknown). Whether
+        its cipher and the replay window took it (a genuine, new frame of the far side)."""
         size = len(frame)
         payload = self.admit(header, frame)
         if payload is None:
-            return
+            return False
         if self.check.mismatch is not None:
             self.refuse_type()
-            return
-        if self.check.awaiting and self.check.hold(size, lambda agreed: self.accept(
-                header, payload, size) if agreed else self.refuse_type()):
-            return  # until the far side says its type (rosgate.announce)
-        self.accept(header, payload, size, arrived)
+        elif not (self.check.awaiting and self.check.hold(size, lambda agreed: self.accept(
+                header, payload, size) if agreed else self.refuse_type())):
+            self.accept(header, payload, size, arrived)  # else: until the far side says its type
+        return True
 
     def accept(self, header: envelope.Header, payload: bytes, size: int,
                arrived: int = 0) -> None:

@@ -188,6 +188,10 @@ class SecureConnection:
         self.closed = True
         self.raw.close()
 
+    def address_gone(self) -> bool:
+        gone = getattr(self.raw, "address_gone", None)
+        return gone is not None and bool(gone())
+
 
 def hkdf(secret: bytes, info: bytes, salt: bytes | None = None, length: int = 32) -> bytes:
     return HKDF(algorithm=SHA256(), length=length, salt=salt, info=info).derive(secret)

@@ -35,6 +35,7 @@ from .links import (
 from .scheduler import Due, Outgoing
 from .transport import Address, StreamConnection, StreamTransport, Transport
 from .warn import BUGS
+from .wire import envelope
 from .wire.framing import (
     CHUNK,
     CHUNK_HEAD,
@@ -53,6 +54,14 @@ log = logging.getLogger("rosgate")
 
 WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
 CONNECT_TIMEOUT = 5.0
+#: seconds between two checks that a connection's local address is still this host's (a roam)
+ADDRESS_CHECK = 0.25
+#: seconds a slot keeps a reliable frame it wrote, to write it again on the next connection when
+#: the far side says it never got it (a connection dies with what its buffers held)
+RESEND_WITHIN = 10.0
+
+#: what the far side of a slot took: topic id -> epoch -> the newest sequence number
+Taken = dict[int, dict[int, int]]
 
 
 def length_prefixed(frame: bytes) -> bytes:
@@ -413,15 +422,21 @@ class LinkSlot(Link):
     peer again) :meth:`attach`-es each new connection. While there is none, frames of reliable
     senders wait, oldest dropped first past the limits (``queue_full``), and go to the next
     connection first; other frames are counted ``link_down``. Frames handed to a connection
-    that then fails are not taken back (no acknowledgements)."""
+    that then fails are lost, unless the slot ``resends`` (a main line, whose handshake says
+    what each side took): then they are kept a while (:data:`RESEND_WITHIN`, within the same
+    limits), and the next connection of the same session writes again those the far side says
+    it did not take (:meth:`attach`), before what waited."""
 
-    def __init__(self, name: str, limits: QueueLimits):
+    def __init__(self, name: str, limits: QueueLimits, resends: bool = False):
         self.name = name
         self.limits = limits
+        self.resends = resends
         self.current: StreamLink | None = None
         self.closed = threading.Event()
         self._waiting: deque[tuple[bytes, Sender]] = deque()
         self._waiting_bytes = 0
+        self._written: deque[tuple[bytes, Sender, float]] = deque()  # reliable, maybe in flight
+        self._written_bytes = 0
         self._lock = threading.Lock()  # keeps sends and the flush of the queue in order
 
     def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
@@ -429,6 +444,8 @@ class LinkSlot(Link):
         with self._lock:
             link = self.current
             if link is not None and not link.closed.is_set():
+                if self.resends and sender.delivery.reliable:
+                    self._wrote(frames, sender)
                 return link.send_all(frames, sender)
             refused = self.closed.is_set() or not sender.delivery.reliable
             if not refused:
@@ -448,14 +465,45 @@ class LinkSlot(Link):
             return 0
         return len(frames)
 
-    def attach(self, link: StreamLink) -> None:
-        """Use ``link`` from now on; what waited goes first."""
+    def _wrote(self, frames: list[bytes], sender: Sender) -> None:
+        """Keep reliable frames handed to a connection (under the lock), the oldest forgotten
+        past the limits and :data:`RESEND_WITHIN`."""
+        now, written = time.monotonic(), self._written
+        for frame in frames:
+            written.append((frame, sender, now))
+            self._written_bytes += len(frame)
+        limits, since = self.limits, now - RESEND_WITHIN
+        while written and (len(written) > limits.frames or self._written_bytes > limits.bytes
+                           or written[0][2] < since):
+            self._written_bytes -= len(written.popleft()[0])
+
+    def attach(self, link: StreamLink, taken: Taken | None = None) -> None:
+        """Use ``link`` from now on; what waited goes first. ``taken``: what the far side
+        says it took of this session's topics (a connection of the same session, again):
+        frames written to the connections before that it did not take go before them."""
         with self._lock:
-            while self._waiting:
-                frame, sender = self._waiting.popleft()
+            again: list[tuple[bytes, Sender]] = []
+            if taken is not None:  # else nothing is known of what the far side took
+                again = [(frame, sender) for frame, sender, _ in self._written
+                         if _untaken(frame, taken)]
+                self._written.clear()
+                self._written_bytes = 0
+            for frame, sender in [*again, *self._waiting]:
+                if self.resends:
+                    self._wrote([frame], sender)
                 link.send(frame, sender)
+            self._waiting.clear()
             self._waiting_bytes = 0
             self.current = link
+        if again:
+            log.info("%s: %d frame(s) the far side did not get written again", self.name,
+                     len(again))
+
+    def forget_written(self) -> None:
+        """A new session: what the last one wrote means nothing to it."""
+        with self._lock:
+            self._written.clear()
+            self._written_bytes = 0
 
     def discard(self, reason: Reason) -> None:
         """Drop what waits (its topic ids mean nothing to a new session), counted by ``reason``."""
@@ -492,6 +540,24 @@ class LinkSlot(Link):
         self.discard(Drop.LINK_DOWN)
         if self.current is not None:
             self.current.close()
+
+
+def _untaken(frame: bytes, taken: Taken) -> bool:
+    """Whether ``frame`` is a topic's message its far side has not taken (a topic it says
+    nothing of, and anything else, is never written again)."""
+    try:
+        header = envelope.unpack(frame)
+    except envelope.EnvelopeError:
+        return False
+    newest = taken.get(header.topic_id)
+    if newest is None or header.flags & _NOT_MESSAGE:
+        return False
+    top = newest.get(header.epoch)
+    return top is None or header.seq > top
+
+
+_NOT_MESSAGE = (envelope.FLAG_CONTROL | envelope.FLAG_HELLO | envelope.FLAG_REQUEST
+                | envelope.FLAG_REPLY | envelope.FLAG_ANNOUNCE)
 
 
 @dataclass(frozen=True)
@@ -548,9 +614,12 @@ class Connector:
             failures = 0
             self._last_failure = ""
             self.slot.attach(link)
-            while not link.closed.wait(0.5):
+            gone = getattr(link.connection, "address_gone", None)
+            while not link.closed.wait(ADDRESS_CHECK):
                 if stopping.is_set() or self.slot.closed.is_set():
                     break
+                if gone is not None and gone():  # it roamed: the connection is dead already
+                    link.fail("this host no longer has the address it connected from")
             if stopping.is_set() and not self.slot.closed.is_set():
                 return  # the role may have a last word (bye); closing the slot closes the link
             link.close()

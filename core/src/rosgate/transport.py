@@ -16,6 +16,7 @@ method, per role, is the table in docs/plugins.md. A ``ValueError`` from ``parse
 
 from __future__ import annotations
 
+import errno
 import select
 import socket
 from abc import ABC, abstractmethod
@@ -104,6 +105,10 @@ class StreamConnection(Protocol):
 
     def close(self) -> None:
         """Close; a ``receive`` blocked in another thread returns soon after."""
+
+    # optional: ``address_gone() -> bool``, whether this machine no longer has the address the
+    # connection was made from (a roam, a renewed lease): the core then connects again at once
+    # instead of waiting for the far side to fall silent. :class:`SocketConnection` has it.
 
 
 class FastStreamConnection(StreamConnection, Protocol):
@@ -231,6 +236,24 @@ class SocketConnection:
         self.sock = sock
         self._readable = select.poll()
         self._readable.register(sock, select.POLLIN)
+        try:  # an IP connection's own address, with any port: whether it is still this host's
+            local = sock.getsockname()
+        except OSError:
+            local = None
+        self._local = (local[0], 0, *local[2:]) if sock.family in (
+            socket.AF_INET, socket.AF_INET6) and isinstance(local, tuple) else None
+
+    def address_gone(self) -> bool:
+        """Whether this host no longer has the address the connection was made from (it
+        roamed): no byte can go through it again. A bind to that address says it."""
+        if self._local is None:
+            return False
+        with socket.socket(self.sock.family, socket.SOCK_DGRAM) as probe:
+            try:
+                probe.bind(self._local)
+            except OSError as exc:
+                return exc.errno == errno.EADDRNOTAVAIL
+        return False
 
     def send(self, data: bytes) -> None:
         self.sock.sendall(data)

@@ -260,6 +260,39 @@ def test_a_nack_is_answered_only_for_the_address_the_frame_went_to():
     assert store.on_nack(("10.0.0.2", 1), recovery.nack(5, [0, 1, 99])) == ("route", [b"p0", b"p1"])
 
 
+def test_a_far_side_that_moved_gets_what_was_kept_for_its_old_address_at_once():
+    """A roam: frames sent to the old address were lost with it; once the far side is heard
+    at its new one, they are probed there at once, their deadline counted afresh, and its
+    NACKs are answered there (never at the old one)."""
+    old, new, other = ("10.0.0.1", 9), ("10.0.0.3", 9), ("10.0.0.2", 9)
+    store = RetransmitStore(deadline=2.0)
+    store.keep(old, 1, [b"p0", b"p1"], "route", 0.0)
+    store.keep(other, 2, [b"q0"], "other", 0.0)
+    store.sent(old, 1, 0.0)
+    assert [(to, p) for _, to, p in store.probes(0.3)] == [(old, b"p1")]  # lost with it
+    store.moved(old, new, 1.9)
+    assert [(to, p) for _, to, p in store.probes(1.9)] == [(new, b"p1")]
+    assert store.on_nack(other, recovery.nack(2, [0])) == ("other", [b"q0"])  # untouched
+    assert store.on_nack(old, recovery.nack(1, [0])) is None
+    assert store.on_nack(new, recovery.nack(1, [0])) == ("route", [b"p0"])
+    store.probes(3.0)  # 2 s from the move, not from when it first left
+    assert store.on_nack(new, recovery.nack(1, [1])) is not None
+    store.probes(4.0)
+    assert store.on_nack(new, recovery.nack(1, [1])) is None  # gone at last
+
+
+def test_a_frame_in_progress_from_a_far_side_that_moved_is_finished_from_there():
+    log, sent = Log(), []
+    old, new = ("10.0.0.1", 9), ("10.0.0.3", 9)
+    rx = RepeatReassembler(log.on_lost, log.on_recovered, send=lambda d, s: sent.append((d, s)))
+    frame = frame_of(3000, 4)
+    packets = repeat_fragments(frame, 1200, TOPIC, 11)
+    assert rx.add(old, packets[0], 0.0) is None
+    rx.moved(old, new)
+    assert [rx.add(new, p, 0.1) for p in packets[1:]][-1] == frame
+    assert log.lost == [] and sent[-1][1] == new  # acknowledged at the new address
+
+
 def test_every_fragment_is_sent_a_bounded_number_of_times():
     store = RetransmitStore()
     store.keep("b", 1, [b"p0"], "route", 0.0)

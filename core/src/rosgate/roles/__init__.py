@@ -62,9 +62,11 @@ class Bridge:
     router: Router
     life: Lifetime
 
-    def slot(self, name: str) -> LinkSlot:
-        """A place for a stream link that reconnects; reliable frames wait in it while down."""
-        return LinkSlot(name, QueueLimits(self.config.queue_frames, self.config.queue_bytes))
+    def slot(self, name: str, resends: bool = False) -> LinkSlot:
+        """A place for a stream link that reconnects; reliable frames wait in it while down
+        (``resends``: and what it wrote is kept, to be written again: a main line)."""
+        return LinkSlot(name, QueueLimits(self.config.queue_frames, self.config.queue_bytes),
+                        resends)
 
     @property
     def backoff(self) -> Backoff:

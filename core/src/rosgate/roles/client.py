@@ -37,6 +37,8 @@ from .mainline import (
     control,
     hello_datagram,
     is_control,
+    read_taken,
+    taken,
 )
 
 log = logging.getLogger("rosgate")
@@ -45,7 +47,7 @@ log = logging.getLogger("rosgate")
 class ClientRole(Role):
     def __init__(self, bridge: Bridge):
         super().__init__(bridge)
-        self.main = bridge.slot(f"main->{self.cfg.server}")
+        self.main = bridge.slot(f"main->{self.cfg.server}", resends=True)
         self.session: int | None = None
         self.token = b""
         self.server_name: str | None = None
@@ -109,7 +111,8 @@ class ClientRole(Role):
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
                            "services": [service_to_mapping(p.config) for p in plan.services],
                            "actions": [action_to_mapping(a.config) for a in plan.actions],
-                           "entries": [self.router.entry_item(p) for p in self.entries()]}),
+                           "entries": [self.router.entry_item(p) for p in self.entries()],
+                           "taken": taken(self.routes.values())}),
                   self.control)
         answer = self.answer.wait(link, self.life.stopping, HANDSHAKE_TIMEOUT)
         if answer is None:
@@ -151,8 +154,13 @@ class ClientRole(Role):
             for slot in self._dedicated.values():  # they must introduce themselves anew
                 if slot.current is not None:
                     slot.current.fail("the server started a new session")
+        # only a server that kept our session says what it took: then what our last connection
+        # carried and it did not get goes again, first
+        got = read_taken(answer.get("taken"))
+        if got is None:
+            self.main.forget_written()
         link.last_heard = time.monotonic()
-        self.main.attach(link)  # now, not when the connector gets to it: a stop says bye on it
+        self.main.attach(link, got)  # now, not when the connector gets to it: a stop says bye
         self.connected.set()
         self._say_hello()
         # what waited for the server goes first, sealed under this session's keys
@@ -192,6 +200,7 @@ class ClientRole(Role):
                 route.fail_all(Drop.LINK_DOWN, "the session's main line was lost")
         log.warning("%s: server %r down (%s); reconnecting", self.cfg.name, self.server_name,
                     link.why or "main line closed")
+        self._say_hello()  # from where we are now: a server that kept our session answers there
 
     def _apply(self, ids: list[int]) -> None:
         """Make the routes match the server's answer: one per entry it accepted (id > 0),

@@ -9,6 +9,11 @@ stops says ``bye`` to each client, whose reliable topics then wait for the next 
 datagram link and dedicated stream the client also sends a HELLO-flagged envelope (session id,
 token) so the server learns where to send, even through NAT.
 
+Each hello says what the client took (``taken``) of each topic it receives (the newest sequence
+number per epoch); a welcome to a session the server kept says the same of the server's. Each
+side then writes again what the other did not get of what its last connection carried
+(:class:`~rosgate.streamlink.LinkSlot`): a connection dies with what its buffers held.
+
 Authenticated (:mod:`rosgate.secure`): all of it travels inside the Noise handshake; the welcome
 carries the session's secret (``secret``, ``key_id``, ``rekey``) too, the client answers
 ``ready`` once it holds it, and datagram hellos are sealed under the session's keys (the token
@@ -19,7 +24,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import replace
 from typing import Any
 
@@ -33,6 +38,8 @@ from ..config import (
     topic_from_mapping,
 )
 from ..errors import ConfigError
+from ..routes import ReceiveRoute, Route
+from ..streamlink import Taken
 from ..wire import control as wire_control
 from ..wire import envelope
 
@@ -60,6 +67,23 @@ def parse_control(frame: bytes) -> dict[str, Any] | None:
 
 def hello_datagram(session: int, token: bytes) -> bytes:
     return envelope.pack(envelope.FLAG_HELLO, session, 0, 0, time.time_ns()) + token
+
+
+def taken(routes: Iterable[Route]) -> list[list[Any]]:
+    """What the receiving ``routes`` took, as a hello or a welcome says it."""
+    return [[r.topic_id, [[epoch, seq] for epoch, seq in r.taken().items()]]
+            for r in routes if isinstance(r, ReceiveRoute)]
+
+
+def read_taken(said: Any) -> Taken | None:
+    """What the far side says it took (:func:`taken`); None when it says nothing readable."""
+    if not isinstance(said, list):
+        return None
+    try:
+        return {int(topic_id): {int(epoch): int(seq) for epoch, seq in newest}
+                for topic_id, newest in said}
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an infinite number
+        return None
 
 
 def key_label(kind: str, way: str, name: str) -> str:

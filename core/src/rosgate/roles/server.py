@@ -54,10 +54,22 @@ from ..warn import BUGS
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
 from . import Bridge, Role, session_keys
-from .mainline import PROTOCOL, client_entries, control, flipped, is_control, where_error
+from .mainline import (
+    PROTOCOL,
+    client_entries,
+    control,
+    flipped,
+    is_control,
+    read_taken,
+    taken,
+    where_error,
+)
 
 log = logging.getLogger("rosgate")
 
+#: datagrams a second taken on probation from unknown addresses (a client that moved), for all
+#: of them together: more are ``not_allowed``, and such a client is heard at its next hello
+STRANGERS_PER_SECOND = 500.0
 MAX_HANDSHAKES = 32  # handshakes worked on at once (each a Diffie-Hellman); more are refused
 HANDSHAKES_PER_SOURCE = 4  # of those, from one address: a few addresses cannot take them all
 WIND_DOWN = 1.0  # seconds a stopping server waits, at most, for what clients sent before its bye
@@ -120,8 +132,10 @@ class ServerRole(Role):
         self.sessions: dict[int, Session] = {}
         self._ids = iter(range(1, 2**32))
         self.router.on_hello = self.on_hello
-        #: datagram ports take frames only from where clients' genuine hellos came from
-        self.clients = KnownSources()
+        self.router.on_heard = self.on_heard
+        #: datagram ports take frames from where clients' genuine hellos and frames came from
+        #: (and, with identities, a few from elsewhere on probation: :meth:`on_heard`)
+        self.clients = KnownSources(STRANGERS_PER_SECOND if self.cfg.secure else 0)
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
         if self.cfg.secure:  # its clients' addresses keep their places across a restart
             self.limits.recent = kept_recent_hosts(self.cfg.name)
@@ -284,6 +298,7 @@ class ServerRole(Role):
                                   file=f"client {policy.name}",
                                   fix="each client uses its own identity and bridge.name")
             session = self._resume(hello, name)
+            resumed = session is not None
             if session is None:
                 session = self._new_session(hello, name, policy)
             else:
@@ -318,17 +333,22 @@ class ServerRole(Role):
         # the session's own: a client tells a restarted server's new session by it (ids start
         # at 1 in every server); without identities it also vouches for datagram hellos
         welcome["token"] = session.token.hex()
+        if resumed:  # what its last connection carried: the client writes again what we lack
+            welcome["taken"] = taken(session.routes)
         link.send(control(welcome), self.control)
         old = session.main.current
-        session.main.attach(link)  # after the welcome: what waited goes out under known ids
+        # after the welcome: what waited goes out under known ids, after what the client's last
+        # connection did not get
+        session.main.attach(link, read_taken(hello.get("taken")) if resumed else None)
         session.down_since = None
         if old is not None and old is not link:
             old.fail("the client connected again")
         if isinstance(link.connection, SecureConnection):  # it keeps places of its own
             self.limits.recent.remember(peer[0])
-        log.info("client %r up: connected from %s with %d topic(s) and %d service(s)%s", name,
+        log.info("client %r up: connected from %s with %d topic(s) and %d service(s)%s%s", name,
                  peer[0], len(session.topics), len(session.services),
-                 f", {len(session.refused)} refused" if session.refused else "")
+                 f", {len(session.refused)} refused" if session.refused else "",
+                 ", its session kept" if resumed else "")
         return session
 
     @staticmethod
@@ -364,7 +384,8 @@ class ServerRole(Role):
                               fix="try again later (bridge.limits.sessions on the server)")
         entries, part_of = client_entries(hello, self.cfg.defaults, f"client {name}")
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
-                          hello.get("services", []), self.bridge.slot(f"main of {name}"),
+                          hello.get("services", []),
+                          self.bridge.slot(f"main of {name}", resends=True),
                           entries=entries, policy=policy, actions=hello.get("actions", []),
                           part_of=part_of,
                           schedule=KeySchedule(self.cfg.rekey) if self.cfg.secure else None)
@@ -507,14 +528,44 @@ class ServerRole(Role):
         if session is None or not self._hello_is_genuine(session, header, frame, link):
             self.router.link_drop(link, Drop.BAD_HELLO, f"from {source}")
             return
-        if isinstance(link, DatagramLink) and session.addresses.get(link) != source:
+        if isinstance(link, DatagramLink):  # (hellos of several links share one sequence)
+            self._found_at(session, link, source)
+
+    def on_heard(self, route: Route, header: envelope.Header, link: Link,
+                 source: Address) -> None:
+        """A topic's frame opened under its key and new to its replay window, from ``source``:
+        when that is not where its client was, the client moved (a roam, a NAT's new port), and
+        is answered there from now on. A forged frame does not open, a replayed one is not new:
+        neither moves anyone (WireGuard's rule); nor does one overtaken on the way by a newer
+        one (sent from where the client was just before). A frame anyone could have made (no
+        session keys: ``insecure: true``) moves nobody either: there only hellos do."""
+        if self.clients.knows(source) or not isinstance(link, DatagramLink) \
+                or not route.keys.authenticates or not _newest(route.taken(), header):
+            return
+        with self._lock:
+            session = next((s for s in self.sessions.values()
+                            if any(r is route for r in s.by_index.values())), None)
+        if session is not None:
+            self._found_at(session, link, source)
+
+    def _found_at(self, session: Session, link: DatagramLink, source: Address) -> None:
+        """Where ``session``'s client is on ``link``, from a genuine hello or frame."""
+        with self._lock:
             old = session.addresses.get(link)
+            if old == source or session.id not in self.sessions:
+                return
             if old is not None:
                 self.clients.forget(old)
             self.clients.learn(source)
             session.addresses[link] = source
-            self.router.resync(session.routes)  # its latched topics, now that it hears us
+        if old is not None:  # what waits for an acknowledgement from there goes here now
+            link.moved(old, source)
+        self.router.resync(session.routes)  # its latched topics, now that it hears us
+        if old is None:
             log.debug("client %r is at %s on %s", session.name, source, link.name)
+        else:
+            log.info("client %r moved from %s to %s on %s", session.name, f"{old[0]}:{old[1]}",
+                     f"{source[0]}:{source[1]}", link.name)
 
     def _end(self, session: Session) -> None:
         with self._lock:
@@ -589,3 +640,8 @@ class ServerRole(Role):
                     log.warning("client %r gone for %g s: its session is dropped",
                                 session.name, cfg.session_timeout)
                     self._end(session)
+
+
+def _newest(taken: dict[int, int], header: envelope.Header) -> bool:
+    """Whether a frame just taken is the newest of its epoch (not a late one)."""
+    return taken.get(header.epoch) == header.seq

@@ -123,6 +123,11 @@ class ReplayWindow:
         # (top - i) was accepted. The first epoch (insertion order) is the one to forget.
         self._windows: dict[int, list[list[int]]] = {}
 
+    def newest(self) -> dict[int, int]:
+        """The newest sequence number taken in each epoch it keeps."""
+        return {epoch: max(track[0] for track in tracks)
+                for epoch, tracks in self._windows.items()}
+
     def accept(self, epoch: int, seq: int) -> Drop | None:
         """None when the frame is new, else why it is refused ("duplicate" or "stale")."""
         tracks = self._windows.get(epoch)

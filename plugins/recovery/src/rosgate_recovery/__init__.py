@@ -140,6 +140,11 @@ class Retransmit(Packetizer):
             self.link.repeat(again[0], source, again[1])
         return frame
 
+    def moved(self, old: Any, new: Any) -> None:
+        with self._lock:
+            self.store.moved(old, new, time.monotonic())
+            self.reassembler.moved(old, new)
+
     def timer(self, now: float) -> float | None:
         with self._lock:
             probes = self.store.probes(now)

@@ -410,6 +410,15 @@ class RepeatReassembler(_Pending):
         self._shed()
         return None
 
+    def moved(self, old: Hashable, new: Hashable) -> None:
+        """Frames in progress from ``old`` go on from ``new`` (it roamed): asked for there."""
+        for key in [key for key in self._pending if key[0] == old]:
+            moved = (new, *key[1:])
+            if moved not in self._pending:
+                self._pending[moved] = self._pending.pop(key)
+        if old in self._rtt:
+            self._rtt[new] = self._rtt.pop(old)
+
     def _interval(self, source: Hashable) -> float:
         """How long to wait before asking for the same fragment again."""
         return max(1.5 * self._rtt.get(source, RTT_INITIAL), NACK_AFTER)
@@ -514,6 +523,19 @@ class RetransmitStore:
                 sample = now - kept.last_sent
                 self._rtt[to] = sample if rtt is None else 0.8 * rtt + 0.2 * sample
             self._forget((to, fid))
+
+    def moved(self, old: Any, new: Any, now: float) -> None:
+        """Frames kept for ``old`` are ``new``'s now (it roamed): probed there at once, their
+        deadline and sends counted afresh (those to ``old`` were lost with it)."""
+        for (to, fid) in [key for key in self._kept if key[0] == old]:
+            kept = self._kept.pop((to, fid))
+            kept.sends = [1] * len(kept.packets)
+            kept.probes = 0
+            if kept.last_sent is not None:
+                kept.last_sent = kept.probe_at = now
+            self._kept[(new, fid)] = kept
+        if old in self._rtt:
+            self._rtt[new] = self._rtt.pop(old)
 
     def probes(self, now: float) -> list[tuple[Any, Any, bytes]]:
         """(owner, destination, fragment) for each frame whose ACK is overdue: its last
