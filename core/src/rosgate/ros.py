@@ -354,9 +354,7 @@ class RosNode:
         their histories; None without publishers."""
         from rclpy import qos
 
-        me = (self.node.get_name(), self.node.get_namespace())
-        profiles = [info.qos_profile for info in self.node.get_publishers_info_by_topic(topic)
-                    if (info.node_name, info.node_namespace) != me]
+        profiles = self.publishers_of(topic)
         if not profiles:
             return None
         reliable = all(p.reliability == qos.ReliabilityPolicy.RELIABLE for p in profiles)
@@ -365,6 +363,24 @@ class RosNode:
         return {"reliability": "reliable" if reliable else "best_effort",
                 "durability": "transient_local" if latched else "volatile",
                 "depth": max(QOS_FOUND_DEPTH, min(depth, QOS_FOUND_MAX_DEPTH))}
+
+    def publishers_of(self, topic: str) -> list[Any]:
+        """The QoS profiles of ``topic``'s publishers on the graph, not this node's."""
+        if not self.node.count_publishers(topic):  # the cheap look first: asked often
+            return []
+        me = (self.node.get_name(), self.node.get_namespace())
+        return [info.qos_profile for info in self.node.get_publishers_info_by_topic(topic)
+                if (info.node_name, info.node_namespace) != me]
+
+    def matched_all(self, publisher: Any) -> bool:
+        """Whether ``publisher`` has matched every subscription the graph shows on its topic
+        that its QoS can match (and there is one)."""
+        from rclpy.qos import QoSCompatibility, qos_check_compatible
+
+        mine = publisher.qos_profile
+        expected = sum(qos_check_compatible(mine, info.qos_profile)[0] != QoSCompatibility.ERROR
+                       for info in self.node.get_subscriptions_info_by_topic(publisher.topic_name))
+        return 0 < expected <= publisher.get_subscription_count()
 
     def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)

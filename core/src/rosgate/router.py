@@ -20,6 +20,7 @@ from .drops import Drop, Reason
 from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
+from .matching import PublishGate
 from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, type_hash
 from .routes import BareFraming, BarePort, EnvelopeFraming, ReceiveRoute, Route, TransmitRoute
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
@@ -34,6 +35,8 @@ log = logging.getLogger("rosgate")
 #: seconds between looks at the publishers of topics without a qos (and announcements of young
 #: entries)
 WATCH_EVERY = announce.ANNOUNCE_FAST
+#: seconds between looks at the graph for the first publisher of a topic nothing subscribes to yet
+HEAR_EVERY = 0.05
 
 Destination = Callable[[], Address | None]
 HelloHandler = Callable[[envelope.Header, bytes, Link, Address], None]
@@ -64,8 +67,14 @@ class Router:
         self.on_hello: HelloHandler | None = None
         self._lock = threading.RLock()
         self._closing = threading.Event()
+        #: transmitting routes that wait for a publisher to subscribe to (see _hear)
+        self._unheard: set[TransmitRoute] = set()
+        self._someone_unheard = threading.Event()
         self._watcher = threading.Thread(target=self._watch, name="announce", daemon=True)
         self._watcher.start()
+        self._hearer = threading.Thread(target=self._wait_for_publishers, name="hear",
+                                        daemon=True)
+        self._hearer.start()
 
     # -- making routes -----------------------------------------------------------------------
     def route(self, p: TopicSpec | ServiceSpec, route_id: int, label: str, link: Link,
@@ -103,7 +112,10 @@ class Router:
             # announced before the first message, or a latched history
             self._start(route, announce and t.framing is Framing.ROSGATE)
             route.batches = self.ros.batches
-            self._listen(route, qos)
+            with self._lock:
+                self._unheard.add(route)
+            if not self._hear(route):
+                self._someone_unheard.set()
         else:
             decode: Callable[[bytes], Any] = codec.decode
             if codec.raw and not (keys.authenticates and t.framing is Framing.ROSGATE):
@@ -162,10 +174,64 @@ class Router:
                                           route.on_message, route.codec.raw)
         route.take = self.ros.taker(route.entity)
 
+    def _hear(self, route: TransmitRoute) -> bool:
+        """Subscribe for a transmitting route once the graph shows a publisher of its topic
+        (another node's) and the route has somewhere to send: made then, the subscription's
+        reader pairs with every such writer as it is made, before any writer learns of it and
+        publishes to it. (A reader made while a writer appears may learn of the writer after the
+        writer learnt of it, and then loses what the writer sent meanwhile: 5 to 8 of a
+        publisher's first messages, measured with Fast DDS.) Whether it subscribed."""
+        with self._lock:
+            if route not in self._unheard:
+                return True  # removed, or subscribed already
+            if route.link.datagram and route.destination() is None:
+                return False  # a server before the client's hello: it could send nothing
+            profiles = self.ros.publishers_of(route.topic.topic)
+            if not profiles:
+                return False
+            qos: int | str | dict[str, Any] = route.topic.qos
+            if not route.topic.qos_given:
+                route.qos_found = self.ros.qos_found(route.topic.topic)
+                if route.qos_found is None:
+                    return False  # the publisher left meanwhile
+                qos = route.qos_in_use = route.qos_found
+            self._listen(route, qos)
+            self._unheard.discard(route)
+        return True
+
+    def _wait_for_publishers(self) -> None:
+        """Every :data:`HEAR_EVERY` seconds while a transmitting route has no subscription,
+        whether it may subscribe now."""
+        while not self._closing.is_set():
+            self._someone_unheard.wait(WATCH_EVERY)
+            with self._lock:
+                unheard = list(self._unheard)
+                if not unheard:
+                    self._someone_unheard.clear()
+            for route in unheard:
+                try:
+                    if self._hear(route) and route.announces and not route.topic.qos_given:
+                        self.announce(route)  # the QoS it found
+                except Exception:
+                    BUGS.bug("hear_error", f"{route.label}: could not subscribe (a bug: please "
+                                           "report it)")
+            if self._closing.wait(HEAR_EVERY):
+                return
+
     def _publish(self, route: ReceiveRoute, qos: int | str | dict[str, Any]) -> None:
-        route.entity = self.ros.publisher(route.interface, route.topic.topic, qos_profile(qos))
-        if route.codec.raw:
-            route.publish = self.ros.raw_publisher(route.entity)
+        """A receiving route's (new) publisher, behind a hold until it has matched the
+        subscriptions the graph shows (rosgate.matching)."""
+        publisher = self.ros.publisher(route.interface, route.topic.topic, qos_profile(qos))
+        publish = (self.ros.raw_publisher(publisher) if route.codec.raw
+                   else publisher.publish)
+        gate = PublishGate(publish, lambda: self.ros.matched_all(publisher),
+                           lambda why, count: _held_and_lost(route, why, count),
+                           lambda exc: route.drop(Drop.PUBLISH_ERROR,
+                                                  f"{type(exc).__name__}: {exc}"))
+        old, route.gate = route.gate, gate
+        route.entity, route.publish = publisher, gate
+        if old is not None:
+            old.hand_over(gate)
 
     def _renew(self, route: TransmitRoute | ReceiveRoute, qos: dict[str, Any]) -> bool:
         """A route's subscription or publisher made anew with ``qos``, overlapping the old one.
@@ -204,6 +270,10 @@ class Router:
             self._forget(route)
             if route in self.routes:
                 self.routes.remove(route)
+            if isinstance(route, TransmitRoute):
+                self._unheard.discard(route)
+        if isinstance(route, ReceiveRoute) and route.gate is not None:
+            route.gate.close()
         if route.entity is not None:
             self.ros.destroy(route.entity)
             route.entity = None
@@ -422,7 +492,9 @@ class Router:
 
     def close(self) -> None:
         self._closing.set()
+        self._someone_unheard.set()
         self._watcher.join(timeout=2)
+        self._hearer.join(timeout=2)
         for route in self.snapshot():
             self.remove(route)
         self.deadlines.close()
@@ -439,6 +511,14 @@ def _real_link_counters(route: Route) -> str:
               f"{c.bytes_after_compression} B ({c.not_compressed} sent as they were)"),
              (depth, f"queued {depth}")]
     return "".join(f", {part}" for shown, part in parts if shown)
+
+
+def _held_and_lost(route: ReceiveRoute, why: str, count: int) -> None:
+    """Messages a new publisher held and could not keep (rosgate.matching)."""
+    detail = ("its new publisher's backlog was full while it matched its subscribers"
+              if why == "full" else "the route ended while its new publisher matched")
+    for _ in range(count):
+        route.drop(Drop.NOT_MATCHED, detail)
 
 
 def _file_keys(p: TopicSpec | ServiceSpec) -> Keys:

@@ -1,0 +1,140 @@
+"""A publisher the bridge makes publishes once the subscribers waiting for it can hear it.
+
+DDS pairs a new writer with the readers its participant knows at once, but a reader learns of
+the writer only when the writer's announcement reaches it, and a volatile reader discards what
+the writer sent before that (measured with Fast DDS: the first message of a publisher made next
+to a waiting subscriber was lost in 1 of 6 tries, and all of them while the participants were
+still finding each other). So a publisher the bridge makes — at start, when a client (re)connects,
+when its QoS changes — holds what arrives until it has matched every subscription the graph shows
+for its topic and :data:`SETTLE` seconds have passed for those readers to learn of it; then it
+publishes what it holds, in order, and from then on publishes at once. The hold is bounded: at
+most :data:`HOLD_FOR` seconds after the publisher was made, at most :data:`HOLD_COUNT` messages
+(the oldest make room, each counted)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+#: seconds a new publisher holds at most before it publishes what it holds, matched or not (no
+#: subscriber on the graph: nobody waits for it)
+HOLD_FOR = 3.0
+#: messages a new publisher holds at most
+HOLD_COUNT = 1000
+#: seconds after the publisher matched the graph's subscriptions, for them to learn of it
+SETTLE = 0.1
+#: seconds between two looks at the publisher's matches while it holds
+LOOK_EVERY = 0.01
+
+
+class PublishGate:
+    """``publish`` behind a hold until ``matched()`` has held for :data:`SETTLE` seconds (or
+    :data:`HOLD_FOR` passed). ``lost(reason, count)`` counts what the hold could not keep:
+    ``"full"`` (the oldest pushed out), ``"closed"`` (the route ended while it held);
+    ``failed(exc)`` a publish that raised on the releasing thread."""
+
+    def __init__(self, publish: Callable[[Any], None], matched: Callable[[], bool],
+                 lost: Callable[[str, int], None], failed: Callable[[Exception], None]):
+        self._publish = publish
+        self._matched = matched
+        self._lost = lost
+        self._failed = failed
+        self._held: deque[Any] = deque()
+        self._lock = threading.Lock()
+        self._closed = threading.Event()
+        #: set once the hold is over: publish goes straight to ``publish``
+        self.open = False
+        self._thread = threading.Thread(target=self._wait, name="publisher-match", daemon=True)
+        self._thread.start()
+
+    def __call__(self, message: Any) -> None:
+        if self.open:
+            self._publish(message)
+            return
+        with self._lock:
+            if not self.open:
+                self._hold(message)
+                return
+        self._publish(message)  # the hold ended while this one waited for the lock
+
+    def _hold(self, message: Any) -> None:
+        if len(self._held) >= HOLD_COUNT:
+            self._held.popleft()
+            self._lost("full", 1)
+        self._held.append(message)
+
+    def _wait(self) -> None:
+        clock = time.monotonic
+        deadline = clock() + HOLD_FOR
+        matched_at: float | None = None
+        while not self._closed.wait(LOOK_EVERY):
+            now = clock()
+            if now >= deadline:
+                break
+            try:
+                matched = self._matched()
+            except Exception:  # the publisher was destroyed meanwhile: the close follows
+                matched = False
+            if not matched:
+                matched_at = None
+            elif matched_at is None:
+                matched_at = now
+            elif now - matched_at >= SETTLE:
+                break
+        self._release()
+
+    def _release(self) -> None:
+        with self._lock:
+            if self._closed.is_set():
+                return
+            while self._held:
+                message = self._held.popleft()
+                try:
+                    self._publish(message)
+                except Exception as exc:
+                    self._failed(exc)
+            self.open = True
+
+    def hand_over(self, successor: PublishGate) -> None:
+        """A new publisher replaces this one: what this one holds goes first in the successor's
+        hold (or out through it, if it holds no longer), and so does whatever comes here after."""
+        with self._lock:
+            held, self._held = list(self._held), deque()
+            self._closed.set()
+            self._publish = successor
+            self.open = True
+        successor.take_first(held)
+
+    def take_first(self, messages: list[Any]) -> None:
+        with self._lock:
+            if not self.open:
+                self._held.extendleft(reversed(messages))
+                while len(self._held) > HOLD_COUNT:
+                    self._held.popleft()
+                    self._lost("full", 1)
+                return
+        for message in messages:
+            try:
+                self._publish(message)
+            except Exception as exc:
+                self._failed(exc)
+
+    def close(self) -> None:
+        """The route ends: what is held is lost (counted)."""
+        with self._lock:
+            if self._closed.is_set():
+                return
+            self._closed.set()
+            held, self._held = len(self._held), deque()
+            self.open = True
+            self._publish = _nowhere
+        if held:
+            self._lost("closed", held)
+
+
+def _nowhere(message: Any) -> None:
+    """Where a closed gate sends what still reaches it: ROS has no publisher for it any more."""
+    raise RuntimeError("the route's publisher is gone")
