@@ -4,9 +4,11 @@ subscriber that was there before the receiving bridge started gets the first mes
 first. Real ``rosgate run`` processes (client/server with identities, peers, zenoh through a
 ``rosgate router``), a real publisher and subscriber in DDS domains of their own.
 
-The publisher is ROS's default (reliable, volatile, depth 10) and waits on its own match count
-(``get_subscription_count``), as a node that publishes "once somebody listens" does; what it
-publishes after that is ROS's promise, and the bridge must keep it."""
+The publisher is reliable and volatile as ROS's default, with a deep history (so that a
+listener the machine's load stalls for a moment does not make the talker itself overwrite what
+was not acknowledged yet), and waits on its own match count (``get_subscription_count``), as a
+node that publishes "once somebody listens" does; what it publishes after that is ROS's promise,
+and the bridge must keep it."""
 
 from __future__ import annotations
 
@@ -16,14 +18,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import Inbox, free_port, wait_until
+from conftest import Inbox, free_port, settle, wait_until
 from rclpy.qos import QoSProfile
 from std_msgs.msg import String
 from test_zenoh_fleet import Router, zenoh_plugin
 
 COUNT = 400
-EVERY = 0.005  # seconds between two messages: 200 Hz
-DEEP = QoSProfile(depth=1000)  # the listener keeps what a burst brings
+EVERY = 0.01  # seconds between two messages: 100 Hz
+DEEP = QoSProfile(depth=1000)  # the talker and the listener keep what a burst brings
 
 
 class EagerTalker:
@@ -31,7 +33,7 @@ class EagerTalker:
     subscription (the bridge's), in a thread of its own."""
 
     def __init__(self, side: Any, topic: str):
-        self.publisher = side.publisher(topic, String, QoSProfile(depth=10))
+        self.publisher = side.publisher(topic, String, DEEP)
         self.matched_at: float | None = None
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -148,3 +150,64 @@ def test_a_publisher_that_publishes_once_matched_loses_nothing_peer_and_zenoh(
     sending = bridge(a, da)
     assert talker.done(60), "the talker never matched the bridge"
     arrived(inbox, [sending, receiving])
+
+
+class SteadyTalker:
+    """Numbered messages at 100 Hz from now until ``stop()``, matched or not."""
+
+    def __init__(self, side: Any, topic: str):
+        self.publisher = side.publisher(topic, String, DEEP)
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        start, n = time.monotonic(), 0
+        while not self._stop.wait(max(0.0, start + n * 0.01 - time.monotonic())):
+            self.publisher.publish(String(data=f"m{n}"))
+            n += 1
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.thread.join(5)
+
+
+def test_a_restarted_base_publishes_all_it_takes_to_a_subscriber_that_waited(
+        tmp_path, domain, ros_side, bridge):
+    """The base stops and starts again while the robot streams; the base's subscriber stays.
+    Whatever the restarted base takes from the robot reaches that subscriber, from the first
+    it took: its new publisher waits to be matched instead of publishing into the void."""
+    from test_default_file_speed import counters
+
+    server_domain, client_domain = domain(), domain()
+    port = free_port()
+    fast = "heartbeat: 0.2, reconnect: {min: 0.05, max: 0.3}"
+    server = write(tmp_path / "base.yaml",
+                   f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {fast}}}\n")
+    client = write(tmp_path / "robot1.yaml", f"""
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {fast}}}
+topics:
+  - {{topic: /chatter, type: std_msgs/msg/String, direction: transmit}}
+""")
+    inbox = ros_side(server_domain, "listener").listen("/chatter", String, DEEP)
+    first = bridge(server, server_domain)
+    robot = bridge(client, client_domain)
+    talker = SteadyTalker(ros_side(client_domain, "talker"), "/chatter")
+    try:
+        assert inbox.wait_count(20, 30), robot.log
+        assert first.stop() == 0
+        assert robot.wait_log("server 'base' down", 10), robot.log
+        before = len(inbox.items)
+        second = bridge(server, server_domain)
+        assert wait_until(lambda: sum("server 'base' up" in x for x in robot.lines) == 2, 20)
+        assert inbox.wait_count(before + 200, 30), f"{len(inbox.items) - before} after the restart"
+    finally:
+        talker.stop()
+    settle(inbox)
+    assert second.stop() == 0
+    _, taken, drops = counters(second.log, "/chatter (from robot1)")
+    after = [int(m.data[1:]) for m in inbox.items[before:]]
+    assert after == sorted(set(after)), "out of order or twice"
+    assert len(after) == taken, (f"the restarted base took {taken} and its subscriber got "
+                                 f"{len(after)} (first {after[:3]})\n{second.log}")
+    assert drops == {}, second.log

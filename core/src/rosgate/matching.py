@@ -21,7 +21,7 @@ from typing import Any
 
 #: seconds a new publisher holds at most before it publishes what it holds, matched or not (no
 #: subscriber on the graph: nobody waits for it)
-HOLD_FOR = 3.0
+HOLD_FOR = 5.0
 #: messages a new publisher holds at most
 HOLD_COUNT = 1000
 #: seconds after the publisher matched the graph's subscriptions, for them to learn of it
@@ -34,11 +34,15 @@ class PublishGate:
     """``publish`` behind a hold until ``matched()`` has held for :data:`SETTLE` seconds (or
     :data:`HOLD_FOR` passed). ``lost(reason, count)`` counts what the hold could not keep:
     ``"full"`` (the oldest pushed out), ``"closed"`` (the route ended while it held);
-    ``failed(exc)`` a publish that raised on the releasing thread."""
+    ``failed(exc)`` a publish that raised on the releasing thread; ``opened(publish)`` is told
+    when the hold is over, so the route publishes straight through ``publish`` from then on
+    (the gate stays off the data path)."""
 
     def __init__(self, publish: Callable[[Any], None], matched: Callable[[], bool],
-                 lost: Callable[[str, int], None], failed: Callable[[Exception], None]):
+                 lost: Callable[[str, int], None], failed: Callable[[Exception], None],
+                 opened: Callable[[Callable[[Any], None]], None]):
         self._publish = publish
+        self._opened = opened
         self._matched = matched
         self._lost = lost
         self._failed = failed
@@ -97,6 +101,8 @@ class PublishGate:
                 except Exception as exc:
                     self._failed(exc)
             self.open = True
+            publish = self._publish
+        self._opened(publish)  # outside the lock: the router takes its own
 
     def hand_over(self, successor: PublishGate) -> None:
         """A new publisher replaces this one: what this one holds goes first in the successor's

@@ -224,10 +224,16 @@ class Router:
         publisher = self.ros.publisher(route.interface, route.topic.topic, qos_profile(qos))
         publish = (self.ros.raw_publisher(publisher) if route.codec.raw
                    else publisher.publish)
+
+        def opened(publish: Callable[[Any], None]) -> None:
+            with self._lock:
+                if route.gate is gate:  # not replaced meanwhile
+                    route.publish = publish
+
         gate = PublishGate(publish, lambda: self.ros.matched_all(publisher),
                            lambda why, count: _held_and_lost(route, why, count),
                            lambda exc: route.drop(Drop.PUBLISH_ERROR,
-                                                  f"{type(exc).__name__}: {exc}"))
+                                                  f"{type(exc).__name__}: {exc}"), opened)
         old, route.gate = route.gate, gate
         route.entity, route.publish = publisher, gate
         if old is not None:
