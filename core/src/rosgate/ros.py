@@ -143,6 +143,26 @@ def qos_profile(spec: int | str | dict) -> Any:
     return profile
 
 
+#: the least history the bridge's own subscription and publisher keep for a reliable, volatile
+#: topic whose QoS was found: a relay stalled for a moment by a busy machine must not overwrite
+#: what it took and did not pass on yet (a volatile history is never replayed: only its bound
+#: changes)
+RELAY_DEPTH = 100
+
+
+def relay_profile(spec: int | str | dict) -> Any:
+    """The profile of the bridge's own subscription or publisher for a QoS found from
+    publishers: as found, but at least :data:`RELAY_DEPTH` deep when reliable and volatile."""
+    from rclpy import qos
+
+    profile = qos_profile(spec)
+    if (profile.reliability == qos.ReliabilityPolicy.RELIABLE
+            and profile.durability == qos.DurabilityPolicy.VOLATILE
+            and profile.history == qos.HistoryPolicy.KEEP_LAST):
+        profile.depth = max(profile.depth, RELAY_DEPTH)
+    return profile
+
+
 def is_reliable(spec: int | str | dict) -> bool:
     """Whether a topic's frames wait out a link loss: unless its QoS says best effort (the system
     default and best-available profiles are reliable with every shipped RMW). Without rclpy."""

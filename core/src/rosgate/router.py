@@ -21,7 +21,7 @@ from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .matching import PublishGate
-from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, type_hash
+from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, relay_profile, type_hash
 from .routes import BareFraming, BarePort, EnvelopeFraming, ReceiveRoute, Route, TransmitRoute
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
 from .spec import ServiceSpec, TopicSpec
@@ -170,7 +170,7 @@ class Router:
             self.announce(route)
 
     def _listen(self, route: TransmitRoute, qos: int | str | dict[str, Any]) -> None:
-        route.entity = self.ros.subscribe(route.interface, route.topic.topic, qos_profile(qos),
+        route.entity = self.ros.subscribe(route.interface, route.topic.topic, _profile(route, qos),
                                           route.on_message, route.codec.raw)
         route.take = self.ros.taker(route.entity)
 
@@ -221,7 +221,7 @@ class Router:
     def _publish(self, route: ReceiveRoute, qos: int | str | dict[str, Any]) -> None:
         """A receiving route's (new) publisher, behind a hold until it has matched the
         subscriptions the graph shows (rosgate.matching)."""
-        publisher = self.ros.publisher(route.interface, route.topic.topic, qos_profile(qos))
+        publisher = self.ros.publisher(route.interface, route.topic.topic, _profile(route, qos))
         publish = (self.ros.raw_publisher(publisher) if route.codec.raw
                    else publisher.publish)
 
@@ -517,6 +517,11 @@ def _real_link_counters(route: Route) -> str:
               f"{c.bytes_after_compression} B ({c.not_compressed} sent as they were)"),
              (depth, f"queued {depth}")]
     return "".join(f", {part}" for shown, part in parts if shown)
+
+
+def _profile(route: TransmitRoute | ReceiveRoute, qos: int | str | dict[str, Any]) -> Any:
+    """The profile of a route's subscription or publisher: the file's, else a relay's."""
+    return qos_profile(qos) if route.topic.qos_given else relay_profile(qos)
 
 
 def _held_and_lost(route: ReceiveRoute, why: str, count: int) -> None:
