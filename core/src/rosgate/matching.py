@@ -1,15 +1,7 @@
-"""A publisher the bridge makes publishes once the subscribers waiting for it can hear it.
-
-DDS pairs a new writer with the readers its participant knows at once, but a reader learns of
-the writer only when the writer's announcement reaches it, and a volatile reader discards what
-the writer sent before that (measured with Fast DDS: the first message of a publisher made next
-to a waiting subscriber was lost in 1 of 6 tries, and all of them while the participants were
-still finding each other). So a publisher the bridge makes — at start, when a client (re)connects,
-when its QoS changes — holds what arrives until it has matched every subscription the graph shows
-for its topic and :data:`SETTLE` seconds have passed for those readers to learn of it; then it
-publishes what it holds, in order, and from then on publishes at once. The hold is bounded: at
-most :data:`HOLD_FOR` seconds after the publisher was made, at most :data:`HOLD_COUNT` messages
-(the oldest make room, each counted)."""
+"""The hold in front of a publisher the bridge makes, until that publisher has matched the
+subscriptions waiting for it (why: :mod:`rosgate.endpoints`). It holds at most :data:`HOLD_FOR`
+seconds after the publisher was made and at most :data:`HOLD_COUNT` messages (the oldest make
+room, each counted); then it publishes what it holds, in order."""
 
 from __future__ import annotations
 

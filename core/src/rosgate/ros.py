@@ -384,9 +384,13 @@ class RosNode:
                 "durability": "transient_local" if latched else "volatile",
                 "depth": max(QOS_FOUND_DEPTH, min(depth, QOS_FOUND_MAX_DEPTH))}
 
+    def published(self, topic: str) -> bool:
+        """Whether the graph shows a publisher of ``topic`` (this node's too): a cheap look."""
+        return self.node.count_publishers(topic) > 0
+
     def publishers_of(self, topic: str) -> list[Any]:
         """The QoS profiles of ``topic``'s publishers on the graph, not this node's."""
-        if not self.node.count_publishers(topic):  # the cheap look first: asked often
+        if not self.published(topic):
             return []
         me = (self.node.get_name(), self.node.get_namespace())
         return [info.qos_profile for info in self.node.get_publishers_info_by_topic(topic)

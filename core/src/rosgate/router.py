@@ -17,11 +17,11 @@ from . import announce
 from .announce import Identity
 from .config import BridgeConfig, Direction, Framing
 from .drops import Drop, Reason
+from .endpoints import Endpoints
 from .errors import CipherError
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
-from .matching import PublishGate
-from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, relay_profile, type_hash
+from .ros import QOS_UNFOUND, RosNode, cdr_checker, type_hash
 from .routes import BareFraming, BarePort, EnvelopeFraming, ReceiveRoute, Route, TransmitRoute
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
 from .spec import ServiceSpec, TopicSpec
@@ -35,8 +35,6 @@ log = logging.getLogger("rosgate")
 #: seconds between looks at the publishers of topics without a qos (and announcements of young
 #: entries)
 WATCH_EVERY = announce.ANNOUNCE_FAST
-#: seconds between looks at the graph for the first publisher of a topic nothing subscribes to yet
-HEAR_EVERY = 0.05
 
 Destination = Callable[[], Address | None]
 HelloHandler = Callable[[envelope.Header, bytes, Link, Address], None]
@@ -67,14 +65,10 @@ class Router:
         self.on_hello: HelloHandler | None = None
         self._lock = threading.RLock()
         self._closing = threading.Event()
-        #: transmitting routes that wait for a publisher to subscribe to (see _hear)
-        self._unheard: set[TransmitRoute] = set()
-        self._someone_unheard = threading.Event()
+        #: makes the routes' subscriptions and publishers as the graph allows
+        self.endpoints = Endpoints(ros, self._lock, self.announce)
         self._watcher = threading.Thread(target=self._watch, name="announce", daemon=True)
         self._watcher.start()
-        self._hearer = threading.Thread(target=self._wait_for_publishers, name="hear",
-                                        daemon=True)
-        self._hearer.start()
 
     # -- making routes -----------------------------------------------------------------------
     def route(self, p: TopicSpec | ServiceSpec, route_id: int, label: str, link: Link,
@@ -112,10 +106,7 @@ class Router:
             # announced before the first message, or a latched history
             self._start(route, announce and t.framing is Framing.ROSGATE)
             route.batches = self.ros.batches
-            with self._lock:
-                self._unheard.add(route)
-            if not self._hear(route):
-                self._someone_unheard.set()
+            self.endpoints.listen_when_heard(route)
         else:
             decode: Callable[[bytes], Any] = codec.decode
             if codec.raw and not (keys.authenticates and t.framing is Framing.ROSGATE):
@@ -124,7 +115,7 @@ class Router:
                                  decode=decode, transforms=p.transforms)
             self._identify(route, p.msg_type)
             route.qos_in_use = None if t.qos_given else QOS_UNFOUND
-            self._publish(route, qos)
+            self.endpoints.publish(route, qos)
         self._add(route, self.receivers if isinstance(route, ReceiveRoute)
                   and t.framing is Framing.ROSGATE else None, topic_id)
         return route
@@ -169,76 +160,6 @@ class Router:
         if announces:
             self.announce(route)
 
-    def _listen(self, route: TransmitRoute, qos: int | str | dict[str, Any]) -> None:
-        route.entity = self.ros.subscribe(route.interface, route.topic.topic, _profile(route, qos),
-                                          route.on_message, route.codec.raw)
-        route.take = self.ros.taker(route.entity)
-
-    def _hear(self, route: TransmitRoute) -> bool:
-        """Subscribe for a transmitting route once the graph shows a publisher of its topic
-        (another node's) and the route has somewhere to send: made then, the subscription's
-        reader pairs with every such writer as it is made, before any writer learns of it and
-        publishes to it. (A reader made while a writer appears may learn of the writer after the
-        writer learnt of it, and then loses what the writer sent meanwhile: 5 to 8 of a
-        publisher's first messages, measured with Fast DDS.) Whether it subscribed."""
-        with self._lock:
-            if route not in self._unheard:
-                return True  # removed, or subscribed already
-            if route.link.datagram and route.destination() is None:
-                return False  # a server before the client's hello: it could send nothing
-            profiles = self.ros.publishers_of(route.topic.topic)
-            if not profiles:
-                return False
-            qos: int | str | dict[str, Any] = route.topic.qos
-            if not route.topic.qos_given:
-                route.qos_found = self.ros.qos_found(route.topic.topic)
-                if route.qos_found is None:
-                    return False  # the publisher left meanwhile
-                qos = route.qos_in_use = route.qos_found
-            self._listen(route, qos)
-            self._unheard.discard(route)
-        return True
-
-    def _wait_for_publishers(self) -> None:
-        """Every :data:`HEAR_EVERY` seconds while a transmitting route has no subscription,
-        whether it may subscribe now."""
-        while not self._closing.is_set():
-            self._someone_unheard.wait(WATCH_EVERY)
-            with self._lock:
-                unheard = list(self._unheard)
-                if not unheard:
-                    self._someone_unheard.clear()
-            for route in unheard:
-                try:
-                    if self._hear(route) and route.announces and not route.topic.qos_given:
-                        self.announce(route)  # the QoS it found
-                except Exception:
-                    BUGS.bug("hear_error", f"{route.label}: could not subscribe (a bug: please "
-                                           "report it)")
-            if self._closing.wait(HEAR_EVERY):
-                return
-
-    def _publish(self, route: ReceiveRoute, qos: int | str | dict[str, Any]) -> None:
-        """A receiving route's (new) publisher, behind a hold until it has matched the
-        subscriptions the graph shows (rosgate.matching)."""
-        publisher = self.ros.publisher(route.interface, route.topic.topic, _profile(route, qos))
-        publish = (self.ros.raw_publisher(publisher) if route.codec.raw
-                   else publisher.publish)
-
-        def opened(publish: Callable[[Any], None]) -> None:
-            with self._lock:
-                if route.gate is gate:  # not replaced meanwhile
-                    route.publish = publish
-
-        gate = PublishGate(publish, lambda: self.ros.matched_all(publisher),
-                           lambda why, count: _held_and_lost(route, why, count),
-                           lambda exc: route.drop(Drop.PUBLISH_ERROR,
-                                                  f"{type(exc).__name__}: {exc}"), opened)
-        old, route.gate = route.gate, gate
-        route.entity, route.publish = publisher, gate
-        if old is not None:
-            old.hand_over(gate)
-
     def _renew(self, route: TransmitRoute | ReceiveRoute, qos: dict[str, Any]) -> bool:
         """A route's subscription or publisher made anew with ``qos``, overlapping the old one.
         A publisher is renewed only for a new QoS; a subscription also to get a latched history
@@ -248,9 +169,9 @@ class Router:
             if old is None or isinstance(route, ReceiveRoute) and qos == route.qos_in_use:
                 return False  # removed meanwhile, or done already
             if isinstance(route, TransmitRoute):
-                self._listen(route, qos)
+                self.endpoints.listen(route, qos)
             else:
-                self._publish(route, qos)
+                self.endpoints.publish(route, qos)
             route.qos_in_use = qos
         self.ros.destroy(old)
         return True
@@ -276,10 +197,7 @@ class Router:
             self._forget(route)
             if route in self.routes:
                 self.routes.remove(route)
-            if isinstance(route, TransmitRoute):
-                self._unheard.discard(route)
-        if isinstance(route, ReceiveRoute) and route.gate is not None:
-            route.gate.close()
+        self.endpoints.forget(route)
         if route.entity is not None:
             self.ros.destroy(route.entity)
             route.entity = None
@@ -498,9 +416,8 @@ class Router:
 
     def close(self) -> None:
         self._closing.set()
-        self._someone_unheard.set()
         self._watcher.join(timeout=2)
-        self._hearer.join(timeout=2)
+        self.endpoints.close()
         for route in self.snapshot():
             self.remove(route)
         self.deadlines.close()
@@ -517,19 +434,6 @@ def _real_link_counters(route: Route) -> str:
               f"{c.bytes_after_compression} B ({c.not_compressed} sent as they were)"),
              (depth, f"queued {depth}")]
     return "".join(f", {part}" for shown, part in parts if shown)
-
-
-def _profile(route: TransmitRoute | ReceiveRoute, qos: int | str | dict[str, Any]) -> Any:
-    """The profile of a route's subscription or publisher: the file's, else a relay's."""
-    return qos_profile(qos) if route.topic.qos_given else relay_profile(qos)
-
-
-def _held_and_lost(route: ReceiveRoute, why: str, count: int) -> None:
-    """Messages a new publisher held and could not keep (rosgate.matching)."""
-    detail = ("its new publisher's backlog was full while it matched its subscribers"
-              if why == "full" else "the route ended while its new publisher matched")
-    for _ in range(count):
-        route.drop(Drop.NOT_MATCHED, detail)
 
 
 def _file_keys(p: TopicSpec | ServiceSpec) -> Keys:
