@@ -89,3 +89,16 @@ def test_a_route_that_ends_while_it_holds_counts_what_it_held():
     sink.matched.set()
     time.sleep(3 * matching.LOOK_EVERY)
     assert sink.published == []
+
+
+def test_a_reliable_release_waits_for_acknowledgements_after_each_history_worth():
+    sink, paced = Sink(), []
+    gate = PublishGate(sink.published.append, sink.matched.is_set,
+                       lambda why, n: sink.lost.append((why, n)),
+                       lambda exc: sink.lost.append((repr(exc), 1)), sink.direct.append,
+                       pace=lambda: paced.append(len(sink.published)), every=10)
+    for n in range(25):
+        gate(n)
+    sink.matched.set()
+    assert settles(lambda: gate.open, 5)
+    assert sink.published == list(range(25)) and paced == [10, 20]

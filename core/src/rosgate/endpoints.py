@@ -25,7 +25,7 @@ from typing import Any
 
 from .drops import Drop
 from .matching import PublishGate
-from .ros import QOS_UNFOUND, RosNode, qos_profile, relay_profile
+from .ros import QOS_UNFOUND, RosNode, qos_profile
 from .routes import ReceiveRoute, Route, TransmitRoute
 from .warn import BUGS
 
@@ -33,6 +33,8 @@ from .warn import BUGS
 HEAR_EVERY = 0.05
 #: seconds the looking thread sleeps while every transmitting route has its subscription
 IDLE = 0.5
+#: seconds a released hold waits at most for one history's worth to be acknowledged
+PACE_EACH = 0.5
 
 
 class Endpoints:
@@ -61,7 +63,7 @@ class Endpoints:
             self._someone_unheard.set()
 
     def listen(self, route: TransmitRoute, qos: int | str | dict[str, Any]) -> None:
-        route.entity = self.ros.subscribe(route.interface, route.topic.topic, _profile(route, qos),
+        route.entity = self.ros.subscribe(route.interface, route.topic.topic, qos_profile(qos),
                                           route.on_message, route.codec.raw)
         route.take = self.ros.taker(route.entity)
 
@@ -107,7 +109,8 @@ class Endpoints:
     def publish(self, route: ReceiveRoute, qos: int | str | dict[str, Any]) -> None:
         """A receiving route's (new) publisher, behind a hold until it has matched the
         subscriptions the graph shows; a publisher it replaces hands its hold over."""
-        publisher = self.ros.publisher(route.interface, route.topic.topic, _profile(route, qos))
+        profile = qos_profile(qos)
+        publisher = self.ros.publisher(route.interface, route.topic.topic, profile)
         publish = (self.ros.raw_publisher(publisher) if route.codec.raw
                    else publisher.publish)
 
@@ -119,7 +122,9 @@ class Endpoints:
         gate = PublishGate(publish, lambda: self.ros.matched_all(publisher),
                            lambda why, count: _held_and_lost(route, why, count),
                            lambda exc: route.drop(Drop.PUBLISH_ERROR,
-                                                  f"{type(exc).__name__}: {exc}"), opened)
+                                                  f"{type(exc).__name__}: {exc}"), opened,
+                           lambda: self.ros.acknowledged(publisher, PACE_EACH),
+                           self.ros.unacknowledged_at_most(profile))
         old, route.gate = route.gate, gate
         route.entity, route.publish = publisher, gate
         if old is not None:
@@ -137,11 +142,6 @@ class Endpoints:
         self._closing.set()
         self._someone_unheard.set()
         self._thread.join(timeout=2)
-
-
-def _profile(route: TransmitRoute | ReceiveRoute, qos: int | str | dict[str, Any]) -> Any:
-    """The profile of a route's subscription or publisher: the file's, else a relay's."""
-    return qos_profile(qos) if route.topic.qos_given else relay_profile(qos)
 
 
 def _held_and_lost(route: ReceiveRoute, why: str, count: int) -> None:

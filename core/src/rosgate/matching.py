@@ -5,6 +5,7 @@ room, each counted); then it publishes what it holds, in order."""
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from collections import deque
@@ -20,6 +21,8 @@ HOLD_COUNT = 1000
 SETTLE = 0.1
 #: seconds between two looks at the publisher's matches while it holds
 LOOK_EVERY = 0.01
+#: seconds a release may spend waiting for its subscribers to acknowledge, in all
+PACE_FOR = 2.0
 
 
 class PublishGate:
@@ -28,13 +31,23 @@ class PublishGate:
     ``"full"`` (the oldest pushed out), ``"closed"`` (the route ended while it held);
     ``failed(exc)`` a publish that raised on the releasing thread; ``opened(publish)`` is told
     when the hold is over, so the route publishes straight through ``publish`` from then on
-    (the gate stays off the data path)."""
+    (the gate stays off the data path).
+
+    A reliable publisher keeps only its history's depth of messages its subscribers have not
+    acknowledged: a release of more in one go overwrites what a subscriber missed in the burst
+    before it can ask for it again (measured: of a 137-message release through a depth-10
+    publisher, a subscriber got 24). So the release publishes ``every`` messages at a time and
+    calls ``pace()`` (wait until the subscribers acknowledged) in between, for at most
+    :data:`PACE_FOR` seconds in all; ``every=0``: in one go (best effort: nothing to wait for)."""
 
     def __init__(self, publish: Callable[[Any], None], matched: Callable[[], bool],
                  lost: Callable[[str, int], None], failed: Callable[[Exception], None],
-                 opened: Callable[[Callable[[Any], None]], None]):
+                 opened: Callable[[Callable[[Any], None]], None],
+                 pace: Callable[[], Any] = lambda: None, every: int = 0):
         self._publish = publish
         self._opened = opened
+        self._pace = pace
+        self._every = every
         self._matched = matched
         self._lost = lost
         self._failed = failed
@@ -83,13 +96,18 @@ class PublishGate:
         self._release()
 
     def _release(self) -> None:
-        with self._lock:
+        deadline = time.monotonic() + PACE_FOR
+        with self._lock:  # what arrives meanwhile waits: it goes after the backlog
             if self._closed.is_set():
                 return
-            while self._held:
-                message = self._held.popleft()
+            for sent in itertools.count():
+                if not self._held:
+                    break
+                if self._every and sent and sent % self._every == 0 \
+                        and time.monotonic() < deadline:
+                    self._pace()
                 try:
-                    self._publish(message)
+                    self._publish(self._held.popleft())
                 except Exception as exc:
                     self._failed(exc)
             self.open = True

@@ -143,26 +143,6 @@ def qos_profile(spec: int | str | dict) -> Any:
     return profile
 
 
-#: the least history the bridge's own subscription and publisher keep for a reliable, volatile
-#: topic whose QoS was found: a relay stalled for a moment by a busy machine must not overwrite
-#: what it took and did not pass on yet (a volatile history is never replayed: only its bound
-#: changes)
-RELAY_DEPTH = 100
-
-
-def relay_profile(spec: int | str | dict) -> Any:
-    """The profile of the bridge's own subscription or publisher for a QoS found from
-    publishers: as found, but at least :data:`RELAY_DEPTH` deep when reliable and volatile."""
-    from rclpy import qos
-
-    profile = qos_profile(spec)
-    if (profile.reliability == qos.ReliabilityPolicy.RELIABLE
-            and profile.durability == qos.DurabilityPolicy.VOLATILE
-            and profile.history == qos.HistoryPolicy.KEEP_LAST):
-        profile.depth = max(profile.depth, RELAY_DEPTH)
-    return profile
-
-
 def is_reliable(spec: int | str | dict) -> bool:
     """Whether a topic's frames wait out a link loss: unless its QoS says best effort (the system
     default and best-available profiles are reliable with every shipped RMW). Without rclpy."""
@@ -405,6 +385,24 @@ class RosNode:
         expected = sum(qos_check_compatible(mine, info.qos_profile)[0] != QoSCompatibility.ERROR
                        for info in self.node.get_subscriptions_info_by_topic(publisher.topic_name))
         return 0 < expected <= publisher.get_subscription_count()
+
+    @staticmethod
+    def acknowledged(publisher: Any, timeout: float) -> bool:
+        """Wait (at most ``timeout`` s) until ``publisher``'s subscribers acknowledged all it
+        published (reliable ones: a best-effort subscriber acknowledges nothing)."""
+        from rclpy.duration import Duration
+
+        return bool(publisher.wait_for_all_acked(Duration(nanoseconds=int(timeout * 1e9))))
+
+    @staticmethod
+    def unacknowledged_at_most(profile: Any) -> int:
+        """How many messages a publisher of ``profile`` can hold that its subscribers have not
+        acknowledged: its depth when reliable and keep-last; 0 when it holds none (best
+        effort) or has no bound (keep-all)."""
+        from rclpy import qos
+
+        return (profile.depth if profile.reliability == qos.ReliabilityPolicy.RELIABLE
+                and profile.history == qos.HistoryPolicy.KEEP_LAST else 0)
 
     def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)
