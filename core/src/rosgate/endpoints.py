@@ -37,6 +37,25 @@ IDLE = 0.5
 PACE_EACH = 0.5
 
 
+#: the least history the bridge's own subscription keeps for a reliable, volatile topic whose
+#: QoS was found: a bridge that a busy machine stalls for a moment must not lose what its
+#: publishers sent meanwhile (a volatile history is never replayed: only its bound changes)
+RELAY_DEPTH = 100
+
+
+def relay_profile(spec: int | str | dict) -> Any:
+    """The profile of the bridge's own subscription for a QoS found from publishers: as found,
+    but at least :data:`RELAY_DEPTH` deep when reliable, volatile and keep-last."""
+    from rclpy import qos
+
+    profile = qos_profile(spec)
+    if (profile.reliability == qos.ReliabilityPolicy.RELIABLE
+            and profile.durability == qos.DurabilityPolicy.VOLATILE
+            and profile.history == qos.HistoryPolicy.KEEP_LAST):
+        profile.depth = max(profile.depth, RELAY_DEPTH)
+    return profile
+
+
 class Endpoints:
     """Makes the subscriptions and publishers of a bridge's topic routes (under the router's
     ``lock``); ``announce(route)`` says a transmitting route's QoS once it found it."""
@@ -63,7 +82,8 @@ class Endpoints:
             self._someone_unheard.set()
 
     def listen(self, route: TransmitRoute, qos: int | str | dict[str, Any]) -> None:
-        route.entity = self.ros.subscribe(route.interface, route.topic.topic, qos_profile(qos),
+        profile = qos_profile(qos) if route.topic.qos_given else relay_profile(qos)
+        route.entity = self.ros.subscribe(route.interface, route.topic.topic, profile,
                                           route.on_message, route.codec.raw)
         route.take = self.ros.taker(route.entity)
 
