@@ -102,3 +102,12 @@ def test_a_reliable_release_waits_for_acknowledgements_after_each_history_worth(
     sink.matched.set()
     assert settles(lambda: gate.open, 5)
     assert sink.published == list(range(25)) and paced == [10, 20]
+
+
+def test_nobody_to_wait_for_opens_at_once():
+    sink = Sink()
+    gate = PublishGate(sink.published.append, lambda: None, lambda why, n: None,
+                       lambda exc: None, sink.direct.append)
+    gate(1)
+    assert settles(lambda: gate.open, 1)
+    assert sink.published == [1]

@@ -13,8 +13,9 @@ other). So:
   learns of it and publishes to it;
 - a receiving route's publisher (at start, when a client (re)connects, when its QoS changes)
   holds what arrives until it has matched every subscription the graph shows for its topic and
-  a moment has passed for those readers to learn of it; then it publishes what it holds, in
-  order, and from then on the route publishes straight through it. The hold is bounded in time
+  a moment has passed for those readers to learn of it (the graph showing none: only while
+  the bridge's node is new and may not have found them yet); then it publishes what it holds,
+  in order, and from then on the route publishes straight through it. The hold is bounded in time
   and count (:mod:`rosgate.matching`); what it cannot keep is counted ``not_matched``."""
 
 from __future__ import annotations

@@ -17,7 +17,8 @@ from typing import Any
 HOLD_FOR = 5.0
 #: messages a new publisher holds at most
 HOLD_COUNT = 1000
-#: seconds after the publisher matched the graph's subscriptions, for them to learn of it
+#: seconds after the publisher was made before it publishes, matched: for the subscriptions
+#: that were there before it to learn of it
 SETTLE = 0.1
 #: seconds between two looks at the publisher's matches while it holds
 LOOK_EVERY = 0.01
@@ -26,9 +27,10 @@ PACE_FOR = 2.0
 
 
 class PublishGate:
-    """``publish`` behind a hold until ``matched()`` has held for :data:`SETTLE` seconds (or
-    :data:`HOLD_FOR` passed). ``lost(reason, count)`` counts what the hold could not keep:
-    ``"full"`` (the oldest pushed out), ``"closed"`` (the route ended while it held);
+    """``publish`` behind a hold until ``matched()`` (and :data:`SETTLE` seconds have passed),
+    or :data:`HOLD_FOR` passed, or ``matched()`` says None: nobody to wait for.
+    ``lost(reason, count)`` counts what the hold could not keep: ``"full"`` (the oldest pushed
+    out), ``"closed"`` (the route ended while it held);
     ``failed(exc)`` a publish that raised on the releasing thread; ``opened(publish)`` is told
     when the hold is over, so the route publishes straight through ``publish`` from then on
     (the gate stays off the data path).
@@ -40,7 +42,7 @@ class PublishGate:
     calls ``pace()`` (wait until the subscribers acknowledged) in between, for at most
     :data:`PACE_FOR` seconds in all; ``every=0``: in one go (best effort: nothing to wait for)."""
 
-    def __init__(self, publish: Callable[[Any], None], matched: Callable[[], bool],
+    def __init__(self, publish: Callable[[Any], None], matched: Callable[[], bool | None],
                  lost: Callable[[str, int], None], failed: Callable[[Exception], None],
                  opened: Callable[[Callable[[Any], None]], None],
                  pace: Callable[[], Any] = lambda: None, every: int = 0):
@@ -77,21 +79,18 @@ class PublishGate:
 
     def _wait(self) -> None:
         clock = time.monotonic
-        deadline = clock() + HOLD_FOR
-        matched_at: float | None = None
+        made = clock()
         while not self._closed.wait(LOOK_EVERY):
             now = clock()
-            if now >= deadline:
+            if now - made >= HOLD_FOR:
                 break
             try:
                 matched = self._matched()
             except Exception:  # the publisher was destroyed meanwhile: the close follows
                 matched = False
-            if not matched:
-                matched_at = None
-            elif matched_at is None:
-                matched_at = now
-            elif now - matched_at >= SETTLE:
+            # SETTLE from the publisher's making: a subscription there before it learns of it
+            # from its announcement; one that comes later knows it already
+            if matched is None or matched and now - made >= SETTLE:
                 break
         self._release()
 

@@ -286,6 +286,9 @@ class _Deferred:
 
 
 SPIN = 0.1  # seconds the executor spins before the spinning thread checks for a stop
+#: seconds after a node is made in which its graph may still lack what is there (DDS finds the
+#: other participants with a few quick announcements, then every few seconds)
+DISCOVERY = 5.0
 
 
 class RosNode:
@@ -297,6 +300,7 @@ class RosNode:
         from rclpy.experimental import EventsExecutor
 
         self.context = Context()
+        self.born = time.monotonic()
         rclpy.init(context=self.context, domain_id=domain_id)
         self.node = rclpy.create_node(re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{name}"),
                                       context=self.context, start_parameter_services=False)
@@ -376,15 +380,22 @@ class RosNode:
         return [info.qos_profile for info in self.node.get_publishers_info_by_topic(topic)
                 if (info.node_name, info.node_namespace) != me]
 
-    def matched_all(self, publisher: Any) -> bool:
+    def matched_all(self, publisher: Any) -> bool | None:
         """Whether ``publisher`` has matched every subscription the graph shows on its topic
-        that its QoS can match (and there is one)."""
-        from rclpy.qos import QoSCompatibility, qos_check_compatible
+        that its reliability and durability can match; None when the graph shows none and this
+        node is past its first :data:`DISCOVERY` seconds (nobody waits for it). Not rclpy's
+        ``qos_check_compatible``: it takes the graph's infinite deadline for a finite one."""
+        from rclpy import qos
 
         mine = publisher.qos_profile
-        expected = sum(qos_check_compatible(mine, info.qos_profile)[0] != QoSCompatibility.ERROR
+        weaker = {(qos.ReliabilityPolicy.RELIABLE, qos.ReliabilityPolicy.BEST_EFFORT),
+                  (qos.DurabilityPolicy.TRANSIENT_LOCAL, qos.DurabilityPolicy.VOLATILE)}
+        expected = sum((info.qos_profile.reliability, mine.reliability) not in weaker
+                       and (info.qos_profile.durability, mine.durability) not in weaker
                        for info in self.node.get_subscriptions_info_by_topic(publisher.topic_name))
-        return 0 < expected <= publisher.get_subscription_count()
+        if not expected:
+            return None if time.monotonic() - self.born > DISCOVERY else False
+        return expected <= publisher.get_subscription_count()
 
     @staticmethod
     def acknowledged(publisher: Any, timeout: float) -> bool:
