@@ -12,8 +12,9 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-#: seconds a new publisher holds at most before it publishes what it holds, matched or not (no
-#: subscriber on the graph: nobody waits for it)
+#: seconds a new publisher holds at most before it publishes what it holds, matched or not (a
+#: subscription the graph shows may never match: its node went, or a policy besides reliability
+#: and durability differs)
 HOLD_FOR = 5.0
 #: messages a new publisher holds at most
 HOLD_COUNT = 1000
