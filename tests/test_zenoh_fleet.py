@@ -169,6 +169,7 @@ def test_a_robot_that_leaves_is_logged_once_and_its_routes_dropped_after_the_tim
           base_side.listen("/robot7/odom", String), text("r7"), is_warmup, 3)
     node = base_side.ros.node
     assert wait_until(lambda: node.count_publishers("/robot7/odom") == 1)
+    base_side.publisher("/robot7/cmd", String)  # the base subscribes once /cmd has a publisher
     assert wait_until(lambda: node.count_subscribers("/robot7/cmd") == 1)
     started = time.monotonic()
     assert robot.stop() == 0

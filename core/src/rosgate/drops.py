@@ -98,6 +98,9 @@ class Drop(StrEnum):
         "a payload transform this side lacks, or one that could not undo its work"
     DECODE_ERROR = "decode_error", "the codec could not read the payload"
     PUBLISH_ERROR = "publish_error", "ROS refused to publish the message"
+    NOT_MATCHED = "not_matched", ("held while the bridge's new publisher matched its "
+                                  "subscribers, and pushed out of the full hold or left in it "
+                                  "when the route ended")
     LATE_ANSWER = "late_answer", "a service's answer after its call was over"
     # connections and sessions
     ACCEPT_FAILED = "accept_failed", "accepting a connection failed (tried again after a pause)"

@@ -303,6 +303,9 @@ class _Deferred:
 
 
 SPIN = 0.1  # seconds the executor spins before the spinning thread checks for a stop
+#: seconds after a node is made in which its graph may still lack what is there (DDS finds the
+#: other participants with a few quick announcements, then every few seconds)
+DISCOVERY = 5.0
 
 
 class RosNode:
@@ -314,6 +317,7 @@ class RosNode:
         from rclpy.experimental import EventsExecutor
 
         self.context = Context()
+        self.born = time.monotonic()
         rclpy.init(context=self.context, domain_id=domain_id)
         self.node = rclpy.create_node(re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{name}"),
                                       context=self.context, start_parameter_services=False)
@@ -371,9 +375,7 @@ class RosNode:
         their histories; None without publishers."""
         from rclpy import qos
 
-        me = (self.node.get_name(), self.node.get_namespace())
-        profiles = [info.qos_profile for info in self.node.get_publishers_info_by_topic(topic)
-                    if (info.node_name, info.node_namespace) != me]
+        profiles = self.publishers_of(topic)
         if not profiles:
             return None
         reliable = all(p.reliability == qos.ReliabilityPolicy.RELIABLE for p in profiles)
@@ -382,6 +384,53 @@ class RosNode:
         return {"reliability": "reliable" if reliable else "best_effort",
                 "durability": "transient_local" if latched else "volatile",
                 "depth": max(QOS_FOUND_DEPTH, min(depth, QOS_FOUND_MAX_DEPTH))}
+
+    def published(self, topic: str) -> bool:
+        """Whether the graph shows a publisher of ``topic`` (this node's too): a cheap look."""
+        return self.node.count_publishers(topic) > 0
+
+    def publishers_of(self, topic: str) -> list[Any]:
+        """The QoS profiles of ``topic``'s publishers on the graph, not this node's."""
+        if not self.published(topic):
+            return []
+        me = (self.node.get_name(), self.node.get_namespace())
+        return [info.qos_profile for info in self.node.get_publishers_info_by_topic(topic)
+                if (info.node_name, info.node_namespace) != me]
+
+    def matched_all(self, publisher: Any) -> bool | None:
+        """Whether ``publisher`` has matched every subscription the graph shows on its topic
+        that its reliability and durability can match; None when the graph shows none and this
+        node is past its first :data:`DISCOVERY` seconds (nobody waits for it). Not rclpy's
+        ``qos_check_compatible``: it takes the graph's infinite deadline for a finite one."""
+        from rclpy import qos
+
+        mine = publisher.qos_profile
+        weaker = {(qos.ReliabilityPolicy.RELIABLE, qos.ReliabilityPolicy.BEST_EFFORT),
+                  (qos.DurabilityPolicy.TRANSIENT_LOCAL, qos.DurabilityPolicy.VOLATILE)}
+        expected = sum((info.qos_profile.reliability, mine.reliability) not in weaker
+                       and (info.qos_profile.durability, mine.durability) not in weaker
+                       for info in self.node.get_subscriptions_info_by_topic(publisher.topic_name))
+        if not expected:
+            return None if time.monotonic() - self.born > DISCOVERY else False
+        return expected <= publisher.get_subscription_count()
+
+    @staticmethod
+    def acknowledged(publisher: Any, timeout: float) -> bool:
+        """Wait (at most ``timeout`` s) until ``publisher``'s subscribers acknowledged all it
+        published (reliable ones: a best-effort subscriber acknowledges nothing)."""
+        from rclpy.duration import Duration
+
+        return bool(publisher.wait_for_all_acked(Duration(nanoseconds=int(timeout * 1e9))))
+
+    @staticmethod
+    def unacknowledged_at_most(profile: Any) -> int:
+        """How many messages a publisher of ``profile`` can hold that its subscribers have not
+        acknowledged: its depth when reliable and keep-last; 0 when it holds none (best
+        effort) or has no bound (keep-all)."""
+        from rclpy import qos
+
+        return (profile.depth if profile.reliability == qos.ReliabilityPolicy.RELIABLE
+                and profile.history == qos.HistoryPolicy.KEEP_LAST else 0)
 
     def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)

@@ -18,11 +18,12 @@ from .actions import ClientGoals
 from .announce import Identity
 from .config import BridgeConfig, Direction, Framing
 from .drops import Drop, Reason
+from .endpoints import Endpoints
 from .errors import CipherError
 from .holdback import Holdback
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
-from .ros import QOS_UNFOUND, RosNode, cdr_checker, qos_profile, type_hash
+from .ros import QOS_UNFOUND, RosNode, cdr_checker, type_hash
 from .routes import (
     BareFraming,
     BarePort,
@@ -85,6 +86,8 @@ class Router:
         self.on_heard: HeardHandler | None = None
         self._lock = threading.RLock()
         self._closing = threading.Event()
+        #: makes the routes' subscriptions and publishers as the graph allows
+        self.endpoints = Endpoints(ros, self._lock, self.announce)
         self._watcher = threading.Thread(target=self._watch, name="announce", daemon=True)
         self._watcher.start()
 
@@ -131,7 +134,7 @@ class Router:
             # announced before the first message, or a latched history
             self._start(route, announce and t.framing is Framing.ROSGATE)
             route.batches = self.ros.batches
-            self._listen(route, qos)
+            self.endpoints.listen_when_heard(route)
         else:
             decode: Callable[[bytes], Any] = codec.decode
             if codec.raw and not (keys.authenticates and t.framing is Framing.ROSGATE):
@@ -140,7 +143,7 @@ class Router:
                                  decode=decode, transforms=p.transforms)
             self._identify(route, p.msg_type)
             route.qos_in_use = None if t.qos_given else QOS_UNFOUND
-            self._publish(route, qos)
+            self.endpoints.publish(route, qos)
         self._add(route, self.receivers if isinstance(route, ReceiveRoute)
                   and t.framing is Framing.ROSGATE else None, topic_id)
         return route
@@ -189,16 +192,6 @@ class Router:
         if announces:
             self.announce(route)
 
-    def _listen(self, route: TransmitRoute, qos: int | str | dict[str, Any]) -> None:
-        route.entity = self.ros.subscribe(route.interface, route.topic.topic, qos_profile(qos),
-                                          route.on_message, route.codec.raw)
-        route.take = self.ros.taker(route.entity)
-
-    def _publish(self, route: ReceiveRoute, qos: int | str | dict[str, Any]) -> None:
-        route.entity = self.ros.publisher(route.interface, route.topic.topic, qos_profile(qos))
-        if route.codec.raw:
-            route.publish = self.ros.raw_publisher(route.entity)
-
     def _renew(self, route: TransmitRoute | ReceiveRoute, qos: dict[str, Any]) -> bool:
         """A route's subscription or publisher made anew with ``qos``, overlapping the old one.
         A publisher is renewed only for a new QoS; a subscription also to get a latched history
@@ -208,9 +201,9 @@ class Router:
             if old is None or isinstance(route, ReceiveRoute) and qos == route.qos_in_use:
                 return False  # removed meanwhile, or done already
             if isinstance(route, TransmitRoute):
-                self._listen(route, qos)
+                self.endpoints.listen(route, qos)
             else:
-                self._publish(route, qos)
+                self.endpoints.publish(route, qos)
             route.qos_in_use = qos
         self.ros.destroy(old)
         return True
@@ -238,6 +231,7 @@ class Router:
                 self.routes.remove(route)
                 if len(self._retired) < MAX_RETIRED:  # labels come from clients' entries
                     self._retired[(type(route), route.label)] = route.counters
+        self.endpoints.forget(route)
         if route.entity is not None:
             self.ros.destroy(route.entity)
             route.entity = None
@@ -458,6 +452,7 @@ class Router:
     def close(self) -> None:
         self._closing.set()
         self._watcher.join(timeout=2)
+        self.endpoints.close()
         for route in self.snapshot():
             self.remove(route)
         self.deadlines.close()

@@ -31,6 +31,7 @@ from .errors import CipherError, CodecError
 from .holdback import Held, Holdback
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
+from .matching import PublishGate
 from .spec import CONTROL, Delivery
 from .transform import Transform, TransformError
 from .transport import Address
@@ -474,6 +475,8 @@ class ReceiveRoute(Route):
         self.decode = decode  # the codec's, with a CDR check where no cipher authenticates
         #: publishes what decode returned (set with the publisher: raw CDR as bytes or bytearray)
         self.publish: Callable[[Any], None] = lambda message: self.entity.publish(message)
+        #: the hold in front of its publisher while that matches its subscribers
+        self.gate: PublishGate | None = None
         self.zero_copy = codec.raw  # the core's raw decode, CDR check and publisher take one
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
