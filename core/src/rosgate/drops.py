@@ -76,6 +76,9 @@ class Drop(StrEnum):
     AUTH_FAILED = "auth_failed", "the cipher refused it: wrong key, tampered, or not from the peer"
     DUPLICATE = "duplicate", "its sequence number was seen already (a replay or a copy)"
     STALE = "stale", "older than the replay window"
+    ORDER_OVERFLOW = "order_overflow", ("a reliable topic's frames held for a missing one, to be "
+                                        "published in order, over 4,096 frames or 16 MiB: the "
+                                        "gap was given up (its frame counted lost on the way)")
     TYPE_MISMATCH = "type_mismatch", "the far side's message type is not this side's"
     TYPE_UNHEARD = "type_unheard", ("held for the far side's type announcement beyond the hold's "
                                     "bound (1,000 frames or 16 MiB): the oldest went")

@@ -269,9 +269,10 @@ def test_every_fragment_is_sent_a_bounded_number_of_times():
 
 def test_the_store_forgets_after_the_deadline_and_beyond_its_memory():
     store = RetransmitStore(deadline=2.0, max_bytes=10_000)
-    store.keep("b", 1, [bytes(4000)], "r", 0.0)
-    store.keep("b", 2, [bytes(4000)], "r", 0.0)
-    store.keep("b", 3, [bytes(4000)], "r", 0.0)  # over 10,000 bytes: the oldest goes
+    assert store.keep("b", 1, [bytes(4000)], "r1", 0.0) == []
+    assert store.keep("b", 2, [bytes(4000)], "r2", 0.0) == []
+    # over 10,000 bytes: the oldest goes, its owner named to be counted
+    assert store.keep("b", 3, [bytes(4000)], "r3", 0.0) == ["r1"]
     assert store.on_nack("b", recovery.nack(1, [0])) is None
     assert store.on_nack("b", recovery.nack(2, [0])) is not None
     store.sent("b", 2, 0.5)  # the last fragment of each left

@@ -88,6 +88,7 @@ class Retransmit(Packetizer):
 
     name = "retransmit"
     magic = (wire.REPEAT_MAGIC, wire.NACK_MAGIC, wire.ACK_MAGIC)
+    resends_within = wire.DEADLINE
 
     @dataclass(frozen=True)
     class Options:
@@ -112,7 +113,10 @@ class Retransmit(Packetizer):
         fid = wire.frame_id()
         packets = wire.repeat_fragments(frame, self.link.max_frame, sender.topic_id, fid)
         with self._lock:
-            self.store.keep(to, fid, packets, sender, time.monotonic())
+            forgotten = self.store.keep(to, fid, packets, sender, time.monotonic())
+        for owner in forgotten:  # outside the lock: a route counts and warns
+            owner.drop(wire.REPAIR_OVERFLOW, f"over the {self.store.max_bytes // 2**20} MiB a "
+                       "sender keeps for re-sending: a frame lost on the way stays lost")
         return packets
 
     def sent(self, packet: bytes, to: Any, now: float) -> None:

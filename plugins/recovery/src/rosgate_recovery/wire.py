@@ -58,7 +58,7 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
-from rosgate.drops import Drop, Reason
+from rosgate.drops import Drop, Reason, declare
 from rosgate.wire.framing import DEFAULT_MAX_MESSAGE, FINISHED_REMEMBERED, FRAGMENT, FramingError
 
 FEC = struct.Struct(">2sIIIHHBBB")
@@ -77,6 +77,11 @@ REORDER = 3             # a fragment this many places behind one that came is ta
 NACK_AFTER = 0.02       # seconds without a new fragment before the rest is asked for (at least)
 RTT_INITIAL = 0.1       # seconds, until a round trip is measured
 MAX_RANGES = 128        # ranges in one NACK (more wait for the next one)
+
+#: a sent frame forgotten before it was acknowledged, to keep the store within its bytes
+REPAIR_OVERFLOW = declare("repair_overflow", "a sent frame not yet acknowledged, forgotten by "
+                          "`retransmit` to keep what it holds for re-sending within its bound "
+                          "(32 MiB per link): if it was lost on the way, it stays lost")
 
 Lost = Callable[[int | None, Reason], None]
 Recovered = Callable[[int], None]
@@ -466,11 +471,15 @@ class RetransmitStore:
     def __len__(self) -> int:
         return len(self._kept)
 
-    def keep(self, to: Any, fid: int, packets: list[bytes], owner: Any, now: float) -> None:
+    def keep(self, to: Any, fid: int, packets: list[bytes], owner: Any, now: float) -> list[Any]:
+        """Keep a frame's fragments; the owners of the frames forgotten for room (oldest first),
+        once each, for the caller to count."""
         self._kept[(to, fid)] = _Kept(owner, packets, now, [1] * len(packets))
         self._bytes += sum(map(len, packets))
+        forgotten = []
         while self._bytes > self.max_bytes and self._kept:
-            self._forget(next(iter(self._kept)))
+            forgotten.append(self._forget(next(iter(self._kept))).owner)
+        return forgotten
 
     def sent(self, to: Any, fid: int, now: float) -> None:
         """Its last fragment has left: start the probe timer."""
@@ -535,6 +544,7 @@ class RetransmitStore:
         times = [k.probe_at for k in self._kept.values() if k.probe_at is not None]
         return min(times) if times else None
 
-    def _forget(self, key: tuple[Any, int]) -> None:
+    def _forget(self, key: tuple[Any, int]) -> _Kept:
         kept = self._kept.pop(key)
         self._bytes -= sum(map(len, kept.packets))
+        return kept

@@ -1,0 +1,178 @@
+"""Frames of one sender put back in its order: a receiving route of a reliable topic whose link
+repairs losses (``retransmit``) holds what comes after a gap until the missing frame arrives,
+sent again, and then publishes them all in sequence, as a DDS reliable reader does.
+
+The hold is bounded in time (the packetizer's ``resends_within``: after that the missing frame
+cannot come any more, and its gap is given up), in bytes and in frames (what overflows gives the
+oldest gap up at once). A frame older than the next one expected (its gap given up, or a copy)
+is handed on as it comes: the replay window after this refuses copies, and a repaired frame that
+came too late is better published late than lost. Sequence numbers are per epoch (a session's
+key generation): a new epoch releases what the old one held. :class:`InOrder` reads no clock
+and takes no lock (times are passed in); :class:`Ordered` puts a route's frames through it.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from .drops import Drop
+
+#: a new epoch whose first frame is at most this far from 1 is waited for from 1 (its first
+#: frames were lost on the way); a later one is a sender heard mid-stream, taken from there
+START = 64
+#: a frame this far past the next one expected is a sender that jumped (or a forged header
+#: where no cipher vouches for it): what is held goes, and the order starts again from it
+JUMP = 4096
+MAX_HELD_BYTES = 16 * 1024 * 1024
+MAX_HELD_FRAMES = 4096
+
+
+@dataclass(slots=True)
+class _Held:
+    item: Any
+    size: int
+    since: float  # when it came (a gap before it is given up ``hold`` seconds after)
+
+
+class InOrder:
+    """One sender's frames in sequence order. :meth:`put` takes a frame and returns what can
+    be published now, in order; :meth:`due` gives up the gaps waited for too long."""
+
+    def __init__(self, hold: float, max_bytes: int = MAX_HELD_BYTES,
+                 max_frames: int = MAX_HELD_FRAMES):
+        self.hold = hold
+        self.max_bytes = max_bytes
+        self.max_frames = max_frames
+        self.epoch: int | None = None
+        self.next = 1  # the sequence number to publish next
+        self._held: dict[int, _Held] = {}
+        self.held_bytes = 0
+        #: gaps given up for time (the sender gave up too) and for the bounds (``overflowed``)
+        self.gaps = 0
+        self.overflowed = 0
+        self.copies = 0  # frames held already, given again
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+    def put(self, epoch: int, seq: int, item: Any, size: int, now: float) -> list[Any]:
+        """Take frame ``seq`` of ``epoch``; what is ready, in order (maybe nothing)."""
+        out: list[Any] = []
+        if epoch != self.epoch:
+            out += self._release_all()
+            self.epoch, self.next = epoch, 1 if seq <= START else seq
+        if seq < self.next:
+            out.append(item)  # late (its gap given up) or a copy: the replay window decides
+            return out
+        if seq - self.next > JUMP:
+            out += self._release_all()
+            self.next = seq
+        if seq in self._held:
+            self.copies += 1
+            return out
+        self._held[seq] = _Held(item, size, now)
+        self.held_bytes += size
+        out += self._ready()
+        while self._held and (self.held_bytes > self.max_bytes
+                              or len(self._held) > self.max_frames):
+            self.overflowed += 1
+            out += self._skip()
+        return out
+
+    def due(self, now: float) -> list[Any]:
+        """What waited past the hold for a frame that did not come: its gap given up, the frames
+        after it released in order (and after them, any later gap's that is due too)."""
+        out: list[Any] = []
+        while self._held and now - self._oldest().since >= self.hold:
+            self.gaps += 1
+            out += self._skip()
+        return out
+
+    def next_due(self) -> float | None:
+        """When :meth:`due` has a gap to give up (None: nothing held)."""
+        return self._oldest().since + self.hold if self._held else None
+
+    def _oldest(self) -> _Held:
+        """The first frame after the first gap: it has waited longest."""
+        return self._held[min(self._held)]
+
+    def _skip(self) -> list[Any]:
+        """Give the first gap up: publish from the first frame held."""
+        self.next = min(self._held)
+        return self._ready()
+
+    def _ready(self) -> list[Any]:
+        out = []
+        while (held := self._held.pop(self.next, None)) is not None:
+            self.held_bytes -= held.size
+            out.append(held.item)
+            self.next += 1
+        return out
+
+    def _release_all(self) -> list[Any]:
+        out = []
+        for seq in sorted(self._held):
+            out.append(self._held[seq].item)
+            self.next = seq + 1
+        self._held.clear()
+        self.held_bytes = 0
+        return out
+
+
+class Ordered:
+    """A receiving route's frames through an :class:`InOrder`: opened by the route's cipher
+    first (a sequence number counts once it is authenticated), then put in order, then past
+    the route's replay window to be published. Its lock keeps the order from the link's
+    thread and its timer's; the timer gives up a gap that is due."""
+
+    def __init__(self, route: Any, hold: float):
+        self.route = route  # a rosgate.routes.ReceiveRoute (open, replayed, admitted, drop)
+        self.stage = InOrder(hold)
+        self._lock = threading.Lock()
+        self._timer: threading.Timer | None = None
+        self._closed = False
+
+    def on_frame(self, header: Any, frame: bytes, arrived: int) -> None:
+        route = self.route
+        payload = route.open(frame, header.epoch)
+        if payload is None:
+            return
+        stage, size = self.stage, len(frame)
+        with self._lock:
+            overflowed = stage.overflowed
+            self._publish(stage.put(header.epoch, header.seq, (header, payload, size, arrived),
+                                    size, time.monotonic()))
+            if stage.overflowed != overflowed:
+                route.drop(Drop.ORDER_OVERFLOW, f"over {stage.max_frames} frames or "
+                           f"{stage.max_bytes // 2**20} MiB held for a missing one")
+            self._arm()
+
+    def _publish(self, ready: list[Any]) -> None:
+        route = self.route
+        for header, payload, size, arrived in ready:
+            route.admitted(header, route.replayed(header, payload), size, arrived)
+
+    def _arm(self) -> None:
+        due = self.stage.next_due()
+        if due is None or self._timer is not None or self._closed:
+            return
+        self._timer = threading.Timer(max(0.0, due - time.monotonic()) + 0.01, self._expire)
+        self._timer.daemon = True
+        self._timer.start()
+
+    def _expire(self) -> None:
+        with self._lock:
+            self._timer = None
+            if self._closed:
+                return
+            self._publish(self.stage.due(time.monotonic()))
+            self._arm()
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            if self._timer is not None:
+                self._timer.cancel()
