@@ -28,8 +28,8 @@ from .codec import Codec
 from .config import ServiceConfig, TopicConfig
 from .drops import Drop, Reason
 from .errors import CipherError, CodecError
-from .keyring import Keys, NoKey, StaticKeys
 from .inorder import Ordered
+from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .spec import CONTROL, Delivery
 from .transform import Transform, TransformError
