@@ -50,6 +50,7 @@ does. Nothing here opens a socket or reads a clock of its own: times are passed 
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import struct
@@ -77,6 +78,7 @@ REORDER = 3             # a fragment this many places behind one that came is ta
 NACK_AFTER = 0.02       # seconds without a new fragment before the rest is asked for (at least)
 RTT_INITIAL = 0.1       # seconds, until a round trip is measured
 MAX_RANGES = 128        # ranges in one NACK (more wait for the next one)
+OVERTAKEN_SCAN = 64     # kept frames an ACK looks at for ones sent before and still unanswered
 
 #: a sent frame forgotten before it was acknowledged, to keep the store within its bytes
 REPAIR_OVERFLOW = declare("repair_overflow", "a sent frame not yet acknowledged, forgotten by "
@@ -453,6 +455,7 @@ class _Kept:
     last_sent: float | None = None   # when its last fragment left (the probe timer starts)
     probe_at: float | None = None
     probes: int = 0
+    overtaken: int = 0  # frames to the same place sent after it and acknowledged before it
 
 
 class RetransmitStore:
@@ -517,6 +520,23 @@ class RetransmitStore:
                 sample = now - kept.last_sent
                 self._rtt[to] = sample if rtt is None else 0.8 * rtt + 0.2 * sample
             self._forget((to, fid))
+            if kept.last_sent is not None:
+                self._overtaken(to, kept.last_sent, now)
+
+    def _overtaken(self, to: Any, sent: float, now: float) -> None:
+        """A frame to ``to`` whose last fragment left at ``sent`` is acknowledged: a frame sent
+        before it and acknowledged by :data:`REORDER` such later frames is lost whole, most
+        likely (as QUIC's packet threshold says), and probed now, not a probe timeout later
+        (a small message, one fragment, is lost whole every time). The oldest
+        :data:`OVERTAKEN_SCAN` kept frames are looked at."""
+        for (dest, _), kept in itertools.islice(self._kept.items(), OVERTAKEN_SCAN):
+            if dest != to or kept.last_sent is None or kept.probes:
+                continue
+            if kept.last_sent >= sent:
+                return
+            kept.overtaken += 1
+            if kept.overtaken == REORDER:
+                kept.probe_at = now
 
     def probes(self, now: float) -> list[tuple[Any, Any, bytes]]:
         """(owner, destination, fragment) for each frame whose ACK is overdue: its last
