@@ -136,11 +136,11 @@ class Ordered:
         self._closed = False
 
     def on_frame(self, header: Any, frame: bytes, arrived: int) -> None:
-        route = self.route
+        route, size = self.route, len(frame)  # before it is opened: maybe where it lies
         payload = route.open(frame, header.epoch)
         if payload is None:
             return
-        stage, size = self.stage, len(frame)
+        stage = self.stage
         with self._lock:
             overflowed = stage.overflowed
             self._publish(stage.put(header.epoch, header.seq, (header, payload, size, arrived),

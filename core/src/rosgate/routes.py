@@ -430,7 +430,8 @@ class ReceiveRoute(Route):
         if self.order is not None:
             self.order.on_frame(header, frame, arrived)
         else:
-            self.admitted(header, self.admit(header, frame), len(frame), arrived)
+            size = len(frame)  # before it is opened: a cipher may open it where it lies
+            self.admitted(header, self.admit(header, frame), size, arrived)
 
     def admitted(self, header: envelope.Header, payload: bytes | None, size: int,
                  arrived: int) -> None:
