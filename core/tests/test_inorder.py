@@ -32,6 +32,7 @@ def test_the_first_frames_of_an_epoch_are_waited_for_unless_it_is_heard_mid_stre
     assert order.put(1, 2, "m2", 10, 0.0) == []  # m1 lost on the way: waited for
     assert order.put(1, 1, "m1", 10, 0.1) == ["m1", "m2"]
     assert order.put(2, 900, "n900", 10, 0.2) == ["n900"]  # a new epoch, heard mid-stream
+    assert order.put(2, 880, "n880", 10, 0.2) == [] and order.before == 1  # not for this side
     assert order.put(2, 902, "n902", 10, 0.3) == []
     assert order.put(3, 1, "k1", 10, 0.4) == ["n902", "k1"]  # a new key: the old order goes
 

@@ -5,8 +5,10 @@ sent again, and then publishes them all in sequence, as a DDS reliable reader do
 The hold is bounded in time (the packetizer's ``resends_within``: after that the missing frame
 cannot come any more, and its gap is given up), in bytes and in frames (what overflows gives the
 oldest gap up at once). A frame older than the next one expected (its gap given up, or a copy)
-is handed on as it comes: the replay window after this refuses copies, and a repaired frame that
-came too late is better published late than lost. Sequence numbers are per epoch (a session's
+is handed on as it comes: the replay window after this refuses copies and what is older than its
+window, and takes (out of order) a repaired frame a little too late. A frame from before the
+first this side took (a sender still repairing what it sent before this side was there) is not
+for it, and is ignored. Sequence numbers are per epoch (a session's
 key generation): a new epoch releases what the old one held. :class:`InOrder` reads no clock
 and takes no lock (times are passed in); :class:`Ordered` puts a route's frames through it.
 """
@@ -48,12 +50,16 @@ class InOrder:
         self.max_frames = max_frames
         self.epoch: int | None = None
         self.next = 1  # the sequence number to publish next
+        self.first = 1  # of the epoch: where this side took its frames up
         self._held: dict[int, _Held] = {}
         self.held_bytes = 0
         #: gaps given up for time (the sender gave up too) and for the bounds (``overflowed``)
         self.gaps = 0
         self.overflowed = 0
         self.copies = 0  # frames held already, given again
+        #: frames sent before the first this side took (a sender still repairing what it sent
+        #: before this side was there): history a volatile subscriber never had, ignored
+        self.before = 0
 
     def __len__(self) -> int:
         return len(self._held)
@@ -64,6 +70,10 @@ class InOrder:
         if epoch != self.epoch:
             out += self._release_all()
             self.epoch, self.next = epoch, 1 if seq <= START else seq
+            self.first = self.next
+        if seq < self.first:  # sent before this side took the sender's frames up: not for it
+            self.before += 1
+            return out
         if seq < self.next:
             out.append(item)  # late (its gap given up) or a copy: the replay window decides
             return out

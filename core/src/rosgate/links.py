@@ -451,6 +451,9 @@ class DatagramLink(_Sending, Link):
                 sent += self.send(group[0], sender, to)
             elif self.send(b"".join(batch(group)), sender, to):
                 sent += len(group)
+                with self._lock:  # the link's counters count its messages, as for any batch
+                    self.counters.frames_out += len(group) - 1
+                    self.counters.coalesced_out += len(group)
         return sent
 
     def _cut(self, frame: bytes, sender: Sender, to: Address, whole: bool) -> list[bytes]:
