@@ -106,3 +106,31 @@ def test_a_reliable_topic_crosses_datagram_loss_whole_in_order_and_once(
     assert "retransmitted" not in route_line(robot.log, "/fresh")
     assert len(late) > count * (1 - drop) ** 2 * 0.5
     assert fresh_p99 < 0.25  # nothing waits for a repair: a loopback hop and two bridges
+
+
+def test_a_receiver_that_expects_repairs_from_a_sender_that_makes_none_stops_waiting(
+        engines, domain, ros_side, logs):
+    """Peer files that disagree: the sender says recovery: none, the receiver repairs by
+    default. Its first gap is waited for (2 s) and never filled: from then on frames are
+    published as they come, and the log says why."""
+    from faults import UdpFaults
+
+    da, db, port, front = domain(), domain(), free_port(), free_port()
+    relay = UdpFaults(front, port, UdpRates(drop=0.1), seed=2)
+    topic = "topic: /t, type: std_msgs/msg/String"
+    try:
+        b = engines(f"""
+bridge: {{name: b, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+topics: [{{{topic}, direction: receive, port: {port}}}]""", db)
+        engines(f"""
+bridge: {{name: a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
+topics: [{{{topic}, direction: transmit, port: {front}, recovery: none}}]""", da)
+        inbox = ros_side(db, "listener").listen("/t", String, 1000)
+        got = cross(ros_side(da, "talker").publisher("/t", String, 1000), inbox, numbered,
+                    lambda m: m.data == "warmup", 100, timeout=15, interval=0.03)
+        assert logs.wait("never sent again: its sender does not repair", timeout=10)
+    finally:
+        relay.close()
+    order = b.routes()[0].order
+    assert order is not None and order.stage.unrepaired
+    assert len(got) >= 100 - 2 * relay.counts["dropped"] - 5, len(got)

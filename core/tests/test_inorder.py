@@ -19,12 +19,14 @@ def test_frames_after_a_gap_wait_for_the_missing_one_then_go_in_order():
 def test_a_gap_is_given_up_after_the_hold_and_a_late_frame_still_goes():
     order = InOrder(hold=2.0)
     order.put(1, 1, "m1", 10, 0.0)
-    assert order.put(1, 3, "m3", 10, 0.5) == []
-    assert order.put(1, 5, "m5", 10, 1.0) == []
+    order.put(1, 3, "m3", 10, 0.0)
+    assert order.put(1, 2, "m2", 10, 0.0) == ["m2", "m3"]  # the sender repairs
+    assert order.put(1, 5, "m5", 10, 0.5) == []
+    assert order.put(1, 7, "m7", 10, 1.0) == []
     assert order.due(2.4) == []
-    assert order.due(2.5) == ["m3"] and order.gaps == 1
-    assert order.due(3.0) == ["m5"] and order.gaps == 2
-    assert order.put(1, 2, "m2", 10, 3.1) == ["m2"]  # published late rather than lost
+    assert order.due(2.5) == ["m5"] and order.gaps == 1
+    assert order.due(3.0) == ["m7"] and order.gaps == 2 and not order.unrepaired
+    assert order.put(1, 4, "m4", 10, 3.1) == ["m4"]  # the replay window decides
 
 
 def test_the_first_frames_of_an_epoch_are_waited_for_unless_it_is_heard_mid_stream():
@@ -45,3 +47,22 @@ def test_what_overflows_the_bounds_gives_the_oldest_gap_up():
     assert order.put(1, 6, "m6", 10, 0.1) == ["m3", "m4"] and order.overflowed == 1
     assert order.held_bytes == 10
     assert order.put(1, 100_000, "far", 10, 0.2) == ["m6", "far"]  # a jump: the order restarts
+
+
+def test_a_sender_that_never_repairs_is_found_out_at_its_first_gap_then_frames_go_as_they_come():
+    order = InOrder(hold=2.0)
+    order.put(1, 1, "m1", 10, 0.0)
+    assert order.put(1, 3, "m3", 10, 0.1) == []
+    assert order.due(2.1) == ["m3"] and order.unrepaired
+    assert order.put(1, 5, "m5", 10, 2.2) == ["m5"]  # no hold any more
+    assert order.put(1, 4, "m4", 10, 2.3) == ["m4"]
+
+
+def test_a_sender_that_repaired_once_is_waited_for_at_its_next_gap_too():
+    order = InOrder(hold=2.0)
+    order.put(1, 1, "m1", 10, 0.0)
+    order.put(1, 3, "m3", 10, 0.1)
+    assert order.put(1, 2, "m2", 10, 0.2) == ["m2", "m3"] and order.filled == 1
+    order.put(1, 5, "m5", 10, 0.3)
+    assert order.due(2.4) == ["m5"] and not order.unrepaired  # given up, still ordered
+    assert order.put(1, 7, "m7", 10, 2.4) == []

@@ -15,12 +15,15 @@ and takes no lock (times are passed in); :class:`Ordered` puts a route's frames 
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any
 
 from .drops import Drop
+
+log = logging.getLogger("rosgate")
 
 #: a new epoch whose first frame is at most this far from 1 is waited for from 1 (its first
 #: frames were lost on the way); a later one is a sender heard mid-stream, taken from there
@@ -57,6 +60,10 @@ class InOrder:
         self.gaps = 0
         self.overflowed = 0
         self.copies = 0  # frames held already, given again
+        self.filled = 0  # gaps a repaired frame filled
+        #: a gap given up before any was ever filled: its sender does not repair (its file says
+        #: recovery: none, or an older rosgate): frames go as they come from then on
+        self.unrepaired = False
         #: frames sent before the first this side took (a sender still repairing what it sent
         #: before this side was there): history a volatile subscriber never had, ignored
         self.before = 0
@@ -66,6 +73,8 @@ class InOrder:
 
     def put(self, epoch: int, seq: int, item: Any, size: int, now: float) -> list[Any]:
         """Take frame ``seq`` of ``epoch``; what is ready, in order (maybe nothing)."""
+        if self.unrepaired:
+            return [item]
         out: list[Any] = []
         if epoch != self.epoch:
             out += self._release_all()
@@ -83,6 +92,8 @@ class InOrder:
         if seq in self._held:
             self.copies += 1
             return out
+        if seq == self.next and self._held:  # the frame a gap waited for
+            self.filled += 1
         self._held[seq] = _Held(item, size, now)
         self.held_bytes += size
         out += self._ready()
@@ -99,6 +110,9 @@ class InOrder:
         while self._held and now - self._oldest().since >= self.hold:
             self.gaps += 1
             out += self._skip()
+            if not self.filled:  # nothing was ever repaired: a sender that does not repair
+                self.unrepaired = True
+                return out + self._release_all()
         return out
 
     def next_due(self) -> float | None:
@@ -179,6 +193,13 @@ class Ordered:
             if self._closed:
                 return
             self._publish(self.stage.due(time.monotonic()))
+            if self.stage.unrepaired:
+                log.warning("%s: a lost frame was waited for %.0f s and never sent again: its "
+                            "sender does not repair what is lost (recovery: none on its side, or "
+                            "an older rosgate); frames are published as they come, out of order "
+                            "after a loss. Give both sides the same qos: and recovery:",
+                            self.route.label, self.stage.hold)
+                return
             self._arm()
 
     def close(self) -> None:
