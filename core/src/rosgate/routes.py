@@ -427,9 +427,10 @@ class ReceiveRoute(Route):
         """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
         datagram that carried it reached this machine (time.time_ns(); 0: unknown). A reliable
         topic whose link repairs is published in its sender's order (:mod:`rosgate.inorder`)."""
-        if self.order is not None:
+        found = self.qos_in_use  # what the far side found (None: the entry's own qos)
+        if self.order is not None and (found is None or found["reliability"] != "best_effort"):
             self.order.on_frame(header, frame, arrived)
-        else:
+        else:  # (publishers found best effort: their frames go as they come, fresh)
             size = len(frame)  # before it is opened: a cipher may open it where it lies
             self.admitted(header, self.admit(header, frame), size, arrived)
 
