@@ -33,10 +33,17 @@ def test_the_first_frames_of_an_epoch_are_waited_for_unless_it_is_heard_mid_stre
     order = InOrder(hold=2.0)
     assert order.put(1, 2, "m2", 10, 0.0) == []  # m1 lost on the way: waited for
     assert order.put(1, 1, "m1", 10, 0.1) == ["m1", "m2"]
-    assert order.put(2, 900, "n900", 10, 0.2) == ["n900"]  # a new epoch, heard mid-stream
-    assert order.put(2, 880, "n880", 10, 0.2) == [] and order.before == 1  # not for this side
-    assert order.put(2, 902, "n902", 10, 0.3) == []
-    assert order.put(3, 1, "k1", 10, 0.4) == ["n902", "k1"]  # a new key: the old order goes
+    # a new epoch, heard mid-stream: what comes in the first 0.3 s is gathered, then the newest
+    # unbroken run goes (n880 and n895: repairs of what was sent before this side was there)
+    assert order.put(2, 900, "n900", 10, 0.2) == []
+    assert order.put(2, 880, "n880", 10, 0.25) == []
+    assert order.put(2, 895, "n895", 10, 0.3) == []
+    assert order.put(2, 901, "n901", 10, 0.35) == []
+    assert order.next_due() == 0.5
+    assert order.due(0.5) == ["n900", "n901"] and order.before == 2
+    assert order.put(2, 880, "n880", 10, 0.6) == [] and order.before == 3  # not for this side
+    assert order.put(2, 903, "n903", 10, 0.7) == []
+    assert order.put(3, 1, "k1", 10, 0.8) == ["n903", "k1"]  # a new key: the old order goes
 
 
 def test_what_overflows_the_bounds_gives_the_oldest_gap_up():

@@ -6,9 +6,11 @@ The hold is bounded in time (the packetizer's ``resends_within``: after that the
 cannot come any more, and its gap is given up), in bytes and in frames (what overflows gives the
 oldest gap up at once). A frame older than the next one expected (its gap given up, or a copy)
 is handed on as it comes: the replay window after this refuses copies and what is older than its
-window, and takes (out of order) a repaired frame a little too late. A frame from before the
-first this side took (a sender still repairing what it sent before this side was there) is not
-for it, and is ignored. Sequence numbers are per epoch (a session's
+window, and takes (out of order) a repaired frame a little too late. A receiver that takes a
+sender up mid-stream (a first sequence number past :data:`START`) gathers what comes for
+:data:`SETTLE` seconds and starts at the newest unbroken run: what the sender still repairs of
+what it sent before the receiver was there is not for it, and is ignored. Sequence numbers are
+per epoch (a session's
 key generation): a new epoch releases what the old one held. :class:`InOrder` reads no clock
 and takes no lock (times are passed in); :class:`Ordered` puts a route's frames through it.
 """
@@ -28,6 +30,10 @@ log = logging.getLogger("rosgate")
 #: a new epoch whose first frame is at most this far from 1 is waited for from 1 (its first
 #: frames were lost on the way); a later one is a sender heard mid-stream, taken from there
 START = 64
+#: seconds a receiver that takes a sender up mid-stream gathers its frames before it starts at
+#: the newest unbroken run of them: a sender's repairs of what it sent before the receiver was
+#: there come in that time, scattered (a probe comes 0.21 s after its frame, unanswered)
+SETTLE = 0.3
 #: a frame this far past the next one expected is a sender that jumped (or a forged header
 #: where no cipher vouches for it): what is held goes, and the order starts again from it
 JUMP = 4096
@@ -54,6 +60,7 @@ class InOrder:
         self.epoch: int | None = None
         self.next = 1  # the sequence number to publish next
         self.first = 1  # of the epoch: where this side took its frames up
+        self.settling: float | None = None  # a sender taken up mid-stream: until when
         self._held: dict[int, _Held] = {}
         self.held_bytes = 0
         #: gaps given up for time (the sender gave up too) and for the bounds (``overflowed``)
@@ -80,6 +87,16 @@ class InOrder:
             out += self._release_all()
             self.epoch, self.next = epoch, 1 if seq <= START else seq
             self.first = self.next
+            self.settling = None if seq <= START else now + SETTLE
+        if self.settling is not None:
+            if now < self.settling:
+                if seq in self._held:
+                    self.copies += 1
+                elif len(self._held) < self.max_frames:
+                    self._held[seq] = _Held(item, size, now)
+                    self.held_bytes += size
+                return out
+            out += self._settle()
         if seq < self.first:  # sent before this side took the sender's frames up: not for it
             self.before += 1
             return out
@@ -106,6 +123,8 @@ class InOrder:
     def due(self, now: float) -> list[Any]:
         """What waited past the hold for a frame that did not come: its gap given up, the frames
         after it released in order (and after them, any later gap's that is due too)."""
+        if self.settling is not None:
+            return self._settle() if now >= self.settling else []
         out: list[Any] = []
         while self._held and now - self._oldest().since >= self.hold:
             self.gaps += 1
@@ -116,8 +135,25 @@ class InOrder:
         return out
 
     def next_due(self) -> float | None:
-        """When :meth:`due` has a gap to give up (None: nothing held)."""
+        """When :meth:`due` has a gap to give up, or a start to settle (None: nothing held)."""
+        if self.settling is not None:
+            return self.settling
         return self._oldest().since + self.hold if self._held else None
+
+    def _settle(self) -> list[Any]:
+        """A sender taken up mid-stream: start at the newest unbroken run of what came while
+        settling. What came before its gap was sent before this side was there (a repair of
+        it, or a frame that came before this side's route did): not for it."""
+        self.settling = None
+        if self._held:
+            start = max(self._held)
+            while start - 1 in self._held:
+                start -= 1
+            for seq in [seq for seq in self._held if seq < start]:
+                self.held_bytes -= self._held.pop(seq).size
+                self.before += 1
+            self.first = self.next = start
+        return self._ready()
 
     def _oldest(self) -> _Held:
         """The first frame after the first gap: it has waited longest."""

@@ -79,6 +79,11 @@ NACK_AFTER = 0.02       # seconds without a new fragment before the rest is aske
 RTT_INITIAL = 0.1       # seconds, until a round trip is measured
 MAX_RANGES = 128        # ranges in one NACK (more wait for the next one)
 OVERTAKEN_SCAN = 64     # kept frames an ACK looks at for ones sent before and still unanswered
+# probes of a frame to where no one has ever answered: one, for a first message lost on a live
+# link (then the ACKs of later frames bring it again); more would bring a receiver started later
+# what was sent before it was there, scattered, with gaps that were never its to fill
+VOID_PROBES = 1
+MAX_ANSWERED = 10_000
 
 #: a sent frame forgotten before it was acknowledged, to keep the store within its bytes
 REPAIR_OVERFLOW = declare("repair_overflow", "a sent frame not yet acknowledged, forgotten by "
@@ -470,6 +475,7 @@ class RetransmitStore:
         self._kept: OrderedDict[tuple[Any, int], _Kept] = OrderedDict()
         self._bytes = 0
         self._rtt: dict[Any, float] = {}
+        self._answered: set[Any] = set()  # destinations that ever acknowledged a frame
 
     def __len__(self) -> int:
         return len(self._kept)
@@ -511,6 +517,10 @@ class RetransmitStore:
         return (kept.owner, again) if again else None
 
     def on_ack(self, to: Any, datagram: bytes | memoryview, now: float) -> None:
+        if to not in self._answered:
+            if len(self._answered) > MAX_ANSWERED:  # addresses come from the network
+                self._answered.clear()
+            self._answered.add(to)
         for fid in parse_ack(datagram):
             kept = self._kept.get((to, fid))
             if kept is None:
@@ -526,11 +536,11 @@ class RetransmitStore:
     def _overtaken(self, to: Any, sent: float, now: float) -> None:
         """A frame to ``to`` whose last fragment left at ``sent`` is acknowledged: a frame sent
         before it and acknowledged by :data:`REORDER` such later frames is lost whole, most
-        likely (as QUIC's packet threshold says), and probed now, not a probe timeout later
-        (a small message, one fragment, is lost whole every time). The oldest
+        likely (as QUIC's packet threshold says), and probed now, once, not a probe timeout
+        later (a small message, one fragment, is lost whole every time). The oldest
         :data:`OVERTAKEN_SCAN` kept frames are looked at."""
         for (dest, _), kept in itertools.islice(self._kept.items(), OVERTAKEN_SCAN):
-            if dest != to or kept.last_sent is None or kept.probes:
+            if dest != to or kept.last_sent is None:
                 continue
             if kept.last_sent >= sent:
                 return
@@ -551,8 +561,9 @@ class RetransmitStore:
             if kept.probe_at is None or now < kept.probe_at:
                 continue
             last = len(kept.packets) - 1
-            if kept.sends[last] >= MAX_SENDS:
-                kept.probe_at = None
+            if kept.sends[last] >= MAX_SENDS or (kept.probes >= VOID_PROBES
+                                                 and key[0] not in self._answered):
+                kept.probe_at = None  # (no one there has ever answered: not into the void)
                 continue
             kept.sends[last] += 1
             kept.probes += 1
