@@ -39,6 +39,7 @@ from processes import (
     Endpoint,
     Floor,
     Process,
+    Relay,
     Route,
     bringup_files,
     free_port,
@@ -103,6 +104,8 @@ DEFAULT_BE = replace(DEFAULT, reliability="best_effort")
 DEFAULTS = [DEFAULT, DEFAULT_BE]
 # the same best-effort file with a 2 ms batch window on its topic (shown at 2.5 kB only)
 BATCHED = replace(DEFAULT_BE, batch="2ms")
+# the default file's reliable topic through a relay that loses datagrams each way (2.5 kB only)
+LOSSY = [replace(DEFAULT, loss=loss) for loss in (0.01, 0.05, 0.20)]
 # the rows below set udp's max_frame to 65,000 (loopback's datagrams): the bridge's cost per
 # message, without fragments
 ROUTES = [Route("udp"), Route("udp", codec="msgpack"), Route("udp", cipher="fernet"), Route("tcp")]
@@ -115,7 +118,7 @@ SESSION_RATIO = 0.85  # target: the session sustains >= this much of udp/cdr/non
 # anything (udp: one datagram per message, so only sizes that fit one)
 FLOORS = [Route("udp", roles="floor"), Route("tcp", roles="floor")]
 UDP_FLOOR_MAX = 65_000
-ALL_ROUTES = [*DEFAULTS, BATCHED, *ROUTES, CLIENT_SERVER, SESSION]
+ALL_ROUTES = [*DEFAULTS, BATCHED, *LOSSY, *ROUTES, CLIENT_SERVER, SESSION]
 
 
 @dataclass(frozen=True)
@@ -227,6 +230,7 @@ class Case:
         self.trials = 0
         self.a: Bridge | None = None
         self.b: Bridge | None = None
+        self.relays: list[Relay] = []  # a lossy route's, between A and B
         self._stack = ExitStack()
 
     @property
@@ -285,13 +289,18 @@ class Case:
             self.b = started(floor("b", sub_domain))
             self.a = started(floor("a", pub_domain))
         elif self.route:
+            port, dial = free_port(), None
+            if self.route.loss:  # the client dials relays in front of the server's port
+                dial = free_port()
+                self.relays = [started(Relay("udp", dial, port, self.route.loss)),
+                               started(Relay("tcp", dial, port))]
             a, b = bringup_files(self.route, size.msg_type, size.depth, self.folder,
-                                 self.reliability, self.checkout.root)
+                                 self.reliability, self.checkout.root, port, dial)
             self.b = started(Bridge(b, sub_domain, self.checkout))
             self.a = started(Bridge(a, pub_domain, self.checkout))
         self.pub = started(Endpoint("pub", size.kind, size.bytes, size.depth, pub_domain,
                                     self.folder / "pub.log", self.reliability))
-        for process in [self.sub, *self.bridges, self.pub]:
+        for process in [self.sub, *self.relays, *self.bridges, self.pub]:
             process.ready()
 
     def warm_up(self) -> None:
@@ -1182,7 +1191,7 @@ def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
             continue
         routes = [*DEFAULTS, *(QUICK_ROUTES if settings.quick else ROUTES)]
         if size.name == TARGET_SIZE:
-            routes = [*routes, BATCHED, CLIENT_SERVER, SESSION]
+            routes = [*routes, BATCHED, *LOSSY, CLIENT_SERVER, SESSION]
         floors = [f for f in FLOORS if f.transport == "tcp" or size.bytes <= UDP_FLOOR_MAX]
         if settings.quick and not paths:
             floors = []  # --quick: only when --path asks

@@ -171,6 +171,25 @@ class Process:
                 self.proc.wait()
 
 
+class Relay(Process):
+    """``python -m rosgate_emulator udp|tcp``: a relay from ``listen`` to ``target`` on
+    127.0.0.1 that loses ``loss`` of the datagrams each way (one datagram one packet: an MTU of
+    65,535), nothing else."""
+
+    def __init__(self, kind: str, listen: int, target: int, loss: float = 0.0):
+        self.name = f"{kind} relay"
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "rosgate_emulator", kind, "--listen", f"127.0.0.1:{listen}",
+             "--target", f"127.0.0.1:{target}", "--loss", str(loss), "--mtu", "65535",
+             "--seed", "1"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            env=dict(os.environ, PYTHONPATH=str(ROOT / "tools" / "emulator" / "src")))
+        self.lines = Lines(self.proc.stdout, self.name)
+
+    def ready(self) -> None:
+        self.lines.wait_for("->", START_TIMEOUT)
+
+
 class Endpoint(Process):
     """The publisher or the subscriber (bench/endpoints.py), driven over stdin/stdout."""
 
@@ -272,6 +291,9 @@ class Route:
     reliability: str = "reliable"
     #: the topic's batch window as the file writes it ("2ms"); "": none
     batch: str = ""
+    #: the share of UDP datagrams lost each way between A and B (a relay in front of B's port;
+    #: the main line's TCP crosses it untouched); 0: none, no relay
+    loss: float = 0.0
 
     @property
     def default_file(self) -> bool:
@@ -284,7 +306,8 @@ class Route:
         name = f"{self.transport}/{self.codec}/{self.cipher}"
         if self.default_file:
             qos = "best effort" if self.reliability == "best_effort" else "reliable"
-            return f"default file, {qos}" + (f", batch {self.batch}" if self.batch else "")
+            return (f"default file, {qos}" + (f", batch {self.batch}" if self.batch else "")
+                    + (f", {self.loss:.0%} datagram loss" if self.loss else ""))
         if self.roles == "session":
             return f"{name} client/server authenticated"
         if self.roles == "floor":
@@ -333,13 +356,15 @@ def knows_insecure(root: Path) -> bool:
 
 
 def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
-                  reliability: str = "reliable", root: Path = ROOT) -> tuple[Path, Path]:
+                  reliability: str = "reliable", root: Path = ROOT, port: int | None = None,
+                  dial: int | None = None) -> tuple[Path, Path]:
     """Write bridge A's and bridge B's bringup.yaml; return their paths.
 
     A route's ``max_frame`` is written into both files (65,000 bytes: loopback's datagrams, the
     bridge's cost per message without fragments); the default file's route has none, as a
-    user's file: udp then takes it from the path (an older rosgate: 1,200 bytes)."""
-    port = free_port()
+    user's file: udp then takes it from the path (an older rosgate: 1,200 bytes). ``port``:
+    B's (default: a free one); ``dial``: the port a client dials instead (a relay's)."""
+    port = port or free_port()
     options = {}
     if route.cipher == "fernet":
         key = folder / "fernet.key"
@@ -371,7 +396,7 @@ def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
         a_keys, b_keys = session_keys(folder) if route.roles == "session" else (
             # a revision from before sessions knows no insecure: (and needs none)
             (", insecure: true",) * 2 if knows_insecure(root) else ("", ""))
-        a = (f"bridge: {{name: bench_a, role: client, server: 127.0.0.1:{port}{a_keys}}}\n"
+        a = (f"bridge: {{name: bench_a, role: client, server: 127.0.0.1:{dial or port}{a_keys}}}\n"
              f"{plugins}topics:\n  - {topic}, direction: transmit}}\n")
         b = f"bridge: {{name: bench_b, role: server, server: 127.0.0.1:{port}{b_keys}}}\n{plugins}"
     paths = folder / "bench_a.yaml", folder / "bench_b.yaml"

@@ -180,10 +180,12 @@ def test_a_slow_main_line_is_slow_not_down(engines, domain, ros_side, proxy, log
 
 def peer_through_proxy(engines, domain, proxy, rates: UdpRates, cipher: str = "none",
                        plugins: str = "{}"):
-    """Peer bridges a -> b over UDP, through the proxy (rates off until the test turns them on)."""
+    """Peer bridges a -> b over UDP, through the proxy (rates off until the test turns them on),
+    carrying a reliable topic unrepaired (``recovery: none``): what the link loses is lost,
+    and counted (tests/test_reliable_loss.py: repaired, as by default)."""
     da, db, port = domain(), domain(), free_port()
     p = proxy(port, UdpRates())
-    topic = f"topic: /t, type: std_msgs/msg/String, cipher: {cipher}, qos: 1000"
+    topic = f"topic: /t, type: std_msgs/msg/String, cipher: {cipher}, qos: 1000, recovery: none"
     a = engines(f"""
 bridge: {{name: a, role: peer, peer: 127.0.0.1, listen: 127.0.0.1}}
 plugins: {plugins}

@@ -164,6 +164,22 @@ def test_retransmit_recovers_frames_lost_whole_and_small_frames_too(closing):
     assert relay.up.dropped["loss"] >= 5 and topic.again >= 5
 
 
+def test_a_backlog_of_small_frames_with_retransmit_shares_packets_and_arrives_whole(closing):
+    """Frames handed over together (a topic's backlog) are repaired as batches, one packet
+    each as far as they fit: 60 frames of 200 bytes in 12 packets, not 60, through 20 % loss."""
+    a, relay, rx = lossy_pair(closing, Profile(delay=0.002, loss=0.2, seed=9))
+    topic = Topic(6, recovery="retransmit")
+    frames = [frame(6, i, 200) for i in range(60)]
+    for start in range(0, 60, 5):
+        assert a.send_all(frames[start:start + 5], topic, relay.address) == 5
+    assert rx.wait(lambda: len(rx.frames) >= 60), (len(rx.frames), rx.lost)
+    assert sorted(rx.frames) == sorted(frames) and rx.lost == []
+    counters = a.counters  # 12 batches of five, some of them sent again
+    assert (counters.frames_out, counters.coalesced_out) == (60, 60)
+    assert counters.packets_out < 12 + 3 * relay.up.dropped["loss"] + 10, counters
+    assert relay.up.dropped["loss"] >= 2 and topic.again >= 2
+
+
 def test_fec_needs_no_way_back(closing):
     """FEC rebuilds without a word from the receiver: with the return path cut (the relay
     loses everything b sends), frames still arrive."""

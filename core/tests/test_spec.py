@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
-from rosgate_recovery import Fec
+from rosgate_recovery import Fec, Retransmit
 
 from rosgate.builtin import Fragments
 from rosgate.config import loads
@@ -38,8 +38,10 @@ services:
     assert camera.delivery == Delivery(reliable=True, priority=6, latest_only=False,
                                        max_delay=0.05, packetizer=Fec,
                                        packetizer_options=Fec.Options(overhead=0.2))
-    # ROS's default QoS is reliable: every message, in order; no packetizer of its own
-    assert twist.delivery == Delivery(reliable=True, priority=5, latest_only=False)
+    # ROS's default QoS is reliable: every message, in order, repaired on a datagram link
+    assert twist.delivery == Delivery(reliable=True, priority=5, latest_only=False,
+                                      packetizer=Retransmit,
+                                      packetizer_options=Retransmit.Options())
     assert mcu.delivery == Delivery(reliable=True, whole=True)
     # best effort: the newest message wins unless the entry says otherwise
     assert scan.delivery == Delivery(reliable=False, latest_only=True)

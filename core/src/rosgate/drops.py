@@ -88,6 +88,9 @@ class Drop(StrEnum):
     REPLAYED = "replayed", ("a peer's frame under a static key sent before this side last "
                             "started (a replay; or the peer's clock and state folder both went "
                             "back: docs/security.md)")
+    ORDER_OVERFLOW = "order_overflow", ("a reliable topic's frames held for a missing one, to be "
+                                        "published in order, over 4,096 frames or 16 MiB: the "
+                                        "gap was given up (its frame counted lost on the way)")
     TYPE_MISMATCH = "type_mismatch", "the far side's message type is not this side's"
     TYPE_NOT_INSTALLED = "type_not_installed", ("the far side's message type is not installed on "
                                                 "this side (its log names the package)")

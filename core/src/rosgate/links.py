@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
@@ -309,6 +309,9 @@ SENT_INLINE = Outgoing(None, None, 0, list)
 #: the longest frame whose fragments leave from the caller's thread (an idle link): a few
 #: dozen system calls; a longer one goes to the send thread, so an executor never waits long
 INLINE_MAX = 64 * 1024
+#: bytes a batch of a topic with recovery leaves its packetizer for its header, so the batch
+#: and the header fit one packet (retransmit's takes 14, fec's 21)
+REPAIR_HEADROOM = 64
 #: how long a caller waits for another thread's packet to leave before it queues its frame
 TURN_WAIT = 0.02
 #: the most fragments of one frame the send thread hands the kernel in one call
@@ -332,6 +335,21 @@ def batch(frames: list[bytes]) -> list[bytes | memoryview]:
 def batch_size(sizes: int, count: int) -> int:
     """The size of a batch of ``count`` frames of ``sizes`` bytes in all."""
     return len(framing.BATCH_MAGIC) + count * framing.LENGTH.size + sizes
+
+
+def _groups(frames: list[bytes], limit: int) -> Iterator[tuple[list[bytes], int]]:
+    """Consecutive frames in groups whose batch fits ``limit`` bytes (a frame alone when it
+    does not), with their bytes in all."""
+    start = 0
+    while start < len(frames):
+        total, end = 0, start
+        while end < len(frames) and batch_size(total + len(frames[end]), end - start + 1) <= limit:
+            total += len(frames[end])
+            end += 1
+        if end == start:  # a frame alone: sent as one
+            total, end = len(frames[start]), start + 1
+        yield frames[start:end], total
+        start = end
 
 
 class DatagramLink(_Sending, Link):
@@ -410,18 +428,12 @@ class DatagramLink(_Sending, Link):
         else each is queued (and coalesced again by the send thread)."""
         assert to is not None, "a datagram link needs a destination"
         delivery = sender.delivery
-        if len(frames) < 2 or self.bare or self.cuts or delivery.whole \
-                or delivery.packetizer is not None:
+        if len(frames) < 2 or self.bare or self.cuts or delivery.whole:
             return sum(self.send(frame, sender, to) for frame in frames)
-        limit, sent, start = self.max_frame, 0, 0
-        while start < len(frames):  # groups of consecutive frames that fit one datagram
-            total, end = 0, start
-            while end < len(frames) \
-                    and batch_size(total + len(frames[end]), end - start + 1) <= limit:
-                total += len(frames[end])
-                end += 1
-            end = max(end, start + 1)  # a frame alone: sent as one
-            group, start = frames[start:end], end
+        if delivery.packetizer is not None:
+            return self._send_repaired(frames, sender, to)
+        sent = 0
+        for group, total in _groups(frames, self.max_frame):
             go = len(group) > 1
             if go:
                 with self._lock:
@@ -435,6 +447,20 @@ class DatagramLink(_Sending, Link):
                 sent += batched
             finally:
                 self._release()
+        return sent
+
+    def _send_repaired(self, frames: list[bytes], sender: Sender, to: Address) -> int:
+        """Frames of a topic with recovery: those that fit one packet together go to its
+        packetizer as one batch (one packet to repair and acknowledge, not one per message)."""
+        sent = 0
+        for group, _ in _groups(frames, self.max_frame - REPAIR_HEADROOM):
+            if len(group) == 1:
+                sent += self.send(group[0], sender, to)
+            elif self.send(b"".join(batch(group)), sender, to):
+                sent += len(group)
+                with self._lock:  # the link's counters count its messages, as for any batch
+                    self.counters.frames_out += len(group) - 1
+                    self.counters.coalesced_out += len(group)
         return sent
 
     def _cut(self, frame: bytes, sender: Sender, to: Address, whole: bool) -> list[bytes]:
@@ -821,16 +847,8 @@ class DatagramLink(_Sending, Link):
             packetizer = None
         elif self.cuts:  # every datagram is its own packetizer's
             packetizer = self.own
-        elif kind == 0x42:  # "RB": a batch, read inline (no generator: a cost per message)
-            end, offset, deliver = len(datagram), _BATCH_START, self._deliver
-            while offset < end:
-                start = offset + _LENGTH_SIZE
-                if start > end or (offset := start + _length(datagram, offset)[0]) > end:
-                    self.on_lost(None, Drop.BAD_BATCH)
-                    break
-                counters.frames_in += 1
-                counters.coalesced_in += 1
-                deliver(bytes(datagram[start:offset]), source)
+        elif kind == 0x42:  # "RB": a batch
+            self._unbatch(datagram, source)
             return None
         else:
             magic = bytes(datagram[:2])
@@ -851,10 +869,27 @@ class DatagramLink(_Sending, Link):
                                          "packet (a bug in the plugin)")
             self.on_lost(None, Drop.BAD_FRAGMENT)
             return packetizer
-        if frame is not None:
+        if frame is None:
+            return packetizer
+        if frame[:2] == framing.BATCH_MAGIC:  # a topic's batch, repaired as one (_send_repaired)
+            self._unbatch(frame, source)
+        else:
             counters.frames_in += 1
             self._deliver(frame, source)  # the handler's to keep (rclpy takes it uncopied)
         return packetizer
+
+    def _unbatch(self, datagram: bytes | memoryview, source: Address) -> None:
+        """A batch's frames to the handler, read inline (no generator: a cost per message)."""
+        counters = self.counters
+        end, offset, deliver = len(datagram), _BATCH_START, self._deliver
+        while offset < end:
+            start = offset + _LENGTH_SIZE
+            if start > end or (offset := start + _length(datagram, offset)[0]) > end:
+                self.on_lost(None, Drop.BAD_BATCH)
+                break
+            counters.frames_in += 1
+            counters.coalesced_in += 1
+            deliver(bytes(datagram[start:offset]), source)
 
     def _close_io(self) -> None:
         self.endpoint.close()

@@ -81,6 +81,10 @@ class Packetizer(ABC):
     #: need no magic); a packet it cuts may hold several datagrams (``max_frame`` bytes each but
     #: the last), sent back to back: pieces without a frame id never interleave
     cuts_every_frame: ClassVar[bool] = False
+    #: seconds after a frame left within which it may still arrive, sent again (a selective
+    #: repeat's deadline); None: what is lost stays lost. A receiver of a reliable topic holds
+    #: the frames after a gap this long for the missing one, to publish them in order
+    resends_within: ClassVar[float | None] = None
 
     def __init__(self, link: PacketLink):
         self.link = link

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,7 +30,7 @@ from .config import (
 )
 from .errors import ConfigError, OptionError
 from .options import parse
-from .packetizer import Packetizer, own_packetizer
+from .packetizer import SMALL_FRAME, Packetizer, own_packetizer
 from .plugins import Plugins, Registration
 from .ros import TypeNotFound, is_reliable, resolve_type
 from .service_framing import ServiceFraming
@@ -40,6 +41,13 @@ from .wire.envelope import topic_id_for
 from .wire.framing import DEFAULT_MAX_MESSAGE
 
 ErrorMaker = Callable[..., ConfigError]
+log = logging.getLogger("rosgate")
+
+#: the packetizer that repairs a reliable topic on a datagram link when it sets no recovery:
+#: selective repeat costs a round trip per loss and bandwidth only for what was lost, keeps the
+#: topic on the link the file chose (no head-of-line wait behind other topics, as on the main
+#: line's stream) and is the far side's to answer without a setting
+RELIABLE_RECOVERY = "retransmit"
 
 ANY_IP = "0.0.0.0"
 NO_ADDRESS: Address = ("", 0)  # bus entries have a key instead
@@ -80,6 +88,8 @@ class Resolver:
         self.main_address: Address | None = None
         self._decoders: dict[int, Transform | None] = {}
         self._decoders_lock = threading.Lock()
+        #: what entries give up, said once each (a reliable topic carried unrepaired)
+        self.cautions: list[str] = []
 
     def plan(self) -> Plan:
         cfg, main_line = self.config, None
@@ -182,7 +192,8 @@ class Resolver:
         """Recovery is for datagram links, latest_only for the links rosgate schedules (a bus
         paces and drops by itself)."""
         bus = isinstance(transport, BusTransport)
-        if topic.recovery != NO_PLUGIN and (isinstance(transport, StreamTransport) or bus):
+        if topic.recovery not in (None, NO_PLUGIN) and (isinstance(transport, StreamTransport)
+                                                         or bus):
             what = "a bus" if bus else "a stream"
             raise error(f"{key}.recovery", f"recovery: {topic.recovery} is for datagram links "
                         f"(udp): {topic.transport} is {what}, which delivers whole and in order "
@@ -196,18 +207,52 @@ class Resolver:
             return Delivery(reliable=reliable, priority=priority)
         packetizer: type[Packetizer] | None = None
         options = None
-        if topic.recovery != NO_PLUGIN:
-            packetizer = self.plugin("packetizer", topic.recovery, f"{key}.recovery", error).cls
+        recovery = self._recovery(topic, key, reliable, transport)
+        if recovery != NO_PLUGIN:
+            packetizer = self.plugin("packetizer", recovery, f"{key}.recovery", error).cls
             if packetizer.cuts_every_frame:
-                raise error(f"{key}.recovery", f"{topic.recovery} is what links of small frames "
+                raise error(f"{key}.recovery", f"{recovery} is what links of small frames "
                             "cut every frame with, by themselves: it recovers nothing",
                             "remove recovery: from this entry, or pick fec or retransmit")
-            options = self._plugin_options(packetizer, topic.recovery, topic.recovery_options,
+            options = self._plugin_options(packetizer, recovery, topic.recovery_options,
                                            f"{key}.recovery", error)
         latest_only = not reliable if topic.latest_only is None else topic.latest_only
         return Delivery(reliable=reliable, priority=priority, latest_only=latest_only,
                         max_delay=topic.max_delay, packetizer=packetizer,
                         packetizer_options=options, whole=topic.framing is Framing.NONE)
+
+    def _recovery(self, topic: TopicConfig, key: str, reliable: bool,
+                  transport: Transport) -> str:
+        """A datagram topic's recovery: its own, else by its QoS (a reliable topic is repaired,
+        in order, by :data:`RELIABLE_RECOVERY`; a best-effort one stays fresh). What a reliable
+        topic gives up without it is said (:attr:`cautions`)."""
+        # a link of small frames (CAN) repairs in its hardware, and has no room for the header
+        repairable = (isinstance(transport, DatagramTransport) and topic.framing is Framing.ROSGATE
+                      and transport.max_frame >= SMALL_FRAME)
+        if not (repairable and reliable):
+            return topic.recovery or NO_PLUGIN
+        name = f"{topic.topic} ({key})"
+        if topic.recovery == NO_PLUGIN:
+            self.caution(f"{name}: reliable QoS on {topic.transport} with recovery: none: a "
+                         "datagram lost on the way loses its message (counted as lost on the "
+                         "way by the receiver), and messages may be published out of order. "
+                         "Leave recovery: out to have them repaired (retransmit)")
+        if topic.recovery is not None:
+            return topic.recovery
+        if self.plugins.get("packetizer", RELIABLE_RECOVERY) is None:
+            message, fix = self.plugins.explain_missing("packetizer", RELIABLE_RECOVERY, False)
+            self.caution(f"{name}: reliable QoS on {topic.transport}, where the packetizer "
+                         f"{RELIABLE_RECOVERY!r} would repair what is lost on the way; it is not "
+                         f"here ({message}), so a lost datagram loses its message. {fix}; or "
+                         "set recovery: none to accept it")
+            return NO_PLUGIN
+        return RELIABLE_RECOVERY
+
+    def caution(self, text: str) -> None:
+        """Say once, as a warning, what an entry gives up (``rosgate check`` and ``run``)."""
+        if text not in self.cautions:
+            self.cautions.append(text)
+            log.warning("%s", text)
 
     def _plugin_options(self, cls: type, name: str, own: dict[str, Any], asked_by: str,
                         error: ErrorMaker) -> Any:

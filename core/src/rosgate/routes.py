@@ -29,6 +29,7 @@ from .config import ServiceConfig, TopicConfig
 from .drops import Drop, Reason
 from .errors import CipherError, CodecError
 from .holdback import Held, Holdback
+from .inorder import Ordered
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .matching import PublishGate
@@ -129,8 +130,10 @@ class Route:
         (counted) when one does not. Skipped sequence numbers of a topic count as lost (a late
         frame that fills a gap takes one back)."""
         payload = self.open(frame, header.epoch)
-        if payload is None:
-            return None
+        return None if payload is None else self.replayed(header, payload)
+
+    def replayed(self, header: envelope.Header, payload: bytes) -> bytes | None:
+        """An opened frame's payload unless the replay window refuses it (counted)."""
         replay = self.replay
         with self._lock:
             refused = replay.accept(header.epoch, header.seq) if self.keys.fresh(
@@ -482,13 +485,25 @@ class ReceiveRoute(Route):
         self.stale_warnings_given = 0
         #: the transform of a wire id, whatever this side's file says (the sender's frame says)
         self.transforms = transforms
+        resends = delivery.packetizer.resends_within if delivery.packetizer else None
+        self.order = Ordered(self, resends) if delivery.reliable and resends else None
 
     def on_frame(self, header: envelope.Header, frame: bytes, arrived: int = 0) -> bool:
         """An envelope frame (framing rosgate), found by its topic id; ``arrived``: when the
-        datagram that carried it reached this machine (time.time_ns(); 0: unknown). Whether
-        its cipher and the replay window took it (a genuine, new frame of the far side)."""
-        size = len(frame)
-        payload = self.admit(header, frame)
+        datagram that carried it reached this machine (time.time_ns(); 0: unknown). A reliable
+        topic whose link repairs is published in its sender's order (:mod:`rosgate.inorder`).
+        Whether its cipher and the replay window took it (a genuine, new frame of the far side;
+        one held in order for a gap is not yet one)."""
+        found = self.qos_in_use  # what the far side found (None: the entry's own qos)
+        if self.order is not None and (found is None or found["reliability"] != "best_effort"):
+            return self.order.on_frame(header, frame, arrived)
+        size = len(frame)  # before it is opened: a cipher may open it where it lies
+        return self.admitted(header, self.admit(header, frame), size, arrived)
+
+    def admitted(self, header: envelope.Header, payload: bytes | None, size: int,
+                 arrived: int) -> bool:
+        """A frame's payload past its cipher and the replay window (None: refused, counted);
+        whether it was."""
         if payload is None:
             return False
         if self.check.mismatch is not None:
@@ -525,6 +540,10 @@ class ReceiveRoute(Route):
             self.drop(Drop.DECOMPRESSION_ERROR, f"{transform.name}{failed}: {exc}")
         else:
             self.deliver(restored, size)
+
+    def close(self) -> None:
+        if self.order is not None:
+            self.order.close()
 
     def deliver(self, payload: bytes, size: int) -> None:
         """Decode and publish; ``size`` is what arrived on the link, for the counters."""

@@ -252,6 +252,23 @@ def test_selective_repeat_recovers_a_frame_whose_every_fragment_was_lost():
     assert len(store) == 0
 
 
+def test_a_frame_lost_whole_is_sent_again_once_three_later_ones_are_acknowledged():
+    """A small message is lost whole: the ACKs of the frames sent after it say so before its
+    probe timeout does (at the third, so that a frame merely overtaken is not sent twice)."""
+    store = RetransmitStore()
+    for fid in range(1, 6):
+        store.keep("b", fid, [b"p%d" % fid], "route", 0.0)
+        store.sent("b", fid, 0.001 * fid)
+    store.keep("c", 9, [b"other"], "route", 0.0)  # another destination: not its business
+    store.sent("c", 9, 0.0)
+    store.on_ack("b", recovery.ack([2, 3]), 0.010)
+    assert store.probes(0.011) == []
+    store.on_ack("b", recovery.ack([4]), 0.012)
+    assert store.probes(0.012) == [("route", "b", b"p1")]  # long before its probe timeout
+    store.on_ack("b", recovery.ack([5]), 0.013)
+    assert store.probes(0.014) == []  # once: after that, its probe timeout backs off
+
+
 def test_a_nack_is_answered_only_for_the_address_the_frame_went_to():
     store = RetransmitStore()
     store.keep(("10.0.0.2", 1), 5, [b"p0", b"p1"], "route", 0.0)
@@ -302,9 +319,10 @@ def test_every_fragment_is_sent_a_bounded_number_of_times():
 
 def test_the_store_forgets_after_the_deadline_and_beyond_its_memory():
     store = RetransmitStore(deadline=2.0, max_bytes=10_000)
-    store.keep("b", 1, [bytes(4000)], "r", 0.0)
-    store.keep("b", 2, [bytes(4000)], "r", 0.0)
-    store.keep("b", 3, [bytes(4000)], "r", 0.0)  # over 10,000 bytes: the oldest goes
+    assert store.keep("b", 1, [bytes(4000)], "r1", 0.0) == []
+    assert store.keep("b", 2, [bytes(4000)], "r2", 0.0) == []
+    # over 10,000 bytes: the oldest goes, its owner named to be counted
+    assert store.keep("b", 3, [bytes(4000)], "r3", 0.0) == ["r1"]
     assert store.on_nack("b", recovery.nack(1, [0])) is None
     assert store.on_nack("b", recovery.nack(2, [0])) is not None
     store.sent("b", 2, 0.5)  # the last fragment of each left

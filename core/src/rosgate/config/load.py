@@ -70,14 +70,15 @@ def action_to_mapping(a: ActionConfig) -> dict:
 
 def topic_to_mapping(t: TopicConfig) -> dict:
     """As the user would write it, plugin keys only when used (so that a server that predates them
-    still reads a client's hello that does not use them)."""
+    still reads a client's hello that does not use them); an unset recovery is left out (the far
+    side decides it by the QoS too), ``recovery: none`` is said."""
     mapping = _to_mapping(t, TopicConfig)
     if not t.qos_given:  # the far side finds it from the publishers too
         del mapping["qos"]
+    if mapping["compression"] == schema.NO_PLUGIN:
+        del mapping["compression"]
     for key, options in (("recovery", t.recovery_options), ("compression", t.compression_options)):
-        if mapping[key] == schema.NO_PLUGIN:
-            del mapping[key]
-        elif options:
+        if key in mapping and options:
             mapping[key] = {mapping[key]: dict(options)}
     return mapping
 
@@ -371,7 +372,8 @@ def _topic(src: Source, data: dict, path: str, given: dict[str, Any]) -> None:
                         fix="use framing: none for bare payloads on a datagram link, "
                             "or leave framing: out")
     for key in ("recovery", "compression"):  # a plugin's name and the entry's options for it
-        given[key], given[f"{key}_options"] = given.get(key, (schema.NO_PLUGIN, {}))
+        unset = None if key == "recovery" else schema.NO_PLUGIN  # recovery: by the QoS
+        given[key], given[f"{key}_options"] = given.get(key, (unset, {}))
         if framing.bare and key in data and data[key] != schema.NO_PLUGIN:
             raise src.error(join(path, key), f"{key} needs the envelope (framing: rosgate): "
                             f"with framing {framing} a datagram is the bare payload",

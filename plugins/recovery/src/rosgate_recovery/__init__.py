@@ -2,16 +2,17 @@
 
 A message cut into fragments is lost when any fragment is: at 1 % packet loss a 921,600-byte
 image in 1,200-byte datagrams (778 fragments) arrives whole 0.04 % of the time. A topic picks
-how to ride that out with ``recovery:``; the receiver finds the packetizer by the packets' magic
-and needs no setting.
+how to ride that out with ``recovery:`` (a reliable topic that sets none gets ``retransmit``: the
+core names it); the receiver finds the packetizer by the packets' magic and needs no setting.
 
 * ``fec`` — forward error correction: every frame gets repair fragments (``overhead`` of them per
   data fragment, rounded up per block); any ``k`` of a block's ``k + m`` rebuild it. Costs
   bandwidth on every frame, lost or not; needs no way back. Option ``overhead`` (0.1), e.g.
   ``recovery: {fec: {overhead: 0.25}}``.
 * ``retransmit`` — selective repeat: the receiver asks again for what is missing and
-  acknowledges what came; the sender keeps each frame until acknowledged or 2 s after it left.
-  Costs a round trip per loss, and bandwidth only for what was lost.
+  acknowledges what came; the sender keeps each frame until acknowledged or 2 s after it left,
+  and sends again at once a frame three later ones overtook. Costs a round trip per loss, and
+  bandwidth only for what was lost.
 
 The formats, and what each side keeps within bounds, are :mod:`rosgate_recovery.wire`'s.
 """
@@ -87,6 +88,7 @@ class Retransmit(Packetizer):
 
     name = "retransmit"
     magic = (wire.REPEAT_MAGIC, wire.NACK_MAGIC, wire.ACK_MAGIC)
+    resends_within = wire.DEADLINE
 
     @dataclass(frozen=True)
     class Options:
@@ -111,7 +113,10 @@ class Retransmit(Packetizer):
         fid = wire.frame_id()
         packets = wire.repeat_fragments(frame, self.link.max_frame, sender.topic_id, fid)
         with self._lock:
-            self.store.keep(to, fid, packets, sender, time.monotonic())
+            forgotten = self.store.keep(to, fid, packets, sender, time.monotonic())
+        for owner in forgotten:  # outside the lock: a route counts and warns
+            owner.drop(wire.REPAIR_OVERFLOW, f"over the {self.store.max_bytes // 2**20} MiB a "
+                       "sender keeps for re-sending: a frame lost on the way stays lost")
         return packets
 
     def sent(self, packet: bytes, to: Any, now: float) -> None:

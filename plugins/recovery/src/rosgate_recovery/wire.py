@@ -50,6 +50,7 @@ does. Nothing here opens a socket or reads a clock of its own: times are passed 
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import struct
@@ -65,6 +66,7 @@ from rosgate import (
     Drop,
     FramingError,
     Reason,
+    declare,
 )
 
 FEC = struct.Struct(">2sIIIHHBBB")
@@ -83,6 +85,17 @@ REORDER = 3             # a fragment this many places behind one that came is ta
 NACK_AFTER = 0.02       # seconds without a new fragment before the rest is asked for (at least)
 RTT_INITIAL = 0.1       # seconds, until a round trip is measured
 MAX_RANGES = 128        # ranges in one NACK (more wait for the next one)
+OVERTAKEN_SCAN = 64     # kept frames an ACK looks at for ones sent before and still unanswered
+# probes of a frame to where no one has ever answered: one, for a first message lost on a live
+# link (then the ACKs of later frames bring it again); more would bring a receiver started later
+# what was sent before it was there, scattered, with gaps that were never its to fill
+VOID_PROBES = 1
+MAX_ANSWERED = 10_000
+
+#: a sent frame forgotten before it was acknowledged, to keep the store within its bytes
+REPAIR_OVERFLOW = declare("repair_overflow", "a sent frame not yet acknowledged, forgotten by "
+                          "`retransmit` to keep what it holds for re-sending within its bound "
+                          "(32 MiB per link): if it was lost on the way, it stays lost")
 
 Lost = Callable[[int | None, Reason], None]
 Recovered = Callable[[int], None]
@@ -463,6 +476,7 @@ class _Kept:
     last_sent: float | None = None   # when its last fragment left (the probe timer starts)
     probe_at: float | None = None
     probes: int = 0
+    overtaken: int = 0  # frames to the same place sent after it and acknowledged before it
 
 
 class RetransmitStore:
@@ -477,15 +491,20 @@ class RetransmitStore:
         self._kept: OrderedDict[tuple[Any, int], _Kept] = OrderedDict()
         self._bytes = 0
         self._rtt: dict[Any, float] = {}
+        self._answered: set[Any] = set()  # destinations that ever acknowledged a frame
 
     def __len__(self) -> int:
         return len(self._kept)
 
-    def keep(self, to: Any, fid: int, packets: list[bytes], owner: Any, now: float) -> None:
+    def keep(self, to: Any, fid: int, packets: list[bytes], owner: Any, now: float) -> list[Any]:
+        """Keep a frame's fragments; the owners of the frames forgotten for room (oldest first),
+        once each, for the caller to count."""
         self._kept[(to, fid)] = _Kept(owner, packets, now, [1] * len(packets))
         self._bytes += sum(map(len, packets))
+        forgotten = []
         while self._bytes > self.max_bytes and self._kept:
-            self._forget(next(iter(self._kept)))
+            forgotten.append(self._forget(next(iter(self._kept))).owner)
+        return forgotten
 
     def sent(self, to: Any, fid: int, now: float) -> None:
         """Its last fragment has left: start the probe timer."""
@@ -514,6 +533,10 @@ class RetransmitStore:
         return (kept.owner, again) if again else None
 
     def on_ack(self, to: Any, datagram: bytes | memoryview, now: float) -> None:
+        if to not in self._answered:
+            if len(self._answered) > MAX_ANSWERED:  # addresses come from the network
+                self._answered.clear()
+            self._answered.add(to)
         for fid in parse_ack(datagram):
             kept = self._kept.get((to, fid))
             if kept is None:
@@ -523,6 +546,23 @@ class RetransmitStore:
                 sample = now - kept.last_sent
                 self._rtt[to] = sample if rtt is None else 0.8 * rtt + 0.2 * sample
             self._forget((to, fid))
+            if kept.last_sent is not None:
+                self._overtaken(to, kept.last_sent, now)
+
+    def _overtaken(self, to: Any, sent: float, now: float) -> None:
+        """A frame to ``to`` whose last fragment left at ``sent`` is acknowledged: a frame sent
+        before it and acknowledged by :data:`REORDER` such later frames is lost whole, most
+        likely (as QUIC's packet threshold says), and probed now, once, not a probe timeout
+        later (a small message, one fragment, is lost whole every time). The oldest
+        :data:`OVERTAKEN_SCAN` kept frames are looked at."""
+        for (dest, _), kept in itertools.islice(self._kept.items(), OVERTAKEN_SCAN):
+            if dest != to or kept.last_sent is None:
+                continue
+            if kept.last_sent >= sent:
+                return
+            kept.overtaken += 1
+            if kept.overtaken == REORDER:
+                kept.probe_at = now
 
     def moved(self, old: Any, new: Any, now: float) -> None:
         """Frames kept for ``old`` are ``new``'s now (it roamed): probed there at once, their
@@ -550,8 +590,9 @@ class RetransmitStore:
             if kept.probe_at is None or now < kept.probe_at:
                 continue
             last = len(kept.packets) - 1
-            if kept.sends[last] >= MAX_SENDS:
-                kept.probe_at = None
+            if kept.sends[last] >= MAX_SENDS or (kept.probes >= VOID_PROBES
+                                                 and key[0] not in self._answered):
+                kept.probe_at = None  # (no one there has ever answered: not into the void)
                 continue
             kept.sends[last] += 1
             kept.probes += 1
@@ -563,6 +604,7 @@ class RetransmitStore:
         times = [k.probe_at for k in self._kept.values() if k.probe_at is not None]
         return min(times) if times else None
 
-    def _forget(self, key: tuple[Any, int]) -> None:
+    def _forget(self, key: tuple[Any, int]) -> _Kept:
         kept = self._kept.pop(key)
         self._bytes -= sum(map(len, kept.packets))
+        return kept
