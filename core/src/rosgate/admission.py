@@ -44,6 +44,11 @@ class Sources:
             except ValueError:
                 self.hosts.add(text)  # not an IP network: a host as written (a device address)
 
+    def vouches_for(self, source: Address) -> bool:
+        """Whether a link may send to ``source`` unasked (a packetizer's acknowledgement): a
+        source it takes frames from for who it is, not one it reads on probation."""
+        return self.admits(source)
+
     def admits(self, source: Address, datagram: bytes | memoryview = b"") -> bool:
         host = source[0]
         if host in self.hosts:
@@ -89,6 +94,9 @@ class KnownSources(Sources):
 
     def knows(self, source: Address) -> bool:
         return source in self._known
+
+    def vouches_for(self, source: Address) -> bool:
+        return self.knows(source)
 
     def _on_probation(self) -> bool:
         """One more datagram from an unknown address, within the rate (a token bucket of one

@@ -529,7 +529,11 @@ class DatagramLink(_Sending, Link):
             self._wake.notify()
 
     def answer(self, packet: bytes, to: Address) -> None:
-        """Sent at once (counted against the budget); one that fails is asked for again anyway."""
+        """Sent at once (counted against the budget); one that fails is asked for again anyway.
+        Never to a source read on probation (a stranger, or a client that moved before a genuine
+        frame of it moved its address): a replayed datagram must not make this side talk."""
+        if self.sources is not None and not self.sources.vouches_for(to):
+            return
         with self._lock:
             self.scheduler.charge(to, len(packet))
         try:
