@@ -223,7 +223,7 @@ def _identity(src: Source, bridge: dict, given: dict, role: Role,
                             "peer_key: and handshake_port:",
                             fix=f"add {lacking[0]}: {row_of(BridgeConfig, lacking[0]).example}")
     else:
-        for key in ("peer_key", "handshake_port"):
+        for key in ("peer_key", "handshake_port", "handshake_line"):
             if key in bridge:
                 raise src.error(f"bridge.{key}", f"{key}: is for role peer",
                                 fix="a client names server_key:, a server its clients:")

@@ -21,6 +21,7 @@ import time
 from ..announce import ANNOUNCE_EVERY
 from ..bus import BusRole, BusTransport
 from ..config import Direction, Framing
+from ..datagram_stream import DatagramStream
 from ..drops import Drop, Reason
 from ..errors import ConfigError
 from ..keyring import Keys, ReplayRecord, StaticKeys
@@ -33,7 +34,7 @@ from ..service_framing import CallPort
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import Connector, StreamLink
-from ..transport import Address, StreamConnection, StreamTransport
+from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport
 from ..wire.envelope import topic_id_for
 from . import Answer, Bridge, NoLink, Role, session_keys
 from .mainline import control, is_control
@@ -221,9 +222,14 @@ class PeerHandshake:
         self.initiator = public_of(cfg.identity) < cfg.server_key
         self.mine, self.theirs = ("i2r", "r2i") if self.initiator else ("r2i", "i2r")
         self.schedule = KeySchedule(cfg.rekey)
-        transport = role.bridge.resolver.transport("tcp", "bridge.handshake_port")
-        assert isinstance(transport, StreamTransport)
-        self.transport = transport
+        transport = role.bridge.resolver.transport(cfg.handshake_line, "bridge.handshake_line")
+        if isinstance(transport, DatagramTransport):  # the line is all there is (serial)
+            transport = DatagramStream(transport)
+        elif not isinstance(transport, StreamTransport):
+            raise cfg.error("bridge.handshake_line", f"{cfg.handshake_line} cannot carry a "
+                            "handshake", fix="name a stream link (tcp) or a datagram link "
+                            "between the two peers (serial, udp)")
+        self.transport: StreamTransport = transport
         self.up = threading.Event()
         self.link: StreamLink | None = None
         self.answer = Answer()

@@ -1,0 +1,123 @@
+"""Peers with identities whose only link is a serial line (a telemetry radio): the Noise
+handshake runs over the line itself (``handshake_line: serial``), and every entry is keyed from
+its session. A pseudo-terminal pair joined by the emulator's relay at 57,600 baud that flips one
+bit in 10,000 bytes; real ``rosgate run`` processes. A Twist at 20 Hz, a 200-byte status at
+1 Hz, a Trigger service and a short action cross; a peer with a stranger's key gets nothing
+across."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from conftest import wait_until
+from geometry_msgs.msg import Twist
+from rosgate_emulator.serial import LineProfile, PtyRelay
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from test_actions import Goal, fibonacci, warmed_up
+from test_serial_link import Talker, status, twist
+from test_services import DEEP, Caller, pong
+from test_sessions_peer import identities
+from test_msgs.action import Fibonacci
+
+from rosgate import identity
+
+FAST = "heartbeat: 0.5, peer_timeout: 3, reconnect: {min: 0.1, max: 1}"
+
+
+def peer(folder: Path, name: str, device: str, key: Path, peer_key: str, sends: bool) -> Path:
+    """A peer whose entries are all on the serial line, keyed from the session (the aead
+    cipher without a key file of its own: a session is all that can key it)."""
+    way = "transmit" if sends else "receive"
+    path = folder / f"{name}.yaml"
+    path.write_text(f"""
+bridge: {{name: {name}, role: peer, peer: line, listen: line, {FAST},
+          identity: {key}, peer_key: {peer_key}, handshake_port: 100, handshake_line: serial,
+          defaults: {{transport: serial, cipher: aead}}}}
+plugins:
+  serial: {{device: {device}, baud: 57600}}
+topics:
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: {way}, port: 1, qos: 100}}
+  - {{topic: /status, type: std_msgs/msg/String, direction: {way}, port: 2, qos: 100}}
+services:
+  - {{service: /trigger, type: std_srvs/srv/Trigger, direction: {way}, port: 3, timeout: 3}}
+actions:
+  - {{action: /fib, type: test_msgs/action/Fibonacci, direction: {way}, port: 4, timeout: 5}}
+""")
+    return path
+
+
+@pytest.fixture
+def line(tmp_path):
+    with PtyRelay(tmp_path, LineProfile(baud=57_600, flip=1e-4, seed=5)) as relay:
+        yield relay
+
+
+def test_a_session_over_a_noisy_serial_line_carries_topics_a_call_and_an_action(
+        tmp_path, domain, ros_side, action_side, bridge, line):
+    da, db = domain(), domain()
+    keys = identities(tmp_path, a_initiates=True)
+    a = bridge(peer(tmp_path, "a", line.a, keys["a"][0], keys["b"][1], sends=True), da)
+    b = bridge(peer(tmp_path, "b", line.b, keys["b"][0], keys["a"][1], sends=False), db)
+    for side in (a, b):
+        assert side.wait_log("up (authenticated)", 30), side.log
+    side_a, side_b = ros_side(da, "a"), ros_side(db, "b")
+    twists, statuses = side_b.listen("/cmd_vel", Twist), side_b.listen("/status", String)
+    side_b.ros.node.create_service(Trigger, "/trigger", pong, qos_profile=DEEP)
+    server, caller = action_side(db, "server"), action_side(da, "caller")
+    keep = server.fibonacci_server("/fib")
+    talker = Talker(side_a)
+    try:
+        trigger = Caller(side_a, Trigger, "/trigger")
+        assert trigger.warm_up(Trigger.Request())[0] == \
+            Trigger.Response(success=True, message="pong")
+        client = warmed_up(caller.client(Fibonacci, "/fib"), Fibonacci.Goal(order=1), 60)
+        goal = Goal(client, Fibonacci.Goal(order=5))
+        assert goal.handle.accepted
+        result = goal.result()
+        assert list(result.result.sequence) == fibonacci(6)
+        lengths = [len(f.sequence) for f in goal.feedback]
+        assert lengths == sorted(set(lengths)) and len(lengths) >= 3, lengths  # best effort
+        assert all(list(f.sequence) == fibonacci(len(f.sequence) - 1) for f in goal.feedback)
+        # until the line has spoilt frames both ways, and five statuses have crossed
+        assert wait_until(lambda: line.up.flipped >= 1 and line.down.flipped >= 1
+                          and len(statuses.items) >= 5, 90), (line.up, line.down,
+                                                              len(statuses.items))
+        assert trigger.call(Trigger.Request()) == Trigger.Response(success=True, message="pong")
+    finally:
+        talker.close()
+        del keep
+    sent = talker.sent
+    first = min(m.linear.x for m in twists.items)
+    assert wait_until(lambda: len(twists.items) >= sent - first - 2 * line.up.flipped - 2,
+                      15), (sent, first, len(twists.items), line.up.flipped)
+    got = [m.linear.x for m in twists.items]
+    assert all(m == twist(int(m.linear.x)) for m in twists.items), "a spoilt Twist was published"
+    assert len(set(got)) == len(got), "a Twist published twice"
+    assert all(m == status(int(m.data[:4])) for m in statuses.items), "a spoilt status"
+    for side in (a, b):  # the line was made once, and kept through the flips
+        assert side.log.count("up (authenticated)") == 1, side.log
+        assert "auth_failed" not in side.log
+
+
+def test_a_stranger_on_the_line_is_refused_and_nothing_crosses(tmp_path, domain, ros_side,
+                                                              bridge, line):
+    da, db = domain(), domain()
+    keys = identities(tmp_path, a_initiates=True)
+    b_public = identity.decode_public(keys["b"][1])
+    # b expects a stranger that sorts before it, so b responds to a, as it would to the stranger
+    stranger = next(k for k in (identity.public_of(identity.generate()) for _ in range(100))
+                    if k < b_public)
+    a = bridge(peer(tmp_path, "a", line.a, keys["a"][0], keys["b"][1], sends=True), da)
+    b = bridge(peer(tmp_path, "b", line.b, keys["b"][0], identity.encode(stranger),
+                    sends=False), db)
+    assert b.wait_log("its key is not peer_key", 30), b.log
+    inbox = ros_side(db, "b").listen("/cmd_vel", Twist)
+    talker = ros_side(da, "a").publisher("/cmd_vel", Twist)
+    for i in range(20):
+        talker.publish(twist(i))
+        if inbox.wait_count(1, 0.1):
+            break
+    assert inbox.items == []
+    assert not any("up (authenticated)" in x for x in a.lines + b.lines)
