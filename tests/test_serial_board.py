@@ -131,3 +131,43 @@ topics:
         assert all(p == Pose2D(x=1.0, y=0.5, theta=0.25) for p in positions.items)
         assert all(line == f"got {expected}" or line.startswith("error ")
                    for line in board.lines), board.lines
+
+
+def test_the_bridge_calls_the_board_over_the_line_and_a_call_carries_its_id(
+        board_program, engines, domain, ros_side, tmp_path):
+    """A Trigger served by the board: the bridge writes ``["ping", {}, id]`` and the board
+    answers ``[id, [true, "pong"]]`` on the line that carries its topics; the topic port is not
+    troubled by the calls."""
+    from std_srvs.srv import Trigger
+    from test_services import Caller
+
+    with PtyRelay(tmp_path, LineProfile(baud=115_200)) as relay:
+        d = domain()
+        robot = engines(f"""
+bridge: {{name: robot, role: peer, peer: board, listen: board, insecure: true,
+         defaults: {{codec: msgpack, transport: serial}}}}
+plugins:
+  serial: {{device: {relay.a}, baud: 115200, multiplex: false}}
+topics:
+  - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: 1,
+     framing: none}}
+services:
+  - {{service: /ping, type: std_srvs/srv/Trigger, direction: transmit, port: 2,
+     framing: serial_datagram, timeout: 2}}
+""", d)
+        side = ros_side(d, "robot")
+        positions = side.listen("/position", Pose2D)
+        board = Board(board_program, relay.b)
+        try:
+            ping = Caller(side, Trigger, "/ping")
+            answers = [ping.call(Trigger.Request(), timeout=5) for _ in range(3)]
+            assert positions.wait_count(10, 10), len(positions.items)
+        finally:
+            board.stop()
+        assert answers == [Trigger.Response(success=True, message="pong")] * 3
+        calls = [bytes.fromhex(line[4:]) for line in board.lines if line.startswith("got ")]
+        assert [msgpack.unpackb(c) for c in calls[:3]] == [["ping", {}, 1], ["ping", {}, 2],
+                                                           ["ping", {}, 3]], calls
+        route = next(r for r in robot.routes() if r.label == "/ping")
+        assert (route.counters.sent, route.counters.received) == (3, 3)
+        assert robot.link_drops == {}, robot.link_drops

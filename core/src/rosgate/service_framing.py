@@ -11,7 +11,7 @@ from abc import ABC, abstractmethod
 from typing import Any, ClassVar, Protocol
 
 from .drops import LinkDrop
-from .transport import Address, StreamConnection, StreamTransport
+from .transport import Address, DatagramTransport, StreamConnection, StreamTransport
 
 
 class CallPort(Protocol):
@@ -33,12 +33,17 @@ class ServiceFraming(ABC):
     """A call pattern for service entries with ``framing: <name>``."""
 
     name: ClassVar[str]
+    #: whether its calls also go over a serial line (a datagram transport that is one line):
+    #: then :meth:`caller` takes that transport, and :meth:`line_server` serves
+    on_a_line: ClassVar[bool] = False
 
     @classmethod
     @abstractmethod
-    def caller(cls, *route_args: Any, transport: StreamTransport, address: Address) -> Any:
+    def caller(cls, *route_args: Any, transport: StreamTransport | DatagramTransport,
+               address: Address) -> Any:
         """``direction: transmit``: a :class:`rosgate.services.ServiceRoute` subclass made with
-        ``route_args`` that calls the device at ``address``: the core serves the ROS service
+        ``route_args`` that calls the device at ``address`` (over a datagram transport only
+        when :attr:`on_a_line` says it can): the core serves the ROS service
         with its ``on_request(request, respond)`` (answer every call within ``timeout``) and
         calls its ``close()``, if it has one, when the route is removed."""
 
@@ -49,3 +54,10 @@ class ServiceFraming(ABC):
         the core adds to it; what belongs to none of them is counted through ``link_drop``. A
         connection that falls silent for ``idle_timeout`` seconds
         (``bridge.limits.idle_timeout``) before a whole request is closed."""
+
+    @classmethod
+    def line_server(cls, name: str, link_drop: LinkDrop, transport: DatagramTransport,
+                    address: Address) -> CallPort:
+        """``direction: receive`` on a serial line (:attr:`on_a_line`): the calls arriving at
+        ``address`` of ``transport`` (bound here), for every service the core adds."""
+        raise NotImplementedError(f"{cls.name} calls need a stream transport")

@@ -23,7 +23,7 @@ from ..bus import BusRole, BusTransport
 from ..config import Direction, Framing
 from ..datagram_stream import DatagramStream
 from ..drops import Drop, Reason
-from ..errors import ConfigError
+from ..errors import ConfigError, LinkError
 from ..keyring import Keys, ReplayRecord, StaticKeys
 from ..links import DatagramLink, Link
 from ..router import fixed
@@ -34,7 +34,7 @@ from ..service_framing import CallPort
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import Connector, StreamLink
-from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport
+from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from ..wire.envelope import topic_id_for
 from . import Answer, Bridge, NoLink, Role, session_keys
 from .mainline import control, is_control
@@ -169,11 +169,18 @@ class PeerRole(Role):
         elif bare is not None:  # framing: none, told apart by name
             assert isinstance(route, ReceiveRoute) and isinstance(link, DatagramLink)
             self.bare_ports[link].add(route, {p.name, c.remote})
+            if self._line_calls(p.transport):
+                self.bare_ports[link].leave_calls()
         elif isinstance(route, ReceiveRoute | ServerRoute):
             route.check.expect(route.drop)  # its sender may have announced before it started
             self.heard_from.append(route)
             if p.name != c.remote and isinstance(route, ReceiveRoute):
                 self.router.alias(route, topic_id_for(p.name))
+
+    def _line_calls(self, transport: Transport) -> bool:
+        """Whether microcontroller calls share ``transport``'s line with its bare topics."""
+        return any(isinstance(s, ServiceSpec) and s.service_framing is not None
+                   and s.transport is transport for s in self.entries())
 
     def _record(self) -> ReplayRecord:
         """The bridge's replay record, ``<state folder>/<name>.replay`` (read on first use;
@@ -198,8 +205,15 @@ class PeerRole(Role):
         if s.direction is Direction.TRANSMIT:
             self.router.service(p, 0, s.service, None)  # connects to the peer per call
             return
+        assert p.service_framing is not None
+        if isinstance(p.transport, DatagramTransport) and p.address not in servers:  # a line
+            try:
+                servers[p.address] = self.life.closing(p.service_framing.line_server(
+                    f"{p.transport.name}:{p.address[1]}", self.router.link_drop, p.transport,
+                    p.address))
+            except LinkError as exc:
+                raise self.bridge.link_error(exc, f"services[{p.index}].port") from None
         if p.address not in servers:
-            assert p.service_framing is not None
             server = servers[p.address] = p.service_framing.server(
                 f"{p.transport.name}:{p.address[1]}", self.router.link_drop,
                 self.cfg.limits.idle_timeout)
