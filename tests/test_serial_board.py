@@ -17,6 +17,7 @@ import pytest
 import serial
 from geometry_msgs.msg import Pose2D, Twist
 from rosgate_emulator.serial import LineProfile, PtyRelay
+from conftest import wait_until
 from rosgate_mcu_cvra import serial_datagram
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -171,3 +172,46 @@ services:
         route = next(r for r in robot.routes() if r.label == "/ping")
         assert (route.counters.sent, route.counters.received) == (3, 3)
         assert robot.link_drops == {}, robot.link_drops
+
+
+def test_a_board_calls_a_ros_service_over_the_line(engines, domain, ros_side, tmp_path):
+    """The board (here: the test, on the pseudo-terminal) calls ``["reset", {}, id]``: the
+    bridge serves it with the ROS server and answers ``[id, value]``; a call for a service the
+    line does not serve is counted ``unknown_service`` and not answered."""
+    from std_srvs.srv import Trigger
+    from test_services import DEEP, pong
+
+    with PtyRelay(tmp_path, LineProfile(baud=115_200)) as relay:
+        d = domain()
+        robot = engines(f"""
+bridge: {{name: robot, role: peer, peer: board, listen: board, insecure: true,
+         defaults: {{codec: msgpack, transport: serial}}}}
+plugins:
+  serial: {{device: {relay.a}, baud: 115200, multiplex: false}}
+services:
+  - {{service: /reset, type: std_srvs/srv/Trigger, direction: receive, port: 2,
+     framing: serial_datagram, timeout: 2}}
+""", d)
+        side = ros_side(d, "robot")
+        side.ros.node.create_service(Trigger, "/reset", pong, qos_profile=DEEP)
+        line = serial.Serial(relay.b, 115200, timeout=0.1)
+        decoder = serial_datagram.Decoder(lambda reason, detail: None)
+        try:
+            answers: list = []
+            deadline = time.monotonic() + 30
+            ident = 100
+            while not any(a[1] == {"success": True, "message": "pong"} for a in answers):
+                assert time.monotonic() < deadline, answers  # until the ROS server is found
+                ident += 1
+                line.write(serial_datagram.encode(msgpack.packb(["reset", {}, ident])))
+                answers += [msgpack.unpackb(f) for f in decoder.feed(line.read(1000))]
+            line.write(serial_datagram.encode(msgpack.packb(["launch", {}, 1])))
+            answered = {a[0] for a in answers}
+            assert wait_until(lambda: robot.link_drops.get("unknown_service") == 1, 5), \
+                robot.link_drops
+            answers += [msgpack.unpackb(f) for f in decoder.feed(line.read(1000))]
+        finally:
+            line.close()
+        assert all(a[0] in range(101, ident + 1) for a in answers), answers
+        assert answers[-1] == [ident, {"success": True, "message": "pong"}]
+        assert 1 not in answered and all(a[0] != 1 for a in answers)
