@@ -177,7 +177,8 @@ services:
 def test_a_board_calls_a_ros_service_over_the_line(engines, domain, ros_side, tmp_path):
     """The board (here: the test, on the pseudo-terminal) calls ``["reset", {}, id]``: the
     bridge serves it with the ROS server and answers ``[id, value]``; a call for a service the
-    line does not serve is counted ``unknown_service`` and not answered."""
+    line does not serve is counted ``unknown_service`` and not answered. The file is
+    docs/microcontrollers.md's: topics, the board's services and ROS's share the line."""
     from std_srvs.srv import Trigger
     from test_services import DEEP, pong
 
@@ -188,8 +189,13 @@ bridge: {{name: robot, role: peer, peer: board, listen: board, insecure: true,
          defaults: {{codec: msgpack, transport: serial}}}}
 plugins:
   serial: {{device: {relay.a}, baud: 115200, multiplex: false}}
+topics:
+  - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: 1,
+     framing: none}}
 services:
-  - {{service: /reset, type: std_srvs/srv/Trigger, direction: receive, port: 2,
+  - {{service: /mcu/ping, type: std_srvs/srv/Trigger, direction: transmit, port: 2,
+     remote: ping, framing: serial_datagram, timeout: 1}}
+  - {{service: /reset, type: std_srvs/srv/Trigger, direction: receive, port: 3,
      framing: serial_datagram, timeout: 2}}
 """, d)
         side = ros_side(d, "robot")
@@ -215,3 +221,4 @@ services:
         assert all(a[0] in range(101, ident + 1) for a in answers), answers
         assert answers[-1] == [ident, {"success": True, "message": "pong"}]
         assert 1 not in answered and all(a[0] != 1 for a in answers)
+        assert robot.link_drops == {"unknown_service": 1}, robot.link_drops  # nothing else
