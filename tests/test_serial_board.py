@@ -15,9 +15,9 @@ from pathlib import Path
 import msgpack
 import pytest
 import serial
+from conftest import wait_until
 from geometry_msgs.msg import Pose2D, Twist
 from rosgate_emulator.serial import LineProfile, PtyRelay
-from conftest import wait_until
 from rosgate_mcu_cvra import serial_datagram
 
 ROOT = Path(__file__).resolve().parents[1]

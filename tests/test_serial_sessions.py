@@ -16,10 +16,10 @@ from rosgate_emulator.serial import LineProfile, PtyRelay
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from test_actions import Goal, fibonacci, warmed_up
+from test_msgs.action import Fibonacci
 from test_serial_link import Talker, status, twist
 from test_services import DEEP, Caller, pong
 from test_sessions_peer import identities
-from test_msgs.action import Fibonacci
 
 from rosgate import identity
 

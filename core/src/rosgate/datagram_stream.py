@@ -20,9 +20,16 @@ import struct
 import threading
 import time
 from collections.abc import Callable
+from functools import partial
 
-from .transport import (Address, DatagramEndpoint, DatagramTransport, StreamConnection,
-                        StreamListener, StreamTransport)
+from .transport import (
+    Address,
+    DatagramEndpoint,
+    DatagramTransport,
+    StreamConnection,
+    StreamListener,
+    StreamTransport,
+)
 
 DATA, ACK, CLOSE = b"D", b"A", b"C"
 HEAD = struct.Struct("!cII")
@@ -190,7 +197,7 @@ class Listener:
                         self._answer(HEAD.pack(CLOSE, ident, 0), source)
                     return
                 connection = Connection(self.stream, self._answer, source, ident,
-                                        lambda key=(source, ident): self._forget(key))
+                                        partial(self._forget, (source, ident)))
                 self.connections[(source, ident)] = connection
                 self.new.append((connection, source))
                 self._lock.notify_all()

@@ -29,6 +29,18 @@ class CallPort(Protocol):
         without blocking the caller."""
 
 
+class LineCallPort(Protocol):
+    """The calls arriving on one serial line's port (direction receive), for every service on
+    it; it reads the line itself, until closed."""
+
+    name: str
+
+    def add(self, route: Any) -> None:
+        """A serving route, as for :meth:`CallPort.add`."""
+
+    def close(self) -> None: ...
+
+
 class ServiceFraming(ABC):
     """A call pattern for service entries with ``framing: <name>``."""
 
@@ -57,7 +69,7 @@ class ServiceFraming(ABC):
 
     @classmethod
     def line_server(cls, name: str, link_drop: LinkDrop, transport: DatagramTransport,
-                    address: Address) -> CallPort:
+                    address: Address) -> LineCallPort:
         """``direction: receive`` on a serial line (:attr:`on_a_line`): the calls arriving at
         ``address`` of ``transport`` (bound here), for every service the core adds."""
         raise NotImplementedError(f"{cls.name} calls need a stream transport")

@@ -400,7 +400,8 @@ class BridgeConfig:
                                       example="<the server's public key, from rosgate keygen "
                                               "identity>", parse=kinds.text)
     handshake_port: int | None = option(None, "peer with `identity`: the port of the "
-                                        "handshake line (on `handshake_line`)", minimum=1, maximum=65535, unset="—",
+                                        "handshake line (on `handshake_line`)", minimum=1,
+                                        maximum=65535, unset="—",
                                         example="12100")
     handshake_line: str = option("tcp", "peer with `identity`: the transport of the handshake "
                                  "line: a stream (tcp), or the peers' datagram link when it "

@@ -30,7 +30,7 @@ from ..router import fixed
 from ..routes import ReceiveRoute, Route
 from ..runtime import STATE_VARIABLE, private_folder, state_dir
 from ..secure import HandshakeError, KeySchedule, SecureConnection, UnknownKey
-from ..service_framing import CallPort
+from ..service_framing import CallPort, LineCallPort
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import Connector, StreamLink
@@ -120,7 +120,7 @@ class PeerRole(Role):
             self.record.close()
 
     def _start_entries(self) -> None:
-        call_servers: dict[Address, CallPort] = {}
+        call_servers: dict[Address, CallPort | LineCallPort] = {}
         for p in self.entries():
             if p.key is not None:  # one instance of each bus role per bridge
                 assert isinstance(p.transport, BusTransport)
@@ -197,7 +197,7 @@ class PeerRole(Role):
         return self.record
 
     def _microcontroller_service(self, p: ServiceSpec,
-                                 servers: dict[Address, CallPort]) -> None:
+                                 servers: dict[Address, CallPort | LineCallPort]) -> None:
         """``framing: serial_datagram`` (or another plugin's call pattern): a connection per call;
         a serving port is shared by its services, told apart by name (no id), and takes calls
         from anyone unless ``bridge.allow`` is given."""
