@@ -262,7 +262,7 @@ class PeerHandshake:
             slot = self.role.bridge.slot(f"handshake->{self.cfg.peer}")
             Connector(self.transport, self._address(self.cfg.peer), slot, self._on_frame,
                       self.role.router.on_lost, self.role.life, self.role.bridge.backoff,
-                      self._initiated, self._lost, secure=self.role.initiate).start()
+                      self._initiated, self._lost, secure=self._initiate).start()
         else:
             address = self._address(self.cfg.listen)
             self.role.accept(self.transport, address, self._accepted, "bridge.handshake_port",
@@ -271,9 +271,15 @@ class PeerHandshake:
         threading.Thread(target=self._ping_loop, name="peer-ping", daemon=True).start()
 
     # -- the initiator -------------------------------------------------------------------------
+    def _initiate(self, connection: StreamConnection) -> StreamConnection:
+        """The Noise handshake. The responder sends its keys as soon as it is done, unasked:
+        they may be read before :meth:`_initiated` runs, so the last line's are forgotten here,
+        before they can come (seen on a serial line, where a round trip is long)."""
+        self.answer.got.clear()
+        return self.role.initiate(connection)
+
     def _initiated(self, link: StreamLink) -> bool:
         """Wait for the responder's keys inside the new channel; install them."""
-        self.answer.got.clear()
         answer = self.answer.wait(link, self.role.life.stopping, 5.0)
         if answer is None:
             if not link.closed.is_set() and not self.role.life.stopping.is_set():
