@@ -167,8 +167,9 @@ services:
             board.stop()
         assert answers == [Trigger.Response(success=True, message="pong")] * 3
         calls = [bytes.fromhex(line[4:]) for line in board.lines if line.startswith("got ")]
-        assert [msgpack.unpackb(c) for c in calls[:3]] == [["ping", {}, 1], ["ping", {}, 2],
-                                                           ["ping", {}, 3]], calls
+        first = msgpack.unpackb(calls[0])[2]
+        assert [msgpack.unpackb(c) for c in calls[:3]] == [
+            ["ping", {}, first], ["ping", {}, first + 1], ["ping", {}, first + 2]], calls
         route = next(r for r in robot.routes() if r.label == "/ping")
         assert (route.counters.sent, route.counters.received) == (3, 3)
         assert robot.link_drops == {}, robot.link_drops

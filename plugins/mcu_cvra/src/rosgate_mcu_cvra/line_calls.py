@@ -10,8 +10,8 @@ and its answer names it; both are one serial datagram, as messages are:
   a name: a string), ``value`` any MessagePack value the codec maps onto the response.
 
 Either side calls. The bridge's calls wait for their answer until the service's ``timeout``
-(``timeout``, counted); an answer that names no call waiting (late, or never made) is counted
-``late_answer``. A call for a service not served on the line is counted ``unknown_service`` and
+(``timeout``, counted); an answer that names no call waiting (late, or another caller's: every
+calling entry on the line sees every answer) is left alone. A call for a service not served on the line is counted ``unknown_service`` and
 not answered. Messages (``[name, args]``) on the same line are the topics' entries' business.
 """
 
@@ -35,6 +35,9 @@ log = logging.getLogger("rosgate")
 
 CALL, ANSWER = 3, 2  # the items of a call's array and of an answer's
 IDS = 1 << 32
+#: one count for every calling entry of the bridge: they share the line, and each sees every
+#: answer, so no two calls waiting at once may have the same id
+_next_id = itertools.count(1)
 
 
 def read(datagram: bytes) -> tuple[int, Any, bytes] | None:
@@ -107,14 +110,13 @@ class LineCallerRoute(ServiceRoute):
     def __init__(self, *args: Any, transport: DatagramTransport, address: Address):
         super().__init__(*args)
         self.address = address
-        self._ids = itertools.count(1)
         self._waiting: dict[int, Call] = {}
         self._lock = threading.Lock()
         self.line = LineEnd(transport, address, f"calls-{self.label}", self._on_datagram)
 
     def on_request(self, request: Any, respond: Any) -> None:
         call = self.answering(respond)
-        ident = next(self._ids) % IDS
+        ident = next(_next_id) % IDS
         codec = self.codec
         try:
             datagram = (bytes((0x90 | CALL,)) + msgpack.packb(self.service.remote)
