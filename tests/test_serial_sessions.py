@@ -226,3 +226,21 @@ def test_unplugged_the_session_comes_back_and_twists_resume_within_1_s(
             talker.close()
         assert resumed < 1.0, f"Twists resumed {resumed:.2f} s after the device returned\n" \
             + a.log + "\n" + b.log
+
+
+def test_handshake_line_without_identities_is_refused_naming_the_key(tmp_path, capsys):
+    from rosgate.cli import main
+
+    path = tmp_path / "radio.yaml"
+    path.write_text("""
+bridge: {name: a, role: peer, peer: line, listen: line, insecure: true, handshake_line: serial}
+plugins:
+  serial: {device: /dev/serial/by-id/usb-radio-if00, baud: 57600}
+topics:
+  - {topic: /x, type: std_msgs/msg/String, direction: transmit, port: 1, transport: serial}
+""")
+    assert main(["check", str(path)]) != 0
+    err = capsys.readouterr().err
+    assert "radio.yaml:2: bridge.handshake_line: handshake_line: is for peers with identities" \
+        in err and "fix: add identity:, peer_key: and handshake_port:" in err, err
+    assert "Traceback" not in err
