@@ -5,14 +5,14 @@ A line has no connection per call to pair an answer with its request, so the cal
 and its answer names it; both are one serial datagram, as messages are:
 
 * a call: ``[name, args, id]``, a MessagePack array of three, ``id`` an unsigned integer the
-  caller picks (the bridge counts from 1);
+  caller picks (the bridge: one count for all its calling entries);
 * its answer: ``[id, value]``, an array of two whose first item is that integer (a message's is
   a name: a string), ``value`` any MessagePack value the codec maps onto the response.
 
 Either side calls. The bridge's calls wait for their answer until the service's ``timeout``
 (``timeout``, counted); an answer that names no call waiting (late, or another caller's: every
-calling entry on the line sees every answer) is left alone. A call for a service not served on the line is counted ``unknown_service`` and
-not answered. Messages (``[name, args]``) on the same line are the topics' entries' business.
+calling entry on the line sees every answer) is left alone. A call for a service not served on
+the line is counted ``unknown_service`` and not answered. Messages (``[name, args]``) on the same line are the topics' entries' business.
 """
 
 from __future__ import annotations
