@@ -12,7 +12,8 @@ and its answer names it; both are one serial datagram, as messages are:
 Either side calls. The bridge's calls wait for their answer until the service's ``timeout``
 (``timeout``, counted); an answer that names no call waiting (late, or another caller's: every
 calling entry on the line sees every answer) is left alone. A call for a service not served on
-the line is counted ``unknown_service`` and not answered. Messages (``[name, args]``) on the same line are the topics' entries' business.
+the line is counted ``unknown_service`` and not answered. Messages (``[name, args]``) on the
+same line are the topics' entries' business.
 """
 
 from __future__ import annotations
