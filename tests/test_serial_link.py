@@ -24,6 +24,8 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from test_services import DEEP, Caller, pong
 
+from rosgate import identity
+
 #: what the serial link counts when the line spoils a frame (rosgate_mcu_cvra.serial_datagram)
 LINE_DROPS = ("bad_crc", "bad_escape", "too_short", "too_long")
 
@@ -259,9 +261,11 @@ def test_the_files_of_the_docs_check(tmp_path, capsys, page, heading):
     files = [block.split("```", 1)[0] for block in section.split("```yaml\n")[1:]]
     assert files, f"no yaml block under {heading}"
     write_key(tmp_path / "line.key", AeadCipher.generate_key())
+    identity.write_private(tmp_path / "robot.key", identity.generate())
+    public = identity.encode(identity.public_of(identity.generate()))
     for n, text in enumerate(files):
         path = tmp_path / f"{n}.yaml"
-        path.write_text(text)
+        path.write_text(text.replace("<the base's public key>", public))
         assert main(["check", str(path)]) == 0, capsys.readouterr()
         assert ": ok (peer " in capsys.readouterr().out
 

@@ -290,7 +290,9 @@ class Resolver:
             if self.config.role is not Role.PEER:
                 raise error(f"{key}.framing", f"framing {service.framing} is for microcontroller "
                             "peers, which have no main line", "use role: peer for this bridge")
-            if not isinstance(transport, StreamTransport):
+            on_a_line = isinstance(transport, DatagramTransport) and transport.one_line
+            if not isinstance(transport, StreamTransport) and not (
+                    on_a_line and service_framing.on_a_line):
                 raise error(f"{key}.transport", f"framing {service.framing} needs a stream "
                             "transport (one connection per call)", "use transport: tcp")
             if not common["codec_cls"].messagepack:

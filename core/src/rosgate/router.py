@@ -35,7 +35,7 @@ from .routes import (
 )
 from .services import CallerRoute, Deadlines, ServerRoute, ServiceCodec, ServiceRoute, deep_qos
 from .spec import ServiceSpec, TopicSpec
-from .transport import Address, StreamTransport
+from .transport import Address, DatagramTransport, StreamTransport
 from .warn import BUGS, Warner
 from .wire import envelope
 from .wire.names import Layout
@@ -163,7 +163,7 @@ class Router:
             self._identify(route, p.srv_type)
             route.entity = self.ros.client(p.srv_type, s.service, qos)
         elif p.service_framing is not None:  # a microcontroller's call pattern, by its plugin
-            assert isinstance(p.transport, StreamTransport)  # the resolver checked
+            assert isinstance(p.transport, StreamTransport | DatagramTransport)  # as checked
             route = caller = p.service_framing.caller(*args, transport=p.transport,
                                                       address=p.address)
             route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, caller.on_request)

@@ -38,7 +38,7 @@ from .transform import Transform, TransformError
 from .transport import Address
 from .warn import Warner
 from .wire import envelope
-from .wire.names import LAYOUT_DEFAULT, Layout, NameMissing, pack_name, split_name
+from .wire.names import LAYOUT_DEFAULT, Layout, NameMissing, call_shaped, pack_name, split_name
 
 # a transmitting route takes what waits in its subscription up to this much at a time
 DRAIN_FRAMES = 32
@@ -574,6 +574,12 @@ class BarePort:
         self.link_drop = link_drop
         self.routes: dict[str, ReceiveRoute] = {}
         self.only: ReceiveRoute | None = None
+        self.calls_elsewhere = False
+
+    def leave_calls(self) -> None:
+        """Calls and answers on this line are served by entries of their own (a serial line
+        with calls): pass them over here, uncounted."""
+        self.calls_elsewhere = True
 
     def add(self, route: ReceiveRoute, names: set[str]) -> None:
         if self.named:
@@ -585,6 +591,8 @@ class BarePort:
         if not self.named:
             if self.only is not None:
                 self.only.deliver(datagram, len(datagram))
+            return
+        if self.calls_elsewhere and call_shaped(datagram):
             return
         try:
             name, rest = split_name(datagram)

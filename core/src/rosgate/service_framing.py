@@ -11,7 +11,7 @@ from abc import ABC, abstractmethod
 from typing import Any, ClassVar, Protocol
 
 from .drops import LinkDrop
-from .transport import Address, StreamConnection, StreamTransport
+from .transport import Address, DatagramTransport, StreamConnection, StreamTransport
 
 
 class CallPort(Protocol):
@@ -29,16 +29,33 @@ class CallPort(Protocol):
         without blocking the caller."""
 
 
+class LineCallPort(Protocol):
+    """The calls arriving on one serial line's port (direction receive), for every service on
+    it; it reads the line itself, until closed."""
+
+    name: str
+
+    def add(self, route: Any) -> None:
+        """A serving route, as for :meth:`CallPort.add`."""
+
+    def close(self) -> None: ...
+
+
 class ServiceFraming(ABC):
     """A call pattern for service entries with ``framing: <name>``."""
 
     name: ClassVar[str]
+    #: whether its calls also go over a serial line (a datagram transport that is one line):
+    #: then :meth:`caller` takes that transport, and :meth:`line_server` serves
+    on_a_line: ClassVar[bool] = False
 
     @classmethod
     @abstractmethod
-    def caller(cls, *route_args: Any, transport: StreamTransport, address: Address) -> Any:
+    def caller(cls, *route_args: Any, transport: StreamTransport | DatagramTransport,
+               address: Address) -> Any:
         """``direction: transmit``: a :class:`rosgate.services.ServiceRoute` subclass made with
-        ``route_args`` that calls the device at ``address``: the core serves the ROS service
+        ``route_args`` that calls the device at ``address`` (over a datagram transport only
+        when :attr:`on_a_line` says it can): the core serves the ROS service
         with its ``on_request(request, respond)`` (answer every call within ``timeout``) and
         calls its ``close()``, if it has one, when the route is removed."""
 
@@ -49,3 +66,10 @@ class ServiceFraming(ABC):
         the core adds to it; what belongs to none of them is counted through ``link_drop``. A
         connection that falls silent for ``idle_timeout`` seconds
         (``bridge.limits.idle_timeout``) before a whole request is closed."""
+
+    @classmethod
+    def line_server(cls, name: str, link_drop: LinkDrop, transport: DatagramTransport,
+                    address: Address) -> LineCallPort:
+        """``direction: receive`` on a serial line (:attr:`on_a_line`): the calls arriving at
+        ``address`` of ``transport`` (bound here), for every service the core adds."""
+        raise NotImplementedError(f"{cls.name} calls need a stream transport")

@@ -7,7 +7,9 @@
  *     board DEVICE SECONDS
  *
  * Every 100 ms it sends ["position", [1.0, 0.5, 0.25]]; every datagram it receives is printed
- * as "got <hex>", and every error as "error <code>", one line each.
+ * as "got <hex>", and every error as "error <code>", one line each. It serves one call, "ping"
+ * (no arguments: one byte, such as an empty map), as calls go on a serial line: the call is
+ * ["ping", args, id], the answer [id, [true, "pong"]], the id copied as it came.
  */
 #include <errno.h>
 #include <fcntl.h>
@@ -179,9 +181,26 @@ static void write_all(void *arg, const void *p, size_t len)
     }
 }
 
+static void answer_ping(const uint8_t *call, size_t len, int *fd)
+{
+    static const uint8_t ping[] = {0x93, 0xA4, 'p', 'i', 'n', 'g'};
+    static const uint8_t pong[] = {0x92, 0xC3, 0xA4, 'p', 'o', 'n', 'g'};
+    size_t id_at = sizeof ping + 1; /* after the one byte of arguments */
+    if (len <= id_at || len - id_at > 9 || memcmp(call, ping, sizeof ping) != 0) {
+        return;
+    }
+    uint8_t answer[1 + 9 + sizeof pong];
+    size_t n = 0;
+    answer[n++] = 0x92; /* [id, value] */
+    memcpy(answer + n, call + id_at, len - id_at);
+    n += len - id_at;
+    memcpy(answer + n, pong, sizeof pong);
+    n += sizeof pong;
+    serial_datagram_send(answer, n, write_all, fd);
+}
+
 static void print_datagram(const void *datagram, size_t len, void *arg)
 {
-    (void)arg;
     const uint8_t *p = datagram;
     printf("got ");
     for (size_t i = 0; i < len; i++) {
@@ -189,6 +208,7 @@ static void print_datagram(const void *datagram, size_t len, void *arg)
     }
     printf("\n");
     fflush(stdout);
+    answer_ping(p, len, arg);
 }
 
 static size_t put_float(uint8_t *out, float value)
@@ -243,7 +263,7 @@ int main(int argc, char **argv)
     }
     static uint8_t buffer[512];
     rcv_handler_t handler;
-    serial_datagram_rcv_handler_init(&handler, buffer, sizeof buffer, print_datagram, NULL);
+    serial_datagram_rcv_handler_init(&handler, buffer, sizeof buffer, print_datagram, &fd);
     uint8_t message[64];
     size_t message_len = position_message(message);
     double end = now() + atof(argv[2]), next_send = 0;

@@ -216,15 +216,16 @@ def _identity(src: Source, bridge: dict, given: dict, role: Role,
                                 "handshake_port: (docs/security.md), or says insecure: true")
         found = [key for key in _HANDSHAKE if key in bridge]
         lacking = [key for key in _HANDSHAKE if key not in bridge]
-        if not found and "rekey" in bridge:
-            raise src.error("bridge.rekey", "rekey: is for peers with identities",
-                            fix="add identity:, peer_key: and handshake_port:, or remove it")
+        for key in ("rekey", "handshake_line"):
+            if not found and key in bridge:
+                raise src.error(f"bridge.{key}", f"{key}: is for peers with identities",
+                                fix="add identity:, peer_key: and handshake_port:, or remove it")
         if found and lacking:
             raise src.error(f"bridge.{found[0]}", "a peer with a handshake needs identity:, "
                             "peer_key: and handshake_port:",
                             fix=f"add {lacking[0]}: {row_of(BridgeConfig, lacking[0]).example}")
     else:
-        for key in ("peer_key", "handshake_port"):
+        for key in ("peer_key", "handshake_port", "handshake_line"):
             if key in bridge:
                 raise src.error(f"bridge.{key}", f"{key}: is for role peer",
                                 fix="a client names server_key:, a server its clients:")

@@ -402,9 +402,14 @@ class BridgeConfig:
                                       "characters)", unset="required with `identity`",
                                       example="<the server's public key, from rosgate keygen "
                                               "identity>", parse=kinds.text)
-    handshake_port: int | None = option(None, "peer with `identity`: the TCP port of the "
-                                        "handshake line", minimum=1, maximum=65535, unset="—",
+    handshake_port: int | None = option(None, "peer with `identity`: the port of the "
+                                        "handshake line (on `handshake_line`)", minimum=1,
+                                        maximum=65535, unset="—",
                                         example="12100")
+    handshake_line: str = option("tcp", "peer with `identity`: the transport of the handshake "
+                                 "line: a stream (tcp), or the peers' datagram link when it "
+                                 "is all they share (serial), which then carries it with "
+                                 "repetitions", example="serial")
     insecure: bool = option(False, "`true` accepts links anyone can write to (no handshake, no "
                             "keyed cipher, a bus without mutual TLS on every link), named in a "
                             "warning on every `run` and `check`; the file's one such key",

@@ -21,19 +21,20 @@ import time
 from ..announce import ANNOUNCE_EVERY
 from ..bus import BusRole, BusTransport
 from ..config import Direction, Framing
+from ..datagram_stream import DatagramStream
 from ..drops import Drop, Reason
-from ..errors import ConfigError
+from ..errors import ConfigError, LinkError
 from ..keyring import Keys, ReplayRecord, StaticKeys
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import ReceiveRoute, Route
 from ..runtime import STATE_VARIABLE, private_folder, state_dir
 from ..secure import HandshakeError, KeySchedule, SecureConnection, UnknownKey
-from ..service_framing import CallPort
+from ..service_framing import CallPort, LineCallPort
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import Connector, StreamLink
-from ..transport import Address, StreamConnection, StreamTransport
+from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from ..wire.envelope import topic_id_for
 from . import Answer, Bridge, NoLink, Role, session_keys
 from .mainline import control, is_control
@@ -119,7 +120,7 @@ class PeerRole(Role):
             self.record.close()
 
     def _start_entries(self) -> None:
-        call_servers: dict[Address, CallPort] = {}
+        call_servers: dict[Address, CallPort | LineCallPort] = {}
         for p in self.entries():
             if p.key is not None:  # one instance of each bus role per bridge
                 assert isinstance(p.transport, BusTransport)
@@ -168,11 +169,18 @@ class PeerRole(Role):
         elif bare is not None:  # framing: none, told apart by name
             assert isinstance(route, ReceiveRoute) and isinstance(link, DatagramLink)
             self.bare_ports[link].add(route, {p.name, c.remote})
+            if self._line_calls(p.transport):
+                self.bare_ports[link].leave_calls()
         elif isinstance(route, ReceiveRoute | ServerRoute):
             route.check.expect(route.drop)  # its sender may have announced before it started
             self.heard_from.append(route)
             if p.name != c.remote and isinstance(route, ReceiveRoute):
                 self.router.alias(route, topic_id_for(p.name))
+
+    def _line_calls(self, transport: Transport) -> bool:
+        """Whether microcontroller calls share ``transport``'s line with its bare topics."""
+        return any(isinstance(s, ServiceSpec) and s.service_framing is not None
+                   and s.transport is transport for s in self.entries())
 
     def _record(self) -> ReplayRecord:
         """The bridge's replay record, ``<state folder>/<name>.replay`` (read on first use;
@@ -189,7 +197,7 @@ class PeerRole(Role):
         return self.record
 
     def _microcontroller_service(self, p: ServiceSpec,
-                                 servers: dict[Address, CallPort]) -> None:
+                                 servers: dict[Address, CallPort | LineCallPort]) -> None:
         """``framing: serial_datagram`` (or another plugin's call pattern): a connection per call;
         a serving port is shared by its services, told apart by name (no id), and takes calls
         from anyone unless ``bridge.allow`` is given."""
@@ -197,8 +205,15 @@ class PeerRole(Role):
         if s.direction is Direction.TRANSMIT:
             self.router.service(p, 0, s.service, None)  # connects to the peer per call
             return
+        assert p.service_framing is not None
+        if isinstance(p.transport, DatagramTransport) and p.address not in servers:  # a line
+            try:
+                servers[p.address] = self.life.closing(p.service_framing.line_server(
+                    f"{p.transport.name}:{p.address[1]}", self.router.link_drop, p.transport,
+                    p.address))
+            except LinkError as exc:
+                raise self.bridge.link_error(exc, f"services[{p.index}].port") from None
         if p.address not in servers:
-            assert p.service_framing is not None
             server = servers[p.address] = p.service_framing.server(
                 f"{p.transport.name}:{p.address[1]}", self.router.link_drop,
                 self.cfg.limits.idle_timeout)
@@ -221,9 +236,14 @@ class PeerHandshake:
         self.initiator = public_of(cfg.identity) < cfg.server_key
         self.mine, self.theirs = ("i2r", "r2i") if self.initiator else ("r2i", "i2r")
         self.schedule = KeySchedule(cfg.rekey)
-        transport = role.bridge.resolver.transport("tcp", "bridge.handshake_port")
-        assert isinstance(transport, StreamTransport)
-        self.transport = transport
+        transport = role.bridge.resolver.transport(cfg.handshake_line, "bridge.handshake_line")
+        if isinstance(transport, DatagramTransport):  # the line is all there is (serial)
+            transport = DatagramStream(transport)
+        elif not isinstance(transport, StreamTransport):
+            raise cfg.error("bridge.handshake_line", f"{cfg.handshake_line} cannot carry a "
+                            "handshake", fix="name a stream link (tcp) or a datagram link "
+                            "between the two peers (serial, udp)")
+        self.transport: StreamTransport = transport
         self.up = threading.Event()
         self.link: StreamLink | None = None
         self.answer = Answer()
@@ -242,7 +262,7 @@ class PeerHandshake:
             slot = self.role.bridge.slot(f"handshake->{self.cfg.peer}")
             Connector(self.transport, self._address(self.cfg.peer), slot, self._on_frame,
                       self.role.router.on_lost, self.role.life, self.role.bridge.backoff,
-                      self._initiated, self._lost, secure=self.role.initiate).start()
+                      self._initiated, self._lost, secure=self._initiate).start()
         else:
             address = self._address(self.cfg.listen)
             self.role.accept(self.transport, address, self._accepted, "bridge.handshake_port",
@@ -251,9 +271,15 @@ class PeerHandshake:
         threading.Thread(target=self._ping_loop, name="peer-ping", daemon=True).start()
 
     # -- the initiator -------------------------------------------------------------------------
+    def _initiate(self, connection: StreamConnection) -> StreamConnection:
+        """The Noise handshake. The responder sends its keys as soon as it is done, unasked:
+        they may be read before :meth:`_initiated` runs, so the last line's are forgotten here,
+        before they can come (seen on a serial line, where a round trip is long)."""
+        self.answer.got.clear()
+        return self.role.initiate(connection)
+
     def _initiated(self, link: StreamLink) -> bool:
         """Wait for the responder's keys inside the new channel; install them."""
-        self.answer.got.clear()
         answer = self.answer.wait(link, self.role.life.stopping, 5.0)
         if answer is None:
             if not link.closed.is_set() and not self.role.life.stopping.is_set():

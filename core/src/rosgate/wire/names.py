@@ -85,3 +85,13 @@ def split_name(datagram: bytes | memoryview) -> tuple[str, bytes]:
     except UnicodeDecodeError:
         raise NameMissing("the name is not UTF-8") from None
     return name, bytes(datagram[end:])
+
+
+def call_shaped(datagram: bytes | memoryview) -> bool:
+    """Whether a datagram looks like a call on a serial line (``[name, args, id]``: an array of
+    three) or its answer (``[id, value]``: an array of two whose first item is an unsigned
+    integer), never like a message: those belong to the line's calls (docs/microcontrollers.md)."""
+    if len(datagram) < 2:
+        return False
+    return datagram[0] == 0x93 or datagram[0] == 0x92 and (datagram[1] < 0x80
+                                                           or 0xCC <= datagram[1] <= 0xCF)
