@@ -12,6 +12,7 @@ from ..errors import ConfigError
 from ..options import show
 from . import kinds, schema
 from .kinds import Key, check_keys, key_names, keys, read, require, row_of
+from .patterns import is_pattern, name_or_pattern, split
 from .schema import (
     ActionConfig,
     BridgeConfig,
@@ -24,7 +25,6 @@ from .schema import (
     ServiceConfig,
     TopicConfig,
 )
-from .patterns import is_pattern, name_or_pattern, split
 from .source import START_FIX, Source, join, parse
 
 
@@ -383,7 +383,7 @@ def _pattern(src: Source, data: dict, path: str, name_key: str, given: dict[str,
     if given["framing"].bare:
         raise src.error(join(path, "framing"), f"a pattern ({name}) finds ROS names as they "
                         f"appear; framing {given['framing']} sends a microcontroller's fixed "
-                        "names", fix=f"list each name as an entry of its own, or remove framing:")
+                        "names", fix="list each name as an entry of its own, or remove framing:")
     if "remote" not in given:
         return
     remote = given["remote"] = name_or_pattern(Key(src, path, row_of(TopicConfig, "remote")),

@@ -180,7 +180,8 @@ class ServiceConfig:
     says how calls, answers and failures behave."""
 
     service: str = _entry("name", example="/mcu/ping")
-    type: str = option("", "the service type", example="std_srvs/srv/Trigger", unset=TYPE_FROM_GRAPH,
+    type: str = option("", "the service type", example="std_srvs/srv/Trigger",
+                       unset=TYPE_FROM_GRAPH,
                        parse=kinds.interface("srv"))
     direction: Direction = _entry("direction", doc="`transmit`: calls made here are served on the "
                                   "far side; `receive`: the far side's calls are served here")
@@ -218,7 +219,8 @@ class ActionConfig:
     three services, feedback and status as its two topics; [actions.md](actions.md) says how."""
 
     action: str = _entry("name", example="/navigate_to_pose")
-    type: str = option("", "the action type", example="nav2_msgs/action/NavigateToPose", unset=TYPE_FROM_GRAPH,
+    type: str = option("", "the action type", example="nav2_msgs/action/NavigateToPose",
+                       unset=TYPE_FROM_GRAPH,
                        parse=kinds.interface("action"))
     direction: Direction = _entry("direction", doc="`transmit`: goals sent here are served on the "
                                   "far side; `receive`: the far side's goals are served here")
