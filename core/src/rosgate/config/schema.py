@@ -466,6 +466,9 @@ class BridgeConfig:
                                    unset="`[" + ", ".join(DENY_DEFAULT) + "]`",
                                    example="[/rosout, /parameter_events, /robot1/debug/**]",
                                    parse=deny_list)
+    pattern_grace: float = option(10.0, "seconds a name a pattern entry found keeps its route "
+                                  "after its last publisher went; then the route is removed on "
+                                  "both sides", above=0, unit="seconds", example="10")
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
     services: list[ServiceConfig] = field(default_factory=list)

@@ -17,8 +17,9 @@ import time
 from typing import Any
 
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
+from ..discovery import Discovery, Found
 from ..drops import Drop
-from ..errors import LinkError, RosgateError
+from ..errors import ConfigError, LinkError, RosgateError
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import Route
@@ -55,7 +56,12 @@ class ClientRole(Role):
         self._hello_seq = itertools.count(1)
         self._dedicated: dict[int, LinkSlot] = {}
         self.answer = Answer()
+        #: the topics its pattern entries found, after its listed entries (None: a name gone)
+        self.found: list[TopicSpec | None] = []
+        self._found_lock = threading.RLock()
         plan = bridge.plan
+        self.discovery = Discovery(self.cfg, plan.patterns, self.router.ros.node, self._add_found,
+                                   self._drop_found, time.monotonic)
         assert plan.main_line is not None and plan.main_address is not None
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
@@ -66,8 +72,10 @@ class ClientRole(Role):
     def start(self) -> None:
         self.connector.start()
         threading.Thread(target=self._ping_loop, name="client-ping", daemon=True).start()
+        self.discovery.start()
 
     def stop(self) -> None:
+        self.discovery.stop()
         link = self.main.current
         if self.connected.is_set() and link is not None:
             # a clean stop says goodbye, so the server drops our session now instead of keeping
@@ -86,6 +94,61 @@ class ClientRole(Role):
         message = self.read_control(frame, link, source)
         if message is not None and message["type"] in ("welcome", "refused"):
             self.answer.put(message)
+        elif message is not None and message["type"] == "placed":
+            self._placed(message)
+
+    def entries(self) -> list[Any]:
+        """The listed entries, then the topics the patterns found (None: a name gone)."""
+        with self._found_lock:
+            return [*super().entries(), *self.found]
+
+    def _found_message(self) -> dict[str, Any]:
+        with self._found_lock:
+            return {"found": [None if p is None else topic_to_mapping(p.config)
+                              for p in self.found],
+                    "entries": [None if p is None else self.router.entry_item(p)
+                                for p in self.entries()]}
+
+    def _add_found(self, found: Found) -> TopicSpec | None:
+        """A name a pattern found: told to the server, which judges it as a listed entry."""
+        try:
+            spec = self.bridge.resolver.found(found.pattern, found.name, found.type)
+        except ConfigError as exc:
+            log.error("%s: %s cannot be bridged: %s", self.cfg.name, found.name, exc)
+            return None
+        with self._found_lock:
+            self.found.append(spec)
+        self._tell_found()
+        return spec
+
+    def _drop_found(self, found: Found) -> None:
+        with self._found_lock:
+            self.found = [None if p is found.route else p for p in self.found]
+        self._tell_found()
+
+    def _tell_found(self) -> None:
+        link = self.main.current
+        if self.connected.is_set() and link is not None:  # else the next hello says it
+            link.send(control({"type": "found", **self._found_message()}), self.control)
+
+    def _placed(self, message: dict[str, Any]) -> None:
+        """The server's ids for the found names (0: refused, or gone)."""
+        try:
+            ids = [int(i) for i in message["ids"]]
+            if not all(0 <= i < 2**32 for i in ids):
+                raise ValueError("an id out of range")
+            with self._found_lock:
+                self._note_refusals(message.get("refused", []))
+                self._apply(ids)
+                self.far_entries(self.routes, message.get("entries"))
+                behind = len(ids) < len(self.entries())
+        except (KeyError, TypeError, ValueError, RosgateError) as exc:
+            log.error("%s: cannot use the server's answer: %s", self.cfg.name, exc)
+            return
+        self._say_hello()  # a found name's datagram link may be new: the server learns it
+        self.router.start_announcing([self.routes[i] for i in range(len(ids)) if i in self.routes])
+        if behind:  # names found while the server placed the others
+            self._tell_found()
 
     def _handshake(self, link: StreamLink) -> bool:
         """Send our entries; build, re-key or drop their routes from the server's answer."""
@@ -95,7 +158,7 @@ class ClientRole(Role):
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
                            "services": [service_to_mapping(p.config) for p in plan.services],
                            "actions": [action_to_mapping(a.config) for a in plan.actions],
-                           "entries": [self.router.entry_item(p) for p in self.entries()]}),
+                           **self._found_message()}),
                   self.control)
         answer = self.answer.wait(link, self.life.stopping, HANDSHAKE_TIMEOUT)
         if answer is None:
@@ -112,7 +175,7 @@ class ClientRole(Role):
             return False
         try:
             ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
-            if len(ids) != len(self.entries()):
+            if not len(super().entries()) <= len(ids) <= len(self.entries()):
                 raise ValueError("topic and service id count does not match")
             if not all(0 <= i < 2**32 for i in ids):  # 0: an entry the server refused
                 raise ValueError("a topic or service id out of range")
@@ -120,9 +183,10 @@ class ClientRole(Role):
             self.server_name = str(answer["name"])
             if self.cfg.secure:
                 self._install_keys(answer, link)
-            self._note_refusals(answer.get("refused", []))
-            self._apply(ids)
-            self.far_entries(self.routes, answer.get("entries"))
+            with self._found_lock:
+                self._note_refusals(answer.get("refused", []))
+                self._apply(ids)
+                self.far_entries(self.routes, answer.get("entries"))
         except (KeyError, TypeError, ValueError, RosgateError) as exc:
             log.error("%s: cannot use the server's answer: %s", self.cfg.name, exc)
             if self.topic_ids is None:
@@ -140,6 +204,8 @@ class ClientRole(Role):
         self.router.start_announcing(list(self.routes.values()))  # the server hears us now
         self.router.resync(list(self.routes.values()))
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
+        if len(ids) < len(self.entries()):  # names found while the server answered
+            self._tell_found()
         return True
 
     def _install_keys(self, answer: dict[str, Any], link: StreamLink) -> None:
@@ -177,13 +243,14 @@ class ClientRole(Role):
         """Make the routes match the server's answer: one per entry it accepted (id > 0),
         renumbered when a restarted server numbered them anew; none for a refused entry."""
         renumbered = self.topic_ids is not None and any(
-            old and new and old != new for old, new in zip(self.topic_ids, ids, strict=True))
+            old and new and old != new for old, new in zip(self.topic_ids, ids, strict=False))
         if renumbered:
             for slot in [self.main, *self._dedicated.values()]:
                 slot.discard(Drop.SESSION_RESET)
-        for index, (p, topic_id) in enumerate(zip(self.entries(), ids, strict=True)):
+        # ids may cover fewer entries: names the patterns found while the server placed these
+        for index, (p, topic_id) in enumerate(zip(self.entries(), ids, strict=False)):
             route = self.routes.get(index)
-            if topic_id == 0:
+            if topic_id == 0 or p is None:
                 if route is not None:
                     self.router.remove(self.routes.pop(index))
             elif route is None:

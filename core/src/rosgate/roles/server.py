@@ -52,7 +52,15 @@ from ..warn import BUGS
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
 from . import Bridge, Role, session_keys
-from .mainline import PROTOCOL, client_entries, control, flipped, is_control, where_error
+from .mainline import (
+    PROTOCOL,
+    client_entries,
+    control,
+    flipped,
+    found_entries,
+    is_control,
+    where_error,
+)
 
 log = logging.getLogger("rosgate")
 
@@ -72,7 +80,9 @@ class Session:
     topics: list[Any]  # the client's topic list, as it sent it
     services: list[Any]  # and its service list
     main: LinkSlot
-    entries: list[Entry] = field(default_factory=list)  # checked, in the client's words
+    entries: list[Entry | None] = field(default_factory=list)  # checked, in the client's words
+    #: how many of them the client listed; the rest its patterns found (None: a name gone)
+    listed: int = 0
     by_index: dict[int, Route] = field(default_factory=dict)  # entry -> its route
     refused: dict[int, str] = field(default_factory=dict)  # entry -> why (the policy)
     addresses: dict[DatagramLink, Address] = field(default_factory=dict)
@@ -206,6 +216,8 @@ class ServerRole(Role):
                     session = self._welcome(message, link, peer)
                     if session is not None:
                         link.trust()
+                elif kind == "found" and session is not None:
+                    self._found(session, message, link)
                 elif kind == "ready" and session is not None and session.schedule is not None:
                     session.schedule.seal_with(message.get("key_id"))
                 elif kind == "bye" and session is not None and session.main.current is link:
@@ -258,6 +270,7 @@ class ServerRole(Role):
                 session = self._new_session(hello, name, policy)
             else:
                 session.policy = policy or session.policy
+                self._set_found(session, hello)
                 self._sync(session)
         except (ConfigError, LinkError) as exc:
             self.refusals.say(f"refused {name} {exc}", f"refused client {name!r} from {peer[0]}: "
@@ -300,9 +313,41 @@ class ServerRole(Role):
                  f", {len(session.refused)} refused" if session.refused else "")
         return session
 
+    def _set_found(self, session: Session, message: dict[str, Any]) -> None:
+        """The topics the client's patterns found, after its listed entries."""
+        found = found_entries(message, self.cfg.defaults, f"client {session.name}")
+        session.entries[session.listed:] = found
+        for index in [i for i in session.by_index if i >= len(session.entries)]:
+            self.router.remove(session.by_index.pop(index))  # a client that found fewer
+        for index in [i for i in session.refused if i >= len(session.entries)]:
+            del session.refused[index]
+
+    def _found(self, session: Session, message: dict[str, Any], link: StreamLink) -> None:
+        """A client's patterns found names (or saw them go): their routes, judged by the policy
+        exactly as listed entries are; the ids (0: refused or gone) answered as ``placed``."""
+        try:
+            self._set_found(session, message)
+            self._sync(session)
+        except (ConfigError, LinkError) as exc:
+            log.error("client %r: its found names refused: %s", session.name, exc)
+            return
+        for index, why in sorted(session.refused.items()):
+            if index >= session.listed:
+                self.refusals.say(f"{session.name} {why}", why, logging.ERROR)
+        routes = [session.by_index.get(i) for i in range(len(session.entries))]
+        self.far_entries(session.by_index, message.get("entries"))
+        link.send(control({
+            "type": "placed", "ids": [0 if r is None else r.topic_id for r in routes],
+            "refused": [{"entry": self._entry_name(session, i), "error": why}
+                        for i, why in sorted(session.refused.items())],
+            "entries": [None if r is None else self.router.item(r) for r in routes]}),
+            self.control)
+
     @staticmethod
     def _entry_name(session: Session, index: int) -> str:
         entry = session.entries[index]
+        if index >= session.listed and isinstance(entry, TopicConfig):
+            return f"found[{index - session.listed}] ({entry.topic})"
         if isinstance(entry, TopicConfig):
             return f"topics[{index}] ({entry.topic})"
         return f"services[{index - len(session.topics)}] ({entry.service})"
@@ -337,6 +382,8 @@ class ServerRole(Role):
                           entries=entries, policy=policy, actions=hello.get("actions", []),
                           part_of=part_of,
                           schedule=KeySchedule(self.cfg.rekey) if self.cfg.secure else None)
+        session.listed = len(entries)
+        self._set_found(session, hello)
         try:
             self._sync(session)
         except BaseException:  # whatever failed, nothing half-built stays behind
@@ -355,6 +402,12 @@ class ServerRole(Role):
         resolver, error = self.bridge.resolver, where_error(f"client {session.name}")
         topics = len(session.topics)
         for index, entry in enumerate(session.entries):
+            if entry is None:  # a found name that went
+                session.refused.pop(index, None)
+                gone = session.by_index.pop(index, None)
+                if gone is not None:
+                    self.router.remove(gone)
+                continue
             asked = session.part_of.get(index, entry)  # an action's part: the action
             why = refusal(session.policy, asked, keyless) if session.policy is not None else None
             if why is not None:

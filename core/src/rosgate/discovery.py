@@ -1,0 +1,165 @@
+"""Bridge what appears: the names a transmit pattern entry matches on this side's ROS graph, looked
+at every :data:`LOOK_EVERY` seconds. A name that appears (a publisher of a topic that is not
+rosgate's own, so two bridges never carry each other's messages back) is handed to the role,
+which makes its route; a name whose publishers all went is handed back after the grace period.
+What a pattern may not make is said once per name and counted: a denied name is silently left
+out, a name with publishers of two types and a name past ``max_routes`` are refused."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from .config import BridgeConfig, Direction, TopicConfig
+from .config.patterns import denied, matches
+from .resolver import Pattern
+
+log = logging.getLogger("rosgate")
+
+LOOK_EVERY = 0.25  # seconds between two looks at the graph: a name's route within 1 s
+#: the namespace of every bridge's node (a hidden one, as ROS's tools take a leading '_'): what
+#: bridges publish is never found, so two bridges never carry each other's messages back
+OWN_NAMESPACE = "/_rosgate"
+
+
+@dataclass
+class Found:
+    """A name a pattern found, and what its route is."""
+
+    pattern: Pattern
+    name: str
+    type: str
+    route: Any = None  # what the role made of it
+    gone_since: float | None = None  # monotonic time its last publisher went (None: it has some)
+
+
+@dataclass
+class Refusals:
+    """What the patterns refused, by reason, and the names already said (said once each)."""
+
+    counts: Counter = field(default_factory=Counter)
+    said: set[tuple[str, str]] = field(default_factory=set)
+
+    def refuse(self, reason: str, name: str, message: str) -> None:
+        if (reason, name) not in self.said:  # a name is refused once, not at every look
+            self.said.add((reason, name))
+            self.counts[reason] += 1
+            log.error("%s", message)
+
+
+def publishers(node: Any) -> dict[str, set[str]]:
+    """Each topic with publishers on the graph that are not a rosgate node's: their types."""
+    found: dict[str, set[str]] = {}
+    for name, _types in node.get_topic_names_and_types():
+        for info in node.get_publishers_info_by_topic(name):
+            if info.node_namespace != OWN_NAMESPACE:
+                found.setdefault(name, set()).add(info.topic_type)
+    return found
+
+
+class Discovery:
+    """The transmit topic patterns of a plan, watched on ``node``'s graph. ``add(found)`` makes
+    a name's route (it returns it, or None when it could not); ``drop(found)`` takes it down."""
+
+    def __init__(self, config: BridgeConfig, patterns: list[Pattern], node: Any,
+                 add: Callable[[Found], Any], drop: Callable[[Found], None],
+                 clock: Callable[[], float]):
+        self.config = config
+        self.patterns = [p for p in patterns if isinstance(p.entry, TopicConfig)
+                         and p.entry.direction is Direction.TRANSMIT]
+        listed = {t.topic for t in config.topics if not t.pattern}
+        self.listed = listed  # a name listed as an entry is that entry's, not a pattern's
+        self.node = node
+        self.add, self.drop, self.clock = add, drop, clock
+        self.found: dict[str, Found] = {}
+        self.refusals = Refusals()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="discovery", daemon=True)
+
+    def start(self) -> None:
+        if self.patterns:
+            for p in self.patterns:
+                log.info("%s: %s %s bridges its names as they appear", self.config.name,
+                         _where(p), p.entry.topic)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2)
+
+    def _run(self) -> None:
+        while not self._stop.wait(LOOK_EVERY):
+            try:
+                self.look(publishers(self.node))
+            except Exception:  # a graph query that failed (shutting down): the next look retries
+                log.debug("discovery: could not read the graph", exc_info=True)
+
+    def look(self, graph: dict[str, set[str]]) -> None:
+        """Routes for the names that appeared, none for the names gone past the grace."""
+        now = self.clock()
+        for name, types in sorted(graph.items()):
+            if name in self.found:
+                self.found[name].gone_since = None
+                continue
+            pattern = self._pattern_of(name)
+            if pattern is not None:
+                self._appeared(pattern, name, types)
+        for name, found in list(self.found.items()):
+            if name in graph:
+                continue
+            if found.gone_since is None:
+                found.gone_since = now
+            elif now - found.gone_since >= self.config.pattern_grace:
+                del self.found[name]
+                self.drop(found)
+                log.info("%s: %s is gone (no publisher for %g s): its route is removed",
+                         self.config.name, name, self.config.pattern_grace)
+
+    def _pattern_of(self, name: str) -> Pattern | None:
+        """The first pattern that takes ``name`` (not listed, not denied), or None."""
+        if name in self.listed or denied(name, self.config.deny):
+            return None
+        for p in self.patterns:
+            if matches(p.entry.topic, name) and not denied(name, p.entry.deny):
+                return p
+        return None
+
+    def _appeared(self, pattern: Pattern, name: str, types: set[str]) -> None:
+        entry, where = pattern.entry, _where(pattern)
+        if len(types) > 1:
+            self.refusals.refuse("types_differ", name, f"{where} {entry.topic}: {name} is "
+                                 f"refused: its publishers publish {' and '.join(sorted(types))}"
+                                 "; one topic carries one type")
+            return
+        (type_name,) = types
+        if entry.type and type_name != entry.type:
+            self.refusals.refuse("other_type", name, f"{where} {entry.topic}: {name} is left "
+                                 f"out: it publishes {type_name}, the entry says {entry.type}")
+            return
+        made = sum(1 for f in self.found.values() if f.pattern is pattern)
+        if made >= entry.max_routes:
+            self.refusals.refuse("max_routes", name, f"{where} {entry.topic}: {name} is refused: "
+                                 f"the pattern has made its {entry.max_routes} routes "
+                                 "(max_routes)")
+            return
+        found = Found(pattern, name, type_name)
+        found.route = self.add(found)
+        if found.route is None:
+            self.refusals.refuse("unroutable", name, f"{where} {entry.topic}: {name} "
+                                 f"({type_name}) could not be bridged (said above)")
+            return
+        self.found[name] = found
+        log.info("%s: %s %s found %s (%s): bridged", self.config.name, where, entry.topic, name,
+                 type_name)
+
+    def status(self) -> dict[str, Any]:
+        return {"found": sorted(self.found), "refused": dict(self.refusals.counts)}
+
+
+def _where(pattern: Pattern) -> str:
+    return f"{pattern.section}[{pattern.index}]"
