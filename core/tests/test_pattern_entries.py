@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from rosgate.config import loads, topic_to_mapping
+from rosgate.config import loads, topic_from_mapping, topic_to_mapping
 from rosgate.config.patterns import DENY_DEFAULT, denied, far_name, matches
 from rosgate.errors import ConfigError
 from rosgate.plugins import Plugins
@@ -79,9 +79,30 @@ def test_mistakes_name_file_line_key_and_fix(entry: str, key: str, says: str, fi
     assert says in found.message and fix in (found.fix or "")
 
 
-def test_service_and_action_patterns() -> None:
-    cfg = loads(HEAD + "services:\n  - {service: /robot1/**, direction: transmit}\n"
-                "actions:\n  - {action: /robot1/*, direction: transmit}\n")
-    assert cfg.services[0].pattern and cfg.actions[0].pattern
-    plan = Resolver(cfg, Plugins.discover()).plan()
-    assert (plan.services, plan.actions, len(plan.patterns)) == ([], [], 2)
+@pytest.mark.parametrize(("text", "key", "says"), [
+    ("services:\n  - {service: /robot1/**, direction: transmit}\n", "services[0].service",
+     "a service with direction transmit is listed by its name"),
+    ("actions:\n  - {action: /robot1/*, direction: transmit}\n", "actions[0].action",
+     "an action"[3:]),
+    ("topics:\n  - {topic: /robot1/**, direction: receive}\n", "topics[0].topic",
+     "a topic with direction receive is listed by its name"),
+])
+def test_what_patterns_do_not_find_is_refused_at_start(text: str, key: str, says: str) -> None:
+    cfg = loads(HEAD + text, file="bringup.yaml")
+    with pytest.raises(ConfigError) as info:
+        Resolver(cfg, Plugins.discover()).plan()
+    assert (info.value.line, info.value.key) == (3, key) and says in info.value.message
+    assert info.value.fix and "as an entry of its own" in info.value.fix
+
+
+def test_a_peer_lists_its_names() -> None:
+    cfg = loads("bridge: {name: a, role: peer, peer: 127.0.0.1}\n"
+                "topics:\n  - {topic: /r/**, direction: transmit, port: 12001}\n")
+    with pytest.raises(ConfigError, match="a pattern is for a client's entries"):
+        Resolver(cfg, Plugins.discover()).plan()
+
+
+def test_a_client_sends_names_never_patterns() -> None:
+    with pytest.raises(ConfigError) as info:
+        topic_from_mapping({"topic": "/r/**", "direction": "transmit"}, {}, "client x", index=2)
+    assert (info.value.file, info.value.key) == ("client x", "topics[2]")

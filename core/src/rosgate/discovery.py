@@ -84,7 +84,7 @@ class Discovery:
         if self.patterns:
             for p in self.patterns:
                 log.info("%s: %s %s bridges its names as they appear", self.config.name,
-                         _where(p), p.entry.topic)
+                         _where(p), p.name)
             self._thread.start()
 
     def stop(self) -> None:
@@ -125,36 +125,36 @@ class Discovery:
         if name in self.listed or denied(name, self.config.deny):
             return None
         for p in self.patterns:
-            if matches(p.entry.topic, name) and not denied(name, p.entry.deny):
+            if matches(p.name, name) and not denied(name, p.entry.deny):
                 return p
         return None
 
     def _appeared(self, pattern: Pattern, name: str, types: set[str]) -> None:
         entry, where = pattern.entry, _where(pattern)
         if len(types) > 1:
-            self.refusals.refuse("types_differ", name, f"{where} {entry.topic}: {name} is "
+            self.refusals.refuse("types_differ", name, f"{where} {pattern.name}: {name} is "
                                  f"refused: its publishers publish {' and '.join(sorted(types))}"
                                  "; one topic carries one type")
             return
         (type_name,) = types
         if entry.type and type_name != entry.type:
-            self.refusals.refuse("other_type", name, f"{where} {entry.topic}: {name} is left "
+            self.refusals.refuse("other_type", name, f"{where} {pattern.name}: {name} is left "
                                  f"out: it publishes {type_name}, the entry says {entry.type}")
             return
         made = sum(1 for f in self.found.values() if f.pattern is pattern)
         if made >= entry.max_routes:
-            self.refusals.refuse("max_routes", name, f"{where} {entry.topic}: {name} is refused: "
+            self.refusals.refuse("max_routes", name, f"{where} {pattern.name}: {name} is refused: "
                                  f"the pattern has made its {entry.max_routes} routes "
                                  "(max_routes)")
             return
         found = Found(pattern, name, type_name)
         found.route = self.add(found)
         if found.route is None:
-            self.refusals.refuse("unroutable", name, f"{where} {entry.topic}: {name} "
+            self.refusals.refuse("unroutable", name, f"{where} {pattern.name}: {name} "
                                  f"({type_name}) could not be bridged (said above)")
             return
         self.found[name] = found
-        log.info("%s: %s %s found %s (%s): bridged", self.config.name, where, entry.topic, name,
+        log.info("%s: %s %s found %s (%s): bridged", self.config.name, where, pattern.name, name,
                  type_name)
 
     def status(self) -> dict[str, Any]:

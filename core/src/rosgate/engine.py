@@ -15,8 +15,8 @@ from typing import Any
 
 from .bus import BusTransport, Unauthenticated
 from .config import BridgeConfig, Direction, Role, load
-from .errors import ConfigError, OptionError
 from .discovery import OWN_NAMESPACE
+from .errors import ConfigError, OptionError
 from .links import Lifetime
 from .monitor import Monitor, Status, Watched
 from .options import parse

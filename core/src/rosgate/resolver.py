@@ -63,6 +63,11 @@ class Pattern:
     section: str  # "topics" | "services" | "actions"
     checked: Any = None  # the spec of a stand-in name: its plugins are installed and fit
 
+    @property
+    def name(self) -> str:
+        """The pattern as written (``/robot1/**``)."""
+        return str(getattr(self.entry, _name_key(self.entry)))
+
 
 #: a type every rclpy installation has, to check a pattern's plugins before any name is found
 _STAND_IN = {"topics": "rcl_interfaces/msg/Log", "services": "rcl_interfaces/srv/ListParameters"}
@@ -131,9 +136,14 @@ class Resolver:
                     if not s.pattern]
         actions = [self.action(a, i, "actions") for i, a in enumerate(cfg.actions)
                    if not a.pattern]
+        sections: list[tuple[str, list[Any]]] = [
+            ("topics", cfg.topics), ("services", cfg.services), ("actions", cfg.actions)]
+        for section, entries in sections:
+            for i, entry in enumerate(entries):
+                if entry.pattern:
+                    self._can_find(entry, f"{section}[{i}]")
         patterns = [Pattern(entry, i, section, self.found(Pattern(entry, i, section), "/x", ""))
-                    for section, entries in (("topics", cfg.topics), ("services", cfg.services),
-                                             ("actions", cfg.actions))
+                    for section, entries in sections
                     for i, entry in enumerate(entries) if entry.pattern]
         if cfg.role is not Role.PEER and not cfg.secure and not cfg.insecure:
             key = "identity, server_key" if cfg.role is Role.CLIENT else "identity"
@@ -142,6 +152,19 @@ class Resolver:
                             "(docs/security.md: setting up identities); or, on a network you "
                             "trust entirely, insecure: true")
         return Plan(cfg, topics, services, main_line, self.main_address, actions, patterns)
+
+    def _can_find(self, entry: TopicConfig | ServiceConfig | ActionConfig, key: str) -> None:
+        """What patterns find: the topics a client publishes to its server."""
+        kind = _name_key(entry)
+        if self.config.role is not Role.CLIENT:
+            raise self.config.error(f"{key}.{kind}", f"a pattern is for a client's entries; a "
+                                    f"{self.config.role} lists each {kind} by its name",
+                                    f"list each {kind} as an entry of its own")
+        if not isinstance(entry, TopicConfig) or entry.direction is not Direction.TRANSMIT:
+            raise self.config.error(f"{key}.{kind}", f"a pattern finds the topics this side "
+                                    f"publishes (topics:, direction: transmit); a {kind} with "
+                                    f"direction {entry.direction} is listed by its name",
+                                    f"list each {kind} as an entry of its own")
 
     def found(self, pattern: Pattern, name: str, type_name: str,
               error: ErrorMaker | None = None) -> Any:
@@ -158,8 +181,9 @@ class Resolver:
             for kind in ("codec", "cipher"):
                 self.plugin(kind, getattr(entry, kind), f"{key}.{kind}", error)
             return None
+        named: dict[str, Any] = {_name_key(entry): name if type_name else head + name}
         concrete = dataclasses.replace(
-            entry, **{_name_key(entry): name if type_name else head + name},
+            entry, **named,
             remote=far_name(written, entry.remote, name) if type_name else head + name,
             type=entry.type or type_name or _STAND_IN[pattern.section])
         if isinstance(concrete, TopicConfig):

@@ -50,19 +50,30 @@ def topic_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                        index: int | None = None) -> TopicConfig:
     """Validate one topic entry received from a client; `where` becomes the error's file and
     `index` its position in the client's list (error keys read "topics[3].codec")."""
-    return _entry(Source(where), data, _entry_path("topics", index), TopicConfig, defaults)
+    return _named(_entry(Source(where), data, _entry_path("topics", index), TopicConfig, defaults),
+                  where, _entry_path("topics", index))
 
 
 def service_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                          index: int | None = None) -> ServiceConfig:
     """Like topic_from_mapping, for a service entry."""
-    return _entry(Source(where), data, _entry_path("services", index), ServiceConfig, defaults)
+    return _named(_entry(Source(where), data, _entry_path("services", index), ServiceConfig, defaults),
+                  where, _entry_path("services", index))
 
 
 def action_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                         index: int | None = None) -> ActionConfig:
     """Like topic_from_mapping, for an action entry."""
-    return _entry(Source(where), data, _entry_path("actions", index), ActionConfig, defaults)
+    return _named(_entry(Source(where), data, _entry_path("actions", index), ActionConfig, defaults),
+                  where, _entry_path("actions", index))
+
+
+def _named(entry: Any, where: str, path: str) -> Any:
+    """An entry a client sent: a name, never a pattern (its patterns are matched on its side)."""
+    if entry.pattern:
+        raise ConfigError("a pattern: a client sends the names its patterns found", file=where,
+                          key=path, fix="run the same rosgate version on both")
+    return entry
 
 
 def action_to_mapping(a: ActionConfig) -> dict:
@@ -380,6 +391,7 @@ def _pattern(src: Source, data: dict, path: str, name_key: str, given: dict[str,
     """A pattern entry: envelope framing (a microcontroller's names are fixed), and a remote: that
     keeps the pattern's wildcards."""
     name = given[name_key]
+    given.setdefault("type", "")  # found with each name
     if given["framing"].bare:
         raise src.error(join(path, "framing"), f"a pattern ({name}) finds ROS names as they "
                         f"appear; framing {given['framing']} sends a microcontroller's fixed "

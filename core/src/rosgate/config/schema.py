@@ -101,12 +101,13 @@ def _entry(key: str, **given: Any) -> Any:
     return option(**_ENTRY[key], **given)
 
 
-@dataclass(kw_only=True)
+@dataclass
 class TopicConfig:
     """Per topic you choose:"""
 
     topic: str = _entry("name", example="/chatter")
-    type: str = option("", "the message type", example="std_msgs/msg/String", unset=TYPE_FROM_GRAPH,
+    type: str = option(doc="the message type", example="std_msgs/msg/String",
+                       unset=TYPE_FROM_GRAPH,
                        parse=kinds.interface("msg"))
     direction: Direction = _entry("direction", doc="`transmit`: to the far side (client to "
                                   "server, or to the peer); `receive`: from it")
@@ -174,13 +175,13 @@ class TopicConfig:
         return is_pattern(self.topic)
 
 
-@dataclass(kw_only=True)
+@dataclass
 class ServiceConfig:
     """`services:` entries carry ROS 2 services across the link; [services.md](services.md)
     says how calls, answers and failures behave."""
 
     service: str = _entry("name", example="/mcu/ping")
-    type: str = option("", "the service type", example="std_srvs/srv/Trigger",
+    type: str = option(doc="the service type", example="std_srvs/srv/Trigger",
                        unset=TYPE_FROM_GRAPH,
                        parse=kinds.interface("srv"))
     direction: Direction = _entry("direction", doc="`transmit`: calls made here are served on the "
@@ -213,13 +214,13 @@ class ServiceConfig:
         return is_pattern(self.service)
 
 
-@dataclass(kw_only=True)
+@dataclass
 class ActionConfig:
     """`actions:` entries carry ROS 2 actions: goals, cancels and results cross as the action's
     three services, feedback and status as its two topics; [actions.md](actions.md) says how."""
 
     action: str = _entry("name", example="/navigate_to_pose")
-    type: str = option("", "the action type", example="nav2_msgs/action/NavigateToPose",
+    type: str = option(doc="the action type", example="nav2_msgs/action/NavigateToPose",
                        unset=TYPE_FROM_GRAPH,
                        parse=kinds.interface("action"))
     direction: Direction = _entry("direction", doc="`transmit`: goals sent here are served on the "

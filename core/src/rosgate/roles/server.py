@@ -346,6 +346,7 @@ class ServerRole(Role):
     @staticmethod
     def _entry_name(session: Session, index: int) -> str:
         entry = session.entries[index]
+        assert entry is not None  # a name gone is neither refused nor routed
         if index >= session.listed and isinstance(entry, TopicConfig):
             return f"found[{index - session.listed}] ({entry.topic})"
         if isinstance(entry, TopicConfig):
@@ -379,7 +380,8 @@ class ServerRole(Role):
         entries, part_of = client_entries(hello, self.cfg.defaults, f"client {name}")
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
                           hello.get("services", []), self.bridge.slot(f"main of {name}"),
-                          entries=entries, policy=policy, actions=hello.get("actions", []),
+                          entries=list(entries), policy=policy,
+                          actions=hello.get("actions", []),
                           part_of=part_of,
                           schedule=KeySchedule(self.cfg.rekey) if self.cfg.secure else None)
         session.listed = len(entries)
