@@ -27,8 +27,9 @@ def server_file(tmp_path: Path, port: int, rules: str | None = None) -> Path:
     path = tmp_path / "server.yaml"
     path.write_text(f"bridge: {{name: base, role: server, server: '127.0.0.1:{port}'}}\n")
     if rules is not None:  # a policy of the test's own: AUTH lists robot1 with these rules
+        key = AUTH.identity("server")
         path.write_text(f"""
-bridge: {{name: base, role: server, server: '127.0.0.1:{port}', identity: {AUTH.identity("server")}}}
+bridge: {{name: base, role: server, server: '127.0.0.1:{port}', identity: {key}}}
 clients:
   robot1:
     key: {AUTH.public["robot1"]}

@@ -50,22 +50,22 @@ def topic_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                        index: int | None = None) -> TopicConfig:
     """Validate one topic entry received from a client; `where` becomes the error's file and
     `index` its position in the client's list (error keys read "topics[3].codec")."""
-    return _named(_entry(Source(where), data, _entry_path("topics", index), TopicConfig, defaults),
-                  where, _entry_path("topics", index))
+    path = _entry_path("topics", index)
+    return _named(_entry(Source(where), data, path, TopicConfig, defaults), where, path)
 
 
 def service_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                          index: int | None = None) -> ServiceConfig:
     """Like topic_from_mapping, for a service entry."""
-    return _named(_entry(Source(where), data, _entry_path("services", index), ServiceConfig, defaults),
-                  where, _entry_path("services", index))
+    path = _entry_path("services", index)
+    return _named(_entry(Source(where), data, path, ServiceConfig, defaults), where, path)
 
 
 def action_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                         index: int | None = None) -> ActionConfig:
     """Like topic_from_mapping, for an action entry."""
-    return _named(_entry(Source(where), data, _entry_path("actions", index), ActionConfig, defaults),
-                  where, _entry_path("actions", index))
+    path = _entry_path("actions", index)
+    return _named(_entry(Source(where), data, path, ActionConfig, defaults), where, path)
 
 
 def _named(entry: Any, where: str, path: str) -> Any:
