@@ -115,3 +115,28 @@ def test_a_publisher_that_goes_is_gone_after_the_grace(bridge, tmp_path, domain,
     robot.ros.destroy(talker)
     assert client.wait_log("/r/brief is gone (no publisher for 1 s)", 10), client.log
     assert wait_until(lambda: not published(base, "/r/brief"), 5)
+
+
+def test_check_shows_what_each_pattern_matches_now(tmp_path, domain, ros_side):
+    import os
+    import subprocess
+
+    from conftest import ROSGATE
+
+    d = domain()
+    robot = ros_side(d, "robot")
+    keep = [robot.publisher(name, String) for name in ("/r/a/b", "/r/secret/x", "/other")]
+    path = tmp_path / "robot1.yaml"
+    path.write_text("bridge: {name: robot1, role: client, server: 127.0.0.1:12000, "
+                    f"identity: {AUTH.identity('robot1')}, server_key: {AUTH.public['server']}}}\n"
+                    "topics:\n  - {topic: /r/**, direction: transmit, deny: [/r/secret/**]}\n"
+                    "  - {topic: /q/*, direction: transmit}\n")
+    result = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
+                            timeout=60, env=dict(os.environ, ROS_DOMAIN_ID=str(d)))
+    out = result.stdout
+    assert result.returncode == 0, result.stderr
+    assert "  /r/** -> /r/**  [type from the graph] udp cdr aead  (pattern)\n" \
+           "    now: /r/a/b [std_msgs/msg/String]\n" in out, out
+    assert "  /q/* -> /q/*  [type from the graph] udp cdr aead  (pattern)\n" \
+           "    matches nothing in this domain now; names are bridged as they appear\n" in out, out
+    assert "/r/secret/x" not in out and "/other" not in out and keep

@@ -120,6 +120,22 @@ class Discovery:
                 log.info("%s: %s is gone (no publisher for %g s): its route is removed",
                          self.config.name, name, self.config.pattern_grace)
 
+    def matching(self, graph: dict[str, set[str]]) -> dict[str, list[str]]:
+        """What each pattern takes of ``graph`` now, by the pattern as written: ``name [type]``
+        (or why it would be refused)."""
+        taken: dict[str, list[str]] = {p.name: [] for p in self.patterns}
+        for name, types in sorted(graph.items()):
+            pattern = self._pattern_of(name)
+            if pattern is None:
+                continue
+            if len(types) > 1:
+                taken[pattern.name].append(f"{name} (refused: {' and '.join(sorted(types))})")
+            elif pattern.entry.type and pattern.entry.type not in types:
+                taken[pattern.name].append(f"{name} (left out: {next(iter(types))})")
+            else:
+                taken[pattern.name].append(f"{name} [{next(iter(types))}]")
+        return taken
+
     def _pattern_of(self, name: str) -> Pattern | None:
         """The first pattern that takes ``name`` (not listed, not denied), or None."""
         if name in self.listed or denied(name, self.config.deny):
