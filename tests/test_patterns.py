@@ -140,3 +140,19 @@ def test_check_shows_what_each_pattern_matches_now(tmp_path, domain, ros_side):
     assert "  /q/* -> /q/*  [type from the graph] udp cdr aead  (pattern)\n" \
            "    matches nothing in this domain now; names are bridged as they appear\n" in out, out
     assert "/r/secret/x" not in out and "/other" not in out and keep
+
+
+def test_publishers_of_two_types_are_refused_named_and_counted(engines, domain, ros_side):
+    ds, dc, port = domain(), domain(), free_port()
+    engines(f"bridge: {{name: base, role: server, server: '127.0.0.1:{port}'}}", ds)
+    client = engines(CLIENT.format(port=port), dc)
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    # two nodes (one participant takes one type per topic), as two programs would
+    mixed = [robot.publisher("/r/mixed", String),
+             ros_side(dc, "other").publisher("/r/mixed", Image)]
+    assert wait_until(lambda: len(robot.ros.node.get_publishers_info_by_topic("/r/mixed")) == 2)
+    first_crossing(robot.publisher("/r/plain", String), base.listen("/r/plain", String),
+                   String(data="after the mixed one was looked at"))
+    status = client.role.discovery.status()
+    assert status == {"found": ["/r/plain"], "refused": {"types_differ": 1}} and mixed
+    assert not published(base, "/r/mixed")

@@ -52,7 +52,14 @@ def collect(config: BridgeConfig, role: Role | None, router: Router | None, life
     return {"version": VERSION, "bridge": config.name, "role": str(config.role), "time": now,
             "uptime": now - started, "entries": entries, "peers": _peers(role, config),
             "links": _links(life.links()),
-            "link_drops": dict(router.link_drops) if router is not None else {}}
+            "link_drops": dict(router.link_drops) if router is not None else {},
+            "patterns": _patterns(role)}
+
+
+def _patterns(role: Role | None) -> Status:
+    """What a client's pattern entries found (names) and refused (by reason, each name once)."""
+    discovery = getattr(role, "discovery", None)
+    return discovery.status() if discovery is not None else {"found": [], "refused": {}}
 
 
 #: an entry's counters before anything crossed, and its state when nothing is wrong
