@@ -115,6 +115,10 @@ def test_a_publisher_that_goes_is_gone_after_the_grace(bridge, tmp_path, domain,
     robot.ros.destroy(talker)
     assert client.wait_log("/r/brief is gone (no publisher for 1 s)", 10), client.log
     assert wait_until(lambda: not published(base, "/r/brief"), 5)
+    # a name that appears next takes the place /r/brief left, on both sides
+    inbox = base.listen("/r/next", String)
+    first_crossing(robot.publisher("/r/next", String), inbox, String(data="next"))
+    assert [m.data for m in inbox.items[:1]] == ["next"] and not published(base, "/r/brief")
 
 
 def test_check_shows_what_each_pattern_matches_now(tmp_path, domain, ros_side):

@@ -116,14 +116,21 @@ class ClientRole(Role):
         except ConfigError as exc:
             log.error("%s: %s cannot be bridged: %s", self.cfg.name, found.name, exc)
             return None
-        with self._found_lock:
-            self.found.append(spec)
+        with self._found_lock:  # in the place of a name gone, so the list stays short
+            if None in self.found:
+                self.found[self.found.index(None)] = spec
+            else:
+                self.found.append(spec)
         self._tell_found()
         return spec
 
     def _drop_found(self, found: Found) -> None:
         with self._found_lock:
-            self.found = [None if p is found.route else p for p in self.found]
+            place = self.found.index(found.route)
+            self.found[place] = None
+            route = self.routes.pop(len(super().entries()) + place, None)
+            if route is not None:  # now: its place may take another name before the server says
+                self.router.remove(route)
         self._tell_found()
 
     def _tell_found(self) -> None:

@@ -316,9 +316,13 @@ class ServerRole(Role):
     def _set_found(self, session: Session, message: dict[str, Any]) -> None:
         """The topics the client's patterns found, after its listed entries."""
         found = found_entries(message, self.cfg.defaults, f"client {session.name}")
+        before = session.entries[session.listed:]
         session.entries[session.listed:] = found
-        for index in [i for i in session.by_index if i >= len(session.entries)]:
-            self.router.remove(session.by_index.pop(index))  # a client that found fewer
+        for index in list(session.by_index):
+            place = index - session.listed
+            if index >= session.listed and (place >= len(found) or found[place] != before[place]):
+                # gone, or its place taken by another name (a client found fewer, or reused it)
+                self.router.remove(session.by_index.pop(index))
         for index in [i for i in session.refused if i >= len(session.entries)]:
             del session.refused[index]
 
