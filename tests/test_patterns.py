@@ -160,3 +160,24 @@ def test_publishers_of_two_types_are_refused_named_and_counted(engines, domain, 
     status = client.role.discovery.status()
     assert status == {"found": ["/r/plain"], "refused": {"types_differ": 1}} and mixed
     assert not published(base, "/r/mixed")
+
+
+def test_two_hundred_topics_appearing_at_once_are_all_bridged(bridge, tmp_path, domain,
+                                                              ros_side):
+    server, client, ds, dc = start(bridge, tmp_path, domain)
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    names_ = [f"/r/many/t{i}" for i in range(200)]
+    inboxes = {name: base.listen(name, String) for name in names_}
+    talkers = {name: robot.publisher(name, String) for name in names_}
+    deadline = time.monotonic() + 60
+    waiting = set(names_)
+    while waiting:
+        assert time.monotonic() < deadline, f"{len(waiting)} of 200 never crossed"
+        for name in list(waiting):
+            if inboxes[name].items:
+                assert inboxes[name].items[0].data == name
+                waiting.discard(name)
+            else:
+                talkers[name].publish(String(data=name))
+        time.sleep(0.1)
+    assert client.wait_log("found /r/many/t199 (std_msgs/msg/String): bridged", 5)

@@ -63,18 +63,19 @@ def publishers(node: Any) -> dict[str, set[str]]:
 
 class Discovery:
     """The transmit topic patterns of a plan, watched on ``node``'s graph. ``add(found)`` makes
-    a name's route (it returns it, or None when it could not); ``drop(found)`` takes it down."""
+    a name's route (it returns it, or None when it could not); ``drop(found)`` takes it down;
+    ``changed()`` follows a look that added or dropped any (the far side is told once)."""
 
     def __init__(self, config: BridgeConfig, patterns: list[Pattern], node: Any,
                  add: Callable[[Found], Any], drop: Callable[[Found], None],
-                 clock: Callable[[], float]):
+                 clock: Callable[[], float], changed: Callable[[], None] = lambda: None):
         self.config = config
         self.patterns = [p for p in patterns if isinstance(p.entry, TopicConfig)
                          and p.entry.direction is Direction.TRANSMIT]
         listed = {t.topic for t in config.topics if not t.pattern}
         self.listed = listed  # a name listed as an entry is that entry's, not a pattern's
         self.node = node
-        self.add, self.drop, self.clock = add, drop, clock
+        self.add, self.drop, self.clock, self.changed = add, drop, clock, changed
         self.found: dict[str, Found] = {}
         self.refusals = Refusals()
         self._stop = threading.Event()
@@ -101,7 +102,7 @@ class Discovery:
 
     def look(self, graph: dict[str, set[str]]) -> None:
         """Routes for the names that appeared, none for the names gone past the grace."""
-        now = self.clock()
+        now, had = self.clock(), set(self.found)
         for name, types in sorted(graph.items()):
             if name in self.found:
                 self.found[name].gone_since = None
@@ -119,6 +120,8 @@ class Discovery:
                 self.drop(found)
                 log.info("%s: %s is gone (no publisher for %g s): its route is removed",
                          self.config.name, name, self.config.pattern_grace)
+        if set(self.found) != had:
+            self.changed()
 
     def matching(self, graph: dict[str, set[str]]) -> dict[str, list[str]]:
         """What each pattern takes of ``graph`` now, by the pattern as written: ``name [type]``

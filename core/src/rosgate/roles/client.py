@@ -61,7 +61,7 @@ class ClientRole(Role):
         self._found_lock = threading.RLock()
         plan = bridge.plan
         self.discovery = Discovery(self.cfg, plan.patterns, self.router.ros.node, self._add_found,
-                                   self._drop_found, time.monotonic)
+                                   self._drop_found, time.monotonic, self._tell_found)
         assert plan.main_line is not None and plan.main_address is not None
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
@@ -110,7 +110,8 @@ class ClientRole(Role):
                                 for p in self.entries()]}
 
     def _add_found(self, found: Found) -> TopicSpec | None:
-        """A name a pattern found: told to the server, which judges it as a listed entry."""
+        """A name a pattern found, for the server (told after the look) to judge as a listed
+        entry."""
         try:
             spec = self.bridge.resolver.found(found.pattern, found.name, found.type)
         except ConfigError as exc:
@@ -121,7 +122,6 @@ class ClientRole(Role):
                 self.found[self.found.index(None)] = spec
             else:
                 self.found.append(spec)
-        self._tell_found()
         return spec
 
     def _drop_found(self, found: Found) -> None:
@@ -131,7 +131,6 @@ class ClientRole(Role):
             route = self.routes.pop(len(super().entries()) + place, None)
             if route is not None:  # now: its place may take another name before the server says
                 self.router.remove(route)
-        self._tell_found()
 
     def _tell_found(self) -> None:
         link = self.main.current
