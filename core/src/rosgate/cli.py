@@ -209,8 +209,21 @@ def _policy_lines(client: str, policy: Any) -> list[str]:
     return lines or [f"  {client} may bridge nothing (no rules: every entry refused)"]
 
 
-#: seconds ``check`` listens to its domain's graph before it says what patterns match now
-GRAPH_WAIT = 1.5
+#: seconds ``check`` listens to its domain's graph at most before it says what patterns match
+#: now, and how long the graph must stay the same before then (DDS discovers nodes in its time)
+GRAPH_WAIT, GRAPH_QUIET = 4.0, 1.0
+
+
+def _settled_graph(look: Any) -> dict[str, set[str]]:
+    deadline, graph, since = time.monotonic() + GRAPH_WAIT, look(), time.monotonic()
+    while time.monotonic() < deadline:
+        time.sleep(0.1)
+        now = look()
+        if now != graph:
+            graph, since = now, time.monotonic()
+        elif graph and time.monotonic() - since >= GRAPH_QUIET:
+            break
+    return graph
 
 
 def _pattern_lines(cfg: Any, plan: Any) -> list[str]:
@@ -225,8 +238,7 @@ def _pattern_lines(cfg: Any, plan: Any) -> list[str]:
 
         node = RosNode(f"check_{os.getpid()}", namespace=OWN_NAMESPACE)
         try:
-            time.sleep(GRAPH_WAIT)  # DDS discovers the other nodes meanwhile
-            graph = publishers(node.node)
+            graph = _settled_graph(lambda: publishers(node.node))
         finally:
             node.close()
     taken = Discovery(cfg, plan.patterns, None, lambda f: None, lambda f: None,
