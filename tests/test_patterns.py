@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from conftest import AUTH, free_port, wait_until
+from conftest import AUTH, free_port, settle, wait_until
 from interfaces import differences, fill
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
@@ -181,3 +181,53 @@ def test_two_hundred_topics_appearing_at_once_are_all_bridged(bridge, tmp_path, 
                 talkers[name].publish(String(data=name))
         time.sleep(0.1)
     assert client.wait_log("found /r/many/t199 (std_msgs/msg/String): bridged", 5)
+
+
+def test_a_receive_pattern_takes_what_the_server_side_publishes(bridge, tmp_path, domain,
+                                                                ros_side):
+    ds, dc, port = domain(), domain(), free_port()
+    bridge(server_file(tmp_path, port), ds)
+    path = tmp_path / "client.yaml"
+    path.write_text(f"""
+bridge: {{name: robot1, role: client, server: '127.0.0.1:{port}'}}
+topics:
+  - {{topic: /robot1/in/**, direction: receive, remote: /to_robot1/**}}
+""")
+    client = bridge(path, dc)
+    assert client.wait_log("server 'base' up", 30), client.log
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    inbox = robot.listen("/robot1/in/goal/pose", String)
+    took = first_crossing(base.publisher("/to_robot1/goal/pose", String), inbox,
+                          String(data="go"))
+    assert inbox.items[0].data == "go"
+    assert client.wait_log("found /robot1/in/goal/pose (std_msgs/msg/String): bridged", 5)
+    assert took < 3.0, f"took {took:.2f} s"
+
+
+def test_both_ways_everything_each_message_crosses_once(engines, domain, ros_side):
+    ds, dc, port = domain(), domain(), free_port()
+    engines(f"bridge: {{name: base, role: server, server: '127.0.0.1:{port}'}}", ds)
+    engines(f"""
+bridge: {{name: robot1, role: client, server: '127.0.0.1:{port}'}}
+topics:
+  - {{topic: /**, direction: transmit}}
+  - {{topic: /**, direction: receive}}
+""", dc)
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    up_here, up_there = robot.listen("/up", String), base.listen("/up", String)
+    down_here, down_there = base.listen("/down", String), robot.listen("/down", String)
+    up, down = robot.publisher("/up", String), base.publisher("/down", String)
+    first_crossing(up, up_there, String(data="warm"))
+    first_crossing(down, down_there, String(data="warm"))
+    for inbox in (up_here, up_there, down_here, down_there):
+        settle(inbox)
+    marks = [len(i.items) for i in (up_here, up_there, down_here, down_there)]
+    for n in range(20):
+        up.publish(String(data=f"u{n}"))
+        down.publish(String(data=f"d{n}"))
+        time.sleep(0.01)
+    for inbox in (up_here, up_there, down_here, down_there):
+        settle(inbox, quiet=1.0)
+    got = [[m.data for m in inbox.items[mark:]]
+           for inbox, mark in zip((up_here, up_there, down_here, down_there), marks, strict=True)]
+    assert got == [[f"u{n}" for n in range(20)]] * 2 + [[f"d{n}" for n in range(20)]] * 2

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .config import BridgeConfig, Direction, TopicConfig
-from .config.patterns import denied, matches
+from .config.kinds import ROS_NAME_MAX
+from .config.patterns import denied, is_pattern, matches
 from .resolver import Pattern
 
 log = logging.getLogger("rosgate")
@@ -182,3 +183,55 @@ class Discovery:
 
 def _where(pattern: Pattern) -> str:
     return f"{pattern.section}[{pattern.index}]"
+
+
+MAX_WATCHED = 64  # patterns one client may ask its server to watch
+
+
+def watched(message: dict[str, Any]) -> list[str]:
+    """The server-side patterns a client's hello asks the server to watch for it (its receive
+    pattern entries' ``remote``); what is not a pattern is left out."""
+    items = message.get("watch", [])
+    if not isinstance(items, list):
+        return []
+    return [p for p in items[:MAX_WATCHED] if isinstance(p, str) and is_pattern(p)
+            and len(p) <= ROS_NAME_MAX and p.startswith("/")]
+
+
+class Offers:
+    """A server's look at its graph for the receive patterns of its clients: to each session,
+    the names under its patterns that have a publisher here (one type each, not rosgate's, not
+    in ``bridge.deny``), with their types, said whenever that changes; a name whose publishers
+    went is offered for ``bridge.pattern_grace`` more seconds."""
+
+    def __init__(self, config: BridgeConfig, node: Any, sessions: Callable[[], list[Any]],
+                 say: Callable[[Any, dict[str, str]], None], clock: Callable[[], float]):
+        self.config, self.node, self.sessions, self.say, self.clock = (
+            config, node, sessions, say, clock)
+        self.said: dict[int, dict[str, str]] = {}  # session id -> what it was last offered
+        self.seen: dict[str, tuple[str, float]] = {}  # name -> its type, when last published
+
+    def look(self) -> None:
+        sessions = [s for s in self.sessions() if s.watch]
+        if not sessions:
+            return
+        now = self.clock()
+        for name, types in publishers(self.node).items():
+            if len(types) == 1 and not denied(name, self.config.deny):
+                self.seen[name] = (next(iter(types)), now)
+        for name in [n for n, (_, at) in self.seen.items()
+                     if now - at > self.config.pattern_grace]:
+            del self.seen[name]
+        for session in sessions:
+            offer = {name: type_name for name, (type_name, _) in self.seen.items()
+                     if any(matches(p, name) for p in session.watch)}
+            if offer != self.said.get(session.id) and session.down_since is None:
+                self.said[session.id] = offer
+                self.say(session, offer)
+        live = {s.id for s in sessions}
+        for gone in [i for i in self.said if i not in live]:
+            del self.said[gone]
+
+    def forget(self, session: Any) -> None:
+        """Say everything again to ``session`` at the next look (it connected again)."""
+        self.said.pop(session.id, None)

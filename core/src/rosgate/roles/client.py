@@ -17,6 +17,7 @@ import time
 from typing import Any
 
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
+from ..config.patterns import denied, far_name, matches
 from ..discovery import Discovery, Found
 from ..drops import Drop
 from ..errors import ConfigError, LinkError, RosgateError
@@ -39,6 +40,8 @@ from .mainline import (
 
 log = logging.getLogger("rosgate")
 
+MAX_OFFERED = 10_000  # names a server may offer for this side's receive patterns
+
 
 class ClientRole(Role):
     def __init__(self, bridge: Bridge):
@@ -60,6 +63,9 @@ class ClientRole(Role):
         self.found: list[TopicSpec | None] = []
         self._found_lock = threading.RLock()
         plan = bridge.plan
+        #: receive patterns, and the names under them the server offered (by the name here)
+        self._receiving = [p for p in plan.patterns if p.entry.direction is Direction.RECEIVE]
+        self.offered: dict[str, Found] = {}
         self.discovery = Discovery(self.cfg, plan.patterns, self.router.ros.node, self._add_found,
                                    self._drop_found, time.monotonic, self._tell_found)
         assert plan.main_line is not None and plan.main_address is not None
@@ -96,6 +102,8 @@ class ClientRole(Role):
             self.answer.put(message)
         elif message is not None and message["type"] == "placed":
             self._placed(message)
+        elif message is not None and message["type"] == "offer":
+            self._offered(message.get("names"))
 
     def entries(self) -> list[Any]:
         """The listed entries, then the topics the patterns found (None: a name gone)."""
@@ -132,6 +140,45 @@ class ClientRole(Role):
             if route is not None:  # now: its place may take another name before the server says
                 self.router.remove(route)
 
+    def _offered(self, names: Any) -> None:
+        """What the server has under this side's receive patterns: a route for each name new
+        here, none for each name no longer offered (the server kept it for its grace)."""
+        if not isinstance(names, dict) or len(names) > MAX_OFFERED:
+            return
+        wanted: dict[str, tuple[Any, str]] = {}
+        for far, type_name in names.items():
+            if not (isinstance(far, str) and isinstance(type_name, str)):
+                continue
+            for p in self._receiving:
+                local = far_name(p.entry.remote, p.name, far)
+                if (matches(p.entry.remote, far) and not denied(local, p.entry.deny)
+                        and not denied(local, self.cfg.deny) and local not in self.listed
+                        and p.entry.type in ("", type_name)):
+                    wanted.setdefault(local, (p, type_name))
+                    break
+        changed = False
+        for local in [n for n in self.offered if n not in wanted]:
+            self._drop_found(self.offered.pop(local))
+            log.info("%s: %s is no longer offered: its route is removed", self.cfg.name, local)
+            changed = True
+        for local, (p, type_name) in sorted(wanted.items()):
+            made = sum(1 for f in self.offered.values() if f.pattern is p)
+            if local in self.offered or made >= p.entry.max_routes:
+                continue
+            found = Found(p, local, type_name)
+            found.route = self._add_found(found)
+            if found.route is not None:
+                self.offered[local] = found
+                log.info("%s: %s[%d] %s found %s (%s): bridged", self.cfg.name, p.section,
+                         p.index, p.name, local, type_name)
+                changed = True
+        if changed:
+            self._tell_found()
+
+    @property
+    def listed(self) -> set[str]:
+        return {t.topic for t in self.cfg.topics if not t.pattern}
+
     def _tell_found(self) -> None:
         link = self.main.current
         if self.connected.is_set() and link is not None:  # else the next hello says it
@@ -164,6 +211,7 @@ class ClientRole(Role):
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
                            "services": [service_to_mapping(p.config) for p in plan.services],
                            "actions": [action_to_mapping(a.config) for a in plan.actions],
+                           "watch": [p.entry.remote for p in self._receiving],
                            **self._found_message()}),
                   self.control)
         answer = self.answer.wait(link, self.life.stopping, HANDSHAKE_TIMEOUT)

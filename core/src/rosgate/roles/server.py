@@ -30,6 +30,7 @@ from ..config import (
     ServiceConfig,
     TopicConfig,
 )
+from ..discovery import LOOK_EVERY, Offers, watched
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..links import DatagramLink, Link
@@ -94,6 +95,7 @@ class Session:
     actions: list[Any] = field(default_factory=list)  # its action list, as it sent it
     part_of: dict[int, ActionConfig] = field(default_factory=dict)  # entry -> its action
     owned: set[int] = field(default_factory=set)  # action parts limited to the client's goals
+    watch: list[str] = field(default_factory=list)  # its receive patterns, in names here
 
     @property
     def routes(self) -> list[Route]:
@@ -140,6 +142,9 @@ class ServerRole(Role):
         self.acceptor: Acceptor | None = None  # until start() has its main line
         #: who sent each goal, per action (its name here): clients use only their own goals
         self.goals: dict[str, Goals] = {}
+        #: the names under clients' receive patterns that publishers here have, told to them
+        self.offers = Offers(self.cfg, self.router.ros.node, lambda: list(self.sessions.values()),
+                             self._offer, time.monotonic)
 
     def start(self) -> None:
         plan = self.bridge.plan
@@ -150,6 +155,19 @@ class ServerRole(Role):
                 connection, peer, lambda secure: self._main_line(secure, peer)),
             "bridge.server", name=f"main:{plan.main_address[1]}")
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
+        threading.Thread(target=self._offer_loop, name="server-offers", daemon=True).start()
+
+    def _offer_loop(self) -> None:
+        while not self.life.stopping.wait(LOOK_EVERY):
+            try:
+                self.offers.look()
+            except Exception:  # a graph query that failed (shutting down): the next look retries
+                log.debug("offers: could not read the graph", exc_info=True)
+
+    def _offer(self, session: Session, offer: dict[str, str]) -> None:
+        link = session.main.current
+        if link is not None:
+            link.send(control({"type": "offer", "names": offer}), self.control)
 
     def stop(self) -> None:
         if self.acceptor is not None:  # first: no client may come back while its session ends
@@ -286,6 +304,8 @@ class ServerRole(Role):
             return None
         for why in session.refused.values():
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
+        session.watch = watched(hello)
+        self.offers.forget(session)  # what it may receive is offered anew
         self.far_entries(session.by_index, hello.get("entries"))
         routes = [session.by_index.get(i) for i in range(len(session.entries))]
         ids, count = [0 if r is None else r.topic_id for r in routes], len(session.topics)
