@@ -231,3 +231,15 @@ topics:
     got = [[m.data for m in inbox.items[mark:]]
            for inbox, mark in zip((up_here, up_there, down_here, down_there), marks, strict=True)]
     assert got == [[f"u{n}" for n in range(20)]] * 2 + [[f"d{n}" for n in range(20)]] * 2
+
+
+def test_found_names_cross_again_after_the_server_restarts(bridge, tmp_path, domain, ros_side):
+    server, client, ds, dc = start(bridge, tmp_path, domain)
+    robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    talker, inbox = robot.publisher("/r/kept", String), base.listen("/r/kept", String)
+    first_crossing(talker, inbox, String(data="before"))
+    assert server.stop() == 0
+    bridge(tmp_path / "server.yaml", ds)
+    inbox.items.clear()
+    first_crossing(talker, inbox, String(data="after"), timeout=30)
+    assert inbox.items[0].data == "after"
