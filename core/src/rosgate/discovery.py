@@ -14,9 +14,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from .config import BridgeConfig, Direction, TopicConfig
+from .config import BridgeConfig, Direction
 from .config.kinds import ROS_NAME_MAX
 from .config.patterns import denied, is_pattern, matches
+from .policy import is_action_part
 from .resolver import Pattern
 
 log = logging.getLogger("rosgate")
@@ -56,31 +57,55 @@ def publishers(node: Any) -> dict[str, set[str]]:
     """Each topic with publishers on the graph that are not a rosgate node's: their types."""
     found: dict[str, set[str]] = {}
     for name, _types in node.get_topic_names_and_types():
+        if is_action_part(name):  # an action's feedback and status cross as the action
+            continue
         for info in node.get_publishers_info_by_topic(name):
             if info.node_namespace != OWN_NAMESPACE:
                 found.setdefault(name, set()).add(info.topic_type)
     return found
 
 
+def servers(node: Any) -> dict[str, set[str]]:
+    """Each service with servers on the graph that are not a rosgate node's: their types."""
+    found: dict[str, set[str]] = {}
+    for name, namespace in node.get_node_names_and_namespaces():
+        if namespace == OWN_NAMESPACE:
+            continue
+        for service, types in node.get_service_names_and_types_by_node(name, namespace):
+            if not is_action_part(service):
+                found.setdefault(service, set()).update(types)
+    return found
+
+
+#: what a kind of pattern entry finds on its side's graph, and who has it
+GRAPHS: dict[str, tuple[Callable[[Any], dict[str, set[str]]], str]] = {
+    "topics": (publishers, "publisher"), "services": (servers, "server")}
+
+
 class Discovery:
-    """The transmit topic patterns of a plan, watched on ``node``'s graph. ``add(found)`` makes
-    a name's route (it returns it, or None when it could not); ``drop(found)`` takes it down;
-    ``changed()`` follows a look that added or dropped any (the far side is told once)."""
+    """The patterns of a plan that find names on this side (``kind`` topics: transmit ones;
+    services: receive ones, whose calls come from the far side), watched on ``node``'s graph.
+    ``add(found)`` makes a name's route (it returns it, or None when it could not);
+    ``drop(found)`` takes it down; ``changed()`` follows a look that added or dropped any (the
+    far side is told once)."""
 
     def __init__(self, config: BridgeConfig, patterns: list[Pattern], node: Any,
                  add: Callable[[Found], Any], drop: Callable[[Found], None],
-                 clock: Callable[[], float], changed: Callable[[], None] = lambda: None):
-        self.config = config
-        self.patterns = [p for p in patterns if isinstance(p.entry, TopicConfig)
-                         and p.entry.direction is Direction.TRANSMIT]
-        listed = {t.topic for t in config.topics if not t.pattern}
+                 clock: Callable[[], float], changed: Callable[[], None] = lambda: None,
+                 kind: str = "topics"):
+        self.config, self.kind = config, kind
+        here = Direction.TRANSMIT if kind == "topics" else Direction.RECEIVE
+        self.patterns = [p for p in patterns if p.section == kind and p.entry.direction is here]
+        self.graph, self.holder = GRAPHS[kind]
+        listed = ({t.topic for t in config.topics if not t.pattern} if kind == "topics"
+                  else {s.service for s in config.services if not s.pattern})
         self.listed = listed  # a name listed as an entry is that entry's, not a pattern's
         self.node = node
         self.add, self.drop, self.clock, self.changed = add, drop, clock, changed
         self.found: dict[str, Found] = {}
         self.refusals = Refusals()
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="discovery", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"discovery-{kind}", daemon=True)
 
     def start(self) -> None:
         if self.patterns:
@@ -97,7 +122,7 @@ class Discovery:
     def _run(self) -> None:
         while not self._stop.wait(LOOK_EVERY):
             try:
-                self.look(publishers(self.node))
+                self.look(self.graph(self.node))
             except Exception:  # a graph query that failed (shutting down): the next look retries
                 log.debug("discovery: could not read the graph", exc_info=True)
 
@@ -119,8 +144,8 @@ class Discovery:
             elif now - found.gone_since >= self.config.pattern_grace:
                 del self.found[name]
                 self.drop(found)
-                log.info("%s: %s is gone (no publisher for %g s): its route is removed",
-                         self.config.name, name, self.config.pattern_grace)
+                log.info("%s: %s is gone (no %s for %g s): its route is removed",
+                         self.config.name, name, self.holder, self.config.pattern_grace)
         if set(self.found) != had:
             self.changed()
 
@@ -153,8 +178,8 @@ class Discovery:
         entry, where = pattern.entry, _where(pattern)
         if len(types) > 1:
             self.refusals.refuse("types_differ", name, f"{where} {pattern.name}: {name} is "
-                                 f"refused: its publishers publish {' and '.join(sorted(types))}"
-                                 "; one topic carries one type")
+                                 f"refused: its {self.holder}s give {' and '.join(sorted(types))}"
+                                 "; one name carries one type")
             return
         (type_name,) = types
         if entry.type and type_name != entry.type:
@@ -188,10 +213,11 @@ def _where(pattern: Pattern) -> str:
 MAX_WATCHED = 64  # patterns one client may ask its server to watch
 
 
-def watched(message: dict[str, Any]) -> list[str]:
-    """The server-side patterns a client's hello asks the server to watch for it (its receive
-    pattern entries' ``remote``); what is not a pattern is left out."""
-    items = message.get("watch", [])
+def watched(message: dict[str, Any], key: str = "watch") -> list[str]:
+    """The server-side patterns a client's hello asks the server to watch for it (``watch``: its
+    receive topic patterns' ``remote``; ``watch_services``: its transmit service patterns'); what
+    is not a pattern is left out."""
+    items = message.get(key, [])
     if not isinstance(items, list):
         return []
     return [p for p in items[:MAX_WATCHED] if isinstance(p, str) and is_pattern(p)
@@ -205,26 +231,33 @@ class Offers:
     went is offered for ``bridge.pattern_grace`` more seconds."""
 
     def __init__(self, config: BridgeConfig, node: Any, sessions: Callable[[], list[Any]],
-                 say: Callable[[Any, dict[str, str]], None], clock: Callable[[], float]):
+                 say: Callable[[Any, dict[str, dict[str, str]]], None],
+                 clock: Callable[[], float]):
         self.config, self.node, self.sessions, self.say, self.clock = (
             config, node, sessions, say, clock)
-        self.said: dict[int, dict[str, str]] = {}  # session id -> what it was last offered
-        self.seen: dict[str, tuple[str, float]] = {}  # name -> its type, when last published
+        #: session id -> what it was last offered, by kind
+        self.said: dict[int, dict[str, dict[str, str]]] = {}
+        #: by kind, each name -> its type, when last seen here
+        self.seen: dict[str, dict[str, tuple[str, float]]] = {kind: {} for kind in GRAPHS}
 
     def look(self) -> None:
-        sessions = [s for s in self.sessions() if s.watch]
+        sessions = [s for s in self.sessions() if s.watch or s.watch_services]
         if not sessions:
             return
         now = self.clock()
-        for name, types in publishers(self.node).items():
-            if len(types) == 1 and not denied(name, self.config.deny):
-                self.seen[name] = (next(iter(types)), now)
-        for name in [n for n, (_, at) in self.seen.items()
-                     if now - at > self.config.pattern_grace]:
-            del self.seen[name]
+        for kind, (graph, _) in GRAPHS.items():
+            seen = self.seen[kind]
+            for name, types in graph(self.node).items():
+                if len(types) == 1 and not denied(name, self.config.deny):
+                    seen[name] = (next(iter(types)), now)
+            for name in [n for n, (_, at) in seen.items()
+                         if now - at > self.config.pattern_grace]:
+                del seen[name]
         for session in sessions:
-            offer = {name: type_name for name, (type_name, _) in self.seen.items()
-                     if any(matches(p, name) for p in session.watch)}
+            offer = {kind: {name: type_name for name, (type_name, _) in self.seen[kind].items()
+                            if any(matches(p, name) for p in patterns)}
+                     for kind, patterns in (("topics", session.watch),
+                                            ("services", session.watch_services))}
             if offer != self.said.get(session.id) and session.down_since is None:
                 self.said[session.id] = offer
                 self.say(session, offer)

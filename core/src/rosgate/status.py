@@ -58,8 +58,15 @@ def collect(config: BridgeConfig, role: Role | None, router: Router | None, life
 
 def _patterns(role: Role | None) -> Status:
     """What a client's pattern entries found (names) and refused (by reason, each name once)."""
-    discovery = getattr(role, "discovery", None)
-    return discovery.status() if discovery is not None else {"found": [], "refused": {}}
+    total: Status = {"found": [], "refused": {}}
+    for name in ("discovery", "service_discovery"):
+        discovery = getattr(role, name, None)
+        if discovery is not None:
+            each = discovery.status()
+            total["found"] += each["found"]
+            for reason, count in each["refused"].items():
+                total["refused"][reason] = total["refused"].get(reason, 0) + count
+    return total
 
 
 #: an entry's counters before anything crossed, and its state when nothing is wrong

@@ -60,14 +60,21 @@ class ClientRole(Role):
         self._dedicated: dict[int, LinkSlot] = {}
         self.answer = Answer()
         #: the topics its pattern entries found, after its listed entries (None: a name gone)
-        self.found: list[TopicSpec | None] = []
+        self.found: list[TopicSpec | ServiceSpec | None] = []
         self._found_lock = threading.RLock()
         plan = bridge.plan
-        #: receive patterns, and the names under them the server offered (by the name here)
-        self._receiving = [p for p in plan.patterns if p.entry.direction is Direction.RECEIVE]
+        #: patterns whose names the server finds (receive topics, services called here), and the
+        #: names under them it offered, by the name here
+        self._far = {kind: [p for p in plan.patterns if p.section == kind
+                            and p.entry.direction is way]
+                     for kind, way in (("topics", Direction.RECEIVE),
+                                       ("services", Direction.TRANSMIT))}
         self.offered: dict[str, Found] = {}
         self.discovery = Discovery(self.cfg, plan.patterns, self.router.ros.node, self._add_found,
                                    self._drop_found, time.monotonic, self._tell_found)
+        self.service_discovery = Discovery(self.cfg, plan.patterns, self.router.ros.node,
+                                           self._add_found, self._drop_found, time.monotonic,
+                                           self._tell_found, kind="services")
         assert plan.main_line is not None and plan.main_address is not None
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
@@ -79,9 +86,11 @@ class ClientRole(Role):
         self.connector.start()
         threading.Thread(target=self._ping_loop, name="client-ping", daemon=True).start()
         self.discovery.start()
+        self.service_discovery.start()
 
     def stop(self) -> None:
         self.discovery.stop()
+        self.service_discovery.stop()
         link = self.main.current
         if self.connected.is_set() and link is not None:
             # a clean stop says goodbye, so the server drops our session now instead of keeping
@@ -103,7 +112,8 @@ class ClientRole(Role):
         elif message is not None and message["type"] == "placed":
             self._placed(message)
         elif message is not None and message["type"] == "offer":
-            self._offered(message.get("names"))
+            self._offered({"topics": message.get("names"),
+                           "services": message.get("services", {})})
 
     def entries(self) -> list[Any]:
         """The listed entries, then the topics the patterns found (None: a name gone)."""
@@ -113,11 +123,12 @@ class ClientRole(Role):
     def _found_message(self) -> dict[str, Any]:
         with self._found_lock:
             return {"found": [None if p is None else topic_to_mapping(p.config)
+                              if isinstance(p, TopicSpec) else service_to_mapping(p.config)
                               for p in self.found],
                     "entries": [None if p is None else self.router.entry_item(p)
                                 for p in self.entries()]}
 
-    def _add_found(self, found: Found) -> TopicSpec | None:
+    def _add_found(self, found: Found) -> TopicSpec | ServiceSpec | None:
         """A name a pattern found, for the server (told after the look) to judge as a listed
         entry."""
         try:
@@ -140,22 +151,25 @@ class ClientRole(Role):
             if route is not None:  # now: its place may take another name before the server says
                 self.router.remove(route)
 
-    def _offered(self, names: Any) -> None:
-        """What the server has under this side's receive patterns: a route for each name new
-        here, none for each name no longer offered (the server kept it for its grace)."""
-        if not isinstance(names, dict) or len(names) > MAX_OFFERED:
-            return
+    def _offered(self, offer: dict[str, Any]) -> None:
+        """What the server has under this side's patterns whose names it finds (receive topics,
+        services called here): a route for each name new here, none for each name no longer
+        offered (the server kept it for its grace)."""
         wanted: dict[str, tuple[Any, str]] = {}
-        for far, type_name in names.items():
-            if not (isinstance(far, str) and isinstance(type_name, str)):
+        for kind, names in offer.items():
+            if not isinstance(names, dict) or len(names) > MAX_OFFERED:
                 continue
-            for p in self._receiving:
-                local = far_name(p.entry.remote, p.name, far)
-                if (matches(p.entry.remote, far) and not denied(local, p.entry.deny)
-                        and not denied(local, self.cfg.deny) and local not in self.listed
-                        and p.entry.type in ("", type_name)):
-                    wanted.setdefault(local, (p, type_name))
-                    break
+            listed = self._listed(kind)
+            for far, type_name in names.items():
+                if not (isinstance(far, str) and isinstance(type_name, str)):
+                    continue
+                for p in self._far[kind]:
+                    local = far_name(p.entry.remote, p.name, far)
+                    if (matches(p.entry.remote, far) and not denied(local, p.entry.deny)
+                            and not denied(local, self.cfg.deny) and local not in listed
+                            and p.entry.type in ("", type_name)):
+                        wanted.setdefault(local, (p, type_name))
+                        break
         changed = False
         for local in [n for n in self.offered if n not in wanted]:
             self._drop_found(self.offered.pop(local))
@@ -175,9 +189,9 @@ class ClientRole(Role):
         if changed:
             self._tell_found()
 
-    @property
-    def listed(self) -> set[str]:
-        return {t.topic for t in self.cfg.topics if not t.pattern}
+    def _listed(self, kind: str) -> set[str]:
+        entries = self.cfg.topics if kind == "topics" else self.cfg.services
+        return {getattr(e, kind[:-1]) for e in entries if not e.pattern}
 
     def _tell_found(self) -> None:
         link = self.main.current
@@ -211,7 +225,8 @@ class ClientRole(Role):
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
                            "services": [service_to_mapping(p.config) for p in plan.services],
                            "actions": [action_to_mapping(a.config) for a in plan.actions],
-                           "watch": [p.entry.remote for p in self._receiving],
+                           "watch": [p.entry.remote for p in self._far["topics"]],
+                           "watch_services": [p.entry.remote for p in self._far["services"]],
                            **self._found_message()}),
                   self.control)
         answer = self.answer.wait(link, self.life.stopping, HANDSHAKE_TIMEOUT)

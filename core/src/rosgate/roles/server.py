@@ -96,6 +96,7 @@ class Session:
     part_of: dict[int, ActionConfig] = field(default_factory=dict)  # entry -> its action
     owned: set[int] = field(default_factory=set)  # action parts limited to the client's goals
     watch: list[str] = field(default_factory=list)  # its receive patterns, in names here
+    watch_services: list[str] = field(default_factory=list)  # its service patterns that call
 
     @property
     def routes(self) -> list[Route]:
@@ -164,10 +165,11 @@ class ServerRole(Role):
             except Exception:  # a graph query that failed (shutting down): the next look retries
                 log.debug("offers: could not read the graph", exc_info=True)
 
-    def _offer(self, session: Session, offer: dict[str, str]) -> None:
+    def _offer(self, session: Session, offer: dict[str, dict[str, str]]) -> None:
         link = session.main.current
         if link is not None:
-            link.send(control({"type": "offer", "names": offer}), self.control)
+            link.send(control({"type": "offer", "names": offer["topics"],
+                               "services": offer["services"]}), self.control)
 
     def stop(self) -> None:
         if self.acceptor is not None:  # first: no client may come back while its session ends
@@ -305,6 +307,7 @@ class ServerRole(Role):
         for why in session.refused.values():
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
         session.watch = watched(hello)
+        session.watch_services = watched(hello, "watch_services")
         self.offers.forget(session)  # what it may receive is offered anew
         self.far_entries(session.by_index, hello.get("entries"))
         routes = [session.by_index.get(i) for i in range(len(session.entries))]
@@ -371,8 +374,9 @@ class ServerRole(Role):
     def _entry_name(session: Session, index: int) -> str:
         entry = session.entries[index]
         assert entry is not None  # a name gone is neither refused nor routed
-        if index >= session.listed and isinstance(entry, TopicConfig):
-            return f"found[{index - session.listed}] ({entry.topic})"
+        if index >= session.listed:
+            name = entry.topic if isinstance(entry, TopicConfig) else entry.service
+            return f"found[{index - session.listed}] ({name})"
         if isinstance(entry, TopicConfig):
             return f"topics[{index}] ({entry.topic})"
         return f"services[{index - len(session.topics)}] ({entry.service})"
