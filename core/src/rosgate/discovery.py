@@ -54,26 +54,28 @@ class Refusals:
 
 
 def publishers(node: Any) -> dict[str, set[str]]:
-    """Each topic with publishers on the graph that are not a rosgate node's: their types."""
-    found: dict[str, set[str]] = {}
-    for name, _types in node.get_topic_names_and_types():
-        if is_action_part(name):  # an action's feedback and status cross as the action
-            continue
-        for info in node.get_publishers_info_by_topic(name):
-            if info.node_namespace != OWN_NAMESPACE:
-                found.setdefault(name, set()).add(info.topic_type)
-    return found
+    """Each topic with publishers on the graph that are not a rosgate node's: their types (one
+    query per node, not per topic: an idle bridge with hundreds of topics stays idle)."""
+    return _by_node(node, node.get_publisher_names_and_types_by_node)
 
 
 def servers(node: Any) -> dict[str, set[str]]:
     """Each service with servers on the graph that are not a rosgate node's: their types."""
+    return _by_node(node, node.get_service_names_and_types_by_node)
+
+
+def _by_node(node: Any, query: Callable[[str, str], Any]) -> dict[str, set[str]]:
     found: dict[str, set[str]] = {}
     for name, namespace in node.get_node_names_and_namespaces():
         if namespace == OWN_NAMESPACE:
             continue
-        for service, types in node.get_service_names_and_types_by_node(name, namespace):
-            if not is_action_part(service):
-                found.setdefault(service, set()).update(types)
+        try:
+            entities = query(name, namespace)
+        except Exception:  # the node went between the two questions: it has nothing now
+            continue
+        for entity, types in entities:
+            if not is_action_part(entity):  # an action's topics and services cross as the action
+                found.setdefault(entity, set()).update(types)
     return found
 
 
