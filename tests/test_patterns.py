@@ -160,6 +160,10 @@ def test_publishers_of_two_types_are_refused_named_and_counted(engines, domain, 
     status = client.role.discovery.status()
     assert status == {"found": ["/r/plain"], "refused": {"types_differ": 1}} and mixed
     assert not published(base, "/r/mixed")
+    # a publisher of another type joins a name already bridged: said, counted, route kept
+    late = ros_side(dc, "late").publisher("/r/plain", Image)
+    assert wait_until(lambda: client.role.discovery.status()["refused"] == {"types_differ": 2})
+    assert client.role.discovery.status()["found"] == ["/r/plain"] and late
 
 
 def test_two_hundred_topics_appearing_at_once_are_all_bridged(bridge, tmp_path, domain,

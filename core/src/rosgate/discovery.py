@@ -133,7 +133,13 @@ class Discovery:
         now, had = self.clock(), set(self.found)
         for name, types in sorted(graph.items()):
             if name in self.found:
-                self.found[name].gone_since = None
+                found = self.found[name]
+                found.gone_since = None
+                if types != {found.type}:  # DDS never matches the others to its route
+                    self.refusals.refuse(
+                        "types_differ", name, f"{_where(found.pattern)} {found.pattern.name}: "
+                        f"{name} now has {self.holder}s of {' and '.join(sorted(types))}: its "
+                        f"route carries {found.type} only")
                 continue
             pattern = self._pattern_of(name)
             if pattern is not None:
