@@ -631,7 +631,7 @@ def test_error_reads_file_line_key_and_fix(tmp_path: Path) -> None:
         f"{path}:12: topics[1].codek: unknown key 'codek' (did you mean 'codec'?)\n"
         "  fix: valid keys are topic, type, direction, remote, transport, codec, cipher, port, "
         "framing, qos, max_rate, priority, latest_only, max_delay, batch, recovery, "
-        "compression, typical_size, layout, args, floats")
+        "compression, typical_size, layout, args, floats, deny, max_routes")
 
 
 def test_missing_key_fix_says_what_to_add(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import faulthandler
 import logging
 import os
@@ -178,6 +179,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         calls = a.parts[0]  # its send_goal: on a bus, its key shows theirs
         where = calls.key.removesuffix("send_goal") + "*" if calls.key else a.config.remote
         print(_entry_line(a.config.action, where, a.config, speaks(calls)))
+    for line in _pattern_lines(cfg, plan):
+        print(line)
     for line in report(plan):
         print(line)
     for name, policy in cfg.clients.items():
@@ -204,6 +207,55 @@ def _policy_lines(client: str, policy: Any) -> list[str]:
                          f"[{types}]  ciphers {', '.join(rule.ciphers or ['any'])}, "
                          + (f"ports {ports}" if ports else "main port only"))
     return lines or [f"  {client} may bridge nothing (no rules: every entry refused)"]
+
+
+#: seconds ``check`` listens to its domain's graph at most before it says what patterns match
+#: now, and how long the graph must stay the same before then (DDS discovers nodes in its time)
+GRAPH_WAIT, GRAPH_QUIET = 4.0, 1.0
+
+
+def _settled_graph(look: Any) -> dict[str, set[str]]:
+    deadline, graph, since = time.monotonic() + GRAPH_WAIT, look(), time.monotonic()
+    while time.monotonic() < deadline:
+        time.sleep(0.1)
+        now = look()
+        if now != graph:
+            graph, since = now, time.monotonic()
+        elif graph and time.monotonic() - since >= GRAPH_QUIET:
+            break
+    return graph
+
+
+def _pattern_lines(cfg: Any, plan: Any) -> list[str]:
+    """Each pattern entry, and what it matches in this domain's graph now (when ROS is here)."""
+    if not plan.patterns:
+        return []
+    from .discovery import OWN_NAMESPACE, Discovery, publishers
+
+    graph: dict[str, set[str]] | None = None
+    with contextlib.suppress(Exception):  # no ROS here: what it matches is found when it runs
+        from .ros import RosNode
+
+        node = RosNode(f"check_{os.getpid()}", namespace=OWN_NAMESPACE)
+        try:
+            graph = _settled_graph(lambda: publishers(node.node))
+        finally:
+            node.close()
+    taken = Discovery(cfg, plan.patterns, None, lambda f: None, lambda f: None,
+                      time.monotonic).matching(graph or {})
+    lines = []
+    for p in plan.patterns:
+        c = p.entry
+        lines.append(_entry_line(p.name, c.remote, dataclasses.replace(
+            c, type=c.type or "type from the graph"), "pattern"))
+        found = taken.get(p.name, [])
+        if graph is None:
+            lines.append("    matches names as they appear (no ROS graph here to look at now)")
+        elif not found:
+            lines.append("    matches nothing in this domain now; names are bridged as they "
+                         "appear")
+        lines += [f"    now: {item}" for item in found]
+    return lines
 
 
 def _entry_line(name: str, where: str, c: Any, speaks: str) -> str:

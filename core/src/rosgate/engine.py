@@ -15,6 +15,7 @@ from typing import Any
 
 from .bus import BusTransport, Unauthenticated
 from .config import BridgeConfig, Direction, Role, load
+from .discovery import OWN_NAMESPACE
 from .errors import ConfigError, OptionError
 from .links import Lifetime
 from .monitor import Monitor, Status, Watched
@@ -209,7 +210,8 @@ class Engine:
         # that cannot be made is said below, and the bridge runs without a status socket
         with contextlib.suppress(OSError):
             private_folder(runtime_dir(), RUNTIME_VARIABLE)
-        self.ros = RosNode(self.config.name, self.domain_id)
+        # in rosgate's own namespace: what a bridge publishes, no bridge's pattern finds
+        self.ros = RosNode(self.config.name, self.domain_id, namespace=OWN_NAMESPACE)
         self.router = Router(self.ros)
         try:
             self.role = ROLES[self.config.role](

@@ -28,6 +28,7 @@ from .config import (
     ServiceConfig,
     TopicConfig,
 )
+from .config.patterns import far_name, split
 from .errors import ConfigError, OptionError
 from .options import parse
 from .packetizer import SMALL_FRAME, Packetizer, own_packetizer
@@ -62,6 +63,30 @@ class PreparedAction:
 
 
 @dataclass
+class Pattern:
+    """A pattern entry of the file: it makes a route for each matching name that appears."""
+
+    entry: TopicConfig | ServiceConfig | ActionConfig
+    index: int  # its position in its section of the file
+    section: str  # "topics" | "services" | "actions"
+    checked: Any = None  # the spec of a stand-in name: its plugins are installed and fit
+
+    @property
+    def name(self) -> str:
+        """The pattern as written (``/robot1/**``)."""
+        return str(getattr(self.entry, _name_key(self.entry)))
+
+
+#: a type every rclpy installation has, to check a pattern's plugins before any name is found
+_STAND_IN = {"topics": "rcl_interfaces/msg/Log", "services": "rcl_interfaces/srv/ListParameters"}
+
+
+def _name_key(entry: TopicConfig | ServiceConfig | ActionConfig) -> str:
+    return ("topic" if isinstance(entry, TopicConfig) else "service"
+            if isinstance(entry, ServiceConfig) else "action")
+
+
+@dataclass
 class Plan:
     """What a bridge will run: its prepared entries, and its main line (client and server)."""
 
@@ -71,6 +96,7 @@ class Plan:
     main_line: StreamTransport | None = None
     main_address: Address | None = None
     actions: list[PreparedAction] = dataclasses.field(default_factory=list)
+    patterns: list[Pattern] = dataclasses.field(default_factory=list)
 
     @property
     def action_parts(self) -> list[TopicSpec | ServiceSpec]:
@@ -114,17 +140,66 @@ class Resolver:
                 for rule in [*policy.topics, *policy.services]:
                     for cipher in rule.ciphers or ():
                         self.plugin("cipher", cipher, f"clients.{name}")
-        topics = [self.topic(t, i, "topics") for i, t in enumerate(cfg.topics)]
+        topics = [self.topic(t, i, "topics") for i, t in enumerate(cfg.topics) if not t.pattern]
         self._check_shared_ports(topics)
-        services = [self.service(s, i, "services") for i, s in enumerate(cfg.services)]
-        actions = [self.action(a, i, "actions") for i, a in enumerate(cfg.actions)]
+        services = [self.service(s, i, "services") for i, s in enumerate(cfg.services)
+                    if not s.pattern]
+        actions = [self.action(a, i, "actions") for i, a in enumerate(cfg.actions)
+                   if not a.pattern]
+        sections: list[tuple[str, list[Any]]] = [
+            ("topics", cfg.topics), ("services", cfg.services), ("actions", cfg.actions)]
+        for section, entries in sections:
+            for i, entry in enumerate(entries):
+                if entry.pattern:
+                    self._can_find(entry, f"{section}[{i}]")
+        patterns = [Pattern(entry, i, section, self.found(Pattern(entry, i, section), "/x", ""))
+                    for section, entries in sections
+                    for i, entry in enumerate(entries) if entry.pattern]
         if cfg.role is not Role.PEER and not cfg.secure and not cfg.insecure:
             key = "identity, server_key" if cfg.role is Role.CLIENT else "identity"
             raise cfg.error("bridge", f"a {cfg.role} needs bridge.{key} to authenticate its "
                             "sessions", "make one with 'rosgate keygen identity --out NAME.key' "
                             "(docs/security.md: setting up identities); or, on a network you "
                             "trust entirely, insecure: true")
-        return Plan(cfg, topics, services, main_line, self.main_address, actions)
+        return Plan(cfg, topics, services, main_line, self.main_address, actions, patterns)
+
+    def _can_find(self, entry: TopicConfig | ServiceConfig | ActionConfig, key: str) -> None:
+        """What patterns find: a client's topics and services, either way."""
+        kind = _name_key(entry)
+        if self.config.role is not Role.CLIENT:
+            raise self.config.error(f"{key}.{kind}", f"a pattern is for a client's entries; a "
+                                    f"{self.config.role} lists each {kind} by its name",
+                                    f"list each {kind} as an entry of its own")
+        if isinstance(entry, ActionConfig):
+            raise self.config.error(f"{key}.{kind}", "a pattern finds topics and services; an "
+                                    "action is listed by its name",
+                                    "list each action as an entry of its own")
+
+    def found(self, pattern: Pattern, name: str, type_name: str,
+              error: ErrorMaker | None = None) -> Any:
+        """The spec of a name a pattern found (a topic's or service's spec, an action's parts),
+        of ``type_name`` (the entry's own type when it gives one); with ``name`` a stand-in and
+        no type, the pattern's plugins checked as a listed entry's are."""
+        entry = pattern.entry
+        written = getattr(entry, _name_key(entry))
+        head = split(written)[0]
+        if not (entry.type or type_name or pattern.section in _STAND_IN):
+            # no type every installation has: the plugins' names are checked, the rest as found
+            key = f"{pattern.section}[{pattern.index}]"
+            self.transport(entry.transport, f"{key}.transport", error)
+            for kind in ("codec", "cipher"):
+                self.plugin(kind, getattr(entry, kind), f"{key}.{kind}", error)
+            return None
+        named: dict[str, Any] = {_name_key(entry): name if type_name else head + name}
+        concrete = dataclasses.replace(
+            entry, **named,
+            remote=far_name(written, entry.remote, name) if type_name else head + name,
+            type=entry.type or type_name or _STAND_IN[pattern.section])
+        if isinstance(concrete, TopicConfig):
+            return self.topic(concrete, pattern.index, pattern.section, error)
+        if isinstance(concrete, ServiceConfig):
+            return self.service(concrete, pattern.index, pattern.section, error)
+        return self.action(concrete, pattern.index, pattern.section, error)
 
     # -- entries ---------------------------------------------------------------------------
     def topic(self, topic: TopicConfig, index: int, section: str,

@@ -311,7 +311,7 @@ DISCOVERY = 5.0
 class RosNode:
     """A node in a context of its own, spun in a background thread."""
 
-    def __init__(self, name: str, domain_id: int | None = None):
+    def __init__(self, name: str, domain_id: int | None = None, namespace: str | None = None):
         import rclpy
         from rclpy.context import Context
         from rclpy.experimental import EventsExecutor
@@ -320,7 +320,8 @@ class RosNode:
         self.born = time.monotonic()
         rclpy.init(context=self.context, domain_id=domain_id)
         self.node = rclpy.create_node(re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{name}"),
-                                      context=self.context, start_parameter_services=False)
+                                      context=self.context, start_parameter_services=False,
+                                      namespace=namespace)
         self.executor = EventsExecutor(context=self.context)
         self.executor.add_node(self.node)
         #: the batch windows of its subscriptions, closed on the executor's thread

@@ -52,7 +52,21 @@ def collect(config: BridgeConfig, role: Role | None, router: Router | None, life
     return {"version": VERSION, "bridge": config.name, "role": str(config.role), "time": now,
             "uptime": now - started, "entries": entries, "peers": _peers(role, config),
             "links": _links(life.links()),
-            "link_drops": dict(router.link_drops) if router is not None else {}}
+            "link_drops": dict(router.link_drops) if router is not None else {},
+            "patterns": _patterns(role)}
+
+
+def _patterns(role: Role | None) -> Status:
+    """What a client's pattern entries found (names) and refused (by reason, each name once)."""
+    total: Status = {"found": [], "refused": {}}
+    for name in ("discovery", "service_discovery"):
+        discovery = getattr(role, name, None)
+        if discovery is not None:
+            each = discovery.status()
+            total["found"] += each["found"]
+            for reason, count in each["refused"].items():
+                total["refused"][reason] = total["refused"].get(reason, 0) + count
+    return total
 
 
 #: an entry's counters before anything crossed, and its state when nothing is wrong

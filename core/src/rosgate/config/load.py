@@ -12,6 +12,7 @@ from ..errors import ConfigError
 from ..options import show
 from . import kinds, schema
 from .kinds import Key, check_keys, key_names, keys, read, require, row_of
+from .patterns import is_pattern, name_or_pattern, split
 from .schema import (
     ActionConfig,
     BridgeConfig,
@@ -49,19 +50,30 @@ def topic_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                        index: int | None = None) -> TopicConfig:
     """Validate one topic entry received from a client; `where` becomes the error's file and
     `index` its position in the client's list (error keys read "topics[3].codec")."""
-    return _entry(Source(where), data, _entry_path("topics", index), TopicConfig, defaults)
+    path = _entry_path("topics", index)
+    return _named(_entry(Source(where), data, path, TopicConfig, defaults), where, path)
 
 
 def service_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                          index: int | None = None) -> ServiceConfig:
     """Like topic_from_mapping, for a service entry."""
-    return _entry(Source(where), data, _entry_path("services", index), ServiceConfig, defaults)
+    path = _entry_path("services", index)
+    return _named(_entry(Source(where), data, path, ServiceConfig, defaults), where, path)
 
 
 def action_from_mapping(data: dict, defaults: dict[str, str], where: str, *,
                         index: int | None = None) -> ActionConfig:
     """Like topic_from_mapping, for an action entry."""
-    return _entry(Source(where), data, _entry_path("actions", index), ActionConfig, defaults)
+    path = _entry_path("actions", index)
+    return _named(_entry(Source(where), data, path, ActionConfig, defaults), where, path)
+
+
+def _named(entry: Any, where: str, path: str) -> Any:
+    """An entry a client sent: a name, never a pattern (its patterns are matched on its side)."""
+    if entry.pattern:
+        raise ConfigError("a pattern: a client sends the names its patterns found", file=where,
+                          key=path, fix="run the same rosgate version on both")
+    return entry
 
 
 def action_to_mapping(a: ActionConfig) -> dict:
@@ -96,9 +108,14 @@ def _to_mapping(entry: TopicConfig | ServiceConfig | ActionConfig, section: type
         value = getattr(entry, key)
         # unset optional keys are left out, as a user would; microcontroller keys are only for
         # microcontroller entries (an entry with an envelope refuses them)
-        if value is not None and (entry.framing.bare or key not in schema.MCU_KEYS):
+        if value is not None and (entry.framing.bare or key not in schema.MCU_KEYS) \
+                and key not in _PATTERN_KEYS:
             mapping[key] = dict(value) if isinstance(value, dict) else value
     return mapping
+
+
+#: what a pattern entry says of the routes it makes, never sent: a far side gets their names
+_PATTERN_KEYS = ("deny", "max_routes")
 
 
 def _entry_path(key: str, index: int | None) -> str:
@@ -335,11 +352,18 @@ def _entry(src: Source, data: Any, path: str, section: type, defaults: dict[str,
                               f"got {show(data)}",
                         fix=f"write the entry as '- {name_key}: {keys(section)[0].example}' "
                             "with its other keys indented under it")
+    written = data.get(name_key)
+    if not (isinstance(written, str) and is_pattern(written)):
+        _listed(src, data, path, name_key, section)
     given = read(src, data, path, section)
     name = given[name_key]
     framing = given.setdefault("framing", Framing.ROSGATE)
+    if is_pattern(name):
+        _pattern(src, data, path, name_key, given)
     if framing.bare:  # the name on the wire as written
         given.setdefault("remote", name.removeprefix("/"))
+    elif is_pattern(name):
+        given.setdefault("remote", name)  # checked by _pattern
     elif "remote" in given:
         given["remote"] = kinds.remote(Key(src, path, row_of(section, "remote")), given["remote"])
     else:
@@ -363,6 +387,39 @@ def _entry(src: Source, data: Any, path: str, section: type, defaults: dict[str,
     elif section is ServiceConfig:
         _service(src, data, path, given)
     return section(**given, **src.entry_lines(path))
+
+
+def _pattern(src: Source, data: dict, path: str, name_key: str, given: dict[str, Any]) -> None:
+    """A pattern entry: envelope framing (a microcontroller's names are fixed), and a remote: that
+    keeps the pattern's wildcards."""
+    name = given[name_key]
+    given.setdefault("type", "")  # found with each name
+    if given["framing"].bare:
+        raise src.error(join(path, "framing"), f"a pattern ({name}) finds ROS names as they "
+                        f"appear; framing {given['framing']} sends a microcontroller's fixed "
+                        "names", fix="list each name as an entry of its own, or remove framing:")
+    if "remote" not in given:
+        return
+    remote = given["remote"] = name_or_pattern(Key(src, path, row_of(TopicConfig, "remote")),
+                                               given["remote"])
+    tail = split(name)[1]
+    if not is_pattern(remote) or split(remote)[1] != tail:
+        raise src.error(join(path, "remote"), f"remote {remote} does not keep the pattern's "
+                        f"wildcards ({tail}): each name found maps by the part before them",
+                        fix=f"end remote with {tail}, e.g. remote: /fleet{name}")
+
+
+def _listed(src: Source, data: dict, path: str, name_key: str, section: type) -> None:
+    """A listed name: its type is needed, pattern keys are not."""
+    for key in ("deny", "max_routes"):
+        if key in data:
+            raise src.error(join(path, key), f"{key} is for pattern entries ({name_key}: "
+                            f"/robot1/**); {data[name_key]} is one name",
+                            fix=f"remove {key}:, or make {name_key}: a pattern")
+    if "type" not in data:
+        raise src.error(join(path, "type"), f"missing required key 'type' (only a pattern "
+                        f"entry, such as {name_key}: /robot1/**, takes it from the graph)",
+                        fix=f"add type: {row_of(section, 'type').example}")
 
 
 def _topic(src: Source, data: dict, path: str, given: dict[str, Any]) -> None:

@@ -14,6 +14,7 @@ from ..errors import ConfigError
 from ..options import option, show
 from . import kinds
 from .kinds import Key, read
+from .patterns import DENY_DEFAULT, deny_list, is_pattern, name_or_pattern
 from .source import line_of
 
 
@@ -60,10 +61,14 @@ FLOATS = ("float32", "float64")   # the width of every float field on the wire
 NO_ANSWERS = ("fail", "nil")      # a call's connection closed without a byte: a failure | nil
 MCU_KEYS = ("layout", "args", "floats")
 RULE_DIRECTIONS = ("transmit", "receive", "both")
+MAX_ROUTES_DEFAULT = 300  # routes a pattern entry makes at most
+TYPE_FROM_GRAPH = "pattern entries: taken from the graph (the publishers, servers found); " \
+    "else required"
 
 # the keys topics, services and actions share, declared once for all
 _ENTRY: dict[str, dict[str, Any]] = {
-    "name": dict(doc="the ROS name on this side", parse=kinds.ros_name),
+    "name": dict(doc="the ROS name on this side, or a pattern (`*` within a segment, `**` "
+                 "across) for every name that appears under it", parse=name_or_pattern),
     "direction": dict(example="transmit (this side to the peer) or receive (the peer to this "
                               "side)"),
     "remote": dict(parse=kinds.text),  # a ROS name, a bus key or a bare name: see load
@@ -84,6 +89,11 @@ _ENTRY: dict[str, dict[str, Any]] = {
                  "in `.msg` order, or the first alone", choices=ARGS, example="map"),
     "floats": dict(default=FLOATS[0], doc="microcontroller entries: the width of every float "
                    "field on the wire", choices=FLOATS, example="float32"),
+    "deny": dict(default=(), doc="pattern entries: names (or patterns) left out, besides "
+                 "`bridge.deny`", unset="none", example="[/robot1/camera/**]", parse=deny_list),
+    "max_routes": dict(default=MAX_ROUTES_DEFAULT, doc="pattern entries: the most routes it "
+                       "makes; a name past them is refused, said in the log", minimum=1,
+                       example="300"),
 }
 
 
@@ -97,6 +107,7 @@ class TopicConfig:
 
     topic: str = _entry("name", example="/chatter")
     type: str = option(doc="the message type", example="std_msgs/msg/String",
+                       unset=TYPE_FROM_GRAPH,
                        parse=kinds.interface("msg"))
     direction: Direction = _entry("direction", doc="`transmit`: to the far side (client to "
                                   "server, or to the peer); `receive`: from it")
@@ -156,8 +167,15 @@ class TopicConfig:
     layout: str = _entry("layout")
     args: str = _entry("args")
     floats: str = _entry("floats")
+    deny: tuple[str, ...] = _entry("deny")
+    max_routes: int = _entry("max_routes")
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def pattern(self) -> bool:
+        """Whether the entry stands for every matching name that appears."""
+        return is_pattern(self.topic)
 
 
 @dataclass
@@ -167,6 +185,7 @@ class ServiceConfig:
 
     service: str = _entry("name", example="/mcu/ping")
     type: str = option(doc="the service type", example="std_srvs/srv/Trigger",
+                       unset=TYPE_FROM_GRAPH,
                        parse=kinds.interface("srv"))
     direction: Direction = _entry("direction", doc="`transmit`: calls made here are served on the "
                                   "far side; `receive`: the far side's calls are served here")
@@ -187,8 +206,15 @@ class ServiceConfig:
     floats: str = _entry("floats")
     no_answer: str = option(NO_ANSWERS[0], "calls to a microcontroller: what a connection closed "
                             "without a byte means", choices=NO_ANSWERS, example="fail")
+    deny: tuple[str, ...] = _entry("deny")
+    max_routes: int = _entry("max_routes")
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def pattern(self) -> bool:
+        """Whether the entry stands for every matching name that appears."""
+        return is_pattern(self.service)
 
 
 @dataclass
@@ -198,6 +224,7 @@ class ActionConfig:
 
     action: str = _entry("name", example="/navigate_to_pose")
     type: str = option(doc="the action type", example="nav2_msgs/action/NavigateToPose",
+                       unset=TYPE_FROM_GRAPH,
                        parse=kinds.interface("action"))
     direction: Direction = _entry("direction", doc="`transmit`: goals sent here are served on the "
                                   "far side; `receive`: the far side's goals are served here")
@@ -211,8 +238,15 @@ class ActionConfig:
                             "result waits as long as its goal runs", above=0, maximum=TIMEOUT_MAX,
                             unit="seconds", example="5")
     framing: Framing = Framing.ROSGATE
+    deny: tuple[str, ...] = _entry("deny")
+    max_routes: int = _entry("max_routes")
     line: int = 0
     lines: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def pattern(self) -> bool:
+        """Whether the entry stands for every matching name that appears."""
+        return is_pattern(self.action)
 
 
 @dataclass(frozen=True)
@@ -437,6 +471,14 @@ class BridgeConfig:
                                  example="127.0.0.1:9108", parse=kinds.text)
     metrics_public: bool = option(False, "let `metrics` bind an address that is not loopback",
                                   example="true")
+    deny: tuple[str, ...] = option(DENY_DEFAULT, "names (or patterns) no pattern entry bridges; "
+                                   "a name listed as an entry is bridged all the same",
+                                   unset="`[" + ", ".join(DENY_DEFAULT) + "]`",
+                                   example="[/rosout, /parameter_events, /robot1/debug/**]",
+                                   parse=deny_list)
+    pattern_grace: float = option(10.0, "seconds a name a pattern entry found keeps its route "
+                                  "after its last publisher went; then the route is removed on "
+                                  "both sides", above=0, unit="seconds", example="10")
     plugins: dict[str, dict] = field(default_factory=dict)
     topics: list[TopicConfig] = field(default_factory=list)
     services: list[ServiceConfig] = field(default_factory=list)

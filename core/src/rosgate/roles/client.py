@@ -19,8 +19,10 @@ import time
 from typing import Any
 
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
+from ..config.patterns import denied, far_name, matches
+from ..discovery import Discovery, Found
 from ..drops import Drop
-from ..errors import LinkError, RosgateError
+from ..errors import ConfigError, LinkError, RosgateError
 from ..holdback import Holdback
 from ..links import DatagramLink, Link
 from ..router import fixed
@@ -43,6 +45,8 @@ from .mainline import (
 
 log = logging.getLogger("rosgate")
 
+MAX_OFFERED = 10_000  # names a server may offer for this side's receive patterns
+
 
 class ClientRole(Role):
     def __init__(self, bridge: Bridge):
@@ -62,7 +66,22 @@ class ClientRole(Role):
         self.answer = Answer()
         #: what reliable topics take while the server is out of reach
         self.hold = Holdback(self.cfg.queue_frames, self.cfg.queue_bytes)
+        #: the topics its pattern entries found, after its listed entries (None: a name gone)
+        self.found: list[TopicSpec | ServiceSpec | None] = []
+        self._found_lock = threading.RLock()
         plan = bridge.plan
+        #: patterns whose names the server finds (receive topics, services called here), and the
+        #: names under them it offered, by the name here
+        self._far = {kind: [p for p in plan.patterns if p.section == kind
+                            and p.entry.direction is way]
+                     for kind, way in (("topics", Direction.RECEIVE),
+                                       ("services", Direction.TRANSMIT))}
+        self.offered: dict[str, Found] = {}
+        self.discovery = Discovery(self.cfg, plan.patterns, self.router.ros.node, self._add_found,
+                                   self._drop_found, time.monotonic, self._tell_found)
+        self.service_discovery = Discovery(self.cfg, plan.patterns, self.router.ros.node,
+                                           self._add_found, self._drop_found, time.monotonic,
+                                           self._tell_found, kind="services")
         assert plan.main_line is not None and plan.main_address is not None
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
@@ -74,6 +93,8 @@ class ClientRole(Role):
     def start(self) -> None:
         self.connector.start()
         threading.Thread(target=self._ping_loop, name="client-ping", daemon=True).start()
+        self.discovery.start()
+        self.service_discovery.start()
 
     def wind_down(self) -> None:
         """What still waits for the server is counted (``link_down``) before the counters are
@@ -81,6 +102,8 @@ class ClientRole(Role):
         self.hold.close()
 
     def stop(self) -> None:
+        self.discovery.stop()
+        self.service_discovery.stop()
         link = self.main.current
         if self.connected.is_set() and link is not None:
             # a clean stop says goodbye, so the server drops our session now instead of keeping
@@ -101,6 +124,113 @@ class ClientRole(Role):
             self.answer.put(message)
         elif message is not None and message["type"] == "bye":  # the server stops
             self.hold.leave()
+        elif message is not None and message["type"] == "placed":
+            self._placed(message)
+        elif message is not None and message["type"] == "offer":
+            self._offered({"topics": message.get("names"),
+                           "services": message.get("services", {})})
+
+    def entries(self) -> list[Any]:
+        """The listed entries, then the topics the patterns found (None: a name gone)."""
+        with self._found_lock:
+            return [*super().entries(), *self.found]
+
+    def _found_message(self) -> dict[str, Any]:
+        with self._found_lock:
+            return {"found": [None if p is None else topic_to_mapping(p.config)
+                              if isinstance(p, TopicSpec) else service_to_mapping(p.config)
+                              for p in self.found],
+                    "entries": [None if p is None else self.router.entry_item(p)
+                                for p in self.entries()]}
+
+    def _add_found(self, found: Found) -> TopicSpec | ServiceSpec | None:
+        """A name a pattern found, for the server (told after the look) to judge as a listed
+        entry."""
+        try:
+            spec = self.bridge.resolver.found(found.pattern, found.name, found.type)
+        except ConfigError as exc:
+            log.error("%s: %s cannot be bridged: %s", self.cfg.name, found.name, exc)
+            return None
+        with self._found_lock:  # in the place of a name gone, so the list stays short
+            if None in self.found:
+                self.found[self.found.index(None)] = spec
+            else:
+                self.found.append(spec)
+        return spec
+
+    def _drop_found(self, found: Found) -> None:
+        with self._found_lock:
+            place = self.found.index(found.route)
+            self.found[place] = None
+            route = self.routes.pop(len(super().entries()) + place, None)
+            if route is not None:  # now: its place may take another name before the server says
+                self.router.remove(route)
+
+    def _offered(self, offer: dict[str, Any]) -> None:
+        """What the server has under this side's patterns whose names it finds (receive topics,
+        services called here): a route for each name new here, none for each name no longer
+        offered (the server kept it for its grace)."""
+        wanted: dict[str, tuple[Any, str]] = {}
+        for kind, names in offer.items():
+            if not isinstance(names, dict) or len(names) > MAX_OFFERED:
+                continue
+            listed = self._listed(kind)
+            for far, type_name in names.items():
+                if not (isinstance(far, str) and isinstance(type_name, str)):
+                    continue
+                for p in self._far[kind]:
+                    local = far_name(p.entry.remote, p.name, far)
+                    if (matches(p.entry.remote, far) and not denied(local, p.entry.deny)
+                            and not denied(local, self.cfg.deny) and local not in listed
+                            and p.entry.type in ("", type_name)):
+                        wanted.setdefault(local, (p, type_name))
+                        break
+        changed = False
+        for local in [n for n in self.offered if n not in wanted]:
+            self._drop_found(self.offered.pop(local))
+            log.info("%s: %s is no longer offered: its route is removed", self.cfg.name, local)
+            changed = True
+        for local, (p, type_name) in sorted(wanted.items()):
+            made = sum(1 for f in self.offered.values() if f.pattern is p)
+            if local in self.offered or made >= p.entry.max_routes:
+                continue
+            found = Found(p, local, type_name)
+            found.route = self._add_found(found)
+            if found.route is not None:
+                self.offered[local] = found
+                log.info("%s: %s[%d] %s found %s (%s): bridged", self.cfg.name, p.section,
+                         p.index, p.name, local, type_name)
+                changed = True
+        if changed:
+            self._tell_found()
+
+    def _listed(self, kind: str) -> set[str]:
+        entries = self.cfg.topics if kind == "topics" else self.cfg.services
+        return {getattr(e, kind[:-1]) for e in entries if not e.pattern}
+
+    def _tell_found(self) -> None:
+        link = self.main.current
+        if self.connected.is_set() and link is not None:  # else the next hello says it
+            link.send(control({"type": "found", **self._found_message()}), self.control)
+
+    def _placed(self, message: dict[str, Any]) -> None:
+        """The server's ids for the found names (0: refused, or gone)."""
+        try:
+            ids = [int(i) for i in message["ids"]]
+            if not all(0 <= i < 2**32 for i in ids):
+                raise ValueError("an id out of range")
+            with self._found_lock:
+                self._note_refusals(message.get("refused", []))
+                self._apply(ids)
+                self.far_entries(self.routes, message.get("entries"))
+                behind = len(ids) < len(self.entries())
+        except (KeyError, TypeError, ValueError, RosgateError) as exc:
+            log.error("%s: cannot use the server's answer: %s", self.cfg.name, exc)
+            return
+        self._say_hello()  # a found name's datagram link may be new: the server learns it
+        self.router.start_announcing([self.routes[i] for i in range(len(ids)) if i in self.routes])
+        if behind:  # names found while the server placed the others
+            self._tell_found()
 
     def _handshake(self, link: StreamLink) -> bool:
         """Send our entries; build, re-key or drop their routes from the server's answer."""
@@ -111,7 +241,9 @@ class ClientRole(Role):
                            "topics": [topic_to_mapping(p.config) for p in plan.topics],
                            "services": [service_to_mapping(p.config) for p in plan.services],
                            "actions": [action_to_mapping(a.config) for a in plan.actions],
-                           "entries": [self.router.entry_item(p) for p in self.entries()],
+                           "watch": [p.entry.remote for p in self._far["topics"]],
+                           "watch_services": [p.entry.remote for p in self._far["services"]],
+                           **self._found_message(),
                            "taken": taken(self.routes.values())}),
                   self.control)
         answer = self.answer.wait(link, self.life.stopping, HANDSHAKE_TIMEOUT)
@@ -129,7 +261,7 @@ class ClientRole(Role):
             return False
         try:
             ids = [int(i) for i in answer["topic_ids"] + answer.get("service_ids", [])]
-            if len(ids) != len(self.entries()):
+            if not len(super().entries()) <= len(ids) <= len(self.entries()):
                 raise ValueError("topic and service id count does not match")
             if not all(0 <= i < 2**32 for i in ids):  # 0: an entry the server refused
                 raise ValueError("a topic or service id out of range")
@@ -137,9 +269,10 @@ class ClientRole(Role):
             self.server_name = str(answer["name"])
             if self.cfg.secure:
                 self._install_keys(answer, link)
-            self._note_refusals(answer.get("refused", []))
-            self._apply(ids)
-            self.far_entries(self.routes, answer.get("entries"))
+            with self._found_lock:
+                self._note_refusals(answer.get("refused", []))
+                self._apply(ids)
+                self.far_entries(self.routes, answer.get("entries"))
         except (KeyError, TypeError, ValueError, RosgateError) as exc:
             log.error("%s: cannot use the server's answer: %s", self.cfg.name, exc)
             if self.topic_ids is None:
@@ -168,6 +301,8 @@ class ClientRole(Role):
         self.router.start_announcing(list(self.routes.values()))  # the server hears us now
         self.router.resync(list(self.routes.values()))
         log.info("%s: server %r up at %s", self.cfg.name, self.server_name, self.cfg.server)
+        if len(ids) < len(self.entries()):  # names found while the server answered
+            self._tell_found()
         return True
 
     def _install_keys(self, answer: dict[str, Any], link: StreamLink) -> None:
@@ -206,13 +341,14 @@ class ClientRole(Role):
         """Make the routes match the server's answer: one per entry it accepted (id > 0),
         renumbered when a restarted server numbered them anew; none for a refused entry."""
         renumbered = self.topic_ids is not None and any(
-            old and new and old != new for old, new in zip(self.topic_ids, ids, strict=True))
+            old and new and old != new for old, new in zip(self.topic_ids, ids, strict=False))
         if renumbered:
             for slot in [self.main, *self._dedicated.values()]:
                 slot.discard(Drop.SESSION_RESET)
-        for index, (p, topic_id) in enumerate(zip(self.entries(), ids, strict=True)):
+        # ids may cover fewer entries: names the patterns found while the server placed these
+        for index, (p, topic_id) in enumerate(zip(self.entries(), ids, strict=False)):
             route = self.routes.get(index)
-            if topic_id == 0:
+            if topic_id == 0 or p is None:
                 if route is not None:
                     self.router.remove(self.routes.pop(index))
             elif route is None:

@@ -128,3 +128,22 @@ def client_entries(hello: dict[str, Any], defaults: dict[str, str],
                 part_of[len(entries)] = entry
                 entries.append(part)
     return entries, part_of
+
+
+MAX_FOUND = 10_000  # names a client's patterns may have found, gone ones included
+
+
+def found_entries(hello: dict[str, Any], defaults: dict[str, str],
+                  where: str) -> list[TopicConfig | ServiceConfig | None]:
+    """The topics and services a client's pattern entries found (``found``, after its listed
+    entries; None for a name that went), each checked like a listed entry."""
+    items = hello.get("found", [])
+    if not isinstance(items, list) or len(items) > MAX_FOUND:
+        raise ConfigError(f"found: not a list of at most {MAX_FOUND} entries", file=where)
+    found: list[TopicConfig | ServiceConfig | None] = []
+    for i, mapping in enumerate(items):
+        if mapping is not None and not isinstance(mapping, dict):
+            raise ConfigError("not a mapping", file=where, key=f"found[{i}]")
+        parse = service_from_mapping if mapping and "service" in mapping else topic_from_mapping
+        found.append(None if mapping is None else parse(mapping, defaults, where, index=i))
+    return found

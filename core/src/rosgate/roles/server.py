@@ -32,6 +32,7 @@ from ..config import (
     ServiceConfig,
     TopicConfig,
 )
+from ..discovery import LOOK_EVERY, Offers, watched
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..links import DatagramLink, Link
@@ -59,6 +60,7 @@ from .mainline import (
     client_entries,
     control,
     flipped,
+    found_entries,
     is_control,
     read_taken,
     taken,
@@ -88,7 +90,9 @@ class Session:
     topics: list[Any]  # the client's topic list, as it sent it
     services: list[Any]  # and its service list
     main: LinkSlot
-    entries: list[Entry] = field(default_factory=list)  # checked, in the client's words
+    entries: list[Entry | None] = field(default_factory=list)  # checked, in the client's words
+    #: how many of them the client listed; the rest its patterns found (None: a name gone)
+    listed: int = 0
     by_index: dict[int, Route] = field(default_factory=dict)  # entry -> its route
     refused: dict[int, str] = field(default_factory=dict)  # entry -> why (the policy)
     addresses: dict[DatagramLink, Address] = field(default_factory=dict)
@@ -100,6 +104,8 @@ class Session:
     actions: list[Any] = field(default_factory=list)  # its action list, as it sent it
     part_of: dict[int, ActionConfig] = field(default_factory=dict)  # entry -> its action
     owned: set[int] = field(default_factory=set)  # action parts limited to the client's goals
+    watch: list[str] = field(default_factory=list)  # its receive patterns, in names here
+    watch_services: list[str] = field(default_factory=list)  # its service patterns that call
 
     @property
     def routes(self) -> list[Route]:
@@ -148,6 +154,9 @@ class ServerRole(Role):
         self.acceptor: Acceptor | None = None  # until start() has its main line
         #: who sent each goal, per action (its name here): clients use only their own goals
         self.goals: dict[str, Goals] = {}
+        #: the names under clients' receive patterns that publishers here have, told to them
+        self.offers = Offers(self.cfg, self.router.ros.node, lambda: list(self.sessions.values()),
+                             self._offer, time.monotonic)
 
     def start(self) -> None:
         plan = self.bridge.plan
@@ -158,6 +167,20 @@ class ServerRole(Role):
                 connection, peer, lambda secure: self._main_line(secure, peer)),
             "bridge.server", name=f"main:{plan.main_address[1]}")
         threading.Thread(target=self._ping_loop, name="server-ping", daemon=True).start()
+        threading.Thread(target=self._offer_loop, name="server-offers", daemon=True).start()
+
+    def _offer_loop(self) -> None:
+        while not self.life.stopping.wait(LOOK_EVERY):
+            try:
+                self.offers.look()
+            except Exception:  # a graph query that failed (shutting down): the next look retries
+                log.debug("offers: could not read the graph", exc_info=True)
+
+    def _offer(self, session: Session, offer: dict[str, dict[str, str]]) -> None:
+        link = session.main.current
+        if link is not None:
+            link.send(control({"type": "offer", "names": offer["topics"],
+                               "services": offer["services"]}), self.control)
 
     def wind_down(self) -> None:
         """Every connected client hears ``bye`` first, so its reliable topics wait for the next
@@ -250,6 +273,8 @@ class ServerRole(Role):
                     session = self._welcome(message, link, peer)
                     if session is not None:
                         link.trust()
+                elif kind == "found" and session is not None:
+                    self._found(session, message, link)
                 elif kind == "ready" and session is not None and session.schedule is not None:
                     session.schedule.seal_with(message.get("key_id"))
                 elif kind == "bye" and session is not None and session.main.current is link:
@@ -303,6 +328,7 @@ class ServerRole(Role):
                 session = self._new_session(hello, name, policy)
             else:
                 session.policy = policy or session.policy
+                self._set_found(session, hello)
                 self._sync(session)
         except (ConfigError, LinkError) as exc:
             self.refusals.say(f"refused {name} {exc}", f"refused client {name!r} from {peer[0]}: "
@@ -318,6 +344,9 @@ class ServerRole(Role):
             return None
         for why in session.refused.values():
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
+        session.watch = watched(hello)
+        session.watch_services = watched(hello, "watch_services")
+        self.offers.forget(session)  # what it may receive is offered anew
         self.far_entries(session.by_index, hello.get("entries"))
         routes = [session.by_index.get(i) for i in range(len(session.entries))]
         ids, count = [0 if r is None else r.topic_id for r in routes], len(session.topics)
@@ -351,9 +380,47 @@ class ServerRole(Role):
                  ", its session kept" if resumed else "")
         return session
 
+    def _set_found(self, session: Session, message: dict[str, Any]) -> None:
+        """The topics the client's patterns found, after its listed entries."""
+        found = found_entries(message, self.cfg.defaults, f"client {session.name}")
+        before = session.entries[session.listed:]
+        session.entries[session.listed:] = found
+        for index in list(session.by_index):
+            place = index - session.listed
+            if index >= session.listed and (place >= len(found) or found[place] != before[place]):
+                # gone, or its place taken by another name (a client found fewer, or reused it)
+                self.router.remove(session.by_index.pop(index))
+        for index in [i for i in session.refused if i >= len(session.entries)]:
+            del session.refused[index]
+
+    def _found(self, session: Session, message: dict[str, Any], link: StreamLink) -> None:
+        """A client's patterns found names (or saw them go): their routes, judged by the policy
+        exactly as listed entries are; the ids (0: refused or gone) answered as ``placed``."""
+        try:
+            self._set_found(session, message)
+            self._sync(session)
+        except (ConfigError, LinkError) as exc:
+            log.error("client %r: its found names refused: %s", session.name, exc)
+            return
+        for index, why in sorted(session.refused.items()):
+            if index >= session.listed:
+                self.refusals.say(f"{session.name} {why}", why, logging.ERROR)
+        routes = [session.by_index.get(i) for i in range(len(session.entries))]
+        self.far_entries(session.by_index, message.get("entries"))
+        link.send(control({
+            "type": "placed", "ids": [0 if r is None else r.topic_id for r in routes],
+            "refused": [{"entry": self._entry_name(session, i), "error": why}
+                        for i, why in sorted(session.refused.items())],
+            "entries": [None if r is None else self.router.item(r) for r in routes]}),
+            self.control)
+
     @staticmethod
     def _entry_name(session: Session, index: int) -> str:
         entry = session.entries[index]
+        assert entry is not None  # a name gone is neither refused nor routed
+        if index >= session.listed:
+            name = entry.topic if isinstance(entry, TopicConfig) else entry.service
+            return f"found[{index - session.listed}] ({name})"
         if isinstance(entry, TopicConfig):
             return f"topics[{index}] ({entry.topic})"
         return f"services[{index - len(session.topics)}] ({entry.service})"
@@ -386,9 +453,12 @@ class ServerRole(Role):
         session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
                           hello.get("services", []),
                           self.bridge.slot(f"main of {name}", resends=True),
-                          entries=entries, policy=policy, actions=hello.get("actions", []),
+                          entries=list(entries), policy=policy,
+                          actions=hello.get("actions", []),
                           part_of=part_of,
                           schedule=KeySchedule(self.cfg.rekey) if self.cfg.secure else None)
+        session.listed = len(entries)
+        self._set_found(session, hello)
         try:
             self._sync(session)
         except BaseException:  # whatever failed, nothing half-built stays behind
@@ -407,6 +477,12 @@ class ServerRole(Role):
         resolver, error = self.bridge.resolver, where_error(f"client {session.name}")
         topics = len(session.topics)
         for index, entry in enumerate(session.entries):
+            if entry is None:  # a found name that went
+                session.refused.pop(index, None)
+                gone = session.by_index.pop(index, None)
+                if gone is not None:
+                    self.router.remove(gone)
+                continue
             asked = session.part_of.get(index, entry)  # an action's part: the action
             why = refusal(session.policy, asked, keyless) if session.policy is not None else None
             missing = not_installed(asked.type) if why is None else None

@@ -1,0 +1,107 @@
+"""Pattern entries in bringup.yaml: a glob for a name, no type, deny:, remote: that keeps the
+wildcards, max_routes; every mistake located at its file, line and key with a fix."""
+
+from __future__ import annotations
+
+import pytest
+
+from rosgate.config import loads, topic_from_mapping, topic_to_mapping
+from rosgate.config.patterns import DENY_DEFAULT, denied, far_name, matches
+from rosgate.errors import ConfigError
+from rosgate.plugins import Plugins
+from rosgate.resolver import Resolver
+
+HEAD = "bridge: {name: robot1, role: client, server: 127.0.0.1:12000, insecure: true}\n"
+
+
+def error(text: str) -> ConfigError:
+    with pytest.raises(ConfigError) as info:
+        loads(HEAD + text, file="bringup.yaml")
+    return info.value
+
+
+def test_a_pattern_entry_needs_no_type_and_keeps_every_other_key() -> None:
+    cfg = loads(HEAD + "topics:\n"
+                "  - {topic: /robot1/**, direction: transmit, remote: /fleet/robot1/**,\n"
+                "     deny: [/robot1/camera/**], max_routes: 50, max_rate: 20, qos: 5}\n")
+    (t,) = cfg.topics
+    assert (t.topic, t.type, t.remote, t.deny, t.max_routes, t.max_rate, t.qos, t.pattern) == (
+        "/robot1/**", "", "/fleet/robot1/**", ("/robot1/camera/**",), 50, 20, 5, True)
+    assert cfg.deny == DENY_DEFAULT
+    resolver = Resolver(cfg, Plugins.discover())
+    plan = resolver.plan()
+    assert plan.topics == [] and len(plan.patterns) == 1  # a template, not a route
+    spec = resolver.found(plan.patterns[0], "/robot1/arm/joints",
+                                                   "sensor_msgs/msg/JointState")
+    c = spec.config
+    assert (c.topic, c.remote, c.type, c.max_rate, c.qos, c.pattern) == (
+        "/robot1/arm/joints", "/fleet/robot1/arm/joints", "sensor_msgs/msg/JointState", 20, 5,
+        False)
+    sent = topic_to_mapping(c)  # what a client tells its server: a listed entry
+    assert "deny" not in sent and "max_routes" not in sent and sent["type"] == c.type
+
+
+def test_globs_as_the_policy_reads_them() -> None:
+    assert matches("/r/**", "/r/a/b") and matches("/r/*", "/r/a") and not matches("/r/*", "/r/a/b")
+    assert not matches("/r/**", "/rx/a") and matches("/**", "/rosout")
+    assert denied("/rosout", DENY_DEFAULT) == "/rosout"
+    assert denied("/robot1/get_parameters", DENY_DEFAULT) == "/**/get_parameters"
+    assert denied("/robot1/scan", DENY_DEFAULT) is None
+    assert far_name("/robot1/**", "/fleet/robot1/**", "/robot1/a/b") == "/fleet/robot1/a/b"
+    assert far_name("/**", "/base/**", "/scan") == "/base/scan"
+
+
+def test_bridge_deny_replaces_the_default() -> None:
+    cfg = loads(HEAD.replace("insecure: true", "insecure: true, deny: [/secret/**]")
+                + "topics:\n  - {topic: /**, direction: transmit}\n")
+    assert cfg.deny == ("/secret/**",)
+
+
+@pytest.mark.parametrize(("entry", "key", "says", "fix"), [
+    ("{topic: /a, direction: transmit}", "topics[0].type", "missing required key 'type'",
+     "add type: std_msgs/msg/String"),
+    ("{topic: /r/a**, direction: transmit}", "topics[0].topic", "segment 'a**'", "'**' only"),
+    ("{topic: 'r/**', direction: transmit}", "topics[0].topic", "starts with '/'",
+     "topic: /robot1/**"),
+    ("{topic: /r/**, direction: transmit, remote: /f/r}", "topics[0].remote",
+     "does not keep the pattern's wildcards (/**)", "end remote with /**"),
+    ("{topic: /r/**, direction: transmit, deny: [x/y]}", "topics[0].deny", "does not start",
+     "[/x/y]"),
+    ("{topic: /a, type: std_msgs/msg/String, direction: transmit, deny: [/a]}",
+     "topics[0].deny", "deny is for pattern entries", "make topic: a pattern"),
+    ("{topic: /r/**, direction: transmit, max_routes: 0}", "topics[0].max_routes", "", ""),
+    ("{topic: /r/**, direction: transmit, framing: none, cipher: none}", "topics[0].framing",
+     "finds ROS names as they appear", "list each name"),
+])
+def test_mistakes_name_file_line_key_and_fix(entry: str, key: str, says: str, fix: str) -> None:
+    found = error(f"topics:\n  - {entry}\n")
+    assert (found.file, found.line, found.key) == ("bringup.yaml", 3, key)
+    assert says in found.message and fix in (found.fix or "")
+
+
+@pytest.mark.parametrize(("text", "key", "says"), [
+    ("actions:\n  - {action: /robot1/*, direction: transmit}\n", "actions[0].action",
+     "an action is listed by its name"),
+    ("topics:\n  - {topic: /a, type: std_msgs/msg/String, direction: transmit}\n"
+     "actions:\n  - {action: /robot1/**, direction: receive}\n", "actions[0].action",
+     "an action is listed by its name"),
+])
+def test_what_patterns_do_not_find_is_refused_at_start(text: str, key: str, says: str) -> None:
+    cfg = loads(HEAD + text, file="bringup.yaml")
+    with pytest.raises(ConfigError) as info:
+        Resolver(cfg, Plugins.discover()).plan()
+    assert info.value.key == key and says in info.value.message
+    assert info.value.fix and "as an entry of its own" in info.value.fix
+
+
+def test_a_peer_lists_its_names() -> None:
+    cfg = loads("bridge: {name: a, role: peer, peer: 127.0.0.1}\n"
+                "topics:\n  - {topic: /r/**, direction: transmit, port: 12001}\n")
+    with pytest.raises(ConfigError, match="a pattern is for a client's entries"):
+        Resolver(cfg, Plugins.discover()).plan()
+
+
+def test_a_client_sends_names_never_patterns() -> None:
+    with pytest.raises(ConfigError) as info:
+        topic_from_mapping({"topic": "/r/**", "direction": "transmit"}, {}, "client x", index=2)
+    assert (info.value.file, info.value.key) == ("client x", "topics[2]")
