@@ -123,7 +123,10 @@ topics:
     assert got == list(range(COUNT)), seen  # every one, once, in order
     assert robot_drops == "none", robot.log
     assert COUNT <= sent <= COUNT + warmups, seen  # each taken once (a copy sent again is not)
-    assert first_drops == "none" and base_drops == "none", seen
+    # a killed base never told the robot its session ended: the robot's repairs of what it sent
+    # the dead base may reach the new one, which cannot open them (counted, never published)
+    stale = re.fullmatch(r"unknown_key=\d+", base_drops) and how == "kill"
+    assert first_drops == "none" and (base_drops == "none" or stale), seen
 
 
 FAST = "heartbeat: 0.2, peer_timeout: 0.8, reconnect: {min: 0.05, max: 0.5}"
