@@ -9,23 +9,11 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable
-from functools import lru_cache
 from typing import Any
 
 from .config import ActionConfig, BridgeConfig, ClientPolicy, Rule, ServiceConfig, TopicConfig
 from .config.kinds import ROS_NAME_MAX
-
-
-@lru_cache(maxsize=1024)
-def _glob(pattern: str) -> re.Pattern[str]:
-    parts = re.split(r"(\*\*|\*|\?)", pattern)
-    table = {"**": ".*", "*": "[^/]*", "?": "[^/]"}
-    return re.compile("".join(table.get(p, re.escape(p)) for p in parts))
-
-
-def matches(pattern: str, text: str) -> bool:
-    return _glob(pattern).fullmatch(text) is not None
-
+from .config.patterns import matches  # one glob for rules and pattern entries
 
 #: an absolute ROS name: parts of letters, digits and '_', none starting with a digit
 _ROS_NAME = re.compile(r"(?:/[A-Za-z_][A-Za-z0-9_]*)+")
