@@ -214,3 +214,23 @@ topics:
     assert wait_until(lambda: far.counters.received == 5, 15), (far.counters, mine.counters)
     assert far.counters.drops == {} and far.counters.lost == 0 and mine.counters.drops == {}
     assert server.link_drops == {}
+
+
+def test_a_client_between_two_connections_keeps_its_heartbeat_thread(engines, domain,
+                                                                     ros_side):
+    """While the main line is down the session's keys are forgotten until the next welcome; the
+    datagram hellos the ping loop sends meanwhile must wait for them, not end the loop (it once
+    died there on NoKey, and the client sent no heartbeat or hello again until it stopped)."""
+    ds, dc, port = domain(), domain(), free_port()
+    engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}}}", ds)
+    client = engines(f"""
+bridge: {{name: robot1, role: client, server: 127.0.0.1:{port}, {FAST}}}
+topics:
+  - {{topic: /rel, type: std_msgs/msg/String, direction: transmit}}""", dc)
+    rel, rel_in = ros_side(dc, "robot").publisher("/rel", String), \
+        ros_side(ds, "base").listen("/rel", String)
+    warm_up(rel, rel_in, String(data="warmup"))
+    role = client.role
+    assert role.schedule is not None and role.hello_to  # a session, and a datagram link
+    role.schedule.forget()  # as a main line that closed leaves it
+    role._say_hello()  # what the ping loop does next: nothing to seal with, nothing sent

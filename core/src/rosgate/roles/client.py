@@ -24,6 +24,7 @@ from ..discovery import Discovery, Found
 from ..drops import Drop
 from ..errors import ConfigError, LinkError, RosgateError
 from ..holdback import Holdback
+from ..keyring import NoKey
 from ..links import DatagramLink, Link
 from ..router import fixed
 from ..routes import Route
@@ -421,7 +422,11 @@ class ClientRole(Role):
         if self.session is None:
             return
         for link, to in list(self.hello_to):
-            link.send(self._hello(), self.control, to)
+            try:
+                hello = self._hello()
+            except NoKey:  # between two connections: the keys come with the next welcome
+                return
+            link.send(hello, self.control, to)
 
     def _ping_loop(self) -> None:
         """Heartbeat on the main line; datagram hellos go on while it is down, so the server
