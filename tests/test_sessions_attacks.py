@@ -29,6 +29,7 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import String
 
 from rosgate import identity
+from rosgate.discovery import OWN_NAMESPACE
 from rosgate.wire import envelope
 
 FAST = "heartbeat: 0.2, peer_timeout: 0.8, reconnect: {min: 0.05, max: 0.5}"
@@ -251,8 +252,13 @@ def test_a_hello_without_a_key_is_refused_and_gets_nothing(base):
     assert answers == [None] * 5
     assert secret_frames == 0
     assert not cmd_vel.wait_count(1, 1.0)
-    assert b.side.ros.node.count_publishers("/cmd_vel") == 0  # the bridge made none
-    assert b.side.ros.node.count_subscribers("/secret") == 0
+    # the bridge made none (by its own node: a bridge an earlier test of this domain killed
+    # may linger in the graph until its lease ends)
+    node = b.side.ros.node
+    assert [i for i in node.get_publishers_info_by_topic("/cmd_vel")
+            if i.node_namespace == OWN_NAMESPACE] == []
+    assert [i for i in node.get_subscriptions_info_by_topic("/secret")
+            if i.node_namespace == OWN_NAMESPACE] == []
     assert b.server.wait_log("refused a connection from 127.0.0.1: not a handshake", 5)
     assert len([x for x in b.server.lines if "refused a connection" in x]) == 1
     robot1_still_crosses(b)
