@@ -19,6 +19,7 @@ from conftest import wait_until
 from geometry_msgs.msg import Pose2D, Twist
 from rosgate_emulator.serial import LineProfile, PtyRelay
 from rosgate_mcu_cvra import serial_datagram
+from test_serial_link import board_peer
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE = ROOT / "tests" / "data" / "serial_board" / "board.c"
@@ -101,17 +102,7 @@ def test_the_board_and_a_bridge_exchange_topics_both_ways(
         board_program, engines, domain, ros_side, tmp_path):
     with PtyRelay(tmp_path, LineProfile(baud=115_200)) as relay:
         d = domain()
-        engines(f"""
-bridge: {{name: robot, role: peer, peer: board, listen: board, insecure: true,
-         defaults: {{codec: msgpack}}}}
-plugins:
-  serial: {{device: {relay.a}, baud: 115200, multiplex: false}}
-topics:
-  - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: 1,
-     transport: serial, framing: none}}
-  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 1,
-     transport: serial, framing: none}}
-""", d)
+        engines(board_peer(relay.a), d)
         side = ros_side(d, "robot")
         positions = side.listen("/position", Pose2D)
         cmd_vel = side.publisher("/cmd_vel", Twist)

@@ -48,6 +48,22 @@ services:
 """
 
 
+def board_peer(device: str) -> str:
+    """A peer's file for a microcontroller on ``device``: CVRA layouts, one serial datagram per
+    message, ``/position`` from the board and ``/cmd_vel`` to it on one port."""
+    return f"""
+bridge: {{name: robot, role: peer, peer: board, listen: board, insecure: true,
+         defaults: {{codec: msgpack}}}}
+plugins:
+  serial: {{device: {device}, baud: 115200, multiplex: false}}
+topics:
+  - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: 1,
+     transport: serial, framing: none}}
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 1,
+     transport: serial, framing: none}}
+"""
+
+
 def twist(i: int) -> Twist:
     message = Twist()
     message.linear.x = float(i)
@@ -218,17 +234,7 @@ def test_a_board_on_the_line_speaks_cvra_layouts_both_ways(engines, domain, ros_
 
     with PtyRelay(tmp_path, LineProfile(baud=115_200)) as relay:
         d = domain()
-        engines(f"""
-bridge: {{name: robot, role: peer, peer: board, listen: board, insecure: true,
-         defaults: {{codec: msgpack}}}}
-plugins:
-  serial: {{device: {relay.a}, baud: 115200, multiplex: false}}
-topics:
-  - {{topic: /position, type: geometry_msgs/msg/Pose2D, direction: receive, port: 1,
-     transport: serial, framing: none}}
-  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 1,
-     transport: serial, framing: none}}
-""", d)
+        engines(board_peer(relay.a), d)
         side = ros_side(d, "robot")
         positions = side.listen("/position", Pose2D)
         cmd_vel = side.publisher("/cmd_vel", Twist)
