@@ -421,7 +421,8 @@ class BridgeConfig:
                                   key="reconnect.max", above=0, unit="seconds", example="10",
                                   unset="`10`, or `min` when larger")
     queue_frames: int = option(1000, "client: the messages reliable topics hold while the server "
-                               "is out of reach (and a stream link, while it is down)",
+                               "is out of reach (and a stream link, or a datagram link whose line "
+                               "is gone, a serial device unplugged, while it is down)",
                                key="queue.frames", minimum=0, example="1000")
     queue_bytes: int = option(8 * 1024 * 1024, "and the bytes", key="queue.bytes", minimum=0,
                               example="8388608")
