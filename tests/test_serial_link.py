@@ -219,6 +219,10 @@ def test_unplugged_for_3_s_and_back_under_new_paths_loses_no_reliable_message(
             assert logs.wait("is back", count=2, timeout=5)
             assert twists.wait_for(  # fresh traffic, published after the return, crosses
                 lambda items: any(m.linear.x > unplugged + 70 for m in items), 10)
+            # the counter catches up at the line's spare capacity, behind what it held
+            assert counts.wait_for(lambda items: items[-1].data > unplugged + 70, 10)
+            print(f"resumed {resumed:.2f} s and the counter caught up "
+                  f"{time.monotonic() - back:.2f} s after the return")
         finally:
             stop.set()
             talker.join()
@@ -239,8 +243,7 @@ def test_unplugged_for_3_s_and_back_under_new_paths_loses_no_reliable_message(
         shed = routes["/cmd_vel"].counters.drops
         got = {int(m.linear.x) for m in twists.items}
         missing = [i for i in range(int(twists.items[0].linear.x), sent[0]) if i not in got]
-        assert shed.get("link_down", 0) >= 40, shed
-        assert len(missing) <= sum(shed.values()) + 2, (missing, shed)  # + what the line cut
+        assert 40 <= shed.get("link_down", 0) <= len(missing), (shed, missing)
 
 
 def test_check_budgets_the_line_from_its_baud_rate_and_names_what_cannot_fit(tmp_path, capsys):

@@ -19,7 +19,9 @@ alone in its serial datagram, as a microcontroller speaking CVRA's layouts expec
 entry bound to a port then receives every datagram.
 
 Addresses: the device is the option ``device`` (one line per bridge); the host of an address
-(``bridge.peer``, ``bridge.listen``) is not looked at. Port 0 binds a sender, given a port of
+(``bridge.peer``, ``bridge.listen``) is only a name, replaced by the device (``check_address``),
+so that a frame's source is the very address its answers were sent to: loss recovery's
+acknowledgements then find the frames they acknowledge. Port 0 binds a sender, given a port of
 its own from 49152 up so that answers reach it.
 
 Unplugged: when the device vanishes (a USB adapter pulled, a radio power-cycled), the line logs
@@ -108,6 +110,9 @@ class SerialTransport(DatagramTransport):
         self.bandwidth = SHARE * line_rate(self.options)
         self._line: Line | None = None
         self._lock = threading.Lock()
+
+    def check_address(self, address: Address) -> Address:
+        return (self.options.device, address[1])
 
     def bind(self, address: Address) -> SerialEndpoint:
         with self._lock:
