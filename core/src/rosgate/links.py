@@ -419,41 +419,36 @@ class DatagramLink(_Sending, Link):
                         f"{size} bytes, {self.name} carries at most {self.max_frame}")
             return False
         delivery = sender.delivery
-        if not self.line_up:
-            return self._while_gone(frame, sender, to)
+        up = self.line_up
+        if not (up or delivery.reliable):  # it would be stale by the time the line is back
+            sender.drop(Drop.LINK_DOWN, f"{self.name}: its line is gone")
+            return False
         whole = self.bare or delivery.whole
         plain = delivery.packetizer is None and not self.cuts  # whole or fragments
         one = whole or plain and size <= self.max_frame
         inline = self._send_now if one else \
             self._send_fragments_now if plain and size <= INLINE_MAX else None
-        if inline is not None:
+        if inline is not None and up:
             sent = inline(frame, sender, to)
             if sent is None and self._await_turn() and self._send_waiting():
                 sent = inline(frame, sender, to)  # what waited is gone: the link is idle
             if sent is not None:
                 return sent
-        return self._put(Outgoing(sender, to, size,
-                                  lambda: self._cut(frame, sender, to, whole),
-                                  time.monotonic(), batchable=one and not whole))
-
-    def _while_gone(self, frame: bytes, sender: Sender, to: Address) -> bool:
-        """A frame sent while the line is gone: a reliable sender's waits for it, within the
-        hold bounds (the oldest waiting dropped first); a best-effort one is dropped."""
-        if not sender.delivery.reliable:
-            sender.drop(Drop.LINK_DOWN, f"{self.name}: its line is gone")
-            return False
-        whole = self.bare or sender.delivery.whole
-        one = whole or (sender.delivery.packetizer is None and not self.cuts
-                        and len(frame) <= self.max_frame)
-        queued = self._put(Outgoing(sender, to, len(frame),
+        queued = self._put(Outgoing(sender, to, size,
                                     lambda: self._cut(frame, sender, to, whole),
                                     time.monotonic(), batchable=one and not whole))
+        if not up:
+            self._held()
+        return queued
+
+    def _held(self) -> None:
+        """A reliable frame was queued while the line is gone: what waits is kept within the
+        hold bounds, the oldest dropped first (counted)."""
         frames, bytes_ = self._hold
         with self._lock:
             self.scheduler.shed(frames, bytes_, f"{self.name}: its line is gone and "
                                 f"{frames} messages or {bytes_} bytes wait (bridge.queue)")
         self._count_drops()
-        return queued
 
     def _line(self, up: bool) -> None:
         """The endpoint says its line is gone (False) or back (True)."""
