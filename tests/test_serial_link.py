@@ -279,6 +279,27 @@ topics:
         "less often, others wait in the queue (reliable) or are dropped late (best effort)"]
 
 
+def test_recovery_on_a_line_of_small_frames_is_refused_saying_how(tmp_path, capsys):
+    """Below 256 bytes the line cuts every frame into compact pieces, which carry no numbers
+    to repair: a ``recovery:`` there would recover nothing while its receiver waited for it."""
+    from rosgate.cli import main
+
+    path = tmp_path / "radio.yaml"
+    path.write_text("""
+bridge: {name: a, role: peer, peer: line, listen: line, insecure: true}
+plugins:
+  serial: {device: /dev/serial/by-id/usb-radio-if00, baud: 57600}
+topics:
+  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 1,
+     transport: serial, recovery: retransmit}
+""")
+    assert main(["check", str(path)]) != 0
+    err = capsys.readouterr().err
+    assert "radio.yaml:7: topics[0].recovery: serial carries frames of 250 bytes" in err, err
+    assert "fix: give serial a max_frame of 256 or more, or remove recovery:" in err, err
+    assert "Traceback" not in err
+
+
 def test_a_board_on_the_line_speaks_cvra_layouts_both_ways(engines, domain, ros_side, tmp_path):
     """A microcontroller at the far end of the line (here: this test, through the pseudo-
     terminal) writes and reads one serial datagram per message, ``[name, args]`` in
