@@ -146,12 +146,13 @@ class TopicConfig:
                                  "the latency it adds", unit="seconds", example="2ms",
                                  parse=window, unset="no window: each message leaves as it comes")
     recovery: str | None = option(None, "loss recovery by a packetizer plugin (`retransmit`, "
-                                  "`fec`) or `none`, on datagram links with `framing: rosgate`; "
+                                  "`fec`) or `none`, on datagram links of frames of 256 bytes or more "
+                                  "with `framing: rosgate`; "
                                   "its options over its `plugins:` table as "
                                   "`{fec: {overhead: 0.25}}`",
                                   example="fec (or with options: {fec: {overhead: 0.25}})",
-                                  unset="by the QoS: `retransmit` for a reliable topic on a "
-                                        "datagram link (in order, once), else `none`",
+                                  unset="by the QoS: `retransmit` for a reliable topic on "
+                                        "such a link (in order, once), else `none`",
                                   parse=kinds.plugin_choice)
     #: the topic's options for its recovery plugin, over its plugins: table
     recovery_options: dict[str, Any] = field(default_factory=dict)
