@@ -146,9 +146,9 @@ class TopicConfig:
                                  "the latency it adds", unit="seconds", example="2ms",
                                  parse=window, unset="no window: each message leaves as it comes")
     recovery: str | None = option(None, "loss recovery by a packetizer plugin (`retransmit`, "
-                                  "`fec`) or `none`, on datagram links of frames of 256 bytes or more "
-                                  "with `framing: rosgate`; "
-                                  "its options over its `plugins:` table as "
+                                  "`fec`) or `none`, on datagram links of frames of 256 "
+                                  "bytes or more with `framing: rosgate`; its options over "
+                                  "its `plugins:` table as "
                                   "`{fec: {overhead: 0.25}}`",
                                   example="fec (or with options: {fec: {overhead: 0.25}})",
                                   unset="by the QoS: `retransmit` for a reliable topic on "
