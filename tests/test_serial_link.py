@@ -2,7 +2,8 @@
 (rosgate_emulator.serial) at 57,600 baud that flips one bit in 10,000 bytes. A Twist at 20 Hz
 and a 200-byte status at 1 Hz cross under the aead cipher, a Trigger service crosses; every
 spoilt frame is counted and none is published. The line is unplugged for 3 s and comes back
-under new device paths behind the same names: traffic resumes within a second. A topic too big
+under new device paths behind the same names: traffic resumes within a second, no reliable
+message is lost and the best-effort ones sent meanwhile are counted. A topic too big
 for the line is named by rosgate check and, forced on it, shed without delaying a Twist; a board
 on the line speaks CVRA's layouts; the docs' files check."""
 
@@ -15,7 +16,7 @@ from pathlib import Path
 import pytest
 from conftest import wait_until
 from geometry_msgs.msg import Twist
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rosgate_crypto_aead import AeadCipher
 from rosgate_emulator.serial import LineProfile, PtyRelay
 from rosgate_testing import write_key
@@ -156,38 +157,93 @@ def test_twist_status_and_trigger_cross_a_noisy_57600_baud_line(
     assert all(route.counters.drops.get("auth_failed", 0) == 0 for route in b.routes())
 
 
-def test_unplugged_for_3_s_and_back_under_new_paths_resumes_within_1_s(
+def unplug_peer(name: str, device: str, key: Path, sends: bool) -> str:
+    """A reliable counter and a best-effort Twist on one line; ``max_frame: 300``, so the
+    counter is repaired by ``retransmit`` (a line of smaller frames has no room for it)."""
+    way = {True: "transmit", False: "receive"}[sends]
+    return f"""
+bridge: {{name: {name}, role: peer, peer: line, listen: line, insecure: true}}
+plugins:
+  serial: {{device: {device}, baud: 57600, max_frame: 300}}
+  aead: {{key_file: {key}}}
+topics:
+  - {{topic: /count, type: std_msgs/msg/UInt32, direction: {way}, port: 1,
+     transport: serial, cipher: aead, qos: {{reliability: reliable, depth: 1000}}}}
+  - {{topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: {way}, port: 2,
+     transport: serial, cipher: aead, qos: sensor_data}}
+"""
+
+
+def test_unplugged_for_3_s_and_back_under_new_paths_loses_no_reliable_message(
         engines, domain, ros_side, tmp_path, key, logs):
+    """A reliable counter at 20 Hz and a best-effort Twist beside it, published throughout a
+    3-second unplug and a return under new device paths behind the same names: traffic
+    resumes within a second of the return; every number arrives, once, in order (held by the
+    link while its line was gone, the frames on the way when it went sent again by
+    ``retransmit``); the Twists published meanwhile are counted ``link_down``."""
+    from std_msgs.msg import UInt32
+
+    deep = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
     with PtyRelay(tmp_path, LineProfile(baud=57_600)) as relay:
         da, db = domain(), domain()
-        a = engines(peer("a", relay.a, key, sends=True), da)
-        engines(peer("b", relay.b, key, sends=False), db)
+        a = engines(unplug_peer("a", relay.a, key, sends=True), da)
+        engines(unplug_peer("b", relay.b, key, sends=False), db)
         side_a, side_b = ros_side(da, "a"), ros_side(db, "b")
-        twists = side_b.listen("/cmd_vel", Twist)
-        talker = Talker(side_a)
+        counts = side_b.listen("/count", UInt32, qos=deep)
+        twists = side_b.listen("/cmd_vel", Twist, qos=qos_profile_sensor_data)
+        count_pub = side_a.publisher("/count", UInt32, qos=deep)
+        twist_pub = side_a.publisher("/cmd_vel", Twist, qos=qos_profile_sensor_data)
+        sent, stop = [0], threading.Event()
+
+        def talk() -> None:
+            start = time.monotonic()
+            while not stop.wait(max(0.0, start + sent[0] * 0.05 - time.monotonic())):
+                count_pub.publish(UInt32(data=sent[0]))
+                twist_pub.publish(twist(sent[0]))
+                sent[0] += 1
+
+        talker = threading.Thread(target=talk, daemon=True)
+        talker.start()
         try:
-            assert twists.wait_count(20, 30), "nothing crossed the line"
+            assert counts.wait_count(20, 30) and twists.wait_count(20, 30), \
+                "nothing crossed the line"
             relay.unplug()
             assert logs.wait("(unplugged?)", count=2, timeout=5)
-            unplugged = talker.sent
+            unplugged = sent[0]
             threading.Event().wait(3)  # the outage itself
-            arrived = len(twists.items)
+            arrived = len(counts.items) + len(twists.items)
             relay.replug()
             back = time.monotonic()
-            assert twists.wait_for(
-                lambda items: any(m.linear.x > unplugged + 60 for m in items[arrived:]), 5)
+            assert wait_until(lambda: len(counts.items) + len(twists.items) > arrived, 5)
             resumed = time.monotonic() - back
             assert logs.wait("is back", count=2, timeout=5)
+            assert twists.wait_for(  # fresh traffic, published after the return, crosses
+                lambda items: any(m.linear.x > unplugged + 70 for m in items), 20)
+            # the counter catches up at the line's spare capacity, behind what it held
+            assert counts.wait_for(lambda items: items[-1].data > unplugged + 70, 30)
+            print(f"resumed {resumed:.2f} s and the counter caught up "
+                  f"{time.monotonic() - back:.2f} s after the return")
         finally:
-            talker.close()
+            stop.set()
+            talker.join()
+        first = counts.items[0].data
+        assert counts.wait_count(sent[0] - first, 30), (sent[0], first, len(counts.items))
         assert resumed < 1.0, f"traffic resumed {resumed:.2f} s after the device returned"
         assert relay.paths[2:] != relay.paths[:2] and not set(relay.paths[2:]) & set(
             relay.paths[:2]), relay.paths
         gone, returned = logs.having("(unplugged?)"), logs.having("is back")
         assert sorted(m.split()[2] for m in gone) == sorted([relay.a, relay.b]), gone
         assert len(returned) == 2, returned  # logged once per device, each way
-        route = next(r for r in a.routes() if r.label == "/cmd_vel")
-        assert route.counters.drops.get("send_error", 0) >= 40, route.counters.drops
+        # every number, once, in order, field for field, those published while unplugged too
+        assert counts.items == [UInt32(data=i) for i in range(first, sent[0])], \
+            [m.data for m in counts.items]
+        routes = {route.label: route for route in a.routes()}
+        assert not routes["/count"].counters.drops, routes["/count"].counters.drops
+        # best effort is not held: what was published while the line was gone is counted
+        shed = routes["/cmd_vel"].counters.drops
+        got = {int(m.linear.x) for m in twists.items}
+        missing = [i for i in range(int(twists.items[0].linear.x), sent[0]) if i not in got]
+        assert 40 <= shed.get("link_down", 0) <= len(missing), (shed, missing)
 
 
 def test_check_budgets_the_line_from_its_baud_rate_and_names_what_cannot_fit(tmp_path, capsys):
@@ -221,6 +277,27 @@ topics:
         "cannot fit: more than the whole budget by itself",
         "  total 880.5 kbit/s of 43.8 kbit/s (2011.3 %): over budget: latest_only topics send "
         "less often, others wait in the queue (reliable) or are dropped late (best effort)"]
+
+
+def test_recovery_on_a_line_of_small_frames_is_refused_saying_how(tmp_path, capsys):
+    """Below 256 bytes the line cuts every frame into compact pieces, which carry no numbers
+    to repair: a ``recovery:`` there would recover nothing while its receiver waited for it."""
+    from rosgate.cli import main
+
+    path = tmp_path / "radio.yaml"
+    path.write_text("""
+bridge: {name: a, role: peer, peer: line, listen: line, insecure: true}
+plugins:
+  serial: {device: /dev/serial/by-id/usb-radio-if00, baud: 57600}
+topics:
+  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, port: 1,
+     transport: serial, recovery: retransmit}
+""")
+    assert main(["check", str(path)]) != 0
+    err = capsys.readouterr().err
+    assert "radio.yaml:7: topics[0].recovery: serial carries frames of 250 bytes" in err, err
+    assert "fix: give serial a max_frame of 256 or more, or remove recovery:" in err, err
+    assert "Traceback" not in err
 
 
 def test_a_board_on_the_line_speaks_cvra_layouts_both_ways(engines, domain, ros_side, tmp_path):

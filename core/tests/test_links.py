@@ -364,6 +364,59 @@ def test_a_best_effort_frame_that_waited_too_long_to_be_sent_is_dropped(closing)
     assert inbox.drops == [(2, "too_late")] and b"hasty" not in wire.sent
 
 
+class Unpluggable:
+    """A udp endpoint whose line can be pulled out, as a serial device vanishes: it says so
+    through ``watch_line`` and refuses sends while it is gone."""
+
+    def __init__(self, endpoint: Any):
+        self.endpoint, self.gone = endpoint, False
+        self.changed: Any = None
+
+    def watch_line(self, changed) -> None:
+        self.changed = changed
+
+    def plug(self, there: bool) -> None:
+        self.gone = not there
+        self.changed(there)
+
+    def send(self, frame: bytes, to) -> None:
+        if self.gone:
+            raise OSError("the line is gone")
+        self.endpoint.send(frame, to)
+
+    def receive(self, timeout: float):
+        return self.endpoint.receive(timeout)
+
+    def close(self) -> None:
+        self.endpoint.close()
+
+
+def test_while_its_line_is_gone_a_link_holds_reliable_frames_within_bounds(closing):
+    """Reliable frames wait, the newest five (``hold_frames``), the oldest dropped first
+    (``queue_full``); a best-effort one is dropped (``link_down``); once the line is back what
+    waited leaves in order."""
+    transport = UdpTransport({})
+    far_inbox, inbox = Inbox(), Inbox()
+    far_end = transport.bind(("127.0.0.1", 0))
+    to = far_end.sock.getsockname()
+    closing(DatagramLink(transport, far_end, "far", far_inbox.on_frame, far_inbox.on_lost))
+    line = Unpluggable(transport.bind(("127.0.0.1", 0)))
+    link = closing(DatagramLink(transport, line, "line", inbox.on_frame, inbox.on_lost,
+                                hold_frames=5))
+    reliable, best_effort = inbox.sender(1, reliable=True), inbox.sender(2)
+    assert link.send(b"r0", reliable, to) and far_inbox.wait(lambda: far_inbox.frames)
+    line.plug(False)
+    assert [link.send(b"r%d" % i, reliable, to) for i in range(1, 9)] == [True] * 8
+    assert link.send(b"b", best_effort, to) is False
+    assert link.send_all([b"r9", b"r10"], reliable, to) == 2
+    assert inbox.drops == [(1, "queue_full")] * 3 + [(2, "link_down")] + [(1, "queue_full")] * 2
+    assert link.queued() == 5 and far_inbox.payloads() == [b"r0"]
+    line.plug(True)
+    assert far_inbox.wait(lambda: len(far_inbox.frames) >= 6)
+    assert far_inbox.payloads() == [b"r0"] + [b"r%d" % i for i in range(6, 11)]
+    assert len(inbox.drops) == 6
+
+
 # --- reassembly under attack (issue 10) ------------------------------------------------------
 
 def test_a_flood_of_one_byte_fragments_is_bounded_and_counted(closing):

@@ -359,7 +359,11 @@ class DatagramLink(_Sending, Link):
     packetizer of their magic (``packetizers``: the installed ones by default); a bare link's as
     they came. An own packetizer that ``cuts_every_frame`` (small frames) takes every frame and
     every datagram. It is the :class:`~rosgate.packetizer.PacketLink` of its packetizers (one of
-    each, made on first use); their timers run on both of its threads."""
+    each, made on first use); their timers run on both of its threads. An endpoint that says
+    when its line is gone (``watch_line``: a serial device unplugged) stops it sending until
+    the line is back: reliable frames wait (at most ``hold_frames`` and ``hold_bytes``, the
+    oldest dropped first: ``queue_full``), best-effort ones are dropped (``link_down``), and the
+    packetizers' clocks stand still (:meth:`~rosgate.packetizer.Packetizer.resumed`)."""
 
     datagram = True
 
@@ -368,7 +372,8 @@ class DatagramLink(_Sending, Link):
                  max_message: int = framing.DEFAULT_MAX_MESSAGE, sources: Sources | None = None,
                  budget: LinkConfig | None = None,
                  on_recovered: Callable[[int], None] | None = None, queue_frames: int = 10_000,
-                 queue_bytes: int = 64 * 1024 * 1024, packetizers: Plugins | None = None):
+                 queue_bytes: int = 64 * 1024 * 1024, packetizers: Plugins | None = None,
+                 hold_frames: int = 1000, hold_bytes: int = 8 * 1024 * 1024):
         self.transport = transport
         self.sources = sources  # None: anyone; others are counted not_allowed
         self.endpoint = endpoint
@@ -398,6 +403,12 @@ class DatagramLink(_Sending, Link):
         count_drops = getattr(endpoint, "count_drops", None)  # a CheckingDatagramEndpoint
         if count_drops is not None:
             count_drops(lambda reason, detail: self.on_lost(None, reason))
+        #: the line is there (a LineDatagramEndpoint says when it is gone); since when not
+        self.line_up, self._gone_at = True, 0.0
+        self._hold = (hold_frames, hold_bytes)
+        watch_line = getattr(endpoint, "watch_line", None)
+        if watch_line is not None:
+            watch_line(self._line)
         self._start()
 
     def send(self, frame: bytes, sender: Sender, to: Address | None = None) -> bool:
@@ -408,27 +419,65 @@ class DatagramLink(_Sending, Link):
                         f"{size} bytes, {self.name} carries at most {self.max_frame}")
             return False
         delivery = sender.delivery
+        up = self.line_up
+        if not (up or delivery.reliable):  # it would be stale by the time the line is back
+            sender.drop(Drop.LINK_DOWN, f"{self.name}: its line is gone")
+            return False
         whole = self.bare or delivery.whole
         plain = delivery.packetizer is None and not self.cuts  # whole or fragments
         one = whole or plain and size <= self.max_frame
         inline = self._send_now if one else \
             self._send_fragments_now if plain and size <= INLINE_MAX else None
-        if inline is not None:
+        if inline is not None and up:
             sent = inline(frame, sender, to)
             if sent is None and self._await_turn() and self._send_waiting():
                 sent = inline(frame, sender, to)  # what waited is gone: the link is idle
             if sent is not None:
                 return sent
-        return self._put(Outgoing(sender, to, size,
-                                  lambda: self._cut(frame, sender, to, whole),
-                                  time.monotonic(), batchable=one and not whole))
+        queued = self._put(Outgoing(sender, to, size,
+                                    lambda: self._cut(frame, sender, to, whole),
+                                    time.monotonic(), batchable=one and not whole))
+        if not up:
+            self._held()
+        return queued
+
+    def _held(self) -> None:
+        """A reliable frame was queued while the line is gone: what waits is kept within the
+        hold bounds, the oldest dropped first (counted)."""
+        frames, bytes_ = self._hold
+        with self._lock:
+            self.scheduler.shed(frames, bytes_, f"{self.name}: its line is gone and "
+                                f"{frames} messages or {bytes_} bytes wait (bridge.queue)")
+        self._count_drops()
+
+    def _line(self, up: bool) -> None:
+        """The endpoint says its line is gone (False) or back (True)."""
+        now = time.monotonic()
+        with self._lock:
+            if up == self.line_up:
+                return
+            if not up:
+                self.line_up, self._gone_at = False, now
+                return
+            down = now - self._gone_at
+        # their clocks pushed on before a timer runs again (none runs while the line is gone)
+        for packetizer in list(self._by_name.values()):
+            try:
+                packetizer.resumed(down, now)
+            except Exception:
+                BUGS.bug("packetizer_error", f"{self.name}: packetizer {packetizer.name} could "
+                                             "not resume after the line's outage (a plugin bug)")
+        with self._wake:
+            self.line_up = True
+            self._tx_timer = now
+            self._wake.notify_all()
 
     def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
         """Frames of one sender: on an idle link those that fit share datagrams sent from here;
         else each is queued (and coalesced again by the send thread)."""
         assert to is not None, "a datagram link needs a destination"
         delivery = sender.delivery
-        if len(frames) < 2 or self.bare or self.cuts or delivery.whole:
+        if len(frames) < 2 or self.bare or self.cuts or delivery.whole or not self.line_up:
             return sum(self.send(frame, sender, to) for frame in frames)
         if delivery.packetizer is not None:
             return self._send_repaired(frames, sender, to)
@@ -543,7 +592,9 @@ class DatagramLink(_Sending, Link):
 
     def _run_timers(self, now: float, sending: bool = False) -> float | None:
         """Every packetizer's timer (on the send thread: those that implement ``sent``); when
-        the soonest wants to run again."""
+        the soonest wants to run again. None while the line is gone: their clocks stand still."""
+        if not self.line_up:
+            return None
         soonest = None
         for packetizer in list(self._by_name.values()):
             if sending and not _sends(packetizer):
@@ -582,7 +633,7 @@ class DatagramLink(_Sending, Link):
         before it does. Whether nothing waits any more."""
         scheduler = self.scheduler
         with self._lock:
-            if self._busy or self.closed.is_set() or scheduler.idle:
+            if self._busy or self.closed.is_set() or scheduler.idle or not self.line_up:
                 return False
             self._busy = True
         try:
@@ -737,11 +788,11 @@ class DatagramLink(_Sending, Link):
                     if closed.is_set():
                         return
                     now = time.monotonic()
-                    timer = self._tx_timer
+                    timer = self._tx_timer if self.line_up else None
                     due, carry = carry, None  # None: the timers are due, or drops to count
                     if due is not None or timer is not None and now >= timer:
                         break
-                    got = None if self._busy else scheduler.next(now)
+                    got = None if self._busy or not self.line_up else scheduler.next(now)
                     if isinstance(got, Due):
                         due = got
                         break

@@ -122,6 +122,14 @@ class Packetizer(ABC):
         nothing is kept per address."""
         return None
 
+    def resumed(self, down: float, now: float) -> None:
+        """The link's line was gone for ``down`` seconds and is back (``now``: time.monotonic());
+        meanwhile nothing left or came and :meth:`timer` was not called. Push the clocks of what
+        you keep on by ``down`` (and ask again, or probe, at once), so that nothing is given up
+        for the outage itself. Called from the transport's thread that saw the line return,
+        before the link's timers run again. By default nothing is kept by time."""
+        return None
+
     @classmethod
     @abstractmethod
     def cost(cls, frame: int, max_frame: int, options: Any) -> tuple[int, int]:

@@ -289,6 +289,13 @@ class Resolver:
                 raise error(f"{key}.recovery", f"{recovery} is what links of small frames "
                             "cut every frame with, by themselves: it recovers nothing",
                             "remove recovery: from this entry, or pick fec or retransmit")
+            small = transport.max_frame if isinstance(transport, DatagramTransport) else 0
+            if 0 < small < SMALL_FRAME:  # its own packetizer cuts every frame: none else would
+                raise error(f"{key}.recovery", f"{topic.transport} carries frames of {small} "
+                            "bytes, which it cuts into compact pieces with no room for "
+                            f"{recovery}'s numbers: it would recover nothing",
+                            f"give {topic.transport} a max_frame of {SMALL_FRAME} or more, or "
+                            "remove recovery: from this entry")
             options = self._plugin_options(packetizer, recovery, topic.recovery_options,
                                            f"{key}.recovery", error)
         latest_only = not reliable if topic.latest_only is None else topic.latest_only

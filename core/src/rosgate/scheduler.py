@@ -195,6 +195,17 @@ class Scheduler:
         self._activate(topic)
         return True
 
+    def shed(self, frames: int, bytes_: int, detail: str) -> None:
+        """Drop the oldest messages waiting to start until at most ``frames`` of them, and
+        ``bytes_``, wait (counted ``queue_full``): a link whose line is gone keeps the newest."""
+        while self._frames > frames or self._bytes > bytes_:
+            topic = min((t for t in self._topics.values() if t.waiting),
+                        key=lambda t: t.waiting[0].queued)
+            old = topic.waiting.popleft()
+            self._frames -= 1
+            self._bytes -= old.size
+            self.dropped.append((old.sender, Drop.QUEUE_FULL, detail))
+
     def resume(self, message: Outgoing, packets: list[bytes], now: float) -> None:
         """The rest of a message whose first packets left from the caller's thread: its topic's
         message in progress, due since ``now``."""

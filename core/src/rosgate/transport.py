@@ -69,6 +69,20 @@ class CheckingDatagramEndpoint(DatagramEndpoint, Protocol):
         drop reason (declared with :func:`rosgate.drops.declare`), ``detail`` a sentence."""
 
 
+class LineDatagramEndpoint(DatagramEndpoint, Protocol):
+    """A :class:`DatagramEndpoint` that knows when its line is gone — a serial port whose
+    device vanished, an adapter unplugged — and when it is back: the core hands it, once, whom
+    to tell. While the line is gone the link sends nothing: its reliable topics' frames wait in
+    its queue (within ``bridge.queue``, the oldest dropped first past it: ``queue_full``), a
+    best-effort frame is dropped (``link_down``), and its packetizers' clocks stand still, so
+    loss recovery gives nothing up for the outage; once it is back what waited goes, in order."""
+
+    def watch_line(self, changed: Callable[[bool], None]) -> None:
+        """Call ``changed(False)`` when the line is gone (nothing can be sent or received) and
+        ``changed(True)`` once it is back and sends work again; ``changed(False)`` at once if it
+        is gone already. Call it from any thread but never with a lock ``send`` takes."""
+
+
 class FastDatagramEndpoint(DatagramEndpoint, Protocol):
     """A :class:`DatagramEndpoint` with the core's fast path: an allocation and a copy less per
     frame. Each method is optional: the core looks for it once per link, else uses ``send`` and

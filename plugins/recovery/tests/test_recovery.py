@@ -277,6 +277,28 @@ def test_a_nack_is_answered_only_for_the_address_the_frame_went_to():
     assert store.on_nack(("10.0.0.2", 1), recovery.nack(5, [0, 1, 99])) == ("route", [b"p0", b"p1"])
 
 
+def test_an_outage_of_the_line_does_not_run_the_deadline_down():
+    """The line was gone for 5 s (its timers not run): what was on the way when it went is
+    probed as soon as it is back and kept its 2 s from there, on both sides; without the
+    outage pushed on, the first look after it gives them up."""
+    log = Log()
+    sent: list[bytes] = []
+    store, rx = RetransmitStore(), RepeatReassembler(log.on_lost, log.on_recovered,
+                                                     send=lambda d, s: sent.append(d))
+    packets = repeat_fragments(frame_of(3000, 1), 1200, TOPIC, 4)
+    store.keep("b", 4, packets, "route", 0.0)
+    store.sent("b", 4, 0.01)
+    assert rx.add("a", packets[0], 0.01) is None  # its first fragment came; then the line went
+    store.resumed(5.0, 5.1)
+    rx.resumed(5.0, 5.1)
+    assert [p for _, _, p in store.probes(5.1)] == [packets[-1]]
+    rx.poll(5.1)
+    assert log.lost == [] and recovery.parse_nack(sent[-1]) == (4, [1, 2])
+    assert store.probes(6.9) == [] and len(store) == 1  # 2 s after it left, outage aside
+    assert store.probes(7.1) == [] and len(store) == 0
+    assert rx.add("a", packets[1], 6.0) is None and rx.add("a", packets[2], 6.0) is not None
+
+
 def test_a_far_side_that_moved_gets_what_was_kept_for_its_old_address_at_once():
     """A roam: frames sent to the old address were lost with it; once the far side is heard
     at its new one, they are probed there at once, their deadline counted afresh, and its

@@ -169,16 +169,37 @@ def test_a_missing_device_is_a_link_error(tmp_path):
     assert "ttyUSB9" in str(info.value) and "dialout" in (info.value.fix or "")
 
 
+def test_an_answer_comes_from_the_address_the_question_went_to(relay):
+    """The host of an address is only a name: the device takes its place, so an answer's source
+    is the very address the question was sent to (loss recovery matches acknowledgements to
+    the frames they acknowledge by it)."""
+    near, far = SerialTransport({"device": relay.a}), SerialTransport({"device": relay.b})
+    to = near.check_address(("line", 2))
+    a, b = near.bind(near.check_address(("line", 1))), far.bind(far.check_address(("line", 2)))
+    try:
+        a.send(b"question", to)
+        question = b.receive(TIMEOUT)
+        assert question is not None and question[0] == b"question"
+        b.send(b"answer", question[1])
+        assert a.receive(TIMEOUT) == (b"answer", to)
+    finally:
+        a.close()
+        b.close()
+
+
 def test_unplugged_and_back_under_a_new_path(tmp_path):
     with PtyRelay(tmp_path, FAST) as relay:
         a = SerialTransport({"device": relay.a}).bind(("serial", 1))
         b = SerialTransport({"device": relay.b}).bind(("serial", 2))
+        line: queue.SimpleQueue[bool] = queue.SimpleQueue()
+        a.watch_line(line.put)  # what the core's link is told
         try:
             a.send(b"before", ("serial", 2))
             assert b.receive(TIMEOUT) == (b"before", (relay.b, 1))
             relay.unplug()
             with pytest.raises(OSError):
                 _send_until_refused(a)
+            assert line.get(timeout=TIMEOUT) is False
             relay.replug()
             assert relay.paths[2] not in relay.paths[:2]
             arrived = threading.Event()
@@ -202,6 +223,7 @@ def test_unplugged_and_back_under_a_new_path(tmp_path):
                 sender.join()
             assert got == (b"after", (relay.b, 1))
             assert a.downs == b.downs == 1
+            assert line.get(timeout=TIMEOUT) is True and line.empty()
         finally:
             a.close()
             b.close()

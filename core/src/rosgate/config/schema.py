@@ -146,12 +146,13 @@ class TopicConfig:
                                  "the latency it adds", unit="seconds", example="2ms",
                                  parse=window, unset="no window: each message leaves as it comes")
     recovery: str | None = option(None, "loss recovery by a packetizer plugin (`retransmit`, "
-                                  "`fec`) or `none`, on datagram links with `framing: rosgate`; "
-                                  "its options over its `plugins:` table as "
+                                  "`fec`) or `none`, on datagram links of frames of 256 "
+                                  "bytes or more with `framing: rosgate`; its options over "
+                                  "its `plugins:` table as "
                                   "`{fec: {overhead: 0.25}}`",
                                   example="fec (or with options: {fec: {overhead: 0.25}})",
-                                  unset="by the QoS: `retransmit` for a reliable topic on a "
-                                        "datagram link (in order, once), else `none`",
+                                  unset="by the QoS: `retransmit` for a reliable topic on "
+                                        "such a link (in order, once), else `none`",
                                   parse=kinds.plugin_choice)
     #: the topic's options for its recovery plugin, over its plugins: table
     recovery_options: dict[str, Any] = field(default_factory=dict)
@@ -421,7 +422,8 @@ class BridgeConfig:
                                   key="reconnect.max", above=0, unit="seconds", example="10",
                                   unset="`10`, or `min` when larger")
     queue_frames: int = option(1000, "client: the messages reliable topics hold while the server "
-                               "is out of reach (and a stream link, while it is down)",
+                               "is out of reach (and a stream link, or a datagram link whose line "
+                               "is gone, a serial device unplugged, while it is down)",
                                key="queue.frames", minimum=0, example="1000")
     queue_bytes: int = option(8 * 1024 * 1024, "and the bytes", key="queue.bytes", minimum=0,
                               example="8388608")

@@ -242,7 +242,8 @@ class Role:
                 self.router.on_lost, bare=port is not None, sources=sources,
                 budget=self.bridge.budget(transport),
                 on_recovered=self.router.on_recovered if port is None else None,
-                packetizers=self.bridge.resolver.plugins if port is None else None)
+                packetizers=self.bridge.resolver.plugins if port is None else None,
+                hold_frames=self.cfg.queue_frames, hold_bytes=self.cfg.queue_bytes)
             if port is not None:
                 self.bare_ports[link] = port
             self.datagram_links[(transport.name, local)] = self.life.closing(link)

@@ -12,7 +12,9 @@ core names it); the receiver finds the packetizer by the packets' magic and need
 * ``retransmit`` — selective repeat: the receiver asks again for what is missing and
   acknowledges what came; the sender keeps each frame until acknowledged or 2 s after it left,
   and sends again at once a frame three later ones overtook. Costs a round trip per loss, and
-  bandwidth only for what was lost.
+  bandwidth only for what was lost. The 2 s count while the link's line is there: an outage
+  the transport reports (a serial device unplugged) stops them, and what waits for its
+  acknowledgement is sent again when the line is back.
 
 The formats, and what each side keeps within bounds, are :mod:`rosgate_recovery.wire`'s.
 """
@@ -149,6 +151,11 @@ class Retransmit(Packetizer):
         with self._lock:
             self.store.moved(old, new, time.monotonic())
             self.reassembler.moved(old, new)
+
+    def resumed(self, down: float, now: float) -> None:
+        with self._lock:
+            self.store.resumed(down, now)
+            self.reassembler.resumed(down, now)
 
     def timer(self, now: float) -> float | None:
         with self._lock:

@@ -432,6 +432,13 @@ class RepeatReassembler(_Pending):
         if old in self._rtt:
             self._rtt[new] = self._rtt.pop(old)
 
+    def resumed(self, down: float, now: float) -> None:
+        """The line was gone for ``down`` seconds: frames in progress wait that much longer,
+        and what they miss is asked for now."""
+        for frame in self._pending.values():
+            frame.last += down
+            frame.check_at = now
+
     def _interval(self, source: Hashable) -> float:
         """How long to wait before asking for the same fragment again."""
         return max(1.5 * self._rtt.get(source, RTT_INITIAL), NACK_AFTER)
@@ -576,6 +583,15 @@ class RetransmitStore:
             self._kept[(new, fid)] = kept
         if old in self._rtt:
             self._rtt[new] = self._rtt.pop(old)
+
+    def resumed(self, down: float, now: float) -> None:
+        """The line was gone for ``down`` seconds: every frame kept waits that much longer for
+        its acknowledgement, and is probed now (what was on the way when the line went is lost)."""
+        for kept in self._kept.values():
+            if kept.last_sent is not None:
+                kept.last_sent += down
+                kept.probe_at = now
+                kept.probes = 0
 
     def probes(self, now: float) -> list[tuple[Any, Any, bytes]]:
         """(owner, destination, fragment) for each frame whose ACK is overdue: its last

@@ -19,13 +19,17 @@ alone in its serial datagram, as a microcontroller speaking CVRA's layouts expec
 entry bound to a port then receives every datagram.
 
 Addresses: the device is the option ``device`` (one line per bridge); the host of an address
-(``bridge.peer``, ``bridge.listen``) is not looked at. Port 0 binds a sender, given a port of
+(``bridge.peer``, ``bridge.listen``) is only a name, replaced by the device (``check_address``),
+so that a frame's source is the very address its answers were sent to: loss recovery's
+acknowledgements then find the frames they acknowledge. Port 0 binds a sender, given a port of
 its own from 49152 up so that answers reach it.
 
-Unplugged: when the device vanishes (a USB adapter pulled, a radio power-cycled), the link logs
-it once, refuses sends (``OSError``: counted ``send_error``), and opens the device again by its
-name as soon as it is back — name it by its stable ``/dev/serial/by-id/...`` link, which
-follows it to whatever ``ttyUSB`` number it comes back as.
+Unplugged: when the device vanishes (a USB adapter pulled, a radio power-cycled), the line logs
+it once, tells every endpoint's link its line is gone (``watch_line``: the core holds reliable
+topics' frames until it is back and drops best-effort ones), refuses what is still sent
+(``OSError``), and opens the device again by its name as soon as it is back — name it by its
+stable ``/dev/serial/by-id/...`` link, which follows it to whatever ``ttyUSB`` number it comes
+back as — and then tells the links it is back.
 
 Capacity: a byte on the line takes a start bit, 8 data bits, the parity bit if any and the
 stop bits, so ``baud`` gives the bits per second of frames the line carries; 95 % of that is
@@ -106,6 +110,9 @@ class SerialTransport(DatagramTransport):
         self.bandwidth = SHARE * line_rate(self.options)
         self._line: Line | None = None
         self._lock = threading.Lock()
+
+    def check_address(self, address: Address) -> Address:
+        return (self.options.device, address[1])
 
     def bind(self, address: Address) -> SerialEndpoint:
         with self._lock:
@@ -207,10 +214,11 @@ class Line:
     def _gone(self) -> None:
         log.warning("serial port %s is gone (unplugged?): its link is down until it returns",
                     self.device)
+        for endpoint in self._bound():  # first: their links stop sending into it
+            endpoint.downs += 1
+            endpoint.tell(up=False)
         self._close_port()
         self._decoder = serial_datagram.Decoder(self._drop, self.options.max_frame + PORTS_SIZE)
-        for endpoint in self._bound():
-            endpoint.downs += 1
 
     def _reopen(self) -> None:
         threading.Event().wait(POLL)
@@ -224,6 +232,8 @@ class Line:
             self.port = port
         log.info("serial port %s is back (%s): its link is up",
                     self.device, os.path.realpath(self.device))
+        for endpoint in self._bound():
+            endpoint.tell(up=True)
 
     def _close_port(self) -> None:
         with self._write:
@@ -271,11 +281,22 @@ class SerialEndpoint:
         self.frames: queue.SimpleQueue[tuple[bytes, Address] | None] = queue.SimpleQueue()
         self.drop: DropCallback | None = None
         self.downs = 0  # times the device vanished while this endpoint was bound
+        self._changed: Callable[[bool], None] | None = None
         self._closed = False
 
     def count_drops(self, drop: DropCallback) -> None:
         """Where frames the line spoilt are counted: ``drop(reason, detail)``."""
         self.drop = drop
+
+    def watch_line(self, changed: Callable[[bool], None]) -> None:
+        """Whom to tell that the device is gone (``changed(False)``) or back (True)."""
+        self._changed = changed
+        if self.line.port is None:
+            changed(False)
+
+    def tell(self, up: bool) -> None:
+        if self._changed is not None:
+            self._changed(up)
 
     def send(self, frame: bytes, to: Address) -> None:
         self.line.write(frame, self.port, to[1])
