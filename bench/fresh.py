@@ -1,0 +1,165 @@
+"""Fresh data under overload: the best-effort 2.5 kB topic through the default file, at twice
+its sustained rate, and where its messages wait on the way.
+
+    .venv/bin/python bench/fresh.py [--rate MSG/S] [--seconds S] [--base REV] [--probe]
+
+It finds the sustained rate of the default file with every queue best effort (a short search,
+as ``bench.py --quick``), then offers twice that and reports, of what the subscriber got: the
+share delivered, p50/p99 age, the age of the messages sent in the trial's second half, and the
+drops both bridges counted by reason. With ``--base REV`` the same trials run with the rosgate of
+git revision REV too, back to back in one run (the same rates). With ``--probe`` each bridge
+also records the age of every message at each hop (bridge A: when its subscription gave it to
+the bridge; bridge B: when its datagram reached the machine, and when it was published) and the
+script prints their percentiles: where the time goes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import textwrap
+from dataclasses import replace
+from pathlib import Path
+
+from bench import DEFAULT_BE, OVERLOAD, QUICK, SIZES, Case, counted_drops, find_sustained, log
+from processes import ROOT, Checkout
+
+SIZE = next(s for s in SIZES if s.name == "2.5 kB")
+
+# a sitecustomize for the bridges (--probe): ages per hop, written when the bridge exits
+PROBE = textwrap.dedent('''
+    import atexit, json, os, sys, time
+    if "rosgate" in os.path.basename(sys.argv[0] if sys.argv else ""):
+        from rosgate import routes
+        from collections import defaultdict
+        ages = defaultdict(lambda: defaultdict(list))  # trial -> hop -> ages (ns)
+        last = [0]
+
+        def stamp(data):
+            "The publisher's send time, and the trial's ages (by the trial it names)."
+            try:
+                sent, trial = int(bytes(data[8:24]), 16), int(bytes(data[24:32]), 16)
+            except ValueError:
+                return 0, None
+            last[0] = max(last[0], trial)
+            return sent, ages[trial]
+
+        encode = routes.TransmitRoute._encode
+        def _encode(self, message):
+            sent, hops = stamp(message)
+            if sent:
+                hops["A taken"].append(time.time_ns() - sent)
+            return encode(self, message)
+        routes.TransmitRoute._encode = _encode
+
+        accept = routes.ReceiveRoute.accept
+        def accept_(self, header, payload, size, arrived=0):
+            sent, hops = stamp(payload)
+            if sent and arrived:
+                hops["B arrived"].append(arrived - sent)
+                hops["B waited here"].append(time.time_ns() - arrived)
+            return accept(self, header, payload, size, arrived)
+        routes.ReceiveRoute.accept = accept_
+
+        deliver = routes.ReceiveRoute.deliver
+        def deliver_(self, payload, size):
+            sent, hops = stamp(payload)
+            deliver(self, payload, size)
+            if sent:
+                hops["B published"].append(time.time_ns() - sent)
+        routes.ReceiveRoute.deliver = deliver_
+
+        def write():
+            out = os.environ["ROSGATE_PROBE_OUT"] + f".{os.getpid()}.json"
+            with open(out, "w") as f:
+                json.dump(ages.get(last[0], {}), f)  # the last trial's: the overload
+        atexit.register(write)
+''')
+
+
+def percentiles(values: list[int]) -> str:
+    values = sorted(values)
+    pick = lambda q: values[min(len(values) - 1, int(q * len(values)))] / 1e6  # noqa: E731
+    return f"n={len(values):6d}  p50 {pick(0.5):7.1f} ms  p90 {pick(0.9):7.1f}  p99 {pick(0.99):7.1f}"
+
+
+def base_checkout(rev: str, folder: Path) -> Checkout:
+    """REV's sources in ``folder``, run with this checkout's .venv (the sources go first on the
+    bridges' path; the entry points are the same distributions')."""
+    root = folder / "base"
+    root.mkdir()
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], check=True,
+                             capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(root)], input=archive, check=True)
+    (root / ".venv").symlink_to(ROOT / ".venv")
+    short = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", rev], check=True,
+                           capture_output=True, text=True).stdout.strip()
+    return Checkout(short, root)
+
+
+def overload(checkout: Checkout, folder: Path, rate: float | None, seconds: float,
+             probe: Path | None) -> tuple[float, dict]:
+    """One case: the sustained rate (unless given), then the trial at OVERLOAD x it."""
+    case = Case(SIZE, replace(DEFAULT_BE, rev=checkout.rev), folder, checkout,
+                reliability="best_effort")
+    with case:
+        case.warm_up()
+        if rate is None:
+            sustained, _ = find_sustained(case, QUICK)
+            if sustained is None:
+                raise SystemExit("no sustained rate found")
+            rate = OVERLOAD * sustained.offered
+        t = case.trial(rate, seconds)
+    drops = counted_drops(case)
+    found = {"offered": round(t.offered), "delivered in time": f"{t.in_time / t.sent:.1%}",
+             "arrived at all": f"{t.arrived:.1%}",
+             "p50 ms": t.p50_us and round(t.p50_us / 1e3, 1),
+             "p99 ms": t.p99_us and round(t.p99_us / 1e3, 1),
+             "p99 settled ms": t.p99_settled_us and round(t.p99_settled_us / 1e3, 1),
+             "drops": drops}
+    if probe is not None:
+        for path in sorted(probe.parent.glob(probe.name + ".*.json")):
+            for hop, values in json.loads(path.read_text()).items():
+                found[f"hop {hop}"] = percentiles(values)
+            path.unlink()
+    return rate, found
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--rate", type=float, help="offer this (msg/s) instead of 2x sustained")
+    parser.add_argument("--seconds", type=float, default=2.0)
+    parser.add_argument("--base", help="also run REV's rosgate, first, at the same rate")
+    parser.add_argument("--probe", action="store_true", help="ages per hop in the bridges")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="rosgate-fresh-") as tmp:
+        folder = Path(tmp)
+        probe = None
+        if args.probe:
+            (folder / "probe").mkdir()
+            (folder / "probe" / "sitecustomize.py").write_text(PROBE)
+            probe = folder / "ages"
+            os.environ["PYTHONPATH"] = os.pathsep.join(
+                filter(None, [str(folder / "probe"), os.environ.get("PYTHONPATH")]))
+            os.environ["ROSGATE_PROBE_OUT"] = str(probe)
+        checkouts = [Checkout()]
+        if args.base:
+            checkouts.insert(0, base_checkout(args.base, folder))
+        rate = args.rate
+        for checkout in checkouts:
+            label = f"@{checkout.rev}" if checkout.rev else "this checkout"
+            rate, found = overload(checkout, folder / (checkout.rev or "here"), rate,
+                                   args.seconds, probe)
+            log(f"[{label}] at {rate:,.0f} msg/s offered")
+            print(f"== {SIZE.name} default file, best effort, {label}, offered {rate:,.0f} msg/s")
+            for key, value in found.items():
+                print(f"  {key}: {value}")
+            sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
