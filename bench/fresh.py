@@ -1,16 +1,18 @@
 """Fresh data under overload: the best-effort 2.5 kB topic through the default file, at twice
 its sustained rate, and where its messages wait on the way.
 
-    .venv/bin/python bench/fresh.py [--rate MSG/S] [--seconds S] [--base REV] [--probe]
+    .venv/bin/python bench/fresh.py [--sustained MSG/S] [--seconds S] [--base REV] [--check]
+                                    [--probe]
 
 It finds the sustained rate of the default file with every queue best effort (a short search,
-as ``bench.py --quick``), then offers twice that and reports, of what the subscriber got: the
-share delivered, p50/p99 age, the age of the messages sent in the trial's second half, and the
-drops both bridges counted by reason. With ``--base REV`` the same trials run with the rosgate of
-git revision REV too, back to back in one run (the same rates). With ``--probe`` each bridge
-also records the age of every message at each hop (bridge A: when its subscription gave it to
-the bridge; bridge B: when its datagram reached the machine, and when it was published) and the
-script prints their percentiles: where the time goes.
+as ``bench.py --quick``), then offers twice that in fresh processes and reports, of what the
+subscriber got: the share delivered, p50/p99 age, the age of the messages sent in the trial's
+second half, and the drops both bridges counted by reason (with ``--check``, the same at 0.9x
+the sustained rate: a bridge that keeps up should drop nothing). With ``--base REV`` the same
+trials run with the rosgate of git revision REV too, back to back (the same rates, REV first).
+With ``--probe`` each bridge also records the age of every message at each hop (bridge A:
+when its subscription gave it to the bridge; bridge B: when its datagram reached the machine,
+and when it was published) and the script prints their percentiles: where the time goes.
 """
 
 from __future__ import annotations
@@ -25,8 +27,19 @@ import textwrap
 from dataclasses import replace
 from pathlib import Path
 
-from bench import DEFAULT_BE, OVERLOAD, QUICK, SIZES, Case, counted_drops, find_sustained, log
 from processes import ROOT, Checkout
+
+from bench import (
+    DEFAULT_BE,
+    DROP_CHECK,
+    OVERLOAD,
+    QUICK,
+    SIZES,
+    Case,
+    counted_drops,
+    find_sustained,
+    log,
+)
 
 SIZE = next(s for s in SIZES if s.name == "2.5 kB")
 
@@ -83,8 +96,12 @@ PROBE = textwrap.dedent('''
 
 def percentiles(values: list[int]) -> str:
     values = sorted(values)
-    pick = lambda q: values[min(len(values) - 1, int(q * len(values)))] / 1e6  # noqa: E731
-    return f"n={len(values):6d}  p50 {pick(0.5):7.1f} ms  p90 {pick(0.9):7.1f}  p99 {pick(0.99):7.1f}"
+
+    def pick(q: float) -> float:
+        return values[min(len(values) - 1, int(q * len(values)))] / 1e6
+
+    return (f"n={len(values):6d}  p50 {pick(0.5):7.1f} ms  p90 {pick(0.9):7.1f}  "
+            f"p99 {pick(0.99):7.1f}")
 
 
 def base_checkout(rev: str, folder: Path) -> Checkout:
@@ -101,37 +118,46 @@ def base_checkout(rev: str, folder: Path) -> Checkout:
     return Checkout(short, root)
 
 
-def overload(checkout: Checkout, folder: Path, rate: float | None, seconds: float,
-             probe: Path | None) -> tuple[float, dict]:
-    """One case: the sustained rate (unless given), then the trial at OVERLOAD x it."""
+def sustained_rate(checkout: Checkout, folder: Path) -> float:
+    """The sustained rate of the case (a short search, as bench.py --quick)."""
+    with Case(SIZE, replace(DEFAULT_BE, rev=checkout.rev), folder, checkout,
+              reliability="best_effort") as case:
+        case.warm_up()
+        sustained, _ = find_sustained(case, QUICK)
+    if sustained is None:
+        raise SystemExit("no sustained rate found")
+    return sustained.offered
+
+
+def trial(checkout: Checkout, folder: Path, rate: float, seconds: float,
+          probe: Path | None) -> dict:
+    """One trial at ``rate`` in fresh processes: what the subscriber got, what the bridges
+    dropped, and (``probe``) the ages per hop."""
     case = Case(SIZE, replace(DEFAULT_BE, rev=checkout.rev), folder, checkout,
                 reliability="best_effort")
     with case:
         case.warm_up()
-        if rate is None:
-            sustained, _ = find_sustained(case, QUICK)
-            if sustained is None:
-                raise SystemExit("no sustained rate found")
-            rate = OVERLOAD * sustained.offered
         t = case.trial(rate, seconds)
-    drops = counted_drops(case)
     found = {"offered": round(t.offered), "delivered in time": f"{t.in_time / t.sent:.1%}",
              "arrived at all": f"{t.arrived:.1%}",
              "p50 ms": t.p50_us and round(t.p50_us / 1e3, 1),
              "p99 ms": t.p99_us and round(t.p99_us / 1e3, 1),
              "p99 settled ms": t.p99_settled_us and round(t.p99_settled_us / 1e3, 1),
-             "drops": drops}
+             "drops": counted_drops(case)}
     if probe is not None:
         for path in sorted(probe.parent.glob(probe.name + ".*.json")):
             for hop, values in json.loads(path.read_text()).items():
                 found[f"hop {hop}"] = percentiles(values)
             path.unlink()
-    return rate, found
+    return found
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--rate", type=float, help="offer this (msg/s) instead of 2x sustained")
+    parser.add_argument("--sustained", type=float, help="take this (msg/s) as the sustained "
+                        "rate instead of searching for it")
+    parser.add_argument("--check", action="store_true",
+                        help=f"also a trial at {DROP_CHECK:g}x sustained (drops there?)")
     parser.add_argument("--seconds", type=float, default=2.0)
     parser.add_argument("--base", help="also run REV's rosgate, first, at the same rate")
     parser.add_argument("--probe", action="store_true", help="ages per hop in the bridges")
@@ -149,16 +175,21 @@ def main() -> None:
         checkouts = [Checkout()]
         if args.base:
             checkouts.insert(0, base_checkout(args.base, folder))
-        rate = args.rate
-        for checkout in checkouts:
-            label = f"@{checkout.rev}" if checkout.rev else "this checkout"
-            rate, found = overload(checkout, folder / (checkout.rev or "here"), rate,
-                                   args.seconds, probe)
-            log(f"[{label}] at {rate:,.0f} msg/s offered")
-            print(f"== {SIZE.name} default file, best effort, {label}, offered {rate:,.0f} msg/s")
-            for key, value in found.items():
-                print(f"  {key}: {value}")
-            sys.stdout.flush()
+        sustained = args.sustained or sustained_rate(checkouts[-1], folder / "search")
+        log(f"sustained: {sustained:,.0f} msg/s")
+        rates = [("2x sustained", OVERLOAD * sustained)]
+        if args.check:
+            rates.append((f"{DROP_CHECK:g}x sustained", DROP_CHECK * sustained))
+        for name, rate in rates:
+            for checkout in checkouts:  # back to back: the same load
+                label = f"@{checkout.rev}" if checkout.rev else "this checkout"
+                found = trial(checkout, folder / (checkout.rev or "here"), rate, args.seconds,
+                              probe)
+                print(f"== {SIZE.name} default file, best effort, {label}, {name}: "
+                      f"{rate:,.0f} msg/s")
+                for key, value in found.items():
+                    print(f"  {key}: {value}")
+                sys.stdout.flush()
 
 
 if __name__ == "__main__":
