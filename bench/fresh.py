@@ -24,11 +24,13 @@ import subprocess
 import sys
 import tempfile
 import textwrap
+import time
 from dataclasses import replace
 from pathlib import Path
 
-from processes import ROOT, Checkout
+from processes import ROOT, Checkout, bringup_files, next_domains, ros_env
 
+import bench
 from bench import (
     DEFAULT_BE,
     DROP_CHECK,
@@ -94,6 +96,52 @@ PROBE = textwrap.dedent('''
 ''')
 
 
+# a 20 Hz Twist beside the bulk topic, priority real_time (--twist): its own two processes
+TWIST_PUB = textwrap.dedent('''
+    import sys, threading, time, rclpy
+    from geometry_msgs.msg import Twist
+    rclpy.init()
+    node = rclpy.create_node("fresh_twist_pub")
+    publisher = node.create_publisher(Twist, "/cmd_vel", 10)
+    stop = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.readline(), stop.set()), daemon=True).start()
+    print("ready", flush=True)
+    while not stop.wait(0.05):  # 20 Hz, each message stamped with its send time
+        message = Twist()
+        message.linear.x = time.time()
+        publisher.publish(message)
+''')
+TWIST_SUB = textwrap.dedent('''
+    import json, sys, threading, time, rclpy
+    from geometry_msgs.msg import Twist
+    rclpy.init()
+    node = rclpy.create_node("fresh_twist_sub")
+    got = []
+    node.create_subscription(Twist, "/cmd_vel", lambda m: got.append(
+        (m.linear.x, time.time() - m.linear.x)), 10)
+    threading.Thread(target=rclpy.spin, args=(node,), daemon=True).start()
+    print("ready", flush=True)
+    sys.stdin.readline()
+    print(json.dumps(got), flush=True)
+''')
+
+
+def with_twist(write):
+    """bringup_files, with a Twist (/cmd_vel, priority real_time) beside the topic: in the
+    client's list and in what the server lets it bridge."""
+    def files(*args, **kwargs):
+        a, b = write(*args, **kwargs)
+        twist = ("  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, "
+                 "qos: 10, priority: real_time}\n")
+        a.write_text(a.read_text() + twist)
+        b.write_text(b.read_text().replace(
+            "topics: [{name: /bench, direction: transmit}]",
+            "topics: [{name: /bench, direction: transmit}, "
+            "{name: /cmd_vel, direction: transmit}]"))
+        return a, b
+    return files
+
+
 def percentiles(values: list[int]) -> str:
     values = sorted(values)
 
@@ -118,6 +166,16 @@ def base_checkout(rev: str, folder: Path) -> Checkout:
     return Checkout(short, root)
 
 
+#: --twist: a Twist beside the topic; the DDS domains of each case (publisher's, subscriber's)
+TWIST = False
+DOMAINS: list[tuple[int, int]] = []
+
+
+def _domains() -> tuple[int, int]:
+    DOMAINS.append(next_domains())
+    return DOMAINS[-1]
+
+
 def sustained_rate(checkout: Checkout, folder: Path) -> float:
     """The sustained rate of the case (a short search, as bench.py --quick)."""
     with Case(SIZE, replace(DEFAULT_BE, rev=checkout.rev), folder, checkout,
@@ -135,15 +193,35 @@ def trial(checkout: Checkout, folder: Path, rate: float, seconds: float,
     dropped, and (``probe``) the ages per hop."""
     case = Case(SIZE, replace(DEFAULT_BE, rev=checkout.rev), folder, checkout,
                 reliability="best_effort")
+    twist: list[float] = []
     with case:
         case.warm_up()
-        t = case.trial(rate, seconds)
+        if not TWIST:
+            t = case.trial(rate, seconds)
+        else:
+            pub_domain, sub_domain = DOMAINS[-1]
+            ends = [subprocess.Popen([sys.executable, "-c", code], env=ros_env(domain),
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                    for code, domain in ((TWIST_SUB, sub_domain), (TWIST_PUB, pub_domain))]
+            try:
+                for end in ends:
+                    assert end.stdout is not None and end.stdout.readline().strip() == "ready"
+                time.sleep(3.0)  # discovery, and the bridge's route for the new publisher
+                start = time.time()
+                t = case.trial(rate, seconds)
+            finally:
+                out = [end.communicate("quit\n", timeout=30)[0] for end in ends]
+            twist = [wait for sent, wait in json.loads(out[0])
+                     if start <= sent <= start + seconds]
     found = {"offered": round(t.offered), "delivered in time": f"{t.in_time / t.sent:.1%}",
              "arrived at all": f"{t.arrived:.1%}",
              "p50 ms": t.p50_us and round(t.p50_us / 1e3, 1),
              "p99 ms": t.p99_us and round(t.p99_us / 1e3, 1),
              "p99 settled ms": t.p99_settled_us and round(t.p99_settled_us / 1e3, 1),
              "drops": counted_drops(case)}
+    if TWIST:
+        found["twist (20 Hz, real_time) during the trial"] = (
+            percentiles([int(w * 1e9) for w in twist]) if twist else "none arrived")
     if probe is not None:
         for path in sorted(probe.parent.glob(probe.name + ".*.json")):
             for hop, values in json.loads(path.read_text()).items():
@@ -161,7 +239,14 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0)
     parser.add_argument("--base", help="also run REV's rosgate, first, at the same rate")
     parser.add_argument("--probe", action="store_true", help="ages per hop in the bridges")
+    parser.add_argument("--twist", action="store_true",
+                        help="a 20 Hz Twist beside it, priority real_time: its age")
     args = parser.parse_args()
+    global TWIST
+    TWIST = args.twist
+    bench.next_domains = _domains
+    if args.twist:
+        bench.bringup_files = with_twist(bringup_files)
     with tempfile.TemporaryDirectory(prefix="rosgate-fresh-") as tmp:
         folder = Path(tmp)
         probe = None
