@@ -391,6 +391,7 @@ def test_a_receive_buffer_that_stands_behind_sheds_its_oldest_and_publishes_the_
     once. Before it stood that long, nothing was dropped (a stall's backlog goes whole)."""
     route, published = receiver()
     seqs: list[int] = []
+    assert not route.shedding
 
     def handle(seq: int, arrived: int) -> bool:
         before = len(published)
@@ -415,6 +416,9 @@ def test_a_receive_buffer_that_stands_behind_sheds_its_oldest_and_publishes_the_
     assert len(early) > 50 and all(w <= FRESH_HOLD for w in early)
     assert max(early) > FRESH  # it stood behind by more than FRESH before shedding
     assert len(settled) > 100 and max(settled) <= FRESH  # then: fresh
+    assert route.shedding  # (what its status says, and rosgate top shows)
+    run.now += int(FRESH_HOLD * 1e9)
+    assert not route.shedding
 
 
 def test_a_reliable_receive_buffer_that_stands_behind_publishes_everything_late():
@@ -431,6 +435,7 @@ def test_a_reliable_receive_buffer_that_stands_behind_publishes_everything_late(
     route.clock = run.clock
     run.drive(handle)
     assert route.counters.drops == {} and published == [payload(s) for s in range(run.count)]
+    assert not route.shedding
     assert (run.out[-1][2] - run.out[-1][1]) / 1e9 > 10 * FRESH  # and it did wait
 
 

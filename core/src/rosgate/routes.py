@@ -177,6 +177,11 @@ class Route:
         self.check.far(identity)
         return identity, qos
 
+    @property
+    def shedding(self) -> bool:
+        """Whether its queue in this bridge stands behind now, and sheds its oldest."""
+        return self.backlog is not None and self.backlog.shedding(self.clock() / 1e9)
+
     def stale(self, waited_ns: int, now_ns: int, where: str) -> bool:
         """Whether a best-effort message that waited ``waited_ns`` in the bridge's own queue
         (``where``) is dropped for it (counted ``too_late``): only while the queue stands

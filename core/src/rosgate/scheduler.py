@@ -54,6 +54,11 @@ class Backlog:
         self.lag = lag
         self.hold = hold
 
+    def shedding(self, now: float) -> bool:
+        """Whether, at ``now``, the queue stands behind and sheds (what ``rosgate top`` shows)."""
+        return (self.since is not None and self.last - self.since >= self.hold
+                and now - self.last < self.hold)
+
     def shed(self, waited: float, now: float) -> bool:
         """Whether a message that waited ``waited`` seconds, leaving at ``now``, is shed."""
         if waited <= self.lag:
