@@ -73,7 +73,8 @@ def _patterns(role: Role | None) -> Status:
 
 #: an entry's counters before anything crossed, and its state when nothing is wrong
 IDLE = {"sent": 0, "bytes_sent": 0, "received": 0, "bytes_received": 0, "lost": 0, "drops": {},
-        "queue": 0, "shedding": False, "stale": None, "silence": None, "latency": None, "refused": None}
+        "queue": 0, "shedding": False, "stale": None, "silence": None, "latency": None,
+        "refused": None}
 
 
 def _row(e: TopicConfig | ServiceConfig | None, name: str, peer: str, **state: Any) -> Status:
