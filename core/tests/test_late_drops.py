@@ -16,6 +16,7 @@ Reliable topics are never dropped by age."""
 from __future__ import annotations
 
 import inspect
+import socket
 import threading
 import time
 from collections import deque
@@ -468,3 +469,45 @@ def test_a_subscription_queue_that_stands_behind_sheds_its_oldest_and_sends_the_
     assert len(settled) > 100 and max(settled) <= FRESH
     frames = far.wait(len(sent))
     assert [f[envelope.SIZE:] for f in frames] == [payload(s) for s in sent]
+
+
+def test_datagrams_a_full_receive_buffer_drops_are_counted():
+    """While the link's thread is busy, datagrams fill the kernel's receive buffer (64 kB here)
+    and the kernel drops the rest: each is counted ``receive_buffer_full``, so what arrived and
+    what was counted add up to what was sent."""
+    transport = UdpTransport({"receive_buffer": 65_536})
+    busy, go = threading.Event(), threading.Event()
+    got: list[bytes] = []
+    lost: list[Any] = []
+
+    def on_frame(frame: bytes, link: Any, source: Any) -> None:
+        got.append(bytes(frame))
+        busy.set()
+        go.wait(10)  # the first one holds the link's thread
+
+    link = DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "far", on_frame,
+                        lambda topic_id, reason: lost.append(reason))
+    to = link.endpoint.sock.getsockname()
+    frames = [envelope.pack(0, 7, 1, seq + 1, 0) + payload(seq) for seq in range(400)]
+    sent = 200
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+            sender.sendto(frames[0], to)
+            assert busy.wait(5)
+            for frame in frames[1:sent]:
+                sender.sendto(frame, to)
+            go.set()
+            # then one at a time until one arrives (it tells the count; the buffer may still
+            # be full for the first of them), and until every one is received or counted
+            deadline = time.monotonic() + 10
+            while len(got) + len(lost) < sent and time.monotonic() < deadline:
+                if not any(f in got for f in frames[200:sent]) and sent < len(frames):
+                    sender.sendto(frames[sent], to)
+                    sent += 1
+                time.sleep(0.01)  # (lists to poll, no event)
+    finally:
+        go.set()
+        link.close()
+    assert got[0] == frames[0] and got[-1] in frames[200:sent]
+    assert set(lost) == {"receive_buffer_full"} and len(lost) > 100  # most did not fit
+    assert len(got) + len(lost) == sent

@@ -66,6 +66,9 @@ class Drop(StrEnum):
                                         "on the server: not accepted")
     # receiving: the link
     TRANSPORT_ERROR = "transport_error", "the transport failed while receiving (a bug: logged)"
+    RECEIVE_BUFFER_FULL = "receive_buffer_full", ("datagrams the kernel dropped because a "
+                                                  "link's receive buffer was full: the bridge "
+                                                  "did not read them in time (udp, on Linux)")
     OVERSIZED_DATAGRAM = "oversized_datagram", "a datagram longer than the link's `max_frame`"
     BAD_FRAGMENT = "bad_fragment", "a fragment whose header or size is impossible"
     BAD_BATCH = "bad_batch", "a batch datagram whose lengths run past its end"
