@@ -218,7 +218,11 @@ def trial(checkout: Checkout, folder: Path, rate: float, seconds: float,
              "p50 ms": t.p50_us and round(t.p50_us / 1e3, 1),
              "p99 ms": t.p99_us and round(t.p99_us / 1e3, 1),
              "p99 settled ms": t.p99_settled_us and round(t.p99_settled_us / 1e3, 1),
-             "drops": counted_drops(case)}
+             "drops": counted_drops(case),
+             # a link's own (receive_buffer_full...), the last of each bridge's lines
+             "link drops": [line.rsplit("frames for no topic: ", 1)[1] for bridge in case.bridges
+                            for line in [*[seen for seen in bridge.lines.seen
+                                           if "frames for no topic: " in seen][-1:]]]}
     if TWIST:
         found["twist (20 Hz, real_time) during the trial"] = (
             percentiles([int(w * 1e9) for w in twist]) if twist else "none arrived")
