@@ -1,5 +1,6 @@
-"""A best-effort message is superseded or dropped late only when the link is the bottleneck,
-never because a thread of the bridge was not scheduled.
+"""A best-effort message is superseded or dropped late when the link is the bottleneck, or
+when the bridge's own queue stands behind; never because a thread of the bridge was not
+scheduled for a while.
 
 A stalled bridge (its executor or its receive thread held for 50 ms) finds a backlog when it
 runs again: it sends all of it, and the far side publishes all of it, on a link that was idle
@@ -7,11 +8,15 @@ meanwhile. A link that cannot keep up (a budget, a send that blocks as on a full
 buffer) still replaces what waits for it (``superseded``) and drops what waited longer than its
 ``max_delay`` (``too_late``). A best-effort topic that stays behind in the link's queue for
 longer than a stall lasts (HOLD) sheds what waited over LAG there (``overload``); a shorter stall
-sheds nothing, and the subscription's queue and the receive buffer never shed."""
+sheds nothing. In the bridge's own queues (the subscription's, the receive buffer) a wait
+below FRESH is never shed; a queue that stands behind by more for FRESH_HOLD on end sheds
+what waited over FRESH, the oldest first (``too_late``), so that what goes on is the newest.
+Reliable topics are never dropped by age."""
 
 from __future__ import annotations
 
 import inspect
+import socket
 import threading
 import time
 from collections import deque
@@ -26,7 +31,7 @@ from rosgate.config import LinkConfig, TopicConfig
 from rosgate.keyring import StaticKeys
 from rosgate.links import DatagramLink
 from rosgate.routes import EnvelopeFraming, ReceiveRoute, TransmitRoute, Warner
-from rosgate.scheduler import HOLD, LAG
+from rosgate.scheduler import FRESH, FRESH_HOLD, HOLD, LAG
 from rosgate.spec import Delivery
 from rosgate.wire import envelope
 
@@ -286,25 +291,33 @@ def test_a_send_held_for_less_than_the_hold_drops_nothing(closing):
     assert [envelope.unpack(f).seq for f in frames] == list(range(1, count + 1))
 
 
-def behind_for(seconds: float, step: Callable[[int, int], bool]) -> list[tuple[float, bool]]:
+def behind_for(seconds: float, step: Callable[[int, int], bool],
+               waited: float = 0.6 * FRESH) -> list[tuple[float, bool]]:
     """``step(i, arrived)`` again and again for ``seconds``, each time with a message that
-    waited 30 ms (LAG is 20): (since the start, whether it went through) of each."""
+    waited ``waited`` seconds (below FRESH unless told): (since the start, whether it went
+    through) of each."""
     start, out, i = time.monotonic(), [], 0
     while (now := time.monotonic()) - start < seconds:
-        out.append((now - start, step(i, time.time_ns() - 30_000_000)))
+        out.append((now - start, step(i, time.time_ns() - int(waited * 1e9))))
         i += 1
         time.sleep(0.001)  # paces the messages
     return out
 
 
-def test_a_receive_buffer_that_stays_behind_is_published_late_never_shed():
-    """What waits in the receive buffer waits for this bridge's thread, not for the link: a
-    CPU-bound bridge publishes it late rather than drop it (a backlog there is bounded by the
-    socket's buffer), best effort or reliable."""
+def receiver(delivery: Delivery = Delivery()) -> tuple[ReceiveRoute, list[bytes]]:
+    """A receiving route of ``delivery`` and what it published."""
     route = ReceiveRoute(topic(), 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")),
-                         Warner(), "/scan", Delivery(), decode=bytes)
+                         Warner(), "/scan", delivery, decode=bytes)
     published: list[bytes] = []
     route.publish = published.append
+    return route, published
+
+
+def test_a_receive_buffer_behind_by_less_than_its_bound_is_published_late_never_shed():
+    """What waits in the receive buffer for less than FRESH, however long it stays so, is a
+    wait for this bridge's thread: a busy bridge publishes it late rather than drop it; and a
+    reliable topic is never dropped by age, however long it waited."""
+    route, published = receiver()
 
     def receive(seq: int, arrived: int) -> bool:
         before = len(published)
@@ -315,17 +328,15 @@ def test_a_receive_buffer_that_stays_behind_is_published_late_never_shed():
     went = behind_for(2 * HOLD, receive)
     assert len(went) > 50 and all(ok for _, ok in went)
     assert route.counters.drops == {}
-    reliable = ReceiveRoute(topic(), 7, CdrCodec(None, {}), StaticKeys(NoCipher({}, ".")),
-                            Warner(), "/scan", Delivery(reliable=True), decode=bytes)
-    reliable.publish = published.append
-    route = reliable
-    assert all(ok for _, ok in behind_for(2 * HOLD, receive))
-    assert reliable.counters.drops == {}
+    route, published = receiver(Delivery(reliable=True))
+    assert all(ok for _, ok in behind_for(2 * HOLD, receive, waited=2 * FRESH))
+    assert route.counters.drops == {}
 
 
-def test_a_subscription_queue_that_stays_behind_is_sent_late_never_shed(closing, far):
-    """What waits in the subscription's queue waits for this bridge's executor, not for the
-    link (idle here): it is sent late rather than dropped; the topic's QoS depth bounds it."""
+def test_a_subscription_queue_behind_by_less_than_its_bound_is_sent_late_never_shed(closing,
+                                                                                     far):
+    """What waits in the subscription's queue for less than FRESH waits for this bridge's
+    executor: it is sent late rather than dropped; the topic's QoS depth bounds it."""
     link = udp_link(closing)
     waiting: deque = deque()
     route = transmitter(link, far.address, waiting, latest_only=False)
@@ -340,3 +351,163 @@ def test_a_subscription_queue_that_stays_behind_is_sent_late_never_shed(closing,
     assert len(went) > 50 and all(ok for _, ok in went)
     assert route.counters.drops == {}
     assert len(far.wait(route.counters.sent)) == route.counters.sent
+
+
+# --- a bridge that cannot keep up: its own queues bounded in time ---------------------------
+
+MS = 1_000_000  # ns
+
+
+class Overloaded:
+    """A queue that a bridge's thread drains at half the rate messages arrive (one every
+    0.5 ms, one handled per ms; a dropped one costs 0.05 ms), on a clock of its own (the
+    route's): which came out, and how long each waited."""
+
+    def __init__(self) -> None:
+        self.now = 0
+        self.out: list[tuple[int, int, int]] = []  # (seq, when it arrived, when it came out)
+        self.count = 0
+
+    def clock(self) -> int:
+        return self.now
+
+    def drive(self, handle: Callable[[int, int], bool], seconds: float = 1.0) -> None:
+        """``handle(seq, arrived)`` of each message in turn, when the thread gets to it;
+        whether it went through."""
+        self.count = int(seconds * 2000)
+        for seq in range(self.count):
+            arrived = seq * MS // 2
+            self.now = max(self.now, arrived)
+            if handle(seq, arrived):
+                self.out.append((seq, arrived, self.now))
+                self.now += MS
+            else:
+                self.now += MS // 20
+
+
+def test_a_receive_buffer_that_stands_behind_sheds_its_oldest_and_publishes_the_newest():
+    """Offered twice what it can publish, a best-effort topic's receive buffer stands behind:
+    after FRESH_HOLD on end, what waited over FRESH there is dropped as it comes out (the
+    oldest first, counted ``too_late``), and what is published is the newest, in order, each
+    once. Before it stood that long, nothing was dropped (a stall's backlog goes whole)."""
+    route, published = receiver()
+    seqs: list[int] = []
+    assert not route.shedding
+
+    def handle(seq: int, arrived: int) -> bool:
+        before = len(published)
+        frame = envelope.pack(0, 7, 1, seq + 1, 0) + payload(seq)
+        route.on_frame(envelope.unpack(frame), frame, arrived)
+        if len(published) > before:
+            seqs.append(seq)
+        return len(published) > before
+
+    run = Overloaded()
+    route.clock = run.clock
+    run.drive(handle)
+    drops = route.counters.drops
+    assert set(drops) == {"too_late"} and drops["too_late"] + len(published) == run.count
+    assert drops["too_late"] > run.count / 3  # half of what came had to go
+    assert seqs == sorted(set(seqs)) and published == [payload(s) for s in seqs]
+    assert seqs[-1] == run.count - 1  # the newest is published
+    waits = [(left - arrived) / 1e9 for _, arrived, left in run.out]
+    lefts = [left / 1e9 for _, _, left in run.out]
+    early = [w for w, at in zip(waits, lefts, strict=True) if at < FRESH_HOLD]
+    settled = [w for w, at in zip(waits, lefts, strict=True) if at > 2 * FRESH_HOLD]
+    assert len(early) > 50 and all(w <= FRESH_HOLD for w in early)
+    assert max(early) > FRESH  # it stood behind by more than FRESH before shedding
+    assert len(settled) > 100 and max(settled) <= FRESH  # then: fresh
+    assert route.shedding  # (what its status says, and rosgate top shows)
+    run.now += int(FRESH_HOLD * 1e9)
+    assert not route.shedding
+
+
+def test_a_reliable_receive_buffer_that_stands_behind_publishes_everything_late():
+    """The same overload on a reliable topic: nothing is dropped by age; each message is
+    published, in order, however late (the delay is the topic's to bear, and shows)."""
+    route, published = receiver(Delivery(reliable=True))
+
+    def handle(seq: int, arrived: int) -> bool:
+        frame = envelope.pack(0, 7, 1, seq + 1, 0) + payload(seq)
+        route.on_frame(envelope.unpack(frame), frame, arrived)
+        return True
+
+    run = Overloaded()
+    route.clock = run.clock
+    run.drive(handle)
+    assert route.counters.drops == {} and published == [payload(s) for s in range(run.count)]
+    assert not route.shedding
+    assert (run.out[-1][2] - run.out[-1][1]) / 1e9 > 10 * FRESH  # and it did wait
+
+
+def test_a_subscription_queue_that_stands_behind_sheds_its_oldest_and_sends_the_newest(
+        closing, far):
+    """The taker of a best-effort topic whose subscription's queue stands behind: after
+    FRESH_HOLD on end, what waited over FRESH to be taken is dropped (``too_late``), the
+    oldest first; what is sent is the newest, in order."""
+    link = udp_link(closing)
+    waiting: deque = deque()
+    route = transmitter(link, far.address, waiting, latest_only=False)
+    sent: list[int] = []
+
+    def handle(seq: int, arrived: int) -> bool:
+        waiting.append((payload(seq), arrived))
+        before = route.counters.sent
+        route._send(route._drain([], 1, 1))  # what the executor takes now: one message
+        if route.counters.sent > before:
+            sent.append(seq)
+        return route.counters.sent > before
+
+    run = Overloaded()
+    route.clock = run.clock
+    run.drive(handle)
+    drops = route.counters.drops
+    assert set(drops) == {"too_late"} and drops["too_late"] + len(sent) == run.count
+    assert sent == sorted(set(sent)) and sent[-1] == run.count - 1
+    settled = [(left - arrived) / 1e9 for _, arrived, left in run.out
+               if left / 1e9 > 2 * FRESH_HOLD]
+    assert len(settled) > 100 and max(settled) <= FRESH
+    frames = far.wait(len(sent))
+    assert [f[envelope.SIZE:] for f in frames] == [payload(s) for s in sent]
+
+
+def test_datagrams_a_full_receive_buffer_drops_are_counted():
+    """While the link's thread is busy, datagrams fill the kernel's receive buffer (64 kB here)
+    and the kernel drops the rest: each is counted ``receive_buffer_full``, so what arrived and
+    what was counted add up to what was sent."""
+    transport = UdpTransport({"receive_buffer": 65_536})
+    busy, go = threading.Event(), threading.Event()
+    got: list[bytes] = []
+    lost: list[Any] = []
+
+    def on_frame(frame: bytes, link: Any, source: Any) -> None:
+        got.append(bytes(frame))
+        busy.set()
+        go.wait(10)  # the first one holds the link's thread
+
+    link = DatagramLink(transport, transport.bind(("127.0.0.1", 0)), "far", on_frame,
+                        lambda topic_id, reason: lost.append(reason))
+    to = link.endpoint.sock.getsockname()
+    frames = [envelope.pack(0, 7, 1, seq + 1, 0) + payload(seq) for seq in range(400)]
+    sent = 200
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+            sender.sendto(frames[0], to)
+            assert busy.wait(5)
+            for frame in frames[1:sent]:
+                sender.sendto(frame, to)
+            go.set()
+            # then one at a time until one arrives (it tells the count; the buffer may still
+            # be full for the first of them), and until every one is received or counted
+            deadline = time.monotonic() + 10
+            while len(got) + len(lost) < sent and time.monotonic() < deadline:
+                if not any(f in got for f in frames[200:sent]) and sent < len(frames):
+                    sender.sendto(frames[sent], to)
+                    sent += 1
+                time.sleep(0.01)  # (lists to poll, no event)
+    finally:
+        go.set()
+        link.close()
+    assert got[0] == frames[0] and got[-1] in frames[200:sent]
+    assert set(lost) == {"receive_buffer_full"} and len(lost) > 100  # most did not fit
+    assert len(got) + len(lost) == sent

@@ -29,8 +29,11 @@ class Drop(StrEnum):
     RATE_LIMIT = "rate_limit", "faster than the topic's `max_rate`"
     SUPERSEDED = "superseded", "a latest-only topic's waiting message was replaced by a newer one"
     TOO_LATE = "too_late", ("a best-effort message waited longer than its `max_delay` (to be "
-                            "taken, in the send queue or in the receive buffer), or any message "
-                            "that waited longer than it for the server to come back")
+                            "taken, in the send queue or in the receive buffer), or, without "
+                            "one, over 25 ms to be taken or in the receive buffer while that "
+                            "queue had stood behind for 100 ms on end (the oldest goes first); "
+                            "or any message that waited longer than its `max_delay` for the "
+                            "server to come back")
     OVERLOAD = "overload", ("a best-effort message (without a `max_delay` of its own) that "
                             "waited over 20 ms in a link's send queue while its topic had been "
                             "behind there for 200 ms on end: a link offered more than it carries "
@@ -63,6 +66,9 @@ class Drop(StrEnum):
                                         "on the server: not accepted")
     # receiving: the link
     TRANSPORT_ERROR = "transport_error", "the transport failed while receiving (a bug: logged)"
+    RECEIVE_BUFFER_FULL = "receive_buffer_full", ("datagrams the kernel dropped because a "
+                                                  "link's receive buffer was full: the bridge "
+                                                  "did not read them in time (udp, on Linux)")
     OVERSIZED_DATAGRAM = "oversized_datagram", "a datagram longer than the link's `max_frame`"
     BAD_FRAGMENT = "bad_fragment", "a fragment whose header or size is impossible"
     BAD_BATCH = "bad_batch", "a batch datagram whose lengths run past its end"

@@ -852,12 +852,19 @@ class DatagramLink(_Sending, Link):
         else:
             # one buffer for every datagram, so long that one that fills it is too long
             buffer = memoryview(bytearray(max(self.max_frame, 65_535) + 1))
+            endpoint: Any = self.endpoint
+            overflowed = [getattr(endpoint, "overflowed", None)]  # (counted so far)
 
             def receive(timeout: float) -> tuple[bytes | memoryview, Address] | None:
                 got = receive_into(buffer, timeout)
                 if got is None:
                     return None
                 size, source, self.arrived = got
+                if overflowed[0] is not None and endpoint.overflowed != overflowed[0]:
+                    # the kernel dropped datagrams: the receive buffer was full
+                    for _ in range((endpoint.overflowed - overflowed[0]) % 2**32):
+                        self.on_lost(None, Drop.RECEIVE_BUFFER_FULL)
+                    overflowed[0] = endpoint.overflowed
                 if size >= len(buffer):
                     self.on_lost(None, Drop.OVERSIZED_DATAGRAM)
                     return None

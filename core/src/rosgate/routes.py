@@ -33,6 +33,7 @@ from .inorder import Ordered
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .matching import PublishGate
+from .scheduler import FRESH, FRESH_HOLD, Backlog
 from .spec import CONTROL, Delivery
 from .transform import Transform, TransformError
 from .transport import Address
@@ -92,6 +93,9 @@ class Route:
     qos_in_use: dict[str, Any] | None = None
     link: Link
     destination: Callable[[], Address | None]
+    #: the wall clock (ns) the bridge's own queues measure waits by (the kernel's and the
+    #: middleware's stamps are of it)
+    clock: Callable[[], int] = staticmethod(time.time_ns)
 
     def __init__(self, entry: TopicConfig | ServiceConfig, topic_id: int, codec: Any,
                  keys: Keys, warner: Warner, label: str, delivery: Delivery = Delivery()):
@@ -108,6 +112,10 @@ class Route:
         self.plain = isinstance(keys, StaticKeys) and type(keys.cipher).open is NoCipher.open
         self.zero_copy = False  # a reassembled frame's bytearray may become the payload (open)
         self.max_wait_ns = max_wait_ns(entry) if isinstance(entry, TopicConfig) else 0
+        #: a best-effort topic without a max_delay: what sheds its messages that stand in the
+        #: bridge's own queue (the subscription's, or the receive buffer) by their age
+        self.backlog = Backlog(FRESH, FRESH_HOLD) if isinstance(entry, TopicConfig) and not (
+            self.max_wait_ns or delivery.reliable) else None
         #: the entry's type against the far side's (the router gives this side's hash)
         self.check = TypeCheck(label, Identity(entry.type, None))
         #: without a cipher that vouches for the header, one forged frame may not move it
@@ -168,6 +176,26 @@ class Route:
             return None
         self.check.far(identity)
         return identity, qos
+
+    @property
+    def shedding(self) -> bool:
+        """Whether its queue in this bridge stands behind now, and sheds its oldest."""
+        return self.backlog is not None and self.backlog.shedding(self.clock() / 1e9)
+
+    def stale(self, waited_ns: int, now_ns: int, where: str) -> bool:
+        """Whether a best-effort message that waited ``waited_ns`` in the bridge's own queue
+        (``where``) is dropped for it (counted ``too_late``): only while the queue stands
+        behind (:class:`~rosgate.scheduler.Backlog`), and only when the QoS in use is best
+        effort (a reliable one found from the publishers never is)."""
+        backlog = self.backlog
+        if backlog is None or not backlog.shed(waited_ns / 1e9, now_ns / 1e9):
+            return False
+        found = self.qos_in_use
+        if found is not None and found.get("reliability") != "best_effort":
+            return False
+        self.drop(Drop.TOO_LATE, f"waited {waited_ns / 1e6:.0f} ms {where}, behind for "
+                                 f"{FRESH_HOLD * 1e3:.0f} ms on end (oldest first)")
+        return True
 
     def refuse_type(self) -> None:
         """A frame dropped because the far side's type is not this side's."""
@@ -277,9 +305,11 @@ class BareFraming:
 
 def max_wait_ns(topic: TopicConfig) -> int:
     """How long (ns) a message may wait in the bridge's own buffers before it is dropped
-    ``too_late``: the topic's ``max_delay``; 0, never. No default: a backlog there waits for a
-    bridge thread, not the link, which can carry it; where the link is the bottleneck, frames
-    wait in its queue instead, shed by latest-only, its ``max_delay`` and the scheduler."""
+    ``too_late``: the topic's ``max_delay``; 0, none. Without it a best-effort topic's wait
+    there is bounded only once the queue stands behind (:attr:`Route.backlog`): a short
+    backlog waits for a bridge thread, which catches up with it; where the link is the
+    bottleneck, frames wait in its queue instead, shed by latest-only, its ``max_delay`` and
+    the scheduler."""
     return int(1e9 * topic.max_delay) if topic.max_delay is not None else 0
 
 
@@ -355,7 +385,7 @@ class TransmitRoute(Route):
         take = self.take
         if take is None:
             return messages
-        max_wait, now = self.max_wait_ns, time.time_ns()
+        max_wait, now = self.max_wait_ns, self.clock()
         while len(messages) < frames and (got := take()) is not None:
             more, received = got
             if max_wait and now - received > max_wait:
@@ -363,6 +393,8 @@ class TransmitRoute(Route):
                 for _ in range(len(messages) + 1):
                     self.drop(Drop.TOO_LATE, f"waited over {max_wait / 1e6:.0f} ms to be taken")
                 messages.clear()
+                continue
+            if self.backlog is not None and self.stale(now - received, now, "to be taken"):
                 continue
             messages.append(more)
             if len(messages) * self._size >= size:
@@ -517,9 +549,13 @@ class ReceiveRoute(Route):
                arrived: int = 0) -> None:
         """A frame past its checks: published, unless it waited too long here."""
         if arrived and self.max_wait_ns:  # the topic's max_delay
-            waited = time.time_ns() - arrived
+            waited = self.clock() - arrived
             if waited > self.max_wait_ns:
                 self.drop(Drop.TOO_LATE, f"waited {waited / 1e6:.0f} ms in the receive buffer")
+                return
+        elif arrived and self.backlog is not None:
+            now = self.clock()
+            if self.stale(now - arrived, now, "in the receive buffer"):
                 return
         if header.flags & envelope.FLAG_COMPRESSED:
             self.transform_back(payload, size)

@@ -28,30 +28,48 @@ CONTROL = 0
 KEYS_KEPT = 4096  # senders whose queue key is remembered, at most
 LAG = 0.02   # seconds: a message that waited longer finds its topic behind
 HOLD = 0.2   # seconds behind on end (or caught up, to stop) before a topic sheds (Backlog)
+#: seconds a best-effort message without a ``max_delay`` of its own may wait in the bridge's own
+#: queues (its subscription's, the receive buffer) once its topic has stood behind there for
+#: FRESH_HOLD on end: what waited longer is dropped, oldest first (``too_late``). Longer than
+#: LAG (a bridge near the limit of its CPU waits for its threads some milliseconds without
+#: being overloaded); FRESH_HOLD is CoDel's interval: a 50 ms stall's backlog is caught up with
+#: well within it, while a queue that stands this long is one that will not drain by itself.
+FRESH = 0.025
+FRESH_HOLD = 0.1
 
 
 class Backlog:
-    """Whether a best-effort topic sheds a message from the send queue by its age (only there:
-    it waits there only when the link is the bottleneck). Behind (a message older than
-    :data:`LAG`) for :data:`HOLD` on end, it sheds what is older than ``LAG`` until nothing has
-    been for ``HOLD``; a stall's backlog is caught up with in less than ``HOLD``: sent, not shed."""
+    """Whether a best-effort topic sheds a message from a queue by its age, the way CoDel does:
+    only a queue that stands, not one that comes and goes. Behind (a message older than
+    ``lag``) for ``hold`` on end, it sheds what is older than ``lag`` until nothing has
+    been for ``hold``; a stall's backlog is caught up with in less than ``hold``: sent, not
+    shed. The send queue's are :data:`LAG` and :data:`HOLD`; the bridge's own queues' (the
+    subscription's, the receive buffer) :data:`FRESH` and :data:`FRESH_HOLD`."""
 
-    __slots__ = ("since", "last")
+    __slots__ = ("since", "last", "lag", "hold")
 
-    def __init__(self) -> None:
+    def __init__(self, lag: float = LAG, hold: float = HOLD) -> None:
         self.since: float | None = None  # when this spell behind began
-        self.last = -HOLD  # when a message last waited longer than LAG
+        self.last = -hold  # when a message last waited longer than lag
+        self.lag = lag
+        self.hold = hold
+
+    def shedding(self, now: float) -> bool:
+        """Whether, at ``now``, the queue stands behind and sheds (what ``rosgate top`` shows)."""
+        return (self.since is not None and self.last - self.since >= self.hold
+                and now - self.last < self.hold)
 
     def shed(self, waited: float, now: float) -> bool:
         """Whether a message that waited ``waited`` seconds, leaving at ``now``, is shed."""
-        if waited <= LAG:
-            if self.since is not None and (now - self.since < HOLD or now - self.last >= HOLD):
+        if waited <= self.lag:
+            if self.since is not None and (now - self.since < self.hold
+                                           or now - self.last >= self.hold):
                 self.since = None  # caught up: a stall's backlog is gone, or the overload is
             return False
-        if self.since is None or now - self.last >= HOLD:  # (late ones far apart: no spell)
+        if self.since is None or now - self.last >= self.hold:  # (late ones far apart: no spell)
             self.since = now
         self.last = now
-        return now - self.since >= HOLD
+        return now - self.since >= self.hold
 
 
 def burst(rate_bytes: float, packet: int) -> int:

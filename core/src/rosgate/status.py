@@ -12,6 +12,8 @@ Fields (counters only grow; rates are differences between two statuses over thei
         type        pkg/msg/Type           transport  udp, tcp...      port   int or null
         sent, bytes_sent, received, bytes_received, lost     counters
         drops       {reason: count}        queue      messages waiting to be sent
+        shedding    a best-effort topic's queue in this bridge (its subscription's, or the
+                    receive buffer) stands behind now, and its oldest messages are dropped
         stale       receiving topics: no message for bridge.stale_after seconds (else null)
         silence     receiving topics: seconds since the last message (else null)
         latency     seconds from sender to publish, where known (else null)
@@ -71,7 +73,8 @@ def _patterns(role: Role | None) -> Status:
 
 #: an entry's counters before anything crossed, and its state when nothing is wrong
 IDLE = {"sent": 0, "bytes_sent": 0, "received": 0, "bytes_received": 0, "lost": 0, "drops": {},
-        "queue": 0, "stale": None, "silence": None, "latency": None, "refused": None}
+        "queue": 0, "shedding": False, "stale": None, "silence": None, "latency": None,
+        "refused": None}
 
 
 def _row(e: TopicConfig | ServiceConfig | None, name: str, peer: str, **state: Any) -> Status:
@@ -92,6 +95,7 @@ def _entry(route: Route, peer: str, config: BridgeConfig, now: float) -> Status:
                 received=c.received, bytes_received=c.bytes_received, lost=c.lost,
                 drops=dict(c.drops),
                 queue=route.queue_depth if isinstance(route, TransmitRoute) else 0,
+                shedding=route.shedding,
                 stale=silence >= config.stale_after if silence is not None else None,
                 silence=silence)
 

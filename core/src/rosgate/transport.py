@@ -97,7 +97,10 @@ class FastDatagramEndpoint(DatagramEndpoint, Protocol):
         best-effort message that waited too long in the receive buffer (the topic's ``max_delay``).
         ``buffer`` is longer than any frame the link accepts (more than ``max_frame`` and than
         65,535 bytes): the core counts a frame that fills it as too long. Called from one thread;
-        ``buffer`` is the core's and reused."""
+        ``buffer`` is the core's and reused. An endpoint with an ``overflowed`` attribute (an
+        int: the frames dropped so far because its receive buffer was full, as of the last
+        receive; UDP asks the kernel: ``SO_RXQ_OVFL``) has them counted
+        ``receive_buffer_full``."""
 
     def send_parts(self, parts: list[bytes | memoryview], to: Address) -> None:
         """As :meth:`~DatagramEndpoint.send`, for the one frame that ``parts`` make in order

@@ -45,3 +45,13 @@ def test_the_view_shows_rates_drops_refusals_and_budget():
     assert "peers: base DOWN" in text
     link = next(line for line in text.splitlines() if "│ udp" in line)
     assert "DOWN" in link and "10%" in link  # 800 kbit/s of an 8 Mbit/s budget
+
+
+def test_a_topic_whose_queue_stands_behind_shows_it_sheds():
+    console = Console(width=200, record=True, color_system=None)
+    now = status(12.0, 300, {"too_late": 40})
+    now["entries"][0]["shedding"] = True
+    console.print(render(now, status(10.0, 100, {}), keys=False))
+    scan = next(line for line in console.export_text().splitlines() if "/scan" in line)
+    cells = [c.strip() for c in scan.split("│")[1:-1]]
+    assert cells[-3:] == ["3 shedding", "-", "too_late=40"]

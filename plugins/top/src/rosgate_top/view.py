@@ -113,9 +113,16 @@ def _entries(now: dict[str, Any], before: dict[str, Any] | None, sort: str,
             e["stale"]]
         table.add_row(name, kind, _way(e["direction"]), peer,
                       _number(r.out_rate), _number(r.in_rate), _bytes(r.out_bytes),
-                      _bytes(r.in_bytes), _seconds(e["latency"]), clean(e["queue"]), stale,
+                      _bytes(r.in_bytes), _seconds(e["latency"]), _queue(e), stale,
                       drops)
     return table
+
+
+def _queue(e: dict[str, Any]) -> Text:
+    """An entry's queue, and whether it sheds (its queue in the bridge stands behind)."""
+    if e.get("shedding"):  # (a status from before the field has none)
+        return Text(f"{clean(e['queue']).plain} shedding", style="yellow")
+    return clean(e["queue"])
 
 
 def _links(now: dict[str, Any], before: dict[str, Any] | None) -> Table:

@@ -67,6 +67,10 @@ _LIMIT = {socket.SO_RCVBUF: ("receive", "net.core.rmem_max"),
 # systems the option fails and arrival times are unknown (0)
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if _LINUX else -1)
 _TIMESPEC = struct.Struct("@qq")
+# SO_RXQ_OVFL (Linux): each datagram comes with how many the socket's full receive buffer has
+# dropped so far (a control message, sent once there are any)
+_SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40 if _LINUX else -1)
+_OVERFLOWS = struct.Struct("@I")
 _TIMEVAL = struct.Struct("@ll")  # SO_RCVTIMEO's struct timeval: seconds, microseconds
 #: the shortest wait left to SO_RCVTIMEO, which the kernel counts in its ticks (4 ms at 250 Hz):
 #: a shorter one (a packetizer's timer is due) waits in poll, which keeps to it
@@ -117,6 +121,14 @@ class UdpEndpoint:
             self._stamps = socket.CMSG_SPACE(_TIMESPEC.size)
         except OSError:
             self._stamps = 0
+        #: datagrams the kernel dropped because the receive buffer was full, so far (as the
+        #: last datagram received says: the link counts them ``receive_buffer_full``)
+        self.overflowed = 0
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, _SO_RXQ_OVFL, 1)
+            self._stamps += socket.CMSG_SPACE(_OVERFLOWS.size)
+        except OSError:
+            pass
         #: segmentation offload: None until the first segmented send says whether the path
         #: takes it, False when it does not (or the kernel has none)
         self.gso: bool | None = None if offload and _kernel_has(sock, _UDP_SEGMENT) else False
@@ -202,6 +214,8 @@ class UdpEndpoint:
             if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
                 seconds, nanoseconds = _TIMESPEC.unpack_from(value)
                 arrived = seconds * 1_000_000_000 + nanoseconds
+            elif level == socket.SOL_SOCKET and kind == _SO_RXQ_OVFL:
+                self.overflowed = _OVERFLOWS.unpack_from(value)[0]
             elif level == _SOL_UDP and kind == _UDP_GRO:
                 joined = _GRO_SIZE.unpack_from(value)[0]
         source = source if len(source) == 2 else source[:2]
