@@ -14,7 +14,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 # module it imports, every time (about half a second of each rosgate start).
 sync: $(UV)
 	$(UV) sync --inexact --quiet --compile-bytecode
-	$(VENV)/bin/python -m compileall -q core/src plugins tools examples tests/thirdparty >/dev/null
+	$(VENV)/bin/python -m compileall -q core/src plugins libs tools examples tests/thirdparty >/dev/null
 
 .tools/bin/uv:
 	$(PYTHON) -m venv .tools
