@@ -55,7 +55,7 @@ from .ros2dds import Kind, Qos
 if TYPE_CHECKING:
     from rosgate_fleet import BusWiring
 
-    from .transport import ZenohSession
+    from .session import ZenohSession
 
 log = logging.getLogger("rosgate")
 
