@@ -36,11 +36,18 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from rosgate import CodecError
-from rosgate.drops import Drop, Reason, declare
+from rosgate import (
+    Address,
+    CodecError,
+    Drop,
+    Reason,
+    StreamConnection,
+    StreamTransport,
+    Transport,
+    declare,
+)
 from rosgate.links import POLL
 from rosgate.services import Call, ServerRoute, ServiceRoute
-from rosgate.transport import Address, StreamConnection, StreamTransport, Transport
 from rosgate.warn import BUGS
 from rosgate.wire.names import Layout, NameMissing, pack_name, split_name
 

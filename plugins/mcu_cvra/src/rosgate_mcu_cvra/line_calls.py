@@ -25,11 +25,9 @@ from typing import Any
 
 import msgpack
 
-from rosgate import CodecError
-from rosgate.drops import Drop, Reason
+from rosgate import Address, CodecError, DatagramEndpoint, DatagramTransport, Drop, Reason
 from rosgate.links import POLL
 from rosgate.services import Call, ServerRoute, ServiceRoute
-from rosgate.transport import Address, DatagramEndpoint, DatagramTransport
 from rosgate.warn import BUGS
 
 log = logging.getLogger("rosgate")

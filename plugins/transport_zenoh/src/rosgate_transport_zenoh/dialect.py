@@ -38,14 +38,13 @@ from typing import TYPE_CHECKING
 
 from rosgate_fleet import BusAnswerer, BusLink, BusOutlet, Handle
 
+from rosgate import Address, Drop
 from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
-from rosgate.drops import Drop
 from rosgate.links import Link, Sender
 from rosgate.ros import TypeNotFound, qos_profile, resolve_type
 from rosgate.routes import Route
 from rosgate.services import CallerRoute, ServerRoute
 from rosgate.spec import ServiceSpec, TopicSpec
-from rosgate.transport import Address
 from rosgate.wire import envelope
 from rosgate.wire.envelope import topic_id_for
 

@@ -42,9 +42,8 @@ import zenoh
 import zenoh.ext
 from rosgate_fleet import BusLink, BusOutlet
 
+from rosgate import ConfigError, declare
 from rosgate.config import Direction, ServiceConfig, TopicConfig
-from rosgate.drops import declare
-from rosgate.errors import ConfigError
 from rosgate.ros import TypeNotFound, qos_profile, resolve_type, type_hash
 from rosgate.services import CallerRoute, ServerRoute
 from rosgate.spec import ServiceSpec, TopicSpec

@@ -14,8 +14,7 @@ from typing import Any
 
 import zenoh
 
-from rosgate import Command, LinkError
-from rosgate.commands import stop_on_signals, wait_for_signal
+from rosgate import Command, LinkError, stop_on_signals, wait_for_signal
 
 from .session import ZenohSession, zenoh_message
 from .tls import access_control, make, zenoh_tls

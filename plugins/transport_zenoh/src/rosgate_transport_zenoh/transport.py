@@ -16,8 +16,7 @@ import zenoh.ext
 from rosgate_fleet import FleetTransport
 from rosgate_fleet import check_key as check_chunks
 
-from rosgate import LinkError, OptionError, option
-from rosgate.bus import Unauthenticated
+from rosgate import LinkError, OptionError, Unauthenticated, option
 
 from .session import ZenohSession, zenoh_message
 from .tls import zenoh_tls
