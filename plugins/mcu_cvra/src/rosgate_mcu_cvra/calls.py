@@ -46,7 +46,6 @@ from rosgate import (
     Transport,
     declare,
 )
-from rosgate.links import POLL
 from rosgate.services import Call, ServerRoute, ServiceRoute
 from rosgate.warn import BUGS
 from rosgate.wire.names import Layout, NameMissing, pack_name, split_name
@@ -67,6 +66,7 @@ NO_ANSWER = declare("no_answer", "the microcontroller closed without a byte of a
 MAX_CONNECTIONS = 64   # calls served at once on one port; more are closed at once and counted
 CALLER_THREADS = 16    # connections a calling route has open at once; more calls wait their turn
 CHUNK = 4096
+POLL = 0.2  # seconds a receive waits before looking whether the bridge is stopping
 NIL = b"\xc0"  # MessagePack's nil
 
 
