@@ -1,11 +1,12 @@
 """tools/import_cycles.py, the check `make lint` runs on the folders of scripts (bench/, tests/,
 examples/), finds a cycle wherever its imports are written and names it; the repository has
-none."""
+none. And import-linter, which checks the packages, is told of every package there is."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,3 +42,18 @@ def test_a_cycle_through_a_function_and_type_checking_is_named_file_by_file(tmp_
 def test_the_repository_has_no_cycle_among_its_scripts():
     found = check(ROOT)
     assert (found.returncode, found.stdout) == (0, "")
+
+
+def packages() -> set[str]:
+    """The import name of every distribution in the repository."""
+    sources = [ROOT / "core" / "src", *ROOT.glob("*/*/src"), *ROOT.glob("tests/thirdparty/*/src")]
+    return {p.name for src in sources for p in src.iterdir()
+            if (p / "__init__.py").exists()}
+
+
+def test_import_linter_checks_every_package_and_every_plugin_against_the_public_api():
+    linter = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
+    assert set(linter["root_packages"]) == packages(), "add the new package to root_packages"
+    api = next(c for c in linter["contracts"] if "only the public API" in c["name"])
+    # the core itself and the docs generator (it reads the core's schema) are no plugins
+    assert set(api["source_modules"]) == packages() - {"rosgate", "rosgate_docgen"}
