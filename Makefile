@@ -14,7 +14,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 # module it imports, every time (about half a second of each rosgate start).
 sync: $(UV)
 	$(UV) sync --inexact --quiet --compile-bytecode
-	$(VENV)/bin/python -m compileall -q core/src plugins tools examples tests/thirdparty >/dev/null
+	$(VENV)/bin/python -m compileall -q core/src plugins libs tools examples tests/thirdparty >/dev/null
 
 .tools/bin/uv:
 	$(PYTHON) -m venv .tools
@@ -37,11 +37,13 @@ PYTEST_WORKERS ?= 3
 test: sync lint
 	$(VENV)/bin/pytest -n $(PYTEST_WORKERS) --dist loadgroup
 
-# lint findings (ruff check), the core's layers (import-linter contracts) and types (mypy: core
-# and plugins); the rules of all three are in pyproject.toml
+# lint findings (ruff check), the core's layers and no import cycle in any package (import-linter
+# contracts) nor among the scripts of bench/, tests/ and examples/ (tools/import_cycles.py), and
+# types (mypy: core and plugins); the rules are in pyproject.toml
 lint: sync
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports --no-cache
+	$(VENV)/bin/python tools/import_cycles.py
 	$(VENV)/bin/mypy
 
 # make bench [BASE=REV] [BENCH_ARGS="--quick --only 2.5kB"]: BASE also runs the bridged paths with

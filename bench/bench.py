@@ -1162,7 +1162,7 @@ def base_checkout(rev: str, stack: ExitStack) -> Checkout:
     synced = subprocess.run([uv, "sync", "--inexact", "--quiet", "--compile-bytecode"], cwd=tree,
                             env=env, capture_output=True, text=True)
     subprocess.run([str(tree / ".venv/bin/python"), "-m", "compileall", "-q", "core/src",
-                    "plugins"], cwd=tree, capture_output=True)
+                    "plugins", "libs"], cwd=tree, capture_output=True)
     checkout = Checkout(short, tree)
     if synced.returncode or not Path(checkout.rosgate).exists():
         sys.exit(f"bench: uv sync of {short} failed:\n{synced.stderr.strip()[-2000:]}")

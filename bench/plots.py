@@ -10,11 +10,46 @@
 
 from __future__ import annotations
 
+from collections.abc import Hashable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-if TYPE_CHECKING:
-    from bench import Result
+from processes import Route
+
+
+class Trial(Protocol):
+    """What is drawn of a trial (bench.Trial): its rate and what arrived, its latency."""
+    rate: float
+    sent: int
+    p50_us: float | None
+    p90_us: float | None
+    p99_us: float | None
+
+    @property
+    def offered(self) -> float: ...
+
+    @property
+    def delivered(self) -> float: ...
+
+
+class Size(Hashable, Protocol):
+    name: str
+
+
+class Result(Protocol):
+    """What is drawn of a case (bench.Result): plots depend on this shape, not on bench.py,
+    which imports them."""
+    size: Size
+    route: Route | None
+    sustained: Trial | None
+    latency: Trial | None
+    overload: Trial | None
+
+    @property
+    def trials(self) -> Sequence[Trial]: ...
+
+    @property
+    def path(self) -> str: ...
 
 
 def draw(results: list[Result], folder: Path) -> list[Path]:

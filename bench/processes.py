@@ -108,7 +108,8 @@ def ros_env(domain: int, root: Path = ROOT) -> dict[str, str]:
     # The bridges run the workspace's code as checked out: its source folders go first, so an
     # editable install made before a plugin's sources existed (no .pth for it) does not hide it.
     # Entry points still come from the installed distributions.
-    sources = [root / "core" / "src", *sorted((root / "plugins").glob("*/src"))]
+    sources = [root / "core" / "src", *sorted(root.glob("plugins/*/src")),
+               *sorted(root.glob("libs/*/src"))]
     env["PYTHONPATH"] = os.pathsep.join([*map(str, sources), env.get("PYTHONPATH", "")]).rstrip(
         os.pathsep)
     # counters are logged when a bridge stops; no periodic lines in the middle of a trial

@@ -21,6 +21,7 @@ from typing import Any
 
 import pytest
 import yaml
+from action_sides import ActionSide
 from rosgate_testing import free_port  # tests also import it from here
 from workers import alone_first, domain_ports, take_turns, worker_share
 
@@ -208,8 +209,6 @@ def ros_side():
 @pytest.fixture
 def action_side():
     """Sides with rclpy's own action servers and clients (tests/test_actions.py)."""
-    from test_actions import ActionSide
-
     yield from sides_of(ActionSide)
 
 

@@ -19,7 +19,8 @@ from rosgate.drops import Drop, PluginDrop, declare
 
 ROOT = Path(__file__).resolve().parents[1]
 OPERATORS = ROOT / "docs" / "operators.md"
-SOURCES = [ROOT / "core" / "src", *sorted((ROOT / "plugins").glob("*/src"))]
+SOURCES = [ROOT / "core" / "src", *sorted(ROOT.glob("plugins/*/src")),
+           *sorted(ROOT.glob("libs/*/src"))]
 #: calls that count a drop, whatever their receiver: their arguments must not be bare strings
 COUNTING = re.compile(r"(^|\.)(drop|link_drop|_drop|on_lost|lost|_give_up|_refused|refuse_"
                       r"connection|fail|fail_all|discard|on_error)$|dropped\.append$")

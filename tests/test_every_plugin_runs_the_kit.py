@@ -82,3 +82,14 @@ def test_the_kit_is_a_distribution_of_its_own_and_no_plugin():
     assert importlib.util.find_spec("rosgate.testing") is None
     kit = metadata.distribution("rosgate-testing")
     assert [ep.group for ep in kit.entry_points] == ["pytest11"]  # not in the group rosgate
+
+
+def test_the_libraries_are_no_plugins_and_every_plugin_folder_holds_one():
+    """libs/ holds what plugins and their tests use; plugins/ holds only plugins."""
+    for pyproject in ROOT.glob("libs/*/pyproject.toml"):
+        project = tomllib.loads(pyproject.read_text())["project"]
+        assert "rosgate" not in project.get("entry-points", {}), pyproject.parent.name
+    for pyproject in ROOT.glob("plugins/*/pyproject.toml"):
+        project = tomllib.loads(pyproject.read_text())["project"]
+        assert "rosgate" in project.get("entry-points", {}), (
+            f"{pyproject.parent.name} registers no plugin: a library goes to libs/")

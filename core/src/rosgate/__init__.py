@@ -7,10 +7,10 @@ docs/plugin-api.md. Tree codecs map messages with ``rosgate_message_tree``; a pl
 the plugin kit, ``rosgate_testing``.
 """
 
-from .bus import BusRole, BusTransport
+from .bus import BusRole, BusTransport, Unauthenticated
 from .cipher import Cipher
 from .codec import Codec
-from .commands import Command
+from .commands import Command, stop_on_signals, wait_for_signal
 from .drops import Drop, LinkDrop, Reason, declare
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import API_VERSION, hookimpl
@@ -49,8 +49,9 @@ __all__ = [
     "OptionError", "PARTIAL_COST", "Packet", "PacketLink", "Packetizer", "RUNTIME_VARIABLE",
     "Reason", "RosgateError", "SOCKET_SUFFIX", "ServiceFraming", "SocketConnection",
     "SocketListener", "Status", "StreamConnection", "StreamListener", "StreamTransport",
-    "Transform", "TransformError", "Transport", "check_ip_address", "declare", "describe_source",
-    "hookimpl", "identity_public_key", "ip_source_hosts", "key_source", "load_key", "option",
-    "parse_host_port", "runtime_dir", "socket_path", "topic_of",
+    "Transform", "TransformError", "Transport", "Unauthenticated", "check_ip_address", "declare",
+    "describe_source", "hookimpl", "identity_public_key", "ip_source_hosts", "key_source",
+    "load_key", "option", "parse_host_port", "runtime_dir", "socket_path", "stop_on_signals",
+    "topic_of", "wait_for_signal",
 ]
 __version__ = "0.1.0"

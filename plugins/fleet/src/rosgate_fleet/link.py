@@ -28,9 +28,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from rosgate.drops import Drop, LinkDrop, Reason
+from rosgate import Address, Drop, LinkDrop, Reason
 from rosgate.links import FrameHandler, Link, Sender
-from rosgate.transport import Address
 from rosgate.warn import BUGS
 from rosgate.wire import envelope
 

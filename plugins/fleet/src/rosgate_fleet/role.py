@@ -24,11 +24,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from rosgate import ConfigError
-from rosgate.bus import BusRole, BusTransport
+from rosgate import BusRole, BusTransport, ConfigError, Drop, LinkError
 from rosgate.config import BridgeConfig, Direction, Framing, ServiceConfig, TopicConfig
-from rosgate.drops import Drop
-from rosgate.errors import LinkError
 from rosgate.links import Link
 from rosgate.roles import Bridge, NoLink
 from rosgate.routes import ReceiveRoute, Route, TransmitRoute

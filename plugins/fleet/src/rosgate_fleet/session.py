@@ -27,7 +27,7 @@ from abc import abstractmethod
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from rosgate.bus import BusTransport
+from rosgate import BusTransport
 from rosgate.config import ServiceConfig, TopicConfig
 
 _CHUNK = re.compile(r"[^/*$?#]+|\*|\*\*")

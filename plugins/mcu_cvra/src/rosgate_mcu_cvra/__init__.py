@@ -16,10 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from rosgate import hookimpl
-from rosgate.drops import LinkDrop
-from rosgate.service_framing import ServiceFraming
-from rosgate.transport import Address, DatagramTransport, StreamTransport
+from rosgate import Address, DatagramTransport, LinkDrop, ServiceFraming, StreamTransport, hookimpl
 
 from .calls import CallServer, CvraCallerRoute
 from .line_calls import LineCallerRoute, LineCallServer

@@ -36,11 +36,17 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from rosgate import CodecError
-from rosgate.drops import Drop, Reason, declare
-from rosgate.links import POLL
+from rosgate import (
+    Address,
+    CodecError,
+    Drop,
+    Reason,
+    StreamConnection,
+    StreamTransport,
+    Transport,
+    declare,
+)
 from rosgate.services import Call, ServerRoute, ServiceRoute
-from rosgate.transport import Address, StreamConnection, StreamTransport, Transport
 from rosgate.warn import BUGS
 from rosgate.wire.names import Layout, NameMissing, pack_name, split_name
 
@@ -60,6 +66,7 @@ NO_ANSWER = declare("no_answer", "the microcontroller closed without a byte of a
 MAX_CONNECTIONS = 64   # calls served at once on one port; more are closed at once and counted
 CALLER_THREADS = 16    # connections a calling route has open at once; more calls wait their turn
 CHUNK = 4096
+POLL = 0.2  # seconds a receive waits before looking whether the bridge is stopping
 NIL = b"\xc0"  # MessagePack's nil
 
 

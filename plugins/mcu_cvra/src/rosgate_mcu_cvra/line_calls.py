@@ -25,17 +25,15 @@ from typing import Any
 
 import msgpack
 
-from rosgate import CodecError
-from rosgate.drops import Drop, Reason
-from rosgate.links import POLL
+from rosgate import Address, CodecError, DatagramEndpoint, DatagramTransport, Drop, Reason
 from rosgate.services import Call, ServerRoute, ServiceRoute
-from rosgate.transport import Address, DatagramEndpoint, DatagramTransport
 from rosgate.warn import BUGS
 
 log = logging.getLogger("rosgate")
 
 CALL, ANSWER = 3, 2  # the items of a call's array and of an answer's
 IDS = 1 << 32
+POLL = 0.2  # seconds a receive waits before looking whether the line is closing
 #: one count for every calling entry of the bridge: they share the line, and each sees every
 #: answer, so no two calls waiting at once may have the same id
 _next_id = itertools.count(1)

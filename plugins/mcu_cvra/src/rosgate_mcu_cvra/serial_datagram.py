@@ -16,7 +16,7 @@ from __future__ import annotations
 import zlib
 from collections.abc import Callable, Iterator
 
-from rosgate.drops import Reason, declare
+from rosgate import Reason, declare
 
 BAD_ESCAPE = declare("bad_escape", "a serial datagram with ESC followed by neither ESC_END nor "
                                    "ESC_ESC")

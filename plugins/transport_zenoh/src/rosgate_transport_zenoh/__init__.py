@@ -52,7 +52,8 @@ from typing import Any
 from rosgate import hookimpl
 
 from .router import CERTS, ROUTER
-from .transport import ZenohSession, ZenohTransport, zenoh_config, zenoh_message
+from .session import ZenohSession, zenoh_message
+from .transport import ZenohTransport, zenoh_config
 
 __all__ = ["ZenohSession", "ZenohTransport", "zenoh_config", "zenoh_message"]
 

@@ -38,14 +38,13 @@ from typing import TYPE_CHECKING
 
 from rosgate_fleet import BusAnswerer, BusLink, BusOutlet, Handle
 
+from rosgate import Address, Drop
 from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
-from rosgate.drops import Drop
 from rosgate.links import Link, Sender
 from rosgate.ros import TypeNotFound, qos_profile, resolve_type
 from rosgate.routes import Route
 from rosgate.services import CallerRoute, ServerRoute
 from rosgate.spec import ServiceSpec, TopicSpec
-from rosgate.transport import Address
 from rosgate.wire import envelope
 from rosgate.wire.envelope import topic_id_for
 
@@ -55,7 +54,7 @@ from .ros2dds import Kind, Qos
 if TYPE_CHECKING:
     from rosgate_fleet import BusWiring
 
-    from .transport import ZenohSession
+    from .session import ZenohSession
 
 log = logging.getLogger("rosgate")
 

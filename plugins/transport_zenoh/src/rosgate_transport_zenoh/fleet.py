@@ -30,9 +30,8 @@ from typing import TYPE_CHECKING
 
 from rosgate_fleet import BusLink, BusWiring
 
-from rosgate import ConfigError
+from rosgate import ConfigError, Drop
 from rosgate.config import Direction, ServiceConfig, TopicConfig
-from rosgate.drops import Drop
 from rosgate.routes import ReceiveRoute, Route
 from rosgate.spec import ServiceSpec, TopicSpec
 

@@ -42,9 +42,8 @@ import zenoh
 import zenoh.ext
 from rosgate_fleet import BusLink, BusOutlet
 
+from rosgate import ConfigError, declare
 from rosgate.config import Direction, ServiceConfig, TopicConfig
-from rosgate.drops import declare
-from rosgate.errors import ConfigError
 from rosgate.ros import TypeNotFound, qos_profile, resolve_type, type_hash
 from rosgate.services import CallerRoute, ServerRoute
 from rosgate.spec import ServiceSpec, TopicSpec
@@ -52,13 +51,13 @@ from rosgate.wire.envelope import topic_id_for
 
 from . import rmw
 from .dialect import KEEP_ALL_HISTORY, MissingTypes, RawAnswers, RawCalls, speaks
-from .transport import (
-    _PRIORITIES,
+from .session import (
+    PRIORITIES,
+    Declared,
+    ZenohPublisher,
+    ZenohQuery,
     ZenohSession,
-    _Declared,
-    _direct,
-    _Publisher,
-    _Query,
+    direct,
     zenoh_message,
 )
 
@@ -230,7 +229,7 @@ class Graph:
             log.info("%s %s: %s is gone", NAME, node.zid, what)
 
 
-class Publisher(_Publisher):
+class Publisher(ZenohPublisher):
     """A topic's publisher on its rmw_zenoh key: every sample with rmw_zenoh's attachment."""
 
     def __init__(self, session: zenoh.Session, key: str, gid: bytes, *, reliable: bool,
@@ -241,11 +240,11 @@ class Publisher(_Publisher):
         publisher: Any
         if history:  # transient_local: late joiners query the cache, as rmw_zenoh's do
             publisher = zenoh.ext.declare_advanced_publisher(
-                session, key, congestion_control=congestion, priority=_PRIORITIES[priority - 1],
+                session, key, congestion_control=congestion, priority=PRIORITIES[priority - 1],
                 cache=zenoh.ext.CacheConfig(max_samples=history), publisher_detection=True)
         else:
             publisher = session.declare_publisher(
-                key, congestion_control=congestion, priority=_PRIORITIES[priority - 1])
+                key, congestion_control=congestion, priority=PRIORITIES[priority - 1])
         super().__init__(publisher)
 
     def put(self, frame: bytes) -> None:
@@ -257,15 +256,15 @@ class Publisher(_Publisher):
 
 
 def subscribe(session: zenoh.Session, key: str, sample: Callable[[zenoh.Sample], None],
-              history: int) -> _Declared:
+              history: int) -> Declared:
     """A subscription to an rmw_zenoh key; ``history``: also ask publishers that keep samples
     for up to that many each (transient_local)."""
-    handler = _direct(sample)
+    handler = direct(sample)
     if history:
-        return _Declared(zenoh.ext.declare_advanced_subscriber(
+        return Declared(zenoh.ext.declare_advanced_subscriber(
             session, key, handler, history=zenoh.ext.HistoryConfig(
                 detect_late_publishers=True, max_samples=history)))
-    return _Declared(session.declare_subscriber(key, handler))
+    return Declared(session.declare_subscriber(key, handler))
 
 
 class RmwSession(ZenohSession):
@@ -280,7 +279,7 @@ class RmwSession(ZenohSession):
         #: called keys -> the client's GID and its calls' numbers
         self.callers: dict[str, tuple[bytes, Iterator[int]]] = {}
 
-    def serve(self, key: str, on_query: Callable[[str, bytes, Any], None]) -> _Declared:
+    def serve(self, key: str, on_query: Callable[[str, bytes, Any], None]) -> Declared:
         refuse = self.refused.get(key)
         if refuse is None:
             return super().serve(key, on_query)
@@ -298,7 +297,7 @@ class RmwSession(ZenohSession):
             on_query(str(query.key_expr), payload.to_bytes() if payload is not None else b"",
                      _Answer(query, key, call))
 
-        return _Declared(self.session.declare_queryable(key, _direct(arrived), complete=True))
+        return Declared(self.session.declare_queryable(key, direct(arrived), complete=True))
 
     def query(self, key: str, payload: bytes, timeout: float,
               on_reply: Callable[[bytes], None], on_done: Callable[[int], None],
@@ -310,7 +309,7 @@ class RmwSession(ZenohSession):
         super().query(key, payload, timeout, on_reply, on_done, attachment=attachment)
 
 
-class _Answer(_Query):
+class _Answer(ZenohQuery):
     """A call's answer, with the attachment rmw_zenoh's servers give it: the call's sequence
     number, the time of the answer and the caller's GID."""
 

@@ -14,11 +14,11 @@ from typing import Any
 
 import zenoh
 
-from rosgate import Command, LinkError
-from rosgate.commands import stop_on_signals, wait_for_signal
+from rosgate import Command, LinkError, stop_on_signals, wait_for_signal
 
+from .session import ZenohSession, zenoh_message
 from .tls import access_control, make, zenoh_tls
-from .transport import ZenohSession, ZenohTransport, zenoh_message
+from .transport import ZenohTransport
 
 LISTEN = "tcp/0.0.0.0:7447"
 LISTEN_TLS = "tls/0.0.0.0:7447"

@@ -1,5 +1,5 @@
-"""The zenoh transport: options passed to zenoh, keys as zenoh checks them, and the bus
-session over a ``zenoh.Session`` (:mod:`rosgate_fleet.session`)."""
+"""The zenoh transport: options passed to zenoh, keys as zenoh checks them, and the opening of
+a bus session (:mod:`.session`) in the dialect the options speak."""
 
 
 from __future__ import annotations
@@ -7,8 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import re
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -17,33 +16,20 @@ import zenoh.ext
 from rosgate_fleet import FleetTransport
 from rosgate_fleet import check_key as check_chunks
 
-from rosgate import LinkError, OptionError, option
-from rosgate.bus import Unauthenticated
+from rosgate import LinkError, OptionError, Unauthenticated, option
 
+from .session import ZenohSession, zenoh_message
 from .tls import zenoh_tls
 
 log = logging.getLogger("rosgate.zenoh")
 
 OWN_OPTIONS = ("prefix", "namespace", "speak", "domain", "tls", "insecure")
 _ZENOH = "zenoh's own, passed through (see zenoh's DEFAULT_CONFIG.json5)"
-_PRIORITIES = (zenoh.Priority.REAL_TIME, zenoh.Priority.INTERACTIVE_HIGH,
-               zenoh.Priority.INTERACTIVE_LOW, zenoh.Priority.DATA_HIGH, zenoh.Priority.DATA,
-               zenoh.Priority.DATA_LOW, zenoh.Priority.BACKGROUND)
-_NO_CONSOLIDATION = zenoh.ConsolidationMode.NONE  # every answer, not the "best" one
 _FIX = "see zenoh's DEFAULT_CONFIG.json5 for the options and their forms"
 _TLS_FIX = ("set tls: <folder> (certificates made by 'rosgate certs'), connect to tls/<host>:"
             "<port>, and run the router with --tls (docs/fleets.md, Only the fleet)")
 _INSECURE_FIX = ("remove plugins.zenoh.insecure; set up TLS (tls: <folder>, docs/fleets.md), or, "
                  "on a network you trust entirely, say bridge.insecure: true with a comment why")
-
-
-def zenoh_message(exc: BaseException) -> str:
-    """A ZError in words: without the Rust source location, serde's message unwrapped."""
-    text = str(exc).split(" at /", 1)[0].strip()
-    found = re.search(r'msg: "((?:[^"\\]|\\.)*)"', text)
-    if found:
-        return found.group(1).replace('\\"', '"')
-    return "unknown option" if text == 'Str("unknown key")' else text
 
 
 def zenoh_config(options: Mapping[str, Any]) -> zenoh.Config:
@@ -256,148 +242,3 @@ class ZenohTransport(FleetTransport):
 
             return RmwSession(session)
         return ZenohSession(session)
-
-
-class _Declared:
-    """A subscription, queryable, token or watch: ``close`` undeclares it."""
-
-    def __init__(self, entity: Any, forget: Callable[[], None] | None = None):
-        self.entity = entity
-        self.forget = forget
-
-    def close(self) -> None:
-        if self.forget is not None:
-            self.forget()
-        try:
-            self.entity.undeclare()
-        except zenoh.ZError:  # already gone with its session
-            pass
-
-
-class _Publisher:
-    def __init__(self, publisher: zenoh.Publisher | zenoh.ext.AdvancedPublisher):
-        self.publisher = publisher
-
-    def put(self, frame: bytes) -> None:
-        try:
-            self.publisher.put(frame)
-        except zenoh.ZError as exc:
-            raise OSError(zenoh_message(exc)) from None
-
-    def close(self) -> None:
-        try:
-            self.publisher.undeclare()
-        except zenoh.ZError:
-            pass
-
-
-class _Query:
-    """A query received: answered on the queryable's own key (zenoh requires a key that
-    intersects the query's), then dropped, which tells the caller it is over."""
-
-    def __init__(self, query: zenoh.Query, key: str):
-        self.query = query
-        self.key = key
-
-    def reply(self, payload: bytes) -> None:
-        try:
-            self.query.reply(self.key, payload)
-        except zenoh.ZError as exc:
-            raise OSError(zenoh_message(exc)) from None
-
-    def close(self) -> None:
-        try:
-            self.query.drop()
-        except zenoh.ZError:
-            pass
-
-
-def _direct(callback: Callable[[Any], None], drop: Callable[[], None] | None = None) -> Any:
-    """Run ``callback`` on zenoh's receive thread: no Python thread per declaration (zenoh's
-    default handler makes non-daemon ones, which hang a process that exits without closing)."""
-    return zenoh.handlers.Callback(callback, drop, indirect=False)
-
-
-class ZenohSession:
-    """A :class:`rosgate_fleet.BusSession` over one ``zenoh.Session``."""
-
-    def __init__(self, session: zenoh.Session):
-        self.session = session
-        # zenoh undeclares a token whose last reference goes; the bus contract holds it until
-        # it is closed, so the session keeps it
-        self._tokens: set[_Declared] = set()
-
-    def zid(self) -> str:
-        """This session's zenoh id, as keys write it."""
-        return str(self.session.zid())
-
-    def publisher(self, key: str, *, reliable: bool, priority: int,
-                  history: int = 0) -> _Publisher:
-        """``history``: keep that many last samples for late joiners to query (zenoh-ext's
-        advanced publisher with a cache and publisher detection, as zenoh-bridge-ros2dds
-        serves transient_local topics)."""
-        congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
-        if history:
-            return _Publisher(zenoh.ext.declare_advanced_publisher(
-                self.session, key, congestion_control=congestion,
-                priority=_PRIORITIES[priority - 1],
-                cache=zenoh.ext.CacheConfig(max_samples=history), publisher_detection=True))
-        return _Publisher(self.session.declare_publisher(
-            key, congestion_control=congestion, priority=_PRIORITIES[priority - 1]))
-
-    def subscribe(self, key_expr: str, on_sample: Callable[[str, bytes], None],
-                  history: int = 0) -> _Declared:
-        """``history``: also ask publishers that keep samples (now and as they come) for up to
-        that many each (zenoh-ext's advanced subscriber, as zenoh-bridge-ros2dds receives
-        transient_local topics)."""
-        handler = _direct(lambda sample: on_sample(str(sample.key_expr),
-                                                   sample.payload.to_bytes()))
-        if history:
-            return _Declared(zenoh.ext.declare_advanced_subscriber(
-                self.session, key_expr, handler, history=zenoh.ext.HistoryConfig(
-                    detect_late_publishers=True, max_samples=history)))
-        return _Declared(self.session.declare_subscriber(key_expr, handler))
-
-    def serve(self, key: str, on_query: Callable[[str, bytes, Any], None]) -> _Declared:
-        def arrived(query: zenoh.Query) -> None:
-            payload = query.payload
-            on_query(str(query.key_expr), payload.to_bytes() if payload is not None else b"",
-                     _Query(query, key))
-
-        return _Declared(self.session.declare_queryable(key, _direct(arrived)))
-
-    def query(self, key: str, payload: bytes, timeout: float,
-              on_reply: Callable[[bytes], None], on_done: Callable[[int], None],
-              attachment: bytes | None = None) -> None:
-        answers = [0]
-
-        def reply(got: zenoh.Reply) -> None:
-            if got.ok is not None:
-                answers[0] += 1
-                on_reply(got.ok.payload.to_bytes())
-            else:  # zenoh's own "Timeout", or a server's reply_err: no answer
-                log.debug("zenoh: query on %s: %s", key,
-                          got.err.payload.to_bytes()[:200] if got.err is not None else "?")
-
-        try:
-            self.session.get(key, _direct(reply, lambda: on_done(answers[0])), payload=payload,
-                             timeout=timeout, consolidation=_NO_CONSOLIDATION,
-                             attachment=attachment)
-        except zenoh.ZError as exc:
-            raise OSError(zenoh_message(exc)) from None
-
-    def token(self, key: str) -> _Declared:
-        token = _Declared(self.session.liveliness().declare_token(key),
-                          lambda: self._tokens.discard(token))
-        self._tokens.add(token)
-        return token
-
-    def watch(self, key_expr: str, on_change: Callable[[str, bool], None]) -> _Declared:
-        put = zenoh.SampleKind.PUT
-        return _Declared(self.session.liveliness().declare_subscriber(
-            key_expr, _direct(lambda sample: on_change(str(sample.key_expr), sample.kind == put)),
-            history=True))
-
-    def close(self) -> None:
-        self.session.close()
-        self._tokens.clear()

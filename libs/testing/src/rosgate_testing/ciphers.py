@@ -10,8 +10,7 @@ from typing import Any, ClassVar
 
 import pytest
 
-from rosgate.cipher import Cipher
-from rosgate.errors import CipherError
+from rosgate import Cipher, CipherError
 from rosgate.options import parse
 from rosgate.wire import envelope
 

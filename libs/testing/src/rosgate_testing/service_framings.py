@@ -26,14 +26,13 @@ from typing import Any, ClassVar
 
 import pytest
 
+from rosgate import Codec, SocketConnection
 from rosgate.builtin import NoCipher
-from rosgate.codec import Codec
 from rosgate.config import Direction, ServiceConfig
 from rosgate.keyring import StaticKeys
 from rosgate.options import parse
 from rosgate.service_framing import CallPort, ServiceFraming
 from rosgate.services import Deadlines, ServerRoute, ServiceCodec
-from rosgate.transport import SocketConnection
 from rosgate.warn import Warner
 
 from .helpers import assert_registered

@@ -14,10 +14,9 @@ from typing import Any
 
 import pytest
 
-from rosgate.drops import Reason
+from rosgate import Address, Reason, StreamConnection
 from rosgate.plugins import Plugins
 from rosgate.spec import Delivery
-from rosgate.transport import Address, StreamConnection
 
 TIMEOUT = 5.0  # seconds any single wait in the suites may take before the check fails
 

@@ -10,17 +10,11 @@ from typing import Any, ClassVar
 
 import pytest
 
+from rosgate import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from rosgate.links import DatagramLink
 from rosgate.options import parse
 from rosgate.packetizer import own_packetizer
 from rosgate.streamlink import StreamLink
-from rosgate.transport import (
-    Address,
-    DatagramTransport,
-    StreamConnection,
-    StreamTransport,
-    Transport,
-)
 
 from .helpers import (
     TIMEOUT,

@@ -34,10 +34,8 @@ from typing import Any, ClassVar
 
 import pytest
 
-from rosgate.drops import Reason
+from rosgate import FramingError, Packetizer, Reason
 from rosgate.options import parse
-from rosgate.packetizer import Packetizer
-from rosgate.wire.framing import FramingError
 
 from .helpers import assert_registered, mutations
 

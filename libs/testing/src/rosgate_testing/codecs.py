@@ -10,8 +10,7 @@ from typing import Any, ClassVar
 
 import pytest
 
-from rosgate.codec import Codec
-from rosgate.errors import CodecError
+from rosgate import Codec, CodecError
 from rosgate.options import parse
 
 from .helpers import assert_registered, mutations

@@ -24,8 +24,8 @@ from typing import Any, ClassVar
 
 import pytest
 
+from rosgate import Transform, TransformError
 from rosgate.options import parse
-from rosgate.transform import Transform, TransformError
 
 from .helpers import assert_registered, mutations
 
