@@ -1,0 +1,91 @@
+"""A peer's topic patterns, both ways, against real bridges and real rclpy nodes, each side in its
+own domain: names that appear under a transmit pattern after both peers are up cross, field by
+field, and the far peer takes only what its own receive patterns take (mapped by ``remote:``);
+a name published on both sides crosses once each way and never echoes back (each echo refused
+and counted); a name whose publishers went is gone from the far side after the grace."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from conftest import free_port, settle, wait_until
+from interfaces import differences, fill
+from std_msgs.msg import String
+from test_msgs.msg import Arrays
+
+PEER = """
+bridge: {{name: {name}, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, pattern_grace: 1}}
+topics:
+  - {{topic: /**, direction: transmit, port: {send}}}
+{receive}
+"""
+#: a takes everything b sends; b takes a's /a/** as /from_a/**, and the rest but /hidden/**
+A_TAKES = "  - {{topic: /**, direction: receive, port: {port}}}"
+B_TAKES = """  - {{topic: /from_a/**, remote: /a/**, direction: receive, port: {port}}}
+  - {{topic: /**, direction: receive, port: {port}, deny: [/a/**, /hidden/**]}}"""
+
+
+def first_crossing(publisher: Any, inbox: Any, message: Any, timeout: float = 20.0) -> None:
+    """Publish ``message`` every 50 ms until one arrives."""
+    deadline = time.monotonic() + timeout
+    while not inbox.wait_count(1, 0.05):
+        assert time.monotonic() < deadline, "nothing crossed"
+        publisher.publish(message)
+
+
+def published(side: Any, name: str) -> bool:
+    return bool(side.ros.node.get_publishers_info_by_topic(name))
+
+
+def drops(engine: Any, name: str, direction: str) -> dict[str, int]:
+    return next((e["drops"] for e in engine.status()["entries"]
+                 if e["name"] == name and e["direction"] == direction), {})
+
+
+def test_two_peers_with_patterns_both_ways_carry_each_message_once(engines, domain, ros_side):
+    da, db, p1, p2 = domain(), domain(), free_port(), free_port()
+    a = engines(PEER.format(name="a", send=p1, receive=A_TAKES.format(port=p2)), da)
+    b = engines(PEER.format(name="b", send=p2, receive=B_TAKES.format(port=p1)), db)
+    here, there = ros_side(da, "here"), ros_side(db, "there")
+    # names only one side publishes: a's under /a/** reach b as /from_a/**, exact
+    arrays = fill(Arrays, "high")
+    inbox = there.listen("/from_a/arrays", Arrays)
+    talker = here.publisher("/a/arrays", Arrays)
+    first_crossing(talker, inbox, arrays)
+    assert differences(arrays, inbox.items[0]) == []
+    b_chat, a_got = there.publisher("/b/chat", String), here.listen("/b/chat", String)
+    first_crossing(b_chat, a_got, String(data="warm"))
+    hidden = here.publisher("/hidden/x", String)
+    # one name published on both sides: each side's listener hears its own and the far one's
+    both_a, both_b = here.publisher("/both", String), there.publisher("/both", String)
+    heard_a, heard_b = here.listen("/both", String), there.listen("/both", String)
+    first_crossing(both_a, heard_b, String(data="warm"))
+    first_crossing(both_b, heard_a, String(data="warm"))
+    for inbox_ in (inbox, a_got, heard_a, heard_b):
+        settle(inbox_)
+    marks = {id(i): len(i.items) for i in (a_got, heard_a, heard_b)}
+    for n in range(20):
+        both_a.publish(String(data=f"a{n}"))
+        both_b.publish(String(data=f"b{n}"))
+        b_chat.publish(String(data=f"c{n}"))
+        hidden.publish(String(data="never"))
+        time.sleep(0.01)
+    for inbox_ in (a_got, heard_a, heard_b):
+        settle(inbox_, quiet=1.0)
+    got = {id(i): sorted(m.data for m in i.items[marks[id(i)]:]) for i in (a_got, heard_a,
+                                                                           heard_b)}
+    every = sorted([f"a{n}" for n in range(20)] + [f"b{n}" for n in range(20)])
+    assert got[id(a_got)] == sorted(f"c{n}" for n in range(20))
+    assert got[id(heard_a)] == every and got[id(heard_b)] == every  # once each: no echo
+    # what each bridge published of /both came back to its own subscription: refused, counted
+    assert drops(a, "/both", "transmit").get("echo", 0) >= 20, a.status()["entries"]
+    assert drops(b, "/both", "transmit").get("echo", 0) >= 20, b.status()["entries"]
+    # never on b's graph: a's name under its remote head, and what b's patterns leave out
+    names_b = {name for name, _ in there.ros.node.get_topic_names_and_types()}
+    assert not names_b & {"/a/arrays", "/hidden/x"}
+    assert "/hidden/x" in a.role.discovery.status()["found"]
+    # a's publisher goes: b's is gone after the grace, and b says why
+    here.ros.destroy(talker)
+    assert wait_until(lambda: not published(there, "/from_a/arrays"), 10)
+    assert "/from_a/arrays" not in b.role.discovery.status()["found"]
