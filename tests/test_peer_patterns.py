@@ -6,6 +6,8 @@ and counted); a name whose publishers went is gone from the far side after the g
 
 from __future__ import annotations
 
+import json
+import socket
 import time
 from typing import Any
 
@@ -14,15 +16,18 @@ from interfaces import differences, fill
 from std_msgs.msg import String
 from test_msgs.msg import Arrays
 
+from rosgate.roles.peer_patterns import ROSTER_ID
+from rosgate.wire import envelope
+
 PEER = """
 bridge: {{name: {name}, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, pattern_grace: 1}}
 topics:
   - {{topic: /**, direction: transmit, port: {send}}}
 {receive}
 """
-#: a takes everything b sends; b takes a's /a/** as /from_a/**, and the rest but /hidden/**
+#: a takes everything b sends; b takes two of a's /a/** as /from_a/**, and the rest but /hidden/**
 A_TAKES = "  - {{topic: /**, direction: receive, port: {port}}}"
-B_TAKES = """  - {{topic: /from_a/**, remote: /a/**, direction: receive, port: {port}}}
+B_TAKES = """  - {{topic: /from_a/**, remote: /a/**, direction: receive, port: {port}, max_routes: 2}}
   - {{topic: /**, direction: receive, port: {port}, deny: [/a/**, /hidden/**]}}"""
 
 
@@ -43,7 +48,13 @@ def drops(engine: Any, name: str, direction: str) -> dict[str, int]:
                  if e["name"] == name and e["direction"] == direction), {})
 
 
-def test_two_peers_with_patterns_both_ways_carry_each_message_once(engines, domain, ros_side):
+def roster(seq: int, body: bytes) -> bytes:
+    """A roster of names as anyone on a link without a cipher could send it."""
+    return envelope.pack(envelope.FLAG_ANNOUNCE, ROSTER_ID, 7, seq, 0) + body
+
+
+def test_two_peers_with_patterns_both_ways_carry_each_message_once(engines, domain, ros_side,
+                                                                   logs):
     da, db, p1, p2 = domain(), domain(), free_port(), free_port()
     a = engines(PEER.format(name="a", send=p1, receive=A_TAKES.format(port=p2)), da)
     b = engines(PEER.format(name="b", send=p2, receive=B_TAKES.format(port=p1)), db)
@@ -54,6 +65,10 @@ def test_two_peers_with_patterns_both_ways_carry_each_message_once(engines, doma
     talker = here.publisher("/a/arrays", Arrays)
     first_crossing(talker, inbox, arrays)
     assert differences(arrays, inbox.items[0]) == []
+    # a third name under b's pattern of two routes is refused, counted, never on b's graph
+    more = [here.publisher(f"/a/m{i}", String) for i in (1, 2)]
+    assert wait_until(lambda: b.role.discovery.status()["refused"] == {"too_many_names": 1})
+    assert sum(published(there, f"/from_a/m{i}") for i in (1, 2)) == 1 and more
     b_chat, a_got = there.publisher("/b/chat", String), here.listen("/b/chat", String)
     first_crossing(b_chat, a_got, String(data="warm"))
     hidden = here.publisher("/hidden/x", String)
@@ -89,3 +104,18 @@ def test_two_peers_with_patterns_both_ways_carry_each_message_once(engines, doma
     here.ros.destroy(talker)
     assert wait_until(lambda: not published(there, "/from_a/arrays"), 10)
     assert "/from_a/arrays" not in b.role.discovery.status()["found"]
+    # rosters no peer sent: each refusal counted by reason, nothing made, the bridge serves on
+    string = {"type": "std_msgs/msg/String"}
+    forged = [b"not json", json.dumps({"link": "x", "names": {"no name": string}}).encode(),
+              json.dumps({"link": "y", "names": {f"/hidden/n{i}": string
+                                                 for i in range(1001)}}).encode(),
+              json.dumps({"link": "z", "names": {"/c/x": {"type": "nope_pkg/msg/X"}}}).encode()]
+    before = dict(b.status()["link_drops"])
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for seq, body in enumerate(forged, 1):
+            s.sendto(roster(seq, body), ("127.0.0.1", p1))
+    grown = {"bad_announcement": 2, "too_many_names": 1, "type_not_installed": 1}
+    assert wait_until(lambda: {k: v - before.get(k, 0) for k, v in b.status()["link_drops"]
+                               .items() if v != before.get(k, 0)} == grown), b.status()
+    assert logs.wait("interface package 'nope_pkg' is not installed")
+    assert not published(there, "/c/x") and not published(there, "/hidden/n0")
