@@ -27,7 +27,8 @@ topics:
 """
 #: a takes everything b sends; b takes two of a's /a/** as /from_a/**, and the rest but /hidden/**
 A_TAKES = "  - {{topic: /**, direction: receive, port: {port}}}"
-B_TAKES = """  - {{topic: /from_a/**, remote: /a/**, direction: receive, port: {port}, max_routes: 2}}
+B_TAKES = """
+  - {{topic: /from_a/**, remote: /a/**, direction: receive, port: {port}, max_routes: 2}}
   - {{topic: /**, direction: receive, port: {port}, deny: [/a/**, /hidden/**]}}"""
 
 

@@ -62,7 +62,8 @@ class PeerRole(Role):
         self.lost = False  # a peer without a handshake line: silent too long
         self.bus_roles: dict[type[BusRole], BusRole] = {}
         #: the topic patterns: names found here, and names the peer announces
-        self.discovery = PeerPatterns(self)
+        self.discovery = PeerPatterns(self, self.keys_of, self.heard_from,
+                                      silent_for(self.cfg.peer_timeout))
         #: entries keyed by the file's key remember their peer's send times (made with the first)
         self.record: ReplayRecord | None = None
         self.remembered = True  # or a receiving entry keyed by the file starts without a record

@@ -22,7 +22,7 @@ import logging
 import re
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -38,17 +38,19 @@ from ..keyring import Keys, NoKey, StaticKeys
 from ..links import Link
 from ..router import fixed
 from ..routes import ReceiveRoute, Route, TransmitRoute
-from ..spec import TopicSpec
+from ..spec import ServiceSpec, TopicSpec
 from ..streamlink import Connector
 from ..transport import Address, StreamTransport
 from ..wire import envelope
 from ..wire.control import ControlError, parse
 from ..wire.envelope import topic_id_for
-from . import NoLink
+from . import NoLink, Role
 
 if TYPE_CHECKING:
     from ..resolver import Pattern
-    from .peer import PeerRole
+
+#: an entry's keys on its link, by a name there (default: its remote; None: its file's cipher)
+KeysOf = Callable[[TopicSpec | ServiceSpec, str | None], Keys | None]
 
 log = logging.getLogger("rosgate")
 
@@ -84,8 +86,13 @@ class Made:
 
 
 class PeerPatterns:
-    def __init__(self, role: PeerRole):
+    """The topic patterns of a peer ``role``: ``keys_of`` keys a route as the role's listed
+    entries; ``heard_from`` the receiving routes whose far side is the peer; ``quiet``: seconds
+    the peer may be silent before the names it announced are taken down."""
+
+    def __init__(self, role: Role, keys_of: KeysOf, heard_from: list[Route], quiet: float):
         self.role, self.cfg, self.router = role, role.cfg, role.router
+        self.keys_of, self.heard_from, self.quiet = keys_of, heard_from, quiet
         plan = role.bridge.plan
         self.sending: dict[int, Sending] = {}  # by the transmit pattern's index
         self._links: dict[tuple[str, Address], Sending] = {}
@@ -142,7 +149,7 @@ class PeerPatterns:
             link = self.role.datagram_link(spec.transport, spec.local, f"topics[{p.index}].port",
                                            sources=self.role.sources(spec.transport,
                                                                      self.cfg.peer))
-        keys = self.role.keys_of(spec, ROSTER_NAME) or StaticKeys(_cipher(spec))
+        keys = self.keys_of(spec, ROSTER_NAME) or StaticKeys(_cipher(spec))
         route = Route(spec.config, ROSTER_ID, None, keys, self.router.warner,
                       f"names on {link.name}")
         sending = self._links[where] = Sending(route, link, spec.address,
@@ -162,7 +169,7 @@ class PeerPatterns:
             sending.names[spec.config.remote] = self.router.entry_item(spec)
         self._send(sending)
         route = self.router.route(spec, topic_id_for(spec.config.remote), spec.name,
-                                  sending.link, fixed(spec.address), self.role.keys_of(spec))
+                                  sending.link, fixed(spec.address), self.keys_of(spec, None))
         assert isinstance(route, TransmitRoute)
         with self._lock:
             self.sent[found.name] = route
@@ -204,7 +211,7 @@ class PeerPatterns:
         else:
             self.role.datagram_link(spec.transport, spec.address, key, sources=sources)
         if all(o.entry.cipher != p.entry.cipher for o in self.openers):
-            keys = self.role.keys_of(spec, ROSTER_NAME) or StaticKeys(_cipher(spec))
+            keys = self.keys_of(spec, ROSTER_NAME) or StaticKeys(_cipher(spec))
             self.openers.append(Route(spec.config, ROSTER_ID, None, keys, self.router.warner,
                                       f"names from {self.cfg.peer}"))
 
@@ -278,12 +285,12 @@ class PeerPatterns:
                                     f"{fix}", Drop.TYPE_NOT_INSTALLED)
             return
         route = self.router.route(spec, topic_id_for(far), f"{local} (from {self.cfg.peer})",
-                                  NoLink(), keys=self.role.keys_of(spec))
+                                  NoLink(), keys=self.keys_of(spec, None))
         assert isinstance(route, ReceiveRoute)
         route.check.expect(route.drop)
         self.router.far(route, item)
         self.made[far] = Made(route, p, roster)
-        self.role.heard_from.append(route)
+        self.heard_from.append(route)
         self._pair(local)
         log.info("%s: topics[%d] %s: the peer announces %s (%s): bridged as %s", self.cfg.name,
                  p.index, p.name, far, type_name, local)
@@ -301,8 +308,8 @@ class PeerPatterns:
 
     def _unmake(self, far: str, why: str) -> None:
         made = self.made.pop(far)
-        if made.route in self.role.heard_from:
-            self.role.heard_from.remove(made.route)
+        if made.route in self.heard_from:
+            self.heard_from.remove(made.route)
         self.router.remove(made.route)
         log.info("%s: %s is %s by the peer: its route is removed", self.cfg.name,
                  made.route.topic.topic, why)
@@ -324,9 +331,7 @@ class PeerPatterns:
     # -- both ----------------------------------------------------------------------------------
     def _loop(self) -> None:
         """Rosters sent (often while the bridge is young); rosters unheard too long expire."""
-        from .peer import silent_for
-
-        quiet = max(self.cfg.pattern_grace, silent_for(self.cfg.peer_timeout))
+        quiet = max(self.cfg.pattern_grace, self.quiet)
         last = 0.0
         while not self.role.life.stopping.wait(ANNOUNCE_FAST):
             now = time.monotonic()
