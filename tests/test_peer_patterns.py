@@ -120,3 +120,23 @@ def test_two_peers_with_patterns_both_ways_carry_each_message_once(engines, doma
                                .items() if v != before.get(k, 0)} == grown), b.status()
     assert logs.wait("interface package 'nope_pkg' is not installed")
     assert not published(there, "/c/x") and not published(there, "/hidden/n0")
+
+
+def test_authenticated_peers_announce_and_carry_found_names(tmp_path, domain, ros_side, bridge):
+    """With identities, names are announced and carried under the session's keys."""
+    from test_sessions_peer import identities, peer_file
+
+    da, db, port = domain(), domain(), free_port()
+    keys = identities(tmp_path, a_initiates=True)
+    handshake = free_port()
+    a = bridge(peer_file(tmp_path, "a", keys["a"][0], keys["b"][1], handshake,
+                         f"topics: [{{topic: /a/**, direction: transmit, port: {port}}}]"), da)
+    b = bridge(peer_file(tmp_path, "b", keys["b"][0], keys["a"][1], handshake,
+                         f"topics: [{{topic: /**, direction: receive, port: {port}}}]"), db)
+    for side in (a, b):
+        assert side.wait_log("up (authenticated)", 20), side.log
+    arrays = fill(Arrays, "low")
+    inbox = ros_side(db, "there").listen("/a/deep/arrays", Arrays)
+    first_crossing(ros_side(da, "here").publisher("/a/deep/arrays", Arrays), inbox, arrays)
+    assert differences(arrays, inbox.items[0]) == []
+    assert b.wait_log("the peer announces /a/deep/arrays (test_msgs/msg/Arrays): bridged", 5)
