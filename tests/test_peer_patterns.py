@@ -14,7 +14,9 @@ from typing import Any
 from conftest import free_port, settle, wait_until
 from interfaces import differences, fill
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 from test_msgs.msg import Arrays
+from test_services import DEEP, Caller
 
 from rosgate.roles.peer_patterns import ROSTER_ID
 from rosgate.wire import envelope
@@ -24,6 +26,8 @@ bridge: {{name: {name}, role: peer, peer: 127.0.0.1, listen: 127.0.0.1, pattern_
 topics:
   - {{topic: /**, direction: transmit, port: {send}}}
 {receive}
+services:
+  - {{service: /x/**, direction: {calls}, port: {calls_port}}}
 """
 #: a takes everything b sends; b takes two of a's /a/** as /from_a/**, and the rest but /hidden/**
 A_TAKES = "  - {{topic: /**, direction: receive, port: {port}}}"
@@ -54,11 +58,18 @@ def roster(seq: int, body: bytes) -> bytes:
     return envelope.pack(envelope.FLAG_ANNOUNCE, ROSTER_ID, 7, seq, 0) + body
 
 
+def names(link: str, names: dict[str, Any]) -> bytes:
+    return json.dumps({"link": link, "kind": "topics", "names": names}).encode()
+
+
 def test_two_peers_with_patterns_both_ways_carry_each_message_once(engines, domain, ros_side,
                                                                    logs):
     da, db, p1, p2 = domain(), domain(), free_port(), free_port()
-    a = engines(PEER.format(name="a", send=p1, receive=A_TAKES.format(port=p2)), da)
-    b = engines(PEER.format(name="b", send=p2, receive=B_TAKES.format(port=p1)), db)
+    p3 = free_port()  # a serves its /x/** servers, b calls them
+    a = engines(PEER.format(name="a", send=p1, receive=A_TAKES.format(port=p2), calls="receive",
+                            calls_port=p3), da)
+    b = engines(PEER.format(name="b", send=p2, receive=B_TAKES.format(port=p1),
+                            calls="transmit", calls_port=p3), db)
     here, there = ros_side(da, "here"), ros_side(db, "there")
     # names only one side publishes: a's under /a/** reach b as /from_a/**, exact
     arrays = fill(Arrays, "high")
@@ -105,12 +116,18 @@ def test_two_peers_with_patterns_both_ways_carry_each_message_once(engines, doma
     here.ros.destroy(talker)
     assert wait_until(lambda: not published(there, "/from_a/arrays"), 10)
     assert "/from_a/arrays" not in b.role.discovery.status()["found"]
+    # a's server, found by a's receive pattern, is called from b through the proxy b made
+    server = here.ros.node.create_service(Trigger, "/x/ping", lambda request, response: (
+        setattr(response, "message", "from a"), response)[1], qos_profile=DEEP)
+    caller = Caller(there, Trigger, "/x/ping")
+    assert caller.warm_up(Trigger.Request())[0].message == "from a"
+    here.ros.node.destroy_service(server)  # gone here: b's proxy goes after the grace
+    assert wait_until(lambda: not caller.client.service_is_ready(), 10)
     # rosters no peer sent: each refusal counted by reason, nothing made, the bridge serves on
     string = {"type": "std_msgs/msg/String"}
-    forged = [b"not json", json.dumps({"link": "x", "names": {"no name": string}}).encode(),
-              json.dumps({"link": "y", "names": {f"/hidden/n{i}": string
-                                                 for i in range(1001)}}).encode(),
-              json.dumps({"link": "z", "names": {"/c/x": {"type": "nope_pkg/msg/X"}}}).encode()]
+    forged = [b"not json", names("x", {"no name": string}),
+              names("y", {f"/hidden/n{i}": string for i in range(1001)}),
+              names("z", {"/c/x": {"type": "nope_pkg/msg/X"}})]
     before = dict(b.status()["link_drops"])
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         for seq, body in enumerate(forged, 1):

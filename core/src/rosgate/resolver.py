@@ -164,12 +164,11 @@ class Resolver:
         return Plan(cfg, topics, services, main_line, self.main_address, actions, patterns)
 
     def _can_find(self, entry: TopicConfig | ServiceConfig | ActionConfig, key: str) -> None:
-        """What patterns find: a client's topics and services, either way; a peer's topics."""
-        kind, role = _name_key(entry), self.config.role
-        if role is Role.SERVER or role is Role.PEER and not isinstance(entry, TopicConfig):
-            whose = "a client's entries" + (" and a peer's topics" if role is Role.PEER else "")
-            raise self.config.error(f"{key}.{kind}", f"a pattern is for {whose}; a {role} "
-                                    f"lists each {kind} by its name",
+        """What patterns find: a client's and a peer's topics and services, either way."""
+        kind = _name_key(entry)
+        if self.config.role is Role.SERVER:
+            raise self.config.error(f"{key}.{kind}", "a pattern is for a client's or a peer's "
+                                    f"entries; a server lists each {kind} by its name",
                                     f"list each {kind} as an entry of its own")
         if isinstance(entry, ActionConfig):
             raise self.config.error(f"{key}.{kind}", "a pattern finds topics and services; an "

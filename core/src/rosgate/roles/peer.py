@@ -61,8 +61,8 @@ class PeerRole(Role):
         self.callers: list[CallerRoute] = []
         self.lost = False  # a peer without a handshake line: silent too long
         self.bus_roles: dict[type[BusRole], BusRole] = {}
-        #: the topic patterns: names found here, and names the peer announces
-        self.discovery = PeerPatterns(self, self.keys_of, self.heard_from,
+        #: the patterns: names found here, and names the peer announces
+        self.discovery = PeerPatterns(self, self.keys_of, self.heard_from, self.callers,
                                       silent_for(self.cfg.peer_timeout))
         #: entries keyed by the file's key remember their peer's send times (made with the first)
         self.record: ReplayRecord | None = None
