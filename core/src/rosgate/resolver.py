@@ -170,6 +170,14 @@ class Resolver:
             raise self.config.error(f"{key}.{kind}", "a pattern is for a client's or a peer's "
                                     f"entries; a server lists each {kind} by its name",
                                     f"list each {kind} as an entry of its own")
+        if self.config.role is Role.PEER and not isinstance(entry, ActionConfig):
+            transport = self.transport(entry.transport, f"{key}.transport")
+            if isinstance(transport, BusTransport) or (isinstance(transport, StreamTransport)
+                                                       and isinstance(entry, ServiceConfig)):
+                raise self.config.error(f"{key}.transport", f"a peer's {kind} pattern cannot "
+                                        f"find names over {transport.name}",
+                                        f"use udp{'' if kind == 'service' else ' or tcp'}, or "
+                                        f"list each {kind} as an entry of its own")
         if isinstance(entry, ActionConfig):
             raise self.config.error(f"{key}.{kind}", "a pattern finds topics and services; an "
                                     "action is listed by its name",

@@ -158,16 +158,8 @@ class PeerPatterns:
 
     # -- sending -----------------------------------------------------------------------------
     def _spec(self, p: Pattern) -> TopicSpec | ServiceSpec:
-        spec = p.checked
+        spec = p.checked  # on a point-to-point link; a service's on a datagram one (resolver)
         assert isinstance(spec, TopicSpec | ServiceSpec)
-        key = f"{p.section}[{p.index}].transport"
-        if spec.key is not None:
-            raise self.cfg.error(key, f"{spec.transport.name} is a bus: it finds the names "
-                                 "itself, a peer's pattern does not", "list each name, or use "
-                                 "a point-to-point link (udp, tcp)")
-        if isinstance(spec, ServiceSpec) and isinstance(spec.transport, StreamTransport):
-            raise self.cfg.error(key, f"a peer's service pattern needs a datagram link, not "
-                                 f"{spec.transport.name}", "use udp, or list each service")
         return spec
 
     def _sending(self, p: Pattern, kind: str) -> Sending:
@@ -323,8 +315,8 @@ class PeerPatterns:
         servers (they are told to where it came from)."""
         if kind == ASK:
             for sending in list(self._links.values()):
-                if sending.kind == "services" and sending.link is link:
-                    sending.to = source
+                if sending.kind == "services" and sending.link is link and sending.to != source:
+                    sending.to = source  # told now; after that every 2 s, however often asked
                     self._send(sending)
             return
         roster = (kind, key)
