@@ -80,7 +80,8 @@ class PeerRole(Role):
                         "captured before now can be replayed to this bridge once each, until "
                         "its next restart (docs/security.md)", self.cfg.name, self.cfg.peer,
                         self.record.path, why)
-        if self.handshake is None and self.callers and self.heard_from:
+        patterns_call = bool(self.discovery.taking["services"])  # their proxies come later
+        if self.handshake is None and (self.callers and self.heard_from or patterns_call):
             threading.Thread(target=self._watch_peer, name="peer-liveness", daemon=True).start()
 
     def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
