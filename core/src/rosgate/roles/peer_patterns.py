@@ -33,6 +33,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from .. import announce
 from ..announce import ANNOUNCE_EVERY, ANNOUNCE_FAST, YOUNG
 from ..config import Direction
 from ..config.kinds import ROS_NAME_MAX
@@ -335,9 +336,14 @@ class PeerPatterns:
 
     def _make(self, kind: str, far: str, item: Any, roster: tuple[str, str],
               link: Link) -> None:
-        if not (isinstance(far, str) and len(far) <= ROS_NAME_MAX and _NAME.fullmatch(far)
-                and isinstance(item, dict) and isinstance(item.get("type"), str)
-                and _TYPES[kind].fullmatch(item["type"])):
+        try:
+            announce.read(item)  # its type, hash and QoS as an entry's announcement says them
+            well_formed = (isinstance(far, str) and len(far) <= ROS_NAME_MAX
+                           and _NAME.fullmatch(far) is not None
+                           and _TYPES[kind].fullmatch(item["type"]) is not None)
+        except (ValueError, TypeError, KeyError):
+            well_formed = False
+        if not well_formed:
             self.router.link_drop(link, Drop.BAD_ANNOUNCEMENT, f"a roster's name {far!r:.80}")
             return
         type_name = item["type"]
