@@ -111,6 +111,17 @@ def test_a_peer_finds_topics_and_services_on_the_links_that_can() -> None:
     assert "cannot find names over tcp" in info.value.message and "udp" in (info.value.fix or "")
 
 
+def test_a_peer_pattern_anyone_could_write_through_is_an_open_door() -> None:
+    from rosgate.engine import open_entries
+
+    plan = Resolver(loads(PEER + "topics:\n  - {topic: /r/**, direction: receive, port: 12001}\n"
+                          "  - {topic: /t/**, direction: transmit, port: 12002}\n"
+                          "services:\n  - {service: /s/**, direction: transmit, port: 12003}\n"),
+                    Plugins.discover()).plan()
+    assert [(door.key, door.name) for door in open_entries(plan)] == [
+        ("topics[0].cipher", "/r/**"), ("services[0].cipher", "/s/**")]
+
+
 def test_a_client_sends_names_never_patterns() -> None:
     with pytest.raises(ConfigError) as info:
         topic_from_mapping({"topic": "/r/**", "direction": "transmit"}, {}, "client x", index=2)
