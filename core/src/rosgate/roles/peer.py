@@ -9,7 +9,8 @@ With identities, a TCP handshake line runs the client/server Noise handshake: th
 public key sorts first initiates, and ``framing: rosgate`` entries are keyed from its session
 (docs/security.md). Calls waiting for the peer fail (``link_down``) when that line is lost, or,
 without one, after :func:`silent_for` seconds without a word from the peer (docs/actions.md).
-Links take frames only from ``bridge.peer`` or ``bridge.allow`` (``not_allowed``).
+Links take frames only from ``bridge.peer`` or ``bridge.allow`` (``not_allowed``). Pattern
+entries make their routes as names appear: :mod:`.peer_patterns`.
 """
 
 from __future__ import annotations
