@@ -1,8 +1,10 @@
-"""A peer's topic patterns, both ways, against real bridges and real rclpy nodes, each side in its
-own domain: names that appear under a transmit pattern after both peers are up cross, field by
-field, and the far peer takes only what its own receive patterns take (mapped by ``remote:``);
-a name published on both sides crosses once each way and never echoes back (each echo refused
-and counted); a name whose publishers went is gone from the far side after the grace."""
+"""A peer's patterns, both ways, against real bridges and real rclpy nodes, each side in its own
+domain: names that appear under a transmit pattern after both peers are up cross, field by
+field, and the far peer takes only what its own receive patterns take (mapped by ``remote:``,
+within ``max_routes``); a name published on both sides crosses once each way and never echoes
+back (each echo refused and counted); a name whose publishers went is gone from the far side
+after the grace; a server found on one side is called from the other; forged announcements are
+counted by reason and make nothing."""
 
 from __future__ import annotations
 
