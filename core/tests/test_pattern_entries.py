@@ -94,11 +94,32 @@ def test_what_patterns_do_not_find_is_refused_at_start(text: str, key: str, says
     assert info.value.fix and "as an entry of its own" in info.value.fix
 
 
-def test_a_peer_lists_its_names() -> None:
-    cfg = loads("bridge: {name: a, role: peer, peer: 127.0.0.1}\n"
-                "topics:\n  - {topic: /r/**, direction: transmit, port: 12001}\n")
-    with pytest.raises(ConfigError, match="a pattern is for a client's entries"):
+PEER = "bridge: {name: a, role: peer, peer: 127.0.0.1, insecure: true}\n"
+
+
+def test_a_peer_finds_topics_and_services_on_the_links_that_can() -> None:
+    plan = Resolver(loads(PEER + "topics:\n  - {topic: /r/**, direction: transmit, port: 12001}\n"
+                          "services:\n  - {service: /s/**, direction: receive, port: 12002}\n"),
+                    Plugins.discover()).plan()
+    assert [(p.section, p.name) for p in plan.patterns] == [("topics", "/r/**"),
+                                                            ("services", "/s/**")]
+    cfg = loads(PEER + "services:\n  - {service: /s/**, direction: receive, port: 12002, "
+                "transport: tcp}\n", file="bringup.yaml")
+    with pytest.raises(ConfigError) as info:
         Resolver(cfg, Plugins.discover()).plan()
+    assert (info.value.line, info.value.key) == (3, "services[0].transport")
+    assert "cannot find names over tcp" in info.value.message and "udp" in (info.value.fix or "")
+
+
+def test_a_peer_pattern_anyone_could_write_through_is_an_open_door() -> None:
+    from rosgate.engine import open_entries
+
+    plan = Resolver(loads(PEER + "topics:\n  - {topic: /r/**, direction: receive, port: 12001}\n"
+                          "  - {topic: /t/**, direction: transmit, port: 12002}\n"
+                          "services:\n  - {service: /s/**, direction: transmit, port: 12003}\n"),
+                    Plugins.discover()).plan()
+    assert [(door.key, door.name) for door in open_entries(plan)] == [
+        ("topics[0].cipher", "/r/**"), ("services[0].cipher", "/s/**")]
 
 
 def test_a_client_sends_names_never_patterns() -> None:

@@ -103,6 +103,11 @@ class Drop(StrEnum):
     TYPE_UNHEARD = "type_unheard", ("held for the far side's type announcement beyond the hold's "
                                     "bound (1,000 frames or 16 MiB): the oldest went")
     BAD_ANNOUNCEMENT = "bad_announcement", "an entry's type announcement that cannot be read"
+    TOO_MANY_NAMES = "too_many_names", ("a name a far peer announced under this side's receive "
+                                        "patterns past what they take (`max_routes`, or 1,000 "
+                                        "names in one announcement): no route is made for it")
+    ECHO = "echo", ("a message this bridge published itself, taken back by its own subscription "
+                    "of the name (peers that both send and receive it): never sent back")
     DECOMPRESSION_ERROR = "decompression_error", \
         "a payload transform this side lacks, or one that could not undo its work"
     DECODE_ERROR = "decode_error", "the codec could not read the payload"

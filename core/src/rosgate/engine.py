@@ -67,17 +67,23 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
     authenticates the far side (:meth:`BusTransport.unauthenticated`)."""
     cfg = plan.config
     found: list[OpenEntry] = []
-    entries: list[TopicSpec | ServiceSpec] = [*plan.topics, *plan.services, *plan.action_parts]
+    # a pattern is judged by the spec its plugins were checked with: every name it finds has it
+    patterns = {id(f.checked): f.name for f in plan.patterns
+                if isinstance(f.checked, TopicSpec | ServiceSpec)}
+    entries: list[TopicSpec | ServiceSpec] = [
+        *plan.topics, *plan.services, *(f.checked for f in plan.patterns if id(f.checked) in
+                                        patterns), *plan.action_parts]
     for n, p in enumerate(entries):
         t = p.config
         is_topic = isinstance(p, TopicSpec)
         if is_topic and t.direction is Direction.TRANSMIT:
             continue
-        part = n >= len(plan.topics) + len(plan.services)  # an action's: said once, as the action
+        part = n >= len(entries) - len(plan.action_parts)  # an action's: said once, as the action
         key = f"{'actions' if part else 'topics' if is_topic else 'services'}[{p.index}]"
         if part and any(f.key.startswith(f"{key}.") for f in found):
             continue
-        name = f"action {plan.actions[p.index].config.action}" if part else p.name
+        name = f"action {plan.actions[p.index].config.action}" if part else \
+            patterns.get(id(p), p.name)
         link = f"{t.transport}:{t.port}" if t.port else t.transport
         statically_keyed = not t.framing.bare and p.cipher is not None and \
             p.cipher_cls is not None and p.cipher_cls.authenticates

@@ -164,12 +164,20 @@ class Resolver:
         return Plan(cfg, topics, services, main_line, self.main_address, actions, patterns)
 
     def _can_find(self, entry: TopicConfig | ServiceConfig | ActionConfig, key: str) -> None:
-        """What patterns find: a client's topics and services, either way."""
+        """What patterns find: a client's and a peer's topics and services, either way."""
         kind = _name_key(entry)
-        if self.config.role is not Role.CLIENT:
-            raise self.config.error(f"{key}.{kind}", f"a pattern is for a client's entries; a "
-                                    f"{self.config.role} lists each {kind} by its name",
+        if self.config.role is Role.SERVER:
+            raise self.config.error(f"{key}.{kind}", "a pattern is for a client's or a peer's "
+                                    f"entries; a server lists each {kind} by its name",
                                     f"list each {kind} as an entry of its own")
+        if self.config.role is Role.PEER and not isinstance(entry, ActionConfig):
+            transport = self.transport(entry.transport, f"{key}.transport")
+            if isinstance(transport, BusTransport) or (isinstance(transport, StreamTransport)
+                                                       and isinstance(entry, ServiceConfig)):
+                raise self.config.error(f"{key}.transport", f"a peer's {kind} pattern cannot "
+                                        f"find names over {transport.name}",
+                                        f"use udp{'' if kind == 'service' else ' or tcp'}, or "
+                                        f"list each {kind} as an entry of its own")
         if isinstance(entry, ActionConfig):
             raise self.config.error(f"{key}.{kind}", "a pattern finds topics and services; an "
                                     "action is listed by its name",

@@ -84,6 +84,8 @@ class Router:
         self.on_hello: HelloHandler | None = None
         #: a role that learns where its far sides are from their frames (the server) sets this
         self.on_heard: HeardHandler | None = None
+        #: a role that learns names from announcements for no route yet (a peer's patterns)
+        self.on_unknown_announcement: HelloHandler | None = None
         self._lock = threading.RLock()
         self._closing = threading.Event()
         #: makes the routes' subscriptions and publishers as the graph allows
@@ -302,6 +304,9 @@ class Router:
         route: Route | None = self.receivers.get(header.topic_id) or self.servers.get(
             header.topic_id)
         if route is None:
+            if self.on_unknown_announcement is not None:
+                self.on_unknown_announcement(header, frame, link, source)
+                return
             # an entry this side does not carry: on a shared bus (CAN) every node hears every
             # node's announcements. No message is lost, so no drop: said in debug
             log.debug("%s: an announcement for id %d from %s, an entry this side does not carry",

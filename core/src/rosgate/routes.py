@@ -27,6 +27,7 @@ from .builtin import NoCipher
 from .codec import Codec
 from .config import ServiceConfig, TopicConfig
 from .drops import Drop, Reason
+from .echo import EchoGuard
 from .errors import CipherError, CodecError
 from .holdback import Held, Holdback
 from .inorder import Ordered
@@ -52,7 +53,7 @@ BATCH_BYTES = 1_000_000
 SEAL_IN_PLACE = 64 * 1024
 
 # reasons that say something is wrong (a warning); the others are routine and only counted
-QUIET_REASONS = {Drop.RATE_LIMIT, Drop.DUPLICATE, Drop.SUPERSEDED}
+QUIET_REASONS = {Drop.RATE_LIMIT, Drop.DUPLICATE, Drop.SUPERSEDED, Drop.ECHO}
 
 
 @dataclass
@@ -96,6 +97,8 @@ class Route:
     #: the wall clock (ns) the bridge's own queues measure waits by (the kernel's and the
     #: middleware's stamps are of it)
     clock: Callable[[], int] = staticmethod(time.time_ns)
+    #: a name this bridge both sends and receives (peers' patterns): what it published itself
+    echo: EchoGuard | None = None
 
     def __init__(self, entry: TopicConfig | ServiceConfig, topic_id: int, codec: Any,
                  keys: Keys, warner: Warner, label: str, delivery: Delivery = Delivery()):
@@ -447,6 +450,9 @@ class TransmitRoute(Route):
     def _encode(self, message: Any) -> tuple[bytes, int, int] | None:
         """One message's payload, envelope flags and the time it was taken (ns), or None when
         it was dropped (counted)."""
+        if self.echo is not None and self.echo.returned(message):
+            self.drop(Drop.ECHO)  # before the rate limit: an echo takes no message's turn
+            return None
         now = time.time_ns()
         if self.min_interval_ns:
             if now - self.last_sent_ns < self.min_interval_ns:
@@ -590,6 +596,8 @@ class ReceiveRoute(Route):
                       else f"codec {self.codec.name} failed: {type(exc).__name__}: {exc}")
             return
         try:
+            if self.echo is not None:
+                self.echo.publishing(message)
             self.publish(message)
         except Exception as exc:
             self.drop(Drop.PUBLISH_ERROR, f"{type(exc).__name__}: {exc}")

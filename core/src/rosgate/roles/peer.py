@@ -9,7 +9,8 @@ With identities, a TCP handshake line runs the client/server Noise handshake: th
 public key sorts first initiates, and ``framing: rosgate`` entries are keyed from its session
 (docs/security.md). Calls waiting for the peer fail (``link_down``) when that line is lost, or,
 without one, after :func:`silent_for` seconds without a word from the peer (docs/actions.md).
-Links take frames only from ``bridge.peer`` or ``bridge.allow`` (``not_allowed``).
+Links take frames only from ``bridge.peer`` or ``bridge.allow`` (``not_allowed``). Pattern
+entries make their routes as names appear: :mod:`.peer_patterns`.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from ..transport import Address, DatagramTransport, StreamConnection, StreamTran
 from ..wire.envelope import topic_id_for
 from . import Answer, Bridge, NoLink, Role, session_keys
 from .mainline import control, is_control
+from .peer_patterns import PeerPatterns
 
 log = logging.getLogger("rosgate")
 
@@ -60,6 +62,9 @@ class PeerRole(Role):
         self.callers: list[CallerRoute] = []
         self.lost = False  # a peer without a handshake line: silent too long
         self.bus_roles: dict[type[BusRole], BusRole] = {}
+        #: the patterns: names found here, and names the peer announces
+        self.discovery = PeerPatterns(self, self.keys_of, self.heard_from, self.callers,
+                                      silent_for(self.cfg.peer_timeout))
         #: entries keyed by the file's key remember their peer's send times (made with the first)
         self.record: ReplayRecord | None = None
         self.remembered = True  # or a receiving entry keyed by the file starts without a record
@@ -68,6 +73,7 @@ class PeerRole(Role):
         if self.handshake is not None:
             self.handshake.start()
         self._start_entries()
+        self.discovery.start()
         if not self.remembered and self.record is not None:
             why = f"unreadable: {self.record.unreadable}" if self.record.unreadable else \
                 "a first start, or it was lost"
@@ -75,7 +81,8 @@ class PeerRole(Role):
                         "captured before now can be replayed to this bridge once each, until "
                         "its next restart (docs/security.md)", self.cfg.name, self.cfg.peer,
                         self.record.path, why)
-        if self.handshake is None and self.callers and self.heard_from:
+        patterns_call = bool(self.discovery.taking["services"])  # their proxies come later
+        if self.handshake is None and (self.callers and self.heard_from or patterns_call):
             threading.Thread(target=self._watch_peer, name="peer-liveness", daemon=True).start()
 
     def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
@@ -113,6 +120,7 @@ class PeerRole(Role):
                 log.info("%s: peer %s heard again", self.cfg.name, self.cfg.peer)
 
     def stop(self) -> None:
+        self.discovery.stop()
         super().stop()
         if self.handshake is not None:
             self.handshake.schedule.forget()
@@ -149,15 +157,8 @@ class PeerRole(Role):
             link = slot = self.bridge.slot(f"{c.transport}->{self.cfg.peer}:{c.port}")
         else:
             link = self.datagram_link(p.transport, p.local, key, sources=sources)
-        keys: Keys | None = None  # a session's, or the file's key with the replay record
-        if self.handshake is not None and c.framing is Framing.ROSGATE:
-            keys = self.handshake.keys(p)
-        elif c.framing is Framing.ROSGATE and p.cipher is not None and p.cipher.authenticates:
-            keys = StaticKeys(p.cipher, self._record())
-            if c.direction is Direction.RECEIVE and not self._record().known:
-                self.remembered = False
         route = self.router.route(p, topic_id_for(c.remote), p.name, link, fixed(p.address),
-                                  keys)
+                                  self.keys_of(p))
         if stream and c.direction is Direction.RECEIVE:
             self.listen(p.transport, p.address, self.router.on_frame, key, sources=sources)
         elif stream:
@@ -176,6 +177,19 @@ class PeerRole(Role):
             self.heard_from.append(route)
             if p.name != c.remote and isinstance(route, ReceiveRoute):
                 self.router.alias(route, topic_id_for(p.name))
+
+    def keys_of(self, p: TopicSpec | ServiceSpec, name: str | None = None) -> Keys | None:
+        """An entry's keys: a session's, or the file's key with the replay record (None: the
+        file's cipher as it is); ``name``: keys of that name on the entry's link (default: its
+        remote)."""
+        c = p.config
+        if self.handshake is not None and c.framing is Framing.ROSGATE:
+            return self.handshake.keys(p, name)
+        if c.framing is Framing.ROSGATE and p.cipher is not None and p.cipher.authenticates:
+            if c.direction is Direction.RECEIVE and not self._record().known:
+                self.remembered = False
+            return StaticKeys(p.cipher, self._record())
+        return None
 
     def _line_calls(self, transport: Transport) -> bool:
         """Whether microcontroller calls share ``transport``'s line with its bare topics."""
@@ -248,8 +262,8 @@ class PeerHandshake:
         self.link: StreamLink | None = None
         self.answer = Answer()
 
-    def keys(self, p: TopicSpec | ServiceSpec) -> Keys:
-        return session_keys(self.schedule, p, p.config.remote, self.mine, self.theirs)
+    def keys(self, p: TopicSpec | ServiceSpec, name: str | None = None) -> Keys:
+        return session_keys(self.schedule, p, name or p.config.remote, self.mine, self.theirs)
 
     def _address(self, host: str | None) -> Address:
         try:
