@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -219,6 +219,24 @@ def _where(pattern: Pattern) -> str:
 
 
 MAX_WATCHED = 64  # patterns one client may ask its server to watch
+
+
+def made_by(founds: Iterable[Found], specs: Sequence[Any]) -> list[str | None]:
+    """The pattern (as written) that found each of ``specs`` (None: a name gone), for the
+    ``patterns`` a client's hello and ``found`` say beside its ``found`` names."""
+    by_spec = {id(f.route): f.pattern.name for f in founds}
+    return [None if spec is None else by_spec.get(id(spec)) for spec in specs]
+
+
+def said_patterns(message: dict[str, Any], first: int) -> dict[int, str]:
+    """What a client's message says made each name it found (``patterns``, in the order of
+    ``found``), by the entry's index (the found names follow its ``first`` listed entries);
+    what is not a pattern is left out: it is shown to operators, never obeyed."""
+    items = message.get("patterns", [])
+    if not isinstance(items, list):
+        return {}
+    return {first + i: p for i, p in enumerate(items)
+            if isinstance(p, str) and is_pattern(p) and len(p) <= ROS_NAME_MAX}
 
 
 def watched(message: dict[str, Any], key: str = "watch") -> list[str]:
