@@ -11,6 +11,7 @@ from .bus import BusRole, BusTransport
 from .cipher import Cipher
 from .codec import Codec
 from .commands import Command
+from .discovery import BusPattern
 from .drops import Drop, LinkDrop, Reason, declare
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import API_VERSION, hookimpl
@@ -52,5 +53,6 @@ __all__ = [
     "Transform", "TransformError", "Transport", "check_ip_address", "declare", "describe_source",
     "hookimpl", "identity_public_key", "ip_source_hosts", "key_source", "load_key", "option",
     "parse_host_port", "runtime_dir", "socket_path", "topic_of",
+    "BusPattern",
 ]
 __version__ = "0.1.0"

@@ -12,13 +12,16 @@ import threading
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .config import BridgeConfig, Direction
 from .config.kinds import ROS_NAME_MAX
-from .config.patterns import denied, is_pattern, matches
+from .config.patterns import denied, far_name, is_pattern, matches
+from .errors import ConfigError
 from .policy import is_action_part
-from .resolver import Pattern
+
+if TYPE_CHECKING:  # ``import rosgate`` (BusPattern) stays light: the resolver's plugins load later
+    from .resolver import Pattern
 
 log = logging.getLogger("rosgate")
 
@@ -212,6 +215,58 @@ class Discovery:
 
     def status(self) -> dict[str, Any]:
         return {"found": sorted(self.found), "refused": dict(self.refusals.counts)}
+
+
+class BusPattern:
+    """A peer's receiving topic pattern on a bus (``topic: /robot1/**`` with ``transport:
+    zenoh``), as its bus role watches the bus for it (:meth:`rosgate.BusRole.pattern`): the bus
+    role hands :meth:`take` each topic announced there, by its name on the bus and its type,
+    and makes the route of the spec it gives. Called from one thread (the bus link's)."""
+
+    def __init__(self, config: BridgeConfig, pattern: Pattern,
+                 make: Callable[[Pattern, str, str], Any]):
+        self.config, self.pattern, self._make = config, pattern, make
+        entry = pattern.entry
+        #: what every route it makes shares (transport, codec, key...): a stand-in name's spec
+        self.spec: Any = pattern.checked
+        #: the names it takes on the bus (the entry's ``remote``: ``/fleet/robot1/**``)
+        self.remote: str = entry.remote if "remote" in entry.lines else pattern.name
+        self.listed = {t.topic for t in config.topics if not t.pattern}
+        #: the routes' specs it made, by the name on the bus
+        self.made: dict[str, Any] = {}
+        self.refusals = Refusals()
+
+    def take(self, far: str, type_name: str) -> Any:
+        """The spec of the route for the topic announced on the bus as ``far`` (a ROS name) of
+        ``type_name``, or None: the pattern does not take it (outside it, denied, listed, of
+        another type than the entry's), has it already, or refuses it (past ``max_routes``,
+        its plugins cannot carry it: said once and counted)."""
+        p, entry = self.pattern, self.pattern.entry
+        if far in self.made or not matches(self.remote, far):
+            return None
+        name = far_name(self.remote, p.name, far)
+        if (name in self.listed or denied(name, entry.deny) or denied(name, self.config.deny)
+                or entry.type not in ("", type_name)):
+            return None
+        where = f"{_where(p)} {p.name}"
+        if len(self.made) >= entry.max_routes:
+            self.refusals.refuse("max_routes", name, f"{where}: {name} is refused: the pattern "
+                                 f"has made its {entry.max_routes} routes (max_routes)")
+            return None
+        try:
+            spec = self._make(p, name, type_name)
+        except ConfigError as exc:
+            self.refusals.refuse("unroutable", name, f"{where}: {name} ({type_name}) cannot be "
+                                 f"bridged: {exc}")
+            return None
+        self.made[far] = spec
+        log.info("%s: %s found %s (%s) on %s: bridged", self.config.name, where, name,
+                 type_name, self.spec.transport.name)
+        return spec
+
+    def status(self) -> dict[str, Any]:
+        return {"found": sorted(s.name for s in list(self.made.values())),
+                "refused": dict(self.refusals.counts)}
 
 
 def _where(pattern: Pattern) -> str:

@@ -22,7 +22,8 @@ Fields (counters only grow; rates are differences between two statuses over thei
     links      [{name, up, frames_out, bytes_out, packets_out, frames_in, bytes_in, packets_in,
                  queue, bandwidth (bit/s budget, or null), rtt (seconds, or null)}]
     link_drops {reason: count} of frames that belonged to no topic
-    patterns   what a client's pattern entries found (names) and refused ({reason: count})
+    patterns   what pattern entries found (names) and refused ({reason: count}): a client's,
+               and a peer's on a bus
 """
 
 from __future__ import annotations
@@ -61,10 +62,10 @@ def collect(config: BridgeConfig, role: Role | None, router: Router | None, life
 
 
 def _patterns(role: Role | None) -> Status:
-    """What a client's pattern entries found (names) and refused (by reason, each name once)."""
+    """What pattern entries found (names) and refused (by reason, each name once)."""
     total: Status = {"found": [], "refused": {}}
-    for name in ("discovery", "service_discovery"):
-        discovery = getattr(role, name, None)
+    finders = [getattr(role, name, None) for name in ("discovery", "service_discovery")]
+    for discovery in [*finders, *(role.bus_patterns if isinstance(role, PeerRole) else [])]:
         if discovery is not None:
             each = discovery.status()
             total["found"] += each["found"]
@@ -77,6 +78,9 @@ def _made_by(role: Role | None) -> dict[int, str]:
     """The pattern (as written) that made each route, by ``id`` of the route's entry."""
     if isinstance(role, ClientRole):
         return {id(f.route.config): f.pattern.name for f in role.founds() if f.route is not None}
+    if isinstance(role, PeerRole):
+        return {id(spec.config): found.pattern.name for found in role.bus_patterns
+                for spec in list(found.made.values())}
     if isinstance(role, ServerRole):
         return {id(route.entry): pattern for s in list(role.sessions.values())
                 for index, pattern in list(s.made_by.items())

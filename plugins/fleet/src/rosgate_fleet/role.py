@@ -24,7 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from rosgate import ConfigError
+from rosgate import BusPattern, ConfigError
 from rosgate.bus import BusRole, BusTransport
 from rosgate.config import BridgeConfig, Direction, Framing, ServiceConfig, TopicConfig
 from rosgate.drops import Drop
@@ -97,6 +97,12 @@ class BusWiring(BusRole):
         return key
 
     @staticmethod
+    def finds(transport: BusTransport) -> bool:
+        """Its bus announces topics it can find: a convention (:class:`rosgate_fleet.Dialect`,
+        the zenoh plugin's ``speak:``) whose graph it reads."""
+        return isinstance(transport, FleetTransport) and transport.dialect is not None
+
+    @staticmethod
     def speaks(transport: BusTransport, entry: TopicConfig | ServiceConfig) -> str | None:
         dialect = transport.dialect if isinstance(transport, FleetTransport) else None
         return dialect.name(entry) if dialect is not None else None
@@ -148,6 +154,19 @@ class BusWiring(BusRole):
             route = self.receiver(p)
             link.subscribe(p.key, lambda key, frame: self.dispatch(route, key, frame),
                            lambda key, reason: route.drop(reason))
+
+    def pattern(self, pattern: BusPattern) -> None:
+        """A receiving topic pattern: a route for each publisher its bus's convention announces
+        under it, made as a listed entry's (on the link's thread, where the graph is read)."""
+        link = self.link(pattern.spec)
+        dialect = link.transport.dialect
+        assert dialect is not None, "the resolver lets no pattern reach a bus without one"
+
+        def announced(name: str, type_name: str, alive: bool) -> None:
+            spec = pattern.take(name, type_name) if alive else None
+            if spec is not None:
+                self.topic(spec)
+        link.call_later(dialect.publishers, self, link, announced)
 
     # -- services --------------------------------------------------------------------------------
     def service(self, p: ServiceSpec) -> None:

@@ -21,7 +21,8 @@ bridge does: topics with ``framing: none`` and ``codec: cdr``, services with ``c
   calls from here carry that bridge's request-header attachment. A call the serving side could
   not answer gets no answer (that bridge has no way to say why), so the caller's timeout speaks;
 * the other bridges' tokens are read (:class:`Graph`): each one's routes are logged as they
-  come and go, and fleets (:mod:`.fleet`) learn robots from them.
+  come and go, fleets (:mod:`.fleet`) learn robots from them, and a peer's receiving topic
+  pattern takes the publishers they announce under it (:meth:`Ros2dds.publishers`).
 
 The core's routes do the rest (codec, counters, ROS entities): service calls cross them in an
 envelope that this module adds and removes at the bus's edge, with the ``none`` cipher.
@@ -51,11 +52,11 @@ from rosgate.wire.envelope import topic_id_for
 
 from . import ros2dds
 from .ros2dds import Kind, Qos
+from .transport import ZenohSession, ZenohTransport
 
 if TYPE_CHECKING:
     from rosgate_fleet import BusWiring
 
-    from .transport import ZenohSession
 
 log = logging.getLogger("rosgate")
 
@@ -154,6 +155,22 @@ class Ros2dds:
             return route, link.token(ros2dds.token(zid, kinds[1],
                                                    *ros2dds.action_of(p.key, p.config.type)))
         return route, None
+
+    def publishers(self, wiring: BusWiring, link: BusLink,
+                   listener: Callable[[str, str, bool], None]) -> None:
+        """The publishers other zenoh-bridge-ros2dds bridges announce, by the ROS name their
+        key (under this bridge's ``namespace``) stands for."""
+        transport = link.transport
+        assert isinstance(transport, ZenohTransport)
+        namespace = transport.namespace
+
+        def changed(found: ros2dds.Announced, alive: bool) -> None:
+            if found.kind is not Kind.PUBLISHER:
+                return
+            name = found.key.removeprefix(f"{namespace}/") if namespace else found.key
+            if name != found.key or not namespace:
+                listener(f"/{name}", found.type, alive)
+        self.graph(link).listen(changed)
 
     def graph(self, link: BusLink) -> Graph:
         """The other bridges' routes as seen on ``link``, watched from its first entry on."""
