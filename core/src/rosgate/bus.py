@@ -12,14 +12,11 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from .config import ServiceConfig, TopicConfig
 from .spec import ServiceSpec, TopicSpec
 from .transport import Transport
-
-if TYPE_CHECKING:
-    from .discovery import BusPattern
 
 
 @dataclass(frozen=True)
@@ -94,8 +91,9 @@ class BusRole(ABC):
     def service(self, spec: ServiceSpec) -> None:
         """Make the routes of one bus service."""
 
-    def pattern(self, pattern: BusPattern) -> None:
-        """Watch the bus for the topics announced under a receiving pattern entry (only called
-        when :meth:`finds`): hand each announced name and type to :meth:`BusPattern.take`, and
-        make the route of the spec it gives as :meth:`topic` makes a listed entry's."""
+    def pattern(self, pattern: Any) -> None:
+        """Watch the bus for the topics announced under a receiving pattern entry, a
+        :class:`rosgate.BusPattern` (called only when :meth:`finds`): hand each announced name
+        and type to its ``take``, and make the route of the spec it gives as :meth:`topic`
+        makes a listed entry's."""
         raise NotImplementedError(f"{self.name} says it finds topics but takes no pattern")
