@@ -35,7 +35,8 @@ def bot_file(tmp: Path, router: Router, speak: str) -> Path:
     path = tmp / "bot1.yaml"
     path.write_text(f"""\
 # zenoh without TLS: the router of a test on loopback
-bridge: {{name: bot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}, insecure: true}}
+bridge: {{name: bot1, role: peer, defaults: {{transport: zenoh, codec: cdr}}, insecure: true,
+         pattern_grace: 1}}
 {zenoh_plugin(router, f", speak: {speak}")}topics:
   - {{topic: /robot1/**, direction: receive, framing: none, deny: [/robot1/secret/**]}}
 """)
@@ -86,7 +87,16 @@ def test_topics_rmw_zenoh_nodes_announce_under_a_pattern_are_bridged(
         assert [(e["direction"], e["type"], e["pattern"]) for e in status["entries"]] == [
             ("receive", "geometry_msgs/msg/Twist", "/robot1/**")]
         assert status["patterns"] == {"found": ["/robot1/cmd_vel"], "refused": {}}
+        # its publisher's token goes: after the grace the route goes, its ROS publisher too
         publisher.undeclare()
+        node.held[1].undeclare()
+        assert bot.wait_log("bot1: /robot1/cmd_vel is gone (no publisher for 1 s): its route is "
+                            "removed", TIMEOUT), bot.log
+        assert wait_until(lambda: not robot.ros.node.get_publishers_info_by_topic(
+            "/robot1/cmd_vel"), TIMEOUT)
+        # and comes back with a publisher that appears again
+        node.announce("MP", "/robot1/cmd_vel", TWIST, "::,10:,:,:,,")
+        assert wait_until(lambda: bot.log.count("found /robot1/cmd_vel") == 2, TIMEOUT), bot.log
     finally:
         node.close()
 

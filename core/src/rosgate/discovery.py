@@ -264,6 +264,13 @@ class BusPattern:
                  type_name, self.spec.transport.name)
         return spec
 
+    def forget(self, far: str) -> None:
+        """The route of ``far`` was removed (its publishers gone for ``bridge.pattern_grace``):
+        said, and the name may be taken again."""
+        spec = self.made.pop(far)
+        log.info("%s: %s is gone (no publisher for %g s): its route is removed",
+                 self.config.name, spec.name, self.config.pattern_grace)
+
     def status(self) -> dict[str, Any]:
         return {"found": sorted(s.name for s in list(self.made.values())),
                 "refused": dict(self.refusals.counts)}
