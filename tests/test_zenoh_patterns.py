@@ -7,11 +7,12 @@ sources) and as zenoh-bridge-ros2dds does (``speak: ros2dds``)."""
 
 from __future__ import annotations
 
+import subprocess
 import time
 from pathlib import Path
 
 import pytest
-from conftest import wait_until
+from conftest import ROSGATE, wait_until
 from geometry_msgs.msg import Twist
 from rclpy.serialization import serialize_message
 from rosgate_top.client import StatusClient
@@ -104,7 +105,13 @@ def test_topics_rmw_zenoh_nodes_announce_under_a_pattern_are_bridged(
 def test_topics_a_ros2dds_bridge_announces_under_a_pattern_are_bridged(
         tmp_path, router, plain, bridge, domain, ros_side):  # noqa: F811 (the fixture)
     d = domain()
-    bot = bridge(bot_file(tmp_path, router, "ros2dds"), d)
+    path = bot_file(tmp_path, router, "ros2dds")
+    checked = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
+                             timeout=60)
+    assert checked.returncode == 0, checked.stderr
+    assert "  /robot1/** <- robot1/**  [type from the graph] zenoh cdr none  (pattern)\n" \
+           "    takes the topics announced on zenoh under it, as they appear\n" in checked.stdout
+    bot = bridge(path, d)
     robot = ros_side(d, "robot")
     inbox = robot.listen("/robot1/status", String)
     # the token a zenoh-bridge-ros2dds base declares for a ROS publisher of /robot1/status
