@@ -69,6 +69,9 @@ def test_topics_rmw_zenoh_nodes_announce_under_a_pattern_are_bridged(
         node.announce("MP", "/robot1/cmd_vel", TWIST, "::,10:,:,:,,")
         for name in ("/robot1/secret/key", "/elsewhere/chat"):
             node.announce("MP", name, STRING, "::,10:,:,:,,")
+        # a type this side does not have: said with the package to install, counted, no route
+        node.announce("MP", "/robot1/odd", ("odd_msgs::msg::dds_::Odd_", "RIHS01_" + "0" * 64),
+                      "::,10:,:,:,,")
         publisher = node.session.declare_publisher(node.key("/robot1/cmd_vel", TWIST))
         message = twist()
         until_it_arrives(inbox, lambda: publisher.put(serialize_message(message),
@@ -80,6 +83,8 @@ def test_topics_rmw_zenoh_nodes_announce_under_a_pattern_are_bridged(
         # the ROS side has its publisher, of the type the token said; the others never appear
         assert wait_until(lambda: ("/robot1/cmd_vel", ["geometry_msgs/msg/Twist"]) in
                           robot.ros.node.get_topic_names_and_types(), TIMEOUT)
+        # judged in the order announced: the odd type last
+        assert bot.wait_log("/robot1/odd (odd_msgs/msg/Odd) cannot be bridged: ", TIMEOUT)
         assert not names(robot) & {"/robot1/secret/key", "/elsewhere/chat"}
         assert "found /robot1/secret/key" not in bot.log and "found /elsewhere" not in bot.log
         # its status names the pattern that made the route
@@ -87,7 +92,9 @@ def test_topics_rmw_zenoh_nodes_announce_under_a_pattern_are_bridged(
             status = ask.status()
         assert [(e["direction"], e["type"], e["pattern"]) for e in status["entries"]] == [
             ("receive", "geometry_msgs/msg/Twist", "/robot1/**")]
-        assert status["patterns"] == {"found": ["/robot1/cmd_vel"], "refused": {}}
+        assert status["patterns"] == {"found": ["/robot1/cmd_vel"], "refused": {"unroutable": 1}}
+        assert "interface package 'odd_msgs' is not installed" in bot.log and "/robot1/odd" \
+            not in names(robot)
         # its publisher's token goes: after the grace the route goes, its ROS publisher too
         publisher.undeclare()
         node.held[1].undeclare()

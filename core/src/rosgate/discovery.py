@@ -242,7 +242,7 @@ class BusPattern:
         another type than the entry's), has it already, or refuses it (past ``max_routes``,
         its plugins cannot carry it: said once and counted)."""
         p, entry = self.pattern, self.pattern.entry
-        if far in self.made or not matches(self.remote, far):
+        if far in self.made or not type_name or not matches(self.remote, far):
             return None
         name = far_name(self.remote, p.name, far)
         if (name in self.listed or denied(name, entry.deny) or denied(name, self.config.deny)
