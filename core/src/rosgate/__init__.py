@@ -11,6 +11,7 @@ from .bus import BusRole, BusTransport, Unauthenticated
 from .cipher import Cipher
 from .codec import Codec
 from .commands import Command, stop_on_signals, wait_for_signal
+from .discovery import BusPattern
 from .drops import Drop, LinkDrop, Reason, declare
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import API_VERSION, hookimpl
@@ -42,8 +43,8 @@ from .wire.envelope import topic_of
 from .wire.framing import DEFAULT_MAX_MESSAGE, FINISHED_REMEMBERED, FRAGMENT, FramingError
 
 __all__ = [
-    "API_VERSION", "Address", "BusRole", "BusTransport", "Cipher", "CipherError", "Codec",
-    "CodecError", "Command", "ConfigError", "DEFAULT_MAX_MESSAGE", "DatagramEndpoint",
+    "API_VERSION", "Address", "BusPattern", "BusRole", "BusTransport", "Cipher", "CipherError",
+    "Codec", "CodecError", "Command", "ConfigError", "DEFAULT_MAX_MESSAGE", "DatagramEndpoint",
     "DatagramTransport", "Drop", "FINISHED_REMEMBERED", "FRAGMENT", "FastDatagramEndpoint",
     "FastStreamConnection", "FramingError", "KeyOptions", "LinkDrop", "LinkError", "Monitor",
     "OptionError", "PARTIAL_COST", "Packet", "PacketLink", "Packetizer", "RUNTIME_VARIABLE",

@@ -76,6 +76,13 @@ class BusRole(ABC):
         rosgate's own."""
         return None
 
+    @staticmethod
+    def finds(transport: BusTransport) -> bool:
+        """Whether it finds the topics ``transport``, as its options stand, announces: a peer's
+        receiving topic pattern on it (``topic: /robot1/**``) is then handed to
+        :meth:`pattern`; else such an entry is refused at its line."""
+        return False
+
     @abstractmethod
     def topic(self, spec: TopicSpec) -> None:
         """Make the routes of one bus topic."""
@@ -83,3 +90,10 @@ class BusRole(ABC):
     @abstractmethod
     def service(self, spec: ServiceSpec) -> None:
         """Make the routes of one bus service."""
+
+    def pattern(self, pattern: Any) -> None:
+        """Watch the bus for the topics announced under a receiving pattern entry, a
+        :class:`rosgate.BusPattern` (called only when :meth:`finds`): hand each announced name
+        and type to its ``take``, and make the route of the spec it gives as :meth:`topic`
+        makes a listed entry's."""
+        raise NotImplementedError(f"{self.name} says it finds topics but takes no pattern")

@@ -230,17 +230,22 @@ def _pattern_lines(cfg: Any, plan: Any) -> list[str]:
     """Each pattern entry, and what it matches in this domain's graph now (when ROS is here)."""
     if not plan.patterns:
         return []
+    from .bus import BusTransport
     from .discovery import OWN_NAMESPACE, Discovery, publishers
+
+    def on_bus(p: Any) -> bool:  # it takes what its bus announces, not this domain's graph
+        return p.checked is not None and isinstance(p.checked.transport, BusTransport)
 
     graph: dict[str, set[str]] | None = None
     with contextlib.suppress(Exception):  # no ROS here: what it matches is found when it runs
-        from .ros import RosNode
+        if not all(on_bus(p) for p in plan.patterns):
+            from .ros import RosNode
 
-        node = RosNode(f"check_{os.getpid()}", namespace=OWN_NAMESPACE)
-        try:
-            graph = _settled_graph(lambda: publishers(node.node))
-        finally:
-            node.close()
+            node = RosNode(f"check_{os.getpid()}", namespace=OWN_NAMESPACE)
+            try:
+                graph = _settled_graph(lambda: publishers(node.node))
+            finally:
+                node.close()
     taken = Discovery(cfg, plan.patterns, None, lambda f: None, lambda f: None,
                       time.monotonic).matching(graph or {})
     lines = []
@@ -249,7 +254,10 @@ def _pattern_lines(cfg: Any, plan: Any) -> list[str]:
         lines.append(_entry_line(p.name, c.remote, dataclasses.replace(
             c, type=c.type or "type from the graph"), "pattern"))
         found = taken.get(p.name, [])
-        if graph is None:
+        if on_bus(p):
+            lines.append(f"    takes the topics announced on {c.transport} under it, as they "
+                         "appear")
+        elif graph is None:
             lines.append("    matches names as they appear (no ROS graph here to look at now)")
         elif not found:
             lines.append("    matches nothing in this domain now; names are bridged as they "

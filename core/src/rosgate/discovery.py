@@ -10,15 +10,18 @@ from __future__ import annotations
 import logging
 import threading
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .config import BridgeConfig, Direction
 from .config.kinds import ROS_NAME_MAX
-from .config.patterns import denied, is_pattern, matches
+from .config.patterns import denied, far_name, is_pattern, matches
+from .errors import ConfigError
 from .policy import is_action_part
-from .resolver import Pattern
+
+if TYPE_CHECKING:  # ``import rosgate`` (BusPattern) stays light: the resolver's plugins load later
+    from .resolver import Pattern
 
 log = logging.getLogger("rosgate")
 
@@ -214,11 +217,88 @@ class Discovery:
         return {"found": sorted(self.found), "refused": dict(self.refusals.counts)}
 
 
+class BusPattern:
+    """A peer's receiving topic pattern on a bus (``topic: /robot1/**`` with ``transport:
+    zenoh``), as its bus role watches the bus for it (:meth:`rosgate.BusRole.pattern`): the bus
+    role hands :meth:`take` each topic announced there, by its name on the bus and its type,
+    and makes the route of the spec it gives. Called from one thread (the bus link's)."""
+
+    def __init__(self, config: BridgeConfig, pattern: Pattern,
+                 make: Callable[[Pattern, str, str], Any]):
+        self.config, self.pattern, self._make = config, pattern, make
+        entry = pattern.entry
+        #: what every route it makes shares (transport, codec, key...): a stand-in name's spec
+        self.spec: Any = pattern.checked
+        #: the names it takes on the bus (the entry's ``remote``: ``/fleet/robot1/**``)
+        self.remote: str = entry.remote if "remote" in entry.lines else pattern.name
+        self.listed = {t.topic for t in config.topics if not t.pattern}
+        #: the routes' specs it made, by the name on the bus
+        self.made: dict[str, Any] = {}
+        self.refusals = Refusals()
+
+    def take(self, far: str, type_name: str) -> Any:
+        """The spec of the route for the topic announced on the bus as ``far`` (a ROS name) of
+        ``type_name``, or None: the pattern does not take it (outside it, denied, listed, of
+        another type than the entry's), has it already, or refuses it (past ``max_routes``,
+        its plugins cannot carry it: said once and counted)."""
+        p, entry = self.pattern, self.pattern.entry
+        if far in self.made or not type_name or not matches(self.remote, far):
+            return None
+        name = far_name(self.remote, p.name, far)
+        if (name in self.listed or denied(name, entry.deny) or denied(name, self.config.deny)
+                or entry.type not in ("", type_name)):
+            return None
+        where = f"{_where(p)} {p.name}"
+        if len(self.made) >= entry.max_routes:
+            self.refusals.refuse("max_routes", name, f"{where}: {name} is refused: the pattern "
+                                 f"has made its {entry.max_routes} routes (max_routes)")
+            return None
+        try:
+            spec = self._make(p, name, type_name)
+        except ConfigError as exc:
+            self.refusals.refuse("unroutable", name, f"{where}: {name} ({type_name}) cannot be "
+                                 f"bridged: {exc}")
+            return None
+        self.made[far] = spec
+        log.info("%s: %s found %s (%s) on %s: bridged", self.config.name, where, name,
+                 type_name, self.spec.transport.name)
+        return spec
+
+    def forget(self, far: str) -> None:
+        """The route of ``far`` was removed (its publishers gone for ``bridge.pattern_grace``):
+        said, and the name may be taken again."""
+        spec = self.made.pop(far)
+        log.info("%s: %s is gone (no publisher for %g s): its route is removed",
+                 self.config.name, spec.name, self.config.pattern_grace)
+
+    def status(self) -> dict[str, Any]:
+        return {"found": sorted(s.name for s in list(self.made.values())),
+                "refused": dict(self.refusals.counts)}
+
+
 def _where(pattern: Pattern) -> str:
     return f"{pattern.section}[{pattern.index}]"
 
 
 MAX_WATCHED = 64  # patterns one client may ask its server to watch
+
+
+def made_by(founds: Iterable[Found], specs: Sequence[Any]) -> list[str | None]:
+    """The pattern (as written) that found each of ``specs`` (None: a name gone), for the
+    ``patterns`` a client's hello and ``found`` say beside its ``found`` names."""
+    by_spec = {id(f.route): f.pattern.name for f in founds}
+    return [None if spec is None else by_spec.get(id(spec)) for spec in specs]
+
+
+def said_patterns(message: dict[str, Any], first: int) -> dict[int, str]:
+    """What a client's message says made each name it found (``patterns``, in the order of
+    ``found``), by the entry's index (the found names follow its ``first`` listed entries);
+    what is not a pattern is left out: it is shown to operators, never obeyed."""
+    items = message.get("patterns", [])
+    if not isinstance(items, list):
+        return {}
+    return {first + i: p for i, p in enumerate(items)
+            if isinstance(p, str) and is_pattern(p) and len(p) <= ROS_NAME_MAX}
 
 
 def watched(message: dict[str, Any], key: str = "watch") -> list[str]:

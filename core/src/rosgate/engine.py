@@ -85,8 +85,7 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
         name = f"action {plan.actions[p.index].config.action}" if part else \
             patterns.get(id(p), p.name)
         link = f"{t.transport}:{t.port}" if t.port else t.transport
-        statically_keyed = not t.framing.bare and p.cipher is not None and \
-            p.cipher_cls is not None and p.cipher_cls.authenticates
+        statically_keyed = _keyed(p)
         if isinstance(p.transport, BusTransport):
             door = None if statically_keyed else p.transport.unauthenticated()
             if door is not None:
@@ -113,7 +112,21 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
                    else "use a cipher the session keys (aead, nacl, fernet)")
             found.append(OpenEntry(f"{key}.cipher", name, f"cipher {t.cipher} on {link}",
                                    f"{fix}; or, on a network you trust entirely, insecure: true"))
+    for pattern in plan.patterns:  # a peer's on a bus takes whatever is announced there
+        p = pattern.checked
+        if (p is not None and isinstance(p.transport, BusTransport)
+                and p.config.direction is Direction.RECEIVE and not _keyed(p)):
+            door = p.transport.unauthenticated()
+            if door is not None:
+                found.append(_on_open_bus(cfg, f"{pattern.section}[{pattern.index}]",
+                                          pattern.name, p, door))
     return found
+
+
+def _keyed(p: TopicSpec | ServiceSpec) -> bool:
+    """Sealed by an authenticating cipher keyed from the file."""
+    return not p.config.framing.bare and p.cipher is not None and p.cipher_cls is not None \
+        and p.cipher_cls.authenticates
 
 
 def _on_open_bus(cfg: BridgeConfig, key: str, name: str, p: TopicSpec | ServiceSpec,

@@ -166,6 +166,13 @@ class Resolver:
     def _can_find(self, entry: TopicConfig | ServiceConfig | ActionConfig, key: str) -> None:
         """What patterns find: a client's and a peer's topics and services, either way."""
         kind = _name_key(entry)
+        if self.config.role is Role.PEER and self._bus_finds(entry, key):
+            return
+        if entry.framing.bare:  # not a bus's: a microcontroller's names are fixed
+            raise self.config.error(f"{key}.framing", f"a pattern ({getattr(entry, kind)}) finds "
+                                    f"ROS names as they appear; framing {entry.framing} sends a "
+                                    "microcontroller's fixed names",
+                                    "list each name as an entry of its own, or remove framing:")
         if self.config.role is Role.SERVER:
             raise self.config.error(f"{key}.{kind}", "a pattern is for a client's or a peer's "
                                     f"entries; a server lists each {kind} by its name",
@@ -183,6 +190,23 @@ class Resolver:
                                     "action is listed by its name",
                                     "list each action as an entry of its own")
 
+    def _bus_finds(self, entry: TopicConfig | ServiceConfig | ActionConfig, key: str) -> bool:
+        """Whether a peer's pattern entry is a receiving topic on a bus whose role finds the
+        names announced on it (:attr:`rosgate.BusRole.finds`)."""
+        if not (isinstance(entry, TopicConfig) and entry.direction is Direction.RECEIVE):
+            return False
+        transport = self.transport(entry.transport, f"{key}.transport")
+        if not isinstance(transport, BusTransport):
+            return False
+        if not self.bus_role(transport, f"{key}.transport").finds(transport):
+            raise self.config.error(f"{key}.topic", f"a pattern on {transport.name} takes the "
+                                    f"topics announced there, and {transport.name} as set up "
+                                    "here announces none this bridge can read",
+                                    f"list each topic by its name, or see the {transport.name} "
+                                    "plugin's documentation for the setting that reads the "
+                                    "topics others announce")
+        return True
+
     def found(self, pattern: Pattern, name: str, type_name: str,
               error: ErrorMaker | None = None) -> Any:
         """The spec of a name a pattern found (a topic's or service's spec, an action's parts),
@@ -199,9 +223,11 @@ class Resolver:
                 self.plugin(kind, getattr(entry, kind), f"{key}.{kind}", error)
             return None
         named: dict[str, Any] = {_name_key(entry): name if type_name else head + name}
+        # framing none on a bus says no remote: the pattern's own names, as its keys are
+        remote = entry.remote if "remote" in entry.lines else written
         concrete = dataclasses.replace(
             entry, **named,
-            remote=far_name(written, entry.remote, name) if type_name else head + name,
+            remote=far_name(written, remote, name) if type_name else head + name,
             type=entry.type or type_name or _STAND_IN[pattern.section])
         if isinstance(concrete, TopicConfig):
             return self.topic(concrete, pattern.index, pattern.section, error)

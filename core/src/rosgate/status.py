@@ -18,10 +18,14 @@ Fields (counters only grow; rates are differences between two statuses over thei
         silence     receiving topics: seconds since the last message (else null)
         latency     seconds from sender to publish, where known (else null)
         refused     why the peer refused this entry (policy, type), or null
+        pattern     the pattern entry that made this route as it is written (`/robot1/**`;
+                    on a server, its client's pattern), or null: a listed entry
     peers      [{name, up (true, false, or null: unknown)}]
     links      [{name, up, frames_out, bytes_out, packets_out, frames_in, bytes_in, packets_in,
                  queue, bandwidth (bit/s budget, or null), rtt (seconds, or null)}]
     link_drops {reason: count} of frames that belonged to no topic
+    patterns   what pattern entries found (names) and refused ({reason: count}): a client's,
+               and a peer's on a bus
 """
 
 from __future__ import annotations
@@ -47,8 +51,9 @@ def collect(config: BridgeConfig, role: Role | None, router: Router | None, life
             started: float) -> Status:
     now = time.monotonic()
     routes = router.snapshot() if router is not None else []
-    peers_of = _peers_of_routes(role, routes)
-    entries = [_entry(r, peers_of.get(id(r), _peer_in_label(r.label)), config, now)
+    peers_of, made_by = _peers_of_routes(role, routes), _made_by(role)
+    entries = [_entry(r, peers_of.get(id(r), _peer_in_label(r.label)), config, now,
+                      made_by.get(id(r.entry)))
                for r in routes]
     entries += _refused(role)
     return {"version": VERSION, "bridge": config.name, "role": str(config.role), "time": now,
@@ -59,16 +64,30 @@ def collect(config: BridgeConfig, role: Role | None, router: Router | None, life
 
 
 def _patterns(role: Role | None) -> Status:
-    """What a client's pattern entries found (names) and refused (by reason, each name once)."""
+    """What pattern entries found (names) and refused (by reason, each name once)."""
     total: Status = {"found": [], "refused": {}}
-    for name in ("discovery", "service_discovery"):
-        discovery = getattr(role, name, None)
+    finders = [getattr(role, name, None) for name in ("discovery", "service_discovery")]
+    for discovery in [*finders, *(role.bus_patterns if isinstance(role, PeerRole) else [])]:
         if discovery is not None:
             each = discovery.status()
             total["found"] += each["found"]
             for reason, count in each["refused"].items():
                 total["refused"][reason] = total["refused"].get(reason, 0) + count
     return total
+
+
+def _made_by(role: Role | None) -> dict[int, str]:
+    """The pattern (as written) that made each route, by ``id`` of the route's entry."""
+    if isinstance(role, ClientRole):
+        return {id(f.route.config): f.pattern.name for f in role.founds() if f.route is not None}
+    if isinstance(role, PeerRole):
+        return {id(spec.config): found.pattern.name for found in role.bus_patterns
+                for spec in list(found.made.values())}
+    if isinstance(role, ServerRole):
+        return {id(route.entry): pattern for s in list(role.sessions.values())
+                for index, pattern in list(s.made_by.items())
+                if (route := s.by_index.get(index)) is not None}
+    return {}
 
 
 #: an entry's counters before anything crossed, and its state when nothing is wrong
@@ -81,14 +100,15 @@ def _row(e: TopicConfig | ServiceConfig | None, name: str, peer: str, **state: A
     return {"kind": "service" if isinstance(e, ServiceConfig) else "topic", "name": name,
             "direction": str(e.direction) if e else None, "peer": peer,
             "type": e.type if e else None, "transport": e.transport if e else None,
-            "port": e.port if e else None, **IDLE, "drops": {}, **state}
+            "port": e.port if e else None, **IDLE, "drops": {}, "pattern": None, **state}
 
 
 def _name(e: TopicConfig | ServiceConfig) -> str:
     return e.topic if isinstance(e, TopicConfig) else e.service
 
 
-def _entry(route: Route, peer: str, config: BridgeConfig, now: float) -> Status:
+def _entry(route: Route, peer: str, config: BridgeConfig, now: float,
+           pattern: str | None) -> Status:
     c = route.counters
     silence = now - route.last_received if isinstance(route, ReceiveRoute) else None
     return _row(route.entry, _name(route.entry), peer, sent=c.sent, bytes_sent=c.bytes_sent,
@@ -97,7 +117,7 @@ def _entry(route: Route, peer: str, config: BridgeConfig, now: float) -> Status:
                 queue=route.queue_depth if isinstance(route, TransmitRoute) else 0,
                 shedding=route.shedding,
                 stale=silence >= config.stale_after if silence is not None else None,
-                silence=silence)
+                silence=silence, pattern=pattern)
 
 
 def _peer_in_label(label: str) -> str:

@@ -394,7 +394,9 @@ def _pattern(src: Source, data: dict, path: str, name_key: str, given: dict[str,
     keeps the pattern's wildcards."""
     name = given[name_key]
     given.setdefault("type", "")  # found with each name
-    if given["framing"].bare:
+    # framing none on a bus (zenoh) is ROS's own CDR on ROS names: the resolver, which knows
+    # the transport, judges it
+    if given["framing"].bare and not (name_key == "topic" and given["framing"] is Framing.NONE):
         raise src.error(join(path, "framing"), f"a pattern ({name}) finds ROS names as they "
                         f"appear; framing {given['framing']} sends a microcontroller's fixed "
                         "names", fix="list each name as an entry of its own, or remove framing:")

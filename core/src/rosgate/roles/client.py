@@ -20,7 +20,7 @@ from typing import Any
 
 from ..config import Direction, action_to_mapping, service_to_mapping, topic_to_mapping
 from ..config.patterns import denied, far_name, matches
-from ..discovery import Discovery, Found
+from ..discovery import Discovery, Found, made_by
 from ..drops import Drop
 from ..errors import ConfigError, LinkError, RosgateError
 from ..holdback import Holdback
@@ -141,8 +141,14 @@ class ClientRole(Role):
             return {"found": [None if p is None else topic_to_mapping(p.config)
                               if isinstance(p, TopicSpec) else service_to_mapping(p.config)
                               for p in self.found],
+                    "patterns": made_by(self.founds(), self.found),
                     "entries": [None if p is None else self.router.entry_item(p)
                                 for p in self.entries()]}
+
+    def founds(self) -> list[Found]:
+        """Every name this side's patterns found, here or offered by the server."""
+        return [*list(self.discovery.found.values()),
+                *list(self.service_discovery.found.values()), *list(self.offered.values())]
 
     def _add_found(self, found: Found) -> TopicSpec | ServiceSpec | None:
         """A name a pattern found, for the server (told after the look) to judge as a listed

@@ -23,6 +23,7 @@ from ..announce import ANNOUNCE_EVERY
 from ..bus import BusRole, BusTransport
 from ..config import Direction, Framing
 from ..datagram_stream import DatagramStream
+from ..discovery import BusPattern
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys, ReplayRecord, StaticKeys
@@ -65,6 +66,7 @@ class PeerRole(Role):
         #: the patterns: names found here, and names the peer announces
         self.discovery = PeerPatterns(self, self.keys_of, self.heard_from, self.callers,
                                       silent_for(self.cfg.peer_timeout))
+        self.bus_patterns: list[BusPattern] = []  # pattern entries its bus roles watch for
         #: entries keyed by the file's key remember their peer's send times (made with the first)
         self.record: ReplayRecord | None = None
         self.remembered = True  # or a receiving entry keyed by the file starts without a record
@@ -139,6 +141,12 @@ class PeerRole(Role):
                 self._microcontroller_service(p, call_servers)
             else:
                 self._entry(p)
+        for pattern in self.bridge.plan.patterns:  # a bus's, whose role finds what it announces
+            if pattern.checked is not None and pattern.checked.key is not None:
+                cls = self.bridge.resolver.bus_role(pattern.checked.transport, "")
+                bus = self.bus_roles.get(cls) or self.bus_roles.setdefault(cls, cls(self.bridge))
+                self.bus_patterns.append(BusPattern(self.cfg, pattern, self.bridge.resolver.found))
+                bus.pattern(self.bus_patterns[-1])
 
     def _entry(self, p: TopicSpec | ServiceSpec) -> None:
         """An entry found by the id of its remote name (a receiving topic by its own name's

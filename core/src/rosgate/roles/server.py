@@ -32,7 +32,7 @@ from ..config import (
     ServiceConfig,
     TopicConfig,
 )
-from ..discovery import LOOK_EVERY, Offers, watched
+from ..discovery import LOOK_EVERY, Offers, said_patterns, watched
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..links import DatagramLink, Link
@@ -106,6 +106,7 @@ class Session:
     owned: set[int] = field(default_factory=set)  # action parts limited to the client's goals
     watch: list[str] = field(default_factory=list)  # its receive patterns, in names here
     watch_services: list[str] = field(default_factory=list)  # its service patterns that call
+    made_by: dict[int, str] = field(default_factory=dict)  # found entry -> the client's pattern
 
     @property
     def routes(self) -> list[Route]:
@@ -385,11 +386,15 @@ class ServerRole(Role):
         found = found_entries(message, self.cfg.defaults, f"client {session.name}")
         before = session.entries[session.listed:]
         session.entries[session.listed:] = found
+        made_by, session.made_by = session.made_by, said_patterns(message, session.listed)
         for index in list(session.by_index):
             place = index - session.listed
             if index >= session.listed and (place >= len(found) or found[place] != before[place]):
                 # gone, or its place taken by another name (a client found fewer, or reused it)
-                self.router.remove(session.by_index.pop(index))
+                route = session.by_index.pop(index)
+                self.router.remove(route)
+                log.info("client %r: %s is no longer found by its pattern %s: its route is "
+                         "removed", session.name, route.label, made_by.get(index, "entries"))
         for index in [i for i in session.refused if i >= len(session.entries)]:
             del session.refused[index]
 
@@ -506,6 +511,9 @@ class ServerRole(Role):
             else:
                 p = resolver.service(flipped(entry), index - topics, "services", error)
             session.by_index[index] = self._route(session, p, goals)
+            if index in session.made_by:
+                log.info("client %r: its pattern %s found %s (%s): bridged", session.name,
+                         session.made_by[index], p.name, entry.type)
             if goals is None:
                 session.owned.discard(index)
             else:

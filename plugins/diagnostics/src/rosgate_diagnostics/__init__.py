@@ -3,7 +3,8 @@
 
 One status per topic, service and link, and one per peer. Its ``name`` is
 ``rosgate: <bridge>: <entry>`` (``rosgate: robot1: topic /chatter (to base)``), its
-``hardware_id`` the bridge's name, its ``values`` the counters. The level:
+``hardware_id`` the bridge's name, its ``values`` the counters (and ``pattern``, the pattern
+entry that made the route, for a name a pattern found). The level:
 
 * ERROR — the peer is down, or it refused the entry (its policy, a type it does not know);
 * WARN — a receiving topic is stale, something was dropped since the last status, or a link
@@ -94,6 +95,8 @@ def assess(now: Status, before: Status | None) -> list[tuple[int, str, str, list
         values: list[tuple[str, Any]] = [(k, e[k]) for k in (
             "direction", "peer", "type", "transport", "sent", "bytes_sent", "received",
             "bytes_received", "lost", "queue")]
+        if e.get("pattern"):  # the route a pattern entry made (a bridge older than it: none)
+            values.append(("pattern", e["pattern"]))
         values += [(f"drops.{k}", v) for k, v in sorted(e["drops"].items())]
         if e["silence"] is not None:
             values.append(("silence", f"{e['silence']:.1f}"))

@@ -122,6 +122,15 @@ class BusLink:
             self._handles.append(handle)
         return handle
 
+    def declared_by(self, make: Callable[[], None]) -> list[Handle]:
+        """What ``make()`` declared through this link (called on the link's thread, where
+        routes are made): what to release when what it made goes."""
+        with self._lock:
+            mark = len(self._handles)
+        make()
+        with self._lock:
+            return self._handles[mark:]
+
     def release(self, handle: Handle) -> None:
         """Withdraw a declaration made through this link."""
         with self._lock:

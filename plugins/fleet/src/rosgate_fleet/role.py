@@ -20,11 +20,13 @@ templated entries' bookkeeping included, so routes are made and dropped in one t
 from __future__ import annotations
 
 import threading
+import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from rosgate import BusRole, BusTransport, ConfigError, Drop, LinkError
+from rosgate import BusPattern, BusRole, BusTransport, ConfigError, Drop, LinkError
 from rosgate.config import BridgeConfig, Direction, Framing, ServiceConfig, TopicConfig
 from rosgate.links import Link
 from rosgate.roles import Bridge, NoLink
@@ -35,7 +37,9 @@ from rosgate.wire import envelope
 from rosgate.wire.envelope import topic_id_for
 
 from .link import BusLink
-from .session import FleetTransport, is_template
+from .session import FleetTransport, Handle, is_template
+
+SWEEP_EVERY = 0.25  # seconds between looks at the names a pattern's publishers left
 
 #: what a topic's frame on its key may say besides being a message: an announcement of the
 #: entry, or a payload its sender transformed (compressed)
@@ -94,6 +98,12 @@ class BusWiring(BusRole):
         return key
 
     @staticmethod
+    def finds(transport: BusTransport) -> bool:
+        """Its bus announces topics it can find: a convention (:class:`rosgate_fleet.Dialect`,
+        the zenoh plugin's ``speak:``) whose graph it reads."""
+        return isinstance(transport, FleetTransport) and transport.dialect is not None
+
+    @staticmethod
     def speaks(transport: BusTransport, entry: TopicConfig | ServiceConfig) -> str | None:
         dialect = transport.dialect if isinstance(transport, FleetTransport) else None
         return dialect.name(entry) if dialect is not None else None
@@ -145,6 +155,18 @@ class BusWiring(BusRole):
             route = self.receiver(p)
             link.subscribe(p.key, lambda key, frame: self.dispatch(route, key, frame),
                            lambda key, reason: route.drop(reason))
+
+    def pattern(self, pattern: BusPattern) -> None:
+        """A receiving topic pattern: a route for each publisher its bus's convention announces
+        under it, made as a listed entry's (on the link's thread, where the graph is read), and
+        removed with what it declared on the bus once the name's last publisher has been gone
+        for ``bridge.pattern_grace`` seconds."""
+        link = self.link(pattern.spec)
+        dialect = link.transport.dialect
+        assert dialect is not None, "the resolver lets no pattern reach a bus without one"
+        found = _Found(self, link, pattern)
+        link.call_later(dialect.publishers, self, link, found.announced)
+        threading.Thread(target=found.sweeper, name=f"pattern-{link.name}", daemon=True).start()
 
     # -- services --------------------------------------------------------------------------------
     def service(self, p: ServiceSpec) -> None:
@@ -235,3 +257,42 @@ class BusWiring(BusRole):
         self.router.remove(route)
         if isinstance(route, TransmitRoute):
             route.link.close()
+
+
+class _Found:
+    """The routes one pattern made on one bus link, and the publishers each name has there."""
+
+    def __init__(self, wiring: BusWiring, link: BusLink, pattern: BusPattern):
+        self.wiring, self.link, self.pattern = wiring, link, pattern
+        self.publishers: Counter[str] = Counter()  # name on the bus -> tokens alive
+        self.made: dict[str, tuple[list[Route], list[Handle]]] = {}
+        self.gone_since: dict[str, float] = {}
+
+    def announced(self, name: str, type_name: str, alive: bool) -> None:
+        self.publishers[name] += 1 if alive else -1
+        if self.publishers[name] > 0:
+            self.gone_since.pop(name, None)
+        elif name in self.made:
+            self.gone_since.setdefault(name, time.monotonic())
+        spec = self.pattern.take(name, type_name) if alive else None
+        if spec is not None:
+            router = self.wiring.router
+            handles = self.link.declared_by(lambda: self.wiring.topic(spec))
+            routes = [r for r in router.snapshot() if r.entry is spec.config]
+            self.made[name] = routes, handles
+
+    def sweep(self) -> None:
+        now, grace = time.monotonic(), self.wiring.cfg.pattern_grace
+        for name, since in list(self.gone_since.items()):
+            if now - since >= grace:
+                del self.gone_since[name]
+                routes, handles = self.made.pop(name)
+                for route in routes:
+                    self.wiring.remove(route)
+                for handle in handles:
+                    self.link.release(handle)
+                self.pattern.forget(name)
+
+    def sweeper(self) -> None:
+        while not self.wiring.stopping.wait(SWEEP_EVERY):
+            self.link.call_later(self.sweep)

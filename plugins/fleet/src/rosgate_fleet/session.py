@@ -133,6 +133,14 @@ class Dialect(Protocol):
         bridge (a :class:`rosgate_fleet.BusWiring` and its :class:`rosgate_fleet.BusLink`),
         with the wiring's methods and the link's session."""
 
+    def publishers(self, wiring: Any, link: Any,
+                   listener: Callable[[str, str, bool], None]) -> None:
+        """Call ``listener(name, type, alive)`` on the link's thread for each topic publisher
+        the convention announces on ``link`` (another system's graph), now and as they come
+        (``alive``) and go: its ROS name as an entry of this bridge would carry it without
+        ``remote``, and its ROS type (``pkg/msg/Type``). What a peer's receiving pattern
+        entries find (:meth:`rosgate.BusRole.pattern`)."""
+
 
 def is_template(text: str) -> bool:
     """Whether an entry's name or key holds a placeholder (``{robot}``)."""

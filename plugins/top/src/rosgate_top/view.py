@@ -101,7 +101,7 @@ def _entries(now: dict[str, Any], before: dict[str, Any] | None, sort: str,
                      reverse=reverse != (sort != "name"))
     for r in ordered:
         e = r.entry
-        name, kind, peer = clean(e["name"]), clean(e["kind"]), clean(e["peer"])
+        name, kind, peer = _name(e), clean(e["kind"]), clean(e["peer"])
         if e["refused"] is not None:
             state = Text(clean(f"refused: {e['refused']}").plain, style="bold red")
             table.add_row(name, kind, _way(e["direction"]), peer, "", "", "", "",
@@ -144,6 +144,14 @@ def _links(now: dict[str, Any], before: dict[str, Any] | None) -> Table:
                       _seconds(link["rtt"]), _bytes(out_rate), _bytes(in_rate), use,
                       clean(link["queue"]))
     return table
+
+
+def _name(e: dict[str, Any]) -> Text:
+    """An entry's name; a route a pattern made says which (``/r/scan (found by /r/**)``)."""
+    name = clean(e["name"])
+    if e.get("pattern"):  # a bridge older than the field has listed entries only
+        name.append(clean(f" (found by {e['pattern']})").plain, style="dim")
+    return name
 
 
 def _way(direction: str | None) -> str:

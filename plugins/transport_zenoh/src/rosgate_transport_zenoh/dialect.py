@@ -21,7 +21,8 @@ bridge does: topics with ``framing: none`` and ``codec: cdr``, services with ``c
   calls from here carry that bridge's request-header attachment. A call the serving side could
   not answer gets no answer (that bridge has no way to say why), so the caller's timeout speaks;
 * the other bridges' tokens are read (:class:`Graph`): each one's routes are logged as they
-  come and go, and fleets (:mod:`.fleet`) learn robots from them.
+  come and go, fleets (:mod:`.fleet`) learn robots from them, and a peer's receiving topic
+  pattern takes the publishers they announce under it (:meth:`Ros2dds.publishers`).
 
 The core's routes do the rest (codec, counters, ROS entities): service calls cross them in an
 envelope that this module adds and removes at the bus's edge, with the ``none`` cipher.
@@ -153,6 +154,20 @@ class Ros2dds:
             return route, link.token(ros2dds.token(zid, kinds[1],
                                                    *ros2dds.action_of(p.key, p.config.type)))
         return route, None
+
+    def publishers(self, wiring: BusWiring, link: BusLink,
+                   listener: Callable[[str, str, bool], None]) -> None:
+        """The publishers other zenoh-bridge-ros2dds bridges announce, by the ROS name their
+        key (under this bridge's ``namespace``) stands for."""
+        namespace: str = getattr(link.transport, "namespace", "")  # the zenoh transport's
+
+        def changed(found: ros2dds.Announced, alive: bool) -> None:
+            if found.kind is not Kind.PUBLISHER:
+                return
+            name = found.key.removeprefix(f"{namespace}/") if namespace else found.key
+            if name != found.key or not namespace:
+                listener(f"/{name}", found.type, alive)
+        self.graph(link).listen(changed)
 
     def graph(self, link: BusLink) -> Graph:
         """The other bridges' routes as seen on ``link``, watched from its first entry on."""

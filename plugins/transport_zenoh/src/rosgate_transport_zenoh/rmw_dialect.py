@@ -26,6 +26,8 @@ name on the rmw_zenoh side); ``rosgate check`` marks them ``(rmw_zenoh)``.
   subscriber, as rmw_zenoh does.
 * The other nodes' tokens are read (:class:`Graph`): each node and entity is logged as it comes
   and goes (with the package to install when its type is not installed here), and counted.
+* A peer's receiving topic pattern (``topic: /robot1/**``) takes each publisher those tokens
+  announce under it, with the type the token gives (:meth:`RmwZenoh.publishers`).
 """
 
 from __future__ import annotations
@@ -175,6 +177,14 @@ class RmwZenoh:
         assert isinstance(caller, CallerRoute)
         calls.route = caller
 
+    def publishers(self, wiring: BusWiring, link: BusLink,
+                   listener: Callable[[str, str, bool], None]) -> None:
+        """The publishers rmw_zenoh nodes announce in this bridge's domain, by their tokens."""
+        def changed(found: rmw.Entity, alive: bool) -> None:
+            if found.kind is rmw.Kind.PUBLISHER:
+                listener(found.name, found.type, alive)
+        self.node(wiring, link).graph.listen(changed)
+
     def node(self, wiring: BusWiring, link: BusLink) -> _Node:
         """This bridge as a node of rmw_zenoh's graph on ``link``, declared on its first entry."""
         found = self._nodes.get(id(link))
@@ -206,6 +216,7 @@ class Graph:
         self.known: dict[str, rmw.Node | rmw.Entity] = {}  # token -> what it announces
         self.counts: Counter[str] = Counter()  # kind words -> how many there are now
         self.missing = MissingTypes()
+        self.listeners: list[Callable[[rmw.Entity, bool], None]] = []
 
     def changed(self, token: str, alive: bool) -> None:
         found = rmw.parse(token)
@@ -227,6 +238,18 @@ class Graph:
         elif self.known.pop(token, None) is not None:
             self.counts[words] -= 1
             log.info("%s %s: %s is gone", NAME, node.zid, what)
+        else:
+            return
+        if isinstance(found, rmw.Entity):
+            for listener in list(self.listeners):
+                listener(found, alive)
+
+    def listen(self, listener: Callable[[rmw.Entity, bool], None]) -> None:
+        """``listener(entity, alive)`` for each entity known now and each that comes or goes."""
+        self.listeners.append(listener)
+        for found in list(self.known.values()):
+            if isinstance(found, rmw.Entity):
+                listener(found, True)
 
 
 class Publisher(ZenohPublisher):
