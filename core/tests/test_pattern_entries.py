@@ -70,13 +70,24 @@ def test_bridge_deny_replaces_the_default() -> None:
     ("{topic: /a, type: std_msgs/msg/String, direction: transmit, deny: [/a]}",
      "topics[0].deny", "deny is for pattern entries", "make topic: a pattern"),
     ("{topic: /r/**, direction: transmit, max_routes: 0}", "topics[0].max_routes", "", ""),
-    ("{topic: /r/**, direction: transmit, framing: none, cipher: none}", "topics[0].framing",
-     "finds ROS names as they appear", "list each name"),
 ])
 def test_mistakes_name_file_line_key_and_fix(entry: str, key: str, says: str, fix: str) -> None:
     found = error(f"topics:\n  - {entry}\n")
     assert (found.file, found.line, found.key) == ("bringup.yaml", 3, key)
     assert says in found.message and fix in (found.fix or "")
+
+
+def test_a_bare_framing_pattern_off_a_bus_is_refused_at_its_framing() -> None:
+    """``framing: none`` on a pattern is a bus's (zenoh's CDR on ROS names): on udp the resolver,
+    which knows the transport, refuses it at its key with the fix."""
+    cfg = loads(HEAD + "topics:\n  - {topic: /r/**, direction: transmit, framing: none, "
+                "cipher: none}\n", file="bringup.yaml")
+    with pytest.raises(ConfigError) as info:
+        Resolver(cfg, Plugins.discover()).plan()
+    assert (info.value.file, info.value.line, info.value.key) == ("bringup.yaml", 3,
+                                                                  "topics[0].framing")
+    assert "finds ROS names as they appear" in info.value.message
+    assert "list each name" in (info.value.fix or "")
 
 
 @pytest.mark.parametrize(("text", "key", "says"), [

@@ -112,14 +112,6 @@ def open_entries(plan: Plan) -> list[OpenEntry]:
                    else "use a cipher the session keys (aead, nacl, fernet)")
             found.append(OpenEntry(f"{key}.cipher", name, f"cipher {t.cipher} on {link}",
                                    f"{fix}; or, on a network you trust entirely, insecure: true"))
-    for pattern in plan.patterns:  # a peer's on a bus takes whatever is announced there
-        p = pattern.checked
-        if (p is not None and isinstance(p.transport, BusTransport)
-                and p.config.direction is Direction.RECEIVE and not _keyed(p)):
-            door = p.transport.unauthenticated()
-            if door is not None:
-                found.append(_on_open_bus(cfg, f"{pattern.section}[{pattern.index}]",
-                                          pattern.name, p, door))
     return found
 
 

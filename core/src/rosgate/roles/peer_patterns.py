@@ -112,10 +112,12 @@ class PeerPatterns:
         self.keys_of, self.heard_from, self.callers = keys_of, heard_from, callers
         self.quiet = quiet
         plan, node = role.bridge.plan, role.router.ros.node
+        #: a bus's patterns are its role's (it finds what the bus announces), not these
+        patterns = [p for p in plan.patterns if p.checked is None or p.checked.key is None]
         self.sending: dict[tuple[str, int], Sending] = {}  # by the finding pattern's place
         self._links: dict[tuple[str, str, Address], Sending] = {}
         #: what takes a far peer's names: receive topic patterns, transmit service patterns
-        self.taking = {kind: [p for p in plan.patterns if p.section == kind
+        self.taking = {kind: [p for p in patterns if p.section == kind
                               and p.entry.direction is way]
                        for kind, way in (("topics", Direction.RECEIVE),
                                          ("services", Direction.TRANSMIT))}
@@ -123,9 +125,9 @@ class PeerPatterns:
         #: window, by the opener, its kind and its link (one sequence per sender's link)
         self.openers: dict[tuple[str, str], Route] = {}
         self._windows: dict[tuple[int, str, str], Route] = {}
-        self.discovery = Discovery(self.cfg, plan.patterns, node, self._add, self._drop,
+        self.discovery = Discovery(self.cfg, patterns, node, self._add, self._drop,
                                    time.monotonic, self._tell)
-        self.service_discovery = Discovery(self.cfg, plan.patterns, node, self._add,
+        self.service_discovery = Discovery(self.cfg, patterns, node, self._add,
                                            self._drop, time.monotonic, self._tell,
                                            kind="services")
         self.made: dict[tuple[str, str], Made] = {}  # (kind, far name) -> its route here
