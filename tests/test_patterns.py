@@ -129,12 +129,17 @@ def test_check_shows_what_each_pattern_matches_now(tmp_path, domain, ros_side):
 
     d = domain()
     robot = ros_side(d, "robot")
+    from rclpy.action import ActionServer
+    from test_msgs.action import Fibonacci
+
     keep = [robot.publisher(name, String) for name in ("/r/a/b", "/r/secret/x", "/other")]
+    keep.append(ActionServer(robot.ros.node, Fibonacci, "/acts/fib", lambda goal: None))
     path = tmp_path / "robot1.yaml"
     path.write_text("bridge: {name: robot1, role: client, server: 127.0.0.1:12000, "
                     f"identity: {AUTH.identity('robot1')}, server_key: {AUTH.public['server']}}}\n"
                     "topics:\n  - {topic: /r/**, direction: transmit, deny: [/r/secret/**]}\n"
-                    "  - {topic: /q/*, direction: transmit}\n")
+                    "  - {topic: /q/*, direction: transmit}\n"
+                    "actions:\n  - {action: /acts/**, direction: receive}\n")
     result = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
                             timeout=60, env=dict(os.environ, ROS_DOMAIN_ID=str(d)))
     out = result.stdout
@@ -143,7 +148,9 @@ def test_check_shows_what_each_pattern_matches_now(tmp_path, domain, ros_side):
            "    now: /r/a/b [std_msgs/msg/String]\n" in out, out
     assert "  /q/* -> /q/*  [type from the graph] udp cdr aead  (pattern)\n" \
            "    matches nothing in this domain now; names are bridged as they appear\n" in out, out
-    assert "/r/secret/x" not in out and "/other" not in out and keep
+    assert "  /acts/** <- /acts/**  [type from the graph] udp cdr aead  (pattern)\n" \
+           "    now: /acts/fib [test_msgs/action/Fibonacci]\n" in out, out
+    assert "/r/secret/x" not in out and "/other" not in out and "_action" not in out and keep
 
 
 def test_publishers_of_two_types_are_refused_named_and_counted(engines, domain, ros_side):
@@ -281,3 +288,38 @@ services:
     there, _ = Caller(base, Trigger, "/robot1/ping").warm_up(Trigger.Request())
     here, _ = Caller(robot, Trigger, "/base/ping").warm_up(Trigger.Request())
     assert (there.message, here.message) == ("from the robot", "from the base")
+
+
+def test_actions_found_both_ways_take_goals_feedback_and_results(bridge, tmp_path, domain,
+                                                                 action_side):
+    from action_msgs.msg import GoalStatus
+    from test_actions import Goal, fibonacci, warmed_up
+    from test_msgs.action import Fibonacci
+
+    ds, dc, port = domain(), domain(), free_port()
+    bridge(server_file(tmp_path, port), ds)
+    path = tmp_path / "client.yaml"
+    path.write_text(f"""
+bridge: {{name: robot1, role: client, server: '127.0.0.1:{port}'}}
+actions:
+  - {{action: /robot1/**, direction: receive}}   # the robot's action servers, goals from the base
+  - {{action: /base/**, direction: transmit}}    # the base's, goals from the robot
+""")
+    client = bridge(path, dc)
+    assert client.wait_log("server 'base' up", 30), client.log
+    robot, base = action_side(dc, "robot"), action_side(ds, "base")
+    keep = [robot.fibonacci_server("/robot1/fib"), base.fibonacci_server("/base/fib")]
+    for name in ("/robot1/fib", "/base/fib"):
+        assert client.wait_log(f"found {name} (test_msgs/action/Fibonacci): bridged", 10), \
+            client.log
+    for caller, name in ((base, "/robot1/fib"), (robot, "/base/fib")):
+        goal = Goal(warmed_up(caller.client(Fibonacci, name), Fibonacci.Goal(order=1)),
+                    Fibonacci.Goal(order=6))
+        assert goal.handle.accepted
+        answer = goal.result()
+        assert answer.status == GoalStatus.STATUS_SUCCEEDED
+        assert list(answer.result.sequence) == fibonacci(7)
+        sequences = [list(f.sequence) for f in goal.feedback]
+        assert sequences and sequences == [fibonacci(len(s) - 1) for s in sequences], sequences
+    # an action's own services and topics are never found as services or topics of their own
+    assert "_action" not in client.log and keep

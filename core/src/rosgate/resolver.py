@@ -164,16 +164,12 @@ class Resolver:
         return Plan(cfg, topics, services, main_line, self.main_address, actions, patterns)
 
     def _can_find(self, entry: TopicConfig | ServiceConfig | ActionConfig, key: str) -> None:
-        """What patterns find: a client's topics and services, either way."""
+        """What patterns find: a client's topics, services and actions, either way."""
         kind = _name_key(entry)
         if self.config.role is not Role.CLIENT:
             raise self.config.error(f"{key}.{kind}", f"a pattern is for a client's entries; a "
                                     f"{self.config.role} lists each {kind} by its name",
                                     f"list each {kind} as an entry of its own")
-        if isinstance(entry, ActionConfig):
-            raise self.config.error(f"{key}.{kind}", "a pattern finds topics and services; an "
-                                    "action is listed by its name",
-                                    "list each action as an entry of its own")
 
     def found(self, pattern: Pattern, name: str, type_name: str,
               error: ErrorMaker | None = None) -> Any:

@@ -59,7 +59,7 @@ def collect(config: BridgeConfig, role: Role | None, router: Router | None, life
 def _patterns(role: Role | None) -> Status:
     """What a client's pattern entries found (names) and refused (by reason, each name once)."""
     total: Status = {"found": [], "refused": {}}
-    for name in ("discovery", "service_discovery"):
+    for name in ("discovery", "service_discovery", "action_discovery"):
         discovery = getattr(role, name, None)
         if discovery is not None:
             each = discovery.status()
