@@ -95,14 +95,16 @@ class Router:
     def route(self, p: TopicSpec | ServiceSpec, route_id: int, label: str, link: Link,
               destination: Destination = _no_destination, keys: Keys | None = None,
               announce: bool = True, goals: ClientGoals | None = None,
-              hold: Holdback | None = None) -> Route:
+              hold: Holdback | None = None, mirror: bool = False) -> Route:
         """The route of an entry over ``link``, a topic's or a service's, as its spec says.
         ``goals``: an action's part as one client of a server may use it; ``hold``: where a
-        client's reliable messages wait while its server is out of reach."""
+        client's reliable messages wait while its server is out of reach; ``mirror``: see
+        :meth:`service`."""
         if isinstance(p, TopicSpec):
             return self.topic(p, route_id, label, link, destination, keys, announce=announce,
                               select=None if goals is None else goals.select, hold=hold)
-        return self.service(p, route_id, label, link, destination, keys, announce, goals)
+        return self.service(p, route_id, label, link, destination, keys, announce, goals,
+                            mirror=mirror)
 
     def topic(self, p: TopicSpec, topic_id: int, label: str, link: Link,
               destination: Destination = _no_destination,
@@ -151,17 +153,25 @@ class Router:
     def service(self, p: ServiceSpec, service_id: int, label: str, link: Link | None,
                 destination: Destination = _no_destination,
                 keys: Keys | None = None, announce: bool = True,
-                goals: ClientGoals | None = None) -> ServiceRoute:
-        """A service's route and its ROS entity; found by id with an envelope (else by name)."""
+                goals: ClientGoals | None = None, mirror: bool = False) -> ServiceRoute:
+        """A service's route and its ROS entity; found by id with an envelope (else by name).
+        ``mirror`` (client/server): the far graph, mirrored honestly — the serving side says
+        whether a real ROS server runs there, and the calling side's proxy exists only while
+        one does (:meth:`follow_far_server`)."""
         s = p.config
         args = (s, service_id, ServiceCodec(p.codec_cls, p.srv_type, p.codec_options),
                 keys or _file_keys(p), self.warner, label, p.srv_type, self.deadlines)
         qos = deep_qos()
         route: ServiceRoute
+        mirror = mirror and s.framing is Framing.ROSGATE
         if s.direction is Direction.RECEIVE:
-            route = ServerRoute(*args, goals=goals)
+            served = mirror and bool(self.ros.served([s.service]))
+            route = ServerRoute(*args, goals=goals, link=link if mirror else None,
+                                destination=destination, served=served)
             self._identify(route, p.srv_type)
             route.entity = self.ros.client(p.srv_type, s.service, qos)
+            if mirror:
+                self._start(route, announce)
         elif p.service_framing is not None:  # a microcontroller's call pattern, by its plugin
             assert isinstance(p.transport, StreamTransport | DatagramTransport)  # as checked
             route = caller = p.service_framing.caller(*args, transport=p.transport,
@@ -169,13 +179,36 @@ class Router:
             route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, caller.on_request)
         else:
             assert link is not None
-            route = CallerRoute(*args, link=link, destination=destination)
+            route = CallerRoute(*args, link=link, destination=destination, mirrored=mirror)
             self._identify(route, p.srv_type)
             self._start(route, announce)
-            route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, route.on_request)
+            if not mirror:  # else once the far side says a real server runs there
+                route.entity = self._proxy(route)
         table = self.servers if isinstance(route, ServerRoute) else self.callers
         self._add(route, table if s.framing is Framing.ROSGATE else None, service_id)
         return route
+
+    def _proxy(self, route: CallerRoute) -> Any:
+        return self.ros.deferred_service(route.srv_type, route.service.service, deep_qos(),
+                                         route.on_request)
+
+    def follow_far_server(self, route: CallerRoute) -> None:
+        """A mirrored proxy appears when the far side says a real server runs there and goes
+        when it says none does (calls waiting on it are answered by their deadlines)."""
+        if not route.mirrored:
+            return
+        gone = None
+        with self._lock:
+            if route not in self.routes:
+                return  # removed meanwhile
+            if route.far_served and route.entity is None:
+                route.entity = self._proxy(route)
+                log.info("%s: a server runs on the far side: its proxy is here", route.label)
+            elif not route.far_served and route.entity is not None:
+                gone, route.entity = route.entity, None
+        if gone is not None:
+            self.ros.destroy(gone)
+            log.info("%s: no server runs on the far side: its proxy is gone", route.label)
 
     def _add(self, route: Route, table: dict[int, Any] | None, route_id: int) -> None:
         """A new route, found by ``route_id`` in ``table`` (None: found otherwise, or never)."""
@@ -232,9 +265,10 @@ class Router:
                 if len(self._retired) < MAX_RETIRED:  # labels come from clients' entries
                     self._retired[(type(route), route.label)] = route.counters
         self.endpoints.forget(route)
-        if route.entity is not None:
-            self.ros.destroy(route.entity)
-            route.entity = None
+        with self._lock:  # a mirrored proxy is made under it, and never for a removed route
+            entity, route.entity = route.entity, None
+        if entity is not None:
+            self.ros.destroy(entity)
         route.close()
 
     def _forget(self, route: Route) -> list[dict[int, Any]]:
@@ -299,8 +333,9 @@ class Router:
     def _announced(self, header: envelope.Header, frame: bytes, link: Link,
                    source: Address) -> None:
         """A far side's announcement: to the receiving route (or serving route) of its id."""
-        route: Route | None = self.receivers.get(header.topic_id) or self.servers.get(
-            header.topic_id)
+        route: Route | None = (self.receivers.get(header.topic_id)
+                               or self.servers.get(header.topic_id)
+                               or self.callers.get(header.topic_id))
         if route is None:
             # an entry this side does not carry: on a shared bus (CAN) every node hears every
             # node's announcements. No message is lost, so no drop: said in debug
@@ -310,6 +345,8 @@ class Router:
         heard = route.heard(header, frame)
         if heard is not None and isinstance(route, ReceiveRoute):
             self.follow_qos(route, heard[1])
+        elif heard is not None and isinstance(route, CallerRoute):
+            self.follow_far_server(route)
 
     def far(self, route: Route, item: Any) -> None:
         """What a hello or a welcome says of the far side's entry (None: nothing, an older
@@ -317,20 +354,26 @@ class Router:
         told = route.told(item)
         if told is not None and isinstance(route, ReceiveRoute):
             self.follow_qos(route, told[1])
+        elif told is not None and isinstance(route, CallerRoute):
+            self.follow_far_server(route)
 
     def entry_item(self, p: TopicSpec | ServiceSpec) -> dict[str, Any]:
         """An entry as a hello says it before its route exists (with the QoS found here for a
-        topic it sends without a qos)."""
+        topic it sends without a qos, whether a real server runs here for a service it
+        serves)."""
         if isinstance(p, TopicSpec):
             t = p.config
             qos = (self.ros.qos_found(t.topic)
                    if t.direction is Direction.TRANSMIT and not t.qos_given else None)
             return announce.item(Identity(t.type, self.hash_of(p.msg_type)), qos)
-        return announce.item(Identity(p.config.type, self.hash_of(p.srv_type)), None)
+        s = p.config
+        served = (bool(self.ros.served([s.service])) if s.direction is Direction.RECEIVE
+                  and s.framing is Framing.ROSGATE else None)
+        return announce.item(Identity(s.type, self.hash_of(p.srv_type)), None, served)
 
     def item(self, route: Route) -> dict[str, Any]:
         """This side's entry as a hello or a welcome says it."""
-        return announce.item(route.check.mine, route.qos_found)
+        return route.said()
 
     def follow_qos(self, route: ReceiveRoute, qos: dict[str, Any] | None) -> None:
         """The publisher takes the QoS the far side found from its publishers, unless the
@@ -345,7 +388,8 @@ class Router:
         """Routes made with ``announce=False`` say their entries now, and from now on."""
         for route in routes:
             if (isinstance(route, TransmitRoute) and not route.delivery.whole
-                    or isinstance(route, CallerRoute)):
+                    or isinstance(route, CallerRoute)
+                    or isinstance(route, ServerRoute) and route.mirror):
                 self._start(route, True)
 
     def resync(self, routes: list[Route] | None = None) -> None:
@@ -378,6 +422,7 @@ class Router:
             if self._closing.wait(WATCH_EVERY):
                 return
             now = time.monotonic()
+            self._watch_servers()
             for route in self.snapshot():
                 try:
                     if isinstance(route, TransmitRoute) and not route.topic.qos_given:
@@ -390,6 +435,27 @@ class Router:
                 except Exception:  # one route's trouble must not stop the others' announcements
                     BUGS.bug("announce_error", f"{route.label}: could not announce or look at "
                                                "its publishers (a bug: please report it)")
+
+    def _watch_servers(self) -> None:
+        """Whether a real ROS server runs here for each mirrored service this side serves: a
+        change is said to the far side at once (and with every announcement)."""
+        serving = [r for r in self.snapshot() if isinstance(r, ServerRoute) and r.mirror]
+        if not serving:
+            return
+        try:
+            served = self.ros.served({r.service.service for r in serving})
+        except Exception:  # a graph query that failed (shutting down): the next look retries
+            log.debug("could not look for the servers of served services", exc_info=True)
+            return
+        for route in serving:
+            now = route.service.service in served
+            if now == route.served:
+                continue
+            route.served = now
+            log.info("%s: %s", route.label, "a server runs here: the far side's proxy appears"
+                     if now else "its server here is gone: the far side's proxy goes")
+            if route.announces:
+                self.announce(route)
 
     def on_lost(self, topic_id: int | None, reason: Reason) -> None:
         """A receiving link lost a frame or met bytes it could not frame: counted against the

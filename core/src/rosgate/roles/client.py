@@ -413,7 +413,7 @@ class ClientRole(Role):
         # announcements start once the server has our datagram hello (its ports take frames
         # only from where a hello came from)
         return self.router.route(p, topic_id, label, link, destination, keys, announce=False,
-                                 hold=self.hold)
+                                 hold=self.hold, mirror=True)
 
     def _unbuild(self) -> None:
         super().stop()

@@ -562,7 +562,7 @@ class ServerRole(Role):
         own = None if goals is None else client_goals(goals, session.name, p.name, interface,
                                                       p.codec_cls.raw)
         return self.router.route(p, self._topic_id(session, p), f"{p.name} ({way} {session.name})",
-                                 link, destination, keys, goals=own)
+                                 link, destination, keys, goals=own, mirror=True)
 
     @staticmethod
     def _no_address() -> Address | None:
