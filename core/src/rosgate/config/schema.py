@@ -181,7 +181,8 @@ class TopicConfig:
 @dataclass
 class ServiceConfig:
     """`services:` entries carry ROS 2 services across the link; [services.md](services.md)
-    says how calls, answers and failures behave."""
+    says how calls, answers and failures behave. Between a client and its server, the service a
+    bridge offers exists only while a real server of it runs on the far side."""
 
     service: str = _entry("name", example="/mcu/ping")
     type: str = option(doc="the service type", example="std_srvs/srv/Trigger",
