@@ -267,6 +267,8 @@ class Offers:
             return
         now = self.clock()
         for kind, (graph, _) in GRAPHS.items():
+            if not any(_watches(s, kind) for s in sessions):
+                continue  # a kind nobody watches is not looked at
             seen = self.seen[kind]
             for name, types in graph(self.node).items():
                 if len(types) == 1 and not denied(name, self.config.deny):
@@ -276,10 +278,8 @@ class Offers:
                 del seen[name]
         for session in sessions:
             offer = {kind: {name: type_name for name, (type_name, _) in self.seen[kind].items()
-                            if any(matches(p, name) for p in patterns)}
-                     for kind, patterns in (("topics", session.watch),
-                                            ("services", session.watch_services),
-                                            ("actions", session.watch_actions))}
+                            if any(matches(p, name) for p in _watches(session, kind))}
+                     for kind in GRAPHS}
             if offer != self.said.get(session.id) and session.down_since is None:
                 self.said[session.id] = offer
                 self.say(session, offer)
@@ -290,3 +290,9 @@ class Offers:
     def forget(self, session: Any) -> None:
         """Say everything again to ``session`` at the next look (it connected again)."""
         self.said.pop(session.id, None)
+
+
+def _watches(session: Any, kind: str) -> list[str]:
+    """The patterns of ``kind`` a server watches for ``session``'s client."""
+    return {"topics": session.watch, "services": session.watch_services,
+            "actions": session.watch_actions}[kind]

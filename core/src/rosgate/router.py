@@ -23,6 +23,7 @@ from .errors import CipherError
 from .holdback import Holdback
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
+from .proxies import Proxies
 from .ros import QOS_UNFOUND, RosNode, cdr_checker, type_hash
 from .routes import (
     BareFraming,
@@ -88,6 +89,8 @@ class Router:
         self._closing = threading.Event()
         #: makes the routes' subscriptions and publishers as the graph allows
         self.endpoints = Endpoints(ros, self._lock, self.announce)
+        #: the proxies of mirrored services, as the far side's servers come and go
+        self.proxies = Proxies(ros, self._lock, self.announce, lambda route: route in self.routes)
         self._watcher = threading.Thread(target=self._watch, name="announce", daemon=True)
         self._watcher.start()
 
@@ -98,8 +101,7 @@ class Router:
               hold: Holdback | None = None, mirror: bool = False) -> Route:
         """The route of an entry over ``link``, a topic's or a service's, as its spec says.
         ``goals``: an action's part as one client of a server may use it; ``hold``: where a
-        client's reliable messages wait while its server is out of reach; ``mirror``: see
-        :meth:`service`."""
+        client's reliable messages wait while its server is out of reach; ``mirror``: below."""
         if isinstance(p, TopicSpec):
             return self.topic(p, route_id, label, link, destination, keys, announce=announce,
                               select=None if goals is None else goals.select, hold=hold)
@@ -155,9 +157,8 @@ class Router:
                 keys: Keys | None = None, announce: bool = True,
                 goals: ClientGoals | None = None, mirror: bool = False) -> ServiceRoute:
         """A service's route and its ROS entity; found by id with an envelope (else by name).
-        ``mirror`` (client/server): the far graph, mirrored honestly — the serving side says
-        whether a real ROS server runs there, and the calling side's proxy exists only while
-        one does (:meth:`follow_far_server`)."""
+        ``mirror`` (client/server): its proxy exists only while a real ROS server runs on the
+        serving side (:mod:`rosgate.proxies`)."""
         s = p.config
         args = (s, service_id, ServiceCodec(p.codec_cls, p.srv_type, p.codec_options),
                 keys or _file_keys(p), self.warner, label, p.srv_type, self.deadlines)
@@ -183,32 +184,10 @@ class Router:
             self._identify(route, p.srv_type)
             self._start(route, announce)
             if not mirror:  # else once the far side says a real server runs there
-                route.entity = self._proxy(route)
+                route.entity = self.proxies.make(route)
         table = self.servers if isinstance(route, ServerRoute) else self.callers
         self._add(route, table if s.framing is Framing.ROSGATE else None, service_id)
         return route
-
-    def _proxy(self, route: CallerRoute) -> Any:
-        return self.ros.deferred_service(route.srv_type, route.service.service, deep_qos(),
-                                         route.on_request)
-
-    def follow_far_server(self, route: CallerRoute) -> None:
-        """A mirrored proxy appears when the far side says a real server runs there and goes
-        when it says none does (calls waiting on it are answered by their deadlines)."""
-        if not route.mirrored:
-            return
-        gone = None
-        with self._lock:
-            if route not in self.routes:
-                return  # removed meanwhile
-            if route.far_served and route.entity is None:
-                route.entity = self._proxy(route)
-                log.info("%s: a server runs on the far side: its proxy is here", route.label)
-            elif not route.far_served and route.entity is not None:
-                gone, route.entity = route.entity, None
-        if gone is not None:
-            self.ros.destroy(gone)
-            log.info("%s: no server runs on the far side: its proxy is gone", route.label)
 
     def _add(self, route: Route, table: dict[int, Any] | None, route_id: int) -> None:
         """A new route, found by ``route_id`` in ``table`` (None: found otherwise, or never)."""
@@ -342,20 +321,18 @@ class Router:
             log.debug("%s: an announcement for id %d from %s, an entry this side does not carry",
                       link.name, header.topic_id, source)
             return
-        heard = route.heard(header, frame)
-        if heard is not None and isinstance(route, ReceiveRoute):
-            self.follow_qos(route, heard[1])
-        elif heard is not None and isinstance(route, CallerRoute):
-            self.follow_far_server(route)
+        self._follow(route, route.heard(header, frame))
 
     def far(self, route: Route, item: Any) -> None:
         """What a hello or a welcome says of the far side's entry (None: nothing, an older
-        rosgate): its type checked, its QoS followed."""
-        told = route.told(item)
-        if told is not None and isinstance(route, ReceiveRoute):
-            self.follow_qos(route, told[1])
-        elif told is not None and isinstance(route, CallerRoute):
-            self.follow_far_server(route)
+        rosgate): its type checked, its QoS or its server followed."""
+        self._follow(route, route.told(item))
+
+    def _follow(self, route: Route, said: tuple[Any, dict[str, Any] | None] | None) -> None:
+        if isinstance(route, ReceiveRoute) and said is not None:
+            self.follow_qos(route, said[1])
+        elif isinstance(route, CallerRoute) and said is not None:
+            self.proxies.follow(route)
 
     def entry_item(self, p: TopicSpec | ServiceSpec) -> dict[str, Any]:
         """An entry as a hello says it before its route exists (with the QoS found here for a
@@ -366,9 +343,8 @@ class Router:
             qos = (self.ros.qos_found(t.topic)
                    if t.direction is Direction.TRANSMIT and not t.qos_given else None)
             return announce.item(Identity(t.type, self.hash_of(p.msg_type)), qos)
-        s = p.config
-        served = (bool(self.ros.served([s.service])) if s.direction is Direction.RECEIVE
-                  and s.framing is Framing.ROSGATE else None)
+        s, here = p.config, p.config.direction is Direction.RECEIVE
+        served = bool(self.ros.served([s.service])) if here else None  # client/server: rosgate
         return announce.item(Identity(s.type, self.hash_of(p.srv_type)), None, served)
 
     def item(self, route: Route) -> dict[str, Any]:
@@ -422,7 +398,7 @@ class Router:
             if self._closing.wait(WATCH_EVERY):
                 return
             now = time.monotonic()
-            self._watch_servers()
+            self.proxies.watch(self.snapshot())
             for route in self.snapshot():
                 try:
                     if isinstance(route, TransmitRoute) and not route.topic.qos_given:
@@ -435,27 +411,6 @@ class Router:
                 except Exception:  # one route's trouble must not stop the others' announcements
                     BUGS.bug("announce_error", f"{route.label}: could not announce or look at "
                                                "its publishers (a bug: please report it)")
-
-    def _watch_servers(self) -> None:
-        """Whether a real ROS server runs here for each mirrored service this side serves: a
-        change is said to the far side at once (and with every announcement)."""
-        serving = [r for r in self.snapshot() if isinstance(r, ServerRoute) and r.mirror]
-        if not serving:
-            return
-        try:
-            served = self.ros.served({r.service.service for r in serving})
-        except Exception:  # a graph query that failed (shutting down): the next look retries
-            log.debug("could not look for the servers of served services", exc_info=True)
-            return
-        for route in serving:
-            now = route.service.service in served
-            if now == route.served:
-                continue
-            route.served = now
-            log.info("%s: %s", route.label, "a server runs here: the far side's proxy appears"
-                     if now else "its server here is gone: the far side's proxy goes")
-            if route.announces:
-                self.announce(route)
 
     def on_lost(self, topic_id: int | None, reason: Reason) -> None:
         """A receiving link lost a frame or met bytes it could not frame: counted against the

@@ -179,7 +179,7 @@ class ServiceRoute(Route):
 class CallerRoute(ServiceRoute):
     """``transmit``: a proxy ROS server here; each call crosses ``link`` (framing rosgate).
     ``mirrored``: the proxy exists only while the far side says a real server runs there
-    (client/server; :meth:`rosgate.router.Router.follow_far_server`)."""
+    (client/server; :class:`rosgate.proxies.Proxies`)."""
 
     def __init__(self, *args: Any, link: Link, destination: Callable[[], Address | None],
                  mirrored: bool = False):
