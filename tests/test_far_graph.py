@@ -76,3 +76,16 @@ actions:
     assert wait_until(lambda: servers(robot, "/fib/_action/send_goal") == 0, 10)
     assert not goals.wait_for_server(timeout_sec=1)
     assert client.wait_log("/robot1/ping (from base): its server here is gone", 5), client.log
+
+
+def test_what_a_far_side_says_of_its_server_is_read_strictly():
+    import pytest
+
+    from rosgate.announce import served
+
+    assert served(b'{"type":"std_srvs/srv/Trigger","served":false}') is False
+    assert served({"type": "std_srvs/srv/Trigger", "served": True}) is True
+    assert served({"type": "std_srvs/srv/Trigger"}) is True  # an older rosgate: as before
+    for bad in ({"type": "x", "served": "yes"}, {"type": "x", "served": 1}):
+        with pytest.raises(ValueError, match="served"):
+            served(bad)
