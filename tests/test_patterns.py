@@ -38,11 +38,12 @@ clients:
     return path
 
 
-def start(bridge, tmp_path: Path, domain, rules: str | None = None) -> tuple[Any, Any, int, int]:
+def start(bridge, tmp_path: Path, domain, rules: str | None = None,
+          more: str = "") -> tuple[Any, Any, int, int]:
     ds, dc, port = domain(), domain(), free_port()
     server = bridge(server_file(tmp_path, port, rules), ds)
     client_file = tmp_path / "client.yaml"
-    client_file.write_text(CLIENT.format(port=port))
+    client_file.write_text(CLIENT.format(port=port) + more)
     client = bridge(client_file, dc)
     assert client.wait_log("server 'base' up", 30), client.log
     return server, client, ds, dc
@@ -92,10 +93,15 @@ def test_topics_that_appear_cross_exact_and_others_never_appear(bridge, tmp_path
     assert "/r/secret/key" not in client.log and "/elsewhere/chat" not in client.log
 
 
-def test_the_policy_refuses_found_names_as_listed_ones(bridge, tmp_path, domain, ros_side):
+def test_the_policy_refuses_found_names_as_listed_ones(bridge, tmp_path, domain, ros_side,
+                                                      action_side):
+    from test_msgs.action import Fibonacci
+
     server, client, ds, dc = start(bridge, tmp_path, domain,
-                                   rules="[{name: /r/allowed/**, direction: transmit}]")
+                                   rules="[{name: /r/allowed/**, direction: transmit}]",
+                                   more="actions:\n  - {action: /r/**, direction: receive}\n")
     robot, base = ros_side(dc, "robot"), ros_side(ds, "base")
+    action = action_side(dc, "actions").fibonacci_server("/r/fib")  # no actions: rule allows it
     refused = robot.publisher("/r/other", String)
     inbox = base.listen("/r/allowed/chat", String)
     first_crossing(robot.publisher("/r/allowed/chat", String), inbox, String(data="ok"))
@@ -104,6 +110,12 @@ def test_the_policy_refuses_found_names_as_listed_ones(bridge, tmp_path, domain,
     assert server.wait_log(said, 5), server.log
     assert client.wait_log(said, 5), client.log
     assert "/r/other" not in names(base)
+    said = "robot1 may not receive action /r/fib (policy for robot1 allows no actions it receives)"
+    assert server.wait_log(said, 5), server.log
+    assert client.wait_log(said, 5), client.log
+    assert not base.ros.node.count_services("/r/fib/_action/send_goal") and action
+    assert action_side(ds, "goals").client(Fibonacci, "/r/fib").wait_for_server(timeout_sec=1) \
+        is False
 
 
 def test_a_publisher_that_goes_is_gone_after_the_grace(bridge, tmp_path, domain, ros_side):
@@ -129,12 +141,17 @@ def test_check_shows_what_each_pattern_matches_now(tmp_path, domain, ros_side):
 
     d = domain()
     robot = ros_side(d, "robot")
+    from rclpy.action import ActionServer
+    from test_msgs.action import Fibonacci
+
     keep = [robot.publisher(name, String) for name in ("/r/a/b", "/r/secret/x", "/other")]
+    keep.append(ActionServer(robot.ros.node, Fibonacci, "/acts/fib", lambda goal: None))
     path = tmp_path / "robot1.yaml"
     path.write_text("bridge: {name: robot1, role: client, server: 127.0.0.1:12000, "
                     f"identity: {AUTH.identity('robot1')}, server_key: {AUTH.public['server']}}}\n"
                     "topics:\n  - {topic: /r/**, direction: transmit, deny: [/r/secret/**]}\n"
-                    "  - {topic: /q/*, direction: transmit}\n")
+                    "  - {topic: /q/*, direction: transmit}\n"
+                    "actions:\n  - {action: /acts/**, direction: receive}\n")
     result = subprocess.run([ROSGATE, "check", str(path)], capture_output=True, text=True,
                             timeout=60, env=dict(os.environ, ROS_DOMAIN_ID=str(d)))
     out = result.stdout
@@ -143,7 +160,9 @@ def test_check_shows_what_each_pattern_matches_now(tmp_path, domain, ros_side):
            "    now: /r/a/b [std_msgs/msg/String]\n" in out, out
     assert "  /q/* -> /q/*  [type from the graph] udp cdr aead  (pattern)\n" \
            "    matches nothing in this domain now; names are bridged as they appear\n" in out, out
-    assert "/r/secret/x" not in out and "/other" not in out and keep
+    assert "  /acts/** <- /acts/**  [type from the graph] udp cdr aead  (pattern)\n" \
+           "    now: /acts/fib [test_msgs/action/Fibonacci]\n" in out, out
+    assert "/r/secret/x" not in out and "/other" not in out and "_action" not in out and keep
 
 
 def test_publishers_of_two_types_are_refused_named_and_counted(engines, domain, ros_side):
@@ -281,3 +300,47 @@ services:
     there, _ = Caller(base, Trigger, "/robot1/ping").warm_up(Trigger.Request())
     here, _ = Caller(robot, Trigger, "/base/ping").warm_up(Trigger.Request())
     assert (there.message, here.message) == ("from the robot", "from the base")
+
+
+def test_actions_found_both_ways_take_goals_feedback_and_results(bridge, tmp_path, domain,
+                                                                 action_side):
+    from action_msgs.msg import GoalStatus
+    from test_actions import Goal, fibonacci, warmed_up
+    from test_msgs.action import Fibonacci
+
+    ds, dc, port = domain(), domain(), free_port()
+    bridge(server_file(tmp_path, port), ds)
+    path = tmp_path / "client.yaml"
+    path.write_text(f"""
+bridge: {{name: robot1, role: client, server: '127.0.0.1:{port}', pattern_grace: 1}}
+actions:
+  - {{action: /robot1/**, direction: receive}}   # the robot's action servers, goals from the base
+  - {{action: /base/**, direction: transmit}}    # the base's, goals from the robot
+""")
+    client = bridge(path, dc)
+    assert client.wait_log("server 'base' up", 30), client.log
+    robot, base = action_side(dc, "robot"), action_side(ds, "base")
+    keep = [robot.fibonacci_server("/robot1/fib"), base.fibonacci_server("/base/fib")]
+    for name in ("/robot1/fib", "/base/fib"):
+        assert client.wait_log(f"found {name} (test_msgs/action/Fibonacci): bridged", 10), \
+            client.log
+    for caller, name in ((base, "/robot1/fib"), (robot, "/base/fib")):
+        goal = Goal(warmed_up(caller.client(Fibonacci, name), Fibonacci.Goal(order=1)),
+                    Fibonacci.Goal(order=6))
+        assert goal.handle.accepted
+        answer = goal.result()
+        assert answer.status == GoalStatus.STATUS_SUCCEEDED
+        assert list(answer.result.sequence) == fibonacci(7)
+        sequences = [list(f.sequence) for f in goal.feedback]
+        assert sequences and sequences == [fibonacci(len(s) - 1) for s in sequences], sequences
+    # an action's own services and topics are never found as services or topics of their own
+    assert not [line for line in client.lines if "found" in line and "_action" in line]
+    # an action server that goes: its action is gone on the far side after the grace, and one
+    # that appears next takes its places
+    keep[0].destroy()
+    assert client.wait_log("/robot1/fib is gone (no action server for 1 s)", 10), client.log
+    assert wait_until(lambda: not base.node.count_services("/robot1/fib/_action/send_goal"), 5)
+    keep.append(robot.fibonacci_server("/robot1/next"))
+    goal = Goal(warmed_up(base.client(Fibonacci, "/robot1/next"), Fibonacci.Goal(order=1)),
+                Fibonacci.Goal(order=2))
+    assert list(goal.result().result.sequence) == fibonacci(3)

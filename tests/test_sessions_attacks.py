@@ -436,8 +436,13 @@ def test_entries_outside_the_policy_are_refused_one_by_one_and_the_rest_runs(
     assert node.count_subscribers("/robot1/chatter") == 1  # the listener's own, not the bridge's
     names = {name for name, _ in node.get_service_names_and_types()}
     assert "/reset" not in names
+    # the allowed call runs: its proxy appears on the robot once a real server runs on the base
+    from std_srvs.srv import Trigger
+
+    served = node.create_service(Trigger, "/robot1/ping", lambda request, response: response)
     assert wait_until(lambda: "/ping" in {n for n, _ in
                                           robot.ros.node.get_service_names_and_types()}, 10)
+    assert served
 
 
 def test_sighup_applies_a_new_policy_without_dropping_other_clients(tmp_path, domain, ros_side,

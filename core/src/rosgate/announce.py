@@ -2,6 +2,8 @@
 ROS's RIHS01 hash, and the QoS it found (when the entry sets none). Said in the hello and the
 welcome, and announced on the entry's link at once and every :data:`ANNOUNCE_EVERY` seconds as
 ``{"type": ..., "hash": ..., "qos": {...}}`` under ``FLAG_ANNOUNCE``, sealed like its data.
+The serving side of a client/server service says too whether a real ROS server of it runs there
+(``"served"``): the calling side's proxy exists only while one does.
 A receiving side whose type differs refuses the entry (``type_mismatch``, or
 ``type_not_installed`` naming the package when the far side's type is not installed here); one
 waiting for the far side's first word holds what comes (:meth:`TypeCheck.expect`).
@@ -52,18 +54,22 @@ class Identity:
         return f"{self.name} ({self.hash or 'no hash'})"
 
 
-def item(identity: Identity, qos: dict[str, Any] | None) -> dict[str, Any]:
-    """One entry's item of a hello or a welcome, and its announcement's body."""
+def item(identity: Identity, qos: dict[str, Any] | None,
+         served: bool | None = None) -> dict[str, Any]:
+    """One entry's item of a hello or a welcome, and its announcement's body (``served``:
+    whether a real ROS server of the service runs on this side; None: not said)."""
     body: dict[str, Any] = {"type": identity.name}
     if identity.hash is not None:
         body["hash"] = identity.hash
     if qos is not None:
         body["qos"] = dict(qos)
+    if served is not None:
+        body["served"] = served
     return body
 
 
-def encode(identity: Identity, qos: dict[str, Any] | None) -> bytes:
-    return json.dumps(item(identity, qos), separators=(",", ":")).encode()
+def encode(body: dict[str, Any]) -> bytes:
+    return json.dumps(body, separators=(",", ":")).encode()
 
 
 def read(item: Any) -> tuple[Identity | None, dict[str, Any] | None]:
@@ -82,6 +88,17 @@ def read(item: Any) -> tuple[Identity | None, dict[str, Any] | None]:
 def parse_body(body: bytes) -> tuple[Identity | None, dict[str, Any] | None]:
     """An announcement frame's (opened) body; ValueError when it is not one."""
     return read(parse(body))  # a ControlError is a ValueError
+
+
+def served(said: Any) -> bool:
+    """Whether the far side says a real server of the service runs there: an announcement's
+    body (bytes) or a hello's or a welcome's item; a far side that says nothing of it (an older
+    rosgate) is taken at its word that one does, as before. ValueError when unreadable."""
+    body = parse(said) if isinstance(said, bytes) else said
+    value = body.get("served", True) if isinstance(body, dict) else True
+    if not isinstance(value, bool):
+        raise ValueError(f"an announcement's served is {value!r}, not true or false")
+    return value
 
 
 def qos_of(value: Any) -> dict[str, Any] | None:

@@ -214,14 +214,15 @@ def _policy_lines(client: str, policy: Any) -> list[str]:
 GRAPH_WAIT, GRAPH_QUIET = 4.0, 1.0
 
 
-def _settled_graph(look: Any) -> dict[str, set[str]]:
+def _settled_graph(look: Any) -> dict[str, dict[str, set[str]]]:
+    """What ``look`` finds of each kind (topics, services, actions), once it stays the same."""
     deadline, graph, since = time.monotonic() + GRAPH_WAIT, look(), time.monotonic()
     while time.monotonic() < deadline:
         time.sleep(0.1)
         now = look()
         if now != graph:
             graph, since = now, time.monotonic()
-        elif graph and time.monotonic() - since >= GRAPH_QUIET:
+        elif any(graph.values()) and time.monotonic() - since >= GRAPH_QUIET:
             break
     return graph
 
@@ -231,23 +232,28 @@ def _pattern_lines(cfg: Any, plan: Any) -> list[str]:
     if not plan.patterns:
         return []
     from .bus import BusTransport
-    from .discovery import OWN_NAMESPACE, Discovery, publishers
+    from .discovery import GRAPHS, OWN_NAMESPACE, Discovery
 
     def on_bus(p: Any) -> bool:  # it takes what its bus announces, not this domain's graph
         return p.checked is not None and isinstance(p.checked.transport, BusTransport)
 
-    graph: dict[str, set[str]] | None = None
+    graph: dict[str, dict[str, set[str]]] | None = None
     with contextlib.suppress(Exception):  # no ROS here: what it matches is found when it runs
         if not all(on_bus(p) for p in plan.patterns):
             from .ros import RosNode
 
             node = RosNode(f"check_{os.getpid()}", namespace=OWN_NAMESPACE)
             try:
-                graph = _settled_graph(lambda: publishers(node.node))
+                graph = _settled_graph(lambda: {kind: look(node.node)
+                                                for kind, (look, _) in GRAPHS.items()})
             finally:
                 node.close()
-    taken = Discovery(cfg, plan.patterns, None, lambda f: None, lambda f: None,
-                      time.monotonic).matching(graph or {})
+    taken: dict[str, list[str]] = {}
+    for kind in GRAPHS:  # what each pattern that finds names on this side takes of its kind's
+        for name, items in Discovery(cfg, plan.patterns, None, lambda f: None, lambda f: None,
+                                     time.monotonic, kind=kind).matching(
+                                         (graph or {}).get(kind, {})).items():
+            taken.setdefault(name, []).extend(items)
     lines = []
     for p in plan.patterns:
         c = p.entry

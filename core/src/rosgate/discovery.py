@@ -67,7 +67,17 @@ def servers(node: Any) -> dict[str, set[str]]:
     return _by_node(node, node.get_service_names_and_types_by_node)
 
 
-def _by_node(node: Any, query: Callable[[str, str], Any]) -> dict[str, set[str]]:
+def action_servers(node: Any) -> dict[str, set[str]]:
+    """Each action with servers on the graph that are not a rosgate node's: their types
+    (``pkg/action/X``, as rclpy reads them from the action's services)."""
+    from rclpy.action import get_action_server_names_and_types_by_node
+
+    return _by_node(node, lambda name, namespace: get_action_server_names_and_types_by_node(
+        node, name, namespace), parts=True)
+
+
+def _by_node(node: Any, query: Callable[[str, str], Any],
+             parts: bool = False) -> dict[str, set[str]]:
     found: dict[str, set[str]] = {}
     for name, namespace in node.get_node_names_and_namespaces():
         if namespace == OWN_NAMESPACE:
@@ -77,19 +87,22 @@ def _by_node(node: Any, query: Callable[[str, str], Any]) -> dict[str, set[str]]
         except Exception:  # the node went between the two questions: it has nothing now
             continue
         for entity, types in entities:
-            if not is_action_part(entity):  # an action's topics and services cross as the action
+            # an action's topics and services cross as the action (``parts``: its name is one)
+            if parts or not is_action_part(entity):
                 found.setdefault(entity, set()).update(types)
     return found
 
 
 #: what a kind of pattern entry finds on its side's graph, and who has it
 GRAPHS: dict[str, tuple[Callable[[Any], dict[str, set[str]]], str]] = {
-    "topics": (publishers, "publisher"), "services": (servers, "server")}
+    "topics": (publishers, "publisher"), "services": (servers, "server"),
+    "actions": (action_servers, "action server")}
 
 
 class Discovery:
     """The patterns of a plan that find names on this side (``kind`` topics: transmit ones;
-    services: receive ones, whose calls come from the far side), watched on ``node``'s graph.
+    services and actions: receive ones, whose calls and goals come from the far side), watched
+    on ``node``'s graph.
     ``add(found)`` makes a name's route (it returns it, or None when it could not);
     ``drop(found)`` takes it down; ``changed()`` follows a look that added or dropped any (the
     far side is told once)."""
@@ -102,9 +115,9 @@ class Discovery:
         here = Direction.TRANSMIT if kind == "topics" else Direction.RECEIVE
         self.patterns = [p for p in patterns if p.section == kind and p.entry.direction is here]
         self.graph, self.holder = GRAPHS[kind]
-        listed = ({t.topic for t in config.topics if not t.pattern} if kind == "topics"
-                  else {s.service for s in config.services if not s.pattern})
-        self.listed = listed  # a name listed as an entry is that entry's, not a pattern's
+        entries: list[Any] = getattr(config, kind)
+        # a name listed as an entry is that entry's, not a pattern's
+        self.listed = {getattr(e, kind[:-1]) for e in entries if not e.pattern}
         self.node = node
         self.add, self.drop, self.clock, self.changed = add, drop, clock, changed
         self.found: dict[str, Found] = {}
@@ -303,8 +316,8 @@ def said_patterns(message: dict[str, Any], first: int) -> dict[int, str]:
 
 def watched(message: dict[str, Any], key: str = "watch") -> list[str]:
     """The server-side patterns a client's hello asks the server to watch for it (``watch``: its
-    receive topic patterns' ``remote``; ``watch_services``: its transmit service patterns'); what
-    is not a pattern is left out."""
+    receive topic patterns' ``remote``; ``watch_services``, ``watch_actions``: its transmit
+    service and action patterns'); what is not a pattern is left out."""
     items = message.get(key, [])
     if not isinstance(items, list):
         return []
@@ -329,11 +342,13 @@ class Offers:
         self.seen: dict[str, dict[str, tuple[str, float]]] = {kind: {} for kind in GRAPHS}
 
     def look(self) -> None:
-        sessions = [s for s in self.sessions() if s.watch or s.watch_services]
+        sessions = [s for s in self.sessions() if s.watch or s.watch_services or s.watch_actions]
         if not sessions:
             return
         now = self.clock()
         for kind, (graph, _) in GRAPHS.items():
+            if not any(_watches(s, kind) for s in sessions):
+                continue  # a kind nobody watches is not looked at
             seen = self.seen[kind]
             for name, types in graph(self.node).items():
                 if len(types) == 1 and not denied(name, self.config.deny):
@@ -343,9 +358,8 @@ class Offers:
                 del seen[name]
         for session in sessions:
             offer = {kind: {name: type_name for name, (type_name, _) in self.seen[kind].items()
-                            if any(matches(p, name) for p in patterns)}
-                     for kind, patterns in (("topics", session.watch),
-                                            ("services", session.watch_services))}
+                            if any(matches(p, name) for p in _watches(session, kind))}
+                     for kind in GRAPHS}
             if offer != self.said.get(session.id) and session.down_since is None:
                 self.said[session.id] = offer
                 self.say(session, offer)
@@ -356,3 +370,9 @@ class Offers:
     def forget(self, session: Any) -> None:
         """Say everything again to ``session`` at the next look (it connected again)."""
         self.said.pop(session.id, None)
+
+
+def _watches(session: Any, kind: str) -> list[str]:
+    """The patterns of ``kind`` a server watches for ``session``'s client."""
+    return {"topics": session.watch, "services": session.watch_services,
+            "actions": session.watch_actions}[kind]

@@ -164,7 +164,8 @@ class Resolver:
         return Plan(cfg, topics, services, main_line, self.main_address, actions, patterns)
 
     def _can_find(self, entry: TopicConfig | ServiceConfig | ActionConfig, key: str) -> None:
-        """What patterns find: a client's and a peer's topics and services, either way."""
+        """What patterns find: a client's topics, services and actions, and a peer's topics and
+        services, either way."""
         kind = _name_key(entry)
         if self.config.role is Role.PEER and self._bus_finds(entry, key):
             return
@@ -185,9 +186,9 @@ class Resolver:
                                         f"find names over {transport.name}",
                                         f"use udp{'' if kind == 'service' else ' or tcp'}, or "
                                         f"list each {kind} as an entry of its own")
-        if isinstance(entry, ActionConfig):
-            raise self.config.error(f"{key}.{kind}", "a pattern finds topics and services; an "
-                                    "action is listed by its name",
+        if self.config.role is Role.PEER and isinstance(entry, ActionConfig):
+            raise self.config.error(f"{key}.{kind}", "a peer's pattern finds topics and "
+                                    "services; a peer lists each action by its name",
                                     "list each action as an entry of its own")
 
     def _bus_finds(self, entry: TopicConfig | ServiceConfig | ActionConfig, key: str) -> bool:

@@ -13,7 +13,8 @@ import re
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections import Counter
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -435,6 +436,25 @@ class RosNode:
 
     def publisher(self, msg_type: type, topic: str, qos: Any) -> Any:
         return self.node.create_publisher(msg_type, topic, qos)
+
+    def served(self, names: Iterable[str]) -> set[str]:
+        """Which of the services ``names`` have a server on the graph that is not a node of this
+        node's namespace (rosgate's own: a bridge's proxy is never taken for a real server). One
+        count per name; the nodes of that namespace are asked only when a name has servers."""
+        counts = {name: self.node.count_services(name) for name in names}
+        if not any(counts.values()):
+            return set()
+        mine: Counter[str] = Counter()
+        here = self.node.get_namespace()
+        for node, namespace in set(self.node.get_node_names_and_namespaces()):
+            if namespace != here:
+                continue
+            try:
+                services = self.node.get_service_names_and_types_by_node(node, namespace)
+            except Exception:  # the node went between the two questions: it serves nothing now
+                continue
+            mine.update(name for name, _ in services if name in counts)
+        return {name for name, count in counts.items() if count > mine[name]}
 
     @staticmethod
     def raw_publisher(publisher: Any) -> Callable[[bytes | bytearray], None]:

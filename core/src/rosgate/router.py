@@ -23,6 +23,7 @@ from .errors import CipherError
 from .holdback import Holdback
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
+from .proxies import Proxies
 from .ros import QOS_UNFOUND, RosNode, cdr_checker, type_hash
 from .routes import (
     BareFraming,
@@ -90,6 +91,8 @@ class Router:
         self._closing = threading.Event()
         #: makes the routes' subscriptions and publishers as the graph allows
         self.endpoints = Endpoints(ros, self._lock, self.announce)
+        #: the proxies of mirrored services, as the far side's servers come and go
+        self.proxies = Proxies(ros, self._lock, self.announce, lambda route: route in self.routes)
         self._watcher = threading.Thread(target=self._watch, name="announce", daemon=True)
         self._watcher.start()
 
@@ -97,14 +100,15 @@ class Router:
     def route(self, p: TopicSpec | ServiceSpec, route_id: int, label: str, link: Link,
               destination: Destination = _no_destination, keys: Keys | None = None,
               announce: bool = True, goals: ClientGoals | None = None,
-              hold: Holdback | None = None) -> Route:
+              hold: Holdback | None = None, mirror: bool = False) -> Route:
         """The route of an entry over ``link``, a topic's or a service's, as its spec says.
         ``goals``: an action's part as one client of a server may use it; ``hold``: where a
-        client's reliable messages wait while its server is out of reach."""
+        client's reliable messages wait while its server is out of reach; ``mirror``: below."""
         if isinstance(p, TopicSpec):
             return self.topic(p, route_id, label, link, destination, keys, announce=announce,
                               select=None if goals is None else goals.select, hold=hold)
-        return self.service(p, route_id, label, link, destination, keys, announce, goals)
+        return self.service(p, route_id, label, link, destination, keys, announce, goals,
+                            mirror=mirror)
 
     def topic(self, p: TopicSpec, topic_id: int, label: str, link: Link,
               destination: Destination = _no_destination,
@@ -153,17 +157,24 @@ class Router:
     def service(self, p: ServiceSpec, service_id: int, label: str, link: Link | None,
                 destination: Destination = _no_destination,
                 keys: Keys | None = None, announce: bool = True,
-                goals: ClientGoals | None = None) -> ServiceRoute:
-        """A service's route and its ROS entity; found by id with an envelope (else by name)."""
+                goals: ClientGoals | None = None, mirror: bool = False) -> ServiceRoute:
+        """A service's route and its ROS entity; found by id with an envelope (else by name).
+        ``mirror`` (client/server): its proxy exists only while a real ROS server runs on the
+        serving side (:mod:`rosgate.proxies`)."""
         s = p.config
         args = (s, service_id, ServiceCodec(p.codec_cls, p.srv_type, p.codec_options),
                 keys or _file_keys(p), self.warner, label, p.srv_type, self.deadlines)
         qos = deep_qos()
         route: ServiceRoute
+        mirror = mirror and s.framing is Framing.ROSGATE
         if s.direction is Direction.RECEIVE:
-            route = ServerRoute(*args, goals=goals)
+            served = mirror and bool(self.ros.served([s.service]))
+            route = ServerRoute(*args, goals=goals, link=link if mirror else None,
+                                destination=destination, served=served)
             self._identify(route, p.srv_type)
             route.entity = self.ros.client(p.srv_type, s.service, qos)
+            if mirror:
+                self._start(route, announce)
         elif p.service_framing is not None:  # a microcontroller's call pattern, by its plugin
             assert isinstance(p.transport, StreamTransport | DatagramTransport)  # as checked
             route = caller = p.service_framing.caller(*args, transport=p.transport,
@@ -171,10 +182,11 @@ class Router:
             route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, caller.on_request)
         else:
             assert link is not None
-            route = CallerRoute(*args, link=link, destination=destination)
+            route = CallerRoute(*args, link=link, destination=destination, mirrored=mirror)
             self._identify(route, p.srv_type)
             self._start(route, announce)
-            route.entity = self.ros.deferred_service(p.srv_type, s.service, qos, route.on_request)
+            if not mirror:  # else once the far side says a real server runs there
+                route.entity = self.proxies.make(route)
         table = self.servers if isinstance(route, ServerRoute) else self.callers
         self._add(route, table if s.framing is Framing.ROSGATE else None, service_id)
         return route
@@ -234,9 +246,10 @@ class Router:
                 if len(self._retired) < MAX_RETIRED:  # labels come from clients' entries
                     self._retired[(type(route), route.label)] = route.counters
         self.endpoints.forget(route)
-        if route.entity is not None:
-            self.ros.destroy(route.entity)
-            route.entity = None
+        with self._lock:  # a mirrored proxy is made under it, and never for a removed route
+            entity, route.entity = route.entity, None
+        if entity is not None:
+            self.ros.destroy(entity)
         route.close()
 
     def _forget(self, route: Route) -> list[dict[int, Any]]:
@@ -301,8 +314,9 @@ class Router:
     def _announced(self, header: envelope.Header, frame: bytes, link: Link,
                    source: Address) -> None:
         """A far side's announcement: to the receiving route (or serving route) of its id."""
-        route: Route | None = self.receivers.get(header.topic_id) or self.servers.get(
-            header.topic_id)
+        route: Route | None = (self.receivers.get(header.topic_id)
+                               or self.servers.get(header.topic_id)
+                               or self.callers.get(header.topic_id))
         if route is None:
             if self.on_unknown_announcement is not None:
                 self.on_unknown_announcement(header, frame, link, source)
@@ -312,30 +326,35 @@ class Router:
             log.debug("%s: an announcement for id %d from %s, an entry this side does not carry",
                       link.name, header.topic_id, source)
             return
-        heard = route.heard(header, frame)
-        if heard is not None and isinstance(route, ReceiveRoute):
-            self.follow_qos(route, heard[1])
+        self._follow(route, route.heard(header, frame))
 
     def far(self, route: Route, item: Any) -> None:
         """What a hello or a welcome says of the far side's entry (None: nothing, an older
-        rosgate): its type checked, its QoS followed."""
-        told = route.told(item)
-        if told is not None and isinstance(route, ReceiveRoute):
-            self.follow_qos(route, told[1])
+        rosgate): its type checked, its QoS or its server followed."""
+        self._follow(route, route.told(item))
+
+    def _follow(self, route: Route, said: tuple[Any, dict[str, Any] | None] | None) -> None:
+        if isinstance(route, ReceiveRoute) and said is not None:
+            self.follow_qos(route, said[1])
+        elif isinstance(route, CallerRoute) and said is not None:
+            self.proxies.follow(route)
 
     def entry_item(self, p: TopicSpec | ServiceSpec) -> dict[str, Any]:
         """An entry as a hello says it before its route exists (with the QoS found here for a
-        topic it sends without a qos)."""
+        topic it sends without a qos, whether a real server runs here for a service it
+        serves)."""
         if isinstance(p, TopicSpec):
             t = p.config
             qos = (self.ros.qos_found(t.topic)
                    if t.direction is Direction.TRANSMIT and not t.qos_given else None)
             return announce.item(Identity(t.type, self.hash_of(p.msg_type)), qos)
-        return announce.item(Identity(p.config.type, self.hash_of(p.srv_type)), None)
+        s, here = p.config, p.config.direction is Direction.RECEIVE
+        served = bool(self.ros.served([s.service])) if here else None  # client/server: rosgate
+        return announce.item(Identity(s.type, self.hash_of(p.srv_type)), None, served)
 
     def item(self, route: Route) -> dict[str, Any]:
         """This side's entry as a hello or a welcome says it."""
-        return announce.item(route.check.mine, route.qos_found)
+        return route.said()
 
     def follow_qos(self, route: ReceiveRoute, qos: dict[str, Any] | None) -> None:
         """The publisher takes the QoS the far side found from its publishers, unless the
@@ -350,7 +369,8 @@ class Router:
         """Routes made with ``announce=False`` say their entries now, and from now on."""
         for route in routes:
             if (isinstance(route, TransmitRoute) and not route.delivery.whole
-                    or isinstance(route, CallerRoute)):
+                    or isinstance(route, CallerRoute)
+                    or isinstance(route, ServerRoute) and route.mirror):
                 self._start(route, True)
 
     def resync(self, routes: list[Route] | None = None) -> None:
@@ -383,6 +403,7 @@ class Router:
             if self._closing.wait(WATCH_EVERY):
                 return
             now = time.monotonic()
+            self.proxies.watch(self.snapshot())
             for route in self.snapshot():
                 try:
                     if isinstance(route, TransmitRoute) and not route.topic.qos_given:

@@ -92,6 +92,9 @@ class Route:
     #: yet), and the one its subscription or publisher has (None: the entry's own)
     qos_found: dict[str, Any] | None = None
     qos_in_use: dict[str, Any] | None = None
+    #: whether the far side says a real ROS server of this service runs there (None: it has
+    #: said nothing yet; what a calling side's proxy follows, :mod:`rosgate.announce`)
+    far_served: bool | None = None
     link: Link
     destination: Callable[[], Address | None]
     #: the wall clock (ns) the bridge's own queues measure waits by (the kernel's and the
@@ -132,9 +135,13 @@ class Route:
     def announcement(self) -> bytes:
         """An announcement frame of this entry (:mod:`rosgate.announce`), with the QoS found
         here. NoKey before a session has keys."""
-        body = announce.encode(self.check.mine, self.qos_found)
+        body = announce.encode(self.said())
         epoch = self.keys.epoch()
         return self.seal(envelope.FLAG_ANNOUNCE, epoch, next(self._announced), body)
+
+    def said(self) -> dict[str, Any]:
+        """What this side says of its entry (a hello's or a welcome's item, an announcement)."""
+        return announce.item(self.check.mine, self.qos_found)
 
     def admit(self, header: envelope.Header, frame: bytes) -> bytes | None:
         """A received frame's payload once its cipher, keys and replay window accept it; None
@@ -174,6 +181,7 @@ class Route:
         try:
             identity, qos = (announce.parse_body(said) if isinstance(said, bytes)
                              else announce.read(said))
+            self.far_served = announce.served(said)
         except ValueError as exc:
             self.drop(Drop.BAD_ANNOUNCEMENT, str(exc))
             return None

@@ -177,12 +177,16 @@ class ServiceRoute(Route):
 
 
 class CallerRoute(ServiceRoute):
-    """``transmit``: a proxy ROS server here; each call crosses ``link`` (framing rosgate)."""
+    """``transmit``: a proxy ROS server here; each call crosses ``link`` (framing rosgate).
+    ``mirrored``: the proxy exists only while the far side says a real server runs there
+    (client/server; :class:`rosgate.proxies.Proxies`)."""
 
-    def __init__(self, *args: Any, link: Link, destination: Callable[[], Address | None]):
+    def __init__(self, *args: Any, link: Link, destination: Callable[[], Address | None],
+                 mirrored: bool = False):
         super().__init__(*args)
         self.link = link
         self.destination = destination
+        self.mirrored = mirrored
         self.calls: dict[int, tuple[int, Call]] = {}  # seq -> (epoch, call)
         self._ids = itertools.count(1)
 
@@ -280,12 +284,26 @@ class ServerRoute(ServiceRoute):
     """``receive``: calls from the far side, served by the ROS server here. A call beyond
     :data:`QUEUE_DEPTH` in progress fails at once (``too_many_calls``): a flood cannot pile up.
     ``goals``: an action's part as one client may use it (:class:`rosgate.actions.ClientGoals`):
-    a call about other clients' goals is answered here, a cancel of many goals split."""
+    a call about other clients' goals is answered here, a cancel of many goals split.
+    ``link`` and ``destination`` given: it says on ``link`` whether a real ROS server runs here
+    (``served``), so the far side's proxy exists only while one does."""
 
-    def __init__(self, *args: Any, goals: Any = None) -> None:
+    def __init__(self, *args: Any, goals: Any = None, link: Link | None = None,
+                 destination: Callable[[], Address | None] | None = None,
+                 served: bool = False) -> None:
         super().__init__(*args)
         self.in_flight = 0
         self.goals = goals
+        self.mirror = link is not None
+        if link is not None and destination is not None:
+            self.link, self.destination = link, destination
+        self.served = served
+
+    def said(self) -> dict[str, Any]:
+        said = super().said()
+        if self.mirror:
+            said["served"] = self.served
+        return said
 
     def serve(self, request: Any, call: Call) -> None:
         """Call the ROS server here; ``call`` gets its answer or a failure within ``timeout``.

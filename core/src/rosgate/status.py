@@ -66,7 +66,8 @@ def collect(config: BridgeConfig, role: Role | None, router: Router | None, life
 def _patterns(role: Role | None) -> Status:
     """What pattern entries found (names) and refused (by reason, each name once)."""
     total: Status = {"found": [], "refused": {}}
-    finders = [getattr(role, name, None) for name in ("discovery", "service_discovery")]
+    finders = [getattr(role, name, None)
+               for name in ("discovery", "service_discovery", "action_discovery")]
     for discovery in [*finders, *(role.bus_patterns if isinstance(role, PeerRole) else [])]:
         if discovery is not None:
             each = discovery.status()

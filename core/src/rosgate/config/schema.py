@@ -62,8 +62,8 @@ NO_ANSWERS = ("fail", "nil")      # a call's connection closed without a byte: a
 MCU_KEYS = ("layout", "args", "floats")
 RULE_DIRECTIONS = ("transmit", "receive", "both")
 MAX_ROUTES_DEFAULT = 300  # routes a pattern entry makes at most
-TYPE_FROM_GRAPH = "pattern entries: taken from the graph (the publishers, servers found); " \
-    "else required"
+TYPE_FROM_GRAPH = ("pattern entries: taken from the graph (the publishers, servers, action "
+                   "servers found); else required")
 
 # the keys topics, services and actions share, declared once for all
 _ENTRY: dict[str, dict[str, Any]] = {
@@ -183,7 +183,8 @@ class TopicConfig:
 @dataclass
 class ServiceConfig:
     """`services:` entries carry ROS 2 services across the link; [services.md](services.md)
-    says how calls, answers and failures behave."""
+    says how calls, answers and failures behave. Between a client and its server, the service a
+    bridge offers exists only while a real server of it runs on the far side."""
 
     service: str = _entry("name", example="/mcu/ping")
     type: str = option(doc="the service type", example="std_srvs/srv/Trigger",

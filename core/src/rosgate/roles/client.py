@@ -26,6 +26,7 @@ from ..errors import ConfigError, LinkError, RosgateError
 from ..holdback import Holdback
 from ..keyring import NoKey
 from ..links import DatagramLink, Link
+from ..resolver import PreparedAction
 from ..router import fixed
 from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, seal_hello
@@ -67,22 +68,28 @@ class ClientRole(Role):
         self.answer = Answer()
         #: what reliable topics take while the server is out of reach
         self.hold = Holdback(self.cfg.queue_frames, self.cfg.queue_bytes)
-        #: the topics its pattern entries found, after its listed entries (None: a name gone)
+        #: the topics, services and action parts its pattern entries found, after its listed
+        #: entries (None: a name gone); an action takes five places, from the first one's
         self.found: list[TopicSpec | ServiceSpec | None] = []
+        self._found_actions: dict[int, PreparedAction] = {}
         self._found_lock = threading.RLock()
         plan = bridge.plan
-        #: patterns whose names the server finds (receive topics, services called here), and the
-        #: names under them it offered, by the name here
+        #: patterns whose names the server finds (receive topics, services called and actions
+        #: whose goals are sent here), and the names under them it offered, by the name here
         self._far = {kind: [p for p in plan.patterns if p.section == kind
                             and p.entry.direction is way]
                      for kind, way in (("topics", Direction.RECEIVE),
-                                       ("services", Direction.TRANSMIT))}
+                                       ("services", Direction.TRANSMIT),
+                                       ("actions", Direction.TRANSMIT))}
         self.offered: dict[str, Found] = {}
         self.discovery = Discovery(self.cfg, plan.patterns, self.router.ros.node, self._add_found,
                                    self._drop_found, time.monotonic, self._tell_found)
         self.service_discovery = Discovery(self.cfg, plan.patterns, self.router.ros.node,
                                            self._add_found, self._drop_found, time.monotonic,
                                            self._tell_found, kind="services")
+        self.action_discovery = Discovery(self.cfg, plan.patterns, self.router.ros.node,
+                                          self._add_found, self._drop_found, time.monotonic,
+                                          self._tell_found, kind="actions")
         assert plan.main_line is not None and plan.main_address is not None
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
                                    self._on_main_frame, self.router.on_lost, self.life,
@@ -96,6 +103,7 @@ class ClientRole(Role):
         threading.Thread(target=self._ping_loop, name="client-ping", daemon=True).start()
         self.discovery.start()
         self.service_discovery.start()
+        self.action_discovery.start()
 
     def wind_down(self) -> None:
         """What still waits for the server is counted (``link_down``) before the counters are
@@ -105,6 +113,7 @@ class ClientRole(Role):
     def stop(self) -> None:
         self.discovery.stop()
         self.service_discovery.stop()
+        self.action_discovery.stop()
         link = self.main.current
         if self.connected.is_set() and link is not None:
             # a clean stop says goodbye, so the server drops our session now instead of keeping
@@ -129,7 +138,8 @@ class ClientRole(Role):
             self._placed(message)
         elif message is not None and message["type"] == "offer":
             self._offered({"topics": message.get("names"),
-                           "services": message.get("services", {})})
+                           "services": message.get("services", {}),
+                           "actions": message.get("actions", {})})
 
     def entries(self) -> list[Any]:
         """The listed entries, then the topics the patterns found (None: a name gone)."""
@@ -138,19 +148,31 @@ class ClientRole(Role):
 
     def _found_message(self) -> dict[str, Any]:
         with self._found_lock:
-            return {"found": [None if p is None else topic_to_mapping(p.config)
-                              if isinstance(p, TopicSpec) else service_to_mapping(p.config)
-                              for p in self.found],
-                    "patterns": made_by(self.founds(), self.found),
+            found: list[dict[str, Any] | None] = []
+            for place, p in enumerate(self.found):
+                action = self._found_actions.get(place)
+                if action is not None:  # its parts' places follow: the server takes it whole
+                    found.append(action_to_mapping(action.config))
+                elif not any(0 < place - first < len(a.parts)
+                             for first, a in self._found_actions.items()):
+                    found.append(None if p is None else topic_to_mapping(p.config)
+                                 if isinstance(p, TopicSpec) else service_to_mapping(p.config))
+            # by place (an action's parts each): the server's places, once it takes them apart
+            patterns = made_by(self.founds(), self.found)
+            for first, action in self._found_actions.items():
+                by = next((f.pattern.name for f in self.founds() if f.route is action), None)
+                patterns[first:first + len(action.parts)] = [by] * len(action.parts)
+            return {"found": found, "patterns": patterns,
                     "entries": [None if p is None else self.router.entry_item(p)
                                 for p in self.entries()]}
 
     def founds(self) -> list[Found]:
         """Every name this side's patterns found, here or offered by the server."""
         return [*list(self.discovery.found.values()),
-                *list(self.service_discovery.found.values()), *list(self.offered.values())]
+                *list(self.service_discovery.found.values()),
+                *list(self.action_discovery.found.values()), *list(self.offered.values())]
 
-    def _add_found(self, found: Found) -> TopicSpec | ServiceSpec | None:
+    def _add_found(self, found: Found) -> TopicSpec | ServiceSpec | PreparedAction | None:
         """A name a pattern found, for the server (told after the look) to judge as a listed
         entry."""
         try:
@@ -158,20 +180,39 @@ class ClientRole(Role):
         except ConfigError as exc:
             log.error("%s: %s cannot be bridged: %s", self.cfg.name, found.name, exc)
             return None
-        with self._found_lock:  # in the place of a name gone, so the list stays short
-            if None in self.found:
-                self.found[self.found.index(None)] = spec
-            else:
-                self.found.append(spec)
+        parts = spec.parts if isinstance(spec, PreparedAction) else [spec]
+        with self._found_lock:  # in the places of names gone, so the list stays short
+            place = self._free_places(len(parts))
+            self.found[place:place + len(parts)] = parts
+            if isinstance(spec, PreparedAction):
+                self._found_actions[place] = spec
         return spec
+
+    def _free_places(self, count: int) -> int:
+        """The first of ``count`` places in a row that names gone left (or the end)."""
+        run = 0
+        for place, p in enumerate(self.found):
+            run = run + 1 if p is None and not self._in_action(place) else 0
+            if run == count:
+                return place - count + 1
+        return len(self.found)
+
+    def _in_action(self, place: int) -> bool:
+        return any(0 <= place - first < len(a.parts) for first, a in self._found_actions.items())
 
     def _drop_found(self, found: Found) -> None:
         with self._found_lock:
-            place = self.found.index(found.route)
-            self.found[place] = None
-            route = self.routes.pop(len(super().entries()) + place, None)
-            if route is not None:  # now: its place may take another name before the server says
-                self.router.remove(route)
+            if isinstance(found.route, PreparedAction):
+                first = next(f for f, a in self._found_actions.items() if a is found.route)
+                places = range(first, first + len(found.route.parts))
+                del self._found_actions[first]
+            else:
+                places = range(self.found.index(found.route), self.found.index(found.route) + 1)
+            for place in places:
+                self.found[place] = None
+                route = self.routes.pop(len(super().entries()) + place, None)
+                if route is not None:  # now: its place may take another name first
+                    self.router.remove(route)
 
     def _offered(self, offer: dict[str, Any]) -> None:
         """What the server has under this side's patterns whose names it finds (receive topics,
@@ -212,7 +253,7 @@ class ClientRole(Role):
             self._tell_found()
 
     def _listed(self, kind: str) -> set[str]:
-        entries = self.cfg.topics if kind == "topics" else self.cfg.services
+        entries: list[Any] = getattr(self.cfg, kind)
         return {getattr(e, kind[:-1]) for e in entries if not e.pattern}
 
     def _tell_found(self) -> None:
@@ -250,6 +291,7 @@ class ClientRole(Role):
                            "actions": [action_to_mapping(a.config) for a in plan.actions],
                            "watch": [p.entry.remote for p in self._far["topics"]],
                            "watch_services": [p.entry.remote for p in self._far["services"]],
+                           "watch_actions": [p.entry.remote for p in self._far["actions"]],
                            **self._found_message(),
                            "taken": taken(self.routes.values())}),
                   self.control)
@@ -382,7 +424,7 @@ class ClientRole(Role):
         # announcements start once the server has our datagram hello (its ports take frames
         # only from where a hello came from)
         return self.router.route(p, topic_id, label, link, destination, keys, announce=False,
-                                 hold=self.hold)
+                                 hold=self.hold, mirror=True)
 
     def _unbuild(self) -> None:
         super().stop()

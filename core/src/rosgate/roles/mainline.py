@@ -1,9 +1,11 @@
 """The main line: the stream a client opens to its server, and its control messages — frames on
 topic 0 with the CONTROL flag and a JSON body (never pickle: a peer's bytes never become code).
 
-The client sends ``hello`` (name, topics, services, actions); the server answers ``welcome`` (its
-name, a session id and token, ``topic_ids`` and ``service_ids`` in the order asked, 0 for an
-entry its policy ``refused``, with why) or ``refused`` (why). Both ``ping`` every ``heartbeat``;
+The client sends ``hello`` (name, topics, services, actions, and the names its patterns
+found: ``found``, an action among them taking the places of its five parts); the server
+answers ``welcome`` (its name, a session id and token, ``topic_ids`` and ``service_ids`` in
+the order asked, 0 for an entry its policy ``refused``, with why) or ``refused`` (why). Both
+``ping`` every ``heartbeat``;
 a client that stops cleanly says ``bye`` and the server drops its session at once; a server that
 stops says ``bye`` to each client, whose reliable topics then wait for the next session. On each
 datagram link and dedicated stream the client also sends a HELLO-flagged envelope (session id,
@@ -133,17 +135,27 @@ def client_entries(hello: dict[str, Any], defaults: dict[str, str],
 MAX_FOUND = 10_000  # names a client's patterns may have found, gone ones included
 
 
-def found_entries(hello: dict[str, Any], defaults: dict[str, str],
-                  where: str) -> list[TopicConfig | ServiceConfig | None]:
-    """The topics and services a client's pattern entries found (``found``, after its listed
-    entries; None for a name that went), each checked like a listed entry."""
+def found_entries(hello: dict[str, Any], defaults: dict[str, str], where: str
+                  ) -> tuple[list[TopicConfig | ServiceConfig | None], dict[int, ActionConfig]]:
+    """The topics, services and actions a client's pattern entries found (``found``, after its
+    listed entries; None for a name that went), each checked like a listed entry: an action as
+    its parts, in their places; and the action of each part, by its place among them."""
     items = hello.get("found", [])
     if not isinstance(items, list) or len(items) > MAX_FOUND:
         raise ConfigError(f"found: not a list of at most {MAX_FOUND} entries", file=where)
     found: list[TopicConfig | ServiceConfig | None] = []
+    part_of: dict[int, ActionConfig] = {}
     for i, mapping in enumerate(items):
         if mapping is not None and not isinstance(mapping, dict):
             raise ConfigError("not a mapping", file=where, key=f"found[{i}]")
-        parse = service_from_mapping if mapping and "service" in mapping else topic_from_mapping
-        found.append(None if mapping is None else parse(mapping, defaults, where, index=i))
-    return found
+        if mapping is None:
+            found.append(None)
+        elif "action" in mapping:
+            action = action_from_mapping(mapping, defaults, where, index=i)
+            for part in action_parts(action):
+                part_of[len(found)] = action
+                found.append(part)
+        else:
+            parse = service_from_mapping if "service" in mapping else topic_from_mapping
+            found.append(parse(mapping, defaults, where, index=i))
+    return found, part_of

@@ -107,6 +107,7 @@ class Session:
     watch: list[str] = field(default_factory=list)  # its receive patterns, in names here
     watch_services: list[str] = field(default_factory=list)  # its service patterns that call
     made_by: dict[int, str] = field(default_factory=dict)  # found entry -> the client's pattern
+    watch_actions: list[str] = field(default_factory=list)  # its action patterns that send goals
 
     @property
     def routes(self) -> list[Route]:
@@ -181,7 +182,8 @@ class ServerRole(Role):
         link = session.main.current
         if link is not None:
             link.send(control({"type": "offer", "names": offer["topics"],
-                               "services": offer["services"]}), self.control)
+                               "services": offer["services"], "actions": offer["actions"]}),
+                      self.control)
 
     def wind_down(self) -> None:
         """Every connected client hears ``bye`` first, so its reliable topics wait for the next
@@ -347,6 +349,7 @@ class ServerRole(Role):
             self.refusals.say(f"{name} {why}", why, logging.ERROR)
         session.watch = watched(hello)
         session.watch_services = watched(hello, "watch_services")
+        session.watch_actions = watched(hello, "watch_actions")
         self.offers.forget(session)  # what it may receive is offered anew
         self.far_entries(session.by_index, hello.get("entries"))
         routes = [session.by_index.get(i) for i in range(len(session.entries))]
@@ -383,10 +386,13 @@ class ServerRole(Role):
 
     def _set_found(self, session: Session, message: dict[str, Any]) -> None:
         """The topics the client's patterns found, after its listed entries."""
-        found = found_entries(message, self.cfg.defaults, f"client {session.name}")
+        found, part_of = found_entries(message, self.cfg.defaults, f"client {session.name}")
         before = session.entries[session.listed:]
         session.entries[session.listed:] = found
         made_by, session.made_by = session.made_by, said_patterns(message, session.listed)
+        for index in [i for i in session.part_of if i >= session.listed]:
+            del session.part_of[index]
+        session.part_of.update({session.listed + i: a for i, a in part_of.items()})
         for index in list(session.by_index):
             place = index - session.listed
             if index >= session.listed and (place >= len(found) or found[place] != before[place]):
@@ -424,7 +430,9 @@ class ServerRole(Role):
         entry = session.entries[index]
         assert entry is not None  # a name gone is neither refused nor routed
         if index >= session.listed:
-            name = entry.topic if isinstance(entry, TopicConfig) else entry.service
+            action = session.part_of.get(index)
+            name = (f"action {action.action}" if action is not None else entry.topic
+                    if isinstance(entry, TopicConfig) else entry.service)
             return f"found[{index - session.listed}] ({name})"
         if isinstance(entry, TopicConfig):
             return f"topics[{index}] ({entry.topic})"
@@ -562,7 +570,7 @@ class ServerRole(Role):
         own = None if goals is None else client_goals(goals, session.name, p.name, interface,
                                                       p.codec_cls.raw)
         return self.router.route(p, self._topic_id(session, p), f"{p.name} ({way} {session.name})",
-                                 link, destination, keys, goals=own)
+                                 link, destination, keys, goals=own, mirror=True)
 
     @staticmethod
     def _no_address() -> Address | None:
