@@ -90,22 +90,25 @@ def test_a_bare_framing_pattern_off_a_bus_is_refused_at_its_framing() -> None:
     assert "list each name" in (info.value.fix or "")
 
 
+PEER = "bridge: {name: a, role: peer, peer: 127.0.0.1, insecure: true}\n"
+
+
 @pytest.mark.parametrize(("text", "key", "says"), [
-    ("actions:\n  - {action: /robot1/*, direction: transmit}\n", "actions[0].action",
-     "an action is listed by its name"),
-    ("topics:\n  - {topic: /a, type: std_msgs/msg/String, direction: transmit}\n"
-     "actions:\n  - {action: /robot1/**, direction: receive}\n", "actions[0].action",
-     "an action is listed by its name"),
+    ("actions:\n  - {action: /robot1/*, direction: transmit, port: 12001}\n",
+     "actions[0].action", "a peer lists each action by its name"),
+    ("topics:\n  - {topic: /a, type: std_msgs/msg/String, direction: transmit, port: 12002}\n"
+     "actions:\n  - {action: /robot1/**, direction: receive, port: 12001}\n",
+     "actions[0].action", "a peer lists each action by its name"),
 ])
 def test_what_patterns_do_not_find_is_refused_at_start(text: str, key: str, says: str) -> None:
-    cfg = loads(HEAD + text, file="bringup.yaml")
+    """A client's actions may be patterns; a peer's may not (its patterns find topics and
+    services)."""
+    cfg = loads(PEER + text, file="bringup.yaml")
     with pytest.raises(ConfigError) as info:
         Resolver(cfg, Plugins.discover()).plan()
     assert info.value.key == key and says in info.value.message
     assert info.value.fix and "as an entry of its own" in info.value.fix
 
-
-PEER = "bridge: {name: a, role: peer, peer: 127.0.0.1, insecure: true}\n"
 
 
 def test_a_peer_finds_topics_and_services_on_the_links_that_can() -> None:
