@@ -52,6 +52,10 @@ from processes import (
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+#: rosgate's own Fast DDS profile (an 8 MiB shared-memory segment), given to the ends of the
+#: "publisher with rosgate's profile" rows
+FASTDDS_XML = ROOT / "core" / "src" / "rosgate" / "fastdds.xml"
+LARGE_SEGMENT = "ends with rosgate's Fast DDS profile"
 DELIVERED = 0.95  # a trial passes when this share of what was offered arrives on time
 WARM_UP_TIMEOUT = 30.0
 GRACE = 0.1  # seconds after the last send (plus a few message intervals) a message may still arrive
@@ -250,7 +254,7 @@ class Case:
 
     def __init__(self, size: Size, route: Route | None, folder: Path,
                  checkout: Checkout = HERE_CHECKOUT, reliability: str | None = None,
-                 twist: bool = False):
+                 twist: bool = False, large_segment: bool = False):
         self.size = size
         self.route = route
         self.folder = folder
@@ -266,6 +270,10 @@ class Case:
         self.twist_pub: StampedEnds | None = None
         self.twist_sub: StampedEnds | None = None
         self.published = 0  # every message the publisher sent, warm-ups included
+        #: the publisher's and the subscriber's Fast DDS profile: rosgate's (an 8 MiB
+        #: shared-memory segment), not Fast DDS's defaults
+        self.profile = {"FASTRTPS_DEFAULT_PROFILES_FILE": str(FASTDDS_XML)} if large_segment \
+            else {}
         self._stack = ExitStack()
 
     @property
@@ -318,7 +326,7 @@ class Case:
             return process
 
         self.sub = started(Endpoint("sub", size.kind, size.bytes, size.depth, sub_domain,
-                                    self.folder / "sub.log", self.reliability))
+                                    self.folder / "sub.log", self.reliability, env=self.profile))
         if self.route and self.route.roles == "floor":
             port, route = free_port(), self.route
 
@@ -344,7 +352,7 @@ class Case:
                 self.twist_pub = started(StampedEnds("pub", self.twist_spec, pub_domain,
                                                      self.folder / "twist_pub.log"))
         self.pub = started(Endpoint("pub", size.kind, size.bytes, size.depth, pub_domain,
-                                    self.folder / "pub.log", self.reliability))
+                                    self.folder / "pub.log", self.reliability, env=self.profile))
         twists = [p for p in (self.twist_sub, self.twist_pub) if p]
         for process in [self.sub, *self.relays, *self.bridges, *twists, self.pub]:
             process.ready()
@@ -577,6 +585,8 @@ class Result:
     size: Size
     route: Route | None
     reliability: str = "reliable"  # bare rows: the QoS of publisher and subscriber
+    #: the publisher and the subscriber publish through rosgate's 8 MiB shared-memory segment
+    large_segment: bool = False
     hops: Hops | None = None
     sustained: Trial | None = None
     peak: float = 0.0            # the most delivered per second in any trial
@@ -599,23 +609,32 @@ class Result:
 
     @property
     def path(self) -> str:
+        segment = f", {LARGE_SEGMENT}" if self.large_segment else ""
         if self.route:
-            return self.route.label
-        return "bare rclpy" + (", best effort" if self.reliability == "best_effort" else "")
+            return self.route.label + segment
+        return ("bare rclpy" + (", best effort" if self.reliability == "best_effort" else "")
+                + segment)
 
     @property
     def bare(self) -> bool:
         """The bare row every bridged row of its size is compared with (reliable)."""
         return self.route is None and self.reliability == "reliable"
 
+    @property
+    def plain(self) -> bool:
+        """A row of this checkout's rosgate, ends as they come (the rows targets compare)."""
+        return self.route is not None and not self.route.rev and not self.large_segment
+
 
 def measure(size: Size, route: Route | None, settings: Settings, folder: Path,
-            options: Options, reliability: str = "reliable") -> Result:
-    result = Result(size, route, reliability)
+            options: Options, reliability: str = "reliable",
+            large_segment: bool = False) -> Result:
+    result = Result(size, route, reliability, large_segment=large_segment)
     checkout = options.checkouts[route.rev] if route else HERE_CHECKOUT
     # the real_time Twist beside the best-effort default file's overload at the target size
     twist = route == DEFAULT_BE and size.name == TARGET_SIZE
-    case = Case(size, route, folder, checkout, None if route else reliability, twist)
+    case = Case(size, route, folder, checkout, None if route else reliability, twist,
+                large_segment)
     # --quick: a floor's CPU trial only, for the line that sets the default file against it
     cpu_only = settings.quick and route is not None and route.roles == "floor"
     log(f"[{case.label}] starting")
@@ -926,7 +945,7 @@ def compare_table(results: list[Result]) -> str | None:
     pairs = []
     for r in results:
         if r.route and r.route.rev:
-            mine = next((m for m in results if m.size == r.size
+            mine = next((m for m in results if m.size == r.size and not m.large_segment
                          and m.route == replace(r.route, rev="")), None)
             if mine:
                 pairs.append((mine, r))
@@ -1036,7 +1055,7 @@ UDP_FLOOR, TCP_FLOOR = FLOORS
 def fast_path_targets(results: list[Result], cpu_rate: float) -> str | None:
     """A table: each target of the fast path, rosgate's value, the floor's, the verdict. A target
     the floor misses too is one no Python bridge on rclpy reaches on this machine."""
-    found = {(r.size.name, r.route): r for r in results if r.bare or r.route and not r.route.rev}
+    found = {(r.size.name, r.route): r for r in results if r.bare or r.plain}
 
     def get(size: str, route: Route | None) -> Result | None:
         return found.get((size, route))
@@ -1119,7 +1138,7 @@ BATCH_CPU_US, BATCH_P99_MS = 30, 3  # with a 2 ms batch window, 2,000 msg/s of 2
 
 def default_file_targets(results: list[Result]) -> str | None:
     """A table: each target of the default file, what was measured, the verdict."""
-    found = {(r.size.name, r.route): r for r in results if r.bare or r.route and not r.route.rev}
+    found = {(r.size.name, r.route): r for r in results if r.bare or r.plain}
 
     def sustained(size: str, route: Route | None) -> float | None:
         r = found.get((size, route))
@@ -1222,7 +1241,7 @@ def cpu_against_floor(results: list[Result], cpu_rate: float) -> list[str]:
         floor = next((r for r in results if r.size is size and r.route == floor_for(size)
                       and r.cpu), None)
         mine = [r for r in results if r.size is size and r.route and r.route.default_file
-                and not r.route.rev and not r.route.batch and not r.route.loss and r.cpu]
+                and r.plain and not r.route.batch and not r.route.loss and r.cpu]
         if floor is None or floor.cpu is None or not mine:
             continue
         fa, fb = floor.cpu.us_per_msg("A"), floor.cpu.us_per_msg("B")
@@ -1244,20 +1263,23 @@ def cpu_against_floor(results: list[Result], cpu_rate: float) -> list[str]:
 
 def image_share(results: list[Result]) -> list[str]:
     """1 MB best effort at 20 images/s (the latency trial): the share the default file
-    delivers against what Fast DDS alone delivers in the same run."""
+    delivers against what Fast DDS alone delivers in the same run, ends with Fast DDS's
+    defaults and ends with rosgate's profile."""
     lines = []
-    for size in SIZES:
+    for size, segment in ((s, large) for s in SIZES for large in (False, True)):
         bare = next((r for r in results if r.size is size and r.route is None
-                     and r.reliability == "best_effort" and r.latency), None)
+                     and r.reliability == "best_effort" and r.large_segment == segment
+                     and r.latency), None)
         if bare is None or bare.latency is None:
             continue
         for r in results:
-            if r.size is not size or r.route != DEFAULT_BE or r.latency is None:
+            if r.size is not size or r.route != DEFAULT_BE or r.latency is None \
+                    or r.large_segment != segment:
                 continue
             got, theirs = r.latency.arrived, bare.latency.arrived
             met = got >= IMAGE_SHARE * theirs and (theirs < 0.9 or got >= 0.9)
             lines.append(f"{size.name} best effort at {r.latency.offered:,.0f}/s: {r.path} "
-                         f"delivers >= {IMAGE_SHARE}x the share bare rclpy delivers (and >= 90 % "
+                         f"delivers >= {IMAGE_SHARE}x the share {bare.path} delivers (and >= 90 % "
                          f"where bare does): {'MET' if met else 'NOT MET'} ({got:.0%} against "
                          f"{theirs:.0%}, {got / theirs if theirs else 0:.2f}x)")
     return lines
@@ -1433,8 +1455,8 @@ def knows_batch(rev: str, root: Path = ROOT) -> bool:
 
 
 #: a case to run: size and route (None: bare), and for a bare case its QoS if not reliable
-Planned = tuple[Size, Route | None] | tuple[Size, None, str]
-BARE_BE = "bare best effort"  # what --path matches for the bare best-effort 1 MB row
+Planned = tuple[Size, Route | None] | tuple[Size, Route | None, str, bool]
+BARE_BE = "bare best effort"  # what --path matches for the bare best-effort 1 MB rows
 
 
 def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
@@ -1461,13 +1483,16 @@ def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
         if not paths or "bare" in paths:
             cases.append((size, None))
         if size.kind == "image" and (not paths or BARE_BE in paths):
-            # what Fast DDS alone delivers of best-effort images, beside the default file's
-            cases.append((size, None, "best_effort"))
+            # what Fast DDS alone delivers of best-effort images, beside the default file's;
+            # and both again with a publisher (and subscriber) given rosgate's profile
+            cases += [(size, None, "best_effort", False), (size, None, "best_effort", True)]
         cases += [(size, floor) for floor in floors]  # not rosgate: no base twin
         for route in routes:  # this checkout's and the base's side by side (a base that
             # knows batch windows measures its own: an older one refuses the key)
             twin = base and (not route.batch or knows_batch(base))
             cases += [(size, route)] + ([(size, replace(route, rev=base))] if twin else [])
+            if route == DEFAULT_BE and size.kind == "image":
+                cases.append((size, route, "best_effort", True))
     if profile_spec and not any(case[1] and case[1].path == profile_spec.path
                                 and case[0].key == profile_spec.size_key for case in cases):
         size = next(s for s in SIZES if s.key == profile_spec.size_key)

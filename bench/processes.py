@@ -195,17 +195,20 @@ class Endpoint(Process):
     """The publisher or the subscriber (bench/endpoints.py), driven over stdin/stdout."""
 
     def __init__(self, role: str, kind: str, size: int, depth: int, domain: int, log: Path,
-                 reliability: str = "reliable", prefix: tuple[str, ...] = ()):
+                 reliability: str = "reliable", prefix: tuple[str, ...] = (),
+                 env: dict[str, str] | None = None):
         self.start(role, [str(ENDPOINTS), role, kind, str(size), str(depth), reliability],
-                   domain, log, prefix)
+                   domain, log, prefix, env)
 
     def start(self, name: str, argv: list[str], domain: int, log: Path,
-              prefix: tuple[str, ...] = ()) -> None:
-        """``prefix``: what the command runs under (``ip netns exec NAME``)."""
+              prefix: tuple[str, ...] = (), env: dict[str, str] | None = None) -> None:
+        """``prefix``: what the command runs under (``ip netns exec NAME``); ``env``: more
+        environment (a Fast DDS profile)."""
         self.name = name
         self.log = log.open("w")
         self.proc = subprocess.Popen(
-            [*prefix, sys.executable, *argv], env=ros_env(domain), stdin=subprocess.PIPE,
+            [*prefix, sys.executable, *argv], env={**ros_env(domain), **(env or {})},
+            stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, stderr=self.log, text=True, bufsize=1)
         self.lines = Lines(self.proc.stdout, name)
 
