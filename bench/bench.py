@@ -384,12 +384,12 @@ class Case:
         processes = self.processes()
         cpu0, threads0 = self._cpu(processes)
         twist_since = time.time_ns()
-        twisting = twist and self.twist_pub is not None
-        if twisting:
-            self.twist_pub.send(f"run {seconds}")  # type: ignore[union-attr]
+        twist_pub = self.twist_pub if twist else None
+        if twist_pub:
+            twist_pub.send(f"run {seconds}")
         sent = self.pub.ask(f"run {self.trials} {rate} {seconds}", timeout=seconds * 3 + 30)
         self.published += sent["sent"]
-        twists = self.twist_pub.reply(30)["sent"][TWIST_TOPIC] if twisting else 0  # type: ignore[union-attr]
+        twists = twist_pub.reply(30)["sent"][TWIST_TOPIC] if twist_pub else 0
         self._drain()
         cpu1, threads1 = self._cpu(processes)
         deadline = sent["end_ns"] + int(grace(rate) * 1e9)
@@ -405,7 +405,7 @@ class Case:
                      p99_settled_us=got.get("p99_settled_us"), tail=got["tail"],
                      tail_fresh=got["tail_fresh"], twist_sent=twists,
                      twist_ages_ms=self.twist_sub.ages_ms(self.folder, twist_since, TWIST_TOPIC)
-                     if twisting and self.twist_sub else None)
+                     if twist_pub and self.twist_sub else None)
 
     @staticmethod
     def _cpu(processes: dict[str, Process]):
