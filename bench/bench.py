@@ -385,12 +385,16 @@ class Case:
         cpu0, threads0 = self._cpu(processes)
         twist_since = time.time_ns()
         twist_pub = self.twist_pub if twist else None
+        twist_sub = self.twist_sub if twist_pub else None
+        twists_before = twist_sub.ask("count")[TWIST_TOPIC] if twist_sub else 0
         if twist_pub:
             twist_pub.send(f"run {seconds}")
         sent = self.pub.ask(f"run {self.trials} {rate} {seconds}", timeout=seconds * 3 + 30)
         self.published += sent["sent"]
         twists = twist_pub.reply(30)["sent"][TWIST_TOPIC] if twist_pub else 0
         self._drain()
+        if twist_sub:
+            twist_sub.settle(TWIST_TOPIC, twists_before + twists)
         cpu1, threads1 = self._cpu(processes)
         deadline = sent["end_ns"] + int(grace(rate) * 1e9)
         got = self.sub.ask(f"stats {self.trials} {deadline} {sent['tail_ns']} "
@@ -404,8 +408,8 @@ class Case:
                      cpu={role: cpu1[role] - cpu0[role] for role in cpu1}, threads=threads,
                      p99_settled_us=got.get("p99_settled_us"), tail=got["tail"],
                      tail_fresh=got["tail_fresh"], twist_sent=twists,
-                     twist_ages_ms=self.twist_sub.ages_ms(self.folder, twist_since, TWIST_TOPIC)
-                     if twist_pub and self.twist_sub else None)
+                     twist_ages_ms=twist_sub.ages_ms(self.folder, twist_since, TWIST_TOPIC)
+                     if twist_sub else None)
 
     @staticmethod
     def _cpu(processes: dict[str, Process]):
@@ -535,9 +539,10 @@ class Hops:
     warm-ups included."""
 
     published: int
-    taken: int | None       # bridge A took from DDS: sent + dropped
+    #: bridge A's "sent": what it took from DDS and handed to its link, including what its
+    #: send queue later dropped (superseded, ...: sequence numbers B then never sees)
+    sent: int | None
     dropped_a: dict[str, int]
-    sent: int | None        # bridge A sent on the link
     received: int | None    # bridge B published
     dropped_b: dict[str, int]  # B's drops of /bench and of frames for no topic (the link's)
     lost: int               # B: sequence numbers that never came
@@ -548,10 +553,10 @@ class Hops:
             return f"{n:,} ({n / of:.0%})" if n is not None and of else "-"
 
         reasons = lambda d: ", ".join(f"{k}={v}" for k, v in sorted(d.items())) or "none"
-        return [f"{self.published:,}", share(self.taken, self.published), reasons(self.dropped_a),
-                share(self.sent, self.taken), share(self.received, self.sent),
+        return [f"{self.published:,}", share(self.sent, self.published), reasons(self.dropped_a),
+                share(self.received, self.sent),
                 reasons(self.dropped_b) + (f"; lost on the way {self.lost}" if self.lost else ""),
-                share(self.subscribed, self.received if self.taken is not None
+                share(self.subscribed, self.received if self.sent is not None
                       else self.published)]
 
 
@@ -575,9 +580,9 @@ def hop_counts(case: Case, subscribed: int) -> Hops:
         found = NO_TOPIC.search(line)
         if found:
             link = {k: int(v) for k, v in re.findall(r"'(\w+)': (\d+)", found[1])}
-    return Hops(case.published, a[0] + sum(a[3].values()) if a else None, a[3] if a else {},
-                a[0] if a else None, b[1] if b else None, {**(b[3] if b else {}), **link},
-                b[2] if b else 0, subscribed)
+    return Hops(case.published, a[0] if a else None, a[3] if a else {},
+                b[1] if b else None, {**(b[3] if b else {}), **link}, b[2] if b else 0,
+                subscribed)
 
 
 @dataclass
@@ -1285,7 +1290,7 @@ def image_share(results: list[Result]) -> list[str]:
     return lines
 
 
-HOPS = ["size", "path", "published", "bridge A took", "A dropped", "A sent", "B published",
+HOPS = ["size", "path", "published", "bridge A took", "A dropped", "B published",
         "B and link dropped", "subscriber got"]
 
 
@@ -1352,10 +1357,12 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
     if hops:
         parts += ["", "## Where 1 MB messages go, hop by hop", "",
                   "Every message of the case, warm-ups and every trial: the publisher's count, "
-                  "what bridge A took from DDS (sent + dropped, from its counters), what it sent, "
-                  "what bridge B published, its drops and the link's (frames for no topic), and "
-                  "what the subscriber got. Each share is of the hop before: publisher -> A is "
-                  "DDS on this machine, A -> B the link, B -> subscriber DDS again.", "", hops]
+                  "what bridge A took from DDS and handed to its link (its `sent` counter), what "
+                  "its send queue dropped of those, what bridge B published, its drops and the "
+                  "link's (frames for no topic; lost on the way: sequence numbers B never saw, "
+                  "A's dropped ones among them), and what the subscriber got. Each share is of "
+                  "the hop before: publisher -> A is DDS on this machine, A -> B the bridges and "
+                  "the link, B -> subscriber DDS again.", "", hops]
     defaults = default_file_targets(results)
     if defaults:
         parts += ["", "## The default file's targets", "",

@@ -258,6 +258,20 @@ class StampedEnds(Endpoint):
                  prefix: tuple[str, ...] = ()):
         self.start(log.stem, [str(ENDS), role, json.dumps(spec)], domain, log, prefix)
 
+    def settle(self, topic: str, expected: int, quiet: float = 1.0, most: float = 10.0) -> None:
+        """Wait until ``expected`` messages of ``topic`` have arrived in all, or none has for
+        ``quiet`` seconds (at most ``most``): a late one is counted late, not lost."""
+        deadline, last, since = time.monotonic() + most, -1, time.monotonic()
+        while time.monotonic() < deadline:
+            count = self.ask("count")[topic]
+            if count >= expected:
+                return
+            if count != last:
+                last, since = count, time.monotonic()
+            elif time.monotonic() - since >= quiet:
+                return
+            time.sleep(0.1)
+
     def ages_ms(self, folder: Path, since_ns: int, topic: str) -> list[float]:
         """Receive time minus send stamp (ms) of every arrival on ``topic`` sent since
         ``since_ns``."""

@@ -181,10 +181,12 @@ class Shaped:
     def trial(self, rate: float, seconds: float) -> dict:
         self.trials += 1
         since = time.time_ns()
+        before = self.twist_sub.ask("count")[TWIST_TOPIC]
         self.twist_pub.send(f"run {seconds}")
         sent = self.pub.ask(f"run {self.trials} {rate} {seconds}", timeout=seconds * 3 + 30)
         twists = self.twist_pub.reply(30)["sent"][TWIST_TOPIC]
         self.drain()
+        self.twist_sub.settle(TWIST_TOPIC, before + twists)
         got = self.sub.ask(f"stats {self.trials} {sent['end_ns'] + 100_000_000} "
                            f"{sent['tail_ns']} {sent['end_ns']}")
         ages = self.twist_sub.ages_ms(self.folder, since, TWIST_TOPIC)
