@@ -1295,9 +1295,11 @@ HOPS = ["size", "path", "published", "bridge A took", "A dropped", "B published"
 
 
 def hops_table(results: list[Result]) -> str | None:
-    """Where the 1 MB messages went, hop by hop (everything of the case, warm-ups included)."""
-    rows = [[r.size.name, r.path, *r.hops.cells()] for r in results
-            if r.hops and r.size.kind == "image" and (r.route is None or r.route.roles != "floor")]
+    """Where the messages went, hop by hop (everything of the case, warm-ups included): 1 MB
+    rows, and the default file's rows at every size."""
+    rows = [[r.size.name, r.path, *r.hops.cells()] for r in results if r.hops and (
+        r.size.kind == "image" and (r.route is None or r.route.roles != "floor")
+        or r.route is not None and r.route.default_file)]
     return markdown(HOPS, rows) if rows else None
 
 
@@ -1355,14 +1357,15 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
     ]
     hops = hops_table(results)
     if hops:
-        parts += ["", "## Where 1 MB messages go, hop by hop", "",
+        parts += ["", "## Where messages go, hop by hop", "",
                   "Every message of the case, warm-ups and every trial: the publisher's count, "
                   "what bridge A took from DDS and handed to its link (its `sent` counter), what "
                   "its send queue dropped of those, what bridge B published, its drops and the "
                   "link's (frames for no topic; lost on the way: sequence numbers B never saw, "
                   "A's dropped ones among them), and what the subscriber got. Each share is of "
                   "the hop before: publisher -> A is DDS on this machine, A -> B the bridges and "
-                  "the link, B -> subscriber DDS again.", "", hops]
+                  "the link, B -> subscriber DDS again. 1 MB rows, and the default file's at "
+                  "every size.", "", hops]
     defaults = default_file_targets(results)
     if defaults:
         parts += ["", "## The default file's targets", "",
