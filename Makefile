@@ -54,6 +54,7 @@ bench: sync
 	UV=$(abspath $(UV)) $(VENV)/bin/python bench/constrained.py $(if $(BASE),--base $(BASE))
 	$(VENV)/bin/python bench/serial_link.py
 	$(VENV)/bin/python bench/idle_routes.py
+	$(VENV)/bin/python bench/shaped.py
 
 # py-spy profiles of bridge A and bridge B (udp/cdr/none, 2.5 kB) into bench/profiles/; the table
 # goes to stdout only. Another path: BENCH_ARGS="--profile-path tcp/cdr/none".

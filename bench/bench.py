@@ -20,6 +20,7 @@ import argparse
 import math
 import os
 import platform
+import re
 import shutil
 import signal
 import subprocess
@@ -34,6 +35,7 @@ from pathlib import Path
 import profiling
 from processes import (
     HERE_CHECKOUT,
+    TWIST_TOPIC,
     Bridge,
     Checkout,
     Endpoint,
@@ -41,6 +43,7 @@ from processes import (
     Process,
     Relay,
     Route,
+    StampedEnds,
     bringup_files,
     free_port,
     next_domains,
@@ -49,6 +52,10 @@ from processes import (
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+#: rosgate's own Fast DDS profile (an 8 MiB shared-memory segment), given to the ends of the
+#: "publisher with rosgate's profile" rows
+FASTDDS_XML = ROOT / "core" / "src" / "rosgate" / "fastdds.xml"
+LARGE_SEGMENT = "ends with rosgate's Fast DDS profile"
 DELIVERED = 0.95  # a trial passes when this share of what was offered arrives on time
 WARM_UP_TIMEOUT = 30.0
 GRACE = 0.1  # seconds after the last send (plus a few message intervals) a message may still arrive
@@ -63,6 +70,10 @@ OVERLOAD = 2.0    # the overload trial offers this times the sustained rate
 TARGET_SIZE, TARGET_ROUTE, TARGET_RATE = "2.5 kB", Route("udp"), 10_000
 REPLACED_RATE = 3_300  # ros2_socket_bridge at 2.5 kB, the system rosgate replaces
 OVERLOAD_P99_MS = 50   # target: at 2x sustained, p99 under this for non-reliable topics
+TWIST_P99_MS = 20      # ... and a real_time Twist beside it, p99 under this
+TWIST_RATE = 20        # Hz, a teleoperation command
+FLOOR_CPU_RATIO = 1.5  # target: the default file's CPU per message <= this x the floor's
+IMAGE_SHARE = 0.9      # target: 1 MB best effort delivers >= this x bare rclpy's share
 
 
 @dataclass(frozen=True)
@@ -179,6 +190,23 @@ class Trial:
     threads: dict[str, dict[int, tuple[str, float, float]]] = field(default_factory=dict)
     #: p99 of the messages sent in the trial's second half: an overload settled into
     p99_settled_us: float | None = None
+    tail: int = 0        # arrived while the trial's last quarter was sent
+    tail_fresh: int = 0  # ... of them sent in that quarter
+    #: the real_time Twist's beside the trial (if the case has one): sent, and the age (ms) of
+    #: each that arrived
+    twist_sent: int = 0
+    twist_ages_ms: list[float] | None = None
+
+    @property
+    def newest(self) -> float | None:
+        """Of what arrived during the trial's last quarter, the share sent in it: near 1 when
+        what a path delivers under an overload is the newest, low when it delivers what
+        waited in a queue (300 ms of queue in a 1 s trial: none)."""
+        return self.tail_fresh / self.tail if self.tail else None
+
+    @property
+    def twist_p99_ms(self) -> float | None:
+        return percentile(self.twist_ages_ms, 0.99) if self.twist_ages_ms else None
 
     @property
     def offered(self) -> float:
@@ -209,6 +237,11 @@ class Trial:
         return self.cpu[role] / self.received * 1e6
 
 
+def percentile(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
+
+
 def grace(rate: float) -> float:
     """How long after the last send arrivals still count for the trial. Short on purpose: a
     path slower than the offered rate builds a backlog, and what is still queued at the end
@@ -220,7 +253,8 @@ class Case:
     """The processes of one (size, path) and the trials run through them."""
 
     def __init__(self, size: Size, route: Route | None, folder: Path,
-                 checkout: Checkout = HERE_CHECKOUT, reliability: str | None = None):
+                 checkout: Checkout = HERE_CHECKOUT, reliability: str | None = None,
+                 twist: bool = False, large_segment: bool = False):
         self.size = size
         self.route = route
         self.folder = folder
@@ -231,6 +265,15 @@ class Case:
         self.a: Bridge | None = None
         self.b: Bridge | None = None
         self.relays: list[Relay] = []  # a lossy route's, between A and B
+        #: a real_time Twist at TWIST_RATE beside the overload trial (client/server files)
+        self.twist = twist
+        self.twist_pub: StampedEnds | None = None
+        self.twist_sub: StampedEnds | None = None
+        self.published = 0  # every message the publisher sent, warm-ups included
+        #: the publisher's and the subscriber's Fast DDS profile: rosgate's (an 8 MiB
+        #: shared-memory segment), not Fast DDS's defaults
+        self.profile = {"FASTRTPS_DEFAULT_PROFILES_FILE": str(FASTDDS_XML)} if large_segment \
+            else {}
         self._stack = ExitStack()
 
     @property
@@ -238,6 +281,11 @@ class Case:
         own = self.route.reliability if self.route else "reliable"
         kind = "" if self.reliability == own else f" {self.reliability.replace('_', '-')}"
         return f"{self.size.name} {self.route.label if self.route else 'bare rclpy'}{kind}"
+
+    @property
+    def twist_spec(self) -> list[dict]:
+        return [{"topic": TWIST_TOPIC, "kind": "twist", "rate": TWIST_RATE, "size": 48,
+                 "reliable": True}]
 
     @property
     def bridges(self) -> list[Bridge]:
@@ -278,7 +326,7 @@ class Case:
             return process
 
         self.sub = started(Endpoint("sub", size.kind, size.bytes, size.depth, sub_domain,
-                                    self.folder / "sub.log", self.reliability))
+                                    self.folder / "sub.log", self.reliability, env=self.profile))
         if self.route and self.route.roles == "floor":
             port, route = free_port(), self.route
 
@@ -295,12 +343,18 @@ class Case:
                 self.relays = [started(Relay("udp", dial, port, self.route.loss)),
                                started(Relay("tcp", dial, port))]
             a, b = bringup_files(self.route, size.msg_type, size.depth, self.folder,
-                                 self.reliability, self.checkout.root, port, dial)
+                                 self.reliability, self.checkout.root, port, dial, self.twist)
             self.b = started(Bridge(b, sub_domain, self.checkout))
             self.a = started(Bridge(a, pub_domain, self.checkout))
+            if self.twist:
+                self.twist_sub = started(StampedEnds("sub", self.twist_spec, sub_domain,
+                                                     self.folder / "twist_sub.log"))
+                self.twist_pub = started(StampedEnds("pub", self.twist_spec, pub_domain,
+                                                     self.folder / "twist_pub.log"))
         self.pub = started(Endpoint("pub", size.kind, size.bytes, size.depth, pub_domain,
-                                    self.folder / "pub.log", self.reliability))
-        for process in [self.sub, *self.relays, *self.bridges, self.pub]:
+                                    self.folder / "pub.log", self.reliability, env=self.profile))
+        twists = [p for p in (self.twist_sub, self.twist_pub) if p]
+        for process in [self.sub, *self.relays, *self.bridges, *twists, self.pub]:
             process.ready()
 
     def warm_up(self) -> None:
@@ -309,23 +363,42 @@ class Case:
         deadline = time.monotonic() + WARM_UP_TIMEOUT
         rate = min(50.0, self.size.latency_rate)
         while time.monotonic() < deadline:
-            self.pub.ask(f"run 0 {rate} 0.5", timeout=30)
+            self.published += self.pub.ask(f"run 0 {rate} 0.5", timeout=30)["sent"]
             if self.sub.ask("stats 0")["received"]:
-                self._drain()
-                return
-        raise RuntimeError(f"{self.label}: nothing arrived within {WARM_UP_TIMEOUT:.0f} s")
+                break
+        else:
+            raise RuntimeError(f"{self.label}: nothing arrived within {WARM_UP_TIMEOUT:.0f} s")
+        while self.twist_pub and self.twist_sub and not self.twist_sub.ask("count")[TWIST_TOPIC]:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{self.label}: no Twist arrived within "
+                                   f"{WARM_UP_TIMEOUT:.0f} s")
+            self.twist_pub.ask("once", timeout=30)
+            time.sleep(0.1)
+        self._drain()
 
-    def trial(self, rate: float, seconds: float) -> Trial:
+    def trial(self, rate: float, seconds: float, twist: bool = False) -> Trial:
         """Offer ``rate`` for ``seconds``, wait for arrivals to stop, count. The CPU time of
-        every process is read before the first send and after the last arrival."""
+        every process is read before the first send and after the last arrival. ``twist``: the
+        case's Twist at TWIST_RATE meanwhile, its own publisher's CPU not counted."""
         self.trials += 1
         processes = self.processes()
         cpu0, threads0 = self._cpu(processes)
+        twist_since = time.time_ns()
+        twist_pub = self.twist_pub if twist else None
+        twist_sub = self.twist_sub if twist_pub else None
+        twists_before = twist_sub.ask("count")[TWIST_TOPIC] if twist_sub else 0
+        if twist_pub:
+            twist_pub.send(f"run {seconds}")
         sent = self.pub.ask(f"run {self.trials} {rate} {seconds}", timeout=seconds * 3 + 30)
+        self.published += sent["sent"]
+        twists = twist_pub.reply(30)["sent"][TWIST_TOPIC] if twist_pub else 0
         self._drain()
+        if twist_sub:
+            twist_sub.settle(TWIST_TOPIC, twists_before + twists)
         cpu1, threads1 = self._cpu(processes)
         deadline = sent["end_ns"] + int(grace(rate) * 1e9)
-        got = self.sub.ask(f"stats {self.trials} {deadline}")
+        got = self.sub.ask(f"stats {self.trials} {deadline} {sent['tail_ns']} "
+                           f"{sent['end_ns']}")
         threads = {side: {tid: (name, user - before[1], system - before[2])
                           for tid, (name, user, system) in threads1[side].items()
                           for before in [threads0[side].get(tid, (name, 0.0, 0.0))]}
@@ -333,7 +406,10 @@ class Case:
         return Trial(rate, sent["sent"], sent["seconds"], got["received"], got["in_time"],
                      got["p50_us"], got["p90_us"], got["p99_us"],
                      cpu={role: cpu1[role] - cpu0[role] for role in cpu1}, threads=threads,
-                     p99_settled_us=got.get("p99_settled_us"))
+                     p99_settled_us=got.get("p99_settled_us"), tail=got["tail"],
+                     tail_fresh=got["tail_fresh"], twist_sent=twists,
+                     twist_ages_ms=twist_sub.ages_ms(self.folder, twist_since, TWIST_TOPIC)
+                     if twist_sub else None)
 
     @staticmethod
     def _cpu(processes: dict[str, Process]):
@@ -457,9 +533,66 @@ def own_cpu() -> float:
 
 # -- one case from start to finish ----------------------------------------------------------------
 @dataclass
+class Hops:
+    """Where a case's messages went, from the publisher's count, both bridges' counters for
+    /bench (logged when they stop) and the subscriber's: everything since the case started,
+    warm-ups included."""
+
+    published: int
+    #: bridge A's "sent": what it took from DDS and handed to its link, including what its
+    #: send queue later dropped (superseded, ...: sequence numbers B then never sees)
+    sent: int | None
+    dropped_a: dict[str, int]
+    received: int | None    # bridge B published
+    dropped_b: dict[str, int]  # B's drops of /bench and of frames for no topic (the link's)
+    lost: int               # B: sequence numbers that never came
+    subscribed: int         # the subscriber got
+
+    def cells(self) -> list[str]:
+        def share(n: int | None, of: int | None) -> str:
+            return f"{n:,} ({n / of:.0%})" if n is not None and of else "-"
+
+        reasons = lambda d: ", ".join(f"{k}={v}" for k, v in sorted(d.items())) or "none"
+        return [f"{self.published:,}", share(self.sent, self.published), reasons(self.dropped_a),
+                share(self.received, self.sent),
+                reasons(self.dropped_b) + (f"; lost on the way {self.lost}" if self.lost else ""),
+                share(self.subscribed, self.received if self.sent is not None
+                      else self.published)]
+
+
+COUNTERS = re.compile(r"INFO /bench\b[^:]*: sent (\d+) \(\d+ B\), received (\d+) \(\d+ B\)"
+                      r"(?:, lost on the way (\d+))?.*drops: (.*)$")
+NO_TOPIC = re.compile(r"frames for no topic: (\{.*\})")
+
+
+def hop_counts(case: Case, subscribed: int) -> Hops:
+    def counters(bridge: Bridge | None) -> tuple[int, int, int, dict[str, int]] | None:
+        for line in bridge.lines.seen if bridge else []:
+            found = COUNTERS.search(line)
+            if found:
+                drops = {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)", found[4])}
+                return int(found[1]), int(found[2]), int(found[3] or 0), drops
+        return None
+
+    a, b = counters(case.a), counters(case.b)
+    link: dict[str, int] = {}
+    for line in case.b.lines.seen if case.b else []:
+        found = NO_TOPIC.search(line)
+        if found:
+            link = {k: int(v) for k, v in re.findall(r"'(\w+)': (\d+)", found[1])}
+    return Hops(case.published, a[0] if a else None, a[3] if a else {},
+                b[1] if b else None, {**(b[3] if b else {}), **link}, b[2] if b else 0,
+                subscribed)
+
+
+@dataclass
 class Result:
     size: Size
     route: Route | None
+    reliability: str = "reliable"  # bare rows: the QoS of publisher and subscriber
+    #: the publisher and the subscriber publish through rosgate's 8 MiB shared-memory segment
+    large_segment: bool = False
+    hops: Hops | None = None
     sustained: Trial | None = None
     peak: float = 0.0            # the most delivered per second in any trial
     latency: Trial | None = None
@@ -481,14 +614,34 @@ class Result:
 
     @property
     def path(self) -> str:
-        return self.route.label if self.route else "bare rclpy"
+        segment = f", {LARGE_SEGMENT}" if self.large_segment else ""
+        if self.route:
+            return self.route.label + segment
+        return ("bare rclpy" + (", best effort" if self.reliability == "best_effort" else "")
+                + segment)
+
+    @property
+    def bare(self) -> bool:
+        """The bare row every bridged row of its size is compared with (reliable)."""
+        return self.route is None and self.reliability == "reliable"
+
+    @property
+    def plain(self) -> bool:
+        """A row of this checkout's rosgate, ends as they come (the rows targets compare)."""
+        return self.route is not None and not self.route.rev and not self.large_segment
 
 
 def measure(size: Size, route: Route | None, settings: Settings, folder: Path,
-            options: Options) -> Result:
-    result = Result(size, route)
+            options: Options, reliability: str = "reliable",
+            large_segment: bool = False) -> Result:
+    result = Result(size, route, reliability, large_segment=large_segment)
     checkout = options.checkouts[route.rev] if route else HERE_CHECKOUT
-    case = Case(size, route, folder, checkout)
+    # the real_time Twist beside the best-effort default file's overload at the target size
+    twist = route == DEFAULT_BE and size.name == TARGET_SIZE
+    case = Case(size, route, folder, checkout, None if route else reliability, twist,
+                large_segment)
+    # --quick: a floor's CPU trial only, for the line that sets the default file against it
+    cpu_only = settings.quick and route is not None and route.roles == "floor"
     log(f"[{case.label}] starting")
     start, load = time.monotonic(), Load()
     try:
@@ -510,20 +663,32 @@ def measure(size: Size, route: Route | None, settings: Settings, folder: Path,
             spec = options.profile
             if spec and route and route.path == spec.path and size.key == spec.size_key:
                 result.profiles = profile(case, cpu_rate, spec, result.cpu, result.problems)
-            result.sustained, result.trials = find_sustained(case, settings)
+            if not cpu_only:
+                result.sustained, result.trials = find_sustained(case, settings)
             if result.sustained:
                 rate = min(OVERLOAD * result.sustained.offered, size.ceiling)
-                result.overload = case.trial(rate, settings.trial_seconds)
+                result.overload = case.trial(rate, settings.trial_seconds, twist=twist)
                 log(f"  [{case.label}] {OVERLOAD:g}x sustained: {describe(result.overload)}, "
                     f"{result.overload.arrived:.1%} arrived at all")
-            result.peak = max(t.delivered for t in [*result.trials, result.overload] if t)
+            if result.overload and result.overload.twist_ages_ms is not None:
+                t = result.overload
+                log(f"  [{case.label}] the real_time Twist meanwhile: "
+                    f"{len(t.twist_ages_ms or [])} of {t.twist_sent} arrived, p99 "
+                    f"{ms(1000 * t.twist_p99_ms) if t.twist_p99_ms is not None else '-'} ms")
+            result.peak = max(t.delivered for t in [result.cpu, *result.trials, result.overload]
+                              if t)
+            subscribed = case.sub.ask("total")["received"]
     except RuntimeError as exc:
         result.error = str(exc)
         log(f"  [{case.label}] FAILED: {exc}")
+        subscribed = None
+    if subscribed is not None:
+        result.hops = hop_counts(case, subscribed)
     result.problems += case.problems()
     # --quick: the best-effort overload only where its target is
     quick_skip = settings.quick and (route is None or replace(route, rev="") != TARGET_ROUTE)
-    if result.overload and size.key in options.best_effort and not quick_skip:
+    already = route is not None and route.reliability == "best_effort"
+    if result.overload and size.key in options.best_effort and not quick_skip and not already:
         result.overload_be = best_effort_overload(size, route, checkout, folder / "best-effort",
                                                   result.overload.rate, settings, result.problems)
     result.others = load.others()
@@ -680,7 +845,7 @@ def profile(case: Case, rate: float, spec: ProfileSpec, quiet: Trial,
 # -- the tables -----------------------------------------------------------------------------------
 COLUMNS = ["size", "path", "sustained msg/s", "vs bare", "MB/s", "peak delivered msg/s",
            "latency at msg/s", "p50 ms", "p99 ms", "p50 vs bare", "A µs/msg", "B µs/msg",
-           f"{OVERLOAD:g}x sustained: delivered", f"{OVERLOAD:g}x sustained: p99 ms"]
+           f"{OVERLOAD:g}x sustained: delivered", "age p50 ms", "age p99 ms", "newest"]
 DETAIL = ["size", "path", "CPU trial msg/s", "pub µs/msg", "A µs/msg", "B µs/msg", "sub µs/msg",
           "A+B vs bare pub+sub", f"{OVERLOAD:g}x: offered msg/s", "delivered", "p50 ms",
           "p99 ms", "p99 ms, 2nd half", f"{OVERLOAD:g}x best effort: offered msg/s", "delivered",
@@ -696,7 +861,7 @@ def markdown(columns: list[str], rows: list[list[str]]) -> str:
 
 
 def table(results: list[Result]) -> str:
-    bare = {r.size.name: r for r in results if r.route is None}
+    bare = {r.size.name: r for r in results if r.bare}
     return markdown(COLUMNS, [[r.size.name, r.path, *row(r, bare.get(r.size.name))]
                               for r in results])
 
@@ -745,16 +910,20 @@ def cpu_cells(r: Result) -> list[str]:
 
 
 def overload_cells(r: Result) -> list[str]:
+    """The overload trial: the share that arrived, the age (receive time minus the
+    publisher's stamp) of what arrived, and of what arrived during the trial's last quarter
+    the share sent in it (:attr:`Trial.newest`)."""
     t = r.overload
     if t is None or r.sustained is None:
-        return ["-", "-"]
+        return ["-"] * 4
     factor = t.offered / r.sustained.offered
     short = f" (at {factor:.1f}x)" if factor < 0.9 * OVERLOAD else ""
-    return [f"{t.arrived:.1%}{short}", ms(t.p99_us)]
+    return [f"{t.arrived:.1%}{short}", ms(t.p50_us), ms(t.p99_us),
+            "-" if t.newest is None else f"{t.newest:.0%}"]
 
 
 def detail_table(results: list[Result]) -> str:
-    bare = {r.size.name: r for r in results if r.route is None}
+    bare = {r.size.name: r for r in results if r.bare}
     rows = []
     for r in results:
         cells = [r.size.name, r.path]
@@ -781,7 +950,7 @@ def compare_table(results: list[Result]) -> str | None:
     pairs = []
     for r in results:
         if r.route and r.route.rev:
-            mine = next((m for m in results if m.size == r.size
+            mine = next((m for m in results if m.size == r.size and not m.large_segment
                          and m.route == replace(r.route, rev="")), None)
             if mine:
                 pairs.append((mine, r))
@@ -891,7 +1060,7 @@ UDP_FLOOR, TCP_FLOOR = FLOORS
 def fast_path_targets(results: list[Result], cpu_rate: float) -> str | None:
     """A table: each target of the fast path, rosgate's value, the floor's, the verdict. A target
     the floor misses too is one no Python bridge on rclpy reaches on this machine."""
-    found = {(r.size.name, r.route): r for r in results if r.route is None or not r.route.rev}
+    found = {(r.size.name, r.route): r for r in results if r.bare or r.plain}
 
     def get(size: str, route: Route | None) -> Result | None:
         return found.get((size, route))
@@ -974,7 +1143,7 @@ BATCH_CPU_US, BATCH_P99_MS = 30, 3  # with a 2 ms batch window, 2,000 msg/s of 2
 
 def default_file_targets(results: list[Result]) -> str | None:
     """A table: each target of the default file, what was measured, the verdict."""
-    found = {(r.size.name, r.route): r for r in results if r.route is None or not r.route.rev}
+    found = {(r.size.name, r.route): r for r in results if r.bare or r.plain}
 
     def sustained(size: str, route: Route | None) -> float | None:
         r = found.get((size, route))
@@ -1031,6 +1200,109 @@ def default_file_targets(results: list[Result]) -> str | None:
     return markdown(["default-file target", "measured", "verdict"], lines)
 
 
+# -- overload, images and CPU against the floor: one line each ------------------------------------
+NEWEST = 0.8  # "what is delivered is the newest": this share of the last quarter's arrivals
+
+
+def fresh_data_verdicts(results: list[Result]) -> list[str]:
+    """At 2x the sustained rate, the best-effort default file's age of what it delivers,
+    whether that is the newest, and the real_time Twist beside it."""
+    lines = []
+    for r in results:
+        t = r.overload
+        if r.route is None or replace(r.route, rev="") != DEFAULT_BE or t is None \
+                or r.size.name != TARGET_SIZE:
+            continue
+        fresh = t.p99_us is not None and t.p99_us <= OVERLOAD_P99_MS * 1000 \
+            and t.newest is not None and t.newest >= NEWEST
+        newest = "-" if t.newest is None else f"{t.newest:.0%}"
+        line = (f"at {OVERLOAD:g}x the sustained rate ({t.offered:,.0f} msg/s), {r.size.name} "
+                f"{r.path}: age p99 <= {OVERLOAD_P99_MS} ms and the newest delivered (>= "
+                f"{NEWEST:.0%} of the last quarter's arrivals sent in it): "
+                f"{'MET' if fresh else 'NOT MET'} (age p50 {ms(t.p50_us)} ms, p99 "
+                f"{ms(t.p99_us)} ms, {t.arrived:.1%} delivered, newest {newest})")
+        if t.twist_ages_ms is not None:
+            p99 = t.twist_p99_ms
+            ok = p99 is not None and p99 <= TWIST_P99_MS and len(t.twist_ages_ms) >= t.twist_sent
+            p50 = percentile(t.twist_ages_ms, 0.5) if t.twist_ages_ms else None
+            said = lambda v: "-" if v is None else f"{v:.1f}"
+            line += (f"; a real_time Twist at {TWIST_RATE} Hz beside it, p99 <= {TWIST_P99_MS} "
+                     f"ms: {'MET' if ok else 'NOT MET'} ({len(t.twist_ages_ms)} of "
+                     f"{t.twist_sent} arrived, p50 {said(p50)} ms, p99 {said(p99)} ms)")
+        lines.append(line)
+    return lines
+
+
+def floor_for(size: Size) -> Route:
+    """The floor a size's CPU is compared with: udp's where a message fits one datagram."""
+    return UDP_FLOOR if size.bytes <= UDP_FLOOR_MAX else TCP_FLOOR
+
+
+def cpu_against_floor(results: list[Result], cpu_rate: float) -> list[str]:
+    """One line per size: the default file's CPU per message on each side against the floor's
+    (the least a Python bridge on rclpy spends) in the same run."""
+    lines = []
+    for size in SIZES:
+        floor = next((r for r in results if r.size is size and r.route == floor_for(size)
+                      and r.cpu), None)
+        mine = [r for r in results if r.size is size and r.route and r.route.default_file
+                and r.plain and not r.route.batch and not r.route.loss and r.cpu]
+        if floor is None or floor.cpu is None or not mine:
+            continue
+        fa, fb = floor.cpu.us_per_msg("A"), floor.cpu.us_per_msg("B")
+        parts = []
+        for r in mine:
+            assert r.cpu is not None
+            a, b = r.cpu.us_per_msg("A"), r.cpu.us_per_msg("B")
+            ratios = [x / f for x, f in ((a, fa), (b, fb)) if x is not None and f]
+            met = len(ratios) == 2 and max(ratios) <= FLOOR_CPU_RATIO
+            parts.append(f"{r.path} A {us(a)} / B {us(b)} = "
+                         + " / ".join(f"{x:.2f}x" for x in ratios)
+                         + f" ({'MET' if met else 'NOT MET'})")
+        rate = floor.cpu.offered
+        lines.append(f"{size.name} CPU µs/msg at {rate:,.0f} msg/s, target <= {FLOOR_CPU_RATIO}x "
+                     f"the floor on each side: {floor.path} A {us(fa)} / B {us(fb)}; "
+                     + "; ".join(parts))
+    return lines
+
+
+def image_share(results: list[Result]) -> list[str]:
+    """1 MB best effort at 20 images/s (the latency trial): the share the default file
+    delivers against what Fast DDS alone delivers in the same run, ends with Fast DDS's
+    defaults and ends with rosgate's profile."""
+    lines = []
+    for size, segment in ((s, large) for s in SIZES for large in (False, True)):
+        bare = next((r for r in results if r.size is size and r.route is None
+                     and r.reliability == "best_effort" and r.large_segment == segment
+                     and r.latency), None)
+        if bare is None or bare.latency is None:
+            continue
+        for r in results:
+            if r.size is not size or r.route != DEFAULT_BE or r.latency is None \
+                    or r.large_segment != segment:
+                continue
+            got, theirs = r.latency.arrived, bare.latency.arrived
+            met = got >= IMAGE_SHARE * theirs and (theirs < 0.9 or got >= 0.9)
+            lines.append(f"{size.name} best effort at {r.latency.offered:,.0f}/s: {r.path} "
+                         f"delivers >= {IMAGE_SHARE}x the share {bare.path} delivers (and >= 90 % "
+                         f"where bare does): {'MET' if met else 'NOT MET'} ({got:.0%} against "
+                         f"{theirs:.0%}, {got / theirs if theirs else 0:.2f}x)")
+    return lines
+
+
+HOPS = ["size", "path", "published", "bridge A took", "A dropped", "B published",
+        "B and link dropped", "subscriber got"]
+
+
+def hops_table(results: list[Result]) -> str | None:
+    """Where the messages went, hop by hop (everything of the case, warm-ups included): 1 MB
+    rows, and the default file's rows at every size."""
+    rows = [[r.size.name, r.path, *r.hops.cells()] for r in results if r.hops and (
+        r.size.kind == "image" and (r.route is None or r.route.roles != "floor")
+        or r.route is not None and r.route.default_file)]
+    return markdown(HOPS, rows) if rows else None
+
+
 def report(results: list[Result], settings: Settings, options: Options, elapsed: float,
            others: float, out: Path, plots: list[Path], base: str | None) -> str:
     mode = "quick" if settings.quick else "full"
@@ -1067,6 +1339,9 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
         table(results),
         "",
         *[f"**{line}**" for line in verdicts(results)],
+        *[f"**{line}**" for line in fresh_data_verdicts(results)],
+        *[f"**{line}**" for line in cpu_against_floor(results, options.cpu_rate)],
+        *[f"**{line}**" for line in image_share(results)],
         "",
         "## Where the time goes: CPU per message, and overload",
         "",
@@ -1080,6 +1355,17 @@ def report(results: list[Result], settings: Settings, options: Options, elapsed:
         "",
         detail_table(results),
     ]
+    hops = hops_table(results)
+    if hops:
+        parts += ["", "## Where messages go, hop by hop", "",
+                  "Every message of the case, warm-ups and every trial: the publisher's count, "
+                  "what bridge A took from DDS and handed to its link (its `sent` counter), what "
+                  "its send queue dropped of those, what bridge B published, its drops and the "
+                  "link's (frames for no topic; lost on the way: sequence numbers B never saw, "
+                  "A's dropped ones among them), and what the subscriber got. Each share is of "
+                  "the hop before: publisher -> A is DDS on this machine, A -> B the bridges and "
+                  "the link, B -> subscriber DDS again. 1 MB rows, and the default file's at "
+                  "every size.", "", hops]
     defaults = default_file_targets(results)
     if defaults:
         parts += ["", "## The default file's targets", "",
@@ -1178,14 +1464,19 @@ def knows_batch(rev: str, root: Path = ROOT) -> bool:
     return found.returncode == 0 and "    batch: " in found.stdout
 
 
+#: a case to run: size and route (None: bare), and for a bare case its QoS if not reliable
+Planned = tuple[Size, Route | None] | tuple[Size, Route | None, str, bool]
+BARE_BE = "bare best effort"  # what --path matches for the bare best-effort 1 MB rows
+
+
 def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
          base: str | None = None,
-         profile_spec: ProfileSpec | None = None) -> list[tuple[Size, Route | None]]:
+         profile_spec: ProfileSpec | None = None) -> list[Planned]:
     wanted = {normalize(o) for o in only} if only else None
     unknown = (wanted or set()) - {s.key for s in SIZES}
     if unknown:
         sys.exit(f"bench: unknown size {', '.join(sorted(unknown))}; sizes: {size_names()}")
-    cases: list[tuple[Size, Route | None]] = []
+    cases: list[Planned] = []
     for size in SIZES:
         if wanted and size.key not in wanted:
             continue
@@ -1194,19 +1485,26 @@ def plan(settings: Settings, only: list[str] | None, paths: list[str] | None,
             routes = [*routes, BATCHED, *LOSSY, CLIENT_SERVER, SESSION]
         floors = [f for f in FLOORS if f.transport == "tcp" or size.bytes <= UDP_FLOOR_MAX]
         if settings.quick and not paths:
-            floors = []  # --quick: only when --path asks
+            # --quick: the CPU trial of the floor the CPU line compares with (udp; tcp at 1 MB)
+            floors = [f for f in floors if f == floor_for(size)]
         if paths:
             routes = [route for route in routes if route.path in paths]
             floors = [floor for floor in floors if floor.path in paths]
         if not paths or "bare" in paths:
             cases.append((size, None))
+        if size.kind == "image" and (not paths or BARE_BE in paths):
+            # what Fast DDS alone delivers of best-effort images, beside the default file's;
+            # and both again with a publisher (and subscriber) given rosgate's profile
+            cases += [(size, None, "best_effort", False), (size, None, "best_effort", True)]
         cases += [(size, floor) for floor in floors]  # not rosgate: no base twin
         for route in routes:  # this checkout's and the base's side by side (a base that
             # knows batch windows measures its own: an older one refuses the key)
             twin = base and (not route.batch or knows_batch(base))
             cases += [(size, route)] + ([(size, replace(route, rev=base))] if twin else [])
-    if profile_spec and not any(route and route.path == profile_spec.path
-                                and size.key == profile_spec.size_key for size, route in cases):
+            if route == DEFAULT_BE and size.kind == "image":
+                cases.append((size, route, "best_effort", True))
+    if profile_spec and not any(case[1] and case[1].path == profile_spec.path
+                                and case[0].key == profile_spec.size_key for case in cases):
         size = next(s for s in SIZES if s.key == profile_spec.size_key)
         route = next(r for r in ALL_ROUTES if r.path == profile_spec.path)
         cases += [(size, route)] + ([(size, replace(route, rev=base))] if base else [])
@@ -1287,9 +1585,9 @@ def main() -> int:
         if args.keep:
             tmp = tempfile.mkdtemp(prefix="rosgate-bench-")
             log(f"bench: keeping files and logs in {tmp}")
-        for i, (size, route) in enumerate(cases):
+        for i, (size, route, *qos) in enumerate(cases):
             folder = Path(tmp) / f"case{i:02d}"
-            results.append(measure(size, route, settings, folder, options))
+            results.append(measure(size, route, settings, folder, options, *qos))
         confirm_session(results, settings, options, Path(tmp))
         check_drops(results, settings, options, Path(tmp))
     out = None if args.out == "-" else Path(args.out)

@@ -4,12 +4,16 @@ Each runs as a process of its own (``python endpoints.py pub|sub KIND SIZE DEPTH
 in the DDS domain given by ``ROS_DOMAIN_ID``, and takes one command per line on stdin, answering
 one JSON line on stdout:
 
-    pub: ``run TRIAL RATE SECONDS``  -> {"sent": n, "seconds": s, "end_ns": t}   publish at a
-                                        steady rate; end_ns: wall clock after the last one
-    sub: ``stats TRIAL [DEADLINE_NS]`` -> {"received": n, "in_time": n, "p50_us": .., "p90_us": ..,
-                                          "p99_us": .., "p99_settled_us": ..}
+    pub: ``run TRIAL RATE SECONDS``  -> {"sent": n, "seconds": s, "end_ns": t, "tail_ns": t}
+                                        publish at a steady rate; end_ns: wall clock after the
+                                        last one; tail_ns: where the trial's last quarter began
+    sub: ``stats TRIAL [DEADLINE_NS [TAIL_NS END_NS]]`` -> {"received": n, "in_time": n,
+                                          "p50_us": .., "p90_us": .., "p99_us": ..,
+                                          "p99_settled_us": .., "tail": n, "tail_fresh": n}
                                         in_time: how many arrived by the deadline;
-                                        settled: of those sent in the trial's second half
+                                        settled: of those sent in the trial's second half;
+                                        tail: how many arrived between TAIL_NS and END_NS,
+                                        tail_fresh: ... of them sent since TAIL_NS
          ``total``                   -> {"received": n}   everything so far (for draining)
     both: ``quit``
 
@@ -137,6 +141,9 @@ def run_publisher(p: StringPayload, depth: int, reliability: str) -> None:
             return
 
 
+TAIL = 0.25  # the trial's last quarter: whether what arrives of an overload is the newest
+
+
 def publish_paced(publisher, p: StringPayload, trial: int, rate: float, seconds: float) -> dict:
     """Publish at a steady ``rate`` for ``seconds``.
 
@@ -150,6 +157,7 @@ def publish_paced(publisher, p: StringPayload, trial: int, rate: float, seconds:
     sent = 0
     start = time.perf_counter()
     end = start + seconds
+    tail_ns = clock() + int((1 - TAIL) * seconds * 1e9)
     while True:
         now = time.perf_counter()
         if now >= end:
@@ -160,7 +168,8 @@ def publish_paced(publisher, p: StringPayload, trial: int, rate: float, seconds:
             publish(bytes(buf))
             sent += 1
         time.sleep(0.0005)
-    return {"sent": sent, "seconds": time.perf_counter() - start, "end_ns": time.time_ns()}
+    return {"sent": sent, "seconds": time.perf_counter() - start, "end_ns": time.time_ns(),
+            "tail_ns": tail_ns}
 
 
 # -- subscriber -----------------------------------------------------------------------------
@@ -180,7 +189,7 @@ class Tally:
         self.latencies[trial].append(now - stamp)
         self.total += 1
 
-    def stats(self, trial: int, deadline_ns: int) -> dict:
+    def stats(self, trial: int, deadline_ns: int, tail_ns: int, end_ns: int) -> dict:
         arrivals = self.arrivals.get(trial, array("q"))
         waits = self.latencies.get(trial, array("q"))
         latencies = sorted(waits)
@@ -193,7 +202,17 @@ class Tally:
         # arrivals are appended in time order, one callback after the other
         return {"received": len(arrivals), "in_time": bisect.bisect_right(arrivals, deadline_ns),
                 "p50_us": pick(0.50, latencies), "p90_us": pick(0.90, latencies),
-                "p99_us": pick(0.99, latencies), "p99_settled_us": pick(0.99, settled)}
+                "p99_us": pick(0.99, latencies), "p99_settled_us": pick(0.99, settled),
+                # what arrived while the trial's last quarter was sent: how much of it was new
+                **tail(arrivals, stamps, tail_ns, end_ns)}
+
+
+def tail(arrivals, stamps, tail_ns: int, end_ns: int) -> dict:
+    """How many arrived between ``tail_ns`` and ``end_ns``, and how many of those were sent
+    since ``tail_ns``: a path that queues delivers older messages then, one that keeps its
+    data fresh the newest."""
+    late = [stamp for at, stamp in zip(arrivals, stamps, strict=True) if tail_ns <= at <= end_ns]
+    return {"tail": len(late), "tail_fresh": sum(stamp >= tail_ns for stamp in late)}
 
 
 def run_subscriber(p: StringPayload, depth: int, reliability: str) -> None:
@@ -218,7 +237,8 @@ def serve_commands(tally: Tally, done: threading.Event) -> None:
         words = line.split()
         if words[:1] == ["stats"]:
             deadline = int(words[2]) if len(words) > 2 else 2**63 - 1
-            answer(tally.stats(int(words[1]), deadline))
+            since, end = (int(words[3]), int(words[4])) if len(words) > 4 else (0, 0)
+            answer(tally.stats(int(words[1]), deadline, since, end))
         elif words[:1] == ["total"]:
             answer({"received": tally.total})
         elif words[:1] == ["quit"]:

@@ -28,11 +28,12 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, NoReturn
 
 ROOT = Path(__file__).resolve().parent.parent
 ENDPOINTS = Path(__file__).resolve().with_name("endpoints.py")
 FLOOR = Path(__file__).resolve().with_name("floor.py")
+ENDS = Path(__file__).resolve().with_name("constrained_ends.py")
 ROSGATE = str(Path(sys.executable).with_name("rosgate"))
 CLOCK_TICK = os.sysconf("SC_CLK_TCK")  # /proc/<pid>/stat counts CPU time in these per second
 START_TIMEOUT = 30.0
@@ -195,28 +196,49 @@ class Endpoint(Process):
     """The publisher or the subscriber (bench/endpoints.py), driven over stdin/stdout."""
 
     def __init__(self, role: str, kind: str, size: int, depth: int, domain: int, log: Path,
-                 reliability: str = "reliable"):
-        self.name = role
+                 reliability: str = "reliable", prefix: tuple[str, ...] = (),
+                 env: dict[str, str] | None = None):
+        self.start(role, [str(ENDPOINTS), role, kind, str(size), str(depth), reliability],
+                   domain, log, prefix, env)
+
+    def start(self, name: str, argv: list[str], domain: int, log: Path,
+              prefix: tuple[str, ...] = (), env: dict[str, str] | None = None) -> None:
+        """``prefix``: what the command runs under (``ip netns exec NAME``); ``env``: more
+        environment (a Fast DDS profile)."""
+        self.name = name
         self.log = log.open("w")
         self.proc = subprocess.Popen(
-            [sys.executable, str(ENDPOINTS), role, kind, str(size), str(depth), reliability],
-            env=ros_env(domain), stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self.log,
-            text=True, bufsize=1)
-        self.lines = Lines(self.proc.stdout, role)
+            [*prefix, sys.executable, *argv], env={**ros_env(domain), **(env or {})},
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, stderr=self.log, text=True, bufsize=1)
+        self.lines = Lines(self.proc.stdout, name)
 
     def ready(self) -> None:
         self.lines.wait_for('"ready"', START_TIMEOUT)
 
     def ask(self, command: str, timeout: float = 10.0) -> dict[str, Any]:
+        self.send(command)
+        return self.reply(timeout)
+
+    def send(self, command: str) -> None:
+        """A command whose answer :meth:`reply` reads later (two ends working at once)."""
         assert self.proc.stdin is not None
         try:
             self.proc.stdin.write(command + "\n")
             self.proc.stdin.flush()
+        except OSError as exc:
+            self._failed(exc)
+
+    def reply(self, timeout: float = 10.0) -> dict[str, Any]:
+        try:
             return json.loads(self.lines.next(timeout))
-        except (OSError, RuntimeError) as exc:
-            self.log.flush()
-            tail = Path(self.log.name).read_text().strip().splitlines()[-5:]
-            raise RuntimeError(f"{self.name}: {exc}; its log ends:\n" + "\n".join(tail)) from None
+        except RuntimeError as exc:
+            self._failed(exc)
+
+    def _failed(self, exc: Exception) -> NoReturn:
+        self.log.flush()
+        tail = Path(self.log.name).read_text().strip().splitlines()[-5:]
+        raise RuntimeError(f"{self.name}: {exc}; its log ends:\n" + "\n".join(tail)) from None
 
     def stop(self) -> None:
         try:
@@ -229,14 +251,48 @@ class Endpoint(Process):
         self.log.close()
 
 
+class StampedEnds(Endpoint):
+    """The publisher or the subscriber of bench/constrained_ends.py: several topics at their own
+    rates (a Twist beside the measured topic), every arrival with its send stamp."""
+
+    def __init__(self, role: str, spec: list[dict], domain: int, log: Path,
+                 prefix: tuple[str, ...] = ()):
+        self.start(log.stem, [str(ENDS), role, json.dumps(spec)], domain, log, prefix)
+
+    def settle(self, topic: str, expected: int, quiet: float = 1.0, most: float = 10.0) -> None:
+        """Wait until ``expected`` messages of ``topic`` have arrived in all, or none has for
+        ``quiet`` seconds (at most ``most``): a late one is counted late, not lost."""
+        deadline, last, since = time.monotonic() + most, -1, time.monotonic()
+        while time.monotonic() < deadline:
+            count = self.ask("count")[topic]
+            if count >= expected:
+                return
+            if count != last:
+                last, since = count, time.monotonic()
+            elif time.monotonic() - since >= quiet:
+                return
+            time.sleep(0.1)
+
+    def ages_ms(self, folder: Path, since_ns: int, topic: str) -> list[float]:
+        """Receive time minus send stamp (ms) of every arrival on ``topic`` sent since
+        ``since_ns``."""
+        dump = folder / f"{self.name}-{since_ns}.json"
+        self.ask(f"dump {dump}", timeout=30)
+        arrivals = json.loads(dump.read_text()).get(topic, [])
+        dump.unlink()
+        return [(at - sent) / 1e6 for at, sent, _n in arrivals if sent >= since_ns]
+
+
 class Bridge(Process):
     """A ``rosgate run FILE`` process; its log (stderr) is kept next to its file."""
 
-    def __init__(self, config: Path, domain: int, checkout: Checkout = HERE_CHECKOUT):
+    def __init__(self, config: Path, domain: int, checkout: Checkout = HERE_CHECKOUT,
+                 prefix: tuple[str, ...] = ()):
         self.name = config.stem
         self.config = config
         # the entry script's interpreter is the process itself: its pid is the bridge's
-        self.proc = subprocess.Popen([checkout.rosgate, "run", str(config)],
+        # (under a prefix, ip netns exec's: it execs the command, so the pid stays the same)
+        self.proc = subprocess.Popen([*prefix, checkout.rosgate, "run", str(config)],
                                      env=ros_env(domain, checkout.root),
                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         self.lines = Lines(self.proc.stderr, f"bridge {self.name}")
@@ -320,9 +376,9 @@ class Route:
         return f"{self.path} @{self.rev}" if self.rev else self.path
 
 
-def session_keys(folder: Path) -> tuple[str, str]:
+def session_keys(folder: Path, topics: tuple[str, ...] = ("/bench",)) -> tuple[str, str]:
     """Identities for an authenticated client/server pair, made once in ``folder``: what each
-    file's bridge: mapping adds, and the server's clients: with a policy for /bench."""
+    file's bridge: mapping adds, and the server's clients: with a policy for ``topics``."""
     public = {}
     for name in ("bench_a", "bench_b"):
         key = folder / f"{name}.key"
@@ -332,8 +388,9 @@ def session_keys(folder: Path) -> tuple[str, str]:
         public[name] = subprocess.run([ROSGATE, "pubkey", str(key)], check=True,
                                       capture_output=True, text=True).stdout.strip()
     client = f", identity: {folder / 'bench_a.key'}, server_key: {public['bench_b']}"
+    allowed = ", ".join(f"{{name: {name}, direction: transmit}}" for name in topics)
     server = (f", identity: {folder / 'bench_b.key'}}}\nclients: {{bench_a: {{key: "
-              f"{public['bench_a']}, topics: [{{name: /bench, direction: transmit}}]}}")
+              f"{public['bench_a']}, topics: [{allowed}]}}")
     return client, server
 
 
@@ -356,15 +413,26 @@ def knows_insecure(root: Path) -> bool:
                for path in (root / "core" / "src" / "rosgate").rglob("*.py"))
 
 
+#: the Twist beside a measured topic (client/server files only): a teleoperation command at
+#: 20 Hz in the link's first class, reliable as a teleop node's publisher is
+TWIST_TOPIC = "/bench_twist"
+TWIST = (f"{{topic: {TWIST_TOPIC}, type: geometry_msgs/msg/Twist, "
+         "qos: {reliability: reliable, depth: 10}, priority: real_time, direction: transmit}")
+
+
 def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
                   reliability: str = "reliable", root: Path = ROOT, port: int | None = None,
-                  dial: int | None = None) -> tuple[Path, Path]:
+                  dial: int | None = None, twist: bool = False,
+                  host: tuple[str, str] = ("127.0.0.1", "127.0.0.1")) -> tuple[Path, Path]:
     """Write bridge A's and bridge B's bringup.yaml; return their paths.
 
     A route's ``max_frame`` is written into both files (65,000 bytes: loopback's datagrams, the
     bridge's cost per message without fragments); the default file's route has none, as a
     user's file: udp then takes it from the path (an older rosgate: 1,200 bytes). ``port``:
-    B's (default: a free one); ``dial``: the port a client dials instead (a relay's)."""
+    B's (default: a free one); ``dial``: the port a client dials instead (a relay's). ``twist``:
+    the client's file carries :data:`TWIST` as well. ``host``: where the client dials and where
+    the server listens (two network namespaces: the far end's address, and the server's own).
+    """
     port = port or free_port()
     options = {}
     if route.cipher == "fernet":
@@ -394,12 +462,15 @@ def bringup_files(route: Route, msg_type: str, depth: int, folder: Path,
              f"{plugins}topics:\n  - {topic}, direction: receive, port: {port}}}\n")
     else:
         # the client's file holds the topic list; its datagram topic uses the server's port
-        a_keys, b_keys = session_keys(folder) if route.roles == "session" else (
+        names = ("/bench", TWIST_TOPIC) if twist else ("/bench",)
+        a_keys, b_keys = session_keys(folder, names) if route.roles == "session" else (
             # a revision from before sessions knows no insecure: (and needs none)
             (", insecure: true",) * 2 if knows_insecure(root) else ("", ""))
-        a = (f"bridge: {{name: bench_a, role: client, server: 127.0.0.1:{dial or port}{a_keys}}}\n"
-             f"{plugins}topics:\n  - {topic}, direction: transmit}}\n")
-        b = f"bridge: {{name: bench_b, role: server, server: 127.0.0.1:{port}{b_keys}}}\n{plugins}"
+        extra = f"  - {TWIST}\n" if twist else ""
+        a = (f"bridge: {{name: bench_a, role: client, server: {host[0]}:{dial or port}{a_keys}}}\n"
+             f"{plugins}topics:\n  - {topic}, direction: transmit}}\n{extra}")
+        b = (f"bridge: {{name: bench_b, role: server, server: {host[1]}:{port}{b_keys}}}\n"
+             f"{plugins}")
     paths = folder / "bench_a.yaml", folder / "bench_b.yaml"
     for path, text in zip(paths, (a, b), strict=True):
         path.write_text(text)
