@@ -151,17 +151,25 @@ class Retransmit(Packetizer):
             self.reassembler.moved(old, new)
 
     def timer(self, now: float) -> float | None:
+        # called after every packet fed and every frame sent: most calls find nothing due
         with self._lock:
+            soonest = self._soonest()
+            if soonest is None or now < soonest:
+                return soonest
             probes = self.store.probes(now)
             self.reassembler.poll(now)
             answers = self._flush()
-            times = [t for t in (self.store.next_probe(), self.reassembler.next_poll())
-                     if t is not None]
+            soonest = self._soonest()
         for datagram, to in answers:
             self.link.answer(datagram, to)
         for owner, to, packet in probes:
             self.link.repeat(owner, to, [packet])
-        return min(times) if times else None
+        return soonest
+
+    def _soonest(self) -> float | None:
+        """When the timer has something to do, at the earliest (under the lock)."""
+        probe, poll = self.store.next_probe(), self.reassembler.next_poll()
+        return probe if poll is None else poll if probe is None else min(probe, poll)
 
     @classmethod
     def cost(cls, frame: int, max_frame: int, options: Any) -> tuple[int, int]:
