@@ -167,7 +167,38 @@ def calls_trial(case: Case, rate: float, seconds: float, folder: Path) -> dict:
     return out
 
 
-def run_path(route: Route, size, rate: float, seconds: float, calls: bool, folder: Path) -> dict:
+def perf_trial(case: Case, rate: float, seconds: float, folder: Path) -> dict:
+    """``perf record`` on A and B during a trial: the share of samples per library (the
+    interpreter, libc, the kernel, Fast DDS, the cipher ...) and CPU µs/msg each stands for."""
+    sides = {"A": case.a, "B": case.b}
+    records = {side: subprocess.Popen(
+        ["perf", "record", "-F", "997", "-p", str(p.pid), "-o", str(folder / f"perf-{side}.data")],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for side, p in sides.items()}
+    time.sleep(1.0)
+    cpu0 = {side: p.cpu() for side, p in sides.items()}
+    trial = case.trial(rate, seconds)
+    cpu1 = {side: p.cpu() for side, p in sides.items()}
+    for record in records.values():
+        record.send_signal(signal.SIGINT)
+        record.wait(60)
+    n = max(trial.received, 1)
+    out: dict = {}
+    for side in sides:
+        report = subprocess.run(
+            ["perf", "report", "-i", str(folder / f"perf-{side}.data"), "--sort", "dso",
+             "--stdio", "--percent-limit", "1"], capture_output=True, text=True).stdout
+        us = (cpu1[side] - cpu0[side]) / n * 1e6
+        shares = {}
+        for line in report.splitlines():
+            found = re.match(r"^\s+([\d.]+)%\s+(\S.*)$", line)
+            if found:
+                shares[found.group(2).strip()] = float(found.group(1))
+        out[side] = {"us": us, "dso": {k: (v, v / 100 * us) for k, v in shares.items()}}
+    return out
+
+
+def run_path(route: Route, size, rate: float, seconds: float, calls: bool, folder: Path,
+             perf: bool = False) -> dict:
     result: dict = {"path": route.path, "size": size.name, "rate": rate}
     with Case(size, route, folder / "plain") as case:
         case.warm_up()
@@ -175,6 +206,8 @@ def run_path(route: Route, size, rate: float, seconds: float, calls: bool, folde
         result["cpu"] = {side: trial.us_per_msg(side) for side in ("pub", "A", "B", "sub")}
         result["delivered"] = trial.in_time / max(trial.sent, 1)
         result["sys"] = syscall_trial(case, rate, seconds, folder)
+        if perf:
+            result["perf"] = perf_trial(case, rate, seconds, folder)
     if calls:
         saved = bench.Bridge, bench.Floor
         bench.Bridge, bench.Floor = CountedBridge, CountedFloor
@@ -201,6 +234,10 @@ def report(result: dict, top: int) -> str:
         lines.append(f"{side}: context switches/msg {sys_['switches_total']:.2f} ("
                      + ", ".join(f"{k} {v:.2f}" for k, v in sys_["switches"].items() if v >= 0.01)
                      + ")")
+        if "perf" in result:
+            perf = result["perf"][side]
+            lines.append(f"{side}: perf, {perf['us']:.1f} µs/msg in the trial: " + ", ".join(
+                f"{k} {share:.0f}% ({us:.1f})" for k, (share, us) in perf["dso"].items()))
         if "calls" in result:
             calls = result["calls"][side]
             lines.append(f"{side}: Python calls/msg {calls['calls']:.1f} ("
@@ -218,6 +255,8 @@ def main() -> int:
     parser.add_argument("--rate", type=float, default=bench.CPU_RATE)
     parser.add_argument("--seconds", type=float, default=3.0)
     parser.add_argument("--calls", action="store_true", help="count Python calls (cProfile)")
+    parser.add_argument("--perf", action="store_true",
+                        help="perf record: samples per library (interpreter, kernel, DDS...)")
     parser.add_argument("--top", type=int, default=25, help="functions listed per side")
     parser.add_argument("--json", type=Path, help="also write every number here")
     args = parser.parse_args()
@@ -229,7 +268,8 @@ def main() -> int:
                 route = PATHS[label]
                 folder = Path(tmp) / f"{size.key}-{len(results)}"
                 folder.mkdir()
-                result = run_path(route, size, args.rate, args.seconds, args.calls, folder)
+                result = run_path(route, size, args.rate, args.seconds, args.calls, folder,
+                                  args.perf)
                 results.append(result)
                 print(report(result, args.top), flush=True)
                 print(flush=True)

@@ -472,7 +472,7 @@ class DatagramLink(_Sending, Link):
         if whole or own and not self.cuts and len(frame) <= self.max_frame:
             return [frame]
         packetizer = self.own if own or delivery.packetizer is None \
-            else self._make(delivery.packetizer)
+            else self._by_name.get(delivery.packetizer.name) or self._make(delivery.packetizer)
         packets = packetizer.cut(frame, sender, to, delivery.packetizer_options)
         return [self._packet(packet) for packet in packets]
 
