@@ -205,6 +205,11 @@ def run_path(route: Route, size, rate: float, seconds: float, calls: bool, folde
         trial = case.trial(rate, seconds)
         result["cpu"] = {side: trial.us_per_msg(side) for side in ("pub", "A", "B", "sub")}
         result["delivered"] = trial.in_time / max(trial.sent, 1)
+        n = max(trial.received, 1)
+        result["threads"] = {side: {f"{name} {tid}": (user + system) / n * 1e6
+                                    for tid, (name, user, system) in threads.items()
+                                    if (user + system) / n * 1e6 >= 1}
+                             for side, threads in trial.threads.items()}
         result["sys"] = syscall_trial(case, rate, seconds, folder)
         if perf:
             result["perf"] = perf_trial(case, rate, seconds, folder)
@@ -226,6 +231,9 @@ def report(result: dict, top: int) -> str:
     cpu = result["cpu"]
     lines.append("CPU µs/msg: " + ", ".join(f"{k} {v:.1f}" for k, v in cpu.items() if v))
     for side in ("A", "B"):
+        lines.append(f"{side}: CPU µs/msg per thread: " + ", ".join(
+            f"{k} {v:.0f}" for k, v in sorted(result["threads"][side].items(),
+                                              key=lambda kv: -kv[1])))
         sys_ = result["sys"][side]
         lines.append(f"{side}: syscalls/msg {sys_['syscalls']:.2f} ("
                      + ", ".join(f"{k} {v:.2f}" for k, v in sys_["by_name"].items()) + ")")

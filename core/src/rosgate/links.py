@@ -385,6 +385,8 @@ class DatagramLink(_Sending, Link):
         #: packetizers made so far, by name and by magic (None: a whole frame, the link's own)
         self._by_name: dict[str, Packetizer] = {}
         self._by_magic: dict[bytes, Packetizer | None] = {envelope.MAGIC: None}
+        #: those made so far that implement ``sent`` (their timers run on the send thread)
+        self._sending: set[Packetizer] = set()
         self._making = threading.Lock()
         self._tx_timer: float | None = None  # when the send thread runs the timers next
         #: what cuts a frame of a sender without a packetizer of its own when it does not fit
@@ -499,6 +501,8 @@ class DatagramLink(_Sending, Link):
             found = self._by_name.get(cls.name)
             if found is None:
                 found = cls(self)
+                if _sends(found):
+                    self._sending.add(found)
                 for magic in cls.magic:
                     self._by_magic[magic] = found
                 self._by_name[cls.name] = found
@@ -549,7 +553,7 @@ class DatagramLink(_Sending, Link):
         for the next few milliseconds' ACKs and probes); when the soonest wants to run again."""
         soonest = None
         for packetizer in list(self._by_name.values()):
-            if sending != _sends(packetizer):
+            if sending != (packetizer in self._sending):
                 continue
             try:
                 due = packetizer.timer(now)
@@ -700,7 +704,7 @@ class DatagramLink(_Sending, Link):
         if type(packet) is not bytes:
             return False
         packetizer = self._by_magic.get(packet[:2])
-        return packetizer is not None and _sends(packetizer)
+        return packetizer in self._sending
 
     def _left(self, due: Due, packet: Any, to: Address) -> None:
         """The last packet of a frame has left (or was lost leaving): its packetizer's timer."""
@@ -712,7 +716,7 @@ class DatagramLink(_Sending, Link):
         told, and the send thread runs its timer when it asks."""
         if type(packet) is bytes:
             packetizer = self._by_magic.get(packet[:2])
-            if packetizer is not None and _sends(packetizer):
+            if packetizer in self._sending:
                 now = time.monotonic()
                 packetizer.sent(packet, to, now)
                 self._arm(packetizer.timer(now))
@@ -861,7 +865,7 @@ class DatagramLink(_Sending, Link):
             fed = self._datagram(*got, now)
             if fed is not None:  # what it was given may have moved its timer
                 due = fed.timer(now)
-                if _sends(fed):  # its timer runs on the send thread
+                if fed in self._sending:  # its timer runs on the send thread
                     self._arm(due)
                 elif due is not None and (timer is None or due < timer):
                     timer = due

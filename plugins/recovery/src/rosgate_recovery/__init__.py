@@ -31,6 +31,8 @@ from . import wire
 
 __all__ = ["Fec", "Retransmit"]
 
+_REPEAT, _NACK = wire.REPEAT_MAGIC[1], wire.NACK_MAGIC[1]
+
 
 class Fec(Packetizer):
     """Forward error correction: Reed-Solomon repair fragments with every frame (zfec)."""
@@ -125,19 +127,20 @@ class Retransmit(Packetizer):
             self.store.sent(to, fid, now)
 
     def feed(self, packet: bytes | memoryview, source: Any, now: float) -> bytes | None:
-        magic, frame, again = bytes(packet[:2]), None, None
+        kind, frame, again = packet[1], None, None  # the magic's second byte: S, N or A
         answers: list[tuple[bytes, Any]] = []
         try:
             with self._lock:
                 try:
-                    if magic == wire.REPEAT_MAGIC:
+                    if kind == _REPEAT:
                         frame = self.reassembler.add(source, packet, now)
-                    elif magic == wire.NACK_MAGIC:
+                    elif kind == _NACK:
                         again = self.store.on_nack(source, packet)
                     else:
                         self.store.on_ack(source, packet, now)
                 finally:
-                    answers = self._flush()
+                    if self._answers:
+                        answers = self._flush()
         finally:
             for datagram, to in answers:
                 self.link.answer(datagram, to)

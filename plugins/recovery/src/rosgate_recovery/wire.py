@@ -33,8 +33,9 @@ for what is missing (NACK) — a fragment three places behind one that came, or 
 still missing once a frame's fragments have stopped coming for a while — and acknowledges each
 frame it completes (ACK), again for every fragment of it that comes after. An ACK names every
 frame completed since the last one to that sender: it goes at once when the last went
-:data:`ACK_EVERY` ago or more, else when that time is up (so a busy topic costs a few ACKs per
-round trip, not one per message, and a quiet one is acknowledged at once). A frame whose last
+:data:`ACK_EVERY` ago or more, else with the first frame completed once that time is up, or
+:data:`ACK_LATE` after it when none comes (so a busy topic costs an ACK per 10 ms, not one per
+message, and a quiet one is acknowledged at once). A frame whose last
 fragments are lost leaves the receiver nothing to ask about: the sender re-sends its last
 fragment when no ACK came within a probe timeout (as QUIC's PTO does), and the receiver then
 asks for the rest. ::
@@ -96,8 +97,11 @@ OVERTAKEN_SCAN = 64     # kept frames an ACK looks at for ones sent before and s
 VOID_PROBES = 1
 MAX_ANSWERED = 10_000
 # an ACK to one sender at most this often (seconds): what completes meanwhile waits, and goes
-# in one ACK when the time is up; within a probe timeout's smallest (30 ms), with room
-ACK_EVERY = 0.005
+# in one ACK with the next frame completed after that time, or ACK_LATE later when none comes
+# (the timer's run, on a link's send thread: one wake-up per ACK_EVERY on a busy link). An ACK
+# is at most ACK_EVERY + ACK_LATE late: below a probe timeout's smallest (30 ms)
+ACK_EVERY = 0.01
+ACK_LATE = 0.01
 ACK_MOST = 64  # frame ids in one ACK at most (more go at once)
 
 #: a sent frame forgotten before it was acknowledged, to keep the store within its bytes
@@ -480,7 +484,9 @@ class RepeatReassembler(_Pending):
             if self.ack_due is None or due < self.ack_due:
                 self.ack_due = due
         waiting.append(fid)
-        if len(waiting) >= ACK_MOST:
+        if self.ack_due is not None and now >= self.ack_due:
+            self._send_acks(now)
+        elif len(waiting) >= ACK_MOST:
             del self._acks[source]
             self._acked[source] = now
             self.send(ack(waiting), source)
@@ -523,12 +529,12 @@ class RepeatReassembler(_Pending):
 
     def next_poll(self) -> float | None:
         """When :meth:`poll` has something to do next (None: nothing pending)."""
+        acks = None if self.ack_due is None else self.ack_due + ACK_LATE
         if not self._pending:
-            return self.ack_due
+            return acks
         soonest = min(frame.check_at for frame in self._pending.values())
         oldest = next(iter(self._pending.values())).last + self.timeout
-        return min(soonest, oldest) if self.ack_due is None else min(soonest, oldest,
-                                                                      self.ack_due)
+        return min(soonest, oldest) if acks is None else min(soonest, oldest, acks)
 
 
 
