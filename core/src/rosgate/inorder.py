@@ -214,7 +214,7 @@ class Ordered:
             if stage.overflowed != overflowed:
                 route.drop(Drop.ORDER_OVERFLOW, f"over {stage.max_frames} frames or "
                            f"{stage.max_bytes // 2**20} MiB held for a missing one")
-            if len(stage) or stage.settling is not None:  # (nothing held: no timer to set)
+            if stage._held or stage.settling is not None:  # (nothing held: no timer to set)
                 self._arm()
         return genuine
 
