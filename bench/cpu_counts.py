@@ -30,10 +30,11 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import bench
 import processes
-from bench import SIZES, Case, normalize
 from processes import ROSGATE, Route
+
+import bench
+from bench import SIZES, Case, normalize
 
 HERE = Path(__file__).resolve().parent
 CALLCOUNT = HERE / "callcount.py"
