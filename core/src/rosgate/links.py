@@ -432,7 +432,9 @@ class DatagramLink(_Sending, Link):
         else each is queued (and coalesced again by the send thread)."""
         assert to is not None, "a datagram link needs a destination"
         delivery = sender.delivery
-        if len(frames) < 2 or self.bare or self.cuts or delivery.whole:
+        if len(frames) == 1:  # (most calls: one message taken)
+            return int(self.send(frames[0], sender, to))
+        if not frames or self.bare or self.cuts or delivery.whole:
             return sum(self.send(frame, sender, to) for frame in frames)
         if delivery.packetizer is not None:
             return self._send_repaired(frames, sender, to)
@@ -476,7 +478,7 @@ class DatagramLink(_Sending, Link):
         packetizer = self.own if own or delivery.packetizer is None \
             else self._by_name.get(delivery.packetizer.name) or self._make(delivery.packetizer)
         packets = packetizer.cut(frame, sender, to, delivery.packetizer_options)
-        return [self._packet(packet) for packet in packets]
+        return [packet if type(packet) is bytes else self._packet(packet) for packet in packets]
 
     def _packet(self, packet: Packet) -> bytes:
         if not isinstance(packet, tuple):
