@@ -82,6 +82,10 @@ class InOrder:
         """Take frame ``seq`` of ``epoch``; what is ready, in order (maybe nothing)."""
         if self.unrepaired:
             return [item]
+        if seq == self.next and epoch == self.epoch and not self._held \
+                and self.settling is None:  # the next one, nothing waiting: the common case
+            self.next += 1
+            return [item]
         out: list[Any] = []
         if epoch != self.epoch:
             out += self._release_all()
@@ -210,7 +214,8 @@ class Ordered:
             if stage.overflowed != overflowed:
                 route.drop(Drop.ORDER_OVERFLOW, f"over {stage.max_frames} frames or "
                            f"{stage.max_bytes // 2**20} MiB held for a missing one")
-            self._arm()
+            if stage._held or stage.settling is not None:  # (nothing held: no timer to set)
+                self._arm()
         return genuine
 
     def _publish(self, ready: list[Any], mine: Any = None) -> bool:
@@ -224,8 +229,10 @@ class Ordered:
         return genuine
 
     def _arm(self) -> None:
+        if self._timer is not None or self._closed:  # (before next_due: a min over what is held)
+            return
         due = self.stage.next_due()
-        if due is None or self._timer is not None or self._closed:
+        if due is None:
             return
         self._timer = threading.Timer(max(0.0, due - time.monotonic()) + 0.01, self._expire)
         self._timer.daemon = True

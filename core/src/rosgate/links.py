@@ -359,11 +359,12 @@ class DatagramLink(_Sending, Link):
     packetizer of their magic (``packetizers``: the installed ones by default); a bare link's as
     they came. An own packetizer that ``cuts_every_frame`` (small frames) takes every frame and
     every datagram. It is the :class:`~rosgate.packetizer.PacketLink` of its packetizers (one of
-    each, made on first use); their timers run on both of its threads. An endpoint that says
-    when its line is gone (``watch_line``: a serial device unplugged) stops it sending until
-    the line is back: reliable frames wait (at most ``hold_frames`` and ``hold_bytes``, the
-    oldest dropped first: ``queue_full``), best-effort ones are dropped (``link_down``), and the
-    packetizers' clocks stand still (:meth:`~rosgate.packetizer.Packetizer.resumed`)."""
+    each, made on first use); the timers of those that implement ``sent`` run on its send
+    thread, the others' on its receive thread. An endpoint that says when its line is gone
+    (``watch_line``: a serial device unplugged) stops it sending until the line is back:
+    reliable frames wait (at most ``hold_frames`` and ``hold_bytes``, the oldest dropped first:
+    ``queue_full``), best-effort ones are dropped (``link_down``), and the packetizers' clocks
+    stand still (:meth:`~rosgate.packetizer.Packetizer.resumed`)."""
 
     datagram = True
 
@@ -389,6 +390,8 @@ class DatagramLink(_Sending, Link):
         #: packetizers made so far, by name and by magic (None: a whole frame, the link's own)
         self._by_name: dict[str, Packetizer] = {}
         self._by_magic: dict[bytes, Packetizer | None] = {envelope.MAGIC: None}
+        #: those made so far that implement ``sent`` (their timers run on the send thread)
+        self._sending: set[Packetizer] = set()
         self._making = threading.Lock()
         self._tx_timer: float | None = None  # when the send thread runs the timers next
         #: what cuts a frame of a sender without a packetizer of its own when it does not fit
@@ -426,8 +429,9 @@ class DatagramLink(_Sending, Link):
         whole = self.bare or delivery.whole
         plain = delivery.packetizer is None and not self.cuts  # whole or fragments
         one = whole or plain and size <= self.max_frame
-        inline = self._send_now if one else \
-            self._send_fragments_now if plain and size <= INLINE_MAX else None
+        # a frame a topic's recovery cuts (one packet or several) leaves from here too
+        cut_here = not self.cuts and size <= INLINE_MAX
+        inline = self._send_now if one else self._send_fragments_now if cut_here else None
         if inline is not None and up:
             sent = inline(frame, sender, to)
             if sent is None and self._await_turn() and self._send_waiting():
@@ -477,7 +481,9 @@ class DatagramLink(_Sending, Link):
         else each is queued (and coalesced again by the send thread)."""
         assert to is not None, "a datagram link needs a destination"
         delivery = sender.delivery
-        if len(frames) < 2 or self.bare or self.cuts or delivery.whole or not self.line_up:
+        if len(frames) == 1:  # (most calls: one message taken)
+            return int(self.send(frames[0], sender, to))
+        if not frames or self.bare or self.cuts or delivery.whole or not self.line_up:
             return sum(self.send(frame, sender, to) for frame in frames)
         if delivery.packetizer is not None:
             return self._send_repaired(frames, sender, to)
@@ -519,9 +525,9 @@ class DatagramLink(_Sending, Link):
         if whole or own and not self.cuts and len(frame) <= self.max_frame:
             return [frame]
         packetizer = self.own if own or delivery.packetizer is None \
-            else self._make(delivery.packetizer)
+            else self._by_name.get(delivery.packetizer.name) or self._make(delivery.packetizer)
         packets = packetizer.cut(frame, sender, to, delivery.packetizer_options)
-        return [self._packet(packet) for packet in packets]
+        return [packet if type(packet) is bytes else self._packet(packet) for packet in packets]
 
     def _packet(self, packet: Packet) -> bytes:
         if not isinstance(packet, tuple):
@@ -546,6 +552,8 @@ class DatagramLink(_Sending, Link):
             found = self._by_name.get(cls.name)
             if found is None:
                 found = cls(self)
+                if _sends(found):
+                    self._sending.add(found)
                 for magic in cls.magic:
                     self._by_magic[magic] = found
                 self._by_name[cls.name] = found
@@ -591,13 +599,15 @@ class DatagramLink(_Sending, Link):
             pass
 
     def _run_timers(self, now: float, sending: bool = False) -> float | None:
-        """Every packetizer's timer (on the send thread: those that implement ``sent``); when
-        the soonest wants to run again. None while the line is gone: their clocks stand still."""
+        """The packetizers' timers: on the send thread those that implement ``sent``, on the
+        receive thread the others (so a receive waits in the kernel for its next datagram, not
+        for the next few milliseconds' ACKs and probes); when the soonest wants to run again.
+        None while the line is gone: their clocks stand still."""
         if not self.line_up:
             return None
         soonest = None
         for packetizer in list(self._by_name.values()):
-            if sending and not _sends(packetizer):
+            if sending != (packetizer in self._sending):
                 continue
             try:
                 due = packetizer.timer(now)
@@ -653,10 +663,11 @@ class DatagramLink(_Sending, Link):
             self._release()
 
     def _send_fragments_now(self, frame: bytes, sender: Any, to: Address) -> bool | None:
-        """A frame longer than ``max_frame`` cut and sent from the caller's thread as
-        :meth:`_send_now` sends a whole one: a hand-off to the send thread may take milliseconds
-        on a busy interpreter, long enough for a latest-only frame to be superseded. The rest
-        goes to the send thread once anything else waits or the budget runs short."""
+        """A frame longer than ``max_frame``, or one a topic's recovery cuts, cut and sent from
+        the caller's thread as :meth:`_send_now` sends a whole one: a hand-off to the send thread
+        may take milliseconds on a busy interpreter, long enough for a latest-only frame to be
+        superseded, and costs a wake-up per message. The rest goes to the send thread once
+        anything else waits or the budget runs short."""
         with self._lock:
             if not self._claim(to, self.max_frame):  # the first fragment's tokens
                 return None
@@ -678,6 +689,7 @@ class DatagramLink(_Sending, Link):
                 if not self._send_run(packets[start:end], sender, to, end >= len(packets)):
                     return False
             counters.inline_out += 1
+            self._ended(packets[-1], to)
             return True
         finally:
             self._release()
@@ -696,6 +708,8 @@ class DatagramLink(_Sending, Link):
                     else:
                         self.endpoint.send(packet, to)
         except OSError as exc:
+            if self._repairs(packets[0]) and not self.closed.is_set():
+                return True  # lost on the way, as far as its packetizer goes: it sends it again
             sender.drop(Drop.LINK_DOWN if self.closed.is_set() else Drop.SEND_ERROR,
                         f"to {to} on {self.name}: {exc}")
             return False
@@ -744,18 +758,37 @@ class DatagramLink(_Sending, Link):
         if type(packet) is not bytes:
             return False
         packetizer = self._by_magic.get(packet[:2])
-        return packetizer is not None and _sends(packetizer)
+        return packetizer in self._sending
 
     def _left(self, due: Due, packet: Any, to: Address) -> None:
         """The last packet of a frame has left (or was lost leaving): its packetizer's timer."""
-        if due.ends is not None and due.ends is not SENT_INLINE and type(packet) is bytes:
+        if due.ends is not None and due.ends is not SENT_INLINE:
+            self._ended(packet, to)
+
+    def _ended(self, packet: Any, to: Address) -> None:
+        """``packet``, the last of a frame, has left: a packetizer that implements ``sent`` is
+        told, and the send thread runs its timer when it asks."""
+        if type(packet) is bytes:
             packetizer = self._by_magic.get(packet[:2])
-            if packetizer is not None and _sends(packetizer):
+            if packetizer in self._sending:
                 now = time.monotonic()
                 packetizer.sent(packet, to, now)
-                due_at = packetizer.timer(now)
-                if due_at is not None and (self._tx_timer is None or due_at < self._tx_timer):
-                    self._tx_timer = due_at
+                self._arm(packetizer.timer(now))
+
+    def _arm(self, due: float | None) -> None:
+        """The send thread runs the timers of the packetizers that implement ``sent`` at
+        ``due`` at the latest: woken when that is sooner than the time it waits for. (Read
+        first without the lock: a time already set as soon or sooner is run by the send thread,
+        which sets the next under the lock, after what every ``sent`` before said.)"""
+        if due is None:
+            return
+        armed = self._tx_timer
+        if armed is not None and armed <= due:
+            return
+        with self._wake:
+            if self._tx_timer is None or due < self._tx_timer:
+                self._tx_timer = due
+                self._wake.notify()
 
     def _send_batch(self, dues: list[Due], to: Address) -> int:
         """Whole frames in one datagram; how many were sent (a failure is counted for each)."""
@@ -825,7 +858,7 @@ class DatagramLink(_Sending, Link):
             if scheduler.dropped:
                 self._count_drops()
             if due is None:  # the packetizers' timers, outside the lock: they may queue repairs
-                self._tx_timer = self._run_timers(now, sending=True)
+                self._arm(self._run_timers(now, sending=True))
                 continue
             try:
                 if len(batch) == 1:
@@ -887,12 +920,15 @@ class DatagramLink(_Sending, Link):
             now = time.monotonic()
             if got is None or timer is not None and now >= timer:
                 timer = self._run_timers(now)
-            if got is None:
+            if got is None:  # idle: the send thread's timers too (a timer that said None)
+                self._arm(self._run_timers(now, sending=True))
                 continue
             fed = self._datagram(*got, now)
             if fed is not None:  # what it was given may have moved its timer
                 due = fed.timer(now)
-                if due is not None and (timer is None or due < timer):
+                if fed in self._sending:  # its timer runs on the send thread
+                    self._arm(due)
+                elif due is not None and (timer is None or due < timer):
                     timer = due
 
     def _datagram(self, datagram: bytes | memoryview, source: Address,

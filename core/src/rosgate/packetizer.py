@@ -10,10 +10,12 @@ A plugin subclasses :class:`Packetizer` (``name``, ``magic``, ``cut``, ``feed``,
 registers it through the ``rosgate_packetizers`` hook. Every packet starts with one of its
 two-byte magics, so the receiving link finds its packetizer without a setting (``RG`` and ``RB``
 are the link's own). A link makes one instance of each packetizer it meets, for every topic and
-peer. Threads: :meth:`~Packetizer.cut` (under the link's lock) and :meth:`~Packetizer.sent` run
-on the send thread, :meth:`~Packetizer.feed` and :meth:`~Packetizer.timer` on the receive
-thread — and, for one that implements ``sent``, ``timer`` on the send thread too: such a one
-locks what both threads touch, and calls its :class:`PacketLink` outside that lock.
+peer. Threads: :meth:`~Packetizer.cut` and :meth:`~Packetizer.sent` run on the thread whose turn
+it is to send (the link's send thread, or the caller's while the link is idle: one at a time),
+:meth:`~Packetizer.feed` on the receive thread, :meth:`~Packetizer.timer` after every feed and
+every ``sent`` and otherwise on the receive thread — or, for one that implements ``sent``, on
+the send thread: such a one locks what the threads touch, and calls its :class:`PacketLink`
+outside that lock.
 """
 
 from __future__ import annotations

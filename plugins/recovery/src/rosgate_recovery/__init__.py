@@ -33,6 +33,8 @@ from . import wire
 
 __all__ = ["Fec", "Retransmit"]
 
+_REPEAT, _NACK = wire.REPEAT_MAGIC[1], wire.NACK_MAGIC[1]
+
 
 class Fec(Packetizer):
     """Forward error correction: Reed-Solomon repair fragments with every frame (zfec)."""
@@ -127,19 +129,20 @@ class Retransmit(Packetizer):
             self.store.sent(to, fid, now)
 
     def feed(self, packet: bytes | memoryview, source: Any, now: float) -> bytes | None:
-        magic, frame, again = bytes(packet[:2]), None, None
+        kind, frame, again = packet[1], None, None  # the magic's second byte: S, N or A
         answers: list[tuple[bytes, Any]] = []
         try:
             with self._lock:
                 try:
-                    if magic == wire.REPEAT_MAGIC:
+                    if kind == _REPEAT:
                         frame = self.reassembler.add(source, packet, now)
-                    elif magic == wire.NACK_MAGIC:
+                    elif kind == _NACK:
                         again = self.store.on_nack(source, packet)
                     else:
                         self.store.on_ack(source, packet, now)
                 finally:
-                    answers = self._flush()
+                    if self._answers:
+                        answers = self._flush()
         finally:
             for datagram, to in answers:
                 self.link.answer(datagram, to)
@@ -158,17 +161,25 @@ class Retransmit(Packetizer):
             self.reassembler.resumed(down, now)
 
     def timer(self, now: float) -> float | None:
+        # called after every packet fed and every frame sent: most calls find nothing due
         with self._lock:
+            soonest = self._soonest()
+            if soonest is None or now < soonest:
+                return soonest
             probes = self.store.probes(now)
             self.reassembler.poll(now)
             answers = self._flush()
-            times = [t for t in (self.store.next_probe(), self.reassembler.next_poll())
-                     if t is not None]
+            soonest = self._soonest()
         for datagram, to in answers:
             self.link.answer(datagram, to)
         for owner, to, packet in probes:
             self.link.repeat(owner, to, [packet])
-        return min(times) if times else None
+        return soonest
+
+    def _soonest(self) -> float | None:
+        """When the timer has something to do, at the earliest (under the lock)."""
+        probe, poll = self.store.next_probe(), self.reassembler.next_poll()
+        return probe if poll is None else poll if probe is None else min(probe, poll)
 
     @classmethod
     def cost(cls, frame: int, max_frame: int, options: Any) -> tuple[int, int]:

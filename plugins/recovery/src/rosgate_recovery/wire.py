@@ -31,7 +31,11 @@ each frame's fragments until it is acknowledged or :data:`DEADLINE` passes after
 fragment left; the receiver asks
 for what is missing (NACK) — a fragment three places behind one that came, or everything
 still missing once a frame's fragments have stopped coming for a while — and acknowledges each
-frame it completes (ACK), again for every fragment of it that comes after. A frame whose last
+frame it completes (ACK), again for every fragment of it that comes after. An ACK names every
+frame completed since the last one to that sender: it goes at once when the last went
+:data:`ACK_EVERY` ago or more, else with the first frame completed once that time is up, or
+:data:`ACK_LATE` after it when none comes (so a busy topic costs an ACK per 10 ms, not one per
+message, and a quiet one is acknowledged at once). A frame whose last
 fragments are lost leaves the receiver nothing to ask about: the sender re-sends its last
 fragment when no ACK came within a probe timeout (as QUIC's PTO does), and the receiver then
 asks for the rest. ::
@@ -54,8 +58,9 @@ import itertools
 import math
 import os
 import struct
+from array import array
 from collections import OrderedDict
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -91,6 +96,13 @@ OVERTAKEN_SCAN = 64     # kept frames an ACK looks at for ones sent before and s
 # what was sent before it was there, scattered, with gaps that were never its to fill
 VOID_PROBES = 1
 MAX_ANSWERED = 10_000
+# an ACK to one sender at most this often (seconds): what completes meanwhile waits, and goes
+# in one ACK with the next frame completed after that time, or ACK_LATE later when none comes
+# (the timer's run, on a link's send thread: one wake-up per ACK_EVERY on a busy link). An ACK
+# is at most ACK_EVERY + ACK_LATE late: below a probe timeout's smallest (30 ms)
+ACK_EVERY = 0.01
+ACK_LATE = 0.01
+ACK_MOST = 64  # frame ids in one ACK at most (more go at once)
 
 #: a sent frame forgotten before it was acknowledged, to keep the store within its bytes
 REPAIR_OVERFLOW = declare("repair_overflow", "a sent frame not yet acknowledged, forgotten by "
@@ -102,9 +114,19 @@ Recovered = Callable[[int], None]
 Send = Callable[[bytes, Any], None]
 
 
+_IDS_AT_ONCE = 1024
+_ids: Iterator[int] = iter(())
+
+
 def frame_id() -> int:
-    """A random frame id: unpredictable, so no one off the path can name a frame."""
-    return int.from_bytes(os.urandom(4), "big")
+    """A random frame id: unpredictable, so no one off the path can name a frame. Read from
+    the system's random source 1,024 at a time (one system call each, not one per frame)."""
+    global _ids
+    try:
+        return next(_ids)  # (an array's iterator: one step is atomic under the GIL)
+    except StopIteration:
+        _ids = iter(array("I", os.urandom(4 * _IDS_AT_ONCE)))
+        return next(_ids)
 
 
 def magic(datagram: bytes | memoryview) -> bytes:
@@ -373,19 +395,30 @@ class RepeatReassembler(_Pending):
         super().__init__(on_lost, on_recovered, timeout, max_pending_bytes, max_message)
         self.send = send  # pending: (source, topic id, frame id) -> the frame
         self._rtt: dict[Hashable, float] = {}  # per source: NACK to the first fragment it brought
+        self._acks: dict[Hashable, list[int]] = {}  # per source: frame ids not acknowledged yet
+        self._acked: dict[Hashable, float] = {}  # per source: when an ACK last went there
+        self.ack_due: float | None = None  # when the frame ids in _acks go
 
     def add(self, source: Hashable, datagram: bytes | memoryview, now: float) -> bytes | None:
         if len(datagram) <= FRAGMENT.size:
             raise FramingError("fragment too short")
         _, index, count, topic_id, fid = FRAGMENT.unpack_from(datagram)
+        key = (source, topic_id, fid)
+        if count == 1 and index == 0 and key not in self._pending:
+            # a frame of one fragment (most messages): whole at once, nothing to keep
+            if key not in self._finished:
+                self._remember(key)
+                self._ack(source, fid, now)
+                return bytes(datagram[FRAGMENT.size:])
+            self._ack(source, fid, now)  # our ACK was lost: the sender is still asking
+            return None
         chunk = bytes(datagram[FRAGMENT.size:])
         if index >= count or count * len(chunk) > self.max_message + len(chunk):
             raise FramingError("fragment header out of range")
-        key = (source, topic_id, fid)
         frame = self._pending.get(key)
         if frame is None:
             if key in self._finished:
-                self.send(ack([fid]), source)  # our ACK was lost: the sender is still asking
+                self._ack(source, fid, now)  # our ACK was lost: the sender is still asking
                 return None
             self.expire(now)
             frame = self._pending[key] = _RepeatFrame(topic_id, count, now)
@@ -409,7 +442,7 @@ class RepeatReassembler(_Pending):
             del self._pending[key]
             self.pending_bytes -= frame.held
             self._remember(key)
-            self.send(ack([fid]), source)
+            self._ack(source, fid, now)
             if frame.recovered:
                 self.on_recovered(topic_id)
             return b"".join(frame.parts[i] for i in range(count))
@@ -431,6 +464,40 @@ class RepeatReassembler(_Pending):
                 self._pending[moved] = self._pending.pop(key)
         if old in self._rtt:
             self._rtt[new] = self._rtt.pop(old)
+        if old in self._acks:
+            self._acks.setdefault(new, []).extend(self._acks.pop(old))
+
+    def _ack(self, source: Hashable, fid: int, now: float) -> None:
+        """Acknowledge frame ``fid`` of ``source``: at once if the last ACK there went
+        :data:`ACK_EVERY` ago or more, else with the others when that time is up."""
+        waiting = self._acks.get(source)
+        if waiting is None:
+            last = self._acked.get(source)
+            if last is None or now - last >= ACK_EVERY:
+                if last is None and len(self._acked) >= MAX_ANSWERED:  # sources: the network's
+                    self._acked.clear()
+                self._acked[source] = now
+                self.send(ack([fid]), source)
+                return
+            waiting = self._acks[source] = []
+            due = last + ACK_EVERY
+            if self.ack_due is None or due < self.ack_due:
+                self.ack_due = due
+        waiting.append(fid)
+        if self.ack_due is not None and now >= self.ack_due:
+            self._send_acks(now)
+        elif len(waiting) >= ACK_MOST:
+            del self._acks[source]
+            self._acked[source] = now
+            self.send(ack(waiting), source)
+
+    def _send_acks(self, now: float) -> None:
+        """Every frame id waiting, in one ACK per source (their time is up)."""
+        self.ack_due = None
+        for source, fids in self._acks.items():
+            self._acked[source] = now
+            self.send(ack(fids), source)
+        self._acks.clear()
 
     def resumed(self, down: float, now: float) -> None:
         """The line was gone for ``down`` seconds: frames in progress wait that much longer,
@@ -451,7 +518,10 @@ class RepeatReassembler(_Pending):
         self.send(nack(fid, missing), source)
 
     def poll(self, now: float) -> None:
-        """Ask again for what stopped coming; give up what is past the deadline."""
+        """Send the ACKs that are due, ask again for what stopped coming, give up what is past
+        the deadline."""
+        if self.ack_due is not None and now >= self.ack_due:
+            self._send_acks(now)
         self.expire(now)
         for (source, _, fid), frame in list(self._pending.items()):
             if now < frame.check_at:
@@ -466,11 +536,12 @@ class RepeatReassembler(_Pending):
 
     def next_poll(self) -> float | None:
         """When :meth:`poll` has something to do next (None: nothing pending)."""
+        acks = None if self.ack_due is None else self.ack_due + ACK_LATE
         if not self._pending:
-            return None
+            return acks
         soonest = min(frame.check_at for frame in self._pending.values())
         oldest = next(iter(self._pending.values())).last + self.timeout
-        return min(soonest, oldest)
+        return min(soonest, oldest) if acks is None else min(soonest, oldest, acks)
 
 
 
@@ -499,6 +570,13 @@ class RetransmitStore:
         self._bytes = 0
         self._rtt: dict[Any, float] = {}
         self._answered: set[Any] = set()  # destinations that ever acknowledged a frame
+        #: no probe or deadline is due before this (a bound, not exact: an acknowledged frame
+        #: leaves it as it was); None: nothing sent is kept
+        self.soonest: float | None = None
+
+    def _soon(self, at: float) -> None:
+        if self.soonest is None or at < self.soonest:
+            self.soonest = at
 
     def __len__(self) -> int:
         return len(self._kept)
@@ -519,6 +597,7 @@ class RetransmitStore:
         if kept is not None:
             kept.last_sent = now
             kept.probe_at = now + self._pto(to)
+            self._soon(kept.probe_at)
 
     def _pto(self, to: Any) -> float:
         return max(2 * self._rtt.get(to, RTT_INITIAL) + 0.01, 0.03)
@@ -570,6 +649,7 @@ class RetransmitStore:
             kept.overtaken += 1
             if kept.overtaken == REORDER:
                 kept.probe_at = now
+                self._soon(now)
 
     def moved(self, old: Any, new: Any, now: float) -> None:
         """Frames kept for ``old`` are ``new``'s now (it roamed): probed there at once, their
@@ -580,6 +660,7 @@ class RetransmitStore:
             kept.probes = 0
             if kept.last_sent is not None:
                 kept.last_sent = kept.probe_at = now
+                self._soon(now)
             self._kept[(new, fid)] = kept
         if old in self._rtt:
             self._rtt[new] = self._rtt.pop(old)
@@ -595,30 +676,39 @@ class RetransmitStore:
 
     def probes(self, now: float) -> list[tuple[Any, Any, bytes]]:
         """(owner, destination, fragment) for each frame whose ACK is overdue: its last
-        fragment again, so the receiver learns what it lacks. Frames past the deadline go."""
+        fragment again, so the receiver learns what it lacks. Frames past the deadline go.
+        Looks at every frame kept only when :attr:`soonest` is due."""
+        if self.soonest is None or now < self.soonest:
+            return []
         out = []
+        soonest = None
         for key, kept in list(self._kept.items()):
+            if kept.last_sent is None:
+                continue  # still going out: sent() starts its timers
             # the deadline runs from when its last fragment left: a frame still going out (a
             # large one on a slow link) is kept
-            if kept.last_sent is not None and now - kept.last_sent > self.deadline:
+            ends = kept.last_sent + self.deadline
+            if now >= ends:
                 self._forget(key)
                 continue
-            if kept.probe_at is None or now < kept.probe_at:
-                continue
-            last = len(kept.packets) - 1
-            if kept.sends[last] >= MAX_SENDS or (kept.probes >= VOID_PROBES
-                                                 and key[0] not in self._answered):
-                kept.probe_at = None  # (no one there has ever answered: not into the void)
-                continue
-            kept.sends[last] += 1
-            kept.probes += 1
-            kept.probe_at = now + self._pto(key[0]) * 2 ** kept.probes
-            out.append((kept.owner, key[0], kept.packets[last]))
+            if kept.probe_at is not None and now >= kept.probe_at:
+                last = len(kept.packets) - 1
+                if kept.sends[last] >= MAX_SENDS or (kept.probes >= VOID_PROBES
+                                                     and key[0] not in self._answered):
+                    kept.probe_at = None  # (no one there has ever answered: not into the void)
+                else:
+                    kept.sends[last] += 1
+                    kept.probes += 1
+                    kept.probe_at = now + self._pto(key[0]) * 2 ** kept.probes
+                    out.append((kept.owner, key[0], kept.packets[last]))
+            at = ends if kept.probe_at is None else min(kept.probe_at, ends)
+            soonest = at if soonest is None else min(soonest, at)
+        self.soonest = soonest
         return out
 
     def next_probe(self) -> float | None:
-        times = [k.probe_at for k in self._kept.values() if k.probe_at is not None]
-        return min(times) if times else None
+        """When :meth:`probes` may have something to do next (None: nothing kept is sent)."""
+        return self.soonest
 
     def _forget(self, key: tuple[Any, int]) -> _Kept:
         kept = self._kept.pop(key)
