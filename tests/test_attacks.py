@@ -565,7 +565,7 @@ def test_a_server_takes_datagrams_from_its_clients_and_strangers_only_on_probati
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
 
-    from rosgate.roles.server import STRANGERS_PER_SECOND
+    from rosgate.roles.gate import STRANGERS_PER_SECOND
 
     ds, dc, port = domain(), domain(), free_port()
     server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}", ds)
