@@ -17,7 +17,7 @@ from ..config import BridgeConfig, LinkConfig
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..links import DatagramLink, FrameHandler, Lifetime, Link, LinkCounters
-from ..resolver import Plan, Resolver
+from ..resolver.plan import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort, Route
 from ..secure import (

@@ -26,7 +26,7 @@ from ..errors import ConfigError, LinkError, RosgateError
 from ..holdback import Holdback
 from ..keyring import NoKey
 from ..links import DatagramLink, Link
-from ..resolver import PreparedAction
+from ..resolver.entries import PreparedAction
 from ..router import fixed
 from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, seal_hello

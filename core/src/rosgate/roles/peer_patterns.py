@@ -56,7 +56,7 @@ from ..wire.envelope import topic_id_for
 from . import NoLink, Role
 
 if TYPE_CHECKING:
-    from ..resolver import Pattern
+    from ..resolver.plan import Pattern
 
 #: an entry's keys on its link, by a name there (default: its remote; None: its file's cipher)
 KeysOf = Callable[[TopicSpec | ServiceSpec, str | None], Keys | None]
