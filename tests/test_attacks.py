@@ -283,7 +283,7 @@ def hello(topics: list[dict]) -> bytes:
 def read_control(s: socket.socket, timeout: float = 5) -> dict | None:
     """The first control message the server sends back (pings skipped), or None."""
     from rosgate.roles.mainline import parse_control
-    from rosgate.streamlink import StreamReader
+    from rosgate.streamlink.link import StreamReader
 
     reader, deadline = StreamReader(), time.monotonic() + timeout
     s.settimeout(0.2)

@@ -29,7 +29,9 @@ from ..secure import (
     respond,
 )
 from ..spec import CONTROL, ServiceSpec, TopicSpec
-from ..streamlink import Backoff, LinkSlot, QueueLimits, StreamLink, Untrusted
+from ..streamlink.connector import Backoff
+from ..streamlink.link import StreamLink, Untrusted
+from ..streamlink.slot import LinkSlot, QueueLimits
 from ..transport import (
     Address,
     DatagramTransport,

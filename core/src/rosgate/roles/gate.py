@@ -22,7 +22,8 @@ from ..links import DatagramLink, Link
 from ..routes import Route
 from ..runtime import STATE_VARIABLE, private_folder, state_dir
 from ..secure import Busy, HandshakeError, KeySchedule, SecureConnection, UnknownKey, open_hello
-from ..streamlink import LinkSlot, StreamLink
+from ..streamlink.link import StreamLink
+from ..streamlink.slot import LinkSlot
 from ..transport import Address, StreamConnection
 from ..wire import envelope
 from . import Bridge, Role

@@ -48,7 +48,7 @@ from ..router import fixed
 from ..routes import ReceiveRoute, Route, TransmitRoute
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import Connector
+from ..streamlink.connector import Connector
 from ..transport import Address, StreamTransport
 from ..wire import envelope
 from ..wire.control import ControlError, parse

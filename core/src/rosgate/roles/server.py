@@ -28,7 +28,7 @@ from ..errors import ConfigError, LinkError
 from ..links import Link
 from ..secure import SecureConnection
 from ..services import CallerRoute
-from ..streamlink import StreamLink
+from ..streamlink.link import StreamLink
 from ..transport import Address, StreamConnection
 from ..warn import BUGS
 from . import Bridge

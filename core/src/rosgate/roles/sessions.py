@@ -22,7 +22,7 @@ from ..policy import refusal, shared
 from ..routes import Route
 from ..secure import KeySchedule
 from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import StreamLink
+from ..streamlink.link import StreamLink
 from ..transport import Address, StreamTransport
 from ..wire import envelope
 from ..wire.envelope import topic_id_for
