@@ -1458,10 +1458,15 @@ def base_checkout(rev: str, stack: ExitStack) -> Checkout:
 
 # -- main -----------------------------------------------------------------------------------------
 def knows_batch(rev: str, root: Path = ROOT) -> bool:
-    """Whether a revision's topics take a batch window (``batch:``)."""
-    found = subprocess.run(["git", "-C", str(root), "show", f"{rev}:core/src/rosgate/config/"
-                            "schema.py"], capture_output=True, text=True)
-    return found.returncode == 0 and "    batch: " in found.stdout
+    """Whether a revision's topics take a batch window (``batch:``): declared in its schema.py,
+    or, since an entry's keys have a module of their own, in its entries.py."""
+    for module in ("schema.py", "entries.py"):
+        found = subprocess.run(["git", "-C", str(root), "show",
+                                f"{rev}:core/src/rosgate/config/{module}"],
+                               capture_output=True, text=True)
+        if found.returncode == 0 and "    batch: " in found.stdout:
+            return True
+    return False
 
 
 #: a case to run: size and route (None: bare), and for a bare case its QoS if not reliable

@@ -283,7 +283,7 @@ def hello(topics: list[dict]) -> bytes:
 def read_control(s: socket.socket, timeout: float = 5) -> dict | None:
     """The first control message the server sends back (pings skipped), or None."""
     from rosgate.roles.mainline import parse_control
-    from rosgate.streamlink import StreamReader
+    from rosgate.streamlink.link import StreamReader
 
     reader, deadline = StreamReader(), time.monotonic() + timeout
     s.settimeout(0.2)
@@ -565,7 +565,7 @@ def test_a_server_takes_datagrams_from_its_clients_and_strangers_only_on_probati
     from rclpy.serialization import serialize_message
     from std_msgs.msg import String
 
-    from rosgate.roles.server import STRANGERS_PER_SECOND
+    from rosgate.roles.gate import STRANGERS_PER_SECOND
 
     ds, dc, port = domain(), domain(), free_port()
     server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}}}", ds)

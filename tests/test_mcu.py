@@ -27,7 +27,7 @@ import rosgate.builtin
 from rosgate.config import load, loads, service_to_mapping, topic_to_mapping
 from rosgate.errors import ConfigError
 from rosgate.plugins import Plugins
-from rosgate.resolver import Resolver
+from rosgate.resolver.plan import Resolver
 
 SIMULATOR = Path(__file__).parent.parent / "examples" / "mcu_simulator.py"
 

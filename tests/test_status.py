@@ -207,7 +207,7 @@ def test_counters_and_the_summary_line_go_on_across_a_new_policy(engines, domain
     from where they were, on both sides, and the summary line never says a negative count."""
     from dataclasses import replace
 
-    from rosgate.config.schema import Rule
+    from rosgate.config.clients import Rule
     from rosgate.status import summary
 
     server, client, ds, dc = pair(engines, domain, free_port())

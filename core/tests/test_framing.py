@@ -15,7 +15,7 @@ from rosgate.builtin import (
     fragment,
 )
 from rosgate.packetizer import RESERVED_MAGIC
-from rosgate.streamlink import StreamReader, length_prefixed, stream_records
+from rosgate.streamlink.link import StreamReader, length_prefixed, stream_records
 from rosgate.wire.framing import (
     CHUNK,
     CHUNK_HEAD,

@@ -21,7 +21,8 @@ from rosgate.errors import LinkError
 from rosgate.links import DatagramLink
 from rosgate.plugins import Plugins
 from rosgate.spec import Delivery
-from rosgate.streamlink import LinkSlot, QueueLimits, StreamLink, length_prefixed
+from rosgate.streamlink.link import StreamLink, length_prefixed
+from rosgate.streamlink.slot import LinkSlot, QueueLimits
 from rosgate.wire import envelope
 from rosgate.wire.framing import FRAGMENT, LENGTH
 

@@ -25,7 +25,7 @@ from rosgate.config import LinkConfig
 from rosgate.links import DatagramLink
 from rosgate.plugins import installed
 from rosgate.spec import Delivery
-from rosgate.streamlink import StreamLink
+from rosgate.streamlink.link import StreamLink
 from rosgate.wire import envelope
 
 TIMEOUT = 20.0

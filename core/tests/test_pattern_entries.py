@@ -9,7 +9,7 @@ from rosgate.config import loads, topic_from_mapping, topic_to_mapping
 from rosgate.config.patterns import DENY_DEFAULT, denied, far_name, matches
 from rosgate.errors import ConfigError
 from rosgate.plugins import Plugins
-from rosgate.resolver import Resolver
+from rosgate.resolver.plan import Resolver
 
 HEAD = "bridge: {name: robot1, role: client, server: 127.0.0.1:12000, insecure: true}\n"
 

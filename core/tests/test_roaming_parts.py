@@ -12,7 +12,7 @@ from polling import settles
 from test_links import Inbox, closing, stream_link, tcp_connections  # noqa: F401 (fixtures)
 
 from rosgate.admission import KnownSources
-from rosgate.streamlink import LinkSlot, QueueLimits
+from rosgate.streamlink.slot import LinkSlot, QueueLimits
 from rosgate.wire import envelope
 
 TOPIC = 5

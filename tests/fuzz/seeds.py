@@ -79,7 +79,7 @@ def main() -> None:
     from rosgate.builtin import fragment
     from rosgate.config import TopicConfig, topic_to_mapping
     from rosgate.roles.mainline import control
-    from rosgate.streamlink import length_prefixed
+    from rosgate.streamlink.link import length_prefixed
     from rosgate.wire import envelope, names
 
     rng = random.Random(10)

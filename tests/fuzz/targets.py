@@ -210,7 +210,7 @@ def reassembly(data: bytes) -> None:
 @target()
 def stream_framing(data: bytes) -> None:
     """Length-prefixed frames, fed in pieces of sizes the input chooses, with a small limit."""
-    from rosgate.streamlink import StreamReader
+    from rosgate.streamlink.link import StreamReader
     from rosgate.wire import framing
 
     reader = Reader(data)

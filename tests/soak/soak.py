@@ -40,7 +40,7 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 from conftest import Bridge, RosSide, free_port  # noqa: E402
 from resources import Resources, Snapshot  # noqa: E402
 
-from rosgate.streamlink import length_prefixed  # noqa: E402
+from rosgate.streamlink.link import length_prefixed  # noqa: E402
 from rosgate.wire import envelope, framing  # noqa: E402
 
 TOPICS = {  # name on the client -> (direction seen from the client, extra keys)

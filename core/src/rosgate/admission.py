@@ -1,7 +1,7 @@
 """Admission: who a bridge takes frames and connections from (:class:`Sources`), how many
 connections it holds (:class:`ConnectionLimits`), and the loop that accepts them within those
 (:class:`Acceptor`). What a connection may do before it is trusted is the link's
-(:class:`~rosgate.streamlink.Untrusted`).
+(:class:`~rosgate.streamlink.link.Untrusted`).
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ from .builtin import Fragments
 from .config import Direction, Framing
 from .packetizer import Packetizer, own_packetizer
 from .plugins import installed
-from .resolver import Plan
+from .resolver.plan import Plan
 from .ros import resolve_type
 from .spec import TopicSpec
 from .transport import DatagramTransport, line_budget

@@ -21,7 +21,7 @@ from .errors import ConfigError
 from .policy import is_action_part
 
 if TYPE_CHECKING:  # ``import rosgate`` (BusPattern) stays light: the resolver's plugins load later
-    from .resolver import Pattern
+    from .resolver.plan import Pattern
 
 log = logging.getLogger("rosgate")
 

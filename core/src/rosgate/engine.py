@@ -21,7 +21,7 @@ from .links import Lifetime
 from .monitor import Monitor, Status, Watched
 from .options import parse
 from .plugins import Plugins
-from .resolver import Plan, Resolver
+from .resolver.plan import Plan, Resolver
 from .roles import Bridge
 from .roles import Role as BridgeRole
 from .roles.client import ClientRole

@@ -140,7 +140,7 @@ class UnknownKey(HandshakeError):
 
 class SecureConnection:
     """A stream connection whose bytes travel in Noise transport messages; one thread sends and
-    one receives (a :class:`~rosgate.streamlink.StreamLink`'s)."""
+    one receives (a :class:`~rosgate.streamlink.link.StreamLink`'s)."""
 
     def __init__(self, raw: StreamConnection, noise, peer_key: bytes, pending: bytes = b""):
         self.raw = raw

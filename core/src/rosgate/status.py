@@ -42,7 +42,7 @@ from .roles.peer import PeerRole
 from .roles.server import ServerRole
 from .router import Router
 from .routes import ReceiveRoute, Route, TransmitRoute
-from .streamlink import LinkSlot
+from .streamlink.slot import LinkSlot
 
 VERSION = 1
 

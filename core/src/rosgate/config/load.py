@@ -11,20 +11,19 @@ from typing import Any
 from ..errors import ConfigError
 from ..options import show
 from . import kinds, schema
-from .kinds import Key, check_keys, key_names, keys, read, require, row_of
-from .patterns import is_pattern, name_or_pattern, split
-from .schema import (
+from .clients import ClientPolicy
+from .entries import (
+    MCU_KEYS,
+    NO_PLUGIN,
     ActionConfig,
-    BridgeConfig,
-    ClientPolicy,
-    Defaults,
     Direction,
-    File,
     Framing,
-    Role,
     ServiceConfig,
     TopicConfig,
 )
+from .kinds import Key, check_keys, key_names, keys, read, require, row_of
+from .patterns import is_pattern, name_or_pattern, split
+from .schema import BridgeConfig, Defaults, File, Role
 from .source import START_FIX, Source, join, parse
 
 
@@ -87,7 +86,7 @@ def topic_to_mapping(t: TopicConfig) -> dict:
     mapping = _to_mapping(t, TopicConfig)
     if not t.qos_given:  # the far side finds it from the publishers too
         del mapping["qos"]
-    if mapping["compression"] == schema.NO_PLUGIN:
+    if mapping["compression"] == NO_PLUGIN:
         del mapping["compression"]
     for key, options in (("recovery", t.recovery_options), ("compression", t.compression_options)):
         if key in mapping and options:
@@ -108,7 +107,7 @@ def _to_mapping(entry: TopicConfig | ServiceConfig | ActionConfig, section: type
         value = getattr(entry, key)
         # unset optional keys are left out, as a user would; microcontroller keys are only for
         # microcontroller entries (an entry with an envelope refuses them)
-        if value is not None and (entry.framing.bare or key not in schema.MCU_KEYS) \
+        if value is not None and (entry.framing.bare or key not in MCU_KEYS) \
                 and key not in _PATTERN_KEYS:
             mapping[key] = dict(value) if isinstance(value, dict) else value
     return mapping
@@ -376,7 +375,7 @@ def _entry(src: Source, data: Any, path: str, section: type, defaults: dict[str,
                         f"authenticate; cipher must be none, not '{given['cipher']}'",
                         fix="set cipher: none on this entry, or use framing: rosgate to keep "
                             "the cipher")
-    for key in schema.MCU_KEYS:
+    for key in MCU_KEYS:
         if key in data and not framing.bare:
             raise src.error(join(path, key), f"{key} is for microcontroller entries (framing none "
                             "or serial_datagram); this entry has an envelope",
@@ -432,9 +431,9 @@ def _topic(src: Source, data: dict, path: str, given: dict[str, Any]) -> None:
                         fix="use framing: none for bare payloads on a datagram link, "
                             "or leave framing: out")
     for key in ("recovery", "compression"):  # a plugin's name and the entry's options for it
-        unset = None if key == "recovery" else schema.NO_PLUGIN  # recovery: by the QoS
+        unset = None if key == "recovery" else NO_PLUGIN  # recovery: by the QoS
         given[key], given[f"{key}_options"] = given.get(key, (unset, {}))
-        if framing.bare and key in data and data[key] != schema.NO_PLUGIN:
+        if framing.bare and key in data and data[key] != NO_PLUGIN:
             raise src.error(join(path, key), f"{key} needs the envelope (framing: rosgate): "
                             f"with framing {framing} a datagram is the bare payload",
                             fix=f"remove {key}:, or use framing: rosgate")

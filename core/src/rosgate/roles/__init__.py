@@ -17,7 +17,7 @@ from ..config import BridgeConfig, LinkConfig
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..links import DatagramLink, FrameHandler, Lifetime, Link, LinkCounters
-from ..resolver import Plan, Resolver
+from ..resolver.plan import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort, Route
 from ..secure import (
@@ -29,7 +29,9 @@ from ..secure import (
     respond,
 )
 from ..spec import CONTROL, ServiceSpec, TopicSpec
-from ..streamlink import Backoff, LinkSlot, QueueLimits, StreamLink, Untrusted
+from ..streamlink.connector import Backoff
+from ..streamlink.link import StreamLink, Untrusted
+from ..streamlink.slot import LinkSlot, QueueLimits
 from ..transport import (
     Address,
     DatagramTransport,

@@ -26,13 +26,15 @@ from ..errors import ConfigError, LinkError, RosgateError
 from ..holdback import Holdback
 from ..keyring import NoKey
 from ..links import DatagramLink, Link
-from ..resolver import PreparedAction
+from ..resolver.entries import PreparedAction
 from ..router import fixed
 from ..routes import Route
 from ..secure import KeySchedule, SecureConnection, SessionKeys, seal_hello
 from ..services import CallerRoute
 from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import Connector, LinkSlot, StreamLink
+from ..streamlink.connector import Connector
+from ..streamlink.link import StreamLink
+from ..streamlink.slot import LinkSlot
 from ..transport import Address, StreamTransport
 from . import Answer, Bridge, Role, session_keys
 from .mainline import (

@@ -14,7 +14,7 @@ token) so the server learns where to send, even through NAT.
 Each hello says what the client took (``taken``) of each topic it receives (the newest sequence
 number per epoch); a welcome to a session the server kept says the same of the server's. Each
 side then writes again what the other did not get of what its last connection carried
-(:class:`~rosgate.streamlink.LinkSlot`): a connection dies with what its buffers held.
+(:class:`~rosgate.streamlink.slot.LinkSlot`): a connection dies with what its buffers held.
 
 Authenticated (:mod:`rosgate.secure`): all of it travels inside the Noise handshake; the welcome
 carries the session's secret (``secret``, ``key_id``, ``rekey``) too, the client answers
@@ -41,7 +41,7 @@ from ..config import (
 )
 from ..errors import ConfigError
 from ..routes import ReceiveRoute, Route
-from ..streamlink import Taken
+from ..streamlink.slot import Taken
 from ..wire import control as wire_control
 from ..wire import envelope
 

@@ -35,7 +35,8 @@ from ..secure import HandshakeError, KeySchedule, SecureConnection, UnknownKey
 from ..service_framing import CallPort, LineCallPort
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import Connector, StreamLink
+from ..streamlink.connector import Connector
+from ..streamlink.link import StreamLink
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from ..wire.envelope import topic_id_for
 from . import Answer, Bridge, NoLink, Role, session_keys

@@ -48,7 +48,7 @@ from ..router import fixed
 from ..routes import ReceiveRoute, Route, TransmitRoute
 from ..services import CallerRoute, ServerRoute
 from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import Connector
+from ..streamlink.connector import Connector
 from ..transport import Address, StreamTransport
 from ..wire import envelope
 from ..wire.control import ControlError, parse
@@ -56,7 +56,7 @@ from ..wire.envelope import topic_id_for
 from . import NoLink, Role
 
 if TYPE_CHECKING:
-    from ..resolver import Pattern
+    from ..resolver.plan import Pattern
 
 #: an entry's keys on its link, by a name there (default: its remote; None: its file's cipher)
 KeysOf = Callable[[TopicSpec | ServiceSpec, str | None], Keys | None]

@@ -8,154 +8,46 @@ before its Noise handshake proves a key listed under ``clients:``, which decides
 name and policy (:mod:`rosgate.policy`); each entry the policy refuses, or whose type is not
 installed here, is left out, said in both logs. :meth:`ServerRole.reload` applies a changed
 policy (SIGHUP; docs/security.md).
+
+This module is the server's life and its main lines (hello, welcome, found, bye, pings, a new
+policy); who a client is and where is :mod:`.gate`, the routes of its session :mod:`.sessions`.
 """
 
 from __future__ import annotations
 
-import base64
 import logging
-import os
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from functools import partial
 from typing import Any
 
-from ..actions import Goals, client_goals
-from ..admission import Acceptor, ConnectionLimits, KnownSources, RecentHosts, heard
-from ..announce import not_installed
-from ..config import (
-    ActionConfig,
-    ClientPolicy,
-    Direction,
-    ServiceConfig,
-    TopicConfig,
-)
-from ..discovery import LOOK_EVERY, Offers, said_patterns, watched
-from ..drops import Drop, Reason
+from ..admission import Acceptor
+from ..config import ClientPolicy
+from ..discovery import LOOK_EVERY, Offers, watched
+from ..drops import Drop
 from ..errors import ConfigError, LinkError
-from ..links import DatagramLink, Link
-from ..policy import refusal, shared
-from ..routes import Route
-from ..runtime import STATE_VARIABLE, private_folder, state_dir
-from ..secure import (
-    Busy,
-    HandshakeError,
-    KeySchedule,
-    SecureConnection,
-    UnknownKey,
-    open_hello,
-)
+from ..links import Link
+from ..secure import SecureConnection
 from ..services import CallerRoute
-from ..spec import ServiceSpec, TopicSpec
-from ..streamlink import LinkSlot, StreamLink
-from ..transport import Address, StreamConnection, StreamTransport
+from ..streamlink.link import StreamLink
+from ..transport import Address, StreamConnection
 from ..warn import BUGS
-from ..wire import envelope
-from ..wire.envelope import topic_id_for
-from . import Bridge, Role, session_keys
-from .mainline import (
-    PROTOCOL,
-    client_entries,
-    control,
-    flipped,
-    found_entries,
-    is_control,
-    read_taken,
-    taken,
-    where_error,
-)
+from . import Bridge
+from .gate import Session
+from .mainline import control, is_control, read_taken, taken
+from .sessions import SessionRole
 
 log = logging.getLogger("rosgate")
 
-#: datagrams a second taken on probation from unknown addresses (a client that moved), for all
-#: of them together: more are ``not_allowed``, and such a client is heard at its next hello
-STRANGERS_PER_SECOND = 500.0
-MAX_HANDSHAKES = 32  # handshakes worked on at once (each a Diffie-Hellman); more are refused
-HANDSHAKES_PER_SOURCE = 4  # of those, from one address: a few addresses cannot take them all
 WIND_DOWN = 1.0  # seconds a stopping server waits, at most, for what clients sent before its bye
 QUIET = 0.05  # seconds without a frame in that end the wait
 
-Entry = TopicConfig | ServiceConfig
 
+class ServerRole(SessionRole):
+    """The server role: its main port, each client's main line and session."""
 
-@dataclass
-class Session:
-    """One client, as the server sees it, connected or not."""
-
-    id: int
-    token: bytes
-    name: str
-    topics: list[Any]  # the client's topic list, as it sent it
-    services: list[Any]  # and its service list
-    main: LinkSlot
-    entries: list[Entry | None] = field(default_factory=list)  # checked, in the client's words
-    #: how many of them the client listed; the rest its patterns found (None: a name gone)
-    listed: int = 0
-    by_index: dict[int, Route] = field(default_factory=dict)  # entry -> its route
-    refused: dict[int, str] = field(default_factory=dict)  # entry -> why (the policy)
-    addresses: dict[DatagramLink, Address] = field(default_factory=dict)
-    streams: dict[int, LinkSlot] = field(default_factory=dict)  # port -> dedicated connection
-    down_since: float | None = None  # monotonic time the main line was lost; None while up
-    policy: ClientPolicy | None = None  # authenticated: the client's entry in clients:
-    schedule: KeySchedule | None = None
-    hellos: envelope.ReplayWindow = field(default_factory=envelope.ReplayWindow)
-    actions: list[Any] = field(default_factory=list)  # its action list, as it sent it
-    part_of: dict[int, ActionConfig] = field(default_factory=dict)  # entry -> its action
-    owned: set[int] = field(default_factory=set)  # action parts limited to the client's goals
-    watch: list[str] = field(default_factory=list)  # its receive patterns, in names here
-    watch_services: list[str] = field(default_factory=list)  # its service patterns that call
-    made_by: dict[int, str] = field(default_factory=dict)  # found entry -> the client's pattern
-    watch_actions: list[str] = field(default_factory=list)  # its action patterns that send goals
-
-    @property
-    def routes(self) -> list[Route]:
-        return [self.by_index[i] for i in sorted(self.by_index)]
-
-    def close(self) -> None:
-        for slot in [self.main, *self.streams.values()]:
-            slot.close()
-        if self.schedule is not None:
-            self.schedule.forget()
-
-
-def kept_recent_hosts(name: str) -> RecentHosts:
-    """The addresses of the server's recent clients, kept in its state folder
-    (:class:`~rosgate.runtime.NotPrivate` when another user could write there); in memory only,
-    said, when no folder can be had."""
-    try:
-        folder = private_folder(state_dir(), STATE_VARIABLE)
-    except OSError as exc:
-        log.warning("%s: no state folder (%s): after a restart its clients are strangers until "
-                    "they connect again (set %s to a folder of this user's)", name, exc,
-                    STATE_VARIABLE)
-        return RecentHosts()
-    return RecentHosts(folder / f"{name}.recent-hosts.json")
-
-
-class ServerRole(Role):
     def __init__(self, bridge: Bridge):
         super().__init__(bridge)
-        self.sessions: dict[int, Session] = {}
-        self._ids = iter(range(1, 2**32))
-        self.router.on_hello = self.on_hello
-        self.router.on_heard = self.on_heard
-        #: datagram ports take frames from where clients' genuine hellos and frames came from
-        #: (and, with identities, a few from elsewhere on probation: :meth:`on_heard`)
-        self.clients = KnownSources(STRANGERS_PER_SECOND if self.cfg.secure else 0)
-        self._by_key = {p.key: p for p in self.cfg.clients.values()}
-        if self.cfg.secure:  # its clients' addresses keep their places across a restart
-            self.limits.recent = kept_recent_hosts(self.cfg.name)
-        self._handshakes = ConnectionLimits(MAX_HANDSHAKES, HANDSHAKES_PER_SOURCE,
-                                            self.limits.recent)
-        #: every connection that completed a handshake and is not closed, whatever it does
-        #: now (waiting to say hello, in a session, a dedicated port): a reload closes those
-        #: whose key it no longer lists
-        self._keyed: set[SecureConnection] = set()
         self.acceptor: Acceptor | None = None  # until start() has its main line
-        #: who sent each goal, per action (its name here): clients use only their own goals
-        self.goals: dict[str, Goals] = {}
         #: the names under clients' receive patterns that publishers here have, told to them
         self.offers = Offers(self.cfg, self.router.ros.node, lambda: list(self.sessions.values()),
                              self._offer, time.monotonic)
@@ -218,49 +110,6 @@ class ServerRole(Role):
             self._end(session)
         super().stop()
 
-    # -- the handshake: before it, nothing a connection sends is parsed --------------------
-    def handshake(self, connection: StreamConnection, peer: Address,
-                  then: Callable[[StreamConnection], None]) -> None:
-        """Run the Noise handshake of an accepted connection in a thread of its own, then hand
-        the secure connection to ``then``."""
-        if not self.cfg.secure:
-            then(connection)
-            return
-        host = peer[0]
-
-        def run() -> None:
-            slot = False
-
-            def admit() -> bool:  # once the first message is in: an idle connection takes none
-                nonlocal slot
-                heard(connection)
-                slot = self._handshakes.admit(host) is None
-                return slot
-
-            try:
-                secure = self.respond(connection, host, lambda key: key in self._by_key, admit)
-            finally:
-                if slot:
-                    self._handshakes.release(host)
-            if secure is None:
-                return
-            with self._lock:
-                self._keyed = {c for c in self._keyed if not c.closed}
-                self._keyed.add(secure)
-            then(secure)
-
-        threading.Thread(target=run, name=f"handshake-{peer[0]}", daemon=True).start()
-
-    def handshake_refused(self, exc: HandshakeError, host: str) -> tuple[Reason, str | None]:
-        """A handshake refused for being one too many is counted, not said."""
-        if isinstance(exc, Busy):
-            return Drop.TOO_MANY_HANDSHAKES, None
-        if isinstance(exc, UnknownKey):
-            shown = base64.b64encode(exc.key).decode()[:8]
-            return Drop.UNKNOWN_CLIENT_KEY, (f"refused a connection from {host}: its key "
-                                             f"{shown}... is not in clients:")
-        return Drop.BAD_HANDSHAKE, f"refused a connection from {host}: {exc}"
-
     def _main_line(self, connection: StreamConnection, peer: Address) -> None:
         session: Session | None = None
 
@@ -304,18 +153,7 @@ class ServerRole(Role):
                                      self.router.on_lost, on_close, untrusted=self.untrusted,
                                      budget=self.bridge.budget(self.bridge.plan.main_line)))
 
-    def _policy_of(self, connection: StreamConnection) -> ClientPolicy | None:
-        """The policy of a connection's key as the server's file lists it now (None without
-        identities); :class:`ConfigError` for a key that is no longer listed."""
-        if not isinstance(connection, SecureConnection):
-            return None
-        policy = self._by_key.get(connection.peer_key)
-        if policy is None:
-            raise ConfigError("this client's key is no longer in clients:", file="the server",
-                              fix="the server's operator lists it again")
-        return policy
-
-    # -- sessions ----------------------------------------------------------------------------
+    # -- a client's hello and the names its patterns found ------------------------------------
     def _welcome(self, hello: dict[str, Any], link: StreamLink, peer: Address) -> Session | None:
         name = str(hello.get("name", "?"))[:100]
         try:
@@ -384,26 +222,6 @@ class ServerRole(Role):
                  ", its session kept" if resumed else "")
         return session
 
-    def _set_found(self, session: Session, message: dict[str, Any]) -> None:
-        """The topics the client's patterns found, after its listed entries."""
-        found, part_of = found_entries(message, self.cfg.defaults, f"client {session.name}")
-        before = session.entries[session.listed:]
-        session.entries[session.listed:] = found
-        made_by, session.made_by = session.made_by, said_patterns(message, session.listed)
-        for index in [i for i in session.part_of if i >= session.listed]:
-            del session.part_of[index]
-        session.part_of.update({session.listed + i: a for i, a in part_of.items()})
-        for index in list(session.by_index):
-            place = index - session.listed
-            if index >= session.listed and (place >= len(found) or found[place] != before[place]):
-                # gone, or its place taken by another name (a client found fewer, or reused it)
-                route = session.by_index.pop(index)
-                self.router.remove(route)
-                log.info("client %r: %s is no longer found by its pattern %s: its route is "
-                         "removed", session.name, route.label, made_by.get(index, "entries"))
-        for index in [i for i in session.refused if i >= len(session.entries)]:
-            del session.refused[index]
-
     def _found(self, session: Session, message: dict[str, Any], link: StreamLink) -> None:
         """A client's patterns found names (or saw them go): their routes, judged by the policy
         exactly as listed entries are; the ids (0: refused or gone) answered as ``placed``."""
@@ -425,257 +243,6 @@ class ServerRole(Role):
             "entries": [None if r is None else self.router.item(r) for r in routes]}),
             self.control)
 
-    @staticmethod
-    def _entry_name(session: Session, index: int) -> str:
-        entry = session.entries[index]
-        assert entry is not None  # a name gone is neither refused nor routed
-        if index >= session.listed:
-            action = session.part_of.get(index)
-            name = (f"action {action.action}" if action is not None else entry.topic
-                    if isinstance(entry, TopicConfig) else entry.service)
-            return f"found[{index - session.listed}] ({name})"
-        if isinstance(entry, TopicConfig):
-            return f"topics[{index}] ({entry.topic})"
-        return f"services[{index - len(session.topics)}] ({entry.service})"
-
-    def _resume(self, hello: dict[str, Any], name: str) -> Session | None:
-        """The session a returning client left, if it asks for the same topics; another
-        session under its name is ended."""
-        with self._lock:
-            found = next((s for s in self.sessions.values() if s.name == name), None)
-        if found is None:
-            return None
-        if (found.topics == hello.get("topics") and found.services == hello.get("services", [])
-                and found.actions == hello.get("actions", [])
-                and hello.get("protocol") == PROTOCOL):
-            return found
-        log.info("client %r came back with other topics: its old session is dropped", name)
-        self._end(found)
-        return None
-
-    def _new_session(self, hello: dict[str, Any], name: str,
-                     policy: ClientPolicy | None) -> Session:
-        if hello.get("protocol") != PROTOCOL:
-            raise ConfigError(f"protocol {hello.get('protocol')!r} is not {PROTOCOL}",
-                              file=f"client {name}", fix="run the same rosgate version on both")
-        if len(self.sessions) >= self.cfg.limits.sessions:
-            raise ConfigError(f"the server keeps {len(self.sessions)} sessions already, its "
-                              "limit", file=f"client {name}",
-                              fix="try again later (bridge.limits.sessions on the server)")
-        entries, part_of = client_entries(hello, self.cfg.defaults, f"client {name}")
-        session = Session(next(self._ids), os.urandom(16), name, hello["topics"],
-                          hello.get("services", []),
-                          self.bridge.slot(f"main of {name}", resends=True),
-                          entries=list(entries), policy=policy,
-                          actions=hello.get("actions", []),
-                          part_of=part_of,
-                          schedule=KeySchedule(self.cfg.rekey) if self.cfg.secure else None)
-        session.listed = len(entries)
-        self._set_found(session, hello)
-        try:
-            self._sync(session)
-        except BaseException:  # whatever failed, nothing half-built stays behind
-            self._drop_routes(session)
-            raise
-        with self._lock:
-            self.sessions[session.id] = session
-        return session
-
-    def _sync(self, session: Session) -> None:
-        """Routes for the entries the policy allows (made in order: topics, then services),
-        none for the others: a newly refused entry's route is torn down, an action's part whose
-        rule now says otherwise of ``shared`` made anew."""
-        keyless = {name for (kind, name), r in self.bridge.resolver.plugins.registered.items()
-                   if kind == "cipher" and not getattr(r.cls, "session_key_size", 0)}
-        resolver, error = self.bridge.resolver, where_error(f"client {session.name}")
-        topics = len(session.topics)
-        for index, entry in enumerate(session.entries):
-            if entry is None:  # a found name that went
-                session.refused.pop(index, None)
-                gone = session.by_index.pop(index, None)
-                if gone is not None:
-                    self.router.remove(gone)
-                continue
-            asked = session.part_of.get(index, entry)  # an action's part: the action
-            why = refusal(session.policy, asked, keyless) if session.policy is not None else None
-            missing = not_installed(asked.type) if why is None else None
-            if missing is not None:  # this entry alone: the client's others are served
-                why = (f"{asked.remote}: its type {asked.type} is not installed on the "
-                       f"server: {missing}")
-            if why is not None:
-                session.refused[index] = why
-                route = session.by_index.pop(index, None)
-                if route is not None:
-                    self.router.remove(route)
-                continue
-            session.refused.pop(index, None)
-            goals = self._goals(session, index, keyless)
-            if index in session.by_index:
-                if (index in session.owned) == (goals is not None):
-                    continue
-                self.router.remove(session.by_index.pop(index))
-            if isinstance(entry, TopicConfig):
-                p: TopicSpec | ServiceSpec = resolver.topic(flipped(entry), index, "topics", error)
-            else:
-                p = resolver.service(flipped(entry), index - topics, "services", error)
-            session.by_index[index] = self._route(session, p, goals)
-            if index in session.made_by:
-                log.info("client %r: its pattern %s found %s (%s): bridged", session.name,
-                         session.made_by[index], p.name, entry.type)
-            if goals is None:
-                session.owned.discard(index)
-            else:
-                session.owned.add(index)
-
-    def _topic_id(self, session: Session, p: TopicSpec | ServiceSpec) -> int:
-        """Derived from the client's name and the entry, so a returning client gets the ids it
-        had even from a restarted server; the next free one on a collision."""
-        used = {r.topic_id for r in self.router.snapshot()} | {r.topic_id for r in session.routes}
-        topic_id = topic_id_for(f"{session.name}\0{p.config.direction}\0{p.name}")
-        while topic_id in used or topic_id == envelope.CONTROL_TOPIC:
-            topic_id = (topic_id + 1) & 0xFFFFFFFF
-        return topic_id
-
-    def _goals(self, session: Session, index: int, keyless: set[str]) -> Goals | None:
-        """The record of goals of the action an entry is part of, when the client sends goals
-        and may use only its own (None: not an action's part, an action it serves, or one its
-        rule says is ``shared``)."""
-        action = session.part_of.get(index)
-        if (action is None or action.direction is not Direction.TRANSMIT
-                or session.policy is not None and shared(session.policy, action, keyless)):
-            return None
-        with self._lock:
-            return self.goals.setdefault(action.remote, Goals())
-
-    def _route(self, session: Session, p: TopicSpec | ServiceSpec,
-               goals: Goals | None = None) -> Route:
-        t, port = p.config, p.config.port
-        way = "to" if t.direction is Direction.TRANSMIT else "from"
-        link: Link
-        destination = self._no_address  # a stream link has one far side
-        if not isinstance(p.transport, StreamTransport):
-            link = self.datagram_link(p.transport, p.address, owner=session, sources=self.clients)
-            destination = partial(session.addresses.get, link)  # where the client said hello
-        elif port is None:
-            link = session.main
-        else:
-            self.listen(p.transport, p.address, self._dedicated_frame(port),
-                        handshake=self.handshake, untrusted=self.untrusted, owner=session)
-            if port not in session.streams:
-                session.streams[port] = self.bridge.slot(f"port {port} of {session.name}")
-            link = session.streams[port]
-        keys = None if session.schedule is None else session_keys(  # None: the file's cipher
-            session.schedule, p, p.name, "s2c", "c2s")
-        interface = p.msg_type if isinstance(p, TopicSpec) else p.srv_type
-        own = None if goals is None else client_goals(goals, session.name, p.name, interface,
-                                                      p.codec_cls.raw)
-        return self.router.route(p, self._topic_id(session, p), f"{p.name} ({way} {session.name})",
-                                 link, destination, keys, goals=own, mirror=True)
-
-    @staticmethod
-    def _no_address() -> Address | None:
-        return None
-
-    def _dedicated_frame(self, port: int) -> Any:
-        """What frames on a dedicated stream port go to: the first says whose it is."""
-        def on_frame(frame: bytes, link: Link, source: Address) -> None:
-            try:
-                header = envelope.unpack(frame)
-            except envelope.EnvelopeError:
-                header = None
-            if header is not None and header.flags & envelope.FLAG_HELLO:
-                session = self.sessions.get(header.topic_id)
-                slot = session.streams.get(port) if session is not None else None
-                if (session is not None and slot is not None and isinstance(link, StreamLink)
-                        and self._hello_is_genuine(session, header, frame, link)):
-                    old = slot.current
-                    link.trust()
-                    slot.attach(link)
-                    if old is not None and old is not link:
-                        old.fail("the client connected again")
-                else:
-                    self.router.link_drop(link, Drop.BAD_HELLO, f"from {source}")
-                return
-            self.router.on_frame(frame, link, source)
-
-        return on_frame
-
-    def _hello_is_genuine(self, session: Session, header: envelope.Header, frame: bytes,
-                          link: Link) -> bool:
-        """A hello sealed in the session (and, on a stream, over a handshake with the
-        session's client key), or, without identities, carrying the session's token."""
-        if session.schedule is None:
-            return frame[envelope.SIZE:] == session.token
-        if isinstance(link, StreamLink):
-            connection = link.connection
-            if (not isinstance(connection, SecureConnection) or session.policy is None
-                    or connection.peer_key != session.policy.key):
-                return False
-        return (open_hello(session.schedule, header, frame)
-                and session.hellos.accept(header.epoch, header.seq) is None)
-
-    def on_hello(self, header: envelope.Header, frame: bytes, link: Link, source: Address) -> None:
-        """A datagram hello: the client's address on this link, learnt only from a genuine one."""
-        session = self.sessions.get(header.topic_id)
-        if session is None or not self._hello_is_genuine(session, header, frame, link):
-            self.router.link_drop(link, Drop.BAD_HELLO, f"from {source}")
-            return
-        if isinstance(link, DatagramLink):  # (hellos of several links share one sequence)
-            self._found_at(session, link, source)
-
-    def on_heard(self, route: Route, header: envelope.Header, link: Link,
-                 source: Address) -> None:
-        """A topic's frame opened under its key and new to its replay window, from ``source``:
-        when that is not where its client was, the client moved (a roam, a NAT's new port), and
-        is answered there from now on. A forged frame does not open, a replayed one is not new:
-        neither moves anyone (WireGuard's rule); nor does one overtaken on the way by a newer
-        one (sent from where the client was just before). A frame anyone could have made (no
-        session keys: ``insecure: true``) moves nobody either: there only hellos do."""
-        if self.clients.knows(source) or not isinstance(link, DatagramLink) \
-                or not route.keys.authenticates or not _newest(route.taken(), header):
-            return
-        with self._lock:
-            session = next((s for s in self.sessions.values()
-                            if any(r is route for r in s.by_index.values())), None)
-        if session is not None:
-            self._found_at(session, link, source)
-
-    def _found_at(self, session: Session, link: DatagramLink, source: Address) -> None:
-        """Where ``session``'s client is on ``link``, from a genuine hello or frame."""
-        with self._lock:
-            old = session.addresses.get(link)
-            if old == source or session.id not in self.sessions:
-                return
-            if old is not None:
-                self.clients.forget(old)
-            self.clients.learn(source)
-            session.addresses[link] = source
-        if old is not None:  # what waits for an acknowledgement from there goes here now
-            link.moved(old, source)
-        self.router.resync(session.routes)  # its latched topics, now that it hears us
-        if old is None:
-            log.debug("client %r is at %s on %s", session.name, source, link.name)
-        else:
-            log.info("client %r moved from %s to %s on %s", session.name, f"{old[0]}:{old[1]}",
-                     f"{source[0]}:{source[1]}", link.name)
-
-    def _end(self, session: Session) -> None:
-        with self._lock:
-            if self.sessions.pop(session.id, None) is None:
-                return
-        self._drop_routes(session)
-
-    def _drop_routes(self, session: Session) -> None:
-        if not self.life.stopping.is_set():  # at shutdown the engine logs every route itself
-            self.router.log_stats(session.routes)  # what this client's topics carried, at the end
-        for route in session.routes:
-            self.router.remove(route)
-        session.by_index.clear()
-        session.close()
-        for address in session.addresses.values():
-            self.clients.forget(address)
-        session.addresses.clear()
-        self.release(session)  # its ports, unless another session uses them
 
     # -- a new policy (SIGHUP) ---------------------------------------------------------------
     def reload(self, clients: dict[str, ClientPolicy]) -> None:
@@ -733,7 +300,3 @@ class ServerRole(Role):
                                 session.name, cfg.session_timeout)
                     self._end(session)
 
-
-def _newest(taken: dict[int, int], header: envelope.Header) -> bool:
-    """Whether a frame just taken is the newest of its epoch (not a late one)."""
-    return taken.get(header.epoch) == header.seq

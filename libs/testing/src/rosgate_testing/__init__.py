@@ -40,7 +40,7 @@ What each suite checks (every check uses real sockets, real message classes, rea
   is honoured; idle receive and accept return ``None``; when the far end closes, receive
   returns ``b""`` and send raises ``OSError``; ``close`` ends a blocked receive; connecting to
   nobody raises ``OSError``; frames cross whole and in order through
-  :class:`rosgate.streamlink.StreamLink`, whose ``on_close`` fires when the far end vanishes.
+  :class:`rosgate.streamlink.link.StreamLink`, whose ``on_close`` fires when the far end vanishes.
 * :class:`CodecConformance` — a round trip of every ROS field kind the installed message
   packages offer (:func:`samples`; raw codecs round-trip the serialized CDR byte for byte), and
   seeded garbage answered by a message of the right type or :class:`rosgate.CodecError`, never

@@ -14,7 +14,7 @@ from rosgate import Address, DatagramTransport, StreamConnection, StreamTranspor
 from rosgate.links import DatagramLink
 from rosgate.options import parse
 from rosgate.packetizer import own_packetizer
-from rosgate.streamlink import StreamLink
+from rosgate.streamlink.link import StreamLink
 
 from .helpers import (
     TIMEOUT,

@@ -1,42 +1,28 @@
-"""Stream links: a :class:`StreamLink` is one connection (TCP, RFCOMM, a Noise channel over
-either), its frames length-prefixed, long ones in chunks, sent through the link's scheduler as a
-datagram link's are (:mod:`rosgate.links`); a :class:`LinkSlot` is the place a route sends
-through while connections come and go, and a :class:`Connector` keeps it filled.
+"""One stream connection (TCP, RFCOMM, a Noise channel over either) as a link: its frames written
+as stream records — one length-prefixed record, or chunks of one message when long (formats:
+:mod:`rosgate.wire.framing`) — through the link's scheduler, as a datagram link's are
+(:mod:`rosgate.links`); read back by a thread of its own (:class:`StreamReader`), held to what an
+untrusted connection may do until its owner trusts it.
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
-import random
-import threading
 import time
-from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import suppress
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import cast
 
-from .admission import proven
-from .config import LinkConfig
-from .drops import Drop, Reason
-from .errors import LinkError
-from .links import (
-    POLL,
-    SENT_INLINE,
-    FrameHandler,
-    Lifetime,
-    Link,
-    LinkCounters,
-    LostHandler,
-    Sender,
-    _Sending,
-)
-from .scheduler import Due, Outgoing
-from .transport import Address, StreamConnection, StreamTransport, Transport
-from .warn import BUGS
-from .wire import envelope
-from .wire.framing import (
+from ..admission import proven
+from ..config import LinkConfig
+from ..drops import Drop
+from ..links import POLL, SENT_INLINE, FrameHandler, Link, LostHandler, Sender, _Sending
+from ..scheduler import Due, Outgoing
+from ..transport import Address, StreamConnection
+from ..warn import BUGS
+from ..wire.framing import (
     CHUNK,
     CHUNK_HEAD,
     CHUNK_LENGTH,
@@ -53,15 +39,6 @@ from .wire.framing import (
 log = logging.getLogger("rosgate")
 
 WRITE = 64 * 1024  # bytes a stream link's writer gathers into one write, at most
-CONNECT_TIMEOUT = 5.0
-#: seconds between two checks that a connection's local address is still this host's (a roam)
-ADDRESS_CHECK = 0.25
-#: seconds a slot keeps a reliable frame it wrote, to write it again on the next connection when
-#: the far side says it never got it (a connection dies with what its buffers held)
-RESEND_WITHIN = 10.0
-
-#: what the far side of a slot took: topic id -> epoch -> the newest sequence number
-Taken = dict[int, dict[int, int]]
 
 
 def length_prefixed(frame: bytes) -> bytes:
@@ -407,260 +384,6 @@ class StreamLink(_Sending, Link):
     def _close_io(self) -> None:
         with suppress(OSError):
             self.connection.close()
-
-
-@dataclass(frozen=True)
-class QueueLimits:
-    """How much a :class:`LinkSlot` holds for reliable topics while it has no connection."""
-
-    frames: int
-    bytes: int
-
-
-class LinkSlot(Link):
-    """A stream link that comes and goes: a :class:`Connector` (or a server that accepted the
-    peer again) :meth:`attach`-es each new connection. While there is none, frames of reliable
-    senders wait, oldest dropped first past the limits (``queue_full``), and go to the next
-    connection first; other frames are counted ``link_down``. Frames handed to a connection
-    that then fails are lost, unless the slot ``resends`` (a main line, whose handshake says
-    what each side took): then they are kept a while (:data:`RESEND_WITHIN`, within the same
-    limits), and the next connection of the same session writes again those the far side says
-    it did not take (:meth:`attach`), before what waited."""
-
-    def __init__(self, name: str, limits: QueueLimits, resends: bool = False):
-        self.name = name
-        self.limits = limits
-        self.resends = resends
-        self.current: StreamLink | None = None
-        self.closed = threading.Event()
-        self._waiting: deque[tuple[bytes, Sender]] = deque()
-        self._waiting_bytes = 0
-        self._written: deque[tuple[bytes, Sender, float]] = deque()  # reliable, maybe in flight
-        self._written_bytes = 0
-        self._lock = threading.Lock()  # keeps sends and the flush of the queue in order
-
-    def send_all(self, frames: list[bytes], sender: Sender, to: Address | None = None) -> int:
-        overflow: list[Sender] = []
-        with self._lock:
-            link = self.current
-            if link is not None and not link.closed.is_set():
-                if self.resends and sender.delivery.reliable:
-                    self._wrote(frames, sender)
-                return link.send_all(frames, sender)
-            refused = self.closed.is_set() or not sender.delivery.reliable
-            if not refused:
-                for frame in frames:
-                    self._waiting.append((frame, sender))
-                    self._waiting_bytes += len(frame)
-                while self._waiting and (len(self._waiting) > self.limits.frames
-                                         or self._waiting_bytes > self.limits.bytes):
-                    old, old_sender = self._waiting.popleft()
-                    self._waiting_bytes -= len(old)
-                    overflow.append(old_sender)
-        for old_sender in overflow:
-            old_sender.drop(Drop.QUEUE_FULL, f"{self.name} is down and its queue is full")
-        if refused:
-            for _ in frames:
-                sender.drop(Drop.LINK_DOWN, f"{self.name} is down")
-            return 0
-        return len(frames)
-
-    def _wrote(self, frames: list[bytes], sender: Sender) -> None:
-        """Keep reliable frames handed to a connection (under the lock), the oldest forgotten
-        past the limits and :data:`RESEND_WITHIN`."""
-        now, written = time.monotonic(), self._written
-        for frame in frames:
-            written.append((frame, sender, now))
-            self._written_bytes += len(frame)
-        limits, since = self.limits, now - RESEND_WITHIN
-        while written and (len(written) > limits.frames or self._written_bytes > limits.bytes
-                           or written[0][2] < since):
-            self._written_bytes -= len(written.popleft()[0])
-
-    def attach(self, link: StreamLink, taken: Taken | None = None) -> None:
-        """Use ``link`` from now on; what waited goes first. ``taken``: what the far side
-        says it took of this session's topics (a connection of the same session, again):
-        frames written to the connections before that it did not take go before them."""
-        with self._lock:
-            again: list[tuple[bytes, Sender]] = []
-            if taken is not None:  # else nothing is known of what the far side took
-                again = [(frame, sender) for frame, sender, _ in self._written
-                         if _untaken(frame, taken)]
-                self._written.clear()
-                self._written_bytes = 0
-            for frame, sender in [*again, *self._waiting]:
-                if self.resends:
-                    self._wrote([frame], sender)
-                link.send(frame, sender)
-            self._waiting.clear()
-            self._waiting_bytes = 0
-            self.current = link
-        if again:
-            log.info("%s: %d frame(s) the far side did not get written again", self.name,
-                     len(again))
-
-    def forget_written(self) -> None:
-        """A new session: what the last one wrote means nothing to it."""
-        with self._lock:
-            self._written.clear()
-            self._written_bytes = 0
-
-    def discard(self, reason: Reason) -> None:
-        """Drop what waits (its topic ids mean nothing to a new session), counted by ``reason``."""
-        with self._lock:
-            senders = [sender for _, sender in self._waiting]
-            self._waiting.clear()
-            self._waiting_bytes = 0
-        for sender in senders:
-            sender.drop(reason)
-
-    @property
-    def waiting(self) -> int:
-        return len(self._waiting)
-
-    def forget(self, sender: Any) -> None:
-        link = self.current
-        if link is not None:
-            link.forget(sender)
-
-    def queue_depth(self, sender: Any) -> int:
-        """Messages of ``sender`` waiting here while the link is down, or in its connection."""
-        with self._lock:
-            held = sum(1 for _, s in self._waiting if s is sender)
-            link = self.current
-        return held + (link.queue_depth(sender) if link is not None else 0)
-
-    @property
-    def counters(self) -> LinkCounters:  # type: ignore[override]  # the connection's, read-only
-        link = self.current
-        return link.counters if link is not None else LinkCounters()
-
-    def close(self) -> None:
-        self.closed.set()
-        self.discard(Drop.LINK_DOWN)
-        if self.current is not None:
-            self.current.close()
-
-
-def _untaken(frame: bytes, taken: Taken) -> bool:
-    """Whether ``frame`` is a topic's message its far side has not taken (a topic it says
-    nothing of, and anything else, is never written again)."""
-    try:
-        header = envelope.unpack(frame)
-    except envelope.EnvelopeError:
-        return False
-    newest = taken.get(header.topic_id)
-    if newest is None or header.flags & _NOT_MESSAGE:
-        return False
-    top = newest.get(header.epoch)
-    return top is None or header.seq > top
-
-
-_NOT_MESSAGE = (envelope.FLAG_CONTROL | envelope.FLAG_HELLO | envelope.FLAG_REQUEST
-                | envelope.FLAG_REPLY | envelope.FLAG_ANNOUNCE)
-
-
-@dataclass(frozen=True)
-class Backoff:
-    """Seconds between reconnection attempts: from ``min``, doubling up to ``max``, jittered."""
-
-    min: float
-    max: float
-
-    def delay(self, failures: int) -> float:
-        return min(self.min * 2 ** (failures - 1), self.max) * random.uniform(0.5, 1.0)
-
-
-@dataclass(eq=False)
-class Connector:
-    """Keeps a stream connection up: connects, and after every loss reconnects by itself, with
-    capped exponential backoff and jitter (a fleet of clients does not hammer a server that
-    comes back); after a connection that worked is lost, at once. ``on_connected(link)`` may
-    refuse a connection (a failed handshake: a failed attempt); ``on_lost(link)`` hears of
-    every accepted connection that ended; ``on_closing(link)`` hears of every connection that
-    starts closing (accepted or refused) at once, on the thread that closes it."""
-
-    transport: Transport
-    address: Address
-    slot: LinkSlot
-    on_frame: FrameHandler
-    on_frame_lost: LostHandler
-    life: Lifetime
-    backoff: Backoff
-    on_connected: Callable[[StreamLink], bool] | None = None
-    on_lost: Callable[[StreamLink], None] | None = None
-    secure: Callable[[StreamConnection], StreamConnection] | None = None
-    budget: LinkConfig | None = None
-    on_closing: Callable[[StreamLink], None] | None = None
-
-    def __post_init__(self) -> None:
-        self._last_failure = ""
-        self._thread = threading.Thread(target=self._loop, name=f"connect-{self.slot.name}",
-                                        daemon=True)
-        self.life.closing(self)
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def _loop(self) -> None:
-        stopping = self.life.stopping
-        failures = 0
-        while not stopping.is_set() and not self.slot.closed.is_set():
-            link = self._connect()
-            if link is None:
-                failures += 1
-                stopping.wait(self.backoff.delay(failures))
-                continue
-            failures = 0
-            self._last_failure = ""
-            self.slot.attach(link)
-            gone = getattr(link.connection, "address_gone", None)
-            while not link.closed.wait(ADDRESS_CHECK):
-                if stopping.is_set() or self.slot.closed.is_set():
-                    break
-                if gone is not None and gone():  # it roamed: the connection is dead already
-                    link.fail("this host no longer has the address it connected from")
-            if stopping.is_set() and not self.slot.closed.is_set():
-                return  # the role may have a last word (bye); closing the slot closes the link
-            link.close()
-            if self.on_lost is not None and not stopping.is_set():
-                self.on_lost(link)
-
-    def _connect(self) -> StreamLink | None:
-        """One attempt: a connection its owner accepted, or None."""
-        assert isinstance(self.transport, StreamTransport)
-        try:
-            connection = self.transport.connect(self.address, CONNECT_TIMEOUT)
-        except (OSError, LinkError) as exc:
-            log.debug("%s: connect failed: %s", self.slot.name, exc)
-            return None
-        if self.secure is not None:
-            try:
-                connection = self.secure(connection)
-            except LinkError as exc:
-                connection.close()
-                self.failed(exc)
-                return None
-        link = self.life.closing(StreamLink(connection, self.slot.name, self.address,
-                                            self.on_frame, self.on_frame_lost,
-                                            on_close=self.life.forget,
-                                            on_closing=self.on_closing, budget=self.budget))
-        if self.on_connected is not None and not self.on_connected(link):
-            link.close()
-            return None
-        return link
-
-    def failed(self, exc: LinkError) -> None:
-        """A connection that opened but was refused (its handshake failed): said once, until a
-        connection works again."""
-        if str(exc) != self._last_failure:
-            self._last_failure = str(exc)
-            log.warning("%s: %s", self.slot.name, exc)
-
-    def close(self) -> None:
-        self.slot.close()
-        if self._thread.is_alive() and threading.current_thread() is not self._thread:
-            self._thread.join(timeout=3)
 
 
 def _one(packet: bytes) -> Callable[[], list[bytes]]:
