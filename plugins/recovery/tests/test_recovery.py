@@ -269,6 +269,30 @@ def test_a_frame_lost_whole_is_sent_again_once_three_later_ones_are_acknowledged
     assert store.probes(0.014) == []  # once: after that, its probe timeout backs off
 
 
+def test_the_probe_timeout_follows_how_much_the_round_trip_varies():
+    """A slow line's acknowledgements come at 10 ms mostly and at 200 ms one time in five (its
+    queue comes and goes): a frame is not probed before a slow acknowledgement is due (the
+    timeout takes four deviations of the round trip, RFC 6298's), so it is not sent twice for
+    nothing. On a steady line the timeout stays short. With twice the smoothed round trip alone
+    the timeout was ~0.1-0.17 s there, and every slow acknowledgement came after a probe."""
+    def trained(delays: list[float]) -> tuple[RetransmitStore, float]:
+        store, now = RetransmitStore(), 0.0
+        for fid, delay in enumerate(delays, 1):
+            store.keep("b", fid, [b"p%d" % fid], "route", now)
+            store.sent("b", fid, now)
+            store.on_ack("b", recovery.ack([fid]), now + delay)
+            now += 0.3
+        store.keep("b", 999, [b"last"], "route", now)
+        store.sent("b", 999, now)
+        return store, now
+
+    slow, sent = trained([0.2 if n % 5 == 0 else 0.01 for n in range(40)])
+    assert slow.probes(sent + 0.2) == []  # a slow acknowledgement is on its way, not a loss
+    assert slow.probes(sent + 0.6) == [("route", "b", b"last")]
+    steady, sent = trained([0.01] * 40)
+    assert steady.probes(sent + 0.05) == [("route", "b", b"last")]
+
+
 def test_a_nack_is_answered_only_for_the_address_the_frame_went_to():
     store = RetransmitStore()
     store.keep(("10.0.0.2", 1), 5, [b"p0", b"p1"], "route", 0.0)

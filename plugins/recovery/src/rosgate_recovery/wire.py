@@ -568,7 +568,10 @@ class RetransmitStore:
         self.max_bytes = max_bytes
         self._kept: OrderedDict[tuple[Any, int], _Kept] = OrderedDict()
         self._bytes = 0
+        #: per destination: the smoothed round trip and its mean deviation (RFC 6298's SRTT
+        #: and RTTVAR), from frames acknowledged without a probe
         self._rtt: dict[Any, float] = {}
+        self._rttvar: dict[Any, float] = {}
         self._answered: set[Any] = set()  # destinations that ever acknowledged a frame
         #: no probe or deadline is due before this (a bound, not exact: an acknowledged frame
         #: leaves it as it was); None: nothing sent is kept
@@ -600,7 +603,14 @@ class RetransmitStore:
             self._soon(kept.probe_at)
 
     def _pto(self, to: Any) -> float:
-        return max(2 * self._rtt.get(to, RTT_INITIAL) + 0.01, 0.03)
+        """The probe timeout: the smoothed round trip, four deviations of it (a line whose
+        queue comes and goes, as a slow serial line's does, is not probed at each slow
+        acknowledgement) and the most an ACK is held back (:data:`ACK_EVERY` + ACK_LATE);
+        30 ms at least."""
+        rtt = self._rtt.get(to)
+        if rtt is None:
+            return 2 * RTT_INITIAL + 0.01
+        return max(rtt + 4 * self._rttvar.get(to, rtt / 2) + ACK_EVERY + ACK_LATE, 0.03)
 
     def on_nack(self, to: Any, datagram: bytes | memoryview) -> tuple[Any, list[bytes]] | None:
         """(owner, fragments to send again) for a NACK from ``to``; None when the frame is not
@@ -628,9 +638,12 @@ class RetransmitStore:
             if kept is None:
                 continue
             if kept.last_sent is not None and not kept.probes:
-                rtt = self._rtt.get(to)
-                sample = now - kept.last_sent
-                self._rtt[to] = sample if rtt is None else 0.8 * rtt + 0.2 * sample
+                rtt, sample = self._rtt.get(to), now - kept.last_sent
+                if rtt is None:
+                    self._rtt[to], self._rttvar[to] = sample, sample / 2
+                else:
+                    self._rttvar[to] = 0.75 * self._rttvar[to] + 0.25 * abs(rtt - sample)
+                    self._rtt[to] = 0.875 * rtt + 0.125 * sample
             self._forget((to, fid))
             if kept.last_sent is not None:
                 self._overtaken(to, kept.last_sent, now)
@@ -664,6 +677,7 @@ class RetransmitStore:
             self._kept[(new, fid)] = kept
         if old in self._rtt:
             self._rtt[new] = self._rtt.pop(old)
+            self._rttvar[new] = self._rttvar.pop(old)
 
     def resumed(self, down: float, now: float) -> None:
         """The line was gone for ``down`` seconds: every frame kept waits that much longer for
