@@ -47,15 +47,19 @@ SIZE = next(s for s in SIZES if s.name == "2.5 kB")
 
 # a sitecustomize for the bridges (--probe): ages per hop, written when the bridge exits
 PROBE = textwrap.dedent('''
-    import atexit, json, os, sys, time
+    import atexit, json, os, struct, sys, time
     if "rosgate" in os.path.basename(sys.argv[0] if sys.argv else ""):
         from rosgate import routes
         from collections import defaultdict
         ages = defaultdict(lambda: defaultdict(list))  # trial -> hop -> ages (ns)
+        twist = defaultdict(lambda: defaultdict(list))  # the Twist's, by the bulk's trial
+        TWIST_CDR = 4 + 6 * 8  # a Twist's CDR: the encapsulation header, six doubles
         last = [0]
 
         def stamp(data):
             "The publisher's send time, and the trial's ages (by the trial it names)."
+            if len(data) == TWIST_CDR:  # --twist: its send time (s) in linear.x
+                return int(struct.unpack_from("<d", data, 4)[0] * 1e9), twist[last[0]]
             try:
                 sent, trial = int(bytes(data[8:24]), 16), int(bytes(data[24:32]), 16)
             except ValueError:
@@ -91,7 +95,9 @@ PROBE = textwrap.dedent('''
         def write():
             out = os.environ["ROSGATE_PROBE_OUT"] + f".{os.getpid()}.json"
             with open(out, "w") as f:
-                json.dump(ages.get(last[0], {}), f)  # the last trial's: the overload
+                found = dict(ages.get(last[0], {}))  # the last trial's: the overload
+                found.update({f"twist: {hop}": v for hop, v in twist.get(last[0], {}).items()})
+                json.dump(found, f)
         atexit.register(write)
 ''')
 
@@ -243,6 +249,9 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0)
     parser.add_argument("--base", help="also run REV's rosgate, first, at the same rate")
     parser.add_argument("--probe", action="store_true", help="ages per hop in the bridges")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="run the trials this many times, --base and this checkout taking "
+                        "turns at going first (the machine's load drifts)")
     parser.add_argument("--twist", action="store_true",
                         help="a 20 Hz Twist beside it, priority real_time: its age")
     args = parser.parse_args()
@@ -269,12 +278,15 @@ def main() -> None:
         rates = [("2x sustained", OVERLOAD * sustained)]
         if args.check:
             rates.append((f"{DROP_CHECK:g}x sustained", DROP_CHECK * sustained))
-        for name, rate in rates:
-            for checkout in checkouts:  # back to back: the same load
+        for round_, (name, rate) in enumerate(
+                [(name, rate) for _ in range(args.repeat) for name, rate in rates]):
+            # back to back: the same load; in turns, first one, then the other first
+            for checkout in checkouts[::-1] if round_ % 2 else checkouts:
                 label = f"@{checkout.rev}" if checkout.rev else "this checkout"
                 found = trial(checkout, folder / (checkout.rev or "here"), rate, args.seconds,
                               probe)
-                print(f"== {SIZE.name} default file, best effort, {label}, {name}: "
+                print(f"== {SIZE.name} default file, best effort, {label}, {name} "
+                      f"(round {round_ + 1}): "
                       f"{rate:,.0f} msg/s")
                 for key, value in found.items():
                     print(f"  {key}: {value}")
