@@ -16,11 +16,14 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .batch import Batches
 from .errors import CodecError
 from .options import did_you_mean
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
 
 _log = logging.getLogger("rosgate")
 
@@ -373,16 +376,16 @@ class RosNode:
         #: the batch windows of its subscriptions, closed on the executor's thread
         self.batches = self._spinner.batches
         #: the real_time topics' node and its spinner, once one subscribes
-        self._urgent: tuple[Any, _Spinner] | None = None
+        self._urgent: tuple[Node, _Spinner] | None = None
         self._urgent_lock = threading.Lock()
 
-    def _new_node(self, name: str) -> Any:
+    def _new_node(self, name: str) -> Node:
         import rclpy
 
         return rclpy.create_node(name, context=self.context, start_parameter_services=False,
                                  namespace=self._namespace)
 
-    def _urgent_node(self) -> tuple[Any, _Spinner]:
+    def _urgent_node(self) -> tuple[Node, _Spinner]:
         with self._urgent_lock:
             if self._urgent is None:
                 node = self._new_node(f"{self._name}_real_time")
