@@ -2,7 +2,7 @@
 its sustained rate, and where its messages wait on the way.
 
     .venv/bin/python bench/fresh.py [--sustained MSG/S] [--seconds S] [--base REV] [--check]
-                                    [--probe]
+                                    [--twist] [--twist-port] [--probe] [--repeat N]
 
 It finds the sustained rate of the default file with every queue best effort (a short search,
 as ``bench.py --quick``), then offers twice that in fresh processes and reports, of what the
@@ -28,7 +28,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from processes import ROOT, Checkout, bringup_files, next_domains, ros_env
+from processes import ROOT, Checkout, bringup_files, free_port, next_domains, ros_env
 
 import bench
 from bench import (
@@ -132,18 +132,19 @@ TWIST_SUB = textwrap.dedent('''
 ''')
 
 
-def with_twist(write):
+def with_twist(write, own_port: bool = False):
     """bringup_files, with a Twist (/cmd_vel, priority real_time) beside the topic: in the
-    client's list and in what the server lets it bridge."""
+    client's list and in what the server lets it bridge (``own_port``: on a port of its own)."""
     def files(*args, **kwargs):
         a, b = write(*args, **kwargs)
+        port = free_port() if own_port else None
         twist = ("  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, "
-                 "qos: 10, priority: real_time}\n")
+                 f"qos: 10, priority: real_time{f', port: {port}' if port else ''}}}\n")
         a.write_text(a.read_text() + twist)
         b.write_text(b.read_text().replace(
             "topics: [{name: /bench, direction: transmit}]",
             "topics: [{name: /bench, direction: transmit}, "
-            "{name: /cmd_vel, direction: transmit}]"))
+            f"{{name: /cmd_vel, direction: transmit{f', ports: [{port}]' if port else ''}}}]"))
         return a, b
     return files
 
@@ -254,12 +255,14 @@ def main() -> None:
                         "turns at going first (the machine's load drifts)")
     parser.add_argument("--twist", action="store_true",
                         help="a 20 Hz Twist beside it, priority real_time: its age")
+    parser.add_argument("--twist-port", action="store_true",
+                        help="the Twist on a port of its own (a socket of its own on each side)")
     args = parser.parse_args()
     global TWIST
-    TWIST = args.twist
+    TWIST = args.twist or args.twist_port
     bench.next_domains = _domains
-    if args.twist:
-        bench.bringup_files = with_twist(bringup_files)
+    if TWIST:
+        bench.bringup_files = with_twist(bringup_files, args.twist_port)
     with tempfile.TemporaryDirectory(prefix="rosgate-fresh-") as tmp:
         folder = Path(tmp)
         probe = None
