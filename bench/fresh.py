@@ -2,7 +2,7 @@
 its sustained rate, and where its messages wait on the way.
 
     .venv/bin/python bench/fresh.py [--sustained MSG/S] [--seconds S] [--base REV] [--check]
-                                    [--probe]
+                                    [--twist] [--twist-port] [--probe] [--repeat N]
 
 It finds the sustained rate of the default file with every queue best effort (a short search,
 as ``bench.py --quick``), then offers twice that in fresh processes and reports, of what the
@@ -28,7 +28,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from processes import ROOT, Checkout, bringup_files, next_domains, ros_env
+from processes import ROOT, Checkout, bringup_files, free_port, next_domains, ros_env
 
 import bench
 from bench import (
@@ -47,15 +47,19 @@ SIZE = next(s for s in SIZES if s.name == "2.5 kB")
 
 # a sitecustomize for the bridges (--probe): ages per hop, written when the bridge exits
 PROBE = textwrap.dedent('''
-    import atexit, json, os, sys, time
+    import atexit, json, os, struct, sys, time
     if "rosgate" in os.path.basename(sys.argv[0] if sys.argv else ""):
         from rosgate import routes
         from collections import defaultdict
         ages = defaultdict(lambda: defaultdict(list))  # trial -> hop -> ages (ns)
+        twist = defaultdict(lambda: defaultdict(list))  # the Twist's, by the bulk's trial
+        TWIST_CDR = 4 + 6 * 8  # a Twist's CDR: the encapsulation header, six doubles
         last = [0]
 
         def stamp(data):
             "The publisher's send time, and the trial's ages (by the trial it names)."
+            if len(data) == TWIST_CDR:  # --twist: its send time (s) in linear.x
+                return int(struct.unpack_from("<d", data, 4)[0] * 1e9), twist[last[0]]
             try:
                 sent, trial = int(bytes(data[8:24]), 16), int(bytes(data[24:32]), 16)
             except ValueError:
@@ -91,7 +95,9 @@ PROBE = textwrap.dedent('''
         def write():
             out = os.environ["ROSGATE_PROBE_OUT"] + f".{os.getpid()}.json"
             with open(out, "w") as f:
-                json.dump(ages.get(last[0], {}), f)  # the last trial's: the overload
+                found = dict(ages.get(last[0], {}))  # the last trial's: the overload
+                found.update({f"twist: {hop}": v for hop, v in twist.get(last[0], {}).items()})
+                json.dump(found, f)
         atexit.register(write)
 ''')
 
@@ -126,18 +132,19 @@ TWIST_SUB = textwrap.dedent('''
 ''')
 
 
-def with_twist(write):
+def with_twist(write, own_port: bool = False):
     """bringup_files, with a Twist (/cmd_vel, priority real_time) beside the topic: in the
-    client's list and in what the server lets it bridge."""
+    client's list and in what the server lets it bridge (``own_port``: on a port of its own)."""
     def files(*args, **kwargs):
         a, b = write(*args, **kwargs)
+        port = free_port() if own_port else None
         twist = ("  - {topic: /cmd_vel, type: geometry_msgs/msg/Twist, direction: transmit, "
-                 "qos: 10, priority: real_time}\n")
+                 f"qos: 10, priority: real_time{f', port: {port}' if port else ''}}}\n")
         a.write_text(a.read_text() + twist)
         b.write_text(b.read_text().replace(
             "topics: [{name: /bench, direction: transmit}]",
             "topics: [{name: /bench, direction: transmit}, "
-            "{name: /cmd_vel, direction: transmit}]"))
+            f"{{name: /cmd_vel, direction: transmit{f', ports: [{port}]' if port else ''}}}]"))
         return a, b
     return files
 
@@ -243,14 +250,19 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0)
     parser.add_argument("--base", help="also run REV's rosgate, first, at the same rate")
     parser.add_argument("--probe", action="store_true", help="ages per hop in the bridges")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="run the trials this many times, --base and this checkout taking "
+                        "turns at going first (the machine's load drifts)")
     parser.add_argument("--twist", action="store_true",
                         help="a 20 Hz Twist beside it, priority real_time: its age")
+    parser.add_argument("--twist-port", action="store_true",
+                        help="the Twist on a port of its own (a socket of its own on each side)")
     args = parser.parse_args()
     global TWIST
-    TWIST = args.twist
+    TWIST = args.twist or args.twist_port
     bench.next_domains = _domains
-    if args.twist:
-        bench.bringup_files = with_twist(bringup_files)
+    if TWIST:
+        bench.bringup_files = with_twist(bringup_files, args.twist_port)
     with tempfile.TemporaryDirectory(prefix="rosgate-fresh-") as tmp:
         folder = Path(tmp)
         probe = None
@@ -269,12 +281,15 @@ def main() -> None:
         rates = [("2x sustained", OVERLOAD * sustained)]
         if args.check:
             rates.append((f"{DROP_CHECK:g}x sustained", DROP_CHECK * sustained))
-        for name, rate in rates:
-            for checkout in checkouts:  # back to back: the same load
+        for round_, (name, rate) in enumerate(
+                [(name, rate) for _ in range(args.repeat) for name, rate in rates]):
+            # back to back: the same load; in turns, first one, then the other first
+            for checkout in checkouts[::-1] if round_ % 2 else checkouts:
                 label = f"@{checkout.rev}" if checkout.rev else "this checkout"
                 found = trial(checkout, folder / (checkout.rev or "here"), rate, args.seconds,
                               probe)
-                print(f"== {SIZE.name} default file, best effort, {label}, {name}: "
+                print(f"== {SIZE.name} default file, best effort, {label}, {name} "
+                      f"(round {round_ + 1}): "
                       f"{rate:,.0f} msg/s")
                 for key, value in found.items():
                     print(f"  {key}: {value}")

@@ -85,7 +85,8 @@ class Endpoints:
     def listen(self, route: TransmitRoute, qos: int | str | dict[str, Any]) -> None:
         profile = qos_profile(qos) if route.topic.qos_given else relay_profile(qos)
         route.entity = self.ros.subscribe(route.interface, route.topic.topic, profile,
-                                          route.on_message, route.codec.raw)
+                                          route.on_message, route.codec.raw,
+                                          real_time=route.delivery.real_time)
         route.take = self.ros.taker(route.entity)
 
     def _hear(self, route: TransmitRoute) -> bool:

@@ -16,11 +16,14 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .batch import Batches
 from .errors import CodecError
 from .options import did_you_mean
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
 
 _log = logging.getLogger("rosgate")
 
@@ -309,26 +312,19 @@ SPIN = 0.1  # seconds the executor spins before the spinning thread checks for a
 DISCOVERY = 5.0
 
 
-class RosNode:
-    """A node in a context of its own, spun in a background thread."""
+class _Spinner:
+    """An EventsExecutor with one node, spun in a background thread, and the batch windows of
+    the node's subscriptions (closed on that thread)."""
 
-    def __init__(self, name: str, domain_id: int | None = None, namespace: str | None = None):
-        import rclpy
-        from rclpy.context import Context
+    def __init__(self, context: Any, node: Any, name: str):
         from rclpy.experimental import EventsExecutor
 
-        self.context = Context()
-        self.born = time.monotonic()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node(re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{name}"),
-                                      context=self.context, start_parameter_services=False,
-                                      namespace=namespace)
-        self.executor = EventsExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        #: the batch windows of its subscriptions, closed on the executor's thread
+        self.context = context
+        self.executor = EventsExecutor(context=context)
+        self.executor.add_node(node)
         self.batches = Batches()
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._spin, name=f"ros-{name}", daemon=True)
+        self._thread = threading.Thread(target=self._spin, name=name, daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
@@ -352,9 +348,59 @@ class RosNode:
                     return
                 checked = now
 
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.executor.shutdown()
+
+
+class RosNode:
+    """A node in a context of its own, spun in a background thread.
+
+    The subscriptions of ``real_time`` topics belong to a second node in the same context (the
+    same DDS participant), made with the first of them and spun by an executor and a thread of
+    its own: one executor serves its subscriptions in the order their messages came, so a
+    Twist would wait behind every message of a flooded topic that came before it (and a
+    shallow history would overwrite it meanwhile)."""
+
+    def __init__(self, name: str, domain_id: int | None = None, namespace: str | None = None):
+        import rclpy
+        from rclpy.context import Context
+
+        self.context = Context()
+        self.born = time.monotonic()
+        self._name, self._namespace = re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{name}"), namespace
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = self._new_node(self._name)
+        self._spinner = _Spinner(self.context, self.node, f"ros-{name}")
+        #: the batch windows of its subscriptions, closed on the executor's thread
+        self.batches = self._spinner.batches
+        #: the real_time topics' node and its spinner, once one subscribes
+        self._urgent: tuple[Node, _Spinner] | None = None
+        self._urgent_lock = threading.Lock()
+
+    def _new_node(self, name: str) -> Node:
+        import rclpy
+
+        return rclpy.create_node(name, context=self.context, start_parameter_services=False,
+                                 namespace=self._namespace)
+
+    def _urgent_node(self) -> tuple[Node, _Spinner]:
+        with self._urgent_lock:
+            if self._urgent is None:
+                node = self._new_node(f"{self._name}_real_time")
+                self._urgent = node, _Spinner(self.context, node, f"ros-{self._name}-real-time")
+            return self._urgent
+
+    def batches_of(self, real_time: bool) -> Batches:
+        """Where the batch windows of a subscription (of a ``real_time`` topic or not) open."""
+        return self._urgent_node()[1].batches if real_time else self.batches
+
     def subscribe(self, msg_type: type, topic: str, qos: Any, callback: Callable[[Any], None],
-                  raw: bool) -> Any:
-        return self.node.create_subscription(msg_type, topic, callback, qos, raw=raw)
+                  raw: bool, real_time: bool = False) -> Any:
+        """A subscription; a ``real_time`` topic's is served on a thread of its own."""
+        node = self._urgent_node()[0] if real_time else self.node
+        return node.create_subscription(msg_type, topic, callback, qos, raw=raw)
 
     @staticmethod
     def taker(subscription: Any) -> Callable[[], tuple[Any, int] | None]:
@@ -517,12 +563,15 @@ class RosNode:
             self.node.destroy_client(entity)
         elif hasattr(entity, "publish"):
             self.node.destroy_publisher(entity)
-        else:
-            self.node.destroy_subscription(entity)
+        elif not self.node.destroy_subscription(entity) and self._urgent is not None:
+            self._urgent[0].destroy_subscription(entity)
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
-        self.executor.shutdown()
-        self.node.destroy_node()
+        spun = [(self.node, self._spinner)]
+        with self._urgent_lock:
+            spun += [self._urgent] if self._urgent is not None else []
+            self._urgent = None
+        for node, spinner in spun:
+            spinner.close()
+            node.destroy_node()
         self.context.try_shutdown()

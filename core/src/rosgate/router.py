@@ -139,7 +139,7 @@ class Router:
                 qos = route.qos_in_use = route.qos_found or QOS_UNFOUND
             # announced before the first message, or a latched history
             self._start(route, announce and t.framing is Framing.ROSGATE)
-            route.batches = self.ros.batches
+            route.batches = self.ros.batches_of(p.delivery.real_time)
             self.endpoints.listen_when_heard(route)
         else:
             decode: Callable[[bytes], Any] = codec.decode

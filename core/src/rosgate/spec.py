@@ -38,6 +38,12 @@ class Delivery:
     #: ``framing: none``: every frame is a whole datagram, never cut
     whole: bool = False
 
+    @property
+    def real_time(self) -> bool:
+        """Priority ``real_time``: a transmitting topic's subscription is taken on a thread of
+        its own (:class:`rosgate.ros.RosNode`), not behind the other topics' messages."""
+        return self.priority == PRIORITIES["real_time"]
+
 
 #: hellos, pings, handshakes: above every topic's class, never waiting out a link's loss
 CONTROL = Delivery(priority=0)
