@@ -224,6 +224,9 @@ def test_counters_and_the_summary_line_go_on_across_a_new_policy(engines, domain
         assert logs.wait("client 'robot1': the new policy changed its entries", 2, 10)
         count = len(listener.items)
         assert listener.wait_count(count + 50, 20), "nothing crossed after the new policy"
+        # a message may reach the listener before its sender's thread has counted it sent
+        wait_until(lambda: entry(client.status(), "/flow")["sent"]
+                   >= entry(before["robot1"], "/flow")["sent"] + 50, 5)
         after = {"base": server.status(), "robot1": client.status()}
     finally:
         publisher.close()
