@@ -20,7 +20,7 @@ import time
 
 from rosgate_transport_udp import UdpTransport
 
-from rosgate.links import DatagramLink
+from rosgate.links.datagram import DatagramLink
 from rosgate.wire import envelope
 
 

@@ -120,7 +120,7 @@ def read_stacks(raw: Path) -> list[tuple[list[str], int]]:
 
 
 def short_frame(frame: str, roots: list[Path]) -> str:
-    """``name (/long/path/file.py:12)`` -> ``name (rosgate/links.py:12)``; an address in a
+    """``name (/long/path/file.py:12)`` -> ``name (rosgate/links/datagram.py:12)``; an address in a
     library without symbols -> ``[libc.so.6]``; a C function -> ``sendto [libc.so.6]``."""
     name, sep, where = frame.rpartition(" (")
     if not sep:
@@ -143,7 +143,8 @@ def short_path(file: str, roots: list[Path]) -> str:
         prefix = str(root) + "/"
         if file.startswith(prefix):
             rest = file[len(prefix):]
-            # core/src/rosgate/links.py -> rosgate/links.py; plugins/x/src/pkg/m.py -> pkg/m.py
+            # core/src/rosgate/links/base.py -> rosgate/links/base.py,
+            # plugins/x/src/pkg/m.py -> pkg/m.py
             return rest.split("/src/", 1)[1] if "/src/" in rest else rest
     match = re.search(r"/lib/python3\.\d+/(.*)$", file)
     if match:

@@ -462,7 +462,7 @@ def test_a_client_back_at_once_waits_for_its_last_sessions_udp_port_to_close(
     port its ended session is still closing once it is closed, not into "address in use"."""
     import threading
 
-    from rosgate.links import DatagramLink
+    from rosgate.links.datagram import DatagramLink
 
     ds, dc, port = domain(), domain(), free_port()
     server = engines(f"bridge: {{name: base, role: server, server: 127.0.0.1:{port}, {FAST}}}", ds)

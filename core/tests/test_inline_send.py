@@ -20,7 +20,8 @@ from polling import settles
 from rosgate_transport_udp import UdpEndpoint, UdpTransport
 
 from rosgate.config import LinkConfig
-from rosgate.links import INLINE_MAX, DatagramLink
+from rosgate.links.datagram import DatagramLink
+from rosgate.links.datagram_base import INLINE_MAX
 from rosgate.spec import Delivery
 from rosgate.wire import envelope, framing
 

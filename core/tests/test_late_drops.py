@@ -29,7 +29,7 @@ from rosgate_transport_udp import UdpTransport
 from rosgate.builtin import CdrCodec, NoCipher
 from rosgate.config import LinkConfig, TopicConfig
 from rosgate.keyring import StaticKeys
-from rosgate.links import DatagramLink
+from rosgate.links.datagram import DatagramLink
 from rosgate.routes import EnvelopeFraming, ReceiveRoute, TransmitRoute, Warner
 from rosgate.scheduler import FRESH, FRESH_HOLD, HOLD, LAG
 from rosgate.spec import Delivery

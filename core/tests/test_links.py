@@ -18,7 +18,7 @@ from rosgate_transport_udp import UdpTransport
 
 from rosgate import builtin
 from rosgate.errors import LinkError
-from rosgate.links import DatagramLink
+from rosgate.links.datagram import DatagramLink
 from rosgate.plugins import Plugins
 from rosgate.spec import Delivery
 from rosgate.streamlink.link import StreamLink, length_prefixed

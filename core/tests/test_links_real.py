@@ -22,7 +22,7 @@ from rosgate_transport_tcp import TcpTransport
 from rosgate_transport_udp import UdpTransport
 
 from rosgate.config import LinkConfig
-from rosgate.links import DatagramLink
+from rosgate.links.datagram import DatagramLink
 from rosgate.plugins import installed
 from rosgate.spec import Delivery
 from rosgate.streamlink.link import StreamLink

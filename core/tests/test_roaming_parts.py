@@ -173,7 +173,7 @@ def test_a_message_the_system_would_not_send_is_repaired_once_there_is_a_route(c
     from rosgate_transport_udp import UdpTransport
     from test_links_real import Receiver, Topic, frame
 
-    from rosgate.links import DatagramLink
+    from rosgate.links.datagram import DatagramLink
 
     transport = UdpTransport({})
     rx = Receiver()

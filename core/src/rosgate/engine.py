@@ -17,7 +17,7 @@ from .bus import BusTransport, Unauthenticated
 from .config import BridgeConfig, Direction, Role, load
 from .discovery import OWN_NAMESPACE
 from .errors import ConfigError, OptionError
-from .links import Lifetime
+from .links.lifetime import Lifetime
 from .monitor import Monitor, Status, Watched
 from .options import parse
 from .plugins import Plugins

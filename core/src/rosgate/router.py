@@ -22,7 +22,7 @@ from .endpoints import Endpoints
 from .errors import CipherError
 from .holdback import Holdback
 from .keyring import Keys, NoKey, StaticKeys
-from .links import Link
+from .links.base import Link
 from .proxies import Proxies
 from .ros import QOS_UNFOUND, RosNode, cdr_checker, type_hash
 from .routes import (

@@ -32,7 +32,7 @@ from .errors import CipherError, CodecError
 from .holdback import Held, Holdback
 from .inorder import Ordered
 from .keyring import Keys, NoKey, StaticKeys
-from .links import Link
+from .links.base import Link
 from .matching import PublishGate
 from .scheduler import FRESH, FRESH_HOLD, Backlog
 from .spec import CONTROL, Delivery
@@ -81,7 +81,7 @@ class Counters:
 
 class Route:
     """A topic's (or service's) path through the bridge in one direction; the
-    :class:`rosgate.links.Sender` of its frames."""
+    :class:`rosgate.links.base.Sender` of its frames."""
 
     #: the sending side of an entry with an envelope: says its type (and QoS) on its link
     announces = False

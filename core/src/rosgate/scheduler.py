@@ -1,7 +1,7 @@
 """The scheduler: in which order, and how fast, frames leave a link (the rules are
 docs/real-links.md's "Priorities", "Latest only", "Late messages" and "Budgets").
 
-Frames queue per topic (the :class:`~rosgate.links.Sender`'s topic id) in priority classes —
+Frames queue per topic (the :class:`~rosgate.links.base.Sender`'s topic id) in priority classes —
 zenoh's seven, and class 0 above them for the control channel — and leave as *packets* (a
 datagram, a fragment, a chunk of a stream): strict priority between classes; within one, the
 packet that has waited longest (so a long message's packets take turns with the others'); one

@@ -22,7 +22,7 @@ from .config import ServiceConfig
 from .drops import Drop, Reason
 from .errors import CodecError
 from .keyring import NoKey
-from .links import Link
+from .links.base import Link
 from .routes import Route, SideSender
 from .transport import Address
 from .warn import BUGS

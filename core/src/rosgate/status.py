@@ -34,7 +34,8 @@ import time
 from typing import Any
 
 from .config import BridgeConfig, ServiceConfig, TopicConfig
-from .links import Lifetime, Link
+from .links.base import Link
+from .links.lifetime import Lifetime
 from .monitor import Status
 from .roles import Role
 from .roles.client import ClientRole

@@ -16,7 +16,9 @@ from ..admission import Acceptor, ConnectionLimits, Sources, proven
 from ..config import BridgeConfig, LinkConfig
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
-from ..links import DatagramLink, FrameHandler, Lifetime, Link, LinkCounters
+from ..links.base import FrameHandler, Link, LinkCounters
+from ..links.datagram import DatagramLink
+from ..links.lifetime import Lifetime
 from ..resolver.plan import Plan, Resolver
 from ..router import Router
 from ..routes import BarePort, Route

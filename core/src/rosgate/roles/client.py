@@ -25,7 +25,8 @@ from ..drops import Drop
 from ..errors import ConfigError, LinkError, RosgateError
 from ..holdback import Holdback
 from ..keyring import NoKey
-from ..links import DatagramLink, Link
+from ..links.base import Link
+from ..links.datagram import DatagramLink
 from ..resolver.entries import PreparedAction
 from ..router import fixed
 from ..routes import Route

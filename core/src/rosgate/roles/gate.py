@@ -18,7 +18,8 @@ from ..admission import ConnectionLimits, KnownSources, RecentHosts, heard
 from ..config import ActionConfig, ClientPolicy, ServiceConfig, TopicConfig
 from ..drops import Drop, Reason
 from ..errors import ConfigError
-from ..links import DatagramLink, Link
+from ..links.base import Link
+from ..links.datagram import DatagramLink
 from ..routes import Route
 from ..runtime import STATE_VARIABLE, private_folder, state_dir
 from ..secure import Busy, HandshakeError, KeySchedule, SecureConnection, UnknownKey, open_hello

@@ -27,7 +27,8 @@ from ..discovery import BusPattern
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys, ReplayRecord, StaticKeys
-from ..links import DatagramLink, Link
+from ..links.base import Link
+from ..links.datagram import DatagramLink
 from ..router import fixed
 from ..routes import ReceiveRoute, Route
 from ..runtime import STATE_VARIABLE, private_folder, state_dir

@@ -43,7 +43,7 @@ from ..drops import Drop
 from ..echo import EchoGuard
 from ..errors import CipherError, ConfigError
 from ..keyring import Keys, NoKey, StaticKeys
-from ..links import Link
+from ..links.base import Link
 from ..router import fixed
 from ..routes import ReceiveRoute, Route, TransmitRoute
 from ..services import CallerRoute, ServerRoute

@@ -25,7 +25,7 @@ from ..config import ClientPolicy
 from ..discovery import LOOK_EVERY, Offers, watched
 from ..drops import Drop
 from ..errors import ConfigError, LinkError
-from ..links import Link
+from ..links.base import Link
 from ..secure import SecureConnection
 from ..services import CallerRoute
 from ..streamlink.link import StreamLink

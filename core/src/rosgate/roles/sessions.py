@@ -17,7 +17,7 @@ from ..config import ClientPolicy, Direction, TopicConfig
 from ..discovery import said_patterns
 from ..drops import Drop
 from ..errors import ConfigError
-from ..links import Link
+from ..links.base import Link
 from ..policy import refusal, shared
 from ..routes import Route
 from ..secure import KeySchedule

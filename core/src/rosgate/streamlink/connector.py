@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 from ..config import LinkConfig
 from ..errors import LinkError
-from ..links import FrameHandler, Lifetime, LostHandler
+from ..links.base import FrameHandler, LostHandler
+from ..links.lifetime import Lifetime
 from ..transport import Address, StreamConnection, StreamTransport, Transport
 from .link import StreamLink
 from .slot import LinkSlot

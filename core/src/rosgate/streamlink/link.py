@@ -18,7 +18,8 @@ from typing import cast
 from ..admission import proven
 from ..config import LinkConfig
 from ..drops import Drop
-from ..links import POLL, SENT_INLINE, FrameHandler, Link, LostHandler, Sender, _Sending
+from ..links.base import POLL, FrameHandler, Link, LostHandler, Sender
+from ..links.datagram import SENT_INLINE, _Sending
 from ..scheduler import Due, Outgoing
 from ..transport import Address, StreamConnection
 from ..warn import BUGS

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..drops import Drop, Reason
-from ..links import Link, LinkCounters, Sender
+from ..links.base import Link, LinkCounters, Sender
 from ..transport import Address
 from ..wire import envelope
 from .link import StreamLink

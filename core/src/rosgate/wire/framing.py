@@ -38,7 +38,7 @@ own, told apart by their first two bytes (other packetizers' magics: :mod:`rosga
       14          chunk
 
 Only formats here: stream records are read and written by :mod:`rosgate.streamlink`, batches by
-:mod:`rosgate.links`.
+:mod:`rosgate.links.datagram`.
 """
 
 from __future__ import annotations

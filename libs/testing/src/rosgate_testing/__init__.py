@@ -34,8 +34,9 @@ What each suite checks (every check uses real sockets, real message classes, rea
   byte-exact, and the source a receive reports can be answered (or, declared unanswerable, the
   sender's known address); boundaries are kept (and order, where declared); an idle receive
   returns ``None``; ``close`` ends a receive blocked in another thread; frames beyond
-  ``max_frame`` cross through the link's own packetizer (:class:`rosgate.links.DatagramLink`:
-  ``fragments``, or ``compact`` pieces below a ``max_frame`` of 256).
+  ``max_frame`` cross through the link's own packetizer
+  (:class:`rosgate.links.datagram.DatagramLink`: ``fragments``, or ``compact`` pieces below a
+  ``max_frame`` of 256).
   Stream links: bytes cross both ways byte-exact (up to 1 MiB, both at once); ``max_bytes``
   is honoured; idle receive and accept return ``None``; when the far end closes, receive
   returns ``b""`` and send raises ``OSError``; ``close`` ends a blocked receive; connecting to

@@ -163,7 +163,7 @@ class Frames:
 
 @dataclass
 class Sender:
-    """A :class:`rosgate.links.Sender` for tests: its drops go to a :class:`Frames`."""
+    """A :class:`rosgate.links.base.Sender` for tests: its drops go to a :class:`Frames`."""
 
     topic_id: int
     reliable: bool

@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 import pytest
 
 from rosgate import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
-from rosgate.links import DatagramLink
+from rosgate.links.datagram import DatagramLink
 from rosgate.options import parse
 from rosgate.packetizer import own_packetizer
 from rosgate.streamlink.link import StreamLink

@@ -29,7 +29,7 @@ from collections.abc import Callable
 from typing import Any
 
 from rosgate import Address, Drop, LinkDrop, Reason
-from rosgate.links import FrameHandler, Link, Sender
+from rosgate.links.base import FrameHandler, Link, Sender
 from rosgate.warn import BUGS
 from rosgate.wire import envelope
 

@@ -28,7 +28,7 @@ from typing import Any
 
 from rosgate import BusPattern, BusRole, BusTransport, ConfigError, Drop, LinkError
 from rosgate.config import BridgeConfig, Direction, Framing, ServiceConfig, TopicConfig
-from rosgate.links import Link
+from rosgate.links.base import Link
 from rosgate.roles import Bridge, NoLink
 from rosgate.routes import ReceiveRoute, Route, TransmitRoute
 from rosgate.services import ServerRoute
