@@ -24,7 +24,8 @@ from .holdback import Holdback
 from .keyring import Keys, NoKey, StaticKeys
 from .links import Link
 from .proxies import Proxies
-from .ros import QOS_UNFOUND, RosNode, cdr_checker, type_hash
+from .ros import RosNode, cdr_checker
+from .rostypes import QOS_UNFOUND, type_hash
 from .routes import (
     BareFraming,
     BarePort,
