@@ -14,7 +14,7 @@ import pytest
 from conftest import free_port, warm_up
 from test_docs import README, quickstart
 
-from rosgate.ros import resolve_type
+from rosgate.rostypes import resolve_type
 
 ROOT = Path(__file__).resolve().parents[1]
 # building 28 wheels and installing rclpy with them takes minutes on a busy machine

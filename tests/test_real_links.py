@@ -163,7 +163,7 @@ def test_latest_only_and_priorities_on_a_budget_count_what_they_replaced(engines
     from geometry_msgs.msg import Twist
     from rosgate_emulator import Profile
 
-    from rosgate.ros import qos_profile
+    from rosgate.rostypes import qos_profile
 
     a, b, da, db, relay = through_relay(
         engines, domain, Profile(delay=0.002),

@@ -15,7 +15,7 @@ from conftest import cross, free_port
 from faults import FaultProxy, UdpRates
 from std_msgs.msg import String
 
-from rosgate.ros import qos_profile
+from rosgate.rostypes import qos_profile
 
 RATE = 20.0  # Hz, each topic
 BEST_EFFORT = {"reliability": "best_effort", "depth": 100}

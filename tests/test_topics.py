@@ -7,7 +7,7 @@ import time
 from conftest import cross, free_port
 from std_msgs.msg import String
 
-from rosgate.ros import is_reliable, qos_profile
+from rosgate.rostypes import is_reliable, qos_profile
 
 
 def text(i: int | None) -> String:

@@ -39,7 +39,7 @@ NODE = """
 import sys, time, rclpy
 from rclpy.qos import QoSProfile
 from rosgate_test_versions.msg import Reading
-from rosgate.ros import type_hash
+from rosgate.rostypes import type_hash
 
 role = sys.argv[1]
 if role == "hash":

@@ -322,7 +322,7 @@ services:
         time.sleep(0.02)  # paces the talkers; the loop waits on the counters
     assert got_up.items == [] and got_down.items == []
     assert up.counters.received == down.counters.received == 0
-    from rosgate.ros import type_hash
+    from rosgate.rostypes import type_hash
 
     mine = type_hash(String)
     assert logs.having("/up (from robot1): refused") == [

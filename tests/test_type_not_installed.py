@@ -23,7 +23,7 @@ from std_msgs.msg import String
 from test_zenoh_fleet import Router, zenoh_plugin
 
 from rosgate import runtime
-from rosgate.ros import type_hash
+from rosgate.rostypes import type_hash
 from rosgate.wire import envelope
 
 GADGET = "gadget_msgs/msg/Gadget"

@@ -11,7 +11,7 @@ import pytest
 from rclpy.qos import ReliabilityPolicy
 
 from rosgate.config import QOS_PROFILES
-from rosgate.ros import is_reliable, qos_profile
+from rosgate.rostypes import is_reliable, qos_profile
 
 SPECS = [1, 10, 1000, *QOS_PROFILES, {"depth": 5}, {"reliability": "reliable"},
          {"reliability": "best_effort"}, {"durability": "transient_local"},

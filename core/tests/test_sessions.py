@@ -16,7 +16,7 @@ from rosgate_crypto_aead import AeadCipher
 from rosgate import CipherError, identity
 from rosgate.config import ClientPolicy, Rule, TopicConfig, service_from_mapping
 from rosgate.policy import matches, refusal
-from rosgate.ros import TypeNotFound, resolve_type
+from rosgate.rostypes import TypeNotFound, resolve_type
 from rosgate.secure import (
     GRACE,
     HandshakeError,

@@ -254,7 +254,7 @@ def control_message(data: bytes) -> None:
     from rosgate.config import TopicConfig
     from rosgate.errors import ConfigError
     from rosgate.roles.mainline import client_entries, flipped
-    from rosgate.ros import is_reliable, qos_profile
+    from rosgate.rostypes import is_reliable, qos_profile
     from rosgate.wire import control
 
     try:
@@ -281,7 +281,7 @@ def _resolve_safely(name: str) -> None:
     that is a ROS interface package (issue 10, attack 10: ``this/msg/Foo`` imported ``this``)."""
     import sys
 
-    from rosgate.ros import TypeNotFound, is_interface_package, resolve_type
+    from rosgate.rostypes import TypeNotFound, is_interface_package, resolve_type
 
     package, _, rest = name.partition("/")
     known = package in sys.modules

@@ -22,7 +22,7 @@ from typing import Any
 
 from .config import QOS_POLICIES
 from .drops import Drop, Reason
-from .ros import TypeNotFound, resolve_type
+from .rostypes import TypeNotFound, resolve_type
 from .warn import Warner
 from .wire.control import parse
 

@@ -19,7 +19,7 @@ from .config import Direction, Framing
 from .packetizer import Packetizer, own_packetizer
 from .plugins import installed
 from .resolver.plan import Plan
-from .ros import resolve_type
+from .rostypes import resolve_type
 from .spec import TopicSpec
 from .transport import DatagramTransport, line_budget
 from .wire import envelope, framing

@@ -26,7 +26,8 @@ from typing import Any
 
 from .drops import Drop
 from .matching import PublishGate
-from .ros import QOS_UNFOUND, RosNode, qos_profile
+from .ros import RosNode
+from .rostypes import QOS_UNFOUND, qos_profile
 from .routes import ReceiveRoute, Route, TransmitRoute
 from .warn import BUGS
 

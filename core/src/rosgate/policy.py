@@ -151,7 +151,7 @@ def _asked_qos(spec: int | str | dict) -> tuple[int | None, str]:
     """The depth (None: keep_all) and durability a topic's QoS asks for, as rclpy makes it."""
     from rclpy import qos
 
-    from .ros import qos_profile
+    from .rostypes import qos_profile
 
     profile = qos_profile(spec)
     depth = None if profile.history == qos.HistoryPolicy.KEEP_ALL else int(profile.depth)

@@ -13,7 +13,7 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
-from . import announce
+from . import announce, routestats
 from .actions import ClientGoals
 from .announce import Identity
 from .config import BridgeConfig, Direction, Framing
@@ -24,7 +24,8 @@ from .holdback import Holdback
 from .keyring import Keys, NoKey, StaticKeys
 from .links.base import Link
 from .proxies import Proxies
-from .ros import QOS_UNFOUND, RosNode, cdr_checker, type_hash
+from .ros import RosNode, cdr_checker
+from .rostypes import QOS_UNFOUND, type_hash
 from .routes import (
     BareFraming,
     BarePort,
@@ -438,17 +439,9 @@ class Router:
             self.link_drops[reason] += 1
         self.warner.warn(link.name if link is not None else "link", reason, detail)
 
-    # -- housekeeping: stale topics and statistics -------------------------------------------
+    # -- housekeeping: stale topics and statistics (rosgate.routestats) ------------------------
     def warn_stale(self, config: BridgeConfig, now: float) -> None:
-        for route in self.snapshot():
-            if not isinstance(route, ReceiveRoute):
-                continue
-            silence = now - route.last_received
-            due = config.stale_after * (route.stale_warnings_given + 1)
-            if silence >= due and route.stale_warnings_given < config.stale_warnings:
-                route.stale_warnings_given += 1
-                log.warning("%s: no data for %.0f s (warning %d of %d)", route.label, silence,
-                            route.stale_warnings_given, config.stale_warnings)
+        routestats.warn_stale(self.snapshot(), config, now)
 
     def snapshot(self) -> list[Route]:
         with self._lock:
@@ -456,24 +449,12 @@ class Router:
 
     def stats(self) -> dict[str, Any]:
         """Counters per route, plus drops that belong to no topic."""
-        routes = {}
-        for r in self.snapshot():
-            routes[r.label] = r.counters.snapshot()
-            if isinstance(r, TransmitRoute):
-                routes[r.label]["queue_depth"] = r.queue_depth
-        return {"routes": routes, "link_drops": dict(self.link_drops)}
+        return routestats.stats(self.snapshot(), self.link_drops)
 
     def log_stats(self, routes: list[Route] | None = None) -> None:
         """Log the counters of ``routes`` (default: every route, and the frames for no topic)."""
-        for route in self.snapshot() if routes is None else routes:
-            c = route.counters
-            drops = ", ".join(f"{k}={v}" for k, v in sorted(c.drops.items())) or "none"
-            lost = f", lost on the way {c.lost}" if c.lost else ""
-            log.info("%s: sent %d (%d B), received %d (%d B)%s%s, drops: %s", route.label,
-                     c.sent, c.bytes_sent, c.received, c.bytes_received, lost,
-                     _real_link_counters(route), drops)
-        if routes is None and self.link_drops:
-            log.info("frames for no topic: %s", dict(self.link_drops))
+        routestats.log_stats(self.snapshot() if routes is None else routes,
+                             self.link_drops if routes is None else None)
 
     def close(self) -> None:
         self._closing.set()
@@ -482,19 +463,6 @@ class Router:
         for route in self.snapshot():
             self.remove(route)
         self.deadlines.close()
-
-
-def _real_link_counters(route: Route) -> str:
-    """The counters of real links that say something (wire, repairs, compression, queue)."""
-    c = route.counters
-    depth = route.queue_depth if isinstance(route, TransmitRoute) else 0
-    parts = [(c.bytes_on_wire not in (0, c.bytes_sent), f"on the wire {c.bytes_on_wire} B"),
-             (c.retransmitted, f"retransmitted {c.retransmitted}"),
-             (c.recovered, f"recovered {c.recovered}"),
-             (c.bytes_before_compression, f"compressed {c.bytes_before_compression} B -> "
-              f"{c.bytes_after_compression} B ({c.not_compressed} sent as they were)"),
-             (depth, f"queued {depth}")]
-    return "".join(f", {part}" for shown, part in parts if shown)
 
 
 def _file_keys(p: TopicSpec | ServiceSpec) -> Keys:

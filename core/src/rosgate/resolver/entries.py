@@ -26,7 +26,7 @@ from ..config import (
 from ..errors import OptionError
 from ..packetizer import SMALL_FRAME, Packetizer, own_packetizer
 from ..plugins import Plugins
-from ..ros import TypeNotFound, is_reliable, resolve_type
+from ..rostypes import TypeNotFound, is_reliable, resolve_type
 from ..service_framing import ServiceFraming
 from ..spec import Delivery, ServiceSpec, TopicSpec
 from ..transport import DatagramTransport, StreamTransport, Transport

@@ -42,7 +42,7 @@ from rosgate_fleet import BusAnswerer, BusLink, BusOutlet, Handle
 from rosgate import Address, Drop
 from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
 from rosgate.links.base import Link, Sender
-from rosgate.ros import TypeNotFound, qos_profile, resolve_type
+from rosgate.rostypes import TypeNotFound, qos_profile, resolve_type
 from rosgate.routes import Route
 from rosgate.services import CallerRoute, ServerRoute
 from rosgate.spec import ServiceSpec, TopicSpec

@@ -46,7 +46,7 @@ from rosgate_fleet import BusLink, BusOutlet
 
 from rosgate import ConfigError, declare
 from rosgate.config import Direction, ServiceConfig, TopicConfig
-from rosgate.ros import TypeNotFound, qos_profile, resolve_type, type_hash
+from rosgate.rostypes import TypeNotFound, qos_profile, resolve_type, type_hash
 from rosgate.services import CallerRoute, ServerRoute
 from rosgate.spec import ServiceSpec, TopicSpec
 from rosgate.wire.envelope import topic_id_for
