@@ -14,14 +14,13 @@ never count. Each function's file is mapped to its core module (the built-in plu
 from __future__ import annotations
 
 import re
-import sys
 import threading
 from pathlib import Path
 from types import CodeType, FrameType
 from typing import Any
 
 import pytest
-from conftest import free_port, wait_until, warm_up
+from conftest import free_port, settle, wait_until, warm_up
 from std_msgs.msg import String
 
 from rosgate import links, routes
@@ -172,8 +171,7 @@ topics:
         inbox = ros_side(server_domain, "listener").listen("/chatter", String)
         talker = ros_side(client_domain, "talker").publisher("/chatter", String)
         warm_up(talker, inbox, String(data="warmup"))
-        # the warm-up's last copies still on their way land before the one followed
-        inbox.wait_for(lambda items: False, 0.5)
+        settle(inbox, quiet=1.0)  # the warm-up's last copies land before the one followed
         before = len(inbox.items)
         recorder.on = True
         talker.publish(String(data="the one followed"))
@@ -186,7 +184,6 @@ topics:
         return recorder.modules()
     finally:
         recorder.uninstall()
-        sys.setprofile(None)
 
 
 def test_the_page_counts_the_modules_it_draws():
