@@ -23,7 +23,8 @@ import pytest
 from conftest import free_port, settle, wait_until, warm_up
 from std_msgs.msg import String
 
-from rosgate import links, routes
+from rosgate import routes
+from rosgate.links import datagram as links
 from rosgate.streamlink import link as streamlink
 
 CORE = Path(routes.__file__).resolve().parent
@@ -203,7 +204,8 @@ def test_the_page_counts_the_modules_it_draws():
 BEYOND_THE_PAGE = {
     "udp": {"inorder.py",       # Ordered.on_frame, InOrder.put: a reliable topic's order on B
             "keyring.py",       # Keys.stamp on A, Keys.fresh on B: the session keys' base class
-            "roles/gate.py"},   # ClientGate.on_heard: did the client move (a roam)?
+            "roles/gate.py",    # ClientGate.on_heard: did the client move (a roam)?
+            "links/datagram_base.py"},  # DatagramBase._arm, .answer: retransmit's timer, ACK
     "tcp": {"keyring.py",
             "roles/mainline.py",  # is_control: the frame came on the main line
             "roles/server.py"},   # ServerRole._main_line's on_frame hands it to the router
