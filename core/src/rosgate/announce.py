@@ -127,7 +127,7 @@ Verdict = Callable[[bool], None]
 class TypeCheck:
     """One entry's type against what the far side says of its own."""
 
-    __slots__ = ("label", "mine", "theirs", "mismatch", "reason", "heard_at", "awaiting",
+    __slots__ = ("label", "mine", "theirs", "mismatch", "reason", "heard_at", "awaiting", "pace",
                  "_said", "_held", "_held_bytes", "_since", "_drop", "_lock")
 
     def __init__(self, label: str, mine: Identity):
@@ -144,6 +144,8 @@ class TypeCheck:
         self._held_bytes = 0
         self._since = 0.0
         self._drop: Callable[[Reason, str], None] = lambda reason, detail: None
+        #: told how many held frames went on so far, as they go: a publisher paces its release
+        self.pace: Callable[[int], None] = lambda went: None
         self._lock = threading.RLock()
 
     def expect(self, drop: Callable[[Reason, str], None]) -> None:
@@ -214,8 +216,10 @@ class TypeCheck:
         self.awaiting = False
         held, self._held, self._held_bytes = self._held, deque(), 0
         agreed = self.mismatch is None
-        for _, verdict in held:
+        for went, (_, verdict) in enumerate(held, 1):
             verdict(agreed)
+            if agreed:
+                self.pace(went)
 
     def say(self) -> None:
         """Say the mismatch, at most once per :data:`MISMATCH_EVERY` seconds."""

@@ -25,7 +25,7 @@ from collections.abc import Callable
 from typing import Any
 
 from .drops import Drop
-from .matching import PublishGate
+from .matching import PACE_EACH, PublishGate
 from .ros import RosNode
 from .rostypes import QOS_UNFOUND, qos_profile
 from .routes import ReceiveRoute, Route, TransmitRoute
@@ -35,8 +35,6 @@ from .warn import BUGS
 HEAR_EVERY = 0.05
 #: seconds the looking thread sleeps while every transmitting route has its subscription
 IDLE = 0.5
-#: seconds a released hold waits at most for one history's worth to be acknowledged
-PACE_EACH = 0.5
 
 
 #: the least history the bridge's own subscription keeps for a reliable, volatile topic whose

@@ -25,6 +25,8 @@ SETTLE = 0.1
 LOOK_EVERY = 0.01
 #: seconds a release may spend waiting for its subscribers to acknowledge, in all
 PACE_FOR = 2.0
+#: seconds a released hold waits at most for one history's worth to be acknowledged
+PACE_EACH = 0.5
 
 
 class PublishGate:
