@@ -20,6 +20,7 @@ from pathlib import Path
 
 from conftest import warm_up
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgate_top.client import StatusClient
 from std_msgs.msg import UInt8MultiArray
 from test_big_images import camera_pair
 
@@ -60,9 +61,11 @@ def expected(i: int) -> bytes:
     return bytes([i]) * 1000 + bytes(SIZE - 2000) + bytes([255 - i]) * 1000
 
 
-def crossing(tmp_path: Path, domain, ros_side, bridge, far_env: dict[str, str]) -> list[bytes]:
+def crossing(tmp_path: Path, domain, ros_side, bridge,
+             far_env: dict[str, str]) -> tuple[list[bytes], str]:
     """What a best-effort subscriber gets of COUNT best-effort images across a client and a
-    server, the server (the far side, which publishes) started with ``far_env``."""
+    server, the server (the far side, which publishes) started with ``far_env``; and, when
+    some are missing, what the bridges counted (:func:`hops`)."""
     server_domain, client_domain = domain(), domain()
     server, client = camera_pair(tmp_path, "std_msgs/msg/UInt8MultiArray",
                                  "{reliability: best_effort, depth: 10}")
@@ -86,18 +89,32 @@ def crossing(tmp_path: Path, domain, ros_side, bridge, far_env: dict[str, str]) 
         camera.stdin.flush()
         assert camera.stdout.readline().strip() == "sent"
         images = lambda items: [m for m in items if len(m.data) == SIZE]
-        inbox.wait_for(lambda items: len(images(items)) >= COUNT, 10)
+        whole = inbox.wait_for(lambda items: len(images(items)) >= COUNT, 10)
+        counted = "" if whole else hops()
     finally:
         camera.kill()
         camera.wait()
-    return [bytes(m.data) for m in inbox.items if len(m.data) == SIZE]
+    return [bytes(m.data) for m in inbox.items if len(m.data) == SIZE], counted
+
+
+def hops() -> str:
+    """What each bridge counted for /camera: the near one sent, the far one received and
+    published, and what each dropped and why; and what their links dropped."""
+    said = []
+    for name in ("robot1", "base"):
+        with StatusClient(name) as ask:
+            status = ask.status()
+        said += [f"{name}: sent {e['sent']}, received {e['received']}, drops {e['drops']}"
+                 for e in status["entries"] if e["name"] == "/camera"]
+        said += [f"{name} links: {status.get('link_drops')}"]
+    return "; ".join(said)
 
 
 def test_best_effort_1mb_images_reach_a_best_effort_subscriber_whole(tmp_path, domain, ros_side,
                                                                       bridge):
     env = {k: v for k, v in os.environ.items() if k not in FASTDDS_PROFILES}
-    got = crossing(tmp_path, domain, ros_side, bridge, env)
-    assert len(got) >= COUNT - 1, f"{len(got)} of {COUNT} arrived"
+    got, counted = crossing(tmp_path, domain, ros_side, bridge, env)
+    assert len(got) >= COUNT - 1, f"{len(got)} of {COUNT} arrived; {counted}"
     indices = [image[0] for image in got]
     assert indices == sorted(set(indices)), indices  # in order, none twice
     for image in got:
@@ -111,7 +128,7 @@ def test_without_the_large_segment_the_same_images_are_lost(tmp_path, domain, ro
     defaults.write_text('<?xml version="1.0" encoding="UTF-8" ?>\n'
                         '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"/>\n')
     env = dict(os.environ, FASTRTPS_DEFAULT_PROFILES_FILE=str(defaults))
-    got = crossing(tmp_path, domain, ros_side, bridge, env)
+    got, _ = crossing(tmp_path, domain, ros_side, bridge, env)
     assert len(got) <= COUNT * 0.9, f"{len(got)} of {COUNT} arrived"
     assert all(image == expected(image[0]) for image in got)  # what arrives is whole
 

@@ -11,7 +11,18 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from rosgate.scheduler import HOLD, LAG, Backlog, Bucket, Due, Outgoing, Scheduler, burst
+from rosgate.scheduler import (
+    FRESH,
+    FRESH_HOLD,
+    HOLD,
+    LAG,
+    Backlog,
+    Bucket,
+    Due,
+    Outgoing,
+    Scheduler,
+    burst,
+)
 from rosgate.spec import Delivery
 
 IDS = itertools.count(1)
@@ -130,6 +141,23 @@ def test_latest_only_replaces_the_message_not_yet_started():
     assert drain(s) == ["f1.1", "f1.2", "f5.0", "f5.1", "f5.2"]
     assert cam.drops == ["superseded"] * 3
     assert s.depth(cam) == 0
+
+
+def test_latest_only_on_an_idle_link_keeps_what_waits_for_the_send_thread():
+    """A 20 Hz camera on an idle link hands over two images 1 ms apart (its executor was busy)
+    before the send thread woke: both go. One that waited longer than LAG, with nothing of the
+    link's on its way, is still replaced by the next."""
+    s = Scheduler()
+    cam = Topic("cam", latest_only=True, reliable=False)
+    for n in range(10):  # its pace: one every 50 ms, each sent before the next
+        s.put(message(cam, f"f{n}", queued=n * 0.05))
+        assert drain(s) == [f"f{n}.0"]
+    s.put(message(cam, "f10", queued=0.5))
+    s.put(message(cam, "f11", queued=0.501))
+    assert s.depth(cam) == 2
+    s.put(message(cam, "f12", queued=0.55))  # the send thread slept through 50 ms: behind
+    assert s.depth(cam) == 1
+    assert drain(s) == ["f12.0"] and cam.drops == ["superseded"] * 2
 
 
 def test_reliable_topics_queue_everything():
@@ -342,3 +370,14 @@ def test_backlog_a_late_message_long_after_the_last_one_starts_a_new_spell():
     b = Backlog()
     for n in range(10):
         assert not b.shed(2 * LAG, n * (HOLD + 0.01))
+
+
+def test_backlog_never_sheds_a_message_that_waited_less_than_its_topics_period():
+    """A 20 Hz camera's images, each 40 ms late (over FRESH, under the 50 ms between them), in
+    a bridge that stays that busy: each is the newest there is, and goes. Once they wait 60 ms,
+    the next image is behind each: after FRESH_HOLD on end, they are shed."""
+    b = Backlog(FRESH, FRESH_HOLD)
+    at = [n * 0.05 for n in range(40)]
+    assert not any(b.shed(0.04, t + 0.04) for t in at)
+    later = [b.shed(0.06, t + 2 + 0.06) for t in at]
+    assert not any(later[:2]) and all(later[3:])

@@ -30,7 +30,8 @@ class Drop(StrEnum):
     SUPERSEDED = "superseded", "a latest-only topic's waiting message was replaced by a newer one"
     TOO_LATE = "too_late", ("a best-effort message waited longer than its `max_delay` (to be "
                             "taken, in the send queue or in the receive buffer), or, without "
-                            "one, over 25 ms to be taken or in the receive buffer while that "
+                            "one, over 25 ms (and over the time between the topic's messages) "
+                            "to be taken or in the receive buffer while that "
                             "queue had stood behind for 100 ms on end (the oldest goes first); "
                             "or any message that waited longer than its `max_delay` for the "
                             "server to come back")

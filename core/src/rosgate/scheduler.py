@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,23 +36,30 @@ HOLD = 0.2   # seconds behind on end (or caught up, to stop) before a topic shed
 #: well within it, while a queue that stands this long is one that will not drain by itself.
 FRESH = 0.025
 FRESH_HOLD = 0.1
+#: seconds: the longest time between two messages a topic's period is taken from
+PERIOD_MAX = 1.0
 
 
 class Backlog:
     """Whether a best-effort topic sheds a message from a queue by its age, the way CoDel does:
     only a queue that stands, not one that comes and goes. Behind (a message older than
-    ``lag``) for ``hold`` on end, it sheds what is older than ``lag`` until nothing has
-    been for ``hold``; a stall's backlog is caught up with in less than ``hold``: sent, not
-    shed. The send queue's are :data:`LAG` and :data:`HOLD`; the bridge's own queues' (the
+    ``lag``, and older than the topic's period: a newer one of it is due behind it) for
+    ``hold`` on end, it sheds what is older than that until nothing has been for ``hold``; a
+    stall's backlog is caught up with in less than ``hold``: sent, not shed. A message that
+    waited less than its topic's period is its topic's newest: dropping it makes nothing
+    fresher (a 20 Hz camera's image 40 ms late in a busy bridge is still the latest one). The
+    send queue's are :data:`LAG` and :data:`HOLD`; the bridge's own queues' (the
     subscription's, the receive buffer) :data:`FRESH` and :data:`FRESH_HOLD`."""
 
-    __slots__ = ("since", "last", "lag", "hold")
+    __slots__ = ("since", "last", "lag", "hold", "arrived", "period")
 
     def __init__(self, lag: float = LAG, hold: float = HOLD) -> None:
         self.since: float | None = None  # when this spell behind began
         self.last = -hold  # when a message last waited longer than lag
         self.lag = lag
         self.hold = hold
+        self.arrived: float | None = None  # when the latest message seen came in
+        self.period = 0.0  # the topic's time between messages (smoothed)
 
     def shedding(self, now: float) -> bool:
         """Whether, at ``now``, the queue stands behind and sheds (what ``rosgate top`` shows)."""
@@ -61,7 +68,14 @@ class Backlog:
 
     def shed(self, waited: float, now: float) -> bool:
         """Whether a message that waited ``waited`` seconds, leaving at ``now``, is shed."""
-        if waited <= self.lag:
+        arrived = now - waited
+        if self.arrived is None:
+            self.arrived = arrived
+        elif arrived > self.arrived:  # (a gap of a quiet topic counts for PERIOD_MAX at most)
+            gap = min(arrived - self.arrived, PERIOD_MAX)
+            self.period += (gap - self.period) / 8 if self.period else gap
+            self.arrived = arrived
+        if waited <= self.lag or waited <= self.period:
             if self.since is not None and (now - self.since < self.hold
                                            or now - self.last >= self.hold):
                 self.since = None  # caught up: a stall's backlog is gone, or the overload is
@@ -141,6 +155,26 @@ class _Topic:
     since: float = 0.0     # when its next packet (of the message in progress) became due
     repaired: float = 0.0  # when its repairs were asked for
     backlog: Backlog | None = None
+    queued: float | None = None  # when its latest message was queued
+    period: float | None = None  # the time between its messages (smoothed; None: not known)
+
+    def supersedes(self, message: Outgoing, busy: bool) -> Iterator[Outgoing]:
+        """What ``message`` replaces of a latest-only topic's waiting messages: all of them
+        while the link is ``busy`` with another topic's or one of this topic's is on its way
+        (they wait for the link); else those that waited longer than LAG, or than the topic's
+        period (a newer one is due after each). One that waited less waits for the send thread
+        to wake, not for the link: two images a 20 Hz camera handed over together both go on
+        an idle link."""
+        now, last = message.queued, self.queued
+        if last is not None and now > last:
+            gap = min(now - last, PERIOD_MAX)
+            self.period = gap if self.period is None else self.period + (gap - self.period) / 8
+        self.queued = now if last is None else max(now, last)
+        stale = 0.0 if busy or self.current is not None or self.packets else \
+            LAG if self.period is None else min(LAG, self.period)
+        waiting = self.waiting
+        while waiting and now - waiting[0].queued >= stale:
+            yield waiting.popleft()
 
 
 class Scheduler:
@@ -198,8 +232,9 @@ class Scheduler:
         """Queue a frame; False when the link's limits refuse it (counted ``queue_full``)."""
         topic = self._topic(message.sender)
         if message.sender.delivery.latest_only:
-            while topic.waiting:
-                old = topic.waiting.popleft()
+            active = sum(map(len, self._classes))  # topics with something to send
+            busy = active > (topic.sender.topic_id in self._classes[topic.priority])
+            for old in topic.supersedes(message, busy):
                 self._frames -= 1
                 self._bytes -= old.size
                 self.dropped.append((old.sender, Drop.SUPERSEDED, "a newer message replaced it"))

@@ -123,8 +123,9 @@ class TopicConfig:
     max_delay: float | None = option(None, "seconds a message may wait anywhere in the bridge "
                                      "before it is dropped (`too_late`), whatever its QoS",
                                      above=0, unit="seconds", example="0.05",
-                                     unset="best effort: 25 ms in the bridge's own queues "
-                                           "once one stands behind for 100 ms, the link's "
+                                     unset="best effort: 25 ms (or its period) in the "
+                                           "bridge's own queues once one stands behind for "
+                                           "100 ms, the link's "
                                            "`max_delay` in its send queue; reliable: no limit")
     batch: float | None = option(None, "a window that opens with a message: what the topic "
                                  "publishes until it closes is taken at once and leaves together "
