@@ -37,6 +37,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from fleet_counter import CHANGED
 from fleet_robots import PREFIX, TOPICS, robot_name
@@ -323,9 +324,9 @@ def throughput(settings: bench.Settings, folder: Path) -> list[bench.Result]:
     plain = bench.bringup_files
 
     def bringup_files(route: Route, msg_type: str, depth: int, where: Path,
-                      reliability: str = "reliable", root: Path = bench.ROOT):
-        if route.transport != "zenoh":
-            return plain(route, msg_type, depth, where, reliability, root)
+                      reliability: str = "reliable", *rest: Any, **kwargs: Any):
+        if route.transport != "zenoh":  # bench.py's own, with whatever else it passes
+            return plain(route, msg_type, depth, where, reliability, *rest, **kwargs)
         topic = (f"{{topic: /bench, type: {msg_type}, transport: zenoh, codec: {route.codec}, "
                  f"cipher: {route.cipher}, remote: bench/2k5, "
                  f"qos: {{reliability: {reliability}, history: keep_last, depth: {depth}}}")
