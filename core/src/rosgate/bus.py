@@ -56,8 +56,8 @@ class BusTransport(Transport):
 
 class BusRole(ABC):
     """The bus side of a peer-role bridge. The resolver asks :meth:`key` of each bus entry; the
-    peer role makes one instance per bridge (``cls(bridge)``, a :class:`rosgate.roles.Bridge`)
-    and hands it each prepared bus entry as the bridge starts."""
+    peer role makes one instance per bridge (``cls(bridge)``: the bridge is the core's own, not
+    part of the plugin API) and hands it each prepared bus entry as the bridge starts."""
 
     name: str = ""
 

@@ -13,6 +13,7 @@ from ..drops import Reason
 from ..spec import Delivery
 from ..transport import Address
 
+#: what a link hands each frame it receives to: (the frame, the link, where it came from)
 FrameHandler = Callable[[bytes, "Link", Address], None]
 #: a loss on the receiving side: (topic id when known, reason)
 LostHandler = Callable[[int | None, Reason], None]

@@ -26,15 +26,32 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from rosgate import BusPattern, BusRole, BusTransport, ConfigError, Drop, LinkError
-from rosgate.config import BridgeConfig, Direction, Framing, ServiceConfig, TopicConfig
-from rosgate.links.base import Link
-from rosgate.roles import Bridge, NoLink
-from rosgate.routes import ReceiveRoute, Route, TransmitRoute
-from rosgate.services import ServerRoute
-from rosgate.spec import ServiceSpec, TopicSpec
-from rosgate.wire import envelope
-from rosgate.wire.envelope import topic_id_for
+from rosgate import (
+    FLAG_ANNOUNCE,
+    FLAG_COMPRESSED,
+    FLAG_REQUEST,
+    BusPattern,
+    BusRole,
+    BusTransport,
+    ConfigError,
+    Direction,
+    Drop,
+    EnvelopeError,
+    Framing,
+    Link,
+    LinkError,
+    NoLink,
+    ReceiveRoute,
+    Route,
+    ServerRoute,
+    ServiceConfig,
+    ServiceSpec,
+    TopicConfig,
+    TopicSpec,
+    TransmitRoute,
+    topic_id_for,
+    unpack_envelope,
+)
 
 from .link import BusLink
 from .session import FleetTransport, Handle, is_template
@@ -43,7 +60,7 @@ SWEEP_EVERY = 0.25  # seconds between looks at the names a pattern's publishers 
 
 #: what a topic's frame on its key may say besides being a message: an announcement of the
 #: entry, or a payload its sender transformed (compressed)
-_TOPIC_FLAGS = envelope.FLAG_ANNOUNCE | envelope.FLAG_COMPRESSED
+_TOPIC_FLAGS = FLAG_ANNOUNCE | FLAG_COMPRESSED
 
 
 class BusWiring(BusRole):
@@ -56,9 +73,9 @@ class BusWiring(BusRole):
     class Options:
         """None: each bus transport has its own."""
 
-    def __init__(self, bridge: Bridge):
+    def __init__(self, bridge: Any):
         self.bridge = bridge
-        self.cfg: BridgeConfig = bridge.config
+        self.cfg = bridge.config
         self.router = bridge.router
         #: set when the bridge stops
         self.stopping: threading.Event = bridge.life.stopping
@@ -191,17 +208,17 @@ class BusWiring(BusRole):
         """A query's payload must be a call of this service (its id, the REQUEST flag), or its
         caller's announcement, which is heard and closed without an answer."""
         try:
-            header = envelope.unpack(frame)
-        except envelope.EnvelopeError as exc:
+            header = unpack_envelope(frame)
+        except EnvelopeError as exc:
             route.drop(exc.reason, f"a query on {source[0]}")
             return
-        if header.topic_id == route.topic_id and header.flags == envelope.FLAG_ANNOUNCE:
+        if header.topic_id == route.topic_id and header.flags == FLAG_ANNOUNCE:
             query = link.take(source[1])
             if query is not None:
                 query.close()
             route.heard(header, frame)
             return
-        if not header.flags & envelope.FLAG_REQUEST or header.topic_id != route.topic_id:
+        if not header.flags & FLAG_REQUEST or header.topic_id != route.topic_id:
             route.drop(Drop.UNEXPECTED_FRAME, f"a query on {source[0]} that is not a call of it")
             return
         route.on_request(header, frame, answerer, source)
@@ -235,8 +252,8 @@ class BusWiring(BusRole):
             route.deliver(frame, len(frame))
             return
         try:
-            header = envelope.unpack(frame)
-        except envelope.EnvelopeError as exc:
+            header = unpack_envelope(frame)
+        except EnvelopeError as exc:
             route.drop(exc.reason, f"{len(frame)} bytes on {key}")
             return
         if header.flags & ~_TOPIC_FLAGS or header.topic_id != route.topic_id:
@@ -244,7 +261,7 @@ class BusWiring(BusRole):
                        f"on {key}: not a frame of this topic (flags {header.flags:#x}, "
                        f"topic id {header.topic_id})")
             return
-        if header.flags & envelope.FLAG_ANNOUNCE:
+        if header.flags & FLAG_ANNOUNCE:
             heard = route.heard(header, frame)
             if heard is not None:
                 self.router.follow_qos(route, heard[1])

@@ -30,10 +30,17 @@ from typing import TYPE_CHECKING
 
 from rosgate_fleet import BusLink, BusWiring
 
-from rosgate import ConfigError, Drop
-from rosgate.config import Direction, ServiceConfig, TopicConfig
-from rosgate.routes import ReceiveRoute, Route
-from rosgate.spec import ServiceSpec, TopicSpec
+from rosgate import (
+    ConfigError,
+    Direction,
+    Drop,
+    ReceiveRoute,
+    Route,
+    ServiceConfig,
+    ServiceSpec,
+    TopicConfig,
+    TopicSpec,
+)
 
 from . import placeholders
 from .dialect import NAME, Ros2dds

@@ -44,12 +44,22 @@ import zenoh
 import zenoh.ext
 from rosgate_fleet import BusLink, BusOutlet
 
-from rosgate import ConfigError, declare
-from rosgate.config import Direction, ServiceConfig, TopicConfig
-from rosgate.rostypes import TypeNotFound, qos_profile, resolve_type, type_hash
-from rosgate.services import CallerRoute, ServerRoute
-from rosgate.spec import ServiceSpec, TopicSpec
-from rosgate.wire.envelope import topic_id_for
+from rosgate import (
+    CallerRoute,
+    ConfigError,
+    Direction,
+    ServerRoute,
+    ServiceConfig,
+    ServiceSpec,
+    TopicConfig,
+    TopicSpec,
+    TypeNotFound,
+    declare,
+    qos_profile,
+    resolve_type,
+    topic_id_for,
+    type_hash,
+)
 
 from . import rmw
 from .dialect import KEEP_ALL_HISTORY, MissingTypes, RawAnswers, RawCalls, speaks
