@@ -124,8 +124,8 @@ class Ros2dds:
         if p.config.direction is Direction.TRANSMIT:
             publisher = session.publisher(key, reliable=p.delivery.reliable,
                                           priority=p.delivery.priority, history=history)
-            route = wiring.router.topic(p, topic_id_for(key), p.name,
-                                        BusOutlet(link, key, publisher), bare_names=False)
+            route = wiring.topic_route(p, topic_id_for(key), BusOutlet(link, key, publisher),
+                                       bare_names=False)
         else:
             receiver = route = wiring.receiver(p)
             link.keep(session.subscribe(key, link.queued(
@@ -149,7 +149,7 @@ class Ros2dds:
         assert p.key is not None
         route: Route
         if p.config.direction is Direction.RECEIVE:
-            server = route = wiring.router.service(p, topic_id_for(p.key), p.name, None)
+            server = route = wiring.service_route(p, topic_id_for(p.key), None)
             assert isinstance(server, ServerRoute)
             answers = RawAnswers(link, server)
             link.serve(p.key, lambda payload, _answerer, source: answers.request(payload, source),
@@ -158,8 +158,8 @@ class Ros2dds:
         else:
             calls = RawCalls(link, p.key, p.config.timeout)
             # its calls are bare CDR: no envelope, so no announcement of rosgate's to say
-            caller = route = wiring.router.service(p, topic_id_for(p.key), p.name, calls,
-                                                   announce=False)
+            caller = route = wiring.service_route(p, topic_id_for(p.key), calls,
+                                                  announce=False)
             assert isinstance(caller, CallerRoute)
             calls.route = caller
             kinds = Kind.CLIENT, Kind.ACTION_CLIENT

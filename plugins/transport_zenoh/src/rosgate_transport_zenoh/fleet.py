@@ -129,8 +129,8 @@ class Fleet:
     def __init__(self, wiring: BusWiring, link: BusLink):
         self.wiring = wiring
         self.link = link
-        self.name = wiring.cfg.name
-        self.timeout = wiring.cfg.fleet_timeout
+        self.name = wiring.config.name
+        self.timeout = wiring.config.fleet_timeout
         self.alive = Template(link.transport.alive_key("{robot}"))
         self.transmit: list[tuple[Prepared, Template, Template]] = []
         self.receive: list[tuple[TopicSpec, Template, Template]] = []
