@@ -26,11 +26,10 @@ from .drops import Drop, LinkDrop, Reason, declare
 from .errors import CipherError, CodecError, ConfigError, LinkError, OptionError, RosgateError
 from .hookspecs import API_VERSION, hookimpl
 from .keys import KeyOptions, describe_source, identity_public_key, key_source, load_key
-from .links.base import FrameHandler, Link, Sender
+from .links.base import FrameHandler, Link, NoLink, Sender
 from .monitor import Monitor, Status
 from .options import option
 from .packetizer import PARTIAL_COST, Packet, Packetizer, PacketLink
-from .roles import NoLink
 from .rostypes import TypeNotFound, qos_profile, resolve_type, type_hash
 from .routes import ReceiveRoute, Route, TransmitRoute
 from .runtime import RUNTIME_VARIABLE, runtime_dir, socket_path
