@@ -42,6 +42,8 @@ def runtime_dir() -> Path:
 
 
 def socket_path(name: str) -> Path:
+    """Where the bridge called ``name`` serves its status (to ``rosgate top``): a Unix socket in
+    :func:`runtime_dir`."""
     return runtime_dir() / f"{name}{SUFFIX}"
 
 

@@ -20,7 +20,7 @@ class CallPort(Protocol):
     name: str  # "<transport>:<port>", for logs and counters
 
     def add(self, route: Any) -> None:
-        """A serving route of this port (a :class:`rosgate.services.ServerRoute`): its
+        """A serving route of this port (a :class:`rosgate.ServerRoute`): its
         ``service`` entry (``remote``, ``timeout``, ``max_request``), its ``codec``, its
         ``serve(request, route.answering(settle))`` and its ``drop(reason, detail)``."""
 
@@ -53,7 +53,7 @@ class ServiceFraming(ABC):
     @abstractmethod
     def caller(cls, *route_args: Any, transport: StreamTransport | DatagramTransport,
                address: Address) -> Any:
-        """``direction: transmit``: a :class:`rosgate.services.ServiceRoute` subclass made with
+        """``direction: transmit``: a :class:`rosgate.ServiceRoute` subclass made with
         ``route_args`` that calls the device at ``address`` (over a datagram transport only
         when :attr:`on_a_line` says it can): the core serves the ROS service
         with its ``on_request(request, respond)`` (answer every call within ``timeout``) and

@@ -75,6 +75,10 @@ class RouteSpec:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class TopicSpec(RouteSpec):
+    """A topic entry, resolved: its entry (``config``), the ROS message class (``msg_type``),
+    codec, transport, cipher, delivery and, on a bus, its ``key``; what a bus role makes its
+    routes from."""
+
     kind = "topic"
     config: TopicConfig
     msg_type: type
@@ -86,6 +90,9 @@ class TopicSpec(RouteSpec):
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ServiceSpec(RouteSpec):
+    """A service entry, resolved as a :class:`TopicSpec` is, with the ROS service class
+    (``srv_type``) and the service framing that makes its calls, if not rosgate's."""
+
     kind = "service"
     config: ServiceConfig
     srv_type: Any  # a ROS service class: Request and Response inside

@@ -36,7 +36,7 @@ from std_msgs.msg import (
 from std_srvs.srv import SetBool, Trigger
 
 import rosgate
-from rosgate.wire.names import Layout, NameMissing, pack_name, split_name
+from rosgate import Layout, NameMissing, pack_name, split_name
 
 
 class TestMsgpackConformance(CodecConformance):

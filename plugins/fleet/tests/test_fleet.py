@@ -11,10 +11,8 @@ from collections.abc import Callable
 import pytest
 from rosgate_fleet import BusLink, BusWiring, FleetTransport, check_key
 
-from rosgate import ConfigError
-from rosgate.bus import BusTransport
-from rosgate.config import ServiceConfig, TopicConfig, loads
-from rosgate.drops import Drop
+from rosgate import BusTransport, ConfigError, Drop, ServiceConfig, TopicConfig
+from rosgate.config import loads
 from rosgate.plugins import Plugins
 
 TIMEOUT = 5.0

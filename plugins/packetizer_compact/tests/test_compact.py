@@ -10,9 +10,8 @@ import pytest
 from rosgate_compact import Compact, CompactReassembler, compact_fragment
 from rosgate_testing import PacketizerConformance
 
-from rosgate.builtin import PARTIAL_COST
+from rosgate import PARTIAL_COST, FramingError
 from rosgate.wire import envelope
-from rosgate.wire.framing import FramingError
 
 
 class Lost:

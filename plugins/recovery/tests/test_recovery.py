@@ -19,7 +19,7 @@ from rosgate_recovery.wire import (
     repeat_fragments,
 )
 
-from rosgate.wire.framing import FramingError
+from rosgate import FramingError
 
 TOPIC = 7
 

@@ -16,6 +16,8 @@ from .patterns import deny_list, is_pattern, name_or_pattern
 
 
 class Direction(StrEnum):
+    """Which way an entry carries its topic (or its service's calls)."""
+
     TRANSMIT = "transmit"  # this side -> the far side
     RECEIVE = "receive"    # the far side -> this side
 
@@ -25,6 +27,8 @@ class Direction(StrEnum):
 
 
 class Framing(StrEnum):
+    """What an entry's frames look like on the link (its ``framing:`` key)."""
+
     ROSGATE = "rosgate"                  # the envelope, sealed by the entry's cipher
     NONE = "none"                        # the bare payload on a datagram link (topics)
     SERIAL_DATAGRAM = "serial_datagram"  # SLIP-style + CRC-32, one call per connection (services)

@@ -13,6 +13,7 @@ from ..drops import Reason
 from ..spec import Delivery
 from ..transport import Address
 
+#: what a link hands each frame it receives to: (the frame, the link, where it came from)
 FrameHandler = Callable[[bytes, "Link", Address], None]
 #: a loss on the receiving side: (topic id when known, reason)
 LostHandler = Callable[[int | None, Reason], None]
@@ -98,3 +99,18 @@ class LinkCounters:
                 f"in {self.frames_in} frames in {self.packets_in} packets "
                 f"({self.coalesced_in} coalesced, {self.bytes_in} B)")
 
+
+class NoLink(Link):
+    """A receiving route's link: frames come in through the router (or a bus role), nothing
+    goes out."""
+
+    def __init__(self) -> None:
+        self.name = "in"
+        self.closed = threading.Event()
+        self.counters = LinkCounters()
+
+    def send_all(self, frames: list[bytes], sender: object, to: Address | None = None) -> int:
+        return 0
+
+    def close(self) -> None:
+        pass

@@ -16,7 +16,7 @@ from ..admission import Acceptor, ConnectionLimits, Sources, proven
 from ..config import BridgeConfig, LinkConfig
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
-from ..links.base import FrameHandler, Link, LinkCounters
+from ..links.base import FrameHandler, Link
 from ..links.datagram import DatagramLink
 from ..links.lifetime import Lifetime
 from ..resolver.plan import Plan, Resolver
@@ -352,17 +352,3 @@ def session_keys(schedule: KeySchedule, p: TopicSpec | ServiceSpec, name: str, s
     return SessionKeys(schedule, p.cipher_cls, key_label(p.kind, send, name),
                        key_label(p.kind, receive, name))
 
-
-class NoLink(Link):
-    """A receiving route's link: frames come in through the router, nothing goes out."""
-
-    def __init__(self) -> None:
-        self.name = "in"
-        self.closed = threading.Event()
-        self.counters = LinkCounters()
-
-    def send_all(self, frames: list[bytes], sender: object, to: Address | None = None) -> int:
-        return 0
-
-    def close(self) -> None:
-        pass

@@ -27,7 +27,7 @@ from ..discovery import BusPattern
 from ..drops import Drop, Reason
 from ..errors import ConfigError, LinkError
 from ..keyring import Keys, ReplayRecord, StaticKeys
-from ..links.base import Link
+from ..links.base import Link, NoLink
 from ..links.datagram import DatagramLink
 from ..router import fixed
 from ..routes import ReceiveRoute, Route
@@ -40,7 +40,7 @@ from ..streamlink.connector import Connector
 from ..streamlink.link import StreamLink
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
 from ..wire.envelope import topic_id_for
-from . import Answer, Bridge, NoLink, Role, session_keys
+from . import Answer, Bridge, Role, session_keys
 from .mainline import control, is_control
 from .peer_patterns import PeerPatterns
 

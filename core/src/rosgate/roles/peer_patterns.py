@@ -43,7 +43,7 @@ from ..drops import Drop
 from ..echo import EchoGuard
 from ..errors import CipherError, ConfigError
 from ..keyring import Keys, NoKey, StaticKeys
-from ..links.base import Link
+from ..links.base import Link, NoLink
 from ..router import fixed
 from ..routes import ReceiveRoute, Route, TransmitRoute
 from ..services import CallerRoute, ServerRoute
@@ -53,7 +53,7 @@ from ..transport import Address, StreamTransport
 from ..wire import envelope
 from ..wire.control import ControlError, parse
 from ..wire.envelope import topic_id_for
-from . import NoLink, Role
+from . import Role
 
 if TYPE_CHECKING:
     from ..resolver.plan import Pattern

@@ -69,6 +69,11 @@ class EnvelopeError(ValueError):
 
 
 class Header(NamedTuple):
+    """The fixed header in front of every rosgate frame (public as
+    :class:`rosgate.EnvelopeHeader`): the ``FLAG_*`` bits, the id of its topic or service
+    (:func:`topic_id_for`), the sender's epoch and sequence number (a call's id for a service),
+    and the time it was sent (nanoseconds since the epoch)."""
+
     flags: int
     topic_id: int
     epoch: int
@@ -81,6 +86,9 @@ def pack(flags: int, topic_id: int, epoch: int, seq: int, stamp: int) -> bytes:
 
 
 def unpack(frame: bytes | bytearray | memoryview) -> Header:
+    """The header of ``frame`` (public as :func:`rosgate.unpack_envelope`); the frame's body,
+    sealed by its cipher, follows it. :class:`EnvelopeError` when ``frame`` is too short, not
+    rosgate's or of another envelope version; its ``reason`` is the drop to count."""
     try:
         word, topic_id, epoch, seq, stamp = _WORDS.unpack_from(frame)
     except struct.error:

@@ -26,13 +26,12 @@ from typing import Any, ClassVar
 
 import pytest
 
-from rosgate import Codec, SocketConnection
+from rosgate import Codec, Direction, ServerRoute, ServiceConfig, ServiceFraming, SocketConnection
 from rosgate.builtin import NoCipher
-from rosgate.config import Direction, ServiceConfig
 from rosgate.keyring import StaticKeys
 from rosgate.options import parse
-from rosgate.service_framing import CallPort, ServiceFraming
-from rosgate.services import Deadlines, ServerRoute, ServiceCodec
+from rosgate.service_framing import CallPort
+from rosgate.services import Deadlines, ServiceCodec
 from rosgate.warn import Warner
 
 from .helpers import assert_registered

@@ -28,10 +28,19 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from rosgate import Address, Drop, LinkDrop, Reason
-from rosgate.links.base import FrameHandler, Link, Sender
-from rosgate.warn import BUGS
-from rosgate.wire import envelope
+from rosgate import (
+    BUGS,
+    FLAG_ANNOUNCE,
+    Address,
+    Drop,
+    EnvelopeError,
+    FrameHandler,
+    Link,
+    LinkDrop,
+    Reason,
+    Sender,
+    unpack_envelope,
+)
 
 from .session import BusPublisher, BusQuery, BusSession, FleetTransport, Handle
 
@@ -271,8 +280,8 @@ class BusCaller(Link):
                                "it, or it refused the call)")
 
         try:
-            announcement = bool(envelope.unpack(frame).flags & envelope.FLAG_ANNOUNCE)
-        except envelope.EnvelopeError:  # a call in another framing
+            announcement = bool(unpack_envelope(frame).flags & FLAG_ANNOUNCE)
+        except EnvelopeError:  # a call in another framing
             announcement = False
 
         try:

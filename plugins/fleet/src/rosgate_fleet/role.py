@@ -26,15 +26,32 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from rosgate import BusPattern, BusRole, BusTransport, ConfigError, Drop, LinkError
-from rosgate.config import BridgeConfig, Direction, Framing, ServiceConfig, TopicConfig
-from rosgate.links.base import Link
-from rosgate.roles import Bridge, NoLink
-from rosgate.routes import ReceiveRoute, Route, TransmitRoute
-from rosgate.services import ServerRoute
-from rosgate.spec import ServiceSpec, TopicSpec
-from rosgate.wire import envelope
-from rosgate.wire.envelope import topic_id_for
+from rosgate import (
+    FLAG_ANNOUNCE,
+    FLAG_COMPRESSED,
+    FLAG_REQUEST,
+    BusPattern,
+    BusRole,
+    BusTransport,
+    ConfigError,
+    Direction,
+    Drop,
+    EnvelopeError,
+    Framing,
+    Link,
+    LinkError,
+    NoLink,
+    ReceiveRoute,
+    Route,
+    ServerRoute,
+    ServiceConfig,
+    ServiceSpec,
+    TopicConfig,
+    TopicSpec,
+    TransmitRoute,
+    topic_id_for,
+    unpack_envelope,
+)
 
 from .link import BusLink
 from .session import FleetTransport, Handle, is_template
@@ -43,7 +60,7 @@ SWEEP_EVERY = 0.25  # seconds between looks at the names a pattern's publishers 
 
 #: what a topic's frame on its key may say besides being a message: an announcement of the
 #: entry, or a payload its sender transformed (compressed)
-_TOPIC_FLAGS = envelope.FLAG_ANNOUNCE | envelope.FLAG_COMPRESSED
+_TOPIC_FLAGS = FLAG_ANNOUNCE | FLAG_COMPRESSED
 
 
 class BusWiring(BusRole):
@@ -56,12 +73,8 @@ class BusWiring(BusRole):
     class Options:
         """None: each bus transport has its own."""
 
-    def __init__(self, bridge: Bridge):
-        self.bridge = bridge
-        self.cfg: BridgeConfig = bridge.config
-        self.router = bridge.router
-        #: set when the bridge stops
-        self.stopping: threading.Event = bridge.life.stopping
+    def __init__(self, bridge: Any):
+        super().__init__(bridge)
         self.links: dict[str, BusLink] = {}
         self._templates: dict[str, Callable[[Any], None]] = {}
 
@@ -115,13 +128,12 @@ class BusWiring(BusRole):
         if found is not None:
             return found
         try:
-            session = transport.open(self.cfg.name)
+            session = transport.open(self.config.name)
         except LinkError as exc:
             kind = "topics" if isinstance(p, TopicSpec) else "services"
-            raise self.bridge.link_error(exc, f"{kind}[{p.index}].transport") from None
-        link = self.bridge.life.closing(BusLink(transport, session, transport.name,
-                                                self.router.link_drop))
-        link.token(transport.alive_key(self.cfg.name))
+            raise self.link_error(exc, f"{kind}[{p.index}].transport") from None
+        link = self.closing(BusLink(transport, session, transport.name, self.link_drop))
+        link.token(transport.alive_key(self.config.name))
         self.links[transport.name] = link
         return link
 
@@ -179,7 +191,7 @@ class BusWiring(BusRole):
             return
         service_id = topic_id_for(p.key)
         if s.direction is Direction.RECEIVE:
-            route = self.router.service(p, service_id, s.service, None)
+            route = self.service_route(p, service_id, None)
             assert isinstance(route, ServerRoute)
             link.serve(p.key, lambda frame, answerer, source: self._request(
                 route, link, frame, answerer, source), s.timeout + 1.0)
@@ -191,17 +203,17 @@ class BusWiring(BusRole):
         """A query's payload must be a call of this service (its id, the REQUEST flag), or its
         caller's announcement, which is heard and closed without an answer."""
         try:
-            header = envelope.unpack(frame)
-        except envelope.EnvelopeError as exc:
+            header = unpack_envelope(frame)
+        except EnvelopeError as exc:
             route.drop(exc.reason, f"a query on {source[0]}")
             return
-        if header.topic_id == route.topic_id and header.flags == envelope.FLAG_ANNOUNCE:
+        if header.topic_id == route.topic_id and header.flags == FLAG_ANNOUNCE:
             query = link.take(source[1])
             if query is not None:
                 query.close()
             route.heard(header, frame)
             return
-        if not header.flags & envelope.FLAG_REQUEST or header.topic_id != route.topic_id:
+        if not header.flags & FLAG_REQUEST or header.topic_id != route.topic_id:
             route.drop(Drop.UNEXPECTED_FRAME, f"a query on {source[0]} that is not a call of it")
             return
         route.on_request(header, frame, answerer, source)
@@ -211,19 +223,19 @@ class BusWiring(BusRole):
         """A topic published on its key."""
         assert p.key is not None
         outlet = link.outlet(p.key, p.delivery.reliable, p.delivery.priority)
-        return self.router.topic(p, topic_id_for(p.key), p.name, outlet, bare_names=False)
+        return self.topic_route(p, topic_id_for(p.key), outlet, bare_names=False)
 
     def caller(self, link: BusLink, p: ServiceSpec) -> Route:
         """A service called here and served on the bus: each call one query on its key."""
         assert p.key is not None
         outlet = link.caller(p.key, p.config.timeout)
-        outlet.on_answer = self.router.on_frame
-        return self.router.service(p, topic_id_for(p.key), p.name, outlet)
+        outlet.on_answer = self.answered
+        return self.service_route(p, topic_id_for(p.key), outlet)
 
     def receiver(self, p: TopicSpec) -> ReceiveRoute:
         """A topic received from its key: frames reach it through :meth:`dispatch`."""
         assert p.key is not None
-        route = self.router.topic(p, topic_id_for(p.key), p.name, NoLink())
+        route = self.topic_route(p, topic_id_for(p.key), NoLink())
         assert isinstance(route, ReceiveRoute)
         return route
 
@@ -235,8 +247,8 @@ class BusWiring(BusRole):
             route.deliver(frame, len(frame))
             return
         try:
-            header = envelope.unpack(frame)
-        except envelope.EnvelopeError as exc:
+            header = unpack_envelope(frame)
+        except EnvelopeError as exc:
             route.drop(exc.reason, f"{len(frame)} bytes on {key}")
             return
         if header.flags & ~_TOPIC_FLAGS or header.topic_id != route.topic_id:
@@ -244,17 +256,16 @@ class BusWiring(BusRole):
                        f"on {key}: not a frame of this topic (flags {header.flags:#x}, "
                        f"topic id {header.topic_id})")
             return
-        if header.flags & envelope.FLAG_ANNOUNCE:
+        if header.flags & FLAG_ANNOUNCE:
             heard = route.heard(header, frame)
             if heard is not None:
-                self.router.follow_qos(route, heard[1])
+                self.follow_qos(route, heard[1])
             return
         route.on_frame(header, frame)
 
     def remove(self, route: Route) -> None:
         """Take a route away: its counters logged, and its publisher on the bus closed."""
-        self.router.log_stats([route])
-        self.router.remove(route)
+        self.remove_route(route)
         if isinstance(route, TransmitRoute):
             route.link.close()
 
@@ -276,13 +287,12 @@ class _Found:
             self.gone_since.setdefault(name, time.monotonic())
         spec = self.pattern.take(name, type_name) if alive else None
         if spec is not None:
-            router = self.wiring.router
             handles = self.link.declared_by(lambda: self.wiring.topic(spec))
-            routes = [r for r in router.snapshot() if r.entry is spec.config]
+            routes = self.wiring.routes_of(spec.config)
             self.made[name] = routes, handles
 
     def sweep(self) -> None:
-        now, grace = time.monotonic(), self.wiring.cfg.pattern_grace
+        now, grace = time.monotonic(), self.wiring.config.pattern_grace
         for name, since in list(self.gone_since.items()):
             if now - since >= grace:
                 del self.gone_since[name]

@@ -27,8 +27,7 @@ from abc import abstractmethod
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from rosgate import BusTransport
-from rosgate.config import ServiceConfig, TopicConfig
+from rosgate import BusTransport, ServiceConfig, TopicConfig
 
 _CHUNK = re.compile(r"[^/*$?#]+|\*|\*\*")
 

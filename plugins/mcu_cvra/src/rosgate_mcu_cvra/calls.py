@@ -37,18 +37,23 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from rosgate import (
+    BUGS,
     Address,
+    Call,
     CodecError,
     Drop,
+    Layout,
+    NameMissing,
     Reason,
+    ServerRoute,
+    ServiceRoute,
     StreamConnection,
     StreamTransport,
     Transport,
     declare,
+    pack_name,
+    split_name,
 )
-from rosgate.services import Call, ServerRoute, ServiceRoute
-from rosgate.warn import BUGS
-from rosgate.wire.names import Layout, NameMissing, pack_name, split_name
 
 from . import serial_datagram
 

@@ -25,9 +25,18 @@ from typing import Any
 
 import msgpack
 
-from rosgate import Address, CodecError, DatagramEndpoint, DatagramTransport, Drop, Reason
-from rosgate.services import Call, ServerRoute, ServiceRoute
-from rosgate.warn import BUGS
+from rosgate import (
+    BUGS,
+    Address,
+    Call,
+    CodecError,
+    DatagramEndpoint,
+    DatagramTransport,
+    Drop,
+    Reason,
+    ServerRoute,
+    ServiceRoute,
+)
 
 log = logging.getLogger("rosgate")
 

@@ -39,15 +39,30 @@ from typing import TYPE_CHECKING
 
 from rosgate_fleet import BusAnswerer, BusLink, BusOutlet, Handle
 
-from rosgate import Address, Drop
-from rosgate.config import Direction, Framing, ServiceConfig, TopicConfig
-from rosgate.links.base import Link, Sender
-from rosgate.rostypes import TypeNotFound, qos_profile, resolve_type
-from rosgate.routes import Route
-from rosgate.services import CallerRoute, ServerRoute
-from rosgate.spec import ServiceSpec, TopicSpec
-from rosgate.wire import envelope
-from rosgate.wire.envelope import topic_id_for
+from rosgate import (
+    FLAG_FAILED,
+    FLAG_REPLY,
+    FLAG_REQUEST,
+    Address,
+    CallerRoute,
+    Direction,
+    Drop,
+    EnvelopeHeader,
+    Framing,
+    Link,
+    Route,
+    Sender,
+    ServerRoute,
+    ServiceConfig,
+    ServiceSpec,
+    TopicConfig,
+    TopicSpec,
+    TypeNotFound,
+    qos_profile,
+    resolve_type,
+    topic_id_for,
+    unpack_envelope,
+)
 
 from . import ros2dds
 from .ros2dds import Kind, Qos
@@ -109,8 +124,8 @@ class Ros2dds:
         if p.config.direction is Direction.TRANSMIT:
             publisher = session.publisher(key, reliable=p.delivery.reliable,
                                           priority=p.delivery.priority, history=history)
-            route = wiring.router.topic(p, topic_id_for(key), p.name,
-                                        BusOutlet(link, key, publisher), bare_names=False)
+            route = wiring.topic_route(p, topic_id_for(key), BusOutlet(link, key, publisher),
+                                       bare_names=False)
         else:
             receiver = route = wiring.receiver(p)
             link.keep(session.subscribe(key, link.queued(
@@ -134,7 +149,7 @@ class Ros2dds:
         assert p.key is not None
         route: Route
         if p.config.direction is Direction.RECEIVE:
-            server = route = wiring.router.service(p, topic_id_for(p.key), p.name, None)
+            server = route = wiring.service_route(p, topic_id_for(p.key), None)
             assert isinstance(server, ServerRoute)
             answers = RawAnswers(link, server)
             link.serve(p.key, lambda payload, _answerer, source: answers.request(payload, source),
@@ -143,8 +158,8 @@ class Ros2dds:
         else:
             calls = RawCalls(link, p.key, p.config.timeout)
             # its calls are bare CDR: no envelope, so no announcement of rosgate's to say
-            caller = route = wiring.router.service(p, topic_id_for(p.key), p.name, calls,
-                                                   announce=False)
+            caller = route = wiring.service_route(p, topic_id_for(p.key), calls,
+                                                  announce=False)
             assert isinstance(caller, CallerRoute)
             calls.route = caller
             kinds = Kind.CLIENT, Kind.ACTION_CLIENT
@@ -250,12 +265,12 @@ class RawAnswers(BusAnswerer):
     def request(self, payload: bytes, source: tuple[str, int]) -> None:
         """The link's thread: one query."""
         route = self.route
-        frame = route.seal(envelope.FLAG_REQUEST, self.epoch, next(self.numbers), payload)
-        route.on_request(envelope.unpack(frame), frame, self, source)
+        frame = route.seal(FLAG_REQUEST, self.epoch, next(self.numbers), payload)
+        route.on_request(unpack_envelope(frame), frame, self, source)
 
     def body(self, frame: bytes) -> bytes | None:
-        header = envelope.unpack(frame)
-        if header.flags & envelope.FLAG_FAILED:
+        header = unpack_envelope(frame)
+        if header.flags & FLAG_FAILED:
             return None  # no answer: the route counted why, the caller's timeout speaks
         return self.route.open(frame, header.epoch)
 
@@ -280,7 +295,7 @@ class RawCalls(Link):
         if self.closed.is_set():
             sender.drop(Drop.LINK_DOWN, f"{self.bus.name} is closed")
             return False
-        header = envelope.unpack(frame)
+        header = unpack_envelope(frame)
         body = route.open(frame, header.epoch)
         if body is None:
             return False
@@ -305,9 +320,9 @@ class RawCalls(Link):
         return True
 
     @staticmethod
-    def _answer(route: CallerRoute, request: envelope.Header, payload: bytes) -> None:
-        frame = route.seal(envelope.FLAG_REPLY, request.epoch, request.seq, payload)
-        route.on_reply(envelope.unpack(frame), frame)
+    def _answer(route: CallerRoute, request: EnvelopeHeader, payload: bytes) -> None:
+        frame = route.seal(FLAG_REPLY, request.epoch, request.seq, payload)
+        route.on_reply(unpack_envelope(frame), frame)
 
     def close(self) -> None:
         pass

@@ -30,10 +30,17 @@ from typing import TYPE_CHECKING
 
 from rosgate_fleet import BusLink, BusWiring
 
-from rosgate import ConfigError, Drop
-from rosgate.config import Direction, ServiceConfig, TopicConfig
-from rosgate.routes import ReceiveRoute, Route
-from rosgate.spec import ServiceSpec, TopicSpec
+from rosgate import (
+    ConfigError,
+    Direction,
+    Drop,
+    ReceiveRoute,
+    Route,
+    ServiceConfig,
+    ServiceSpec,
+    TopicConfig,
+    TopicSpec,
+)
 
 from . import placeholders
 from .dialect import NAME, Ros2dds
@@ -122,8 +129,8 @@ class Fleet:
     def __init__(self, wiring: BusWiring, link: BusLink):
         self.wiring = wiring
         self.link = link
-        self.name = wiring.cfg.name
-        self.timeout = wiring.cfg.fleet_timeout
+        self.name = wiring.config.name
+        self.timeout = wiring.config.fleet_timeout
         self.alive = Template(link.transport.alive_key("{robot}"))
         self.transmit: list[tuple[Prepared, Template, Template]] = []
         self.receive: list[tuple[TopicSpec, Template, Template]] = []

@@ -44,12 +44,22 @@ import zenoh
 import zenoh.ext
 from rosgate_fleet import BusLink, BusOutlet
 
-from rosgate import ConfigError, declare
-from rosgate.config import Direction, ServiceConfig, TopicConfig
-from rosgate.rostypes import TypeNotFound, qos_profile, resolve_type, type_hash
-from rosgate.services import CallerRoute, ServerRoute
-from rosgate.spec import ServiceSpec, TopicSpec
-from rosgate.wire.envelope import topic_id_for
+from rosgate import (
+    CallerRoute,
+    ConfigError,
+    Direction,
+    ServerRoute,
+    ServiceConfig,
+    ServiceSpec,
+    TopicConfig,
+    TopicSpec,
+    TypeNotFound,
+    declare,
+    qos_profile,
+    resolve_type,
+    topic_id_for,
+    type_hash,
+)
 
 from . import rmw
 from .dialect import KEEP_ALL_HISTORY, MissingTypes, RawAnswers, RawCalls, speaks
@@ -132,8 +142,8 @@ class RmwZenoh:
         if transmit:
             publisher = Publisher(session.session, key, entity.gid(), reliable=p.delivery.reliable,
                                   priority=p.delivery.priority, history=history)
-            wiring.router.topic(p, topic_id_for(key), p.name, BusOutlet(link, key, publisher),
-                                bare_names=False)
+            wiring.topic_route(p, topic_id_for(key), BusOutlet(link, key, publisher),
+                               bare_names=False)
             return
         route = wiring.receiver(p)
         arrived = link.queued(lambda k, frame: route.deliver(frame, len(frame)),
@@ -162,7 +172,7 @@ class RmwZenoh:
         session: RmwSession = link.session  # type: ignore[assignment]
         link.token(entity.token())
         if serve:
-            route = wiring.router.service(p, topic_id_for(key), p.name, None)
+            route = wiring.service_route(p, topic_id_for(key), None)
             assert isinstance(route, ServerRoute)
             answers = RawAnswers(link, route)
             session.refused[key] = lambda detail: link.call_later(route.drop, BAD_ATTACHMENT,
@@ -173,7 +183,7 @@ class RmwZenoh:
         session.callers[key] = (entity.gid(), itertools.count(1))
         calls = RawCalls(link, key, p.config.timeout)
         # its calls are bare CDR: no envelope, so no announcement of rosgate's to say
-        caller = wiring.router.service(p, topic_id_for(key), p.name, calls, announce=False)
+        caller = wiring.service_route(p, topic_id_for(key), calls, announce=False)
         assert isinstance(caller, CallerRoute)
         calls.route = caller
 
@@ -192,8 +202,8 @@ class RmwZenoh:
             session: ZenohSession = link.session  # type: ignore[assignment]
             domain = link.transport.options.domain
             if domain is None:
-                domain = wiring.router.ros.context.get_domain_id()
-            name = re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{wiring.cfg.name}")  # as its ROS node
+                domain = wiring.domain_id()
+            name = re.sub(r"[^A-Za-z0-9_]", "_", f"rosgate_{wiring.config.name}")  # as its ROS node
             found = self._nodes[id(link)] = _Node(rmw.Node(domain, session.zid(), "0", name))
             link.token(found.node.token())
             link.watch(rmw.everything(domain), found.graph.changed)
