@@ -30,6 +30,12 @@ class Keys(ABC):
 
     #: True when ``open`` proves a frame came from a key holder unchanged
     authenticates: bool = True
+    #: True when a frame's send time is these keys' to give (:meth:`stamp`) and to judge
+    #: (:meth:`fresh`); False (a session's keys): the send time is the clock's, and any frame
+    #: the keys open is of this run. A route calls neither per frame unless it is True.
+    dated: bool = False
+    #: True when every epoch's cipher is the none cipher: a frame's body is its payload
+    plain: bool = False
 
     @abstractmethod
     def epoch(self) -> int:
@@ -70,6 +76,8 @@ class StaticKeys(Keys):
         self.authenticates = cipher.authenticates
         self._epoch = int.from_bytes(os.urandom(4), "big")
         self.record = record
+        self.dated = record is not None
+        self.plain = cipher.plain
         self._floor = -1  # frames sent at or before this are of a forgotten epoch
         self._latest: dict[int, int] = {}  # epoch -> the latest send time taken in it
         if record is not None:
