@@ -37,13 +37,13 @@ from ..streamlink.connector import Connector
 from ..streamlink.link import StreamLink
 from ..streamlink.slot import LinkSlot
 from ..transport import Address, StreamTransport
+from ..wire.envelope import is_control
 from . import Answer, Bridge, Role, session_keys
 from .mainline import (
     HANDSHAKE_TIMEOUT,
     PROTOCOL,
     control,
     hello_datagram,
-    is_control,
     read_taken,
     taken,
 )
