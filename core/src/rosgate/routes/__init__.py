@@ -6,10 +6,8 @@ says of its entry (:mod:`.said`), what waits (:mod:`.held`), ``framing: none`` (
 from ..warn import Warner
 from .bare import BareFraming, BarePort
 from .counters import QUIET_REASONS, Counters, SideSender
-from .held import max_wait_ns
+from .held import BATCH_BYTES, BATCH_FRAMES, max_wait_ns
 from .route import (
-    BATCH_BYTES,
-    BATCH_FRAMES,
     DRAIN_BYTES,
     DRAIN_FRAMES,
     SEAL_IN_PLACE,

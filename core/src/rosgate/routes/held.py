@@ -14,6 +14,10 @@ from ..links.base import Link
 from ..spec import Delivery
 from ..transport import Address
 
+# when a batch window closes, a route takes what waits up to this much (send_all cuts it)
+BATCH_FRAMES = 512
+BATCH_BYTES = 1_000_000
+
 
 def max_wait_ns(topic: TopicConfig) -> int:
     """How long (ns) a message may wait in the bridge's own buffers before it is dropped
@@ -36,6 +40,11 @@ class Holding:
     _hand: Callable[..., None]
     _encode: Callable[[Any], tuple[bytes, int, int] | None]
     _seal: Callable[[bytes, int, int], bytes | None]
+    _drain: Callable[[list[Any], int, int], list[Any]]
+    _send: Callable[[list[Any]], None]
+    pending: list[Any]
+    take: Callable[[], Any] | None
+    entity: Any
 
     def _hold(self, hold: Holdback, messages: list[Any]) -> None:
         """The far side is out of reach: ``hold`` keeps a reliable topic's messages and says
@@ -61,3 +70,18 @@ class Holding:
         route: Any = self  # a TransmitRoute
         held = self.hold.depth(route) if self.hold is not None and self.hold.down else 0
         return self.link.queue_depth(route) + held
+
+    def flush(self) -> None:
+        """The batch window closed: what came in it and everything waiting now leave together."""
+        messages, self.pending = self.pending, []
+        if self.take is not None and self.entity is not None:
+            messages = self._drain(messages, BATCH_FRAMES, BATCH_BYTES)
+        self._send(messages)
+
+    def close(self) -> None:
+        """The route is removed: what it queued goes (a message half sent is not finished)."""
+        self.pending.clear()  # an open window closes with nothing to send
+        route: Any = self  # a TransmitRoute
+        self.link.forget(route)
+        if self.hold is not None:
+            self.hold.forget(route)

@@ -21,6 +21,7 @@ from typing import Any, cast
 
 from ..announce import Identity, TypeCheck
 from ..batch import Batches
+from ..cipher import Cipher
 from ..codec import Codec
 from ..config import ServiceConfig, TopicConfig
 from ..drops import Drop, Reason
@@ -45,9 +46,6 @@ from .said import Said
 # a transmitting route takes what waits in its subscription up to this much at a time
 DRAIN_FRAMES = 32
 DRAIN_BYTES = 60_000
-# and when a batch window closes (many datagrams' worth: send_all cuts them)
-BATCH_FRAMES = 512
-BATCH_BYTES = 1_000_000
 # a payload at least this long is sealed straight into its frame (a bytearray) by a cipher that
 # can: no copy of an image to put the header in front. Shorter frames stay bytes.
 SEAL_IN_PLACE = 64 * 1024
@@ -90,6 +88,8 @@ class Route(Said):
         self.entity: Any = None  # the ROS subscription, publisher, service or client
         #: the none cipher: a frame's body is its payload (decided once, not per frame)
         self.plain = keys.plain
+        #: the ciphers it holds (the keys' version then, epoch, cipher, until): Keys.sealing
+        self._sealing = self._opening = cast(tuple[int, int, Cipher, float] | None, None)
         self.zero_copy = False  # a reassembled frame's bytearray may become the payload (open)
         self.max_wait_ns = max_wait_ns(entry) if isinstance(entry, TopicConfig) else 0
         #: a best-effort topic without a max_delay: what sheds its messages that stand in the
@@ -126,11 +126,6 @@ class Route(Said):
             return None
         return payload
 
-    def taken(self) -> dict[int, int]:
-        """What this route took of its far side: the newest sequence number per epoch."""
-        with self._lock:
-            return self.replay.newest()
-
     @property
     def shedding(self) -> bool:
         """Whether its queue in this bridge stands behind now, and sheds its oldest."""
@@ -165,15 +160,27 @@ class Route(Said):
         if reason not in QUIET_REASONS:
             self.warner.warn(self.label, reason, detail or reason.replace("_", " "))
 
+    def sealing(self) -> tuple[int, Cipher]:
+        """The epoch a frame sealed now carries and its cipher, held while the keys' version
+        stays and their time lasts (:meth:`~rosgate.keyring.Keys.sealing`); NoKey: none yet."""
+        keys, held = self.keys, self._sealing
+        if held is None or held[0] != keys.changes.version or keys.clock() >= held[3]:
+            version = keys.changes.version
+            epoch, cipher, until = keys.sealing()
+            held = self._sealing = (version, epoch, cipher, until)
+        return held[1], held[2]
+
     def seal(self, flags: int, epoch: int, seq: int, payload: bytes,
-             stamp: int | None = None) -> bytes:
-        """An envelope frame of this route: the header, then the payload sealed with it."""
+             stamp: int | None = None, sealer: Cipher | None = None) -> bytes:
+        """An envelope frame of this route: the header, then the payload sealed with it (by
+        ``sealer``, the cipher of ``epoch``, when the caller holds it)."""
         keys = self.keys
         if stamp is None:
             stamp = time.time_ns()
         header = envelope.pack(flags, self.topic_id, epoch, seq,
                                keys.stamp(stamp) if keys.dated else stamp)
-        sealer = keys.sealer(epoch)
+        if sealer is None:
+            sealer = keys.sealer(epoch)
         if sealer.in_place and len(payload) >= SEAL_IN_PLACE:
             frame = bytearray(envelope.SIZE + len(payload) + sealer.overhead)
             frame[:envelope.SIZE] = header
@@ -193,11 +200,19 @@ class Route(Said):
                 del frame[:envelope.SIZE]  # O(1): CPython moves the start, copies nothing
                 return cast(bytes, frame)
             return bytes(frame[envelope.SIZE:])
-        cipher = self.keys.opener(epoch)
-        if cipher is None:
-            self.drop(Drop.UNKNOWN_KEY, "sealed under a key this side does not hold (an earlier "
-                                        "session, a restart, or an expired key generation)")
-            return None
+        keys, held = self.keys, self._opening
+        if held is not None and held[1] == epoch and held[0] == keys.changes.version \
+                and keys.clock() < held[3]:
+            cipher = held[2]
+        else:
+            version = keys.changes.version
+            found = keys.opening(epoch)
+            if found is None:
+                self.drop(Drop.UNKNOWN_KEY, "sealed under a key this side does not hold (an "
+                          "earlier session, a restart, or an expired key generation)")
+                return None
+            cipher = found[0]
+            self._opening = (version, epoch, cipher, found[1])
         try:
             if type(frame) is bytearray and self.zero_copy and cipher.in_place:
                 with memoryview(frame) as view:
@@ -212,7 +227,6 @@ class Route(Said):
             return None
 
 
-
 class EnvelopeFraming:
     """``framing: rosgate``: the 28-byte envelope (topic id, the sender's epoch and sequence
     number, the send time), then the payload sealed by the topic's cipher, which authenticates
@@ -220,10 +234,10 @@ class EnvelopeFraming:
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
         # no lock: a route's messages come from the one executor thread (RosNode)
-        epoch = route.keys.epoch()
+        epoch, sealer = route.sealing()
         if epoch != route.epoch:  # a new key: a new sequence under it
             route.epoch, route.seqs = epoch, itertools.count(1)
-        return route.seal(flags, epoch, next(route.seqs), payload, stamp)
+        return route.seal(flags, epoch, next(route.seqs), payload, stamp, sealer)
 
 
 
@@ -286,13 +300,6 @@ class TransmitRoute(Holding, Route):
                 self.batches.open(time.monotonic() + self.window, self.flush)
             return
         self._send(self._drain([message], DRAIN_FRAMES, DRAIN_BYTES))
-
-    def flush(self) -> None:
-        """The batch window closed: what came in it and everything waiting now leave together."""
-        messages, self.pending = self.pending, []
-        if self.take is not None and self.entity is not None:
-            messages = self._drain(messages, BATCH_FRAMES, BATCH_BYTES)
-        self._send(messages)
 
     def _drain(self, messages: list[Any], frames: int, size: int) -> list[Any]:
         """``messages`` and those waiting in the subscription after them, up to ``frames``
@@ -382,13 +389,6 @@ class TransmitRoute(Holding, Route):
         """One message framed, or None when it was dropped (counted)."""
         encoded = self._encode(message)
         return None if encoded is None else self._seal(*encoded)
-
-    def close(self) -> None:
-        """The route is removed: what it queued goes (a message half sent is not finished)."""
-        self.pending.clear()  # an open window closes with nothing to send
-        self.link.forget(self)
-        if self.hold is not None:
-            self.hold.forget(self)
 
 
 class ReceiveRoute(Route):

@@ -6,6 +6,7 @@ here."""
 from __future__ import annotations
 
 import itertools
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -29,6 +30,8 @@ class Said:
     qos_found: dict[str, Any] | None
     far_served: bool | None
     _announced: itertools.count
+    _lock: threading.Lock
+    replay: envelope.ReplayWindow
     _pace_until: float
     drop: Callable[..., None]
     seal: Callable[..., bytes]
@@ -88,3 +91,8 @@ class Said:
             from rclpy.duration import Duration
 
             self.entity.wait_for_all_acked(Duration(nanoseconds=int(PACE_EACH * 1e9)))
+
+    def taken(self) -> dict[int, int]:
+        """What this route took of its far side: the newest sequence number per epoch."""
+        with self._lock:
+            return self.replay.newest()
