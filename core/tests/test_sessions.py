@@ -383,3 +383,46 @@ def test_a_type_name_never_imports_a_module_that_is_not_an_interface_package(nam
 def test_interface_packages_still_resolve():
     assert resolve_type("std_msgs/msg/String").__name__ == "String"
     assert resolve_type("std_srvs/srv/Trigger").__name__ == "Trigger"
+
+
+def test_a_route_holds_its_ciphers_only_while_its_keys_are_the_same():
+    """A route keeps the cipher it seals with and the one it last opened with, and asks its
+    keys again when a generation turns, a handshake installs a root, or a key id is reused."""
+    import inspect
+
+    from rosgate.keyring import NoKey
+    from rosgate.routes import Route, Warner
+
+    a, b, clock = schedules()
+    sender_keys, receiver_keys = route_keys(a, b)
+    fields = inspect.signature(TopicConfig).parameters
+    topic = TopicConfig(**{n: None for n, p in fields.items() if p.default is p.empty})
+    sender = Route(topic, 5, None, sender_keys, Warner(), "/t (sender)")
+    receiver = Route(topic, 5, None, receiver_keys, Warner(), "/t (receiver)")
+
+    def crosses(seq: int) -> tuple[int, bytes | None]:
+        epoch, sealer = sender.sealing()
+        assert epoch == sender_keys.epoch()
+        frame = sender.seal(0, epoch, seq, b"payload %d" % seq, 0, sealer)
+        # sealed under what the keys seal with now, not a cipher held too long
+        opener = receiver_keys.opener(epoch)
+        assert opener is not None
+        assert opener.open(frame[:envelope.SIZE], frame[envelope.SIZE:]) == b"payload %d" % seq
+        return epoch, receiver.open(frame, epoch)
+
+    assert crosses(1) == (7 << 24, b"payload 1")
+    assert crosses(2) == (7 << 24, b"payload 2")  # the held ciphers
+    clock.now += 10  # a new generation
+    assert crosses(3) == (7 << 24 | 1, b"payload 3")
+    secret, digest = os.urandom(32), os.urandom(32)
+    a.install(8, secret, digest)
+    b.install(8, secret, digest)
+    assert crosses(4) == (8 << 24 | 0, b"payload 4")  # the new root's at once
+    secret, digest = os.urandom(32), os.urandom(32)
+    a.install(8, secret, digest)  # a restarted server reusing key id 8: same epoch, new root
+    b.install(8, secret, digest)
+    assert crosses(5) == (8 << 24 | 0, b"payload 5")
+    a.forget()
+    with pytest.raises(NoKey):
+        sender.sealing()
+    assert receiver.counters.drops == {}

@@ -50,6 +50,7 @@ class NoCipher(Cipher):
 
     name = "none"
     authenticates = False
+    plain = True
 
     def seal(self, header: bytes, payload: bytes) -> bytes:
         return payload

@@ -27,6 +27,16 @@ class Cipher(ABC):
     #: True when ``open`` proves a frame came from a key holder unchanged. Codecs may then skip
     #: checks on what they decode (the built-in cdr codec does).
     authenticates: ClassVar[bool] = True
+    #: True when ``seal`` and ``open`` leave the payload as it is (the ``none`` cipher): the
+    #: core then calls neither, the frame's body being its payload
+    plain: ClassVar[bool] = False
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """A subclass of a plain cipher that seals or opens on its own is not plain, unless it
+        says so."""
+        super().__init_subclass__(**kwargs)
+        if "plain" not in vars(cls) and ("seal" in vars(cls) or "open" in vars(cls)):
+            cls.plain = False
 
     def __init__(self, options: Any, base_dir: Path):
         """``options``: the plugin's ``Options`` (a plain mapping is parsed the same way), kept as

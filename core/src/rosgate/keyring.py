@@ -13,7 +13,9 @@ import json
 import logging
 import os
 import threading
+import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from pathlib import Path
 
 from .cipher import Cipher
@@ -25,11 +27,32 @@ class NoKey(LookupError):
     """There is no key to seal under yet (a session whose handshake has not happened)."""
 
 
+class Changes:
+    """What a route reads, without a call, to know the ciphers it holds are still its keys':
+    :attr:`version` changes whenever they may have changed otherwise than with time."""
+
+    version = 0
+
+
+#: the changes of keys that never change
+NEVER = Changes()
+
+
 class Keys(ABC):
     """The ciphers of one route, by the envelope's epoch."""
 
     #: True when ``open`` proves a frame came from a key holder unchanged
     authenticates: bool = True
+    #: True when a frame's send time is these keys' to give (:meth:`stamp`) and to judge
+    #: (:meth:`fresh`); False (a session's keys): the send time is the clock's, and any frame
+    #: the keys open is of this run. A route calls neither per frame unless it is True.
+    dated: bool = False
+    #: True when every epoch's cipher is the none cipher: a frame's body is its payload
+    plain: bool = False
+    #: see :meth:`sealing`: a route holds a cipher while ``changes.version`` stays and
+    #: ``clock()`` has not reached the time it was given with it
+    changes: Changes = NEVER
+    clock: Callable[[], float] = staticmethod(time.monotonic)
 
     @abstractmethod
     def epoch(self) -> int:
@@ -43,6 +66,18 @@ class Keys(ABC):
     def opener(self, epoch: int) -> Cipher | None:
         """The cipher that opens frames of ``epoch``; None when no key of this route has it
         (an earlier session, a server restart, a generation long expired)."""
+
+    def sealing(self) -> tuple[int, Cipher, float]:
+        """The epoch a frame sealed now carries, its cipher, and until when (by :attr:`clock`)
+        a route may seal under both without asking again; :class:`NoKey` when there is none."""
+        epoch = self.epoch()
+        return epoch, self.sealer(epoch), float("inf")
+
+    def opening(self, epoch: int) -> tuple[Cipher, float] | None:
+        """The cipher that opens frames of ``epoch`` and until when a route may keep it; None
+        as :meth:`opener`."""
+        cipher = self.opener(epoch)
+        return None if cipher is None else (cipher, float("inf"))
 
     def stamp(self, now: int) -> int:
         """The send time a frame sealed now carries in its envelope (``now``: time.time_ns())."""
@@ -70,6 +105,8 @@ class StaticKeys(Keys):
         self.authenticates = cipher.authenticates
         self._epoch = int.from_bytes(os.urandom(4), "big")
         self.record = record
+        self.dated = record is not None
+        self.plain = cipher.plain
         self._floor = -1  # frames sent at or before this are of a forgotten epoch
         self._latest: dict[int, int] = {}  # epoch -> the latest send time taken in it
         if record is not None:

@@ -52,6 +52,7 @@ Destination = Callable[[], Address | None]
 HelloHandler = Callable[[envelope.Header, bytes, Link, Address], None]
 #: (route, header, link, source): a topic's frame opened, on a datagram link, from that source
 HeardHandler = Callable[[Route, envelope.Header, Link, Address], None]
+
 #: the flags of frames that are not a topic's message
 _NOT_DATA = (envelope.FLAG_HELLO | envelope.FLAG_REQUEST | envelope.FLAG_REPLY
              | envelope.FLAG_ANNOUNCE)
@@ -69,6 +70,11 @@ def fixed(address: Address | None) -> Destination:
 _no_destination = fixed(None)
 
 
+def _anywhere(source: Address) -> bool:
+    """Where a role that does not follow its far sides knows them to be: anywhere."""
+    return True
+
+
 class Router:
     def __init__(self, ros: RosNode, warner: Warner | None = None):
         self.ros = ros
@@ -84,8 +90,11 @@ class Router:
         self.link_drops: Counter = Counter()
         #: a role that takes hellos (the server) sets this; elsewhere a hello is foreign
         self.on_hello: HelloHandler | None = None
-        #: a role that learns where its far sides are from their frames (the server) sets this
+        #: a role that learns where its far sides are from their frames (the server) sets this,
+        #: and ``known``, where they are known to be: a datagram frame a route took from
+        #: anywhere else goes to ``on_heard`` (a far side that moved); from there, nowhere
         self.on_heard: HeardHandler | None = None
+        self.known: Callable[[Address], bool] = _anywhere
         #: a role that learns names from announcements for no route yet (a peer's patterns)
         self.on_unknown_announcement: HelloHandler | None = None
         self._lock = threading.RLock()
@@ -274,7 +283,7 @@ class Router:
             if route is None:
                 self.link_drop(link, Drop.UNKNOWN_TOPIC, f"topic id {topic_id} from {source}")
             elif route.on_frame(header, frame, link.arrived) and link.datagram \
-                    and self.on_heard is not None:
+                    and self.on_heard is not None and not self.known(source):
                 self.on_heard(route, header, link, source)
         elif flags & envelope.FLAG_HELLO:
             if self.on_hello is None:

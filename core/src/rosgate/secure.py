@@ -28,7 +28,7 @@ from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
 from .cipher import Cipher
 from .errors import LinkError
-from .keyring import Keys, NoKey
+from .keyring import Changes, Keys, NoKey
 from .transport import StreamConnection
 from .wire import envelope
 
@@ -197,7 +197,7 @@ def hkdf(secret: bytes, info: bytes, salt: bytes | None = None, length: int = 32
     return HKDF(algorithm=SHA256(), length=length, salt=salt, info=info).derive(secret)
 
 
-class KeySchedule:
+class KeySchedule(Changes):
     """A session's keys on one side. ``install`` each handshake's secret; routes ask for keys
     by epoch (``key id << 24 | generation``)."""
 
@@ -317,6 +317,8 @@ class SessionKeys(Keys):
         self.send_label = send
         self.receive_label = receive
         self.authenticates = cipher_cls.authenticates
+        self.changes = schedule
+        self.clock = schedule.clock
         # a keyless cipher (none) reads no file: any folder will do
         self._plain = cipher_cls({}, Path(".")) if cipher_cls.session_key_size == 0 else None
         # (epoch, sealing) -> (the schedule's version, usable until, cipher)
@@ -335,15 +337,36 @@ class SessionKeys(Keys):
     def opener(self, epoch: int) -> Cipher | None:
         return self._cipher(epoch, False)
 
+    def sealing(self) -> tuple[int, Cipher, float]:
+        schedule = self.schedule
+        state = schedule._seal_state
+        if state is None:
+            raise NoKey("no session key yet")
+        age = int((schedule.clock() - state[1]) / schedule.rekey)
+        epoch = state[0] << 24 | age % GENERATIONS
+        found = self._held(epoch, True)
+        if found is None:
+            raise NoKey(f"no session key for epoch {epoch:#x}")
+        return epoch, found[0], min(found[1], state[1] + (age + 1) * schedule.rekey)
+
+    def opening(self, epoch: int) -> tuple[Cipher, float] | None:
+        return self._held(epoch, False)
+
     def _cipher(self, epoch: int, sealing: bool) -> Cipher | None:
+        found = self._held(epoch, sealing)
+        return None if found is None else found[0]
+
+    def _held(self, epoch: int, sealing: bool) -> tuple[Cipher, float] | None:
+        """The cipher of ``epoch`` and until when it may be used while the schedule's version
+        stays."""
         if self._plain is not None:  # `none`, where the policy allows it: nothing to key
-            return self._plain
+            return self._plain, float("inf")
         key = (epoch, sealing)
         schedule = self.schedule
         cached = self._cache.get(key)
         if (cached is not None and cached[0] == schedule.version
                 and schedule.clock() < cached[1]):
-            return cached[2]
+            return cached[2], cached[1]
         version = schedule.version
         label = self.send_label if sealing else self.receive_label
         found = schedule.secret(epoch, label, self.cipher_cls.session_key_size, sealing)
@@ -355,7 +378,7 @@ class SessionKeys(Keys):
             if len(self._cache) >= self.CACHE:
                 del self._cache[next(iter(self._cache))]
             self._cache[key] = (version, until, cipher)
-        return cipher
+        return cipher, until
 
 
 def seal_hello(schedule: KeySchedule, session: int, seq: int) -> bytes:

@@ -1,8 +1,9 @@
 """A datagram link's every frame, out and in: sent from the caller's thread when nothing waits
 (whole, batched, or cut by a packetizer), queued otherwise; each datagram in dispatched to the
-packetizer of its magic, batches split, whole frames handed to the router. Every receive counts
-what a peer's bytes cause and never dies of input; an unexpected error's traceback is logged
-once per reason per minute (:data:`rosgate.warn.BUGS`)."""
+packetizer of its magic, batches split, whole frames handed to the router; a packetizer's
+answers (acknowledgements) sent at once, and its timer armed on the send thread. Every receive
+counts what a peer's bytes cause and never dies of input; an unexpected error's traceback is
+logged once per reason per minute (:data:`rosgate.warn.BUGS`)."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from ..transport import Address
 from ..warn import BUGS
 from ..wire import framing
 from .base import POLL, Link, Sender
-from .datagram_base import INLINE_MAX, DatagramBase, batch_size
+from .datagram_base import INLINE_MAX, DatagramBase, batch, batch_size
 from .sending import _SendingBase
 
 
@@ -99,15 +100,6 @@ SENT_INLINE = Outgoing(None, None, 0, list)
 #: bytes a batch of a topic with recovery leaves its packetizer for its header, so the batch
 #: and the header fit one packet (retransmit's takes 14, fec's 21)
 REPAIR_HEADROOM = 64
-
-
-def batch(frames: list[bytes]) -> list[bytes | memoryview]:
-    """The parts of one datagram carrying ``frames``: ``"RB"``, then ``u32 length | frame``."""
-    parts: list[bytes | memoryview] = [framing.BATCH_MAGIC]
-    pack = framing.LENGTH.pack
-    for frame in frames:
-        parts += (pack(len(frame)), frame)
-    return parts
 
 
 def _groups(frames: list[bytes], limit: int) -> Iterator[tuple[list[bytes], int]]:
@@ -340,23 +332,33 @@ class DatagramLink(DatagramBase, _Sending, Link):
                 packetizer.sent(packet, to, now)
                 self._arm(packetizer.timer(now))
 
-    def _send_batch(self, dues: list[Due], to: Address) -> int:
-        """Whole frames in one datagram; how many were sent (a failure is counted for each)."""
-        frames = [due.packet for due in dues]
+    def answer(self, packet: bytes, to: Address) -> None:
+        """Sent at once (counted against the budget); one that fails is asked for again anyway.
+        Never to a source read on probation (a stranger, or a client that moved before a genuine
+        frame of it moved its address): a replayed datagram must not make this side talk."""
+        if self.sources is not None and not self.sources.vouches_for(to):
+            return
+        with self._lock:
+            self.scheduler.charge(to, len(packet))
         try:
-            self._send_parts(batch(frames), to)
-        except OSError as exc:
-            for due in dues:
-                due.sender.drop(Drop.SEND_ERROR, f"to {to} on {self.name}: {exc}")
-            return 0
-        counters = self.counters
-        counters.frames_out += len(frames)
-        counters.packets_out += 1
-        counters.coalesced_out += len(frames)
-        counters.bytes_out += batch_size(sum(map(len, frames)), len(frames))
-        for due in dues:
-            due.sender.on_wire(len(due.packet) + framing.LENGTH.size, False)
-        return len(frames)
+            self.endpoint.send(packet, to)
+        except OSError:
+            pass
+
+    def _arm(self, due: float | None) -> None:
+        """The send thread runs the timers of the packetizers that implement ``sent`` at
+        ``due`` at the latest: woken when that is sooner than the time it waits for. (Read
+        first without the lock: a time already set as soon or sooner is run by the send thread,
+        which sets the next under the lock, after what every ``sent`` before said.)"""
+        if due is None:
+            return
+        armed = self._tx_timer
+        if armed is not None and armed <= due:
+            return
+        with self._wake:
+            if self._tx_timer is None or due < self._tx_timer:
+                self._tx_timer = due
+                self._wake.notify()
 
     def _receive_loop(self) -> None:
         receive_into = getattr(self.endpoint, "receive_into", None)

@@ -1,7 +1,7 @@
 """What a datagram link does beside each frame's way out and in (:mod:`.datagram`): it is made,
 makes its packetizers and runs their timers, holds reliable frames while its line is gone, and
 drains its queue on a send thread of its own (frames that wait for one destination leave
-together)."""
+together, in one ``"RB"`` datagram)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from typing import Any
 
 from ..admission import Sources
 from ..config import LinkConfig
+from ..drops import Drop
 from ..errors import LinkError
 from ..packetizer import Packetizer, own_packetizer
 from ..plugins import Plugins, distribution_hint, installed
@@ -41,6 +42,16 @@ def batch_size(sizes: int, count: int) -> int:
     return len(framing.BATCH_MAGIC) + count * framing.LENGTH.size + sizes
 
 
+
+def batch(frames: list[bytes]) -> list[bytes | memoryview]:
+    """The parts of one datagram carrying ``frames``: ``"RB"``, then ``u32 length | frame``."""
+    parts: list[bytes | memoryview] = [framing.BATCH_MAGIC]
+    pack = framing.LENGTH.pack
+    for frame in frames:
+        parts += (pack(len(frame)), frame)
+    return parts
+
+
 class DatagramBase(_SendingBase):
     """A :class:`~.datagram.DatagramLink` but for each frame's way (see there)."""
 
@@ -48,7 +59,8 @@ class DatagramBase(_SendingBase):
     _claim: Callable[[Any, int], bool]
     _release: Callable[[], None]
     _send_run: Callable[[list[bytes], Any, Address, bool], bool]
-    _send_batch: Callable[[list[Due], Address], int]
+    _arm: Callable[[float | None], None]
+    answer: Callable[[bytes, Address], None]
     #: the type of a packet sent as its parts (scatter-gather)
     _parts: type
 
@@ -179,18 +191,23 @@ class DatagramBase(_SendingBase):
             self.scheduler.repair(sender, to, packets)
             self._wake.notify()
 
-    def answer(self, packet: bytes, to: Address) -> None:
-        """Sent at once (counted against the budget); one that fails is asked for again anyway.
-        Never to a source read on probation (a stranger, or a client that moved before a genuine
-        frame of it moved its address): a replayed datagram must not make this side talk."""
-        if self.sources is not None and not self.sources.vouches_for(to):
-            return
-        with self._lock:
-            self.scheduler.charge(to, len(packet))
+    def _send_batch(self, dues: list[Due], to: Address) -> int:
+        """Whole frames in one datagram; how many were sent (a failure is counted for each)."""
+        frames = [due.packet for due in dues]
         try:
-            self.endpoint.send(packet, to)
-        except OSError:
-            pass
+            self._send_parts(batch(frames), to)
+        except OSError as exc:
+            for due in dues:
+                due.sender.drop(Drop.SEND_ERROR, f"to {to} on {self.name}: {exc}")
+            return 0
+        counters = self.counters
+        counters.frames_out += len(frames)
+        counters.packets_out += 1
+        counters.coalesced_out += len(frames)
+        counters.bytes_out += batch_size(sum(map(len, frames)), len(frames))
+        for due in dues:
+            due.sender.on_wire(len(due.packet) + framing.LENGTH.size, False)
+        return len(frames)
 
     def _run_timers(self, now: float, sending: bool = False) -> float | None:
         """The packetizers' timers: on the send thread those that implement ``sent``, on the
@@ -262,21 +279,6 @@ class DatagramBase(_SendingBase):
             return False
         packetizer = self._by_magic.get(packet[:2])
         return packetizer in self._sending
-
-    def _arm(self, due: float | None) -> None:
-        """The send thread runs the timers of the packetizers that implement ``sent`` at
-        ``due`` at the latest: woken when that is sooner than the time it waits for. (Read
-        first without the lock: a time already set as soon or sooner is run by the send thread,
-        which sets the next under the lock, after what every ``sent`` before said.)"""
-        if due is None:
-            return
-        armed = self._tx_timer
-        if armed is not None and armed <= due:
-            return
-        with self._wake:
-            if self._tx_timer is None or due < self._tx_timer:
-                self._tx_timer = due
-                self._wake.notify()
 
     def _send_loop(self) -> None:
         """Send what the scheduler lets go; consecutive whole frames for one destination share a

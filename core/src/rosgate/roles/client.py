@@ -43,7 +43,6 @@ from .mainline import (
     PROTOCOL,
     control,
     hello_datagram,
-    is_control,
     read_taken,
     taken,
 )
@@ -95,11 +94,12 @@ class ClientRole(Role):
                                           self._tell_found, kind="actions")
         assert plan.main_line is not None and plan.main_address is not None
         self.connector = Connector(plan.main_line, plan.main_address, self.main,
-                                   self._on_main_frame, self.router.on_lost, self.life,
+                                   self.router.on_frame, self.router.on_lost, self.life,
                                    bridge.backoff, self._handshake, self._lost,
                                    secure=self.initiate if self.cfg.secure else None,
                                    budget=bridge.budget(plan.main_line),
-                                   on_closing=lambda link: self.hold.fail())
+                                   on_closing=lambda link: self.hold.fail(),
+                                   on_control=self._on_control)
 
     def start(self) -> None:
         self.connector.start()
@@ -128,10 +128,7 @@ class ClientRole(Role):
         if self.schedule is not None:
             self.schedule.forget()
 
-    def _on_main_frame(self, frame: bytes, link: Link, source: Address) -> None:
-        if not is_control(frame):
-            self.router.on_frame(frame, link, source)
-            return
+    def _on_control(self, frame: bytes, link: Link, source: Address) -> None:
         message = self.read_control(frame, link, source)
         if message is not None and message["type"] in ("welcome", "refused"):
             self.answer.put(message)

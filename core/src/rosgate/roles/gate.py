@@ -105,6 +105,7 @@ class ClientGate(Role):
         #: datagram ports take frames from where clients' genuine hellos and frames came from
         #: (and, with identities, a few from elsewhere on probation: :meth:`on_heard`)
         self.clients = KnownSources(STRANGERS_PER_SECOND if self.cfg.secure else 0)
+        self.router.known = self.clients.knows  # a frame from elsewhere comes to on_heard
         self._by_key = {p.key: p for p in self.cfg.clients.values()}
         if self.cfg.secure:  # its clients' addresses keep their places across a restart
             self.limits.recent = kept_recent_hosts(self.cfg.name)
@@ -195,14 +196,15 @@ class ClientGate(Role):
 
     def on_heard(self, route: Route, header: envelope.Header, link: Link,
                  source: Address) -> None:
-        """A topic's frame opened under its key and new to its replay window, from ``source``:
-        when that is not where its client was, the client moved (a roam, a NAT's new port), and
-        is answered there from now on. A forged frame does not open, a replayed one is not new:
-        neither moves anyone (WireGuard's rule); nor does one overtaken on the way by a newer
-        one (sent from where the client was just before). A frame anyone could have made (no
-        session keys: ``insecure: true``) moves nobody either: there only hellos do."""
-        if self.clients.knows(source) or not isinstance(link, DatagramLink) \
-                or not route.keys.authenticates or not _newest(route.taken(), header):
+        """A topic's frame opened under its key and new to its replay window, from ``source``,
+        where no client is known to be (the router asks :attr:`clients` first): the client
+        moved (a roam, a NAT's new port), and is answered there from now on. A forged frame
+        does not open, a replayed one is not new: neither moves anyone (WireGuard's rule); nor
+        does one overtaken on the way by a newer one (sent from where the client was just
+        before). A frame anyone could have made (no session keys: ``insecure: true``) moves
+        nobody either: there only hellos do."""
+        if not isinstance(link, DatagramLink) or not route.keys.authenticates \
+                or not _newest(route.taken(), header):
             return
         with self._lock:
             session = next((s for s in self.sessions.values()

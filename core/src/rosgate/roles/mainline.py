@@ -54,10 +54,6 @@ def control(message: dict[str, Any]) -> bytes:
     return header + json.dumps(message, separators=(",", ":")).encode()
 
 
-def is_control(frame: bytes) -> bool:
-    return len(frame) > 3 and frame[:2] == envelope.MAGIC and bool(frame[3] & envelope.FLAG_CONTROL)
-
-
 def parse_control(frame: bytes) -> dict[str, Any] | None:
     """A control frame's message, or None when it is none (bounded: :mod:`rosgate.wire.control`)."""
     try:

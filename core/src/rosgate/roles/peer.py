@@ -39,9 +39,9 @@ from ..spec import ServiceSpec, TopicSpec
 from ..streamlink.connector import Connector
 from ..streamlink.link import StreamLink
 from ..transport import Address, DatagramTransport, StreamConnection, StreamTransport, Transport
-from ..wire.envelope import topic_id_for
+from ..wire.envelope import is_control, topic_id_for
 from . import Answer, Bridge, Role, session_keys
-from .mainline import control, is_control
+from .mainline import control
 from .peer_patterns import PeerPatterns
 
 log = logging.getLogger("rosgate")

@@ -33,7 +33,7 @@ from ..transport import Address, StreamConnection
 from ..warn import BUGS
 from . import Bridge
 from .gate import Session
-from .mainline import control, is_control, read_taken, taken
+from .mainline import control, read_taken, taken
 from .sessions import SessionRole
 
 log = logging.getLogger("rosgate")
@@ -113,30 +113,28 @@ class ServerRole(SessionRole):
     def _main_line(self, connection: StreamConnection, peer: Address) -> None:
         session: Session | None = None
 
-        def on_frame(frame: bytes, link: Link, source: Address) -> None:
+        def on_control(frame: bytes, link: Link, source: Address) -> None:
             nonlocal session
-            if is_control(frame):
-                message = self.read_control(frame, link, source)
-                if message is None:
-                    return
-                assert isinstance(link, StreamLink)
-                kind = message["type"]
-                if kind == "hello" and session is None:
-                    session = self._welcome(message, link, peer)
-                    if session is not None:
-                        link.trust()
-                elif kind == "found" and session is not None:
-                    self._found(session, message, link)
-                elif kind == "ready" and session is not None and session.schedule is not None:
-                    session.schedule.seal_with(message.get("key_id"))
-                elif kind == "bye" and session is not None and session.main.current is link:
-                    log.info("client %r left", session.name)
-                    self._end(session)
+            message = self.read_control(frame, link, source)
+            if message is None:
                 return
-            if session is None:
-                self.router.link_drop(link, Drop.BEFORE_HANDSHAKE, f"data from {source}")
-                return
-            self.router.on_frame(frame, link, source)
+            assert isinstance(link, StreamLink)
+            kind = message["type"]
+            if kind == "hello" and session is None:
+                session = self._welcome(message, link, peer)
+                if session is not None:
+                    link.trust()
+                    link.on_frame = self.router.on_frame  # its data, from the next frame on
+            elif kind == "found" and session is not None:
+                self._found(session, message, link)
+            elif kind == "ready" and session is not None and session.schedule is not None:
+                session.schedule.seal_with(message.get("key_id"))
+            elif kind == "bye" and session is not None and session.main.current is link:
+                log.info("client %r left", session.name)
+                self._end(session)
+
+        def before_hello(frame: bytes, link: Link, source: Address) -> None:
+            self.router.link_drop(link, Drop.BEFORE_HANDSHAKE, f"data from {source}")
 
         def on_close(link: StreamLink) -> None:
             self.life.forget(link)
@@ -149,8 +147,9 @@ class ServerRole(SessionRole):
                             link.why or "main line closed", self.cfg.session_timeout)
 
         assert self.bridge.plan.main_line is not None
-        self.life.closing(StreamLink(connection, f"main<-{peer[0]}:{peer[1]}", peer, on_frame,
-                                     self.router.on_lost, on_close, untrusted=self.untrusted,
+        self.life.closing(StreamLink(connection, f"main<-{peer[0]}:{peer[1]}", peer,
+                                     before_hello, self.router.on_lost, on_close,
+                                     untrusted=self.untrusted, on_control=on_control,
                                      budget=self.bridge.budget(self.bridge.plan.main_line)))
 
     # -- a client's hello and the names its patterns found ------------------------------------

@@ -57,6 +57,8 @@ class Connector:
     secure: Callable[[StreamConnection], StreamConnection] | None = None
     budget: LinkConfig | None = None
     on_closing: Callable[[StreamLink], None] | None = None
+    #: the main line's control frames (the others go to ``on_frame``)
+    on_control: FrameHandler | None = None
 
     def __post_init__(self) -> None:
         self._last_failure = ""
@@ -109,7 +111,8 @@ class Connector:
         link = self.life.closing(StreamLink(connection, self.slot.name, self.address,
                                             self.on_frame, self.on_frame_lost,
                                             on_close=self.life.forget,
-                                            on_closing=self.on_closing, budget=self.budget))
+                                            on_closing=self.on_closing, budget=self.budget,
+                                            on_control=self.on_control))
         if self.on_connected is not None and not self.on_connected(link):
             link.close()
             return None

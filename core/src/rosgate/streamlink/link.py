@@ -23,6 +23,7 @@ from ..links.datagram import SENT_INLINE, _Sending
 from ..scheduler import Due, Outgoing
 from ..transport import Address, StreamConnection
 from ..warn import BUGS
+from ..wire.envelope import is_control
 from ..wire.framing import (
     CHUNK,
     CHUNK_HEAD,
@@ -164,10 +165,13 @@ class StreamLink(_Sending, Link):
                  on_closing: Callable[[StreamLink], None] | None = None,
                  queue_frames: int = 10_000, queue_bytes: int = 64 * 1024 * 1024,
                  max_message: int = DEFAULT_MAX_MESSAGE,
-                 untrusted: Untrusted | None = None, budget: LinkConfig | None = None):
+                 untrusted: Untrusted | None = None, budget: LinkConfig | None = None,
+                 on_control: FrameHandler | None = None):
         self.connection = connection
         self.peer = peer
         self.on_frame = on_frame
+        #: a main line's: its control frames go here, the others to ``on_frame``
+        self.on_control = on_control
         self.on_lost = on_lost
         self.on_close = on_close
         self.on_closing = on_closing
@@ -301,6 +305,18 @@ class StreamLink(_Sending, Link):
             return self._wake.wait_for(
                 lambda: (self.scheduler.idle and not self._busy and self._rest is None
                          or self.closed.is_set()), timeout)
+
+    def _deliver(self, frame: bytes, source: Address) -> None:
+        """Hand a frame to its handler (a control frame to ``on_control``, when there is one);
+        one that raises has a bug: counted, and the link goes on."""
+        on_control = self.on_control
+        handler = on_control if on_control is not None and is_control(frame) else self.on_frame
+        try:
+            handler(frame, self, source)
+        except Exception:
+            BUGS.bug("handler_error", f"{self.name}: error while handling a frame from {source} "
+                                      "(a bug: please report it)")
+            self.on_lost(None, Drop.HANDLER_ERROR)
 
     def trust(self) -> None:
         """The connection proved itself: the full frame size, no deadline, and its place in

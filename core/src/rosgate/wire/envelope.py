@@ -60,6 +60,11 @@ def is_hello(datagram: bytes | memoryview) -> bool:
     return len(datagram) >= SIZE and datagram[:2] == MAGIC and bool(datagram[3] & FLAG_HELLO)
 
 
+def is_control(frame: bytes) -> bool:
+    """Whether ``frame`` is a control frame (a main line's message between the roles)."""
+    return len(frame) > 3 and frame[:2] == MAGIC and bool(frame[3] & FLAG_CONTROL)
+
+
 class EnvelopeError(ValueError):
     """Bytes that do not start with a valid envelope header; counted as its ``reason``."""
 

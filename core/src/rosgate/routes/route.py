@@ -1,13 +1,14 @@
-"""Routes: one topic on one side of a link. The data path, top to bottom:
+"""The data path of a route, top to bottom:
 
 * transmit (a ROS subscription callback): message -> codec.encode -> transform (optional) ->
   framing.frame (envelope header, cipher.seal) -> link.send
-* receive (a link's thread): cipher.open -> replay window -> transform back -> decode (codec,
-  CDR check) -> ROS publish
+* receive (a link's thread): cipher.open -> (in order) -> replay window -> transform back ->
+  decode (codec, CDR check) -> ROS publish
 
 Each frame's cipher comes from the route's :class:`~rosgate.keyring.Keys` by the envelope's
 epoch (a new key generation starts a new sequence). Every drop is counted by reason in the
-route's :class:`Counters`, warned about at most once per :data:`rosgate.warn.WARN_EVERY` s.
+route's :class:`~.counters.Counters`, warned about at most once per
+:data:`rosgate.warn.WARN_EVERY` s.
 """
 
 from __future__ import annotations
@@ -15,71 +16,42 @@ from __future__ import annotations
 import itertools
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
 from typing import Any, cast
 
-from . import announce
-from .announce import Identity, TypeCheck
-from .batch import Batches
-from .builtin import NoCipher
-from .codec import Codec
-from .config import ServiceConfig, TopicConfig
-from .drops import Drop, Reason
-from .echo import EchoGuard
-from .errors import CipherError, CodecError
-from .holdback import Held, Holdback
-from .inorder import Ordered
-from .keyring import Keys, NoKey, StaticKeys
-from .links.base import Link
-from .matching import PACE_EACH, PACE_FOR, PublishGate
-from .scheduler import FRESH, FRESH_HOLD, Backlog
-from .spec import CONTROL, Delivery
-from .transform import Transform, TransformError
-from .transport import Address
-from .warn import Warner
-from .wire import envelope
-from .wire.names import LAYOUT_DEFAULT, Layout, NameMissing, call_shaped, pack_name, split_name
+from ..announce import Identity, TypeCheck
+from ..batch import Batches
+from ..cipher import Cipher
+from ..codec import Codec
+from ..config import ServiceConfig, TopicConfig
+from ..drops import Drop, Reason
+from ..echo import EchoGuard
+from ..errors import CipherError, CodecError
+from ..holdback import Holdback
+from ..inorder import Ordered
+from ..keyring import Keys, NoKey
+from ..links.base import Link
+from ..matching import PublishGate
+from ..scheduler import FRESH, FRESH_HOLD, Backlog
+from ..spec import CONTROL, Delivery
+from ..transform import Transform, TransformError
+from ..transport import Address
+from ..warn import Warner
+from ..wire import envelope
+from .bare import BareFraming
+from .counters import QUIET_REASONS, Counters, SideSender
+from .held import Holding, max_wait_ns
+from .said import Said
 
 # a transmitting route takes what waits in its subscription up to this much at a time
 DRAIN_FRAMES = 32
 DRAIN_BYTES = 60_000
-# and when a batch window closes (many datagrams' worth: send_all cuts them)
-BATCH_FRAMES = 512
-BATCH_BYTES = 1_000_000
 # a payload at least this long is sealed straight into its frame (a bytearray) by a cipher that
 # can: no copy of an image to put the header in front. Shorter frames stay bytes.
 SEAL_IN_PLACE = 64 * 1024
 
-# reasons that say something is wrong (a warning); the others are routine and only counted
-QUIET_REASONS = {Drop.RATE_LIMIT, Drop.DUPLICATE, Drop.SUPERSEDED, Drop.ECHO}
 
-
-@dataclass
-class Counters:
-    sent: int = 0
-    received: int = 0
-    bytes_sent: int = 0
-    bytes_received: int = 0
-    lost: int = 0  # sequence numbers skipped by the sender and never filled in
-    drops: Counter = field(default_factory=Counter)
-    # sender, the link's view: every byte put on it for this topic (compressed, with fragment
-    # headers, repairs and retransmissions), and the packets a receiver asked for again
-    bytes_on_wire: int = 0
-    retransmitted: int = 0
-    recovered: int = 0  # receiver: frames whole only thanks to fec or retransmit
-    # compression (sender): payload bytes before and after; payloads it did not make smaller
-    bytes_before_compression: int = 0
-    bytes_after_compression: int = 0
-    not_compressed: int = 0
-
-    def snapshot(self) -> dict[str, Any]:
-        """Every counter, the drops as a plain mapping."""
-        return {**{f.name: getattr(self, f.name) for f in fields(self)}, "drops": dict(self.drops)}
-
-
-class Route:
+class Route(Said):
     """A topic's (or service's) path through the bridge in one direction; the
     :class:`rosgate.links.base.Sender` of its frames."""
 
@@ -115,7 +87,9 @@ class Route:
         self.counters = Counters()
         self.entity: Any = None  # the ROS subscription, publisher, service or client
         #: the none cipher: a frame's body is its payload (decided once, not per frame)
-        self.plain = isinstance(keys, StaticKeys) and type(keys.cipher).open is NoCipher.open
+        self.plain = keys.plain
+        #: the ciphers it holds (the keys' version then, epoch, cipher, until): Keys.sealing
+        self._sealing = self._opening = cast(tuple[int, int, Cipher, float] | None, None)
         self.zero_copy = False  # a reassembled frame's bytearray may become the payload (open)
         self.max_wait_ns = max_wait_ns(entry) if isinstance(entry, TopicConfig) else 0
         #: a best-effort topic without a max_delay: what sheds its messages that stand in the
@@ -132,17 +106,6 @@ class Route:
         self.announcer = SideSender(self, CONTROL, lambda reason, detail="": None)
         self.born = time.monotonic()
 
-    def announcement(self) -> bytes:
-        """An announcement frame of this entry (:mod:`rosgate.announce`), with the QoS found
-        here. NoKey before a session has keys."""
-        body = announce.encode(self.said())
-        epoch = self.keys.epoch()
-        return self.seal(envelope.FLAG_ANNOUNCE, epoch, next(self._announced), body)
-
-    def said(self) -> dict[str, Any]:
-        """What this side says of its entry (a hello's or a welcome's item, an announcement)."""
-        return announce.item(self.check.mine, self.qos_found)
-
     def admit(self, header: envelope.Header, frame: bytes) -> bytes | None:
         """A received frame's payload once its cipher, keys and replay window accept it; None
         (counted) when one does not. Skipped sequence numbers of a topic count as lost (a late
@@ -154,39 +117,14 @@ class Route:
         """An opened frame's payload unless the replay window refuses it (counted)."""
         replay = self.replay
         with self._lock:
-            refused = replay.accept(header.epoch, header.seq) if self.keys.fresh(
-                header.epoch, header.stamp) else Drop.REPLAYED
+            refused = replay.accept(header.epoch, header.seq) if not self.keys.dated \
+                or self.keys.fresh(header.epoch, header.stamp) else Drop.REPLAYED
             if self.counts_lost:
                 self.counters.lost = replay.lost
         if refused:
             self.drop(refused)
             return None
         return payload
-
-    def taken(self) -> dict[int, int]:
-        """What this route took of its far side: the newest sequence number per epoch."""
-        with self._lock:
-            return self.replay.newest()
-
-    def heard(self, header: envelope.Header,
-              frame: bytes) -> tuple[Identity | None, dict[str, Any] | None] | None:
-        """The far side's announcement frame of this entry: see :meth:`told`."""
-        body = self.open(frame, header.epoch)
-        return None if body is None else self.told(bytes(body))
-
-    def told(self, said: Any) -> tuple[Identity | None, dict[str, Any] | None] | None:
-        """What the far side says of this entry (an announcement's body, or a hello's or a
-        welcome's item; None from an older rosgate), its type checked; None (counted) when
-        it cannot be read."""
-        try:
-            identity, qos = (announce.parse_body(said) if isinstance(said, bytes)
-                             else announce.read(said))
-            self.far_served = announce.served(said)
-        except ValueError as exc:
-            self.drop(Drop.BAD_ANNOUNCEMENT, str(exc))
-            return None
-        self.check.far(identity)
-        return identity, qos
 
     @property
     def shedding(self) -> bool:
@@ -208,11 +146,6 @@ class Route:
                                  f"{FRESH_HOLD * 1e3:.0f} ms on end (oldest first)")
         return True
 
-    def refuse_type(self) -> None:
-        """A frame dropped because the far side's type is not this side's."""
-        self.counters.drops[self.check.reason] += 1
-        self.check.say()
-
     def on_wire(self, size: int, again: bool) -> None:
         """A packet of ``size`` bytes left on the link for this route (``again``: re-sent)."""
         self.counters.bytes_on_wire += size
@@ -227,12 +160,27 @@ class Route:
         if reason not in QUIET_REASONS:
             self.warner.warn(self.label, reason, detail or reason.replace("_", " "))
 
+    def sealing(self) -> tuple[int, Cipher]:
+        """The epoch a frame sealed now carries and its cipher, held while the keys' version
+        stays and their time lasts (:meth:`~rosgate.keyring.Keys.sealing`); NoKey: none yet."""
+        keys, held = self.keys, self._sealing
+        if held is None or held[0] != keys.changes.version or keys.clock() >= held[3]:
+            version = keys.changes.version
+            epoch, cipher, until = keys.sealing()
+            held = self._sealing = (version, epoch, cipher, until)
+        return held[1], held[2]
+
     def seal(self, flags: int, epoch: int, seq: int, payload: bytes,
-             stamp: int | None = None) -> bytes:
-        """An envelope frame of this route: the header, then the payload sealed with it."""
+             stamp: int | None = None, sealer: Cipher | None = None) -> bytes:
+        """An envelope frame of this route: the header, then the payload sealed with it (by
+        ``sealer``, the cipher of ``epoch``, when the caller holds it)."""
+        keys = self.keys
+        if stamp is None:
+            stamp = time.time_ns()
         header = envelope.pack(flags, self.topic_id, epoch, seq,
-                               self.keys.stamp(time.time_ns() if stamp is None else stamp))
-        sealer = self.keys.sealer(epoch)
+                               keys.stamp(stamp) if keys.dated else stamp)
+        if sealer is None:
+            sealer = keys.sealer(epoch)
         if sealer.in_place and len(payload) >= SEAL_IN_PLACE:
             frame = bytearray(envelope.SIZE + len(payload) + sealer.overhead)
             frame[:envelope.SIZE] = header
@@ -252,11 +200,19 @@ class Route:
                 del frame[:envelope.SIZE]  # O(1): CPython moves the start, copies nothing
                 return cast(bytes, frame)
             return bytes(frame[envelope.SIZE:])
-        cipher = self.keys.opener(epoch)
-        if cipher is None:
-            self.drop(Drop.UNKNOWN_KEY, "sealed under a key this side does not hold (an earlier "
-                                        "session, a restart, or an expired key generation)")
-            return None
+        keys, held = self.keys, self._opening
+        if held is not None and held[1] == epoch and held[0] == keys.changes.version \
+                and keys.clock() < held[3]:
+            cipher = held[2]
+        else:
+            version = keys.changes.version
+            found = keys.opening(epoch)
+            if found is None:
+                self.drop(Drop.UNKNOWN_KEY, "sealed under a key this side does not hold (an "
+                          "earlier session, a restart, or an expired key generation)")
+                return None
+            cipher = found[0]
+            self._opening = (version, epoch, cipher, found[1])
         try:
             if type(frame) is bytearray and self.zero_copy and cipher.in_place:
                 with memoryview(frame) as view:
@@ -271,24 +227,6 @@ class Route:
             return None
 
 
-@dataclass(slots=True, eq=False)
-class SideSender:
-    """Frames of a route that are not its messages, as the link's sender: an announcement (in
-    the control class, never waiting out a link loss: the next one comes soon) or a service
-    call (whose drop fails the call). Their bytes are not the route's data."""
-
-    route: Route
-    delivery: Delivery
-    drop: Callable[..., None]  # (reason, detail="")
-
-    @property
-    def topic_id(self) -> int:
-        return self.route.topic_id
-
-    def on_wire(self, size: int, again: bool) -> None:
-        pass
-
-
 class EnvelopeFraming:
     """``framing: rosgate``: the 28-byte envelope (topic id, the sender's epoch and sequence
     number, the send time), then the payload sealed by the topic's cipher, which authenticates
@@ -296,35 +234,15 @@ class EnvelopeFraming:
 
     def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
         # no lock: a route's messages come from the one executor thread (RosNode)
-        epoch = route.keys.epoch()
+        epoch, sealer = route.sealing()
         if epoch != route.epoch:  # a new key: a new sequence under it
             route.epoch, route.seqs = epoch, itertools.count(1)
-        return route.seal(flags, epoch, next(route.seqs), payload, stamp)
+        return route.seal(flags, epoch, next(route.seqs), payload, stamp, sealer)
 
 
-class BareFraming:
-    """``framing: none``: one datagram per message, the codec's bytes alone (no flags) — after
-    the topic's ``remote`` name (:mod:`rosgate.wire.names`) when the codec writes MessagePack
-    (the microcontroller format), so several topics can share a port (:class:`BarePort`)."""
-
-    def __init__(self, name: str | None, layout: Layout = LAYOUT_DEFAULT):
-        self.prefix = pack_name(name, layout) if name is not None else b""
-
-    def frame(self, route: TransmitRoute, payload: bytes, stamp: int, flags: int = 0) -> bytes:
-        return self.prefix + payload
 
 
-def max_wait_ns(topic: TopicConfig) -> int:
-    """How long (ns) a message may wait in the bridge's own buffers before it is dropped
-    ``too_late``: the topic's ``max_delay``; 0, none. Without it a best-effort topic's wait
-    there is bounded only once the queue stands behind (:attr:`Route.backlog`): a short
-    backlog waits for a bridge thread, which catches up with it; where the link is the
-    bottleneck, frames wait in its queue instead, shed by latest-only, its ``max_delay`` and
-    the scheduler."""
-    return int(1e9 * topic.max_delay) if topic.max_delay is not None else 0
-
-
-class TransmitRoute(Route):
+class TransmitRoute(Holding, Route):
     """ROS subscription -> link."""
 
     def __init__(self, topic: TopicConfig, topic_id: int, codec: Codec, keys: Keys,
@@ -383,13 +301,6 @@ class TransmitRoute(Route):
             return
         self._send(self._drain([message], DRAIN_FRAMES, DRAIN_BYTES))
 
-    def flush(self) -> None:
-        """The batch window closed: what came in it and everything waiting now leave together."""
-        messages, self.pending = self.pending, []
-        if self.take is not None and self.entity is not None:
-            messages = self._drain(messages, BATCH_FRAMES, BATCH_BYTES)
-        self._send(messages)
-
     def _drain(self, messages: list[Any], frames: int, size: int) -> list[Any]:
         """``messages`` and those waiting in the subscription after them, up to ``frames``
         messages or about ``size`` bytes of frames."""
@@ -441,20 +352,6 @@ class TransmitRoute(Route):
             counters.sent += sent
             counters.bytes_sent += size if sent == len(frames) else sum(map(len, frames[:sent]))
 
-    def _hold(self, hold: Holdback, messages: list[Any]) -> None:
-        """The far side is out of reach: ``hold`` keeps a reliable topic's messages and says
-        whether they go out now too (a datagram link's: the server may be up, only the main
-        line lost; and anything once the far side is back)."""
-        encoded = [got for got in map(self._encode, messages) if got is not None]
-        if hold.take(self, encoded, self.delivery.reliable, self.link.datagram):
-            self._hand(self._seal_all(encoded), self.destination())
-
-    def send_again(self, held: list[Held], again: bool) -> None:
-        """Messages that waited for the far side, sealed under the keys of now, sent in order
-        (``again``: copies of them went out before, and were counted sent)."""
-        self._hand(self._seal_all([(h.payload, h.flags, h.stamp) for h in held]),
-                   self.destination(), again)
-
     def _encode(self, message: Any) -> tuple[bytes, int, int] | None:
         """One message's payload, envelope flags and the time it was taken (ns), or None when
         it was dropped (counted)."""
@@ -488,26 +385,10 @@ class TransmitRoute(Route):
             self.drop(Drop.ENCODE_ERROR, f"{type(exc).__name__}: {exc}")
             return None
 
-    def _seal_all(self, encoded: list[tuple[bytes, int, int]]) -> list[bytes]:
-        return [frame for frame in (self._seal(*e) for e in encoded) if frame is not None]
-
     def _frame(self, message: Any) -> bytes | None:
         """One message framed, or None when it was dropped (counted)."""
         encoded = self._encode(message)
         return None if encoded is None else self._seal(*encoded)
-
-    @property
-    def queue_depth(self) -> int:
-        """Its messages waiting in the link, or being sent, or for the far side, now."""
-        held = self.hold.depth(self) if self.hold is not None and self.hold.down else 0
-        return self.link.queue_depth(self) + held
-
-    def close(self) -> None:
-        """The route is removed: what it queued goes (a message half sent is not finished)."""
-        self.pending.clear()  # an open window closes with nothing to send
-        self.link.forget(self)
-        if self.hold is not None:
-            self.hold.forget(self)
 
 
 class ReceiveRoute(Route):
@@ -560,25 +441,6 @@ class ReceiveRoute(Route):
                 header, payload, size) if agreed else self.refuse_type())):
             self.accept(header, payload, size, arrived)  # else: until the far side says its type
         return True
-
-    def _pace_release(self, went: int) -> None:
-        """Frames held for the far side's first word go on in a burst: after each history's
-        depth of them, wait until the subscribers acknowledged (at most ``matching.PACE_FOR``
-        in all), so a reliable keep-last publisher does not overwrite what a subscriber has not
-        got (a 37-frame release through a depth-10 publisher lost 30 of them)."""
-        from rclpy.qos import HistoryPolicy, ReliabilityPolicy
-
-        profile = getattr(self.entity, "qos_profile", None)
-        if profile is None or profile.reliability != ReliabilityPolicy.RELIABLE \
-                or profile.history != HistoryPolicy.KEEP_LAST or went % max(1, profile.depth):
-            return
-        now = time.monotonic()
-        if went == profile.depth:
-            self._pace_until = now + PACE_FOR
-        if now < self._pace_until:
-            from rclpy.duration import Duration
-
-            self.entity.wait_for_all_acked(Duration(nanoseconds=int(PACE_EACH * 1e9)))
 
     def accept(self, header: envelope.Header, payload: bytes, size: int,
                arrived: int = 0) -> None:
@@ -636,44 +498,3 @@ class ReceiveRoute(Route):
         self.last_received = time.monotonic()
         self.stale_warnings_given = 0
 
-
-class BarePort:
-    """The receiving topics of one port with ``framing: none``: told apart by the name in front
-    of each datagram when their codec writes MessagePack, else the port's only topic.
-    ``link_drop(link, reason, detail)`` counts a datagram that belongs to none of them."""
-
-    def __init__(self, named: bool, link_drop: Callable[[Link, Reason, str], None]):
-        self.named = named
-        self.link_drop = link_drop
-        self.routes: dict[str, ReceiveRoute] = {}
-        self.only: ReceiveRoute | None = None
-        self.calls_elsewhere = False
-
-    def leave_calls(self) -> None:
-        """Calls and answers on this line are served by entries of their own (a serial line
-        with calls): pass them over here, uncounted."""
-        self.calls_elsewhere = True
-
-    def add(self, route: ReceiveRoute, names: set[str]) -> None:
-        if self.named:
-            self.routes.update(dict.fromkeys(names, route))
-        else:
-            self.only = route
-
-    def on_frame(self, datagram: bytes, link: Link, source: Address) -> None:
-        if not self.named:
-            if self.only is not None:
-                self.only.deliver(datagram, len(datagram))
-            return
-        if self.calls_elsewhere and call_shaped(datagram):
-            return
-        try:
-            name, rest = split_name(datagram)
-        except NameMissing as exc:
-            self.link_drop(link, Drop.UNNAMED_FRAME, f"{len(datagram)} bytes from {source}: {exc}")
-            return
-        route = self.routes.get(name)
-        if route is None:
-            self.link_drop(link, Drop.UNKNOWN_TOPIC, f"name {name!r} from {source}")
-            return
-        route.deliver(rest, len(datagram))
