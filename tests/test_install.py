@@ -29,6 +29,11 @@ def install_line() -> list[str]:
     return shlex.split(line.split("#")[0])[2:]
 
 
+# both tests of this module on one worker of make test (--dist loadgroup): the fixture below,
+# wheels built and installed, is made once per worker that runs one of them, a minute each time
+pytestmark = pytest.mark.xdist_group("install")
+
+
 @pytest.fixture(scope="module")
 def bare(tmp_path_factory) -> Path:
     """A virtual environment with what the README's install line installs, and nothing else."""
