@@ -46,7 +46,15 @@ def bare(tmp_path_factory) -> Path:
     return folder / "venv" / "bin"
 
 
-def test_the_install_line_installs_what_it_names_and_nothing_of_the_clone(bare):
+# one test of both, the install line's packages and the quickstart run from them: the fixture,
+# wheels built and installed (a minute), is made once per worker that runs a test of it
+def test_the_install_line_installs_what_it_names_and_the_quickstart_runs_from_it(
+        bare, tmp_path, domain, bridge, ros_side):
+    installs_what_it_names_and_nothing_of_the_clone(bare)
+    the_quickstart_runs_from_the_installed_wheels(bare, tmp_path, domain, bridge, ros_side)
+
+
+def installs_what_it_names_and_nothing_of_the_clone(bare: Path) -> None:
     listed = subprocess.run([str(bare / "python"), "-m", "pip", "list", "--format=freeze"],
                             capture_output=True, text=True, timeout=120, check=True).stdout
     names = {line.split("==")[0].lower().replace("_", "-") for line in listed.splitlines()}
@@ -60,7 +68,8 @@ def test_the_install_line_installs_what_it_names_and_nothing_of_the_clone(bare):
     assert where.startswith(str(bare.parent)), where  # the wheel's copy, not the clone's
 
 
-def test_the_quickstart_runs_from_the_installed_wheels(bare, tmp_path, domain, bridge, ros_side):
+def the_quickstart_runs_from_the_installed_wheels(bare: Path, tmp_path: Path, domain, bridge,
+                                                  ros_side) -> None:
     rosgate = str(bare / "rosgate")
     keys = {}
     for side, placeholder in (("base", "BASE_KEY"), ("robot1", "ROBOT1_KEY")):

@@ -1,6 +1,6 @@
 """A base that restarts loses nothing of what the robot sent meanwhile: the file a user writes
 (client/server, identities, the session's cipher), a topic with ROS's default QoS (reliable) at
-20 Hz for 30 s, the base bridge stopped 8 s into the stream and started again 10 s later, the
+20 Hz for 26 s, the base bridge stopped 4 s into the stream and started again 10 s later, the
 listener on the base kept alive throughout. Every message arrives at the listener, once, in
 order — over the default udp and over tcp, and with the base killed (SIGKILL) between two
 messages (the next one published once the robot has seen the base go: without
@@ -20,8 +20,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 RATE = 20          # messages a second
-SECONDS = 30       # of publishing: 600 messages
-STOP_AT = 8        # seconds into the stream when the base stops
+SECONDS = 26       # of publishing: 520 messages, 12 s of them after the base's restart
+STOP_AT = 4        # seconds into the stream when the base stops (80 crossed: the stream flows)
 DOWN = 10          # seconds it stays down
 COUNT = RATE * SECONDS
 

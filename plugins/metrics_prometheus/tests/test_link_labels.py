@@ -57,8 +57,9 @@ def test_reconnects_from_one_host_are_one_series_that_only_grows():
 
 def test_a_flood_of_hosts_cannot_grow_the_labels_without_bound():
     collector, registry, status = scrape([])
-    for n in range(MAX_LINK_LABELS + 50):
-        status["links"] = [link(f"main<-10.{n // 256}.{n % 256}.1:4000", 1)]
+    hosts = [f"main<-10.{n // 256}.{n % 256}.1:4000" for n in range(MAX_LINK_LABELS + 50)]
+    for first in range(0, len(hosts), 10):  # ten hosts come and go between two scrapes
+        status["links"] = [link(name, 1) for name in hosts[first:first + 10]]
         list(collector.collect())  # a scrape
     status["links"] = []
     found = samples(registry)
