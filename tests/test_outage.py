@@ -213,7 +213,9 @@ topics:
     far = server.routes()[0]
     assert wait_until(lambda: far.counters.received == 5, 15), (far.counters, mine.counters)
     assert far.counters.drops == {} and far.counters.lost == 0 and mine.counters.drops == {}
-    assert server.link_drops == {}
+    # the one thing the restarted server may drop: a hello of the client's old session, sent
+    # (or a port reconnected with it) before the client learnt that the server had restarted
+    assert set(server.link_drops) <= {"bad_hello"}, server.link_drops
 
 
 def test_a_client_between_two_connections_keeps_its_heartbeat_thread(engines, domain,
