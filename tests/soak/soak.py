@@ -331,6 +331,8 @@ def report(args, samples, base, counts: Counts, attacks: dict[str, int], server:
     lines.append("")
     lines.append("attacks: " + ", ".join(f"{v:,} {k}" for k, v in sorted(attacks.items())))
     lines.append("")
+    if failures:  # where it went: what both bridges (still running) counted for those topics
+        lines += counted([f.split(":")[0] for f in failures]) + [""]
     lines.append("PASS" if not failures else "FAIL: " + "; ".join(failures))
     text = "\n".join(lines)
     print(text)
@@ -340,6 +342,26 @@ def report(args, samples, base, counts: Counts, attacks: dict[str, int], server:
                                  for f in ("rss_mb", "fds", "threads")}}
          for t, p, snaps in samples], indent=0))
     return 0 if not failures else 1
+
+
+def counted(names: list[str]) -> list[str]:
+    """Each bridge's counters of the topics ``names`` (sent, received, lost, drops by reason)
+    and what its links dropped, as its status socket says them."""
+    from rosgate_top.client import StatusClient
+
+    out = []
+    for bridge in ("robot1", "base"):
+        try:
+            with StatusClient(bridge) as ask:
+                status = ask.status()
+        except Exception as exc:  # a bridge that no longer answers says so, in the report
+            out.append(f"{bridge}: no status ({type(exc).__name__}: {exc})")
+            continue
+        out += [f"{bridge} {e['name']} ({e['direction']}): sent {e['sent']}, received "
+                f"{e['received']}, lost {e.get('lost')}, drops {e['drops']}"
+                for e in status["entries"] if e["name"] in names]
+        out.append(f"{bridge} link drops: {status.get('link_drops')}")
+    return out
 
 
 if __name__ == "__main__":
