@@ -40,6 +40,28 @@ FRESH_HOLD = 0.1
 PERIOD_MAX = 1.0
 
 
+class Period:
+    """A topic's time between messages, smoothed (1/8 of each new gap, as TCP's SRTT) from when
+    each came in; a quiet spell counts for PERIOD_MAX at most. None until a second came."""
+
+    __slots__ = ("at", "value")
+
+    def __init__(self) -> None:
+        self.at: float | None = None  # when the latest message came in
+        self.value: float | None = None
+
+    def note(self, at: float) -> float | None:
+        """A message came in at ``at``: the period now."""
+        last = self.at
+        if last is None or at > last:
+            if last is not None:
+                gap = min(at - last, PERIOD_MAX)
+                value = self.value
+                self.value = gap if value is None else value + (gap - value) / 8
+            self.at = at
+        return self.value
+
+
 class Backlog:
     """Whether a best-effort topic sheds a message from a queue by its age, the way CoDel does:
     only a queue that stands, not one that comes and goes. Behind (a message older than
@@ -51,15 +73,14 @@ class Backlog:
     send queue's are :data:`LAG` and :data:`HOLD`; the bridge's own queues' (the
     subscription's, the receive buffer) :data:`FRESH` and :data:`FRESH_HOLD`."""
 
-    __slots__ = ("since", "last", "lag", "hold", "arrived", "period")
+    __slots__ = ("since", "last", "lag", "hold", "period")
 
     def __init__(self, lag: float = LAG, hold: float = HOLD) -> None:
         self.since: float | None = None  # when this spell behind began
         self.last = -hold  # when a message last waited longer than lag
         self.lag = lag
         self.hold = hold
-        self.arrived: float | None = None  # when the latest message seen came in
-        self.period = 0.0  # the topic's time between messages (smoothed)
+        self.period = Period()  # of the messages it judges
 
     def shedding(self, now: float) -> bool:
         """Whether, at ``now``, the queue stands behind and sheds (what ``rosgate top`` shows)."""
@@ -68,14 +89,8 @@ class Backlog:
 
     def shed(self, waited: float, now: float) -> bool:
         """Whether a message that waited ``waited`` seconds, leaving at ``now``, is shed."""
-        arrived = now - waited
-        if self.arrived is None:
-            self.arrived = arrived
-        elif arrived > self.arrived:  # (a gap of a quiet topic counts for PERIOD_MAX at most)
-            gap = min(arrived - self.arrived, PERIOD_MAX)
-            self.period += (gap - self.period) / 8 if self.period else gap
-            self.arrived = arrived
-        if waited <= self.lag or waited <= self.period:
+        period = self.period.note(now - waited)  # (every message: its gaps are the period)
+        if waited <= self.lag or period is not None and waited <= period:
             if self.since is not None and (now - self.since < self.hold
                                            or now - self.last >= self.hold):
                 self.since = None  # caught up: a stall's backlog is gone, or the overload is
@@ -155,8 +170,7 @@ class _Topic:
     since: float = 0.0     # when its next packet (of the message in progress) became due
     repaired: float = 0.0  # when its repairs were asked for
     backlog: Backlog | None = None
-    queued: float | None = None  # when its latest message was queued
-    period: float | None = None  # the time between its messages (smoothed; None: not known)
+    period: Period = field(default_factory=Period)  # of its messages, from their queue times
 
     def supersedes(self, message: Outgoing, busy: bool) -> Iterator[Outgoing]:
         """What ``message`` replaces of a latest-only topic's waiting messages: all of them
@@ -165,13 +179,10 @@ class _Topic:
         period (a newer one is due after each). One that waited less waits for the send thread
         to wake, not for the link: two images a 20 Hz camera handed over together both go on
         an idle link."""
-        now, last = message.queued, self.queued
-        if last is not None and now > last:
-            gap = min(now - last, PERIOD_MAX)
-            self.period = gap if self.period is None else self.period + (gap - self.period) / 8
-        self.queued = now if last is None else max(now, last)
+        now = message.queued
+        period = self.period.note(now)
         stale = 0.0 if busy or self.current is not None or self.packets else \
-            LAG if self.period is None else min(LAG, self.period)
+            LAG if period is None else min(LAG, period)
         waiting = self.waiting
         while waiting and now - waiting[0].queued >= stale:
             yield waiting.popleft()

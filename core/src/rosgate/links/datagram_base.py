@@ -130,16 +130,21 @@ class DatagramBase(_SendingBase):
                 return
             down = now - self._gone_at
         # their clocks pushed on before a timer runs again (none runs while the line is gone)
-        for packetizer in list(self._by_name.values()):
-            try:
-                packetizer.resumed(down, now)
-            except Exception:
-                BUGS.bug("packetizer_error", f"{self.name}: packetizer {packetizer.name} could "
-                                             "not resume after the line's outage (a plugin bug)")
+        self._tell_packetizers(lambda p: p.resumed(down, now), "resume after the line's outage")
         with self._wake:
             self.line_up = True
             self._tx_timer = now
             self._wake.notify_all()
+
+    def _tell_packetizers(self, tell: Callable[[Packetizer], None], failed: str) -> None:
+        """``tell`` each of its packetizers what happened; one that raises is a plugin's bug
+        (logged once a minute), and the others are still told."""
+        for packetizer in list(self._by_name.values()):
+            try:
+                tell(packetizer)
+            except Exception:
+                BUGS.bug("packetizer_error", f"{self.name}: packetizer {packetizer.name} could "
+                                             f"not {failed} (a plugin bug)")
 
     def packetizer(self, name: str) -> Packetizer:
         """The link's packetizer of that name, made on first use."""
@@ -176,12 +181,7 @@ class DatagramBase(_SendingBase):
     def moved(self, old: Address, new: Address) -> None:
         """The far side at ``old`` is at ``new`` now (a roam): its packetizers send what they
         keep for it there, their timers run at once."""
-        for packetizer in list(self._by_name.values()):
-            try:
-                packetizer.moved(old, new)
-            except Exception:
-                BUGS.bug("packetizer_error", f"{self.name}: packetizer {packetizer.name} could "
-                                             "not follow a far side that moved (a plugin bug)")
+        self._tell_packetizers(lambda p: p.moved(old, new), "follow a far side that moved")
         with self._wake:
             self._tx_timer = time.monotonic()
             self._wake.notify_all()
